@@ -1,0 +1,44 @@
+"""quadobs: state estimation for linear systems with quadratic outputs.
+
+The estimator core (this package's top level) needs only NumPy and SciPy:
+
+* :class:`QuadraticSystem`: ``x' = A x + B u``, ``y_h = 1/2 x^T C_h x + d_h^T x``;
+* :func:`immerse`: the immersion into a state-affine system with linear output
+  (``003_65f070b2762e6d70.txt`` Algorithm 1; the single-output chain of
+  ``000_f34cd1199256bdad.txt`` via ``method="chain"``);
+* :class:`AugmentedObserver`: the Kalman-type observer of Theorem 3 of
+  ``000_f34cd1199256bdad.txt``, discretised exactly for a held input.
+
+The MuJoCo testbed (:mod:`quadobs.testbed`), the rerun recording layer
+(:mod:`quadobs.recording`) and the episode runner (:mod:`quadobs.runner`) sit on top and
+are imported only when used.
+"""
+
+from .discretize import HeldInputDiscretization
+from .errors import QuadobsError
+from .immersion import Immersion, immerse, immerse_chain, immerse_minimal
+from .observer import AugmentedObserver, Estimator
+from .scenario import Scenario, list_scenarios, load_scenario
+from .system import QuadraticSystem, range_outputs, vehicle_system, wind_system
+from .trajectory import SinusoidTrajectory
+
+__version__ = "0.1.0"
+
+__all__ = [
+    "AugmentedObserver",
+    "Estimator",
+    "HeldInputDiscretization",
+    "Immersion",
+    "QuadobsError",
+    "QuadraticSystem",
+    "Scenario",
+    "SinusoidTrajectory",
+    "immerse",
+    "immerse_chain",
+    "immerse_minimal",
+    "list_scenarios",
+    "load_scenario",
+    "range_outputs",
+    "vehicle_system",
+    "wind_system",
+]

@@ -1,0 +1,140 @@
+"""The ``quadobs`` command line.
+
+``quadobs run SCENARIO --out PATH.rrd --summary PATH.json`` runs one episode headless and
+prints a summary table; ``quadobs list`` names the built-in scenarios. Errors in the
+input (a bad scenario field, an unwritable path) print one line naming the problem and
+exit with status 2; Ctrl-C stops a run after closing its recording (status 130).
+"""
+
+from __future__ import annotations
+
+import argparse
+import signal
+import sys
+from pathlib import Path
+
+from .errors import QuadobsError
+
+__all__ = ["main"]
+
+
+def _fmt(value, unit: str = "", digits: int = 4) -> str:
+    if value is None:
+        return "never"
+    if isinstance(value, float):
+        return f"{value:.{digits}g}{unit}"
+    return f"{value}{unit}"
+
+
+def print_summary(summary: dict, file=sys.stdout) -> None:
+    """A compact table of the summary: one row per estimator."""
+    head = (
+        f"scenario {summary['scenario']}: {summary['physics_steps']} steps, {summary['duration']:.3g} s simulated, "
+        f"{summary['steps_per_second']:.0f} steps/s"
+        + ("  [INTERRUPTED]" if summary.get("interrupted") else "")
+    )
+    print(head, file=file)
+    cols = ["estimator", "aux", "|e_p| end (m)", "|e_v| end (m/s)", "t(|e_p|<1m)", "t(|e_p|<0.1m)"]
+    wind = any("final_wind_error" in e for e in summary["estimators"].values())
+    if wind:
+        cols.append("|e_w| end (m/s)")
+    rows = []
+    for name, e in summary["estimators"].items():
+        im = e.get("immersion")
+        aux = f"{im['n_aux']}/{im['naive_aux']}" if im else "-"
+        row = [
+            name,
+            aux,
+            _fmt(e["final_position_error"]),
+            _fmt(e["final_velocity_error"]),
+            _fmt(e["time_to_1m"], " s"),
+            _fmt(e["time_to_0p1m"], " s"),
+        ]
+        if wind:
+            row.append(_fmt(e.get("final_wind_error")))
+        rows.append(row)
+    widths = [max(len(c), *(len(r[i]) for r in rows)) for i, c in enumerate(cols)]
+    print("  ".join(c.ljust(w) for c, w in zip(cols, widths)), file=file)
+    for r in rows:
+        print("  ".join(v.ljust(w) for v, w in zip(r, widths)), file=file)
+    if summary.get("recording"):
+        print(f"recording: {summary['recording']}  (open with: rerun {summary['recording']})", file=file)
+
+
+def _cmd_list(args) -> int:
+    from .scenario import list_scenarios
+
+    for name, desc in list_scenarios().items():
+        print(f"{name:16s} {desc}")
+    return 0
+
+
+def _estimator_list(text: str | None) -> list[str] | None:
+    if text is None:
+        return None
+    names = [n.strip() for n in text.split(",") if n.strip()]
+    if not names:
+        raise QuadobsError("--estimators: give at least one name")
+    return names
+
+
+def _cmd_run(args) -> int:
+    from .runner import run_episode
+    from .scenario import load_scenario
+
+    scenario = load_scenario(args.scenario, duration=args.duration, seed=args.seed)
+    result = run_episode(
+        scenario,
+        estimators=_estimator_list(args.estimators),
+        out=args.out,
+        summary_path=args.summary,
+        progress=not args.no_progress,
+    )
+    print_summary(result.summary)
+    if args.summary:
+        print(f"summary: {args.summary}")
+    return 130 if result.summary.get("interrupted") else 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="quadobs", description="State estimation for systems with quadratic outputs: a MuJoCo testbed.")
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    p = sub.add_parser("list", help="name the built-in scenarios")
+    p.set_defaults(func=_cmd_list)
+
+    p = sub.add_parser("run", help="run one episode headless, record it and print a summary")
+    p.add_argument("scenario", help="built-in scenario name (see 'quadobs list') or path to a scenario .toml")
+    p.add_argument("--out", type=Path, help="recording to write (.rrd)")
+    p.add_argument("--summary", type=Path, help="JSON summary to write")
+    p.add_argument("--duration", type=float, help="override the scenario duration (s)")
+    p.add_argument("--seed", type=int, help="override the scenario seed")
+    p.add_argument("--estimators", help="comma-separated estimator names (default: augmented and the scenario's variants)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.set_defaults(func=_cmd_run)
+    return parser
+
+
+def _sigterm_as_interrupt(signum, frame):  # pragma: no cover - exercised by a subprocess test
+    raise KeyboardInterrupt
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        signal.signal(signal.SIGTERM, _sigterm_as_interrupt)
+    except ValueError:  # not in the main thread
+        pass
+    try:
+        return args.func(args)
+    except QuadobsError as exc:
+        print(f"quadobs: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("quadobs: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,81 @@
+"""The project's error type and the small validators every public entry point uses.
+
+Every malformed input (a wrong shape, a non-finite number, an unmet assumption, a
+bad scenario field, a missing MJCF element) raises :class:`QuadobsError`, a
+``ValueError`` subclass whose message names the offending field and the problem.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+__all__ = ["QuadobsError", "as_array", "as_finite_scalar"]
+
+
+class QuadobsError(ValueError):
+    """Bad input to quadobs: the message names the field and what is wrong with it."""
+
+
+def as_array(
+    name: str,
+    value: Any,
+    shape: tuple[int | None, ...] | None = None,
+    *,
+    ndim: int | None = None,
+    allow_nan: bool = False,
+) -> np.ndarray:
+    """Convert ``value`` to a float64 array and check its shape and finiteness.
+
+    Parameters
+    ----------
+    name : str
+        Field name used in error messages.
+    value : array_like
+        The value to convert.
+    shape : tuple of int or None, optional
+        Expected shape; ``None`` entries match any size.
+    ndim : int, optional
+        Expected number of dimensions (when ``shape`` is not given).
+    allow_nan : bool
+        Accept NaN entries (used for missing measurements); infinities are always refused.
+
+    Raises
+    ------
+    QuadobsError
+        If the value is not numeric, has the wrong shape, or holds non-finite numbers.
+    """
+    try:
+        arr = np.array(value, dtype=float)
+    except (TypeError, ValueError) as exc:
+        raise QuadobsError(f"{name}: expected a numeric array, got {type(value).__name__} ({exc})") from None
+    if shape is not None:
+        ok = arr.ndim == len(shape) and all(s is None or s == a for s, a in zip(shape, arr.shape))
+        if not ok:
+            want = "(" + ", ".join("any" if s is None else str(s) for s in shape) + ("," if len(shape) == 1 else "") + ")"
+            raise QuadobsError(f"{name}: expected shape {want}, got {arr.shape}")
+    elif ndim is not None and arr.ndim != ndim:
+        raise QuadobsError(f"{name}: expected a {ndim}-D array, got shape {arr.shape}")
+    bad = np.isinf(arr) if allow_nan else ~np.isfinite(arr)
+    if bad.any():
+        idx = tuple(int(i) for i in np.argwhere(bad)[0])
+        raise QuadobsError(f"{name}: holds a non-finite value ({arr[idx]}) at index {idx}")
+    return arr
+
+
+def as_finite_scalar(name: str, value: Any, *, positive: bool = False, nonnegative: bool = False) -> float:
+    """Convert ``value`` to a finite float, optionally requiring a sign."""
+    if isinstance(value, bool):
+        raise QuadobsError(f"{name}: expected a number, got a boolean")
+    try:
+        x = float(value)
+    except (TypeError, ValueError):
+        raise QuadobsError(f"{name}: expected a number, got {value!r}") from None
+    if not np.isfinite(x):
+        raise QuadobsError(f"{name}: must be finite, got {x}")
+    if positive and not x > 0:
+        raise QuadobsError(f"{name}: must be positive, got {x}")
+    if nonnegative and x < 0:
+        raise QuadobsError(f"{name}: must be non-negative, got {x}")
+    return x

@@ -1,0 +1,16 @@
+"""The recording layer: buffered columns to rerun ``.rrd`` files, the default blueprint, reading back (imports rerun)."""
+
+from .episode import EpisodeLog, default_blueprint
+from .reader import list_entities, read_series, read_text_log
+from .recorder import Recorder, Series, check_writable
+
+__all__ = [
+    "EpisodeLog",
+    "Recorder",
+    "Series",
+    "check_writable",
+    "default_blueprint",
+    "list_entities",
+    "read_series",
+    "read_text_log",
+]

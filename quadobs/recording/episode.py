@@ -1,0 +1,165 @@
+"""The layout of an episode's recording: entity paths, their series and the default blueprint.
+
+Entity paths (timelines ``step`` and ``sim_time``; ``<est>`` is an estimator name such
+as ``augmented``):
+
+=====================================  =========================================================
+``world/beacons``                      beacon positions (static points, labelled)
+``world/truth/path``                   true position, a point per recorded 3-D frame (trail)
+``world/truth/vehicle``                true vehicle: a box moved by its ``Transform3D``
+``world/estimates/<est>/path``         estimated position trail
+``world/estimates/<est>/vehicle``      estimated vehicle (box)
+``errors/<est>/position/norm``         ``|p_hat - p|`` (m)
+``errors/<est>/position/axes``         ``p_hat - p`` per axis (m)
+``errors/<est>/velocity/norm``, /axes  ground-velocity error (m/s)
+``errors/<est>/wind/norm``, /axes      wind error (wind scenarios)
+``wind/truth``, ``wind/<est>``         true and estimated wind (wind scenarios)
+``measurements/range/<h>``             measured range to beacon ``h`` (m), at its sample times
+``measurements/airspeed``              measured airspeed (m/s), wind scenarios
+``measurements/accelerometer``         measured acceleration (m/s^2)
+``observer/<est>/covariance_trace``    trace of the estimator covariance
+``observer/<est>/nis``                 normalised innovation squared (at corrections)
+``events``                             text log (warnings, interruption)
+=====================================  =========================================================
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import rerun as rr
+import rerun.blueprint as rrb
+
+from ..scenario import Scenario
+from .recorder import Recorder
+
+__all__ = ["EpisodeLog", "default_blueprint"]
+
+_PALETTE = [(230, 90, 40), (40, 160, 90), (150, 60, 200), (200, 170, 30), (30, 150, 200)]
+_TRUTH = (40, 90, 220)
+
+
+def default_blueprint(scenario: Scenario, estimators: list[str]) -> rrb.Blueprint:
+    """3-D view of the vehicle, beacons and trails beside time series of errors, measurements and covariance."""
+    history = rrb.VisibleTimeRange(
+        "sim_time", start=rrb.TimeRangeBoundary.infinite(), end=rrb.TimeRangeBoundary.cursor_relative()
+    )
+    plots = [
+        rrb.TimeSeriesView(name="Position error (m)", contents=[f"/errors/{e}/position/**" for e in estimators]),
+        rrb.TimeSeriesView(name="Velocity error (m/s)", contents=[f"/errors/{e}/velocity/**" for e in estimators]),
+    ]
+    if scenario.has_wind:
+        plots.append(rrb.TimeSeriesView(name="Wind (m/s)", origin="/wind"))
+    plots += [
+        rrb.TimeSeriesView(name="Measurements", origin="/measurements"),
+        rrb.TimeSeriesView(name="Covariance trace, NIS", origin="/observer"),
+    ]
+    return rrb.Blueprint(
+        rrb.Horizontal(
+            rrb.Vertical(
+                rrb.Spatial3DView(name="Vehicle, beacons, trajectories", origin="/world", time_ranges=[history]),
+                rrb.TextLogView(name="Events", origin="/events"),
+                row_shares=[4, 1],
+            ),
+            rrb.Vertical(*plots),
+            column_shares=[3, 2],
+        ),
+        collapse_panels=False,
+    )
+
+
+class EpisodeLog:
+    """Declares an episode's series on a :class:`Recorder` and writes one row per recorded step.
+
+    Parameters
+    ----------
+    recorder : Recorder
+    scenario : Scenario
+    estimators : list of str
+    trail_every : int
+        Physics steps between 3-D samples (trails and vehicle boxes).
+    """
+
+    def __init__(self, recorder: Recorder, scenario: Scenario, estimators: list[str], *, trail_every: int) -> None:
+        self.rec = recorder
+        self.sc = scenario
+        self.names = list(estimators)
+        dim = scenario.dimension
+        axes = ["x", "y", "z"][:dim]
+        r = recorder
+        beacons3 = np.zeros((scenario.beacons.shape[0], 3))
+        beacons3[:, :dim] = scenario.beacons
+        r.static(
+            "world/beacons",
+            rr.Points3D(beacons3, radii=0.6, colors=[(255, 140, 0)], labels=[f"beacon {h}" for h in range(len(beacons3))]),
+        )
+        r.static("description", rr.TextDocument(f"{scenario.name}: {scenario.description}"))
+        self.truth_path = r.series("world/truth/path", 3, "points3d", every=trail_every, color=_TRUTH, radius=0.15)
+        self.truth_box = r.series("world/truth/vehicle", 3, "translation", every=trail_every, color=_TRUTH, half_size=(0.6, 0.4, 0.15))
+        self.est = {}
+        for i, name in enumerate(self.names):
+            color = _PALETTE[i % len(_PALETTE)]
+            s = {
+                "path": r.series(f"world/estimates/{name}/path", 3, "points3d", every=trail_every, color=color, radius=0.12),
+                "box": r.series(f"world/estimates/{name}/vehicle", 3, "translation", every=trail_every, color=color, half_size=(0.5, 0.35, 0.12)),
+                "pos_norm": r.series(f"errors/{name}/position/norm", 1, names=[f"{name} |e_p|"], color=color),
+                "pos_axes": r.series(f"errors/{name}/position/axes", dim, names=[f"{name} e_{a}" for a in axes]),
+                "vel_norm": r.series(f"errors/{name}/velocity/norm", 1, names=[f"{name} |e_v|"], color=color),
+                "vel_axes": r.series(f"errors/{name}/velocity/axes", dim, names=[f"{name} e_v{a}" for a in axes]),
+                "trace": r.series(f"observer/{name}/covariance_trace", 1, names=[f"{name} tr P"], color=color),
+                "nis": r.series(f"observer/{name}/nis", 1, skip_nan=True, names=[f"{name} NIS"]),
+            }
+            if scenario.has_wind:
+                s["wind_norm"] = r.series(f"errors/{name}/wind/norm", 1, names=[f"{name} |e_w|"], color=color)
+                s["wind_axes"] = r.series(f"errors/{name}/wind/axes", dim, names=[f"{name} e_w{a}" for a in axes])
+                s["wind"] = r.series(f"wind/{name}", dim, names=[f"{name} w_{a}" for a in axes], color=color)
+            self.est[name] = s
+        if scenario.has_wind:
+            self.wind_truth = r.series("wind/truth", dim, names=[f"true w_{a}" for a in axes], color=_TRUTH)
+            self.airspeed = r.series("measurements/airspeed", 1, skip_nan=True, names=["airspeed"])
+        self.ranges = [
+            r.series(f"measurements/range/{h}", 1, skip_nan=True, names=[f"range {h}"]) for h in range(scenario.beacons.shape[0])
+        ]
+        self.accel = r.series("measurements/accelerometer", dim, names=[f"a_{a}" for a in axes])
+
+    def write(
+        self,
+        step: int,
+        time: float,
+        truth_p: np.ndarray,
+        truth_wind: np.ndarray | None,
+        errors: dict[str, dict[str, np.ndarray]],
+        estimates: dict[str, np.ndarray],
+        traces: dict[str, float],
+        nis: dict[str, float],
+        ranges: np.ndarray | None,
+        airspeed: float | None,
+        accel: np.ndarray | None,
+    ) -> None:
+        """Write the row of ``step`` (see the module docstring for what goes where)."""
+        i = self.rec.row(step, time)
+        dim = self.sc.dimension
+        self.truth_path.buf[i, :dim] = truth_p
+        self.truth_box.buf[i, :dim] = truth_p
+        for name, s in self.est.items():
+            e = errors[name]
+            xh = estimates[name]
+            s["path"].buf[i, :dim] = xh[:dim]
+            s["box"].buf[i, :dim] = xh[:dim]
+            ep, ev = e["position"], e["velocity"]
+            s["pos_axes"].buf[i] = ep
+            s["pos_norm"].buf[i, 0] = np.sqrt(ep @ ep)
+            s["vel_axes"].buf[i] = ev
+            s["vel_norm"].buf[i, 0] = np.sqrt(ev @ ev)
+            s["trace"].buf[i, 0] = traces[name]
+            s["nis"].buf[i, 0] = nis[name]
+            if "wind" in s:
+                ew = e["wind"]
+                s["wind_axes"].buf[i] = ew
+                s["wind_norm"].buf[i, 0] = np.sqrt(ew @ ew)
+                s["wind"].buf[i] = xh[2 * dim :]
+        if self.sc.has_wind:
+            self.wind_truth.buf[i] = truth_wind
+            self.airspeed.buf[i, 0] = np.nan if airspeed is None else airspeed
+        for h, series in enumerate(self.ranges):
+            series.buf[i, 0] = np.nan if ranges is None else ranges[h]
+        self.accel.buf[i] = np.nan if accel is None else accel

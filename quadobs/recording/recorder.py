@@ -1,0 +1,203 @@
+"""Buffered, columnar writing of per-step values to a rerun recording (``.rrd``).
+
+Logging row by row costs about 100 µs a row; sending columns costs well under a
+microsecond a row. A :class:`Recorder` keeps one preallocated buffer per series, the
+caller writes each step's values into the current row, and every ``capacity`` rows the
+buffers go out with ``send_columns`` on two timelines, ``step`` (sequence) and
+``sim_time`` (duration), and the file is flushed. :meth:`Recorder.close` sends what is
+left and writes the file's footer, so a run stopped by an exception or Ctrl-C still
+leaves a complete file holding every step up to the stop.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import rerun as rr
+
+from ..errors import QuadobsError
+
+__all__ = ["Recorder", "Series", "check_writable"]
+
+_KINDS = ("scalars", "points3d", "translation")
+
+
+def check_writable(path: str | Path) -> Path:
+    """Fail early (before any simulation) if ``path`` cannot be written.
+
+    Creates the parent folder if needed and probes it with a temporary file.
+    """
+    path = Path(path)
+    if path.is_dir():
+        raise QuadobsError(f"output path {str(path)!r}: is a directory, expected a file name")
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        probe = path.parent / f".{path.name}.probe"
+        probe.write_bytes(b"")
+        probe.unlink()
+    except OSError as exc:
+        raise QuadobsError(f"output path {str(path)!r}: cannot be written ({exc.strerror})") from None
+    return path
+
+
+@dataclass(eq=False)
+class Series:
+    """One entity's buffered per-step values.
+
+    ``kind`` is ``"scalars"`` (one line per column), ``"points3d"`` (one point per row)
+    or ``"translation"`` (the entity's ``Transform3D`` translation; a static box drawn at
+    the entity then moves with it, latest-at, while point trails show history). ``every`` sends one row in ``every``
+    (aligned on the step index); ``skip_nan`` drops rows holding NaN (a sensor that did
+    not sample that step).
+    """
+
+    entity: str
+    width: int
+    kind: str
+    every: int
+    skip_nan: bool
+    buf: np.ndarray = field(repr=False)
+
+
+class Recorder:
+    """Column-buffered writer of one episode to an ``.rrd`` file.
+
+    Parameters
+    ----------
+    path : str or Path
+        Output file (``.rrd``).
+    recording_id : str
+        Fixed id of the recording (derived from scenario and seed by the runner), so the
+        same run gives the same id.
+    blueprint : rerun blueprint, optional
+        Default layout stored in the file.
+    capacity : int
+        Rows buffered between sends.
+    application_id : str
+    """
+
+    def __init__(
+        self,
+        path: str | Path,
+        *,
+        recording_id: str,
+        blueprint=None,
+        capacity: int = 4096,
+        application_id: str = "quadobs",
+    ) -> None:
+        self.path = check_writable(path)
+        self.capacity = int(capacity)
+        self.rec = rr.RecordingStream(application_id, recording_id=recording_id)
+        self.rec.save(str(self.path), default_blueprint=blueprint)
+        self.series_list: list[Series] = []
+        self._steps = np.zeros(self.capacity, dtype=np.int64)
+        self._times = np.zeros(self.capacity)
+        self.n = 0
+        self.rows_sent = 0
+        self.closed = False
+
+    # -- declaration ---------------------------------------------------------------
+
+    def series(
+        self,
+        entity: str,
+        width: int,
+        kind: str = "scalars",
+        *,
+        every: int = 1,
+        skip_nan: bool = False,
+        names: list[str] | None = None,
+        color: tuple[int, int, int] | None = None,
+        radius: float | None = None,
+        half_size: tuple[float, float, float] | None = None,
+    ) -> Series:
+        """Declare a buffered series; its static styling (names, colour, size) is logged once."""
+        if kind not in _KINDS:
+            raise QuadobsError(f"kind: expected one of {_KINDS}, got {kind!r}")
+        s = Series(entity, width, kind, max(int(every), 1), skip_nan, np.zeros((self.capacity, width)))
+        self.series_list.append(s)
+        if kind == "scalars" and (names or color):
+            kw = {}
+            if names:
+                kw["names"] = names
+            if color:
+                kw["colors"] = [color] * width
+            self.rec.log(entity, rr.SeriesLines(**kw), static=True)
+        elif kind == "points3d" and (color or radius):
+            self.rec.log(entity, rr.Points3D.from_fields(colors=color, radii=radius), static=True)
+        elif kind == "translation":
+            self.rec.log(
+                entity,
+                rr.Boxes3D(half_sizes=[half_size or (0.5, 0.5, 0.5)], colors=[color] if color else None),
+                static=True,
+            )
+        return s
+
+    def static(self, entity: str, archetype) -> None:
+        """Log a static (timeless) archetype, e.g. beacon positions or a description."""
+        self.rec.log(entity, archetype, static=True)
+
+    def text(self, entity: str, message: str, *, level: str = "INFO", step: int, time: float) -> None:
+        """Log one text message at a given step (rare events: warnings, interruptions)."""
+        self.rec.set_time("step", sequence=int(step))
+        self.rec.set_time("sim_time", duration=float(time))
+        self.rec.log(entity, rr.TextLog(message, level=level))
+        self.rec.reset_time()
+
+    # -- per-step ------------------------------------------------------------------
+
+    def row(self, step: int, time: float) -> int:
+        """Start a new row for ``step`` at ``time`` (s); returns its index into every ``Series.buf``."""
+        if self.n == self.capacity:
+            self.flush()
+        i = self.n
+        self._steps[i] = step
+        self._times[i] = time
+        self.n = i + 1
+        return i
+
+    def flush(self) -> None:
+        """Send the buffered rows as columns and flush the file."""
+        n = self.n
+        if n:
+            steps, times = self._steps[:n], self._times[:n]
+            for s in self.series_list:
+                sel = slice(None)
+                if s.every > 1:
+                    sel = np.flatnonzero(steps % s.every == 0)
+                vals = s.buf[:n][sel]
+                st, tm = steps[sel], times[sel]
+                if s.skip_nan:
+                    keep = ~np.isnan(vals).any(axis=1)
+                    vals, st, tm = vals[keep], st[keep], tm[keep]
+                if not len(st):
+                    continue
+                idx = [rr.TimeColumn("step", sequence=st), rr.TimeColumn("sim_time", duration=tm)]
+                if s.kind == "scalars":
+                    cols = rr.Scalars.columns(scalars=vals)
+                elif s.kind == "points3d":
+                    cols = rr.Points3D.columns(positions=vals)
+                else:
+                    cols = rr.Transform3D.columns(translation=vals)
+                self.rec.send_columns(s.entity, indexes=idx, columns=cols)
+            self.rows_sent += n
+            self.n = 0
+        self.rec.flush()
+
+    def close(self) -> None:
+        """Send what is buffered and finish the file (footer included); idempotent."""
+        if self.closed:
+            return
+        try:
+            self.flush()
+        finally:
+            self.rec.disconnect()
+            self.closed = True
+
+    def __enter__(self) -> "Recorder":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()

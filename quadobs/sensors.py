@@ -1,0 +1,139 @@
+"""The sensor layer: exact readings in, what the estimators receive out.
+
+Turns ranges, airspeed and accelerometer readings into the outputs of the
+quadratic-output system and the measured input, applying the scenario's noise, sample
+rates, dropouts and outliers:
+
+* range ``h``: ``rho~ = rho + n``, ``y_h = rho~^2 / 2 - |a_h|^2 / 2`` (see
+  :func:`quadobs.system.vehicle_system`);
+* airspeed: ``s~ = s + n``, ``y = s~^2 / 2``;
+* accelerometer: ``u~ = u + n``.
+
+A sample that is not taken (rate below the physics rate) or dropped is NaN, which the
+estimators read as "predict only". Random draws come from independent streams spawned
+from the scenario seed, drawn in fixed-size blocks, so a seed gives the same
+measurements whatever else the run does.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .scenario import Scenario
+
+__all__ = ["SensorModel", "initial_guess", "spawn_streams"]
+
+_BLOCK = 4096
+_STREAMS = ("initial", "range", "accel", "airspeed", "dropout", "outlier", "outlier_size", "spare")
+
+
+def spawn_streams(seed: int) -> dict[str, np.random.Generator]:
+    """Named, independent random generators derived from ``seed`` (fixed order)."""
+    children = np.random.SeedSequence(seed).spawn(len(_STREAMS))
+    return {name: np.random.default_rng(child) for name, child in zip(_STREAMS, children)}
+
+
+class _Draws:
+    """Standard normal (or uniform) rows drawn in blocks of a fixed size."""
+
+    def __init__(self, rng: np.random.Generator, width: int, kind: str = "normal") -> None:
+        self.rng, self.width, self.kind = rng, width, kind
+        self.i = _BLOCK
+
+    def next(self) -> np.ndarray:
+        if self.i == _BLOCK:
+            if self.kind == "normal":
+                self.block = self.rng.standard_normal((_BLOCK, self.width))
+            else:
+                self.block = self.rng.random((_BLOCK, self.width))
+            self.i = 0
+        row = self.block[self.i]
+        self.i += 1
+        return row
+
+
+class SensorModel:
+    """Noise, rates, dropouts and outliers of a scenario (see the module docstring).
+
+    Parameters
+    ----------
+    scenario : Scenario
+    streams : dict of Generator, optional
+        From :func:`spawn_streams`; derived from ``scenario.seed`` when omitted.
+    """
+
+    def __init__(self, scenario: Scenario, streams: dict[str, np.random.Generator] | None = None) -> None:
+        s = streams or spawn_streams(scenario.seed)
+        noise = scenario.noise
+        self.q_b = scenario.beacons.shape[0]
+        self.has_wind = scenario.has_wind
+        self.q = self.q_b + (1 if self.has_wind else 0)
+        self._beacon_term = 0.5 * np.einsum("hi,hi->h", scenario.beacons, scenario.beacons)
+        self.range_every = scenario.sample_interval(noise.range_rate, "range_rate")
+        self.airspeed_every = scenario.sample_interval(noise.airspeed_rate, "airspeed_rate")
+        self.range_std, self.accel_std, self.airspeed_std = noise.range_std, noise.accel_std, noise.airspeed_std
+        self.dropout = noise.dropout
+        self.outlier_probability, self.outlier_std = noise.outlier_probability, noise.outlier_std
+        self._range = _Draws(s["range"], self.q_b)
+        self._accel = _Draws(s["accel"], scenario.dimension)
+        self._air = _Draws(s["airspeed"], 1)
+        self._drop = _Draws(s["dropout"], self.q, "uniform")
+        self._out = _Draws(s["outlier"], self.q_b, "uniform")
+        self._out_size = _Draws(s["outlier_size"], self.q_b)
+        self.measured_ranges = np.full(self.q_b, np.nan)
+        self.outliers_injected = 0
+        self.dropped = 0
+        self._y = np.full(self.q, np.nan)
+
+    @property
+    def range_period_steps(self) -> int:
+        return self.range_every
+
+    def outputs(self, k: int, ranges: np.ndarray, airspeed: float | None = None) -> np.ndarray:
+        """The output vector ``y (q,)`` for physics step ``k`` (NaN where no sample).
+
+        Also leaves the noisy ranges in :attr:`measured_ranges` (NaN where no sample).
+        """
+        y = self._y
+        y[:] = np.nan
+        self.measured_ranges[:] = np.nan
+        if k % self.range_every == 0:
+            rho = ranges + self.range_std * self._range.next() if self.range_std else ranges.copy()
+            if self.outlier_probability:
+                hit = self._out.next() < self.outlier_probability
+                size = self._out_size.next()
+                if hit.any():
+                    rho = rho + np.where(hit, self.outlier_std * size, 0.0)
+                    self.outliers_injected += int(hit.sum())
+            self.measured_ranges[:] = rho
+            y[: self.q_b] = 0.5 * rho * rho - self._beacon_term
+        if self.has_wind and airspeed is not None and k % self.airspeed_every == 0:
+            s = airspeed + (self.airspeed_std * self._air.next()[0] if self.airspeed_std else 0.0)
+            y[self.q_b] = 0.5 * s * s
+        if self.dropout:
+            lost = (self._drop.next() < self.dropout) & ~np.isnan(y)
+            if lost.any():
+                y[lost] = np.nan
+                self.measured_ranges[lost[: self.q_b]] = np.nan
+                self.dropped += int(lost.sum())
+        return y
+
+    def input(self, accel: np.ndarray) -> np.ndarray:
+        """The measured input: the accelerometer reading plus its noise."""
+        if self.accel_std:
+            return accel + self.accel_std * self._accel.next()
+        return accel
+
+
+def initial_guess(scenario: Scenario, truth0: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """The initial estimate of the scenario's state (:class:`~quadobs.scenario.InitialGuess`)."""
+    init = scenario.initial
+    n = truth0.shape[0]
+    if init.kind == "zero":
+        return np.zeros(n)
+    if init.kind == "point":
+        return np.array(init.point, dtype=float)
+    dim = scenario.dimension
+    spread = np.full(n, init.velocity_spread)
+    spread[:dim] = init.position_spread
+    return truth0 + spread * rng.standard_normal(n)

@@ -1,0 +1,115 @@
+"""MuJoCo ground truth: the vehicle driven by a commanded acceleration, and its raw sensors.
+
+One :meth:`VehicleSim.step` is one ``mj_step``. MuJoCo computes the sensors inside
+``mj_step`` *before* integrating, so after the call ``sensordata`` describes the state
+at the start of the step: the ranges ``rho_h(t_k)``, the accelerometer reading for the
+control held over ``[t_k, t_k + dt)`` and the velocity at ``t_k``, while ``qpos``/``qvel``
+hold the state at ``t_{k+1}``. The estimators consume exactly this: the output sampled at
+``t_k`` and the input held over the step, and produce an estimate at ``t_{k+1}``.
+"""
+
+from __future__ import annotations
+
+import mujoco
+import numpy as np
+
+from ..errors import QuadobsError, as_array
+from .model import VehicleModel, load_vehicle_model
+
+__all__ = ["VehicleSim"]
+
+
+class VehicleSim:
+    """The vehicle in ``R^dim`` (``dim`` = 2 or 3) with beacons, and optionally a wind.
+
+    Parameters
+    ----------
+    dim : int
+        2 (motion in the plane ``z = 0``) or 3.
+    beacons : array_like (q_b, dim)
+    timestep : float
+    wind : array_like (dim,), optional
+    model_path : str, optional
+        A user MJCF with the names listed in :data:`~quadobs.testbed.model.REQUIRED_ELEMENTS`.
+    """
+
+    def __init__(self, dim: int, beacons, *, timestep: float = 1e-3, wind=None, model_path=None) -> None:
+        if dim not in (2, 3):
+            raise QuadobsError(f"dimension: must be 2 or 3, got {dim}")
+        self.dim = dim
+        beacons = as_array("beacons", beacons, (None, dim))
+        self.wind = None if wind is None else as_array("wind", wind, (dim,))
+        self.vm: VehicleModel = load_vehicle_model(beacons, path=model_path, timestep=timestep, wind=self.wind)
+        self.model = self.vm.model
+        self.data = mujoco.MjData(self.model)
+        self.dt = float(self.model.opt.timestep)
+        self._wind3 = np.array(self.model.opt.wind, dtype=float)
+        self._force = np.zeros(3)
+        vm = self.vm
+        self._qp = slice(vm.qpos_adr, vm.qpos_adr + 3)
+        self._qv = slice(vm.qvel_adr, vm.qvel_adr + 3)
+        self._acc = slice(vm.accel_adr, vm.accel_adr + 3)
+        self._vel = slice(vm.velocimeter_adr, vm.velocimeter_adr + 3)
+        self._off = np.stack([np.arange(a, a + 3) for a in vm.offset_adr])  # (q_b, 3)
+
+    # -- state ---------------------------------------------------------------------
+
+    def reset(self, position, velocity) -> None:
+        """Place the vehicle at ``position`` with ground velocity ``velocity`` (both ``(dim,)``), level and not rotating."""
+        p = as_array("position", position, (self.dim,))
+        v = as_array("velocity", velocity, (self.dim,))
+        mujoco.mj_resetData(self.model, self.data)
+        qa = self.vm.qpos_adr
+        self.data.qpos[qa : qa + 3] = 0.0
+        self.data.qpos[qa : qa + self.dim] = p
+        self.data.qpos[qa + 3 : qa + 7] = (1.0, 0.0, 0.0, 0.0)
+        self.data.qvel[self._qv] = 0.0
+        self.data.qvel[self.vm.qvel_adr : self.vm.qvel_adr + self.dim] = v
+        mujoco.mj_forward(self.model, self.data)
+
+    @property
+    def time(self) -> float:
+        return float(self.data.time)
+
+    def position(self) -> np.ndarray:
+        """True position now (MuJoCo's ``qpos``), ``(dim,)``."""
+        return self.data.qpos[self._qp][: self.dim].copy()
+
+    def velocity(self) -> np.ndarray:
+        """True ground velocity now (MuJoCo's ``qvel``), ``(dim,)``."""
+        return self.data.qvel[self._qv][: self.dim].copy()
+
+    def state(self) -> np.ndarray:
+        """True estimator state now: ``(p, v)``, or ``(p, v_a, v_w)`` with wind (``v_a = v - v_w``)."""
+        p, v = self.position(), self.velocity()
+        if self.wind is None:
+            return np.concatenate([p, v])
+        return np.concatenate([p, v - self.wind, self.wind])
+
+    # -- stepping ------------------------------------------------------------------
+
+    def step(self, acceleration) -> None:
+        """One physics step with the force ``m (a - g)`` held: the vehicle accelerates by ``a``."""
+        f = self._force
+        f[:] = 0.0
+        f[: self.dim] = acceleration
+        f -= self.vm.gravity
+        self.data.ctrl[self.vm.actuator_ids] = self.vm.mass * f
+        mujoco.mj_step(self.model, self.data)
+
+    # -- sensors (describing the start of the last step) ---------------------------
+
+    def ranges(self) -> np.ndarray:
+        """``|p - a_h|`` from the beacon-relative position sensors, ``(q_b,)``."""
+        rel = self.data.sensordata[self._off]
+        return np.sqrt(np.einsum("hi,hi->h", rel, rel))
+
+    def accelerometer(self) -> np.ndarray:
+        """World-frame acceleration from the accelerometer (which reads ``R^T (a - g)``), ``(dim,)``."""
+        R = self.data.site_xmat[self.vm.site_id].reshape(3, 3)
+        return (R @ self.data.sensordata[self._acc] + self.vm.gravity)[: self.dim]
+
+    def airspeed(self) -> float:
+        """``|v - wind|`` from the velocimeter and MuJoCo's ``opt.wind``."""
+        R = self.data.site_xmat[self.vm.site_id].reshape(3, 3)
+        return float(np.linalg.norm(R @ self.data.sensordata[self._vel] - self._wind3))
