@@ -30,13 +30,14 @@ and it quotes their start ``t``; the live monitor's windows end at the current t
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Callable
 
 import numpy as np
 
 from .errors import QuadobsError, as_array, as_finite_scalar
-from .gramian import GramianModel, eig_extremes, reduce_window, scaled_min_eig
+from .gramian import GramianModel, compose, eig_extremes, reduce_window, scaled_min_eig
 from .immersion import Immersion, immerse, observability_rank
 from .persistence import (
     DEFAULT_ZERO_RTOL,
@@ -426,6 +427,12 @@ class ExcitationReport:
         if self.persistently_exciting:
             good = [c.key for c in self.conditions if c.status == "holds"]
             extra = f"; sufficient condition(s) {', '.join(good)} hold too" if good else ""
+            low = self.below_threshold()
+            if low:
+                extra += (
+                    f"; but mu is below the monitor threshold {self.threshold:g} on {low} of {self.gramian.margin.size} "
+                    "windows (weakly exciting there: the live monitor would flag them)"
+                )
             return (
                 f"PERSISTENTLY EXCITING over the record: W(t, t + {self.window:g}) >= mu I with mu = {self.mu:.3g} "
                 f"for every window (Definition 2){extra}"
@@ -492,7 +499,9 @@ class ExcitationReport:
                 if c.status == "fails":
                     spans = c.failing_spans(self.window)
                     shown = ", ".join(f"[{a:.2f}, {b:.2f}]" for a, b in spans[:4]) + (" ..." if len(spans) > 4 else "")
-                    lines.append(f"  {'':34s} fails on {int((~c.holds).sum())}/{c.holds.size} windows, within {shown} s")
+                    lines.append(
+                        f"  {'':34s} fails on {int((~c.holds).sum())}/{c.holds.size} windows, within {shown} s"
+                    )
             else:
                 lines.append(f"  {c.title:34s} {c.status:15s} {c.detail}")
             if c is self.gramian:
@@ -568,7 +577,11 @@ def excitation_report(
         raise QuadobsError(f"window: {window} s must be a multiple of the hold step {h:g} s (at least two steps)")
     if L > u.steps:
         raise QuadobsError(f"window: {window} s is longer than the input ({u.duration:g} s)")
-    s = max(1, int(round(0.05 / h))) if stride is None else int(round(as_finite_scalar("stride", stride, positive=True) / h))
+    s = (
+        max(1, int(round(0.05 / h)))
+        if stride is None
+        else int(round(as_finite_scalar("stride", stride, positive=True) / h))
+    )
     if s < 1 or (stride is not None and abs(s * h - stride) > 1e-9 * stride):
         raise QuadobsError(f"stride: {stride} s must be a positive multiple of the hold step {h:g} s")
     if u.values.shape[1] != immersion.system.p:
@@ -582,7 +595,7 @@ def excitation_report(
     # The Gramian (eq. 27) over every window.
     gm = GramianModel(immersion, h)
     W = gm.sliding(values, L, s)
-    lo, hi, vecs = eig_extremes(W)
+    lo, _, vecs = eig_extremes(W)
     rel = scaled_min_eig(W)
     g_ok = rel > GRAMIAN_RTOL
     gram = ConditionResult(
@@ -608,7 +621,7 @@ def excitation_report(
         reason = str(exc).removeprefix("system: ")
         conditions = [ConditionResult(k, t, "not applicable", reason) for k, t in titles.items()]
     if chain is not None:
-        m, n = chain.m, system.n
+        m = chain.m
         avail = u.available_order()
         if avail is not None and m - 1 > avail:
             need = f"needs u^({m - 1}); finite differences of the sampled input go up to order {avail}"
@@ -621,7 +634,9 @@ def excitation_report(
             if chain.real_eigenvalues():
                 conditions.append(_series("eq37", titles["eq37"], starts, condition_eq37(r_m, h, L, s, rtol)))
             else:
-                conditions.append(ConditionResult("eq37", titles["eq37"], "not applicable", "A has complex eigenvalues"))
+                conditions.append(
+                    ConditionResult("eq37", titles["eq37"], "not applicable", "A has complex eigenvalues")
+                )
             why = []
             if not chain.real_eigenvalues():
                 why.append("A has complex eigenvalues")
@@ -639,7 +654,9 @@ def excitation_report(
             conditions.insert(
                 0,
                 ConditionResult(
-                    "eq29", titles["eq29"], "not evaluated",
+                    "eq29",
+                    titles["eq29"],
+                    "not evaluated",
                     f"needs u^({kap - 1}) (kappa = {kap}); finite differences of the sampled input go up to order {avail}",
                 ),
             )
@@ -698,11 +715,17 @@ class ExcitationMonitor:
 
     Feed :meth:`push` the input of every physics step. The input is averaged over hold
     steps of ``block`` physics steps (a hold step's mean acceleration, as in
-    :func:`scenario_input`) into a ring buffer holding one window; every ``update_blocks``
-    hold steps, once the buffer is full, ``W(t - delta, t)`` is composed from it as a
-    balanced tree (:func:`quadobs.gramian.reduce_window`) and ``mu = lambda_min W`` is
-    compared with ``threshold``. Cost per update: the step terms of ``window_blocks``
-    samples and ``log2(window_blocks)`` batched products of ``N x N`` matrices.
+    :func:`scenario_input`); each hold step contributes its transition and Gramian
+    ``(Phi(u), G(u))`` (:class:`~quadobs.gramian.GramianModel`), and the window's
+    ``W(t - delta, t)`` is their ordered composition (:func:`quadobs.gramian.compose`).
+    The inputs are buffered and processed by chunks of ``c = gcd(window_blocks,
+    update_blocks)`` hold steps (one update period with the defaults): a chunk's terms are
+    computed at once and reduced as a tree, and the chunks enter a two-stack sliding-window
+    aggregation (new chunks are composed onto a back aggregate; old ones leave from a front
+    stack of suffix aggregates rebuilt from the back once per window). That is about three
+    ``N x N`` compositions per chunk, amortised, and no subtraction, so ``W`` is as exact
+    as :func:`~quadobs.gramian.reduce_window`'s. Every ``update_blocks`` hold steps, once
+    a window is full, ``mu = lambda_min W`` is computed and compared with ``threshold``.
 
     Low segments: a segment ``[a, b)`` means the windows ending at the update times
     ``a, ..., b - update period`` had ``mu < threshold`` and the one ending at ``b`` did
@@ -719,7 +742,9 @@ class ExcitationMonitor:
     threshold : float
     """
 
-    def __init__(self, immersion: Immersion, dt: float, *, block: int, window_blocks: int, update_blocks: int, threshold: float) -> None:
+    def __init__(
+        self, immersion: Immersion, dt: float, *, block: int, window_blocks: int, update_blocks: int, threshold: float
+    ) -> None:
         self.dt = as_finite_scalar("dt", dt, positive=True)
         self.block, self.L, self.update_blocks = int(block), int(window_blocks), int(update_blocks)
         if self.block < 1 or self.L < 2 or self.update_blocks < 1:
@@ -728,10 +753,13 @@ class ExcitationMonitor:
         self.immersion = immersion
         self.model = GramianModel(immersion, self.block * self.dt)
         p = immersion.system.p
-        self._ring = np.zeros((self.L, p))
-        self._acc = np.zeros(p)
-        self._n_acc = 0
+        self._chunk = math.gcd(self.L, self.update_blocks)  # hold steps per chunk
+        self._buf = np.zeros((self._chunk * self.block, p))
+        self._n_buf = 0
         self._blocks = 0
+        self._front: list[tuple[np.ndarray, np.ndarray]] = []  # suffix aggregates, oldest last
+        self._back: list[tuple[np.ndarray, np.ndarray]] = []  # chunks in time order
+        self._back_agg: tuple[np.ndarray, np.ndarray] | None = None
         self.steps = 0
         #: Latest measure (NaN until the first window is full), the time its window ends, its weakest direction.
         self.measure = float("nan")
@@ -762,26 +790,40 @@ class ExcitationMonitor:
 
     def push(self, u: np.ndarray) -> bool:
         """Take the input held over the next physics step; returns whether the measure was recomputed."""
-        self._acc += u
-        self._n_acc += 1
+        self._buf[self._n_buf] = u
+        self._n_buf += 1
         self.steps += 1
-        if self._n_acc < self.block:
+        if self._n_buf < self._buf.shape[0]:
             return False
-        self._ring[self._blocks % self.L] = self._acc / self.block
-        self._acc[:] = 0.0
-        self._n_acc = 0
-        self._blocks += 1
+        self._n_buf = 0
+        means = self._buf.reshape(self._chunk, self.block, -1).mean(axis=1)
+        self._add(reduce_window(*self.model.step_terms(means)))
+        self._blocks += self._chunk
         if self._blocks < self.L or self._blocks % self.update_blocks:
             return False
         self._update()
         return True
 
+    def _add(self, term: tuple[np.ndarray, np.ndarray]) -> None:
+        if self._blocks >= self.L:  # drop the oldest chunk
+            if not self._front:
+                agg = None
+                for t in reversed(self._back):
+                    agg = t if agg is None else compose(t, agg)
+                    self._front.append(agg)
+                self._back, self._back_agg = [], None
+            self._front.pop()
+        self._back.append(term)
+        self._back_agg = term if self._back_agg is None else compose(self._back_agg, term)
+
     def window_gramian(self) -> np.ndarray:
-        """``W(t - delta, t)`` of the current buffer (oldest sample first)."""
-        start = self._blocks % self.L
-        u = np.concatenate([self._ring[start:], self._ring[:start]])
-        Phi, G = self.model.step_terms(u)
-        return reduce_window(Phi, G)[1]
+        """``W`` over the hold steps in the window (the last ``window_blocks`` of them, or fewer at the start)."""
+        N = self.immersion.dim
+        if self._front and self._back_agg is not None:
+            return compose(self._front[-1], self._back_agg)[1]
+        if self._front:
+            return self._front[-1][1]
+        return self._back_agg[1] if self._back_agg is not None else np.zeros((N, N))
 
     def _update(self) -> None:
         W = self.window_gramian()

@@ -62,7 +62,9 @@ from .immersion import Immersion
 __all__ = ["GramianModel", "compose", "reduce_window", "sliding_windows", "eig_extremes", "scaled_min_eig"]
 
 
-def compose(first: tuple[np.ndarray, np.ndarray], second: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+def compose(
+    first: tuple[np.ndarray, np.ndarray], second: tuple[np.ndarray, np.ndarray]
+) -> tuple[np.ndarray, np.ndarray]:
     """Concatenate two consecutive segments ``(Phi, W)`` (``first`` earlier); batched over leading axes.
 
     ``Phi = Phi_2 Phi_1`` and ``W = W_1 + Phi_1^T W_2 Phi_1`` (module docstring).
@@ -118,7 +120,9 @@ def sliding_windows(Phi: np.ndarray, G: np.ndarray, length: int) -> tuple[np.nda
         rest >>= 1
         if rest:
             n_next = seg_P.shape[0] - span
-            seg_P, seg_W = compose((seg_P[:n_next], seg_W[:n_next]), (seg_P[span : span + n_next], seg_W[span : span + n_next]))
+            seg_P, seg_W = compose(
+                (seg_P[:n_next], seg_W[:n_next]), (seg_P[span : span + n_next], seg_W[span : span + n_next])
+            )
             j += 1
     return acc_P, acc_W
 
@@ -223,11 +227,10 @@ class GramianModel:
     def step_gramian(self, u) -> np.ndarray:
         """``G(u)``: the Gramian of one held step, ``(..., N, N)`` for ``u (..., p)``."""
         u = self._inputs(u)
-        return (
-            self.gramian_constant
-            + np.tensordot(u, self.gramian_linear, axes=(-1, 0))
-            + np.einsum("...j,...l,jlab->...ab", u, u, self.gramian_quadratic)
-        )
+        p, N = u.shape[-1], self.dim
+        uu = (u[..., :, None] * u[..., None, :]).reshape(u.shape[:-1] + (p * p,))
+        flat = u @ self.gramian_linear.reshape(p, N * N) + uu @ self.gramian_quadratic.reshape(p * p, N * N)
+        return self.gramian_constant + flat.reshape(u.shape[:-1] + (N, N))
 
     def step_terms(self, u) -> tuple[np.ndarray, np.ndarray]:
         """``(Phi(u_k), G(u_k))`` for a sequence ``u (T, p)``: shapes ``(T, N, N)`` each."""

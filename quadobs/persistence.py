@@ -242,13 +242,17 @@ def _eig_condition(Wins: np.ndarray, rtol: float) -> ConditionSeries:
     return ConditionSeries(lo, rel, rel > rtol)
 
 
-def condition_eq37(r_m: np.ndarray, h: float, length: int, stride: int = 1, rtol: float = DEFAULT_ZERO_RTOL) -> ConditionSeries:
+def condition_eq37(
+    r_m: np.ndarray, h: float, length: int, stride: int = 1, rtol: float = DEFAULT_ZERO_RTOL
+) -> ConditionSeries:
     """Eq. 37: ``lambda_min(int_t^{t+delta} r_m^T r_m ds)`` per window; ``r_m (T, n)`` at the step midpoints."""
     R = np.einsum("ta,tb->tab", r_m, r_m)
     return _eig_condition(h * window_sums(R, length, stride), rtol)
 
 
-def condition_eq41(ubar: np.ndarray, h: float, length: int, stride: int = 1, rtol: float = DEFAULT_ZERO_RTOL) -> ConditionSeries:
+def condition_eq41(
+    ubar: np.ndarray, h: float, length: int, stride: int = 1, rtol: float = DEFAULT_ZERO_RTOL
+) -> ConditionSeries:
     """Eq. 41: ``lambda_min(int U_bar U_bar^T ds)`` per window; ``ubar (T, p m)``."""
     R = np.einsum("ta,tb->tab", ubar, ubar)
     return _eig_condition(h * window_sums(R, length, stride), rtol)

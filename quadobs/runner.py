@@ -223,7 +223,7 @@ def run_episode(
             nis[est.name] = float("nan")
         log.write(k, t, x[:dim], x[2 * dim :] if has_wind else None, errs, xhs, traces, nis, ranges, airspeed, u)
         if xlog is not None:
-            xlog.write(recorder.n - 1)
+            xlog.write(recorder.n - 1, k)
         return recorder.n - 1
 
     try:

@@ -119,7 +119,9 @@ def _brute_force_gramian(im, u, h):
             CP = C @ P
             return np.concatenate([(Ak @ P).ravel(), (CP.T @ CP).ravel()])
 
-        sol = solve_ivp(f, (0.0, h), np.concatenate([np.eye(N).ravel(), np.zeros(N * N)]), rtol=1e-12, atol=1e-14, method="DOP853")
+        sol = solve_ivp(
+            f, (0.0, h), np.concatenate([np.eye(N).ravel(), np.zeros(N * N)]), rtol=1e-12, atol=1e-14, method="DOP853"
+        )
         P_k, G_k = sol.y[: N * N, -1].reshape(N, N), sol.y[N * N :, -1].reshape(N, N)
         W = W + Phi.T @ G_k @ Phi
         Phi = P_k @ Phi
@@ -148,7 +150,9 @@ def test_gramian_block_formulas_equal_brute_force(rng, system, method):
     L = 7
     W_all = sliding_windows(Phi, G, L)[1]
     for i in (0, 5, 17):
-        np.testing.assert_allclose(W_all[i], reduce_window(Phi[i : i + L], G[i : i + L])[1], rtol=1e-11, atol=1e-12 * np.abs(W_all[i]).max())
+        np.testing.assert_allclose(
+            W_all[i], reduce_window(Phi[i : i + L], G[i : i + L])[1], rtol=1e-11, atol=1e-12 * np.abs(W_all[i]).max()
+        )
 
 
 def test_held_gramian_converges_to_the_smooth_input(rng):

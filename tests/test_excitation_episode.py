@@ -47,7 +47,12 @@ def test_monitor_flags_the_coasting_segments_from_the_measured_input(degenerate_
 def test_recording_shows_measure_warning_and_covariance(degenerate_run):
     sc, rrd, _, summary = degenerate_run
     entities = set(list_entities(rrd))
-    for e in ["/excitation/measure", "/excitation/threshold", "/excitation/log10", "/excitation/unexcited_variance/augmented"]:
+    for e in [
+        "/excitation/measure",
+        "/excitation/threshold",
+        "/excitation/log10",
+        "/excitation/unexcited_variance/augmented",
+    ]:
         assert e in entities
     mu = read_series(rrd, "excitation/measure")
     assert mu["sim_time"][0] == pytest.approx(sc.excitation.window)  # first full window

@@ -56,31 +56,47 @@ class ExcitationLog:
     def __init__(self, recorder: Recorder, monitor: ExcitationMonitor, estimators) -> None:
         self.rec = recorder
         self.monitor = monitor
-        every = monitor.update_blocks * monitor.block
+        self.every = every = monitor.update_blocks * monitor.block
         r = recorder
         self.measure = r.series("excitation/measure", 1, every=every, skip_nan=True, names=["mu"], color=_COLOR)
-        self.threshold = r.series("excitation/threshold", 1, every=every, skip_nan=True, names=["threshold"], color=_THRESHOLD)
+        self.threshold = r.series(
+            "excitation/threshold", 1, every=every, skip_nan=True, names=["threshold"], color=_THRESHOLD
+        )
         self.log10 = r.series("excitation/log10", 2, every=every, skip_nan=True, names=["log10 mu", "log10 threshold"])
-        self.count = r.series("excitation/unexcited_directions", 1, every=every, skip_nan=True, names=["unexcited directions"])
+        self.count = r.series(
+            "excitation/unexcited_directions", 1, every=every, skip_nan=True, names=["unexcited directions"]
+        )
         self.weak = {
             est.name: (
                 est,
                 r.series(
-                    f"excitation/unexcited_variance/{est.name}", 1, every=every, skip_nan=True, names=[f"{est.name} max var"]
+                    f"excitation/unexcited_variance/{est.name}",
+                    1,
+                    every=every,
+                    skip_nan=True,
+                    names=[f"{est.name} max var"],
                 ),
             )
             for est in estimators
             if _same_coordinates(est, monitor)
         }
 
-    def write(self, row: int) -> None:
-        """Fill row ``row`` with the monitor's latest values (NaN before the first window is full)."""
+    def write(self, row: int, step: int) -> None:
+        """Fill row ``row`` (physics step ``step``) with the monitor's latest values (NaN before the first window is full).
+
+        Only rows at multiples of the update period are sent (the series' ``every``), so the
+        others are left alone.
+        """
+        if step % self.every:
+            return
         m = self.monitor
         mu = m.measure
         self.measure.buf[row, 0] = mu
         self.threshold.buf[row, 0] = m.threshold if np.isfinite(mu) else np.nan
         # Below rounding (1e-16 lambda_max) mu is indistinguishable from 0: show the floor.
-        self.log10.buf[row, 0] = np.log10(max(mu, 1e-16 * m.lambda_max, np.finfo(float).tiny)) if np.isfinite(mu) else np.nan
+        self.log10.buf[row, 0] = (
+            np.log10(max(mu, 1e-16 * m.lambda_max, np.finfo(float).tiny)) if np.isfinite(mu) else np.nan
+        )
         self.log10.buf[row, 1] = np.log10(m.threshold) if (np.isfinite(mu) and m.threshold > 0) else np.nan
         V = m.unexcited
         self.count.buf[row, 0] = V.shape[1] if np.isfinite(mu) else np.nan
