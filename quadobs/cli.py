@@ -1,7 +1,9 @@
 """The ``quadobs`` command line.
 
 ``quadobs run SCENARIO --out PATH.rrd --summary PATH.json`` runs one episode headless and
-prints a summary table; ``quadobs list`` names the built-in scenarios. Errors in the
+prints a summary table; ``quadobs list`` names the built-in scenarios; ``quadobs excitation
+SCENARIO [--window S]`` prints the persistence-of-excitation report of the scenario's input
+(no physics, no MuJoCo). Errors in the
 input (a bad scenario field, an unwritable path) print one line naming the problem and
 exit with status 2; Ctrl-C stops a run after closing its recording (status 130).
 """
@@ -96,6 +98,22 @@ def _cmd_run(args) -> int:
     return 130 if result.summary.get("interrupted") else 0
 
 
+def _cmd_excitation(args) -> int:
+    import json
+
+    from .excitation import scenario_report
+    from .scenario import load_scenario
+
+    scenario = load_scenario(args.scenario)
+    report = scenario_report(scenario, window=args.window, step=args.step)
+    print(report.format())
+    if args.json:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps(report.to_dict(), indent=2) + "\n")
+        print(f"report: {args.json}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="quadobs", description="State estimation for systems with quadratic outputs: a MuJoCo testbed.")
     sub = parser.add_subparsers(dest="command", required=True)
@@ -112,6 +130,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--estimators", help="comma-separated estimator names (default: augmented and the scenario's variants)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=_cmd_run)
+
+    p = sub.add_parser(
+        "excitation",
+        help="persistence-of-excitation report of a scenario's input (Gramian measure, Propositions 4-8), without the physics",
+    )
+    p.add_argument("scenario", help="built-in scenario name or path to a scenario .toml")
+    p.add_argument("--window", type=float, help="window length delta (s); default: the scenario's excitation.window")
+    p.add_argument("--step", type=float, help="hold step of the input (s); default: the monitor's (0.01 s)")
+    p.add_argument("--json", type=Path, help="also write the report as JSON")
+    p.set_defaults(func=_cmd_excitation)
     return parser
 
 

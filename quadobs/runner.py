@@ -150,6 +150,10 @@ def run_episode(
     x0 = initial_guess(scenario, x_true, streams["initial"])
     ests = build_estimators(scenario, names, x0)
     has_wind = scenario.has_wind
+    from .excitation import scenario_monitor
+
+    monitor = scenario_monitor(scenario)  # sliding-window Gramian of the applied input (None: disabled)
+    xlog = None
 
     log = None
     if out is not None:
@@ -164,6 +168,10 @@ def run_episode(
             capacity=flush_rows,
         )
         log = EpisodeLog(recorder, scenario, names, trail_every=trail)
+        if monitor is not None:
+            from .recording.excitation import ExcitationLog
+
+            xlog = ExcitationLog(recorder, monitor, ests)
 
     trackers = {n: ConvergenceTracker((1.0, 0.1)) for n in names}
     collect = collect_every > 0
@@ -214,6 +222,8 @@ def run_episode(
             traces[est.name] = _trace_of(est)
             nis[est.name] = float("nan")
         log.write(k, t, x[:dim], x[2 * dim :] if has_wind else None, errs, xhs, traces, nis, ranges, airspeed, u)
+        if xlog is not None:
+            xlog.write(recorder.n - 1, k)
         return recorder.n - 1
 
     try:
@@ -227,6 +237,10 @@ def run_episode(
                 y = sensors.outputs(k, sim.ranges(), sim.airspeed() if has_wind else None)
                 u = sensors.input(sim.accelerometer())
                 row = observe(k, x_true, y, u, sensors.measured_ranges, None if not has_wind else _airspeed_of(y, sensors))
+                if monitor is not None and monitor.push(u) and monitor.warning is not None:
+                    message = monitor.pop_warning()
+                    if xlog is not None:
+                        xlog.warn(message, k + 1, (k + 1) * dt)
                 for est in ests:
                     est.step(u, y)
                 if row is not None:
@@ -248,6 +262,8 @@ def run_episode(
     wall = _time.perf_counter() - wall0
 
     summary = _summarise(scenario, ests, names, trackers, last_errors, completed, wall, sensors, out, interrupted)
+    if monitor is not None:
+        summary["excitation"] = monitor.summary()
     if summary_path is not None:
         write_json_atomic(summary_path, summary)
     if collect:

@@ -29,6 +29,7 @@ __all__ = [
     "NoiseSpec",
     "ObserverSpec",
     "InitialGuess",
+    "ExcitationSpec",
     "load_scenario",
     "list_scenarios",
     "parse_scenario",
@@ -76,6 +77,42 @@ class ObserverSpec:
 
 
 @dataclass(frozen=True)
+class ExcitationSpec:
+    """The live excitation monitor (``[excitation]`` table; see :mod:`quadobs.excitation`).
+
+    ``window`` (s) is the length ``delta`` of the sliding window of the Gramian
+    ``W(t - delta, t)``, ``threshold`` the value of ``mu = lambda_min(W)`` below which the
+    window counts as not exciting, ``update_period`` (s) how often the measure is
+    recomputed and ``step`` (s) the hold step over which the measured input is averaged
+    (default: the multiple of the physics step nearest 0.01 s). ``window`` and
+    ``update_period`` must be multiples of ``step``, and ``step`` of the physics step.
+    """
+
+    monitor: bool = True
+    window: float = 5.0
+    threshold: float = 1e-6
+    update_period: float = 0.1
+    step: float | None = None
+
+    def grid(self, dt: float) -> tuple[int, int, int]:
+        """``(block, window_blocks, update_blocks)``: physics steps per hold step, hold steps per window and per update."""
+
+        def multiple(value: float, unit: float, name: str, unit_name: str) -> int:
+            k = int(round(value / unit))
+            if k < 1 or abs(value - k * unit) > 1e-9 * max(value, unit):
+                raise QuadobsError(f"excitation.{name}: {value} s must be a positive multiple of {unit_name} ({unit:g} s)")
+            return k
+
+        block = max(1, int(round(0.01 / dt))) if self.step is None else multiple(self.step, dt, "step", "the physics step")
+        h = block * dt
+        window = multiple(self.window, h, "window", "excitation.step")
+        if window < 2:
+            raise QuadobsError(f"excitation.window: {self.window} s must span at least two hold steps of {h:g} s")
+        update = multiple(self.update_period, h, "update_period", "excitation.step")
+        return block, window, update
+
+
+@dataclass(frozen=True)
 class InitialGuess:
     """The initial estimate shared by all estimators.
 
@@ -115,6 +152,8 @@ class Scenario:
     noise : NoiseSpec
     observer : ObserverSpec
     initial : InitialGuess
+    excitation : ExcitationSpec
+        The live excitation monitor's settings.
     model : str or None
         Path of an MJCF model to use instead of the built-in vehicle.
     record_every : int
@@ -136,6 +175,7 @@ class Scenario:
     noise: NoiseSpec = field(default_factory=NoiseSpec)
     observer: ObserverSpec = field(default_factory=ObserverSpec)
     initial: InitialGuess = field(default_factory=InitialGuess)
+    excitation: ExcitationSpec = field(default_factory=ExcitationSpec)
     model: str | None = None
     record_every: int = 1
     source: str = ""
@@ -223,6 +263,9 @@ class Scenario:
             },
             "initial": {k: (list(v) if isinstance(v, tuple) else v) for k, v in vars(self.initial).items() if v is not None},
         }
+        out["excitation"] = {k: v for k, v in vars(self.excitation).items() if v is not None}
+        if traj.coast.size:
+            out["trajectory"]["coast"] = [{"start": float(a), "end": float(b)} for a, b in traj.coast]
         if self.observer.variants:
             out["observer"]["variants"] = [{"name": n, "outputs": list(o)} for n, o in self.observer.variants]
         if self.wind is not None:
@@ -417,8 +460,18 @@ def parse_scenario(data: dict, source: str = "") -> Scenario:
         func = f.string("function", "cos", choices=("cos", "sin"))
         f.done()
         terms.append((axis, amp, omega, phase - (np.pi / 2 if func == "sin" else 0.0)))
+    coast_raw = tf.raw("coast", [])
+    if not isinstance(coast_raw, list):
+        raise QuadobsError("trajectory.coast: expected a list of tables ([[trajectory.coast]] with start and end)")
+    coast = []
+    for i, seg in enumerate(coast_raw):
+        f = _Fields(seg, f"trajectory.coast[{i}]")
+        coast.append((f.number("start", nonnegative=True), f.number("end", positive=True)))
+        f.done()
     tf.done()
-    trajectory = SinusoidTrajectory(offset, np.array(terms, dtype=float).reshape(-1, 4), velocity)
+    trajectory = SinusoidTrajectory(
+        offset, np.array(terms, dtype=float).reshape(-1, 4), velocity, np.array(coast, dtype=float).reshape(-1, 2)
+    )
 
     nf = top.table("noise")
     noise = NoiseSpec(
@@ -458,6 +511,19 @@ def parse_scenario(data: dict, source: str = "") -> Scenario:
         velocity_spread=inf.number("velocity_spread", 0.0, nonnegative=True),
     )
     inf.done()
+
+    xf = top.table("excitation")
+    monitor = xf.raw("monitor", True)
+    if not isinstance(monitor, bool):
+        raise QuadobsError(f"excitation.monitor: expected true or false, got {monitor!r}")
+    excitation = ExcitationSpec(
+        monitor=monitor,
+        window=xf.number("window", 5.0, positive=True),
+        threshold=xf.number("threshold", 1e-6, nonnegative=True),
+        update_period=xf.number("update_period", 0.1, positive=True),
+        step=xf.number("step", None, positive=True, optional=True),
+    )
+    xf.done()
     top.done()
 
     scenario = Scenario(
@@ -474,6 +540,7 @@ def parse_scenario(data: dict, source: str = "") -> Scenario:
         noise=noise,
         observer=observer,
         initial=initial,
+        excitation=excitation,
         model=model,
         record_every=record_every,
         source=source,
@@ -482,6 +549,7 @@ def parse_scenario(data: dict, source: str = "") -> Scenario:
         raise QuadobsError(f"duration: {duration} s is shorter than one physics step ({scenario.dt} s)")
     scenario.sample_interval(noise.range_rate, "range_rate")
     scenario.sample_interval(noise.airspeed_rate, "airspeed_rate")
+    excitation.grid(scenario.dt)
     return scenario
 
 

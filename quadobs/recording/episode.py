@@ -19,6 +19,7 @@ as ``augmented``):
 ``measurements/accelerometer``         measured acceleration (m/s^2)
 ``observer/<est>/covariance_trace``    trace of the estimator covariance
 ``observer/<est>/nis``                 normalised innovation squared (at corrections)
+``excitation/...``                     live excitation monitor (see ``quadobs.recording.excitation``)
 ``events``                             text log (warnings, interruption)
 =====================================  =========================================================
 """
@@ -53,6 +54,11 @@ def default_blueprint(scenario: Scenario, estimators: list[str]) -> rrb.Blueprin
         rrb.TimeSeriesView(name="Measurements", origin="/measurements"),
         rrb.TimeSeriesView(name="Covariance trace, NIS", origin="/observer"),
     ]
+    if scenario.excitation.monitor:  # see quadobs.recording.excitation
+        plots += [
+            rrb.TimeSeriesView(name="Excitation: log10 mu vs threshold", contents=["/excitation/log10"]),
+            rrb.TimeSeriesView(name="Variance in the unexcited directions", contents=["/excitation/unexcited_variance/**"]),
+        ]
     return rrb.Blueprint(
         rrb.Horizontal(
             rrb.Vertical(

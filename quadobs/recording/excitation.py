@@ -1,0 +1,108 @@
+"""The live excitation monitor in an episode's recording.
+
+Entities (timelines ``step`` and ``sim_time``; values appear once the first window is
+full, at the monitor's update times):
+
+=========================================  =====================================================
+``excitation/measure``                     ``mu = lambda_min W(t - delta, t)`` of the applied input
+``excitation/threshold``                   the monitor's threshold
+``excitation/log10``                       ``log10 max(mu, 1e-16 lambda_max)`` (the rounding floor)
+                                           and ``log10 threshold`` (the default view)
+``excitation/unexcited_directions``        how many eigenvalues of ``W`` are below the threshold
+``excitation/unexcited_variance/<est>``    the estimator's largest variance along those
+                                           directions, ``lambda_max(V^T P V)`` with ``V`` their
+                                           eigenvectors (absent while every direction is
+                                           excited), for estimators whose augmented state is
+                                           the monitor's
+``events``                                 one warning, the first time ``mu`` falls below the threshold
+=========================================  =====================================================
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..excitation import ExcitationMonitor
+from .recorder import Recorder
+
+__all__ = ["ExcitationLog"]
+
+_COLOR = (200, 60, 60)
+_THRESHOLD = (120, 120, 120)
+
+
+def _same_coordinates(est, monitor: ExcitationMonitor) -> bool:
+    im = getattr(est, "immersion", None)
+    P = getattr(est, "P", None)
+    mine = monitor.immersion
+    if im is None or P is None or np.shape(P) != (mine.dim, mine.dim) or im.n_aux != mine.n_aux:
+        return False
+    if im.system.q != mine.system.q:
+        return False
+    return bool(np.allclose(im.aux_forms, mine.aux_forms) and np.allclose(im.output_matrix, mine.output_matrix))
+
+
+class ExcitationLog:
+    """Declares the monitor's series on a :class:`Recorder` and fills them at each recorded row.
+
+    Parameters
+    ----------
+    recorder : Recorder
+    monitor : ExcitationMonitor
+    estimators : list of Estimator
+        Those sharing the monitor's augmented coordinates get a ``weakest_variance`` series.
+    """
+
+    def __init__(self, recorder: Recorder, monitor: ExcitationMonitor, estimators) -> None:
+        self.rec = recorder
+        self.monitor = monitor
+        self.every = every = monitor.update_blocks * monitor.block
+        r = recorder
+        self.measure = r.series("excitation/measure", 1, every=every, skip_nan=True, names=["mu"], color=_COLOR)
+        self.threshold = r.series(
+            "excitation/threshold", 1, every=every, skip_nan=True, names=["threshold"], color=_THRESHOLD
+        )
+        self.log10 = r.series("excitation/log10", 2, every=every, skip_nan=True, names=["log10 mu", "log10 threshold"])
+        self.count = r.series(
+            "excitation/unexcited_directions", 1, every=every, skip_nan=True, names=["unexcited directions"]
+        )
+        self.weak = {
+            est.name: (
+                est,
+                r.series(
+                    f"excitation/unexcited_variance/{est.name}",
+                    1,
+                    every=every,
+                    skip_nan=True,
+                    names=[f"{est.name} max var"],
+                ),
+            )
+            for est in estimators
+            if _same_coordinates(est, monitor)
+        }
+
+    def write(self, row: int, step: int) -> None:
+        """Fill row ``row`` (physics step ``step``) with the monitor's latest values (NaN before the first window is full).
+
+        Only rows at multiples of the update period are sent (the series' ``every``), so the
+        others are left alone.
+        """
+        if step % self.every:
+            return
+        m = self.monitor
+        mu = m.measure
+        self.measure.buf[row, 0] = mu
+        self.threshold.buf[row, 0] = m.threshold if np.isfinite(mu) else np.nan
+        # Below rounding (1e-16 lambda_max) mu is indistinguishable from 0: show the floor.
+        self.log10.buf[row, 0] = (
+            np.log10(max(mu, 1e-16 * m.lambda_max, np.finfo(float).tiny)) if np.isfinite(mu) else np.nan
+        )
+        self.log10.buf[row, 1] = np.log10(m.threshold) if (np.isfinite(mu) and m.threshold > 0) else np.nan
+        V = m.unexcited
+        self.count.buf[row, 0] = V.shape[1] if np.isfinite(mu) else np.nan
+        for est, series in self.weak.values():
+            series.buf[row, 0] = float(np.linalg.eigvalsh(V.T @ est.P @ V)[-1]) if V.shape[1] else np.nan
+
+    def warn(self, message: str, step: int, time: float) -> None:
+        """Log the monitor's warning at ``events``."""
+        self.rec.text("events", message, level="WARN", step=step, time=time)

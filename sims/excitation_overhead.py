@@ -1,0 +1,61 @@
+"""What the live excitation monitor costs: an episode with and without it, and one update alone.
+
+    python sims/excitation_overhead.py [--scenario ifac2021] [--duration 10]
+
+Prints the episode throughput (physics steps per second, estimators and recording
+included) with the monitor on and off, alternated over a few repetitions, and the cost
+of one monitor update (the window Gramian and its eigenvalues) and of one push.
+"""
+
+import argparse
+import tempfile
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+from quadobs import load_scenario
+from quadobs.excitation import scenario_monitor
+from quadobs.runner import run_episode
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--scenario", default="ifac2021")
+    parser.add_argument("--duration", type=float, default=10.0)
+    parser.add_argument("--repeats", type=int, default=3)
+    args = parser.parse_args()
+
+    on = load_scenario(args.scenario, duration=args.duration)
+    off = replace(on, excitation=replace(on.excitation, monitor=False))
+    rates = {"monitor on": [], "monitor off": []}
+    with tempfile.TemporaryDirectory() as tmp:
+        for _ in range(args.repeats):
+            for label, sc in (("monitor off", off), ("monitor on", on)):
+                s = run_episode(sc, out=Path(tmp) / "run.rrd")
+                rates[label].append(s.summary["steps_per_second"])
+    for label, r in rates.items():
+        print(
+            f"{args.scenario} {args.duration:g} s, recorded: {label:11s} {np.median(r):8.0f} steps/s (median of {len(r)})"
+        )
+    print(f"throughput ratio on/off: {np.median(rates['monitor on']) / np.median(rates['monitor off']):.3f}")
+
+    mon = scenario_monitor(on)
+    u = on.trajectory.step_accelerations(0.0, on.dt, on.steps)
+    t0 = time.perf_counter()
+    for uk in u:
+        mon.push(uk)
+    total = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    for _ in range(50):
+        mon._update()
+    upd = (time.perf_counter() - t0) / 50
+    print(
+        f"monitor alone: {total / len(u) * 1e6:.2f} us per physics step on average ({mon.updates} updates); "
+        f"one update {upd * 1e3:.2f} ms (window {mon.L} hold steps, N = {mon.immersion.dim})"
+    )
+
+
+if __name__ == "__main__":
+    main()
