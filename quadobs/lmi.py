@@ -61,6 +61,11 @@ from .zonotope import IntervalMatrix, Zonotope
 
 __all__ = ["PRadiusDesign", "pradius_gains", "pradius_lmi_matrices"]
 
+#: A solution ``P`` with ``lambda_min(P) <= SINGULAR_RTOL lambda_max(P)`` counts as infeasible:
+#: when no ``P > 0`` satisfies the LMI, the solver's supremum ``tau = 0`` is approached by a
+#: ``P`` that becomes singular.
+SINGULAR_RTOL = 1e-7
+
 #: The default grid of beta values searched before refinement.
 DEFAULT_BETAS = np.linspace(0.02, 0.98, 49)
 
@@ -194,6 +199,10 @@ class _StepProblem:
             return -np.inf, None, None, used
         P = np.array(self.P.value)
         P = 0.5 * (P + P.T)
+        eig = np.linalg.eigvalsh(P)
+        if eig[0] <= SINGULAR_RTOL * eig[-1]:
+            # sup tau = 0, approached by a P that becomes singular: no P > 0 exists
+            return -np.inf, None, None, used
         return float(self.tau.value), P, np.linalg.solve(P, np.array(self.Y.value)), used
 
 

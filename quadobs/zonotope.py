@@ -152,6 +152,8 @@ class Zonotope:
     center: np.ndarray
     generators: np.ndarray
 
+    __array_ufunc__ = None  # ``K @ Z`` with a NumPy ``K`` calls :meth:`__rmatmul__`
+
     def __post_init__(self) -> None:
         p = as_array("center", self.center, (None,))
         g = self.generators
@@ -320,8 +322,11 @@ class Zonotope:
         H, p = self.generators, self.center
         if m == 0:
             return p[None]
-        if n == 1:
-            return np.array([p + np.abs(H).sum(axis=1), p - np.abs(H).sum(axis=1)])
+        if m <= n or n == 1:
+            if m > 20:
+                raise QuadobsError(f"zonotope: 2^{m} sign vectors to enumerate; reduce the order first")
+            signs = np.array(list(product((-1.0, 1.0), repeat=m)))
+            return p + signs @ H.T
         self._subsets(n - 1)
         pts = []
         for T in combinations(range(m), n - 1):
