@@ -6,7 +6,8 @@ A zonotope ``Z = p (+) H B^m = {p + H z : ||z||_inf <= 1}`` is stored as its cen
 * Property 1: :meth:`Zonotope.minkowski_sum` (``p1 + p2``, ``[H1 H2]``), also ``Z1 + Z2``;
 * Property 2: :meth:`Zonotope.linear_map` (``K p``, ``K H``), also ``K @ Z``;
 * Property 3: :meth:`Zonotope.reduce`, with a pluggable method (:data:`REDUCTION_METHODS`:
-  ``"combastel"``, the norm sort of the paper, ``"girard"``, ``"pca"``, or a callable);
+  ``"combastel"``, the norm sort of the paper, ``"girard"``, ``"pca"``, ``"parallelotope"``,
+  or a callable);
 * Properties 4 and 5: :func:`interval_zonotope` (``p (+) [M] B^m``) and
   :func:`interval_image` (``[A] Z``, the outer approximation at the end of section 4.1);
 * Property 6: :meth:`Zonotope.strip_intersection` (the family ``Z^(lambda)``);
@@ -96,11 +97,38 @@ def _reduce_pca(H: np.ndarray, s: int) -> np.ndarray:
     return np.hstack([keep, T @ row_sum_diag(T.T @ rest)])
 
 
+def _reduce_parallelotope(H: np.ndarray, s: int) -> np.ndarray:
+    """Norm sort as in Property 3, but the rest is enclosed in a parallelotope framed by some of its own generators.
+
+    ``n`` columns ``T`` of ``H_Q`` are chosen by QR with column pivoting (the longest, then the
+    most independent), and ``H_Q B ⊆ T rs(T^{-1} H_Q) B`` (Kühn 1998's idea against the wrapping
+    effect). A generator of the frame is represented exactly (its coordinates are a unit
+    vector), so a box produced by an earlier reduction and then mapped linearly is taken
+    over as the frame instead of being boxed again in the coordinate axes: repeated
+    reductions after linear maps do not compound.
+    """
+    import scipy.linalg as sla
+
+    n = H.shape[0]
+    order = np.argsort(-np.einsum("ij,ij->j", H, H), kind="stable")
+    keep, rest = H[:, order[: s - n]], H[:, order[s - n :]]
+    Q, R, piv = sla.qr(rest, mode="economic", pivoting=True)
+    diag = np.abs(np.diag(R))
+    good = int(np.sum(diag > 1e-9 * max(diag[0] if diag.size else 0.0, 1e-300)))
+    T = rest[:, piv[:good]]
+    if good < n:  # complete the frame with directions orthogonal to the rest's span
+        basis = np.linalg.qr(np.hstack([Q[:, :good], np.eye(n)]))[0]
+        T = np.hstack([T, basis[:, good:n]])
+    coords = np.linalg.solve(T, rest)
+    return np.hstack([keep, T * np.abs(coords).sum(axis=1)])
+
+
 #: Named reduction methods ``f(H (n, m), s) -> H' (n, s)`` with ``H B^m ⊆ H' B^s``.
 REDUCTION_METHODS: dict[str, Callable[[np.ndarray, int], np.ndarray]] = {
     "combastel": _reduce_combastel,
     "girard": _reduce_girard,
     "pca": _reduce_pca,
+    "parallelotope": _reduce_parallelotope,
 }
 
 
