@@ -17,10 +17,13 @@ are imported only when used.
 from .discretize import HeldInputDiscretization
 from .errors import QuadobsError
 from .immersion import Immersion, immerse, immerse_chain, immerse_minimal
+from .lmi import PRadiusDesign, pradius_gains
 from .observer import AugmentedObserver, Estimator
 from .scenario import Scenario, list_scenarios, load_scenario
 from .system import QuadraticSystem, range_outputs, vehicle_system, wind_system
+from .setmembership import ZonotopicEstimator
 from .trajectory import SinusoidTrajectory
+from .zonotope import IntervalMatrix, Zonotope
 
 __version__ = "0.1.0"
 
@@ -29,15 +32,20 @@ __all__ = [
     "Estimator",
     "HeldInputDiscretization",
     "Immersion",
+    "IntervalMatrix",
+    "PRadiusDesign",
     "QuadobsError",
     "QuadraticSystem",
     "Scenario",
     "SinusoidTrajectory",
+    "Zonotope",
+    "ZonotopicEstimator",
     "immerse",
     "immerse_chain",
     "immerse_minimal",
     "list_scenarios",
     "load_scenario",
+    "pradius_gains",
     "range_outputs",
     "vehicle_system",
     "wind_system",

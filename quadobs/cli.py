@@ -68,6 +68,7 @@ def _cmd_list(args) -> int:
 
     for name, desc in list_scenarios().items():
         print(f"{name:16s} {desc}")
+    print(f"{'le2013':16s} Le et al. 2013 section 5: zonotopic estimation of an uncertain 2-state system (no MuJoCo)")
     return 0
 
 
@@ -80,10 +81,25 @@ def _estimator_list(text: str | None) -> list[str] | None:
     return names
 
 
+def _cmd_le2013(args) -> int:
+    from .le2013 import format_table, run_le2013
+
+    steps = 50 if args.duration is None else int(round(args.duration))
+    summary = run_le2013(args.out, args.summary, seed=0 if args.seed is None else args.seed, steps=steps, runs=args.runs)
+    print(format_table(summary))
+    if args.out:
+        print(f"recording: {args.out}  (open with: rerun {args.out})")
+    if args.summary:
+        print(f"summary: {args.summary}")
+    return 0
+
+
 def _cmd_run(args) -> int:
     from .runner import run_episode
     from .scenario import load_scenario
 
+    if args.scenario == "le2013":
+        return _cmd_le2013(args)
     scenario = load_scenario(args.scenario, duration=args.duration, seed=args.seed)
     result = run_episode(
         scenario,
@@ -129,6 +145,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, help="override the scenario seed")
     p.add_argument("--estimators", help="comma-separated estimator names (default: augmented and the scenario's variants)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument("--runs", type=int, default=50, help="le2013 only: number of seeded runs (default 50; --duration is the number of samples)")
     p.set_defaults(func=_cmd_run)
 
     p = sub.add_parser(

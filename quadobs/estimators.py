@@ -118,6 +118,15 @@ def _augmented_factory(scenario: Scenario, x0: np.ndarray, name: str) -> Estimat
 register_estimator("augmented", _augmented_factory)
 
 
+def _zonotope_factory(scenario: Scenario, x0: np.ndarray, name: str) -> Estimator:
+    from .guaranteed import zonotope_estimator
+
+    return zonotope_estimator(scenario, x0)
+
+
+register_estimator("zonotope", _zonotope_factory)
+
+
 def build_estimators(scenario: Scenario, names: list[str], x0: np.ndarray) -> list[Estimator]:
     """Instantiate the named estimators, all starting from the initial guess ``x0``.
 

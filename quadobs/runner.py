@@ -167,13 +167,16 @@ def run_episode(
             blueprint=default_blueprint(scenario, names),
             capacity=flush_rows,
         )
-        log = EpisodeLog(recorder, scenario, names, trail_every=trail)
+        bounded = [e.name for e in ests if hasattr(e, "bounds")]
+        log = EpisodeLog(recorder, scenario, names, trail_every=trail, bounded=bounded)
         if monitor is not None:
             from .recording.excitation import ExcitationLog
 
             xlog = ExcitationLog(recorder, monitor, ests)
 
     trackers = {n: ConvergenceTracker((1.0, 0.1)) for n in names}
+    # guaranteed estimators (with ``bounds (n, 2)``): rows whose true state lies in the bounds
+    contained = {e.name: [0, 0, None] for e in ests if hasattr(e, "bounds")}
     collect = collect_every > 0
     if collect:
         n_rec = steps // collect_every + 1
@@ -207,6 +210,14 @@ def run_episode(
             xhs[est.name] = xh
             trackers[est.name].update(t, float(np.sqrt(e["position"] @ e["position"])))
         last_errors.update(errs)
+        bounds = {}
+        for est in ests:
+            if est.name in contained:
+                b = bounds[est.name] = est.bounds
+                c = contained[est.name]
+                c[0] += bool(np.all((b[:, 0] <= x) & (x <= b[:, 1])))
+                c[1] += 1
+                c[2] = b
         if collect and k % collect_every == 0:
             j = k // collect_every
             trace["time"][j] = t
@@ -221,7 +232,7 @@ def run_episode(
         for est in ests:
             traces[est.name] = _trace_of(est)
             nis[est.name] = float("nan")
-        log.write(k, t, x[:dim], x[2 * dim :] if has_wind else None, errs, xhs, traces, nis, ranges, airspeed, u)
+        log.write(k, t, x[:dim], x[2 * dim :] if has_wind else None, errs, xhs, traces, nis, ranges, airspeed, u, bounds)
         if xlog is not None:
             xlog.write(recorder.n - 1, k)
         return recorder.n - 1
@@ -264,6 +275,11 @@ def run_episode(
     summary = _summarise(scenario, ests, names, trackers, last_errors, completed, wall, sensors, out, interrupted)
     if monitor is not None:
         summary["excitation"] = monitor.summary()
+    for name, (inside, rows, b) in contained.items():
+        summary["estimators"][name]["bounds"] = {
+            "contained_fraction": inside / rows if rows else None,
+            "final_width": None if b is None else (b[:, 1] - b[:, 0]).tolist(),
+        }
     if summary_path is not None:
         write_json_atomic(summary_path, summary)
     if collect:

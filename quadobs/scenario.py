@@ -30,6 +30,7 @@ __all__ = [
     "ObserverSpec",
     "InitialGuess",
     "ExcitationSpec",
+    "ZonotopeSpec",
     "load_scenario",
     "list_scenarios",
     "parse_scenario",
@@ -44,6 +45,10 @@ class NoiseSpec:
     ``dropout`` is the probability that a sample is lost; ``outlier_probability`` the
     probability that a range sample gets an extra error of standard deviation
     ``outlier_std`` (m).
+
+    Bounded noise: ``range_bound``, ``accel_bound``, ``airspeed_bound`` (m, m/s^2, m/s) draw
+    the sensor's error uniformly in ``[-bound, bound]`` instead of a Gaussian; a sensor has a
+    standard deviation or a bound, not both. Guaranteed (set-membership) estimators need them.
     """
 
     range_std: float = 0.0
@@ -54,6 +59,9 @@ class NoiseSpec:
     dropout: float = 0.0
     outlier_probability: float = 0.0
     outlier_std: float = 0.0
+    range_bound: float = 0.0
+    accel_bound: float = 0.0
+    airspeed_bound: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -110,6 +118,22 @@ class ExcitationSpec:
             raise QuadobsError(f"excitation.window: {self.window} s must span at least two hold steps of {h:g} s")
         update = multiple(self.update_period, h, "update_period", "excitation.step")
         return block, window, update
+
+
+@dataclass(frozen=True)
+class ZonotopeSpec:
+    """Settings of the guaranteed estimator ``"zonotope"`` (:mod:`quadobs.guaranteed`).
+
+    The true initial state must lie in the box centred at the initial guess with half-widths
+    ``position_bound`` (m) on positions and ``velocity_bound`` (m/s) on velocities (and wind);
+    ``max_generators`` bounds the zonotope's order (0: ten times the augmented dimension);
+    ``reduction`` is the order-reduction method (:data:`quadobs.zonotope.REDUCTION_METHODS`).
+    """
+
+    position_bound: float = 50.0
+    velocity_bound: float = 30.0
+    max_generators: int = 0
+    reduction: str = "parallelotope"
 
 
 @dataclass(frozen=True)
@@ -176,6 +200,7 @@ class Scenario:
     observer: ObserverSpec = field(default_factory=ObserverSpec)
     initial: InitialGuess = field(default_factory=InitialGuess)
     excitation: ExcitationSpec = field(default_factory=ExcitationSpec)
+    zonotope: ZonotopeSpec = field(default_factory=ZonotopeSpec)
     model: str | None = None
     record_every: int = 1
     source: str = ""
@@ -262,6 +287,7 @@ class Scenario:
                 if v is not None and k != "variants"
             },
             "initial": {k: (list(v) if isinstance(v, tuple) else v) for k, v in vars(self.initial).items() if v is not None},
+            "zonotope": dict(vars(self.zonotope)),
         }
         out["excitation"] = {k: v for k, v in vars(self.excitation).items() if v is not None}
         if traj.coast.size:
@@ -483,8 +509,17 @@ def parse_scenario(data: dict, source: str = "") -> Scenario:
         dropout=nf.number("dropout", 0.0, nonnegative=True, maximum=1.0),
         outlier_probability=nf.number("outlier_probability", 0.0, nonnegative=True, maximum=1.0),
         outlier_std=nf.number("outlier_std", 0.0, nonnegative=True),
+        range_bound=nf.number("range_bound", 0.0, nonnegative=True),
+        accel_bound=nf.number("accel_bound", 0.0, nonnegative=True),
+        airspeed_bound=nf.number("airspeed_bound", 0.0, nonnegative=True),
     )
     nf.done()
+    for sensor in ("range", "accel", "airspeed"):
+        if getattr(noise, f"{sensor}_std") and getattr(noise, f"{sensor}_bound"):
+            raise QuadobsError(
+                f"noise.{sensor}_bound: cannot be combined with noise.{sensor}_std "
+                "(a sensor's noise is Gaussian or bounded, not both)"
+            )
 
     of = top.table("observer")
     observer = ObserverSpec(
@@ -524,6 +559,14 @@ def parse_scenario(data: dict, source: str = "") -> Scenario:
         step=xf.number("step", None, positive=True, optional=True),
     )
     xf.done()
+    zf = top.table("zonotope")
+    zonotope = ZonotopeSpec(
+        position_bound=zf.number("position_bound", 50.0, positive=True),
+        velocity_bound=zf.number("velocity_bound", 30.0, positive=True),
+        max_generators=zf.integer("max_generators", 0, minimum=0),
+        reduction=zf.string("reduction", "parallelotope", choices=("combastel", "girard", "pca", "parallelotope")),
+    )
+    zf.done()
     top.done()
 
     scenario = Scenario(
@@ -541,6 +584,7 @@ def parse_scenario(data: dict, source: str = "") -> Scenario:
         observer=observer,
         initial=initial,
         excitation=excitation,
+        zonotope=zonotope,
         model=model,
         record_every=record_every,
         source=source,

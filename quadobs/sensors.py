@@ -9,6 +9,9 @@ rates, dropouts and outliers:
 * airspeed: ``s~ = s + n``, ``y = s~^2 / 2``;
 * accelerometer: ``u~ = u + n``.
 
+``n`` is Gaussian with the scenario's standard deviation, or uniform in ``[-bound, bound]``
+for a sensor with a bound (``noise.range_bound``, ``accel_bound``, ``airspeed_bound``).
+
 A sample that is not taken (rate below the physics rate) or dropped is NaN, which the
 estimators read as "predict only". Random draws come from independent streams spawned
 from the scenario seed, drawn in fixed-size blocks, so a seed gives the same
@@ -72,11 +75,12 @@ class SensorModel:
         self.range_every = scenario.sample_interval(noise.range_rate, "range_rate")
         self.airspeed_every = scenario.sample_interval(noise.airspeed_rate, "airspeed_rate")
         self.range_std, self.accel_std, self.airspeed_std = noise.range_std, noise.accel_std, noise.airspeed_std
+        self.range_bound, self.accel_bound, self.airspeed_bound = noise.range_bound, noise.accel_bound, noise.airspeed_bound
         self.dropout = noise.dropout
         self.outlier_probability, self.outlier_std = noise.outlier_probability, noise.outlier_std
-        self._range = _Draws(s["range"], self.q_b)
-        self._accel = _Draws(s["accel"], scenario.dimension)
-        self._air = _Draws(s["airspeed"], 1)
+        self._range = _Draws(s["range"], self.q_b, "uniform" if self.range_bound else "normal")
+        self._accel = _Draws(s["accel"], scenario.dimension, "uniform" if self.accel_bound else "normal")
+        self._air = _Draws(s["airspeed"], 1, "uniform" if self.airspeed_bound else "normal")
         self._drop = _Draws(s["dropout"], self.q, "uniform")
         self._out = _Draws(s["outlier"], self.q_b, "uniform")
         self._out_size = _Draws(s["outlier_size"], self.q_b)
@@ -98,7 +102,10 @@ class SensorModel:
         y[:] = np.nan
         self.measured_ranges[:] = np.nan
         if k % self.range_every == 0:
-            rho = ranges + self.range_std * self._range.next() if self.range_std else ranges.copy()
+            if self.range_bound:
+                rho = ranges + self.range_bound * (2.0 * self._range.next() - 1.0)
+            else:
+                rho = ranges + self.range_std * self._range.next() if self.range_std else ranges.copy()
             if self.outlier_probability:
                 hit = self._out.next() < self.outlier_probability
                 size = self._out_size.next()
@@ -108,7 +115,10 @@ class SensorModel:
             self.measured_ranges[:] = rho
             y[: self.q_b] = 0.5 * rho * rho - self._beacon_term
         if self.has_wind and airspeed is not None and k % self.airspeed_every == 0:
-            s = airspeed + (self.airspeed_std * self._air.next()[0] if self.airspeed_std else 0.0)
+            if self.airspeed_bound:
+                s = airspeed + self.airspeed_bound * (2.0 * self._air.next()[0] - 1.0)
+            else:
+                s = airspeed + (self.airspeed_std * self._air.next()[0] if self.airspeed_std else 0.0)
             y[self.q_b] = 0.5 * s * s
         if self.dropout:
             lost = (self._drop.next() < self.dropout) & ~np.isnan(y)
@@ -120,6 +130,8 @@ class SensorModel:
 
     def input(self, accel: np.ndarray) -> np.ndarray:
         """The measured input: the accelerometer reading plus its noise."""
+        if self.accel_bound:
+            return accel + self.accel_bound * (2.0 * self._accel.next() - 1.0)
         if self.accel_std:
             return accel + self.accel_std * self._accel.next()
         return accel

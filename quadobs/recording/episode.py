@@ -20,6 +20,9 @@ as ``augmented``):
 ``observer/<est>/covariance_trace``    trace of the estimator covariance
 ``observer/<est>/nis``                 normalised innovation squared (at corrections)
 ``excitation/...``                     live excitation monitor (see ``quadobs.recording.excitation``)
+``world/estimates/<est>/bounds``       guaranteed box of the position (estimators with ``bounds``)
+``errors/<est>/position/bounds``       lower and upper bound minus the true position, per axis (m)
+``errors/<est>/position/box_width``    width of the guaranteed box per axis (m)
 ``events``                             text log (warnings, interruption)
 =====================================  =========================================================
 """
@@ -83,9 +86,14 @@ class EpisodeLog:
     estimators : list of str
     trail_every : int
         Physics steps between 3-D samples (trails and vehicle boxes).
+    bounded : list of str
+        Estimators exposing guaranteed ``bounds (n, 2)`` of the state: their position box is
+        recorded too (see the module docstring).
     """
 
-    def __init__(self, recorder: Recorder, scenario: Scenario, estimators: list[str], *, trail_every: int) -> None:
+    def __init__(
+        self, recorder: Recorder, scenario: Scenario, estimators: list[str], *, trail_every: int, bounded=()
+    ) -> None:
         self.rec = recorder
         self.sc = scenario
         self.names = list(estimators)
@@ -118,6 +126,13 @@ class EpisodeLog:
                 s["wind_norm"] = r.series(f"errors/{name}/wind/norm", 1, names=[f"{name} |e_w|"], color=color)
                 s["wind_axes"] = r.series(f"errors/{name}/wind/axes", dim, names=[f"{name} e_w{a}" for a in axes])
                 s["wind"] = r.series(f"wind/{name}", dim, names=[f"{name} w_{a}" for a in axes], color=color)
+            if name in bounded:
+                s["bounds_box"] = r.series(f"world/estimates/{name}/bounds", 6, "boxes3d", every=trail_every, color=color)
+                s["bounds_err"] = r.series(
+                    f"errors/{name}/position/bounds", 2 * dim,
+                    names=[f"{name} {a} {side} - true" for side in ("low", "high") for a in axes],
+                )
+                s["box_width"] = r.series(f"errors/{name}/position/box_width", dim, names=[f"{name} box width {a}" for a in axes])
             self.est[name] = s
         if scenario.has_wind:
             self.wind_truth = r.series("wind/truth", dim, names=[f"true w_{a}" for a in axes], color=_TRUTH)
@@ -140,6 +155,7 @@ class EpisodeLog:
         ranges: np.ndarray | None,
         airspeed: float | None,
         accel: np.ndarray | None,
+        bounds: dict[str, np.ndarray] | None = None,
     ) -> None:
         """Write the row of ``step`` (see the module docstring for what goes where)."""
         i = self.rec.row(step, time)
@@ -158,6 +174,15 @@ class EpisodeLog:
             s["vel_norm"].buf[i, 0] = np.sqrt(ev @ ev)
             s["trace"].buf[i, 0] = traces[name]
             s["nis"].buf[i, 0] = nis[name]
+            if "bounds_box" in s:
+                b = bounds[name][:dim]
+                s["bounds_box"].buf[i, :dim] = 0.5 * (b[:, 0] + b[:, 1])
+                s["bounds_box"].buf[i, 3 : 3 + dim] = 0.5 * (b[:, 1] - b[:, 0])
+                if dim == 2:
+                    s["bounds_box"].buf[i, 5] = 0.05
+                s["bounds_err"].buf[i, :dim] = b[:, 0] - truth_p
+                s["bounds_err"].buf[i, dim:] = b[:, 1] - truth_p
+                s["box_width"].buf[i] = b[:, 1] - b[:, 0]
             if "wind" in s:
                 ew = e["wind"]
                 s["wind_axes"].buf[i] = ew

@@ -21,7 +21,7 @@ from ..errors import QuadobsError
 
 __all__ = ["Recorder", "Series", "check_writable"]
 
-_KINDS = ("scalars", "points3d", "translation")
+_KINDS = ("scalars", "points3d", "translation", "boxes3d")
 
 
 def check_writable(path: str | Path) -> Path:
@@ -48,7 +48,8 @@ class Series:
 
     ``kind`` is ``"scalars"`` (one line per column), ``"points3d"`` (one point per row)
     or ``"translation"`` (the entity's ``Transform3D`` translation; a static box drawn at
-    the entity then moves with it, latest-at, while point trails show history). ``every`` sends one row in ``every``
+    the entity then moves with it, latest-at, while point trails show history) or ``"boxes3d"`` (width 6:
+    centre then half-sizes of an axis-aligned box). ``every`` sends one row in ``every``
     (aligned on the step index); ``skip_nan`` drops rows holding NaN (a sensor that did
     not sample that step).
     """
@@ -125,6 +126,8 @@ class Recorder:
             if color:
                 kw["colors"] = [color] * width
             self.rec.log(entity, rr.SeriesLines(**kw), static=True)
+        elif kind == "boxes3d" and color:
+            self.rec.log(entity, rr.Boxes3D.from_fields(colors=[color]), static=True)
         elif kind == "points3d" and (color or radius):
             self.rec.log(entity, rr.Points3D.from_fields(colors=color, radii=radius), static=True)
         elif kind == "translation":
@@ -179,6 +182,8 @@ class Recorder:
                     cols = rr.Scalars.columns(scalars=vals)
                 elif s.kind == "points3d":
                     cols = rr.Points3D.columns(positions=vals)
+                elif s.kind == "boxes3d":
+                    cols = rr.Boxes3D.columns(centers=vals[:, :3], half_sizes=vals[:, 3:])
                 else:
                     cols = rr.Transform3D.columns(translation=vals)
                 self.rec.send_columns(s.entity, indexes=idx, columns=cols)
