@@ -143,7 +143,9 @@ def _collect_every(scenario: Scenario, every: float | None) -> int:
     if k < 1 or abs(k - every * scenario.physics_rate) > 1e-6 * k:
         raise QuadobsError(f"every: {every} s is not a whole number of physics steps ({scenario.dt} s)")
     if scenario.steps % k:
-        raise QuadobsError(f"every: {every} s must divide the duration {scenario.duration} s (so the last sample is the end)")
+        raise QuadobsError(
+            f"every: {every} s must divide the duration {scenario.duration} s (so the last sample is the end)"
+        )
     return k
 
 
@@ -199,7 +201,9 @@ def run_campaign(
     if len(set(names)) != len(names):
         raise QuadobsError(f"estimators: names must be distinct, got {names}")
     if scheduler is not None and workers is not None:
-        raise QuadobsError("workers: applies to local processes; with a scheduler the cluster's workers run the campaign")
+        raise QuadobsError(
+            "workers: applies to local processes; with a scheduler the cluster's workers run the campaign"
+        )
     if workers is not None and (isinstance(workers, bool) or not isinstance(workers, (int, np.integer)) or workers < 0):
         raise QuadobsError(f"workers: expected a non-negative integer, got {workers!r}")
     threshold = as_finite_scalar("threshold", threshold, positive=True)
@@ -287,7 +291,11 @@ def run_campaign(
     }
     result = CampaignResult(summary, ensembles, ok + failed, bound)
     if out is not None:
-        files = {"summary": str(out / "summary.json"), "runs": str(out / "runs.parquet"), "series": str(out / "series.parquet")}
+        files = {
+            "summary": str(out / "summary.json"),
+            "runs": str(out / "runs.parquet"),
+            "series": str(out / "series.parquet"),
+        }
         _write_runs(out / "runs.parquet", ok, failed, names, ensembles)
         _write_series(out / "series.parquet", ok, names, times)
         if record:
@@ -407,7 +415,9 @@ def _execute(tasks: list[dict], scheduler, workers, progress: bool, label: str) 
     try:
         from distributed import Client, as_completed as dask_completed
     except ImportError:  # pragma: no cover - depends on the environment
-        raise QuadobsError("scheduler: running on a Dask cluster needs dask.distributed (pip install 'quadobs[cluster]')") from None
+        raise QuadobsError(
+            "scheduler: running on a Dask cluster needs dask.distributed (pip install 'quadobs[cluster]')"
+        ) from None
     try:
         client = Client(scheduler, timeout=30)
     except OSError as exc:
@@ -466,7 +476,9 @@ def _write_table_atomic(path: Path, columns: dict) -> None:
         raise
 
 
-def _write_runs(path: Path, ok: list[dict], failed: list[dict], names: list[str], ensembles: dict[str, Ensemble]) -> None:
+def _write_runs(
+    path: Path, ok: list[dict], failed: list[dict], names: list[str], ensembles: dict[str, Ensemble]
+) -> None:
     import pyarrow as pa
 
     cols: dict[str, list] = {
@@ -573,20 +585,26 @@ def _record_statistics(path: Path, scenario: Scenario, names, ensembles, sqrt_bo
     views = [
         rrb.TimeSeriesView(
             name="Position RMSE, percentiles, sqrt PCRB (m)",
-            contents=[f"/stats/{e}/position/**" for e in names] + ["/stats/pcrb/position", "/stats/immersion_bound/position"],
+            contents=[f"/stats/{e}/position/**" for e in names]
+            + ["/stats/pcrb/position", "/stats/immersion_bound/position"],
         ),
         rrb.TimeSeriesView(
             name="Velocity RMSE, sqrt PCRB (m/s)",
-            contents=[f"/stats/{e}/velocity/**" for e in names] + ["/stats/pcrb/velocity", "/stats/immersion_bound/velocity"],
+            contents=[f"/stats/{e}/velocity/**" for e in names]
+            + ["/stats/pcrb/velocity", "/stats/immersion_bound/velocity"],
         ),
         rrb.TimeSeriesView(name="RMSE / sqrt(PCRB)", contents=[f"/stats/{e}/ratio/**" for e in names]),
         rrb.TimeSeriesView(name="NEES and chi-square bounds", contents=[f"/stats/{e}/nees/**" for e in names]),
         rrb.TimeSeriesView(name="NIS and chi-square bounds", contents=[f"/stats/{e}/nis/**" for e in names]),
-        rrb.TimeSeriesView(name="Fraction of runs within the threshold", contents=[f"/stats/{e}/converged" for e in names]),
+        rrb.TimeSeriesView(
+            name="Fraction of runs within the threshold", contents=[f"/stats/{e}/converged" for e in names]
+        ),
     ]
     sets = [e for e in names if np.isfinite(ensembles[e].containment).any()]
     if sets:
-        views.append(rrb.TimeSeriesView(name="Set estimators: containment, width", contents=[f"/stats/{e}/set/**" for e in sets]))
+        views.append(
+            rrb.TimeSeriesView(name="Set estimators: containment, width", contents=[f"/stats/{e}/set/**" for e in sets])
+        )
     blueprint = rrb.Blueprint(rrb.Grid(*views), collapse_panels=False)
     T = next(iter(ensembles.values())).times.shape[0]
     try:
@@ -604,14 +622,26 @@ def _record_statistics(path: Path, scenario: Scenario, names, ensembles, sqrt_bo
             )
         if sqrt_linear is not None:
             series["linear"] = (
-                rec.series("stats/immersion_bound/position", 1, names=["best linear filter on the immersion"], color=(120, 120, 120)),
-                rec.series("stats/immersion_bound/velocity", 1, names=["best linear filter on the immersion"], color=(120, 120, 120)),
+                rec.series(
+                    "stats/immersion_bound/position",
+                    1,
+                    names=["best linear filter on the immersion"],
+                    color=(120, 120, 120),
+                ),
+                rec.series(
+                    "stats/immersion_bound/velocity",
+                    1,
+                    names=["best linear filter on the immersion"],
+                    color=(120, 120, 120),
+                ),
             )
         for i, e in enumerate(names):
             c = _PALETTE[i % len(_PALETTE)]
             s = {
                 "rmse_p": rec.series(f"stats/{e}/position/rmse", 1, names=[f"{e} RMSE"], color=c),
-                "pct_p": rec.series(f"stats/{e}/position/percentiles", 3, names=[f"{e} |e_p| 5%", f"{e} median", f"{e} 95%"]),
+                "pct_p": rec.series(
+                    f"stats/{e}/position/percentiles", 3, names=[f"{e} |e_p| 5%", f"{e} median", f"{e} 95%"]
+                ),
                 "rmse_v": rec.series(f"stats/{e}/velocity/rmse", 1, names=[f"{e} RMSE"], color=c),
                 "ratio": rec.series(f"stats/{e}/ratio", 2, names=[f"{e} position", f"{e} velocity"]),
                 "nees": rec.series(f"stats/{e}/nees/mean", 1, names=[f"{e} mean NEES"], color=c),
@@ -671,7 +701,11 @@ def print_campaign(summary: dict, file=None) -> None:
 
     file = file or sys.stdout
     b = summary["backend"]
-    where = b["kind"] + (f" ({b['workers']} workers)" if b["kind"] != "in-process" else "") + (f" at {b['scheduler']}" if "scheduler" in b else "")
+    where = (
+        b["kind"]
+        + (f" ({b['workers']} workers)" if b["kind"] != "in-process" else "")
+        + (f" at {b['scheduler']}" if "scheduler" in b else "")
+    )
     print(
         f"campaign {summary['scenario']}: {summary['runs_completed']} of {summary['runs_requested']} runs completed"
         f" ({summary['runs_failed']} failed), {summary['duration']:g} s each, {summary['wall_time']:.1f} s wall on {where}"

@@ -313,7 +313,9 @@ def ensemble(
     ev = np.asarray(velocity_errors, dtype=float)
     R, T = ep.shape[:2]
     if T != t.shape[0] or ev.shape[:2] != (R, T):
-        raise QuadobsError(f"position_errors, velocity_errors: expected (runs, {t.shape[0]}, d), got {ep.shape}, {ev.shape}")
+        raise QuadobsError(
+            f"position_errors, velocity_errors: expected (runs, {t.shape[0]}, d), got {ep.shape}, {ev.shape}"
+        )
     thr = as_finite_scalar("threshold", threshold, positive=True)
     np_ = np.linalg.norm(ep, axis=-1)
     nv = np.linalg.norm(ev, axis=-1)
@@ -538,7 +540,8 @@ def scenario_crb(scenario, every: int = 1) -> tuple[np.ndarray, np.ndarray, str]
     times = np.arange(bound.shape[0]) * every * dt
     note = (
         f"ranges N(0, {noise.range_std:g}^2) every {r_every} steps, accelerometer N(0, {noise.accel_std:g}^2) per step, "
-        f"prior from {prior}" + (f", information scaled by 1 - dropout = {1 - noise.dropout:g}" if noise.dropout else "")
+        f"prior from {prior}"
+        + (f", information scaled by 1 - dropout = {1 - noise.dropout:g}" if noise.dropout else "")
     )
     return times, bound, note
 

@@ -252,7 +252,9 @@ class _GaussianFilter(Estimator):
         if not isinstance(outputs, OutputModel):
             raise QuadobsError(f"outputs: expected an OutputModel, got {type(outputs).__name__}")
         if outputs.system.n != dynamics.system.n:
-            raise QuadobsError(f"outputs: state dimension {outputs.system.n} differs from the dynamics' {dynamics.system.n}")
+            raise QuadobsError(
+                f"outputs: state dimension {outputs.system.n} differs from the dynamics' {dynamics.system.n}"
+            )
         n = dynamics.system.n
         self.dynamics, self.outputs = dynamics, outputs
         self.n, self.q = n, outputs.system.q

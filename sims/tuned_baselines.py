@@ -38,7 +38,13 @@ def main() -> None:
     register_estimator("ekf_tuned", tuned(ExtendedKalmanFilter, args.accel_std))
     register_estimator("ukf_tuned", tuned(UnscentedKalmanFilter, args.accel_std))
     # local processes are forked on Linux, so they see the registrations above
-    result = run_campaign(load_scenario(args.scenario), runs=args.runs, estimators=["ekf_tuned", "ukf_tuned"], out_dir=args.out, progress=True)
+    result = run_campaign(
+        load_scenario(args.scenario),
+        runs=args.runs,
+        estimators=["ekf_tuned", "ukf_tuned"],
+        out_dir=args.out,
+        progress=True,
+    )
     print(f"process noise of the filters' model: accelerometer sigma = {args.accel_std:g} m/s^2 per step (a tuning)")
     print_campaign(result.summary)
 

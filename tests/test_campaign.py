@@ -18,7 +18,15 @@ from quadobs.observer import Estimator
 from quadobs.runner import run_episode
 
 NAMES = ["augmented", "ekf", "ukf"]
-KEYS = {"runs", "converged_fraction", "final_rmse_position", "final_rmse_velocity", "rmse_over_sqrt_pcrb", "mean_nees", "chi2_bounds"}
+KEYS = {
+    "runs",
+    "converged_fraction",
+    "final_rmse_position",
+    "final_rmse_velocity",
+    "rmse_over_sqrt_pcrb",
+    "mean_nees",
+    "chi2_bounds",
+}
 
 
 def short(duration=2.0):
@@ -112,7 +120,13 @@ def test_statistics_recording(local):
     out, res = local
     rrd = out / "statistics.rrd"
     ents = set(list_entities(rrd))
-    for e in ["/stats/pcrb/position", "/stats/ekf/position/rmse", "/stats/ukf/nees/mean", "/stats/augmented/nees/bounds", "/stats/ekf/nis/mean"]:
+    for e in [
+        "/stats/pcrb/position",
+        "/stats/ekf/position/rmse",
+        "/stats/ukf/nees/mean",
+        "/stats/augmented/nees/bounds",
+        "/stats/ekf/nis/mean",
+    ]:
         assert e in ents
     rm = read_series(rrd, "stats/ekf/position/rmse")
     assert rm["step"][-1] == 2000 and len(rm["step"]) == 21
@@ -130,7 +144,9 @@ def test_a_run_is_reproduced_alone_from_its_seed(local):
     r2 = next(r for r in res.results if r["index"] == 2)
     alone = run_episode(short().with_overrides(seed=run_seed(0, 2)), estimators=NAMES)
     for name in NAMES:
-        assert alone.summary["estimators"][name]["final_position_error"] == r2["estimators"][name]["final_position_error"]
+        assert (
+            alone.summary["estimators"][name]["final_position_error"] == r2["estimators"][name]["final_position_error"]
+        )
 
 
 def test_in_process_gives_the_same_numbers(local):
@@ -142,6 +158,7 @@ def test_in_process_gives_the_same_numbers(local):
 
 def test_dask_local_cluster_gives_the_same_numbers(local, tmp_path):
     import distributed
+
     _, res = local
     with distributed.LocalCluster(
         n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1", dashboard_address=None
@@ -159,7 +176,10 @@ def test_a_failed_run_is_reported_and_the_others_kept(tmp_path, workers):
     bad = sorted(i for i in range(6) if run_seed(0, i) % 3 == 0)
     assert bad and len(bad) < 6
     assert [f["run"] for f in s["failed"]] == bad
-    assert all(f["seed"] == run_seed(0, f["run"]) and "FloatingPointError: diverged on purpose" in f["error"] for f in s["failed"])
+    assert all(
+        f["seed"] == run_seed(0, f["run"]) and "FloatingPointError: diverged on purpose" in f["error"]
+        for f in s["failed"]
+    )
     assert s["runs_completed"] == 6 - len(bad) and s["estimators"]["ekf"]["runs"] == 6 - len(bad)
     import pyarrow.parquet as pq
 
@@ -187,19 +207,53 @@ def test_set_estimators_containment_and_size():
 
 
 def test_interrupt_keeps_the_finished_runs():
-    register_estimator("stopper", lambda sc, x0, name: Flaky(x0, KeyboardInterrupt()) if sc.seed == run_seed(0, 2) else Flaky(x0, None))
+    register_estimator(
+        "stopper", lambda sc, x0, name: Flaky(x0, KeyboardInterrupt()) if sc.seed == run_seed(0, 2) else Flaky(x0, None)
+    )
     res = run_campaign(short(1.0), runs=5, estimators=["stopper"], workers=0)
     assert res.summary["interrupted"] and res.summary["runs_completed"] == 2
 
 
 def test_cli_campaign(tmp_path, capsys):
-    rc = main(["campaign", "ifac2021-noisy", "--runs", "2", "--duration", "1", "--estimators", "augmented,ekf", "--out", str(tmp_path), "--workers", "0", "--no-progress"])
+    rc = main(
+        [
+            "campaign",
+            "ifac2021-noisy",
+            "--runs",
+            "2",
+            "--duration",
+            "1",
+            "--estimators",
+            "augmented,ekf",
+            "--out",
+            str(tmp_path),
+            "--workers",
+            "0",
+            "--no-progress",
+        ]
+    )
     out = capsys.readouterr().out
     assert rc == 0
     assert "campaign ifac2021-noisy: 2 of 2 runs completed (0 failed)" in out
     assert "RMSE/sqrt(PCRB) p" in out and "ekf" in out
     assert json.loads((tmp_path / "summary.json").read_text())["runs_requested"] == 2
-    rc = main(["campaign", "ifac2021-noisy", "--runs", "3", "--duration", "1", "--estimators", "ekf,flaky", "--out", str(tmp_path / "f"), "--workers", "0", "--no-progress"])
+    rc = main(
+        [
+            "campaign",
+            "ifac2021-noisy",
+            "--runs",
+            "3",
+            "--duration",
+            "1",
+            "--estimators",
+            "ekf,flaky",
+            "--out",
+            str(tmp_path / "f"),
+            "--workers",
+            "0",
+            "--no-progress",
+        ]
+    )
     assert rc == 1 and "failed: run" in capsys.readouterr().out
 
 
@@ -217,3 +271,28 @@ def test_cli_campaign_bad_input(tmp_path, capsys, args, message):
     rc = main(["campaign", "ifac2021-noisy", "--duration", "1", "--out", str(tmp_path), "--no-progress", *args])
     assert rc == 2
     assert message in capsys.readouterr().err
+
+
+def test_wind_scenario_campaign():
+    """Wind state (p, v_a, v_w), ranges and airspeed: the baselines, the bound and the immersion bound all run."""
+    from quadobs.scenario import parse_scenario
+
+    data = short(1.0).to_dict()
+    data["dimension"] = 2
+    data["beacons"] = [{"position": [0.0, 0.0]}, {"position": [30.0, 5.0]}]
+    data["wind"] = {"velocity": [2.0, -1.0]}
+    data["trajectory"] = {
+        "offset": [5.0, 10.0],
+        "terms": [{"axis": 0, "amplitude": 10.0, "omega": 1.0}, {"axis": 1, "amplitude": 5.0, "omega": 2.0}],
+    }
+    data["noise"] = {"range_std": 0.3, "range_rate": 100.0, "airspeed_std": 0.1, "airspeed_rate": 50.0}
+    data["initial"] = {"kind": "random", "position_spread": 1.0, "velocity_spread": 0.3}
+    res = run_campaign(parse_scenario(data), runs=2, estimators=NAMES, workers=0)
+    s = res.summary
+    assert s["runs_completed"] == 2 and s["pcrb"]["available"]
+    assert s["pcrb"]["immersion_bound_final_sqrt_trace_position"] >= s["pcrb"]["final_sqrt_trace_position"]
+    for name in NAMES:
+        e = s["estimators"][name]
+        assert e["chi2_bounds"]["nees_dof_per_run"] == 6 and np.isfinite(e["final_rmse_position"])
+    # started from the true prior, the baselines stay near the bound (the augmented observer starts from S0 = 100 I)
+    assert s["estimators"]["ekf"]["rmse_over_sqrt_pcrb"] < 3 and s["estimators"]["ukf"]["rmse_over_sqrt_pcrb"] < 3

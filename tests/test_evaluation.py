@@ -222,8 +222,12 @@ def test_ekf_near_the_truth_has_the_pcrb_as_covariance():
     res = run_episode(sc, estimators=["ekf"], collect_every=500)
     _, B, _ = scenario_crb(sc, every=500)
     cov = res.trace["covariances"]["ekf"]
-    np.testing.assert_allclose(np.trace(cov[:, :3, :3], axis1=1, axis2=2), np.trace(B[:, :3, :3], axis1=1, axis2=2), rtol=0.02)
-    np.testing.assert_allclose(np.trace(cov[:, 3:, 3:], axis1=1, axis2=2), np.trace(B[:, 3:, 3:], axis1=1, axis2=2), rtol=0.02)
+    np.testing.assert_allclose(
+        np.trace(cov[:, :3, :3], axis1=1, axis2=2), np.trace(B[:, :3, :3], axis1=1, axis2=2), rtol=0.02
+    )
+    np.testing.assert_allclose(
+        np.trace(cov[:, 3:, 3:], axis1=1, axis2=2), np.trace(B[:, 3:, 3:], axis1=1, axis2=2), rtol=0.02
+    )
 
 
 def test_lifted_covariance_matches_sampling():
@@ -250,7 +254,9 @@ def test_immersion_bound_lies_between_the_pcrb_and_the_prior():
     np.testing.assert_allclose(Bi[0], Bp[0])
     for a, b in zip(Bi[1:], Bp[1:]):
         gap = np.linalg.eigvalsh(a - b)
-        assert gap.min() > -1e-9 * np.abs(b).max()  # the best linear filter on the immersion is no better than the bound
+        assert (
+            gap.min() > -1e-9 * np.abs(b).max()
+        )  # the best linear filter on the immersion is no better than the bound
     assert np.trace(Bi[-1][:3, :3]) > 1.05 * np.trace(Bp[-1][:3, :3])  # and it loses information here
     data = sc.to_dict()
     data["noise"]["accel_std"] = 0.1

@@ -145,7 +145,12 @@ def test_missing_outputs_use_the_present_ones_only(cls, rng):
     x0 = np.array([3.0, 4.0, 1.0, 0.5, 0.0, 0.0])
     full = cls(dyn, OutputModel(system, R, offsets=half), x0=x0, P0=4.0)
     sub_sys = vehicle_system(3, BEACONS[[0, 2]])
-    sub = cls(dyn.__class__(sub_sys, 0.01), OutputModel(sub_sys, R[np.ix_([0, 2], [0, 2])], offsets=half[[0, 2]]), x0=x0, P0=4.0)
+    sub = cls(
+        dyn.__class__(sub_sys, 0.01),
+        OutputModel(sub_sys, R[np.ix_([0, 2], [0, 2])], offsets=half[[0, 2]]),
+        x0=x0,
+        P0=4.0,
+    )
     y = system.output(x0 + 0.3) + 0.5
     y[1] = np.nan
     full.correct(y)
@@ -157,7 +162,13 @@ def test_missing_outputs_use_the_present_ones_only(cls, rng):
 
 def test_gate_rejects_an_outlier():
     system = vehicle_system(3, BEACONS[:1])
-    f = ExtendedKalmanFilter(HeldInputModel(system, 0.01), OutputModel(system, 0.01, offsets=[0.0]), x0=[10, 0, 0, 0, 0, 0], P0=0.01, gate=9.0)
+    f = ExtendedKalmanFilter(
+        HeldInputModel(system, 0.01),
+        OutputModel(system, 0.01, offsets=[0.0]),
+        x0=[10, 0, 0, 0, 0, 0],
+        P0=0.01,
+        gate=9.0,
+    )
     f.correct(np.array([0.5 * 10.05**2]))
     assert f.corrections == 1 and f.rejected == 0
     x = f.x_hat.copy()
@@ -169,7 +180,9 @@ def test_gate_rejects_an_outlier():
 def test_ekf_noise_free_start_at_the_truth_stays_exact(rng):
     """The EKF's predicted output is h(x_hat): zero innovations at the truth. (Not so for the UKF, whose
     predicted output is the unscented mean of h, h(x_hat) + tr(C_h P)/2 for a quadratic output.)"""
-    system, xs, us, ys, x_end = synthesize(rng, 300, 0.01, BEACONS, [5, 6, 1, 1, -1, 0.5], accel_std=0, range_std=0, every=1)
+    system, xs, us, ys, x_end = synthesize(
+        rng, 300, 0.01, BEACONS, [5, 6, 1, 1, -1, 0.5], accel_std=0, range_std=0, every=1
+    )
     f = ExtendedKalmanFilter(HeldInputModel(system, 0.01), OutputModel(system, 1.0), x0=xs[0], P0=1.0)
     for u, y in zip(us, ys):
         f.step(u, y)
@@ -335,6 +348,8 @@ def test_agrees_with_stonesoup_on_the_same_data(kind):
         state = predictor.predict(state, timestamp=t + timedelta(seconds=dt), control_input=State(u.reshape(-1, 1)))
         ours.step(u, y)
         if k % 50 == 49 or k == len(us) - 1:
-            np.testing.assert_allclose(ours.x_hat, np.asarray(state.state_vector, dtype=float)[:, 0], rtol=1e-9, atol=1e-9)
+            np.testing.assert_allclose(
+                ours.x_hat, np.asarray(state.state_vector, dtype=float)[:, 0], rtol=1e-9, atol=1e-9
+            )
             np.testing.assert_allclose(ours.x_covariance, np.asarray(state.covar, dtype=float), rtol=1e-8, atol=1e-11)
     assert updates == ours.corrections > 60
