@@ -7,7 +7,9 @@ The estimator core (this package's top level) needs only NumPy and SciPy:
   (``003_65f070b2762e6d70.txt`` Algorithm 1; the single-output chain of
   ``000_f34cd1199256bdad.txt`` via ``method="chain"``);
 * :class:`AugmentedObserver`: the Kalman-type observer of Theorem 3 of
-  ``000_f34cd1199256bdad.txt``, discretised exactly for a held input.
+  ``000_f34cd1199256bdad.txt``, discretised exactly for a held input;
+* :class:`ExtendedKalmanFilter`, :class:`UnscentedKalmanFilter`: the baselines on the
+  original state (registered as the estimators ``"ekf"`` and ``"ukf"``).
 
 The MuJoCo testbed (:mod:`quadobs.testbed`), the rerun recording layer
 (:mod:`quadobs.recording`) and the episode runner (:mod:`quadobs.runner`) sit on top and
@@ -16,6 +18,7 @@ are imported only when used.
 
 from .discretize import HeldInputDiscretization
 from .errors import QuadobsError
+from .filters import ExtendedKalmanFilter, UnscentedKalmanFilter
 from .immersion import Immersion, immerse, immerse_chain, immerse_minimal
 from .lmi import PRadiusDesign, pradius_gains
 from .observer import AugmentedObserver, Estimator
@@ -30,6 +33,7 @@ __version__ = "0.1.0"
 __all__ = [
     "AugmentedObserver",
     "Estimator",
+    "ExtendedKalmanFilter",
     "HeldInputDiscretization",
     "Immersion",
     "IntervalMatrix",
@@ -40,6 +44,7 @@ __all__ = [
     "SinusoidTrajectory",
     "Zonotope",
     "ZonotopicEstimator",
+    "UnscentedKalmanFilter",
     "immerse",
     "immerse_chain",
     "immerse_minimal",

@@ -47,7 +47,10 @@ class EpisodeResult:
     trace : dict or None
         With ``collect_every > 0``: ``time (T,)``, ``truth (T, n)``, and per estimator
         ``estimates[name] (T, n)`` and ``covariances[name] (T, n, n)`` (NaN when the
-        estimator has none), sampled every ``collect_every`` steps.
+        estimator has none), sampled every ``collect_every`` steps; ``nis[name] (T,)`` and
+        ``nis_dof[name] (T,)``, the NIS of the update made with the outputs of that step
+        and its degrees of freedom (NaN and 0 without one), and ``bounds[name] (T, n, 2)``
+        for estimators exposing interval ``bounds``.
     """
 
     summary: dict
@@ -186,6 +189,9 @@ def run_episode(
             "truth": np.full((n_rec, n), np.nan),
             "estimates": {nm: np.full((n_rec, n), np.nan) for nm in names},
             "covariances": {nm: np.full((n_rec, n, n), np.nan) for nm in names},
+            "nis": {nm: np.full(n_rec, np.nan) for nm in names},
+            "nis_dof": {nm: np.zeros(n_rec, dtype=int) for nm in names},
+            "bounds": {},
         }
     record_every = scenario.record_every
     bar = None
@@ -227,6 +233,9 @@ def run_episode(
                 cov = est.x_covariance
                 if cov is not None:
                     trace["covariances"][est.name][j] = cov
+                b = getattr(est, "bounds", None)
+                if b is not None:
+                    trace["bounds"].setdefault(est.name, np.full((n_rec, x.shape[0], 2), np.nan))[j] = b
         if log is None or k % record_every:
             return None
         for est in ests:
@@ -254,6 +263,8 @@ def run_episode(
                         xlog.warn(message, k + 1, (k + 1) * dt)
                 for est in ests:
                     est.step(u, y)
+                if collect and k % collect_every == 0:
+                    _collect_nis(trace, k // collect_every, ests, y)
                 if row is not None:
                     for est in ests:
                         log.est[est.name]["nis"].buf[row, 0] = getattr(est, "nis", float("nan"))
@@ -285,6 +296,19 @@ def run_episode(
     if collect:
         return EpisodeResult(summary, trace)
     return EpisodeResult(summary)
+
+
+def _collect_nis(trace: dict, j: int, ests, y: np.ndarray) -> None:
+    """NIS of each estimator's update with ``y`` and its degrees of freedom (``nis_dof``, else the outputs it saw)."""
+    for est in ests:
+        nis = float(getattr(est, "nis", float("nan")))
+        trace["nis"][est.name][j] = nis
+        dof = getattr(est, "nis_dof", None)
+        if dof is None:
+            seen = getattr(est, "outputs", None)
+            yy = y[seen] if isinstance(seen, np.ndarray) else y
+            dof = int(np.count_nonzero(~np.isnan(yy))) if np.isfinite(nis) else 0
+        trace["nis_dof"][est.name][j] = dof
 
 
 def _airspeed_of(y: np.ndarray, sensors: SensorModel) -> float | None:
