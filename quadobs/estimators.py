@@ -83,6 +83,10 @@ class OutputSubset(Estimator):
     def x_covariance(self):
         return self.inner.x_covariance
 
+    @property
+    def covariance_trace(self) -> float:
+        return self.inner.covariance_trace
+
     def __getattr__(self, item):
         return getattr(self.inner, item)
 

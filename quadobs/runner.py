@@ -11,6 +11,13 @@ The data path of physics step ``k`` (time ``t_k = k dt``):
 
 After the last step the final row ``K`` (``t_K = duration``) is recorded, so the summary's
 final errors compare ``x_hat_K`` with MuJoCo's ``x_K``.
+
+Cost. The per-step path allocates nothing: the physics step and the reading of the truth
+and raw sensors are one ``mj_step`` and one compiled call
+(:class:`~quadobs.testbed.BlockStepper`), and step ``k``'s values (truth, measurements,
+each ``x_hat_k``, covariance trace and NIS) go into row ``k`` of preallocated arrays of
+a block of steps. The errors, convergence times and the recording's rows are computed
+from those arrays once per block (vectorised), then sent as columns.
 """
 
 from __future__ import annotations
@@ -81,6 +88,20 @@ def _finite_or_none(x: float) -> float | None:
     return float(x) if math.isfinite(x) else None
 
 
+def _trace_reader(est):
+    """A function returning the covariance trace recorded for ``est`` (see :attr:`Estimator.covariance_trace`)."""
+    if isinstance(getattr(type(est), "covariance_trace", None), property):
+        return lambda: est.covariance_trace
+    return lambda: _trace_of(est)
+
+
+def _nis_reader(est):
+    """A function returning the NIS of the last correction of ``est`` (NaN when it has none)."""
+    if hasattr(est, "nis"):
+        return lambda: est.nis
+    return lambda: float("nan")
+
+
 def _trace_of(est) -> float:
     P = getattr(est, "P", None)
     if P is None:
@@ -125,7 +146,7 @@ def run_episode(
         when the run was stopped by Ctrl-C, in which case the recording and the summary
         cover every step up to the stop.
     """
-    from .testbed import VehicleSim  # the MuJoCo layer, imported only to run episodes
+    from .testbed import BlockStepper, VehicleSim  # the MuJoCo layer, imported only to run episodes
 
     if scenario.kind != "vehicle":
         raise QuadobsError(f"scenario {scenario.name!r}: kind {scenario.kind!r} is not a MuJoCo vehicle scenario")
@@ -183,61 +204,113 @@ def run_episode(
 
         bar = tqdm(total=steps, unit="step", unit_scale=True, desc=scenario.name, leave=False)
 
+    # Per-step values of a block of steps, in preallocated arrays (row j: step block0 + j);
+    # errors, convergence times and the recording are computed from them once per block.
+    n, E, q_b = scenario.state_dim, len(ests), scenario.beacons.shape[0]
+    stepper = BlockStepper(sim, _BLOCK)
+    raw = stepper.out  # truth (row j: x at step block0 + j), raw sensors of step block0 + j
+    raw_ranges, raw_accel = raw[:, stepper.ranges], raw[:, stepper.accel]
+    raw_air = raw[:, stepper.airspeed.start]
+    xh = np.full((E, _BLOCK + 1, n), np.nan)  # estimates at each row, before the step
+    traces = np.full((E, _BLOCK + 1), np.nan)  # covariance trace at each row
+    nis = np.full((E, _BLOCK + 1), np.nan)  # NIS of the correction of each step
+    meas_r = np.full((_BLOCK + 1, q_b), np.nan)  # measured ranges
+    meas_u = np.full((_BLOCK + 1, dim), np.nan) if sensors.accel_std else None  # measured input
+    meas_y = np.full((_BLOCK + 1, sensors.q), np.nan) if has_wind else None  # outputs (airspeed)
+    slots = [(e, est, _trace_reader(est), _nis_reader(est)) for e, est in enumerate(ests)]
+
     last_errors: dict[str, dict[str, np.ndarray]] = {}
     interrupted = False
     completed = 0
+    flushing = False
+
+    def flush(block0: int, rows: int) -> None:
+        """Errors, convergence, collected trajectories and recording of rows ``[0, rows)`` of the block."""
+        if rows <= 0:
+            return
+        ks = block0 + np.arange(rows)
+        t = ks * dt
+        X = raw[:rows, stepper.truth]
+        errs, xhs, trs, niss = {}, {}, {}, {}
+        for e, est in enumerate(ests):
+            err = state_errors(dim, has_wind, xh[e, :rows], X)
+            ep = err["position"]
+            trackers[est.name].update_many(t, np.sqrt(np.einsum("ij,ij->i", ep, ep)))
+            errs[est.name], xhs[est.name] = err, xh[e, :rows]
+            trs[est.name], niss[est.name] = traces[e, :rows], nis[e, :rows]
+            last_errors[est.name] = {key: val[-1].copy() for key, val in err.items()}
+        if collect:
+            sel = np.flatnonzero(ks % collect_every == 0)
+            idx = ks[sel] // collect_every
+            trace["time"][idx] = t[sel]
+            trace["truth"][idx] = X[sel]
+            for e, est in enumerate(ests):
+                trace["estimates"][est.name][idx] = xh[e, sel]
+        if log is None:
+            return
+        sel = np.flatnonzero(ks % record_every == 0)
+        if not sel.size:
+            return
+        accel = (meas_u if meas_u is not None else raw_accel)[:rows]
+        air = np.sqrt(2.0 * meas_y[:rows, sensors.q_b]) if has_wind else None
+        log.write_block(
+            ks[sel], t[sel], X[sel, :dim], X[sel, 2 * dim :] if has_wind else None,
+            {nm: {key: val[sel] for key, val in err.items()} for nm, err in errs.items()},
+            {nm: v[sel] for nm, v in xhs.items()}, {nm: v[sel] for nm, v in trs.items()},
+            {nm: v[sel] for nm, v in niss.items()}, meas_r[:rows][sel], None if air is None else air[sel], accel[sel],
+        )
+
     wall0 = _time.perf_counter()
-
-    def observe(k: int, x: np.ndarray, y, u, ranges, airspeed) -> int | None:
-        """Errors and trackers for row ``k``; write it to the recording; return its row index."""
-        t = k * dt
-        errs, xhs, traces, nis = {}, {}, {}, {}
-        for est in ests:
-            xh = est.x_hat
-            e = state_errors(dim, has_wind, xh, x)
-            errs[est.name] = e
-            xhs[est.name] = xh
-            trackers[est.name].update(t, float(np.sqrt(e["position"] @ e["position"])))
-        last_errors.update(errs)
-        if collect and k % collect_every == 0:
-            j = k // collect_every
-            trace["time"][j] = t
-            trace["truth"][j] = x
-            for est in ests:
-                trace["estimates"][est.name][j] = est.x_hat
-                cov = est.x_covariance
-                if cov is not None:
-                    trace["covariances"][est.name][j] = cov
-        if log is None or k % record_every:
-            return None
-        for est in ests:
-            traces[est.name] = _trace_of(est)
-            nis[est.name] = float("nan")
-        log.write(k, t, x[:dim], x[2 * dim :] if has_wind else None, errs, xhs, traces, nis, ranges, airspeed, u)
-        return recorder.n - 1
-
+    block0 = 0
     try:
+        step, outputs, sensor_input = stepper.step, sensors.outputs, sensors.input
+        measured = sensors.measured_ranges
         for block0 in range(0, steps, _BLOCK):
-            nblk = min(_BLOCK, steps - block0)
-            u_cmd = traj.step_accelerations(block0 * dt, dt, nblk)
+            nblk = stepper.begin(traj.step_accelerations(block0 * dt, dt, min(_BLOCK, steps - block0)))
             for j in range(nblk):
                 k = block0 + j
-                x_true = sim.state()
-                sim.step(u_cmd[j])
-                y = sensors.outputs(k, sim.ranges(), sim.airspeed() if has_wind else None)
-                u = sensors.input(sim.accelerometer())
-                row = observe(k, x_true, y, u, sensors.measured_ranges, None if not has_wind else _airspeed_of(y, sensors))
-                for est in ests:
+                step(j)  # mj_step; raw sensors of step k into raw[j], truth x_(k+1) into raw[j + 1]
+                y = outputs(k, raw_ranges[j], raw_air[j] if has_wind else None)
+                u = sensor_input(raw_accel[j])
+                meas_r[j] = measured
+                if meas_u is not None:
+                    meas_u[j] = u
+                if meas_y is not None:
+                    meas_y[j] = y
+                if collect and k % collect_every == 0:
+                    for e, est in enumerate(ests):
+                        cov = est.x_covariance
+                        if cov is not None:
+                            trace["covariances"][est.name][k // collect_every] = cov
+                for e, est, tr_of, nis_of in slots:
+                    xh[e, j] = est.x_hat
+                    traces[e, j] = tr_of()
                     est.step(u, y)
-                if row is not None:
-                    for est in ests:
-                        log.est[est.name]["nis"].buf[row, 0] = getattr(est, "nis", float("nan"))
+                    nis[e, j] = nis_of()
                 completed = k + 1
+            if block0 + nblk == steps:  # the final row: x_K and the estimates at t_K
+                for e, est, tr_of, _ in slots:
+                    xh[e, nblk] = est.x_hat
+                    traces[e, nblk] = tr_of()
+                    nis[e, nblk] = np.nan
+                    if collect and steps % collect_every == 0:
+                        cov = est.x_covariance
+                        if cov is not None:
+                            trace["covariances"][est.name][steps // collect_every] = cov
+                meas_r[nblk] = np.nan
+                for arr in (meas_u, meas_y):
+                    if arr is not None:
+                        arr[nblk] = np.nan
+                nblk += 1
+            flushing = True
+            flush(block0, nblk)
+            flushing = False
             if bar is not None:
-                bar.update(nblk)
-        observe(steps, sim.state(), None, None, None, None)
+                bar.update(min(nblk, steps - block0))
     except KeyboardInterrupt:
         interrupted = True
+        if not flushing:
+            flush(block0, completed - block0)
         if log is not None:
             recorder.text("events", f"interrupted at t = {completed * dt:.3f} s (step {completed})", level="WARN", step=completed, time=completed * dt)
     finally:
@@ -253,11 +326,6 @@ def run_episode(
     if collect:
         return EpisodeResult(summary, trace)
     return EpisodeResult(summary)
-
-
-def _airspeed_of(y: np.ndarray, sensors: SensorModel) -> float | None:
-    v = y[sensors.q_b]
-    return None if np.isnan(v) else float(np.sqrt(2.0 * v))
 
 
 def _summarise(scenario, ests, names, trackers, last_errors, completed, wall, sensors, out, interrupted) -> dict:

@@ -84,6 +84,16 @@ class SensorModel:
         self.outliers_injected = 0
         self.dropped = 0
         self._y = np.full(self.q, np.nan)
+        self._y_ranges = self._y[: self.q_b]
+        self._no_noise = np.zeros(self.q_b)
+        try:  # the compiled range transform (same arithmetic); NumPy when Numba is missing
+            from ._kernels import range_outputs as fast
+        except ImportError:  # pragma: no cover
+            fast = None
+        else:  # load (or compile) it now rather than in the first step
+            scratch = np.zeros(self.q_b)
+            fast(scratch, scratch, 0.0, scratch, scratch.copy(), scratch.copy())
+        self._fast = fast
 
     @property
     def range_period_steps(self) -> int:
@@ -92,29 +102,39 @@ class SensorModel:
     def outputs(self, k: int, ranges: np.ndarray, airspeed: float | None = None) -> np.ndarray:
         """The output vector ``y (q,)`` for physics step ``k`` (NaN where no sample).
 
-        Also leaves the noisy ranges in :attr:`measured_ranges` (NaN where no sample).
+        Also leaves the noisy ranges in :attr:`measured_ranges` (NaN where no sample). The
+        returned array is reused (overwritten) by the next call.
         """
         y = self._y
-        y[:] = np.nan
-        self.measured_ranges[:] = np.nan
+        measured = self.measured_ranges
         if k % self.range_every == 0:
-            rho = ranges + self.range_std * self._range.next() if self.range_std else ranges.copy()
-            if self.outlier_probability:
-                hit = self._out.next() < self.outlier_probability
-                size = self._out_size.next()
-                if hit.any():
-                    rho = rho + np.where(hit, self.outlier_std * size, 0.0)
-                    self.outliers_injected += int(hit.sum())
-            self.measured_ranges[:] = rho
-            y[: self.q_b] = 0.5 * rho * rho - self._beacon_term
-        if self.has_wind and airspeed is not None and k % self.airspeed_every == 0:
-            s = airspeed + (self.airspeed_std * self._air.next()[0] if self.airspeed_std else 0.0)
-            y[self.q_b] = 0.5 * s * s
+            noise = self._range.next() if self.range_std else self._no_noise
+            if self._fast is not None and not self.outlier_probability:
+                self._fast(ranges, noise, self.range_std, self._beacon_term, measured, self._y_ranges)
+            else:
+                rho = ranges + self.range_std * noise if self.range_std else ranges.copy()
+                if self.outlier_probability:
+                    hit = self._out.next() < self.outlier_probability
+                    size = self._out_size.next()
+                    if hit.any():
+                        rho = rho + np.where(hit, self.outlier_std * size, 0.0)
+                        self.outliers_injected += int(hit.sum())
+                measured[:] = rho
+                y[: self.q_b] = 0.5 * rho * rho - self._beacon_term
+        else:
+            y[: self.q_b] = np.nan
+            measured[:] = np.nan
+        if self.has_wind:
+            if airspeed is not None and k % self.airspeed_every == 0:
+                s = airspeed + (self.airspeed_std * self._air.next()[0] if self.airspeed_std else 0.0)
+                y[self.q_b] = 0.5 * s * s
+            else:
+                y[self.q_b] = np.nan
         if self.dropout:
             lost = (self._drop.next() < self.dropout) & ~np.isnan(y)
             if lost.any():
                 y[lost] = np.nan
-                self.measured_ranges[lost[: self.q_b]] = np.nan
+                measured[lost[: self.q_b]] = np.nan
                 self.dropped += int(lost.sum())
         return y
 

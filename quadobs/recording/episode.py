@@ -163,3 +163,51 @@ class EpisodeLog:
         for h, series in enumerate(self.ranges):
             series.buf[i, 0] = np.nan if ranges is None else ranges[h]
         self.accel.buf[i] = np.nan if accel is None else accel
+
+    def write_block(
+        self,
+        steps: np.ndarray,
+        times: np.ndarray,
+        truth_p: np.ndarray,
+        truth_wind: np.ndarray | None,
+        errors: dict[str, dict[str, np.ndarray]],
+        estimates: dict[str, np.ndarray],
+        traces: dict[str, np.ndarray],
+        nis: dict[str, np.ndarray],
+        ranges: np.ndarray,
+        airspeed: np.ndarray | None,
+        accel: np.ndarray,
+    ) -> None:
+        """:meth:`write` for ``m`` rows at once: every argument holds its rows first (``(m, ...)``)."""
+        steps = np.asarray(steps)
+        done, m = 0, len(steps)
+        dim = self.sc.dimension
+        while done < m:
+            i = self.rec.rows(steps[done:], times[done:])
+            src = slice(done, done + (i.stop - i.start))
+            self.truth_path.buf[i, :dim] = truth_p[src]
+            self.truth_box.buf[i, :dim] = truth_p[src]
+            for name, s in self.est.items():
+                e = errors[name]
+                xh = estimates[name][src]
+                s["path"].buf[i, :dim] = xh[:, :dim]
+                s["box"].buf[i, :dim] = xh[:, :dim]
+                ep, ev = e["position"][src], e["velocity"][src]
+                s["pos_axes"].buf[i] = ep
+                s["pos_norm"].buf[i, 0] = np.sqrt(np.einsum("ij,ij->i", ep, ep))
+                s["vel_axes"].buf[i] = ev
+                s["vel_norm"].buf[i, 0] = np.sqrt(np.einsum("ij,ij->i", ev, ev))
+                s["trace"].buf[i, 0] = traces[name][src]
+                s["nis"].buf[i, 0] = nis[name][src]
+                if "wind" in s:
+                    ew = e["wind"][src]
+                    s["wind_axes"].buf[i] = ew
+                    s["wind_norm"].buf[i, 0] = np.sqrt(np.einsum("ij,ij->i", ew, ew))
+                    s["wind"].buf[i] = xh[:, 2 * dim :]
+            if self.sc.has_wind:
+                self.wind_truth.buf[i] = truth_wind[src]
+                self.airspeed.buf[i, 0] = airspeed[src]
+            for h, series in enumerate(self.ranges):
+                series.buf[i, 0] = ranges[src, h]
+            self.accel.buf[i] = accel[src]
+            done = src.stop

@@ -1,0 +1,343 @@
+"""Compiled (Numba) kernels of the augmented observer: one fused correct + predict per call.
+
+Imported lazily by :mod:`quadobs.observer` and :mod:`quadobs.batch` (the estimator core
+imports with NumPy and SciPy alone). The arithmetic is that of the NumPy reference of
+:class:`~quadobs.observer.AugmentedObserver` (``backend="numpy"``), with the products
+associated to follow the structure of the matrices:
+
+* the transition ``Phi(u) = F0 + sum_j u_j F1[j]`` changes only in its aux-x block
+  (``000_f34cd1199256bdad.txt`` eqs. 22, 26a-c) and is sparse (block upper triangular;
+  ``e^{A dt}`` of a nilpotent ``A`` is a short polynomial in ``A``): it is kept as a dense
+  buffer whose aux-x block is rewritten each step and traversed by its structural
+  nonzeros (CSR);
+* ``Q_d(u) = sum_r mono_r(u) Qc[r]`` over the monomials ``1, u_j, u_j u_l (j <= l)``
+  (``Qc`` from ``Q0, Q1, Q2`` of :class:`~quadobs.discretize.HeldInputDiscretization`)
+  is assembled from the nonzero upper-triangular entries of the ``Qc[r]`` (COO);
+* the output matrix ``C = [F | D]`` is sparse (CSR);
+* the Joseph form ``(I - K C) P (I - K C)^T + K R K^T`` is evaluated as
+  ``X = P - K (P C^T)^T`` then ``X - (X C^T) K^T + K R K^T``: the same products,
+  associated so that each is ``O(N^2 q)`` rather than ``O(N^3)``;
+* the state moves by ``K nu = (P C^T) S^{-1} nu``, with ``S`` factored once (Cholesky).
+
+The covariance is written as its upper triangle and mirrored, so it is exactly
+symmetric. Nothing is allocated per call.
+
+Calling convention. Passing an array from Python to a compiled function costs tens of
+nanoseconds, more than most of the arithmetic here, so the operands travel packed:
+
+``ic`` (int64)
+    header ``[N, k, p, q, nm, nq, o_phi_ptr, o_phi_col, o_qi, o_qj, o_qr, o_c_ptr, o_c_col,
+    o_iw, o_fblk, o_F1, o_G0, o_G2, o_qv, o_cval, o_R]`` (offsets ``o_*`` into ``ic`` or
+    ``fc``), then the CSR of ``Phi``, the COO of ``Qc``, the CSR of ``C``, and ``q``
+    integers of work;
+``fc`` (float64)
+    ``[growth, gate]``, then the constant aux-x block of ``F0 (k, n)``, ``F1 (p, k, n)``,
+    ``G0 (n, p)``, ``G2 (p, k, p)``, the ``Qc`` values, the ``C`` values and ``R (q, q)``,
+    each row-major at its offset;
+``W`` (float64 work, :func:`work_size`)
+    ``Phi``, ``T`` (or ``X``), the new ``P`` (``N * N`` each), ``P C^T``, ``K``, ``X C^T``,
+    ``K R`` (``N * q`` each), ``zt (N)``, ``mono (nm)``, ``L (q * q)``, ``nu``, ``w``, ``tmp``
+    (``q`` each), then the observer's ``stats = [nis, corrections, rejected, trace(P)]``.
+
+A single observer keeps ``z``, ``P`` and ``W`` in one buffer ``S = [z | P | W]``
+(:func:`augmented_step` then takes five arrays); :class:`quadobs.observer.KernelModel`
+builds ``ic`` and ``fc``.
+"""
+
+from __future__ import annotations
+
+import math
+
+from numba import njit
+
+__all__ = [
+    "HEADER",
+    "augmented_correct",
+    "augmented_predict",
+    "augmented_step",
+    "augmented_step_batch",
+    "range_outputs",
+    "work_size",
+]
+
+_OPTS = dict(cache=True, nogil=True, error_model="numpy")
+
+#: Length of the header of ``ic``.
+HEADER = 21
+
+
+def work_size(N: int, q: int, nm: int) -> int:
+    """Length of the work buffer ``W`` (stats included) for ``N`` states, ``q`` outputs, ``nm`` monomials."""
+    return 3 * N * N + 4 * N * q + N + nm + q * q + 3 * q + 4
+
+
+@njit(**_OPTS)
+def _correct(z, P, y, fc, ic, W, stats):
+    N = ic[0]
+    q = ic[3]
+    nm = ic[4]
+    o_cptr = ic[11]
+    o_ccol = ic[12]
+    o_iw = ic[13]
+    o_cval = ic[19]
+    o_R = ic[20]
+    r = 0
+    for h in range(q):
+        if not math.isnan(y[h]):
+            ic[o_iw + r] = h
+            r += 1
+    if r == 0:
+        stats[0] = math.nan
+        return 0
+    gate = fc[1]
+    oX = N * N
+    oPC = 3 * N * N  # P C^T, then K, X C^T, K R: (N, q) row-major
+    oK = oPC + N * q
+    oXC = oK + N * q
+    oKR = oXC + N * q
+    oL = oKR + N * q + N + nm  # L (q, q), then nu, w, tmp
+    onu = oL + q * q
+    ow = onu + q
+    otmp = ow + q
+
+    # P C^T (P symmetric: row m of P is column m), innovation nu, S = C P C^T + R (lower).
+    for a in range(r):
+        h = ic[o_iw + a]
+        for i in range(N):
+            W[oPC + i * q + a] = 0.0
+        s = y[h]
+        for t in range(ic[o_cptr + h], ic[o_cptr + h + 1]):
+            m = ic[o_ccol + t]
+            c = fc[o_cval + t]
+            s -= c * z[m]
+            for i in range(N):
+                W[oPC + i * q + a] += c * P[m, i]
+        W[onu + a] = s
+    for a in range(r):
+        h = ic[o_iw + a]
+        for b in range(a + 1):
+            s = fc[o_R + h * q + ic[o_iw + b]]
+            for t in range(ic[o_cptr + h], ic[o_cptr + h + 1]):
+                s += fc[o_cval + t] * W[oPC + ic[o_ccol + t] * q + b]
+            W[oL + a * q + b] = s
+    # Cholesky S = L L^T, in place in the lower triangle.
+    for j in range(r):
+        s = W[oL + j * q + j]
+        for t in range(j):
+            s -= W[oL + j * q + t] * W[oL + j * q + t]
+        d = math.sqrt(s)
+        W[oL + j * q + j] = d
+        for i in range(j + 1, r):
+            s = W[oL + i * q + j]
+            for t in range(j):
+                s -= W[oL + i * q + t] * W[oL + j * q + t]
+            W[oL + i * q + j] = s / d
+    # w = S^{-1} nu; NIS = nu^T w.
+    for i in range(r):
+        s = W[onu + i]
+        for t in range(i):
+            s -= W[oL + i * q + t] * W[otmp + t]
+        W[otmp + i] = s / W[oL + i * q + i]
+    for i in range(r - 1, -1, -1):
+        s = W[otmp + i]
+        for t in range(i + 1, r):
+            s -= W[oL + t * q + i] * W[ow + t]
+        W[ow + i] = s / W[oL + i * q + i]
+    nis = 0.0
+    for a in range(r):
+        nis += W[onu + a] * W[ow + a]
+    stats[0] = nis
+    if nis > gate:
+        stats[2] += 1.0
+        return 2
+    # K = P C^T S^{-1}, row by row; z += K nu = P C^T w.
+    for i in range(N):
+        for a in range(r):
+            s = W[oPC + i * q + a]
+            for t in range(a):
+                s -= W[oL + a * q + t] * W[otmp + t]
+            W[otmp + a] = s / W[oL + a * q + a]
+        for a in range(r - 1, -1, -1):
+            s = W[otmp + a]
+            for t in range(a + 1, r):
+                s -= W[oL + t * q + a] * W[oK + i * q + t]
+            W[oK + i * q + a] = s / W[oL + a * q + a]
+        s = 0.0
+        for a in range(r):
+            s += W[oPC + i * q + a] * W[ow + a]
+        z[i] += s
+    # Joseph form: X = (I - K C) P = P - K (P C^T)^T, then X (I - K C)^T + K R K^T.
+    for i in range(N):
+        for j in range(N):
+            s = P[i, j]
+            for a in range(r):
+                s -= W[oK + i * q + a] * W[oPC + j * q + a]
+            W[oX + i * N + j] = s
+    for a in range(r):
+        h = ic[o_iw + a]
+        for i in range(N):
+            s = 0.0
+            for t in range(ic[o_cptr + h], ic[o_cptr + h + 1]):
+                s += W[oX + i * N + ic[o_ccol + t]] * fc[o_cval + t]
+            W[oXC + i * q + a] = s
+            s = 0.0
+            for b in range(r):
+                s += W[oK + i * q + b] * fc[o_R + ic[o_iw + b] * q + h]
+            W[oKR + i * q + a] = s
+    tr = 0.0
+    for i in range(N):
+        for j in range(i, N):
+            s = W[oX + i * N + j]
+            for a in range(r):
+                s += (W[oKR + i * q + a] - W[oXC + i * q + a]) * W[oK + j * q + a]
+            P[i, j] = s
+            P[j, i] = s
+        tr += P[i, i]
+    stats[1] += 1.0
+    stats[3] = tr
+    return 1
+
+
+@njit(**_OPTS)
+def _predict(z, P, u, fc, ic, W, stats):
+    N = ic[0]
+    k = ic[1]
+    p = ic[2]
+    q = ic[3]
+    nq = ic[5]
+    o_pptr = ic[6]
+    o_pcol = ic[7]
+    o_qi = ic[8]
+    o_qj = ic[9]
+    o_qr = ic[10]
+    o_fblk = ic[14]
+    o_F1 = ic[15]
+    o_G0 = ic[16]
+    o_G2 = ic[17]
+    o_qv = ic[18]
+    n = N - k
+    growth = fc[0]
+    oT = N * N  # Phi at 0, T at oT, the new P at oPn
+    oPn = 2 * N * N
+    ozt = 3 * N * N + 4 * N * q
+    omono = ozt + N
+    # Phi(u): only the aux-x block depends on u.
+    for a in range(k):
+        for b in range(n):
+            s = fc[o_fblk + a * n + b]
+            for j in range(p):
+                s += u[j] * fc[o_F1 + (j * k + a) * n + b]
+            W[a * N + k + b] = s
+    # z <- Phi z + g(u)
+    for i in range(N):
+        s = 0.0
+        for t in range(ic[o_pptr + i], ic[o_pptr + i + 1]):
+            m = ic[o_pcol + t]
+            s += W[i * N + m] * z[m]
+        W[ozt + i] = s
+    for a in range(k):
+        s = 0.0
+        for j in range(p):
+            uj = u[j]
+            for l in range(p):
+                s += uj * fc[o_G2 + (j * k + a) * p + l] * u[l]
+        W[ozt + a] += s
+    for b in range(n):
+        s = 0.0
+        for j in range(p):
+            s += fc[o_G0 + b * p + j] * u[j]
+        W[ozt + k + b] += s
+    for i in range(N):
+        z[i] = W[ozt + i]
+    # T = Phi P: row i of T combines the rows of P picked by row i of Phi.
+    for i in range(N):
+        for j in range(N):
+            W[oT + i * N + j] = 0.0
+        for t in range(ic[o_pptr + i], ic[o_pptr + i + 1]):
+            m = ic[o_pcol + t]
+            f = W[i * N + m]
+            for j in range(N):
+                W[oT + i * N + j] += f * P[m, j]
+    # Pn = growth T Phi^T (upper triangle) + Q_d(u).
+    for i in range(N):
+        for j in range(i, N):
+            s = 0.0
+            for t in range(ic[o_pptr + j], ic[o_pptr + j + 1]):
+                m = ic[o_pcol + t]
+                s += W[oT + i * N + m] * W[j * N + m]
+            W[oPn + i * N + j] = growth * s
+    W[omono] = 1.0
+    for j in range(p):
+        W[omono + 1 + j] = u[j]
+    c = omono + 1 + p
+    for j in range(p):
+        for l in range(j, p):
+            W[c] = u[j] * u[l]
+            c += 1
+    for t in range(nq):
+        W[oPn + ic[o_qi + t] * N + ic[o_qj + t]] += fc[o_qv + t] * W[omono + ic[o_qr + t]]
+    tr = 0.0
+    for i in range(N):
+        for j in range(i, N):
+            s = W[oPn + i * N + j]
+            P[i, j] = s
+            P[j, i] = s
+        tr += P[i, i]
+    stats[3] = tr
+
+
+@njit(**_OPTS)
+def _views(S, ic):
+    N = ic[0]
+    return S[:N], S[N : N + N * N].reshape(N, N), S[N + N * N :]
+
+
+@njit(**_OPTS)
+def augmented_correct(y, S, fc, ic):
+    """Kalman correction of ``S = [z | P | W]`` with the outputs present in ``y`` (NaN = missing).
+
+    The stats at the end of ``S`` record the NIS, count the corrections and the
+    rejections, and hold the trace of ``P``. Returns 0 (nothing present: predict only), 1 (corrected) or 2 (rejected
+    by the gate, ``NIS > fc[1]``).
+    """
+    z, P, W = _views(S, ic)
+    return _correct(z, P, y, fc, ic, W, S[S.shape[0] - 4 :])
+
+
+@njit(**_OPTS)
+def augmented_predict(u, S, fc, ic):
+    """Exact prediction of ``S = [z | P | W]`` over one step with ``u`` held:
+    ``z <- Phi(u) z + g(u)``, ``P <- e^{theta dt} Phi(u) P Phi(u)^T + Q_d(u)``."""
+    z, P, W = _views(S, ic)
+    _predict(z, P, u, fc, ic, W, S[S.shape[0] - 4 :])
+
+
+@njit(**_OPTS)
+def augmented_step(u, y, S, fc, ic):
+    """:func:`augmented_correct` with ``y`` then :func:`augmented_predict` with ``u``; returns the correction code."""
+    z, P, W = _views(S, ic)
+    stats = S[S.shape[0] - 4 :]
+    code = _correct(z, P, y, fc, ic, W, stats)
+    _predict(z, P, u, fc, ic, W, stats)
+    return code
+
+
+@njit(**_OPTS)
+def augmented_step_batch(U, Y, Z, Ps, stats, W, fc, ic):
+    """:func:`augmented_step` for each member ``b`` of a batch, one after the other.
+
+    ``U (B, p)``, ``Y (B, q)``, ``Z (B, N)``, ``Ps (B, N, N)``, ``stats (B, 4)``; the model
+    (``fc``, ``ic``) and the work buffer ``W`` (:func:`work_size`) are shared.
+    """
+    for b in range(Z.shape[0]):
+        _correct(Z[b], Ps[b], Y[b], fc, ic, W, stats[b])
+        _predict(Z[b], Ps[b], U[b], fc, ic, W, stats[b])
+
+
+@njit(**_OPTS)
+def range_outputs(ranges, noise, std, beacon_term, measured, y):
+    """``measured = ranges + std * noise``, ``y = measured^2 / 2 - beacon_term`` (:class:`quadobs.sensors.SensorModel`)."""
+    for h in range(ranges.shape[0]):
+        rho = ranges[h] + std * noise[h] if std != 0.0 else ranges[h]
+        measured[h] = rho
+        y[h] = rho * rho * 0.5 - beacon_term[h]
