@@ -1,0 +1,159 @@
+"""Theorem 3's observer for a batch of systems stepped together.
+
+:class:`BatchAugmentedObserver` holds ``B`` copies of one
+:class:`~quadobs.observer.AugmentedObserver` (same immersion, discretisation, noise
+intensities and gate) with their own estimates ``Z (B, N)`` and covariances ``P (B, N, N)``,
+and advances them all with one call: the compiled kernel
+(:func:`quadobs._kernels.augmented_step_batch`) runs the exact arithmetic of the single
+observer on each member in turn, sharing the model and the work buffers, so member ``b``
+evolves exactly as a single observer fed ``U[b]``, ``Y[b]`` would (the same operations in
+the same order). Without Numba each member is advanced by the NumPy reference.
+"""
+
+from __future__ import annotations
+
+import copy
+
+import numpy as np
+
+from .errors import QuadobsError, as_array
+from .observer import AugmentedObserver, KernelModel, resolve_backend
+
+__all__ = ["BatchAugmentedObserver"]
+
+_F64 = np.dtype(np.float64)
+
+
+class BatchAugmentedObserver:
+    """``B`` copies of an :class:`~quadobs.observer.AugmentedObserver`, stepped together.
+
+    Parameters
+    ----------
+    observer : AugmentedObserver
+        The template: its model, settings, and current estimate and covariance.
+    batch : int
+        Number of members ``B``.
+    x0 : array_like (B, n) or (n,), optional
+        Initial estimates of ``x`` (the augmented estimates start at their lifts);
+        default: the template's ``z`` for every member.
+    z0 : array_like (B, N) or (N,), optional
+        Initial augmented estimates (override ``x0``).
+    backend : {"auto", "numba", "numpy"}
+        As for :class:`~quadobs.observer.AugmentedObserver`.
+
+    Attributes
+    ----------
+    Z : ndarray (B, N)
+        Augmented estimates, updated in place.
+    P : ndarray (B, N, N)
+        Their covariances, updated in place.
+    """
+
+    def __init__(self, observer: AugmentedObserver, batch: int, *, x0=None, z0=None, backend: str = "auto") -> None:
+        if not isinstance(observer, AugmentedObserver):
+            raise QuadobsError(f"observer: expected an AugmentedObserver, got {type(observer).__name__}")
+        if isinstance(batch, bool) or not isinstance(batch, (int, np.integer)) or batch < 1:
+            raise QuadobsError(f"batch: expected a positive integer, got {batch!r}")
+        B = int(batch)
+        im = observer.immersion
+        N, n, p, q = im.dim, im.system.n, im.system.p, im.system.q
+        self.immersion, self.batch = im, B
+        self._k = im.n_aux
+        if z0 is not None:
+            Z = np.broadcast_to(_rows("z0", z0, B, N), (B, N))
+        elif x0 is not None:
+            Z = im.lift(np.broadcast_to(_rows("x0", x0, B, n), (B, n)))
+        else:
+            Z = np.broadcast_to(observer.z, (B, N))
+        self.Z = np.array(Z, dtype=float)
+        self.P = np.array(np.broadcast_to(observer.P, (B, N, N)), dtype=float)
+        self._stats = np.zeros((B, 4))  # nis, corrections, rejected, trace(P)
+        self._stats[:, 0] = np.nan
+        self._stats[:, 3] = np.trace(observer.P)
+        self._ushape, self._yshape = (B, p), (B, q)
+        self.backend = resolve_backend(backend)
+        self._kernel = None
+        if self.backend == "numba":
+            from . import _kernels
+
+            km = KernelModel(observer.model, observer._C, observer.R, observer.gate)
+            self._kops = (km.work(), km.fc, km.ic)
+            self._kernel = _kernels.augmented_step_batch
+            # load (or compile) the kernel now, on scratch copies
+            self._kernel(
+                np.zeros((1, p)), np.full((1, q), np.nan), self.Z[:1].copy(), self.P[:1].copy(), self._stats[:1].copy(), *self._kops
+            )
+        else:
+            self._ref = copy.copy(observer)  # the NumPy reference path on the template's model
+            self._ref._kernel = None
+            self._ref._Phi = observer._Phi.copy()
+
+    # -- estimates -------------------------------------------------------------------
+
+    @property
+    def x_hat(self) -> np.ndarray:
+        """``(B, n)`` estimates of ``x`` (a view of :attr:`Z`)."""
+        return self.Z[:, self._k :]
+
+    @property
+    def x_covariance(self) -> np.ndarray:
+        """``(B, n, n)`` covariances of :attr:`x_hat` (a view of :attr:`P`)."""
+        k = self._k
+        return self.P[:, k:, k:]
+
+    @property
+    def nis(self) -> np.ndarray:
+        """``(B,)`` NIS of each member's last correction (NaN where nothing was present)."""
+        return self._stats[:, 0].copy()
+
+    @property
+    def corrections(self) -> np.ndarray:
+        return self._stats[:, 1].astype(np.int64)
+
+    @property
+    def rejected(self) -> np.ndarray:
+        return self._stats[:, 2].astype(np.int64)
+
+    @property
+    def covariance_trace(self) -> np.ndarray:
+        """``(B,)`` traces of the augmented covariances."""
+        return self._stats[:, 3].copy()
+
+    # -- stepping --------------------------------------------------------------------
+
+    def step(self, U: np.ndarray, Y: np.ndarray) -> None:
+        """Correct member ``b`` with ``Y[b]`` (``(B, q)``, NaN = missing), then predict it with ``U[b]`` (``(B, p)``) held."""
+        try:
+            fast = (
+                U.dtype is _F64 and Y.dtype is _F64 and U.shape == self._ushape and Y.shape == self._yshape
+                and U.flags.c_contiguous and Y.flags.c_contiguous
+            )
+        except AttributeError:
+            fast = False
+        if not fast:
+            U, Y = _checked("U", U, self._ushape), _checked("Y", Y, self._yshape)
+        if self._kernel is not None:
+            self._kernel(U, Y, self.Z, self.P, self._stats, *self._kops)
+            return
+        ref = self._ref
+        for b in range(self.batch):
+            ref._z, ref._P, ref._stats = self.Z[b], self.P[b], self._stats[b]
+            ref.correct(Y[b])
+            ref.predict(U[b])
+
+
+def _rows(name: str, value, B: int, width: int) -> np.ndarray:
+    arr = as_array(name, value)
+    if arr.shape not in ((width,), (B, width)):
+        raise QuadobsError(f"{name}: expected shape ({width},) or ({B}, {width}), got {arr.shape}")
+    return arr
+
+
+def _checked(name: str, value, shape: tuple[int, int]) -> np.ndarray:
+    try:
+        arr = np.ascontiguousarray(value, dtype=float)
+    except (TypeError, ValueError) as exc:
+        raise QuadobsError(f"{name}: expected a numeric array, got {type(value).__name__} ({exc})") from None
+    if arr.shape != shape:
+        raise QuadobsError(f"{name}: expected shape {shape}, got {arr.shape}")
+    return arr
