@@ -35,7 +35,7 @@ nanoseconds, more than most of the arithmetic here, so the operands travel packe
     ``G0 (n, p)``, ``G2 (p, k, p)``, the ``Qc`` values, the ``C`` values and ``R (q, q)``,
     each row-major at its offset;
 ``W`` (float64 work, :func:`work_size`)
-    ``Phi``, ``T`` (or ``X``), the new ``P`` (``N * N`` each), ``P C^T``, ``K``, ``X C^T``,
+    ``Phi``, ``T`` (or ``X``) (``N * N`` each), ``P C^T``, ``K``, ``X C^T``,
     ``K R`` (``N * q`` each), ``zt (N)``, ``mono (nm)``, ``L (q * q)``, ``nu``, ``w``, ``tmp``
     (``q`` each), then the observer's ``stats = [nis, corrections, rejected, trace(P)]``.
 
@@ -56,6 +56,7 @@ __all__ = [
     "augmented_predict",
     "augmented_step",
     "augmented_step_batch",
+    "augmented_step_record",
     "range_outputs",
     "work_size",
 ]
@@ -68,7 +69,7 @@ HEADER = 21
 
 def work_size(N: int, q: int, nm: int) -> int:
     """Length of the work buffer ``W`` (stats included) for ``N`` states, ``q`` outputs, ``nm`` monomials."""
-    return 3 * N * N + 4 * N * q + N + nm + q * q + 3 * q + 4
+    return 2 * N * N + 4 * N * q + N + nm + q * q + 3 * q + 4
 
 
 @njit(**_OPTS)
@@ -91,7 +92,7 @@ def _correct(z, P, y, fc, ic, W, stats):
         return 0
     gate = fc[1]
     oX = N * N
-    oPC = 3 * N * N  # P C^T, then K, X C^T, K R: (N, q) row-major
+    oPC = 2 * N * N  # P C^T, then K, X C^T, K R: (N, q) row-major
     oK = oPC + N * q
     oXC = oK + N * q
     oKR = oXC + N * q
@@ -217,9 +218,8 @@ def _predict(z, P, u, fc, ic, W, stats):
     o_qv = ic[18]
     n = N - k
     growth = fc[0]
-    oT = N * N  # Phi at 0, T at oT, the new P at oPn
-    oPn = 2 * N * N
-    ozt = 3 * N * N + 4 * N * q
+    oT = N * N  # Phi at 0, T at oT
+    ozt = 2 * N * N + 4 * N * q
     omono = ozt + N
     # Phi(u): only the aux-x block depends on u.
     for a in range(k):
@@ -258,14 +258,17 @@ def _predict(z, P, u, fc, ic, W, stats):
             f = W[i * N + m]
             for j in range(N):
                 W[oT + i * N + j] += f * P[m, j]
-    # Pn = growth T Phi^T (upper triangle) + Q_d(u).
+    # P <- growth T Phi^T + Q_d(u), written straight into P (T holds all that is needed of
+    # the old P): the upper triangle, mirrored, then the entries of Q_d(u) added to both.
     for i in range(N):
         for j in range(i, N):
             s = 0.0
             for t in range(ic[o_pptr + j], ic[o_pptr + j + 1]):
                 m = ic[o_pcol + t]
                 s += W[oT + i * N + m] * W[j * N + m]
-            W[oPn + i * N + j] = growth * s
+            s *= growth
+            P[i, j] = s
+            P[j, i] = s
     W[omono] = 1.0
     for j in range(p):
         W[omono + 1 + j] = u[j]
@@ -275,13 +278,14 @@ def _predict(z, P, u, fc, ic, W, stats):
             W[c] = u[j] * u[l]
             c += 1
     for t in range(nq):
-        W[oPn + ic[o_qi + t] * N + ic[o_qj + t]] += fc[o_qv + t] * W[omono + ic[o_qr + t]]
+        i = ic[o_qi + t]
+        j = ic[o_qj + t]
+        v = fc[o_qv + t] * W[omono + ic[o_qr + t]]
+        P[i, j] += v
+        if i != j:
+            P[j, i] += v
     tr = 0.0
     for i in range(N):
-        for j in range(i, N):
-            s = W[oPn + i * N + j]
-            P[i, j] = s
-            P[j, i] = s
         tr += P[i, i]
     stats[3] = tr
 
@@ -341,3 +345,23 @@ def range_outputs(ranges, noise, std, beacon_term, measured, y):
         rho = ranges[h] + std * noise[h] if std != 0.0 else ranges[h]
         measured[h] = rho
         y[h] = rho * rho * 0.5 - beacon_term[h]
+
+
+@njit(**_OPTS)
+def augmented_step_record(u, y, S, fc, ic, out):
+    """:func:`augmented_step`, recording ``out = [x_hat, trace(P)]`` before it and ``out[-1] = NIS`` after it.
+
+    ``out`` has ``n + 2`` entries (``n = N - k``); this is
+    :meth:`quadobs.observer.Estimator.step_and_record` in one call.
+    """
+    N = ic[0]
+    k = ic[1]
+    z, P, W = _views(S, ic)
+    stats = S[S.shape[0] - 4 :]
+    for i in range(N - k):
+        out[i] = z[k + i]
+    out[N - k] = stats[3]
+    code = _correct(z, P, y, fc, ic, W, stats)
+    _predict(z, P, u, fc, ic, W, stats)
+    out[N - k + 1] = stats[0]
+    return code

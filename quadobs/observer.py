@@ -138,6 +138,8 @@ class Estimator:
     """
 
     name: str = "estimator"
+    #: Normalised innovation squared of the last correction (NaN for estimators without one).
+    nis: float = float("nan")
 
     def step(self, u: np.ndarray, y: np.ndarray) -> None:  # pragma: no cover - interface
         raise NotImplementedError
@@ -149,6 +151,18 @@ class Estimator:
     @property
     def x_covariance(self) -> np.ndarray | None:
         return None
+
+    def step_and_record(self, u: np.ndarray, y: np.ndarray, out: np.ndarray) -> None:
+        """:meth:`step`, with what the testbed records of it written into ``out`` (``n + 2`` entries).
+
+        ``out[:n]`` gets :attr:`x_hat` and ``out[n]`` :attr:`covariance_trace` before the
+        step, ``out[n + 1]`` :attr:`nis` after it. Estimators may do it faster.
+        """
+        n = out.shape[0] - 2
+        out[:n] = self.x_hat
+        out[n] = self.covariance_trace
+        self.step(u, y)
+        out[n + 1] = self.nis
 
     @property
     def covariance_trace(self) -> float:
@@ -255,7 +269,7 @@ class AugmentedObserver(Estimator):
         self._z = np.array(z, dtype=float)
         self._P = np.array(as_covariance("S0", S0, N), dtype=float)
         self.gate = None if gate is None else as_finite_scalar("gate", gate, positive=True)
-        self._ushape, self._yshape = (immersion.system.p,), (q,)
+        self._ushape, self._yshape, self._rshape = (immersion.system.p,), (q,), (n + 2,)
         self._C = immersion.output_matrix
         self._eye = np.eye(N)
         self._k = immersion.n_aux
@@ -281,8 +295,10 @@ class AugmentedObserver(Estimator):
             self._kernel = _kernels.augmented_step
             self._kcorrect = _kernels.augmented_correct
             self._kpredict = _kernels.augmented_predict
-            # Load (or compile) the kernel now, on scratch copies, rather than in the first step.
+            self._krecord = _kernels.augmented_step_record
+            # Load (or compile) the kernels now, on scratch copies, rather than in the first step.
             self._kernel(np.zeros(self._ushape), np.full(self._yshape, np.nan), S.copy(), km.fc, km.ic)
+            self._krecord(np.zeros(self._ushape), np.full(self._yshape, np.nan), S.copy(), km.fc, km.ic, np.zeros(n + 2))
         else:
             self._stats = np.array([np.nan, 0.0, 0.0, 0.0])  # nis, corrections, rejected, trace(P)
         self._stats[3] = np.trace(self._P)
@@ -373,6 +389,23 @@ class AugmentedObserver(Estimator):
         if not fast:
             u, y = self._checked("u", u, self._ushape), self._checked("y", y, self._yshape)
         kernel(u, y, *self._kops)
+
+    def step_and_record(self, u: np.ndarray, y: np.ndarray, out: np.ndarray) -> None:
+        """:meth:`step`, recording ``[x_hat, covariance_trace]`` before it and ``nis`` after it into ``out`` (one compiled call)."""
+        if self._kernel is None:
+            return Estimator.step_and_record(self, u, y, out)
+        try:
+            fast = (
+                u.dtype is _F64 and y.dtype is _F64 and u.shape == self._ushape and y.shape == self._yshape
+                and out.shape == self._rshape and out.dtype is _F64
+            )
+        except AttributeError:
+            fast = False
+        if not fast:
+            u, y = self._checked("u", u, self._ushape), self._checked("y", y, self._yshape)
+            if not (isinstance(out, np.ndarray) and out.shape == self._rshape and out.dtype == _F64):
+                raise QuadobsError(f"out: expected a float64 array of shape {self._rshape}")
+        self._krecord(u, y, *self._kops, out)
 
     # -- the two halves ----------------------------------------------------------------
 

@@ -88,28 +88,6 @@ def _finite_or_none(x: float) -> float | None:
     return float(x) if math.isfinite(x) else None
 
 
-def _trace_reader(est):
-    """A function returning the covariance trace recorded for ``est`` (see :attr:`Estimator.covariance_trace`)."""
-    if isinstance(getattr(type(est), "covariance_trace", None), property):
-        return lambda: est.covariance_trace
-    return lambda: _trace_of(est)
-
-
-def _nis_reader(est):
-    """A function returning the NIS of the last correction of ``est`` (NaN when it has none)."""
-    if hasattr(est, "nis"):
-        return lambda: est.nis
-    return lambda: float("nan")
-
-
-def _trace_of(est) -> float:
-    P = getattr(est, "P", None)
-    if P is None:
-        cov = est.x_covariance
-        return float(np.trace(cov)) if cov is not None else float("nan")
-    return float(np.trace(P))
-
-
 def run_episode(
     scenario: Scenario,
     *,
@@ -211,13 +189,13 @@ def run_episode(
     raw = stepper.out  # truth (row j: x at step block0 + j), raw sensors of step block0 + j
     raw_ranges, raw_accel = raw[:, stepper.ranges], raw[:, stepper.accel]
     raw_air = raw[:, stepper.airspeed.start]
-    xh = np.full((E, _BLOCK + 1, n), np.nan)  # estimates at each row, before the step
-    traces = np.full((E, _BLOCK + 1), np.nan)  # covariance trace at each row
-    nis = np.full((E, _BLOCK + 1), np.nan)  # NIS of the correction of each step
+    # per estimator and row: x_hat and the covariance trace before the step, the NIS of its correction
+    rec = np.full((E, _BLOCK + 1, n + 2), np.nan)
+    xh, traces, nis = rec[:, :, :n], rec[:, :, n], rec[:, :, n + 1]
     meas_r = np.full((_BLOCK + 1, q_b), np.nan)  # measured ranges
     meas_u = np.full((_BLOCK + 1, dim), np.nan) if sensors.accel_std else None  # measured input
     meas_y = np.full((_BLOCK + 1, sensors.q), np.nan) if has_wind else None  # outputs (airspeed)
-    slots = [(e, est, _trace_reader(est), _nis_reader(est)) for e, est in enumerate(ests)]
+    slots = [(est, est.step_and_record, rec[e]) for e, est in enumerate(ests)]
 
     last_errors: dict[str, dict[str, np.ndarray]] = {}
     interrupted = False
@@ -282,17 +260,14 @@ def run_episode(
                         cov = est.x_covariance
                         if cov is not None:
                             trace["covariances"][est.name][k // collect_every] = cov
-                for e, est, tr_of, nis_of in slots:
-                    xh[e, j] = est.x_hat
-                    traces[e, j] = tr_of()
-                    est.step(u, y)
-                    nis[e, j] = nis_of()
+                for _, step_and_record, est_rec in slots:
+                    step_and_record(u, y, est_rec[j])  # x_hat_k, trace before; NIS after
                 completed = k + 1
             if block0 + nblk == steps:  # the final row: x_K and the estimates at t_K
-                for e, est, tr_of, _ in slots:
-                    xh[e, nblk] = est.x_hat
-                    traces[e, nblk] = tr_of()
-                    nis[e, nblk] = np.nan
+                for est, _, est_rec in slots:
+                    est_rec[nblk, :n] = est.x_hat
+                    est_rec[nblk, n] = est.covariance_trace
+                    est_rec[nblk, n + 1] = np.nan
                     if collect and steps % collect_every == 0:
                         cov = est.x_covariance
                         if cov is not None:

@@ -113,3 +113,23 @@ def test_batched_observer_equals_single_observers(rng, backend):
         batch.step(np.zeros((4, 3)), np.zeros((5, q)))
     with pytest.raises(QuadobsError, match="batch"):
         BatchAugmentedObserver(template, 0)
+
+
+def test_step_and_record_equals_step_with_reads(rng):
+    """The fused record path writes x_hat and trace(P) before the step and the NIS after it."""
+    im = immerse(_systems(rng)["vehicle 2-D, 3 beacons"])
+    b = AugmentedObserver(im, 0.01, backend="numba", **_settings(im, 3, gate=30.0))
+    a = AugmentedObserver(im, 0.01, backend="numba", **_settings(im, 3, gate=30.0))
+    n = im.system.n
+    out = np.zeros(n + 2)
+    for k in range(50):
+        u, y = rng.standard_normal(2), 3.0 * rng.standard_normal(3)
+        y[rng.random(3) < 0.3] = np.nan
+        expected = np.concatenate([b.x_hat, [b.covariance_trace]])
+        b.step(u, y)
+        a.step_and_record(u, y, out)
+        np.testing.assert_array_equal(out[:-1], expected)
+        np.testing.assert_array_equal(out[-1], b.nis)
+        np.testing.assert_array_equal(a.P, b.P)
+    with pytest.raises(QuadobsError, match="out: expected a float64 array"):
+        a.step_and_record(u, y, np.zeros(n))

@@ -182,13 +182,15 @@ class Recorder:
         """
         n = self.n
         if n:
-            steps, times = self._steps[:n], self._times[:n]
+            # Copies: rerun may encode the columns on its own thread after this returns,
+            # while the buffers are refilled.
+            steps, times = self._steps[:n].copy(), self._times[:n].copy()
             for s in self.series_list:
-                sel = slice(None)
                 if s.every > 1:
                     sel = np.flatnonzero(steps % s.every == 0)
-                vals = s.buf[:n][sel]
-                st, tm = steps[sel], times[sel]
+                    vals, st, tm = s.buf[:n][sel], steps[sel], times[sel]
+                else:
+                    vals, st, tm = s.buf[:n].copy(), steps, times
                 if s.skip_nan:
                     keep = ~np.isnan(vals).any(axis=1)
                     vals, st, tm = vals[keep], st[keep], tm[keep]
