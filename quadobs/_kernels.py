@@ -40,8 +40,10 @@ nanoseconds, more than most of the arithmetic here, so the operands travel packe
     (``q`` each), then the observer's ``stats = [nis, corrections, rejected, trace(P)]``.
 
 A single observer keeps ``z``, ``P`` and ``W`` in one buffer ``S = [z | P | W]``
-(:func:`augmented_step` then takes five arrays); :class:`quadobs.observer.KernelModel`
-builds ``ic`` and ``fc``.
+(:func:`augmented_step` then takes five arrays), a batch one row ``[z | P | stats]`` per
+member and a shared ``W``; the kernels index these flat buffers by offset (slicing views
+inside a kernel costs reference counting). :class:`quadobs.observer.KernelModel` builds
+``ic`` and ``fc``.
 """
 
 from __future__ import annotations
@@ -73,7 +75,7 @@ def work_size(N: int, q: int, nm: int) -> int:
 
 
 @njit(**_OPTS)
-def _correct(z, P, y, fc, ic, W, stats):
+def _correct(S, zo, po, so, W, wo, y, fc, ic):
     N = ic[0]
     q = ic[3]
     nm = ic[4]
@@ -88,7 +90,7 @@ def _correct(z, P, y, fc, ic, W, stats):
             ic[o_iw + r] = h
             r += 1
     if r == 0:
-        stats[0] = math.nan
+        S[so + 0] = math.nan
         return 0
     gate = fc[1]
     oX = N * N
@@ -101,106 +103,106 @@ def _correct(z, P, y, fc, ic, W, stats):
     ow = onu + q
     otmp = ow + q
 
-    # P C^T (P symmetric: row m of P is column m), innovation nu, S = C P C^T + R (lower).
+    # P C^T (P symmetric: row m of P is column m), innovation nu, its covariance C P C^T + R (lower).
     for a in range(r):
         h = ic[o_iw + a]
         for i in range(N):
-            W[oPC + i * q + a] = 0.0
+            W[wo + oPC + i * q + a] = 0.0
         s = y[h]
         for t in range(ic[o_cptr + h], ic[o_cptr + h + 1]):
             m = ic[o_ccol + t]
             c = fc[o_cval + t]
-            s -= c * z[m]
+            s -= c * S[zo + m]
             for i in range(N):
-                W[oPC + i * q + a] += c * P[m, i]
-        W[onu + a] = s
+                W[wo + oPC + i * q + a] += c * S[po + m * N + i]
+        W[wo + onu + a] = s
     for a in range(r):
         h = ic[o_iw + a]
         for b in range(a + 1):
             s = fc[o_R + h * q + ic[o_iw + b]]
             for t in range(ic[o_cptr + h], ic[o_cptr + h + 1]):
-                s += fc[o_cval + t] * W[oPC + ic[o_ccol + t] * q + b]
-            W[oL + a * q + b] = s
-    # Cholesky S = L L^T, in place in the lower triangle.
+                s += fc[o_cval + t] * W[wo + oPC + ic[o_ccol + t] * q + b]
+            W[wo + oL + a * q + b] = s
+    # Cholesky of the innovation covariance, L L^T, in place in the lower triangle.
     for j in range(r):
-        s = W[oL + j * q + j]
+        s = W[wo + oL + j * q + j]
         for t in range(j):
-            s -= W[oL + j * q + t] * W[oL + j * q + t]
+            s -= W[wo + oL + j * q + t] * W[wo + oL + j * q + t]
         d = math.sqrt(s)
-        W[oL + j * q + j] = d
+        W[wo + oL + j * q + j] = d
         for i in range(j + 1, r):
-            s = W[oL + i * q + j]
+            s = W[wo + oL + i * q + j]
             for t in range(j):
-                s -= W[oL + i * q + t] * W[oL + j * q + t]
-            W[oL + i * q + j] = s / d
-    # w = S^{-1} nu; NIS = nu^T w.
+                s -= W[wo + oL + i * q + t] * W[wo + oL + j * q + t]
+            W[wo + oL + i * q + j] = s / d
+    # w = (L L^T)^{-1} nu; NIS = nu^T w.
     for i in range(r):
-        s = W[onu + i]
+        s = W[wo + onu + i]
         for t in range(i):
-            s -= W[oL + i * q + t] * W[otmp + t]
-        W[otmp + i] = s / W[oL + i * q + i]
+            s -= W[wo + oL + i * q + t] * W[wo + otmp + t]
+        W[wo + otmp + i] = s / W[wo + oL + i * q + i]
     for i in range(r - 1, -1, -1):
-        s = W[otmp + i]
+        s = W[wo + otmp + i]
         for t in range(i + 1, r):
-            s -= W[oL + t * q + i] * W[ow + t]
-        W[ow + i] = s / W[oL + i * q + i]
+            s -= W[wo + oL + t * q + i] * W[wo + ow + t]
+        W[wo + ow + i] = s / W[wo + oL + i * q + i]
     nis = 0.0
     for a in range(r):
-        nis += W[onu + a] * W[ow + a]
-    stats[0] = nis
+        nis += W[wo + onu + a] * W[wo + ow + a]
+    S[so + 0] = nis
     if nis > gate:
-        stats[2] += 1.0
+        S[so + 2] += 1.0
         return 2
-    # K = P C^T S^{-1}, row by row; z += K nu = P C^T w.
+    # K = P C^T (L L^T)^{-1}, row by row; z += K nu = P C^T w.
     for i in range(N):
         for a in range(r):
-            s = W[oPC + i * q + a]
+            s = W[wo + oPC + i * q + a]
             for t in range(a):
-                s -= W[oL + a * q + t] * W[otmp + t]
-            W[otmp + a] = s / W[oL + a * q + a]
+                s -= W[wo + oL + a * q + t] * W[wo + otmp + t]
+            W[wo + otmp + a] = s / W[wo + oL + a * q + a]
         for a in range(r - 1, -1, -1):
-            s = W[otmp + a]
+            s = W[wo + otmp + a]
             for t in range(a + 1, r):
-                s -= W[oL + t * q + a] * W[oK + i * q + t]
-            W[oK + i * q + a] = s / W[oL + a * q + a]
+                s -= W[wo + oL + t * q + a] * W[wo + oK + i * q + t]
+            W[wo + oK + i * q + a] = s / W[wo + oL + a * q + a]
         s = 0.0
         for a in range(r):
-            s += W[oPC + i * q + a] * W[ow + a]
-        z[i] += s
+            s += W[wo + oPC + i * q + a] * W[wo + ow + a]
+        S[zo + i] += s
     # Joseph form: X = (I - K C) P = P - K (P C^T)^T, then X (I - K C)^T + K R K^T.
     for i in range(N):
         for j in range(N):
-            s = P[i, j]
+            s = S[po + (i) * N + j]
             for a in range(r):
-                s -= W[oK + i * q + a] * W[oPC + j * q + a]
-            W[oX + i * N + j] = s
+                s -= W[wo + oK + i * q + a] * W[wo + oPC + j * q + a]
+            W[wo + oX + i * N + j] = s
     for a in range(r):
         h = ic[o_iw + a]
         for i in range(N):
             s = 0.0
             for t in range(ic[o_cptr + h], ic[o_cptr + h + 1]):
-                s += W[oX + i * N + ic[o_ccol + t]] * fc[o_cval + t]
-            W[oXC + i * q + a] = s
+                s += W[wo + oX + i * N + ic[o_ccol + t]] * fc[o_cval + t]
+            W[wo + oXC + i * q + a] = s
             s = 0.0
             for b in range(r):
-                s += W[oK + i * q + b] * fc[o_R + ic[o_iw + b] * q + h]
-            W[oKR + i * q + a] = s
+                s += W[wo + oK + i * q + b] * fc[o_R + ic[o_iw + b] * q + h]
+            W[wo + oKR + i * q + a] = s
     tr = 0.0
     for i in range(N):
         for j in range(i, N):
-            s = W[oX + i * N + j]
+            s = W[wo + oX + i * N + j]
             for a in range(r):
-                s += (W[oKR + i * q + a] - W[oXC + i * q + a]) * W[oK + j * q + a]
-            P[i, j] = s
-            P[j, i] = s
-        tr += P[i, i]
-    stats[1] += 1.0
-    stats[3] = tr
+                s += (W[wo + oKR + i * q + a] - W[wo + oXC + i * q + a]) * W[wo + oK + j * q + a]
+            S[po + (i) * N + j] = s
+            S[po + (j) * N + i] = s
+        tr += S[po + (i) * N + i]
+    S[so + 1] += 1.0
+    S[so + 3] = tr
     return 1
 
 
 @njit(**_OPTS)
-def _predict(z, P, u, fc, ic, W, stats):
+def _predict(S, zo, po, so, W, wo, u, fc, ic):
     N = ic[0]
     k = ic[1]
     p = ic[2]
@@ -227,37 +229,37 @@ def _predict(z, P, u, fc, ic, W, stats):
             s = fc[o_fblk + a * n + b]
             for j in range(p):
                 s += u[j] * fc[o_F1 + (j * k + a) * n + b]
-            W[a * N + k + b] = s
+            W[wo + a * N + k + b] = s
     # z <- Phi z + g(u)
     for i in range(N):
         s = 0.0
         for t in range(ic[o_pptr + i], ic[o_pptr + i + 1]):
             m = ic[o_pcol + t]
-            s += W[i * N + m] * z[m]
-        W[ozt + i] = s
+            s += W[wo + i * N + m] * S[zo + m]
+        W[wo + ozt + i] = s
     for a in range(k):
         s = 0.0
         for j in range(p):
             uj = u[j]
             for l in range(p):
                 s += uj * fc[o_G2 + (j * k + a) * p + l] * u[l]
-        W[ozt + a] += s
+        W[wo + ozt + a] += s
     for b in range(n):
         s = 0.0
         for j in range(p):
             s += fc[o_G0 + b * p + j] * u[j]
-        W[ozt + k + b] += s
+        W[wo + ozt + k + b] += s
     for i in range(N):
-        z[i] = W[ozt + i]
+        S[zo + i] = W[wo + ozt + i]
     # T = Phi P: row i of T combines the rows of P picked by row i of Phi.
     for i in range(N):
         for j in range(N):
-            W[oT + i * N + j] = 0.0
+            W[wo + oT + i * N + j] = 0.0
         for t in range(ic[o_pptr + i], ic[o_pptr + i + 1]):
             m = ic[o_pcol + t]
-            f = W[i * N + m]
+            f = W[wo + i * N + m]
             for j in range(N):
-                W[oT + i * N + j] += f * P[m, j]
+                W[wo + oT + i * N + j] += f * S[po + (m) * N + j]
     # P <- growth T Phi^T + Q_d(u), written straight into P (T holds all that is needed of
     # the old P): the upper triangle, mirrored, then the entries of Q_d(u) added to both.
     for i in range(N):
@@ -265,35 +267,29 @@ def _predict(z, P, u, fc, ic, W, stats):
             s = 0.0
             for t in range(ic[o_pptr + j], ic[o_pptr + j + 1]):
                 m = ic[o_pcol + t]
-                s += W[oT + i * N + m] * W[j * N + m]
+                s += W[wo + oT + i * N + m] * W[wo + j * N + m]
             s *= growth
-            P[i, j] = s
-            P[j, i] = s
-    W[omono] = 1.0
+            S[po + (i) * N + j] = s
+            S[po + (j) * N + i] = s
+    W[wo + omono] = 1.0
     for j in range(p):
-        W[omono + 1 + j] = u[j]
+        W[wo + omono + 1 + j] = u[j]
     c = omono + 1 + p
     for j in range(p):
         for l in range(j, p):
-            W[c] = u[j] * u[l]
+            W[wo + c] = u[j] * u[l]
             c += 1
     for t in range(nq):
         i = ic[o_qi + t]
         j = ic[o_qj + t]
-        v = fc[o_qv + t] * W[omono + ic[o_qr + t]]
-        P[i, j] += v
+        v = fc[o_qv + t] * W[wo + omono + ic[o_qr + t]]
+        S[po + (i) * N + j] += v
         if i != j:
-            P[j, i] += v
+            S[po + (j) * N + i] += v
     tr = 0.0
     for i in range(N):
-        tr += P[i, i]
-    stats[3] = tr
-
-
-@njit(**_OPTS)
-def _views(S, ic):
-    N = ic[0]
-    return S[:N], S[N : N + N * N].reshape(N, N), S[N + N * N :]
+        tr += S[po + (i) * N + i]
+    S[so + 3] = tr
 
 
 @njit(**_OPTS)
@@ -301,41 +297,45 @@ def augmented_correct(y, S, fc, ic):
     """Kalman correction of ``S = [z | P | W]`` with the outputs present in ``y`` (NaN = missing).
 
     The stats at the end of ``S`` record the NIS, count the corrections and the
-    rejections, and hold the trace of ``P``. Returns 0 (nothing present: predict only), 1 (corrected) or 2 (rejected
-    by the gate, ``NIS > fc[1]``).
+    rejections, and hold the trace of ``P``. Returns 0 (nothing present: predict only),
+    1 (corrected) or 2 (rejected by the gate, ``NIS > fc[1]``).
     """
-    z, P, W = _views(S, ic)
-    return _correct(z, P, y, fc, ic, W, S[S.shape[0] - 4 :])
+    N = ic[0]
+    return _correct(S, 0, N, S.shape[0] - 4, S, N + N * N, y, fc, ic)
 
 
 @njit(**_OPTS)
 def augmented_predict(u, S, fc, ic):
     """Exact prediction of ``S = [z | P | W]`` over one step with ``u`` held:
     ``z <- Phi(u) z + g(u)``, ``P <- e^{theta dt} Phi(u) P Phi(u)^T + Q_d(u)``."""
-    z, P, W = _views(S, ic)
-    _predict(z, P, u, fc, ic, W, S[S.shape[0] - 4 :])
+    N = ic[0]
+    _predict(S, 0, N, S.shape[0] - 4, S, N + N * N, u, fc, ic)
 
 
 @njit(**_OPTS)
 def augmented_step(u, y, S, fc, ic):
     """:func:`augmented_correct` with ``y`` then :func:`augmented_predict` with ``u``; returns the correction code."""
-    z, P, W = _views(S, ic)
-    stats = S[S.shape[0] - 4 :]
-    code = _correct(z, P, y, fc, ic, W, stats)
-    _predict(z, P, u, fc, ic, W, stats)
+    N = ic[0]
+    so = S.shape[0] - 4
+    code = _correct(S, 0, N, so, S, N + N * N, y, fc, ic)
+    _predict(S, 0, N, so, S, N + N * N, u, fc, ic)
     return code
 
 
 @njit(**_OPTS)
-def augmented_step_batch(U, Y, Z, Ps, stats, W, fc, ic):
+def augmented_step_batch(U, Y, SB, W, fc, ic):
     """:func:`augmented_step` for each member ``b`` of a batch, one after the other.
 
-    ``U (B, p)``, ``Y (B, q)``, ``Z (B, N)``, ``Ps (B, N, N)``, ``stats (B, 4)``; the model
-    (``fc``, ``ic``) and the work buffer ``W`` (:func:`work_size`) are shared.
+    ``U (B, p)``, ``Y (B, q)``; row ``b`` of ``SB (B, N + N * N + 4)`` holds member ``b``'s
+    ``[z | P | stats]``; the model (``fc``, ``ic``) and the work buffer ``W``
+    (:func:`work_size`) are shared.
     """
-    for b in range(Z.shape[0]):
-        _correct(Z[b], Ps[b], Y[b], fc, ic, W, stats[b])
-        _predict(Z[b], Ps[b], U[b], fc, ic, W, stats[b])
+    N = ic[0]
+    so = SB.shape[1] - 4
+    for b in range(SB.shape[0]):
+        Sb = SB[b]
+        _correct(Sb, 0, N, so, W, 0, Y[b], fc, ic)
+        _predict(Sb, 0, N, so, W, 0, U[b], fc, ic)
 
 
 @njit(**_OPTS)
@@ -356,12 +356,11 @@ def augmented_step_record(u, y, S, fc, ic, out):
     """
     N = ic[0]
     k = ic[1]
-    z, P, W = _views(S, ic)
-    stats = S[S.shape[0] - 4 :]
+    so = S.shape[0] - 4
     for i in range(N - k):
-        out[i] = z[k + i]
-    out[N - k] = stats[3]
-    code = _correct(z, P, y, fc, ic, W, stats)
-    _predict(z, P, u, fc, ic, W, stats)
-    out[N - k + 1] = stats[0]
+        out[i] = S[k + i]
+    out[N - k] = S[so + 3]
+    code = _correct(S, 0, N, so, S, N + N * N, y, fc, ic)
+    _predict(S, 0, N, so, S, N + N * N, u, fc, ic)
+    out[N - k + 1] = S[so]
     return code

@@ -44,7 +44,7 @@ class BatchAugmentedObserver:
     Attributes
     ----------
     Z : ndarray (B, N)
-        Augmented estimates, updated in place.
+        Augmented estimates, updated in place (assign into it: ``Z[...] = ...``).
     P : ndarray (B, N, N)
         Their covariances, updated in place.
     """
@@ -65,9 +65,14 @@ class BatchAugmentedObserver:
             Z = im.lift(np.broadcast_to(_rows("x0", x0, B, n), (B, n)))
         else:
             Z = np.broadcast_to(observer.z, (B, N))
-        self.Z = np.array(Z, dtype=float)
-        self.P = np.array(np.broadcast_to(observer.P, (B, N, N)), dtype=float)
-        self._stats = np.zeros((B, 4))  # nis, corrections, rejected, trace(P)
+        # One row per member, [z | P | stats], the layout of the compiled kernel;
+        # Z, P and the stats are views of it.
+        self._SB = np.zeros((B, N + N * N + 4))
+        self.Z = self._SB[:, :N]
+        self.P = self._SB[:, N : N + N * N].reshape(B, N, N)
+        self._stats = self._SB[:, N + N * N :]  # nis, corrections, rejected, trace(P)
+        self.Z[...] = Z
+        self.P[...] = observer.P
         self._stats[:, 0] = np.nan
         self._stats[:, 3] = np.trace(observer.P)
         self._ushape, self._yshape = (B, p), (B, q)
@@ -77,12 +82,10 @@ class BatchAugmentedObserver:
             from . import _kernels
 
             km = KernelModel(observer.model, observer._C, observer.R, observer.gate)
-            self._kops = (km.work(), km.fc, km.ic)
+            self._kops = (self._SB, km.work(), km.fc, km.ic)
             self._kernel = _kernels.augmented_step_batch
             # load (or compile) the kernel now, on scratch copies
-            self._kernel(
-                np.zeros((1, p)), np.full((1, q), np.nan), self.Z[:1].copy(), self.P[:1].copy(), self._stats[:1].copy(), *self._kops
-            )
+            self._kernel(np.zeros((1, p)), np.full((1, q), np.nan), self._SB[:1].copy(), km.work(), km.fc, km.ic)
         else:
             self._ref = copy.copy(observer)  # the NumPy reference path on the template's model
             self._ref._kernel = None
@@ -133,7 +136,7 @@ class BatchAugmentedObserver:
         if not fast:
             U, Y = _checked("U", U, self._ushape), _checked("Y", Y, self._yshape)
         if self._kernel is not None:
-            self._kernel(U, Y, self.Z, self.P, self._stats, *self._kops)
+            self._kernel(U, Y, *self._kops)
             return
         ref = self._ref
         for b in range(self.batch):
