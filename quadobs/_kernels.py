@@ -60,6 +60,7 @@ __all__ = [
     "augmented_step_batch",
     "augmented_step_record",
     "range_outputs",
+    "sensor_step",
     "work_size",
 ]
 
@@ -364,3 +365,53 @@ def augmented_step_record(u, y, S, fc, ic, out):
     _predict(S, 0, N, so, S, N + N * N, u, fc, ic)
     out[N - k + 1] = S[so]
     return code
+
+
+@njit(**_OPTS)
+def sensor_step(row, o_rng, o_acc, o_air, o_y, o_u, o_meas, draws, j, params, po):
+    """The sensor layer of one step (:meth:`quadobs.sensors.SensorModel.outputs` and ``input``), in ``row``.
+
+    Reads the exact ranges, acceleration and airspeed at ``row[o_rng:]``, ``row[o_acc:]``,
+    ``row[o_air]``; writes ``y (q)``, ``u (dim)`` and the measured ranges ``(q_b)`` at
+    ``o_y``, ``o_u``, ``o_meas``. ``draws[j]`` is the step's row of
+    :meth:`~quadobs.sensors.SensorModel.draws`, ``params[po:]`` holds
+    :meth:`~quadobs.sensors.SensorModel.step_params`. Same operations, in the same order,
+    as the NumPy code, so the same values.
+    """
+    qb = int(params[po + 0])
+    q = int(params[po + 1])
+    dim = int(params[po + 2])
+    range_std = params[po + 3]
+    p_out = params[po + 4]
+    std_out = params[po + 5]
+    air_std = params[po + 6]
+    dropout = params[po + 7]
+    accel_std = params[po + 8]
+    flags = int(draws[j, draws.shape[1] - 1])
+    if flags & 1:
+        for h in range(qb):
+            rho = row[o_rng + h] + range_std * draws[j, h] if range_std != 0.0 else row[o_rng + h]
+            if p_out != 0.0 and draws[j, qb + h] < p_out:
+                rho = rho + std_out * draws[j, 2 * qb + h]
+            row[o_meas + h] = rho
+            row[o_y + h] = 0.5 * rho * rho - params[po + 9 + h]
+    else:
+        for h in range(qb):
+            row[o_meas + h] = math.nan
+            row[o_y + h] = math.nan
+    if q > qb:
+        if flags & 2:
+            s = row[o_air] + (air_std * draws[j, 3 * qb] if air_std != 0.0 else 0.0)
+            row[o_y + qb] = 0.5 * s * s
+        else:
+            row[o_y + qb] = math.nan
+    if dropout != 0.0:
+        od = 3 * qb + 1
+        for h in range(q):
+            if draws[j, od + h] < dropout and not math.isnan(row[o_y + h]):
+                row[o_y + h] = math.nan
+                if h < qb:
+                    row[o_meas + h] = math.nan
+    oa = 3 * qb + 1 + q
+    for i in range(dim):
+        row[o_u + i] = row[o_acc + i] + accel_std * draws[j, oa + i] if accel_std != 0.0 else row[o_acc + i]

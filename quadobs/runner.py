@@ -12,12 +12,15 @@ The data path of physics step ``k`` (time ``t_k = k dt``):
 After the last step the final row ``K`` (``t_K = duration``) is recorded, so the summary's
 final errors compare ``x_hat_K`` with MuJoCo's ``x_K``.
 
-Cost. The per-step path allocates nothing: the physics step and the reading of the truth
-and raw sensors are one ``mj_step`` and one compiled call
-(:class:`~quadobs.testbed.BlockStepper`), and step ``k``'s values (truth, measurements,
-each ``x_hat_k``, covariance trace and NIS) go into row ``k`` of preallocated arrays of
-a block of steps. The errors, convergence times and the recording's rows are computed
-from those arrays once per block (vectorised), then sent as columns.
+Cost. The per-step path allocates nothing and makes three calls from Python: ``mj_step``;
+one compiled call that does steps 1 and 3 (the truth, the readings and the sensor layer,
+with the noise of the block drawn beforehand from the same streams in the same order;
+:class:`~quadobs.testbed.BlockStepper`); and, per estimator,
+:meth:`~quadobs.observer.Estimator.step_and_record`, which does step 5 and keeps what
+step 4 records (``x_hat_k`` and the covariance trace before the step, the NIS after it).
+Every value of step ``k`` lands in row ``k`` of preallocated arrays of a block of steps;
+the errors, convergence times and the recording's rows are computed from them once per
+block (vectorised), then sent as columns.
 """
 
 from __future__ import annotations
@@ -96,7 +99,7 @@ def run_episode(
     summary_path: str | Path | None = None,
     progress: bool = False,
     collect_every: int = 0,
-    flush_rows: int = 4096,
+    flush_rows: int = 8192,
 ) -> EpisodeResult:
     """Simulate ``scenario`` in MuJoCo, run the estimators every physics step, record and summarise.
 
@@ -184,17 +187,13 @@ def run_episode(
 
     # Per-step values of a block of steps, in preallocated arrays (row j: step block0 + j);
     # errors, convergence times and the recording are computed from them once per block.
-    n, E, q_b = scenario.state_dim, len(ests), scenario.beacons.shape[0]
-    stepper = BlockStepper(sim, _BLOCK)
-    raw = stepper.out  # truth (row j: x at step block0 + j), raw sensors of step block0 + j
-    raw_ranges, raw_accel = raw[:, stepper.ranges], raw[:, stepper.accel]
-    raw_air = raw[:, stepper.airspeed.start]
+    n, E = scenario.state_dim, len(ests)
+    stepper = BlockStepper(sim, _BLOCK, sensors)
+    raw = stepper.out  # row j: truth x at step block0 + j; readings, y, u, measured ranges of that step
+    raw_y, raw_u = raw[:, stepper.y], raw[:, stepper.u]
     # per estimator and row: x_hat and the covariance trace before the step, the NIS of its correction
     rec = np.full((E, _BLOCK + 1, n + 2), np.nan)
     xh, traces, nis = rec[:, :, :n], rec[:, :, n], rec[:, :, n + 1]
-    meas_r = np.full((_BLOCK + 1, q_b), np.nan)  # measured ranges
-    meas_u = np.full((_BLOCK + 1, dim), np.nan) if sensors.accel_std else None  # measured input
-    meas_y = np.full((_BLOCK + 1, sensors.q), np.nan) if has_wind else None  # outputs (airspeed)
     slots = [(est, est.step_and_record, rec[e]) for e, est in enumerate(ests)]
 
     last_errors: dict[str, dict[str, np.ndarray]] = {}
@@ -229,40 +228,34 @@ def run_episode(
         sel = np.flatnonzero(ks % record_every == 0)
         if not sel.size:
             return
-        accel = (meas_u if meas_u is not None else raw_accel)[:rows]
-        air = np.sqrt(2.0 * meas_y[:rows, sensors.q_b]) if has_wind else None
+        accel = raw[:rows, stepper.u]
+        air = np.sqrt(2.0 * raw[:rows, stepper.y.start + sensors.q_b]) if has_wind else None
         log.write_block(
             ks[sel], t[sel], X[sel, :dim], X[sel, 2 * dim :] if has_wind else None,
             {nm: {key: val[sel] for key, val in err.items()} for nm, err in errs.items()},
             {nm: v[sel] for nm, v in xhs.items()}, {nm: v[sel] for nm, v in trs.items()},
-            {nm: v[sel] for nm, v in niss.items()}, meas_r[:rows][sel], None if air is None else air[sel], accel[sel],
+            {nm: v[sel] for nm, v in niss.items()}, raw[:rows, stepper.measured][sel], None if air is None else air[sel], accel[sel],
         )
 
     wall0 = _time.perf_counter()
     block0 = 0
     try:
-        step, outputs, sensor_input = stepper.step, sensors.outputs, sensors.input
-        measured = sensors.measured_ranges
+        step = stepper.step
         for block0 in range(0, steps, _BLOCK):
-            nblk = stepper.begin(traj.step_accelerations(block0 * dt, dt, min(_BLOCK, steps - block0)))
+            nblk = stepper.begin(traj.step_accelerations(block0 * dt, dt, min(_BLOCK, steps - block0)), block0)
             for j in range(nblk):
                 k = block0 + j
-                step(j)  # mj_step; raw sensors of step k into raw[j], truth x_(k+1) into raw[j + 1]
-                y = outputs(k, raw_ranges[j], raw_air[j] if has_wind else None)
-                u = sensor_input(raw_accel[j])
-                meas_r[j] = measured
-                if meas_u is not None:
-                    meas_u[j] = u
-                if meas_y is not None:
-                    meas_y[j] = y
+                step(j)  # mj_step; readings, y_k, u_k of step k into raw[j]; truth x_(k+1) into raw[j + 1]
                 if collect and k % collect_every == 0:
-                    for e, est in enumerate(ests):
+                    for est in ests:
                         cov = est.x_covariance
                         if cov is not None:
                             trace["covariances"][est.name][k // collect_every] = cov
+                y, u = raw_y[j], raw_u[j]
                 for _, step_and_record, est_rec in slots:
                     step_and_record(u, y, est_rec[j])  # x_hat_k, trace before; NIS after
                 completed = k + 1
+            done = nblk
             if block0 + nblk == steps:  # the final row: x_K and the estimates at t_K
                 for est, _, est_rec in slots:
                     est_rec[nblk, :n] = est.x_hat
@@ -272,12 +265,10 @@ def run_episode(
                         cov = est.x_covariance
                         if cov is not None:
                             trace["covariances"][est.name][steps // collect_every] = cov
-                meas_r[nblk] = np.nan
-                for arr in (meas_u, meas_y):
-                    if arr is not None:
-                        arr[nblk] = np.nan
+                raw[nblk, stepper.ranges.start :] = np.nan  # no measurement at t_K
                 nblk += 1
             flushing = True
+            stepper.commit(done)  # the sensor model counts this block's dropouts and outliers
             flush(block0, nblk)
             flushing = False
             if bar is not None:
@@ -285,6 +276,7 @@ def run_episode(
     except KeyboardInterrupt:
         interrupted = True
         if not flushing:
+            stepper.commit(completed - block0)
             flush(block0, completed - block0)
         if log is not None:
             recorder.text("events", f"interrupted at t = {completed * dt:.3f} s (step {completed})", level="WARN", step=completed, time=completed * dt)

@@ -40,16 +40,32 @@ class _Draws:
         self.rng, self.width, self.kind = rng, width, kind
         self.i = _BLOCK
 
+    def _refill(self) -> None:
+        if self.kind == "normal":
+            self.block = self.rng.standard_normal((_BLOCK, self.width))
+        else:
+            self.block = self.rng.random((_BLOCK, self.width))
+        self.i = 0
+
     def next(self) -> np.ndarray:
         if self.i == _BLOCK:
-            if self.kind == "normal":
-                self.block = self.rng.standard_normal((_BLOCK, self.width))
-            else:
-                self.block = self.rng.random((_BLOCK, self.width))
-            self.i = 0
+            self._refill()
         row = self.block[self.i]
         self.i += 1
         return row
+
+    def take(self, count: int) -> np.ndarray:
+        """The next ``count`` rows, ``(count, width)``: exactly what ``count`` calls of :meth:`next` return."""
+        out = np.empty((count, self.width))
+        done = 0
+        while done < count:
+            if self.i == _BLOCK:
+                self._refill()
+            c = min(count - done, _BLOCK - self.i)
+            out[done : done + c] = self.block[self.i : self.i + c]
+            self.i += c
+            done += c
+        return out
 
 
 class SensorModel:
@@ -68,6 +84,7 @@ class SensorModel:
         self.q_b = scenario.beacons.shape[0]
         self.has_wind = scenario.has_wind
         self.q = self.q_b + (1 if self.has_wind else 0)
+        self.dim = scenario.dimension
         self._beacon_term = 0.5 * np.einsum("hi,hi->h", scenario.beacons, scenario.beacons)
         self.range_every = scenario.sample_interval(noise.range_rate, "range_rate")
         self.airspeed_every = scenario.sample_interval(noise.airspeed_rate, "airspeed_rate")
@@ -137,6 +154,72 @@ class SensorModel:
                 measured[lost[: self.q_b]] = np.nan
                 self.dropped += int(lost.sum())
         return y
+
+    # -- a block of steps at once (the compiled per-step path of the episode loop) ---------
+
+    @property
+    def draw_width(self) -> int:
+        """Columns of :meth:`draws`: range noise, outlier uniforms, outlier sizes (``q_b`` each),
+        airspeed noise (1), dropout uniforms (``q``), accelerometer noise (``dim``), flags (1)."""
+        return 3 * self.q_b + 1 + self.q + self.dim + 1
+
+    def draws(self, k0: int, count: int) -> np.ndarray:
+        """The random draws of steps ``k0 .. k0 + count - 1``, one row per step.
+
+        Each stream gives the rows that :meth:`outputs` and :meth:`input` called for those
+        steps would take, in the same order, so the measurements are the same; the last
+        column flags the samples (1: ranges, 2: airspeed). :func:`quadobs._kernels.sensor_step`
+        turns a row and the exact readings into ``y``, ``u`` and the measured ranges;
+        :meth:`commit` then counts the dropouts and outliers of the rows used.
+        """
+        qb, q, dim = self.q_b, self.q, self.dim
+        k = k0 + np.arange(count)
+        rng_on = k % self.range_every == 0
+        air_on = (k % self.airspeed_every == 0) if self.has_wind else np.zeros(count, dtype=bool)
+        out = np.zeros((count, self.draw_width))
+        o = 0
+        if self.range_std:
+            out[rng_on, o : o + qb] = self._range.take(int(rng_on.sum()))
+        o += qb
+        if self.outlier_probability:
+            out[rng_on, o : o + qb] = self._out.take(int(rng_on.sum()))
+            out[rng_on, o + qb : o + 2 * qb] = self._out_size.take(int(rng_on.sum()))
+        o += 2 * qb
+        if self.airspeed_std and self.has_wind:
+            out[air_on, o] = self._air.take(int(air_on.sum()))[:, 0]
+        o += 1
+        if self.dropout:
+            out[:, o : o + q] = self._drop.take(count)
+        o += q
+        if self.accel_std:
+            out[:, o : o + dim] = self._accel.take(count)
+        out[:, -1] = rng_on + 2 * air_on
+        return out
+
+    def commit(self, draws: np.ndarray) -> None:
+        """Count the dropouts and outliers of steps processed from these rows of :meth:`draws`."""
+        qb, q = self.q_b, self.q
+        flags = draws[:, -1].astype(int)
+        sampled = np.zeros((len(draws), q), dtype=bool)
+        sampled[:, :qb] = (flags & 1)[:, None] > 0
+        if self.has_wind:
+            sampled[:, qb] = (flags & 2) > 0
+        if self.outlier_probability:
+            self.outliers_injected += int((sampled[:, :qb] & (draws[:, qb : 2 * qb] < self.outlier_probability)).sum())
+        if self.dropout:
+            o = 3 * qb + 1
+            self.dropped += int((sampled & (draws[:, o : o + q] < self.dropout)).sum())
+
+    def step_params(self) -> np.ndarray:
+        """Constants of :func:`quadobs._kernels.sensor_step`: ``[q_b, q, dim, range_std, outlier_probability,
+        outlier_std, airspeed_std, dropout, accel_std, beacon_term (q_b)]``."""
+        return np.concatenate(
+            [
+                [self.q_b, self.q, self.dim, self.range_std, self.outlier_probability, self.outlier_std],
+                [self.airspeed_std, self.dropout, self.accel_std],
+                self._beacon_term,
+            ]
+        ).astype(float)
 
     def input(self, accel: np.ndarray) -> np.ndarray:
         """The measured input: the accelerometer reading plus its noise."""

@@ -80,6 +80,40 @@ def test_compiled_range_transform_equals_numpy():
     assert fast.dropped == plain.dropped > 0
 
 
+def _noisy_wind_scenario():
+    data = load_scenario("ifac2021", duration=5.0).to_dict()
+    data["beacons"] = [{"position": list(b)} for b in BEACONS]
+    data["wind"] = {"velocity": [1.0, -2.0, 0.5]}
+    data["noise"] = {
+        "range_std": 0.3, "accel_std": 0.05, "airspeed_std": 0.1, "range_rate": 500.0, "airspeed_rate": 250.0,
+        "dropout": 0.1, "outlier_probability": 0.05, "outlier_std": 20.0,
+    }
+    return parse_scenario(data)
+
+
+def test_block_stepper_applies_the_sensor_layer_as_step_by_step_calls():
+    """Noise drawn a block at a time, rates, dropouts, outliers, airspeed: the same y, u and counts
+    as SensorModel.outputs and SensorModel.input called step by step on the same readings."""
+    sc = _noisy_wind_scenario()
+    acc = sc.trajectory.step_accelerations(0.0, sc.dt, sc.steps)
+    sim = VehicleSim(3, sc.beacons, wind=sc.wind)
+    sim.reset(sc.trajectory.position(0.0), sc.trajectory.velocity_at(0.0))
+    ref, sensors = SensorModel(sc), SensorModel(sc)
+    stepper = BlockStepper(sim, 3000, sensors)
+    for k0 in range(0, sc.steps, 3000):  # the draws cross the 4096-row blocks of the streams
+        nblk = stepper.begin(acc[k0 : k0 + 3000], k0)
+        for j in range(nblk):
+            stepper.step(j)
+            row = stepper.out[j]
+            y = ref.outputs(k0 + j, row[stepper.ranges].copy(), float(row[stepper.airspeed][0]))
+            np.testing.assert_array_equal(row[stepper.y], y)
+            np.testing.assert_array_equal(row[stepper.measured], ref.measured_ranges)
+            np.testing.assert_array_equal(row[stepper.u], ref.input(row[stepper.accel].copy()))
+        stepper.commit(nblk)
+    assert (sensors.dropped, sensors.outliers_injected) == (ref.dropped, ref.outliers_injected)
+    assert ref.dropped > 0 and ref.outliers_injected > 0
+
+
 def test_tracker_update_many_equals_update():
     rng = np.random.default_rng(2)
     for _ in range(50):
@@ -124,3 +158,25 @@ def test_bench_command_writes_the_figures(tmp_path, capsys):
     out = capsys.readouterr().out
     assert "bare MuJoCo stepping" in out and "batch of 4 vehicles" in out
     assert main(["bench", "--steps", "0"]) == 2
+
+
+def test_block_stepper_numpy_path_agrees():
+    """The path used without Numba: VehicleSim's readings and SensorModel step by step."""
+    sc = _noisy_wind_scenario()
+    acc = sc.trajectory.step_accelerations(0.0, sc.dt, 500)
+    steppers = []
+    for compiled in (True, False):
+        sim = VehicleSim(3, sc.beacons, wind=sc.wind)
+        sim.reset(sc.trajectory.position(0.0), sc.trajectory.velocity_at(0.0))
+        st = BlockStepper(sim, 500, SensorModel(sc))
+        if not compiled:
+            st._read = None
+        st.begin(acc, 0)
+        for j in range(500):
+            st.step(j)
+        st.commit(500)
+        steppers.append(st)
+    a, b = (st.out[:500] for st in steppers)
+    np.testing.assert_array_equal(np.isnan(a), np.isnan(b))
+    np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-12)
+    assert steppers[0].sensors.dropped == steppers[1].sensors.dropped

@@ -185,18 +185,21 @@ class Recorder:
             # Copies: rerun may encode the columns on its own thread after this returns,
             # while the buffers are refilled.
             steps, times = self._steps[:n].copy(), self._times[:n].copy()
+            every_row = [rr.TimeColumn("step", sequence=steps), rr.TimeColumn("sim_time", duration=times)]
             for s in self.series_list:
                 if s.every > 1:
                     sel = np.flatnonzero(steps % s.every == 0)
                     vals, st, tm = s.buf[:n][sel], steps[sel], times[sel]
                 else:
                     vals, st, tm = s.buf[:n].copy(), steps, times
+                idx = every_row
                 if s.skip_nan:
                     keep = ~np.isnan(vals).any(axis=1)
                     vals, st, tm = vals[keep], st[keep], tm[keep]
                 if not len(st):
                     continue
-                idx = [rr.TimeColumn("step", sequence=st), rr.TimeColumn("sim_time", duration=tm)]
+                if st is not steps:
+                    idx = [rr.TimeColumn("step", sequence=st), rr.TimeColumn("sim_time", duration=tm)]
                 if s.kind == "scalars":
                     cols = rr.Scalars.columns(scalars=vals)
                 elif s.kind == "points3d":

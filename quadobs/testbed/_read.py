@@ -7,9 +7,14 @@ array, the same quantities as :meth:`VehicleSim.ranges`, :meth:`VehicleSim.accel
 the control of the next step into ``ctrl``: one call from Python instead of a dozen small
 NumPy operations.
 
+With a sensor model, the same call also applies the sensor layer to the step's readings
+(:func:`quadobs._kernels.sensor_step`, with the step's row of pre-drawn noise ``draws[j]``)
+and writes the outputs ``y``, the measured input ``u`` and the measured ranges into the row.
+
 ``consts`` (float64): ``[dim, q_b, wind?, qpos_adr, qvel_adr, site_id, accel_adr,
-velocimeter_adr, gravity (3), wind (3), offset_adr (q_b)]``. Row layout: ``truth (n)``,
-``ranges (q_b)``, ``accel (dim)``, ``airspeed (1)``.
+velocimeter_adr, gravity (3), wind (3), offset_adr (q_b), sensors?, o_y, o_u, o_meas,
+sensor parameters...]``. Row layout: ``truth (n)``, ``ranges (q_b)``, ``accel (dim)``,
+``airspeed (1)``, then, with sensors, ``y (q)``, ``u (dim)``, ``measured ranges (q_b)``.
 """
 
 from __future__ import annotations
@@ -18,11 +23,13 @@ import math
 
 from numba import njit
 
+from .._kernels import sensor_step
+
 __all__ = ["read_step"]
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def read_step(j, out, ctrls, ctrl, sensordata, site_xmat, qpos, qvel, consts):
+def read_step(j, out, ctrls, ctrl, sensordata, site_xmat, qpos, qvel, consts, draws):
     dim = int(consts[0])
     qb = int(consts[1])
     wind = consts[2] != 0.0
@@ -56,6 +63,9 @@ def read_step(j, out, ctrls, ctrl, sensordata, site_xmat, qpos, qvel, consts):
         s -= consts[11 + i]
         s2 += s * s
     row[o] = math.sqrt(s2)
+    ps = 14 + qb  # the sensor layer
+    if consts[ps] != 0.0:
+        sensor_step(row, n, n + qb, n + qb + dim, int(consts[ps + 1]), int(consts[ps + 2]), int(consts[ps + 3]), draws, j, consts, ps + 4)
     # truth at the end of step j (start of j + 1)
     nxt = out[j + 1]
     for i in range(dim):
