@@ -40,6 +40,9 @@ class BatchAugmentedObserver:
         Initial augmented estimates (override ``x0``).
     backend : {"auto", "numba", "numpy"}
         As for :class:`~quadobs.observer.AugmentedObserver`.
+    threads : int
+        With the compiled kernel, split the batch over this many threads (the kernel
+        releases the GIL); 0 or 1: the calling thread.
 
     Attributes
     ----------
@@ -49,11 +52,15 @@ class BatchAugmentedObserver:
         Their covariances, updated in place.
     """
 
-    def __init__(self, observer: AugmentedObserver, batch: int, *, x0=None, z0=None, backend: str = "auto") -> None:
+    def __init__(
+        self, observer: AugmentedObserver, batch: int, *, x0=None, z0=None, backend: str = "auto", threads: int = 0
+    ) -> None:
         if not isinstance(observer, AugmentedObserver):
             raise QuadobsError(f"observer: expected an AugmentedObserver, got {type(observer).__name__}")
         if isinstance(batch, bool) or not isinstance(batch, (int, np.integer)) or batch < 1:
             raise QuadobsError(f"batch: expected a positive integer, got {batch!r}")
+        if isinstance(threads, bool) or not isinstance(threads, (int, np.integer)) or threads < 0:
+            raise QuadobsError(f"threads: expected a non-negative integer, got {threads!r}")
         B = int(batch)
         im = observer.immersion
         N, n, p, q = im.dim, im.system.n, im.system.p, im.system.q
@@ -84,12 +91,27 @@ class BatchAugmentedObserver:
             km = KernelModel(observer.model, observer._C, observer.R, observer.gate)
             self._kops = (self._SB, km.work(), km.fc, km.ic)
             self._kernel = _kernels.augmented_step_batch
+            chunks = min(int(threads), B)
+            self._pool = None
+            if chunks > 1:  # contiguous slices of the batch, each with its own work buffer
+                from concurrent.futures import ThreadPoolExecutor
+
+                edges = np.linspace(0, B, chunks + 1).astype(int)
+                self._slices = [slice(a, b) for a, b in zip(edges[:-1], edges[1:])]
+                self._works = [km.work() for _ in self._slices]
+                self._pool = ThreadPoolExecutor(max_workers=chunks)
             # load (or compile) the kernel now, on scratch copies
             self._kernel(np.zeros((1, p)), np.full((1, q), np.nan), self._SB[:1].copy(), km.work(), km.fc, km.ic)
         else:
             self._ref = copy.copy(observer)  # the NumPy reference path on the template's model
             self._ref._kernel = None
             self._ref._Phi = observer._Phi.copy()
+
+    def close(self) -> None:
+        """Stop the worker threads (``threads > 1``)."""
+        if getattr(self, "_pool", None) is not None:
+            self._pool.shutdown()
+            self._pool = None
 
     # -- estimates -------------------------------------------------------------------
 
@@ -136,7 +158,15 @@ class BatchAugmentedObserver:
         if not fast:
             U, Y = _checked("U", U, self._ushape), _checked("Y", Y, self._yshape)
         if self._kernel is not None:
-            self._kernel(U, Y, *self._kops)
+            if self._pool is None:
+                self._kernel(U, Y, *self._kops)
+                return
+            SB, _, fc, ic = self._kops
+            jobs = [
+                self._pool.submit(self._kernel, U[sl], Y[sl], SB[sl], W, fc, ic) for sl, W in zip(self._slices, self._works)
+            ]
+            for job in jobs:
+                job.result()
             return
         ref = self._ref
         for b in range(self.batch):

@@ -232,7 +232,7 @@ def _batch(scenario, B: int, steps: int, repeats: int, threads: int) -> dict:
                 vb.step(acc[k])
             phys.append((time.perf_counter() - t0) / (steps * B) * 1e6)
             vb.reset(p0, v0)
-            obs = BatchAugmentedObserver(template, B)
+            obs = BatchAugmentedObserver(template, B, threads=threads)
             t0 = time.perf_counter()
             for k in range(steps):
                 vb.step(acc[k])
@@ -241,6 +241,7 @@ def _batch(scenario, B: int, steps: int, repeats: int, threads: int) -> dict:
                     Y = np.concatenate([Y, 0.5 * vb.airspeed()[:, None] ** 2], axis=1)
                 obs.step(np.ascontiguousarray(vb.accelerometer()), np.ascontiguousarray(Y))
             full.append((time.perf_counter() - t0) / (steps * B) * 1e6)
+            obs.close()
     ratios = [p / f for p, f in zip(phys, full)]
     return {
         "vehicles": B,
@@ -320,7 +321,7 @@ def run_bench(
     batch, batch_steps : int
         Vehicles in the batch and steps per batch run.
     threads : int
-        Threads of MuJoCo's rollout pool for the batch (0: the calling thread, like the observers).
+        Threads of MuJoCo's rollout pool and of the batched observer (0: the calling thread).
     quick : bool
         A small table of systems for the scaling figure.
     log : callable, optional
@@ -447,7 +448,7 @@ def print_bench(r: dict, file=None) -> None:
     p(f"  zonotopic, le2013 (online)      {_fmt(r['zonotope_step_us'], '.2f')}")
     p(f"  LMI design le2013 (offline, s)  {_fmt(r['lmi_design_s'], '.3f')}")
     b = r["batch"]
-    p(f"batch of {b['vehicles']} vehicles ({b['steps']} steps, rollout threads {b['threads']}, observers on one thread)")
+    p(f"batch of {b['vehicles']} vehicles ({b['steps']} steps, threads {b['threads']} for the rollout and for the observers)")
     p(f"  physics alone                   {b['physics_vehicle_steps_per_s']:>10,.0f} vehicle-steps/s ({b['physics_us_per_vehicle_step']:.2f} us)")
     p(f"  physics + sensors + observers   {b['with_observer_vehicle_steps_per_s']:>10,.0f} vehicle-steps/s ({b['with_observer_us_per_vehicle_step']:.2f} us); "
       f"ratio {b['batch_ratio']:.2f}")

@@ -145,7 +145,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--repeats", type=int, default=5, help="repeats of each measurement; medians are reported (default 5)")
     p.add_argument("--batch", type=int, default=1000, help="vehicles in the batch (default 1000)")
     p.add_argument("--batch-steps", type=int, default=200, help="steps per batch run (default 200)")
-    p.add_argument("--threads", type=int, default=0, help="threads of MuJoCo's rollout for the batch (default 0: calling thread)")
+    p.add_argument("--threads", type=int, default=0, help="threads for the batch: MuJoCo's rollout and the observers (default 0: calling thread)")
     p.add_argument("--quick", action="store_true", help="a small scaling table")
     p.add_argument("--quiet", action="store_true", help="no progress messages")
     p.set_defaults(func=_cmd_bench)

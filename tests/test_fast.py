@@ -86,14 +86,14 @@ def test_state_can_be_reassigned_and_bad_shapes_are_named(rng):
         AugmentedObserver(im, 0.01, backend="fortran")
 
 
-@pytest.mark.parametrize("backend", ["numba", "numpy"])
-def test_batched_observer_equals_single_observers(rng, backend):
+@pytest.mark.parametrize("backend,threads", [("numba", 0), ("numba", 2), ("numpy", 0)])
+def test_batched_observer_equals_single_observers(rng, backend, threads):
     """Member b of the batch evolves exactly as a single observer fed the same data."""
     im = immerse(_systems(rng)["wind 3-D, 2 beacons"])
     template = AugmentedObserver(im, 0.01, backend=backend, **_settings(im, 5, gate=50.0))
     B, n, q, p = 5, im.system.n, im.system.q, im.system.p
     x0 = rng.standard_normal((B, n))
-    batch = BatchAugmentedObserver(template, B, x0=x0, backend=backend)
+    batch = BatchAugmentedObserver(template, B, x0=x0, backend=backend, threads=threads)
     singles = [AugmentedObserver(im, 0.01, backend=backend, x0=x0[b], **_settings(im, 5, gate=50.0)) for b in range(B)]
     for k in range(150):
         U = rng.standard_normal((B, p))
@@ -111,6 +111,7 @@ def test_batched_observer_equals_single_observers(rng, backend):
     assert batch.x_covariance.shape == (B, n, n)
     with pytest.raises(QuadobsError, match=r"U: expected shape \(5, 3\)"):
         batch.step(np.zeros((4, 3)), np.zeros((5, q)))
+    batch.close()
     with pytest.raises(QuadobsError, match="batch"):
         BatchAugmentedObserver(template, 0)
 
