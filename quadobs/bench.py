@@ -327,6 +327,13 @@ def run_bench(
     log : callable, optional
         Called with a progress message before each part.
     """
+    from .runner import single_threaded_blas
+
+    with single_threaded_blas():  # as in ``quadobs run``: no BLAS worker threads beside the loop
+        return _run_bench(steps, repeats, batch, batch_steps, threads, quick, log)
+
+
+def _run_bench(steps, repeats, batch, batch_steps, threads, quick, log) -> dict:
     from .estimators import available_estimators
     from .observer import default_backend
     from .scenario import load_scenario

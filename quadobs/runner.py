@@ -91,6 +91,23 @@ def _finite_or_none(x: float) -> float | None:
     return float(x) if math.isfinite(x) else None
 
 
+def single_threaded_blas():
+    """A context in which BLAS and LAPACK run on the calling thread (``threadpoolctl``; no-op without it).
+
+    The estimators' matrices are tiny: a threaded BLAS gains nothing on them, and its
+    worker threads, which spin for a while after each call, take a second core (or the
+    other half of a hyperthreaded one) from the simulation loop; on a 2-core machine that
+    made every step of the loop up to twice as slow.
+    """
+    try:
+        from threadpoolctl import threadpool_limits
+    except ImportError:  # pragma: no cover - optional at run time
+        from contextlib import nullcontext
+
+        return nullcontext()
+    return threadpool_limits(limits=1, user_api="blas")
+
+
 def run_episode(
     scenario: Scenario,
     *,
@@ -126,7 +143,29 @@ def run_episode(
         The summary (also written to ``summary_path``); ``summary["interrupted"]`` is true
         when the run was stopped by Ctrl-C, in which case the recording and the summary
         cover every step up to the stop.
+
+    Notes
+    -----
+    BLAS and LAPACK run single-threaded during the episode (:func:`single_threaded_blas`).
     """
+    with single_threaded_blas():
+        return _run_episode(
+            scenario, estimators=estimators, out=out, summary_path=summary_path, progress=progress,
+            collect_every=collect_every, flush_rows=flush_rows,
+        )
+
+
+def _run_episode(
+    scenario: Scenario,
+    *,
+    estimators: list[str] | None = None,
+    out: str | Path | None = None,
+    summary_path: str | Path | None = None,
+    progress: bool = False,
+    collect_every: int = 0,
+    flush_rows: int = 8192,
+) -> EpisodeResult:
+    """:func:`run_episode` itself (BLAS limits set by the caller)."""
     from .testbed import BlockStepper, VehicleSim  # the MuJoCo layer, imported only to run episodes
 
     if scenario.kind != "vehicle":
