@@ -160,19 +160,29 @@ class Estimator:
         """
         n = out.shape[0] - 2
         out[:n] = self.x_hat
-        out[n] = self.covariance_trace
+        out[n] = _covariance_trace(self)
         self.step(u, y)
-        out[n + 1] = self.nis
+        out[n + 1] = getattr(self, "nis", float("nan"))
 
     @property
     def covariance_trace(self) -> float:
         """Trace of the estimator's covariance as recorded by the testbed: of ``P`` where the
         estimator has one (the augmented covariance of :class:`AugmentedObserver`), else of
         :attr:`x_covariance`; NaN without a covariance. Subclasses may keep it cheaper."""
-        P = getattr(self, "P", None)
-        if P is None:
-            P = self.x_covariance
-        return float(np.trace(P)) if P is not None else float("nan")
+        return _trace_of_covariance(self)
+
+
+def _trace_of_covariance(est) -> float:
+    P = getattr(est, "P", None)
+    if P is None:
+        P = getattr(est, "x_covariance", None)
+    return float(np.trace(P)) if P is not None else float("nan")
+
+
+def _covariance_trace(est) -> float:
+    """``est.covariance_trace`` where it exists (any object with ``P`` or ``x_covariance`` otherwise)."""
+    value = getattr(est, "covariance_trace", None)
+    return _trace_of_covariance(est) if value is None else value
 
 
 class AugmentedObserver(Estimator):

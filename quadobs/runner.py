@@ -38,6 +38,7 @@ import numpy as np
 from .errors import QuadobsError
 from .estimators import build_estimators, default_estimators
 from .metrics import ConvergenceTracker, state_errors
+from .observer import Estimator, _covariance_trace
 from .scenario import Scenario
 from .sensors import SensorModel, initial_guess, spawn_streams
 
@@ -106,6 +107,16 @@ def single_threaded_blas():
 
         return nullcontext()
     return threadpool_limits(limits=1, user_api="blas")
+
+
+def _step_and_record(est):
+    """``est.step_and_record``, or :meth:`Estimator.step_and_record` for an object that only has ``step``."""
+    method = getattr(est, "step_and_record", None)
+    if method is not None:
+        return method
+    from functools import partial
+
+    return partial(Estimator.step_and_record, est)
 
 
 def run_episode(
@@ -233,7 +244,7 @@ def _run_episode(
     # per estimator and row: x_hat and the covariance trace before the step, the NIS of its correction
     rec = np.full((E, _BLOCK + 1, n + 2), np.nan)
     xh, traces, nis = rec[:, :, :n], rec[:, :, n], rec[:, :, n + 1]
-    slots = [(est, est.step_and_record, rec[e]) for e, est in enumerate(ests)]
+    slots = [(est, _step_and_record(est), rec[e]) for e, est in enumerate(ests)]
 
     last_errors: dict[str, dict[str, np.ndarray]] = {}
     interrupted = False
@@ -298,7 +309,7 @@ def _run_episode(
             if block0 + nblk == steps:  # the final row: x_K and the estimates at t_K
                 for est, _, est_rec in slots:
                     est_rec[nblk, :n] = est.x_hat
-                    est_rec[nblk, n] = est.covariance_trace
+                    est_rec[nblk, n] = _covariance_trace(est)
                     est_rec[nblk, n + 1] = np.nan
                     if collect and steps % collect_every == 0:
                         cov = est.x_covariance
