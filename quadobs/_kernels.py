@@ -329,7 +329,8 @@ def augmented_step_batch(U, Y, SB, W, fc, ic):
 
     ``U (B, p)``, ``Y (B, q)``; row ``b`` of ``SB (B, N + N * N + 4)`` holds member ``b``'s
     ``[z | P | stats]``; the model (``fc``, ``ic``) and the work buffer ``W``
-    (:func:`work_size`) are shared.
+    (:func:`work_size`) are shared. Calls running at the same time (threads) need their
+    own ``W`` and ``ic`` (the end of ``ic`` is integer work).
     """
     N = ic[0]
     so = SB.shape[1] - 4

@@ -98,7 +98,8 @@ class BatchAugmentedObserver:
 
                 edges = np.linspace(0, B, chunks + 1).astype(int)
                 self._slices = [slice(a, b) for a, b in zip(edges[:-1], edges[1:])]
-                self._works = [km.work() for _ in self._slices]
+                # each thread its own work buffers: W, and ic (its tail holds integer work)
+                self._works = [(km.work(), km.ic.copy()) for _ in self._slices]
                 self._pool = ThreadPoolExecutor(max_workers=chunks)
             # load (or compile) the kernel now, on scratch copies
             self._kernel(np.zeros((1, p)), np.full((1, q), np.nan), self._SB[:1].copy(), km.work(), km.fc, km.ic)
@@ -161,9 +162,9 @@ class BatchAugmentedObserver:
             if self._pool is None:
                 self._kernel(U, Y, *self._kops)
                 return
-            SB, _, fc, ic = self._kops
+            SB, _, fc, _ = self._kops
             jobs = [
-                self._pool.submit(self._kernel, U[sl], Y[sl], SB[sl], W, fc, ic) for sl, W in zip(self._slices, self._works)
+                self._pool.submit(self._kernel, U[sl], Y[sl], SB[sl], W, fc, ic) for sl, (W, ic) in zip(self._slices, self._works)
             ]
             for job in jobs:
                 job.result()
