@@ -17,9 +17,11 @@ re-symmetrised after every operation, so it stays symmetric positive definite. F
 noise-free system whose initial estimate is exact, the estimate stays exact to rounding.
 
 Two implementations of the same arithmetic: a compiled kernel (Numba, :mod:`quadobs._kernels`)
-that fuses the correction and the prediction into one call of about a microsecond and
-allocates nothing, used by default when Numba is importable; and the NumPy reference
-(``backend="numpy"``), kept as the specification the kernel is tested against.
+that fuses the correction and the prediction into one call (about 1.4 µs of arithmetic for
+the 9-dimensional vehicle, 2.4 µs a step from Python) and allocates nothing, used by
+default when Numba is importable; and the NumPy reference (``backend="numpy"``, about
+55 µs a step), kept as the specification the kernel is tested against. Both update ``z``
+and ``P`` in place.
 """
 
 from __future__ import annotations
