@@ -75,9 +75,7 @@ class BatchAugmentedObserver:
         # One row per member, [z | P | stats], the layout of the compiled kernel;
         # Z, P and the stats are views of it.
         self._SB = np.zeros((B, N + N * N + 4))
-        self.Z = self._SB[:, :N]
-        self.P = self._SB[:, N : N + N * N].reshape(B, N, N)
-        self._stats = self._SB[:, N + N * N :]  # nis, corrections, rejected, trace(P)
+        self._views()
         self.Z[...] = Z
         self.P[...] = observer.P
         self._stats[:, 0] = np.nan
@@ -91,16 +89,13 @@ class BatchAugmentedObserver:
             km = KernelModel(observer.model, observer._C, observer.R, observer.gate)
             self._kops = (self._SB, km.work(), km.fc, km.ic)
             self._kernel = _kernels.augmented_step_batch
-            chunks = min(int(threads), B)
+            self._threads = min(int(threads), B)
             self._pool = None
-            if chunks > 1:  # contiguous slices of the batch, each with its own work buffer
-                from concurrent.futures import ThreadPoolExecutor
-
-                edges = np.linspace(0, B, chunks + 1).astype(int)
+            if self._threads > 1:  # contiguous slices of the batch, each with its own work buffer
+                edges = np.linspace(0, B, self._threads + 1).astype(int)
                 self._slices = [slice(a, b) for a, b in zip(edges[:-1], edges[1:])]
                 # each thread its own work buffers: W, and ic (its tail holds integer work)
                 self._works = [(km.work(), km.ic.copy()) for _ in self._slices]
-                self._pool = ThreadPoolExecutor(max_workers=chunks)
             # load (or compile) the kernel now, on scratch copies
             self._kernel(np.zeros((1, p)), np.full((1, q), np.nan), self._SB[:1].copy(), km.work(), km.fc, km.ic)
         else:
@@ -109,10 +104,30 @@ class BatchAugmentedObserver:
             self._ref._Phi = observer._Phi.copy()
 
     def close(self) -> None:
-        """Stop the worker threads (``threads > 1``)."""
+        """Stop the worker threads (``threads > 1``; started again by the next :meth:`step`)."""
         if getattr(self, "_pool", None) is not None:
             self._pool.shutdown()
             self._pool = None
+
+    def _views(self) -> None:
+        B, N = self.batch, self.immersion.dim
+        SB = self._SB
+        self.Z = SB[:, :N]
+        self.P = SB[:, N : N + N * N].reshape(B, N, N)
+        self._stats = SB[:, N + N * N :]  # nis, corrections, rejected, trace(P)
+        if getattr(self, "_kops", None) is not None:
+            self._kops = (SB,) + self._kops[1:]
+
+    def __getstate__(self) -> dict:
+        state = self.__dict__.copy()
+        for key in ("Z", "P", "_stats", "_pool"):  # views of _SB and threads: rebuilt on unpickling
+            state.pop(key, None)
+        return state
+
+    def __setstate__(self, state: dict) -> None:
+        self.__dict__.update(state)
+        self._pool = None
+        self._views()
 
     # -- estimates -------------------------------------------------------------------
 
@@ -159,9 +174,13 @@ class BatchAugmentedObserver:
         if not fast:
             U, Y = _checked("U", U, self._ushape), _checked("Y", Y, self._yshape)
         if self._kernel is not None:
-            if self._pool is None:
+            if self._threads <= 1:
                 self._kernel(U, Y, *self._kops)
                 return
+            if self._pool is None:
+                from concurrent.futures import ThreadPoolExecutor
+
+                self._pool = ThreadPoolExecutor(max_workers=self._threads)
             SB, _, fc, _ = self._kops
             jobs = [
                 self._pool.submit(self._kernel, U[sl], Y[sl], SB[sl], W, fc, ic) for sl, (W, ic) in zip(self._slices, self._works)

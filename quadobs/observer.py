@@ -294,26 +294,44 @@ class AugmentedObserver(Estimator):
         self.backend = resolve_backend(backend)
         self._kernel = None
         if self.backend == "numba":
-            from . import _kernels
-
             km = KernelModel(m, self._C, self.R, self.gate)
             # One buffer S = [z | P | W]: the kernels take five arrays (see quadobs._kernels).
-            S = np.concatenate([self._z, self._P.ravel(), km.work()])
-            self._S = S
-            self._z = S[:N]
-            self._P = S[N : N + N * N].reshape(N, N)
-            self._kops = (S, km.fc, km.ic)
-            self._stats = S[-4:]  # nis, corrections, rejected, trace(P) (written by the kernels)
-            self._kernel = _kernels.augmented_step
-            self._kcorrect = _kernels.augmented_correct
-            self._kpredict = _kernels.augmented_predict
-            self._krecord = _kernels.augmented_step_record
+            self._S = np.concatenate([self._z, self._P.ravel(), km.work()])
+            self._fc, self._ic = km.fc, km.ic
+            self._bind_kernels()
             # Load (or compile) the kernels now, on scratch copies, rather than in the first step.
+            S = self._S
             self._kernel(np.zeros(self._ushape), np.full(self._yshape, np.nan), S.copy(), km.fc, km.ic)
             self._krecord(np.zeros(self._ushape), np.full(self._yshape, np.nan), S.copy(), km.fc, km.ic, np.zeros(n + 2))
         else:
             self._stats = np.array([np.nan, 0.0, 0.0, 0.0])  # nis, corrections, rejected, trace(P)
         self._stats[3] = np.trace(self._P)
+
+    def _bind_kernels(self) -> None:
+        """Views of ``S = [z | P | W]`` and the compiled kernels (after construction or unpickling)."""
+        from . import _kernels
+
+        N, S = self.immersion.dim, self._S
+        self._z = S[:N]
+        self._P = S[N : N + N * N].reshape(N, N)
+        self._stats = S[-4:]  # nis, corrections, rejected, trace(P) (written by the kernels)
+        self._kops = (S, self._fc, self._ic)
+        self._kernel = _kernels.augmented_step
+        self._kcorrect = _kernels.augmented_correct
+        self._kpredict = _kernels.augmented_predict
+        self._krecord = _kernels.augmented_step_record
+
+    def __getstate__(self) -> dict:
+        state = self.__dict__.copy()
+        if self.backend == "numba":  # views and kernels are rebuilt from S on unpickling
+            for key in ("_z", "_P", "_stats", "_kops", "_kernel", "_kcorrect", "_kpredict", "_krecord"):
+                state.pop(key, None)
+        return state
+
+    def __setstate__(self, state: dict) -> None:
+        self.__dict__.update(state)
+        if self.backend == "numba":
+            self._bind_kernels()
 
     # -- state ---------------------------------------------------------------------------
 

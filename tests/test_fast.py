@@ -134,3 +134,31 @@ def test_step_and_record_equals_step_with_reads(rng):
         np.testing.assert_array_equal(a.P, b.P)
     with pytest.raises(QuadobsError, match="out: expected a float64 array"):
         a.step_and_record(u, y, np.zeros(n))
+
+
+@pytest.mark.parametrize("backend", ["numba", "numpy"])
+def test_observers_survive_pickling(rng, backend):
+    """A copy made by pickle (as a process pool does) steps on exactly like the original."""
+    import pickle
+
+    im = immerse(_systems(rng)["vehicle 2-D, 3 beacons"])
+    single = AugmentedObserver(im, 0.01, backend=backend, **_settings(im, 4))
+    batch = BatchAugmentedObserver(single, 3, x0=rng.standard_normal((3, 4)), backend=backend, threads=2)
+    for _ in range(5):
+        single.step(rng.standard_normal(2), rng.standard_normal(3))
+        batch.step(rng.standard_normal((3, 2)), rng.standard_normal((3, 3)))
+    single2, batch2 = pickle.loads(pickle.dumps(single)), pickle.loads(pickle.dumps(batch))
+    for _ in range(5):
+        u, y, U, Y = rng.standard_normal(2), rng.standard_normal(3), rng.standard_normal((3, 2)), rng.standard_normal((3, 3))
+        for obs in (single, single2):
+            obs.step(u, y)
+        for b in (batch, batch2):
+            b.step(U, Y)
+    np.testing.assert_array_equal(single2.z, single.z)
+    np.testing.assert_array_equal(single2.P, single.P)
+    assert single2.corrections == single.corrections and single2.covariance_trace == single.covariance_trace
+    np.testing.assert_array_equal(batch2.Z, batch.Z)
+    np.testing.assert_array_equal(batch2.P, batch.P)
+    np.testing.assert_array_equal(batch2.corrections, batch.corrections)
+    batch.close()
+    batch2.close()
