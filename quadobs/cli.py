@@ -4,7 +4,8 @@
 prints a summary table; ``quadobs list`` names the built-in scenarios; ``quadobs excitation
 SCENARIO [--window S]`` prints the persistence-of-excitation report of the scenario's input
 (no physics, no MuJoCo); ``quadobs campaign SCENARIO --runs N --out DIR`` runs a Monte
-Carlo campaign (:mod:`quadobs.campaign`). Errors in the
+Carlo campaign (:mod:`quadobs.campaign`); ``quadobs bench [--json PATH]`` measures the
+estimators' cost beside the physics (:mod:`quadobs.bench`). Errors in the
 input (a bad scenario field, an unwritable path) print one line naming the problem and
 exit with status 2; Ctrl-C stops a run after closing its recording (status 130).
 """
@@ -154,6 +155,31 @@ def _cmd_campaign(args) -> int:
     return 1 if result.summary["runs_failed"] else 0
 
 
+def _cmd_bench(args) -> int:
+    from .bench import print_bench, run_bench
+    from .runner import write_json_atomic
+
+    if args.json is not None:
+        from .recording import check_writable
+
+        check_writable(args.json)
+    for name in ("steps", "repeats", "batch", "batch_steps"):
+        if getattr(args, name) < 1:
+            raise QuadobsError(f"--{name.replace('_', '-')}: must be at least 1, got {getattr(args, name)}")
+    if args.threads < 0:
+        raise QuadobsError(f"--threads: must be non-negative, got {args.threads}")
+    log = None if args.quiet else (lambda msg: print(f"[bench] {msg}", file=sys.stderr, flush=True))
+    result = run_bench(
+        steps=args.steps, repeats=args.repeats, batch=args.batch, batch_steps=args.batch_steps,
+        threads=args.threads, quick=args.quick, log=log,
+    )
+    print_bench(result)
+    if args.json is not None:
+        write_json_atomic(args.json, result)
+        print(f"figures: {args.json}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="quadobs", description="State estimation for systems with quadratic outputs: a MuJoCo testbed.")
     sub = parser.add_subparsers(dest="command", required=True)
@@ -200,6 +226,17 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, help="override the scenario seed (the runs' seeds derive from it)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=_cmd_campaign)
+
+    p = sub.add_parser("bench", help="measure the estimators' cost beside the physics (single vehicle, batch, scaling)")
+    p.add_argument("--json", type=Path, help="write the figures to this JSON file")
+    p.add_argument("--steps", type=int, default=20000, help="physics steps per single-vehicle run (default 20000)")
+    p.add_argument("--repeats", type=int, default=5, help="repeats of each measurement; medians are reported (default 5)")
+    p.add_argument("--batch", type=int, default=1000, help="vehicles in the batch (default 1000)")
+    p.add_argument("--batch-steps", type=int, default=200, help="steps per batch run (default 200)")
+    p.add_argument("--threads", type=int, default=0, help="threads for the batch: MuJoCo's rollout and the observers (default 0: calling thread)")
+    p.add_argument("--quick", action="store_true", help="a small scaling table")
+    p.add_argument("--quiet", action="store_true", help="no progress messages")
+    p.set_defaults(func=_cmd_bench)
     return parser
 
 

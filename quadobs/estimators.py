@@ -75,6 +75,9 @@ class OutputSubset(Estimator):
     def step(self, u, y) -> None:
         self.inner.step(u, np.asarray(y)[self.outputs])
 
+    def step_and_record(self, u, y, out) -> None:
+        self.inner.step_and_record(u, np.asarray(y)[self.outputs], out)
+
     @property
     def x_hat(self) -> np.ndarray:
         return self.inner.x_hat
@@ -82,6 +85,14 @@ class OutputSubset(Estimator):
     @property
     def x_covariance(self):
         return self.inner.x_covariance
+
+    @property
+    def covariance_trace(self) -> float:
+        return self.inner.covariance_trace
+
+    @property
+    def nis(self) -> float:
+        return getattr(self.inner, "nis", float("nan"))
 
     def __getattr__(self, item):
         return getattr(self.inner, item)

@@ -10,16 +10,17 @@ __all__ = ["state_errors", "ConvergenceTracker"]
 def state_errors(dim: int, has_wind: bool, x_hat: np.ndarray, x: np.ndarray) -> dict[str, np.ndarray]:
     """Errors ``x_hat - x`` split into position and ground velocity (and wind).
 
-    For the wind state ``(p, v_a, v_w)`` the ground velocity is ``v_a + v_w``.
+    For the wind state ``(p, v_a, v_w)`` the ground velocity is ``v_a + v_w``. Works on
+    one state ``(n,)`` or on rows of states ``(T, n)``.
     """
     e = x_hat - x
     if not has_wind:
-        return {"position": e[:dim], "velocity": e[dim : 2 * dim]}
+        return {"position": e[..., :dim], "velocity": e[..., dim : 2 * dim]}
     return {
-        "position": e[:dim],
-        "velocity": e[dim : 2 * dim] + e[2 * dim : 3 * dim],
-        "air_velocity": e[dim : 2 * dim],
-        "wind": e[2 * dim : 3 * dim],
+        "position": e[..., :dim],
+        "velocity": e[..., dim : 2 * dim] + e[..., 2 * dim : 3 * dim],
+        "air_velocity": e[..., dim : 2 * dim],
+        "wind": e[..., 2 * dim : 3 * dim],
     }
 
 
@@ -42,6 +43,20 @@ class ConvergenceTracker:
                 self._since[i] = None
             elif self._since[i] is None:
                 self._since[i] = t
+
+    def update_many(self, t, values) -> None:
+        """:meth:`update` with each sample of ``t (T,)`` and ``values (T,)`` in order, vectorised."""
+        t = np.asarray(t, dtype=float)
+        values = np.asarray(values, dtype=float)
+        if not t.size:
+            return
+        for i, c in enumerate(self.thresholds):
+            above = np.flatnonzero(~(values < c))  # also catches NaN
+            if above.size:
+                last = int(above[-1])
+                self._since[i] = float(t[last + 1]) if last + 1 < t.size else None
+            elif self._since[i] is None:
+                self._since[i] = float(t[0])
 
     def times(self) -> list[float | None]:
         """Per threshold: the time from which the error stays below it, or ``None``."""

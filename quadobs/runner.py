@@ -11,6 +11,16 @@ The data path of physics step ``k`` (time ``t_k = k dt``):
 
 After the last step the final row ``K`` (``t_K = duration``) is recorded, so the summary's
 final errors compare ``x_hat_K`` with MuJoCo's ``x_K``.
+
+Cost. The per-step path allocates nothing and makes three calls from Python: ``mj_step``;
+one compiled call that does steps 1 and 3 (the truth, the readings and the sensor layer,
+with the noise of the block drawn beforehand from the same streams in the same order;
+:class:`~quadobs.testbed.BlockStepper`); and, per estimator,
+:meth:`~quadobs.observer.Estimator.step_and_record`, which does step 5 and keeps what
+step 4 records (``x_hat_k`` and the covariance trace before the step, the NIS after it).
+Every value of step ``k`` lands in row ``k`` of preallocated arrays of a block of steps;
+the errors, convergence times and the recording's rows are computed from them once per
+block (vectorised), then sent as columns.
 """
 
 from __future__ import annotations
@@ -28,6 +38,7 @@ import numpy as np
 from .errors import QuadobsError
 from .estimators import build_estimators, default_estimators
 from .metrics import ConvergenceTracker, state_errors
+from .observer import Estimator, _covariance_trace
 from .scenario import Scenario
 from .sensors import SensorModel, initial_guess, spawn_streams
 
@@ -87,12 +98,31 @@ def _finite_or_none(x: float) -> float | None:
     return float(x) if math.isfinite(x) else None
 
 
-def _trace_of(est) -> float:
-    P = getattr(est, "P", None)
-    if P is None:
-        cov = est.x_covariance
-        return float(np.trace(cov)) if cov is not None else float("nan")
-    return float(np.trace(P))
+def single_threaded_blas():
+    """A context in which BLAS and LAPACK run on the calling thread (``threadpoolctl``; no-op without it).
+
+    The estimators' matrices are tiny: a threaded BLAS gains nothing on them, and its
+    worker threads, which spin for a while after each call, take a second core (or the
+    other half of a hyperthreaded one) from the simulation loop; on a 2-core machine that
+    made every step of the loop up to twice as slow.
+    """
+    try:
+        from threadpoolctl import threadpool_limits
+    except ImportError:  # pragma: no cover - optional at run time
+        from contextlib import nullcontext
+
+        return nullcontext()
+    return threadpool_limits(limits=1, user_api="blas")
+
+
+def _step_and_record(est):
+    """``est.step_and_record``, or :meth:`Estimator.step_and_record` for an object that only has ``step``."""
+    method = getattr(est, "step_and_record", None)
+    if method is not None:
+        return method
+    from functools import partial
+
+    return partial(Estimator.step_and_record, est)
 
 
 def run_episode(
@@ -103,7 +133,7 @@ def run_episode(
     summary_path: str | Path | None = None,
     progress: bool = False,
     collect_every: int = 0,
-    flush_rows: int = 4096,
+    flush_rows: int = 8192,
 ) -> EpisodeResult:
     """Simulate ``scenario`` in MuJoCo, run the estimators every physics step, record and summarise.
 
@@ -130,8 +160,30 @@ def run_episode(
         The summary (also written to ``summary_path``); ``summary["interrupted"]`` is true
         when the run was stopped by Ctrl-C, in which case the recording and the summary
         cover every step up to the stop.
+
+    Notes
+    -----
+    BLAS and LAPACK run single-threaded during the episode (:func:`single_threaded_blas`).
     """
-    from .testbed import VehicleSim  # the MuJoCo layer, imported only to run episodes
+    with single_threaded_blas():
+        return _run_episode(
+            scenario, estimators=estimators, out=out, summary_path=summary_path, progress=progress,
+            collect_every=collect_every, flush_rows=flush_rows,
+        )
+
+
+def _run_episode(
+    scenario: Scenario,
+    *,
+    estimators: list[str] | None = None,
+    out: str | Path | None = None,
+    summary_path: str | Path | None = None,
+    progress: bool = False,
+    collect_every: int = 0,
+    flush_rows: int = 8192,
+) -> EpisodeResult:
+    """:func:`run_episode` itself (BLAS limits set by the caller)."""
+    from .testbed import BlockStepper, VehicleSim  # the MuJoCo layer, imported only to run episodes
 
     if scenario.kind != "vehicle":
         raise QuadobsError(f"scenario {scenario.name!r}: kind {scenario.kind!r} is not a MuJoCo vehicle scenario")
@@ -203,80 +255,131 @@ def run_episode(
 
         bar = tqdm(total=steps, unit="step", unit_scale=True, desc=scenario.name, leave=False)
 
+    # Per-step values of a block of steps, in preallocated arrays (row j: step block0 + j);
+    # errors, convergence times and the recording are computed from them once per block.
+    n, E = scenario.state_dim, len(ests)
+    stepper = BlockStepper(sim, _BLOCK, sensors)
+    raw = stepper.out  # row j: truth x at step block0 + j; readings, y, u, measured ranges of that step
+    raw_y, raw_u = raw[:, stepper.y], raw[:, stepper.u]
+    # per estimator and row: x_hat and the covariance trace before the step, the NIS of its correction
+    rec = np.full((E, _BLOCK + 1, n + 2), np.nan)
+    xh, traces, nis = rec[:, :, :n], rec[:, :, n], rec[:, :, n + 1]
+    slots = [(est, _step_and_record(est), rec[e]) for e, est in enumerate(ests)]
+    # guaranteed estimators: their interval bounds of x_k (before the step), per row
+    bounded_ests = [(b, est) for b, est in enumerate(e for e in ests if hasattr(e, "bounds"))]
+    bnd = np.full((len(bounded_ests), _BLOCK + 1, n, 2), np.nan)
+
     last_errors: dict[str, dict[str, np.ndarray]] = {}
     interrupted = False
     completed = 0
-    wall0 = _time.perf_counter()
+    flushing = False
 
-    def observe(k: int, x: np.ndarray, y, u, ranges, airspeed) -> int | None:
-        """Errors and trackers for row ``k``; write it to the recording; return its row index."""
-        t = k * dt
-        errs, xhs, traces, nis = {}, {}, {}, {}
-        for est in ests:
-            xh = est.x_hat
-            e = state_errors(dim, has_wind, xh, x)
-            errs[est.name] = e
-            xhs[est.name] = xh
-            trackers[est.name].update(t, float(np.sqrt(e["position"] @ e["position"])))
-        last_errors.update(errs)
+    def flush(block0: int, rows: int) -> None:
+        """Errors, convergence, collected trajectories and recording of rows ``[0, rows)`` of the block."""
+        if rows <= 0:
+            return
+        ks = block0 + np.arange(rows)
+        t = ks * dt
+        X = raw[:rows, stepper.truth]
+        errs, xhs, trs, niss = {}, {}, {}, {}
+        for e, est in enumerate(ests):
+            err = state_errors(dim, has_wind, xh[e, :rows], X)
+            ep = err["position"]
+            trackers[est.name].update_many(t, np.sqrt(np.einsum("ij,ij->i", ep, ep)))
+            errs[est.name], xhs[est.name] = err, xh[e, :rows]
+            trs[est.name], niss[est.name] = traces[e, :rows], nis[e, :rows]
+            last_errors[est.name] = {key: val[-1].copy() for key, val in err.items()}
         bounds = {}
-        for est in ests:
-            if est.name in contained:
-                b = bounds[est.name] = est.bounds
-                c = contained[est.name]
-                c[0] += bool(np.all((b[:, 0] <= x) & (x <= b[:, 1])))
-                c[1] += 1
-                c[2] = b
-        if collect and k % collect_every == 0:
-            j = k // collect_every
-            trace["time"][j] = t
-            trace["truth"][j] = x
-            for est in ests:
-                trace["estimates"][est.name][j] = est.x_hat
-                cov = est.x_covariance
-                if cov is not None:
-                    trace["covariances"][est.name][j] = cov
-                b = getattr(est, "bounds", None)
-                if b is not None:
-                    trace["bounds"].setdefault(est.name, np.full((n_rec, x.shape[0], 2), np.nan))[j] = b
-        if log is None or k % record_every:
-            return None
-        for est in ests:
-            traces[est.name] = _trace_of(est)
-            nis[est.name] = float("nan")
-        log.write(k, t, x[:dim], x[2 * dim :] if has_wind else None, errs, xhs, traces, nis, ranges, airspeed, u, bounds)
-        if xlog is not None:
-            xlog.write(recorder.n - 1, k)
-        return recorder.n - 1
+        for b, est in bounded_ests:
+            B = bnd[b, :rows]
+            bounds[est.name] = B
+            c = contained[est.name]
+            c[0] += int(np.all((B[..., 0] <= X) & (X <= B[..., 1]), axis=1).sum())
+            c[1] += rows
+            c[2] = B[-1].copy()
+        if collect:
+            sel = np.flatnonzero(ks % collect_every == 0)
+            idx = ks[sel] // collect_every
+            trace["time"][idx] = t[sel]
+            trace["truth"][idx] = X[sel]
+            Y = raw[:rows, stepper.y][sel]
+            for e, est in enumerate(ests):
+                trace["estimates"][est.name][idx] = xh[e, sel]
+                trace["nis"][est.name][idx] = nis[e, sel]
+                seen = getattr(est, "outputs", None)
+                Ys = Y[:, seen] if isinstance(seen, np.ndarray) else Y
+                dof = np.count_nonzero(~np.isnan(Ys), axis=1)
+                trace["nis_dof"][est.name][idx] = np.where(np.isfinite(nis[e, sel]), dof, 0)
+                if est.name in bounds:
+                    trace["bounds"].setdefault(est.name, np.full((n_rec, n, 2), np.nan))[idx] = bounds[est.name][sel]
+        if log is None:
+            return
+        sel = np.flatnonzero(ks % record_every == 0)
+        if not sel.size:
+            return
+        accel = raw[:rows, stepper.u]
+        air = np.sqrt(2.0 * raw[:rows, stepper.y.start + sensors.q_b]) if has_wind else None
+        log.write_block(
+            ks[sel], t[sel], X[sel, :dim], X[sel, 2 * dim :] if has_wind else None,
+            {nm: {key: val[sel] for key, val in err.items()} for nm, err in errs.items()},
+            {nm: v[sel] for nm, v in xhs.items()}, {nm: v[sel] for nm, v in trs.items()},
+            {nm: v[sel] for nm, v in niss.items()}, raw[:rows, stepper.measured][sel], None if air is None else air[sel], accel[sel],
+            bounds={nm: v[sel] for nm, v in bounds.items()},
+            extra=None if xlog is None else xlog.fill,
+        )
 
+    wall0 = _time.perf_counter()
+    block0 = 0
     try:
+        step = stepper.step
         for block0 in range(0, steps, _BLOCK):
-            nblk = min(_BLOCK, steps - block0)
-            u_cmd = traj.step_accelerations(block0 * dt, dt, nblk)
+            nblk = stepper.begin(traj.step_accelerations(block0 * dt, dt, min(_BLOCK, steps - block0)), block0)
             for j in range(nblk):
                 k = block0 + j
-                x_true = sim.state()
-                sim.step(u_cmd[j])
-                y = sensors.outputs(k, sim.ranges(), sim.airspeed() if has_wind else None)
-                u = sensors.input(sim.accelerometer())
-                row = observe(k, x_true, y, u, sensors.measured_ranges, None if not has_wind else _airspeed_of(y, sensors))
-                if monitor is not None and monitor.push(u) and monitor.warning is not None:
-                    message = monitor.pop_warning()
-                    if xlog is not None:
-                        xlog.warn(message, k + 1, (k + 1) * dt)
-                for est in ests:
-                    est.step(u, y)
+                step(j)  # mj_step; readings, y_k, u_k of step k into raw[j]; truth x_(k+1) into raw[j + 1]
                 if collect and k % collect_every == 0:
-                    _collect_nis(trace, k // collect_every, ests, y)
-                if row is not None:
                     for est in ests:
-                        log.est[est.name]["nis"].buf[row, 0] = getattr(est, "nis", float("nan"))
+                        cov = est.x_covariance
+                        if cov is not None:
+                            trace["covariances"][est.name][k // collect_every] = cov
+                y, u = raw_y[j], raw_u[j]
+                for b, est in bounded_ests:
+                    bnd[b, j] = est.bounds
+                for _, step_and_record, est_rec in slots:
+                    step_and_record(u, y, est_rec[j])  # x_hat_k, trace before; NIS after
+                if monitor is not None and monitor.push(u):  # the window measure was recomputed
+                    if xlog is not None:
+                        xlog.capture(k + 1)
+                    if monitor.warning is not None:
+                        message = monitor.pop_warning()
+                        if xlog is not None:
+                            xlog.warn(message, k + 1, (k + 1) * dt)
                 completed = k + 1
+            done = nblk
+            if block0 + nblk == steps:  # the final row: x_K and the estimates at t_K
+                for b, est in bounded_ests:
+                    bnd[b, nblk] = est.bounds
+                for est, _, est_rec in slots:
+                    est_rec[nblk, :n] = est.x_hat
+                    est_rec[nblk, n] = _covariance_trace(est)
+                    est_rec[nblk, n + 1] = np.nan
+                    if collect and steps % collect_every == 0:
+                        cov = est.x_covariance
+                        if cov is not None:
+                            trace["covariances"][est.name][steps // collect_every] = cov
+                raw[nblk, stepper.ranges.start :] = np.nan  # no measurement at t_K
+                nblk += 1
+            flushing = True
+            stepper.commit(done)  # the sensor model counts this block's dropouts and outliers
+            flush(block0, nblk)
+            flushing = False
             if bar is not None:
-                bar.update(nblk)
-        observe(steps, sim.state(), None, None, None, None)
+                bar.update(min(nblk, steps - block0))
     except KeyboardInterrupt:
         interrupted = True
+        if not flushing:
+            stepper.commit(completed - block0)
+            flush(block0, completed - block0)
         if log is not None:
             recorder.text("events", f"interrupted at t = {completed * dt:.3f} s (step {completed})", level="WARN", step=completed, time=completed * dt)
     finally:
@@ -299,24 +402,6 @@ def run_episode(
     if collect:
         return EpisodeResult(summary, trace)
     return EpisodeResult(summary)
-
-
-def _collect_nis(trace: dict, j: int, ests, y: np.ndarray) -> None:
-    """NIS of each estimator's update with ``y`` and its degrees of freedom (``nis_dof``, else the outputs it saw)."""
-    for est in ests:
-        nis = float(getattr(est, "nis", float("nan")))
-        trace["nis"][est.name][j] = nis
-        dof = getattr(est, "nis_dof", None)
-        if dof is None:
-            seen = getattr(est, "outputs", None)
-            yy = y[seen] if isinstance(seen, np.ndarray) else y
-            dof = int(np.count_nonzero(~np.isnan(yy))) if np.isfinite(nis) else 0
-        trace["nis_dof"][est.name][j] = dof
-
-
-def _airspeed_of(y: np.ndarray, sensors: SensorModel) -> float | None:
-    v = y[sensors.q_b]
-    return None if np.isnan(v) else float(np.sqrt(2.0 * v))
 
 
 def _summarise(scenario, ests, names, trackers, last_errors, completed, wall, sensors, out, interrupted) -> dict:

@@ -142,55 +142,71 @@ class EpisodeLog:
         ]
         self.accel = r.series("measurements/accelerometer", dim, names=[f"a_{a}" for a in axes])
 
-    def write(
+    def write_block(
         self,
-        step: int,
-        time: float,
+        steps: np.ndarray,
+        times: np.ndarray,
         truth_p: np.ndarray,
         truth_wind: np.ndarray | None,
         errors: dict[str, dict[str, np.ndarray]],
         estimates: dict[str, np.ndarray],
-        traces: dict[str, float],
-        nis: dict[str, float],
-        ranges: np.ndarray | None,
-        airspeed: float | None,
-        accel: np.ndarray | None,
+        traces: dict[str, np.ndarray],
+        nis: dict[str, np.ndarray],
+        ranges: np.ndarray,
+        airspeed: np.ndarray | None,
+        accel: np.ndarray,
         bounds: dict[str, np.ndarray] | None = None,
+        extra=None,
     ) -> None:
-        """Write the row of ``step`` (see the module docstring for what goes where)."""
-        i = self.rec.row(step, time)
+        """Write ``m`` recorded rows at once (see the module docstring for what goes where).
+
+        Every argument holds its rows first (``(m, ...)``): the truth's position (and wind),
+        each estimator's errors, estimate, covariance trace and NIS, the measured ranges,
+        airspeed and acceleration (NaN where not sampled), and for guaranteed estimators
+        their interval ``bounds`` ``(m, n, 2)``. ``extra(rows, steps)``, if given, fills
+        further series for the recorder rows ``rows`` (a slice) of the physics ``steps``.
+        """
+        steps = np.asarray(steps)
+        done, m = 0, len(steps)
         dim = self.sc.dimension
-        self.truth_path.buf[i, :dim] = truth_p
-        self.truth_box.buf[i, :dim] = truth_p
-        for name, s in self.est.items():
-            e = errors[name]
-            xh = estimates[name]
-            s["path"].buf[i, :dim] = xh[:dim]
-            s["box"].buf[i, :dim] = xh[:dim]
-            ep, ev = e["position"], e["velocity"]
-            s["pos_axes"].buf[i] = ep
-            s["pos_norm"].buf[i, 0] = np.sqrt(ep @ ep)
-            s["vel_axes"].buf[i] = ev
-            s["vel_norm"].buf[i, 0] = np.sqrt(ev @ ev)
-            s["trace"].buf[i, 0] = traces[name]
-            s["nis"].buf[i, 0] = nis[name]
-            if "bounds_box" in s:
-                b = bounds[name][:dim]
-                s["bounds_box"].buf[i, :dim] = 0.5 * (b[:, 0] + b[:, 1])
-                s["bounds_box"].buf[i, 3 : 3 + dim] = 0.5 * (b[:, 1] - b[:, 0])
-                if dim == 2:
-                    s["bounds_box"].buf[i, 5] = 0.05
-                s["bounds_err"].buf[i, :dim] = b[:, 0] - truth_p
-                s["bounds_err"].buf[i, dim:] = b[:, 1] - truth_p
-                s["box_width"].buf[i] = b[:, 1] - b[:, 0]
-            if "wind" in s:
-                ew = e["wind"]
-                s["wind_axes"].buf[i] = ew
-                s["wind_norm"].buf[i, 0] = np.sqrt(ew @ ew)
-                s["wind"].buf[i] = xh[2 * dim :]
-        if self.sc.has_wind:
-            self.wind_truth.buf[i] = truth_wind
-            self.airspeed.buf[i, 0] = np.nan if airspeed is None else airspeed
-        for h, series in enumerate(self.ranges):
-            series.buf[i, 0] = np.nan if ranges is None else ranges[h]
-        self.accel.buf[i] = np.nan if accel is None else accel
+        while done < m:
+            i = self.rec.rows(steps[done:], times[done:])
+            src = slice(done, done + (i.stop - i.start))
+            self.truth_path.buf[i, :dim] = truth_p[src]
+            self.truth_box.buf[i, :dim] = truth_p[src]
+            for name, s in self.est.items():
+                e = errors[name]
+                xh = estimates[name][src]
+                s["path"].buf[i, :dim] = xh[:, :dim]
+                s["box"].buf[i, :dim] = xh[:, :dim]
+                if "bounds_box" in s:
+                    b = bounds[name][src, :dim]
+                    tp = truth_p[src]
+                    s["bounds_box"].buf[i, :dim] = 0.5 * (b[..., 0] + b[..., 1])
+                    s["bounds_box"].buf[i, 3 : 3 + dim] = 0.5 * (b[..., 1] - b[..., 0])
+                    if dim == 2:
+                        s["bounds_box"].buf[i, 5] = 0.05
+                    s["bounds_err"].buf[i, :dim] = b[..., 0] - tp
+                    s["bounds_err"].buf[i, dim:] = b[..., 1] - tp
+                    s["box_width"].buf[i] = b[..., 1] - b[..., 0]
+                ep, ev = e["position"][src], e["velocity"][src]
+                s["pos_axes"].buf[i] = ep
+                s["pos_norm"].buf[i, 0] = np.sqrt(np.einsum("ij,ij->i", ep, ep))
+                s["vel_axes"].buf[i] = ev
+                s["vel_norm"].buf[i, 0] = np.sqrt(np.einsum("ij,ij->i", ev, ev))
+                s["trace"].buf[i, 0] = traces[name][src]
+                s["nis"].buf[i, 0] = nis[name][src]
+                if "wind" in s:
+                    ew = e["wind"][src]
+                    s["wind_axes"].buf[i] = ew
+                    s["wind_norm"].buf[i, 0] = np.sqrt(np.einsum("ij,ij->i", ew, ew))
+                    s["wind"].buf[i] = xh[:, 2 * dim :]
+            if self.sc.has_wind:
+                self.wind_truth.buf[i] = truth_wind[src]
+                self.airspeed.buf[i, 0] = airspeed[src]
+            for h, series in enumerate(self.ranges):
+                series.buf[i, 0] = ranges[src, h]
+            self.accel.buf[i] = accel[src]
+            if extra is not None:
+                extra(i, steps[src])
+            done = src.stop

@@ -80,28 +80,45 @@ class ExcitationLog:
             for est in estimators
             if _same_coordinates(est, monitor)
         }
+        self._pending: dict[int, tuple[list[float], list[float]]] = {}
 
-    def write(self, row: int, step: int) -> None:
-        """Fill row ``row`` (physics step ``step``) with the monitor's latest values (NaN before the first window is full).
+    def capture(self, step: int) -> None:
+        """Keep the monitor's values just recomputed, for the recorded row of physics step ``step``.
 
-        Only rows at multiples of the update period are sent (the series' ``every``), so the
-        others are left alone.
+        Called when the monitor updates (after the input of step ``step - 1``), with the
+        estimators' covariances of that moment; :meth:`fill` writes them when the row is
+        recorded. Only rows at multiples of the update period are sent (the series' ``every``).
         """
         if step % self.every:
             return
         m = self.monitor
         mu = m.measure
-        self.measure.buf[row, 0] = mu
-        self.threshold.buf[row, 0] = m.threshold if np.isfinite(mu) else np.nan
-        # Below rounding (1e-16 lambda_max) mu is indistinguishable from 0: show the floor.
-        self.log10.buf[row, 0] = (
-            np.log10(max(mu, 1e-16 * m.lambda_max, np.finfo(float).tiny)) if np.isfinite(mu) else np.nan
-        )
-        self.log10.buf[row, 1] = np.log10(m.threshold) if (np.isfinite(mu) and m.threshold > 0) else np.nan
         V = m.unexcited
-        self.count.buf[row, 0] = V.shape[1] if np.isfinite(mu) else np.nan
-        for est, series in self.weak.values():
-            series.buf[row, 0] = float(np.linalg.eigvalsh(V.T @ est.P @ V)[-1]) if V.shape[1] else np.nan
+        finite = np.isfinite(mu)
+        values = [
+            mu,
+            m.threshold if finite else np.nan,
+            # Below rounding (1e-16 lambda_max) mu is indistinguishable from 0: show the floor.
+            np.log10(max(mu, 1e-16 * m.lambda_max, np.finfo(float).tiny)) if finite else np.nan,
+            np.log10(m.threshold) if (finite and m.threshold > 0) else np.nan,
+            V.shape[1] if finite else np.nan,
+        ]
+        weak = [float(np.linalg.eigvalsh(V.T @ est.P @ V)[-1]) if V.shape[1] else np.nan for est, _ in self.weak.values()]
+        self._pending[int(step)] = (values, weak)
+
+    def fill(self, rows: slice, steps: np.ndarray) -> None:
+        """Write the captured values into the recorder ``rows`` of the physics ``steps`` (NaN where none)."""
+        for i, step in zip(range(rows.start, rows.stop), steps):
+            if step % self.every:
+                continue
+            values, weak = self._pending.pop(int(step), ([np.nan] * 5, [np.nan] * len(self.weak)))
+            self.measure.buf[i, 0] = values[0]
+            self.threshold.buf[i, 0] = values[1]
+            self.log10.buf[i, 0] = values[2]
+            self.log10.buf[i, 1] = values[3]
+            self.count.buf[i, 0] = values[4]
+            for (_, series), w in zip(self.weak.values(), weak):
+                series.buf[i, 0] = w
 
     def warn(self, message: str, step: int, time: float) -> None:
         """Log the monitor's warning at ``events``."""

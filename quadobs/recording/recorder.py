@@ -161,23 +161,48 @@ class Recorder:
         self.n = i + 1
         return i
 
-    def flush(self) -> None:
-        """Send the buffered rows as columns and flush the file."""
+    def rows(self, steps: np.ndarray, times: np.ndarray) -> slice:
+        """Start as many of the rows ``steps``/``times`` as fit before the next send.
+
+        Returns the slice of every ``Series.buf`` they occupy; its length (at least one row)
+        says how many were taken, the caller passes the rest again.
+        """
+        if self.n == self.capacity:
+            self.flush()
+        i = self.n
+        c = min(self.capacity - i, len(steps))
+        self._steps[i : i + c] = steps[:c]
+        self._times[i : i + c] = times[:c]
+        self.n = i + c
+        return slice(i, i + c)
+
+    def flush(self, *, wait: bool = False) -> None:
+        """Send the buffered rows as columns and flush the file.
+
+        The file is written by rerun's own thread: ``wait=False`` (the periodic sends)
+        starts the write without waiting for it, so the simulation goes on meanwhile;
+        :meth:`close` waits.
+        """
         n = self.n
         if n:
-            steps, times = self._steps[:n], self._times[:n]
+            # Copies: rerun may encode the columns on its own thread after this returns,
+            # while the buffers are refilled.
+            steps, times = self._steps[:n].copy(), self._times[:n].copy()
+            every_row = [rr.TimeColumn("step", sequence=steps), rr.TimeColumn("sim_time", duration=times)]
             for s in self.series_list:
-                sel = slice(None)
                 if s.every > 1:
                     sel = np.flatnonzero(steps % s.every == 0)
-                vals = s.buf[:n][sel]
-                st, tm = steps[sel], times[sel]
+                    vals, st, tm = s.buf[:n][sel], steps[sel], times[sel]
+                else:
+                    vals, st, tm = s.buf[:n].copy(), steps, times
+                idx = every_row
                 if s.skip_nan:
                     keep = ~np.isnan(vals).any(axis=1)
                     vals, st, tm = vals[keep], st[keep], tm[keep]
                 if not len(st):
                     continue
-                idx = [rr.TimeColumn("step", sequence=st), rr.TimeColumn("sim_time", duration=tm)]
+                if st is not steps:
+                    idx = [rr.TimeColumn("step", sequence=st), rr.TimeColumn("sim_time", duration=tm)]
                 if s.kind == "scalars":
                     cols = rr.Scalars.columns(scalars=vals)
                 elif s.kind == "points3d":
@@ -189,14 +214,17 @@ class Recorder:
                 self.rec.send_columns(s.entity, indexes=idx, columns=cols)
             self.rows_sent += n
             self.n = 0
-        self.rec.flush()
+        if wait:
+            self.rec.flush()
+        else:
+            self.rec.flush(timeout_sec=0.0)
 
     def close(self) -> None:
         """Send what is buffered and finish the file (footer included); idempotent."""
         if self.closed:
             return
         try:
-            self.flush()
+            self.flush(wait=True)
         finally:
             self.rec.disconnect()
             self.closed = True
