@@ -530,21 +530,22 @@ def baseline_settings(scenario: Scenario) -> BaselineSettings:
     * Measurements: when every sensor the outputs come from is noisy (ranges, and the
       airspeed in wind scenarios), the filters work in the norm space (ranges,
       airspeed) with the sensors' true variances ``R = diag(sigma_h^2)``: this is the
-      exact likelihood of the measurements. When a sensor is noise-free there is no true
+      exact likelihood of Gaussian measurements (for bounded, uniform noise,
+      ``sigma = bound / sqrt(3)``, its standard deviation). When a sensor is noise-free there is no true
       level to use (``R = 0`` is not a filter), and they use the augmented observer's
       tuning instead, in the output space: ``R_hl = W_hl / sqrt(T_h T_l)``, exactly the
       observer's ``R``.
-    * Process noise: the accelerometer's true noise, ``Q_d = sigma_a^2 G G^T`` per physics
+    * Process noise: the accelerometer's true noise variance, ``Q_d = sigma_a^2 G G^T`` per physics
       step (zero for a noise-free accelerometer: the MuJoCo vehicle then follows the
       model exactly).
     * Prior: :func:`initial_covariance`.
     """
     system = scenario.system()
     noise = scenario.noise
-    stds = [noise.range_std] * scenario.beacons.shape[0]
+    stds = [noise.sigma("range")] * scenario.beacons.shape[0]
     offsets = list(0.5 * np.einsum("hi,hi->h", scenario.beacons, scenario.beacons))
     if scenario.has_wind:
-        stds.append(noise.airspeed_std)
+        stds.append(noise.sigma("airspeed"))
         offsets.append(0.0)
     stds = np.array(stds)
     if np.all(stds > 0):
@@ -556,7 +557,7 @@ def baseline_settings(scenario: Scenario) -> BaselineSettings:
         scale = 1.0 / np.sqrt(periods)
         outputs = OutputModel(system, W * np.outer(scale, scale))
         source = "observer"
-    dynamics = HeldInputModel(system, scenario.dt, input_covariance=noise.accel_std**2)
+    dynamics = HeldInputModel(system, scenario.dt, input_covariance=noise.sigma("accel") ** 2)
     P0, prior = initial_covariance(scenario)
     return BaselineSettings(dynamics, outputs, P0, source, prior)
 

@@ -63,6 +63,11 @@ class NoiseSpec:
     accel_bound: float = 0.0
     airspeed_bound: float = 0.0
 
+    def sigma(self, sensor: str) -> float:
+        """Standard deviation of a sensor's error (``"range"``, ``"accel"``, ``"airspeed"``):
+        the ``*_std`` field, or ``bound / sqrt(3)`` for uniform noise in ``[-bound, bound]``."""
+        return getattr(self, f"{sensor}_std") or getattr(self, f"{sensor}_bound") / np.sqrt(3.0)
+
 
 @dataclass(frozen=True)
 class ObserverSpec:
