@@ -172,6 +172,7 @@ class BatchAugmentedObserver:
         except AttributeError:
             fast = False
         if not fast:
+            _checked = AugmentedObserver._checked
             U, Y = _checked("U", U, self._ushape), _checked("Y", Y, self._yshape)
         if self._kernel is not None:
             if self._threads <= 1:
@@ -199,14 +200,4 @@ def _rows(name: str, value, B: int, width: int) -> np.ndarray:
     arr = as_array(name, value)
     if arr.shape not in ((width,), (B, width)):
         raise QuadobsError(f"{name}: expected shape ({width},) or ({B}, {width}), got {arr.shape}")
-    return arr
-
-
-def _checked(name: str, value, shape: tuple[int, int]) -> np.ndarray:
-    try:
-        arr = np.ascontiguousarray(value, dtype=float)
-    except (TypeError, ValueError) as exc:
-        raise QuadobsError(f"{name}: expected a numeric array, got {type(value).__name__} ({exc})") from None
-    if arr.shape != shape:
-        raise QuadobsError(f"{name}: expected shape {shape}, got {arr.shape}")
     return arr

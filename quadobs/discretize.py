@@ -82,6 +82,32 @@ def van_loan(A: np.ndarray, V: np.ndarray, dt: float) -> tuple[np.ndarray, np.nd
     return Phi, 0.5 * (Q + Q.T)
 
 
+def quadratic_coefficients(f, p: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Coefficients of a matrix-valued quadratic polynomial from its values.
+
+    For ``f(u) = F0 + sum_j u_j F1[j] + sum_{j,l} u_j u_l F2[j, l]`` (``F2`` symmetric in
+    ``j, l``), recover ``F0``, ``F1 (p, ...)`` and ``F2 (p, p, ...)`` exactly from the values
+    at ``u = 0``, ``+-e_j`` and ``e_j + e_l``:
+    ``F1[j] = (f(e_j) - f(-e_j)) / 2``, ``F2[j, j] = (f(e_j) + f(-e_j)) / 2 - F0`` and
+    ``F2[j, l] = (f(e_j + e_l) - F0 - F1[j] - F1[l] - F2[j, j] - F2[l, l]) / 2``.
+    """
+    F0 = np.asarray(f(np.zeros(p)))
+    F1 = np.zeros((p,) + F0.shape)
+    F2 = np.zeros((p, p) + F0.shape)
+    for j in range(p):
+        e = np.zeros(p)
+        e[j] = 1.0
+        fp, fm = f(e), f(-e)
+        F1[j] = 0.5 * (fp - fm)
+        F2[j, j] = 0.5 * (fp + fm) - F0
+    for j, l in combinations(range(p), 2):
+        e = np.zeros(p)
+        e[[j, l]] = 1.0
+        cross = f(e) - F0 - F1[j] - F1[l] - F2[j, j] - F2[l, l]
+        F2[j, l] = F2[l, j] = 0.5 * cross
+    return F0, F1, F2
+
+
 @dataclass(frozen=True, eq=False)
 class HeldInputDiscretization:
     """Exact one-step map of an :class:`~quadobs.immersion.Immersion` with the input held.
@@ -161,20 +187,7 @@ class HeldInputDiscretization:
         def qd(u: np.ndarray) -> np.ndarray:
             return van_loan(im.state_matrix(u) + shift, V, dt)[1]
 
-        Q0 = qd(np.zeros(p))
-        Q1 = np.zeros((p, N, N))
-        Q2 = np.zeros((p, p, N, N))
-        for j in range(p):
-            e = np.zeros(p)
-            e[j] = 1.0
-            qp, qm = qd(e), qd(-e)
-            Q1[j] = 0.5 * (qp - qm)
-            Q2[j, j] = 0.5 * (qp + qm) - Q0
-        for j, l in combinations(range(p), 2):
-            e = np.zeros(p)
-            e[[j, l]] = 1.0
-            cross = qd(e) - Q0 - Q1[j] - Q1[l] - Q2[j, j] - Q2[l, l]
-            Q2[j, l] = Q2[l, j] = 0.5 * cross
+        Q0, Q1, Q2 = quadratic_coefficients(qd, p)
 
         object.__setattr__(self, "dt", dt)
         object.__setattr__(self, "theta", theta)

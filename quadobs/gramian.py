@@ -51,11 +51,10 @@ batched products (the live monitor).
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from itertools import combinations
 
 import numpy as np
 
-from .discretize import HeldInputDiscretization, van_loan
+from .discretize import HeldInputDiscretization, quadratic_coefficients, van_loan
 from .errors import QuadobsError, as_array, as_finite_scalar
 from .immersion import Immersion
 
@@ -190,20 +189,7 @@ class GramianModel:
         def step_gramian(u: np.ndarray) -> np.ndarray:
             return van_loan(im.state_matrix(u).T, CtC, dt)[1]
 
-        G0 = step_gramian(np.zeros(p))
-        G1 = np.zeros((p, N, N))
-        G2 = np.zeros((p, p, N, N))
-        for j in range(p):
-            e = np.zeros(p)
-            e[j] = 1.0
-            gp, gm = step_gramian(e), step_gramian(-e)
-            G1[j] = 0.5 * (gp - gm)
-            G2[j, j] = 0.5 * (gp + gm) - G0
-        for j, l in combinations(range(p), 2):
-            e = np.zeros(p)
-            e[[j, l]] = 1.0
-            cross = step_gramian(e) - G0 - G1[j] - G1[l] - G2[j, j] - G2[l, l]
-            G2[j, l] = G2[l, j] = 0.5 * cross
+        G0, G1, G2 = quadratic_coefficients(step_gramian, p)
         object.__setattr__(self, "dt", dt)
         object.__setattr__(self, "discretization", HeldInputDiscretization(im, dt))
         for name, arr in (("gramian_constant", G0), ("gramian_linear", G1), ("gramian_quadratic", G2)):
