@@ -196,6 +196,16 @@ class Zonotope:
     # -- construction ----------------------------------------------------------------
 
     @classmethod
+    def _trusted(cls, center: np.ndarray, generators: np.ndarray) -> "Zonotope":
+        """A zonotope from arrays already checked: float64, ``(n,)`` and ``(n, m)``, finite, read-only, owned by it.
+
+        For the hot loops of the estimators: no conversion and no validation.
+        """
+        Z = object.__new__(cls)
+        Z.__dict__.update(center=center, generators=generators)
+        return Z
+
+    @classmethod
     def from_box(cls, lower, upper) -> "Zonotope":
         """The box ``[lower, upper]`` (``(n,)`` each) as a zonotope with ``n`` generators."""
         lo = as_array("lower", lower, (None,))
