@@ -21,6 +21,11 @@ Gains (:data:`GAINS`):
 * volume minimisation (Alamo et al. 2005): the ``lambda`` minimising the volume of
   Property 6's zonotope, a convex piecewise-linear function of ``lambda`` minimised
   exactly by a linear program (:func:`volume_gain`).
+
+The online step has two implementations (``backend``): the reference, written with the set
+calculus of :mod:`quadobs.zonotope` (a new :class:`~quadobs.zonotope.Zonotope` per
+operation, every operand validated), and compiled kernels (:mod:`quadobs._zonotope_kernels`)
+that rewrite one buffer in place and hand back one zonotope per step; they agree to rounding.
 """
 
 from __future__ import annotations
@@ -239,7 +244,6 @@ class ZonotopicEstimator:
         parts = [self.A_interval.mid, self.A_interval.rad, self.F, self.C, self.phi, gains]
         self._fc = np.ascontiguousarray(np.concatenate([np.ravel(a) for a in parts]))
         self._ic = np.array([n, nw, ny, self.max_generators, 0, mode, int(self.uncertain)], dtype=np.int64)
-        self._lam = np.empty(n)
         self._bind_kernels()
 
     def _bind_kernels(self) -> None:
