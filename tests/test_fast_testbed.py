@@ -153,7 +153,7 @@ def test_bench_command_writes_the_figures(tmp_path, capsys):
     assert data["bare_steps_per_s"] > 0
     assert data["recording_fraction"] < 1  # 1 - t_norec / t_rec
     assert data["batch"]["vehicles"] == 4 and data["scaling"]
-    assert set(data["lmi_design_split_s"]) == {"first_approach", "second_approach"}
+    assert set(data["lmi_design_split_s"]) == {"first_approach", "second_approach"} and data["lmi_import_s"] >= 0
     assert data["zonotope_vehicle"]["scenario"] == "ifac2021-bounded" and data["zonotope_vehicle"]["correct_every_step_us"] > 0
     le = data["le2013_step_us"]
     assert set(le) == {"segment", "volume", "pradius1", "pradius2", "pradius2_paper"}
