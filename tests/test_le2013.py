@@ -208,3 +208,30 @@ def test_backend_choice():
         ZonotopicEstimator(A_INTERVAL, F, C, NOISE_BOUND, X0, lambda Z, c, phi: np.zeros(2), backend="numba")
     with pytest.raises(QuadobsError, match="backend"):
         ZonotopicEstimator(A_INTERVAL, F, C, NOISE_BOUND, X0, "segment", backend="gpu")
+
+
+@pytest.mark.parametrize("gain", ["segment", "volume", "fixed"])
+def test_compiled_step_matches_the_reference_in_three_dimensions(gain):
+    """n = 3, three outputs, two disturbance columns, an interval [A] with a zero radius row (no box column there)."""
+    rng = np.random.default_rng(21)
+    mid = 0.7 * np.linalg.qr(rng.standard_normal((3, 3)))[0]  # stable: the sets stay of moderate size
+    rad = np.abs(0.05 * rng.standard_normal((3, 3)))
+    rad[1] = 0.0
+    Ai = IntervalMatrix.from_mid_rad(mid, rad)
+    Fm, Cm, phi = 0.1 * rng.standard_normal((3, 2)), rng.standard_normal((3, 3)), np.array([0.1, 0.2, 0.05])
+    g = 0.2 * rng.standard_normal((3, 3)) if gain == "fixed" else gain
+    X0 = Zonotope(rng.standard_normal(3), rng.standard_normal((3, 5)))
+    ests = [ZonotopicEstimator(Ai, Fm, Cm, phi, X0, g, max_generators=8, backend=b) for b in ("numpy", "numba")]
+    x = X0.center.copy()
+    A = mid + rad * rng.uniform(-1, 1, (3, 3))
+    for k in range(15 if gain == "volume" else 40):
+        x = A @ x + Fm @ rng.uniform(-1, 1, 2)
+        y = Cm @ x + phi * rng.uniform(-1, 1, 3)
+        if k % 5 == 4:
+            y[k % 3] = np.nan
+        a, b = (e.step(y) for e in ests)
+        assert a.order == b.order <= 8
+        scale = np.abs(a.generators).sum() + np.abs(a.center).sum()
+        np.testing.assert_allclose(b.center, a.center, rtol=0, atol=1e-12 * scale)
+        np.testing.assert_allclose(b.generators, a.generators, rtol=0, atol=1e-12 * scale)
+        assert b.contains(x, method="lp")
