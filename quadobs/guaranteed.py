@@ -267,11 +267,11 @@ class ZonotopicAugmentedEstimator(Estimator):
             box[:k] += rad @ ubar + self._G2abs * float(np.max(ubar)) ** 2
         extent = np.abs(center) + np.abs(H).sum(axis=1)
         box += ROUNDING_MARGIN * (1.0 + extent)
+        if not (np.isfinite(center).all() and np.isfinite(box).all()):  # box grows with |H|: catches H too
+            raise QuadobsError("zonotope: the set is no longer finite (overflow)")
         gens.append(np.diag(box))
         Hn = np.hstack(gens)
         Hn = reduce_generators(Hn, self.max_generators, self.reduction)
-        if not np.isfinite(center).all():
-            raise QuadobsError("zonotope: the set is no longer finite (overflow)")
         center.setflags(write=False)
         Hn.setflags(write=False)
         self.zonotope = Zonotope._trusted(center, Hn)
