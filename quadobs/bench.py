@@ -21,12 +21,21 @@ Figures (keys of the JSON written by ``--json``):
     load on the machine).
 ``observer_step_us``, ``observer_numpy_step_us``
     One :meth:`AugmentedObserver.step` (compiled; NumPy reference) on the vehicle.
-``ekf_step_us``, ``ukf_step_us``, ``zonotope_vehicle_step_us``
-    One step of the estimators registered as ``ekf``, ``ukf``, ``zonotope`` (``null``
-    where not registered; ``notes`` says why).
-``zonotope_step_us``, ``lmi_design_s``
-    The zonotopic estimator's online step on ``le2013`` and the offline LMI design
-    (``quadobs.pradius_gains``, both approaches) for it (``null`` where unavailable).
+``ekf_step_us``, ``ukf_step_us``
+    One step of the estimators registered as ``ekf`` and ``ukf`` (``null`` where not
+    registered; ``notes`` says why).
+``zonotope_vehicle_step_us``, ``zonotope_vehicle``
+    One step of the guaranteed (zonotopic) vehicle estimator on ``ifac2021-bounded``, the
+    ranges sampled at the scenario's rate; ``zonotope_vehicle`` adds the cost with outputs
+    at every step.
+``lmi_design_s``, ``lmi_design_split_s``, ``lmi_import_s``
+    The offline P-radius design of ``le2013`` (:func:`quadobs.le2013.design_gains`: both
+    approaches, seconds of wall-clock), the time of each approach, and the one-off import
+    of the modelling package (cvxpy), paid before the design is timed.
+``zonotope_step_us``, ``le2013_step_us``
+    The online step of the ``le2013`` estimator with the second approach's gains
+    (compiled); ``le2013_step_us`` holds every method, compiled (``numba``) and the NumPy
+    reference (``numpy``), each the mean over runs of 50 steps from ``X_0``.
 ``batch``
     ``B`` vehicles stepped together (:class:`~quadobs.testbed.batch.VehicleBatch`) with a
     :class:`~quadobs.batch.BatchAugmentedObserver`: vehicle-steps per second of the physics
@@ -50,14 +59,16 @@ import numpy as np
 
 __all__ = ["run_bench", "print_bench", "BENCH_KEYS"]
 
-#: Keys every bench JSON holds (values may be ``null`` when a figure cannot be measured).
+#: Keys every bench JSON holds (``ekf_step_us``, ``ukf_step_us`` are ``null`` if those estimators are not registered).
 BENCH_KEYS = (
     "loop_ratio",
     "batch_ratio",
     "recording_fraction",
     "observer_step_us",
     "ekf_step_us",
+    "ukf_step_us",
     "zonotope_step_us",
+    "zonotope_vehicle_step_us",
     "lmi_design_s",
 )
 
@@ -151,59 +162,87 @@ def _observer_step_us(scenario, calls: int, repeats: int, backend: str) -> float
 # -- le2013 (zonotopes) ----------------------------------------------------------------
 
 
-def _le2013_data():
-    """The example of ``004_2075b537be731fbd.txt`` section 5: vertices of ``[A]``, ``F``, ``C``, noise bounds."""
-    A = [np.array([[0.0, -0.5], [1.0, 1.0 + 0.3 * d]]) for d in (-1.0, 1.0)]
-    return np.array(A), 0.02 * np.array([[-6.0], [1.0]]), np.array([[-2.0, 1.0], [1.0, 1.0]]), np.array([0.2, 0.2])
+def _lmi_design_s() -> tuple[float, dict, float, dict]:
+    """Offline P-radius design of ``le2013`` (:func:`quadobs.le2013.design_gains`: both approaches).
+
+    Returns the wall-clock seconds, the seconds of each approach (``PRadiusDesign.seconds``),
+    the seconds of importing the modelling package, which is done first (a cost paid once
+    per process), so that the figure is the design alone, and the designs (for the online
+    figures).
+    """
+    from . import le2013
+
+    t0 = time.perf_counter()
+    import cvxpy  # noqa: F401
+
+    import_s = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    designs = le2013.design_gains()
+    total = time.perf_counter() - t0
+    return total, {k: d.seconds for k, d in designs.items()}, import_s, designs
 
 
-def _lmi_design_s() -> tuple[float | None, dict, str | None]:
-    try:
-        import quadobs
+def _le2013_run_us(designs, method: str, backend: str, steps: int, repeats: int) -> float:
+    """Median over ``repeats`` runs of ``steps`` steps from ``X_0`` of the mean online step (us)."""
+    from . import le2013
 
-        design = quadobs.pradius_gains
-    except AttributeError:
-        return None, {}, "lmi_design_s: quadobs.pradius_gains is not in this build"
-    A, F, C, bounds = _le2013_data()
-    split = {}
-    try:
-        for approach in (1, 2):
-            t0 = time.perf_counter()
-            design(A, F, C, bounds, approach=approach)
-            split[f"approach_{approach}"] = time.perf_counter() - t0
-    except Exception as exc:  # noqa: BLE001
-        return None, split, f"lmi_design_s: could not be measured ({type(exc).__name__}: {exc})"
-    return sum(split.values()), split, None
+    Y = le2013.simulate(0, steps)["y"]
+    times = []
+    for _ in range(repeats):
+        est = le2013.make_estimator(method, designs, backend=backend)
+        t0 = time.perf_counter()
+        for k in range(1, steps + 1):
+            est.step(Y[k])
+        times.append((time.perf_counter() - t0) / steps * 1e6)
+    return _median(times)
 
 
-def _le2013_step_us(calls: int, repeats: int) -> tuple[float | None, str | None]:
-    """Online step of the zonotopic estimator on the ``le2013`` scenario, when both exist."""
-    from .estimators import available_estimators, build_estimators
-    from .scenario import list_scenarios, load_scenario
+def _le2013_step_us(designs, calls: int, repeats: int) -> dict:
+    """Online step of every ``le2013`` method, compiled (``"numba"``) and NumPy reference (us).
 
-    if "le2013" not in list_scenarios():
-        return None, "zonotope_step_us: the le2013 scenario is not in this build"
-    try:
-        sc = load_scenario("le2013")
-        names = [n for n in ("zonotope", "pradius2", "pradius", "pradius1") if n in available_estimators(sc)]
-        if not names:
-            return None, "zonotope_step_us: no zonotopic estimator registered for le2013"
-        est = build_estimators(sc, [names[0]], np.zeros(2))[0]
-        _, _, C, _ = _le2013_data()
-        rng = np.random.default_rng(0)
-        X = rng.uniform(-3, 3, size=(calls, 2))
-        Y = X @ C.T
-        u = np.zeros(0)
-        est.step(u, Y[0])
+    Runs of ``min(calls, 50)`` steps (the paper's length) from ``X_0``, repeated until
+    ``calls`` steps are timed; the volume method (a linear program per output) and the
+    reference run fewer.
+    """
+    from .le2013 import METHODS
+
+    steps = min(calls, 50)
+    runs = max(repeats, calls // steps)
+    out = {}
+    for m in METHODS:
+        slow = m == "volume"
+        out[m] = {
+            "numba": _le2013_run_us(designs, m, "numba", steps, max(runs // 20, 1) if slow else runs),
+            "numpy": _le2013_run_us(designs, m, "numpy", steps, max(runs // 20, 1) if slow else max(runs // 5, 1)),
+        }
+    return out
+
+
+def _vehicle_zonotope_us(calls: int, repeats: int) -> dict:
+    """Step of the vehicle zonotope estimator on ``ifac2021-bounded`` (its reference trajectory, noise-free data).
+
+    ``step_us``: the outputs sampled as in the scenario (``range_every`` physics steps apart,
+    NaN between); ``correct_every_step_us``: outputs at every step (the worst case).
+    """
+    from .estimators import build_estimators
+    from .scenario import load_scenario
+
+    sc = load_scenario("ifac2021-bounded")
+    U, Y, x0 = _vehicle_data(sc, calls)
+    every = sc.sample_interval(sc.noise.range_rate, "range_rate")
+    Ys = np.full_like(Y, np.nan)
+    Ys[::every] = Y[::every]
+    res = {"scenario": sc.name, "range_every": every, "steps": calls}
+    for key, data in (("step_us", Ys), ("correct_every_step_us", Y)):
         times = []
         for _ in range(repeats):
+            est = build_estimators(sc, ["zonotope"], x0)[0]
             t0 = time.perf_counter()
             for k in range(calls):
-                est.step(u, Y[k])
+                est.step(U[k], data[k])
             times.append((time.perf_counter() - t0) / calls * 1e6)
-        return _median(times), None
-    except Exception as exc:  # noqa: BLE001
-        return None, f"zonotope_step_us: could not be measured ({type(exc).__name__}: {exc})"
+        res[key] = _median(times)
+    return res
 
 
 # -- batch -----------------------------------------------------------------------------
@@ -389,18 +428,17 @@ def _run_bench(steps, repeats, batch, batch_steps, threads, quick, log) -> dict:
     say("per-step costs of the estimators")
     result["observer_step_us"] = _observer_step_us(sc, calls, repeats, default_backend())
     result["observer_numpy_step_us"] = _observer_step_us(sc, max(calls // 20, 50), max(repeats // 2, 1), "numpy")
-    for name, key in (("ekf", "ekf_step_us"), ("ukf", "ukf_step_us"), ("zonotope", "zonotope_vehicle_step_us")):
+    for name, key in (("ekf", "ekf_step_us"), ("ukf", "ukf_step_us")):
         value, note = _estimator_step_us(sc, name, calls, repeats)
         result[key] = value
         if note:
             notes.append(note)
-    say("le2013: zonotopic online step and offline LMI design")
-    result["zonotope_step_us"], note = _le2013_step_us(min(calls, 1000), repeats)
-    if note:
-        notes.append(note)
-    result["lmi_design_s"], result["lmi_design_split_s"], note = _lmi_design_s()
-    if note:
-        notes.append(note)
+    result["zonotope_vehicle"] = _vehicle_zonotope_us(max(min(calls, 2000), 100), repeats)
+    result["zonotope_vehicle_step_us"] = result["zonotope_vehicle"]["step_us"]
+    say("le2013: offline LMI design and online steps of the zonotopic estimators")
+    result["lmi_design_s"], result["lmi_design_split_s"], result["lmi_import_s"], designs = _lmi_design_s()
+    result["le2013_step_us"] = _le2013_step_us(designs, min(calls, 1000), repeats)
+    result["zonotope_step_us"] = result["le2013_step_us"]["pradius2"]["numba"]
     result["registered_estimators"] = available_estimators(sc)
 
     say(f"batch: {batch} vehicles x {batch_steps} steps, {repeats} repeats")
@@ -451,9 +489,15 @@ def print_bench(r: dict, file=None) -> None:
     p(f"  augmented observer (compiled)   {_fmt(r['observer_step_us'], '.2f')}   (NumPy reference {_fmt(r['observer_numpy_step_us'], '.1f')})")
     p(f"  EKF                             {_fmt(r['ekf_step_us'], '.2f')}")
     p(f"  UKF                             {_fmt(r['ukf_step_us'], '.2f')}")
-    p(f"  zonotopic, vehicle              {_fmt(r['zonotope_vehicle_step_us'], '.2f')}")
-    p(f"  zonotopic, le2013 (online)      {_fmt(r['zonotope_step_us'], '.2f')}")
-    p(f"  LMI design le2013 (offline, s)  {_fmt(r['lmi_design_s'], '.3f')}")
+    zv = r["zonotope_vehicle"]
+    p(f"  zonotopic, vehicle              {_fmt(r['zonotope_vehicle_step_us'], '.2f')}   ({zv['scenario']}, outputs every {zv['range_every']} steps; "
+      f"{_fmt(zv['correct_every_step_us'], '.1f')} with outputs at every step)")
+    p(f"  zonotopic, le2013 (online)      {_fmt(r['zonotope_step_us'], '.2f')}   (P-radius, second approach)")
+    p(f"  LMI design le2013 (offline, s)  {_fmt(r['lmi_design_s'], '.3f')}   "
+      f"({', '.join(f'{k} {v:.3f}' for k, v in r['lmi_design_split_s'].items())}; importing cvxpy before: {r['lmi_import_s']:.3f})")
+    p("le2013 online step per method (us): compiled / NumPy reference")
+    for m, v in r["le2013_step_us"].items():
+        p(f"  {m:16s} {v['numba']:>10.2f} / {v['numpy']:>10.2f}")
     b = r["batch"]
     p(f"batch of {b['vehicles']} vehicles ({b['steps']} steps, threads {b['threads']} for the rollout and for the observers)")
     p(f"  physics alone                   {b['physics_vehicle_steps_per_s']:>10,.0f} vehicle-steps/s ({b['physics_us_per_vehicle_step']:.2f} us)")

@@ -179,6 +179,9 @@ class ZonotopicAugmentedEstimator(Estimator):
         self._G2s = np.transpose(m.input_quadratic, (1, 0, 2)) + np.transpose(m.input_quadratic, (1, 2, 0))
         self._G2abs = np.abs(m.input_quadratic).sum(axis=(0, 2))
         self._Phi = self._F0.copy()
+        # the contractions with u as the matrix products np.tensordot(u, ., axes=(0, 0)) forms
+        self._F1r = np.ascontiguousarray(self._F1.reshape(p, -1))
+        self._G2r = np.ascontiguousarray(self._G2.reshape(p, -1))
         self.zonotope = lift_box(immersion, x0, radius)
         self.corrections = 0
 
@@ -199,39 +202,57 @@ class ZonotopicAugmentedEstimator(Estimator):
 
     def step(self, u, y) -> None:
         """Intersect with the strips of the outputs present in ``y``, then predict over the step with ``u`` held."""
+        u = self._input(u)  # checked before the set changes
         self.correct(y)
         self.predict(u)
+
+    def _input(self, u) -> np.ndarray:
+        u = np.asarray(u, dtype=float)
+        if u.shape != (self._F1.shape[0],) or not np.isfinite(u).all():
+            u = as_array("u", u, (self._F1.shape[0],))  # raises, naming the problem
+        return u
 
     # -- the two halves -------------------------------------------------------------
 
     def correct(self, y) -> None:
         """One strip per sampled output (NaN: not sampled), segment-minimising gains."""
         y = np.asarray(y, dtype=float)
+        if y.shape != self.offsets.shape or np.isinf(y).any():
+            y = as_array("y", y, self.offsets.shape, allow_nan=True)  # raises, naming the problem
+        present = np.flatnonzero(~np.isnan(y))
+        if present.size == 0:
+            return
         Z = self.zonotope
-        p, H = Z.center.copy(), Z.generators
-        cols = []
-        for h in np.flatnonzero(~np.isnan(y)):
+        p, H = Z.center, Z.generators
+        for h in present:
             yc, phi = range_strip(float(y[h]), float(self.offsets[h]), float(self.output_bounds[h]))
             c = self.C[h]
             Hc = H.T @ c
             den = float(Hc @ Hc) + phi * phi
             lam = H @ Hc / den if den > 0 else np.zeros_like(c)
             p = p + lam * (yc - c @ p)
-            H = np.hstack([H - np.outer(lam, Hc), (phi * lam)[:, None]])
+            # [H - lam Hc^T, phi lam], a new contiguous array (the products above are sensitive to the layout)
+            m = H.shape[1]
+            Hn = np.empty((H.shape[0], m + 1))
+            np.subtract(H, np.outer(lam, Hc), out=Hn[:, :m])
+            np.multiply(phi, lam, out=Hn[:, m])
+            H = Hn
             self.corrections += 1
-        if H is not Z.generators:
-            self.zonotope = Zonotope(p, H)
+        p.setflags(write=False)
+        H.setflags(write=False)
+        self.zonotope = Zonotope._trusted(p, H)
 
     def predict(self, u) -> None:
         """Exact held-input step of the set, plus the input-error and rounding terms (module docstring)."""
-        u = np.asarray(u, dtype=float)
+        u = self._input(u)
         k, n, N = self._k, self._n, self._N
         Z = self.zonotope
         pz, H = Z.center, Z.generators
         Phi = self._Phi
-        Phi[:k, k:] = self._F0[:k, k:] + np.tensordot(u, self._F1, axes=(0, 0))
+        u1 = u.reshape(1, -1)
+        Phi[:k, k:] = self._F0[:k, k:] + np.dot(u1, self._F1r).reshape(k, n)
         center = Phi @ pz
-        center[:k] += np.tensordot(u, self._G2, axes=(0, 0)) @ u
+        center[:k] += np.dot(u1, self._G2r).reshape(self._G2.shape[1:]) @ u
         center[k:] += self._G0 @ u
         gens = [Phi @ H]
         ubar = self.input_bound * (1.0 + ROUNDING_MARGIN) + ROUNDING_MARGIN * (1.0 + np.abs(u))
@@ -246,10 +267,14 @@ class ZonotopicAugmentedEstimator(Estimator):
             box[:k] += rad @ ubar + self._G2abs * float(np.max(ubar)) ** 2
         extent = np.abs(center) + np.abs(H).sum(axis=1)
         box += ROUNDING_MARGIN * (1.0 + extent)
+        if not (np.isfinite(center).all() and np.isfinite(box).all()):  # box grows with |H|: catches H too
+            raise QuadobsError("zonotope: the set is no longer finite (overflow)")
         gens.append(np.diag(box))
         Hn = np.hstack(gens)
         Hn = reduce_generators(Hn, self.max_generators, self.reduction)
-        self.zonotope = Zonotope(center, Hn)
+        center.setflags(write=False)
+        Hn.setflags(write=False)
+        self.zonotope = Zonotope._trusted(center, Hn)
 
 
 def zonotope_estimator(scenario, x0) -> ZonotopicAugmentedEstimator:

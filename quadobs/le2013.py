@@ -36,6 +36,7 @@ __all__ = [
     "PAPER_GAINS",
     "Le2013Run",
     "design_gains",
+    "make_estimator",
     "reproduce",
     "run_le2013",
     "simulate",
@@ -101,25 +102,32 @@ class Le2013Run:
     sets: dict | None
 
 
-def _estimators(designs: dict) -> dict:
-    X0 = Zonotope(np.zeros(2), X0_RADIUS * np.eye(2))
+def make_estimator(method: str, designs: dict | None = None, *, backend: str = "auto") -> ZonotopicEstimator:
+    """The estimator ``method`` (one of :data:`METHODS`) of the example, at ``X_0 = 3 B^2``.
+
+    ``designs`` (from :func:`design_gains`) is needed by ``"pradius1"`` and ``"pradius2"``;
+    ``backend`` is that of :class:`~quadobs.setmembership.ZonotopicEstimator`.
+    """
+    if method not in METHODS:
+        raise QuadobsError(f"method: expected one of {', '.join(METHODS)}, got {method!r}")
+    if method in ("pradius1", "pradius2") and designs is None:
+        raise QuadobsError(f"designs: method {method!r} needs the designs of design_gains()")
     gains = {
-        "segment": "segment",
-        "volume": "volume",
-        "pradius1": designs["first_approach"].gains,
-        "pradius2": designs["second_approach"].gains,
-        "pradius2_paper": np.array(PAPER_GAINS["second_approach"]),
-    }
-    return {
-        m: ZonotopicEstimator(A_INTERVAL, F, C, NOISE_BOUND, X0, g, max_generators=MAX_GENERATORS) for m, g in gains.items()
-    }
+        "segment": lambda: "segment",
+        "volume": lambda: "volume",
+        "pradius1": lambda: designs["first_approach"].gains,
+        "pradius2": lambda: designs["second_approach"].gains,
+        "pradius2_paper": lambda: np.array(PAPER_GAINS["second_approach"]),
+    }[method]()
+    X0 = Zonotope(np.zeros(2), X0_RADIUS * np.eye(2))
+    return ZonotopicEstimator(A_INTERVAL, F, C, NOISE_BOUND, X0, gains, max_generators=MAX_GENERATORS, backend=backend)
 
 
 def run_once(designs: dict, seed: int, steps: int, *, keep_sets: bool = False, methods=METHODS) -> Le2013Run:
     """All methods on the trajectory of ``seed`` (:func:`simulate`)."""
     sim = simulate(seed, steps)
     x, y = sim["x"], sim["y"]
-    ests = {m: e for m, e in _estimators(designs).items() if m in methods}
+    ests = {m: make_estimator(m, designs) for m in METHODS if m in methods}
     out = Le2013Run(seed, x, {}, {}, {}, {}, {}, {} if keep_sets else None)
     for m, est in ests.items():
         bounds = np.empty((steps + 1, 2, 2))

@@ -21,6 +21,11 @@ Gains (:data:`GAINS`):
 * volume minimisation (Alamo et al. 2005): the ``lambda`` minimising the volume of
   Property 6's zonotope, a convex piecewise-linear function of ``lambda`` minimised
   exactly by a linear program (:func:`volume_gain`).
+
+The online step has two implementations (``backend``): the reference, written with the set
+calculus of :mod:`quadobs.zonotope` (a new :class:`~quadobs.zonotope.Zonotope` per
+operation, every operand validated), and compiled kernels (:mod:`quadobs._zonotope_kernels`)
+that rewrite one buffer in place and hand back one zonotope per step; they agree to rounding.
 """
 
 from __future__ import annotations
@@ -84,10 +89,15 @@ def volume_gain(Z: Zonotope, c: np.ndarray, phi: float) -> np.ndarray:
     ``s_T >= |G_T lambda|`` (:func:`volume_gain_terms`), with HiGHS. The objective is convex,
     so the optimum is global.
     """
+    return _volume_gain(Z.generators, c, phi)
+
+
+def _volume_gain(H: np.ndarray, c: np.ndarray, phi: float) -> np.ndarray:
+    """:func:`volume_gain` on the generators ``H (n, m)`` of the set."""
     from scipy.optimize import linprog
 
-    n = Z.dim
-    a, G = volume_gain_terms(Z.generators, c)
+    n = H.shape[0]
+    a, G = volume_gain_terms(H, c)
     k = G.shape[0]
     # variables: lambda (n), s0, s_T (k)
     cost = np.concatenate([np.zeros(n), [a], np.full(k, phi)])
@@ -132,14 +142,25 @@ class ZonotopicEstimator:
         Order bound applied after each correction (the paper's example: 20).
     reduction : str or callable
         Reduction method of :func:`~quadobs.zonotope.reduce_generators`.
+    backend : {"auto", "numba", "numpy"}
+        ``"numba"``: :meth:`step` runs compiled kernels (:mod:`quadobs._zonotope_kernels`) on a
+        buffer that is rewritten in place, for fixed, ``"segment"`` and ``"volume"`` gains
+        with the ``"combastel"`` reduction (the volume gain's linear program stays in
+        Python); ``"numpy"``: the reference, :meth:`predict` then :meth:`correct` with the
+        set calculus of :mod:`quadobs.zonotope`. The two agree to rounding. ``"auto"``
+        (default) picks ``"numba"`` where it applies and Numba imports.
 
     Attributes
     ----------
     zonotope : Zonotope
         The current set: ``X_0`` before the first step, then ``X_k`` after ``k`` steps.
+    backend : str
+        ``"numba"`` or ``"numpy"`` (what ``"auto"`` resolved to).
     """
 
-    def __init__(self, A, F, C, noise_bounds, X0: Zonotope, gain="segment", *, max_generators: int = 20, reduction="combastel") -> None:
+    def __init__(
+        self, A, F, C, noise_bounds, X0: Zonotope, gain="segment", *, max_generators: int = 20, reduction="combastel", backend: str = "auto"
+    ) -> None:
         if isinstance(A, IntervalMatrix):
             self.A_interval = A
             self.A = A.mid
@@ -148,7 +169,7 @@ class ZonotopicEstimator:
             self.A = as_array("A", A, ndim=2)
             self.A_interval = IntervalMatrix.point(self.A)
             self.uncertain = False
-        n = self.A.shape[0]
+        n = self._n = self.A.shape[0]
         if self.A.shape != (n, n):
             raise QuadobsError(f"A: expected a square matrix, got shape {self.A.shape}")
         F = as_array("F", F)
@@ -180,8 +201,140 @@ class ZonotopicEstimator:
         self.max_generators = int(max_generators)
         self.reduction = reduction
         reduce_generators(np.zeros((n, 0)), self.max_generators)  # validates max_generators
+        self.backend = self._choose_backend(backend)
+        self._Z = None
+        self._S = None
+        if self.backend == "numba":
+            self._setup_kernel()
         self.zonotope = X0.reduce(self.max_generators, reduction)
         self.steps = 0
+
+    # -- the compiled path -----------------------------------------------------------------
+
+    def _kernel_mode(self) -> int | None:
+        """Gain mode of :mod:`quadobs._zonotope_kernels` (0 fixed, 1 segment, 2 volume), or None."""
+        if not (isinstance(self.reduction, str) and self.reduction == "combastel"):
+            return None
+        if self.fixed_gains is not None:
+            return 0
+        if self.gain_rule is segment_gain:
+            return 1
+        if self.gain_rule is volume_gain:
+            return 2
+        return None
+
+    def _choose_backend(self, backend: str) -> str:
+        from .observer import resolve_backend
+
+        if backend not in ("auto", "numba", "numpy"):
+            raise QuadobsError(f"backend: expected one of ('auto', 'numba', 'numpy'), got {backend!r}")
+        supported = self._kernel_mode() is not None
+        if backend == "numba" and not supported:
+            raise QuadobsError(
+                "backend: 'numba' runs fixed, 'segment' or 'volume' gains with the 'combastel' reduction; "
+                f"got gain {self.gain_rule or 'fixed'!r} and reduction {self.reduction!r} (use backend='numpy')"
+            )
+        resolved = resolve_backend(backend)
+        return resolved if supported else "numpy"
+
+    def _setup_kernel(self) -> None:
+        n, nw, ny = self.A.shape[0], self.F.shape[1], self.C.shape[0]
+        mode = self._kernel_mode()
+        gains = self.fixed_gains if self.fixed_gains is not None else np.zeros((ny, n))
+        parts = [self.A_interval.mid, self.A_interval.rad, self.F, self.C, self.phi, gains]
+        self._fc = np.ascontiguousarray(np.concatenate([np.ravel(a) for a in parts]))
+        self._ic = np.array([n, nw, ny, self.max_generators, 0, mode, int(self.uncertain)], dtype=np.int64)
+        self._bind_kernels()
+
+    def _bind_kernels(self) -> None:
+        from . import _zonotope_kernels as zk
+
+        self._kstep, self._kpredict, self._kstrip, self._kreduce = zk.zonotope_step, zk.zonotope_predict, zk.zonotope_strip, zk.zonotope_reduce
+
+    def _load(self, Z: Zonotope) -> None:
+        """Copy ``Z`` into the buffer ``S`` of the kernels, enlarging it when needed."""
+        from ._zonotope_kernels import out_offset, state_size
+
+        n, m = Z.dim, Z.order
+        grow = n + self.F.shape[1] + self.C.shape[0]  # columns added by one predict + correct
+        cap = max(m, self.max_generators) + grow
+        if self._S is None or int(self._ic[4]) < cap:
+            self._ic[4] = cap
+            self._S = np.zeros(state_size(n, cap))
+            self._out = out_offset(n, cap)
+            self._H = self._S[1 + n : 1 + n + n * cap].reshape(n, cap)
+            # compile (or load) the kernels now, on scratch copies, rather than in the first step
+            S, ic = self._S.copy(), self._ic.copy()
+            if self._kernel_mode() != 2:
+                self._kstep(np.full(self.C.shape[0], np.nan), S, self._fc, ic)
+            else:
+                self._kpredict(S, self._fc, ic)
+                self._kstrip(S, self._fc, ic, 0, 0.0, np.zeros(n))
+                self._kreduce(S, ic)
+        self._S[0] = m
+        self._S[1 : 1 + n] = Z.center
+        self._H[:, :m] = Z.generators
+        self._m = m
+
+    def _build(self) -> Zonotope:
+        """The set of the buffer, from the block ``[p, H]`` written at the end of a kernel step."""
+        n, m, o = self._n, self._m, self._out
+        buf = self._S[o : o + n + n * m].copy()
+        buf.setflags(write=False)  # and so its views
+        return Zonotope._trusted(buf[:n], buf[n:].reshape(n, m))
+
+    @property
+    def zonotope(self) -> Zonotope:
+        """The current set: ``X_0`` before the first step, then ``X_k`` after ``k`` steps."""
+        if self._Z is None:
+            self._Z = self._build()
+        return self._Z
+
+    @zonotope.setter
+    def zonotope(self, Z: Zonotope) -> None:
+        if not isinstance(Z, Zonotope) or Z.dim != self.A.shape[0]:
+            raise QuadobsError(f"zonotope: expected a Zonotope of dimension {self.A.shape[0]}")
+        self._Z = Z
+        if self.backend == "numba":
+            self._load(Z)
+
+    def __getstate__(self) -> dict:
+        state = self.__dict__.copy()
+        for key in ("_kstep", "_kpredict", "_kstrip", "_kreduce"):
+            state.pop(key, None)
+        return state
+
+    def __setstate__(self, state: dict) -> None:
+        self.__dict__.update(state)
+        if self.backend == "numba":
+            self._H = self._S[1 + self.A.shape[0] : 1 + self.A.shape[0] + self.A.shape[0] * int(self._ic[4])].reshape(self.A.shape[0], -1)
+            self._bind_kernels()
+
+    def _step_kernel(self, y) -> None:
+        """:meth:`step` on the buffer (validation of ``y`` as :meth:`correct`)."""
+        try:
+            y = np.asarray(y, dtype=np.float64)
+        except (TypeError, ValueError):
+            y = as_array("y", y, (self.C.shape[0],), allow_nan=True)
+        if y.shape != (self.C.shape[0],):
+            y = as_array("y", y, (self.C.shape[0],), allow_nan=True)
+        S, fc, ic = self._S, self._fc, self._ic
+        if ic[5] != 2:
+            m = self._kstep(y, S, fc, ic)
+            if m < 0:
+                as_array("y", y, allow_nan=True)  # raises, naming the infinity
+        else:
+            if np.isinf(y).any():
+                as_array("y", y, allow_nan=True)
+            self._kpredict(S, fc, ic)
+            for i, c in enumerate(self.C):
+                if y[i] != y[i]:
+                    continue
+                lam = _volume_gain(self._H[:, : int(S[0])], c, float(self.phi[i]))
+                self._kstrip(S, fc, ic, i, float(y[i]), lam)
+            m = self._kreduce(S, ic)
+        self._m = m
+        self._Z = None
 
     @property
     def x_hat(self) -> np.ndarray:
@@ -213,8 +366,12 @@ class ZonotopicEstimator:
         return self.zonotope
 
     def step(self, y) -> Zonotope:
-        """Predict to the next sample, then correct with its output ``y (n_y,)``."""
-        self.predict()
-        self.correct(y)
+        """Predict to the next sample, then correct with its output ``y (n_y,)`` (a bad ``y`` changes nothing)."""
+        if self.backend == "numba":
+            self._step_kernel(y)
+        else:
+            y = as_array("y", y, (self.C.shape[0],), allow_nan=True)
+            self.predict()
+            self.correct(y)
         self.steps += 1
         return self.zonotope

@@ -97,6 +97,27 @@ def _reduce_pca(H: np.ndarray, s: int) -> np.ndarray:
     return np.hstack([keep, T @ row_sum_diag(T.T @ rest)])
 
 
+_GEQP3_LWORK: dict[tuple[int, int], int] = {}
+
+
+def _pivoted_qr_diag(A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(|diag R|, piv)`` of ``A[:, piv] = Q R`` (QR with column pivoting, LAPACK ``geqp3``).
+
+    The call of ``scipy.linalg.qr(A, mode="economic", pivoting=True)`` without forming ``Q``
+    (same routine, same workspace, so the same numbers); the workspace size is queried once
+    per shape.
+    """
+    from scipy.linalg import lapack
+
+    lwork = _GEQP3_LWORK.get(A.shape)
+    if lwork is None:
+        lwork = _GEQP3_LWORK[A.shape] = int(lapack.dgeqp3(A, lwork=-1)[-2][0].real)
+    qr, jpvt, _, _, info = lapack.dgeqp3(A, lwork=lwork)
+    if info < 0:
+        raise QuadobsError(f"generators: the pivoted QR failed (argument {-info} of geqp3)")
+    return np.abs(np.diag(qr)), jpvt - 1
+
+
 def _reduce_parallelotope(H: np.ndarray, s: int) -> np.ndarray:
     """Norm sort as in Property 3, but the rest is enclosed in a parallelotope framed by some of its own generators.
 
@@ -112,11 +133,13 @@ def _reduce_parallelotope(H: np.ndarray, s: int) -> np.ndarray:
     n = H.shape[0]
     order = np.argsort(-np.einsum("ij,ij->j", H, H), kind="stable")
     keep, rest = H[:, order[: s - n]], H[:, order[s - n :]]
-    Q, R, piv = sla.qr(rest, mode="economic", pivoting=True)
-    diag = np.abs(np.diag(R))
+    if not np.isfinite(rest).all():
+        raise QuadobsError("generators: non-finite entries; the parallelotope reduction needs a finite set")
+    diag, piv = _pivoted_qr_diag(rest)
     good = int(np.sum(diag > 1e-9 * max(diag[0] if diag.size else 0.0, 1e-300)))
     T = rest[:, piv[:good]]
     if good < n:  # complete the frame with directions orthogonal to the rest's span
+        Q = sla.qr(rest, mode="economic", pivoting=True)[0]
         basis = np.linalg.qr(np.hstack([Q[:, :good], np.eye(n)]))[0]
         T = np.hstack([T, basis[:, good:n]])
     coords = np.linalg.solve(T, rest)
@@ -194,6 +217,16 @@ class Zonotope:
         object.__setattr__(self, "generators", H)
 
     # -- construction ----------------------------------------------------------------
+
+    @classmethod
+    def _trusted(cls, center: np.ndarray, generators: np.ndarray) -> "Zonotope":
+        """A zonotope from arrays already checked: float64, ``(n,)`` and ``(n, m)``, finite, read-only, owned by it.
+
+        For the hot loops of the estimators: no conversion and no validation.
+        """
+        Z = object.__new__(cls)
+        Z.__dict__.update(center=center, generators=generators)
+        return Z
 
     @classmethod
     def from_box(cls, lower, upper) -> "Zonotope":

@@ -191,3 +191,73 @@ def test_bounded_noise_fields_are_validated_and_drawn_within_bounds():
     assert np.all(np.abs(errs) <= 0.3 + 1e-12) and np.abs(errs).max() > 0.29
     assert np.all(np.abs(accel) <= 0.2) and np.abs(accel).max() > 0.19
     assert abs(errs.mean()) < 0.02  # uniform, centred
+
+
+def _plain_correct(est, Z, y):
+    """The strips of :meth:`ZonotopicAugmentedEstimator.correct`, written with one new array per strip."""
+    p, H = Z.center, Z.generators
+    for h in np.flatnonzero(~np.isnan(y)):
+        yc, phi = range_strip(float(y[h]), float(est.offsets[h]), float(est.output_bounds[h]))
+        c = est.C[h]
+        Hc = H.T @ c
+        lam = H @ Hc / (float(Hc @ Hc) + phi * phi)
+        p = p + lam * (yc - c @ p)
+        H = np.hstack([H - np.outer(lam, Hc), (phi * lam)[:, None]])
+    return p, H
+
+
+def _plain_parallelotope(H, s):
+    """Property 3 with the parallelotope of :func:`quadobs.zonotope._reduce_parallelotope`, through scipy.linalg.qr."""
+    import scipy.linalg as sla
+
+    n = H.shape[0]
+    order = np.argsort(-np.einsum("ij,ij->j", H, H), kind="stable")
+    keep, rest = H[:, order[: s - n]], H[:, order[s - n :]]
+    _, R, piv = sla.qr(rest, mode="economic", pivoting=True)
+    diag = np.abs(np.diag(R))
+    T = rest[:, piv[: int(np.sum(diag > 1e-9 * diag[0]))]]
+    return np.hstack([keep, T * np.abs(np.linalg.solve(T, rest)).sum(axis=1)])
+
+
+def test_vehicle_zonotope_step_matches_the_plain_formulas_from_each_state():
+    """Step by step from the same set, the estimator's in-place arithmetic gives the plain formulas' set.
+
+    The run as a whole is not compared: the set's reduction reacts to perturbations of 1e-13
+    (a different pivot), so two runs that differ by rounding drift apart, both containing the truth.
+    """
+    from quadobs.bench import _vehicle_data
+    from quadobs.zonotope import _pivoted_qr_diag, reduce_generators
+
+    sc = load_scenario("ifac2021-bounded")
+    U, Y, x0 = _vehicle_data(sc, 120)
+    est = build_estimators(sc, ["zonotope"], x0)[0]
+    for k in range(120):
+        p, H = _plain_correct(est, est.zonotope, Y[k])
+        est.correct(Y[k])
+        scale = np.abs(H).sum()
+        np.testing.assert_allclose(est.zonotope.center, p, rtol=0, atol=1e-13 * scale)
+        np.testing.assert_allclose(est.zonotope.generators, H, rtol=0, atol=1e-13 * scale)
+        est.predict(U[k])
+        assert not est.zonotope.generators.flags.writeable
+    rng = np.random.default_rng(4)
+    for _ in range(20):
+        A = rng.standard_normal((9, int(rng.integers(9, 40))))
+        import scipy.linalg as sla
+
+        _, R, piv = sla.qr(A, mode="economic", pivoting=True)
+        diag, piv2 = _pivoted_qr_diag(A)
+        np.testing.assert_array_equal(piv2, piv)
+        np.testing.assert_allclose(diag, np.abs(np.diag(R)), rtol=1e-14)
+        Hbig = rng.standard_normal((9, 60))
+        np.testing.assert_allclose(reduce_generators(Hbig, 40, "parallelotope"), _plain_parallelotope(Hbig, 40), rtol=1e-12, atol=1e-12)
+
+
+def test_vehicle_zonotope_refuses_non_finite_inputs():
+    sc = load_scenario("ifac2021-bounded")
+    est = build_estimators(sc, ["zonotope"], np.zeros(sc.state_dim))[0]
+    Z = est.zonotope
+    with pytest.raises(QuadobsError, match="u"):
+        est.step(np.array([np.nan, 0.0, 0.0]), np.full(est.offsets.shape, np.nan))
+    with pytest.raises(QuadobsError, match="y"):
+        est.step(np.zeros(3), np.full(est.offsets.shape, np.inf))
+    assert est.zonotope is Z

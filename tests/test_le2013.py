@@ -8,7 +8,8 @@ import pytest
 
 from quadobs import IntervalMatrix, Zonotope, ZonotopicEstimator
 from quadobs.cli import main
-from quadobs.le2013 import A_INTERVAL, C, F, NOISE_BOUND, design_gains, reproduce, run_once, simulate, summary_of
+from quadobs.errors import QuadobsError
+from quadobs.le2013 import A_INTERVAL, C, F, METHODS, NOISE_BOUND, PAPER_GAINS, design_gains, reproduce, run_once, simulate, summary_of
 
 
 @pytest.fixture(scope="module")
@@ -113,3 +114,124 @@ def test_summary_is_reproducible(designs):
     b = summary_of(reproduce(seed=1, steps=10, runs=2, designs=designs))
     for key in ("gains", "containment", "mean_width", "mean_volume", "per_step_mean"):
         assert a[key] == b[key]
+
+
+def _run_backend(designs, method, backend, seed, steps, y=None):
+    sim = simulate(seed, steps)
+    gains = {
+        "segment": "segment",
+        "volume": "volume",
+        "pradius1": designs["first_approach"],
+        "pradius2": designs["second_approach"],
+        "pradius2_paper": PAPER_GAINS["second_approach"],
+    }[method]
+    est = ZonotopicEstimator(A_INTERVAL, F, C, NOISE_BOUND, Zonotope(np.zeros(2), 3 * np.eye(2)), gains, max_generators=20, backend=backend)
+    assert est.backend == backend
+    Y = sim["y"] if y is None else y
+    return sim, [est.zonotope] + [est.step(Y[k]) for k in range(1, steps + 1)]
+
+
+@pytest.mark.parametrize("method", METHODS)
+def test_compiled_step_matches_the_reference_over_a_run(designs, method):
+    """The compiled kernels and the NumPy reference give the same sets to rounding, step by step."""
+    steps = 50 if method != "volume" else 25
+    sim, ref = _run_backend(designs, method, "numpy", 11, steps)
+    _, fast = _run_backend(designs, method, "numba", 11, steps)
+    for k, (a, b) in enumerate(zip(ref, fast)):
+        assert b.generators.shape == a.generators.shape, k
+        assert b.order <= 20
+        scale = np.abs(a.generators).sum()
+        np.testing.assert_allclose(b.center, a.center, rtol=0, atol=1e-12 * scale)
+        np.testing.assert_allclose(b.generators, a.generators, rtol=0, atol=1e-12 * scale)
+        np.testing.assert_allclose(b.widths(), a.widths(), rtol=1e-12)
+        assert b.contains(sim["x"][k], method="halfspace") and a.contains(sim["x"][k], method="halfspace")
+        assert not b.center.flags.writeable and not b.generators.flags.writeable
+
+
+def test_compiled_step_handles_missing_outputs_and_refuses_infinities(designs):
+    sim = simulate(2, 20)
+    Y = sim["y"].copy()
+    Y[3::4, 0] = np.nan
+    Y[5::6, 1] = np.nan
+    for method in ("segment", "pradius2"):
+        _, ref = _run_backend(designs, method, "numpy", 2, 20, Y)
+        _, fast = _run_backend(designs, method, "numba", 2, 20, Y)
+        for k, (a, b) in enumerate(zip(ref, fast)):
+            np.testing.assert_allclose(b.generators, a.generators, rtol=0, atol=1e-12 * np.abs(a.generators).sum())
+            assert b.contains(sim["x"][k])
+    for backend in ("numpy", "numba"):
+        est = ZonotopicEstimator(A_INTERVAL, F, C, NOISE_BOUND, Zonotope(np.zeros(2), 3 * np.eye(2)), "segment", backend=backend)
+        before = est.zonotope
+        with pytest.raises(QuadobsError, match="y"):
+            est.step([np.inf, 0.0])
+        with pytest.raises(QuadobsError, match="y"):
+            est.step([0.0, 0.0, 0.0])
+        assert est.zonotope is before or np.array_equal(est.zonotope.generators, before.generators)
+
+
+def test_compiled_backend_mixes_with_the_reference_methods(designs):
+    """``predict``/``correct`` (reference) and ``step`` (kernels) share one state; pickling keeps it."""
+    import pickle
+
+    sim = simulate(9, 12)
+    X0 = Zonotope(np.zeros(2), 3 * np.eye(2))
+    ref = ZonotopicEstimator(A_INTERVAL, F, C, NOISE_BOUND, X0, designs["second_approach"], backend="numpy")
+    fast = ZonotopicEstimator(A_INTERVAL, F, C, NOISE_BOUND, X0, designs["second_approach"], backend="numba")
+    for k in range(1, 13):
+        if k % 3 == 0:
+            fast.predict()
+            fast.correct(sim["y"][k])
+            ref.step(sim["y"][k])
+        elif k % 3 == 1:
+            fast.step(sim["y"][k])
+            ref.step(sim["y"][k])
+        else:
+            fast = pickle.loads(pickle.dumps(fast))
+            fast.step(sim["y"][k])
+            ref.step(sim["y"][k])
+        np.testing.assert_allclose(fast.zonotope.generators, ref.zonotope.generators, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(fast.x_hat, ref.x_hat, rtol=0, atol=1e-12)
+    fast.predict()
+    fast.predict()  # two predictions without reduction: more generators than the buffer held
+    ref.predict()
+    ref.predict()
+    np.testing.assert_allclose(fast.step(sim["y"][1]).generators, ref.step(sim["y"][1]).generators, rtol=0, atol=1e-12)
+
+
+def test_backend_choice():
+    X0 = Zonotope(np.zeros(2), 3 * np.eye(2))
+    assert ZonotopicEstimator(A_INTERVAL, F, C, NOISE_BOUND, X0, "segment").backend == "numba"
+    custom = ZonotopicEstimator(A_INTERVAL, F, C, NOISE_BOUND, X0, lambda Z, c, phi: np.zeros(2))
+    assert custom.backend == "numpy"
+    assert ZonotopicEstimator(A_INTERVAL, F, C, NOISE_BOUND, X0, "segment", reduction="girard").backend == "numpy"
+    with pytest.raises(QuadobsError, match="backend"):
+        ZonotopicEstimator(A_INTERVAL, F, C, NOISE_BOUND, X0, lambda Z, c, phi: np.zeros(2), backend="numba")
+    with pytest.raises(QuadobsError, match="backend"):
+        ZonotopicEstimator(A_INTERVAL, F, C, NOISE_BOUND, X0, "segment", backend="gpu")
+
+
+@pytest.mark.parametrize("gain", ["segment", "volume", "fixed"])
+def test_compiled_step_matches_the_reference_in_three_dimensions(gain):
+    """n = 3, three outputs, two disturbance columns, an interval [A] with a zero radius row (no box column there)."""
+    rng = np.random.default_rng(21)
+    mid = 0.7 * np.linalg.qr(rng.standard_normal((3, 3)))[0]  # stable: the sets stay of moderate size
+    rad = np.abs(0.05 * rng.standard_normal((3, 3)))
+    rad[1] = 0.0
+    Ai = IntervalMatrix.from_mid_rad(mid, rad)
+    Fm, Cm, phi = 0.1 * rng.standard_normal((3, 2)), rng.standard_normal((3, 3)), np.array([0.1, 0.2, 0.05])
+    g = 0.2 * rng.standard_normal((3, 3)) if gain == "fixed" else gain
+    X0 = Zonotope(rng.standard_normal(3), rng.standard_normal((3, 5)))
+    ests = [ZonotopicEstimator(Ai, Fm, Cm, phi, X0, g, max_generators=8, backend=b) for b in ("numpy", "numba")]
+    x = X0.center.copy()
+    A = mid + rad * rng.uniform(-1, 1, (3, 3))
+    for k in range(15 if gain == "volume" else 40):
+        x = A @ x + Fm @ rng.uniform(-1, 1, 2)
+        y = Cm @ x + phi * rng.uniform(-1, 1, 3)
+        if k % 5 == 4:
+            y[k % 3] = np.nan
+        a, b = (e.step(y) for e in ests)
+        assert a.order == b.order <= 8
+        scale = np.abs(a.generators).sum() + np.abs(a.center).sum()
+        np.testing.assert_allclose(b.center, a.center, rtol=0, atol=1e-12 * scale)
+        np.testing.assert_allclose(b.generators, a.generators, rtol=0, atol=1e-12 * scale)
+        assert b.contains(x, method="lp")
