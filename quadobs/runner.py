@@ -42,9 +42,13 @@ from .observer import Estimator, _covariance_trace
 from .scenario import Scenario
 from .sensors import SensorModel, initial_guess, spawn_streams
 
-__all__ = ["EpisodeResult", "run_episode", "write_json_atomic"]
+__all__ = ["EpisodeResult", "run_episode", "write_json_atomic", "WALL_CLOCK_KEYS"]
 
 _BLOCK = 8192
+
+#: The summary's only fields measured on the wall clock: everything else is a function of
+#: the scenario and its seed, bit for bit, in any process.
+WALL_CLOCK_KEYS = ("steps_per_second", "wall_time")
 
 
 @dataclass
@@ -272,7 +276,7 @@ def _run_episode(
     last_errors: dict[str, dict[str, np.ndarray]] = {}
     interrupted = False
     completed = 0
-    flushing = False
+    committed = flushing = False  # where a stop found the end-of-block work (see the handlers)
 
     def flush(block0: int, rows: int) -> None:
         """Errors, convergence, collected trajectories and recording of rows ``[0, rows)`` of the block."""
@@ -369,19 +373,33 @@ def _run_episode(
                             trace["covariances"][est.name][steps // collect_every] = cov
                 raw[nblk, stepper.ranges.start :] = np.nan  # no measurement at t_K
                 nblk += 1
-            flushing = True
             stepper.commit(done)  # the sensor model counts this block's dropouts and outliers
+            committed = True
+            flushing = True
             flush(block0, nblk)
-            flushing = False
+            committed = flushing = False
             if bar is not None:
                 bar.update(min(nblk, steps - block0))
     except KeyboardInterrupt:
+        # Ctrl-C (or SIGTERM, which the CLI maps to it): keep every step completed so far
+        # in the recording and the summary, and return normally with ``interrupted``.
         interrupted = True
-        if not flushing:
-            stepper.commit(completed - block0)
-            flush(block0, completed - block0)
+        _close_block(stepper, flush, block0, completed, committed, flushing)
         if log is not None:
             recorder.text("events", f"interrupted at t = {completed * dt:.3f} s (step {completed})", level="WARN", step=completed, time=completed * dt)
+    except Exception as exc:
+        # An error inside the loop: the recording keeps every step completed before it
+        # (closed below, so it stays a valid file), then the error goes on to the caller.
+        try:
+            _close_block(stepper, flush, block0, completed, committed, flushing)
+            if log is not None:
+                recorder.text(
+                    "events", f"stopped by an error at t = {completed * dt:.3f} s (step {completed}): {exc!r}",
+                    level="ERROR", step=completed, time=completed * dt,
+                )
+        except Exception:  # pragma: no cover - keep the original error
+            pass
+        raise
     finally:
         if bar is not None:
             bar.close()
@@ -402,6 +420,18 @@ def _run_episode(
     if collect:
         return EpisodeResult(summary, trace)
     return EpisodeResult(summary)
+
+
+def _close_block(stepper, flush, block0: int, completed: int, committed: bool, flushing: bool) -> None:
+    """After a stop inside the loop: count and flush the rows of the block's completed steps.
+
+    ``committed``/``flushing`` say whether the stop came after the block's sensor counts
+    were committed, or during its flush (whose rows are then already on their way).
+    """
+    if not committed:
+        stepper.commit(completed - block0)
+    if not flushing:
+        flush(block0, completed - block0)
 
 
 def _summarise(scenario, ests, names, trackers, last_errors, completed, wall, sensors, out, interrupted) -> dict:
