@@ -123,7 +123,7 @@ def _cmd_excitation(args) -> int:
     from .scenario import load_scenario
 
     if args.json:
-        from .recording import check_writable
+        from .errors import check_writable
 
         check_writable(args.json)
     scenario = load_scenario(args.scenario)
@@ -163,7 +163,7 @@ def _cmd_bench(args) -> int:
     from .runner import write_json_atomic
 
     if args.json is not None:
-        from .recording import check_writable
+        from .errors import check_writable
 
         check_writable(args.json)
     for name in ("steps", "repeats", "batch", "batch_steps"):

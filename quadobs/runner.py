@@ -193,12 +193,12 @@ def _run_episode(
         raise QuadobsError(f"scenario {scenario.name!r}: kind {scenario.kind!r} is not a MuJoCo vehicle scenario")
     names = list(estimators) if estimators else default_estimators(scenario)
     if summary_path is not None:
-        from .recording import check_writable
+        from .errors import check_writable
 
         check_writable(summary_path)
     recorder = None
     if out is not None:
-        from .recording import Recorder, check_writable
+        from .recording import Recorder
 
         check_writable(out)
 
