@@ -35,7 +35,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import QuadobsError
+from .errors import QuadobsError, check_writable
 from .estimators import build_estimators, default_estimators
 from .metrics import ConvergenceTracker, state_errors
 from .observer import Estimator, _covariance_trace
@@ -193,8 +193,6 @@ def _run_episode(
         raise QuadobsError(f"scenario {scenario.name!r}: kind {scenario.kind!r} is not a MuJoCo vehicle scenario")
     names = list(estimators) if estimators else default_estimators(scenario)
     if summary_path is not None:
-        from .errors import check_writable
-
         check_writable(summary_path)
     recorder = None
     if out is not None:
