@@ -215,6 +215,11 @@ def _run_episode(
     monitor = scenario_monitor(scenario)  # sliding-window Gramian of the applied input (None: disabled)
     xlog = None
 
+    # estimators with an NIS gate: a correction is rejected exactly when its NIS exceeds the gate
+    gates = {est: float(g) for est in ests if (g := getattr(est, "gate", None)) is not None}
+    rejected_so_far = {est.name: 0 for est in gates}
+    events_so_far = np.zeros(2, dtype=np.int64)  # outliers delivered, samples dropped
+
     log = None
     if out is not None:
         from .recording import EpisodeLog, default_blueprint
@@ -228,7 +233,10 @@ def _run_episode(
             capacity=flush_rows,
         )
         bounded = [e.name for e in ests if hasattr(e, "bounds")]
-        log = EpisodeLog(recorder, scenario, names, trail_every=trail, bounded=bounded)
+        log = EpisodeLog(
+            recorder, scenario, names, trail_every=trail, bounded=bounded, gated=[e.name for e in ests if e in gates],
+            events=bool(scenario.noise.outlier_probability or scenario.noise.dropout),
+        )
         if monitor is not None:
             from .recording.excitation import ExcitationLog
 
@@ -314,6 +322,17 @@ def _run_episode(
                 trace["nis_dof"][est.name][idx] = np.where(np.isfinite(nis[e, sel]), dof, 0)
                 if est.name in bounds:
                     trace["bounds"].setdefault(est.name, np.full((n_rec, n, 2), np.nan))[idx] = bounds[est.name][sel]
+        rejected = {}
+        for e, est in enumerate(ests):
+            if est in gates:
+                with np.errstate(invalid="ignore"):
+                    hits = np.cumsum(nis[e, :rows] > gates[est])
+                rejected[est.name] = rejected_so_far[est.name] + hits
+                rejected_so_far[est.name] += int(hits[-1])
+        ev = stepper.events[:rows].copy()
+        ev[max(steps - block0, 0) :] = 0  # the final row has no step, hence no measurement
+        ev = events_so_far + np.cumsum(ev, axis=0)
+        events_so_far[:] = ev[-1]
         if log is None:
             return
         sel = np.flatnonzero(ks % record_every == 0)
@@ -328,7 +347,21 @@ def _run_episode(
             {nm: v[sel] for nm, v in niss.items()}, raw[:rows, stepper.measured][sel], None if air is None else air[sel], accel[sel],
             bounds={nm: v[sel] for nm, v in bounds.items()},
             extra=None if xlog is None else xlog.fill,
+            rejected={nm: v[sel] for nm, v in rejected.items()}, events=ev[sel],
         )
+
+    def log_counts(step: int) -> None:
+        """Event-log lines: each gate's rejections beside the outliers injected and samples dropped."""
+        if log is None:
+            return
+        for est, gate in gates.items():
+            count = rejected_so_far[est.name]
+            recorder.text(
+                "events",
+                f"{est.name}: {count} corrections rejected by the NIS gate {gate:g} "
+                f"({int(events_so_far[0])} outliers injected, {int(events_so_far[1])} samples dropped)",
+                level="WARN" if count else "INFO", step=step, time=step * dt,
+            )
 
     wall0 = _time.perf_counter()
     block0 = 0
@@ -378,6 +411,7 @@ def _run_episode(
             committed = flushing = False
             if bar is not None:
                 bar.update(min(nblk, steps - block0))
+        log_counts(completed)
     except KeyboardInterrupt:
         # Ctrl-C (or SIGTERM, which the CLI maps to it): keep every step completed so far
         # in the recording and the summary, and return normally with ``interrupted``.
@@ -385,6 +419,7 @@ def _run_episode(
         _close_block(stepper, flush, block0, completed, committed, flushing)
         if log is not None:
             recorder.text("events", f"interrupted at t = {completed * dt:.3f} s (step {completed})", level="WARN", step=completed, time=completed * dt)
+        log_counts(completed)
     except Exception as exc:
         # An error inside the loop: the recording keeps every step completed before it
         # (closed below, so it stays a valid file), then the error goes on to the caller.
@@ -449,6 +484,9 @@ def _summarise(scenario, ests, names, trackers, last_errors, completed, wall, se
         for attr in ("corrections", "rejected"):
             if hasattr(est, attr):
                 entry[attr] = int(getattr(est, attr))
+        gate = getattr(est, "gate", None)
+        if gate is not None:
+            entry["gate"] = float(gate)
         im = getattr(est, "immersion", None)
         if im is not None:
             entry["immersion"] = im.summary()
