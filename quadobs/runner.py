@@ -165,6 +165,16 @@ def run_episode(
         when the run was stopped by Ctrl-C, in which case the recording and the summary
         cover every step up to the stop.
 
+    Raises
+    ------
+    QuadobsError
+        Bad input, or an output path that cannot be written (checked before the simulation
+        starts; nothing is created).
+    Exception
+        An error raised inside the loop (by an estimator, say) propagates after the
+        recording is closed holding every step completed before it, with the error in
+        ``events``; no summary is written.
+
     Notes
     -----
     BLAS and LAPACK run single-threaded during the episode (:func:`single_threaded_blas`).
