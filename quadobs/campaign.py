@@ -213,7 +213,7 @@ def run_campaign(
     k_every = _collect_every(scenario, every)
     out = None
     if out_dir is not None:
-        from .recording import check_writable
+        from .errors import check_writable
 
         out = Path(out_dir)
         check_writable(out / "summary.json")

@@ -118,17 +118,19 @@ def _cmd_run(args) -> int:
 
 
 def _cmd_excitation(args) -> int:
-    import json
-
     from .excitation import scenario_report
+    from .runner import write_json_atomic
     from .scenario import load_scenario
 
+    if args.json:
+        from .errors import check_writable
+
+        check_writable(args.json)
     scenario = load_scenario(args.scenario)
     report = scenario_report(scenario, window=args.window, step=args.step)
     print(report.format())
     if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(report.to_dict(), indent=2) + "\n")
+        write_json_atomic(args.json, report.to_dict())
         print(f"report: {args.json}")
     return 0
 
@@ -161,7 +163,7 @@ def _cmd_bench(args) -> int:
     from .runner import write_json_atomic
 
     if args.json is not None:
-        from .recording import check_writable
+        from .errors import check_writable
 
         check_writable(args.json)
     for name in ("steps", "repeats", "batch", "batch_steps"):

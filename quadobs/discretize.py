@@ -189,6 +189,13 @@ class HeldInputDiscretization:
 
         Q0, Q1, Q2 = quadratic_coefficients(qd, p)
 
+        growth = theta * dt
+        blocks = (F0, F1, G0, G2, Q0, Q1, Q2)
+        if not (growth < 700.0 and all(np.isfinite(b).all() for b in blocks)):
+            raise QuadobsError(
+                f"dt: the model discretised over dt = {dt:g} s (theta = {theta:g}) is not finite in double precision; "
+                "use a shorter step or a smaller theta"
+            )
         object.__setattr__(self, "dt", dt)
         object.__setattr__(self, "theta", theta)
         object.__setattr__(self, "V", V)

@@ -7,11 +7,12 @@ bad scenario field, a missing MJCF element) raises :class:`QuadobsError`, a
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-__all__ = ["QuadobsError", "as_array", "as_finite_scalar"]
+__all__ = ["QuadobsError", "as_array", "as_finite_scalar", "check_writable"]
 
 
 class QuadobsError(ValueError):
@@ -79,3 +80,21 @@ def as_finite_scalar(name: str, value: Any, *, positive: bool = False, nonnegati
     if nonnegative and x < 0:
         raise QuadobsError(f"{name}: must be non-negative, got {x}")
     return x
+
+
+def check_writable(path: str | Path) -> Path:
+    """Fail early (before any simulation) if ``path`` cannot be written.
+
+    Creates the parent folder if needed and probes it with a temporary file.
+    """
+    path = Path(path)
+    if path.is_dir():
+        raise QuadobsError(f"output path {str(path)!r}: is a directory, expected a file name")
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        probe = path.parent / f".{path.name}.probe"
+        probe.write_bytes(b"")
+        probe.unlink()
+    except OSError as exc:
+        raise QuadobsError(f"output path {str(path)!r}: cannot be written ({exc.strerror})") from None
+    return path

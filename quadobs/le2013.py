@@ -242,7 +242,7 @@ def run_le2013(
 ) -> dict:
     """``quadobs run le2013``: design, reproduce, record (``out``, ``.rrd``) and summarise (``summary_path``)."""
     if out is not None or summary_path is not None:
-        from .recording import check_writable
+        from .errors import check_writable
 
         for path in (out, summary_path):
             if path is not None:

@@ -50,7 +50,7 @@ def default_backend() -> str:
 
 def resolve_backend(backend: str) -> str:
     """Validate ``backend`` (one of :data:`BACKENDS`) and resolve ``"auto"``."""
-    if backend not in BACKENDS:
+    if not isinstance(backend, str) or backend not in BACKENDS:
         raise QuadobsError(f"backend: expected one of {BACKENDS}, got {backend!r}")
     if backend == "auto":
         return default_backend()

@@ -35,16 +35,20 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import QuadobsError
+from .errors import QuadobsError, check_writable
 from .estimators import build_estimators, default_estimators
 from .metrics import ConvergenceTracker, state_errors
 from .observer import Estimator, _covariance_trace
 from .scenario import Scenario
 from .sensors import SensorModel, initial_guess, spawn_streams
 
-__all__ = ["EpisodeResult", "run_episode", "write_json_atomic"]
+__all__ = ["EpisodeResult", "run_episode", "write_json_atomic", "WALL_CLOCK_KEYS"]
 
 _BLOCK = 8192
+
+#: The summary's only fields measured on the wall clock: everything else is a function of
+#: the scenario and its seed, bit for bit, in any process.
+WALL_CLOCK_KEYS = ("steps_per_second", "wall_time")
 
 
 @dataclass
@@ -161,6 +165,16 @@ def run_episode(
         when the run was stopped by Ctrl-C, in which case the recording and the summary
         cover every step up to the stop.
 
+    Raises
+    ------
+    QuadobsError
+        Bad input, or an output path that cannot be written (checked before the simulation
+        starts; nothing is created).
+    Exception
+        An error raised inside the loop (by an estimator, say) propagates after the
+        recording is closed holding every step completed before it, with the error in
+        ``events``; no summary is written.
+
     Notes
     -----
     BLAS and LAPACK run single-threaded during the episode (:func:`single_threaded_blas`).
@@ -189,12 +203,10 @@ def _run_episode(
         raise QuadobsError(f"scenario {scenario.name!r}: kind {scenario.kind!r} is not a MuJoCo vehicle scenario")
     names = list(estimators) if estimators else default_estimators(scenario)
     if summary_path is not None:
-        from .recording import check_writable
-
         check_writable(summary_path)
     recorder = None
     if out is not None:
-        from .recording import Recorder, check_writable
+        from .recording import Recorder
 
         check_writable(out)
 
@@ -213,6 +225,11 @@ def _run_episode(
     monitor = scenario_monitor(scenario)  # sliding-window Gramian of the applied input (None: disabled)
     xlog = None
 
+    # estimators with an NIS gate: a correction is rejected exactly when its NIS exceeds the gate
+    gates = {est: float(g) for est in ests if (g := getattr(est, "gate", None)) is not None}
+    rejected_so_far = {est.name: 0 for est in gates}
+    events_so_far = np.zeros(2, dtype=np.int64)  # outliers delivered, samples dropped
+
     log = None
     if out is not None:
         from .recording import EpisodeLog, default_blueprint
@@ -226,7 +243,10 @@ def _run_episode(
             capacity=flush_rows,
         )
         bounded = [e.name for e in ests if hasattr(e, "bounds")]
-        log = EpisodeLog(recorder, scenario, names, trail_every=trail, bounded=bounded)
+        log = EpisodeLog(
+            recorder, scenario, names, trail_every=trail, bounded=bounded, gated=[e.name for e in ests if e in gates],
+            events=bool(scenario.noise.outlier_probability or scenario.noise.dropout),
+        )
         if monitor is not None:
             from .recording.excitation import ExcitationLog
 
@@ -272,7 +292,7 @@ def _run_episode(
     last_errors: dict[str, dict[str, np.ndarray]] = {}
     interrupted = False
     completed = 0
-    flushing = False
+    committed = flushing = False  # where a stop found the end-of-block work (see the handlers)
 
     def flush(block0: int, rows: int) -> None:
         """Errors, convergence, collected trajectories and recording of rows ``[0, rows)`` of the block."""
@@ -312,6 +332,17 @@ def _run_episode(
                 trace["nis_dof"][est.name][idx] = np.where(np.isfinite(nis[e, sel]), dof, 0)
                 if est.name in bounds:
                     trace["bounds"].setdefault(est.name, np.full((n_rec, n, 2), np.nan))[idx] = bounds[est.name][sel]
+        rejected = {}
+        for e, est in enumerate(ests):
+            if est in gates:
+                with np.errstate(invalid="ignore"):
+                    hits = np.cumsum(nis[e, :rows] > gates[est])
+                rejected[est.name] = rejected_so_far[est.name] + hits
+                rejected_so_far[est.name] += int(hits[-1])
+        ev = stepper.events[:rows].copy()
+        ev[max(steps - block0, 0) :] = 0  # the final row has no step, hence no measurement
+        ev = events_so_far + np.cumsum(ev, axis=0)
+        events_so_far[:] = ev[-1]
         if log is None:
             return
         sel = np.flatnonzero(ks % record_every == 0)
@@ -326,7 +357,21 @@ def _run_episode(
             {nm: v[sel] for nm, v in niss.items()}, raw[:rows, stepper.measured][sel], None if air is None else air[sel], accel[sel],
             bounds={nm: v[sel] for nm, v in bounds.items()},
             extra=None if xlog is None else xlog.fill,
+            rejected={nm: v[sel] for nm, v in rejected.items()}, events=ev[sel],
         )
+
+    def log_counts(step: int) -> None:
+        """Event-log lines: each gate's rejections beside the outliers injected and samples dropped."""
+        if log is None:
+            return
+        for est, gate in gates.items():
+            count = rejected_so_far[est.name]
+            recorder.text(
+                "events",
+                f"{est.name}: {count} corrections rejected by the NIS gate {gate:g} "
+                f"({int(events_so_far[0])} outliers injected, {int(events_so_far[1])} samples dropped)",
+                level="WARN" if count else "INFO", step=step, time=step * dt,
+            )
 
     wall0 = _time.perf_counter()
     block0 = 0
@@ -369,19 +414,35 @@ def _run_episode(
                             trace["covariances"][est.name][steps // collect_every] = cov
                 raw[nblk, stepper.ranges.start :] = np.nan  # no measurement at t_K
                 nblk += 1
-            flushing = True
             stepper.commit(done)  # the sensor model counts this block's dropouts and outliers
+            committed = True
+            flushing = True
             flush(block0, nblk)
-            flushing = False
+            committed = flushing = False
             if bar is not None:
                 bar.update(min(nblk, steps - block0))
+        log_counts(completed)
     except KeyboardInterrupt:
+        # Ctrl-C (or SIGTERM, which the CLI maps to it): keep every step completed so far
+        # in the recording and the summary, and return normally with ``interrupted``.
         interrupted = True
-        if not flushing:
-            stepper.commit(completed - block0)
-            flush(block0, completed - block0)
+        _close_block(stepper, flush, block0, completed, committed, flushing)
         if log is not None:
             recorder.text("events", f"interrupted at t = {completed * dt:.3f} s (step {completed})", level="WARN", step=completed, time=completed * dt)
+        log_counts(completed)
+    except Exception as exc:
+        # An error inside the loop: the recording keeps every step completed before it
+        # (closed below, so it stays a valid file), then the error goes on to the caller.
+        try:
+            _close_block(stepper, flush, block0, completed, committed, flushing)
+            if log is not None:
+                recorder.text(
+                    "events", f"stopped by an error at t = {completed * dt:.3f} s (step {completed}): {exc!r}",
+                    level="ERROR", step=completed, time=completed * dt,
+                )
+        except Exception:  # pragma: no cover - keep the original error
+            pass
+        raise
     finally:
         if bar is not None:
             bar.close()
@@ -404,6 +465,18 @@ def _run_episode(
     return EpisodeResult(summary)
 
 
+def _close_block(stepper, flush, block0: int, completed: int, committed: bool, flushing: bool) -> None:
+    """After a stop inside the loop: count and flush the rows of the block's completed steps.
+
+    ``committed``/``flushing`` say whether the stop came after the block's sensor counts
+    were committed, or during its flush (whose rows are then already on their way).
+    """
+    if not committed:
+        stepper.commit(completed - block0)
+    if not flushing:
+        flush(block0, completed - block0)
+
+
 def _summarise(scenario, ests, names, trackers, last_errors, completed, wall, sensors, out, interrupted) -> dict:
     per = {}
     for est in ests:
@@ -421,6 +494,9 @@ def _summarise(scenario, ests, names, trackers, last_errors, completed, wall, se
         for attr in ("corrections", "rejected"):
             if hasattr(est, attr):
                 entry[attr] = int(getattr(est, attr))
+        gate = getattr(est, "gate", None)
+        if gate is not None:
+            entry["gate"] = float(gate)
         im = getattr(est, "immersion", None)
         if im is not None:
             entry["immersion"] = im.summary()

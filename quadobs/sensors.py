@@ -135,6 +135,7 @@ class SensorModel:
         """
         y = self._y
         measured = self.measured_ranges
+        outliers = None
         if k % self.range_every == 0:
             noise = self._range.next() if self.range_std else self._no_noise
             if self._fast is not None and not self.outlier_probability:
@@ -146,7 +147,7 @@ class SensorModel:
                     size = self._out_size.next()
                     if hit.any():
                         rho = rho + np.where(hit, self.outlier_std * size, 0.0)
-                        self.outliers_injected += int(hit.sum())
+                        outliers = hit
                 measured[:] = rho
                 y[: self.q_b] = 0.5 * rho * rho - self._beacon_term
         else:
@@ -164,6 +165,10 @@ class SensorModel:
                 y[lost] = np.nan
                 measured[lost[: self.q_b]] = np.nan
                 self.dropped += int(lost.sum())
+                if outliers is not None:
+                    outliers = outliers & ~lost[: self.q_b]
+        if outliers is not None:
+            self.outliers_injected += int(outliers.sum())
         return y
 
     # -- a block of steps at once (the compiled per-step path of the episode loop) ---------
@@ -207,19 +212,37 @@ class SensorModel:
         out[:, -1] = rng_on + 2 * air_on
         return out
 
-    def commit(self, draws: np.ndarray) -> None:
-        """Count the dropouts and outliers of steps processed from these rows of :meth:`draws`."""
+    def events(self, draws: np.ndarray) -> np.ndarray:
+        """Per step of these rows of :meth:`draws`: ``[outliers, dropped]``, ``(rows, 2)`` counts.
+
+        ``outliers`` counts the range samples that reach the estimators with an outlier
+        added (an outlier whose sample is then dropped is not counted), ``dropped`` the
+        samples lost to dropouts.
+        """
         qb, q = self.q_b, self.q
         flags = draws[:, -1].astype(int)
         sampled = np.zeros((len(draws), q), dtype=bool)
         sampled[:, :qb] = (flags & 1)[:, None] > 0
         if self.has_wind:
             sampled[:, qb] = (flags & 2) > 0
-        if self.outlier_probability:
-            self.outliers_injected += int((sampled[:, :qb] & (draws[:, qb : 2 * qb] < self.outlier_probability)).sum())
+        lost = np.zeros_like(sampled)
         if self.dropout:
             o = 3 * qb + 1
-            self.dropped += int((sampled & (draws[:, o : o + q] < self.dropout)).sum())
+            lost = sampled & (draws[:, o : o + q] < self.dropout)
+        out = np.zeros((len(draws), 2), dtype=np.int64)
+        if self.outlier_probability:
+            hit = sampled[:, :qb] & (draws[:, qb : 2 * qb] < self.outlier_probability) & ~lost[:, :qb]
+            out[:, 0] = hit.sum(axis=1)
+        out[:, 1] = lost.sum(axis=1)
+        return out
+
+    def commit(self, draws: np.ndarray) -> np.ndarray:
+        """Count the dropouts and outliers of steps processed from these rows of :meth:`draws`;
+        returns their per-step :meth:`events`."""
+        ev = self.events(draws)
+        self.outliers_injected += int(ev[:, 0].sum())
+        self.dropped += int(ev[:, 1].sum())
+        return ev
 
     def step_params(self) -> np.ndarray:
         """Constants of :func:`quadobs._kernels.sensor_step`: ``[q_b, q, dim, range_std, outlier_probability,

@@ -235,7 +235,11 @@ class Zonotope:
         hi = as_array("upper", upper, (lo.shape[0],))
         if np.any(hi < lo):
             raise QuadobsError("upper: must not be below lower")
-        return cls(0.5 * (lo + hi), np.diag(0.5 * (hi - lo)))
+        with np.errstate(over="ignore"):
+            center, radius = 0.5 * lo + 0.5 * hi, 0.5 * hi - 0.5 * lo
+        if not (np.isfinite(center).all() and np.isfinite(radius).all()):
+            raise QuadobsError("upper: the box [lower, upper] is too large to represent in double precision")
+        return cls(center, np.diag(radius))
 
     @property
     def dim(self) -> int:

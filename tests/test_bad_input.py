@@ -56,9 +56,6 @@ def _leaves(data, prefix=()):
 BASE = load_scenario("beacons").to_dict()
 FIELD = re.compile(r"scenario|[a-z_0-9]+(\[\d+\])?(\.[A-Za-z_0-9]+(\[\d+\])?)*")
 LEAVES = list(_leaves(BASE))
-#: Top-level fields a scenario may hold that BASE does not (each checked on its own, not "unknown").
-OPTIONAL_TOP = ("model", "wind")
-
 
 @FAST
 @given(st.data())
@@ -81,8 +78,12 @@ def test_scenario_mutations_accept_or_name_the_field(data):
     assert sc.steps >= 1 and np.isfinite(sc.beacons).all()
 
 
+# every top-level field a scenario may have (those the base omits: optional ones left at their default)
+KNOWN = set(BASE) | {"model", "record_every", "wind", "kind", "description", "excitation", "zonotope", "initial", "noise", "observer"}
+
+
 @FAST
-@given(key=st.text(min_size=1, max_size=8).filter(lambda k: k not in BASE and k not in OPTIONAL_TOP), value=junk)
+@given(key=st.text(min_size=1, max_size=8).filter(lambda k: k not in KNOWN), value=junk)
 def test_unknown_top_level_fields_are_refused(key, value):
     doc = copy.deepcopy(BASE)
     doc[key] = value
@@ -101,3 +102,183 @@ def test_cli_options_are_checked(duration, seed, capsys):
         assert "duration" in capsys.readouterr().err
     assert main(["run", "ifac2021", f"--seed={seed}", "--no-progress"]) == 2
     assert "seed: must be at least 0" in capsys.readouterr().err
+
+
+# --------------------------------------------------------------------------------------
+# MJCF models, scenario TOML text, observer settings, the P-radius design, zonotopes
+# --------------------------------------------------------------------------------------
+
+SOME = settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture])
+
+
+def _vehicle_xml() -> str:
+    from quadobs.testbed import default_model_path
+
+    return default_model_path().read_text()
+
+
+@SOME
+@given(data=st.data())
+def test_mjcf_mutations_load_or_name_the_problem(tmp_path_factory, data):
+    """Renamed required elements are named in the error; deleted lines, truncations and junk
+    attribute values give a QuadobsError or a model that passes every check."""
+    from quadobs.testbed import load_vehicle_model
+    from quadobs.testbed.model import REQUIRED_ELEMENTS
+
+    xml = _vehicle_xml()
+    kind = data.draw(st.sampled_from(["rename", "delete_line", "truncate", "attribute"]))
+    expect = None
+    if kind == "rename":
+        elem_kind, name = data.draw(st.sampled_from(REQUIRED_ELEMENTS))
+        xml = xml.replace(f'name="{name}"', f'name="{name}_x"', 1)
+        expect = f"missing {elem_kind} named {name!r}"
+    elif kind == "delete_line":
+        lines = xml.splitlines()
+        i = data.draw(st.integers(0, len(lines) - 1))
+        xml = "\n".join(lines[:i] + lines[i + 1 :])
+    elif kind == "truncate":
+        xml = xml[: data.draw(st.integers(0, len(xml) - 1))]
+    else:
+        attrs = list(re.finditer(r'(\w+)="([^"]*)"', xml.split("-->", 1)[1]))
+        offset = xml.index("-->") + 3
+        m = data.draw(st.sampled_from(attrs))
+        value = data.draw(st.sampled_from(["", "-1", "nan", "inf", "0", "1 2", "x", "euler", "1 1 1 1 1 1"]))
+        start, end = offset + m.start(2), offset + m.end(2)
+        xml = xml[:start] + value + xml[end:]
+    path = tmp_path_factory.mktemp("mjcf") / "model.xml"
+    path.write_text(xml)
+    try:
+        vm = load_vehicle_model(np.array([[0.0, 0.0, 0.0], [10.0, 0.0, 0.0]]), path=path)
+    except QuadobsError as exc:
+        assert str(exc).startswith("model")
+        if expect is not None:
+            assert expect in str(exc)
+        return
+    assert expect is None
+    assert vm.mass > 0 and vm.offset_adr.shape == (2,) and np.allclose(vm.beacons[1], [10.0, 0.0, 0.0])
+
+
+@SOME
+@given(beacons=st.one_of(arrays, junk), timestep=junk, wind=st.one_of(st.none(), arrays, junk))
+def test_model_arguments_are_checked(beacons, timestep, wind):
+    from quadobs.testbed import load_vehicle_model
+
+    try:
+        vm = load_vehicle_model(beacons, timestep=timestep, wind=wind)
+    except QuadobsError as exc:
+        assert str(exc).split(":")[0] in ("beacons", "timestep", "wind")
+        return
+    assert vm.model.opt.timestep > 0 and np.isfinite(vm.beacons).all()
+
+
+TOML = (__import__("quadobs.scenario", fromlist=["_builtin_dir"])._builtin_dir() / "beacons.toml").read_text()
+TOML_VALUES = st.sampled_from(
+    ['"x"', "[]", "[1, 2]", "nan", "inf", "-inf", "-1", "0", "1e400", "true", "{}", "{ a = 1 }", '"1.0"', "[[1], [2]]", "", "=", "[", "1979-05-27"]
+)
+
+
+@FAST
+@given(data=st.data())
+def test_scenario_toml_text_loads_or_names_the_problem(tmp_path_factory, data):
+    """A built-in file with one value replaced by junk, one line dropped, or random text."""
+    kind = data.draw(st.sampled_from(["value", "drop", "text"]))
+    lines = TOML.splitlines()
+    if kind == "value":
+        idx = [i for i, l in enumerate(lines) if re.match(r"\s*\w+\s*=", l)]
+        i = data.draw(st.sampled_from(idx))
+        key = lines[i].split("=", 1)[0]
+        lines[i] = f"{key}= {data.draw(TOML_VALUES)}"
+        text = "\n".join(lines)
+    elif kind == "drop":
+        i = data.draw(st.integers(0, len(lines) - 1))
+        text = "\n".join(lines[:i] + lines[i + 1 :])
+    else:
+        text = data.draw(st.text(max_size=60))
+    path = tmp_path_factory.mktemp("toml") / "sc.toml"
+    path.write_bytes(text.encode("utf-8", "replace"))
+    try:
+        sc = load_scenario(str(path))
+    except QuadobsError as exc:
+        head = str(exc).split(":")[0]
+        assert head.startswith("scenario file") or FIELD.fullmatch(head), str(exc)
+        return
+    assert sc.steps >= 1 and np.isfinite(sc.beacons).all() and sc.beacons.shape[1] == sc.dimension
+
+
+def test_unknown_scenario_name_lists_the_built_ins(capsys):
+    with pytest.raises(QuadobsError, match="unknown name 'ifac2012'.*ifac2021-outliers"):
+        load_scenario("ifac2012")
+    assert main(["run", "no-such-scenario", "--no-progress"]) == 2
+    assert "unknown name 'no-such-scenario'" in capsys.readouterr().err
+
+
+OBSERVER_FIELDS = ("dt", "V", "W", "S0", "theta", "x0", "sample_period", "gate", "backend")
+
+
+@SOME
+@given(
+    field=st.sampled_from(OBSERVER_FIELDS),
+    value=st.one_of(arrays, junk, st.floats(-10, 10), st.sampled_from(["auto", "numpy", "numba", "gpu"])),
+)
+def test_observer_settings_accept_or_name_the_field(field, value):
+    from quadobs import AugmentedObserver, immerse, vehicle_system
+
+    im = immerse(vehicle_system(2, np.array([[0.0, 0.0], [5.0, 0.0]])))
+    kwargs = {"dt": 0.01}
+    kwargs[field] = value
+    dt = kwargs.pop("dt")
+    try:
+        obs = AugmentedObserver(im, dt, **kwargs)
+    except QuadobsError as exc:
+        head = str(exc).split(":")[0]
+        # a huge theta makes the model over dt overflow: reported on dt (the product matters)
+        assert head == field or (field == "theta" and head == "dt"), str(exc)
+        return
+    P = obs.P
+    assert np.isfinite(P).all() and np.array_equal(P, P.T) and np.linalg.eigvalsh(P).min() > 0
+    assert np.isfinite(obs.z).all()
+    obs.step(np.zeros(2), np.array([1.0, np.nan]))
+    assert np.isfinite(obs.z).all()
+
+
+@settings(max_examples=20, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(
+    A=st.one_of(arrays, junk), F=st.one_of(arrays, junk), C=st.one_of(arrays, junk),
+    bounds=st.one_of(arrays, junk), approach=st.one_of(st.sampled_from([1, 2]), junk),
+)
+def test_pradius_design_arguments_are_checked(A, F, C, bounds, approach):
+    from quadobs import pradius_gains
+
+    try:
+        design = pradius_gains(A, F, C, bounds, approach, betas=[0.5], refine=False)
+    except QuadobsError as exc:
+        assert str(exc).split(":")[0].strip() != "", str(exc)
+        return
+    assert all(np.isfinite(np.asarray(g)).all() for g in design.gains)
+
+
+@FAST
+@given(center=st.one_of(arrays, junk), generators=st.one_of(arrays, junk))
+def test_zonotope_arguments_are_checked(center, generators):
+    from quadobs.zonotope import Zonotope
+
+    try:
+        z = Zonotope(center, generators)
+    except QuadobsError as exc:
+        assert str(exc).split(":")[0] in ("center", "generators"), str(exc)
+        return
+    assert z.center.ndim == 1 and z.generators.shape[0] == z.center.shape[0]
+    assert np.isfinite(z.center).all() and np.isfinite(z.generators).all()
+
+
+@FAST
+@given(lower=st.one_of(arrays, junk), upper=st.one_of(arrays, junk))
+def test_zonotope_boxes_are_checked(lower, upper):
+    from quadobs.zonotope import Zonotope
+
+    try:
+        z = Zonotope.from_box(lower, upper)
+    except QuadobsError as exc:
+        assert str(exc).split(":")[0] in ("lower", "upper"), str(exc)
+        return
+    assert np.isfinite(z.center).all()

@@ -103,14 +103,18 @@ def test_block_stepper_applies_the_sensor_layer_as_step_by_step_calls():
     stepper = BlockStepper(sim, 3000, sensors)
     for k0 in range(0, sc.steps, 3000):  # the draws cross the 4096-row blocks of the streams
         nblk = stepper.begin(acc[k0 : k0 + 3000], k0)
+        events = np.zeros((nblk, 2), dtype=np.int64)
         for j in range(nblk):
             stepper.step(j)
             row = stepper.out[j]
+            before = (ref.outliers_injected, ref.dropped)
             y = ref.outputs(k0 + j, row[stepper.ranges].copy(), float(row[stepper.airspeed][0]))
+            events[j] = (ref.outliers_injected - before[0], ref.dropped - before[1])
             np.testing.assert_array_equal(row[stepper.y], y)
             np.testing.assert_array_equal(row[stepper.measured], ref.measured_ranges)
             np.testing.assert_array_equal(row[stepper.u], ref.input(row[stepper.accel].copy()))
         stepper.commit(nblk)
+        np.testing.assert_array_equal(stepper.events[:nblk], events)  # per-step outliers delivered, samples dropped
     assert (sensors.dropped, sensors.outliers_injected) == (ref.dropped, ref.outliers_injected)
     assert ref.dropped > 0 and ref.outliers_injected > 0
 

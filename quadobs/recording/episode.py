@@ -19,6 +19,9 @@ as ``augmented``):
 ``measurements/accelerometer``         measured acceleration (m/s^2)
 ``observer/<est>/covariance_trace``    trace of the estimator covariance
 ``observer/<est>/nis``                 normalised innovation squared (at corrections)
+``observer/<est>/rejected``            corrections rejected by the NIS gate so far (gated estimators)
+``measurements/outliers``              range samples delivered with an injected outlier, so far
+``measurements/dropped``               samples lost to dropouts, so far
 ``excitation/...``                     live excitation monitor (see ``quadobs.recording.excitation``)
 ``world/estimates/<est>/bounds``       guaranteed box of the position (estimators with ``bounds``)
 ``errors/<est>/position/bounds``       lower and upper bound minus the true position, per axis (m)
@@ -89,10 +92,15 @@ class EpisodeLog:
     bounded : list of str
         Estimators exposing guaranteed ``bounds (n, 2)`` of the state: their position box is
         recorded too (see the module docstring).
+    gated : list of str
+        Estimators with an NIS gate: their running count of rejected corrections is recorded.
+    events : bool
+        Record the running counts of injected outliers and dropped samples.
     """
 
     def __init__(
-        self, recorder: Recorder, scenario: Scenario, estimators: list[str], *, trail_every: int, bounded=()
+        self, recorder: Recorder, scenario: Scenario, estimators: list[str], *, trail_every: int, bounded=(),
+        gated=(), events: bool = False,
     ) -> None:
         self.rec = recorder
         self.sc = scenario
@@ -122,6 +130,8 @@ class EpisodeLog:
                 "trace": r.series(f"observer/{name}/covariance_trace", 1, names=[f"{name} tr P"], color=color),
                 "nis": r.series(f"observer/{name}/nis", 1, skip_nan=True, names=[f"{name} NIS"]),
             }
+            if name in gated:
+                s["rejected"] = r.series(f"observer/{name}/rejected", 1, names=[f"{name} rejected"], color=color)
             if scenario.has_wind:
                 s["wind_norm"] = r.series(f"errors/{name}/wind/norm", 1, names=[f"{name} |e_w|"], color=color)
                 s["wind_axes"] = r.series(f"errors/{name}/wind/axes", dim, names=[f"{name} e_w{a}" for a in axes])
@@ -141,6 +151,12 @@ class EpisodeLog:
             r.series(f"measurements/range/{h}", 1, skip_nan=True, names=[f"range {h}"]) for h in range(scenario.beacons.shape[0])
         ]
         self.accel = r.series("measurements/accelerometer", dim, names=[f"a_{a}" for a in axes])
+        self.events = None
+        if events:
+            self.events = (
+                r.series("measurements/outliers", 1, names=["outliers injected"]),
+                r.series("measurements/dropped", 1, names=["samples dropped"]),
+            )
 
     def write_block(
         self,
@@ -157,13 +173,17 @@ class EpisodeLog:
         accel: np.ndarray,
         bounds: dict[str, np.ndarray] | None = None,
         extra=None,
+        rejected: dict[str, np.ndarray] | None = None,
+        events: np.ndarray | None = None,
     ) -> None:
         """Write ``m`` recorded rows at once (see the module docstring for what goes where).
 
         Every argument holds its rows first (``(m, ...)``): the truth's position (and wind),
         each estimator's errors, estimate, covariance trace and NIS, the measured ranges,
         airspeed and acceleration (NaN where not sampled), and for guaranteed estimators
-        their interval ``bounds`` ``(m, n, 2)``. ``extra(rows, steps)``, if given, fills
+        their interval ``bounds`` ``(m, n, 2)``, for gated estimators the running count of
+        ``rejected`` corrections ``(m,)``, and the running counts of injected outliers and
+        dropped samples ``events`` ``(m, 2)``. ``extra(rows, steps)``, if given, fills
         further series for the recorder rows ``rows`` (a slice) of the physics ``steps``.
         """
         steps = np.asarray(steps)
@@ -196,6 +216,8 @@ class EpisodeLog:
                 s["vel_norm"].buf[i, 0] = np.sqrt(np.einsum("ij,ij->i", ev, ev))
                 s["trace"].buf[i, 0] = traces[name][src]
                 s["nis"].buf[i, 0] = nis[name][src]
+                if "rejected" in s:
+                    s["rejected"].buf[i, 0] = rejected[name][src]
                 if "wind" in s:
                     ew = e["wind"][src]
                     s["wind_axes"].buf[i] = ew
@@ -207,6 +229,9 @@ class EpisodeLog:
             for h, series in enumerate(self.ranges):
                 series.buf[i, 0] = ranges[src, h]
             self.accel.buf[i] = accel[src]
+            if self.events is not None:
+                self.events[0].buf[i, 0] = events[src, 0]
+                self.events[1].buf[i, 0] = events[src, 1]
             if extra is not None:
                 extra(i, steps[src])
             done = src.stop

@@ -17,29 +17,11 @@ from pathlib import Path
 import numpy as np
 import rerun as rr
 
-from ..errors import QuadobsError
+from ..errors import QuadobsError, check_writable
 
 __all__ = ["Recorder", "Series", "check_writable"]
 
 _KINDS = ("scalars", "points3d", "translation", "boxes3d")
-
-
-def check_writable(path: str | Path) -> Path:
-    """Fail early (before any simulation) if ``path`` cannot be written.
-
-    Creates the parent folder if needed and probes it with a temporary file.
-    """
-    path = Path(path)
-    if path.is_dir():
-        raise QuadobsError(f"output path {str(path)!r}: is a directory, expected a file name")
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        probe = path.parent / f".{path.name}.probe"
-        probe.write_bytes(b"")
-        probe.unlink()
-    except OSError as exc:
-        raise QuadobsError(f"output path {str(path)!r}: cannot be written ({exc.strerror})") from None
-    return path
 
 
 @dataclass(eq=False)

@@ -14,7 +14,7 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
-from ..errors import QuadobsError
+from ..errors import QuadobsError, as_array, as_finite_scalar
 
 __all__ = ["VehicleModel", "default_model_path", "load_vehicle_model", "REQUIRED_ELEMENTS"]
 
@@ -106,6 +106,12 @@ def load_vehicle_model(
         a non-RK4 integrator, fluid forces, or a beacon sensor that does not measure
         ``imu`` relative to its beacon site.
     """
+    beacons = as_array("beacons", beacons, ndim=2)
+    if beacons.shape[1] not in (2, 3) or beacons.shape[0] == 0:
+        raise QuadobsError(f"beacons: expected shape (q, 2 or 3) with q >= 1, got {beacons.shape}")
+    timestep = as_finite_scalar("timestep", timestep, positive=True)
+    if wind is not None:
+        wind = as_array("wind", wind, (beacons.shape[1],))
     mjcf = Path(path) if path is not None else default_model_path()
     if not mjcf.is_file():
         raise QuadobsError(f"model: MJCF file {str(mjcf)!r} does not exist")
@@ -120,9 +126,6 @@ def load_vehicle_model(
     if spec.joint("vehicle_joint").type != mujoco.mjtJoint.mjJNT_FREE:
         raise QuadobsError(f"model {mjcf.name}: joint 'vehicle_joint' must be a free joint")
 
-    beacons = np.asarray(beacons, dtype=float)
-    if beacons.ndim != 2 or beacons.shape[1] not in (2, 3):
-        raise QuadobsError(f"beacons: expected shape (q, 2 or 3), got {beacons.shape}")
     b3 = np.zeros((beacons.shape[0], 3))
     b3[:, : beacons.shape[1]] = beacons
     for h, pos in enumerate(b3):

@@ -171,6 +171,8 @@ class BlockStepper:
             sensor_consts = [1.0, self.y.start, self.u.start, self.measured.start, *sensors.step_params()]
             width += q + dim + qb
         self.out = np.zeros((int(capacity) + 1, width))
+        #: per step of the block: outliers delivered and samples dropped (see :meth:`commit`)
+        self.events = np.zeros((int(capacity) + 1, 2), dtype=np.int64)
         vm = sim.vm
         wind3 = np.zeros(3) if sim.wind is None else sim._wind3
         self._consts = np.concatenate(
@@ -218,9 +220,12 @@ class BlockStepper:
         return count
 
     def commit(self, rows: int) -> None:
-        """Count the dropouts and outliers of the first ``rows`` steps of the block in the sensor model."""
+        """Count the dropouts and outliers of the first ``rows`` steps of the block in the sensor model.
+
+        Their per-step counts ``[outliers, dropped]`` are then in :attr:`events` rows ``[0, rows)``.
+        """
         if self.sensors is not None and self._read is not None:
-            self.sensors.commit(self._draws[:rows])
+            self.events[:rows] = self.sensors.commit(self._draws[:rows])
 
     def step(self, j: int) -> None:
         """Step ``j`` of the block: ``mj_step``, then read row ``j`` (sensors) and ``j + 1`` (truth)."""
@@ -237,7 +242,9 @@ class BlockStepper:
         self.out[j + 1, self.truth] = sim.state()
         if self.sensors is not None:
             s = self.sensors
+            before = (s.outliers_injected, s.dropped)
             row[self.y] = s.outputs(self._k0 + j, row[self.ranges], row[self.airspeed][0] if sim.wind is not None else None)
+            self.events[j] = (s.outliers_injected - before[0], s.dropped - before[1])
             row[self.measured] = s.measured_ranges
             row[self.u] = s.input(row[self.accel])
         if j + 1 < self._ctrls.shape[0]:

@@ -1,0 +1,172 @@
+"""Failure behaviour of a run: interrupts, errors inside the loop, unwritable outputs, determinism."""
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from quadobs import QuadobsError, load_scenario
+from quadobs.cli import main
+from quadobs.recording import list_entities, read_series, read_text_log
+from quadobs.runner import WALL_CLOCK_KEYS, run_episode
+
+RERUN = str(Path(sys.executable).parent / "rerun")
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _verify(rrd: Path) -> None:
+    proc = subprocess.run([RERUN, "rrd", "verify", str(rrd)], capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
+
+
+def _cli(*args: str, **kw) -> subprocess.Popen:
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    return subprocess.Popen([sys.executable, "-m", "quadobs.cli", *args], cwd=ROOT, env=env, **kw)
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_signal_mid_run_leaves_a_verified_recording_of_every_step(tmp_path, sig):
+    """SIGINT (Ctrl-C) or SIGTERM during an hour-long run: exit 130, a valid .rrd with steps 0..k-1, the summary of k steps."""
+    rrd, js = tmp_path / "run.rrd", tmp_path / "run.json"
+    proc = _cli("run", "ifac2021", "--duration", "3600", "--no-progress", "--out", str(rrd), "--summary", str(js),
+                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 120
+        # wait until the loop has sent a few blocks of rows to the file
+        while not (rrd.exists() and rrd.stat().st_size > 200_000):
+            assert proc.poll() is None, proc.communicate()
+            assert time.monotonic() < deadline, "the run did not start writing"
+            time.sleep(0.05)
+        proc.send_signal(sig)
+        out, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 130, err
+    assert "[INTERRUPTED]" in out
+    summary = json.loads(js.read_text())
+    k = summary["physics_steps"]
+    assert summary["interrupted"] is True and 0 < k < 3_600_000
+    assert summary["duration"] == pytest.approx(k * 1e-3)
+    _verify(rrd)
+    steps = read_series(rrd, "errors/augmented/position/norm")["step"]
+    np.testing.assert_array_equal(steps, np.arange(k))
+    events = read_text_log(rrd, "events")
+    assert any(s == k and "interrupted" in text for s, _, _, text in events)
+
+
+def test_error_inside_the_loop_closes_the_recording_and_propagates(tmp_path, monkeypatch):
+    """An estimator failing at step N (past a block boundary): the error reaches the caller and the
+    .rrd verifies and holds steps 0..N-1, with the error in its event log; no summary is written."""
+    from quadobs.observer import AugmentedObserver
+
+    N = 10_000
+    calls = [0]
+    original = AugmentedObserver.step_and_record
+
+    def failing(self, u, y, out):
+        if calls[0] == N:
+            raise FloatingPointError("injected failure")
+        calls[0] += 1
+        return original(self, u, y, out)
+
+    monkeypatch.setattr(AugmentedObserver, "step_and_record", failing)
+    rrd, js = tmp_path / "err.rrd", tmp_path / "err.json"
+    with pytest.raises(FloatingPointError, match="injected failure"):
+        run_episode(load_scenario("ifac2021", duration=15.0), out=rrd, summary_path=js)
+    assert not js.exists()
+    _verify(rrd)
+    for entity in ("errors/augmented/position/norm", "observer/augmented/nis", "measurements/accelerometer"):
+        steps = read_series(rrd, entity)["step"]
+        np.testing.assert_array_equal(steps, np.arange(N))
+    events = read_text_log(rrd, "events")
+    assert any(s == N and level == "ERROR" and "injected failure" in text for s, _, level, text in events)
+
+
+@pytest.mark.parametrize("which", ["out", "summary"])
+def test_unwritable_output_fails_before_the_simulation(tmp_path, monkeypatch, which):
+    """An output under a regular file cannot be written: a QuadobsError naming the path, raised before
+    MuJoCo is even set up, and no file is created."""
+    import quadobs.testbed
+
+    def no_simulation(*a, **k):
+        raise AssertionError("the simulation started")
+
+    monkeypatch.setattr(quadobs.testbed, "VehicleSim", no_simulation)
+    blocker = tmp_path / "file"
+    blocker.write_text("")
+    paths = {"out": tmp_path / "ok.rrd", "summary": tmp_path / "ok.json"}
+    paths[which] = blocker / "sub" / ("x.rrd" if which == "out" else "x.json")
+    with pytest.raises(QuadobsError, match=r"output path .*x\.(rrd|json).*cannot be written"):
+        run_episode(load_scenario("ifac2021", duration=1.0), out=paths["out"], summary_path=paths["summary"])
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["file"]
+
+
+def test_cli_unwritable_output_exits_2_and_creates_nothing(tmp_path, capsys):
+    (tmp_path / "file").write_text("")
+    bad = tmp_path / "file" / "x.rrd"
+    code = main(["run", "ifac2021", "--no-progress", "--out", str(bad), "--summary", str(tmp_path / "s.json")])
+    assert code == 2
+    err = capsys.readouterr().err
+    assert "x.rrd" in err and "cannot be written" in err and "Traceback" not in err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["file"]
+    code = main(["run", "ifac2021", "--no-progress", "--out", str(tmp_path)])
+    assert code == 2 and "is a directory" in capsys.readouterr().err
+
+
+def test_json_writes_are_atomic(tmp_path, monkeypatch):
+    """A failure while writing a summary leaves the previous file intact and no temporary file behind."""
+    import quadobs.runner as runner
+
+    path = tmp_path / "s.json"
+    runner.write_json_atomic(path, {"a": 1})
+    with pytest.raises(ValueError):
+        runner.write_json_atomic(path, {"a": float("nan")})  # refused mid-write (allow_nan=False)
+    assert json.loads(path.read_text()) == {"a": 1}
+    assert [p.name for p in tmp_path.iterdir()] == ["s.json"]
+
+
+def test_same_scenario_and_seed_are_bit_identical_across_processes(tmp_path):
+    """Two processes (different hash seeds), the same scenario and seed: identical summaries apart from
+    the wall-clock fields and the file name, and identical recorded values, entity by entity.
+
+    The .rrd files themselves differ in bytes: rerun stamps each chunk and row with ids
+    generated at write time. Their contents are compared instead.
+    """
+    runs = []
+    for i, hashseed in enumerate(["1", "2"]):
+        d = tmp_path / f"p{i}"
+        args = ["run", "ifac2021-outliers", "--duration", "3", "--seed", "5", "--estimators", "augmented,ekf",
+                "--no-progress", "--out", str(d / "run.rrd"), "--summary", str(d / "run.json")]
+        env = dict(os.environ, PYTHONPATH=str(ROOT), PYTHONHASHSEED=hashseed)
+        subprocess.run([sys.executable, "-m", "quadobs.cli", *args], cwd=ROOT, env=env, check=True, capture_output=True)
+        runs.append(d)
+    summaries = []
+    for d in runs:
+        s = json.loads((d / "run.json").read_text())
+        for key in (*WALL_CLOCK_KEYS, "recording"):
+            s.pop(key)
+        summaries.append(s)
+    assert summaries[0] == summaries[1]
+    assert summaries[0]["measurements"]["outliers_injected"] > 0 and summaries[0]["measurements"]["dropped"] > 0
+    a, b = runs[0] / "run.rrd", runs[1] / "run.rrd"
+    entities = list_entities(a)
+    assert entities == list_entities(b) and len(entities) > 20
+    compared = 0
+    for entity in entities:
+        try:
+            sa = read_series(a, entity)
+        except QuadobsError:  # no numeric series there (text log, boxes)
+            continue
+        sb = read_series(b, entity)
+        for key in ("step", "sim_time", "values"):
+            np.testing.assert_array_equal(sa[key], sb[key], err_msg=f"{entity} {key}")
+        compared += 1
+    assert compared > 20
+    assert read_text_log(a, "events") == read_text_log(b, "events")
