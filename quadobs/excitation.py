@@ -788,6 +788,11 @@ class ExcitationMonitor:
     def low(self) -> bool:
         return self._low_since is not None
 
+    @property
+    def room(self) -> int:
+        """Physics steps until the next chunk is complete (the next step at which the measure may change)."""
+        return self._buf.shape[0] - self._n_buf
+
     def push(self, u: np.ndarray) -> bool:
         """Take the input held over the next physics step; returns whether the measure was recomputed."""
         self._buf[self._n_buf] = u
@@ -795,6 +800,26 @@ class ExcitationMonitor:
         self.steps += 1
         if self._n_buf < self._buf.shape[0]:
             return False
+        return self._chunk_done()
+
+    def push_many(self, U: np.ndarray) -> bool:
+        """Take the inputs of the next ``len(U)`` physics steps at once (``U (k, p)``, ``k <= room``).
+
+        The same as ``k`` calls of :meth:`push` (returns what the last one would): a caller
+        that feeds exactly :attr:`room` steps at a time sees every recomputation at the step
+        where it happens, for one call per chunk instead of one per step.
+        """
+        k = len(U)
+        if k > self.room:
+            raise QuadobsError(f"push_many: {k} steps given, but the chunk has room for {self.room}")
+        self._buf[self._n_buf : self._n_buf + k] = U
+        self._n_buf += k
+        self.steps += k
+        if self._n_buf < self._buf.shape[0]:
+            return False
+        return self._chunk_done()
+
+    def _chunk_done(self) -> bool:
         self._n_buf = 0
         means = self._buf.reshape(self._chunk, self.block, -1).mean(axis=1)
         self._add(reduce_window(*self.model.step_terms(means)))

@@ -373,12 +373,23 @@ def _run_episode(
                 level="WARN" if count else "INFO", step=step, time=step * dt,
             )
 
+    # The monitor takes the inputs a chunk at a time, at the step that completes the chunk
+    # (mon_left counts down to it; -1 and below: no monitor), and the rest at a block's end.
+    mon_left, mon_j = (monitor.room if monitor is not None else -1), 0
+
+    def feed_monitor(stop: int) -> None:
+        nonlocal mon_j
+        if monitor is not None and stop > mon_j:
+            monitor.push_many(raw_u[mon_j:stop])  # fewer steps than the chunk: no recomputation
+            mon_j = stop
+
     wall0 = _time.perf_counter()
     block0 = 0
     try:
         step = stepper.step
         for block0 in range(0, steps, _BLOCK):
             nblk = stepper.begin(traj.step_accelerations(block0 * dt, dt, min(_BLOCK, steps - block0)), block0)
+            mon_j = 0
             for j in range(nblk):
                 k = block0 + j
                 step(j)  # mj_step; readings, y_k, u_k of step k into raw[j]; truth x_(k+1) into raw[j + 1]
@@ -392,15 +403,19 @@ def _run_episode(
                     bnd[b, j] = est.bounds
                 for _, step_and_record, est_rec in slots:
                     step_and_record(u, y, est_rec[j])  # x_hat_k, trace before; NIS after
-                if monitor is not None and monitor.push(u):  # the window measure was recomputed
-                    if xlog is not None:
-                        xlog.capture(k + 1)
-                    if monitor.warning is not None:
-                        message = monitor.pop_warning()
+                mon_left -= 1
+                if mon_left == 0:  # the monitor's chunk is complete: feed it (the measure may change here)
+                    if monitor.push_many(raw_u[mon_j : j + 1]):  # the window measure was recomputed
                         if xlog is not None:
-                            xlog.warn(message, k + 1, (k + 1) * dt)
+                            xlog.capture(k + 1)
+                        if monitor.warning is not None:
+                            message = monitor.pop_warning()
+                            if xlog is not None:
+                                xlog.warn(message, k + 1, (k + 1) * dt)
+                    mon_j, mon_left = j + 1, monitor.room
                 completed = k + 1
             done = nblk
+            feed_monitor(done)
             if block0 + nblk == steps:  # the final row: x_K and the estimates at t_K
                 for b, est in bounded_ests:
                     bnd[b, nblk] = est.bounds
@@ -426,6 +441,7 @@ def _run_episode(
         # Ctrl-C (or SIGTERM, which the CLI maps to it): keep every step completed so far
         # in the recording and the summary, and return normally with ``interrupted``.
         interrupted = True
+        feed_monitor(completed - block0)
         _close_block(stepper, flush, block0, completed, committed, flushing)
         if log is not None:
             recorder.text("events", f"interrupted at t = {completed * dt:.3f} s (step {completed})", level="WARN", step=completed, time=completed * dt)

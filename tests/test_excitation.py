@@ -386,6 +386,24 @@ def test_monitor_matches_the_offline_gramian():
     np.testing.assert_allclose(values, offline, rtol=1e-6)
 
 
+def test_monitor_push_many_equals_push(rng):
+    """Feeding the inputs in uneven slices (never past a chunk's end) gives the same measures at the same steps."""
+    sc = load_scenario("degenerate", duration=12.0)
+    u = sc.trajectory.step_accelerations(0.0, sc.dt, sc.steps)
+    one, many = scenario_monitor(sc), scenario_monitor(sc)
+    seen_one = [(k, one.measure) for k, uk in enumerate(u) if one.push(uk)]
+    seen_many, k = [], 0
+    while k < len(u):
+        n = int(rng.integers(1, many.room + 1))
+        if many.push_many(u[k : k + n]):
+            seen_many.append((k + n - 1, many.measure))
+        k += n
+    assert seen_many == seen_one and len(seen_one) > 10
+    assert many.summary() == one.summary()
+    with pytest.raises(QuadobsError, match="room for"):
+        many.push_many(np.zeros((many.room + 1, 3)))
+
+
 def test_monitor_flags_exactly_the_coasting_segments():
     """Each coast [c0, c1) gives one low segment [a, b) with c0 < a <= max(c0 + delta, delta) + P and c1 < b <= c1 + delta + P.
 
