@@ -757,6 +757,13 @@ class ExcitationMonitor:
         self._buf = np.zeros((self._chunk * self.block, p))
         self._n_buf = 0
         self._blocks = 0
+        try:  # a chunk's terms in one compiled call; NumPy (the same quantities) without Numba
+            from ._gramian_kernels import held_run_terms
+        except ImportError:  # pragma: no cover
+            held_run_terms = None
+        self._kernel = held_run_terms
+        N = immersion.dim
+        self._work = np.empty((3, N, N))
         self._front: list[tuple[np.ndarray, np.ndarray]] = []  # suffix aggregates, oldest last
         self._back: list[tuple[np.ndarray, np.ndarray]] = []  # chunks in time order
         self._back_agg: tuple[np.ndarray, np.ndarray] | None = None
@@ -822,7 +829,16 @@ class ExcitationMonitor:
     def _chunk_done(self) -> bool:
         self._n_buf = 0
         means = self._buf.reshape(self._chunk, self.block, -1).mean(axis=1)
-        self._add(reduce_window(*self.model.step_terms(means)))
+        if self._kernel is not None:
+            m, (Phi, G, T) = self.model, self._work
+            P, W = np.empty_like(Phi), np.empty_like(Phi)
+            self._kernel(
+                means, m.discretization.transition_constant, m.discretization.transition_input,
+                m.gramian_constant, m.gramian_linear, m.gramian_quadratic, P, W, Phi, G, T,
+            )
+            self._add((P, W))
+        else:
+            self._add(reduce_window(*self.model.step_terms(means)))
         self._blocks += self._chunk
         if self._blocks < self.L or self._blocks % self.update_blocks:
             return False

@@ -386,6 +386,23 @@ def test_monitor_matches_the_offline_gramian():
     np.testing.assert_allclose(values, offline, rtol=1e-6)
 
 
+@pytest.mark.parametrize("name", ["ifac2021", "wind"])
+def test_compiled_chunk_terms_equal_the_tree_reduction(rng, name):
+    pytest.importorskip("numba")
+    from quadobs._gramian_kernels import held_run_terms
+
+    model = scenario_monitor(load_scenario(name)).model
+    U = rng.normal(size=(17, model.immersion.system.p))
+    P_ref, W_ref = reduce_window(*model.step_terms(U))
+    N = model.dim
+    P, W, work = np.empty((N, N)), np.empty((N, N)), np.empty((3, N, N))
+    d = model.discretization
+    held_run_terms(U, d.transition_constant, d.transition_input, model.gramian_constant, model.gramian_linear,
+                   model.gramian_quadratic, P, W, *work)
+    np.testing.assert_allclose(P, P_ref, rtol=1e-12, atol=1e-12 * np.abs(P_ref).max())
+    np.testing.assert_allclose(W, W_ref, rtol=1e-10, atol=1e-12 * np.abs(W_ref).max())
+
+
 def test_monitor_push_many_equals_push(rng):
     """Feeding the inputs in uneven slices (never past a chunk's end) gives the same measures at the same steps."""
     sc = load_scenario("degenerate", duration=12.0)

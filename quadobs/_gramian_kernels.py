@@ -1,0 +1,76 @@
+"""Compiled (Numba) transition and Gramian of a run of held steps, for the excitation monitor.
+
+Imported lazily by :class:`quadobs.excitation.ExcitationMonitor`; without Numba the
+monitor uses the NumPy path (:meth:`quadobs.gramian.GramianModel.step_terms` and
+:func:`quadobs.gramian.reduce_window`), which computes the same quantities.
+"""
+
+from __future__ import annotations
+
+from numba import njit
+
+__all__ = ["held_run_terms"]
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def held_run_terms(U, F0, F1, G0, G1, G2, P, W, Phi, G, T):
+    """``(Phi, W)`` over consecutive held steps ``U (T, p)``, composed in time order.
+
+    Step ``t`` has the transition ``Phi_t = F0 + E(sum_j u_j F1[j])`` (``F1 (p, k, N - k)``
+    written into the aux-x block ``[:k, k:]``, :class:`quadobs.discretize.HeldInputDiscretization`)
+    and the Gramian ``G_t = G0 + sum_j u_j G1[j] + sum_jl u_j u_l G2[j, l]``
+    (:class:`quadobs.gramian.GramianModel`). With ``P_0 = I``, ``W_0 = 0``:
+
+    ``W_(t+1) = W_t + P_t^T G_t P_t``, ``P_(t+1) = Phi_t P_t``
+
+    (:func:`quadobs.gramian.compose` applied step by step). Writes ``P (N, N)`` and
+    ``W (N, N)``; ``Phi``, ``G``, ``T`` are ``(N, N)`` work arrays.
+    """
+    N = F0.shape[0]
+    k = F1.shape[1]
+    p = U.shape[1]
+    for a in range(N):
+        for b in range(N):
+            P[a, b] = 1.0 if a == b else 0.0
+            W[a, b] = 0.0
+    for t in range(U.shape[0]):
+        for a in range(N):
+            for b in range(N):
+                Phi[a, b] = F0[a, b]
+                G[a, b] = G0[a, b]
+        for j in range(p):
+            uj = U[t, j]
+            for a in range(k):
+                for b in range(N - k):
+                    Phi[a, k + b] += uj * F1[j, a, b]
+            for a in range(N):
+                for b in range(N):
+                    G[a, b] += uj * G1[j, a, b]
+            for l in range(p):
+                ujl = uj * U[t, l]
+                for a in range(N):
+                    for b in range(N):
+                        G[a, b] += ujl * G2[j, l, a, b]
+        # T = G P; W += P^T T
+        for a in range(N):
+            for b in range(N):
+                s = 0.0
+                for c in range(N):
+                    s += G[a, c] * P[c, b]
+                T[a, b] = s
+        for a in range(N):
+            for b in range(N):
+                s = 0.0
+                for c in range(N):
+                    s += P[c, a] * T[c, b]
+                W[a, b] += s
+        # P = Phi P
+        for a in range(N):
+            for b in range(N):
+                s = 0.0
+                for c in range(N):
+                    s += Phi[a, c] * P[c, b]
+                T[a, b] = s
+        for a in range(N):
+            for b in range(N):
+                P[a, b] = T[a, b]
