@@ -13,6 +13,18 @@ __all__ = ["held_run_terms"]
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
+def _product(A, B, out, accumulate):
+    """``out = A B`` (``accumulate``: ``out += A B``) for square ``(N, N)`` operands, ``out`` distinct from both."""
+    N = out.shape[0]
+    for a in range(N):
+        for b in range(N):
+            s = out[a, b] if accumulate else 0.0
+            for c in range(N):
+                s += A[a, c] * B[c, b]
+            out[a, b] = s
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
 def held_run_terms(U, F0, F1, G0, G1, G2, P, W, Phi, G, T):
     """``(Phi, W)`` over consecutive held steps ``U (T, p)``, composed in time order.
 
@@ -29,15 +41,13 @@ def held_run_terms(U, F0, F1, G0, G1, G2, P, W, Phi, G, T):
     N = F0.shape[0]
     k = F1.shape[1]
     p = U.shape[1]
+    P[:, :] = 0.0
     for a in range(N):
-        for b in range(N):
-            P[a, b] = 1.0 if a == b else 0.0
-            W[a, b] = 0.0
+        P[a, a] = 1.0
+    W[:, :] = 0.0
     for t in range(U.shape[0]):
-        for a in range(N):
-            for b in range(N):
-                Phi[a, b] = F0[a, b]
-                G[a, b] = G0[a, b]
+        Phi[:, :] = F0
+        G[:, :] = G0
         for j in range(p):
             uj = U[t, j]
             for a in range(k):
@@ -51,26 +61,7 @@ def held_run_terms(U, F0, F1, G0, G1, G2, P, W, Phi, G, T):
                 for a in range(N):
                     for b in range(N):
                         G[a, b] += ujl * G2[j, l, a, b]
-        # T = G P; W += P^T T
-        for a in range(N):
-            for b in range(N):
-                s = 0.0
-                for c in range(N):
-                    s += G[a, c] * P[c, b]
-                T[a, b] = s
-        for a in range(N):
-            for b in range(N):
-                s = 0.0
-                for c in range(N):
-                    s += P[c, a] * T[c, b]
-                W[a, b] += s
-        # P = Phi P
-        for a in range(N):
-            for b in range(N):
-                s = 0.0
-                for c in range(N):
-                    s += Phi[a, c] * P[c, b]
-                T[a, b] = s
-        for a in range(N):
-            for b in range(N):
-                P[a, b] = T[a, b]
+        _product(G, P, T, False)  # T = G P
+        _product(P.T, T, W, True)  # W += P^T G P
+        _product(Phi, P, T, False)  # T = Phi P
+        P[:, :] = T

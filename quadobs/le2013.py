@@ -197,7 +197,7 @@ def reproduce(*, seed: int = 0, steps: int = 50, runs: int = 50, designs: dict |
 
 
 def summary_of(res: dict) -> dict:
-    """The JSON summary of a :func:`reproduce` result (keys documented in ``docs/readme/issue5.md``)."""
+    """The JSON summary of a :func:`reproduce` result (keys documented in the README, "Guaranteed estimation with zonotopes")."""
     d = res["designs"]
     methods = res["methods"]
 

@@ -25,6 +25,7 @@ block (vectorised), then sent as columns.
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 import os
@@ -119,6 +120,17 @@ def single_threaded_blas():
     return threadpool_limits(limits=1, user_api="blas")
 
 
+def _single_threaded(fn):
+    """Run ``fn`` inside :func:`single_threaded_blas`."""
+
+    @functools.wraps(fn)
+    def wrapper(*args, **kwargs):
+        with single_threaded_blas():
+            return fn(*args, **kwargs)
+
+    return wrapper
+
+
 def _step_and_record(est):
     """``est.step_and_record``, or :meth:`Estimator.step_and_record` for an object that only has ``step``."""
     method = getattr(est, "step_and_record", None)
@@ -129,6 +141,7 @@ def _step_and_record(est):
     return partial(Estimator.step_and_record, est)
 
 
+@_single_threaded
 def run_episode(
     scenario: Scenario,
     *,
@@ -179,24 +192,6 @@ def run_episode(
     -----
     BLAS and LAPACK run single-threaded during the episode (:func:`single_threaded_blas`).
     """
-    with single_threaded_blas():
-        return _run_episode(
-            scenario, estimators=estimators, out=out, summary_path=summary_path, progress=progress,
-            collect_every=collect_every, flush_rows=flush_rows,
-        )
-
-
-def _run_episode(
-    scenario: Scenario,
-    *,
-    estimators: list[str] | None = None,
-    out: str | Path | None = None,
-    summary_path: str | Path | None = None,
-    progress: bool = False,
-    collect_every: int = 0,
-    flush_rows: int = 8192,
-) -> EpisodeResult:
-    """:func:`run_episode` itself (BLAS limits set by the caller)."""
     from .testbed import BlockStepper, VehicleSim  # the MuJoCo layer, imported only to run episodes
 
     if scenario.kind != "vehicle":
