@@ -383,6 +383,7 @@ def run_episode(
     try:
         step = stepper.step
         for block0 in range(0, steps, _BLOCK):
+            committed = flushing = False
             nblk = stepper.begin(traj.step_accelerations(block0 * dt, dt, min(_BLOCK, steps - block0)), block0)
             mon_j = 0
             for j in range(nblk):
@@ -427,8 +428,7 @@ def run_episode(
             stepper.commit(done)  # the sensor model counts this block's dropouts and outliers
             committed = True
             flushing = True
-            flush(block0, nblk)
-            committed = flushing = False
+            flush(block0, nblk)  # the flags stay set until the next block starts: a stop from here on has nothing to add
             if bar is not None:
                 bar.update(min(nblk, steps - block0))
         log_counts(completed)

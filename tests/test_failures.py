@@ -89,6 +89,54 @@ def test_error_inside_the_loop_closes_the_recording_and_propagates(tmp_path, mon
     assert any(s == N and level == "ERROR" and "injected failure" in text for s, _, level, text in events)
 
 
+@pytest.mark.parametrize("seam", ["commit", "after_flush", "next_block"])
+def test_interrupt_at_a_block_boundary_records_each_step_once(tmp_path, monkeypatch, seam):
+    """Ctrl-C landing in the end-of-block work (counting the sensor events, after the block's
+    rows were sent, as the next block starts): steps 0..8191 are each recorded exactly once."""
+    import tqdm
+
+    from quadobs.testbed import BlockStepper
+
+    class Stop:
+        def __init__(self, *args, **kwargs):
+            pass
+
+        def update(self, n):
+            if seam == "after_flush":
+                raise KeyboardInterrupt
+
+        def close(self):
+            pass
+
+    calls = {"commit": 0, "begin": 0}
+    commit, begin = BlockStepper.commit, BlockStepper.begin
+
+    def stop_commit(self, rows):
+        calls["commit"] += 1
+        if seam == "commit" and calls["commit"] == 1:
+            raise KeyboardInterrupt
+        return commit(self, rows)
+
+    def stop_begin(self, *args, **kwargs):
+        calls["begin"] += 1
+        if seam == "next_block" and calls["begin"] == 2:
+            raise KeyboardInterrupt
+        return begin(self, *args, **kwargs)
+
+    monkeypatch.setattr(tqdm, "tqdm", Stop)
+    monkeypatch.setattr(BlockStepper, "commit", stop_commit)
+    monkeypatch.setattr(BlockStepper, "begin", stop_begin)
+    rrd = tmp_path / "seam.rrd"
+    result = run_episode(load_scenario("ifac2021-outliers", duration=12.0), out=rrd, progress=True)
+    summary = result.summary
+    assert summary["interrupted"] is True and summary["physics_steps"] == 8192
+    _verify(rrd)
+    for entity in ("errors/augmented/position/norm", "measurements/dropped"):
+        np.testing.assert_array_equal(read_series(rrd, entity)["step"], np.arange(8192))
+    dropped = read_series(rrd, "measurements/dropped")["values"]
+    assert summary["measurements"]["dropped"] == int(np.ravel(dropped)[-1]) > 0
+
+
 @pytest.mark.parametrize("which", ["out", "summary"])
 def test_unwritable_output_fails_before_the_simulation(tmp_path, monkeypatch, which):
     """An output under a regular file cannot be written: a QuadobsError naming the path, raised before
