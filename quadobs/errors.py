@@ -7,12 +7,15 @@ bad scenario field, a missing MJCF element) raises :class:`QuadobsError`, a
 
 from __future__ import annotations
 
+import signal
+import threading
+from contextlib import contextmanager
 from pathlib import Path
-from typing import Any
+from typing import Any, Iterator
 
 import numpy as np
 
-__all__ = ["QuadobsError", "as_array", "as_finite_scalar", "check_writable"]
+__all__ = ["QuadobsError", "as_array", "as_finite_scalar", "check_writable", "deferred_interrupts"]
 
 
 class QuadobsError(ValueError):
@@ -98,3 +101,33 @@ def check_writable(path: str | Path) -> Path:
     except OSError as exc:
         raise QuadobsError(f"output path {str(path)!r}: cannot be written ({exc.strerror})") from None
     return path
+
+
+@contextmanager
+def deferred_interrupts() -> Iterator[None]:
+    """Hold SIGINT and SIGTERM over a section that must not be cut in two.
+
+    Sending a block of rows to a recording is such a section: stopped half-way, some
+    series would hold the rows and others not, and sending the block again would
+    duplicate them. A signal received inside is delivered when the section ends, to the
+    handler installed before it (Ctrl-C then raises ``KeyboardInterrupt`` there). Outside
+    the main thread, where handlers cannot be set, nothing is held. Sections nest.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    held: list[int] = []
+    previous: dict[int, Any] = {}
+    try:
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            previous[sig] = signal.signal(sig, lambda signum, frame: held.append(signum))
+        yield
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+        for sig in held:
+            handler = previous[sig]
+            if callable(handler):
+                handler(sig, None)
+            elif handler == signal.SIG_DFL:
+                signal.raise_signal(sig)

@@ -36,7 +36,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import QuadobsError, check_writable
+from .errors import QuadobsError, check_writable, deferred_interrupts
 from .estimators import build_estimators, default_estimators
 from .metrics import ConvergenceTracker, state_errors
 from .observer import Estimator, _covariance_trace
@@ -425,10 +425,11 @@ def run_episode(
                             trace["covariances"][est.name][steps // collect_every] = cov
                 raw[nblk, stepper.ranges.start :] = np.nan  # no measurement at t_K
                 nblk += 1
-            stepper.commit(done)  # the sensor model counts this block's dropouts and outliers
-            committed = True
-            flushing = True
-            flush(block0, nblk)  # the flags stay set until the next block starts: a stop from here on has nothing to add
+            with deferred_interrupts():  # a stop (Ctrl-C, SIGTERM) waits until the block is counted and sent
+                stepper.commit(done)  # the sensor model counts this block's dropouts and outliers
+                committed = True
+                flushing = True
+                flush(block0, nblk)  # the flags stay set until the next block starts: a stop from here on has nothing to add
             if bar is not None:
                 bar.update(min(nblk, steps - block0))
         log_counts(completed)

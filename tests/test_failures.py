@@ -137,6 +137,59 @@ def test_interrupt_at_a_block_boundary_records_each_step_once(tmp_path, monkeypa
     assert summary["measurements"]["dropped"] == int(np.ravel(dropped)[-1]) > 0
 
 
+def test_deferred_interrupts_hold_a_signal_until_the_section_ends():
+    from quadobs.errors import deferred_interrupts
+
+    reached = []
+    with pytest.raises(KeyboardInterrupt):
+        with deferred_interrupts():
+            with deferred_interrupts():  # nested sections: delivered once, at the outer end
+                signal.raise_signal(signal.SIGINT)
+                reached.append("inner")
+            reached.append("outer")
+    assert reached == ["inner", "outer"]
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    got = []
+    previous = signal.signal(signal.SIGTERM, lambda signum, frame: got.append(signum))
+    try:
+        with deferred_interrupts():
+            signal.raise_signal(signal.SIGTERM)
+            assert got == []
+        assert got == [signal.SIGTERM]
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def test_a_stop_during_a_send_leaves_every_series_with_each_row_once(tmp_path):
+    """Ctrl-C arriving while the recorder sends a block's series: all of them get the block, once."""
+    from quadobs.recording import Recorder
+
+    rrd = tmp_path / "send.rrd"
+    rec = Recorder(rrd, recording_id="send", capacity=100)
+    series = [rec.series(f"s/{i}", 1) for i in range(4)]
+    send = rec.rec.send_columns
+    calls = [0]
+
+    def interrupted_send(*args, **kwargs):
+        calls[0] += 1
+        if calls[0] == 2:
+            signal.raise_signal(signal.SIGINT)
+        return send(*args, **kwargs)
+
+    rec.rec.send_columns = interrupted_send
+    rows = rec.rows(np.arange(100), np.arange(100) * 1e-3)
+    for i, s in enumerate(series):
+        s.buf[rows, 0] = i
+    with pytest.raises(KeyboardInterrupt):
+        rec.flush()
+    assert rec.n == 0 and calls[0] == 4
+    rec.close()
+    _verify(rrd)
+    for i in range(4):
+        got = read_series(rrd, f"s/{i}")
+        np.testing.assert_array_equal(got["step"], np.arange(100))
+
+
 @pytest.mark.parametrize("which", ["out", "summary"])
 def test_unwritable_output_fails_before_the_simulation(tmp_path, monkeypatch, which):
     """An output under a regular file cannot be written: a QuadobsError naming the path, raised before

@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 import rerun as rr
 
-from ..errors import QuadobsError, check_writable
+from ..errors import QuadobsError, check_writable, deferred_interrupts
 
 __all__ = ["Recorder", "Series", "check_writable"]
 
@@ -167,39 +167,44 @@ class Recorder:
         """
         n = self.n
         if n:
-            # Copies: rerun may encode the columns on its own thread after this returns,
-            # while the buffers are refilled.
-            steps, times = self._steps[:n].copy(), self._times[:n].copy()
-            every_row = [rr.TimeColumn("step", sequence=steps), rr.TimeColumn("sim_time", duration=times)]
-            for s in self.series_list:
-                if s.every > 1:
-                    sel = np.flatnonzero(steps % s.every == 0)
-                    vals, st, tm = s.buf[:n][sel], steps[sel], times[sel]
-                else:
-                    vals, st, tm = s.buf[:n].copy(), steps, times
-                idx = every_row
-                if s.skip_nan:
-                    keep = ~np.isnan(vals).any(axis=1)
-                    vals, st, tm = vals[keep], st[keep], tm[keep]
-                if not len(st):
-                    continue
-                if st is not steps:
-                    idx = [rr.TimeColumn("step", sequence=st), rr.TimeColumn("sim_time", duration=tm)]
-                if s.kind == "scalars":
-                    cols = rr.Scalars.columns(scalars=vals)
-                elif s.kind == "points3d":
-                    cols = rr.Points3D.columns(positions=vals)
-                elif s.kind == "boxes3d":
-                    cols = rr.Boxes3D.columns(centers=vals[:, :3], half_sizes=vals[:, 3:])
-                else:
-                    cols = rr.Transform3D.columns(translation=vals)
-                self.rec.send_columns(s.entity, indexes=idx, columns=cols)
-            self.rows_sent += n
-            self.n = 0
+            with deferred_interrupts():  # every series gets the rows, or none (a stop waits for the end)
+                self._send(n)
         if wait:
             self.rec.flush()
         else:
             self.rec.flush(timeout_sec=0.0)
+
+    def _send(self, n: int) -> None:
+        """Send rows ``[0, n)`` of the buffers as columns, one call per series."""
+        # Copies: rerun may encode the columns on its own thread after this returns,
+        # while the buffers are refilled.
+        steps, times = self._steps[:n].copy(), self._times[:n].copy()
+        every_row = [rr.TimeColumn("step", sequence=steps), rr.TimeColumn("sim_time", duration=times)]
+        for s in self.series_list:
+            if s.every > 1:
+                sel = np.flatnonzero(steps % s.every == 0)
+                vals, st, tm = s.buf[:n][sel], steps[sel], times[sel]
+            else:
+                vals, st, tm = s.buf[:n].copy(), steps, times
+            idx = every_row
+            if s.skip_nan:
+                keep = ~np.isnan(vals).any(axis=1)
+                vals, st, tm = vals[keep], st[keep], tm[keep]
+            if not len(st):
+                continue
+            if st is not steps:
+                idx = [rr.TimeColumn("step", sequence=st), rr.TimeColumn("sim_time", duration=tm)]
+            if s.kind == "scalars":
+                cols = rr.Scalars.columns(scalars=vals)
+            elif s.kind == "points3d":
+                cols = rr.Points3D.columns(positions=vals)
+            elif s.kind == "boxes3d":
+                cols = rr.Boxes3D.columns(centers=vals[:, :3], half_sizes=vals[:, 3:])
+            else:
+                cols = rr.Transform3D.columns(translation=vals)
+            self.rec.send_columns(s.entity, indexes=idx, columns=cols)
+        self.rows_sent += n
+        self.n = 0
 
     def close(self) -> None:
         """Send what is buffered and finish the file (footer included); idempotent."""
