@@ -782,6 +782,22 @@ class ExcitationMonitor:
         self._low_since: float | None = None
         self._warned = False
         self.warning: str | None = None
+        if self._kernel is not None:  # load (or compile) it now rather than inside a run's first chunk
+            self._chunk_terms(np.zeros((1, p)))
+
+    def _chunk_terms(self, means: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Transition and Gramian over the hold steps ``means (c, p)``, composed in time order."""
+        m = self.model
+        if self._kernel is None:
+            return reduce_window(*m.step_terms(means))
+        Phi, G, T = self._work
+        P, W = np.empty_like(Phi), np.empty_like(Phi)
+        d = m.discretization
+        self._kernel(
+            means, d.transition_constant, d.transition_input, m.gramian_constant, m.gramian_linear,
+            m.gramian_quadratic, P, W, Phi, G, T,
+        )
+        return P, W
 
     @property
     def window(self) -> float:
@@ -829,16 +845,7 @@ class ExcitationMonitor:
     def _chunk_done(self) -> bool:
         self._n_buf = 0
         means = self._buf.reshape(self._chunk, self.block, -1).mean(axis=1)
-        if self._kernel is not None:
-            m, (Phi, G, T) = self.model, self._work
-            P, W = np.empty_like(Phi), np.empty_like(Phi)
-            self._kernel(
-                means, m.discretization.transition_constant, m.discretization.transition_input,
-                m.gramian_constant, m.gramian_linear, m.gramian_quadratic, P, W, Phi, G, T,
-            )
-            self._add((P, W))
-        else:
-            self._add(reduce_window(*self.model.step_terms(means)))
+        self._add(self._chunk_terms(means))
         self._blocks += self._chunk
         if self._blocks < self.L or self._blocks % self.update_blocks:
             return False
