@@ -206,7 +206,7 @@ class BlockStepper:
         is drawn now.
         """
         sim = self.sim
-        self._ctrls = sim.controls(accelerations)
+        self._ctrls = np.ascontiguousarray(sim.controls(accelerations))  # the layout the kernel was compiled for
         count = self._ctrls.shape[0]
         if count + 1 > self.out.shape[0]:
             raise QuadobsError(f"accelerations: at most {self.out.shape[0] - 1} steps per block, got {count}")
