@@ -222,3 +222,20 @@ def test_generic_estimators_are_recorded_beside_the_compiled_one(tmp_path):
     err = read_series(path, "errors/frozen/position/norm")["values"][:, 0]
     assert len(err) == 501 and err[0] > 20.0
     assert read_series(path, "observer/augmented/covariance_trace")["values"][0, 0] == pytest.approx(900.0)
+
+
+def test_read_kernel_is_compiled_once_for_the_arguments_it_gets():
+    """The stepper warms its kernel at construction with the layouts a run then passes, so no
+    compilation happens inside the loop (where it would be counted as simulation time)."""
+    pytest.importorskip("numba")
+    from quadobs.testbed._read import read_step
+
+    sc = load_scenario("ifac2021", duration=0.5)
+    sim = VehicleSim(3, sc.beacons)
+    sim.reset(sc.trajectory.position(0.0), sc.trajectory.velocity_at(0.0))
+    stepper = BlockStepper(sim, 500, SensorModel(sc))
+    compiled = list(read_step.signatures)
+    nblk = stepper.begin(sc.trajectory.step_accelerations(0.0, sc.dt, sc.steps))
+    for j in range(nblk):
+        stepper.step(j)
+    assert read_step.signatures == compiled and len(compiled) == 1
