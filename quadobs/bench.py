@@ -447,7 +447,7 @@ def _run_bench(steps, repeats, batch, batch_steps, threads, quick, log) -> dict:
 
     say("scaling with n and q")
     result["scaling"] = _scaling(max(min(calls, 2000), 50), quick, max(repeats // 2, 1))
-    notes.append("GPU batch figure: not measured (no GPU on this machine); the CPU path is the default")
+    notes.append("GPU batch figure: not measured (quadobs has no GPU path; the batch runs on the CPU)")
     result["targets"] = {
         "loop_ratio >= 0.5": _meets(result["loop_ratio"], 0.5, ">="),
         "batch_ratio >= 0.5": _meets(result["batch_ratio"], 0.5, ">="),
