@@ -370,13 +370,15 @@ def run_episode(
 
     # The monitor takes the inputs a chunk at a time, at the step that completes the chunk
     # (mon_left counts down to it; -1 and below: no monitor), and the rest at a block's end.
-    mon_left, mon_j = (monitor.room if monitor is not None else -1), 0
+    # What it has taken is its own count of steps, so a stop anywhere feeds it no step twice.
+    mon_left = monitor.room if monitor is not None else -1
 
     def feed_monitor(stop: int) -> None:
-        nonlocal mon_j
-        if monitor is not None and stop > mon_j:
-            monitor.push_many(raw_u[mon_j:stop])  # fewer steps than the chunk: no recomputation
-            mon_j = stop
+        """Feed the monitor the block's inputs before row ``stop`` that it has not taken (never past its chunk)."""
+        if monitor is not None:
+            take = min(block0 + stop - monitor.steps, monitor.room)
+            if take > 0:
+                monitor.push_many(raw_u[stop - take : stop])
 
     wall0 = _time.perf_counter()
     block0 = 0
@@ -385,7 +387,6 @@ def run_episode(
         for block0 in range(0, steps, _BLOCK):
             committed = flushing = False
             nblk = stepper.begin(traj.step_accelerations(block0 * dt, dt, min(_BLOCK, steps - block0)), block0)
-            mon_j = 0
             for j in range(nblk):
                 k = block0 + j
                 step(j)  # mj_step; readings, y_k, u_k of step k into raw[j]; truth x_(k+1) into raw[j + 1]
@@ -399,17 +400,17 @@ def run_episode(
                     bnd[b, j] = est.bounds
                 for _, step_and_record, est_rec in slots:
                     step_and_record(u, y, est_rec[j])  # x_hat_k, trace before; NIS after
+                completed = k + 1  # row j is complete: what follows only reads it
                 mon_left -= 1
                 if mon_left == 0:  # the monitor's chunk is complete: feed it (the measure may change here)
-                    if monitor.push_many(raw_u[mon_j : j + 1]):  # the window measure was recomputed
+                    if monitor.push_many(raw_u[monitor.steps - block0 : j + 1]):  # the window measure was recomputed
                         if xlog is not None:
                             xlog.capture(k + 1)
                         if monitor.warning is not None:
                             message = monitor.pop_warning()
                             if xlog is not None:
                                 xlog.warn(message, k + 1, (k + 1) * dt)
-                    mon_j, mon_left = j + 1, monitor.room
-                completed = k + 1
+                    mon_left = monitor.room
             done = nblk
             feed_monitor(done)
             if block0 + nblk == steps:  # the final row: x_K and the estimates at t_K

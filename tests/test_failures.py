@@ -137,6 +137,30 @@ def test_interrupt_at_a_block_boundary_records_each_step_once(tmp_path, monkeypa
     assert summary["measurements"]["dropped"] == int(np.ravel(dropped)[-1]) > 0
 
 
+@pytest.mark.parametrize("where", ["before", "after"])
+def test_interrupt_inside_the_excitation_monitor_counts_each_step_once(monkeypatch, where):
+    """Ctrl-C while the monitor processes a chunk (at t = 28 s, inside the second coast of
+    `degenerate`, where the measure is low): the open low segment ends at the stop, not a
+    chunk later, and nothing is fed twice."""
+    from quadobs.excitation import ExcitationMonitor
+
+    chunk_done = ExcitationMonitor._chunk_done
+
+    def stop_at_28s(self):
+        if self.steps == 28_000 and where == "before":
+            raise KeyboardInterrupt
+        out = chunk_done(self)
+        if self.steps == 28_000:
+            raise KeyboardInterrupt
+        return out
+
+    monkeypatch.setattr(ExcitationMonitor, "_chunk_done", stop_at_28s)
+    summary = run_episode(load_scenario("degenerate")).summary
+    assert summary["interrupted"] is True and summary["physics_steps"] == 28_000
+    segments = summary["excitation"]["low_segments"]
+    assert segments[-1][0] < 28.0 and segments[-1][1] == pytest.approx(28.0)
+
+
 def test_deferred_interrupts_hold_a_signal_until_the_section_ends():
     from quadobs.errors import deferred_interrupts
 
