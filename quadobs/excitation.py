@@ -818,7 +818,7 @@ class ExcitationMonitor:
 
     def push(self, u: np.ndarray) -> bool:
         """Take the input held over the next physics step; returns whether the measure was recomputed."""
-        self._buf[self._n_buf] = u
+        self._buf[self._n_buf] = as_array("u", u, self._buf.shape[1:])
         self._n_buf += 1
         self.steps += 1
         if self._n_buf < self._buf.shape[0]:
@@ -832,7 +832,8 @@ class ExcitationMonitor:
         that feeds exactly :attr:`room` steps at a time sees every recomputation at the step
         where it happens, for one call per chunk instead of one per step.
         """
-        k = len(U)
+        U = as_array("U", U, (None, self._buf.shape[1]))
+        k = U.shape[0]
         if k > self.room:
             raise QuadobsError(f"push_many: {k} steps given, but the chunk has room for {self.room}")
         self._buf[self._n_buf : self._n_buf + k] = U

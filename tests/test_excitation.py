@@ -419,6 +419,14 @@ def test_monitor_push_many_equals_push(rng):
     assert many.summary() == one.summary()
     with pytest.raises(QuadobsError, match="room for"):
         many.push_many(np.zeros((many.room + 1, 3)))
+    before = many.summary(), many.steps
+    with pytest.raises(QuadobsError, match="U: expected shape"):
+        many.push_many(np.zeros(3))  # one step given as a row would broadcast
+    with pytest.raises(QuadobsError, match="U"):
+        many.push_many(np.full((2, 3), np.nan))
+    with pytest.raises(QuadobsError, match="u"):
+        many.push(np.zeros(2))
+    assert (many.summary(), many.steps) == before  # refused input changes nothing
 
 
 def test_monitor_flags_exactly_the_coasting_segments():
