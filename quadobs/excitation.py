@@ -713,14 +713,16 @@ def scenario_report(scenario, window: float | None = None, step: float | None = 
 class ExcitationMonitor:
     """Sliding-window Gramian measure of the input applied so far, updated every few steps.
 
-    Feed :meth:`push` the input of every physics step. The input is averaged over hold
+    Feed :meth:`push` the input of every physics step, or :meth:`push_many` several at
+    once (up to :attr:`room`, the steps left in the current chunk). The input is averaged over hold
     steps of ``block`` physics steps (a hold step's mean acceleration, as in
     :func:`scenario_input`); each hold step contributes its transition and Gramian
     ``(Phi(u), G(u))`` (:class:`~quadobs.gramian.GramianModel`), and the window's
     ``W(t - delta, t)`` is their ordered composition (:func:`quadobs.gramian.compose`).
     The inputs are buffered and processed by chunks of ``c = gcd(window_blocks,
     update_blocks)`` hold steps (one update period with the defaults): a chunk's terms are
-    computed at once and reduced as a tree, and the chunks enter a two-stack sliding-window
+    composed in time order in one compiled call (:mod:`quadobs._gramian_kernels`; without
+    Numba, reduced as a tree by :func:`~quadobs.gramian.reduce_window`), and the chunks enter a two-stack sliding-window
     aggregation (new chunks are composed onto a back aggregate; old ones leave from a front
     stack of suffix aggregates rebuilt from the back once per window). That is about three
     ``N x N`` compositions per chunk, amortised, and no subtraction, so ``W`` is as exact
@@ -817,8 +819,16 @@ class ExcitationMonitor:
         return self._buf.shape[0] - self._n_buf
 
     def push(self, u: np.ndarray) -> bool:
-        """Take the input held over the next physics step; returns whether the measure was recomputed."""
-        self._buf[self._n_buf] = as_array("u", u, self._buf.shape[1:])
+        """Take the input held over the next physics step; returns whether the measure was recomputed.
+
+        ``u (p,)`` must be finite; a refused ``u`` raises :class:`QuadobsError` and changes nothing.
+        """
+        row = self._buf[self._n_buf]
+        if not (isinstance(u, np.ndarray) and u.shape == row.shape):
+            u = as_array("u", u, row.shape)  # raises, naming the problem
+        row[:] = u
+        if not math.isfinite(row.dot(row)):  # the row only counts once _n_buf moves past it
+            as_array("u", u, row.shape)
         self._n_buf += 1
         self.steps += 1
         if self._n_buf < self._buf.shape[0]:
