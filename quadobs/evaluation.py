@@ -602,7 +602,7 @@ def immersion_bound(scenario, every: int = 1) -> tuple[np.ndarray, np.ndarray] |
         return None
     dim, n, dt, steps = scenario.dimension, scenario.state_dim, scenario.dt, scenario.steps
     im = immerse(scenario.system(), method=scenario.observer.immersion)
-    k_aux, N = im.n_aux, im.dim
+    k_aux = im.n_aux
     disc = HeldInputDiscretization(im, dt, 0.0)
     C = im.output_matrix
     P0x, _ = initial_covariance(scenario)

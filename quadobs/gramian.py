@@ -183,7 +183,7 @@ class GramianModel:
         if not isinstance(im, Immersion):
             raise QuadobsError(f"immersion: expected an Immersion, got {type(im).__name__}")
         dt = as_finite_scalar("dt", self.dt, positive=True)
-        p, N = im.system.p, im.dim
+        p = im.system.p
         CtC = im.output_matrix.T @ im.output_matrix
 
         def step_gramian(u: np.ndarray) -> np.ndarray:

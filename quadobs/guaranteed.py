@@ -47,7 +47,7 @@ from __future__ import annotations
 import numpy as np
 
 from .discretize import HeldInputDiscretization
-from .errors import QuadobsError, as_array, as_finite_scalar
+from .errors import QuadobsError, as_array
 from .immersion import Immersion
 from .observer import Estimator
 from .zonotope import Zonotope, reduce_generators

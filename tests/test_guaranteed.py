@@ -1,7 +1,6 @@
 """Guaranteed localisation of the vehicle: each bound checked on its own, then MuJoCo episodes
 in which the true lifted state lies in the zonotope at every step."""
 
-import dataclasses
 
 import numpy as np
 import pytest
