@@ -11,22 +11,22 @@ The estimator core (this package's top level) needs only NumPy and SciPy:
 * :class:`ExtendedKalmanFilter`, :class:`UnscentedKalmanFilter`: the baselines on the
   original state (registered as the estimators ``"ekf"`` and ``"ukf"``).
 
-The MuJoCo testbed (:mod:`quadobs.testbed`), the rerun recording layer
-(:mod:`quadobs.recording`) and the episode runner (:mod:`quadobs.runner`) sit on top and
+The MuJoCo testbed (:mod:`quadobs.testbed.worlds`), the rerun recording layer
+(:mod:`quadobs.recording`) and the episode runner (:mod:`quadobs.testbed.episode`) sit on top and
 are imported only when used.
 """
 
-from .discretize import HeldInputDiscretization
-from .errors import QuadobsError
-from .filters import ExtendedKalmanFilter, UnscentedKalmanFilter
-from .immersion import Immersion, immerse, immerse_chain, immerse_minimal
-from .lmi import PRadiusDesign, pradius_gains
-from .observer import AugmentedObserver, Estimator
-from .scenario import Scenario, list_scenarios, load_scenario
-from .system import QuadraticSystem, range_outputs, vehicle_system, wind_system
-from .setmembership import ZonotopicEstimator
-from .trajectory import SinusoidTrajectory
-from .zonotope import IntervalMatrix, Zonotope
+from quadobs.core.held_input import HeldInputDiscretization
+from quadobs.errors import QuadobsError
+from quadobs.estimators.kalman import ExtendedKalmanFilter, UnscentedKalmanFilter
+from quadobs.core.immersion import Immersion, immerse, immerse_chain, immerse_minimal
+from quadobs.sets.pradius import PRadiusDesign, pradius_gains
+from quadobs.estimators.augmented import AugmentedObserver, Estimator
+from quadobs.testbed.scenario import Scenario, list_scenarios, load_scenario
+from quadobs.core.system import QuadraticSystem, range_outputs, vehicle_system, wind_system
+from quadobs.estimators.zonotopic import ZonotopicEstimator
+from quadobs.testbed.trajectory import SinusoidTrajectory
+from quadobs.sets.zonotope import IntervalMatrix, Zonotope
 
 __version__ = "0.1.0"
 

@@ -4,8 +4,8 @@
 prints a summary table; ``quadobs list`` names the built-in scenarios; ``quadobs excitation
 SCENARIO [--window S]`` prints the persistence-of-excitation report of the scenario's input
 (no physics, no MuJoCo); ``quadobs campaign SCENARIO --runs N --out DIR`` runs a Monte
-Carlo campaign (:mod:`quadobs.campaign`); ``quadobs bench [--json PATH]`` measures the
-estimators' cost beside the physics (:mod:`quadobs.bench`). Errors in the
+Carlo campaign (:mod:`quadobs.studies.campaign`); ``quadobs bench [--json PATH]`` measures the
+estimators' cost beside the physics (:mod:`quadobs.studies.bench`). Errors in the
 input (a bad scenario field, an unwritable path) print one line naming the problem and
 exit with status 2; Ctrl-C stops a run after closing its recording (status 130).
 """
@@ -18,7 +18,7 @@ import signal
 import sys
 from pathlib import Path
 
-from .errors import QuadobsError
+from quadobs.errors import QuadobsError
 
 __all__ = ["main"]
 
@@ -67,7 +67,7 @@ def print_summary(summary: dict, file=sys.stdout) -> None:
 
 
 def _cmd_list(args) -> int:
-    from .scenario import list_scenarios
+    from quadobs.testbed.scenario import list_scenarios
 
     for name, desc in list_scenarios().items():
         print(f"{name:16s} {desc}")
@@ -85,7 +85,7 @@ def _estimator_list(text: str | None) -> list[str] | None:
 
 
 def _cmd_le2013(args) -> int:
-    from .le2013 import format_table, run_le2013
+    from quadobs.studies.le2013.study import format_table, run_le2013
 
     steps = 50 if args.duration is None else int(round(args.duration))
     summary = run_le2013(args.out, args.summary, seed=0 if args.seed is None else args.seed, steps=steps, runs=args.runs)
@@ -98,8 +98,8 @@ def _cmd_le2013(args) -> int:
 
 
 def _cmd_run(args) -> int:
-    from .runner import run_episode
-    from .scenario import load_scenario
+    from quadobs.testbed.episode import run_episode
+    from quadobs.testbed.scenario import load_scenario
 
     if args.scenario == "le2013":
         return _cmd_le2013(args)
@@ -118,12 +118,12 @@ def _cmd_run(args) -> int:
 
 
 def _cmd_excitation(args) -> int:
-    from .excitation import scenario_report
-    from .runner import write_json_atomic
-    from .scenario import load_scenario
+    from quadobs.observability.excitation import scenario_report
+    from quadobs.testbed.episode import write_json_atomic
+    from quadobs.testbed.scenario import load_scenario
 
     if args.json:
-        from .errors import check_writable
+        from quadobs.errors import check_writable
 
         check_writable(args.json)
     scenario = load_scenario(args.scenario)
@@ -136,8 +136,8 @@ def _cmd_excitation(args) -> int:
 
 
 def _cmd_campaign(args) -> int:
-    from .campaign import print_campaign, run_campaign
-    from .scenario import load_scenario
+    from quadobs.studies.campaign import print_campaign, run_campaign
+    from quadobs.testbed.scenario import load_scenario
 
     scenario = load_scenario(args.scenario, duration=args.duration, seed=args.seed)
     result = run_campaign(
@@ -159,11 +159,11 @@ def _cmd_campaign(args) -> int:
 
 
 def _cmd_bench(args) -> int:
-    from .bench import print_bench, run_bench
-    from .runner import write_json_atomic
+    from quadobs.studies.bench import print_bench, run_bench
+    from quadobs.testbed.episode import write_json_atomic
 
     if args.json is not None:
-        from .errors import check_writable
+        from quadobs.errors import check_writable
 
         check_writable(args.json)
     for name in ("steps", "repeats", "batch", "batch_steps"):

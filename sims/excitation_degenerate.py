@@ -14,7 +14,7 @@ import numpy as np
 
 from quadobs import load_scenario
 from quadobs.recording import read_series, read_text_log
-from quadobs.runner import run_episode
+from quadobs.testbed.episode import run_episode
 
 COLUMNS = [
     ("|e_p| (m)", "errors/augmented/position/norm", "{:9.4f}"),

@@ -17,8 +17,8 @@ from pathlib import Path
 import numpy as np
 
 from quadobs import load_scenario
-from quadobs.excitation import scenario_monitor
-from quadobs.runner import run_episode
+from quadobs.observability.excitation import scenario_monitor
+from quadobs.testbed.episode import run_episode
 
 
 def main() -> None:

@@ -14,10 +14,10 @@ import numpy as np
 import rerun as rr
 
 from quadobs import load_scenario
-from quadobs.estimators import augmented_observer
+from quadobs.testbed.registry import augmented_observer
 from quadobs.recording import Recorder
-from quadobs.sensors import SensorModel
-from quadobs.testbed import VehicleSim
+from quadobs.testbed.sensors import SensorModel
+from quadobs.testbed.worlds import VehicleSim
 
 
 def main() -> None:

@@ -23,7 +23,7 @@ import time
 import numpy as np
 
 from quadobs import AugmentedObserver, immerse, load_scenario, vehicle_system
-from quadobs.runner import run_episode, write_json_atomic
+from quadobs.testbed.episode import run_episode, write_json_atomic
 
 
 def drift(t: np.ndarray, err: np.ndarray, settle: float, window: float) -> dict:

@@ -13,9 +13,9 @@ seeds as ``quadobs campaign`` on the scenario).
 import argparse
 
 from quadobs import load_scenario
-from quadobs.campaign import print_campaign, run_campaign
-from quadobs.estimators import register_estimator
-from quadobs.filters import ExtendedKalmanFilter, HeldInputModel, UnscentedKalmanFilter, baseline_settings
+from quadobs.studies.campaign import print_campaign, run_campaign
+from quadobs.testbed.registry import register_estimator
+from quadobs.estimators.kalman import ExtendedKalmanFilter, HeldInputModel, UnscentedKalmanFilter, baseline_settings
 
 
 def tuned(cls, accel_std: float):

@@ -12,7 +12,7 @@ from hypothesis.extra import numpy as hnp
 
 from quadobs import QuadobsError, QuadraticSystem, load_scenario
 from quadobs.cli import main
-from quadobs.scenario import parse_scenario
+from quadobs.testbed.scenario import parse_scenario
 
 FAST = settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 
@@ -112,7 +112,7 @@ SOME = settings(max_examples=40, deadline=None, suppress_health_check=[HealthChe
 
 
 def _vehicle_xml() -> str:
-    from quadobs.testbed import default_model_path
+    from quadobs.testbed.worlds import default_model_path
 
     return default_model_path().read_text()
 
@@ -122,8 +122,8 @@ def _vehicle_xml() -> str:
 def test_mjcf_mutations_load_or_name_the_problem(tmp_path_factory, data):
     """Renamed required elements are named in the error; deleted lines, truncations and junk
     attribute values give a QuadobsError or a model that passes every check."""
-    from quadobs.testbed import load_vehicle_model
-    from quadobs.testbed.model import REQUIRED_ELEMENTS
+    from quadobs.testbed.worlds import load_vehicle_model
+    from quadobs.testbed.worlds.model import REQUIRED_ELEMENTS
 
     xml = _vehicle_xml()
     kind = data.draw(st.sampled_from(["rename", "delete_line", "truncate", "attribute"]))
@@ -161,7 +161,7 @@ def test_mjcf_mutations_load_or_name_the_problem(tmp_path_factory, data):
 @SOME
 @given(beacons=st.one_of(arrays, junk), timestep=junk, wind=st.one_of(st.none(), arrays, junk))
 def test_model_arguments_are_checked(beacons, timestep, wind):
-    from quadobs.testbed import load_vehicle_model
+    from quadobs.testbed.worlds import load_vehicle_model
 
     try:
         vm = load_vehicle_model(beacons, timestep=timestep, wind=wind)
@@ -171,7 +171,7 @@ def test_model_arguments_are_checked(beacons, timestep, wind):
     assert vm.model.opt.timestep > 0 and np.isfinite(vm.beacons).all()
 
 
-TOML = (__import__("quadobs.scenario", fromlist=["_builtin_dir"])._builtin_dir() / "beacons.toml").read_text()
+TOML = (__import__("quadobs.testbed.scenario", fromlist=["_builtin_dir"])._builtin_dir() / "beacons.toml").read_text()
 TOML_VALUES = st.sampled_from(
     ['"x"', "[]", "[1, 2]", "nan", "inf", "-inf", "-1", "0", "1e400", "true", "{}", "{ a = 1 }", '"1.0"', "[[1], [2]]", "", "=", "[", "1979-05-27"]
 )
@@ -260,7 +260,7 @@ def test_pradius_design_arguments_are_checked(A, F, C, bounds, approach):
 @FAST
 @given(center=st.one_of(arrays, junk), generators=st.one_of(arrays, junk))
 def test_zonotope_arguments_are_checked(center, generators):
-    from quadobs.zonotope import Zonotope
+    from quadobs.sets.zonotope import Zonotope
 
     try:
         z = Zonotope(center, generators)
@@ -274,7 +274,7 @@ def test_zonotope_arguments_are_checked(center, generators):
 @FAST
 @given(lower=st.one_of(arrays, junk), upper=st.one_of(arrays, junk))
 def test_zonotope_boxes_are_checked(lower, upper):
-    from quadobs.zonotope import Zonotope
+    from quadobs.sets.zonotope import Zonotope
 
     try:
         z = Zonotope.from_box(lower, upper)

@@ -10,12 +10,12 @@ import numpy as np
 import pytest
 
 from quadobs import load_scenario
-from quadobs.campaign import run_campaign, run_seed
+from quadobs.studies.campaign import run_campaign, run_seed
 from quadobs.cli import main
-from quadobs.estimators import register_estimator
-from quadobs.filters import extended_kalman_filter
-from quadobs.observer import Estimator
-from quadobs.runner import run_episode
+from quadobs.testbed.registry import register_estimator
+from quadobs.estimators.kalman import extended_kalman_filter
+from quadobs.estimators.augmented import Estimator
+from quadobs.testbed.episode import run_episode
 
 NAMES = ["augmented", "ekf", "ukf"]
 KEYS = {
@@ -275,7 +275,7 @@ def test_cli_campaign_bad_input(tmp_path, capsys, args, message):
 
 def test_wind_scenario_campaign():
     """Wind state (p, v_a, v_w), ranges and airspeed: the baselines, the bound and the immersion bound all run."""
-    from quadobs.scenario import parse_scenario
+    from quadobs.testbed.scenario import parse_scenario
 
     data = short(1.0).to_dict()
     data["dimension"] = 2

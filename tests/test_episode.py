@@ -10,7 +10,7 @@ import pytest
 
 from quadobs import load_scenario
 from quadobs.recording import list_entities, read_series
-from quadobs.runner import run_episode
+from quadobs.testbed.episode import run_episode
 
 SUMMARY_KEYS = {
     "scenario",
@@ -88,7 +88,7 @@ def test_same_seed_same_recording(tmp_path):
     data = sc.to_dict()
     data["noise"] = {"range_std": 0.2, "accel_std": 0.05}
     data["initial"] = {"kind": "random", "position_spread": 5.0, "velocity_spread": 1.0}
-    from quadobs.scenario import parse_scenario
+    from quadobs.testbed.scenario import parse_scenario
 
     sc = parse_scenario(data)
     runs = []

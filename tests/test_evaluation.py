@@ -6,7 +6,7 @@ import pytest
 from scipy import stats
 
 from quadobs import QuadobsError, QuadraticSystem, load_scenario
-from quadobs.evaluation import (
+from quadobs.evaluation.ensemble import (
     chi2_interval,
     convergence_times,
     ensemble,
@@ -19,8 +19,8 @@ from quadobs.evaluation import (
     scenario_crb,
     set_containment,
 )
-from quadobs.filters import ExtendedKalmanFilter, HeldInputModel, OutputModel
-from quadobs.scenario import parse_scenario
+from quadobs.estimators.kalman import ExtendedKalmanFilter, HeldInputModel, OutputModel
+from quadobs.testbed.scenario import parse_scenario
 
 
 def test_chi2_interval_closed_form():
@@ -214,7 +214,7 @@ def test_scenario_crb():
 
 def test_ekf_near_the_truth_has_the_pcrb_as_covariance():
     """In the MuJoCo testbed, an EKF started close to the truth linearises about it: its covariance is the bound."""
-    from quadobs.runner import run_episode
+    from quadobs.testbed.episode import run_episode
 
     data = load_scenario("ifac2021-noisy", duration=3.0).to_dict()
     data["initial"] = {"kind": "random", "position_spread": 0.05, "velocity_spread": 0.01}

@@ -9,7 +9,7 @@ import pytest
 from scipy.integrate import solve_ivp
 
 from quadobs import QuadobsError, QuadraticSystem, immerse, list_scenarios, load_scenario, vehicle_system, wind_system
-from quadobs.excitation import (
+from quadobs.observability.excitation import (
     ExcitationMonitor,
     HeldInput,
     excitation_report,
@@ -18,9 +18,9 @@ from quadobs.excitation import (
     scenario_monitor,
     scenario_report,
 )
-from quadobs.gramian import GramianModel, reduce_window, scaled_min_eig, sliding_windows
-from quadobs.persistence import chain_structure, r_sequence
-from quadobs.scenario import parse_scenario
+from quadobs.observability.gramian import GramianModel, reduce_window, scaled_min_eig, sliding_windows
+from quadobs.observability.conditions import chain_structure, r_sequence
+from quadobs.testbed.scenario import parse_scenario
 
 from conftest import random_nilpotent
 
@@ -63,7 +63,7 @@ def _poly_eval(coef, t):
 def test_r_sequence_matches_recursion_eq28(rng, with_d):
     """Eq. 38 (via Gamma, eq. 39) equals the recursion of eq. 28 run on exact polynomial derivatives.
 
-    With a linear output term the recursion starts at r_0 = d^T (module docstring of quadobs.persistence).
+    With a linear output term the recursion starts at r_0 = d^T (module docstring of quadobs.observability.conditions).
     """
     n, p = 4, 2
     A = random_nilpotent(rng, n, 2)
@@ -389,7 +389,7 @@ def test_monitor_matches_the_offline_gramian():
 @pytest.mark.parametrize("name", ["ifac2021", "wind"])
 def test_compiled_chunk_terms_equal_the_tree_reduction(rng, name):
     pytest.importorskip("numba")
-    from quadobs._gramian_kernels import held_run_terms
+    from quadobs._kernels.gramian import held_run_terms
 
     model = scenario_monitor(load_scenario(name)).model
     U = rng.normal(size=(17, model.immersion.system.p))

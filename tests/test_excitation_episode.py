@@ -7,7 +7,7 @@ import pytest
 
 from quadobs import load_scenario
 from quadobs.recording import list_entities, read_series, read_text_log
-from quadobs.runner import run_episode
+from quadobs.testbed.episode import run_episode
 
 
 @pytest.fixture(scope="module")

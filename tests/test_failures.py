@@ -14,7 +14,7 @@ import pytest
 from quadobs import QuadobsError, load_scenario
 from quadobs.cli import main
 from quadobs.recording import list_entities, read_series, read_text_log
-from quadobs.runner import WALL_CLOCK_KEYS, run_episode
+from quadobs.testbed.episode import WALL_CLOCK_KEYS, run_episode
 
 RERUN = str(Path(sys.executable).parent / "rerun")
 ROOT = Path(__file__).resolve().parents[1]
@@ -64,7 +64,7 @@ def test_signal_mid_run_leaves_a_verified_recording_of_every_step(tmp_path, sig)
 def test_error_inside_the_loop_closes_the_recording_and_propagates(tmp_path, monkeypatch):
     """An estimator failing at step N (past a block boundary): the error reaches the caller and the
     .rrd verifies and holds steps 0..N-1, with the error in its event log; no summary is written."""
-    from quadobs.observer import AugmentedObserver
+    from quadobs.estimators.augmented import AugmentedObserver
 
     N = 10_000
     calls = [0]
@@ -95,7 +95,7 @@ def test_interrupt_at_a_block_boundary_records_each_step_once(tmp_path, monkeypa
     rows were sent, as the next block starts): steps 0..8191 are each recorded exactly once."""
     import tqdm
 
-    from quadobs.testbed import BlockStepper
+    from quadobs.testbed.worlds import BlockStepper
 
     class Stop:
         def __init__(self, *args, **kwargs):
@@ -142,7 +142,7 @@ def test_interrupt_inside_the_excitation_monitor_counts_each_step_once(monkeypat
     """Ctrl-C while the monitor processes a chunk (at t = 28 s, inside the second coast of
     `degenerate`, where the measure is low): the open low segment ends at the stop, not a
     chunk later, and nothing is fed twice."""
-    from quadobs.excitation import ExcitationMonitor
+    from quadobs.observability.excitation import ExcitationMonitor
 
     chunk_done = ExcitationMonitor._chunk_done
 
@@ -218,12 +218,12 @@ def test_a_stop_during_a_send_leaves_every_series_with_each_row_once(tmp_path):
 def test_unwritable_output_fails_before_the_simulation(tmp_path, monkeypatch, which):
     """An output under a regular file cannot be written: a QuadobsError naming the path, raised before
     MuJoCo is even set up, and no file is created."""
-    import quadobs.testbed
+    import quadobs.testbed.worlds
 
     def no_simulation(*a, **k):
         raise AssertionError("the simulation started")
 
-    monkeypatch.setattr(quadobs.testbed, "VehicleSim", no_simulation)
+    monkeypatch.setattr(quadobs.testbed.worlds, "VehicleSim", no_simulation)
     blocker = tmp_path / "file"
     blocker.write_text("")
     paths = {"out": tmp_path / "ok.rrd", "summary": tmp_path / "ok.json"}
@@ -247,7 +247,7 @@ def test_cli_unwritable_output_exits_2_and_creates_nothing(tmp_path, capsys):
 
 def test_json_writes_are_atomic(tmp_path, monkeypatch):
     """A failure while writing a summary leaves the previous file intact and no temporary file behind."""
-    import quadobs.runner as runner
+    import quadobs.testbed.episode as runner
 
     path = tmp_path / "s.json"
     runner.write_json_atomic(path, {"a": 1})

@@ -5,7 +5,7 @@ import pytest
 
 from conftest import random_system
 from quadobs import AugmentedObserver, QuadobsError, immerse, vehicle_system, wind_system
-from quadobs.batch import BatchAugmentedObserver
+from quadobs.estimators.augmented_batch import BatchAugmentedObserver
 
 pytest.importorskip("numba")
 

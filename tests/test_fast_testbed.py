@@ -7,14 +7,14 @@ import numpy as np
 import pytest
 
 from quadobs import load_scenario
-from quadobs.bench import BENCH_KEYS
+from quadobs.studies.bench import BENCH_KEYS
 from quadobs.cli import main
-from quadobs.metrics import ConvergenceTracker
+from quadobs.evaluation.convergence import ConvergenceTracker
 from quadobs.recording import Recorder, read_series
-from quadobs.scenario import parse_scenario
-from quadobs.sensors import SensorModel
-from quadobs.testbed import BlockStepper, VehicleSim
-from quadobs.testbed.batch import VehicleBatch
+from quadobs.testbed.scenario import parse_scenario
+from quadobs.testbed.sensors import SensorModel
+from quadobs.testbed.worlds import BlockStepper, VehicleSim
+from quadobs.testbed.worlds.batch import VehicleBatch
 
 pytest.importorskip("numba")
 
@@ -192,8 +192,8 @@ def test_block_stepper_numpy_path_agrees():
 
 def test_generic_estimators_are_recorded_beside_the_compiled_one(tmp_path):
     """An estimator with only step/x_hat/x_covariance goes through the generic record path."""
-    from quadobs import estimators as registry
-    from quadobs.runner import run_episode
+    import quadobs.testbed.registry as registry
+    from quadobs.testbed.episode import run_episode
 
     class Frozen:  # keeps its initial guess; a covariance of 2 I
         def __init__(self, x0):
@@ -228,7 +228,7 @@ def test_read_kernel_is_compiled_once_for_the_arguments_it_gets():
     """The stepper warms its kernel at construction with the layouts a run then passes, so no
     compilation happens inside the loop (where it would be counted as simulation time)."""
     pytest.importorskip("numba")
-    from quadobs.testbed._read import read_step
+    from quadobs.testbed.worlds._read import read_step
 
     sc = load_scenario("ifac2021", duration=0.5)
     sim = VehicleSim(3, sc.beacons)

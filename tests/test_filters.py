@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 
 from quadobs import QuadobsError, QuadraticSystem, load_scenario, vehicle_system, wind_system
-from quadobs.estimators import build_estimators
-from quadobs.filters import (
+from quadobs.testbed.registry import build_estimators
+from quadobs.estimators.kalman import (
     ExtendedKalmanFilter,
     HeldInputModel,
     OutputModel,
@@ -14,7 +14,7 @@ from quadobs.filters import (
     initial_covariance,
     step_power,
 )
-from quadobs.scenario import parse_scenario
+from quadobs.testbed.scenario import parse_scenario
 
 BEACONS = np.array([[0.0, 0.0, 0.0], [30.0, -5.0, 2.0], [-10.0, 25.0, -3.0]])
 

@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 
 from quadobs import QuadobsError, immerse, load_scenario, vehicle_system
-from quadobs.estimators import build_estimators
-from quadobs.guaranteed import ZonotopicAugmentedEstimator, lift_box, range_strip
-from quadobs.scenario import parse_scenario
-from quadobs.sensors import SensorModel, initial_guess, spawn_streams
+from quadobs.testbed.registry import build_estimators
+from quadobs.estimators.zonotopic_vehicle import ZonotopicAugmentedEstimator, lift_box, range_strip
+from quadobs.testbed.scenario import parse_scenario
+from quadobs.testbed.sensors import SensorModel, initial_guess, spawn_streams
 
 
 def test_range_strip_contains_every_true_output_and_is_tight(rng):
@@ -75,8 +75,8 @@ def test_prediction_contains_the_true_step_under_input_error(rng):
 
 def test_mujoco_step_matches_the_exact_discretisation():
     """The margin argument: MuJoCo's RK4 step of the held force equals the exact held-input step to rounding."""
-    from quadobs.discretize import HeldInputDiscretization
-    from quadobs.testbed import VehicleSim
+    from quadobs.core.held_input import HeldInputDiscretization
+    from quadobs.testbed.worlds import VehicleSim
 
     sc = load_scenario("ifac2021-bounded", duration=2.0)
     im = immerse(sc.system())
@@ -106,7 +106,7 @@ def _bounded(duration, seed, **noise):
 @pytest.mark.parametrize("seed", range(6))
 def test_true_state_inside_the_zonotope_at_every_step(seed):
     """Short seeded MuJoCo episodes: lift(x_true) in the zonotope (linear program) at every step."""
-    from quadobs.testbed import VehicleSim
+    from quadobs.testbed.worlds import VehicleSim
 
     sc = _bounded(3.0, seed, range_bound=0.2, accel_bound=0.05)
     sim = VehicleSim(3, sc.beacons, timestep=sc.dt)
@@ -131,7 +131,7 @@ def test_true_state_inside_the_zonotope_at_every_step(seed):
 
 def test_episode_records_guaranteed_bounds_that_shrink(tmp_path):
     from quadobs.recording import list_entities, read_series
-    from quadobs.runner import run_episode
+    from quadobs.testbed.episode import run_episode
 
     sc = load_scenario("ifac2021-bounded", duration=6.0, seed=3)
     rrd = tmp_path / "b.rrd"
@@ -206,7 +206,7 @@ def _plain_correct(est, Z, y):
 
 
 def _plain_parallelotope(H, s):
-    """Property 3 with the parallelotope of :func:`quadobs.zonotope._reduce_parallelotope`, through scipy.linalg.qr."""
+    """Property 3 with the parallelotope of :func:`quadobs.sets.zonotope._reduce_parallelotope`, through scipy.linalg.qr."""
     import scipy.linalg as sla
 
     n = H.shape[0]
@@ -224,8 +224,8 @@ def test_vehicle_zonotope_step_matches_the_plain_formulas_from_each_state():
     The run as a whole is not compared: the set's reduction reacts to perturbations of 1e-13
     (a different pivot), so two runs that differ by rounding drift apart, both containing the truth.
     """
-    from quadobs.bench import _vehicle_data
-    from quadobs.zonotope import _pivoted_qr_diag, reduce_generators
+    from quadobs.studies.bench import _vehicle_data
+    from quadobs.sets.zonotope import _pivoted_qr_diag, reduce_generators
 
     sc = load_scenario("ifac2021-bounded")
     U, Y, x0 = _vehicle_data(sc, 120)

@@ -6,7 +6,7 @@ from scipy.integrate import solve_ivp
 
 from conftest import random_nilpotent, random_system
 from quadobs import QuadobsError, QuadraticSystem, immerse, immerse_chain, immerse_minimal, vehicle_system, wind_system
-from quadobs.immersion import (
+from quadobs.core.immersion import (
     duplication_matrix,
     lifted_input_matrix,
     lifted_state_matrix,

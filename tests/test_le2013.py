@@ -9,7 +9,7 @@ import pytest
 from quadobs import IntervalMatrix, Zonotope, ZonotopicEstimator
 from quadobs.cli import main
 from quadobs.errors import QuadobsError
-from quadobs.le2013 import A_INTERVAL, C, F, METHODS, NOISE_BOUND, PAPER_GAINS, design_gains, reproduce, run_once, simulate, summary_of
+from quadobs.studies.le2013.study import A_INTERVAL, C, F, METHODS, NOISE_BOUND, PAPER_GAINS, design_gains, reproduce, run_once, simulate, summary_of
 
 
 @pytest.fixture(scope="module")

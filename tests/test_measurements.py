@@ -5,8 +5,8 @@ import pytest
 
 from quadobs import load_scenario
 from quadobs.recording import read_series, read_text_log
-from quadobs.runner import run_episode
-from quadobs.scenario import parse_scenario
+from quadobs.testbed.episode import run_episode
+from quadobs.testbed.scenario import parse_scenario
 
 
 @pytest.fixture(scope="module")

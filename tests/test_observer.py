@@ -7,7 +7,7 @@ from scipy.integrate import solve_ivp
 
 from conftest import random_system
 from quadobs import AugmentedObserver, HeldInputDiscretization, QuadobsError, immerse, vehicle_system
-from quadobs.discretize import van_loan
+from quadobs.core.held_input import van_loan
 
 
 @pytest.fixture

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from quadobs import IntervalMatrix, QuadobsError, Zonotope, pradius_gains
-from quadobs.le2013 import A_INTERVAL, C, F, NOISE_BOUND, PAPER_GAINS
+from quadobs.studies.le2013.study import A_INTERVAL, C, F, NOISE_BOUND, PAPER_GAINS
 
 
 @pytest.fixture(scope="module")

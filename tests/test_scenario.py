@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from quadobs import QuadobsError, list_scenarios, load_scenario
-from quadobs.scenario import parse_scenario
+from quadobs.testbed.scenario import parse_scenario
 
 
 def test_builtins_load_and_round_trip():

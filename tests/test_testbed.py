@@ -5,7 +5,7 @@ import pytest
 import scipy.linalg as sla
 
 from quadobs import QuadobsError, vehicle_system
-from quadobs.testbed import VehicleSim, default_model_path, load_vehicle_model
+from quadobs.testbed.worlds import VehicleSim, default_model_path, load_vehicle_model
 
 BEACONS = np.array([[0.0, 0.0, 0.0], [30.0, -5.0, 2.0]])
 

@@ -9,8 +9,8 @@ from scipy.optimize import linprog
 from scipy.spatial import ConvexHull
 
 from quadobs import QuadobsError
-from quadobs.setmembership import segment_gain, volume_gain, volume_gain_terms
-from quadobs.zonotope import (
+from quadobs.estimators.zonotopic import segment_gain, volume_gain, volume_gain_terms
+from quadobs.sets.zonotope import (
     REDUCTION_METHODS,
     IntervalMatrix,
     Zonotope,

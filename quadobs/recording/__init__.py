@@ -1,8 +1,8 @@
 """The recording layer: buffered columns to rerun ``.rrd`` files, the default blueprint, reading back (imports rerun)."""
 
-from .episode import EpisodeLog, default_blueprint
-from .reader import list_entities, read_series, read_text_log
-from .recorder import Recorder, Series, check_writable
+from quadobs.recording.episode import EpisodeLog, default_blueprint
+from quadobs.recording.reader import list_entities, read_series, read_text_log
+from quadobs.recording.recorder import Recorder, Series, check_writable
 
 __all__ = [
     "EpisodeLog",

@@ -36,8 +36,8 @@ import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
 
-from ..scenario import Scenario
-from .recorder import Recorder
+from quadobs.testbed.scenario import Scenario
+from quadobs.recording.recorder import Recorder
 
 __all__ = ["EpisodeLog", "default_blueprint"]
 

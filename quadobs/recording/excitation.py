@@ -22,8 +22,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..excitation import ExcitationMonitor
-from .recorder import Recorder
+from quadobs.observability.excitation import ExcitationMonitor
+from quadobs.recording.recorder import Recorder
 
 __all__ = ["ExcitationLog"]
 

@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 from rerun.chunk import RrdReader
 
-from ..errors import QuadobsError
+from quadobs.errors import QuadobsError
 
 __all__ = ["read_series", "list_entities", "read_text_log"]
 

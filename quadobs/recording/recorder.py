@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 import rerun as rr
 
-from ..errors import QuadobsError, check_writable, deferred_interrupts
+from quadobs.errors import QuadobsError, check_writable, deferred_interrupts
 
 __all__ = ["Recorder", "Series", "check_writable"]
 

@@ -1,0 +1,513 @@
+"""Immersion of a quadratic-output system into a state-affine (LTV) system with linear output.
+
+Two constructions, both returning an :class:`Immersion`:
+
+* :func:`immerse_chain`, the single-output chain of ``000_f34cd1199256bdad.txt``
+  (eqs. 6, 10-17): auxiliary states ``z_i = 1/2 x^T C_i x``, ``i < m``, where ``m`` is
+  the first index with ``C_m = 0`` (Assumption 1).
+* :func:`immerse_minimal`, Algorithm 1 of ``003_65f070b2762e6d70.txt`` (slide eqs. 4-14,
+  30, 31): any ``A``, several outputs with linear terms, and the fewest auxiliary states,
+  namely the dimension of the smallest ``A_bar``-invariant row space containing ``C_bar``.
+
+:func:`immerse` uses the minimal construction for every system.
+
+In both, ``z = (xi, x)``: ``xi`` holds the auxiliary states, each a quadratic form
+``xi_i = 1/2 x^T L_i x``, and
+
+.. math::
+
+    \\dot z = \\mathcal A(u) z + \\mathcal B u, \\qquad y = \\mathcal C z, \\qquad
+    \\mathcal A(u) = \\begin{bmatrix} M & U(u) \\\\ 0 & A \\end{bmatrix},\\;
+    U(u)_{i,:} = u^\\top B^\\top L_i,\\;
+    \\mathcal B = \\begin{bmatrix} 0 \\\\ B \\end{bmatrix},\\;
+    \\mathcal C = [F \\;|\\; D],
+
+where ``L_A(L_i) = L_i A + A^T L_i = sum_j M_ij L_j`` (the auxiliary space is
+``L_A``-invariant) and ``C_h = sum_i F_hi L_i``. ``A(u)`` is affine in ``u``:
+``A(u) = A_0 + sum_j u_j A_j``.
+
+Rank decisions
+--------------
+Numerical rank decisions are relative to the data. The chain stops at the first ``k``
+with ``||C_k||_2 <= rtol (2 ||A||_2)^k ||C||_2`` (the right-hand side bounds ``||C_k||``
+by eq. 7). Algorithm 1 counts a candidate row of ``L_{k-1} A_bar`` as new when its
+component outside the span of the rows found so far exceeds
+``rtol ||L_{k-1}||_2 ||A_bar||_2`` (pivoted QR), and ``p_0 = rank C_bar`` uses
+``rtol ||C_bar||_2``. The default ``rtol`` is :data:`DEFAULT_RTOL`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from math import comb
+
+import numpy as np
+import scipy.linalg as sla
+
+from quadobs.errors import QuadobsError, as_finite_scalar
+from quadobs.core.system import QuadraticSystem
+
+__all__ = [
+    "DEFAULT_RTOL",
+    "Immersion",
+    "immerse",
+    "immerse_chain",
+    "immerse_minimal",
+    "lyapunov_sequence",
+    "lyapunov_term",
+    "vanishing_index",
+    "duplication_matrix",
+    "vech",
+    "quadratic_lift",
+    "lifted_state_matrix",
+    "lifted_input_matrix",
+    "stacked_output_matrix",
+    "observability_rank",
+]
+
+#: Default relative tolerance for the rank decisions (see the module docstring).
+DEFAULT_RTOL = 1e-9
+
+
+# --------------------------------------------------------------------------------------
+# The Lyapunov-operator sequence (000_f34cd1199256bdad.txt eqs. 6 and 7)
+# --------------------------------------------------------------------------------------
+
+
+def lyapunov_sequence(A: np.ndarray, C: np.ndarray, count: int) -> np.ndarray:
+    """``C_0 = C``, ``C_{i+1} = C_i A + A^T C_i`` (eq. 6), for ``i = 0..count``.
+
+    Returns an array of shape ``(count + 1, n, n)``.
+    """
+    A = np.asarray(A, dtype=float)
+    out = np.empty((count + 1,) + A.shape)
+    out[0] = C
+    for i in range(count):
+        out[i + 1] = out[i] @ A + A.T @ out[i]
+    return out
+
+
+def lyapunov_term(A: np.ndarray, C: np.ndarray, i: int) -> np.ndarray:
+    """Closed form ``C_i = sum_r binom(i, r) (A^T)^r C A^(i-r)`` (eq. 7)."""
+    A = np.asarray(A, dtype=float)
+    powers = [np.eye(A.shape[0])]
+    for _ in range(i):
+        powers.append(powers[-1] @ A)
+    return sum(comb(i, r) * powers[r].T @ C @ powers[i - r] for r in range(i + 1))
+
+
+def vanishing_index(A: np.ndarray, C: np.ndarray, rtol: float = DEFAULT_RTOL) -> int:
+    """The first ``m`` with ``C_m = 0`` in the sequence of eq. (6) (Assumption 1).
+
+    ``C_k`` counts as zero when ``||C_k||_2 <= rtol (2 ||A||_2)^k ||C||_2``; ``(2||A||)^k ||C||``
+    bounds ``||C_k||`` by eq. (7), so the test is relative to the size ``C_k`` could have.
+
+    Raises
+    ------
+    QuadobsError
+        If ``C_k`` is not zero by ``k = n(n+1)/2``: the ``C_k`` live in the
+        ``n(n+1)/2``-dimensional space of symmetric matrices, so if the sequence ever
+        vanished it would have by then; no finite ``m`` exists (Assumption 1 fails).
+    """
+    A = np.asarray(A, dtype=float)
+    n = A.shape[0]
+    limit = n * (n + 1) // 2
+    a_norm = 2.0 * np.linalg.norm(A, 2)
+    c_norm = np.linalg.norm(C, 2)
+    if c_norm == 0.0:
+        return 0
+    Ck = np.array(C, dtype=float)
+    for k in range(limit + 1):
+        if np.linalg.norm(Ck, 2) <= rtol * a_norm**k * c_norm:
+            return k
+        Ck = Ck @ A + A.T @ Ck
+    raise QuadobsError(
+        f"C: Assumption 1 fails, C_k = C_(k-1) A + A^T C_(k-1) is not zero by k = n(n+1)/2 = {limit}, "
+        "so no finite m with C_m = 0 exists; the minimal immersion (immerse(system)) handles any A"
+    )
+
+
+# --------------------------------------------------------------------------------------
+# Half-vectorisation machinery (003_65f070b2762e6d70.txt slide eqs. 4-6)
+# --------------------------------------------------------------------------------------
+
+
+def _vech_pairs(n: int) -> tuple[np.ndarray, np.ndarray]:
+    """Row and column indices of the lower triangle, column-major (the ``vech`` order)."""
+    cols, rows = [], []
+    for j in range(n):
+        for i in range(j, n):
+            rows.append(i)
+            cols.append(j)
+    return np.array(rows), np.array(cols)
+
+
+def duplication_matrix(n: int) -> np.ndarray:
+    """The duplication matrix ``D_n`` (shape ``(n^2, n(n+1)/2)``): ``D_n vech(S) = vec(S)``."""
+    rows, cols = _vech_pairs(n)
+    D = np.zeros((n * n, rows.size))
+    k = np.arange(rows.size)
+    D[rows + cols * n, k] = 1.0  # column-major vec index of (i, j)
+    D[cols + rows * n, k] = 1.0
+    return D
+
+
+def vech(S: np.ndarray) -> np.ndarray:
+    """Lower-triangular half-vectorisation, column-major; works on ``(..., n, n)``."""
+    S = np.asarray(S)
+    rows, cols = _vech_pairs(S.shape[-1])
+    return S[..., rows, cols]
+
+
+def _unvech_form(g: np.ndarray, n: int) -> np.ndarray:
+    """Symmetric ``L`` with ``g x^[2] = 1/2 x^T L x`` for rows ``g (..., n(n+1)/2)``."""
+    rows, cols = _vech_pairs(n)
+    S = np.zeros(g.shape[:-1] + (n, n))
+    S[..., rows, cols] = g
+    S[..., cols, rows] = g
+    return 2.0 * S
+
+
+def quadratic_lift(x: np.ndarray) -> np.ndarray:
+    """``x^[2] = D_n^T (x kron x)`` (slide eq. 4): ``x_i^2`` on the diagonal, ``2 x_i x_j`` off it."""
+    x = np.asarray(x, dtype=float)
+    rows, cols = _vech_pairs(x.shape[-1])
+    out = x[..., rows] * x[..., cols]
+    return np.where(rows == cols, out, 2.0 * out)
+
+
+def lifted_state_matrix(A: np.ndarray) -> np.ndarray:
+    """``A_bar = D_n^T (A (+) A) (D_n^+)^T`` with the Kronecker sum ``A (+) A = A kron I + I kron A`` (slide eq. 6)."""
+    A = np.asarray(A, dtype=float)
+    n = A.shape[0]
+    D = duplication_matrix(n)
+    ksum = np.kron(A, np.eye(n)) + np.kron(np.eye(n), A)
+    return D.T @ ksum @ np.linalg.pinv(D).T
+
+
+def lifted_input_matrix(Bu: np.ndarray) -> np.ndarray:
+    """``U_bar = D_n^T (Bu (+) Bu)``, with ``(Bu (+) Bu) x = Bu kron x + x kron Bu`` (slide eq. 6)."""
+    b = np.asarray(Bu, dtype=float).reshape(-1, 1)
+    n = b.shape[0]
+    D = duplication_matrix(n)
+    return D.T @ (np.kron(b, np.eye(n)) + np.kron(np.eye(n), b))
+
+
+def stacked_output_matrix(system: QuadraticSystem) -> np.ndarray:
+    """``C_bar`` with rows ``1/2 vech(C_h)^T`` (slide eq. 5), so that ``y = C_bar x^[2] + D x``."""
+    return 0.5 * vech(system.C)
+
+
+def observability_rank(A_bar: np.ndarray, C_bar: np.ndarray, rtol: float = DEFAULT_RTOL) -> int:
+    """Rank of the observability matrix ``[C_bar; C_bar A_bar; ...; C_bar A_bar^(N-1)]``.
+
+    Each block ``C_bar A_bar^k`` is normalised by ``||C_bar|| ||A_bar||^k`` before the
+    singular-value rank decision at ``rtol``; used to check that Algorithm 1 adds the
+    fewest auxiliary states.
+    """
+    A_bar = np.asarray(A_bar, dtype=float)
+    C_bar = np.atleast_2d(np.asarray(C_bar, dtype=float))
+    N = A_bar.shape[0]
+    c = np.linalg.norm(C_bar, 2)
+    if c == 0.0:
+        return 0
+    a = max(np.linalg.norm(A_bar, 2), np.finfo(float).tiny)
+    blocks, block = [], C_bar / c
+    for _ in range(N):
+        blocks.append(block)
+        block = block @ A_bar / a
+    O = np.vstack(blocks)
+    s = np.linalg.svd(O, compute_uv=False)
+    return int(np.sum(s > rtol * max(s[0], 1.0) * np.sqrt(len(blocks))))
+
+
+# --------------------------------------------------------------------------------------
+# The immersion object
+# --------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, eq=False)
+class Immersion:
+    """An LTV system ``z' = A(u) z + B u``, ``y = C z`` carrying ``system`` exactly.
+
+    Parameters
+    ----------
+    system : QuadraticSystem
+    aux_forms : ndarray, shape (n_aux, n, n)
+        Symmetric ``L_i`` with ``xi_i = 1/2 x^T L_i x``.
+    aux_dynamics : ndarray, shape (n_aux, n_aux)
+        ``M`` with ``L_A(L_i) = sum_j M_ij L_j``.
+    aux_output : ndarray, shape (q, n_aux)
+        ``F`` with ``C_h = sum_i F_hi L_i``.
+    method : str
+        ``"chain"`` (IFAC 2021) or ``"minimal"`` (ACC 2024 Algorithm 1).
+    block_sizes : tuple of int
+        Sizes of the auxiliary blocks in state order (``m`` ones for the chain; the
+        ranks ``p_{m-1}, ..., p_0`` for Algorithm 1, eq. 12 order).
+    """
+
+    system: QuadraticSystem
+    aux_forms: np.ndarray
+    aux_dynamics: np.ndarray
+    aux_output: np.ndarray
+    method: str
+    block_sizes: tuple[int, ...]
+
+    def __post_init__(self) -> None:
+        sys_ = self.system
+        n, p, q = sys_.n, sys_.p, sys_.q
+        L = np.asarray(self.aux_forms, dtype=float).reshape(-1, n, n)
+        k = L.shape[0]
+        M = np.asarray(self.aux_dynamics, dtype=float).reshape(k, k)
+        F = np.asarray(self.aux_output, dtype=float).reshape(q, k)
+        if sum(self.block_sizes) != k:
+            raise QuadobsError(f"block_sizes: they sum to {sum(self.block_sizes)}, expected n_aux = {k}")
+        N = k + n
+        # U(u) x: row i is u^T B^T L_i x, so A_j[i, k + a] = (L_i B)[a, j].
+        K = np.einsum("iab,bj->jia", L, sys_.B)
+        A0 = np.zeros((N, N))
+        A0[:k, :k] = M
+        A0[k:, k:] = sys_.A
+        Au = np.zeros((p, N, N))
+        Au[:, :k, k:] = K
+        Bz = np.zeros((N, p))
+        Bz[k:] = sys_.B
+        Cz = np.hstack([F, sys_.d])
+        for name, arr in (
+            ("aux_forms", L),
+            ("aux_dynamics", M),
+            ("aux_output", F),
+            ("input_forms", K),
+            ("state_matrix_constant", A0),
+            ("state_matrix_input", Au),
+            ("input_matrix", Bz),
+            ("output_matrix", Cz),
+        ):
+            arr.setflags(write=False)
+            object.__setattr__(self, name, arr)
+
+    # Derived in __post_init__.
+    #: (p, n_aux, n): the aux-x block of A(u) is sum_j u_j input_forms[j].
+    input_forms: np.ndarray = field(init=False, repr=False)
+    #: (N, N): A_0, the part of A(u) independent of u.
+    state_matrix_constant: np.ndarray = field(init=False, repr=False)
+    #: (p, N, N): A_j, the coefficient of u_j in A(u).
+    state_matrix_input: np.ndarray = field(init=False, repr=False)
+    #: (N, p): eq. (16) / slide eq. (14).
+    input_matrix: np.ndarray = field(init=False, repr=False)
+    #: (q, N): eq. (17) / slide eq. (14).
+    output_matrix: np.ndarray = field(init=False, repr=False)
+
+    @property
+    def n_aux(self) -> int:
+        """Number of auxiliary states."""
+        return self.aux_forms.shape[0]
+
+    @property
+    def dim(self) -> int:
+        """Dimension of the augmented state ``z``."""
+        return self.n_aux + self.system.n
+
+    @property
+    def naive_aux(self) -> int:
+        """Auxiliary count of the naive immersion ``z = (x^[2], x)``: ``n(n+1)/2``."""
+        n = self.system.n
+        return n * (n + 1) // 2
+
+    def lift(self, x: np.ndarray) -> np.ndarray:
+        """``x -> z = (1/2 x^T L_i x, x)`` (eq. 10 / slide eq. 12); ``x`` of shape ``(..., n)``."""
+        x = np.asarray(x, dtype=float)
+        if x.shape[-1:] != (self.system.n,):
+            raise QuadobsError(f"x: expected shape (..., {self.system.n}), got {x.shape}")
+        xi = 0.5 * np.einsum("...a,iab,...b->...i", x, self.aux_forms, x)
+        return np.concatenate([xi, x], axis=-1)
+
+    def project(self, z: np.ndarray) -> np.ndarray:
+        """``z -> x``: the last ``n`` entries of ``z``; ``z`` of shape ``(..., dim)``."""
+        z = np.asarray(z, dtype=float)
+        if z.shape[-1:] != (self.dim,):
+            raise QuadobsError(f"z: expected shape (..., {self.dim}), got {z.shape}")
+        return z[..., self.n_aux :]
+
+    def state_matrix(self, u: np.ndarray) -> np.ndarray:
+        """``A(u) = A_0 + sum_j u_j A_j`` (eq. 15 / slide eq. 13) for ``u`` of shape ``(..., p)``."""
+        u = np.asarray(u, dtype=float)
+        if u.shape[-1:] != (self.system.p,):
+            raise QuadobsError(f"u: expected shape (..., {self.system.p}), got {u.shape}")
+        return self.state_matrix_constant + np.tensordot(u, self.state_matrix_input, axes=(-1, 0))
+
+    def output(self, z: np.ndarray) -> np.ndarray:
+        """``y = C z`` for ``z`` of shape ``(..., dim)``."""
+        return np.asarray(z) @ self.output_matrix.T
+
+    def summary(self) -> dict:
+        """Sizes for reports: ``n``, ``n_aux``, the naive count ``n(n+1)/2`` and the block sizes."""
+        return {
+            "method": self.method,
+            "n": self.system.n,
+            "n_aux": self.n_aux,
+            "naive_aux": self.naive_aux,
+            "block_sizes": list(self.block_sizes),
+        }
+
+
+# --------------------------------------------------------------------------------------
+# Constructions
+# --------------------------------------------------------------------------------------
+
+
+def immerse_chain(system: QuadraticSystem, rtol: float = DEFAULT_RTOL) -> Immersion:
+    """Single-output chain of ``000_f34cd1199256bdad.txt`` (eqs. 10-17).
+
+    ``z = (z_0, ..., z_{m-1}, x)`` with ``z_i = 1/2 x^T C_i x`` (eq. 10, 13); ``A(u)`` is the
+    shift ``S_m`` on the auxiliary block with ``u^T B^T C_i`` in the last columns (eq. 15),
+    ``B = (0, B)`` (eq. 16), ``C = (1, 0, ..., 0, d^T)`` (eq. 17; the paper has ``d = 0``).
+
+    Raises
+    ------
+    QuadobsError
+        If the system has more than one output, or Assumption 1 fails (see
+        :func:`vanishing_index`).
+    """
+    if system.q != 1:
+        raise QuadobsError(f"C: the chain immersion takes a single output, got q = {system.q}; use immerse_minimal")
+    rtol = as_finite_scalar("rtol", rtol, positive=True)
+    m = vanishing_index(system.A, system.C[0], rtol)
+    L = lyapunov_sequence(system.A, system.C[0], max(m - 1, 0))[:m]
+    M = np.eye(m, k=1)
+    F = np.zeros((1, m))
+    if m:
+        F[0, 0] = 1.0
+    return Immersion(system, L, M, F, "chain", (1,) * m)
+
+
+def _pivoted_rank(E: np.ndarray, tol: float) -> tuple[int, np.ndarray]:
+    """Rank of the rows of ``E`` at absolute tolerance ``tol`` and the pivot order of the rows."""
+    if E.shape[0] == 0:
+        return 0, np.zeros(0, dtype=int)
+    _, R, piv = sla.qr(E.T, mode="economic", pivoting=True)
+    diag = np.abs(np.diag(R))
+    return int(np.sum(diag > tol)), piv
+
+
+def immerse_minimal(system: QuadraticSystem, rtol: float = DEFAULT_RTOL) -> Immersion:
+    """Algorithm 1 of ``003_65f070b2762e6d70.txt``: the fewest auxiliary states.
+
+    1. ``p_0 = rank C_bar`` and the rank factorisation ``C_bar = F L_0``: ``L_0`` is a
+       selection of ``p_0`` rows of ``C_bar`` (pivoted QR), so each auxiliary state of
+       the first block is one of the outputs' quadratic parts.
+    2. For ``k = 1, 2, ...``: ``p_k`` (eq. 30) counts the rows of ``L_{k-1} A_bar`` that are
+       independent of ``L_0, ..., L_{k-1}``; the permutation ``P_{k-1}`` brings them first
+       and they form ``L_k``; the other rows are combinations ``M_i^(k-1)`` of the rows
+       found so far (eq. 31). Unlike the slide's statement of eq. 31, the combinations may
+       also involve ``L_k`` itself (a dependent row can share a new direction with a
+       selected one); the coefficients on ``L_k`` then enter ``A(u)`` beside ``P_k``.
+    3. Stop at ``p_k = 0`` with ``m = k``; ``z`` is eq. (12),
+       ``(P_{m-1} xi_{m-1}, ..., P_0 xi_0, x)``, and ``A(u), B, C`` are eqs. (13, 14).
+
+    The row space found is the smallest ``A_bar``-invariant space containing the rows of
+    ``C_bar``, so ``n_aux`` equals the rank of the observability matrix of
+    ``(A_bar, C_bar)`` (see :func:`observability_rank`). With ``C_h = 0`` for every output
+    there is nothing to immerse: ``n_aux = 0`` and ``z = x``.
+
+    Parameters
+    ----------
+    system : QuadraticSystem
+    rtol : float
+        Relative tolerance of the rank decisions (module docstring).
+    """
+    rtol = as_finite_scalar("rtol", rtol, positive=True)
+    n = system.n
+    C_bar = stacked_output_matrix(system)
+    A_bar = lifted_state_matrix(system.A)
+    N = A_bar.shape[0]
+    a_norm = np.linalg.norm(A_bar, 2)
+    c_norm = np.linalg.norm(C_bar, 2)
+    if c_norm == 0.0:
+        return Immersion(system, np.zeros((0, n, n)), np.zeros((0, 0)), np.zeros((system.q, 0)), "minimal", ())
+
+    p0, piv = _pivoted_rank(C_bar, rtol * c_norm)
+    blocks = [C_bar[np.sort(piv[:p0])]]  # L_0: rows of C_bar, in output order
+    permuted: list[np.ndarray] = []  # P_k L_k, filled as the permutations are decided
+    orders: list[np.ndarray] = []  # row order of each P_k (P_k L_k = L_k[order])
+    basis = sla.orth(blocks[0].T).T  # orthonormal rows spanning everything found so far
+    while True:
+        prev = blocks[-1]
+        cand = prev @ A_bar
+        resid = cand - (cand @ basis.T) @ basis
+        tol = rtol * np.linalg.norm(prev, 2) * a_norm
+        pk, piv = _pivoted_rank(resid, tol)
+        if pk == 0:
+            permuted.append(prev)  # P_{m-1} = I: no row of the last block leads anywhere new
+            orders.append(np.arange(prev.shape[0]))
+            break
+        if sum(b.shape[0] for b in blocks) + pk > N:  # pragma: no cover - rank cannot exceed N
+            raise QuadobsError("Algorithm 1 did not terminate within n(n+1)/2 auxiliary states (rank tolerance too small)")
+        order = np.concatenate([piv[:pk], np.setdiff1d(np.arange(prev.shape[0]), piv[:pk])])
+        permuted.append(prev[order])  # P_{k-1} L_{k-1}: the rows leading to new directions first
+        orders.append(order)
+        new = cand[order[:pk]]  # L_k: the first p_k rows of P_{k-1} L_{k-1} A_bar (eq. 31)
+        blocks.append(new)
+        # Extend the orthonormal basis with the new directions (re-orthogonalised once,
+        # normalised so that the growth of ||A_bar||^k does not swamp earlier rows).
+        fresh = resid[order[:pk]]
+        fresh = fresh - (fresh @ basis.T) @ basis
+        basis = np.vstack([basis, np.linalg.qr(fresh.T)[0].T])
+
+    # eq. (12) order: highest block first.
+    G = np.vstack(permuted[::-1])
+    sizes = tuple(b.shape[0] for b in permuted[::-1])
+    offsets = np.concatenate([[0], np.cumsum(sizes)])
+    m = len(sizes)
+    # M with M G = G A_bar (G has full row rank, so M is unique); least squares, then the
+    # structural rows of eq. (13) (a block's leading p_{k+1} rows map onto the next block)
+    # are set exactly.
+    GA = G @ A_bar
+    M = np.linalg.lstsq(G.T, GA.T, rcond=None)[0].T
+    for k in range(m - 1):  # state block of P_k L_k sits at index m-1-k
+        blk, nxt = m - 1 - k, m - 2 - k
+        p_next = sizes[nxt]
+        rows = slice(offsets[blk], offsets[blk] + p_next)
+        # L_{k+1} rows in z are P_{k+1} L_{k+1}; the permutation was applied by row order.
+        perm = permuted[k + 1]
+        target = blocks[k + 1]
+        idx = [int(np.flatnonzero(np.all(perm == target[r], axis=1))[0]) for r in range(p_next)]
+        M[rows] = 0.0
+        M[np.arange(offsets[blk], offsets[blk] + p_next), offsets[nxt] + np.array(idx)] = 1.0
+    scale = max(np.linalg.norm(G, 2) * a_norm, np.finfo(float).tiny)
+    err = np.linalg.norm(M @ G - GA, 2)
+    if err > 1e3 * rtol * scale + 1e-12 * scale:
+        raise QuadobsError(
+            f"rtol: the auxiliary space is not invariant to the rank tolerance (residual {err:.3g}); "
+            "the rank decisions are ill-conditioned for this system, try a larger rtol"
+        )
+    # C_bar = F_0 L_0 (rank factorisation; L_0 holds rows of C_bar, so F_0 is well conditioned),
+    # hence C = [0 ... 0 F_0 P_0^T | D] (slide eq. 14).
+    F0 = np.linalg.lstsq(blocks[0].T, C_bar.T, rcond=None)[0].T
+    F0[np.abs(F0) < 1e-14 * max(np.abs(F0).max(), 1.0)] = 0.0
+    F = np.zeros((system.q, G.shape[0]))
+    F[:, offsets[m - 1] :] = F0[:, orders[0]]
+    L = _unvech_form(G, n)
+    return Immersion(system, L, M, F, "minimal", sizes)
+
+
+def immerse(system: QuadraticSystem, method: str = "minimal", rtol: float = DEFAULT_RTOL) -> Immersion:
+    """Immerse ``system`` into an LTV system with linear output.
+
+    Parameters
+    ----------
+    system : QuadraticSystem
+    method : {"minimal", "chain"}
+        ``"minimal"`` (default): Algorithm 1 of ``003_65f070b2762e6d70.txt``, any system.
+        ``"chain"``: the single-output chain of ``000_f34cd1199256bdad.txt`` (needs
+        ``q = 1`` and Assumption 1).
+    rtol : float
+        Relative tolerance of the rank decisions (module docstring).
+    """
+    if not isinstance(system, QuadraticSystem):
+        raise QuadobsError(f"system: expected a QuadraticSystem, got {type(system).__name__}")
+    if method == "minimal":
+        return immerse_minimal(system, rtol)
+    if method == "chain":
+        return immerse_chain(system, rtol)
+    raise QuadobsError(f"method: unknown immersion {method!r}; expected 'minimal' or 'chain'")

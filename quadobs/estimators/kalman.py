@@ -1,0 +1,578 @@
+"""Extended and unscented Kalman filters on the original state: the baselines.
+
+What a user would pick instead of the augmented observer: a Kalman filter on the
+original state ``x`` (position, velocity, and wind where present) of the
+:class:`~quadobs.core.system.QuadraticSystem`, linearised at the estimate (EKF) or through an
+unscented transform (UKF) at each measurement.
+
+Dynamics and prediction
+-----------------------
+The dynamics ``x' = A x + B u`` are linear, so the prediction over one step of length
+``dt`` with the input held is exact, shared by both filters and computed once:
+
+.. math::
+
+    \\exp\\left(\\begin{bmatrix} A & B \\\\ 0 & 0 \\end{bmatrix} dt\\right)
+    = \\begin{bmatrix} F & G \\\\ 0 & I \\end{bmatrix}, \\qquad
+    x^- = F x + G u, \\qquad P^- = F P F^\\top + Q_d .
+
+``Q_d`` has two parts (:class:`HeldInputModel`): the continuous intensity ``V`` of a
+white noise on ``x'`` (Van Loan, ``Q_V = int_0^dt e^{A s} V e^{A^T s} ds``) and a white
+noise of covariance ``Sigma_u`` on the measured input held over each step, which enters
+exactly as ``G Sigma_u G^T``. For an accelerometer read every physics step with
+standard deviation ``sigma_a`` (the testbed's sensor), ``Q_d = sigma_a^2 G G^T`` is the
+true process noise, not a tuning. The UKF's prediction is the same exact linear map (an
+unscented transform of a linear map returns its mean and covariance exactly).
+
+Between measurements only the mean is advanced each step; the covariance is advanced
+in one go when it is needed (a measurement, or a read of :attr:`x_covariance`) with
+``F^m`` and ``Q_m = sum_{i<m} F^i Q_d F^iT`` (:func:`step_power`, cached by ``m``): the
+same numbers as ``m`` single steps, at the cost of one.
+
+Measurements
+------------
+:class:`OutputModel` says in which space a filter compares the outputs ``y`` (``(q,)``,
+NaN where no sample: those outputs are skipped and a step with none is prediction only):
+
+* ``"output"`` space: ``z = y``, ``h(x) = 1/2 x^T C_h x + d_h^T x``, Jacobian
+  ``x^T C_h + d_h^T``, with a constant covariance ``R`` (e.g. the augmented observer's
+  ``W / T``);
+* ``"norm"`` space, for outputs that are half a squared norm up to a known constant
+  (``y_h + c_h = s_h^2 / 2``, as for a range ``s_h = |p - a_h|`` with
+  ``c_h = |a_h|^2 / 2``, or an airspeed with ``c = 0``): the filter recovers the
+  measured ``s~_h = sqrt(2 (y_h + c_h))`` (the exact inverse of the sensor layer's map,
+  :mod:`quadobs.testbed.sensors`) and uses ``h_h(x) = sqrt(2 (1/2 x^T C_h x + d_h^T x + c_h))``
+  with Jacobian ``(x^T C_h + d_h^T) / h_h(x)``. With the sensor's standard deviation
+  ``sigma_h`` this is the exact measurement model ``s~ = s + N(0, sigma^2)``, the one of
+  the Cramér-Rao bound (:mod:`quadobs.evaluation.ensemble`).
+
+Updates use the present outputs only. The EKF uses the Joseph form
+``P = (I - K H) P (I - K H)^T + K R K^T``. The UKF uses the scaled unscented transform
+(Julier and Uhlmann; Wan and van der Merwe) with ``2 n + 1`` sigma points
+``x, x +- sqrt(n + lambda) L_i`` (``L L^T = P``), ``lambda = alpha^2 (n + kappa) - n``,
+weights ``W_0^m = lambda / (n + lambda)``, ``W_0^c = W_0^m + 1 - alpha^2 + beta``,
+``W_i = 1 / (2 (n + lambda))``; the defaults ``alpha = 1, beta = 2, kappa = 0`` keep
+every weight non-negative, so the innovation covariance is positive definite by
+construction. ``P = P - K S K^T``. Covariances are re-symmetrised after each operation.
+
+Both filters store the normalised innovation squared ``nis = nu^T S^-1 nu`` of their
+last update (NaN when there was none) and its degrees of freedom :attr:`nis_dof` (the
+number of outputs used), and can reject an update whose NIS exceeds ``gate``.
+
+Scenario defaults (registered as ``"ekf"`` and ``"ukf"``): see :func:`baseline_settings`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.linalg as sla
+
+from quadobs.core.held_input import as_covariance, van_loan
+from quadobs.errors import QuadobsError, as_array, as_finite_scalar
+from quadobs.testbed.registry import output_periods, register_estimator
+from quadobs.estimators.augmented import Estimator
+from quadobs.testbed.scenario import Scenario
+from quadobs.core.system import QuadraticSystem
+
+__all__ = [
+    "BaselineSettings",
+    "ExtendedKalmanFilter",
+    "HeldInputModel",
+    "OutputModel",
+    "UnscentedKalmanFilter",
+    "baseline_settings",
+    "initial_covariance",
+    "step_power",
+]
+
+
+# --------------------------------------------------------------------------------------
+# Models
+# --------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, eq=False)
+class HeldInputModel:
+    """Exact one-step map ``x+ = F x + G u + w``, ``w ~ N(0, Q)``, of ``x' = A x + B u`` with ``u`` held.
+
+    Parameters
+    ----------
+    system : QuadraticSystem
+    dt : float
+        Step length (s).
+    V : float or array_like, optional
+        Continuous intensity of a white noise on ``x'`` (scalar times ``I_n``, diagonal or
+        ``(n, n)``); Van Loan's integral over the step.
+    input_covariance : float or array_like, optional
+        Covariance ``Sigma_u`` of a white noise on the measured input, held over each
+        step (scalar times ``I_p``, diagonal or ``(p, p)``); adds ``G Sigma_u G^T``.
+
+    Attributes
+    ----------
+    F : ndarray (n, n)
+        ``e^{A dt}``.
+    G : ndarray (n, p)
+        ``int_0^dt e^{A s} ds B``.
+    Q : ndarray (n, n)
+        The discrete process-noise covariance (positive semidefinite).
+    """
+
+    system: QuadraticSystem
+    dt: float
+    V: np.ndarray | float = 0.0
+    input_covariance: np.ndarray | float = 0.0
+    F: np.ndarray = field(init=False, repr=False)
+    G: np.ndarray = field(init=False, repr=False)
+    Q: np.ndarray = field(init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.system, QuadraticSystem):
+            raise QuadobsError(f"system: expected a QuadraticSystem, got {type(self.system).__name__}")
+        dt = as_finite_scalar("dt", self.dt, positive=True)
+        n, p = self.system.n, self.system.p
+        V = as_covariance("V", self.V, n, definite=False)
+        Su = as_covariance("input_covariance", self.input_covariance, p, definite=False)
+        big = np.zeros((n + p, n + p))
+        big[:n, :n] = self.system.A
+        big[:n, n:] = self.system.B
+        E = sla.expm(big * dt)
+        F, G = E[:n, :n].copy(), E[:n, n:].copy()
+        Q = van_loan(self.system.A, V, dt)[1] if V.any() else np.zeros((n, n))
+        Q = Q + G @ Su @ G.T
+        Q = 0.5 * (Q + Q.T)
+        object.__setattr__(self, "dt", dt)
+        for name, arr in (("V", V), ("input_covariance", Su), ("F", F), ("G", G), ("Q", Q)):
+            arr.setflags(write=False)
+            object.__setattr__(self, name, arr)
+
+
+@dataclass(frozen=True, eq=False)
+class OutputModel:
+    """How a filter compares the outputs ``y``: the space, and the noise covariance there.
+
+    Parameters
+    ----------
+    system : QuadraticSystem
+    R : float or array_like
+        Measurement-noise covariance in the chosen space (scalar times ``I_q``, diagonal or
+        ``(q, q)``), positive definite.
+    offsets : array_like (q,), optional
+        ``c_h`` with ``y_h + c_h = s_h^2 / 2``: selects the ``"norm"`` space (see the module
+        docstring). ``None`` (default): the ``"output"`` space ``z = y``.
+    """
+
+    system: QuadraticSystem
+    R: np.ndarray | float
+    offsets: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.system, QuadraticSystem):
+            raise QuadobsError(f"system: expected a QuadraticSystem, got {type(self.system).__name__}")
+        q = self.system.q
+        R = as_covariance("R", self.R, q)
+        R.setflags(write=False)
+        object.__setattr__(self, "R", R)
+        if self.offsets is not None:
+            c = as_array("offsets", self.offsets, (q,))
+            c.setflags(write=False)
+            object.__setattr__(self, "offsets", c)
+
+    @property
+    def space(self) -> str:
+        """``"output"`` or ``"norm"``."""
+        return "output" if self.offsets is None else "norm"
+
+    def measure(self, y: np.ndarray, idx: np.ndarray | slice = slice(None)) -> np.ndarray:
+        """The measurement ``z`` of the outputs ``y`` (already restricted to ``idx``)."""
+        if self.offsets is None:
+            return y
+        return np.sqrt(np.maximum(2.0 * (y + self.offsets[idx]), 0.0))
+
+    def predict(self, x: np.ndarray) -> np.ndarray:
+        """``z = h(x)`` for ``x`` of shape ``(..., n)``; returns ``(..., q)``."""
+        y = self.system.output(x)
+        if self.offsets is None:
+            return y
+        return np.sqrt(np.maximum(2.0 * (y + self.offsets), 0.0))
+
+    def jacobian(self, x: np.ndarray) -> np.ndarray:
+        """``dh/dx (q, n)`` at ``x (n,)``; in the norm space, zero rows where ``h(x) = 0``."""
+        return self.linearize(x)[1]
+
+    def linearize(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(h(x) (q,), dh/dx (q, n))`` at ``x (n,)`` in one pass (``g_h = C_h x``, ``y_h = (g_h / 2 + d_h) . x``)."""
+        sys_ = self.system
+        g = sys_.C @ x
+        J = g + sys_.d
+        y = (0.5 * g + sys_.d) @ x
+        if self.offsets is None:
+            return y, J
+        s = np.sqrt(np.maximum(2.0 * (y + self.offsets), 0.0))
+        with np.errstate(divide="ignore", invalid="ignore"):
+            scale = np.where(s > 0.0, 1.0 / s, 0.0)
+        return s, J * scale[:, None]
+
+
+def step_power(F: np.ndarray, Q: np.ndarray, m: int) -> tuple[np.ndarray, np.ndarray]:
+    """``(F^m, Q_m)``: the map of ``m`` steps ``x+ = F x + w``, ``w ~ N(0, Q)``, with ``Q_m = sum_{i<m} F^i Q F^iT``.
+
+    By doubling, in ``O(log m)`` products: ``m`` steps then ``l`` steps compose as
+    ``(F^l F^m, F^l Q_m F^lT + Q_l)``.
+    """
+    n = F.shape[0]
+    res = (np.eye(n), np.zeros((n, n)))
+    base = (np.asarray(F, dtype=float), np.asarray(Q, dtype=float))
+    while m > 0:
+        if m & 1:
+            Fb, Qb = base
+            res = (Fb @ res[0], Fb @ res[1] @ Fb.T + Qb)
+        m >>= 1
+        if m:
+            Fb, Qb = base
+            base = (Fb @ Fb, Fb @ Qb @ Fb.T + Qb)
+    Fm, Qm = res
+    return Fm, 0.5 * (Qm + Qm.T)
+
+
+# --------------------------------------------------------------------------------------
+# Filters
+# --------------------------------------------------------------------------------------
+
+
+class _GaussianFilter(Estimator):
+    """Shared prediction, lazy covariance, missing outputs, NIS and gating (see the module docstring)."""
+
+    name = "gaussian"
+
+    def __init__(self, dynamics: HeldInputModel, outputs: OutputModel, *, x0, P0, gate: float | None = None) -> None:
+        if not isinstance(dynamics, HeldInputModel):
+            raise QuadobsError(f"dynamics: expected a HeldInputModel, got {type(dynamics).__name__}")
+        if not isinstance(outputs, OutputModel):
+            raise QuadobsError(f"outputs: expected an OutputModel, got {type(outputs).__name__}")
+        if outputs.system.n != dynamics.system.n:
+            raise QuadobsError(
+                f"outputs: state dimension {outputs.system.n} differs from the dynamics' {dynamics.system.n}"
+            )
+        n = dynamics.system.n
+        self.dynamics, self.outputs = dynamics, outputs
+        self.n, self.q = n, outputs.system.q
+        self._x = as_array("x0", x0, (n,)).copy()
+        self._P = as_covariance("P0", P0, n, definite=False).copy()
+        self.gate = None if gate is None else as_finite_scalar("gate", gate, positive=True)
+        self.nis = float("nan")
+        self.nis_dof = 0
+        self.corrections = 0
+        self.rejected = 0
+        self._pending = 0
+        self._powers: dict[int, tuple[np.ndarray, np.ndarray]] = {0: (np.eye(n), np.zeros((n, n)))}
+        self._F, self._G = dynamics.F, dynamics.G
+
+    # -- estimator interface -----------------------------------------------------------
+
+    @property
+    def x_hat(self) -> np.ndarray:
+        return self._x
+
+    @property
+    def x_covariance(self) -> np.ndarray:
+        self._settle()
+        return self._P
+
+    def step(self, u: np.ndarray, y: np.ndarray) -> None:
+        """Update with ``y`` (outputs at the start of the step), then predict over the step with ``u`` held."""
+        self.correct(y)
+        self.predict(u)
+
+    def predict(self, u: np.ndarray) -> None:
+        """Exact mean prediction ``x = F x + G u``; the covariance follows lazily."""
+        self._x = self._F @ self._x + self._G @ np.asarray(u, dtype=float)
+        self._pending += 1
+
+    def correct(self, y: np.ndarray) -> None:
+        """Update with the outputs present in ``y`` (NaN marks a missing sample)."""
+        y = np.asarray(y, dtype=float)
+        present = ~np.isnan(y)
+        if not present.any():
+            self.nis, self.nis_dof = float("nan"), 0
+            return
+        idx = np.flatnonzero(present) if not present.all() else slice(None)
+        self._settle()
+        R = self.outputs.R if isinstance(idx, slice) else self.outputs.R[np.ix_(idx, idx)]
+        z = self.outputs.measure(y[idx], idx)
+        self._update(z, idx, R)
+
+    # -- internals ---------------------------------------------------------------------
+
+    def _power(self, m: int) -> tuple[np.ndarray, np.ndarray]:
+        """``(F^m, Q_m)`` (:func:`step_power`), cached by ``m``."""
+        hit = self._powers.get(m)
+        if hit is None:
+            hit = step_power(self._F, self.dynamics.Q, m)
+            if len(self._powers) < 256:
+                self._powers[m] = hit
+        return hit
+
+    def _settle(self) -> None:
+        m = self._pending
+        if m:
+            Fm, Qm = self._power(m)
+            P = Fm @ self._P @ Fm.T + Qm
+            self._P = 0.5 * (P + P.T)
+            self._pending = 0
+
+    def _accept(self, nu: np.ndarray, S: np.ndarray) -> tuple[bool, np.ndarray]:
+        """NIS of the innovation, and whether the gate lets the update through; returns ``S^-1 nu``."""
+        try:
+            Sinv_nu = np.linalg.solve(S, nu)
+        except np.linalg.LinAlgError:
+            Sinv_nu = np.linalg.lstsq(S, nu, rcond=None)[0]
+        self.nis = float(nu @ Sinv_nu)
+        self.nis_dof = int(nu.shape[0])
+        if self.gate is not None and self.nis > self.gate:
+            self.rejected += 1
+            return False, Sinv_nu
+        self.corrections += 1
+        return True, Sinv_nu
+
+    def _update(self, z: np.ndarray, idx, R: np.ndarray) -> None:  # pragma: no cover - interface
+        raise NotImplementedError
+
+
+class ExtendedKalmanFilter(_GaussianFilter):
+    """EKF on ``x``: exact held-input prediction, update linearised at the predicted estimate.
+
+    Parameters
+    ----------
+    dynamics : HeldInputModel
+    outputs : OutputModel
+    x0 : array_like (n,)
+        Initial estimate.
+    P0 : float or array_like
+        Initial covariance (scalar times ``I_n``, diagonal or ``(n, n)``), positive semidefinite.
+    gate : float, optional
+        Reject an update whose NIS exceeds ``gate`` (counted in :attr:`rejected`).
+
+    Notes
+    -----
+    Update (Joseph form), with ``H = dh/dx`` at the predicted ``x``:
+    ``S = H P H^T + R``, ``K = P H^T S^-1``, ``x += K (z - h(x))``,
+    ``P = (I - K H) P (I - K H)^T + K R K^T``.
+    """
+
+    name = "ekf"
+
+    def _update(self, z: np.ndarray, idx, R: np.ndarray) -> None:
+        x, P = self._x, self._P
+        z_pred, H = self.outputs.linearize(x)
+        H = H[idx]
+        nu = z - z_pred[idx]
+        PHt = P @ H.T
+        S = H @ PHt + R
+        ok, _ = self._accept(nu, S)
+        if not ok:
+            return
+        K = np.linalg.solve(S, PHt.T).T
+        self._x = x + K @ nu
+        IKH = np.eye(self.n) - K @ H
+        P = IKH @ P @ IKH.T + K @ R @ K.T
+        self._P = 0.5 * (P + P.T)
+
+
+class UnscentedKalmanFilter(_GaussianFilter):
+    """UKF on ``x``: exact held-input prediction, update through the scaled unscented transform.
+
+    Parameters
+    ----------
+    dynamics, outputs, x0, P0, gate
+        As for :class:`ExtendedKalmanFilter`.
+    alpha, beta, kappa : float
+        Scaled unscented transform parameters (see the module docstring); defaults
+        ``1, 2, 0``.
+
+    Notes
+    -----
+    Sigma points ``X_0 = x``, ``X_{i}, X_{n+i} = x +- sqrt(n + lambda) L_{:, i}`` with
+    ``L`` the lower Cholesky factor of ``P`` (a symmetric eigen-square-root if ``P`` is only
+    semidefinite); ``Z_i = h(X_i)``, ``z^- = sum W^m_i Z_i``,
+    ``S = sum W^c_i (Z_i - z^-)(Z_i - z^-)^T + R``, ``P_xz = sum W^c_i (X_i - x)(Z_i - z^-)^T``,
+    ``K = P_xz S^-1``, ``x += K (z - z^-)``, ``P -= K S K^T``.
+    """
+
+    name = "ukf"
+
+    def __init__(
+        self,
+        dynamics: HeldInputModel,
+        outputs: OutputModel,
+        *,
+        x0,
+        P0,
+        gate: float | None = None,
+        alpha: float = 1.0,
+        beta: float = 2.0,
+        kappa: float = 0.0,
+    ) -> None:
+        super().__init__(dynamics, outputs, x0=x0, P0=P0, gate=gate)
+        n = self.n
+        self.alpha = as_finite_scalar("alpha", alpha, positive=True)
+        self.beta = as_finite_scalar("beta", beta)
+        self.kappa = as_finite_scalar("kappa", kappa)
+        lam = self.alpha**2 * (n + self.kappa) - n
+        if not n + lam > 0:
+            raise QuadobsError(f"alpha, kappa: need alpha^2 (n + kappa) > 0, got {n + lam:.3g} for n = {n}")
+        self._scale = float(np.sqrt(n + lam))
+        wm = np.full(2 * n + 1, 0.5 / (n + lam))
+        wm[0] = lam / (n + lam)
+        wc = wm.copy()
+        wc[0] += 1.0 - self.alpha**2 + self.beta
+        self._wm, self._wc = wm, wc
+
+    def sigma_points(self) -> np.ndarray:
+        """The ``(2 n + 1, n)`` sigma points of the current ``(x, P)``."""
+        self._settle()
+        return self._sigma(self._x, self._P)
+
+    def _sigma(self, x: np.ndarray, P: np.ndarray) -> np.ndarray:
+        try:
+            L = np.linalg.cholesky(P)
+        except np.linalg.LinAlgError:
+            w, U = np.linalg.eigh(P)
+            L = U * np.sqrt(np.maximum(w, 0.0))
+        D = self._scale * L.T
+        return np.concatenate([x[None], x + D, x - D])
+
+    def _update(self, z: np.ndarray, idx, R: np.ndarray) -> None:
+        x, P = self._x, self._P
+        X = self._sigma(x, P)
+        Z = self.outputs.predict(X)[:, idx]
+        z_pred = self._wm @ Z
+        dZ = Z - z_pred
+        dX = X - x
+        S = (dZ.T * self._wc) @ dZ + R
+        Pxz = (dX.T * self._wc) @ dZ
+        nu = z - z_pred
+        ok, _ = self._accept(nu, S)
+        if not ok:
+            return
+        K = np.linalg.solve(S, Pxz.T).T
+        self._x = x + K @ nu
+        P = P - K @ S @ K.T
+        self._P = 0.5 * (P + P.T)
+
+
+# --------------------------------------------------------------------------------------
+# Scenario settings and registration
+# --------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, eq=False)
+class BaselineSettings:
+    """What the ``"ekf"`` and ``"ukf"`` estimators of a scenario use (see :func:`baseline_settings`).
+
+    Attributes
+    ----------
+    dynamics : HeldInputModel
+    outputs : OutputModel
+    P0 : ndarray (n, n)
+    noise_source : str
+        ``"sensors"`` (the scenario's true noise levels) or ``"observer"`` (the augmented
+        observer's ``W / T``, used when a sensor is noise-free).
+    prior_source : str
+        ``"initial"`` (the spreads of a random initial guess) or ``"observer"`` (the state
+        block of the observer's ``S0``).
+    """
+
+    dynamics: HeldInputModel
+    outputs: OutputModel
+    P0: np.ndarray
+    noise_source: str
+    prior_source: str
+
+
+def _state_block(value, N: int, n: int) -> np.ndarray:
+    """The ``x`` block (the last ``n`` of ``N`` entries) of a scalar or diagonal setting."""
+    if np.ndim(value) == 0:
+        return float(value) * np.eye(n)
+    arr = np.asarray(value, dtype=float)
+    if arr.shape != (N,):
+        raise QuadobsError(f"observer.S0: expected a scalar or {N} entries (the augmented state), got {arr.size}")
+    return np.diag(arr[N - n :])
+
+
+def initial_covariance(scenario: Scenario) -> tuple[np.ndarray, str]:
+    """The initial covariance shared by the baselines and the Cramér-Rao bound, and where it comes from.
+
+    For ``[initial] kind = "random"`` the guess is the truth plus Gaussian errors of
+    standard deviation ``position_spread`` (positions) and ``velocity_spread``
+    (velocities, wind): its covariance ``diag(spread^2)`` is the true prior
+    (``"initial"``). For ``"zero"`` and ``"point"`` there is no distribution to take it
+    from, and the state block of the augmented observer's ``S0`` (the paper's tuning) is
+    used (``"observer"``), so that all the filters start with the same uncertainty on
+    ``x``.
+    """
+    n, dim = scenario.state_dim, scenario.dimension
+    init = scenario.initial
+    if init.kind == "random":
+        spread = np.full(n, init.velocity_spread)
+        spread[:dim] = init.position_spread
+        return np.diag(spread**2), "initial"
+    from quadobs.core.immersion import immerse
+
+    N = immerse(scenario.system(), method=scenario.observer.immersion).dim
+    return _state_block(scenario.observer.S0, N, n), "observer"
+
+
+def baseline_settings(scenario: Scenario) -> BaselineSettings:
+    """Noise and prior of the EKF and UKF for ``scenario``, chosen for a fair comparison.
+
+    * Measurements: when every sensor the outputs come from is noisy (ranges, and the
+      airspeed in wind scenarios), the filters work in the norm space (ranges,
+      airspeed) with the sensors' true variances ``R = diag(sigma_h^2)``: this is the
+      exact likelihood of Gaussian measurements (for bounded, uniform noise,
+      ``sigma = bound / sqrt(3)``, its standard deviation). When a sensor is noise-free there is no true
+      level to use (``R = 0`` is not a filter), and they use the augmented observer's
+      tuning instead, in the output space: ``R_hl = W_hl / sqrt(T_h T_l)``, exactly the
+      observer's ``R``.
+    * Process noise: the accelerometer's true noise variance, ``Q_d = sigma_a^2 G G^T`` per physics
+      step (zero for a noise-free accelerometer: the MuJoCo vehicle then follows the
+      model exactly).
+    * Prior: :func:`initial_covariance`.
+    """
+    system = scenario.system()
+    noise = scenario.noise
+    stds = [noise.sigma("range")] * scenario.beacons.shape[0]
+    offsets = list(0.5 * np.einsum("hi,hi->h", scenario.beacons, scenario.beacons))
+    if scenario.has_wind:
+        stds.append(noise.sigma("airspeed"))
+        offsets.append(0.0)
+    stds = np.array(stds)
+    if np.all(stds > 0):
+        outputs = OutputModel(system, np.diag(stds**2), offsets=np.array(offsets))
+        source = "sensors"
+    else:
+        periods = output_periods(scenario)
+        W = as_covariance("observer.W", np.asarray(scenario.observer.W, dtype=float), system.q)
+        scale = 1.0 / np.sqrt(periods)
+        outputs = OutputModel(system, W * np.outer(scale, scale))
+        source = "observer"
+    dynamics = HeldInputModel(system, scenario.dt, input_covariance=noise.sigma("accel") ** 2)
+    P0, prior = initial_covariance(scenario)
+    return BaselineSettings(dynamics, outputs, P0, source, prior)
+
+
+def extended_kalman_filter(scenario: Scenario, x0: np.ndarray) -> ExtendedKalmanFilter:
+    """The ``"ekf"`` estimator of ``scenario`` (:func:`baseline_settings`), started at ``x0``."""
+    s = baseline_settings(scenario)
+    return ExtendedKalmanFilter(s.dynamics, s.outputs, x0=x0, P0=s.P0, gate=scenario.observer.gate)
+
+
+def unscented_kalman_filter(scenario: Scenario, x0: np.ndarray) -> UnscentedKalmanFilter:
+    """The ``"ukf"`` estimator of ``scenario`` (:func:`baseline_settings`), started at ``x0``."""
+    s = baseline_settings(scenario)
+    return UnscentedKalmanFilter(s.dynamics, s.outputs, x0=x0, P0=s.P0, gate=scenario.observer.gate)
+
+
+register_estimator("ekf", lambda scenario, x0, name: extended_kalman_filter(scenario, x0))
+register_estimator("ukf", lambda scenario, x0, name: unscented_kalman_filter(scenario, x0))

@@ -1,0 +1,513 @@
+"""``quadobs bench``: how much the estimators cost beside the physics, measured side by side.
+
+Every figure is measured in the same process and run. Ratios are formed within one
+repeat (bare physics, then the loop without and with recording, one after the other) and
+the reported value is the median over the repeats, so a machine whose load changes
+during the run still gives comparable numbers; per-step costs are medians too.
+
+Figures (keys of the JSON written by ``--json``):
+
+``bare_steps_per_s``, ``bare_step_us``
+    ``mujoco.mj_step`` of the testbed vehicle (``ifac2021`` model) in a Python loop.
+``observer_loop_ratio``
+    Steps per second of ``quadobs run`` without recording (physics, sensors, augmented
+    observer, errors) over bare physics.
+``loop_ratio``
+    The same with the ``.rrd`` recording: physics + observer + recording over bare physics.
+``recording_fraction``
+    Share of the recorded loop's time due to the recording: ``1 - t_norec / t_rec``.
+``best``
+    The same three figures from the fastest run of each kind (least disturbed by other
+    load on the machine).
+``observer_step_us``, ``observer_numpy_step_us``
+    One :meth:`AugmentedObserver.step` (compiled; NumPy reference) on the vehicle.
+``ekf_step_us``, ``ukf_step_us``
+    One step of the estimators registered as ``ekf`` and ``ukf`` (``null`` where not
+    registered; ``notes`` says why).
+``zonotope_vehicle_step_us``, ``zonotope_vehicle``
+    One step of the guaranteed (zonotopic) vehicle estimator on ``ifac2021-bounded``, the
+    ranges sampled at the scenario's rate; ``zonotope_vehicle`` adds the cost with outputs
+    at every step.
+``lmi_design_s``, ``lmi_design_split_s``, ``lmi_import_s``
+    The offline P-radius design of ``le2013`` (:func:`quadobs.studies.le2013.study.design_gains`: both
+    approaches, seconds of wall-clock), the time of each approach, and the one-off import
+    of the modelling package (cvxpy), paid before the design is timed.
+``zonotope_step_us``, ``le2013_step_us``
+    The online step of the ``le2013`` estimator with the second approach's gains
+    (compiled); ``le2013_step_us`` holds every method, compiled (``numba``) and the NumPy
+    reference (``numpy``), each the mean over runs of 50 steps from ``X_0``.
+``batch``
+    ``B`` vehicles stepped together (:class:`~quadobs.testbed.worlds.batch.VehicleBatch`) with a
+    :class:`~quadobs.estimators.augmented_batch.BatchAugmentedObserver`: vehicle-steps per second of the physics
+    alone and with sensors and observers; ``batch_ratio`` is their ratio.
+``scaling``
+    Observer step cost against the state dimension ``n``, the number of outputs ``q``
+    and the augmented dimension ``N`` (fastest of a few repeats: the table shows growth).
+"""
+
+from __future__ import annotations
+
+import os
+import platform
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["run_bench", "print_bench", "BENCH_KEYS"]
+
+#: Keys every bench JSON holds (``ekf_step_us``, ``ukf_step_us`` are ``null`` if those estimators are not registered).
+BENCH_KEYS = (
+    "loop_ratio",
+    "batch_ratio",
+    "recording_fraction",
+    "observer_step_us",
+    "ekf_step_us",
+    "ukf_step_us",
+    "zonotope_step_us",
+    "zonotope_vehicle_step_us",
+    "lmi_design_s",
+)
+
+
+def _median(xs) -> float | None:
+    xs = [x for x in xs if x is not None]
+    return float(statistics.median(xs)) if xs else None
+
+
+# -- single vehicle --------------------------------------------------------------------
+
+
+def _bare_physics_us(scenario, steps: int) -> float:
+    import mujoco
+
+    from quadobs.testbed.worlds import VehicleSim
+
+    sim = VehicleSim(scenario.dimension, scenario.beacons, timestep=scenario.dt, wind=scenario.wind, model_path=scenario.model)
+    sim.reset(scenario.trajectory.position(0.0), scenario.trajectory.velocity_at(0.0))
+    m, d, step = sim.model, sim.data, mujoco.mj_step
+    for _ in range(min(steps, 1000)):  # warm caches
+        step(m, d)
+    t0 = time.perf_counter()
+    for _ in range(steps):
+        step(m, d)
+    return (time.perf_counter() - t0) / steps * 1e6
+
+
+def _loop_us(scenario, out: Path | None) -> float:
+    from quadobs.testbed.episode import run_episode
+
+    summary = run_episode(scenario, estimators=["augmented"], out=out).summary
+    return summary["wall_time"] / summary["physics_steps"] * 1e6
+
+
+def _vehicle_data(scenario, steps: int):
+    """Noise-free inputs and outputs ``(u_k, y_k)`` of the scenario's reference trajectory."""
+    dt = scenario.dt
+    t = np.arange(steps) * dt
+    acc = scenario.trajectory.step_accelerations(0.0, dt, steps)
+    pos = scenario.trajectory.position(t)
+    x = np.concatenate([pos, scenario.trajectory.velocity_at(t)], axis=1)
+    if scenario.has_wind:
+        x = np.concatenate([x[:, : scenario.dimension], x[:, scenario.dimension :] - scenario.wind, np.broadcast_to(scenario.wind, pos.shape)], axis=1)
+    y = scenario.system().output(x)
+    return np.ascontiguousarray(acc), np.ascontiguousarray(y), x[0]
+
+
+def _estimator_step_us(scenario, name: str, calls: int, repeats: int) -> tuple[float | None, str | None]:
+    """Median cost of one ``step`` of the registered estimator ``name`` on the scenario's data."""
+    from quadobs.testbed.registry import available_estimators, build_estimators
+
+    if name not in available_estimators(scenario):
+        return None, f"{name}: not registered in this build"
+    try:
+        U, Y, x0 = _vehicle_data(scenario, calls)
+        est = build_estimators(scenario, [name], x0)[0]
+        est.step(U[0], Y[0])
+        times = []
+        for _ in range(repeats):
+            t0 = time.perf_counter()
+            for k in range(calls):
+                est.step(U[k], Y[k])
+            times.append((time.perf_counter() - t0) / calls * 1e6)
+        return _median(times), None
+    except Exception as exc:  # noqa: BLE001 - a figure not measured is reported, not fatal
+        return None, f"{name}: could not be measured ({type(exc).__name__}: {exc})"
+
+
+def _observer_step_us(scenario, calls: int, repeats: int, backend: str) -> float:
+    from quadobs.testbed.registry import augmented_observer
+
+    U, Y, x0 = _vehicle_data(scenario, calls)
+    obs = augmented_observer(scenario, np.zeros(scenario.state_dim))
+    if backend != obs.backend:
+        from quadobs.estimators.augmented import AugmentedObserver
+
+        obs = AugmentedObserver(
+            obs.immersion, scenario.dt, V=obs.model.V, W=obs.W, S0=obs.P.copy(), theta=obs.model.theta,
+            sample_period=scenario.dt, gate=obs.gate, backend=backend,
+        )
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        for k in range(calls):
+            obs.step(U[k], Y[k])
+        times.append((time.perf_counter() - t0) / calls * 1e6)
+    return _median(times)
+
+
+# -- le2013 (zonotopes) ----------------------------------------------------------------
+
+
+def _lmi_design_s() -> tuple[float, dict, float, dict]:
+    """Offline P-radius design of ``le2013`` (:func:`quadobs.studies.le2013.study.design_gains`: both approaches).
+
+    Returns the wall-clock seconds, the seconds of each approach (``PRadiusDesign.seconds``),
+    the seconds of importing the modelling package, which is done first (a cost paid once
+    per process), so that the figure is the design alone, and the designs (for the online
+    figures).
+    """
+    import quadobs.studies.le2013.study as le2013
+
+    t0 = time.perf_counter()
+    import cvxpy  # noqa: F401
+
+    import_s = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    designs = le2013.design_gains()
+    total = time.perf_counter() - t0
+    return total, {k: d.seconds for k, d in designs.items()}, import_s, designs
+
+
+def _le2013_run_us(designs, method: str, backend: str, steps: int, repeats: int) -> float:
+    """Median over ``repeats`` runs of ``steps`` steps from ``X_0`` of the mean online step (us)."""
+    import quadobs.studies.le2013.study as le2013
+
+    Y = le2013.simulate(0, steps)["y"]
+    times = []
+    for _ in range(repeats):
+        est = le2013.make_estimator(method, designs, backend=backend)
+        t0 = time.perf_counter()
+        for k in range(1, steps + 1):
+            est.step(Y[k])
+        times.append((time.perf_counter() - t0) / steps * 1e6)
+    return _median(times)
+
+
+def _le2013_step_us(designs, calls: int, repeats: int) -> dict:
+    """Online step of every ``le2013`` method, compiled (``"numba"``) and NumPy reference (us).
+
+    Runs of ``min(calls, 50)`` steps (the paper's length) from ``X_0``, repeated until
+    ``calls`` steps are timed; the volume method (a linear program per output) and the
+    reference run fewer.
+    """
+    from quadobs.studies.le2013.study import METHODS
+
+    steps = min(calls, 50)
+    runs = max(repeats, calls // steps)
+    out = {}
+    for m in METHODS:
+        slow = m == "volume"
+        out[m] = {
+            "numba": _le2013_run_us(designs, m, "numba", steps, max(runs // 20, 1) if slow else runs),
+            "numpy": _le2013_run_us(designs, m, "numpy", steps, max(runs // 20, 1) if slow else max(runs // 5, 1)),
+        }
+    return out
+
+
+def _vehicle_zonotope_us(calls: int, repeats: int) -> dict:
+    """Step of the vehicle zonotope estimator on ``ifac2021-bounded`` (its reference trajectory, noise-free data).
+
+    ``step_us``: the outputs sampled as in the scenario (``range_every`` physics steps apart,
+    NaN between); ``correct_every_step_us``: outputs at every step (the worst case).
+    """
+    from quadobs.testbed.registry import build_estimators
+    from quadobs.testbed.scenario import load_scenario
+
+    sc = load_scenario("ifac2021-bounded")
+    U, Y, x0 = _vehicle_data(sc, calls)
+    every = sc.sample_interval(sc.noise.range_rate, "range_rate")
+    Ys = np.full_like(Y, np.nan)
+    Ys[::every] = Y[::every]
+    res = {"scenario": sc.name, "range_every": every, "steps": calls}
+    for key, data in (("step_us", Ys), ("correct_every_step_us", Y)):
+        times = []
+        for _ in range(repeats):
+            est = build_estimators(sc, ["zonotope"], x0)[0]
+            t0 = time.perf_counter()
+            for k in range(calls):
+                est.step(U[k], data[k])
+            times.append((time.perf_counter() - t0) / calls * 1e6)
+        res[key] = _median(times)
+    return res
+
+
+# -- batch -----------------------------------------------------------------------------
+
+
+def _batch(scenario, B: int, steps: int, repeats: int, threads: int) -> dict:
+    from quadobs.estimators.augmented_batch import BatchAugmentedObserver
+    from quadobs.testbed.registry import augmented_observer
+    from quadobs.core.system import range_outputs
+    from quadobs.testbed.worlds.batch import VehicleBatch
+
+    rng = np.random.default_rng(scenario.seed)
+    dim, dt = scenario.dimension, scenario.dt
+    acc = scenario.trajectory.step_accelerations(0.0, dt, steps)
+    p0 = scenario.trajectory.position(0.0) + rng.uniform(-10.0, 10.0, (B, dim))
+    v0 = scenario.trajectory.velocity_at(0.0) + rng.uniform(-1.0, 1.0, (B, dim))
+    template = augmented_observer(scenario, np.zeros(scenario.state_dim))
+    phys, full = [], []
+    with VehicleBatch(dim, scenario.beacons, B, timestep=dt, wind=scenario.wind, model_path=scenario.model, threads=threads) as vb:
+        vb.reset(p0, v0)
+        vb.step(acc[0])
+        for _ in range(repeats):
+            vb.reset(p0, v0)
+            t0 = time.perf_counter()
+            for k in range(steps):
+                vb.step(acc[k])
+            phys.append((time.perf_counter() - t0) / (steps * B) * 1e6)
+            vb.reset(p0, v0)
+            obs = BatchAugmentedObserver(template, B, threads=threads)
+            t0 = time.perf_counter()
+            for k in range(steps):
+                vb.step(acc[k])
+                Y = range_outputs(vb.ranges(), scenario.beacons)
+                if scenario.has_wind:
+                    Y = np.concatenate([Y, 0.5 * vb.airspeed()[:, None] ** 2], axis=1)
+                obs.step(np.ascontiguousarray(vb.accelerometer()), np.ascontiguousarray(Y))
+            full.append((time.perf_counter() - t0) / (steps * B) * 1e6)
+            obs.close()
+    ratios = [p / f for p, f in zip(phys, full)]
+    return {
+        "vehicles": B,
+        "steps": steps,
+        "threads": threads,
+        "physics_vehicle_steps_per_s": 1e6 / _median(phys),
+        "with_observer_vehicle_steps_per_s": 1e6 / _median(full),
+        "physics_us_per_vehicle_step": _median(phys),
+        "with_observer_us_per_vehicle_step": _median(full),
+        "batch_ratio": _median(ratios),
+    }
+
+
+# -- scaling ---------------------------------------------------------------------------
+
+
+def _scaling(calls: int, quick: bool, repeats: int) -> list[dict]:
+    from quadobs.core.immersion import immerse
+    from quadobs.estimators.augmented import AugmentedObserver, default_backend
+    from quadobs.core.system import QuadraticSystem, vehicle_system, wind_system
+
+    rng = np.random.default_rng(8)
+    cases = [("vehicle", 2, 1), ("vehicle", 3, 1), ("vehicle", 3, 4), ("wind", 3, 2)]
+    if not quick:
+        cases = [("vehicle", 2, 1), ("vehicle", 2, 4), ("vehicle", 3, 1), ("vehicle", 3, 2), ("vehicle", 3, 4), ("vehicle", 3, 8),
+                 ("wind", 2, 2), ("wind", 3, 2), ("wind", 3, 4), ("random", 2, 1), ("random", 4, 1), ("random", 6, 1), ("random", 8, 1),
+                 ("random", 4, 3)]
+    rows = []
+    for kind, size, q in cases:
+        if kind == "vehicle":
+            system = vehicle_system(size, 10.0 * rng.standard_normal((q, size)))
+        elif kind == "wind":
+            system = wind_system(size, 10.0 * rng.standard_normal((q, size)))
+        else:
+            A = rng.standard_normal((size, size)) / np.sqrt(size)
+            C = rng.standard_normal((q, size, size))
+            system = QuadraticSystem(A, rng.standard_normal((size, 1)), C + C.transpose(0, 2, 1))
+        im = immerse(system)
+        U = rng.standard_normal((calls, system.p))
+        Y = rng.standard_normal((calls, system.q))
+        row = {"system": kind, "n": system.n, "q": system.q, "N": im.dim}
+        for backend, n_calls in ((default_backend(), calls), ("numpy", max(calls // 20, 10))):
+            best = float("inf")
+            for _ in range(repeats):  # the fastest of the repeats: the table shows growth, not load
+                obs = AugmentedObserver(im, 1e-3, backend=backend)
+                obs.step(U[0], Y[0])
+                t0 = time.perf_counter()
+                for k in range(n_calls):
+                    obs.step(U[k], Y[k])
+                best = min(best, (time.perf_counter() - t0) / n_calls * 1e6)
+            row[f"{backend}_us"] = best
+        rows.append(row)
+    return rows
+
+
+# -- the bench ---------------------------------------------------------------------------
+
+
+def run_bench(
+    *,
+    steps: int = 20000,
+    repeats: int = 5,
+    batch: int = 1000,
+    batch_steps: int = 200,
+    threads: int = 0,
+    quick: bool = False,
+    log=None,
+) -> dict:
+    """Measure every figure of the module docstring; returns the JSON-ready dictionary.
+
+    Parameters
+    ----------
+    steps : int
+        Physics steps per single-vehicle run (``ifac2021`` cut to this many steps).
+    repeats : int
+        Repeats of every measurement (the medians are reported).
+    batch, batch_steps : int
+        Vehicles in the batch and steps per batch run.
+    threads : int
+        Threads of MuJoCo's rollout pool and of the batched observer (0: the calling thread).
+    quick : bool
+        A small table of systems for the scaling figure.
+    log : callable, optional
+        Called with a progress message before each part.
+    """
+    from quadobs.testbed.episode import single_threaded_blas
+
+    with single_threaded_blas():  # as in ``quadobs run``: no BLAS worker threads beside the loop
+        return _run_bench(steps, repeats, batch, batch_steps, threads, quick, log)
+
+
+def _run_bench(steps, repeats, batch, batch_steps, threads, quick, log) -> dict:
+    from quadobs.testbed.registry import available_estimators
+    from quadobs.estimators.augmented import default_backend
+    from quadobs.testbed.scenario import load_scenario
+
+    say = log or (lambda msg: None)
+    sc = load_scenario("ifac2021")
+    sc = sc.with_overrides(duration=steps * sc.dt)
+    notes: list[str] = []
+    result: dict = {
+        "machine": {
+            "cpus": os.cpu_count(),
+            "load_average": list(os.getloadavg()) if hasattr(os, "getloadavg") else None,
+            "python": platform.python_version(),
+            "platform": platform.platform(),
+        },
+        "config": {"scenario": sc.name, "steps": steps, "repeats": repeats, "batch": batch, "batch_steps": batch_steps, "threads": threads},
+        "backend": default_backend(),
+    }
+    try:
+        import mujoco
+
+        result["machine"]["mujoco"] = mujoco.__version__
+        import numba
+
+        result["machine"]["numba"] = numba.__version__
+    except ImportError:
+        pass
+
+    say(f"single vehicle: {repeats} x (bare physics, loop, loop + recording) of {steps} steps")
+    _loop_us(sc.with_overrides(duration=min(steps, 2000) * sc.dt), None)  # warm-up
+    bare, norec, rec = [], [], []
+    with tempfile.TemporaryDirectory() as tmp:
+        for r in range(repeats):
+            bare.append(_bare_physics_us(sc, steps))
+            norec.append(_loop_us(sc, None))
+            rec.append(_loop_us(sc, Path(tmp) / f"bench{r}.rrd"))
+    result["bare_step_us"] = _median(bare)
+    result["bare_steps_per_s"] = 1e6 / result["bare_step_us"]
+    result["observer_loop_us"] = _median(norec)
+    result["recorded_loop_us"] = _median(rec)
+    result["observer_loop_ratio"] = _median([b / n for b, n in zip(bare, norec)])
+    result["loop_ratio"] = _median([b / x for b, x in zip(bare, rec)])
+    result["recording_fraction"] = _median([1.0 - n / x for n, x in zip(norec, rec)])
+    # The same from the fastest run of each kind (the least disturbed by other load).
+    result["best"] = {
+        "bare_step_us": min(bare),
+        "observer_loop_ratio": min(bare) / min(norec),
+        "loop_ratio": min(bare) / min(rec),
+        "recording_fraction": 1.0 - min(norec) / min(rec),
+    }
+
+    calls = max(min(steps, 5000), 100)
+    say("per-step costs of the estimators")
+    result["observer_step_us"] = _observer_step_us(sc, calls, repeats, default_backend())
+    result["observer_numpy_step_us"] = _observer_step_us(sc, max(calls // 20, 50), max(repeats // 2, 1), "numpy")
+    for name, key in (("ekf", "ekf_step_us"), ("ukf", "ukf_step_us")):
+        value, note = _estimator_step_us(sc, name, calls, repeats)
+        result[key] = value
+        if note:
+            notes.append(note)
+    result["zonotope_vehicle"] = _vehicle_zonotope_us(max(min(calls, 2000), 100), repeats)
+    result["zonotope_vehicle_step_us"] = result["zonotope_vehicle"]["step_us"]
+    say("le2013: offline LMI design and online steps of the zonotopic estimators")
+    result["lmi_design_s"], result["lmi_design_split_s"], result["lmi_import_s"], designs = _lmi_design_s()
+    result["le2013_step_us"] = _le2013_step_us(designs, min(calls, 1000), repeats)
+    result["zonotope_step_us"] = result["le2013_step_us"]["pradius2"]["numba"]
+    result["registered_estimators"] = available_estimators(sc)
+
+    say(f"batch: {batch} vehicles x {batch_steps} steps, {repeats} repeats")
+    result["batch"] = _batch(sc, batch, batch_steps, repeats, threads)
+    result["batch_ratio"] = result["batch"]["batch_ratio"]
+
+    say("scaling with n and q")
+    result["scaling"] = _scaling(max(min(calls, 2000), 50), quick, max(repeats // 2, 1))
+    notes.append("GPU batch figure: not measured (quadobs has no GPU path; the batch runs on the CPU)")
+    result["targets"] = {
+        "loop_ratio >= 0.5": _meets(result["loop_ratio"], 0.5, ">="),
+        "batch_ratio >= 0.5": _meets(result["batch_ratio"], 0.5, ">="),
+        "recording_fraction <= 0.1": _meets(result["recording_fraction"], 0.1, "<="),
+        "zonotope_step_us < 50": _meets(result["zonotope_step_us"], 50.0, "<"),
+    }
+    result["notes"] = notes
+    return result
+
+
+def _meets(value, bound, op) -> bool | None:
+    if value is None:
+        return None
+    return bool({">=": value >= bound, "<=": value <= bound, "<": value < bound}[op])
+
+
+def _fmt(value, spec: str, unit: str = "") -> str:
+    return "null" if value is None else f"{value:{spec}}{unit}"
+
+
+def print_bench(r: dict, file=None) -> None:
+    """The bench figures as a short report (on ``file``, default standard output)."""
+    file = sys.stdout if file is None else file
+    p = lambda *a: print(*a, file=file)  # noqa: E731
+    m, c = r["machine"], r["config"]
+    load = m.get("load_average")
+    p(f"quadobs bench: {m['cpus']} CPUs, load average {', '.join(f'{x:.2f}' for x in load) if load else '?'}; "
+      f"mujoco {m.get('mujoco', '?')}, numba {m.get('numba', 'missing')}; observer backend {r['backend']}; "
+      f"medians of {c['repeats']} repeats")
+    p(f"single vehicle ({c['scenario']}, {c['steps']} steps per run)")
+    p(f"  bare MuJoCo stepping            {r['bare_steps_per_s']:>10,.0f} steps/s  ({r['bare_step_us']:.2f} us/step)")
+    p(f"  physics + augmented observer    ratio {r['observer_loop_ratio']:.2f}        ({r['observer_loop_us']:.2f} us/step)")
+    p(f"  physics + observer + recording  ratio {r['loop_ratio']:.2f}        ({r['recorded_loop_us']:.2f} us/step); "
+      f"recording {100 * r['recording_fraction']:.1f}% of the loop")
+    b = r["best"]
+    p(f"  fastest runs: bare {b['bare_step_us']:.2f} us/step, ratios {b['observer_loop_ratio']:.2f} and {b['loop_ratio']:.2f}, "
+      f"recording {100 * b['recording_fraction']:.1f}%")
+    p("per-step cost (us)")
+    p(f"  augmented observer (compiled)   {_fmt(r['observer_step_us'], '.2f')}   (NumPy reference {_fmt(r['observer_numpy_step_us'], '.1f')})")
+    p(f"  EKF                             {_fmt(r['ekf_step_us'], '.2f')}")
+    p(f"  UKF                             {_fmt(r['ukf_step_us'], '.2f')}")
+    zv = r["zonotope_vehicle"]
+    p(f"  zonotopic, vehicle              {_fmt(r['zonotope_vehicle_step_us'], '.2f')}   ({zv['scenario']}, outputs every {zv['range_every']} steps; "
+      f"{_fmt(zv['correct_every_step_us'], '.1f')} with outputs at every step)")
+    p(f"  zonotopic, le2013 (online)      {_fmt(r['zonotope_step_us'], '.2f')}   (P-radius, second approach)")
+    p(f"  LMI design le2013 (offline, s)  {_fmt(r['lmi_design_s'], '.3f')}   "
+      f"({', '.join(f'{k} {v:.3f}' for k, v in r['lmi_design_split_s'].items())}; importing cvxpy before: {r['lmi_import_s']:.3f})")
+    p("le2013 online step per method (us): compiled / NumPy reference")
+    for m, v in r["le2013_step_us"].items():
+        p(f"  {m:16s} {v['numba']:>10.2f} / {v['numpy']:>10.2f}")
+    b = r["batch"]
+    p(f"batch of {b['vehicles']} vehicles ({b['steps']} steps, threads {b['threads']} for the rollout and for the observers)")
+    p(f"  physics alone                   {b['physics_vehicle_steps_per_s']:>10,.0f} vehicle-steps/s ({b['physics_us_per_vehicle_step']:.2f} us)")
+    p(f"  physics + sensors + observers   {b['with_observer_vehicle_steps_per_s']:>10,.0f} vehicle-steps/s ({b['with_observer_us_per_vehicle_step']:.2f} us); "
+      f"ratio {b['batch_ratio']:.2f}")
+    p("observer step against the dimensions (us per step, fastest of a few repeats)")
+    backend = r["backend"]
+    p(f"  {'system':8s} {'n':>3s} {'q':>3s} {'N':>4s} {backend:>8s} {'numpy':>8s}")
+    for row in r["scaling"]:
+        p(f"  {row['system']:8s} {row['n']:>3d} {row['q']:>3d} {row['N']:>4d} {row.get(backend + '_us', float('nan')):>8.2f} {row['numpy_us']:>8.1f}")
+    p("targets: " + ", ".join(f"{k}: {'met' if v else 'MISSED' if v is not None else 'n/a'}" for k, v in r["targets"].items()))
+    for note in r["notes"]:
+        p(f"note: {note}")

@@ -1,0 +1,218 @@
+"""Loading the MJCF vehicle and checking that it is the model the estimators assume.
+
+The built-in model is ``models/vehicle.xml`` (shipped inside the wheel as
+``quadobs/_models/vehicle.xml``). Every element is looked up by name; a missing one is
+reported by name. Beacons missing from the model are added with MuJoCo's model editing
+API (``mujoco.MjSpec``) at the scenario's positions.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import mujoco
+import numpy as np
+
+from quadobs.errors import QuadobsError, as_array, as_finite_scalar
+
+__all__ = ["VehicleModel", "default_model_path", "load_vehicle_model", "REQUIRED_ELEMENTS"]
+
+#: (kind, name) of the elements a vehicle model must define.
+REQUIRED_ELEMENTS = (
+    ("body", "vehicle"),
+    ("joint", "vehicle_joint"),
+    ("site", "imu"),
+    ("actuator", "force_x"),
+    ("actuator", "force_y"),
+    ("actuator", "force_z"),
+    ("sensor", "accelerometer"),
+    ("sensor", "velocimeter"),
+)
+
+
+def default_model_path() -> Path:
+    """The built-in vehicle MJCF: inside the installed package, or ``models/`` of a source checkout."""
+    here = Path(__file__).resolve().parents[2]
+    for candidate in (here / "_models" / "vehicle.xml", here.parent / "models" / "vehicle.xml"):
+        if candidate.is_file():
+            return candidate
+    raise QuadobsError("model: the built-in vehicle.xml was not found beside the package (broken installation)")
+
+
+@dataclass(frozen=True, eq=False)
+class VehicleModel:
+    """A compiled vehicle model with the indices the testbed needs.
+
+    Attributes
+    ----------
+    model : mujoco.MjModel
+    path : str
+        Where the MJCF came from.
+    beacons : ndarray (q_b, 3)
+        Beacon positions as compiled (world frame).
+    mass : float
+        Mass of the vehicle subtree (kg): the force for an acceleration ``a`` is ``mass * a``.
+    """
+
+    model: mujoco.MjModel
+    path: str
+    beacons: np.ndarray
+    mass: float
+    qpos_adr: int
+    qvel_adr: int
+    site_id: int
+    accel_adr: int
+    velocimeter_adr: int
+    offset_adr: np.ndarray  # (q_b,) sensordata addresses of the beacon-relative positions
+    actuator_ids: np.ndarray  # (3,)
+    gravity: np.ndarray  # (3,)
+
+
+def _find(spec: mujoco.MjSpec, kind: str, name: str):
+    finder = getattr(spec, kind)
+    try:
+        return finder(name)
+    except Exception:  # noqa: BLE001 - MjSpec raises various types for a missing name
+        return None
+
+
+def load_vehicle_model(
+    beacons: np.ndarray,
+    *,
+    path: str | Path | None = None,
+    timestep: float = 1e-3,
+    wind: np.ndarray | None = None,
+) -> VehicleModel:
+    """Load and check the vehicle MJCF, add beacons, set the time step and the wind.
+
+    Parameters
+    ----------
+    beacons : array_like (q_b, 2 or 3)
+        Beacon positions; 2-D positions lie in the plane ``z = 0``.
+    path : str or Path, optional
+        MJCF file; the built-in vehicle when omitted.
+    timestep : float
+        Physics step (s).
+    wind : array_like (2 or 3,), optional
+        Constant wind, stored in ``opt.wind`` (MuJoCo's own wind, read back by the
+        airspeed sensor). The model must have no fluid density or viscosity, so the wind
+        exerts no force.
+
+    Raises
+    ------
+    QuadobsError
+        Missing file or element (named), a free joint missing, a contact-enabled geom,
+        a non-RK4 integrator, fluid forces, or a beacon sensor that does not measure
+        ``imu`` relative to its beacon site.
+    """
+    beacons = as_array("beacons", beacons, ndim=2)
+    if beacons.shape[1] not in (2, 3) or beacons.shape[0] == 0:
+        raise QuadobsError(f"beacons: expected shape (q, 2 or 3) with q >= 1, got {beacons.shape}")
+    timestep = as_finite_scalar("timestep", timestep, positive=True)
+    if wind is not None:
+        wind = as_array("wind", wind, (beacons.shape[1],))
+    mjcf = Path(path) if path is not None else default_model_path()
+    if not mjcf.is_file():
+        raise QuadobsError(f"model: MJCF file {str(mjcf)!r} does not exist")
+    try:
+        spec = mujoco.MjSpec.from_file(str(mjcf))
+    except Exception as exc:  # noqa: BLE001 - MuJoCo's parser error
+        raise QuadobsError(f"model: cannot parse {mjcf.name}: {exc}") from None
+
+    for kind, name in REQUIRED_ELEMENTS:
+        if _find(spec, kind, name) is None:
+            raise QuadobsError(f"model {mjcf.name}: missing {kind} named {name!r}")
+    if spec.joint("vehicle_joint").type != mujoco.mjtJoint.mjJNT_FREE:
+        raise QuadobsError(f"model {mjcf.name}: joint 'vehicle_joint' must be a free joint")
+
+    b3 = np.zeros((beacons.shape[0], 3))
+    b3[:, : beacons.shape[1]] = beacons
+    for h, pos in enumerate(b3):
+        site_name, sensor_name = f"beacon{h}", f"beacon{h}_offset"
+        site = _find(spec, "site", site_name)
+        if site is None:
+            site = spec.worldbody.add_site(name=site_name, pos=pos, size=[0.4, 0, 0], rgba=[1.0, 0.5, 0.0, 1.0])
+        else:
+            site.pos = pos
+        if _find(spec, "sensor", sensor_name) is None:
+            spec.add_sensor(
+                name=sensor_name,
+                type=mujoco.mjtSensor.mjSENS_FRAMEPOS,
+                objtype=mujoco.mjtObj.mjOBJ_SITE,
+                objname="imu",
+                reftype=mujoco.mjtObj.mjOBJ_SITE,
+                refname=site_name,
+            )
+    spec.option.timestep = float(timestep)
+    if wind is not None:
+        w3 = np.zeros(3)
+        w3[: len(wind)] = wind
+        spec.option.wind = w3
+    try:
+        model = spec.compile()
+    except Exception as exc:  # noqa: BLE001
+        raise QuadobsError(f"model {mjcf.name}: does not compile: {exc}") from None
+
+    if model.opt.integrator != mujoco.mjtIntegrator.mjINT_RK4:
+        raise QuadobsError(
+            f"model {mjcf.name}: option integrator must be RK4 (exact for the double integrator under a held input)"
+        )
+    if model.opt.density != 0 or model.opt.viscosity != 0:
+        raise QuadobsError(f"model {mjcf.name}: fluid density and viscosity must be 0 (the wind must exert no force)")
+    body = model.body("vehicle")
+    for g in range(model.ngeom):
+        if model.geom_bodyid[g] == body.id and (model.geom_contype[g] or model.geom_conaffinity[g]):
+            name = mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_GEOM, g) or f"#{g}"
+            raise QuadobsError(f"model {mjcf.name}: geom {name!r} of the vehicle must have contype=0 and conaffinity=0")
+    joint = model.joint("vehicle_joint")
+    if np.any(model.dof_damping[joint.dofadr[0] : joint.dofadr[0] + 6]) or np.any(
+        model.dof_frictionloss[joint.dofadr[0] : joint.dofadr[0] + 6]
+    ):
+        raise QuadobsError(f"model {mjcf.name}: joint 'vehicle_joint' must have no damping or friction loss")
+
+    offset_adr = []
+    for h in range(b3.shape[0]):
+        sensor = model.sensor(f"beacon{h}_offset")
+        site = model.site(f"beacon{h}")
+        if (
+            sensor.type[0] != mujoco.mjtSensor.mjSENS_FRAMEPOS
+            or sensor.objid[0] != model.site("imu").id
+            or sensor.refid[0] != site.id
+            or sensor.reftype[0] != mujoco.mjtObj.mjOBJ_SITE
+        ):
+            raise QuadobsError(
+                f"model {mjcf.name}: sensor 'beacon{h}_offset' must be a framepos of site 'imu' relative to site 'beacon{h}'"
+            )
+        if site.bodyid[0] != 0:
+            raise QuadobsError(f"model {mjcf.name}: site 'beacon{h}' must belong to the world body")
+        offset_adr.append(int(sensor.adr[0]))
+    compiled_beacons = np.array([model.site(f"beacon{h}").pos for h in range(b3.shape[0])])
+    if not np.allclose(compiled_beacons, b3):
+        raise QuadobsError(f"model {mjcf.name}: beacon sites must sit directly in the world body, without a frame offset")
+
+    actuators = np.array([model.actuator(f"force_{a}").id for a in "xyz"])
+    for a, act in zip("xyz", actuators):
+        expected = np.zeros(6)
+        expected["xyz".index(a)] = 1.0
+        if model.actuator_trnid[act, 0] != joint.id or not np.allclose(model.actuator_gear[act], expected):
+            raise QuadobsError(
+                f"model {mjcf.name}: actuator 'force_{a}' must act on 'vehicle_joint' with gear {expected.astype(int).tolist()}"
+            )
+        if model.actuator_ctrllimited[act] or model.actuator_forcelimited[act]:
+            raise QuadobsError(f"model {mjcf.name}: actuator 'force_{a}' must not be control- or force-limited")
+
+    return VehicleModel(
+        model=model,
+        path=str(mjcf),
+        beacons=compiled_beacons,
+        mass=float(model.body_subtreemass[body.id]),
+        qpos_adr=int(joint.qposadr[0]),
+        qvel_adr=int(joint.dofadr[0]),
+        site_id=int(model.site("imu").id),
+        accel_adr=int(model.sensor("accelerometer").adr[0]),
+        velocimeter_adr=int(model.sensor("velocimeter").adr[0]),
+        offset_adr=np.array(offset_adr, dtype=int),
+        actuator_ids=actuators,
+        gravity=np.array(model.opt.gravity, dtype=float),
+    )

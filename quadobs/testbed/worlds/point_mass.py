@@ -1,0 +1,251 @@
+"""MuJoCo ground truth: the vehicle driven by a commanded acceleration, and its raw sensors.
+
+One :meth:`VehicleSim.step` is one ``mj_step``. MuJoCo computes the sensors inside
+``mj_step`` *before* integrating, so after the call ``sensordata`` describes the state
+at the start of the step: the ranges ``rho_h(t_k)``, the accelerometer reading for the
+control held over ``[t_k, t_k + dt)`` and the velocity at ``t_k``, while ``qpos``/``qvel``
+hold the state at ``t_{k+1}``. The estimators consume exactly this: the output sampled at
+``t_k`` and the input held over the step, and produce an estimate at ``t_{k+1}``.
+"""
+
+from __future__ import annotations
+
+import mujoco
+import numpy as np
+
+from quadobs.errors import QuadobsError, as_array
+from quadobs.testbed.worlds.model import VehicleModel, load_vehicle_model
+
+__all__ = ["VehicleSim", "BlockStepper"]
+
+_mj_step = mujoco.mj_step
+
+
+class VehicleSim:
+    """The vehicle in ``R^dim`` (``dim`` = 2 or 3) with beacons, and optionally a wind.
+
+    Parameters
+    ----------
+    dim : int
+        2 (motion in the plane ``z = 0``) or 3.
+    beacons : array_like (q_b, dim)
+    timestep : float
+    wind : array_like (dim,), optional
+    model_path : str, optional
+        A user MJCF with the names listed in :data:`~quadobs.testbed.worlds.model.REQUIRED_ELEMENTS`.
+    """
+
+    def __init__(self, dim: int, beacons, *, timestep: float = 1e-3, wind=None, model_path=None) -> None:
+        if dim not in (2, 3):
+            raise QuadobsError(f"dimension: must be 2 or 3, got {dim}")
+        self.dim = dim
+        beacons = as_array("beacons", beacons, (None, dim))
+        self.wind = None if wind is None else as_array("wind", wind, (dim,))
+        self.vm: VehicleModel = load_vehicle_model(beacons, path=model_path, timestep=timestep, wind=self.wind)
+        self.model = self.vm.model
+        self.data = mujoco.MjData(self.model)
+        self.dt = float(self.model.opt.timestep)
+        self._wind3 = np.array(self.model.opt.wind, dtype=float)
+        self._force = np.zeros(3)
+        vm = self.vm
+        self._qp = slice(vm.qpos_adr, vm.qpos_adr + 3)
+        self._qv = slice(vm.qvel_adr, vm.qvel_adr + 3)
+        self._acc = slice(vm.accel_adr, vm.accel_adr + 3)
+        self._vel = slice(vm.velocimeter_adr, vm.velocimeter_adr + 3)
+        self._off = np.stack([np.arange(a, a + 3) for a in vm.offset_adr])  # (q_b, 3)
+
+    # -- state ---------------------------------------------------------------------
+
+    def reset(self, position, velocity) -> None:
+        """Place the vehicle at ``position`` with ground velocity ``velocity`` (both ``(dim,)``), level and not rotating."""
+        p = as_array("position", position, (self.dim,))
+        v = as_array("velocity", velocity, (self.dim,))
+        mujoco.mj_resetData(self.model, self.data)
+        qa = self.vm.qpos_adr
+        self.data.qpos[qa : qa + 3] = 0.0
+        self.data.qpos[qa : qa + self.dim] = p
+        self.data.qpos[qa + 3 : qa + 7] = (1.0, 0.0, 0.0, 0.0)
+        self.data.qvel[self._qv] = 0.0
+        self.data.qvel[self.vm.qvel_adr : self.vm.qvel_adr + self.dim] = v
+        mujoco.mj_forward(self.model, self.data)
+
+    @property
+    def time(self) -> float:
+        return float(self.data.time)
+
+    def position(self) -> np.ndarray:
+        """True position now (MuJoCo's ``qpos``), ``(dim,)``."""
+        return self.data.qpos[self._qp][: self.dim].copy()
+
+    def velocity(self) -> np.ndarray:
+        """True ground velocity now (MuJoCo's ``qvel``), ``(dim,)``."""
+        return self.data.qvel[self._qv][: self.dim].copy()
+
+    def state(self) -> np.ndarray:
+        """True estimator state now: ``(p, v)``, or ``(p, v_a, v_w)`` with wind (``v_a = v - v_w``)."""
+        p, v = self.position(), self.velocity()
+        if self.wind is None:
+            return np.concatenate([p, v])
+        return np.concatenate([p, v - self.wind, self.wind])
+
+    # -- stepping ------------------------------------------------------------------
+
+    def controls(self, accelerations) -> np.ndarray:
+        """Actuator controls ``(T, nu)`` realising the accelerations ``(T, dim)``: force ``m (a - g)`` per step."""
+        acc = np.asarray(accelerations, dtype=float).reshape(-1, self.dim)
+        f = np.zeros((acc.shape[0], 3))
+        f[:, : self.dim] = acc
+        f -= self.vm.gravity
+        out = np.array(np.broadcast_to(self.data.ctrl, (acc.shape[0], self.model.nu)))
+        out[:, self.vm.actuator_ids] = self.vm.mass * f
+        return out
+
+    def step(self, acceleration) -> None:
+        """One physics step with the force ``m (a - g)`` held: the vehicle accelerates by ``a``."""
+        f = self._force
+        f[:] = 0.0
+        f[: self.dim] = acceleration
+        f -= self.vm.gravity
+        self.data.ctrl[self.vm.actuator_ids] = self.vm.mass * f
+        mujoco.mj_step(self.model, self.data)
+
+    # -- sensors (describing the start of the last step) ---------------------------
+
+    def ranges(self) -> np.ndarray:
+        """``|p - a_h|`` from the beacon-relative position sensors, ``(q_b,)``."""
+        rel = self.data.sensordata[self._off]
+        return np.sqrt(np.einsum("hi,hi->h", rel, rel))
+
+    def accelerometer(self) -> np.ndarray:
+        """World-frame acceleration from the accelerometer (which reads ``R^T (a - g)``), ``(dim,)``."""
+        R = self.data.site_xmat[self.vm.site_id].reshape(3, 3)
+        return (R @ self.data.sensordata[self._acc] + self.vm.gravity)[: self.dim]
+
+    def airspeed(self) -> float:
+        """``|v - wind|`` from the velocimeter and MuJoCo's ``opt.wind``."""
+        R = self.data.site_xmat[self.vm.site_id].reshape(3, 3)
+        return float(np.linalg.norm(R @ self.data.sensordata[self._vel] - self._wind3))
+
+
+class BlockStepper:
+    """Steps a :class:`VehicleSim` through a block of commanded accelerations, one step per call.
+
+    Each :meth:`step` is one ``mj_step`` followed by one compiled read (see
+    :mod:`quadobs.testbed.worlds._read`; NumPy when Numba is missing) that writes the sensors at
+    the start of step ``j`` into row ``j`` of :attr:`out` and the true state at its end
+    into row ``j + 1``, and loads the control of step ``j + 1``. Given a sensor model, the
+    same call applies it: the row also gets the outputs ``y``, the measured input ``u`` and
+    the measured ranges, the values :meth:`SensorModel.outputs` and
+    :meth:`SensorModel.input` would give for that step.
+
+    Columns of :attr:`out` (slices): :attr:`truth` ``(n)``, :attr:`ranges` ``(q_b)``,
+    :attr:`accel` ``(dim)``, :attr:`airspeed` ``(1)``, and with a sensor model :attr:`y`
+    ``(q)``, :attr:`u` ``(dim)``, :attr:`measured` ``(q_b)``.
+
+    Parameters
+    ----------
+    sim : VehicleSim
+    capacity : int
+        Most steps per block.
+    sensors : SensorModel, optional
+        The sensor layer to apply in the same call (its noise is drawn a block at a time,
+        from the same streams in the same order as step-by-step calls).
+    """
+
+    def __init__(self, sim: VehicleSim, capacity: int, sensors=None) -> None:
+        self.sim = sim
+        self.sensors = sensors
+        dim, qb = sim.dim, sim.vm.offset_adr.shape[0]
+        n = dim * (3 if sim.wind is not None else 2)
+        self.truth = slice(0, n)
+        self.ranges = slice(n, n + qb)
+        self.accel = slice(n + qb, n + qb + dim)
+        self.airspeed = slice(n + qb + dim, n + qb + dim + 1)
+        width = n + qb + dim + 1
+        sensor_consts = [0.0, 0.0, 0.0, 0.0]
+        if sensors is not None:
+            q = sensors.q
+            self.y = slice(width, width + q)
+            self.u = slice(width + q, width + q + dim)
+            self.measured = slice(width + q + dim, width + q + dim + qb)
+            sensor_consts = [1.0, self.y.start, self.u.start, self.measured.start, *sensors.step_params()]
+            width += q + dim + qb
+        self.out = np.zeros((int(capacity) + 1, width))
+        #: per step of the block: outliers delivered and samples dropped (see :meth:`commit`)
+        self.events = np.zeros((int(capacity) + 1, 2), dtype=np.int64)
+        vm = sim.vm
+        wind3 = np.zeros(3) if sim.wind is None else sim._wind3
+        self._consts = np.concatenate(
+            [
+                [dim, qb, 0.0 if sim.wind is None else 1.0, vm.qpos_adr, vm.qvel_adr, vm.site_id, vm.accel_adr, vm.velocimeter_adr],
+                vm.gravity,
+                wind3,
+                vm.offset_adr.astype(float),
+                sensor_consts,
+            ]
+        )
+        self._ctrls = np.zeros((0, sim.model.nu))
+        self._draws = np.zeros((1, 1 if sensors is None else sensors.draw_width))
+        self._model, self._data = sim.model, sim.data
+        try:
+            from quadobs.testbed.worlds._read import read_step
+        except ImportError:  # pragma: no cover - Numba missing: the NumPy path
+            read_step = None
+        self._read = read_step
+        if read_step is not None:  # load (or compile) the kernel now, on scratch copies
+            d = sim.data
+            scratch = self._consts.copy()
+            scratch[14 + qb] = 0.0  # no sensor layer on the scratch row
+            read_step(0, self.out[:2].copy(), np.zeros((1, sim.model.nu)), d.ctrl.copy(), d.sensordata.copy(),
+                      d.site_xmat.copy(), d.qpos.copy(), d.qvel.copy(), scratch, self._draws.copy())
+
+    def begin(self, accelerations, k0: int = 0) -> int:
+        """Start a block of steps ``k0, k0 + 1, ...`` with these commanded accelerations ``(T, dim)``.
+
+        Row 0 of :attr:`out` gets the current truth; with a sensor model, the block's noise
+        is drawn now.
+        """
+        sim = self.sim
+        self._ctrls = np.ascontiguousarray(sim.controls(accelerations))  # the layout the kernel was compiled for
+        count = self._ctrls.shape[0]
+        if count + 1 > self.out.shape[0]:
+            raise QuadobsError(f"accelerations: at most {self.out.shape[0] - 1} steps per block, got {count}")
+        self._k0 = int(k0)
+        if self.sensors is not None and self._read is not None:
+            self._draws = self.sensors.draws(self._k0, count)
+        d = sim.data
+        d.ctrl[:] = self._ctrls[0]
+        self.out[0, self.truth] = sim.state()
+        self._args = (self.out, self._ctrls, d.ctrl, d.sensordata, d.site_xmat, d.qpos, d.qvel, self._consts, self._draws)
+        return count
+
+    def commit(self, rows: int) -> None:
+        """Count the dropouts and outliers of the first ``rows`` steps of the block in the sensor model.
+
+        Their per-step counts ``[outliers, dropped]`` are then in :attr:`events` rows ``[0, rows)``.
+        """
+        if self.sensors is not None and self._read is not None:
+            self.events[:rows] = self.sensors.commit(self._draws[:rows])
+
+    def step(self, j: int) -> None:
+        """Step ``j`` of the block: ``mj_step``, then read row ``j`` (sensors) and ``j + 1`` (truth)."""
+        _mj_step(self._model, self._data)
+        if self._read is not None:
+            self._read(j, *self._args)
+            return
+        sim = self.sim
+        d = self._data
+        row = self.out[j]
+        row[self.ranges] = sim.ranges()
+        row[self.accel] = sim.accelerometer()
+        row[self.airspeed] = sim.airspeed()
+        self.out[j + 1, self.truth] = sim.state()
+        if self.sensors is not None:
+            s = self.sensors
+            before = (s.outliers_injected, s.dropped)
+            row[self.y] = s.outputs(self._k0 + j, row[self.ranges], row[self.airspeed][0] if sim.wind is not None else None)
+            self.events[j] = (s.outliers_injected - before[0], s.dropped - before[1])
+            row[self.measured] = s.measured_ranges
+            row[self.u] = s.input(row[self.accel])
+        if j + 1 < self._ctrls.shape[0]:
+            d.ctrl[:] = self._ctrls[j + 1]
