@@ -118,7 +118,7 @@ def _cmd_run(args) -> int:
 
 
 def _cmd_excitation(args) -> int:
-    from quadobs.observability.excitation import scenario_report
+    from quadobs.testbed.excitation import scenario_report
     from quadobs.testbed.episode import write_json_atomic
     from quadobs.testbed.scenario import load_scenario
 

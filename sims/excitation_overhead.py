@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from quadobs import load_scenario
-from quadobs.observability.excitation import scenario_monitor
+from quadobs.testbed.excitation import scenario_monitor
 from quadobs.testbed.episode import run_episode
 
 

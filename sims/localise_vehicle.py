@@ -14,7 +14,7 @@ import numpy as np
 import rerun as rr
 
 from quadobs import load_scenario
-from quadobs.testbed.registry import augmented_observer
+from quadobs.testbed.factories import augmented_observer
 from quadobs.recording import Recorder
 from quadobs.testbed.sensors import SensorModel
 from quadobs.testbed.worlds import VehicleSim

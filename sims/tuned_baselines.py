@@ -15,7 +15,8 @@ import argparse
 from quadobs import load_scenario
 from quadobs.studies.campaign import print_campaign, run_campaign
 from quadobs.testbed.registry import register_estimator
-from quadobs.estimators.kalman import ExtendedKalmanFilter, HeldInputModel, UnscentedKalmanFilter, baseline_settings
+from quadobs.estimators.kalman import ExtendedKalmanFilter, HeldInputModel, UnscentedKalmanFilter
+from quadobs.testbed.factories import baseline_settings
 
 
 def tuned(cls, accel_std: float):

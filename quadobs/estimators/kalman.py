@@ -71,19 +71,14 @@ import scipy.linalg as sla
 
 from quadobs.core.held_input import as_covariance, van_loan
 from quadobs.errors import QuadobsError, as_array, as_finite_scalar
-from quadobs.testbed.registry import output_periods, register_estimator
 from quadobs.estimators.augmented import Estimator
-from quadobs.testbed.scenario import Scenario
 from quadobs.core.system import QuadraticSystem
 
 __all__ = [
-    "BaselineSettings",
     "ExtendedKalmanFilter",
     "HeldInputModel",
     "OutputModel",
     "UnscentedKalmanFilter",
-    "baseline_settings",
-    "initial_covariance",
     "step_power",
 ]
 
@@ -467,112 +462,15 @@ class UnscentedKalmanFilter(_GaussianFilter):
 # --------------------------------------------------------------------------------------
 
 
-@dataclass(frozen=True, eq=False)
-class BaselineSettings:
-    """What the ``"ekf"`` and ``"ukf"`` estimators of a scenario use (see :func:`baseline_settings`).
-
-    Attributes
-    ----------
-    dynamics : HeldInputModel
-    outputs : OutputModel
-    P0 : ndarray (n, n)
-    noise_source : str
-        ``"sensors"`` (the scenario's true noise levels) or ``"observer"`` (the augmented
-        observer's ``W / T``, used when a sensor is noise-free).
-    prior_source : str
-        ``"initial"`` (the spreads of a random initial guess) or ``"observer"`` (the state
-        block of the observer's ``S0``).
-    """
-
-    dynamics: HeldInputModel
-    outputs: OutputModel
-    P0: np.ndarray
-    noise_source: str
-    prior_source: str
 
 
-def _state_block(value, N: int, n: int) -> np.ndarray:
-    """The ``x`` block (the last ``n`` of ``N`` entries) of a scalar or diagonal setting."""
-    if np.ndim(value) == 0:
-        return float(value) * np.eye(n)
-    arr = np.asarray(value, dtype=float)
-    if arr.shape != (N,):
-        raise QuadobsError(f"observer.S0: expected a scalar or {N} entries (the augmented state), got {arr.size}")
-    return np.diag(arr[N - n :])
 
 
-def initial_covariance(scenario: Scenario) -> tuple[np.ndarray, str]:
-    """The initial covariance shared by the baselines and the Cramér-Rao bound, and where it comes from.
-
-    For ``[initial] kind = "random"`` the guess is the truth plus Gaussian errors of
-    standard deviation ``position_spread`` (positions) and ``velocity_spread``
-    (velocities, wind): its covariance ``diag(spread^2)`` is the true prior
-    (``"initial"``). For ``"zero"`` and ``"point"`` there is no distribution to take it
-    from, and the state block of the augmented observer's ``S0`` (the paper's tuning) is
-    used (``"observer"``), so that all the filters start with the same uncertainty on
-    ``x``.
-    """
-    n, dim = scenario.state_dim, scenario.dimension
-    init = scenario.initial
-    if init.kind == "random":
-        spread = np.full(n, init.velocity_spread)
-        spread[:dim] = init.position_spread
-        return np.diag(spread**2), "initial"
-    from quadobs.core.immersion import immerse
-
-    N = immerse(scenario.system(), method=scenario.observer.immersion).dim
-    return _state_block(scenario.observer.S0, N, n), "observer"
 
 
-def baseline_settings(scenario: Scenario) -> BaselineSettings:
-    """Noise and prior of the EKF and UKF for ``scenario``, chosen for a fair comparison.
-
-    * Measurements: when every sensor the outputs come from is noisy (ranges, and the
-      airspeed in wind scenarios), the filters work in the norm space (ranges,
-      airspeed) with the sensors' true variances ``R = diag(sigma_h^2)``: this is the
-      exact likelihood of Gaussian measurements (for bounded, uniform noise,
-      ``sigma = bound / sqrt(3)``, its standard deviation). When a sensor is noise-free there is no true
-      level to use (``R = 0`` is not a filter), and they use the augmented observer's
-      tuning instead, in the output space: ``R_hl = W_hl / sqrt(T_h T_l)``, exactly the
-      observer's ``R``.
-    * Process noise: the accelerometer's true noise variance, ``Q_d = sigma_a^2 G G^T`` per physics
-      step (zero for a noise-free accelerometer: the MuJoCo vehicle then follows the
-      model exactly).
-    * Prior: :func:`initial_covariance`.
-    """
-    system = scenario.system()
-    noise = scenario.noise
-    stds = [noise.sigma("range")] * scenario.beacons.shape[0]
-    offsets = list(0.5 * np.einsum("hi,hi->h", scenario.beacons, scenario.beacons))
-    if scenario.has_wind:
-        stds.append(noise.sigma("airspeed"))
-        offsets.append(0.0)
-    stds = np.array(stds)
-    if np.all(stds > 0):
-        outputs = OutputModel(system, np.diag(stds**2), offsets=np.array(offsets))
-        source = "sensors"
-    else:
-        periods = output_periods(scenario)
-        W = as_covariance("observer.W", np.asarray(scenario.observer.W, dtype=float), system.q)
-        scale = 1.0 / np.sqrt(periods)
-        outputs = OutputModel(system, W * np.outer(scale, scale))
-        source = "observer"
-    dynamics = HeldInputModel(system, scenario.dt, input_covariance=noise.sigma("accel") ** 2)
-    P0, prior = initial_covariance(scenario)
-    return BaselineSettings(dynamics, outputs, P0, source, prior)
 
 
-def extended_kalman_filter(scenario: Scenario, x0: np.ndarray) -> ExtendedKalmanFilter:
-    """The ``"ekf"`` estimator of ``scenario`` (:func:`baseline_settings`), started at ``x0``."""
-    s = baseline_settings(scenario)
-    return ExtendedKalmanFilter(s.dynamics, s.outputs, x0=x0, P0=s.P0, gate=scenario.observer.gate)
 
 
-def unscented_kalman_filter(scenario: Scenario, x0: np.ndarray) -> UnscentedKalmanFilter:
-    """The ``"ukf"`` estimator of ``scenario`` (:func:`baseline_settings`), started at ``x0``."""
-    s = baseline_settings(scenario)
-    return UnscentedKalmanFilter(s.dynamics, s.outputs, x0=x0, P0=s.P0, gate=scenario.observer.gate)
 
 
-register_estimator("ekf", lambda scenario, x0, name: extended_kalman_filter(scenario, x0))
-register_estimator("ukf", lambda scenario, x0, name: unscented_kalman_filter(scenario, x0))

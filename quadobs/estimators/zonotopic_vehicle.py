@@ -52,7 +52,7 @@ from quadobs.core.immersion import Immersion
 from quadobs.estimators.augmented import Estimator
 from quadobs.sets.zonotope import Zonotope, reduce_generators
 
-__all__ = ["ROUNDING_MARGIN", "ZonotopicAugmentedEstimator", "lift_box", "range_strip", "zonotope_estimator"]
+__all__ = ["ROUNDING_MARGIN", "ZonotopicAugmentedEstimator", "lift_box", "range_strip"]
 
 #: Relative margin per step for floating-point rounding (see the module docstring).
 ROUNDING_MARGIN = 1e-12
@@ -277,55 +277,3 @@ class ZonotopicAugmentedEstimator(Estimator):
         self.zonotope = Zonotope._trusted(center, Hn)
 
 
-def zonotope_estimator(scenario, x0) -> ZonotopicAugmentedEstimator:
-    """The ``"zonotope"`` estimator of a scenario (registered in :mod:`quadobs.testbed.registry`).
-
-    The initial box is centred at the initial guess ``x0`` with the half-widths of the
-    scenario's ``[zonotope]`` table. The guarantee needs bounded errors, so the scenario must
-    use bounded noise (``noise.*_bound``), no outliers, and a non-random initial guess.
-
-    Raises
-    ------
-    QuadobsError
-        Naming the scenario field that makes a guarantee impossible.
-    """
-    from quadobs.core.immersion import immerse
-
-    noise = scenario.noise
-    sensors = [("range", "range_std")] + ([("airspeed", "airspeed_std")] if scenario.has_wind else []) + [("accel", "accel_std")]
-    for sensor, field_ in sensors:
-        if getattr(noise, field_):
-            raise QuadobsError(
-                f"noise.{field_}: estimator 'zonotope' needs bounded noise, but {sensor} noise is Gaussian "
-                f"({getattr(noise, field_)}); use noise.{sensor}_bound"
-            )
-    if noise.outlier_probability:
-        raise QuadobsError("noise.outlier_probability: estimator 'zonotope' needs bounded noise; outliers are unbounded")
-    if scenario.initial.kind == "random":
-        raise QuadobsError(
-            "initial.kind: estimator 'zonotope' needs the true initial state in a known box; a 'random' guess has a "
-            "Gaussian (unbounded) error, use 'zero' or 'point' with zonotope.position_bound and velocity_bound"
-        )
-    system = scenario.system()
-    im = immerse(system, method=scenario.observer.immersion)
-    dim = scenario.dimension
-    spec = scenario.zonotope
-    radius = np.full(system.n, spec.velocity_bound)
-    radius[:dim] = spec.position_bound
-    q_b = scenario.beacons.shape[0]
-    offsets = np.zeros(system.q)
-    offsets[:q_b] = 0.5 * np.einsum("hi,hi->h", scenario.beacons, scenario.beacons)
-    bounds = np.full(system.q, noise.range_bound)
-    if scenario.has_wind:
-        bounds[q_b] = noise.airspeed_bound
-    return ZonotopicAugmentedEstimator(
-        im,
-        scenario.dt,
-        x0=x0,
-        radius=radius,
-        output_offsets=offsets,
-        output_bounds=bounds,
-        input_bound=noise.accel_bound,
-        max_generators=spec.max_generators or None,
-        reduction=spec.reduction,
-    )

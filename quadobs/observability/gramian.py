@@ -40,7 +40,7 @@ e_j + e_l``. Over consecutive steps the window Gramian composes exactly:
 So ``W`` is exact (to rounding) for the held input: there is no quadrature error. For
 an input that varies within a step, the only approximation is the hold itself, whose
 error is ``O(h)`` in ``Phi_12`` for an arbitrary sample and ``O(h^2)`` when ``u_k`` is
-the mean of ``u`` over the step (what :func:`quadobs.observability.excitation.scenario_input` uses).
+the mean of ``u`` over the step (what :func:`quadobs.testbed.excitation.scenario_input` uses).
 
 Sliding windows are evaluated for every start at once with a doubling table
 (``O(T log L)`` batched matrix products for ``T`` steps and windows of ``L`` steps); the

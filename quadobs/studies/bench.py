@@ -139,7 +139,7 @@ def _estimator_step_us(scenario, name: str, calls: int, repeats: int) -> tuple[f
 
 
 def _observer_step_us(scenario, calls: int, repeats: int, backend: str) -> float:
-    from quadobs.testbed.registry import augmented_observer
+    from quadobs.testbed.factories import augmented_observer
 
     U, Y, x0 = _vehicle_data(scenario, calls)
     obs = augmented_observer(scenario, np.zeros(scenario.state_dim))
@@ -250,7 +250,7 @@ def _vehicle_zonotope_us(calls: int, repeats: int) -> dict:
 
 def _batch(scenario, B: int, steps: int, repeats: int, threads: int) -> dict:
     from quadobs.estimators.augmented_batch import BatchAugmentedObserver
-    from quadobs.testbed.registry import augmented_observer
+    from quadobs.testbed.factories import augmented_observer
     from quadobs.core.system import range_outputs
     from quadobs.testbed.worlds.batch import VehicleBatch
 

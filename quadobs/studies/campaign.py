@@ -46,7 +46,8 @@ import numpy as np
 
 from quadobs.errors import QuadobsError, as_finite_scalar
 from quadobs.testbed.registry import available_estimators, default_estimators
-from quadobs.evaluation.ensemble import Ensemble, ensemble, immersion_bound, nees, scenario_crb, set_containment
+from quadobs.evaluation.ensemble import Ensemble, ensemble, nees, set_containment
+from quadobs.testbed.bounds import immersion_bound, scenario_crb
 from quadobs.testbed.scenario import Scenario, parse_scenario
 
 __all__ = ["CampaignResult", "run_campaign", "run_one", "run_seed", "print_campaign"]

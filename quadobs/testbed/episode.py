@@ -215,7 +215,7 @@ def run_episode(
     x0 = initial_guess(scenario, x_true, streams["initial"])
     ests = build_estimators(scenario, names, x0)
     has_wind = scenario.has_wind
-    from quadobs.observability.excitation import scenario_monitor
+    from quadobs.testbed.excitation import scenario_monitor
 
     monitor = scenario_monitor(scenario)  # sliding-window Gramian of the applied input (None: disabled)
     xlog = None
@@ -227,7 +227,7 @@ def run_episode(
 
     log = None
     if out is not None:
-        from quadobs.recording import EpisodeLog, default_blueprint
+        from quadobs.testbed.episode_log import EpisodeLog, default_blueprint
 
         trail = max(1, int(round(scenario.physics_rate / 100.0)))
         trail = math.lcm(trail, scenario.record_every)

@@ -12,23 +12,26 @@ from typing import Callable
 import numpy as np
 
 from quadobs.errors import QuadobsError
-from quadobs.core.immersion import immerse
-from quadobs.estimators.augmented import AugmentedObserver, Estimator
+from quadobs.estimators.augmented import Estimator
+from quadobs.testbed import factories
+from quadobs.testbed.factories import OutputSubset, augmented_observer
 from quadobs.testbed.scenario import Scenario
-from quadobs.core.system import QuadraticSystem
 
 __all__ = [
-    "OutputSubset",
     "build_estimators",
     "default_estimators",
     "register_estimator",
     "available_estimators",
-    "output_periods",
 ]
 
 #: factory(scenario, x0_guess, name) -> Estimator
 Factory = Callable[[Scenario, np.ndarray, str], Estimator]
-_REGISTRY: dict[str, Factory] = {}
+_REGISTRY: dict[str, Factory] = {
+    "augmented": lambda scenario, x0, name: factories.augmented_observer(scenario, x0),
+    "ekf": lambda scenario, x0, name: factories.extended_kalman_filter(scenario, x0),
+    "ukf": lambda scenario, x0, name: factories.unscented_kalman_filter(scenario, x0),
+    "zonotope": lambda scenario, x0, name: factories.zonotope_estimator(scenario, x0),
+}
 
 
 def register_estimator(name: str, factory: Factory) -> None:
@@ -48,94 +51,20 @@ def default_estimators(scenario: Scenario) -> list[str]:
     return ["augmented"] + [n for n, _ in scenario.observer.variants]
 
 
-def output_periods(scenario: Scenario) -> np.ndarray:
-    """Sampling period (s) of each output: the ranges, then the airspeed."""
-    n = scenario.noise
-    periods = [scenario.dt * scenario.sample_interval(n.range_rate, "range_rate")] * scenario.beacons.shape[0]
-    if scenario.has_wind:
-        periods.append(scenario.dt * scenario.sample_interval(n.airspeed_rate, "airspeed_rate"))
-    return np.array(periods)
 
 
-def _matrix_subset(value, idx: tuple[int, ...]):
-    if np.ndim(value) == 0:
-        return value
-    arr = np.asarray(value, dtype=float)
-    return arr[list(idx)] if arr.ndim == 1 else arr[np.ix_(idx, idx)]
 
 
-class OutputSubset(Estimator):
-    """Runs an estimator on some of the outputs only (``y[outputs]``)."""
-
-    def __init__(self, inner: Estimator, outputs: tuple[int, ...], name: str) -> None:
-        self.inner = inner
-        self.outputs = np.asarray(outputs, dtype=int)
-        self.name = name
-
-    def step(self, u, y) -> None:
-        self.inner.step(u, np.asarray(y)[self.outputs])
-
-    def step_and_record(self, u, y, out) -> None:
-        self.inner.step_and_record(u, np.asarray(y)[self.outputs], out)
-
-    @property
-    def x_hat(self) -> np.ndarray:
-        return self.inner.x_hat
-
-    @property
-    def x_covariance(self):
-        return self.inner.x_covariance
-
-    @property
-    def covariance_trace(self) -> float:
-        return self.inner.covariance_trace
-
-    @property
-    def nis(self) -> float:
-        return getattr(self.inner, "nis", float("nan"))
-
-    def __getattr__(self, item):
-        return getattr(self.inner, item)
 
 
-def augmented_observer(scenario: Scenario, x0: np.ndarray, outputs: tuple[int, ...] | None = None) -> AugmentedObserver:
-    """Theorem 3's observer for ``scenario`` (optionally on a subset of the outputs), starting at ``lift(x0)``."""
-    system = scenario.system()
-    periods = output_periods(scenario)
-    W = scenario.observer.W
-    if outputs is not None:
-        system = QuadraticSystem(system.A, system.B, system.C[list(outputs)], system.d[list(outputs)])
-        periods = periods[list(outputs)]
-        W = _matrix_subset(W, outputs)
-    im = immerse(system, method=scenario.observer.immersion)
-    obs = scenario.observer
-    return AugmentedObserver(
-        im,
-        scenario.dt,
-        V=np.asarray(obs.V, dtype=float),
-        W=np.asarray(W, dtype=float),
-        S0=np.asarray(obs.S0, dtype=float),
-        theta=obs.theta,
-        x0=x0,
-        sample_period=periods,
-        gate=obs.gate,
-    )
 
 
-def _augmented_factory(scenario: Scenario, x0: np.ndarray, name: str) -> Estimator:
-    return augmented_observer(scenario, x0)
 
 
-register_estimator("augmented", _augmented_factory)
 
 
-def _zonotope_factory(scenario: Scenario, x0: np.ndarray, name: str) -> Estimator:
-    from quadobs.estimators.zonotopic_vehicle import zonotope_estimator
-
-    return zonotope_estimator(scenario, x0)
 
 
-register_estimator("zonotope", _zonotope_factory)
 
 
 def build_estimators(scenario: Scenario, names: list[str], x0: np.ndarray) -> list[Estimator]:

@@ -58,10 +58,9 @@ def _blueprint() -> rrb.Blueprint:
     )
 
 
-def record_le2013(path, res: dict) -> None:
-    """Write the result of :func:`quadobs.studies.le2013.study.reproduce` to ``path`` (``.rrd``)."""
-    from quadobs.studies.le2013.study import format_table, summary_of
-
+def record_le2013(path, res: dict, table: str) -> None:
+    """Write the result of :func:`quadobs.studies.le2013.study.reproduce` to ``path`` (``.rrd``), with ``table``
+    (:func:`~quadobs.studies.le2013.study.format_table`) as a text document."""
     first = res["first"]
     methods = res["methods"]
     steps = res["steps"]
@@ -103,6 +102,6 @@ def record_le2013(path, res: dict) -> None:
                 )
             stream.log("le2013/sets/truth", rr.Points2D([first.truth[k]], colors=[_TRUTH], radii=0.02))
         stream.reset_time()
-        rec.static("le2013/table", rr.TextDocument("```\n" + format_table(summary_of(res)) + "\n```", media_type="text/markdown"))
+        rec.static("le2013/table", rr.TextDocument("```\n" + table + "\n```", media_type="text/markdown"))
     finally:
         rec.close()

@@ -253,7 +253,7 @@ def run_le2013(
     if out is not None:
         from quadobs.studies.le2013.recording import record_le2013
 
-        record_le2013(out, res)
+        record_le2013(out, res, format_table(summary_of(res)))
     if summary_path is not None:
         from quadobs.testbed.episode import write_json_atomic
 

@@ -5,15 +5,8 @@ import pytest
 
 from quadobs import QuadobsError, QuadraticSystem, load_scenario, vehicle_system, wind_system
 from quadobs.testbed.registry import build_estimators
-from quadobs.estimators.kalman import (
-    ExtendedKalmanFilter,
-    HeldInputModel,
-    OutputModel,
-    UnscentedKalmanFilter,
-    baseline_settings,
-    initial_covariance,
-    step_power,
-)
+from quadobs.estimators.kalman import ExtendedKalmanFilter, HeldInputModel, OutputModel, UnscentedKalmanFilter, step_power
+from quadobs.testbed.factories import baseline_settings, initial_covariance
 from quadobs.testbed.scenario import parse_scenario
 
 BEACONS = np.array([[0.0, 0.0, 0.0], [30.0, -5.0, 2.0], [-10.0, 25.0, -3.0]])

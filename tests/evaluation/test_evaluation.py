@@ -6,19 +6,8 @@ import pytest
 from scipy import stats
 
 from quadobs import QuadobsError, QuadraticSystem, load_scenario
-from quadobs.evaluation.ensemble import (
-    chi2_interval,
-    convergence_times,
-    ensemble,
-    immersion_bound,
-    lifted_covariance,
-    nees,
-    posterior_crb,
-    range_factor,
-    rmse,
-    scenario_crb,
-    set_containment,
-)
+from quadobs.evaluation.ensemble import chi2_interval, convergence_times, ensemble, lifted_covariance, nees, posterior_crb, range_factor, rmse, set_containment
+from quadobs.testbed.bounds import immersion_bound, scenario_crb
 from quadobs.estimators.kalman import ExtendedKalmanFilter, HeldInputModel, OutputModel
 from quadobs.testbed.scenario import parse_scenario
 

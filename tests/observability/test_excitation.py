@@ -9,15 +9,8 @@ import pytest
 from scipy.integrate import solve_ivp
 
 from quadobs import QuadobsError, QuadraticSystem, immerse, list_scenarios, load_scenario, vehicle_system, wind_system
-from quadobs.observability.excitation import (
-    ExcitationMonitor,
-    HeldInput,
-    excitation_report,
-    proposition4,
-    scenario_input,
-    scenario_monitor,
-    scenario_report,
-)
+from quadobs.observability.excitation import ExcitationMonitor, HeldInput, excitation_report, proposition4
+from quadobs.testbed.excitation import scenario_input, scenario_monitor, scenario_report
 from quadobs.observability.gramian import GramianModel, reduce_window, scaled_min_eig, sliding_windows
 from quadobs.observability.conditions import chain_structure, r_sequence
 from quadobs.testbed.scenario import parse_scenario

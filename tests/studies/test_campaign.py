@@ -13,7 +13,7 @@ from quadobs import load_scenario
 from quadobs.studies.campaign import run_campaign, run_seed
 from quadobs.cli import main
 from quadobs.testbed.registry import register_estimator
-from quadobs.estimators.kalman import extended_kalman_filter
+from quadobs.testbed.factories import extended_kalman_filter
 from quadobs.estimators.augmented import Estimator
 from quadobs.testbed.episode import run_episode
 

@@ -17,7 +17,7 @@ from quadobs.recording import list_entities, read_series, read_text_log
 from quadobs.testbed.episode import WALL_CLOCK_KEYS, run_episode
 
 RERUN = str(Path(sys.executable).parent / "rerun")
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def _verify(rrd: Path) -> None:

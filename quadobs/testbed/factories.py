@@ -1,0 +1,253 @@
+"""Estimators built from a scenario: the settings each estimator family takes from a :class:`Scenario`.
+
+The estimator classes (:mod:`quadobs.estimators`) know nothing of scenarios; these
+factories read a scenario's system, noise, sampling rates and tuning and build them.
+The registry (:mod:`quadobs.testbed.registry`) names them.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from quadobs.core.held_input import as_covariance
+from quadobs.core.immersion import immerse
+from quadobs.core.system import QuadraticSystem
+from quadobs.errors import QuadobsError
+from quadobs.estimators.augmented import AugmentedObserver, Estimator
+from quadobs.estimators.kalman import ExtendedKalmanFilter, HeldInputModel, OutputModel, UnscentedKalmanFilter
+from quadobs.estimators.zonotopic_vehicle import ZonotopicAugmentedEstimator
+from quadobs.testbed.scenario import Scenario
+
+
+def output_periods(scenario: Scenario) -> np.ndarray:
+    """Sampling period (s) of each output: the ranges, then the airspeed."""
+    n = scenario.noise
+    periods = [scenario.dt * scenario.sample_interval(n.range_rate, "range_rate")] * scenario.beacons.shape[0]
+    if scenario.has_wind:
+        periods.append(scenario.dt * scenario.sample_interval(n.airspeed_rate, "airspeed_rate"))
+    return np.array(periods)
+
+
+def _matrix_subset(value, idx: tuple[int, ...]):
+    if np.ndim(value) == 0:
+        return value
+    arr = np.asarray(value, dtype=float)
+    return arr[list(idx)] if arr.ndim == 1 else arr[np.ix_(idx, idx)]
+
+
+class OutputSubset(Estimator):
+    """Runs an estimator on some of the outputs only (``y[outputs]``)."""
+
+    def __init__(self, inner: Estimator, outputs: tuple[int, ...], name: str) -> None:
+        self.inner = inner
+        self.outputs = np.asarray(outputs, dtype=int)
+        self.name = name
+
+    def step(self, u, y) -> None:
+        self.inner.step(u, np.asarray(y)[self.outputs])
+
+    def step_and_record(self, u, y, out) -> None:
+        self.inner.step_and_record(u, np.asarray(y)[self.outputs], out)
+
+    @property
+    def x_hat(self) -> np.ndarray:
+        return self.inner.x_hat
+
+    @property
+    def x_covariance(self):
+        return self.inner.x_covariance
+
+    @property
+    def covariance_trace(self) -> float:
+        return self.inner.covariance_trace
+
+    @property
+    def nis(self) -> float:
+        return getattr(self.inner, "nis", float("nan"))
+
+    def __getattr__(self, item):
+        return getattr(self.inner, item)
+
+
+def augmented_observer(scenario: Scenario, x0: np.ndarray, outputs: tuple[int, ...] | None = None) -> AugmentedObserver:
+    """Theorem 3's observer for ``scenario`` (optionally on a subset of the outputs), starting at ``lift(x0)``."""
+    system = scenario.system()
+    periods = output_periods(scenario)
+    W = scenario.observer.W
+    if outputs is not None:
+        system = QuadraticSystem(system.A, system.B, system.C[list(outputs)], system.d[list(outputs)])
+        periods = periods[list(outputs)]
+        W = _matrix_subset(W, outputs)
+    im = immerse(system, method=scenario.observer.immersion)
+    obs = scenario.observer
+    return AugmentedObserver(
+        im,
+        scenario.dt,
+        V=np.asarray(obs.V, dtype=float),
+        W=np.asarray(W, dtype=float),
+        S0=np.asarray(obs.S0, dtype=float),
+        theta=obs.theta,
+        x0=x0,
+        sample_period=periods,
+        gate=obs.gate,
+    )
+
+
+@dataclass(frozen=True, eq=False)
+class BaselineSettings:
+    """What the ``"ekf"`` and ``"ukf"`` estimators of a scenario use (see :func:`baseline_settings`).
+
+    Attributes
+    ----------
+    dynamics : HeldInputModel
+    outputs : OutputModel
+    P0 : ndarray (n, n)
+    noise_source : str
+        ``"sensors"`` (the scenario's true noise levels) or ``"observer"`` (the augmented
+        observer's ``W / T``, used when a sensor is noise-free).
+    prior_source : str
+        ``"initial"`` (the spreads of a random initial guess) or ``"observer"`` (the state
+        block of the observer's ``S0``).
+    """
+
+    dynamics: HeldInputModel
+    outputs: OutputModel
+    P0: np.ndarray
+    noise_source: str
+    prior_source: str
+
+
+def _state_block(value, N: int, n: int) -> np.ndarray:
+    """The ``x`` block (the last ``n`` of ``N`` entries) of a scalar or diagonal setting."""
+    if np.ndim(value) == 0:
+        return float(value) * np.eye(n)
+    arr = np.asarray(value, dtype=float)
+    if arr.shape != (N,):
+        raise QuadobsError(f"observer.S0: expected a scalar or {N} entries (the augmented state), got {arr.size}")
+    return np.diag(arr[N - n :])
+
+
+def initial_covariance(scenario: Scenario) -> tuple[np.ndarray, str]:
+    """The initial covariance shared by the baselines and the Cramér-Rao bound, and where it comes from.
+
+    For ``[initial] kind = "random"`` the guess is the truth plus Gaussian errors of
+    standard deviation ``position_spread`` (positions) and ``velocity_spread``
+    (velocities, wind): its covariance ``diag(spread^2)`` is the true prior
+    (``"initial"``). For ``"zero"`` and ``"point"`` there is no distribution to take it
+    from, and the state block of the augmented observer's ``S0`` (the paper's tuning) is
+    used (``"observer"``), so that all the filters start with the same uncertainty on
+    ``x``.
+    """
+    n, dim = scenario.state_dim, scenario.dimension
+    init = scenario.initial
+    if init.kind == "random":
+        spread = np.full(n, init.velocity_spread)
+        spread[:dim] = init.position_spread
+        return np.diag(spread**2), "initial"
+    N = immerse(scenario.system(), method=scenario.observer.immersion).dim
+    return _state_block(scenario.observer.S0, N, n), "observer"
+
+
+def baseline_settings(scenario: Scenario) -> BaselineSettings:
+    """Noise and prior of the EKF and UKF for ``scenario``, chosen for a fair comparison.
+
+    * Measurements: when every sensor the outputs come from is noisy (ranges, and the
+      airspeed in wind scenarios), the filters work in the norm space (ranges,
+      airspeed) with the sensors' true variances ``R = diag(sigma_h^2)``: this is the
+      exact likelihood of Gaussian measurements (for bounded, uniform noise,
+      ``sigma = bound / sqrt(3)``, its standard deviation). When a sensor is noise-free there is no true
+      level to use (``R = 0`` is not a filter), and they use the augmented observer's
+      tuning instead, in the output space: ``R_hl = W_hl / sqrt(T_h T_l)``, exactly the
+      observer's ``R``.
+    * Process noise: the accelerometer's true noise variance, ``Q_d = sigma_a^2 G G^T`` per physics
+      step (zero for a noise-free accelerometer: the MuJoCo vehicle then follows the
+      model exactly).
+    * Prior: :func:`initial_covariance`.
+    """
+    system = scenario.system()
+    noise = scenario.noise
+    stds = [noise.sigma("range")] * scenario.beacons.shape[0]
+    offsets = list(0.5 * np.einsum("hi,hi->h", scenario.beacons, scenario.beacons))
+    if scenario.has_wind:
+        stds.append(noise.sigma("airspeed"))
+        offsets.append(0.0)
+    stds = np.array(stds)
+    if np.all(stds > 0):
+        outputs = OutputModel(system, np.diag(stds**2), offsets=np.array(offsets))
+        source = "sensors"
+    else:
+        periods = output_periods(scenario)
+        W = as_covariance("observer.W", np.asarray(scenario.observer.W, dtype=float), system.q)
+        scale = 1.0 / np.sqrt(periods)
+        outputs = OutputModel(system, W * np.outer(scale, scale))
+        source = "observer"
+    dynamics = HeldInputModel(system, scenario.dt, input_covariance=noise.sigma("accel") ** 2)
+    P0, prior = initial_covariance(scenario)
+    return BaselineSettings(dynamics, outputs, P0, source, prior)
+
+
+def extended_kalman_filter(scenario: Scenario, x0: np.ndarray) -> ExtendedKalmanFilter:
+    """The ``"ekf"`` estimator of ``scenario`` (:func:`baseline_settings`), started at ``x0``."""
+    s = baseline_settings(scenario)
+    return ExtendedKalmanFilter(s.dynamics, s.outputs, x0=x0, P0=s.P0, gate=scenario.observer.gate)
+
+
+def unscented_kalman_filter(scenario: Scenario, x0: np.ndarray) -> UnscentedKalmanFilter:
+    """The ``"ukf"`` estimator of ``scenario`` (:func:`baseline_settings`), started at ``x0``."""
+    s = baseline_settings(scenario)
+    return UnscentedKalmanFilter(s.dynamics, s.outputs, x0=x0, P0=s.P0, gate=scenario.observer.gate)
+
+
+def zonotope_estimator(scenario, x0) -> ZonotopicAugmentedEstimator:
+    """The ``"zonotope"`` estimator of a scenario (registered in :mod:`quadobs.testbed.registry`).
+
+    The initial box is centred at the initial guess ``x0`` with the half-widths of the
+    scenario's ``[zonotope]`` table. The guarantee needs bounded errors, so the scenario must
+    use bounded noise (``noise.*_bound``), no outliers, and a non-random initial guess.
+
+    Raises
+    ------
+    QuadobsError
+        Naming the scenario field that makes a guarantee impossible.
+    """
+    noise = scenario.noise
+    sensors = [("range", "range_std")] + ([("airspeed", "airspeed_std")] if scenario.has_wind else []) + [("accel", "accel_std")]
+    for sensor, field_ in sensors:
+        if getattr(noise, field_):
+            raise QuadobsError(
+                f"noise.{field_}: estimator 'zonotope' needs bounded noise, but {sensor} noise is Gaussian "
+                f"({getattr(noise, field_)}); use noise.{sensor}_bound"
+            )
+    if noise.outlier_probability:
+        raise QuadobsError("noise.outlier_probability: estimator 'zonotope' needs bounded noise; outliers are unbounded")
+    if scenario.initial.kind == "random":
+        raise QuadobsError(
+            "initial.kind: estimator 'zonotope' needs the true initial state in a known box; a 'random' guess has a "
+            "Gaussian (unbounded) error, use 'zero' or 'point' with zonotope.position_bound and velocity_bound"
+        )
+    system = scenario.system()
+    im = immerse(system, method=scenario.observer.immersion)
+    dim = scenario.dimension
+    spec = scenario.zonotope
+    radius = np.full(system.n, spec.velocity_bound)
+    radius[:dim] = spec.position_bound
+    q_b = scenario.beacons.shape[0]
+    offsets = np.zeros(system.q)
+    offsets[:q_b] = 0.5 * np.einsum("hi,hi->h", scenario.beacons, scenario.beacons)
+    bounds = np.full(system.q, noise.range_bound)
+    if scenario.has_wind:
+        bounds[q_b] = noise.airspeed_bound
+    return ZonotopicAugmentedEstimator(
+        im,
+        scenario.dt,
+        x0=x0,
+        radius=radius,
+        output_offsets=offsets,
+        output_bounds=bounds,
+        input_bound=noise.accel_bound,
+        max_generators=spec.max_generators or None,
+        reduction=spec.reduction,
+    )
+
