@@ -21,7 +21,8 @@ from quadobs.errors import QuadobsError
 from quadobs.estimators.kalman import ExtendedKalmanFilter, UnscentedKalmanFilter
 from quadobs.core.immersion import Immersion, immerse, immerse_chain, immerse_minimal
 from quadobs.sets.pradius import PRadiusDesign, pradius_gains
-from quadobs.estimators.augmented import AugmentedObserver, Estimator
+from quadobs.estimators.augmented import AugmentedObserver
+from quadobs.estimators.base import Estimator
 from quadobs.testbed.scenario import Scenario, list_scenarios, load_scenario
 from quadobs.core.system import QuadraticSystem, range_outputs, vehicle_system, wind_system
 from quadobs.estimators.zonotopic import ZonotopicEstimator

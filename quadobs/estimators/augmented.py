@@ -31,8 +31,9 @@ import numpy as np
 from quadobs.core.held_input import HeldInputDiscretization, as_covariance
 from quadobs.errors import QuadobsError, as_array, as_finite_scalar
 from quadobs.core.immersion import Immersion
+from quadobs.estimators.base import Estimator, Gated, Immersed
 
-__all__ = ["Estimator", "AugmentedObserver", "BACKENDS", "default_backend"]
+__all__ = ["AugmentedObserver", "BACKENDS", "default_backend"]
 
 #: The implementations of :class:`AugmentedObserver`: ``"auto"`` picks ``"numba"`` when Numba imports.
 BACKENDS = ("auto", "numba", "numpy")
@@ -130,64 +131,7 @@ class KernelModel:
         return W
 
 
-class Estimator:
-    """What the testbed needs from a state estimator.
-
-    ``step(u, y)`` consumes the output sampled at the start of a physics step (``(q,)``,
-    NaN where missing) and the input held over the step (``(p,)``), and leaves the
-    estimate at the end of the step in :attr:`x_hat`. :attr:`x_covariance` is ``None`` for
-    estimators without one.
-    """
-
-    name: str = "estimator"
-    #: Normalised innovation squared of the last correction (NaN for estimators without one).
-    nis: float = float("nan")
-
-    def step(self, u: np.ndarray, y: np.ndarray) -> None:  # pragma: no cover - interface
-        raise NotImplementedError
-
-    @property
-    def x_hat(self) -> np.ndarray:  # pragma: no cover - interface
-        raise NotImplementedError
-
-    @property
-    def x_covariance(self) -> np.ndarray | None:
-        return None
-
-    def step_and_record(self, u: np.ndarray, y: np.ndarray, out: np.ndarray) -> None:
-        """:meth:`step`, with what the testbed records of it written into ``out`` (``n + 2`` entries).
-
-        ``out[:n]`` gets :attr:`x_hat` and ``out[n]`` :attr:`covariance_trace` before the
-        step, ``out[n + 1]`` :attr:`nis` after it. Estimators may do it faster.
-        """
-        n = out.shape[0] - 2
-        out[:n] = self.x_hat
-        out[n] = _covariance_trace(self)
-        self.step(u, y)
-        out[n + 1] = getattr(self, "nis", float("nan"))
-
-    @property
-    def covariance_trace(self) -> float:
-        """Trace of the estimator's covariance as recorded by the testbed: of ``P`` where the
-        estimator has one (the augmented covariance of :class:`AugmentedObserver`), else of
-        :attr:`x_covariance`; NaN without a covariance. Subclasses may keep it cheaper."""
-        return _trace_of_covariance(self)
-
-
-def _trace_of_covariance(est) -> float:
-    P = getattr(est, "P", None)
-    if P is None:
-        P = getattr(est, "x_covariance", None)
-    return float(np.trace(P)) if P is not None else float("nan")
-
-
-def _covariance_trace(est) -> float:
-    """``est.covariance_trace`` where it exists (any object with ``P`` or ``x_covariance`` otherwise)."""
-    value = getattr(est, "covariance_trace", None)
-    return _trace_of_covariance(est) if value is None else value
-
-
-class AugmentedObserver(Estimator):
+class AugmentedObserver(Estimator, Gated, Immersed):
     """Theorem 3's observer on an immersion, advanced one held-input step at a time.
 
     Parameters

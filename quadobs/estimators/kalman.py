@@ -71,7 +71,7 @@ import scipy.linalg as sla
 
 from quadobs.core.held_input import as_covariance, van_loan
 from quadobs.errors import QuadobsError, as_array, as_finite_scalar
-from quadobs.estimators.augmented import Estimator
+from quadobs.estimators.base import Estimator, Gated
 from quadobs.core.system import QuadraticSystem
 
 __all__ = [
@@ -236,7 +236,7 @@ def step_power(F: np.ndarray, Q: np.ndarray, m: int) -> tuple[np.ndarray, np.nda
 # --------------------------------------------------------------------------------------
 
 
-class _GaussianFilter(Estimator):
+class _GaussianFilter(Estimator, Gated):
     """Shared prediction, lazy covariance, missing outputs, NIS and gating (see the module docstring)."""
 
     name = "gaussian"

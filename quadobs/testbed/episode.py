@@ -39,7 +39,7 @@ import numpy as np
 from quadobs.errors import QuadobsError, check_writable, deferred_interrupts
 from quadobs.testbed.registry import build_estimators, default_estimators
 from quadobs.evaluation.convergence import ConvergenceTracker, state_errors
-from quadobs.estimators.augmented import Estimator, _covariance_trace
+from quadobs.estimators.base import Estimator, covariance_trace as _covariance_trace
 from quadobs.testbed.scenario import Scenario
 from quadobs.testbed.sensors import SensorModel, initial_guess, spawn_streams
 

@@ -15,7 +15,8 @@ from quadobs.core.held_input import as_covariance
 from quadobs.core.immersion import immerse
 from quadobs.core.system import QuadraticSystem
 from quadobs.errors import QuadobsError
-from quadobs.estimators.augmented import AugmentedObserver, Estimator
+from quadobs.estimators.augmented import AugmentedObserver
+from quadobs.estimators.base import Estimator, Gated, Immersed, Subset
 from quadobs.estimators.kalman import ExtendedKalmanFilter, HeldInputModel, OutputModel, UnscentedKalmanFilter
 from quadobs.estimators.zonotopic_vehicle import ZonotopicAugmentedEstimator
 from quadobs.testbed.scenario import Scenario
@@ -37,10 +38,10 @@ def _matrix_subset(value, idx: tuple[int, ...]):
     return arr[list(idx)] if arr.ndim == 1 else arr[np.ix_(idx, idx)]
 
 
-class OutputSubset(Estimator):
-    """Runs an estimator on some of the outputs only (``y[outputs]``)."""
+class OutputSubset(Estimator, Gated, Immersed, Subset):
+    """An augmented observer that reads some of the outputs only (``y[outputs]``): a scenario's variant."""
 
-    def __init__(self, inner: Estimator, outputs: tuple[int, ...], name: str) -> None:
+    def __init__(self, inner: AugmentedObserver, outputs: tuple[int, ...], name: str) -> None:
         self.inner = inner
         self.outputs = np.asarray(outputs, dtype=int)
         self.name = name
@@ -65,10 +66,23 @@ class OutputSubset(Estimator):
 
     @property
     def nis(self) -> float:
-        return getattr(self.inner, "nis", float("nan"))
+        return self.inner.nis
 
-    def __getattr__(self, item):
-        return getattr(self.inner, item)
+    @property
+    def gate(self) -> float | None:
+        return self.inner.gate
+
+    @property
+    def corrections(self) -> int:
+        return self.inner.corrections
+
+    @property
+    def rejected(self) -> int:
+        return self.inner.rejected
+
+    @property
+    def immersion(self):
+        return self.inner.immersion
 
 
 def augmented_observer(scenario: Scenario, x0: np.ndarray, outputs: tuple[int, ...] | None = None) -> AugmentedObserver:

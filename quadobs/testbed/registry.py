@@ -12,7 +12,7 @@ from typing import Callable
 import numpy as np
 
 from quadobs.errors import QuadobsError
-from quadobs.estimators.augmented import Estimator
+from quadobs.estimators.base import Estimator
 from quadobs.testbed import factories
 from quadobs.testbed.factories import OutputSubset, augmented_observer
 from quadobs.testbed.scenario import Scenario

@@ -14,7 +14,7 @@ from quadobs.studies.campaign import run_campaign, run_seed
 from quadobs.cli import main
 from quadobs.testbed.registry import register_estimator
 from quadobs.testbed.factories import extended_kalman_filter
-from quadobs.estimators.augmented import Estimator
+from quadobs.estimators.base import Estimator
 from quadobs.testbed.episode import run_episode
 
 NAMES = ["augmented", "ekf", "ukf"]

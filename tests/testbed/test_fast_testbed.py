@@ -191,11 +191,12 @@ def test_block_stepper_numpy_path_agrees():
 
 
 def test_generic_estimators_are_recorded_beside_the_compiled_one(tmp_path):
-    """An estimator with only step/x_hat/x_covariance goes through the generic record path."""
+    """An Estimator that implements only step/x_hat/x_covariance goes through the generic record path."""
     import quadobs.testbed.registry as registry
+    from quadobs.estimators.base import Estimator
     from quadobs.testbed.episode import run_episode
 
-    class Frozen:  # keeps its initial guess; a covariance of 2 I
+    class Frozen(Estimator):  # keeps its initial guess; a covariance of 2 I
         def __init__(self, x0):
             self.x0 = np.array(x0, dtype=float)
             self.name = "frozen"

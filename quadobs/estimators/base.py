@@ -1,0 +1,124 @@
+"""What every online estimator provides, and the optional abilities it may declare.
+
+An estimator is advanced one physics step at a time by :meth:`Estimator.step` and read
+through :attr:`Estimator.x_hat` and :attr:`Estimator.x_covariance`. Abilities beyond that
+are declared by inheriting the ability classes below, never discovered by probing
+attributes, so the testbed can ask ``isinstance(est, Gated)``:
+
+=================  ===============================================================
+ability            what the estimator then provides
+=================  ===============================================================
+:class:`Gated`     ``gate`` (NIS threshold or ``None``), ``corrections``, ``rejected``
+:class:`SetValued` ``bounds (n, 2)``: interval bounds guaranteed to hold the state
+:class:`Immersed`  ``immersion``: the :class:`~quadobs.core.immersion.Immersion` it runs on
+:class:`Subset`    ``outputs (q_used,)``: the indices of the outputs it reads
+=================  ===============================================================
+
+Conventions: ``u (p,)`` is the input held over the step, ``y (q,)`` the outputs sampled
+at its start with NaN where a sample is missing; vectors are ``(n,)``.
+"""
+
+from __future__ import annotations
+
+import abc
+
+import numpy as np
+
+__all__ = ["Estimator", "Gated", "SetValued", "Immersed", "Subset", "covariance_trace"]
+
+
+class Estimator(abc.ABC):
+    """The interface every online estimator implements.
+
+    Subclasses implement :meth:`step` and :attr:`x_hat`; the rest has defaults.
+
+    Attributes
+    ----------
+    name : str
+        The name it is registered and recorded under.
+    nis : float
+        Normalised innovation squared of the last correction (NaN without one).
+    """
+
+    name: str = "estimator"
+    nis: float = float("nan")
+
+    @abc.abstractmethod
+    def step(self, u: np.ndarray, y: np.ndarray) -> None:
+        """Consume the output ``y (q,)`` sampled at the start of a physics step (NaN: missing)
+        and the input ``u (p,)`` held over it; afterwards :attr:`x_hat` estimates the state at
+        the end of the step."""
+
+    @property
+    @abc.abstractmethod
+    def x_hat(self) -> np.ndarray:
+        """The estimate of the state ``(n,)``: a copy or a read-only array, never a live view
+        that a later :meth:`step` changes."""
+
+    @property
+    def x_covariance(self) -> np.ndarray | None:
+        """The error covariance of :attr:`x_hat` ``(n, n)``, or ``None`` for estimators without one."""
+        return None
+
+    @property
+    def covariance_trace(self) -> float:
+        """The trace the testbed records: of the estimator's own covariance (the augmented one
+        for immersion-based observers), NaN without one. Subclasses may keep it cheaper."""
+        P = self.x_covariance
+        return float(np.trace(P)) if P is not None else float("nan")
+
+    def step_and_record(self, u: np.ndarray, y: np.ndarray, out: np.ndarray) -> None:
+        """:meth:`step`, writing what the testbed records of it into ``out (n + 2,)``.
+
+        ``out[:n]`` gets :attr:`x_hat` and ``out[n]`` :attr:`covariance_trace` before the
+        step, ``out[n + 1]`` :attr:`nis` after it. Compiled estimators do it in one call.
+        """
+        n = out.shape[0] - 2
+        out[:n] = self.x_hat
+        out[n] = self.covariance_trace
+        self.step(u, y)
+        out[n + 1] = self.nis
+
+
+def covariance_trace(est: Estimator) -> float:
+    """``est.covariance_trace`` (kept for callers holding any :class:`Estimator`)."""
+    return est.covariance_trace
+
+
+class Gated(abc.ABC):
+    """Ability: corrections whose NIS exceeds :attr:`gate` are rejected and counted.
+
+    Attributes
+    ----------
+    gate : float or None
+        The threshold (``None``: no gate).
+    corrections : int
+        Corrections applied so far.
+    rejected : int
+        Corrections rejected by the gate so far.
+    """
+
+    gate: float | None = None
+    corrections: int = 0
+    rejected: int = 0
+
+
+class SetValued(abc.ABC):
+    """Ability: guaranteed interval bounds of the state."""
+
+    @property
+    @abc.abstractmethod
+    def bounds(self) -> np.ndarray:
+        """``(n, 2)``: lower and upper bounds of each state entry at the current step."""
+
+
+class Immersed(abc.ABC):
+    """Ability: runs on an immersion (:attr:`immersion`, a :class:`~quadobs.core.immersion.Immersion`)."""
+
+    immersion = None
+
+
+class Subset(abc.ABC):
+    """Ability: reads only some of the outputs (:attr:`outputs`, their indices in ``y``)."""
+
+    outputs: np.ndarray
