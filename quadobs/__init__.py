@@ -4,10 +4,10 @@ The estimator core (this package's top level) needs only NumPy and SciPy:
 
 * :class:`QuadraticSystem`: ``x' = A x + B u``, ``y_h = 1/2 x^T C_h x + d_h^T x``;
 * :func:`immerse`: the immersion into a state-affine system with linear output
-  (``003_65f070b2762e6d70.txt`` Algorithm 1; the single-output chain of
-  ``000_f34cd1199256bdad.txt`` via ``method="chain"``);
+  ([ACC2024] Algorithm 1; the single-output chain of
+  [IFAC2021] via ``method="chain"``);
 * :class:`AugmentedObserver`: the Kalman-type observer of Theorem 3 of
-  ``000_f34cd1199256bdad.txt``, discretised exactly for a held input;
+  [IFAC2021], discretised exactly for a held input;
 * :class:`ExtendedKalmanFilter`, :class:`UnscentedKalmanFilter`: the baselines on the
   original state (registered as the estimators ``"ekf"`` and ``"ukf"``).
 

@@ -6,7 +6,7 @@ imports with NumPy and SciPy alone). The arithmetic is that of the NumPy referen
 associated to follow the structure of the matrices:
 
 * the transition ``Phi(u) = F0 + sum_j u_j F1[j]`` changes only in its aux-x block
-  (``000_f34cd1199256bdad.txt`` eqs. 22, 26a-c) and is sparse (block upper triangular;
+  ([IFAC2021] eqs. 22, 26a-c) and is sparse (block upper triangular;
   ``e^{A dt}`` of a nilpotent ``A`` is a short polynomial in ``A``): it is kept as a dense
   buffer whose aux-x block is rewritten each step and traversed by its structural
   nonzeros (CSR);

@@ -1,6 +1,6 @@
 """Exact discretisation of the augmented system under an input held over each step.
 
-Over a step of length ``dt`` with ``u`` constant, ``z' = A(u) z + B u`` (``000_f34cd1199256bdad.txt``
+Over a step of length ``dt`` with ``u`` constant, ``z' = A(u) z + B u`` ([IFAC2021]
 eq. 14) has the exact solution ``z(t + dt) = Phi(u) z(t) + g(u)``. Because
 ``A(u) = [[M, U(u)], [0, A]]`` is block upper triangular and only the off-diagonal block
 depends on ``u``, linearly (eq. 20, 21), the transition matrix (eq. 22, 26a-c)

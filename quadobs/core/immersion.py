@@ -2,10 +2,10 @@
 
 Two constructions, both returning an :class:`Immersion`:
 
-* :func:`immerse_chain`, the single-output chain of ``000_f34cd1199256bdad.txt``
+* :func:`immerse_chain`, the single-output chain of [IFAC2021]
   (eqs. 6, 10-17): auxiliary states ``z_i = 1/2 x^T C_i x``, ``i < m``, where ``m`` is
   the first index with ``C_m = 0`` (Assumption 1).
-* :func:`immerse_minimal`, Algorithm 1 of ``003_65f070b2762e6d70.txt`` (slide eqs. 4-14,
+* :func:`immerse_minimal`, Algorithm 1 of [ACC2024] (slide eqs. 4-14,
   30, 31): any ``A``, several outputs with linear terms, and the fewest auxiliary states,
   namely the dimension of the smallest ``A_bar``-invariant row space containing ``C_bar``.
 
@@ -70,7 +70,7 @@ DEFAULT_RTOL = 1e-9
 
 
 # --------------------------------------------------------------------------------------
-# The Lyapunov-operator sequence (000_f34cd1199256bdad.txt eqs. 6 and 7)
+# The Lyapunov-operator sequence ([IFAC2021] eqs. 6 and 7)
 # --------------------------------------------------------------------------------------
 
 
@@ -128,7 +128,7 @@ def vanishing_index(A: np.ndarray, C: np.ndarray, rtol: float = DEFAULT_RTOL) ->
 
 
 # --------------------------------------------------------------------------------------
-# Half-vectorisation machinery (003_65f070b2762e6d70.txt slide eqs. 4-6)
+# Half-vectorisation machinery ([ACC2024] slide eqs. 4-6)
 # --------------------------------------------------------------------------------------
 
 
@@ -357,7 +357,7 @@ class Immersion:
 
 
 def immerse_chain(system: QuadraticSystem, rtol: float = DEFAULT_RTOL) -> Immersion:
-    """Single-output chain of ``000_f34cd1199256bdad.txt`` (eqs. 10-17).
+    """Single-output chain of [IFAC2021] (eqs. 10-17).
 
     ``z = (z_0, ..., z_{m-1}, x)`` with ``z_i = 1/2 x^T C_i x`` (eq. 10, 13); ``A(u)`` is the
     shift ``S_m`` on the auxiliary block with ``u^T B^T C_i`` in the last columns (eq. 15),
@@ -391,7 +391,7 @@ def _pivoted_rank(E: np.ndarray, tol: float) -> tuple[int, np.ndarray]:
 
 
 def immerse_minimal(system: QuadraticSystem, rtol: float = DEFAULT_RTOL) -> Immersion:
-    """Algorithm 1 of ``003_65f070b2762e6d70.txt``: the fewest auxiliary states.
+    """Algorithm 1 of [ACC2024]: the fewest auxiliary states.
 
     1. ``p_0 = rank C_bar`` and the rank factorisation ``C_bar = F L_0``: ``L_0`` is a
        selection of ``p_0`` rows of ``C_bar`` (pivoted QR), so each auxiliary state of
@@ -498,8 +498,8 @@ def immerse(system: QuadraticSystem, method: str = "minimal", rtol: float = DEFA
     ----------
     system : QuadraticSystem
     method : {"minimal", "chain"}
-        ``"minimal"`` (default): Algorithm 1 of ``003_65f070b2762e6d70.txt``, any system.
-        ``"chain"``: the single-output chain of ``000_f34cd1199256bdad.txt`` (needs
+        ``"minimal"`` (default): Algorithm 1 of [ACC2024], any system.
+        ``"chain"``: the single-output chain of [IFAC2021] (needs
         ``q = 1`` and Assumption 1).
     rtol : float
         Relative tolerance of the rank decisions (module docstring).

@@ -1,7 +1,7 @@
 """Linear dynamics with quadratic outputs.
 
-The class of systems of ``003_65f070b2762e6d70.txt`` (slides, "class of systems
-considered") and, with ``q = 1`` and ``d = 0``, of ``000_f34cd1199256bdad.txt`` eq. (4):
+The class of systems of [ACC2024] (slides, "class of systems
+considered") and, with ``q = 1`` and ``d = 0``, of [IFAC2021] eq. (4):
 
 .. math::
 
@@ -136,7 +136,7 @@ def _double_integrator(dim: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 def vehicle_system(dim: int, beacons: np.ndarray) -> QuadraticSystem:
-    """A double integrator in ``R^dim`` ranging to beacons (``000_f34cd1199256bdad.txt`` eqs. 42-44).
+    """A double integrator in ``R^dim`` ranging to beacons ([IFAC2021] eqs. 42-44).
 
     State ``x = (p, v)``, input the acceleration. Output ``h`` is the half squared range to
     beacon ``a_h`` minus the beacon's known constant ``|a_h|^2 / 2``:

@@ -1,4 +1,4 @@
-"""The Kalman-type observer of Theorem 3 (``000_f34cd1199256bdad.txt``) on the augmented system.
+"""The Kalman-type observer of Theorem 3 ([IFAC2021]) on the augmented system.
 
 Theorem 3 (Besançon 2007) for ``z' = A(u) z + B u``, ``y = C z``:
 

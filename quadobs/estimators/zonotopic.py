@@ -1,4 +1,4 @@
-"""Zonotopic guaranteed state estimation (Algorithm 1 of ``004_2075b537be731fbd.txt``).
+"""Zonotopic guaranteed state estimation (Algorithm 1 of [LE2013]).
 
 For ``x_{k+1} = A x_k + w_k``, ``y_k = C x_k + v_k`` with ``A in [A]``, ``w_k in W = F B^{n_w}``,
 ``|v_{k/i}| <= phi_i`` and ``x_0 in X_0``, :class:`ZonotopicEstimator` keeps a zonotope

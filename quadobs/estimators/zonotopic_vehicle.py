@@ -5,7 +5,7 @@ into ``z' = A(u) z + B u``, ``y = C z`` with ``z = (xi, x)``, and
 :class:`~quadobs.core.held_input.HeldInputDiscretization` gives its exact step under a held input,
 ``z_{k+1} = Phi(u) z_k + g(u)``, ``Phi(u) = F0 + sum_j u_j F1[j]`` (``F1`` in the ``xi``-``x``
 block), ``g(u) = (u^T G2_a u, G0 u)``. :class:`ZonotopicAugmentedEstimator` runs Algorithm 1 of
-``004_2075b537be731fbd.txt`` on it, a zonotope ``Z_k`` in ``z``-space that contains the true
+[LE2013] on it, a zonotope ``Z_k`` in ``z``-space that contains the true
 ``z_k = lift(x_k)`` whenever the noise bounds hold. Every source of error is bounded:
 
 Output noise (one strip per sampled output). A range ``rho~ = rho + n``, ``|n| <= nbar``, gives

@@ -1,4 +1,4 @@
-"""Persistence-of-excitation conditions of ``000_f34cd1199256bdad.txt`` section 5.
+"""Persistence-of-excitation conditions of [IFAC2021] section 5.
 
 They are stated for the single-output chain: ``y = 1/2 x^T C x`` and Assumption 1
 (``C_m = 0`` for the sequence ``C_{i+1} = C_i A + A^T C_i`` of eq. 6). The observability

@@ -1,7 +1,7 @@
 """Is the input exciting enough? The PE report and the live excitation monitor.
 
 The augmented observer converges when the pair ``(A(u(t)), C)`` is uniformly observable
-(``000_f34cd1199256bdad.txt`` Definition 2 and Theorem 3), which depends on the input.
+([IFAC2021] Definition 2 and Theorem 3), which depends on the input.
 This module answers, for a scenario's input (before a run) or for the measured input
 (during a run):
 
@@ -165,7 +165,7 @@ class HeldInput:
 
 @dataclass(frozen=True)
 class Proposition4:
-    """Proposition 4 of ``000_f34cd1199256bdad.txt``, generalised to any immersion.
+    """Proposition 4 of [IFAC2021], generalised to any immersion.
 
     Attributes
     ----------

@@ -1,7 +1,7 @@
 """The observability Gramian of the augmented system under a held input.
 
-For ``z' = A(u(t)) z``, ``y = C z`` (``000_f34cd1199256bdad.txt`` eqs. 14-17, or the
-multi-output immersion of ``003_65f070b2762e6d70.txt`` slide eqs. 12-14) the Gramian of
+For ``z' = A(u(t)) z``, ``y = C z`` ([IFAC2021] eqs. 14-17, or the
+multi-output immersion of [ACC2024] slide eqs. 12-14) the Gramian of
 Theorem 1 over a window is (eq. 27 in block form)
 
 .. math::

@@ -1,4 +1,4 @@
-"""Offline design of the P-radius gains (``004_2075b537be731fbd.txt`` section 4, problem 9, Algorithm 2).
+"""Offline design of the P-radius gains ([LE2013] section 4, problem 9, Algorithm 2).
 
 For ``x_{k+1} = A x_k + F w_k``, ``y_{k/i} = c_i^T x_k + phi_i v_i`` with ``A in [A]``,
 ``||w||_inf, |v_i| <= 1``, the correction by output ``i`` (eq. 3) is
@@ -255,7 +255,7 @@ def pradius_gains(
     refine: bool = True,
     solver: str | None = None,
 ) -> PRadiusDesign:
-    """The P-radius gains ``lambda_i`` and matrices ``P_i`` of ``004_2075b537be731fbd.txt`` sections 4.1-4.2.
+    """The P-radius gains ``lambda_i`` and matrices ``P_i`` of [LE2013] sections 4.1-4.2.
 
     Parameters
     ----------

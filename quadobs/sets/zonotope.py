@@ -1,4 +1,4 @@
-"""Zonotopes and interval matrices: the set calculus of ``004_2075b537be731fbd.txt`` section 2.
+"""Zonotopes and interval matrices: the set calculus of [LE2013] section 2.
 
 A zonotope ``Z = p (+) H B^m = {p + H z : ||z||_inf <= 1}`` is stored as its centre
 ``p (n,)`` and generator matrix ``H (n, m)``. Everything returns new objects:

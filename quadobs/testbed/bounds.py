@@ -81,7 +81,7 @@ def immersion_bound(scenario, every: int = 1) -> tuple[np.ndarray, np.ndarray] |
     """The error covariance of the best *linear* filter on the scenario's immersion, along its true trajectory.
 
     The augmented observer is a linear filter on the immersion ``z = (xi, x)``
-    (``000_f34cd1199256bdad.txt`` eq. 14; :func:`quadobs.immerse`): its gains depend on
+    ([IFAC2021] eq. 14; :func:`quadobs.immerse`): its gains depend on
     the inputs only, so its estimate is affine in the outputs. Among such filters the
     Kalman filter with the true second moments has the least error covariance: this
     function runs it on the exact held-input discretisation

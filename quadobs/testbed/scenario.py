@@ -71,7 +71,7 @@ class NoiseSpec:
 
 @dataclass(frozen=True)
 class ObserverSpec:
-    """Settings of the augmented observer (Theorem 3 of ``000_f34cd1199256bdad.txt``).
+    """Settings of the augmented observer (Theorem 3 of [IFAC2021]).
 
     ``S0``, ``V`` are scalars times the identity of the augmented state, or lists (a
     diagonal); ``W`` a scalar times ``I_q`` or a list (diagonal). ``gate`` is an optional

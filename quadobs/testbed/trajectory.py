@@ -5,7 +5,7 @@
     p_i(t) = o_i + w_i t + \\sum_k a_k \\cos(\\omega_k t + \\varphi_k) \\quad (\\text{terms on axis } i),
 
 with analytic derivatives of every order, so the commanded acceleration, the jerk and
-higher derivatives (needed by the PE conditions of ``000_f34cd1199256bdad.txt``
+higher derivatives (needed by the PE conditions of [IFAC2021]
 section 5) are exact. A ``sin`` term is stored as ``cos`` with its phase lowered by
 ``pi/2``.
 

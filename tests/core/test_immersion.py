@@ -24,7 +24,7 @@ def double_integrator(n):
     return vehicle_system(n, np.zeros((1, n)))
 
 
-# -- 000_f34cd1199256bdad.txt ------------------------------------------------------------
+# -- [IFAC2021] ------------------------------------------------------------
 
 
 @pytest.mark.parametrize("n", [1, 2, 3])
@@ -93,7 +93,7 @@ def test_chain_refuses_several_outputs():
         immerse_chain(s)
 
 
-# -- 003_65f070b2762e6d70.txt ------------------------------------------------------------
+# -- [ACC2024] ------------------------------------------------------------
 
 
 def test_duplication_matrix_and_half_vectorisation(rng):

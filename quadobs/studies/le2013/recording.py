@@ -1,4 +1,4 @@
-"""Recording of ``quadobs run le2013`` (section 5 of ``004_2075b537be731fbd.txt``).
+"""Recording of ``quadobs run le2013`` (section 5 of [LE2013]).
 
 Timelines ``step`` (the sample ``k``) and ``sim_time`` (``k`` seconds, one sample a second).
 Entity paths (``<m>`` is a method: ``segment``, ``volume``, ``pradius1``, ``pradius2``,

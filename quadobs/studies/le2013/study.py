@@ -1,4 +1,4 @@
-"""The example of section 5 of ``004_2075b537be731fbd.txt``, reproduced.
+"""The example of section 5 of [LE2013], reproduced.
 
 .. math::
 
