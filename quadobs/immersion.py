@@ -42,9 +42,14 @@ depends neither on the scale of ``A`` nor on that of the ``C_h``
 
 .. math::
 
-    \\hat A = \\frac{A - \\tfrac{\\operatorname{tr} A}{n} I}{\\|A - \\tfrac{\\operatorname{tr} A}{n} I\\|_2},
+    \\hat A = \\frac{A - c I}{\\max(\\|A - c I\\|_2,\\ \\phi)}, \\quad
+    c = \\frac{\\operatorname{tr} A}{n}, \\quad
+    \\phi = \\frac{10 g}{\\texttt{rtol}}\\, 2 \\varepsilon \\max_i |A_{ii}|,
     \\qquad \\hat C_h = \\frac{C_h}{\\|C_h\\|_F},
     \\qquad \\|L_{\\hat A}\\| \\le 2 ,
+
+(the floor ``phi`` keeps the rounding of the shift, at most ``2 eps max|A_ii|``, below
+``rtol / (10 g)`` in ``A_hat``: for ``A`` a multiple of ``I`` nothing but rounding is left)
 
 and builds ``K`` by block Arnoldi in ``Sym(n)`` with the Frobenius inner product
 (classical Gram-Schmidt, applied twice): the first block is an orthonormal basis of
@@ -58,12 +63,14 @@ orthogonalised candidate block are the rank decisions: a direction is new when
     \\quad (\\text{bound } 1 \\text{ for the first block, } 2 \\text{ after}),
 
 ``rtol`` = :data:`DEFAULT_RTOL` by default. The count is *certified* only when no
-``sigma`` lies in the ambiguous band ``tau / G < sigma <= G tau``, ``G`` =
-:data:`CERTIFY_GAP`: the directions kept are far above the tolerance and those dropped
-far below it (at rounding level for exact data: about ``1e-13`` and below on integer
-systems up to ``n = 6``, against kept values of ``1e-4`` and above). Otherwise
-:func:`immerse` raises :class:`ImmersionError`: the data are too close to a system with
-another count for a floating-point answer to be trusted.
+``sigma`` lies in the ambiguous band ``tau / g < sigma <= G tau``, ``G`` =
+:data:`CERTIFY_GAP` (1000), ``g`` = :data:`DROP_GAP` (3): the directions kept are far
+above the tolerance and those dropped below it. On integer systems up to ``n = 6``
+(random, nilpotent, diagonal with spread or repeated eigenvalues, sparse, several
+outputs, at scales 0.1 to 100), the kept values are ``4e-4`` and above and the dropped
+ones (rounding) ``1e-10`` and below, against the band ``(7e-10, 2e-6]`` of the default
+``rtol``. Otherwise :func:`immerse` raises :class:`ImmersionError`: the data are too
+close to a system with another count for a floating-point answer to be trusted.
 
 The returned immersion is then checked against the data. For each form,
 
@@ -100,6 +107,7 @@ from .system import QuadraticSystem
 __all__ = [
     "DEFAULT_RTOL",
     "CERTIFY_GAP",
+    "DROP_GAP",
     "POWER_BASIS_COND",
     "ImmersionError",
     "Immersion",
@@ -123,9 +131,13 @@ __all__ = [
 #: Default relative tolerance for the rank decisions (see the module docstring).
 DEFAULT_RTOL = 1e-9
 
-#: A rank decision is certified when its singular value is more than this factor away
-#: from the tolerance, on either side (module docstring).
-CERTIFY_GAP = 100.0
+#: A kept direction is certified when its singular value exceeds this factor times the
+#: tolerance (module docstring).
+CERTIFY_GAP = 1000.0
+
+#: A dropped direction is certified when its singular value is at most the tolerance
+#: divided by this factor (module docstring).
+DROP_GAP = 3.0
 
 #: Largest Frobenius condition number of the power basis of [ACC2024, Alg. 1] that
 #: :func:`immerse_minimal` keeps; above it the orthonormal Arnoldi basis is returned.
@@ -297,12 +309,20 @@ def _block_krylov(apply, W: np.ndarray, dim: int, tol_first: float, tol_next: fl
     return V, tuple(sizes), np.array(sigma), np.array(tols)
 
 
-def _normalised_shifted(A: np.ndarray) -> np.ndarray:
-    """``(A - tr(A)/n I) / ||A - tr(A)/n I||_2`` (zero when ``A`` is a multiple of ``I``)."""
+def _normalised_shifted(A: np.ndarray, rtol: float) -> np.ndarray:
+    """``A_hat = (A - c I) / max(||A - c I||_2, floor)``, ``c = tr(A)/n`` (module docstring).
+
+    The shift rounds the diagonal by up to ``2 eps max|A_ii|``; ``floor`` =
+    ``10 DROP_GAP / rtol`` times that bound keeps this rounding below
+    ``rtol / (10 DROP_GAP)`` in ``A_hat``, so it can never pass for a direction (for
+    ``A`` a multiple of ``I``, ``A_hat`` is rounding only and ``K = span{C_h}``).
+    """
     n = A.shape[0]
     A0 = A - (np.trace(A) / n) * np.eye(n)
     a = np.linalg.norm(A0, 2)
-    return A0 / a if a > 0.0 else np.zeros_like(A0)
+    floor = 10.0 * DROP_GAP / rtol * 2.0 * np.finfo(float).eps * float(np.abs(np.diag(A)).max())
+    scale = max(a, floor)
+    return A0 / scale if scale > 0.0 else np.zeros_like(A0)
 
 
 def _unit_rows(C: np.ndarray) -> np.ndarray:
@@ -340,18 +360,19 @@ class LyapunovKrylov:
     def ambiguity(self) -> str | None:
         """``None`` if every rank decision is certified (module docstring), else why not.
 
-        A decision is certified when ``sigma > G tau`` (kept) or ``sigma <= tau / G``
-        (dropped), ``G`` = :data:`CERTIFY_GAP`.
+        A decision is certified when ``sigma > G tau`` (kept) or ``sigma <= tau / g``
+        (dropped), ``G`` = :data:`CERTIFY_GAP`, ``g`` = :data:`DROP_GAP`.
         """
-        band = (self.sigma > self.tol / CERTIFY_GAP) & (self.sigma <= CERTIFY_GAP * self.tol)
+        band = (self.sigma > self.tol / DROP_GAP) & (self.sigma <= CERTIFY_GAP * self.tol)
         if not band.any():
             return None
         i = int(np.flatnonzero(band)[0])
         what = "kept" if self.sigma[i] > self.tol[i] else "dropped"
         return (
             f"the rank decisions are ambiguous: a direction {what} at relative size {self.sigma[i]:.3g} "
-            f"is within a factor {CERTIFY_GAP:g} of the tolerance {self.tol[i]:.3g}, so the data are too "
-            "close to a system with another auxiliary count to certify one in floating point"
+            f"lies between {self.tol[i] / DROP_GAP:.3g} and {CERTIFY_GAP * self.tol[i]:.3g} (tolerance "
+            f"{self.tol[i]:.3g}), so the data are too close to a system with another auxiliary count "
+            "to certify one in floating point"
         )
 
 
@@ -375,7 +396,7 @@ def lyapunov_krylov(A: np.ndarray, C: np.ndarray, rtol: float = DEFAULT_RTOL) ->
     A = np.asarray(A, dtype=float)
     n = A.shape[0]
     C = np.asarray(C, dtype=float).reshape(-1, n, n)
-    Ah = _normalised_shifted(A)
+    Ah = _normalised_shifted(A, rtol)
 
     def apply(rows: np.ndarray) -> np.ndarray:
         X = rows.reshape(-1, n, n)
@@ -405,7 +426,7 @@ def observability_rank(A_bar: np.ndarray, C_bar: np.ndarray, rtol: float = DEFAU
     W = _unit_rows(C_bar)
     if W.shape[0] == 0:
         return 0
-    Ah = _normalised_shifted(A_bar)
+    Ah = _normalised_shifted(A_bar, rtol)
     V, _, _, _ = _block_krylov(lambda rows: rows @ Ah, W, N, rtol, rtol)
     return int(V.shape[0])
 
@@ -552,22 +573,41 @@ def immerse_chain(system: QuadraticSystem, rtol: float = DEFAULT_RTOL) -> Immers
     shift ``S_m`` on the auxiliary block with ``u^T B^T C_i`` in the last columns (eq. 15),
     ``B = (0, B)`` (eq. 16), ``C = (1, 0, ..., 0, d^T)`` (eq. 17; the paper has ``d = 0``).
 
+    The chain is a power basis: it is returned only when ``m`` equals the certified
+    ``dim K`` of :func:`lyapunov_krylov` and it passes the residual checks of the module
+    docstring.
+
     Raises
     ------
     QuadobsError
         If the system has more than one output, or Assumption 1 fails (see
         :func:`vanishing_index`).
+    ImmersionError
+        If the chain's length or exactness cannot be certified.
     """
     if system.q != 1:
         raise QuadobsError(f"C: the chain immersion takes a single output, got q = {system.q}; use immerse_minimal")
     rtol = as_finite_scalar("rtol", rtol, positive=True)
     m = vanishing_index(system.A, system.C[0], rtol)
+    kry = lyapunov_krylov(system.A, system.C[0], rtol)
+    why = kry.ambiguity()
+    if why is not None:
+        raise ImmersionError(f"C: the chain length cannot be certified, {why}")
+    if m != kry.rank:
+        raise ImmersionError(
+            f"C: the chain stops at m = {m} but the certified minimal count is {kry.rank}: "
+            "C_m is not zero relative to the data, so the chain would not be exact; use immerse(system)"
+        )
     L = lyapunov_sequence(system.A, system.C[0], max(m - 1, 0))[:m]
     M = np.eye(m, k=1)
     F = np.zeros((1, m))
     if m:
         F[0, 0] = 1.0
-    return Immersion(system, L, M, F, "chain", (1,) * m)
+    im = Immersion(system, L, M, F, "chain", (1,) * m)
+    why = _certification_failure(im, kry.rank, rtol)
+    if why is not None:
+        raise ImmersionError(f"C: the chain immersion cannot be certified, {why}; use immerse(system)")
+    return im
 
 
 def _pivoted_rank(E: np.ndarray, tol: float) -> tuple[int, np.ndarray]:
@@ -763,8 +803,8 @@ def immerse_minimal(system: QuadraticSystem, rtol: float = DEFAULT_RTOL) -> Imme
     Raises
     ------
     ImmersionError
-        If the count cannot be certified (a rank decision within a factor
-        :data:`CERTIFY_GAP` of its tolerance) or no basis passes the residual checks.
+        If the count cannot be certified (a rank decision in the ambiguous band of the
+        module docstring) or no basis passes the residual checks.
     """
     rtol = as_finite_scalar("rtol", rtol, positive=True)
     n = system.n
