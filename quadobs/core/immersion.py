@@ -2,12 +2,12 @@
 
 Two constructions, both returning an :class:`Immersion`:
 
-* :func:`immerse_chain`, the single-output chain of [IFAC2021]
-  (eqs. 6, 10-17): auxiliary states ``z_i = 1/2 x^T C_i x``, ``i < m``, where ``m`` is
-  the first index with ``C_m = 0`` (Assumption 1).
-* :func:`immerse_minimal`, Algorithm 1 of [ACC2024] (slide eqs. 4-14,
-  30, 31): any ``A``, several outputs with linear terms, and the fewest auxiliary states,
-  namely the dimension of the smallest ``A_bar``-invariant row space containing ``C_bar``.
+* :func:`immerse_chain`, the single-output chain of [IFAC2021, eqs. 6, 10-17]: auxiliary
+  states ``z_i = 1/2 x^T C_i x``, ``i < m``, where ``m`` is the first index with
+  ``C_m = 0`` (Assumption 1).
+* :func:`immerse_minimal`, [ACC2024, Alg. 1] (slide eqs. 4-14, 30, 31): any ``A``, several
+  outputs with linear terms, and the fewest auxiliary states, namely the dimension of the
+  smallest ``A_bar``-invariant row space containing ``C_bar``.
 
 :func:`immerse` uses the minimal construction for every system.
 
@@ -24,16 +24,73 @@ In both, ``z = (xi, x)``: ``xi`` holds the auxiliary states, each a quadratic fo
 
 where ``L_A(L_i) = L_i A + A^T L_i = sum_j M_ij L_j`` (the auxiliary space is
 ``L_A``-invariant) and ``C_h = sum_i F_hi L_i``. ``A(u)`` is affine in ``u``:
-``A(u) = A_0 + sum_j u_j A_j``.
+``A(u) = A_0 + sum_j u_j A_j``. The linear terms ``d_h`` need no auxiliary state (``x``
+is part of ``z``), so the auxiliary space is
+
+.. math::
+
+    \\mathcal K = \\operatorname{span}\\{ L_A^k(C_h) : h = 1..q,\\ k \\ge 0 \\}
+    \\subset \\operatorname{Sym}(n), \\qquad
+    n_{aux} = \\dim \\mathcal K \\le n(n+1)/2 .
 
 Rank decisions
 --------------
-Numerical rank decisions are relative to the data. The chain stops at the first ``k``
-with ``||C_k||_2 <= rtol (2 ||A||_2)^k ||C||_2`` (the right-hand side bounds ``||C_k||``
-by eq. 7). Algorithm 1 counts a candidate row of ``L_{k-1} A_bar`` as new when its
-component outside the span of the rows found so far exceeds
-``rtol ||L_{k-1}||_2 ||A_bar||_2`` (pivoted QR), and ``p_0 = rank C_bar`` uses
-``rtol ||C_bar||_2``. The default ``rtol`` is :data:`DEFAULT_RTOL`.
+The count ``dim K`` is decided on normalised data, in an orthonormal basis, so that it
+depends neither on the scale of ``A`` nor on that of the ``C_h``
+(:func:`lyapunov_krylov`). ``K`` is unchanged when ``A`` is replaced by
+``s (A - c I)`` (``L_{sA} = s L_A`` and ``L_{A - cI} = L_A - 2c``), so the decision uses
+
+.. math::
+
+    \\hat A = \\frac{A - c I}{\\max(\\|A - c I\\|_2,\\ \\phi)}, \\quad
+    c = \\frac{\\operatorname{tr} A}{n}, \\quad
+    \\phi = \\frac{10 g}{\\texttt{rtol}}\\, 2 \\varepsilon \\max_i |A_{ii}|,
+    \\qquad \\hat C_h = \\frac{C_h}{\\|C_h\\|_F},
+    \\qquad \\|L_{\\hat A}\\| \\le 2 ,
+
+(the floor ``phi`` keeps the rounding of the shift, at most ``2 eps max|A_ii|``, below
+``rtol / (10 g)`` in ``A_hat``: for ``A`` a multiple of ``I`` nothing but rounding is left)
+
+and builds ``K`` by block Arnoldi in ``Sym(n)`` with the Frobenius inner product
+(classical Gram-Schmidt, applied twice): the first block is an orthonormal basis of
+``span{C_hat_h}``, each next block an orthonormal basis of the part of
+``L_{A_hat}(V_k)`` orthogonal to ``V_0, ..., V_k``. The singular values ``sigma`` of each
+orthogonalised candidate block are the rank decisions: a direction is new when
+
+.. math::
+
+    \\sigma > \\tau, \\qquad \\tau = \\texttt{rtol} \\cdot \\|L_{\\hat A}\\|_{\\rm bound}
+    \\quad (\\text{bound } 1 \\text{ for the first block, } 2 \\text{ after}),
+
+``rtol`` = :data:`DEFAULT_RTOL` by default. The count is *certified* only when no
+``sigma`` lies in the ambiguous band ``tau / g < sigma <= G tau``, ``G`` =
+:data:`CERTIFY_GAP` (1000), ``g`` = :data:`DROP_GAP` (3): the directions kept are far
+above the tolerance and those dropped below it. On integer systems up to ``n = 6``
+(random, nilpotent, diagonal with spread or repeated eigenvalues, sparse, several
+outputs, at scales 0.1 to 100), the kept values are ``4e-4`` and above and the dropped
+ones (rounding) ``1e-10`` and below, against the band ``(7e-10, 2e-6]`` of the default
+``rtol``. Otherwise :func:`immerse` raises :class:`ImmersionError`: the data are too
+close to a system with another count for a floating-point answer to be trusted.
+
+The returned immersion is then checked against the data. For each form,
+
+.. math::
+
+    \\frac{\\|L_A(L_i) - \\sum_j M_{ij} L_j\\|_F}{2 \\|A\\|_2 \\|L_i\\|_F} \\le \\texttt{rtol},
+    \\qquad
+    \\frac{\\|C_h - \\sum_i F_{hi} L_i\\|_F}{\\|C_h\\|_F} \\le \\texttt{rtol},
+
+and its count must equal the certified ``dim K``; otherwise :class:`ImmersionError`.
+An invariant space containing every ``C_h`` with the minimal dimension is ``K`` itself,
+so a checked immersion is exact to the tolerance.
+
+Bases: [ACC2024, Alg. 1] picks rows of the power sequence ``L_k = L_{k-1} A_bar``, whose
+conditioning degrades like a Krylov (Vandermonde) matrix. :func:`immerse_minimal` keeps
+that basis when its count is the certified one, its checks pass, and its Frobenius
+condition number is at most :data:`POWER_BASIS_COND`; otherwise it returns the
+orthonormal Arnoldi basis (``||L_i||_F = 1``, ``|xi_i| <= |x|^2 / 2``), with the same
+block sizes. The chain of [IFAC2021] is checked the same way: its ``m`` must equal the
+certified ``dim K``.
 """
 
 from __future__ import annotations
@@ -49,7 +106,13 @@ from quadobs.core.system import QuadraticSystem
 
 __all__ = [
     "DEFAULT_RTOL",
+    "CERTIFY_GAP",
+    "DROP_GAP",
+    "POWER_BASIS_COND",
+    "ImmersionError",
     "Immersion",
+    "LyapunovKrylov",
+    "lyapunov_krylov",
     "immerse",
     "immerse_chain",
     "immerse_minimal",
@@ -67,6 +130,22 @@ __all__ = [
 
 #: Default relative tolerance for the rank decisions (see the module docstring).
 DEFAULT_RTOL = 1e-9
+
+#: A kept direction is certified when its singular value exceeds this factor times the
+#: tolerance (module docstring).
+CERTIFY_GAP = 1000.0
+
+#: A dropped direction is certified when its singular value is at most the tolerance
+#: divided by this factor (module docstring).
+DROP_GAP = 3.0
+
+#: Largest Frobenius condition number of the power basis of [ACC2024, Alg. 1] that
+#: :func:`immerse_minimal` keeps; above it the orthonormal Arnoldi basis is returned.
+POWER_BASIS_COND = 1e6
+
+
+class ImmersionError(QuadobsError):
+    """An immersion whose auxiliary count or exactness cannot be certified in floating point."""
 
 
 # --------------------------------------------------------------------------------------
@@ -198,27 +277,158 @@ def stacked_output_matrix(system: QuadraticSystem) -> np.ndarray:
     return 0.5 * vech(system.C)
 
 
+def _block_krylov(apply, W: np.ndarray, dim: int, tol_first: float, tol_next: float):
+    """Block Arnoldi on row vectors: an orthonormal basis of ``span{W, apply(W), ...}``.
+
+    ``W`` holds unit-norm rows; ``apply`` maps rows to rows. Each candidate block is
+    orthogonalised against the basis twice (classical Gram-Schmidt with
+    re-orthogonalisation); its singular values above the tolerance (``tol_first`` for
+    ``W``, ``tol_next`` after) give the new directions (its leading right singular
+    vectors). Returns ``(basis, sizes, sigma, tol)``: the orthonormal rows, the block
+    sizes in Arnoldi order, and every singular value decided with its tolerance.
+    """
+    V = np.zeros((0, W.shape[1]))
+    sizes: list[int] = []
+    sigma: list[float] = []
+    tols: list[float] = []
+    tol = tol_first
+    while W.shape[0]:
+        for _ in range(2):
+            W = W - (W @ V.T) @ V
+        _, sv, Vt = np.linalg.svd(W, full_matrices=False)
+        k = min(int(np.sum(sv > tol)), dim - V.shape[0])
+        sigma.extend(sv.tolist())
+        tols.extend([tol] * sv.size)
+        if k == 0:
+            break
+        new = Vt[:k]
+        V = np.vstack([V, new])
+        sizes.append(k)
+        W = apply(new)
+        tol = tol_next
+    return V, tuple(sizes), np.array(sigma), np.array(tols)
+
+
+def _normalised_shifted(A: np.ndarray, rtol: float) -> np.ndarray:
+    """``A_hat = (A - c I) / max(||A - c I||_2, floor)``, ``c = tr(A)/n`` (module docstring).
+
+    The shift rounds the diagonal by up to ``2 eps max|A_ii|``; ``floor`` =
+    ``10 DROP_GAP / rtol`` times that bound keeps this rounding below
+    ``rtol / (10 DROP_GAP)`` in ``A_hat``, so it can never pass for a direction (for
+    ``A`` a multiple of ``I``, ``A_hat`` is rounding only and ``K = span{C_h}``).
+    """
+    n = A.shape[0]
+    A0 = A - (np.trace(A) / n) * np.eye(n)
+    a = np.linalg.norm(A0, 2)
+    floor = 10.0 * DROP_GAP / rtol * 2.0 * np.finfo(float).eps * float(np.abs(np.diag(A)).max())
+    scale = max(a, floor)
+    return A0 / scale if scale > 0.0 else np.zeros_like(A0)
+
+
+def _unit_rows(C: np.ndarray) -> np.ndarray:
+    """The nonzero rows of ``C``, each divided by its norm."""
+    norms = np.linalg.norm(C, axis=1)
+    keep = norms > 0.0
+    return C[keep] / norms[keep, None]
+
+
+@dataclass(frozen=True)
+class LyapunovKrylov:
+    """The auxiliary space ``K`` of the module docstring, from :func:`lyapunov_krylov`.
+
+    Attributes
+    ----------
+    basis : ndarray, shape (r, n, n)
+        Frobenius-orthonormal symmetric matrices spanning ``K``, block by block.
+    sizes : tuple of int
+        Block sizes in Arnoldi order (``p_0, p_1, ...`` of [ACC2024, Alg. 1]).
+    sigma, tol : ndarray
+        Every rank decision: the singular value and the tolerance ``tau`` it was
+        compared with (kept when ``sigma > tau``).
+    """
+
+    basis: np.ndarray
+    sizes: tuple[int, ...]
+    sigma: np.ndarray
+    tol: np.ndarray
+
+    @property
+    def rank(self) -> int:
+        """``dim K``: the fewest auxiliary states."""
+        return int(self.basis.shape[0])
+
+    def ambiguity(self) -> str | None:
+        """``None`` if every rank decision is certified (module docstring), else why not.
+
+        A decision is certified when ``sigma > G tau`` (kept) or ``sigma <= tau / g``
+        (dropped), ``G`` = :data:`CERTIFY_GAP`, ``g`` = :data:`DROP_GAP`.
+        """
+        band = (self.sigma > self.tol / DROP_GAP) & (self.sigma <= CERTIFY_GAP * self.tol)
+        if not band.any():
+            return None
+        i = int(np.flatnonzero(band)[0])
+        what = "kept" if self.sigma[i] > self.tol[i] else "dropped"
+        return (
+            f"the rank decisions are ambiguous: a direction {what} at relative size {self.sigma[i]:.3g} "
+            f"lies between {self.tol[i] / DROP_GAP:.3g} and {CERTIFY_GAP * self.tol[i]:.3g} (tolerance "
+            f"{self.tol[i]:.3g}), so the data are too close to a system with another auxiliary count "
+            "to certify one in floating point"
+        )
+
+
+def lyapunov_krylov(A: np.ndarray, C: np.ndarray, rtol: float = DEFAULT_RTOL) -> LyapunovKrylov:
+    """Orthonormal basis of the smallest ``L_A``-invariant space containing the ``C_h``.
+
+    Block Arnoldi in ``Sym(n)`` with the Frobenius inner product on the normalised data
+    ``A_hat``, ``C_hat_h`` of the module docstring, so that the result depends neither on
+    the scale of ``A`` (nor on a multiple of ``I`` added to it) nor on those of the
+    ``C_h``. The rank decisions use ``tau = rtol`` for the first block (unit rows) and
+    ``tau = 2 rtol`` (the bound on ``||L_A_hat||``) after.
+
+    Parameters
+    ----------
+    A : ndarray, shape (n, n)
+    C : ndarray, shape (q, n, n) or (n, n)
+        Symmetric output matrices.
+    rtol : float
+        Relative tolerance of the rank decisions.
+    """
+    A = np.asarray(A, dtype=float)
+    n = A.shape[0]
+    C = np.asarray(C, dtype=float).reshape(-1, n, n)
+    Ah = _normalised_shifted(A, rtol)
+
+    def apply(rows: np.ndarray) -> np.ndarray:
+        X = rows.reshape(-1, n, n)
+        Y = Ah.T @ X + X @ Ah
+        return (0.5 * (Y + np.swapaxes(Y, 1, 2))).reshape(-1, n * n)
+
+    W = _unit_rows(C.reshape(-1, n * n))
+    V, sizes, sigma, tol = _block_krylov(apply, W, n * (n + 1) // 2, rtol, 2.0 * rtol)
+    V = V.reshape(-1, n, n)
+    V = 0.5 * (V + np.swapaxes(V, 1, 2))
+    return LyapunovKrylov(V, sizes, sigma, tol)
+
+
 def observability_rank(A_bar: np.ndarray, C_bar: np.ndarray, rtol: float = DEFAULT_RTOL) -> int:
     """Rank of the observability matrix ``[C_bar; C_bar A_bar; ...; C_bar A_bar^(N-1)]``.
 
-    Each block ``C_bar A_bar^k`` is normalised by ``||C_bar|| ||A_bar||^k`` before the
-    singular-value rank decision at ``rtol``; used to check that Algorithm 1 adds the
-    fewest auxiliary states.
+    Computed as :func:`lyapunov_krylov` computes ``dim K``: block Arnoldi on the rows
+    (``r -> r A_hat``) with the normalised data ``A_hat = (A_bar - tr(A_bar)/N I) /
+    ||.||_2`` and unit rows of ``C_bar``; a direction is new when its singular value
+    exceeds ``rtol``. With ``A_bar``, ``C_bar`` of [ACC2024] (:func:`lifted_state_matrix`,
+    :func:`stacked_output_matrix`) it equals the certified ``n_aux`` of
+    :func:`immerse_minimal`. Works for any pair ``(A, C)``.
     """
     A_bar = np.asarray(A_bar, dtype=float)
     C_bar = np.atleast_2d(np.asarray(C_bar, dtype=float))
     N = A_bar.shape[0]
-    c = np.linalg.norm(C_bar, 2)
-    if c == 0.0:
+    W = _unit_rows(C_bar)
+    if W.shape[0] == 0:
         return 0
-    a = max(np.linalg.norm(A_bar, 2), np.finfo(float).tiny)
-    blocks, block = [], C_bar / c
-    for _ in range(N):
-        blocks.append(block)
-        block = block @ A_bar / a
-    O = np.vstack(blocks)
-    s = np.linalg.svd(O, compute_uv=False)
-    return int(np.sum(s > rtol * max(s[0], 1.0) * np.sqrt(len(blocks))))
+    Ah = _normalised_shifted(A_bar, rtol)
+    V, _, _, _ = _block_krylov(lambda rows: rows @ Ah, W, N, rtol, rtol)
+    return int(V.shape[0])
 
 
 # --------------------------------------------------------------------------------------
@@ -363,22 +573,41 @@ def immerse_chain(system: QuadraticSystem, rtol: float = DEFAULT_RTOL) -> Immers
     shift ``S_m`` on the auxiliary block with ``u^T B^T C_i`` in the last columns (eq. 15),
     ``B = (0, B)`` (eq. 16), ``C = (1, 0, ..., 0, d^T)`` (eq. 17; the paper has ``d = 0``).
 
+    The chain is a power basis: it is returned only when ``m`` equals the certified
+    ``dim K`` of :func:`lyapunov_krylov` and it passes the residual checks of the module
+    docstring.
+
     Raises
     ------
     QuadobsError
         If the system has more than one output, or Assumption 1 fails (see
         :func:`vanishing_index`).
+    ImmersionError
+        If the chain's length or exactness cannot be certified.
     """
     if system.q != 1:
         raise QuadobsError(f"C: the chain immersion takes a single output, got q = {system.q}; use immerse_minimal")
     rtol = as_finite_scalar("rtol", rtol, positive=True)
     m = vanishing_index(system.A, system.C[0], rtol)
+    kry = lyapunov_krylov(system.A, system.C[0], rtol)
+    why = kry.ambiguity()
+    if why is not None:
+        raise ImmersionError(f"C: the chain length cannot be certified, {why}")
+    if m != kry.rank:
+        raise ImmersionError(
+            f"C: the chain stops at m = {m} but the certified minimal count is {kry.rank}: "
+            "C_m is not zero relative to the data, so the chain would not be exact; use immerse(system)"
+        )
     L = lyapunov_sequence(system.A, system.C[0], max(m - 1, 0))[:m]
     M = np.eye(m, k=1)
     F = np.zeros((1, m))
     if m:
         F[0, 0] = 1.0
-    return Immersion(system, L, M, F, "chain", (1,) * m)
+    im = Immersion(system, L, M, F, "chain", (1,) * m)
+    why = _certification_failure(im, kry.rank, rtol)
+    if why is not None:
+        raise ImmersionError(f"C: the chain immersion cannot be certified, {why}; use immerse(system)")
+    return im
 
 
 def _pivoted_rank(E: np.ndarray, tol: float) -> tuple[int, np.ndarray]:
@@ -390,8 +619,8 @@ def _pivoted_rank(E: np.ndarray, tol: float) -> tuple[int, np.ndarray]:
     return int(np.sum(diag > tol)), piv
 
 
-def immerse_minimal(system: QuadraticSystem, rtol: float = DEFAULT_RTOL) -> Immersion:
-    """Algorithm 1 of [ACC2024]: the fewest auxiliary states.
+def _algorithm1_power_basis(system: QuadraticSystem, rtol: float) -> Immersion:
+    """[ACC2024, Alg. 1] in the power basis ``L_k = L_{k-1} A_bar`` (rows of it).
 
     1. ``p_0 = rank C_bar`` and the rank factorisation ``C_bar = F L_0``: ``L_0`` is a
        selection of ``p_0`` rows of ``C_bar`` (pivoted QR), so each auxiliary state of
@@ -405,18 +634,11 @@ def immerse_minimal(system: QuadraticSystem, rtol: float = DEFAULT_RTOL) -> Imme
     3. Stop at ``p_k = 0`` with ``m = k``; ``z`` is eq. (12),
        ``(P_{m-1} xi_{m-1}, ..., P_0 xi_0, x)``, and ``A(u), B, C`` are eqs. (13, 14).
 
-    The row space found is the smallest ``A_bar``-invariant space containing the rows of
-    ``C_bar``, so ``n_aux`` equals the rank of the observability matrix of
-    ``(A_bar, C_bar)`` (see :func:`observability_rank`). With ``C_h = 0`` for every output
-    there is nothing to immerse: ``n_aux = 0`` and ``z = x``.
-
-    Parameters
-    ----------
-    system : QuadraticSystem
-    rtol : float
-        Relative tolerance of the rank decisions (module docstring).
+    Its rank decisions (pivoted QR on the unnormalised power rows) are not trusted on
+    their own: :func:`immerse_minimal` compares the count with the certified one and
+    checks the result. Raises :class:`ImmersionError` when the rows found are not
+    invariant.
     """
-    rtol = as_finite_scalar("rtol", rtol, positive=True)
     n = system.n
     C_bar = stacked_output_matrix(system)
     A_bar = lifted_state_matrix(system.A)
@@ -441,8 +663,8 @@ def immerse_minimal(system: QuadraticSystem, rtol: float = DEFAULT_RTOL) -> Imme
             permuted.append(prev)  # P_{m-1} = I: no row of the last block leads anywhere new
             orders.append(np.arange(prev.shape[0]))
             break
-        if sum(b.shape[0] for b in blocks) + pk > N:  # pragma: no cover - rank cannot exceed N
-            raise QuadobsError("Algorithm 1 did not terminate within n(n+1)/2 auxiliary states (rank tolerance too small)")
+        if sum(b.shape[0] for b in blocks) + pk > N:
+            raise ImmersionError("the power-basis rows exceed n(n+1)/2 auxiliary states")
         order = np.concatenate([piv[:pk], np.setdiff1d(np.arange(prev.shape[0]), piv[:pk])])
         permuted.append(prev[order])  # P_{k-1} L_{k-1}: the rows leading to new directions first
         orders.append(order)
@@ -477,10 +699,7 @@ def immerse_minimal(system: QuadraticSystem, rtol: float = DEFAULT_RTOL) -> Imme
     scale = max(np.linalg.norm(G, 2) * a_norm, np.finfo(float).tiny)
     err = np.linalg.norm(M @ G - GA, 2)
     if err > 1e3 * rtol * scale + 1e-12 * scale:
-        raise QuadobsError(
-            f"rtol: the auxiliary space is not invariant to the rank tolerance (residual {err:.3g}); "
-            "the rank decisions are ill-conditioned for this system, try a larger rtol"
-        )
+        raise ImmersionError(f"the power-basis rows are not invariant under A_bar (residual {err:.3g})")
     # C_bar = F_0 L_0 (rank factorisation; L_0 holds rows of C_bar, so F_0 is well conditioned),
     # hence C = [0 ... 0 F_0 P_0^T | D] (slide eq. 14).
     F0 = np.linalg.lstsq(blocks[0].T, C_bar.T, rcond=None)[0].T
@@ -489,6 +708,125 @@ def immerse_minimal(system: QuadraticSystem, rtol: float = DEFAULT_RTOL) -> Imme
     F[:, offsets[m - 1] :] = F0[:, orders[0]]
     L = _unvech_form(G, n)
     return Immersion(system, L, M, F, "minimal", sizes)
+
+
+def _lyapunov_residuals(system: QuadraticSystem, L: np.ndarray, M: np.ndarray, F: np.ndarray) -> tuple[float, float]:
+    """The two relative residuals of the module docstring: invariance and output."""
+    A = system.A
+    a = 2.0 * np.linalg.norm(A, 2)
+    k, n = L.shape[0], system.n
+    if k == 0:
+        return 0.0, 0.0
+    LA = np.swapaxes(L, 1, 2) @ A
+    LA = LA + np.swapaxes(LA, 1, 2)  # L_i A + A^T L_i (L_i symmetric)
+    R = (LA - np.tensordot(M, L, axes=(1, 0))).reshape(k, n * n)
+    num = np.linalg.norm(R, axis=1)
+    den = a * np.linalg.norm(L.reshape(k, n * n), axis=1)
+    inv = float(np.max(np.where(num == 0.0, 0.0, num / np.maximum(den, np.finfo(float).tiny))))
+    Ch = system.C.reshape(system.q, n * n)
+    Ro = Ch - F @ L.reshape(k, n * n)
+    cn = np.linalg.norm(Ch, axis=1)
+    on = np.linalg.norm(Ro, axis=1)
+    out = float(np.max(np.where(on == 0.0, 0.0, on / np.maximum(cn, np.finfo(float).tiny))))
+    return inv, out
+
+
+def _certification_failure(im: Immersion, rank: int, rtol: float) -> str | None:
+    """``None`` if ``im`` has the certified count and passes both residual checks, else why not."""
+    if im.n_aux != rank:
+        return f"its count {im.n_aux} differs from the certified minimal count {rank}"
+    inv, out = _lyapunov_residuals(im.system, im.aux_forms, im.aux_dynamics, im.aux_output)
+    if not inv <= rtol:
+        return f"its forms are not invariant under L_A to the tolerance (relative residual {inv:.3g} > {rtol:.3g})"
+    if not out <= rtol:
+        return f"its forms do not reproduce the outputs to the tolerance (relative residual {out:.3g} > {rtol:.3g})"
+    return None
+
+
+def _orthonormal_immersion(system: QuadraticSystem, kry: LyapunovKrylov) -> Immersion:
+    """The immersion in the orthonormal Arnoldi basis of ``K``, blocks in eq. (12) order.
+
+    ``z = (V_{m-1}, ..., V_0, x)``; ``M_ij = <L_A(L_i), L_j>_F`` (zero beyond the block
+    Hessenberg pattern: ``L_A(V_k)`` lies in ``V_0 + ... + V_{k+1}``) and
+    ``F_hi = <C_h, L_i>_F`` on the last block (``V_0`` spans the ``C_h``).
+    """
+    n, q = system.n, system.q
+    sizes = kry.sizes[::-1]
+    m = len(sizes)
+    offsets = np.concatenate([[0], np.cumsum(sizes)]).astype(int)
+    arnoldi_offsets = np.concatenate([[0], np.cumsum(kry.sizes)]).astype(int)
+    # reorder the Arnoldi blocks: block k of the state is Arnoldi block m-1-k
+    order = np.concatenate([np.arange(arnoldi_offsets[j], arnoldi_offsets[j + 1]) for j in range(m - 1, -1, -1)])
+    L = kry.basis[order]
+    k = L.shape[0]
+    A = system.A
+    LA = np.swapaxes(L, 1, 2) @ A
+    LA = LA + np.swapaxes(LA, 1, 2)
+    M = LA.reshape(k, n * n) @ L.reshape(k, n * n).T
+    # state block b holds Arnoldi block m-1-b; L_A of Arnoldi block j lies in blocks <= j+1,
+    # i.e. state blocks >= b-1.
+    for b in range(m):
+        for c in range(b - 1):
+            M[offsets[b] : offsets[b + 1], offsets[c] : offsets[c + 1]] = 0.0
+    F = np.zeros((q, k))
+    last = slice(offsets[m - 1], k)
+    F[:, last] = system.C.reshape(q, n * n) @ L[last].reshape(-1, n * n).T
+    return Immersion(system, L, M, F, "minimal", sizes)
+
+
+def immerse_minimal(system: QuadraticSystem, rtol: float = DEFAULT_RTOL) -> Immersion:
+    """[ACC2024, Alg. 1]: the fewest auxiliary states, certified.
+
+    1. ``dim K`` and an orthonormal basis of ``K`` by block Arnoldi on the normalised data
+       (:func:`lyapunov_krylov`); the count is certified when no rank decision is
+       ambiguous (module docstring, "Rank decisions").
+    2. Algorithm 1 in its power basis ``L_k = L_{k-1} A_bar`` (rows of ``C_bar``, then of
+       ``L_{k-1} A_bar`` selected by pivoted QR; ``z`` in eq. (12) order,
+       ``(P_{m-1} xi_{m-1}, ..., P_0 xi_0, x)``, and ``A(u), B, C`` of eqs. (13, 14)). It is
+       returned when its count is the certified one, its Frobenius condition number is at
+       most :data:`POWER_BASIS_COND`, and its residuals pass the checks.
+    3. Otherwise the immersion in the orthonormal Arnoldi basis (same block sizes, eq. (12)
+       order, ``||L_i||_F = 1``), checked the same way.
+
+    The row space found is the smallest ``A_bar``-invariant space containing the rows of
+    ``C_bar``, so ``n_aux`` equals the rank of the observability matrix of
+    ``(A_bar, C_bar)`` (see :func:`observability_rank`). With ``C_h = 0`` for every output
+    there is nothing to immerse: ``n_aux = 0`` and ``z = x``.
+
+    Parameters
+    ----------
+    system : QuadraticSystem
+    rtol : float
+        Relative tolerance ``rtol`` of the rank decisions and of the residual checks
+        (module docstring); :data:`DEFAULT_RTOL` by default.
+
+    Raises
+    ------
+    ImmersionError
+        If the count cannot be certified (a rank decision in the ambiguous band of the
+        module docstring) or no basis passes the residual checks.
+    """
+    rtol = as_finite_scalar("rtol", rtol, positive=True)
+    n = system.n
+    kry = lyapunov_krylov(system.A, system.C, rtol)
+    why = kry.ambiguity()
+    if why is not None:
+        raise ImmersionError(f"system: the minimal auxiliary count cannot be certified, {why}")
+    if kry.rank == 0:
+        return Immersion(system, np.zeros((0, n, n)), np.zeros((0, 0)), np.zeros((system.q, 0)), "minimal", ())
+    try:
+        im = _algorithm1_power_basis(system, rtol)
+    except ImmersionError:
+        im = None
+    if im is not None and im.n_aux == kry.rank:
+        sv = np.linalg.svd(im.aux_forms.reshape(im.n_aux, n * n), compute_uv=False)
+        if sv[-1] * POWER_BASIS_COND >= sv[0] and _certification_failure(im, kry.rank, rtol) is None:
+            return im
+    im = _orthonormal_immersion(system, kry)
+    why = _certification_failure(im, kry.rank, rtol)
+    if why is not None:
+        raise ImmersionError(f"system: the minimal immersion cannot be certified, {why}")
+    return im
 
 
 def immerse(system: QuadraticSystem, method: str = "minimal", rtol: float = DEFAULT_RTOL) -> Immersion:
