@@ -1,24 +1,28 @@
 """The ``quadobs`` command line.
 
 ``quadobs run SCENARIO --out PATH.rrd --summary PATH.json`` runs one episode headless and
-prints a summary table; ``quadobs list`` names the built-in scenarios; ``quadobs excitation
+prints a summary table (``python -m quadobs`` is the same command); ``quadobs list`` names the
+built-in scenarios; ``quadobs excitation
 SCENARIO [--window S]`` prints the persistence-of-excitation report of the scenario's input
 (no physics, no MuJoCo); ``quadobs campaign SCENARIO --runs N --out DIR`` runs a Monte
 Carlo campaign (:mod:`quadobs.studies.campaign`); ``quadobs bench [--json PATH]`` measures the
 estimators' cost beside the physics (:mod:`quadobs.studies.bench`). Errors in the
 input (a bad scenario field, an unwritable path) print one line naming the problem and
-exit with status 2; Ctrl-C stops a run after closing its recording (status 130).
+exit with status 2, leaving no folder it created behind; Ctrl-C stops a run after closing
+its recording (status 130). On a first run, one line on stderr says that the compiled kernels
+are being built (their cache is then reused).
 """
 
 from __future__ import annotations
 
 import argparse
 import os
+import shutil
 import signal
 import sys
 from pathlib import Path
 
-from quadobs.errors import QuadobsError
+from quadobs.errors import QuadobsError, new_folders_removed_on_failure
 
 __all__ = ["main"]
 
@@ -66,12 +70,28 @@ def print_summary(summary: dict, file=sys.stdout) -> None:
         print(f"recording: {summary['recording']}  (open with: rerun {summary['recording']})", file=file)
 
 
+#: The section 5 reproduction, run by ``quadobs run le2013`` beside the built-in scenarios.
+LE2013_DESCRIPTION = "[LE2013] section 5: zonotopic estimation of an uncertain 2-state system (no MuJoCo)."
+
+
+def _one_line(text: str, width: int) -> str:
+    """The first line of ``text``, cut at a word to at most ``width`` characters ("..." marks a cut)."""
+    line = text.strip().splitlines()[0] if text.strip() else ""
+    if len(line) <= width:
+        return line
+    cut = line[: max(width - 3, 1)].rsplit(" ", 1)[0].rstrip(" ,;:")
+    return cut + "..."
+
+
 def _cmd_list(args) -> int:
     from quadobs.testbed.scenario import list_scenarios
 
-    for name, desc in list_scenarios().items():
-        print(f"{name:16s} {desc}")
-    print(f"{'le2013':16s} Le et al. 2013 section 5: zonotopic estimation of an uncertain 2-state system (no MuJoCo)")
+    entries = dict(list_scenarios())
+    entries["le2013"] = LE2013_DESCRIPTION
+    width = max(len(name) for name in entries)
+    columns = shutil.get_terminal_size((100, 24)).columns
+    for name in sorted(entries):
+        print(f"{name:{width}s}  {_one_line(entries[name], max(columns - width - 3, 20))}")
     return 0
 
 
@@ -84,11 +104,42 @@ def _estimator_list(text: str | None) -> list[str] | None:
     return names
 
 
+#: Options of ``quadobs run`` that ``le2013`` takes: ``--duration`` is its number of samples,
+#: ``--runs`` its number of seeded runs (``--no-progress`` is accepted: it shows no progress bar).
+LE2013_OPTIONS = ("out", "summary", "duration", "seed", "runs", "no_progress")
+
+
+def _refuse_other_options(args, allowed, what: str) -> None:
+    """Refuse any option of ``quadobs run`` given a value other than its default, unless ``allowed``."""
+    defaults = build_parser().parse_args(["run", args.scenario])
+    for dest, value in vars(args).items():
+        if dest not in allowed and dest not in ("command", "func", "scenario") and value != getattr(defaults, dest, value):
+            raise QuadobsError(f"--{dest.replace('_', '-')}: does not apply to {what}")
+
+
+def _le2013_settings(args) -> dict:
+    """``seed``, ``steps`` and ``runs`` of :func:`run_le2013` from the options (defaults 0, 50, 50)."""
+    _refuse_other_options(args, LE2013_OPTIONS, "le2013 (it takes --out, --summary, --duration, --seed, --runs)")
+    steps = 50
+    if args.duration is not None:
+        if not (args.duration >= 1 and float(args.duration).is_integer()):
+            raise QuadobsError(f"--duration: le2013 counts samples, expected a whole number at least 1, got {args.duration:g}")
+        steps = int(args.duration)
+    seed = 0 if args.seed is None else args.seed
+    if seed < 0:
+        raise QuadobsError(f"seed: must be at least 0, got {seed}")
+    runs = 50 if args.runs is None else args.runs
+    if runs < 1:
+        raise QuadobsError(f"--runs: must be at least 1, got {runs}")
+    return {"seed": seed, "steps": steps, "runs": runs}
+
+
 def _cmd_le2013(args) -> int:
     from quadobs.studies.le2013.study import format_table, run_le2013
 
-    steps = 50 if args.duration is None else int(round(args.duration))
-    summary = run_le2013(args.out, args.summary, seed=0 if args.seed is None else args.seed, steps=steps, runs=args.runs)
+    settings = _le2013_settings(args)
+    _notice_cold_kernels(LE2013_KERNELS)
+    summary = run_le2013(args.out, args.summary, **settings)
     print(format_table(summary))
     if args.out:
         print(f"recording: {args.out}  (open with: rerun {args.out})")
@@ -103,10 +154,14 @@ def _cmd_run(args) -> int:
 
     if args.scenario == "le2013":
         return _cmd_le2013(args)
+    if args.runs is not None:
+        raise QuadobsError("--runs: applies to le2013 only; for many seeded runs of a scenario use 'quadobs campaign'")
     scenario = load_scenario(args.scenario, duration=args.duration, seed=args.seed)
+    estimators = _estimator_list(args.estimators)
+    _notice_cold_kernels(_episode_kernels(estimators))
     result = run_episode(
         scenario,
-        estimators=_estimator_list(args.estimators),
+        estimators=estimators,
         out=args.out,
         summary_path=args.summary,
         progress=not args.no_progress,
@@ -139,11 +194,15 @@ def _cmd_campaign(args) -> int:
     from quadobs.studies.campaign import print_campaign, run_campaign
     from quadobs.testbed.scenario import load_scenario
 
+    if args.scenario == "le2013":
+        raise QuadobsError("scenario 'le2013': not a vehicle scenario; run it with 'quadobs run le2013 --runs N'")
     scenario = load_scenario(args.scenario, duration=args.duration, seed=args.seed)
+    estimators = _estimator_list(args.estimators)
+    _notice_cold_kernels(_episode_kernels(estimators))
     result = run_campaign(
         scenario,
         runs=args.runs,
-        estimators=_estimator_list(args.estimators),
+        estimators=estimators,
         out_dir=args.out,
         scheduler=args.scheduler,
         workers=args.workers,
@@ -172,6 +231,8 @@ def _cmd_bench(args) -> int:
     if args.threads < 0:
         raise QuadobsError(f"--threads: must be non-negative, got {args.threads}")
     log = None if args.quiet else (lambda msg: print(f"[bench] {msg}", file=sys.stderr, flush=True))
+    if not args.quiet:
+        _notice_cold_kernels(BENCH_KERNELS)
     result = run_bench(
         steps=args.steps, repeats=args.repeats, batch=args.batch, batch_steps=args.batch_steps,
         threads=args.threads, quick=args.quick, log=log,
@@ -183,8 +244,77 @@ def _cmd_bench(args) -> int:
     return 0
 
 
+def package_version() -> str:
+    """The installed distribution's version, else the package's ``__version__``."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("quadobs")
+    except PackageNotFoundError:
+        from quadobs import __version__
+
+        return __version__
+
+
+def _registered_estimators() -> list[str]:
+    from quadobs.testbed.registry import available_estimators
+
+    return available_estimators()
+
+
+class _EstimatorsOption(argparse._StoreAction):
+    """``--estimators``: its help lists the registered names, looked up only when help is shown."""
+
+    @property
+    def help(self) -> str:
+        try:
+            names = ", ".join(sorted(_registered_estimators()))
+        except Exception as exc:  # a broken registration must not break --help
+            names = f"unavailable ({type(exc).__name__}: {exc})"
+        return f"{self._help}; registered: {names}".replace("%", "%%")
+
+    @help.setter
+    def help(self, value: str) -> None:
+        self._help = value
+
+
+#: Kernels ("module:function") a first run compiles, per command (see :func:`_notice_cold_kernels`).
+EPISODE_KERNELS = ("quadobs._kernels.observer:sensor_step", "quadobs.testbed.worlds._read:read_step")
+AUGMENTED_KERNELS = ("quadobs._kernels.observer:augmented_step", "quadobs._kernels.observer:augmented_step_record")
+LE2013_KERNELS = ("quadobs._kernels.zonotope:zonotope_step",)
+BENCH_KERNELS = (
+    "quadobs._kernels.observer:augmented_step",
+    "quadobs._kernels.observer:augmented_step_batch",
+    "quadobs._kernels.zonotope:zonotope_step",
+)
+COMPILING_NOTICE = "quadobs: compiling the estimator kernels (first run only, about 15 s)..."
+
+
+def _episode_kernels(estimators: list[str] | None) -> tuple[str, ...]:
+    """The kernels an episode compiles: the sensors' and the world's, the augmented observer's when it runs."""
+    if estimators is None or "augmented" in estimators:
+        return EPISODE_KERNELS + AUGMENTED_KERNELS
+    return EPISODE_KERNELS
+
+
+def _notice_cold_kernels(kernels, file=None) -> bool:
+    """Print :data:`COMPILING_NOTICE` on stderr when some of ``kernels`` are not in Numba's cache yet."""
+    from quadobs._kernels import cold_kernels
+
+    if not cold_kernels(kernels):
+        return False
+    print(COMPILING_NOTICE, file=file or sys.stderr, flush=True)
+    return True
+
+
+def _output_paths(args) -> list[Path]:
+    """The output files and folders named on the command line (removed again if the command fails and they are empty)."""
+    return [value for name in ("out", "summary", "json") if isinstance(value := getattr(args, name, None), Path)]
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="quadobs", description="State estimation for systems with quadratic outputs: a MuJoCo testbed.")
+    parser.add_argument("--version", action="version", version=f"quadobs {package_version()}")
     sub = parser.add_subparsers(dest="command", required=True)
 
     p = sub.add_parser("list", help="name the built-in scenarios")
@@ -196,9 +326,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--summary", type=Path, help="JSON summary to write")
     p.add_argument("--duration", type=float, help="override the scenario duration (s)")
     p.add_argument("--seed", type=int, help="override the scenario seed")
-    p.add_argument("--estimators", help="comma-separated estimator names (default: augmented and the scenario's variants)")
+    p.add_argument(
+        "--estimators", action=_EstimatorsOption,
+        help="comma-separated estimator names (default: augmented and the scenario's variants)",
+    )
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
-    p.add_argument("--runs", type=int, default=50, help="le2013 only: number of seeded runs (default 50; --duration is the number of samples)")
+    p.add_argument("--runs", type=int, help="le2013 only: number of seeded runs (default 50; --duration is the number of samples)")
     p.set_defaults(func=_cmd_run)
 
     p = sub.add_parser(
@@ -218,7 +351,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("scenario", help="built-in scenario name (see 'quadobs list') or path to a scenario .toml")
     p.add_argument("--runs", type=int, required=True, help="number of seeded runs")
-    p.add_argument("--estimators", help="comma-separated estimator names (e.g. augmented,ekf,ukf)")
+    p.add_argument("--estimators", action=_EstimatorsOption, help="comma-separated estimator names (e.g. augmented,ekf,ukf)")
     p.add_argument("--out", type=Path, required=True, help="folder for summary.json, runs.parquet, series.parquet, statistics.rrd")
     p.add_argument("--scheduler", help="Dask distributed scheduler address (tcp://host:port); default: local processes")
     p.add_argument("--workers", type=int, help="local processes (default: the number of CPUs; 0: in this process)")
@@ -255,7 +388,8 @@ def main(argv: list[str] | None = None) -> int:
     except ValueError:  # not in the main thread
         pass
     try:
-        return args.func(args)
+        with new_folders_removed_on_failure(*_output_paths(args)):
+            return args.func(args)
     except QuadobsError as exc:
         print(f"quadobs: error: {exc}", file=sys.stderr)
         return 2

@@ -15,7 +15,14 @@ from typing import Any, Iterator
 
 import numpy as np
 
-__all__ = ["QuadobsError", "as_array", "as_finite_scalar", "check_writable", "deferred_interrupts"]
+__all__ = [
+    "QuadobsError",
+    "as_array",
+    "as_finite_scalar",
+    "check_writable",
+    "deferred_interrupts",
+    "new_folders_removed_on_failure",
+]
 
 
 class QuadobsError(ValueError):
@@ -101,6 +108,52 @@ def check_writable(path: str | Path) -> Path:
     except OSError as exc:
         raise QuadobsError(f"output path {str(path)!r}: cannot be written ({exc.strerror})") from None
     return path
+
+
+def _missing_folders(path: Path) -> list[Path]:
+    """``path`` and its ancestors that do not exist yet, deepest first."""
+    missing = []
+    for folder in (path, *path.parents):
+        if folder.exists() or folder.is_symlink():
+            break
+        missing.append(folder)
+    return missing
+
+
+@contextmanager
+def new_folders_removed_on_failure(*paths: str | Path | None) -> Iterator[None]:
+    """Remove the folders a failed command created on the way to its outputs.
+
+    Before the section, notes which of ``paths`` (output files or folders; ``None`` is
+    skipped) and their ancestors do not exist. When the section raises, every one of
+    them that now exists and is empty is removed, deepest first, and the exception
+    propagates; folders that hold something (a partial recording kept on purpose) and
+    folders that existed before stay. A section that ends normally keeps everything.
+
+    Examples
+    --------
+    >>> import tempfile
+    >>> from pathlib import Path
+    >>> root = Path(tempfile.mkdtemp())
+    >>> try:
+    ...     with new_folders_removed_on_failure(root / "new" / "sub" / "x.json"):
+    ...         _ = check_writable(root / "new" / "sub" / "x.json")  # creates new/sub
+    ...         raise QuadobsError("estimators: unknown estimator 'nosuch'")
+    ... except QuadobsError:
+    ...     pass
+    >>> list(root.iterdir())
+    []
+    """
+    missing = [folder for p in paths if p is not None for folder in _missing_folders(Path(p).absolute())]
+    try:
+        yield
+    except BaseException:
+        for folder in sorted(set(missing), key=lambda f: len(f.parts), reverse=True):
+            try:
+                folder.rmdir()  # only an empty folder goes; a file or a non-empty folder stays
+            except OSError:
+                pass
+        raise
 
 
 @contextmanager
