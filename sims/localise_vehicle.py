@@ -1,6 +1,6 @@
 """Localise the MuJoCo vehicle from one range measurement, the data flow in one file.
 
-    python sims/localise_vehicle.py [--scenario ifac2021] [--out runs/localise.rrd]
+    python sims/localise_vehicle.py [--scenario ifac2021] [--duration S] [--out runs/localise.rrd]
 
 Each physics step: MuJoCo advances the true vehicle under the commanded acceleration,
 its sensors (describing the start of the step) give the range and the accelerometer,
@@ -23,10 +23,11 @@ from quadobs.testbed.worlds import VehicleSim
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--scenario", default="ifac2021")
+    parser.add_argument("--duration", type=float, help="override the scenario duration (s)")
     parser.add_argument("--out", default="runs/localise.rrd")
     args = parser.parse_args()
 
-    sc = load_scenario(args.scenario)
+    sc = load_scenario(args.scenario, duration=args.duration)
     sim = VehicleSim(sc.dimension, sc.beacons, timestep=sc.dt, wind=sc.wind)  # MuJoCo ground truth
     sim.reset(sc.trajectory.position(0.0), sc.trajectory.velocity_at(0.0))
     sensors = SensorModel(sc)  # noise and rates of the scenario, seeded

@@ -1,6 +1,7 @@
 """EKF and UKF with a fictitious process noise: how much of their failure to converge is overconfidence.
 
-    python sims/tuned_baselines.py [--scenario ifac2021-noisy] [--accel-std 3.0] [--runs 100] [--out DIR]
+    python sims/tuned_baselines.py [--scenario ifac2021-noisy] [--accel-std 3.0] [--runs 100] [--duration S]
+                                   [--workers N] [--out DIR]
 
 The registered baselines ``ekf`` and ``ukf`` use the scenario's true noise levels; with a
 noise-free accelerometer their process noise is zero and their covariance can collapse
@@ -33,6 +34,8 @@ def main() -> None:
     parser.add_argument("--scenario", default="ifac2021-noisy")
     parser.add_argument("--accel-std", type=float, default=3.0)
     parser.add_argument("--runs", type=int, default=100)
+    parser.add_argument("--duration", type=float, help="override the scenario duration (s)")
+    parser.add_argument("--workers", type=int, help="local processes (default: the number of CPUs; 0: in this process)")
     parser.add_argument("--out", default=None)
     args = parser.parse_args()
 
@@ -40,8 +43,9 @@ def main() -> None:
     register_estimator("ukf_tuned", tuned(UnscentedKalmanFilter, args.accel_std))
     # local processes are forked on Linux, so they see the registrations above
     result = run_campaign(
-        load_scenario(args.scenario),
+        load_scenario(args.scenario, duration=args.duration),
         runs=args.runs,
+        workers=args.workers,
         estimators=["ekf_tuned", "ukf_tuned"],
         out_dir=args.out,
         progress=True,

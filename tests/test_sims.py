@@ -1,0 +1,65 @@
+"""The scripts in ``sims/`` run: each in a subprocess with short options, outputs under a tmp folder."""
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+SIMS = ROOT / "sims"
+
+#: script -> (arguments, outputs it must write, text its output must hold); {tmp} is the tmp folder
+CASES = {
+    "localise_vehicle.py": (
+        ["--duration", "1", "--out", "{tmp}/runs/localise.rrd"],
+        ["runs/localise.rrd"],
+        "ifac2021: final position error",
+    ),
+    "excitation_degenerate.py": (
+        ["--duration", "8", "--every", "2", "--out", "{tmp}/runs/degenerate.rrd"],
+        ["runs/degenerate.rrd"],
+        "low segments (s): [[5.0,",
+    ),
+    "excitation_overhead.py": (
+        ["--duration", "1", "--repeats", "1"],
+        [],
+        "throughput ratio on/off:",
+    ),
+    "long_run.py": (
+        ["--duration", "2", "--settle", "0.5", "--window", "0.5", "--json", "{tmp}/runs/long_run.json"],
+        ["runs/long_run.json"],
+        "NaN: False",
+    ),
+    "tuned_baselines.py": (
+        ["--duration", "1", "--runs", "2", "--workers", "0", "--out", "{tmp}/campaign"],
+        ["campaign/summary.json", "campaign/runs.parquet", "campaign/statistics.rrd"],
+        "ekf_tuned",
+    ),
+}
+
+
+def test_every_script_has_a_smoke_test():
+    assert sorted(p.name for p in SIMS.glob("*.py")) == sorted(CASES)
+
+
+@pytest.mark.parametrize("script", sorted(CASES))
+def test_script_runs_short(script, tmp_path):
+    args, outputs, text = CASES[script]
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    done = subprocess.run(
+        [sys.executable, str(SIMS / script), *(a.format(tmp=tmp_path) for a in args)],
+        capture_output=True, text=True, env=env, cwd=tmp_path, timeout=300,
+    )
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert text in done.stdout, done.stdout[-3000:]
+    for out in outputs:
+        path = tmp_path / out
+        assert path.is_file() and path.stat().st_size > 0, out
+    if script == "long_run.py":
+        figures = json.loads((tmp_path / "runs/long_run.json").read_text())
+        assert set(figures) == {"testbed", "direct"}
+        assert not figures["testbed"]["nan"] and not figures["direct"]["nan"]
+    assert not (tmp_path / "runs").exists() or all(p.name in {Path(o).name for o in outputs} for p in (tmp_path / "runs").iterdir())
