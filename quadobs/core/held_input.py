@@ -229,20 +229,17 @@ class HeldInputDiscretization:
         theta = as_finite_scalar("theta", self.theta, nonnegative=True)
         k, n, p, N = im.n_aux, im.system.n, im.system.p, im.dim
         V = as_covariance("V", self.V, N, definite=False)
-        B = im.system.B
 
         # Phi(e_j) and Gamma(e_j) of the augmented system z' = A(e_j) z + (0, B) u: the blocks
         # that do not depend on u come from j = 0, Phi_12 and the aux part of Gamma from each j.
         F0 = np.zeros((N, N))
         F1 = np.zeros((p, k, n))
         G2 = np.zeros((p, k, p))
-        B_aug = np.zeros((N, p))
-        B_aug[k:] = B
         for j in range(max(p, 1)):
             e = np.zeros(p)
             if p:
                 e[j] = 1.0
-            Phi, Gamma = held_input_step(im.state_matrix(e), B_aug, dt)
+            Phi, Gamma = held_input_step(im.state_matrix(e), im.input_matrix, dt)
             if j == 0:
                 F0[:k, :k] = Phi[:k, :k]
                 F0[k:, k:] = Phi[k:, k:]
