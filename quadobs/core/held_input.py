@@ -12,7 +12,7 @@ depends on ``u``, linearly (eq. 20, 21), the transition matrix (eq. 22, 26a-c)
 
 is *affine* in ``u``, and the input term ``g(u)`` is quadratic in ``u``. All their
 coefficients are computed once, from matrix exponentials of block matrices
-(``[[M, K_j, 0], [0, A, B], [0, 0, 0]]``), so a step costs a few small matrix products and
+(``[[M, K_j, 0], [0, A, B], [0, 0, 0]]``, :func:`held_input_step` at ``u = e_j``), so a step costs a few small matrix products and
 is exact to rounding for any held input, not only small ``dt``.
 
 Covariance. Theorem 3's Riccati equation
@@ -33,6 +33,7 @@ discrete filter tends to Theorem 3's observer as ``T -> 0``.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from itertools import combinations
 
@@ -42,7 +43,7 @@ import scipy.linalg as sla
 from quadobs.errors import QuadobsError, as_array, as_finite_scalar
 from quadobs.core.immersion import Immersion
 
-__all__ = ["HeldInputDiscretization", "van_loan", "as_covariance"]
+__all__ = ["HeldInputDiscretization", "held_input_step", "van_loan", "as_covariance"]
 
 
 def as_covariance(name: str, value, dim: int, *, definite: bool = True) -> np.ndarray:
@@ -69,8 +70,73 @@ def as_covariance(name: str, value, dim: int, *, definite: bool = True) -> np.nd
     return arr
 
 
+def held_input_step(A: np.ndarray, B: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
+    """Exact one-step map of ``x' = A x + B u`` with ``u`` held over ``dt``: ``x+ = Phi x + Gamma u``.
+
+    One exponential of the block matrix gives both blocks:
+
+    .. math::
+
+        \\exp\\left(\\begin{bmatrix} A & B \\\\ 0 & 0 \\end{bmatrix} dt\\right)
+        = \\begin{bmatrix} \\Phi & \\Gamma \\\\ 0 & I \\end{bmatrix}, \\qquad
+        \\Phi = e^{A dt}, \\quad \\Gamma = \\int_0^{dt} e^{A s} ds\\, B .
+
+    The only place the project discretises a linear system under a held input: the
+    augmented system at ``u = e_j`` (:class:`HeldInputDiscretization`, ``A = A(e_j)``,
+    ``B = (0, B)``) and the original state of the Kalman baselines
+    (:class:`quadobs.estimators.kalman.HeldInputModel`).
+
+    Parameters
+    ----------
+    A : ndarray (n, n)
+    B : ndarray (n, p)
+    dt : float
+        Step length (s).
+
+    Returns
+    -------
+    Phi : ndarray (n, n)
+    Gamma : ndarray (n, p)
+
+    Examples
+    --------
+    The double integrator: ``Phi = [[1, dt], [0, 1]]``, ``Gamma = [dt^2 / 2, dt]``.
+
+    >>> Phi, Gamma = held_input_step(np.array([[0.0, 1.0], [0.0, 0.0]]), np.array([[0.0], [1.0]]), 0.5)
+    >>> np.round(Phi, 12).tolist(), np.round(Gamma, 12).ravel().tolist()
+    ([[1.0, 0.5], [0.0, 1.0]], [0.125, 0.5])
+    """
+    n, p = A.shape[0], B.shape[1]
+    big = np.zeros((n + p, n + p))
+    big[:n, :n] = A
+    big[:n, n:] = B
+    E = sla.expm(big * dt)
+    return E[:n, :n].copy(), E[:n, n:].copy()
+
+
 def van_loan(A: np.ndarray, V: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
-    """``(e^{A dt}, int_0^dt e^{A s} V e^{A^T s} ds)`` by Van Loan's block exponential."""
+    """``(e^{A dt}, int_0^dt e^{A s} V e^{A^T s} ds)`` by Van Loan's block exponential.
+
+    .. math::
+
+        \\exp\\left(\\begin{bmatrix} -A & V \\\\ 0 & A^\\top \\end{bmatrix} dt\\right)
+        = \\begin{bmatrix} \\cdot & E_{12} \\\\ 0 & E_{22} \\end{bmatrix}, \\qquad
+        \\Phi = E_{22}^\\top, \\quad Q_d = \\Phi E_{12} .
+
+    The discrete covariance of a white noise of intensity ``V`` on ``x' = A x`` over one
+    step (symmetrised); used for ``Q_d(u)`` of :class:`HeldInputDiscretization`, ``Q_V`` of
+    :class:`quadobs.estimators.kalman.HeldInputModel` and the step Gramian of
+    :class:`quadobs.observability.gramian.GramianModel` (with ``A^T`` and ``C^T C``).
+
+    Examples
+    --------
+    White acceleration noise of intensity ``s2`` on a double integrator:
+    ``Q_d = s2 [[dt^3/3, dt^2/2], [dt^2/2, dt]]``.
+
+    >>> Phi, Q = van_loan(np.array([[0.0, 1.0], [0.0, 0.0]]), np.diag([0.0, 2.0]), 0.5)
+    >>> np.round(Q / 2.0, 12).tolist()
+    [[0.041666666667, 0.125], [0.125, 0.5]]
+    """
     N = A.shape[0]
     big = np.zeros((2 * N, 2 * N))
     big[:N, :N] = -A
@@ -80,6 +146,11 @@ def van_loan(A: np.ndarray, V: np.ndarray, dt: float) -> tuple[np.ndarray, np.nd
     Phi = E[N:, N:].T
     Q = Phi @ E[:N, N:]
     return Phi, 0.5 * (Q + Q.T)
+
+
+def _rows(a: np.ndarray, width: int) -> np.ndarray:
+    """``a`` as a matrix of ``width`` columns (one row per leading index; also for ``width = 0``)."""
+    return a.reshape(math.prod(a.shape[:-1]) if a.ndim > 1 else 1, width)
 
 
 def quadratic_coefficients(f, p: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -158,27 +229,24 @@ class HeldInputDiscretization:
         theta = as_finite_scalar("theta", self.theta, nonnegative=True)
         k, n, p, N = im.n_aux, im.system.n, im.system.p, im.dim
         V = as_covariance("V", self.V, N, definite=False)
-        A, B = im.system.A, im.system.B
 
+        # Phi(e_j) and Gamma(e_j) of the augmented system z' = A(e_j) z + (0, B) u: the blocks
+        # that do not depend on u come from j = 0, Phi_12 and the aux part of Gamma from each j.
         F0 = np.zeros((N, N))
         F1 = np.zeros((p, k, n))
         G2 = np.zeros((p, k, p))
-        size = k + n + p
         for j in range(max(p, 1)):
-            big = np.zeros((size, size))
-            big[:k, :k] = im.aux_dynamics
+            e = np.zeros(p)
             if p:
-                big[:k, k : k + n] = im.input_forms[j]
-            big[k : k + n, k : k + n] = A
-            big[k : k + n, k + n :] = B
-            E = sla.expm(big * dt)
+                e[j] = 1.0
+            Phi, Gamma = held_input_step(im.state_matrix(e), im.input_matrix, dt)
             if j == 0:
-                F0[:k, :k] = E[:k, :k]
-                F0[k:, k:] = E[k : k + n, k : k + n]
-                G0 = E[k : k + n, k + n :].copy()
+                F0[:k, :k] = Phi[:k, :k]
+                F0[k:, k:] = Phi[k:, k:]
+                G0 = Gamma[k:].copy()
             if p:
-                F1[j] = E[:k, k : k + n]
-                G2[j] = E[:k, k + n :]
+                F1[j] = Phi[:k, k:]
+                G2[j] = Gamma[:k]
 
         # Q_d(u) is a quadratic polynomial in u: recover its coefficients exactly from its
         # values at u = 0, +-e_j and e_j + e_l (Van Loan at each).
@@ -211,28 +279,61 @@ class HeldInputDiscretization:
             arr.setflags(write=False)
             object.__setattr__(self, name, arr)
 
-    def transition(self, u: np.ndarray) -> np.ndarray:
-        """``Phi(u)`` for ``u`` of shape ``(..., p)``; returns ``(..., N, N)``."""
+    def transition(self, u: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+        """``Phi(u)``, the augmented transition over one step with ``u`` held ([IFAC2021, eq. 22, 26a-c]).
+
+        .. math::
+
+            \\Phi(u) = F_0 + \\begin{bmatrix} 0 & \\sum_j u_j F_1[j] \\\\ 0 & 0 \\end{bmatrix}
+
+        (``F0`` = :attr:`transition_constant`, ``F1`` = :attr:`transition_input`). The one
+        place ``Phi(u)`` is built: the estimators, the Gramian and the bounds call it.
+
+        Parameters
+        ----------
+        u : array_like (..., p)
+        out : ndarray (N, N), optional
+            For a single ``u``: a buffer whose entries outside the ``xi``-``x`` block already
+            hold ``F0`` (e.g. a copy of :attr:`transition_constant`); only that block is
+            written, in place (the per-step loops of the estimators).
+
+        Returns
+        -------
+        ndarray (..., N, N)
+            ``out`` when given.
+        """
         u = np.asarray(u, dtype=float)
-        k = self.immersion.n_aux
-        out = np.broadcast_to(self.transition_constant, u.shape[:-1] + self.transition_constant.shape).copy()
-        out[..., :k, k:] += np.tensordot(u, self.transition_input, axes=(-1, 0))
+        k, n, p = self.immersion.n_aux, self.immersion.system.n, self.immersion.system.p
+        F0 = self.transition_constant
+        if out is None:
+            out = np.broadcast_to(F0, u.shape[:-1] + F0.shape).copy()
+        # sum_j u_j F1[j] as one matrix product (what np.tensordot(u, F1, axes=(-1, 0)) forms)
+        coupling = np.dot(_rows(u, p), self.transition_input.reshape(p, k * n))
+        out[..., :k, k:] = F0[:k, k:] + coupling.reshape(u.shape[:-1] + (k, n))
         return out
 
     def input_term(self, u: np.ndarray) -> np.ndarray:
-        """``g(u) = int_0^dt Phi_s(u) ds B u`` (exact, quadratic in ``u``); returns ``(..., N)``."""
+        """``g(u) = int_0^dt Phi_s(u) ds B u`` (exact, quadratic in ``u``); returns ``(..., N)``.
+
+        ``g(u) = (sum_j u_j G2[j] u, G0 u)`` with ``G2`` = :attr:`input_quadratic` and
+        ``G0`` = :attr:`input_linear`.
+        """
         u = np.asarray(u, dtype=float)
-        aux = np.einsum("...j,jal,...l->...a", u, self.input_quadratic, u)
+        k, p = self.immersion.n_aux, self.immersion.system.p
+        Gu = np.dot(_rows(u, p), self.input_quadratic.reshape(p, k * p)).reshape(u.shape[:-1] + (k, p))
+        if u.ndim == 1:
+            return np.concatenate([Gu @ u, self.input_linear @ u])
+        aux = np.einsum("...al,...l->...a", Gu, u)
         return np.concatenate([aux, u @ self.input_linear.T], axis=-1)
 
     def process_noise(self, u: np.ndarray) -> np.ndarray:
-        """``Q_d(u)`` (see the module docstring); returns ``(..., N, N)``."""
+        """``Q_d(u) = Q0 + sum_j u_j Q1[j] + sum_{j,l} u_j u_l Q2[j, l]`` (module docstring); returns ``(..., N, N)``."""
         u = np.asarray(u, dtype=float)
-        return (
-            self.noise_constant
-            + np.tensordot(u, self.noise_linear, axes=(-1, 0))
-            + np.einsum("...j,...l,jlab->...ab", u, u, self.noise_quadratic)
-        )
+        p, N = self.immersion.system.p, self.immersion.dim
+        uu = _rows((u[..., :, None] * u[..., None, :]).reshape(u.shape[:-1] + (p * p,)), p * p)
+        lin = np.dot(_rows(u, p), self.noise_linear.reshape(p, N * N)).reshape(u.shape[:-1] + (N, N))
+        quad = np.dot(uu, self.noise_quadratic.reshape(p * p, N * N)).reshape(u.shape[:-1] + (N, N))
+        return self.noise_constant + lin + quad
 
     def predict(self, z: np.ndarray, u: np.ndarray) -> np.ndarray:
         """Exact ``z(t + dt)`` from ``z(t)`` under the held input ``u`` (batched)."""

@@ -421,14 +421,9 @@ class AugmentedObserver(Estimator, Gated, Immersed):
         if self._kernel is not None:
             self._kpredict(u, *self._kops)
             return
-        k = self._k
-        Phi = self._Phi
-        Phi[:k, k:] = self._F0[:k, k:] + np.tensordot(u, self._F1, axes=(0, 0))
-        z = Phi @ self._z
-        z[:k] += np.tensordot(u, self._G2, axes=(0, 0)) @ u
-        z[k:] += self._G0 @ u
-        self._z[...] = z
-        Q = self._Q0 + np.tensordot(u, self._Q1, axes=(0, 0)) + np.tensordot(np.outer(u, u), self._Q2, axes=((0, 1), (0, 1)))
-        P = self._growth * (Phi @ self._P @ Phi.T) + Q
+        m = self.model
+        Phi = m.transition(u, out=self._Phi)
+        self._z[...] = Phi @ self._z + m.input_term(u)
+        P = self._growth * (Phi @ self._P @ Phi.T) + m.process_noise(u)
         self._P[...] = 0.5 * (P + P.T)
         self._stats[3] = np.trace(self._P)

@@ -67,9 +67,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-import scipy.linalg as sla
 
-from quadobs.core.held_input import as_covariance, van_loan
+from quadobs.core.held_input import as_covariance, held_input_step, van_loan
 from quadobs.errors import QuadobsError, as_array, as_finite_scalar
 from quadobs.estimators.base import Estimator, Gated
 from quadobs.core.system import QuadraticSystem
@@ -91,6 +90,14 @@ __all__ = [
 @dataclass(frozen=True, eq=False)
 class HeldInputModel:
     """Exact one-step map ``x+ = F x + G u + w``, ``w ~ N(0, Q)``, of ``x' = A x + B u`` with ``u`` held.
+
+    The original state's counterpart of the augmented
+    :class:`~quadobs.core.held_input.HeldInputDiscretization`: ``(F, G)`` from
+    :func:`~quadobs.core.held_input.held_input_step` and ``Q_V`` from
+    :func:`~quadobs.core.held_input.van_loan`, the same maths in one place; this class only adds
+    the measured-input noise ``G Sigma_u G^T`` of the Kalman baselines and the PCRB.
+    For the double integrator ``F = [[I, dt I], [0, I]]``, ``G = [dt^2/2 I; dt I]`` and
+    ``V = blockdiag(0, sigma^2 I)`` gives ``Q_V = sigma^2 [[dt^3/3, dt^2/2], [dt^2/2, dt]] (x) I``.
 
     Parameters
     ----------
@@ -129,11 +136,7 @@ class HeldInputModel:
         n, p = self.system.n, self.system.p
         V = as_covariance("V", self.V, n, definite=False)
         Su = as_covariance("input_covariance", self.input_covariance, p, definite=False)
-        big = np.zeros((n + p, n + p))
-        big[:n, :n] = self.system.A
-        big[:n, n:] = self.system.B
-        E = sla.expm(big * dt)
-        F, G = E[:n, :n].copy(), E[:n, n:].copy()
+        F, G = held_input_step(self.system.A, self.system.B, dt)
         Q = van_loan(self.system.A, V, dt)[1] if V.any() else np.zeros((n, n))
         Q = Q + G @ Su @ G.T
         Q = 0.5 * (Q + Q.T)

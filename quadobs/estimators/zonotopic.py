@@ -37,6 +37,7 @@ import numpy as np
 
 from quadobs.errors import QuadobsError, as_array
 from quadobs.sets.zonotope import IntervalMatrix, Zonotope, reduce_generators
+from quadobs.sets.zonotope import segment_gain as zonotope_segment_gain
 
 __all__ = ["GAINS", "ZonotopicEstimator", "segment_gain", "volume_gain", "volume_gain_terms"]
 
@@ -44,14 +45,10 @@ __all__ = ["GAINS", "ZonotopicEstimator", "segment_gain", "volume_gain", "volume
 def segment_gain(Z: Zonotope, c: np.ndarray, phi: float) -> np.ndarray:
     """Segment (F-radius) minimisation: ``argmin_lambda ||H(lambda)||_F^2`` of Property 6's family.
 
-    ``d/dlambda [||(I - lambda c^T) H||_F^2 + phi^2 ||lambda||^2] = -2 (I - lambda c^T) H H^T c
-    + 2 phi^2 lambda = 0`` gives ``lambda = H H^T c / (c^T H H^T c + phi^2)``.
+    ``lambda = H H^T c / (c^T H H^T c + phi^2)``: :func:`quadobs.sets.zonotope.segment_gain`
+    on the generators of ``Z``.
     """
-    Hc = Z.generators @ (Z.generators.T @ c)
-    den = float(c @ Hc) + phi * phi
-    if den <= 0.0:
-        return np.zeros_like(c)
-    return Hc / den
+    return zonotope_segment_gain(Z.generators, c, phi)
 
 
 def volume_gain_terms(H: np.ndarray, c: np.ndarray) -> tuple[float, np.ndarray]:

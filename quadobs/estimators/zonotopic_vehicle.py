@@ -50,7 +50,7 @@ from quadobs.core.held_input import HeldInputDiscretization
 from quadobs.errors import QuadobsError, as_array
 from quadobs.core.immersion import Immersion
 from quadobs.estimators.base import Estimator, Immersed, SetValued
-from quadobs.sets.zonotope import Zonotope, reduce_generators
+from quadobs.sets.zonotope import Zonotope, reduce_generators, strip_update
 
 __all__ = ["ROUNDING_MARGIN", "ZonotopicAugmentedEstimator", "lift_box", "range_strip"]
 
@@ -179,9 +179,6 @@ class ZonotopicAugmentedEstimator(Estimator, SetValued, Immersed):
         self._G2s = np.transpose(m.input_quadratic, (1, 0, 2)) + np.transpose(m.input_quadratic, (1, 2, 0))
         self._G2abs = np.abs(m.input_quadratic).sum(axis=(0, 2))
         self._Phi = self._F0.copy()
-        # the contractions with u as the matrix products np.tensordot(u, ., axes=(0, 0)) forms
-        self._F1r = np.ascontiguousarray(self._F1.reshape(p, -1))
-        self._G2r = np.ascontiguousarray(self._G2.reshape(p, -1))
         self.zonotope = lift_box(immersion, x0, radius)
         self.corrections = 0
 
@@ -226,17 +223,7 @@ class ZonotopicAugmentedEstimator(Estimator, SetValued, Immersed):
         p, H = Z.center, Z.generators
         for h in present:
             yc, phi = range_strip(float(y[h]), float(self.offsets[h]), float(self.output_bounds[h]))
-            c = self.C[h]
-            Hc = H.T @ c
-            den = float(Hc @ Hc) + phi * phi
-            lam = H @ Hc / den if den > 0 else np.zeros_like(c)
-            p = p + lam * (yc - c @ p)
-            # [H - lam Hc^T, phi lam], a new contiguous array (the products above are sensitive to the layout)
-            m = H.shape[1]
-            Hn = np.empty((H.shape[0], m + 1))
-            np.subtract(H, np.outer(lam, Hc), out=Hn[:, :m])
-            np.multiply(phi, lam, out=Hn[:, m])
-            H = Hn
+            p, H = strip_update(p, H, self.C[h], yc, phi)  # segment gain; new contiguous arrays
             self.corrections += 1
         p.setflags(write=False)
         H.setflags(write=False)
@@ -245,15 +232,11 @@ class ZonotopicAugmentedEstimator(Estimator, SetValued, Immersed):
     def predict(self, u) -> None:
         """Exact held-input step of the set, plus the input-error and rounding terms (module docstring)."""
         u = self._input(u)
-        k, n, N = self._k, self._n, self._N
+        k, N = self._k, self._N
         Z = self.zonotope
         pz, H = Z.center, Z.generators
-        Phi = self._Phi
-        u1 = u.reshape(1, -1)
-        Phi[:k, k:] = self._F0[:k, k:] + np.dot(u1, self._F1r).reshape(k, n)
-        center = Phi @ pz
-        center[:k] += np.dot(u1, self._G2r).reshape(self._G2.shape[1:]) @ u
-        center[k:] += self._G0 @ u
+        Phi = self.model.transition(u, out=self._Phi)
+        center = Phi @ pz + self.model.input_term(u)
         gens = [Phi @ H]
         ubar = self.input_bound * (1.0 + ROUNDING_MARGIN) + ROUNDING_MARGIN * (1.0 + np.abs(u))
         box = np.zeros(N)

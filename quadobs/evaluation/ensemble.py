@@ -6,7 +6,8 @@ as a campaign (:mod:`quadobs.studies.campaign`) collects them, and return plain 
 Errors
     ``RMSE(t) = sqrt(mean_r |e_r(t)|^2)`` over the runs, for position and (ground)
     velocity; percentiles of ``|e_r(t)|`` for bands; the final error; the convergence time
-    of a run (the time from which its position error stays below a threshold) and
+    of a run (the time from which its position error stays below a threshold, NaN if it
+    does not end below it: the convention of :mod:`quadobs.evaluation.convergence`) and
     whether it converged (final error below the threshold).
 
 Consistency (Bar-Shalom, Li and Kirubarajan 2001, section 5.4)
@@ -46,6 +47,7 @@ from scipy import stats
 
 from quadobs.core.held_input import as_covariance
 from quadobs.errors import QuadobsError, as_array, as_finite_scalar
+from quadobs.evaluation.convergence import convergence_times
 
 __all__ = [
     "Ensemble",
@@ -89,35 +91,6 @@ def nees(errors: np.ndarray, covariances: np.ndarray) -> np.ndarray:
                 except np.linalg.LinAlgError:
                     pass
             out[ok] = vals
-    return out
-
-
-def convergence_times(times: np.ndarray, errors: np.ndarray, threshold: float) -> np.ndarray:
-    """Per run, the first sample time from which ``errors`` stays below ``threshold``.
-
-    Parameters
-    ----------
-    times : (T,)
-    errors : (R, T)
-        Error norms; NaN counts as not below.
-    threshold : float
-
-    Returns
-    -------
-    ndarray (R,)
-        The time (``times[0]`` if always below), NaN if the last sample is not below.
-    """
-    t = as_array("times", times, (None,))
-    err = np.asarray(errors, dtype=float)
-    if err.ndim != 2 or err.shape[1] != t.shape[0]:
-        raise QuadobsError(f"errors: expected shape (runs, {t.shape[0]}), got {err.shape}")
-    below = err < threshold
-    out = np.full(err.shape[0], np.nan)
-    for r in range(err.shape[0]):
-        if not below[r, -1]:
-            continue
-        above = np.flatnonzero(~below[r])
-        out[r] = t[0] if above.size == 0 else t[above[-1] + 1]
     return out
 
 

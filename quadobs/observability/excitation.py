@@ -52,6 +52,7 @@ from quadobs.observability.conditions import (
 )
 
 __all__ = [
+    "HeldInputSignal",
     "HeldInput",
     "Proposition4",
     "proposition4",
@@ -77,8 +78,13 @@ MAX_FD_ORDER = 2
 
 
 @dataclass(frozen=True, eq=False)
-class HeldInput:
-    """An input held over consecutive steps: ``u(t) = values[k]`` on ``[t0 + k h, t0 + (k + 1) h)``.
+class HeldInputSignal:
+    """An input *signal* held over consecutive steps: ``u(t) = values[k]`` on ``[t0 + k h, t0 + (k + 1) h)``.
+
+    The data the excitation report reads (samples, and derivatives for Propositions 5-8), not
+    a model: the system's exact step under such an input is
+    :class:`~quadobs.core.held_input.HeldInputDiscretization` (augmented state) or
+    :class:`~quadobs.estimators.kalman.HeldInputModel` (original state).
 
     Parameters
     ----------
@@ -156,6 +162,10 @@ class HeldInput:
 
 
 
+
+
+#: The former name of :class:`HeldInputSignal`.
+HeldInput = HeldInputSignal
 
 
 # --------------------------------------------------------------------------------------
@@ -508,7 +518,7 @@ def _weakest(vec: np.ndarray, immersion: Immersion, names: list[str] | None) -> 
 
 def excitation_report(
     immersion: Immersion,
-    u: HeldInput,
+    u: HeldInputSignal,
     window: float,
     *,
     stride: float | None = None,
@@ -524,7 +534,7 @@ def excitation_report(
     ----------
     immersion : Immersion
         The Gramian is taken in this immersion's coordinates (the observer's).
-    u : HeldInput
+    u : HeldInputSignal
     window : float
         ``delta`` (s): a multiple of ``u.dt``, at most the input's duration.
     stride : float, optional
@@ -539,8 +549,8 @@ def excitation_report(
     rtol : float
         Relative zero test of the sufficient conditions (:mod:`quadobs.observability.conditions`).
     """
-    if not isinstance(u, HeldInput):
-        raise QuadobsError(f"u: expected a HeldInput, got {type(u).__name__}")
+    if not isinstance(u, HeldInputSignal):
+        raise QuadobsError(f"u: expected a HeldInputSignal, got {type(u).__name__}")
     h = u.dt
     window = as_finite_scalar("window", window, positive=True)
     L = int(round(window / h))

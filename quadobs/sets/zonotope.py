@@ -10,7 +10,9 @@ A zonotope ``Z = p (+) H B^m = {p + H z : ||z||_inf <= 1}`` is stored as its cen
   or a callable);
 * Properties 4 and 5: :func:`interval_zonotope` (``p (+) [M] B^m``) and
   :func:`interval_image` (``[A] Z``, the outer approximation at the end of section 4.1);
-* Property 6: :meth:`Zonotope.strip_intersection` (the family ``Z^(lambda)``);
+* Property 6: :meth:`Zonotope.strip_intersection` (the family ``Z^(lambda)``), on raw arrays
+  :func:`strip_update` (the one implementation, used by every zonotopic estimator), with the
+  segment (F-radius) gain :func:`segment_gain`;
 * sizes: :meth:`~Zonotope.interval_hull`, :meth:`~Zonotope.p_radius`,
   :meth:`~Zonotope.f_radius`, :meth:`~Zonotope.volume`, :meth:`~Zonotope.support`;
 * membership: :meth:`~Zonotope.contains` (half-spaces or a linear program),
@@ -41,6 +43,8 @@ __all__ = [
     "interval_zonotope",
     "reduce_generators",
     "row_sum_diag",
+    "segment_gain",
+    "strip_update",
 ]
 
 #: Largest number of generator subsets a combinatorial method may enumerate.
@@ -190,6 +194,83 @@ def reduce_generators(H: np.ndarray, max_generators: int, method: str | Callable
 # --------------------------------------------------------------------------------------
 
 
+def segment_gain(H: np.ndarray, c: np.ndarray, phi: float, Hc: np.ndarray | None = None) -> np.ndarray:
+    """Segment (F-radius) minimisation: ``argmin_lambda ||H(lambda)||_F^2`` over Property 6's family.
+
+    For ``H(lambda) = [(I - lambda c^T) H, phi lambda]``,
+    ``d/dlambda ||H(lambda)||_F^2 = -2 (I - lambda c^T) H H^T c + 2 phi^2 lambda = 0`` gives
+
+    .. math::
+
+        \\lambda = \\frac{H g}{g^\\top g + \\phi^2}, \\qquad g = H^\\top c
+
+    (``0`` when the denominator is not positive: a degenerate set and an exact output).
+
+    Parameters
+    ----------
+    H : ndarray (n, m)
+        Generators of the set.
+    c : ndarray (n,)
+        Normal of the strip ``|c^T x - y| <= phi``.
+    phi : float
+        Half-width of the strip.
+    Hc : ndarray (m,), optional
+        ``H^T c`` when already at hand.
+
+    Returns
+    -------
+    ndarray (n,)
+
+    Examples
+    --------
+    >>> segment_gain(np.eye(2), np.array([1.0, 0.0]), 1.0).tolist()
+    [0.5, 0.0]
+    """
+    g = H.T @ c if Hc is None else Hc
+    den = float(g @ g) + phi * phi
+    return H @ g / den if den > 0 else np.zeros_like(c)
+
+
+def strip_update(
+    p: np.ndarray, H: np.ndarray, c: np.ndarray, y: float, phi: float, lam: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """Property 6 on raw arrays: a zonotope containing ``(p (+) H B^m) ∩ {x : |c^T x - y| <= phi}``.
+
+    .. math::
+
+        p^{(\\lambda)} = p + \\lambda (y - c^\\top p), \\qquad
+        H^{(\\lambda)} = [(I - \\lambda c^\\top) H, \\ \\phi \\lambda],
+
+    valid for any ``lambda (n,)`` ([LE2013, Property 6]). The one implementation of the strip
+    intersection: :meth:`Zonotope.strip_intersection` (validated) and the estimators' loops
+    (unvalidated, float64 arrays of matching shapes) call it.
+
+    Parameters
+    ----------
+    p : ndarray (n,)
+    H : ndarray (n, m)
+    c : ndarray (n,)
+    y, phi : float
+        Centre and half-width (``phi >= 0``) of the strip.
+    lam : ndarray (n,), optional
+        The gain; ``None``: :func:`segment_gain`.
+
+    Returns
+    -------
+    (ndarray (n,), ndarray (n, m + 1))
+        New arrays (contiguous): the centre and generators.
+    """
+    Hc = H.T @ c
+    if lam is None:
+        lam = segment_gain(H, c, phi, Hc)
+    p_new = p + lam * (y - c @ p)
+    m = H.shape[1]
+    H_new = np.empty((H.shape[0], m + 1))
+    np.subtract(H, np.outer(lam, Hc), out=H_new[:, :m])
+    np.multiply(phi, lam, out=H_new[:, m])
+    return p_new, H_new
+
+
 @dataclass(frozen=True, eq=False)
 class Zonotope:
     """``Z = p (+) H B^m`` (section 2): centre ``center (n,)``, generators ``generators (n, m)``.
@@ -283,21 +364,18 @@ class Zonotope:
 
     # -- Property 6 -------------------------------------------------------------------
 
-    def strip_intersection(self, c, y: float, phi: float, lam) -> "Zonotope":
+    def strip_intersection(self, c, y: float, phi: float, lam=None) -> "Zonotope":
         """Property 6: ``Z ∩ {x : |c^T x - y| <= phi} ⊆ p^(lam) (+) [(I - lam c^T) H, phi lam] B``.
 
-        ``p^(lam) = p + lam (y - c^T p)``; valid for any ``lam (n,)``.
+        ``p^(lam) = p + lam (y - c^T p)``; valid for any ``lam (n,)``; ``None``: the segment
+        gain (:func:`segment_gain`). Computed by :func:`strip_update`.
         """
         c = as_array("c", c, (self.dim,))
-        lam = as_array("lam", lam, (self.dim,))
+        if lam is not None:
+            lam = as_array("lam", lam, (self.dim,))
         if not phi >= 0:
             raise QuadobsError(f"phi: the strip half-width must be non-negative, got {phi}")
-        p, H = self.center, self.generators
-        p_new = p + lam * (y - c @ p)
-        H_new = np.empty((self.dim, H.shape[1] + 1))
-        H_new[:, :-1] = H - np.outer(lam, c @ H)
-        H_new[:, -1] = phi * lam
-        return Zonotope(p_new, H_new)
+        return Zonotope(*strip_update(self.center, self.generators, c, float(y), float(phi), lam))
 
     # -- sizes ------------------------------------------------------------------------
 

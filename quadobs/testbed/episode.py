@@ -38,7 +38,7 @@ import numpy as np
 
 from quadobs.errors import QuadobsError, check_writable, deferred_interrupts
 from quadobs.testbed.registry import build_estimators, default_estimators
-from quadobs.evaluation.convergence import ConvergenceTracker, state_errors
+from quadobs.evaluation.convergence import ConvergenceTracker, json_time, state_errors
 from quadobs.estimators.base import Estimator, covariance_trace as _covariance_trace
 from quadobs.testbed.scenario import Scenario
 from quadobs.testbed.sensors import SensorModel, initial_guess, spawn_streams
@@ -494,7 +494,7 @@ def _summarise(scenario, ests, names, trackers, last_errors, completed, wall, se
     per = {}
     for est in ests:
         e = last_errors.get(est.name)
-        t1, t01 = (None if t is None else round(t, 9) for t in trackers[est.name].times())
+        t1, t01 = (json_time(t) for t in trackers[est.name].times())
         entry = {
             "final_position_error": float(np.linalg.norm(e["position"])) if e else None,
             "final_velocity_error": float(np.linalg.norm(e["velocity"])) if e else None,

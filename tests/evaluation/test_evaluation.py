@@ -250,3 +250,26 @@ def test_immersion_bound_lies_between_the_pcrb_and_the_prior():
     data = sc.to_dict()
     data["noise"]["accel_std"] = 0.1
     assert immersion_bound(parse_scenario(data)) is None
+
+
+def test_one_convergence_convention_streamed_and_batched(rng):
+    """ConvergenceTracker (one episode) and convergence_times (runs) agree; NaN means not converged."""
+    from quadobs.evaluation.convergence import ConvergenceTracker, json_time
+
+    t = np.arange(30) * 0.1
+    err = rng.uniform(0, 2, (40, 30)) * np.linspace(1, 0, 30) ** rng.integers(0, 3, (40, 1))
+    err[rng.random(err.shape) < 0.03] = np.nan
+    batch = convergence_times(t, err, 0.5)
+    for r in range(err.shape[0]):
+        tr = ConvergenceTracker((0.5,))
+        for i in range(t.size):
+            tr.update(t[i], err[r, i])
+        (streamed,) = tr.times()
+        np.testing.assert_array_equal(streamed, batch[r])
+        # the rule by hand
+        bad = np.flatnonzero(~(err[r] < 0.5))
+        expected = np.nan if bad.size and bad[-1] == t.size - 1 else (t[0] if not bad.size else t[bad[-1] + 1])
+        np.testing.assert_array_equal(batch[r], expected)
+    assert np.isnan(batch).any() and np.isfinite(batch).any()
+    assert np.isnan(ConvergenceTracker((1.0,)).times()[0])  # nothing seen: not converged
+    assert json_time(np.nan) is None and json_time(0.1 + 0.2) == 0.3 and json_time(2.0) == 2.0

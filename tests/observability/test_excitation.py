@@ -503,3 +503,13 @@ def test_cli_excitation_bad_window(capsys):
 
     assert main(["excitation", "ifac2021", "--window", "0.005"]) == 2
     assert "window" in capsys.readouterr().err
+
+
+def test_held_input_signal_keeps_its_former_name():
+    from quadobs.observability.excitation import HeldInputSignal
+
+    assert HeldInput is HeldInputSignal
+    u = HeldInputSignal(np.array([[0.0], [1.0], [4.0]]), 0.5, t0=1.0)
+    np.testing.assert_allclose(u.midpoints, [1.25, 1.75, 2.25])
+    with pytest.raises(QuadobsError, match="HeldInputSignal"):
+        excitation_report(immerse(vehicle_system(1, np.zeros((1, 1)))), u.values, 1.0)

@@ -249,3 +249,32 @@ def test_bad_input_is_refused():
     Z = Zonotope(np.zeros(2), np.eye(2))
     assert Z.generators.flags.writeable is False
     assert Zonotope(np.zeros(2), np.zeros((2, 0))).order == 0
+
+
+@pytest.mark.parametrize("n", [2, 4])
+def test_strip_update_is_property6_and_the_segment_gain_by_default(rng, n):
+    """strip_update (raw arrays) is Zonotope.strip_intersection bit for bit; lam=None is the segment gain."""
+    from quadobs.sets.zonotope import segment_gain as raw_segment_gain
+    from quadobs.sets.zonotope import strip_update
+
+    Z = random_zonotope(rng, n, 6)
+    c, y, phi = rng.standard_normal(n), 0.2, 0.3
+    lam = rng.standard_normal(n)
+    p_new, H_new = strip_update(Z.center, Z.generators, c, y, phi, lam)
+    Zl = Z.strip_intersection(c, y, phi, lam)
+    assert np.array_equal(p_new, Zl.center) and np.array_equal(H_new, Zl.generators)
+    # closed form of Property 6
+    np.testing.assert_allclose(p_new, Z.center + lam * (y - c @ Z.center), rtol=1e-14)
+    np.testing.assert_allclose(H_new, np.column_stack([(np.eye(n) - np.outer(lam, c)) @ Z.generators, phi * lam]), rtol=1e-12, atol=1e-14)
+    # default gain: H g / (g^T g + phi^2), g = H^T c, the same as the estimators' segment gain
+    seg = raw_segment_gain(Z.generators, c, phi)
+    g = Z.generators.T @ c
+    np.testing.assert_allclose(seg, Z.generators @ g / (g @ g + phi**2), rtol=1e-14)
+    np.testing.assert_allclose(segment_gain(Z, c, phi), seg, rtol=0, atol=0)
+    p_d, H_d = strip_update(Z.center, Z.generators, c, y, phi)
+    p_s, H_s = strip_update(Z.center, Z.generators, c, y, phi, seg)
+    assert np.array_equal(p_d, p_s) and np.array_equal(H_d, H_s)
+    assert Z.strip_intersection(c, y, phi).f_radius() == Z.strip_intersection(c, y, phi, seg).f_radius()
+    # a degenerate set with an exact output: zero gain, the set unchanged but for a zero generator
+    Zp = Zonotope(np.zeros(n), np.zeros((n, 1)))
+    assert np.array_equal(raw_segment_gain(Zp.generators, c, 0.0), np.zeros(n))

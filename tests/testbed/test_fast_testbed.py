@@ -130,7 +130,7 @@ def test_tracker_update_many_equals_update():
             a.update(t[i], v[i])
         for chunk in np.array_split(np.arange(40), 3):
             b.update_many(t[chunk], v[chunk])
-        assert a.times() == b.times()
+        np.testing.assert_array_equal(a.times(), b.times())  # NaN (not converged) equals NaN
 
 
 def test_recording_survives_sends_that_do_not_wait(tmp_path):
