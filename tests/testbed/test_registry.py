@@ -54,15 +54,15 @@ def not_an_estimator(scenario, x0, name):
 
 @pytest.fixture
 def tiny(tmp_path, monkeypatch):
-    """The package ``tinyest`` with entry points ``tiny``, ``wrong`` (returns a string) and
-    ``broken`` (a module that does not exist), on ``sys.path`` and ``PYTHONPATH``."""
+    """The package ``tinyest`` with entry points ``tiny``, ``tinywrong`` (returns a string) and
+    ``tinybroken`` (a module that does not exist), on ``sys.path`` and ``PYTHONPATH``."""
     (tmp_path / "tinyest").mkdir()
     (tmp_path / "tinyest" / "__init__.py").write_text(TINY)
     info = tmp_path / "tinyest-0.1.dist-info"
     info.mkdir()
     (info / "METADATA").write_text("Metadata-Version: 2.1\nName: tinyest\nVersion: 0.1\n")
     (info / "entry_points.txt").write_text(
-        "[quadobs.estimators]\ntiny = tinyest:factory\nwrong = tinyest:not_an_estimator\nbroken = nosuchmodule:factory\n"
+        "[quadobs.estimators]\ntiny = tinyest:factory\ntinywrong = tinyest:not_an_estimator\ntinybroken = nosuchmodule:factory\n"
     )
     monkeypatch.syspath_prepend(str(tmp_path))
     monkeypatch.setenv("PYTHONPATH", os.pathsep.join([str(tmp_path), os.environ.get("PYTHONPATH", "")]).rstrip(os.pathsep))
@@ -81,7 +81,7 @@ def test_the_builtin_table_is_the_one_declared_in_pyproject():
 def test_entry_points_are_listed_sorted_without_importing(tiny):
     names = registry.available_estimators()
     assert names == sorted(names)
-    assert {"augmented", "ekf", "ukf", "zonotope", "tiny", "wrong", "broken"} <= set(names)
+    assert {"augmented", "ekf", "ukf", "zonotope", "tiny", "tinywrong", "tinybroken"} <= set(names)
     assert "tinyest" not in sys.modules and "nosuchmodule" not in sys.modules
     beacons = load_scenario("beacons")
     assert registry.available_estimators(beacons)[-1] == "augmented_1beacon"
@@ -97,10 +97,10 @@ def test_a_plugin_estimator_is_built_by_name(tiny):
 
 def test_plugin_errors_are_one_line_and_name_the_entry_point(tiny):
     scenario = load_scenario("ifac2021", duration=0.1)
-    with pytest.raises(QuadobsError, match=r"^estimators: the factory of 'wrong' \(tinyest:not_an_estimator\) returned str, not"):
-        registry.build_estimators(scenario, ["wrong"], np.zeros(6))
-    with pytest.raises(QuadobsError, match=r"^estimators: entry point 'broken' \(nosuchmodule:factory\) cannot be loaded: ModuleNotFoundError") as info:
-        registry.build_estimators(scenario, ["augmented", "broken"], np.zeros(6))
+    with pytest.raises(QuadobsError, match=r"^estimators: the factory of 'tinywrong' \(tinyest:not_an_estimator\) returned str, not"):
+        registry.build_estimators(scenario, ["tinywrong"], np.zeros(6))
+    with pytest.raises(QuadobsError, match=r"^estimators: entry point 'tinybroken' \(nosuchmodule:factory\) cannot be loaded: ModuleNotFoundError") as info:
+        registry.build_estimators(scenario, ["augmented", "tinybroken"], np.zeros(6))
     assert "\n" not in str(info.value)
     # the broken one does not stop the others
     assert len(registry.build_estimators(scenario, ["augmented", "tiny"], np.zeros(6))) == 2
