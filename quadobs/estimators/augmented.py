@@ -1,4 +1,4 @@
-"""The Kalman-type observer of Theorem 3 ([IFAC2021]) on the augmented system.
+"""The Kalman-type observer of Theorem 3 [IFAC2021, Thm. 3] on the augmented system.
 
 Theorem 3 (Besançon 2007) for ``z' = A(u) z + B u``, ``y = C z``:
 
@@ -26,12 +26,15 @@ and ``P`` in place.
 
 from __future__ import annotations
 
+import math
+import warnings
+
 import numpy as np
 
 from quadobs.core.held_input import HeldInputDiscretization, as_covariance
 from quadobs.errors import QuadobsError, as_array, as_finite_scalar
 from quadobs.core.immersion import Immersion
-from quadobs.estimators.base import Estimator, Gated, Immersed
+from quadobs.estimators.base import Estimator, Gated, Immersed, check_step
 
 __all__ = ["AugmentedObserver", "BACKENDS", "default_backend"]
 
@@ -61,6 +64,21 @@ def resolve_backend(backend: str) -> str:
         except ImportError as exc:
             raise QuadobsError(f"backend: 'numba' requested but Numba cannot be imported ({exc})") from None
     return backend
+
+
+def _no_inf(y: np.ndarray) -> bool:
+    """Whether ``y`` holds no infinity (NaN allowed); one dot product when every entry is finite."""
+    return math.isfinite(y.dot(y)) or not np.isinf(y).any()
+
+
+def _initial_covariance(P0, S0):
+    """``P0``, or its deprecated name ``S0`` (with a :class:`DeprecationWarning`); default 100."""
+    if S0 is None:
+        return 100.0 if P0 is None else P0
+    if P0 is not None:
+        raise QuadobsError("S0: give the initial covariance once, as P0 (S0 is its deprecated name)")
+    warnings.warn("AugmentedObserver(S0=...) is deprecated; use P0=...", DeprecationWarning, stacklevel=3)
+    return S0
 
 
 def _csr(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -145,8 +163,11 @@ class AugmentedObserver(Estimator, Gated, Immersed):
     W : float or array_like
         Continuous output-noise intensity (scalar times ``I_q``, diagonal, or ``(q, q)``),
         positive definite.
-    S0 : float or array_like
-        Initial covariance ``M_0`` (scalar times ``I_N``, diagonal, or ``(N, N)``).
+    P0 : float or array_like
+        Initial covariance ``M_0`` of the augmented estimate (scalar times ``I_N``, diagonal,
+        or ``(N, N)``); default ``100``. The scenario field is ``observer.S0``.
+    S0 : float or array_like, optional
+        Deprecated name of ``P0``.
     theta : float
         Forgetting factor (``theta >= 0``).
     x0 : array_like (n,), optional
@@ -167,7 +188,7 @@ class AugmentedObserver(Estimator, Gated, Immersed):
     ----------
     z : ndarray (N,)
         Augmented estimate, updated in place by :meth:`step` (copy it to keep a value);
-        :attr:`x_hat` is a view of its last ``n`` entries.
+        :attr:`x_hat` is a copy of its last ``n`` entries.
     P : ndarray (N, N)
         Its covariance, symmetric, updated in place.
     nis : float
@@ -192,7 +213,8 @@ class AugmentedObserver(Estimator, Gated, Immersed):
         *,
         V=1e-4,
         W=1.0,
-        S0=100.0,
+        P0=None,
+        S0=None,
         theta: float = 0.0,
         x0=None,
         z0=None,
@@ -223,7 +245,7 @@ class AugmentedObserver(Estimator, Gated, Immersed):
         else:
             z = immersion.lift(np.zeros(n) if x0 is None else as_array("x0", x0, (n,)))
         self._z = np.array(z, dtype=float)
-        self._P = np.array(as_covariance("S0", S0, N), dtype=float)
+        self._P = np.array(as_covariance("P0" if S0 is None else "S0", _initial_covariance(P0, S0), N), dtype=float)
         self.gate = None if gate is None else as_finite_scalar("gate", gate, positive=True)
         self._ushape, self._yshape, self._rshape = (immersion.system.p,), (q,), (n + 2,)
         self._C = immersion.output_matrix
@@ -341,27 +363,35 @@ class AugmentedObserver(Estimator, Gated, Immersed):
 
     @property
     def x_hat(self) -> np.ndarray:
-        """The estimate of ``x``: a view of ``z``, updated in place by :meth:`step`."""
-        return self._z[self._k :]
+        """The estimate of ``x`` ``(n,)``: a copy of the last ``n`` entries of ``z``."""
+        return self._z[self._k :].copy()
 
     @property
     def x_covariance(self) -> np.ndarray:
+        """The ``x`` block of ``P`` ``(n, n)`` (a copy)."""
         k = self._k
-        return self._P[k:, k:]
+        return self._P[k:, k:].copy()
 
     def step(self, u: np.ndarray, y: np.ndarray) -> None:
-        """Correct with ``y`` (output at the start of the step), then predict over the step with ``u`` held."""
+        """Correct with ``y`` (output at the start of the step), then predict over the step with ``u`` held.
+
+        A non-finite ``u``, an infinite ``y`` or a wrong shape raises :class:`QuadobsError`
+        and leaves the observer unchanged.
+        """
         kernel = self._kernel
+        try:  # float64 arrays of the right shapes, u finite and y without infinities, skip the copies
+            fast = (
+                u.dtype is _F64 and y.dtype is _F64 and u.shape == self._ushape and y.shape == self._yshape
+                and math.isfinite(u.dot(u)) and _no_inf(y)
+            )
+        except AttributeError:
+            fast = False
+        if not fast:
+            u, y = check_step(u, y, *self._ushape, *self._yshape)
         if kernel is None:
             self.correct(y)
             self.predict(u)
             return
-        try:
-            fast = u.dtype is _F64 and y.dtype is _F64 and u.shape == self._ushape and y.shape == self._yshape
-        except AttributeError:
-            fast = False
-        if not fast:
-            u, y = self._checked("u", u, self._ushape), self._checked("y", y, self._yshape)
         kernel(u, y, *self._kops)
 
     def step_and_record(self, u: np.ndarray, y: np.ndarray, out: np.ndarray) -> None:

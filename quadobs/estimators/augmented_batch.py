@@ -8,6 +8,10 @@ and advances them all with one call: the compiled kernel
 observer on each member in turn, sharing the model and the work buffers, so member ``b``
 evolves exactly as a single observer fed ``U[b]``, ``Y[b]`` would (the same operations in
 the same order). Without Numba each member is advanced by the NumPy reference.
+
+A batch is not an :class:`~quadobs.estimators.base.Estimator` (its operands and estimates
+carry a leading batch axis, ``U (B, p)``, ``x_hat (B, n)``); its estimates follow the same
+conventions (:attr:`BatchAugmentedObserver.x_hat` is a copy, never a live view).
 """
 
 from __future__ import annotations
@@ -133,14 +137,14 @@ class BatchAugmentedObserver:
 
     @property
     def x_hat(self) -> np.ndarray:
-        """``(B, n)`` estimates of ``x`` (a view of :attr:`Z`)."""
-        return self.Z[:, self._k :]
+        """``(B, n)`` estimates of ``x`` (a copy of the last ``n`` columns of :attr:`Z`)."""
+        return self.Z[:, self._k :].copy()
 
     @property
     def x_covariance(self) -> np.ndarray:
-        """``(B, n, n)`` covariances of :attr:`x_hat` (a view of :attr:`P`)."""
+        """``(B, n, n)`` covariances of :attr:`x_hat` (a copy of blocks of :attr:`P`)."""
         k = self._k
-        return self.P[:, k:, k:]
+        return self.P[:, k:, k:].copy()
 
     @property
     def nis(self) -> np.ndarray:

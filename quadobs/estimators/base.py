@@ -15,7 +15,17 @@ ability            what the estimator then provides
 =================  ===============================================================
 
 Conventions: ``u (p,)`` is the input held over the step, ``y (q,)`` the outputs sampled
-at its start with NaN where a sample is missing; vectors are ``(n,)``.
+at its start with NaN where a sample is missing; vectors are ``(n,)``. A step with a
+non-finite ``u``, an infinite ``y`` or a wrong shape is refused with
+:class:`~quadobs.errors.QuadobsError` before anything changes (:func:`check_step`).
+
+Constructors share one vocabulary, each keyword where the concept applies: ``x0`` (the
+initial estimate of the state, ``(n,)``), ``P0`` (the initial covariance of the estimator's
+own state: the augmented one for immersion-based observers), ``gate`` (NIS threshold),
+``dt`` (the physics step) and ``backend`` (``"auto"``, ``"numba"`` or ``"numpy"``).
+
+Estimators are made selectable by name through the package entry points of the group
+``quadobs.estimators`` (see :mod:`quadobs.testbed.registry`).
 """
 
 from __future__ import annotations
@@ -24,7 +34,9 @@ import abc
 
 import numpy as np
 
-__all__ = ["Estimator", "Gated", "SetValued", "Immersed", "Subset", "covariance_trace"]
+from quadobs.errors import as_array
+
+__all__ = ["Estimator", "Gated", "SetValued", "Immersed", "Subset", "check_step", "covariance_trace"]
 
 
 class Estimator(abc.ABC):
@@ -78,6 +90,37 @@ class Estimator(abc.ABC):
         out[n] = self.covariance_trace
         self.step(u, y)
         out[n + 1] = self.nis
+
+
+def check_step(u, y, p: int, q: int) -> tuple[np.ndarray, np.ndarray]:
+    """The operands of :meth:`Estimator.step` as float64 arrays, checked before any state changes.
+
+    Parameters
+    ----------
+    u : array_like (p,)
+        The input held over the step; every entry finite.
+    y : array_like (q,)
+        The outputs; NaN marks a missing sample, infinities are refused.
+    p, q : int
+        Input and output dimensions.
+
+    Returns
+    -------
+    u, y : ndarray (p,), ndarray (q,)
+        New arrays (the caller's are never kept).
+
+    Raises
+    ------
+    QuadobsError
+        Naming ``u`` or ``y`` and what is wrong with it.
+
+    Examples
+    --------
+    >>> u, y = check_step([0.0, 1.0], [float("nan")], 2, 1)
+    >>> u.shape, bool(np.isnan(y[0]))
+    ((2,), True)
+    """
+    return as_array("u", u, (p,)), as_array("y", y, (q,), allow_nan=True)
 
 
 def covariance_trace(est: Estimator) -> float:

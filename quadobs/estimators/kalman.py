@@ -59,7 +59,8 @@ Both filters store the normalised innovation squared ``nis = nu^T S^-1 nu`` of t
 last update (NaN when there was none) and its degrees of freedom :attr:`nis_dof` (the
 number of outputs used), and can reject an update whose NIS exceeds ``gate``.
 
-Scenario defaults (registered as ``"ekf"`` and ``"ukf"``): see :func:`baseline_settings`.
+Scenario defaults (the estimators ``"ekf"`` and ``"ukf"``): see
+:func:`quadobs.testbed.factories.baseline_settings`.
 """
 
 from __future__ import annotations
@@ -70,7 +71,7 @@ import numpy as np
 
 from quadobs.core.held_input import as_covariance, held_input_step, van_loan
 from quadobs.errors import QuadobsError, as_array, as_finite_scalar
-from quadobs.estimators.base import Estimator, Gated
+from quadobs.estimators.base import Estimator, Gated, check_step
 from quadobs.core.system import QuadraticSystem
 
 __all__ = [
@@ -271,15 +272,22 @@ class _GaussianFilter(Estimator, Gated):
 
     @property
     def x_hat(self) -> np.ndarray:
-        return self._x
+        """The estimate ``(n,)`` (a copy)."""
+        return self._x.copy()
 
     @property
     def x_covariance(self) -> np.ndarray:
+        """Its covariance ``(n, n)`` (a copy)."""
         self._settle()
-        return self._P
+        return self._P.copy()
 
     def step(self, u: np.ndarray, y: np.ndarray) -> None:
-        """Update with ``y`` (outputs at the start of the step), then predict over the step with ``u`` held."""
+        """Update with ``y`` (outputs at the start of the step), then predict over the step with ``u`` held.
+
+        A non-finite ``u``, an infinite ``y`` or a wrong shape raises :class:`QuadobsError`
+        and leaves the filter unchanged.
+        """
+        u, y = check_step(u, y, self._G.shape[1], self.q)
         self.correct(y)
         self.predict(u)
 
@@ -458,22 +466,3 @@ class UnscentedKalmanFilter(_GaussianFilter):
         self._x = x + K @ nu
         P = P - K @ S @ K.T
         self._P = 0.5 * (P + P.T)
-
-
-# --------------------------------------------------------------------------------------
-# Scenario settings and registration
-# --------------------------------------------------------------------------------------
-
-
-
-
-
-
-
-
-
-
-
-
-
-

@@ -1,4 +1,4 @@
-"""Zonotopic guaranteed state estimation (Algorithm 1 of [LE2013]).
+"""Zonotopic guaranteed state estimation [LE2013, Alg. 1].
 
 For ``x_{k+1} = A x_k + w_k``, ``y_k = C x_k + v_k`` with ``A in [A]``, ``w_k in W = F B^{n_w}``,
 ``|v_{k/i}| <= phi_i`` and ``x_0 in X_0``, :class:`ZonotopicEstimator` keeps a zonotope
@@ -36,6 +36,7 @@ from typing import Callable
 import numpy as np
 
 from quadobs.errors import QuadobsError, as_array
+from quadobs.estimators.base import Estimator, SetValued
 from quadobs.sets.zonotope import IntervalMatrix, Zonotope, reduce_generators
 from quadobs.sets.zonotope import segment_gain as zonotope_segment_gain
 
@@ -117,8 +118,11 @@ GAINS: dict[str, Callable[[Zonotope, np.ndarray, float], np.ndarray]] = {
 }
 
 
-class ZonotopicEstimator:
+class ZonotopicEstimator(Estimator, SetValued):
     """Algorithm 1: a zonotope guaranteed to contain the state of an uncertain linear system.
+
+    The system has no input: :meth:`step` takes ``(u, y)`` with an empty ``u`` (shape
+    ``(0,)``), as every :class:`~quadobs.estimators.base.Estimator`, or ``y`` alone.
 
     Parameters
     ----------
@@ -333,10 +337,17 @@ class ZonotopicEstimator:
         self._m = m
         self._Z = None
 
+    name = "zonotope-linear"
+
     @property
     def x_hat(self) -> np.ndarray:
-        """Centre of the current set."""
+        """Centre of the current set ``(n,)`` (read-only; a step makes a new set)."""
         return self.zonotope.center
+
+    @property
+    def bounds(self) -> np.ndarray:
+        """Interval hull of the current set ``(n, 2)``: guaranteed bounds of each state."""
+        return self.zonotope.interval_hull()
 
     def predict(self) -> Zonotope:
         """Step 1 of Algorithm 1: ``A X (+) W`` (outer approximation for an interval ``[A]``)."""
@@ -362,8 +373,16 @@ class ZonotopicEstimator:
         self.zonotope = Z.reduce(self.max_generators, self.reduction)
         return self.zonotope
 
-    def step(self, y) -> Zonotope:
-        """Predict to the next sample, then correct with its output ``y (n_y,)`` (a bad ``y`` changes nothing)."""
+    def step(self, u, y=None) -> Zonotope:
+        """Predict to the next sample, then correct with its output ``y (n_y,)`` (a bad ``y`` changes nothing).
+
+        Called as ``step(u, y)`` with ``u`` of shape ``(0,)`` (the system has no input), or as
+        ``step(y)``. Returns the new set.
+        """
+        if y is None:
+            y = u
+        elif np.shape(u) != (0,):
+            raise QuadobsError(f"u: the system has no input, expected shape (0,), got {np.shape(u)}")
         if self.backend == "numba":
             self._step_kernel(y)
         else:

@@ -4,8 +4,8 @@ The immersion (:mod:`quadobs.core.immersion`) turns ``x' = A x + B u``, ``y_h = 
 into ``z' = A(u) z + B u``, ``y = C z`` with ``z = (xi, x)``, and
 :class:`~quadobs.core.held_input.HeldInputDiscretization` gives its exact step under a held input,
 ``z_{k+1} = Phi(u) z_k + g(u)``, ``Phi(u) = F0 + sum_j u_j F1[j]`` (``F1`` in the ``xi``-``x``
-block), ``g(u) = (u^T G2_a u, G0 u)``. :class:`ZonotopicAugmentedEstimator` runs Algorithm 1 of
-[LE2013] on it, a zonotope ``Z_k`` in ``z``-space that contains the true
+block), ``g(u) = (u^T G2_a u, G0 u)``. :class:`ZonotopicAugmentedEstimator` runs [LE2013, Alg. 1]
+on it, a zonotope ``Z_k`` in ``z``-space that contains the true
 ``z_k = lift(x_k)`` whenever the noise bounds hold. Every source of error is bounded:
 
 Output noise (one strip per sampled output). A range ``rho~ = rho + n``, ``|n| <= nbar``, gives
@@ -49,7 +49,7 @@ import numpy as np
 from quadobs.core.held_input import HeldInputDiscretization
 from quadobs.errors import QuadobsError, as_array
 from quadobs.core.immersion import Immersion
-from quadobs.estimators.base import Estimator, Immersed, SetValued
+from quadobs.estimators.base import Estimator, Immersed, SetValued, check_step
 from quadobs.sets.zonotope import Zonotope, reduce_generators, strip_update
 
 __all__ = ["ROUNDING_MARGIN", "ZonotopicAugmentedEstimator", "lift_box", "range_strip"]
@@ -198,8 +198,12 @@ class ZonotopicAugmentedEstimator(Estimator, SetValued, Immersed):
         return bool(self.zonotope.contains(self.immersion.lift(x), tol=tol, method="lp"))
 
     def step(self, u, y) -> None:
-        """Intersect with the strips of the outputs present in ``y``, then predict over the step with ``u`` held."""
-        u = self._input(u)  # checked before the set changes
+        """Intersect with the strips of the outputs present in ``y``, then predict over the step with ``u`` held.
+
+        A non-finite ``u``, an infinite ``y`` or a wrong shape raises :class:`QuadobsError`
+        and leaves the set unchanged.
+        """
+        u, y = check_step(u, y, self._F1.shape[0], self.offsets.shape[0])  # before the set changes
         self.correct(y)
         self.predict(u)
 

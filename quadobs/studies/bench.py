@@ -147,7 +147,7 @@ def _observer_step_us(scenario, calls: int, repeats: int, backend: str) -> float
         from quadobs.estimators.augmented import AugmentedObserver
 
         obs = AugmentedObserver(
-            obs.immersion, scenario.dt, V=obs.model.V, W=obs.W, S0=obs.P.copy(), theta=obs.model.theta,
+            obs.immersion, scenario.dt, V=obs.model.V, W=obs.W, P0=obs.P.copy(), theta=obs.model.theta,
             sample_period=scenario.dt, gate=obs.gate, backend=backend,
         )
     times = []

@@ -13,12 +13,15 @@ Seeds
     executed, and ``quadobs run SCENARIO --seed seed_i`` replays run ``i`` alone.
 
 Execution
-    By default the runs go to a :class:`concurrent.futures.ProcessPoolExecutor` (the
-    platform's default start method: on Linux, ``fork``, so estimators registered by the
-    calling program are available to the runs); ``workers=0`` runs them one after the
-    other in the calling process. With ``scheduler=ADDRESS`` the same function is
+    By default the runs go to a :class:`concurrent.futures.ProcessPoolExecutor` (with the
+    platform's default start method, or ``start_method``); ``workers=0`` runs them one after
+    the other in the calling process. With ``scheduler=ADDRESS`` the same function is
     submitted to a Dask distributed cluster (``pip install 'quadobs[cluster]'``; the
-    workers must have quadobs installed). A run that raises is recorded as failed with
+    workers must have quadobs installed). Workers find estimators by name through the
+    entry points of the group ``quadobs.estimators`` (:mod:`quadobs.testbed.registry`), so
+    an estimator from another installed package runs everywhere; one registered at run
+    time with :func:`~quadobs.testbed.registry.register_estimator` reaches forked workers
+    only, and is refused up front for ``spawn``, ``forkserver`` and Dask. A run that raises is recorded as failed with
     its seed and error and the others go on; Ctrl-C stops the campaign and writes the
     statistics of the runs already finished.
 
@@ -45,7 +48,7 @@ from pathlib import Path
 import numpy as np
 
 from quadobs.errors import QuadobsError, as_finite_scalar
-from quadobs.testbed.registry import available_estimators, default_estimators
+from quadobs.testbed.registry import available_estimators, default_estimators, estimator_factory
 from quadobs.evaluation.ensemble import Ensemble, ensemble, nees, set_containment
 from quadobs.testbed.bounds import immersion_bound, scenario_crb
 from quadobs.testbed.scenario import Scenario, parse_scenario
@@ -163,6 +166,7 @@ def run_campaign(
     confidence: float = 0.95,
     progress: bool = False,
     record: bool = True,
+    start_method: str | None = None,
 ) -> CampaignResult:
     """Run ``runs`` seeded episodes of ``scenario`` and compute their statistics (see the module docstring).
 
@@ -191,6 +195,8 @@ def run_campaign(
         Progress bar on stderr.
     record : bool
         Write ``statistics.rrd`` (needs rerun).
+    start_method : {"fork", "spawn", "forkserver"}, optional
+        How local worker processes start (default: the platform's).
     """
     if isinstance(runs, bool) or not isinstance(runs, (int, np.integer)) or runs < 1:
         raise QuadobsError(f"runs: expected a positive integer, got {runs!r}")
@@ -201,6 +207,7 @@ def run_campaign(
             raise QuadobsError(f"estimators: unknown estimator {nm!r}; available: {', '.join(known)}")
     if len(set(names)) != len(names):
         raise QuadobsError(f"estimators: names must be distinct, got {names}")
+    _check_reach(scenario, names, scheduler, workers, start_method)
     if scheduler is not None and workers is not None:
         raise QuadobsError(
             "workers: applies to local processes; with a scheduler the cluster's workers run the campaign"
@@ -235,7 +242,7 @@ def run_campaign(
     linear = immersion_bound(scenario, every=k_every)
 
     wall0 = _time.perf_counter()
-    results, interrupted, backend = _execute(tasks, scheduler, workers, progress, scenario.name)
+    results, interrupted, backend = _execute(tasks, scheduler, workers, progress, scenario.name, start_method)
     wall = _time.perf_counter() - wall0
 
     ok = sorted((r for r in results if r["status"] == "ok"), key=lambda r: r["index"])
@@ -343,7 +350,31 @@ def _bound_summary(bound, sqrt_bound, sqrt_linear) -> dict:
     return out
 
 
-def _execute(tasks: list[dict], scheduler, workers, progress: bool, label: str) -> tuple[list[dict], bool, dict]:
+def _check_reach(scenario: Scenario, names: list[str], scheduler, workers, start_method) -> None:
+    """Refuse estimators registered at run time when the workers cannot see them (not forked)."""
+    import multiprocessing
+
+    methods = multiprocessing.get_all_start_methods()
+    if start_method is not None and start_method not in methods:
+        raise QuadobsError(f"start_method: expected one of {methods}, got {start_method!r}")
+    if workers == 0 and scheduler is None:
+        return
+    method = start_method or multiprocessing.get_start_method(allow_none=False)
+    if scheduler is None and method == "fork":
+        return
+    variants = dict(scenario.observer.variants)
+    for nm in names:
+        if nm not in variants and estimator_factory(nm, scenario)[1] == "runtime":
+            where = "Dask workers" if scheduler is not None else f"{method!r} workers"
+            raise QuadobsError(
+                f"estimators: {nm!r} is registered at run time, which {where} do not see; "
+                "declare it as an entry point of the group 'quadobs.estimators'"
+            )
+
+
+def _execute(
+    tasks: list[dict], scheduler, workers, progress: bool, label: str, start_method: str | None = None
+) -> tuple[list[dict], bool, dict]:
     """Run the tasks; returns the results (failures included), whether Ctrl-C stopped it, and the backend."""
     bar = None
     results: list[dict] = []
@@ -396,7 +427,10 @@ def _execute(tasks: list[dict], scheduler, workers, progress: bool, label: str) 
     if backend["kind"] == "processes":
         from concurrent.futures import ProcessPoolExecutor, as_completed
 
-        pool = ProcessPoolExecutor(max_workers=min(backend["workers"], len(tasks)))
+        import multiprocessing
+
+        context = multiprocessing.get_context(start_method) if start_method else None
+        pool = ProcessPoolExecutor(max_workers=min(backend["workers"], len(tasks)), mp_context=context)
         try:
             futures = {pool.submit(run_one, t): t for t in tasks}
             bar = make_bar()

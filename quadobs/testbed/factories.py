@@ -2,7 +2,9 @@
 
 The estimator classes (:mod:`quadobs.estimators`) know nothing of scenarios; these
 factories read a scenario's system, noise, sampling rates and tuning and build them.
-The registry (:mod:`quadobs.testbed.registry`) names them.
+The ``build_*`` functions are the built-in entry points of the group
+``quadobs.estimators`` (``factory(scenario, x0, name) -> Estimator``, declared in
+``pyproject.toml``); the registry (:mod:`quadobs.testbed.registry`) finds them by name.
 """
 
 from __future__ import annotations
@@ -41,13 +43,17 @@ def _matrix_subset(value, idx: tuple[int, ...]):
 class OutputSubset(Estimator, Gated, Immersed, Subset):
     """An augmented observer that reads some of the outputs only (``y[outputs]``): a scenario's variant."""
 
-    def __init__(self, inner: AugmentedObserver, outputs: tuple[int, ...], name: str) -> None:
+    def __init__(self, inner: AugmentedObserver, outputs: tuple[int, ...], name: str, *, q: int | None = None) -> None:
         self.inner = inner
         self.outputs = np.asarray(outputs, dtype=int)
         self.name = name
+        self.q = int(self.outputs.max()) + 1 if q is None else int(q)
 
     def step(self, u, y) -> None:
-        self.inner.step(u, np.asarray(y)[self.outputs])
+        """The inner observer's step on ``y[outputs]``; ``y`` must hold all ``q`` outputs."""
+        if np.shape(y) != (self.q,):
+            raise QuadobsError(f"y: expected shape ({self.q},), got {np.shape(y)}")
+        self.inner.step(u, np.asarray(y, dtype=float)[self.outputs])
 
     def step_and_record(self, u, y, out) -> None:
         self.inner.step_and_record(u, np.asarray(y)[self.outputs], out)
@@ -101,7 +107,7 @@ def augmented_observer(scenario: Scenario, x0: np.ndarray, outputs: tuple[int, .
         scenario.dt,
         V=np.asarray(obs.V, dtype=float),
         W=np.asarray(W, dtype=float),
-        S0=np.asarray(obs.S0, dtype=float),
+        P0=np.asarray(obs.S0, dtype=float),
         theta=obs.theta,
         x0=x0,
         sample_period=periods,
@@ -214,8 +220,8 @@ def unscented_kalman_filter(scenario: Scenario, x0: np.ndarray) -> UnscentedKalm
     return UnscentedKalmanFilter(s.dynamics, s.outputs, x0=x0, P0=s.P0, gate=scenario.observer.gate)
 
 
-def zonotope_estimator(scenario, x0) -> ZonotopicAugmentedEstimator:
-    """The ``"zonotope"`` estimator of a scenario (registered in :mod:`quadobs.testbed.registry`).
+def zonotope_estimator(scenario: Scenario, x0: np.ndarray) -> ZonotopicAugmentedEstimator:
+    """The ``"zonotope"`` estimator of a scenario.
 
     The initial box is centred at the initial guess ``x0`` with the half-widths of the
     scenario's ``[zonotope]`` table. The guarantee needs bounded errors, so the scenario must
@@ -265,3 +271,33 @@ def zonotope_estimator(scenario, x0) -> ZonotopicAugmentedEstimator:
         reduction=spec.reduction,
     )
 
+
+# -- the built-in entry points: factory(scenario, x0, name) -> Estimator -----------------
+
+
+def build_augmented(scenario: Scenario, x0: np.ndarray, name: str = "augmented") -> AugmentedObserver:
+    """Entry point ``augmented``: :func:`augmented_observer` on all the outputs."""
+    est = augmented_observer(scenario, x0)
+    est.name = name
+    return est
+
+
+def build_ekf(scenario: Scenario, x0: np.ndarray, name: str = "ekf") -> ExtendedKalmanFilter:
+    """Entry point ``ekf``: :func:`extended_kalman_filter`."""
+    est = extended_kalman_filter(scenario, x0)
+    est.name = name
+    return est
+
+
+def build_ukf(scenario: Scenario, x0: np.ndarray, name: str = "ukf") -> UnscentedKalmanFilter:
+    """Entry point ``ukf``: :func:`unscented_kalman_filter`."""
+    est = unscented_kalman_filter(scenario, x0)
+    est.name = name
+    return est
+
+
+def build_zonotope(scenario: Scenario, x0: np.ndarray, name: str = "zonotope") -> ZonotopicAugmentedEstimator:
+    """Entry point ``zonotope``: :func:`zonotope_estimator`."""
+    est = zonotope_estimator(scenario, x0)
+    est.name = name
+    return est

@@ -23,7 +23,7 @@ def _settings(im, seed, **kw):
     rng = np.random.default_rng(seed)
     N = im.dim
     V = rng.standard_normal((N, N))
-    return dict(V=1e-3 * V @ V.T, W=np.diag(rng.uniform(0.5, 2.0, im.system.q)), S0=10.0, theta=0.3, **kw)
+    return dict(V=1e-3 * V @ V.T, W=np.diag(rng.uniform(0.5, 2.0, im.system.q)), P0=10.0, theta=0.3, **kw)
 
 
 def _pair(im, rng, **kw):

@@ -83,7 +83,7 @@ def test_observer_stays_exact_from_an_exact_start(rng, vehicle):
 def test_covariance_stays_symmetric_positive_definite(rng, vehicle):
     dt = 0.001
     xs, us, ys, _ = _simulate(vehicle, 5000, dt, rng, np.array([10.0, 5.0, -3.0, 1.0, 0.0, 2.0]))
-    obs = AugmentedObserver(vehicle, dt, V=1e-4, W=1.0, S0=100.0)
+    obs = AugmentedObserver(vehicle, dt, V=1e-4, W=1.0, P0=100.0)
     for k in range(len(us)):
         obs.step(us[k], ys[k] + 0.01 * rng.standard_normal(1))
         if k % 500 == 0:
@@ -116,7 +116,7 @@ def test_partial_outputs_use_the_present_ones(rng):
 
 
 def test_gate_rejects_outliers(vehicle):
-    obs = AugmentedObserver(vehicle, 0.01, S0=1e-2, x0=np.ones(6), gate=9.0)
+    obs = AugmentedObserver(vehicle, 0.01, P0=1e-2, x0=np.ones(6), gate=9.0)
     y = vehicle.system.output(np.ones(6))
     obs.correct(y + 1e3)
     assert obs.rejected == 1 and obs.nis > 9.0
@@ -133,6 +133,7 @@ def test_sample_period_scales_the_output_covariance(vehicle):
     "kwargs,match",
     [
         ({"W": -1.0}, "W: covariance must be positive definite"),
+        ({"P0": np.ones((9, 9))}, "P0: covariance must be positive definite"),
         ({"S0": np.ones((9, 9))}, "S0: covariance must be positive definite"),
         ({"V": np.ones(4)}, "V: expected a scalar"),
         ({"theta": -0.1}, "theta: must be non-negative"),
@@ -141,8 +142,19 @@ def test_sample_period_scales_the_output_covariance(vehicle):
         ({"sample_period": 0.0}, "sample_period: must be positive"),
     ],
 )
+@pytest.mark.filterwarnings("ignore:AugmentedObserver\\(S0=:DeprecationWarning")
 def test_bad_observer_settings_are_named(vehicle, kwargs, match):
     with pytest.raises(QuadobsError, match=match):
         AugmentedObserver(vehicle, 0.01, **kwargs)
     with pytest.raises(QuadobsError, match="dt: must be positive"):
         AugmentedObserver(vehicle, 0.0)
+
+
+def test_S0_is_the_deprecated_name_of_P0(vehicle):
+    new = AugmentedObserver(vehicle, 0.01, P0=3.0)
+    with pytest.warns(DeprecationWarning, match=r"S0=\.\.\.\) is deprecated; use P0"):
+        old = AugmentedObserver(vehicle, 0.01, S0=3.0)
+    np.testing.assert_array_equal(old.P, new.P)
+    np.testing.assert_array_equal(new.P, 3.0 * np.eye(9))
+    with pytest.raises(QuadobsError, match="S0: give the initial covariance once"):
+        AugmentedObserver(vehicle, 0.01, P0=3.0, S0=3.0)
