@@ -153,8 +153,12 @@ class TrajectorySpec(_Table):
     """The ``[trajectory]`` table: offsets, a constant velocity and sinusoids per axis."""
 
     offset: Vector | None = Field(None, description="Constant offset `o` (m), `dimension` numbers (default: zeros).")
-    velocity: Vector | None = Field(None, description="Constant velocity `w` (m/s), `dimension` numbers (default: zeros).")
-    terms: tuple[Term, ...] = Field((), description="Sinusoids added to the axes (`[[trajectory.terms]]` or inline tables).")
+    velocity: Vector | None = Field(
+        None, description="Constant velocity `w` (m/s), `dimension` numbers (default: zeros)."
+    )
+    terms: tuple[Term, ...] = Field(
+        (), description="Sinusoids added to the axes (`[[trajectory.terms]]` or inline tables)."
+    )
     coast: tuple[Coast, ...] = Field((), description="Segments without commanded acceleration.")
 
 
@@ -168,10 +172,16 @@ class NoiseSpec(_Table):
     range_std: NonNegative = Field(0.0, description="Standard deviation of the range error (m).")
     accel_std: NonNegative = Field(0.0, description="Standard deviation of the accelerometer error (m/s^2).")
     airspeed_std: NonNegative = Field(0.0, description="Standard deviation of the airspeed error (m/s).")
-    range_rate: Positive | None = Field(None, description="Range sample rate (Hz), dividing the physics rate (default: the physics rate).")
-    airspeed_rate: Positive | None = Field(None, description="Airspeed sample rate (Hz), dividing the physics rate (default: the physics rate).")
+    range_rate: Positive | None = Field(
+        None, description="Range sample rate (Hz), dividing the physics rate (default: the physics rate)."
+    )
+    airspeed_rate: Positive | None = Field(
+        None, description="Airspeed sample rate (Hz), dividing the physics rate (default: the physics rate)."
+    )
     dropout: Annotated[NonNegative, Le(1.0)] = Field(0.0, description="Probability that a sample is lost.")
-    outlier_probability: Annotated[NonNegative, Le(1.0)] = Field(0.0, description="Probability that a range sample carries an outlier.")
+    outlier_probability: Annotated[NonNegative, Le(1.0)] = Field(
+        0.0, description="Probability that a range sample carries an outlier."
+    )
     outlier_std: NonNegative = Field(0.0, description="Standard deviation of an outlier's extra error (m).")
     range_bound: NonNegative = Field(0.0, description="Bound of the uniform range error (m).")
     accel_bound: NonNegative = Field(0.0, description="Bound of the uniform accelerometer error (m/s^2).")
@@ -221,13 +231,23 @@ class ObserverSpec(_Table):
     attribute holds ``(name, output indices)`` pairs.
     """
 
-    immersion: Literal["minimal", "chain"] = Field("minimal", description="Immersion: `minimal` [ACC2024, Alg. 1] or `chain` [IFAC2021].")
-    S0: _diagonal(Positive) = Field(100.0, description="Initial covariance of the augmented state: scalar (times I) or diagonal.")
-    V: _diagonal(NonNegative) = Field(1e-4, description="Process noise of the augmented state: scalar (times I) or diagonal.")
+    immersion: Literal["minimal", "chain"] = Field(
+        "minimal", description="Immersion: `minimal` [ACC2024, Alg. 1] or `chain` [IFAC2021]."
+    )
+    S0: _diagonal(Positive) = Field(
+        100.0, description="Initial covariance of the augmented state: scalar (times I) or diagonal."
+    )
+    V: _diagonal(NonNegative) = Field(
+        1e-4, description="Process noise of the augmented state: scalar (times I) or diagonal."
+    )
     W: _diagonal(Positive) = Field(1.0, description="Output noise: scalar (times I_q) or diagonal.")
     theta: NonNegative = Field(0.0, description="Forgetting rate `theta` of the observer (1/s).")
-    gate: Positive | None = Field(None, description="NIS threshold above which a correction is rejected (default: no gate).")
-    variant_specs: tuple[Variant, ...] = Field((), alias="variants", description="Extra observers restricted to some outputs.")
+    gate: Positive | None = Field(
+        None, description="NIS threshold above which a correction is rejected (default: no gate)."
+    )
+    variant_specs: tuple[Variant, ...] = Field(
+        (), alias="variants", description="Extra observers restricted to some outputs."
+    )
 
     @model_validator(mode="after")
     def _new_names(self) -> "ObserverSpec":
@@ -252,10 +272,14 @@ class InitialGuess(_Table):
     ``velocity_spread`` on velocities and wind, drawn from the scenario's seed).
     """
 
-    kind: Literal["zero", "point", "random"] = Field("zero", description="`zero`, `point` (the given state) or `random` (truth plus Gaussian errors).")
+    kind: Literal["zero", "point", "random"] = Field(
+        "zero", description="`zero`, `point` (the given state) or `random` (truth plus Gaussian errors)."
+    )
     point: Vector | None = Field(None, description="The initial state when `kind = \"point\"` (`state_dim` numbers).")
     position_spread: NonNegative = Field(0.0, description="Standard deviation of the random position error (m).")
-    velocity_spread: NonNegative = Field(0.0, description="Standard deviation of the random velocity (and wind) error (m/s).")
+    velocity_spread: NonNegative = Field(
+        0.0, description="Standard deviation of the random velocity (and wind) error (m/s)."
+    )
 
     @model_validator(mode="after")
     def _point_with_kind(self) -> "InitialGuess":
@@ -275,9 +299,13 @@ class ExcitationSpec(_Table):
 
     monitor: Boolean = Field(True, description="Run the live excitation monitor.")
     window: Positive = Field(5.0, description="Length `delta` of the sliding Gramian window `W(t - delta, t)` (s).")
-    threshold: NonNegative = Field(1e-6, description="`mu = lambda_min(W)` below which a window counts as not exciting.")
+    threshold: NonNegative = Field(
+        1e-6, description="`mu = lambda_min(W)` below which a window counts as not exciting."
+    )
     update_period: Positive = Field(0.1, description="Period of the measure's updates (s).")
-    step: Positive | None = Field(None, description="Hold step over which the input is averaged (s) (default: the physics-step multiple nearest 0.01 s).")
+    step: Positive | None = Field(
+        None, description="Hold step over which the input is averaged (s) (default: the physics-step multiple nearest 0.01 s)."
+    )
 
     def grid(self, dt: float) -> tuple[int, int, int]:
         """``(block, window_blocks, update_blocks)``: physics steps per hold step, hold steps per window and per update."""
@@ -306,7 +334,9 @@ class ZonotopeSpec(_Table):
 
     position_bound: Positive = Field(50.0, description="Half-width of the initial box on positions (m).")
     velocity_bound: Positive = Field(30.0, description="Half-width of the initial box on velocities and wind (m/s).")
-    max_generators: Annotated[Integer, Ge(0)] = Field(0, description="Largest zonotope order (0: ten times the augmented dimension).")
+    max_generators: Annotated[Integer, Ge(0)] = Field(
+        0, description="Largest zonotope order (0: ten times the augmented dimension)."
+    )
     reduction: Literal[tuple(REDUCTION_METHODS)] = Field(
         "parallelotope", description="Order-reduction method (`quadobs.sets.zonotope.REDUCTION_METHODS`)."
     )
@@ -333,7 +363,8 @@ class Scenario(_Table):
     trajectory : SinusoidTrajectory
         The reference motion.
     source : str
-        Where the scenario came from (a built-in name or a file path); not a field.
+        Where the scenario came from (a built-in name or a file path); not a field, and
+        not compared: two scenarios are equal when their :meth:`to_dict` are.
 
     Examples
     --------
@@ -350,15 +381,25 @@ class Scenario(_Table):
     physics_rate: Positive = Field(1000.0, description="Physics steps per second (Hz).")
     seed: Annotated[Integer, Ge(0)] = Field(0, description="Seed of every random draw of the episode.")
     record_every: Annotated[Integer, Ge(1)] = Field(1, description="Record one physics step in `record_every`.")
-    beacon_specs: tuple[Beacon, ...] = Field(alias="beacons", description="Beacons ranged by the vehicle (`[[beacons]]`, at least one).")
-    trajectory_spec: TrajectorySpec = Field(default_factory=TrajectorySpec, alias="trajectory", description="The reference motion.")
+    beacon_specs: tuple[Beacon, ...] = Field(
+        alias="beacons", description="Beacons ranged by the vehicle (`[[beacons]]`, at least one)."
+    )
+    trajectory_spec: TrajectorySpec = Field(
+        default_factory=TrajectorySpec, alias="trajectory", description="The reference motion."
+    )
     noise: NoiseSpec = Field(default_factory=NoiseSpec, description="Sensor noise and rates.")
     observer: ObserverSpec = Field(default_factory=ObserverSpec, description="Settings of the augmented observer.")
     initial: InitialGuess = Field(default_factory=InitialGuess, description="The initial estimate of every estimator.")
-    zonotope: ZonotopeSpec = Field(default_factory=ZonotopeSpec, description="Settings of the guaranteed estimator `zonotope`.")
+    zonotope: ZonotopeSpec = Field(
+        default_factory=ZonotopeSpec, description="Settings of the guaranteed estimator `zonotope`."
+    )
     excitation: ExcitationSpec = Field(default_factory=ExcitationSpec, description="The live excitation monitor.")
-    wind_spec: Wind | None = Field(None, alias="wind", description="Constant wind: adds air velocity and wind to the state, and an airspeed output.")
-    model: String | None = Field(None, description="MJCF model to use instead of the built-in vehicle (relative to the scenario file).")
+    wind_spec: Wind | None = Field(
+        None, alias="wind", description="Constant wind: adds air velocity and wind to the state, and an airspeed output."
+    )
+    model: String | None = Field(
+        None, description="MJCF model to use instead of the built-in vehicle (relative to the scenario file)."
+    )
 
     _beacons: np.ndarray = PrivateAttr()
     _wind: np.ndarray | None = PrivateAttr(None)

@@ -280,3 +280,29 @@ def test_field_reference_is_up_to_date_and_complete():
     assert "| `noise.dropout` | number >= 0.0, <= 1.0 | `0.0` |" in text
     assert "| `beacons[].position` | list of number | required |" in text
     assert len(rows) == len(text.splitlines()) - 15 and issubclass(Scenario, object)
+
+
+def test_to_dict_keeps_its_structure():
+    """The plain data of a scenario (summaries and campaign workers read it) is unchanged by the schema."""
+    data = load_scenario("ifac2021-outliers").to_dict()
+    assert data.pop("description").startswith("ifac2021 with faulty ranges")
+    terms = [
+        {"axis": 0, "amplitude": 20.0, "omega": 1.0, "phase": 0.0, "function": "cos"},
+        {"axis": 1, "amplitude": 10.0, "omega": 2.0, "phase": -np.pi / 2, "function": "cos"},
+        {"axis": 2, "amplitude": -4.0, "omega": 4.0, "phase": 0.0, "function": "cos"},
+    ]
+    assert data == {
+        "name": "ifac2021-outliers", "kind": "vehicle", "dimension": 3, "duration": 30.0, "physics_rate": 1000.0,
+        "seed": 0, "record_every": 1, "beacons": [{"position": [0.0, 0.0, 0.0]}],
+        "trajectory": {"offset": [-20.0, 20.0, 0.0], "velocity": [0.0, 0.0, 0.0], "terms": terms},
+        "noise": {
+            "range_std": 0.2, "accel_std": 0.0, "airspeed_std": 0.0, "range_rate": 50.0, "dropout": 0.1,
+            "outlier_probability": 0.02, "outlier_std": 20.0, "range_bound": 0.0, "accel_bound": 0.0,
+            "airspeed_bound": 0.0,
+        },
+        "observer": {"immersion": "minimal", "S0": 1e4, "V": 1e-4, "W": 2.0, "theta": 0.0, "gate": 16.0},
+        "initial": {"kind": "random", "position_spread": 10.0, "velocity_spread": 2.0},
+        "zonotope": {"position_bound": 50.0, "velocity_bound": 30.0, "max_generators": 0, "reduction": "parallelotope"},
+        "excitation": {"monitor": True, "window": 5.0, "threshold": 1e-6, "update_period": 0.1},
+    }
+    assert [type(v) for v in (data["dimension"], data["duration"], data["seed"])] == [int, float, int]
