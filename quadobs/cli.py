@@ -2,7 +2,8 @@
 
 ``quadobs run SCENARIO --out PATH.rrd --summary PATH.json`` runs one episode headless and
 prints a summary table (``python -m quadobs`` is the same command); ``quadobs list`` names the
-built-in scenarios; ``quadobs excitation
+built-in scenarios; ``quadobs show SCENARIO`` prints one as TOML (``--set FIELD=VALUE`` overrides
+any field, here and wherever a scenario is loaded); ``quadobs excitation
 SCENARIO [--window S]`` prints the persistence-of-excitation report of the scenario's input
 (no physics, no MuJoCo); ``quadobs campaign SCENARIO --runs N --out DIR`` runs a Monte
 Carlo campaign (:mod:`quadobs.studies.campaign`); ``quadobs bench [--json PATH]`` measures the
@@ -153,10 +154,12 @@ def _cmd_run(args) -> int:
     from quadobs.testbed.scenario import load_scenario
 
     if args.scenario == "le2013":
+        if args.set:
+            raise QuadobsError("--set: le2013 is not a scenario file and has no fields to set")
         return _cmd_le2013(args)
     if args.runs is not None:
         raise QuadobsError("--runs: applies to le2013 only; for many seeded runs of a scenario use 'quadobs campaign'")
-    scenario = load_scenario(args.scenario, duration=args.duration, seed=args.seed)
+    scenario = load_scenario(args.scenario, duration=args.duration, seed=args.seed, settings=args.set)
     estimators = _estimator_list(args.estimators)
     _notice_cold_kernels(_episode_kernels(estimators))
     result = run_episode(
@@ -181,7 +184,7 @@ def _cmd_excitation(args) -> int:
         from quadobs.errors import check_writable
 
         check_writable(args.json)
-    scenario = load_scenario(args.scenario)
+    scenario = load_scenario(args.scenario, settings=args.set)
     report = scenario_report(scenario, window=args.window, step=args.step)
     print(report.format())
     if args.json:
@@ -196,7 +199,7 @@ def _cmd_campaign(args) -> int:
 
     if args.scenario == "le2013":
         raise QuadobsError("scenario 'le2013': not a vehicle scenario; run it with 'quadobs run le2013 --runs N'")
-    scenario = load_scenario(args.scenario, duration=args.duration, seed=args.seed)
+    scenario = load_scenario(args.scenario, duration=args.duration, seed=args.seed, settings=args.set)
     estimators = _estimator_list(args.estimators)
     _notice_cold_kernels(_episode_kernels(estimators))
     result = run_campaign(
@@ -215,6 +218,25 @@ def _cmd_campaign(args) -> int:
     if result.summary["interrupted"]:
         return 130
     return 1 if result.summary["runs_failed"] else 0
+
+
+def _cmd_show(args) -> int:
+    from quadobs.testbed.scenario import field_reference, load_scenario
+
+    if args.reference:
+        print(field_reference(), end="")
+        return 0
+    if args.scenario is None:
+        raise QuadobsError("show: give a scenario name or path (or --reference)")
+    print(load_scenario(args.scenario, settings=args.set).to_toml(), end="")
+    return 0
+
+
+def _add_set(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--set", action="append", default=[], metavar="FIELD=VALUE",
+        help="override a scenario field, e.g. noise.range_std=0.1 (value read as TOML, else text; repeatable)",
+    )
 
 
 def _cmd_bench(args) -> int:
@@ -332,7 +354,14 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--runs", type=int, help="le2013 only: number of seeded runs (default 50; --duration is the number of samples)")
+    _add_set(p)
     p.set_defaults(func=_cmd_run)
+
+    p = sub.add_parser("show", help="print a scenario's TOML after any --set overrides (or the field reference)")
+    p.add_argument("scenario", nargs="?", help="built-in scenario name (see 'quadobs list') or path to a scenario .toml")
+    p.add_argument("--reference", action="store_true", help="print the field reference of the scenario schema (Markdown)")
+    _add_set(p)
+    p.set_defaults(func=_cmd_show)
 
     p = sub.add_parser(
         "excitation",
@@ -342,6 +371,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--window", type=float, help="window length delta (s); default: the scenario's excitation.window")
     p.add_argument("--step", type=float, help="hold step of the input (s); default: the monitor's (0.01 s)")
     p.add_argument("--json", type=Path, help="also write the report as JSON")
+    _add_set(p)
     p.set_defaults(func=_cmd_excitation)
 
     p = sub.add_parser(
@@ -361,6 +391,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--duration", type=float, help="override the scenario duration (s)")
     p.add_argument("--seed", type=int, help="override the scenario seed (the runs' seeds derive from it)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    _add_set(p)
     p.set_defaults(func=_cmd_campaign)
 
     p = sub.add_parser("bench", help="measure the estimators' cost beside the physics (single vehicle, batch, scaling)")

@@ -11,7 +11,6 @@ chunk at a time (as the episode loop feeds it) or step by step.
 import argparse
 import tempfile
 import time
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -29,7 +28,7 @@ def main() -> None:
     args = parser.parse_args()
 
     on = load_scenario(args.scenario, duration=args.duration)
-    off = replace(on, excitation=replace(on.excitation, monitor=False))
+    off = on.with_settings({"excitation.monitor": False})
     rates = {"monitor on": [], "monitor off": []}
     with tempfile.TemporaryDirectory() as tmp:
         for _ in range(args.repeats):

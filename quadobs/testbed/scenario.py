@@ -1,27 +1,62 @@
-"""Scenarios: what to simulate, described by TOML files.
+"""Scenarios: what to simulate, described by TOML files, declared once per field.
 
-The built-in scenarios are TOML files shipped in ``quadobs/scenarios/``; a user's file
-has the same format (see the README, "Scenario files"). Every field is validated on
-load, and an error names the field by its dotted path (``noise.range_rate``,
-``trajectory.terms[2].omega``). Unknown fields are refused, so a typo does not pass
-silently.
+The built-in scenarios are TOML files shipped in ``quadobs/testbed/scenarios/``; a
+user's file has the same format. The schema is the set of frozen pydantic models below:
+each field is declared once, with its type, default, bounds and a one-line description,
+and that one declaration gives the validation, the defaults, the serialisation
+(:meth:`Scenario.to_dict`, :meth:`Scenario.to_toml`) and the field table of the
+documentation (:func:`field_reference`, ``docs/reference/scenario.md``). The rules that
+tie several fields together (a beacon has ``dimension`` coordinates, a sensor rate
+divides the physics rate, ...) are written out in model validators.
+
+Every error is one line that starts with the field's dotted path (``noise.range_rate``,
+``trajectory.terms[2].omega``). Unknown fields are refused, with a suggestion when a
+known field is close (``noise: unknown field 'range_sdt' (did you mean 'range_std'?)``).
+Any field can be overridden by a setting ``"a.b=value"`` (:func:`apply_settings`; the
+command line's ``--set``).
 
 This module needs neither MuJoCo nor rerun: the excitation report and the analytic
 parts of a scenario (trajectory, system, beacons) work without the simulator.
+
+Examples
+--------
+>>> sc = load_scenario("ifac2021", settings=["noise.range_std=0.1", "duration=2"])
+>>> sc.noise.range_std, sc.steps, sc.beacons.shape
+(0.1, 2000, (1, 3))
 """
 
 from __future__ import annotations
 
+import copy
+import difflib
+import json
+import re
 import tomllib
-from dataclasses import dataclass, field, replace
 from importlib import resources
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any, Iterable, Literal, Mapping, Union, get_args, get_origin
 
 import numpy as np
+import tomli_w
+from annotated_types import Ge, Gt, Le, MinLen
+from pydantic import (
+    AllowInfNan,
+    BaseModel,
+    ConfigDict,
+    Discriminator,
+    Field,
+    PrivateAttr,
+    Strict,
+    Tag,
+    ValidationError,
+    field_validator,
+    model_validator,
+)
+from pydantic_core import PydanticCustomError, PydanticUndefined
 
-from quadobs.errors import QuadobsError
 from quadobs.core.system import QuadraticSystem, vehicle_system, wind_system
+from quadobs.errors import QuadobsError
+from quadobs.sets.zonotope import REDUCTION_METHODS
 from quadobs.testbed.trajectory import SinusoidTrajectory
 
 __all__ = [
@@ -34,78 +69,243 @@ __all__ = [
     "load_scenario",
     "list_scenarios",
     "parse_scenario",
+    "apply_settings",
+    "field_reference",
 ]
 
+# --------------------------------------------------------------------------------------
+# Value types: TOML numbers are finite, booleans are not numbers, strings are not parsed
+# --------------------------------------------------------------------------------------
 
-@dataclass(frozen=True)
-class NoiseSpec:
+Number = Annotated[float, Strict(), AllowInfNan(False)]
+Positive = Annotated[Number, Gt(0.0)]
+NonNegative = Annotated[Number, Ge(0.0)]
+Integer = Annotated[int, Strict()]
+String = Annotated[str, Strict()]
+Boolean = Annotated[bool, Strict()]
+Vector = tuple[Number, ...]
+
+_TAGS = ("scalar", "diagonal")  # branch names of the scalar-or-diagonal union, left out of error paths
+
+
+def _diagonal(item: Any) -> Any:
+    """A scalar (times the identity) or a non-empty list (a diagonal) of ``item``."""
+    return Annotated[
+        Union[Annotated[item, Tag("scalar")], Annotated[tuple[item, ...], MinLen(1), Tag("diagonal")]],
+        Discriminator(lambda v: "diagonal" if isinstance(v, (list, tuple)) else "scalar"),
+    ]
+
+
+def _invalid(message: str, field: str = "") -> PydanticCustomError:
+    """A rule broken by ``field`` (a dotted path relative to the model that checks it)."""
+    return PydanticCustomError("quadobs", "{message}", {"message": message, "field": field})
+
+
+class _Table(BaseModel):
+    """A TOML table: frozen, unknown keys refused."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+# --------------------------------------------------------------------------------------
+# The tables of a scenario
+# --------------------------------------------------------------------------------------
+
+
+class Beacon(_Table):
+    """A ``[[beacons]]`` entry."""
+
+    position: Vector = Field(description="Position of the beacon (m), `dimension` numbers.")
+
+
+class Wind(_Table):
+    """The ``[wind]`` table."""
+
+    velocity: Vector = Field(description="Constant wind velocity (m/s), `dimension` numbers.")
+
+
+class Term(_Table):
+    """One sinusoid ``amplitude cos(omega t + phase)`` on one axis (``sin``: phase lowered by pi/2)."""
+
+    axis: Annotated[Integer, Ge(0)] = Field(description="Axis of the term, below `dimension`.")
+    amplitude: Number = Field(description="Amplitude (m).")
+    omega: NonNegative = Field(description="Angular frequency (rad/s).")
+    phase: Number = Field(0.0, description="Phase (rad).")
+    function: Literal["cos", "sin"] = Field(
+        "cos", description="`cos` or `sin`; a `sin` term is stored as `cos` with its phase lowered by pi/2."
+    )
+
+    @model_validator(mode="after")
+    def _as_cosine(self) -> "Term":
+        if self.function == "sin":
+            return self.model_copy(update={"function": "cos", "phase": self.phase - np.pi / 2})
+        return self
+
+
+class Coast(_Table):
+    """A ``[[trajectory.coast]]`` segment: the commanded acceleration is off in ``[start, end)``."""
+
+    start: NonNegative = Field(description="Start of the segment (s).")
+    end: Positive = Field(description="End of the segment (s); segments are sorted and disjoint.")
+
+
+class TrajectorySpec(_Table):
+    """The ``[trajectory]`` table: offsets, a constant velocity and sinusoids per axis."""
+
+    offset: Vector | None = Field(None, description="Constant offset `o` (m), `dimension` numbers (default: zeros).")
+    velocity: Vector | None = Field(
+        None, description="Constant velocity `w` (m/s), `dimension` numbers (default: zeros)."
+    )
+    terms: tuple[Term, ...] = Field(
+        (), description="Sinusoids added to the axes (`[[trajectory.terms]]` or inline tables)."
+    )
+    coast: tuple[Coast, ...] = Field((), description="Segments without commanded acceleration.")
+
+
+class NoiseSpec(_Table):
     """Sensor noise and rates. Standard deviations in m, m/s^2, m/s; rates in Hz.
 
-    ``range_rate`` and ``airspeed_rate`` default to the physics rate and must divide it.
-    ``dropout`` is the probability that a sample is lost; ``outlier_probability`` the
-    probability that a range sample gets an extra error of standard deviation
-    ``outlier_std`` (m).
-
-    Bounded noise: ``range_bound``, ``accel_bound``, ``airspeed_bound`` (m, m/s^2, m/s) draw
-    the sensor's error uniformly in ``[-bound, bound]`` instead of a Gaussian; a sensor has a
-    standard deviation or a bound, not both. Guaranteed (set-membership) estimators need them.
+    A sensor has a standard deviation (Gaussian noise) or a bound (uniform noise in
+    ``[-bound, bound]``), not both; guaranteed (set-membership) estimators need bounds.
     """
 
-    range_std: float = 0.0
-    accel_std: float = 0.0
-    airspeed_std: float = 0.0
-    range_rate: float | None = None
-    airspeed_rate: float | None = None
-    dropout: float = 0.0
-    outlier_probability: float = 0.0
-    outlier_std: float = 0.0
-    range_bound: float = 0.0
-    accel_bound: float = 0.0
-    airspeed_bound: float = 0.0
+    range_std: NonNegative = Field(0.0, description="Standard deviation of the range error (m).")
+    accel_std: NonNegative = Field(0.0, description="Standard deviation of the accelerometer error (m/s^2).")
+    airspeed_std: NonNegative = Field(0.0, description="Standard deviation of the airspeed error (m/s).")
+    range_rate: Positive | None = Field(
+        None, description="Range sample rate (Hz), dividing the physics rate (default: the physics rate)."
+    )
+    airspeed_rate: Positive | None = Field(
+        None, description="Airspeed sample rate (Hz), dividing the physics rate (default: the physics rate)."
+    )
+    dropout: Annotated[NonNegative, Le(1.0)] = Field(0.0, description="Probability that a sample is lost.")
+    outlier_probability: Annotated[NonNegative, Le(1.0)] = Field(
+        0.0, description="Probability that a range sample carries an outlier."
+    )
+    outlier_std: NonNegative = Field(0.0, description="Standard deviation of an outlier's extra error (m).")
+    range_bound: NonNegative = Field(0.0, description="Bound of the uniform range error (m).")
+    accel_bound: NonNegative = Field(0.0, description="Bound of the uniform accelerometer error (m/s^2).")
+    airspeed_bound: NonNegative = Field(0.0, description="Bound of the uniform airspeed error (m/s).")
+
+    @model_validator(mode="after")
+    def _std_or_bound(self) -> "NoiseSpec":
+        for sensor in ("range", "accel", "airspeed"):
+            if getattr(self, f"{sensor}_std") and getattr(self, f"{sensor}_bound"):
+                raise _invalid(
+                    f"cannot be combined with noise.{sensor}_std (a sensor's noise is Gaussian or bounded, not both)",
+                    f"{sensor}_bound",
+                )
+        return self
 
     def sigma(self, sensor: str) -> float:
-        """Standard deviation of a sensor's error (``"range"``, ``"accel"``, ``"airspeed"``):
-        the ``*_std`` field, or ``bound / sqrt(3)`` for uniform noise in ``[-bound, bound]``."""
+        """Standard deviation of a sensor's error (``"range"``, ``"accel"``, ``"airspeed"``).
+
+        The ``*_std`` field, or ``bound / sqrt(3)`` for uniform noise in ``[-bound, bound]``.
+        """
         return getattr(self, f"{sensor}_std") or getattr(self, f"{sensor}_bound") / np.sqrt(3.0)
 
 
-@dataclass(frozen=True)
-class ObserverSpec:
-    """Settings of the augmented observer (Theorem 3 of [IFAC2021]).
+class Variant(_Table):
+    """An ``[[observer.variants]]`` entry: the augmented observer restricted to some outputs."""
+
+    name: String = Field(description="Estimator name: a new identifier (letters, digits, _).")
+    outputs: Annotated[tuple[Annotated[Integer, Ge(0)], ...], MinLen(1)] = Field(
+        description="Distinct indices of the outputs used (beacons, then airspeed)."
+    )
+
+    @model_validator(mode="after")
+    def _distinct(self) -> "Variant":
+        if not self.name.replace("_", "").isalnum() or not self.name.isascii():
+            raise _invalid(f"{self.name!r} must be an identifier (letters, digits, _)", "name")
+        if len(set(self.outputs)) != len(self.outputs):
+            raise _invalid(f"expected distinct output indices, got {list(self.outputs)}", "outputs")
+        return self
+
+
+class ObserverSpec(_Table):
+    """Settings of the augmented observer [IFAC2021, Theorem 3].
 
     ``S0``, ``V`` are scalars times the identity of the augmented state, or lists (a
-    diagonal); ``W`` a scalar times ``I_q`` or a list (diagonal). ``gate`` is an optional
-    NIS threshold for outlier rejection. ``variants`` are extra observers with the same
-    settings that use only some outputs: ``(name, output indices)``, run side by side
-    (``[[observer.variants]]`` tables with ``name`` and ``outputs``).
+    diagonal); ``W`` a scalar times ``I_q`` or a list (diagonal). ``variants`` are extra
+    observers with the same settings that use only some outputs, run side by side; the
+    attribute holds ``(name, output indices)`` pairs.
     """
 
-    immersion: str = "minimal"
-    S0: Any = 100.0
-    V: Any = 1e-4
-    W: Any = 1.0
-    theta: float = 0.0
-    gate: float | None = None
-    variants: tuple[tuple[str, tuple[int, ...]], ...] = ()
+    immersion: Literal["minimal", "chain"] = Field(
+        "minimal", description="Immersion: `minimal` [ACC2024, Alg. 1] or `chain` [IFAC2021]."
+    )
+    S0: _diagonal(Positive) = Field(
+        100.0, description="Initial covariance of the augmented state: scalar (times I) or diagonal."
+    )
+    V: _diagonal(NonNegative) = Field(
+        1e-4, description="Process noise of the augmented state: scalar (times I) or diagonal."
+    )
+    W: _diagonal(Positive) = Field(1.0, description="Output noise: scalar (times I_q) or diagonal.")
+    theta: NonNegative = Field(0.0, description="Forgetting rate `theta` of the observer (1/s).")
+    gate: Positive | None = Field(
+        None, description="NIS threshold above which a correction is rejected (default: no gate)."
+    )
+    variant_specs: tuple[Variant, ...] = Field(
+        (), alias="variants", description="Extra observers restricted to some outputs."
+    )
+
+    @model_validator(mode="after")
+    def _new_names(self) -> "ObserverSpec":
+        seen = {"augmented"}
+        for i, v in enumerate(self.variant_specs):
+            if v.name in seen:
+                raise _invalid(f"{v.name!r} must be a new identifier (letters, digits, _)", f"variants[{i}].name")
+            seen.add(v.name)
+        return self
+
+    @property
+    def variants(self) -> tuple[tuple[str, tuple[int, ...]], ...]:
+        """``(name, output indices)`` of each variant."""
+        return tuple((v.name, v.outputs) for v in self.variant_specs)
 
 
-@dataclass(frozen=True)
-class ExcitationSpec:
-    """The live excitation monitor (``[excitation]`` table; see :mod:`quadobs.observability.excitation`).
+class InitialGuess(_Table):
+    """The initial estimate shared by all estimators.
 
-    ``window`` (s) is the length ``delta`` of the sliding window of the Gramian
-    ``W(t - delta, t)``, ``threshold`` the value of ``mu = lambda_min(W)`` below which the
-    window counts as not exciting, ``update_period`` (s) how often the measure is
-    recomputed and ``step`` (s) the hold step over which the measured input is averaged
-    (default: the multiple of the physics step nearest 0.01 s). ``window`` and
-    ``update_period`` must be multiples of ``step``, and ``step`` of the physics step.
+    ``kind``: ``"zero"``, ``"point"`` (``point``, the full state), or ``"random"`` (truth
+    plus Gaussian errors of standard deviation ``position_spread`` on positions and
+    ``velocity_spread`` on velocities and wind, drawn from the scenario's seed).
     """
 
-    monitor: bool = True
-    window: float = 5.0
-    threshold: float = 1e-6
-    update_period: float = 0.1
-    step: float | None = None
+    kind: Literal["zero", "point", "random"] = Field(
+        "zero", description="`zero`, `point` (the given state) or `random` (truth plus Gaussian errors)."
+    )
+    point: Vector | None = Field(None, description="The initial state when `kind = \"point\"` (`state_dim` numbers).")
+    position_spread: NonNegative = Field(0.0, description="Standard deviation of the random position error (m).")
+    velocity_spread: NonNegative = Field(
+        0.0, description="Standard deviation of the random velocity (and wind) error (m/s)."
+    )
+
+    @model_validator(mode="after")
+    def _point_with_kind(self) -> "InitialGuess":
+        if self.kind == "point" and self.point is None:
+            raise _invalid("required field is missing", "point")
+        if self.kind != "point" and self.point is not None:
+            raise _invalid(f'only used with kind = "point", not {self.kind!r}', "point")
+        return self
+
+
+class ExcitationSpec(_Table):
+    """The live excitation monitor (``[excitation]``; :mod:`quadobs.observability.excitation`).
+
+    ``window`` and ``update_period`` must be multiples of ``step``, and ``step`` of the
+    physics step (:meth:`grid`).
+    """
+
+    monitor: Boolean = Field(True, description="Run the live excitation monitor.")
+    window: Positive = Field(5.0, description="Length `delta` of the sliding Gramian window `W(t - delta, t)` (s).")
+    threshold: NonNegative = Field(
+        1e-6, description="`mu = lambda_min(W)` below which a window counts as not exciting."
+    )
+    update_period: Positive = Field(0.1, description="Period of the measure's updates (s).")
+    step: Positive | None = Field(
+        None, description="Hold step over which the input is averaged (s) (default: the physics-step multiple nearest 0.01 s)."
+    )
 
     def grid(self, dt: float) -> tuple[int, int, int]:
         """``(block, window_blocks, update_blocks)``: physics steps per hold step, hold steps per window and per update."""
@@ -125,90 +325,157 @@ class ExcitationSpec:
         return block, window, update
 
 
-@dataclass(frozen=True)
-class ZonotopeSpec:
+class ZonotopeSpec(_Table):
     """Settings of the guaranteed estimator ``"zonotope"`` (:mod:`quadobs.estimators.zonotopic_vehicle`).
 
-    The true initial state must lie in the box centred at the initial guess with half-widths
-    ``position_bound`` (m) on positions and ``velocity_bound`` (m/s) on velocities (and wind);
-    ``max_generators`` bounds the zonotope's order (0: ten times the augmented dimension);
-    ``reduction`` is the order-reduction method (:data:`quadobs.sets.zonotope.REDUCTION_METHODS`).
+    The true initial state must lie in the box centred at the initial guess with the
+    given half-widths.
     """
 
-    position_bound: float = 50.0
-    velocity_bound: float = 30.0
-    max_generators: int = 0
-    reduction: str = "parallelotope"
+    position_bound: Positive = Field(50.0, description="Half-width of the initial box on positions (m).")
+    velocity_bound: Positive = Field(30.0, description="Half-width of the initial box on velocities and wind (m/s).")
+    max_generators: Annotated[Integer, Ge(0)] = Field(
+        0, description="Largest zonotope order (0: ten times the augmented dimension)."
+    )
+    reduction: Literal[tuple(REDUCTION_METHODS)] = Field(
+        "parallelotope", description="Order-reduction method (`quadobs.sets.zonotope.REDUCTION_METHODS`)."
+    )
 
 
-@dataclass(frozen=True)
-class InitialGuess:
-    """The initial estimate shared by all estimators.
-
-    ``kind``: ``"zero"``, ``"point"`` (``point``, the full state), or ``"random"``
-    (truth plus Gaussian errors of standard deviation ``position_spread`` on positions,
-    ``velocity_spread`` on velocities and wind, drawn from the scenario's seed).
-    """
-
-    kind: str = "zero"
-    point: tuple[float, ...] | None = None
-    position_spread: float = 0.0
-    velocity_spread: float = 0.0
+# --------------------------------------------------------------------------------------
+# The scenario
+# --------------------------------------------------------------------------------------
 
 
-@dataclass(frozen=True)
-class Scenario:
+class Scenario(_Table):
     """A complete, validated description of one episode.
+
+    The fields are those of the TOML file (``docs/reference/scenario.md``); the tables
+    ``beacons``, ``wind`` and ``trajectory`` are read as arrays and a trajectory:
 
     Attributes
     ----------
-    name, description : str
-    kind : str
-        ``"vehicle"``: the MuJoCo vehicle.
-    dimension : int
-        2 or 3.
-    duration : float
-        Seconds of simulated time.
-    physics_rate : float
-        Physics steps per second.
-    seed : int
-        Seed of every random draw of the episode.
     beacons : ndarray (q_b, dimension)
+        Beacon positions (read-only).
     wind : ndarray (dimension,) or None
         Constant wind; when given, the state includes air velocity and wind, and the
         vehicle measures its airspeed.
     trajectory : SinusoidTrajectory
-    noise : NoiseSpec
-    observer : ObserverSpec
-    initial : InitialGuess
-    excitation : ExcitationSpec
-        The live excitation monitor's settings.
-    model : str or None
-        Path of an MJCF model to use instead of the built-in vehicle.
-    record_every : int
-        Record one physics step in ``record_every`` (1: every step).
+        The reference motion.
     source : str
-        Where the scenario came from (a built-in name or a file path).
+        Where the scenario came from (a built-in name or a file path); not a field, and
+        not compared: two scenarios are equal when their :meth:`to_dict` are.
+
+    Examples
+    --------
+    >>> sc = load_scenario("wind")
+    >>> sc.state_dim, sc.wind.tolist()
+    (9, [4.0, -3.0, 0.5])
     """
 
-    name: str
-    dimension: int
-    duration: float
-    physics_rate: float
-    beacons: np.ndarray
-    trajectory: SinusoidTrajectory
-    description: str = ""
-    kind: str = "vehicle"
-    seed: int = 0
-    wind: np.ndarray | None = None
-    noise: NoiseSpec = field(default_factory=NoiseSpec)
-    observer: ObserverSpec = field(default_factory=ObserverSpec)
-    initial: InitialGuess = field(default_factory=InitialGuess)
-    excitation: ExcitationSpec = field(default_factory=ExcitationSpec)
-    zonotope: ZonotopeSpec = field(default_factory=ZonotopeSpec)
-    model: str | None = None
-    record_every: int = 1
-    source: str = ""
+    name: String = Field(description="Name of the scenario.")
+    description: String = Field("", description="What the scenario shows (first line: `quadobs list`).")
+    kind: Literal["vehicle"] = Field("vehicle", description="`vehicle`: the MuJoCo point-mass vehicle.")
+    dimension: Integer = Field(description="Dimension of the motion: 2 or 3.")
+    duration: Positive = Field(description="Simulated time (s).")
+    physics_rate: Positive = Field(1000.0, description="Physics steps per second (Hz).")
+    seed: Annotated[Integer, Ge(0)] = Field(0, description="Seed of every random draw of the episode.")
+    record_every: Annotated[Integer, Ge(1)] = Field(1, description="Record one physics step in `record_every`.")
+    beacon_specs: tuple[Beacon, ...] = Field(
+        alias="beacons", description="Beacons ranged by the vehicle (`[[beacons]]`, at least one)."
+    )
+    trajectory_spec: TrajectorySpec = Field(
+        default_factory=TrajectorySpec, alias="trajectory", description="The reference motion."
+    )
+    noise: NoiseSpec = Field(default_factory=NoiseSpec, description="Sensor noise and rates.")
+    observer: ObserverSpec = Field(default_factory=ObserverSpec, description="Settings of the augmented observer.")
+    initial: InitialGuess = Field(default_factory=InitialGuess, description="The initial estimate of every estimator.")
+    zonotope: ZonotopeSpec = Field(
+        default_factory=ZonotopeSpec, description="Settings of the guaranteed estimator `zonotope`."
+    )
+    excitation: ExcitationSpec = Field(default_factory=ExcitationSpec, description="The live excitation monitor.")
+    wind_spec: Wind | None = Field(
+        None, alias="wind", description="Constant wind: adds air velocity and wind to the state, and an airspeed output."
+    )
+    model: String | None = Field(
+        None, description="MJCF model to use instead of the built-in vehicle (relative to the scenario file)."
+    )
+
+    _beacons: np.ndarray = PrivateAttr()
+    _wind: np.ndarray | None = PrivateAttr(None)
+    _trajectory: SinusoidTrajectory = PrivateAttr()
+    _source: str = PrivateAttr("")
+
+    @field_validator("dimension")
+    @classmethod
+    def _plane_or_space(cls, dim: int) -> int:
+        if dim not in (2, 3):
+            raise _invalid(f"must be 2 or 3, got {dim}")
+        return dim
+
+    @field_validator("beacon_specs")
+    @classmethod
+    def _some_beacons(cls, beacons: tuple[Beacon, ...]) -> tuple[Beacon, ...]:
+        if not beacons:
+            raise _invalid("at least one [[beacons]] entry with a position is required")
+        return beacons
+
+    @model_validator(mode="after")
+    def _cross_field(self) -> "Scenario":
+        """The rules between fields, then the arrays and the trajectory built once."""
+        dim = self.dimension
+        for i, b in enumerate(self.beacon_specs):
+            _check_length(f"beacons[{i}].position", b.position, dim)
+        if self.wind_spec is not None:
+            _check_length("wind.velocity", self.wind_spec.velocity, dim)
+        spec = _resolve_trajectory(self.trajectory_spec, dim)
+        q = len(self.beacon_specs) + (self.wind_spec is not None)
+        for i, v in enumerate(self.observer.variant_specs):
+            if any(o >= q for o in v.outputs):
+                raise QuadobsError(
+                    f"observer.variants[{i}].outputs: expected distinct output indices in [0, {q - 1}], got {list(v.outputs)}"
+                )
+        if self.initial.point is not None:
+            _check_length("initial.point", self.initial.point, dim * (3 if self.wind_spec is not None else 2))
+        out = self.model_copy(update={"trajectory_spec": spec}) if spec is not self.trajectory_spec else self
+        out._build()
+        if out.steps < 1:
+            raise QuadobsError(f"duration: {self.duration} s is shorter than one physics step ({out.dt} s)")
+        out.sample_interval(self.noise.range_rate, "range_rate")
+        out.sample_interval(self.noise.airspeed_rate, "airspeed_rate")
+        self.excitation.grid(out.dt)
+        return out
+
+    def _build(self) -> None:
+        beacons = np.array([b.position for b in self.beacon_specs], dtype=float)
+        beacons.setflags(write=False)
+        self._beacons = beacons
+        if self.wind_spec is not None:
+            wind = np.array(self.wind_spec.velocity, dtype=float)
+            wind.setflags(write=False)
+            self._wind = wind
+        t = self.trajectory_spec
+        terms = np.array([(x.axis, x.amplitude, x.omega, x.phase) for x in t.terms], dtype=float).reshape(-1, 4)
+        coast = np.array([(c.start, c.end) for c in t.coast], dtype=float).reshape(-1, 2)
+        self._trajectory = SinusoidTrajectory(np.array(t.offset), terms, np.array(t.velocity), coast)
+
+    # -- the tables as arrays ----------------------------------------------------------
+
+    @property
+    def beacons(self) -> np.ndarray:
+        return self._beacons
+
+    @property
+    def wind(self) -> np.ndarray | None:
+        return self._wind
+
+    @property
+    def trajectory(self) -> SinusoidTrajectory:
+        return self._trajectory
+
+    @property
+    def source(self) -> str:
+        return self._source
 
     # -- derived quantities ------------------------------------------------------------
 
@@ -222,7 +489,7 @@ class Scenario:
 
     @property
     def has_wind(self) -> bool:
-        return self.wind is not None
+        return self.wind_spec is not None
 
     @property
     def state_dim(self) -> int:
@@ -255,351 +522,300 @@ class Scenario:
             )
         return k
 
+    # -- copies and serialisation ------------------------------------------------------
+
     def with_overrides(self, **changes) -> "Scenario":
-        """A copy with top-level fields replaced (``duration``, ``seed``, ...), revalidated."""
+        """A copy with top-level fields replaced (``duration``, ``seed``, ...), revalidated; ``None`` keeps a field."""
         data = self.to_dict()
-        for key, value in changes.items():
-            if value is not None:
-                data[key] = value
+        data.update({k: v for k, v in changes.items() if v is not None})
         return parse_scenario(data, source=self.source)
+
+    def with_settings(self, settings: Iterable[str] | Mapping[str, Any]) -> "Scenario":
+        """A copy with any fields replaced by dotted path (:func:`apply_settings`), revalidated.
+
+        Examples
+        --------
+        >>> load_scenario("ifac2021").with_settings({"excitation.monitor": False}).excitation.monitor
+        False
+        """
+        return parse_scenario(apply_settings(self.to_dict(), settings), source=self.source)
 
     def to_dict(self) -> dict:
         """The scenario as plain data (the TOML structure), for summaries and reloading."""
-        traj = self.trajectory
-        terms = [
-            {"axis": int(a), "amplitude": float(am), "omega": float(om), "phase": float(ph), "function": "cos"}
-            for a, am, om, ph in traj.terms
-        ]
-        out: dict[str, Any] = {
-            "name": self.name,
-            "description": self.description,
-            "kind": self.kind,
-            "dimension": self.dimension,
-            "duration": self.duration,
-            "physics_rate": self.physics_rate,
-            "seed": self.seed,
-            "record_every": self.record_every,
-            "beacons": [{"position": [float(v) for v in b]} for b in self.beacons],
-            "trajectory": {
-                "offset": traj.offset.tolist(),
-                "velocity": traj.velocity.tolist(),
-                "terms": terms,
-            },
-            "noise": {k: v for k, v in vars(self.noise).items() if v is not None},
-            "observer": {
-                k: (list(v) if isinstance(v, tuple) else v)
-                for k, v in vars(self.observer).items()
-                if v is not None and k != "variants"
-            },
-            "initial": {k: (list(v) if isinstance(v, tuple) else v) for k, v in vars(self.initial).items() if v is not None},
-            "zonotope": dict(vars(self.zonotope)),
-        }
-        out["excitation"] = {k: v for k, v in vars(self.excitation).items() if v is not None}
-        if traj.coast.size:
-            out["trajectory"]["coast"] = [{"start": float(a), "end": float(b)} for a, b in traj.coast]
-        if self.observer.variants:
-            out["observer"]["variants"] = [{"name": n, "outputs": list(o)} for n, o in self.observer.variants]
-        if self.wind is not None:
-            out["wind"] = {"velocity": self.wind.tolist()}
-        if self.model is not None:
-            out["model"] = self.model
+        out = self.model_dump(mode="json", by_alias=True, exclude_none=True)
+        if not out["observer"]["variants"]:
+            del out["observer"]["variants"]
+        if not out["trajectory"]["coast"]:
+            del out["trajectory"]["coast"]
         return out
 
+    def to_toml(self) -> str:
+        """The scenario as a TOML document that :func:`load_scenario` reads back to an equal scenario.
+
+        Lists of numbers are written on one line.
+        """
+        text = tomli_w.dumps(self.to_dict(), multiline_strings=True)
+        compact = _NUMBER_LIST.sub(lambda m: "[" + ", ".join(m.group(0)[1:-1].replace(",", " ").split()) + "]", text)
+        return compact if tomllib.loads(compact) == tomllib.loads(text) else text
+
+    def __eq__(self, other: object) -> bool:
+        if not isinstance(other, Scenario):
+            return NotImplemented
+        return self.to_dict() == other.to_dict()
+
+    def __hash__(self) -> int:
+        return hash(json.dumps(self.to_dict(), sort_keys=True))
+
+
+_NUMBER_LIST = re.compile(r"\[\n(?:[ ]+[-+0-9.eE]+,\n)+[ ]*\]")
+
+
+def _check_length(path: str, values: tuple, length: int) -> None:
+    if len(values) != length:
+        raise QuadobsError(f"{path}: expected {length} numbers, got {len(values)}")
+
+
+def _resolve_trajectory(spec: TrajectorySpec, dim: int) -> TrajectorySpec:
+    """The trajectory with its vectors checked against the dimension and defaults filled."""
+    update = {}
+    for name in ("offset", "velocity"):
+        value = getattr(spec, name)
+        if value is None:
+            update[name] = (0.0,) * dim
+        else:
+            _check_length(f"trajectory.{name}", value, dim)
+    for i, term in enumerate(spec.terms):
+        if term.axis >= dim:
+            raise QuadobsError(f"trajectory.terms[{i}].axis: must be below the dimension {dim}, got {term.axis}")
+    return spec.model_copy(update=update) if update else spec
+
 
 # --------------------------------------------------------------------------------------
-# Parsing and validation
+# Errors: one line naming the dotted field
 # --------------------------------------------------------------------------------------
 
 
-class _Fields:
-    """Pops validated fields from a TOML table and refuses leftovers."""
+def _path(loc: Iterable[str | int]) -> str:
+    out = ""
+    for part in loc:
+        if part in _TAGS:
+            continue
+        out += f"[{part}]" if isinstance(part, int) else (f".{part}" if out else str(part))
+    return out
 
-    def __init__(self, data: Any, path: str) -> None:
-        if not isinstance(data, dict):
-            raise QuadobsError(f"{path or 'scenario'}: expected a table, got {type(data).__name__}")
-        self.data = dict(data)
-        self.path = path
 
-    def _name(self, key: str) -> str:
-        return f"{self.path}.{key}" if self.path else key
+def _short(value: Any) -> str:
+    text = repr(value)
+    return text if len(text) <= 60 else text[:57] + "..."
 
-    def has(self, key: str) -> bool:
-        return key in self.data
 
-    def raw(self, key: str, default: Any = None) -> Any:
-        return self.data.pop(key, default)
-
-    def number(self, key: str, default: Any = ..., *, positive=False, nonnegative=False, maximum=None, optional=False):
-        name = self._name(key)
-        if key not in self.data:
-            if default is ...:
-                raise QuadobsError(f"{name}: required field is missing")
-            return default
-        value = self.data.pop(key)
-        if value is None and optional:
+def _model_at(loc: Iterable[str | int]) -> type[BaseModel] | None:
+    """The model class of the table at ``loc`` (keys are aliases), or None."""
+    model: Any = Scenario
+    for part in loc:
+        if isinstance(part, int) or part in _TAGS:
+            continue
+        fields = {(f.alias or n): f for n, f in model.model_fields.items()}
+        if part not in fields:
             return None
-        if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise QuadobsError(f"{name}: expected a number, got {value!r}")
-        value = float(value)
-        if not np.isfinite(value):
-            raise QuadobsError(f"{name}: must be finite, got {value}")
-        if positive and value <= 0:
-            raise QuadobsError(f"{name}: must be positive, got {value}")
-        if nonnegative and value < 0:
-            raise QuadobsError(f"{name}: must be non-negative, got {value}")
-        if maximum is not None and value > maximum:
-            raise QuadobsError(f"{name}: must be at most {maximum}, got {value}")
-        return value
-
-    def integer(self, key: str, default: Any = ..., *, minimum: int | None = None) -> int:
-        name = self._name(key)
-        if key not in self.data:
-            if default is ...:
-                raise QuadobsError(f"{name}: required field is missing")
-            return default
-        value = self.data.pop(key)
-        if isinstance(value, bool) or not isinstance(value, int):
-            raise QuadobsError(f"{name}: expected an integer, got {value!r}")
-        if minimum is not None and value < minimum:
-            raise QuadobsError(f"{name}: must be at least {minimum}, got {value}")
-        return value
-
-    def string(self, key: str, default: Any = ..., choices: tuple[str, ...] | None = None) -> str:
-        name = self._name(key)
-        if key not in self.data:
-            if default is ...:
-                raise QuadobsError(f"{name}: required field is missing")
-            return default
-        value = self.data.pop(key)
-        if not isinstance(value, str):
-            raise QuadobsError(f"{name}: expected a string, got {value!r}")
-        if choices is not None and value not in choices:
-            raise QuadobsError(f"{name}: must be one of {', '.join(map(repr, choices))}, got {value!r}")
-        return value
-
-    def vector(self, key: str, length: int | None, default: Any = ...) -> np.ndarray:
-        name = self._name(key)
-        if key not in self.data:
-            if default is ...:
-                raise QuadobsError(f"{name}: required field is missing")
-            return default
-        value = self.data.pop(key)
-        if not isinstance(value, list) or any(isinstance(v, bool) or not isinstance(v, (int, float)) for v in value):
-            raise QuadobsError(f"{name}: expected a list of numbers, got {value!r}")
-        arr = np.array(value, dtype=float)
-        if length is not None and arr.shape != (length,):
-            raise QuadobsError(f"{name}: expected {length} numbers, got {arr.size}")
-        if not np.all(np.isfinite(arr)):
-            raise QuadobsError(f"{name}: holds a non-finite value")
-        return arr
-
-    def scalar_or_list(self, key: str, default: Any, *, positive=False, nonnegative=False):
-        name = self._name(key)
-        if key not in self.data:
-            return default
-        value = self.data[key]
-        if isinstance(value, list):
-            arr = self.vector(key, None)
-            if positive and np.any(arr <= 0):
-                raise QuadobsError(f"{name}: entries must be positive")
-            if nonnegative and np.any(arr < 0):
-                raise QuadobsError(f"{name}: entries must be non-negative")
-            return tuple(float(v) for v in arr)
-        return self.number(key, positive=positive, nonnegative=nonnegative)
-
-    def table(self, key: str) -> "_Fields":
-        return _Fields(self.data.pop(key, {}), self._name(key))
-
-    def done(self) -> None:
-        if self.data:
-            keys = ", ".join(sorted(self.data))
-            where = self.path or "scenario"
-            raise QuadobsError(f"{where}: unknown field(s) {keys}")
+        model = _table_class(fields[part].annotation)
+        if model is None:
+            return None
+    return model
 
 
-def _parse_variants(raw: Any, q: int) -> tuple[tuple[str, tuple[int, ...]], ...]:
-    if not isinstance(raw, list):
-        raise QuadobsError("observer.variants: expected a list of tables")
-    out, seen = [], {"augmented"}
-    for i, v in enumerate(raw):
-        f = _Fields(v, f"observer.variants[{i}]")
-        name = f.string("name")
-        if not name.replace("_", "").isalnum() or not name.isascii() or name in seen:
-            raise QuadobsError(f"observer.variants[{i}].name: {name!r} must be a new identifier (letters, digits, _)")
-        seen.add(name)
-        outputs = f.raw("outputs", None)
-        if (
-            not isinstance(outputs, list)
-            or not outputs
-            or any(isinstance(o, bool) or not isinstance(o, int) or not 0 <= o < q for o in outputs)
-            or len(set(outputs)) != len(outputs)
-        ):
-            raise QuadobsError(
-                f"observer.variants[{i}].outputs: expected distinct output indices in [0, {q - 1}], got {outputs!r}"
-            )
-        f.done()
-        out.append((name, tuple(outputs)))
-    return tuple(out)
+def _is_table_list(loc: tuple) -> bool:
+    """Whether the field at ``loc`` is a list of tables (``[[name]]``)."""
+    model = _model_at(loc[:-1])
+    fields = {(f.alias or n): f for n, f in model.model_fields.items()} if model else {}
+    info = fields.get(loc[-1]) if loc else None
+    return info is not None and get_origin(info.annotation) is tuple and _table_class(info.annotation) is not None
+
+
+def _table_class(annotation: Any) -> type[BaseModel] | None:
+    """The table model inside ``annotation`` (``Model``, ``Model | None``, ``tuple[Model, ...]``)."""
+    if isinstance(annotation, type) and issubclass(annotation, BaseModel):
+        return annotation
+    for arg in get_args(annotation):
+        found = _table_class(arg)
+        if found is not None:
+            return found
+    return None
+
+
+def _unknown(errors: list[dict]) -> str:
+    """The message for the unknown keys of one table, with a suggestion for each close one."""
+    parent = errors[0]["loc"][:-1]
+    keys = [e["loc"][-1] for e in errors if e["loc"][:-1] == parent]
+    model = _model_at(parent)
+    known = [(f.alias or n) for n, f in model.model_fields.items()] if model else []
+    hints = []
+    for key in keys:
+        close = difflib.get_close_matches(str(key), known, n=1)
+        hints.append(f"{key!r} (did you mean {close[0]!r}?)" if close else repr(key))
+    word = "field" if len(keys) == 1 else "fields"
+    return f"{_path(parent) or 'scenario'}: unknown {word} {', '.join(hints)}"
+
+
+_KINDS = {
+    "float_type": "a number",
+    "int_type": "an integer",
+    "string_type": "a string",
+    "bool_type": "true or false",
+    "tuple_type": "a list",
+    "list_type": "a list",
+}
+
+
+def _bound_message(kind: str, ctx: dict, value: Any) -> str:
+    bound = ctx.get("gt", ctx.get("ge", ctx.get("le")))
+    value = float(value) if isinstance(bound, float) else value
+    if kind == "greater_than":
+        return f"must be positive, got {value}" if ctx["gt"] == 0 else f"must be greater than {ctx['gt']}, got {value}"
+    if kind == "greater_than_equal":
+        if isinstance(ctx["ge"], float) and ctx["ge"] == 0:
+            return f"must be non-negative, got {value}"
+        return f"must be at least {ctx['ge']}, got {value}"
+    return f"must be at most {ctx['le']}, got {value}"
+
+
+def _message(error: dict) -> str:
+    """One error of a validation as ``dotted.path: what is wrong``."""
+    kind, ctx, value = error["type"], error.get("ctx") or {}, error.get("input")
+    path = _path(error["loc"])
+    if kind == "quadobs":
+        path = ".".join(p for p in (path, ctx["field"]) if p).replace(".[", "[")
+        text = ctx["message"]
+    elif kind == "value_error" and isinstance(ctx.get("error"), QuadobsError):
+        return f"{path}: {ctx['error']}" if path else str(ctx["error"])
+    elif kind == "missing":
+        text = "required field is missing"
+    elif kind == "tuple_type" and _is_table_list(error["loc"]):
+        text = "expected a list of tables"
+    elif kind in _KINDS:
+        text = f"expected {_KINDS[kind]}, got {_short(value)}"
+    elif kind in ("model_type", "dict_type", "model_attributes_type"):
+        text = f"expected a table, got {type(value).__name__}"
+    elif kind == "finite_number":
+        text = f"must be finite, got {value}"
+    elif kind in ("greater_than", "greater_than_equal", "less_than_equal"):
+        text = _bound_message(kind, ctx, value)
+    elif kind == "literal_error":
+        text = f"must be one of {ctx['expected']}, got {_short(value)}"
+    elif kind == "too_short":
+        text = f"expected at least {ctx['min_length']} entries, got {ctx['actual_length']}"
+    else:
+        text = error["msg"]
+    return f"{path or 'scenario'}: {text}".replace("\n", " ")
+
+
+def _first_error(exc: ValidationError) -> str:
+    """The error to report: unknown fields first (the likely typo), else the first one."""
+    errors = exc.errors(include_url=False)
+    unknown = [e for e in errors if e["type"] == "extra_forbidden"]
+    return _unknown(unknown) if unknown else _message(errors[0])
+
+
+# --------------------------------------------------------------------------------------
+# Parsing, settings, loading
+# --------------------------------------------------------------------------------------
 
 
 def parse_scenario(data: dict, source: str = "") -> Scenario:
-    """Validate plain data (a parsed TOML document) into a :class:`Scenario`."""
-    top = _Fields(data, "")
-    name = top.string("name")
-    description = top.string("description", "")
-    kind = top.string("kind", "vehicle", choices=("vehicle",))
-    dim = top.integer("dimension")
-    if dim not in (2, 3):
-        raise QuadobsError(f"dimension: must be 2 or 3, got {dim}")
-    duration = top.number("duration", positive=True)
-    rate = top.number("physics_rate", 1000.0, positive=True)
-    seed = top.integer("seed", 0, minimum=0)
-    record_every = top.integer("record_every", 1, minimum=1)
-    model = top.string("model", None) if top.has("model") else None
+    """Validate plain data (a parsed TOML document) into a :class:`Scenario`.
 
-    beacons_raw = top.raw("beacons", None)
-    if not isinstance(beacons_raw, list) or not beacons_raw:
-        raise QuadobsError("beacons: at least one [[beacons]] entry with a position is required")
-    beacons = []
-    for i, b in enumerate(beacons_raw):
-        bf = _Fields(b, f"beacons[{i}]")
-        beacons.append(bf.vector("position", dim))
-        bf.done()
-    beacons = np.array(beacons)
-
-    wind = None
-    if top.has("wind"):
-        wf = top.table("wind")
-        wind = wf.vector("velocity", dim)
-        wf.done()
-
-    tf = top.table("trajectory")
-    offset = tf.vector("offset", dim, np.zeros(dim))
-    velocity = tf.vector("velocity", dim, np.zeros(dim))
-    terms_raw = tf.raw("terms", [])
-    if not isinstance(terms_raw, list):
-        raise QuadobsError("trajectory.terms: expected a list of tables")
-    terms = []
-    for i, term in enumerate(terms_raw):
-        f = _Fields(term, f"trajectory.terms[{i}]")
-        axis = f.integer("axis", minimum=0)
-        if axis >= dim:
-            raise QuadobsError(f"trajectory.terms[{i}].axis: must be below the dimension {dim}, got {axis}")
-        amp = f.number("amplitude")
-        omega = f.number("omega", nonnegative=True)
-        phase = f.number("phase", 0.0)
-        func = f.string("function", "cos", choices=("cos", "sin"))
-        f.done()
-        terms.append((axis, amp, omega, phase - (np.pi / 2 if func == "sin" else 0.0)))
-    coast_raw = tf.raw("coast", [])
-    if not isinstance(coast_raw, list):
-        raise QuadobsError("trajectory.coast: expected a list of tables ([[trajectory.coast]] with start and end)")
-    coast = []
-    for i, seg in enumerate(coast_raw):
-        f = _Fields(seg, f"trajectory.coast[{i}]")
-        coast.append((f.number("start", nonnegative=True), f.number("end", positive=True)))
-        f.done()
-    tf.done()
-    trajectory = SinusoidTrajectory(
-        offset, np.array(terms, dtype=float).reshape(-1, 4), velocity, np.array(coast, dtype=float).reshape(-1, 2)
-    )
-
-    nf = top.table("noise")
-    noise = NoiseSpec(
-        range_std=nf.number("range_std", 0.0, nonnegative=True),
-        accel_std=nf.number("accel_std", 0.0, nonnegative=True),
-        airspeed_std=nf.number("airspeed_std", 0.0, nonnegative=True),
-        range_rate=nf.number("range_rate", None, positive=True, optional=True),
-        airspeed_rate=nf.number("airspeed_rate", None, positive=True, optional=True),
-        dropout=nf.number("dropout", 0.0, nonnegative=True, maximum=1.0),
-        outlier_probability=nf.number("outlier_probability", 0.0, nonnegative=True, maximum=1.0),
-        outlier_std=nf.number("outlier_std", 0.0, nonnegative=True),
-        range_bound=nf.number("range_bound", 0.0, nonnegative=True),
-        accel_bound=nf.number("accel_bound", 0.0, nonnegative=True),
-        airspeed_bound=nf.number("airspeed_bound", 0.0, nonnegative=True),
-    )
-    nf.done()
-    for sensor in ("range", "accel", "airspeed"):
-        if getattr(noise, f"{sensor}_std") and getattr(noise, f"{sensor}_bound"):
-            raise QuadobsError(
-                f"noise.{sensor}_bound: cannot be combined with noise.{sensor}_std "
-                "(a sensor's noise is Gaussian or bounded, not both)"
-            )
-
-    of = top.table("observer")
-    observer = ObserverSpec(
-        immersion=of.string("immersion", "minimal", choices=("minimal", "chain")),
-        S0=of.scalar_or_list("S0", 100.0, positive=True),
-        V=of.scalar_or_list("V", 1e-4, nonnegative=True),
-        W=of.scalar_or_list("W", 1.0, positive=True),
-        theta=of.number("theta", 0.0, nonnegative=True),
-        gate=of.number("gate", None, positive=True, optional=True),
-        variants=_parse_variants(of.raw("variants", []), beacons.shape[0] + (1 if wind is not None else 0)),
-    )
-    of.done()
-
-    inf = top.table("initial")
-    kind_i = inf.string("kind", "zero", choices=("zero", "point", "random"))
-    state_dim = dim * (3 if wind is not None else 2)
-    point = None
-    if kind_i == "point":
-        point = tuple(float(v) for v in inf.vector("point", state_dim))
-    initial = InitialGuess(
-        kind=kind_i,
-        point=point,
-        position_spread=inf.number("position_spread", 0.0, nonnegative=True),
-        velocity_spread=inf.number("velocity_spread", 0.0, nonnegative=True),
-    )
-    inf.done()
-
-    xf = top.table("excitation")
-    monitor = xf.raw("monitor", True)
-    if not isinstance(monitor, bool):
-        raise QuadobsError(f"excitation.monitor: expected true or false, got {monitor!r}")
-    excitation = ExcitationSpec(
-        monitor=monitor,
-        window=xf.number("window", 5.0, positive=True),
-        threshold=xf.number("threshold", 1e-6, nonnegative=True),
-        update_period=xf.number("update_period", 0.1, positive=True),
-        step=xf.number("step", None, positive=True, optional=True),
-    )
-    xf.done()
-    zf = top.table("zonotope")
-    zonotope = ZonotopeSpec(
-        position_bound=zf.number("position_bound", 50.0, positive=True),
-        velocity_bound=zf.number("velocity_bound", 30.0, positive=True),
-        max_generators=zf.integer("max_generators", 0, minimum=0),
-        reduction=zf.string("reduction", "parallelotope", choices=("combastel", "girard", "pca", "parallelotope")),
-    )
-    zf.done()
-    top.done()
-
-    scenario = Scenario(
-        name=name,
-        description=description,
-        kind=kind,
-        dimension=dim,
-        duration=duration,
-        physics_rate=rate,
-        seed=seed,
-        beacons=beacons,
-        wind=wind,
-        trajectory=trajectory,
-        noise=noise,
-        observer=observer,
-        initial=initial,
-        excitation=excitation,
-        zonotope=zonotope,
-        model=model,
-        record_every=record_every,
-        source=source,
-    )
-    if scenario.steps < 1:
-        raise QuadobsError(f"duration: {duration} s is shorter than one physics step ({scenario.dt} s)")
-    scenario.sample_interval(noise.range_rate, "range_rate")
-    scenario.sample_interval(noise.airspeed_rate, "airspeed_rate")
-    excitation.grid(scenario.dt)
+    Raises
+    ------
+    QuadobsError
+        One line naming the first invalid field by its dotted path.
+    """
+    if not isinstance(data, dict):
+        raise QuadobsError(f"scenario: expected a table, got {type(data).__name__}")
+    try:
+        scenario = Scenario.model_validate(data)
+    except ValidationError as exc:
+        raise QuadobsError(_first_error(exc)) from None
+    scenario._source = source
     return scenario
+
+
+def parse_setting(text: str) -> tuple[str, Any]:
+    """``"a.b[1].c=value"`` as ``(path, value)``; the value is read as TOML, else kept as a string.
+
+    Examples
+    --------
+    >>> parse_setting("noise.range_std=0.5"), parse_setting("name=demo run")
+    (('noise.range_std', 0.5), ('name', 'demo run'))
+    """
+    path, sep, raw = text.partition("=")
+    path = path.strip()
+    if not sep or not path:
+        raise QuadobsError(f"--set: expected FIELD=VALUE (e.g. noise.range_std=0.1), got {text!r}")
+    try:
+        value = tomllib.loads(f"v = {raw.strip()}")["v"]
+    except tomllib.TOMLDecodeError:
+        value = raw.strip()
+    return path, value
+
+
+def _split_path(path: str) -> list[str | int]:
+    """``"a.b[1].c"`` as ``["a", "b", 1, "c"]``."""
+    parts: list[str | int] = []
+    for name in path.split("."):
+        head, *indices = name.split("[")
+        if not head or any(not i.endswith("]") or not i[:-1].isdigit() for i in indices):
+            raise QuadobsError(f"--set: {path!r} is not a dotted field path (e.g. trajectory.terms[0].omega)")
+        parts += [head] + [int(i[:-1]) for i in indices]
+    return parts
+
+
+def apply_settings(data: dict, settings: Iterable[str] | Mapping[str, Any]) -> dict:
+    """A copy of scenario data with fields set by dotted path (missing tables are created).
+
+    Parameters
+    ----------
+    data : dict
+        Scenario data (a parsed TOML document or :meth:`Scenario.to_dict`).
+    settings : iterable of str, or mapping
+        ``"path=value"`` texts (:func:`parse_setting`), or ``{path: value}``.
+
+    Returns
+    -------
+    dict
+        The new data, to be validated by :func:`parse_scenario` (unknown fields are refused there).
+    """
+    out = copy.deepcopy(data)
+    pairs = settings.items() if isinstance(settings, Mapping) else map(parse_setting, settings)
+    for path, value in pairs:
+        parts = _split_path(path)
+        node: Any = out
+        for depth, part in enumerate(parts[:-1]):
+            node = _child(node, part, parts[depth + 1], _path(parts[: depth + 1]))
+        _assign(node, parts, value)
+    return out
+
+
+def _child(node: Any, part: str | int, following: str | int, where: str) -> Any:
+    if isinstance(part, int):
+        if not isinstance(node, list) or not 0 <= part < len(node):
+            size = len(node) if isinstance(node, list) else 0
+            raise QuadobsError(f"{where}: no such entry ({size} in the list)")
+        return node[part]
+    if not isinstance(node, dict):
+        raise QuadobsError(f"{where}: is not a table")
+    return node.setdefault(part, [] if isinstance(following, int) else {})
+
+
+def _assign(node: Any, parts: list[str | int], value: Any) -> None:
+    part = parts[-1]
+    if isinstance(part, int):
+        if not isinstance(node, list) or not 0 <= part <= len(node):
+            raise QuadobsError(f"{_path(parts)}: no such entry (a list grows by one entry at a time)")
+        node[part:part + 1] = [value]
+    elif isinstance(node, dict):
+        node[part] = value
+    else:
+        raise QuadobsError(f"{_path(parts[:-1])}: is not a table")
 
 
 def _builtin_dir():
@@ -616,19 +832,12 @@ def list_scenarios() -> dict[str, str]:
     return out
 
 
-def load_scenario(name_or_path: str | Path, **overrides) -> Scenario:
-    """Load a built-in scenario by name, or a scenario file by path.
-
-    Keyword overrides replace top-level fields (``duration=5.0``, ``seed=3``).
-
-    Raises
-    ------
-    QuadobsError
-        Unknown name, unreadable file, TOML syntax error, or an invalid field.
-    """
+def _read(name_or_path: str | Path) -> dict:
+    """The TOML document of a built-in name or a file, with a relative model path made absolute."""
     text_source = str(name_or_path)
     path = Path(name_or_path)
-    if path.suffix == ".toml" or path.exists():
+    is_file = path.suffix == ".toml" or path.exists()
+    if is_file:
         try:
             text = path.read_text()
         except OSError as exc:
@@ -643,8 +852,114 @@ def load_scenario(name_or_path: str | Path, **overrides) -> Scenario:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise QuadobsError(f"scenario file {text_source}: invalid TOML ({exc})") from None
-    scenario = parse_scenario(data, source=text_source)
-    if scenario.model is not None and path.suffix == ".toml" and not Path(scenario.model).is_absolute():
-        scenario = replace(scenario, model=str((path.parent / scenario.model).resolve()))
-    overrides = {k: v for k, v in overrides.items() if v is not None}
-    return scenario.with_overrides(**overrides) if overrides else scenario
+    model = data.get("model")
+    if path.suffix == ".toml" and isinstance(model, str) and not Path(model).is_absolute():
+        data["model"] = str((path.parent / model).resolve())
+    return data
+
+
+def load_scenario(name_or_path: str | Path, *, settings: Iterable[str] | Mapping[str, Any] = (), **overrides) -> Scenario:
+    """Load a built-in scenario by name, or a scenario file by path.
+
+    Parameters
+    ----------
+    name_or_path : str or Path
+        A built-in name (:func:`list_scenarios`) or the path of a ``.toml`` file.
+    settings : iterable of str, or mapping
+        Fields set by dotted path, ``"noise.range_std=0.1"`` (:func:`apply_settings`).
+    **overrides
+        Top-level fields replaced (``duration=5.0``, ``seed=3``); ``None`` keeps a field.
+
+    Raises
+    ------
+    QuadobsError
+        Unknown name, unreadable file, TOML syntax error, or an invalid field.
+    """
+    data = apply_settings(_read(name_or_path), settings)
+    data.update({k: v for k, v in overrides.items() if v is not None})
+    return parse_scenario(data, source=str(name_or_path))
+
+
+# --------------------------------------------------------------------------------------
+# The field reference of the documentation
+# --------------------------------------------------------------------------------------
+
+
+def _type_label(annotation: Any, metadata: Iterable[Any] = ()) -> str:
+    """A reader's name of a field's type, with its bounds (``number > 0``, ``list of number``)."""
+    metadata = list(metadata)
+    while get_origin(annotation) is Annotated:
+        annotation, *more = get_args(annotation)
+        metadata += more
+    args = get_args(annotation)
+    if get_origin(annotation) is Literal:
+        label = "one of " + ", ".join(f"`{json.dumps(a)}`" for a in args)
+    elif get_origin(annotation) is tuple:
+        inner = _table_class(args[0])
+        label = "list of tables" if inner else f"list of {_type_label(args[0])}"
+    elif args and type(None) in args:
+        return _type_label(next(a for a in args if a is not type(None)), metadata) + " (optional)"
+    elif get_origin(annotation) is Union:
+        label = " or ".join(_type_label(a) for a in args)
+    elif _table_class(annotation):
+        label = "table"
+    else:
+        label = {float: "number", int: "integer", str: "string", bool: "boolean"}.get(annotation, str(annotation))
+    bounds = [
+        f"{sign} {getattr(m, attr)}"
+        for m in metadata
+        for cls, attr, sign in ((Gt, "gt", ">"), (Ge, "ge", ">="), (Le, "le", "<="))
+        if isinstance(m, cls)
+    ]
+    return " ".join([label, ", ".join(bounds)]) if bounds else label
+
+
+def _default_label(info: Any) -> str:
+    if info.default is PydanticUndefined:
+        return "required" if info.default_factory is None else ""
+    if info.default is None:
+        return ""
+    if isinstance(info.default, tuple) and not info.default:
+        return "`[]`"
+    return f"`{json.dumps(info.default)}`"
+
+
+def _rows(model: type[BaseModel], prefix: str) -> Iterable[tuple[str, str, str, str]]:
+    for name, info in model.model_fields.items():
+        dotted = prefix + (info.alias or name)
+        yield dotted, _type_label(info.annotation, info.metadata), _default_label(info), info.description or ""
+        inner = _table_class(info.annotation)
+        if inner is not None:
+            many = get_origin(info.annotation) is tuple
+            yield from _rows(inner, dotted + ("[]." if many else "."))
+
+
+def field_reference() -> str:
+    """The scenario reference of the documentation: one row per field of the schema.
+
+    Returns
+    -------
+    str
+        Markdown, the content of ``docs/reference/scenario.md``
+        (regenerate: ``python -m quadobs.cli show --reference > docs/reference/scenario.md``).
+    """
+    lines = [
+        "# Scenario reference",
+        "",
+        "<!-- Generated from the schema in quadobs/testbed/scenario.py: do not edit. -->",
+        "<!-- Regenerate: python -m quadobs.cli show --reference > docs/reference/scenario.md -->",
+        "",
+        "A scenario is a TOML file; `quadobs show NAME` prints a built-in one, and `--set FIELD=VALUE`",
+        "overrides any field below on `quadobs run`, `campaign`, `excitation` and `show`",
+        "(`name[]` is a list of tables, e.g. `[[beacons]]`; set an entry with `beacons[0].position=[1, 2, 3]`).",
+        "Cross-field rules: vectors have `dimension` entries (`initial.point`: the state's, with wind 3 per axis);",
+        "`noise.*_rate` divide `physics_rate`; `excitation.window` and `update_period` are multiples of",
+        "`excitation.step`, itself a multiple of the physics step; a sensor has `*_std` or `*_bound`, not both;",
+        "`observer.variants[].outputs` index the outputs (beacons, then airspeed).",
+        "",
+        "| field | type | default | description |",
+        "|---|---|---|---|",
+    ]
+    for dotted, label, default, text in _rows(Scenario, ""):
+        lines.append(f"| `{dotted}` | {label} | {default} | {text.replace('|', '/')} |")
+    return "\n".join(lines) + "\n"

@@ -94,3 +94,52 @@ def test_list_names_the_scenarios(capsys):
     out = capsys.readouterr().out
     for name in ("ifac2021", "beacons", "beacons2d", "wind"):
         assert name in out
+
+
+@pytest.mark.parametrize("name", ["ifac2021", "wind", "degenerate", "beacons", "ifac2021-bounded"])
+def test_show_prints_toml_that_loads_back(tmp_path, capsys, name):
+    from quadobs import load_scenario
+
+    assert main(["show", name]) == 0
+    path = tmp_path / "shown.toml"
+    path.write_text(capsys.readouterr().out)
+    assert load_scenario(path) == load_scenario(name)
+
+
+def test_show_applies_settings_and_prints_the_reference(tmp_path, capsys):
+    from quadobs import load_scenario
+    from quadobs.testbed.scenario import field_reference
+
+    assert main(["show", "ifac2021", "--set", "noise.range_std=0.2", "--set", "initial.kind=random"]) == 0
+    path = tmp_path / "shown.toml"
+    path.write_text(capsys.readouterr().out)
+    sc = load_scenario(path)
+    assert sc.noise.range_std == 0.2 and sc.initial.kind == "random" and sc.name == "ifac2021"
+    assert main(["show", "--reference"]) == 0
+    assert capsys.readouterr().out == field_reference()
+    assert main(["show"]) == 2
+    assert "show: give a scenario" in capsys.readouterr().err
+
+
+def test_run_and_excitation_take_settings(tmp_path, capsys):
+    _, s = _run(tmp_path, "ifac2021", "--set", "duration=0.5", "--set", "physics_rate=500", "--set", "noise.range_rate=50")
+    assert s["physics_steps"] == 250 and s["measurements"]["range_period_steps"] == 10
+    capsys.readouterr()
+    assert main(["excitation", "ifac2021", "--set", "duration=4", "--set", "excitation.window=2.0"]) == 0
+    assert "windows: delta = 2 s, starts every 0.05 s over [0, 4] s" in capsys.readouterr().out
+    out = tmp_path / "campaign"
+    args = ["campaign", "ifac2021-noisy", "--runs", "1", "--workers", "0", "--no-progress", "--out", str(out)]
+    assert main([*args, "--set", "duration=0.2", "--set", "noise.range_std=0.05"]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["duration"] == 0.2 and "N(0, 0.05^2)" in capsys.readouterr().out
+
+
+def test_bad_settings_exit_2_naming_the_field(capsys):
+    assert main(["run", "ifac2021", "--no-progress", "--set", "noise.range_sdt=0.1"]) == 2
+    assert "noise: unknown field 'range_sdt' (did you mean 'range_std'?)" in capsys.readouterr().err
+    assert main(["campaign", "ifac2021", "--runs", "1", "--out", "unused", "--set", "observer.gate=-1"]) == 2
+    assert "observer.gate: must be positive, got -1.0" in capsys.readouterr().err
+    assert main(["excitation", "ifac2021", "--set", "excitation"]) == 2
+    assert "--set: expected FIELD=VALUE" in capsys.readouterr().err
+    assert main(["run", "le2013", "--set", "duration=3"]) == 2
+    assert "--set: le2013" in capsys.readouterr().err
