@@ -38,7 +38,7 @@ from quadobs.studies.plot import run as _run
 from quadobs.studies.plot._figure import DEFAULT_DPI, DEFAULT_SIZE, FORMATS, drawing, new_figure, save_figure
 from quadobs.studies.plot._source import open_source
 
-__all__ = ["render", "PANELS", "DEFAULT_SIZE", "DEFAULT_DPI", "FORMATS"]
+__all__ = ["render", "figure", "PANELS", "DEFAULT_SIZE", "DEFAULT_DPI", "FORMATS"]
 
 _KINDS = {"run": _run, "campaign": _campaign, "le2013": _le2013}
 PANELS: dict[str, list[str]] = {kind: list(mod.PANELS) for kind, mod in _KINDS.items()}
@@ -72,6 +72,31 @@ def _check_size(size, dpi) -> tuple[tuple[float, float], float]:
     return size, dpi
 
 
+def figure(input, what=None, *, size=None, dpi=None, samples=None, legend: bool = True):
+    """The matplotlib figure of ``input`` with the panels ``what`` (arguments as :func:`render`).
+
+    Returns
+    -------
+    fig : matplotlib.figure.Figure
+    dpi : float
+    """
+    size, dpi = _check_size(size, dpi)
+    src = open_source(input)
+    panels = _check_panels(what, src.kind, src)
+    if samples is not None and (src.kind != "le2013" or "sets" not in panels):
+        raise QuadobsError("--samples: applies only to the sets panel of a le2013 recording")
+    mod = _KINDS[src.kind]
+    with drawing():
+        fig, axes = new_figure(panels, size, dpi, three_d=mod.THREE_D)
+        for name in panels:
+            kw = {"samples": samples} if name == "sets" and samples is not None else {}
+            mod.PANELS[name](axes[name], src, **kw)
+            ax = axes[name]
+            if legend and ax in fig.axes and ax.get_legend() is None and ax.get_legend_handles_labels()[0]:
+                ax.legend(loc="best", frameon=False)
+    return fig, dpi
+
+
 def render(input, out, what=None, *, size=None, dpi=None, samples=None, legend: bool = True) -> Path:
     """Draw the figure of ``input`` with the panels ``what`` and write it to ``out``.
 
@@ -81,7 +106,7 @@ def render(input, out, what=None, *, size=None, dpi=None, samples=None, legend: 
         A run's ``.rrd``, a campaign folder (or its ``statistics.rrd``) or the le2013 ``.rrd``.
     out : str or Path
         Figure file; ``.png``, ``.pdf`` or ``.svg``. Written to a temporary name and renamed
-        into place: on error nothing is written.
+        into place: on error nothing is written (not even its folder).
     what : list of str, optional
         Panels (:data:`PANELS` of the input's kind); default: the kind's usual figure.
     size : (float, float), optional
@@ -104,21 +129,8 @@ def render(input, out, what=None, *, size=None, dpi=None, samples=None, legend: 
         Unknown or inapplicable panel, a file that is not a quadobs recording, an output
         format other than PNG, PDF or SVG, matplotlib not installed.
     """
-    size, dpi = _check_size(size, dpi)
     out = Path(out)
     if out.suffix.lower().lstrip(".") not in FORMATS:
         raise QuadobsError(f"--out {str(out)!r}: format {out.suffix or '(none)'!r} not supported (use .png, .pdf or .svg)")
-    src = open_source(input)
-    panels = _check_panels(what, src.kind, src)
-    if samples is not None and (src.kind != "le2013" or "sets" not in panels):
-        raise QuadobsError("--samples: applies only to the sets panel of a le2013 recording")
-    mod = _KINDS[src.kind]
-    with drawing():
-        fig, axes = new_figure(panels, size, dpi, three_d=mod.THREE_D)
-        for name in panels:
-            kw = {"samples": samples} if name == "sets" and samples is not None else {}
-            mod.PANELS[name](axes[name], src, **kw)
-            ax = axes[name]
-            if legend and ax in fig.axes and ax.get_legend() is None and ax.get_legend_handles_labels()[0]:
-                ax.legend(loc="best", frameon=False)
-        return save_figure(fig, out, dpi)
+    fig, dpi = figure(input, what, size=size, dpi=dpi, samples=samples, legend=legend)
+    return save_figure(fig, out, dpi)

@@ -9,6 +9,8 @@ layouts, is refused with a one-line :class:`~quadobs.errors.QuadobsError`.
 from __future__ import annotations
 
 import re
+from contextlib import contextmanager
+import warnings
 from functools import cached_property
 from pathlib import Path
 
@@ -23,8 +25,23 @@ KINDS = ("run", "campaign", "le2013")
 
 
 def _one_line(exc: BaseException) -> str:
+    """The last line of the reader's message, without its ``Failed to read RRD file at PATH:`` prefix."""
     text = str(exc).strip().splitlines()
-    return text[-1].strip() if text else type(exc).__name__
+    line = text[-1].strip() if text else type(exc).__name__
+    return re.sub(r"^Failed to read RRD file at .*?: ", "", line)
+
+
+@contextmanager
+def _reading(path: Path, what: str = "recording"):
+    """Turn the reader's failures into one line naming ``path``, and silence its warnings (a file without footer)."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        try:
+            yield
+        except QuadobsError:
+            raise
+        except Exception as exc:
+            raise QuadobsError(f"{what} {str(path)!r}: cannot be read, damaged or not a rerun recording ({_one_line(exc)})") from None
 
 
 class Source:
@@ -49,12 +66,8 @@ class Source:
     def series(self, entity: str) -> dict[str, np.ndarray]:
         """``step``, ``sim_time`` (s) and ``values (T, width)`` of ``entity`` (see :func:`read_series`)."""
         if entity not in self._cache:
-            try:
+            with _reading(self.path):
                 self._cache[entity] = read_series(self.path, entity)
-            except QuadobsError:
-                raise
-            except Exception as exc:  # a damaged chunk half-way through the file
-                raise QuadobsError(f"recording {str(self.path)!r}: cannot be read ({_one_line(exc)})") from None
         return self._cache[entity]
 
     def names(self, pattern: str) -> list[str]:
@@ -83,7 +96,7 @@ class Source:
 
         entity = "/" + entity.strip("/")
         out: dict[int, list[np.ndarray]] = {}
-        try:
+        with _reading(self.path):
             for ch in RrdReader(self.path).stream():
                 if ch.is_static or str(ch.entity_path) != entity:
                     continue
@@ -93,8 +106,6 @@ class Source:
                     continue
                 for s, v in zip(rb.column("step").to_pylist(), rb.column(comp).to_pylist()):
                     out[int(s)] = [np.asarray(x, dtype=float) for x in v] if comp.startswith("Line") else [np.asarray(v, dtype=float)]
-        except Exception as exc:
-            raise QuadobsError(f"recording {str(self.path)!r}: cannot be read ({_one_line(exc)})") from None
         if not out:
             raise QuadobsError(f"recording {str(self.path)!r}: no sets at entity {entity!r}")
         return out
@@ -104,14 +115,12 @@ class Source:
         from rerun.chunk import RrdReader
 
         entity = "/" + entity.strip("/")
-        try:
+        with _reading(self.path):
             for ch in RrdReader(self.path).stream():
                 if ch.is_static and str(ch.entity_path) == entity:
                     rb = ch.to_record_batch()
                     if "Points3D:positions" in rb.schema.names:
                         return np.asarray(rb.column("Points3D:positions").to_pylist()[-1], dtype=float)
-        except Exception as exc:
-            raise QuadobsError(f"recording {str(self.path)!r}: cannot be read ({_one_line(exc)})") from None
         return None
 
     def runs_table(self) -> dict[str, list]:
@@ -153,12 +162,8 @@ def open_source(path: str | Path) -> Source:
             raise QuadobsError(f"input {str(folder)!r}: a folder without statistics.rrd is not a campaign folder")
     elif not path.exists():
         raise QuadobsError(f"input {str(path)!r}: no such file or folder")
-    try:
+    with _reading(path, "input"):
         entities = list_entities(path)
-    except QuadobsError:
-        raise
-    except Exception as exc:
-        raise QuadobsError(f"input {str(path)!r}: not a rerun recording ({_one_line(exc)})") from None
     kind = _kind_of(entities)
     if kind is None:
         raise QuadobsError(f"input {str(path)!r}: not a quadobs run, campaign or le2013 recording")

@@ -47,10 +47,9 @@ def sets(ax, src, samples=None) -> None:
                 sub.plot(v[:, 0], v[:, 1], label=m, **style(i + 1))
         p = truth[k][0].reshape(-1, 2)[0]
         sub.plot(p[0], p[1], linestyle="none", marker="*", color="0.0", markersize=7, label="true state")
+        sub.set_xlabel("x1 (-)")
         sub.set_ylabel("x2 (-)")
         sub.set_title(f"Sets X_k, k = {k}")
-        if j == len(samples) - 1:
-            sub.set_xlabel("x1 (-)")
         if j == 0 and sub is not ax:
             sub.legend(loc="best", frameon=False, fontsize=5)
     if grid is not None:

@@ -144,7 +144,7 @@ def bounds(ax, src) -> None:
     ax.set_yscale("symlog", linthresh=0.1)
     ax.set_xlabel("time (s)")
     ax.set_ylabel("bound - true position (m)")
-    ax.set_title("Guaranteed bounds around the truth")
+    ax.set_title("Guaranteed bounds - truth")
 
 
 def excitation(ax, src) -> None:
