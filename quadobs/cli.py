@@ -263,7 +263,7 @@ def build_parser() -> argparse.ArgumentParser:
         "plot",
         help="draw a figure (PNG, PDF, SVG) of a run's .rrd, a campaign folder or the le2013 recording (needs quadobs[plot])",
         description="Panels (--what, comma-separated): "
-        "run .rrd: paths, paths3d, position, velocity, ranges, covariance, nis, bounds, excitation; "
+        "run .rrd: paths, paths3d, position, velocity, wind, ranges, covariance, nis, bounds, excitation; "
         "campaign folder: rmse, rmse-velocity, converged, nees, nis, final; "
         "le2013 .rrd: sets, width-x1, width-x2, volume, bounds. "
         "Default size 7.0x4.5 in (two-column paper width; 3.5x2.6 for one column).",

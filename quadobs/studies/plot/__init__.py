@@ -7,8 +7,9 @@ figure of the chosen panels. The kind of input is told by its content:
 kind      input                                           panels (default first)
 ========  ==============================================  ========================================
 run       ``quadobs run SCENARIO --out RUN.rrd``          ``paths position velocity covariance
-                                                          nis`` and ``bounds``, ``excitation`` or
-                                                          ``ranges``; also ``paths3d``
+                                                          nis`` and ``wind``, ``bounds``,
+                                                          ``excitation`` or ``ranges``; also
+                                                          ``paths3d``
 campaign  ``quadobs campaign ... --out DIR`` (the folder  ``rmse rmse-velocity converged nees nis
           or its ``statistics.rrd``)                      final``
 le2013    ``quadobs run le2013 --out LE.rrd``             ``sets width-x1 width-x2``; also
@@ -35,7 +36,7 @@ from quadobs.errors import QuadobsError
 from quadobs.studies.plot import campaign as _campaign
 from quadobs.studies.plot import le2013 as _le2013
 from quadobs.studies.plot import run as _run
-from quadobs.studies.plot._figure import DEFAULT_DPI, DEFAULT_SIZE, FORMATS, drawing, new_figure, save_figure
+from quadobs.studies.plot._figure import DEFAULT_DPI, DEFAULT_SIZE, FORMATS, require_matplotlib, drawing, new_figure, save_figure
 from quadobs.studies.plot._source import open_source
 
 __all__ = ["render", "figure", "PANELS", "DEFAULT_SIZE", "DEFAULT_DPI", "FORMATS"]
@@ -81,6 +82,7 @@ def figure(input, what=None, *, size=None, dpi=None, samples=None, legend: bool 
     dpi : float
     """
     size, dpi = _check_size(size, dpi)
+    require_matplotlib()  # the missing extra is said before any reading
     src = open_source(input)
     panels = _check_panels(what, src.kind, src)
     if samples is not None and (src.kind != "le2013" or "sets" not in panels):

@@ -21,7 +21,7 @@ import numpy as np
 
 from quadobs.errors import QuadobsError
 
-__all__ = ["FORMATS", "DEFAULT_SIZE", "DEFAULT_DPI", "drawing", "new_figure", "save_figure", "style", "thin"]
+__all__ = ["FORMATS", "DEFAULT_SIZE", "DEFAULT_DPI", "require_matplotlib", "drawing", "new_figure", "save_figure", "style", "thin"]
 
 FORMATS = ("png", "pdf", "svg")
 DEFAULT_SIZE = (7.0, 4.5)  # inches: the full text width of a two-column paper
@@ -30,10 +30,10 @@ DEFAULT_DPI = 150
 # Black and greys with distinct dashes and markers: each line reads in greyscale print.
 _STYLES = [
     {"color": "0.0", "linestyle": "-", "marker": "o"},
-    {"color": "0.35", "linestyle": "--", "marker": "s"},
+    {"color": "0.35", "linestyle": "--", "marker": "s", "markerfacecolor": "white"},
     {"color": "0.55", "linestyle": ":", "marker": "^"},
     {"color": "0.2", "linestyle": "-.", "marker": "D"},
-    {"color": "0.45", "linestyle": (0, (5, 1, 1, 1, 1, 1)), "marker": "v"},
+    {"color": "0.45", "linestyle": (0, (5, 1, 1, 1, 1, 1)), "marker": "v", "markerfacecolor": "white"},
     {"color": "0.65", "linestyle": (0, (1, 1)), "marker": "x"},
 ]
 TRUTH_STYLE = {"color": "0.0", "linestyle": "-", "linewidth": 1.6}
@@ -46,7 +46,7 @@ _RC = {
     "xtick.labelsize": 7,
     "ytick.labelsize": 7,
     "lines.linewidth": 1.0,
-    "lines.markersize": 3.5,
+    "lines.markersize": 4.0,
     "axes.grid": True,
     "grid.color": "0.85",
     "grid.linewidth": 0.5,
@@ -62,7 +62,7 @@ _METADATA = {
 }
 
 
-def _matplotlib():
+def require_matplotlib():
     """The matplotlib module with the Agg backend, or a one-line error saying how to install it."""
     try:
         import matplotlib
@@ -75,7 +75,7 @@ def _matplotlib():
 
 def drawing():
     """Context manager holding the figures' rc settings (fonts, line widths, fixed SVG salt)."""
-    return _matplotlib().rc_context(_RC)
+    return require_matplotlib().rc_context(_RC)
 
 
 def style(i: int, n: int | None = None, markers: int = 8) -> dict:
@@ -115,7 +115,7 @@ def new_figure(panels: list[str], size: tuple[float, float], dpi: float, three_d
     axes : dict
         Panel name -> axes (3-D axes for the names in ``three_d``).
     """
-    _matplotlib()
+    require_matplotlib()
     from matplotlib.figure import Figure
 
     fig = Figure(figsize=size, dpi=dpi, layout="constrained")

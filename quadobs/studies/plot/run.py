@@ -70,6 +70,13 @@ def velocity(ax, src) -> None:
     _error_norm(ax, src, "velocity", "m/s", "Velocity error")
 
 
+def wind(ax, src) -> None:
+    """Wind error norm ``|w_hat - w|`` over time, log scale (wind scenarios)."""
+    if not any(src.has(f"errors/{e}/wind/norm") for e in src.estimators):
+        raise QuadobsError("--what wind: the recording has no wind estimate (not a wind scenario)")
+    _error_norm(ax, src, "wind", "m/s", "Wind error")
+
+
 def ranges(ax, src) -> None:
     """Measured range to each beacon at its sample times."""
     for i, h in enumerate(sorted(src.names("measurements/range/<x>"), key=int)):
@@ -110,7 +117,7 @@ def nis(ax, src, confidence: float = 0.95) -> None:
         if not src.has(f"observer/{e}/nis"):
             continue
         s = src.series(f"observer/{e}/nis")
-        t, steps, v = thin(s["sim_time"], s["step"], s["values"][:, 0])
+        t, steps, v = thin(s["sim_time"], s["step"], s["values"][:, 0], limit=600)
         if not band:
             dof = np.maximum(_measurement_counts(src, steps), 1)
             lo, hi = chi2.ppf((1 - confidence) / 2, dof), chi2.ppf((1 + confidence) / 2, dof)
@@ -170,6 +177,7 @@ PANELS = {
     "paths3d": paths3d,
     "position": position,
     "velocity": velocity,
+    "wind": wind,
     "ranges": ranges,
     "covariance": covariance,
     "nis": nis,
@@ -180,9 +188,11 @@ THREE_D = ("paths3d",)
 
 
 def default_panels(src) -> list[str]:
-    """Paths, errors, covariance and NIS, and the bounds, the excitation or else the ranges."""
+    """Paths, errors, covariance and NIS, and the wind, the bounds, the excitation or else the ranges."""
     extra = "ranges"
-    if any(src.has(f"errors/{e}/position/bounds") for e in src.estimators):
+    if any(src.has(f"errors/{e}/wind/norm") for e in src.estimators):
+        extra = "wind"
+    elif any(src.has(f"errors/{e}/position/bounds") for e in src.estimators):
         extra = "bounds"
     elif src.has("excitation/log10"):
         extra = "excitation"
