@@ -52,7 +52,7 @@ from quadobs.testbed.scenario import Scenario
 from quadobs.testbed.sensors import SensorModel, initial_guess, spawn_streams
 from quadobs.testbed.sinks import (
     Block, BoundsSink, ConvergenceSink, EpisodeContext, ExcitationSink, ProgressSink, RecordingSink, Rows, Sink,
-    TraceSink, merge,
+    StepSink, TraceSink, merge,
 )
 
 __all__ = ["EpisodeResult", "run_episode", "write_json_atomic", "WALL_CLOCK_KEYS"]
@@ -233,7 +233,7 @@ class _Episode:
         ctx = EpisodeContext(scenario, tuple(ests), block)
         for sink in self.sinks:
             sink.begin(ctx)
-        self.hooks = [s for s in self.sinks if isinstance(s, (TraceSink, ExcitationSink))]
+        self.hooks = [s for s in self.sinks if isinstance(s, StepSink)]
         self.due = [h.first_due() for h in self.hooks]
         self.next_due = min(self.due, default=-1)
         self.completed = 0

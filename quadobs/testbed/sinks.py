@@ -20,9 +20,9 @@ sink                       what it keeps, and its summary fragment
 
 A sink has ``begin(context)``, ``block(rows)``, ``end(completed, interrupted) -> dict``
 (merged into the summary by :func:`merge`), ``fail(completed, error)`` and ``close()``;
-a sink that acts between steps also has ``first_due()`` and ``after_step(s, j)`` (called
-when ``s`` steps are complete, the last one being row ``j`` of the block; returns the
-next ``s`` at which to call it).
+a :class:`StepSink` also acts between steps: ``first_due()`` and ``after_step(s, j)``
+(called when ``s`` steps are complete, the last one being row ``j`` of the block; returns
+the next ``s`` at which to call it).
 """
 
 from __future__ import annotations
@@ -37,7 +37,7 @@ from quadobs.evaluation.convergence import ConvergenceTracker, state_errors
 
 __all__ = [
     "Block", "BoundsSink", "ConvergenceSink", "EpisodeContext", "ExcitationSink", "ProgressSink",
-    "RecordingSink", "Rows", "Sink", "TraceSink", "merge",
+    "RecordingSink", "Rows", "Sink", "StepSink", "TraceSink", "merge",
 ]
 
 _NEVER = np.iinfo(np.int64).max
@@ -163,6 +163,18 @@ class Sink:
         pass
 
 
+class StepSink(Sink):
+    """A sink that also acts between steps, at the step counts it asks for."""
+
+    def first_due(self) -> int:
+        """The first count of completed steps at which to call :meth:`after_step`."""
+        raise NotImplementedError
+
+    def after_step(self, s: int, j: int) -> int:
+        """Called when ``s`` steps are complete (the last one row ``j`` of the block); returns the next ``s``."""
+        raise NotImplementedError
+
+
 def merge(fragments) -> dict:
     """Merge summary fragments: nested dictionaries are merged key by key, later values win.
 
@@ -221,7 +233,7 @@ def _norm(errors, key) -> float | None:
     return _finite_or_none(float(np.linalg.norm(errors[key]))) if errors else None
 
 
-class TraceSink(Sink):
+class TraceSink(StepSink):
     """The trajectories sampled every ``every`` steps (:attr:`EpisodeResult.trace <quadobs.testbed.episode.EpisodeResult>`)."""
 
     def __init__(self, every: int, steps: int) -> None:
@@ -302,7 +314,7 @@ class BoundsSink(Sink):
         return {"estimators": per} if per else {}
 
 
-class ExcitationSink(Sink):
+class ExcitationSink(StepSink):
     """The live excitation monitor: fed the applied inputs a chunk at a time, its series recorded.
 
     The monitor takes the inputs at the step that completes its chunk (:meth:`after_step`),
@@ -371,8 +383,11 @@ class ProgressSink(Sink):
     def block(self, rows: Rows) -> None:
         self.bar.update(min(rows.count, self.ctx.scenario.steps - rows.block.k0))
 
+    def __init__(self) -> None:
+        self.bar = None
+
     def close(self) -> None:
-        if getattr(self, "bar", None) is not None:
+        if self.bar is not None:
             self.bar.close()
 
 
