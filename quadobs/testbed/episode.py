@@ -231,8 +231,13 @@ class _Episode:
         self.trace = TraceSink(collect_every, self.steps) if collect_every > 0 else None
         self.sinks = self._sinks(out, flush_rows, progress)
         ctx = EpisodeContext(scenario, tuple(ests), block)
-        for sink in self.sinks:
-            sink.begin(ctx)
+        try:
+            for sink in self.sinks:
+                sink.begin(ctx)
+        except BaseException:  # the recording is open: close it, a valid file, before the error goes on
+            for sink in self.sinks:
+                sink.close()
+            raise
         self.hooks = [s for s in self.sinks if isinstance(s, StepSink)]
         self.due = [h.first_due() for h in self.hooks]
         self.next_due = min(self.due, default=-1)
