@@ -351,10 +351,12 @@ def range_outputs(ranges, noise, std, beacon_term, measured, y):
 
 @njit(**_OPTS)
 def augmented_step_record(u, y, S, fc, ic, out):
-    """:func:`augmented_step`, recording ``out = [x_hat, trace(P)]`` before it and ``out[-1] = NIS`` after it.
+    """:func:`augmented_step`, recording ``out = [x_hat, trace(P)]`` before it and ``[NIS, rejected]`` after it.
 
-    ``out`` has ``n + 2`` entries (``n = N - k``); this is
-    :meth:`quadobs.estimators.augmented.Estimator.step_and_record` in one call.
+    ``out`` has ``n + 3`` entries (``n = N - k``): ``x_hat (n)`` and ``trace(P)`` before the
+    step, then the step's NIS and the running count of corrections rejected by the gate
+    (``stats[2]``) after it; this is
+    :meth:`quadobs.estimators.base.Estimator.step_and_record` in one call.
     """
     N = ic[0]
     k = ic[1]
@@ -365,6 +367,7 @@ def augmented_step_record(u, y, S, fc, ic, out):
     code = _correct(S, 0, N, so, S, N + N * N, y, fc, ic)
     _predict(S, 0, N, so, S, N + N * N, u, fc, ic)
     out[N - k + 1] = S[so]
+    out[N - k + 2] = S[so + 2]
     return code
 
 

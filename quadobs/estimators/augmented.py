@@ -247,7 +247,7 @@ class AugmentedObserver(Estimator, Gated, Immersed):
         self._z = np.array(z, dtype=float)
         self._P = np.array(as_covariance("P0" if S0 is None else "S0", _initial_covariance(P0, S0), N), dtype=float)
         self.gate = None if gate is None else as_finite_scalar("gate", gate, positive=True)
-        self._ushape, self._yshape, self._rshape = (immersion.system.p,), (q,), (n + 2,)
+        self._ushape, self._yshape, self._rshape = (immersion.system.p,), (q,), (n + 3,)
         self._C = immersion.output_matrix
         self._eye = np.eye(N)
         self._k = immersion.n_aux
@@ -268,7 +268,7 @@ class AugmentedObserver(Estimator, Gated, Immersed):
             # Load (or compile) the kernels now, on scratch copies, rather than in the first step.
             S = self._S
             self._kernel(np.zeros(self._ushape), np.full(self._yshape, np.nan), S.copy(), km.fc, km.ic)
-            self._krecord(np.zeros(self._ushape), np.full(self._yshape, np.nan), S.copy(), km.fc, km.ic, np.zeros(n + 2))
+            self._krecord(np.zeros(self._ushape), np.full(self._yshape, np.nan), S.copy(), km.fc, km.ic, np.zeros(n + 3))
         else:
             self._stats = np.array([np.nan, 0.0, 0.0, 0.0])  # nis, corrections, rejected, trace(P)
         self._stats[3] = np.trace(self._P)

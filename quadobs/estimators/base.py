@@ -80,16 +80,37 @@ class Estimator(abc.ABC):
         return float(np.trace(P)) if P is not None else float("nan")
 
     def step_and_record(self, u: np.ndarray, y: np.ndarray, out: np.ndarray) -> None:
-        """:meth:`step`, writing what the testbed records of it into ``out (n + 2,)``.
+        """:meth:`step`, writing what the testbed records of it into the row ``out (n + 3,)``.
 
-        ``out[:n]`` gets :attr:`x_hat` and ``out[n]`` :attr:`covariance_trace` before the
-        step, ``out[n + 1]`` :attr:`nis` after it. Compiled estimators do it in one call.
+        The record row of a step is
+
+        .. math:: [\\hat x_k,\\ \\operatorname{tr} P_k,\\ \\mathrm{NIS}_k,\\ r_k]
+
+        with ``out[:n]`` :attr:`x_hat` and ``out[n]`` :attr:`covariance_trace` before the
+        step, ``out[n + 1]`` :attr:`nis` after it and ``out[n + 2]`` the running count of
+        corrections rejected by the gate after it (:attr:`Gated.rejected`; NaN for
+        estimators without the ability). Compiled estimators do it in one call.
+
+        Examples
+        --------
+        >>> import numpy as np
+        >>> class Still(Estimator):
+        ...     def step(self, u, y):
+        ...         pass
+        ...     @property
+        ...     def x_hat(self):
+        ...         return np.zeros(2)
+        >>> row = np.empty(5)
+        >>> Still().step_and_record(np.zeros(1), np.zeros(1), row)
+        >>> row
+        array([ 0.,  0., nan, nan, nan])
         """
-        n = out.shape[0] - 2
+        n = out.shape[0] - 3
         out[:n] = self.x_hat
         out[n] = self.covariance_trace
         self.step(u, y)
         out[n + 1] = self.nis
+        out[n + 2] = self.rejected if isinstance(self, Gated) else np.nan
 
 
 def check_step(u, y, p: int, q: int) -> tuple[np.ndarray, np.ndarray]:

@@ -22,6 +22,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from quadobs.estimators.augmented import AugmentedObserver
+from quadobs.estimators.base import Immersed
 from quadobs.observability.excitation import ExcitationMonitor
 from quadobs.recording.recorder import Recorder
 
@@ -32,10 +34,12 @@ _THRESHOLD = (120, 120, 120)
 
 
 def _same_coordinates(est, monitor: ExcitationMonitor) -> bool:
-    im = getattr(est, "immersion", None)
-    P = getattr(est, "P", None)
-    mine = monitor.immersion
-    if im is None or P is None or np.shape(P) != (mine.dim, mine.dim) or im.n_aux != mine.n_aux:
+    """Whether ``est`` is an augmented observer (:class:`~quadobs.estimators.augmented.AugmentedObserver`,
+    whose ``P`` is the covariance of the augmented state) on the monitor's immersion."""
+    if not (isinstance(est, AugmentedObserver) and isinstance(est, Immersed)):
+        return False
+    im, P, mine = est.immersion, est.P, monitor.immersion
+    if im is None or np.shape(P) != (mine.dim, mine.dim) or im.n_aux != mine.n_aux:
         return False
     if im.system.q != mine.system.q:
         return False

@@ -32,14 +32,17 @@ as ``augmented``):
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
 
+from quadobs.errors import QuadobsError
 from quadobs.testbed.scenario import Scenario
 from quadobs.recording.recorder import Recorder
 
-__all__ = ["EpisodeLog", "default_blueprint"]
+__all__ = ["EpisodeLog", "LoggedRows", "default_blueprint"]
 
 _PALETTE = [(230, 90, 40), (40, 160, 90), (150, 60, 200), (200, 170, 30), (30, 150, 200)]
 _TRUTH = (40, 90, 220)
@@ -77,6 +80,59 @@ def default_blueprint(scenario: Scenario, estimators: list[str]) -> rrb.Blueprin
         ),
         collapse_panels=False,
     )
+
+
+@dataclass(frozen=True)
+class LoggedRows:
+    """The ``m`` rows of a block that the recording keeps (rows first, ``(m, ...)``).
+
+    Attributes
+    ----------
+    steps, times : ndarray (m,)
+        Physics steps and their times.
+    truth_p : ndarray (m, dim)
+        True position.
+    truth_wind : ndarray (m, dim) or None
+        True wind (wind scenarios).
+    errors : dict of str to dict of str to ndarray
+        Per estimator, :func:`~quadobs.evaluation.convergence.state_errors` of its rows.
+    estimates : dict of str to ndarray (m, n)
+    traces, nis : dict of str to ndarray (m,)
+        Covariance trace and NIS per estimator.
+    ranges : ndarray (m, q_b)
+        Measured ranges (NaN where not sampled).
+    airspeed : ndarray (m,) or None
+        Measured airspeed (wind scenarios).
+    accel : ndarray (m, dim)
+        Measured acceleration.
+    bounds : dict of str to ndarray (m, n, 2)
+        Interval bounds of the set-valued estimators.
+    rejected : dict of str to ndarray (m,)
+        Running count of corrections rejected by the NIS gate (gated estimators).
+    events : ndarray (m, 2)
+        Running counts of injected outliers and dropped samples.
+    """
+
+    steps: np.ndarray
+    times: np.ndarray
+    truth_p: np.ndarray
+    truth_wind: np.ndarray | None
+    errors: dict
+    estimates: dict
+    traces: dict
+    nis: dict
+    ranges: np.ndarray
+    airspeed: np.ndarray | None
+    accel: np.ndarray
+    bounds: dict
+    rejected: dict
+    events: np.ndarray
+
+    def __post_init__(self) -> None:
+        m = len(self.steps)
+        for name in ("times", "truth_p", "ranges", "accel", "events"):
+            if len(getattr(self, name)) != m:
+                raise QuadobsError(f"rows.{name}: expected {m} rows, got {len(getattr(self, name))}")
 
 
 class EpisodeLog:
@@ -158,35 +214,14 @@ class EpisodeLog:
                 r.series("measurements/dropped", 1, names=["samples dropped"]),
             )
 
-    def write_block(
-        self,
-        steps: np.ndarray,
-        times: np.ndarray,
-        truth_p: np.ndarray,
-        truth_wind: np.ndarray | None,
-        errors: dict[str, dict[str, np.ndarray]],
-        estimates: dict[str, np.ndarray],
-        traces: dict[str, np.ndarray],
-        nis: dict[str, np.ndarray],
-        ranges: np.ndarray,
-        airspeed: np.ndarray | None,
-        accel: np.ndarray,
-        bounds: dict[str, np.ndarray] | None = None,
-        extra=None,
-        rejected: dict[str, np.ndarray] | None = None,
-        events: np.ndarray | None = None,
-    ) -> None:
-        """Write ``m`` recorded rows at once (see the module docstring for what goes where).
+    def write_block(self, rows: LoggedRows, extra=None) -> None:
+        """Write the ``m`` recorded rows of ``rows`` at once (see the module docstring for what goes where).
 
-        Every argument holds its rows first (``(m, ...)``): the truth's position (and wind),
-        each estimator's errors, estimate, covariance trace and NIS, the measured ranges,
-        airspeed and acceleration (NaN where not sampled), and for guaranteed estimators
-        their interval ``bounds`` ``(m, n, 2)``, for gated estimators the running count of
-        ``rejected`` corrections ``(m,)``, and the running counts of injected outliers and
-        dropped samples ``events`` ``(m, 2)``. ``extra(rows, steps)``, if given, fills
-        further series for the recorder rows ``rows`` (a slice) of the physics ``steps``.
+        ``extra(rows, steps)``, if given, fills further series for the recorder rows
+        ``rows`` (a slice) of the physics ``steps``.
         """
-        steps = np.asarray(steps)
+        steps, times, truth_p = np.asarray(rows.steps), rows.times, rows.truth_p
+        errors, estimates, bounds = rows.errors, rows.estimates, rows.bounds
         done, m = 0, len(steps)
         dim = self.sc.dimension
         while done < m:
@@ -214,24 +249,24 @@ class EpisodeLog:
                 s["pos_norm"].buf[i, 0] = np.sqrt(np.einsum("ij,ij->i", ep, ep))
                 s["vel_axes"].buf[i] = ev
                 s["vel_norm"].buf[i, 0] = np.sqrt(np.einsum("ij,ij->i", ev, ev))
-                s["trace"].buf[i, 0] = traces[name][src]
-                s["nis"].buf[i, 0] = nis[name][src]
+                s["trace"].buf[i, 0] = rows.traces[name][src]
+                s["nis"].buf[i, 0] = rows.nis[name][src]
                 if "rejected" in s:
-                    s["rejected"].buf[i, 0] = rejected[name][src]
+                    s["rejected"].buf[i, 0] = rows.rejected[name][src]
                 if "wind" in s:
                     ew = e["wind"][src]
                     s["wind_axes"].buf[i] = ew
                     s["wind_norm"].buf[i, 0] = np.sqrt(np.einsum("ij,ij->i", ew, ew))
                     s["wind"].buf[i] = xh[:, 2 * dim :]
             if self.sc.has_wind:
-                self.wind_truth.buf[i] = truth_wind[src]
-                self.airspeed.buf[i, 0] = airspeed[src]
+                self.wind_truth.buf[i] = rows.truth_wind[src]
+                self.airspeed.buf[i, 0] = rows.airspeed[src]
             for h, series in enumerate(self.ranges):
-                series.buf[i, 0] = ranges[src, h]
-            self.accel.buf[i] = accel[src]
+                series.buf[i, 0] = rows.ranges[src, h]
+            self.accel.buf[i] = rows.accel[src]
             if self.events is not None:
-                self.events[0].buf[i, 0] = events[src, 0]
-                self.events[1].buf[i, 0] = events[src, 1]
+                self.events[0].buf[i, 0] = rows.events[src, 0]
+                self.events[1].buf[i, 0] = rows.events[src, 1]
             if extra is not None:
                 extra(i, steps[src])
             done = src.stop

@@ -122,15 +122,16 @@ def test_step_and_record_equals_step_with_reads(rng):
     b = AugmentedObserver(im, 0.01, backend="numba", **_settings(im, 3, gate=30.0))
     a = AugmentedObserver(im, 0.01, backend="numba", **_settings(im, 3, gate=30.0))
     n = im.system.n
-    out = np.zeros(n + 2)
+    out = np.zeros(n + 3)
     for k in range(50):
         u, y = rng.standard_normal(2), 3.0 * rng.standard_normal(3)
         y[rng.random(3) < 0.3] = np.nan
         expected = np.concatenate([b.x_hat, [b.covariance_trace]])
         b.step(u, y)
         a.step_and_record(u, y, out)
-        np.testing.assert_array_equal(out[:-1], expected)
-        np.testing.assert_array_equal(out[-1], b.nis)
+        np.testing.assert_array_equal(out[: n + 1], expected)
+        np.testing.assert_array_equal(out[n + 1], b.nis)
+        assert out[n + 2] == b.rejected
         np.testing.assert_array_equal(a.P, b.P)
     with pytest.raises(QuadobsError, match="out: expected a float64 array"):
         a.step_and_record(u, y, np.zeros(n))

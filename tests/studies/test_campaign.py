@@ -14,7 +14,7 @@ from quadobs.studies.campaign import run_campaign, run_seed
 from quadobs.cli import main
 from quadobs.testbed.registry import register_estimator
 from quadobs.testbed.factories import extended_kalman_filter
-from quadobs.estimators.base import Estimator
+from quadobs.estimators.base import Estimator, SetValued
 from quadobs.testbed.episode import run_episode
 
 NAMES = ["augmented", "ekf", "ukf"]
@@ -33,7 +33,7 @@ def short(duration=2.0):
     return load_scenario("ifac2021-noisy", duration=duration)
 
 
-class Boxed(Estimator):
+class Boxed(Estimator, SetValued):
     """A set estimator for the tests: an EKF's estimate +- ``k`` standard deviations as interval bounds."""
 
     def __init__(self, inner, k):

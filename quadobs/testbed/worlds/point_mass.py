@@ -14,9 +14,10 @@ import mujoco
 import numpy as np
 
 from quadobs.errors import QuadobsError, as_array
+from quadobs.testbed.worlds.base import Columns, World
 from quadobs.testbed.worlds.model import VehicleModel, load_vehicle_model
 
-__all__ = ["VehicleSim", "BlockStepper"]
+__all__ = ["VehicleSim", "BlockStepper", "PointMassWorld"]
 
 _mj_step = mujoco.mj_step
 
@@ -249,3 +250,52 @@ class BlockStepper:
             row[self.u] = s.input(row[self.accel])
         if j + 1 < self._ctrls.shape[0]:
             d.ctrl[:] = self._ctrls[j + 1]
+
+
+class PointMassWorld(World):
+    """The first world: the MuJoCo point-mass vehicle (:class:`VehicleSim`) on the scenario's trajectory.
+
+    Open loop: the commanded accelerations of a block come from the reference trajectory,
+    and each step is one ``mj_step`` plus one compiled read that also applies the sensor
+    layer (:class:`BlockStepper`), so :attr:`out` holds the truth, the raw readings and
+    ``y``, ``u`` of every step.
+
+    Parameters
+    ----------
+    scenario : Scenario
+        A ``vehicle`` scenario: dimension, beacons, wind, model, trajectory, ``dt``.
+    sensors : SensorModel
+        The sensor layer (noise, rates, dropouts, outliers).
+    capacity : int
+        Most steps per block.
+    """
+
+    def __init__(self, scenario, sensors, capacity: int) -> None:
+        traj = scenario.trajectory
+        sim = VehicleSim(scenario.dimension, scenario.beacons, timestep=scenario.dt, wind=scenario.wind, model_path=scenario.model)
+        sim.reset(traj.position(0.0), traj.velocity_at(0.0))
+        self.sim, self.dt, self._traj = sim, scenario.dt, traj
+        self.stepper = st = BlockStepper(sim, capacity, sensors)
+        self.out, self.events = st.out, st.events
+        self.columns = Columns(
+            truth=st.truth, y=st.y, u=st.u, measured=st.measured, width=st.out.shape[1],
+            extra={"ranges": st.ranges, "accel": st.accel, "airspeed": st.airspeed},
+        )
+
+    def state(self) -> np.ndarray:
+        return self.sim.state()
+
+    def begin_block(self, k0: int, count: int) -> int:
+        dt = self.dt
+        return self.stepper.begin(self._traj.step_accelerations(k0 * dt, dt, count), k0)
+
+    def step(self, j: int, estimate: np.ndarray | None = None) -> None:
+        self.stepper.step(j)
+
+    def fill(self, count: int) -> None:
+        step = self.stepper.step
+        for j in range(count):
+            step(j)
+
+    def commit(self, rows: int) -> None:
+        self.stepper.commit(rows)
