@@ -77,7 +77,7 @@ def direct(duration: float, every: int, settle: float, window: float, seed: int 
     im = immerse(vehicle_system(3, np.zeros((1, 3))))
     p, v = traj.position(0.0).astype(float), traj.velocity_at(0.0).astype(float)
     x0 = np.concatenate([p + 20.0 * rng.standard_normal(3), v + 5.0 * rng.standard_normal(3)])
-    obs = AugmentedObserver(im, dt, V=1e-4, W=1.0, S0=100.0, x0=x0, sample_period=10 * dt)
+    obs = AugmentedObserver(im, dt, V=1e-4, W=1.0, P0=100.0, x0=x0, sample_period=10 * dt)
     n_rec = steps // every
     t_rec, err_rec, eig_min, asym = np.empty(n_rec), np.empty(n_rec), np.inf, 0.0
     nan = False

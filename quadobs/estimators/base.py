@@ -8,7 +8,8 @@ attributes, so the testbed can ask ``isinstance(est, Gated)``:
 =================  ===============================================================
 ability            what the estimator then provides
 =================  ===============================================================
-:class:`Gated`     ``gate`` (NIS threshold or ``None``), ``corrections``, ``rejected``
+:class:`Counted`   ``corrections``: the corrections applied so far
+:class:`Gated`     ``gate`` (NIS threshold or ``None``), ``rejected``, and ``corrections`` (a :class:`Counted`)
 :class:`SetValued` ``bounds (n, 2)``: interval bounds guaranteed to hold the state
 :class:`Immersed`  ``immersion``: the :class:`~quadobs.core.immersion.Immersion` it runs on
 :class:`Subset`    ``outputs (q_used,)``: the indices of the outputs it reads
@@ -36,7 +37,7 @@ import numpy as np
 
 from quadobs.errors import as_array
 
-__all__ = ["Estimator", "Gated", "SetValued", "Immersed", "Subset", "check_step", "covariance_trace"]
+__all__ = ["Estimator", "Counted", "Gated", "SetValued", "Immersed", "Subset", "check_step", "covariance_trace"]
 
 
 class Estimator(abc.ABC):
@@ -149,7 +150,13 @@ def covariance_trace(est: Estimator) -> float:
     return est.covariance_trace
 
 
-class Gated(abc.ABC):
+class Counted(abc.ABC):
+    """Ability: counts the corrections it applies (:attr:`corrections`)."""
+
+    corrections: int = 0
+
+
+class Gated(Counted):
     """Ability: corrections whose NIS exceeds :attr:`gate` are rejected and counted.
 
     Attributes
@@ -163,7 +170,6 @@ class Gated(abc.ABC):
     """
 
     gate: float | None = None
-    corrections: int = 0
     rejected: int = 0
 
 

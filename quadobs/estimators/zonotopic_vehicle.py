@@ -49,7 +49,7 @@ import numpy as np
 from quadobs.core.held_input import HeldInputDiscretization
 from quadobs.errors import QuadobsError, as_array
 from quadobs.core.immersion import Immersion
-from quadobs.estimators.base import Estimator, Immersed, SetValued, check_step
+from quadobs.estimators.base import Counted, Estimator, Immersed, SetValued, check_step
 from quadobs.sets.zonotope import Zonotope, reduce_generators, strip_update
 
 __all__ = ["ROUNDING_MARGIN", "ZonotopicAugmentedEstimator", "lift_box", "range_strip"]
@@ -103,7 +103,7 @@ def lift_box(immersion: Immersion, x0, radius) -> Zonotope:
     return Zonotope(center, H)
 
 
-class ZonotopicAugmentedEstimator(Estimator, SetValued, Immersed):
+class ZonotopicAugmentedEstimator(Estimator, SetValued, Immersed, Counted):
     """Algorithm 1 on the exactly discretised augmented system (module docstring).
 
     Parameters

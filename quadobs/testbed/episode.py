@@ -45,8 +45,7 @@ from pathlib import Path
 import numpy as np
 
 from quadobs.errors import QuadobsError, check_writable, deferred_interrupts
-from quadobs.estimators.base import Gated, Immersed
-from quadobs.estimators.zonotopic_vehicle import ZonotopicAugmentedEstimator
+from quadobs.estimators.base import Counted, Gated, Immersed
 from quadobs.testbed.registry import build_estimators, default_estimators
 from quadobs.testbed.scenario import Scenario
 from quadobs.testbed.sensors import SensorModel, initial_guess, spawn_streams
@@ -363,7 +362,7 @@ class _EstimatorInfo(Sink):
                 entry["corrections"], entry["rejected"] = int(est.corrections), int(est.rejected)
                 if est.gate is not None:
                     entry["gate"] = _finite_or_none(float(est.gate))
-            elif isinstance(est, ZonotopicAugmentedEstimator):  # counts its corrections, has no gate
+            elif isinstance(est, Counted):  # counts its corrections, has no gate
                 entry["corrections"] = int(est.corrections)
             if isinstance(est, Immersed) and est.immersion is not None:
                 entry["immersion"] = est.immersion.summary()

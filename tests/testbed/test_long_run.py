@@ -27,7 +27,7 @@ def test_hundreds_of_thousands_of_steps_keep_the_covariance_spd_and_the_estimate
     y = np.where(np.arange(STEPS) % every == 0, 0.5 * rho * rho, np.nan)[:, None]
     im = immerse(vehicle_system(3, np.zeros((1, 3))))
     x0 = x[0] + np.concatenate([20.0 * rng.standard_normal(3), 5.0 * rng.standard_normal(3)])
-    obs = AugmentedObserver(im, DT, V=1e-4, W=1.0, S0=100.0, x0=x0, sample_period=every * DT)
+    obs = AugmentedObserver(im, DT, V=1e-4, W=1.0, P0=100.0, x0=x0, sample_period=every * DT)
     err, traces = np.empty(STEPS), np.empty(STEPS)
     min_eig = np.inf
     for k in range(STEPS):
