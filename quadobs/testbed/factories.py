@@ -275,29 +275,20 @@ def zonotope_estimator(scenario: Scenario, x0: np.ndarray) -> ZonotopicAugmented
 # -- the built-in entry points: factory(scenario, x0, name) -> Estimator -----------------
 
 
-def build_augmented(scenario: Scenario, x0: np.ndarray, name: str = "augmented") -> AugmentedObserver:
-    """Entry point ``augmented``: :func:`augmented_observer` on all the outputs."""
-    est = augmented_observer(scenario, x0)
-    est.name = name
-    return est
+def _entry_point(make, doc: str):
+    """A factory ``(scenario, x0, name) -> Estimator`` that builds with ``make(scenario, x0)`` and names the result."""
+
+    def factory(scenario: Scenario, x0: np.ndarray, name: str) -> Estimator:
+        est = make(scenario, x0)
+        est.name = name
+        return est
+
+    factory.__name__ = factory.__qualname__ = f"build_{doc}"
+    factory.__doc__ = f"Entry point ``{doc}``: :func:`{make.__name__}`, named as requested."
+    return factory
 
 
-def build_ekf(scenario: Scenario, x0: np.ndarray, name: str = "ekf") -> ExtendedKalmanFilter:
-    """Entry point ``ekf``: :func:`extended_kalman_filter`."""
-    est = extended_kalman_filter(scenario, x0)
-    est.name = name
-    return est
-
-
-def build_ukf(scenario: Scenario, x0: np.ndarray, name: str = "ukf") -> UnscentedKalmanFilter:
-    """Entry point ``ukf``: :func:`unscented_kalman_filter`."""
-    est = unscented_kalman_filter(scenario, x0)
-    est.name = name
-    return est
-
-
-def build_zonotope(scenario: Scenario, x0: np.ndarray, name: str = "zonotope") -> ZonotopicAugmentedEstimator:
-    """Entry point ``zonotope``: :func:`zonotope_estimator`."""
-    est = zonotope_estimator(scenario, x0)
-    est.name = name
-    return est
+build_augmented = _entry_point(augmented_observer, "augmented")
+build_ekf = _entry_point(extended_kalman_filter, "ekf")
+build_ukf = _entry_point(unscented_kalman_filter, "ukf")
+build_zonotope = _entry_point(zonotope_estimator, "zonotope")
