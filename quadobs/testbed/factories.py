@@ -18,6 +18,7 @@ from quadobs.errors import QuadobsError
 from quadobs.estimators.augmented import AugmentedObserver
 from quadobs.estimators.base import Estimator, Gated, Immersed, Subset
 from quadobs.estimators.kalman import ExtendedKalmanFilter, HeldInputModel, OutputModel, UnscentedKalmanFilter
+from quadobs.estimators.refined import RefinedObserver
 from quadobs.estimators.zonotopic_vehicle import ZonotopicAugmentedEstimator
 from quadobs.testbed.scenario import Scenario
 
@@ -265,3 +266,15 @@ def zonotope_estimator(scenario, x0) -> ZonotopicAugmentedEstimator:
         reduction=spec.reduction,
     )
 
+
+
+def refined_observer(scenario: Scenario, x0: np.ndarray) -> RefinedObserver:
+    """The ``"augmented-refined"`` estimator of ``scenario``: the augmented observer handing over to an EKF.
+
+    The observer is :func:`augmented_observer`; the EKF it hands over to, and the replay's
+    prior, use :func:`baseline_settings` (the true noise levels, or the observer's ``R``
+    when a sensor is noise-free) and the scenario's gate.
+    """
+    s = baseline_settings(scenario)
+    obs = augmented_observer(scenario, x0)
+    return RefinedObserver(obs, s.dynamics, s.outputs, x0=x0, P0=s.P0, gate=scenario.observer.gate)

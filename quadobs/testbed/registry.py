@@ -31,6 +31,7 @@ _REGISTRY: dict[str, Factory] = {
     "ekf": lambda scenario, x0, name: factories.extended_kalman_filter(scenario, x0),
     "ukf": lambda scenario, x0, name: factories.unscented_kalman_filter(scenario, x0),
     "zonotope": lambda scenario, x0, name: factories.zonotope_estimator(scenario, x0),
+    "augmented-refined": lambda scenario, x0, name: factories.refined_observer(scenario, x0),
 }
 
 
