@@ -141,29 +141,57 @@ def curvature_index(outputs: OutputModel, x: np.ndarray, P: np.ndarray) -> float
     return float(np.max(spread / np.sqrt(np.diag(outputs.R))))
 
 
+_QUANTILES: dict[tuple[float, int], float] = {}
+
+
+def chi2_quantile(q: float, dof: int) -> float:
+    """The ``q`` quantile of ``chi^2(dof)``, cached (the windows ask for few distinct values)."""
+    key = (q, int(dof))
+    hit = _QUANTILES.get(key)
+    if hit is None:
+        hit = _QUANTILES[key] = float(stats.chi2.ppf(q, dof))
+    return hit
+
+
 class _Window:
-    """The last ``M`` updates' NIS and degrees of freedom (rejected ones kept apart)."""
+    """The last ``M`` updates' NIS and degrees of freedom, with running sums (rejected ones kept apart)."""
 
     def __init__(self, size: int) -> None:
-        self.items: deque = deque(maxlen=size)
+        self.items: deque = deque()
+        self.size = size
+        self.nis = 0.0
+        self.dof = 0
+        self.rejected = 0
+        self.infinite = 0  # accepted updates with a non-finite NIS (they fail the test)
 
     def push(self, nis: float, dof: int, rejected: bool) -> None:
+        if len(self.items) == self.size:
+            self._add(*self.items.popleft(), sign=-1)
         self.items.append((nis, dof, rejected))
+        self._add(nis, dof, rejected, sign=1)
+
+    def _add(self, nis: float, dof: int, rejected: bool, sign: int) -> None:
+        if rejected:
+            self.rejected += sign
+            return
+        self.dof += sign * dof
+        if np.isfinite(nis):
+            self.nis += sign * nis
+        else:
+            self.infinite += sign
 
     @property
     def full(self) -> bool:
-        return len(self.items) == self.items.maxlen
+        return len(self.items) == self.size
 
     def passes(self, q: float) -> bool:
         """Whether the accepted updates' NIS sum is below the ``q`` quantile of ``chi^2`` (their dof)."""
-        acc = [(v, d) for v, d, r in self.items if not r]
-        if not acc:
+        if self.dof <= 0 or self.infinite:
             return False
-        dof = sum(d for _, d in acc)
-        return sum(v for v, _ in acc) <= stats.chi2.ppf(q, dof)
+        return max(self.nis, 0.0) <= chi2_quantile(q, self.dof)
 
     def rejected_fraction(self) -> float:
-        return sum(r for _, _, r in self.items) / max(len(self.items), 1)
+        return self.rejected / max(len(self.items), 1)
 
 
 class RefinedObserver(Estimator, Gated, Immersed):
@@ -308,6 +336,7 @@ class RefinedObserver(Estimator, Gated, Immersed):
 
     def _ekf_step(self, u, y, has) -> None:
         ekf = self._ekf
+        self.observer.step(u, y)  # the fallback keeps running
         ekf.step(u, y)
         self.nis = ekf.nis
         if not has:
@@ -369,7 +398,7 @@ class RefinedObserver(Estimator, Gated, Immersed):
             except np.linalg.LinAlgError:
                 moved = np.inf
             x_ref = x
-        ok = window.passes(self.policy.confidence) and moved <= stats.chi2.ppf(self.policy.confidence, self.n)
+        ok = window.passes(self.policy.confidence) and moved <= chi2_quantile(self.policy.confidence, self.n)
         if not ok:
             self._next_try = self._updates + self._wait
             self._wait *= 2
@@ -384,33 +413,39 @@ class RefinedObserver(Estimator, Gated, Immersed):
     def _replay(self, steps, Y, D, x_ref) -> tuple[np.ndarray, np.ndarray, _Window]:
         """One Kalman pass over the logged measurements, linearised about the noise-free trajectory through ``x_ref``."""
         refs = self._reference(steps, D, x_ref)
+        out = self.outputs
+        Z = out.measure(Y)  # NaN where missing
+        lin = [out.linearize(xr) for xr in refs]
         x, P = self._x0.copy(), self._P0.copy()
-        F, Q, R = self._F, self.dynamics.Q, self.outputs.R
+        F, Q, R, q = self._F, self.dynamics.Q, out.R, self.q
         window = _Window(self.policy.window)
         last, d_last = 0, np.zeros(self.n)
         powers: dict[int, tuple[np.ndarray, np.ndarray]] = {}
-        for j, y, d, xr in zip(steps, Y, D, refs):
+        for i, j in enumerate(steps):
             m = int(j - last)
             if m:
                 Fm, Qm = powers.get(m) or powers.setdefault(m, step_power(F, Q, m))
-                x = Fm @ x + (d - Fm @ d_last)
+                x = Fm @ x + (D[i] - Fm @ d_last)
                 P = Fm @ P @ Fm.T + Qm
-            last, d_last = j, d
-            idx = np.flatnonzero(~np.isnan(y))
-            zp, H = self.outputs.linearize(xr)
-            H = H[idx]
-            nu = self.outputs.measure(y[idx], idx) - zp[idx] - H @ (x - xr)
+            last, d_last = j, D[i]
+            zp, H = lin[i]
+            z = Z[i]
+            idx = np.flatnonzero(~np.isnan(z))
+            if idx.size < q:
+                zp, H, z, Ri = zp[idx], H[idx], z[idx], R[np.ix_(idx, idx)]
+            else:
+                Ri = R
+            nu = z - zp - H @ (x - refs[i])
             PHt = P @ H.T
-            S = H @ PHt + R[np.ix_(idx, idx)]
-            nis = float(nu @ np.linalg.solve(S, nu))
+            Sinv = np.linalg.inv(H @ PHt + Ri)
+            nis = float(nu @ Sinv @ nu)
             rejected = self.gate is not None and nis > self.gate
             window.push(nis, idx.size, rejected)
             if rejected:
                 continue
-            K = np.linalg.solve(S, PHt.T).T
+            K = PHt @ Sinv
             x = x + K @ nu
-            IKH = np.eye(self.n) - K @ H
-            P = IKH @ P @ IKH.T + K @ R[np.ix_(idx, idx)] @ K.T
+            P = P - K @ PHt.T
             P = 0.5 * (P + P.T)
         return x, P, window
 
