@@ -89,14 +89,18 @@ class HandoverPolicy:
     curvature : float
         Largest curvature index ``eta`` (see the module docstring) for a handover.
     iterations : int
-        Gauss-Newton passes of the replay.
+        Most Gauss-Newton passes of the replay.
+    tolerance : float
+        The replay has converged when its last pass moved the estimate by at most this
+        much in its own metric (``delta^T P^-1 delta``).
     """
 
     window: int = 50
     confidence: float = 0.99
     guard: float = 0.9999
     curvature: float = 1.0
-    iterations: int = 3
+    iterations: int = 6
+    tolerance: float = 1e-2
 
     def __post_init__(self) -> None:
         for name in ("window", "iterations"):
@@ -108,6 +112,7 @@ class HandoverPolicy:
             if not v < 1:
                 raise QuadobsError(f"{name}: must be below 1, got {v}")
         as_finite_scalar("curvature", self.curvature, positive=True)
+        as_finite_scalar("tolerance", self.tolerance, positive=True)
 
 
 def curvature_index(outputs: OutputModel, x: np.ndarray, P: np.ndarray) -> float:
@@ -151,6 +156,14 @@ def chi2_quantile(q: float, dof: int) -> float:
     if hit is None:
         hit = _QUANTILES[key] = float(stats.chi2.ppf(q, dof))
     return hit
+
+
+def _mahalanobis(delta: np.ndarray, P: np.ndarray) -> float:
+    """``delta^T P^-1 delta`` (infinite for a singular ``P``)."""
+    try:
+        return float(delta @ np.linalg.solve(P, delta))
+    except np.linalg.LinAlgError:
+        return float("inf")
 
 
 class _Window:
@@ -321,7 +334,7 @@ class RefinedObserver(Estimator, Gated, Immersed):
             self._observer_test(xo, Po, y, present)
             if self._updates >= self._next_try and self._obs_window.full and self._obs_window.passes(self.policy.confidence):
                 if curvature_index(self.outputs, xo, Po) <= self.policy.curvature:
-                    handed = self._try_handover(xo)
+                    handed = self._try_handover(xo, Po)
         obs.step(u, y)
         if handed is None:
             self.nis = obs.nis
@@ -383,29 +396,32 @@ class RefinedObserver(Estimator, Gated, Immersed):
         rejected = self.gate is not None and nis > self.gate
         self._obs_window.push(nis, idx.size, rejected)
 
-    def _try_handover(self, x_ref: np.ndarray) -> ExtendedKalmanFilter | None:
-        """Replay every measurement about the trajectory through ``x_ref`` (Gauss-Newton); an EKF at the result, or ``None``."""
+    def _try_handover(self, x_obs: np.ndarray, P_obs: np.ndarray) -> ExtendedKalmanFilter | None:
+        """Replay every measurement about the trajectory through ``x_obs`` (Gauss-Newton); an EKF at the result, or ``None``."""
         self.attempts += 1
+        pol = self.policy
         steps = np.array(self._log_steps)
         Y, D = np.array(self._log_y), np.array(self._log_d)
-        x_ref = np.asarray(x_ref, dtype=float)
-        moved = np.inf
-        for _ in range(self.policy.iterations):
+        x_ref = np.asarray(x_obs, dtype=float)
+        for _ in range(pol.iterations):
             x, P, window = self._replay(steps, Y, D, x_ref)
-            delta = x - x_ref
-            try:
-                moved = float(delta @ np.linalg.solve(P, delta))
-            except np.linalg.LinAlgError:
-                moved = np.inf
+            moved = _mahalanobis(x - x_ref, P)
             x_ref = x
-        ok = window.passes(self.policy.confidence) and moved <= chi2_quantile(self.policy.confidence, self.n)
+            if moved <= pol.tolerance:
+                break
+        ok = (
+            moved <= pol.tolerance
+            and window.passes(pol.confidence)
+            and _mahalanobis(x - x_obs, P + P_obs) <= chi2_quantile(pol.confidence, self.n)
+            and curvature_index(self.outputs, x, P) <= pol.curvature
+        )
         if not ok:
             self._next_try = self._updates + self._wait
-            self._wait *= 2
+            self._wait = min(2 * self._wait, 4 * pol.window)
             return None
         ekf = ExtendedKalmanFilter(self.dynamics, self.outputs, x0=x, P0=P, gate=self.gate)
         ekf.nis, ekf.nis_dof = window.items[-1][0], window.items[-1][1]
-        self._ekf_window = _Window(self.policy.window)
+        self._ekf_window = _Window(pol.window)
         for item in window.items:
             self._ekf_window.push(*item)
         return ekf
