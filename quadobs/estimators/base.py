@@ -10,6 +10,7 @@ ability            what the estimator then provides
 =================  ===============================================================
 :class:`Counted`   ``corrections``: the corrections applied so far
 :class:`Gated`     ``gate`` (NIS threshold or ``None``), ``rejected``, and ``corrections`` (a :class:`Counted`)
+:class:`Switching` ``mode``, ``switches`` (``(step, from, to, reason)``) and ``summary()``
 :class:`SetValued` ``bounds (n, 2)``: interval bounds guaranteed to hold the state
 :class:`Immersed`  ``immersion``: the :class:`~quadobs.core.immersion.Immersion` it runs on
 :class:`Subset`    ``outputs (q_used,)``: the indices of the outputs it reads
@@ -37,7 +38,7 @@ import numpy as np
 
 from quadobs.errors import as_array
 
-__all__ = ["Estimator", "Counted", "Gated", "SetValued", "Immersed", "Subset", "check_step", "covariance_trace"]
+__all__ = ["Estimator", "Counted", "Gated", "Switching", "SetValued", "Immersed", "Subset", "check_step", "covariance_trace"]
 
 
 class Estimator(abc.ABC):
@@ -171,6 +172,26 @@ class Gated(Counted):
 
     gate: float | None = None
     rejected: int = 0
+
+
+class Switching(abc.ABC):
+    """Ability: switches between modes during a run (the testbed logs each switch as an event).
+
+    Attributes
+    ----------
+    mode : str
+        The current mode.
+    switches : list of tuple
+        ``(step, from, to, reason)`` for every switch so far, ``step`` counting the calls of
+        :meth:`Estimator.step` before it.
+    """
+
+    mode: str = ""
+    switches: list
+
+    @abc.abstractmethod
+    def summary(self) -> dict:
+        """The switches as plain data for the episode summary (JSON-serialisable)."""
 
 
 class SetValued(abc.ABC):

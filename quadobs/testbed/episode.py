@@ -45,7 +45,7 @@ from pathlib import Path
 import numpy as np
 
 from quadobs.errors import QuadobsError, check_writable, deferred_interrupts
-from quadobs.estimators.base import Counted, Gated, Immersed
+from quadobs.estimators.base import Counted, Gated, Immersed, Switching
 from quadobs.testbed.registry import build_estimators, default_estimators
 from quadobs.testbed.scenario import Scenario
 from quadobs.testbed.sensors import SensorModel, initial_guess, spawn_streams
@@ -364,6 +364,8 @@ class _EstimatorInfo(Sink):
                     entry["gate"] = _finite_or_none(float(est.gate))
             elif isinstance(est, Counted):  # counts its corrections, has no gate
                 entry["corrections"] = int(est.corrections)
+            if isinstance(est, Switching):
+                entry["modes"] = est.summary()
             if isinstance(est, Immersed) and est.immersion is not None:
                 entry["immersion"] = est.immersion.summary()
                 entry["outputs"] = int(est.immersion.system.q)

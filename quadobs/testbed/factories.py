@@ -20,6 +20,7 @@ from quadobs.errors import QuadobsError
 from quadobs.estimators.augmented import AugmentedObserver
 from quadobs.estimators.base import Estimator, Gated, Immersed, Subset
 from quadobs.estimators.kalman import ExtendedKalmanFilter, HeldInputModel, OutputModel, UnscentedKalmanFilter
+from quadobs.estimators.refined import RefinedObserver
 from quadobs.estimators.zonotopic_vehicle import ZonotopicAugmentedEstimator
 from quadobs.testbed.scenario import Scenario
 
@@ -272,6 +273,18 @@ def zonotope_estimator(scenario: Scenario, x0: np.ndarray) -> ZonotopicAugmented
     )
 
 
+def refined_observer(scenario: Scenario, x0: np.ndarray) -> RefinedObserver:
+    """The ``"augmented-refined"`` estimator of ``scenario``: the augmented observer handing over to an EKF.
+
+    The observer is :func:`augmented_observer`; the EKF it hands over to, and the replay's
+    prior, use :func:`baseline_settings` (the true noise levels, or the observer's ``R``
+    when a sensor is noise-free) and the scenario's gate.
+    """
+    s = baseline_settings(scenario)
+    obs = augmented_observer(scenario, x0)
+    return RefinedObserver(obs, s.dynamics, s.outputs, x0=x0, P0=s.P0, gate=scenario.observer.gate)
+
+
 # -- the built-in entry points: factory(scenario, x0, name) -> Estimator -----------------
 
 
@@ -292,3 +305,4 @@ build_augmented = _entry_point(augmented_observer, "augmented")
 build_ekf = _entry_point(extended_kalman_filter, "ekf")
 build_ukf = _entry_point(unscented_kalman_filter, "ukf")
 build_zonotope = _entry_point(zonotope_estimator, "zonotope")
+build_refined = _entry_point(refined_observer, "augmented-refined")

@@ -58,6 +58,7 @@ _BUILTIN = {
     "ekf": "quadobs.testbed.factories:build_ekf",
     "ukf": "quadobs.testbed.factories:build_ukf",
     "zonotope": "quadobs.testbed.factories:build_zonotope",
+    "augmented-refined": "quadobs.testbed.factories:build_refined",
 }
 _RUNTIME: dict[str, Factory] = {}
 _REGISTRY = _RUNTIME  # the run-time table under its former name (callers remove their entries from it)

@@ -32,7 +32,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from quadobs.estimators.base import Estimator, Gated, SetValued, Subset
+from quadobs.estimators.base import Estimator, Gated, SetValued, Subset, Switching
 from quadobs.evaluation.convergence import ConvergenceTracker, json_time, state_errors
 
 __all__ = [
@@ -419,10 +419,12 @@ class RecordingSink(Sink):
         )
         self.events = np.zeros(2, dtype=np.int64)  # outliers delivered, samples dropped, so far
         self.rejected = {e.name: 0 for e in self.gated}  # rejected corrections so far (recorded rows)
+        self.switching = {e.name: (e, 0) for e in ctx.estimators if isinstance(e, Switching)}  # switches logged
 
     def block(self, rows: Rows) -> None:
         from quadobs.testbed.episode_log import LoggedRows
 
+        self._log_switches()
         ev = self.events + np.cumsum(rows.events, axis=0)
         self.events[:] = ev[-1]
         for e in self.gated:
@@ -448,11 +450,19 @@ class RecordingSink(Sink):
         for fill in self.extras:
             fill(rows, steps)
 
+    def _log_switches(self) -> None:
+        """One event-log line per mode switch not logged yet, at the step it happened."""
+        for name, (est, done) in self.switching.items():
+            for step, old, new, reason in est.switches[done:]:
+                self._text(f"{name}: {old} -> {new} ({reason})", "INFO", step)
+            self.switching[name] = (est, len(est.switches))
+
     def _text(self, message: str, level: str, step: int) -> None:
         self.recorder.text("events", message, level=level, step=step, time=step * self.ctx.scenario.dt)
 
     def end(self, completed: int, interrupted: bool) -> dict:
         """The event log's last lines: the interruption, and each gate's rejections beside the injected events."""
+        self._log_switches()
         if interrupted:
             self._text(f"interrupted at t = {completed * self.ctx.scenario.dt:.3f} s (step {completed})", "WARN", completed)
         for e in self.gated:
