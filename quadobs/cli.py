@@ -17,10 +17,12 @@ are being built (their cache is then reused).
 from __future__ import annotations
 
 import argparse
+import functools
 import os
 import shutil
 import signal
 import sys
+import textwrap
 from pathlib import Path
 
 from quadobs.errors import QuadobsError, new_folders_removed_on_failure
@@ -352,10 +354,21 @@ def _cmd_plot(args) -> int:
     return 0
 
 
+class _HelpFormatter(argparse.HelpFormatter):
+    """Help text wrapped at spaces only, so that names such as ``augmented-refined`` stay whole."""
+
+    def _split_lines(self, text, width):
+        return textwrap.wrap(" ".join(text.split()), width, break_on_hyphens=False)
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="quadobs", description="State estimation for systems with quadratic outputs: a MuJoCo testbed.")
+    parser = argparse.ArgumentParser(
+        prog="quadobs", description="State estimation for systems with quadratic outputs: a MuJoCo testbed.",
+        formatter_class=_HelpFormatter,
+    )
     parser.add_argument("--version", action="version", version=f"quadobs {package_version()}")
     sub = parser.add_subparsers(dest="command", required=True)
+    sub.add_parser = functools.partial(sub.add_parser, formatter_class=_HelpFormatter)
 
     p = sub.add_parser("list", help="name the built-in scenarios")
     p.set_defaults(func=_cmd_list)
