@@ -190,5 +190,11 @@ class QuadrotorWorld(World):
 
     _on_estimate = False
 
+    def sinks(self, recording=None) -> list:
+        """The episode's flight summary and recorded series (:class:`~quadobs.testbed.flight.FlightSink`)."""
+        from quadobs.testbed.flight import FlightSink
+
+        return [FlightSink(self, recording)]
+
     def commit(self, rows: int) -> None:
         """The sensor events were counted step by step (:meth:`step`)."""
