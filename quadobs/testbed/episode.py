@@ -193,7 +193,7 @@ def run_episode(
     -----
     BLAS and LAPACK run single-threaded during the episode (:func:`single_threaded_blas`).
     """
-    if scenario.kind != "vehicle":
+    if scenario.kind not in ("vehicle", "quadrotor"):
         raise QuadobsError(f"scenario {scenario.name!r}: kind {scenario.kind!r} is not a MuJoCo vehicle scenario")
     names = list(estimators) if estimators else default_estimators(scenario)
     for path in (summary_path, out):
@@ -218,6 +218,8 @@ class _Episode:
         self.scenario, self.steps = scenario, scenario.steps
         streams = spawn_streams(scenario.seed)
         self.sensors = SensorModel(scenario, streams)
+        if world is None and scenario.kind == "quadrotor":  # the quadrotor flown by its controller
+            from quadobs.testbed.worlds.quadrotor import QuadrotorWorld as world
         self.world = (world or PointMassWorld)(scenario, self.sensors, _BLOCK)
         x0 = initial_guess(scenario, self.world.state(), streams["initial"])
         ests = build_estimators(scenario, names, x0)
@@ -266,6 +268,7 @@ class _Episode:
             sinks.append(excitation)
             if recording is not None:
                 recording.extras.append(excitation.fill)
+        sinks += self.world.sinks(recording) if hasattr(self.world, "sinks") else []  # a world's own (the flight)
         return sinks + ([ProgressSink()] if progress else [])
 
     def run(self) -> tuple[list[dict], bool]:

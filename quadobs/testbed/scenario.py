@@ -71,6 +71,8 @@ __all__ = [
     "parse_scenario",
     "apply_settings",
     "field_reference",
+    "ControlSpec",
+    "QuadrotorSpec",
 ]
 
 # --------------------------------------------------------------------------------------
@@ -342,6 +344,61 @@ class ZonotopeSpec(_Table):
     )
 
 
+class Hover(_Table):
+    """A ``[[quadrotor.hovers]]`` pause: the reference stops moving between ``start`` and ``end``."""
+
+    start: NonNegative = Field(description="Time at which the reference starts to slow down (s).")
+    end: Positive = Field(description="Time at which the reference is back to full speed (s).")
+
+
+class ControlSpec(_Table):
+    """The quadrotor's cascaded geometric controller (:mod:`quadobs.testbed.controllers`)."""
+
+    feedback: String = Field("truth", description="`truth`, or the name of the estimator whose estimate is flown on.")
+    switch_time: NonNegative = Field(
+        0.0, description="Time from which the controller flies on the estimate (s); the truth before."
+    )
+    rate: Positive = Field(500.0, description="Controller rate (Hz), dividing the physics rate.")
+    position_bandwidth: Positive = Field(2.0, description="Natural frequency of the position loop (rad/s).")
+    attitude_bandwidth: Positive = Field(12.0, description="Natural frequency of the attitude loop (rad/s).")
+    damping: Positive = Field(0.9, description="Damping ratio of both loops.")
+    crash_distance: Positive = Field(
+        1.0, description="Tracking error beyond which a flight counts as crashed and the rotors stop (m)."
+    )
+
+
+class QuadrotorSpec(_Table):
+    """Flight plan and on-board sensors of the quadrotor (noise standard deviations, rates in Hz).
+
+    The reference is the scenario's trajectory, entered from the floor by a take-off,
+    paused by the hovers and left by a landing at the end of the episode.
+    """
+
+    takeoff: Positive = Field(3.0, description="Duration of the take-off from the floor below the trajectory's start (s).")
+    landing: Positive = Field(3.0, description="Duration of the landing that ends the episode (s).")
+    hover_ramp: Positive = Field(1.0, description="Time to slow down into and speed up out of a hover (s).")
+    hovers: tuple[Hover, ...] = Field((), description="Pauses of the reference (`[[quadrotor.hovers]]`).")
+    accel_std: NonNegative = Field(0.0, description="Accelerometer white noise (m/s^2).")
+    accel_bias: NonNegative = Field(0.0, description="Standard deviation of the accelerometer's constant bias (m/s^2).")
+    gyro_std: NonNegative = Field(0.0, description="Gyroscope white noise (rad/s).")
+    gyro_bias: NonNegative = Field(0.0, description="Standard deviation of the gyroscope's constant bias (rad/s).")
+    attitude_std: NonNegative = Field(0.0, description="Attitude (AHRS) error per axis (rad).")
+    attitude_rate: Positive | None = Field(
+        None, description="Attitude sample rate (Hz), dividing the physics rate (default: the physics rate)."
+    )
+
+    @model_validator(mode="after")
+    def _sorted_hovers(self) -> "QuadrotorSpec":
+        last = 0.0
+        for i, h in enumerate(self.hovers):
+            if h.start < last or h.end - h.start < 2.0 * self.hover_ramp:
+                raise _invalid(
+                    f"[{h.start}, {h.end}] must be sorted, disjoint and last at least twice hover_ramp", f"hovers[{i}]"
+                )
+            last = h.end
+        return self
+
+
 # --------------------------------------------------------------------------------------
 # The scenario
 # --------------------------------------------------------------------------------------
@@ -375,7 +432,9 @@ class Scenario(_Table):
 
     name: String = Field(description="Name of the scenario.")
     description: String = Field("", description="What the scenario shows (first line: `quadobs list`).")
-    kind: Literal["vehicle"] = Field("vehicle", description="`vehicle`: the MuJoCo point-mass vehicle.")
+    kind: Literal["vehicle", "quadrotor"] = Field(
+        "vehicle", description="`vehicle`: the MuJoCo point-mass vehicle; `quadrotor`: a Crazyflie-sized quadrotor flown by a controller."
+    )
     dimension: Integer = Field(description="Dimension of the motion: 2 or 3.")
     duration: Positive = Field(description="Simulated time (s).")
     physics_rate: Positive = Field(1000.0, description="Physics steps per second (Hz).")
@@ -399,6 +458,10 @@ class Scenario(_Table):
     )
     model: String | None = Field(
         None, description="MJCF model to use instead of the built-in vehicle (relative to the scenario file)."
+    )
+    control: ControlSpec | None = Field(None, description="The flight controller (`kind = \"quadrotor\"` only).")
+    quadrotor: QuadrotorSpec | None = Field(
+        None, description="Flight plan and on-board sensors of the quadrotor (`kind = \"quadrotor\"` only)."
     )
 
     _beacons: np.ndarray = PrivateAttr()
@@ -445,6 +508,25 @@ class Scenario(_Table):
         out.sample_interval(self.noise.airspeed_rate, "airspeed_rate")
         self.excitation.grid(out.dt)
         return out
+
+    @model_validator(mode="after")
+    def _quadrotor_tables(self) -> "Scenario":
+        """``[control]`` and ``[quadrotor]`` belong to quadrotor scenarios, which move in 3-D."""
+        if self.kind != "quadrotor":
+            for table in ("control", "quadrotor"):
+                if getattr(self, table) is not None:
+                    raise QuadobsError(f'{table}: only used with kind = "quadrotor", not {self.kind!r}')
+            return self
+        if self.dimension != 3:
+            raise QuadobsError(f'dimension: a quadrotor flies in 3-D, got {self.dimension}')
+        if self.wind_spec is not None:
+            raise QuadobsError('wind: not modelled for kind = "quadrotor"')
+        quad, control = self.quadrotor or QuadrotorSpec(), self.control or ControlSpec()
+        if quad.takeoff + quad.landing >= self.duration:
+            raise QuadobsError(f"quadrotor.landing: take-off and landing must fit in the duration {self.duration} s")
+        self.sample_interval(control.rate, "rate", table="control")
+        self.sample_interval(quad.attitude_rate, "attitude_rate", table="quadrotor")
+        return self
 
     def _build(self) -> None:
         beacons = np.array([b.position for b in self.beacon_specs], dtype=float)
@@ -510,15 +592,15 @@ class Scenario(_Table):
         w = np.broadcast_to(self.wind, p.shape)
         return np.concatenate([p, v - w, w], axis=-1)
 
-    def sample_interval(self, rate: float | None, name: str) -> int:
-        """Physics steps between samples of a sensor at ``rate`` Hz."""
+    def sample_interval(self, rate: float | None, name: str, table: str = "noise") -> int:
+        """Physics steps between samples of a sensor at ``rate`` Hz (``table.name`` in errors)."""
         if rate is None:
             return 1
         ratio = self.physics_rate / rate
         k = int(round(ratio))
         if k < 1 or abs(ratio - k) > 1e-9 * ratio:
             raise QuadobsError(
-                f"noise.{name}: {rate} Hz must divide the physics rate {self.physics_rate} Hz (and not exceed it)"
+                f"{table}.{name}: {rate} Hz must divide the physics rate {self.physics_rate} Hz (and not exceed it)"
             )
         return k
 

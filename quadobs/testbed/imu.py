@@ -1,0 +1,77 @@
+"""The quadrotor's inertial sensors: accelerometer, gyroscope and attitude (AHRS) errors.
+
+Given MuJoCo's exact readings at ``t_k`` (specific force ``f`` and body rates ``w`` in
+the body frame, attitude quaternion ``q``, world from body):
+
+* accelerometer: ``f~ = f + b_a + sigma_a n``;
+* gyroscope: ``w~ = w + b_w + sigma_w n``;
+* attitude: ``q~ = q (x) [1, sigma_q n / 2]`` (normalised; a small rotation error about
+  each body axis), sampled every ``attitude_every`` steps and held in between.
+
+``n`` are standard normal draws, new each step; the biases ``b_a``, ``b_w`` are constant
+over the episode, drawn once with standard deviations ``accel_bias`` and ``gyro_bias``.
+Every draw comes from a stream of its own derived from the scenario's seed, so the
+IMU errors of a seed do not depend on the other sensors.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["ImuModel", "quat_to_matrix", "IMU_SPAWN_KEY"]
+
+#: The spawn key of the IMU's random stream (beside :func:`~quadobs.testbed.sensors.spawn_streams`'s).
+IMU_SPAWN_KEY = (1016,)
+
+
+def quat_to_matrix(q) -> np.ndarray:
+    """The rotation matrix ``(3, 3)`` of a unit quaternion ``(w, x, y, z)``."""
+    w, x, y, z = q
+    return np.array([
+        [1.0 - 2.0 * (y * y + z * z), 2.0 * (x * y - w * z), 2.0 * (x * z + w * y)],
+        [2.0 * (x * y + w * z), 1.0 - 2.0 * (x * x + z * z), 2.0 * (y * z - w * x)],
+        [2.0 * (x * z - w * y), 2.0 * (y * z + w * x), 1.0 - 2.0 * (x * x + y * y)],
+    ])
+
+
+def _perturb(q: np.ndarray, angle: np.ndarray) -> np.ndarray:
+    """``q (x) [1, angle / 2]``, normalised."""
+    w, x, y, z = q
+    a, b, c = 0.5 * angle
+    out = np.array([w - x * a - y * b - z * c, x + w * a + y * c - z * b, y + w * b + z * a - x * c, z + w * c + x * b - y * a])
+    return out / np.sqrt(out @ out)
+
+
+class ImuModel:
+    """Noise and biases of the accelerometer, gyroscope and attitude sensor (see the module docstring).
+
+    Parameters
+    ----------
+    spec : QuadrotorSpec
+        ``accel_std``, ``accel_bias``, ``gyro_std``, ``gyro_bias``, ``attitude_std``.
+    seed : int
+        The scenario's seed.
+    attitude_every : int
+        Physics steps between attitude samples.
+    """
+
+    def __init__(self, spec, seed: int, attitude_every: int = 1) -> None:
+        self.rng = np.random.default_rng(np.random.SeedSequence(seed, spawn_key=IMU_SPAWN_KEY))
+        self.accel_std, self.gyro_std, self.attitude_std = spec.accel_std, spec.gyro_std, spec.attitude_std
+        self.accel_bias = spec.accel_bias * self.rng.standard_normal(3)
+        self.gyro_bias = spec.gyro_bias * self.rng.standard_normal(3)
+        self.attitude_every = int(attitude_every)
+        self.attitude = np.array([1.0, 0.0, 0.0, 0.0])
+
+    def draws(self, count: int) -> np.ndarray:
+        """Standard normal draws of ``count`` steps, ``(count, 9)``: accelerometer, gyroscope, attitude."""
+        return self.rng.standard_normal((count, 9))
+
+    def measure(self, k: int, j: int, noise: np.ndarray, f, w, q) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Measured specific force ``(3,)``, body rates ``(3,)`` and attitude ``(4,)`` at step ``k`` (row ``j`` of ``noise``)."""
+        n = noise[j]
+        f_m = f + self.accel_bias + self.accel_std * n[:3]
+        w_m = w + self.gyro_bias + self.gyro_std * n[3:6]
+        if k % self.attitude_every == 0:
+            self.attitude = _perturb(q, self.attitude_std * n[6:9]) if self.attitude_std else np.array(q)
+        return f_m, w_m, self.attitude

@@ -1,0 +1,129 @@
+"""The quadrotor world: model figures, flight plan, controller, IMU input, flight on the estimate."""
+
+import numpy as np
+import pytest
+
+from quadobs.errors import QuadobsError
+from quadobs.testbed.controllers import CRAZYFLIE, FlightPlan, GeometricController
+from quadobs.testbed.imu import quat_to_matrix
+from quadobs.testbed.scenario import load_scenario
+
+
+def _short(name, *settings, duration=12.0):
+    return load_scenario(name, settings=[f"duration={duration}", "quadrotor.takeoff=2.0", "quadrotor.landing=2.0", *settings])
+
+
+def test_the_model_has_the_crazyflie_figures():
+    import mujoco
+
+    from quadobs.testbed.worlds.quadrotor import quadrotor_model_path
+
+    m = mujoco.MjModel.from_xml_path(str(quadrotor_model_path()))
+    body = m.body("quadrotor")
+    assert body.mass[0] == pytest.approx(0.0319)
+    assert np.allclose(body.inertia, [16.8e-6, 16.8e-6, 29.8e-6])
+    assert m.nu == 4 and np.allclose(m.actuator_ctrlrange, [0.0, 0.12])
+    assert np.allclose(m.actuator_dynprm[:, 0], 0.06) and m.opt.density > 0 and m.opt.gravity[2] < 0
+    assert np.allclose(np.abs(m.actuator_gear[:, 5]), CRAZYFLIE.torque_ratio)
+
+
+def test_the_flight_plan_is_twice_differentiable_and_stands_still_in_hovers():
+    sc = load_scenario("quadrotor-1beacon")
+    plan = FlightPlan(sc.trajectory, sc.duration, takeoff=3.0, landing=3.0, hovers=[(13.0, 23.0)], ramp=1.0, floor=0.02)
+    t = np.arange(0.0, sc.duration, 1e-3)
+    ref = plan.reference(t)
+    assert np.allclose(ref[0, 0], [*sc.trajectory.position(0.0)[:2], 0.02])  # starts on the floor
+    assert np.allclose(np.gradient(ref[:, 0], t, axis=0), ref[:, 1], atol=2e-3)  # r' is the derivative of r
+    assert np.allclose(np.gradient(ref[:, 1], t, axis=0), ref[:, 2], atol=5e-3)
+    hover = (t > 14.1) & (t < 21.9)
+    assert np.abs(ref[hover, 1]).max() < 1e-12 and np.ptp(ref[hover, 0], axis=0).max() < 1e-12
+    assert ref[-1, 0, 2] == pytest.approx(0.02, abs=1e-6)  # lands
+
+
+def test_the_mixer_inverts_collective_thrust_and_torques():
+    ctrl = GeometricController(CRAZYFLIE)
+    T = np.array([0.07, 0.08, 0.09, 0.075])
+    f_m = CRAZYFLIE.mixer() @ T
+    assert f_m[0] == pytest.approx(T.sum())
+    assert np.allclose(ctrl.mix_inv @ f_m, T)
+    hover = ctrl(np.zeros(3), np.zeros(3), np.eye(3), np.zeros(3), np.zeros((3, 3)))
+    assert np.allclose(hover, CRAZYFLIE.mass * 9.81 / 4)
+
+
+def test_quaternion_matrix_is_a_rotation():
+    q = np.array([0.9, 0.1, -0.3, 0.2])
+    R = quat_to_matrix(q / np.linalg.norm(q))
+    assert np.allclose(R @ R.T, np.eye(3)) and np.linalg.det(R) == pytest.approx(1.0)
+
+
+def test_the_quadrotor_tables_belong_to_quadrotor_scenarios():
+    with pytest.raises(QuadobsError, match=r"^control: only used with kind"):
+        load_scenario("ifac2021", settings=["control.feedback=truth"])
+    with pytest.raises(QuadobsError, match=r"^quadrotor.hovers\[0\]"):
+        load_scenario("quadrotor-uwb", settings=["quadrotor.hovers=[{start = 10.0, end = 10.5}]"])
+    with pytest.raises(QuadobsError, match=r"^control.rate"):
+        load_scenario("quadrotor-uwb", settings=["control.rate=300.0"])
+
+
+def _rows_world():
+    from quadobs.testbed.worlds.quadrotor import QuadrotorWorld
+
+    kept = {}
+
+    class Kept(QuadrotorWorld):
+        def commit(self, rows):
+            kept.setdefault("rows", []).append(self.out[:rows].copy())
+            kept["world"] = self
+
+    return Kept, kept
+
+
+def test_noise_free_imu_input_is_the_true_acceleration_and_the_observer_converges():
+    from quadobs.testbed.episode import run_episode
+
+    sc = _short("quadrotor-uwb", "quadrotor.accel_std=0.0", "quadrotor.accel_bias=0.0", "quadrotor.attitude_std=0.0",
+                "quadrotor.gyro_std=0.0", "quadrotor.gyro_bias=0.0", "noise.range_std=0.0")
+    world, kept = _rows_world()
+    res = run_episode(sc, estimators=["augmented"], world=world)
+    w = kept["world"]
+    rows = np.concatenate(kept["rows"])
+    v = rows[:, w.columns.truth][:, 3:]
+    a = np.diff(v, axis=0) / sc.dt  # mean acceleration over each step
+    u = rows[:-1, w.columns.u]
+    assert np.abs(u - a)[10:].max() < 0.05  # u = R f + g: the acceleration (after the first contact steps on the floor)
+    f = res.summary["flight"]
+    assert not f["crashed"] and f["tracking_rms"] < 0.05 and f["time_on_estimate"] == 0.0
+    assert res.summary["estimators"]["augmented"]["flight_position_rmse"] < 0.05
+
+
+def test_the_augmented_observer_flies_the_quadrotor_deterministically():
+    from quadobs.testbed.episode import run_episode
+
+    sc = _short("quadrotor-uwb-augmented", "control.switch_time=5.0", duration=15.0)
+    a = run_episode(sc, estimators=["augmented", "ekf"]).summary
+    b = run_episode(sc, estimators=["augmented", "ekf"]).summary
+    f = a["flight"]
+    assert not f["crashed"] and f["time_on_estimate"] == pytest.approx(15.0 - 5.0)
+    assert f["tracking_rms"] < 0.15 and f["tracking_max"] < 0.3
+    assert a["estimators"]["augmented"]["flight_position_rmse"] < 0.1
+    assert a["flight"] == b["flight"] and a["estimators"] == b["estimators"]
+
+
+def test_a_feedback_estimator_must_run_in_the_episode():
+    from quadobs.testbed.episode import run_episode
+
+    sc = _short("quadrotor-uwb", "control.feedback=ukf", duration=5.0)
+    with pytest.raises(QuadobsError, match="ukf"):
+        run_episode(sc, estimators=["augmented"])
+
+
+def test_the_recording_holds_the_flight(tmp_path):
+    from quadobs.recording import list_entities
+    from quadobs.testbed.episode import run_episode
+
+    sc = _short("quadrotor-uwb-augmented", "control.switch_time=3.0", duration=6.0)
+    out = tmp_path / "q.rrd"
+    run_episode(sc, estimators=["augmented"], out=out)
+    names = set(list_entities(out))
+    for entity in ("/world/reference/path", "/world/quadrotor", "/flight/rotors", "/flight/tracking_error", "/errors/augmented/position/norm"):
+        assert entity in names
