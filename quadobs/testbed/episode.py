@@ -268,7 +268,7 @@ class _Episode:
             sinks.append(excitation)
             if recording is not None:
                 recording.extras.append(excitation.fill)
-        sinks += self.world.sinks(recording) if hasattr(self.world, "sinks") else []  # a world's own (the flight)
+        sinks += self.world.sinks(recording)  # a world's own (the flight's)
         return sinks + ([ProgressSink()] if progress else [])
 
     def run(self) -> tuple[list[dict], bool]:

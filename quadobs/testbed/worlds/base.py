@@ -139,6 +139,14 @@ class World(abc.ABC):
         for j in range(count):
             step(j)
 
+    def sinks(self, recording=None) -> list:
+        """Sinks of the world's own (e.g. a flight's tracking figures), run beside the episode's.
+
+        ``recording`` is the episode's recording sink (``None`` without a recording). The
+        default: none.
+        """
+        return []
+
     def commit(self, rows: int) -> None:
         """Count the sensor events (outliers, dropouts) of the first ``rows`` steps of the block.
 
