@@ -418,7 +418,7 @@ class AugmentedObserver(Estimator, Gated, Immersed, BlockStep):
     def blockwise(self) -> bool:
         """Whether :meth:`step_block` is one compiled call (the compiled backend, and
         :meth:`step_and_record` not overridden: the block must give what it gives)."""
-        return self._kernel is not None and type(self).step_and_record is AugmentedObserver.step_and_record
+        return self._kernel is not None and type(self).step_and_record is _STEP_AND_RECORD
 
     def step_block(self, U: np.ndarray, Y: np.ndarray, out: np.ndarray) -> None:
         """:meth:`step_and_record` for each row of ``U (m, p)``, ``Y (m, q)`` into ``out (m, n + 3)``.
@@ -492,3 +492,7 @@ class AugmentedObserver(Estimator, Gated, Immersed, BlockStep):
         P = self._growth * (Phi @ self._P @ Phi.T) + m.process_noise(u)
         self._P[...] = 0.5 * (P + P.T)
         self._stats[3] = np.trace(self._P)
+
+
+#: The compiled :meth:`AugmentedObserver.step_and_record` that :meth:`~AugmentedObserver.step_block` reproduces.
+_STEP_AND_RECORD = AugmentedObserver.step_and_record
