@@ -197,14 +197,14 @@ class BlockStepper:
         except ImportError:  # pragma: no cover - Numba missing: the NumPy path
             read_step = None
         self._read = read_step
+        self._rollout = self._block_physics(int(capacity)) if read_step is not None else None
+        self._work[1, 4] = 0.0 if self._rollout is None else 1.0
         if read_step is not None:  # load (or compile) the kernel now, on scratch copies
             d = sim.data
             scratch = self._consts.copy()
             scratch[14 + qb] = 0.0  # no sensor layer on the scratch row
             read_step(0, self.out[:2].copy(), np.zeros((1, sim.model.nu)), d.ctrl.copy(), d.sensordata.copy(),
                       d.site_xmat.copy(), d.qpos.copy(), d.qvel.copy(), scratch, self._draws.copy(), self._work.copy())
-        self._rollout = self._block_physics(int(capacity)) if read_step is not None else None
-        self._work[1, 4] = 0.0 if self._rollout is None else 1.0
 
     def _block_physics(self, capacity: int):
         """Buffers of the one-call block (``mujoco.rollout``), or ``None`` where the model does not allow it.
@@ -228,7 +228,7 @@ class BlockStepper:
         self._sensors = np.zeros((1, capacity, m.nsensordata))
         self._cols = (1 + vm.qpos_adr, 1 + m.nq + vm.qvel_adr)  # qpos, qvel in a state row (after time)
         self._pool = rollout.Rollout(nthread=0)
-        self._read_block = read_block
+        self._read_block = read_block  # loaded (or compiled) now: the kernel of the default path
         scratch = self._consts.copy()
         scratch[14 + vm.offset_adr.shape[0]] = 0.0
         read_block(1, self.out[:2].copy(), self._states[0, :1], self._sensors[0, :1], self._state0, *self._cols, scratch,
