@@ -482,6 +482,7 @@ def _run_bench(steps, repeats, batch, batch_steps, threads, quick, log) -> dict:
         pass
 
     loops = max(repeats, 9)  # enough for quartiles
+    result["config"]["loop_repeats"] = loops
     say(f"single vehicle: {loops} x (bare physics, then the loop without and with recording on the block and the per-step path) of {steps} steps")
     _loop_us(sc.with_overrides(duration=min(steps, 2000) * sc.dt), None)  # warm-up
     _loop_us(sc.with_overrides(duration=min(steps, 2000) * sc.dt), None, "step")
@@ -583,7 +584,7 @@ def print_bench(r: dict, file=None) -> None:
     p(f"  physics + observer + recording  ratio {r['loop_ratio']:.2f}        ({r['recorded_loop_us']:.2f} us/step); "
       f"recording {100 * r['recording_fraction']:.1f}% of the loop")
     sp = r["spread"]
-    p("  median [q1, q3] over the repeats     block path (default)     per-step path")
+    p(f"  median [q1, q3] over {c.get('loop_repeats', c['repeats'])} repeats     block path (default)     per-step path")
     for key, label in (("observer_loop_ratio", "ratio without recording"), ("loop_ratio", "ratio with recording"),
                        ("recording_fraction", "recording fraction")):
         a, b = sp[key], sp["step_" + key]
