@@ -58,6 +58,7 @@ __all__ = [
     "augmented_predict",
     "augmented_step",
     "augmented_step_batch",
+    "augmented_step_block",
     "augmented_step_record",
     "range_outputs",
     "sensor_step",
@@ -350,14 +351,7 @@ def range_outputs(ranges, noise, std, beacon_term, measured, y):
 
 
 @njit(**_OPTS)
-def augmented_step_record(u, y, S, fc, ic, out):
-    """:func:`augmented_step`, recording ``out = [x_hat, trace(P)]`` before it and ``[NIS, rejected]`` after it.
-
-    ``out`` has ``n + 3`` entries (``n = N - k``): ``x_hat (n)`` and ``trace(P)`` before the
-    step, then the step's NIS and the running count of corrections rejected by the gate
-    (``stats[2]``) after it; this is
-    :meth:`quadobs.estimators.base.Estimator.step_and_record` in one call.
-    """
+def _step_record(u, y, S, fc, ic, out):
     N = ic[0]
     k = ic[1]
     so = S.shape[0] - 4
@@ -369,6 +363,34 @@ def augmented_step_record(u, y, S, fc, ic, out):
     out[N - k + 1] = S[so]
     out[N - k + 2] = S[so + 2]
     return code
+
+
+@njit(**_OPTS)
+def augmented_step_record(u, y, S, fc, ic, out):
+    """:func:`augmented_step`, recording ``out = [x_hat, trace(P)]`` before it and ``[NIS, rejected]`` after it.
+
+    ``out`` has ``n + 3`` entries (``n = N - k``): ``x_hat (n)`` and ``trace(P)`` before the
+    step, then the step's NIS and the running count of corrections rejected by the gate
+    (``stats[2]``) after it; this is
+    :meth:`quadobs.estimators.base.Estimator.step_and_record` in one call.
+    """
+    return _step_record(u, y, S, fc, ic, out)
+
+
+@njit(**_OPTS)
+def augmented_step_block(U, Y, S, fc, ic, out):
+    """:func:`augmented_step_record` over the rows of a block, in one call.
+
+    Row ``j`` of ``U (m, p)``, ``Y (m, q)`` is the step's input and outputs and row ``j`` of
+    ``out (m, n + 3)`` gets its record, exactly as ``m`` calls of
+    :func:`augmented_step_record` (the same arithmetic, in the same order, so the same bits)
+    without ``m - 1`` crossings from Python. Returns the number of corrections applied.
+    """
+    applied = 0
+    for j in range(U.shape[0]):
+        if _step_record(U[j], Y[j], S, fc, ic, out[j]) == 1:
+            applied += 1
+    return applied
 
 
 @njit(**_OPTS)

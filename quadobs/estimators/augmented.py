@@ -34,7 +34,7 @@ import numpy as np
 from quadobs.core.held_input import HeldInputDiscretization, as_covariance
 from quadobs.errors import QuadobsError, as_array, as_finite_scalar
 from quadobs.core.immersion import Immersion
-from quadobs.estimators.base import Estimator, Gated, Immersed, check_step
+from quadobs.estimators.base import BlockStep, Estimator, Gated, Immersed, check_step
 
 __all__ = ["AugmentedObserver", "BACKENDS", "default_backend"]
 
@@ -149,7 +149,7 @@ class KernelModel:
         return W
 
 
-class AugmentedObserver(Estimator, Gated, Immersed):
+class AugmentedObserver(Estimator, Gated, Immersed, BlockStep):
     """Theorem 3's observer on an immersion, advanced one held-input step at a time.
 
     Parameters
@@ -269,6 +269,8 @@ class AugmentedObserver(Estimator, Gated, Immersed):
             S = self._S
             self._kernel(np.zeros(self._ushape), np.full(self._yshape, np.nan), S.copy(), km.fc, km.ic)
             self._krecord(np.zeros(self._ushape), np.full(self._yshape, np.nan), S.copy(), km.fc, km.ic, np.zeros(n + 3))
+            rows = np.zeros((2, n + 3))  # the block kernel, for the strided row views an episode passes
+            self._kblock(np.zeros((2, 2 * q + n))[:, : self._ushape[0]], rows[:, : q], S.copy(), km.fc, km.ic, rows)
         else:
             self._stats = np.array([np.nan, 0.0, 0.0, 0.0])  # nis, corrections, rejected, trace(P)
         self._stats[3] = np.trace(self._P)
@@ -286,11 +288,12 @@ class AugmentedObserver(Estimator, Gated, Immersed):
         self._kcorrect = _kernels.augmented_correct
         self._kpredict = _kernels.augmented_predict
         self._krecord = _kernels.augmented_step_record
+        self._kblock = _kernels.augmented_step_block
 
     def __getstate__(self) -> dict:
         state = self.__dict__.copy()
         if self.backend == "numba":  # views and kernels are rebuilt from S on unpickling
-            for key in ("_z", "_P", "_stats", "_kops", "_kernel", "_kcorrect", "_kpredict", "_krecord"):
+            for key in ("_z", "_P", "_stats", "_kops", "_kernel", "_kcorrect", "_kpredict", "_krecord", "_kblock"):
                 state.pop(key, None)
         return state
 
@@ -411,6 +414,38 @@ class AugmentedObserver(Estimator, Gated, Immersed):
                 raise QuadobsError(f"out: expected a float64 array of shape {self._rshape}")
         self._krecord(u, y, *self._kops, out)
 
+    @property
+    def blockwise(self) -> bool:
+        """Whether :meth:`step_block` is one compiled call (the compiled backend, and
+        :meth:`step_and_record` not overridden: the block must give what it gives)."""
+        return self._kernel is not None and type(self).step_and_record is _STEP_AND_RECORD
+
+    def step_block(self, U: np.ndarray, Y: np.ndarray, out: np.ndarray) -> None:
+        """:meth:`step_and_record` for each row of ``U (m, p)``, ``Y (m, q)`` into ``out (m, n + 3)``.
+
+        One compiled call when :attr:`blockwise` (:func:`quadobs._kernels.observer.augmented_step_block`:
+        the same arithmetic as ``m`` calls of :meth:`step_and_record`, hence the same bits);
+        otherwise :meth:`step_and_record` row by row. Shapes and types are checked as
+        :meth:`step_and_record` checks them.
+        """
+        m = self._checked_rows("U", U, self._ushape[0])
+        if self._checked_rows("Y", Y, self._yshape[0]) != m or not (
+            isinstance(out, np.ndarray) and out.dtype == _F64 and out.shape == (m,) + self._rshape
+        ):
+            raise QuadobsError(f"out: expected a float64 array of shape {(m,) + self._rshape} (one row per row of U and Y)")
+        if not self.blockwise:
+            for i in range(m):
+                self.step_and_record(U[i], Y[i], out[i])
+            return
+        self._kblock(U, Y, *self._kops, out)
+
+    @staticmethod
+    def _checked_rows(name: str, value, width: int) -> int:
+        """Rows of ``value``, a float64 array ``(m, width)`` (views with strides allowed)."""
+        if not (isinstance(value, np.ndarray) and value.dtype == _F64 and value.ndim == 2 and value.shape[1] == width):
+            raise QuadobsError(f"{name}: expected a float64 array of shape (m, {width})")
+        return value.shape[0]
+
     # -- the two halves ----------------------------------------------------------------
 
     def correct(self, y: np.ndarray) -> None:
@@ -457,3 +492,7 @@ class AugmentedObserver(Estimator, Gated, Immersed):
         P = self._growth * (Phi @ self._P @ Phi.T) + m.process_noise(u)
         self._P[...] = 0.5 * (P + P.T)
         self._stats[3] = np.trace(self._P)
+
+
+#: The compiled :meth:`AugmentedObserver.step_and_record` that :meth:`~AugmentedObserver.step_block` reproduces.
+_STEP_AND_RECORD = AugmentedObserver.step_and_record

@@ -14,6 +14,7 @@ ability            what the estimator then provides
 :class:`SetValued` ``bounds (n, 2)``: interval bounds guaranteed to hold the state
 :class:`Immersed`  ``immersion``: the :class:`~quadobs.core.immersion.Immersion` it runs on
 :class:`Subset`    ``outputs (q_used,)``: the indices of the outputs it reads
+:class:`BlockStep` ``step_block(U, Y, out)``: the records of a block of steps in one call
 =================  ===============================================================
 
 Conventions: ``u (p,)`` is the input held over the step, ``y (q,)`` the outputs sampled
@@ -38,7 +39,10 @@ import numpy as np
 
 from quadobs.errors import as_array
 
-__all__ = ["Estimator", "Counted", "Gated", "Switching", "SetValued", "Immersed", "Subset", "check_step", "covariance_trace"]
+__all__ = [
+    "Estimator", "Counted", "Gated", "Switching", "SetValued", "Immersed", "Subset", "BlockStep", "check_step",
+    "covariance_trace",
+]
 
 
 class Estimator(abc.ABC):
@@ -213,3 +217,30 @@ class Subset(abc.ABC):
     """Ability: reads only some of the outputs (:attr:`outputs`, their indices in ``y``)."""
 
     outputs: np.ndarray
+
+
+class BlockStep(abc.ABC):
+    """Ability: consumes a block of steps in one call, as many calls of :meth:`Estimator.step_and_record` would.
+
+    For an open-loop episode (the truth does not depend on the estimates) every ``u_k``,
+    ``y_k`` of a block is known before the estimators run, so an estimator with this
+    ability advances over rows ``[j, m)`` at once: for each row ``i``,
+
+    .. math:: \\text{out}_i = [\\hat x_i,\\ \\operatorname{tr} P_i,\\ \\mathrm{NIS}_i,\\ r_i]
+
+    bit for bit what ``step_and_record(U[i], Y[i], out[i])`` would write, and the same
+    state afterwards.
+
+    Attributes
+    ----------
+    blockwise : bool
+        Whether :meth:`step_block` is one call that cannot stop between rows (a compiled
+        kernel); ``False`` where it would loop over the rows from Python, in which case the
+        testbed calls :meth:`Estimator.step_and_record` row by row itself.
+    """
+
+    blockwise: bool = False
+
+    @abc.abstractmethod
+    def step_block(self, U: np.ndarray, Y: np.ndarray, out: np.ndarray) -> None:
+        """Steps with the rows of ``U (m, p)`` and ``Y (m, q)``, their records into ``out (m, n + 3)``."""

@@ -5,8 +5,9 @@
     world = PointMassWorld(scenario, sensors)        # MuJoCo point mass, sensor layer fused
     for each block of steps:
         world.begin_block(k0, count); world.fill(count)   # truth, readings, y_k, u_k per row
-        for each step k of the block:                    # (closed loop: world.step(j, x_hat))
-            for est in estimators: est.step_and_record(u_k, y_k, row_k)
+        block path:     for est in estimators: est.step_block(U, Y, rows)   # one call each
+        per-step path:  for each step k of the block:    # (closed loop: world.step(j, x_hat))
+                            for est in estimators: est.step_and_record(u_k, y_k, row_k)
         for sink in sinks: sink.block(rows)              # errors computed once per block
     summary = merge(sink.end() for sink in sinks)
 
@@ -25,6 +26,15 @@ Cost. The per-step path allocates nothing but row views: the world's compiled re
 augmented observer). Every value of step ``k`` lands in row ``k`` of the preallocated
 :class:`~quadobs.testbed.sinks.Block`; the sinks (:mod:`quadobs.testbed.sinks`) read them
 once per block, vectorised.
+
+Two paths, the same summary bit for bit (tested). The block path, the default where the
+world is open loop and every estimator is a compiled
+:class:`~quadobs.estimators.base.BlockStep`: the world fills the block in one call
+(``mujoco.rollout`` and one compiled read with the sensor layer) and each estimator
+consumes the block's rows in one compiled call, split only where a sink is due between
+steps (:class:`~quadobs.testbed.sinks.StepSink`). The per-step path (``path="step"``, and
+always for closed-loop worlds or other estimators): ``mj_step`` and the compiled read
+once per step, then each estimator's ``step_and_record`` once per row.
 
 Stops. A block's sensor events are counted and its rows handed to the sinks inside
 :func:`~quadobs.errors.deferred_interrupts`; a Ctrl-C (or SIGTERM) anywhere else hands the
@@ -45,7 +55,7 @@ from pathlib import Path
 import numpy as np
 
 from quadobs.errors import QuadobsError, check_writable, deferred_interrupts
-from quadobs.estimators.base import Counted, Gated, Immersed, Switching
+from quadobs.estimators.base import BlockStep, Counted, Gated, Immersed, SetValued, Switching
 from quadobs.testbed.registry import build_estimators, default_estimators
 from quadobs.testbed.scenario import Scenario
 from quadobs.testbed.sensors import SensorModel, initial_guess, spawn_streams
@@ -54,7 +64,10 @@ from quadobs.testbed.sinks import (
     StepSink, TraceSink, merge,
 )
 
-__all__ = ["EpisodeResult", "run_episode", "write_json_atomic", "WALL_CLOCK_KEYS"]
+__all__ = ["EpisodeResult", "run_episode", "write_json_atomic", "WALL_CLOCK_KEYS", "PATHS"]
+
+#: How :func:`run_episode` advances: ``"auto"`` (the block path where it applies), ``"step"``.
+PATHS = ("auto", "step")
 
 _BLOCK = 8192
 
@@ -149,6 +162,7 @@ def run_episode(
     collect_every: int = 0,
     flush_rows: int = 8192,
     world=None,
+    path: str = "auto",
 ) -> EpisodeResult:
     """Simulate ``scenario`` in a world, run the estimators every physics step, record and summarise.
 
@@ -171,6 +185,10 @@ def run_episode(
     world : callable, optional
         ``world(scenario, sensors, capacity) -> World`` (:class:`~quadobs.testbed.worlds.base.World`);
         default :class:`~quadobs.testbed.worlds.PointMassWorld`.
+    path : {"auto", "step"}
+        ``"auto"``: the block path (see the module docstring) where the world is open loop
+        and every estimator consumes blocks in one compiled call, else the per-step path;
+        ``"step"``: the per-step path. The summaries are the same bits.
 
     Returns
     -------
@@ -196,10 +214,12 @@ def run_episode(
     if scenario.kind not in ("vehicle", "quadrotor"):
         raise QuadobsError(f"scenario {scenario.name!r}: kind {scenario.kind!r} is not a MuJoCo vehicle scenario")
     names = list(estimators) if estimators else default_estimators(scenario)
-    for path in (summary_path, out):
-        if path is not None:
-            check_writable(path)
-    episode = _Episode(scenario, names, world, out, flush_rows, progress, collect_every)
+    if path not in PATHS:
+        raise QuadobsError(f"path: expected one of {PATHS}, got {path!r}")
+    for target in (summary_path, out):
+        if target is not None:
+            check_writable(target)
+    episode = _Episode(scenario, names, world, out, flush_rows, progress, collect_every, path)
     wall0 = _time.perf_counter()
     fragments, interrupted = episode.run()
     wall = _time.perf_counter() - wall0
@@ -212,8 +232,9 @@ def run_episode(
 class _Episode:
     """The episode's parts (world, block, estimators, sinks) and the position of its loop."""
 
-    def __init__(self, scenario, names, world, out, flush_rows, progress, collect_every) -> None:
+    def __init__(self, scenario, names, world, out, flush_rows, progress, collect_every, path="auto") -> None:
         from quadobs.testbed.worlds import PointMassWorld  # the MuJoCo layer, imported only to run episodes
+        from quadobs.testbed.worlds.base import World
 
         self.scenario, self.steps = scenario, scenario.steps
         streams = spawn_streams(scenario.seed)
@@ -225,6 +246,11 @@ class _Episode:
         ests = build_estimators(scenario, names, x0)
         self.block = block = Block(self.world, ests, _BLOCK)
         self.slots = [(est.step_and_record, block.rec[e]) for e, est in enumerate(ests)]
+        self.blockwise = path == "auto" and not self.world.closed_loop and all(
+            isinstance(e, BlockStep) and e.blockwise and not isinstance(e, SetValued) for e in ests
+        )
+        self.block_slots = [(est.step_block, block.rec[e]) for e, est in enumerate(ests)] if self.blockwise else []
+        self.step_fill = World.fill if path == "step" else None  # the per-step path: one step at a time
         lead = self.world.controller
         self.lead = next((e for e in ests if e.name == lead), None) if lead else ests[0]
         if self.lead is None:
@@ -300,9 +326,14 @@ class _Episode:
         block, world = self.block, self.world
         block.k0 = k0
         count = world.begin_block(k0, min(_BLOCK, self.steps - k0))
-        if not world.closed_loop:
+        if self.step_fill is not None and not world.closed_loop:
+            self.step_fill(world, count)
+        elif not world.closed_loop:
             world.fill(count)
-        self._estimate(count)
+        if self.blockwise:
+            self._estimate_blocks(count)
+        else:
+            self._estimate(count)
         rows = count
         if k0 + count == self.steps:  # the final row: x_K and the estimates at t_K
             block.record_final(count)
@@ -329,6 +360,19 @@ class _Episode:
             self.completed = s = k0 + j + 1  # row j is complete: what follows only reads it
             if s == due:
                 due = self._after_step(s, j)
+
+    def _estimate_blocks(self, count: int) -> None:
+        """The block path: each estimator over rows ``[j, stop)`` in one call, ``stop`` the next row a sink is due after."""
+        y, u, k0, j = self.block.y, self.block.u, self.block.k0, 0
+        while j < count:
+            due = self.next_due - k0
+            stop = due if j < due < count else count
+            for step_block, rec in self.block_slots:
+                step_block(u[j:stop], y[j:stop], rec[j:stop])
+            self.completed = s = k0 + stop
+            if s == self.next_due:
+                self._after_step(s, stop - 1)
+            j = stop
 
     def _after_step(self, s: int, j: int) -> int:
         """Call the sinks due after ``s`` steps; returns when the next one is due."""

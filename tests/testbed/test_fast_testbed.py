@@ -157,6 +157,10 @@ def test_bench_command_writes_the_figures(tmp_path, capsys):
     assert data["bare_steps_per_s"] > 0
     assert data["recording_fraction"] < 1  # 1 - t_norec / t_rec
     assert data["batch"]["vehicles"] == 4 and data["scaling"]
+    for key in ("loop_ratio", "step_loop_ratio", "recording_fraction", "step_recording_fraction"):
+        q = data["spread"][key]  # median and quartiles over the repeats
+        assert q["q1"] <= q["median"] == data[key] <= q["q3"] and q["iqr"] == pytest.approx(q["q3"] - q["q1"])
+    assert data["campaign"]["runs"] >= 2 and data["campaign"]["episodes_per_s"] > 0
     assert set(data["lmi_design_split_s"]) == {"first_approach", "second_approach"} and data["lmi_import_s"] >= 0
     assert data["zonotope_vehicle"]["scenario"] == "ifac2021-bounded" and data["zonotope_vehicle"]["correct_every_step_us"] > 0
     le = data["le2013_step_us"]

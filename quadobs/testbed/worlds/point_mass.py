@@ -20,6 +20,9 @@ from quadobs.testbed.worlds.model import VehicleModel, load_vehicle_model
 __all__ = ["VehicleSim", "BlockStepper", "PointMassWorld"]
 
 _mj_step = mujoco.mj_step
+_FULL = mujoco.mjtState.mjSTATE_FULLPHYSICS
+_CTRL = int(mujoco.mjtState.mjSTATE_CTRL.value)
+_SAME_ROTATION = (int(mujoco.mjtSameFrame.mjSAMEFRAME_BODY), int(mujoco.mjtSameFrame.mjSAMEFRAME_BODYROT))
 
 
 class VehicleSim:
@@ -187,18 +190,70 @@ class BlockStepper:
         )
         self._ctrls = np.zeros((0, sim.model.nu))
         self._draws = np.zeros((1, 1 if sensors is None else sensors.draw_width))
+        self._work = np.zeros((2, 9))  # the site's rotation; the quaternion at the start of the step, and its flag
         self._model, self._data = sim.model, sim.data
         try:
             from quadobs.testbed.worlds._read import read_step
         except ImportError:  # pragma: no cover - Numba missing: the NumPy path
             read_step = None
         self._read = read_step
+        self._rollout = self._block_physics(int(capacity)) if read_step is not None else None
+        self._work[1, 4] = 0.0 if self._rollout is None else 1.0
         if read_step is not None:  # load (or compile) the kernel now, on scratch copies
             d = sim.data
             scratch = self._consts.copy()
             scratch[14 + qb] = 0.0  # no sensor layer on the scratch row
             read_step(0, self.out[:2].copy(), np.zeros((1, sim.model.nu)), d.ctrl.copy(), d.sensordata.copy(),
-                      d.site_xmat.copy(), d.qpos.copy(), d.qvel.copy(), scratch, self._draws.copy())
+                      d.site_xmat.copy(), d.qpos.copy(), d.qvel.copy(), scratch, self._draws.copy(), self._work.copy())
+
+    def _block_physics(self, capacity: int):
+        """Buffers of the one-call block (``mujoco.rollout``), or ``None`` where the model does not allow it.
+
+        The block's rows need the orientation of the site at the start of each step; it is
+        recomputed from the state's quaternion, which is exact when the vehicle is a free
+        body of the world and the site shares its frame's rotation (the shipped model).
+        """
+        from mujoco import rollout
+
+        from quadobs.testbed.worlds._read import read_block
+
+        m, vm = self.sim.model, self.sim.vm
+        body = int(m.site_bodyid[vm.site_id])
+        jnt = int(m.body_jntadr[body])
+        if not (m.body_parentid[body] == 0 and m.body_jntnum[body] == 1 and m.jnt_type[jnt] == mujoco.mjtJoint.mjJNT_FREE
+                and m.jnt_qposadr[jnt] == vm.qpos_adr and int(m.site_sameframe[vm.site_id]) in _SAME_ROTATION):
+            return None
+        self._state0 = np.zeros(mujoco.mj_stateSize(m, _FULL))
+        self._states = np.zeros((1, capacity, self._state0.size))
+        self._sensors = np.zeros((1, capacity, m.nsensordata))
+        self._cols = (1 + vm.qpos_adr, 1 + m.nq + vm.qvel_adr)  # qpos, qvel in a state row (after time)
+        self._pool = rollout.Rollout(nthread=0)
+        self._read_block = read_block  # loaded (or compiled) now: the kernel of the default path
+        scratch = self._consts.copy()
+        scratch[14 + vm.offset_adr.shape[0]] = 0.0
+        read_block(1, self.out[:2].copy(), self._states[0, :1], self._sensors[0, :1], self._state0, *self._cols, scratch,
+                   self._draws.copy(), self._work.copy())
+        return self._pool
+
+    def fill(self, count: int) -> None:
+        """Every step of the block begun by :meth:`begin`: rows ``0 .. count`` as ``count`` calls of :meth:`step` write them.
+
+        One ``mujoco.rollout`` call for the physics (the same ``mj_step`` on the same data, so
+        the same states and sensor values) and one compiled call (:func:`~quadobs.testbed.worlds._read.read_block`)
+        for the readings and the sensor layer; the steps one at a time where the model does
+        not allow it.
+        """
+        if self._rollout is None or count == 0:
+            for j in range(count):
+                self.step(j)
+            return
+        m, d = self._model, self._data
+        mujoco.mj_getState(m, d, self._state0, _FULL)
+        states, sensors = self._states[:, :count], self._sensors[:, :count]
+        self._rollout.rollout([m], [d], self._state0[None], self._ctrls[None, :count], control_spec=_CTRL, skip_checks=True,
+                              nstep=count, initial_warmstart=d.qacc_warmstart[None].copy(), state=states, sensordata=sensors,
+                              chunk_size=1)
+        self._read_block(count, self.out, states[0], sensors[0], self._state0, *self._cols, self._consts, self._draws, self._work)
 
     def begin(self, accelerations, k0: int = 0) -> int:
         """Start a block of steps ``k0, k0 + 1, ...`` with these commanded accelerations ``(T, dim)``.
@@ -217,7 +272,9 @@ class BlockStepper:
         d = sim.data
         d.ctrl[:] = self._ctrls[0]
         self.out[0, self.truth] = sim.state()
-        self._args = (self.out, self._ctrls, d.ctrl, d.sensordata, d.site_xmat, d.qpos, d.qvel, self._consts, self._draws)
+        qa = sim.vm.qpos_adr
+        self._work[1, :4] = d.qpos[qa + 3 : qa + 7]
+        self._args = (self.out, self._ctrls, d.ctrl, d.sensordata, d.site_xmat, d.qpos, d.qvel, self._consts, self._draws, self._work)
         return count
 
     def commit(self, rows: int) -> None:
@@ -293,9 +350,7 @@ class PointMassWorld(World):
         self.stepper.step(j)
 
     def fill(self, count: int) -> None:
-        step = self.stepper.step
-        for j in range(count):
-            step(j)
+        self.stepper.fill(count)
 
     def commit(self, rows: int) -> None:
         self.stepper.commit(rows)
