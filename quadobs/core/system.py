@@ -208,8 +208,8 @@ def odometry_system(beacons: np.ndarray) -> QuadraticSystem:
     which does not enter the position (the last column of ``B`` is zero; it is carried so
     that estimators of the heading read the same input):
 
-    .. math:: \dot p = (v_x, v_y), \qquad
-              y_h = \tfrac12 |p - a_h|^2 - \tfrac12 |a_h|^2 = \tfrac12 |p|^2 - a_h^\top p .
+    .. math:: \\dot p = (v_x, v_y), \\qquad
+              y_h = \\tfrac12 |p - a_h|^2 - \\tfrac12 |a_h|^2 = \\tfrac12 |p|^2 - a_h^\\top p .
 
     Assumptions: the odometry's heading is right (its origin known, its drift small over
     the log) and its speed unbiased; what they miss is the process noise. The immersion

@@ -2,15 +2,19 @@
 
 Names: ``augmented`` (the observer of [IFAC2021, Thm. 3] on the immersion of the replay
 model), ``ekf`` (the EKF on the original state, in the range ("norm") space), ``isam2``
-(the GTSAM peer, :mod:`quadobs.estimators.gtsam_peer`), and any other name registered in
-:mod:`quadobs.testbed.registry` whose factory accepts a :class:`ReplaySetup`.
+(the GTSAM peer, :mod:`quadobs.estimators.gtsam_peer`): the entry points of the group
+``quadobs.replay_estimators`` (:data:`REPLAY_ENTRY_POINT_GROUP`) declared in quadobs'
+``pyproject.toml``, beside which other packages declare theirs, ``factory(setup, x0,
+name) -> Estimator`` with ``setup`` a :class:`ReplaySetup`. The simulated scenarios'
+group ``quadobs.estimators`` is kept apart: its factories take a scenario.
 
 Noise (the defaults of :class:`ReplaySetup`; the same for every estimator):
 
 * ranges: standard deviation ``range_sigma`` (1 m). The augmented observer's output is the
   half squared range, whose standard deviation is about ``rho sigma``: it is given
   ``R = (rho_med range_sigma)^2`` with ``rho_med`` the median measured range of the log;
-* odometry (model ``odometry``): a white noise of intensity ``q_xy`` (m^2/s) on ``p'``; on
+* odometry (model ``odometry``): a white noise of intensity ``q_xy`` (m^2/s) on ``p'``
+  (it covers the speed noise and the heading drift of the odometry); on
   the auxiliary state ``xi = |p|^2/2`` (``xi' = u^T p``) the matching intensity
   ``r^2 q_xy``, ``r`` the largest beacon distance from the origin plus 20 m;
 * model ``cv``: a white acceleration of intensity ``q_acc`` (m^2/s^3), and ``r^2 q_acc`` on
@@ -18,8 +22,12 @@ Noise (the defaults of :class:`ReplaySetup`; the same for every estimator):
 * the initial guess ``x0`` with variance ``P0`` per position axis; the augmented
   observer's initial covariance is that of ``lift(x)`` for ``x ~ N(x0, P0 I)`` on the
   position: ``var xi = P0 |p0|^2 + P0^2``, ``cov(xi, p) = P0 p0``;
-* a gate on the NIS at ``gate`` (10.83: the 0.999 quantile of chi-square with 1 degree of
-  freedom; the outputs of a step are few and mostly single).
+* no gate on the NIS by default (``gate``: a threshold; on Plaza2, whose odometry heading
+  drifts, a gate at 10.83, the 0.999 quantile of chi-square with 1 degree of freedom,
+  rejects most ranges and the estimates diverge).
+
+``q_xy = 2`` m^2/s and no gate were chosen from a sweep on both Plaza logs
+(``q_xy`` in 0.5, 2, 8; gate 10.83 or none; see ``docs/replay.md``).
 """
 
 from __future__ import annotations
@@ -35,7 +43,13 @@ from quadobs.estimators.augmented import AugmentedObserver
 from quadobs.estimators.base import Estimator
 from quadobs.estimators.kalman import ExtendedKalmanFilter, HeldInputModel, OutputModel
 
-__all__ = ["ReplaySetup", "build_replay_estimators", "build_isam2", "REPLAY_ESTIMATORS"]
+__all__ = [
+    "REPLAY_ENTRY_POINT_GROUP", "REPLAY_ESTIMATORS", "ReplaySetup", "build_isam2", "build_replay_estimators",
+    "replay_estimator_names",
+]
+
+#: The entry-point group of the estimators of logged data.
+REPLAY_ENTRY_POINT_GROUP = "quadobs.replay_estimators"
 
 
 @dataclass(frozen=True, eq=False)
@@ -63,10 +77,10 @@ class ReplaySetup:
     heading0: float
     range_median: float
     range_sigma: float = 1.0
-    q_xy: float = 0.1
+    q_xy: float = 2.0
     q_theta: float = 1e-3
-    q_acc: float = 0.5
-    gate: float | None = 10.83
+    q_acc: float = 2.0
+    gate: float | None = None
     P0: float = 2500.0
     system: QuadraticSystem = field(init=False, repr=False)
 
@@ -137,21 +151,40 @@ def build_isam2(s, x0: np.ndarray, name: str = "isam2") -> Estimator:
     return est
 
 
-#: The replay's own estimators by name.
+#: The built-in estimators of logged data (as declared in pyproject.toml; a test checks that they agree).
 REPLAY_ESTIMATORS = {"augmented": build_augmented, "ekf": build_ekf, "isam2": build_isam2}
 
 
+def _entry_points() -> dict:
+    import importlib.metadata
+
+    return {ep.name: ep for ep in importlib.metadata.entry_points(group=REPLAY_ENTRY_POINT_GROUP)}
+
+
+def replay_estimator_names() -> list[str]:
+    """The selectable names in ``quadobs replay``, sorted."""
+    return sorted(set(REPLAY_ESTIMATORS) | set(_entry_points()))
+
+
+def _factory(name: str):
+    if name in REPLAY_ESTIMATORS:
+        return REPLAY_ESTIMATORS[name]
+    ep = _entry_points().get(name)
+    if ep is None:
+        raise QuadobsError(f"estimators: unknown estimator {name!r} for logged data; available: {', '.join(replay_estimator_names())}")
+    try:
+        return ep.load()
+    except Exception as exc:
+        raise QuadobsError(f"estimators: entry point {name!r} ({ep.value}) cannot be loaded: {type(exc).__name__}") from None
+
+
 def build_replay_estimators(setup: ReplaySetup, names: list[str], x0: np.ndarray) -> list[Estimator]:
-    """The named estimators, all from ``x0``; names beyond :data:`REPLAY_ESTIMATORS` come from the registry."""
+    """The named estimators, all from ``x0`` (built-in names first, then the entry points)."""
     if len(set(names)) != len(names):
         raise QuadobsError(f"estimators: names must be distinct, got {names}")
     out = []
     for name in names:
-        factory = REPLAY_ESTIMATORS.get(name)
-        if factory is None:
-            from quadobs.testbed.registry import estimator_factory
-
-            factory = estimator_factory(name)[0]
+        factory = _factory(name)
         est = factory(setup, np.array(x0, dtype=float), name)
         if not isinstance(est, Estimator):
             raise QuadobsError(f"estimators: the factory of {name!r} returned {type(est).__name__}, not an Estimator")

@@ -96,7 +96,10 @@ class RangeLog:
         return np.array([lookup[int(b)] for b in ids], dtype=np.int64)
 
     def excerpt(self, t0: float, t1: float) -> "RangeLog":
-        """The part of the log with ``t0 <= time - start < t1`` (s from :attr:`start`); the heading carried over."""
+        """The part of the log with ``t0 <= time - start < t1`` (s from :attr:`start`); the heading carried over.
+
+        The truth keeps one sample either side of the span (so that it covers the excerpt).
+        """
         a, b = self.start + t0, self.start + t1
         inp = self.inputs
         k = np.searchsorted(inp[:, 0], a, side="right") - 1
@@ -105,7 +108,11 @@ class RangeLog:
         keep = lambda arr: arr[(arr[:, 0] >= a) & (arr[:, 0] < b)]  # noqa: E731
         new_inp = inp[k:][inp[k:, 0] < b].copy()
         new_inp[0, 0] = max(new_inp[0, 0], a)
-        truth = None if self.truth is None else keep(self.truth)
+        truth = None
+        if self.truth is not None:  # with the samples either side, so that the truth covers the excerpt
+            i0 = max(int(np.searchsorted(self.truth[:, 0], a, side="right")) - 1, 0)
+            i1 = int(np.searchsorted(self.truth[:, 0], b, side="left")) + 1
+            truth = self.truth[i0:i1].copy()
         return RangeLog(f"{self.name}[{t0:g}:{t1:g}]", self.beacon_ids, self.beacons, keep(self.ranges), new_inp, heading, truth)
 
 

@@ -14,9 +14,10 @@ Conventions of the ``.mat`` files, handled here (tested in ``tests/testbed/test_
 * ``DR (K, 3)``: ``time t_i, distance d_i, heading change dtheta_i``, the odometry
   *increments* over ``[t_(i-1), t_i]`` with ``t_(-1)`` the first time of ``DRp``. They
   become the held inputs ``speed = d_i / (t_i - t_(i-1))``, ``yaw_rate = dtheta_i / (t_i -
-  t_(i-1))`` from ``t_(i-1)``; integrated at the mid-step heading
+  t_(i-1))`` from ``t_(i-1)`` (a last row at the final time, speed and yaw rate 0, closes
+  the last interval); integrated at the mid-step heading
   ``theta_(i-1) + dtheta_i / 2`` they reproduce the dataset's own dead reckoning ``DRp`` of
-  Plaza2 to 5 cm;
+  Plaza2 to 7 cm;
 * ``DRp (K + 1, 4)``: the dataset's dead reckoning, ``time, x, y, heading``; its first
   heading is the odometry's origin ``heading0`` (the start pose the dataset provides);
 * ``GT (K + 1, 4)``: the ground truth ``time, x, y, heading``. In Plaza2 its heading is
@@ -74,6 +75,7 @@ def load_builtin(name: str) -> RangeLog:
     t = np.concatenate([[DRp[0, 0]], DR[:, 0]])
     span = np.diff(t)
     inputs = np.column_stack([t[:-1], DR[:, 1] / span, DR[:, 2] / span])
+    inputs = np.vstack([inputs, [t[-1], 0.0, 0.0]])
     truth = GT.copy()
     truth[:, 3] = _wrap(truth[:, 3] - _TRUTH_HEADING_OFFSET[name])
     ranges = TD[np.argsort(TD[:, 0], kind="stable")][:, [0, 2, 3]]
