@@ -473,9 +473,13 @@ def _cmd_replay(args) -> int:
         write_log(log, args.export)
         print(f"log {log.name}: {log.ranges.shape[0]} ranges, {log.inputs.shape[0]} inputs written to {args.export}")
         return 0
+    from quadobs.errors import check_writable
     from quadobs.testbed.logs.calibration import calibrate_biases
     from quadobs.testbed.logs.replay import run_replay
 
+    for path in (args.out, args.summary):  # before the calibration's replays
+        if path is not None:
+            check_writable(path)
     biases = None
     if args.biases is not None:
         try:

@@ -104,6 +104,22 @@ def test_bad_headers_short_rows_and_missing_files_are_named(tmp_path):
         read_log(folder)
 
 
+def test_the_cli_replays_a_log_folder(tmp_path, capsys):
+    folder = write_log(synthetic_log(30.0, bias=1.0), tmp_path / "log")
+    code = main(["replay", str(folder), "--summary", str(tmp_path / "s.json"), "--estimators", "augmented,ekf"])
+    assert code == 0
+    out = capsys.readouterr().out
+    assert "augmented" in out and "ekf" in out and "us/range" in out
+    s = json.loads((tmp_path / "s.json").read_text())
+    assert set(s["estimators"]) == {"augmented", "ekf"} and len(s["biases"]) == 4 and s["ranges"]["placed"] > 100
+    for key in ("rmse", "max_error", "final_position_error", "time_to_5m", "time_to_2m", "seconds_per_measurement"):
+        assert key in s["estimators"]["augmented"]
+    assert main(["replay", str(folder), "--biases", "1,2", "--no-progress"]) == 2
+    assert "--biases: 2 values for 4 beacons" in capsys.readouterr().err
+    assert main(["replay", str(folder), "--estimators", "nosuch", "--no-progress", "--calibrate", "none"]) == 2
+    assert "unknown estimator 'nosuch'" in capsys.readouterr().err
+
+
 def test_the_cli_reports_a_malformed_log_in_one_line_with_status_2(tmp_path, capsys):
     folder = write_log(synthetic_log(20.0), tmp_path / "log")
     (folder / "beacons.csv").write_text("id,x,y\n0,1,2\n1,zz,3\n")

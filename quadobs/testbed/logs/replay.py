@@ -294,13 +294,12 @@ def _peer_figures(world, ests, summary: dict) -> None:
     """The GTSAM peer's smoothed and batch (Levenberg-Marquardt) RMSE at its keyframes."""
     from quadobs.estimators.gtsam_peer import Isam2RangeOnly  # imports gtsam only when built
 
-    truth = world._rows[:, world.columns.truth][:, :2]
     for est in ests:
         if not isinstance(est, Isam2RangeOnly):
             continue
         entry = summary["estimators"][est.name]
         for key, (steps, P) in (("smoothed", est.online_positions()), ("batch", est.batch_optimum())):
-            e = np.linalg.norm(P - truth[steps], axis=1)
+            e = np.linalg.norm(P - world.truth_at(steps)[:, :2], axis=1)
             e = e[np.isfinite(e)]
             entry[f"{key}_rmse"] = float(np.sqrt(np.mean(e**2))) if e.size else None
             entry[f"{key}_max_error"] = float(e.max()) if e.size else None

@@ -142,6 +142,10 @@ class ReplayWorld(World):
         a2 = np.einsum("hi,hi->h", log.beacons, log.beacons)
         rows[k, n + h] = 0.5 * (rho - self.biases[h]) ** 2 - 0.5 * a2[h]
 
+    def truth_at(self, steps) -> np.ndarray:
+        """The true state at the given grid steps ``(m, n)`` (NaN without a truth)."""
+        return self._rows[np.asarray(steps), self.columns.truth].copy()
+
     def state(self) -> np.ndarray:
         """The truth at ``t_0`` (NaN without one)."""
         return self._rows[0, self.columns.truth].copy()
