@@ -2,7 +2,7 @@
 
 :mod:`quadobs.testbed.logs.format` reads and writes the format (:class:`RangeLog`);
 :mod:`quadobs.testbed.logs.plaza` loads the CMU Plaza1 and Plaza2 range-only logs
-[DJUGASH2009] from the files bundled with ``gtsam`` (the ``data`` extra).
+[DJUGASH2006] from the files bundled with ``gtsam`` (the ``data`` extra).
 """
 
 from quadobs.testbed.logs.format import LOG_FILES, RangeLog, read_log, write_log
