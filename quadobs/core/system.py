@@ -21,7 +21,10 @@ import numpy as np
 
 from quadobs.errors import QuadobsError, as_array
 
-__all__ = ["QuadraticSystem", "vehicle_system", "wind_system", "range_outputs", "SYMMETRY_RTOL"]
+__all__ = [
+    "QuadraticSystem", "vehicle_system", "wind_system", "range_outputs", "SYMMETRY_RTOL", "odometry_system",
+    "constant_velocity_system",
+]
 
 #: Relative tolerance on ``|C_h - C_h^T|`` below which an output matrix counts as symmetric.
 SYMMETRY_RTOL = 1e-10
@@ -185,3 +188,55 @@ def range_outputs(ranges: np.ndarray, beacons: np.ndarray) -> np.ndarray:
     """
     ranges = np.asarray(ranges, dtype=float)
     return 0.5 * ranges**2 - 0.5 * np.einsum("hi,hi->h", beacons, beacons)
+
+
+def _planar_ranges(beacons: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """``C_h = diag(I_2, 0)`` and ``d_h = (-a_h, 0)`` of planar range outputs on a state of size ``n``."""
+    q = beacons.shape[0]
+    C = np.zeros((q, n, n))
+    C[:, :2, :2] = np.eye(2)
+    d = np.zeros((q, n))
+    d[:, :2] = -beacons
+    return C, d
+
+
+def odometry_system(beacons: np.ndarray) -> QuadraticSystem:
+    """A ground vehicle in the plane driven by its odometry: a single integrator with known input.
+
+    State ``x = p`` (position, m); input ``u = (v_x, v_y, omega)``: the odometry's forward
+    speed rotated by the odometry heading (world frame, m/s) and the yaw rate (rad/s),
+    which does not enter the position (the last column of ``B`` is zero; it is carried so
+    that estimators of the heading read the same input):
+
+    .. math:: \\dot p = (v_x, v_y), \\qquad
+              y_h = \\tfrac12 |p - a_h|^2 - \\tfrac12 |a_h|^2 = \\tfrac12 |p|^2 - a_h^\\top p .
+
+    Assumptions: the odometry's heading is right (its origin known, its drift small over
+    the log) and its speed unbiased; what they miss is the process noise. The immersion
+    has one auxiliary state ``xi = |p|^2 / 2`` with ``xi' = u^T p`` [ACC2024, Alg. 1].
+    """
+    beacons = as_array("beacons", beacons, (None, 2))
+    if beacons.shape[0] == 0:
+        raise QuadobsError("beacons: at least one beacon is needed")
+    B = np.zeros((2, 3))
+    B[:, :2] = np.eye(2)
+    C, d = _planar_ranges(beacons, 2)
+    return QuadraticSystem(np.zeros((2, 2)), B, C, d)
+
+
+def constant_velocity_system(beacons: np.ndarray) -> QuadraticSystem:
+    """A ground vehicle in the plane with a constant velocity, driven by process noise only.
+
+    State ``x = (p, v)``; ``p' = v``, ``v' = w`` (the process noise of the estimator);
+    the input ``u = (v_x, v_y, omega)`` of :func:`odometry_system` is accepted and ignored
+    (``B = 0``), so both models replay the same rows. Outputs as in :func:`odometry_system`.
+    Assumption: the velocity changes slowly against the range rate (its changes are white
+    noise of the intensity the estimator is given). Three auxiliary states
+    ``|p|^2/2, p^T v, |v|^2/2`` (as for :func:`vehicle_system`).
+    """
+    beacons = as_array("beacons", beacons, (None, 2))
+    if beacons.shape[0] == 0:
+        raise QuadobsError("beacons: at least one beacon is needed")
+    A, _ = _double_integrator(2)
+    C, d = _planar_ranges(beacons, 4)
+    return QuadraticSystem(A, np.zeros((4, 3)), C, d)

@@ -1,0 +1,193 @@
+"""The estimators a replay runs, built from a :class:`ReplaySetup` (the log, the model, the noise).
+
+Names: ``augmented`` (the observer of [IFAC2021, Thm. 3] on the immersion of the replay
+model), ``ekf`` (the EKF on the original state, in the range ("norm") space), ``isam2``
+(the GTSAM peer, :mod:`quadobs.estimators.gtsam_peer`): the entry points of the group
+``quadobs.replay_estimators`` (:data:`REPLAY_ENTRY_POINT_GROUP`) declared in quadobs'
+``pyproject.toml``, beside which other packages declare theirs, ``factory(setup, x0,
+name) -> Estimator`` with ``setup`` a :class:`ReplaySetup`. The simulated scenarios'
+group ``quadobs.estimators`` is kept apart: its factories take a scenario.
+
+Noise (the defaults of :class:`ReplaySetup`; the same for every estimator):
+
+* ranges: standard deviation ``range_sigma`` (1 m). The augmented observer's output is the
+  half squared range, whose standard deviation is about ``rho sigma``: it is given
+  ``R = (rho_med range_sigma)^2`` with ``rho_med`` the median measured range of the log;
+* odometry (model ``odometry``): a white noise of intensity ``q_xy`` (m^2/s) on ``p'``
+  (it covers the speed noise and the heading drift of the odometry); on
+  the auxiliary state ``xi = |p|^2/2`` (``xi' = u^T p``) the matching intensity
+  ``r^2 q_xy``, ``r`` the largest beacon distance from the origin plus 20 m;
+* model ``cv``: a white acceleration of intensity ``q_acc`` (m^2/s^3), and ``r^2 q_acc`` on
+  each auxiliary state;
+* the initial guess ``x0`` with variance ``P0`` per position axis; the augmented
+  observer's initial covariance is that of ``lift(x)`` for ``x ~ N(x0, P0 I)`` on the
+  position: ``var xi = P0 |p0|^2 + P0^2``, ``cov(xi, p) = P0 p0``;
+* no gate on the NIS by default (``gate``: a threshold; on Plaza2, whose odometry heading
+  drifts, a gate at 10.83, the 0.999 quantile of chi-square with 1 degree of freedom,
+  rejects most ranges and the estimates diverge).
+
+``q_xy = 2`` m^2/s and no gate were chosen from a sweep on both Plaza logs
+(``q_xy`` in 0.5, 2, 8; gate 10.83 or none; see ``docs/replay.md``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from quadobs.core.immersion import immerse
+from quadobs.core.system import QuadraticSystem, constant_velocity_system, odometry_system
+from quadobs.errors import QuadobsError
+from quadobs.estimators.augmented import AugmentedObserver
+from quadobs.estimators.base import Estimator
+from quadobs.estimators.kalman import ExtendedKalmanFilter, HeldInputModel, OutputModel
+
+__all__ = [
+    "REPLAY_ENTRY_POINT_GROUP", "REPLAY_ESTIMATORS", "ReplaySetup", "build_isam2", "build_replay_estimators",
+    "replay_estimator_names",
+]
+
+#: The entry-point group of the estimators of logged data.
+REPLAY_ENTRY_POINT_GROUP = "quadobs.replay_estimators"
+
+
+@dataclass(frozen=True, eq=False)
+class ReplaySetup:
+    """What the replay's estimators are built from.
+
+    Attributes
+    ----------
+    beacons : ndarray (q, 2)
+    dt : float
+    model : {"odometry", "cv"}
+    heading0 : float
+        The odometry's heading at the first step (rad).
+    range_median : float
+        Median measured range (m).
+    range_sigma, q_xy, q_theta, q_acc, gate : float
+        Noise settings (module docstring).
+    P0 : float
+        Variance of the initial position guess per axis (m^2).
+    """
+
+    beacons: np.ndarray
+    dt: float
+    model: str
+    heading0: float
+    range_median: float
+    range_sigma: float = 1.0
+    q_xy: float = 2.0
+    q_theta: float = 1e-3
+    q_acc: float = 2.0
+    gate: float | None = None
+    P0: float = 2500.0
+    system: QuadraticSystem = field(init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        make = {"odometry": odometry_system, "cv": constant_velocity_system}.get(self.model)
+        if make is None:
+            raise QuadobsError(f"model: expected odometry or cv, got {self.model!r}")
+        object.__setattr__(self, "system", make(self.beacons))
+
+    @property
+    def n(self) -> int:
+        return self.system.n
+
+
+def _process_noise(s: ReplaySetup) -> np.ndarray:
+    """Continuous intensity on ``x`` (module docstring)."""
+    if s.model == "odometry":
+        return s.q_xy * np.eye(2)
+    return np.diag([0.0, 0.0, s.q_acc, s.q_acc])
+
+
+def build_augmented(s: ReplaySetup, x0: np.ndarray, name: str = "augmented") -> AugmentedObserver:
+    """The observer of [IFAC2021, Thm. 3] on the immersion of the replay model [ACC2024, Alg. 1]."""
+    im = immerse(s.system)
+    k, n = im.n_aux, s.n
+    r = float(np.max(np.linalg.norm(s.beacons, axis=1))) + 20.0
+    V = np.zeros((im.dim, im.dim))
+    V[k:, k:] = _process_noise(s)
+    if s.model == "odometry":
+        V[0, 0] = r**2 * s.q_xy
+    else:  # xi spans |p|^2/2, p.v, |v|^2/2: the acceleration noise reaches them through p.w, v.w
+        V[:k, :k] = r**2 * s.q_acc * np.eye(k)
+    p0 = np.asarray(x0[:2], dtype=float)
+    P = np.eye(im.dim) * s.P0
+    z0 = im.lift(x0)
+    if s.model == "odometry":  # the covariance of lift(x) for x ~ N(x0, P0 I): exact for xi = |p|^2/2
+        P[0, 0] = s.P0 * p0 @ p0 + s.P0**2
+        P[0, k : k + 2] = P[k : k + 2, 0] = s.P0 * p0
+    else:
+        P[:k, :k] = np.eye(k) * (s.P0 * (p0 @ p0 + 1.0) + s.P0**2)
+    R = (s.range_median * s.range_sigma) ** 2
+    est = AugmentedObserver(im, s.dt, V=V, W=R * s.dt, P0=P, z0=z0, gate=s.gate)
+    est.name = name
+    return est
+
+
+def build_ekf(s: ReplaySetup, x0: np.ndarray, name: str = "ekf") -> ExtendedKalmanFilter:
+    """The EKF on ``x`` in the range space (:class:`~quadobs.estimators.kalman.OutputModel` with offsets)."""
+    dyn = HeldInputModel(s.system, s.dt, V=_process_noise(s))
+    out = OutputModel(s.system, s.range_sigma**2, offsets=0.5 * np.einsum("hi,hi->h", s.beacons, s.beacons))
+    P0 = np.full(s.n, s.P0)
+    if s.model == "cv":
+        P0[2:] = 4.0
+    est = ExtendedKalmanFilter(dyn, out, x0=x0, P0=np.diag(P0), gate=s.gate)
+    est.name = name
+    return est
+
+
+def build_isam2(s, x0: np.ndarray, name: str = "isam2") -> Estimator:
+    """Entry point ``isam2``: the GTSAM peer (:class:`~quadobs.estimators.gtsam_peer.Isam2RangeOnly`); logged data only."""
+    if not isinstance(s, ReplaySetup):
+        raise QuadobsError(f"estimators: {name!r} runs on logged data only (quadobs replay), not in a simulated scenario")
+    from quadobs.estimators.gtsam_peer import Isam2RangeOnly
+
+    est = Isam2RangeOnly(s.beacons, s.dt, x0=x0, heading0=s.heading0, P0=s.P0, n=s.n, range_sigma=s.range_sigma,
+                         q_xy=s.q_xy, q_theta=s.q_theta)
+    est.name = name
+    return est
+
+
+#: The built-in estimators of logged data (as declared in pyproject.toml; a test checks that they agree).
+REPLAY_ESTIMATORS = {"augmented": build_augmented, "ekf": build_ekf, "isam2": build_isam2}
+
+
+def _entry_points() -> dict:
+    import importlib.metadata
+
+    return {ep.name: ep for ep in importlib.metadata.entry_points(group=REPLAY_ENTRY_POINT_GROUP)}
+
+
+def replay_estimator_names() -> list[str]:
+    """The selectable names in ``quadobs replay``, sorted."""
+    return sorted(set(REPLAY_ESTIMATORS) | set(_entry_points()))
+
+
+def _factory(name: str):
+    if name in REPLAY_ESTIMATORS:
+        return REPLAY_ESTIMATORS[name]
+    ep = _entry_points().get(name)
+    if ep is None:
+        raise QuadobsError(f"estimators: unknown estimator {name!r} for logged data; available: {', '.join(replay_estimator_names())}")
+    try:
+        return ep.load()
+    except Exception as exc:
+        raise QuadobsError(f"estimators: entry point {name!r} ({ep.value}) cannot be loaded: {type(exc).__name__}") from None
+
+
+def build_replay_estimators(setup: ReplaySetup, names: list[str], x0: np.ndarray) -> list[Estimator]:
+    """The named estimators, all from ``x0`` (built-in names first, then the entry points)."""
+    if len(set(names)) != len(names):
+        raise QuadobsError(f"estimators: names must be distinct, got {names}")
+    out = []
+    for name in names:
+        factory = _factory(name)
+        est = factory(setup, np.array(x0, dtype=float), name)
+        if not isinstance(est, Estimator):
+            raise QuadobsError(f"estimators: the factory of {name!r} returned {type(est).__name__}, not an Estimator")
+        est.name = name
+        out.append(est)
+    return out
