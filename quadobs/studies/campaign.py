@@ -27,7 +27,8 @@ Execution
 
 Results (in ``out_dir``)
     ``summary.json`` (aggregates per estimator under ``estimators.<name>``, see
-    :meth:`quadobs.evaluation.ensemble.Ensemble.summary`; the failed runs), ``runs.parquet`` (one
+    :meth:`quadobs.evaluation.ensemble.Ensemble.summary`; the failed runs; for a quadrotor
+    scenario the flight figures under ``flight``, see :func:`flight_summary`), ``runs.parquet`` (one
     row per run and estimator, and one per failed run), ``series.parquet`` (per run,
     estimator and sample time: error norms, NEES, NIS), ``statistics.rrd`` (the
     statistics over time). Parquet (via pyarrow, which the recording layer already
@@ -53,7 +54,7 @@ from quadobs.evaluation.ensemble import Ensemble, ensemble, nees, set_containmen
 from quadobs.testbed.bounds import immersion_bound, scenario_crb
 from quadobs.testbed.scenario import Scenario, parse_scenario
 
-__all__ = ["CampaignResult", "run_campaign", "run_one", "run_seed", "print_campaign"]
+__all__ = ["CampaignResult", "run_campaign", "run_one", "run_seed", "print_campaign", "flight_summary"]
 
 
 def run_seed(base_seed: int, index: int) -> int:
@@ -110,7 +111,10 @@ def run_one(task: dict) -> dict:
             for key in ("final_position_error", "final_velocity_error", "time_to_1m", "time_to_0p1m"):
                 entry[key] = np.nan if s.get(key) is None else float(s[key])
             per[name] = entry
-        return {**base, "status": "ok", "time": tr["time"], "estimators": per, "wall_time": _time.perf_counter() - t0}
+        out = {**base, "status": "ok", "time": tr["time"], "estimators": per, "wall_time": _time.perf_counter() - t0}
+        if "flight" in result.summary:  # a quadrotor world: its flight figures (quadobs.testbed.flight)
+            out["flight"] = _run_flight(result.summary)
+        return out
     except Exception as exc:  # reported, never dropped
         return {
             **base,
@@ -119,6 +123,49 @@ def run_one(task: dict) -> dict:
             "traceback": traceback.format_exc(),
             "wall_time": _time.perf_counter() - t0,
         }
+
+
+def _run_flight(summary: dict) -> dict:
+    """The flight figures of one quadrotor run (``summary["flight"]`` of :class:`~quadobs.testbed.flight.FlightSink`)."""
+    f = summary["flight"]
+    num = lambda v: float("nan") if v is None else float(v)  # noqa: E731
+    return {
+        "crashed": bool(f["crashed"]),
+        "tracking_rms": num(f["tracking_rms"]),
+        "tracking_max": num(f["tracking_max"]),
+        "time_on_estimate": float(f["time_on_estimate"]),
+        "flight_position_rmse": {
+            nm: num(s.get("flight_position_rmse")) for nm, s in summary["estimators"].items()
+        },
+    }
+
+
+def flight_summary(flights: list[dict], names: list[str]) -> dict:
+    """The flight figures of a quadrotor campaign over its completed runs.
+
+    ``crashed`` (count), the median and largest tracking RMS and the largest tracking
+    error (m, reference minus true position over the flight), the mean time flown on the
+    estimate (s), and per estimator the median and largest position RMSE after the switch
+    to the estimate (``flight_position_rmse`` of :mod:`quadobs.testbed.flight`).
+    """
+    rms = np.array([f["tracking_rms"] for f in flights])
+    stat = lambda a, fn: None if not np.isfinite(a).any() else float(fn(a[np.isfinite(a)]))  # noqa: E731
+    return {
+        "runs": len(flights),
+        "crashed": int(sum(f["crashed"] for f in flights)),
+        "tracking_rms_median": stat(rms, np.median),
+        "tracking_rms_max": stat(rms, np.max),
+        "tracking_max": stat(np.array([f["tracking_max"] for f in flights]), np.max),
+        "time_on_estimate_mean": float(np.mean([f["time_on_estimate"] for f in flights])),
+        "flight_position_rmse": {
+            nm: {
+                "median": stat(a, np.median),
+                "max": stat(a, np.max),
+            }
+            for nm in names
+            for a in [np.array([f["flight_position_rmse"].get(nm, np.nan) for f in flights])]
+        },
+    }
 
 
 # --------------------------------------------------------------------------------------
@@ -297,6 +344,8 @@ def run_campaign(
         "pcrb": _bound_summary(bound, sqrt_bound, sqrt_linear),
         "estimators": {nm: ensembles[nm].summary() for nm in names},
     }
+    if ok and all("flight" in r for r in ok):
+        summary["flight"] = flight_summary([r["flight"] for r in ok], names)
     result = CampaignResult(summary, ensembles, ok + failed, bound)
     if out is not None:
         files = {
@@ -795,6 +844,16 @@ def print_campaign(summary: dict, file=None) -> None:
     print("  ".join(c.ljust(w) for c, w in zip(cols, widths)), file=file)
     for r in rows:
         print("  ".join(v.ljust(w) for v, w in zip(r, widths)), file=file)
+    fl = summary.get("flight")
+    if fl:
+        rmse = ", ".join(f"{nm} {_f(v['median'])} / {_f(v['max'])}" for nm, v in fl["flight_position_rmse"].items())
+        print(
+            f"flight: {fl['crashed']} of {fl['runs']} crashed; tracking RMS median {_f(fl['tracking_rms_median'])} m,"
+            f" largest {_f(fl['tracking_rms_max'])} m; largest tracking error {_f(fl['tracking_max'])} m;"
+            f" {_f(fl['time_on_estimate_mean'])} s on the estimate",
+            file=file,
+        )
+        print(f"position RMSE after the switch (m), median / largest: {rmse}", file=file)
     for f in summary["failed"][:10]:
         print(f"failed: run {f['run']} (seed {f['seed']}): {f['error']}", file=file)
     if len(summary["failed"]) > 10:

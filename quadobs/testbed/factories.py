@@ -184,7 +184,9 @@ def baseline_settings(scenario: Scenario) -> BaselineSettings:
       observer's ``R``.
     * Process noise: the accelerometer's true noise variance, ``Q_d = sigma_a^2 G G^T`` per physics
       step (zero for a noise-free accelerometer: the MuJoCo vehicle then follows the
-      model exactly).
+      model exactly). For a quadrotor scenario ``sigma_a`` is the level equivalent to the
+      IMU and attitude errors of its ``[quadrotor]`` table
+      (:func:`quadobs.testbed.imu.input_noise_std`); ``noise.accel_std`` is not used there.
     * Prior: :func:`initial_covariance`.
     """
     system = scenario.system()
@@ -204,9 +206,20 @@ def baseline_settings(scenario: Scenario) -> BaselineSettings:
         scale = 1.0 / np.sqrt(periods)
         outputs = OutputModel(system, W * np.outer(scale, scale))
         source = "observer"
-    dynamics = HeldInputModel(system, scenario.dt, input_covariance=noise.sigma("accel") ** 2)
+    dynamics = HeldInputModel(system, scenario.dt, input_covariance=_input_std(scenario) ** 2)
     P0, prior = initial_covariance(scenario)
     return BaselineSettings(dynamics, outputs, P0, source, prior)
+
+
+def _input_std(scenario: Scenario) -> float:
+    """The input-noise level of the baselines: ``noise.accel_std``, or the quadrotor IMU's equivalent."""
+    if scenario.kind == "quadrotor" and scenario.quadrotor is not None:
+        from quadobs.testbed.imu import input_noise_std
+
+        spec = scenario.quadrotor
+        every = scenario.sample_interval(spec.attitude_rate, "attitude_rate", table="quadrotor")
+        return input_noise_std(spec, every, scenario.dt)
+    return scenario.noise.sigma("accel")
 
 
 def extended_kalman_filter(scenario: Scenario, x0: np.ndarray) -> ExtendedKalmanFilter:

@@ -127,3 +127,66 @@ def test_the_recording_holds_the_flight(tmp_path):
     names = set(list_entities(out))
     for entity in ("/world/reference/path", "/world/quadrotor", "/flight/rotors", "/flight/tracking_error", "/errors/augmented/position/norm"):
         assert entity in names
+
+
+def test_the_excitation_monitor_flags_the_hovers_and_not_the_manoeuvres():
+    from quadobs.testbed.episode import run_episode
+
+    sc = load_scenario("quadrotor-1beacon")
+    spec = sc.excitation
+    low = run_episode(sc, estimators=[]).summary["excitation"]["low_segments"]
+    landing = sc.duration - sc.quadrotor.landing
+    hovers = [(h.start, h.end) for h in sc.quadrotor.hovers]
+    for start, end in hovers:  # one long segment per hover, from once the window has left the manoeuvre
+        inside = [(a, b) for a, b in low if a < end + spec.window and b > start]
+        assert len(inside) == 1, (start, end, low)
+        a, b = inside[0]
+        assert start < a <= start + spec.window + sc.quadrotor.hover_ramp + 1.0 and end - 1.0 <= b <= end + spec.window
+    for a, b in low:  # nothing flagged in the manoeuvres after the take-off
+        assert any(a < e + spec.window and b > s for s, e in hovers) or a >= landing or b <= sc.quadrotor.takeoff + spec.window
+
+
+def test_the_filters_input_noise_comes_from_the_imu_settings():
+    from quadobs.testbed.factories import baseline_settings
+    from quadobs.testbed.imu import input_noise_std
+
+    sc = load_scenario("quadrotor-uwb")
+    q = sc.quadrotor
+    every = int(round(sc.physics_rate / q.attitude_rate))
+    expected = np.sqrt(q.accel_std**2 + every * (9.81 * q.attitude_std) ** 2 + q.accel_bias**2 * 1.0 / sc.dt)
+    assert input_noise_std(q, every, sc.dt) == pytest.approx(expected)
+    Q = baseline_settings(sc).dynamics.input_covariance
+    assert np.allclose(Q, expected**2 * np.eye(3)) and sc.noise.accel_std == 0.0  # not the [noise] table
+    louder = load_scenario("quadrotor-uwb", settings=["quadrotor.attitude_std=0.02"])
+    assert np.all(np.diag(baseline_settings(louder).dynamics.input_covariance) > np.diag(Q))
+
+
+def test_the_campaign_summarises_the_flights():
+    from quadobs.studies.campaign import flight_summary
+
+    flights = [
+        {"crashed": False, "tracking_rms": 0.05, "tracking_max": 0.1, "time_on_estimate": 60.0,
+         "flight_position_rmse": {"augmented": 0.02}},
+        {"crashed": True, "tracking_rms": 0.2, "tracking_max": 1.2, "time_on_estimate": 20.0,
+         "flight_position_rmse": {"augmented": 0.06}},
+        {"crashed": False, "tracking_rms": 0.07, "tracking_max": 0.2, "time_on_estimate": 60.0,
+         "flight_position_rmse": {"augmented": float("nan")}},
+    ]
+    s = flight_summary(flights, ["augmented"])
+    assert s["runs"] == 3 and s["crashed"] == 1
+    assert s["tracking_rms_median"] == pytest.approx(0.07) and s["tracking_rms_max"] == pytest.approx(0.2)
+    assert s["tracking_max"] == pytest.approx(1.2) and s["time_on_estimate_mean"] == pytest.approx(140.0 / 3)
+    assert s["flight_position_rmse"]["augmented"] == {"median": pytest.approx(0.04), "max": pytest.approx(0.06)}
+
+
+@pytest.mark.slow
+def test_the_50_flights_on_the_augmented_observer_meet_the_targets():
+    from quadobs.studies.campaign import run_campaign
+
+    sc = load_scenario("quadrotor-uwb-augmented")
+    s = run_campaign(sc, runs=50, estimators=["augmented", "ekf", "ukf"], workers=2, record=False).summary
+    f = s["flight"]
+    assert s["runs_completed"] == 50 and f["crashed"] == 0
+    assert f["tracking_rms_max"] <= 0.15
+    for name in ("augmented", "ekf", "ukf"):
+        assert f["flight_position_rmse"][name]["max"] <= 0.10, name
