@@ -77,6 +77,89 @@ def _find(spec: mujoco.MjSpec, kind: str, name: str):
         return None
 
 
+def _add_beacons(spec, beacons: np.ndarray) -> np.ndarray:
+    """Add (or move) a world site and a ``framepos`` sensor of ``imu`` relative to it per beacon; returns ``(q_b, 3)``."""
+    b3 = np.zeros((beacons.shape[0], 3))
+    b3[:, : beacons.shape[1]] = beacons
+    for h, pos in enumerate(b3):
+        site_name, sensor_name = f"beacon{h}", f"beacon{h}_offset"
+        site = _find(spec, "site", site_name)
+        if site is None:
+            site = spec.worldbody.add_site(name=site_name, pos=pos, size=[0.4, 0, 0], rgba=[1.0, 0.5, 0.0, 1.0])
+        else:
+            site.pos = pos
+        if _find(spec, "sensor", sensor_name) is None:
+            spec.add_sensor(
+                name=sensor_name,
+                type=mujoco.mjtSensor.mjSENS_FRAMEPOS,
+                objtype=mujoco.mjtObj.mjOBJ_SITE,
+                objname="imu",
+                reftype=mujoco.mjtObj.mjOBJ_SITE,
+                refname=site_name,
+            )
+    return b3
+
+
+def _check_dynamics(model, name: str):
+    """The compiled model realises the double integrator: RK4, no fluid, no contact, damping or friction."""
+    if model.opt.integrator != mujoco.mjtIntegrator.mjINT_RK4:
+        raise QuadobsError(
+            f"model {name}: option integrator must be RK4 (exact for the double integrator under a held input)"
+        )
+    if model.opt.density != 0 or model.opt.viscosity != 0:
+        raise QuadobsError(f"model {name}: fluid density and viscosity must be 0 (the wind must exert no force)")
+    body = model.body("vehicle")
+    for g in range(model.ngeom):
+        if model.geom_bodyid[g] == body.id and (model.geom_contype[g] or model.geom_conaffinity[g]):
+            name = mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_GEOM, g) or f"#{g}"
+            raise QuadobsError(f"model {name}: geom {name!r} of the vehicle must have contype=0 and conaffinity=0")
+    joint = model.joint("vehicle_joint")
+    if np.any(model.dof_damping[joint.dofadr[0] : joint.dofadr[0] + 6]) or np.any(
+        model.dof_frictionloss[joint.dofadr[0] : joint.dofadr[0] + 6]
+    ):
+        raise QuadobsError(f"model {name}: joint 'vehicle_joint' must have no damping or friction loss")
+    return body, joint
+
+
+def _check_beacons(model, b3: np.ndarray, name: str) -> tuple[list[int], np.ndarray]:
+    """Each beacon sensor measures ``imu`` relative to its world site; returns their addresses and positions."""
+    offset_adr = []
+    for h in range(b3.shape[0]):
+        sensor = model.sensor(f"beacon{h}_offset")
+        site = model.site(f"beacon{h}")
+        if (
+            sensor.type[0] != mujoco.mjtSensor.mjSENS_FRAMEPOS
+            or sensor.objid[0] != model.site("imu").id
+            or sensor.refid[0] != site.id
+            or sensor.reftype[0] != mujoco.mjtObj.mjOBJ_SITE
+        ):
+            raise QuadobsError(
+                f"model {name}: sensor 'beacon{h}_offset' must be a framepos of site 'imu' relative to site 'beacon{h}'"
+            )
+        if site.bodyid[0] != 0:
+            raise QuadobsError(f"model {name}: site 'beacon{h}' must belong to the world body")
+        offset_adr.append(int(sensor.adr[0]))
+    compiled_beacons = np.array([model.site(f"beacon{h}").pos for h in range(b3.shape[0])])
+    if not np.allclose(compiled_beacons, b3):
+        raise QuadobsError(f"model {name}: beacon sites must sit directly in the world body, without a frame offset")
+    return offset_adr, compiled_beacons
+
+
+def _check_actuators(model, joint, name: str) -> np.ndarray:
+    """The three force actuators act on the free joint along x, y, z, unlimited; returns their ids."""
+    actuators = np.array([model.actuator(f"force_{a}").id for a in "xyz"])
+    for a, act in zip("xyz", actuators):
+        expected = np.zeros(6)
+        expected["xyz".index(a)] = 1.0
+        if model.actuator_trnid[act, 0] != joint.id or not np.allclose(model.actuator_gear[act], expected):
+            raise QuadobsError(
+                f"model {name}: actuator 'force_{a}' must act on 'vehicle_joint' with gear {expected.astype(int).tolist()}"
+            )
+        if model.actuator_ctrllimited[act] or model.actuator_forcelimited[act]:
+            raise QuadobsError(f"model {name}: actuator 'force_{a}' must not be control- or force-limited")
+    return actuators
+
+
 def load_vehicle_model(
     beacons: np.ndarray,
     *,
@@ -126,24 +209,7 @@ def load_vehicle_model(
     if spec.joint("vehicle_joint").type != mujoco.mjtJoint.mjJNT_FREE:
         raise QuadobsError(f"model {mjcf.name}: joint 'vehicle_joint' must be a free joint")
 
-    b3 = np.zeros((beacons.shape[0], 3))
-    b3[:, : beacons.shape[1]] = beacons
-    for h, pos in enumerate(b3):
-        site_name, sensor_name = f"beacon{h}", f"beacon{h}_offset"
-        site = _find(spec, "site", site_name)
-        if site is None:
-            site = spec.worldbody.add_site(name=site_name, pos=pos, size=[0.4, 0, 0], rgba=[1.0, 0.5, 0.0, 1.0])
-        else:
-            site.pos = pos
-        if _find(spec, "sensor", sensor_name) is None:
-            spec.add_sensor(
-                name=sensor_name,
-                type=mujoco.mjtSensor.mjSENS_FRAMEPOS,
-                objtype=mujoco.mjtObj.mjOBJ_SITE,
-                objname="imu",
-                reftype=mujoco.mjtObj.mjOBJ_SITE,
-                refname=site_name,
-            )
+    b3 = _add_beacons(spec, beacons)
     spec.option.timestep = float(timestep)
     if wind is not None:
         w3 = np.zeros(3)
@@ -154,53 +220,9 @@ def load_vehicle_model(
     except Exception as exc:  # noqa: BLE001
         raise QuadobsError(f"model {mjcf.name}: does not compile: {exc}") from None
 
-    if model.opt.integrator != mujoco.mjtIntegrator.mjINT_RK4:
-        raise QuadobsError(
-            f"model {mjcf.name}: option integrator must be RK4 (exact for the double integrator under a held input)"
-        )
-    if model.opt.density != 0 or model.opt.viscosity != 0:
-        raise QuadobsError(f"model {mjcf.name}: fluid density and viscosity must be 0 (the wind must exert no force)")
-    body = model.body("vehicle")
-    for g in range(model.ngeom):
-        if model.geom_bodyid[g] == body.id and (model.geom_contype[g] or model.geom_conaffinity[g]):
-            name = mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_GEOM, g) or f"#{g}"
-            raise QuadobsError(f"model {mjcf.name}: geom {name!r} of the vehicle must have contype=0 and conaffinity=0")
-    joint = model.joint("vehicle_joint")
-    if np.any(model.dof_damping[joint.dofadr[0] : joint.dofadr[0] + 6]) or np.any(
-        model.dof_frictionloss[joint.dofadr[0] : joint.dofadr[0] + 6]
-    ):
-        raise QuadobsError(f"model {mjcf.name}: joint 'vehicle_joint' must have no damping or friction loss")
-
-    offset_adr = []
-    for h in range(b3.shape[0]):
-        sensor = model.sensor(f"beacon{h}_offset")
-        site = model.site(f"beacon{h}")
-        if (
-            sensor.type[0] != mujoco.mjtSensor.mjSENS_FRAMEPOS
-            or sensor.objid[0] != model.site("imu").id
-            or sensor.refid[0] != site.id
-            or sensor.reftype[0] != mujoco.mjtObj.mjOBJ_SITE
-        ):
-            raise QuadobsError(
-                f"model {mjcf.name}: sensor 'beacon{h}_offset' must be a framepos of site 'imu' relative to site 'beacon{h}'"
-            )
-        if site.bodyid[0] != 0:
-            raise QuadobsError(f"model {mjcf.name}: site 'beacon{h}' must belong to the world body")
-        offset_adr.append(int(sensor.adr[0]))
-    compiled_beacons = np.array([model.site(f"beacon{h}").pos for h in range(b3.shape[0])])
-    if not np.allclose(compiled_beacons, b3):
-        raise QuadobsError(f"model {mjcf.name}: beacon sites must sit directly in the world body, without a frame offset")
-
-    actuators = np.array([model.actuator(f"force_{a}").id for a in "xyz"])
-    for a, act in zip("xyz", actuators):
-        expected = np.zeros(6)
-        expected["xyz".index(a)] = 1.0
-        if model.actuator_trnid[act, 0] != joint.id or not np.allclose(model.actuator_gear[act], expected):
-            raise QuadobsError(
-                f"model {mjcf.name}: actuator 'force_{a}' must act on 'vehicle_joint' with gear {expected.astype(int).tolist()}"
-            )
-        if model.actuator_ctrllimited[act] or model.actuator_forcelimited[act]:
-            raise QuadobsError(f"model {mjcf.name}: actuator 'force_{a}' must not be control- or force-limited")
+    body, joint = _check_dynamics(model, mjcf.name)
+    offset_adr, compiled_beacons = _check_beacons(model, b3, mjcf.name)
+    actuators = _check_actuators(model, joint, mjcf.name)
 
     return VehicleModel(
         model=model,
