@@ -516,41 +516,8 @@ def _weakest(vec: np.ndarray, immersion: Immersion, names: list[str] | None) -> 
     return [(labels[i], float(vec[i])) for i in order[:4] if abs(vec[i]) >= 0.1 * big]
 
 
-def excitation_report(
-    immersion: Immersion,
-    u: HeldInputSignal,
-    window: float,
-    *,
-    stride: float | None = None,
-    kappa: int | None = None,
-    threshold: float | None = None,
-    names: list[str] | None = None,
-    name: str = "input",
-    rtol: float = DEFAULT_ZERO_RTOL,
-) -> ExcitationReport:
-    """Evaluate the Gramian measure, Proposition 4 and the conditions of eqs. 29-41 over sliding windows.
-
-    Parameters
-    ----------
-    immersion : Immersion
-        The Gramian is taken in this immersion's coordinates (the observer's).
-    u : HeldInputSignal
-    window : float
-        ``delta`` (s): a multiple of ``u.dt``, at most the input's duration.
-    stride : float, optional
-        Spacing of the window starts (s), a multiple of ``u.dt``; default the multiple
-        nearest 0.05 s.
-    kappa : int, optional
-        Last index of eq. 29 (default ``m + n - 1``).
-    threshold : float, optional
-        The monitor's threshold on ``mu``, to count the windows below it.
-    names : list of str, optional
-        Names of the original state's entries (for the weakest direction).
-    rtol : float
-        Relative zero test of the sufficient conditions (:mod:`quadobs.observability.conditions`).
-    """
-    if not isinstance(u, HeldInputSignal):
-        raise QuadobsError(f"u: expected a HeldInputSignal, got {type(u).__name__}")
+def _window_grid(u: HeldInputSignal, immersion: Immersion, window: float, stride: float | None):
+    """Window length ``L`` and stride ``s`` (steps), window starts (s) and the input with rounding-level samples zeroed."""
     h = u.dt
     window = as_finite_scalar("window", window, positive=True)
     L = int(round(window / h))
@@ -573,20 +540,12 @@ def excitation_report(
     values = np.array(u.values)
     values[np.abs(values).max(axis=1) <= 1e-12 * np.abs(values).max(initial=0.0)] = 0.0
 
-    # The Gramian (eq. 27) over every window.
-    gm = GramianModel(immersion, h)
-    W = gm.sliding(values, L, s)
-    lo, _, vecs = eig_extremes(W)
-    rel = scaled_min_eig(W)
-    g_ok = rel > GRAMIAN_RTOL
-    gram = ConditionResult(
-        "gramian", "Gramian mu = lambda_min W(t,t+delta)", "holds" if g_ok.all() else "fails", "", starts, lo, rel, g_ok
-    )
-    worst = gram.worst
-    weakest = _weakest(vecs[worst], immersion, names)
-    explanation = explain_windows(immersion, values, np.flatnonzero(~g_ok) * s, L)
-    p4 = proposition4(immersion)
+    return L, s, starts, values
 
+
+def _chain_conditions(system, u: HeldInputSignal, starts, L: int, s: int, kappa, rtol: float):
+    """The sufficient conditions of Propositions 5-8 [IFAC2021] over every window, and the chain they use (or ``None``)."""
+    h = u.dt
     conditions = []
     titles = {
         "eq29": "eq. 29 (Prop. 5) int det",
@@ -595,7 +554,6 @@ def excitation_report(
         "eq41": "eq. 41 (Prop. 8) int U_bar U_bar'",
     }
     chain: ChainStructure | None = None
-    system = immersion.system
     try:
         chain = chain_structure(system, kappa)
     except QuadobsError as exc:
@@ -645,6 +603,62 @@ def excitation_report(
             r_all = r_sequence(chain, u.derivatives(kap), kap)
             res = _series("eq29", titles["eq29"] + f", kappa = {kap}", starts, condition_eq29(r_all, m, h, L, s, rtol))
             conditions.insert(0, res)
+    return conditions, chain
+
+
+def excitation_report(
+    immersion: Immersion,
+    u: HeldInputSignal,
+    window: float,
+    *,
+    stride: float | None = None,
+    kappa: int | None = None,
+    threshold: float | None = None,
+    names: list[str] | None = None,
+    name: str = "input",
+    rtol: float = DEFAULT_ZERO_RTOL,
+) -> ExcitationReport:
+    """Evaluate the Gramian measure, Proposition 4 and the conditions of eqs. 29-41 over sliding windows.
+
+    Parameters
+    ----------
+    immersion : Immersion
+        The Gramian is taken in this immersion's coordinates (the observer's).
+    u : HeldInputSignal
+    window : float
+        ``delta`` (s): a multiple of ``u.dt``, at most the input's duration.
+    stride : float, optional
+        Spacing of the window starts (s), a multiple of ``u.dt``; default the multiple
+        nearest 0.05 s.
+    kappa : int, optional
+        Last index of eq. 29 (default ``m + n - 1``).
+    threshold : float, optional
+        The monitor's threshold on ``mu``, to count the windows below it.
+    names : list of str, optional
+        Names of the original state's entries (for the weakest direction).
+    rtol : float
+        Relative zero test of the sufficient conditions (:mod:`quadobs.observability.conditions`).
+    """
+    if not isinstance(u, HeldInputSignal):
+        raise QuadobsError(f"u: expected a HeldInputSignal, got {type(u).__name__}")
+    h = u.dt
+    L, s, starts, values = _window_grid(u, immersion, window, stride)
+
+    # The Gramian (eq. 27) over every window.
+    gm = GramianModel(immersion, h)
+    W = gm.sliding(values, L, s)
+    lo, _, vecs = eig_extremes(W)
+    rel = scaled_min_eig(W)
+    g_ok = rel > GRAMIAN_RTOL
+    gram = ConditionResult(
+        "gramian", "Gramian mu = lambda_min W(t,t+delta)", "holds" if g_ok.all() else "fails", "", starts, lo, rel, g_ok
+    )
+    worst = gram.worst
+    weakest = _weakest(vecs[worst], immersion, names)
+    explanation = explain_windows(immersion, values, np.flatnonzero(~g_ok) * s, L)
+    p4 = proposition4(immersion)
+
+    conditions, chain = _chain_conditions(immersion.system, u, starts, L, s, kappa, rtol)
     return ExcitationReport(
         name=name,
         window=L * h,
