@@ -23,7 +23,7 @@ import signal
 import sys
 from pathlib import Path
 
-from quadobs.errors import QuadobsError, new_folders_removed_on_failure
+from quadobs.errors import QuadobsError, RunFault, new_folders_removed_on_failure
 
 __all__ = ["main"]
 
@@ -170,6 +170,8 @@ def _cmd_run(args) -> int:
         progress=not args.no_progress,
     )
     print_summary(result.summary)
+    if "output_error" in result.summary:  # the table is out; the summary file could not be written
+        raise RunFault(result.summary["output_error"])
     if args.summary:
         print(f"summary: {args.summary}")
     return 130 if result.summary.get("interrupted") else 0
@@ -457,6 +459,9 @@ def main(argv: list[str] | None = None) -> int:
     try:
         with new_folders_removed_on_failure(*_output_paths(args)):
             return args.func(args)
+    except RunFault as exc:  # the run started and could not go on (a full disk, a physics fault)
+        print(f"quadobs: error: {exc}", file=sys.stderr)
+        return 1
     except QuadobsError as exc:
         print(f"quadobs: error: {exc}", file=sys.stderr)
         return 2

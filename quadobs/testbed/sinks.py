@@ -465,6 +465,7 @@ class RecordingSink(Sink):
         return {}
 
     def fail(self, completed: int, error: BaseException) -> None:
+        self.recorder.fail()  # the target keeps the previous recording; the staging file keeps this one
         dt = self.ctx.scenario.dt
         self._text(f"stopped by an error at t = {completed * dt:.3f} s (step {completed}): {error!r}", "ERROR", completed)
 

@@ -14,9 +14,9 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
-from quadobs.errors import QuadobsError, as_array, as_finite_scalar
+from quadobs.errors import QuadobsError, RunFault, as_array, as_finite_scalar
 
-__all__ = ["VehicleModel", "default_model_path", "load_vehicle_model", "REQUIRED_ELEMENTS"]
+__all__ = ["VehicleModel", "default_model_path", "load_vehicle_model", "REQUIRED_ELEMENTS", "PhysicsFault", "physics_check"]
 
 #: (kind, name) of the elements a vehicle model must define.
 REQUIRED_ELEMENTS = (
@@ -216,3 +216,68 @@ def load_vehicle_model(
         actuator_ids=actuators,
         gravity=np.array(model.opt.gravity, dtype=float),
     )
+
+
+#: MuJoCo's warnings that mean the simulated truth is no longer valid: a non-finite or huge
+#: position, velocity, acceleration (MuJoCo then resets the state and goes on) or control.
+PHYSICS_FAULTS = ("mjWARN_BADQPOS", "mjWARN_BADQVEL", "mjWARN_BADQACC", "mjWARN_BADCTRL")
+
+
+class PhysicsFault(RunFault):
+    """MuJoCo reported an unstable or invalid simulation: the episode's truth is wrong from that step on."""
+
+
+def _world_data(world):
+    """The ``mujoco.MjData`` a world steps (``world.data`` or ``world.sim.data``), else ``None``."""
+    data = getattr(world, "data", None)
+    if data is None:
+        data = getattr(getattr(world, "sim", None), "data", None)
+    return data if isinstance(data, mujoco.MjData) else None
+
+
+def _first_jump(world, dim: int, dt: float, count: int) -> int | None:
+    """The first row ``j`` of the block whose true position does not follow from the velocities
+    (``|p_{j+1} - p_j - dt (v_j + v_{j+1}) / 2|`` beyond rounding, or not finite), else ``None``."""
+    columns, out = getattr(world, "columns", None), getattr(world, "out", None)
+    if columns is None or out is None or count < 2:
+        return None
+    X = np.asarray(out[:count, columns.truth], dtype=float)
+    p, v = X[:, :dim], X[:, dim : 2 * dim]
+    with np.errstate(all="ignore"):
+        r = np.abs(np.diff(p, axis=0) - 0.5 * dt * (v[1:] + v[:-1])).max(axis=1)
+        bad = ~(r <= 1e-6 * (1.0 + np.abs(p[:-1]).max(axis=1)))
+    hits = np.flatnonzero(bad)
+    return int(hits[0]) if hits.size else None
+
+
+def physics_check(world, scenario):
+    """A check of MuJoCo's warning counters, called after every block of steps.
+
+    Returns ``check(k0, count)``, which raises :class:`PhysicsFault` when any counter of
+    :data:`PHYSICS_FAULTS` has grown during the block of steps ``[k0, k0 + count)``. MuJoCo
+    then resets the state (to ``qpos0``, at rest) and goes on, so the block's truth jumps:
+    the message names the warning and the step and time of the first row whose position
+    does not follow from the velocities (:func:`_first_jump`; the block's last step when
+    none is found). For a world without a single ``MjData`` the check does nothing.
+
+    The check costs four integer reads per block of thousands of steps.
+    """
+    data = _world_data(world)
+    if data is None:
+        return lambda k0, count: None
+    dt, dim = float(scenario.dt), int(scenario.dimension)
+    slots = [(name, int(getattr(mujoco.mjtWarning, name))) for name in PHYSICS_FAULTS]
+    seen = {i: int(data.warning[i].number) for _, i in slots}
+
+    def check(k0: int, count: int) -> None:
+        for name, i in slots:
+            if int(data.warning[i].number) > seen[i]:
+                j = _first_jump(world, dim, dt, count)
+                step = k0 + (count if j is None else j)
+                raise PhysicsFault(
+                    f"physics: MuJoCo reported {name[7:].lower()} (index {int(data.warning[i].lastinfo)}) at step {step} "
+                    f"(t = {step * dt:.6g} s); the simulation is unstable, the run stopped (see the scenario's "
+                    "trajectory, model and physics_rate)"
+                )
+
+    return check
