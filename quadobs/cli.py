@@ -215,6 +215,7 @@ def _cmd_campaign(args) -> int:
         threshold=args.threshold,
         confidence=args.confidence,
         progress=not args.no_progress,
+        retries=args.retries,
     )
     print_campaign(result.summary)
     if result.summary["interrupted"]:
@@ -406,6 +407,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--scheduler", help="Dask distributed scheduler address (tcp://host:port); default: local processes")
     p.add_argument("--workers", type=int, help="local processes (default: the number of CPUs; 0: in this process)")
     p.add_argument("--every", type=float, help="sampling period (s) of the statistics over time (default about 0.1 s)")
+    p.add_argument("--retries", type=int, default=2, help="local processes: restarts of a run whose worker was lost (default 2)")
     p.add_argument("--threshold", type=float, default=1.0, help="final position error (m) under which a run has converged (default 1)")
     p.add_argument("--confidence", type=float, default=0.95, help="of the two-sided chi-square NEES/NIS intervals (default 0.95)")
     p.add_argument("--duration", type=float, help="override the scenario duration (s)")
