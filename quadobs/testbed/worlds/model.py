@@ -8,6 +8,8 @@ API (``mujoco.MjSpec``) at the scenario's positions.
 
 from __future__ import annotations
 
+import os
+import stat
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -69,6 +71,25 @@ class VehicleModel:
     gravity: np.ndarray  # (3,)
 
 
+def _model_file(path) -> Path:
+    """``path`` if it names a readable regular file, else a :class:`QuadobsError` saying what it is."""
+    text = str(path)
+    shown = text if len(text) <= 80 else text[:60] + "..."
+    if not text.strip() or "\0" in text or len(text) > 4096:
+        raise QuadobsError(f"model: {shown!r} is not a file name (empty, holding NUL or longer than 4096 characters)")
+    try:
+        st = os.stat(text)
+    except FileNotFoundError:
+        raise QuadobsError(f"model: MJCF file {shown!r} does not exist") from None
+    except OSError as exc:  # a symbolic-link loop, a name too long, a component that is a file
+        raise QuadobsError(f"model: MJCF file {shown!r} cannot be opened ({exc.strerror})") from None
+    if stat.S_ISDIR(st.st_mode):
+        raise QuadobsError(f"model: {shown!r} is a directory, expected an MJCF file")
+    if not stat.S_ISREG(st.st_mode):
+        raise QuadobsError(f"model: {shown!r} is not a regular file (a device or a FIFO), expected an MJCF file")
+    return Path(text)
+
+
 def _find(spec: mujoco.MjSpec, kind: str, name: str):
     finder = getattr(spec, kind)
     try:
@@ -112,9 +133,7 @@ def load_vehicle_model(
     timestep = as_finite_scalar("timestep", timestep, positive=True)
     if wind is not None:
         wind = as_array("wind", wind, (beacons.shape[1],))
-    mjcf = Path(path) if path is not None else default_model_path()
-    if not mjcf.is_file():
-        raise QuadobsError(f"model: MJCF file {str(mjcf)!r} does not exist")
+    mjcf = _model_file(path) if path is not None else default_model_path()
     try:
         spec = mujoco.MjSpec.from_file(str(mjcf))
     except Exception as exc:  # noqa: BLE001 - MuJoCo's parser error
