@@ -161,6 +161,7 @@ def _cmd_run(args) -> int:
         raise QuadobsError("--runs: applies to le2013 only; for many seeded runs of a scenario use 'quadobs campaign'")
     scenario = load_scenario(args.scenario, duration=args.duration, seed=args.seed, settings=args.set)
     estimators = _estimator_list(args.estimators)
+    _notice_cost(scenario, estimators, args.out is not None)
     _notice_cold_kernels(_episode_kernels(estimators))
     result = run_episode(
         scenario,
@@ -203,6 +204,7 @@ def _cmd_campaign(args) -> int:
         raise QuadobsError("scenario 'le2013': not a vehicle scenario; run it with 'quadobs run le2013 --runs N'")
     scenario = load_scenario(args.scenario, duration=args.duration, seed=args.seed, settings=args.set)
     estimators = _estimator_list(args.estimators)
+    _notice_cost(scenario, estimators, False, runs=args.runs, workers=args.workers or os.cpu_count() or 1)
     _notice_cold_kernels(_episode_kernels(estimators))
     result = run_campaign(
         scenario,
@@ -320,6 +322,16 @@ def _episode_kernels(estimators: list[str] | None) -> tuple[str, ...]:
     if estimators is None or "augmented" in estimators:
         return EPISODE_KERNELS + AUGMENTED_KERNELS
     return EPISODE_KERNELS
+
+
+def _notice_cost(scenario, estimators, recording: bool, runs: int = 1, workers: int = 1) -> None:
+    """One line on stderr before a run expected to be long or large (:func:`quadobs.testbed.outputs.cost_notice`)."""
+    from quadobs.testbed.outputs import cost_notice
+    from quadobs.testbed.registry import default_estimators
+
+    line = cost_notice(scenario, estimators or default_estimators(scenario), recording, runs=runs, workers=workers)
+    if line:
+        print(line, file=sys.stderr, flush=True)
 
 
 def _notice_cold_kernels(kernels, file=None) -> bool:

@@ -356,10 +356,18 @@ def augmented_step_record(u, y, S, fc, ic, out):
     ``out`` has ``n + 3`` entries (``n = N - k``): ``x_hat (n)`` and ``trace(P)`` before the
     step, then the step's NIS and the running count of corrections rejected by the gate
     (``stats[2]``) after it; this is
-    :meth:`quadobs.estimators.base.Estimator.step_and_record` in one call.
+    :meth:`quadobs.estimators.base.Estimator.step_and_record` in one call. Returns -1, and
+    changes nothing, when ``u`` holds a non-finite value or ``y`` an infinite one (NaN in
+    ``y``: a missing sample).
     """
     N = ic[0]
     k = ic[1]
+    for j in range(ic[2]):
+        if not math.isfinite(u[j]):
+            return -1
+    for h in range(ic[3]):
+        if math.isinf(y[h]):
+            return -1
     so = S.shape[0] - 4
     for i in range(N - k):
         out[i] = S[k + i]

@@ -409,7 +409,9 @@ class AugmentedObserver(Estimator, Gated, Immersed):
             u, y = self._checked("u", u, self._ushape), self._checked("y", y, self._yshape)
             if not (isinstance(out, np.ndarray) and out.shape == self._rshape and out.dtype == _F64):
                 raise QuadobsError(f"out: expected a float64 array of shape {self._rshape}")
-        self._krecord(u, y, *self._kops, out)
+        if self._krecord(u, y, *self._kops, out) < 0:  # a non-finite u or an infinite y: nothing changed
+            check_step(u, y, *self._ushape, *self._yshape)  # raises, naming it
+            raise QuadobsError("u, y: refused by the compiled step")  # pragma: no cover - check_step raised
 
     # -- the two halves ----------------------------------------------------------------
 

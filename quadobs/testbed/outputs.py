@@ -30,7 +30,10 @@ import numpy as np
 
 from quadobs.errors import QuadobsError, check_writable, output_target, staging_owner, staging_path
 
-__all__ = ["check_outputs", "clean_leftovers", "write_json_staged", "fault_summary", "write_fault_summary"]
+__all__ = [
+    "check_outputs", "clean_leftovers", "write_json_staged", "fault_summary", "write_fault_summary",
+    "expected_cost", "cost_notice",
+]
 
 
 def _same_file(a: Path, b: Path) -> bool:
@@ -197,3 +200,62 @@ def write_fault_summary(path, scenario, completed: int, error: BaseException) ->
     except QuadobsError:
         return False
     return True
+
+
+#: Cost model of one episode, measured with runs of ``ifac2021`` (1 to 200 beacons) on a
+#: 2-core machine (``docs/failure-behaviour.md``): seconds per physics step for the world and
+#: per estimator, the part growing with the squared number of outputs ``q``, and bytes per
+#: recorded row (fixed, per extra estimator, per output). Good to a factor of about 2.
+STEP_SECONDS = {"world": 30e-6, "augmented": 10e-6, "other": 85e-6, "per_q2": 7.2e-8}
+ROW_BYTES = {"base": 300.0, "per_estimator": 200.0, "per_output": 33.0}
+#: Runs expected to take longer (s) or to write more (bytes) get a notice before they start.
+NOTICE_SECONDS, NOTICE_BYTES = 60.0, 1e9
+
+
+def expected_cost(scenario, estimators: list[str], recording: bool) -> dict:
+    """Expected ``steps``, wall ``seconds`` and recording ``bytes`` (0 without one) of an episode.
+
+    ``seconds = steps (c_w + sum_e (c_e + c_q q^2))`` and
+    ``bytes = steps / record_every (b_0 + b_e (E - 1) + b_q q)`` with the constants of
+    :data:`STEP_SECONDS` and :data:`ROW_BYTES`, ``q`` the number of outputs and ``E`` the
+    number of estimators.
+    """
+    steps = int(scenario.steps)
+    q = int(scenario.beacons.shape[0]) + (1 if scenario.has_wind else 0)
+    c = STEP_SECONDS
+    per = sum(c["augmented" if name.startswith("augmented") else "other"] + c["per_q2"] * q * q for name in estimators)
+    rows = steps / scenario.record_every if recording else 0
+    b = ROW_BYTES
+    return {
+        "steps": steps,
+        "seconds": steps * (c["world"] + per),
+        "bytes": rows * (b["base"] + b["per_estimator"] * (len(estimators) - 1) + b["per_output"] * q),
+    }
+
+
+def cost_notice(scenario, estimators: list[str], recording: bool, runs: int = 1, workers: int = 1) -> str | None:
+    """One line saying what a long or large run will cost, or ``None`` for an ordinary one."""
+    cost = expected_cost(scenario, estimators, recording)
+    seconds = cost["seconds"] * runs / max(workers, 1)
+    size = cost["bytes"] * runs
+    if seconds < NOTICE_SECONDS and size < NOTICE_BYTES:
+        return None
+    what = f"{cost['steps']:,} steps" + (f" x {runs} runs" if runs > 1 else "")
+    line = f"quadobs: note: {what}, expected to take about {_duration(seconds)}"
+    if size:
+        line += f" and to write a recording of about {_bytes(size)} (record_every = {scenario.record_every})"
+    return line + "; Ctrl-C stops it and keeps what is done"
+
+
+def _duration(seconds: float) -> str:
+    for unit, span in (("days", 86400.0), ("h", 3600.0), ("min", 60.0)):
+        if seconds >= span:
+            return f"{seconds / span:.2g} {unit}"
+    return f"{seconds:.2g} s"
+
+
+def _bytes(n: float) -> str:
+    for unit, span in (("TB", 1e12), ("GB", 1e9), ("MB", 1e6)):
+        if n >= span:
+            return f"{n / span:.2g} {unit}"
+    return f"{n:.0f} bytes"
