@@ -463,6 +463,17 @@ def _sigterm_as_interrupt(signum, frame):  # pragma: no cover - exercised by a s
     raise KeyboardInterrupt
 
 
+def _caused_by_interrupt(exc: BaseException) -> bool:
+    """Whether ``exc`` was raised while a ``KeyboardInterrupt`` was being handled (its context chain)."""
+    seen = set()
+    while exc is not None and id(exc) not in seen:
+        if isinstance(exc, KeyboardInterrupt):
+            return True
+        seen.add(id(exc))
+        exc = exc.__cause__ or exc.__context__
+    return False
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -481,6 +492,11 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     except KeyboardInterrupt:
         print("quadobs: interrupted", file=sys.stderr)
+        return 130
+    except Exception as exc:
+        if not _caused_by_interrupt(exc):
+            raise
+        print("quadobs: interrupted", file=sys.stderr)  # e.g. a compiler or an import cut by Ctrl-C
         return 130
     except BrokenPipeError:  # output piped into a reader that stopped (e.g. head)
         devnull = os.open(os.devnull, os.O_WRONLY)
