@@ -23,6 +23,7 @@ from __future__ import annotations
 import os
 import tempfile
 import threading
+import weakref
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -109,6 +110,13 @@ class _PipeFile:
         return done
 
 
+def _remove(path: Path) -> None:
+    try:
+        path.unlink(missing_ok=True)
+    except OSError:
+        pass
+
+
 @dataclass(eq=False)
 class Series:
     """One entity's buffered per-step values.
@@ -168,6 +176,10 @@ class Recorder:
             self._file = _PipeFile(self.staging)
         except OSError as exc:
             raise QuadobsError(f"output path {str(self.path)!r}: cannot be written ({exc.strerror})") from None
+        # A staging file never published (a stop before the end, an exit) goes when the recorder
+        # does, at the latest when the process exits normally.
+        self._discard = weakref.finalize(self, _remove, self.staging)
+        self.published = False
         self.rec = rr.RecordingStream(application_id, recording_id=recording_id)
         self.rec.save(self._file.fifo, default_blueprint=blueprint)
         self.series_list: list[Series] = []
@@ -314,8 +326,12 @@ class Recorder:
         self.rows_sent += n
         self.n = 0
 
-    def close(self) -> None:
+    def close(self, *, publish: bool = True) -> None:
         """Send what is buffered, finish the file (footer included) and rename it onto the target; idempotent.
+
+        With ``publish=False`` the complete file stays at its staging name until
+        :meth:`publish` (the episode renames it after the summary is written, so the two
+        are replaced together).
 
         Bounded: rerun gets :data:`CLOSE_TIMEOUT` seconds to hand over its last bytes. The
         target is replaced only by a complete file: after :meth:`fail` the staging file is
@@ -333,23 +349,34 @@ class Recorder:
         finally:
             self.rec.disconnect()
             self._file.release()
-            self._publish(self._file.finish(CLOSE_TIMEOUT))
+            self._settle(self._file.finish(CLOSE_TIMEOUT), publish)
         if pending is not None:
             raise pending
         self._check()
 
-    def _publish(self, done: bool) -> None:
-        """Rename the complete staging file onto the target, or remove it after a write error."""
+    def _settle(self, done: bool, publish: bool) -> None:
+        """After the stream ended: remove the staging file after a write error, keep it after
+        :meth:`fail`, else publish it now or leave it for :meth:`publish`."""
         if self._file.error is not None or not done:
             if not done and self._file.error is None:
                 self._file.error = OSError(f"rerun did not finish the stream within {CLOSE_TIMEOUT:g} s")
-            self.staging.unlink(missing_ok=True)
-        elif not self.failed:
-            try:
-                os.replace(self.staging, self.target)
-            except OSError as exc:
-                self.staging.unlink(missing_ok=True)
-                self._file.error = exc
+            self._discard()
+        elif self.failed:
+            self._discard.detach()  # kept: a valid recording of the steps before the failure
+        elif publish:
+            self.publish()
+
+    def publish(self) -> None:
+        """Rename the closed, complete staging file onto the target (once; nothing after a failure)."""
+        if not self.closed or self.published or self.failed or self._file.error is not None:
+            return
+        try:
+            os.replace(self.staging, self.target)
+        except OSError as exc:
+            self._discard()
+            raise RunFault(f"recording {str(self.path)!r}: cannot be renamed into place ({exc.strerror})") from None
+        self._discard.detach()
+        self.published = True
 
     def __enter__(self) -> "Recorder":
         return self

@@ -190,12 +190,17 @@ def run_episode(
         write_fault_summary(summary_path, scenario, episode.completed, exc)
         raise
     wall = _time.perf_counter() - wall0
-    summary = _summarise(scenario, names, merge(fragments), episode.completed, wall, episode.sensors, out, interrupted)
-    if summary_path is not None:
-        try:
-            write_json_atomic(summary_path, summary)
-        except QuadobsError as exc:  # a full disk at the end: the run's figures are still returned
-            summary["output_error"] = str(exc)
+    if interrupted and not episode.completed:  # stopped before the first step: the previous files stay
+        raise KeyboardInterrupt
+    with deferred_interrupts():  # the summary, then the recording, are replaced together
+        summary = _summarise(scenario, names, merge(fragments), episode.completed, wall, episode.sensors, out, interrupted)
+        if summary_path is not None:
+            try:
+                write_json_atomic(summary_path, summary)
+            except QuadobsError as exc:  # a full disk at the end: the run's figures are still returned
+                summary["output_error"] = str(exc)
+        for sink in episode.sinks:
+            sink.publish()
     return EpisodeResult(summary, episode.trace.trace if episode.trace is not None else None)
 
 

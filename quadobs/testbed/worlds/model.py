@@ -276,8 +276,8 @@ def physics_check(world, scenario):
     :data:`PHYSICS_FAULTS` has grown during the block of steps ``[k0, k0 + count)``. MuJoCo
     then resets the state (to ``qpos0``, at rest) and goes on, so the block's truth jumps:
     the message names the warning and the step and time of the first row whose position
-    does not follow from the velocities (:func:`_first_jump`; the block's last step when
-    none is found). For a world without a single ``MjData`` the check does nothing.
+    does not follow from the velocities (:func:`_first_jump`), or the block's span when
+    there is no such row (a bad control, which MuJoCo zeroes). For a world without a single ``MjData`` the check does nothing.
 
     The check costs four integer reads per block of thousands of steps.
     """
@@ -292,11 +292,13 @@ def physics_check(world, scenario):
         for name, i in slots:
             if int(data.warning[i].number) > seen[i]:
                 j = _first_jump(world, dim, dt, count)
-                step = k0 + (count if j is None else j)
+                if j is None:  # e.g. a bad control, which MuJoCo zeroes: no jump in the state
+                    where = f"between step {k0} and step {k0 + count} (t = {k0 * dt:.6g} to {(k0 + count) * dt:.6g} s)"
+                else:
+                    where = f"at step {k0 + j} (t = {(k0 + j) * dt:.6g} s)"
                 raise PhysicsFault(
-                    f"physics: MuJoCo reported {name[7:].lower()} (index {int(data.warning[i].lastinfo)}) at step {step} "
-                    f"(t = {step * dt:.6g} s); the simulation is unstable, the run stopped (see the scenario's "
-                    "trajectory, model and physics_rate)"
+                    f"physics: MuJoCo reported {name[7:].lower()} (index {int(data.warning[i].lastinfo)}) {where}; "
+                    "the simulation is unstable, the run stopped (see the scenario's trajectory, model and physics_rate)"
                 )
 
     return check
