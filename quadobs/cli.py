@@ -184,9 +184,9 @@ def _cmd_excitation(args) -> int:
     from quadobs.testbed.scenario import load_scenario
 
     if args.json:
-        from quadobs.errors import check_writable
+        from quadobs.testbed.outputs import check_outputs
 
-        check_writable(args.json)
+        check_outputs({"--json": args.json}, {"scenario": args.scenario})
     scenario = load_scenario(args.scenario, settings=args.set)
     report = scenario_report(scenario, window=args.window, step=args.step)
     print(report.format())

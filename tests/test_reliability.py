@@ -171,3 +171,53 @@ def test_signals_at_random_times_never_lose_the_previous_outputs(tmp_path, trial
         summary = json.loads(js.read_text())
         assert steps.size > 0 and summary["physics_steps"] == steps.size - (0 if summary["interrupted"] else 1)
     assert not [p for p in tmp_path.iterdir() if p.name.endswith(".partial")]
+
+
+# -- the cases, one by one --------------------------------------------------------------
+
+
+def _hostile_files(folder: Path) -> dict:
+    (folder / "nonutf8.toml").write_bytes(b"\xff\xfe name = 1\n")
+    (folder / "deep.toml").write_text("a = " + "[" * 5000 + "]" * 5000 + "\n")
+    (folder / "loop1").symlink_to(folder / "loop2")
+    (folder / "loop2").symlink_to(folder / "loop1")
+    (folder / "adir").mkdir()
+    return {"f": str(folder)}
+
+
+CASES = [
+    (["run", "{f}/nonutf8.toml"], "not UTF-8"),
+    (["run", "{f}/deep.toml"], "nested too deeply"),
+    (["run", "ifac2021", "--set", "duration=1e306"], "duration: must be at most"),
+    (["campaign", "ifac2021", "--runs", "2", "--duration", "1e306", "--out", "{f}/c"], "duration: must be at most"),
+    (["run", "ifac2021", "--set", "physics_rate=1e300"], "physics_rate: must be at most"),
+    (["run", "ifac2021", "--set", "record_every=9223372036854775807", "--out", "{f}/x.rrd"], "record_every: must be at most"),
+    (["run", "ifac2021", "--set", "model='{f}/loop1'"], "Too many levels of symbolic links"),
+    (["run", "ifac2021", "--set", "model='" + "a" * 5000 + "'"], "model:"),
+    (["run", "ifac2021", "--set", 'model="a\\u0000b"'], "NUL"),
+    (["run", "ifac2021", "--set", "model='{f}/adir'"], "is a directory"),
+    (["run", "ifac2021", "--set", "model=''"], "empty name"),
+    (["run", "ifac2021", "--set", "model='/dev/zero'"], "not a regular file"),
+    (["run", "x" * 5000], "at most 1024 characters"),
+    (["run", "ifac2021", "--out", "/dev/full"], "is a character device"),
+    (["run", "le2013", "--duration", "nan"], "--duration"),
+    (["run", "le2013", "--duration", "inf"], "--duration"),
+    (["run", "le2013", "--seed", "-1"], "seed"),
+    (["run", "le2013", "--duration", "0.4"], "--duration"),
+    (["excitation", "ifac2021", "--step", "1e-9"], "step:"),
+    (["run", "ifac2021", "--set", "noise.range_std=1e300"], "noise.range_std: must be at most"),
+    (["run", "ifac2021", "--set", "initial.position_spread=1e300"], "initial.position_spread: must be at most"),
+    (["run", "ifac2021", "--set", "initial.point=[0,0,0,0,0,0]"], 'only used with kind = "point"'),
+    (["run", "ifac2021", "--seed", str(2**80)], "seed: must be at most"),
+    (["campaign", "ifac2021", "--runs", "2", "--retries", "-1", "--out", "{f}/c"], "retries"),
+]
+
+
+@pytest.mark.parametrize("argv, message", CASES, ids=[f"case{i}" for i in range(len(CASES))])
+def test_each_hostile_case_gets_one_line_and_status_2(tmp_path, argv, message):
+    names = _hostile_files(tmp_path)
+    code, _, err = _call([a.replace("{f}", names["f"]) for a in argv])
+    lines = [ln for ln in err.strip().splitlines() if not ln.startswith(("quadobs: compiling", "quadobs: note:"))]
+    assert code == 2 and len(lines) == 1 and lines[0].startswith("quadobs: error: "), err
+    assert message in lines[0] and len(lines[0]) < 400 and "Traceback" not in err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["adir", "deep.toml", "loop1", "loop2", "nonutf8.toml"]

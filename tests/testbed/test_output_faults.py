@@ -118,6 +118,8 @@ def test_outputs_colliding_with_each_other_or_with_an_input_are_refused(tmp_path
     for option in ("--out", "--summary"):
         assert main(["run", str(scenario), option, str(scenario)]) == 2
         assert "scenario file" in _error_line(capsys)
+    assert main(["excitation", str(scenario), "--json", str(scenario)]) == 2
+    assert "scenario file" in _error_line(capsys)
     assert scenario.read_text() == text
     assert sorted(p.name for p in tmp_path.iterdir()) == ["link.json", "sc.toml"]
 
