@@ -25,7 +25,7 @@ import sys
 import textwrap
 from pathlib import Path
 
-from quadobs.errors import QuadobsError, new_folders_removed_on_failure
+from quadobs.errors import QuadobsError, RunFault, new_folders_removed_on_failure
 
 __all__ = ["main"]
 
@@ -163,6 +163,7 @@ def _cmd_run(args) -> int:
         raise QuadobsError("--runs: applies to le2013 only; for many seeded runs of a scenario use 'quadobs campaign'")
     scenario = load_scenario(args.scenario, duration=args.duration, seed=args.seed, settings=args.set)
     estimators = _estimator_list(args.estimators)
+    _notice_cost(scenario, estimators, args.out is not None)
     _notice_cold_kernels(_episode_kernels(estimators))
     result = run_episode(
         scenario,
@@ -172,6 +173,8 @@ def _cmd_run(args) -> int:
         progress=not args.no_progress,
     )
     print_summary(result.summary)
+    if "output_error" in result.summary:  # the table is out; the summary file could not be written
+        raise RunFault(result.summary["output_error"])
     if args.summary:
         print(f"summary: {args.summary}")
     return 130 if result.summary.get("interrupted") else 0
@@ -183,9 +186,9 @@ def _cmd_excitation(args) -> int:
     from quadobs.testbed.scenario import load_scenario
 
     if args.json:
-        from quadobs.errors import check_writable
+        from quadobs.testbed.outputs import check_outputs
 
-        check_writable(args.json)
+        check_outputs({"--json": args.json}, {"scenario": args.scenario})
     scenario = load_scenario(args.scenario, settings=args.set)
     report = scenario_report(scenario, window=args.window, step=args.step)
     print(report.format())
@@ -203,6 +206,7 @@ def _cmd_campaign(args) -> int:
         raise QuadobsError("scenario 'le2013': not a vehicle scenario; run it with 'quadobs run le2013 --runs N'")
     scenario = load_scenario(args.scenario, duration=args.duration, seed=args.seed, settings=args.set)
     estimators = _estimator_list(args.estimators)
+    _notice_cost(scenario, estimators, False, runs=args.runs, workers=args.workers or os.cpu_count() or 1)
     _notice_cold_kernels(_episode_kernels(estimators))
     result = run_campaign(
         scenario,
@@ -215,6 +219,7 @@ def _cmd_campaign(args) -> int:
         threshold=args.threshold,
         confidence=args.confidence,
         progress=not args.no_progress,
+        retries=args.retries,
     )
     print_campaign(result.summary)
     if result.summary["interrupted"]:
@@ -321,6 +326,16 @@ def _episode_kernels(estimators: list[str] | None) -> tuple[str, ...]:
     return EPISODE_KERNELS
 
 
+def _notice_cost(scenario, estimators, recording: bool, runs: int = 1, workers: int = 1) -> None:
+    """One line on stderr before a run expected to be long or large (:func:`quadobs.testbed.outputs.cost_notice`)."""
+    from quadobs.testbed.outputs import cost_notice
+    from quadobs.testbed.registry import default_estimators
+
+    line = cost_notice(scenario, estimators or default_estimators(scenario), recording, runs=runs, workers=workers)
+    if line:
+        print(line, file=sys.stderr, flush=True)
+
+
 def _notice_cold_kernels(kernels, file=None) -> bool:
     """Print :data:`COMPILING_NOTICE` on stderr when some of ``kernels`` are not in Numba's cache yet."""
     from quadobs._kernels import cold_kernels
@@ -417,6 +432,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--scheduler", help="Dask distributed scheduler address (tcp://host:port); default: local processes")
     p.add_argument("--workers", type=int, help="local processes (default: the number of CPUs; 0: in this process)")
     p.add_argument("--every", type=float, help="sampling period (s) of the statistics over time (default about 0.1 s)")
+    p.add_argument("--retries", type=int, default=2, help="local processes: restarts of a run whose worker was lost (default 2)")
     p.add_argument("--threshold", type=float, default=1.0, help="final position error (m) under which a run has converged (default 1)")
     p.add_argument("--confidence", type=float, default=0.95, help="of the two-sided chi-square NEES/NIS intervals (default 0.95)")
     p.add_argument("--duration", type=float, help="override the scenario duration (s)")
@@ -522,6 +538,17 @@ def _sigterm_as_interrupt(signum, frame):  # pragma: no cover - exercised by a s
     raise KeyboardInterrupt
 
 
+def _caused_by_interrupt(exc: BaseException) -> bool:
+    """Whether ``exc`` was raised while a ``KeyboardInterrupt`` was being handled (its context chain)."""
+    seen = set()
+    while exc is not None and id(exc) not in seen:
+        if isinstance(exc, KeyboardInterrupt):
+            return True
+        seen.add(id(exc))
+        exc = exc.__cause__ or exc.__context__
+    return False
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -532,11 +559,19 @@ def main(argv: list[str] | None = None) -> int:
     try:
         with new_folders_removed_on_failure(*_output_paths(args)):
             return args.func(args)
+    except RunFault as exc:  # the run started and could not go on (a full disk, a physics fault)
+        print(f"quadobs: error: {exc}", file=sys.stderr)
+        return 1
     except QuadobsError as exc:
         print(f"quadobs: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("quadobs: interrupted", file=sys.stderr)
+        return 130
+    except Exception as exc:
+        if not _caused_by_interrupt(exc):
+            raise
+        print("quadobs: interrupted", file=sys.stderr)  # e.g. a compiler or an import cut by Ctrl-C
         return 130
     except BrokenPipeError:  # output piped into a reader that stopped (e.g. head)
         devnull = os.open(os.devnull, os.O_WRONLY)

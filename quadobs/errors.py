@@ -7,7 +7,11 @@ bad scenario field, a missing MJCF element) raises :class:`QuadobsError`, a
 
 from __future__ import annotations
 
+import os
+import re
+import secrets
 import signal
+import stat
 import threading
 from contextlib import contextmanager
 from pathlib import Path
@@ -17,6 +21,11 @@ import numpy as np
 
 __all__ = [
     "QuadobsError",
+    "RunFault",
+    "STAGING_SUFFIX",
+    "output_target",
+    "staging_path",
+    "staging_owner",
     "as_array",
     "as_finite_scalar",
     "check_writable",
@@ -27,6 +36,68 @@ __all__ = [
 
 class QuadobsError(ValueError):
     """Bad input to quadobs: the message names the field and what is wrong with it."""
+
+
+class RunFault(QuadobsError):
+    """A run that started and could not go on: an output that cannot be written (a full
+    disk), a physics fault. The message names the path or the step; the command line
+    prints it on one line and exits with status 1 (bad input is status 2)."""
+
+
+#: Ending of a staged output's temporary file: ``.<target name>.<pid>-<random>.partial``,
+#: beside the target; a leftover one (its process is gone) is removed by the next run
+#: that writes the same target.
+STAGING_SUFFIX = ".partial"
+_STAGING = re.compile(r"^\.(?P<stem>.*)\.(?P<pid>\d+)-[0-9a-f]{6}" + re.escape(STAGING_SUFFIX) + "$")
+#: Longest output path taken (characters); longer ones are refused at once.
+MAX_PATH_CHARS = 1024
+_FILE_KINDS = (
+    (stat.S_ISDIR, "a directory"), (stat.S_ISCHR, "a character device"), (stat.S_ISBLK, "a block device"),
+    (stat.S_ISFIFO, "a FIFO"), (stat.S_ISSOCK, "a socket"),
+)
+
+
+def output_target(path: str | Path, what: str = "output path") -> Path:
+    """The regular file that an output named ``path`` replaces once complete.
+
+    A symbolic link is followed (the file it points to is written, the link stays); a
+    target that exists and is not a regular file (a directory, a device such as
+    ``/dev/null`` or ``/dev/full``, a FIFO, a socket), a read-only file, a symbolic-link
+    loop, a name holding NUL, longer than :data:`MAX_PATH_CHARS` characters or too long
+    for its file system (with room for the staging name) are refused with a
+    :class:`QuadobsError` naming ``what`` and the path.
+    """
+    text = os.fspath(path)
+    shown = text if len(text) <= 80 else text[:60] + "..."
+    if "\0" in text:
+        raise QuadobsError(f"{what} {shown!r}: holds a NUL character")
+    if not text or len(text) > MAX_PATH_CHARS:
+        raise QuadobsError(f"{what} {shown!r}: expected a file name of 1 to {MAX_PATH_CHARS} characters, got {len(text)}")
+    try:
+        real = Path(os.path.realpath(text, strict=False))
+        st = os.stat(real) if os.path.lexists(real) else None
+    except (OSError, RuntimeError) as exc:  # a symbolic-link loop, a component that is a file
+        raise QuadobsError(f"{what} {shown!r}: cannot be resolved ({getattr(exc, 'strerror', None) or exc})") from None
+    if st is not None:
+        kind = next((name for test, name in _FILE_KINDS if test(st.st_mode)), None)
+        if kind is not None:
+            raise QuadobsError(f"{what} {shown!r}: is {kind}, expected a regular file")
+        if not (os.access(real, os.W_OK) and st.st_mode & 0o222):  # no write bit: read-only, even for root
+            raise QuadobsError(f"{what} {shown!r}: the existing file is read-only")
+    if len(os.fsencode(real.name)) > 231 or not real.name:
+        raise QuadobsError(f"{what} {shown!r}: file name too long or empty (at most 231 bytes)")
+    return real
+
+
+def staging_path(target: Path) -> Path:
+    """A fresh temporary name beside ``target``: ``.<name>.<pid>-<random>.partial`` (see :data:`STAGING_SUFFIX`)."""
+    return target.parent / f".{target.name}.{os.getpid()}-{secrets.token_hex(3)}{STAGING_SUFFIX}"
+
+
+def staging_owner(path: Path) -> tuple[str, int] | None:
+    """``(target name, pid)`` of a staging file named by :func:`staging_path`, else ``None``."""
+    m = _STAGING.match(path.name)
+    return None if m is None else (m["stem"], int(m["pid"]))
 
 
 def as_array(
@@ -95,14 +166,14 @@ def as_finite_scalar(name: str, value: Any, *, positive: bool = False, nonnegati
 def check_writable(path: str | Path) -> Path:
     """Fail early (before any simulation) if ``path`` cannot be written.
 
-    Creates the parent folder if needed and probes it with a temporary file.
+    Refuses what :func:`output_target` refuses, creates the parent folder if needed and
+    probes it with a temporary file of the staging name's length.
     """
     path = Path(path)
-    if path.is_dir():
-        raise QuadobsError(f"output path {str(path)!r}: is a directory, expected a file name")
+    real = output_target(path)
     try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        probe = path.parent / f".{path.name}.probe"
+        real.parent.mkdir(parents=True, exist_ok=True)
+        probe = staging_path(real)
         probe.write_bytes(b"")
         probe.unlink()
     except OSError as exc:
@@ -114,8 +185,11 @@ def _missing_folders(path: Path) -> list[Path]:
     """``path`` and its ancestors that do not exist yet, deepest first."""
     missing = []
     for folder in (path, *path.parents):
-        if folder.exists() or folder.is_symlink():
-            break
+        try:
+            if folder.exists() or folder.is_symlink():
+                break
+        except (OSError, ValueError):  # a name too long, holding NUL: nothing was created there
+            continue
         missing.append(folder)
     return missing
 
@@ -151,7 +225,7 @@ def new_folders_removed_on_failure(*paths: str | Path | None) -> Iterator[None]:
         for folder in sorted(set(missing), key=lambda f: len(f.parts), reverse=True):
             try:
                 folder.rmdir()  # only an empty folder goes; a file or a non-empty folder stays
-            except OSError:
+            except (OSError, ValueError):
                 pass
         raise
 

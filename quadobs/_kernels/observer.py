@@ -354,6 +354,12 @@ def range_outputs(ranges, noise, std, beacon_term, measured, y):
 def _step_record(u, y, S, fc, ic, out):
     N = ic[0]
     k = ic[1]
+    for j in range(ic[2]):
+        if not math.isfinite(u[j]):
+            return -1
+    for h in range(ic[3]):
+        if math.isinf(y[h]):
+            return -1
     so = S.shape[0] - 4
     for i in range(N - k):
         out[i] = S[k + i]
@@ -372,7 +378,9 @@ def augmented_step_record(u, y, S, fc, ic, out):
     ``out`` has ``n + 3`` entries (``n = N - k``): ``x_hat (n)`` and ``trace(P)`` before the
     step, then the step's NIS and the running count of corrections rejected by the gate
     (``stats[2]``) after it; this is
-    :meth:`quadobs.estimators.base.Estimator.step_and_record` in one call.
+    :meth:`quadobs.estimators.base.Estimator.step_and_record` in one call. Returns -1, and
+    changes nothing, when ``u`` holds a non-finite value or ``y`` an infinite one (NaN in
+    ``y``: a missing sample).
     """
     return _step_record(u, y, S, fc, ic, out)
 
@@ -384,11 +392,16 @@ def augmented_step_block(U, Y, S, fc, ic, out):
     Row ``j`` of ``U (m, p)``, ``Y (m, q)`` is the step's input and outputs and row ``j`` of
     ``out (m, n + 3)`` gets its record, exactly as ``m`` calls of
     :func:`augmented_step_record` (the same arithmetic, in the same order, so the same bits)
-    without ``m - 1`` crossings from Python. Returns the number of corrections applied.
+    without ``m - 1`` crossings from Python. Returns the number of corrections applied, or
+    ``-1 - j`` when row ``j`` is refused (a non-finite ``u`` or an infinite ``y``): rows
+    ``0 .. j - 1`` are then done and nothing of row ``j`` or later has changed the state.
     """
     applied = 0
     for j in range(U.shape[0]):
-        if _step_record(U[j], Y[j], S, fc, ic, out[j]) == 1:
+        code = _step_record(U[j], Y[j], S, fc, ic, out[j])
+        if code < 0:
+            return -1 - j
+        if code == 1:
             applied += 1
     return applied
 

@@ -412,7 +412,9 @@ class AugmentedObserver(Estimator, Gated, Immersed, BlockStep):
             u, y = self._checked("u", u, self._ushape), self._checked("y", y, self._yshape)
             if not (isinstance(out, np.ndarray) and out.shape == self._rshape and out.dtype == _F64):
                 raise QuadobsError(f"out: expected a float64 array of shape {self._rshape}")
-        self._krecord(u, y, *self._kops, out)
+        if self._krecord(u, y, *self._kops, out) < 0:  # a non-finite u or an infinite y: nothing changed
+            check_step(u, y, *self._ushape, *self._yshape)  # raises, naming it
+            raise QuadobsError("u, y: refused by the compiled step")  # pragma: no cover - check_step raised
 
     @property
     def blockwise(self) -> bool:
@@ -437,7 +439,11 @@ class AugmentedObserver(Estimator, Gated, Immersed, BlockStep):
             for i in range(m):
                 self.step_and_record(U[i], Y[i], out[i])
             return
-        self._kblock(U, Y, *self._kops, out)
+        code = self._kblock(U, Y, *self._kops, out)
+        if code < 0:  # row -1 - code was refused: the rows before it are done, nothing after
+            j = -1 - code
+            check_step(U[j], Y[j], *self._ushape, *self._yshape)  # raises, naming it
+            raise QuadobsError(f"U, Y: row {j} refused by the compiled step")  # pragma: no cover - check_step raised
 
     @staticmethod
     def _checked_rows(name: str, value, width: int) -> int:

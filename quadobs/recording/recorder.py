@@ -7,21 +7,114 @@ buffers go out with ``send_columns`` on two timelines, ``step`` (sequence) and
 ``sim_time`` (duration), and the file is flushed. :meth:`Recorder.close` sends what is
 left and writes the file's footer, so a run stopped by an exception or Ctrl-C still
 leaves a complete file holding every step up to the stop.
+
+Staging and bounded writes. The file is written to a staging file beside the target
+(``.<name>.<pid>-<random>.partial``, :func:`quadobs.errors.staging_path`) and renamed onto
+it by :meth:`Recorder.close`: the previous recording stays whole until the new one is
+complete. rerun writes its stream into a pipe, never to the disk; a thread of ours copies
+the pipe into the staging file (:class:`_PipeFile`). A failed write (a full disk, a file
+size limit) is noticed at the next send, within one block of rows, and raised as a
+one-line :class:`~quadobs.errors.RunFault` naming the path; the thread keeps draining the
+pipe, so rerun never blocks on a disk that refuses data and :meth:`Recorder.close` ends.
 """
 
 from __future__ import annotations
 
+import os
+import tempfile
+import threading
+import weakref
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 import rerun as rr
 
-from quadobs.errors import QuadobsError, check_writable, deferred_interrupts
+from quadobs.errors import QuadobsError, RunFault, check_writable, deferred_interrupts, output_target, staging_path
 
 __all__ = ["Recorder", "Series", "check_writable"]
 
 _KINDS = ("scalars", "points3d", "translation", "boxes3d")
+
+
+#: Longest wait (s) for rerun to hand over the last bytes at :meth:`Recorder.close`.
+CLOSE_TIMEOUT = 30.0
+
+
+class _PipeFile:
+    """rerun's file sink pointed at a FIFO whose other end a daemon thread copies into ``path``.
+
+    Writes go through ``os.write``, so a full disk or an exceeded file size limit is an
+    ``OSError`` kept in :attr:`error`; from then on the thread reads and drops the rest of
+    the stream (rerun's writer never blocks) and writes nothing more.
+    """
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self.error: OSError | None = None
+        self.written = 0
+        self._folder = tempfile.mkdtemp(prefix="quadobs-rrd-")
+        self.fifo = os.path.join(self._folder, "stream.rrd")
+        os.mkfifo(self.fifo, 0o600)
+        self._fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
+        self._thread = threading.Thread(target=self._drain, name="quadobs-recording", daemon=True)
+        self._thread.start()
+
+    def _drain(self) -> None:
+        try:
+            src = os.open(self.fifo, os.O_RDONLY)  # returns once rerun has opened the other end
+        finally:
+            self._unlink_fifo()
+        try:
+            while chunk := os.read(src, 1 << 20):
+                if self.error is None:
+                    self._write(chunk)
+        finally:
+            os.close(src)
+
+    def _write(self, chunk: bytes) -> None:
+        view = memoryview(chunk)
+        try:
+            while view:
+                n = os.write(self._fd, view)
+                view = view[n:]
+                self.written += n
+        except OSError as exc:
+            self.error = exc
+
+    def _unlink_fifo(self) -> None:
+        for remove, what in ((os.unlink, self.fifo), (os.rmdir, self._folder)):
+            try:
+                remove(what)
+            except OSError:
+                pass
+
+    def release(self) -> None:
+        """Unblock a thread still waiting for rerun to open the pipe (rerun never did)."""
+        if self._thread.is_alive() and os.path.exists(self.fifo):
+            try:
+                os.close(os.open(self.fifo, os.O_WRONLY | os.O_NONBLOCK))
+            except OSError:
+                pass
+
+    def finish(self, timeout: float) -> bool:
+        """Wait for the end of the stream (rerun disconnected), then close the file; False on a timeout."""
+        self._thread.join(timeout)
+        done = not self._thread.is_alive()
+        if done and self.error is None:
+            try:
+                os.fsync(self._fd)
+            except OSError as exc:
+                self.error = exc
+        os.close(self._fd)
+        return done
+
+
+def _remove(path: Path) -> None:
+    try:
+        path.unlink(missing_ok=True)
+    except OSError:
+        pass
 
 
 @dataclass(eq=False)
@@ -50,7 +143,10 @@ class Recorder:
     Parameters
     ----------
     path : str or Path
-        Output file (``.rrd``).
+        Output file (``.rrd``): written to a staging file beside it and renamed onto it by
+        :meth:`close` (a symbolic link is written through). After :meth:`fail` the
+        staging file is kept instead (a valid recording of the steps before the failure,
+        removed by the next run writing ``path``); after a write error it is removed.
     recording_id : str
         Fixed id of the recording (derived from scenario and seed by the runner), so the
         same run gives the same id.
@@ -71,9 +167,21 @@ class Recorder:
         application_id: str = "quadobs",
     ) -> None:
         self.path = check_writable(path)
+        self.target = output_target(self.path)
+        self.staging = staging_path(self.target)
         self.capacity = int(capacity)
+        self.failed = False
+        self.error: RunFault | None = None
+        try:
+            self._file = _PipeFile(self.staging)
+        except OSError as exc:
+            raise QuadobsError(f"output path {str(self.path)!r}: cannot be written ({exc.strerror})") from None
+        # A staging file never published (a stop before the end, an exit) goes when the recorder
+        # does, at the latest when the process exits normally.
+        self._discard = weakref.finalize(self, _remove, self.staging)
+        self.published = False
         self.rec = rr.RecordingStream(application_id, recording_id=recording_id)
-        self.rec.save(str(self.path), default_blueprint=blueprint)
+        self.rec.save(self._file.fifo, default_blueprint=blueprint)
         self.series_list: list[Series] = []
         self._steps = np.zeros(self.capacity, dtype=np.int64)
         self._times = np.zeros(self.capacity)
@@ -169,10 +277,22 @@ class Recorder:
         if n:
             with deferred_interrupts():  # every series gets the rows, or none (a stop waits for the end)
                 self._send(n)
-        if wait:
-            self.rec.flush()
-        else:
-            self.rec.flush(timeout_sec=0.0)
+        self.rec.flush(timeout_sec=CLOSE_TIMEOUT if wait else 0.0)
+        self._check()
+
+    def _check(self) -> None:
+        """Raise the write error of the file once (a :class:`~quadobs.errors.RunFault` naming the path)."""
+        exc = self._file.error
+        if exc is not None and self.error is None:
+            self.error = RunFault(
+                f"recording {str(self.path)!r}: cannot be written ({exc.strerror or exc}) after "
+                f"{self._file.written} bytes; the run stopped"
+            )
+            raise self.error
+
+    def fail(self) -> None:
+        """Mark the run as failed: :meth:`close` keeps the staging file and leaves the target untouched."""
+        self.failed = True
 
     def _send(self, n: int) -> None:
         """Send rows ``[0, n)`` of the buffers as columns, one call per series."""
@@ -206,15 +326,57 @@ class Recorder:
         self.rows_sent += n
         self.n = 0
 
-    def close(self) -> None:
-        """Send what is buffered and finish the file (footer included); idempotent."""
+    def close(self, *, publish: bool = True) -> None:
+        """Send what is buffered, finish the file (footer included) and rename it onto the target; idempotent.
+
+        With ``publish=False`` the complete file stays at its staging name until
+        :meth:`publish` (the episode renames it after the summary is written, so the two
+        are replaced together).
+
+        Bounded: rerun gets :data:`CLOSE_TIMEOUT` seconds to hand over its last bytes. The
+        target is replaced only by a complete file: after :meth:`fail` the staging file is
+        kept (and named in the event log's error line), after a write error it is removed,
+        and the write error is raised (once).
+        """
         if self.closed:
             return
+        self.closed = True
+        pending = None
         try:
             self.flush(wait=True)
+        except RunFault as exc:  # first seen now: raised below, once the file is dealt with
+            pending = exc
         finally:
             self.rec.disconnect()
-            self.closed = True
+            self._file.release()
+            self._settle(self._file.finish(CLOSE_TIMEOUT), publish)
+        if pending is not None:
+            raise pending
+        self._check()
+
+    def _settle(self, done: bool, publish: bool) -> None:
+        """After the stream ended: remove the staging file after a write error, keep it after
+        :meth:`fail`, else publish it now or leave it for :meth:`publish`."""
+        if self._file.error is not None or not done:
+            if not done and self._file.error is None:
+                self._file.error = OSError(f"rerun did not finish the stream within {CLOSE_TIMEOUT:g} s")
+            self._discard()
+        elif self.failed:
+            self._discard.detach()  # kept: a valid recording of the steps before the failure
+        elif publish:
+            self.publish()
+
+    def publish(self) -> None:
+        """Rename the closed, complete staging file onto the target (once; nothing after a failure)."""
+        if not self.closed or self.published or self.failed or self._file.error is not None:
+            return
+        try:
+            os.replace(self.staging, self.target)
+        except OSError as exc:
+            self._discard()
+            raise RunFault(f"recording {str(self.path)!r}: cannot be renamed into place ({exc.strerror})") from None
+        self._discard.detach()
+        self.published = True
 
     def __enter__(self) -> "Recorder":
         return self

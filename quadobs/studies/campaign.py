@@ -57,6 +57,13 @@ from quadobs.testbed.scenario import Scenario, parse_scenario
 __all__ = ["CampaignResult", "run_campaign", "run_one", "run_seed", "print_campaign", "flight_summary"]
 
 
+#: Most runs in one campaign, and most local worker processes.
+MAX_RUNS = 1_000_000
+MAX_WORKERS = 1024
+#: Seconds a worker gets to end after SIGTERM before it is killed (campaign stopped).
+_TERMINATE_GRACE = 2.0
+
+
 def run_seed(base_seed: int, index: int) -> int:
     """The seed of run ``index`` of a campaign on a scenario of seed ``base_seed`` (63-bit)."""
     ss = np.random.SeedSequence(int(base_seed), spawn_key=(int(index),))
@@ -214,6 +221,7 @@ def run_campaign(
     progress: bool = False,
     record: bool = True,
     start_method: str | None = None,
+    retries: int = 2,
 ) -> CampaignResult:
     """Run ``runs`` seeded episodes of ``scenario`` and compute their statistics (see the module docstring).
 
@@ -244,9 +252,15 @@ def run_campaign(
         Write ``statistics.rrd`` (needs rerun).
     start_method : {"fork", "spawn", "forkserver"}, optional
         How local worker processes start (default: the platform's).
+    retries : int
+        Local processes: how many times a run whose worker process was lost (killed, out
+        of memory) is started again on a fresh worker before it is reported as failed
+        (0 to 100, default 2). A run that raises is not retried: its error is its result.
     """
-    if isinstance(runs, bool) or not isinstance(runs, (int, np.integer)) or runs < 1:
-        raise QuadobsError(f"runs: expected a positive integer, got {runs!r}")
+    if isinstance(runs, bool) or not isinstance(runs, (int, np.integer)) or not 1 <= runs <= MAX_RUNS:
+        raise QuadobsError(f"runs: expected an integer from 1 to {MAX_RUNS}, got {runs!r}")
+    if isinstance(retries, bool) or not isinstance(retries, (int, np.integer)) or not 0 <= retries <= 100:
+        raise QuadobsError(f"retries: expected an integer from 0 to 100, got {retries!r}")
     names = list(estimators) if estimators else default_estimators(scenario)
     known = available_estimators(scenario)
     for nm in names:
@@ -259,8 +273,10 @@ def run_campaign(
         raise QuadobsError(
             "workers: applies to local processes; with a scheduler the cluster's workers run the campaign"
         )
-    if workers is not None and (isinstance(workers, bool) or not isinstance(workers, (int, np.integer)) or workers < 0):
-        raise QuadobsError(f"workers: expected a non-negative integer, got {workers!r}")
+    if workers is not None and (
+        isinstance(workers, bool) or not isinstance(workers, (int, np.integer)) or not 0 <= workers <= MAX_WORKERS
+    ):
+        raise QuadobsError(f"workers: expected an integer from 0 to {MAX_WORKERS}, got {workers!r}")
     threshold = as_finite_scalar("threshold", threshold, positive=True)
     confidence = as_finite_scalar("confidence", confidence, positive=True)
     if not confidence < 1:
@@ -289,7 +305,7 @@ def run_campaign(
     linear = immersion_bound(scenario, every=k_every)
 
     wall0 = _time.perf_counter()
-    results, interrupted, backend = _execute(tasks, scheduler, workers, progress, scenario.name, start_method)
+    results, interrupted, backend = _execute(tasks, scheduler, workers, progress, scenario.name, start_method, retries)
     wall = _time.perf_counter() - wall0
 
     ok = sorted((r for r in results if r["status"] == "ok"), key=lambda r: r["index"])
@@ -330,6 +346,7 @@ def run_campaign(
         "runs_completed": len(ok),
         "runs_failed": len(failed),
         "failed": [{"run": r["index"], "seed": r["seed"], "error": r["error"]} for r in failed],
+        "retried": [{"run": r["index"], "seed": r["seed"], "lost": r["lost"]} for r in sorted(results, key=lambda r: r["index"]) if r.get("lost")],
         "interrupted": interrupted,
         "duration": scenario.duration,
         "physics_rate": scenario.physics_rate,
@@ -422,7 +439,7 @@ def _check_reach(scenario: Scenario, names: list[str], scheduler, workers, start
 
 
 def _execute(
-    tasks: list[dict], scheduler, workers, progress: bool, label: str, start_method: str | None = None
+    tasks: list[dict], scheduler, workers, progress: bool, label: str, start_method: str | None = None, retries: int = 2
 ) -> tuple[list[dict], bool, dict]:
     """Run the tasks; returns the results (failures included), whether Ctrl-C stopped it, and the backend."""
     bar = None
@@ -474,26 +491,16 @@ def _execute(
         return results, interrupted, backend
 
     if backend["kind"] == "processes":
-        from concurrent.futures import ProcessPoolExecutor, as_completed
-
         import multiprocessing
 
-        context = multiprocessing.get_context(start_method) if start_method else None
-        pool = ProcessPoolExecutor(max_workers=min(backend["workers"], len(tasks)), mp_context=context)
+        context = multiprocessing.get_context(start_method) if start_method else multiprocessing.get_context()
+        bar = make_bar()
         try:
-            futures = {pool.submit(run_one, t): t for t in tasks}
-            bar = make_bar()
-            for fut in as_completed(futures):
-                exc = fut.exception()
-                if isinstance(exc, KeyboardInterrupt):
-                    raise exc
-                done(lost(futures[fut], exc) if exc is not None else fut.result())
-        except KeyboardInterrupt:
-            interrupted = True
+            interrupted = _run_local(tasks, min(backend["workers"], len(tasks)), context, done, lost, retries)
         finally:
-            pool.shutdown(wait=not interrupted, cancel_futures=True)
             if bar is not None:
                 bar.close()
+        backend["retries"] = retries
         return results, interrupted, backend
 
     try:
@@ -529,6 +536,156 @@ def _execute(
             bar.close()
         client.close()
     return results, interrupted, backend
+
+
+# --------------------------------------------------------------------------------------
+# Local worker processes
+# --------------------------------------------------------------------------------------
+
+
+def _die_with_parent(parent: int) -> None:
+    """In a worker: end when the campaign's process ends, even by ``SIGKILL``.
+
+    On Linux the kernel sends ``SIGKILL`` when the parent dies (``prctl(PR_SET_PDEATHSIG)``);
+    everywhere, a daemon thread checks once a second that the parent is still the same.
+    """
+    import threading
+
+    try:
+        import ctypes
+
+        ctypes.CDLL(None, use_errno=True).prctl(1, 9)  # PR_SET_PDEATHSIG, SIGKILL
+    except (OSError, AttributeError):  # not Linux
+        pass
+    if os.getppid() != parent:  # the parent died before the request took effect
+        os._exit(1)
+
+    def watch() -> None:
+        while True:
+            _time.sleep(1.0)
+            if os.getppid() != parent:
+                os._exit(1)
+
+    threading.Thread(target=watch, name="quadobs-parent-watch", daemon=True).start()
+
+
+def _worker_main(conn, parent: int) -> None:
+    """A local worker: run the tasks received on ``conn`` and send back each result, until EOF."""
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the campaign's to handle: it stops the workers
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    _die_with_parent(parent)
+    while True:
+        try:
+            task = conn.recv()
+        except (EOFError, OSError):
+            return
+        conn.send(run_one(task))
+
+
+class _Worker:
+    """One local worker process and the task it holds (``None``: idle)."""
+
+    def __init__(self, context) -> None:
+        self.conn, child = context.Pipe(duplex=True)
+        self.proc = context.Process(target=_worker_main, args=(child, os.getpid()), daemon=True, name="quadobs-campaign-worker")
+        self.proc.start()
+        child.close()
+        self.task: dict | None = None
+
+    def give(self, task: dict) -> None:
+        self.task = task
+        self.conn.send(task)
+
+    def stop(self) -> None:
+        """End the process: SIGTERM, then SIGKILL after :data:`_TERMINATE_GRACE` seconds."""
+        self.conn.close()
+        if self.proc.is_alive():
+            self.proc.terminate()
+            self.proc.join(_TERMINATE_GRACE)
+            if self.proc.is_alive():
+                self.proc.kill()
+        self.proc.join(_TERMINATE_GRACE)
+
+
+def _run_local(tasks: list[dict], n: int, context, done, lost, retries: int) -> bool:
+    """Run ``tasks`` on ``n`` local worker processes; returns whether Ctrl-C stopped it.
+
+    Each worker has its own pipe, and the loop waits on every pipe and every process
+    sentinel at once (``multiprocessing.connection.wait``), so no dead worker can block
+    it: a worker that dies holding a run (``SIGKILL``, out of memory) is replaced and the
+    run started again, at most ``retries`` times, then reported failed with its seed
+    (``lost`` counts the losses). Ctrl-C (or SIGTERM mapped to it) ends every worker and
+    keeps the finished runs; the workers end with the campaign's process in any case.
+    """
+    from collections import deque
+    from multiprocessing.connection import wait
+
+    queue, losses = deque(tasks), {}
+    pool: list[_Worker] = []
+    try:
+        pool = [_Worker(context) for _ in range(n)]
+        while queue or any(w.task is not None for w in pool):
+            for i, w in enumerate(pool):
+                if w.task is None and queue:
+                    if not w.proc.is_alive():  # died while idle: a fresh one takes its place
+                        w.stop()
+                        pool[i] = w = _Worker(context)
+                    try:
+                        w.give(queue.popleft())
+                    except OSError:  # died just now: the sentinel below reports it, the run is retried
+                        pass
+            busy = [w for w in pool if w.task is not None]
+            ready = set(wait([w.conn for w in busy] + [w.proc.sentinel for w in busy], timeout=1.0))
+            for i, w in enumerate(pool):
+                if w.task is None or not (w.conn in ready or w.proc.sentinel in ready):
+                    continue
+                result = _receive(w)
+                if result is not None:
+                    w.task = None
+                    result["lost"] = losses.get(result["index"], 0)
+                    done(result)
+                    continue
+                task, w.task = w.task, None
+                losses[task["index"]] = count = losses.get(task["index"], 0) + 1
+                w.stop()
+                pool[i] = _Worker(context)
+                if count <= retries:
+                    queue.appendleft(task)
+                else:
+                    code = w.proc.exitcode
+                    why = f"killed by signal {-code}" if code is not None and code < 0 else f"exit status {code}"
+                    done({**lost(task, RuntimeError(f"worker process lost ({why}), {count} times")), "lost": count})
+        return False
+    except KeyboardInterrupt:
+        return True
+    finally:
+        _stop_all(pool)
+
+
+def _stop_all(pool: list[_Worker]) -> None:
+    """End every worker: SIGTERM to all, then SIGKILL to those still there after the grace period."""
+    for w in pool:
+        w.conn.close()
+        if w.proc.is_alive():
+            w.proc.terminate()
+    deadline = _time.monotonic() + _TERMINATE_GRACE
+    for w in pool:
+        w.proc.join(max(deadline - _time.monotonic(), 0.0))
+        if w.proc.is_alive():
+            w.proc.kill()
+            w.proc.join(_TERMINATE_GRACE)
+
+
+def _receive(w: _Worker) -> dict | None:
+    """The result a worker sent, or ``None`` when it died without one."""
+    try:
+        if w.conn.poll():
+            return w.conn.recv()
+    except (EOFError, OSError):
+        pass
+    return None
 
 
 # --------------------------------------------------------------------------------------

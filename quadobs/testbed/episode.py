@@ -45,17 +45,15 @@ recording and the summary exactly once.
 from __future__ import annotations
 
 import functools
-import json
-import os
-import tempfile
 import time as _time
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from quadobs.errors import QuadobsError, check_writable, deferred_interrupts
+from quadobs.errors import QuadobsError, RunFault, deferred_interrupts
 from quadobs.estimators.base import BlockStep, Counted, Gated, Immersed, SetValued, Switching
+from quadobs.testbed.outputs import check_outputs, write_fault_summary
 from quadobs.testbed.registry import build_estimators, default_estimators
 from quadobs.testbed.scenario import Scenario
 from quadobs.testbed.sensors import SensorModel, initial_guess, spawn_streams
@@ -98,29 +96,10 @@ class EpisodeResult:
 
 
 def write_json_atomic(path: str | Path, data: dict) -> None:
-    """Write JSON to a temporary file beside ``path`` and rename it into place."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
-    try:
-        umask = os.umask(0)
-        os.umask(umask)
-        os.fchmod(fd, 0o666 & ~umask)  # mkstemp creates 0600; give the file the usual permissions
-        with os.fdopen(fd, "w") as fh:
-            json.dump(data, fh, indent=2, allow_nan=False, default=_json_default)
-            fh.write("\n")
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    """Write JSON to a staging file beside ``path`` and rename it into place (:func:`quadobs.testbed.outputs.write_json_staged`)."""
+    from quadobs.testbed.outputs import write_json_staged
 
-
-def _json_default(obj):
-    if isinstance(obj, np.generic):
-        return obj.item()
-    if isinstance(obj, np.ndarray):
-        return obj.tolist()
-    raise TypeError(f"not JSON serialisable: {type(obj).__name__}")
+    write_json_staged(path, data)
 
 
 def single_threaded_blas():
@@ -202,6 +181,9 @@ def run_episode(
     QuadobsError
         Bad input, or an output path that cannot be written (checked before the simulation
         starts; nothing is created).
+    RunFault
+        The run could not go on (a recording that cannot be written, a physics fault): the
+        summary written names the error and has no figures (:mod:`quadobs.testbed.outputs`).
     Exception
         An error raised inside the loop (by an estimator, say) propagates after the
         recording is closed holding every step completed before it, with the error in
@@ -216,16 +198,26 @@ def run_episode(
     names = list(estimators) if estimators else default_estimators(scenario)
     if path not in PATHS:
         raise QuadobsError(f"path: expected one of {PATHS}, got {path!r}")
-    for target in (summary_path, out):
-        if target is not None:
-            check_writable(target)
+    check_outputs({"summary": summary_path, "recording": out}, {"scenario": scenario.source, "model": scenario.model})
     episode = _Episode(scenario, names, world, out, flush_rows, progress, collect_every, path)
     wall0 = _time.perf_counter()
-    fragments, interrupted = episode.run()
+    try:
+        fragments, interrupted = episode.run()
+    except RunFault as exc:  # a full disk, a physics fault: the summary says so, then the error goes on
+        write_fault_summary(summary_path, scenario, episode.completed, exc)
+        raise
     wall = _time.perf_counter() - wall0
-    summary = _summarise(scenario, names, merge(fragments), episode.completed, wall, episode.sensors, out, interrupted)
-    if summary_path is not None:
-        write_json_atomic(summary_path, summary)
+    if interrupted and not episode.completed:  # stopped before the first step: the previous files stay
+        raise KeyboardInterrupt
+    with deferred_interrupts():  # the summary, then the recording, are replaced together
+        summary = _summarise(scenario, names, merge(fragments), episode.completed, wall, episode.sensors, out, interrupted)
+        if summary_path is not None:
+            try:
+                write_json_atomic(summary_path, summary)
+            except QuadobsError as exc:  # a full disk at the end: the run's figures are still returned
+                summary["output_error"] = str(exc)
+        for sink in episode.sinks:
+            sink.publish()
     return EpisodeResult(summary, episode.trace.trace if episode.trace is not None else None)
 
 
@@ -235,6 +227,7 @@ class _Episode:
     def __init__(self, scenario, names, world, out, flush_rows, progress, collect_every, path="auto") -> None:
         from quadobs.testbed.worlds import PointMassWorld  # the MuJoCo layer, imported only to run episodes
         from quadobs.testbed.worlds.base import World
+        from quadobs.testbed.worlds.model import physics_check
 
         self.scenario, self.steps = scenario, scenario.steps
         streams = spawn_streams(scenario.seed)
@@ -242,6 +235,7 @@ class _Episode:
         if world is None and scenario.kind == "quadrotor":  # the quadrotor flown by its controller
             from quadobs.testbed.worlds.quadrotor import QuadrotorWorld as world
         self.world = (world or PointMassWorld)(scenario, self.sensors, _BLOCK)
+        self.check_physics = physics_check(self.world, scenario)  # MuJoCo's warnings, after every block
         x0 = initial_guess(scenario, self.world.state(), streams["initial"])
         ests = build_estimators(scenario, names, x0)
         self.block = block = Block(self.world, ests, _BLOCK)
@@ -334,6 +328,7 @@ class _Episode:
             self._estimate_blocks(count)
         else:
             self._estimate(count)
+        self.check_physics(k0, count)
         rows = count
         if k0 + count == self.steps:  # the final row: x_K and the estimates at t_K
             block.record_final(count)

@@ -51,6 +51,8 @@ def scenario_report(scenario, window: float | None = None, step: float | None = 
     spec = scenario.excitation
     block = spec.grid(scenario.dt)[0]
     h = block * scenario.dt if step is None else as_finite_scalar("step", step, positive=True)
+    if scenario.duration / h > 1e7:  # the input is sampled over the whole duration: bound the allocation
+        raise QuadobsError(f"step: {h:g} s gives {scenario.duration / h:.3g} samples over {scenario.duration:g} s; at most 1e7")
     delta = spec.window if window is None else as_finite_scalar("window", window, positive=True)
     if delta > scenario.duration:
         raise QuadobsError(f"window: {delta} s is longer than the scenario ({scenario.duration:g} s)")

@@ -30,6 +30,7 @@ from __future__ import annotations
 import copy
 import difflib
 import json
+import os
 import re
 import tomllib
 from importlib import resources
@@ -38,7 +39,7 @@ from typing import Annotated, Any, Iterable, Literal, Mapping, Union, get_args, 
 
 import numpy as np
 import tomli_w
-from annotated_types import Ge, Gt, Le, MinLen
+from annotated_types import Ge, Gt, Le, MaxLen, MinLen
 from pydantic import (
     AllowInfNan,
     BaseModel,
@@ -87,6 +88,24 @@ String = Annotated[str, Strict()]
 Boolean = Annotated[bool, Strict()]
 Vector = tuple[Number, ...]
 
+# Bounds of the numbers, checked at parse time so that nothing later overflows or allocates
+# without limit (docs/failure-behaviour.md): a duration of 1e306 s, a rate of 1e300 Hz or a
+# noise of 1e300 m would otherwise run into an overflow, a huge allocation or a meaningless run.
+MAX_DURATION = 1e7  #: s (about 116 days)
+MAX_RATE = 1e6  #: Hz, also rad/s
+MAX_LENGTH = 1e9  #: m and m/s (MuJoCo calls a position beyond 1e10 unstable)
+MAX_NOISE = 1e6  #: m, m/s, m/s^2: noise levels and spreads
+MAX_COUNT = 10**9  #: record_every, max_generators
+MAX_SEED = 2**63 - 1
+MAX_ENTRIES = 10_000  #: beacons, terms, segments, variants
+MAX_TEXT = 1024  #: characters of a name or a path
+
+Coordinate = Annotated[Number, Ge(-MAX_LENGTH), Le(MAX_LENGTH)]
+BoundedVector = tuple[Coordinate, ...]
+Noise = Annotated[NonNegative, Le(MAX_NOISE)]
+Rate = Annotated[Positive, Le(MAX_RATE)]
+Seconds = Annotated[Positive, Le(MAX_DURATION)]
+
 _TAGS = ("scalar", "diagonal")  # branch names of the scalar-or-diagonal union, left out of error paths
 
 
@@ -123,15 +142,15 @@ class Beacon(_Table):
 class Wind(_Table):
     """The ``[wind]`` table."""
 
-    velocity: Vector = Field(description="Constant wind velocity (m/s), `dimension` numbers.")
+    velocity: BoundedVector = Field(description="Constant wind velocity (m/s), `dimension` numbers.")
 
 
 class Term(_Table):
     """One sinusoid ``amplitude cos(omega t + phase)`` on one axis (``sin``: phase lowered by pi/2)."""
 
     axis: Annotated[Integer, Ge(0)] = Field(description="Axis of the term, below `dimension`.")
-    amplitude: Number = Field(description="Amplitude (m).")
-    omega: NonNegative = Field(description="Angular frequency (rad/s).")
+    amplitude: Coordinate = Field(description="Amplitude (m).")
+    omega: Annotated[NonNegative, Le(MAX_RATE)] = Field(description="Angular frequency (rad/s).")
     phase: Number = Field(0.0, description="Phase (rad).")
     function: Literal["cos", "sin"] = Field(
         "cos", description="`cos` or `sin`; a `sin` term is stored as `cos` with its phase lowered by pi/2."
@@ -147,21 +166,21 @@ class Term(_Table):
 class Coast(_Table):
     """A ``[[trajectory.coast]]`` segment: the commanded acceleration is off in ``[start, end)``."""
 
-    start: NonNegative = Field(description="Start of the segment (s).")
-    end: Positive = Field(description="End of the segment (s); segments are sorted and disjoint.")
+    start: Annotated[NonNegative, Le(MAX_DURATION)] = Field(description="Start of the segment (s).")
+    end: Seconds = Field(description="End of the segment (s); segments are sorted and disjoint.")
 
 
 class TrajectorySpec(_Table):
     """The ``[trajectory]`` table: offsets, a constant velocity and sinusoids per axis."""
 
-    offset: Vector | None = Field(None, description="Constant offset `o` (m), `dimension` numbers (default: zeros).")
-    velocity: Vector | None = Field(
+    offset: BoundedVector | None = Field(None, description="Constant offset `o` (m), `dimension` numbers (default: zeros).")
+    velocity: BoundedVector | None = Field(
         None, description="Constant velocity `w` (m/s), `dimension` numbers (default: zeros)."
     )
-    terms: tuple[Term, ...] = Field(
+    terms: Annotated[tuple[Term, ...], MaxLen(MAX_ENTRIES)] = Field(
         (), description="Sinusoids added to the axes (`[[trajectory.terms]]` or inline tables)."
     )
-    coast: tuple[Coast, ...] = Field((), description="Segments without commanded acceleration.")
+    coast: Annotated[tuple[Coast, ...], MaxLen(MAX_ENTRIES)] = Field((), description="Segments without commanded acceleration.")
 
 
 class NoiseSpec(_Table):
@@ -171,23 +190,23 @@ class NoiseSpec(_Table):
     ``[-bound, bound]``), not both; guaranteed (set-membership) estimators need bounds.
     """
 
-    range_std: NonNegative = Field(0.0, description="Standard deviation of the range error (m).")
-    accel_std: NonNegative = Field(0.0, description="Standard deviation of the accelerometer error (m/s^2).")
-    airspeed_std: NonNegative = Field(0.0, description="Standard deviation of the airspeed error (m/s).")
-    range_rate: Positive | None = Field(
+    range_std: Noise = Field(0.0, description="Standard deviation of the range error (m).")
+    accel_std: Noise = Field(0.0, description="Standard deviation of the accelerometer error (m/s^2).")
+    airspeed_std: Noise = Field(0.0, description="Standard deviation of the airspeed error (m/s).")
+    range_rate: Rate | None = Field(
         None, description="Range sample rate (Hz), dividing the physics rate (default: the physics rate)."
     )
-    airspeed_rate: Positive | None = Field(
+    airspeed_rate: Rate | None = Field(
         None, description="Airspeed sample rate (Hz), dividing the physics rate (default: the physics rate)."
     )
     dropout: Annotated[NonNegative, Le(1.0)] = Field(0.0, description="Probability that a sample is lost.")
     outlier_probability: Annotated[NonNegative, Le(1.0)] = Field(
         0.0, description="Probability that a range sample carries an outlier."
     )
-    outlier_std: NonNegative = Field(0.0, description="Standard deviation of an outlier's extra error (m).")
-    range_bound: NonNegative = Field(0.0, description="Bound of the uniform range error (m).")
-    accel_bound: NonNegative = Field(0.0, description="Bound of the uniform accelerometer error (m/s^2).")
-    airspeed_bound: NonNegative = Field(0.0, description="Bound of the uniform airspeed error (m/s).")
+    outlier_std: Noise = Field(0.0, description="Standard deviation of an outlier's extra error (m).")
+    range_bound: Noise = Field(0.0, description="Bound of the uniform range error (m).")
+    accel_bound: Noise = Field(0.0, description="Bound of the uniform accelerometer error (m/s^2).")
+    airspeed_bound: Noise = Field(0.0, description="Bound of the uniform airspeed error (m/s).")
 
     @model_validator(mode="after")
     def _std_or_bound(self) -> "NoiseSpec":
@@ -243,7 +262,7 @@ class ObserverSpec(_Table):
         1e-4, description="Process noise of the augmented state: scalar (times I) or diagonal."
     )
     W: _diagonal(Positive) = Field(1.0, description="Output noise: scalar (times I_q) or diagonal.")
-    theta: NonNegative = Field(0.0, description="Forgetting rate `theta` of the observer (1/s).")
+    theta: Annotated[NonNegative, Le(MAX_RATE)] = Field(0.0, description="Forgetting rate `theta` of the observer (1/s).")
     gate: Positive | None = Field(
         None, description="NIS threshold above which a correction is rejected (default: no gate)."
     )
@@ -277,9 +296,9 @@ class InitialGuess(_Table):
     kind: Literal["zero", "point", "random"] = Field(
         "zero", description="`zero`, `point` (the given state) or `random` (truth plus Gaussian errors)."
     )
-    point: Vector | None = Field(None, description="The initial state when `kind = \"point\"` (`state_dim` numbers).")
-    position_spread: NonNegative = Field(0.0, description="Standard deviation of the random position error (m).")
-    velocity_spread: NonNegative = Field(
+    point: BoundedVector | None = Field(None, description="The initial state when `kind = \"point\"` (`state_dim` numbers).")
+    position_spread: Noise = Field(0.0, description="Standard deviation of the random position error (m).")
+    velocity_spread: Noise = Field(
         0.0, description="Standard deviation of the random velocity (and wind) error (m/s)."
     )
 
@@ -300,12 +319,12 @@ class ExcitationSpec(_Table):
     """
 
     monitor: Boolean = Field(True, description="Run the live excitation monitor.")
-    window: Positive = Field(5.0, description="Length `delta` of the sliding Gramian window `W(t - delta, t)` (s).")
+    window: Seconds = Field(5.0, description="Length `delta` of the sliding Gramian window `W(t - delta, t)` (s).")
     threshold: NonNegative = Field(
         1e-6, description="`mu = lambda_min(W)` below which a window counts as not exciting."
     )
-    update_period: Positive = Field(0.1, description="Period of the measure's updates (s).")
-    step: Positive | None = Field(
+    update_period: Seconds = Field(0.1, description="Period of the measure's updates (s).")
+    step: Annotated[Seconds, Ge(1e-6)] | None = Field(
         None, description="Hold step over which the input is averaged (s) (default: the physics-step multiple nearest 0.01 s)."
     )
 
@@ -334,9 +353,9 @@ class ZonotopeSpec(_Table):
     given half-widths.
     """
 
-    position_bound: Positive = Field(50.0, description="Half-width of the initial box on positions (m).")
-    velocity_bound: Positive = Field(30.0, description="Half-width of the initial box on velocities and wind (m/s).")
-    max_generators: Annotated[Integer, Ge(0)] = Field(
+    position_bound: Annotated[Positive, Le(MAX_LENGTH)] = Field(50.0, description="Half-width of the initial box on positions (m).")
+    velocity_bound: Annotated[Positive, Le(MAX_LENGTH)] = Field(30.0, description="Half-width of the initial box on velocities and wind (m/s).")
+    max_generators: Annotated[Integer, Ge(0), Le(MAX_COUNT)] = Field(
         0, description="Largest zonotope order (0: ten times the augmented dimension)."
     )
     reduction: Literal[tuple(REDUCTION_METHODS)] = Field(
@@ -430,17 +449,17 @@ class Scenario(_Table):
     (9, [4.0, -3.0, 0.5])
     """
 
-    name: String = Field(description="Name of the scenario.")
-    description: String = Field("", description="What the scenario shows (first line: `quadobs list`).")
+    name: Annotated[String, MaxLen(MAX_TEXT)] = Field(description="Name of the scenario.")
+    description: Annotated[String, MaxLen(100 * MAX_TEXT)] = Field("", description="What the scenario shows (first line: `quadobs list`).")
     kind: Literal["vehicle", "quadrotor"] = Field(
         "vehicle", description="`vehicle`: the MuJoCo point-mass vehicle; `quadrotor`: a Crazyflie-sized quadrotor flown by a controller."
     )
     dimension: Integer = Field(description="Dimension of the motion: 2 or 3.")
-    duration: Positive = Field(description="Simulated time (s).")
-    physics_rate: Positive = Field(1000.0, description="Physics steps per second (Hz).")
-    seed: Annotated[Integer, Ge(0)] = Field(0, description="Seed of every random draw of the episode.")
-    record_every: Annotated[Integer, Ge(1)] = Field(1, description="Record one physics step in `record_every`.")
-    beacon_specs: tuple[Beacon, ...] = Field(
+    duration: Seconds = Field(description="Simulated time (s).")
+    physics_rate: Rate = Field(1000.0, description="Physics steps per second (Hz).")
+    seed: Annotated[Integer, Ge(0), Le(MAX_SEED)] = Field(0, description="Seed of every random draw of the episode.")
+    record_every: Annotated[Integer, Ge(1), Le(MAX_COUNT)] = Field(1, description="Record one physics step in `record_every`.")
+    beacon_specs: Annotated[tuple[Beacon, ...], MaxLen(MAX_ENTRIES)] = Field(
         alias="beacons", description="Beacons ranged by the vehicle (`[[beacons]]`, at least one)."
     )
     trajectory_spec: TrajectorySpec = Field(
@@ -456,7 +475,7 @@ class Scenario(_Table):
     wind_spec: Wind | None = Field(
         None, alias="wind", description="Constant wind: adds air velocity and wind to the state, and an airspeed output."
     )
-    model: String | None = Field(
+    model: Annotated[String, MaxLen(MAX_TEXT)] | None = Field(
         None, description="MJCF model to use instead of the built-in vehicle (relative to the scenario file)."
     )
     control: ControlSpec | None = Field(None, description="The flight controller (`kind = \"quadrotor\"` only).")
@@ -468,6 +487,13 @@ class Scenario(_Table):
     _wind: np.ndarray | None = PrivateAttr(None)
     _trajectory: SinusoidTrajectory = PrivateAttr()
     _source: str = PrivateAttr("")
+
+    @field_validator("model")
+    @classmethod
+    def _a_path(cls, model: str | None) -> str | None:
+        if model is not None and ("\0" in model or not model.strip()):
+            raise _invalid("expected the path of an MJCF file, got an empty name or one holding NUL")
+        return model
 
     @field_validator("dimension")
     @classmethod
@@ -837,6 +863,8 @@ def parse_setting(text: str) -> tuple[str, Any]:
         value = tomllib.loads(f"v = {raw.strip()}")["v"]
     except tomllib.TOMLDecodeError:
         value = raw.strip()
+    except RecursionError:
+        raise QuadobsError(f"--set {path}: the value is nested too deeply") from None
     return path, value
 
 
@@ -914,26 +942,52 @@ def list_scenarios() -> dict[str, str]:
     return out
 
 
+#: Largest scenario file read (bytes).
+MAX_FILE_BYTES = 1 << 20
+
+
+def _read_text(path: Path, shown: str) -> str:
+    """The UTF-8 text of a scenario file: a regular file of at most :data:`MAX_FILE_BYTES`."""
+    try:
+        with open(path, "rb") as fh:
+            if not os.path.isfile(path):
+                raise QuadobsError(f"scenario file {shown}: not a regular file")
+            raw = fh.read(MAX_FILE_BYTES + 1)
+    except OSError as exc:
+        raise QuadobsError(f"scenario file {shown}: cannot be read ({exc.strerror})") from None
+    if len(raw) > MAX_FILE_BYTES:
+        raise QuadobsError(f"scenario file {shown}: larger than {MAX_FILE_BYTES} bytes")
+    try:
+        return raw.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise QuadobsError(f"scenario file {shown}: not UTF-8 text (byte {exc.start})") from None
+
+
 def _read(name_or_path: str | Path) -> dict:
     """The TOML document of a built-in name or a file, with a relative model path made absolute."""
     text_source = str(name_or_path)
+    shown = text_source if len(text_source) <= 80 else text_source[:60] + "..."
+    if len(text_source) > MAX_TEXT or "\0" in text_source:
+        raise QuadobsError(f"scenario {shown!r}: expected a name or a path of at most {MAX_TEXT} characters without NUL")
     path = Path(name_or_path)
-    is_file = path.suffix == ".toml" or path.exists()
+    try:
+        is_file = path.suffix == ".toml" or path.exists()
+    except OSError as exc:  # a name too long for the file system
+        raise QuadobsError(f"scenario file {shown}: cannot be read ({exc.strerror})") from None
     if is_file:
-        try:
-            text = path.read_text()
-        except OSError as exc:
-            raise QuadobsError(f"scenario file {text_source}: cannot be read ({exc.strerror})") from None
+        text = _read_text(path, shown)
     else:
         entry = _builtin_dir() / f"{text_source}.toml"
         if not entry.is_file():
             names = ", ".join(list_scenarios())
-            raise QuadobsError(f"scenario: unknown name {text_source!r}; built-in scenarios are {names}, or give a .toml path")
+            raise QuadobsError(f"scenario: unknown name {shown!r}; built-in scenarios are {names}, or give a .toml path")
         text = entry.read_text()
     try:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
-        raise QuadobsError(f"scenario file {text_source}: invalid TOML ({exc})") from None
+        raise QuadobsError(f"scenario file {shown}: invalid TOML ({exc})") from None
+    except RecursionError:
+        raise QuadobsError(f"scenario file {shown}: invalid TOML (nested too deeply)") from None
     model = data.get("model")
     if path.suffix == ".toml" and isinstance(model, str) and not Path(model).is_absolute():
         data["model"] = str((path.parent / model).resolve())

@@ -162,6 +162,9 @@ class Sink:
     def close(self) -> None:
         pass
 
+    def publish(self) -> None:
+        """After the summary is written: move the sink's files into place (default: nothing)."""
+
 
 class StepSink(Sink):
     """A sink that also acts between steps, at the step counts it asks for."""
@@ -475,8 +478,12 @@ class RecordingSink(Sink):
         return {}
 
     def fail(self, completed: int, error: BaseException) -> None:
+        self.recorder.fail()  # the target keeps the previous recording; the staging file keeps this one
         dt = self.ctx.scenario.dt
         self._text(f"stopped by an error at t = {completed * dt:.3f} s (step {completed}): {error!r}", "ERROR", completed)
 
     def close(self) -> None:
-        self.recorder.close()
+        self.recorder.close(publish=False)  # renamed into place by publish(), after the summary
+
+    def publish(self) -> None:
+        self.recorder.publish()

@@ -39,7 +39,7 @@ def test_signal_mid_run_leaves_a_verified_recording_of_every_step(tmp_path, sig)
     try:
         deadline = time.monotonic() + 120
         # wait until the loop has sent a few blocks of rows to the file
-        while not (rrd.exists() and rrd.stat().st_size > 200_000):
+        while not any(p.stat().st_size > 200_000 for p in tmp_path.glob(".run.rrd.*.partial")):  # the staging file
             assert proc.poll() is None, proc.communicate()
             assert time.monotonic() < deadline, "the run did not start writing"
             time.sleep(0.05)
@@ -62,8 +62,9 @@ def test_signal_mid_run_leaves_a_verified_recording_of_every_step(tmp_path, sig)
 
 
 def test_error_inside_the_loop_closes_the_recording_and_propagates(tmp_path, monkeypatch):
-    """An estimator failing at step N (past a block boundary): the error reaches the caller and the
-    .rrd verifies and holds steps 0..N-1, with the error in its event log; no summary is written."""
+    """An estimator failing at step N (past a block boundary): the error reaches the caller, the previous
+    .rrd and summary are untouched, and the run's staging file (``.err.rrd.<pid>-<hex>.partial``) verifies
+    and holds steps 0..N-1, with the error in its event log; no summary is written."""
     from quadobs.estimators.augmented import AugmentedObserver
 
     N = 10_000
@@ -78,9 +79,11 @@ def test_error_inside_the_loop_closes_the_recording_and_propagates(tmp_path, mon
 
     monkeypatch.setattr(AugmentedObserver, "step_and_record", failing)
     rrd, js = tmp_path / "err.rrd", tmp_path / "err.json"
+    rrd.write_bytes(b"previous recording")
     with pytest.raises(FloatingPointError, match="injected failure"):
         run_episode(load_scenario("ifac2021", duration=15.0), out=rrd, summary_path=js)
-    assert not js.exists()
+    assert not js.exists() and rrd.read_bytes() == b"previous recording"
+    (rrd,) = tmp_path.glob(".err.rrd.*.partial")
     _verify(rrd)
     for entity in ("errors/augmented/position/norm", "observer/augmented/nis", "measurements/accelerometer"):
         steps = read_series(rrd, entity)["step"]

@@ -8,15 +8,17 @@ API (``mujoco.MjSpec``) at the scenario's positions.
 
 from __future__ import annotations
 
+import os
+import stat
 from dataclasses import dataclass
 from pathlib import Path
 
 import mujoco
 import numpy as np
 
-from quadobs.errors import QuadobsError, as_array, as_finite_scalar
+from quadobs.errors import QuadobsError, RunFault, as_array, as_finite_scalar
 
-__all__ = ["VehicleModel", "default_model_path", "load_vehicle_model", "REQUIRED_ELEMENTS"]
+__all__ = ["VehicleModel", "default_model_path", "load_vehicle_model", "REQUIRED_ELEMENTS", "PhysicsFault", "physics_check"]
 
 #: (kind, name) of the elements a vehicle model must define.
 REQUIRED_ELEMENTS = (
@@ -67,6 +69,25 @@ class VehicleModel:
     offset_adr: np.ndarray  # (q_b,) sensordata addresses of the beacon-relative positions
     actuator_ids: np.ndarray  # (3,)
     gravity: np.ndarray  # (3,)
+
+
+def _model_file(path) -> Path:
+    """``path`` if it names a readable regular file, else a :class:`QuadobsError` saying what it is."""
+    text = str(path)
+    shown = text if len(text) <= 80 else text[:60] + "..."
+    if not text.strip() or "\0" in text or len(text) > 4096:
+        raise QuadobsError(f"model: {shown!r} is not a file name (empty, holding NUL or longer than 4096 characters)")
+    try:
+        st = os.stat(text)
+    except FileNotFoundError:
+        raise QuadobsError(f"model: MJCF file {shown!r} does not exist") from None
+    except OSError as exc:  # a symbolic-link loop, a name too long, a component that is a file
+        raise QuadobsError(f"model: MJCF file {shown!r} cannot be opened ({exc.strerror})") from None
+    if stat.S_ISDIR(st.st_mode):
+        raise QuadobsError(f"model: {shown!r} is a directory, expected an MJCF file")
+    if not stat.S_ISREG(st.st_mode):
+        raise QuadobsError(f"model: {shown!r} is not a regular file (a device or a FIFO), expected an MJCF file")
+    return Path(text)
 
 
 def _find(spec: mujoco.MjSpec, kind: str, name: str):
@@ -195,9 +216,7 @@ def load_vehicle_model(
     timestep = as_finite_scalar("timestep", timestep, positive=True)
     if wind is not None:
         wind = as_array("wind", wind, (beacons.shape[1],))
-    mjcf = Path(path) if path is not None else default_model_path()
-    if not mjcf.is_file():
-        raise QuadobsError(f"model: MJCF file {str(mjcf)!r} does not exist")
+    mjcf = _model_file(path) if path is not None else default_model_path()
     try:
         spec = mujoco.MjSpec.from_file(str(mjcf))
     except Exception as exc:  # noqa: BLE001 - MuJoCo's parser error
@@ -238,3 +257,70 @@ def load_vehicle_model(
         actuator_ids=actuators,
         gravity=np.array(model.opt.gravity, dtype=float),
     )
+
+
+#: MuJoCo's warnings that mean the simulated truth is no longer valid: a non-finite or huge
+#: position, velocity, acceleration (MuJoCo then resets the state and goes on) or control.
+PHYSICS_FAULTS = ("mjWARN_BADQPOS", "mjWARN_BADQVEL", "mjWARN_BADQACC", "mjWARN_BADCTRL")
+
+
+class PhysicsFault(RunFault):
+    """MuJoCo reported an unstable or invalid simulation: the episode's truth is wrong from that step on."""
+
+
+def _world_data(world):
+    """The ``mujoco.MjData`` a world steps (``world.data`` or ``world.sim.data``), else ``None``."""
+    data = getattr(world, "data", None)
+    if data is None:
+        data = getattr(getattr(world, "sim", None), "data", None)
+    return data if isinstance(data, mujoco.MjData) else None
+
+
+def _first_jump(world, dim: int, dt: float, count: int) -> int | None:
+    """The first row ``j`` of the block whose true position does not follow from the velocities
+    (``|p_{j+1} - p_j - dt (v_j + v_{j+1}) / 2|`` beyond rounding, or not finite), else ``None``."""
+    columns, out = getattr(world, "columns", None), getattr(world, "out", None)
+    if columns is None or out is None or count < 2:
+        return None
+    X = np.asarray(out[:count, columns.truth], dtype=float)
+    p, v = X[:, :dim], X[:, dim : 2 * dim]
+    with np.errstate(all="ignore"):
+        r = np.abs(np.diff(p, axis=0) - 0.5 * dt * (v[1:] + v[:-1])).max(axis=1)
+        bad = ~(r <= 1e-6 * (1.0 + np.abs(p[:-1]).max(axis=1)))
+    hits = np.flatnonzero(bad)
+    return int(hits[0]) if hits.size else None
+
+
+def physics_check(world, scenario):
+    """A check of MuJoCo's warning counters, called after every block of steps.
+
+    Returns ``check(k0, count)``, which raises :class:`PhysicsFault` when any counter of
+    :data:`PHYSICS_FAULTS` has grown during the block of steps ``[k0, k0 + count)``. MuJoCo
+    then resets the state (to ``qpos0``, at rest) and goes on, so the block's truth jumps:
+    the message names the warning and the step and time of the first row whose position
+    does not follow from the velocities (:func:`_first_jump`), or the block's span when
+    there is no such row (a bad control, which MuJoCo zeroes). For a world without a single ``MjData`` the check does nothing.
+
+    The check costs four integer reads per block of thousands of steps.
+    """
+    data = _world_data(world)
+    if data is None:
+        return lambda k0, count: None
+    dt, dim = float(scenario.dt), int(scenario.dimension)
+    slots = [(name, int(getattr(mujoco.mjtWarning, name))) for name in PHYSICS_FAULTS]
+    seen = {i: int(data.warning[i].number) for _, i in slots}
+
+    def check(k0: int, count: int) -> None:
+        for name, i in slots:
+            if int(data.warning[i].number) > seen[i]:
+                j = _first_jump(world, dim, dt, count)
+                if j is None:  # e.g. a bad control, which MuJoCo zeroes: no jump in the state
+                    where = f"between step {k0} and step {k0 + count} (t = {k0 * dt:.6g} to {(k0 + count) * dt:.6g} s)"
+                else:
+                    where = f"at step {k0 + j} (t = {(k0 + j) * dt:.6g} s)"
+                raise PhysicsFault(
+                    f"physics: MuJoCo reported {name[7:].lower()} (index {int(data.warning[i].lastinfo)}) {where}; "
+                    "the simulation is unstable, the run stopped (see the scenario's trajectory, model and physics_rate)"
+                )
+
+    return check
