@@ -52,6 +52,7 @@ from quadobs.evaluation.convergence import convergence_times
 __all__ = [
     "Ensemble",
     "chi2_interval",
+    "converged_nees",
     "convergence_times",
     "ensemble",
     "lifted_covariance",
@@ -138,6 +139,51 @@ def chi2_interval(dof: np.ndarray | float, runs: np.ndarray | float, confidence:
     bad = (dof <= 0) | (runs <= 0)
     out[bad] = np.nan
     return out
+
+
+def converged_nees(nees: np.ndarray, converged: np.ndarray, state_dim: int, confidence: float = 0.95) -> dict:
+    """The mean NEES over each run's converged part, with its two-sided chi-square interval.
+
+    At time ``t`` the ``N_t`` runs with ``converged[r, t]`` enter: for a consistent
+    estimator ``N_t * mean_t`` is ``chi^2(N_t n)`` (:func:`chi2_interval`). A run enters
+    once it has converged and leaves when it stops (e.g. an estimator that hands back to a
+    fallback), so runs still converging do not mix into the statistic.
+
+    Parameters
+    ----------
+    nees : (R, T)
+    converged : (R, T) bool
+        Whether run ``r`` is in its converged part at time ``t``.
+    state_dim : int
+        ``n``, the NEES degrees of freedom of one run.
+    confidence : float
+
+    Returns
+    -------
+    dict
+        ``mean (T,)``, ``bounds (T, 2)``, ``runs (T,)`` (``N_t``), NaN where ``N_t = 0``,
+        and the scalars ``time_average`` (of ``mean_t`` where ``N_t > 0``), ``inside_fraction``
+        (of those times with ``mean_t`` inside its interval) and ``all_runs_from`` (first
+        time with ``N_t = R``, ``None`` if never). Times are correlated within a run, so
+        ``inside_fraction`` is not a binomial count of independent tests.
+    """
+    ne = np.asarray(nees, dtype=float)
+    m = np.asarray(converged, dtype=bool) & np.isfinite(ne)
+    cnt = m.sum(axis=0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mean = np.where(cnt > 0, np.where(m, ne, 0.0).sum(axis=0) / cnt, np.nan)
+    bounds = chi2_interval(cnt * int(state_dim), cnt, confidence)
+    ok = cnt > 0
+    inside = ok & (mean >= bounds[:, 0]) & (mean <= bounds[:, 1])
+    full = np.flatnonzero(cnt == ne.shape[0]) if ne.shape[0] else np.zeros(0, dtype=int)
+    return {
+        "mean": mean,
+        "bounds": bounds,
+        "runs": cnt,
+        "time_average": float(np.mean(mean[ok])) if ok.any() else None,
+        "inside_fraction": float(np.mean(inside[ok])) if ok.any() else None,
+        "all_runs_from": int(full[0]) if full.size else None,
+    }
 
 
 @dataclass(frozen=True, eq=False)

@@ -50,7 +50,7 @@ import numpy as np
 
 from quadobs.errors import QuadobsError, as_finite_scalar
 from quadobs.testbed.registry import available_estimators, default_estimators, estimator_factory
-from quadobs.evaluation.ensemble import Ensemble, ensemble, nees, set_containment
+from quadobs.evaluation.ensemble import Ensemble, converged_nees, ensemble, nees, set_containment
 from quadobs.testbed.bounds import immersion_bound, scenario_crb
 from quadobs.testbed.scenario import Scenario, parse_scenario
 
@@ -115,6 +115,9 @@ def run_one(task: dict) -> dict:
                 entry["width_position"] = width[:, :dim].mean(axis=1)
                 entry["width_velocity"] = width[:, dim : 2 * dim].mean(axis=1)
             s = result.summary["estimators"][name]
+            if s.get("modes") is not None:  # a switching estimator: which samples report a later mode
+                entry["switched"] = _switched(tr["time"], s["modes"]["switches"], scenario.dt)
+                entry["handover_time"] = _first_handover(s["modes"], scenario.dt)
             for key in ("final_position_error", "final_velocity_error", "time_to_1m", "time_to_0p1m"):
                 entry[key] = np.nan if s.get(key) is None else float(s[key])
             per[name] = entry
@@ -188,6 +191,29 @@ class CampaignResult:
     ensembles: dict[str, Ensemble] = field(default_factory=dict)
     results: list[dict] = field(default_factory=list, repr=False)
     bound: tuple[np.ndarray, np.ndarray, str] | None = field(default=None, repr=False)
+
+
+def _switched(times: np.ndarray, switches: list[dict], dt: float) -> np.ndarray:
+    """Whether each sample (taken before the update at its step) reports a mode other than the first one."""
+    k = np.rint(np.asarray(times) / dt).astype(np.int64)
+    first = switches[0]["from"] if switches else None
+    mode = np.full(k.shape, first, dtype=object)
+    for sw in switches:  # in order; a switch at step s applies from step s + 1
+        mode[k > sw["step"]] = sw["to"]
+    return np.array([m != first for m in mode]) if switches else np.zeros(k.shape, dtype=bool)
+
+
+def _first_handover(modes: dict, dt: float) -> float:
+    step = modes.get("handover_step")
+    return np.nan if step is None else float(step) * dt
+
+
+def _converged_part(ens: Ensemble, per: list[dict], times: np.ndarray) -> np.ndarray:
+    """``(R, T)``: each run's converged part, from its convergence time on and, for a switching estimator, in a later mode."""
+    mask = times[None, :] >= ens.convergence_time[:, None]
+    if per and all("switched" in p for p in per):
+        mask &= np.stack([p["switched"] for p in per])
+    return mask
 
 
 def _collect_every(scenario: Scenario, every: float | None) -> int:
@@ -338,6 +364,20 @@ def run_campaign(
             width_velocity=stack("width_velocity") if has_set else None,
         )
 
+    summaries = {nm: ensembles[nm].summary() for nm in names}
+    for nm in names:
+        per = [r["estimators"][nm] for r in ok]
+        if per:
+            part = converged_nees(
+                np.stack([p["nees"] for p in per]), _converged_part(ensembles[nm], per, times), scenario.state_dim, confidence
+            )
+            summaries[nm]["nees_converged_part"] = {
+                "time_average": part["time_average"],
+                "inside_fraction": part["inside_fraction"],
+                "all_runs_from": None if part["all_runs_from"] is None else float(times[part["all_runs_from"]]),
+                "final": None if not np.isfinite(part["mean"][-1]) else float(part["mean"][-1]),
+                "final_bounds": [None if not np.isfinite(v) else float(v) for v in part["bounds"][-1]],
+            }
     summary = {
         "scenario": scenario.name,
         "source": scenario.source,
@@ -359,7 +399,7 @@ def run_campaign(
         "run_wall_time_mean": float(np.mean([r["wall_time"] for r in ok])) if ok else None,
         "seed_rule": "seed_i = run_seed(base_seed, i): SeedSequence(base_seed, spawn_key=(i,)), 63 bits",
         "pcrb": _bound_summary(bound, sqrt_bound, sqrt_linear),
-        "estimators": {nm: ensembles[nm].summary() for nm in names},
+        "estimators": summaries,
     }
     if ok and all("flight" in r for r in ok):
         summary["flight"] = flight_summary([r["flight"] for r in ok], names)
@@ -738,6 +778,7 @@ def _write_runs(
             "time_to_0p1m",
             "final_nees",
             "mean_nis",
+            "handover_time",
             "final_containment",
             "wall_time",
         )
@@ -769,6 +810,7 @@ def _write_runs(
                 time_to_0p1m=num(e["time_to_0p1m"]),
                 final_nees=num(e["nees"][-1]),
                 mean_nis=num(nis.mean()) if nis.size else None,
+                handover_time=num(e["handover_time"]) if "handover_time" in e else None,
                 final_containment=num(cont[-1]) if cont is not None else None,
                 wall_time=num(r["wall_time"]),
             )
@@ -1011,6 +1053,16 @@ def print_campaign(summary: dict, file=None) -> None:
             file=file,
         )
         print(f"position RMSE after the switch (m), median / largest: {rmse}", file=file)
+    for name, e in summary["estimators"].items():
+        part = e.get("nees_converged_part") or {}
+        if part.get("time_average") is not None:
+            fb = part["final_bounds"]
+            print(
+                f"{name}: NEES over each run's converged part: time average {_f(part['time_average'])}, "
+                f"{100 * part['inside_fraction']:.0f}% of samples inside their bounds, "
+                f"at the end {_f(part['final'])} [{_f(fb[0])}, {_f(fb[1])}]",
+                file=file,
+            )
     for f in summary["failed"][:10]:
         print(f"failed: run {f['run']} (seed {f['seed']}): {f['error']}", file=file)
     if len(summary["failed"]) > 10:
