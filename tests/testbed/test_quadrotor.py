@@ -190,3 +190,18 @@ def test_the_50_flights_on_the_augmented_observer_meet_the_targets():
     assert f["tracking_rms_max"] <= 0.15
     for name in ("augmented", "ekf", "ukf"):
         assert f["flight_position_rmse"][name]["max"] <= 0.10, name
+
+
+def test_the_augmented_observer_reconverges_after_each_hover_on_one_beacon():
+    # quadrotor-1beacon's [observer] table: V and W from the IMU's and the range's noise (docs/quadrotor.md).
+    from quadobs.testbed.episode import run_episode
+
+    sc = load_scenario("quadrotor-1beacon")
+    tr = run_episode(sc, estimators=["augmented"], collect_every=50).trace
+    t, err = tr["time"], np.linalg.norm(tr["estimates"]["augmented"][:, :3] - tr["truth"][:, :3], axis=1)
+    ends = [h.end for h in sc.quadrotor.hovers]
+    nexts = [h.start for h in sc.quadrotor.hovers][1:] + [sc.duration - sc.quadrotor.landing]
+    for end, nxt in zip(ends, nexts):
+        drifted = err[(t >= end - 1.0) & (t < end)].max()
+        after = err[(t >= end) & (t < nxt)]
+        assert drifted > 2.0 and after.min() < 0.5, (end, drifted, after.min())  # lost in the hover, found after it
