@@ -18,6 +18,10 @@ Closed loop (:attr:`World.closed_loop`): each physics step ``k`` (time ``t_k``)
 
 The estimators' model stays the double integrator ``p'' = u``: IMU and attitude errors
 reach them through ``u`` as on a real vehicle.
+
+Steps 1, 2 (the ranges) and 4 run compiled (:mod:`quadobs._kernels.quadrotor`, the same
+arithmetic as :class:`~quadobs.testbed.controllers.GeometricController` and
+:class:`~quadobs.testbed.imu.ImuModel`) on buffers allocated once.
 """
 
 from __future__ import annotations
