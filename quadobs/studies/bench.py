@@ -32,6 +32,10 @@ Figures (keys of the JSON written by ``--json``):
     Episodes per second of ``ifac2021-noisy`` (the default estimators, with the traces a
     campaign collects) over all cores, against as many bare physics episodes of the same
     length on as many processes; ``campaign_ratio`` is their ratio.
+``quadrotor``
+    The quadrotor in the loop (``quadrotor-uwb-augmented``, 20 s: physics, controller,
+    IMU and UWB sensors, augmented observer, recording) against bare ``mj_step`` on
+    ``models/quadrotor.xml``; ``quadrotor_ratio`` is the median of their ratio over the repeats.
 ``observer_step_us``, ``observer_numpy_step_us``
     One :meth:`AugmentedObserver.step` (compiled; NumPy reference) on the vehicle.
 ``ekf_step_us``, ``ukf_step_us``
@@ -419,6 +423,48 @@ def _scaling(calls: int, quick: bool, repeats: int) -> list[dict]:
 # -- the bench ---------------------------------------------------------------------------
 
 
+def _quadrotor_case(steps: int, repeats: int) -> dict:
+    """The quadrotor in the loop (``quadrotor-uwb-augmented``) against bare ``mj_step`` on ``models/quadrotor.xml``.
+
+    Within each repeat: bare physics (the model at its trajectory's start, rotors at hover
+    thrust, ``mj_step`` in a Python loop), then ``run_episode`` with the augmented observer
+    and the ``.rrd`` recording (physics, controller flown on the estimate after the switch,
+    IMU, UWB sensors, observer, flight sinks). ``quadrotor_ratio`` is the median over the
+    repeats of bare time over loop time per step.
+    """
+    import mujoco
+
+    from quadobs.testbed.episode import run_episode
+    from quadobs.testbed.scenario import load_scenario
+    from quadobs.testbed.worlds.quadrotor import quadrotor_model_path
+
+    sc = load_scenario("quadrotor-uwb-augmented")
+    sc = sc.with_overrides(duration=steps * sc.dt)
+    m = mujoco.MjModel.from_xml_path(str(quadrotor_model_path()))
+    m.opt.timestep = sc.dt
+    d = mujoco.MjData(m)
+
+    def bare() -> float:
+        mujoco.mj_resetData(m, d)
+        d.qpos[:3] = sc.trajectory.position(0.0)
+        d.ctrl[:] = 0.0319 * 9.81 / 4
+        t0 = time.perf_counter()
+        for _ in range(steps):
+            mujoco.mj_step(m, d)
+        return (time.perf_counter() - t0) / steps * 1e6
+
+    bare_us, loop_us = [], []
+    with tempfile.TemporaryDirectory() as tmp:
+        run_episode(sc, estimators=["augmented"], out=Path(tmp) / "warm.rrd")  # compiled kernels loaded
+        for r in range(repeats):
+            bare_us.append(bare())
+            summary = run_episode(sc, estimators=["augmented"], out=Path(tmp) / f"quad{r}.rrd").summary
+            loop_us.append(summary["wall_time"] / summary["physics_steps"] * 1e6)
+    ratios = [b / x for b, x in zip(bare_us, loop_us)]
+    return {"scenario": sc.name, "steps": steps, "repeats": repeats, "bare_step_us": _median(bare_us), "loop_us": _median(loop_us),
+            "loop_steps_per_s": 1e6 / _median(loop_us), "quadrotor_ratio": _median(ratios), "spread": _quartiles(ratios)}
+
+
 def run_bench(
     *,
     steps: int = 20000,
@@ -544,6 +590,8 @@ def _run_bench(steps, repeats, batch, batch_steps, threads, quick, log) -> dict:
     result["campaign"] = _campaign("ifac2021-noisy", 2 * workers, 1.0 if quick else 10.0, workers)
     result["campaign_ratio"] = result["campaign"]["campaign_ratio"]
 
+    say("quadrotor: physics + controller + IMU/UWB + observer + recording against bare mj_step")
+    result["quadrotor"] = _quadrotor_case(20000, max(min(repeats, 9), 3))  # 20 s: take-off, flight on the estimate, landing
     say("scaling with n and q")
     result["scaling"] = _scaling(max(min(calls, 2000), 50), quick, max(repeats // 2, 1))
     notes.append("GPU batch figure: not measured (quadobs has no GPU path; the batch runs on the CPU)")
@@ -554,6 +602,7 @@ def _run_bench(steps, repeats, batch, batch_steps, threads, quick, log) -> dict:
         "recording_fraction iqr < 0.03": _meets(result["spread"]["recording_fraction"]["iqr"], 0.03, "<"),
         "observer_step_us <= 3 (N = 9)": _meets(result["observer_step_us"], 3.0, "<="),
         "zonotope_step_us < 50": _meets(result["zonotope_step_us"], 50.0, "<"),
+        "quadrotor_ratio >= 0.3": _meets(result["quadrotor"]["quadrotor_ratio"], 0.3, ">="),
     }
     result["notes"] = notes
     return result
@@ -614,6 +663,10 @@ def print_bench(r: dict, file=None) -> None:
     c = r["campaign"]
     p(f"campaign {c['scenario']} ({c['runs']} episodes of {c['duration']:g} s on {c['workers']} processes)")
     p(f"  testbed {c['episodes_per_s']:.2f} episodes/s, bare physics {c['bare_episodes_per_s']:.2f} episodes/s; ratio {c['campaign_ratio']:.2f}")
+    q = r["quadrotor"]
+    p(f"quadrotor {q['scenario']} ({q['steps']} steps, {q['repeats']} repeats): bare mj_step {q['bare_step_us']:.2f} us/step, "
+      f"loop with recording {q['loop_us']:.2f} us/step ({q['loop_steps_per_s']:,.0f} steps/s); ratio {q['quadrotor_ratio']:.2f} "
+      f"[{q['spread']['q1']:.2f}, {q['spread']['q3']:.2f}]")
     p("observer step against the dimensions (us per step, fastest of a few repeats)")
     backend = r["backend"]
     p(f"  {'system':8s} {'n':>3s} {'q':>3s} {'N':>4s} {backend:>8s} {'numpy':>8s}")

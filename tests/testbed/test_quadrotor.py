@@ -190,3 +190,50 @@ def test_the_50_flights_on_the_augmented_observer_meet_the_targets():
     assert f["tracking_rms_max"] <= 0.15
     for name in ("augmented", "ekf", "ukf"):
         assert f["flight_position_rmse"][name]["max"] <= 0.10, name
+
+
+def test_the_augmented_observer_reconverges_after_each_hover_on_one_beacon():
+    # quadrotor-1beacon's [observer] table: V and W from the IMU's and the range's noise (docs/quadrotor.md).
+    from quadobs.testbed.episode import run_episode
+
+    sc = load_scenario("quadrotor-1beacon")
+    tr = run_episode(sc, estimators=["augmented"], collect_every=50).trace
+    t, err = tr["time"], np.linalg.norm(tr["estimates"]["augmented"][:, :3] - tr["truth"][:, :3], axis=1)
+    ends = [h.end for h in sc.quadrotor.hovers]
+    nexts = [h.start for h in sc.quadrotor.hovers][1:] + [sc.duration - sc.quadrotor.landing]
+    for end, nxt in zip(ends, nexts):
+        drifted = err[(t >= end - 1.0) & (t < end)].max()
+        after = err[(t >= end) & (t < nxt)]
+        assert drifted > 2.0 and after.min() < 0.5, (end, drifted, after.min())  # lost in the hover, found after it
+
+
+def test_the_compiled_controller_and_imu_agree_with_the_numpy_reference():
+    from types import SimpleNamespace
+
+    from quadobs._kernels import quadrotor as kq
+    from quadobs.testbed.imu import ImuModel
+
+    rng = np.random.default_rng(3)
+    c = GeometricController(CRAZYFLIE, 2.0, 12.0, 0.9)
+    gains = np.array([c.kx, c.kv, c.kR, c.kW, CRAZYFLIE.mass, c.tan_tilt, CRAZYFLIE.thrust_max, 0.0])
+    out, R = np.zeros(4), np.zeros((3, 3))
+    for _ in range(50):
+        q = rng.standard_normal(4)
+        q /= np.linalg.norm(q)
+        p, v, W, ref = rng.standard_normal(3), rng.standard_normal(3), rng.standard_normal(3), rng.standard_normal((3, 3))
+        kq.quat_matrix(q, R)
+        assert np.allclose(R, quat_to_matrix(q), atol=1e-15)
+        kq.control(p, v, R, W, ref, gains, c.J, c.mix_inv, out)
+        assert np.allclose(out, c(p, v, quat_to_matrix(q), W, ref), rtol=1e-12, atol=1e-15)
+    spec = SimpleNamespace(accel_std=0.03, accel_bias=0.02, gyro_std=0.005, gyro_bias=0.002, attitude_std=0.01)
+    imu = ImuModel(spec, seed=5)
+    packed = np.concatenate([imu.accel_bias, imu.gyro_bias, [imu.accel_std, imu.gyro_std, imu.attitude_std]])
+    noise = imu.draws(1)
+    sd = rng.standard_normal(10)
+    sd[6:10] /= np.linalg.norm(sd[6:10])
+    att, rates, row, nxt = np.zeros(4), np.zeros(3), np.zeros(7), np.zeros(6)
+    upside = kq.post_step(sd, 0, 3, 6, noise[0], packed, True, att, rates, R, row, 0, 4, sd[:3], sd[3:6], nxt)
+    f_m, w_m, q_m = imu.measure(0, 0, noise, sd[:3], sd[3:6], sd[6:10])
+    assert np.allclose(att, q_m, atol=1e-15) and np.allclose(rates, w_m, atol=1e-15)
+    assert np.allclose(row[4:7], quat_to_matrix(q_m) @ f_m + [0.0, 0.0, -9.81], atol=1e-14)
+    assert np.array_equal(row[:4], sd[6:10]) and upside == (quat_to_matrix(sd[6:10])[2, 2] < 0.0)

@@ -18,6 +18,10 @@ Closed loop (:attr:`World.closed_loop`): each physics step ``k`` (time ``t_k``)
 
 The estimators' model stays the double integrator ``p'' = u``: IMU and attitude errors
 reach them through ``u`` as on a real vehicle.
+
+Steps 1, 2 (the ranges) and 4 run compiled (:mod:`quadobs._kernels.quadrotor`, the same
+arithmetic as :class:`~quadobs.testbed.controllers.GeometricController` and
+:class:`~quadobs.testbed.imu.ImuModel`) on buffers allocated once.
 """
 
 from __future__ import annotations
@@ -29,13 +33,12 @@ import numpy as np
 
 from quadobs.errors import QuadobsError
 from quadobs.testbed.controllers import CRAZYFLIE, FlightPlan, GeometricController
-from quadobs.testbed.imu import ImuModel, quat_to_matrix
+from quadobs.testbed.imu import ImuModel
 from quadobs.testbed.scenario import ControlSpec, QuadrotorSpec
 from quadobs.testbed.worlds.base import Columns, World
 
 __all__ = ["QuadrotorWorld", "quadrotor_model_path", "FLIGHT_COLUMNS"]
 
-_GRAVITY = np.array([0.0, 0.0, -9.81])
 _mj_step = mujoco.mj_step
 
 #: The world's own columns: reference position, true attitude quaternion, rotor commands,
@@ -99,6 +102,23 @@ class QuadrotorWorld(World):
         self.events = np.zeros((int(capacity) + 1, 2), dtype=np.int64)
         self._place(scenario)
         self.crashed_at: int | None = None
+        self._compiled()
+
+    def _compiled(self) -> None:
+        """Packed operands and views of the compiled step (:mod:`quadobs._kernels.quadrotor`), loaded now rather than in the first step."""
+        from quadobs._kernels import quadrotor as kq
+
+        self._kq, c, d, qp, qv = kq, self.ctrl, self.data, self._qp, self._qv
+        self._gains = np.array([c.kx, c.kv, c.kR, c.kW, c.p.mass, c.tan_tilt, c.p.thrust_max, 0.0])
+        imu = self.imu
+        self._imu = np.concatenate([imu.accel_bias, imu.gyro_bias, [imu.accel_std, imu.gyro_std, imu.attitude_std]])
+        self._p, self._v = d.qpos[qp : qp + 3], d.qvel[qv : qv + 3]
+        self._q, self._w = d.qpos[qp + 3 : qp + 7], d.qvel[qv + 3 : qv + 6]
+        self._ranges, self._R, self._Rc = np.zeros(len(self.anchors)), np.eye(3), np.eye(3)
+        self._thrusts = np.zeros(4)
+        cols, sp = self.columns, self.spans
+        self._o_crashed = sp["crashed"].start
+        self._o = (sp["reference"].start, sp["tracking"].start, sp["rotors"].start, sp["on_estimate"].start, sp["attitude"].start, cols.u.start)
 
     def _ids(self, scenario) -> None:
         m = self.model
@@ -144,49 +164,34 @@ class QuadrotorWorld(World):
         return count
 
     def step(self, j: int, estimate: np.ndarray | None = None) -> None:
-        d, row, sp, k = self.data, self.out[j], self.spans, self.k0 + j
-        qp, qv = self._qp, self._qv
-        p = d.qpos[qp : qp + 3]
-        ref = self.refs[j]
+        d, row, k, kq, o = self.data, self.out[j], self.k0 + j, self._kq, self._o
         if k % self.control_every == 0:
-            self._control(k, ref, p, estimate)
-        rel = p - self.anchors
-        ranges = np.sqrt(np.einsum("hi,hi->h", rel, rel))
+            self._control(k, self.refs[j], estimate)
+        err = kq.pre_step(self._p, self.anchors, self.refs[j, 0], self._thrusts, float(self._on_estimate), self._ranges, row, o[0], o[1], o[2], o[3])
         s = self.sensors
-        before = (s.outliers_injected, s.dropped)
-        row[self.columns.y] = s.outputs(k, ranges)
-        self.events[j] = (s.outliers_injected - before[0], s.dropped - before[1])
+        o0, d0 = s.outliers_injected, s.dropped
+        row[self.columns.y] = s.outputs(k, self._ranges)
+        ev = self.events[j]
+        ev[0], ev[1] = s.outliers_injected - o0, s.dropped - d0
         row[self.columns.measured] = s.measured_ranges
-        err = float(np.linalg.norm(ref[0] - p))
-        row[sp["reference"]] = ref[0]
-        row[sp["tracking"]] = err
-        row[sp["rotors"]] = d.ctrl[self._rotors]
-        row[sp["on_estimate"]] = self._on_estimate
         _mj_step(self.model, d)
-        sd = d.sensordata
-        quat = sd[self._quat : self._quat + 4]
-        row[sp["attitude"]] = quat
-        f_m, self.rates_meas, self.attitude_meas = self.imu.measure(k, j, self.noise, sd[self._acc : self._acc + 3], sd[self._gyro : self._gyro + 3], quat)
-        row[self.columns.u] = quat_to_matrix(self.attitude_meas) @ f_m + _GRAVITY
-        if self.crashed_at is None and (err > self.control.crash_distance or quat_to_matrix(quat)[2, 2] < 0.0):
+        upside = kq.post_step(d.sensordata, self._acc, self._gyro, self._quat, self.noise[j], self._imu, k % self.imu.attitude_every == 0,
+                              self.attitude_meas, self.rates_meas, self._R, row, o[4], o[5], self._p, self._v, self.out[j + 1])
+        if self.crashed_at is None and (err > self.control.crash_distance or upside):
             self.crashed_at = k
-        row[sp["crashed"]] = self.crashed_at is not None
-        self.out[j + 1, self.columns.truth] = self.state()
+        row[self._o_crashed] = self.crashed_at is not None
 
-    def _control(self, k: int, ref: np.ndarray, p: np.ndarray, estimate) -> None:
-        d, qv = self.data, self._qv
+    def _control(self, k: int, ref: np.ndarray, estimate) -> None:
         self._on_estimate = self.controller is not None and k >= self.switch_step and estimate is not None
         if self.crashed_at is not None:
-            d.ctrl[self._rotors] = 0.0
-            return
-        if self._on_estimate:
-            pos, vel = estimate[:3], estimate[3:6]
-            R, W = quat_to_matrix(self.attitude_meas), self.rates_meas
-        else:
-            pos, vel = p, d.qvel[qv : qv + 3]
-            R = quat_to_matrix(d.qpos[self._qp + 3 : self._qp + 7])
-            W = d.qvel[qv + 3 : qv + 6]  # a free joint's angular velocity is in the body frame
-        d.ctrl[self._rotors] = self.ctrl(pos, vel, R, W, ref)
+            self._thrusts[:] = 0.0
+        elif self._on_estimate:
+            self._kq.quat_matrix(self.attitude_meas, self._Rc)
+            self._kq.control(estimate[:3], estimate[3:6], self._Rc, self.rates_meas, ref, self._gains, self.ctrl.J, self.ctrl.mix_inv, self._thrusts)
+        else:  # a free joint's angular velocity is in the body frame
+            self._kq.quat_matrix(self._q, self._Rc)
+            self._kq.control(self._p, self._v, self._Rc, self._w, ref, self._gains, self.ctrl.J, self.ctrl.mix_inv, self._thrusts)
+        self.data.ctrl[self._rotors] = self._thrusts
 
     _on_estimate = False
 
