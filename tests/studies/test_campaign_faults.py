@@ -136,7 +136,7 @@ def test_workers_end_when_the_campaign_process_is_killed(tmp_path):
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
 def test_ctrl_c_ends_a_campaign_and_keeps_the_finished_runs(tmp_path, sig):
     """A signal while one worker was SIGKILLed and the others run: exit 130 within seconds, summary written."""
-    proc = _campaign(tmp_path, runs="40", duration="3")
+    proc = _campaign(tmp_path, runs="400", duration="3")  # far more than 4 s of work
     try:
         kids = _wait_for_workers(proc)
         os.kill(kids[0], signal.SIGKILL)
@@ -149,5 +149,5 @@ def test_ctrl_c_ends_a_campaign_and_keeps_the_finished_runs(tmp_path, sig):
     assert proc.returncode == 130, err
     assert "Traceback" not in err
     summary = json.loads((tmp_path / "c" / "summary.json").read_text())
-    assert summary["interrupted"] is True and summary["runs_completed"] + summary["runs_failed"] < 40
+    assert summary["interrupted"] is True and summary["runs_completed"] + summary["runs_failed"] < 400
     assert not any(_alive(k) for k in kids)
