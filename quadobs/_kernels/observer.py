@@ -315,8 +315,23 @@ def augmented_predict(u, S, fc, ic):
 
 
 @njit(**_OPTS)
+def _refused(u, y, ic):
+    """Whether ``u (p,)`` holds a non-finite value or ``y (q,)`` an infinite one (NaN in ``y``: missing)."""
+    for j in range(ic[2]):
+        if not math.isfinite(u[j]):
+            return True
+    for h in range(ic[3]):
+        if math.isinf(y[h]):
+            return True
+    return False
+
+
+@njit(**_OPTS)
 def augmented_step(u, y, S, fc, ic):
-    """:func:`augmented_correct` with ``y`` then :func:`augmented_predict` with ``u``; returns the correction code."""
+    """:func:`augmented_correct` with ``y`` then :func:`augmented_predict` with ``u``; returns the correction
+    code, or -1, changing nothing, when ``u`` holds a non-finite value or ``y`` an infinite one."""
+    if _refused(u, y, ic):
+        return -1
     N = ic[0]
     so = S.shape[0] - 4
     code = _correct(S, 0, N, so, S, N + N * N, y, fc, ic)
@@ -354,12 +369,8 @@ def range_outputs(ranges, noise, std, beacon_term, measured, y):
 def _step_record(u, y, S, fc, ic, out):
     N = ic[0]
     k = ic[1]
-    for j in range(ic[2]):
-        if not math.isfinite(u[j]):
-            return -1
-    for h in range(ic[3]):
-        if math.isinf(y[h]):
-            return -1
+    if _refused(u, y, ic):
+        return -1
     so = S.shape[0] - 4
     for i in range(N - k):
         out[i] = S[k + i]

@@ -26,7 +26,6 @@ and ``P`` in place.
 
 from __future__ import annotations
 
-import math
 import warnings
 
 import numpy as np
@@ -34,7 +33,7 @@ import numpy as np
 from quadobs.core.held_input import HeldInputDiscretization, as_covariance
 from quadobs.errors import QuadobsError, as_array, as_finite_scalar
 from quadobs.core.immersion import Immersion
-from quadobs.estimators.base import BlockStep, Estimator, Gated, Immersed, check_step
+from quadobs.estimators.base import BlockStep, Estimator, Gated, Immersed, check_step, step_operands
 
 __all__ = ["AugmentedObserver", "BACKENDS", "default_backend"]
 
@@ -64,11 +63,6 @@ def resolve_backend(backend: str) -> str:
         except ImportError as exc:
             raise QuadobsError(f"backend: 'numba' requested but Numba cannot be imported ({exc})") from None
     return backend
-
-
-def _no_inf(y: np.ndarray) -> bool:
-    """Whether ``y`` holds no infinity (NaN allowed); one dot product when every entry is finite."""
-    return math.isfinite(y.dot(y)) or not np.isinf(y).any()
 
 
 def _initial_covariance(P0, S0):
@@ -382,20 +376,20 @@ class AugmentedObserver(Estimator, Gated, Immersed, BlockStep):
         and leaves the observer unchanged.
         """
         kernel = self._kernel
-        try:  # float64 arrays of the right shapes, u finite and y without infinities, skip the copies
-            fast = (
-                u.dtype is _F64 and y.dtype is _F64 and u.shape == self._ushape and y.shape == self._yshape
-                and math.isfinite(u.dot(u)) and _no_inf(y)
-            )
+        if kernel is None:
+            u, y = step_operands(u, y, *self._ushape, *self._yshape)
+            self.correct(y)
+            self.predict(u)
+            return
+        try:  # float64 arrays of the right shapes go straight to the kernel, which checks the values
+            fast = u.dtype is _F64 and y.dtype is _F64 and u.shape == self._ushape and y.shape == self._yshape
         except AttributeError:
             fast = False
         if not fast:
             u, y = check_step(u, y, *self._ushape, *self._yshape)
-        if kernel is None:
-            self.correct(y)
-            self.predict(u)
-            return
-        kernel(u, y, *self._kops)
+        if kernel(u, y, *self._kops) < 0:  # a non-finite u or an infinite y: nothing changed
+            check_step(u, y, *self._ushape, *self._yshape)  # raises, naming it
+            raise QuadobsError("u, y: refused by the compiled step")  # pragma: no cover - check_step raised
 
     def step_and_record(self, u: np.ndarray, y: np.ndarray, out: np.ndarray) -> None:
         """:meth:`step`, recording ``[x_hat, covariance_trace]`` before it and ``nis`` after it into ``out`` (one compiled call)."""

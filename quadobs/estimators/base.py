@@ -34,6 +34,7 @@ Estimators are made selectable by name through the package entry points of the g
 from __future__ import annotations
 
 import abc
+import math
 
 import numpy as np
 
@@ -41,7 +42,7 @@ from quadobs.errors import as_array
 
 __all__ = [
     "Estimator", "Counted", "Gated", "Switching", "SetValued", "Immersed", "Subset", "BlockStep", "check_step",
-    "covariance_trace",
+    "covariance_trace", "step_operands",
 ]
 
 
@@ -148,6 +149,23 @@ def check_step(u, y, p: int, q: int) -> tuple[np.ndarray, np.ndarray]:
     ((2,), True)
     """
     return as_array("u", u, (p,)), as_array("y", y, (q,), allow_nan=True)
+
+
+def step_operands(u, y, p: int, q: int) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`check_step` with a fast path: float64 arrays of the right shapes, ``u`` finite and
+    ``y`` free of infinities, are returned as they are (one dot product each when all is finite).
+
+    The caller must not keep them beyond the step.
+    """
+    try:
+        if (
+            u.dtype == np.float64 and y.dtype == np.float64 and u.shape == (p,) and y.shape == (q,)
+            and math.isfinite(u.dot(u)) and (math.isfinite(y.dot(y)) or not np.isinf(y).any())
+        ):
+            return u, y
+    except AttributeError:
+        pass
+    return check_step(u, y, p, q)
 
 
 def covariance_trace(est: Estimator) -> float:

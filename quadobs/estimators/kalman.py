@@ -71,7 +71,7 @@ import numpy as np
 
 from quadobs.core.held_input import as_covariance, held_input_step, van_loan
 from quadobs.errors import QuadobsError, as_array, as_finite_scalar
-from quadobs.estimators.base import Estimator, Gated, check_step
+from quadobs.estimators.base import Estimator, Gated, step_operands
 from quadobs.core.system import QuadraticSystem
 
 __all__ = [
@@ -287,7 +287,7 @@ class _GaussianFilter(Estimator, Gated):
         A non-finite ``u``, an infinite ``y`` or a wrong shape raises :class:`QuadobsError`
         and leaves the filter unchanged.
         """
-        u, y = check_step(u, y, self._G.shape[1], self.q)
+        u, y = step_operands(u, y, self._G.shape[1], self.q)
         self.correct(y)
         self.predict(u)
 
