@@ -233,6 +233,100 @@ def _collect_every(scenario: Scenario, every: float | None) -> int:
     return k
 
 
+def _checked_settings(scenario, runs, retries, estimators, scheduler, workers, start_method, threshold, confidence):
+    """The campaign's settings checked (one-line errors naming the setting): ``names, threshold, confidence``."""
+    if isinstance(runs, bool) or not isinstance(runs, (int, np.integer)) or not 1 <= runs <= MAX_RUNS:
+        raise QuadobsError(f"runs: expected an integer from 1 to {MAX_RUNS}, got {runs!r}")
+    if isinstance(retries, bool) or not isinstance(retries, (int, np.integer)) or not 0 <= retries <= 100:
+        raise QuadobsError(f"retries: expected an integer from 0 to 100, got {retries!r}")
+    names = list(estimators) if estimators else default_estimators(scenario)
+    known = available_estimators(scenario)
+    for nm in names:
+        if nm not in known:
+            raise QuadobsError(f"estimators: unknown estimator {nm!r}; available: {', '.join(known)}")
+    if len(set(names)) != len(names):
+        raise QuadobsError(f"estimators: names must be distinct, got {names}")
+    _check_reach(scenario, names, scheduler, workers, start_method)
+    if scheduler is not None and workers is not None:
+        raise QuadobsError(
+            "workers: applies to local processes; with a scheduler the cluster's workers run the campaign"
+        )
+    if workers is not None and (
+        isinstance(workers, bool) or not isinstance(workers, (int, np.integer)) or not 0 <= workers <= MAX_WORKERS
+    ):
+        raise QuadobsError(f"workers: expected an integer from 0 to {MAX_WORKERS}, got {workers!r}")
+    threshold = as_finite_scalar("threshold", threshold, positive=True)
+    confidence = as_finite_scalar("confidence", confidence, positive=True)
+    if not confidence < 1:
+        raise QuadobsError(f"confidence: must be below 1, got {confidence}")
+    return names, threshold, confidence
+
+
+def _ensembles(scenario, names, ok, times, sqrt_bound, threshold, confidence) -> dict:
+    """Per estimator, the :class:`~quadobs.evaluation.ensemble.Ensemble` of the completed runs."""
+    ensembles = {}
+    for nm in names:
+        per = [r["estimators"][nm] for r in ok]
+        stack = lambda key: np.stack([p[key] for p in per]) if per else None  # noqa: E731
+        has_set = bool(per) and all("containment" in p for p in per)
+        T = times.shape[0]
+        dim = scenario.dimension
+        ensembles[nm] = ensemble(
+            times,
+            stack("position_error") if per else np.zeros((0, T, dim)),
+            stack("velocity_error") if per else np.zeros((0, T, dim)),
+            nees=stack("nees") if per else np.zeros((0, T)),
+            nis=stack("nis") if per else None,
+            nis_dof=stack("nis_dof") if per else None,
+            final_position_error=np.array([p["final_position_error"] for p in per]),
+            final_velocity_error=np.array([p["final_velocity_error"] for p in per]),
+            state_dim=scenario.state_dim,
+            threshold=threshold,
+            confidence=confidence,
+            bound=sqrt_bound,
+            containment=stack("containment") if has_set else None,
+            width_position=stack("width_position") if has_set else None,
+            width_velocity=stack("width_velocity") if has_set else None,
+        )
+
+    return ensembles
+
+
+def _add_converged_nees(summaries, scenario, names, ok, ensembles, times, confidence) -> None:
+    """Add each estimator's NEES over each run's converged part (``nees_converged_part``) to ``summaries``."""
+    for nm in names:
+        per = [r["estimators"][nm] for r in ok]
+        if per:
+            part = converged_nees(
+                np.stack([p["nees"] for p in per]), _converged_part(ensembles[nm], per, times), scenario.state_dim, confidence
+            )
+            summaries[nm]["nees_converged_part"] = {
+                "time_average": part["time_average"],
+                "inside_fraction": part["inside_fraction"],
+                "all_runs_from": None if part["all_runs_from"] is None else float(times[part["all_runs_from"]]),
+                "final": None if not np.isfinite(part["mean"][-1]) else float(part["mean"][-1]),
+                "final_bounds": [None if not np.isfinite(v) else float(v) for v in part["bounds"][-1]],
+            }
+
+
+def _write_outputs(out, summary, scenario, names, ok, failed, ensembles, times, record, sqrt_bound, sqrt_linear, k_every) -> None:
+    """``runs.parquet``, ``series.parquet``, ``statistics.rrd`` (with ``record``) and, last, ``summary.json``."""
+    files = {
+        "summary": str(out / "summary.json"),
+        "runs": str(out / "runs.parquet"),
+        "series": str(out / "series.parquet"),
+    }
+    _write_runs(out / "runs.parquet", ok, failed, names, ensembles)
+    _write_series(out / "series.parquet", ok, names, times)
+    if record:
+        _record_statistics(out / "statistics.rrd", scenario, names, ensembles, sqrt_bound, sqrt_linear, k_every)
+        files["recording"] = str(out / "statistics.rrd")
+    summary["files"] = files
+    from quadobs.testbed.episode import write_json_atomic
+
+    write_json_atomic(out / "summary.json", summary)
+
+
 def run_campaign(
     scenario: Scenario,
     *,
@@ -283,30 +377,9 @@ def run_campaign(
         of memory) is started again on a fresh worker before it is reported as failed
         (0 to 100, default 2). A run that raises is not retried: its error is its result.
     """
-    if isinstance(runs, bool) or not isinstance(runs, (int, np.integer)) or not 1 <= runs <= MAX_RUNS:
-        raise QuadobsError(f"runs: expected an integer from 1 to {MAX_RUNS}, got {runs!r}")
-    if isinstance(retries, bool) or not isinstance(retries, (int, np.integer)) or not 0 <= retries <= 100:
-        raise QuadobsError(f"retries: expected an integer from 0 to 100, got {retries!r}")
-    names = list(estimators) if estimators else default_estimators(scenario)
-    known = available_estimators(scenario)
-    for nm in names:
-        if nm not in known:
-            raise QuadobsError(f"estimators: unknown estimator {nm!r}; available: {', '.join(known)}")
-    if len(set(names)) != len(names):
-        raise QuadobsError(f"estimators: names must be distinct, got {names}")
-    _check_reach(scenario, names, scheduler, workers, start_method)
-    if scheduler is not None and workers is not None:
-        raise QuadobsError(
-            "workers: applies to local processes; with a scheduler the cluster's workers run the campaign"
-        )
-    if workers is not None and (
-        isinstance(workers, bool) or not isinstance(workers, (int, np.integer)) or not 0 <= workers <= MAX_WORKERS
-    ):
-        raise QuadobsError(f"workers: expected an integer from 0 to {MAX_WORKERS}, got {workers!r}")
-    threshold = as_finite_scalar("threshold", threshold, positive=True)
-    confidence = as_finite_scalar("confidence", confidence, positive=True)
-    if not confidence < 1:
-        raise QuadobsError(f"confidence: must be below 1, got {confidence}")
+    names, threshold, confidence = _checked_settings(
+        scenario, runs, retries, estimators, scheduler, workers, start_method, threshold, confidence
+    )
     k_every = _collect_every(scenario, every)
     out = None
     if out_dir is not None:
@@ -339,45 +412,9 @@ def run_campaign(
     times = ok[0]["time"] if ok else np.arange(scenario.steps // k_every + 1) * k_every * scenario.dt
     sqrt_bound = None if bound is None else _sqrt_traces(scenario, bound[1])
     sqrt_linear = None if linear is None else _sqrt_traces(scenario, linear[1])
-    ensembles = {}
-    for nm in names:
-        per = [r["estimators"][nm] for r in ok]
-        stack = lambda key: np.stack([p[key] for p in per]) if per else None  # noqa: E731
-        has_set = bool(per) and all("containment" in p for p in per)
-        T = times.shape[0]
-        dim = scenario.dimension
-        ensembles[nm] = ensemble(
-            times,
-            stack("position_error") if per else np.zeros((0, T, dim)),
-            stack("velocity_error") if per else np.zeros((0, T, dim)),
-            nees=stack("nees") if per else np.zeros((0, T)),
-            nis=stack("nis") if per else None,
-            nis_dof=stack("nis_dof") if per else None,
-            final_position_error=np.array([p["final_position_error"] for p in per]),
-            final_velocity_error=np.array([p["final_velocity_error"] for p in per]),
-            state_dim=scenario.state_dim,
-            threshold=threshold,
-            confidence=confidence,
-            bound=sqrt_bound,
-            containment=stack("containment") if has_set else None,
-            width_position=stack("width_position") if has_set else None,
-            width_velocity=stack("width_velocity") if has_set else None,
-        )
-
+    ensembles = _ensembles(scenario, names, ok, times, sqrt_bound, threshold, confidence)
     summaries = {nm: ensembles[nm].summary() for nm in names}
-    for nm in names:
-        per = [r["estimators"][nm] for r in ok]
-        if per:
-            part = converged_nees(
-                np.stack([p["nees"] for p in per]), _converged_part(ensembles[nm], per, times), scenario.state_dim, confidence
-            )
-            summaries[nm]["nees_converged_part"] = {
-                "time_average": part["time_average"],
-                "inside_fraction": part["inside_fraction"],
-                "all_runs_from": None if part["all_runs_from"] is None else float(times[part["all_runs_from"]]),
-                "final": None if not np.isfinite(part["mean"][-1]) else float(part["mean"][-1]),
-                "final_bounds": [None if not np.isfinite(v) else float(v) for v in part["bounds"][-1]],
-            }
+    _add_converged_nees(summaries, scenario, names, ok, ensembles, times, confidence)
     summary = {
         "scenario": scenario.name,
         "source": scenario.source,
@@ -405,20 +442,7 @@ def run_campaign(
         summary["flight"] = flight_summary([r["flight"] for r in ok], names)
     result = CampaignResult(summary, ensembles, ok + failed, bound)
     if out is not None:
-        files = {
-            "summary": str(out / "summary.json"),
-            "runs": str(out / "runs.parquet"),
-            "series": str(out / "series.parquet"),
-        }
-        _write_runs(out / "runs.parquet", ok, failed, names, ensembles)
-        _write_series(out / "series.parquet", ok, names, times)
-        if record:
-            _record_statistics(out / "statistics.rrd", scenario, names, ensembles, sqrt_bound, sqrt_linear, k_every)
-            files["recording"] = str(out / "statistics.rrd")
-        summary["files"] = files
-        from quadobs.testbed.episode import write_json_atomic
-
-        write_json_atomic(out / "summary.json", summary)
+        _write_outputs(out, summary, scenario, names, ok, failed, ensembles, times, record, sqrt_bound, sqrt_linear, k_every)
     return result
 
 
