@@ -568,15 +568,15 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("quadobs: interrupted", file=sys.stderr)
         return 130
+    except BrokenPipeError:  # output piped into a reader that stopped (e.g. head)
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        return 141
     except Exception as exc:
         if not _caused_by_interrupt(exc):
             raise
         print("quadobs: interrupted", file=sys.stderr)  # e.g. a compiler or an import cut by Ctrl-C
         return 130
-    except BrokenPipeError:  # output piped into a reader that stopped (e.g. head)
-        devnull = os.open(os.devnull, os.O_WRONLY)
-        os.dup2(devnull, sys.stdout.fileno())
-        return 141
 
 
 if __name__ == "__main__":  # pragma: no cover

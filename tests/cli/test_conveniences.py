@@ -235,3 +235,20 @@ def test_new_folders_removed_on_failure_keeps_what_it_should(tmp_path):
             check_writable(tmp_path / "e" / "x.rrd")
             raise KeyboardInterrupt
     assert not (tmp_path / "e").exists()
+
+
+def test_output_into_a_closed_pipe_ends_quietly(tmp_path):
+    """``quadobs run ... | head -1``: the reader goes away; no traceback, the summary is still written."""
+    import subprocess
+    import sys
+
+    summary = tmp_path / "s.json"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "quadobs", "run", "ifac2021", "--duration", "0.5", "--no-progress", "--summary", str(summary)],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, cwd=tmp_path,
+    )
+    proc.stdout.close()  # the reader stops before the table is printed
+    err = proc.stderr.read().decode()
+    proc.wait(timeout=120)
+    assert proc.returncode == 141, err
+    assert "Traceback" not in err and summary.is_file()
