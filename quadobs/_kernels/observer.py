@@ -77,6 +77,40 @@ def work_size(N: int, q: int, nm: int) -> int:
 
 
 @njit(**_OPTS)
+def _cholesky_nis(W, oL, onu, otmp, ow, q, r):
+    """Cholesky ``L L^T`` of the ``r x r`` innovation covariance held at ``W[oL:]`` (row stride ``q``, lower
+    triangle, in place), ``w = (L L^T)^{-1} nu`` into ``W[ow:]`` (``nu`` at ``W[onu:]``, ``W[otmp:]``
+    scratch); returns the NIS ``nu^T w``."""
+    # Cholesky of the innovation covariance, L L^T, in place in the lower triangle.
+    for j in range(r):
+        s = W[oL + j * q + j]
+        for t in range(j):
+            s -= W[oL + j * q + t] * W[oL + j * q + t]
+        d = math.sqrt(s)
+        W[oL + j * q + j] = d
+        for i in range(j + 1, r):
+            s = W[oL + i * q + j]
+            for t in range(j):
+                s -= W[oL + i * q + t] * W[oL + j * q + t]
+            W[oL + i * q + j] = s / d
+    # w = (L L^T)^{-1} nu; NIS = nu^T w.
+    for i in range(r):
+        s = W[onu + i]
+        for t in range(i):
+            s -= W[oL + i * q + t] * W[otmp + t]
+        W[otmp + i] = s / W[oL + i * q + i]
+    for i in range(r - 1, -1, -1):
+        s = W[otmp + i]
+        for t in range(i + 1, r):
+            s -= W[oL + t * q + i] * W[ow + t]
+        W[ow + i] = s / W[oL + i * q + i]
+    nis = 0.0
+    for a in range(r):
+        nis += W[onu + a] * W[ow + a]
+    return nis
+
+
+@njit(**_OPTS)
 def _correct(S, zo, po, so, W, wo, y, fc, ic):
     N = ic[0]
     q = ic[3]
@@ -125,32 +159,7 @@ def _correct(S, zo, po, so, W, wo, y, fc, ic):
             for t in range(ic[o_cptr + h], ic[o_cptr + h + 1]):
                 s += fc[o_cval + t] * W[wo + oPC + ic[o_ccol + t] * q + b]
             W[wo + oL + a * q + b] = s
-    # Cholesky of the innovation covariance, L L^T, in place in the lower triangle.
-    for j in range(r):
-        s = W[wo + oL + j * q + j]
-        for t in range(j):
-            s -= W[wo + oL + j * q + t] * W[wo + oL + j * q + t]
-        d = math.sqrt(s)
-        W[wo + oL + j * q + j] = d
-        for i in range(j + 1, r):
-            s = W[wo + oL + i * q + j]
-            for t in range(j):
-                s -= W[wo + oL + i * q + t] * W[wo + oL + j * q + t]
-            W[wo + oL + i * q + j] = s / d
-    # w = (L L^T)^{-1} nu; NIS = nu^T w.
-    for i in range(r):
-        s = W[wo + onu + i]
-        for t in range(i):
-            s -= W[wo + oL + i * q + t] * W[wo + otmp + t]
-        W[wo + otmp + i] = s / W[wo + oL + i * q + i]
-    for i in range(r - 1, -1, -1):
-        s = W[wo + otmp + i]
-        for t in range(i + 1, r):
-            s -= W[wo + oL + t * q + i] * W[wo + ow + t]
-        W[wo + ow + i] = s / W[wo + oL + i * q + i]
-    nis = 0.0
-    for a in range(r):
-        nis += W[wo + onu + a] * W[wo + ow + a]
+    nis = _cholesky_nis(W, wo + oL, wo + onu, wo + otmp, wo + ow, q, r)
     S[so + 0] = nis
     if nis > gate:
         S[so + 2] += 1.0
