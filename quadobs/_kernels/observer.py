@@ -26,7 +26,7 @@ Its cost is the product ``Phi P Phi^T``. When ``Phi`` is sparse (the vehicles: `
 of a nilpotent ``A`` is a short polynomial in ``A``; ``N = 7 .. 13``, 30 to 45 % nonzero)
 the *sparse path* (:func:`_predict_sparse`) traverses ``Phi`` by its structural nonzeros
 (CSR) and adds the nonzero upper-triangular entries of the ``Qc[r]`` (COO): ``1.5 nnz N``
-multiply-adds, at about 2 GFlop/s (short loops, indices through the CSR). When ``Phi`` is
+multiply-adds, at 2 to 3 GFlop/s (short loops, indices through the CSR). When ``Phi`` is
 dense (a random ``A`` of size ``n = 5 .. 8`` gives ``N = 20 .. 44``, 80 % nonzero: the
 auxiliary block ``e^{M dt}`` is full) that is ``O(N^3)`` at the same rate, so past a
 threshold the *dense path* (:func:`_predict_dense`) does the products with BLAS
@@ -47,10 +47,10 @@ when the sparse product ``Phi P`` would cost at least :data:`DENSE_MIN_WORK` mul
 a quarter full (:data:`DENSE_MIN_FILL`: the dense path does ``~2 N^3`` multiply-adds at 5 to
 8 times the sparse path's rate, so it pays when ``1.5 nnz N > 2 N^3 / 6``). Every built-in
 scenario stays on the sparse path, whose results are unchanged to the bit. The dense path
-agrees with the NumPy reference to rounding (``1e-13`` relative over thousands of steps,
-``tests/estimators/test_observer_dense.py``). Measured on ``N = 38`` (``docs/benchmarks.md``):
-about 10 us a step against 55 us on the sparse path; the two products are 2/3 of it, at
-the single-thread ``dgemm`` rate of that size.
+agrees with the NumPy reference to rounding (``1e-12`` of the covariance's scale over
+thousands of steps, tested). Measured at ``N = 38`` (``docs/benchmarks.md``): about 9 us a
+step in the kernel against 55 us on the sparse path; the products are two thirds of it, at
+0.9 of the single-thread ``dgemm`` rate of that size.
 
 Loops over a row index a slice of the flat buffer from 0 (``row = W[o : o + N]``,
 ``row[j]``): Numba wraps negative indices, and with an index ``o + j`` whose sign LLVM
