@@ -485,11 +485,15 @@ def _add_replay(sub) -> None:
     p.add_argument("--model", choices=("odometry", "cv"), default="odometry", help="vehicle model (default odometry)")
     p.add_argument("--dt", type=float, default=0.1, help="replay grid step in s (default 0.1)")
     p.add_argument("--initial-offset", type=float, default=50.0, help="initial guess this far (m) from the truth at t0 (default 50)")
-    p.add_argument("--seed", type=int, default=0, help="draws the direction of the initial offset (default 0)")
+    p.add_argument("--seed", type=int, default=0, help="draws the direction of the initial offset and the sensor layer's noise (default 0)")
     p.add_argument("--calibrate", choices=("self", "none"), default="self",
                    help="range biases: self-calibrated from the log (default) or none")
     p.add_argument("--biases", help="comma-separated range bias per beacon (m), in beacons.csv order (overrides --calibrate)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument(
+        "--set", action="append", default=[], metavar="noise.FIELD=VALUE",
+        help="sensor layer on the logged ranges, e.g. noise.dropout=0.3 (noise.* fields only; default: the log as it is)",
+    )
     p.set_defaults(func=_cmd_replay)
 
 
@@ -502,28 +506,19 @@ def _cmd_replay(args) -> int:
         write_log(log, args.export)
         print(f"log {log.name}: {log.ranges.shape[0]} ranges, {log.inputs.shape[0]} inputs written to {args.export}")
         return 0
-    from quadobs.errors import check_writable
-    from quadobs.testbed.logs.calibration import calibrate_biases
-    from quadobs.testbed.logs.replay import run_replay
+    from quadobs.testbed.logs.replay import log_scenario, run_replay
+    from quadobs.testbed.outputs import check_outputs
 
-    for path in (args.out, args.summary):  # before the calibration's replays
-        if path is not None:
-            check_writable(path)
-    biases = None
-    if args.biases is not None:
-        try:
-            biases = [float(v) for v in args.biases.split(",")]
-        except ValueError:
-            raise QuadobsError(f"--biases: expected comma-separated numbers, got {args.biases!r}") from None
-        if len(biases) != log.beacons.shape[0]:
-            raise QuadobsError(f"--biases: {len(biases)} values for {log.beacons.shape[0]} beacons")
-    elif args.calibrate == "self":
-        biases = calibrate_biases(log, dt=args.dt, model=args.model, estimator="ekf")
+    check_outputs({"--out": args.out, "--summary": args.summary})  # before the calibration's replays
+    log_scenario(log, args.dt, args.seed, args.set)  # the --set settings, checked as early
     summary = run_replay(
         log, estimators=_estimator_list(args.estimators), dt=args.dt, model=args.model, initial_offset=args.initial_offset,
-        seed=args.seed, biases=biases, out=args.out, summary_path=args.summary, progress=not args.no_progress,
+        seed=args.seed, biases=_replay_biases(args, log), out=args.out, summary_path=args.summary,
+        progress=not args.no_progress, settings=args.set,
     )
+    m = summary["measurements"]
     print(f"log {summary['log']}: {summary['duration']:.1f} s, {summary['ranges']['placed']} ranges, model {summary['model']}"
+          + (f", {m['dropped']} dropped, {m['outliers_injected']} outliers injected" if m["dropped"] or m["outliers_injected"] else "")
           + ("  [INTERRUPTED]" if summary["interrupted"] else ""))
     for name, e in summary["estimators"].items():
         extra = f"  batch LM rmse {_fmt(e['batch_rmse'], ' m')}" if e.get("batch_rmse") is not None else ""
@@ -532,6 +527,21 @@ def _cmd_replay(args) -> int:
     if args.summary:
         print(f"summary: {args.summary}")
     return 130 if summary["interrupted"] else 0
+
+
+def _replay_biases(args, log) -> list[float] | None:
+    """``--biases``, checked; else self-calibrated (``--calibrate self``) or none."""
+    from quadobs.testbed.logs.calibration import calibrate_biases
+
+    if args.biases is None:
+        return calibrate_biases(log, dt=args.dt, model=args.model, estimator="ekf") if args.calibrate == "self" else None
+    try:
+        biases = [float(v) for v in args.biases.split(",")]
+    except ValueError:
+        raise QuadobsError(f"--biases: expected comma-separated numbers, got {args.biases!r}") from None
+    if len(biases) != log.beacons.shape[0]:
+        raise QuadobsError(f"--biases: {len(biases)} values for {log.beacons.shape[0]} beacons")
+    return biases
 
 
 def _sigterm_as_interrupt(signum, frame):  # pragma: no cover - exercised by a subprocess test

@@ -26,6 +26,7 @@ import numpy as np
 
 from quadobs.testbed.logs.estimators import ReplaySetup, build_replay_estimators
 from quadobs.testbed.sinks import Rows, Sink
+from quadobs.testbed.worlds.replay import MODELS, ReplayWorld, dead_reckoning
 
 __all__ = ["calibrate_biases"]
 
@@ -47,29 +48,33 @@ def calibrate_biases(log, *, dt: float = 0.1, model: str = "odometry", x0=None, 
 
     ``x0``: the initial guess (default: the beacons' centroid, velocity zero).
     """
-    from quadobs.testbed.logs.replay import _Frame, _loop
-    from quadobs.testbed.worlds.replay import MODELS, ReplayWorld, dead_reckoning
-
     q = log.beacons.shape[0]
     b = np.zeros(q)
     if x0 is None:
         x0 = np.zeros(MODELS[model])
         x0[:2] = log.beacons.mean(axis=0)
     for _ in range(int(iterations)):
-        world = ReplayWorld(log, dt, model, 8192, b)
-        _, theta = dead_reckoning(log, world.times[:1])
-        setup = ReplaySetup(log.beacons, world.dt, model, float(theta[0]), float(np.median(log.ranges[:, 2])),
-                            **(setup_options or {}))
-        ests = build_replay_estimators(setup, [estimator], np.asarray(x0, dtype=float))
-        sink = _Estimates(world.steps)
-        _loop(world, ests, [sink], _Frame(log.name, world.steps, world.dt))
-        k = np.floor((log.ranges[:, 0] - log.start) / world.dt + 1e-9).astype(np.int64)
+        P, steps = _replayed_positions(log, dt, model, b, np.asarray(x0, dtype=float), estimator, setup_options)
+        k = np.floor((log.ranges[:, 0] - log.start) / dt + 1e-9).astype(np.int64)
         h = log.beacon_index(log.ranges[:, 1])
-        late = (k >= world.steps // 2) & (k < world.steps)
-        p_hat = sink.P[k[late]]
+        late = (k >= steps // 2) & (k < steps)
+        p_hat = P[k[late]]
         r = log.ranges[late, 2] - b[h[late]] - np.linalg.norm(p_hat - log.beacons[h[late]], axis=1)
         for j in range(q):
             rj = r[(h[late] == j) & np.isfinite(r)]
             if rj.size:
                 b[j] += float(np.median(rj))
     return b
+
+
+def _replayed_positions(log, dt, model, biases, x0, estimator, setup_options) -> tuple[np.ndarray, int]:
+    """One replay of ``log`` with ``biases`` through ``estimator``: its position at every step ``(K + 1, 2)``, and ``K``."""
+    from quadobs.testbed.episode import run_loop
+
+    world = ReplayWorld(log, dt, model, 8192, biases, peer_batch=False)
+    _, theta = dead_reckoning(log, world.times[:1])
+    setup = ReplaySetup(log.beacons, world.dt, model, float(theta[0]), float(np.median(log.ranges[:, 2])), **(setup_options or {}))
+    sink = _Estimates(world.steps)
+    run_loop(lambda *args: {}, frame=world.frame(), world=world, estimators=build_replay_estimators(setup, [estimator], x0),
+             sinks=[sink])
+    return sink.P, world.steps

@@ -60,6 +60,8 @@ class RangeLog:
         Heading at ``inputs[0, 0]`` (rad).
     truth : ndarray (T, 3 or 4) or None
         ``time, x, y[, heading]`` rows.
+    source : str
+        The folder it was read from (``""``: none).
     """
 
     name: str
@@ -69,6 +71,7 @@ class RangeLog:
     inputs: np.ndarray
     heading0: float
     truth: np.ndarray | None = None
+    source: str = ""
 
     def __post_init__(self) -> None:
         known = set(int(i) for i in self.beacon_ids)
@@ -203,7 +206,7 @@ def read_log(folder: str | Path) -> RangeLog:
     try:
         return RangeLog(
             meta.get("name", folder.name), ids.astype(np.int64), tables["beacons.csv"][:, 1:3], tables["ranges.csv"],
-            tables["inputs.csv"], heading0, tables.get("truth.csv"),
+            tables["inputs.csv"], heading0, tables.get("truth.csv"), str(folder),
         )
     except QuadobsError as exc:  # name the folder's file, not the log's name
         raise QuadobsError(str(exc).replace(f"{meta.get('name', folder.name)}: ", f"{folder}/", 1)) from None

@@ -26,6 +26,16 @@ replay uses the grid ``t_k = t_start + k dt`` (``t_start``: the first odometry t
 
 A range bias per beacon ``b_h`` (calibrated, see :mod:`quadobs.testbed.logs.calibration`)
 is subtracted before the output ``y_h = (rho_h - b_h)^2 / 2 - |a_h|^2 / 2`` is formed.
+
+The sensor layer (:class:`~quadobs.testbed.sensors.SensorModel`, a scenario's ``noise.*``
+fields) applies to the logged ranges as to simulated ones: read at its sample steps only,
+with its noise and outliers added and its dropouts, drawn from its seeded streams a block
+at a time (:meth:`~quadobs.testbed.sensors.SensorModel.logged_ranges`). With the default
+settings it adds nothing: the log's ranges as they are.
+
+The world's own sinks (:meth:`ReplayWorld.sinks`) add the replay's figures to the summary:
+:class:`ReplayErrorSink` (RMSE, maximum and final error, convergence times against the
+truth) and :class:`ReplayFiguresSink` (time per range, the GTSAM peer's offline figures).
 """
 
 from __future__ import annotations
@@ -35,9 +45,11 @@ import math
 import numpy as np
 
 from quadobs.errors import QuadobsError, as_finite_scalar
+from quadobs.evaluation.convergence import ConvergenceTracker, json_time
+from quadobs.testbed.sinks import EpisodeContext, EpisodeFrame, Rows, Sink
 from quadobs.testbed.worlds.base import Columns, World
 
-__all__ = ["ReplayWorld", "dead_reckoning", "grid", "MODELS"]
+__all__ = ["ReplayErrorSink", "ReplayFiguresSink", "ReplayWorld", "dead_reckoning", "grid", "MODELS"]
 
 #: Replay models: the estimator state they use (``n``).
 MODELS = {"odometry": 2, "cv": 4}
@@ -92,6 +104,10 @@ class ReplayWorld(World):
         Most steps per block.
     biases : array_like (q,), optional
         Range bias per beacon (m), subtracted from every range; default zero.
+    sensors : SensorModel, optional
+        The sensor layer applied to the logged ranges (default: none).
+    peer_batch : bool
+        :class:`ReplayFiguresSink` also solves the GTSAM peer's whole graph (Levenberg-Marquardt).
 
     Attributes
     ----------
@@ -105,14 +121,18 @@ class ReplayWorld(World):
         Ranges placed on the grid.
     """
 
-    def __init__(self, log, dt: float, model: str = "odometry", capacity: int = 8192, biases=None) -> None:
+    def __init__(self, log, dt: float, model: str = "odometry", capacity: int = 8192, biases=None, sensors=None,
+                 peer_batch: bool = True) -> None:
         if model not in MODELS:
             raise QuadobsError(f"model: expected one of {', '.join(MODELS)}, got {model!r}")
         self.log, self.model, self.dt = log, model, float(dt)
+        self.sensors = None if sensors is None or sensors.adds_nothing else sensors
+        self.peer_batch = bool(peer_batch)
         self.times = T = grid(log, dt)
         self.steps = K = T.size - 1
         n, q = MODELS[model], log.beacons.shape[0]
         self.biases = np.zeros(q) if biases is None else np.asarray(biases, dtype=float).reshape(q)
+        self._a2 = np.einsum("hi,hi->h", log.beacons, log.beacons)
         self.columns = Columns(
             truth=slice(0, n), y=slice(n, n + q), u=slice(n + q, n + q + 3),
             measured=slice(n + q + 3, n + 2 * q + 3), width=n + 2 * q + 3,
@@ -127,6 +147,7 @@ class ReplayWorld(World):
         self.out = np.full((int(capacity) + 1, self.columns.width), np.nan)
         self.events = np.zeros((int(capacity) + 1, 2), dtype=np.int64)
         self._k0 = 0
+        self._src = self._events = None  # with a sensor layer: the block's rows (row 0: step _k0), its events
 
     def _place_ranges(self, rows: np.ndarray, K: int, n: int, q: int) -> None:
         log = self.log
@@ -139,8 +160,18 @@ class ReplayWorld(World):
         self.placed = int(first.size)
         k, h, rho = k[first], h[first], rho[first]
         rows[k, n + q + 3 + h] = rho
-        a2 = np.einsum("hi,hi->h", log.beacons, log.beacons)
-        rows[k, n + h] = 0.5 * (rho - self.biases[h]) ** 2 - 0.5 * a2[h]
+        rows[k, n + h] = 0.5 * (rho - self.biases[h]) ** 2 - 0.5 * self._a2[h]
+
+    def frame(self, seed: int = 0) -> EpisodeFrame:
+        """The episode frame of the replay: the log's name and beacons, the grid, the odometry as the input."""
+        log, c = self.log, self.columns
+        return EpisodeFrame(
+            name=log.name, steps=self.steps, dt=self.dt, dimension=2, beacons=log.beacons, physics_rate=1.0 / self.dt,
+            seed=int(seed), description=f"replay of the log {log.name} (model {self.model}, dt {self.dt:g} s)",
+            source=log.source, sensor_events=self.sensors is not None and bool(self.sensors.dropout or self.sensors.outlier_probability),
+            input_name="odometry", input_labels=("v_x (m/s)", "v_y (m/s)", "omega (rad/s)")[: c.u.stop - c.u.start],
+            beacon_labels=tuple(f"beacon {int(i)}" for i in log.beacon_ids),
+        )
 
     def truth_at(self, steps) -> np.ndarray:
         """The true state at the given grid steps ``(m, n)`` (NaN without a truth)."""
@@ -155,13 +186,95 @@ class ReplayWorld(World):
         count = min(int(count), self.out.shape[0] - 1, self.steps - k0)
         self._count = count
         self.out[0, self.columns.truth] = self._rows[k0, self.columns.truth]
+        if self.sensors is not None:
+            self._sense(count)
         return count
+
+    def _sense(self, count: int) -> None:
+        """The block's rows with the sensor layer on the logged ranges (module docstring), in ``_src``."""
+        k0, c = self._k0, self.columns
+        src = self._rows[k0 : k0 + count + 1].copy()
+        rho, self._events = self.sensors.logged_ranges(src[:count, c.measured], self.sensors.draws(k0, count))
+        src[:count, c.measured] = rho
+        src[:count, c.y] = 0.5 * (rho - self.biases) ** 2 - 0.5 * self._a2
+        self._src = src
+
+    def _row(self, k: int) -> np.ndarray:
+        return self._rows[k] if self.sensors is None else self._src[k - self._k0]
 
     def step(self, j: int, estimate=None) -> None:
         k = self._k0 + j
-        self.out[j] = self._rows[k]
+        self.out[j] = self._row(k)
         self.out[j + 1, self.columns.truth] = self._rows[k + 1, self.columns.truth]
 
     def fill(self, count: int) -> None:
         k0 = self._k0
-        self.out[: count + 1] = self._rows[k0 : k0 + count + 1]
+        self.out[: count + 1] = self._rows[k0 : k0 + count + 1] if self.sensors is None else self._src[: count + 1]
+
+    def commit(self, rows: int) -> None:
+        """The sensor events of the first ``rows`` steps, counted in the sensor layer."""
+        self.events[:rows] = 0 if self.sensors is None else self.sensors.count(self._events[:rows])
+
+    def sinks(self, recording=None) -> list:
+        """The replay's figures: :class:`ReplayErrorSink`, :class:`ReplayFiguresSink`."""
+        return [ReplayErrorSink(), ReplayFiguresSink(self)]
+
+
+class ReplayErrorSink(Sink):
+    """Position RMSE, maximum and final error, and convergence times (5 m, 2 m) per estimator, over the rows with a truth."""
+
+    def begin(self, ctx: EpisodeContext) -> None:
+        super().begin(ctx)
+        self.sq = {n: [0.0, 0, 0.0, math.nan] for n in ctx.names}  # sum of squares, count, max, last
+        self.trackers = {n: ConvergenceTracker((5.0, 2.0)) for n in ctx.names}
+
+    def block(self, rows: Rows) -> None:
+        for name, err in rows.errors.items():
+            ep = err["position"]
+            e = np.sqrt(np.einsum("ij,ij->i", ep, ep))
+            ok = np.isfinite(e)
+            acc = self.sq[name]
+            acc[0] += float(np.sum(e[ok] ** 2))
+            acc[1] += int(ok.sum())
+            acc[2] = max(acc[2], float(e[ok].max())) if ok.any() else acc[2]
+            acc[3] = float(e[-1])
+            if ok.any():
+                self.trackers[name].update_many(rows.t[ok], e[ok])
+
+    def end(self, completed: int, interrupted: bool) -> dict:
+        per = {}
+        for name, (ss, m, mx, last) in self.sq.items():
+            t5, t2 = (json_time(t) for t in self.trackers[name].times())
+            per[name] = {
+                "rmse": math.sqrt(ss / m) if m else None,
+                "max_error": mx if m else None,
+                "final_position_error": last if math.isfinite(last) else None,
+                "time_to_5m": t5,
+                "time_to_2m": t2,
+            }
+        return {"estimators": per}
+
+
+class ReplayFiguresSink(Sink):
+    """Per estimator: ``seconds_per_measurement`` (its wall time over the ranges placed, from the
+    episode's clock); for the GTSAM peer, ``smoothed_rmse``/``batch_rmse`` and their maxima at its
+    keyframes (iSAM2's final estimate, the Levenberg-Marquardt optimum), unless interrupted."""
+
+    def __init__(self, world: ReplayWorld) -> None:
+        self.world = world
+
+    def end(self, completed: int, interrupted: bool) -> dict:
+        from quadobs.estimators.gtsam_peer import Isam2RangeOnly  # imports gtsam only when built
+
+        per, clock, w = {}, self.ctx.clock, self.world
+        for e, est in enumerate(self.ctx.estimators):
+            entry = per[est.name] = {}
+            if clock is not None:
+                entry["seconds_per_measurement"] = float(clock[e]) / max(w.placed, 1)
+            if isinstance(est, Isam2RangeOnly) and w.peer_batch and not interrupted:
+                for key, (steps, P) in (("smoothed", est.online_positions()), ("batch", est.batch_optimum())):
+                    err = np.linalg.norm(P - w.truth_at(steps)[:, :2], axis=1)
+                    err = err[np.isfinite(err)]
+                    entry[f"{key}_rmse"] = float(np.sqrt(np.mean(err**2))) if err.size else None
+                    entry[f"{key}_max_error"] = float(err.max()) if err.size else None
+        return {"estimators": per}
