@@ -199,6 +199,81 @@ def test_a_replay_is_deterministic_and_writes_its_outputs(tmp_path):
     assert "errors/augmented/position/norm" in {e.lstrip("/") for e in list_entities(tmp_path / "r.rrd")}
 
 
+def test_a_replay_records_the_layout_of_an_episode(tmp_path):
+    from quadobs.recording import list_entities, read_series
+    from quadobs.studies.plot._source import open_source
+    from quadobs.studies.plot.run import default_panels
+
+    log = synthetic_log(30.0)
+    s = run_replay(log, estimators=["augmented", "ekf"], initial_offset=20.0, out=tmp_path / "r.rrd")
+    entities = {e.lstrip("/") for e in list_entities(tmp_path / "r.rrd")}
+    for e in ("world/truth/path", "world/estimates/ekf/path", "errors/augmented/position/norm", "errors/ekf/position/axes",
+              "observer/augmented/nis", "observer/ekf/covariance_trace", "measurements/range/3", "measurements/odometry"):
+        assert e in entities
+    assert not any("velocity" in e for e in entities)  # the odometry model has no velocity
+    err = read_series(tmp_path / "r.rrd", "errors/augmented/position/norm")
+    assert err["step"][-1] == s["steps"] and err["values"][-1, 0] == pytest.approx(s["estimators"]["augmented"]["final_position_error"])
+    assert err["values"][0, 0] == pytest.approx(20.0)  # the initial offset, at step 0
+    truth = read_series(tmp_path / "r.rrd", "world/truth/path")["values"]
+    np.testing.assert_allclose(truth[0, :2], log.truth[0, 1:3])  # the log's truth, on the grid
+    rng = read_series(tmp_path / "r.rrd", "measurements/range/0")
+    np.testing.assert_array_equal(np.sort(rng["values"][:, 0]), np.sort(log.ranges[log.ranges[:, 1] == 0, 2]))
+    assert default_panels(open_source(tmp_path / "r.rrd")) == ["paths", "position", "covariance", "nis", "ranges"]
+
+
+def _noisy(log, seed, *settings, **kw):
+    return run_replay(log, estimators=["augmented", "ekf"], initial_offset=5.0, seed=seed, batch=False, settings=settings, **kw)
+
+
+def test_the_sensor_layer_adds_nothing_by_default_and_drops_ranges_as_configured(tmp_path):
+    log = synthetic_log(120.0)
+    clean = _noisy(log, 3)
+    assert clean["measurements"] == {"range_period_steps": 1, "dropped": 0, "outliers_injected": 0}
+    assert clean["estimators"]["augmented"]["corrections"] == clean["ranges"]["placed"]
+    a = _noisy(log, 3, "noise.dropout=0.3", "noise.outlier_probability=0.05", "noise.outlier_std=20")
+    b = _noisy(log, 3, "noise.dropout=0.3", "noise.outlier_probability=0.05", "noise.outlier_std=20")
+    c = _noisy(log, 4, "noise.dropout=0.3", "noise.outlier_probability=0.05", "noise.outlier_std=20")
+    for s in (a, b, c):
+        s.pop("wall_time")
+        for e in s["estimators"].values():
+            e.pop("seconds_per_measurement")
+    assert a == b and a["measurements"] != c["measurements"]  # seeded: the same draws, another seed others
+    placed, m = a["ranges"]["placed"], a["measurements"]
+    # binomial counts within 4 standard deviations
+    assert abs(m["dropped"] - 0.3 * placed) < 4 * math.sqrt(placed * 0.3 * 0.7)
+    kept = placed - m["dropped"]
+    assert abs(m["outliers_injected"] - 0.05 * kept) < 4 * math.sqrt(kept * 0.05) + 1 and m["outliers_injected"] > 0
+    for name in ("augmented", "ekf"):  # every range left is corrected with, none dropped is
+        assert a["estimators"][name]["corrections"] == kept
+    assert a["estimators"]["ekf"]["rmse"] > clean["estimators"]["ekf"]["rmse"]  # 20 m outliers, no gate
+
+
+def test_the_sensor_layer_adds_its_noise_and_reads_at_its_rate(tmp_path):
+    from quadobs.recording import read_series
+
+    log = synthetic_log(120.0)
+    s = _noisy(log, 1, "noise.range_std=0.5", out=tmp_path / "n.rrd")
+    r = read_series(tmp_path / "n.rrd", "measurements/range/1")
+    exact = dict(zip(np.floor((log.ranges[:, 0] - log.start) / 0.1 + 1e-9).astype(int)[log.ranges[:, 1] == 1],
+                     log.ranges[log.ranges[:, 1] == 1, 2]))
+    noise = r["values"][:, 0] - np.array([exact[k] for k in r["step"]])
+    assert abs(np.std(noise) - 0.5) < 0.1 and abs(np.mean(noise)) < 0.15 and s["measurements"]["dropped"] == 0
+    slow = _noisy(log, 1, "noise.range_rate=2")  # one grid step in 5 is read
+    k = np.floor((log.ranges[:, 0] - log.start) / 0.1 + 1e-9).astype(int)
+    assert slow["measurements"]["range_period_steps"] == 5
+    assert slow["estimators"]["augmented"]["corrections"] == int(np.sum((k % 5 == 0) & (k < slow["steps"])))
+
+
+def test_replay_settings_are_noise_settings_only(tmp_path, capsys):
+    folder = write_log(synthetic_log(20.0), tmp_path / "log")
+    for setting, message in (("duration=3", "--set: duration: does not apply to a replay"),
+                             ("noise.accel_std=1", "noise.accel_std: does not apply"),
+                             ("noise.dropout=2", "noise.dropout: must be at most 1.0")):
+        assert main(["replay", str(folder), "--no-progress", "--calibrate", "none", "--set", setting]) == 2
+        err = capsys.readouterr().err.strip()
+        assert message in err and "\n" not in err
+
+
 def test_without_truth_there_are_no_errors_but_a_replay():
     s = run_replay(synthetic_log(30.0, with_truth=False), batch=False)
     assert s["has_truth"] is False and s["estimators"]["augmented"]["rmse"] is None
