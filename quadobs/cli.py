@@ -163,6 +163,12 @@ def _cmd_run(args) -> int:
         raise QuadobsError("--runs: applies to le2013 only; for many seeded runs of a scenario use 'quadobs campaign'")
     scenario = load_scenario(args.scenario, duration=args.duration, seed=args.seed, settings=args.set)
     estimators = _estimator_list(args.estimators)
+    sinks = []
+    if args.export_log is not None:
+        from quadobs.testbed.logs.export import LogExportSink, check_exportable
+
+        check_exportable(scenario)
+        sinks.append(LogExportSink(args.export_log))
     _notice_cost(scenario, estimators, args.out is not None)
     _notice_cold_kernels(_episode_kernels(estimators))
     result = run_episode(
@@ -171,12 +177,15 @@ def _cmd_run(args) -> int:
         out=args.out,
         summary_path=args.summary,
         progress=not args.no_progress,
+        sinks=sinks,
     )
     print_summary(result.summary)
     if "output_error" in result.summary:  # the table is out; the summary file could not be written
         raise RunFault(result.summary["output_error"])
     if args.summary:
         print(f"summary: {args.summary}")
+    if args.export_log is not None:
+        print(f"log: {args.export_log}  (replay with: quadobs replay {args.export_log} --dt {scenario.dt:g})")
     return 130 if result.summary.get("interrupted") else 0
 
 
@@ -348,7 +357,7 @@ def _notice_cold_kernels(kernels, file=None) -> bool:
 
 def _output_paths(args) -> list[Path]:
     """The output files and folders named on the command line (removed again if the command fails and they are empty)."""
-    return [value for name in ("out", "summary", "json") if isinstance(value := getattr(args, name, None), Path)]
+    return [value for name in ("out", "summary", "json", "export", "export_log") if isinstance(value := getattr(args, name, None), Path)]
 
 
 def _cmd_plot(args) -> int:
@@ -400,6 +409,8 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--runs", type=int, help="le2013 only: number of seeded runs (default 50; --duration is the number of samples)")
+    p.add_argument("--export-log", type=Path, metavar="DIR",
+                   help="also write the run as a log folder in the open format (ranges, accelerometer, truth), for 'quadobs replay'")
     _add_set(p)
     p.set_defaults(func=_cmd_run)
 
@@ -482,7 +493,8 @@ def _add_replay(sub) -> None:
     p.add_argument("--summary", type=Path, help="JSON summary to write")
     p.add_argument("--estimators", help="comma-separated names (default: augmented,ekf; isam2: the GTSAM peer)")
     p.add_argument("--export", type=Path, help="write the log in the open format to this folder and stop")
-    p.add_argument("--model", choices=("odometry", "cv"), default="odometry", help="vehicle model (default odometry)")
+    p.add_argument("--model", choices=("odometry", "cv", "imu"),
+                   help="vehicle model (default: odometry for an odometry log, imu for an accelerometer log)")
     p.add_argument("--dt", type=float, default=0.1, help="replay grid step in s (default 0.1)")
     p.add_argument("--initial-offset", type=float, default=50.0, help="initial guess this far (m) from the truth at t0 (default 50)")
     p.add_argument("--seed", type=int, default=0, help="draws the direction of the initial offset and the sensor layer's noise (default 0)")

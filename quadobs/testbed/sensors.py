@@ -252,6 +252,11 @@ class SensorModel:
         """Whether the layer hands the ranges and the input on unchanged: no noise, dropout or outlier, every step sampled."""
         return not (self.range_std or self.accel_std or self.dropout or self.outlier_probability) and self.range_every == 1
 
+    def input_noise(self, draws: np.ndarray) -> np.ndarray:
+        """The accelerometer noise of these rows of :meth:`draws`, ``(rows, dim)`` (as :meth:`input` adds it)."""
+        o = 3 * self.q_b + 1 + self.q
+        return self.accel_std * draws[:, o : o + self.dim]
+
     def logged_ranges(self, rho: np.ndarray, draws: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The sensor layer on logged ranges ``rho (rows, q_b)`` (NaN: none logged), with these rows of :meth:`draws`.
 

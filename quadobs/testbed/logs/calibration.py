@@ -24,9 +24,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from quadobs.testbed.logs.estimators import ReplaySetup, build_replay_estimators
+from quadobs.testbed.logs.estimators import build_replay_estimators, replay_setup
 from quadobs.testbed.sinks import Rows, Sink
-from quadobs.testbed.worlds.replay import MODELS, ReplayWorld, dead_reckoning
+from quadobs.testbed.worlds.replay import ReplayWorld, default_model, state_size
 
 __all__ = ["calibrate_biases"]
 
@@ -34,25 +34,27 @@ __all__ = ["calibrate_biases"]
 class _Estimates(Sink):
     """The first estimator's position at every step."""
 
-    def __init__(self, steps: int) -> None:
-        self.P = np.full((steps + 1, 2), np.nan)
+    def __init__(self, steps: int, dim: int = 2) -> None:
+        self.P = np.full((steps + 1, dim), np.nan)
 
     def block(self, rows: Rows) -> None:
         name = self.ctx.names[0]
-        self.P[rows.ks] = rows.estimates[name][:, :2]
+        self.P[rows.ks] = rows.estimates[name][:, : self.P.shape[1]]
 
 
-def calibrate_biases(log, *, dt: float = 0.1, model: str = "odometry", x0=None, estimator: str = "ekf",
+def calibrate_biases(log, *, dt: float = 0.1, model: str | None = None, x0=None, estimator: str = "ekf",
                      iterations: int = 3, setup_options: dict | None = None) -> np.ndarray:
     """Per-beacon range biases ``(q,)`` (m) by the procedure of the module docstring.
 
-    ``x0``: the initial guess (default: the beacons' centroid, velocity zero).
+    ``model``: default :func:`~quadobs.testbed.worlds.replay.default_model`; ``x0``: the
+    initial guess (default: the beacons' centroid, velocity zero).
     """
-    q = log.beacons.shape[0]
+    model = model or default_model(log)
+    q, dim = log.beacons.shape[0], log.dimension
     b = np.zeros(q)
     if x0 is None:
-        x0 = np.zeros(MODELS[model])
-        x0[:2] = log.beacons.mean(axis=0)
+        x0 = np.zeros(state_size(log, model))
+        x0[:dim] = log.beacons.mean(axis=0)
     for _ in range(int(iterations)):
         P, steps = _replayed_positions(log, dt, model, b, np.asarray(x0, dtype=float), estimator, setup_options)
         k = np.floor((log.ranges[:, 0] - log.start) / dt + 1e-9).astype(np.int64)
@@ -68,13 +70,11 @@ def calibrate_biases(log, *, dt: float = 0.1, model: str = "odometry", x0=None, 
 
 
 def _replayed_positions(log, dt, model, biases, x0, estimator, setup_options) -> tuple[np.ndarray, int]:
-    """One replay of ``log`` with ``biases`` through ``estimator``: its position at every step ``(K + 1, 2)``, and ``K``."""
+    """One replay of ``log`` with ``biases`` through ``estimator``: its position at every step ``(K + 1, dim)``, and ``K``."""
     from quadobs.testbed.episode import run_loop
 
     world = ReplayWorld(log, dt, model, 8192, biases, peer_batch=False)
-    _, theta = dead_reckoning(log, world.times[:1])
-    setup = ReplaySetup(log.beacons, world.dt, model, float(theta[0]), float(np.median(log.ranges[:, 2])), **(setup_options or {}))
-    sink = _Estimates(world.steps)
-    run_loop(lambda *args: {}, frame=world.frame(), world=world, estimators=build_replay_estimators(setup, [estimator], x0),
-             sinks=[sink])
+    ests = build_replay_estimators(replay_setup(log, world, setup_options), [estimator], x0)
+    sink = _Estimates(world.steps, log.dimension)
+    run_loop(lambda *args: {}, frame=world.frame(), world=world, estimators=ests, sinks=[sink])
     return sink.P, world.steps

@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from quadobs.errors import QuadobsError
-from quadobs.testbed.logs.estimators import ReplaySetup, build_replay_estimators
+from quadobs.testbed.logs.estimators import build_replay_estimators, replay_setup
 from quadobs.testbed.logs.format import LOG_FILES
 
 __all__ = ["initial_guess", "log_scenario", "run_replay", "DEFAULT_ESTIMATORS"]
@@ -41,18 +41,19 @@ _BLOCK = 8192
 
 
 def initial_guess(log, world, offset: float, seed: int) -> np.ndarray:
-    """The estimators' initial state: the truth at ``t_0`` moved by ``offset`` metres in a direction drawn from ``seed``.
+    """The estimators' initial state: the truth at ``t_0`` moved by ``offset`` metres in a horizontal direction drawn from ``seed``.
 
-    Without a truth: the beacons' centroid. Velocities (model ``cv``) start at zero.
+    Without a truth: the beacons' centroid. Velocities (models ``cv``, ``imu``) start at zero.
     """
-    n = world.columns.n
+    n, dim = world.columns.n, log.dimension
     x0 = np.zeros(n)
     truth = world.state()
-    if np.all(np.isfinite(truth[:2])):
+    if np.all(np.isfinite(truth[:dim])):
         phi = np.random.default_rng(seed).uniform(0.0, 2.0 * math.pi)
-        x0[:2] = truth[:2] + offset * np.array([math.cos(phi), math.sin(phi)])
+        x0[:dim] = truth[:dim]
+        x0[:2] += offset * np.array([math.cos(phi), math.sin(phi)])
     else:
-        x0[:2] = log.beacons.mean(axis=0)
+        x0[:dim] = log.beacons.mean(axis=0)
     return x0
 
 
@@ -61,7 +62,8 @@ def log_scenario(log, dt: float, seed: int = 0, settings=()):
 
     ``settings`` (``"noise.FIELD=VALUE"``, the command line's ``--set``) may set the
     ``noise`` table only (:class:`~quadobs.testbed.scenario.NoiseSpec`): the noise, rate,
-    dropout and outlier settings of the ranges. Nothing else of a scenario applies to a log.
+    dropout and outlier settings of the ranges, and the accelerometer's noise of an
+    accelerometer log. Nothing else of a scenario applies to a log.
     """
     from quadobs.testbed.scenario import apply_settings, parse_scenario
 
@@ -69,11 +71,12 @@ def log_scenario(log, dt: float, seed: int = 0, settings=()):
     data = apply_settings(data, settings)
     if set(data) != {"noise"}:
         raise QuadobsError(f"--set: {sorted(set(data) - {'noise'})[0]}: does not apply to a replay (only noise.* settings do)")
-    for key in ("accel_std", "accel_bound", "airspeed_std", "airspeed_bound", "airspeed_rate"):
+    refused = ("airspeed_std", "airspeed_bound", "airspeed_rate") + (("accel_std", "accel_bound") if log.input_kind == "odometry" else ())
+    for key in refused:
         if data["noise"].get(key):
-            raise QuadobsError(f"noise.{key}: does not apply to a log of ranges and odometry")
+            raise QuadobsError(f"noise.{key}: does not apply to a log of ranges and {'odometry' if 'accel' in key else log.input_kind} inputs")
     grid_steps = int(math.floor((log.end - log.start) / dt + 1e-9))
-    data.update(name=log.name, dimension=2, duration=max(grid_steps, 1) * dt, physics_rate=1.0 / dt, seed=int(seed),
+    data.update(name=log.name, dimension=log.dimension, duration=max(grid_steps, 1) * dt, physics_rate=1.0 / dt, seed=int(seed),
                 beacons=[{"position": [float(a) for a in b]} for b in log.beacons])
     return parse_scenario(data, source=log.source)
 
@@ -83,7 +86,7 @@ def run_replay(
     *,
     estimators=None,
     dt: float = 0.1,
-    model: str = "odometry",
+    model: str | None = None,
     initial_offset: float = 50.0,
     seed: int = 0,
     biases=None,
@@ -93,6 +96,7 @@ def run_replay(
     batch: bool = True,
     setup_options: dict | None = None,
     settings=(),
+    x0=None,
 ) -> dict:
     """Replay ``log`` through the estimators; returns the summary (module docstring), also written to ``summary_path``.
 
@@ -103,7 +107,8 @@ def run_replay(
         Default :data:`DEFAULT_ESTIMATORS`.
     dt : float
         Replay grid step (s), see :mod:`quadobs.testbed.worlds.replay`.
-    model : {"odometry", "cv"}
+    model : {"odometry", "cv", "imu"}, optional
+        Default :func:`~quadobs.testbed.worlds.replay.default_model` (by the log's inputs).
     initial_offset : float
         Distance (m) of the initial guess from the truth at ``t_0`` (:func:`initial_guess`).
     seed : int
@@ -120,22 +125,25 @@ def run_replay(
     settings : iterable of str
         ``noise.*`` settings of the sensor layer (:func:`log_scenario`); default: none, the
         log's ranges as they are.
+    x0 : array_like (n,), optional
+        The initial state itself (replaces ``initial_offset``).
     """
     from quadobs.testbed.episode import run_loop
     from quadobs.testbed.outputs import check_outputs
     from quadobs.testbed.sensors import SensorModel
-    from quadobs.testbed.worlds.replay import ReplayWorld, dead_reckoning
+    from quadobs.testbed.worlds.replay import ReplayWorld, default_model
 
     names = list(estimators) if estimators else list(DEFAULT_ESTIMATORS)
     inputs = {f"log {f}": Path(log.source) / f for f in LOG_FILES} if log.source else {}
     check_outputs({"summary": summary_path, "recording": out}, inputs)
     sensors = SensorModel(log_scenario(log, dt, seed, settings))
-    world = ReplayWorld(log, dt, model, _BLOCK, biases, sensors=sensors, peer_batch=batch)
+    world = ReplayWorld(log, dt, model or default_model(log), _BLOCK, biases, sensors=sensors, peer_batch=batch)
     if world.placed == 0:
-        raise QuadobsError(f"log {log.name!r}: no range falls inside the odometry's time span")
-    x0 = initial_guess(log, world, float(initial_offset), seed)
-    _, theta = dead_reckoning(log, world.times[:1])
-    setup = ReplaySetup(log.beacons, world.dt, model, float(theta[0]), float(np.median(log.ranges[:, 2])), **(setup_options or {}))
+        raise QuadobsError(f"log {log.name!r}: no range falls inside the inputs' time span")
+    if x0 is None:
+        x0 = initial_guess(log, world, float(initial_offset), seed)
+    x0 = np.array(x0, dtype=float)
+    setup = replay_setup(log, world, setup_options)
     ests = build_replay_estimators(setup, names, x0)
 
     def summarise(merged, completed, wall, interrupted):
@@ -161,7 +169,7 @@ def _summary(log, world, names, merged, completed, interrupted, x0, biases, setu
         "ranges": {"in_log": int(log.ranges.shape[0]), "placed": world.placed, "merged": world.merged},
         "biases": None if biases is None else [float(b) for b in np.asarray(biases).ravel()],
         "initial_guess": [float(v) for v in x0],
-        "noise": {"range_sigma": setup.range_sigma, "q_xy": setup.q_xy, "q_acc": setup.q_acc, "gate": setup.gate},
+        "noise": {"range_sigma": setup.range_sigma, "q_xy": setup.q_xy, "q_acc": setup.q_acc, "q_imu": setup.q_imu, "gate": setup.gate},
         "measurements": {
             "range_period_steps": sensors.range_every, "dropped": sensors.dropped, "outliers_injected": sensors.outliers_injected,
         },
