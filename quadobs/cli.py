@@ -503,6 +503,10 @@ def _add_replay(sub) -> None:
     p.add_argument("--biases", help="comma-separated range bias per beacon (m), in beacons.csv order (overrides --calibrate)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument(
+        "--tune", action="append", default=[], metavar="KEY=VALUE",
+        help="the estimators' noise settings: range_sigma, q_xy, q_theta, q_acc, q_imu, gate (a number or none), P0 (repeatable)",
+    )
+    p.add_argument(
         "--set", action="append", default=[], metavar="noise.FIELD=VALUE",
         help="sensor layer on the logged ranges, e.g. noise.dropout=0.3 (noise.* fields only; default: the log as it is)",
     )
@@ -518,15 +522,17 @@ def _cmd_replay(args) -> int:
         write_log(log, args.export)
         print(f"log {log.name}: {log.ranges.shape[0]} ranges, {log.inputs.shape[0]} inputs written to {args.export}")
         return 0
+    from quadobs.testbed.logs.estimators import parse_tuning
     from quadobs.testbed.logs.replay import log_scenario, run_replay
     from quadobs.testbed.outputs import check_outputs
 
     check_outputs({"--out": args.out, "--summary": args.summary})  # before the calibration's replays
     log_scenario(log, args.dt, args.seed, args.set)  # the --set settings, checked as early
+    tuning = parse_tuning(args.tune)
     summary = run_replay(
         log, estimators=_estimator_list(args.estimators), dt=args.dt, model=args.model, initial_offset=args.initial_offset,
-        seed=args.seed, biases=_replay_biases(args, log), out=args.out, summary_path=args.summary,
-        progress=not args.no_progress, settings=args.set,
+        seed=args.seed, biases=_replay_biases(args, log, tuning), out=args.out, summary_path=args.summary,
+        progress=not args.no_progress, settings=args.set, setup_options=tuning,
     )
     m = summary["measurements"]
     print(f"log {summary['log']}: {summary['duration']:.1f} s, {summary['ranges']['placed']} ranges, model {summary['model']}"
@@ -541,12 +547,14 @@ def _cmd_replay(args) -> int:
     return 130 if summary["interrupted"] else 0
 
 
-def _replay_biases(args, log) -> list[float] | None:
-    """``--biases``, checked; else self-calibrated (``--calibrate self``) or none."""
+def _replay_biases(args, log, tuning: dict) -> list[float] | None:
+    """``--biases``, checked; else self-calibrated (``--calibrate self``, with the ``--tune`` settings) or none."""
     from quadobs.testbed.logs.calibration import calibrate_biases
 
     if args.biases is None:
-        return calibrate_biases(log, dt=args.dt, model=args.model, estimator="ekf") if args.calibrate == "self" else None
+        if args.calibrate == "none":
+            return None
+        return calibrate_biases(log, dt=args.dt, model=args.model, estimator="ekf", setup_options=tuning)
     try:
         biases = [float(v) for v in args.biases.split(",")]
     except ValueError:

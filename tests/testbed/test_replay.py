@@ -305,6 +305,21 @@ def test_the_peer_refuses_a_simulated_scenario():
         build_isam2(load_scenario("beacons2d"), np.zeros(4), "isam2")
 
 
+def test_the_estimators_noise_is_tuned_on_the_command_line(tmp_path, capsys):
+    folder = write_log(synthetic_log(30.0, bias=1.0), tmp_path / "log")
+    args = ["replay", str(folder), "--no-progress", "--summary", str(tmp_path / "s.json"), "--tune", "q_xy=0.5",
+            "--tune", "range_sigma=0.2", "--tune", "gate=none"]
+    assert main(args) == 0
+    s = json.loads((tmp_path / "s.json").read_text())
+    assert s["noise"]["q_xy"] == 0.5 and s["noise"]["range_sigma"] == 0.2 and s["noise"]["gate"] is None
+    np.testing.assert_array_equal(s["biases"], calibrate_biases(read_log(folder), setup_options={"q_xy": 0.5, "range_sigma": 0.2}))
+    for bad, message in (("q_xy=abc", "--tune q_xy: expected a number, got 'abc'"), ("sigma=1", "--tune: expected KEY=VALUE"),
+                         ("P0=-1", "P0: expected a positive finite number")):
+        assert main(["replay", str(folder), "--no-progress", "--tune", bad]) == 2
+        err = capsys.readouterr().err.strip()
+        assert message in err and "\n" not in err
+
+
 # -- accelerometer logs and simulated runs written as logs ----------------------------
 
 

@@ -35,6 +35,7 @@ Noise (the defaults of :class:`ReplaySetup`; the same for every estimator):
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -48,7 +49,7 @@ from quadobs.estimators.kalman import ExtendedKalmanFilter, HeldInputModel, Outp
 
 __all__ = [
     "REPLAY_ENTRY_POINT_GROUP", "REPLAY_ESTIMATORS", "ReplaySetup", "build_isam2", "build_replay_estimators",
-    "replay_estimator_names", "replay_setup",
+    "replay_estimator_names", "replay_setup", "parse_tuning", "TUNING",
 ]
 
 #: The entry-point group of the estimators of logged data.
@@ -92,6 +93,10 @@ class ReplaySetup:
     system: QuadraticSystem = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
+        for key in TUNING:
+            value = getattr(self, key)
+            if not (key == "gate" and value is None) and not (isinstance(value, (int, float)) and 0 < value < math.inf):
+                raise QuadobsError(f"{key}: expected a positive finite number{' or none' if key == 'gate' else ''}, got {value!r}")
         dim = self.beacons.shape[1]
         inputs = 3 if self.input_kind == "odometry" else dim
         make = {
@@ -111,6 +116,28 @@ class ReplaySetup:
     def dim(self) -> int:
         """Dimension of the positions."""
         return int(self.beacons.shape[1])
+
+
+#: The settings of :class:`ReplaySetup` a user may tune (``quadobs replay --tune KEY=VALUE``).
+TUNING = ("range_sigma", "q_xy", "q_theta", "q_acc", "q_imu", "gate", "P0")
+
+
+def parse_tuning(settings) -> dict:
+    """``["q_xy=1", "gate=none", ...]`` as setup options (``gate=none``: no gate); one-line errors naming the setting."""
+    out = {}
+    for text in settings:
+        key, sep, raw = text.partition("=")
+        key = key.strip()
+        if not sep or key not in TUNING:
+            raise QuadobsError(f"--tune: expected KEY=VALUE with KEY one of {', '.join(TUNING)}, got {text!r}")
+        if key == "gate" and raw.strip().lower() == "none":
+            out[key] = None
+            continue
+        try:
+            out[key] = float(raw)
+        except ValueError:
+            raise QuadobsError(f"--tune {key}: expected a number, got {raw.strip()!r}") from None
+    return out
 
 
 def replay_setup(log, world, options: dict | None = None) -> ReplaySetup:
