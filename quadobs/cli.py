@@ -499,7 +499,7 @@ def _add_replay(sub) -> None:
     p.add_argument("--initial-offset", type=float, default=50.0, help="initial guess this far (m) from the truth at t0 (default 50)")
     p.add_argument("--seed", type=int, default=0, help="draws the direction of the initial offset and the sensor layer's noise (default 0)")
     p.add_argument("--calibrate", choices=("self", "none"), default="self",
-                   help="range biases: self-calibrated from the log (default) or none")
+                   help="range biases and the model's process noise: self-calibrated from the log, never its truth (default), or none")
     p.add_argument("--biases", help="comma-separated range bias per beacon (m), in beacons.csv order (overrides --calibrate)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument(
@@ -528,10 +528,10 @@ def _cmd_replay(args) -> int:
 
     check_outputs({"--out": args.out, "--summary": args.summary})  # before the calibration's replays
     log_scenario(log, args.dt, args.seed, args.set)  # the --set settings, checked as early
-    tuning = parse_tuning(args.tune)
+    biases, tuning = _replay_calibration(args, log, parse_tuning(args.tune))
     summary = run_replay(
         log, estimators=_estimator_list(args.estimators), dt=args.dt, model=args.model, initial_offset=args.initial_offset,
-        seed=args.seed, biases=_replay_biases(args, log, tuning), out=args.out, summary_path=args.summary,
+        seed=args.seed, biases=biases, out=args.out, summary_path=args.summary,
         progress=not args.no_progress, settings=args.set, setup_options=tuning,
     )
     m = summary["measurements"]
@@ -547,21 +547,29 @@ def _cmd_replay(args) -> int:
     return 130 if summary["interrupted"] else 0
 
 
-def _replay_biases(args, log, tuning: dict) -> list[float] | None:
-    """``--biases``, checked; else self-calibrated (``--calibrate self``, with the ``--tune`` settings) or none."""
-    from quadobs.testbed.logs.calibration import calibrate_biases
+def _replay_calibration(args, log, tuning: dict) -> tuple[list[float] | None, dict]:
+    """The biases and the noise settings: ``--biases`` as given, else self-calibrated (``--calibrate self``) or none.
 
-    if args.biases is None:
-        if args.calibrate == "none":
-            return None
-        return calibrate_biases(log, dt=args.dt, model=args.model, estimator="ekf", setup_options=tuning)
-    try:
-        biases = [float(v) for v in args.biases.split(",")]
-    except ValueError:
-        raise QuadobsError(f"--biases: expected comma-separated numbers, got {args.biases!r}") from None
-    if len(biases) != log.beacons.shape[0]:
-        raise QuadobsError(f"--biases: {len(biases)} values for {log.beacons.shape[0]} beacons")
-    return biases
+    The self-calibration also picks the model's process noise, unless ``--tune`` sets it.
+    """
+    from quadobs.testbed.logs.calibration import process_noise_key, self_calibrate
+    from quadobs.testbed.worlds.replay import default_model
+
+    if args.biases is not None:
+        try:
+            biases = [float(v) for v in args.biases.split(",")]
+        except ValueError:
+            raise QuadobsError(f"--biases: expected comma-separated numbers, got {args.biases!r}") from None
+        if len(biases) != log.beacons.shape[0]:
+            raise QuadobsError(f"--biases: {len(biases)} values for {log.beacons.shape[0]} beacons")
+        return biases, tuning
+    if args.calibrate == "none":
+        return None, tuning
+    key = process_noise_key(args.model or default_model(log))
+    biases, tuning, scores = self_calibrate(log, dt=args.dt, model=args.model, setup_options=tuning, noise=key not in tuning)
+    print(f"calibrated from the log: biases {', '.join(f'{b:.2f}' for b in biases)} m"
+          + (f"; {key} {tuning[key]:g} (prediction score {scores[tuning[key]]:.3f} m)" if scores else ""))
+    return list(biases), tuning
 
 
 def _sigterm_as_interrupt(signum, frame):  # pragma: no cover - exercised by a subprocess test

@@ -290,6 +290,38 @@ def test_the_bias_calibration_recovers_a_common_bias_without_the_truth():
     np.testing.assert_array_equal(b, calibrate_biases(biased, setup_options=opts))  # the truth is not read
 
 
+def _drifting(log: RangeLog, yaw_bias: float) -> RangeLog:
+    """``log`` with a yaw-rate bias in its odometry: a heading that drifts, as Plaza2's."""
+    inputs = log.inputs.copy()
+    inputs[:, 2] += yaw_bias
+    return RangeLog(f"{log.name}-drift", log.beacon_ids, log.beacons, log.ranges, inputs, log.heading0, log.truth)
+
+
+def _noisy_ranges(log: RangeLog, sigma: float, seed: int) -> RangeLog:
+    ranges = log.ranges.copy()
+    ranges[:, 2] += sigma * np.random.default_rng(seed).standard_normal(len(ranges))
+    return RangeLog(log.name, log.beacon_ids, log.beacons, ranges, log.inputs, log.heading0, log.truth)
+
+
+def test_the_noise_calibration_trusts_good_odometry_and_not_a_drifting_one():
+    from quadobs.testbed.logs.calibration import NOISE_FACTORS, calibrate_noise, self_calibrate
+
+    good = _noisy_ranges(synthetic_log(240.0), 0.3, 1)
+    drift = _drifting(good, 0.01)  # 0.6 degrees per second: 140 degrees of heading error after 240 s
+    q_good, s_good = calibrate_noise(good, np.zeros(4))
+    q_drift, s_drift = calibrate_noise(drift, np.zeros(4))
+    assert len(s_good) == len(NOISE_FACTORS) and q_good <= 1.0 / 16 and q_drift >= 4.0
+    # the truth is not read; what the calibration picks is what the truth prefers
+    blind = RangeLog("blind", drift.beacon_ids, drift.beacons, drift.ranges, drift.inputs, drift.heading0, None)
+    assert calibrate_noise(blind, np.zeros(4)) == (q_drift, s_drift)
+    rmse = {q: run_replay(drift, estimators=["ekf"], initial_offset=2.0, batch=False,
+                          setup_options={"q_xy": q})["estimators"]["ekf"]["rmse"] for q in (q_good, q_drift)}
+    assert rmse[q_drift] < 0.5 * rmse[q_good]
+    b, options, scores = self_calibrate(drift)  # biases, then the noise with them, then the biases again
+    assert set(options) == {"q_xy"} and options["q_xy"] >= 4.0 and len(scores) == len(NOISE_FACTORS) and b.shape == (4,)
+    assert self_calibrate(drift, setup_options={"q_xy": 0.5}, noise=False)[1:] == ({"q_xy": 0.5}, {})
+
+
 def test_the_replay_estimators_are_declared_as_entry_points():
     declared = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["entry-points"]["quadobs.replay_estimators"]
     assert set(declared) == set(REPLAY_ESTIMATORS)
@@ -467,20 +499,24 @@ def test_export_writes_the_open_format(tmp_path, capsys):
     assert log.ranges.shape == (1816, 3) and log.truth.shape[1] == 4
 
 
-# Regression on short excerpts (measured with the defaults of ReplaySetup, no bias
-# calibration, initial guess 50 m off, seed 0): the bounds are the measured values plus 25 %.
+# Regression on short excerpts (measured with the default pipeline of quadobs replay: the
+# biases and the process noise self-calibrated on the excerpt, never from its truth;
+# initial guess 50 m off, seed 0): the bounds are the measured values plus 25 %.
 # name: (excerpt s, augmented RMSE, augmented final error, iSAM2 online RMSE), measured
-EXCERPTS = {"plaza1": ((0.0, 300.0), 5.38, 3.98, 5.93), "plaza2": ((0.0, 150.0), 4.08, 2.32, 7.82)}
+EXCERPTS = {"plaza1": ((0.0, 300.0), 5.02, 3.74, 5.01), "plaza2": ((0.0, 150.0), 3.10, 1.38, 6.71)}
 
 
 @needs_gtsam
 @pytest.mark.parametrize("name", sorted(EXCERPTS))
 def test_regression_on_a_plaza_excerpt(name):
     from quadobs.testbed.logs import load_builtin
+    from quadobs.testbed.logs.calibration import self_calibrate
 
     span, aug_rmse, aug_final, isam_rmse = EXCERPTS[name]
     log = load_builtin(name).excerpt(*span)
-    s = run_replay(log, estimators=["augmented", "ekf", "isam2"], initial_offset=50.0, seed=0)
+    biases, options, _ = self_calibrate(log)
+    s = run_replay(log, estimators=["augmented", "ekf", "isam2"], initial_offset=50.0, seed=0, biases=biases,
+                   setup_options=options)
     e = s["estimators"]
     assert e["augmented"]["max_error"] >= 49.9  # it starts 50 m off
     assert e["augmented"]["rmse"] < 1.25 * aug_rmse and e["augmented"]["final_position_error"] < 1.25 * aug_final

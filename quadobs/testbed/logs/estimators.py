@@ -8,29 +8,33 @@ model), ``ekf`` (the EKF on the original state, in the range ("norm") space), ``
 name) -> Estimator`` with ``setup`` a :class:`ReplaySetup`. The simulated scenarios'
 group ``quadobs.estimators`` is kept apart: its factories take a scenario.
 
-Noise (the defaults of :class:`ReplaySetup`; the same for every estimator):
+Noise (the defaults of :class:`ReplaySetup`; the same for every estimator). The defaults
+are round priors, chosen without looking at any log: a metre for a radio range, a metre
+per second over a second for the odometry, ``1e-3`` rad^2/s for its heading, a m/s^2 over
+a second for an unknown acceleration, a tenth of a m/s^2 for an accelerometer. The replay's
+self-calibration (:mod:`quadobs.testbed.logs.calibration`, the default of ``quadobs
+replay``) replaces the model's process-noise intensity with one it picks from the log's
+ranges, never from the truth.
 
 * ranges: standard deviation ``range_sigma`` (1 m). The augmented observer's output is the
   half squared range, whose standard deviation is about ``rho sigma``: it is given
   ``R = (rho_med range_sigma)^2`` with ``rho_med`` the median measured range of the log;
-* odometry (model ``odometry``): a white noise of intensity ``q_xy`` (m^2/s) on ``p'``
+* odometry (model ``odometry``): a white noise of intensity ``q_xy`` (1 m^2/s) on ``p'``
   (it covers the speed noise and the heading drift of the odometry); on
   the auxiliary state ``xi = |p|^2/2`` (``xi' = u^T p``) the matching intensity
   ``r^2 q_xy``, ``r`` the largest beacon distance from the origin plus 20 m;
-* model ``cv``: a white acceleration of intensity ``q_acc`` (m^2/s^3), and ``r^2 q_acc`` on
+* model ``cv``: a white acceleration of intensity ``q_acc`` (1 m^2/s^3), and ``r^2 q_acc`` on
   each auxiliary state;
-* model ``imu``: the accelerometer's white noise, of intensity ``q_imu`` (m^2/s^3) on
-  ``v' = u``, and ``r^2 q_imu`` on each auxiliary state (``|p|^2/2, p^T v, |v|^2/2``);
+* model ``imu``: the accelerometer's white noise, of intensity ``q_imu`` (``1e-2`` m^2/s^3)
+  on ``v' = u``, and ``r^2 q_imu`` on each auxiliary state (``|p|^2/2, p^T v, |v|^2/2``);
   the initial velocity with variance 4 m^2/s^2 per axis, as for ``cv``;
-* the initial guess ``x0`` with variance ``P0`` per position axis; the augmented
-  observer's initial covariance is that of ``lift(x)`` for ``x ~ N(x0, P0 I)`` on the
-  position: ``var xi = P0 |p0|^2 + P0^2``, ``cov(xi, p) = P0 p0``;
-* no gate on the NIS by default (``gate``: a threshold; on Plaza2, whose odometry heading
-  drifts, a gate at 10.83, the 0.999 quantile of chi-square with 1 degree of freedom,
-  rejects most ranges and the estimates diverge).
-
-``q_xy = 2`` m^2/s and no gate were chosen from a sweep on both Plaza logs
-(``q_xy`` in 0.5, 2, 8; gate 10.83 or none; see ``docs/replay.md``).
+* the initial guess ``x0`` with variance ``P0`` per position axis (``50^2`` m^2, the
+  replay's default initial offset); the augmented observer's initial covariance is that
+  of ``lift(x)`` for ``x ~ N(x0, P0 I)`` on the position: ``var xi = P0 |p0|^2 + P0^2``,
+  ``cov(xi, p) = P0 p0``;
+* no gate on the NIS (``gate``: a threshold; a gate at 10.83, the 0.999 quantile of
+  chi-square with 1 degree of freedom, rejects the ranges that disagree with a drifting
+  odometry heading, and the estimates diverge).
 """
 
 from __future__ import annotations
@@ -83,9 +87,9 @@ class ReplaySetup:
     heading0: float
     range_median: float
     range_sigma: float = 1.0
-    q_xy: float = 2.0
+    q_xy: float = 1.0
     q_theta: float = 1e-3
-    q_acc: float = 2.0
+    q_acc: float = 1.0
     q_imu: float = 1e-2
     gate: float | None = None
     P0: float = 2500.0
