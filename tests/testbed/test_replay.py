@@ -14,7 +14,7 @@ from quadobs.cli import main
 from quadobs.errors import QuadobsError
 from quadobs.testbed.logs import RangeLog, read_log, write_log
 from quadobs.testbed.logs.calibration import calibrate_biases
-from quadobs.testbed.logs.estimators import REPLAY_ESTIMATORS, ReplaySetup, build_isam2
+from quadobs.testbed.logs.estimators import REPLAY_ESTIMATORS, build_isam2
 from quadobs.testbed.logs.replay import run_replay
 from quadobs.testbed.worlds.replay import ReplayWorld, dead_reckoning
 

@@ -168,7 +168,7 @@ def _process_noise(s: ReplaySetup) -> np.ndarray:
 def build_augmented(s: ReplaySetup, x0: np.ndarray, name: str = "augmented") -> AugmentedObserver:
     """The observer of [IFAC2021, Thm. 3] on the immersion of the replay model [ACC2024, Alg. 1]."""
     im = immerse(s.system)
-    k, n = im.n_aux, s.n
+    k = im.n_aux
     r = float(np.max(np.linalg.norm(s.beacons, axis=1))) + 20.0
     V = np.zeros((im.dim, im.dim))
     V[k:, k:] = _process_noise(s)
