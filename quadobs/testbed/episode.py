@@ -311,6 +311,7 @@ class _Episode:
                 pass
             raise
         finally:
+            self.world.close()  # a block computing ahead in the background
             for sink in self.sinks:
                 sink.close()
 
