@@ -244,6 +244,9 @@ class _Episode:
             isinstance(e, BlockStep) and e.blockwise and not isinstance(e, SetValued) for e in ests
         )
         self.block_slots = [(est.step_block, block.rec[e]) for e, est in enumerate(ests)] if self.blockwise else []
+        for est in ests:  # compile (first run) or load the kernels of this path now, not inside the loop
+            est.prepare("block" if self.blockwise else "record")
+        self.world.prepare("step" if path == "step" or self.world.closed_loop else "block")
         self.step_fill = World.fill if path == "step" else None  # the per-step path: one step at a time
         lead = self.world.controller
         self.lead = next((e for e in ests if e.name == lead), None) if lead else ests[0]

@@ -150,6 +150,9 @@ class World(abc.ABC):
         """
         return []
 
+    def prepare(self, path: str) -> None:
+        """Load (or compile) what the episode's ``path`` (``"block"`` or ``"step"``) needs, before its loop. The default: nothing."""
+
     def close(self) -> None:
         """Release what the world holds beyond the episode's loop (a block computing ahead). The default: nothing."""
 

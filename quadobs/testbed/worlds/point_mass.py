@@ -208,7 +208,13 @@ class BlockStepper:
         self._buf_i = 0
         self._rollout = self._block_physics(int(capacity)) if read_step is not None else None
         self._work[1, 4] = 0.0 if self._rollout is None else 1.0
-        if read_step is not None:  # load (or compile) the kernel now, on scratch copies
+        if self._rollout is None:
+            self.prepare_steps()
+
+    def prepare_steps(self) -> None:
+        """Load (or compile) the kernel of :meth:`step` now, on scratch copies, rather than in the first step."""
+        read_step, sim, qb = self._read, self.sim, self.sim.vm.offset_adr.shape[0]
+        if read_step is not None:
             d = sim.data
             scratch = self._consts.copy()
             scratch[14 + qb] = 0.0  # no sensor layer on the scratch row
@@ -506,6 +512,10 @@ class PointMassWorld(World):
 
     def physics_warnings(self) -> np.ndarray:
         return self.stepper.warning_counts()
+
+    def prepare(self, path: str) -> None:
+        if path == "step":
+            self.stepper.prepare_steps()
 
     def close(self) -> None:
         self.stepper.close()
