@@ -110,13 +110,23 @@ def single_threaded_blas():
     other half of a hyperthreaded one) from the simulation loop; on a 2-core machine that
     made every step of the loop up to twice as slow.
     """
-    try:
-        from threadpoolctl import threadpool_limits
-    except ImportError:  # pragma: no cover - optional at run time
+    controller = _blas_controller()
+    if controller is None:  # pragma: no cover - optional at run time
         from contextlib import nullcontext
 
         return nullcontext()
-    return threadpool_limits(limits=1, user_api="blas")
+    return controller.limit(limits=1, user_api="blas")
+
+
+@functools.lru_cache(maxsize=1)
+def _blas_controller():
+    """The process's ``threadpoolctl.ThreadpoolController``, found once (the search of the loaded
+    libraries takes milliseconds, which a campaign of short episodes would pay per episode)."""
+    try:
+        from threadpoolctl import ThreadpoolController
+    except ImportError:  # pragma: no cover - optional at run time
+        return None
+    return ThreadpoolController()
 
 
 def _single_threaded(fn):

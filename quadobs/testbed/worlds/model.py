@@ -289,7 +289,7 @@ def _warning_reader(world):
     data = _world_data(world)
     if data is None:
         return None
-    return lambda: [[w.number for w in data.warning], [w.lastinfo for w in data.warning]]
+    return lambda: (data.warning.number.copy(), data.warning.lastinfo.copy())
 
 
 def _first_jump(world, dim: int, dt: float, count: int) -> int | None:

@@ -353,8 +353,7 @@ class BlockStepper:
         m, d = self._model, self._data
         mujoco.mj_setState(m, d, ahead.state0, _FULL)
         d.qacc_warmstart[:] = ahead.warmstart
-        for i, (n, info) in enumerate(ahead.warnings_before.T):
-            d.warning[i].number, d.warning[i].lastinfo = int(n), int(info)
+        d.warning.number[:], d.warning.lastinfo[:] = ahead.warnings_before
 
     def warning_counts(self) -> np.ndarray:
         """MuJoCo's warning counts after the block just filled (while the next one may be computing)."""
@@ -424,7 +423,8 @@ class BlockStepper:
 
 def warning_counts(data) -> np.ndarray:
     """MuJoCo's warnings of ``data``, ``(2, mjNWARNING)``: the counts and the last info (``mjtWarning`` order)."""
-    return np.array([[w.number for w in data.warning], [w.lastinfo for w in data.warning]], dtype=np.int64)
+    w = data.warning
+    return np.stack([w.number, w.lastinfo]).astype(np.int64)
 
 
 class _Ahead:
