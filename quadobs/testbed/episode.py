@@ -118,13 +118,23 @@ def single_threaded_blas():
     other half of a hyperthreaded one) from the simulation loop; on a 2-core machine that
     made every step of the loop up to twice as slow.
     """
-    try:
-        from threadpoolctl import threadpool_limits
-    except ImportError:  # pragma: no cover - optional at run time
+    controller = _blas_controller()
+    if controller is None:  # pragma: no cover - optional at run time
         from contextlib import nullcontext
 
         return nullcontext()
-    return threadpool_limits(limits=1, user_api="blas")
+    return controller.limit(limits=1, user_api="blas")
+
+
+@functools.lru_cache(maxsize=1)
+def _blas_controller():
+    """The process's ``threadpoolctl.ThreadpoolController``, found once (the search of the loaded
+    libraries takes milliseconds, which a campaign of short episodes would pay per episode)."""
+    try:
+        from threadpoolctl import ThreadpoolController
+    except ImportError:  # pragma: no cover - optional at run time
+        return None
+    return ThreadpoolController()
 
 
 def _single_threaded(fn):
@@ -345,6 +355,9 @@ class _Episode:
             isinstance(e, BlockStep) and e.blockwise and not isinstance(e, SetValued) for e in ests
         )
         self.block_slots = [(self._clocked(est.step_block, e), block.rec[e]) for e, est in enumerate(ests)] if self.blockwise else []
+        for est in ests:  # compile (first run) or load the kernels of this path now, not inside the loop
+            est.prepare("block" if self.blockwise else "record")
+        self.world.prepare("step" if path == "step" or self.world.closed_loop else "block")
         self.step_fill = World.fill if path == "step" else None  # the per-step path: one step at a time
         lead = self.world.controller
         self.lead = next((e for e in ests if e.name == lead), None) if lead else ests[0]
@@ -414,6 +427,7 @@ class _Episode:
                 pass
             raise
         finally:
+            self.world.close()  # a block computing ahead in the background
             for sink in self.sinks:
                 sink.close()
 
