@@ -8,7 +8,7 @@ import pytest
 from quadobs import load_scenario
 from quadobs.estimators.base import BlockStep
 from quadobs.recording import read_series
-from quadobs.testbed.episode import WALL_CLOCK_KEYS, _Episode, run_episode
+from quadobs.testbed.episode import WALL_CLOCK_KEYS, _Episode, run_episode, scenario_parts
 from quadobs.testbed.factories import augmented_observer
 from quadobs.testbed.sensors import SensorModel, spawn_streams
 from quadobs.testbed.worlds import PointMassWorld
@@ -101,7 +101,7 @@ def test_block_and_per_step_paths_give_the_same_summary(name, estimators, durati
 
 def test_the_block_path_is_the_default_for_compiled_estimators_in_an_open_loop_world():
     def episode(sc, names, path="auto"):
-        return _Episode(sc, names, None, None, 8192, False, 0, path)
+        return _Episode(**scenario_parts(sc, names), path=path)
 
     sc = load_scenario("ifac2021-noisy", duration=0.1)
     assert episode(sc, ["augmented"]).blockwise
