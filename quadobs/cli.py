@@ -23,6 +23,7 @@ import shutil
 import signal
 import sys
 import textwrap
+import time
 from pathlib import Path
 
 from quadobs.errors import QuadobsError, RunFault, new_folders_removed_on_failure
@@ -84,6 +85,20 @@ def _one_line(text: str, width: int) -> str:
         return line
     cut = line[: max(width - 3, 1)].rsplit(" ", 1)[0].rstrip(" ,;:")
     return cut + "..."
+
+
+def _cmd_compile(args) -> int:
+    """``quadobs compile``: the kernels into Numba's on-disk cache ahead of the first run, side by side."""
+    from quadobs._kernels import cold_kernels
+    from quadobs._kernels.precompile import SIGNATURES, compile_side_by_side
+
+    t0 = time.perf_counter()
+    todo = list(SIGNATURES) if args.force else cold_kernels(SIGNATURES)
+    done = compile_side_by_side(todo)
+    left = cold_kernels(SIGNATURES)
+    print(f"quadobs compile: {len(done)} of {len(todo)} kernels compiled in {time.perf_counter() - t0:.1f} s; "
+          f"{len(SIGNATURES) - len(left)} of {len(SIGNATURES)} in the cache")
+    return 0 if not left else 1
 
 
 def _cmd_list(args) -> int:
@@ -163,6 +178,12 @@ def _cmd_run(args) -> int:
         raise QuadobsError("--runs: applies to le2013 only; for many seeded runs of a scenario use 'quadobs campaign'")
     scenario = load_scenario(args.scenario, duration=args.duration, seed=args.seed, settings=args.set)
     estimators = _estimator_list(args.estimators)
+    sinks = []
+    if args.export_log is not None:
+        from quadobs.testbed.logs.export import LogExportSink, check_exportable
+
+        check_exportable(scenario)
+        sinks.append(LogExportSink(args.export_log))
     _notice_cost(scenario, estimators, args.out is not None)
     _notice_cold_kernels(_episode_kernels(estimators))
     result = run_episode(
@@ -171,12 +192,15 @@ def _cmd_run(args) -> int:
         out=args.out,
         summary_path=args.summary,
         progress=not args.no_progress,
+        sinks=sinks,
     )
     print_summary(result.summary)
     if "output_error" in result.summary:  # the table is out; the summary file could not be written
         raise RunFault(result.summary["output_error"])
     if args.summary:
         print(f"summary: {args.summary}")
+    if args.export_log is not None:
+        print(f"log: {args.export_log}  (replay with: quadobs replay {args.export_log} --dt {scenario.dt:g})")
     return 130 if result.summary.get("interrupted") else 0
 
 
@@ -308,15 +332,19 @@ class _EstimatorsOption(argparse._StoreAction):
 
 
 #: Kernels ("module:function") a first run compiles, per command (see :func:`_notice_cold_kernels`).
-EPISODE_KERNELS = ("quadobs.testbed.worlds._read:read_step",)  # it compiles sensor_step inside it
-AUGMENTED_KERNELS = ("quadobs._kernels.observer:augmented_step", "quadobs._kernels.observer:augmented_step_record")
+EPISODE_KERNELS = (  # the default (block) path: the world's read-out with the sensor layer, the excitation monitor
+    "quadobs.testbed.worlds._read:read_block",
+    "quadobs._kernels.gramian:held_run_terms",
+    "quadobs._kernels.observer:range_outputs",
+)
+AUGMENTED_KERNELS = ("quadobs._kernels.observer:augmented_step_block",)
 LE2013_KERNELS = ("quadobs._kernels.zonotope:zonotope_step",)
 BENCH_KERNELS = (
     "quadobs._kernels.observer:augmented_step",
     "quadobs._kernels.observer:augmented_step_batch",
     "quadobs._kernels.zonotope:zonotope_step",
 )
-COMPILING_NOTICE = "quadobs: compiling the estimator kernels (first run only, about 15 s)..."
+COMPILING_NOTICE = "quadobs: compiling the estimator kernels (first run only, a few seconds)..."
 
 
 def _episode_kernels(estimators: list[str] | None) -> tuple[str, ...]:
@@ -337,18 +365,22 @@ def _notice_cost(scenario, estimators, recording: bool, runs: int = 1, workers: 
 
 
 def _notice_cold_kernels(kernels, file=None) -> bool:
-    """Print :data:`COMPILING_NOTICE` on stderr when some of ``kernels`` are not in Numba's cache yet."""
+    """Print :data:`COMPILING_NOTICE` on stderr when some of ``kernels`` are not in Numba's cache yet,
+    then compile those side by side (:func:`quadobs._kernels.precompile.compile_side_by_side`)."""
     from quadobs._kernels import cold_kernels
+    from quadobs._kernels.precompile import compile_side_by_side
 
-    if not cold_kernels(kernels):
+    cold = cold_kernels(kernels)
+    if not cold:
         return False
     print(COMPILING_NOTICE, file=file or sys.stderr, flush=True)
+    compile_side_by_side(cold)
     return True
 
 
 def _output_paths(args) -> list[Path]:
     """The output files and folders named on the command line (removed again if the command fails and they are empty)."""
-    return [value for name in ("out", "summary", "json") if isinstance(value := getattr(args, name, None), Path)]
+    return [value for name in ("out", "summary", "json", "export", "export_log") if isinstance(value := getattr(args, name, None), Path)]
 
 
 def _cmd_plot(args) -> int:
@@ -388,6 +420,10 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("list", help="name the built-in scenarios")
     p.set_defaults(func=_cmd_list)
 
+    p = sub.add_parser("compile", help="compile the kernels into the on-disk cache now (side by side), so a first run starts at once")
+    p.add_argument("--force", action="store_true", help="compile every kernel, even those already cached")
+    p.set_defaults(func=_cmd_compile)
+
     p = sub.add_parser("run", help="run one episode headless, record it and print a summary")
     p.add_argument("scenario", help="built-in scenario name (see 'quadobs list') or path to a scenario .toml")
     p.add_argument("--out", type=Path, help="recording to write (.rrd)")
@@ -400,6 +436,8 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--runs", type=int, help="le2013 only: number of seeded runs (default 50; --duration is the number of samples)")
+    p.add_argument("--export-log", type=Path, metavar="DIR",
+                   help="also write the run as a log folder in the open format (ranges, accelerometer, truth), for 'quadobs replay'")
     _add_set(p)
     p.set_defaults(func=_cmd_run)
 
@@ -482,14 +520,23 @@ def _add_replay(sub) -> None:
     p.add_argument("--summary", type=Path, help="JSON summary to write")
     p.add_argument("--estimators", help="comma-separated names (default: augmented,ekf; isam2: the GTSAM peer)")
     p.add_argument("--export", type=Path, help="write the log in the open format to this folder and stop")
-    p.add_argument("--model", choices=("odometry", "cv"), default="odometry", help="vehicle model (default odometry)")
+    p.add_argument("--model", choices=("odometry", "cv", "imu"),
+                   help="vehicle model (default: odometry for an odometry log, imu for an accelerometer log)")
     p.add_argument("--dt", type=float, default=0.1, help="replay grid step in s (default 0.1)")
     p.add_argument("--initial-offset", type=float, default=50.0, help="initial guess this far (m) from the truth at t0 (default 50)")
-    p.add_argument("--seed", type=int, default=0, help="draws the direction of the initial offset (default 0)")
+    p.add_argument("--seed", type=int, default=0, help="draws the direction of the initial offset and the sensor layer's noise (default 0)")
     p.add_argument("--calibrate", choices=("self", "none"), default="self",
-                   help="range biases: self-calibrated from the log (default) or none")
+                   help="range biases and the model's process noise: self-calibrated from the log, never its truth (default), or none")
     p.add_argument("--biases", help="comma-separated range bias per beacon (m), in beacons.csv order (overrides --calibrate)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument(
+        "--tune", action="append", default=[], metavar="KEY=VALUE",
+        help="the estimators' noise settings: range_sigma, q_xy, q_theta, q_acc, q_imu, gate (a number or none), P0 (repeatable)",
+    )
+    p.add_argument(
+        "--set", action="append", default=[], metavar="noise.FIELD=VALUE",
+        help="sensor layer on the logged ranges, e.g. noise.dropout=0.3 (noise.* fields only; default: the log as it is)",
+    )
     p.set_defaults(func=_cmd_replay)
 
 
@@ -502,28 +549,21 @@ def _cmd_replay(args) -> int:
         write_log(log, args.export)
         print(f"log {log.name}: {log.ranges.shape[0]} ranges, {log.inputs.shape[0]} inputs written to {args.export}")
         return 0
-    from quadobs.errors import check_writable
-    from quadobs.testbed.logs.calibration import calibrate_biases
-    from quadobs.testbed.logs.replay import run_replay
+    from quadobs.testbed.logs.estimators import parse_tuning
+    from quadobs.testbed.logs.replay import log_scenario, run_replay
+    from quadobs.testbed.outputs import check_outputs
 
-    for path in (args.out, args.summary):  # before the calibration's replays
-        if path is not None:
-            check_writable(path)
-    biases = None
-    if args.biases is not None:
-        try:
-            biases = [float(v) for v in args.biases.split(",")]
-        except ValueError:
-            raise QuadobsError(f"--biases: expected comma-separated numbers, got {args.biases!r}") from None
-        if len(biases) != log.beacons.shape[0]:
-            raise QuadobsError(f"--biases: {len(biases)} values for {log.beacons.shape[0]} beacons")
-    elif args.calibrate == "self":
-        biases = calibrate_biases(log, dt=args.dt, model=args.model, estimator="ekf")
+    check_outputs({"--out": args.out, "--summary": args.summary})  # before the calibration's replays
+    log_scenario(log, args.dt, args.seed, args.set)  # the --set settings, checked as early
+    biases, tuning = _replay_calibration(args, log, parse_tuning(args.tune))
     summary = run_replay(
         log, estimators=_estimator_list(args.estimators), dt=args.dt, model=args.model, initial_offset=args.initial_offset,
-        seed=args.seed, biases=biases, out=args.out, summary_path=args.summary, progress=not args.no_progress,
+        seed=args.seed, biases=biases, out=args.out, summary_path=args.summary,
+        progress=not args.no_progress, settings=args.set, setup_options=tuning,
     )
+    m = summary["measurements"]
     print(f"log {summary['log']}: {summary['duration']:.1f} s, {summary['ranges']['placed']} ranges, model {summary['model']}"
+          + (f", {m['dropped']} dropped, {m['outliers_injected']} outliers injected" if m["dropped"] or m["outliers_injected"] else "")
           + ("  [INTERRUPTED]" if summary["interrupted"] else ""))
     for name, e in summary["estimators"].items():
         extra = f"  batch LM rmse {_fmt(e['batch_rmse'], ' m')}" if e.get("batch_rmse") is not None else ""
@@ -532,6 +572,31 @@ def _cmd_replay(args) -> int:
     if args.summary:
         print(f"summary: {args.summary}")
     return 130 if summary["interrupted"] else 0
+
+
+def _replay_calibration(args, log, tuning: dict) -> tuple[list[float] | None, dict]:
+    """The biases and the noise settings: ``--biases`` as given, else self-calibrated (``--calibrate self``) or none.
+
+    The self-calibration also picks the model's process noise, unless ``--tune`` sets it.
+    """
+    from quadobs.testbed.logs.calibration import process_noise_key, self_calibrate
+    from quadobs.testbed.worlds.replay import default_model
+
+    if args.biases is not None:
+        try:
+            biases = [float(v) for v in args.biases.split(",")]
+        except ValueError:
+            raise QuadobsError(f"--biases: expected comma-separated numbers, got {args.biases!r}") from None
+        if len(biases) != log.beacons.shape[0]:
+            raise QuadobsError(f"--biases: {len(biases)} values for {log.beacons.shape[0]} beacons")
+        return biases, tuning
+    if args.calibrate == "none":
+        return None, tuning
+    key = process_noise_key(args.model or default_model(log))
+    biases, tuning, scores = self_calibrate(log, dt=args.dt, model=args.model, setup_options=tuning, noise=key not in tuning)
+    print(f"calibrated from the log: biases {', '.join(f'{b:.2f}' for b in biases)} m"
+          + (f"; {key} {tuning[key]:g} (prediction score {scores[tuning[key]]:.3f} m)" if scores else ""))
+    return list(biases), tuning
 
 
 def _sigterm_as_interrupt(signum, frame):  # pragma: no cover - exercised by a subprocess test

@@ -1,9 +1,11 @@
 """The compiled (Numba) kernels of the estimators, the Gramian and the zonotopes.
 
-The kernels are compiled with ``cache=True``: the first run compiles them (about 15 s) and
-writes the machine code beside the modules (or under ``NUMBA_CACHE_DIR``); later runs load
-it. :func:`cold_kernels` tells, without compiling anything, which kernels a first run
-would compile, so that an application can say so before the silence.
+The kernels are compiled with ``cache=True``: the first run compiles them and writes the
+machine code beside the modules (or under ``NUMBA_CACHE_DIR``); later runs load it.
+:func:`cold_kernels` tells, without compiling anything, which kernels a first run would
+compile, so that an application can say so before the silence;
+:mod:`quadobs._kernels.precompile` compiles them side by side in child processes
+(``quadobs compile``, run by the installation command of the README, or by a first run).
 """
 
 from __future__ import annotations

@@ -41,13 +41,15 @@ def held_run_terms(U, F0, F1, G0, G1, G2, P, W, Phi, G, T):
     N = F0.shape[0]
     k = F1.shape[1]
     p = U.shape[1]
-    P[:, :] = 0.0
-    for a in range(N):
-        P[a, a] = 1.0
-    W[:, :] = 0.0
+    for a in range(N):  # element loops rather than slice assignments, which compile Numba's
+        for b in range(N):  # broadcasting and its error messages (seconds on a first run)
+            P[a, b] = 1.0 if a == b else 0.0
+            W[a, b] = 0.0
     for t in range(U.shape[0]):
-        Phi[:, :] = F0
-        G[:, :] = G0
+        for a in range(N):
+            for b in range(N):
+                Phi[a, b] = F0[a, b]
+                G[a, b] = G0[a, b]
         for j in range(p):
             uj = U[t, j]
             for a in range(k):
@@ -64,4 +66,6 @@ def held_run_terms(U, F0, F1, G0, G1, G2, P, W, Phi, G, T):
         _product(G, P, T, False)  # T = G P
         _product(P.T, T, W, True)  # W += P^T G P
         _product(Phi, P, T, False)  # T = Phi P
-        P[:, :] = T
+        for a in range(N):
+            for b in range(N):
+                P[a, b] = T[a, b]

@@ -224,12 +224,13 @@ def odometry_system(beacons: np.ndarray) -> QuadraticSystem:
     return QuadraticSystem(np.zeros((2, 2)), B, C, d)
 
 
-def constant_velocity_system(beacons: np.ndarray) -> QuadraticSystem:
+def constant_velocity_system(beacons: np.ndarray, inputs: int = 3) -> QuadraticSystem:
     """A ground vehicle in the plane with a constant velocity, driven by process noise only.
 
     State ``x = (p, v)``; ``p' = v``, ``v' = w`` (the process noise of the estimator);
-    the input ``u = (v_x, v_y, omega)`` of :func:`odometry_system` is accepted and ignored
-    (``B = 0``), so both models replay the same rows. Outputs as in :func:`odometry_system`.
+    an input of ``inputs`` components (the ``u = (v_x, v_y, omega)`` of :func:`odometry_system`
+    by default, or an acceleration) is accepted and ignored (``B = 0``), so the models
+    replay the same rows. Outputs as in :func:`odometry_system`.
     Assumption: the velocity changes slowly against the range rate (its changes are white
     noise of the intensity the estimator is given). Three auxiliary states
     ``|p|^2/2, p^T v, |v|^2/2`` (as for :func:`vehicle_system`).
@@ -239,4 +240,4 @@ def constant_velocity_system(beacons: np.ndarray) -> QuadraticSystem:
         raise QuadobsError("beacons: at least one beacon is needed")
     A, _ = _double_integrator(2)
     C, d = _planar_ranges(beacons, 4)
-    return QuadraticSystem(A, np.zeros((4, 3)), C, d)
+    return QuadraticSystem(A, np.zeros((4, int(inputs))), C, d)

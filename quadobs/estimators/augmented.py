@@ -264,16 +264,32 @@ class AugmentedObserver(Estimator, Gated, Immersed, BlockStep):
             # One buffer S = [z | P | W]: the kernels take five arrays (see quadobs._kernels.observer).
             self._S = np.concatenate([self._z, self._P.ravel(), km.work()])
             self._fc, self._ic = km.fc, km.ic
-            self._bind_kernels()
-            # Load (or compile) the kernels now, on scratch copies, rather than in the first step.
-            S = self._S
-            self._kernel(np.zeros(self._ushape), np.full(self._yshape, np.nan), S.copy(), km.fc, km.ic)
-            self._krecord(np.zeros(self._ushape), np.full(self._yshape, np.nan), S.copy(), km.fc, km.ic, np.zeros(n + 3))
-            rows = np.zeros((2, n + 3))  # the block kernel, for the strided row views an episode passes
-            self._kblock(np.zeros((2, 2 * q + n))[:, : self._ushape[0]], rows[:, : q], S.copy(), km.fc, km.ic, rows)
+            self._bind_kernels()  # compiled at their first call, or by prepare()
         else:
             self._stats = np.array([np.nan, 0.0, 0.0, 0.0])  # nis, corrections, rejected, trace(P)
         self._stats[3] = np.trace(self._P)
+
+    def prepare(self, path: str) -> None:
+        """Load (or compile) the kernel of ``path`` (see :meth:`Estimator.prepare`) on scratch copies.
+
+        ``"record"`` and ``"block"`` are prepared for the strided row views an episode passes.
+        """
+        if self._kernel is None:
+            return
+        n, q, p = self._rshape[0] - 3, self._yshape[0], self._ushape[0]
+        S, fc, ic = self._S.copy(), self._fc, self._ic
+        u, y = np.zeros(p), np.full(q, np.nan)
+        if path == "step":
+            self._kernel(u, y, S, fc, ic)
+            return
+        rows = np.zeros((2, 2 * q + n))  # row views of a wider array, as an episode's block passes them
+        rec = np.zeros((2, n + 3))
+        if path == "record":
+            self._krecord(rows[0, :p], rows[0, p : p + q], S, fc, ic, rec[0])
+        elif path == "block":
+            self._kblock(rows[:, :p], rows[:, p : p + q], S, fc, ic, rec)
+        else:
+            raise QuadobsError(f"prepare: path must be 'step', 'record' or 'block', got {path!r}")
 
     def _bind_kernels(self) -> None:
         """Views of ``S = [z | P | W]`` and the compiled kernels (after construction or unpickling)."""

@@ -86,6 +86,15 @@ class Estimator(abc.ABC):
         P = self.x_covariance
         return float(np.trace(P)) if P is not None else float("nan")
 
+    def prepare(self, path: str) -> None:
+        """Load (or compile) now what the calls of ``path`` need, rather than in the first of them.
+
+        ``path`` is ``"step"`` (:meth:`step`), ``"record"`` (:meth:`step_and_record`) or
+        ``"block"`` (:meth:`BlockStep.step_block`). An episode calls it before its loop, so
+        a first run compiles only the kernels its path uses and its timings hold no
+        compilation. The default: nothing to prepare.
+        """
+
     def step_and_record(self, u: np.ndarray, y: np.ndarray, out: np.ndarray) -> None:
         """:meth:`step`, writing what the testbed records of it into the row ``out (n + 3,)``.
 

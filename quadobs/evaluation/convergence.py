@@ -28,12 +28,14 @@ __all__ = ["state_errors", "ConvergenceTracker", "convergence_times", "json_time
 
 
 def state_errors(dim: int, has_wind: bool, x_hat: np.ndarray, x: np.ndarray) -> dict[str, np.ndarray]:
-    """Errors ``x_hat - x`` split into position and ground velocity (and wind).
+    """Errors ``x_hat - x`` split into position and ground velocity (and wind); the position only when ``n < 2 dim``.
 
     For the wind state ``(p, v_a, v_w)`` the ground velocity is ``v_a + v_w``. Works on
     one state ``(n,)`` or on rows of states ``(T, n)``.
     """
     e = x_hat - x
+    if e.shape[-1] < 2 * dim:  # a state without a velocity (a vehicle driven by its odometry)
+        return {"position": e[..., :dim]}
     if not has_wind:
         return {"position": e[..., :dim], "velocity": e[..., dim : 2 * dim]}
     return {

@@ -17,6 +17,10 @@ Figures (keys of the JSON written by ``--json``):
     The same with the ``.rrd`` recording: physics + observer + recording over bare physics.
 ``recording_fraction``
     Share of the recorded loop's time due to the recording: ``1 - t_norec / t_rec``.
+``serial_observer_loop_ratio``, ``serial_loop_ratio``, ``serial_recording_fraction``
+    The same three figures on the block path without the background thread
+    (``PointMassWorld(pipelined=False)``: each block's physics in the loop's own thread),
+    measured in the same repeats: what the second core brings.
 ``step_observer_loop_ratio``, ``step_loop_ratio``, ``step_recording_fraction``
     The same three figures on the per-step path (``run_episode(path="step")``), measured
     in the same repeats.
@@ -26,6 +30,9 @@ Figures (keys of the JSON written by ``--json``):
 ``best``
     The same three figures from the fastest run of each kind (least disturbed by other
     load on the machine).
+``cold_start``
+    A first run on a fresh kernel cache (:func:`_cold_start`): ``cold_run_s``,
+    ``compile_s`` (``quadobs compile``), ``first_run_s`` (the run after it).
 ``observer_block_step_us``
     One row of :meth:`AugmentedObserver.step_block` (a block of rows in one compiled call).
 ``campaign``
@@ -129,11 +136,41 @@ def _quartiles(xs) -> dict:
     return {"median": med, "q1": q1, "q3": q3, "iqr": q3 - q1}
 
 
-def _loop_us(scenario, out: Path | None, path: str = "auto") -> float:
-    from quadobs.testbed.episode import run_episode
+def _loop_us(scenario, out: Path | None, path: str = "auto", pipelined: bool = True) -> float:
+    """Wall time per step of ``run_episode`` with the augmented observer; ``pipelined=False``:
+    the block path with the next block's physics computed in the loop's own thread."""
+    import functools
 
-    summary = run_episode(scenario, estimators=["augmented"], out=out, path=path).summary
+    from quadobs.testbed.episode import run_episode
+    from quadobs.testbed.worlds import PointMassWorld
+
+    world = None if pipelined else functools.partial(PointMassWorld, pipelined=False)
+    summary = run_episode(scenario, estimators=["augmented"], out=out, path=path, world=world).summary
     return summary["wall_time"] / summary["physics_steps"] * 1e6
+
+
+def _cold_start(scenario: str = "ifac2021") -> dict:
+    """Seconds from the command to the end of a one-step ``quadobs run`` on a fresh kernel cache.
+
+    An upper bound on the time a first run of a fresh install spends before its first
+    step: the whole process (interpreter, imports, kernels, world, one step, summary) with
+    ``NUMBA_CACHE_DIR`` an empty folder. ``cold_run_s``: the run compiles what it needs
+    itself (side by side, :mod:`quadobs._kernels.precompile`); ``compile_s``: ``quadobs
+    compile`` on an empty cache (the ahead-of-time step of the installation in the
+    README); ``first_run_s``: the run after it.
+    """
+    import subprocess
+
+    run = [sys.executable, "-m", "quadobs", "run", scenario, "--duration", "0.001", "--no-progress"]
+    out = {}
+    for key, commands in (("cold_run_s", [run]), ("compile_s", [[sys.executable, "-m", "quadobs", "compile"], run])):
+        with tempfile.TemporaryDirectory() as cache:
+            env = dict(os.environ, NUMBA_CACHE_DIR=cache)
+            for name, cmd in zip((key, "first_run_s"), commands):
+                t0 = time.perf_counter()
+                subprocess.run(cmd, env=env, check=True, capture_output=True)
+                out[name] = time.perf_counter() - t0
+    return out
 
 
 def _vehicle_data(scenario, steps: int):
@@ -182,6 +219,7 @@ def _observer_step_us(scenario, calls: int, repeats: int, backend: str) -> float
             obs.immersion, scenario.dt, V=obs.model.V, W=obs.W, P0=obs.P.copy(), theta=obs.model.theta,
             sample_period=scenario.dt, gate=obs.gate, backend=backend,
         )
+    obs.prepare("step")  # compiled (or loaded) before the timing
     times = []
     for _ in range(repeats):
         t0 = time.perf_counter()
@@ -572,12 +610,14 @@ def _run_bench(steps, repeats, batch, batch_steps, threads, quick, log) -> dict:
     say(f"single vehicle: {loops} x (bare physics, then the loop without and with recording on the block and the per-step path) of {steps} steps")
     _loop_us(sc.with_overrides(duration=min(steps, 2000) * sc.dt), None)  # warm-up
     _loop_us(sc.with_overrides(duration=min(steps, 2000) * sc.dt), None, "step")
-    runs: dict[str, list[float]] = {k: [] for k in ("bare", "norec", "rec", "step_norec", "step_rec")}
+    runs: dict[str, list[float]] = {k: [] for k in ("bare", "norec", "rec", "step_norec", "step_rec", "serial_norec", "serial_rec")}
     with tempfile.TemporaryDirectory() as tmp:
         for r in range(loops):
             runs["bare"].append(_bare_physics_us(sc, steps))
             runs["norec"].append(_loop_us(sc, None))
             runs["rec"].append(_loop_us(sc, Path(tmp) / f"bench{r}.rrd"))
+            runs["serial_norec"].append(_loop_us(sc, None, pipelined=False))
+            runs["serial_rec"].append(_loop_us(sc, Path(tmp) / f"bench{r}1.rrd", pipelined=False))
             runs["step_norec"].append(_loop_us(sc, None, "step"))
             runs["step_rec"].append(_loop_us(sc, Path(tmp) / f"bench{r}s.rrd", "step"))
     bare, norec, rec = runs["bare"], runs["norec"], runs["rec"]
@@ -587,7 +627,7 @@ def _run_bench(steps, repeats, batch, batch_steps, threads, quick, log) -> dict:
     result["recorded_loop_us"] = _median(rec)
     result["step_recorded_loop_us"] = _median(runs["step_rec"])
     series = {}
-    for prefix, a, b in (("", "norec", "rec"), ("step_", "step_norec", "step_rec")):
+    for prefix, a, b in (("", "norec", "rec"), ("serial_", "serial_norec", "serial_rec"), ("step_", "step_norec", "step_rec")):
         series[f"{prefix}observer_loop_ratio"] = [x / y for x, y in zip(bare, runs[a])]
         series[f"{prefix}loop_ratio"] = [x / y for x, y in zip(bare, runs[b])]
         series[f"{prefix}recording_fraction"] = [1.0 - x / y for x, y in zip(runs[a], runs[b])]
@@ -636,6 +676,8 @@ def _run_bench(steps, repeats, batch, batch_steps, threads, quick, log) -> dict:
     result["scaling"] = _scaling(max(min(calls, 2000), 50), quick, max(repeats // 2, 1))
     dense_row = next(row for row in result["scaling"] if row["system"] == "dense")
     result["observer_step_us_N38"] = dense_row[f"{default_backend()}_median_us"]
+    say("first run on a fresh kernel cache, with and without 'quadobs compile' before it")
+    result["cold_start"] = _cold_start()
     notes.append("GPU batch figure: not measured (quadobs has no GPU path; the batch runs on the CPU)")
     result["targets"] = {
         "loop_ratio >= 1.0": _meets(result["loop_ratio"], 1.0, ">="),
@@ -646,6 +688,7 @@ def _run_bench(steps, repeats, batch, batch_steps, threads, quick, log) -> dict:
         "observer_step_us_N38 <= 40": _meets(result["observer_step_us_N38"], 40.0, "<="),
         "zonotope_step_us < 50": _meets(result["zonotope_step_us"], 50.0, "<"),
         "quadrotor_ratio >= 0.3": _meets(result["quadrotor"]["quadrotor_ratio"], 0.3, ">="),
+        "first run after quadobs compile <= 5 s": _meets(result["cold_start"]["first_run_s"], 5.0, "<="),
     }
     result["notes"] = notes
     return result
@@ -676,11 +719,11 @@ def print_bench(r: dict, file=None) -> None:
     p(f"  physics + observer + recording  ratio {r['loop_ratio']:.2f}        ({r['recorded_loop_us']:.2f} us/step); "
       f"recording {100 * r['recording_fraction']:.1f}% of the loop")
     sp = r["spread"]
-    p(f"  median [q1, q3] over {c.get('loop_repeats', c['repeats'])} repeats     block path (default)     per-step path")
+    p(f"  median [q1, q3] over {c.get('loop_repeats', c['repeats'])} repeats  block path (default)    block, one thread        per-step path")
     for key, label in (("observer_loop_ratio", "ratio without recording"), ("loop_ratio", "ratio with recording"),
                        ("recording_fraction", "recording fraction")):
-        a, b = sp[key], sp["step_" + key]
-        p(f"  {label:34s} {a['median']:.3f} [{a['q1']:.3f}, {a['q3']:.3f}]    {b['median']:.3f} [{b['q1']:.3f}, {b['q3']:.3f}]")
+        cells = [sp[prefix + key] for prefix in ("", "serial_", "step_") if prefix + key in sp]
+        p(f"  {label:31s} " + "    ".join(f"{a['median']:.3f} [{a['q1']:.3f}, {a['q3']:.3f}]" for a in cells))
     b = r["best"]
     p(f"  fastest runs: bare {b['bare_step_us']:.2f} us/step, ratios {b['observer_loop_ratio']:.2f} and {b['loop_ratio']:.2f}, "
       f"recording {100 * b['recording_fraction']:.1f}%")
@@ -710,6 +753,9 @@ def print_bench(r: dict, file=None) -> None:
     p(f"quadrotor {q['scenario']} ({q['steps']} steps, {q['repeats']} repeats): bare mj_step {q['bare_step_us']:.2f} us/step, "
       f"loop with recording {q['loop_us']:.2f} us/step ({q['loop_steps_per_s']:,.0f} steps/s); ratio {q['quadrotor_ratio']:.2f} "
       f"[{q['spread']['q1']:.2f}, {q['spread']['q3']:.2f}]")
+    cs = r["cold_start"]
+    p(f"first run on a fresh kernel cache (one-step run, whole process): {cs['cold_run_s']:.1f} s compiling in the run; "
+      f"'quadobs compile' {cs['compile_s']:.1f} s, then the first run {cs['first_run_s']:.1f} s")
     p("observer step against the dimensions (us per step, fastest of a few repeats)")
     backend = r["backend"]
     p(f"  {'system':8s} {'n':>3s} {'q':>3s} {'N':>4s} {backend:>8s} {'numpy':>8s}")

@@ -2,7 +2,7 @@
 
 .. code-block:: text
 
-    world = PointMassWorld(scenario, sensors)        # MuJoCo point mass, sensor layer fused
+    world = PointMassWorld(scenario, sensors)        # MuJoCo point mass, sensor layer fused (or any World)
     for each block of steps:
         world.begin_block(k0, count); world.fill(count)   # truth, readings, y_k, u_k per row
         block path:     for est in estimators: est.step_block(U, Y, rows)   # one call each
@@ -36,6 +36,14 @@ steps (:class:`~quadobs.testbed.sinks.StepSink`). The per-step path (``path="ste
 always for closed-loop worlds or other estimators): ``mj_step`` and the compiled read
 once per step, then each estimator's ``step_and_record`` once per row.
 
+One loop for every world. :func:`run_episode` builds a scenario's parts
+(:func:`scenario_parts`: its :class:`~quadobs.testbed.sinks.EpisodeFrame`, world, sensor
+layer and estimators) and hands them to :func:`run_loop`, which runs :class:`_Episode`
+over them, writes the summary and publishes the outputs. A replay of a logged run
+(:func:`quadobs.testbed.logs.replay.run_replay`) hands it a
+:class:`~quadobs.testbed.worlds.replay.ReplayWorld`, the frame of its log and its own
+summary: the same loop, sinks and recording layout.
+
 Stops. A block's sensor events are counted and its rows handed to the sinks inside
 :func:`~quadobs.errors.deferred_interrupts`; a Ctrl-C (or SIGTERM) anywhere else hands the
 sinks the rows of the steps completed so far, so every completed row reaches the
@@ -58,11 +66,11 @@ from quadobs.testbed.registry import build_estimators, default_estimators
 from quadobs.testbed.scenario import Scenario
 from quadobs.testbed.sensors import SensorModel, initial_guess, spawn_streams
 from quadobs.testbed.sinks import (
-    Block, BoundsSink, ConvergenceSink, EpisodeContext, ExcitationSink, ProgressSink, RecordingSink, Rows, Sink,
-    StepSink, TraceSink, merge,
+    Block, BoundsSink, ConvergenceSink, EpisodeContext, EpisodeFrame, ExcitationSink, ProgressSink, RecordingSink, Rows,
+    Sink, StepSink, TraceSink, merge,
 )
 
-__all__ = ["EpisodeResult", "run_episode", "write_json_atomic", "WALL_CLOCK_KEYS", "PATHS"]
+__all__ = ["EpisodeResult", "run_episode", "run_loop", "scenario_parts", "write_json_atomic", "WALL_CLOCK_KEYS", "PATHS"]
 
 #: How :func:`run_episode` advances: ``"auto"`` (the block path where it applies), ``"step"``.
 PATHS = ("auto", "step")
@@ -110,13 +118,23 @@ def single_threaded_blas():
     other half of a hyperthreaded one) from the simulation loop; on a 2-core machine that
     made every step of the loop up to twice as slow.
     """
-    try:
-        from threadpoolctl import threadpool_limits
-    except ImportError:  # pragma: no cover - optional at run time
+    controller = _blas_controller()
+    if controller is None:  # pragma: no cover - optional at run time
         from contextlib import nullcontext
 
         return nullcontext()
-    return threadpool_limits(limits=1, user_api="blas")
+    return controller.limit(limits=1, user_api="blas")
+
+
+@functools.lru_cache(maxsize=1)
+def _blas_controller():
+    """The process's ``threadpoolctl.ThreadpoolController``, found once (the search of the loaded
+    libraries takes milliseconds, which a campaign of short episodes would pay per episode)."""
+    try:
+        from threadpoolctl import ThreadpoolController
+    except ImportError:  # pragma: no cover - optional at run time
+        return None
+    return ThreadpoolController()
 
 
 def _single_threaded(fn):
@@ -142,6 +160,7 @@ def run_episode(
     flush_rows: int = 8192,
     world=None,
     path: str = "auto",
+    sinks=(),
 ) -> EpisodeResult:
     """Simulate ``scenario`` in a world, run the estimators every physics step, record and summarise.
 
@@ -168,6 +187,9 @@ def run_episode(
         ``"auto"``: the block path (see the module docstring) where the world is open loop
         and every estimator consumes blocks in one compiled call, else the per-step path;
         ``"step"``: the per-step path. The summaries are the same bits.
+    sinks : sequence of Sink
+        Further sinks, run after the episode's own (e.g. a log export,
+        :class:`quadobs.testbed.logs.export.LogExportSink`).
 
     Returns
     -------
@@ -199,18 +221,80 @@ def run_episode(
     if path not in PATHS:
         raise QuadobsError(f"path: expected one of {PATHS}, got {path!r}")
     check_outputs({"summary": summary_path, "recording": out}, {"scenario": scenario.source, "model": scenario.model})
-    episode = _Episode(scenario, names, world, out, flush_rows, progress, collect_every, path)
+    parts = scenario_parts(scenario, names, world)
+
+    def summarise(merged, completed, wall, interrupted):
+        return _summarise(scenario, names, merged, completed, wall, parts["sensors"], out, interrupted)
+
+    summary, episode = run_loop(
+        summarise, summary_path=summary_path, out=out, flush_rows=flush_rows, progress=progress,
+        collect_every=collect_every, path=path, sinks=sinks, **parts,
+    )
+    return EpisodeResult(summary, episode.trace.trace if episode.trace is not None else None)
+
+
+def scenario_parts(scenario: Scenario, names: list[str], world=None) -> dict:
+    """A scenario's episode parts: ``frame``, ``world``, ``estimators``, ``sensors``, ``check_physics``, ``monitor``.
+
+    The sensor layer's streams come from the scenario's seed; the estimators start at the
+    scenario's initial guess (:func:`~quadobs.testbed.sensors.initial_guess`).
+    """
+    from quadobs.testbed.excitation import scenario_monitor
+    from quadobs.testbed.worlds import PointMassWorld  # the MuJoCo layer, imported only to run episodes
+    from quadobs.testbed.worlds.model import physics_check
+
+    streams = spawn_streams(scenario.seed)
+    sensors = SensorModel(scenario, streams)
+    if world is None and scenario.kind == "quadrotor":  # the quadrotor flown by its controller
+        from quadobs.testbed.worlds.quadrotor import QuadrotorWorld as world
+    w = (world or PointMassWorld)(scenario, sensors, _BLOCK)
+    check = physics_check(w, scenario)  # MuJoCo's warnings, after every block
+    x0 = initial_guess(scenario, w.state(), streams["initial"])
+    ests = build_estimators(scenario, names, x0)
+    return {"frame": EpisodeFrame.of(scenario), "world": w, "estimators": ests, "sensors": sensors,
+            "check_physics": check, "monitor": scenario_monitor(scenario)}
+
+
+@_single_threaded
+def run_loop(summarise, *, summary_path=None, **parts) -> tuple[dict, "_Episode"]:
+    """The episode loop over any world, then the summary written and the outputs published.
+
+    Parameters
+    ----------
+    summarise : callable
+        ``summarise(merged, completed, wall, interrupted) -> dict``: the summary from the
+        sinks' merged fragments, the steps completed, the wall time (s) and whether the run
+        was interrupted.
+    summary_path : path, optional
+        JSON summary to write (atomically); the outputs must have been checked.
+    **parts
+        :class:`_Episode`'s arguments: ``frame``, ``world``, ``estimators`` and its options.
+
+    Returns
+    -------
+    summary : dict
+    episode : _Episode
+        Its sinks (the trace) and sensor layer.
+
+    Raises
+    ------
+    RunFault
+        After a fault summary naming it is written to ``summary_path``.
+    KeyboardInterrupt
+        A stop before the first step completed (the previous outputs stay).
+    """
+    episode = _Episode(**parts)
     wall0 = _time.perf_counter()
     try:
         fragments, interrupted = episode.run()
     except RunFault as exc:  # a full disk, a physics fault: the summary says so, then the error goes on
-        write_fault_summary(summary_path, scenario, episode.completed, exc)
+        write_fault_summary(summary_path, episode.frame, episode.completed, exc)
         raise
     wall = _time.perf_counter() - wall0
     if interrupted and not episode.completed:  # stopped before the first step: the previous files stay
         raise KeyboardInterrupt
     with deferred_interrupts():  # the summary, then the recording, are replaced together
-        summary = _summarise(scenario, names, merge(fragments), episode.completed, wall, episode.sensors, out, interrupted)
+        summary = summarise(merge(fragments), episode.completed, wall, interrupted)
         if summary_path is not None:
             try:
                 write_json_atomic(summary_path, summary)
@@ -218,40 +302,70 @@ def run_episode(
                 summary["output_error"] = str(exc)
         for sink in episode.sinks:
             sink.publish()
-    return EpisodeResult(summary, episode.trace.trace if episode.trace is not None else None)
+    return summary, episode
+
+
+def _timed(step, clock: np.ndarray, e: int):
+    """``step`` timed into ``clock[e]`` (one ``perf_counter`` pair per call: about 0.1 us)."""
+    perf = _time.perf_counter
+
+    def timed(u, y, out):
+        t0 = perf()
+        step(u, y, out)
+        clock[e] += perf() - t0
+
+    return timed
 
 
 class _Episode:
-    """The episode's parts (world, block, estimators, sinks) and the position of its loop."""
+    """The loop's parts (frame, world, block, estimators, sinks) and the position of its loop.
 
-    def __init__(self, scenario, names, world, out, flush_rows, progress, collect_every, path="auto") -> None:
-        from quadobs.testbed.worlds import PointMassWorld  # the MuJoCo layer, imported only to run episodes
+    Parameters
+    ----------
+    frame : EpisodeFrame
+        Name, steps, step, dimension, beacons, ... of the run (:class:`~quadobs.testbed.sinks.EpisodeFrame`).
+    world : World
+    estimators : list of Estimator
+        Each at its initial state.
+    sensors : SensorModel, optional
+        The world's sensor layer (its counts end in the summary).
+    check_physics : callable, optional
+        ``check(k0, count)`` after every block (MuJoCo's warnings).
+    monitor : ExcitationMonitor, optional
+        The live excitation monitor of the applied input.
+    out, flush_rows, progress, collect_every, path
+        As in :func:`run_episode`.
+    sinks : sequence of Sink
+        Further sinks, after the episode's own and the world's.
+    timed : bool
+        Time each estimator's steps into :attr:`clock` (the sinks' ``ctx.clock``).
+    """
+
+    def __init__(self, frame, world, estimators, *, sensors=None, check_physics=None, monitor=None, out=None,
+                 flush_rows=8192, progress=False, collect_every=0, path="auto", sinks=(), timed=False) -> None:
         from quadobs.testbed.worlds.base import World
-        from quadobs.testbed.worlds.model import physics_check
 
-        self.scenario, self.steps = scenario, scenario.steps
-        streams = spawn_streams(scenario.seed)
-        self.sensors = SensorModel(scenario, streams)
-        if world is None and scenario.kind == "quadrotor":  # the quadrotor flown by its controller
-            from quadobs.testbed.worlds.quadrotor import QuadrotorWorld as world
-        self.world = (world or PointMassWorld)(scenario, self.sensors, _BLOCK)
-        self.check_physics = physics_check(self.world, scenario)  # MuJoCo's warnings, after every block
-        x0 = initial_guess(scenario, self.world.state(), streams["initial"])
-        ests = build_estimators(scenario, names, x0)
+        self.frame, self.steps, self.world, self.sensors = frame, frame.steps, world, sensors
+        self.check_physics = check_physics or (lambda k0, count: None)
+        ests = list(estimators)
         self.block = block = Block(self.world, ests, _BLOCK)
-        self.slots = [(est.step_and_record, block.rec[e]) for e, est in enumerate(ests)]
+        self.clock = np.zeros(len(ests)) if timed else None
+        self.slots = [(self._clocked(est.step_and_record, e), block.rec[e]) for e, est in enumerate(ests)]
         self.blockwise = path == "auto" and not self.world.closed_loop and all(
             isinstance(e, BlockStep) and e.blockwise and not isinstance(e, SetValued) for e in ests
         )
-        self.block_slots = [(est.step_block, block.rec[e]) for e, est in enumerate(ests)] if self.blockwise else []
+        self.block_slots = [(self._clocked(est.step_block, e), block.rec[e]) for e, est in enumerate(ests)] if self.blockwise else []
+        for est in ests:  # compile (first run) or load the kernels of this path now, not inside the loop
+            est.prepare("block" if self.blockwise else "record")
+        self.world.prepare("step" if path == "step" or self.world.closed_loop else "block")
         self.step_fill = World.fill if path == "step" else None  # the per-step path: one step at a time
         lead = self.world.controller
         self.lead = next((e for e in ests if e.name == lead), None) if lead else ests[0]
         if self.lead is None:
             raise QuadobsError(f"world.controller: no estimator named {lead!r} in this episode")
         self.trace = TraceSink(collect_every, self.steps) if collect_every > 0 else None
-        self.sinks = self._sinks(out, flush_rows, progress)
-        ctx = EpisodeContext(scenario, tuple(ests), block)
+        self.sinks = self._sinks(out, flush_rows, progress, monitor, sinks)
+        ctx = EpisodeContext(frame, tuple(ests), block, self.clock)
         try:
             for sink in self.sinks:
                 sink.begin(ctx)
@@ -265,22 +379,23 @@ class _Episode:
         self.completed = 0
         self.committed = self.flushing = False  # where a stop found the end-of-block work
 
-    def _sinks(self, out, flush_rows, progress) -> list[Sink]:
-        """Summary first, then the trace, the monitor, the recording; the progress bar last."""
-        from quadobs.testbed.excitation import scenario_monitor
+    def _clocked(self, step, e: int):
+        """``step`` itself, or timed into ``clock[e]`` when the episode times its estimators."""
+        return step if self.clock is None else _timed(step, self.clock, e)
 
-        sc = self.scenario
+    def _sinks(self, out, flush_rows, progress, monitor, extra) -> list[Sink]:
+        """Summary first, then the trace, the recording, the monitor, the world's, ``extra``; the progress bar last."""
+        fr = self.frame
         recorder = recording = None
         if out is not None:
             from quadobs.recording import Recorder
             from quadobs.testbed.episode_log import default_blueprint
 
             names = [e.name for e in self.block.estimators]
-            recorder = Recorder(out, recording_id=f"{sc.name}-seed{sc.seed}", blueprint=default_blueprint(sc, names), capacity=flush_rows)
+            recorder = Recorder(out, recording_id=f"{fr.name}-seed{fr.seed}", blueprint=default_blueprint(fr, names), capacity=flush_rows)
             recording = RecordingSink(recorder)
         sinks: list[Sink] = [ConvergenceSink(), _EstimatorInfo(), BoundsSink()]
         sinks += [self.trace] if self.trace is not None else []
-        monitor = scenario_monitor(sc)  # sliding-window Gramian of the applied input (None: disabled)
         if recording is not None:
             sinks.append(recording)
         if monitor is not None:
@@ -288,7 +403,8 @@ class _Episode:
             sinks.append(excitation)
             if recording is not None:
                 recording.extras.append(excitation.fill)
-        sinks += self.world.sinks(recording)  # a world's own (the flight's)
+        sinks += self.world.sinks(recording)  # a world's own (the flight's, the replay's)
+        sinks += list(extra)
         return sinks + ([ProgressSink()] if progress else [])
 
     def run(self) -> tuple[list[dict], bool]:
@@ -311,6 +427,7 @@ class _Episode:
                 pass
             raise
         finally:
+            self.world.close()  # a block computing ahead in the background
             for sink in self.sinks:
                 sink.close()
 
@@ -379,8 +496,8 @@ class _Episode:
 
     def _flush(self, rows: int) -> None:
         if rows > 0:
-            sc = self.scenario
-            view = Rows(self.block, rows, self.steps, sc.dt, sc.dimension, sc.has_wind)
+            fr = self.frame
+            view = Rows(self.block, rows, self.steps, fr.dt, fr.dimension, fr.has_wind)
             for sink in self.sinks:
                 sink.block(view)
 

@@ -1,7 +1,9 @@
 """The layout of an episode's recording: entity paths, their series and the default blueprint.
 
-Entity paths (timelines ``step`` and ``sim_time``; ``<est>`` is an estimator name such
-as ``augmented``):
+The same layout for a simulated episode and a replayed log (its frame,
+:class:`~quadobs.testbed.sinks.EpisodeFrame`, says what differs). Entity paths
+(timelines ``step`` and ``sim_time``; ``<est>`` is an estimator name such as
+``augmented``):
 
 =====================================  =========================================================
 ``world/beacons``                      beacon positions (static points, labelled)
@@ -11,12 +13,13 @@ as ``augmented``):
 ``world/estimates/<est>/vehicle``      estimated vehicle (box)
 ``errors/<est>/position/norm``         ``|p_hat - p|`` (m)
 ``errors/<est>/position/axes``         ``p_hat - p`` per axis (m)
-``errors/<est>/velocity/norm``, /axes  ground-velocity error (m/s)
+``errors/<est>/velocity/norm``, /axes  ground-velocity error (m/s), where the state has a velocity
 ``errors/<est>/wind/norm``, /axes      wind error (wind scenarios)
 ``wind/truth``, ``wind/<est>``         true and estimated wind (wind scenarios)
 ``measurements/range/<h>``             measured range to beacon ``h`` (m), at its sample times
 ``measurements/airspeed``              measured airspeed (m/s), wind scenarios
-``measurements/accelerometer``         measured acceleration (m/s^2)
+``measurements/accelerometer``         measured acceleration (m/s^2); a replayed odometry log:
+                                       ``measurements/odometry`` (v_x, v_y in m/s, omega in rad/s)
 ``observer/<est>/covariance_trace``    trace of the estimator covariance
 ``observer/<est>/nis``                 normalised innovation squared (at corrections)
 ``observer/<est>/rejected``            corrections rejected by the NIS gate so far (gated estimators)
@@ -39,7 +42,6 @@ import rerun as rr
 import rerun.blueprint as rrb
 
 from quadobs.errors import QuadobsError
-from quadobs.testbed.scenario import Scenario
 from quadobs.recording.recorder import Recorder
 
 __all__ = ["EpisodeLog", "LoggedRows", "default_blueprint"]
@@ -48,8 +50,11 @@ _PALETTE = [(230, 90, 40), (40, 160, 90), (150, 60, 200), (200, 170, 30), (30, 1
 _TRUTH = (40, 90, 220)
 
 
-def default_blueprint(scenario: Scenario, estimators: list[str]) -> rrb.Blueprint:
-    """3-D view of the vehicle, beacons and trails beside time series of errors, measurements and covariance."""
+def default_blueprint(frame, estimators: list[str]) -> rrb.Blueprint:
+    """3-D view of the vehicle, beacons and trails beside time series of errors, measurements and covariance.
+
+    ``frame``: the run's :class:`~quadobs.testbed.sinks.EpisodeFrame`.
+    """
     history = rrb.VisibleTimeRange(
         "sim_time", start=rrb.TimeRangeBoundary.infinite(), end=rrb.TimeRangeBoundary.cursor_relative()
     )
@@ -57,13 +62,13 @@ def default_blueprint(scenario: Scenario, estimators: list[str]) -> rrb.Blueprin
         rrb.TimeSeriesView(name="Position error (m)", contents=[f"/errors/{e}/position/**" for e in estimators]),
         rrb.TimeSeriesView(name="Velocity error (m/s)", contents=[f"/errors/{e}/velocity/**" for e in estimators]),
     ]
-    if scenario.has_wind:
+    if frame.has_wind:
         plots.append(rrb.TimeSeriesView(name="Wind (m/s)", origin="/wind"))
     plots += [
         rrb.TimeSeriesView(name="Measurements", origin="/measurements"),
         rrb.TimeSeriesView(name="Covariance trace, NIS", origin="/observer"),
     ]
-    if scenario.excitation.monitor:  # see quadobs.recording.excitation
+    if frame.excitation:  # see quadobs.recording.excitation
         plots += [
             rrb.TimeSeriesView(name="Excitation: log10 mu vs threshold", contents=["/excitation/log10"]),
             rrb.TimeSeriesView(name="Variance in the unexcited directions", contents=["/excitation/unexcited_variance/**"]),
@@ -103,8 +108,8 @@ class LoggedRows:
         Measured ranges (NaN where not sampled).
     airspeed : ndarray (m,) or None
         Measured airspeed (wind scenarios).
-    accel : ndarray (m, dim)
-        Measured acceleration.
+    inputs : ndarray (m, p)
+        The measured input (the acceleration; a replayed odometry log's velocity and yaw rate).
     bounds : dict of str to ndarray (m, n, 2)
         Interval bounds of the set-valued estimators.
     rejected : dict of str to ndarray (m,)
@@ -123,14 +128,14 @@ class LoggedRows:
     nis: dict
     ranges: np.ndarray
     airspeed: np.ndarray | None
-    accel: np.ndarray
+    inputs: np.ndarray
     bounds: dict
     rejected: dict
     events: np.ndarray
 
     def __post_init__(self) -> None:
         m = len(self.steps)
-        for name in ("times", "truth_p", "ranges", "accel", "events"):
+        for name in ("times", "truth_p", "ranges", "inputs", "events"):
             if len(getattr(self, name)) != m:
                 raise QuadobsError(f"rows.{name}: expected {m} rows, got {len(getattr(self, name))}")
 
@@ -141,78 +146,78 @@ class EpisodeLog:
     Parameters
     ----------
     recorder : Recorder
-    scenario : Scenario
+    frame : EpisodeFrame
+        Its ``trail_every`` steps between 3-D samples (trails and vehicle boxes), and
+        ``sensor_events``: record the running counts of injected outliers and dropped samples.
     estimators : list of str
-    trail_every : int
-        Physics steps between 3-D samples (trails and vehicle boxes).
     bounded : list of str
         Estimators exposing guaranteed ``bounds (n, 2)`` of the state: their position box is
         recorded too (see the module docstring).
     gated : list of str
         Estimators with an NIS gate: their running count of rejected corrections is recorded.
-    events : bool
-        Record the running counts of injected outliers and dropped samples.
+    velocity : bool
+        The state has a velocity: its errors are recorded.
     """
 
     def __init__(
-        self, recorder: Recorder, scenario: Scenario, estimators: list[str], *, trail_every: int, bounded=(),
-        gated=(), events: bool = False,
+        self, recorder: Recorder, frame, estimators: list[str], *, bounded=(), gated=(), velocity: bool = True,
     ) -> None:
         self.rec = recorder
-        self.sc = scenario
+        self.sc = frame
         self.names = list(estimators)
-        dim = scenario.dimension
+        dim, every, r = frame.dimension, frame.trail_every, recorder
         axes = ["x", "y", "z"][:dim]
-        r = recorder
-        beacons3 = np.zeros((scenario.beacons.shape[0], 3))
-        beacons3[:, :dim] = scenario.beacons
-        r.static(
-            "world/beacons",
-            rr.Points3D(beacons3, radii=0.6, colors=[(255, 140, 0)], labels=[f"beacon {h}" for h in range(len(beacons3))]),
-        )
-        r.static("description", rr.TextDocument(f"{scenario.name}: {scenario.description}"))
-        self.truth_path = r.series("world/truth/path", 3, "points3d", every=trail_every, color=_TRUTH, radius=0.15)
-        self.truth_box = r.series("world/truth/vehicle", 3, "translation", every=trail_every, color=_TRUTH, half_size=(0.6, 0.4, 0.15))
-        self.est = {}
-        for i, name in enumerate(self.names):
-            color = _PALETTE[i % len(_PALETTE)]
-            s = {
-                "path": r.series(f"world/estimates/{name}/path", 3, "points3d", every=trail_every, color=color, radius=0.12),
-                "box": r.series(f"world/estimates/{name}/vehicle", 3, "translation", every=trail_every, color=color, half_size=(0.5, 0.35, 0.12)),
-                "pos_norm": r.series(f"errors/{name}/position/norm", 1, names=[f"{name} |e_p|"], color=color),
-                "pos_axes": r.series(f"errors/{name}/position/axes", dim, names=[f"{name} e_{a}" for a in axes]),
-                "vel_norm": r.series(f"errors/{name}/velocity/norm", 1, names=[f"{name} |e_v|"], color=color),
-                "vel_axes": r.series(f"errors/{name}/velocity/axes", dim, names=[f"{name} e_v{a}" for a in axes]),
-                "trace": r.series(f"observer/{name}/covariance_trace", 1, names=[f"{name} tr P"], color=color),
-                "nis": r.series(f"observer/{name}/nis", 1, skip_nan=True, names=[f"{name} NIS"]),
-            }
-            if name in gated:
-                s["rejected"] = r.series(f"observer/{name}/rejected", 1, names=[f"{name} rejected"], color=color)
-            if scenario.has_wind:
-                s["wind_norm"] = r.series(f"errors/{name}/wind/norm", 1, names=[f"{name} |e_w|"], color=color)
-                s["wind_axes"] = r.series(f"errors/{name}/wind/axes", dim, names=[f"{name} e_w{a}" for a in axes])
-                s["wind"] = r.series(f"wind/{name}", dim, names=[f"{name} w_{a}" for a in axes], color=color)
-            if name in bounded:
-                s["bounds_box"] = r.series(f"world/estimates/{name}/bounds", 6, "boxes3d", every=trail_every, color=color)
-                s["bounds_err"] = r.series(
-                    f"errors/{name}/position/bounds", 2 * dim,
-                    names=[f"{name} {a} {side} - true" for side in ("low", "high") for a in axes],
-                )
-                s["box_width"] = r.series(f"errors/{name}/position/box_width", dim, names=[f"{name} box width {a}" for a in axes])
-            self.est[name] = s
-        if scenario.has_wind:
+        beacons3 = np.zeros((frame.beacons.shape[0], 3))
+        beacons3[:, :dim] = frame.beacons
+        r.static("world/beacons", rr.Points3D(beacons3, radii=0.6, colors=[(255, 140, 0)], labels=list(frame.beacon_labels)))
+        r.static("description", rr.TextDocument(f"{frame.name}: {frame.description}"))
+        self.truth_path = r.series("world/truth/path", 3, "points3d", every=every, color=_TRUTH, radius=0.15)
+        self.truth_box = r.series("world/truth/vehicle", 3, "translation", every=every, color=_TRUTH, half_size=(0.6, 0.4, 0.15))
+        self.est = {
+            name: self._estimator(name, _PALETTE[i % len(_PALETTE)], axes, velocity, name in gated, name in bounded)
+            for i, name in enumerate(self.names)
+        }
+        if frame.has_wind:
             self.wind_truth = r.series("wind/truth", dim, names=[f"true w_{a}" for a in axes], color=_TRUTH)
             self.airspeed = r.series("measurements/airspeed", 1, skip_nan=True, names=["airspeed"])
         self.ranges = [
-            r.series(f"measurements/range/{h}", 1, skip_nan=True, names=[f"range {h}"]) for h in range(scenario.beacons.shape[0])
+            r.series(f"measurements/range/{h}", 1, skip_nan=True, names=[f"range {h}"]) for h in range(frame.beacons.shape[0])
         ]
-        self.accel = r.series("measurements/accelerometer", dim, names=[f"a_{a}" for a in axes])
+        self.inputs = r.series(f"measurements/{frame.input_name}", len(frame.input_labels), names=list(frame.input_labels))
         self.events = None
-        if events:
+        if frame.sensor_events:
             self.events = (
                 r.series("measurements/outliers", 1, names=["outliers injected"]),
                 r.series("measurements/dropped", 1, names=["samples dropped"]),
             )
+
+    def _estimator(self, name: str, color, axes: list[str], velocity: bool, gated: bool, bounded: bool) -> dict:
+        """The series of one estimator (module docstring), by short key."""
+        r, dim, every = self.rec, len(axes), self.sc.trail_every
+        s = {
+            "path": r.series(f"world/estimates/{name}/path", 3, "points3d", every=every, color=color, radius=0.12),
+            "box": r.series(f"world/estimates/{name}/vehicle", 3, "translation", every=every, color=color, half_size=(0.5, 0.35, 0.12)),
+            "pos_norm": r.series(f"errors/{name}/position/norm", 1, names=[f"{name} |e_p|"], color=color),
+            "pos_axes": r.series(f"errors/{name}/position/axes", dim, names=[f"{name} e_{a}" for a in axes]),
+        }
+        if velocity:
+            s["vel_norm"] = r.series(f"errors/{name}/velocity/norm", 1, names=[f"{name} |e_v|"], color=color)
+            s["vel_axes"] = r.series(f"errors/{name}/velocity/axes", dim, names=[f"{name} e_v{a}" for a in axes])
+        s["trace"] = r.series(f"observer/{name}/covariance_trace", 1, names=[f"{name} tr P"], color=color)
+        s["nis"] = r.series(f"observer/{name}/nis", 1, skip_nan=True, names=[f"{name} NIS"])
+        if gated:
+            s["rejected"] = r.series(f"observer/{name}/rejected", 1, names=[f"{name} rejected"], color=color)
+        if self.sc.has_wind:
+            s["wind_norm"] = r.series(f"errors/{name}/wind/norm", 1, names=[f"{name} |e_w|"], color=color)
+            s["wind_axes"] = r.series(f"errors/{name}/wind/axes", dim, names=[f"{name} e_w{a}" for a in axes])
+            s["wind"] = r.series(f"wind/{name}", dim, names=[f"{name} w_{a}" for a in axes], color=color)
+        if bounded:
+            s["bounds_box"] = r.series(f"world/estimates/{name}/bounds", 6, "boxes3d", every=every, color=color)
+            s["bounds_err"] = r.series(
+                f"errors/{name}/position/bounds", 2 * dim, names=[f"{name} {a} {side} - true" for side in ("low", "high") for a in axes],
+            )
+            s["box_width"] = r.series(f"errors/{name}/position/box_width", dim, names=[f"{name} box width {a}" for a in axes])
+        return s
 
     def write_block(self, rows: LoggedRows, extra=None) -> None:
         """Write the ``m`` recorded rows of ``rows`` at once (see the module docstring for what goes where).
@@ -221,7 +226,6 @@ class EpisodeLog:
         ``rows`` (a slice) of the physics ``steps``.
         """
         steps, times, truth_p = np.asarray(rows.steps), rows.times, rows.truth_p
-        errors, estimates, bounds = rows.errors, rows.estimates, rows.bounds
         done, m = 0, len(steps)
         dim = self.sc.dimension
         while done < m:
@@ -230,43 +234,48 @@ class EpisodeLog:
             self.truth_path.buf[i, :dim] = truth_p[src]
             self.truth_box.buf[i, :dim] = truth_p[src]
             for name, s in self.est.items():
-                e = errors[name]
-                xh = estimates[name][src]
-                s["path"].buf[i, :dim] = xh[:, :dim]
-                s["box"].buf[i, :dim] = xh[:, :dim]
-                if "bounds_box" in s:
-                    b = bounds[name][src, :dim]
-                    tp = truth_p[src]
-                    s["bounds_box"].buf[i, :dim] = 0.5 * (b[..., 0] + b[..., 1])
-                    s["bounds_box"].buf[i, 3 : 3 + dim] = 0.5 * (b[..., 1] - b[..., 0])
-                    if dim == 2:
-                        s["bounds_box"].buf[i, 5] = 0.05
-                    s["bounds_err"].buf[i, :dim] = b[..., 0] - tp
-                    s["bounds_err"].buf[i, dim:] = b[..., 1] - tp
-                    s["box_width"].buf[i] = b[..., 1] - b[..., 0]
-                ep, ev = e["position"][src], e["velocity"][src]
-                s["pos_axes"].buf[i] = ep
-                s["pos_norm"].buf[i, 0] = np.sqrt(np.einsum("ij,ij->i", ep, ep))
-                s["vel_axes"].buf[i] = ev
-                s["vel_norm"].buf[i, 0] = np.sqrt(np.einsum("ij,ij->i", ev, ev))
-                s["trace"].buf[i, 0] = rows.traces[name][src]
-                s["nis"].buf[i, 0] = rows.nis[name][src]
-                if "rejected" in s:
-                    s["rejected"].buf[i, 0] = rows.rejected[name][src]
-                if "wind" in s:
-                    ew = e["wind"][src]
-                    s["wind_axes"].buf[i] = ew
-                    s["wind_norm"].buf[i, 0] = np.sqrt(np.einsum("ij,ij->i", ew, ew))
-                    s["wind"].buf[i] = xh[:, 2 * dim :]
+                self._write_estimator(s, name, rows, i, src)
             if self.sc.has_wind:
                 self.wind_truth.buf[i] = rows.truth_wind[src]
                 self.airspeed.buf[i, 0] = rows.airspeed[src]
             for h, series in enumerate(self.ranges):
                 series.buf[i, 0] = rows.ranges[src, h]
-            self.accel.buf[i] = rows.accel[src]
+            self.inputs.buf[i] = rows.inputs[src]
             if self.events is not None:
                 self.events[0].buf[i, 0] = rows.events[src, 0]
                 self.events[1].buf[i, 0] = rows.events[src, 1]
             if extra is not None:
                 extra(i, steps[src])
             done = src.stop
+
+    def _write_estimator(self, s: dict, name: str, rows: LoggedRows, i: slice, src: slice) -> None:
+        """One estimator's series of the recorder rows ``i`` (rows ``src`` of ``rows``)."""
+        dim = self.sc.dimension
+        e, xh = rows.errors[name], rows.estimates[name][src]
+        s["path"].buf[i, :dim] = xh[:, :dim]
+        s["box"].buf[i, :dim] = xh[:, :dim]
+        if "bounds_box" in s:
+            b, tp = rows.bounds[name][src, :dim], rows.truth_p[src]
+            s["bounds_box"].buf[i, :dim] = 0.5 * (b[..., 0] + b[..., 1])
+            s["bounds_box"].buf[i, 3 : 3 + dim] = 0.5 * (b[..., 1] - b[..., 0])
+            if dim == 2:
+                s["bounds_box"].buf[i, 5] = 0.05
+            s["bounds_err"].buf[i, :dim] = b[..., 0] - tp
+            s["bounds_err"].buf[i, dim:] = b[..., 1] - tp
+            s["box_width"].buf[i] = b[..., 1] - b[..., 0]
+        ep = e["position"][src]
+        s["pos_axes"].buf[i] = ep
+        s["pos_norm"].buf[i, 0] = np.sqrt(np.einsum("ij,ij->i", ep, ep))
+        if "vel_norm" in s:
+            ev = e["velocity"][src]
+            s["vel_axes"].buf[i] = ev
+            s["vel_norm"].buf[i, 0] = np.sqrt(np.einsum("ij,ij->i", ev, ev))
+        s["trace"].buf[i, 0] = rows.traces[name][src]
+        s["nis"].buf[i, 0] = rows.nis[name][src]
+        if "rejected" in s:
+            s["rejected"].buf[i, 0] = rows.rejected[name][src]
+        if "wind" in s:
+            ew = e["wind"][src]
+            s["wind_axes"].buf[i] = ew
+            s["wind_norm"].buf[i, 0] = np.sqrt(np.einsum("ij,ij->i", ew, ew))
+            s["wind"].buf[i] = xh[:, 2 * dim :]

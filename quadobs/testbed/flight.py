@@ -46,14 +46,13 @@ class FlightSink(Sink):
         super().begin(ctx)
         self.err_sq = {name: 0.0 for name in ctx.names}
         if self.recording is not None:
-            self._declare(self.recording.recorder, ctx.scenario)
+            self._declare(self.recording.recorder, ctx.frame)
             self.recording.extras.append(self.fill)
 
-    def _declare(self, r, sc) -> None:
+    def _declare(self, r, frame) -> None:
         import rerun as rr
 
-        every = math.lcm(max(1, int(round(sc.physics_rate / 100.0))), sc.record_every)
-        self.every = every
+        self.every = every = frame.trail_every
         self.ref_path = r.series("world/reference/path", 3, "points3d", every=every, color=(120, 120, 120), radius=0.02)
         self.rotors = r.series("flight/rotors", 4, names=[f"rotor {i} (N)" for i in range(4)])
         self.tracking = r.series("flight/tracking_error", 1, names=["|r - p| (m)"], color=(200, 40, 40))
@@ -74,7 +73,7 @@ class FlightSink(Sink):
         self.estimate.buf[rows, 0] = raw[:, sp["on_estimate"]][:, 0]
 
     def block(self, rows: Rows) -> None:
-        w, sc = self.world, self.ctx.scenario
+        w = self.world
         raw = rows.block.raw[: rows.count]
         sp = w.spans
         t = rows.t
@@ -107,7 +106,7 @@ class FlightSink(Sink):
         )
 
     def end(self, completed: int, interrupted: bool) -> dict:
-        w, dt = self.world, self.ctx.scenario.dt
+        w, dt = self.world, self.ctx.frame.dt
         crashed = w.crashed_at is not None
         flight = {
             "feedback": w.control.feedback,

@@ -239,10 +239,44 @@ class SensorModel:
     def commit(self, draws: np.ndarray) -> np.ndarray:
         """Count the dropouts and outliers of steps processed from these rows of :meth:`draws`;
         returns their per-step :meth:`events`."""
-        ev = self.events(draws)
-        self.outliers_injected += int(ev[:, 0].sum())
-        self.dropped += int(ev[:, 1].sum())
-        return ev
+        return self.count(self.events(draws))
+
+    def count(self, events: np.ndarray) -> np.ndarray:
+        """Add per-step ``[outliers, dropped]`` counts ``(rows, 2)`` to the totals; returns them."""
+        self.outliers_injected += int(events[:, 0].sum())
+        self.dropped += int(events[:, 1].sum())
+        return events
+
+    @property
+    def adds_nothing(self) -> bool:
+        """Whether the layer hands the ranges and the input on unchanged: no noise, dropout or outlier, every step sampled."""
+        return not (self.range_std or self.accel_std or self.dropout or self.outlier_probability) and self.range_every == 1
+
+    def input_noise(self, draws: np.ndarray) -> np.ndarray:
+        """The accelerometer noise of these rows of :meth:`draws`, ``(rows, dim)`` (as :meth:`input` adds it)."""
+        o = 3 * self.q_b + 1 + self.q
+        return self.accel_std * draws[:, o : o + self.dim]
+
+    def logged_ranges(self, rho: np.ndarray, draws: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The sensor layer on logged ranges ``rho (rows, q_b)`` (NaN: none logged), with these rows of :meth:`draws`.
+
+        A logged range is read at the layer's sample steps only (``noise.range_rate``);
+        there it gets the noise and the outlier of :meth:`outputs`, in the same order, and
+        may be dropped. Returns the measured ranges (NaN: none) and the per-step
+        ``[outliers, dropped]`` counts of the ranges read, ``(rows, 2)``, to be
+        :meth:`count`-ed for the steps kept.
+        """
+        qb = self.q_b
+        read = ~np.isnan(rho) & ((draws[:, -1].astype(int) & 1) > 0)[:, None]
+        out = np.where(read, rho, np.nan)
+        if self.range_std:
+            out = out + self.range_std * draws[:, :qb]
+        hit = read & (draws[:, qb : 2 * qb] < self.outlier_probability) if self.outlier_probability else np.zeros_like(read)
+        out = np.where(hit, out + self.outlier_std * draws[:, 2 * qb : 3 * qb], out)
+        o = 3 * qb + 1
+        lost = read & (draws[:, o : o + qb] < self.dropout) if self.dropout else np.zeros_like(read)
+        out[lost] = np.nan
+        return out, np.column_stack([(hit & ~lost).sum(axis=1), lost.sum(axis=1)]).astype(np.int64)
 
     def step_params(self) -> np.ndarray:
         """Constants of :func:`quadobs._kernels.observer.sensor_step`: ``[q_b, q, dim, range_std, outlier_probability,

@@ -36,7 +36,7 @@ from quadobs.estimators.base import Estimator, Gated, SetValued, Subset, Switchi
 from quadobs.evaluation.convergence import ConvergenceTracker, json_time, state_errors
 
 __all__ = [
-    "Block", "BoundsSink", "ConvergenceSink", "EpisodeContext", "ExcitationSink", "ProgressSink",
+    "Block", "BoundsSink", "ConvergenceSink", "EpisodeContext", "EpisodeFrame", "ExcitationSink", "ProgressSink",
     "RecordingSink", "Rows", "Sink", "StepSink", "TraceSink", "merge",
 ]
 
@@ -131,13 +131,91 @@ class Rows:
         self.events[max(steps - block.k0, 0) :] = 0
 
 
+@dataclass(frozen=True, eq=False)
+class EpisodeFrame:
+    """What the episode loop and its sinks know of a run besides its world and estimators.
+
+    A simulated episode's frame comes from its scenario (:meth:`of`); a replay's from its
+    log (:func:`quadobs.testbed.logs.replay.run_replay`).
+
+    Attributes
+    ----------
+    name : str
+    steps : int
+        Steps ``K`` of the loop (rows ``0 .. K``, the last one the final row).
+    dt : float
+        Step (s); row ``k`` is at ``t_k = k dt``.
+    dimension : int
+        Dimension of the motion (2 or 3).
+    beacons : ndarray (q_b, dimension)
+    physics_rate : float
+        Steps per second (``1 / dt``).
+    seed : int
+    description, source : str
+        One line for the recording; the file the run was read from (``""``: none).
+    has_wind : bool
+        The state holds an air velocity and a wind, the outputs an airspeed.
+    record_every, trail_every : int
+        Steps between recorded rows, and between 3-D samples (trails and vehicle boxes).
+    sensor_events : bool
+        The sensor layer injects outliers or drops samples: their counts are recorded.
+    excitation : bool
+        The recording's blueprint shows the excitation monitor's views.
+    input_name : str
+        The measured input's series, ``measurements/<input_name>``.
+    input_labels : tuple of str
+        Its columns (as many as the world's ``u``).
+    beacon_labels : tuple of str
+        Labels of the beacons in the recording.
+    """
+
+    name: str
+    steps: int
+    dt: float
+    dimension: int
+    beacons: np.ndarray
+    physics_rate: float
+    seed: int = 0
+    description: str = ""
+    source: str = ""
+    has_wind: bool = False
+    record_every: int = 1
+    trail_every: int = 1
+    sensor_events: bool = False
+    excitation: bool = False
+    input_name: str = "accelerometer"
+    input_labels: tuple = ()
+    beacon_labels: tuple = ()
+
+    @classmethod
+    def of(cls, scenario) -> "EpisodeFrame":
+        """The frame of a scenario's episode: 3-D samples at most every 10 ms of simulated time."""
+        axes = "xyz"[: scenario.dimension]
+        noise = scenario.noise
+        return cls(
+            name=scenario.name, steps=scenario.steps, dt=scenario.dt, dimension=scenario.dimension,
+            beacons=scenario.beacons, physics_rate=scenario.physics_rate, seed=scenario.seed,
+            description=scenario.description, source=scenario.source, has_wind=scenario.has_wind,
+            record_every=scenario.record_every,
+            trail_every=math.lcm(max(1, int(round(scenario.physics_rate / 100.0))), scenario.record_every),
+            sensor_events=bool(noise.outlier_probability or noise.dropout), excitation=scenario.excitation.monitor,
+            input_labels=tuple(f"a_{a}" for a in axes),
+            beacon_labels=tuple(f"beacon {h}" for h in range(scenario.beacons.shape[0])),
+        )
+
+
 @dataclass(frozen=True)
 class EpisodeContext:
-    """What the sinks learn at ``begin``: the scenario, the estimators and the block."""
+    """What the sinks learn at ``begin``: the frame, the estimators, the block and the estimators' clock.
 
-    scenario: object
+    ``clock`` (``(E,)``, seconds) accumulates the wall time of each estimator's steps when
+    the episode times them (``None`` otherwise).
+    """
+
+    frame: EpisodeFrame
     estimators: tuple
     block: Block
+    clock: np.ndarray | None = None
 
     @property
     def names(self) -> list[str]:
@@ -233,7 +311,8 @@ class ConvergenceSink(Sink):
 
 
 def _norm(errors, key) -> float | None:
-    return _finite_or_none(float(np.linalg.norm(errors[key]))) if errors else None
+    """The norm of the error ``key`` (None without the error, or where the state has no such part)."""
+    return _finite_or_none(float(np.linalg.norm(errors[key]))) if errors and key in errors else None
 
 
 class TraceSink(StepSink):
@@ -356,7 +435,7 @@ class ExcitationSink(StepSink):
             if m.warning is not None:
                 message = m.pop_warning()
                 if self.log is not None:
-                    self.log.warn(message, s, s * self.ctx.scenario.dt)
+                    self.log.warn(message, s, s * self.ctx.frame.dt)
         return s + m.room
 
     def feed(self, stop: int) -> None:
@@ -367,7 +446,7 @@ class ExcitationSink(StepSink):
             m.push_many(self.ctx.block.u[stop - take : stop])
 
     def block(self, rows: Rows) -> None:
-        self.feed(min(rows.count, self.ctx.scenario.steps - rows.block.k0))
+        self.feed(min(rows.count, self.ctx.frame.steps - rows.block.k0))
 
     def end(self, completed: int, interrupted: bool) -> dict:
         return {"excitation": self.monitor.summary()}
@@ -380,11 +459,11 @@ class ProgressSink(Sink):
         from tqdm import tqdm
 
         super().begin(ctx)
-        sc = ctx.scenario
+        sc = ctx.frame
         self.bar = tqdm(total=sc.steps, unit="step", unit_scale=True, desc=sc.name, leave=False)
 
     def block(self, rows: Rows) -> None:
-        self.bar.update(min(rows.count, self.ctx.scenario.steps - rows.block.k0))
+        self.bar.update(min(rows.count, self.ctx.frame.steps - rows.block.k0))
 
     def __init__(self) -> None:
         self.bar = None
@@ -412,13 +491,10 @@ class RecordingSink(Sink):
         from quadobs.testbed.episode_log import EpisodeLog
 
         super().begin(ctx)
-        sc = ctx.scenario
-        trail = math.lcm(max(1, int(round(sc.physics_rate / 100.0))), sc.record_every)
         self.gated = [e for e in ctx.estimators if isinstance(e, Gated) and e.gate is not None]
         self.log = EpisodeLog(
-            self.recorder, sc, ctx.names, trail_every=trail,
-            bounded=[e.name for _, e in ctx.block.bounded], gated=[e.name for e in self.gated],
-            events=bool(sc.noise.outlier_probability or sc.noise.dropout),
+            self.recorder, ctx.frame, ctx.names, bounded=[e.name for _, e in ctx.block.bounded],
+            gated=[e.name for e in self.gated], velocity=ctx.block.columns.n >= 2 * ctx.frame.dimension,
         )
         self.events = np.zeros(2, dtype=np.int64)  # outliers delivered, samples dropped, so far
         self.rejected = {e.name: 0 for e in self.gated}  # rejected corrections so far (recorded rows)
@@ -432,10 +508,10 @@ class RecordingSink(Sink):
         self.events[:] = ev[-1]
         for e in self.gated:
             self.rejected[e.name] = int(rows.rejected[e.name][-1])
-        sel = np.flatnonzero(rows.ks % self.ctx.scenario.record_every == 0)
+        sel = np.flatnonzero(rows.ks % self.ctx.frame.record_every == 0)
         if not sel.size:
             return
-        sc, c, raw = self.ctx.scenario, rows.block.columns, rows.block.raw[: rows.count]
+        sc, c, raw = self.ctx.frame, rows.block.columns, rows.block.raw[: rows.count]
         dim = sc.dimension
         X = rows.truth[sel]
         air = np.sqrt(2.0 * rows.block.y[: rows.count, sc.beacons.shape[0]][sel]) if sc.has_wind else None
@@ -444,7 +520,7 @@ class RecordingSink(Sink):
             errors={nm: {key: val[sel] for key, val in err.items()} for nm, err in rows.errors.items()},
             estimates={nm: v[sel] for nm, v in rows.estimates.items()},
             traces={nm: v[sel] for nm, v in rows.traces.items()}, nis={nm: v[sel] for nm, v in rows.nis.items()},
-            ranges=raw[sel, c.measured], airspeed=air, accel=rows.block.u[: rows.count][sel],
+            ranges=raw[sel, c.measured], airspeed=air, inputs=rows.block.u[: rows.count][sel],
             bounds={nm: v[sel] for nm, v in rows.bounds.items()},
             rejected={e.name: rows.rejected[e.name][sel] for e in self.gated}, events=ev[sel],
         ), extra=self._extra)
@@ -461,13 +537,13 @@ class RecordingSink(Sink):
             self.switching[name] = (est, len(est.switches))
 
     def _text(self, message: str, level: str, step: int) -> None:
-        self.recorder.text("events", message, level=level, step=step, time=step * self.ctx.scenario.dt)
+        self.recorder.text("events", message, level=level, step=step, time=step * self.ctx.frame.dt)
 
     def end(self, completed: int, interrupted: bool) -> dict:
         """The event log's last lines: the interruption, and each gate's rejections beside the injected events."""
         self._log_switches()
         if interrupted:
-            self._text(f"interrupted at t = {completed * self.ctx.scenario.dt:.3f} s (step {completed})", "WARN", completed)
+            self._text(f"interrupted at t = {completed * self.ctx.frame.dt:.3f} s (step {completed})", "WARN", completed)
         for e in self.gated:
             count = self.rejected[e.name]
             self._text(
@@ -479,7 +555,7 @@ class RecordingSink(Sink):
 
     def fail(self, completed: int, error: BaseException) -> None:
         self.recorder.fail()  # the target keeps the previous recording; the staging file keeps this one
-        dt = self.ctx.scenario.dt
+        dt = self.ctx.frame.dt
         self._text(f"stopped by an error at t = {completed * dt:.3f} s (step {completed}): {error!r}", "ERROR", completed)
 
     def close(self) -> None:

@@ -1,11 +1,13 @@
 """The command line's conveniences: ``python -m quadobs``, ``--version``, the estimators' help,
 ``quadobs list``, le2013's options, the first-run notice, and no folders left by a failed run."""
 
+import importlib
 import os
 import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 import quadobs
@@ -178,11 +180,16 @@ def test_cold_kernels_says_nothing_when_it_cannot_tell():
 
 @pytest.mark.parametrize("cold", [True, False])
 def test_the_notice_is_one_line_on_stderr_when_kernels_are_cold(cold, capsys, monkeypatch):
+    import quadobs._kernels.precompile as pre
+
+    compiled = []
     monkeypatch.setattr(quadobs._kernels, "cold_kernels", lambda kernels: list(kernels) if cold else [])
+    monkeypatch.setattr(pre, "compile_side_by_side", lambda kernels: compiled.extend(kernels) or list(kernels))
     assert main(["run", "ifac2021", "--estimators", "nosuch", "--no-progress"]) == 2
     captured = capsys.readouterr()
     assert captured.out == ""
     assert captured.err.count(cli.COMPILING_NOTICE) == (1 if cold else 0)
+    assert compiled == (list(cli._episode_kernels(["nosuch"])) if cold else [])  # the cold ones, side by side
     assert captured.err.strip().splitlines()[-1].startswith("quadobs: error: estimators: unknown estimator 'nosuch'")
 
 
@@ -252,3 +259,38 @@ def test_output_into_a_closed_pipe_ends_quietly(tmp_path):
     proc.wait(timeout=120)
     assert proc.returncode == 141, err
     assert "Traceback" not in err and summary.is_file()
+
+
+# -- compiling side by side ------------------------------------------------------------------
+
+
+def test_the_precompiled_signatures_are_those_the_testbed_calls():
+    """Each kernel of SIGNATURES, after an episode on each path and a public step, has exactly the listed signature."""
+    import numba  # noqa: F401 - the kernels need it
+
+    from quadobs._kernels.precompile import EPISODE, SIGNATURES, signature
+    from quadobs.testbed.episode import run_episode
+    from quadobs.testbed.factories import augmented_observer
+
+    sc = quadobs.load_scenario("ifac2021", duration=0.05)
+    run_episode(sc)
+    run_episode(sc, path="step")
+    augmented_observer(sc, np.zeros(sc.state_dim)).step(np.zeros(sc.dimension), np.zeros(1))
+    for spec, codes in SIGNATURES.items():
+        module, _, name = spec.partition(":")
+        dispatcher = getattr(importlib.import_module(module), name)
+        assert signature(codes) in dispatcher.signatures, (spec, dispatcher.signatures)
+    assert set(EPISODE) <= set(cli._episode_kernels(None))
+
+
+def test_compile_side_by_side_fills_the_cache(tmp_path):
+    """A kernel compiled by a child process is warm for the next process (an empty cache before)."""
+    spec = "quadobs.testbed.worlds._read:read_block"
+    code = (
+        "import sys; from quadobs._kernels import cold_kernels; from quadobs._kernels.precompile import compile_side_by_side;"
+        f"before = cold_kernels([{spec!r}]); done = compile_side_by_side([{spec!r}, 'not.a:kernel']);"
+        f"print(before, done, cold_kernels([{spec!r}]))"
+    )
+    done = _python("-c", code, env={"NUMBA_CACHE_DIR": str(tmp_path / "numba")})
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.split() == [f"[{spec!r}]", f"[{spec!r}]", "[]"]

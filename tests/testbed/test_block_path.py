@@ -8,7 +8,7 @@ import pytest
 from quadobs import load_scenario
 from quadobs.estimators.base import BlockStep
 from quadobs.recording import read_series
-from quadobs.testbed.episode import WALL_CLOCK_KEYS, _Episode, run_episode
+from quadobs.testbed.episode import WALL_CLOCK_KEYS, _Episode, run_episode, scenario_parts
 from quadobs.testbed.factories import augmented_observer
 from quadobs.testbed.sensors import SensorModel, spawn_streams
 from quadobs.testbed.worlds import PointMassWorld
@@ -101,7 +101,7 @@ def test_block_and_per_step_paths_give_the_same_summary(name, estimators, durati
 
 def test_the_block_path_is_the_default_for_compiled_estimators_in_an_open_loop_world():
     def episode(sc, names, path="auto"):
-        return _Episode(sc, names, None, None, 8192, False, 0, path)
+        return _Episode(**scenario_parts(sc, names), path=path)
 
     sc = load_scenario("ifac2021-noisy", duration=0.1)
     assert episode(sc, ["augmented"]).blockwise
@@ -126,3 +126,42 @@ def test_path_is_checked():
 
     with pytest.raises(QuadobsError, match="path"):
         run_episode(load_scenario("ifac2021", duration=0.01), path="fast")
+
+
+def _serial(scenario, sensors, capacity):
+    return PointMassWorld(scenario, sensors, capacity, pipelined=False)
+
+
+@pytest.mark.parametrize("name", ["ifac2021-outliers", "wind"])
+def test_pipelined_physics_gives_the_same_bits(tmp_path, name):
+    """The next block's physics computed in a background thread: the same summary and recording as in the loop's thread."""
+    sc = load_scenario(name, duration=20.0)  # three blocks
+    runs = {}
+    for label, world in (("pipelined", None), ("serial", _serial)):
+        (tmp_path / label).mkdir()
+        rrd = tmp_path / label / "run.rrd"
+        runs[label] = (_summary(run_episode(sc, out=rrd, world=world)), read_series(rrd, "errors/augmented/position/norm"))
+    assert runs["pipelined"][0].replace(str(tmp_path / "pipelined"), "") == runs["serial"][0].replace(str(tmp_path / "serial"), "")
+    for key in ("step", "values"):
+        np.testing.assert_array_equal(runs["pipelined"][1][key], runs["serial"][1][key])
+
+
+@pytest.mark.parametrize("pipelined", [True, False])
+def test_a_fault_in_the_block_computed_ahead_is_reported_for_its_block(monkeypatch, pipelined):
+    """A control MuJoCo refuses at step 9000 (second block): the block before it completes and is kept, the error
+    names the second block, whether its physics ran ahead in the background or not."""
+    from quadobs.testbed.worlds.model import PhysicsFault
+
+    accelerations = PointMassWorld._accelerations
+
+    def spiked(self, k0, count):
+        acc = accelerations(self, k0, count)
+        if k0 <= 9000 < k0 + count:
+            acc[9000 - k0] = 1e12  # a force MuJoCo refuses (bad ctrl): it zeroes it
+        return acc
+
+    monkeypatch.setattr(PointMassWorld, "_accelerations", spiked)
+    world = None if pipelined else _serial
+    with pytest.raises(PhysicsFault, match=r"badctrl .* (between step 8192 and step 16384|at step 900[01]) ") as info:
+        run_episode(load_scenario("ifac2021", duration=20.0), world=world)
+    assert "step 0 " not in str(info.value)

@@ -112,7 +112,7 @@ def test_interrupt_at_a_block_boundary_records_each_step_once(tmp_path, monkeypa
             pass
 
     calls = {"commit": 0, "begin": 0}
-    commit, begin = BlockStepper.commit, BlockStepper.begin
+    commit, begin, begin_ahead = BlockStepper.commit, BlockStepper.begin, BlockStepper.begin_ahead
 
     def stop_commit(self, rows):
         calls["commit"] += 1
@@ -120,15 +120,19 @@ def test_interrupt_at_a_block_boundary_records_each_step_once(tmp_path, monkeypa
             raise KeyboardInterrupt
         return commit(self, rows)
 
-    def stop_begin(self, *args, **kwargs):
-        calls["begin"] += 1
-        if seam == "next_block" and calls["begin"] == 2:
-            raise KeyboardInterrupt
-        return begin(self, *args, **kwargs)
+    def stopping(start):  # a block starts with begin, or with begin_ahead where its physics ran ahead
+        def stop_begin(self, *args, **kwargs):
+            calls["begin"] += 1
+            if seam == "next_block" and calls["begin"] == 2:
+                raise KeyboardInterrupt
+            return start(self, *args, **kwargs)
+
+        return stop_begin
 
     monkeypatch.setattr(tqdm, "tqdm", Stop)
     monkeypatch.setattr(BlockStepper, "commit", stop_commit)
-    monkeypatch.setattr(BlockStepper, "begin", stop_begin)
+    monkeypatch.setattr(BlockStepper, "begin", stopping(begin))
+    monkeypatch.setattr(BlockStepper, "begin_ahead", stopping(begin_ahead))
     rrd = tmp_path / "seam.rrd"
     result = run_episode(load_scenario("ifac2021-outliers", duration=12.0), out=rrd, progress=True)
     summary = result.summary

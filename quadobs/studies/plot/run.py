@@ -66,8 +66,14 @@ def position(ax, src) -> None:
 
 
 def velocity(ax, src) -> None:
-    """Velocity error norm ``|v_hat - v|`` over time, log scale."""
+    """Velocity error norm ``|v_hat - v|`` over time, log scale (estimators with a velocity)."""
+    if not _has_velocity(src):
+        raise QuadobsError("--what velocity: the recording has no velocity estimate (a state without a velocity)")
     _error_norm(ax, src, "velocity", "m/s", "Velocity error")
+
+
+def _has_velocity(src) -> bool:
+    return any(src.has(f"errors/{e}/velocity/norm") for e in src.estimators)
 
 
 def wind(ax, src) -> None:
@@ -188,7 +194,7 @@ THREE_D = ("paths3d",)
 
 
 def default_panels(src) -> list[str]:
-    """Paths, errors, covariance and NIS, and the wind, the bounds, the excitation or else the ranges."""
+    """Paths, errors (the velocity's where the state has one), covariance and NIS, and the wind, the bounds, the excitation or else the ranges."""
     extra = "ranges"
     if any(src.has(f"errors/{e}/wind/norm") for e in src.estimators):
         extra = "wind"
@@ -196,4 +202,7 @@ def default_panels(src) -> list[str]:
         extra = "bounds"
     elif src.has("excitation/log10"):
         extra = "excitation"
-    return ["paths", "position", "velocity", "covariance", "nis", extra]
+    panels = ["paths", "position", "velocity", "covariance", "nis", extra]
+    if not _has_velocity(src):  # a state without a velocity (a replayed odometry log)
+        panels.remove("velocity")
+    return panels

@@ -8,36 +8,44 @@ model), ``ekf`` (the EKF on the original state, in the range ("norm") space), ``
 name) -> Estimator`` with ``setup`` a :class:`ReplaySetup`. The simulated scenarios'
 group ``quadobs.estimators`` is kept apart: its factories take a scenario.
 
-Noise (the defaults of :class:`ReplaySetup`; the same for every estimator):
+Noise (the defaults of :class:`ReplaySetup`; the same for every estimator). The defaults
+are round priors, chosen without looking at any log: a metre for a radio range, a metre
+per second over a second for the odometry, ``1e-3`` rad^2/s for its heading, a m/s^2 over
+a second for an unknown acceleration, a tenth of a m/s^2 for an accelerometer. The replay's
+self-calibration (:mod:`quadobs.testbed.logs.calibration`, the default of ``quadobs
+replay``) replaces the model's process-noise intensity with one it picks from the log's
+ranges, never from the truth.
 
 * ranges: standard deviation ``range_sigma`` (1 m). The augmented observer's output is the
   half squared range, whose standard deviation is about ``rho sigma``: it is given
   ``R = (rho_med range_sigma)^2`` with ``rho_med`` the median measured range of the log;
-* odometry (model ``odometry``): a white noise of intensity ``q_xy`` (m^2/s) on ``p'``
+* odometry (model ``odometry``): a white noise of intensity ``q_xy`` (1 m^2/s) on ``p'``
   (it covers the speed noise and the heading drift of the odometry); on
   the auxiliary state ``xi = |p|^2/2`` (``xi' = u^T p``) the matching intensity
   ``r^2 q_xy``, ``r`` the largest beacon distance from the origin plus 20 m;
-* model ``cv``: a white acceleration of intensity ``q_acc`` (m^2/s^3), and ``r^2 q_acc`` on
+* model ``cv``: a white acceleration of intensity ``q_acc`` (1 m^2/s^3), and ``r^2 q_acc`` on
   each auxiliary state;
-* the initial guess ``x0`` with variance ``P0`` per position axis; the augmented
-  observer's initial covariance is that of ``lift(x)`` for ``x ~ N(x0, P0 I)`` on the
-  position: ``var xi = P0 |p0|^2 + P0^2``, ``cov(xi, p) = P0 p0``;
-* no gate on the NIS by default (``gate``: a threshold; on Plaza2, whose odometry heading
-  drifts, a gate at 10.83, the 0.999 quantile of chi-square with 1 degree of freedom,
-  rejects most ranges and the estimates diverge).
-
-``q_xy = 2`` m^2/s and no gate were chosen from a sweep on both Plaza logs
-(``q_xy`` in 0.5, 2, 8; gate 10.83 or none; see ``docs/replay.md``).
+* model ``imu``: the accelerometer's white noise, of intensity ``q_imu`` (``1e-2`` m^2/s^3)
+  on ``v' = u``, and ``r^2 q_imu`` on each auxiliary state (``|p|^2/2, p^T v, |v|^2/2``);
+  the initial velocity with variance 4 m^2/s^2 per axis, as for ``cv``;
+* the initial guess ``x0`` with variance ``P0`` per position axis (``50^2`` m^2, the
+  replay's default initial offset); the augmented observer's initial covariance is that
+  of ``lift(x)`` for ``x ~ N(x0, P0 I)`` on the position: ``var xi = P0 |p0|^2 + P0^2``,
+  ``cov(xi, p) = P0 p0``;
+* no gate on the NIS (``gate``: a threshold; a gate at 10.83, the 0.999 quantile of
+  chi-square with 1 degree of freedom, rejects the ranges that disagree with a drifting
+  odometry heading, and the estimates diverge).
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from quadobs.core.immersion import immerse
-from quadobs.core.system import QuadraticSystem, constant_velocity_system, odometry_system
+from quadobs.core.system import QuadraticSystem, constant_velocity_system, odometry_system, vehicle_system
 from quadobs.errors import QuadobsError
 from quadobs.estimators.augmented import AugmentedObserver
 from quadobs.estimators.base import Estimator
@@ -45,7 +53,7 @@ from quadobs.estimators.kalman import ExtendedKalmanFilter, HeldInputModel, Outp
 
 __all__ = [
     "REPLAY_ENTRY_POINT_GROUP", "REPLAY_ESTIMATORS", "ReplaySetup", "build_isam2", "build_replay_estimators",
-    "replay_estimator_names",
+    "replay_estimator_names", "replay_setup", "parse_tuning", "TUNING",
 ]
 
 #: The entry-point group of the estimators of logged data.
@@ -58,17 +66,19 @@ class ReplaySetup:
 
     Attributes
     ----------
-    beacons : ndarray (q, 2)
+    beacons : ndarray (q, dim)
     dt : float
-    model : {"odometry", "cv"}
+    model : {"odometry", "cv", "imu"}
     heading0 : float
-        The odometry's heading at the first step (rad).
+        The odometry's heading at the first step (rad; 0 for an accelerometer log).
     range_median : float
         Median measured range (m).
-    range_sigma, q_xy, q_theta, q_acc, gate : float
+    range_sigma, q_xy, q_theta, q_acc, q_imu, gate : float
         Noise settings (module docstring).
     P0 : float
         Variance of the initial position guess per axis (m^2).
+    input_kind : {"odometry", "imu"}
+        The log's inputs (:class:`~quadobs.testbed.logs.format.RangeLog`).
     """
 
     beacons: np.ndarray
@@ -77,48 +87,101 @@ class ReplaySetup:
     heading0: float
     range_median: float
     range_sigma: float = 1.0
-    q_xy: float = 2.0
+    q_xy: float = 1.0
     q_theta: float = 1e-3
-    q_acc: float = 2.0
+    q_acc: float = 1.0
+    q_imu: float = 1e-2
     gate: float | None = None
     P0: float = 2500.0
+    input_kind: str = "odometry"
     system: QuadraticSystem = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
-        make = {"odometry": odometry_system, "cv": constant_velocity_system}.get(self.model)
+        for key in TUNING:
+            value = getattr(self, key)
+            if not (key == "gate" and value is None) and not (isinstance(value, (int, float)) and 0 < value < math.inf):
+                raise QuadobsError(f"{key}: expected a positive finite number{' or none' if key == 'gate' else ''}, got {value!r}")
+        dim = self.beacons.shape[1]
+        inputs = 3 if self.input_kind == "odometry" else dim
+        make = {
+            "odometry": lambda: odometry_system(self.beacons),
+            "cv": lambda: constant_velocity_system(self.beacons, inputs),
+            "imu": lambda: vehicle_system(dim, self.beacons),
+        }.get(self.model)
         if make is None:
-            raise QuadobsError(f"model: expected odometry or cv, got {self.model!r}")
-        object.__setattr__(self, "system", make(self.beacons))
+            raise QuadobsError(f"model: expected odometry, cv or imu, got {self.model!r}")
+        object.__setattr__(self, "system", make())
 
     @property
     def n(self) -> int:
         return self.system.n
+
+    @property
+    def dim(self) -> int:
+        """Dimension of the positions."""
+        return int(self.beacons.shape[1])
+
+
+#: The settings of :class:`ReplaySetup` a user may tune (``quadobs replay --tune KEY=VALUE``).
+TUNING = ("range_sigma", "q_xy", "q_theta", "q_acc", "q_imu", "gate", "P0")
+
+
+def parse_tuning(settings) -> dict:
+    """``["q_xy=1", "gate=none", ...]`` as setup options (``gate=none``: no gate); one-line errors naming the setting."""
+    out = {}
+    for text in settings:
+        key, sep, raw = text.partition("=")
+        key = key.strip()
+        if not sep or key not in TUNING:
+            raise QuadobsError(f"--tune: expected KEY=VALUE with KEY one of {', '.join(TUNING)}, got {text!r}")
+        if key == "gate" and raw.strip().lower() == "none":
+            out[key] = None
+            continue
+        try:
+            out[key] = float(raw)
+        except ValueError:
+            raise QuadobsError(f"--tune {key}: expected a number, got {raw.strip()!r}") from None
+    return out
+
+
+def replay_setup(log, world, options: dict | None = None) -> ReplaySetup:
+    """The setup of a replay of ``log`` on ``world`` (:class:`~quadobs.testbed.worlds.replay.ReplayWorld`), ``options`` its noise settings."""
+    from quadobs.testbed.worlds.replay import dead_reckoning
+
+    heading = float(dead_reckoning(log, world.times[:1])[1][0]) if log.input_kind == "odometry" else 0.0
+    return ReplaySetup(log.beacons, world.dt, world.model, heading, float(np.median(log.ranges[:, 2])),
+                       input_kind=log.input_kind, **(options or {}))
+
+
+def _acceleration_noise(s: ReplaySetup) -> float:
+    """The white acceleration's intensity (m^2/s^3) of a model with a velocity."""
+    return s.q_imu if s.model == "imu" else s.q_acc
 
 
 def _process_noise(s: ReplaySetup) -> np.ndarray:
     """Continuous intensity on ``x`` (module docstring)."""
     if s.model == "odometry":
         return s.q_xy * np.eye(2)
-    return np.diag([0.0, 0.0, s.q_acc, s.q_acc])
+    return np.diag([0.0] * s.dim + [_acceleration_noise(s)] * s.dim)
 
 
 def build_augmented(s: ReplaySetup, x0: np.ndarray, name: str = "augmented") -> AugmentedObserver:
     """The observer of [IFAC2021, Thm. 3] on the immersion of the replay model [ACC2024, Alg. 1]."""
     im = immerse(s.system)
-    k, n = im.n_aux, s.n
+    k = im.n_aux
     r = float(np.max(np.linalg.norm(s.beacons, axis=1))) + 20.0
     V = np.zeros((im.dim, im.dim))
     V[k:, k:] = _process_noise(s)
     if s.model == "odometry":
         V[0, 0] = r**2 * s.q_xy
     else:  # xi spans |p|^2/2, p.v, |v|^2/2: the acceleration noise reaches them through p.w, v.w
-        V[:k, :k] = r**2 * s.q_acc * np.eye(k)
-    p0 = np.asarray(x0[:2], dtype=float)
+        V[:k, :k] = r**2 * _acceleration_noise(s) * np.eye(k)
+    p0 = np.asarray(x0[: s.dim], dtype=float)
     P = np.eye(im.dim) * s.P0
     z0 = im.lift(x0)
     if s.model == "odometry":  # the covariance of lift(x) for x ~ N(x0, P0 I): exact for xi = |p|^2/2
         P[0, 0] = s.P0 * p0 @ p0 + s.P0**2
-        P[0, k : k + 2] = P[k : k + 2, 0] = s.P0 * p0
+        P[0, k : k + s.dim] = P[k : k + s.dim, 0] = s.P0 * p0
     else:
         P[:k, :k] = np.eye(k) * (s.P0 * (p0 @ p0 + 1.0) + s.P0**2)
     R = (s.range_median * s.range_sigma) ** 2
@@ -132,8 +195,7 @@ def build_ekf(s: ReplaySetup, x0: np.ndarray, name: str = "ekf") -> ExtendedKalm
     dyn = HeldInputModel(s.system, s.dt, V=_process_noise(s))
     out = OutputModel(s.system, s.range_sigma**2, offsets=0.5 * np.einsum("hi,hi->h", s.beacons, s.beacons))
     P0 = np.full(s.n, s.P0)
-    if s.model == "cv":
-        P0[2:] = 4.0
+    P0[s.dim :] = 4.0  # the velocity, for the models that have one
     est = ExtendedKalmanFilter(dyn, out, x0=x0, P0=np.diag(P0), gate=s.gate)
     est.name = name
     return est
@@ -143,6 +205,8 @@ def build_isam2(s, x0: np.ndarray, name: str = "isam2") -> Estimator:
     """Entry point ``isam2``: the GTSAM peer (:class:`~quadobs.estimators.gtsam_peer.Isam2RangeOnly`); logged data only."""
     if not isinstance(s, ReplaySetup):
         raise QuadobsError(f"estimators: {name!r} runs on logged data only (quadobs replay), not in a simulated scenario")
+    if s.input_kind != "odometry":
+        raise QuadobsError(f"estimators: {name!r} needs a planar odometry log (inputs time,speed,yaw_rate), not an accelerometer log")
     from quadobs.estimators.gtsam_peer import Isam2RangeOnly
 
     est = Isam2RangeOnly(s.beacons, s.dt, x0=x0, heading0=s.heading0, P0=s.P0, n=s.n, range_sigma=s.range_sigma,

@@ -17,6 +17,9 @@ Two ways to fill a block (:attr:`World.closed_loop`):
 
 * open loop (``False``): the controls of the block are known before it starts, so
   :meth:`World.fill` may produce every row in one call (``mujoco.rollout`` for instance);
+  Such a world may also compute the next block's physics in a background thread while
+  the episode reads the current one (the point mass does); :meth:`World.close` waits
+  for it;
 * closed loop (``True``): the episode calls :meth:`World.step` once per step with the
   estimate ``x_hat_k`` of the estimator named :attr:`World.controller` (``None``: the
   episode's primary estimator), read before the estimators consume row ``k``; the world
@@ -146,6 +149,12 @@ class World(abc.ABC):
         default: none.
         """
         return []
+
+    def prepare(self, path: str) -> None:
+        """Load (or compile) what the episode's ``path`` (``"block"`` or ``"step"``) needs, before its loop. The default: nothing."""
+
+    def close(self) -> None:
+        """Release what the world holds beyond the episode's loop (a block computing ahead). The default: nothing."""
 
     def commit(self, rows: int) -> None:
         """Count the sensor events (outliers, dropouts) of the first ``rows`` steps of the block.

@@ -21,11 +21,30 @@ replay uses the grid ``t_k = t_start + k dt`` (``t_start``: the first odometry t
   interpolated linearly to the grid, and the input held over ``[t_k, t_(k+1))`` is
   ``u_k = ((P(t_(k+1)) - P(t_k)) / dt, (theta(t_(k+1)) - theta(t_k)) / dt)``, so the single
   integrator ``p' = u`` reproduces the dead reckoning at every grid time;
+* holds an accelerometer's samples likewise: the input of step ``k`` is the mean of the
+  held acceleration over ``[t_k, t_(k+1))``, ``u_k = (V(t_(k+1)) - V(t_k)) / dt`` with
+  ``V(t) = int_(t_start)^t a`` (the sample itself where the log's clock is the grid's), so
+  the double integrator's velocity follows the integrated acceleration at every grid time;
 * interpolates the truth (when the log has one) linearly to the grid (NaN outside its
-  span); for the constant-velocity model its velocity is the central difference.
+  span); for a model with a velocity, the truth's velocity where the log has one, else
+  the central difference of its positions.
+
+Models (:func:`state_size`): ``odometry`` (odometry logs: ``p' = u``, ``n = 2``), ``cv``
+(planar logs, the input unused: ``p' = v``, ``v' = w``, ``n = 4``) and ``imu``
+(accelerometer logs: ``p' = v``, ``v' = u``, ``n = 2 dim``).
 
 A range bias per beacon ``b_h`` (calibrated, see :mod:`quadobs.testbed.logs.calibration`)
 is subtracted before the output ``y_h = (rho_h - b_h)^2 / 2 - |a_h|^2 / 2`` is formed.
+
+The sensor layer (:class:`~quadobs.testbed.sensors.SensorModel`, a scenario's ``noise.*``
+fields) applies to the logged ranges as to simulated ones: read at its sample steps only,
+with its noise and outliers added and its dropouts, drawn from its seeded streams a block
+at a time (:meth:`~quadobs.testbed.sensors.SensorModel.logged_ranges`). With the default
+settings it adds nothing: the log's ranges as they are.
+
+The world's own sinks (:meth:`ReplayWorld.sinks`) add the replay's figures to the summary:
+:class:`ReplayErrorSink` (RMSE, maximum and final error, convergence times against the
+truth) and :class:`ReplayFiguresSink` (time per range, the GTSAM peer's offline figures).
 """
 
 from __future__ import annotations
@@ -35,12 +54,32 @@ import math
 import numpy as np
 
 from quadobs.errors import QuadobsError, as_finite_scalar
+from quadobs.evaluation.convergence import ConvergenceTracker, json_time
+from quadobs.testbed.sinks import EpisodeContext, EpisodeFrame, Rows, Sink
 from quadobs.testbed.worlds.base import Columns, World
 
-__all__ = ["ReplayWorld", "dead_reckoning", "grid", "MODELS"]
+__all__ = ["ReplayErrorSink", "ReplayFiguresSink", "ReplayWorld", "dead_reckoning", "default_model", "grid", "state_size", "MODELS"]
 
-#: Replay models: the estimator state they use (``n``).
-MODELS = {"odometry": 2, "cv": 4}
+#: Replay models (module docstring).
+MODELS = ("odometry", "cv", "imu")
+
+
+def default_model(log) -> str:
+    """``odometry`` for an odometry log, ``imu`` for an accelerometer log."""
+    return "odometry" if log.input_kind == "odometry" else "imu"
+
+
+def state_size(log, model: str) -> int:
+    """The estimator state size ``n`` of ``model`` on ``log``; a one-line error where the model does not apply."""
+    if model not in MODELS:
+        raise QuadobsError(f"model: expected one of {', '.join(MODELS)}, got {model!r}")
+    if model == "odometry" and log.input_kind != "odometry":
+        raise QuadobsError(f"model odometry: the log {log.name!r} has accelerometer inputs (use --model imu)")
+    if model == "imu" and log.input_kind != "imu":
+        raise QuadobsError(f"model imu: the log {log.name!r} has odometry inputs, no accelerometer (use --model odometry)")
+    if model == "cv" and log.dimension != 2:
+        raise QuadobsError(f"model cv: planar logs only (the log {log.name!r} is 3-D)")
+    return {"odometry": 2, "cv": 4, "imu": 2 * log.dimension}[model]
 
 
 def grid(log, dt: float) -> np.ndarray:
@@ -65,16 +104,29 @@ def dead_reckoning(log, times: np.ndarray, origin=(0.0, 0.0)) -> tuple[np.ndarra
     return np.column_stack([x, y]), np.interp(times, t, theta)
 
 
+def held_mean(log, times: np.ndarray) -> np.ndarray:
+    """The mean of the held accelerometer input over each grid step ``[t_k, t_(k+1))``, ``(K, dim)`` (module docstring)."""
+    t, a = log.inputs[:, 0], log.inputs[:, 1:]
+    V = np.vstack([np.zeros(a.shape[1]), np.cumsum(a[:-1] * np.diff(t)[:, None], axis=0)])
+    Vg = np.column_stack([np.interp(times, t, V[:, i]) for i in range(a.shape[1])])
+    return np.diff(Vg, axis=0) / np.diff(times)[:, None]
+
+
 def _truth_rows(log, T: np.ndarray, n: int) -> np.ndarray:
     X = np.full((T.size, n), np.nan)
     if log.truth is None:
         return X
-    tt = log.truth[:, 0]
+    dim, tt = log.dimension, log.truth[:, 0]
     inside = (T >= tt[0]) & (T <= tt[-1])
-    for c in range(2):
-        X[inside, c] = np.interp(T[inside], tt, log.truth[:, 1 + c])
-    if n == 4:
-        X[:, 2:4] = np.gradient(X[:, :2], T, axis=0)
+    for c, col in enumerate(log.truth_part("position").T):
+        X[inside, c] = np.interp(T[inside], tt, col)
+    if n == 2 * dim:
+        V = log.truth_part("velocity")
+        if V is None:
+            X[:, dim:] = np.gradient(X[:, :dim], T, axis=0)
+        else:
+            for c, col in enumerate(V.T):
+                X[inside, dim + c] = np.interp(T[inside], tt, col)
     return X
 
 
@@ -86,12 +138,16 @@ class ReplayWorld(World):
     log : RangeLog
     dt : float
         Grid step (s).
-    model : {"odometry", "cv"}
-        The estimator state: position (``n = 2``) or position and velocity (``n = 4``).
+    model : {"odometry", "cv", "imu"}
+        The estimator state (:func:`state_size`): the position, or the position and the velocity.
     capacity : int
         Most steps per block.
     biases : array_like (q,), optional
         Range bias per beacon (m), subtracted from every range; default zero.
+    sensors : SensorModel, optional
+        The sensor layer applied to the logged ranges (default: none).
+    peer_batch : bool
+        :class:`ReplayFiguresSink` also solves the GTSAM peer's whole graph (Levenberg-Marquardt).
 
     Attributes
     ----------
@@ -105,28 +161,37 @@ class ReplayWorld(World):
         Ranges placed on the grid.
     """
 
-    def __init__(self, log, dt: float, model: str = "odometry", capacity: int = 8192, biases=None) -> None:
-        if model not in MODELS:
-            raise QuadobsError(f"model: expected one of {', '.join(MODELS)}, got {model!r}")
+    def __init__(self, log, dt: float, model: str = "odometry", capacity: int = 8192, biases=None, sensors=None,
+                 peer_batch: bool = True) -> None:
+        n, q = state_size(log, model), log.beacons.shape[0]
         self.log, self.model, self.dt = log, model, float(dt)
+        self.sensors = None if sensors is None or sensors.adds_nothing else sensors
+        self.peer_batch = bool(peer_batch)
         self.times = T = grid(log, dt)
         self.steps = K = T.size - 1
-        n, q = MODELS[model], log.beacons.shape[0]
         self.biases = np.zeros(q) if biases is None else np.asarray(biases, dtype=float).reshape(q)
+        self._a2 = np.einsum("hi,hi->h", log.beacons, log.beacons)
+        p = 3 if log.input_kind == "odometry" else log.dimension
         self.columns = Columns(
-            truth=slice(0, n), y=slice(n, n + q), u=slice(n + q, n + q + 3),
-            measured=slice(n + q + 3, n + 2 * q + 3), width=n + 2 * q + 3,
+            truth=slice(0, n), y=slice(n, n + q), u=slice(n + q, n + q + p),
+            measured=slice(n + q + p, n + 2 * q + p), width=n + 2 * q + p,
         )
         rows = np.full((K + 1, self.columns.width), np.nan)
         rows[:, :n] = _truth_rows(log, T, n)
-        P, theta = dead_reckoning(log, T)
-        rows[:K, n + q : n + q + 2] = np.diff(P, axis=0) / self.dt
-        rows[:K, n + q + 2] = np.diff(theta) / self.dt
+        rows[:K, self.columns.u] = self._inputs(T)
         self._place_ranges(rows, K, n, q)
         self._rows = rows
         self.out = np.full((int(capacity) + 1, self.columns.width), np.nan)
         self.events = np.zeros((int(capacity) + 1, 2), dtype=np.int64)
         self._k0 = 0
+        self._src = self._events = None  # with a sensor layer: the block's rows (row 0: step _k0), its events
+
+    def _inputs(self, T: np.ndarray) -> np.ndarray:
+        """The input held over each grid step ``(K, p)`` (module docstring)."""
+        if self.log.input_kind != "odometry":
+            return held_mean(self.log, T)
+        P, theta = dead_reckoning(self.log, T)
+        return np.column_stack([np.diff(P, axis=0) / self.dt, np.diff(theta) / self.dt])
 
     def _place_ranges(self, rows: np.ndarray, K: int, n: int, q: int) -> None:
         log = self.log
@@ -138,9 +203,21 @@ class ReplayWorld(World):
         self.merged = int(k.size - first.size)
         self.placed = int(first.size)
         k, h, rho = k[first], h[first], rho[first]
-        rows[k, n + q + 3 + h] = rho
-        a2 = np.einsum("hi,hi->h", log.beacons, log.beacons)
-        rows[k, n + h] = 0.5 * (rho - self.biases[h]) ** 2 - 0.5 * a2[h]
+        rows[k, self.columns.measured.start + h] = rho
+        rows[k, n + h] = 0.5 * (rho - self.biases[h]) ** 2 - 0.5 * self._a2[h]
+
+    def frame(self, seed: int = 0) -> EpisodeFrame:
+        """The episode frame of the replay: the log's name and beacons, the grid, its input (odometry or accelerometer)."""
+        log, s = self.log, self.sensors
+        odometry = log.input_kind == "odometry"
+        return EpisodeFrame(
+            name=log.name, steps=self.steps, dt=self.dt, dimension=log.dimension, beacons=log.beacons, physics_rate=1.0 / self.dt,
+            seed=int(seed), description=f"replay of the log {log.name} (model {self.model}, dt {self.dt:g} s)",
+            source=log.source, sensor_events=s is not None and bool(s.dropout or s.outlier_probability),
+            input_name="odometry" if odometry else "accelerometer",
+            input_labels=("v_x (m/s)", "v_y (m/s)", "omega (rad/s)") if odometry else tuple(f"a_{a}" for a in "xyz"[: log.dimension]),
+            beacon_labels=tuple(f"beacon {int(i)}" for i in log.beacon_ids),
+        )
 
     def truth_at(self, steps) -> np.ndarray:
         """The true state at the given grid steps ``(m, n)`` (NaN without a truth)."""
@@ -155,13 +232,98 @@ class ReplayWorld(World):
         count = min(int(count), self.out.shape[0] - 1, self.steps - k0)
         self._count = count
         self.out[0, self.columns.truth] = self._rows[k0, self.columns.truth]
+        if self.sensors is not None:
+            self._sense(count)
         return count
+
+    def _sense(self, count: int) -> None:
+        """The block's rows with the sensor layer on the logged ranges (module docstring), in ``_src``."""
+        k0, c = self._k0, self.columns
+        src = self._rows[k0 : k0 + count + 1].copy()
+        draws = self.sensors.draws(k0, count)
+        rho, self._events = self.sensors.logged_ranges(src[:count, c.measured], draws)
+        src[:count, c.measured] = rho
+        src[:count, c.y] = 0.5 * (rho - self.biases) ** 2 - 0.5 * self._a2
+        if self.sensors.accel_std:  # an accelerometer log (the layer refuses accelerometer noise on odometry)
+            src[:count, c.u] += self.sensors.input_noise(draws)
+        self._src = src
+
+    def _row(self, k: int) -> np.ndarray:
+        return self._rows[k] if self.sensors is None else self._src[k - self._k0]
 
     def step(self, j: int, estimate=None) -> None:
         k = self._k0 + j
-        self.out[j] = self._rows[k]
+        self.out[j] = self._row(k)
         self.out[j + 1, self.columns.truth] = self._rows[k + 1, self.columns.truth]
 
     def fill(self, count: int) -> None:
         k0 = self._k0
-        self.out[: count + 1] = self._rows[k0 : k0 + count + 1]
+        self.out[: count + 1] = self._rows[k0 : k0 + count + 1] if self.sensors is None else self._src[: count + 1]
+
+    def commit(self, rows: int) -> None:
+        """The sensor events of the first ``rows`` steps, counted in the sensor layer."""
+        self.events[:rows] = 0 if self.sensors is None else self.sensors.count(self._events[:rows])
+
+    def sinks(self, recording=None) -> list:
+        """The replay's figures: :class:`ReplayErrorSink`, :class:`ReplayFiguresSink`."""
+        return [ReplayErrorSink(), ReplayFiguresSink(self)]
+
+
+class ReplayErrorSink(Sink):
+    """Position RMSE, maximum and final error, and convergence times (5 m, 2 m) per estimator, over the rows with a truth."""
+
+    def begin(self, ctx: EpisodeContext) -> None:
+        super().begin(ctx)
+        self.sq = {n: [0.0, 0, 0.0, math.nan] for n in ctx.names}  # sum of squares, count, max, last
+        self.trackers = {n: ConvergenceTracker((5.0, 2.0)) for n in ctx.names}
+
+    def block(self, rows: Rows) -> None:
+        for name, err in rows.errors.items():
+            ep = err["position"]
+            e = np.sqrt(np.einsum("ij,ij->i", ep, ep))
+            ok = np.isfinite(e)
+            acc = self.sq[name]
+            acc[0] += float(np.sum(e[ok] ** 2))
+            acc[1] += int(ok.sum())
+            acc[2] = max(acc[2], float(e[ok].max())) if ok.any() else acc[2]
+            acc[3] = float(e[-1])
+            if ok.any():
+                self.trackers[name].update_many(rows.t[ok], e[ok])
+
+    def end(self, completed: int, interrupted: bool) -> dict:
+        per = {}
+        for name, (ss, m, mx, last) in self.sq.items():
+            t5, t2 = (json_time(t) for t in self.trackers[name].times())
+            per[name] = {
+                "rmse": math.sqrt(ss / m) if m else None,
+                "max_error": mx if m else None,
+                "final_position_error": last if math.isfinite(last) else None,
+                "time_to_5m": t5,
+                "time_to_2m": t2,
+            }
+        return {"estimators": per}
+
+
+class ReplayFiguresSink(Sink):
+    """Per estimator: ``seconds_per_measurement`` (its wall time over the ranges placed, from the
+    episode's clock); for the GTSAM peer, ``smoothed_rmse``/``batch_rmse`` and their maxima at its
+    keyframes (iSAM2's final estimate, the Levenberg-Marquardt optimum), unless interrupted."""
+
+    def __init__(self, world: ReplayWorld) -> None:
+        self.world = world
+
+    def end(self, completed: int, interrupted: bool) -> dict:
+        from quadobs.estimators.gtsam_peer import Isam2RangeOnly  # imports gtsam only when built
+
+        per, clock, w = {}, self.ctx.clock, self.world
+        for e, est in enumerate(self.ctx.estimators):
+            entry = per[est.name] = {}
+            if clock is not None:
+                entry["seconds_per_measurement"] = float(clock[e]) / max(w.placed, 1)
+            if isinstance(est, Isam2RangeOnly) and w.peer_batch and not interrupted:
+                for key, (steps, P) in (("smoothed", est.online_positions()), ("batch", est.batch_optimum())):
+                    err = np.linalg.norm(P - w.truth_at(steps)[:, :2], axis=1)  # the peer: planar odometry logs
+                    err = err[np.isfinite(err)]
+                    entry[f"{key}_rmse"] = float(np.sqrt(np.mean(err**2))) if err.size else None
+                    entry[f"{key}_max_error"] = float(err.max()) if err.size else None
+        return {"estimators": per}
