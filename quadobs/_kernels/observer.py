@@ -106,6 +106,9 @@ __all__ = [
 ]
 
 _OPTS = dict(cache=True, nogil=True, error_model="numpy")
+#: The helpers: inlined into each kernel (Numba IR), which compiles in about 3 s less than as
+#: separately compiled callees, at the same speed.
+_INLINE = dict(_OPTS, inline="always")
 
 #: Length of the header of ``ic``.
 HEADER = 24
@@ -129,7 +132,7 @@ def work_size(N: int, q: int, nm: int) -> int:
     return 2 * N * N + 4 * N * q + N + nm + q * q + 3 * q + 4
 
 
-@njit(**_OPTS)
+@njit(**_INLINE)
 def _cholesky_nis(W, oL, onu, otmp, ow, q, r):
     """Cholesky ``L L^T`` of the ``r x r`` innovation covariance held at ``W[oL:]`` (row stride ``q``, lower
     triangle, in place), ``w = (L L^T)^{-1} nu`` into ``W[ow:]`` (``nu`` at ``W[onu:]``, ``W[otmp:]``
@@ -163,7 +166,7 @@ def _cholesky_nis(W, oL, onu, otmp, ow, q, r):
     return nis
 
 
-@njit(**_OPTS)
+@njit(**_INLINE)
 def _innovation(S, zo, po, W, wo, y, fc, ic, r):
     """For the ``r`` outputs present (indices in ``ic[o_iw:]``): the rows ``C_a P`` (``CP (q, N)`` at
     ``W[wo + 2 N^2:]``), the innovation ``nu`` and the lower triangle of ``C P C^T + R`` (``L``)."""
@@ -204,7 +207,7 @@ def _innovation(S, zo, po, W, wo, y, fc, ic, r):
             W[wo + oL + a * q + b] = s
 
 
-@njit(**_OPTS)
+@njit(**_INLINE)
 def _gain(S, zo, W, wo, ic, r):
     """``K^T = (L L^T)^{-1} C P`` (``(q, N)`` at ``W[wo + 2 N^2 + N q:]``, the ``X C^T`` area as scratch)
     and ``z += K nu = (C P)^T w``; entry by entry the operations of a row-by-row solve, in its order."""
@@ -259,7 +262,7 @@ def _gain(S, zo, W, wo, ic, r):
         S[zo + i] += zt[i]
 
 
-@njit(**_OPTS)
+@njit(**_INLINE)
 def _joseph(S, po, W, wo, fc, ic, r):
     """``P <- X - (X C^T) K^T + K R K^T`` with ``X = P - K C P`` (``X`` in ``W[wo + N^2:]``), the upper
     triangle computed and mirrored; returns ``trace(P)``."""
@@ -351,7 +354,7 @@ def _correct(S, zo, po, so, W, wo, y, fc, ic):
     return 1
 
 
-@njit(**_OPTS)
+@njit(**_INLINE)
 def _transition(W, wo, u, fc, ic):
     """``Phi(u)`` in ``W[wo:]``: only its aux-x block depends on ``u`` (``F0`` block plus ``sum_j u_j F1[j]``)."""
     N = ic[0]
@@ -372,7 +375,7 @@ def _transition(W, wo, u, fc, ic):
                 row[b] += uj * f1[b]
 
 
-@njit(**_OPTS)
+@njit(**_INLINE)
 def _input_term(W, wo, u, fc, ic):
     """``zt += g(u)``, ``g(u) = (u^T G2[., a, .] u, G0 u)``, ``zt`` at its place in ``W[wo:]``."""
     N = ic[0]
@@ -396,7 +399,7 @@ def _input_term(W, wo, u, fc, ic):
         W[wo + ozt + k + b] += s
 
 
-@njit(**_OPTS)
+@njit(**_INLINE)
 def _monomials(W, wo, u, ic):
     """``mono = (1, u_j, u_j u_l (j <= l))`` at its place in ``W[wo:]``; returns its offset there."""
     N = ic[0]
@@ -413,7 +416,7 @@ def _monomials(W, wo, u, ic):
     return omono
 
 
-@njit(**_OPTS)
+@njit(**_INLINE)
 def _products(S, po, W, wo, fc, ic):
     """``P <- Phi P Phi^T`` (upper triangle) by blocks, ``Phi = [[A, B], [0, E]]`` (``E = e^{A_x dt}``, ``(n, n)``, at ``fc[ic[23]:]``).
 
@@ -444,7 +447,7 @@ def _products(S, po, W, wo, fc, ic):
             P[k + i, k + j] = s
 
 
-@njit(**_OPTS)
+@njit(**_INLINE)
 def _predict_dense(S, zo, po, so, W, wo, u, fc, ic):
     """The prediction with dense products (module docstring, "Two paths for the prediction").
 
