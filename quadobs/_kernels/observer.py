@@ -6,53 +6,92 @@ imports with NumPy and SciPy alone). The arithmetic is that of the NumPy referen
 associated to follow the structure of the matrices:
 
 * the transition ``Phi(u) = F0 + sum_j u_j F1[j]`` changes only in its aux-x block
-  ([IFAC2021] eqs. 22, 26a-c) and is sparse (block upper triangular;
-  ``e^{A dt}`` of a nilpotent ``A`` is a short polynomial in ``A``): it is kept as a dense
-  buffer whose aux-x block is rewritten each step and traversed by its structural
-  nonzeros (CSR);
+  ([IFAC2021] eqs. 22, 26a-c) and is block upper triangular, ``[[A, B(u)], [0, E]]`` with
+  ``E = e^{A_x dt}`` constant; it is kept as a dense buffer whose aux-x block is
+  rewritten each step;
 * ``Q_d(u) = sum_r mono_r(u) Qc[r]`` over the monomials ``1, u_j, u_j u_l (j <= l)``
-  (``Qc`` from ``Q0, Q1, Q2`` of :class:`~quadobs.core.held_input.HeldInputDiscretization`)
-  is assembled from the nonzero upper-triangular entries of the ``Qc[r]`` (COO);
+  (``Qc`` from ``Q0, Q1, Q2`` of :class:`~quadobs.core.held_input.HeldInputDiscretization`);
 * the output matrix ``C = [F | D]`` is sparse (CSR);
 * the Joseph form ``(I - K C) P (I - K C)^T + K R K^T`` is evaluated as
-  ``X = P - K (P C^T)^T`` then ``X - (X C^T) K^T + K R K^T``: the same products,
+  ``X = P - K (C P)`` then ``X - (X C^T) K^T + K R K^T``: the same products,
   associated so that each is ``O(N^2 q)`` rather than ``O(N^3)``;
-* the state moves by ``K nu = (P C^T) S^{-1} nu``, with ``S`` factored once (Cholesky).
+* the state moves by ``K nu = (C P)^T S^{-1} nu``, with ``S`` factored once (Cholesky).
 
 The covariance is written as its upper triangle and mirrored, so it is exactly
 symmetric. Nothing is allocated per call.
+
+Two paths for the prediction
+----------------------------
+Its cost is the product ``Phi P Phi^T``. When ``Phi`` is sparse (the vehicles: ``e^{A dt}``
+of a nilpotent ``A`` is a short polynomial in ``A``; ``N = 7 .. 13``, 30 to 45 % nonzero)
+the *sparse path* (:func:`_predict_sparse`) traverses ``Phi`` by its structural nonzeros
+(CSR) and adds the nonzero upper-triangular entries of the ``Qc[r]`` (COO): ``1.5 nnz N``
+multiply-adds, at 2 to 3 GFlop/s (short loops, indices through the CSR). When ``Phi`` is
+dense (a random ``A`` of size ``n = 5 .. 8`` gives ``N = 20 .. 44``, 80 % nonzero: the
+auxiliary block ``e^{M dt}`` is full) that is ``O(N^3)`` at the same rate, so past a
+threshold the *dense path* (:func:`_predict_dense`) does the products with BLAS
+(``np.dot`` on contiguous 2-D views of the flat buffers, which Numba hands to the
+``dgemm`` of SciPy's BLAS), using the block structure of ``Phi``:
+
+.. math::
+
+    T_{:k} = \\Phi_{:k} P, \\quad T_{k:} = E P_{k:}, \\quad
+    P_{:k} \\leftarrow T_{:k} \\Phi^\\top, \\quad
+    \\operatorname{triu}(P_{k:,k:}) \\leftarrow \\operatorname{triu}(T_{k:,k:} E^\\top),
+
+``2 k N^2 + n^2 N + n^3 / 2`` multiply-adds instead of ``2 N^3`` (``k`` auxiliary states,
+``n = N - k``), then ``P <- growth P + Q_d(u)`` on the upper triangle with the ``Qc[r]``
+stored dense, mirrored. :func:`dense_path` decides, once per model: the dense path is taken
+when the sparse product ``Phi P`` would cost at least :data:`DENSE_MIN_WORK` multiply-adds
+(``nnz N``, below which the fixed cost of the BLAS calls dominates) and ``Phi`` is at least
+a quarter full (:data:`DENSE_MIN_FILL`: the dense path does ``~2 N^3`` multiply-adds at 5 to
+8 times the sparse path's rate, so it pays when ``1.5 nnz N > 2 N^3 / 6``). Every built-in
+scenario stays on the sparse path, whose results are unchanged to the bit. The dense path
+agrees with the NumPy reference to rounding (``1e-12`` of the covariance's scale over
+thousands of steps, tested). Measured at ``N = 38`` (``docs/benchmarks.md``): about 9 us a
+step in the kernel against 55 us on the sparse path; the products are two thirds of it, at
+0.9 of the single-thread ``dgemm`` rate of that size.
+
+Loops over a row index a slice of the flat buffer from 0 (``row = W[o : o + N]``,
+``row[j]``): Numba wraps negative indices, and with an index ``o + j`` whose sign LLVM
+cannot prove that test stays in the loop and keeps it from being vectorised.
 
 Calling convention. Passing an array from Python to a compiled function costs tens of
 nanoseconds, more than most of the arithmetic here, so the operands travel packed:
 
 ``ic`` (int64)
     header ``[N, k, p, q, nm, nq, o_phi_ptr, o_phi_col, o_qi, o_qj, o_qr, o_c_ptr, o_c_col,
-    o_iw, o_fblk, o_F1, o_G0, o_G2, o_qv, o_cval, o_R]`` (offsets ``o_*`` into ``ic`` or
-    ``fc``), then the CSR of ``Phi``, the COO of ``Qc``, the CSR of ``C``, and ``q``
-    integers of work;
+    o_iw, o_fblk, o_F1, o_G0, o_G2, o_qv, o_cval, o_R, dense, o_Qc, o_E]`` (offsets ``o_*``
+    into ``ic`` or ``fc``; ``dense``: 1 for the dense path), then the CSR of ``Phi``, the
+    COO of ``Qc``, the CSR of ``C``, and ``q`` integers of work;
 ``fc`` (float64)
     ``[growth, gate]``, then the constant aux-x block of ``F0 (k, n)``, ``F1 (p, k, n)``,
-    ``G0 (n, p)``, ``G2 (p, k, p)``, the ``Qc`` values, the ``C`` values and ``R (q, q)``,
-    each row-major at its offset;
+    ``G0 (n, p)``, ``G2 (p, k, p)``, the ``Qc`` values (COO), the ``C`` values, ``R (q, q)``
+    and, for the dense path only, ``Qc (nm, N, N)`` and ``E (n, n)``, each row-major at its
+    offset;
 ``W`` (float64 work, :func:`work_size`)
-    ``Phi``, ``T`` (or ``X``) (``N * N`` each), ``P C^T``, ``K``, ``X C^T``,
-    ``K R`` (``N * q`` each), ``zt (N)``, ``mono (nm)``, ``L (q * q)``, ``nu``, ``w``, ``tmp``
-    (``q`` each), then the observer's ``stats = [nis, corrections, rejected, trace(P)]``.
+    ``Phi``, ``T`` (or ``X``) (``N * N`` each), ``C P``, ``K^T`` (``(q, N)`` each),
+    ``X C^T`` (first ``L^{-1} C P``, ``(q, N)``), ``K R`` (``(N, q)`` each), ``zt (N)``,
+    ``mono (nm)``, ``L (q * q)``, ``nu``, ``w``, ``tmp`` (``q`` each), then the observer's
+    ``stats = [nis, corrections, rejected, trace(P)]``.
 
 A single observer keeps ``z``, ``P`` and ``W`` in one buffer ``S = [z | P | W]``
 (:func:`augmented_step` then takes five arrays), a batch one row ``[z | P | stats]`` per
-member and a shared ``W``; the kernels index these flat buffers by offset (slicing views
-inside a kernel costs reference counting). :class:`quadobs.estimators.augmented.KernelModel` builds
-``ic`` and ``fc``.
+member and a shared ``W``; the kernels index these flat buffers by offset, through 1-D
+slices (about a nanosecond each; a reshaped 2-D view costs some 25 ns, and is made only on
+the dense path). :class:`quadobs.estimators.augmented.KernelModel` builds ``ic`` and ``fc``.
 """
 
 from __future__ import annotations
 
 import math
 
+import numpy as np
 from numba import njit
 
 __all__ = [
+    "DENSE_MIN_FILL",
+    "DENSE_MIN_WORK",
     "HEADER",
     "augmented_correct",
     "augmented_predict",
@@ -60,15 +99,32 @@ __all__ = [
     "augmented_step_batch",
     "augmented_step_block",
     "augmented_step_record",
+    "dense_path",
     "range_outputs",
     "sensor_step",
     "work_size",
 ]
 
 _OPTS = dict(cache=True, nogil=True, error_model="numpy")
+#: The helpers: inlined into each kernel (Numba IR), which compiles in about 3 s less than as
+#: separately compiled callees, at the same speed.
+_INLINE = dict(_OPTS, inline="always")
 
 #: Length of the header of ``ic``.
-HEADER = 21
+HEADER = 24
+#: Least ``nnz(Phi) N`` (multiply-adds of the sparse ``Phi P``) for the dense path.
+DENSE_MIN_WORK = 1000
+#: Least share of structural nonzeros in ``Phi`` for the dense path.
+DENSE_MIN_FILL = 0.25
+
+
+def dense_path(N: int, nnz: int) -> bool:
+    """Whether an observer with ``N`` states and ``nnz`` structural nonzeros in ``Phi`` predicts on the dense path.
+
+    ``nnz N >= DENSE_MIN_WORK`` and ``nnz >= DENSE_MIN_FILL N^2`` (module docstring, "Two paths
+    for the prediction"). The vehicles (``nnz N`` from 154 to 637) stay on the sparse path.
+    """
+    return nnz * N >= DENSE_MIN_WORK and nnz >= DENSE_MIN_FILL * N * N
 
 
 def work_size(N: int, q: int, nm: int) -> int:
@@ -76,7 +132,7 @@ def work_size(N: int, q: int, nm: int) -> int:
     return 2 * N * N + 4 * N * q + N + nm + q * q + 3 * q + 4
 
 
-@njit(**_OPTS)
+@njit(**_INLINE)
 def _cholesky_nis(W, oL, onu, otmp, ow, q, r):
     """Cholesky ``L L^T`` of the ``r x r`` innovation covariance held at ``W[oL:]`` (row stride ``q``, lower
     triangle, in place), ``w = (L L^T)^{-1} nu`` into ``W[ow:]`` (``nu`` at ``W[onu:]``, ``W[otmp:]``
@@ -110,8 +166,10 @@ def _cholesky_nis(W, oL, onu, otmp, ow, q, r):
     return nis
 
 
-@njit(**_OPTS)
-def _correct(S, zo, po, so, W, wo, y, fc, ic):
+@njit(**_INLINE)
+def _innovation(S, zo, po, W, wo, y, fc, ic, r):
+    """For the ``r`` outputs present (indices in ``ic[o_iw:]``): the rows ``C_a P`` (``CP (q, N)`` at
+    ``W[wo + 2 N^2:]``), the innovation ``nu`` and the lower triangle of ``C P C^T + R`` (``L``)."""
     N = ic[0]
     q = ic[3]
     nm = ic[4]
@@ -120,6 +178,158 @@ def _correct(S, zo, po, so, W, wo, y, fc, ic):
     o_iw = ic[13]
     o_cval = ic[19]
     o_R = ic[20]
+    oPC = 2 * N * N
+    oL = oPC + 4 * N * q + N + nm
+    onu = oL + q * q
+    P = S[po : po + N * N]
+    CP = W[wo + oPC : wo + oPC + q * N]
+    # Row a of C P (P symmetric: row m of P is column m), and nu.
+    for a in range(r):
+        h = ic[o_iw + a]
+        CPa = CP[a * N : (a + 1) * N]
+        for i in range(N):
+            CPa[i] = 0.0
+        s = y[h]
+        for t in range(ic[o_cptr + h], ic[o_cptr + h + 1]):
+            m = ic[o_ccol + t]
+            c = fc[o_cval + t]
+            s -= c * S[zo + m]
+            Pm = P[m * N : (m + 1) * N]
+            for i in range(N):
+                CPa[i] += c * Pm[i]
+        W[wo + onu + a] = s
+    for a in range(r):
+        h = ic[o_iw + a]
+        for b in range(a + 1):
+            s = fc[o_R + h * q + ic[o_iw + b]]
+            for t in range(ic[o_cptr + h], ic[o_cptr + h + 1]):
+                s += fc[o_cval + t] * CP[b * N + ic[o_ccol + t]]
+            W[wo + oL + a * q + b] = s
+
+
+@njit(**_INLINE)
+def _gain(S, zo, W, wo, ic, r):
+    """``K^T = (L L^T)^{-1} C P`` (``(q, N)`` at ``W[wo + 2 N^2 + N q:]``, the ``X C^T`` area as scratch)
+    and ``z += K nu = (C P)^T w``; entry by entry the operations of a row-by-row solve, in its order."""
+    N = ic[0]
+    q = ic[3]
+    nm = ic[4]
+    oPC = 2 * N * N
+    oK = oPC + N * q
+    oY = oK + N * q
+    ozt = oPC + 4 * N * q
+    oL = ozt + N + nm
+    ow = oL + q * q + q
+    CP = W[wo + oPC : wo + oPC + q * N]
+    Kt = W[wo + oK : wo + oK + q * N]
+    Y = W[wo + oY : wo + oY + q * N]
+    L = W[wo + oL : wo + oL + q * q]
+    for a in range(r):  # forward: Y = L^{-1} C P
+        Ya = Y[a * N : (a + 1) * N]
+        CPa = CP[a * N : (a + 1) * N]
+        for i in range(N):
+            Ya[i] = CPa[i]
+        for t in range(a):
+            f = L[a * q + t]
+            Yt = Y[t * N : (t + 1) * N]
+            for i in range(N):
+                Ya[i] -= f * Yt[i]
+        d = L[a * q + a]
+        for i in range(N):
+            Ya[i] /= d
+    for a in range(r - 1, -1, -1):  # back: K^T = L^{-T} Y
+        Ka = Kt[a * N : (a + 1) * N]
+        Ya = Y[a * N : (a + 1) * N]
+        for i in range(N):
+            Ka[i] = Ya[i]
+        for t in range(a + 1, r):
+            f = L[t * q + a]
+            Kb = Kt[t * N : (t + 1) * N]
+            for i in range(N):
+                Ka[i] -= f * Kb[i]
+        d = L[a * q + a]
+        for i in range(N):
+            Ka[i] /= d
+    zt = W[wo + ozt : wo + ozt + N]
+    for i in range(N):
+        zt[i] = 0.0
+    for a in range(r):
+        f = W[wo + ow + a]
+        CPa = CP[a * N : (a + 1) * N]
+        for i in range(N):
+            zt[i] += CPa[i] * f
+    for i in range(N):
+        S[zo + i] += zt[i]
+
+
+@njit(**_INLINE)
+def _joseph(S, po, W, wo, fc, ic, r):
+    """``P <- X - (X C^T) K^T + K R K^T`` with ``X = P - K C P`` (``X`` in ``W[wo + N^2:]``), the upper
+    triangle computed and mirrored; returns ``trace(P)``."""
+    N = ic[0]
+    q = ic[3]
+    nm = ic[4]
+    o_cptr = ic[11]
+    o_ccol = ic[12]
+    o_iw = ic[13]
+    o_cval = ic[19]
+    o_R = ic[20]
+    oPC = 2 * N * N
+    oK = oPC + N * q
+    oXC = oK + N * q  # X C^T, K R: (N, q)
+    oKR = oXC + N * q
+    otmp = oKR + N * q + N + nm + q * q + 2 * q
+    P = S[po : po + N * N]
+    X = W[wo + N * N : wo + 2 * N * N]
+    CP = W[wo + oPC : wo + oPC + q * N]
+    Kt = W[wo + oK : wo + oK + q * N]
+    for i in range(N):  # X = (I - K C) P = P - K (C P)
+        Xi = X[i * N : (i + 1) * N]
+        Pi = P[i * N : (i + 1) * N]
+        for j in range(N):
+            Xi[j] = Pi[j]
+        for a in range(r):
+            f = Kt[a * N + i]
+            CPa = CP[a * N : (a + 1) * N]
+            for j in range(N):
+                Xi[j] -= f * CPa[j]
+    for a in range(r):
+        h = ic[o_iw + a]
+        for i in range(N):
+            s = 0.0
+            for t in range(ic[o_cptr + h], ic[o_cptr + h + 1]):
+                s += X[i * N + ic[o_ccol + t]] * fc[o_cval + t]
+            W[wo + oXC + i * q + a] = s
+            s = 0.0
+            for b in range(r):
+                s += Kt[b * N + i] * fc[o_R + ic[o_iw + b] * q + h]
+            W[wo + oKR + i * q + a] = s
+    tr = 0.0
+    for i in range(N):
+        for a in range(r):
+            W[wo + otmp + a] = W[wo + oKR + i * q + a] - W[wo + oXC + i * q + a]
+        Pi = P[i * N + i : (i + 1) * N]
+        Xi = X[i * N + i : (i + 1) * N]
+        for j in range(N - i):
+            Pi[j] = Xi[j]
+        for a in range(r):
+            f = W[wo + otmp + a]
+            Ka = Kt[a * N + i : (a + 1) * N]
+            for j in range(N - i):
+                Pi[j] += f * Ka[j]
+        for j in range(i + 1, N):
+            P[j * N + i] = P[i * N + j]
+        tr += P[i * N + i]
+    return tr
+
+
+@njit(**_OPTS)
+def _correct(S, zo, po, so, W, wo, y, fc, ic):
+    """The correction (module docstring): returns 0 (nothing present), 1 (corrected) or 2 (rejected by the gate)."""
+    N = ic[0]
+    q = ic[3]
+    nm = ic[4]
+    o_iw = ic[13]
     r = 0
     for h in range(q):
         if not math.isnan(y[h]):
@@ -128,126 +338,53 @@ def _correct(S, zo, po, so, W, wo, y, fc, ic):
     if r == 0:
         S[so + 0] = math.nan
         return 0
-    gate = fc[1]
-    oX = N * N
-    oPC = 2 * N * N  # P C^T, then K, X C^T, K R: (N, q) row-major
-    oK = oPC + N * q
-    oXC = oK + N * q
-    oKR = oXC + N * q
-    oL = oKR + N * q + N + nm  # L (q, q), then nu, w, tmp
+    oL = 2 * N * N + 4 * N * q + N + nm  # L (q, q), then nu, w, tmp
     onu = oL + q * q
     ow = onu + q
     otmp = ow + q
-
-    # P C^T (P symmetric: row m of P is column m), innovation nu, its covariance C P C^T + R (lower).
-    for a in range(r):
-        h = ic[o_iw + a]
-        for i in range(N):
-            W[wo + oPC + i * q + a] = 0.0
-        s = y[h]
-        for t in range(ic[o_cptr + h], ic[o_cptr + h + 1]):
-            m = ic[o_ccol + t]
-            c = fc[o_cval + t]
-            s -= c * S[zo + m]
-            for i in range(N):
-                W[wo + oPC + i * q + a] += c * S[po + m * N + i]
-        W[wo + onu + a] = s
-    for a in range(r):
-        h = ic[o_iw + a]
-        for b in range(a + 1):
-            s = fc[o_R + h * q + ic[o_iw + b]]
-            for t in range(ic[o_cptr + h], ic[o_cptr + h + 1]):
-                s += fc[o_cval + t] * W[wo + oPC + ic[o_ccol + t] * q + b]
-            W[wo + oL + a * q + b] = s
+    _innovation(S, zo, po, W, wo, y, fc, ic, r)
     nis = _cholesky_nis(W, wo + oL, wo + onu, wo + otmp, wo + ow, q, r)
     S[so + 0] = nis
-    if nis > gate:
+    if nis > fc[1]:
         S[so + 2] += 1.0
         return 2
-    # K = P C^T (L L^T)^{-1}, row by row; z += K nu = P C^T w.
-    for i in range(N):
-        for a in range(r):
-            s = W[wo + oPC + i * q + a]
-            for t in range(a):
-                s -= W[wo + oL + a * q + t] * W[wo + otmp + t]
-            W[wo + otmp + a] = s / W[wo + oL + a * q + a]
-        for a in range(r - 1, -1, -1):
-            s = W[wo + otmp + a]
-            for t in range(a + 1, r):
-                s -= W[wo + oL + t * q + a] * W[wo + oK + i * q + t]
-            W[wo + oK + i * q + a] = s / W[wo + oL + a * q + a]
-        s = 0.0
-        for a in range(r):
-            s += W[wo + oPC + i * q + a] * W[wo + ow + a]
-        S[zo + i] += s
-    # Joseph form: X = (I - K C) P = P - K (P C^T)^T, then X (I - K C)^T + K R K^T.
-    for i in range(N):
-        for j in range(N):
-            s = S[po + (i) * N + j]
-            for a in range(r):
-                s -= W[wo + oK + i * q + a] * W[wo + oPC + j * q + a]
-            W[wo + oX + i * N + j] = s
-    for a in range(r):
-        h = ic[o_iw + a]
-        for i in range(N):
-            s = 0.0
-            for t in range(ic[o_cptr + h], ic[o_cptr + h + 1]):
-                s += W[wo + oX + i * N + ic[o_ccol + t]] * fc[o_cval + t]
-            W[wo + oXC + i * q + a] = s
-            s = 0.0
-            for b in range(r):
-                s += W[wo + oK + i * q + b] * fc[o_R + ic[o_iw + b] * q + h]
-            W[wo + oKR + i * q + a] = s
-    tr = 0.0
-    for i in range(N):
-        for j in range(i, N):
-            s = W[wo + oX + i * N + j]
-            for a in range(r):
-                s += (W[wo + oKR + i * q + a] - W[wo + oXC + i * q + a]) * W[wo + oK + j * q + a]
-            S[po + (i) * N + j] = s
-            S[po + (j) * N + i] = s
-        tr += S[po + (i) * N + i]
+    _gain(S, zo, W, wo, ic, r)
+    S[so + 3] = _joseph(S, po, W, wo, fc, ic, r)
     S[so + 1] += 1.0
-    S[so + 3] = tr
     return 1
 
 
-@njit(**_OPTS)
-def _predict(S, zo, po, so, W, wo, u, fc, ic):
+@njit(**_INLINE)
+def _transition(W, wo, u, fc, ic):
+    """``Phi(u)`` in ``W[wo:]``: only its aux-x block depends on ``u`` (``F0`` block plus ``sum_j u_j F1[j]``)."""
+    N = ic[0]
+    k = ic[1]
+    p = ic[2]
+    o_fblk = ic[14]
+    o_F1 = ic[15]
+    n = N - k
+    for a in range(k):
+        row = W[wo + a * N + k : wo + (a + 1) * N]  # slices indexed from 0: unit stride, vectorised
+        f0 = fc[o_fblk + a * n : o_fblk + (a + 1) * n]
+        for b in range(n):
+            row[b] = f0[b]
+        for j in range(p):
+            uj = u[j]
+            f1 = fc[o_F1 + (j * k + a) * n : o_F1 + (j * k + a + 1) * n]
+            for b in range(n):
+                row[b] += uj * f1[b]
+
+
+@njit(**_INLINE)
+def _input_term(W, wo, u, fc, ic):
+    """``zt += g(u)``, ``g(u) = (u^T G2[., a, .] u, G0 u)``, ``zt`` at its place in ``W[wo:]``."""
     N = ic[0]
     k = ic[1]
     p = ic[2]
     q = ic[3]
-    nq = ic[5]
-    o_pptr = ic[6]
-    o_pcol = ic[7]
-    o_qi = ic[8]
-    o_qj = ic[9]
-    o_qr = ic[10]
-    o_fblk = ic[14]
-    o_F1 = ic[15]
     o_G0 = ic[16]
     o_G2 = ic[17]
-    o_qv = ic[18]
-    n = N - k
-    growth = fc[0]
-    oT = N * N  # Phi at 0, T at oT
     ozt = 2 * N * N + 4 * N * q
-    omono = ozt + N
-    # Phi(u): only the aux-x block depends on u.
-    for a in range(k):
-        for b in range(n):
-            s = fc[o_fblk + a * n + b]
-            for j in range(p):
-                s += u[j] * fc[o_F1 + (j * k + a) * n + b]
-            W[wo + a * N + k + b] = s
-    # z <- Phi z + g(u)
-    for i in range(N):
-        s = 0.0
-        for t in range(ic[o_pptr + i], ic[o_pptr + i + 1]):
-            m = ic[o_pcol + t]
-            s += W[wo + i * N + m] * S[zo + m]
-        W[wo + ozt + i] = s
     for a in range(k):
         s = 0.0
         for j in range(p):
@@ -255,22 +392,140 @@ def _predict(S, zo, po, so, W, wo, u, fc, ic):
             for l in range(p):
                 s += uj * fc[o_G2 + (j * k + a) * p + l] * u[l]
         W[wo + ozt + a] += s
-    for b in range(n):
+    for b in range(N - k):
         s = 0.0
         for j in range(p):
             s += fc[o_G0 + b * p + j] * u[j]
         W[wo + ozt + k + b] += s
+
+
+@njit(**_INLINE)
+def _monomials(W, wo, u, ic):
+    """``mono = (1, u_j, u_j u_l (j <= l))`` at its place in ``W[wo:]``; returns its offset there."""
+    N = ic[0]
+    p = ic[2]
+    omono = 2 * N * N + 4 * N * ic[3] + N
+    W[wo + omono] = 1.0
+    for j in range(p):
+        W[wo + omono + 1 + j] = u[j]
+    c = omono + 1 + p
+    for j in range(p):
+        for l in range(j, p):
+            W[wo + c] = u[j] * u[l]
+            c += 1
+    return omono
+
+
+@njit(**_INLINE)
+def _products(S, po, W, wo, fc, ic):
+    """``P <- Phi P Phi^T`` (upper triangle) by blocks, ``Phi = [[A, B], [0, E]]`` (``E = e^{A_x dt}``, ``(n, n)``, at ``fc[ic[23]:]``).
+
+    ``T = Phi P`` as ``T[:k] = Phi[:k] P`` and ``T[k:] = E P[k:]``; then ``P[:k] = T[:k] Phi^T`` and
+    the upper triangle of ``P[k:, k:] = T[k:, k:] E^T`` (three ``dgemm`` on contiguous views and
+    ``n^3 / 2`` products): ``(2 k N^2 + n^2 N + n^3 / 2)`` multiply-adds instead of ``2 N^3``.
+    """
+    N = ic[0]
+    k = ic[1]
+    n = N - k
+    NN = N * N
+    o_e = ic[23]
+    Phi = W[wo : wo + NN].reshape((N, N))
+    P = S[po : po + NN].reshape((N, N))
+    E = fc[o_e : o_e + n * n].reshape((n, n))
+    T_top = W[wo + NN : wo + NN + k * N].reshape((k, N))
+    T_bot = W[wo + NN + k * N : wo + 2 * NN].reshape((n, N))
+    np.dot(Phi[:k], P, T_top)
+    np.dot(E, P[k:], T_bot)
+    np.dot(T_top, Phi.T, P[:k])
+    for i in range(n):
+        Ti = T_bot[i, k:]
+        for j in range(i, n):
+            Ej = E[j]
+            s = 0.0
+            for m in range(n):
+                s += Ti[m] * Ej[m]
+            P[k + i, k + j] = s
+
+
+@njit(**_INLINE)
+def _predict_dense(S, zo, po, so, W, wo, u, fc, ic):
+    """The prediction with dense products (module docstring, "Two paths for the prediction").
+
+    ``z <- Phi z + g(u)`` (``dgemv``), ``P <- Phi P Phi^T`` by blocks (:func:`_products`), then on
+    the upper triangle ``P_ij <- growth P_ij + sum_r mono_r(u) Qc[r]_ij`` with ``Qc`` dense
+    (``fc[ic[22]:]``, ``(nm, N, N)``), mirrored, so that ``P`` is exactly symmetric.
+    """
+    N = ic[0]
+    nm = ic[4]
+    o_qd = ic[22]
+    NN = N * N
+    ozt = 2 * NN + 4 * N * ic[3]
+    _transition(W, wo, u, fc, ic)
+    Phi = W[wo : wo + NN].reshape((N, N))
+    P = S[po : po + NN].reshape((N, N))
+    z = S[zo : zo + N]
+    zt = W[wo + ozt : wo + ozt + N]
+    Qc = fc[o_qd : o_qd + nm * NN]
+    np.dot(Phi, z, zt)
+    _input_term(W, wo, u, fc, ic)
+    for i in range(N):
+        z[i] = zt[i]
+    _products(S, po, W, wo, fc, ic)
+    omono = _monomials(W, wo, u, ic)
+    growth = fc[0]
+    tr = 0.0
+    for i in range(N):
+        Pi = P[i, i:]  # row slices, indexed from 0: unit stride, no negative-index wraparound
+        for j in range(N - i):
+            Pi[j] *= growth
+        for r in range(nm):
+            m = W[wo + omono + r]
+            Qi = Qc[r * NN + i * N + i : (r * N + i + 1) * N]
+            for j in range(N - i):
+                Pi[j] += Qi[j] * m
+        for j in range(i + 1, N):
+            P[j, i] = P[i, j]
+        tr += P[i, i]
+    S[so + 3] = tr
+
+
+@njit(**_OPTS)
+def _predict_sparse(S, zo, po, so, W, wo, u, fc, ic):
+    """The prediction through the structure of ``Phi`` (CSR) and of ``Q_d`` (COO), module docstring."""
+    N = ic[0]
+    q = ic[3]
+    nq = ic[5]
+    o_pptr = ic[6]
+    o_pcol = ic[7]
+    o_qi = ic[8]
+    o_qj = ic[9]
+    o_qr = ic[10]
+    o_qv = ic[18]
+    growth = fc[0]
+    oT = N * N  # Phi at 0, T at oT
+    ozt = 2 * N * N + 4 * N * q
+    _transition(W, wo, u, fc, ic)
+    # z <- Phi z + g(u)
+    for i in range(N):
+        s = 0.0
+        for t in range(ic[o_pptr + i], ic[o_pptr + i + 1]):
+            m = ic[o_pcol + t]
+            s += W[wo + i * N + m] * S[zo + m]
+        W[wo + ozt + i] = s
+    _input_term(W, wo, u, fc, ic)
     for i in range(N):
         S[zo + i] = W[wo + ozt + i]
     # T = Phi P: row i of T combines the rows of P picked by row i of Phi.
     for i in range(N):
+        Ti = W[wo + oT + i * N : wo + oT + (i + 1) * N]  # slices indexed from 0: unit stride
         for j in range(N):
-            W[wo + oT + i * N + j] = 0.0
+            Ti[j] = 0.0
         for t in range(ic[o_pptr + i], ic[o_pptr + i + 1]):
             m = ic[o_pcol + t]
             f = W[wo + i * N + m]
+            Pm = S[po + m * N : po + (m + 1) * N]
             for j in range(N):
-                W[wo + oT + i * N + j] += f * S[po + (m) * N + j]
+                Ti[j] += f * Pm[j]
     # P <- growth T Phi^T + Q_d(u), written straight into P (T holds all that is needed of
     # the old P): the upper triangle, mirrored, then the entries of Q_d(u) added to both.
     for i in range(N):
@@ -282,14 +537,7 @@ def _predict(S, zo, po, so, W, wo, u, fc, ic):
             s *= growth
             S[po + (i) * N + j] = s
             S[po + (j) * N + i] = s
-    W[wo + omono] = 1.0
-    for j in range(p):
-        W[wo + omono + 1 + j] = u[j]
-    c = omono + 1 + p
-    for j in range(p):
-        for l in range(j, p):
-            W[wo + c] = u[j] * u[l]
-            c += 1
+    omono = _monomials(W, wo, u, ic)
     for t in range(nq):
         i = ic[o_qi + t]
         j = ic[o_qj + t]
@@ -320,7 +568,10 @@ def augmented_predict(u, S, fc, ic):
     """Exact prediction of ``S = [z | P | W]`` over one step with ``u`` held:
     ``z <- Phi(u) z + g(u)``, ``P <- e^{theta dt} Phi(u) P Phi(u)^T + Q_d(u)``."""
     N = ic[0]
-    _predict(S, 0, N, S.shape[0] - 4, S, N + N * N, u, fc, ic)
+    if ic[21]:
+        _predict_dense(S, 0, N, S.shape[0] - 4, S, N + N * N, u, fc, ic)
+    else:
+        _predict_sparse(S, 0, N, S.shape[0] - 4, S, N + N * N, u, fc, ic)
 
 
 @njit(**_OPTS)
@@ -344,7 +595,10 @@ def augmented_step(u, y, S, fc, ic):
     N = ic[0]
     so = S.shape[0] - 4
     code = _correct(S, 0, N, so, S, N + N * N, y, fc, ic)
-    _predict(S, 0, N, so, S, N + N * N, u, fc, ic)
+    if ic[21]:
+        _predict_dense(S, 0, N, so, S, N + N * N, u, fc, ic)
+    else:
+        _predict_sparse(S, 0, N, so, S, N + N * N, u, fc, ic)
     return code
 
 
@@ -362,7 +616,10 @@ def augmented_step_batch(U, Y, SB, W, fc, ic):
     for b in range(SB.shape[0]):
         Sb = SB[b]
         _correct(Sb, 0, N, so, W, 0, Y[b], fc, ic)
-        _predict(Sb, 0, N, so, W, 0, U[b], fc, ic)
+        if ic[21]:
+            _predict_dense(Sb, 0, N, so, W, 0, U[b], fc, ic)
+        else:
+            _predict_sparse(Sb, 0, N, so, W, 0, U[b], fc, ic)
 
 
 @njit(**_OPTS)
@@ -385,7 +642,10 @@ def _step_record(u, y, S, fc, ic, out):
         out[i] = S[k + i]
     out[N - k] = S[so + 3]
     code = _correct(S, 0, N, so, S, N + N * N, y, fc, ic)
-    _predict(S, 0, N, so, S, N + N * N, u, fc, ic)
+    if ic[21]:
+        _predict_dense(S, 0, N, so, S, N + N * N, u, fc, ic)
+    else:
+        _predict_sparse(S, 0, N, so, S, N + N * N, u, fc, ic)
     out[N - k + 1] = S[so]
     out[N - k + 2] = S[so + 2]
     return code

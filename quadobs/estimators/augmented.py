@@ -90,11 +90,13 @@ class KernelModel:
     ``C (q, N)``, the discrete output covariance ``R (q, q)`` and the gate, the arrays
     ``fc`` (floats) and ``ic`` (integers) described in :mod:`quadobs._kernels.observer`: the
     structural nonzeros of ``Phi(u)`` (CSR) and of ``C`` (CSR), and the nonzero
-    upper-triangular coefficients of ``Q_d(u)`` per monomial of ``u`` (COO).
+    upper-triangular coefficients of ``Q_d(u)`` per monomial of ``u`` (COO); for a model on
+    the dense path (:func:`quadobs._kernels.observer.dense_path`, attribute ``dense``) also
+    those coefficients as dense ``(N, N)`` matrices and the constant x-x block of ``Phi``.
     """
 
     def __init__(self, model: HeldInputDiscretization, C: np.ndarray, R: np.ndarray, gate: float | None) -> None:
-        from quadobs._kernels.observer import HEADER
+        from quadobs._kernels.observer import HEADER, dense_path
 
         im = model.immersion
         k, N, n, p = im.n_aux, im.dim, im.system.n, im.system.p
@@ -123,14 +125,18 @@ class KernelModel:
             C[C != 0],
             np.asarray(R, dtype=float).ravel(),
         ]
+        dense = dense_path(N, phi_col.size)
+        # the dense path's Q_d coefficients and constant x-x block of Phi
+        floats += [Qc.ravel(), F0[k:, k:].ravel()] if dense else [np.zeros(0), np.zeros(0)]
         i_off = HEADER + np.concatenate([[0], np.cumsum([a.size for a in ints])[:-1]])
         f_off = 2 + np.concatenate([[0], np.cumsum([a.size for a in floats])[:-1]])
-        head = [N, k, p, q, len(coeffs), r_idx.size, *i_off, *f_off]
+        head = [N, k, p, q, len(coeffs), r_idx.size, *i_off, *f_off[:-2], int(dense), *f_off[-2:]]
         assert len(head) == HEADER
         self.ic = np.concatenate([np.array(head, dtype=np.int64)] + [a.astype(np.int64) for a in ints])
         growth = float(np.exp(model.theta * model.dt))
         self.fc = np.concatenate([[growth, np.inf if gate is None else float(gate)]] + floats)
         self.k, self.N, self.n, self.p, self.q, self.nm = k, N, n, p, q, len(coeffs)
+        self.dense = dense  # the prediction's dense path (quadobs._kernels.observer.dense_path)
         self.F0 = F0
 
     def work(self) -> np.ndarray:
