@@ -46,10 +46,16 @@ from quadobs.core.immersion import Immersion
 __all__ = ["HeldInputDiscretization", "held_input_step", "van_loan", "as_covariance"]
 
 
+#: Largest magnitude of a covariance entry: the filters' products (``K R K^T``, ``C P C^T``)
+#: square it, and double precision overflows past about 1e308.
+COVARIANCE_MAX = 1e100
+
+
 def as_covariance(name: str, value, dim: int, *, definite: bool = True) -> np.ndarray:
     """A scalar (times the identity), a vector (diagonal) or a ``(dim, dim)`` symmetric matrix.
 
-    Raises :class:`QuadobsError` when the value is not symmetric positive (semi)definite.
+    Raises :class:`QuadobsError` when the value is not symmetric positive (semi)definite,
+    or has an entry that is not finite or beyond :data:`COVARIANCE_MAX` in magnitude.
     """
     arr = as_array(name, value)
     if arr.ndim == 0:
@@ -60,11 +66,13 @@ def as_covariance(name: str, value, dim: int, *, definite: bool = True) -> np.nd
         arr = np.diag(arr)
     elif arr.shape != (dim, dim):
         raise QuadobsError(f"{name}: expected a scalar, ({dim},) or ({dim}, {dim}), got shape {arr.shape}")
+    if dim and not (np.isfinite(arr).all() and np.abs(arr).max() <= COVARIANCE_MAX):
+        raise QuadobsError(f"{name}: covariance entries must be finite and at most {COVARIANCE_MAX:g} in magnitude")
     if not np.allclose(arr, arr.T, rtol=1e-10, atol=1e-12 * max(np.abs(arr).max(), 1.0)):
         raise QuadobsError(f"{name}: covariance must be symmetric")
-    arr = 0.5 * (arr + arr.T)
+    arr = 0.5 * arr + 0.5 * arr.T
     eig = np.linalg.eigvalsh(arr) if dim else np.zeros(0)
-    if dim and (eig.min() <= 0 if definite else eig.min() < -1e-12 * max(eig.max(), 1.0)):
+    if dim and not (eig.min() > 0 if definite else eig.min() >= -1e-12 * max(eig.max(), 1.0)):
         kind = "positive definite" if definite else "positive semidefinite"
         raise QuadobsError(f"{name}: covariance must be {kind} (smallest eigenvalue {eig.min():.3g})")
     return arr

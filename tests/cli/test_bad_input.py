@@ -282,3 +282,13 @@ def test_zonotope_boxes_are_checked(lower, upper):
         assert str(exc).split(":")[0] in ("lower", "upper"), str(exc)
         return
     assert np.isfinite(z.center).all()
+
+
+@pytest.mark.parametrize("field, value", [("W", -8.99e307), ("W", 8.99e307), ("V", 8.99e307), ("V", -8.99e307), ("P0", np.inf), ("V", 1e101)])
+def test_covariances_beyond_double_precision_are_refused(field, value):
+    """Entries whose products would overflow (the Riccati update squares them) are named, not run into NaN."""
+    from quadobs import AugmentedObserver, immerse, vehicle_system
+
+    im = immerse(vehicle_system(2, np.array([[0.0, 0.0], [5.0, 0.0]])))
+    with pytest.raises(QuadobsError, match=rf"^{field}: covariance entries must be finite and at most 1e\+100"):
+        AugmentedObserver(im, 0.01, **{field: value})
