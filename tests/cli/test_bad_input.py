@@ -284,7 +284,7 @@ def test_zonotope_boxes_are_checked(lower, upper):
     assert np.isfinite(z.center).all()
 
 
-@pytest.mark.parametrize("field, value", [("W", -8.99e307), ("W", 8.99e307), ("V", 8.99e307), ("V", -8.99e307), ("P0", np.inf), ("V", 1e101)])
+@pytest.mark.parametrize("field, value", [("W", -8.99e307), ("W", 8.99e307), ("V", 8.99e307), ("V", -8.99e307), ("P0", 1e101), ("V", 1e101)])
 def test_covariances_beyond_double_precision_are_refused(field, value):
     """Entries whose products would overflow (the Riccati update squares them) are named, not run into NaN."""
     from quadobs import AugmentedObserver, immerse, vehicle_system
