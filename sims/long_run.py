@@ -86,7 +86,7 @@ def direct(duration: float, every: int, settle: float, window: float, seed: int 
     r = 0
     for b0 in range(0, steps, 100_000):
         m = min(100_000, steps - b0)
-        U = traj.step_accelerations(b0 * dt, dt, m)
+        U = traj.step_accelerations(0.0, dt, m, start=b0)
         noise = 0.5 * rng.standard_normal(m)
         for j in range(m):
             k = b0 + j

@@ -65,6 +65,7 @@ from quadobs.testbed.outputs import check_outputs, write_fault_summary
 from quadobs.testbed.registry import build_estimators, default_estimators
 from quadobs.testbed.scenario import Scenario
 from quadobs.testbed.sensors import SensorModel, initial_guess, spawn_streams
+from quadobs.testbed.blocks import block_count
 from quadobs.testbed.sinks import (
     Block, BoundsSink, ConvergenceSink, EpisodeContext, EpisodeFrame, ExcitationSink, ProgressSink, RecordingSink, Rows,
     Sink, StepSink, TraceSink, merge,
@@ -412,8 +413,9 @@ class _Episode:
         interrupted = False
         try:
             try:
-                for k0 in range(0, self.steps, _BLOCK):
-                    self._block(k0)
+                k0 = 0
+                while k0 < self.steps:
+                    k0 += self._block(k0)
             except KeyboardInterrupt:  # Ctrl-C, or SIGTERM (which the CLI maps to it): keep what is complete
                 interrupted = True
                 self._close_block()
@@ -431,12 +433,12 @@ class _Episode:
             for sink in self.sinks:
                 sink.close()
 
-    def _block(self, k0: int) -> None:
-        """One block: the world's rows, the estimators over them, the sinks."""
+    def _block(self, k0: int) -> int:
+        """One block (:func:`~quadobs.testbed.worlds.base.block_count` steps): the world's rows, the estimators over them, the sinks."""
         self.committed = self.flushing = False
         block, world = self.block, self.world
         block.k0 = k0
-        count = world.begin_block(k0, min(_BLOCK, self.steps - k0))
+        count = world.begin_block(k0, block_count(k0, self.steps, _BLOCK))
         if self.step_fill is not None and not world.closed_loop:
             self.step_fill(world, count)
         elif not world.closed_loop:
@@ -454,6 +456,7 @@ class _Episode:
             world.commit(count)
             self.committed = self.flushing = True  # from here on a stop has nothing to add
             self._flush(rows)
+        return count
 
     def _estimate(self, count: int) -> None:
         """The estimators over rows ``[0, count)``: the hot path (no allocation beyond row views)."""

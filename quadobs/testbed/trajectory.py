@@ -136,15 +136,17 @@ class SinusoidTrajectory:
     def acceleration(self, t) -> np.ndarray:
         return self.derivative(t, 2)
 
-    def step_accelerations(self, t0: float, dt: float, steps: int) -> np.ndarray:
-        """The acceleration to hold over each step ``[t_k, t_k + dt)``, ``t_k = t0 + k dt``.
+    def step_accelerations(self, t0: float, dt: float, steps: int, *, start: int = 0) -> np.ndarray:
+        """The acceleration to hold over each step ``[t_k, t_k + dt)``, ``t_k = t0 + k dt``, ``k = start .. start + steps - 1``.
 
         It is the mean acceleration over the step, ``(v(t_{k+1}) - v(t_k)) / dt``, so that a
         double integrator driven by it (exactly, as MuJoCo's RK4 does) has the reference
         velocity at every step boundary. A step lying inside a coasting segment gets exactly
-        zero (not the rounding left by the difference). Returns ``(steps, dim)``.
+        zero (not the rounding left by the difference). Returns ``(steps, dim)``. The times
+        are formed from the step index, so the rows of a block starting at step ``start``
+        are those of the whole grid from ``t0``, bit for bit, wherever blocks begin.
         """
-        t = t0 + dt * np.arange(steps + 1)
+        t = t0 + dt * np.arange(start, start + steps + 1)
         v = self.derivative(t, 1)
         out = np.diff(v, axis=0) / dt
         for start, end in self.coast:

@@ -16,6 +16,7 @@ import mujoco
 import numpy as np
 
 from quadobs.errors import QuadobsError, as_array, deferred_interrupts
+from quadobs.testbed.blocks import block_count
 from quadobs.testbed.worlds.base import Columns, World
 from quadobs.testbed.worlds.model import VehicleModel, load_vehicle_model
 
@@ -489,7 +490,7 @@ class PointMassWorld(World):
 
     def _accelerations(self, k0: int, count: int) -> np.ndarray:
         dt = self.dt
-        return self._traj.step_accelerations(k0 * dt, dt, count)
+        return self._traj.step_accelerations(0.0, dt, count, start=k0)
 
     def begin_block(self, k0: int, count: int) -> int:
         self._k0 = k0
@@ -505,7 +506,7 @@ class PointMassWorld(World):
         self.stepper.fill(count)
         k1 = self._k0 + count
         if self.pipelined and k1 < self._steps:
-            self.stepper.prefetch(self._accelerations(k1, min(self._capacity, self._steps - k1)), k1)
+            self.stepper.prefetch(self._accelerations(k1, block_count(k1, self._steps, self._capacity)), k1)
 
     def commit(self, rows: int) -> None:
         self.stepper.commit(rows)
