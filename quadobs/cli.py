@@ -9,23 +9,21 @@ SCENARIO [--window S]`` prints the persistence-of-excitation report of the scena
 Carlo campaign (:mod:`quadobs.studies.campaign`); ``quadobs bench [--json PATH]`` measures the
 estimators' cost beside the physics (:mod:`quadobs.studies.bench`). Errors in the
 input (a bad scenario field, an unwritable path) print one line naming the problem and
-exit with status 2, leaving no folder it created behind; Ctrl-C stops a run after closing
-its recording (status 130). On a first run, one line on stderr says that the compiled kernels
-are being built (their cache is then reused).
+exit with status 2, leaving no folder it created behind; Ctrl-C or SIGTERM, from start-up
+(NumPy, SciPy, MuJoCo loading) to exit, stops the command with status 130 and one line,
+keeping what is done (a run closes and publishes its recording first; see :func:`main`). On
+a first run, one line on stderr says that the compiled kernels are being built (their cache
+is then reused).
 """
 
 from __future__ import annotations
 
-import argparse
-import functools
 import os
-import shutil
 import signal
 import sys
-import textwrap
-from pathlib import Path
 
-from quadobs.errors import QuadobsError, RunFault, new_folders_removed_on_failure
+# Nothing else at module level: :func:`main` takes SIGINT and SIGTERM before anything heavier
+# (argparse, pathlib, NumPy, ...) loads, so the functions below import what they use.
 
 __all__ = ["main"]
 
@@ -87,6 +85,8 @@ def _one_line(text: str, width: int) -> str:
 
 
 def _cmd_list(args) -> int:
+    import shutil
+
     from quadobs.testbed.scenario import list_scenarios
 
     entries = dict(list_scenarios())
@@ -99,6 +99,8 @@ def _cmd_list(args) -> int:
 
 
 def _estimator_list(text: str | None) -> list[str] | None:
+    from quadobs.errors import QuadobsError
+
     if text is None:
         return None
     names = [n.strip() for n in text.split(",") if n.strip()]
@@ -114,6 +116,8 @@ LE2013_OPTIONS = ("out", "summary", "duration", "seed", "runs", "no_progress")
 
 def _refuse_other_options(args, allowed, what: str) -> None:
     """Refuse any option of ``quadobs run`` given a value other than its default, unless ``allowed``."""
+    from quadobs.errors import QuadobsError
+
     defaults = build_parser().parse_args(["run", args.scenario])
     for dest, value in vars(args).items():
         if dest not in allowed and dest not in ("command", "func", "scenario") and value != getattr(defaults, dest, value):
@@ -122,6 +126,8 @@ def _refuse_other_options(args, allowed, what: str) -> None:
 
 def _le2013_settings(args) -> dict:
     """``seed``, ``steps`` and ``runs`` of :func:`run_le2013` from the options (defaults 0, 50, 50)."""
+    from quadobs.errors import QuadobsError
+
     _refuse_other_options(args, LE2013_OPTIONS, "le2013 (it takes --out, --summary, --duration, --seed, --runs)")
     steps = 50
     if args.duration is not None:
@@ -152,6 +158,7 @@ def _cmd_le2013(args) -> int:
 
 
 def _cmd_run(args) -> int:
+    from quadobs.errors import QuadobsError, RunFault
     from quadobs.testbed.episode import run_episode
     from quadobs.testbed.scenario import load_scenario
 
@@ -199,6 +206,7 @@ def _cmd_excitation(args) -> int:
 
 
 def _cmd_campaign(args) -> int:
+    from quadobs.errors import QuadobsError
     from quadobs.studies.campaign import print_campaign, run_campaign
     from quadobs.testbed.scenario import load_scenario
 
@@ -228,6 +236,7 @@ def _cmd_campaign(args) -> int:
 
 
 def _cmd_show(args) -> int:
+    from quadobs.errors import QuadobsError
     from quadobs.testbed.scenario import field_reference, load_scenario
 
     if args.reference:
@@ -239,7 +248,7 @@ def _cmd_show(args) -> int:
     return 0
 
 
-def _add_set(p: argparse.ArgumentParser) -> None:
+def _add_set(p) -> None:
     p.add_argument(
         "--set", action="append", default=[], metavar="FIELD=VALUE",
         help="override a scenario field, e.g. noise.range_std=0.1 (value read as TOML, else text; repeatable)",
@@ -247,12 +256,11 @@ def _add_set(p: argparse.ArgumentParser) -> None:
 
 
 def _cmd_bench(args) -> int:
+    from quadobs.errors import QuadobsError, check_writable
     from quadobs.studies.bench import print_bench, run_bench
     from quadobs.testbed.episode import write_json_atomic
 
     if args.json is not None:
-        from quadobs.errors import check_writable
-
         check_writable(args.json)
     for name in ("steps", "repeats", "batch", "batch_steps"):
         if getattr(args, name) < 1:
@@ -289,22 +297,6 @@ def _registered_estimators() -> list[str]:
     from quadobs.testbed.registry import available_estimators
 
     return available_estimators()
-
-
-class _EstimatorsOption(argparse._StoreAction):
-    """``--estimators``: its help lists the registered names, looked up only when help is shown."""
-
-    @property
-    def help(self) -> str:
-        try:
-            names = ", ".join(sorted(_registered_estimators()))
-        except Exception as exc:  # a broken registration must not break --help
-            names = f"unavailable ({type(exc).__name__}: {exc})"
-        return f"{self._help}; registered: {names}".replace("%", "%%")
-
-    @help.setter
-    def help(self, value: str) -> None:
-        self._help = value
 
 
 #: Kernels ("module:function") a first run compiles, per command (see :func:`_notice_cold_kernels`).
@@ -346,13 +338,16 @@ def _notice_cold_kernels(kernels, file=None) -> bool:
     return True
 
 
-def _output_paths(args) -> list[Path]:
+def _output_paths(args) -> list:
     """The output files and folders named on the command line (removed again if the command fails and they are empty)."""
+    from pathlib import Path
+
     return [value for name in ("out", "summary", "json") if isinstance(value := getattr(args, name, None), Path)]
 
 
 def _cmd_plot(args) -> int:
     """``quadobs plot INPUT --out FIG``: a figure of a run, a campaign folder or the le2013 recording."""
+    from quadobs.errors import QuadobsError
     from quadobs.studies.plot import render
 
     def numbers(text, kind, name):
@@ -369,21 +364,56 @@ def _cmd_plot(args) -> int:
     return 0
 
 
-class _HelpFormatter(argparse.HelpFormatter):
-    """Help text wrapped at spaces only, so that names such as ``augmented-refined`` stay whole."""
+def _parser_classes() -> tuple[type, type]:
+    """The parser's help formatter and ``--estimators`` action, made on first use (argparse loads
+    only once :func:`main` has taken the signals)."""
+    if _PARSER_CLASSES:
+        return _PARSER_CLASSES[0]
+    import argparse
+    import textwrap
 
-    def _split_lines(self, text, width):
-        return textwrap.wrap(" ".join(text.split()), width, break_on_hyphens=False)
+    class HelpFormatter(argparse.HelpFormatter):
+        """Help text wrapped at spaces only, so that names such as ``augmented-refined`` stay whole."""
+
+        def _split_lines(self, text, width):
+            return textwrap.wrap(" ".join(text.split()), width, break_on_hyphens=False)
+
+    class EstimatorsOption(argparse._StoreAction):
+        """``--estimators``: its help lists the registered names, looked up only when help is shown."""
+
+        @property
+        def help(self) -> str:
+            try:
+                names = ", ".join(sorted(_registered_estimators()))
+            except Exception as exc:  # a broken registration must not break --help
+                names = f"unavailable ({type(exc).__name__}: {exc})"
+            return f"{self._help}; registered: {names}".replace("%", "%%")
+
+        @help.setter
+        def help(self, value: str) -> None:
+            self._help = value
+
+    _PARSER_CLASSES.append((HelpFormatter, EstimatorsOption))
+    return _PARSER_CLASSES[0]
 
 
-def build_parser() -> argparse.ArgumentParser:
+_PARSER_CLASSES: list[tuple[type, type]] = []
+
+
+def build_parser():
+    """The ``argparse.ArgumentParser`` of the command line."""
+    import argparse
+    import functools
+    from pathlib import Path
+
+    help_formatter, estimators_option = _parser_classes()
     parser = argparse.ArgumentParser(
         prog="quadobs", description="State estimation for systems with quadratic outputs: a MuJoCo testbed.",
-        formatter_class=_HelpFormatter,
+        formatter_class=help_formatter,
     )
     parser.add_argument("--version", action="version", version=f"quadobs {package_version()}")
     sub = parser.add_subparsers(dest="command", required=True)
-    sub.add_parser = functools.partial(sub.add_parser, formatter_class=_HelpFormatter)
+    sub.add_parser = functools.partial(sub.add_parser, formatter_class=help_formatter)
 
     p = sub.add_parser("list", help="name the built-in scenarios")
     p.set_defaults(func=_cmd_list)
@@ -395,7 +425,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--duration", type=float, help="override the scenario duration (s)")
     p.add_argument("--seed", type=int, help="override the scenario seed")
     p.add_argument(
-        "--estimators", action=_EstimatorsOption,
+        "--estimators", action=estimators_option,
         help="comma-separated estimator names (default: augmented and the scenario's variants)",
     )
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -427,7 +457,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("scenario", help="built-in scenario name (see 'quadobs list') or path to a scenario .toml")
     p.add_argument("--runs", type=int, required=True, help="number of seeded runs")
-    p.add_argument("--estimators", action=_EstimatorsOption, help="comma-separated estimator names (e.g. augmented,ekf,ukf)")
+    p.add_argument("--estimators", action=estimators_option, help="comma-separated estimator names (e.g. augmented,ekf,ukf)")
     p.add_argument("--out", type=Path, required=True, help="folder for summary.json, runs.parquet, series.parquet, statistics.rrd")
     p.add_argument("--scheduler", help="Dask distributed scheduler address (tcp://host:port); default: local processes")
     p.add_argument("--workers", type=int, help="local processes (default: the number of CPUs; 0: in this process)")
@@ -476,6 +506,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def _add_replay(sub) -> None:
     """The ``replay`` subcommand (:mod:`quadobs.testbed.logs`)."""
+    from pathlib import Path
     p = sub.add_parser("replay", help="replay a logged range-only run (a log folder, or plaza1/plaza2) through the estimators")
     p.add_argument("log", help="log folder (beacons.csv, ranges.csv, inputs.csv, meta.csv[, truth.csv]) or plaza1, plaza2")
     p.add_argument("--out", type=Path, help="recording to write (.rrd)")
@@ -502,7 +533,7 @@ def _cmd_replay(args) -> int:
         write_log(log, args.export)
         print(f"log {log.name}: {log.ranges.shape[0]} ranges, {log.inputs.shape[0]} inputs written to {args.export}")
         return 0
-    from quadobs.errors import check_writable
+    from quadobs.errors import QuadobsError, check_writable
     from quadobs.testbed.logs.calibration import calibrate_biases
     from quadobs.testbed.logs.replay import run_replay
 
@@ -534,10 +565,6 @@ def _cmd_replay(args) -> int:
     return 130 if summary["interrupted"] else 0
 
 
-def _sigterm_as_interrupt(signum, frame):  # pragma: no cover - exercised by a subprocess test
-    raise KeyboardInterrupt
-
-
 def _caused_by_interrupt(exc: BaseException) -> bool:
     """Whether ``exc`` was raised while a ``KeyboardInterrupt`` was being handled (its context chain)."""
     seen = set()
@@ -549,13 +576,15 @@ def _caused_by_interrupt(exc: BaseException) -> bool:
     return False
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(argv)
-    try:
-        signal.signal(signal.SIGTERM, _sigterm_as_interrupt)
-    except ValueError:  # not in the main thread
-        pass
+def _run_command(argv: list[str] | None) -> int:
+    """Parse ``argv`` and run its command: the exit status, the error printed on one line.
+
+    A ``KeyboardInterrupt`` propagates (:func:`main` answers it); so does ``SystemExit``
+    from the parser's usage errors, ``--help`` and ``--version``.
+    """
+    from quadobs.errors import QuadobsError, RunFault, new_folders_removed_on_failure
+
+    args = build_parser().parse_args(argv)
     try:
         with new_folders_removed_on_failure(*_output_paths(args)):
             return args.func(args)
@@ -565,18 +594,189 @@ def main(argv: list[str] | None = None) -> int:
     except QuadobsError as exc:
         print(f"quadobs: error: {exc}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
-        print("quadobs: interrupted", file=sys.stderr)
-        return 130
     except BrokenPipeError:  # output piped into a reader that stopped (e.g. head)
         devnull = os.open(os.devnull, os.O_WRONLY)
         os.dup2(devnull, sys.stdout.fileno())
         return 141
     except Exception as exc:
-        if not _caused_by_interrupt(exc):
+        if not _caused_by_interrupt(exc):  # e.g. a compiler or an import cut by Ctrl-C
             raise
-        print("quadobs: interrupted", file=sys.stderr)  # e.g. a compiler or an import cut by Ctrl-C
-        return 130
+        raise KeyboardInterrupt from exc
+
+
+#: Exit status of a command stopped by a signal (128 + SIGINT), whichever of SIGINT and SIGTERM it was.
+INTERRUPTED = 130
+_INTERRUPTED_LINE = "quadobs: interrupted"
+
+
+class _Signals:
+    """What a SIGINT or SIGTERM does while :func:`main` holds the handlers (one state per process).
+
+    ``mode`` is ``"raise"``: a ``KeyboardInterrupt`` (the command stops and keeps what it has
+    done); ``"hold"``: kept in ``held`` until the caller's handlers are back (an in-process
+    call returning); ``"exit"``: status 130 at once (the program, its command over). ``last``:
+    the last signal taken; ``lost``: a signal whose ``KeyboardInterrupt`` was lost (see
+    :func:`_keep_lost_interrupts`) and not taken since; ``said``: the line saying so has been
+    written; ``hook``: the ``sys.unraisablehook`` replaced; ``status``: the program's exit
+    status, once known; ``ending``: :func:`_end_program` is registered.
+    """
+
+    mode = "raise"
+    held: list[int] = []
+    last = 0
+    lost = 0
+    said = False
+    hook = None
+    status: int | None = None
+    ending = False
+
+
+def _on_signal(signum, frame) -> None:
+    _Signals.last, _Signals.lost = signum, 0
+    if _Signals.mode == "raise":
+        raise KeyboardInterrupt
+    if _Signals.mode == "hold":
+        _Signals.held.append(signum)
+        return
+    _end_now(INTERRUPTED)  # pragma: no cover - ends the process; exercised by subprocess tests
+
+
+def _end_now(status: int) -> None:  # pragma: no cover - ends the process; exercised by subprocess tests
+    """End the program with ``status`` now, after what is buffered on stdout and stderr (its outputs
+    are complete and in place by then), saying "interrupted" once when it is 130."""
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except BaseException:  # a write cut short by the signal, a closed pipe: nothing more to save
+            pass
+    if _Signals.lost:  # an interrupt lost at the very end (see _keep_lost_interrupts)
+        status = INTERRUPTED
+    if status == INTERRUPTED and not _Signals.said:
+        try:
+            os.write(2, (_INTERRUPTED_LINE + "\n").encode())
+        except OSError:
+            pass
+    os._exit(status)
+
+
+def _end_program() -> None:  # pragma: no cover - ends the process; exercised by subprocess tests
+    """The program's last exit callback (registered first, so every other one has run): end the
+    process with the command's status, skipping the interpreter's teardown.
+
+    That teardown takes 0.4 to 0.8 s after a run (NumPy, Numba, MuJoCo, rerun) with SIGINT and
+    SIGTERM back at their defaults, so a signal then would kill the process silently; there is
+    nothing left to save in it. Without a status (an uncaught exception) it does nothing.
+    """
+    if _Signals.status is not None:
+        _end_now(_Signals.status)
+
+
+def _keep_lost_interrupts(unraisable) -> None:
+    """``sys.unraisablehook`` while :func:`main` holds the signals.
+
+    A ``KeyboardInterrupt`` raised where Python cannot propagate it (a weakref callback, such
+    as the import system's module locks use, or a ``__del__``) would be printed as "Exception
+    ignored" and lost (rerun's ``RecordingStream.__del__`` is one such place), and the command
+    would run on. The signal is noted in ``_Signals.lost`` and sent again from a helper thread a
+    moment later, once that callback is over; a command that ends before it arrives ends with
+    status 130 all the same. Anything else goes to the previous hook.
+    """
+    if isinstance(unraisable.exc_value, KeyboardInterrupt) and _Signals.mode == "raise" and _Signals.last:
+        import _thread
+
+        _Signals.lost = _Signals.last
+        _thread.start_new_thread(_send_again, (_Signals.last,))
+        return
+    (_Signals.hook or sys.__unraisablehook__)(unraisable)
+
+
+def _send_again(signum: int) -> None:  # pragma: no cover - a helper thread
+    import time
+
+    time.sleep(0.01)
+    if _Signals.lost == signum:  # not taken meanwhile
+        os.kill(os.getpid(), signum)
+
+
+def _catch_signals(previous: dict, program: bool) -> None:
+    """Route SIGINT and SIGTERM to :func:`_on_signal` in ``"raise"`` mode, noting the handlers replaced
+    in ``previous`` (and :func:`_keep_lost_interrupts` as ``sys.unraisablehook``); for the program,
+    :func:`_end_program` becomes its first exit callback, hence its last to run. A SIGINT the parent
+    ignores (a background job) stays ignored; outside the main thread, where handlers cannot be
+    set, nothing changes."""
+    _Signals.mode, _Signals.said, _Signals.last, _Signals.lost = "raise", False, 0, 0
+    if program and not _Signals.ending:
+        import atexit
+
+        atexit.register(_end_program)
+        _Signals.ending = True
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        try:
+            if sig == signal.SIGINT and signal.getsignal(sig) == signal.SIG_IGN:
+                continue
+            previous[sig] = signal.signal(sig, _on_signal)
+        except ValueError:  # not the main thread
+            return
+    _Signals.hook, sys.unraisablehook = sys.unraisablehook, _keep_lost_interrupts
+
+
+def _give_back_signals(previous: dict) -> None:
+    """Restore what :func:`_catch_signals` replaced, then deliver the signals held meanwhile."""
+    if sys.unraisablehook is _keep_lost_interrupts:
+        sys.unraisablehook = _Signals.hook or sys.__unraisablehook__
+    for sig, handler in previous.items():
+        signal.signal(sig, handler)
+    _Signals.mode = "raise"
+    held, _Signals.held = _Signals.held, []
+    for sig in held:
+        signal.raise_signal(sig)
+
+
+def _exit_status(exc: SystemExit) -> int:
+    """The status that Python gives ``SystemExit(exc.code)``: 0 for ``None``, the number, else 1."""
+    return 0 if exc.code is None else exc.code if isinstance(exc.code, int) else 1
+
+
+def main(argv: list[str] | None = None) -> int:
+    """The ``quadobs`` command line: run ``argv`` (default ``sys.argv[1:]``); returns the exit status.
+
+    0: done; 1: a run that started and could not go on (a full disk, a physics fault); 2: bad
+    input (one line on stderr); 130: stopped by SIGINT (Ctrl-C) or SIGTERM, what was done kept.
+
+    Its first act is to take SIGINT and SIGTERM, before anything heavy is imported (this
+    module and :mod:`quadobs.errors` load the standard library alone), so a signal at any
+    moment of the command, loading NumPy, SciPy or MuJoCo included, ends it with status 130
+    and one line, never a traceback. Without ``argv`` it is the program (the ``quadobs``
+    script, ``python -m quadobs``): once the command is over, a signal ends the process at
+    once with status 130, the outputs being in place, and the process ends with the
+    command's status as soon as the exit callbacks have run (:func:`_end_program`). With
+    ``argv`` it is a call inside a larger program: the caller's handlers are restored on
+    return, and a signal that came while returning is delivered to them then.
+    """
+    program = argv is None
+    previous: dict = {}
+    status = None
+    try:
+        _catch_signals(previous, program)
+        status = _run_command(argv)
+    except KeyboardInterrupt:
+        status = INTERRUPTED
+    except SystemExit as exc:  # the parser's usage errors, --help, --version
+        status = _exit_status(exc)
+        raise
+    finally:
+        # No call comes before this store, so no handler runs between the command's end and it.
+        _Signals.mode = "exit" if program else "hold"
+        if _Signals.lost and status is not None:  # a signal lost in a callback (_keep_lost_interrupts)
+            status, _Signals.lost = INTERRUPTED, 0
+        if status == INTERRUPTED and not _Signals.said:
+            _Signals.said = True
+            print(_INTERRUPTED_LINE, file=sys.stderr)
+        if program:
+            _Signals.status = status
+        else:
+            _give_back_signals(previous)
+    return status
 
 
 if __name__ == "__main__":  # pragma: no cover
