@@ -565,43 +565,30 @@ def _cmd_replay(args) -> int:
     return 130 if summary["interrupted"] else 0
 
 
-def _caused_by_interrupt(exc: BaseException) -> bool:
-    """Whether ``exc`` was raised while a ``KeyboardInterrupt`` was being handled (its context chain)."""
-    seen = set()
-    while exc is not None and id(exc) not in seen:
-        if isinstance(exc, KeyboardInterrupt):
-            return True
-        seen.add(id(exc))
-        exc = exc.__cause__ or exc.__context__
-    return False
-
-
 def _run_command(argv: list[str] | None) -> int:
     """Parse ``argv`` and run its command: the exit status, the error printed on one line.
 
-    A ``KeyboardInterrupt`` propagates (:func:`main` answers it); so does ``SystemExit``
-    from the parser's usage errors, ``--help`` and ``--version``.
+    A ``KeyboardInterrupt`` propagates (:func:`main` answers it), as does an error made of
+    one (:func:`quadobs.errors.caused_by_interrupt`: an import cut short by Ctrl-C, say);
+    so does ``SystemExit`` from the parser's usage errors, ``--help`` and ``--version``.
     """
-    from quadobs.errors import QuadobsError, RunFault, new_folders_removed_on_failure
+    from quadobs.errors import QuadobsError, RunFault, caused_by_interrupt, new_folders_removed_on_failure
 
     args = build_parser().parse_args(argv)
     try:
         with new_folders_removed_on_failure(*_output_paths(args)):
             return args.func(args)
-    except RunFault as exc:  # the run started and could not go on (a full disk, a physics fault)
-        print(f"quadobs: error: {exc}", file=sys.stderr)
-        return 1
-    except QuadobsError as exc:
-        print(f"quadobs: error: {exc}", file=sys.stderr)
-        return 2
-    except BrokenPipeError:  # output piped into a reader that stopped (e.g. head)
-        devnull = os.open(os.devnull, os.O_WRONLY)
-        os.dup2(devnull, sys.stdout.fileno())
-        return 141
     except Exception as exc:
-        if not _caused_by_interrupt(exc):  # e.g. a compiler or an import cut by Ctrl-C
-            raise
-        raise KeyboardInterrupt from exc
+        if caused_by_interrupt(exc):
+            raise KeyboardInterrupt from exc
+        if isinstance(exc, (RunFault, QuadobsError)):  # a run that could not go on (1), bad input (2)
+            print(f"quadobs: error: {exc}", file=sys.stderr)
+            return 1 if isinstance(exc, RunFault) else 2
+        if isinstance(exc, BrokenPipeError):  # output piped into a reader that stopped (e.g. head)
+            devnull = os.open(os.devnull, os.O_WRONLY)
+            os.dup2(devnull, sys.stdout.fileno())
+            return 141
+        raise
 
 
 #: Exit status of a command stopped by a signal (128 + SIGINT), whichever of SIGINT and SIGTERM it was.
@@ -615,7 +602,7 @@ class _Signals:
     ``mode`` is ``"raise"``: a ``KeyboardInterrupt`` (the command stops and keeps what it has
     done); ``"hold"``: kept in ``held`` until the caller's handlers are back (an in-process
     call returning); ``"exit"``: status 130 at once (the program, its command over). ``last``:
-    the last signal taken; ``lost``: a signal whose ``KeyboardInterrupt`` was lost (see
+    the last signal taken; ``raised``: the interrupts raised during the command; ``lost``: a signal whose ``KeyboardInterrupt`` was lost (see
     :func:`_keep_lost_interrupts`) and not taken since; ``said``: the line saying so has been
     written; ``hook``: the ``sys.unraisablehook`` replaced; ``status``: the program's exit
     status, once known; ``ending``: :func:`_end_program` is registered.
@@ -624,6 +611,7 @@ class _Signals:
     mode = "raise"
     held: list[int] = []
     last = 0
+    raised = 0
     lost = 0
     said = False
     hook = None
@@ -634,6 +622,7 @@ class _Signals:
 def _on_signal(signum, frame) -> None:
     _Signals.last, _Signals.lost = signum, 0
     if _Signals.mode == "raise":
+        _Signals.raised += 1
         raise KeyboardInterrupt
     if _Signals.mode == "hold":
         _Signals.held.append(signum)
@@ -704,7 +693,7 @@ def _catch_signals(previous: dict, program: bool) -> None:
     :func:`_end_program` becomes its first exit callback, hence its last to run. A SIGINT the parent
     ignores (a background job) stays ignored; outside the main thread, where handlers cannot be
     set, nothing changes."""
-    _Signals.mode, _Signals.said, _Signals.last, _Signals.lost = "raise", False, 0, 0
+    _Signals.mode, _Signals.said, _Signals.last, _Signals.raised, _Signals.lost = "raise", False, 0, 0, 0
     if program and not _Signals.ending:
         import atexit
 
@@ -767,7 +756,9 @@ def main(argv: list[str] | None = None) -> int:
     finally:
         # No call comes before this store, so no handler runs between the command's end and it.
         _Signals.mode = "exit" if program else "hold"
-        if _Signals.lost and status is not None:  # a signal lost in a callback (_keep_lost_interrupts)
+        if status is not None and (_Signals.lost or _Signals.raised):
+            # an interrupt lost in a callback (_keep_lost_interrupts), or swallowed by code that
+            # caught what it was turned into: the command was interrupted all the same
             status, _Signals.lost = INTERRUPTED, 0
         if status == INTERRUPTED and not _Signals.said:
             _Signals.said = True

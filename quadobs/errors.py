@@ -33,6 +33,7 @@ __all__ = [
     "staging_owner",
     "as_array",
     "as_finite_scalar",
+    "caused_by_interrupt",
     "check_writable",
     "deferred_interrupts",
     "new_folders_removed_on_failure",
@@ -235,6 +236,37 @@ def new_folders_removed_on_failure(*paths: str | Path | None) -> Iterator[None]:
             except (OSError, ValueError):
                 pass
         raise
+
+
+def caused_by_interrupt(exc: BaseException) -> bool:
+    """Whether ``exc`` is a ``KeyboardInterrupt`` or was raised while one was handled (its cause and
+    context chain): an import, a compiler or a validator cut short by Ctrl-C or SIGTERM. Such an
+    error stands for the interrupt; code that turns errors into messages or records should let
+    it through as one (``raise KeyboardInterrupt from exc``).
+
+    A Ctrl-C during the initialisation of a compiled extension module, for one, surfaces as
+    ``ImportError: initialization failed`` caused by the ``KeyboardInterrupt``.
+
+    Examples
+    --------
+    >>> try:
+    ...     try:
+    ...         raise KeyboardInterrupt
+    ...     except KeyboardInterrupt:
+    ...         raise ImportError("initialization failed")
+    ... except ImportError as exc:
+    ...     caused_by_interrupt(exc)
+    True
+    >>> caused_by_interrupt(ValueError("x"))
+    False
+    """
+    seen = set()
+    while exc is not None and id(exc) not in seen:
+        if isinstance(exc, KeyboardInterrupt):
+            return True
+        seen.add(id(exc))
+        exc = exc.__cause__ or exc.__context__
+    return False
 
 
 @contextmanager

@@ -1,18 +1,14 @@
-"""Hostile use of the command line: fuzzed arguments and scenario files, signals at random times.
+"""Hostile use of the command line: fuzzed arguments and scenario files, the issue's cases one by one
+(signals at random times: ``tests/cli/test_signals.py``).
 
 Every answer is an exit status of 0, 1 (a run fault, named), 2 (bad input, one line) or 130
 (interrupted), never a traceback, and a previous output is never lost.
 """
 
 import io
-import json
 import os
 import random
-import signal
-import subprocess
-import sys
 import tempfile
-import time
 from contextlib import redirect_stderr, redirect_stdout
 from pathlib import Path
 
@@ -131,46 +127,6 @@ def test_mutated_scenario_files_answer_cleanly(tmp_path_factory, seed):
     code, _, err = _call(["show", str(path)])
     _check(code, err)
     assert code in (0, 2)
-
-
-# -- signals at random times -------------------------------------------------------------------
-
-
-def _cli(*args):
-    env = dict(os.environ, PYTHONPATH=str(ROOT))
-    return subprocess.Popen([sys.executable, "-m", "quadobs.cli", *args], cwd=ROOT, env=env,
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-
-
-@pytest.mark.parametrize("trial", range(6))
-def test_signals_at_random_times_never_lose_the_previous_outputs(tmp_path, trial):
-    """SIGINT or SIGTERM at a random time from start-up to the end of a 3 s run (seeded): the previous
-    recording and summary are both untouched or both replaced by complete new ones; the answer is exit
-    0 or 130 without a traceback, except before the command line's own code runs or after it has
-    returned, where Python's defaults apply (see docs/failure-behaviour.md)."""
-    rnd = random.Random(1000 + trial)
-    sig = rnd.choice([signal.SIGINT, signal.SIGTERM])
-    delay = rnd.uniform(0.0, 4.0)
-    rrd, js = tmp_path / "run.rrd", tmp_path / "run.json"
-    rrd.write_bytes(b"previous recording")
-    js.write_text('{"previous": true}')
-    proc = _cli("run", "ifac2021", "--duration", "3", "--no-progress", "--out", str(rrd), "--summary", str(js))
-    time.sleep(delay)
-    proc.send_signal(sig)
-    _, err = proc.communicate(timeout=300)
-    replaced = rrd.read_bytes() != b"previous recording"
-    assert replaced == (js.read_text() != '{"previous": true}'), "the recording and the summary are replaced together"
-    if proc.returncode in (0, 130):
-        assert "Traceback" not in err, err
-    else:  # the interpreter's start-up (nothing opened yet) or its exit (everything in place): Python's defaults
-        assert proc.returncode in (-signal.SIGINT, -signal.SIGTERM), (sig, delay, proc.returncode, err)
-    if replaced:
-        from quadobs.recording import read_series
-
-        steps = read_series(rrd, "errors/augmented/position/norm")["step"]
-        summary = json.loads(js.read_text())
-        assert steps.size > 0 and summary["physics_steps"] == steps.size - (0 if summary["interrupted"] else 1)
-    assert not [p for p in tmp_path.iterdir() if p.name.endswith(".partial")]
 
 
 # -- the issue's cases, one by one --------------------------------------------------------------
