@@ -291,6 +291,15 @@ def _first_jump(world, dim: int, dt: float, count: int) -> int | None:
     return int(hits[0]) if hits.size else None
 
 
+def _drop_warning(text: str) -> None:
+    """MuJoCo's warning handler during episodes: the text is dropped, the warning counted.
+
+    MuJoCo's default handler prints the warning and appends it to ``MUJOCO_LOG.TXT`` in the
+    working directory. The counters it also increments (``MjData.warning``) are what
+    :func:`physics_check` reads, and the episode reports the fault on one line.
+    """
+
+
 def physics_check(world, scenario):
     """A check of MuJoCo's warning counters, called after every block of steps.
 
@@ -301,11 +310,15 @@ def physics_check(world, scenario):
     does not follow from the velocities (:func:`_first_jump`), or the block's span when
     there is no such row (a bad control, which MuJoCo zeroes). For a world without a single ``MjData`` the check does nothing.
 
-    The check costs four integer reads per block of thousands of steps.
+    The check costs four integer reads per block of thousands of steps. MuJoCo's own printing of
+    its warnings (and its log file in the working directory) is replaced by
+    :func:`_drop_warning`, unless a handler of the user's is installed.
     """
     data = _world_data(world)
     if data is None:
         return lambda k0, count: None
+    if mujoco.get_mju_user_warning() is None:
+        mujoco.set_mju_user_warning(_drop_warning)
     dt, dim = float(scenario.dt), int(scenario.dimension)
     slots = [(name, int(getattr(mujoco.mjtWarning, name))) for name in PHYSICS_FAULTS]
     seen = {i: int(data.warning[i].number) for _, i in slots}
