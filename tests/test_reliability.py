@@ -312,6 +312,7 @@ def test_fuzzed_command_lines_at_length(argv, mutation_seed):
 
 
 def _hostile_files(folder: Path) -> dict:
+    (folder / "prev.rrd").write_bytes(b"previous recording")
     (folder / "nonutf8.toml").write_bytes(b"\xff\xfe name = 1\n")
     (folder / "deep.toml").write_text("a = " + "[" * 5000 + "]" * 5000 + "\n")
     (folder / "loop1").symlink_to(folder / "loop2")
@@ -326,7 +327,10 @@ CASES = [
     (["run", "ifac2021", "--set", "duration=1e306"], "duration: must be at most"),
     (["campaign", "ifac2021", "--runs", "2", "--duration", "1e306", "--out", "{f}/c"], "duration: must be at most"),
     (["run", "ifac2021", "--set", "physics_rate=1e300"], "physics_rate: must be at most"),
-    (["run", "ifac2021", "--set", "record_every=9223372036854775807", "--out", "{f}/x.rrd"], "record_every: must be at most"),
+    (["run", "ifac2021", "--set", "record_every=9223372036854775807", "--out", "{f}/prev.rrd"], "record_every: must be at most"),
+    (["run", "ifac2021", "--set", "trajectory.offset=[1e11, 0, 0]", "--out", "{f}/prev.rrd"], "trajectory.offset[0]: must be at most"),
+    (["run", "ifac2021", "--set", "trajectory.terms=[{axis=0, amplitude=2e10, omega=1.0}]"], "trajectory.terms[0].amplitude: must be at most"),
+    (["run", "ifac2021", "--duration", "1e12"], "duration: must be at most"),
     (["run", "ifac2021", "--set", "model='{f}/loop1'"], "Too many levels of symbolic links"),
     (["run", "ifac2021", "--set", "model='" + "a" * 5000 + "'"], "model:"),
     (["run", "ifac2021", "--set", 'model="a\\u0000b"'], "NUL"),
@@ -338,11 +342,12 @@ CASES = [
     (["run", "le2013", "--duration", "nan"], "--duration"),
     (["run", "le2013", "--duration", "inf"], "--duration"),
     (["run", "le2013", "--seed", "-1"], "seed"),
-    (["run", "le2013", "--duration", "0.4"], "--duration"),
+    (["run", "le2013", "--duration", "0.4"], "--duration: le2013 counts samples, expected a whole number at least 1, got 0.4"),
     (["excitation", "ifac2021", "--step", "1e-9"], "step:"),
     (["run", "ifac2021", "--set", "noise.range_std=1e300"], "noise.range_std: must be at most"),
     (["run", "ifac2021", "--set", "initial.position_spread=1e300"], "initial.position_spread: must be at most"),
-    (["run", "ifac2021", "--set", "initial.point=[0,0,0,0,0,0]"], 'only used with kind = "point"'),
+    (["run", "ifac2021", "--set", "initial.kind='zero'", "--set", "initial.point=[0,0,0,0,0,0]"],
+     'initial.point: only used with kind = "point", not \'zero\''),
     (["run", "ifac2021", "--seed", str(2**80)], "seed: must be at most"),
     (["campaign", "ifac2021", "--runs", "2", "--retries", "-1", "--out", "{f}/c"], "retries"),
 ]
@@ -355,4 +360,5 @@ def test_each_hostile_case_gets_one_line_and_status_2(tmp_path, argv, message):
     lines = [ln for ln in err.strip().splitlines() if not ln.startswith(("quadobs: compiling", "quadobs: note:"))]
     assert code == 2 and len(lines) == 1 and lines[0].startswith("quadobs: error: "), err
     assert message in lines[0] and len(lines[0]) < 400 and "Traceback" not in err
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["adir", "deep.toml", "loop1", "loop2", "nonutf8.toml"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["adir", "deep.toml", "loop1", "loop2", "nonutf8.toml", "prev.rrd"]
+    assert (tmp_path / "prev.rrd").read_bytes() == b"previous recording"
