@@ -148,6 +148,7 @@ def _cmd_le2013(args) -> int:
 
     settings = _le2013_settings(args)
     _notice_cold_kernels(LE2013_KERNELS)
+    _stop_if_interrupted()
     summary = run_le2013(args.out, args.summary, **settings)
     print(format_table(summary))
     if args.out:
@@ -172,6 +173,7 @@ def _cmd_run(args) -> int:
     estimators = _estimator_list(args.estimators)
     _notice_cost(scenario, estimators, args.out is not None)
     _notice_cold_kernels(_episode_kernels(estimators))
+    _stop_if_interrupted()
     result = run_episode(
         scenario,
         estimators=estimators,
@@ -216,6 +218,7 @@ def _cmd_campaign(args) -> int:
     estimators = _estimator_list(args.estimators)
     _notice_cost(scenario, estimators, False, runs=args.runs, workers=args.workers or os.cpu_count() or 1)
     _notice_cold_kernels(_episode_kernels(estimators))
+    _stop_if_interrupted()
     result = run_campaign(
         scenario,
         runs=args.runs,
@@ -270,6 +273,7 @@ def _cmd_bench(args) -> int:
     log = None if args.quiet else (lambda msg: print(f"[bench] {msg}", file=sys.stderr, flush=True))
     if not args.quiet:
         _notice_cold_kernels(BENCH_KERNELS)
+    _stop_if_interrupted()
     result = run_bench(
         steps=args.steps, repeats=args.repeats, batch=args.batch, batch_steps=args.batch_steps,
         threads=args.threads, quick=args.quick, log=log,
@@ -326,6 +330,18 @@ def _notice_cost(scenario, estimators, recording: bool, runs: int = 1, workers: 
     line = cost_notice(scenario, estimators or default_estimators(scenario), recording, runs=runs, workers=workers)
     if line:
         print(line, file=sys.stderr, flush=True)
+
+
+def _stop_if_interrupted() -> None:
+    """Raise the interrupt again when one was raised during the command and it is still running.
+
+    The commands call this once their modules are loaded, before their long part. A Ctrl-C
+    during the initialisation of a compiled module can come out as an ``ImportError`` that the
+    importing package catches and drops (MuJoCo does so for its optional renderer), and the
+    command would run on to its end.
+    """
+    if _Signals.raised:
+        raise KeyboardInterrupt
 
 
 def _notice_cold_kernels(kernels, file=None) -> bool:
@@ -550,6 +566,7 @@ def _cmd_replay(args) -> int:
             raise QuadobsError(f"--biases: {len(biases)} values for {log.beacons.shape[0]} beacons")
     elif args.calibrate == "self":
         biases = calibrate_biases(log, dt=args.dt, model=args.model, estimator="ekf")
+    _stop_if_interrupted()
     summary = run_replay(
         log, estimators=_estimator_list(args.estimators), dt=args.dt, model=args.model, initial_offset=args.initial_offset,
         seed=args.seed, biases=biases, out=args.out, summary_path=args.summary, progress=not args.no_progress,

@@ -290,3 +290,29 @@ def test_an_interrupt_swallowed_by_the_command_still_ends_it_with_130(monkeypatc
     assert capsys.readouterr().err.strip() == "quadobs: interrupted"
     monkeypatch.setattr(cli, "_cmd_list", _command_that(lambda: None))
     assert main(["list"]) == 0  # the next call starts afresh
+
+
+def test_an_interrupt_swallowed_while_modules_load_stops_the_run_before_it_starts(monkeypatch, capsys, tmp_path):
+    """As MuJoCo does for its optional renderer: the Ctrl-C comes during a module's initialisation,
+    turns into an ImportError, and the importing package drops it. The run must not start."""
+    import quadobs.testbed.episode
+
+    def loading_with_a_dropped_interrupt(kernels, file=None):
+        try:
+            try:
+                signal.raise_signal(signal.SIGINT)
+            except KeyboardInterrupt:
+                raise ImportError("initialization failed")
+        except ImportError:  # the package's optional part is left out
+            pass
+        return False
+
+    def no_run(*args, **kwargs):
+        raise AssertionError("the run started")
+
+    monkeypatch.setattr(cli, "_notice_cold_kernels", loading_with_a_dropped_interrupt)
+    monkeypatch.setattr(quadobs.testbed.episode, "run_episode", no_run)
+    rrd, js = _previous_outputs(tmp_path)
+    assert main(["run", "ifac2021", "--no-progress", "--out", str(rrd), "--summary", str(js)]) == 130
+    assert capsys.readouterr().err.strip() == "quadobs: interrupted"
+    assert not _check_outputs(tmp_path, rrd, js)
