@@ -19,8 +19,11 @@ is then reused).
 from __future__ import annotations
 
 import os
-import signal
 import sys
+
+from quadobs._program import (
+    INTERRUPTED, INTERRUPTED_LINE, Signals, give_back_signals, stop_if_interrupted, take_signals,
+)
 
 # Nothing else at module level: :func:`main` takes SIGINT and SIGTERM before anything heavier
 # (argparse, pathlib, NumPy, ...) loads, so the functions below import what they use.
@@ -148,7 +151,7 @@ def _cmd_le2013(args) -> int:
 
     settings = _le2013_settings(args)
     _notice_cold_kernels(LE2013_KERNELS)
-    _stop_if_interrupted()
+    stop_if_interrupted()
     summary = run_le2013(args.out, args.summary, **settings)
     print(format_table(summary))
     if args.out:
@@ -173,7 +176,7 @@ def _cmd_run(args) -> int:
     estimators = _estimator_list(args.estimators)
     _notice_cost(scenario, estimators, args.out is not None)
     _notice_cold_kernels(_episode_kernels(estimators))
-    _stop_if_interrupted()
+    stop_if_interrupted()
     result = run_episode(
         scenario,
         estimators=estimators,
@@ -218,7 +221,7 @@ def _cmd_campaign(args) -> int:
     estimators = _estimator_list(args.estimators)
     _notice_cost(scenario, estimators, False, runs=args.runs, workers=args.workers or os.cpu_count() or 1)
     _notice_cold_kernels(_episode_kernels(estimators))
-    _stop_if_interrupted()
+    stop_if_interrupted()
     result = run_campaign(
         scenario,
         runs=args.runs,
@@ -273,7 +276,7 @@ def _cmd_bench(args) -> int:
     log = None if args.quiet else (lambda msg: print(f"[bench] {msg}", file=sys.stderr, flush=True))
     if not args.quiet:
         _notice_cold_kernels(BENCH_KERNELS)
-    _stop_if_interrupted()
+    stop_if_interrupted()
     result = run_bench(
         steps=args.steps, repeats=args.repeats, batch=args.batch, batch_steps=args.batch_steps,
         threads=args.threads, quick=args.quick, log=log,
@@ -330,18 +333,6 @@ def _notice_cost(scenario, estimators, recording: bool, runs: int = 1, workers: 
     line = cost_notice(scenario, estimators or default_estimators(scenario), recording, runs=runs, workers=workers)
     if line:
         print(line, file=sys.stderr, flush=True)
-
-
-def _stop_if_interrupted() -> None:
-    """Raise the interrupt again when one was raised during the command and it is still running.
-
-    The commands call this once their modules are loaded, before their long part. A Ctrl-C
-    during the initialisation of a compiled module can come out as an ``ImportError`` that the
-    importing package catches and drops (MuJoCo does so for its optional renderer), and the
-    command would run on to its end.
-    """
-    if _Signals.raised:
-        raise KeyboardInterrupt
 
 
 def _notice_cold_kernels(kernels, file=None) -> bool:
@@ -566,7 +557,7 @@ def _cmd_replay(args) -> int:
             raise QuadobsError(f"--biases: {len(biases)} values for {log.beacons.shape[0]} beacons")
     elif args.calibrate == "self":
         biases = calibrate_biases(log, dt=args.dt, model=args.model, estimator="ekf")
-    _stop_if_interrupted()
+    stop_if_interrupted()
     summary = run_replay(
         log, estimators=_estimator_list(args.estimators), dt=args.dt, model=args.model, initial_offset=args.initial_offset,
         seed=args.seed, biases=biases, out=args.out, summary_path=args.summary, progress=not args.no_progress,
@@ -608,136 +599,6 @@ def _run_command(argv: list[str] | None) -> int:
         raise
 
 
-#: Exit status of a command stopped by a signal (128 + SIGINT), whichever of SIGINT and SIGTERM it was.
-INTERRUPTED = 130
-_INTERRUPTED_LINE = "quadobs: interrupted"
-
-
-class _Signals:
-    """What a SIGINT or SIGTERM does while :func:`main` holds the handlers (one state per process).
-
-    ``mode`` is ``"raise"``: a ``KeyboardInterrupt`` (the command stops and keeps what it has
-    done); ``"hold"``: kept in ``held`` until the caller's handlers are back (an in-process
-    call returning); ``"exit"``: status 130 at once (the program, its command over). ``last``:
-    the last signal taken; ``raised``: the interrupts raised during the command; ``lost``: a signal whose ``KeyboardInterrupt`` was lost (see
-    :func:`_keep_lost_interrupts`) and not taken since; ``said``: the line saying so has been
-    written; ``hook``: the ``sys.unraisablehook`` replaced; ``status``: the program's exit
-    status, once known; ``ending``: :func:`_end_program` is registered.
-    """
-
-    mode = "raise"
-    held: list[int] = []
-    last = 0
-    raised = 0
-    lost = 0
-    said = False
-    hook = None
-    status: int | None = None
-    ending = False
-
-
-def _on_signal(signum, frame) -> None:
-    _Signals.last, _Signals.lost = signum, 0
-    if _Signals.mode == "raise":
-        _Signals.raised += 1
-        raise KeyboardInterrupt
-    if _Signals.mode == "hold":
-        _Signals.held.append(signum)
-        return
-    _end_now(INTERRUPTED)  # pragma: no cover - ends the process; exercised by subprocess tests
-
-
-def _end_now(status: int) -> None:  # pragma: no cover - ends the process; exercised by subprocess tests
-    """End the program with ``status`` now, after what is buffered on stdout and stderr (its outputs
-    are complete and in place by then), saying "interrupted" once when it is 130."""
-    for stream in (sys.stdout, sys.stderr):
-        try:
-            stream.flush()
-        except BaseException:  # a write cut short by the signal, a closed pipe: nothing more to save
-            pass
-    if _Signals.lost:  # an interrupt lost at the very end (see _keep_lost_interrupts)
-        status = INTERRUPTED
-    if status == INTERRUPTED and not _Signals.said:
-        try:
-            os.write(2, (_INTERRUPTED_LINE + "\n").encode())
-        except OSError:
-            pass
-    os._exit(status)
-
-
-def _end_program() -> None:  # pragma: no cover - ends the process; exercised by subprocess tests
-    """The program's last exit callback (registered first, so every other one has run): end the
-    process with the command's status, skipping the interpreter's teardown.
-
-    That teardown takes 0.4 to 0.8 s after a run (NumPy, Numba, MuJoCo, rerun) with SIGINT and
-    SIGTERM back at their defaults, so a signal then would kill the process silently; there is
-    nothing left to save in it. Without a status (an uncaught exception) it does nothing.
-    """
-    if _Signals.status is not None:
-        _end_now(_Signals.status)
-
-
-def _keep_lost_interrupts(unraisable) -> None:
-    """``sys.unraisablehook`` while :func:`main` holds the signals.
-
-    A ``KeyboardInterrupt`` raised where Python cannot propagate it (a weakref callback, such
-    as the import system's module locks use, or a ``__del__``) would be printed as "Exception
-    ignored" and lost (rerun's ``RecordingStream.__del__`` is one such place), and the command
-    would run on. The signal is noted in ``_Signals.lost`` and sent again from a helper thread a
-    moment later, once that callback is over; a command that ends before it arrives ends with
-    status 130 all the same. Anything else goes to the previous hook.
-    """
-    if isinstance(unraisable.exc_value, KeyboardInterrupt) and _Signals.mode == "raise" and _Signals.last:
-        import _thread
-
-        _Signals.lost = _Signals.last
-        _thread.start_new_thread(_send_again, (_Signals.last,))
-        return
-    (_Signals.hook or sys.__unraisablehook__)(unraisable)
-
-
-def _send_again(signum: int) -> None:  # pragma: no cover - a helper thread
-    import time
-
-    time.sleep(0.01)
-    if _Signals.lost == signum:  # not taken meanwhile
-        os.kill(os.getpid(), signum)
-
-
-def _catch_signals(previous: dict, program: bool) -> None:
-    """Route SIGINT and SIGTERM to :func:`_on_signal` in ``"raise"`` mode, noting the handlers replaced
-    in ``previous`` (and :func:`_keep_lost_interrupts` as ``sys.unraisablehook``); for the program,
-    :func:`_end_program` becomes its first exit callback, hence its last to run. A SIGINT the parent
-    ignores (a background job) stays ignored; outside the main thread, where handlers cannot be
-    set, nothing changes."""
-    _Signals.mode, _Signals.said, _Signals.last, _Signals.raised, _Signals.lost = "raise", False, 0, 0, 0
-    if program and not _Signals.ending:
-        import atexit
-
-        atexit.register(_end_program)
-        _Signals.ending = True
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        try:
-            if sig == signal.SIGINT and signal.getsignal(sig) == signal.SIG_IGN:
-                continue
-            previous[sig] = signal.signal(sig, _on_signal)
-        except ValueError:  # not the main thread
-            return
-    _Signals.hook, sys.unraisablehook = sys.unraisablehook, _keep_lost_interrupts
-
-
-def _give_back_signals(previous: dict) -> None:
-    """Restore what :func:`_catch_signals` replaced, then deliver the signals held meanwhile."""
-    if sys.unraisablehook is _keep_lost_interrupts:
-        sys.unraisablehook = _Signals.hook or sys.__unraisablehook__
-    for sig, handler in previous.items():
-        signal.signal(sig, handler)
-    _Signals.mode = "raise"
-    held, _Signals.held = _Signals.held, []
-    for sig in held:
-        signal.raise_signal(sig)
-
-
 def _exit_status(exc: SystemExit) -> int:
     """The status that Python gives ``SystemExit(exc.code)``: 0 for ``None``, the number, else 1."""
     return 0 if exc.code is None else exc.code if isinstance(exc.code, int) else 1
@@ -755,15 +616,16 @@ def main(argv: list[str] | None = None) -> int:
     and one line, never a traceback. Without ``argv`` it is the program (the ``quadobs``
     script, ``python -m quadobs``): once the command is over, a signal ends the process at
     once with status 130, the outputs being in place, and the process ends with the
-    command's status as soon as the exit callbacks have run (:func:`_end_program`). With
-    ``argv`` it is a call inside a larger program: the caller's handlers are restored on
-    return, and a signal that came while returning is delivered to them then.
+    command's status as soon as the exit callbacks have run
+    (:func:`quadobs._program.end_program`). With ``argv`` it is a call inside a larger
+    program: the caller's handlers are restored on return, and a signal that came while
+    returning is delivered to them then. The signal handling is :mod:`quadobs._program`.
     """
     program = argv is None
     previous: dict = {}
     status = None
     try:
-        _catch_signals(previous, program)
+        take_signals(previous, program)
         status = _run_command(argv)
     except KeyboardInterrupt:
         status = INTERRUPTED
@@ -772,18 +634,18 @@ def main(argv: list[str] | None = None) -> int:
         raise
     finally:
         # No call comes before this store, so no handler runs between the command's end and it.
-        _Signals.mode = "exit" if program else "hold"
-        if status is not None and (_Signals.lost or _Signals.raised):
-            # an interrupt lost in a callback (_keep_lost_interrupts), or swallowed by code that
-            # caught what it was turned into: the command was interrupted all the same
-            status, _Signals.lost = INTERRUPTED, 0
-        if status == INTERRUPTED and not _Signals.said:
-            _Signals.said = True
-            print(_INTERRUPTED_LINE, file=sys.stderr)
+        Signals.mode = "exit" if program else "hold"
+        if status is not None and (Signals.lost or Signals.raised):
+            # an interrupt lost in a callback (quadobs._program.keep_lost_interrupts), or swallowed
+            # by code that caught what it was turned into: the command was interrupted all the same
+            status, Signals.lost = INTERRUPTED, 0
+        if status == INTERRUPTED and not Signals.said:
+            Signals.said = True
+            print(INTERRUPTED_LINE, file=sys.stderr)
         if program:
-            _Signals.status = status
+            Signals.status = status
         else:
-            _give_back_signals(previous)
+            give_back_signals(previous)
     return status
 
 
