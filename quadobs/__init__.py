@@ -4,7 +4,8 @@ The class of systems ([ACC2024]; [IFAC2021] for one output)::
 
     x' = A x + B u,        y_h = 1/2 x^T C_h x + d_h^T x,   h = 1..q
 
-This top level re-exports the public API, which needs only NumPy and SciPy:
+This top level re-exports the public API, which needs only NumPy and SciPy (each name is
+imported on first use, so ``import quadobs`` itself loads neither):
 
 * :class:`QuadraticSystem`, :func:`vehicle_system`, :func:`wind_system`, :func:`range_outputs`;
 * :func:`immerse`: the immersion into a state-affine system with linear output
@@ -34,18 +35,40 @@ Examples
 3
 """
 
-from quadobs.core.held_input import HeldInputDiscretization
-from quadobs.errors import QuadobsError
-from quadobs.estimators.kalman import ExtendedKalmanFilter, UnscentedKalmanFilter
-from quadobs.core.immersion import Immersion, immerse, immerse_chain, immerse_minimal
-from quadobs.sets.pradius import PRadiusDesign, pradius_gains
-from quadobs.estimators.augmented import AugmentedObserver
-from quadobs.estimators.base import Estimator
-from quadobs.testbed.scenario import Scenario, list_scenarios, load_scenario
-from quadobs.core.system import QuadraticSystem, range_outputs, vehicle_system, wind_system
-from quadobs.estimators.zonotopic import ZonotopicEstimator
-from quadobs.testbed.trajectory import SinusoidTrajectory
-from quadobs.sets.zonotope import IntervalMatrix, Zonotope
+import importlib
+
+#: Where each name of the public API lives; it is imported on first use (PEP 562), so that
+#: ``import quadobs`` and ``import quadobs.cli`` stay cheap (the command line installs its
+#: signal handling before NumPy and SciPy are loaded).
+_EXPORTS = {
+    "AugmentedObserver": "quadobs.estimators.augmented",
+    "Estimator": "quadobs.estimators.base",
+    "ExtendedKalmanFilter": "quadobs.estimators.kalman",
+    "HeldInputDiscretization": "quadobs.core.held_input",
+    "Immersion": "quadobs.core.immersion",
+    "IntervalMatrix": "quadobs.sets.zonotope",
+    "PRadiusDesign": "quadobs.sets.pradius",
+    "QuadobsError": "quadobs.errors",
+    "QuadraticSystem": "quadobs.core.system",
+    "Scenario": "quadobs.testbed.scenario",
+    "SinusoidTrajectory": "quadobs.testbed.trajectory",
+    "Zonotope": "quadobs.sets.zonotope",
+    "ZonotopicEstimator": "quadobs.estimators.zonotopic",
+    "UnscentedKalmanFilter": "quadobs.estimators.kalman",
+    "immerse": "quadobs.core.immersion",
+    "immerse_chain": "quadobs.core.immersion",
+    "immerse_minimal": "quadobs.core.immersion",
+    "list_scenarios": "quadobs.testbed.scenario",
+    "load_scenario": "quadobs.testbed.scenario",
+    "pradius_gains": "quadobs.sets.pradius",
+    "range_outputs": "quadobs.core.system",
+    "vehicle_system": "quadobs.core.system",
+    "wind_system": "quadobs.core.system",
+}
+#: The subpackages and modules reachable as attributes after a bare ``import quadobs``.
+_SUBMODULES = (
+    "core", "errors", "estimators", "evaluation", "observability", "recording", "sets", "studies", "testbed",
+)
 
 __version__ = "0.1.0"
 
@@ -74,3 +97,19 @@ __all__ = [
     "vehicle_system",
     "wind_system",
 ]
+
+
+def __getattr__(name: str):
+    """The public name ``name``, imported from its module on first use (then a plain attribute)."""
+    if name in _EXPORTS:
+        value = getattr(importlib.import_module(_EXPORTS[name]), name)
+    elif name in _SUBMODULES:
+        value = importlib.import_module(f"{__name__}.{name}")
+    else:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(__all__) | set(_SUBMODULES))

@@ -9,24 +9,24 @@ SCENARIO [--window S]`` prints the persistence-of-excitation report of the scena
 Carlo campaign (:mod:`quadobs.studies.campaign`); ``quadobs bench [--json PATH]`` measures the
 estimators' cost beside the physics (:mod:`quadobs.studies.bench`). Errors in the
 input (a bad scenario field, an unwritable path) print one line naming the problem and
-exit with status 2, leaving no folder it created behind; Ctrl-C stops a run after closing
-its recording (status 130). On a first run, one line on stderr says that the compiled kernels
-are being built (their cache is then reused).
+exit with status 2, leaving no folder it created behind; Ctrl-C or SIGTERM, from start-up
+(NumPy, SciPy, MuJoCo loading) to exit, stops the command with status 130 and one line,
+keeping what is done (a run closes and publishes its recording first; see :func:`main`). On
+a first run, one line on stderr says that the compiled kernels are being built (their cache
+is then reused).
 """
 
 from __future__ import annotations
 
-import argparse
-import functools
 import os
-import shutil
-import signal
 import sys
-import textwrap
-import time
-from pathlib import Path
 
-from quadobs.errors import QuadobsError, RunFault, new_folders_removed_on_failure
+from quadobs._program import (
+    INTERRUPTED, INTERRUPTED_LINE, Signals, give_back_signals, stop_if_interrupted, take_signals,
+)
+
+# Nothing else at module level: :func:`main` takes SIGINT and SIGTERM before anything heavier
+# (argparse, pathlib, NumPy, ...) loads, so the functions below import what they use.
 
 __all__ = ["main"]
 
@@ -89,6 +89,8 @@ def _one_line(text: str, width: int) -> str:
 
 def _cmd_compile(args) -> int:
     """``quadobs compile``: the kernels into Numba's on-disk cache ahead of the first run, side by side."""
+    import time
+
     from quadobs._kernels import cold_kernels
     from quadobs._kernels.precompile import SIGNATURES, compile_side_by_side
 
@@ -102,6 +104,8 @@ def _cmd_compile(args) -> int:
 
 
 def _cmd_list(args) -> int:
+    import shutil
+
     from quadobs.testbed.scenario import list_scenarios
 
     entries = dict(list_scenarios())
@@ -114,6 +118,8 @@ def _cmd_list(args) -> int:
 
 
 def _estimator_list(text: str | None) -> list[str] | None:
+    from quadobs.errors import QuadobsError
+
     if text is None:
         return None
     names = [n.strip() for n in text.split(",") if n.strip()]
@@ -129,6 +135,8 @@ LE2013_OPTIONS = ("out", "summary", "duration", "seed", "runs", "no_progress")
 
 def _refuse_other_options(args, allowed, what: str) -> None:
     """Refuse any option of ``quadobs run`` given a value other than its default, unless ``allowed``."""
+    from quadobs.errors import QuadobsError
+
     defaults = build_parser().parse_args(["run", args.scenario])
     for dest, value in vars(args).items():
         if dest not in allowed and dest not in ("command", "func", "scenario") and value != getattr(defaults, dest, value):
@@ -137,6 +145,8 @@ def _refuse_other_options(args, allowed, what: str) -> None:
 
 def _le2013_settings(args) -> dict:
     """``seed``, ``steps`` and ``runs`` of :func:`run_le2013` from the options (defaults 0, 50, 50)."""
+    from quadobs.errors import QuadobsError
+
     _refuse_other_options(args, LE2013_OPTIONS, "le2013 (it takes --out, --summary, --duration, --seed, --runs)")
     steps = 50
     if args.duration is not None:
@@ -157,6 +167,7 @@ def _cmd_le2013(args) -> int:
 
     settings = _le2013_settings(args)
     _notice_cold_kernels(LE2013_KERNELS)
+    stop_if_interrupted()
     summary = run_le2013(args.out, args.summary, **settings)
     print(format_table(summary))
     if args.out:
@@ -167,6 +178,7 @@ def _cmd_le2013(args) -> int:
 
 
 def _cmd_run(args) -> int:
+    from quadobs.errors import QuadobsError, RunFault
     from quadobs.testbed.episode import run_episode
     from quadobs.testbed.scenario import load_scenario
 
@@ -186,6 +198,7 @@ def _cmd_run(args) -> int:
         sinks.append(LogExportSink(args.export_log))
     _notice_cost(scenario, estimators, args.out is not None)
     _notice_cold_kernels(_episode_kernels(estimators))
+    stop_if_interrupted()
     result = run_episode(
         scenario,
         estimators=estimators,
@@ -223,6 +236,7 @@ def _cmd_excitation(args) -> int:
 
 
 def _cmd_campaign(args) -> int:
+    from quadobs.errors import QuadobsError
     from quadobs.studies.campaign import print_campaign, run_campaign
     from quadobs.testbed.scenario import load_scenario
 
@@ -232,6 +246,7 @@ def _cmd_campaign(args) -> int:
     estimators = _estimator_list(args.estimators)
     _notice_cost(scenario, estimators, False, runs=args.runs, workers=args.workers or os.cpu_count() or 1)
     _notice_cold_kernels(_episode_kernels(estimators))
+    stop_if_interrupted()
     result = run_campaign(
         scenario,
         runs=args.runs,
@@ -252,6 +267,7 @@ def _cmd_campaign(args) -> int:
 
 
 def _cmd_show(args) -> int:
+    from quadobs.errors import QuadobsError
     from quadobs.testbed.scenario import field_reference, load_scenario
 
     if args.reference:
@@ -263,7 +279,7 @@ def _cmd_show(args) -> int:
     return 0
 
 
-def _add_set(p: argparse.ArgumentParser) -> None:
+def _add_set(p) -> None:
     p.add_argument(
         "--set", action="append", default=[], metavar="FIELD=VALUE",
         help="override a scenario field, e.g. noise.range_std=0.1 (value read as TOML, else text; repeatable)",
@@ -271,12 +287,11 @@ def _add_set(p: argparse.ArgumentParser) -> None:
 
 
 def _cmd_bench(args) -> int:
+    from quadobs.errors import QuadobsError, check_writable
     from quadobs.studies.bench import print_bench, run_bench
     from quadobs.testbed.episode import write_json_atomic
 
     if args.json is not None:
-        from quadobs.errors import check_writable
-
         check_writable(args.json)
     for name in ("steps", "repeats", "batch", "batch_steps"):
         if getattr(args, name) < 1:
@@ -286,6 +301,7 @@ def _cmd_bench(args) -> int:
     log = None if args.quiet else (lambda msg: print(f"[bench] {msg}", file=sys.stderr, flush=True))
     if not args.quiet:
         _notice_cold_kernels(BENCH_KERNELS)
+    stop_if_interrupted()
     result = run_bench(
         steps=args.steps, repeats=args.repeats, batch=args.batch, batch_steps=args.batch_steps,
         threads=args.threads, quick=args.quick, log=log,
@@ -313,22 +329,6 @@ def _registered_estimators() -> list[str]:
     from quadobs.testbed.registry import available_estimators
 
     return available_estimators()
-
-
-class _EstimatorsOption(argparse._StoreAction):
-    """``--estimators``: its help lists the registered names, looked up only when help is shown."""
-
-    @property
-    def help(self) -> str:
-        try:
-            names = ", ".join(sorted(_registered_estimators()))
-        except Exception as exc:  # a broken registration must not break --help
-            names = f"unavailable ({type(exc).__name__}: {exc})"
-        return f"{self._help}; registered: {names}".replace("%", "%%")
-
-    @help.setter
-    def help(self, value: str) -> None:
-        self._help = value
 
 
 #: Kernels ("module:function") a first run compiles, per command (see :func:`_notice_cold_kernels`).
@@ -378,13 +378,16 @@ def _notice_cold_kernels(kernels, file=None) -> bool:
     return True
 
 
-def _output_paths(args) -> list[Path]:
+def _output_paths(args) -> list:
     """The output files and folders named on the command line (removed again if the command fails and they are empty)."""
+    from pathlib import Path
+
     return [value for name in ("out", "summary", "json", "export", "export_log") if isinstance(value := getattr(args, name, None), Path)]
 
 
 def _cmd_plot(args) -> int:
     """``quadobs plot INPUT --out FIG``: a figure of a run, a campaign folder or the le2013 recording."""
+    from quadobs.errors import QuadobsError
     from quadobs.studies.plot import render
 
     def numbers(text, kind, name):
@@ -401,21 +404,56 @@ def _cmd_plot(args) -> int:
     return 0
 
 
-class _HelpFormatter(argparse.HelpFormatter):
-    """Help text wrapped at spaces only, so that names such as ``augmented-refined`` stay whole."""
+def _parser_classes() -> tuple[type, type]:
+    """The parser's help formatter and ``--estimators`` action, made on first use (argparse loads
+    only once :func:`main` has taken the signals)."""
+    if _PARSER_CLASSES:
+        return _PARSER_CLASSES[0]
+    import argparse
+    import textwrap
 
-    def _split_lines(self, text, width):
-        return textwrap.wrap(" ".join(text.split()), width, break_on_hyphens=False)
+    class HelpFormatter(argparse.HelpFormatter):
+        """Help text wrapped at spaces only, so that names such as ``augmented-refined`` stay whole."""
+
+        def _split_lines(self, text, width):
+            return textwrap.wrap(" ".join(text.split()), width, break_on_hyphens=False)
+
+    class EstimatorsOption(argparse._StoreAction):
+        """``--estimators``: its help lists the registered names, looked up only when help is shown."""
+
+        @property
+        def help(self) -> str:
+            try:
+                names = ", ".join(sorted(_registered_estimators()))
+            except Exception as exc:  # a broken registration must not break --help
+                names = f"unavailable ({type(exc).__name__}: {exc})"
+            return f"{self._help}; registered: {names}".replace("%", "%%")
+
+        @help.setter
+        def help(self, value: str) -> None:
+            self._help = value
+
+    _PARSER_CLASSES.append((HelpFormatter, EstimatorsOption))
+    return _PARSER_CLASSES[0]
 
 
-def build_parser() -> argparse.ArgumentParser:
+_PARSER_CLASSES: list[tuple[type, type]] = []
+
+
+def build_parser():
+    """The ``argparse.ArgumentParser`` of the command line."""
+    import argparse
+    import functools
+    from pathlib import Path
+
+    help_formatter, estimators_option = _parser_classes()
     parser = argparse.ArgumentParser(
         prog="quadobs", description="State estimation for systems with quadratic outputs: a MuJoCo testbed.",
-        formatter_class=_HelpFormatter,
+        formatter_class=help_formatter,
     )
     parser.add_argument("--version", action="version", version=f"quadobs {package_version()}")
     sub = parser.add_subparsers(dest="command", required=True)
-    sub.add_parser = functools.partial(sub.add_parser, formatter_class=_HelpFormatter)
+    sub.add_parser = functools.partial(sub.add_parser, formatter_class=help_formatter)
 
     p = sub.add_parser("list", help="name the built-in scenarios")
     p.set_defaults(func=_cmd_list)
@@ -431,7 +469,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--duration", type=float, help="override the scenario duration (s)")
     p.add_argument("--seed", type=int, help="override the scenario seed")
     p.add_argument(
-        "--estimators", action=_EstimatorsOption,
+        "--estimators", action=estimators_option,
         help="comma-separated estimator names (default: augmented and the scenario's variants)",
     )
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -465,7 +503,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("scenario", help="built-in scenario name (see 'quadobs list') or path to a scenario .toml")
     p.add_argument("--runs", type=int, required=True, help="number of seeded runs")
-    p.add_argument("--estimators", action=_EstimatorsOption, help="comma-separated estimator names (e.g. augmented,ekf,ukf)")
+    p.add_argument("--estimators", action=estimators_option, help="comma-separated estimator names (e.g. augmented,ekf,ukf)")
     p.add_argument("--out", type=Path, required=True, help="folder for summary.json, runs.parquet, series.parquet, statistics.rrd")
     p.add_argument("--scheduler", help="Dask distributed scheduler address (tcp://host:port); default: local processes")
     p.add_argument("--workers", type=int, help="local processes (default: the number of CPUs; 0: in this process)")
@@ -514,6 +552,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def _add_replay(sub) -> None:
     """The ``replay`` subcommand (:mod:`quadobs.testbed.logs`)."""
+    from pathlib import Path
     p = sub.add_parser("replay", help="replay a logged range-only run (a log folder, or plaza1/plaza2) through the estimators")
     p.add_argument("log", help="log folder (beacons.csv, ranges.csv, inputs.csv, meta.csv[, truth.csv]) or plaza1, plaza2")
     p.add_argument("--out", type=Path, help="recording to write (.rrd)")
@@ -556,6 +595,7 @@ def _cmd_replay(args) -> int:
     check_outputs({"--out": args.out, "--summary": args.summary})  # before the calibration's replays
     log_scenario(log, args.dt, args.seed, args.set)  # the --set settings, checked as early
     biases, tuning = _replay_calibration(args, log, parse_tuning(args.tune))
+    stop_if_interrupted()
     summary = run_replay(
         log, estimators=_estimator_list(args.estimators), dt=args.dt, model=args.model, initial_offset=args.initial_offset,
         seed=args.seed, biases=biases, out=args.out, summary_path=args.summary,
@@ -579,6 +619,7 @@ def _replay_calibration(args, log, tuning: dict) -> tuple[list[float] | None, di
 
     The self-calibration also picks the model's process noise, unless ``--tune`` sets it.
     """
+    from quadobs.errors import QuadobsError
     from quadobs.testbed.logs.calibration import process_noise_key, self_calibrate
     from quadobs.testbed.worlds.replay import default_model
 
@@ -599,49 +640,80 @@ def _replay_calibration(args, log, tuning: dict) -> tuple[list[float] | None, di
     return list(biases), tuning
 
 
-def _sigterm_as_interrupt(signum, frame):  # pragma: no cover - exercised by a subprocess test
-    raise KeyboardInterrupt
+def _run_command(argv: list[str] | None) -> int:
+    """Parse ``argv`` and run its command: the exit status, the error printed on one line.
 
+    A ``KeyboardInterrupt`` propagates (:func:`main` answers it), as does an error made of
+    one (:func:`quadobs.errors.caused_by_interrupt`: an import cut short by Ctrl-C, say);
+    so does ``SystemExit`` from the parser's usage errors, ``--help`` and ``--version``.
+    """
+    from quadobs.errors import QuadobsError, RunFault, caused_by_interrupt, new_folders_removed_on_failure
 
-def _caused_by_interrupt(exc: BaseException) -> bool:
-    """Whether ``exc`` was raised while a ``KeyboardInterrupt`` was being handled (its context chain)."""
-    seen = set()
-    while exc is not None and id(exc) not in seen:
-        if isinstance(exc, KeyboardInterrupt):
-            return True
-        seen.add(id(exc))
-        exc = exc.__cause__ or exc.__context__
-    return False
-
-
-def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(argv)
-    try:
-        signal.signal(signal.SIGTERM, _sigterm_as_interrupt)
-    except ValueError:  # not in the main thread
-        pass
+    args = build_parser().parse_args(argv)
     try:
         with new_folders_removed_on_failure(*_output_paths(args)):
             return args.func(args)
-    except RunFault as exc:  # the run started and could not go on (a full disk, a physics fault)
-        print(f"quadobs: error: {exc}", file=sys.stderr)
-        return 1
-    except QuadobsError as exc:
-        print(f"quadobs: error: {exc}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        print("quadobs: interrupted", file=sys.stderr)
-        return 130
-    except BrokenPipeError:  # output piped into a reader that stopped (e.g. head)
-        devnull = os.open(os.devnull, os.O_WRONLY)
-        os.dup2(devnull, sys.stdout.fileno())
-        return 141
     except Exception as exc:
-        if not _caused_by_interrupt(exc):
-            raise
-        print("quadobs: interrupted", file=sys.stderr)  # e.g. a compiler or an import cut by Ctrl-C
-        return 130
+        if caused_by_interrupt(exc):
+            raise KeyboardInterrupt from exc
+        if isinstance(exc, (RunFault, QuadobsError)):  # a run that could not go on (1), bad input (2)
+            print(f"quadobs: error: {exc}", file=sys.stderr)
+            return 1 if isinstance(exc, RunFault) else 2
+        if isinstance(exc, BrokenPipeError):  # output piped into a reader that stopped (e.g. head)
+            devnull = os.open(os.devnull, os.O_WRONLY)
+            os.dup2(devnull, sys.stdout.fileno())
+            return 141
+        raise
+
+
+def _exit_status(exc: SystemExit) -> int:
+    """The status that Python gives ``SystemExit(exc.code)``: 0 for ``None``, the number, else 1."""
+    return 0 if exc.code is None else exc.code if isinstance(exc.code, int) else 1
+
+
+def main(argv: list[str] | None = None) -> int:
+    """The ``quadobs`` command line: run ``argv`` (default ``sys.argv[1:]``); returns the exit status.
+
+    0: done; 1: a run that started and could not go on (a full disk, a physics fault); 2: bad
+    input (one line on stderr); 130: stopped by SIGINT (Ctrl-C) or SIGTERM, what was done kept.
+
+    Its first act is to take SIGINT and SIGTERM, before anything heavy is imported (this
+    module and :mod:`quadobs.errors` load the standard library alone), so a signal at any
+    moment of the command, loading NumPy, SciPy or MuJoCo included, ends it with status 130
+    and one line, never a traceback. Without ``argv`` it is the program (the ``quadobs``
+    script, ``python -m quadobs``): once the command is over, a signal ends the process at
+    once with status 130, the outputs being in place, and the process ends with the
+    command's status as soon as the exit callbacks have run
+    (:func:`quadobs._program.end_program`). With ``argv`` it is a call inside a larger
+    program: the caller's handlers are restored on return, and a signal that came while
+    returning is delivered to them then. The signal handling is :mod:`quadobs._program`.
+    """
+    program = argv is None
+    previous: dict = {}
+    status = None
+    try:
+        take_signals(previous, program)
+        status = _run_command(argv)
+    except KeyboardInterrupt:
+        status = INTERRUPTED
+    except SystemExit as exc:  # the parser's usage errors, --help, --version
+        status = _exit_status(exc)
+        raise
+    finally:
+        # No call comes before this store, so no handler runs between the command's end and it.
+        Signals.mode = "exit" if program else "hold"
+        if status is not None and (Signals.lost or Signals.raised):
+            # an interrupt lost in a callback (quadobs._program.keep_lost_interrupts), or swallowed
+            # by code that caught what it was turned into: the command was interrupted all the same
+            status, Signals.lost = INTERRUPTED, 0
+        if status == INTERRUPTED and not Signals.said:
+            Signals.said = True
+            print(INTERRUPTED_LINE, file=sys.stderr)
+        if program:
+            Signals.status = status
+        else:
+            give_back_signals(previous)
+    return status
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -3,21 +3,26 @@
 Every malformed input (a wrong shape, a non-finite number, an unmet assumption, a
 bad scenario field, a missing MJCF element) raises :class:`QuadobsError`, a
 ``ValueError`` subclass whose message names the offending field and the problem.
+
+The module imports the standard library alone (NumPy when a validator first needs it), so
+that the command line can load it before anything heavy, its signal handling in place.
 """
 
 from __future__ import annotations
 
+import math
 import os
 import re
-import secrets
 import signal
 import stat
 import threading
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Any, Iterator
+from typing import TYPE_CHECKING, Any, Iterator
 
-import numpy as np
+if TYPE_CHECKING:
+    import numpy as np
+
 
 __all__ = [
     "QuadobsError",
@@ -28,6 +33,7 @@ __all__ = [
     "staging_owner",
     "as_array",
     "as_finite_scalar",
+    "caused_by_interrupt",
     "check_writable",
     "deferred_interrupts",
     "new_folders_removed_on_failure",
@@ -91,7 +97,7 @@ def output_target(path: str | Path, what: str = "output path") -> Path:
 
 def staging_path(target: Path) -> Path:
     """A fresh temporary name beside ``target``: ``.<name>.<pid>-<random>.partial`` (see :data:`STAGING_SUFFIX`)."""
-    return target.parent / f".{target.name}.{os.getpid()}-{secrets.token_hex(3)}{STAGING_SUFFIX}"
+    return target.parent / f".{target.name}.{os.getpid()}-{os.urandom(3).hex()}{STAGING_SUFFIX}"
 
 
 def staging_owner(path: Path) -> tuple[str, int] | None:
@@ -128,6 +134,8 @@ def as_array(
     QuadobsError
         If the value is not numeric, has the wrong shape, or holds non-finite numbers.
     """
+    import numpy as np
+
     try:
         arr = np.array(value, dtype=float)
     except (TypeError, ValueError) as exc:
@@ -154,7 +162,7 @@ def as_finite_scalar(name: str, value: Any, *, positive: bool = False, nonnegati
         x = float(value)
     except (TypeError, ValueError):
         raise QuadobsError(f"{name}: expected a number, got {value!r}") from None
-    if not np.isfinite(x):
+    if not math.isfinite(x):
         raise QuadobsError(f"{name}: must be finite, got {x}")
     if positive and not x > 0:
         raise QuadobsError(f"{name}: must be positive, got {x}")
@@ -228,6 +236,37 @@ def new_folders_removed_on_failure(*paths: str | Path | None) -> Iterator[None]:
             except (OSError, ValueError):
                 pass
         raise
+
+
+def caused_by_interrupt(exc: BaseException) -> bool:
+    """Whether ``exc`` is a ``KeyboardInterrupt`` or was raised while one was handled (its cause and
+    context chain): an import, a compiler or a validator cut short by Ctrl-C or SIGTERM. Such an
+    error stands for the interrupt; code that turns errors into messages or records should let
+    it through as one (``raise KeyboardInterrupt from exc``).
+
+    A Ctrl-C during the initialisation of a compiled extension module, for one, surfaces as
+    ``ImportError: initialization failed`` caused by the ``KeyboardInterrupt``.
+
+    Examples
+    --------
+    >>> try:
+    ...     try:
+    ...         raise KeyboardInterrupt
+    ...     except KeyboardInterrupt:
+    ...         raise ImportError("initialization failed")
+    ... except ImportError as exc:
+    ...     caused_by_interrupt(exc)
+    True
+    >>> caused_by_interrupt(ValueError("x"))
+    False
+    """
+    seen = set()
+    while exc is not None and id(exc) not in seen:
+        if isinstance(exc, KeyboardInterrupt):
+            return True
+        seen.add(id(exc))
+        exc = exc.__cause__ or exc.__context__
+    return False
 
 
 @contextmanager

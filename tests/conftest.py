@@ -1,10 +1,49 @@
+import os
+import subprocess
+import sys
+from pathlib import Path
+
 import numpy as np
 import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
 
 
 @pytest.fixture
 def rng():
     return np.random.default_rng(20211)
+
+
+@pytest.fixture
+def cli_process():
+    """Start ``python -m quadobs.cli ARGS...`` as child processes, killed when the test ends.
+
+    ``cli_process(*args, module="quadobs.cli", path=(), env=None, **popen_kw)`` returns the
+    ``subprocess.Popen`` of ``python -m MODULE ARGS...``, run from the repository root with
+    ``path`` and this checkout on ``PYTHONPATH`` and the variables ``env`` added to this
+    process's environment, stdout and stderr piped as text unless ``popen_kw`` says
+    otherwise. Every child still running when the test ends, passed or failed, is killed
+    (SIGKILL) and reaped, so none outlives its test.
+    """
+    started: list[subprocess.Popen] = []
+
+    def start(*args: str, module: str = "quadobs.cli", path=(), env=None, **popen_kw) -> subprocess.Popen:
+        pythonpath = os.pathsep.join([*map(str, path), str(ROOT)])
+        kw = dict(cwd=ROOT, env=dict(os.environ, PYTHONPATH=pythonpath, **(env or {})), stdout=subprocess.PIPE,
+                  stderr=subprocess.PIPE, text=True)
+        kw.update(popen_kw)
+        proc = subprocess.Popen([sys.executable, "-m", module, *args], **kw)
+        started.append(proc)
+        return proc
+
+    yield start
+    for proc in started:
+        if proc.poll() is None:
+            proc.kill()
+        try:
+            proc.communicate(timeout=60)
+        except (subprocess.TimeoutExpired, ValueError):  # pragma: no cover - a child that cannot be reaped
+            pass
 
 
 def random_nilpotent(rng, n, index=None):

@@ -41,8 +41,8 @@ def cold_kernels(kernels: Iterable[str]) -> list[str]:
     cold = []
     for spec in kernels:
         module, _, name = spec.partition(":")
+        dispatcher = getattr(importlib.import_module(module), name)  # a failed import (Ctrl-C, say) goes on
         try:
-            dispatcher = getattr(importlib.import_module(module), name)
             index = dispatcher._cache._cache_file._load_index()
         except Exception:  # no cache to inspect: say nothing rather than guess
             continue

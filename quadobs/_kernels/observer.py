@@ -99,6 +99,7 @@ __all__ = [
     "augmented_step_batch",
     "augmented_step_block",
     "augmented_step_record",
+    "batch_refused",
     "dense_path",
     "range_outputs",
     "sensor_step",
@@ -603,14 +604,35 @@ def augmented_step(u, y, S, fc, ic):
 
 
 @njit(**_OPTS)
+def batch_refused(U, Y, ic):
+    """The first member ``b`` whose ``U[b]`` holds a non-finite value or ``Y[b]`` an infinite one
+    (NaN in ``Y``: missing), else -1."""
+    p = ic[2]
+    q = ic[3]
+    for b in range(U.shape[0]):
+        for j in range(p):
+            if not math.isfinite(U[b, j]):
+                return b
+        for h in range(q):
+            if math.isinf(Y[b, h]):
+                return b
+    return -1
+
+
+@njit(**_OPTS)
 def augmented_step_batch(U, Y, SB, W, fc, ic):
     """:func:`augmented_step` for each member ``b`` of a batch, one after the other.
 
     ``U (B, p)``, ``Y (B, q)``; row ``b`` of ``SB (B, N + N * N + 4)`` holds member ``b``'s
     ``[z | P | stats]``; the model (``fc``, ``ic``) and the work buffer ``W``
     (:func:`work_size`) are shared. Calls running at the same time (threads) need their
-    own ``W`` and ``ic`` (the end of ``ic`` is integer work).
+    own ``W`` and ``ic`` (the end of ``ic`` is integer work). Every member's operands are
+    checked first (:func:`batch_refused`): returns 0, or ``-1 - b`` when member ``b`` is
+    refused, and then no member has changed.
     """
+    bad = batch_refused(U, Y, ic)
+    if bad >= 0:
+        return -1 - bad
     N = ic[0]
     so = SB.shape[1] - 4
     for b in range(SB.shape[0]):
@@ -620,6 +642,7 @@ def augmented_step_batch(U, Y, SB, W, fc, ic):
             _predict_dense(Sb, 0, N, so, W, 0, U[b], fc, ic)
         else:
             _predict_sparse(Sb, 0, N, so, W, 0, U[b], fc, ic)
+    return 0
 
 
 @njit(**_OPTS)

@@ -93,6 +93,7 @@ class BatchAugmentedObserver:
             km = KernelModel(observer.model, observer._C, observer.R, observer.gate)
             self._kops = (self._SB, km.work(), km.fc, km.ic)
             self._kernel = _kernels.augmented_step_batch
+            self._batch_refused = _kernels.batch_refused
             self._threads = min(int(threads), B)
             self._pool = None
             if self._threads > 1:  # contiguous slices of the batch, each with its own work buffer
@@ -100,6 +101,7 @@ class BatchAugmentedObserver:
                 self._slices = [slice(a, b) for a, b in zip(edges[:-1], edges[1:])]
                 # each thread its own work buffers: W, and ic (its tail holds integer work)
                 self._works = [(km.work(), km.ic.copy()) for _ in self._slices]
+                self._batch_refused(np.zeros((1, p)), np.zeros((1, q)), km.ic)  # load (or compile) it now
             # load (or compile) the kernel now, on scratch copies
             self._kernel(np.zeros((1, p)), np.full((1, q), np.nan), self._SB[:1].copy(), km.work(), km.fc, km.ic)
         else:
@@ -167,7 +169,13 @@ class BatchAugmentedObserver:
     # -- stepping --------------------------------------------------------------------
 
     def step(self, U: np.ndarray, Y: np.ndarray) -> None:
-        """Correct member ``b`` with ``Y[b]`` (``(B, q)``, NaN = missing), then predict it with ``U[b]`` (``(B, p)``) held."""
+        """Correct member ``b`` with ``Y[b]`` (``(B, q)``, NaN = missing), then predict it with ``U[b]`` (``(B, p)``) held.
+
+        A non-finite value in ``U``, an infinite one in ``Y`` or a wrong shape (an empty ``Y``
+        included) raises :class:`QuadobsError` naming the member, and leaves every member
+        unchanged. The compiled kernel checks the values itself before it changes anything
+        (:func:`quadobs._kernels.observer.batch_refused`), so the good path costs nothing more.
+        """
         try:
             fast = (
                 U.dtype is _F64 and Y.dtype is _F64 and U.shape == self._ushape and Y.shape == self._yshape
@@ -178,26 +186,44 @@ class BatchAugmentedObserver:
         if not fast:
             _checked = AugmentedObserver._checked
             U, Y = _checked("U", U, self._ushape), _checked("Y", Y, self._yshape)
-        if self._kernel is not None:
-            if self._threads <= 1:
-                self._kernel(U, Y, *self._kops)
-                return
-            if self._pool is None:
-                from concurrent.futures import ThreadPoolExecutor
+        if self._kernel is None:
+            self._step_reference(U, Y)
+        elif self._threads <= 1:
+            if self._kernel(U, Y, *self._kops) < 0:  # nothing changed
+                self._refuse(U, Y)
+        else:
+            self._step_threads(U, Y)
 
-                self._pool = ThreadPoolExecutor(max_workers=self._threads)
-            SB, _, fc, _ = self._kops
-            jobs = [
-                self._pool.submit(self._kernel, U[sl], Y[sl], SB[sl], W, fc, ic) for sl, (W, ic) in zip(self._slices, self._works)
-            ]
-            for job in jobs:
-                job.result()
-            return
+    def _refuse(self, U: np.ndarray, Y: np.ndarray) -> None:
+        """Raise the :class:`QuadobsError` naming the first member whose ``U[b]`` or ``Y[b]`` is refused."""
+        bad = ~np.isfinite(U).all(axis=1) | np.isinf(Y).any(axis=1)
+        b = int(np.argmax(bad))
+        as_array(f"U[{b}]", U[b], self._ushape[1:])
+        as_array(f"Y[{b}]", Y[b], self._yshape[1:], allow_nan=True)
+        raise QuadobsError(f"U, Y: member {b} refused")  # pragma: no cover - as_array raised
+
+    def _step_reference(self, U: np.ndarray, Y: np.ndarray) -> None:
+        """Each member by the NumPy reference, once every member's operands are checked."""
+        if not np.isfinite(U).all() or np.isinf(Y).any():
+            self._refuse(U, Y)
         ref = self._ref
         for b in range(self.batch):
             ref._z, ref._P, ref._stats = self.Z[b], self.P[b], self._stats[b]
             ref.correct(Y[b])
             ref.predict(U[b])
+
+    def _step_threads(self, U: np.ndarray, Y: np.ndarray) -> None:
+        """The compiled kernel on contiguous slices of the batch, one thread each, once every member is checked."""
+        SB, _, fc, ic = self._kops
+        if self._batch_refused(U, Y, ic) >= 0:  # before any slice starts: nothing changed
+            self._refuse(U, Y)
+        if self._pool is None:
+            from concurrent.futures import ThreadPoolExecutor
+
+            self._pool = ThreadPoolExecutor(max_workers=self._threads)
+        jobs = [self._pool.submit(self._kernel, U[sl], Y[sl], SB[sl], W, fc, ic) for sl, (W, ic) in zip(self._slices, self._works)]
+        for job in jobs:
+            job.result()
 
 
 def _rows(name: str, value, B: int, width: int) -> np.ndarray:

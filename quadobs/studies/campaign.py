@@ -48,7 +48,7 @@ from pathlib import Path
 
 import numpy as np
 
-from quadobs.errors import QuadobsError, as_finite_scalar
+from quadobs.errors import QuadobsError, as_finite_scalar, caused_by_interrupt
 from quadobs.testbed.registry import available_estimators, default_estimators, estimator_factory
 from quadobs.evaluation.ensemble import Ensemble, converged_nees, ensemble, nees, set_containment
 from quadobs.testbed.bounds import immersion_bound, scenario_crb
@@ -126,6 +126,8 @@ def run_one(task: dict) -> dict:
             out["flight"] = _run_flight(result.summary)
         return out
     except Exception as exc:  # reported, never dropped
+        if caused_by_interrupt(exc):  # an import or a compiler cut short by Ctrl-C: the interrupt goes on
+            raise KeyboardInterrupt from exc
         return {
             **base,
             "status": "failed",

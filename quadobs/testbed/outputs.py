@@ -247,15 +247,20 @@ def cost_notice(scenario, estimators: list[str], recording: bool, runs: int = 1,
     return line + "; Ctrl-C stops it and keeps what is done"
 
 
+def _two_digits(x: float) -> str:
+    """``x`` to two significant digits, without an exponent: 330, 11, 1.1, 0.25."""
+    return f"{float(f'{x:.2g}'):g}"
+
+
 def _duration(seconds: float) -> str:
     for unit, span in (("days", 86400.0), ("h", 3600.0), ("min", 60.0)):
         if seconds >= span:
-            return f"{seconds / span:.2g} {unit}"
-    return f"{seconds:.2g} s"
+            return f"{_two_digits(seconds / span)} {unit}"
+    return f"{_two_digits(seconds)} s"
 
 
 def _bytes(n: float) -> str:
     for unit, span in (("TB", 1e12), ("GB", 1e9), ("MB", 1e6)):
         if n >= span:
-            return f"{n / span:.2g} {unit}"
+            return f"{_two_digits(n / span)} {unit}"
     return f"{n:.0f} bytes"

@@ -3,8 +3,6 @@
 import json
 import os
 import signal
-import subprocess
-import sys
 import time
 from pathlib import Path
 
@@ -15,8 +13,6 @@ from quadobs import QuadobsError, load_scenario
 from quadobs.estimators.base import Estimator
 from quadobs.studies.campaign import run_campaign, run_seed
 from quadobs.testbed.registry import register_estimator
-
-ROOT = Path(__file__).resolve().parents[2]
 
 
 class Still(Estimator):
@@ -98,12 +94,9 @@ def _alive(pid: int) -> bool:
         return False
 
 
-def _campaign(tmp_path, runs="6", duration="60"):
-    env = dict(os.environ, PYTHONPATH=str(ROOT))
-    args = ["campaign", "ifac2021-noisy", "--runs", runs, "--workers", "2", "--duration", duration,
-            "--estimators", "ekf", "--no-progress", "--out", str(tmp_path / "c")]
-    return subprocess.Popen([sys.executable, "-m", "quadobs.cli", *args], cwd=ROOT, env=env,
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+def _campaign(cli_process, tmp_path, runs="6", duration="60"):
+    return cli_process("campaign", "ifac2021-noisy", "--runs", runs, "--workers", "2", "--duration", duration,
+                       "--estimators", "ekf", "--no-progress", "--out", str(tmp_path / "c"))
 
 
 def _wait_for_workers(proc, count=2, timeout=120) -> list[int]:
@@ -116,36 +109,28 @@ def _wait_for_workers(proc, count=2, timeout=120) -> list[int]:
 
 
 @pytest.mark.skipif(not Path("/proc/self/task").exists(), reason="needs /proc")
-def test_workers_end_when_the_campaign_process_is_killed(tmp_path):
-    proc = _campaign(tmp_path)
-    try:
-        kids = _wait_for_workers(proc)
-        time.sleep(1.0)
-        proc.kill()
-        proc.communicate(timeout=30)
-        deadline = time.monotonic() + 10
-        while any(_alive(k) for k in kids) and time.monotonic() < deadline:
-            time.sleep(0.1)
-        assert not any(_alive(k) for k in kids)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
+def test_workers_end_when_the_campaign_process_is_killed(tmp_path, cli_process):
+    proc = _campaign(cli_process, tmp_path)
+    kids = _wait_for_workers(proc)
+    time.sleep(1.0)
+    proc.kill()
+    proc.communicate(timeout=30)
+    deadline = time.monotonic() + 10
+    while any(_alive(k) for k in kids) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert not any(_alive(k) for k in kids)
 
 
 @pytest.mark.skipif(not Path("/proc/self/task").exists(), reason="needs /proc")
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
-def test_ctrl_c_ends_a_campaign_and_keeps_the_finished_runs(tmp_path, sig):
+def test_ctrl_c_ends_a_campaign_and_keeps_the_finished_runs(tmp_path, cli_process, sig):
     """A signal while one worker was SIGKILLed and the others run: exit 130 within seconds, summary written."""
-    proc = _campaign(tmp_path, runs="400", duration="3")  # far more than 4 s of work
-    try:
-        kids = _wait_for_workers(proc)
-        os.kill(kids[0], signal.SIGKILL)
-        time.sleep(4.0)
-        proc.send_signal(sig)
-        out, err = proc.communicate(timeout=60)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
+    proc = _campaign(cli_process, tmp_path, runs="400", duration="3")  # far more than 4 s of work
+    kids = _wait_for_workers(proc)
+    os.kill(kids[0], signal.SIGKILL)
+    time.sleep(4.0)
+    proc.send_signal(sig)
+    out, err = proc.communicate(timeout=60)
     assert proc.returncode == 130, err
     assert "Traceback" not in err
     summary = json.loads((tmp_path / "c" / "summary.json").read_text())

@@ -25,29 +25,19 @@ def _verify(rrd: Path) -> None:
     assert proc.returncode == 0, proc.stderr
 
 
-def _cli(*args: str, **kw) -> subprocess.Popen:
-    env = dict(os.environ, PYTHONPATH=str(ROOT))
-    return subprocess.Popen([sys.executable, "-m", "quadobs.cli", *args], cwd=ROOT, env=env, **kw)
-
-
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
-def test_signal_mid_run_leaves_a_verified_recording_of_every_step(tmp_path, sig):
+def test_signal_mid_run_leaves_a_verified_recording_of_every_step(tmp_path, cli_process, sig):
     """SIGINT (Ctrl-C) or SIGTERM during an hour-long run: exit 130, a valid .rrd with steps 0..k-1, the summary of k steps."""
     rrd, js = tmp_path / "run.rrd", tmp_path / "run.json"
-    proc = _cli("run", "ifac2021", "--duration", "3600", "--no-progress", "--out", str(rrd), "--summary", str(js),
-                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    try:
-        deadline = time.monotonic() + 120
-        # wait until the loop has sent a few blocks of rows to the file
-        while not any(p.stat().st_size > 200_000 for p in tmp_path.glob(".run.rrd.*.partial")):  # the staging file
-            assert proc.poll() is None, proc.communicate()
-            assert time.monotonic() < deadline, "the run did not start writing"
-            time.sleep(0.05)
-        proc.send_signal(sig)
-        out, err = proc.communicate(timeout=60)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
+    proc = cli_process("run", "ifac2021", "--duration", "3600", "--no-progress", "--out", str(rrd), "--summary", str(js))
+    deadline = time.monotonic() + 120
+    # wait until the loop has sent a few blocks of rows to the file
+    while not any(p.stat().st_size > 200_000 for p in tmp_path.glob(".run.rrd.*.partial")):  # the staging file
+        assert proc.poll() is None, proc.communicate()
+        assert time.monotonic() < deadline, "the run did not start writing"
+        time.sleep(0.05)
+    proc.send_signal(sig)
+    out, err = proc.communicate(timeout=60)
     assert proc.returncode == 130, err
     assert "[INTERRUPTED]" in out
     summary = json.loads(js.read_text())

@@ -28,14 +28,6 @@ def _verify(rrd: Path) -> None:
     assert proc.returncode == 0, proc.stderr
 
 
-def _cli(*args: str, preexec_fn=None, **kw) -> subprocess.Popen:
-    env = dict(os.environ, PYTHONPATH=str(ROOT))
-    return subprocess.Popen(
-        [sys.executable, "-m", "quadobs.cli", *args], cwd=ROOT, env=env, preexec_fn=preexec_fn,
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, **kw,
-    )
-
-
 NOTICES = ("quadobs: compiling", "quadobs: note:")  # a first run's compile notice, a long run's cost notice
 
 
@@ -176,13 +168,13 @@ def _limit_file_size(limit: int):
     return apply
 
 
-def test_a_full_disk_ends_the_run_with_one_line_and_keeps_the_previous_recording(tmp_path):
+def test_a_full_disk_ends_the_run_with_one_line_and_keeps_the_previous_recording(tmp_path, cli_process):
     """A file size limit (as a full disk): exit 1 within seconds, the error names the path, the
     summary holds the error, the previous recording is untouched and no staging file is left."""
     rrd, js = tmp_path / "run.rrd", tmp_path / "run.json"
     rrd.write_bytes(b"previous")
     t0 = time.monotonic()
-    proc = _cli("run", "ifac2021", "--duration", "3600", "--no-progress", "--out", str(rrd), "--summary", str(js),
+    proc = cli_process("run", "ifac2021", "--duration", "3600", "--no-progress", "--out", str(rrd), "--summary", str(js),
                 preexec_fn=_limit_file_size(2_000_000))
     out, err = proc.communicate(timeout=300)
     assert proc.returncode == 1, err
@@ -213,21 +205,17 @@ def test_a_summary_that_cannot_be_written_at_the_end_still_prints_the_table(tmp_
     assert list(tmp_path.iterdir()) == []
 
 
-def test_sigkill_mid_run_leaves_the_previous_files_and_the_next_run_cleans_up(tmp_path):
+def test_sigkill_mid_run_leaves_the_previous_files_and_the_next_run_cleans_up(tmp_path, cli_process):
     rrd, js = tmp_path / "run.rrd", tmp_path / "run.json"
     rrd.write_bytes(b"previous")
     js.write_text('{"old": true}')
-    proc = _cli("run", "ifac2021", "--duration", "3600", "--no-progress", "--out", str(rrd), "--summary", str(js))
-    try:
-        deadline = time.monotonic() + 120
-        while not any(p.stat().st_size > 100_000 for p in tmp_path.glob(".run.rrd.*.partial")):
-            assert proc.poll() is None and time.monotonic() < deadline
-            time.sleep(0.05)
-        proc.kill()
-        proc.communicate(timeout=60)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
+    proc = cli_process("run", "ifac2021", "--duration", "3600", "--no-progress", "--out", str(rrd), "--summary", str(js))
+    deadline = time.monotonic() + 120
+    while not any(p.stat().st_size > 100_000 for p in tmp_path.glob(".run.rrd.*.partial")):
+        assert proc.poll() is None and time.monotonic() < deadline
+        time.sleep(0.05)
+    proc.kill()
+    proc.communicate(timeout=60)
     assert rrd.read_bytes() == b"previous" and json.loads(js.read_text()) == {"old": True}
     (left,) = tmp_path.glob(".run.rrd.*.partial")
     assert staging_owner(left)[1] == proc.pid
@@ -236,9 +224,9 @@ def test_sigkill_mid_run_leaves_the_previous_files_and_the_next_run_cleans_up(tm
     _verify(rrd)
 
 
-def test_concurrent_writers_each_leave_a_complete_file(tmp_path):
+def test_concurrent_writers_each_leave_a_complete_file(tmp_path, cli_process):
     rrd = tmp_path / "same.rrd"
-    procs = [_cli("run", "ifac2021", "--duration", "2", "--seed", str(s), "--no-progress", "--out", str(rrd)) for s in (1, 2)]
+    procs = [cli_process("run", "ifac2021", "--duration", "2", "--seed", str(s), "--no-progress", "--out", str(rrd)) for s in (1, 2)]
     for p in procs:
         _, err = p.communicate(timeout=300)
         assert p.returncode == 0, err
@@ -258,16 +246,22 @@ def _heavy_model(folder: Path) -> str:
 
 
 @pytest.mark.parametrize("setting", ["trajectory.terms=[{axis=0, amplitude=1e9, omega=1000.0}]", "heavy"])
-def test_an_unstable_simulation_stops_with_the_step_and_no_figures(tmp_path, capsys, setting):
+def test_an_unstable_simulation_stops_with_the_step_and_no_figures(tmp_path, capfd, monkeypatch, setting):
     """MuJoCo's warnings (a bad control here) stop the run: exit 1, the block named, no figures, the
-    previous recording kept and no converged error reported."""
+    previous recording kept and no converged error reported. The one line is all that is printed
+    (captured at the file descriptors: MuJoCo's own printing and its log file are replaced)."""
+    monkeypatch.chdir(tmp_path)
     js, rrd = tmp_path / "s.json", tmp_path / "x.rrd"
     rrd.write_bytes(b"previous")
     if setting == "heavy":
         setting = _heavy_model(tmp_path)
     code = main(["run", "ifac2021", "--duration", "10", "--no-progress", "--set", setting, "--summary", str(js), "--out", str(rrd)])
     assert code == 1
-    line = _error_line(capsys)
+    out, err = capfd.readouterr()
+    lines = [ln for ln in err.strip().splitlines() if not ln.startswith(NOTICES)]
+    assert len(lines) == 1 and lines[0].startswith("quadobs: error: ") and "WARNING" not in out, (out, err)
+    line = lines[0]
+    assert not (tmp_path / "MUJOCO_LOG.TXT").exists()
     # the per-step path sees no jump in the state (the block is named); the block path's rollout
     # leaves one at the first step, which is then named
     assert "physics: MuJoCo reported badctrl" in line
@@ -303,3 +297,40 @@ def test_a_fault_in_a_later_block_names_its_step(monkeypatch):
     with pytest.raises(PhysicsFault, match=r"at step 900[01] ") as info:
         run_episode(load_scenario("ifac2021", duration=12.0), path="step")
     assert isinstance(info.value, RunFault)
+
+
+# -- long or large runs say so first -----------------------------------------------------------
+
+
+def test_the_cost_notice_names_steps_time_and_size_only_for_long_or_large_runs():
+    from quadobs.testbed.outputs import cost_notice
+
+    assert cost_notice(load_scenario("ifac2021"), ["augmented"], True) is None
+    many = "[" + ", ".join(f"{{position=[{i}.0, 1.0, 2.0]}}" for i in range(2000)) + "]"
+    line = cost_notice(load_scenario("ifac2021", settings=[f"beacons={many}"]), ["augmented"], False)
+    assert line.startswith("quadobs: note: 30,000 steps, expected to take about ") and " h;" in line
+    line = cost_notice(load_scenario("ifac2021", duration=1e6), ["augmented"], True)
+    assert "1,000,000,000 steps" in line and "recording of about 330 GB (record_every = 1)" in line and "e+" not in line
+
+
+def test_a_long_run_says_so_on_stderr_before_it_starts_and_does_not_wait(tmp_path, cli_process):
+    """``--duration 1e6`` with a recording: the note comes first, the run goes on without waiting for
+    anyone, and Ctrl-C then stops it (130) with a valid recording."""
+    import select
+
+    rrd = tmp_path / "long.rrd"
+    proc = cli_process("run", "ifac2021", "--duration", "1e6", "--no-progress", "--out", str(rrd))
+    deadline, note = time.monotonic() + 120, None
+    while note is None:
+        assert time.monotonic() < deadline and proc.poll() is None, "no notice"
+        if select.select([proc.stderr], [], [], 1.0)[0]:
+            line = proc.stderr.readline()
+            note = line if line.startswith("quadobs: note:") else None
+    assert "1,000,000,000 steps, expected to take about" in note and "GB (record_every = 1)" in note
+    while not any(p.stat().st_size > 100_000 for p in tmp_path.glob(".long.rrd.*.partial")):  # it runs, writing
+        assert time.monotonic() < deadline and proc.poll() is None
+        time.sleep(0.1)
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 130 and err.strip().splitlines()[-1] == "quadobs: interrupted", err
+    assert read_series(rrd, "errors/augmented/position/norm")["step"].size > 0

@@ -307,6 +307,15 @@ def _first_jump(world, dim: int, dt: float, count: int) -> int | None:
     return int(hits[0]) if hits.size else None
 
 
+def _drop_warning(text: str) -> None:
+    """MuJoCo's warning handler during episodes: the text is dropped, the warning counted.
+
+    MuJoCo's default handler prints the warning and appends it to ``MUJOCO_LOG.TXT`` in the
+    working directory. The counters it also increments (``MjData.warning``) are what
+    :func:`physics_check` reads, and the episode reports the fault on one line.
+    """
+
+
 def physics_check(world, scenario):
     """A check of MuJoCo's warning counters, called after every block of steps.
 
@@ -319,11 +328,15 @@ def physics_check(world, scenario):
 A world that computes the next block in the background gives the counts of the block just
 filled (``physics_warnings()``).
 
-    The check costs a few integer reads per block of thousands of steps.
+    The check costs a few integer reads per block of thousands of steps. MuJoCo's own printing of
+    its warnings (and its log file in the working directory) is replaced by
+    :func:`_drop_warning`, unless a handler of the user's is installed.
     """
     counts = _warning_reader(world)
     if counts is None:
         return lambda k0, count: None
+    if mujoco.get_mju_user_warning() is None:
+        mujoco.set_mju_user_warning(_drop_warning)
     dt, dim = float(scenario.dt), int(scenario.dimension)
     slots = [(name, int(getattr(mujoco.mjtWarning, name))) for name in PHYSICS_FAULTS]
     first = counts()
