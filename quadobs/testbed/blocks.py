@@ -2,28 +2,38 @@
 
 from __future__ import annotations
 
-__all__ = ["LEAD", "block_count"]
+__all__ = ["LEAD", "TAIL", "block_count"]
 
-#: Steps of an episode's first and last blocks (see :func:`block_count`).
+#: Steps of an episode's first block (see :func:`block_count`).
 LEAD = 1024
 
+#: The fewest steps of a block after the first, but the last (see :func:`block_count`).
+TAIL = 512
 
-def block_count(k0: int, steps: int, capacity: int, lead: int = LEAD) -> int:
+
+def block_count(k0: int, steps: int, capacity: int, lead: int = LEAD, tail: int = TAIL) -> int:
     """Steps of the block that starts at step ``k0`` of an episode of ``steps`` steps.
 
-    The first block and the last one have at most ``lead`` steps, the others ``capacity``
-    (the one before the last takes what is left): a world that computes the next block's
-    physics while the current one is read (:class:`~quadobs.testbed.worlds.PointMassWorld`)
-    then waits alone only over short blocks at the start and the end. Results do not
-    depend on where blocks begin (the sensor layer draws its noise in its own batches).
+    The first block has at most ``lead`` steps; after it, each block takes a quarter of
+    what is left, at least ``tail`` and at most ``capacity`` steps, so that blocks shrink
+    by a quarter towards the end. A world that computes the physics of the blocks ahead
+    while the current one is read (:class:`~quadobs.testbed.worlds.PointMassWorld`) reads a
+    block only once its physics is done: the reader, faster than the physics by more than
+    a quarter, then keeps up as the blocks shrink and is one short block behind when the
+    physics ends. Results do not depend on where blocks begin (the sensor layer draws its
+    noise in its own batches).
 
     Examples
     --------
-    >>> [block_count(k, 20000, 8192) for k in (0, 1024, 9216, 17408, 18976)]
-    [1024, 8192, 8192, 1568, 1024]
+    >>> k, blocks = 0, []
+    >>> while k < 20000:
+    ...     blocks.append(block_count(k, 20000, 8192))
+    ...     k += blocks[-1]
+    >>> blocks
+    [1024, 4744, 3558, 2668, 2001, 1501, 1126, 844, 633, 512, 512, 512, 365]
     """
     left = steps - k0
     lead = max(min(lead, capacity), 1)
-    if k0 == 0 or left <= lead:
+    if k0 == 0:
         return min(left, lead)
-    return capacity if left > capacity + lead else left - lead
+    return min(capacity, max(min(tail, capacity), left // 4), left)

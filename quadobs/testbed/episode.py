@@ -394,7 +394,7 @@ class _Episode:
 
             names = [e.name for e in self.block.estimators]
             recorder = Recorder(out, recording_id=f"{fr.name}-seed{fr.seed}", blueprint=default_blueprint(fr, names), capacity=flush_rows)
-            recording = RecordingSink(recorder)
+            recording = RecordingSink(recorder, send_each_block=self.world.computes_ahead)
         sinks: list[Sink] = [ConvergenceSink(), _EstimatorInfo(), BoundsSink()]
         sinks += [self.trace] if self.trace is not None else []
         if recording is not None:

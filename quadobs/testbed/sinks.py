@@ -34,6 +34,10 @@ import numpy as np
 
 from quadobs.estimators.base import Estimator, Gated, SetValued, Subset, Switching
 from quadobs.evaluation.convergence import ConvergenceTracker, json_time, state_errors
+from quadobs.testbed.blocks import LEAD
+
+#: Steps before the end of an episode from which the recording sends its rows only when it closes.
+SEND_AHEAD = 2 * LEAD
 
 __all__ = [
     "Block", "BoundsSink", "ConvergenceSink", "EpisodeContext", "EpisodeFrame", "ExcitationSink", "ProgressSink",
@@ -482,10 +486,16 @@ class RecordingSink(Sink):
     extras : list of callable
         ``fill(rows, steps)`` of further series written with each recorded row (the
         excitation monitor's); may be appended to before :meth:`begin`.
+    send_each_block : bool
+        At the end of a block, with half the recorder's buffers filled or more and more
+        than :data:`SEND_AHEAD` steps to go, send the rows and wait for rerun to encode them
+        (for a world computing the physics ahead,
+        :attr:`~quadobs.testbed.worlds.base.World.computes_ahead`); otherwise the recorder
+        sends when its buffers are full.
     """
 
-    def __init__(self, recorder, extras=None) -> None:
-        self.recorder, self.extras = recorder, list(extras or [])
+    def __init__(self, recorder, extras=None, *, send_each_block: bool = False) -> None:
+        self.recorder, self.extras, self.send_each_block = recorder, list(extras or []), send_each_block
 
     def begin(self, ctx: EpisodeContext) -> None:
         from quadobs.testbed.episode_log import EpisodeLog
@@ -524,6 +534,15 @@ class RecordingSink(Sink):
             bounds={nm: v[sel] for nm, v in rows.bounds.items()},
             rejected={e.name: rows.rejected[e.name][sel] for e in self.gated}, events=ev[sel],
         ), extra=self._extra)
+        rec = self.recorder
+        if self.send_each_block and rec.n >= rec.capacity // 2 and self.ctx.frame.steps - int(rows.ks[-1]) > SEND_AHEAD:
+            # Sent now, and rerun's encoding waited for, while the physics of the blocks ahead
+            # is still computing beside it (the reader would wait for it anyway): the encoding
+            # then never competes with the physics for a core. Half a buffer at least, so that
+            # the file holds few, long chunks; the last blocks' rows go together when the
+            # recording closes. Without physics ahead, the recorder sends when its buffers
+            # are full, without waiting.
+            rec.flush(wait=True)
 
     def _extra(self, rows: slice, steps: np.ndarray) -> None:
         for fill in self.extras:

@@ -1,13 +1,18 @@
 """The block path of an episode against the per-step path: the same rows, records and summaries, bit for bit."""
 
 import json
+import threading
+import time
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from quadobs import load_scenario
 from quadobs.estimators.base import BlockStep
 from quadobs.recording import read_series
+from quadobs.testbed.blocks import LEAD, TAIL, block_count
 from quadobs.testbed.episode import WALL_CLOCK_KEYS, _Episode, run_episode, scenario_parts
 from quadobs.testbed.factories import augmented_observer
 from quadobs.testbed.sensors import SensorModel, spawn_streams
@@ -148,8 +153,8 @@ def test_pipelined_physics_gives_the_same_bits(tmp_path, name):
 
 @pytest.mark.parametrize("pipelined", [True, False])
 def test_a_fault_in_the_block_computed_ahead_is_reported_for_its_block(monkeypatch, pipelined):
-    """A control MuJoCo refuses at step 9000 (second block): the block before it completes and is kept, the error
-    names the second block, whether its physics ran ahead in the background or not."""
+    """A control MuJoCo refuses at step 9000 (third block): the blocks before it complete and are kept, the error
+    names the step, whether its physics ran ahead in the background or not."""
     from quadobs.testbed.worlds.model import PhysicsFault
 
     accelerations = PointMassWorld._accelerations
@@ -162,6 +167,77 @@ def test_a_fault_in_the_block_computed_ahead_is_reported_for_its_block(monkeypat
 
     monkeypatch.setattr(PointMassWorld, "_accelerations", spiked)
     world = None if pipelined else _serial
-    with pytest.raises(PhysicsFault, match=r"badctrl .* (between step 1024 and step 9216|at step 900[01]) ") as info:
+    with pytest.raises(PhysicsFault, match=r"badctrl .* at step 9001 ") as info:
         run_episode(load_scenario("ifac2021", duration=20.0), world=world)
     assert "step 0 " not in str(info.value)
+
+
+def _physics_threads() -> set[threading.Thread]:
+    return {t for t in threading.enumerate() if t.name == "quadobs-physics"}
+
+
+def test_one_physics_thread_per_reading_thread_kept_across_episodes():
+    """The episodes one thread reads share one physics thread, which ends when that thread ends."""
+    sc = load_scenario("ifac2021", duration=3.0)
+    before = _physics_threads()
+    seen = []
+
+    def reader():
+        for _ in range(3):
+            run_episode(sc)
+            seen.append(_physics_threads() - before)
+
+    for _ in range(2):  # two reading threads, one after the other
+        thread = threading.Thread(target=reader)
+        thread.start()
+        thread.join()
+    first, second = seen[0], seen[3]
+    assert len(first) == len(second) == 1 and first != second
+    assert seen[:3] == [first] * 3 and seen[3:] == [second] * 3
+    deadline = time.monotonic() + 5.0
+    while _physics_threads() - before and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert not _physics_threads() - before
+
+
+def test_blocks_queued_ahead_are_undone_when_another_block_begins():
+    """Three blocks queued on the physics thread, then a block that is not theirs begins: the data is back at
+    the start of the first one queued, and the new block gives the rows that block would have given."""
+    sc = load_scenario("ifac2021", duration=5.0)
+
+    def world():
+        w = PointMassWorld(sc, SensorModel(sc, spawn_streams(sc.seed)), 1024)
+        w.prepare("block")
+        return w
+
+    ref = world()
+    ref.begin_block(0, 1024)
+    ref.fill(1024)
+    expected = ref.out[: 1024 + 1].copy()
+    ref.close()
+    w = world()
+    w.stepper.follow_data(0)
+    for k in (0, 512, 1024):  # queued, not begun
+        w.stepper.prefetch(w._accelerations(k, 512), k)
+    assert not w.stepper.can_prefetch()
+    w._queue = False
+    assert w.begin_block(0, 1024) == 1024  # not the queued blocks' boundaries: undone, computed in this thread
+    w.fill(1024)
+    np.testing.assert_array_equal(w.out[: 1024 + 1][:, w.stepper.truth], expected[:, ref.stepper.truth])
+    w.close()
+
+
+@settings(max_examples=200, deadline=None)
+@given(steps=st.integers(1, 300000), capacity=st.sampled_from([300, 700, 1024, 8192]))
+def test_block_schedule(steps, capacity):
+    """Blocks cover the episode once; the first has at most LEAD steps, the others at most ``capacity`` and at least
+    TAIL (but the last), each at least three quarters of the one before (but where ``capacity`` caps it)."""
+    k, blocks = 0, []
+    while k < steps:
+        blocks.append(block_count(k, steps, capacity))
+        assert 1 <= blocks[-1] <= max(capacity, 1)
+        k += blocks[-1]
+    assert k == steps and blocks[0] == min(steps, LEAD, capacity)
+    inner = blocks[1:-1]
+    assert all(b >= min(TAIL, capacity) for b in inner)
+    assert all(b >= min(capacity, 3 * a // 4 - 1) for a, b in zip(inner, inner[1:]))

@@ -244,3 +244,52 @@ def test_read_kernel_is_compiled_once_for_the_arguments_it_gets():
     for j in range(nblk):
         stepper.step(j)
     assert read_step.signatures == compiled and len(compiled) == 1
+
+
+@pytest.mark.parametrize("kind, width", [("scalars", 1), ("scalars", 3), ("points3d", 3), ("translation", 3)])
+def test_recorder_columns_are_those_of_rerun_archetypes(kind, width):
+    """The columns the recorder builds directly hold the same descriptor, Arrow type and values as the archetype's."""
+    import rerun as rr
+
+    from quadobs.recording.recorder import _columns
+
+    vals = np.random.default_rng(4).normal(size=(37, width)) * 1e3
+    vals[5] = np.nan
+    made = {"scalars": lambda: rr.Scalars.columns(scalars=vals), "points3d": lambda: rr.Points3D.columns(positions=vals),
+            "translation": lambda: rr.Transform3D.columns(translation=vals)}[kind]()
+    (ours,), (theirs,) = _columns(kind, vals), list(made)
+    assert ours.component_descriptor() == theirs.component_descriptor()
+    a, b = ours.as_arrow_array(), theirs.as_arrow_array()
+    assert a.type == b.type and a.offsets.equals(b.offsets)
+    a, b = a.flatten(), b.flatten()
+    if kind != "scalars":
+        a, b = a.flatten(), b.flatten()
+    np.testing.assert_array_equal(a.to_numpy(zero_copy_only=False), b.to_numpy(zero_copy_only=False))  # NaN too
+
+
+def _rerun_threads() -> int:
+    import os
+
+    names = []
+    for tid in os.listdir("/proc/self/task"):
+        try:
+            with open(f"/proc/self/task/{tid}/comm") as f:
+                names.append(f.read().strip())
+        except OSError:
+            pass
+    return sum(n.startswith(("ChunkBatcher", "RecordingStream")) for n in names)
+
+
+@pytest.mark.skipif(not __import__("os").path.isdir("/proc/self/task"), reason="thread names from /proc (Linux)")
+def test_a_closed_recorder_leaves_no_rerun_threads(tmp_path):
+    """rerun's threads of a recording end when the recorder closes (they used to stay for the life of the process)."""
+    for k in range(3):
+        with Recorder(tmp_path / f"r{k}.rrd", recording_id=f"r{k}") as rec:
+            s = rec.series("values", 1)
+            s.buf[rec.row(0, 0.0)] = 1.0
+    before = _rerun_threads()
+    for k in range(5):
+        with Recorder(tmp_path / f"s{k}.rrd", recording_id=f"s{k}") as rec:
+            s = rec.series("values", 1)
+            s.buf[rec.row(0, 0.0)] = 1.0
+    assert _rerun_threads() <= before

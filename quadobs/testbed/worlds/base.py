@@ -156,6 +156,12 @@ class World(abc.ABC):
     def close(self) -> None:
         """Release what the world holds beyond the episode's loop (a block computing ahead). The default: nothing."""
 
+    @property
+    def computes_ahead(self) -> bool:
+        """Whether the physics of the blocks ahead is computed in the background while a block is read (after
+        :meth:`prepare`): the reader's waits are then free time, which the recording uses. The default: ``False``."""
+        return False
+
     def commit(self, rows: int) -> None:
         """Count the sensor events (outliers, dropouts) of the first ``rows`` steps of the block.
 

@@ -10,7 +10,10 @@ hold the state at ``t_{k+1}``. The estimators consume exactly this: the output s
 
 from __future__ import annotations
 
+import collections
+import queue
 import threading
+import weakref
 
 import mujoco
 import numpy as np
@@ -205,7 +208,11 @@ class BlockStepper:
         except ImportError:  # pragma: no cover - Numba missing: the NumPy path
             read_step = None
         self._read = read_step
-        self._ahead = self._current = self._filled = self.warnings = None  # see prefetch, begin_ahead, fill
+        self._current = self._filled = self.warnings = None  # see prefetch, begin_ahead, fill
+        # What the next prefetched block continues, from step _next_k: (buffers, last row), (queued block, None)
+        # or (None, None), the data's current state.
+        self._last, self._next_k = None, 0
+        self._queued: collections.deque[_Ahead] = collections.deque()  # blocks handed to the physics thread
         self._buf_i = 0
         self._rollout = self._block_physics(int(capacity)) if read_step is not None else None
         self._work[1, 4] = 0.0 if self._rollout is None else 1.0
@@ -228,7 +235,7 @@ class BlockStepper:
         The block's rows need the orientation of the site at the start of each step; it is
         recomputed from the state's quaternion, which is exact when the vehicle is a free
         body of the world and the site shares its frame's rotation (the shipped model).
-        Two sets of buffers: the block being read and the one :meth:`prefetch` computes.
+        Three sets of buffers: the block being read and two that :meth:`prefetch` computes ahead.
         """
         from mujoco import rollout
 
@@ -241,7 +248,7 @@ class BlockStepper:
                 and m.jnt_qposadr[jnt] == vm.qpos_adr and int(m.site_sameframe[vm.site_id]) in _SAME_ROTATION):
             return None
         self._state0 = np.zeros(mujoco.mj_stateSize(m, _FULL))
-        self._bufs = [(np.zeros((1, capacity, self._state0.size)), np.zeros((1, capacity, m.nsensordata))) for _ in range(2)]
+        self._bufs = [(np.zeros((1, capacity, self._state0.size)), np.zeros((1, capacity, m.nsensordata))) for _ in range(3)]
         self._cols = (1 + vm.qpos_adr, 1 + m.nq + vm.qvel_adr)  # qpos, qvel in a state row (after time)
         self._pool = rollout.Rollout(nthread=0)
         self._read_block = read_block  # loaded (or compiled) now: the kernel of the default path
@@ -286,75 +293,116 @@ class BlockStepper:
         else:
             m, d = self._model, self._data
             mujoco.mj_getState(m, d, self._state0, _FULL)
-            buf, state0 = self._bufs[1 - self._buf_i], self._state0
+            buf, state0 = self._next_buffer(), self._state0
             self.warnings = self._physics(buf, self._ctrls, state0, d.qacc_warmstart.copy())
-        self._buf_i = 0 if buf is self._bufs[0] else 1
+        if not self._queued:  # else the next block queued continues the last one queued
+            self._last, self._next_k = (buf, count - 1), self._k0 + count
         self._filled = count
         self._read_block(count, self.out, buf[0][0], buf[1][0], state0, *self._cols, self._consts, self._draws, self._work)
 
-    def prefetch(self, accelerations, k0: int) -> bool:
-        """Start the physics of the next block (steps ``k0, k0 + 1, ...``) in a background thread.
+    def _next_buffer(self):
+        """The next buffer set in turn: blocks take them in order, so the oldest comes back first."""
+        buf = self._bufs[self._buf_i]
+        self._buf_i = (self._buf_i + 1) % len(self._bufs)
+        return buf
 
-        Called after :meth:`fill`: the block starts where the one just filled ends, with
-        the same warm start, so its states are those :meth:`begin` and :meth:`fill` would
-        give (bit for bit). :meth:`begin_ahead` then starts it, while the block just filled
-        is read by its consumers. Returns ``False`` (nothing started) where the block path
-        does not apply.
+    def can_prefetch(self) -> bool:
+        """Whether :meth:`prefetch` has a free buffer set and a block to continue from."""
+        busy = len(self._queued) + (self._current is not None)
+        return self._rollout is not None and self._last is not None and busy < len(self._bufs)
+
+    def prefetch(self, accelerations, k0: int) -> bool:
+        """Queue the physics of the next block (steps ``k0, k0 + 1, ...``) on the background thread.
+
+        The block continues the last one queued, else the one begun or just filled: the
+        thread starts it from that block's final full physics state, with the data's warm
+        start and warning counts as that block left them, so its states are those
+        :meth:`begin` and :meth:`fill` would give (bit for bit). Blocks queue while buffer
+        sets are free (three: the one being read and two ahead), so the thread runs block
+        after block while the reader catches up. :meth:`begin_ahead` then starts each in
+        turn. Returns ``False`` (nothing queued) where the block path does not apply or no
+        buffer set is free.
         """
-        if self._rollout is None or self._filled is None or self._ahead is not None:
+        if not self.can_prefetch():
             return False
         ctrls = np.ascontiguousarray(self.sim.controls(accelerations))
         if ctrls.shape[0] + 1 > self.out.shape[0]:
             raise QuadobsError(f"accelerations: at most {self.out.shape[0] - 1} steps per block, got {ctrls.shape[0]}")
-        states = self._bufs[self._buf_i][0]
-        state0 = states[0, self._filled - 1].copy()  # the full physics state at the end of the block just filled
-        buf = self._bufs[1 - self._buf_i]
-        with deferred_interrupts():  # a started thread is always known to close()
-            self._ahead = _Ahead(self, int(k0), ctrls, state0, self._data.qacc_warmstart.copy(), buf)
+        ahead = _Ahead(self, int(k0), ctrls, self._last, self._next_buffer())
+        with deferred_interrupts():  # a queued block is always known to close()
+            _PhysicsWorker.of_this_thread().submit(ahead)
+            self._queued.append(ahead)
+        self._last, self._next_k = (ahead, None), ahead.k0 + ahead.count
         return True
 
+    def follow_data(self, k0: int) -> bool:
+        """Make the next :meth:`prefetch` start from the data's current state, as step ``k0``.
+
+        Blocks queued before are undone first. Returns ``False`` where the block path does
+        not apply.
+        """
+        if self._rollout is None:
+            return False
+        if self._queued:
+            self._drop_ahead()
+        self._last, self._next_k = (None, None), int(k0)
+        return True
+
+    @property
+    def next_k(self) -> int:
+        """The step where the next block :meth:`prefetch` queues starts."""
+        return self._next_k
+
     def ahead_of(self, k0: int, count: int) -> bool:
-        """Whether :meth:`prefetch` started exactly the block of steps ``[k0, k0 + count)``."""
-        a = self._ahead
+        """Whether the next block queued by :meth:`prefetch` is exactly the block of steps ``[k0, k0 + count)``."""
+        a = self._queued[0] if self._queued else None
         return a is not None and a.k0 == k0 and a.count == count
 
     def begin_ahead(self, k0: int) -> int:
-        """Start the block :meth:`prefetch` computed (waiting for its thread); fill it with :meth:`fill`.
+        """Start the next block :meth:`prefetch` queued (waiting for its physics); fill it with :meth:`fill`.
 
         Row 0 gets the truth at the block's start and the block's noise is drawn, as in
         :meth:`begin`. Returns the number of steps.
         """
-        ahead = self._ahead
-        if ahead is None or ahead.k0 != k0:
+        if not self.ahead_of(k0, self._queued[0].count if self._queued else -1):
             raise QuadobsError(f"begin_ahead: no block prefetched at step {k0}")
+        ahead = self._queued[0]
         ahead.wait()
-        self._ahead = None
+        self._queued.popleft()
+        self._current = ahead
         s0, nq, nv = ahead.state0, self._model.nq, self._model.nv
         qa = self.sim.vm.qpos_adr
-        count = self._start(ahead.ctrls, k0, self.sim.state_of(s0[1 : 1 + nq], s0[1 + nq : 1 + nq + nv]), s0[1 + qa + 3 : 1 + qa + 7])
-        self._current = ahead
-        return count
+        return self._start(ahead.ctrls, k0, self.sim.state_of(s0[1 : 1 + nq], s0[1 + nq : 1 + nq + nv]), s0[1 + qa + 3 : 1 + qa + 7])
 
     def close(self) -> None:
-        """Wait for a block computing in the background, if any (its result is dropped).
+        """Drop the blocks queued in the background.
 
-        The wait (one block of physics, tens of milliseconds) is not cut by a signal, which
-        is delivered after it.
+        Blocks not started are cancelled; the one computing is waited for (one block of
+        physics, tens of milliseconds), not cut by a signal, which is delivered after it.
         """
-        ahead = self._ahead
-        if ahead is not None:
-            with deferred_interrupts():
-                ahead.thread.join()
-            self._ahead = None
+        for ahead in self._queued:
+            ahead.cancelled = True
+        self._finish_queued()
+
+    def _finish_queued(self) -> _Ahead | None:
+        """Wait for every queued block and forget them; returns the first (or ``None``)."""
+        first = self._queued[0] if self._queued else None
+        for ahead in self._queued:
+            ahead.wait(reraise=False)
+        self._queued.clear()
+        self._current = None
+        self._last = None
+        return first
 
     def _drop_ahead(self) -> None:
-        """Undo a prefetched block that is not the next one begun: the data back at its start."""
-        ahead = self._ahead
-        self.close()
+        """Undo the queued blocks (the next one begun is not theirs): the data back at the first one's start."""
+        first = self._finish_queued()
+        if first is None or first.state0 is None:  # cancelled before it ran: the data was never moved on
+            return
         m, d = self._model, self._data
-        mujoco.mj_setState(m, d, ahead.state0, _FULL)
-        d.qacc_warmstart[:] = ahead.warmstart
-        d.warning.number[:], d.warning.lastinfo[:] = ahead.warnings_before
+        mujoco.mj_setState(m, d, first.state0, _FULL)
+        d.qacc_warmstart[:] = first.warmstart
+        d.warning.number[:], d.warning.lastinfo[:] = first.warnings_before
 
     def warning_counts(self) -> np.ndarray:
         """MuJoCo's warning counts after the block just filled (while the next one may be computing)."""
@@ -380,8 +428,9 @@ class BlockStepper:
         Row 0 of :attr:`out` gets the current truth; with a sensor model, the block's noise
         is drawn now. A block prefetched but not begun is undone first.
         """
-        if self._ahead is not None:
+        if self._queued:
             self._drop_ahead()
+        self._last = None
         sim, d = self.sim, self._data
         qa = sim.vm.qpos_adr
         count = self._start(np.ascontiguousarray(sim.controls(accelerations)), k0, sim.state(), d.qpos[qa + 3 : qa + 7])
@@ -429,28 +478,101 @@ def warning_counts(data) -> np.ndarray:
 
 
 class _Ahead:
-    """The physics of a block computed in a background thread (:meth:`BlockStepper.prefetch`)."""
+    """The physics of one block, computed by the stepper's :class:`_PhysicsWorker` (:meth:`BlockStepper.prefetch`).
 
-    def __init__(self, stepper: BlockStepper, k0: int, ctrls, state0, warmstart, buf) -> None:
-        self.k0, self.count, self.ctrls, self.state0, self.warmstart, self.buf = k0, ctrls.shape[0], ctrls, state0, warmstart, buf
-        self.warnings_before = warning_counts(stepper._data)
-        self.warnings = self.error = None
-        # not a daemon: the interpreter waits for it at exit rather than free the data under it
-        self.thread = threading.Thread(target=self._run, args=(stepper,), name="quadobs-physics", daemon=False)
-        self.thread.start()
+    ``after`` is where the block starts: ``(buffers, row)``, a row of a block whose physics
+    is done, ``(block, None)``, the end of the block queued before it, or ``(None, None)``,
+    the state of the data (the first block). The start state,
+    the warm start and the warning counts are read when the block runs, after the one
+    before it, on the thread that runs both.
+    """
 
-    def _run(self, stepper: BlockStepper) -> None:
+    def __init__(self, stepper: BlockStepper, k0: int, ctrls, after, buf) -> None:
+        self.k0, self.count, self.ctrls, self.after, self.buf = k0, ctrls.shape[0], ctrls, after, buf
+        self.state0 = self.warmstart = self.warnings_before = self.warnings = self.error = None
+        self.cancelled = False
+        self.stepper = stepper
+        self.done = threading.Event()
+
+    def run(self) -> None:
+        """In the worker: the block's rollout; an error is kept for the thread that waits."""
+        stepper, self.stepper = self.stepper, None
         try:
+            src, row = self.after
+            if isinstance(src, _Ahead):
+                if src.error is not None or src.state0 is None:  # the block before failed or never ran
+                    self.error = src.error
+                    return
+                src, row = src.buf, src.count - 1
+            if self.cancelled:
+                return
+            m, d = stepper._model, stepper._data
+            if src is None:  # the first block: from the data as it stands
+                self.state0 = np.empty(mujoco.mj_stateSize(m, _FULL))
+                mujoco.mj_getState(m, d, self.state0, _FULL)
+            else:
+                self.state0 = src[0][0, row].copy()  # the full physics state where this block starts
+            self.warmstart, self.warnings_before = d.qacc_warmstart.copy(), warning_counts(d)
             self.warnings = stepper._physics(self.buf, self.ctrls, self.state0, self.warmstart)
         except BaseException as exc:  # noqa: BLE001 - handed to the thread that waits
             self.error = exc
+        finally:
+            self.after = None
+            self.done.set()
 
-    def wait(self) -> None:
-        """Join the thread (at most one block of physics; a signal is delivered after it) and re-raise its error."""
-        with deferred_interrupts():  # a join cut by an exception can leave the thread marked as stopped
-            self.thread.join()
-        if self.error is not None:
+    def wait(self, *, reraise: bool = True) -> None:
+        """Wait for the block (at most a few blocks of physics; a signal is delivered after it) and re-raise its error."""
+        with deferred_interrupts():
+            self.done.wait()
+        if reraise and self.error is not None:
             raise self.error
+
+
+class _PhysicsWorker:
+    """A thread that computes the blocks handed to it, one after the other.
+
+    One per thread that reads blocks (:meth:`of_this_thread`), kept for the life of that
+    thread and shared by its episodes, rather than one per block or per episode: the
+    scheduler keeps a long-lived thread on the core it settled on, whereas a new thread
+    starts on the core of the thread that creates it and shares it with the reader until
+    it is moved (measured: a block's physics then took up to twice as long, and runs
+    varied accordingly). A daemon, so that it never holds the interpreter at exit; a
+    finaliser (run when the reading thread ends, or at exit before the interpreter is torn
+    down) lets the blocks handed to it end first, so that a model is never freed under a
+    running rollout.
+    """
+
+    _local = threading.local()
+
+    def __init__(self) -> None:
+        self.jobs: queue.SimpleQueue = queue.SimpleQueue()
+        self.thread = threading.Thread(target=self._serve, args=(self.jobs,), name="quadobs-physics", daemon=True)
+        self.thread.start()
+        weakref.finalize(self, _end_worker, self.jobs, self.thread)
+
+    @classmethod
+    def of_this_thread(cls) -> "_PhysicsWorker":
+        """The calling thread's worker, started on first use (again in a forked child)."""
+        worker = getattr(cls._local, "worker", None)
+        if worker is None or not worker.thread.is_alive():
+            cls._local.worker = worker = cls()
+        return worker
+
+    @staticmethod
+    def _serve(jobs: queue.SimpleQueue) -> None:
+        while (job := jobs.get()) is not None:
+            job.run()
+
+    def submit(self, job: _Ahead) -> None:
+        self.jobs.put(job)
+
+
+def _end_worker(jobs: queue.SimpleQueue, thread: threading.Thread) -> None:
+    """End a worker's thread once the blocks handed to it are done."""
+    if thread.is_alive() and thread is not threading.current_thread():
+        jobs.put(None)
+        with deferred_interrupts():
+            thread.join()
 
 
 class PointMassWorld(World):
@@ -484,6 +606,7 @@ class PointMassWorld(World):
         )
         self.pipelined = bool(pipelined)
         self._steps, self._capacity, self._k0 = int(scenario.steps), int(capacity), 0
+        self._queue = False  # queue blocks ahead: once the block path is in use (prepare, fill)
 
     def state(self) -> np.ndarray:
         return self.sim.state()
@@ -494,19 +617,29 @@ class PointMassWorld(World):
 
     def begin_block(self, k0: int, count: int) -> int:
         self._k0 = k0
-        if self.stepper.ahead_of(k0, count):
-            return self.stepper.begin_ahead(k0)
-        return self.stepper.begin(self._accelerations(k0, count), k0)
+        st = self.stepper
+        if self._queue and not st.ahead_of(k0, count):  # the first block: its physics on the thread too
+            st.follow_data(k0)
+        self._queue_ahead()
+        if st.ahead_of(k0, count):  # its physics queued in the background: wait for it
+            return st.begin_ahead(k0)
+        return st.begin(self._accelerations(k0, count), k0)
+
+    def _queue_ahead(self) -> None:
+        """Queue the physics of the blocks that follow, while the stepper has buffers for them."""
+        st = self.stepper
+        while self._queue and st.can_prefetch() and st.next_k < self._steps:
+            k = st.next_k
+            st.prefetch(self._accelerations(k, block_count(k, self._steps, self._capacity)), k)
 
     def step(self, j: int, estimate: np.ndarray | None = None) -> None:
         self.stepper.step(j)
 
     def fill(self, count: int) -> None:
-        """The block's rows; then, pipelined, the next block's physics starts in the background."""
+        """The block's rows; then, pipelined, the physics of the blocks that follow is queued in the background."""
         self.stepper.fill(count)
-        k1 = self._k0 + count
-        if self.pipelined and k1 < self._steps:
-            self.stepper.prefetch(self._accelerations(k1, block_count(k1, self._steps, self._capacity)), k1)
+        self._queue = self.pipelined
+        self._queue_ahead()
 
     def commit(self, rows: int) -> None:
         self.stepper.commit(rows)
@@ -514,7 +647,12 @@ class PointMassWorld(World):
     def physics_warnings(self) -> np.ndarray:
         return self.stepper.warning_counts()
 
+    @property
+    def computes_ahead(self) -> bool:
+        return self._queue and self.stepper._rollout is not None
+
     def prepare(self, path: str) -> None:
+        self._queue = self.pipelined and path == "block"
         if path == "step":
             self.stepper.prepare_steps()
 
