@@ -17,9 +17,9 @@ Two ways to fill a block (:attr:`World.closed_loop`):
 
 * open loop (``False``): the controls of the block are known before it starts, so
   :meth:`World.fill` may produce every row in one call (``mujoco.rollout`` for instance);
-  Such a world may also compute the next block's physics in a background thread while
-  the episode reads the current one (the point mass does); :meth:`World.close` waits
-  for it;
+  Such a world may also compute the physics of the blocks ahead in a background thread
+  while the episode reads the current one (the point mass does,
+  :attr:`World.computes_ahead`); :meth:`World.close` drops them;
 * closed loop (``True``): the episode calls :meth:`World.step` once per step with the
   estimate ``x_hat_k`` of the estimator named :attr:`World.controller` (``None``: the
   episode's primary estimator), read before the estimators consume row ``k``; the world
