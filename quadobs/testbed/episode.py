@@ -253,7 +253,20 @@ def scenario_parts(scenario: Scenario, names: list[str], world=None) -> dict:
     x0 = initial_guess(scenario, w.state(), streams["initial"])
     ests = build_estimators(scenario, names, x0)
     return {"frame": EpisodeFrame.of(scenario), "world": w, "estimators": ests, "sensors": sensors,
-            "check_physics": check, "monitor": scenario_monitor(scenario)}
+            "check_physics": check, "monitor": scenario_monitor(scenario, _scenario_immersion(scenario, ests))}
+
+
+def _scenario_immersion(scenario: Scenario, estimators) -> "Immersion | None":
+    """An estimator's immersion of the scenario's whole system by the scenario's method, if one has it (the
+    excitation monitor then uses it rather than computing it again); ``None`` otherwise."""
+    system, method = scenario.system(), scenario.observer.immersion
+    for est in estimators:
+        im = est.immersion if isinstance(est, Immersed) else None
+        if im is not None and im.method == method and all(
+            np.array_equal(getattr(im.system, k), getattr(system, k)) for k in ("A", "B", "C", "d")
+        ):
+            return im
+    return None
 
 
 @_single_threaded

@@ -78,3 +78,24 @@ def test_recording_shows_measure_warning_and_covariance(degenerate_run):
     e_end = err["values"][(err["sim_time"] > 32.0) & (err["sim_time"] < 33.0), 0].max()
     assert e_end > 3.0 * e_in
     assert summary["final_position_error"] < e_end
+
+
+def test_monitor_reuses_the_observer_immersion_and_reports_the_same():
+    """The monitor takes the augmented observer's immersion of the whole system (not computed twice) and gives
+    the same excitation summary as a monitor with its own."""
+    from quadobs.testbed.episode import scenario_parts
+    from quadobs.testbed.excitation import scenario_monitor
+
+    sc = load_scenario("degenerate", duration=8.0)
+    parts = scenario_parts(sc, ["augmented"])
+    (obs,) = parts["estimators"]
+    shared, own = parts["monitor"], scenario_monitor(sc)
+    assert shared.immersion is obs.immersion and own.immersion is not obs.immersion
+    u = np.random.default_rng(2).normal(size=(8000, sc.system().p))
+    for m in (shared, own):
+        k = 0
+        while k < len(u):
+            take = m.room
+            m.push_many(u[k : k + take])
+            k += take
+    assert json.dumps(shared.summary(), sort_keys=True) == json.dumps(own.summary(), sort_keys=True)
