@@ -172,6 +172,10 @@ def test_a_fault_in_the_block_computed_ahead_is_reported_for_its_block(monkeypat
     assert "step 0 " not in str(info.value)
 
 
+def _dummies() -> set[threading.Thread]:
+    return {t for t in threading.enumerate() if isinstance(t, threading._DummyThread)}
+
+
 def _physics_threads() -> set[threading.Thread]:
     return {t for t in threading.enumerate() if t.name == "quadobs-physics"}
 
@@ -179,7 +183,7 @@ def _physics_threads() -> set[threading.Thread]:
 def test_one_physics_thread_per_reading_thread_kept_across_episodes():
     """The episodes one thread reads share one physics thread, which ends when that thread ends."""
     sc = load_scenario("ifac2021", duration=3.0)
-    before = _physics_threads()
+    before, dummies = _physics_threads(), _dummies()
     seen = []
 
     def reader():
@@ -198,6 +202,29 @@ def test_one_physics_thread_per_reading_thread_kept_across_episodes():
     while _physics_threads() - before and time.monotonic() < deadline:
         time.sleep(0.01)
     assert not _physics_threads() - before
+    assert _dummies() == dummies  # ending them registered no placeholder thread
+
+
+@pytest.mark.skipif(not hasattr(__import__("os"), "fork"), reason="fork")
+def test_a_forked_child_gets_its_own_physics_thread_and_exits(tmp_path):
+    """A process forked after episodes ran (its parent's physics thread does not exist in it) runs one and exits."""
+    import subprocess
+    import sys
+
+    script = (
+        "import os, sys\n"
+        "from quadobs import load_scenario\n"
+        "from quadobs.testbed.episode import run_episode\n"
+        "sc = load_scenario('ifac2021', duration=3.0)\n"
+        "run_episode(sc)\n"
+        "pid = os.fork()\n"
+        "if pid == 0:\n"
+        "    print(run_episode(sc).summary['physics_steps'], flush=True)\n"
+        "    sys.exit(0)\n"
+        "sys.exit(os.waitstatus_to_exitcode(os.waitpid(pid, 0)[1]))\n"
+    )
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0 and done.stdout.split() == ["3000"], done.stderr
 
 
 def test_blocks_queued_ahead_are_undone_when_another_block_begins():

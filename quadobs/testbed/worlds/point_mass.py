@@ -546,9 +546,10 @@ class _PhysicsWorker:
 
     def __init__(self) -> None:
         self.jobs: queue.SimpleQueue = queue.SimpleQueue()
-        self.thread = threading.Thread(target=self._serve, args=(self.jobs,), name="quadobs-physics", daemon=True)
+        self.ended = threading.Event()
+        self.thread = threading.Thread(target=self._serve, args=(self.jobs, self.ended), name="quadobs-physics", daemon=True)
         self.thread.start()
-        weakref.finalize(self, _end_worker, self.jobs, self.thread)
+        weakref.finalize(self, _end_worker, self.jobs, self.ended, self.thread)
 
     @classmethod
     def of_this_thread(cls) -> "_PhysicsWorker":
@@ -559,20 +560,34 @@ class _PhysicsWorker:
         return worker
 
     @staticmethod
-    def _serve(jobs: queue.SimpleQueue) -> None:
-        while (job := jobs.get()) is not None:
-            job.run()
+    def _serve(jobs: queue.SimpleQueue, ended: threading.Event) -> None:
+        try:
+            while (job := jobs.get()) is not None:
+                job.run()
+        finally:
+            ended.set()
 
     def submit(self, job: _Ahead) -> None:
         self.jobs.put(job)
 
 
-def _end_worker(jobs: queue.SimpleQueue, thread: threading.Thread) -> None:
-    """End a worker's thread once the blocks handed to it are done."""
-    if thread.is_alive() and thread is not threading.current_thread():
-        jobs.put(None)
-        with deferred_interrupts():
-            thread.join()
+def _end_worker(jobs: queue.SimpleQueue, ended: threading.Event, thread: threading.Thread) -> None:
+    """End a worker's thread once the blocks handed to it are done.
+
+    Runs as its reading thread ends (or at exit), where ``threading.current_thread()`` (and
+    so ``Thread.join``) would register a placeholder thread for good: the thread's end is
+    an event, and identities are compared. Nothing to wait for in a forked child, where
+    the thread does not exist.
+    """
+    me = threading.get_ident()
+    if ended.is_set() or not thread.is_alive() or thread.ident == me:
+        return
+    jobs.put(None)
+    if me == threading.main_thread().ident:
+        with deferred_interrupts():  # at exit: a signal waits for the block in flight
+            ended.wait()
+    else:
+        ended.wait()
 
 
 class PointMassWorld(World):
