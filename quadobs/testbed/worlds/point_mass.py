@@ -364,7 +364,7 @@ class BlockStepper:
         Row 0 gets the truth at the block's start and the block's noise is drawn, as in
         :meth:`begin`. Returns the number of steps.
         """
-        if not self.ahead_of(k0, self._queued[0].count if self._queued else -1):
+        if not self._queued or self._queued[0].k0 != k0:
             raise QuadobsError(f"begin_ahead: no block prefetched at step {k0}")
         ahead = self._queued[0]
         ahead.wait()
