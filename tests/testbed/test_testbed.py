@@ -83,6 +83,7 @@ def test_beacons_are_added_and_existing_ones_moved():
         (('gear="0 0 1 0 0 0"', 'gear="0 0 2 0 0 0"'), "actuator 'force_z' must act"),
         (('<option ', '<option density="1.2" '), "fluid density"),
         (("<freejoint name=\"vehicle_joint\"/>", '<joint name="vehicle_joint" type="ball"/>'), "free joint"),
+        (('mass="2.5"', 'mass="nan"'), r"bad.xml: MuJoCo warns: XML contains a 'NaN'"),
     ],
 )
 def test_bad_models_are_named(tmp_path, edit, match):
@@ -92,6 +93,17 @@ def test_bad_models_are_named(tmp_path, edit, match):
     path.write_text(xml.replace(edit[0], edit[1]))
     with pytest.raises(QuadobsError, match=match):
         load_vehicle_model(BEACONS, path=path)
+
+
+def test_a_model_warning_leaves_no_log_file_behind(tmp_path, monkeypatch):
+    """MuJoCo's parse warning is the error; MuJoCo's own log file is not written in the working directory."""
+    path = tmp_path / "bad.xml"
+    path.write_text(default_model_path().read_text().replace('mass="2.5"', 'mass="nan"'))
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(QuadobsError):
+        load_vehicle_model(BEACONS, path=path)
+    assert not (tmp_path / "MUJOCO_LOG.TXT").exists()
+    assert load_vehicle_model(BEACONS).mass == 2.5  # the handler before it is back
 
 
 def test_missing_model_file(tmp_path):

@@ -8,6 +8,8 @@ API (``mujoco.MjSpec``) at the scenario's positions.
 
 from __future__ import annotations
 
+import contextlib
+
 import os
 import stat
 from dataclasses import dataclass
@@ -121,6 +123,24 @@ def _add_beacons(spec, beacons: np.ndarray) -> np.ndarray:
     return b3
 
 
+@contextlib.contextmanager
+def _warnings_refused(name: str):
+    """MuJoCo's warnings while a model is parsed and compiled (a NaN in the XML, for one) become an error.
+
+    Without this MuJoCo prints the warning, appends it to ``MUJOCO_LOG.TXT`` in the working
+    directory and goes on: a vehicle of mass NaN was accepted.
+    """
+    said: list[str] = []
+    previous = mujoco.get_mju_user_warning()
+    mujoco.set_mju_user_warning(lambda text: said.append(str(text).strip()))
+    try:
+        yield
+    finally:
+        mujoco.set_mju_user_warning(previous)
+    if said:
+        raise QuadobsError(f"model {name}: MuJoCo warns: {said[0]}")
+
+
 def _check_dynamics(model, name: str):
     """The compiled model realises the double integrator: RK4, no fluid, no contact, damping or friction."""
     if model.opt.integrator != mujoco.mjtIntegrator.mjINT_RK4:
@@ -217,10 +237,11 @@ def load_vehicle_model(
     if wind is not None:
         wind = as_array("wind", wind, (beacons.shape[1],))
     mjcf = _model_file(path) if path is not None else default_model_path()
-    try:
-        spec = mujoco.MjSpec.from_file(str(mjcf))
-    except Exception as exc:  # noqa: BLE001 - MuJoCo's parser error
-        raise QuadobsError(f"model: cannot parse {mjcf.name}: {exc}") from None
+    with _warnings_refused(mjcf.name):
+        try:
+            spec = mujoco.MjSpec.from_file(str(mjcf))
+        except Exception as exc:  # noqa: BLE001 - MuJoCo's parser error
+            raise QuadobsError(f"model: cannot parse {mjcf.name}: {exc}") from None
 
     for kind, name in REQUIRED_ELEMENTS:
         if _find(spec, kind, name) is None:
@@ -234,10 +255,11 @@ def load_vehicle_model(
         w3 = np.zeros(3)
         w3[: len(wind)] = wind
         spec.option.wind = w3
-    try:
-        model = spec.compile()
-    except Exception as exc:  # noqa: BLE001
-        raise QuadobsError(f"model {mjcf.name}: does not compile: {exc}") from None
+    with _warnings_refused(mjcf.name):
+        try:
+            model = spec.compile()
+        except Exception as exc:  # noqa: BLE001
+            raise QuadobsError(f"model {mjcf.name}: does not compile: {exc}") from None
 
     body, joint = _check_dynamics(model, mjcf.name)
     offset_adr, compiled_beacons = _check_beacons(model, b3, mjcf.name)
