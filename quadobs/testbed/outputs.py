@@ -31,7 +31,7 @@ import numpy as np
 from quadobs.errors import QuadobsError, check_writable, output_target, staging_owner, staging_path
 
 __all__ = [
-    "check_outputs", "clean_leftovers", "write_json_staged", "fault_summary", "write_fault_summary",
+    "check_outputs", "clean_leftovers", "write_json_staged", "write_text_staged", "fault_summary", "write_fault_summary",
     "expected_cost", "cost_notice",
 ]
 
@@ -132,7 +132,12 @@ def _json_default(obj):
 
 
 def write_json_staged(path: str | Path, data: dict, what: str = "output path") -> Path:
-    """Write ``data`` as JSON to a staging file beside ``path`` and rename it onto the target.
+    """Write ``data`` as JSON through :func:`write_text_staged`. Returns the target."""
+    return write_text_staged(path, json.dumps(data, indent=2, allow_nan=False, default=_json_default) + "\n", what)
+
+
+def write_text_staged(path: str | Path, text: str, what: str = "output path") -> Path:
+    """Write ``text`` to a staging file beside ``path``, on the disk (``fsync``), then rename it onto the target.
 
     The target is :func:`quadobs.errors.output_target` of ``path`` (a symbolic link is
     written through); a new file gets the usual permissions (``0o666`` less the umask), an
@@ -150,9 +155,8 @@ def write_json_staged(path: str | Path, data: dict, what: str = "output path") -
             umask = os.umask(0)
             os.umask(umask)
             mode = 0o666 & ~umask
-        text = json.dumps(data, indent=2, allow_nan=False, default=_json_default) + "\n"
         fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
-        with os.fdopen(fd, "w") as fh:
+        with os.fdopen(fd, "w", newline="") as fh:
             os.fchmod(fd, mode)
             fh.write(text)
             fh.flush()

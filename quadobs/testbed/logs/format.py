@@ -33,15 +33,15 @@ the header being row 1) and the column.
 from __future__ import annotations
 
 import csv
+import io
 import itertools
 import math
-import os
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from quadobs.errors import QuadobsError, staging_path
+from quadobs.errors import QuadobsError
 
 __all__ = ["INPUT_KINDS", "LOG_FILES", "RangeLog", "read_log", "write_log"]
 
@@ -287,20 +287,14 @@ def read_log(folder: str | Path) -> RangeLog:
 
 def _write_csv(path: Path, header: list[str], values, ints: tuple[int, ...] = ()) -> None:
     """``values`` under ``header``, written to a staging file renamed onto ``path`` once complete."""
-    tmp = staging_path(path)
-    try:
-        with tmp.open("w", newline="") as fh:
-            w = csv.writer(fh)
-            w.writerow(header)
-            for row in values:
-                w.writerow([v if isinstance(v, str) else str(int(v)) if c in ints else repr(float(v)) for c, v in enumerate(row)])
-        os.replace(tmp, path)
-    except OSError as exc:
-        tmp.unlink(missing_ok=True)
-        raise QuadobsError(f"{path}: cannot be written ({exc.strerror or exc})") from None
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
+    from quadobs.testbed.outputs import write_text_staged
+
+    text = io.StringIO(newline="")
+    w = csv.writer(text)
+    w.writerow(header)
+    for row in values:
+        w.writerow([v if isinstance(v, str) else str(int(v)) if c in ints else repr(float(v)) for c, v in enumerate(row)])
+    write_text_staged(path, text.getvalue(), "log file")
 
 
 def write_log(log: RangeLog, folder: str | Path) -> Path:
