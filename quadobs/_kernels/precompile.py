@@ -20,13 +20,17 @@ import sys
 import time
 from typing import Iterable
 
-__all__ = ["EPISODE", "SIGNATURES", "compile_side_by_side", "signature"]
+__all__ = ["EPISODE", "SIGNATURES", "compile_side_by_side", "signature", "signatures"]
 
 #: Argument types of each kernel as the testbed calls it: ``f``/``I`` float64/int64 arrays of
-#: layout ``A``/``C`` and the dimension given, ``r`` read-only; ``i``, ``f`` alone: scalars.
+#: layout ``A``/``C`` and the dimension given, ``r`` read-only; ``i``, ``f`` alone: scalars. A
+#: kernel called with more than one layout lists each signature (a tuple of tuples).
 SIGNATURES = {
     # an episode on the block path (the default): the observer, the world's read-out, the excitation monitor
-    "quadobs._kernels.observer:augmented_step_block": ("fA2", "fA2", "fC1", "fC1", "IC1", "fC2"),
+    "quadobs._kernels.observer:augmented_step_block": (
+        ("fA2", "fA2", "fC1", "fC1", "IC1", "fC2"),  # rows of a block: strided views of its columns
+        ("fC2", "fC2", "fC1", "fC1", "IC1", "fC2"),  # a single row (a sink due one step before a block ends)
+    ),
     "quadobs.testbed.worlds._read:read_block": ("i", "fC2", "fC2", "fC2", "fC1", "i", "i", "fC1", "fC2", "fC2"),
     "quadobs._kernels.gramian:held_run_terms": ("fC2", "fC2r", "fC3r", "fC2r", "fC3r", "fC4r", "fC2", "fC2", "fC2", "fC2", "fC2"),
     "quadobs._kernels.observer:range_outputs": ("fC1", "fC1", "f", "fC1", "fC1", "fC1"),
@@ -38,6 +42,12 @@ SIGNATURES = {
 
 #: The kernels of an episode on the default path.
 EPISODE = tuple(list(SIGNATURES)[:4])
+
+
+def signatures(spec: str) -> list[tuple]:
+    """The code tuples of a kernel of :data:`SIGNATURES` (one or several)."""
+    codes = SIGNATURES[spec]
+    return list(codes) if isinstance(codes[0], tuple) else [codes]
 
 
 def signature(codes: Iterable[str]) -> tuple:
@@ -55,11 +65,13 @@ def signature(codes: Iterable[str]) -> tuple:
 
 
 def _compile_one(spec: str) -> None:
-    """In a child: compile ``spec`` (``"module:function"``) for its signature; Numba writes the cache."""
+    """In a child: compile ``spec`` (``"module:function"``) for its signatures; Numba writes the cache."""
     import importlib
 
     module, _, name = spec.partition(":")
-    getattr(importlib.import_module(module), name).compile(signature(SIGNATURES[spec]))
+    dispatcher = getattr(importlib.import_module(module), name)
+    for codes in signatures(spec):
+        dispatcher.compile(signature(codes))
 
 
 def compile_side_by_side(kernels: Iterable[str], timeout: float = 600.0) -> list[str]:

@@ -272,7 +272,8 @@ class AugmentedObserver(Estimator, Gated, Immersed, BlockStep):
     def prepare(self, path: str) -> None:
         """Load (or compile) the kernel of ``path`` (see :meth:`Estimator.prepare`) on scratch copies.
 
-        ``"record"`` and ``"block"`` are prepared for the strided row views an episode passes.
+        ``"record"`` and ``"block"`` are prepared for the strided row views an episode passes
+        (``"block"`` also for a single row, whose views NumPy calls contiguous).
         """
         if self._kernel is None:
             return
@@ -288,6 +289,7 @@ class AugmentedObserver(Estimator, Gated, Immersed, BlockStep):
             self._krecord(rows[0, :p], rows[0, p : p + q], S, fc, ic, rec[0])
         elif path == "block":
             self._kblock(rows[:, :p], rows[:, p : p + q], S, fc, ic, rec)
+            self._kblock(rows[:1, :p], rows[:1, p : p + q], S, fc, ic, rec[:1])  # one row: contiguous views
         else:
             raise QuadobsError(f"prepare: path must be 'step', 'record' or 'block', got {path!r}")
 
