@@ -67,7 +67,15 @@ _EXPORTS = {
 }
 #: The subpackages and modules reachable as attributes after a bare ``import quadobs``.
 _SUBMODULES = (
-    "core", "errors", "estimators", "evaluation", "observability", "recording", "sets", "studies", "testbed",
+    "core",
+    "errors",
+    "estimators",
+    "evaluation",
+    "observability",
+    "recording",
+    "sets",
+    "studies",
+    "testbed",
 )
 
 __version__ = "0.1.0"
@@ -84,9 +92,9 @@ __all__ = [
     "QuadraticSystem",
     "Scenario",
     "SinusoidTrajectory",
+    "UnscentedKalmanFilter",
     "Zonotope",
     "ZonotopicEstimator",
-    "UnscentedKalmanFilter",
     "immerse",
     "immerse_chain",
     "immerse_minimal",

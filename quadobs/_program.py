@@ -15,9 +15,16 @@ from __future__ import annotations
 import os
 import signal
 import sys
+from typing import ClassVar
 
 __all__ = [
-    "INTERRUPTED", "INTERRUPTED_LINE", "Signals", "take_signals", "give_back_signals", "stop_if_interrupted", "end_now",
+    "INTERRUPTED",
+    "INTERRUPTED_LINE",
+    "Signals",
+    "end_now",
+    "give_back_signals",
+    "stop_if_interrupted",
+    "take_signals",
 ]
 
 
@@ -40,7 +47,7 @@ class Signals:
     """
 
     mode = "raise"
-    held: list[int] = []
+    held: ClassVar[list[int]] = []
     last = 0
     raised = 0
     lost = 0
@@ -62,13 +69,17 @@ def on_signal(signum, frame) -> None:
     end_now(INTERRUPTED)  # pragma: no cover - ends the process; exercised by subprocess tests
 
 
-def end_now(status: int) -> None:  # pragma: no cover - ends the process; exercised by subprocess tests
+def end_now(
+    status: int,
+) -> None:  # pragma: no cover - ends the process; exercised by subprocess tests
     """End the program with ``status`` now, after what is buffered on stdout and stderr (its outputs
     are complete and in place by then), saying "interrupted" once when it is 130."""
     for stream in (sys.stdout, sys.stderr):
         try:
             stream.flush()
-        except BaseException:  # a write cut short by the signal, a closed pipe: nothing more to save
+        except (
+            BaseException
+        ):  # a write cut short by the signal, a closed pipe: nothing more to save
             pass
     if Signals.lost:  # an interrupt lost at the very end (see keep_lost_interrupts)
         status = INTERRUPTED
@@ -102,7 +113,11 @@ def keep_lost_interrupts(unraisable) -> None:
     moment later, once that callback is over; a command that ends before it arrives ends with
     status 130 all the same. Anything else goes to the previous hook.
     """
-    if isinstance(unraisable.exc_value, KeyboardInterrupt) and Signals.mode == "raise" and Signals.last:
+    if (
+        isinstance(unraisable.exc_value, KeyboardInterrupt)
+        and Signals.mode == "raise"
+        and Signals.last
+    ):
         import _thread
 
         Signals.lost = Signals.last

@@ -22,7 +22,12 @@ import os
 import sys
 
 from quadobs._program import (
-    INTERRUPTED, INTERRUPTED_LINE, Signals, give_back_signals, stop_if_interrupted, take_signals,
+    INTERRUPTED,
+    INTERRUPTED_LINE,
+    Signals,
+    give_back_signals,
+    stop_if_interrupted,
+    take_signals,
 )
 
 # Nothing else at module level: :func:`main` takes SIGINT and SIGTERM before anything heavier
@@ -71,11 +76,16 @@ def print_summary(summary: dict, file=sys.stdout) -> None:
     for r in rows:
         print("  ".join(v.ljust(w) for v, w in zip(r, widths)), file=file)
     if summary.get("recording"):
-        print(f"recording: {summary['recording']}  (open with: rerun {summary['recording']})", file=file)
+        print(
+            f"recording: {summary['recording']}  (open with: rerun {summary['recording']})",
+            file=file,
+        )
 
 
 #: The section 5 reproduction, run by ``quadobs run le2013`` beside the built-in scenarios.
-LE2013_DESCRIPTION = "[LE2013] section 5: zonotopic estimation of an uncertain 2-state system (no MuJoCo)."
+LE2013_DESCRIPTION = (
+    "[LE2013] section 5: zonotopic estimation of an uncertain 2-state system (no MuJoCo)."
+)
 
 
 def _one_line(text: str, width: int) -> str:
@@ -98,8 +108,10 @@ def _cmd_compile(args) -> int:
     todo = list(SIGNATURES) if args.force else cold_kernels(SIGNATURES)
     done = compile_side_by_side(todo)
     left = cold_kernels(SIGNATURES)
-    print(f"quadobs compile: {len(done)} of {len(todo)} kernels compiled in {time.perf_counter() - t0:.1f} s; "
-          f"{len(SIGNATURES) - len(left)} of {len(SIGNATURES)} in the cache")
+    print(
+        f"quadobs compile: {len(done)} of {len(todo)} kernels compiled in {time.perf_counter() - t0:.1f} s; "
+        f"{len(SIGNATURES) - len(left)} of {len(SIGNATURES)} in the cache"
+    )
     return 0 if not left else 1
 
 
@@ -139,7 +151,11 @@ def _refuse_other_options(args, allowed, what: str) -> None:
 
     defaults = build_parser().parse_args(["run", args.scenario])
     for dest, value in vars(args).items():
-        if dest not in allowed and dest not in ("command", "func", "scenario") and value != getattr(defaults, dest, value):
+        if (
+            dest not in allowed
+            and dest not in ("command", "func", "scenario")
+            and value != getattr(defaults, dest, value)
+        ):
             raise QuadobsError(f"--{dest.replace('_', '-')}: does not apply to {what}")
 
 
@@ -147,11 +163,15 @@ def _le2013_settings(args) -> dict:
     """``seed``, ``steps`` and ``runs`` of :func:`run_le2013` from the options (defaults 0, 50, 50)."""
     from quadobs.errors import QuadobsError
 
-    _refuse_other_options(args, LE2013_OPTIONS, "le2013 (it takes --out, --summary, --duration, --seed, --runs)")
+    _refuse_other_options(
+        args, LE2013_OPTIONS, "le2013 (it takes --out, --summary, --duration, --seed, --runs)"
+    )
     steps = 50
     if args.duration is not None:
         if not (args.duration >= 1 and float(args.duration).is_integer()):
-            raise QuadobsError(f"--duration: le2013 counts samples, expected a whole number at least 1, got {args.duration:g}")
+            raise QuadobsError(
+                f"--duration: le2013 counts samples, expected a whole number at least 1, got {args.duration:g}"
+            )
         steps = int(args.duration)
     seed = 0 if args.seed is None else args.seed
     if seed < 0:
@@ -187,8 +207,12 @@ def _cmd_run(args) -> int:
             raise QuadobsError("--set: le2013 is not a scenario file and has no fields to set")
         return _cmd_le2013(args)
     if args.runs is not None:
-        raise QuadobsError("--runs: applies to le2013 only; for many seeded runs of a scenario use 'quadobs campaign'")
-    scenario = load_scenario(args.scenario, duration=args.duration, seed=args.seed, settings=args.set)
+        raise QuadobsError(
+            "--runs: applies to le2013 only; for many seeded runs of a scenario use 'quadobs campaign'"
+        )
+    scenario = load_scenario(
+        args.scenario, duration=args.duration, seed=args.seed, settings=args.set
+    )
     estimators = _estimator_list(args.estimators)
     sinks = []
     if args.export_log is not None:
@@ -213,13 +237,15 @@ def _cmd_run(args) -> int:
     if args.summary:
         print(f"summary: {args.summary}")
     if args.export_log is not None:
-        print(f"log: {args.export_log}  (replay with: quadobs replay {args.export_log} --dt {scenario.dt:g})")
+        print(
+            f"log: {args.export_log}  (replay with: quadobs replay {args.export_log} --dt {scenario.dt:g})"
+        )
     return 130 if result.summary.get("interrupted") else 0
 
 
 def _cmd_excitation(args) -> int:
-    from quadobs.testbed.excitation import scenario_report
     from quadobs.testbed.episode import write_json_atomic
+    from quadobs.testbed.excitation import scenario_report
     from quadobs.testbed.scenario import load_scenario
 
     if args.json:
@@ -241,10 +267,16 @@ def _cmd_campaign(args) -> int:
     from quadobs.testbed.scenario import load_scenario
 
     if args.scenario == "le2013":
-        raise QuadobsError("scenario 'le2013': not a vehicle scenario; run it with 'quadobs run le2013 --runs N'")
-    scenario = load_scenario(args.scenario, duration=args.duration, seed=args.seed, settings=args.set)
+        raise QuadobsError(
+            "scenario 'le2013': not a vehicle scenario; run it with 'quadobs run le2013 --runs N'"
+        )
+    scenario = load_scenario(
+        args.scenario, duration=args.duration, seed=args.seed, settings=args.set
+    )
     estimators = _estimator_list(args.estimators)
-    _notice_cost(scenario, estimators, False, runs=args.runs, workers=args.workers or os.cpu_count() or 1)
+    _notice_cost(
+        scenario, estimators, False, runs=args.runs, workers=args.workers or os.cpu_count() or 1
+    )
     _notice_cold_kernels(_episode_kernels(estimators))
     stop_if_interrupted()
     result = run_campaign(
@@ -281,7 +313,10 @@ def _cmd_show(args) -> int:
 
 def _add_set(p) -> None:
     p.add_argument(
-        "--set", action="append", default=[], metavar="FIELD=VALUE",
+        "--set",
+        action="append",
+        default=[],
+        metavar="FIELD=VALUE",
         help="override a scenario field, e.g. noise.range_std=0.1 (value read as TOML, else text; repeatable)",
     )
 
@@ -295,7 +330,9 @@ def _cmd_bench(args) -> int:
         check_writable(args.json)
     for name in ("steps", "repeats", "batch", "batch_steps"):
         if getattr(args, name) < 1:
-            raise QuadobsError(f"--{name.replace('_', '-')}: must be at least 1, got {getattr(args, name)}")
+            raise QuadobsError(
+                f"--{name.replace('_', '-')}: must be at least 1, got {getattr(args, name)}"
+            )
     if args.threads < 0:
         raise QuadobsError(f"--threads: must be non-negative, got {args.threads}")
     log = None if args.quiet else (lambda msg: print(f"[bench] {msg}", file=sys.stderr, flush=True))
@@ -303,8 +340,13 @@ def _cmd_bench(args) -> int:
         _notice_cold_kernels(BENCH_KERNELS)
     stop_if_interrupted()
     result = run_bench(
-        steps=args.steps, repeats=args.repeats, batch=args.batch, batch_steps=args.batch_steps,
-        threads=args.threads, quick=args.quick, log=log,
+        steps=args.steps,
+        repeats=args.repeats,
+        batch=args.batch,
+        batch_steps=args.batch_steps,
+        threads=args.threads,
+        quick=args.quick,
+        log=log,
     )
     print_bench(result)
     if args.json is not None:
@@ -359,7 +401,9 @@ def _notice_cost(scenario, estimators, recording: bool, runs: int = 1, workers: 
     from quadobs.testbed.outputs import cost_notice
     from quadobs.testbed.registry import default_estimators
 
-    line = cost_notice(scenario, estimators or default_estimators(scenario), recording, runs=runs, workers=workers)
+    line = cost_notice(
+        scenario, estimators or default_estimators(scenario), recording, runs=runs, workers=workers
+    )
     if line:
         print(line, file=sys.stderr, flush=True)
 
@@ -382,7 +426,11 @@ def _output_paths(args) -> list:
     """The output files and folders named on the command line (removed again if the command fails and they are empty)."""
     from pathlib import Path
 
-    return [value for name in ("out", "summary", "json", "export", "export_log") if isinstance(value := getattr(args, name, None), Path)]
+    return [
+        value
+        for name in ("out", "summary", "json", "export", "export_log")
+        if isinstance(value := getattr(args, name, None), Path)
+    ]
 
 
 def _cmd_plot(args) -> int:
@@ -394,12 +442,22 @@ def _cmd_plot(args) -> int:
         try:
             return [kind(v) for v in text.replace("x", ",").split(",") if v.strip()]
         except ValueError:
-            raise QuadobsError(f"{name}: expected numbers separated by commas, got {text!r}") from None
+            raise QuadobsError(
+                f"{name}: expected numbers separated by commas, got {text!r}"
+            ) from None
 
     what = None if args.what is None else [w.strip() for w in args.what.split(",") if w.strip()]
     size = None if args.size is None else numbers(args.size, float, "--size")
     samples = None if args.samples is None else numbers(args.samples, int, "--samples")
-    out = render(args.input, args.out, what, size=size, dpi=args.dpi, samples=samples, legend=not args.no_legend)
+    out = render(
+        args.input,
+        args.out,
+        what,
+        size=size,
+        dpi=args.dpi,
+        samples=samples,
+        legend=not args.no_legend,
+    )
     print(f"figure: {out}")
     return 0
 
@@ -448,7 +506,8 @@ def build_parser():
 
     help_formatter, estimators_option = _parser_classes()
     parser = argparse.ArgumentParser(
-        prog="quadobs", description="State estimation for systems with quadratic outputs: a MuJoCo testbed.",
+        prog="quadobs",
+        description="State estimation for systems with quadratic outputs: a MuJoCo testbed.",
         formatter_class=help_formatter,
     )
     parser.add_argument("--version", action="version", version=f"quadobs {package_version()}")
@@ -458,30 +517,56 @@ def build_parser():
     p = sub.add_parser("list", help="name the built-in scenarios")
     p.set_defaults(func=_cmd_list)
 
-    p = sub.add_parser("compile", help="compile the kernels into the on-disk cache now (side by side), so a first run starts at once")
-    p.add_argument("--force", action="store_true", help="compile every kernel, even those already cached")
+    p = sub.add_parser(
+        "compile",
+        help="compile the kernels into the on-disk cache now (side by side), so a first run starts at once",
+    )
+    p.add_argument(
+        "--force", action="store_true", help="compile every kernel, even those already cached"
+    )
     p.set_defaults(func=_cmd_compile)
 
     p = sub.add_parser("run", help="run one episode headless, record it and print a summary")
-    p.add_argument("scenario", help="built-in scenario name (see 'quadobs list') or path to a scenario .toml")
+    p.add_argument(
+        "scenario", help="built-in scenario name (see 'quadobs list') or path to a scenario .toml"
+    )
     p.add_argument("--out", type=Path, help="recording to write (.rrd)")
     p.add_argument("--summary", type=Path, help="JSON summary to write")
     p.add_argument("--duration", type=float, help="override the scenario duration (s)")
     p.add_argument("--seed", type=int, help="override the scenario seed")
     p.add_argument(
-        "--estimators", action=estimators_option,
+        "--estimators",
+        action=estimators_option,
         help="comma-separated estimator names (default: augmented and the scenario's variants)",
     )
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
-    p.add_argument("--runs", type=int, help="le2013 only: number of seeded runs (default 50; --duration is the number of samples)")
-    p.add_argument("--export-log", type=Path, metavar="DIR",
-                   help="also write the run as a log folder in the open format (ranges, accelerometer, truth), for 'quadobs replay'")
+    p.add_argument(
+        "--runs",
+        type=int,
+        help="le2013 only: number of seeded runs (default 50; --duration is the number of samples)",
+    )
+    p.add_argument(
+        "--export-log",
+        type=Path,
+        metavar="DIR",
+        help="also write the run as a log folder in the open format (ranges, accelerometer, truth), for 'quadobs replay'",
+    )
     _add_set(p)
     p.set_defaults(func=_cmd_run)
 
-    p = sub.add_parser("show", help="print a scenario's TOML after any --set overrides (or the field reference)")
-    p.add_argument("scenario", nargs="?", help="built-in scenario name (see 'quadobs list') or path to a scenario .toml")
-    p.add_argument("--reference", action="store_true", help="print the field reference of the scenario schema (Markdown)")
+    p = sub.add_parser(
+        "show", help="print a scenario's TOML after any --set overrides (or the field reference)"
+    )
+    p.add_argument(
+        "scenario",
+        nargs="?",
+        help="built-in scenario name (see 'quadobs list') or path to a scenario .toml",
+    )
+    p.add_argument(
+        "--reference",
+        action="store_true",
+        help="print the field reference of the scenario schema (Markdown)",
+    )
     _add_set(p)
     p.set_defaults(func=_cmd_show)
 
@@ -490,8 +575,14 @@ def build_parser():
         help="persistence-of-excitation report of a scenario's input (Gramian measure, Propositions 4-8), without the physics",
     )
     p.add_argument("scenario", help="built-in scenario name or path to a scenario .toml")
-    p.add_argument("--window", type=float, help="window length delta (s); default: the scenario's excitation.window")
-    p.add_argument("--step", type=float, help="hold step of the input (s); default: the monitor's (0.01 s)")
+    p.add_argument(
+        "--window",
+        type=float,
+        help="window length delta (s); default: the scenario's excitation.window",
+    )
+    p.add_argument(
+        "--step", type=float, help="hold step of the input (s); default: the monitor's (0.01 s)"
+    )
     p.add_argument("--json", type=Path, help="also write the report as JSON")
     _add_set(p)
     p.set_defaults(func=_cmd_excitation)
@@ -501,29 +592,86 @@ def build_parser():
         help="Monte Carlo: many seeded runs in parallel (local processes or a Dask cluster), statistics and the Cramér-Rao bound",
         description="Exit status: 0 when every run completed, 1 when some failed (they are listed), 2 on bad input, 130 on Ctrl-C.",
     )
-    p.add_argument("scenario", help="built-in scenario name (see 'quadobs list') or path to a scenario .toml")
+    p.add_argument(
+        "scenario", help="built-in scenario name (see 'quadobs list') or path to a scenario .toml"
+    )
     p.add_argument("--runs", type=int, required=True, help="number of seeded runs")
-    p.add_argument("--estimators", action=estimators_option, help="comma-separated estimator names (e.g. augmented,ekf,ukf)")
-    p.add_argument("--out", type=Path, required=True, help="folder for summary.json, runs.parquet, series.parquet, statistics.rrd")
-    p.add_argument("--scheduler", help="Dask distributed scheduler address (tcp://host:port); default: local processes")
-    p.add_argument("--workers", type=int, help="local processes (default: the number of CPUs; 0: in this process)")
-    p.add_argument("--every", type=float, help="sampling period (s) of the statistics over time (default about 0.1 s)")
-    p.add_argument("--retries", type=int, default=2, help="local processes: restarts of a run whose worker was lost (default 2)")
-    p.add_argument("--threshold", type=float, default=1.0, help="final position error (m) under which a run has converged (default 1)")
-    p.add_argument("--confidence", type=float, default=0.95, help="of the two-sided chi-square NEES/NIS intervals (default 0.95)")
+    p.add_argument(
+        "--estimators",
+        action=estimators_option,
+        help="comma-separated estimator names (e.g. augmented,ekf,ukf)",
+    )
+    p.add_argument(
+        "--out",
+        type=Path,
+        required=True,
+        help="folder for summary.json, runs.parquet, series.parquet, statistics.rrd",
+    )
+    p.add_argument(
+        "--scheduler",
+        help="Dask distributed scheduler address (tcp://host:port); default: local processes",
+    )
+    p.add_argument(
+        "--workers",
+        type=int,
+        help="local processes (default: the number of CPUs; 0: in this process)",
+    )
+    p.add_argument(
+        "--every",
+        type=float,
+        help="sampling period (s) of the statistics over time (default about 0.1 s)",
+    )
+    p.add_argument(
+        "--retries",
+        type=int,
+        default=2,
+        help="local processes: restarts of a run whose worker was lost (default 2)",
+    )
+    p.add_argument(
+        "--threshold",
+        type=float,
+        default=1.0,
+        help="final position error (m) under which a run has converged (default 1)",
+    )
+    p.add_argument(
+        "--confidence",
+        type=float,
+        default=0.95,
+        help="of the two-sided chi-square NEES/NIS intervals (default 0.95)",
+    )
     p.add_argument("--duration", type=float, help="override the scenario duration (s)")
-    p.add_argument("--seed", type=int, help="override the scenario seed (the runs' seeds derive from it)")
+    p.add_argument(
+        "--seed", type=int, help="override the scenario seed (the runs' seeds derive from it)"
+    )
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     _add_set(p)
     p.set_defaults(func=_cmd_campaign)
 
-    p = sub.add_parser("bench", help="measure the estimators' cost beside the physics (single vehicle, batch, scaling)")
+    p = sub.add_parser(
+        "bench",
+        help="measure the estimators' cost beside the physics (single vehicle, batch, scaling)",
+    )
     p.add_argument("--json", type=Path, help="write the figures to this JSON file")
-    p.add_argument("--steps", type=int, default=20000, help="physics steps per single-vehicle run (default 20000)")
-    p.add_argument("--repeats", type=int, default=5, help="repeats of each measurement; medians are reported (default 5)")
+    p.add_argument(
+        "--steps",
+        type=int,
+        default=20000,
+        help="physics steps per single-vehicle run (default 20000)",
+    )
+    p.add_argument(
+        "--repeats",
+        type=int,
+        default=5,
+        help="repeats of each measurement; medians are reported (default 5)",
+    )
     p.add_argument("--batch", type=int, default=1000, help="vehicles in the batch (default 1000)")
     p.add_argument("--batch-steps", type=int, default=200, help="steps per batch run (default 200)")
-    p.add_argument("--threads", type=int, default=0, help="threads for the batch: MuJoCo's rollout and the observers (default 0: calling thread)")
+    p.add_argument(
+        "--threads",
+        type=int,
+        default=0,
+        help="threads for the batch: MuJoCo's rollout and the observers (default 0: calling thread)",
+    )
     p.add_argument("--quick", action="store_true", help="a small scaling table")
     p.add_argument("--quiet", action="store_true", help="no progress messages")
     p.set_defaults(func=_cmd_bench)
@@ -537,12 +685,21 @@ def build_parser():
         "le2013 .rrd: sets, width-x1, width-x2, volume, bounds. "
         "Default size 7.0x4.5 in (two-column paper width; 3.5x2.6 for one column).",
     )
-    p.add_argument("input", type=Path, help="a run's .rrd, a campaign folder (or its statistics.rrd), or the le2013 .rrd")
+    p.add_argument(
+        "input",
+        type=Path,
+        help="a run's .rrd, a campaign folder (or its statistics.rrd), or the le2013 .rrd",
+    )
     p.add_argument("--out", type=Path, required=True, help="figure file: .png, .pdf or .svg")
-    p.add_argument("--what", help="comma-separated panels (default: the input's usual figure; names above)")
+    p.add_argument(
+        "--what", help="comma-separated panels (default: the input's usual figure; names above)"
+    )
     p.add_argument("--size", help="WIDTHxHEIGHT in inches (default 7.0x4.5)")
     p.add_argument("--dpi", type=float, help="dots per inch of a PNG (default 150)")
-    p.add_argument("--samples", help="le2013 sets: comma-separated samples k to draw (default: one early, the last)")
+    p.add_argument(
+        "--samples",
+        help="le2013 sets: comma-separated samples k to draw (default: one early, the last)",
+    )
     p.add_argument("--no-legend", action="store_true", help="no legends")
     p.set_defaults(func=_cmd_plot)
 
@@ -553,27 +710,64 @@ def build_parser():
 def _add_replay(sub) -> None:
     """The ``replay`` subcommand (:mod:`quadobs.testbed.logs`)."""
     from pathlib import Path
-    p = sub.add_parser("replay", help="replay a logged range-only run (a log folder, or plaza1/plaza2) through the estimators")
-    p.add_argument("log", help="log folder (beacons.csv, ranges.csv, inputs.csv, meta.csv[, truth.csv]) or plaza1, plaza2")
+
+    p = sub.add_parser(
+        "replay",
+        help="replay a logged range-only run (a log folder, or plaza1/plaza2) through the estimators",
+    )
+    p.add_argument(
+        "log",
+        help="log folder (beacons.csv, ranges.csv, inputs.csv, meta.csv[, truth.csv]) or plaza1, plaza2",
+    )
     p.add_argument("--out", type=Path, help="recording to write (.rrd)")
     p.add_argument("--summary", type=Path, help="JSON summary to write")
-    p.add_argument("--estimators", help="comma-separated names (default: augmented,ekf; isam2: the GTSAM peer)")
-    p.add_argument("--export", type=Path, help="write the log in the open format to this folder and stop")
-    p.add_argument("--model", choices=("odometry", "cv", "imu"),
-                   help="vehicle model (default: odometry for an odometry log, imu for an accelerometer log)")
+    p.add_argument(
+        "--estimators", help="comma-separated names (default: augmented,ekf; isam2: the GTSAM peer)"
+    )
+    p.add_argument(
+        "--export", type=Path, help="write the log in the open format to this folder and stop"
+    )
+    p.add_argument(
+        "--model",
+        choices=("odometry", "cv", "imu"),
+        help="vehicle model (default: odometry for an odometry log, imu for an accelerometer log)",
+    )
     p.add_argument("--dt", type=float, default=0.1, help="replay grid step in s (default 0.1)")
-    p.add_argument("--initial-offset", type=float, default=50.0, help="initial guess this far (m) from the truth at t0 (default 50)")
-    p.add_argument("--seed", type=int, default=0, help="draws the direction of the initial offset and the sensor layer's noise (default 0)")
-    p.add_argument("--calibrate", choices=("self", "none"), default="self",
-                   help="range biases and the model's process noise: self-calibrated from the log, never its truth (default), or none")
-    p.add_argument("--biases", help="comma-separated range bias per beacon (m), in beacons.csv order (overrides --calibrate)")
+    p.add_argument(
+        "--initial-offset",
+        type=float,
+        default=50.0,
+        help="initial guess this far (m) from the truth at t0 (default 50)",
+    )
+    p.add_argument(
+        "--seed",
+        type=int,
+        default=0,
+        help="draws the direction of the initial offset and the sensor layer's noise (default 0)",
+    )
+    p.add_argument(
+        "--calibrate",
+        choices=("self", "none"),
+        default="self",
+        help="range biases and the model's process noise: self-calibrated from the log, never its truth (default), or none",
+    )
+    p.add_argument(
+        "--biases",
+        help="comma-separated range bias per beacon (m), in beacons.csv order (overrides --calibrate)",
+    )
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument(
-        "--tune", action="append", default=[], metavar="KEY=VALUE",
+        "--tune",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
         help="the estimators' noise settings: range_sigma, q_xy, q_theta, q_acc, q_imu, gate (a number or none), P0 (repeatable)",
     )
     p.add_argument(
-        "--set", action="append", default=[], metavar="noise.FIELD=VALUE",
+        "--set",
+        action="append",
+        default=[],
+        metavar="noise.FIELD=VALUE",
         help="sensor layer on the logged ranges, e.g. noise.dropout=0.3 (noise.* fields only; default: the log as it is)",
     )
     p.set_defaults(func=_cmd_replay)
@@ -586,29 +780,54 @@ def _cmd_replay(args) -> int:
     log = open_log(args.log)
     if args.export is not None:
         write_log(log, args.export)
-        print(f"log {log.name}: {log.ranges.shape[0]} ranges, {log.inputs.shape[0]} inputs written to {args.export}")
+        print(
+            f"log {log.name}: {log.ranges.shape[0]} ranges, {log.inputs.shape[0]} inputs written to {args.export}"
+        )
         return 0
     from quadobs.testbed.logs.estimators import parse_tuning
     from quadobs.testbed.logs.replay import log_scenario, run_replay
     from quadobs.testbed.outputs import check_outputs
 
-    check_outputs({"--out": args.out, "--summary": args.summary})  # before the calibration's replays
+    check_outputs(
+        {"--out": args.out, "--summary": args.summary}
+    )  # before the calibration's replays
     log_scenario(log, args.dt, args.seed, args.set)  # the --set settings, checked as early
     biases, tuning = _replay_calibration(args, log, parse_tuning(args.tune))
     stop_if_interrupted()
     summary = run_replay(
-        log, estimators=_estimator_list(args.estimators), dt=args.dt, model=args.model, initial_offset=args.initial_offset,
-        seed=args.seed, biases=biases, out=args.out, summary_path=args.summary,
-        progress=not args.no_progress, settings=args.set, setup_options=tuning,
+        log,
+        estimators=_estimator_list(args.estimators),
+        dt=args.dt,
+        model=args.model,
+        initial_offset=args.initial_offset,
+        seed=args.seed,
+        biases=biases,
+        out=args.out,
+        summary_path=args.summary,
+        progress=not args.no_progress,
+        settings=args.set,
+        setup_options=tuning,
     )
     m = summary["measurements"]
-    print(f"log {summary['log']}: {summary['duration']:.1f} s, {summary['ranges']['placed']} ranges, model {summary['model']}"
-          + (f", {m['dropped']} dropped, {m['outliers_injected']} outliers injected" if m["dropped"] or m["outliers_injected"] else "")
-          + ("  [INTERRUPTED]" if summary["interrupted"] else ""))
+    print(
+        f"log {summary['log']}: {summary['duration']:.1f} s, {summary['ranges']['placed']} ranges, model {summary['model']}"
+        + (
+            f", {m['dropped']} dropped, {m['outliers_injected']} outliers injected"
+            if m["dropped"] or m["outliers_injected"]
+            else ""
+        )
+        + ("  [INTERRUPTED]" if summary["interrupted"] else "")
+    )
     for name, e in summary["estimators"].items():
-        extra = f"  batch LM rmse {_fmt(e['batch_rmse'], ' m')}" if e.get("batch_rmse") is not None else ""
-        print(f"  {name:10s} rmse {_fmt(e['rmse'], ' m')}  max {_fmt(e['max_error'], ' m')}  "
-              f"final {_fmt(e['final_position_error'], ' m')}  {e['seconds_per_measurement'] * 1e6:.0f} us/range{extra}")
+        extra = (
+            f"  batch LM rmse {_fmt(e['batch_rmse'], ' m')}"
+            if e.get("batch_rmse") is not None
+            else ""
+        )
+        print(
+            f"  {name:10s} rmse {_fmt(e['rmse'], ' m')}  max {_fmt(e['max_error'], ' m')}  "
+            f"final {_fmt(e['final_position_error'], ' m')}  {e['seconds_per_measurement'] * 1e6:.0f} us/range{extra}"
+        )
     if args.summary:
         print(f"summary: {args.summary}")
     return 130 if summary["interrupted"] else 0
@@ -627,16 +846,26 @@ def _replay_calibration(args, log, tuning: dict) -> tuple[list[float] | None, di
         try:
             biases = [float(v) for v in args.biases.split(",")]
         except ValueError:
-            raise QuadobsError(f"--biases: expected comma-separated numbers, got {args.biases!r}") from None
+            raise QuadobsError(
+                f"--biases: expected comma-separated numbers, got {args.biases!r}"
+            ) from None
         if len(biases) != log.beacons.shape[0]:
             raise QuadobsError(f"--biases: {len(biases)} values for {log.beacons.shape[0]} beacons")
         return biases, tuning
     if args.calibrate == "none":
         return None, tuning
     key = process_noise_key(args.model or default_model(log))
-    biases, tuning, scores = self_calibrate(log, dt=args.dt, model=args.model, setup_options=tuning, noise=key not in tuning)
-    print(f"calibrated from the log: biases {', '.join(f'{b:.2f}' for b in biases)} m"
-          + (f"; {key} {tuning[key]:g} (prediction score {scores[tuning[key]]:.3f} m)" if scores else ""))
+    biases, tuning, scores = self_calibrate(
+        log, dt=args.dt, model=args.model, setup_options=tuning, noise=key not in tuning
+    )
+    print(
+        f"calibrated from the log: biases {', '.join(f'{b:.2f}' for b in biases)} m"
+        + (
+            f"; {key} {tuning[key]:g} (prediction score {scores[tuning[key]]:.3f} m)"
+            if scores
+            else ""
+        )
+    )
     return list(biases), tuning
 
 
@@ -647,7 +876,12 @@ def _run_command(argv: list[str] | None) -> int:
     one (:func:`quadobs.errors.caused_by_interrupt`: an import cut short by Ctrl-C, say);
     so does ``SystemExit`` from the parser's usage errors, ``--help`` and ``--version``.
     """
-    from quadobs.errors import QuadobsError, RunFault, caused_by_interrupt, new_folders_removed_on_failure
+    from quadobs.errors import (
+        QuadobsError,
+        RunFault,
+        caused_by_interrupt,
+        new_folders_removed_on_failure,
+    )
 
     args = build_parser().parse_args(argv)
     try:
@@ -656,7 +890,9 @@ def _run_command(argv: list[str] | None) -> int:
     except Exception as exc:
         if caused_by_interrupt(exc):
             raise KeyboardInterrupt from exc
-        if isinstance(exc, (RunFault, QuadobsError)):  # a run that could not go on (1), bad input (2)
+        if isinstance(
+            exc, (RunFault, QuadobsError)
+        ):  # a run that could not go on (1), bad input (2)
             print(f"quadobs: error: {exc}", file=sys.stderr)
             return 1 if isinstance(exc, RunFault) else 2
         if isinstance(exc, BrokenPipeError):  # output piped into a reader that stopped (e.g. head)

@@ -16,27 +16,28 @@ import re
 import signal
 import stat
 import threading
+from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Iterator
+from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
     import numpy as np
 
 
 __all__ = [
+    "STAGING_SUFFIX",
     "QuadobsError",
     "RunFault",
-    "STAGING_SUFFIX",
-    "output_target",
-    "staging_path",
-    "staging_owner",
     "as_array",
     "as_finite_scalar",
     "caused_by_interrupt",
     "check_writable",
     "deferred_interrupts",
     "new_folders_removed_on_failure",
+    "output_target",
+    "staging_owner",
+    "staging_path",
 ]
 
 
@@ -54,12 +55,17 @@ class RunFault(QuadobsError):
 #: beside the target; a leftover one (its process is gone) is removed by the next run
 #: that writes the same target.
 STAGING_SUFFIX = ".partial"
-_STAGING = re.compile(r"^\.(?P<stem>.*)\.(?P<pid>\d+)-[0-9a-f]{6}" + re.escape(STAGING_SUFFIX) + "$")
+_STAGING = re.compile(
+    r"^\.(?P<stem>.*)\.(?P<pid>\d+)-[0-9a-f]{6}" + re.escape(STAGING_SUFFIX) + "$"
+)
 #: Longest output path taken (characters); longer ones are refused at once.
 MAX_PATH_CHARS = 1024
 _FILE_KINDS = (
-    (stat.S_ISDIR, "a directory"), (stat.S_ISCHR, "a character device"), (stat.S_ISBLK, "a block device"),
-    (stat.S_ISFIFO, "a FIFO"), (stat.S_ISSOCK, "a socket"),
+    (stat.S_ISDIR, "a directory"),
+    (stat.S_ISCHR, "a character device"),
+    (stat.S_ISBLK, "a block device"),
+    (stat.S_ISFIFO, "a FIFO"),
+    (stat.S_ISSOCK, "a socket"),
 )
 
 
@@ -78,17 +84,23 @@ def output_target(path: str | Path, what: str = "output path") -> Path:
     if "\0" in text:
         raise QuadobsError(f"{what} {shown!r}: holds a NUL character")
     if not text or len(text) > MAX_PATH_CHARS:
-        raise QuadobsError(f"{what} {shown!r}: expected a file name of 1 to {MAX_PATH_CHARS} characters, got {len(text)}")
+        raise QuadobsError(
+            f"{what} {shown!r}: expected a file name of 1 to {MAX_PATH_CHARS} characters, got {len(text)}"
+        )
     try:
         real = Path(os.path.realpath(text, strict=False))
         st = os.stat(real) if os.path.lexists(real) else None
     except (OSError, RuntimeError) as exc:  # a symbolic-link loop, a component that is a file
-        raise QuadobsError(f"{what} {shown!r}: cannot be resolved ({getattr(exc, 'strerror', None) or exc})") from None
+        raise QuadobsError(
+            f"{what} {shown!r}: cannot be resolved ({getattr(exc, 'strerror', None) or exc})"
+        ) from None
     if st is not None:
         kind = next((name for test, name in _FILE_KINDS if test(st.st_mode)), None)
         if kind is not None:
             raise QuadobsError(f"{what} {shown!r}: is {kind}, expected a regular file")
-        if not (os.access(real, os.W_OK) and st.st_mode & 0o222):  # no write bit: read-only, even for root
+        if not (
+            os.access(real, os.W_OK) and st.st_mode & 0o222
+        ):  # no write bit: read-only, even for root
             raise QuadobsError(f"{what} {shown!r}: the existing file is read-only")
     if len(os.fsencode(real.name)) > 231 or not real.name:
         raise QuadobsError(f"{what} {shown!r}: file name too long or empty (at most 231 bytes)")
@@ -139,11 +151,18 @@ def as_array(
     try:
         arr = np.array(value, dtype=float)
     except (TypeError, ValueError) as exc:
-        raise QuadobsError(f"{name}: expected a numeric array, got {type(value).__name__} ({exc})") from None
+        raise QuadobsError(
+            f"{name}: expected a numeric array, got {type(value).__name__} ({exc})"
+        ) from None
     if shape is not None:
         ok = arr.ndim == len(shape) and all(s is None or s == a for s, a in zip(shape, arr.shape))
         if not ok:
-            want = "(" + ", ".join("any" if s is None else str(s) for s in shape) + ("," if len(shape) == 1 else "") + ")"
+            want = (
+                "("
+                + ", ".join("any" if s is None else str(s) for s in shape)
+                + ("," if len(shape) == 1 else "")
+                + ")"
+            )
             raise QuadobsError(f"{name}: expected shape {want}, got {arr.shape}")
     elif ndim is not None and arr.ndim != ndim:
         raise QuadobsError(f"{name}: expected a {ndim}-D array, got shape {arr.shape}")
@@ -154,7 +173,9 @@ def as_array(
     return arr
 
 
-def as_finite_scalar(name: str, value: Any, *, positive: bool = False, nonnegative: bool = False) -> float:
+def as_finite_scalar(
+    name: str, value: Any, *, positive: bool = False, nonnegative: bool = False
+) -> float:
     """Convert ``value`` to a finite float, optionally requiring a sign."""
     if isinstance(value, bool):
         raise QuadobsError(f"{name}: expected a number, got a boolean")
@@ -185,7 +206,9 @@ def check_writable(path: str | Path) -> Path:
         probe.write_bytes(b"")
         probe.unlink()
     except OSError as exc:
-        raise QuadobsError(f"output path {str(path)!r}: cannot be written ({exc.strerror})") from None
+        raise QuadobsError(
+            f"output path {str(path)!r}: cannot be written ({exc.strerror})"
+        ) from None
     return path
 
 
@@ -226,7 +249,9 @@ def new_folders_removed_on_failure(*paths: str | Path | None) -> Iterator[None]:
     >>> list(root.iterdir())
     []
     """
-    missing = [folder for p in paths if p is not None for folder in _missing_folders(Path(p).absolute())]
+    missing = [
+        folder for p in paths if p is not None for folder in _missing_folders(Path(p).absolute())
+    ]
     try:
         yield
     except BaseException:

@@ -63,8 +63,10 @@ def main() -> None:
     if ex["min_measure"] is None:
         print(f"low segments (s): {low}; no full window of {ex['window']:g} s in {sc.duration:g} s")
     else:
-        print(f"low segments (s): {low}, min mu {ex['min_measure']:.3g} at t = {ex['min_measure_time']:.1f} s")
-    for step, t, level, text in read_text_log(args.out, "events"):
+        print(
+            f"low segments (s): {low}, min mu {ex['min_measure']:.3g} at t = {ex['min_measure_time']:.1f} s"
+        )
+    for _step, t, level, text in read_text_log(args.out, "events"):
         print(f"event at t = {t:.3f} s [{level}]: {text}")
     print(f"final position error {summary['final_position_error']:.4f} m; recording {args.out}")
 

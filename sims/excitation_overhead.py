@@ -16,8 +16,8 @@ from pathlib import Path
 import numpy as np
 
 from quadobs import load_scenario
-from quadobs.testbed.excitation import scenario_monitor
 from quadobs.testbed.episode import run_episode
+from quadobs.testbed.excitation import scenario_monitor
 
 
 def main() -> None:
@@ -39,7 +39,9 @@ def main() -> None:
         print(
             f"{args.scenario} {args.duration:g} s, recorded: {label:11s} {np.median(r):8.0f} steps/s (median of {len(r)})"
         )
-    print(f"throughput ratio on/off: {np.median(rates['monitor on']) / np.median(rates['monitor off']):.3f}")
+    print(
+        f"throughput ratio on/off: {np.median(rates['monitor on']) / np.median(rates['monitor off']):.3f}"
+    )
 
     u = on.trajectory.step_accelerations(0.0, on.dt, on.steps)
     mon = scenario_monitor(on)  # fed as the episode loop feeds it: a chunk per call

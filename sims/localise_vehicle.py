@@ -14,8 +14,8 @@ import numpy as np
 import rerun as rr
 
 from quadobs import load_scenario
-from quadobs.testbed.factories import augmented_observer
 from quadobs.recording import Recorder
+from quadobs.testbed.factories import augmented_observer
 from quadobs.testbed.sensors import SensorModel
 from quadobs.testbed.worlds import VehicleSim
 
@@ -35,7 +35,10 @@ def main() -> None:
     accelerations = sc.trajectory.step_accelerations(0.0, sc.dt, sc.steps)
 
     with Recorder(args.out, recording_id=f"localise-{sc.name}") as rec:
-        rec.static("world/beacons", rr.Points3D(np.pad(sc.beacons, ((0, 0), (0, 3 - sc.dimension))), radii=0.6))
+        rec.static(
+            "world/beacons",
+            rr.Points3D(np.pad(sc.beacons, ((0, 0), (0, 3 - sc.dimension))), radii=0.6),
+        )
         err = rec.series("errors/position", 1, names=["|p_hat - p|"])
         path = rec.series("world/estimate", 3, "points3d", every=10, radius=0.15)
         for k in range(sc.steps):
@@ -48,7 +51,9 @@ def main() -> None:
             path.buf[row, : sc.dimension] = observer.x_hat[: sc.dimension]
             observer.step(u, y)  # correct with y(t_k), predict to t_(k+1) with u held
     final = np.linalg.norm(observer.x_hat[: sc.dimension] - sim.position())
-    print(f"{sc.name}: final position error {final:.4f} m after {sc.duration:g} s; recording {args.out}")
+    print(
+        f"{sc.name}: final position error {final:.4f} m after {sc.duration:g} s; recording {args.out}"
+    )
 
 
 if __name__ == "__main__":

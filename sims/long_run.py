@@ -53,7 +53,12 @@ def testbed(scenario: str, duration: float, every: int, settle: float, window: f
     wall = time.perf_counter() - t0
     tr = res.trace
     ok = np.isfinite(tr["time"])
-    t, X, Xh, P = tr["time"][ok], tr["truth"][ok], tr["estimates"]["augmented"][ok], tr["covariances"]["augmented"][ok]
+    t, X, Xh, P = (
+        tr["time"][ok],
+        tr["truth"][ok],
+        tr["estimates"]["augmented"][ok],
+        tr["covariances"]["augmented"][ok],
+    )
     err = np.linalg.norm(Xh[:, :3] - X[:, :3], axis=1)
     return {
         "scenario": scenario,
@@ -125,9 +130,15 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--scenario", default="ifac2021-noisy")
     parser.add_argument("--duration", type=float, default=3600.0)
-    parser.add_argument("--every", type=int, default=100, help="physics steps between samples (default 100)")
-    parser.add_argument("--settle", type=float, default=60.0, help="seconds before the estimate counts as converged")
-    parser.add_argument("--window", type=float, default=300.0, help="seconds per RMS window (default 300)")
+    parser.add_argument(
+        "--every", type=int, default=100, help="physics steps between samples (default 100)"
+    )
+    parser.add_argument(
+        "--settle", type=float, default=60.0, help="seconds before the estimate counts as converged"
+    )
+    parser.add_argument(
+        "--window", type=float, default=300.0, help="seconds per RMS window (default 300)"
+    )
     parser.add_argument("--skip-direct", action="store_true")
     parser.add_argument("--json", help="write the figures to this JSON file")
     args = parser.parse_args()

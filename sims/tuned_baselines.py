@@ -14,10 +14,10 @@ seeds as ``quadobs campaign`` on the scenario).
 import argparse
 
 from quadobs import load_scenario
-from quadobs.studies.campaign import print_campaign, run_campaign
-from quadobs.testbed.registry import register_estimator
 from quadobs.estimators.kalman import ExtendedKalmanFilter, HeldInputModel, UnscentedKalmanFilter
+from quadobs.studies.campaign import print_campaign, run_campaign
 from quadobs.testbed.factories import baseline_settings
+from quadobs.testbed.registry import register_estimator
 
 
 def tuned(cls, accel_std: float):
@@ -35,7 +35,11 @@ def main() -> None:
     parser.add_argument("--accel-std", type=float, default=3.0)
     parser.add_argument("--runs", type=int, default=100)
     parser.add_argument("--duration", type=float, help="override the scenario duration (s)")
-    parser.add_argument("--workers", type=int, help="local processes (default: the number of CPUs; 0: in this process)")
+    parser.add_argument(
+        "--workers",
+        type=int,
+        help="local processes (default: the number of CPUs; 0: in this process)",
+    )
     parser.add_argument("--out", default=None)
     args = parser.parse_args()
 
@@ -50,7 +54,9 @@ def main() -> None:
         out_dir=args.out,
         progress=True,
     )
-    print(f"process noise of the filters' model: accelerometer sigma = {args.accel_std:g} m/s^2 per step (a tuning)")
+    print(
+        f"process noise of the filters' model: accelerometer sigma = {args.accel_std:g} m/s^2 per step (a tuning)"
+    )
     print_campaign(result.summary)
 
 

@@ -33,10 +33,17 @@ def cli_process():
     """
     started: list[subprocess.Popen] = []
 
-    def start(*args: str, module: str = "quadobs.cli", path=(), env=None, **popen_kw) -> subprocess.Popen:
+    def start(
+        *args: str, module: str = "quadobs.cli", path=(), env=None, **popen_kw
+    ) -> subprocess.Popen:
         pythonpath = os.pathsep.join([*map(str, path), str(ROOT)])
-        kw = dict(cwd=ROOT, env=dict(os.environ, PYTHONPATH=pythonpath, **(env or {})), stdout=subprocess.PIPE,
-                  stderr=subprocess.PIPE, text=True)
+        kw = dict(
+            cwd=ROOT,
+            env=dict(os.environ, PYTHONPATH=pythonpath, **(env or {})),
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
         kw.update(popen_kw)
         proc = subprocess.Popen([sys.executable, "-m", module, *args], **kw)
         started.append(proc)
@@ -48,7 +55,10 @@ def cli_process():
             proc.kill()
         try:
             proc.communicate(timeout=60)
-        except (subprocess.TimeoutExpired, ValueError):  # pragma: no cover - a child that cannot be reaped
+        except (
+            subprocess.TimeoutExpired,
+            ValueError,
+        ):  # pragma: no cover - a child that cannot be reaped
             pass
 
 

@@ -45,7 +45,9 @@ def code_blocks(text: str) -> list[tuple[int, str, str, bool]]:
         while j < len(lines) and not lines[j].startswith("```"):
             j += 1
         skipped = start > 0 and lines[start - 1].strip() == SKIP_MARK
-        blocks.append((start + 1, lang, "".join(line + "\n" for line in lines[start + 1 : j]), skipped))
+        blocks.append(
+            (start + 1, lang, "".join(line + "\n" for line in lines[start + 1 : j]), skipped)
+        )
         i = j + 1
     return blocks
 
@@ -73,7 +75,7 @@ def test_docs_exist():
 def test_python_example_runs(path: Path, line: int, code: str, tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     namespace = {"__name__": "__doc_example__"}
-    exec(compile(code, f"{path}:{line}", "exec"), namespace)  # noqa: S102 - the docs' own examples
+    exec(compile(code, f"{path}:{line}", "exec"), namespace)
 
 
 def relative_links(text: str) -> list[str]:
@@ -105,7 +107,9 @@ def test_no_source_text_names():
     offenders = []
     for base in ("quadobs", "sims", "docs", "tests"):
         for file in sorted((ROOT / base).rglob("*")):
-            if file.suffix in {".py", ".md", ".toml"} and pattern.search(file.read_text(encoding="utf-8")):
+            if file.suffix in {".py", ".md", ".toml"} and pattern.search(
+                file.read_text(encoding="utf-8")
+            ):
                 offenders.append(str(file.relative_to(ROOT)))
     if pattern.search((ROOT / "README.md").read_text(encoding="utf-8")):
         offenders.append("README.md")

@@ -23,15 +23,57 @@ from quadobs.cli import main
 ROOT = Path(__file__).resolve().parents[1]
 SCENARIO_TEXT = (ROOT / "quadobs/testbed/scenarios/ifac2021-noisy.toml").read_text()
 
-HOSTILE_NUMBERS = ["nan", "inf", "-inf", "-1", "0", "1e306", "1e-300", "9223372036854775807", "1e999", "abc", "", "0x10", "1_000"]
+HOSTILE_NUMBERS = [
+    "nan",
+    "inf",
+    "-inf",
+    "-1",
+    "0",
+    "1e306",
+    "1e-300",
+    "9223372036854775807",
+    "1e999",
+    "abc",
+    "",
+    "0x10",
+    "1_000",
+]
 FIELDS = [
-    "duration", "physics_rate", "seed", "record_every", "noise.range_std", "noise.range_rate", "noise.dropout",
-    "initial.position_spread", "initial.point", "initial.kind", "trajectory.offset", "trajectory.terms",
-    "excitation.step", "excitation.window", "model", "beacons", "observer.S0", "observer.gate", "name", "nosuch.field",
+    "duration",
+    "physics_rate",
+    "seed",
+    "record_every",
+    "noise.range_std",
+    "noise.range_rate",
+    "noise.dropout",
+    "initial.position_spread",
+    "initial.point",
+    "initial.kind",
+    "trajectory.offset",
+    "trajectory.terms",
+    "excitation.step",
+    "excitation.window",
+    "model",
+    "beacons",
+    "observer.S0",
+    "observer.gate",
+    "name",
+    "nosuch.field",
 ]
 VALUES = HOSTILE_NUMBERS + [
-    "[1e300, 0, 0]", "[0.0, 0.0]", "'/dev/zero'", "'/nonexistent/x.xml'", "''", "[[[[[[[[]]]]]]]]", '"zero"', '"point"',
-    "[{axis=0, amplitude=1e300, omega=1e300}]", "[{position=[0,0,0]}]", "{a=1}", "true", "'" + "x" * 3000 + "'",
+    "[1e300, 0, 0]",
+    "[0.0, 0.0]",
+    "'/dev/zero'",
+    "'/nonexistent/x.xml'",
+    "''",
+    "[[[[[[[[]]]]]]]]",
+    '"zero"',
+    '"point"',
+    "[{axis=0, amplitude=1e300, omega=1e300}]",
+    "[{position=[0,0,0]}]",
+    "{a=1}",
+    "true",
+    "'" + "x" * 3000 + "'",
 ]
 
 
@@ -63,10 +105,21 @@ def settings_args(draw):
     return args
 
 
-@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
-@given(command=st.sampled_from(["show", "excitation"]), sets=settings_args(),
-       extra=st.lists(st.sampled_from(["--window", "--step", "--json"]).flatmap(
-           lambda o: st.tuples(st.just(o), st.sampled_from(HOSTILE_NUMBERS + ["/dev/null", "/tmp"]))), max_size=2))
+@settings(
+    max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture]
+)
+@given(
+    command=st.sampled_from(["show", "excitation"]),
+    sets=settings_args(),
+    extra=st.lists(
+        st.sampled_from(["--window", "--step", "--json"]).flatmap(
+            lambda o: st.tuples(
+                st.just(o), st.sampled_from(HOSTILE_NUMBERS + ["/dev/null", "/tmp"])
+            )
+        ),
+        max_size=2,
+    ),
+)
 def test_fuzzed_settings_and_options_answer_cleanly(command, sets, extra):
     argv = [command, "ifac2021", *sets]
     if command == "excitation":
@@ -81,15 +134,33 @@ def test_fuzzed_settings_and_options_answer_cleanly(command, sets, extra):
     _check(code, err)
 
 
-@settings(max_examples=12, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
-@given(duration=st.sampled_from(["0.01", "0.02", "nan", "inf", "-1", "1e306", "abc", "0"]), sets=settings_args(),
-       seed=st.sampled_from([None, "-1", "3", "99999999999999999999999"]))
-def test_fuzzed_runs_answer_cleanly_and_keep_previous_outputs(tmp_path_factory, duration, sets, seed):
+@settings(
+    max_examples=12, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture]
+)
+@given(
+    duration=st.sampled_from(["0.01", "0.02", "nan", "inf", "-1", "1e306", "abc", "0"]),
+    sets=settings_args(),
+    seed=st.sampled_from([None, "-1", "3", "99999999999999999999999"]),
+)
+def test_fuzzed_runs_answer_cleanly_and_keep_previous_outputs(
+    tmp_path_factory, duration, sets, seed
+):
     folder = tmp_path_factory.mktemp("fuzz")
     rrd, js = folder / "run.rrd", folder / "run.json"
     rrd.write_bytes(b"previous recording")
     js.write_text('{"previous": true}')
-    argv = ["run", "ifac2021", "--no-progress", "--duration", duration, "--out", str(rrd), "--summary", str(js), *sets]
+    argv = [
+        "run",
+        "ifac2021",
+        "--no-progress",
+        "--duration",
+        duration,
+        "--out",
+        str(rrd),
+        "--summary",
+        str(js),
+        *sets,
+    ]
     if seed is not None:
         argv += ["--seed", seed]
     code, _, err = _call(argv)
@@ -125,7 +196,9 @@ def _mutate(text: str, rnd: random.Random) -> str:
 @given(seed=st.integers(0, 2**32 - 1))
 def test_mutated_scenario_files_answer_cleanly(tmp_path_factory, seed):
     path = tmp_path_factory.mktemp("toml") / "mutated.toml"
-    path.write_bytes(_mutate(SCENARIO_TEXT, random.Random(seed)).encode("utf-8", errors="surrogateescape"))
+    path.write_bytes(
+        _mutate(SCENARIO_TEXT, random.Random(seed)).encode("utf-8", errors="surrogateescape")
+    )
     code, _, err = _call(["show", str(path)])
     _check(code, err)
     assert code in (0, 2)
@@ -138,35 +211,88 @@ NUMBERS = [v for v in HOSTILE_NUMBERS if v != "1_000"] + ["0.5", "2"]
 OPTION_VALUES = {
     "--seed": ["0", "3", "-1", str(2**80), "abc", ""],
     "--estimators": ["augmented", "augmented,ekf", "ukf", "nosuch", ",", "augmented,augmented", ""],
-    "--window": NUMBERS, "--step": NUMBERS, "--every": NUMBERS, "--threshold": NUMBERS,
-    "--confidence": NUMBERS, "--dpi": NUMBERS, "--dt": NUMBERS, "--initial-offset": NUMBERS,
-    "--workers": ["0", "-1", "5000", "abc"], "--retries": ["0", "1", "-1", "101", "abc"],
-    "--what": ["", "paths", "nosuch", "rmse,,"], "--size": ["", "x", "1x", "nan,nan", "1e9x1e9", "0x0"],
-    "--samples": ["", "1,2,3", "-1", "abc"], "--biases": ["", "1,2", "nan", "abc"],
-    "--model": ["odometry", "cv", "bogus"], "--calibrate": ["self", "none", "x"],
+    "--window": NUMBERS,
+    "--step": NUMBERS,
+    "--every": NUMBERS,
+    "--threshold": NUMBERS,
+    "--confidence": NUMBERS,
+    "--dpi": NUMBERS,
+    "--dt": NUMBERS,
+    "--initial-offset": NUMBERS,
+    "--workers": ["0", "-1", "5000", "abc"],
+    "--retries": ["0", "1", "-1", "101", "abc"],
+    "--what": ["", "paths", "nosuch", "rmse,,"],
+    "--size": ["", "x", "1x", "nan,nan", "1e9x1e9", "0x0"],
+    "--samples": ["", "1,2,3", "-1", "abc"],
+    "--biases": ["", "1,2", "nan", "abc"],
+    "--model": ["odometry", "cv", "bogus"],
+    "--calibrate": ["self", "none", "x"],
 }
 #: Values each option takes without complaint, drawn twice as often as the hostile ones above.
 VALID_VALUES = {
-    "--seed": ["0", "3"], "--estimators": ["augmented", "augmented,ekf", "ukf"], "--window": ["0.5", "2"],
-    "--step": ["0.01", "0.05"], "--every": ["0.1"], "--threshold": ["1", "0.5"], "--confidence": ["0.9"],
-    "--dpi": ["50"], "--dt": ["0.1"], "--initial-offset": ["5"], "--workers": ["0"], "--retries": ["0", "1"],
-    "--what": ["paths", "position"], "--size": ["3x2"], "--samples": ["1,2"], "--biases": ["1,2"],
-    "--model": ["odometry", "cv"], "--calibrate": ["self", "none"],
+    "--seed": ["0", "3"],
+    "--estimators": ["augmented", "augmented,ekf", "ukf"],
+    "--window": ["0.5", "2"],
+    "--step": ["0.01", "0.05"],
+    "--every": ["0.1"],
+    "--threshold": ["1", "0.5"],
+    "--confidence": ["0.9"],
+    "--dpi": ["50"],
+    "--dt": ["0.1"],
+    "--initial-offset": ["5"],
+    "--workers": ["0"],
+    "--retries": ["0", "1"],
+    "--what": ["paths", "position"],
+    "--size": ["3x2"],
+    "--samples": ["1,2"],
+    "--biases": ["1,2"],
+    "--model": ["odometry", "cv"],
+    "--calibrate": ["self", "none"],
 }
 #: The options of each command (others are drawn too, less often).
 COMMAND_OPTIONS = {
-    "run": ["--seed", "--estimators"], "show": [], "excitation": ["--window", "--step"], "list": [],
+    "run": ["--seed", "--estimators"],
+    "show": [],
+    "excitation": ["--window", "--step"],
+    "list": [],
     "campaign": ["--seed", "--estimators", "--every", "--threshold", "--confidence", "--retries"],
     "plot": ["--what", "--size", "--dpi", "--samples"],
-    "replay": ["--estimators", "--model", "--dt", "--initial-offset", "--seed", "--calibrate", "--biases"],
+    "replay": [
+        "--estimators",
+        "--model",
+        "--dt",
+        "--initial-offset",
+        "--seed",
+        "--calibrate",
+        "--biases",
+    ],
 }
 PATH_OPTIONS = ["--out", "--summary", "--json", "--export"]
-COMMAND_PATHS = {"run": ["--out", "--summary"], "excitation": ["--json"], "campaign": ["--out"], "plot": ["--out"],
-                 "replay": ["--out", "--summary", "--export"], "show": [], "list": []}
+COMMAND_PATHS = {
+    "run": ["--out", "--summary"],
+    "excitation": ["--json"],
+    "campaign": ["--out"],
+    "plot": ["--out"],
+    "replay": ["--out", "--summary", "--export"],
+    "show": [],
+    "list": [],
+}
 FLAGS = ["--no-progress", "--reference", "--help", "--version", "--bogus", "-x"]
 #: Positional arguments per command; {names} are files made for each example.
 POSITIONALS = {
-    "run": ["ifac2021", "ifac2021-outliers", "le2013", "{scenario}", "{mutated}", "{nonutf8}", "nosuch", "", "{long}", "{dir}", "/dev/zero"],
+    "run": [
+        "ifac2021",
+        "ifac2021-outliers",
+        "le2013",
+        "{scenario}",
+        "{mutated}",
+        "{nonutf8}",
+        "nosuch",
+        "",
+        "{long}",
+        "{dir}",
+        "/dev/zero",
+    ],
     "show": ["ifac2021", "{scenario}", "{mutated}", "{nonutf8}", "nosuch", "{long}", "{dir}"],
     "excitation": ["ifac2021", "{scenario}", "{mutated}", "le2013", "nosuch", "/dev/zero"],
     "campaign": ["ifac2021", "{scenario}", "{mutated}", "le2013", "nosuch"],
@@ -174,16 +300,37 @@ POSITIONALS = {
     "replay": ["{dir}", "{prev_json}", "nosuch", ""],
     "list": [],
 }
-PATHS = ["{prev_rrd}", "{prev_json}", "{new_rrd}", "{new_json}", "{scenario}", "{dir}", "{fifo}", "{link}", "{long}",
-         "/dev/null", "/dev/full", "{dir}/deep/new/x.json", "", "{nul}"]
+PATHS = [
+    "{prev_rrd}",
+    "{prev_json}",
+    "{new_rrd}",
+    "{new_json}",
+    "{scenario}",
+    "{dir}",
+    "{fifo}",
+    "{link}",
+    "{long}",
+    "/dev/null",
+    "/dev/full",
+    "{dir}/deep/new/x.json",
+    "",
+    "{nul}",
+]
 
 
 def _example_files(folder: Path, mutation_seed: int) -> dict:
     """The files an example may name: previous outputs, inputs, and hostile ones."""
     files = {
-        "prev_rrd": folder / "prev.rrd", "prev_json": folder / "prev.json", "new_rrd": folder / "new.rrd",
-        "new_json": folder / "new.json", "scenario": folder / "sc.toml", "mutated": folder / "mutated.toml",
-        "nonutf8": folder / "nonutf8.toml", "dir": folder / "adir", "fifo": folder / "fifo", "link": folder / "link.json",
+        "prev_rrd": folder / "prev.rrd",
+        "prev_json": folder / "prev.json",
+        "new_rrd": folder / "new.rrd",
+        "new_json": folder / "new.json",
+        "scenario": folder / "sc.toml",
+        "mutated": folder / "mutated.toml",
+        "nonutf8": folder / "nonutf8.toml",
+        "dir": folder / "adir",
+        "fifo": folder / "fifo",
+        "link": folder / "link.json",
     }
     files["prev_rrd"].write_bytes(b"previous recording")
     files["prev_json"].write_text('{"previous": true}')
@@ -214,28 +361,68 @@ def command_lines(draw):
     argv = [command]
     if POSITIONALS[command]:
         first = POSITIONALS[command][0]
-        argv.append(draw(_weighted((first, len(POSITIONALS[command])), *[(v, 1) for v in POSITIONALS[command][1:]])))
+        argv.append(
+            draw(
+                _weighted(
+                    (first, len(POSITIONALS[command])), *[(v, 1) for v in POSITIONALS[command][1:]]
+                )
+            )
+        )
     if command in ("run", "campaign"):  # short runs, or refused
-        argv += ["--duration", draw(_weighted(("0.05", 4), ("0.2", 2), *[(v, 1) for v in ("nan", "inf", "-1", "0", "1e306")]))]
+        argv += [
+            "--duration",
+            draw(
+                _weighted(
+                    ("0.05", 4), ("0.2", 2), *[(v, 1) for v in ("nan", "inf", "-1", "0", "1e306")]
+                )
+            ),
+        ]
     if command == "campaign":
-        argv += ["--runs", draw(_weighted(("1", 3), ("2", 3), ("0", 1), ("-1", 1), ("10000000", 1))), "--workers", "0",
-                 "--out", draw(_weighted(("{campaign}", 6), ("{dir}", 2), *[(v, 1) for v in PATHS]))]
+        argv += [
+            "--runs",
+            draw(_weighted(("1", 3), ("2", 3), ("0", 1), ("-1", 1), ("10000000", 1))),
+            "--workers",
+            "0",
+            "--out",
+            draw(_weighted(("{campaign}", 6), ("{dir}", 2), *[(v, 1) for v in PATHS])),
+        ]
     if command == "run" and draw(st.booleans()):
-        argv += ["--out", draw(_weighted(("{prev_rrd}", 3), ("{new_rrd}", 2), *[(v, 1) for v in PATHS])),
-                 "--summary", draw(_weighted(("{prev_json}", 3), ("{new_json}", 2), *[(v, 1) for v in PATHS]))]
+        argv += [
+            "--out",
+            draw(_weighted(("{prev_rrd}", 3), ("{new_rrd}", 2), *[(v, 1) for v in PATHS])),
+            "--summary",
+            draw(_weighted(("{prev_json}", 3), ("{new_json}", 2), *[(v, 1) for v in PATHS])),
+        ]
     for _ in range(draw(_weighted((0, 3), (1, 3), (2, 2), (3, 1), (4, 1)))):
         kind = draw(st.sampled_from(["value", "path", "flag"]))
         if kind == "value":
             own = COMMAND_OPTIONS[command]
-            option = draw(_weighted(*[(o, 8) for o in own], *[(o, 1) for o in sorted(OPTION_VALUES)]))
-            argv += [option, draw(_weighted(*[(v, 2 * len(OPTION_VALUES[option])) for v in VALID_VALUES[option]],
-                                            *[(v, len(VALID_VALUES[option])) for v in OPTION_VALUES[option]]))]
+            option = draw(
+                _weighted(*[(o, 8) for o in own], *[(o, 1) for o in sorted(OPTION_VALUES)])
+            )
+            argv += [
+                option,
+                draw(
+                    _weighted(
+                        *[(v, 2 * len(OPTION_VALUES[option])) for v in VALID_VALUES[option]],
+                        *[(v, len(VALID_VALUES[option])) for v in OPTION_VALUES[option]],
+                    )
+                ),
+            ]
         elif kind == "path":
-            argv += [draw(_weighted(*[(o, 4) for o in COMMAND_PATHS[command]], *[(o, 1) for o in PATH_OPTIONS])),
-                     draw(st.sampled_from(PATHS))]
+            argv += [
+                draw(
+                    _weighted(
+                        *[(o, 4) for o in COMMAND_PATHS[command]], *[(o, 1) for o in PATH_OPTIONS]
+                    )
+                ),
+                draw(st.sampled_from(PATHS)),
+            ]
         else:
             argv.append(draw(_weighted(("--no-progress", 6), *[(f, 1) for f in FLAGS[1:]])))
-    if command in ("run", "show", "excitation", "campaign") and draw(_weighted((False, 2), (True, 1))):
+    if command in ("run", "show", "excitation", "campaign") and draw(
+        _weighted((False, 2), (True, 1))
+    ):
         argv += draw(settings_args())
     return argv
 
@@ -243,7 +430,11 @@ def command_lines(draw):
 def _snapshot(folder: Path) -> dict:
     """The bytes of every regular file in ``folder``, and the folders under it (``None``)."""
     files = {p.name: p.read_bytes() for p in folder.iterdir() if p.is_file() and not p.is_symlink()}
-    return files | {str(p.relative_to(folder)): None for p in folder.rglob("*") if p.is_dir() and not p.is_symlink()}
+    return files | {
+        str(p.relative_to(folder)): None
+        for p in folder.rglob("*")
+        if p.is_dir() and not p.is_symlink()
+    }
 
 
 def _check_complete(path: Path) -> None:
@@ -261,12 +452,16 @@ def _check_command_line(argv, folder: Path, before: dict, code: int, err: str) -
     _check(code, err)
     after = _snapshot(folder)
     for name, data in before.items():
-        if data is not None and after.get(name) != data:  # only a command that succeeded replaces a file, with a complete one
+        if (
+            data is not None and after.get(name) != data
+        ):  # only a command that succeeded replaces a file, with a complete one
             assert code == 0 and name in ("prev.rrd", "prev.json"), (argv, name)
             _check_complete(folder / name)
     assert not [n for n in after if n.endswith(".partial")] or code == 1, argv
     if code != 0:  # a failed command leaves no folder it created
-        assert {n for n, d in after.items() if d is None} == {n for n, d in before.items() if d is None}, argv
+        assert {n for n, d in after.items() if d is None} == {
+            n for n, d in before.items() if d is None
+        }, argv
 
 
 def _fuzz_command_lines(argv, mutation_seed):
@@ -325,11 +520,23 @@ CASES = [
     (["run", "{f}/nonutf8.toml"], "not UTF-8"),
     (["run", "{f}/deep.toml"], "nested too deeply"),
     (["run", "ifac2021", "--set", "duration=1e306"], "duration: must be at most"),
-    (["campaign", "ifac2021", "--runs", "2", "--duration", "1e306", "--out", "{f}/c"], "duration: must be at most"),
+    (
+        ["campaign", "ifac2021", "--runs", "2", "--duration", "1e306", "--out", "{f}/c"],
+        "duration: must be at most",
+    ),
     (["run", "ifac2021", "--set", "physics_rate=1e300"], "physics_rate: must be at most"),
-    (["run", "ifac2021", "--set", "record_every=9223372036854775807", "--out", "{f}/prev.rrd"], "record_every: must be at most"),
-    (["run", "ifac2021", "--set", "trajectory.offset=[1e11, 0, 0]", "--out", "{f}/prev.rrd"], "trajectory.offset[0]: must be at most"),
-    (["run", "ifac2021", "--set", "trajectory.terms=[{axis=0, amplitude=2e10, omega=1.0}]"], "trajectory.terms[0].amplitude: must be at most"),
+    (
+        ["run", "ifac2021", "--set", "record_every=9223372036854775807", "--out", "{f}/prev.rrd"],
+        "record_every: must be at most",
+    ),
+    (
+        ["run", "ifac2021", "--set", "trajectory.offset=[1e11, 0, 0]", "--out", "{f}/prev.rrd"],
+        "trajectory.offset[0]: must be at most",
+    ),
+    (
+        ["run", "ifac2021", "--set", "trajectory.terms=[{axis=0, amplitude=2e10, omega=1.0}]"],
+        "trajectory.terms[0].amplitude: must be at most",
+    ),
     (["run", "ifac2021", "--duration", "1e12"], "duration: must be at most"),
     (["run", "ifac2021", "--set", "model='{f}/loop1'"], "Too many levels of symbolic links"),
     (["run", "ifac2021", "--set", "model='" + "a" * 5000 + "'"], "model:"),
@@ -342,12 +549,20 @@ CASES = [
     (["run", "le2013", "--duration", "nan"], "--duration"),
     (["run", "le2013", "--duration", "inf"], "--duration"),
     (["run", "le2013", "--seed", "-1"], "seed"),
-    (["run", "le2013", "--duration", "0.4"], "--duration: le2013 counts samples, expected a whole number at least 1, got 0.4"),
+    (
+        ["run", "le2013", "--duration", "0.4"],
+        "--duration: le2013 counts samples, expected a whole number at least 1, got 0.4",
+    ),
     (["excitation", "ifac2021", "--step", "1e-9"], "step:"),
     (["run", "ifac2021", "--set", "noise.range_std=1e300"], "noise.range_std: must be at most"),
-    (["run", "ifac2021", "--set", "initial.position_spread=1e300"], "initial.position_spread: must be at most"),
-    (["run", "ifac2021", "--set", "initial.kind='zero'", "--set", "initial.point=[0,0,0,0,0,0]"],
-     'initial.point: only used with kind = "point", not \'zero\''),
+    (
+        ["run", "ifac2021", "--set", "initial.position_spread=1e300"],
+        "initial.position_spread: must be at most",
+    ),
+    (
+        ["run", "ifac2021", "--set", "initial.kind='zero'", "--set", "initial.point=[0,0,0,0,0,0]"],
+        "initial.point: only used with kind = \"point\", not 'zero'",
+    ),
     (["run", "ifac2021", "--seed", str(2**80)], "seed: must be at most"),
     (["campaign", "ifac2021", "--runs", "2", "--retries", "-1", "--out", "{f}/c"], "retries"),
 ]
@@ -357,8 +572,19 @@ CASES = [
 def test_each_hostile_case_gets_one_line_and_status_2(tmp_path, argv, message):
     names = _hostile_files(tmp_path)
     code, _, err = _call([a.replace("{f}", names["f"]) for a in argv])
-    lines = [ln for ln in err.strip().splitlines() if not ln.startswith(("quadobs: compiling", "quadobs: note:"))]
+    lines = [
+        ln
+        for ln in err.strip().splitlines()
+        if not ln.startswith(("quadobs: compiling", "quadobs: note:"))
+    ]
     assert code == 2 and len(lines) == 1 and lines[0].startswith("quadobs: error: "), err
     assert message in lines[0] and len(lines[0]) < 400 and "Traceback" not in err
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["adir", "deep.toml", "loop1", "loop2", "nonutf8.toml", "prev.rrd"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == [
+        "adir",
+        "deep.toml",
+        "loop1",
+        "loop2",
+        "nonutf8.toml",
+        "prev.rrd",
+    ]
     assert (tmp_path / "prev.rrd").read_bytes() == b"previous recording"

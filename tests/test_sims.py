@@ -29,7 +29,16 @@ CASES = {
         "throughput ratio on/off:",
     ),
     "long_run.py": (
-        ["--duration", "2", "--settle", "0.5", "--window", "0.5", "--json", "{tmp}/runs/long_run.json"],
+        [
+            "--duration",
+            "2",
+            "--settle",
+            "0.5",
+            "--window",
+            "0.5",
+            "--json",
+            "{tmp}/runs/long_run.json",
+        ],
         ["runs/long_run.json"],
         "NaN: False",
     ),
@@ -51,7 +60,11 @@ def test_script_runs_short(script, tmp_path):
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     done = subprocess.run(
         [sys.executable, str(SIMS / script), *(a.format(tmp=tmp_path) for a in args)],
-        capture_output=True, text=True, env=env, cwd=tmp_path, timeout=300,
+        capture_output=True,
+        text=True,
+        env=env,
+        cwd=tmp_path,
+        timeout=300,
     )
     assert done.returncode == 0, done.stderr[-3000:]
     assert text in done.stdout, done.stdout[-3000:]
@@ -62,4 +75,6 @@ def test_script_runs_short(script, tmp_path):
         figures = json.loads((tmp_path / "runs/long_run.json").read_text())
         assert set(figures) == {"testbed", "direct"}
         assert not figures["testbed"]["nan"] and not figures["direct"]["nan"]
-    assert not (tmp_path / "runs").exists() or all(p.name in {Path(o).name for o in outputs} for p in (tmp_path / "runs").iterdir())
+    assert not (tmp_path / "runs").exists() or all(
+        p.name in {Path(o).name for o in outputs} for p in (tmp_path / "runs").iterdir()
+    )

@@ -11,7 +11,7 @@ compile, so that an application can say so before the silence;
 from __future__ import annotations
 
 import importlib
-from typing import Iterable
+from collections.abc import Iterable
 
 __all__ = ["cold_kernels"]
 
@@ -41,7 +41,9 @@ def cold_kernels(kernels: Iterable[str]) -> list[str]:
     cold = []
     for spec in kernels:
         module, _, name = spec.partition(":")
-        dispatcher = getattr(importlib.import_module(module), name)  # a failed import (Ctrl-C, say) goes on
+        dispatcher = getattr(
+            importlib.import_module(module), name
+        )  # a failed import (Ctrl-C, say) goes on
         try:
             index = dispatcher._cache._cache_file._load_index()
         except Exception:  # no cache to inspect: say nothing rather than guess

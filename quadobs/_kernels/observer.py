@@ -756,4 +756,6 @@ def sensor_step(row, o_rng, o_acc, o_air, o_y, o_u, o_meas, draws, j, params, po
                     row[o_meas + h] = math.nan
     oa = 3 * qb + 1 + q
     for i in range(dim):
-        row[o_u + i] = row[o_acc + i] + accel_std * draws[j, oa + i] if accel_std != 0.0 else row[o_acc + i]
+        row[o_u + i] = (
+            row[o_acc + i] + accel_std * draws[j, oa + i] if accel_std != 0.0 else row[o_acc + i]
+        )

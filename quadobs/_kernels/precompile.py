@@ -18,7 +18,7 @@ import os
 import subprocess
 import sys
 import time
-from typing import Iterable
+from collections.abc import Iterable
 
 __all__ = ["EPISODE", "SIGNATURES", "compile_side_by_side", "signature", "signatures"]
 
@@ -29,15 +29,57 @@ SIGNATURES = {
     # an episode on the block path (the default): the observer, the world's read-out, the excitation monitor
     "quadobs._kernels.observer:augmented_step_block": (
         ("fA2", "fA2", "fC1", "fC1", "IC1", "fC2"),  # rows of a block: strided views of its columns
-        ("fC2", "fC2", "fC1", "fC1", "IC1", "fC2"),  # a single row (a sink due one step before a block ends)
+        (
+            "fC2",
+            "fC2",
+            "fC1",
+            "fC1",
+            "IC1",
+            "fC2",
+        ),  # a single row (a sink due one step before a block ends)
     ),
-    "quadobs.testbed.worlds._read:read_block": ("i", "fC2", "fC2", "fC2", "fC1", "i", "i", "fC1", "fC2", "fC2"),
-    "quadobs._kernels.gramian:held_run_terms": ("fC2", "fC2r", "fC3r", "fC2r", "fC3r", "fC4r", "fC2", "fC2", "fC2", "fC2", "fC2"),
+    "quadobs.testbed.worlds._read:read_block": (
+        "i",
+        "fC2",
+        "fC2",
+        "fC2",
+        "fC1",
+        "i",
+        "i",
+        "fC1",
+        "fC2",
+        "fC2",
+    ),
+    "quadobs._kernels.gramian:held_run_terms": (
+        "fC2",
+        "fC2r",
+        "fC3r",
+        "fC2r",
+        "fC3r",
+        "fC4r",
+        "fC2",
+        "fC2",
+        "fC2",
+        "fC2",
+        "fC2",
+    ),
     "quadobs._kernels.observer:range_outputs": ("fC1", "fC1", "f", "fC1", "fC1", "fC1"),
     # the per-step path and the observer's public step
     "quadobs._kernels.observer:augmented_step_record": ("fC1", "fC1", "fC1", "fC1", "IC1", "fC1"),
     "quadobs._kernels.observer:augmented_step": ("fC1", "fC1", "fC1", "fC1", "IC1"),
-    "quadobs.testbed.worlds._read:read_step": ("i", "fC2", "fC2", "fC1", "fC1", "fC2", "fC1", "fC1", "fC1", "fC2", "fC2"),
+    "quadobs.testbed.worlds._read:read_step": (
+        "i",
+        "fC2",
+        "fC2",
+        "fC1",
+        "fC1",
+        "fC2",
+        "fC1",
+        "fC1",
+        "fC1",
+        "fC2",
+        "fC2",
+    ),
 }
 
 #: The kernels of an episode on the default path.
@@ -96,8 +138,13 @@ def compile_side_by_side(kernels: Iterable[str], timeout: float = 600.0) -> list
     env = dict(os.environ, PYTHONPATH=os.pathsep.join(p for p in sys.path if p))
     code = "import sys; from quadobs._kernels.precompile import _compile_one; _compile_one(sys.argv[1])"
     procs = {
-        spec: subprocess.Popen([sys.executable, "-c", code, spec], env=env, stdin=subprocess.DEVNULL,
-                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        spec: subprocess.Popen(
+            [sys.executable, "-c", code, spec],
+            env=env,
+            stdin=subprocess.DEVNULL,
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+        )
         for spec in specs
     }
     deadline = time.monotonic() + timeout

@@ -19,7 +19,7 @@ import math
 
 from numba import njit
 
-__all__ = ["quat_matrix", "control", "pre_step", "post_step"]
+__all__ = ["control", "post_step", "pre_step", "quat_matrix"]
 
 _G = 9.81
 

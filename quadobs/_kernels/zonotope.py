@@ -38,7 +38,14 @@ import math
 import numpy as np
 from numba import njit
 
-__all__ = ["out_offset", "state_size", "zonotope_predict", "zonotope_reduce", "zonotope_step", "zonotope_strip"]
+__all__ = [
+    "out_offset",
+    "state_size",
+    "zonotope_predict",
+    "zonotope_reduce",
+    "zonotope_step",
+    "zonotope_strip",
+]
 
 _OPTS = dict(cache=True, nogil=True, error_model="numpy")
 

@@ -40,10 +40,10 @@ from itertools import combinations
 import numpy as np
 import scipy.linalg as sla
 
-from quadobs.errors import QuadobsError, as_array, as_finite_scalar
 from quadobs.core.immersion import Immersion
+from quadobs.errors import QuadobsError, as_array, as_finite_scalar
 
-__all__ = ["HeldInputDiscretization", "held_input_step", "van_loan", "as_covariance"]
+__all__ = ["HeldInputDiscretization", "as_covariance", "held_input_step", "van_loan"]
 
 
 #: Largest magnitude of a covariance entry: the filters' products (``K R K^T``, ``C P C^T``)
@@ -62,19 +62,27 @@ def as_covariance(name: str, value, dim: int, *, definite: bool = True) -> np.nd
         arr = float(arr) * np.eye(dim)
     elif arr.ndim == 1:
         if arr.shape != (dim,):
-            raise QuadobsError(f"{name}: expected a scalar, ({dim},) or ({dim}, {dim}), got shape {arr.shape}")
+            raise QuadobsError(
+                f"{name}: expected a scalar, ({dim},) or ({dim}, {dim}), got shape {arr.shape}"
+            )
         arr = np.diag(arr)
     elif arr.shape != (dim, dim):
-        raise QuadobsError(f"{name}: expected a scalar, ({dim},) or ({dim}, {dim}), got shape {arr.shape}")
+        raise QuadobsError(
+            f"{name}: expected a scalar, ({dim},) or ({dim}, {dim}), got shape {arr.shape}"
+        )
     if dim and not (np.isfinite(arr).all() and np.abs(arr).max() <= COVARIANCE_MAX):
-        raise QuadobsError(f"{name}: covariance entries must be finite and at most {COVARIANCE_MAX:g} in magnitude")
+        raise QuadobsError(
+            f"{name}: covariance entries must be finite and at most {COVARIANCE_MAX:g} in magnitude"
+        )
     if not np.allclose(arr, arr.T, rtol=1e-10, atol=1e-12 * max(np.abs(arr).max(), 1.0)):
         raise QuadobsError(f"{name}: covariance must be symmetric")
     arr = 0.5 * arr + 0.5 * arr.T
     eig = np.linalg.eigvalsh(arr) if dim else np.zeros(0)
     if dim and not (eig.min() > 0 if definite else eig.min() >= -1e-12 * max(eig.max(), 1.0)):
         kind = "positive definite" if definite else "positive semidefinite"
-        raise QuadobsError(f"{name}: covariance must be {kind} (smallest eigenvalue {eig.min():.3g})")
+        raise QuadobsError(
+            f"{name}: covariance must be {kind} (smallest eigenvalue {eig.min():.3g})"
+        )
     return arr
 
 
@@ -328,7 +336,9 @@ class HeldInputDiscretization:
         """
         u = np.asarray(u, dtype=float)
         k, p = self.immersion.n_aux, self.immersion.system.p
-        Gu = np.dot(_rows(u, p), self.input_quadratic.reshape(p, k * p)).reshape(u.shape[:-1] + (k, p))
+        Gu = np.dot(_rows(u, p), self.input_quadratic.reshape(p, k * p)).reshape(
+            u.shape[:-1] + (k, p)
+        )
         if u.ndim == 1:
             return np.concatenate([Gu @ u, self.input_linear @ u])
         aux = np.einsum("...al,...l->...a", Gu, u)
@@ -339,7 +349,9 @@ class HeldInputDiscretization:
         u = np.asarray(u, dtype=float)
         p, N = self.immersion.system.p, self.immersion.dim
         uu = _rows((u[..., :, None] * u[..., None, :]).reshape(u.shape[:-1] + (p * p,)), p * p)
-        lin = np.dot(_rows(u, p), self.noise_linear.reshape(p, N * N)).reshape(u.shape[:-1] + (N, N))
+        lin = np.dot(_rows(u, p), self.noise_linear.reshape(p, N * N)).reshape(
+            u.shape[:-1] + (N, N)
+        )
         quad = np.dot(uu, self.noise_quadratic.reshape(p * p, N * N)).reshape(u.shape[:-1] + (N, N))
         return self.noise_constant + lin + quad
 

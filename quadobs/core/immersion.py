@@ -101,31 +101,31 @@ from math import comb
 import numpy as np
 import scipy.linalg as sla
 
-from quadobs.errors import QuadobsError, as_finite_scalar
 from quadobs.core.system import QuadraticSystem
+from quadobs.errors import QuadobsError, as_finite_scalar
 
 __all__ = [
-    "DEFAULT_RTOL",
     "CERTIFY_GAP",
+    "DEFAULT_RTOL",
     "DROP_GAP",
     "POWER_BASIS_COND",
-    "ImmersionError",
     "Immersion",
+    "ImmersionError",
     "LyapunovKrylov",
-    "lyapunov_krylov",
+    "duplication_matrix",
     "immerse",
     "immerse_chain",
     "immerse_minimal",
+    "lifted_input_matrix",
+    "lifted_state_matrix",
+    "lyapunov_krylov",
     "lyapunov_sequence",
     "lyapunov_term",
-    "vanishing_index",
-    "duplication_matrix",
-    "vech",
-    "quadratic_lift",
-    "lifted_state_matrix",
-    "lifted_input_matrix",
-    "stacked_output_matrix",
     "observability_rank",
+    "quadratic_lift",
+    "stacked_output_matrix",
+    "vanishing_index",
+    "vech",
 ]
 
 #: Default relative tolerance for the rank decisions (see the module docstring).
@@ -471,7 +471,9 @@ class Immersion:
         M = np.asarray(self.aux_dynamics, dtype=float).reshape(k, k)
         F = np.asarray(self.aux_output, dtype=float).reshape(q, k)
         if sum(self.block_sizes) != k:
-            raise QuadobsError(f"block_sizes: they sum to {sum(self.block_sizes)}, expected n_aux = {k}")
+            raise QuadobsError(
+                f"block_sizes: they sum to {sum(self.block_sizes)}, expected n_aux = {k}"
+            )
         N = k + n
         # U(u) x: row i is u^T B^T L_i x, so A_j[i, k + a] = (L_i B)[a, j].
         K = np.einsum("iab,bj->jia", L, sys_.B)
@@ -586,7 +588,9 @@ def immerse_chain(system: QuadraticSystem, rtol: float = DEFAULT_RTOL) -> Immers
         If the chain's length or exactness cannot be certified.
     """
     if system.q != 1:
-        raise QuadobsError(f"C: the chain immersion takes a single output, got q = {system.q}; use immerse_minimal")
+        raise QuadobsError(
+            f"C: the chain immersion takes a single output, got q = {system.q}; use immerse_minimal"
+        )
     rtol = as_finite_scalar("rtol", rtol, positive=True)
     m = vanishing_index(system.A, system.C[0], rtol)
     kry = lyapunov_krylov(system.A, system.C[0], rtol)
@@ -606,7 +610,9 @@ def immerse_chain(system: QuadraticSystem, rtol: float = DEFAULT_RTOL) -> Immers
     im = Immersion(system, L, M, F, "chain", (1,) * m)
     why = _certification_failure(im, kry.rank, rtol)
     if why is not None:
-        raise ImmersionError(f"C: the chain immersion cannot be certified, {why}; use immerse(system)")
+        raise ImmersionError(
+            f"C: the chain immersion cannot be certified, {why}; use immerse(system)"
+        )
     return im
 
 
@@ -646,7 +652,9 @@ def _algorithm1_power_basis(system: QuadraticSystem, rtol: float) -> Immersion:
     a_norm = np.linalg.norm(A_bar, 2)
     c_norm = np.linalg.norm(C_bar, 2)
     if c_norm == 0.0:
-        return Immersion(system, np.zeros((0, n, n)), np.zeros((0, 0)), np.zeros((system.q, 0)), "minimal", ())
+        return Immersion(
+            system, np.zeros((0, n, n)), np.zeros((0, 0)), np.zeros((system.q, 0)), "minimal", ()
+        )
 
     p0, piv = _pivoted_rank(C_bar, rtol * c_norm)
     blocks = [C_bar[np.sort(piv[:p0])]]  # L_0: rows of C_bar, in output order
@@ -699,7 +707,9 @@ def _algorithm1_power_basis(system: QuadraticSystem, rtol: float) -> Immersion:
     scale = max(np.linalg.norm(G, 2) * a_norm, np.finfo(float).tiny)
     err = np.linalg.norm(M @ G - GA, 2)
     if err > 1e3 * rtol * scale + 1e-12 * scale:
-        raise ImmersionError(f"the power-basis rows are not invariant under A_bar (residual {err:.3g})")
+        raise ImmersionError(
+            f"the power-basis rows are not invariant under A_bar (residual {err:.3g})"
+        )
     # C_bar = F_0 L_0 (rank factorisation; L_0 holds rows of C_bar, so F_0 is well conditioned),
     # hence C = [0 ... 0 F_0 P_0^T | D] (slide eq. 14).
     F0 = np.linalg.lstsq(blocks[0].T, C_bar.T, rcond=None)[0].T
@@ -710,7 +720,9 @@ def _algorithm1_power_basis(system: QuadraticSystem, rtol: float) -> Immersion:
     return Immersion(system, L, M, F, "minimal", sizes)
 
 
-def _lyapunov_residuals(system: QuadraticSystem, L: np.ndarray, M: np.ndarray, F: np.ndarray) -> tuple[float, float]:
+def _lyapunov_residuals(
+    system: QuadraticSystem, L: np.ndarray, M: np.ndarray, F: np.ndarray
+) -> tuple[float, float]:
     """The two relative residuals of the module docstring: invariance and output."""
     A = system.A
     a = 2.0 * np.linalg.norm(A, 2)
@@ -756,7 +768,9 @@ def _orthonormal_immersion(system: QuadraticSystem, kry: LyapunovKrylov) -> Imme
     offsets = np.concatenate([[0], np.cumsum(sizes)]).astype(int)
     arnoldi_offsets = np.concatenate([[0], np.cumsum(kry.sizes)]).astype(int)
     # reorder the Arnoldi blocks: block k of the state is Arnoldi block m-1-k
-    order = np.concatenate([np.arange(arnoldi_offsets[j], arnoldi_offsets[j + 1]) for j in range(m - 1, -1, -1)])
+    order = np.concatenate(
+        [np.arange(arnoldi_offsets[j], arnoldi_offsets[j + 1]) for j in range(m - 1, -1, -1)]
+    )
     L = kry.basis[order]
     k = L.shape[0]
     A = system.A
@@ -813,14 +827,19 @@ def immerse_minimal(system: QuadraticSystem, rtol: float = DEFAULT_RTOL) -> Imme
     if why is not None:
         raise ImmersionError(f"system: the minimal auxiliary count cannot be certified, {why}")
     if kry.rank == 0:
-        return Immersion(system, np.zeros((0, n, n)), np.zeros((0, 0)), np.zeros((system.q, 0)), "minimal", ())
+        return Immersion(
+            system, np.zeros((0, n, n)), np.zeros((0, 0)), np.zeros((system.q, 0)), "minimal", ()
+        )
     try:
         im = _algorithm1_power_basis(system, rtol)
     except ImmersionError:
         im = None
     if im is not None and im.n_aux == kry.rank:
         sv = np.linalg.svd(im.aux_forms.reshape(im.n_aux, n * n), compute_uv=False)
-        if sv[-1] * POWER_BASIS_COND >= sv[0] and _certification_failure(im, kry.rank, rtol) is None:
+        if (
+            sv[-1] * POWER_BASIS_COND >= sv[0]
+            and _certification_failure(im, kry.rank, rtol) is None
+        ):
             return im
     im = _orthonormal_immersion(system, kry)
     why = _certification_failure(im, kry.rank, rtol)
@@ -829,7 +848,9 @@ def immerse_minimal(system: QuadraticSystem, rtol: float = DEFAULT_RTOL) -> Imme
     return im
 
 
-def immerse(system: QuadraticSystem, method: str = "minimal", rtol: float = DEFAULT_RTOL) -> Immersion:
+def immerse(
+    system: QuadraticSystem, method: str = "minimal", rtol: float = DEFAULT_RTOL
+) -> Immersion:
     """Immerse ``system`` into an LTV system with linear output.
 
     Parameters

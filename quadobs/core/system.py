@@ -22,8 +22,13 @@ import numpy as np
 from quadobs.errors import QuadobsError, as_array
 
 __all__ = [
-    "QuadraticSystem", "vehicle_system", "wind_system", "range_outputs", "SYMMETRY_RTOL", "odometry_system",
+    "SYMMETRY_RTOL",
+    "QuadraticSystem",
     "constant_velocity_system",
+    "odometry_system",
+    "range_outputs",
+    "vehicle_system",
+    "wind_system",
 ]
 
 #: Relative tolerance on ``|C_h - C_h^T|`` below which an output matrix counts as symmetric.
@@ -101,7 +106,9 @@ class QuadraticSystem:
                 raise QuadobsError(f"d: expected shape ({q}, {n}), got {np.shape(self.d)}")
         for h in range(q):
             if not C[h].any() and not d[h].any():
-                raise QuadobsError(f"C[{h}], d[{h}]: output {h} is identically zero (both terms vanish)")
+                raise QuadobsError(
+                    f"C[{h}], d[{h}]: output {h} is identically zero (both terms vanish)"
+                )
         for name, arr in (("A", A), ("B", B), ("C", C), ("d", d)):
             arr.setflags(write=False)
             object.__setattr__(self, name, arr)

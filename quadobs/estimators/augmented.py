@@ -31,11 +31,11 @@ import warnings
 import numpy as np
 
 from quadobs.core.held_input import HeldInputDiscretization, as_covariance
-from quadobs.errors import QuadobsError, as_array, as_finite_scalar
 from quadobs.core.immersion import Immersion
+from quadobs.errors import QuadobsError, as_array, as_finite_scalar
 from quadobs.estimators.base import BlockStep, Estimator, Gated, Immersed, check_step, step_operands
 
-__all__ = ["AugmentedObserver", "BACKENDS", "default_backend"]
+__all__ = ["BACKENDS", "AugmentedObserver", "default_backend"]
 
 #: The implementations of :class:`AugmentedObserver`: ``"auto"`` picks ``"numba"`` when Numba imports.
 BACKENDS = ("auto", "numba", "numpy")
@@ -61,7 +61,9 @@ def resolve_backend(backend: str) -> str:
         try:
             import quadobs._kernels.observer  # noqa: F401
         except ImportError as exc:
-            raise QuadobsError(f"backend: 'numba' requested but Numba cannot be imported ({exc})") from None
+            raise QuadobsError(
+                f"backend: 'numba' requested but Numba cannot be imported ({exc})"
+            ) from None
     return backend
 
 
@@ -70,8 +72,12 @@ def _initial_covariance(P0, S0):
     if S0 is None:
         return 100.0 if P0 is None else P0
     if P0 is not None:
-        raise QuadobsError("S0: give the initial covariance once, as P0 (S0 is its deprecated name)")
-    warnings.warn("AugmentedObserver(S0=...) is deprecated; use P0=...", DeprecationWarning, stacklevel=3)
+        raise QuadobsError(
+            "S0: give the initial covariance once, as P0 (S0 is its deprecated name)"
+        )
+    warnings.warn(
+        "AugmentedObserver(S0=...) is deprecated; use P0=...", DeprecationWarning, stacklevel=3
+    )
     return S0
 
 
@@ -95,7 +101,9 @@ class KernelModel:
     those coefficients as dense ``(N, N)`` matrices and the constant x-x block of ``Phi``.
     """
 
-    def __init__(self, model: HeldInputDiscretization, C: np.ndarray, R: np.ndarray, gate: float | None) -> None:
+    def __init__(
+        self, model: HeldInputDiscretization, C: np.ndarray, R: np.ndarray, gate: float | None
+    ) -> None:
         from quadobs._kernels.observer import HEADER, dense_path
 
         im = model.immersion
@@ -111,7 +119,9 @@ class KernelModel:
         # Q_d(u) = sum_r mono_r(u) Qc[r], mono = (1, u_j, u_j u_l for j <= l).
         Q2 = model.noise_quadratic
         coeffs = [model.noise_constant] + [model.noise_linear[j] for j in range(p)]
-        coeffs += [Q2[j, j] if j == l else Q2[j, l] + Q2[l, j] for j in range(p) for l in range(j, p)]
+        coeffs += [
+            Q2[j, j] if j == l else Q2[j, l] + Q2[l, j] for j in range(p) for l in range(j, p)
+        ]
         Qc = np.array(coeffs).reshape(len(coeffs), N, N)
         r_idx, i_idx, j_idx = np.nonzero((Qc != 0) & np.triu(np.ones((N, N), dtype=bool)))
         c_ptr, c_col = _csr(C != 0)
@@ -132,7 +142,9 @@ class KernelModel:
         f_off = 2 + np.concatenate([[0], np.cumsum([a.size for a in floats])[:-1]])
         head = [N, k, p, q, len(coeffs), r_idx.size, *i_off, *f_off[:-2], int(dense), *f_off[-2:]]
         assert len(head) == HEADER
-        self.ic = np.concatenate([np.array(head, dtype=np.int64)] + [a.astype(np.int64) for a in ints])
+        self.ic = np.concatenate(
+            [np.array(head, dtype=np.int64)] + [a.astype(np.int64) for a in ints]
+        )
         growth = float(np.exp(model.theta * model.dt))
         self.fc = np.concatenate([[growth, np.inf if gate is None else float(gate)]] + floats)
         self.k, self.N, self.n, self.p, self.q, self.nm = k, N, n, p, q, len(coeffs)
@@ -234,7 +246,9 @@ class AugmentedObserver(Estimator, Gated, Immersed, BlockStep):
             if period.ndim == 0:
                 period = np.full(q, float(period))
             elif period.shape != (q,):
-                raise QuadobsError(f"sample_period: expected a scalar or shape ({q},), got {period.shape}")
+                raise QuadobsError(
+                    f"sample_period: expected a scalar or shape ({q},), got {period.shape}"
+                )
             if np.any(period <= 0):
                 raise QuadobsError("sample_period: must be positive")
         self.W = as_covariance("W", W, q)
@@ -245,7 +259,9 @@ class AugmentedObserver(Estimator, Gated, Immersed, BlockStep):
         else:
             z = immersion.lift(np.zeros(n) if x0 is None else as_array("x0", x0, (n,)))
         self._z = np.array(z, dtype=float)
-        self._P = np.array(as_covariance("P0" if S0 is None else "S0", _initial_covariance(P0, S0), N), dtype=float)
+        self._P = np.array(
+            as_covariance("P0" if S0 is None else "S0", _initial_covariance(P0, S0), N), dtype=float
+        )
         self.gate = None if gate is None else as_finite_scalar("gate", gate, positive=True)
         self._ushape, self._yshape, self._rshape = (immersion.system.p,), (q,), (n + 3,)
         self._C = immersion.output_matrix
@@ -283,13 +299,17 @@ class AugmentedObserver(Estimator, Gated, Immersed, BlockStep):
         if path == "step":
             self._kernel(u, y, S, fc, ic)
             return
-        rows = np.zeros((2, 2 * q + n))  # row views of a wider array, as an episode's block passes them
+        rows = np.zeros(
+            (2, 2 * q + n)
+        )  # row views of a wider array, as an episode's block passes them
         rec = np.zeros((2, n + 3))
         if path == "record":
             self._krecord(rows[0, :p], rows[0, p : p + q], S, fc, ic, rec[0])
         elif path == "block":
             self._kblock(rows[:, :p], rows[:, p : p + q], S, fc, ic, rec)
-            self._kblock(rows[:1, :p], rows[:1, p : p + q], S, fc, ic, rec[:1])  # one row: contiguous views
+            self._kblock(
+                rows[:1, :p], rows[:1, p : p + q], S, fc, ic, rec[:1]
+            )  # one row: contiguous views
         else:
             raise QuadobsError(f"prepare: path must be 'step', 'record' or 'block', got {path!r}")
 
@@ -311,7 +331,17 @@ class AugmentedObserver(Estimator, Gated, Immersed, BlockStep):
     def __getstate__(self) -> dict:
         state = self.__dict__.copy()
         if self.backend == "numba":  # views and kernels are rebuilt from S on unpickling
-            for key in ("_z", "_P", "_stats", "_kops", "_kernel", "_kcorrect", "_kpredict", "_krecord", "_kblock"):
+            for key in (
+                "_z",
+                "_P",
+                "_stats",
+                "_kops",
+                "_kernel",
+                "_kcorrect",
+                "_kpredict",
+                "_krecord",
+                "_kblock",
+            ):
                 state.pop(key, None)
         return state
 
@@ -375,7 +405,9 @@ class AugmentedObserver(Estimator, Gated, Immersed, BlockStep):
         try:
             arr = np.ascontiguousarray(value, dtype=float)
         except (TypeError, ValueError) as exc:
-            raise QuadobsError(f"{name}: expected a numeric array, got {type(value).__name__} ({exc})") from None
+            raise QuadobsError(
+                f"{name}: expected a numeric array, got {type(value).__name__} ({exc})"
+            ) from None
         if arr.shape != shape:
             raise QuadobsError(f"{name}: expected shape {shape}, got {arr.shape}")
         return arr
@@ -406,14 +438,21 @@ class AugmentedObserver(Estimator, Gated, Immersed, BlockStep):
             self.predict(u)
             return
         try:  # float64 arrays of the right shapes go straight to the kernel, which checks the values
-            fast = u.dtype is _F64 and y.dtype is _F64 and u.shape == self._ushape and y.shape == self._yshape
+            fast = (
+                u.dtype is _F64
+                and y.dtype is _F64
+                and u.shape == self._ushape
+                and y.shape == self._yshape
+            )
         except AttributeError:
             fast = False
         if not fast:
             u, y = check_step(u, y, *self._ushape, *self._yshape)
         if kernel(u, y, *self._kops) < 0:  # a non-finite u or an infinite y: nothing changed
             check_step(u, y, *self._ushape, *self._yshape)  # raises, naming it
-            raise QuadobsError("u, y: refused by the compiled step")  # pragma: no cover - check_step raised
+            raise QuadobsError(
+                "u, y: refused by the compiled step"
+            )  # pragma: no cover - check_step raised
 
     def step_and_record(self, u: np.ndarray, y: np.ndarray, out: np.ndarray) -> None:
         """:meth:`step`, recording ``[x_hat, covariance_trace]`` before it and ``nis`` after it into ``out`` (one compiled call)."""
@@ -421,18 +460,28 @@ class AugmentedObserver(Estimator, Gated, Immersed, BlockStep):
             return Estimator.step_and_record(self, u, y, out)
         try:
             fast = (
-                u.dtype is _F64 and y.dtype is _F64 and u.shape == self._ushape and y.shape == self._yshape
-                and out.shape == self._rshape and out.dtype is _F64
+                u.dtype is _F64
+                and y.dtype is _F64
+                and u.shape == self._ushape
+                and y.shape == self._yshape
+                and out.shape == self._rshape
+                and out.dtype is _F64
             )
         except AttributeError:
             fast = False
         if not fast:
             u, y = self._checked("u", u, self._ushape), self._checked("y", y, self._yshape)
-            if not (isinstance(out, np.ndarray) and out.shape == self._rshape and out.dtype == _F64):
+            if not (
+                isinstance(out, np.ndarray) and out.shape == self._rshape and out.dtype == _F64
+            ):
                 raise QuadobsError(f"out: expected a float64 array of shape {self._rshape}")
-        if self._krecord(u, y, *self._kops, out) < 0:  # a non-finite u or an infinite y: nothing changed
+        if (
+            self._krecord(u, y, *self._kops, out) < 0
+        ):  # a non-finite u or an infinite y: nothing changed
             check_step(u, y, *self._ushape, *self._yshape)  # raises, naming it
-            raise QuadobsError("u, y: refused by the compiled step")  # pragma: no cover - check_step raised
+            raise QuadobsError(
+                "u, y: refused by the compiled step"
+            )  # pragma: no cover - check_step raised
 
     @property
     def blockwise(self) -> bool:
@@ -452,7 +501,9 @@ class AugmentedObserver(Estimator, Gated, Immersed, BlockStep):
         if self._checked_rows("Y", Y, self._yshape[0]) != m or not (
             isinstance(out, np.ndarray) and out.dtype == _F64 and out.shape == (m,) + self._rshape
         ):
-            raise QuadobsError(f"out: expected a float64 array of shape {(m,) + self._rshape} (one row per row of U and Y)")
+            raise QuadobsError(
+                f"out: expected a float64 array of shape {(m,) + self._rshape} (one row per row of U and Y)"
+            )
         if not self.blockwise:
             for i in range(m):
                 self.step_and_record(U[i], Y[i], out[i])
@@ -461,12 +512,19 @@ class AugmentedObserver(Estimator, Gated, Immersed, BlockStep):
         if code < 0:  # row -1 - code was refused: the rows before it are done, nothing after
             j = -1 - code
             check_step(U[j], Y[j], *self._ushape, *self._yshape)  # raises, naming it
-            raise QuadobsError(f"U, Y: row {j} refused by the compiled step")  # pragma: no cover - check_step raised
+            raise QuadobsError(
+                f"U, Y: row {j} refused by the compiled step"
+            )  # pragma: no cover - check_step raised
 
     @staticmethod
     def _checked_rows(name: str, value, width: int) -> int:
         """Rows of ``value``, a float64 array ``(m, width)`` (views with strides allowed)."""
-        if not (isinstance(value, np.ndarray) and value.dtype == _F64 and value.ndim == 2 and value.shape[1] == width):
+        if not (
+            isinstance(value, np.ndarray)
+            and value.dtype == _F64
+            and value.ndim == 2
+            and value.shape[1] == width
+        ):
             raise QuadobsError(f"{name}: expected a float64 array of shape (m, {width})")
         return value.shape[0]
 

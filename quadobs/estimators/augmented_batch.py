@@ -57,10 +57,19 @@ class BatchAugmentedObserver:
     """
 
     def __init__(
-        self, observer: AugmentedObserver, batch: int, *, x0=None, z0=None, backend: str = "auto", threads: int = 0
+        self,
+        observer: AugmentedObserver,
+        batch: int,
+        *,
+        x0=None,
+        z0=None,
+        backend: str = "auto",
+        threads: int = 0,
     ) -> None:
         if not isinstance(observer, AugmentedObserver):
-            raise QuadobsError(f"observer: expected an AugmentedObserver, got {type(observer).__name__}")
+            raise QuadobsError(
+                f"observer: expected an AugmentedObserver, got {type(observer).__name__}"
+            )
         if isinstance(batch, bool) or not isinstance(batch, (int, np.integer)) or batch < 1:
             raise QuadobsError(f"batch: expected a positive integer, got {batch!r}")
         if isinstance(threads, bool) or not isinstance(threads, (int, np.integer)) or threads < 0:
@@ -101,9 +110,18 @@ class BatchAugmentedObserver:
                 self._slices = [slice(a, b) for a, b in zip(edges[:-1], edges[1:])]
                 # each thread its own work buffers: W, and ic (its tail holds integer work)
                 self._works = [(km.work(), km.ic.copy()) for _ in self._slices]
-                self._batch_refused(np.zeros((1, p)), np.zeros((1, q)), km.ic)  # load (or compile) it now
+                self._batch_refused(
+                    np.zeros((1, p)), np.zeros((1, q)), km.ic
+                )  # load (or compile) it now
             # load (or compile) the kernel now, on scratch copies
-            self._kernel(np.zeros((1, p)), np.full((1, q), np.nan), self._SB[:1].copy(), km.work(), km.fc, km.ic)
+            self._kernel(
+                np.zeros((1, p)),
+                np.full((1, q), np.nan),
+                self._SB[:1].copy(),
+                km.work(),
+                km.fc,
+                km.ic,
+            )
         else:
             self._ref = copy.copy(observer)  # the NumPy reference path on the template's model
             self._ref._kernel = None
@@ -178,8 +196,12 @@ class BatchAugmentedObserver:
         """
         try:
             fast = (
-                U.dtype is _F64 and Y.dtype is _F64 and U.shape == self._ushape and Y.shape == self._yshape
-                and U.flags.c_contiguous and Y.flags.c_contiguous
+                U.dtype is _F64
+                and Y.dtype is _F64
+                and U.shape == self._ushape
+                and Y.shape == self._yshape
+                and U.flags.c_contiguous
+                and Y.flags.c_contiguous
             )
         except AttributeError:
             fast = False
@@ -221,7 +243,10 @@ class BatchAugmentedObserver:
             from concurrent.futures import ThreadPoolExecutor
 
             self._pool = ThreadPoolExecutor(max_workers=self._threads)
-        jobs = [self._pool.submit(self._kernel, U[sl], Y[sl], SB[sl], W, fc, ic) for sl, (W, ic) in zip(self._slices, self._works)]
+        jobs = [
+            self._pool.submit(self._kernel, U[sl], Y[sl], SB[sl], W, fc, ic)
+            for sl, (W, ic) in zip(self._slices, self._works)
+        ]
         for job in jobs:
             job.result()
 

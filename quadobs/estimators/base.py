@@ -41,8 +41,17 @@ import numpy as np
 from quadobs.errors import as_array
 
 __all__ = [
-    "Estimator", "Counted", "Gated", "Switching", "SetValued", "Immersed", "Subset", "BlockStep", "check_step",
-    "covariance_trace", "step_operands",
+    "BlockStep",
+    "Counted",
+    "Estimator",
+    "Gated",
+    "Immersed",
+    "SetValued",
+    "Subset",
+    "Switching",
+    "check_step",
+    "covariance_trace",
+    "step_operands",
 ]
 
 
@@ -168,8 +177,12 @@ def step_operands(u, y, p: int, q: int) -> tuple[np.ndarray, np.ndarray]:
     """
     try:
         if (
-            u.dtype == np.float64 and y.dtype == np.float64 and u.shape == (p,) and y.shape == (q,)
-            and math.isfinite(u.dot(u)) and (math.isfinite(y.dot(y)) or not np.isinf(y).any())
+            u.dtype == np.float64
+            and y.dtype == np.float64
+            and u.shape == (p,)
+            and y.shape == (q,)
+            and math.isfinite(u.dot(u))
+            and (math.isfinite(y.dot(y)) or not np.isinf(y).any())
         ):
             return u, y
     except AttributeError:

@@ -40,7 +40,9 @@ def import_gtsam():
     try:
         import gtsam
     except ImportError:
-        raise QuadobsError("isam2: needs the gtsam package; install the data extra (pip install 'quadobs[data]')") from None
+        raise QuadobsError(
+            "isam2: needs the gtsam package; install the data extra (pip install 'quadobs[data]')"
+        ) from None
     return gtsam
 
 
@@ -74,9 +76,21 @@ class Isam2RangeOnly(Estimator, Counted):
 
     name = "isam2"
 
-    def __init__(self, beacons, dt: float, *, x0, heading0: float, P0: float = 2500.0, n: int = 2,
-                 range_sigma: float = 1.0, huber: float = 3.0, q_xy: float = 0.1, q_theta: float = 1e-3,
-                 heading_sigma: float = 0.05) -> None:
+    def __init__(
+        self,
+        beacons,
+        dt: float,
+        *,
+        x0,
+        heading0: float,
+        P0: float = 2500.0,
+        n: int = 2,
+        range_sigma: float = 1.0,
+        huber: float = 3.0,
+        q_xy: float = 0.1,
+        q_theta: float = 1e-3,
+        heading_sigma: float = 0.05,
+    ) -> None:
         gtsam = self._g = import_gtsam()
         self.beacons = as_array("beacons", beacons, (None, 2))
         self.dt = as_finite_scalar("dt", dt, positive=True)
@@ -87,14 +101,24 @@ class Isam2RangeOnly(Estimator, Counted):
         self._a2 = np.einsum("hi,hi->h", self.beacons, self.beacons)
         self.q_xy, self.q_theta = float(q_xy), float(q_theta)
         self._range_noise = gtsam.noiseModel.Robust.Create(
-            gtsam.noiseModel.mEstimator.Huber.Create(float(huber)), gtsam.noiseModel.Isotropic.Sigma(1, float(range_sigma))
+            gtsam.noiseModel.mEstimator.Huber.Create(float(huber)),
+            gtsam.noiseModel.Isotropic.Sigma(1, float(range_sigma)),
         )
         self.isam = gtsam.ISAM2(gtsam.ISAM2Params())
-        self.graph, self.values = gtsam.NonlinearFactorGraph(), gtsam.Values()  # the whole log, for the batch optimum
+        self.graph, self.values = (
+            gtsam.NonlinearFactorGraph(),
+            gtsam.Values(),
+        )  # the whole log, for the batch optimum
         g, v = gtsam.NonlinearFactorGraph(), gtsam.Values()
         sd = math.sqrt(as_finite_scalar("P0", P0, positive=True))
         pose0 = gtsam.Pose2(float(x0[0]), float(x0[1]), float(heading0))
-        g.add(gtsam.PriorFactorPose2(self._x(0), pose0, gtsam.noiseModel.Diagonal.Sigmas(np.array([sd, sd, heading_sigma]))))
+        g.add(
+            gtsam.PriorFactorPose2(
+                self._x(0),
+                pose0,
+                gtsam.noiseModel.Diagonal.Sigmas(np.array([sd, sd, heading_sigma])),
+            )
+        )
         v.insert(self._x(0), pose0)
         tight = gtsam.noiseModel.Isotropic.Sigma(2, 1e-3)
         for h, a in enumerate(self.beacons):
@@ -125,8 +149,12 @@ class Isam2RangeOnly(Estimator, Counted):
         g, v = gtsam.NonlinearFactorGraph(), gtsam.Values()
         if self.k > self.key_steps[-1]:
             T = max(self.acc_time, self.dt)
-            noise = gtsam.noiseModel.Diagonal.Sigmas(np.sqrt(np.array([self.q_xy, self.q_xy, self.q_theta]) * T))
-            g.add(gtsam.BetweenFactorPose2(self._x(self.key), self._x(self.key + 1), self.acc, noise))
+            noise = gtsam.noiseModel.Diagonal.Sigmas(
+                np.sqrt(np.array([self.q_xy, self.q_xy, self.q_theta]) * T)
+            )
+            g.add(
+                gtsam.BetweenFactorPose2(self._x(self.key), self._x(self.key + 1), self.acc, noise)
+            )
             self.key += 1
             self.key_steps.append(self.k)
             v.insert(self._x(self.key), self.pose.compose(self.acc))
@@ -146,7 +174,9 @@ class Isam2RangeOnly(Estimator, Counted):
             self._keyframe(y, present)
         c, s = math.cos(self.theta_odo), math.sin(self.theta_odo)
         d = u[:2] * self.dt
-        self.acc = self.acc.compose(self._g.Pose2(c * d[0] + s * d[1], -s * d[0] + c * d[1], u[2] * self.dt))
+        self.acc = self.acc.compose(
+            self._g.Pose2(c * d[0] + s * d[1], -s * d[0] + c * d[1], u[2] * self.dt)
+        )
         self.acc_time += self.dt
         self.theta_odo += u[2] * self.dt
         self._v = u[:2]
@@ -166,7 +196,9 @@ class Isam2RangeOnly(Estimator, Counted):
     def online_positions(self) -> tuple[np.ndarray, np.ndarray]:
         """The keyframes' steps ``(m,)`` and iSAM2's current (smoothed) positions of them ``(m, 2)``."""
         est = self.isam.calculateEstimate()
-        return np.array(self.key_steps), np.array([est.atPose2(self._x(i)).translation() for i in range(self.key + 1)])
+        return np.array(self.key_steps), np.array(
+            [est.atPose2(self._x(i)).translation() for i in range(self.key + 1)]
+        )
 
     def batch_optimum(self) -> tuple[np.ndarray, np.ndarray]:
         """The keyframes' steps ``(m,)`` and their positions ``(m, 2)`` in the Levenberg-Marquardt optimum of the whole graph.
@@ -176,5 +208,9 @@ class Isam2RangeOnly(Estimator, Counted):
         gtsam = self._g
         params = gtsam.LevenbergMarquardtParams()
         params.setMaxIterations(100)
-        opt = gtsam.LevenbergMarquardtOptimizer(self.graph, self.isam.calculateEstimate(), params).optimize()
-        return np.array(self.key_steps), np.array([opt.atPose2(self._x(i)).translation() for i in range(self.key + 1)])
+        opt = gtsam.LevenbergMarquardtOptimizer(
+            self.graph, self.isam.calculateEstimate(), params
+        ).optimize()
+        return np.array(self.key_steps), np.array(
+            [opt.atPose2(self._x(i)).translation() for i in range(self.key + 1)]
+        )

@@ -70,9 +70,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from quadobs.core.held_input import as_covariance, held_input_step, van_loan
+from quadobs.core.system import QuadraticSystem
 from quadobs.errors import QuadobsError, as_array, as_finite_scalar
 from quadobs.estimators.base import Estimator, Gated, step_operands
-from quadobs.core.system import QuadraticSystem
 
 __all__ = [
     "ExtendedKalmanFilter",
@@ -132,7 +132,9 @@ class HeldInputModel:
 
     def __post_init__(self) -> None:
         if not isinstance(self.system, QuadraticSystem):
-            raise QuadobsError(f"system: expected a QuadraticSystem, got {type(self.system).__name__}")
+            raise QuadobsError(
+                f"system: expected a QuadraticSystem, got {type(self.system).__name__}"
+            )
         dt = as_finite_scalar("dt", self.dt, positive=True)
         n, p = self.system.n, self.system.p
         V = as_covariance("V", self.V, n, definite=False)
@@ -168,7 +170,9 @@ class OutputModel:
 
     def __post_init__(self) -> None:
         if not isinstance(self.system, QuadraticSystem):
-            raise QuadobsError(f"system: expected a QuadraticSystem, got {type(self.system).__name__}")
+            raise QuadobsError(
+                f"system: expected a QuadraticSystem, got {type(self.system).__name__}"
+            )
         q = self.system.q
         R = as_covariance("R", self.R, q)
         R.setflags(write=False)
@@ -245,9 +249,13 @@ class _GaussianFilter(Estimator, Gated):
 
     name = "gaussian"
 
-    def __init__(self, dynamics: HeldInputModel, outputs: OutputModel, *, x0, P0, gate: float | None = None) -> None:
+    def __init__(
+        self, dynamics: HeldInputModel, outputs: OutputModel, *, x0, P0, gate: float | None = None
+    ) -> None:
         if not isinstance(dynamics, HeldInputModel):
-            raise QuadobsError(f"dynamics: expected a HeldInputModel, got {type(dynamics).__name__}")
+            raise QuadobsError(
+                f"dynamics: expected a HeldInputModel, got {type(dynamics).__name__}"
+            )
         if not isinstance(outputs, OutputModel):
             raise QuadobsError(f"outputs: expected an OutputModel, got {type(outputs).__name__}")
         if outputs.system.n != dynamics.system.n:
@@ -427,7 +435,9 @@ class UnscentedKalmanFilter(_GaussianFilter):
         self.kappa = as_finite_scalar("kappa", kappa)
         lam = self.alpha**2 * (n + self.kappa) - n
         if not n + lam > 0:
-            raise QuadobsError(f"alpha, kappa: need alpha^2 (n + kappa) > 0, got {n + lam:.3g} for n = {n}")
+            raise QuadobsError(
+                f"alpha, kappa: need alpha^2 (n + kappa) > 0, got {n + lam:.3g} for n = {n}"
+            )
         self._scale = float(np.sqrt(n + lam))
         wm = np.full(2 * n + 1, 0.5 / (n + lam))
         wm[0] = lam / (n + lam)

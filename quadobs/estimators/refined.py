@@ -273,16 +273,24 @@ class RefinedObserver(Estimator, Gated, Immersed, Switching):
         policy: HandoverPolicy | None = None,
     ) -> None:
         if not isinstance(observer, AugmentedObserver):
-            raise QuadobsError(f"observer: expected an AugmentedObserver, got {type(observer).__name__}")
-        probe = ExtendedKalmanFilter(dynamics, outputs, x0=x0, P0=P0, gate=gate)  # validates the models
+            raise QuadobsError(
+                f"observer: expected an AugmentedObserver, got {type(observer).__name__}"
+            )
+        probe = ExtendedKalmanFilter(
+            dynamics, outputs, x0=x0, P0=P0, gate=gate
+        )  # validates the models
         n, q = probe.n, probe.q
         if observer.immersion.system.n != n or observer.immersion.system.q != q:
-            raise QuadobsError("observer: its system's dimensions differ from the dynamics' and outputs'")
+            raise QuadobsError(
+                "observer: its system's dimensions differ from the dynamics' and outputs'"
+            )
         self.observer, self.dynamics, self.outputs = observer, dynamics, outputs
         self.immersion = observer.immersion
         self.policy = policy if policy is not None else HandoverPolicy()
         if not isinstance(self.policy, HandoverPolicy):
-            raise QuadobsError(f"policy: expected a HandoverPolicy, got {type(self.policy).__name__}")
+            raise QuadobsError(
+                f"policy: expected a HandoverPolicy, got {type(self.policy).__name__}"
+            )
         self.gate = probe.gate
         self.n, self.q = n, q
         self._x0 = as_array("x0", x0, (n,)).copy()
@@ -352,7 +360,11 @@ class RefinedObserver(Estimator, Gated, Immersed, Switching):
         if has:
             xo, Po = obs.x_hat.copy(), np.array(obs.x_covariance)
             self._observer_test(xo, Po, y, present)
-            if self._updates >= self._next_try and self._obs_window.full and self._obs_window.passes(self.policy.confidence):
+            if (
+                self._updates >= self._next_try
+                and self._obs_window.full
+                and self._obs_window.passes(self.policy.confidence)
+            ):
                 if curvature_index(self.outputs, xo, Po) <= self.policy.curvature:
                     handed = self._try_handover(xo, Po)
         obs.step(u, y)
@@ -378,7 +390,11 @@ class RefinedObserver(Estimator, Gated, Immersed, Switching):
         self._ekf_window.push(ekf.nis, ekf.nis_dof, rejected)
         w = self._ekf_window
         if w.full and (w.rejected_fraction() > 0.5 or not w.passes(self.policy.guard)):
-            reason = "EKF updates rejected by the gate" if w.rejected_fraction() > 0.5 else "EKF NIS above the guard"
+            reason = (
+                "EKF updates rejected by the gate"
+                if w.rejected_fraction() > 0.5
+                else "EKF NIS above the guard"
+            )
             self._ekf = None
             self._obs_window = _Window(self.policy.window)
             self._next_try, self._wait = self._updates + self.policy.window, self.policy.window
@@ -446,7 +462,9 @@ class RefinedObserver(Estimator, Gated, Immersed, Switching):
             self._ekf_window.push(*item)
         return ekf
 
-    def _replay(self, steps, Y, D, x_ref, batch: bool = True) -> tuple[np.ndarray, np.ndarray, _Window]:
+    def _replay(
+        self, steps, Y, D, x_ref, batch: bool = True
+    ) -> tuple[np.ndarray, np.ndarray, _Window]:
         """One Kalman pass over the logged measurements, linearised about the noise-free trajectory through ``x_ref``.
 
         Without process noise, without a gate and with a diagonal ``R``, the measurements
@@ -460,7 +478,9 @@ class RefinedObserver(Estimator, Gated, Immersed, Switching):
         zps, Hs = linearize_all(out, refs)
         split = max(len(steps) - self.policy.window, 0) if batch and self._batchable else 0
         if split:
-            x, P = self._batch(steps[:split], Z[:split], zps[:split], Hs[:split], refs[:split], D[:split])
+            x, P = self._batch(
+                steps[:split], Z[:split], zps[:split], Hs[:split], refs[:split], D[:split]
+            )
             last, d_last = int(steps[split - 1]), D[split - 1]
         else:
             x, P, last, d_last = self._x0.copy(), self._P0.copy(), 0, np.zeros(self.n)
@@ -499,7 +519,11 @@ class RefinedObserver(Estimator, Gated, Immersed, Switching):
     def _batchable(self) -> bool:
         """Whether :meth:`_batch` applies: no process noise, no gate, a diagonal ``R``."""
         R = self.outputs.R
-        return self.gate is None and not np.any(self.dynamics.Q) and not np.any(R - np.diag(np.diag(R)))
+        return (
+            self.gate is None
+            and not np.any(self.dynamics.Q)
+            and not np.any(R - np.diag(np.diag(R)))
+        )
 
     def _batch(self, steps, Z, zps, Hs, refs, D) -> tuple[np.ndarray, np.ndarray]:
         """The posterior of ``x_k`` (``k = steps[-1]``) from the prior and these measurements, in information form.
@@ -566,5 +590,7 @@ class RefinedObserver(Estimator, Gated, Immersed, Switching):
             "mode": self.mode,
             "attempts": self.attempts,
             "handover_step": first,
-            "switches": [{"step": s, "from": a, "to": b, "reason": r} for s, a, b, r in self.switches],
+            "switches": [
+                {"step": s, "from": a, "to": b, "reason": r} for s, a, b, r in self.switches
+            ],
         }

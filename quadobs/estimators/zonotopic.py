@@ -30,8 +30,8 @@ that rewrite one buffer in place and hand back one zonotope per step; they agree
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from itertools import combinations
-from typing import Callable
 
 import numpy as np
 
@@ -64,7 +64,11 @@ def volume_gain_terms(H: np.ndarray, c: np.ndarray) -> tuple[float, np.ndarray]:
     n, m = H.shape
     if m >= n:
         idx = np.array(list(combinations(range(m), n)))
-        a = float(np.abs(np.linalg.det(H[:, idx].transpose(1, 0, 2))).sum()) if n > 1 else float(np.abs(H).sum())
+        a = (
+            float(np.abs(np.linalg.det(H[:, idx].transpose(1, 0, 2))).sum())
+            if n > 1
+            else float(np.abs(H).sum())
+        )
     else:
         a = 0.0
     if n == 1:
@@ -76,7 +80,9 @@ def volume_gain_terms(H: np.ndarray, c: np.ndarray) -> tuple[float, np.ndarray]:
     G = np.empty((len(T), n))
     eye = np.eye(n)
     for i in range(n):
-        G[:, i] = np.linalg.det(np.concatenate([sub, np.broadcast_to(eye[:, i, None], (len(T), n, 1))], axis=2))
+        G[:, i] = np.linalg.det(
+            np.concatenate([sub, np.broadcast_to(eye[:, i, None], (len(T), n, 1))], axis=2)
+        )
     return a, G
 
 
@@ -105,7 +111,13 @@ def _volume_gain(H: np.ndarray, c: np.ndarray, phi: float) -> np.ndarray:
     A_ub[1, :n], A_ub[1, n], b_ub[1] = c, -1.0, 1.0  # c^T lam - 1 <= s0
     A_ub[2 : 2 + k, :n], A_ub[2 : 2 + k, n + 1 :] = G, -np.eye(k)
     A_ub[2 + k :, :n], A_ub[2 + k :, n + 1 :] = -G, -np.eye(k)
-    res = linprog(cost, A_ub=A_ub, b_ub=b_ub, bounds=[(None, None)] * n + [(0, None)] * (1 + k), method="highs")
+    res = linprog(
+        cost,
+        A_ub=A_ub,
+        b_ub=b_ub,
+        bounds=[(None, None)] * n + [(0, None)] * (1 + k),
+        method="highs",
+    )
     if res.status != 0:
         raise QuadobsError(f"volume_gain: the linear program failed ({res.message})")
     return res.x[:n]
@@ -160,7 +172,17 @@ class ZonotopicEstimator(Estimator, SetValued):
     """
 
     def __init__(
-        self, A, F, C, noise_bounds, X0: Zonotope, gain="segment", *, max_generators: int = 20, reduction="combastel", backend: str = "auto"
+        self,
+        A,
+        F,
+        C,
+        noise_bounds,
+        X0: Zonotope,
+        gain="segment",
+        *,
+        max_generators: int = 20,
+        reduction="combastel",
+        backend: str = "auto",
     ) -> None:
         if isinstance(A, IntervalMatrix):
             self.A_interval = A
@@ -192,7 +214,9 @@ class ZonotopicEstimator(Estimator, SetValued):
         self.gain_rule = None
         if isinstance(gain, str):
             if gain not in GAINS:
-                raise QuadobsError(f"gain: unknown rule {gain!r}; expected one of {', '.join(GAINS)}, fixed gains or a callable")
+                raise QuadobsError(
+                    f"gain: unknown rule {gain!r}; expected one of {', '.join(GAINS)}, fixed gains or a callable"
+                )
             self.gain_rule = GAINS[gain]
         elif callable(gain):
             self.gain_rule = gain
@@ -228,7 +252,9 @@ class ZonotopicEstimator(Estimator, SetValued):
         from quadobs.estimators.augmented import resolve_backend
 
         if backend not in ("auto", "numba", "numpy"):
-            raise QuadobsError(f"backend: expected one of ('auto', 'numba', 'numpy'), got {backend!r}")
+            raise QuadobsError(
+                f"backend: expected one of ('auto', 'numba', 'numpy'), got {backend!r}"
+            )
         supported = self._kernel_mode() is not None
         if backend == "numba" and not supported:
             raise QuadobsError(
@@ -244,13 +270,20 @@ class ZonotopicEstimator(Estimator, SetValued):
         gains = self.fixed_gains if self.fixed_gains is not None else np.zeros((ny, n))
         parts = [self.A_interval.mid, self.A_interval.rad, self.F, self.C, self.phi, gains]
         self._fc = np.ascontiguousarray(np.concatenate([np.ravel(a) for a in parts]))
-        self._ic = np.array([n, nw, ny, self.max_generators, 0, mode, int(self.uncertain)], dtype=np.int64)
+        self._ic = np.array(
+            [n, nw, ny, self.max_generators, 0, mode, int(self.uncertain)], dtype=np.int64
+        )
         self._bind_kernels()
 
     def _bind_kernels(self) -> None:
         import quadobs._kernels.zonotope as zk
 
-        self._kstep, self._kpredict, self._kstrip, self._kreduce = zk.zonotope_step, zk.zonotope_predict, zk.zonotope_strip, zk.zonotope_reduce
+        self._kstep, self._kpredict, self._kstrip, self._kreduce = (
+            zk.zonotope_step,
+            zk.zonotope_predict,
+            zk.zonotope_strip,
+            zk.zonotope_reduce,
+        )
 
     def _load(self, Z: Zonotope) -> None:
         """Copy ``Z`` into the buffer ``S`` of the kernels, enlarging it when needed."""
@@ -308,7 +341,9 @@ class ZonotopicEstimator(Estimator, SetValued):
     def __setstate__(self, state: dict) -> None:
         self.__dict__.update(state)
         if self.backend == "numba":
-            self._H = self._S[1 + self.A.shape[0] : 1 + self.A.shape[0] + self.A.shape[0] * int(self._ic[4])].reshape(self.A.shape[0], -1)
+            self._H = self._S[
+                1 + self.A.shape[0] : 1 + self.A.shape[0] + self.A.shape[0] * int(self._ic[4])
+            ].reshape(self.A.shape[0], -1)
             self._bind_kernels()
 
     def _step_kernel(self, y) -> None:
@@ -368,7 +403,11 @@ class ZonotopicEstimator(Estimator, SetValued):
         for i, c in enumerate(self.C):
             if np.isnan(y[i]):
                 continue
-            lam = self.fixed_gains[i] if self.fixed_gains is not None else self.gain_rule(Z, c, float(self.phi[i]))
+            lam = (
+                self.fixed_gains[i]
+                if self.fixed_gains is not None
+                else self.gain_rule(Z, c, float(self.phi[i]))
+            )
             Z = Z.strip_intersection(c, float(y[i]), float(self.phi[i]), lam)
         self.zonotope = Z.reduce(self.max_generators, self.reduction)
         return self.zonotope
@@ -382,7 +421,9 @@ class ZonotopicEstimator(Estimator, SetValued):
         if y is None:
             y = u
         elif np.shape(u) != (0,):
-            raise QuadobsError(f"u: the system has no input, expected shape (0,), got {np.shape(u)}")
+            raise QuadobsError(
+                f"u: the system has no input, expected shape (0,), got {np.shape(u)}"
+            )
         if self.backend == "numba":
             self._step_kernel(y)
         else:

@@ -47,8 +47,8 @@ from __future__ import annotations
 import numpy as np
 
 from quadobs.core.held_input import HeldInputDiscretization
-from quadobs.errors import QuadobsError, as_array
 from quadobs.core.immersion import Immersion
+from quadobs.errors import QuadobsError, as_array
 from quadobs.estimators.base import Counted, Estimator, Immersed, SetValued, check_step
 from quadobs.sets.zonotope import Zonotope, reduce_generators, strip_update
 
@@ -166,7 +166,9 @@ class ZonotopicAugmentedEstimator(Estimator, SetValued, Immersed, Counted):
         if np.any(self.output_bounds < 0):
             raise QuadobsError("output_bounds: must be non-negative")
         ub = as_array("input_bound", input_bound)
-        self.input_bound = np.full(p, float(ub)) if ub.ndim == 0 else as_array("input_bound", ub, (p,))
+        self.input_bound = (
+            np.full(p, float(ub)) if ub.ndim == 0 else as_array("input_bound", ub, (p,))
+        )
         if np.any(self.input_bound < 0):
             raise QuadobsError("input_bound: must be non-negative")
         self.max_generators = 10 * N if max_generators is None else int(max_generators)
@@ -174,9 +176,16 @@ class ZonotopicAugmentedEstimator(Estimator, SetValued, Immersed, Counted):
         self.reduction = reduction
         self.C = immersion.output_matrix
         m = self.model
-        self._F0, self._F1, self._G0, self._G2 = m.transition_constant, m.transition_input, m.input_linear, m.input_quadratic
+        self._F0, self._F1, self._G0, self._G2 = (
+            m.transition_constant,
+            m.transition_input,
+            m.input_linear,
+            m.input_quadratic,
+        )
         # G2_a + G2_a^T, arranged (k, p, p); |G2| summed per aux row for the quadratic remainder
-        self._G2s = np.transpose(m.input_quadratic, (1, 0, 2)) + np.transpose(m.input_quadratic, (1, 2, 0))
+        self._G2s = np.transpose(m.input_quadratic, (1, 0, 2)) + np.transpose(
+            m.input_quadratic, (1, 2, 0)
+        )
         self._G2abs = np.abs(m.input_quadratic).sum(axis=(0, 2))
         self._Phi = self._F0.copy()
         self.zonotope = lift_box(immersion, x0, radius)
@@ -254,7 +263,9 @@ class ZonotopicAugmentedEstimator(Estimator, SetValued, Immersed, Counted):
             box[:k] += rad @ ubar + self._G2abs * float(np.max(ubar)) ** 2
         extent = np.abs(center) + np.abs(H).sum(axis=1)
         box += ROUNDING_MARGIN * (1.0 + extent)
-        if not (np.isfinite(center).all() and np.isfinite(box).all()):  # box grows with |H|: catches H too
+        if not (
+            np.isfinite(center).all() and np.isfinite(box).all()
+        ):  # box grows with |H|: catches H too
             raise QuadobsError("zonotope: the set is no longer finite (overflow)")
         gens.append(np.diag(box))
         Hn = np.hstack(gens)
@@ -262,5 +273,3 @@ class ZonotopicAugmentedEstimator(Estimator, SetValued, Immersed, Counted):
         center.setflags(write=False)
         Hn.setflags(write=False)
         self.zonotope = Zonotope._trusted(center, Hn)
-
-

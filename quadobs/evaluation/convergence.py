@@ -24,10 +24,12 @@ import numpy as np
 
 from quadobs.errors import QuadobsError, as_array
 
-__all__ = ["state_errors", "ConvergenceTracker", "convergence_times", "json_time"]
+__all__ = ["ConvergenceTracker", "convergence_times", "json_time", "state_errors"]
 
 
-def state_errors(dim: int, has_wind: bool, x_hat: np.ndarray, x: np.ndarray) -> dict[str, np.ndarray]:
+def state_errors(
+    dim: int, has_wind: bool, x_hat: np.ndarray, x: np.ndarray
+) -> dict[str, np.ndarray]:
     """Errors ``x_hat - x`` split into position and ground velocity (and wind); the position only when ``n < 2 dim``.
 
     For the wind state ``(p, v_a, v_w)`` the ground velocity is ``v_a + v_w``. Works on

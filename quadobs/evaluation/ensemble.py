@@ -39,8 +39,8 @@ Posterior Cramér-Rao bound (Tichavsky, Muravchik and Nehorai 1998)
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable
 
 import numpy as np
 from scipy import stats
@@ -120,7 +120,9 @@ def rmse(errors: np.ndarray) -> np.ndarray:
     return np.sqrt(np.mean(np.sum(e * e, axis=-1), axis=0))
 
 
-def chi2_interval(dof: np.ndarray | float, runs: np.ndarray | float, confidence: float = 0.95) -> np.ndarray:
+def chi2_interval(
+    dof: np.ndarray | float, runs: np.ndarray | float, confidence: float = 0.95
+) -> np.ndarray:
     """Two-sided ``confidence`` interval of the average of ``runs`` chi-square statistics with ``dof`` degrees in all.
 
     ``runs * mean`` is chi-square with ``dof`` degrees of freedom (for ``N`` runs of an
@@ -141,7 +143,9 @@ def chi2_interval(dof: np.ndarray | float, runs: np.ndarray | float, confidence:
     return out
 
 
-def converged_nees(nees: np.ndarray, converged: np.ndarray, state_dim: int, confidence: float = 0.95) -> dict:
+def converged_nees(
+    nees: np.ndarray, converged: np.ndarray, state_dim: int, confidence: float = 0.95
+) -> dict:
     """The mean NEES over each run's converged part, with its two-sided chi-square interval.
 
     At time ``t`` the ``N_t`` runs with ``converged[r, t]`` enter: for a consistent
@@ -231,7 +235,9 @@ class Ensemble:
         fp, fv = self.final_position_error, self.final_velocity_error
         conv = self.converged
         nees_ok = np.isfinite(self.mean_nees) & np.isfinite(self.nees_bounds).all(axis=1)
-        inside = (self.mean_nees >= self.nees_bounds[:, 0]) & (self.mean_nees <= self.nees_bounds[:, 1])
+        inside = (self.mean_nees >= self.nees_bounds[:, 0]) & (
+            self.mean_nees <= self.nees_bounds[:, 1]
+        )
         nis_ok = np.isfinite(self.mean_nis) & np.isfinite(self.nis_bounds).all(axis=1)
         nis_in = (self.mean_nis >= self.nis_bounds[:, 0]) & (self.mean_nis <= self.nis_bounds[:, 1])
         ct = self.convergence_time[np.isfinite(self.convergence_time)]
@@ -242,16 +248,22 @@ class Ensemble:
             "convergence_threshold": float(self.threshold),
             "final_rmse_position": fin(np.sqrt(np.mean(fp**2))) if self.runs else None,
             "final_rmse_velocity": fin(np.sqrt(np.mean(fv**2))) if self.runs else None,
-            "final_rmse_position_converged": fin(np.sqrt(np.mean(fp[conv] ** 2))) if conv.any() else None,
+            "final_rmse_position_converged": fin(np.sqrt(np.mean(fp[conv] ** 2)))
+            if conv.any()
+            else None,
             "final_median_position_error": fin(np.median(fp)) if self.runs else None,
             "nonfinite_runs": int(np.sum(~np.isfinite(fp))),
             "median_convergence_time": fin(np.median(ct)) if ct.size else None,
             "rmse_over_sqrt_pcrb": fin(self.ratio_position[-1]),
             "rmse_over_sqrt_pcrb_velocity": fin(self.ratio_velocity[-1]),
             "mean_nees": fin(self.mean_nees[-1]),
-            "nees_time_average": fin(np.nanmean(self.mean_nees)) if np.isfinite(self.mean_nees).any() else None,
+            "nees_time_average": fin(np.nanmean(self.mean_nees))
+            if np.isfinite(self.mean_nees).any()
+            else None,
             "nees_inside_fraction": fin(np.mean(inside[nees_ok])) if nees_ok.any() else None,
-            "mean_nis": fin(np.nanmean(self.mean_nis)) if np.isfinite(self.mean_nis).any() else None,
+            "mean_nis": fin(np.nanmean(self.mean_nis))
+            if np.isfinite(self.mean_nis).any()
+            else None,
             "nis_inside_fraction": fin(np.mean(nis_in[nis_ok])) if nis_ok.any() else None,
             "chi2_bounds": {
                 "confidence": float(self.confidence),
@@ -338,8 +350,14 @@ def ensemble(
     nv = np.linalg.norm(ev, axis=-1)
     rp, rv = (rmse(ep), rmse(ev)) if R else (np.full(T, np.nan), np.full(T, np.nan))
     pct = np.percentile(np_, [5, 50, 95], axis=0).T if R else np.full((T, 3), np.nan)
-    fp = np_[:, -1] if final_position_error is None else np.asarray(final_position_error, dtype=float)
-    fv = nv[:, -1] if final_velocity_error is None else np.asarray(final_velocity_error, dtype=float)
+    fp = (
+        np_[:, -1]
+        if final_position_error is None
+        else np.asarray(final_position_error, dtype=float)
+    )
+    fv = (
+        nv[:, -1] if final_velocity_error is None else np.asarray(final_velocity_error, dtype=float)
+    )
 
     ne = np.asarray(nees, dtype=float)
     n_ok = np.isfinite(ne).sum(axis=0)
@@ -352,14 +370,20 @@ def ensemble(
         dof_rows = None
     else:
         s = np.asarray(nis, dtype=float)
-        d = np.asarray(nis_dof, dtype=float) if nis_dof is not None else np.where(np.isfinite(s), 1.0, 0.0)
+        d = (
+            np.asarray(nis_dof, dtype=float)
+            if nis_dof is not None
+            else np.where(np.isfinite(s), 1.0, 0.0)
+        )
         have = np.isfinite(s) & (d > 0)
         cnt = have.sum(axis=0)
         with np.errstate(invalid="ignore", divide="ignore"):
             mean_nis = np.where(cnt > 0, np.where(have, s, 0.0).sum(axis=0) / cnt, np.nan)
         nis_bounds = chi2_interval(np.where(have, d, 0.0).sum(axis=0), cnt, confidence)
         with np.errstate(invalid="ignore"):
-            dof_rows = np.where(cnt > 0, np.where(have, d, 0.0).sum(axis=0) / np.maximum(cnt, 1), np.nan)
+            dof_rows = np.where(
+                cnt > 0, np.where(have, d, 0.0).sum(axis=0) / np.maximum(cnt, 1), np.nan
+            )
 
     def ratio(r, col):
         if bound is None:
@@ -499,8 +523,6 @@ def range_factor(position: np.ndarray, beacons: np.ndarray, std: np.ndarray | fl
     return cols.T
 
 
-
-
 def lifted_covariance(aux_forms: np.ndarray, mean: np.ndarray, cov: np.ndarray) -> np.ndarray:
     """Covariance of ``z = (xi(x), x)``, ``xi_i = x^T L_i x / 2``, for ``x ~ N(m, P)`` (exact Gaussian moments).
 
@@ -520,5 +542,3 @@ def lifted_covariance(aux_forms: np.ndarray, mean: np.ndarray, cov: np.ndarray) 
     LP = np.einsum("iab,bc->iac", L, P)
     out[:k, :k] = Lm @ P @ Lm.T + 0.5 * np.einsum("iab,jba->ij", LP, LP)
     return out
-
-

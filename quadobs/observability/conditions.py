@@ -48,23 +48,23 @@ import numpy as np
 import scipy.linalg as sla
 from numpy.lib.stride_tricks import sliding_window_view
 
-from quadobs.errors import QuadobsError
-from quadobs.observability.gramian import scaled_min_eig, sliding_windows
 from quadobs.core.immersion import lyapunov_sequence, observability_rank, vanishing_index
 from quadobs.core.system import QuadraticSystem
+from quadobs.errors import QuadobsError
+from quadobs.observability.gramian import scaled_min_eig, sliding_windows
 
 __all__ = [
+    "DEFAULT_ZERO_RTOL",
     "ChainStructure",
-    "chain_structure",
-    "gamma_matrices",
-    "r_sequence",
     "ConditionSeries",
-    "window_sums",
+    "chain_structure",
     "condition_eq29",
     "condition_eq31",
     "condition_eq37",
     "condition_eq41",
-    "DEFAULT_ZERO_RTOL",
+    "gamma_matrices",
+    "r_sequence",
+    "window_sums",
 ]
 
 #: Relative size below which a window's margin counts as zero (module docstring).
@@ -134,7 +134,10 @@ class ChainStructure:
 
     def affine_free(self, rtol: float = 1e-12) -> bool:
         """Whether ``r_m = Gamma^T U_bar`` exactly, i.e. ``d^T A^m = 0`` (always so for ``d = 0``)."""
-        scale = max(np.abs(self.system.d).max(), 1e-300) * max(np.linalg.norm(self.system.A, 2), 1.0) ** self.m
+        scale = (
+            max(np.abs(self.system.d).max(), 1e-300)
+            * max(np.linalg.norm(self.system.A, 2), 1.0) ** self.m
+        )
         return bool(np.abs(self.drift[self.m]).max() <= rtol * scale)
 
 
@@ -157,10 +160,14 @@ def chain_structure(system: QuadraticSystem, kappa: int | None = None) -> ChainS
     m = vanishing_index(system.A, system.C[0])
     n = system.n
     if m == 0:
-        raise QuadobsError("system: C = 0, the output is linear; the PE conditions concern a quadratic output")
+        raise QuadobsError(
+            "system: C = 0, the output is linear; the PE conditions concern a quadratic output"
+        )
     kappa = m + n - 1 if kappa is None else int(kappa)
     if kappa < m + 1:
-        raise QuadobsError(f"kappa: must be at least m + 1 = {m + 1} (det(r_m^T r_m) = 0), got {kappa}")
+        raise QuadobsError(
+            f"kappa: must be at least m + 1 = {m + 1} (det(r_m^T r_m) = 0), got {kappa}"
+        )
     Cs = lyapunov_sequence(system.A, system.C[0], kappa)
     Cs[m:] = 0.0  # Assumption 1: exactly zero from m on
     gammas = gamma_matrices(system.A, system.B, Cs, kappa)
@@ -171,7 +178,9 @@ def chain_structure(system: QuadraticSystem, kappa: int | None = None) -> ChainS
     return ChainStructure(system, m, kappa, Cs, gammas, drift)
 
 
-def r_sequence(chain: ChainStructure, derivatives: np.ndarray, kmax: int | None = None) -> np.ndarray:
+def r_sequence(
+    chain: ChainStructure, derivatives: np.ndarray, kmax: int | None = None
+) -> np.ndarray:
     """``r_0 .. r_kmax`` (eq. 28 via eq. 38) at the sample times.
 
     Parameters
@@ -191,7 +200,9 @@ def r_sequence(chain: ChainStructure, derivatives: np.ndarray, kmax: int | None 
         raise QuadobsError(f"kmax: at most kappa = {chain.kappa}, got {kmax}")
     D = np.asarray(derivatives, dtype=float)
     if D.ndim != 3 or D.shape[0] < kmax or D.shape[2] != chain.system.p:
-        raise QuadobsError(f"derivatives: expected shape (>= {kmax}, T, {chain.system.p}), got {D.shape}")
+        raise QuadobsError(
+            f"derivatives: expected shape (>= {kmax}, T, {chain.system.p}), got {D.shape}"
+        )
     T, n = D.shape[1], chain.system.n
     out = np.empty((kmax + 1, T, n))
     for k in range(kmax + 1):
@@ -259,7 +270,12 @@ def condition_eq41(
 
 
 def condition_eq31(
-    A: np.ndarray, r_m: np.ndarray, h: float, length: int, stride: int = 1, rtol: float = DEFAULT_ZERO_RTOL
+    A: np.ndarray,
+    r_m: np.ndarray,
+    h: float,
+    length: int,
+    stride: int = 1,
+    rtol: float = DEFAULT_ZERO_RTOL,
 ) -> ConditionSeries:
     """Eq. 31: ``lambda_min(int Phi_22(s,t)^T r_m^T r_m Phi_22(s,t) ds)``, ``Phi_22(s, t) = e^{A (s - t)}`` (eq. 26b).
 

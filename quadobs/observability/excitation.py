@@ -31,14 +31,13 @@ and it quotes their start ``t``; the live monitor's windows end at the current t
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Callable
 
 import numpy as np
 
-from quadobs.errors import QuadobsError, as_array, as_finite_scalar
-from quadobs.observability.gramian import GramianModel, compose, eig_extremes, reduce_window, scaled_min_eig
 from quadobs.core.immersion import Immersion, observability_rank
+from quadobs.errors import QuadobsError, as_array, as_finite_scalar
 from quadobs.observability.conditions import (
     DEFAULT_ZERO_RTOL,
     ChainStructure,
@@ -50,18 +49,25 @@ from quadobs.observability.conditions import (
     condition_eq41,
     r_sequence,
 )
+from quadobs.observability.gramian import (
+    GramianModel,
+    compose,
+    eig_extremes,
+    reduce_window,
+    scaled_min_eig,
+)
 
 __all__ = [
-    "HeldInputSignal",
-    "HeldInput",
-    "Proposition4",
-    "proposition4",
-    "ConditionResult",
-    "ExcitationReport",
-    "excitation_report",
-    "ExcitationMonitor",
     "GRAMIAN_RTOL",
     "MAX_FD_ORDER",
+    "ConditionResult",
+    "ExcitationMonitor",
+    "ExcitationReport",
+    "HeldInput",
+    "HeldInputSignal",
+    "Proposition4",
+    "excitation_report",
+    "proposition4",
 ]
 
 #: A window Gramian counts as singular when the smallest eigenvalue of its unit-diagonal
@@ -160,10 +166,6 @@ class HeldInputSignal:
         return out
 
 
-
-
-
-
 #: The former name of :class:`HeldInputSignal`.
 HeldInput = HeldInputSignal
 
@@ -255,7 +257,9 @@ def explain_windows(immersion: Immersion, u: np.ndarray, first: np.ndarray, leng
         rank0 = observability_rank(immersion.state_matrix_constant, immersion.output_matrix)
         parts.append(f"{zero} with zero input (Proposition 4: (A_0, C) has rank {rank0} < {N})")
     if const:
-        parts.append(f"{const} with a constant input (A(u) constant, (A(u), C) has rank {rank_c} < {N})")
+        parts.append(
+            f"{const} with a constant input (A(u) constant, (A(u), C) has rank {rank_c} < {N})"
+        )
     if vary:
         parts.append(f"{vary} with a varying input too poor over the window")
     return "singular windows: " + ", ".join(parts) if parts else ""
@@ -341,7 +345,9 @@ class ConditionResult:
         return out
 
 
-def _series(key: str, title: str, starts: np.ndarray, cs: ConditionSeries, detail: str = "") -> ConditionResult:
+def _series(
+    key: str, title: str, starts: np.ndarray, cs: ConditionSeries, detail: str = ""
+) -> ConditionResult:
     status = "holds" if bool(np.all(cs.holds)) else "fails"
     return ConditionResult(key, title, status, detail, starts, cs.margin, cs.relative, cs.holds)
 
@@ -479,7 +485,9 @@ class ExcitationReport:
                 )
                 if c.status == "fails":
                     spans = c.failing_spans(self.window)
-                    shown = ", ".join(f"[{a:.2f}, {b:.2f}]" for a, b in spans[:4]) + (" ..." if len(spans) > 4 else "")
+                    shown = ", ".join(f"[{a:.2f}, {b:.2f}]" for a, b in spans[:4]) + (
+                        " ..." if len(spans) > 4 else ""
+                    )
                     lines.append(
                         f"  {'':34s} fails on {int((~c.holds).sum())}/{c.holds.size} windows, within {shown} s"
                     )
@@ -507,7 +515,9 @@ class ExcitationReport:
         return "\n".join(lines)
 
 
-def _weakest(vec: np.ndarray, immersion: Immersion, names: list[str] | None) -> list[tuple[str, float]]:
+def _weakest(
+    vec: np.ndarray, immersion: Immersion, names: list[str] | None
+) -> list[tuple[str, float]]:
     n = immersion.system.n
     xn = names if names is not None and len(names) == n else [f"x_{i}" for i in range(n)]
     labels = [f"xi_{i}" for i in range(immersion.n_aux)] + list(xn)
@@ -522,7 +532,9 @@ def _window_grid(u: HeldInputSignal, immersion: Immersion, window: float, stride
     window = as_finite_scalar("window", window, positive=True)
     L = int(round(window / h))
     if L < 2 or abs(L * h - window) > 1e-9 * window:
-        raise QuadobsError(f"window: {window} s must be a multiple of the hold step {h:g} s (at least two steps)")
+        raise QuadobsError(
+            f"window: {window} s must be a multiple of the hold step {h:g} s (at least two steps)"
+        )
     if L > u.steps:
         raise QuadobsError(f"window: {window} s is longer than the input ({u.duration:g} s)")
     s = (
@@ -531,9 +543,13 @@ def _window_grid(u: HeldInputSignal, immersion: Immersion, window: float, stride
         else int(round(as_finite_scalar("stride", stride, positive=True) / h))
     )
     if s < 1 or (stride is not None and abs(s * h - stride) > 1e-9 * stride):
-        raise QuadobsError(f"stride: {stride} s must be a positive multiple of the hold step {h:g} s")
+        raise QuadobsError(
+            f"stride: {stride} s must be a positive multiple of the hold step {h:g} s"
+        )
     if u.values.shape[1] != immersion.system.p:
-        raise QuadobsError(f"u: {u.values.shape[1]} input(s), the system has p = {immersion.system.p}")
+        raise QuadobsError(
+            f"u: {u.values.shape[1]} input(s), the system has p = {immersion.system.p}"
+        )
     starts = u.t0 + h * np.arange(0, u.steps - L + 1, s)
     # Samples at rounding level of the record's largest are zero (a sampled input that
     # should vanish carries ~1e-16 relative residue, which would make W nonsingular).
@@ -563,18 +579,28 @@ def _chain_conditions(system, u: HeldInputSignal, starts, L: int, s: int, kappa,
         m = chain.m
         avail = u.available_order()
         if avail is not None and m - 1 > avail:
-            need = f"needs u^({m - 1}); finite differences of the sampled input go up to order {avail}"
+            need = (
+                f"needs u^({m - 1}); finite differences of the sampled input go up to order {avail}"
+            )
             for k in ("eq31", "eq37", "eq41"):
                 conditions.append(ConditionResult(k, titles[k], "not evaluated", need))
         else:
             D = u.derivatives(m)
             r_m = r_sequence(chain, D, m)[m]
-            conditions.append(_series("eq31", titles["eq31"], starts, condition_eq31(system.A, r_m, h, L, s, rtol)))
+            conditions.append(
+                _series(
+                    "eq31", titles["eq31"], starts, condition_eq31(system.A, r_m, h, L, s, rtol)
+                )
+            )
             if chain.real_eigenvalues():
-                conditions.append(_series("eq37", titles["eq37"], starts, condition_eq37(r_m, h, L, s, rtol)))
+                conditions.append(
+                    _series("eq37", titles["eq37"], starts, condition_eq37(r_m, h, L, s, rtol))
+                )
             else:
                 conditions.append(
-                    ConditionResult("eq37", titles["eq37"], "not applicable", "A has complex eigenvalues")
+                    ConditionResult(
+                        "eq37", titles["eq37"], "not applicable", "A has complex eigenvalues"
+                    )
                 )
             why = []
             if not chain.real_eigenvalues():
@@ -584,10 +610,14 @@ def _chain_conditions(system, u: HeldInputSignal, starts, L: int, s: int, kappa,
             if not chain.affine_free():
                 why.append("d^T A^m != 0, so r_m is not Gamma^T U_bar")
             if why:
-                conditions.append(ConditionResult("eq41", titles["eq41"], "not applicable", "; ".join(why)))
+                conditions.append(
+                    ConditionResult("eq41", titles["eq41"], "not applicable", "; ".join(why))
+                )
             else:
                 ubar = np.concatenate(list(D), axis=1)  # (T, p m): u, u', ..., u^(m-1)
-                conditions.append(_series("eq41", titles["eq41"], starts, condition_eq41(ubar, h, L, s, rtol)))
+                conditions.append(
+                    _series("eq41", titles["eq41"], starts, condition_eq41(ubar, h, L, s, rtol))
+                )
         kap = chain.kappa
         if avail is not None and kap - 1 > avail:
             conditions.insert(
@@ -601,7 +631,12 @@ def _chain_conditions(system, u: HeldInputSignal, starts, L: int, s: int, kappa,
             )
         else:
             r_all = r_sequence(chain, u.derivatives(kap), kap)
-            res = _series("eq29", titles["eq29"] + f", kappa = {kap}", starts, condition_eq29(r_all, m, h, L, s, rtol))
+            res = _series(
+                "eq29",
+                titles["eq29"] + f", kappa = {kap}",
+                starts,
+                condition_eq29(r_all, m, h, L, s, rtol),
+            )
             conditions.insert(0, res)
     return conditions, chain
 
@@ -651,7 +686,14 @@ def excitation_report(
     rel = scaled_min_eig(W)
     g_ok = rel > GRAMIAN_RTOL
     gram = ConditionResult(
-        "gramian", "Gramian mu = lambda_min W(t,t+delta)", "holds" if g_ok.all() else "fails", "", starts, lo, rel, g_ok
+        "gramian",
+        "Gramian mu = lambda_min W(t,t+delta)",
+        "holds" if g_ok.all() else "fails",
+        "",
+        starts,
+        lo,
+        rel,
+        g_ok,
     )
     worst = gram.worst
     weakest = _weakest(vecs[worst], immersion, names)
@@ -674,8 +716,6 @@ def excitation_report(
         source=u.source,
         chain_m=None if chain is None else chain.m,
     )
-
-
 
 
 # --------------------------------------------------------------------------------------
@@ -718,12 +758,21 @@ class ExcitationMonitor:
     """
 
     def __init__(
-        self, immersion: Immersion, dt: float, *, block: int, window_blocks: int, update_blocks: int, threshold: float
+        self,
+        immersion: Immersion,
+        dt: float,
+        *,
+        block: int,
+        window_blocks: int,
+        update_blocks: int,
+        threshold: float,
     ) -> None:
         self.dt = as_finite_scalar("dt", dt, positive=True)
         self.block, self.L, self.update_blocks = int(block), int(window_blocks), int(update_blocks)
         if self.block < 1 or self.L < 2 or self.update_blocks < 1:
-            raise QuadobsError("excitation: block >= 1, window_blocks >= 2 and update_blocks >= 1 are required")
+            raise QuadobsError(
+                "excitation: block >= 1, window_blocks >= 2 and update_blocks >= 1 are required"
+            )
         self.threshold = as_finite_scalar("threshold", threshold, nonnegative=True)
         self.immersion = immersion
         self.model = GramianModel(immersion, self.block * self.dt)
@@ -757,7 +806,9 @@ class ExcitationMonitor:
         self._low_since: float | None = None
         self._warned = False
         self.warning: str | None = None
-        if self._kernel is not None:  # load (or compile) it now rather than inside a run's first chunk
+        if (
+            self._kernel is not None
+        ):  # load (or compile) it now rather than inside a run's first chunk
             self._chunk_terms(np.zeros((1, p)))
 
     def _chunk_terms(self, means: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -769,8 +820,17 @@ class ExcitationMonitor:
         P, W = np.empty_like(Phi), np.empty_like(Phi)
         d = m.discretization
         self._kernel(
-            means, d.transition_constant, d.transition_input, m.gramian_constant, m.gramian_linear,
-            m.gramian_quadratic, P, W, Phi, G, T,
+            means,
+            d.transition_constant,
+            d.transition_input,
+            m.gramian_constant,
+            m.gramian_linear,
+            m.gramian_quadratic,
+            P,
+            W,
+            Phi,
+            G,
+            T,
         )
         return P, W
 
@@ -818,7 +878,9 @@ class ExcitationMonitor:
         U = as_array("U", U, (None, self._buf.shape[1]))
         k = U.shape[0]
         if k > self.room:
-            raise QuadobsError(f"push_many: {k} steps given, but the chunk has room for {self.room}")
+            raise QuadobsError(
+                f"push_many: {k} steps given, but the chunk has room for {self.room}"
+            )
         self._buf[self._n_buf : self._n_buf + k] = U
         self._n_buf += k
         self.steps += k
@@ -904,5 +966,3 @@ class ExcitationMonitor:
             "low_segments": segs,
             "low_time": float(sum(b - a for a, b in segs)),
         }
-
-

@@ -55,10 +55,17 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from quadobs.core.held_input import HeldInputDiscretization, quadratic_coefficients, van_loan
-from quadobs.errors import QuadobsError, as_array, as_finite_scalar
 from quadobs.core.immersion import Immersion
+from quadobs.errors import QuadobsError, as_array, as_finite_scalar
 
-__all__ = ["GramianModel", "compose", "reduce_window", "sliding_windows", "eig_extremes", "scaled_min_eig"]
+__all__ = [
+    "GramianModel",
+    "compose",
+    "eig_extremes",
+    "reduce_window",
+    "scaled_min_eig",
+    "sliding_windows",
+]
 
 
 def compose(
@@ -85,7 +92,9 @@ def reduce_window(Phi: np.ndarray, G: np.ndarray) -> tuple[np.ndarray, np.ndarra
     P, W = Phi, G
     while P.shape[0] > 1:
         half = P.shape[0] // 2
-        Pc, Wc = compose((P[0 : 2 * half : 2], W[0 : 2 * half : 2]), (P[1 : 2 * half : 2], W[1 : 2 * half : 2]))
+        Pc, Wc = compose(
+            (P[0 : 2 * half : 2], W[0 : 2 * half : 2]), (P[1 : 2 * half : 2], W[1 : 2 * half : 2])
+        )
         if P.shape[0] % 2:
             Pc = np.concatenate([Pc, P[-1:]])
             Wc = np.concatenate([Wc, W[-1:]])
@@ -102,7 +111,9 @@ def sliding_windows(Phi: np.ndarray, G: np.ndarray, length: int) -> tuple[np.nda
     """
     T = Phi.shape[0]
     if not 1 <= length <= T:
-        raise QuadobsError(f"window: {length} steps, expected between 1 and the {T} steps of the input")
+        raise QuadobsError(
+            f"window: {length} steps, expected between 1 and the {T} steps of the input"
+        )
     count = T - length + 1
     seg_P, seg_W = Phi, G  # segments of 2^j steps, starting at 0 .. T - 2^j
     acc_P = acc_W = None
@@ -120,7 +131,8 @@ def sliding_windows(Phi: np.ndarray, G: np.ndarray, length: int) -> tuple[np.nda
         if rest:
             n_next = seg_P.shape[0] - span
             seg_P, seg_W = compose(
-                (seg_P[:n_next], seg_W[:n_next]), (seg_P[span : span + n_next], seg_W[span : span + n_next])
+                (seg_P[:n_next], seg_W[:n_next]),
+                (seg_P[span : span + n_next], seg_W[span : span + n_next]),
             )
             j += 1
     return acc_P, acc_W
@@ -192,7 +204,11 @@ class GramianModel:
         G0, G1, G2 = quadratic_coefficients(step_gramian, p)
         object.__setattr__(self, "dt", dt)
         object.__setattr__(self, "discretization", HeldInputDiscretization(im, dt))
-        for name, arr in (("gramian_constant", G0), ("gramian_linear", G1), ("gramian_quadratic", G2)):
+        for name, arr in (
+            ("gramian_constant", G0),
+            ("gramian_linear", G1),
+            ("gramian_quadratic", G2),
+        ):
             arr.setflags(write=False)
             object.__setattr__(self, name, arr)
 
@@ -215,7 +231,9 @@ class GramianModel:
         u = self._inputs(u)
         p, N = u.shape[-1], self.dim
         uu = (u[..., :, None] * u[..., None, :]).reshape(u.shape[:-1] + (p * p,))
-        flat = u @ self.gramian_linear.reshape(p, N * N) + uu @ self.gramian_quadratic.reshape(p * p, N * N)
+        flat = u @ self.gramian_linear.reshape(p, N * N) + uu @ self.gramian_quadratic.reshape(
+            p * p, N * N
+        )
         return self.gramian_constant + flat.reshape(u.shape[:-1] + (N, N))
 
     def step_terms(self, u) -> tuple[np.ndarray, np.ndarray]:

@@ -43,7 +43,10 @@ def _same_coordinates(est, monitor: ExcitationMonitor) -> bool:
         return False
     if im.system.q != mine.system.q:
         return False
-    return bool(np.allclose(im.aux_forms, mine.aux_forms) and np.allclose(im.output_matrix, mine.output_matrix))
+    return bool(
+        np.allclose(im.aux_forms, mine.aux_forms)
+        and np.allclose(im.output_matrix, mine.output_matrix)
+    )
 
 
 class ExcitationLog:
@@ -62,13 +65,26 @@ class ExcitationLog:
         self.monitor = monitor
         self.every = every = monitor.update_blocks * monitor.block
         r = recorder
-        self.measure = r.series("excitation/measure", 1, every=every, skip_nan=True, names=["mu"], color=_COLOR)
-        self.threshold = r.series(
-            "excitation/threshold", 1, every=every, skip_nan=True, names=["threshold"], color=_THRESHOLD
+        self.measure = r.series(
+            "excitation/measure", 1, every=every, skip_nan=True, names=["mu"], color=_COLOR
         )
-        self.log10 = r.series("excitation/log10", 2, every=every, skip_nan=True, names=["log10 mu", "log10 threshold"])
+        self.threshold = r.series(
+            "excitation/threshold",
+            1,
+            every=every,
+            skip_nan=True,
+            names=["threshold"],
+            color=_THRESHOLD,
+        )
+        self.log10 = r.series(
+            "excitation/log10", 2, every=every, skip_nan=True, names=["log10 mu", "log10 threshold"]
+        )
         self.count = r.series(
-            "excitation/unexcited_directions", 1, every=every, skip_nan=True, names=["unexcited directions"]
+            "excitation/unexcited_directions",
+            1,
+            every=every,
+            skip_nan=True,
+            names=["unexcited directions"],
         )
         self.weak = {
             est.name: (
@@ -107,7 +123,10 @@ class ExcitationLog:
             np.log10(m.threshold) if (finite and m.threshold > 0) else np.nan,
             V.shape[1] if finite else np.nan,
         ]
-        weak = [float(np.linalg.eigvalsh(V.T @ est.P @ V)[-1]) if V.shape[1] else np.nan for est, _ in self.weak.values()]
+        weak = [
+            float(np.linalg.eigvalsh(V.T @ est.P @ V)[-1]) if V.shape[1] else np.nan
+            for est, _ in self.weak.values()
+        ]
         self._pending[int(step)] = (values, weak)
 
     def fill(self, rows: slice, steps: np.ndarray) -> None:

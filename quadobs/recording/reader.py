@@ -9,7 +9,7 @@ from rerun.chunk import RrdReader
 
 from quadobs.errors import QuadobsError
 
-__all__ = ["read_series", "list_entities", "read_text_log"]
+__all__ = ["list_entities", "read_series", "read_text_log"]
 
 _COMPONENTS = {
     "Scalars:scalars": "scalars",
@@ -81,7 +81,11 @@ def read_text_log(path: str | Path, entity: str) -> list[tuple[int, float, str, 
         st = rb.column("step").to_pylist()
         tm = rb.column("sim_time").cast("int64").to_pylist()
         tx = rb.column("TextLog:text").to_pylist()
-        lv = rb.column("TextLog:level").to_pylist() if "TextLog:level" in rb.schema.names else [[None]] * len(st)
+        lv = (
+            rb.column("TextLog:level").to_pylist()
+            if "TextLog:level" in rb.schema.names
+            else [[None]] * len(st)
+        )
         for s, t, x, lvl in zip(st, tm, tx, lv):
             out.append((int(s), t * 1e-9, (lvl or [None])[0], x[0]))
     return sorted(out)

@@ -33,7 +33,14 @@ import numpy as np
 import pyarrow as pa
 import rerun as rr
 
-from quadobs.errors import QuadobsError, RunFault, check_writable, deferred_interrupts, output_target, staging_path
+from quadobs.errors import (
+    QuadobsError,
+    RunFault,
+    check_writable,
+    deferred_interrupts,
+    output_target,
+    staging_path,
+)
 
 __all__ = ["Recorder", "Series", "check_writable"]
 
@@ -78,13 +85,18 @@ class _PipeFile:
         try:
             try:  # a larger pipe: rerun's writer seldom waits for this thread (which needs the GIL)
                 fcntl.fcntl(src, fcntl.F_SETPIPE_SZ, PIPE_BYTES)
-            except (OSError, AttributeError):  # not Linux, or above the system's limit: the default size
+            except (
+                OSError,
+                AttributeError,
+            ):  # not Linux, or above the system's limit: the default size
                 pass
             synced = 0
             while chunk := os.read(src, 1 << 20):
                 if self.error is None:
                     self._write(chunk)
-                    if self.written - synced >= SYNC_BYTES:  # on the disk as it comes: a short final fsync
+                    if (
+                        self.written - synced >= SYNC_BYTES
+                    ):  # on the disk as it comes: a short final fsync
                         synced = self.written
                         self._sync()
         finally:
@@ -187,7 +199,7 @@ def _end_orphaned_streams() -> None:
         import rerun_bindings
 
         rerun_bindings.flush_and_cleanup_orphaned_recordings()
-    except Exception:  # noqa: BLE001 - a clean-up: never in the way of closing the file
+    except Exception:
         pass
 
 
@@ -256,7 +268,9 @@ class Recorder:
         try:
             self._file = _PipeFile(self.staging)
         except OSError as exc:
-            raise QuadobsError(f"output path {str(self.path)!r}: cannot be written ({exc.strerror})") from None
+            raise QuadobsError(
+                f"output path {str(self.path)!r}: cannot be written ({exc.strerror})"
+            ) from None
         # A staging file never published (a stop before the end, an exit) goes when the recorder
         # does, at the latest when the process exits normally.
         self._discard = weakref.finalize(self, _remove, self.staging)
@@ -288,7 +302,9 @@ class Recorder:
         """Declare a buffered series; its static styling (names, colour, size) is logged once."""
         if kind not in _KINDS:
             raise QuadobsError(f"kind: expected one of {_KINDS}, got {kind!r}")
-        s = Series(entity, width, kind, max(int(every), 1), skip_nan, np.zeros((self.capacity, width)))
+        s = Series(
+            entity, width, kind, max(int(every), 1), skip_nan, np.zeros((self.capacity, width))
+        )
         self.series_list.append(s)
         if kind == "scalars" and (names or color):
             kw = {}
@@ -304,7 +320,9 @@ class Recorder:
         elif kind == "translation":
             self.rec.log(
                 entity,
-                rr.Boxes3D(half_sizes=[half_size or (0.5, 0.5, 0.5)], colors=[color] if color else None),
+                rr.Boxes3D(
+                    half_sizes=[half_size or (0.5, 0.5, 0.5)], colors=[color] if color else None
+                ),
                 static=True,
             )
         return s
@@ -313,7 +331,9 @@ class Recorder:
         """Log a static (timeless) archetype, e.g. beacon positions or a description."""
         self.rec.log(entity, archetype, static=True)
 
-    def text(self, entity: str, message: str, *, level: str = "INFO", step: int, time: float) -> None:
+    def text(
+        self, entity: str, message: str, *, level: str = "INFO", step: int, time: float
+    ) -> None:
         """Log one text message at a given step (rare events: warnings, interruptions); nothing once closed."""
         if self.rec is None:
             return
@@ -360,7 +380,9 @@ class Recorder:
         if self.rec is None:  # closed
             return
         if n:
-            with deferred_interrupts():  # every series gets the rows, or none (a stop waits for the end)
+            with (
+                deferred_interrupts()
+            ):  # every series gets the rows, or none (a stop waits for the end)
                 self._send(n)
         self.rec.flush(timeout_sec=CLOSE_TIMEOUT if wait else 0.0)
         self._check()
@@ -384,7 +406,10 @@ class Recorder:
         # Copies: rerun may encode the columns on its own thread after this returns,
         # while the buffers are refilled.
         steps, times = self._steps[:n].copy(), self._times[:n].copy()
-        every_row = [rr.TimeColumn("step", sequence=steps), rr.TimeColumn("sim_time", duration=times)]
+        every_row = [
+            rr.TimeColumn("step", sequence=steps),
+            rr.TimeColumn("sim_time", duration=times),
+        ]
         for s in self.series_list:
             if s.every > 1:
                 sel = np.flatnonzero(steps % s.every == 0)
@@ -438,7 +463,9 @@ class Recorder:
         :meth:`fail`, else publish it now or leave it for :meth:`publish`."""
         if self._file.error is not None or not done:
             if not done and self._file.error is None:
-                self._file.error = OSError(f"rerun did not finish the stream within {CLOSE_TIMEOUT:g} s")
+                self._file.error = OSError(
+                    f"rerun did not finish the stream within {CLOSE_TIMEOUT:g} s"
+                )
             self._discard()
         elif self.failed:
             self._discard.detach()  # kept: a valid recording of the steps before the failure
@@ -453,11 +480,13 @@ class Recorder:
             os.replace(self.staging, self.target)
         except OSError as exc:
             self._discard()
-            raise RunFault(f"recording {str(self.path)!r}: cannot be renamed into place ({exc.strerror})") from None
+            raise RunFault(
+                f"recording {str(self.path)!r}: cannot be renamed into place ({exc.strerror})"
+            ) from None
         self._discard.detach()
         self.published = True
 
-    def __enter__(self) -> "Recorder":
+    def __enter__(self) -> Recorder:
         return self
 
     def __exit__(self, *exc) -> None:

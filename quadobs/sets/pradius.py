@@ -112,7 +112,9 @@ class PRadiusDesign:
     def offset(self, i: int) -> float:
         """The constant ``psi + phi_1^2 + ... + phi_i^2`` (approach 2) or ``psi + phi_i^2`` (approach 1) of step ``i``."""
         phi = self.noise_bounds
-        return self.psi + (float(np.sum(phi[: i + 1] ** 2)) if self.approach == 2 else float(phi[i] ** 2))
+        return self.psi + (
+            float(np.sum(phi[: i + 1] ** 2)) if self.approach == 2 else float(phi[i] ** 2)
+        )
 
 
 def _as_vertices(A_vertices) -> np.ndarray:
@@ -122,7 +124,9 @@ def _as_vertices(A_vertices) -> np.ndarray:
     if G.ndim == 2:
         G = G[None]
     if G.ndim != 3 or G.shape[1] != G.shape[2] or G.shape[0] == 0:
-        raise QuadobsError(f"A_vertices: expected (n, n), (V, n, n) or an IntervalMatrix, got shape {G.shape}")
+        raise QuadobsError(
+            f"A_vertices: expected (n, n), (V, n, n) or an IntervalMatrix, got shape {G.shape}"
+        )
     return G
 
 
@@ -138,12 +142,17 @@ def pradius_lmi_matrices(P, lam, beta, KG, KF, F, prev, prev_phi, c, phi) -> lis
     n, nw, d = P.shape[0], F.shape[1], len(prev) + 1
     out = []
     for G in KG:
-        Xi = np.vstack([G.T @ P - np.outer(G.T @ c, Y), KF.T @ P - np.outer(KF.T @ c, Y)]
-                       + [(v @ P - (v @ c) * Y)[None] for v in prev] + [phi * Y[None]])
+        Xi = np.vstack(
+            [G.T @ P - np.outer(G.T @ c, Y), KF.T @ P - np.outer(KF.T @ c, Y)]
+            + [(v @ P - (v @ c) * Y)[None] for v in prev]
+            + [phi * Y[None]]
+        )
         D = np.zeros((n + nw + d, n + nw + d))
         D[:n, :n] = beta * P
         D[n : n + nw, n : n + nw] = F.T @ F
-        D[n + nw :, n + nw :] = np.diag(np.concatenate([np.asarray(prev_phi, dtype=float) ** 2, [phi**2]]))
+        D[n + nw :, n + nw :] = np.diag(
+            np.concatenate([np.asarray(prev_phi, dtype=float) ** 2, [phi**2]])
+        )
         out.append(np.block([[D, Xi], [Xi.T, P]]))
     return out
 
@@ -170,9 +179,15 @@ class _StepProblem:
             blocks_xi += [phi * Yr]
             Xi = cp.vstack(blocks_xi)
             Dparts = cp.bmat(
-                [[self.beta * P, np.zeros((n, nw)), np.zeros((n, d))],
-                 [np.zeros((nw, n)), FtF, np.zeros((nw, d))],
-                 [np.zeros((d, n)), np.zeros((d, nw)), np.diag(np.concatenate([np.asarray(prev_phi) ** 2, [phi**2]]))]]
+                [
+                    [self.beta * P, np.zeros((n, nw)), np.zeros((n, d))],
+                    [np.zeros((nw, n)), FtF, np.zeros((nw, d))],
+                    [
+                        np.zeros((d, n)),
+                        np.zeros((d, nw)),
+                        np.diag(np.concatenate([np.asarray(prev_phi) ** 2, [phi**2]])),
+                    ],
+                ]
             )
             big = cp.bmat([[Dparts, Xi], [Xi.T, P]])
             cons.append(0.5 * (big + big.T) >> 0)
@@ -188,7 +203,9 @@ class _StepProblem:
         for solver in self.solver:
             try:
                 with warnings.catch_warnings():
-                    warnings.simplefilter("ignore")  # "solution may be inaccurate": checked below by the caller
+                    warnings.simplefilter(
+                        "ignore"
+                    )  # "solution may be inaccurate": checked below by the caller
                     self.problem.solve(solver=solver)
                 used = solver
             except cp.error.SolverError:
@@ -235,7 +252,9 @@ def _design_step(KG, KF, F, prev, prev_phi, c, phi, offset, betas, refine, solve
             best = (res.x, *cache[res.x])
     beta, tau, P, lam, used = best
     mats = pradius_lmi_matrices(P, lam, beta, KG, KF, F, prev, prev_phi, c, phi)
-    margin = min(float(np.linalg.eigvalsh(0.5 * (M + M.T))[0]) / max(np.abs(M).max(), 1e-300) for M in mats)
+    margin = min(
+        float(np.linalg.eigvalsh(0.5 * (M + M.T))[0]) / max(np.abs(M).max(), 1e-300) for M in mats
+    )
     if margin < -1e-6:
         raise QuadobsError(
             f"{label}: the solver's solution violates the LMI (relative smallest eigenvalue {margin:.3g}); "
@@ -339,5 +358,14 @@ def pradius_gains(
     for arr in (gains, Ps, beta_out, tau_out, phi):
         arr.setflags(write=False)
     return PRadiusDesign(
-        gains, Ps, beta_out, tau_out, approach, float(psi), phi, used, float(lmi_margin), time.perf_counter() - t0
+        gains,
+        Ps,
+        beta_out,
+        tau_out,
+        approach,
+        float(psi),
+        phi,
+        used,
+        float(lmi_margin),
+        time.perf_counter() - t0,
     )

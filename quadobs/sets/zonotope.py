@@ -25,19 +25,19 @@ enumerate subsets of generators; they refuse (``QuadobsError``) beyond
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from itertools import combinations, product
 from math import comb
-from typing import Callable
 
 import numpy as np
 
 from quadobs.errors import QuadobsError, as_array
 
 __all__ = [
-    "IntervalMatrix",
     "MAX_SUBSETS",
     "REDUCTION_METHODS",
+    "IntervalMatrix",
     "Zonotope",
     "interval_image",
     "interval_zonotope",
@@ -138,7 +138,9 @@ def _reduce_parallelotope(H: np.ndarray, s: int) -> np.ndarray:
     order = np.argsort(-np.einsum("ij,ij->j", H, H), kind="stable")
     keep, rest = H[:, order[: s - n]], H[:, order[s - n :]]
     if not np.isfinite(rest).all():
-        raise QuadobsError("generators: non-finite entries; the parallelotope reduction needs a finite set")
+        raise QuadobsError(
+            "generators: non-finite entries; the parallelotope reduction needs a finite set"
+        )
     diag, piv = _pivoted_qr_diag(rest)
     good = int(np.sum(diag > 1e-9 * max(diag[0] if diag.size else 0.0, 1e-300)))
     T = rest[:, piv[:good]]
@@ -159,7 +161,9 @@ REDUCTION_METHODS: dict[str, Callable[[np.ndarray, int], np.ndarray]] = {
 }
 
 
-def reduce_generators(H: np.ndarray, max_generators: int, method: str | Callable = "combastel") -> np.ndarray:
+def reduce_generators(
+    H: np.ndarray, max_generators: int, method: str | Callable = "combastel"
+) -> np.ndarray:
     """Generators of an outer approximation ``H' B^s ⊇ H B^m`` with at most ``max_generators`` columns.
 
     Parameters
@@ -182,10 +186,14 @@ def reduce_generators(H: np.ndarray, max_generators: int, method: str | Callable
     else:
         fn = REDUCTION_METHODS.get(method)
         if fn is None:
-            raise QuadobsError(f"method: unknown reduction {method!r}; expected one of {', '.join(REDUCTION_METHODS)} or a callable")
+            raise QuadobsError(
+                f"method: unknown reduction {method!r}; expected one of {', '.join(REDUCTION_METHODS)} or a callable"
+            )
     out = np.asarray(fn(H, s), dtype=float)
     if out.ndim != 2 or out.shape[0] != n or out.shape[1] > s:
-        raise QuadobsError(f"method: the reduction returned shape {out.shape}, expected ({n}, <= {s})")
+        raise QuadobsError(
+            f"method: the reduction returned shape {out.shape}, expected ({n}, <= {s})"
+        )
     return out
 
 
@@ -194,7 +202,9 @@ def reduce_generators(H: np.ndarray, max_generators: int, method: str | Callable
 # --------------------------------------------------------------------------------------
 
 
-def segment_gain(H: np.ndarray, c: np.ndarray, phi: float, Hc: np.ndarray | None = None) -> np.ndarray:
+def segment_gain(
+    H: np.ndarray, c: np.ndarray, phi: float, Hc: np.ndarray | None = None
+) -> np.ndarray:
     """Segment (F-radius) minimisation: ``argmin_lambda ||H(lambda)||_F^2`` over Property 6's family.
 
     For ``H(lambda) = [(I - lambda c^T) H, phi lambda]``,
@@ -300,7 +310,7 @@ class Zonotope:
     # -- construction ----------------------------------------------------------------
 
     @classmethod
-    def _trusted(cls, center: np.ndarray, generators: np.ndarray) -> "Zonotope":
+    def _trusted(cls, center: np.ndarray, generators: np.ndarray) -> Zonotope:
         """A zonotope from arrays already checked: float64, ``(n,)`` and ``(n, m)``, finite, read-only, owned by it.
 
         For the hot loops of the estimators: no conversion and no validation.
@@ -310,7 +320,7 @@ class Zonotope:
         return Z
 
     @classmethod
-    def from_box(cls, lower, upper) -> "Zonotope":
+    def from_box(cls, lower, upper) -> Zonotope:
         """The box ``[lower, upper]`` (``(n,)`` each) as a zonotope with ``n`` generators."""
         lo = as_array("lower", lower, (None,))
         hi = as_array("upper", upper, (lo.shape[0],))
@@ -319,7 +329,9 @@ class Zonotope:
         with np.errstate(over="ignore"):
             center, radius = 0.5 * lo + 0.5 * hi, 0.5 * hi - 0.5 * lo
         if not (np.isfinite(center).all() and np.isfinite(radius).all()):
-            raise QuadobsError("upper: the box [lower, upper] is too large to represent in double precision")
+            raise QuadobsError(
+                "upper: the box [lower, upper] is too large to represent in double precision"
+            )
         return cls(center, np.diag(radius))
 
     @property
@@ -333,38 +345,40 @@ class Zonotope:
 
     # -- Properties 1, 2, 3 -----------------------------------------------------------
 
-    def minkowski_sum(self, other: "Zonotope | np.ndarray") -> "Zonotope":
+    def minkowski_sum(self, other: Zonotope | np.ndarray) -> Zonotope:
         """Property 1: ``(p1 + p2) (+) [H1 H2] B``; a vector ``(n,)`` translates."""
         if isinstance(other, Zonotope):
             if other.dim != self.dim:
                 raise QuadobsError(f"other: dimension {other.dim} differs from {self.dim}")
-            return Zonotope(self.center + other.center, np.hstack([self.generators, other.generators]))
+            return Zonotope(
+                self.center + other.center, np.hstack([self.generators, other.generators])
+            )
         v = as_array("other", other, (self.dim,))
         return Zonotope(self.center + v, self.generators)
 
     __add__ = minkowski_sum
 
-    def linear_map(self, K) -> "Zonotope":
+    def linear_map(self, K) -> Zonotope:
         """Property 2: ``K Z = K p (+) K H B``."""
         K = as_array("K", K, (None, self.dim))
         return Zonotope(K @ self.center, K @ self.generators)
 
-    def __rmatmul__(self, K) -> "Zonotope":
+    def __rmatmul__(self, K) -> Zonotope:
         return self.linear_map(K)
 
-    def reduce(self, max_generators: int, method: str | Callable = "combastel") -> "Zonotope":
+    def reduce(self, max_generators: int, method: str | Callable = "combastel") -> Zonotope:
         """Property 3: an outer approximation with at most ``max_generators`` generators (see :func:`reduce_generators`)."""
         H = reduce_generators(self.generators, max_generators, method)
         return self if H is self.generators else Zonotope(self.center, H)
 
-    def drop_zero_generators(self) -> "Zonotope":
+    def drop_zero_generators(self) -> Zonotope:
         """The same set without its zero columns."""
         H = _drop_zero_columns(self.generators)
         return self if H is self.generators else Zonotope(self.center, H)
 
     # -- Property 6 -------------------------------------------------------------------
 
-    def strip_intersection(self, c, y: float, phi: float, lam=None) -> "Zonotope":
+    def strip_intersection(self, c, y: float, phi: float, lam=None) -> Zonotope:
         """Property 6: ``Z ∩ {x : |c^T x - y| <= phi} ⊆ p^(lam) (+) [(I - lam c^T) H, phi lam] B``.
 
         ``p^(lam) = p + lam (y - c^T p)``; valid for any ``lam (n,)``; ``None``: the segment
@@ -437,7 +451,9 @@ class Zonotope:
         n, m = self.dim, self.order
         H = self.generators
         if np.linalg.matrix_rank(H) < n:
-            raise QuadobsError("zonotope: the generators do not span the space (flat zonotope); no facet description")
+            raise QuadobsError(
+                "zonotope: the generators do not span the space (flat zonotope); no facet description"
+            )
         if n == 1:
             G = np.array([[1.0]])
         else:
@@ -467,7 +483,9 @@ class Zonotope:
             return p[None]
         if m <= n or n == 1:
             if m > 20:
-                raise QuadobsError(f"zonotope: 2^{m} sign vectors to enumerate; reduce the order first")
+                raise QuadobsError(
+                    f"zonotope: 2^{m} sign vectors to enumerate; reduce the order first"
+                )
             signs = np.array(list(product((-1.0, 1.0), repeat=m)))
             return p + signs @ H.T
         self._subsets(n - 1)
@@ -503,7 +521,9 @@ class Zonotope:
     def vertices(self) -> np.ndarray:
         """Vertices of a plane zonotope in counter-clockwise order, ``(2m', 2)`` (``m'`` non-zero generators)."""
         if self.dim != 2:
-            raise QuadobsError(f"vertices: only plane zonotopes (n = 2) are supported, got n = {self.dim}")
+            raise QuadobsError(
+                f"vertices: only plane zonotopes (n = 2) are supported, got n = {self.dim}"
+            )
         H = _drop_zero_columns(self.generators)
         p = self.center
         if H.shape[1] == 0:
@@ -513,7 +533,9 @@ class Zonotope:
         G = np.where(flip, -H, H)
         ang = np.arctan2(G[1], G[0])
         G = G[:, np.argsort(ang, kind="stable")]
-        start = p - G.sum(axis=1)  # lowest-angle walk starts at the extreme point in direction (0, -1) side
+        start = p - G.sum(
+            axis=1
+        )  # lowest-angle walk starts at the extreme point in direction (0, -1) side
         steps = 2.0 * np.hstack([G, -G])
         return start + np.vstack([np.zeros(2), np.cumsum(steps.T, axis=0)[:-1]])
 
@@ -534,7 +556,11 @@ class Zonotope:
             raise QuadobsError(f"x: expected points of dimension {self.dim}, got shape {x.shape}")
         if method == "auto":
             n, m = self.dim, self.order
-            cheap = n <= m and comb(m, max(n - 1, 0)) <= 2500 and np.linalg.matrix_rank(self.generators) == n
+            cheap = (
+                n <= m
+                and comb(m, max(n - 1, 0)) <= 2500
+                and np.linalg.matrix_rank(self.generators) == n
+            )
             method = "halfspace" if cheap else "lp"
         if method == "halfspace":
             G, b = self.halfspaces()
@@ -560,8 +586,15 @@ class Zonotope:
         A_eq = np.hstack([self.generators, np.zeros((n, 1))])
         eye = np.eye(m)
         A_ub = np.vstack([np.hstack([eye, -np.ones((m, 1))]), np.hstack([-eye, -np.ones((m, 1))])])
-        res = linprog(c, A_ub=A_ub, b_ub=np.zeros(2 * m), A_eq=A_eq, b_eq=x - self.center,
-                      bounds=[(None, None)] * m + [(0, None)], method="highs")
+        res = linprog(
+            c,
+            A_ub=A_ub,
+            b_ub=np.zeros(2 * m),
+            A_eq=A_eq,
+            b_eq=x - self.center,
+            bounds=[(None, None)] * m + [(0, None)],
+            method="highs",
+        )
         if res.status == 2:
             return float("inf")
         if res.status != 0:
@@ -592,14 +625,16 @@ class IntervalMatrix:
         hi = as_array("upper", self.upper, lo.shape)
         if np.any(hi < lo):
             i, j = (int(v) for v in np.argwhere(hi < lo)[0])
-            raise QuadobsError(f"upper: entry ({i}, {j}) is below the lower bound ({hi[i, j]} < {lo[i, j]})")
+            raise QuadobsError(
+                f"upper: entry ({i}, {j}) is below the lower bound ({hi[i, j]} < {lo[i, j]})"
+            )
         lo.setflags(write=False)
         hi.setflags(write=False)
         object.__setattr__(self, "lower", lo)
         object.__setattr__(self, "upper", hi)
 
     @classmethod
-    def from_mid_rad(cls, mid, rad) -> "IntervalMatrix":
+    def from_mid_rad(cls, mid, rad) -> IntervalMatrix:
         mid = as_array("mid", mid, ndim=2)
         rad = as_array("rad", rad, mid.shape)
         if np.any(rad < 0):
@@ -607,7 +642,7 @@ class IntervalMatrix:
         return cls(mid - rad, mid + rad)
 
     @classmethod
-    def point(cls, M) -> "IntervalMatrix":
+    def point(cls, M) -> IntervalMatrix:
         M = as_array("M", M, ndim=2)
         return cls(M, M)
 
@@ -632,7 +667,9 @@ class IntervalMatrix:
         lo, hi = self.lower, self.upper
         idx = np.argwhere(hi > lo)
         if len(idx) > 20:
-            raise QuadobsError(f"vertices: {len(idx)} interval entries give 2^{len(idx)} vertices (at most 20 entries)")
+            raise QuadobsError(
+                f"vertices: {len(idx)} interval entries give 2^{len(idx)} vertices (at most 20 entries)"
+            )
         out = np.repeat(lo[None], 2 ** len(idx), axis=0)
         for v, choice in enumerate(product((0, 1), repeat=len(idx))):
             for (i, j), c in zip(idx, choice):
@@ -643,9 +680,13 @@ class IntervalMatrix:
         M = np.asarray(M, dtype=float)
         return bool(np.all(M >= self.lower - tol) and np.all(M <= self.upper + tol))
 
-    def __matmul__(self, N) -> "IntervalMatrix":
+    def __matmul__(self, N) -> IntervalMatrix:
         """Property 5: ``[M] N`` with ``mid = mid[M] N`` and ``rad = rad[M] |N|``."""
-        N = as_array("N", N, (self.shape[1], None)) if np.ndim(N) == 2 else as_array("N", N, (self.shape[1],))[:, None]
+        N = (
+            as_array("N", N, (self.shape[1], None))
+            if np.ndim(N) == 2
+            else as_array("N", N, (self.shape[1],))[:, None]
+        )
         return IntervalMatrix.from_mid_rad(self.mid @ N, self.rad @ np.abs(N))
 
 
@@ -664,7 +705,9 @@ def interval_image(A: IntervalMatrix, Z: Zonotope) -> Zonotope:
     ``mid[A] p (+) [mid[A] H, diag(rad[A] (|p| + |H| 1))] B``.
     """
     if A.shape != (Z.dim, Z.dim):
-        raise QuadobsError(f"A: expected an interval matrix of shape ({Z.dim}, {Z.dim}), got {A.shape}")
+        raise QuadobsError(
+            f"A: expected an interval matrix of shape ({Z.dim}, {Z.dim}), got {A.shape}"
+        )
     mid, rad = A.mid, A.rad
     box = rad @ (np.abs(Z.center) + np.abs(Z.generators).sum(axis=1))
     H = mid @ Z.generators

@@ -87,7 +87,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["run_bench", "print_bench", "BENCH_KEYS"]
+__all__ = ["BENCH_KEYS", "print_bench", "run_bench"]
 
 #: Keys every bench JSON holds (``ekf_step_us``, ``ukf_step_us`` are ``null`` if those estimators are not registered).
 BENCH_KEYS = (
@@ -120,7 +120,13 @@ def _bare_physics_us(scenario, steps: int) -> float:
 
     from quadobs.testbed.worlds import VehicleSim
 
-    sim = VehicleSim(scenario.dimension, scenario.beacons, timestep=scenario.dt, wind=scenario.wind, model_path=scenario.model)
+    sim = VehicleSim(
+        scenario.dimension,
+        scenario.beacons,
+        timestep=scenario.dt,
+        wind=scenario.wind,
+        model_path=scenario.model,
+    )
     sim.reset(scenario.trajectory.position(0.0), scenario.trajectory.velocity_at(0.0))
     m, d, step = sim.model, sim.data, mujoco.mj_step
     for _ in range(min(steps, 1000)):  # warm caches
@@ -146,7 +152,9 @@ def _loop_us(scenario, out: Path | None, path: str = "auto", pipelined: bool = T
     from quadobs.testbed.worlds import PointMassWorld
 
     world = None if pipelined else functools.partial(PointMassWorld, pipelined=False)
-    summary = run_episode(scenario, estimators=["augmented"], out=out, path=path, world=world).summary
+    summary = run_episode(
+        scenario, estimators=["augmented"], out=out, path=path, world=world
+    ).summary
     return summary["wall_time"] / summary["physics_steps"] * 1e6
 
 
@@ -164,7 +172,10 @@ def _cold_start(scenario: str = "ifac2021") -> dict:
 
     run = [sys.executable, "-m", "quadobs", "run", scenario, "--duration", "0.001", "--no-progress"]
     out = {}
-    for key, commands in (("cold_run_s", [run]), ("compile_s", [[sys.executable, "-m", "quadobs", "compile"], run])):
+    for key, commands in (
+        ("cold_run_s", [run]),
+        ("compile_s", [[sys.executable, "-m", "quadobs", "compile"], run]),
+    ):
         with tempfile.TemporaryDirectory() as cache:
             env = dict(os.environ, NUMBA_CACHE_DIR=cache)
             for name, cmd in zip((key, "first_run_s"), commands):
@@ -182,12 +193,21 @@ def _vehicle_data(scenario, steps: int):
     pos = scenario.trajectory.position(t)
     x = np.concatenate([pos, scenario.trajectory.velocity_at(t)], axis=1)
     if scenario.has_wind:
-        x = np.concatenate([x[:, : scenario.dimension], x[:, scenario.dimension :] - scenario.wind, np.broadcast_to(scenario.wind, pos.shape)], axis=1)
+        x = np.concatenate(
+            [
+                x[:, : scenario.dimension],
+                x[:, scenario.dimension :] - scenario.wind,
+                np.broadcast_to(scenario.wind, pos.shape),
+            ],
+            axis=1,
+        )
     y = scenario.system().output(x)
     return np.ascontiguousarray(acc), np.ascontiguousarray(y), x[0]
 
 
-def _estimator_step_us(scenario, name: str, calls: int, repeats: int) -> tuple[float | None, str | None]:
+def _estimator_step_us(
+    scenario, name: str, calls: int, repeats: int
+) -> tuple[float | None, str | None]:
     """Median cost of one ``step`` of the registered estimator ``name`` on the scenario's data."""
     from quadobs.testbed.registry import available_estimators, build_estimators
 
@@ -204,7 +224,7 @@ def _estimator_step_us(scenario, name: str, calls: int, repeats: int) -> tuple[f
                 est.step(U[k], Y[k])
             times.append((time.perf_counter() - t0) / calls * 1e6)
         return _median(times), None
-    except Exception as exc:  # noqa: BLE001 - a figure not measured is reported, not fatal
+    except Exception as exc:
         return None, f"{name}: could not be measured ({type(exc).__name__}: {exc})"
 
 
@@ -217,8 +237,15 @@ def _observer_step_us(scenario, calls: int, repeats: int, backend: str) -> float
         from quadobs.estimators.augmented import AugmentedObserver
 
         obs = AugmentedObserver(
-            obs.immersion, scenario.dt, V=obs.model.V, W=obs.W, P0=obs.P.copy(), theta=obs.model.theta,
-            sample_period=scenario.dt, gate=obs.gate, backend=backend,
+            obs.immersion,
+            scenario.dt,
+            V=obs.model.V,
+            W=obs.W,
+            P0=obs.P.copy(),
+            theta=obs.model.theta,
+            sample_period=scenario.dt,
+            gate=obs.gate,
+            backend=backend,
         )
     obs.prepare("step")  # compiled (or loaded) before the timing
     times = []
@@ -295,10 +322,16 @@ def _campaign(name: str, runs: int, duration: float, workers: int) -> dict:
         bare = time.perf_counter() - t0
     marginal = runs / max(times[1] - times[0], 1e-9)
     return {
-        "scenario": name, "runs": runs, "duration": duration, "workers": workers,
-        "episodes_per_s": runs / times[0], "marginal_episodes_per_s": marginal,
-        "startup_s": max(times[0] - runs / marginal, 0.0), "bare_episodes_per_s": runs / bare,
-        "campaign_ratio": marginal * bare / runs, "cold_campaign_ratio": bare / times[0],
+        "scenario": name,
+        "runs": runs,
+        "duration": duration,
+        "workers": workers,
+        "episodes_per_s": runs / times[0],
+        "marginal_episodes_per_s": marginal,
+        "startup_s": max(times[0] - runs / marginal, 0.0),
+        "bare_episodes_per_s": runs / bare,
+        "campaign_ratio": marginal * bare / runs,
+        "cold_campaign_ratio": bare / times[0],
     }
 
 
@@ -355,8 +388,12 @@ def _le2013_step_us(designs, calls: int, repeats: int) -> dict:
     for m in METHODS:
         slow = m == "volume"
         out[m] = {
-            "numba": _le2013_run_us(designs, m, "numba", steps, max(runs // 20, 1) if slow else runs),
-            "numpy": _le2013_run_us(designs, m, "numpy", steps, max(runs // 20, 1) if slow else max(runs // 5, 1)),
+            "numba": _le2013_run_us(
+                designs, m, "numba", steps, max(runs // 20, 1) if slow else runs
+            ),
+            "numpy": _le2013_run_us(
+                designs, m, "numpy", steps, max(runs // 20, 1) if slow else max(runs // 5, 1)
+            ),
         }
     return out
 
@@ -392,9 +429,9 @@ def _vehicle_zonotope_us(calls: int, repeats: int) -> dict:
 
 
 def _batch(scenario, B: int, steps: int, repeats: int, threads: int) -> dict:
+    from quadobs.core.system import range_outputs
     from quadobs.estimators.augmented_batch import BatchAugmentedObserver
     from quadobs.testbed.factories import augmented_observer
-    from quadobs.core.system import range_outputs
     from quadobs.testbed.worlds.batch import VehicleBatch
 
     rng = np.random.default_rng(scenario.seed)
@@ -404,7 +441,15 @@ def _batch(scenario, B: int, steps: int, repeats: int, threads: int) -> dict:
     v0 = scenario.trajectory.velocity_at(0.0) + rng.uniform(-1.0, 1.0, (B, dim))
     template = augmented_observer(scenario, np.zeros(scenario.state_dim))
     phys, full = [], []
-    with VehicleBatch(dim, scenario.beacons, B, timestep=dt, wind=scenario.wind, model_path=scenario.model, threads=threads) as vb:
+    with VehicleBatch(
+        dim,
+        scenario.beacons,
+        B,
+        timestep=dt,
+        wind=scenario.wind,
+        model_path=scenario.model,
+        threads=threads,
+    ) as vb:
         vb.reset(p0, v0)
         vb.step(acc[0])
         for _ in range(repeats):
@@ -473,15 +518,35 @@ def _dense_system():
 
 def _scaling(calls: int, quick: bool, repeats: int) -> list[dict]:
     from quadobs.core.immersion import immerse
-    from quadobs.estimators.augmented import AugmentedObserver, default_backend
     from quadobs.core.system import QuadraticSystem, vehicle_system, wind_system
+    from quadobs.estimators.augmented import AugmentedObserver, default_backend
 
     rng = np.random.default_rng(8)
-    cases = [("vehicle", 2, 1), ("vehicle", 3, 1), ("vehicle", 3, 4), ("wind", 3, 2), ("dense", 8, 1)]
+    cases = [
+        ("vehicle", 2, 1),
+        ("vehicle", 3, 1),
+        ("vehicle", 3, 4),
+        ("wind", 3, 2),
+        ("dense", 8, 1),
+    ]
     if not quick:
-        cases = [("vehicle", 2, 1), ("vehicle", 2, 4), ("vehicle", 3, 1), ("vehicle", 3, 2), ("vehicle", 3, 4), ("vehicle", 3, 8),
-                 ("wind", 2, 2), ("wind", 3, 2), ("wind", 3, 4), ("random", 2, 1), ("random", 4, 1), ("random", 6, 1), ("random", 8, 1),
-                 ("random", 4, 3), ("dense", 8, 1)]
+        cases = [
+            ("vehicle", 2, 1),
+            ("vehicle", 2, 4),
+            ("vehicle", 3, 1),
+            ("vehicle", 3, 2),
+            ("vehicle", 3, 4),
+            ("vehicle", 3, 8),
+            ("wind", 2, 2),
+            ("wind", 3, 2),
+            ("wind", 3, 4),
+            ("random", 2, 1),
+            ("random", 4, 1),
+            ("random", 6, 1),
+            ("random", 8, 1),
+            ("random", 4, 3),
+            ("dense", 8, 1),
+        ]
     rows = []
     for kind, size, q in cases:
         if kind == "vehicle":
@@ -507,7 +572,9 @@ def _scaling(calls: int, quick: bool, repeats: int) -> list[dict]:
                 for k in range(n_calls):
                     obs.step(U[k], Y[k])
                 times.append((time.perf_counter() - t0) / n_calls * 1e6)
-            row[f"{backend}_us"] = min(times)  # the fastest of the repeats: the table shows growth, not load
+            row[f"{backend}_us"] = min(
+                times
+            )  # the fastest of the repeats: the table shows growth, not load
             row[f"{backend}_median_us"] = _median(times)
         rows.append(row)
     return rows
@@ -548,14 +615,26 @@ def _quadrotor_case(steps: int, repeats: int) -> dict:
 
     bare_us, loop_us = [], []
     with tempfile.TemporaryDirectory() as tmp:
-        run_episode(sc, estimators=["augmented"], out=Path(tmp) / "warm.rrd")  # compiled kernels loaded
+        run_episode(
+            sc, estimators=["augmented"], out=Path(tmp) / "warm.rrd"
+        )  # compiled kernels loaded
         for r in range(repeats):
             bare_us.append(bare())
-            summary = run_episode(sc, estimators=["augmented"], out=Path(tmp) / f"quad{r}.rrd").summary
+            summary = run_episode(
+                sc, estimators=["augmented"], out=Path(tmp) / f"quad{r}.rrd"
+            ).summary
             loop_us.append(summary["wall_time"] / summary["physics_steps"] * 1e6)
     ratios = [b / x for b, x in zip(bare_us, loop_us)]
-    return {"scenario": sc.name, "steps": steps, "repeats": repeats, "bare_step_us": _median(bare_us), "loop_us": _median(loop_us),
-            "loop_steps_per_s": 1e6 / _median(loop_us), "quadrotor_ratio": _median(ratios), "spread": _quartiles(ratios)}
+    return {
+        "scenario": sc.name,
+        "steps": steps,
+        "repeats": repeats,
+        "bare_step_us": _median(bare_us),
+        "loop_us": _median(loop_us),
+        "loop_steps_per_s": 1e6 / _median(loop_us),
+        "quadrotor_ratio": _median(ratios),
+        "spread": _quartiles(ratios),
+    }
 
 
 def run_bench(
@@ -592,8 +671,8 @@ def run_bench(
 
 
 def _run_bench(steps, repeats, batch, batch_steps, threads, quick, log) -> dict:
-    from quadobs.testbed.registry import available_estimators
     from quadobs.estimators.augmented import default_backend
+    from quadobs.testbed.registry import available_estimators
     from quadobs.testbed.scenario import load_scenario
 
     say = log or (lambda msg: None)
@@ -607,7 +686,14 @@ def _run_bench(steps, repeats, batch, batch_steps, threads, quick, log) -> dict:
             "python": platform.python_version(),
             "platform": platform.platform(),
         },
-        "config": {"scenario": sc.name, "steps": steps, "repeats": repeats, "batch": batch, "batch_steps": batch_steps, "threads": threads},
+        "config": {
+            "scenario": sc.name,
+            "steps": steps,
+            "repeats": repeats,
+            "batch": batch,
+            "batch_steps": batch_steps,
+            "threads": threads,
+        },
         "backend": default_backend(),
     }
     try:
@@ -622,10 +708,15 @@ def _run_bench(steps, repeats, batch, batch_steps, threads, quick, log) -> dict:
 
     loops = max(repeats, 9)  # enough for quartiles
     result["config"]["loop_repeats"] = loops
-    say(f"single vehicle: {loops} x (bare physics, then the loop without and with recording on the block and the per-step path) of {steps} steps")
+    say(
+        f"single vehicle: {loops} x (bare physics, then the loop without and with recording on the block and the per-step path) of {steps} steps"
+    )
     _loop_us(sc.with_overrides(duration=min(steps, 2000) * sc.dt), None)  # warm-up
     _loop_us(sc.with_overrides(duration=min(steps, 2000) * sc.dt), None, "step")
-    runs: dict[str, list[float]] = {k: [] for k in ("bare", "norec", "rec", "step_norec", "step_rec", "serial_norec", "serial_rec")}
+    runs: dict[str, list[float]] = {
+        k: []
+        for k in ("bare", "norec", "rec", "step_norec", "step_rec", "serial_norec", "serial_rec")
+    }
     with tempfile.TemporaryDirectory() as tmp:
         for r in range(loops):
             runs["bare"].append(_bare_physics_us(sc, steps))
@@ -642,7 +733,11 @@ def _run_bench(steps, repeats, batch, batch_steps, threads, quick, log) -> dict:
     result["recorded_loop_us"] = _median(rec)
     result["step_recorded_loop_us"] = _median(runs["step_rec"])
     series = {}
-    for prefix, a, b in (("", "norec", "rec"), ("serial_", "serial_norec", "serial_rec"), ("step_", "step_norec", "step_rec")):
+    for prefix, a, b in (
+        ("", "norec", "rec"),
+        ("serial_", "serial_norec", "serial_rec"),
+        ("step_", "step_norec", "step_rec"),
+    ):
         series[f"{prefix}observer_loop_ratio"] = [x / y for x, y in zip(bare, runs[a])]
         series[f"{prefix}loop_ratio"] = [x / y for x, y in zip(bare, runs[b])]
         series[f"{prefix}recording_fraction"] = [1.0 - x / y for x, y in zip(runs[a], runs[b])]
@@ -661,7 +756,9 @@ def _run_bench(steps, repeats, batch, batch_steps, threads, quick, log) -> dict:
     calls = max(min(steps, 5000), 100)
     say("per-step costs of the estimators")
     result["observer_step_us"] = _observer_step_us(sc, calls, repeats, default_backend())
-    result["observer_numpy_step_us"] = _observer_step_us(sc, max(calls // 20, 50), max(repeats // 2, 1), "numpy")
+    result["observer_numpy_step_us"] = _observer_step_us(
+        sc, max(calls // 20, 50), max(repeats // 2, 1), "numpy"
+    )
     result["observer_block_step_us"] = _observer_block_step_us(sc, calls, repeats)
     for name, key in (("ekf", "ekf_step_us"), ("ukf", "ukf_step_us")):
         value, note = _estimator_step_us(sc, name, calls, repeats)
@@ -671,7 +768,9 @@ def _run_bench(steps, repeats, batch, batch_steps, threads, quick, log) -> dict:
     result["zonotope_vehicle"] = _vehicle_zonotope_us(max(min(calls, 2000), 100), repeats)
     result["zonotope_vehicle_step_us"] = result["zonotope_vehicle"]["step_us"]
     say("le2013: offline LMI design and online steps of the zonotopic estimators")
-    result["lmi_design_s"], result["lmi_design_split_s"], result["lmi_import_s"], designs = _lmi_design_s()
+    result["lmi_design_s"], result["lmi_design_split_s"], result["lmi_import_s"], designs = (
+        _lmi_design_s()
+    )
     result["le2013_step_us"] = _le2013_step_us(designs, min(calls, 1000), repeats)
     result["zonotope_step_us"] = result["le2013_step_us"]["pradius2"]["numba"]
     result["registered_estimators"] = available_estimators(sc)
@@ -681,30 +780,42 @@ def _run_bench(steps, repeats, batch, batch_steps, threads, quick, log) -> dict:
     result["batch_ratio"] = result["batch"]["batch_ratio"]
 
     workers = os.cpu_count() or 1
-    runs = (8 if quick else 2) * workers  # short episodes: enough of them to time the rate once started
-    say(f"campaign: ifac2021-noisy, {runs} then {2 * runs} episodes on {workers} processes, against bare physics")
+    runs = (
+        8 if quick else 2
+    ) * workers  # short episodes: enough of them to time the rate once started
+    say(
+        f"campaign: ifac2021-noisy, {runs} then {2 * runs} episodes on {workers} processes, against bare physics"
+    )
     result["campaign"] = _campaign("ifac2021-noisy", runs, 1.0 if quick else 10.0, workers)
     result["campaign_ratio"] = result["campaign"]["campaign_ratio"]
 
     say("quadrotor: physics + controller + IMU/UWB + observer + recording against bare mj_step")
-    result["quadrotor"] = _quadrotor_case(20000, max(min(repeats, 9), 3))  # 20 s: take-off, flight on the estimate, landing
+    result["quadrotor"] = _quadrotor_case(
+        20000, max(min(repeats, 9), 3)
+    )  # 20 s: take-off, flight on the estimate, landing
     say("scaling with n and q")
     result["scaling"] = _scaling(max(min(calls, 2000), 50), quick, max(repeats // 2, 1))
     dense_row = next(row for row in result["scaling"] if row["system"] == "dense")
     result["observer_step_us_N38"] = dense_row[f"{default_backend()}_median_us"]
     say("first run on a fresh kernel cache, with and without 'quadobs compile' before it")
     result["cold_start"] = _cold_start()
-    notes.append("GPU batch figure: not measured (quadobs has no GPU path; the batch runs on the CPU)")
+    notes.append(
+        "GPU batch figure: not measured (quadobs has no GPU path; the batch runs on the CPU)"
+    )
     result["targets"] = {
         "loop_ratio >= 1.0": _meets(result["loop_ratio"], 1.0, ">="),
         "batch_ratio >= 0.5": _meets(result["batch_ratio"], 0.5, ">="),
         "recording_fraction <= 0.1": _meets(result["recording_fraction"], 0.1, "<="),
-        "recording_fraction iqr < 0.03": _meets(result["spread"]["recording_fraction"]["iqr"], 0.03, "<"),
+        "recording_fraction iqr < 0.03": _meets(
+            result["spread"]["recording_fraction"]["iqr"], 0.03, "<"
+        ),
         "observer_step_us <= 3 (N = 9)": _meets(result["observer_step_us"], 3.0, "<="),
         "observer_step_us_N38 <= 40": _meets(result["observer_step_us_N38"], 40.0, "<="),
         "zonotope_step_us < 50": _meets(result["zonotope_step_us"], 50.0, "<"),
         "quadrotor_ratio >= 0.3": _meets(result["quadrotor"]["quadrotor_ratio"], 0.3, ">="),
-        "first run after quadobs compile <= 5 s": _meets(result["cold_start"]["first_run_s"], 5.0, "<="),
+        "first run after quadobs compile <= 5 s": _meets(
+            result["cold_start"]["first_run_s"], 5.0, "<="
+        ),
     }
     result["notes"] = notes
     return result
@@ -726,60 +837,112 @@ def print_bench(r: dict, file=None) -> None:
     p = lambda *a: print(*a, file=file)  # noqa: E731
     m, c = r["machine"], r["config"]
     load = m.get("load_average")
-    p(f"quadobs bench: {m['cpus']} CPUs, load average {', '.join(f'{x:.2f}' for x in load) if load else '?'}; "
-      f"mujoco {m.get('mujoco', '?')}, numba {m.get('numba', 'missing')}; observer backend {r['backend']}; "
-      f"medians of {c['repeats']} repeats")
+    p(
+        f"quadobs bench: {m['cpus']} CPUs, load average {', '.join(f'{x:.2f}' for x in load) if load else '?'}; "
+        f"mujoco {m.get('mujoco', '?')}, numba {m.get('numba', 'missing')}; observer backend {r['backend']}; "
+        f"medians of {c['repeats']} repeats"
+    )
     p(f"single vehicle ({c['scenario']}, {c['steps']} steps per run)")
-    p(f"  bare MuJoCo stepping            {r['bare_steps_per_s']:>10,.0f} steps/s  ({r['bare_step_us']:.2f} us/step)")
-    p(f"  physics + augmented observer    ratio {r['observer_loop_ratio']:.2f}        ({r['observer_loop_us']:.2f} us/step)")
-    p(f"  physics + observer + recording  ratio {r['loop_ratio']:.2f}        ({r['recorded_loop_us']:.2f} us/step); "
-      f"recording {100 * r['recording_fraction']:.1f}% of the loop")
+    p(
+        f"  bare MuJoCo stepping            {r['bare_steps_per_s']:>10,.0f} steps/s  ({r['bare_step_us']:.2f} us/step)"
+    )
+    p(
+        f"  physics + augmented observer    ratio {r['observer_loop_ratio']:.2f}        ({r['observer_loop_us']:.2f} us/step)"
+    )
+    p(
+        f"  physics + observer + recording  ratio {r['loop_ratio']:.2f}        ({r['recorded_loop_us']:.2f} us/step); "
+        f"recording {100 * r['recording_fraction']:.1f}% of the loop"
+    )
     sp = r["spread"]
-    p(f"  median [q1, q3] over {c.get('loop_repeats', c['repeats'])} repeats  block path (default)    block, one thread        per-step path")
-    for key, label in (("observer_loop_ratio", "ratio without recording"), ("loop_ratio", "ratio with recording"),
-                       ("recording_fraction", "recording fraction")):
+    p(
+        f"  median [q1, q3] over {c.get('loop_repeats', c['repeats'])} repeats  block path (default)    block, one thread        per-step path"
+    )
+    for key, label in (
+        ("observer_loop_ratio", "ratio without recording"),
+        ("loop_ratio", "ratio with recording"),
+        ("recording_fraction", "recording fraction"),
+    ):
         cells = [sp[prefix + key] for prefix in ("", "serial_", "step_") if prefix + key in sp]
-        p(f"  {label:31s} " + "    ".join(f"{a['median']:.3f} [{a['q1']:.3f}, {a['q3']:.3f}]" for a in cells))
+        p(
+            f"  {label:31s} "
+            + "    ".join(f"{a['median']:.3f} [{a['q1']:.3f}, {a['q3']:.3f}]" for a in cells)
+        )
     b = r["best"]
-    p(f"  fastest runs: bare {b['bare_step_us']:.2f} us/step, ratios {b['observer_loop_ratio']:.2f} and {b['loop_ratio']:.2f}, "
-      f"recording {100 * b['recording_fraction']:.1f}%")
+    p(
+        f"  fastest runs: bare {b['bare_step_us']:.2f} us/step, ratios {b['observer_loop_ratio']:.2f} and {b['loop_ratio']:.2f}, "
+        f"recording {100 * b['recording_fraction']:.1f}%"
+    )
     p("per-step cost (us)")
-    p(f"  augmented observer (compiled)   {_fmt(r['observer_step_us'], '.2f')}   (NumPy reference {_fmt(r['observer_numpy_step_us'], '.1f')})")
-    p(f"  augmented observer, block path  {_fmt(r['observer_block_step_us'], '.2f')}   (one compiled call per block of rows)")
+    p(
+        f"  augmented observer (compiled)   {_fmt(r['observer_step_us'], '.2f')}   (NumPy reference {_fmt(r['observer_numpy_step_us'], '.1f')})"
+    )
+    p(
+        f"  augmented observer, block path  {_fmt(r['observer_block_step_us'], '.2f')}   (one compiled call per block of rows)"
+    )
     p(f"  EKF                             {_fmt(r['ekf_step_us'], '.2f')}")
     p(f"  UKF                             {_fmt(r['ukf_step_us'], '.2f')}")
     zv = r["zonotope_vehicle"]
-    p(f"  zonotopic, vehicle              {_fmt(r['zonotope_vehicle_step_us'], '.2f')}   ({zv['scenario']}, outputs every {zv['range_every']} steps; "
-      f"{_fmt(zv['correct_every_step_us'], '.1f')} with outputs at every step)")
-    p(f"  zonotopic, le2013 (online)      {_fmt(r['zonotope_step_us'], '.2f')}   (P-radius, second approach)")
-    p(f"  LMI design le2013 (offline, s)  {_fmt(r['lmi_design_s'], '.3f')}   "
-      f"({', '.join(f'{k} {v:.3f}' for k, v in r['lmi_design_split_s'].items())}; importing cvxpy before: {r['lmi_import_s']:.3f})")
+    p(
+        f"  zonotopic, vehicle              {_fmt(r['zonotope_vehicle_step_us'], '.2f')}   ({zv['scenario']}, outputs every {zv['range_every']} steps; "
+        f"{_fmt(zv['correct_every_step_us'], '.1f')} with outputs at every step)"
+    )
+    p(
+        f"  zonotopic, le2013 (online)      {_fmt(r['zonotope_step_us'], '.2f')}   (P-radius, second approach)"
+    )
+    p(
+        f"  LMI design le2013 (offline, s)  {_fmt(r['lmi_design_s'], '.3f')}   "
+        f"({', '.join(f'{k} {v:.3f}' for k, v in r['lmi_design_split_s'].items())}; importing cvxpy before: {r['lmi_import_s']:.3f})"
+    )
     p("le2013 online step per method (us): compiled / NumPy reference")
     for m, v in r["le2013_step_us"].items():
         p(f"  {m:16s} {v['numba']:>10.2f} / {v['numpy']:>10.2f}")
     b = r["batch"]
-    p(f"batch of {b['vehicles']} vehicles ({b['steps']} steps, threads {b['threads']} for the rollout and for the observers)")
-    p(f"  physics alone                   {b['physics_vehicle_steps_per_s']:>10,.0f} vehicle-steps/s ({b['physics_us_per_vehicle_step']:.2f} us)")
-    p(f"  physics + sensors + observers   {b['with_observer_vehicle_steps_per_s']:>10,.0f} vehicle-steps/s ({b['with_observer_us_per_vehicle_step']:.2f} us); "
-      f"ratio {b['batch_ratio']:.2f}")
+    p(
+        f"batch of {b['vehicles']} vehicles ({b['steps']} steps, threads {b['threads']} for the rollout and for the observers)"
+    )
+    p(
+        f"  physics alone                   {b['physics_vehicle_steps_per_s']:>10,.0f} vehicle-steps/s ({b['physics_us_per_vehicle_step']:.2f} us)"
+    )
+    p(
+        f"  physics + sensors + observers   {b['with_observer_vehicle_steps_per_s']:>10,.0f} vehicle-steps/s ({b['with_observer_us_per_vehicle_step']:.2f} us); "
+        f"ratio {b['batch_ratio']:.2f}"
+    )
     c = r["campaign"]
-    p(f"campaign {c['scenario']} ({c['runs']} and {2 * c['runs']} episodes of {c['duration']:g} s on {c['workers']} processes)")
-    p(f"  testbed {c['marginal_episodes_per_s']:.2f} episodes/s once started, bare physics {c['bare_episodes_per_s']:.2f} "
-      f"episodes/s; ratio {c['campaign_ratio']:.2f}")
-    p(f"  start-up of the campaign's workers {c['startup_s']:.2f} s; with it, {c['episodes_per_s']:.2f} episodes/s "
-      f"(ratio {c['cold_campaign_ratio']:.2f})")
+    p(
+        f"campaign {c['scenario']} ({c['runs']} and {2 * c['runs']} episodes of {c['duration']:g} s on {c['workers']} processes)"
+    )
+    p(
+        f"  testbed {c['marginal_episodes_per_s']:.2f} episodes/s once started, bare physics {c['bare_episodes_per_s']:.2f} "
+        f"episodes/s; ratio {c['campaign_ratio']:.2f}"
+    )
+    p(
+        f"  start-up of the campaign's workers {c['startup_s']:.2f} s; with it, {c['episodes_per_s']:.2f} episodes/s "
+        f"(ratio {c['cold_campaign_ratio']:.2f})"
+    )
     q = r["quadrotor"]
-    p(f"quadrotor {q['scenario']} ({q['steps']} steps, {q['repeats']} repeats): bare mj_step {q['bare_step_us']:.2f} us/step, "
-      f"loop with recording {q['loop_us']:.2f} us/step ({q['loop_steps_per_s']:,.0f} steps/s); ratio {q['quadrotor_ratio']:.2f} "
-      f"[{q['spread']['q1']:.2f}, {q['spread']['q3']:.2f}]")
+    p(
+        f"quadrotor {q['scenario']} ({q['steps']} steps, {q['repeats']} repeats): bare mj_step {q['bare_step_us']:.2f} us/step, "
+        f"loop with recording {q['loop_us']:.2f} us/step ({q['loop_steps_per_s']:,.0f} steps/s); ratio {q['quadrotor_ratio']:.2f} "
+        f"[{q['spread']['q1']:.2f}, {q['spread']['q3']:.2f}]"
+    )
     cs = r["cold_start"]
-    p(f"first run on a fresh kernel cache (one-step run, whole process): {cs['cold_run_s']:.1f} s compiling in the run; "
-      f"'quadobs compile' {cs['compile_s']:.1f} s, then the first run {cs['first_run_s']:.1f} s")
+    p(
+        f"first run on a fresh kernel cache (one-step run, whole process): {cs['cold_run_s']:.1f} s compiling in the run; "
+        f"'quadobs compile' {cs['compile_s']:.1f} s, then the first run {cs['first_run_s']:.1f} s"
+    )
     p("observer step against the dimensions (us per step, fastest of a few repeats)")
     backend = r["backend"]
     p(f"  {'system':8s} {'n':>3s} {'q':>3s} {'N':>4s} {backend:>8s} {'numpy':>8s}")
     for row in r["scaling"]:
-        p(f"  {row['system']:8s} {row['n']:>3d} {row['q']:>3d} {row['N']:>4d} {row.get(backend + '_us', float('nan')):>8.2f} {row['numpy_us']:>8.1f}")
-    p("targets: " + ", ".join(f"{k}: {'met' if v else 'MISSED' if v is not None else 'n/a'}" for k, v in r["targets"].items()))
+        p(
+            f"  {row['system']:8s} {row['n']:>3d} {row['q']:>3d} {row['N']:>4d} {row.get(backend + '_us', float('nan')):>8.2f} {row['numpy_us']:>8.1f}"
+        )
+    p(
+        "targets: "
+        + ", ".join(
+            f"{k}: {'met' if v else 'MISSED' if v is not None else 'n/a'}"
+            for k, v in r["targets"].items()
+        )
+    )
     for note in r["notes"]:
         p(f"note: {note}")

@@ -38,6 +38,7 @@ Results (in ``out_dir``)
 
 from __future__ import annotations
 
+import functools
 import math
 import os
 import tempfile
@@ -49,12 +50,19 @@ from pathlib import Path
 import numpy as np
 
 from quadobs.errors import QuadobsError, as_finite_scalar, caused_by_interrupt
-from quadobs.testbed.registry import available_estimators, default_estimators, estimator_factory
 from quadobs.evaluation.ensemble import Ensemble, converged_nees, ensemble, nees, set_containment
 from quadobs.testbed.bounds import immersion_bound, scenario_crb
+from quadobs.testbed.registry import available_estimators, default_estimators, estimator_factory
 from quadobs.testbed.scenario import Scenario, parse_scenario
 
-__all__ = ["CampaignResult", "run_campaign", "run_one", "run_seed", "print_campaign", "flight_summary"]
+__all__ = [
+    "CampaignResult",
+    "flight_summary",
+    "print_campaign",
+    "run_campaign",
+    "run_one",
+    "run_seed",
+]
 
 
 #: Most runs in one campaign, and most local worker processes.
@@ -90,8 +98,12 @@ def run_one(task: dict) -> dict:
         data = dict(task["scenario"])
         data["seed"] = int(task["seed"])
         scenario = parse_scenario(data, source=task.get("source", ""))
-        result = run_episode(scenario, estimators=list(task["estimators"]), collect_every=int(task["collect_every"]))
-        if result.summary["interrupted"]:  # Ctrl-C reached the run: stop the campaign, not just this run
+        result = run_episode(
+            scenario, estimators=list(task["estimators"]), collect_every=int(task["collect_every"])
+        )
+        if result.summary[
+            "interrupted"
+        ]:  # Ctrl-C reached the run: stop the campaign, not just this run
             raise KeyboardInterrupt
         tr = result.trace
         dim, wind = scenario.dimension, scenario.has_wind
@@ -100,7 +112,9 @@ def run_one(task: dict) -> dict:
         for name in task["estimators"]:
             est = tr["estimates"][name]
             e = est - truth
-            ev = e[:, dim : 2 * dim] + (e[:, 2 * dim :] if wind else 0.0)  # ground velocity (metrics.state_errors)
+            ev = e[:, dim : 2 * dim] + (
+                e[:, 2 * dim :] if wind else 0.0
+            )  # ground velocity (metrics.state_errors)
             entry = {
                 "position_error": e[:, :dim].copy(),
                 "velocity_error": ev,
@@ -115,18 +129,35 @@ def run_one(task: dict) -> dict:
                 entry["width_position"] = width[:, :dim].mean(axis=1)
                 entry["width_velocity"] = width[:, dim : 2 * dim].mean(axis=1)
             s = result.summary["estimators"][name]
-            if s.get("modes") is not None:  # a switching estimator: which samples report a later mode
+            if (
+                s.get("modes") is not None
+            ):  # a switching estimator: which samples report a later mode
                 entry["switched"] = _switched(tr["time"], s["modes"]["switches"], scenario.dt)
                 entry["handover_time"] = _first_handover(s["modes"], scenario.dt)
-            for key in ("final_position_error", "final_velocity_error", "time_to_1m", "time_to_0p1m"):
+            for key in (
+                "final_position_error",
+                "final_velocity_error",
+                "time_to_1m",
+                "time_to_0p1m",
+            ):
                 entry[key] = np.nan if s.get(key) is None else float(s[key])
             per[name] = entry
-        out = {**base, "status": "ok", "time": tr["time"], "estimators": per, "wall_time": _time.perf_counter() - t0}
-        if "flight" in result.summary:  # a quadrotor world: its flight figures (quadobs.testbed.flight)
+        out = {
+            **base,
+            "status": "ok",
+            "time": tr["time"],
+            "estimators": per,
+            "wall_time": _time.perf_counter() - t0,
+        }
+        if (
+            "flight" in result.summary
+        ):  # a quadrotor world: its flight figures (quadobs.testbed.flight)
             out["flight"] = _run_flight(result.summary)
         return out
     except Exception as exc:  # reported, never dropped
-        if caused_by_interrupt(exc):  # an import or a compiler cut short by Ctrl-C: the interrupt goes on
+        if caused_by_interrupt(
+            exc
+        ):  # an import or a compiler cut short by Ctrl-C: the interrupt goes on
             raise KeyboardInterrupt from exc
         return {
             **base,
@@ -227,7 +258,9 @@ def _collect_every(scenario: Scenario, every: float | None) -> int:
     every = as_finite_scalar("every", every, positive=True)
     k = int(round(every * scenario.physics_rate))
     if k < 1 or abs(k - every * scenario.physics_rate) > 1e-6 * k:
-        raise QuadobsError(f"every: {every} s is not a whole number of physics steps ({scenario.dt} s)")
+        raise QuadobsError(
+            f"every: {every} s is not a whole number of physics steps ({scenario.dt} s)"
+        )
     if scenario.steps % k:
         raise QuadobsError(
             f"every: {every} s must divide the duration {scenario.duration} s (so the last sample is the end)"
@@ -235,17 +268,29 @@ def _collect_every(scenario: Scenario, every: float | None) -> int:
     return k
 
 
-def _checked_settings(scenario, runs, retries, estimators, scheduler, workers, start_method, threshold, confidence):
+def _checked_settings(
+    scenario, runs, retries, estimators, scheduler, workers, start_method, threshold, confidence
+):
     """The campaign's settings checked (one-line errors naming the setting): ``names, threshold, confidence``."""
-    if isinstance(runs, bool) or not isinstance(runs, (int, np.integer)) or not 1 <= runs <= MAX_RUNS:
+    if (
+        isinstance(runs, bool)
+        or not isinstance(runs, (int, np.integer))
+        or not 1 <= runs <= MAX_RUNS
+    ):
         raise QuadobsError(f"runs: expected an integer from 1 to {MAX_RUNS}, got {runs!r}")
-    if isinstance(retries, bool) or not isinstance(retries, (int, np.integer)) or not 0 <= retries <= 100:
+    if (
+        isinstance(retries, bool)
+        or not isinstance(retries, (int, np.integer))
+        or not 0 <= retries <= 100
+    ):
         raise QuadobsError(f"retries: expected an integer from 0 to 100, got {retries!r}")
     names = list(estimators) if estimators else default_estimators(scenario)
     known = available_estimators(scenario)
     for nm in names:
         if nm not in known:
-            raise QuadobsError(f"estimators: unknown estimator {nm!r}; available: {', '.join(known)}")
+            raise QuadobsError(
+                f"estimators: unknown estimator {nm!r}; available: {', '.join(known)}"
+            )
     if len(set(names)) != len(names):
         raise QuadobsError(f"estimators: names must be distinct, got {names}")
     _check_reach(scenario, names, scheduler, workers, start_method)
@@ -254,7 +299,9 @@ def _checked_settings(scenario, runs, retries, estimators, scheduler, workers, s
             "workers: applies to local processes; with a scheduler the cluster's workers run the campaign"
         )
     if workers is not None and (
-        isinstance(workers, bool) or not isinstance(workers, (int, np.integer)) or not 0 <= workers <= MAX_WORKERS
+        isinstance(workers, bool)
+        or not isinstance(workers, (int, np.integer))
+        or not 0 <= workers <= MAX_WORKERS
     ):
         raise QuadobsError(f"workers: expected an integer from 0 to {MAX_WORKERS}, got {workers!r}")
     threshold = as_finite_scalar("threshold", threshold, positive=True)
@@ -264,12 +311,17 @@ def _checked_settings(scenario, runs, retries, estimators, scheduler, workers, s
     return names, threshold, confidence
 
 
+def _stack_key(per: list[dict], key: str):
+    """The runs' values of ``key``, stacked along a first axis (``None`` without runs)."""
+    return np.stack([p[key] for p in per]) if per else None
+
+
 def _ensembles(scenario, names, ok, times, sqrt_bound, threshold, confidence) -> dict:
     """Per estimator, the :class:`~quadobs.evaluation.ensemble.Ensemble` of the completed runs."""
     ensembles = {}
     for nm in names:
         per = [r["estimators"][nm] for r in ok]
-        stack = lambda key: np.stack([p[key] for p in per]) if per else None  # noqa: E731
+        stack = functools.partial(_stack_key, per)
         has_set = bool(per) and all("containment" in p for p in per)
         T = times.shape[0]
         dim = scenario.dimension
@@ -300,18 +352,38 @@ def _add_converged_nees(summaries, scenario, names, ok, ensembles, times, confid
         per = [r["estimators"][nm] for r in ok]
         if per:
             part = converged_nees(
-                np.stack([p["nees"] for p in per]), _converged_part(ensembles[nm], per, times), scenario.state_dim, confidence
+                np.stack([p["nees"] for p in per]),
+                _converged_part(ensembles[nm], per, times),
+                scenario.state_dim,
+                confidence,
             )
             summaries[nm]["nees_converged_part"] = {
                 "time_average": part["time_average"],
                 "inside_fraction": part["inside_fraction"],
-                "all_runs_from": None if part["all_runs_from"] is None else float(times[part["all_runs_from"]]),
+                "all_runs_from": None
+                if part["all_runs_from"] is None
+                else float(times[part["all_runs_from"]]),
                 "final": None if not np.isfinite(part["mean"][-1]) else float(part["mean"][-1]),
-                "final_bounds": [None if not np.isfinite(v) else float(v) for v in part["bounds"][-1]],
+                "final_bounds": [
+                    None if not np.isfinite(v) else float(v) for v in part["bounds"][-1]
+                ],
             }
 
 
-def _write_outputs(out, summary, scenario, names, ok, failed, ensembles, times, record, sqrt_bound, sqrt_linear, k_every) -> None:
+def _write_outputs(
+    out,
+    summary,
+    scenario,
+    names,
+    ok,
+    failed,
+    ensembles,
+    times,
+    record,
+    sqrt_bound,
+    sqrt_linear,
+    k_every,
+) -> None:
     """``runs.parquet``, ``series.parquet``, ``statistics.rrd`` (with ``record``) and, last, ``summary.json``."""
     files = {
         "summary": str(out / "summary.json"),
@@ -321,7 +393,9 @@ def _write_outputs(out, summary, scenario, names, ok, failed, ensembles, times, 
     _write_runs(out / "runs.parquet", ok, failed, names, ensembles)
     _write_series(out / "series.parquet", ok, names, times)
     if record:
-        _record_statistics(out / "statistics.rrd", scenario, names, ensembles, sqrt_bound, sqrt_linear, k_every)
+        _record_statistics(
+            out / "statistics.rrd", scenario, names, ensembles, sqrt_bound, sqrt_linear, k_every
+        )
         files["recording"] = str(out / "statistics.rrd")
     summary["files"] = files
     from quadobs.testbed.episode import write_json_atomic
@@ -406,12 +480,16 @@ def run_campaign(
     linear = immersion_bound(scenario, every=k_every)
 
     wall0 = _time.perf_counter()
-    results, interrupted, backend = _execute(tasks, scheduler, workers, progress, scenario.name, start_method, retries)
+    results, interrupted, backend = _execute(
+        tasks, scheduler, workers, progress, scenario.name, start_method, retries
+    )
     wall = _time.perf_counter() - wall0
 
     ok = sorted((r for r in results if r["status"] == "ok"), key=lambda r: r["index"])
     failed = sorted((r for r in results if r["status"] != "ok"), key=lambda r: r["index"])
-    times = ok[0]["time"] if ok else np.arange(scenario.steps // k_every + 1) * k_every * scenario.dt
+    times = (
+        ok[0]["time"] if ok else np.arange(scenario.steps // k_every + 1) * k_every * scenario.dt
+    )
     sqrt_bound = None if bound is None else _sqrt_traces(scenario, bound[1])
     sqrt_linear = None if linear is None else _sqrt_traces(scenario, linear[1])
     ensembles = _ensembles(scenario, names, ok, times, sqrt_bound, threshold, confidence)
@@ -425,7 +503,11 @@ def run_campaign(
         "runs_completed": len(ok),
         "runs_failed": len(failed),
         "failed": [{"run": r["index"], "seed": r["seed"], "error": r["error"]} for r in failed],
-        "retried": [{"run": r["index"], "seed": r["seed"], "lost": r["lost"]} for r in sorted(results, key=lambda r: r["index"]) if r.get("lost")],
+        "retried": [
+            {"run": r["index"], "seed": r["seed"], "lost": r["lost"]}
+            for r in sorted(results, key=lambda r: r["index"])
+            if r.get("lost")
+        ],
         "interrupted": interrupted,
         "duration": scenario.duration,
         "physics_rate": scenario.physics_rate,
@@ -444,7 +526,20 @@ def run_campaign(
         summary["flight"] = flight_summary([r["flight"] for r in ok], names)
     result = CampaignResult(summary, ensembles, ok + failed, bound)
     if out is not None:
-        _write_outputs(out, summary, scenario, names, ok, failed, ensembles, times, record, sqrt_bound, sqrt_linear, k_every)
+        _write_outputs(
+            out,
+            summary,
+            scenario,
+            names,
+            ok,
+            failed,
+            ensembles,
+            times,
+            record,
+            sqrt_bound,
+            sqrt_linear,
+            k_every,
+        )
     return result
 
 
@@ -463,13 +558,20 @@ def _sqrt_traces(scenario: Scenario, B: np.ndarray) -> np.ndarray:
     dim = scenario.dimension
     Tv = _velocity_selector(scenario)
     return np.stack(
-        [np.sqrt(np.trace(B[:, :dim, :dim], axis1=1, axis2=2)), np.sqrt(np.einsum("ia,tab,ib->t", Tv, B, Tv))], axis=1
+        [
+            np.sqrt(np.trace(B[:, :dim, :dim], axis1=1, axis2=2)),
+            np.sqrt(np.einsum("ia,tab,ib->t", Tv, B, Tv)),
+        ],
+        axis=1,
     )
 
 
 def _bound_summary(bound, sqrt_bound, sqrt_linear) -> dict:
     if bound is None:
-        return {"available": False, "note": "a sensor is noise-free: the information is infinite and the bound zero"}
+        return {
+            "available": False,
+            "note": "a sensor is noise-free: the information is infinite and the bound zero",
+        }
     out = {
         "available": True,
         "note": bound[2],
@@ -505,7 +607,13 @@ def _check_reach(scenario: Scenario, names: list[str], scheduler, workers, start
 
 
 def _execute(
-    tasks: list[dict], scheduler, workers, progress: bool, label: str, start_method: str | None = None, retries: int = 2
+    tasks: list[dict],
+    scheduler,
+    workers,
+    progress: bool,
+    label: str,
+    start_method: str | None = None,
+    retries: int = 2,
 ) -> tuple[list[dict], bool, dict]:
     """Run the tasks; returns the results (failures included), whether Ctrl-C stopped it, and the backend."""
     bar = None
@@ -559,10 +667,16 @@ def _execute(
     if backend["kind"] == "processes":
         import multiprocessing
 
-        context = multiprocessing.get_context(start_method) if start_method else multiprocessing.get_context()
+        context = (
+            multiprocessing.get_context(start_method)
+            if start_method
+            else multiprocessing.get_context()
+        )
         bar = make_bar()
         try:
-            interrupted = _run_local(tasks, min(backend["workers"], len(tasks)), context, done, lost, retries)
+            interrupted = _run_local(
+                tasks, min(backend["workers"], len(tasks)), context, done, lost, retries
+            )
         finally:
             if bar is not None:
                 bar.close()
@@ -570,7 +684,8 @@ def _execute(
         return results, interrupted, backend
 
     try:
-        from distributed import Client, as_completed as dask_completed
+        from distributed import Client
+        from distributed import as_completed as dask_completed
     except ImportError:  # pragma: no cover - depends on the environment
         raise QuadobsError(
             "scheduler: running on a Dask cluster needs dask.distributed (pip install 'quadobs[cluster]')"
@@ -582,7 +697,10 @@ def _execute(
     try:
         backend["workers"] = len(client.scheduler_info().get("workers", {}))
         token = f"{os.getpid()}-{_time.time_ns()}"
-        futures = {client.submit(run_one, t, pure=False, key=f"quadobs-run-{t['index']}-{token}"): t for t in tasks}
+        futures = {
+            client.submit(run_one, t, pure=False, key=f"quadobs-run-{t['index']}-{token}"): t
+            for t in tasks
+        }
         bar = make_bar()
         try:
             for fut in dask_completed(list(futures)):
@@ -639,7 +757,9 @@ def _worker_main(conn, parent: int) -> None:
     """A local worker: run the tasks received on ``conn`` and send back each result, until EOF."""
     import signal
 
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the campaign's to handle: it stops the workers
+    signal.signal(
+        signal.SIGINT, signal.SIG_IGN
+    )  # Ctrl-C is the campaign's to handle: it stops the workers
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
     _die_with_parent(parent)
     while True:
@@ -655,7 +775,12 @@ class _Worker:
 
     def __init__(self, context) -> None:
         self.conn, child = context.Pipe(duplex=True)
-        self.proc = context.Process(target=_worker_main, args=(child, os.getpid()), daemon=True, name="quadobs-campaign-worker")
+        self.proc = context.Process(
+            target=_worker_main,
+            args=(child, os.getpid()),
+            daemon=True,
+            name="quadobs-campaign-worker",
+        )
         self.proc.start()
         child.close()
         self.task: dict | None = None
@@ -700,7 +825,9 @@ def _run_local(tasks: list[dict], n: int, context, done, lost, retries: int) -> 
                         pool[i] = w = _Worker(context)
                     try:
                         w.give(queue.popleft())
-                    except OSError:  # died just now: the sentinel below reports it, the run is retried
+                    except (
+                        OSError
+                    ):  # died just now: the sentinel below reports it, the run is retried
                         pass
             busy = [w for w in pool if w.task is not None]
             ready = set(wait([w.conn for w in busy] + [w.proc.sentinel for w in busy], timeout=1.0))
@@ -721,8 +848,19 @@ def _run_local(tasks: list[dict], n: int, context, done, lost, retries: int) -> 
                     queue.appendleft(task)
                 else:
                     code = w.proc.exitcode
-                    why = f"killed by signal {-code}" if code is not None and code < 0 else f"exit status {code}"
-                    done({**lost(task, RuntimeError(f"worker process lost ({why}), {count} times")), "lost": count})
+                    why = (
+                        f"killed by signal {-code}"
+                        if code is not None and code < 0
+                        else f"exit status {code}"
+                    )
+                    done(
+                        {
+                            **lost(
+                                task, RuntimeError(f"worker process lost ({why}), {count} times")
+                            ),
+                            "lost": count,
+                        }
+                    )
         return False
     except KeyboardInterrupt:
         return True
@@ -841,7 +979,13 @@ def _write_runs(
                 wall_time=num(r["wall_time"]),
             )
     for r in failed:
-        add(run=r["index"], seed=r["seed"], status="failed", error=r["error"], wall_time=num(r["wall_time"]))
+        add(
+            run=r["index"],
+            seed=r["seed"],
+            status="failed",
+            error=r["error"],
+            wall_time=num(r["wall_time"]),
+        )
     types = {
         "run": pa.int64(),
         "seed": pa.int64(),
@@ -850,14 +994,28 @@ def _write_runs(
         "estimator": pa.string(),
         "converged": pa.bool_(),
     }
-    _write_table_atomic(path, {k: pa.array(v, type=types.get(k, pa.float64())) for k, v in cols.items()})
+    _write_table_atomic(
+        path, {k: pa.array(v, type=types.get(k, pa.float64())) for k, v in cols.items()}
+    )
 
 
 def _write_series(path: Path, ok: list[dict], names: list[str], times: np.ndarray) -> None:
     import pyarrow as pa
 
     T = times.shape[0]
-    parts = {k: [] for k in ("run", "estimator", "time", "position_error", "velocity_error", "nees", "nis", "nis_dof")}
+    parts = {
+        k: []
+        for k in (
+            "run",
+            "estimator",
+            "time",
+            "position_error",
+            "velocity_error",
+            "nees",
+            "nis",
+            "nis_dof",
+        )
+    }
     for nm in names:
         for r in ok:
             e = r["estimators"][nm]
@@ -883,7 +1041,9 @@ def _write_series(path: Path, ok: list[dict], names: list[str], times: np.ndarra
 _PALETTE = [(230, 90, 40), (40, 160, 90), (150, 60, 200), (200, 170, 30), (30, 150, 200)]
 
 
-def _record_statistics(path: Path, scenario: Scenario, names, ensembles, sqrt_bound, sqrt_linear, k_every: int) -> None:
+def _record_statistics(
+    path: Path, scenario: Scenario, names, ensembles, sqrt_bound, sqrt_linear, k_every: int
+) -> None:
     """The statistics over time as an ``.rrd`` (entity layout in the module docstring of :mod:`quadobs.studies.campaign`)."""
     import rerun.blueprint as rrb
 
@@ -902,17 +1062,27 @@ def _record_statistics(path: Path, scenario: Scenario, names, ensembles, sqrt_bo
             contents=[f"/stats/{e}/velocity/**" for e in names]
             + ["/stats/pcrb/velocity", "/stats/immersion_bound/velocity"],
         ),
-        rrb.TimeSeriesView(name="RMSE / sqrt(PCRB)", contents=[f"/stats/{e}/ratio/**" for e in names]),
-        rrb.TimeSeriesView(name="NEES and chi-square bounds", contents=[f"/stats/{e}/nees/**" for e in names]),
-        rrb.TimeSeriesView(name="NIS and chi-square bounds", contents=[f"/stats/{e}/nis/**" for e in names]),
         rrb.TimeSeriesView(
-            name="Fraction of runs within the threshold", contents=[f"/stats/{e}/converged" for e in names]
+            name="RMSE / sqrt(PCRB)", contents=[f"/stats/{e}/ratio/**" for e in names]
+        ),
+        rrb.TimeSeriesView(
+            name="NEES and chi-square bounds", contents=[f"/stats/{e}/nees/**" for e in names]
+        ),
+        rrb.TimeSeriesView(
+            name="NIS and chi-square bounds", contents=[f"/stats/{e}/nis/**" for e in names]
+        ),
+        rrb.TimeSeriesView(
+            name="Fraction of runs within the threshold",
+            contents=[f"/stats/{e}/converged" for e in names],
         ),
     ]
     sets = [e for e in names if np.isfinite(ensembles[e].containment).any()]
     if sets:
         views.append(
-            rrb.TimeSeriesView(name="Set estimators: containment, width", contents=[f"/stats/{e}/set/**" for e in sets])
+            rrb.TimeSeriesView(
+                name="Set estimators: containment, width",
+                contents=[f"/stats/{e}/set/**" for e in sets],
+            )
         )
     blueprint = rrb.Blueprint(rrb.Grid(*views), collapse_panels=False)
     T = next(iter(ensembles.values())).times.shape[0]
@@ -926,8 +1096,12 @@ def _record_statistics(path: Path, scenario: Scenario, names, ensembles, sqrt_bo
         series = {}
         if sqrt_bound is not None:
             series["pcrb"] = (
-                rec.series("stats/pcrb/position", 1, names=["sqrt PCRB position"], color=(40, 90, 220)),
-                rec.series("stats/pcrb/velocity", 1, names=["sqrt PCRB velocity"], color=(40, 90, 220)),
+                rec.series(
+                    "stats/pcrb/position", 1, names=["sqrt PCRB position"], color=(40, 90, 220)
+                ),
+                rec.series(
+                    "stats/pcrb/velocity", 1, names=["sqrt PCRB velocity"], color=(40, 90, 220)
+                ),
             )
         if sqrt_linear is not None:
             series["linear"] = (
@@ -949,19 +1123,33 @@ def _record_statistics(path: Path, scenario: Scenario, names, ensembles, sqrt_bo
             s = {
                 "rmse_p": rec.series(f"stats/{e}/position/rmse", 1, names=[f"{e} RMSE"], color=c),
                 "pct_p": rec.series(
-                    f"stats/{e}/position/percentiles", 3, names=[f"{e} |e_p| 5%", f"{e} median", f"{e} 95%"]
+                    f"stats/{e}/position/percentiles",
+                    3,
+                    names=[f"{e} |e_p| 5%", f"{e} median", f"{e} 95%"],
                 ),
                 "rmse_v": rec.series(f"stats/{e}/velocity/rmse", 1, names=[f"{e} RMSE"], color=c),
-                "ratio": rec.series(f"stats/{e}/ratio", 2, names=[f"{e} position", f"{e} velocity"]),
+                "ratio": rec.series(
+                    f"stats/{e}/ratio", 2, names=[f"{e} position", f"{e} velocity"]
+                ),
                 "nees": rec.series(f"stats/{e}/nees/mean", 1, names=[f"{e} mean NEES"], color=c),
-                "nees_b": rec.series(f"stats/{e}/nees/bounds", 2, names=[f"{e} lower", f"{e} upper"]),
-                "nis": rec.series(f"stats/{e}/nis/mean", 1, skip_nan=True, names=[f"{e} mean NIS"], color=c),
-                "nis_b": rec.series(f"stats/{e}/nis/bounds", 2, skip_nan=True, names=[f"{e} lower", f"{e} upper"]),
+                "nees_b": rec.series(
+                    f"stats/{e}/nees/bounds", 2, names=[f"{e} lower", f"{e} upper"]
+                ),
+                "nis": rec.series(
+                    f"stats/{e}/nis/mean", 1, skip_nan=True, names=[f"{e} mean NIS"], color=c
+                ),
+                "nis_b": rec.series(
+                    f"stats/{e}/nis/bounds", 2, skip_nan=True, names=[f"{e} lower", f"{e} upper"]
+                ),
                 "conv": rec.series(f"stats/{e}/converged", 1, names=[f"{e}"], color=c),
             }
             if e in sets:
-                s["cont"] = rec.series(f"stats/{e}/set/containment", 1, names=[f"{e} containment"], color=c)
-                s["width"] = rec.series(f"stats/{e}/set/width", 2, names=[f"{e} width position", f"{e} width velocity"])
+                s["cont"] = rec.series(
+                    f"stats/{e}/set/containment", 1, names=[f"{e} containment"], color=c
+                )
+                s["width"] = rec.series(
+                    f"stats/{e}/set/width", 2, names=[f"{e} width position", f"{e} width velocity"]
+                )
             series[e] = s
         for j in range(T):
             ens0 = ensembles[names[0]]
@@ -1061,7 +1249,9 @@ def print_campaign(summary: dict, file=None) -> None:
                 _f(e["rmse_over_sqrt_pcrb"]),
                 _f(e["final_rmse_position_converged"]),
                 f"{_f(e['mean_nees'])} [{_f(nb[0])}, {_f(nb[1])}]",
-                "-" if e["nees_inside_fraction"] is None else f"{100 * e['nees_inside_fraction']:.0f}%",
+                "-"
+                if e["nees_inside_fraction"] is None
+                else f"{100 * e['nees_inside_fraction']:.0f}%",
                 _f(e["median_convergence_time"], unit=" s"),
             ]
         )
@@ -1071,7 +1261,10 @@ def print_campaign(summary: dict, file=None) -> None:
         print("  ".join(v.ljust(w) for v, w in zip(r, widths)), file=file)
     fl = summary.get("flight")
     if fl:
-        rmse = ", ".join(f"{nm} {_f(v['median'])} / {_f(v['max'])}" for nm, v in fl["flight_position_rmse"].items())
+        rmse = ", ".join(
+            f"{nm} {_f(v['median'])} / {_f(v['max'])}"
+            for nm, v in fl["flight_position_rmse"].items()
+        )
         print(
             f"flight: {fl['crashed']} of {fl['runs']} crashed; tracking RMS median {_f(fl['tracking_rms_median'])} m,"
             f" largest {_f(fl['tracking_rms_max'])} m; largest tracking error {_f(fl['tracking_max'])} m;"
@@ -1092,7 +1285,9 @@ def print_campaign(summary: dict, file=None) -> None:
     for f in summary["failed"][:10]:
         print(f"failed: run {f['run']} (seed {f['seed']}): {f['error']}", file=file)
     if len(summary["failed"]) > 10:
-        print(f"... and {len(summary['failed']) - 10} more failed runs (see summary.json)", file=file)
+        print(
+            f"... and {len(summary['failed']) - 10} more failed runs (see summary.json)", file=file
+        )
     if summary.get("files"):
         print(f"results: {summary['files']['summary']}, {summary['files']['runs']}", file=file)
         if "recording" in summary["files"]:

@@ -104,7 +104,11 @@ def immersion_bound(scenario, every: int = 1) -> tuple[np.ndarray, np.ndarray] |
     (times (T,), covariance of x (T, n, n)) or None
     """
     noise = scenario.noise
-    if noise.range_std <= 0 or noise.accel_std > 0 or (scenario.has_wind and noise.airspeed_std <= 0):
+    if (
+        noise.range_std <= 0
+        or noise.accel_std > 0
+        or (scenario.has_wind and noise.airspeed_std <= 0)
+    ):
         return None
     dim, n, dt, steps = scenario.dimension, scenario.state_dim, scenario.dt, scenario.steps
     im = immerse(scenario.system(), method=scenario.observer.immersion)
@@ -144,4 +148,3 @@ def immersion_bound(scenario, every: int = 1) -> tuple[np.ndarray, np.ndarray] |
         P = 0.5 * (P + P.T)
     times = np.arange(out.shape[0]) * every * dt
     return times, out
-

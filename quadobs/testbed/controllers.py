@@ -27,7 +27,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["FlightPlan", "GeometricController", "QuadrotorParameters", "CRAZYFLIE"]
+__all__ = ["CRAZYFLIE", "FlightPlan", "GeometricController", "QuadrotorParameters"]
 
 _G = 9.81
 
@@ -68,10 +68,18 @@ class QuadrotorParameters:
 
 
 #: The Crazyflie 2.x of ``models/quadrotor.xml`` (figures of drone-models, "cf2x_L250").
-CRAZYFLIE = QuadrotorParameters(mass=0.0319, inertia=(16.8e-6, 16.8e-6, 29.8e-6), arm=0.0325, torque_ratio=0.00735, thrust_max=0.12)
+CRAZYFLIE = QuadrotorParameters(
+    mass=0.0319,
+    inertia=(16.8e-6, 16.8e-6, 29.8e-6),
+    arm=0.0325,
+    torque_ratio=0.00735,
+    thrust_max=0.12,
+)
 
 
-def _ramp_integral(t: np.ndarray, start: float, r: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _ramp_integral(
+    t: np.ndarray, start: float, r: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """A cosine step ``d`` from 0 to 1 over ``[start, start + r]``: its integral, value and derivative at ``t``."""
     x = np.clip(t - start, 0.0, None)
     inside = x < r
@@ -83,7 +91,9 @@ def _ramp_integral(t: np.ndarray, start: float, r: float) -> tuple[np.ndarray, n
     return integral, value, slope
 
 
-def _smoothstep(t: np.ndarray, start: float, length: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _smoothstep(
+    t: np.ndarray, start: float, length: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The quintic step from 0 to 1 over ``[start, start + length]`` and its two derivatives."""
     x = np.clip((t - start) / length, 0.0, 1.0)
     s = x**3 * (10.0 - 15.0 * x + 6.0 * x * x)
@@ -112,9 +122,15 @@ class FlightPlan:
         Height of the vehicle's centre resting on the floor (m).
     """
 
-    def __init__(self, trajectory, duration, *, takeoff, landing, hovers=(), ramp=1.0, floor=0.0) -> None:
+    def __init__(
+        self, trajectory, duration, *, takeoff, landing, hovers=(), ramp=1.0, floor=0.0
+    ) -> None:
         self.trajectory, self.floor, self.ramp = trajectory, float(floor), float(ramp)
-        self.takeoff, self.land_start, self.duration = float(takeoff), float(duration) - float(landing), float(duration)
+        self.takeoff, self.land_start, self.duration = (
+            float(takeoff),
+            float(duration) - float(landing),
+            float(duration),
+        )
         # clock events: (start of a cosine step, +1 speeds up, -1 slows down)
         events = [(self.takeoff, 1.0)]
         for a, b in hovers:
@@ -172,7 +188,14 @@ class GeometricController:
         Largest tilt of the desired thrust vector (rad).
     """
 
-    def __init__(self, params: QuadrotorParameters, position_bandwidth=2.0, attitude_bandwidth=12.0, damping=0.9, max_tilt=0.6) -> None:
+    def __init__(
+        self,
+        params: QuadrotorParameters,
+        position_bandwidth=2.0,
+        attitude_bandwidth=12.0,
+        damping=0.9,
+        max_tilt=0.6,
+    ) -> None:
         self.p = params
         self.kx, self.kv = position_bandwidth**2, 2.0 * damping * position_bandwidth
         self.kR, self.kW = attitude_bandwidth**2, 2.0 * damping * attitude_bandwidth

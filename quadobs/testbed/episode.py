@@ -56,22 +56,45 @@ import functools
 import time as _time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from quadobs.errors import QuadobsError, RunFault, deferred_interrupts
 from quadobs.estimators.base import BlockStep, Counted, Gated, Immersed, SetValued, Switching
+from quadobs.testbed.blocks import block_count
 from quadobs.testbed.outputs import check_outputs, write_fault_summary
 from quadobs.testbed.registry import build_estimators, default_estimators
 from quadobs.testbed.scenario import Scenario
+
+if TYPE_CHECKING:
+    from quadobs.core.immersion import Immersion
 from quadobs.testbed.sensors import SensorModel, initial_guess, spawn_streams
-from quadobs.testbed.blocks import block_count
 from quadobs.testbed.sinks import (
-    Block, BoundsSink, ConvergenceSink, EpisodeContext, EpisodeFrame, ExcitationSink, ProgressSink, RecordingSink, Rows,
-    Sink, StepSink, TraceSink, merge,
+    Block,
+    BoundsSink,
+    ConvergenceSink,
+    EpisodeContext,
+    EpisodeFrame,
+    ExcitationSink,
+    ProgressSink,
+    RecordingSink,
+    Rows,
+    Sink,
+    StepSink,
+    TraceSink,
+    merge,
 )
 
-__all__ = ["EpisodeResult", "run_episode", "run_loop", "scenario_parts", "write_json_atomic", "WALL_CLOCK_KEYS", "PATHS"]
+__all__ = [
+    "PATHS",
+    "WALL_CLOCK_KEYS",
+    "EpisodeResult",
+    "run_episode",
+    "run_loop",
+    "scenario_parts",
+    "write_json_atomic",
+]
 
 #: How :func:`run_episode` advances: ``"auto"`` (the block path where it applies), ``"step"``.
 PATHS = ("auto", "step")
@@ -217,19 +240,33 @@ def run_episode(
     BLAS and LAPACK run single-threaded during the episode (:func:`single_threaded_blas`).
     """
     if scenario.kind not in ("vehicle", "quadrotor"):
-        raise QuadobsError(f"scenario {scenario.name!r}: kind {scenario.kind!r} is not a MuJoCo vehicle scenario")
+        raise QuadobsError(
+            f"scenario {scenario.name!r}: kind {scenario.kind!r} is not a MuJoCo vehicle scenario"
+        )
     names = list(estimators) if estimators else default_estimators(scenario)
     if path not in PATHS:
         raise QuadobsError(f"path: expected one of {PATHS}, got {path!r}")
-    check_outputs({"summary": summary_path, "recording": out}, {"scenario": scenario.source, "model": scenario.model})
+    check_outputs(
+        {"summary": summary_path, "recording": out},
+        {"scenario": scenario.source, "model": scenario.model},
+    )
     parts = scenario_parts(scenario, names, world)
 
     def summarise(merged, completed, wall, interrupted):
-        return _summarise(scenario, names, merged, completed, wall, parts["sensors"], out, interrupted)
+        return _summarise(
+            scenario, names, merged, completed, wall, parts["sensors"], out, interrupted
+        )
 
     summary, episode = run_loop(
-        summarise, summary_path=summary_path, out=out, flush_rows=flush_rows, progress=progress,
-        collect_every=collect_every, path=path, sinks=sinks, **parts,
+        summarise,
+        summary_path=summary_path,
+        out=out,
+        flush_rows=flush_rows,
+        progress=progress,
+        collect_every=collect_every,
+        path=path,
+        sinks=sinks,
+        **parts,
     )
     return EpisodeResult(summary, episode.trace.trace if episode.trace is not None else None)
 
@@ -241,7 +278,9 @@ def scenario_parts(scenario: Scenario, names: list[str], world=None) -> dict:
     scenario's initial guess (:func:`~quadobs.testbed.sensors.initial_guess`).
     """
     from quadobs.testbed.excitation import scenario_monitor
-    from quadobs.testbed.worlds import PointMassWorld  # the MuJoCo layer, imported only to run episodes
+    from quadobs.testbed.worlds import (
+        PointMassWorld,  # the MuJoCo layer, imported only to run episodes
+    )
     from quadobs.testbed.worlds.model import physics_check
 
     streams = spawn_streams(scenario.seed)
@@ -252,25 +291,36 @@ def scenario_parts(scenario: Scenario, names: list[str], world=None) -> dict:
     check = physics_check(w, scenario)  # MuJoCo's warnings, after every block
     x0 = initial_guess(scenario, w.state(), streams["initial"])
     ests = build_estimators(scenario, names, x0)
-    return {"frame": EpisodeFrame.of(scenario), "world": w, "estimators": ests, "sensors": sensors,
-            "check_physics": check, "monitor": scenario_monitor(scenario, _scenario_immersion(scenario, ests))}
+    return {
+        "frame": EpisodeFrame.of(scenario),
+        "world": w,
+        "estimators": ests,
+        "sensors": sensors,
+        "check_physics": check,
+        "monitor": scenario_monitor(scenario, _scenario_immersion(scenario, ests)),
+    }
 
 
-def _scenario_immersion(scenario: Scenario, estimators) -> "Immersion | None":
+def _scenario_immersion(scenario: Scenario, estimators) -> Immersion | None:
     """An estimator's immersion of the scenario's whole system by the scenario's method, if one has it (the
     excitation monitor then uses it rather than computing it again); ``None`` otherwise."""
     system, method = scenario.system(), scenario.observer.immersion
     for est in estimators:
         im = est.immersion if isinstance(est, Immersed) else None
-        if im is not None and im.method == method and all(
-            np.array_equal(getattr(im.system, k), getattr(system, k)) for k in ("A", "B", "C", "d")
+        if (
+            im is not None
+            and im.method == method
+            and all(
+                np.array_equal(getattr(im.system, k), getattr(system, k))
+                for k in ("A", "B", "C", "d")
+            )
         ):
             return im
     return None
 
 
 @_single_threaded
-def run_loop(summarise, *, summary_path=None, **parts) -> tuple[dict, "_Episode"]:
+def run_loop(summarise, *, summary_path=None, **parts) -> tuple[dict, _Episode]:
     """The episode loop over any world, then the summary written and the outputs published.
 
     Parameters
@@ -301,18 +351,24 @@ def run_loop(summarise, *, summary_path=None, **parts) -> tuple[dict, "_Episode"
     wall0 = _time.perf_counter()
     try:
         fragments, interrupted = episode.run()
-    except RunFault as exc:  # a full disk, a physics fault: the summary says so, then the error goes on
+    except (
+        RunFault
+    ) as exc:  # a full disk, a physics fault: the summary says so, then the error goes on
         write_fault_summary(summary_path, episode.frame, episode.completed, exc)
         raise
     wall = _time.perf_counter() - wall0
-    if interrupted and not episode.completed:  # stopped before the first step: the previous files stay
+    if (
+        interrupted and not episode.completed
+    ):  # stopped before the first step: the previous files stay
         raise KeyboardInterrupt
     with deferred_interrupts():  # the summary, then the recording, are replaced together
         summary = summarise(merge(fragments), episode.completed, wall, interrupted)
         if summary_path is not None:
             try:
                 write_json_atomic(summary_path, summary)
-            except QuadobsError as exc:  # a full disk at the end: the run's figures are still returned
+            except (
+                QuadobsError
+            ) as exc:  # a full disk at the end: the run's figures are still returned
                 summary["output_error"] = str(exc)
         for sink in episode.sinks:
             sink.publish()
@@ -355,8 +411,23 @@ class _Episode:
         Time each estimator's steps into :attr:`clock` (the sinks' ``ctx.clock``).
     """
 
-    def __init__(self, frame, world, estimators, *, sensors=None, check_physics=None, monitor=None, out=None,
-                 flush_rows=8192, progress=False, collect_every=0, path="auto", sinks=(), timed=False) -> None:
+    def __init__(
+        self,
+        frame,
+        world,
+        estimators,
+        *,
+        sensors=None,
+        check_physics=None,
+        monitor=None,
+        out=None,
+        flush_rows=8192,
+        progress=False,
+        collect_every=0,
+        path="auto",
+        sinks=(),
+        timed=False,
+    ) -> None:
         from quadobs.testbed.worlds.base import World
 
         self.frame, self.steps, self.world, self.sensors = frame, frame.steps, world, sensors
@@ -364,15 +435,30 @@ class _Episode:
         ests = list(estimators)
         self.block = block = Block(self.world, ests, _BLOCK)
         self.clock = np.zeros(len(ests)) if timed else None
-        self.slots = [(self._clocked(est.step_and_record, e), block.rec[e]) for e, est in enumerate(ests)]
-        self.blockwise = path == "auto" and not self.world.closed_loop and all(
-            isinstance(e, BlockStep) and e.blockwise and not isinstance(e, SetValued) for e in ests
+        self.slots = [
+            (self._clocked(est.step_and_record, e), block.rec[e]) for e, est in enumerate(ests)
+        ]
+        self.blockwise = (
+            path == "auto"
+            and not self.world.closed_loop
+            and all(
+                isinstance(e, BlockStep) and e.blockwise and not isinstance(e, SetValued)
+                for e in ests
+            )
         )
-        self.block_slots = [(self._clocked(est.step_block, e), block.rec[e]) for e, est in enumerate(ests)] if self.blockwise else []
-        for est in ests:  # compile (first run) or load the kernels of this path now, not inside the loop
+        self.block_slots = (
+            [(self._clocked(est.step_block, e), block.rec[e]) for e, est in enumerate(ests)]
+            if self.blockwise
+            else []
+        )
+        for (
+            est
+        ) in ests:  # compile (first run) or load the kernels of this path now, not inside the loop
             est.prepare("block" if self.blockwise else "record")
         self.world.prepare("step" if path == "step" or self.world.closed_loop else "block")
-        self.step_fill = World.fill if path == "step" else None  # the per-step path: one step at a time
+        self.step_fill = (
+            World.fill if path == "step" else None
+        )  # the per-step path: one step at a time
         lead = self.world.controller
         self.lead = next((e for e in ests if e.name == lead), None) if lead else ests[0]
         if self.lead is None:
@@ -383,7 +469,9 @@ class _Episode:
         try:
             for sink in self.sinks:
                 sink.begin(ctx)
-        except BaseException:  # the recording is open: close it, a valid file, before the error goes on
+        except (
+            BaseException
+        ):  # the recording is open: close it, a valid file, before the error goes on
             for sink in self.sinks:
                 sink.close()
             raise
@@ -406,7 +494,12 @@ class _Episode:
             from quadobs.testbed.episode_log import default_blueprint
 
             names = [e.name for e in self.block.estimators]
-            recorder = Recorder(out, recording_id=f"{fr.name}-seed{fr.seed}", blueprint=default_blueprint(fr, names), capacity=flush_rows)
+            recorder = Recorder(
+                out,
+                recording_id=f"{fr.name}-seed{fr.seed}",
+                blueprint=default_blueprint(fr, names),
+                capacity=flush_rows,
+            )
             recording = RecordingSink(recorder, send_each_block=self.world.computes_ahead)
         sinks: list[Sink] = [ConvergenceSink(), _EstimatorInfo(), BoundsSink()]
         sinks += [self.trace] if self.trace is not None else []
@@ -429,7 +522,9 @@ class _Episode:
                 k0 = 0
                 while k0 < self.steps:
                     k0 += self._block(k0)
-            except KeyboardInterrupt:  # Ctrl-C, or SIGTERM (which the CLI maps to it): keep what is complete
+            except (
+                KeyboardInterrupt
+            ):  # Ctrl-C, or SIGTERM (which the CLI maps to it): keep what is complete
                 interrupted = True
                 self._close_block()
             return [sink.end(self.completed, interrupted) for sink in self.sinks], interrupted
@@ -465,7 +560,9 @@ class _Episode:
         if k0 + count == self.steps:  # the final row: x_K and the estimates at t_K
             block.record_final(count)
             rows += 1
-        with deferred_interrupts():  # a stop (Ctrl-C, SIGTERM) waits until the block is counted and sent
+        with (
+            deferred_interrupts()
+        ):  # a stop (Ctrl-C, SIGTERM) waits until the block is counted and sent
             world.commit(count)
             self.committed = self.flushing = True  # from here on a stop has nothing to add
             self._flush(rows)
@@ -571,7 +668,14 @@ def _summarise(scenario, names, merged, completed, wall, sensors, out, interrupt
         "recording": None if out is None else str(out),
         "primary_estimator": names[0],
     }
-    for key in ("final_position_error", "final_velocity_error", "time_to_1m", "time_to_0p1m", "final_wind_error", "immersion"):
+    for key in (
+        "final_position_error",
+        "final_velocity_error",
+        "time_to_1m",
+        "time_to_0p1m",
+        "final_wind_error",
+        "immersion",
+    ):
         if key in head:
             summary[key] = head[key]
     summary["estimators"] = per

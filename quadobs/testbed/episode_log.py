@@ -56,11 +56,17 @@ def default_blueprint(frame, estimators: list[str]) -> rrb.Blueprint:
     ``frame``: the run's :class:`~quadobs.testbed.sinks.EpisodeFrame`.
     """
     history = rrb.VisibleTimeRange(
-        "sim_time", start=rrb.TimeRangeBoundary.infinite(), end=rrb.TimeRangeBoundary.cursor_relative()
+        "sim_time",
+        start=rrb.TimeRangeBoundary.infinite(),
+        end=rrb.TimeRangeBoundary.cursor_relative(),
     )
     plots = [
-        rrb.TimeSeriesView(name="Position error (m)", contents=[f"/errors/{e}/position/**" for e in estimators]),
-        rrb.TimeSeriesView(name="Velocity error (m/s)", contents=[f"/errors/{e}/velocity/**" for e in estimators]),
+        rrb.TimeSeriesView(
+            name="Position error (m)", contents=[f"/errors/{e}/position/**" for e in estimators]
+        ),
+        rrb.TimeSeriesView(
+            name="Velocity error (m/s)", contents=[f"/errors/{e}/velocity/**" for e in estimators]
+        ),
     ]
     if frame.has_wind:
         plots.append(rrb.TimeSeriesView(name="Wind (m/s)", origin="/wind"))
@@ -70,13 +76,20 @@ def default_blueprint(frame, estimators: list[str]) -> rrb.Blueprint:
     ]
     if frame.excitation:  # see quadobs.recording.excitation
         plots += [
-            rrb.TimeSeriesView(name="Excitation: log10 mu vs threshold", contents=["/excitation/log10"]),
-            rrb.TimeSeriesView(name="Variance in the unexcited directions", contents=["/excitation/unexcited_variance/**"]),
+            rrb.TimeSeriesView(
+                name="Excitation: log10 mu vs threshold", contents=["/excitation/log10"]
+            ),
+            rrb.TimeSeriesView(
+                name="Variance in the unexcited directions",
+                contents=["/excitation/unexcited_variance/**"],
+            ),
         ]
     return rrb.Blueprint(
         rrb.Horizontal(
             rrb.Vertical(
-                rrb.Spatial3DView(name="Vehicle, beacons, trajectories", origin="/world", time_ranges=[history]),
+                rrb.Spatial3DView(
+                    name="Vehicle, beacons, trajectories", origin="/world", time_ranges=[history]
+                ),
                 rrb.TextLogView(name="Events", origin="/events"),
                 row_shares=[4, 1],
             ),
@@ -137,7 +150,9 @@ class LoggedRows:
         m = len(self.steps)
         for name in ("times", "truth_p", "ranges", "inputs", "events"):
             if len(getattr(self, name)) != m:
-                raise QuadobsError(f"rows.{name}: expected {m} rows, got {len(getattr(self, name))}")
+                raise QuadobsError(
+                    f"rows.{name}: expected {m} rows, got {len(getattr(self, name))}"
+                )
 
 
 class EpisodeLog:
@@ -160,7 +175,14 @@ class EpisodeLog:
     """
 
     def __init__(
-        self, recorder: Recorder, frame, estimators: list[str], *, bounded=(), gated=(), velocity: bool = True,
+        self,
+        recorder: Recorder,
+        frame,
+        estimators: list[str],
+        *,
+        bounded=(),
+        gated=(),
+        velocity: bool = True,
     ) -> None:
         self.rec = recorder
         self.sc = frame
@@ -169,21 +191,44 @@ class EpisodeLog:
         axes = ["x", "y", "z"][:dim]
         beacons3 = np.zeros((frame.beacons.shape[0], 3))
         beacons3[:, :dim] = frame.beacons
-        r.static("world/beacons", rr.Points3D(beacons3, radii=0.6, colors=[(255, 140, 0)], labels=list(frame.beacon_labels)))
+        r.static(
+            "world/beacons",
+            rr.Points3D(
+                beacons3, radii=0.6, colors=[(255, 140, 0)], labels=list(frame.beacon_labels)
+            ),
+        )
         r.static("description", rr.TextDocument(f"{frame.name}: {frame.description}"))
-        self.truth_path = r.series("world/truth/path", 3, "points3d", every=every, color=_TRUTH, radius=0.15)
-        self.truth_box = r.series("world/truth/vehicle", 3, "translation", every=every, color=_TRUTH, half_size=(0.6, 0.4, 0.15))
+        self.truth_path = r.series(
+            "world/truth/path", 3, "points3d", every=every, color=_TRUTH, radius=0.15
+        )
+        self.truth_box = r.series(
+            "world/truth/vehicle",
+            3,
+            "translation",
+            every=every,
+            color=_TRUTH,
+            half_size=(0.6, 0.4, 0.15),
+        )
         self.est = {
-            name: self._estimator(name, _PALETTE[i % len(_PALETTE)], axes, velocity, name in gated, name in bounded)
+            name: self._estimator(
+                name, _PALETTE[i % len(_PALETTE)], axes, velocity, name in gated, name in bounded
+            )
             for i, name in enumerate(self.names)
         }
         if frame.has_wind:
-            self.wind_truth = r.series("wind/truth", dim, names=[f"true w_{a}" for a in axes], color=_TRUTH)
+            self.wind_truth = r.series(
+                "wind/truth", dim, names=[f"true w_{a}" for a in axes], color=_TRUTH
+            )
             self.airspeed = r.series("measurements/airspeed", 1, skip_nan=True, names=["airspeed"])
         self.ranges = [
-            r.series(f"measurements/range/{h}", 1, skip_nan=True, names=[f"range {h}"]) for h in range(frame.beacons.shape[0])
+            r.series(f"measurements/range/{h}", 1, skip_nan=True, names=[f"range {h}"])
+            for h in range(frame.beacons.shape[0])
         ]
-        self.inputs = r.series(f"measurements/{frame.input_name}", len(frame.input_labels), names=list(frame.input_labels))
+        self.inputs = r.series(
+            f"measurements/{frame.input_name}",
+            len(frame.input_labels),
+            names=list(frame.input_labels),
+        )
         self.events = None
         if frame.sensor_events:
             self.events = (
@@ -191,32 +236,69 @@ class EpisodeLog:
                 r.series("measurements/dropped", 1, names=["samples dropped"]),
             )
 
-    def _estimator(self, name: str, color, axes: list[str], velocity: bool, gated: bool, bounded: bool) -> dict:
+    def _estimator(
+        self, name: str, color, axes: list[str], velocity: bool, gated: bool, bounded: bool
+    ) -> dict:
         """The series of one estimator (module docstring), by short key."""
         r, dim, every = self.rec, len(axes), self.sc.trail_every
         s = {
-            "path": r.series(f"world/estimates/{name}/path", 3, "points3d", every=every, color=color, radius=0.12),
-            "box": r.series(f"world/estimates/{name}/vehicle", 3, "translation", every=every, color=color, half_size=(0.5, 0.35, 0.12)),
-            "pos_norm": r.series(f"errors/{name}/position/norm", 1, names=[f"{name} |e_p|"], color=color),
-            "pos_axes": r.series(f"errors/{name}/position/axes", dim, names=[f"{name} e_{a}" for a in axes]),
+            "path": r.series(
+                f"world/estimates/{name}/path", 3, "points3d", every=every, color=color, radius=0.12
+            ),
+            "box": r.series(
+                f"world/estimates/{name}/vehicle",
+                3,
+                "translation",
+                every=every,
+                color=color,
+                half_size=(0.5, 0.35, 0.12),
+            ),
+            "pos_norm": r.series(
+                f"errors/{name}/position/norm", 1, names=[f"{name} |e_p|"], color=color
+            ),
+            "pos_axes": r.series(
+                f"errors/{name}/position/axes", dim, names=[f"{name} e_{a}" for a in axes]
+            ),
         }
         if velocity:
-            s["vel_norm"] = r.series(f"errors/{name}/velocity/norm", 1, names=[f"{name} |e_v|"], color=color)
-            s["vel_axes"] = r.series(f"errors/{name}/velocity/axes", dim, names=[f"{name} e_v{a}" for a in axes])
-        s["trace"] = r.series(f"observer/{name}/covariance_trace", 1, names=[f"{name} tr P"], color=color)
+            s["vel_norm"] = r.series(
+                f"errors/{name}/velocity/norm", 1, names=[f"{name} |e_v|"], color=color
+            )
+            s["vel_axes"] = r.series(
+                f"errors/{name}/velocity/axes", dim, names=[f"{name} e_v{a}" for a in axes]
+            )
+        s["trace"] = r.series(
+            f"observer/{name}/covariance_trace", 1, names=[f"{name} tr P"], color=color
+        )
         s["nis"] = r.series(f"observer/{name}/nis", 1, skip_nan=True, names=[f"{name} NIS"])
         if gated:
-            s["rejected"] = r.series(f"observer/{name}/rejected", 1, names=[f"{name} rejected"], color=color)
-        if self.sc.has_wind:
-            s["wind_norm"] = r.series(f"errors/{name}/wind/norm", 1, names=[f"{name} |e_w|"], color=color)
-            s["wind_axes"] = r.series(f"errors/{name}/wind/axes", dim, names=[f"{name} e_w{a}" for a in axes])
-            s["wind"] = r.series(f"wind/{name}", dim, names=[f"{name} w_{a}" for a in axes], color=color)
-        if bounded:
-            s["bounds_box"] = r.series(f"world/estimates/{name}/bounds", 6, "boxes3d", every=every, color=color)
-            s["bounds_err"] = r.series(
-                f"errors/{name}/position/bounds", 2 * dim, names=[f"{name} {a} {side} - true" for side in ("low", "high") for a in axes],
+            s["rejected"] = r.series(
+                f"observer/{name}/rejected", 1, names=[f"{name} rejected"], color=color
             )
-            s["box_width"] = r.series(f"errors/{name}/position/box_width", dim, names=[f"{name} box width {a}" for a in axes])
+        if self.sc.has_wind:
+            s["wind_norm"] = r.series(
+                f"errors/{name}/wind/norm", 1, names=[f"{name} |e_w|"], color=color
+            )
+            s["wind_axes"] = r.series(
+                f"errors/{name}/wind/axes", dim, names=[f"{name} e_w{a}" for a in axes]
+            )
+            s["wind"] = r.series(
+                f"wind/{name}", dim, names=[f"{name} w_{a}" for a in axes], color=color
+            )
+        if bounded:
+            s["bounds_box"] = r.series(
+                f"world/estimates/{name}/bounds", 6, "boxes3d", every=every, color=color
+            )
+            s["bounds_err"] = r.series(
+                f"errors/{name}/position/bounds",
+                2 * dim,
+                names=[f"{name} {a} {side} - true" for side in ("low", "high") for a in axes],
+            )
+            s["box_width"] = r.series(
+                f"errors/{name}/position/box_width",
+                dim,
+                names=[f"{name} box width {a}" for a in axes],
+            )
         return s
 
     def write_block(self, rows: LoggedRows, extra=None) -> None:

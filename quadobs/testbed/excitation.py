@@ -10,7 +10,12 @@ import numpy as np
 
 from quadobs.core.immersion import Immersion, immerse
 from quadobs.errors import QuadobsError, as_finite_scalar
-from quadobs.observability.excitation import ExcitationMonitor, ExcitationReport, HeldInput, excitation_report
+from quadobs.observability.excitation import (
+    ExcitationMonitor,
+    ExcitationReport,
+    HeldInput,
+    excitation_report,
+)
 
 
 def scenario_input(scenario, step: float = 0.01, duration: float | None = None) -> HeldInput:
@@ -21,7 +26,11 @@ def scenario_input(scenario, step: float = 0.01, duration: float | None = None) 
     derivatives are the analytic ones of the reference (zero while coasting).
     """
     step = as_finite_scalar("step", step, positive=True)
-    duration = scenario.duration if duration is None else as_finite_scalar("duration", duration, positive=True)
+    duration = (
+        scenario.duration
+        if duration is None
+        else as_finite_scalar("duration", duration, positive=True)
+    )
     T = int(np.floor(duration / step + 1e-9))
     if T < 1:
         raise QuadobsError(f"step: {step} s is longer than the {duration} s to analyse")
@@ -42,7 +51,9 @@ def state_names(scenario) -> list[str]:
     return [f"{g}_{a}" for g in groups for a in axes]
 
 
-def scenario_report(scenario, window: float | None = None, step: float | None = None, **kwargs) -> ExcitationReport:
+def scenario_report(
+    scenario, window: float | None = None, step: float | None = None, **kwargs
+) -> ExcitationReport:
     """:func:`excitation_report` for a scenario's reference input, in its observer's immersion.
 
     ``window`` defaults to the scenario's ``excitation.window``; ``step`` to the monitor's
@@ -51,11 +62,17 @@ def scenario_report(scenario, window: float | None = None, step: float | None = 
     spec = scenario.excitation
     block = spec.grid(scenario.dt)[0]
     h = block * scenario.dt if step is None else as_finite_scalar("step", step, positive=True)
-    if scenario.duration / h > 1e7:  # the input is sampled over the whole duration: bound the allocation
-        raise QuadobsError(f"step: {h:g} s gives {scenario.duration / h:.3g} samples over {scenario.duration:g} s; at most 1e7")
+    if (
+        scenario.duration / h > 1e7
+    ):  # the input is sampled over the whole duration: bound the allocation
+        raise QuadobsError(
+            f"step: {h:g} s gives {scenario.duration / h:.3g} samples over {scenario.duration:g} s; at most 1e7"
+        )
     delta = spec.window if window is None else as_finite_scalar("window", window, positive=True)
     if delta > scenario.duration:
-        raise QuadobsError(f"window: {delta} s is longer than the scenario ({scenario.duration:g} s)")
+        raise QuadobsError(
+            f"window: {delta} s is longer than the scenario ({scenario.duration:g} s)"
+        )
     im = immerse(scenario.system(), method=scenario.observer.immersion)
     return excitation_report(
         im,
@@ -74,6 +91,11 @@ def scenario_monitor(scenario, immersion: Immersion | None = None) -> Excitation
     if not spec.monitor:
         return None
     block, L, upd = spec.grid(scenario.dt)
-    im = immerse(scenario.system(), method=scenario.observer.immersion) if immersion is None else immersion
-    return ExcitationMonitor(im, scenario.dt, block=block, window_blocks=L, update_blocks=upd, threshold=spec.threshold)
-
+    im = (
+        immerse(scenario.system(), method=scenario.observer.immersion)
+        if immersion is None
+        else immersion
+    )
+    return ExcitationMonitor(
+        im, scenario.dt, block=block, window_blocks=L, update_blocks=upd, threshold=spec.threshold
+    )

@@ -19,7 +19,12 @@ from quadobs.core.system import QuadraticSystem
 from quadobs.errors import QuadobsError
 from quadobs.estimators.augmented import AugmentedObserver
 from quadobs.estimators.base import Estimator, Gated, Immersed, Subset
-from quadobs.estimators.kalman import ExtendedKalmanFilter, HeldInputModel, OutputModel, UnscentedKalmanFilter
+from quadobs.estimators.kalman import (
+    ExtendedKalmanFilter,
+    HeldInputModel,
+    OutputModel,
+    UnscentedKalmanFilter,
+)
 from quadobs.estimators.refined import RefinedObserver
 from quadobs.estimators.zonotopic_vehicle import ZonotopicAugmentedEstimator
 from quadobs.testbed.scenario import Scenario
@@ -28,7 +33,9 @@ from quadobs.testbed.scenario import Scenario
 def output_periods(scenario: Scenario) -> np.ndarray:
     """Sampling period (s) of each output: the ranges, then the airspeed."""
     n = scenario.noise
-    periods = [scenario.dt * scenario.sample_interval(n.range_rate, "range_rate")] * scenario.beacons.shape[0]
+    periods = [
+        scenario.dt * scenario.sample_interval(n.range_rate, "range_rate")
+    ] * scenario.beacons.shape[0]
     if scenario.has_wind:
         periods.append(scenario.dt * scenario.sample_interval(n.airspeed_rate, "airspeed_rate"))
     return np.array(periods)
@@ -44,7 +51,9 @@ def _matrix_subset(value, idx: tuple[int, ...]):
 class OutputSubset(Estimator, Gated, Immersed, Subset):
     """An augmented observer that reads some of the outputs only (``y[outputs]``): a scenario's variant."""
 
-    def __init__(self, inner: AugmentedObserver, outputs: tuple[int, ...], name: str, *, q: int | None = None) -> None:
+    def __init__(
+        self, inner: AugmentedObserver, outputs: tuple[int, ...], name: str, *, q: int | None = None
+    ) -> None:
         self.inner = inner
         self.outputs = np.asarray(outputs, dtype=int)
         self.name = name
@@ -92,13 +101,17 @@ class OutputSubset(Estimator, Gated, Immersed, Subset):
         return self.inner.immersion
 
 
-def augmented_observer(scenario: Scenario, x0: np.ndarray, outputs: tuple[int, ...] | None = None) -> AugmentedObserver:
+def augmented_observer(
+    scenario: Scenario, x0: np.ndarray, outputs: tuple[int, ...] | None = None
+) -> AugmentedObserver:
     """Theorem 3's observer for ``scenario`` (optionally on a subset of the outputs), starting at ``lift(x0)``."""
     system = scenario.system()
     periods = output_periods(scenario)
     W = scenario.observer.W
     if outputs is not None:
-        system = QuadraticSystem(system.A, system.B, system.C[list(outputs)], system.d[list(outputs)])
+        system = QuadraticSystem(
+            system.A, system.B, system.C[list(outputs)], system.d[list(outputs)]
+        )
         periods = periods[list(outputs)]
         W = _matrix_subset(W, outputs)
     im = immerse(system, method=scenario.observer.immersion)
@@ -146,7 +159,9 @@ def _state_block(value, N: int, n: int) -> np.ndarray:
         return float(value) * np.eye(n)
     arr = np.asarray(value, dtype=float)
     if arr.shape != (N,):
-        raise QuadobsError(f"observer.S0: expected a scalar or {N} entries (the augmented state), got {arr.size}")
+        raise QuadobsError(
+            f"observer.S0: expected a scalar or {N} entries (the augmented state), got {arr.size}"
+        )
     return np.diag(arr[N - n :])
 
 
@@ -247,7 +262,11 @@ def zonotope_estimator(scenario: Scenario, x0: np.ndarray) -> ZonotopicAugmented
         Naming the scenario field that makes a guarantee impossible.
     """
     noise = scenario.noise
-    sensors = [("range", "range_std")] + ([("airspeed", "airspeed_std")] if scenario.has_wind else []) + [("accel", "accel_std")]
+    sensors = (
+        [("range", "range_std")]
+        + ([("airspeed", "airspeed_std")] if scenario.has_wind else [])
+        + [("accel", "accel_std")]
+    )
     for sensor, field_ in sensors:
         if getattr(noise, field_):
             raise QuadobsError(
@@ -255,7 +274,9 @@ def zonotope_estimator(scenario: Scenario, x0: np.ndarray) -> ZonotopicAugmented
                 f"({getattr(noise, field_)}); use noise.{sensor}_bound"
             )
     if noise.outlier_probability:
-        raise QuadobsError("noise.outlier_probability: estimator 'zonotope' needs bounded noise; outliers are unbounded")
+        raise QuadobsError(
+            "noise.outlier_probability: estimator 'zonotope' needs bounded noise; outliers are unbounded"
+        )
     if scenario.initial.kind == "random":
         raise QuadobsError(
             "initial.kind: estimator 'zonotope' needs the true initial state in a known box; a 'random' guess has a "

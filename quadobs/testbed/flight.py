@@ -53,14 +53,23 @@ class FlightSink(Sink):
         import rerun as rr
 
         self.every = every = frame.trail_every
-        self.ref_path = r.series("world/reference/path", 3, "points3d", every=every, color=(120, 120, 120), radius=0.02)
+        self.ref_path = r.series(
+            "world/reference/path", 3, "points3d", every=every, color=(120, 120, 120), radius=0.02
+        )
         self.rotors = r.series("flight/rotors", 4, names=[f"rotor {i} (N)" for i in range(4)])
-        self.tracking = r.series("flight/tracking_error", 1, names=["|r - p| (m)"], color=(200, 40, 40))
+        self.tracking = r.series(
+            "flight/tracking_error", 1, names=["|r - p| (m)"], color=(200, 40, 40)
+        )
         self.estimate = r.series("flight/on_estimate", 1, names=["on the estimate"])
         arm = 0.046 * 2
-        r.static("world/quadrotor", rr.Boxes3D(half_sizes=[[arm, 0.008, 0.005], [0.008, arm, 0.005]],
-                                                 rotation_axis_angles=[rr.RotationAxisAngle([0, 0, 1], degrees=45)] * 2,
-                                                 colors=[(220, 60, 60), (60, 60, 60)]))
+        r.static(
+            "world/quadrotor",
+            rr.Boxes3D(
+                half_sizes=[[arm, 0.008, 0.005], [0.008, arm, 0.005]],
+                rotation_axis_angles=[rr.RotationAxisAngle([0, 0, 1], degrees=45)] * 2,
+                colors=[(220, 60, 60), (60, 60, 60)],
+            ),
+        )
 
     def fill(self, rows: slice, steps: np.ndarray) -> None:
         """The flight series of the recorder rows ``rows`` (physics ``steps`` of the current block)."""
@@ -77,7 +86,11 @@ class FlightSink(Sink):
         raw = rows.block.raw[: rows.count]
         sp = w.spans
         t = rows.t
-        flight = (t >= w.plan.takeoff) & (t < w.plan.land_start) & np.isfinite(raw[:, sp["tracking"]][:, 0])
+        flight = (
+            (t >= w.plan.takeoff)
+            & (t < w.plan.land_start)
+            & np.isfinite(raw[:, sp["tracking"]][:, 0])
+        )
         err = raw[flight, sp["tracking"]][:, 0]
         self.track_sq += float(err @ err)
         self.track_n += int(err.size)
@@ -94,14 +107,21 @@ class FlightSink(Sink):
     def _attitude(self, rows: Rows, raw: np.ndarray) -> None:
         import rerun as rr
 
-        sel = np.flatnonzero((rows.ks % self.every == 0) & np.isfinite(raw[:, self.world.spans["attitude"]][:, 0]))
+        sel = np.flatnonzero(
+            (rows.ks % self.every == 0) & np.isfinite(raw[:, self.world.spans["attitude"]][:, 0])
+        )
         if not sel.size:
             return
         q = raw[sel][:, self.world.spans["attitude"]]
         rr.send_columns(
             "world/quadrotor",
-            indexes=[rr.TimeColumn("step", sequence=rows.ks[sel]), rr.TimeColumn("sim_time", duration=rows.t[sel])],
-            columns=rr.Transform3D.columns(translation=rows.truth[sel, :3], quaternion=q[:, [1, 2, 3, 0]]),
+            indexes=[
+                rr.TimeColumn("step", sequence=rows.ks[sel]),
+                rr.TimeColumn("sim_time", duration=rows.t[sel]),
+            ],
+            columns=rr.Transform3D.columns(
+                translation=rows.truth[sel, :3], quaternion=q[:, [1, 2, 3, 0]]
+            ),
             recording=self.recording.recorder.rec,
         )
 

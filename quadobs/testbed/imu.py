@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["ImuModel", "quat_to_matrix", "IMU_SPAWN_KEY", "input_noise_std"]
+__all__ = ["IMU_SPAWN_KEY", "ImuModel", "input_noise_std", "quat_to_matrix"]
 
 #: The spawn key of the IMU's random stream (beside :func:`~quadobs.testbed.sensors.spawn_streams`'s).
 IMU_SPAWN_KEY = (1016,)
@@ -27,14 +27,18 @@ IMU_SPAWN_KEY = (1016,)
 def quat_to_matrix(q) -> np.ndarray:
     """The rotation matrix ``(3, 3)`` of a unit quaternion ``(w, x, y, z)``."""
     w, x, y, z = q
-    return np.array([
-        [1.0 - 2.0 * (y * y + z * z), 2.0 * (x * y - w * z), 2.0 * (x * z + w * y)],
-        [2.0 * (x * y + w * z), 1.0 - 2.0 * (x * x + z * z), 2.0 * (y * z - w * x)],
-        [2.0 * (x * z - w * y), 2.0 * (y * z + w * x), 1.0 - 2.0 * (x * x + y * y)],
-    ])
+    return np.array(
+        [
+            [1.0 - 2.0 * (y * y + z * z), 2.0 * (x * y - w * z), 2.0 * (x * z + w * y)],
+            [2.0 * (x * y + w * z), 1.0 - 2.0 * (x * x + z * z), 2.0 * (y * z - w * x)],
+            [2.0 * (x * z - w * y), 2.0 * (y * z + w * x), 1.0 - 2.0 * (x * x + y * y)],
+        ]
+    )
 
 
-def input_noise_std(spec, attitude_every: int, dt: float, gravity: float = 9.81, horizon: float = 1.0) -> float:
+def input_noise_std(
+    spec, attitude_every: int, dt: float, gravity: float = 9.81, horizon: float = 1.0
+) -> float:
     """The white input noise (m/s^2 per physics step) equivalent to the IMU's errors on ``u = R~ f~ + g``.
 
     To first order ``u - a = R (b_a + sigma_a n) + R [dtheta]x f`` with ``dtheta`` the AHRS
@@ -72,7 +76,14 @@ def _perturb(q: np.ndarray, angle: np.ndarray) -> np.ndarray:
     """``q (x) [1, angle / 2]``, normalised."""
     w, x, y, z = q
     a, b, c = 0.5 * angle
-    out = np.array([w - x * a - y * b - z * c, x + w * a + y * c - z * b, y + w * b + z * a - x * c, z + w * c + x * b - y * a])
+    out = np.array(
+        [
+            w - x * a - y * b - z * c,
+            x + w * a + y * c - z * b,
+            y + w * b + z * a - x * c,
+            z + w * c + x * b - y * a,
+        ]
+    )
     return out / np.sqrt(out @ out)
 
 
@@ -91,7 +102,11 @@ class ImuModel:
 
     def __init__(self, spec, seed: int, attitude_every: int = 1) -> None:
         self.rng = np.random.default_rng(np.random.SeedSequence(seed, spawn_key=IMU_SPAWN_KEY))
-        self.accel_std, self.gyro_std, self.attitude_std = spec.accel_std, spec.gyro_std, spec.attitude_std
+        self.accel_std, self.gyro_std, self.attitude_std = (
+            spec.accel_std,
+            spec.gyro_std,
+            spec.attitude_std,
+        )
         self.accel_bias = spec.accel_bias * self.rng.standard_normal(3)
         self.gyro_bias = spec.gyro_bias * self.rng.standard_normal(3)
         self.attitude_every = int(attitude_every)
@@ -101,11 +116,15 @@ class ImuModel:
         """Standard normal draws of ``count`` steps, ``(count, 9)``: accelerometer, gyroscope, attitude."""
         return self.rng.standard_normal((count, 9))
 
-    def measure(self, k: int, j: int, noise: np.ndarray, f, w, q) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def measure(
+        self, k: int, j: int, noise: np.ndarray, f, w, q
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Measured specific force ``(3,)``, body rates ``(3,)`` and attitude ``(4,)`` at step ``k`` (row ``j`` of ``noise``)."""
         n = noise[j]
         f_m = f + self.accel_bias + self.accel_std * n[:3]
         w_m = w + self.gyro_bias + self.gyro_std * n[3:6]
         if k % self.attitude_every == 0:
-            self.attitude = _perturb(q, self.attitude_std * n[6:9]) if self.attitude_std else np.array(q)
+            self.attitude = (
+                _perturb(q, self.attitude_std * n[6:9]) if self.attitude_std else np.array(q)
+            )
         return f_m, w_m, self.attitude

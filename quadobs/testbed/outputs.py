@@ -23,16 +23,23 @@ from __future__ import annotations
 
 import json
 import os
+from collections.abc import Mapping
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any
 
 import numpy as np
 
 from quadobs.errors import QuadobsError, check_writable, output_target, staging_owner, staging_path
 
 __all__ = [
-    "check_outputs", "clean_leftovers", "write_json_staged", "write_text_staged", "fault_summary", "write_fault_summary",
-    "expected_cost", "cost_notice",
+    "check_outputs",
+    "clean_leftovers",
+    "cost_notice",
+    "expected_cost",
+    "fault_summary",
+    "write_fault_summary",
+    "write_json_staged",
+    "write_text_staged",
 ]
 
 
@@ -74,8 +81,14 @@ def check_outputs(outputs: Mapping[str, Any], inputs: Mapping[str, Any] = {}) ->
             if _same_file(target, seen):
                 raise QuadobsError(f"{name}: names the same file as {other} ({os.fspath(path)!r})")
         for what, source in inputs.items():
-            if source and os.path.isfile(os.fspath(source)) and _same_file(target, Path(os.path.realpath(source))):
-                raise QuadobsError(f"{name}: is the run's {what} file ({os.fspath(path)!r}); it would be overwritten")
+            if (
+                source
+                and os.path.isfile(os.fspath(source))
+                and _same_file(target, Path(os.path.realpath(source)))
+            ):
+                raise QuadobsError(
+                    f"{name}: is the run's {what} file ({os.fspath(path)!r}); it would be overwritten"
+                )
         check_writable(path)
         targets[name] = target
     for target in targets.values():
@@ -133,7 +146,9 @@ def _json_default(obj):
 
 def write_json_staged(path: str | Path, data: dict, what: str = "output path") -> Path:
     """Write ``data`` as JSON through :func:`write_text_staged`. Returns the target."""
-    return write_text_staged(path, json.dumps(data, indent=2, allow_nan=False, default=_json_default) + "\n", what)
+    return write_text_staged(
+        path, json.dumps(data, indent=2, allow_nan=False, default=_json_default) + "\n", what
+    )
 
 
 def write_text_staged(path: str | Path, text: str, what: str = "output path") -> Path:
@@ -164,14 +179,18 @@ def write_text_staged(path: str | Path, text: str, what: str = "output path") ->
         os.replace(tmp, target)
     except OSError as exc:
         tmp.unlink(missing_ok=True)
-        raise QuadobsError(f"{what} {os.fspath(path)!r}: cannot be written ({exc.strerror or exc})") from None
+        raise QuadobsError(
+            f"{what} {os.fspath(path)!r}: cannot be written ({exc.strerror or exc})"
+        ) from None
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
     return target
 
 
-def fault_summary(scenario, completed: int, error: BaseException, recording: str | None = None) -> dict:
+def fault_summary(
+    scenario, completed: int, error: BaseException, recording: str | None = None
+) -> dict:
     """The summary of a run stopped by a fault (a physics fault, an output that cannot be written).
 
     It names the fault and the steps completed, and holds no error or convergence figure:
@@ -227,17 +246,23 @@ def expected_cost(scenario, estimators: list[str], recording: bool) -> dict:
     steps = int(scenario.steps)
     q = int(scenario.beacons.shape[0]) + (1 if scenario.has_wind else 0)
     c = STEP_SECONDS
-    per = sum(c["augmented" if name.startswith("augmented") else "other"] + c["per_q2"] * q * q for name in estimators)
+    per = sum(
+        c["augmented" if name.startswith("augmented") else "other"] + c["per_q2"] * q * q
+        for name in estimators
+    )
     rows = steps / scenario.record_every if recording else 0
     b = ROW_BYTES
     return {
         "steps": steps,
         "seconds": steps * (c["world"] + per),
-        "bytes": rows * (b["base"] + b["per_estimator"] * (len(estimators) - 1) + b["per_output"] * q),
+        "bytes": rows
+        * (b["base"] + b["per_estimator"] * (len(estimators) - 1) + b["per_output"] * q),
     }
 
 
-def cost_notice(scenario, estimators: list[str], recording: bool, runs: int = 1, workers: int = 1) -> str | None:
+def cost_notice(
+    scenario, estimators: list[str], recording: bool, runs: int = 1, workers: int = 1
+) -> str | None:
     """One line saying what a long or large run will cost, or ``None`` for an ordinary one."""
     cost = expected_cost(scenario, estimators, recording)
     seconds = cost["seconds"] * runs / max(workers, 1)

@@ -25,7 +25,7 @@ from __future__ import annotations
 import functools
 import importlib.metadata
 import sys
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 
@@ -61,7 +61,9 @@ _BUILTIN = {
     "augmented-refined": "quadobs.testbed.factories:build_refined",
 }
 _RUNTIME: dict[str, Factory] = {}
-_REGISTRY = _RUNTIME  # the run-time table under its former name (callers remove their entries from it)
+_REGISTRY = (
+    _RUNTIME  # the run-time table under its former name (callers remove their entries from it)
+)
 _LOADED: dict[str, Factory] = {}
 
 
@@ -75,7 +77,9 @@ def register_estimator(name: str, factory: Factory) -> None:
     if not isinstance(name, str) or not name:
         raise QuadobsError(f"name: expected a non-empty string, got {name!r}")
     if not callable(factory):
-        raise QuadobsError(f"factory: expected a callable factory(scenario, x0, name), got {type(factory).__name__}")
+        raise QuadobsError(
+            f"factory: expected a callable factory(scenario, x0, name), got {type(factory).__name__}"
+        )
     _RUNTIME[name] = factory
 
 
@@ -128,7 +132,9 @@ def _load(name: str, value: str) -> Factory:
                 f"estimators: entry point {name!r} ({value}) cannot be loaded: {type(exc).__name__}: {reason}"
             ) from None
         if not callable(hit):
-            raise QuadobsError(f"estimators: entry point {name!r} ({value}) is not callable ({type(hit).__name__})")
+            raise QuadobsError(
+                f"estimators: entry point {name!r} ({value}) is not callable ({type(hit).__name__})"
+            )
         _LOADED[value] = hit
     return hit
 
@@ -150,7 +156,9 @@ def estimator_factory(name: str, scenario: Scenario | None = None) -> tuple[Fact
             f"estimators: unknown estimator {name!r}; available: {', '.join(available_estimators(scenario))}"
         )
     if len(values) > 1:
-        raise QuadobsError(f"estimators: {name!r} is declared by several entry points ({', '.join(values)})")
+        raise QuadobsError(
+            f"estimators: {name!r} is declared by several entry points ({', '.join(values)})"
+        )
     return _load(name, values[0]), values[0]
 
 

@@ -33,9 +33,10 @@ import json
 import os
 import re
 import tomllib
+from collections.abc import Iterable, Mapping
 from importlib import resources
 from pathlib import Path
-from typing import Annotated, Any, Iterable, Literal, Mapping, Union, get_args, get_origin
+from typing import Annotated, Any, Literal, Union, get_args, get_origin
 
 import numpy as np
 import tomli_w
@@ -61,19 +62,19 @@ from quadobs.sets.zonotope import REDUCTION_METHODS
 from quadobs.testbed.trajectory import SinusoidTrajectory
 
 __all__ = [
-    "Scenario",
+    "ControlSpec",
+    "ExcitationSpec",
+    "InitialGuess",
     "NoiseSpec",
     "ObserverSpec",
-    "InitialGuess",
-    "ExcitationSpec",
+    "QuadrotorSpec",
+    "Scenario",
     "ZonotopeSpec",
-    "load_scenario",
-    "list_scenarios",
-    "parse_scenario",
     "apply_settings",
     "field_reference",
-    "ControlSpec",
-    "QuadrotorSpec",
+    "list_scenarios",
+    "load_scenario",
+    "parse_scenario",
 ]
 
 # --------------------------------------------------------------------------------------
@@ -106,13 +107,16 @@ Noise = Annotated[NonNegative, Le(MAX_NOISE)]
 Rate = Annotated[Positive, Le(MAX_RATE)]
 Seconds = Annotated[Positive, Le(MAX_DURATION)]
 
-_TAGS = ("scalar", "diagonal")  # branch names of the scalar-or-diagonal union, left out of error paths
+_TAGS = (
+    "scalar",
+    "diagonal",
+)  # branch names of the scalar-or-diagonal union, left out of error paths
 
 
 def _diagonal(item: Any) -> Any:
     """A scalar (times the identity) or a non-empty list (a diagonal) of ``item``."""
     return Annotated[
-        Union[Annotated[item, Tag("scalar")], Annotated[tuple[item, ...], MinLen(1), Tag("diagonal")]],
+        Annotated[item, Tag("scalar")] | Annotated[tuple[item, ...], MinLen(1), Tag("diagonal")],
         Discriminator(lambda v: "diagonal" if isinstance(v, (list, tuple)) else "scalar"),
     ]
 
@@ -142,7 +146,9 @@ class Beacon(_Table):
 class Wind(_Table):
     """The ``[wind]`` table."""
 
-    velocity: BoundedVector = Field(description="Constant wind velocity (m/s), `dimension` numbers.")
+    velocity: BoundedVector = Field(
+        description="Constant wind velocity (m/s), `dimension` numbers."
+    )
 
 
 class Term(_Table):
@@ -153,11 +159,12 @@ class Term(_Table):
     omega: Annotated[NonNegative, Le(MAX_RATE)] = Field(description="Angular frequency (rad/s).")
     phase: Number = Field(0.0, description="Phase (rad).")
     function: Literal["cos", "sin"] = Field(
-        "cos", description="`cos` or `sin`; a `sin` term is stored as `cos` with its phase lowered by pi/2."
+        "cos",
+        description="`cos` or `sin`; a `sin` term is stored as `cos` with its phase lowered by pi/2.",
     )
 
     @model_validator(mode="after")
-    def _as_cosine(self) -> "Term":
+    def _as_cosine(self) -> Term:
         if self.function == "sin":
             return self.model_copy(update={"function": "cos", "phase": self.phase - np.pi / 2})
         return self
@@ -173,14 +180,18 @@ class Coast(_Table):
 class TrajectorySpec(_Table):
     """The ``[trajectory]`` table: offsets, a constant velocity and sinusoids per axis."""
 
-    offset: BoundedVector | None = Field(None, description="Constant offset `o` (m), `dimension` numbers (default: zeros).")
+    offset: BoundedVector | None = Field(
+        None, description="Constant offset `o` (m), `dimension` numbers (default: zeros)."
+    )
     velocity: BoundedVector | None = Field(
         None, description="Constant velocity `w` (m/s), `dimension` numbers (default: zeros)."
     )
     terms: Annotated[tuple[Term, ...], MaxLen(MAX_ENTRIES)] = Field(
         (), description="Sinusoids added to the axes (`[[trajectory.terms]]` or inline tables)."
     )
-    coast: Annotated[tuple[Coast, ...], MaxLen(MAX_ENTRIES)] = Field((), description="Segments without commanded acceleration.")
+    coast: Annotated[tuple[Coast, ...], MaxLen(MAX_ENTRIES)] = Field(
+        (), description="Segments without commanded acceleration."
+    )
 
 
 class NoiseSpec(_Table):
@@ -191,25 +202,33 @@ class NoiseSpec(_Table):
     """
 
     range_std: Noise = Field(0.0, description="Standard deviation of the range error (m).")
-    accel_std: Noise = Field(0.0, description="Standard deviation of the accelerometer error (m/s^2).")
+    accel_std: Noise = Field(
+        0.0, description="Standard deviation of the accelerometer error (m/s^2)."
+    )
     airspeed_std: Noise = Field(0.0, description="Standard deviation of the airspeed error (m/s).")
     range_rate: Rate | None = Field(
-        None, description="Range sample rate (Hz), dividing the physics rate (default: the physics rate)."
+        None,
+        description="Range sample rate (Hz), dividing the physics rate (default: the physics rate).",
     )
     airspeed_rate: Rate | None = Field(
-        None, description="Airspeed sample rate (Hz), dividing the physics rate (default: the physics rate)."
+        None,
+        description="Airspeed sample rate (Hz), dividing the physics rate (default: the physics rate).",
     )
-    dropout: Annotated[NonNegative, Le(1.0)] = Field(0.0, description="Probability that a sample is lost.")
+    dropout: Annotated[NonNegative, Le(1.0)] = Field(
+        0.0, description="Probability that a sample is lost."
+    )
     outlier_probability: Annotated[NonNegative, Le(1.0)] = Field(
         0.0, description="Probability that a range sample carries an outlier."
     )
-    outlier_std: Noise = Field(0.0, description="Standard deviation of an outlier's extra error (m).")
+    outlier_std: Noise = Field(
+        0.0, description="Standard deviation of an outlier's extra error (m)."
+    )
     range_bound: Noise = Field(0.0, description="Bound of the uniform range error (m).")
     accel_bound: Noise = Field(0.0, description="Bound of the uniform accelerometer error (m/s^2).")
     airspeed_bound: Noise = Field(0.0, description="Bound of the uniform airspeed error (m/s).")
 
     @model_validator(mode="after")
-    def _std_or_bound(self) -> "NoiseSpec":
+    def _std_or_bound(self) -> NoiseSpec:
         for sensor in ("range", "accel", "airspeed"):
             if getattr(self, f"{sensor}_std") and getattr(self, f"{sensor}_bound"):
                 raise _invalid(
@@ -235,7 +254,7 @@ class Variant(_Table):
     )
 
     @model_validator(mode="after")
-    def _distinct(self) -> "Variant":
+    def _distinct(self) -> Variant:
         if not self.name.replace("_", "").isalnum() or not self.name.isascii():
             raise _invalid(f"{self.name!r} must be an identifier (letters, digits, _)", "name")
         if len(set(self.outputs)) != len(self.outputs):
@@ -256,13 +275,16 @@ class ObserverSpec(_Table):
         "minimal", description="Immersion: `minimal` [ACC2024, Alg. 1] or `chain` [IFAC2021]."
     )
     S0: _diagonal(Positive) = Field(
-        100.0, description="Initial covariance of the augmented state: scalar (times I) or diagonal."
+        100.0,
+        description="Initial covariance of the augmented state: scalar (times I) or diagonal.",
     )
     V: _diagonal(NonNegative) = Field(
         1e-4, description="Process noise of the augmented state: scalar (times I) or diagonal."
     )
     W: _diagonal(Positive) = Field(1.0, description="Output noise: scalar (times I_q) or diagonal.")
-    theta: Annotated[NonNegative, Le(MAX_RATE)] = Field(0.0, description="Forgetting rate `theta` of the observer (1/s).")
+    theta: Annotated[NonNegative, Le(MAX_RATE)] = Field(
+        0.0, description="Forgetting rate `theta` of the observer (1/s)."
+    )
     gate: Positive | None = Field(
         None, description="NIS threshold above which a correction is rejected (default: no gate)."
     )
@@ -271,11 +293,14 @@ class ObserverSpec(_Table):
     )
 
     @model_validator(mode="after")
-    def _new_names(self) -> "ObserverSpec":
+    def _new_names(self) -> ObserverSpec:
         seen = {"augmented"}
         for i, v in enumerate(self.variant_specs):
             if v.name in seen:
-                raise _invalid(f"{v.name!r} must be a new identifier (letters, digits, _)", f"variants[{i}].name")
+                raise _invalid(
+                    f"{v.name!r} must be a new identifier (letters, digits, _)",
+                    f"variants[{i}].name",
+                )
             seen.add(v.name)
         return self
 
@@ -294,16 +319,21 @@ class InitialGuess(_Table):
     """
 
     kind: Literal["zero", "point", "random"] = Field(
-        "zero", description="`zero`, `point` (the given state) or `random` (truth plus Gaussian errors)."
+        "zero",
+        description="`zero`, `point` (the given state) or `random` (truth plus Gaussian errors).",
     )
-    point: BoundedVector | None = Field(None, description="The initial state when `kind = \"point\"` (`state_dim` numbers).")
-    position_spread: Noise = Field(0.0, description="Standard deviation of the random position error (m).")
+    point: BoundedVector | None = Field(
+        None, description='The initial state when `kind = "point"` (`state_dim` numbers).'
+    )
+    position_spread: Noise = Field(
+        0.0, description="Standard deviation of the random position error (m)."
+    )
     velocity_spread: Noise = Field(
         0.0, description="Standard deviation of the random velocity (and wind) error (m/s)."
     )
 
     @model_validator(mode="after")
-    def _point_with_kind(self) -> "InitialGuess":
+    def _point_with_kind(self) -> InitialGuess:
         if self.kind == "point" and self.point is None:
             raise _invalid("required field is missing", "point")
         if self.kind != "point" and self.point is not None:
@@ -319,13 +349,16 @@ class ExcitationSpec(_Table):
     """
 
     monitor: Boolean = Field(True, description="Run the live excitation monitor.")
-    window: Seconds = Field(5.0, description="Length `delta` of the sliding Gramian window `W(t - delta, t)` (s).")
+    window: Seconds = Field(
+        5.0, description="Length `delta` of the sliding Gramian window `W(t - delta, t)` (s)."
+    )
     threshold: NonNegative = Field(
         1e-6, description="`mu = lambda_min(W)` below which a window counts as not exciting."
     )
     update_period: Seconds = Field(0.1, description="Period of the measure's updates (s).")
     step: Annotated[Seconds, Ge(1e-6)] | None = Field(
-        None, description="Hold step over which the input is averaged (s) (default: the physics-step multiple nearest 0.01 s)."
+        None,
+        description="Hold step over which the input is averaged (s) (default: the physics-step multiple nearest 0.01 s).",
     )
 
     def grid(self, dt: float) -> tuple[int, int, int]:
@@ -334,14 +367,22 @@ class ExcitationSpec(_Table):
         def multiple(value: float, unit: float, name: str, unit_name: str) -> int:
             k = int(round(value / unit))
             if k < 1 or abs(value - k * unit) > 1e-9 * max(value, unit):
-                raise QuadobsError(f"excitation.{name}: {value} s must be a positive multiple of {unit_name} ({unit:g} s)")
+                raise QuadobsError(
+                    f"excitation.{name}: {value} s must be a positive multiple of {unit_name} ({unit:g} s)"
+                )
             return k
 
-        block = max(1, int(round(0.01 / dt))) if self.step is None else multiple(self.step, dt, "step", "the physics step")
+        block = (
+            max(1, int(round(0.01 / dt)))
+            if self.step is None
+            else multiple(self.step, dt, "step", "the physics step")
+        )
         h = block * dt
         window = multiple(self.window, h, "window", "excitation.step")
         if window < 2:
-            raise QuadobsError(f"excitation.window: {self.window} s must span at least two hold steps of {h:g} s")
+            raise QuadobsError(
+                f"excitation.window: {self.window} s must span at least two hold steps of {h:g} s"
+            )
         update = multiple(self.update_period, h, "update_period", "excitation.step")
         return block, window, update
 
@@ -353,13 +394,18 @@ class ZonotopeSpec(_Table):
     given half-widths.
     """
 
-    position_bound: Annotated[Positive, Le(MAX_LENGTH)] = Field(50.0, description="Half-width of the initial box on positions (m).")
-    velocity_bound: Annotated[Positive, Le(MAX_LENGTH)] = Field(30.0, description="Half-width of the initial box on velocities and wind (m/s).")
+    position_bound: Annotated[Positive, Le(MAX_LENGTH)] = Field(
+        50.0, description="Half-width of the initial box on positions (m)."
+    )
+    velocity_bound: Annotated[Positive, Le(MAX_LENGTH)] = Field(
+        30.0, description="Half-width of the initial box on velocities and wind (m/s)."
+    )
     max_generators: Annotated[Integer, Ge(0), Le(MAX_COUNT)] = Field(
         0, description="Largest zonotope order (0: ten times the augmented dimension)."
     )
     reduction: Literal[tuple(REDUCTION_METHODS)] = Field(
-        "parallelotope", description="Order-reduction method (`quadobs.sets.zonotope.REDUCTION_METHODS`)."
+        "parallelotope",
+        description="Order-reduction method (`quadobs.sets.zonotope.REDUCTION_METHODS`).",
     )
 
 
@@ -373,16 +419,24 @@ class Hover(_Table):
 class ControlSpec(_Table):
     """The quadrotor's cascaded geometric controller (:mod:`quadobs.testbed.controllers`)."""
 
-    feedback: String = Field("truth", description="`truth`, or the name of the estimator whose estimate is flown on.")
+    feedback: String = Field(
+        "truth", description="`truth`, or the name of the estimator whose estimate is flown on."
+    )
     switch_time: NonNegative = Field(
-        0.0, description="Time from which the controller flies on the estimate (s); the truth before."
+        0.0,
+        description="Time from which the controller flies on the estimate (s); the truth before.",
     )
     rate: Positive = Field(500.0, description="Controller rate (Hz), dividing the physics rate.")
-    position_bandwidth: Positive = Field(2.0, description="Natural frequency of the position loop (rad/s).")
-    attitude_bandwidth: Positive = Field(12.0, description="Natural frequency of the attitude loop (rad/s).")
+    position_bandwidth: Positive = Field(
+        2.0, description="Natural frequency of the position loop (rad/s)."
+    )
+    attitude_bandwidth: Positive = Field(
+        12.0, description="Natural frequency of the attitude loop (rad/s)."
+    )
     damping: Positive = Field(0.9, description="Damping ratio of both loops.")
     crash_distance: Positive = Field(
-        1.0, description="Tracking error beyond which a flight counts as crashed and the rotors stop (m)."
+        1.0,
+        description="Tracking error beyond which a flight counts as crashed and the rotors stop (m).",
     )
 
 
@@ -393,26 +447,38 @@ class QuadrotorSpec(_Table):
     paused by the hovers and left by a landing at the end of the episode.
     """
 
-    takeoff: Positive = Field(3.0, description="Duration of the take-off from the floor below the trajectory's start (s).")
+    takeoff: Positive = Field(
+        3.0, description="Duration of the take-off from the floor below the trajectory's start (s)."
+    )
     landing: Positive = Field(3.0, description="Duration of the landing that ends the episode (s).")
-    hover_ramp: Positive = Field(1.0, description="Time to slow down into and speed up out of a hover (s).")
-    hovers: tuple[Hover, ...] = Field((), description="Pauses of the reference (`[[quadrotor.hovers]]`).")
+    hover_ramp: Positive = Field(
+        1.0, description="Time to slow down into and speed up out of a hover (s)."
+    )
+    hovers: tuple[Hover, ...] = Field(
+        (), description="Pauses of the reference (`[[quadrotor.hovers]]`)."
+    )
     accel_std: NonNegative = Field(0.0, description="Accelerometer white noise (m/s^2).")
-    accel_bias: NonNegative = Field(0.0, description="Standard deviation of the accelerometer's constant bias (m/s^2).")
+    accel_bias: NonNegative = Field(
+        0.0, description="Standard deviation of the accelerometer's constant bias (m/s^2)."
+    )
     gyro_std: NonNegative = Field(0.0, description="Gyroscope white noise (rad/s).")
-    gyro_bias: NonNegative = Field(0.0, description="Standard deviation of the gyroscope's constant bias (rad/s).")
+    gyro_bias: NonNegative = Field(
+        0.0, description="Standard deviation of the gyroscope's constant bias (rad/s)."
+    )
     attitude_std: NonNegative = Field(0.0, description="Attitude (AHRS) error per axis (rad).")
     attitude_rate: Positive | None = Field(
-        None, description="Attitude sample rate (Hz), dividing the physics rate (default: the physics rate)."
+        None,
+        description="Attitude sample rate (Hz), dividing the physics rate (default: the physics rate).",
     )
 
     @model_validator(mode="after")
-    def _sorted_hovers(self) -> "QuadrotorSpec":
+    def _sorted_hovers(self) -> QuadrotorSpec:
         last = 0.0
         for i, h in enumerate(self.hovers):
             if h.start < last or h.end - h.start < 2.0 * self.hover_ramp:
                 raise _invalid(
-                    f"[{h.start}, {h.end}] must be sorted, disjoint and last at least twice hover_ramp", f"hovers[{i}]"
+                    f"[{h.start}, {h.end}] must be sorted, disjoint and last at least twice hover_ramp",
+                    f"hovers[{i}]",
                 )
             last = h.end
         return self
@@ -450,15 +516,22 @@ class Scenario(_Table):
     """
 
     name: Annotated[String, MaxLen(MAX_TEXT)] = Field(description="Name of the scenario.")
-    description: Annotated[String, MaxLen(100 * MAX_TEXT)] = Field("", description="What the scenario shows (first line: `quadobs list`).")
+    description: Annotated[String, MaxLen(100 * MAX_TEXT)] = Field(
+        "", description="What the scenario shows (first line: `quadobs list`)."
+    )
     kind: Literal["vehicle", "quadrotor"] = Field(
-        "vehicle", description="`vehicle`: the MuJoCo point-mass vehicle; `quadrotor`: a Crazyflie-sized quadrotor flown by a controller."
+        "vehicle",
+        description="`vehicle`: the MuJoCo point-mass vehicle; `quadrotor`: a Crazyflie-sized quadrotor flown by a controller.",
     )
     dimension: Integer = Field(description="Dimension of the motion: 2 or 3.")
     duration: Seconds = Field(description="Simulated time (s).")
     physics_rate: Rate = Field(1000.0, description="Physics steps per second (Hz).")
-    seed: Annotated[Integer, Ge(0), Le(MAX_SEED)] = Field(0, description="Seed of every random draw of the episode.")
-    record_every: Annotated[Integer, Ge(1), Le(MAX_COUNT)] = Field(1, description="Record one physics step in `record_every`.")
+    seed: Annotated[Integer, Ge(0), Le(MAX_SEED)] = Field(
+        0, description="Seed of every random draw of the episode."
+    )
+    record_every: Annotated[Integer, Ge(1), Le(MAX_COUNT)] = Field(
+        1, description="Record one physics step in `record_every`."
+    )
     beacon_specs: Annotated[tuple[Beacon, ...], MaxLen(MAX_ENTRIES)] = Field(
         alias="beacons", description="Beacons ranged by the vehicle (`[[beacons]]`, at least one)."
     )
@@ -466,21 +539,33 @@ class Scenario(_Table):
         default_factory=TrajectorySpec, alias="trajectory", description="The reference motion."
     )
     noise: NoiseSpec = Field(default_factory=NoiseSpec, description="Sensor noise and rates.")
-    observer: ObserverSpec = Field(default_factory=ObserverSpec, description="Settings of the augmented observer.")
-    initial: InitialGuess = Field(default_factory=InitialGuess, description="The initial estimate of every estimator.")
+    observer: ObserverSpec = Field(
+        default_factory=ObserverSpec, description="Settings of the augmented observer."
+    )
+    initial: InitialGuess = Field(
+        default_factory=InitialGuess, description="The initial estimate of every estimator."
+    )
     zonotope: ZonotopeSpec = Field(
         default_factory=ZonotopeSpec, description="Settings of the guaranteed estimator `zonotope`."
     )
-    excitation: ExcitationSpec = Field(default_factory=ExcitationSpec, description="The live excitation monitor.")
+    excitation: ExcitationSpec = Field(
+        default_factory=ExcitationSpec, description="The live excitation monitor."
+    )
     wind_spec: Wind | None = Field(
-        None, alias="wind", description="Constant wind: adds air velocity and wind to the state, and an airspeed output."
+        None,
+        alias="wind",
+        description="Constant wind: adds air velocity and wind to the state, and an airspeed output.",
     )
     model: Annotated[String, MaxLen(MAX_TEXT)] | None = Field(
-        None, description="MJCF model to use instead of the built-in vehicle (relative to the scenario file)."
+        None,
+        description="MJCF model to use instead of the built-in vehicle (relative to the scenario file).",
     )
-    control: ControlSpec | None = Field(None, description="The flight controller (`kind = \"quadrotor\"` only).")
+    control: ControlSpec | None = Field(
+        None, description='The flight controller (`kind = "quadrotor"` only).'
+    )
     quadrotor: QuadrotorSpec | None = Field(
-        None, description="Flight plan and on-board sensors of the quadrotor (`kind = \"quadrotor\"` only)."
+        None,
+        description='Flight plan and on-board sensors of the quadrotor (`kind = "quadrotor"` only).',
     )
 
     _beacons: np.ndarray = PrivateAttr()
@@ -492,7 +577,9 @@ class Scenario(_Table):
     @classmethod
     def _a_path(cls, model: str | None) -> str | None:
         if model is not None and ("\0" in model or not model.strip()):
-            raise _invalid("expected the path of an MJCF file, got an empty name or one holding NUL")
+            raise _invalid(
+                "expected the path of an MJCF file, got an empty name or one holding NUL"
+            )
         return model
 
     @field_validator("dimension")
@@ -510,7 +597,7 @@ class Scenario(_Table):
         return beacons
 
     @model_validator(mode="after")
-    def _cross_field(self) -> "Scenario":
+    def _cross_field(self) -> Scenario:
         """The rules between fields, then the arrays and the trajectory built once."""
         dim = self.dimension
         for i, b in enumerate(self.beacon_specs):
@@ -525,31 +612,43 @@ class Scenario(_Table):
                     f"observer.variants[{i}].outputs: expected distinct output indices in [0, {q - 1}], got {list(v.outputs)}"
                 )
         if self.initial.point is not None:
-            _check_length("initial.point", self.initial.point, dim * (3 if self.wind_spec is not None else 2))
-        out = self.model_copy(update={"trajectory_spec": spec}) if spec is not self.trajectory_spec else self
+            _check_length(
+                "initial.point", self.initial.point, dim * (3 if self.wind_spec is not None else 2)
+            )
+        out = (
+            self.model_copy(update={"trajectory_spec": spec})
+            if spec is not self.trajectory_spec
+            else self
+        )
         out._build()
         if out.steps < 1:
-            raise QuadobsError(f"duration: {self.duration} s is shorter than one physics step ({out.dt} s)")
+            raise QuadobsError(
+                f"duration: {self.duration} s is shorter than one physics step ({out.dt} s)"
+            )
         out.sample_interval(self.noise.range_rate, "range_rate")
         out.sample_interval(self.noise.airspeed_rate, "airspeed_rate")
         self.excitation.grid(out.dt)
         return out
 
     @model_validator(mode="after")
-    def _quadrotor_tables(self) -> "Scenario":
+    def _quadrotor_tables(self) -> Scenario:
         """``[control]`` and ``[quadrotor]`` belong to quadrotor scenarios, which move in 3-D."""
         if self.kind != "quadrotor":
             for table in ("control", "quadrotor"):
                 if getattr(self, table) is not None:
-                    raise QuadobsError(f'{table}: only used with kind = "quadrotor", not {self.kind!r}')
+                    raise QuadobsError(
+                        f'{table}: only used with kind = "quadrotor", not {self.kind!r}'
+                    )
             return self
         if self.dimension != 3:
-            raise QuadobsError(f'dimension: a quadrotor flies in 3-D, got {self.dimension}')
+            raise QuadobsError(f"dimension: a quadrotor flies in 3-D, got {self.dimension}")
         if self.wind_spec is not None:
             raise QuadobsError('wind: not modelled for kind = "quadrotor"')
         quad, control = self.quadrotor or QuadrotorSpec(), self.control or ControlSpec()
         if quad.takeoff + quad.landing >= self.duration:
-            raise QuadobsError(f"quadrotor.landing: take-off and landing must fit in the duration {self.duration} s")
+            raise QuadobsError(
+                f"quadrotor.landing: take-off and landing must fit in the duration {self.duration} s"
+            )
         self.sample_interval(control.rate, "rate", table="control")
         self.sample_interval(quad.attitude_rate, "attitude_rate", table="quadrotor")
         return self
@@ -563,9 +662,13 @@ class Scenario(_Table):
             wind.setflags(write=False)
             self._wind = wind
         t = self.trajectory_spec
-        terms = np.array([(x.axis, x.amplitude, x.omega, x.phase) for x in t.terms], dtype=float).reshape(-1, 4)
+        terms = np.array(
+            [(x.axis, x.amplitude, x.omega, x.phase) for x in t.terms], dtype=float
+        ).reshape(-1, 4)
         coast = np.array([(c.start, c.end) for c in t.coast], dtype=float).reshape(-1, 2)
-        self._trajectory = SinusoidTrajectory(np.array(t.offset), terms, np.array(t.velocity), coast)
+        self._trajectory = SinusoidTrajectory(
+            np.array(t.offset), terms, np.array(t.velocity), coast
+        )
 
     # -- the tables as arrays ----------------------------------------------------------
 
@@ -632,13 +735,13 @@ class Scenario(_Table):
 
     # -- copies and serialisation ------------------------------------------------------
 
-    def with_overrides(self, **changes) -> "Scenario":
+    def with_overrides(self, **changes) -> Scenario:
         """A copy with top-level fields replaced (``duration``, ``seed``, ...), revalidated; ``None`` keeps a field."""
         data = self.to_dict()
         data.update({k: v for k, v in changes.items() if v is not None})
         return parse_scenario(data, source=self.source)
 
-    def with_settings(self, settings: Iterable[str] | Mapping[str, Any]) -> "Scenario":
+    def with_settings(self, settings: Iterable[str] | Mapping[str, Any]) -> Scenario:
         """A copy with any fields replaced by dotted path (:func:`apply_settings`), revalidated.
 
         Examples
@@ -663,7 +766,9 @@ class Scenario(_Table):
         Lists of numbers are written on one line.
         """
         text = tomli_w.dumps(self.to_dict(), multiline_strings=True)
-        compact = _NUMBER_LIST.sub(lambda m: "[" + ", ".join(m.group(0)[1:-1].replace(",", " ").split()) + "]", text)
+        compact = _NUMBER_LIST.sub(
+            lambda m: "[" + ", ".join(m.group(0)[1:-1].replace(",", " ").split()) + "]", text
+        )
         return compact if tomllib.loads(compact) == tomllib.loads(text) else text
 
     def __eq__(self, other: object) -> bool:
@@ -694,7 +799,9 @@ def _resolve_trajectory(spec: TrajectorySpec, dim: int) -> TrajectorySpec:
             _check_length(f"trajectory.{name}", value, dim)
     for i, term in enumerate(spec.terms):
         if term.axis >= dim:
-            raise QuadobsError(f"trajectory.terms[{i}].axis: must be below the dimension {dim}, got {term.axis}")
+            raise QuadobsError(
+                f"trajectory.terms[{i}].axis: must be below the dimension {dim}, got {term.axis}"
+            )
     return spec.model_copy(update=update) if update else spec
 
 
@@ -737,7 +844,11 @@ def _is_table_list(loc: tuple) -> bool:
     model = _model_at(loc[:-1])
     fields = {(f.alias or n): f for n, f in model.model_fields.items()} if model else {}
     info = fields.get(loc[-1]) if loc else None
-    return info is not None and get_origin(info.annotation) is tuple and _table_class(info.annotation) is not None
+    return (
+        info is not None
+        and get_origin(info.annotation) is tuple
+        and _table_class(info.annotation) is not None
+    )
 
 
 def _table_class(annotation: Any) -> type[BaseModel] | None:
@@ -779,7 +890,11 @@ def _bound_message(kind: str, ctx: dict, value: Any) -> str:
     bound = ctx.get("gt", ctx.get("ge", ctx.get("le")))
     value = float(value) if isinstance(bound, float) else value
     if kind == "greater_than":
-        return f"must be positive, got {value}" if ctx["gt"] == 0 else f"must be greater than {ctx['gt']}, got {value}"
+        return (
+            f"must be positive, got {value}"
+            if ctx["gt"] == 0
+            else f"must be greater than {ctx['gt']}, got {value}"
+        )
     if kind == "greater_than_equal":
         if isinstance(ctx["ge"], float) and ctx["ge"] == 0:
             return f"must be non-negative, got {value}"
@@ -874,7 +989,9 @@ def _split_path(path: str) -> list[str | int]:
     for name in path.split("."):
         head, *indices = name.split("[")
         if not head or any(not i.endswith("]") or not i[:-1].isdigit() for i in indices):
-            raise QuadobsError(f"--set: {path!r} is not a dotted field path (e.g. trajectory.terms[0].omega)")
+            raise QuadobsError(
+                f"--set: {path!r} is not a dotted field path (e.g. trajectory.terms[0].omega)"
+            )
         parts += [head] + [int(i[:-1]) for i in indices]
     return parts
 
@@ -920,8 +1037,10 @@ def _assign(node: Any, parts: list[str | int], value: Any) -> None:
     part = parts[-1]
     if isinstance(part, int):
         if not isinstance(node, list) or not 0 <= part <= len(node):
-            raise QuadobsError(f"{_path(parts)}: no such entry (a list grows by one entry at a time)")
-        node[part:part + 1] = [value]
+            raise QuadobsError(
+                f"{_path(parts)}: no such entry (a list grows by one entry at a time)"
+            )
+        node[part : part + 1] = [value]
     elif isinstance(node, dict):
         node[part] = value
     else:
@@ -938,7 +1057,11 @@ def list_scenarios() -> dict[str, str]:
     for entry in sorted(_builtin_dir().iterdir(), key=lambda e: e.name):
         if entry.name.endswith(".toml"):
             data = tomllib.loads(entry.read_text())
-            out[entry.name[:-5]] = str(data.get("description", "")).strip().splitlines()[0] if data.get("description") else ""
+            out[entry.name[:-5]] = (
+                str(data.get("description", "")).strip().splitlines()[0]
+                if data.get("description")
+                else ""
+            )
     return out
 
 
@@ -968,7 +1091,9 @@ def _read(name_or_path: str | Path) -> dict:
     text_source = str(name_or_path)
     shown = text_source if len(text_source) <= 80 else text_source[:60] + "..."
     if len(text_source) > MAX_TEXT or "\0" in text_source:
-        raise QuadobsError(f"scenario {shown!r}: expected a name or a path of at most {MAX_TEXT} characters without NUL")
+        raise QuadobsError(
+            f"scenario {shown!r}: expected a name or a path of at most {MAX_TEXT} characters without NUL"
+        )
     path = Path(name_or_path)
     try:
         is_file = path.suffix == ".toml" or path.exists()
@@ -980,7 +1105,9 @@ def _read(name_or_path: str | Path) -> dict:
         entry = _builtin_dir() / f"{text_source}.toml"
         if not entry.is_file():
             names = ", ".join(list_scenarios())
-            raise QuadobsError(f"scenario: unknown name {shown!r}; built-in scenarios are {names}, or give a .toml path")
+            raise QuadobsError(
+                f"scenario: unknown name {shown!r}; built-in scenarios are {names}, or give a .toml path"
+            )
         text = entry.read_text()
     try:
         data = tomllib.loads(text)
@@ -994,7 +1121,9 @@ def _read(name_or_path: str | Path) -> dict:
     return data
 
 
-def load_scenario(name_or_path: str | Path, *, settings: Iterable[str] | Mapping[str, Any] = (), **overrides) -> Scenario:
+def load_scenario(
+    name_or_path: str | Path, *, settings: Iterable[str] | Mapping[str, Any] = (), **overrides
+) -> Scenario:
     """Load a built-in scenario by name, or a scenario file by path.
 
     Parameters
@@ -1040,7 +1169,9 @@ def _type_label(annotation: Any, metadata: Iterable[Any] = ()) -> str:
     elif _table_class(annotation):
         label = "table"
     else:
-        label = {float: "number", int: "integer", str: "string", bool: "boolean"}.get(annotation, str(annotation))
+        label = {float: "number", int: "integer", str: "string", bool: "boolean"}.get(
+            annotation, str(annotation)
+        )
     bounds = [
         f"{sign} {getattr(m, attr)}"
         for m in metadata
@@ -1063,7 +1194,12 @@ def _default_label(info: Any) -> str:
 def _rows(model: type[BaseModel], prefix: str) -> Iterable[tuple[str, str, str, str]]:
     for name, info in model.model_fields.items():
         dotted = prefix + (info.alias or name)
-        yield dotted, _type_label(info.annotation, info.metadata), _default_label(info), info.description or ""
+        yield (
+            dotted,
+            _type_label(info.annotation, info.metadata),
+            _default_label(info),
+            info.description or "",
+        )
         inner = _table_class(info.annotation)
         if inner is not None:
             many = get_origin(info.annotation) is tuple

@@ -84,7 +84,9 @@ class SensorModel:
         From :func:`spawn_streams`; derived from ``scenario.seed`` when omitted.
     """
 
-    def __init__(self, scenario: Scenario, streams: dict[str, np.random.Generator] | None = None) -> None:
+    def __init__(
+        self, scenario: Scenario, streams: dict[str, np.random.Generator] | None = None
+    ) -> None:
         s = streams or spawn_streams(scenario.seed)
         noise = scenario.noise
         self.q_b = scenario.beacons.shape[0]
@@ -94,7 +96,11 @@ class SensorModel:
         self._beacon_term = 0.5 * np.einsum("hi,hi->h", scenario.beacons, scenario.beacons)
         self.range_every = scenario.sample_interval(noise.range_rate, "range_rate")
         self.airspeed_every = scenario.sample_interval(noise.airspeed_rate, "airspeed_rate")
-        self.range_bound, self.accel_bound, self.airspeed_bound = noise.range_bound, noise.accel_bound, noise.airspeed_bound
+        self.range_bound, self.accel_bound, self.airspeed_bound = (
+            noise.range_bound,
+            noise.accel_bound,
+            noise.airspeed_bound,
+        )
         # A sensor has a standard deviation (Gaussian noise) or a bound (uniform noise), not
         # both: the noise is ``scale * draw`` with a standard normal draw, or ``2 U - 1``.
         self.range_std = noise.range_bound or noise.range_std
@@ -103,7 +109,9 @@ class SensorModel:
         self.dropout = noise.dropout
         self.outlier_probability, self.outlier_std = noise.outlier_probability, noise.outlier_std
         self._range = _Draws(s["range"], self.q_b, "symmetric" if self.range_bound else "normal")
-        self._accel = _Draws(s["accel"], scenario.dimension, "symmetric" if self.accel_bound else "normal")
+        self._accel = _Draws(
+            s["accel"], scenario.dimension, "symmetric" if self.accel_bound else "normal"
+        )
         self._air = _Draws(s["airspeed"], 1, "symmetric" if self.airspeed_bound else "normal")
         self._drop = _Draws(s["dropout"], self.q, "uniform")
         self._out = _Draws(s["outlier"], self.q_b, "uniform")
@@ -139,7 +147,9 @@ class SensorModel:
         if k % self.range_every == 0:
             noise = self._range.next() if self.range_std else self._no_noise
             if self._fast is not None and not self.outlier_probability:
-                self._fast(ranges, noise, self.range_std, self._beacon_term, measured, self._y_ranges)
+                self._fast(
+                    ranges, noise, self.range_std, self._beacon_term, measured, self._y_ranges
+                )
             else:
                 rho = ranges + self.range_std * noise if self.range_std else ranges.copy()
                 if self.outlier_probability:
@@ -155,7 +165,9 @@ class SensorModel:
             measured[:] = np.nan
         if self.has_wind:
             if airspeed is not None and k % self.airspeed_every == 0:
-                s = airspeed + (self.airspeed_std * self._air.next()[0] if self.airspeed_std else 0.0)
+                s = airspeed + (
+                    self.airspeed_std * self._air.next()[0] if self.airspeed_std else 0.0
+                )
                 y[self.q_b] = 0.5 * s * s
             else:
                 y[self.q_b] = np.nan
@@ -231,7 +243,9 @@ class SensorModel:
             lost = sampled & (draws[:, o : o + q] < self.dropout)
         out = np.zeros((len(draws), 2), dtype=np.int64)
         if self.outlier_probability:
-            hit = sampled[:, :qb] & (draws[:, qb : 2 * qb] < self.outlier_probability) & ~lost[:, :qb]
+            hit = (
+                sampled[:, :qb] & (draws[:, qb : 2 * qb] < self.outlier_probability) & ~lost[:, :qb]
+            )
             out[:, 0] = hit.sum(axis=1)
         out[:, 1] = lost.sum(axis=1)
         return out
@@ -250,7 +264,10 @@ class SensorModel:
     @property
     def adds_nothing(self) -> bool:
         """Whether the layer hands the ranges and the input on unchanged: no noise, dropout or outlier, every step sampled."""
-        return not (self.range_std or self.accel_std or self.dropout or self.outlier_probability) and self.range_every == 1
+        return (
+            not (self.range_std or self.accel_std or self.dropout or self.outlier_probability)
+            and self.range_every == 1
+        )
 
     def input_noise(self, draws: np.ndarray) -> np.ndarray:
         """The accelerometer noise of these rows of :meth:`draws`, ``(rows, dim)`` (as :meth:`input` adds it)."""
@@ -271,7 +288,11 @@ class SensorModel:
         out = np.where(read, rho, np.nan)
         if self.range_std:
             out = out + self.range_std * draws[:, :qb]
-        hit = read & (draws[:, qb : 2 * qb] < self.outlier_probability) if self.outlier_probability else np.zeros_like(read)
+        hit = (
+            read & (draws[:, qb : 2 * qb] < self.outlier_probability)
+            if self.outlier_probability
+            else np.zeros_like(read)
+        )
         out = np.where(hit, out + self.outlier_std * draws[:, 2 * qb : 3 * qb], out)
         o = 3 * qb + 1
         lost = read & (draws[:, o : o + qb] < self.dropout) if self.dropout else np.zeros_like(read)
@@ -283,7 +304,14 @@ class SensorModel:
         outlier_std, airspeed_std, dropout, accel_std, beacon_term (q_b)]``."""
         return np.concatenate(
             [
-                [self.q_b, self.q, self.dim, self.range_std, self.outlier_probability, self.outlier_std],
+                [
+                    self.q_b,
+                    self.q,
+                    self.dim,
+                    self.range_std,
+                    self.outlier_probability,
+                    self.outlier_std,
+                ],
                 [self.airspeed_std, self.dropout, self.accel_std],
                 self._beacon_term,
             ]

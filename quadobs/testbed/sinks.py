@@ -40,8 +40,19 @@ from quadobs.testbed.blocks import LEAD
 SEND_AHEAD = 2 * LEAD
 
 __all__ = [
-    "Block", "BoundsSink", "ConvergenceSink", "EpisodeContext", "EpisodeFrame", "ExcitationSink", "ProgressSink",
-    "RecordingSink", "Rows", "Sink", "StepSink", "TraceSink", "merge",
+    "Block",
+    "BoundsSink",
+    "ConvergenceSink",
+    "EpisodeContext",
+    "EpisodeFrame",
+    "ExcitationSink",
+    "ProgressSink",
+    "RecordingSink",
+    "Rows",
+    "Sink",
+    "StepSink",
+    "TraceSink",
+    "merge",
 ]
 
 _NEVER = np.iinfo(np.int64).max
@@ -118,7 +129,9 @@ class Rows:
         Per step: outliers delivered, samples dropped (0 on the final row, which has no step).
     """
 
-    def __init__(self, block: Block, count: int, steps: int, dt: float, dim: int, has_wind: bool) -> None:
+    def __init__(
+        self, block: Block, count: int, steps: int, dt: float, dim: int, has_wind: bool
+    ) -> None:
         n = block.columns.n
         self.block, self.count = block, count
         self.ks = block.k0 + np.arange(count)
@@ -192,17 +205,27 @@ class EpisodeFrame:
     beacon_labels: tuple = ()
 
     @classmethod
-    def of(cls, scenario) -> "EpisodeFrame":
+    def of(cls, scenario) -> EpisodeFrame:
         """The frame of a scenario's episode: 3-D samples at most every 10 ms of simulated time."""
         axes = "xyz"[: scenario.dimension]
         noise = scenario.noise
         return cls(
-            name=scenario.name, steps=scenario.steps, dt=scenario.dt, dimension=scenario.dimension,
-            beacons=scenario.beacons, physics_rate=scenario.physics_rate, seed=scenario.seed,
-            description=scenario.description, source=scenario.source, has_wind=scenario.has_wind,
+            name=scenario.name,
+            steps=scenario.steps,
+            dt=scenario.dt,
+            dimension=scenario.dimension,
+            beacons=scenario.beacons,
+            physics_rate=scenario.physics_rate,
+            seed=scenario.seed,
+            description=scenario.description,
+            source=scenario.source,
+            has_wind=scenario.has_wind,
             record_every=scenario.record_every,
-            trail_every=math.lcm(max(1, int(round(scenario.physics_rate / 100.0))), scenario.record_every),
-            sensor_events=bool(noise.outlier_probability or noise.dropout), excitation=scenario.excitation.monitor,
+            trail_every=math.lcm(
+                max(1, int(round(scenario.physics_rate / 100.0))), scenario.record_every
+            ),
+            sensor_events=bool(noise.outlier_probability or noise.dropout),
+            excitation=scenario.excitation.monitor,
             input_labels=tuple(f"a_{a}" for a in axes),
             beacon_labels=tuple(f"beacon {h}" for h in range(scenario.beacons.shape[0])),
         )
@@ -371,7 +394,9 @@ class TraceSink(StepSink):
             tr["nis_dof"][name][idx] = np.where(np.isfinite(nis), dof, 0)
             if name in rows.bounds:
                 T, n = tr["time"].shape[0], rows.truth.shape[1]
-                tr["bounds"].setdefault(name, np.full((T, n, 2), np.nan))[idx] = rows.bounds[name][sel]
+                tr["bounds"].setdefault(name, np.full((T, n, 2), np.nan))[idx] = rows.bounds[name][
+                    sel
+                ]
 
 
 class BoundsSink(Sink):
@@ -391,10 +416,12 @@ class BoundsSink(Sink):
 
     def end(self, completed: int, interrupted: bool) -> dict:
         per = {
-            name: {"bounds": {
-                "contained_fraction": inside / n if n else None,
-                "final_width": None if b is None else (b[:, 1] - b[:, 0]).tolist(),
-            }}
+            name: {
+                "bounds": {
+                    "contained_fraction": inside / n if n else None,
+                    "final_width": None if b is None else (b[:, 1] - b[:, 0]).tolist(),
+                }
+            }
             for name, (inside, n, b) in self.contained.items()
         }
         return {"estimators": per} if per else {}
@@ -495,7 +522,11 @@ class RecordingSink(Sink):
     """
 
     def __init__(self, recorder, extras=None, *, send_each_block: bool = False) -> None:
-        self.recorder, self.extras, self.send_each_block = recorder, list(extras or []), send_each_block
+        self.recorder, self.extras, self.send_each_block = (
+            recorder,
+            list(extras or []),
+            send_each_block,
+        )
 
     def begin(self, ctx: EpisodeContext) -> None:
         from quadobs.testbed.episode_log import EpisodeLog
@@ -503,12 +534,20 @@ class RecordingSink(Sink):
         super().begin(ctx)
         self.gated = [e for e in ctx.estimators if isinstance(e, Gated) and e.gate is not None]
         self.log = EpisodeLog(
-            self.recorder, ctx.frame, ctx.names, bounded=[e.name for _, e in ctx.block.bounded],
-            gated=[e.name for e in self.gated], velocity=ctx.block.columns.n >= 2 * ctx.frame.dimension,
+            self.recorder,
+            ctx.frame,
+            ctx.names,
+            bounded=[e.name for _, e in ctx.block.bounded],
+            gated=[e.name for e in self.gated],
+            velocity=ctx.block.columns.n >= 2 * ctx.frame.dimension,
         )
         self.events = np.zeros(2, dtype=np.int64)  # outliers delivered, samples dropped, so far
-        self.rejected = {e.name: 0 for e in self.gated}  # rejected corrections so far (recorded rows)
-        self.switching = {e.name: (e, 0) for e in ctx.estimators if isinstance(e, Switching)}  # switches logged
+        self.rejected = {
+            e.name: 0 for e in self.gated
+        }  # rejected corrections so far (recorded rows)
+        self.switching = {
+            e.name: (e, 0) for e in ctx.estimators if isinstance(e, Switching)
+        }  # switches logged
 
     def block(self, rows: Rows) -> None:
         from quadobs.testbed.episode_log import LoggedRows
@@ -524,18 +563,39 @@ class RecordingSink(Sink):
         sc, c, raw = self.ctx.frame, rows.block.columns, rows.block.raw[: rows.count]
         dim = sc.dimension
         X = rows.truth[sel]
-        air = np.sqrt(2.0 * rows.block.y[: rows.count, sc.beacons.shape[0]][sel]) if sc.has_wind else None
-        self.log.write_block(LoggedRows(
-            steps=rows.ks[sel], times=rows.t[sel], truth_p=X[:, :dim], truth_wind=X[:, 2 * dim :] if sc.has_wind else None,
-            errors={nm: {key: val[sel] for key, val in err.items()} for nm, err in rows.errors.items()},
-            estimates={nm: v[sel] for nm, v in rows.estimates.items()},
-            traces={nm: v[sel] for nm, v in rows.traces.items()}, nis={nm: v[sel] for nm, v in rows.nis.items()},
-            ranges=raw[sel, c.measured], airspeed=air, inputs=rows.block.u[: rows.count][sel],
-            bounds={nm: v[sel] for nm, v in rows.bounds.items()},
-            rejected={e.name: rows.rejected[e.name][sel] for e in self.gated}, events=ev[sel],
-        ), extra=self._extra)
+        air = (
+            np.sqrt(2.0 * rows.block.y[: rows.count, sc.beacons.shape[0]][sel])
+            if sc.has_wind
+            else None
+        )
+        self.log.write_block(
+            LoggedRows(
+                steps=rows.ks[sel],
+                times=rows.t[sel],
+                truth_p=X[:, :dim],
+                truth_wind=X[:, 2 * dim :] if sc.has_wind else None,
+                errors={
+                    nm: {key: val[sel] for key, val in err.items()}
+                    for nm, err in rows.errors.items()
+                },
+                estimates={nm: v[sel] for nm, v in rows.estimates.items()},
+                traces={nm: v[sel] for nm, v in rows.traces.items()},
+                nis={nm: v[sel] for nm, v in rows.nis.items()},
+                ranges=raw[sel, c.measured],
+                airspeed=air,
+                inputs=rows.block.u[: rows.count][sel],
+                bounds={nm: v[sel] for nm, v in rows.bounds.items()},
+                rejected={e.name: rows.rejected[e.name][sel] for e in self.gated},
+                events=ev[sel],
+            ),
+            extra=self._extra,
+        )
         rec = self.recorder
-        if self.send_each_block and rec.n >= rec.capacity // 2 and self.ctx.frame.steps - int(rows.ks[-1]) > SEND_AHEAD:
+        if (
+            self.send_each_block
+            and rec.n >= rec.capacity // 2
+            and self.ctx.frame.steps - int(rows.ks[-1]) > SEND_AHEAD
+        ):
             # Sent now, and rerun's encoding waited for, while the physics of the blocks ahead
             # is still computing beside it (the reader would wait for it anyway): the encoding
             # then never competes with the physics for a core. Half a buffer at least, so that
@@ -562,20 +622,29 @@ class RecordingSink(Sink):
         """The event log's last lines: the interruption, and each gate's rejections beside the injected events."""
         self._log_switches()
         if interrupted:
-            self._text(f"interrupted at t = {completed * self.ctx.frame.dt:.3f} s (step {completed})", "WARN", completed)
+            self._text(
+                f"interrupted at t = {completed * self.ctx.frame.dt:.3f} s (step {completed})",
+                "WARN",
+                completed,
+            )
         for e in self.gated:
             count = self.rejected[e.name]
             self._text(
                 f"{e.name}: {count} corrections rejected by the NIS gate {e.gate:g} "
                 f"({int(self.events[0])} outliers injected, {int(self.events[1])} samples dropped)",
-                "WARN" if count else "INFO", completed,
+                "WARN" if count else "INFO",
+                completed,
             )
         return {}
 
     def fail(self, completed: int, error: BaseException) -> None:
         self.recorder.fail()  # the target keeps the previous recording; the staging file keeps this one
         dt = self.ctx.frame.dt
-        self._text(f"stopped by an error at t = {completed * dt:.3f} s (step {completed}): {error!r}", "ERROR", completed)
+        self._text(
+            f"stopped by an error at t = {completed * dt:.3f} s (step {completed}): {error!r}",
+            "ERROR",
+            completed,
+        )
 
     def close(self) -> None:
         self.recorder.close(publish=False)  # renamed into place by publish(), after the summary

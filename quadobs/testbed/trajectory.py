@@ -60,22 +60,39 @@ class SinusoidTrajectory:
         offset = as_array("trajectory.offset", self.offset, (None,))
         dim = offset.shape[0]
         if dim not in (2, 3):
-            raise QuadobsError(f"trajectory.offset: expected 2 or 3 entries (the dimension), got {dim}")
+            raise QuadobsError(
+                f"trajectory.offset: expected 2 or 3 entries (the dimension), got {dim}"
+            )
         terms = as_array("trajectory.terms", self.terms).reshape(-1, 4)
         axes = terms[:, 0]
         if np.any((axes != np.round(axes)) | (axes < 0) | (axes >= dim)):
             raise QuadobsError(f"trajectory.terms: axis must be an integer in [0, {dim - 1}]")
-        vel = np.zeros(dim) if self.velocity is None else as_array("trajectory.velocity", self.velocity, (dim,))
-        coast = np.zeros((0, 2)) if self.coast is None else as_array("trajectory.coast", self.coast).reshape(-1, 2)
+        vel = (
+            np.zeros(dim)
+            if self.velocity is None
+            else as_array("trajectory.velocity", self.velocity, (dim,))
+        )
+        coast = (
+            np.zeros((0, 2))
+            if self.coast is None
+            else as_array("trajectory.coast", self.coast).reshape(-1, 2)
+        )
         for i, (start, end) in enumerate(coast):
             if not 0.0 <= start < end:
-                raise QuadobsError(f"trajectory.coast[{i}]: expected 0 <= start < end, got start = {start}, end = {end}")
+                raise QuadobsError(
+                    f"trajectory.coast[{i}]: expected 0 <= start < end, got start = {start}, end = {end}"
+                )
             if i and start < coast[i - 1, 1]:
                 raise QuadobsError(
                     f"trajectory.coast[{i}]: segments must be sorted and disjoint, start {start} is before the end "
                     f"{coast[i - 1, 1]} of segment {i - 1}"
                 )
-        for name, arr in (("offset", offset), ("terms", terms), ("velocity", vel), ("coast", coast)):
+        for name, arr in (
+            ("offset", offset),
+            ("terms", terms),
+            ("velocity", vel),
+            ("coast", coast),
+        ):
             arr.setflags(write=False)
             object.__setattr__(self, name, arr)
 
@@ -109,7 +126,11 @@ class SinusoidTrajectory:
                     c = np.clip(tt, start, end)
                     v_s = self._sinusoid(np.array([start]), 1)
                     dv = self._sinusoid(c, 1) - v_s
-                    out -= self._sinusoid(c, 0) - self._sinusoid(np.array([start]), 0) - v_s * (c - start)[:, None]
+                    out -= (
+                        self._sinusoid(c, 0)
+                        - self._sinusoid(np.array([start]), 0)
+                        - v_s * (c - start)[:, None]
+                    )
                     out -= dv * (tt - c)[:, None]
         return out[0] if scalar else out
 

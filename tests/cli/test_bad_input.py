@@ -26,11 +26,18 @@ junk = st.one_of(
     st.dictionaries(st.text(max_size=3), st.integers(), max_size=2),
 )
 shapes = hnp.array_shapes(min_dims=0, max_dims=4, min_side=0, max_side=4)
-arrays = hnp.arrays(np.float64, shapes, elements=st.floats(allow_nan=True, allow_infinity=True, width=64))
+arrays = hnp.arrays(
+    np.float64, shapes, elements=st.floats(allow_nan=True, allow_infinity=True, width=64)
+)
 
 
 @FAST
-@given(A=st.one_of(arrays, junk), B=st.one_of(arrays, junk), C=st.one_of(arrays, junk), d=st.one_of(st.none(), arrays, junk))
+@given(
+    A=st.one_of(arrays, junk),
+    B=st.one_of(arrays, junk),
+    C=st.one_of(arrays, junk),
+    d=st.one_of(st.none(), arrays, junk),
+)
 def test_quadratic_system_accepts_or_names_the_problem(A, B, C, d):
     try:
         s = QuadraticSystem(A, B, C, d)
@@ -57,6 +64,7 @@ BASE = load_scenario("beacons").to_dict()
 FIELD = re.compile(r"scenario|[a-z_0-9]+(\[\d+\])?(\.[A-Za-z_0-9]+(\[\d+\])?)*")
 LEAVES = list(_leaves(BASE))
 
+
 @FAST
 @given(st.data())
 def test_scenario_mutations_accept_or_name_the_field(data):
@@ -79,7 +87,18 @@ def test_scenario_mutations_accept_or_name_the_field(data):
 
 
 # every top-level field a scenario may have (those the base omits: optional ones left at their default)
-KNOWN = set(BASE) | {"model", "record_every", "wind", "kind", "description", "excitation", "zonotope", "initial", "noise", "observer"}
+KNOWN = set(BASE) | {
+    "model",
+    "record_every",
+    "wind",
+    "kind",
+    "description",
+    "excitation",
+    "zonotope",
+    "initial",
+    "noise",
+    "observer",
+}
 
 
 @FAST
@@ -91,7 +110,9 @@ def test_unknown_top_level_fields_are_refused(key, value):
         parse_scenario(doc)
 
 
-@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@settings(
+    max_examples=25, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture]
+)
 @given(
     duration=st.one_of(st.floats(allow_nan=True, allow_infinity=True), st.just(-1.0), st.just(0.0)),
     seed=st.integers(-3, -1),
@@ -108,7 +129,11 @@ def test_cli_options_are_checked(duration, seed, capsys):
 # MJCF models, scenario TOML text, observer settings, the P-radius design, zonotopes
 # --------------------------------------------------------------------------------------
 
-SOME = settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture])
+SOME = settings(
+    max_examples=40,
+    deadline=None,
+    suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture],
+)
 
 
 def _vehicle_xml() -> str:
@@ -142,7 +167,9 @@ def test_mjcf_mutations_load_or_name_the_problem(tmp_path_factory, data):
         attrs = list(re.finditer(r'(\w+)="([^"]*)"', xml.split("-->", 1)[1]))
         offset = xml.index("-->") + 3
         m = data.draw(st.sampled_from(attrs))
-        value = data.draw(st.sampled_from(["", "-1", "nan", "inf", "0", "1 2", "x", "euler", "1 1 1 1 1 1"]))
+        value = data.draw(
+            st.sampled_from(["", "-1", "nan", "inf", "0", "1 2", "x", "euler", "1 1 1 1 1 1"])
+        )
         start, end = offset + m.start(2), offset + m.end(2)
         xml = xml[:start] + value + xml[end:]
     path = tmp_path_factory.mktemp("mjcf") / "model.xml"
@@ -155,7 +182,9 @@ def test_mjcf_mutations_load_or_name_the_problem(tmp_path_factory, data):
             assert expect in str(exc)
         return
     assert expect is None
-    assert vm.mass > 0 and vm.offset_adr.shape == (2,) and np.allclose(vm.beacons[1], [10.0, 0.0, 0.0])
+    assert (
+        vm.mass > 0 and vm.offset_adr.shape == (2,) and np.allclose(vm.beacons[1], [10.0, 0.0, 0.0])
+    )
 
 
 @SOME
@@ -171,9 +200,31 @@ def test_model_arguments_are_checked(beacons, timestep, wind):
     assert vm.model.opt.timestep > 0 and np.isfinite(vm.beacons).all()
 
 
-TOML = (__import__("quadobs.testbed.scenario", fromlist=["_builtin_dir"])._builtin_dir() / "beacons.toml").read_text()
+TOML = (
+    __import__("quadobs.testbed.scenario", fromlist=["_builtin_dir"])._builtin_dir()
+    / "beacons.toml"
+).read_text()
 TOML_VALUES = st.sampled_from(
-    ['"x"', "[]", "[1, 2]", "nan", "inf", "-inf", "-1", "0", "1e400", "true", "{}", "{ a = 1 }", '"1.0"', "[[1], [2]]", "", "=", "[", "1979-05-27"]
+    [
+        '"x"',
+        "[]",
+        "[1, 2]",
+        "nan",
+        "inf",
+        "-inf",
+        "-1",
+        "0",
+        "1e400",
+        "true",
+        "{}",
+        "{ a = 1 }",
+        '"1.0"',
+        "[[1], [2]]",
+        "",
+        "=",
+        "[",
+        "1979-05-27",
+    ]
 )
 
 
@@ -218,7 +269,9 @@ OBSERVER_FIELDS = ("dt", "V", "W", "S0", "theta", "x0", "sample_period", "gate",
 @SOME
 @given(
     field=st.sampled_from(OBSERVER_FIELDS),
-    value=st.one_of(arrays, junk, st.floats(-10, 10), st.sampled_from(["auto", "numpy", "numba", "gpu"])),
+    value=st.one_of(
+        arrays, junk, st.floats(-10, 10), st.sampled_from(["auto", "numpy", "numba", "gpu"])
+    ),
 )
 def test_observer_settings_accept_or_name_the_field(field, value):
     from quadobs import AugmentedObserver, immerse, vehicle_system
@@ -243,8 +296,11 @@ def test_observer_settings_accept_or_name_the_field(field, value):
 
 @settings(max_examples=20, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(
-    A=st.one_of(arrays, junk), F=st.one_of(arrays, junk), C=st.one_of(arrays, junk),
-    bounds=st.one_of(arrays, junk), approach=st.one_of(st.sampled_from([1, 2]), junk),
+    A=st.one_of(arrays, junk),
+    F=st.one_of(arrays, junk),
+    C=st.one_of(arrays, junk),
+    bounds=st.one_of(arrays, junk),
+    approach=st.one_of(st.sampled_from([1, 2]), junk),
 )
 def test_pradius_design_arguments_are_checked(A, F, C, bounds, approach):
     from quadobs import pradius_gains
@@ -284,11 +340,23 @@ def test_zonotope_boxes_are_checked(lower, upper):
     assert np.isfinite(z.center).all()
 
 
-@pytest.mark.parametrize("field, value", [("W", -8.99e307), ("W", 8.99e307), ("V", 8.99e307), ("V", -8.99e307), ("P0", 1e101), ("V", 1e101)])
+@pytest.mark.parametrize(
+    "field, value",
+    [
+        ("W", -8.99e307),
+        ("W", 8.99e307),
+        ("V", 8.99e307),
+        ("V", -8.99e307),
+        ("P0", 1e101),
+        ("V", 1e101),
+    ],
+)
 def test_covariances_beyond_double_precision_are_refused(field, value):
     """Entries whose products would overflow (the Riccati update squares them) are named, not run into NaN."""
     from quadobs import AugmentedObserver, immerse, vehicle_system
 
     im = immerse(vehicle_system(2, np.array([[0.0, 0.0], [5.0, 0.0]])))
-    with pytest.raises(QuadobsError, match=rf"^{field}: covariance entries must be finite and at most 1e\+100"):
+    with pytest.raises(
+        QuadobsError, match=rf"^{field}: covariance entries must be finite and at most 1e\+100"
+    ):
         AugmentedObserver(im, 0.01, **{field: value})

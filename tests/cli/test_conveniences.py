@@ -1,14 +1,12 @@
 """The command line's conveniences: ``python -m quadobs``, ``--version``, the estimators' help,
 ``quadobs list``, le2013's options, the first-run notice, and no folders left by a failed run."""
 
-import importlib
 import json
 import os
 import subprocess
 import sys
 from pathlib import Path
 
-import numpy as np
 import pytest
 
 import quadobs
@@ -22,12 +20,16 @@ ROOT = Path(__file__).resolve().parents[2]
 
 def _python(*args, env=None, cwd=None):
     env = {**os.environ, "PYTHONPATH": str(ROOT), **(env or {})}
-    return subprocess.run([sys.executable, *args], capture_output=True, text=True, env=env, cwd=cwd, timeout=120)
+    return subprocess.run(
+        [sys.executable, *args], capture_output=True, text=True, env=env, cwd=cwd, timeout=120
+    )
 
 
 def _error_line(capsys) -> str:
     lines = capsys.readouterr().err.strip().splitlines()
-    err = [line for line in lines if not line.startswith("quadobs: compiling")]  # the first-run notice may precede it
+    err = [
+        line for line in lines if not line.startswith("quadobs: compiling")
+    ]  # the first-run notice may precede it
     assert len(err) == 1 and err[0].startswith("quadobs: error: "), err
     return err[0]
 
@@ -69,7 +71,9 @@ def test_estimators_help_lists_the_registered_names(command, capsys, monkeypatch
         assert name in text
     import quadobs.testbed.registry as registry
 
-    monkeypatch.setattr(registry, "available_estimators", lambda scenario=None: ["augmented", "my_100%_filter"])
+    monkeypatch.setattr(
+        registry, "available_estimators", lambda scenario=None: ["augmented", "my_100%_filter"]
+    )
     with pytest.raises(SystemExit):
         main([command, "--help"])
     assert "registered: augmented, my_100%_filter" in " ".join(capsys.readouterr().out.split())
@@ -86,7 +90,7 @@ def test_list_is_sorted_aligned_one_line_each_and_holds_le2013(capsys, monkeypat
     lines = capsys.readouterr().out.splitlines()
     names = [line.split()[0] for line in lines]
     assert names == sorted([*list_scenarios(), "le2013"])
-    starts = {len(line) - len(line[len(name):].lstrip()) for line, name in zip(lines, names)}
+    starts = {len(line) - len(line[len(name) :].lstrip()) for line, name in zip(lines, names)}
     assert len(starts) == 1, "descriptions start in one column"
     assert all(len(line) <= 90 for line in lines)
     assert all(line.split(None, 1)[1].strip() for line in lines), "every scenario has a description"
@@ -130,7 +134,9 @@ def test_le2013_refuses_what_does_not_apply(argv, field, capsys, no_le2013_run, 
 
 
 def test_le2013_settings_map_duration_seed_runs():
-    args = cli.build_parser().parse_args(["run", "le2013", "--duration", "20", "--seed", "7", "--runs", "3", "--no-progress"])
+    args = cli.build_parser().parse_args(
+        ["run", "le2013", "--duration", "20", "--seed", "7", "--runs", "3", "--no-progress"]
+    )
     assert cli._le2013_settings(args) == {"seed": 7, "steps": 20, "runs": 3}
     args = cli.build_parser().parse_args(["run", "le2013"])
     assert cli._le2013_settings(args) == {"seed": 0, "steps": 50, "runs": 50}
@@ -168,7 +174,10 @@ def test_cold_kernels_sees_a_compiled_kernel(tmp_path):
         "from numba import njit\n\n@njit(cache=True)\ndef twice(x):\n    return 2 * x\n"
     )
     code = "from quadobs._kernels import cold_kernels; import sys; print(cold_kernels(['tiny_kernel:twice']))"
-    env = {"NUMBA_CACHE_DIR": str(tmp_path / "numba"), "PYTHONPATH": f"{ROOT}{os.pathsep}{tmp_path}"}
+    env = {
+        "NUMBA_CACHE_DIR": str(tmp_path / "numba"),
+        "PYTHONPATH": f"{ROOT}{os.pathsep}{tmp_path}",
+    }
     first = _python("-c", code + "; import tiny_kernel; tiny_kernel.twice(2)", env=env)
     second = _python("-c", code, env=env)
     assert first.stdout.strip() == "['tiny_kernel:twice']", first.stderr
@@ -176,7 +185,9 @@ def test_cold_kernels_sees_a_compiled_kernel(tmp_path):
 
 
 def test_cold_kernels_says_nothing_when_it_cannot_tell():
-    assert quadobs._kernels.cold_kernels(["quadobs.errors:check_writable"]) == []  # not a Numba dispatcher
+    assert (
+        quadobs._kernels.cold_kernels(["quadobs.errors:check_writable"]) == []
+    )  # not a Numba dispatcher
 
 
 @pytest.mark.parametrize("cold", [True, False])
@@ -184,14 +195,24 @@ def test_the_notice_is_one_line_on_stderr_when_kernels_are_cold(cold, capsys, mo
     import quadobs._kernels.precompile as pre
 
     compiled = []
-    monkeypatch.setattr(quadobs._kernels, "cold_kernels", lambda kernels: list(kernels) if cold else [])
-    monkeypatch.setattr(pre, "compile_side_by_side", lambda kernels: compiled.extend(kernels) or list(kernels))
+    monkeypatch.setattr(
+        quadobs._kernels, "cold_kernels", lambda kernels: list(kernels) if cold else []
+    )
+    monkeypatch.setattr(
+        pre, "compile_side_by_side", lambda kernels: compiled.extend(kernels) or list(kernels)
+    )
     assert main(["run", "ifac2021", "--estimators", "nosuch", "--no-progress"]) == 2
     captured = capsys.readouterr()
     assert captured.out == ""
     assert captured.err.count(cli.COMPILING_NOTICE) == (1 if cold else 0)
-    assert compiled == (list(cli._episode_kernels(["nosuch"])) if cold else [])  # the cold ones, side by side
-    assert captured.err.strip().splitlines()[-1].startswith("quadobs: error: estimators: unknown estimator 'nosuch'")
+    assert compiled == (
+        list(cli._episode_kernels(["nosuch"])) if cold else []
+    )  # the cold ones, side by side
+    assert (
+        captured.err.strip()
+        .splitlines()[-1]
+        .startswith("quadobs: error: estimators: unknown estimator 'nosuch'")
+    )
 
 
 def test_the_episode_kernels_follow_the_estimators():
@@ -206,12 +227,36 @@ def test_the_episode_kernels_follow_the_estimators():
 def test_failed_runs_leave_no_folder(tmp_path, capsys):
     new = tmp_path / "newdir" / "sub"
     # an unknown estimator: found after the outputs were checked (which creates their folders)
-    assert main(["run", "ifac2021", "--out", str(new / "x.rrd"), "--summary", str(new / "s.json"), "--estimators", "nosuch"]) == 2
+    assert (
+        main(
+            [
+                "run",
+                "ifac2021",
+                "--out",
+                str(new / "x.rrd"),
+                "--summary",
+                str(new / "s.json"),
+                "--estimators",
+                "nosuch",
+            ]
+        )
+        == 2
+    )
     assert "unknown estimator 'nosuch'" in _error_line(capsys)
     assert list(tmp_path.iterdir()) == []
     # an unwritable recording after a summary folder was created for the run
     (tmp_path / "file").write_text("")
-    code = main(["run", "ifac2021", "--no-progress", "--summary", str(new / "s.json"), "--out", str(tmp_path / "file" / "x.rrd")])
+    code = main(
+        [
+            "run",
+            "ifac2021",
+            "--no-progress",
+            "--summary",
+            str(new / "s.json"),
+            "--out",
+            str(tmp_path / "file" / "x.rrd"),
+        ]
+    )
     assert code == 2 and "cannot be written" in _error_line(capsys)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["file"]
     # a bad scenario field
@@ -222,19 +267,39 @@ def test_failed_runs_leave_no_folder(tmp_path, capsys):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["bad.toml", "file"]
     # the excitation report and the campaign
     assert main(["excitation", "nosuch", "--json", str(new / "r.json")]) == 2
-    assert main(["campaign", "ifac2021", "--runs", "2", "--out", str(new / "c"), "--estimators", "nosuch"]) == 2
+    assert (
+        main(
+            [
+                "campaign",
+                "ifac2021",
+                "--runs",
+                "2",
+                "--out",
+                str(new / "c"),
+                "--estimators",
+                "nosuch",
+            ]
+        )
+        == 2
+    )
     assert sorted(p.name for p in tmp_path.iterdir()) == ["bad.toml", "file"]
 
 
 def test_new_folders_removed_on_failure_keeps_what_it_should(tmp_path):
     (tmp_path / "old").mkdir()
     with pytest.raises(QuadobsError):
-        with new_folders_removed_on_failure(tmp_path / "old" / "a" / "b" / "x.rrd", None, tmp_path / "c" / "y.json"):
+        with new_folders_removed_on_failure(
+            tmp_path / "old" / "a" / "b" / "x.rrd", None, tmp_path / "c" / "y.json"
+        ):
             check_writable(tmp_path / "old" / "a" / "b" / "x.rrd")
             check_writable(tmp_path / "c" / "y.json")
             (tmp_path / "c" / "y.json").write_text("{}")  # a file written before the failure stays
             raise QuadobsError("estimators: no")
-    assert sorted(str(p.relative_to(tmp_path)) for p in tmp_path.rglob("*")) == ["c", "c/y.json", "old"]
+    assert sorted(str(p.relative_to(tmp_path)) for p in tmp_path.rglob("*")) == [
+        "c",
+        "c/y.json",
+        "old",
+    ]
     with new_folders_removed_on_failure(tmp_path / "d" / "x.rrd"):  # success keeps them
         check_writable(tmp_path / "d" / "x.rrd")
     assert (tmp_path / "d").is_dir()
@@ -252,8 +317,21 @@ def test_output_into_a_closed_pipe_ends_quietly(tmp_path):
 
     summary = tmp_path / "s.json"
     proc = subprocess.Popen(
-        [sys.executable, "-m", "quadobs", "run", "ifac2021", "--duration", "0.5", "--no-progress", "--summary", str(summary)],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, cwd=tmp_path,
+        [
+            sys.executable,
+            "-m",
+            "quadobs",
+            "run",
+            "ifac2021",
+            "--duration",
+            "0.5",
+            "--no-progress",
+            "--summary",
+            str(summary),
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        cwd=tmp_path,
     )
     proc.stdout.close()  # the reader stops before the table is printed
     err = proc.stderr.read().decode()
@@ -298,7 +376,9 @@ def test_the_precompiled_signatures_are_those_the_testbed_calls():
 
     done = _python("-c", _SIGNATURES_CALLED)
     assert done.returncode == 0, done.stderr
-    assert json.loads(done.stdout.splitlines()[-1]) == {spec: [] for spec in SIGNATURES}  # spec: listed ^ called
+    assert json.loads(done.stdout.splitlines()[-1]) == {
+        spec: [] for spec in SIGNATURES
+    }  # spec: listed ^ called
     assert set(EPISODE) <= set(cli._episode_kernels(None))
 
 

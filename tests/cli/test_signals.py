@@ -22,7 +22,10 @@ import pytest
 import quadobs.cli as cli
 from quadobs.cli import main
 
-NOTICES = ("quadobs: compiling", "quadobs: note:")  # a first run's compile notice, a long run's cost notice
+NOTICES = (
+    "quadobs: compiling",
+    "quadobs: note:",
+)  # a first run's compile notice, a long run's cost notice
 PREVIOUS_RRD, PREVIOUS_JSON = b"previous recording", '{"previous": true}'
 
 
@@ -36,7 +39,9 @@ def _before_main(proc, sig, err) -> bool:
     if proc.returncode == -sig and not err.strip():
         return True
     frames = re.findall(r'File "([^"]+)", line \d+, in (\S+)', err)
-    in_quadobs = [fn for path, fn in frames if f"{os.sep}quadobs{os.sep}" in path and fn != "<module>"]
+    in_quadobs = [
+        fn for path, fn in frames if f"{os.sep}quadobs{os.sep}" in path and fn != "<module>"
+    ]
     return bool(frames) and not in_quadobs and err.rstrip().endswith("KeyboardInterrupt")
 
 
@@ -64,7 +69,9 @@ def _check_outputs(folder: Path, rrd: Path, js: Path, total: int = 0) -> bool:
 
     ``total``: the run's steps (the recording has the final row once all of them are done)."""
     replaced = rrd.read_bytes() != PREVIOUS_RRD
-    assert replaced == (js.read_text() != PREVIOUS_JSON), "the recording and the summary are replaced together"
+    assert replaced == (js.read_text() != PREVIOUS_JSON), (
+        "the recording and the summary are replaced together"
+    )
     if replaced:
         from quadobs.recording import read_series
 
@@ -91,7 +98,17 @@ def test_signals_at_random_times_never_lose_the_previous_outputs(tmp_path, cli_p
     sig = rnd.choice([signal.SIGINT, signal.SIGTERM])
     delay = rnd.uniform(0.0, 1.5) if trial % 2 == 0 else rnd.uniform(1.5, 5.0)
     rrd, js = _previous_outputs(tmp_path)
-    proc = cli_process("run", "ifac2021", "--duration", "3", "--no-progress", "--out", str(rrd), "--summary", str(js))
+    proc = cli_process(
+        "run",
+        "ifac2021",
+        "--duration",
+        "3",
+        "--no-progress",
+        "--out",
+        str(rrd),
+        "--summary",
+        str(js),
+    )
     time.sleep(delay)
     proc.send_signal(sig)
     _, err = proc.communicate(timeout=300)
@@ -124,27 +141,52 @@ sys.exit(main())
 
 @pytest.mark.parametrize("module", ["numpy", "scipy.linalg", "numba", "mujoco"])
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
-def test_a_signal_while_a_module_loads_ends_with_130_and_one_line(tmp_path, cli_process, module, sig):
+def test_a_signal_while_a_module_loads_ends_with_130_and_one_line(
+    tmp_path, cli_process, module, sig
+):
     """The signal comes 0 to 20 ms (seeded) after the import of ``module`` starts, before the run
     opens anything: status 130, exactly one line, the previous outputs untouched."""
     (tmp_path / "signal_on_import.py").write_text(SIGNAL_ON_IMPORT)
     delay = random.Random(f"{module}-{sig}").uniform(0.0, 0.02)
     rrd, js = _previous_outputs(tmp_path)
-    proc = cli_process("run", "ifac2021", "--duration", "3", "--no-progress", "--out", str(rrd), "--summary", str(js),
-                       module="signal_on_import", path=[tmp_path],
-                       env={"ON_IMPORT": module, "SIGNAL": str(int(sig)), "DELAY": str(delay)})
+    proc = cli_process(
+        "run",
+        "ifac2021",
+        "--duration",
+        "3",
+        "--no-progress",
+        "--out",
+        str(rrd),
+        "--summary",
+        str(js),
+        module="signal_on_import",
+        path=[tmp_path],
+        env={"ON_IMPORT": module, "SIGNAL": str(int(sig)), "DELAY": str(delay)},
+    )
     _, err = proc.communicate(timeout=300)
     assert proc.returncode == 130 and _lines(err) == ["quadobs: interrupted"], err
     assert not _check_outputs(tmp_path, rrd, js)
 
 
 @pytest.mark.parametrize("trial", range(4))
-def test_a_signal_as_the_recording_opens_replaces_both_outputs_or_neither(tmp_path, cli_process, trial):
+def test_a_signal_as_the_recording_opens_replaces_both_outputs_or_neither(
+    tmp_path, cli_process, trial
+):
     """The signal comes 0 to 50 ms (seeded) after the recording's staging file appears, around the
     first steps of a 30 s run: status 130 and one line; a run stopped before its first step replaces neither file."""
     sig = random.Random(3000 + trial).choice([signal.SIGINT, signal.SIGTERM])
     rrd, js = _previous_outputs(tmp_path)
-    proc = cli_process("run", "ifac2021", "--duration", "30", "--no-progress", "--out", str(rrd), "--summary", str(js))
+    proc = cli_process(
+        "run",
+        "ifac2021",
+        "--duration",
+        "30",
+        "--no-progress",
+        "--out",
+        str(rrd),
+        "--summary",
+        str(js),
+    )
     deadline = time.monotonic() + 300
     while not list(tmp_path.glob(".run.rrd.*.partial")):
         assert proc.poll() is None and time.monotonic() < deadline, proc.communicate()
@@ -166,7 +208,17 @@ def test_a_signal_at_exit_keeps_the_complete_outputs(tmp_path, cli_process, tria
     rnd = random.Random(2000 + trial)
     sig = rnd.choice([signal.SIGINT, signal.SIGTERM])
     rrd, js = _previous_outputs(tmp_path)
-    proc = cli_process("run", "ifac2021", "--duration", "0.2", "--no-progress", "--out", str(rrd), "--summary", str(js))
+    proc = cli_process(
+        "run",
+        "ifac2021",
+        "--duration",
+        "0.2",
+        "--no-progress",
+        "--out",
+        str(rrd),
+        "--summary",
+        str(js),
+    )
     deadline = time.monotonic() + 300
     while js.read_text() == PREVIOUS_JSON and proc.poll() is None:
         assert time.monotonic() < deadline
@@ -213,26 +265,41 @@ sys.exit(cli.main())
 
 
 @pytest.mark.parametrize("where, work", [("__del__", 0.0), ("__del__", 60.0), ("exec", 0.0)])
-def test_an_interrupt_python_cannot_raise_still_ends_the_command(tmp_path, cli_process, where, work):
+def test_an_interrupt_python_cannot_raise_still_ends_the_command(
+    tmp_path, cli_process, where, work
+):
     """A KeyboardInterrupt lost in a ``__del__`` is sent again and stops a command that runs on (in well
     under its 60 s); a command that ends at once ends with 130 all the same. One raised inside a string
     ``exec`` (which CPython then notes as unhandled, and under ``python -m`` would end the process by
     SIGINT after ``main`` returned) ends with 130."""
     (tmp_path / "lost_interrupt.py").write_text(LOST_INTERRUPT)
     t0 = time.monotonic()
-    proc = cli_process("list", module="lost_interrupt", path=[tmp_path], env={"WHERE": where, "WORK": str(work)})
+    proc = cli_process(
+        "list", module="lost_interrupt", path=[tmp_path], env={"WHERE": where, "WORK": str(work)}
+    )
     out, err = proc.communicate(timeout=120)
-    assert proc.returncode == 130 and _lines(err) == ["quadobs: interrupted"], (proc.returncode, err)
-    assert ("finished" in out) == (where == "__del__" and work == 0.0) and time.monotonic() - t0 < 30
+    assert proc.returncode == 130 and _lines(err) == ["quadobs: interrupted"], (
+        proc.returncode,
+        err,
+    )
+    assert ("finished" in out) == (
+        where == "__del__" and work == 0.0
+    ) and time.monotonic() - t0 < 30
 
 
 # -- in-process calls ---------------------------------------------------------------------------
 
 
-def test_an_in_process_call_gives_back_the_handlers_and_a_signal_that_came_while_returning(monkeypatch):
+def test_an_in_process_call_gives_back_the_handlers_and_a_signal_that_came_while_returning(
+    monkeypatch,
+):
     before = signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM), sys.unraisablehook
     assert main(["list"]) == 0
-    assert (signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM), sys.unraisablehook) == before
+    assert (
+        signal.getsignal(signal.SIGINT),
+        signal.getsignal(signal.SIGTERM),
+        sys.unraisablehook,
+    ) == before
 
     def interrupted(argv):
         raise KeyboardInterrupt
@@ -255,7 +322,9 @@ def test_an_in_process_call_gives_back_the_handlers_and_a_signal_that_came_while
     try:
         assert main(["list"]) == 130
         assert sys.stderr.text.strip() == "quadobs: interrupted"
-        assert got == [signal.SIGTERM] * len(got) and got, "held while main returned, then delivered to the caller"
+        assert got == [signal.SIGTERM] * len(got) and got, (
+            "held while main returned, then delivered to the caller"
+        )
     finally:
         signal.signal(signal.SIGTERM, previous)
 
@@ -276,7 +345,7 @@ def test_an_error_made_of_an_interrupt_is_the_interrupt(monkeypatch, capsys):
         try:
             raise KeyboardInterrupt
         except KeyboardInterrupt:
-            raise ImportError("initialization failed")
+            raise ImportError("initialization failed")  # noqa: B904 (the context is the test)
 
     monkeypatch.setattr(cli, "_cmd_list", _command_that(failed_import))
     assert main(["list"]) == 130
@@ -299,7 +368,9 @@ def test_an_interrupt_swallowed_by_the_command_still_ends_it_with_130(monkeypatc
     assert main(["list"]) == 0  # the next call starts afresh
 
 
-def test_an_interrupt_swallowed_while_modules_load_stops_the_run_before_it_starts(monkeypatch, capsys, tmp_path):
+def test_an_interrupt_swallowed_while_modules_load_stops_the_run_before_it_starts(
+    monkeypatch, capsys, tmp_path
+):
     """As MuJoCo does for its optional renderer: the Ctrl-C comes during a module's initialisation,
     turns into an ImportError, and the importing package drops it. The run must not start."""
     import quadobs.testbed.episode
@@ -309,7 +380,7 @@ def test_an_interrupt_swallowed_while_modules_load_stops_the_run_before_it_start
             try:
                 signal.raise_signal(signal.SIGINT)
             except KeyboardInterrupt:
-                raise ImportError("initialization failed")
+                raise ImportError("initialization failed")  # noqa: B904 (the context is the test)
         except ImportError:  # the package's optional part is left out
             pass
         return False
@@ -320,6 +391,8 @@ def test_an_interrupt_swallowed_while_modules_load_stops_the_run_before_it_start
     monkeypatch.setattr(cli, "_notice_cold_kernels", loading_with_a_dropped_interrupt)
     monkeypatch.setattr(quadobs.testbed.episode, "run_episode", no_run)
     rrd, js = _previous_outputs(tmp_path)
-    assert main(["run", "ifac2021", "--no-progress", "--out", str(rrd), "--summary", str(js)]) == 130
+    assert (
+        main(["run", "ifac2021", "--no-progress", "--out", str(rrd), "--summary", str(js)]) == 130
+    )
     assert capsys.readouterr().err.strip() == "quadobs: interrupted"
     assert not _check_outputs(tmp_path, rrd, js)

@@ -4,8 +4,8 @@ the matrix exponential of the augmented system, and the in-place and batched for
 import numpy as np
 import pytest
 import scipy.linalg as sla
-
 from conftest import random_system
+
 from quadobs import HeldInputDiscretization, immerse, vehicle_system
 from quadobs.core.held_input import held_input_step, van_loan
 from quadobs.estimators.kalman import HeldInputModel
@@ -68,7 +68,11 @@ def test_augmented_x_block_is_the_original_step(rng):
 @pytest.mark.parametrize("which", ["vehicle", "random"])
 def test_transition_against_expm_of_the_augmented_matrix(rng, which):
     """Phi(u) = expm(A(u) dt), g(u) = the input block of expm([[A(u), B_z u], [0, 0]] dt), Q_d(u) = Van Loan at u."""
-    im = immerse(vehicle_system(2, rng.uniform(-5, 5, (2, 2))) if which == "vehicle" else random_system(rng, 4, 2, 2))
+    im = immerse(
+        vehicle_system(2, rng.uniform(-5, 5, (2, 2)))
+        if which == "vehicle"
+        else random_system(rng, 4, 2, 2)
+    )
     dt, theta = 0.1, 0.4
     N, p = im.dim, im.system.p
     V = np.diag(rng.uniform(0, 1, N))
@@ -80,7 +84,9 @@ def test_transition_against_expm_of_the_augmented_matrix(rng, which):
         big = np.zeros((N + 1, N + 1))
         big[:N, :N] = A_u
         big[:N, N] = im.input_matrix @ u
-        np.testing.assert_allclose(disc.input_term(u), sla.expm(big * dt)[:N, N], rtol=1e-10, atol=1e-12)
+        np.testing.assert_allclose(
+            disc.input_term(u), sla.expm(big * dt)[:N, N], rtol=1e-10, atol=1e-12
+        )
         Q_u = van_loan(A_u + 0.5 * theta * np.eye(N), V, dt)[1]
         np.testing.assert_allclose(disc.process_noise(u), Q_u, rtol=1e-9, atol=1e-13)
     # batched calls agree with single ones; the in-place form is the allocating one, bit for bit
@@ -91,8 +97,12 @@ def test_transition_against_expm_of_the_augmented_matrix(rng, which):
         assert disc.transition(u, out=buf) is buf
         assert np.array_equal(buf, single)
         np.testing.assert_allclose(batched[i], single, rtol=1e-15, atol=1e-15)
-        np.testing.assert_allclose(disc.input_term(U)[i], disc.input_term(u), rtol=1e-13, atol=1e-15)
-        np.testing.assert_allclose(disc.process_noise(U)[i], disc.process_noise(u), rtol=1e-13, atol=1e-18)
+        np.testing.assert_allclose(
+            disc.input_term(U)[i], disc.input_term(u), rtol=1e-13, atol=1e-15
+        )
+        np.testing.assert_allclose(
+            disc.process_noise(U)[i], disc.process_noise(u), rtol=1e-13, atol=1e-18
+        )
     assert disc.transition(U.reshape(2, 3, p)).shape == (2, 3, N, N)
 
 

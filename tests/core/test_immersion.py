@@ -2,10 +2,18 @@
 
 import numpy as np
 import pytest
+from conftest import random_nilpotent, random_system
 from scipy.integrate import solve_ivp
 
-from conftest import random_nilpotent, random_system
-from quadobs import QuadobsError, QuadraticSystem, immerse, immerse_chain, immerse_minimal, vehicle_system, wind_system
+from quadobs import (
+    QuadobsError,
+    QuadraticSystem,
+    immerse,
+    immerse_chain,
+    immerse_minimal,
+    vehicle_system,
+    wind_system,
+)
 from quadobs.core.immersion import (
     duplication_matrix,
     lifted_input_matrix,
@@ -62,7 +70,9 @@ def test_closed_form_eq7_equals_recursion_eq6(rng, n, index):
     C = C + C.T
     seq = lyapunov_sequence(A, C, 2 * index)
     for i in range(2 * index + 1):
-        np.testing.assert_allclose(lyapunov_term(A, C, i), seq[i], rtol=1e-9, atol=1e-9 * np.abs(seq[i]).max() + 1e-9)
+        np.testing.assert_allclose(
+            lyapunov_term(A, C, i), seq[i], rtol=1e-9, atol=1e-9 * np.abs(seq[i]).max() + 1e-9
+        )
 
 
 @pytest.mark.parametrize("n,index", [(3, 2), (4, 3), (5, 5)])
@@ -120,7 +130,9 @@ def test_lifted_dynamics_slide_eq6(rng):
     np.testing.assert_allclose(lhs, exact, rtol=1e-6)
     rhs = lifted_state_matrix(s.A) @ quadratic_lift(x) + lifted_input_matrix(s.B @ u) @ x
     np.testing.assert_allclose(exact, rhs, rtol=1e-10, atol=1e-10)
-    np.testing.assert_allclose(stacked_output_matrix(s) @ quadratic_lift(x) + s.d @ x, s.output(x), rtol=1e-12)
+    np.testing.assert_allclose(
+        stacked_output_matrix(s) @ quadratic_lift(x) + s.d @ x, s.output(x), rtol=1e-12
+    )
 
 
 @pytest.mark.parametrize("n", [1, 2, 3, 4])
@@ -159,6 +171,7 @@ def test_slide_wind_example():
         np.block([[I, Z, Z], [Z, Z, Z], [Z, Z, Z]]),  # |p|^2
         np.block([[Z, Z, Z], [Z, I, Z], [Z, Z, Z]]),  # |v_a|^2
     ]
+
     # each block spans the same forms as the slide's (up to scaling and basis)
     def span_equal(ours, theirs):
         a = np.array([vech(L) for L in ours])
@@ -201,7 +214,9 @@ def test_chain_and_minimal_agree(rng):
         perm = np.r_[np.arange(k)[::-1], np.arange(k, k + n)]
         x, u = rng.standard_normal(n), rng.standard_normal(2)
         np.testing.assert_allclose(ic.lift(x), im.lift(x)[perm], rtol=1e-9, atol=1e-9)
-        np.testing.assert_allclose(ic.state_matrix(u), im.state_matrix(u)[np.ix_(perm, perm)], atol=1e-8)
+        np.testing.assert_allclose(
+            ic.state_matrix(u), im.state_matrix(u)[np.ix_(perm, perm)], atol=1e-8
+        )
         np.testing.assert_allclose(ic.output_matrix, im.output_matrix[:, perm], atol=1e-12)
 
 
@@ -221,7 +236,15 @@ def test_nothing_to_immerse():
 
 @pytest.mark.parametrize(
     "method,n,p,q",
-    [("minimal", 2, 1, 1), ("minimal", 3, 2, 1), ("minimal", 4, 2, 3), ("minimal", 6, 3, 2), ("chain", 2, 1, 1), ("chain", 3, 2, 1), ("chain", 5, 2, 1)],
+    [
+        ("minimal", 2, 1, 1),
+        ("minimal", 3, 2, 1),
+        ("minimal", 4, 2, 3),
+        ("minimal", 6, 3, 2),
+        ("chain", 2, 1, 1),
+        ("chain", 3, 2, 1),
+        ("chain", 5, 2, 1),
+    ],
 )
 def test_lift_derivative_and_output_identity(rng, method, n, p, q):
     """d/dt lift(x) = A(u) lift(x) + B u and C lift(x) = y, at random states and inputs."""
@@ -238,8 +261,12 @@ def test_lift_derivative_and_output_identity(rng, method, n, p, q):
         zdot = np.concatenate([np.einsum("a,iab,b->i", x, im.aux_forms, xdot), xdot])
         z = im.lift(x)
         scale = np.abs(zdot).max() + np.abs(im.state_matrix(u)).max() * np.abs(z).max()
-        np.testing.assert_allclose(im.state_matrix(u) @ z + im.input_matrix @ u, zdot, atol=1e-10 * scale)
-        np.testing.assert_allclose(im.output(z), s.output(x), rtol=1e-10, atol=1e-10 * np.abs(s.output(x)).max())
+        np.testing.assert_allclose(
+            im.state_matrix(u) @ z + im.input_matrix @ u, zdot, atol=1e-10 * scale
+        )
+        np.testing.assert_allclose(
+            im.output(z), s.output(x), rtol=1e-10, atol=1e-10 * np.abs(s.output(x)).max()
+        )
         np.testing.assert_array_equal(im.project(z), x)
 
 
@@ -253,13 +280,22 @@ def test_lift_follows_the_augmented_system_along_trajectories(rng):
         return np.sin(freq * t + phase)
 
     x0 = rng.standard_normal(4)
-    sol_x = solve_ivp(lambda t, x: s.A @ x + s.B @ u(t), (0, 2), x0, rtol=1e-11, atol=1e-12, dense_output=True)
+    sol_x = solve_ivp(
+        lambda t, x: s.A @ x + s.B @ u(t), (0, 2), x0, rtol=1e-11, atol=1e-12, dense_output=True
+    )
     sol_z = solve_ivp(
-        lambda t, z: im.state_matrix(u(t)) @ z + im.input_matrix @ u(t), (0, 2), im.lift(x0), rtol=1e-11, atol=1e-12, dense_output=True
+        lambda t, z: im.state_matrix(u(t)) @ z + im.input_matrix @ u(t),
+        (0, 2),
+        im.lift(x0),
+        rtol=1e-11,
+        atol=1e-12,
+        dense_output=True,
     )
     for t in np.linspace(0, 2, 9):
         z_lift = im.lift(sol_x.sol(t))
-        np.testing.assert_allclose(sol_z.sol(t), z_lift, rtol=1e-7, atol=1e-7 * np.abs(z_lift).max())
+        np.testing.assert_allclose(
+            sol_z.sol(t), z_lift, rtol=1e-7, atol=1e-7 * np.abs(z_lift).max()
+        )
 
 
 def test_lift_and_state_matrix_batch_shapes(rng):

@@ -15,7 +15,14 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from quadobs import QuadobsError, QuadraticSystem, immerse, immerse_chain, vehicle_system, wind_system
+from quadobs import (
+    QuadobsError,
+    QuadraticSystem,
+    immerse,
+    immerse_chain,
+    vehicle_system,
+    wind_system,
+)
 from quadobs.core.immersion import (
     ImmersionError,
     lifted_state_matrix,
@@ -40,7 +47,8 @@ def _exact_count_mod(A, C, p):
 
     def op(X):
         return [
-            [sum(A[k][i] * X[k][j] + X[i][k] * A[k][j] for k in range(n)) % p for j in range(n)] for i in range(n)
+            [sum(A[k][i] * X[k][j] + X[i][k] * A[k][j] for k in range(n)) % p for j in range(n)]
+            for i in range(n)
         ]
 
     def add(X):
@@ -128,29 +136,62 @@ def _symmetric(draw, n, lo=-3, hi=3):
 
 @st.composite
 def integer_systems(draw):
-    kind = draw(st.sampled_from(["random", "nilpotent", "diagonal-spread", "diagonal-repeated", "sparse"]))
+    kind = draw(
+        st.sampled_from(["random", "nilpotent", "diagonal-spread", "diagonal-repeated", "sparse"])
+    )
     n = draw(st.integers(2, 6))
     if kind == "random":
-        A = np.array(draw(st.lists(st.integers(-3, 3), min_size=n * n, max_size=n * n))).reshape(n, n)
+        A = np.array(draw(st.lists(st.integers(-3, 3), min_size=n * n, max_size=n * n))).reshape(
+            n, n
+        )
     elif kind == "nilpotent":
         # T N T^-1 with N strictly upper triangular and T unimodular (integer inverse),
         # conjugated by a permutation
-        N = np.triu(np.array(draw(st.lists(st.integers(-2, 2), min_size=n * n, max_size=n * n))).reshape(n, n), 1)
-        U = np.triu(np.array(draw(st.lists(st.integers(-1, 1), min_size=n * n, max_size=n * n))).reshape(n, n), 1)
+        N = np.triu(
+            np.array(draw(st.lists(st.integers(-2, 2), min_size=n * n, max_size=n * n))).reshape(
+                n, n
+            ),
+            1,
+        )
+        U = np.triu(
+            np.array(draw(st.lists(st.integers(-1, 1), min_size=n * n, max_size=n * n))).reshape(
+                n, n
+            ),
+            1,
+        )
         T = np.eye(n, dtype=np.int64) + U
         Ti = np.rint(np.linalg.inv(T)).astype(np.int64)
         perm = np.array(draw(st.permutations(range(n))))
         A = (T @ N @ Ti)[np.ix_(perm, perm)]
     elif kind == "diagonal-spread":
-        A = np.diag(np.array(draw(st.lists(st.sampled_from([-8, -3, 0, 1, 2, 4, 8, 16, 32]), min_size=n, max_size=n))))
+        A = np.diag(
+            np.array(
+                draw(
+                    st.lists(
+                        st.sampled_from([-8, -3, 0, 1, 2, 4, 8, 16, 32]), min_size=n, max_size=n
+                    )
+                )
+            )
+        )
     elif kind == "diagonal-repeated":
         A = np.diag(np.array(draw(st.lists(st.integers(-2, 2), min_size=n, max_size=n))))
         # a similarity with a unimodular matrix keeps the spectrum and makes A dense
-        U = np.triu(np.array(draw(st.lists(st.integers(-1, 1), min_size=n * n, max_size=n * n))).reshape(n, n), 1)
+        U = np.triu(
+            np.array(draw(st.lists(st.integers(-1, 1), min_size=n * n, max_size=n * n))).reshape(
+                n, n
+            ),
+            1,
+        )
         T = np.eye(n, dtype=np.int64) + U
         A = T @ A @ np.rint(np.linalg.inv(T)).astype(np.int64)
     else:
-        A = np.array(draw(st.lists(st.sampled_from([0, 0, 0, 0, -5, -1, 1, 3, 7]), min_size=n * n, max_size=n * n))).reshape(n, n)
+        A = np.array(
+            draw(
+                st.lists(
+                    st.sampled_from([0, 0, 0, 0, -5, -1, 1, 3, 7]), min_size=n * n, max_size=n * n
+                )
+            )
+        ).reshape(n, n)
     q = draw(st.integers(1, 3))
     C = [_symmetric(draw, n) for _ in range(q)]
     if q >= 2 and draw(st.booleans()):  # a dependent output
@@ -160,19 +201,27 @@ def integer_systems(draw):
     for h in range(C.shape[0]):
         if not C[h].any():
             C[h, 0, 0] = 1
-    d = np.array(draw(st.lists(st.integers(-2, 2), min_size=C.shape[0] * n, max_size=C.shape[0] * n))).reshape(-1, n)
-    B = np.array(draw(st.lists(st.integers(-2, 2), min_size=n, max_size=n)), dtype=float).reshape(n, 1) + np.eye(n, 1)
+    d = np.array(
+        draw(st.lists(st.integers(-2, 2), min_size=C.shape[0] * n, max_size=C.shape[0] * n))
+    ).reshape(-1, n)
+    B = np.array(draw(st.lists(st.integers(-2, 2), min_size=n, max_size=n)), dtype=float).reshape(
+        n, 1
+    ) + np.eye(n, 1)
     return kind, A.astype(np.int64), B, C.astype(np.int64), d.astype(float)
 
 
-@settings(max_examples=60, derandomize=True, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@settings(
+    max_examples=60, derandomize=True, deadline=None, suppress_health_check=[HealthCheck.too_slow]
+)
 @given(integer_systems())
 def test_minimal_count_is_exact_at_every_scale(case):
     kind, A, B, C, d = case
     check_system(A, B, C, d, np.random.default_rng(0))
 
 
-@settings(max_examples=25, derandomize=True, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@settings(
+    max_examples=25, derandomize=True, deadline=None, suppress_health_check=[HealthCheck.too_slow]
+)
 @given(integer_systems(), st.sampled_from([1e-3, 1e-6, 1e-12]), st.sampled_from(SCALES))
 def test_other_tolerances_give_the_exact_count_or_refuse(case, rtol, scale):
     """No rtol produces a wrong count: immerse either certifies the exact one or refuses."""
@@ -190,7 +239,13 @@ def test_other_tolerances_give_the_exact_count_or_refuse(case, rtol, scale):
 def test_issue_diagonal_families(diag, expected):
     """A = diag(1, 2, 4, ...), B = 1, C = ones: every sum lambda_i + lambda_j is distinct."""
     n = len(diag)
-    got = check_system(np.diag(diag), np.ones((n, 1)), np.ones((1, n, n), dtype=np.int64), None, np.random.default_rng(1))
+    got = check_system(
+        np.diag(diag),
+        np.ones((n, 1)),
+        np.ones((1, n, n), dtype=np.int64),
+        None,
+        np.random.default_rng(1),
+    )
     assert got == expected
 
 
@@ -214,7 +269,12 @@ def test_issue_generic_system_does_not_depend_on_the_scale_of_A():
     [
         (vehicle_system(3, np.array([[0.0, 0.0, 0.0]])), 3),
         (wind_system(3, np.zeros((1, 3))), 4),
-        (vehicle_system(3, np.array([[10.0, 0.0, 0.0], [0.0, 10.0, 0.0], [0.0, 0.0, 10.0], [5.0, 5.0, 5.0]])), 3),
+        (
+            vehicle_system(
+                3, np.array([[10.0, 0.0, 0.0], [0.0, 10.0, 0.0], [0.0, 0.0, 10.0], [5.0, 5.0, 5.0]])
+            ),
+            3,
+        ),
         (QuadraticSystem([[0.0, 1.0], [1.0, 2.0]], [[0.0], [1.0]], np.eye(2)), 2),
     ],
     ids=["vehicle", "wind", "beacons", "slide"],
@@ -230,13 +290,18 @@ def test_examples_keep_their_counts(system, expected):
 def test_near_degenerate_system_is_refused():
     """Eigenvalue sums 1e-8 apart: the count cannot be certified, and the error says why in one line."""
     s = QuadraticSystem(np.diag([0.0, 1.0, 1.0 + 1e-8]), np.ones((3, 1)), np.ones((3, 3)))
-    with pytest.raises(ImmersionError, match=r"^system: the minimal auxiliary count cannot be certified") as info:
+    with pytest.raises(
+        ImmersionError, match=r"^system: the minimal auxiliary count cannot be certified"
+    ) as info:
         immerse(s)
     msg = str(info.value)
     assert "\n" not in msg and "try" not in msg
     assert isinstance(info.value, QuadobsError)
     # the same system with the sums well apart is certified
-    assert immerse(QuadraticSystem(np.diag([0.0, 1.0, 1.5]), np.ones((3, 1)), np.ones((3, 3)))).n_aux == 6
+    assert (
+        immerse(QuadraticSystem(np.diag([0.0, 1.0, 1.5]), np.ones((3, 1)), np.ones((3, 3)))).n_aux
+        == 6
+    )
 
 
 def test_ill_conditioned_power_basis_switches_to_orthonormal():

@@ -43,8 +43,14 @@ def test_non_symmetric_output_is_refused_or_symmetrised():
         ((np.zeros((2, 2)), np.zeros((2, 1)), np.eye(3)), r"C: expected shape \(q, 2, 2\)"),
         ((np.zeros((2, 2)), np.zeros((2, 1)), np.zeros((0, 2, 2))), "no outputs"),
         ((np.zeros((2, 2)), np.zeros((2, 1)), np.zeros((1, 2, 2))), "identically zero"),
-        ((np.array([[np.inf, 0], [0, 0]]), np.zeros((2, 1)), np.eye(2)), "A: holds a non-finite value"),
-        ((np.zeros((2, 2)), np.zeros((2, 1)), np.eye(2), np.zeros((2, 2))), r"d: expected shape \(1, 2\)"),
+        (
+            (np.array([[np.inf, 0], [0, 0]]), np.zeros((2, 1)), np.eye(2)),
+            "A: holds a non-finite value",
+        ),
+        (
+            (np.zeros((2, 2)), np.zeros((2, 1)), np.eye(2), np.zeros((2, 2))),
+            r"d: expected shape \(1, 2\)",
+        ),
         ((np.zeros((2, 2)), "abc", np.eye(2)), "B: expected a numeric array"),
     ],
 )

@@ -2,8 +2,8 @@
 
 import numpy as np
 import pytest
-
 from conftest import random_system
+
 from quadobs import AugmentedObserver, QuadobsError, immerse, vehicle_system, wind_system
 from quadobs.estimators.augmented_batch import BatchAugmentedObserver
 
@@ -23,15 +23,27 @@ def _settings(im, seed, **kw):
     rng = np.random.default_rng(seed)
     N = im.dim
     V = rng.standard_normal((N, N))
-    return dict(V=1e-3 * V @ V.T, W=np.diag(rng.uniform(0.5, 2.0, im.system.q)), P0=10.0, theta=0.3, **kw)
+    return dict(
+        V=1e-3 * V @ V.T, W=np.diag(rng.uniform(0.5, 2.0, im.system.q)), P0=10.0, theta=0.3, **kw
+    )
 
 
 def _pair(im, rng, **kw):
     opts = _settings(im, int(rng.integers(1 << 30)), **kw)
-    return AugmentedObserver(im, 0.01, backend="numba", **opts), AugmentedObserver(im, 0.01, backend="numpy", **opts)
+    return AugmentedObserver(im, 0.01, backend="numba", **opts), AugmentedObserver(
+        im, 0.01, backend="numpy", **opts
+    )
 
 
-@pytest.mark.parametrize("name", ["vehicle 3-D, 1 beacon", "vehicle 2-D, 3 beacons", "wind 3-D, 2 beacons", "random n=4, p=2, q=2"])
+@pytest.mark.parametrize(
+    "name",
+    [
+        "vehicle 3-D, 1 beacon",
+        "vehicle 2-D, 3 beacons",
+        "wind 3-D, 2 beacons",
+        "random n=4, p=2, q=2",
+    ],
+)
 def test_compiled_kernel_equals_the_numpy_reference(rng, name):
     """Random inputs and outputs, some missing, and a gate that rejects some: same estimates to rounding."""
     im = immerse(_systems(rng)[name])
@@ -46,7 +58,9 @@ def test_compiled_kernel_equals_the_numpy_reference(rng, name):
         fast.step(u, y)
         ref.step(u, y)
         scale = max(1.0, np.abs(ref.P).max())
-        np.testing.assert_allclose(fast.z, ref.z, rtol=1e-9, atol=1e-9 * max(1.0, np.abs(ref.z).max()))
+        np.testing.assert_allclose(
+            fast.z, ref.z, rtol=1e-9, atol=1e-9 * max(1.0, np.abs(ref.z).max())
+        )
         np.testing.assert_allclose(fast.P, ref.P, rtol=1e-9, atol=1e-11 * scale)
         assert np.array_equal(fast.P, fast.P.T)
         if np.isnan(ref.nis):
@@ -94,8 +108,11 @@ def test_batched_observer_equals_single_observers(rng, backend, threads):
     B, n, q, p = 5, im.system.n, im.system.q, im.system.p
     x0 = rng.standard_normal((B, n))
     batch = BatchAugmentedObserver(template, B, x0=x0, backend=backend, threads=threads)
-    singles = [AugmentedObserver(im, 0.01, backend=backend, x0=x0[b], **_settings(im, 5, gate=50.0)) for b in range(B)]
-    for k in range(150):
+    singles = [
+        AugmentedObserver(im, 0.01, backend=backend, x0=x0[b], **_settings(im, 5, gate=50.0))
+        for b in range(B)
+    ]
+    for _k in range(150):
         U = rng.standard_normal((B, p))
         Y = 3.0 * rng.standard_normal((B, q))
         Y[rng.random((B, q)) < 0.3] = np.nan
@@ -123,7 +140,7 @@ def test_step_and_record_equals_step_with_reads(rng):
     a = AugmentedObserver(im, 0.01, backend="numba", **_settings(im, 3, gate=30.0))
     n = im.system.n
     out = np.zeros(n + 3)
-    for k in range(50):
+    for _k in range(50):
         u, y = rng.standard_normal(2), 3.0 * rng.standard_normal(3)
         y[rng.random(3) < 0.3] = np.nan
         expected = np.concatenate([b.x_hat, [b.covariance_trace]])
@@ -144,20 +161,30 @@ def test_observers_survive_pickling(rng, backend):
 
     im = immerse(_systems(rng)["vehicle 2-D, 3 beacons"])
     single = AugmentedObserver(im, 0.01, backend=backend, **_settings(im, 4))
-    batch = BatchAugmentedObserver(single, 3, x0=rng.standard_normal((3, 4)), backend=backend, threads=2)
+    batch = BatchAugmentedObserver(
+        single, 3, x0=rng.standard_normal((3, 4)), backend=backend, threads=2
+    )
     for _ in range(5):
         single.step(rng.standard_normal(2), rng.standard_normal(3))
         batch.step(rng.standard_normal((3, 2)), rng.standard_normal((3, 3)))
     single2, batch2 = pickle.loads(pickle.dumps(single)), pickle.loads(pickle.dumps(batch))
     for _ in range(5):
-        u, y, U, Y = rng.standard_normal(2), rng.standard_normal(3), rng.standard_normal((3, 2)), rng.standard_normal((3, 3))
+        u, y, U, Y = (
+            rng.standard_normal(2),
+            rng.standard_normal(3),
+            rng.standard_normal((3, 2)),
+            rng.standard_normal((3, 3)),
+        )
         for obs in (single, single2):
             obs.step(u, y)
         for b in (batch, batch2):
             b.step(U, Y)
     np.testing.assert_array_equal(single2.z, single.z)
     np.testing.assert_array_equal(single2.P, single.P)
-    assert single2.corrections == single.corrections and single2.covariance_trace == single.covariance_trace
+    assert (
+        single2.corrections == single.corrections
+        and single2.covariance_trace == single.covariance_trace
+    )
     np.testing.assert_array_equal(batch2.Z, batch.Z)
     np.testing.assert_array_equal(batch2.P, batch.P)
     np.testing.assert_array_equal(batch2.corrections, batch.corrections)

@@ -4,9 +4,15 @@ import numpy as np
 import pytest
 
 from quadobs import QuadobsError, QuadraticSystem, load_scenario, vehicle_system, wind_system
-from quadobs.testbed.registry import build_estimators
-from quadobs.estimators.kalman import ExtendedKalmanFilter, HeldInputModel, OutputModel, UnscentedKalmanFilter, step_power
+from quadobs.estimators.kalman import (
+    ExtendedKalmanFilter,
+    HeldInputModel,
+    OutputModel,
+    UnscentedKalmanFilter,
+    step_power,
+)
 from quadobs.testbed.factories import baseline_settings, initial_covariance
+from quadobs.testbed.registry import build_estimators
 from quadobs.testbed.scenario import parse_scenario
 
 BEACONS = np.array([[0.0, 0.0, 0.0], [30.0, -5.0, 2.0], [-10.0, 25.0, -3.0]])
@@ -24,7 +30,9 @@ def synthesize(rng, steps, dt, beacons, x0, *, accel_std, range_std, every, miss
         a = np.array([np.cos(t), 2 * np.sin(2 * t), -np.cos(3 * t)])
         y = np.full(len(beacons), np.nan)
         if k % every == 0:
-            rho = np.linalg.norm(x[:3] - beacons, axis=1) + range_std * rng.standard_normal(len(beacons))
+            rho = np.linalg.norm(x[:3] - beacons, axis=1) + range_std * rng.standard_normal(
+                len(beacons)
+            )
             y = 0.5 * rho**2 - half
             y[rng.random(len(beacons)) < missing] = np.nan
         xs.append(x.copy())
@@ -120,7 +128,9 @@ def test_norm_space_recovers_the_range_and_its_jacobian(rng):
     np.testing.assert_allclose(out.measure(system.output(x)), rho, rtol=1e-10)
     J = out.jacobian(x)
     h = 1e-6
-    num = np.stack([(out.predict(x + h * e) - out.predict(x - h * e)) / (2 * h) for e in np.eye(6)], axis=1)
+    num = np.stack(
+        [(out.predict(x + h * e) - out.predict(x - h * e)) / (2 * h) for e in np.eye(6)], axis=1
+    )
     np.testing.assert_allclose(J, num, atol=1e-8)
     # airspeed of the wind system: y = |v_a|^2/2, offset 0
     ws = wind_system(2, [[1.0, 2.0]])
@@ -176,7 +186,9 @@ def test_ekf_noise_free_start_at_the_truth_stays_exact(rng):
     system, xs, us, ys, x_end = synthesize(
         rng, 300, 0.01, BEACONS, [5, 6, 1, 1, -1, 0.5], accel_std=0, range_std=0, every=1
     )
-    f = ExtendedKalmanFilter(HeldInputModel(system, 0.01), OutputModel(system, 1.0), x0=xs[0], P0=1.0)
+    f = ExtendedKalmanFilter(
+        HeldInputModel(system, 0.01), OutputModel(system, 1.0), x0=xs[0], P0=1.0
+    )
     for u, y in zip(us, ys):
         f.step(u, y)
     np.testing.assert_allclose(f.x_hat, x_end, atol=1e-9)
@@ -226,7 +238,9 @@ def test_baseline_settings_of_a_noise_free_scenario_use_the_observer_tuning():
     sc = load_scenario("ifac2021")
     s = baseline_settings(sc)
     assert s.noise_source == "observer" and s.outputs.space == "output"
-    np.testing.assert_allclose(s.outputs.R, [[sc.observer.W * sc.physics_rate]])  # W / T with T = dt
+    np.testing.assert_allclose(
+        s.outputs.R, [[sc.observer.W * sc.physics_rate]]
+    )  # W / T with T = dt
     assert not s.dynamics.Q.any()
     P0, src = initial_covariance(sc)
     assert src == "observer"
@@ -290,7 +304,9 @@ def _stonesoup_models(system, dyn, beacons, R):
     control = LinearControlModel(control_matrix=np.array(dyn.G))
 
     def ranges(idx):
-        return Ranges(ndim_state=6, mapping=(0, 1, 2), noise_covar=R[np.ix_(idx, idx)], beacons=beacons[idx])
+        return Ranges(
+            ndim_state=6, mapping=(0, 1, 2), noise_covar=R[np.ix_(idx, idx)], beacons=beacons[idx]
+        )
 
     return transition, control, ranges
 
@@ -298,9 +314,9 @@ def _stonesoup_models(system, dyn, beacons, R):
 @pytest.mark.parametrize("kind", ["ekf", "ukf"])
 def test_agrees_with_stonesoup_on_the_same_data(kind):
     """Step by step, mean and covariance equal Stone Soup's EKF / UKF (same model, same data, same UT parameters)."""
-    import stonesoup
     from datetime import datetime, timedelta
 
+    import stonesoup
     from stonesoup.predictor.kalman import ExtendedKalmanPredictor, UnscentedKalmanPredictor
     from stonesoup.types.detection import Detection
     from stonesoup.types.hypothesis import SingleHypothesis
@@ -311,7 +327,9 @@ def test_agrees_with_stonesoup_on_the_same_data(kind):
     rng = np.random.default_rng(7)
     dt, sa, sr = 0.01, 0.2, 0.3
     x0 = np.array([5.0, 12.0, -1.0, 2.0, -1.0, 0.5])
-    system, xs, us, ys, _ = synthesize(rng, 400, dt, BEACONS, x0, accel_std=sa, range_std=sr, every=5, missing=0.2)
+    system, xs, us, ys, _ = synthesize(
+        rng, 400, dt, BEACONS, x0, accel_std=sa, range_std=sr, every=5, missing=0.2
+    )
     dyn = HeldInputModel(system, dt, input_covariance=sa**2)
     R = np.diag([sr**2, 0.5 * sr**2, 2 * sr**2])
     half = 0.5 * np.einsum("hi,hi->h", BEACONS, BEACONS)
@@ -325,7 +343,9 @@ def test_agrees_with_stonesoup_on_the_same_data(kind):
         predictor = ExtendedKalmanPredictor(transition, control_model=control)
         updater = ExtendedKalmanUpdater(measurement_model=None, use_joseph_cov=True)
     else:
-        predictor = UnscentedKalmanPredictor(transition, control_model=control, alpha=1.0, beta=2.0, kappa=0.0)
+        predictor = UnscentedKalmanPredictor(
+            transition, control_model=control, alpha=1.0, beta=2.0, kappa=0.0
+        )
         updater = UnscentedKalmanUpdater(measurement_model=None, alpha=1.0, beta=2.0, kappa=0.0)
     t0 = datetime(2024, 1, 1)
     state = GaussianState(guess.reshape(-1, 1), P0, timestamp=t0)
@@ -338,11 +358,15 @@ def test_agrees_with_stonesoup_on_the_same_data(kind):
             det = Detection(rho.reshape(-1, 1), timestamp=t, measurement_model=ranges(idx))
             state = updater.update(SingleHypothesis(state, det))
             updates += 1
-        state = predictor.predict(state, timestamp=t + timedelta(seconds=dt), control_input=State(u.reshape(-1, 1)))
+        state = predictor.predict(
+            state, timestamp=t + timedelta(seconds=dt), control_input=State(u.reshape(-1, 1))
+        )
         ours.step(u, y)
         if k % 50 == 49 or k == len(us) - 1:
             np.testing.assert_allclose(
                 ours.x_hat, np.asarray(state.state_vector, dtype=float)[:, 0], rtol=1e-9, atol=1e-9
             )
-            np.testing.assert_allclose(ours.x_covariance, np.asarray(state.covar, dtype=float), rtol=1e-8, atol=1e-11)
+            np.testing.assert_allclose(
+                ours.x_covariance, np.asarray(state.covar, dtype=float), rtol=1e-8, atol=1e-11
+            )
     assert updates == ours.corrections > 60

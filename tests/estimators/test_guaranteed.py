@@ -1,13 +1,12 @@
 """Guaranteed localisation of the vehicle: each bound checked on its own, then MuJoCo episodes
 in which the true lifted state lies in the zonotope at every step."""
 
-
 import numpy as np
 import pytest
 
 from quadobs import QuadobsError, immerse, load_scenario, vehicle_system
-from quadobs.testbed.registry import build_estimators
 from quadobs.estimators.zonotopic_vehicle import ZonotopicAugmentedEstimator, lift_box, range_strip
+from quadobs.testbed.registry import build_estimators
 from quadobs.testbed.scenario import parse_scenario
 from quadobs.testbed.sensors import SensorModel, initial_guess, spawn_streams
 
@@ -28,7 +27,9 @@ def test_range_strip_contains_every_true_output_and_is_tight(rng):
         assert yc + phi == pytest.approx(0.5 * hi**2 - a2, abs=1e-9 * (1 + abs(y) + a2))
     # far from the beacon the half-width is nbar * rho~, the centre y + nbar^2 / 2
     yc, phi = range_strip(0.5 * 30.0**2 - 2.0, 2.0, 0.05)
-    assert phi == pytest.approx(0.05 * 30.0) and yc == pytest.approx(0.5 * 30.0**2 - 2.0 + 0.05**2 / 2)
+    assert phi == pytest.approx(0.05 * 30.0) and yc == pytest.approx(
+        0.5 * 30.0**2 - 2.0 + 0.05**2 / 2
+    )
 
 
 @pytest.mark.parametrize("dim", [2, 3])
@@ -49,7 +50,13 @@ def test_prediction_contains_the_true_step_under_input_error(rng):
     beacons = np.array([[0.0, 0.0, 0.0], [10.0, 0.0, 0.0]])
     im = immerse(vehicle_system(3, beacons))
     est = ZonotopicAugmentedEstimator(
-        im, 0.01, x0=np.zeros(6), radius=np.full(6, 2.0), output_offsets=[0.0, 50.0], output_bounds=[0.1, 0.1], input_bound=0.5
+        im,
+        0.01,
+        x0=np.zeros(6),
+        radius=np.full(6, 2.0),
+        output_offsets=[0.0, 50.0],
+        output_bounds=[0.1, 0.1],
+        input_bound=0.5,
     )
     Z0 = est.zonotope
     u_meas = rng.uniform(-3, 3, 3)
@@ -59,7 +66,9 @@ def test_prediction_contains_the_true_step_under_input_error(rng):
         x = rng.uniform(-2, 2, 6)
         if rng.uniform() < 0.5:
             x = 2.0 * np.sign(x)
-        du = 0.5 * (np.sign(rng.uniform(-1, 1, 3)) if rng.uniform() < 0.7 else rng.uniform(-1, 1, 3))
+        du = 0.5 * (
+            np.sign(rng.uniform(-1, 1, 3)) if rng.uniform() < 0.7 else rng.uniform(-1, 1, 3)
+        )
         u_true = u_meas - du
         z = im.lift(x)
         assert Z0.contains(z, method="lp")
@@ -67,7 +76,13 @@ def test_prediction_contains_the_true_step_under_input_error(rng):
     assert est.zonotope.contains(np.array(pts), method="lp").all()
     # without the input-error term the set would miss some of them
     bare = ZonotopicAugmentedEstimator(
-        im, 0.01, x0=np.zeros(6), radius=np.full(6, 2.0), output_offsets=[0.0, 50.0], output_bounds=[0.1, 0.1], input_bound=0.0
+        im,
+        0.01,
+        x0=np.zeros(6),
+        radius=np.full(6, 2.0),
+        output_offsets=[0.0, 50.0],
+        output_bounds=[0.1, 0.1],
+        input_bound=0.0,
     )
     bare.predict(u_meas)
     assert not bare.zonotope.contains(np.array(pts), method="lp").all()
@@ -224,8 +239,8 @@ def test_vehicle_zonotope_step_matches_the_plain_formulas_from_each_state():
     The run as a whole is not compared: the set's reduction reacts to perturbations of 1e-13
     (a different pivot), so two runs that differ by rounding drift apart, both containing the truth.
     """
-    from quadobs.studies.bench import _vehicle_data
     from quadobs.sets.zonotope import _pivoted_qr_diag, reduce_generators
+    from quadobs.studies.bench import _vehicle_data
 
     sc = load_scenario("ifac2021-bounded")
     U, Y, x0 = _vehicle_data(sc, 120)
@@ -248,7 +263,12 @@ def test_vehicle_zonotope_step_matches_the_plain_formulas_from_each_state():
         np.testing.assert_array_equal(piv2, piv)
         np.testing.assert_allclose(diag, np.abs(np.diag(R)), rtol=1e-14)
         Hbig = rng.standard_normal((9, 60))
-        np.testing.assert_allclose(reduce_generators(Hbig, 40, "parallelotope"), _plain_parallelotope(Hbig, 40), rtol=1e-12, atol=1e-12)
+        np.testing.assert_allclose(
+            reduce_generators(Hbig, 40, "parallelotope"),
+            _plain_parallelotope(Hbig, 40),
+            rtol=1e-12,
+            atol=1e-12,
+        )
 
 
 def test_vehicle_zonotope_refuses_non_finite_inputs():

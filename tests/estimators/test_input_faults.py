@@ -45,9 +45,13 @@ def test_bad_operands_raise_and_change_nothing(call, case):
             else:
                 est.step_and_record(u, y, np.zeros(est.x_hat.shape[0] + 3))
         after = _state(est)
-        np.testing.assert_array_equal(before[0], after[0], err_msg=f"{est.name}: x_hat changed ({case})")
+        np.testing.assert_array_equal(
+            before[0], after[0], err_msg=f"{est.name}: x_hat changed ({case})"
+        )
         if before[1] is not None:
-            np.testing.assert_array_equal(before[1], after[1], err_msg=f"{est.name}: covariance changed ({case})")
+            np.testing.assert_array_equal(
+                before[1], after[1], err_msg=f"{est.name}: covariance changed ({case})"
+            )
         est.step(GOOD_U, GOOD_Y)  # still usable
         assert np.isfinite(est.x_hat).all()
 
@@ -76,7 +80,10 @@ def _batches():
     sc = load_scenario("ifac2021-noisy")
     template = quadobs.AugmentedObserver(quadobs.immerse(sc.system()), dt=sc.dt, backend="numpy")
     x0 = np.random.default_rng(7).normal(size=(B, sc.state_dim))
-    batches = [BatchAugmentedObserver(template, B, x0=x0, backend=b, threads=t) for b, t in (("numba", 0), ("numba", 2), ("numpy", 0))]
+    batches = [
+        BatchAugmentedObserver(template, B, x0=x0, backend=b, threads=t)
+        for b, t in (("numba", 0), ("numba", 2), ("numpy", 0))
+    ]
     for batch in batches:
         for _ in range(3):
             batch.step(np.tile(GOOD_U, (B, 1)), np.tile(GOOD_Y, (B, 1)))
@@ -94,10 +101,14 @@ def test_batch_refuses_bad_values_naming_the_member_and_changes_no_member(case):
         BATCH_BAD[case](U, Y)
         member = int(np.argmax(~np.isfinite(U).all(axis=1) | np.isinf(Y).any(axis=1)))
         before = _batch_state(batch)
-        with pytest.raises(QuadobsError, match=rf"^{case.split()[1]}\[{member}\]: holds a non-finite value"):
+        with pytest.raises(
+            QuadobsError, match=rf"^{case.split()[1]}\[{member}\]: holds a non-finite value"
+        ):
             batch.step(U, Y)
         for a, b in zip(before, _batch_state(batch)):
-            np.testing.assert_array_equal(a, b, err_msg=f"{batch.backend} threads={batch.__dict__.get('_threads')}: {case}")
+            np.testing.assert_array_equal(
+                a, b, err_msg=f"{batch.backend} threads={batch.__dict__.get('_threads')}: {case}"
+            )
         batch.step(np.tile(GOOD_U, (B, 1)), np.tile(GOOD_Y, (B, 1)))  # still usable
         assert np.isfinite(batch.Z).all()
 

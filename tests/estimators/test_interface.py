@@ -29,7 +29,9 @@ def _data(scenario, steps=STEPS):
     dt = scenario.dt
     t = np.arange(steps) * dt
     u = scenario.trajectory.step_accelerations(0.0, dt, steps)
-    x = np.concatenate([scenario.trajectory.position(t), scenario.trajectory.velocity_at(t)], axis=1)
+    x = np.concatenate(
+        [scenario.trajectory.position(t), scenario.trajectory.velocity_at(t)], axis=1
+    )
     y = scenario.system().output(x)
     every = scenario.sample_interval(scenario.noise.range_rate, "range_rate")
     y[np.arange(steps) % every != 0] = np.nan
@@ -103,7 +105,10 @@ def test_every_registered_estimator_is_deterministic(name):
         (lambda u, y: (np.array([np.inf, 0.0, 0.0]), y), "u: holds a non-finite value"),
         (lambda u, y: (u[:2], y), r"u: expected shape \(3,\)"),
         (lambda u, y: (u, y[:-1]), r"y: expected shape"),
-        (lambda u, y: (u, np.where(np.arange(y.size) == 0, np.inf, y)), "y: holds a non-finite value"),
+        (
+            lambda u, y: (u, np.where(np.arange(y.size) == 0, np.inf, y)),
+            "y: holds a non-finite value",
+        ),
         (lambda u, y: (u, "ranges"), "y: expected"),
     ],
     ids=["u-nan", "u-inf", "u-shape", "y-shape", "y-inf", "y-text"],
@@ -130,19 +135,31 @@ def test_abilities_are_declared_by_inheritance():
     aug, ekf, ukf, sub = build_estimators(scenario, ["augmented", "ekf", "ukf", variant], x0)
     bounded = load_scenario("ifac2021-bounded", duration=1.0)
     (zon,) = build_estimators(bounded, ["zonotope"], _data(bounded, 1)[2])
-    assert isinstance(aug, (AugmentedObserver, Gated, Immersed)) and not isinstance(aug, (SetValued, Subset))
+    assert isinstance(aug, (AugmentedObserver, Gated, Immersed)) and not isinstance(
+        aug, (SetValued, Subset)
+    )
     for f, cls in ((ekf, ExtendedKalmanFilter), (ukf, UnscentedKalmanFilter)):
-        assert isinstance(f, cls) and isinstance(f, Gated) and not isinstance(f, (Immersed, SetValued, Subset))
+        assert (
+            isinstance(f, cls)
+            and isinstance(f, Gated)
+            and not isinstance(f, (Immersed, SetValued, Subset))
+        )
     assert isinstance(sub, Gated) and isinstance(sub, Immersed) and isinstance(sub, Subset)
     assert sub.outputs.shape[0] < scenario.beacons.shape[0]
-    assert isinstance(zon, ZonotopicAugmentedEstimator) and isinstance(zon, SetValued) and isinstance(zon, Immersed)
+    assert (
+        isinstance(zon, ZonotopicAugmentedEstimator)
+        and isinstance(zon, SetValued)
+        and isinstance(zon, Immersed)
+    )
     assert not isinstance(zon, Gated) and zon.x_covariance is None
     b = zon.bounds
     assert b.shape == (6, 2) and np.all(b[:, 0] <= zon.x_hat) and np.all(zon.x_hat <= b[:, 1])
 
 
 def test_the_linear_zonotopic_estimator_is_an_estimator_without_input():
-    est = ZonotopicEstimator(np.eye(2), 0.1 * np.eye(2), np.eye(2), 0.5, Zonotope(np.zeros(2), np.eye(2)))
+    est = ZonotopicEstimator(
+        np.eye(2), 0.1 * np.eye(2), np.eye(2), 0.5, Zonotope(np.zeros(2), np.eye(2))
+    )
     assert isinstance(est, Estimator) and isinstance(est, SetValued) and est.x_covariance is None
     est.step(np.empty(0), np.array([0.2, np.nan]))
     old = est.x_hat.copy()

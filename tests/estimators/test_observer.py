@@ -3,10 +3,16 @@
 import numpy as np
 import pytest
 import scipy.linalg as sla
+from conftest import random_system
 from scipy.integrate import solve_ivp
 
-from conftest import random_system
-from quadobs import AugmentedObserver, HeldInputDiscretization, QuadobsError, immerse, vehicle_system
+from quadobs import (
+    AugmentedObserver,
+    HeldInputDiscretization,
+    QuadobsError,
+    immerse,
+    vehicle_system,
+)
 from quadobs.core.held_input import van_loan
 
 
@@ -40,14 +46,22 @@ def test_process_noise_polynomial_equals_van_loan(rng, vehicle):
     for _ in range(3):
         u = 5 * rng.standard_normal(3)
         _, Q = van_loan(vehicle.state_matrix(u) + 0.5 * theta * np.eye(N), V, 0.02)
-        np.testing.assert_allclose(disc.process_noise(u), Q, rtol=1e-8, atol=1e-12 * np.abs(Q).max())
+        np.testing.assert_allclose(
+            disc.process_noise(u), Q, rtol=1e-8, atol=1e-12 * np.abs(Q).max()
+        )
 
 
 def test_predict_is_exact_under_held_input(rng, vehicle):
     """The discrete map agrees with an ODE solve of z' = A(u) z + B u over the step."""
     disc = HeldInputDiscretization(vehicle, 0.1)
     z0, u = rng.standard_normal(vehicle.dim), rng.standard_normal(3)
-    sol = solve_ivp(lambda t, z: vehicle.state_matrix(u) @ z + vehicle.input_matrix @ u, (0, 0.1), z0, rtol=1e-12, atol=1e-13)
+    sol = solve_ivp(
+        lambda t, z: vehicle.state_matrix(u) @ z + vehicle.input_matrix @ u,
+        (0, 0.1),
+        z0,
+        rtol=1e-12,
+        atol=1e-13,
+    )
     np.testing.assert_allclose(disc.predict(z0, u), sol.y[:, -1], rtol=1e-9, atol=1e-11)
 
 
@@ -58,7 +72,9 @@ def _simulate(im, steps, dt, rng, x0):
     xs, us, ys = [], [], []
     Ad, Bd = sla.expm(s.A * dt), disc.input_linear
     for k in range(steps):
-        u = np.array([np.sin(0.7 * k * dt + j) + 0.5 * np.cos(2.1 * k * dt * (j + 1)) for j in range(s.p)])
+        u = np.array(
+            [np.sin(0.7 * k * dt + j) + 0.5 * np.cos(2.1 * k * dt * (j + 1)) for j in range(s.p)]
+        )
         xs.append(x)
         us.append(u)
         ys.append(s.output(x))

@@ -2,8 +2,8 @@
 
 import numpy as np
 import pytest
-
 from conftest import random_system
+
 from quadobs import AugmentedObserver, QuadraticSystem, immerse, vehicle_system
 from quadobs.core.held_input import HeldInputDiscretization
 from quadobs.estimators.augmented import KernelModel
@@ -113,7 +113,11 @@ def test_each_side_of_the_threshold_follows_the_numpy_reference(rng, system, den
 def test_both_paths_agree_on_the_same_model(rng, monkeypatch, name):
     """Forced onto the other path, the same observer gives the same estimates to rounding, 1e-10 of the scale
     as against the reference (the vehicle's transition has exact zeros, the random one is full)."""
-    im = immerse(vehicle_system(3, 10 * rng.standard_normal((2, 3))) if name == "vehicle" else _stable(rng, 4, 1, 2))
+    im = immerse(
+        vehicle_system(3, 10 * rng.standard_normal((2, 3)))
+        if name == "vehicle"
+        else _stable(rng, 4, 1, 2)
+    )
     natural = [(f.z.copy(), f.P.copy()) for f, _ in _run(im, 400, seed=3)]
     forced = _run(im, 400, seed=3, build=_forced(name == "vehicle", monkeypatch))
     for (z, P), (fast, _) in zip(natural, forced):
@@ -157,7 +161,9 @@ def test_built_in_scenarios_stay_on_the_sparse_path():
     names = list(list_scenarios())
     for name in names:
         scenario = load_scenario(name)
-        assert not _takes_dense_path(augmented_observer(scenario, np.zeros(scenario.state_dim))), name
+        assert not _takes_dense_path(augmented_observer(scenario, np.zeros(scenario.state_dim))), (
+            name
+        )
     assert len(names) >= 10
 
 

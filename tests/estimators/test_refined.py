@@ -47,7 +47,10 @@ def test_converges_from_a_far_guess_and_hands_over(noisy):
     result, ests = noisy
     ref = ests["augmented-refined"]
     s = result.summary["estimators"]
-    assert np.linalg.norm(result.trace["estimates"]["augmented-refined"][0] - result.trace["truth"][0]) > 5.0
+    assert (
+        np.linalg.norm(result.trace["estimates"]["augmented-refined"][0] - result.trace["truth"][0])
+        > 5.0
+    )
     assert s["augmented-refined"]["final_position_error"] < 0.5
     assert s["augmented-refined"]["final_position_error"] < s["augmented"]["final_position_error"]
     assert ref.mode == "ekf"
@@ -78,7 +81,12 @@ def test_handover_covariance_is_consistent():
         if ests["augmented-refined"].mode != "ekf":
             continue
         tr = result.trace
-        values.append(nees(tr["estimates"]["augmented-refined"][-1] - tr["truth"][-1], tr["covariances"]["augmented-refined"][-1]))
+        values.append(
+            nees(
+                tr["estimates"]["augmented-refined"][-1] - tr["truth"][-1],
+                tr["covariances"]["augmented-refined"][-1],
+            )
+        )
     assert len(values) >= 4
     dof = 6 * len(values)
     lo, hi = stats.chi2.ppf([0.005, 0.995], dof) / len(values)
@@ -128,7 +136,9 @@ def test_noise_free_no_worse_than_the_plain_observer():
 def test_deterministic():
     scenario = load_scenario("ifac2021-noisy", duration=6.0, seed=5)
     (r1, e1), (r2, e2) = run(scenario, ["augmented-refined"]), run(scenario, ["augmented-refined"])
-    np.testing.assert_array_equal(r1.trace["estimates"]["augmented-refined"], r2.trace["estimates"]["augmented-refined"])
+    np.testing.assert_array_equal(
+        r1.trace["estimates"]["augmented-refined"], r2.trace["estimates"]["augmented-refined"]
+    )
     assert e1["augmented-refined"].switches == e2["augmented-refined"].switches
 
 
@@ -239,9 +249,15 @@ def test_mode_switches_reach_the_summary_and_the_event_log(tmp_path):
     res = run_episode(scenario, estimators=["augmented-refined"], out=path)
     modes = res.summary["estimators"]["augmented-refined"]["modes"]
     assert modes["switches"], "no handover within 16 s of ifac2021-noisy (seed 0)"
-    logged = [(step, text) for step, _, _, text in read_text_log(path, "events") if text.startswith("augmented-refined:")]
+    logged = [
+        (step, text)
+        for step, _, _, text in read_text_log(path, "events")
+        if text.startswith("augmented-refined:")
+    ]
     assert [step for step, _ in logged] == [s["step"] for s in modes["switches"]]
-    assert all(f"{s['from']} -> {s['to']}" in text for (_, text), s in zip(logged, modes["switches"]))
+    assert all(
+        f"{s['from']} -> {s['to']}" in text for (_, text), s in zip(logged, modes["switches"])
+    )
     assert issubclass(RefinedObserver, Switching)
 
 
@@ -263,7 +279,9 @@ def test_converged_nees_counts_only_the_converged_part():
     assert np.isnan(part["mean"][0]) and part["all_runs_from"] == 2
     assert part["inside_fraction"] == 1.0 and 5.5 < part["time_average"] < 6.5
     lo, hi = part["bounds"][1]
-    assert lo < 6 < hi and hi - lo > part["bounds"][3, 1] - part["bounds"][3, 0]  # fewer runs, wider band
+    assert (
+        lo < 6 < hi and hi - lo > part["bounds"][3, 1] - part["bounds"][3, 0]
+    )  # fewer runs, wider band
     assert converged_nees(1.5 * ne, mask, 6)["inside_fraction"] == 0.0
 
 
@@ -271,6 +289,9 @@ def test_campaign_marks_the_samples_after_a_switch():
     from quadobs.studies.campaign import _switched
 
     times = np.arange(6) * 0.1  # samples at steps 0, 100, ..., 500 (dt = 1e-3)
-    switches = [{"step": 100, "from": "augmented", "to": "ekf"}, {"step": 350, "from": "ekf", "to": "augmented"}]
+    switches = [
+        {"step": 100, "from": "augmented", "to": "ekf"},
+        {"step": 350, "from": "ekf", "to": "augmented"},
+    ]
     np.testing.assert_array_equal(_switched(times, switches, 1e-3), [0, 0, 1, 1, 0, 0])
     np.testing.assert_array_equal(_switched(times, [], 1e-3), np.zeros(6, dtype=bool))

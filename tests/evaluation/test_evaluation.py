@@ -6,15 +6,27 @@ import pytest
 from scipy import stats
 
 from quadobs import QuadobsError, QuadraticSystem, load_scenario
-from quadobs.evaluation.ensemble import chi2_interval, convergence_times, ensemble, lifted_covariance, nees, posterior_crb, range_factor, rmse, set_containment
-from quadobs.testbed.bounds import immersion_bound, scenario_crb
 from quadobs.estimators.kalman import ExtendedKalmanFilter, HeldInputModel, OutputModel
+from quadobs.evaluation.ensemble import (
+    chi2_interval,
+    convergence_times,
+    ensemble,
+    lifted_covariance,
+    nees,
+    posterior_crb,
+    range_factor,
+    rmse,
+    set_containment,
+)
+from quadobs.testbed.bounds import immersion_bound, scenario_crb
 from quadobs.testbed.scenario import parse_scenario
 
 
 def test_chi2_interval_closed_form():
     lo, hi = chi2_interval(6, 1, 0.95)
-    assert lo == pytest.approx(stats.chi2.ppf(0.025, 6)) and hi == pytest.approx(stats.chi2.ppf(0.975, 6))
+    assert lo == pytest.approx(stats.chi2.ppf(0.025, 6)) and hi == pytest.approx(
+        stats.chi2.ppf(0.975, 6)
+    )
     # N runs of an n-dim NEES: N * mean ~ chi2(N n); for large N about n +- 1.96 sqrt(2 n / N)
     lo, hi = chi2_interval(6 * 2000, 2000, 0.95)
     assert lo == pytest.approx(6 - 1.96 * np.sqrt(12 / 2000), abs=0.01)
@@ -33,7 +45,9 @@ def test_nees_rmse_convergence_and_containment_by_hand():
     errs = np.array([[[3.0, 4.0]], [[0.0, 0.0]]])  # (R=2, T=1, 2)
     assert rmse(errs)[0] == pytest.approx(np.sqrt(12.5))
     t = np.array([0.0, 1.0, 2.0, 3.0])
-    err = np.array([[5, 0.5, 2, 0.1], [0.1, 0.2, 0.3, 0.4], [0.1, 0.2, 0.3, 3.0], [np.nan, 0.5, 0.5, 0.5]])
+    err = np.array(
+        [[5, 0.5, 2, 0.1], [0.1, 0.2, 0.3, 0.4], [0.1, 0.2, 0.3, 3.0], [np.nan, 0.5, 0.5, 0.5]]
+    )
     np.testing.assert_array_equal(convergence_times(t, err, 1.0), [3.0, 0.0, np.nan, 1.0])
     truth = np.array([[0.0, 1.0], [0.0, 5.0], [0.0, 0.0]])
     bounds = np.array([[[-1, 1], [0, 2]], [[-1, 1], [0, 2]], [[np.nan, 1], [0, 1]]])
@@ -41,12 +55,18 @@ def test_nees_rmse_convergence_and_containment_by_hand():
 
 
 def test_range_factor_is_the_fisher_information_of_a_range():
-    p, a, s = np.array([3.0, -4.0, 12.0]), np.array([[0.0, 0.0, 0.0], [1.0, 2.0, 3.0]]), np.array([0.5, 2.0])
+    p, a, s = (
+        np.array([3.0, -4.0, 12.0]),
+        np.array([[0.0, 0.0, 0.0], [1.0, 2.0, 3.0]]),
+        np.array([0.5, 2.0]),
+    )
     L = range_factor(p, a, s)
     for h in range(2):
         grad = (p - a[h]) / np.linalg.norm(p - a[h])
         np.testing.assert_allclose(L[:, h] @ L[:, h].T, grad @ grad / s[h] ** 2)
-        np.testing.assert_allclose(np.outer(L[:, h], L[:, h]), np.outer(grad, grad) / s[h] ** 2, rtol=1e-12)
+        np.testing.assert_allclose(
+            np.outer(L[:, h], L[:, h]), np.outer(grad, grad) / s[h] ** 2, rtol=1e-12
+        )
 
 
 def _random_spd(rng, n, scale=1.0):
@@ -67,7 +87,9 @@ def test_pcrb_equals_the_tichavsky_recursion(rng):
     J = np.linalg.inv(P0)
     for k in range(K):
         np.testing.assert_allclose(out[k], np.linalg.inv(J), rtol=1e-8)
-        J = J + (Ls[k] @ Ls[k].T if k in Ls else 0.0)  # the measurement at t_k enters before the step
+        J = J + (
+            Ls[k] @ Ls[k].T if k in Ls else 0.0
+        )  # the measurement at t_k enters before the step
         J = Qi - D12.T @ np.linalg.solve(J + D11, D12)
     np.testing.assert_allclose(out[K], np.linalg.inv(J), rtol=1e-8)
 
@@ -167,7 +189,9 @@ def test_linear_gaussian_kalman_filter_attains_the_bound_and_is_consistent():
     assert 0.88 <= s["nis_inside_fraction"] <= 1.0
     assert s["chi2_bounds"]["nis_dof_per_run"] == 1
     # an overconfident filter (covariance / 4) fails the test
-    bad = ensemble(np.arange(T) * dt, err[..., :1], err[..., 1:], nees=nees(err, cov / 4), state_dim=2)
+    bad = ensemble(
+        np.arange(T) * dt, err[..., :1], err[..., 1:], nees=nees(err, cov / 4), state_dim=2
+    )
     assert bad.summary()["nees_inside_fraction"] < 0.05
 
 
@@ -175,19 +199,27 @@ def test_ensemble_summary_of_synthetic_runs():
     t = np.linspace(0, 1, 5)
     R = 4
     ep = np.zeros((R, 5, 2))
-    ep[:, :, 0] = np.array([[5, 4, 3, 0.5, 0.2], [5, 2, 0.5, 0.4, 0.3], [5, 5, 5, 5, 5], [1, 0.5, 2, 0.5, 0.1]])[:, :]
+    ep[:, :, 0] = np.array(
+        [[5, 4, 3, 0.5, 0.2], [5, 2, 0.5, 0.4, 0.3], [5, 5, 5, 5, 5], [1, 0.5, 2, 0.5, 0.1]]
+    )[:, :]
     ev = np.zeros((R, 5, 2))
-    s = ensemble(t, ep, ev, nees=np.full((R, 5), 2.0), state_dim=2, threshold=1.0, bound=np.full((5, 2), 0.5)).summary()
+    s = ensemble(
+        t, ep, ev, nees=np.full((R, 5), 2.0), state_dim=2, threshold=1.0, bound=np.full((5, 2), 0.5)
+    ).summary()
     assert s["runs"] == 4 and s["converged_runs"] == 3 and s["converged_fraction"] == 0.75
     assert s["final_rmse_position"] == pytest.approx(np.sqrt((0.04 + 0.09 + 25 + 0.01) / 4))
     assert s["final_rmse_position_converged"] == pytest.approx(np.sqrt((0.04 + 0.09 + 0.01) / 3))
     assert s["rmse_over_sqrt_pcrb"] == pytest.approx(s["final_rmse_position"] / 0.5)
-    assert s["median_convergence_time"] == pytest.approx(0.75)  # runs converge from 0.75, 0.5, never, 0.75
+    assert s["median_convergence_time"] == pytest.approx(
+        0.75
+    )  # runs converge from 0.75, 0.5, never, 0.75
     assert s["mean_nees"] == 2.0 and "containment_rate" not in s
 
 
 def test_scenario_crb():
-    assert scenario_crb(load_scenario("ifac2021")) is None  # noise-free ranges: infinite information
+    assert (
+        scenario_crb(load_scenario("ifac2021")) is None
+    )  # noise-free ranges: infinite information
     sc = load_scenario("ifac2021-noisy", duration=2.0)
     times, B, note = scenario_crb(sc, every=100)
     assert times.shape == (21,) and times[-1] == pytest.approx(2.0)
@@ -212,10 +244,14 @@ def test_ekf_near_the_truth_has_the_pcrb_as_covariance():
     _, B, _ = scenario_crb(sc, every=500)
     cov = res.trace["covariances"]["ekf"]
     np.testing.assert_allclose(
-        np.trace(cov[:, :3, :3], axis1=1, axis2=2), np.trace(B[:, :3, :3], axis1=1, axis2=2), rtol=0.02
+        np.trace(cov[:, :3, :3], axis1=1, axis2=2),
+        np.trace(B[:, :3, :3], axis1=1, axis2=2),
+        rtol=0.02,
     )
     np.testing.assert_allclose(
-        np.trace(cov[:, 3:, 3:], axis1=1, axis2=2), np.trace(B[:, 3:, 3:], axis1=1, axis2=2), rtol=0.02
+        np.trace(cov[:, 3:, 3:], axis1=1, axis2=2),
+        np.trace(B[:, 3:, 3:], axis1=1, axis2=2),
+        rtol=0.02,
     )
 
 
@@ -246,7 +282,9 @@ def test_immersion_bound_lies_between_the_pcrb_and_the_prior():
         assert (
             gap.min() > -1e-9 * np.abs(b).max()
         )  # the best linear filter on the immersion is no better than the bound
-    assert np.trace(Bi[-1][:3, :3]) > 1.05 * np.trace(Bp[-1][:3, :3])  # and it loses information here
+    assert np.trace(Bi[-1][:3, :3]) > 1.05 * np.trace(
+        Bp[-1][:3, :3]
+    )  # and it loses information here
     data = sc.to_dict()
     data["noise"]["accel_std"] = 0.1
     assert immersion_bound(parse_scenario(data)) is None
@@ -268,7 +306,11 @@ def test_one_convergence_convention_streamed_and_batched(rng):
         np.testing.assert_array_equal(streamed, batch[r])
         # the rule by hand
         bad = np.flatnonzero(~(err[r] < 0.5))
-        expected = np.nan if bad.size and bad[-1] == t.size - 1 else (t[0] if not bad.size else t[bad[-1] + 1])
+        expected = (
+            np.nan
+            if bad.size and bad[-1] == t.size - 1
+            else (t[0] if not bad.size else t[bad[-1] + 1])
+        )
         np.testing.assert_array_equal(batch[r], expected)
     assert np.isnan(batch).any() and np.isfinite(batch).any()
     assert np.isnan(ConvergenceTracker((1.0,)).times()[0])  # nothing seen: not converged

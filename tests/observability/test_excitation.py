@@ -6,16 +6,33 @@ import sys
 
 import numpy as np
 import pytest
+from conftest import random_nilpotent
 from scipy.integrate import solve_ivp
 
-from quadobs import QuadobsError, QuadraticSystem, immerse, list_scenarios, load_scenario, vehicle_system, wind_system
-from quadobs.observability.excitation import ExcitationMonitor, HeldInput, excitation_report, proposition4
-from quadobs.testbed.excitation import scenario_input, scenario_monitor, scenario_report
-from quadobs.observability.gramian import GramianModel, reduce_window, scaled_min_eig, sliding_windows
+from quadobs import (
+    QuadobsError,
+    QuadraticSystem,
+    immerse,
+    list_scenarios,
+    load_scenario,
+    vehicle_system,
+    wind_system,
+)
 from quadobs.observability.conditions import chain_structure, r_sequence
+from quadobs.observability.excitation import (
+    ExcitationMonitor,
+    HeldInput,
+    excitation_report,
+    proposition4,
+)
+from quadobs.observability.gramian import (
+    GramianModel,
+    reduce_window,
+    scaled_min_eig,
+    sliding_windows,
+)
+from quadobs.testbed.excitation import scenario_input, scenario_monitor, scenario_report
 from quadobs.testbed.scenario import parse_scenario
-
-from conftest import random_nilpotent
 
 ORIGIN3 = [[0.0, 0.0, 0.0]]
 
@@ -38,7 +55,9 @@ def test_double_integrator_r_sequence_section6(rng, dim):
     np.testing.assert_allclose(r[2], np.hstack([u, 0 * u]), atol=1e-14)
     np.testing.assert_allclose(r[3], np.hstack([du, 3 * u]), atol=1e-14)
     eye, zero = np.eye(dim), np.zeros((dim, dim))
-    np.testing.assert_array_equal(chain.Gamma, np.block([[zero, 3 * eye], [eye, zero], [zero, zero]]))
+    np.testing.assert_array_equal(
+        chain.Gamma, np.block([[zero, 3 * eye], [eye, zero], [zero, zero]])
+    )
     assert chain.real_eigenvalues() and chain.gamma_observable() and chain.affine_free()
 
 
@@ -107,13 +126,18 @@ def _brute_force_gramian(im, u, h):
     for uk in u:
         Ak = im.state_matrix(uk)
 
-        def f(t, y):
+        def f(t, y, Ak=Ak):
             P = y[: N * N].reshape(N, N)
             CP = C @ P
             return np.concatenate([(Ak @ P).ravel(), (CP.T @ CP).ravel()])
 
         sol = solve_ivp(
-            f, (0.0, h), np.concatenate([np.eye(N).ravel(), np.zeros(N * N)]), rtol=1e-12, atol=1e-14, method="DOP853"
+            f,
+            (0.0, h),
+            np.concatenate([np.eye(N).ravel(), np.zeros(N * N)]),
+            rtol=1e-12,
+            atol=1e-14,
+            method="DOP853",
         )
         P_k, G_k = sol.y[: N * N, -1].reshape(N, N), sol.y[N * N :, -1].reshape(N, N)
         W = W + Phi.T @ G_k @ Phi
@@ -126,7 +150,10 @@ def _brute_force_gramian(im, u, h):
     [
         (vehicle_system(3, ORIGIN3), "chain"),
         (vehicle_system(3, ORIGIN3), "minimal"),
-        (wind_system(2, [[1.0, -2.0], [3.0, 1.0]]), "minimal"),  # several outputs, general aux dynamics M
+        (
+            wind_system(2, [[1.0, -2.0], [3.0, 1.0]]),
+            "minimal",
+        ),  # several outputs, general aux dynamics M
     ],
 )
 def test_gramian_block_formulas_equal_brute_force(rng, system, method):
@@ -144,7 +171,10 @@ def test_gramian_block_formulas_equal_brute_force(rng, system, method):
     W_all = sliding_windows(Phi, G, L)[1]
     for i in (0, 5, 17):
         np.testing.assert_allclose(
-            W_all[i], reduce_window(Phi[i : i + L], G[i : i + L])[1], rtol=1e-11, atol=1e-12 * np.abs(W_all[i]).max()
+            W_all[i],
+            reduce_window(Phi[i : i + L], G[i : i + L])[1],
+            rtol=1e-11,
+            atol=1e-12 * np.abs(W_all[i]).max(),
         )
 
 
@@ -152,7 +182,10 @@ def test_held_gramian_converges_to_the_smooth_input(rng):
     """For the paper's trajectory the held-input Gramian (mean acceleration per step) tends to the smooth one as O(h^2)."""
     sc = load_scenario("ifac2021")
     im = immerse(sc.system(), method="chain")
-    Ws = [GramianModel(im, h).gramian(scenario_input(sc, h, duration=2.0).values) for h in (0.04, 0.02, 0.01)]
+    Ws = [
+        GramianModel(im, h).gramian(scenario_input(sc, h, duration=2.0).values)
+        for h in (0.04, 0.02, 0.01)
+    ]
     e1, e2 = np.abs(Ws[0] - Ws[2]).max(), np.abs(Ws[1] - Ws[2]).max()
     assert e1 / e2 > 3.0  # 5 for an exact O(h^2) (errors against the finest, not the limit)
     assert e2 < 1e-3 * np.abs(Ws[2]).max()
@@ -210,9 +243,17 @@ def test_straight_line_fails():
 
 def test_zero_input_and_proposition4():
     rep = _vehicle_report(np.zeros((600, 3)))
-    assert not rep.gramian.holds.any() and "zero input (Proposition 4: (A_0, C) has rank 3 < 9)" in rep.explanation
+    assert (
+        not rep.gramian.holds.any()
+        and "zero input (Proposition 4: (A_0, C) has rank 3 < 9)" in rep.explanation
+    )
     p4 = rep.prop4
-    assert p4.input_enters and p4.zero_input_rank == 3 and p4.excitation_needed and not p4.never_observable
+    assert (
+        p4.input_enters
+        and p4.zero_input_rank == 3
+        and p4.excitation_needed
+        and not p4.never_observable
+    )
     # four beacons in general position: observable without excitation
     p4b = proposition4(immerse(vehicle_system(3, [[0, 0, 0], [10, 0, 0], [0, 10, 0], [0, 0, 10]])))
     assert p4b.zero_input_observable and "without excitation" in p4b.statement
@@ -270,13 +311,18 @@ def _scenario(**changes):
 
 
 def test_wind_system_gets_the_gramian_and_not_the_chain_conditions():
-    sc = _scenario(beacons=[{"position": [0.0, 0.0]}, {"position": [20.0, 5.0]}], wind={"velocity": [2.0, -1.0]})
+    sc = _scenario(
+        beacons=[{"position": [0.0, 0.0]}, {"position": [20.0, 5.0]}],
+        wind={"velocity": [2.0, -1.0]},
+    )
     rep = scenario_report(sc, window=5.0)
     assert rep.immersion.system.q == 3 and rep.chain_m is None
     assert all(c.status == "not applicable" and "single output" in c.detail for c in rep.conditions)
     assert rep.gramian.status == "holds" and rep.mu > 0
     d = rep.to_dict()
-    assert d["conditions"]["eq37"]["status"] == "not applicable" and d["gramian"]["status"] == "holds"
+    assert (
+        d["conditions"]["eq37"]["status"] == "not applicable" and d["gramian"]["status"] == "holds"
+    )
 
 
 def test_several_beacons_observe_a_coasting_vehicle():
@@ -303,21 +349,28 @@ def test_coast_keeps_velocity_and_commands_are_consistent():
     # exact double integration of the held commands: the reference velocity at every step
     # boundary, and the reference position to O(dt^2) (the hold within a step)
     v_int = v[0] + np.concatenate([np.zeros((1, 3)), np.cumsum(u, 0) * dt])
-    p_int = p[0] + np.concatenate([np.zeros((1, 3)), np.cumsum(v_int[:-1] * dt + 0.5 * u * dt**2, 0)])
+    p_int = p[0] + np.concatenate(
+        [np.zeros((1, 3)), np.cumsum(v_int[:-1] * dt + 0.5 * u * dt**2, 0)]
+    )
     np.testing.assert_allclose(v_int, v, atol=1e-9)
     np.testing.assert_allclose(p_int, p, atol=1e-4)
     for start, end in traj.coast:
         inside = (t[:-1] >= start) & (t[1:] <= end)
         assert np.all(u[inside] == 0.0)
         assert np.all(traj.acceleration(t[:-1][inside]) == 0.0)
-        np.testing.assert_allclose(traj.velocity_at(end), traj.velocity_at(start), atol=1e-12)  # whole periods
+        np.testing.assert_allclose(
+            traj.velocity_at(end), traj.velocity_at(start), atol=1e-12
+        )  # whole periods
 
 
 @pytest.mark.parametrize(
     "coast,match",
     [
         ([{"start": 3.0, "end": 2.0}], r"trajectory.coast\[0\]: expected 0 <= start < end"),
-        ([{"start": 1.0, "end": 4.0}, {"start": 3.0, "end": 5.0}], r"trajectory.coast\[1\]: segments must be sorted"),
+        (
+            [{"start": 1.0, "end": 4.0}, {"start": 3.0, "end": 5.0}],
+            r"trajectory.coast\[1\]: segments must be sorted",
+        ),
         ([{"start": -1.0, "end": 2.0}], r"trajectory.coast\[0\].start: must be non-negative"),
         ([{"start": 1.0}], r"trajectory.coast\[0\].end: required field is missing"),
         ([{"start": 1.0, "end": 2.0, "stop": 3}], r"trajectory.coast\[0\]: unknown field"),
@@ -334,8 +387,14 @@ def test_bad_coast_segments_are_named(coast, match):
 @pytest.mark.parametrize(
     "table,match",
     [
-        ({"window": 5.003}, r"excitation.window: 5.003 s must be a positive multiple of excitation.step"),
-        ({"step": 0.0015}, r"excitation.step: 0.0015 s must be a positive multiple of the physics step"),
+        (
+            {"window": 5.003},
+            r"excitation.window: 5.003 s must be a positive multiple of excitation.step",
+        ),
+        (
+            {"step": 0.0015},
+            r"excitation.step: 0.0015 s must be a positive multiple of the physics step",
+        ),
         ({"update_period": 0.015}, r"excitation.update_period"),
         ({"threshold": -1.0}, r"excitation.threshold: must be non-negative"),
         ({"monitor": "yes"}, r"excitation.monitor: expected true or false"),
@@ -351,7 +410,15 @@ def test_bad_excitation_fields_are_named(table, match):
 
 
 def test_excitation_table_round_trips():
-    sc = _scenario(excitation={"window": 4.0, "threshold": 1e-5, "update_period": 0.2, "step": 0.02, "monitor": False})
+    sc = _scenario(
+        excitation={
+            "window": 4.0,
+            "threshold": 1e-5,
+            "update_period": 0.2,
+            "step": 0.02,
+            "monitor": False,
+        }
+    )
     assert sc.excitation.window == 4.0 and sc.excitation.step == 0.02 and not sc.excitation.monitor
     assert parse_scenario(sc.to_dict()).to_dict() == sc.to_dict()
     assert scenario_monitor(sc) is None
@@ -367,7 +434,7 @@ def test_monitor_matches_the_offline_gramian():
     mon = scenario_monitor(sc)
     u = sc.trajectory.step_accelerations(0.0, sc.dt, sc.steps)
     values, times = [], []
-    for k, uk in enumerate(u):
+    for _k, uk in enumerate(u):
         if mon.push(uk):
             values.append(mon.measure)
             times.append(mon.measure_time)
@@ -390,8 +457,17 @@ def test_compiled_chunk_terms_equal_the_tree_reduction(rng, name):
     N = model.dim
     P, W, work = np.empty((N, N)), np.empty((N, N)), np.empty((3, N, N))
     d = model.discretization
-    held_run_terms(U, d.transition_constant, d.transition_input, model.gramian_constant, model.gramian_linear,
-                   model.gramian_quadratic, P, W, *work)
+    held_run_terms(
+        U,
+        d.transition_constant,
+        d.transition_input,
+        model.gramian_constant,
+        model.gramian_linear,
+        model.gramian_quadratic,
+        P,
+        W,
+        *work,
+    )
     np.testing.assert_allclose(P, P_ref, rtol=1e-12, atol=1e-12 * np.abs(P_ref).max())
     np.testing.assert_allclose(W, W_ref, rtol=1e-10, atol=1e-12 * np.abs(W_ref).max())
 
@@ -488,7 +564,9 @@ def test_cli_excitation_report_without_mujoco(tmp_path):
         "import sys; from quadobs.cli import main; rc = main(['excitation', 'degenerate', '--window', '5', '--json', "
         f"{str(js)!r}]); print('RC', rc, sorted(m for m in ('mujoco', 'rerun') if m in sys.modules))"
     )
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    out = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, check=True
+    ).stdout
     assert "RC 0 []" in out
     assert "eq. 37 (Prop. 7)" in out and "NOT persistently exciting with delta = 5 s" in out
     assert "zero input (Proposition 4" in out

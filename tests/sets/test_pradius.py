@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from quadobs import IntervalMatrix, QuadobsError, Zonotope, pradius_gains
-from quadobs.studies.le2013.study import A_INTERVAL, C, F, NOISE_BOUND, PAPER_GAINS
+from quadobs.studies.le2013.study import A_INTERVAL, NOISE_BOUND, PAPER_GAINS, C, F
 
 
 @pytest.fixture(scope="module")
@@ -58,7 +58,10 @@ def _brute_check(design, A_list, Fm, Cm, rng, trials=40):
 
 
 def test_pradius_decrease_condition_holds_on_random_generators(designs, rng):
-    inner = [A_INTERVAL.lower + rng.uniform(0, 1, (2, 2)) * (A_INTERVAL.upper - A_INTERVAL.lower) for _ in range(3)]
+    inner = [
+        A_INTERVAL.lower + rng.uniform(0, 1, (2, 2)) * (A_INTERVAL.upper - A_INTERVAL.lower)
+        for _ in range(3)
+    ]
     A_list = list(A_INTERVAL.vertices()) + inner
     for d in designs.values():
         assert _brute_check(d, A_list, F, C, rng) <= 1 + 1e-6
@@ -80,7 +83,9 @@ def test_random_three_state_system_both_approaches(rng):
 def test_infeasible_design_is_a_clear_error():
     # x2 is unstable and does not reach the output: no gain can contract the P-radius
     with pytest.raises(QuadobsError, match="infeasible"):
-        pradius_gains(np.diag([0.5, 1.5]), [0.1, 0.1], [[1.0, 0.0]], 0.1, approach=1, betas=[0.3, 0.6, 0.9])
+        pradius_gains(
+            np.diag([0.5, 1.5]), [0.1, 0.1], [[1.0, 0.0]], 0.1, approach=1, betas=[0.3, 0.6, 0.9]
+        )
 
 
 @pytest.mark.parametrize(

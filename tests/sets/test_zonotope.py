@@ -34,7 +34,9 @@ def sample_points(rng, Z, k=300):
 def lp_support(Z, d, extra_ub=None):
     """max d^T (p + H z) over z in B^m (plus optional linear constraints on z), by linprog."""
     A_ub, b_ub = (None, None) if extra_ub is None else extra_ub
-    res = linprog(-(Z.generators.T @ d), A_ub=A_ub, b_ub=b_ub, bounds=[(-1, 1)] * Z.order, method="highs")
+    res = linprog(
+        -(Z.generators.T @ d), A_ub=A_ub, b_ub=b_ub, bounds=[(-1, 1)] * Z.order, method="highs"
+    )
     assert res.status == 0
     return d @ Z.center - res.fun
 
@@ -98,7 +100,9 @@ def test_volume_and_vertices_against_convex_hull(rng, n, m):
             assert len(V) == 2 * m
             x, y = V[:, 0], V[:, 1]
             signed_area = 0.5 * np.sum(x * np.roll(y, -1) - np.roll(x, -1) * y)
-            assert signed_area == pytest.approx(hull.volume, rel=1e-9)  # counter-clockwise, same area
+            assert signed_area == pytest.approx(
+                hull.volume, rel=1e-9
+            )  # counter-clockwise, same area
             assert len(hull.vertices) == 2 * m
 
 
@@ -151,7 +155,9 @@ def test_property3_keeps_the_longest_generators(rng):
 
 
 def test_interval_matrix_vertices_and_property5(rng):
-    M = IntervalMatrix.from_mid_rad(rng.standard_normal((2, 3)), np.array([[0.1, 0, 0.2], [0, 0.3, 0]]))
+    M = IntervalMatrix.from_mid_rad(
+        rng.standard_normal((2, 3)), np.array([[0.1, 0, 0.2], [0, 0.3, 0]])
+    )
     V = M.vertices()
     assert V.shape == (8, 2, 3)
     assert all(M.contains(v) for v in V)
@@ -182,12 +188,17 @@ def test_property4_interval_zonotope_contains_the_family(rng, n):
 
 @pytest.mark.parametrize("n", [2, 3])
 def test_uncertain_image_contains_every_image(rng, n):
-    A = IntervalMatrix.from_mid_rad(rng.standard_normal((n, n)), 0.2 * rng.uniform(0, 1, (n, n)) * (rng.uniform(size=(n, n)) < 0.5))
+    A = IntervalMatrix.from_mid_rad(
+        rng.standard_normal((n, n)),
+        0.2 * rng.uniform(0, 1, (n, n)) * (rng.uniform(size=(n, n)) < 0.5),
+    )
     Z = random_zonotope(rng, n, 4)
     out = interval_image(A, Z)
     pts = sample_points(rng, Z, 100)
     verts = A.vertices()
-    images = [pts @ G.T for G in verts] + [pts @ (A.lower + rng.uniform(0, 1, A.shape) * (A.upper - A.lower)).T for _ in range(20)]
+    images = [pts @ G.T for G in verts] + [
+        pts @ (A.lower + rng.uniform(0, 1, A.shape) * (A.upper - A.lower)).T for _ in range(20)
+    ]
     assert out.contains(np.vstack(images)).all()
 
 
@@ -201,7 +212,11 @@ def test_property6_family_contains_the_intersection(rng, n):
     pts = sample_points(rng, Z, 4000)
     pts = pts[np.abs(pts @ c - y) <= phi]
     assert len(pts) > 20
-    lams = [rng.standard_normal(n) for _ in range(5)] + [segment_gain(Z, c, phi), volume_gain(Z, c, phi), np.zeros(n)]
+    lams = [rng.standard_normal(n) for _ in range(5)] + [
+        segment_gain(Z, c, phi),
+        volume_gain(Z, c, phi),
+        np.zeros(n),
+    ]
     for lam in lams:
         Zl = Z.strip_intersection(c, y, phi, lam)
         assert Zl.contains(pts).all()
@@ -265,7 +280,12 @@ def test_strip_update_is_property6_and_the_segment_gain_by_default(rng, n):
     assert np.array_equal(p_new, Zl.center) and np.array_equal(H_new, Zl.generators)
     # closed form of Property 6
     np.testing.assert_allclose(p_new, Z.center + lam * (y - c @ Z.center), rtol=1e-14)
-    np.testing.assert_allclose(H_new, np.column_stack([(np.eye(n) - np.outer(lam, c)) @ Z.generators, phi * lam]), rtol=1e-12, atol=1e-14)
+    np.testing.assert_allclose(
+        H_new,
+        np.column_stack([(np.eye(n) - np.outer(lam, c)) @ Z.generators, phi * lam]),
+        rtol=1e-12,
+        atol=1e-14,
+    )
     # default gain: H g / (g^T g + phi^2), g = H^T c, the same as the estimators' segment gain
     seg = raw_segment_gain(Z.generators, c, phi)
     g = Z.generators.T @ c
@@ -274,7 +294,10 @@ def test_strip_update_is_property6_and_the_segment_gain_by_default(rng, n):
     p_d, H_d = strip_update(Z.center, Z.generators, c, y, phi)
     p_s, H_s = strip_update(Z.center, Z.generators, c, y, phi, seg)
     assert np.array_equal(p_d, p_s) and np.array_equal(H_d, H_s)
-    assert Z.strip_intersection(c, y, phi).f_radius() == Z.strip_intersection(c, y, phi, seg).f_radius()
+    assert (
+        Z.strip_intersection(c, y, phi).f_radius()
+        == Z.strip_intersection(c, y, phi, seg).f_radius()
+    )
     # a degenerate set with an exact output: zero gain, the set unchanged but for a zero generator
     Zp = Zonotope(np.zeros(n), np.zeros((n, 1)))
     assert np.array_equal(raw_segment_gain(Zp.generators, c, 0.0), np.zeros(n))

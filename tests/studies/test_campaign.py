@@ -10,12 +10,12 @@ import numpy as np
 import pytest
 
 from quadobs import load_scenario
-from quadobs.studies.campaign import run_campaign, run_seed
 from quadobs.cli import main
-from quadobs.testbed.registry import register_estimator
-from quadobs.testbed.factories import extended_kalman_filter
 from quadobs.estimators.base import Estimator, SetValued
+from quadobs.studies.campaign import run_campaign, run_seed
 from quadobs.testbed.episode import run_episode
+from quadobs.testbed.factories import extended_kalman_filter
+from quadobs.testbed.registry import register_estimator
 
 NAMES = ["augmented", "ekf", "ukf"]
 KEYS = {
@@ -72,7 +72,11 @@ register_estimator("boxed", lambda sc, x0, name: Boxed(extended_kalman_filter(sc
 register_estimator("wide", lambda sc, x0, name: Boxed(extended_kalman_filter(sc, x0), 1e6))
 register_estimator(
     "flaky",
-    lambda sc, x0, name: Flaky(x0, FloatingPointError("diverged on purpose")) if sc.seed % 3 == 0 else Flaky(x0, None),
+    lambda sc, x0, name: (
+        Flaky(x0, FloatingPointError("diverged on purpose"))
+        if sc.seed % 3 == 0
+        else Flaky(x0, None)
+    ),
 )
 
 
@@ -131,7 +135,9 @@ def test_statistics_recording(local):
     rm = read_series(rrd, "stats/ekf/position/rmse")
     assert rm["step"][-1] == 2000 and len(rm["step"]) == 21
     np.testing.assert_allclose(rm["values"][:, 0], res.ensembles["ekf"].rmse_position, rtol=1e-12)
-    assert rm["values"][-1, 0] == pytest.approx(res.summary["estimators"]["ekf"]["final_rmse_position"], rel=1e-9)
+    assert rm["values"][-1, 0] == pytest.approx(
+        res.summary["estimators"]["ekf"]["final_rmse_position"], rel=1e-9
+    )
     b = read_series(rrd, "stats/ekf/nees/bounds")["values"][-1]
     assert list(b) == pytest.approx(res.summary["estimators"]["ekf"]["chi2_bounds"]["nees"])
     rerun = shutil.which("rerun") or str(Path(sys.executable).parent / "rerun")
@@ -145,7 +151,8 @@ def test_a_run_is_reproduced_alone_from_its_seed(local):
     alone = run_episode(short().with_overrides(seed=run_seed(0, 2)), estimators=NAMES)
     for name in NAMES:
         assert (
-            alone.summary["estimators"][name]["final_position_error"] == r2["estimators"][name]["final_position_error"]
+            alone.summary["estimators"][name]["final_position_error"]
+            == r2["estimators"][name]["final_position_error"]
         )
 
 
@@ -163,21 +170,30 @@ def test_dask_local_cluster_gives_the_same_numbers(local, tmp_path):
     with distributed.LocalCluster(
         n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1", dashboard_address=None
     ) as cluster:
-        dask = run_campaign(short(), runs=4, estimators=NAMES, out_dir=tmp_path, scheduler=cluster.scheduler_address)
-    assert dask.summary["backend"] == {"kind": "dask", "scheduler": cluster.scheduler_address, "workers": 2}
+        dask = run_campaign(
+            short(), runs=4, estimators=NAMES, out_dir=tmp_path, scheduler=cluster.scheduler_address
+        )
+    assert dask.summary["backend"] == {
+        "kind": "dask",
+        "scheduler": cluster.scheduler_address,
+        "workers": 2,
+    }
     assert _numbers(dask.summary) == _numbers(res.summary)
     assert (tmp_path / "summary.json").is_file() and (tmp_path / "statistics.rrd").is_file()
 
 
 @pytest.mark.parametrize("workers", [0, 2])
 def test_a_failed_run_is_reported_and_the_others_kept(tmp_path, workers):
-    res = run_campaign(short(1.0), runs=6, estimators=["ekf", "flaky"], out_dir=tmp_path, workers=workers)
+    res = run_campaign(
+        short(1.0), runs=6, estimators=["ekf", "flaky"], out_dir=tmp_path, workers=workers
+    )
     s = res.summary
     bad = sorted(i for i in range(6) if run_seed(0, i) % 3 == 0)
     assert bad and len(bad) < 6
     assert [f["run"] for f in s["failed"]] == bad
     assert all(
-        f["seed"] == run_seed(0, f["run"]) and "FloatingPointError: diverged on purpose" in f["error"]
+        f["seed"] == run_seed(0, f["run"])
+        and "FloatingPointError: diverged on purpose" in f["error"]
         for f in s["failed"]
     )
     assert s["runs_completed"] == 6 - len(bad) and s["estimators"]["ekf"]["runs"] == 6 - len(bad)
@@ -192,7 +208,11 @@ def test_every_run_failing_still_writes_a_summary(tmp_path):
     register_estimator("broken", lambda sc, x0, name: Flaky(x0, ValueError("always")))
     res = run_campaign(short(1.0), runs=2, estimators=["broken"], out_dir=tmp_path, workers=0)
     s = json.loads((tmp_path / "summary.json").read_text())
-    assert s["runs_completed"] == 0 and s["runs_failed"] == 2 and s["estimators"]["broken"]["runs"] == 0
+    assert (
+        s["runs_completed"] == 0
+        and s["runs_failed"] == 2
+        and s["estimators"]["broken"]["runs"] == 0
+    )
     assert s["estimators"]["broken"]["converged_fraction"] is None
     assert res.summary["failed"][1]["error"] == "ValueError: always"
 
@@ -201,14 +221,19 @@ def test_set_estimators_containment_and_size():
     res = run_campaign(short(1.0), runs=2, estimators=["boxed", "wide", "ekf"], workers=0)
     wide, boxed = res.summary["estimators"]["wide"], res.summary["estimators"]["boxed"]
     assert wide["containment_rate"] == 1.0 and wide["final_containment"] == 1.0
-    assert wide["final_width_position"] == pytest.approx(1e6 / 3 * boxed["final_width_position"], rel=1e-9)
+    assert wide["final_width_position"] == pytest.approx(
+        1e6 / 3 * boxed["final_width_position"], rel=1e-9
+    )
     assert 0.0 <= boxed["containment_rate"] <= 1.0
     assert "containment_rate" not in res.summary["estimators"]["ekf"]
 
 
 def test_interrupt_keeps_the_finished_runs():
     register_estimator(
-        "stopper", lambda sc, x0, name: Flaky(x0, KeyboardInterrupt()) if sc.seed == run_seed(0, 2) else Flaky(x0, None)
+        "stopper",
+        lambda sc, x0, name: (
+            Flaky(x0, KeyboardInterrupt()) if sc.seed == run_seed(0, 2) else Flaky(x0, None)
+        ),
     )
     res = run_campaign(short(1.0), runs=5, estimators=["stopper"], workers=0)
     assert res.summary["interrupted"] and res.summary["runs_completed"] == 2
@@ -268,7 +293,18 @@ def test_cli_campaign(tmp_path, capsys):
     ],
 )
 def test_cli_campaign_bad_input(tmp_path, capsys, args, message):
-    rc = main(["campaign", "ifac2021-noisy", "--duration", "1", "--out", str(tmp_path), "--no-progress", *args])
+    rc = main(
+        [
+            "campaign",
+            "ifac2021-noisy",
+            "--duration",
+            "1",
+            "--out",
+            str(tmp_path),
+            "--no-progress",
+            *args,
+        ]
+    )
     assert rc == 2
     assert message in capsys.readouterr().err
 
@@ -283,16 +319,30 @@ def test_wind_scenario_campaign():
     data["wind"] = {"velocity": [2.0, -1.0]}
     data["trajectory"] = {
         "offset": [5.0, 10.0],
-        "terms": [{"axis": 0, "amplitude": 10.0, "omega": 1.0}, {"axis": 1, "amplitude": 5.0, "omega": 2.0}],
+        "terms": [
+            {"axis": 0, "amplitude": 10.0, "omega": 1.0},
+            {"axis": 1, "amplitude": 5.0, "omega": 2.0},
+        ],
     }
-    data["noise"] = {"range_std": 0.3, "range_rate": 100.0, "airspeed_std": 0.1, "airspeed_rate": 50.0}
+    data["noise"] = {
+        "range_std": 0.3,
+        "range_rate": 100.0,
+        "airspeed_std": 0.1,
+        "airspeed_rate": 50.0,
+    }
     data["initial"] = {"kind": "random", "position_spread": 1.0, "velocity_spread": 0.3}
     res = run_campaign(parse_scenario(data), runs=2, estimators=NAMES, workers=0)
     s = res.summary
     assert s["runs_completed"] == 2 and s["pcrb"]["available"]
-    assert s["pcrb"]["immersion_bound_final_sqrt_trace_position"] >= s["pcrb"]["final_sqrt_trace_position"]
+    assert (
+        s["pcrb"]["immersion_bound_final_sqrt_trace_position"]
+        >= s["pcrb"]["final_sqrt_trace_position"]
+    )
     for name in NAMES:
         e = s["estimators"][name]
         assert e["chi2_bounds"]["nees_dof_per_run"] == 6 and np.isfinite(e["final_rmse_position"])
     # started from the true prior, the baselines stay near the bound (the augmented observer starts from S0 = 100 I)
-    assert s["estimators"]["ekf"]["rmse_over_sqrt_pcrb"] < 3 and s["estimators"]["ukf"]["rmse_over_sqrt_pcrb"] < 3
+    assert (
+        s["estimators"]["ekf"]["rmse_over_sqrt_pcrb"] < 3
+        and s["estimators"]["ukf"]["rmse_over_sqrt_pcrb"] < 3
+    )

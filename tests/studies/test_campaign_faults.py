@@ -50,7 +50,13 @@ def test_a_lost_worker_is_replaced_and_its_run_retried_or_reported(tmp_path, ret
     victim = run_seed(0, 1)
     register_estimator(f"killer{retries}", _killer(tmp_path, {victim}, times))
     t0 = time.monotonic()
-    res = run_campaign(load_scenario("ifac2021", duration=0.2), runs=4, estimators=[f"killer{retries}"], workers=2, retries=retries)
+    res = run_campaign(
+        load_scenario("ifac2021", duration=0.2),
+        runs=4,
+        estimators=[f"killer{retries}"],
+        workers=2,
+        retries=retries,
+    )
     assert time.monotonic() - t0 < 120
     s = res.summary
     attempts = int((tmp_path / f"seed-{victim}").read_text())
@@ -67,11 +73,23 @@ def test_a_lost_worker_is_replaced_and_its_run_retried_or_reported(tmp_path, ret
 def test_every_worker_dying_ends_the_campaign(tmp_path):
     seeds = {run_seed(0, i) for i in range(3)}
     register_estimator("allkill", _killer(tmp_path, seeds, 100))
-    res = run_campaign(load_scenario("ifac2021", duration=0.2), runs=3, estimators=["allkill"], workers=2, retries=1)
-    assert res.summary["runs_completed"] == 0 and [f["run"] for f in res.summary["failed"]] == [0, 1, 2]
+    res = run_campaign(
+        load_scenario("ifac2021", duration=0.2),
+        runs=3,
+        estimators=["allkill"],
+        workers=2,
+        retries=1,
+    )
+    assert res.summary["runs_completed"] == 0 and [f["run"] for f in res.summary["failed"]] == [
+        0,
+        1,
+        2,
+    ]
 
 
-@pytest.mark.parametrize("bad", [{"retries": -1}, {"retries": 101}, {"runs": 10**7}, {"workers": 5000}])
+@pytest.mark.parametrize(
+    "bad", [{"retries": -1}, {"retries": 101}, {"runs": 10**7}, {"workers": 5000}]
+)
 def test_campaign_counts_are_bounded(bad):
     kw = {"runs": 2, "workers": 0, **bad}
     with pytest.raises(QuadobsError, match=next(iter(bad))):
@@ -95,8 +113,21 @@ def _alive(pid: int) -> bool:
 
 
 def _campaign(cli_process, tmp_path, runs="6", duration="60"):
-    return cli_process("campaign", "ifac2021-noisy", "--runs", runs, "--workers", "2", "--duration", duration,
-                       "--estimators", "ekf", "--no-progress", "--out", str(tmp_path / "c"))
+    return cli_process(
+        "campaign",
+        "ifac2021-noisy",
+        "--runs",
+        runs,
+        "--workers",
+        "2",
+        "--duration",
+        duration,
+        "--estimators",
+        "ekf",
+        "--no-progress",
+        "--out",
+        str(tmp_path / "c"),
+    )
 
 
 def _wait_for_workers(proc, count=2, timeout=120) -> list[int]:
@@ -134,5 +165,7 @@ def test_ctrl_c_ends_a_campaign_and_keeps_the_finished_runs(tmp_path, cli_proces
     assert proc.returncode == 130, err
     assert "Traceback" not in err
     summary = json.loads((tmp_path / "c" / "summary.json").read_text())
-    assert summary["interrupted"] is True and summary["runs_completed"] + summary["runs_failed"] < 400
+    assert (
+        summary["interrupted"] is True and summary["runs_completed"] + summary["runs_failed"] < 400
+    )
     assert not any(_alive(k) for k in kids)

@@ -9,7 +9,19 @@ import pytest
 from quadobs import IntervalMatrix, Zonotope, ZonotopicEstimator
 from quadobs.cli import main
 from quadobs.errors import QuadobsError
-from quadobs.studies.le2013.study import A_INTERVAL, C, F, METHODS, NOISE_BOUND, PAPER_GAINS, design_gains, reproduce, run_once, simulate, summary_of
+from quadobs.studies.le2013.study import (
+    A_INTERVAL,
+    METHODS,
+    NOISE_BOUND,
+    PAPER_GAINS,
+    C,
+    F,
+    design_gains,
+    reproduce,
+    run_once,
+    simulate,
+    summary_of,
+)
 
 
 @pytest.fixture(scope="module")
@@ -59,7 +71,14 @@ def test_simulation_is_seeded_and_respects_the_bounds():
 
 def test_estimator_with_uncertain_a_handles_missing_outputs(designs):
     sim = simulate(3, 30)
-    est = ZonotopicEstimator(A_INTERVAL, F, C, NOISE_BOUND, Zonotope(np.zeros(2), 3 * np.eye(2)), designs["second_approach"])
+    est = ZonotopicEstimator(
+        A_INTERVAL,
+        F,
+        C,
+        NOISE_BOUND,
+        Zonotope(np.zeros(2), 3 * np.eye(2)),
+        designs["second_approach"],
+    )
     for k in range(1, 31):
         y = sim["y"][k].copy()
         if k % 3 == 0:
@@ -86,20 +105,45 @@ def test_cli_run_le2013_writes_recording_and_summary(tmp_path, capsys):
     from quadobs.recording import list_entities, read_series
 
     rrd, js = tmp_path / "le.rrd", tmp_path / "le.json"
-    assert main(["run", "le2013", "--out", str(rrd), "--summary", str(js), "--runs", "3", "--duration", "20", "--seed", "7"]) == 0
+    assert (
+        main(
+            [
+                "run",
+                "le2013",
+                "--out",
+                str(rrd),
+                "--summary",
+                str(js),
+                "--runs",
+                "3",
+                "--duration",
+                "20",
+                "--seed",
+                "7",
+            ]
+        )
+        == 0
+    )
     out = capsys.readouterr().out
     assert "second_approach lambda_2" in out and "paper" in out
     data = json.loads(js.read_text())
     assert data["runs"] == 3 and data["steps"] == 20 and data["seed"] == 7
     assert set(data["gains"]) == {"first_approach", "second_approach"}
     assert np.array(data["gains"]["first_approach"]).shape == (2, 2)
-    np.testing.assert_allclose(data["gains"]["first_approach"], [[-0.2137, 0.5726], [0.3684, 0.3570]], atol=1e-4)
+    np.testing.assert_allclose(
+        data["gains"]["first_approach"], [[-0.2137, 0.5726], [0.3684, 0.3570]], atol=1e-4
+    )
     for key in ("containment", "mean_width"):
         assert set(data[key]) == {"segment", "volume", "pradius1", "pradius2", "pradius2_paper"}
     assert all(v == 1.0 for v in data["containment"].values())
     assert all(len(v) == 2 for v in data["mean_width"].values())
     entities = set(list_entities(rrd))
-    assert {"/le2013/truth", "/le2013/width/segment", "/le2013/bounds/pradius2/x1", "/le2013/sets/volume"} <= entities
+    assert {
+        "/le2013/truth",
+        "/le2013/width/segment",
+        "/le2013/bounds/pradius2/x1",
+        "/le2013/sets/volume",
+    } <= entities
     width = read_series(rrd, "le2013/width/pradius2")
     assert width["values"].shape == (21, 2)
     first = run_once(design_gains(), 7, 20, methods=("pradius2",))
@@ -125,7 +169,16 @@ def _run_backend(designs, method, backend, seed, steps, y=None):
         "pradius2": designs["second_approach"],
         "pradius2_paper": PAPER_GAINS["second_approach"],
     }[method]
-    est = ZonotopicEstimator(A_INTERVAL, F, C, NOISE_BOUND, Zonotope(np.zeros(2), 3 * np.eye(2)), gains, max_generators=20, backend=backend)
+    est = ZonotopicEstimator(
+        A_INTERVAL,
+        F,
+        C,
+        NOISE_BOUND,
+        Zonotope(np.zeros(2), 3 * np.eye(2)),
+        gains,
+        max_generators=20,
+        backend=backend,
+    )
     assert est.backend == backend
     Y = sim["y"] if y is None else y
     return sim, [est.zonotope] + [est.step(Y[k]) for k in range(1, steps + 1)]
@@ -144,7 +197,9 @@ def test_compiled_step_matches_the_reference_over_a_run(designs, method):
         np.testing.assert_allclose(b.center, a.center, rtol=0, atol=1e-12 * scale)
         np.testing.assert_allclose(b.generators, a.generators, rtol=0, atol=1e-12 * scale)
         np.testing.assert_allclose(b.widths(), a.widths(), rtol=1e-12)
-        assert b.contains(sim["x"][k], method="halfspace") and a.contains(sim["x"][k], method="halfspace")
+        assert b.contains(sim["x"][k], method="halfspace") and a.contains(
+            sim["x"][k], method="halfspace"
+        )
         assert not b.center.flags.writeable and not b.generators.flags.writeable
 
 
@@ -157,10 +212,20 @@ def test_compiled_step_handles_missing_outputs_and_refuses_infinities(designs):
         _, ref = _run_backend(designs, method, "numpy", 2, 20, Y)
         _, fast = _run_backend(designs, method, "numba", 2, 20, Y)
         for k, (a, b) in enumerate(zip(ref, fast)):
-            np.testing.assert_allclose(b.generators, a.generators, rtol=0, atol=1e-12 * np.abs(a.generators).sum())
+            np.testing.assert_allclose(
+                b.generators, a.generators, rtol=0, atol=1e-12 * np.abs(a.generators).sum()
+            )
             assert b.contains(sim["x"][k])
     for backend in ("numpy", "numba"):
-        est = ZonotopicEstimator(A_INTERVAL, F, C, NOISE_BOUND, Zonotope(np.zeros(2), 3 * np.eye(2)), "segment", backend=backend)
+        est = ZonotopicEstimator(
+            A_INTERVAL,
+            F,
+            C,
+            NOISE_BOUND,
+            Zonotope(np.zeros(2), 3 * np.eye(2)),
+            "segment",
+            backend=backend,
+        )
         before = est.zonotope
         with pytest.raises(QuadobsError, match="y"):
             est.step([np.inf, 0.0])
@@ -175,8 +240,12 @@ def test_compiled_backend_mixes_with_the_reference_methods(designs):
 
     sim = simulate(9, 12)
     X0 = Zonotope(np.zeros(2), 3 * np.eye(2))
-    ref = ZonotopicEstimator(A_INTERVAL, F, C, NOISE_BOUND, X0, designs["second_approach"], backend="numpy")
-    fast = ZonotopicEstimator(A_INTERVAL, F, C, NOISE_BOUND, X0, designs["second_approach"], backend="numba")
+    ref = ZonotopicEstimator(
+        A_INTERVAL, F, C, NOISE_BOUND, X0, designs["second_approach"], backend="numpy"
+    )
+    fast = ZonotopicEstimator(
+        A_INTERVAL, F, C, NOISE_BOUND, X0, designs["second_approach"], backend="numba"
+    )
     for k in range(1, 13):
         if k % 3 == 0:
             fast.predict()
@@ -189,13 +258,17 @@ def test_compiled_backend_mixes_with_the_reference_methods(designs):
             fast = pickle.loads(pickle.dumps(fast))
             fast.step(sim["y"][k])
             ref.step(sim["y"][k])
-        np.testing.assert_allclose(fast.zonotope.generators, ref.zonotope.generators, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(
+            fast.zonotope.generators, ref.zonotope.generators, rtol=0, atol=1e-12
+        )
         np.testing.assert_allclose(fast.x_hat, ref.x_hat, rtol=0, atol=1e-12)
     fast.predict()
     fast.predict()  # two predictions without reduction: more generators than the buffer held
     ref.predict()
     ref.predict()
-    np.testing.assert_allclose(fast.step(sim["y"][1]).generators, ref.step(sim["y"][1]).generators, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(
+        fast.step(sim["y"][1]).generators, ref.step(sim["y"][1]).generators, rtol=0, atol=1e-12
+    )
 
 
 def test_backend_choice():
@@ -203,9 +276,14 @@ def test_backend_choice():
     assert ZonotopicEstimator(A_INTERVAL, F, C, NOISE_BOUND, X0, "segment").backend == "numba"
     custom = ZonotopicEstimator(A_INTERVAL, F, C, NOISE_BOUND, X0, lambda Z, c, phi: np.zeros(2))
     assert custom.backend == "numpy"
-    assert ZonotopicEstimator(A_INTERVAL, F, C, NOISE_BOUND, X0, "segment", reduction="girard").backend == "numpy"
+    assert (
+        ZonotopicEstimator(A_INTERVAL, F, C, NOISE_BOUND, X0, "segment", reduction="girard").backend
+        == "numpy"
+    )
     with pytest.raises(QuadobsError, match="backend"):
-        ZonotopicEstimator(A_INTERVAL, F, C, NOISE_BOUND, X0, lambda Z, c, phi: np.zeros(2), backend="numba")
+        ZonotopicEstimator(
+            A_INTERVAL, F, C, NOISE_BOUND, X0, lambda Z, c, phi: np.zeros(2), backend="numba"
+        )
     with pytest.raises(QuadobsError, match="backend"):
         ZonotopicEstimator(A_INTERVAL, F, C, NOISE_BOUND, X0, "segment", backend="gpu")
 
@@ -214,14 +292,23 @@ def test_backend_choice():
 def test_compiled_step_matches_the_reference_in_three_dimensions(gain):
     """n = 3, three outputs, two disturbance columns, an interval [A] with a zero radius row (no box column there)."""
     rng = np.random.default_rng(21)
-    mid = 0.7 * np.linalg.qr(rng.standard_normal((3, 3)))[0]  # stable: the sets stay of moderate size
+    mid = (
+        0.7 * np.linalg.qr(rng.standard_normal((3, 3)))[0]
+    )  # stable: the sets stay of moderate size
     rad = np.abs(0.05 * rng.standard_normal((3, 3)))
     rad[1] = 0.0
     Ai = IntervalMatrix.from_mid_rad(mid, rad)
-    Fm, Cm, phi = 0.1 * rng.standard_normal((3, 2)), rng.standard_normal((3, 3)), np.array([0.1, 0.2, 0.05])
+    Fm, Cm, phi = (
+        0.1 * rng.standard_normal((3, 2)),
+        rng.standard_normal((3, 3)),
+        np.array([0.1, 0.2, 0.05]),
+    )
     g = 0.2 * rng.standard_normal((3, 3)) if gain == "fixed" else gain
     X0 = Zonotope(rng.standard_normal(3), rng.standard_normal((3, 5)))
-    ests = [ZonotopicEstimator(Ai, Fm, Cm, phi, X0, g, max_generators=8, backend=b) for b in ("numpy", "numba")]
+    ests = [
+        ZonotopicEstimator(Ai, Fm, Cm, phi, X0, g, max_generators=8, backend=b)
+        for b in ("numpy", "numba")
+    ]
     x = X0.center.copy()
     A = mid + rad * rng.uniform(-1, 1, (3, 3))
     for k in range(15 if gain == "volume" else 40):

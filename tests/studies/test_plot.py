@@ -72,10 +72,27 @@ def inputs(tmp_path_factory):
     d = tmp_path_factory.mktemp("plot")
     toml = d / "plot-test.toml"
     toml.write_text(_SCENARIO)
-    assert main(["run", str(toml), "--estimators", "augmented,zonotope", "--out", str(d / "run.rrd"), "--no-progress"]) == 0
+    assert (
+        main(
+            [
+                "run",
+                str(toml),
+                "--estimators",
+                "augmented,zonotope",
+                "--out",
+                str(d / "run.rrd"),
+                "--no-progress",
+            ]
+        )
+        == 0
+    )
     run_campaign(
-        load_scenario("ifac2021-noisy", duration=3.0), runs=2, estimators=["augmented", "ekf"],
-        out_dir=d / "camp", workers=0, progress=False,
+        load_scenario("ifac2021-noisy", duration=3.0),
+        runs=2,
+        estimators=["augmented", "ekf"],
+        out_dir=d / "camp",
+        workers=0,
+        progress=False,
     )
     run_le2013(d / "le.rrd", None, seed=0, steps=12, runs=2)
     return {"run": d / "run.rrd", "campaign": d / "camp", "le2013": d / "le.rrd", "dir": d}
@@ -130,13 +147,23 @@ def test_same_input_gives_the_same_bytes(inputs, tmp_path, fmt):
 
 def test_campaign_statistics_file_and_folder_give_the_same_figure(inputs, tmp_path):
     a = render(inputs["campaign"], tmp_path / "a.png", ["rmse", "final"], size=(4, 3), dpi=50)
-    b = render(inputs["campaign"] / "statistics.rrd", tmp_path / "b.png", ["rmse", "final"], size=(4, 3), dpi=50)
+    b = render(
+        inputs["campaign"] / "statistics.rrd",
+        tmp_path / "b.png",
+        ["rmse", "final"],
+        size=(4, 3),
+        dpi=50,
+    )
     assert a.read_bytes() == b.read_bytes()
 
 
 def test_le2013_sets_at_chosen_samples(inputs):
     fig, _ = figure(inputs["le2013"], ["sets"], samples=[2, 7, 12], size=(4, 6), dpi=50)
-    assert [ax.get_title() for ax in fig.axes] == ["Sets X_k, k = 2", "Sets X_k, k = 7", "Sets X_k, k = 12"]
+    assert [ax.get_title() for ax in fig.axes] == [
+        "Sets X_k, k = 2",
+        "Sets X_k, k = 7",
+        "Sets X_k, k = 12",
+    ]
     with pytest.raises(QuadobsError, match="--samples: 13 is not a sample"):
         figure(inputs["le2013"], ["sets"], samples=[13])
 
@@ -144,7 +171,9 @@ def test_le2013_sets_at_chosen_samples(inputs):
 def test_line_styles_differ_without_colour():
     styles = [style(i, 100) for i in range(6)]
     assert len({(s["linestyle"], s["marker"]) for s in styles}) == 6
-    assert all(float(s["color"]) == float(s["color"]) and 0 <= float(s["color"]) < 1 for s in styles)  # greys
+    assert all(
+        float(s["color"]) == float(s["color"]) and 0 <= float(s["color"]) < 1 for s in styles
+    )  # greys
 
 
 def _fails(capsys, args, expected):
@@ -158,14 +187,28 @@ def test_malformed_and_foreign_inputs_give_one_line(inputs, tmp_path, capsys):
     out = tmp_path / "new" / "fig.png"
     text = tmp_path / "notes.rrd"
     text.write_text("not a recording\n")
-    _fails(capsys, [text, "--out", out], "notes.rrd': cannot be read, damaged or not a rerun recording")
+    _fails(
+        capsys, [text, "--out", out], "notes.rrd': cannot be read, damaged or not a rerun recording"
+    )
     cut = tmp_path / "cut.rrd"
     cut.write_bytes(inputs["run"].read_bytes()[:200])
     _fails(capsys, [cut, "--out", out], "cut.rrd")
-    _fails(capsys, [inputs["le2013"], "--out", out, "--what", "paths"], "--what paths: not a panel of a le2013 input")
-    _fails(capsys, [inputs["run"], "--out", out, "--what", "sets"], "--what sets: not a panel of a run input")
+    _fails(
+        capsys,
+        [inputs["le2013"], "--out", out, "--what", "paths"],
+        "--what paths: not a panel of a le2013 input",
+    )
+    _fails(
+        capsys,
+        [inputs["run"], "--out", out, "--what", "sets"],
+        "--what sets: not a panel of a run input",
+    )
     _fails(capsys, [inputs["run"], "--out", out, "--what", "wobble"], "--what wobble")
-    _fails(capsys, [inputs["run"], "--out", out, "--what", "paths,wind"], "--what wind: the recording has no wind estimate")
+    _fails(
+        capsys,
+        [inputs["run"], "--out", out, "--what", "paths,wind"],
+        "--what wind: the recording has no wind estimate",
+    )
     _fails(capsys, [inputs["run"], "--out", tmp_path / "fig.jpg"], "format '.jpg' not supported")
     _fails(capsys, [inputs["run"], "--out", out, "--size", "7xwide"], "--size")
     _fails(capsys, [inputs["run"], "--out", out, "--samples", "3"], "--samples")
@@ -184,12 +227,20 @@ def test_a_recording_of_another_kind_is_refused(tmp_path, capsys):
     rec.log("foo/bar", rr.Scalars([1.0]))
     rec.flush()
     rec.disconnect()
-    _fails(capsys, [path, "--out", tmp_path / "f.png"], "not a quadobs run, campaign or le2013 recording")
+    _fails(
+        capsys,
+        [path, "--out", tmp_path / "f.png"],
+        "not a quadobs run, campaign or le2013 recording",
+    )
 
 
 def test_a_panel_without_data_is_refused_and_nothing_written(inputs, tmp_path, capsys):
     out = tmp_path / "fig.png"
-    _fails(capsys, [inputs["le2013"], "--out", out, "--what", "sets", "--samples", "99"], "--samples: 99")
+    _fails(
+        capsys,
+        [inputs["le2013"], "--out", out, "--what", "sets", "--samples", "99"],
+        "--samples: 99",
+    )
     assert not out.exists()
 
 
@@ -200,7 +251,9 @@ def test_without_matplotlib_the_error_says_how_to_install(inputs, tmp_path, caps
 
 
 def test_the_package_does_not_import_matplotlib():
-    code = "import sys, quadobs, quadobs.cli, quadobs.studies.plot; print('matplotlib' in sys.modules)"
+    code = (
+        "import sys, quadobs, quadobs.cli, quadobs.studies.plot; print('matplotlib' in sys.modules)"
+    )
     res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert res.stdout.strip() == "False"
 

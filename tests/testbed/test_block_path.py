@@ -22,7 +22,9 @@ pytest.importorskip("numba")
 
 
 def _summary(result) -> str:
-    return json.dumps({k: v for k, v in result.summary.items() if k not in WALL_CLOCK_KEYS}, sort_keys=True)
+    return json.dumps(
+        {k: v for k, v in result.summary.items() if k not in WALL_CLOCK_KEYS}, sort_keys=True
+    )
 
 
 @pytest.mark.parametrize("name", ["ifac2021", "wind", "ifac2021-outliers", "beacons2d"])
@@ -89,7 +91,9 @@ CASES = [
 ]
 
 
-@pytest.mark.parametrize(("name", "estimators", "duration", "every"), CASES, ids=[c[0] for c in CASES])
+@pytest.mark.parametrize(
+    ("name", "estimators", "duration", "every"), CASES, ids=[c[0] for c in CASES]
+)
 def test_block_and_per_step_paths_give_the_same_summary(name, estimators, duration, every):
     sc = load_scenario(name, duration=duration)
     step = run_episode(sc, estimators=estimators, path="step", collect_every=every)
@@ -120,8 +124,16 @@ def test_recordings_of_the_two_paths_hold_the_same_series(tmp_path):
     sc = load_scenario("ifac2021-outliers", duration=9.0)
     for path in ("step", "auto"):
         run_episode(sc, out=tmp_path / f"{path}.rrd", path=path)
-    for entity in ("errors/augmented/position/norm", "observer/augmented/nis", "measurements/dropped", "measurements/accelerometer"):
-        a, b = read_series(tmp_path / "step.rrd", entity), read_series(tmp_path / "auto.rrd", entity)
+    for entity in (
+        "errors/augmented/position/norm",
+        "observer/augmented/nis",
+        "measurements/dropped",
+        "measurements/accelerometer",
+    ):
+        a, b = (
+            read_series(tmp_path / "step.rrd", entity),
+            read_series(tmp_path / "auto.rrd", entity),
+        )
         np.testing.assert_array_equal(a["step"], b["step"])
         np.testing.assert_array_equal(a["values"], b["values"])
 
@@ -145,8 +157,13 @@ def test_pipelined_physics_gives_the_same_bits(tmp_path, name):
     for label, world in (("pipelined", None), ("serial", _serial)):
         (tmp_path / label).mkdir()
         rrd = tmp_path / label / "run.rrd"
-        runs[label] = (_summary(run_episode(sc, out=rrd, world=world)), read_series(rrd, "errors/augmented/position/norm"))
-    assert runs["pipelined"][0].replace(str(tmp_path / "pipelined"), "") == runs["serial"][0].replace(str(tmp_path / "serial"), "")
+        runs[label] = (
+            _summary(run_episode(sc, out=rrd, world=world)),
+            read_series(rrd, "errors/augmented/position/norm"),
+        )
+    assert runs["pipelined"][0].replace(str(tmp_path / "pipelined"), "") == runs["serial"][
+        0
+    ].replace(str(tmp_path / "serial"), "")
     for key in ("step", "values"):
         np.testing.assert_array_equal(runs["pipelined"][1][key], runs["serial"][1][key])
 
@@ -223,7 +240,9 @@ def test_a_forked_child_gets_its_own_physics_thread_and_exits(tmp_path):
         "    sys.exit(0)\n"
         "sys.exit(os.waitstatus_to_exitcode(os.waitpid(pid, 0)[1]))\n"
     )
-    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120)
+    done = subprocess.run(
+        [sys.executable, "-c", script], capture_output=True, text=True, timeout=120
+    )
     assert done.returncode == 0 and done.stdout.split() == ["3000"], done.stderr
 
 
@@ -248,9 +267,13 @@ def test_blocks_queued_ahead_are_undone_when_another_block_begins():
         w.stepper.prefetch(w._accelerations(k, 512), k)
     assert not w.stepper.can_prefetch()
     w._queue = False
-    assert w.begin_block(0, 1024) == 1024  # not the queued blocks' boundaries: undone, computed in this thread
+    assert (
+        w.begin_block(0, 1024) == 1024
+    )  # not the queued blocks' boundaries: undone, computed in this thread
     w.fill(1024)
-    np.testing.assert_array_equal(w.out[: 1024 + 1][:, w.stepper.truth], expected[:, ref.stepper.truth])
+    np.testing.assert_array_equal(
+        w.out[: 1024 + 1][:, w.stepper.truth], expected[:, ref.stepper.truth]
+    )
     w.close()
 
 

@@ -66,7 +66,9 @@ def test_recording_layout_and_file_integrity(ifac_run):
     # the recorded range at a trail sample equals the distance of the recorded true position to the beacon
     idx = np.searchsorted(rng_["step"], truth["step"][5])
     assert rng_["values"][idx, 0] == pytest.approx(np.linalg.norm(truth["values"][5]), rel=1e-6)
-    rerun = shutil.which("rerun") or str(__import__("pathlib").Path(sys.executable).parent / "rerun")
+    rerun = shutil.which("rerun") or str(
+        __import__("pathlib").Path(sys.executable).parent / "rerun"
+    )
     proc = subprocess.run([rerun, "rrd", "verify", str(rrd)], capture_output=True, text=True)
     assert proc.returncode == 0, proc.stderr
 
@@ -75,7 +77,11 @@ def test_summary_file(ifac_run):
     _, js, summary = ifac_run
     data = json.loads(js.read_text())
     assert SUMMARY_KEYS <= set(data)
-    assert data["scenario"] == "ifac2021" and data["physics_steps"] == 30000 and data["duration"] == 30.0
+    assert (
+        data["scenario"] == "ifac2021"
+        and data["physics_steps"] == 30000
+        and data["duration"] == 30.0
+    )
     assert data["estimators"]["augmented"]["final_position_error"] == data["final_position_error"]
     assert data["immersion"]["n_aux"] == 3
     assert 0 < data["time_to_1m"] < data["time_to_0p1m"] < 30.0
@@ -102,5 +108,7 @@ def test_same_seed_same_recording(tmp_path):
 
 def test_core_imports_without_mujoco_or_rerun():
     code = "import sys, quadobs; quadobs.immerse(quadobs.vehicle_system(2, [[0, 0]])); print(sorted(m for m in ('mujoco', 'rerun') if m in sys.modules))"
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    out = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, check=True
+    ).stdout
     assert out.strip() == "[]"

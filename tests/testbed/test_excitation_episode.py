@@ -65,7 +65,11 @@ def test_recording_shows_measure_warning_and_covariance(degenerate_run):
     np.testing.assert_array_equal(low, in_seg)
     # one warning, at the start of the first low segment
     events = [e for e in read_text_log(rrd, "events") if e[2] == "WARN"]
-    assert len(events) == 1 and events[0][1] == pytest.approx(segs[0][0]) and "excitation low" in events[0][3]
+    assert (
+        len(events) == 1
+        and events[0][1] == pytest.approx(segs[0][0])
+        and "excitation low" in events[0][3]
+    )
 
     # Second coast [20, 32.57): the variance in the unexcited directions grows, the error drifts,
     # and both recover once the motion resumes.

@@ -29,10 +29,22 @@ def _verify(rrd: Path) -> None:
 def test_signal_mid_run_leaves_a_verified_recording_of_every_step(tmp_path, cli_process, sig):
     """SIGINT (Ctrl-C) or SIGTERM during an hour-long run: exit 130, a valid .rrd with steps 0..k-1, the summary of k steps."""
     rrd, js = tmp_path / "run.rrd", tmp_path / "run.json"
-    proc = cli_process("run", "ifac2021", "--duration", "3600", "--no-progress", "--out", str(rrd), "--summary", str(js))
+    proc = cli_process(
+        "run",
+        "ifac2021",
+        "--duration",
+        "3600",
+        "--no-progress",
+        "--out",
+        str(rrd),
+        "--summary",
+        str(js),
+    )
     deadline = time.monotonic() + 120
     # wait until the loop has sent a few blocks of rows to the file
-    while not any(p.stat().st_size > 200_000 for p in tmp_path.glob(".run.rrd.*.partial")):  # the staging file
+    while not any(
+        p.stat().st_size > 200_000 for p in tmp_path.glob(".run.rrd.*.partial")
+    ):  # the staging file
         assert proc.poll() is None, proc.communicate()
         assert time.monotonic() < deadline, "the run did not start writing"
         time.sleep(0.05)
@@ -75,11 +87,17 @@ def test_error_inside_the_loop_closes_the_recording_and_propagates(tmp_path, mon
     assert not js.exists() and rrd.read_bytes() == b"previous recording"
     (rrd,) = tmp_path.glob(".err.rrd.*.partial")
     _verify(rrd)
-    for entity in ("errors/augmented/position/norm", "observer/augmented/nis", "measurements/accelerometer"):
+    for entity in (
+        "errors/augmented/position/norm",
+        "observer/augmented/nis",
+        "measurements/accelerometer",
+    ):
         steps = read_series(rrd, entity)["step"]
         np.testing.assert_array_equal(steps, np.arange(N))
     events = read_text_log(rrd, "events")
-    assert any(s == N and level == "ERROR" and "injected failure" in text for s, _, level, text in events)
+    assert any(
+        s == N and level == "ERROR" and "injected failure" in text for s, _, level, text in events
+    )
 
 
 @pytest.mark.parametrize("seam", ["commit", "after_flush", "next_block"])
@@ -110,7 +128,9 @@ def test_interrupt_at_a_block_boundary_records_each_step_once(tmp_path, monkeypa
             raise KeyboardInterrupt
         return commit(self, rows)
 
-    def stopping(start):  # a block starts with begin, or with begin_ahead where its physics ran ahead
+    def stopping(
+        start,
+    ):  # a block starts with begin, or with begin_ahead where its physics ran ahead
         def stop_begin(self, *args, **kwargs):
             calls["begin"] += 1
             if seam == "next_block" and calls["begin"] == 2:
@@ -126,7 +146,9 @@ def test_interrupt_at_a_block_boundary_records_each_step_once(tmp_path, monkeypa
     rrd = tmp_path / "seam.rrd"
     result = run_episode(load_scenario("ifac2021-outliers", duration=12.0), out=rrd, progress=True)
     summary = result.summary
-    assert summary["interrupted"] is True and summary["physics_steps"] == 1024  # the first block (block_count)
+    assert (
+        summary["interrupted"] is True and summary["physics_steps"] == 1024
+    )  # the first block (block_count)
     _verify(rrd)
     for entity in ("errors/augmented/position/norm", "measurements/dropped"):
         np.testing.assert_array_equal(read_series(rrd, entity)["step"], np.arange(1024))
@@ -226,14 +248,26 @@ def test_unwritable_output_fails_before_the_simulation(tmp_path, monkeypatch, wh
     paths = {"out": tmp_path / "ok.rrd", "summary": tmp_path / "ok.json"}
     paths[which] = blocker / "sub" / ("x.rrd" if which == "out" else "x.json")
     with pytest.raises(QuadobsError, match=r"output path .*x\.(rrd|json).*cannot be written"):
-        run_episode(load_scenario("ifac2021", duration=1.0), out=paths["out"], summary_path=paths["summary"])
+        run_episode(
+            load_scenario("ifac2021", duration=1.0), out=paths["out"], summary_path=paths["summary"]
+        )
     assert sorted(p.name for p in tmp_path.iterdir()) == ["file"]
 
 
 def test_cli_unwritable_output_exits_2_and_creates_nothing(tmp_path, capsys):
     (tmp_path / "file").write_text("")
     bad = tmp_path / "file" / "x.rrd"
-    code = main(["run", "ifac2021", "--no-progress", "--out", str(bad), "--summary", str(tmp_path / "s.json")])
+    code = main(
+        [
+            "run",
+            "ifac2021",
+            "--no-progress",
+            "--out",
+            str(bad),
+            "--summary",
+            str(tmp_path / "s.json"),
+        ]
+    )
     assert code == 2
     err = capsys.readouterr().err
     assert "x.rrd" in err and "cannot be written" in err and "Traceback" not in err
@@ -264,10 +298,29 @@ def test_same_scenario_and_seed_are_bit_identical_across_processes(tmp_path):
     runs = []
     for i, hashseed in enumerate(["1", "2"]):
         d = tmp_path / f"p{i}"
-        args = ["run", "ifac2021-outliers", "--duration", "3", "--seed", "5", "--estimators", "augmented,ekf",
-                "--no-progress", "--out", str(d / "run.rrd"), "--summary", str(d / "run.json")]
+        args = [
+            "run",
+            "ifac2021-outliers",
+            "--duration",
+            "3",
+            "--seed",
+            "5",
+            "--estimators",
+            "augmented,ekf",
+            "--no-progress",
+            "--out",
+            str(d / "run.rrd"),
+            "--summary",
+            str(d / "run.json"),
+        ]
         env = dict(os.environ, PYTHONPATH=str(ROOT), PYTHONHASHSEED=hashseed)
-        subprocess.run([sys.executable, "-m", "quadobs.cli", *args], cwd=ROOT, env=env, check=True, capture_output=True)
+        subprocess.run(
+            [sys.executable, "-m", "quadobs.cli", *args],
+            cwd=ROOT,
+            env=env,
+            check=True,
+            capture_output=True,
+        )
         runs.append(d)
     summaries = []
     for d in runs:
@@ -276,7 +329,10 @@ def test_same_scenario_and_seed_are_bit_identical_across_processes(tmp_path):
             s.pop(key)
         summaries.append(s)
     assert summaries[0] == summaries[1]
-    assert summaries[0]["measurements"]["outliers_injected"] > 0 and summaries[0]["measurements"]["dropped"] > 0
+    assert (
+        summaries[0]["measurements"]["outliers_injected"] > 0
+        and summaries[0]["measurements"]["dropped"] > 0
+    )
     a, b = runs[0] / "run.rrd", runs[1] / "run.rrd"
     entities = list_entities(a)
     assert entities == list_entities(b) and len(entities) > 20

@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 
 from quadobs import load_scenario
-from quadobs.studies.bench import BENCH_KEYS
 from quadobs.cli import main
 from quadobs.evaluation.convergence import ConvergenceTracker
 from quadobs.recording import Recorder, read_series
+from quadobs.studies.bench import BENCH_KEYS
 from quadobs.testbed.scenario import parse_scenario
 from quadobs.testbed.sensors import SensorModel
 from quadobs.testbed.worlds import BlockStepper, VehicleSim
@@ -39,9 +39,13 @@ def test_block_stepper_reads_what_vehicle_sim_reads(wind):
             row = stepper.out[j]
             np.testing.assert_allclose(stepper.out[j, stepper.truth], x, rtol=1e-14, atol=1e-13)
             np.testing.assert_allclose(row[stepper.ranges], plain.ranges(), rtol=1e-14)
-            np.testing.assert_allclose(row[stepper.accel], plain.accelerometer(), rtol=1e-13, atol=1e-13)
+            np.testing.assert_allclose(
+                row[stepper.accel], plain.accelerometer(), rtol=1e-13, atol=1e-13
+            )
             np.testing.assert_allclose(row[stepper.airspeed][0], plain.airspeed(), rtol=1e-13)
-        np.testing.assert_allclose(stepper.out[nblk, stepper.truth], plain.state(), rtol=1e-14, atol=1e-13)
+        np.testing.assert_allclose(
+            stepper.out[nblk, stepper.truth], plain.state(), rtol=1e-14, atol=1e-13
+        )
 
 
 @pytest.mark.parametrize("wind", WINDS, ids=["calm", "wind"])
@@ -59,9 +63,13 @@ def test_vehicle_batch_equals_separate_vehicles(rng, wind):
             batch.step(acc)
             for sim, a in zip(sims, acc):
                 sim.step(a)
-            np.testing.assert_allclose(batch.states(), [s.state() for s in sims], rtol=1e-13, atol=1e-13)
+            np.testing.assert_allclose(
+                batch.states(), [s.state() for s in sims], rtol=1e-13, atol=1e-13
+            )
             np.testing.assert_allclose(batch.ranges(), [s.ranges() for s in sims], rtol=1e-13)
-            np.testing.assert_allclose(batch.accelerometer(), [s.accelerometer() for s in sims], rtol=1e-13, atol=1e-12)
+            np.testing.assert_allclose(
+                batch.accelerometer(), [s.accelerometer() for s in sims], rtol=1e-13, atol=1e-12
+            )
             np.testing.assert_allclose(batch.airspeed(), [s.airspeed() for s in sims], rtol=1e-13)
 
 
@@ -86,8 +94,14 @@ def _noisy_wind_scenario():
     data["beacons"] = [{"position": list(b)} for b in BEACONS]
     data["wind"] = {"velocity": [1.0, -2.0, 0.5]}
     data["noise"] = {
-        "range_std": 0.3, "accel_std": 0.05, "airspeed_std": 0.1, "range_rate": 500.0, "airspeed_rate": 250.0,
-        "dropout": 0.1, "outlier_probability": 0.05, "outlier_std": 20.0,
+        "range_std": 0.3,
+        "accel_std": 0.05,
+        "airspeed_std": 0.1,
+        "range_rate": 500.0,
+        "airspeed_rate": 250.0,
+        "dropout": 0.1,
+        "outlier_probability": 0.05,
+        "outlier_std": 20.0,
     }
     return parse_scenario(data)
 
@@ -114,7 +128,9 @@ def test_block_stepper_applies_the_sensor_layer_as_step_by_step_calls():
             np.testing.assert_array_equal(row[stepper.measured], ref.measured_ranges)
             np.testing.assert_array_equal(row[stepper.u], ref.input(row[stepper.accel].copy()))
         stepper.commit(nblk)
-        np.testing.assert_array_equal(stepper.events[:nblk], events)  # per-step outliers delivered, samples dropped
+        np.testing.assert_array_equal(
+            stepper.events[:nblk], events
+        )  # per-step outliers delivered, samples dropped
     assert (sensors.dropped, sensors.outliers_injected) == (ref.dropped, ref.outliers_injected)
     assert ref.dropped > 0 and ref.outliers_injected > 0
 
@@ -143,12 +159,28 @@ def test_recording_survives_sends_that_do_not_wait(tmp_path):
             s.buf[i] = (k, -2.0 * k)
     back = read_series(path, "values")
     np.testing.assert_array_equal(back["step"], np.arange(2000))
-    np.testing.assert_array_equal(back["values"], np.stack([np.arange(2000.0), -2.0 * np.arange(2000)], axis=1))
+    np.testing.assert_array_equal(
+        back["values"], np.stack([np.arange(2000.0), -2.0 * np.arange(2000)], axis=1)
+    )
 
 
 def test_bench_command_writes_the_figures(tmp_path, capsys):
     path = tmp_path / "bench.json"
-    args = ["bench", "--steps", "300", "--repeats", "1", "--batch", "4", "--batch-steps", "3", "--quick", "--quiet", "--json", str(path)]
+    args = [
+        "bench",
+        "--steps",
+        "300",
+        "--repeats",
+        "1",
+        "--batch",
+        "4",
+        "--batch-steps",
+        "3",
+        "--quick",
+        "--quiet",
+        "--json",
+        str(path),
+    ]
     assert main(args) == 0
     data = json.loads(path.read_text())
     assert set(BENCH_KEYS) <= set(data)
@@ -159,10 +191,18 @@ def test_bench_command_writes_the_figures(tmp_path, capsys):
     assert data["batch"]["vehicles"] == 4 and data["scaling"]
     for key in ("loop_ratio", "step_loop_ratio", "recording_fraction", "step_recording_fraction"):
         q = data["spread"][key]  # median and quartiles over the repeats
-        assert q["q1"] <= q["median"] == data[key] <= q["q3"] and q["iqr"] == pytest.approx(q["q3"] - q["q1"])
+        assert q["q1"] <= q["median"] == data[key] <= q["q3"] and q["iqr"] == pytest.approx(
+            q["q3"] - q["q1"]
+        )
     assert data["campaign"]["runs"] >= 2 and data["campaign"]["episodes_per_s"] > 0
-    assert set(data["lmi_design_split_s"]) == {"first_approach", "second_approach"} and data["lmi_import_s"] >= 0
-    assert data["zonotope_vehicle"]["scenario"] == "ifac2021-bounded" and data["zonotope_vehicle"]["correct_every_step_us"] > 0
+    assert (
+        set(data["lmi_design_split_s"]) == {"first_approach", "second_approach"}
+        and data["lmi_import_s"] >= 0
+    )
+    assert (
+        data["zonotope_vehicle"]["scenario"] == "ifac2021-bounded"
+        and data["zonotope_vehicle"]["correct_every_step_us"] > 0
+    )
     le = data["le2013_step_us"]
     assert set(le) == {"segment", "volume", "pradius1", "pradius2", "pradius2_paper"}
     assert all(v[b] > 0 for v in le.values() for b in ("numba", "numpy"))
@@ -219,14 +259,18 @@ def test_generic_estimators_are_recorded_beside_the_compiled_one(tmp_path):
     registry.register_estimator("frozen", lambda scenario, x0, name: Frozen(x0))
     try:
         path = tmp_path / "two.rrd"
-        run_episode(load_scenario("ifac2021", duration=0.5), estimators=["augmented", "frozen"], out=path)
+        run_episode(
+            load_scenario("ifac2021", duration=0.5), estimators=["augmented", "frozen"], out=path
+        )
     finally:
         registry._REGISTRY.pop("frozen")
     trace = read_series(path, "observer/frozen/covariance_trace")["values"][:, 0]
     np.testing.assert_array_equal(trace, 12.0)
     err = read_series(path, "errors/frozen/position/norm")["values"][:, 0]
     assert len(err) == 501 and err[0] > 20.0
-    assert read_series(path, "observer/augmented/covariance_trace")["values"][0, 0] == pytest.approx(900.0)
+    assert read_series(path, "observer/augmented/covariance_trace")["values"][
+        0, 0
+    ] == pytest.approx(900.0)
 
 
 def test_read_kernel_is_compiled_once_for_the_arguments_it_gets():
@@ -246,7 +290,9 @@ def test_read_kernel_is_compiled_once_for_the_arguments_it_gets():
     assert read_step.signatures == compiled and len(compiled) == 1
 
 
-@pytest.mark.parametrize("kind, width", [("scalars", 1), ("scalars", 3), ("points3d", 3), ("translation", 3)])
+@pytest.mark.parametrize(
+    "kind, width", [("scalars", 1), ("scalars", 3), ("points3d", 3), ("translation", 3)]
+)
 def test_recorder_columns_are_those_of_rerun_archetypes(kind, width):
     """The columns the recorder builds directly hold the same descriptor, Arrow type and values as the archetype's."""
     import rerun as rr
@@ -255,8 +301,11 @@ def test_recorder_columns_are_those_of_rerun_archetypes(kind, width):
 
     vals = np.random.default_rng(4).normal(size=(37, width)) * 1e3
     vals[5] = np.nan
-    made = {"scalars": lambda: rr.Scalars.columns(scalars=vals), "points3d": lambda: rr.Points3D.columns(positions=vals),
-            "translation": lambda: rr.Transform3D.columns(translation=vals)}[kind]()
+    made = {
+        "scalars": lambda: rr.Scalars.columns(scalars=vals),
+        "points3d": lambda: rr.Points3D.columns(positions=vals),
+        "translation": lambda: rr.Transform3D.columns(translation=vals),
+    }[kind]()
     (ours,), (theirs,) = _columns(kind, vals), list(made)
     assert ours.component_descriptor() == theirs.component_descriptor()
     a, b = ours.as_arrow_array(), theirs.as_arrow_array()
@@ -264,7 +313,9 @@ def test_recorder_columns_are_those_of_rerun_archetypes(kind, width):
     a, b = a.flatten(), b.flatten()
     if kind != "scalars":
         a, b = a.flatten(), b.flatten()
-    np.testing.assert_array_equal(a.to_numpy(zero_copy_only=False), b.to_numpy(zero_copy_only=False))  # NaN too
+    np.testing.assert_array_equal(
+        a.to_numpy(zero_copy_only=False), b.to_numpy(zero_copy_only=False)
+    )  # NaN too
 
 
 def _rerun_threads() -> int:
@@ -280,7 +331,9 @@ def _rerun_threads() -> int:
     return sum(n.startswith(("ChunkBatcher", "RecordingStream")) for n in names)
 
 
-@pytest.mark.skipif(not __import__("os").path.isdir("/proc/self/task"), reason="thread names from /proc (Linux)")
+@pytest.mark.skipif(
+    not __import__("os").path.isdir("/proc/self/task"), reason="thread names from /proc (Linux)"
+)
 def test_a_closed_recorder_leaves_no_rerun_threads(tmp_path):
     """rerun's threads of a recording end when the recorder closes (they used to stay for the life of the process)."""
     for k in range(3):

@@ -28,7 +28,10 @@ def _verify(rrd: Path) -> None:
     assert proc.returncode == 0, proc.stderr
 
 
-NOTICES = ("quadobs: compiling", "quadobs: note:")  # a first run's compile notice, a long run's cost notice
+NOTICES = (
+    "quadobs: compiling",
+    "quadobs: note:",
+)  # a first run's compile notice, a long run's cost notice
 
 
 def _error_line(capsys) -> str:
@@ -96,7 +99,9 @@ def test_leftovers_of_gone_processes_are_removed_and_live_ones_kept(tmp_path):
 # -- refused targets ---------------------------------------------------------------------------
 
 
-def test_outputs_colliding_with_each_other_or_with_an_input_are_refused(tmp_path, capsys, no_simulation):
+def test_outputs_colliding_with_each_other_or_with_an_input_are_refused(
+    tmp_path, capsys, no_simulation
+):
     js = tmp_path / "x.json"
     assert main(["run", "ifac2021", "--out", str(js), "--summary", str(js)]) == 2
     assert "same file" in _error_line(capsys)
@@ -116,8 +121,12 @@ def test_outputs_colliding_with_each_other_or_with_an_input_are_refused(tmp_path
     assert sorted(p.name for p in tmp_path.iterdir()) == ["link.json", "sc.toml"]
 
 
-@pytest.mark.parametrize("kind", ["device", "fifo", "directory", "read-only", "long-name", "nul", "huge", "loop"])
-def test_non_regular_and_hostile_targets_are_refused_before_the_run(tmp_path, capsys, no_simulation, kind):
+@pytest.mark.parametrize(
+    "kind", ["device", "fifo", "directory", "read-only", "long-name", "nul", "huge", "loop"]
+)
+def test_non_regular_and_hostile_targets_are_refused_before_the_run(
+    tmp_path, capsys, no_simulation, kind
+):
     if kind == "device":
         target = "/dev/null"
     elif kind == "fifo":
@@ -151,7 +160,9 @@ def test_non_regular_and_hostile_targets_are_refused_before_the_run(tmp_path, ca
 def test_check_outputs_returns_the_files_replaced(tmp_path):
     real = tmp_path / "r.rrd"
     (tmp_path / "l.rrd").symlink_to(real)
-    got = check_outputs({"--out": tmp_path / "l.rrd", "--summary": None, "--json": tmp_path / "s.json"})
+    got = check_outputs(
+        {"--out": tmp_path / "l.rrd", "--summary": None, "--json": tmp_path / "s.json"}
+    )
     assert got == {"--out": real, "--json": tmp_path / "s.json"}
     with pytest.raises(QuadobsError, match="--json: names the same file as --out"):
         check_outputs({"--out": real, "--json": tmp_path / "l.rrd"})
@@ -168,26 +179,46 @@ def _limit_file_size(limit: int):
     return apply
 
 
-def test_a_full_disk_ends_the_run_with_one_line_and_keeps_the_previous_recording(tmp_path, cli_process):
+def test_a_full_disk_ends_the_run_with_one_line_and_keeps_the_previous_recording(
+    tmp_path, cli_process
+):
     """A file size limit (as a full disk): exit 1 within seconds, the error names the path, the
     summary holds the error, the previous recording is untouched and no staging file is left."""
     rrd, js = tmp_path / "run.rrd", tmp_path / "run.json"
     rrd.write_bytes(b"previous")
     t0 = time.monotonic()
-    proc = cli_process("run", "ifac2021", "--duration", "3600", "--no-progress", "--out", str(rrd), "--summary", str(js),
-                preexec_fn=_limit_file_size(2_000_000))
+    proc = cli_process(
+        "run",
+        "ifac2021",
+        "--duration",
+        "3600",
+        "--no-progress",
+        "--out",
+        str(rrd),
+        "--summary",
+        str(js),
+        preexec_fn=_limit_file_size(2_000_000),
+    )
     out, err = proc.communicate(timeout=300)
     assert proc.returncode == 1, err
-    lines = [ln for ln in err.splitlines() if ln.startswith("quadobs:") and not ln.startswith(NOTICES)]
+    lines = [
+        ln for ln in err.splitlines() if ln.startswith("quadobs:") and not ln.startswith(NOTICES)
+    ]
     assert len(lines) == 1 and str(rrd) in lines[0] and "cannot be written" in lines[0], err
     assert "Traceback" not in err and time.monotonic() - t0 < 120
     assert rrd.read_bytes() == b"previous"
     summary = json.loads(js.read_text())
-    assert summary["failed"] is True and str(rrd) in summary["error"] and "final_position_error" not in summary
+    assert (
+        summary["failed"] is True
+        and str(rrd) in summary["error"]
+        and "final_position_error" not in summary
+    )
     assert sorted(p.name for p in tmp_path.iterdir()) == ["run.json", "run.rrd"]
 
 
-def test_a_summary_that_cannot_be_written_at_the_end_still_prints_the_table(tmp_path, capsys, monkeypatch):
+def test_a_summary_that_cannot_be_written_at_the_end_still_prints_the_table(
+    tmp_path, capsys, monkeypatch
+):
     import quadobs.cli as cli
     import quadobs.testbed.outputs as outputs
 
@@ -198,18 +229,36 @@ def test_a_summary_that_cannot_be_written_at_the_end_still_prints_the_table(tmp_
     monkeypatch.setattr(cli, "print_summary", printed.append)
     js = tmp_path / "s.json"
     monkeypatch.setattr(outputs.os, "fsync", full)
-    assert main(["run", "ifac2021", "--duration", "0.5", "--no-progress", "--summary", str(js)]) == 1
+    assert (
+        main(["run", "ifac2021", "--duration", "0.5", "--no-progress", "--summary", str(js)]) == 1
+    )
     assert "No space left on device" in _error_line(capsys)
     (summary,) = printed
-    assert summary["physics_steps"] == 500 and "final_position_error" in summary and str(js) in summary["output_error"]
+    assert (
+        summary["physics_steps"] == 500
+        and "final_position_error" in summary
+        and str(js) in summary["output_error"]
+    )
     assert list(tmp_path.iterdir()) == []
 
 
-def test_sigkill_mid_run_leaves_the_previous_files_and_the_next_run_cleans_up(tmp_path, cli_process):
+def test_sigkill_mid_run_leaves_the_previous_files_and_the_next_run_cleans_up(
+    tmp_path, cli_process
+):
     rrd, js = tmp_path / "run.rrd", tmp_path / "run.json"
     rrd.write_bytes(b"previous")
     js.write_text('{"old": true}')
-    proc = cli_process("run", "ifac2021", "--duration", "3600", "--no-progress", "--out", str(rrd), "--summary", str(js))
+    proc = cli_process(
+        "run",
+        "ifac2021",
+        "--duration",
+        "3600",
+        "--no-progress",
+        "--out",
+        str(rrd),
+        "--summary",
+        str(js),
+    )
     deadline = time.monotonic() + 120
     while not any(p.stat().st_size > 100_000 for p in tmp_path.glob(".run.rrd.*.partial")):
         assert proc.poll() is None and time.monotonic() < deadline
@@ -219,19 +268,49 @@ def test_sigkill_mid_run_leaves_the_previous_files_and_the_next_run_cleans_up(tm
     assert rrd.read_bytes() == b"previous" and json.loads(js.read_text()) == {"old": True}
     (left,) = tmp_path.glob(".run.rrd.*.partial")
     assert staging_owner(left)[1] == proc.pid
-    assert main(["run", "ifac2021", "--duration", "0.2", "--no-progress", "--out", str(rrd), "--summary", str(js)]) == 0
+    assert (
+        main(
+            [
+                "run",
+                "ifac2021",
+                "--duration",
+                "0.2",
+                "--no-progress",
+                "--out",
+                str(rrd),
+                "--summary",
+                str(js),
+            ]
+        )
+        == 0
+    )
     assert sorted(p.name for p in tmp_path.iterdir()) == ["run.json", "run.rrd"]
     _verify(rrd)
 
 
 def test_concurrent_writers_each_leave_a_complete_file(tmp_path, cli_process):
     rrd = tmp_path / "same.rrd"
-    procs = [cli_process("run", "ifac2021", "--duration", "2", "--seed", str(s), "--no-progress", "--out", str(rrd)) for s in (1, 2)]
+    procs = [
+        cli_process(
+            "run",
+            "ifac2021",
+            "--duration",
+            "2",
+            "--seed",
+            str(s),
+            "--no-progress",
+            "--out",
+            str(rrd),
+        )
+        for s in (1, 2)
+    ]
     for p in procs:
         _, err = p.communicate(timeout=300)
         assert p.returncode == 0, err
     _verify(rrd)
-    np.testing.assert_array_equal(read_series(rrd, "errors/augmented/position/norm")["step"], np.arange(2001))
+    np.testing.assert_array_equal(
+        read_series(rrd, "errors/augmented/position/norm")["step"], np.arange(2001)
+    )
     assert sorted(p.name for p in tmp_path.iterdir()) == ["same.rrd"]
 
 
@@ -241,12 +320,18 @@ def test_concurrent_writers_each_leave_a_complete_file(tmp_path, cli_process):
 def _heavy_model(folder: Path) -> str:
     """The built-in vehicle with a mass of 1e9 kg: the forces it needs exceed MuJoCo's limit."""
     path = folder / "heavy.xml"
-    path.write_text((ROOT / "models" / "vehicle.xml").read_text().replace('mass="2.5"', 'mass="1e9"'))
+    path.write_text(
+        (ROOT / "models" / "vehicle.xml").read_text().replace('mass="2.5"', 'mass="1e9"')
+    )
     return f"model='{path}'"
 
 
-@pytest.mark.parametrize("setting", ["trajectory.terms=[{axis=0, amplitude=1e9, omega=1000.0}]", "heavy"])
-def test_an_unstable_simulation_stops_with_the_step_and_no_figures(tmp_path, capfd, monkeypatch, setting):
+@pytest.mark.parametrize(
+    "setting", ["trajectory.terms=[{axis=0, amplitude=1e9, omega=1000.0}]", "heavy"]
+)
+def test_an_unstable_simulation_stops_with_the_step_and_no_figures(
+    tmp_path, capfd, monkeypatch, setting
+):
     """MuJoCo's warnings (a bad control here) stop the run: exit 1, the block named, no figures, the
     previous recording kept and no converged error reported. The one line is all that is printed
     (captured at the file descriptors: MuJoCo's own printing and its log file are replaced)."""
@@ -255,19 +340,43 @@ def test_an_unstable_simulation_stops_with_the_step_and_no_figures(tmp_path, cap
     rrd.write_bytes(b"previous")
     if setting == "heavy":
         setting = _heavy_model(tmp_path)
-    code = main(["run", "ifac2021", "--duration", "10", "--no-progress", "--set", setting, "--summary", str(js), "--out", str(rrd)])
+    code = main(
+        [
+            "run",
+            "ifac2021",
+            "--duration",
+            "10",
+            "--no-progress",
+            "--set",
+            setting,
+            "--summary",
+            str(js),
+            "--out",
+            str(rrd),
+        ]
+    )
     assert code == 1
     out, err = capfd.readouterr()
     lines = [ln for ln in err.strip().splitlines() if not ln.startswith(NOTICES)]
-    assert len(lines) == 1 and lines[0].startswith("quadobs: error: ") and "WARNING" not in out, (out, err)
+    assert len(lines) == 1 and lines[0].startswith("quadobs: error: ") and "WARNING" not in out, (
+        out,
+        err,
+    )
     line = lines[0]
     assert not (tmp_path / "MUJOCO_LOG.TXT").exists()
     # the per-step path sees no jump in the state (the block is named); the block path's rollout
     # leaves one at the first step, which is then named
     assert "physics: MuJoCo reported badctrl" in line
-    assert "between step 0 and step 1024 (t = 0 to 1.024 s)" in line or "at step 1 (t = 0.001 s)" in line, line
+    assert (
+        "between step 0 and step 1024 (t = 0 to 1.024 s)" in line
+        or "at step 1 (t = 0.001 s)" in line
+    ), line
     summary = json.loads(js.read_text())
-    assert summary["failed"] is True and "final_position_error" not in summary and "estimators" not in summary
+    assert (
+        summary["failed"] is True
+        and "final_position_error" not in summary
+        and "estimators" not in summary
+    )
     assert rrd.read_bytes() == b"previous"
 
 
@@ -307,10 +416,16 @@ def test_the_cost_notice_names_steps_time_and_size_only_for_long_or_large_runs()
 
     assert cost_notice(load_scenario("ifac2021"), ["augmented"], True) is None
     many = "[" + ", ".join(f"{{position=[{i}.0, 1.0, 2.0]}}" for i in range(2000)) + "]"
-    line = cost_notice(load_scenario("ifac2021", settings=[f"beacons={many}"]), ["augmented"], False)
+    line = cost_notice(
+        load_scenario("ifac2021", settings=[f"beacons={many}"]), ["augmented"], False
+    )
     assert line.startswith("quadobs: note: 30,000 steps, expected to take about ") and " h;" in line
     line = cost_notice(load_scenario("ifac2021", duration=1e6), ["augmented"], True)
-    assert "1,000,000,000 steps" in line and "recording of about 330 GB (record_every = 1)" in line and "e+" not in line
+    assert (
+        "1,000,000,000 steps" in line
+        and "recording of about 330 GB (record_every = 1)" in line
+        and "e+" not in line
+    )
 
 
 def test_a_long_run_says_so_on_stderr_before_it_starts_and_does_not_wait(tmp_path, cli_process):
@@ -327,7 +442,9 @@ def test_a_long_run_says_so_on_stderr_before_it_starts_and_does_not_wait(tmp_pat
             line = proc.stderr.readline()
             note = line if line.startswith("quadobs: note:") else None
     assert "1,000,000,000 steps, expected to take about" in note and "GB (record_every = 1)" in note
-    while not any(p.stat().st_size > 100_000 for p in tmp_path.glob(".long.rrd.*.partial")):  # it runs, writing
+    while not any(
+        p.stat().st_size > 100_000 for p in tmp_path.glob(".long.rrd.*.partial")
+    ):  # it runs, writing
         assert time.monotonic() < deadline and proc.poll() is None
         time.sleep(0.1)
     proc.send_signal(signal.SIGINT)

@@ -10,7 +10,15 @@ from quadobs.testbed.scenario import load_scenario
 
 
 def _short(name, *settings, duration=12.0):
-    return load_scenario(name, settings=[f"duration={duration}", "quadrotor.takeoff=2.0", "quadrotor.landing=2.0", *settings])
+    return load_scenario(
+        name,
+        settings=[
+            f"duration={duration}",
+            "quadrotor.takeoff=2.0",
+            "quadrotor.landing=2.0",
+            *settings,
+        ],
+    )
 
 
 def test_the_model_has_the_crazyflie_figures():
@@ -29,11 +37,21 @@ def test_the_model_has_the_crazyflie_figures():
 
 def test_the_flight_plan_is_twice_differentiable_and_stands_still_in_hovers():
     sc = load_scenario("quadrotor-1beacon")
-    plan = FlightPlan(sc.trajectory, sc.duration, takeoff=3.0, landing=3.0, hovers=[(13.0, 23.0)], ramp=1.0, floor=0.02)
+    plan = FlightPlan(
+        sc.trajectory,
+        sc.duration,
+        takeoff=3.0,
+        landing=3.0,
+        hovers=[(13.0, 23.0)],
+        ramp=1.0,
+        floor=0.02,
+    )
     t = np.arange(0.0, sc.duration, 1e-3)
     ref = plan.reference(t)
     assert np.allclose(ref[0, 0], [*sc.trajectory.position(0.0)[:2], 0.02])  # starts on the floor
-    assert np.allclose(np.gradient(ref[:, 0], t, axis=0), ref[:, 1], atol=2e-3)  # r' is the derivative of r
+    assert np.allclose(
+        np.gradient(ref[:, 0], t, axis=0), ref[:, 1], atol=2e-3
+    )  # r' is the derivative of r
     assert np.allclose(np.gradient(ref[:, 1], t, axis=0), ref[:, 2], atol=5e-3)
     hover = (t > 14.1) & (t < 21.9)
     assert np.abs(ref[hover, 1]).max() < 1e-12 and np.ptp(ref[hover, 0], axis=0).max() < 1e-12
@@ -81,8 +99,15 @@ def _rows_world():
 def test_noise_free_imu_input_is_the_true_acceleration_and_the_observer_converges():
     from quadobs.testbed.episode import run_episode
 
-    sc = _short("quadrotor-uwb", "quadrotor.accel_std=0.0", "quadrotor.accel_bias=0.0", "quadrotor.attitude_std=0.0",
-                "quadrotor.gyro_std=0.0", "quadrotor.gyro_bias=0.0", "noise.range_std=0.0")
+    sc = _short(
+        "quadrotor-uwb",
+        "quadrotor.accel_std=0.0",
+        "quadrotor.accel_bias=0.0",
+        "quadrotor.attitude_std=0.0",
+        "quadrotor.gyro_std=0.0",
+        "quadrotor.gyro_bias=0.0",
+        "noise.range_std=0.0",
+    )
     world, kept = _rows_world()
     res = run_episode(sc, estimators=["augmented"], world=world)
     w = kept["world"]
@@ -90,7 +115,9 @@ def test_noise_free_imu_input_is_the_true_acceleration_and_the_observer_converge
     v = rows[:, w.columns.truth][:, 3:]
     a = np.diff(v, axis=0) / sc.dt  # mean acceleration over each step
     u = rows[:-1, w.columns.u]
-    assert np.abs(u - a)[10:].max() < 0.05  # u = R f + g: the acceleration (after the first contact steps on the floor)
+    assert (
+        np.abs(u - a)[10:].max() < 0.05
+    )  # u = R f + g: the acceleration (after the first contact steps on the floor)
     f = res.summary["flight"]
     assert not f["crashed"] and f["tracking_rms"] < 0.05 and f["time_on_estimate"] == 0.0
     assert res.summary["estimators"]["augmented"]["flight_position_rmse"] < 0.05
@@ -125,7 +152,13 @@ def test_the_recording_holds_the_flight(tmp_path):
     out = tmp_path / "q.rrd"
     run_episode(sc, estimators=["augmented"], out=out)
     names = set(list_entities(out))
-    for entity in ("/world/reference/path", "/world/quadrotor", "/flight/rotors", "/flight/tracking_error", "/errors/augmented/position/norm"):
+    for entity in (
+        "/world/reference/path",
+        "/world/quadrotor",
+        "/flight/rotors",
+        "/flight/tracking_error",
+        "/errors/augmented/position/norm",
+    ):
         assert entity in names
 
 
@@ -137,13 +170,23 @@ def test_the_excitation_monitor_flags_the_hovers_and_not_the_manoeuvres():
     low = run_episode(sc, estimators=[]).summary["excitation"]["low_segments"]
     landing = sc.duration - sc.quadrotor.landing
     hovers = [(h.start, h.end) for h in sc.quadrotor.hovers]
-    for start, end in hovers:  # one long segment per hover, from once the window has left the manoeuvre
+    for (
+        start,
+        end,
+    ) in hovers:  # one long segment per hover, from once the window has left the manoeuvre
         inside = [(a, b) for a, b in low if a < end + spec.window and b > start]
         assert len(inside) == 1, (start, end, low)
         a, b = inside[0]
-        assert start < a <= start + spec.window + sc.quadrotor.hover_ramp + 1.0 and end - 1.0 <= b <= end + spec.window
+        assert (
+            start < a <= start + spec.window + sc.quadrotor.hover_ramp + 1.0
+            and end - 1.0 <= b <= end + spec.window
+        )
     for a, b in low:  # nothing flagged in the manoeuvres after the take-off
-        assert any(a < e + spec.window and b > s for s, e in hovers) or a >= landing or b <= sc.quadrotor.takeoff + spec.window
+        assert (
+            any(a < e + spec.window and b > s for s, e in hovers)
+            or a >= landing
+            or b <= sc.quadrotor.takeoff + spec.window
+        )
 
 
 def test_the_filters_input_noise_comes_from_the_imu_settings():
@@ -153,10 +196,14 @@ def test_the_filters_input_noise_comes_from_the_imu_settings():
     sc = load_scenario("quadrotor-uwb")
     q = sc.quadrotor
     every = int(round(sc.physics_rate / q.attitude_rate))
-    expected = np.sqrt(q.accel_std**2 + every * (9.81 * q.attitude_std) ** 2 + q.accel_bias**2 * 1.0 / sc.dt)
+    expected = np.sqrt(
+        q.accel_std**2 + every * (9.81 * q.attitude_std) ** 2 + q.accel_bias**2 * 1.0 / sc.dt
+    )
     assert input_noise_std(q, every, sc.dt) == pytest.approx(expected)
     Q = baseline_settings(sc).dynamics.input_covariance
-    assert np.allclose(Q, expected**2 * np.eye(3)) and sc.noise.accel_std == 0.0  # not the [noise] table
+    assert (
+        np.allclose(Q, expected**2 * np.eye(3)) and sc.noise.accel_std == 0.0
+    )  # not the [noise] table
     louder = load_scenario("quadrotor-uwb", settings=["quadrotor.attitude_std=0.02"])
     assert np.all(np.diag(baseline_settings(louder).dynamics.input_covariance) > np.diag(Q))
 
@@ -165,18 +212,40 @@ def test_the_campaign_summarises_the_flights():
     from quadobs.studies.campaign import flight_summary
 
     flights = [
-        {"crashed": False, "tracking_rms": 0.05, "tracking_max": 0.1, "time_on_estimate": 60.0,
-         "flight_position_rmse": {"augmented": 0.02}},
-        {"crashed": True, "tracking_rms": 0.2, "tracking_max": 1.2, "time_on_estimate": 20.0,
-         "flight_position_rmse": {"augmented": 0.06}},
-        {"crashed": False, "tracking_rms": 0.07, "tracking_max": 0.2, "time_on_estimate": 60.0,
-         "flight_position_rmse": {"augmented": float("nan")}},
+        {
+            "crashed": False,
+            "tracking_rms": 0.05,
+            "tracking_max": 0.1,
+            "time_on_estimate": 60.0,
+            "flight_position_rmse": {"augmented": 0.02},
+        },
+        {
+            "crashed": True,
+            "tracking_rms": 0.2,
+            "tracking_max": 1.2,
+            "time_on_estimate": 20.0,
+            "flight_position_rmse": {"augmented": 0.06},
+        },
+        {
+            "crashed": False,
+            "tracking_rms": 0.07,
+            "tracking_max": 0.2,
+            "time_on_estimate": 60.0,
+            "flight_position_rmse": {"augmented": float("nan")},
+        },
     ]
     s = flight_summary(flights, ["augmented"])
     assert s["runs"] == 3 and s["crashed"] == 1
-    assert s["tracking_rms_median"] == pytest.approx(0.07) and s["tracking_rms_max"] == pytest.approx(0.2)
-    assert s["tracking_max"] == pytest.approx(1.2) and s["time_on_estimate_mean"] == pytest.approx(140.0 / 3)
-    assert s["flight_position_rmse"]["augmented"] == {"median": pytest.approx(0.04), "max": pytest.approx(0.06)}
+    assert s["tracking_rms_median"] == pytest.approx(0.07) and s[
+        "tracking_rms_max"
+    ] == pytest.approx(0.2)
+    assert s["tracking_max"] == pytest.approx(1.2) and s["time_on_estimate_mean"] == pytest.approx(
+        140.0 / 3
+    )
+    assert s["flight_position_rmse"]["augmented"] == {
+        "median": pytest.approx(0.04),
+        "max": pytest.approx(0.06),
+    }
 
 
 @pytest.mark.slow
@@ -184,7 +253,9 @@ def test_the_50_flights_on_the_augmented_observer_meet_the_targets():
     from quadobs.studies.campaign import run_campaign
 
     sc = load_scenario("quadrotor-uwb-augmented")
-    s = run_campaign(sc, runs=50, estimators=["augmented", "ekf", "ukf"], workers=2, record=False).summary
+    s = run_campaign(
+        sc, runs=50, estimators=["augmented", "ekf", "ukf"], workers=2, record=False
+    ).summary
     f = s["flight"]
     assert s["runs_completed"] == 50 and f["crashed"] == 0
     assert f["tracking_rms_max"] <= 0.15
@@ -198,13 +269,20 @@ def test_the_augmented_observer_reconverges_after_each_hover_on_one_beacon():
 
     sc = load_scenario("quadrotor-1beacon")
     tr = run_episode(sc, estimators=["augmented"], collect_every=50).trace
-    t, err = tr["time"], np.linalg.norm(tr["estimates"]["augmented"][:, :3] - tr["truth"][:, :3], axis=1)
+    t, err = (
+        tr["time"],
+        np.linalg.norm(tr["estimates"]["augmented"][:, :3] - tr["truth"][:, :3], axis=1),
+    )
     ends = [h.end for h in sc.quadrotor.hovers]
     nexts = [h.start for h in sc.quadrotor.hovers][1:] + [sc.duration - sc.quadrotor.landing]
     for end, nxt in zip(ends, nexts):
         drifted = err[(t >= end - 1.0) & (t < end)].max()
         after = err[(t >= end) & (t < nxt)]
-        assert drifted > 2.0 and after.min() < 0.5, (end, drifted, after.min())  # lost in the hover, found after it
+        assert drifted > 2.0 and after.min() < 0.5, (
+            end,
+            drifted,
+            after.min(),
+        )  # lost in the hover, found after it
 
 
 def test_the_compiled_controller_and_imu_agree_with_the_numpy_reference():
@@ -215,24 +293,37 @@ def test_the_compiled_controller_and_imu_agree_with_the_numpy_reference():
 
     rng = np.random.default_rng(3)
     c = GeometricController(CRAZYFLIE, 2.0, 12.0, 0.9)
-    gains = np.array([c.kx, c.kv, c.kR, c.kW, CRAZYFLIE.mass, c.tan_tilt, CRAZYFLIE.thrust_max, 0.0])
+    gains = np.array(
+        [c.kx, c.kv, c.kR, c.kW, CRAZYFLIE.mass, c.tan_tilt, CRAZYFLIE.thrust_max, 0.0]
+    )
     out, R = np.zeros(4), np.zeros((3, 3))
     for _ in range(50):
         q = rng.standard_normal(4)
         q /= np.linalg.norm(q)
-        p, v, W, ref = rng.standard_normal(3), rng.standard_normal(3), rng.standard_normal(3), rng.standard_normal((3, 3))
+        p, v, W, ref = (
+            rng.standard_normal(3),
+            rng.standard_normal(3),
+            rng.standard_normal(3),
+            rng.standard_normal((3, 3)),
+        )
         kq.quat_matrix(q, R)
         assert np.allclose(R, quat_to_matrix(q), atol=1e-15)
         kq.control(p, v, R, W, ref, gains, c.J, c.mix_inv, out)
         assert np.allclose(out, c(p, v, quat_to_matrix(q), W, ref), rtol=1e-12, atol=1e-15)
-    spec = SimpleNamespace(accel_std=0.03, accel_bias=0.02, gyro_std=0.005, gyro_bias=0.002, attitude_std=0.01)
+    spec = SimpleNamespace(
+        accel_std=0.03, accel_bias=0.02, gyro_std=0.005, gyro_bias=0.002, attitude_std=0.01
+    )
     imu = ImuModel(spec, seed=5)
-    packed = np.concatenate([imu.accel_bias, imu.gyro_bias, [imu.accel_std, imu.gyro_std, imu.attitude_std]])
+    packed = np.concatenate(
+        [imu.accel_bias, imu.gyro_bias, [imu.accel_std, imu.gyro_std, imu.attitude_std]]
+    )
     noise = imu.draws(1)
     sd = rng.standard_normal(10)
     sd[6:10] /= np.linalg.norm(sd[6:10])
     att, rates, row, nxt = np.zeros(4), np.zeros(3), np.zeros(7), np.zeros(6)
-    upside = kq.post_step(sd, 0, 3, 6, noise[0], packed, True, att, rates, R, row, 0, 4, sd[:3], sd[3:6], nxt)
+    upside = kq.post_step(
+        sd, 0, 3, 6, noise[0], packed, True, att, rates, R, row, 0, 4, sd[:3], sd[3:6], nxt
+    )
     f_m, w_m, q_m = imu.measure(0, 0, noise, sd[:3], sd[3:6], sd[6:10])
     assert np.allclose(att, q_m, atol=1e-15) and np.allclose(rates, w_m, atol=1e-15)
     assert np.allclose(row[4:7], quat_to_matrix(q_m) @ f_m + [0.0, 0.0, -9.81], atol=1e-14)

@@ -65,14 +65,19 @@ def tiny(tmp_path, monkeypatch):
         "[quadobs.estimators]\ntiny = tinyest:factory\ntinywrong = tinyest:not_an_estimator\ntinybroken = nosuchmodule:factory\n"
     )
     monkeypatch.syspath_prepend(str(tmp_path))
-    monkeypatch.setenv("PYTHONPATH", os.pathsep.join([str(tmp_path), os.environ.get("PYTHONPATH", "")]).rstrip(os.pathsep))
+    monkeypatch.setenv(
+        "PYTHONPATH",
+        os.pathsep.join([str(tmp_path), os.environ.get("PYTHONPATH", "")]).rstrip(os.pathsep),
+    )
     registry.refresh()
     yield tmp_path
     registry.refresh()
 
 
 def test_the_builtin_table_is_the_one_declared_in_pyproject():
-    declared = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["entry-points"]["quadobs.estimators"]
+    declared = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["entry-points"][
+        "quadobs.estimators"
+    ]
     assert declared == registry._BUILTIN
     for value in declared.values():  # and each names a factory that exists
         assert callable(registry._load("x", value))
@@ -97,23 +102,47 @@ def test_a_plugin_estimator_is_built_by_name(tiny):
 
 def test_plugin_errors_are_one_line_and_name_the_entry_point(tiny):
     scenario = load_scenario("ifac2021", duration=0.1)
-    with pytest.raises(QuadobsError, match=r"^estimators: the factory of 'tinywrong' \(tinyest:not_an_estimator\) returned str, not"):
+    with pytest.raises(
+        QuadobsError,
+        match=r"^estimators: the factory of 'tinywrong' \(tinyest:not_an_estimator\) returned str, not",
+    ):
         registry.build_estimators(scenario, ["tinywrong"], np.zeros(6))
-    with pytest.raises(QuadobsError, match=r"^estimators: entry point 'tinybroken' \(nosuchmodule:factory\) cannot be loaded: ModuleNotFoundError") as info:
+    with pytest.raises(
+        QuadobsError,
+        match=r"^estimators: entry point 'tinybroken' \(nosuchmodule:factory\) cannot be loaded: ModuleNotFoundError",
+    ) as info:
         registry.build_estimators(scenario, ["augmented", "tinybroken"], np.zeros(6))
     assert "\n" not in str(info.value)
     # the broken one does not stop the others
     assert len(registry.build_estimators(scenario, ["augmented", "tiny"], np.zeros(6))) == 2
-    with pytest.raises(QuadobsError, match=r"unknown estimator 'nope'; available: .*augmented.*tiny"):
+    with pytest.raises(
+        QuadobsError, match=r"unknown estimator 'nope'; available: .*augmented.*tiny"
+    ):
         registry.build_estimators(scenario, ["nope"], np.zeros(6))
 
 
 def test_a_plugin_runs_in_quadobs_run(tiny, tmp_path):
     out = tmp_path / "run"
     proc = subprocess.run(
-        [sys.executable, "-m", "quadobs.cli", "run", "ifac2021", "--duration", "1", "--estimators", "augmented,tiny",
-         "--out", str(out / "run.rrd"), "--summary", str(out / "summary.json")],
-        capture_output=True, text=True, timeout=120, cwd=tmp_path,
+        [
+            sys.executable,
+            "-m",
+            "quadobs.cli",
+            "run",
+            "ifac2021",
+            "--duration",
+            "1",
+            "--estimators",
+            "augmented,tiny",
+            "--out",
+            str(out / "run.rrd"),
+            "--summary",
+            str(out / "summary.json"),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        cwd=tmp_path,
     )
     assert proc.returncode == 0, proc.stderr
     summary = json.loads((out / "summary.json").read_text())
@@ -130,7 +159,9 @@ def test_a_plugin_runs_in_campaign_workers(tiny, where):
     else:
         from distributed import LocalCluster
 
-        with LocalCluster(n_workers=1, threads_per_worker=1, processes=True, dashboard_address=None) as cluster:
+        with LocalCluster(
+            n_workers=1, threads_per_worker=1, processes=True, dashboard_address=None
+        ) as cluster:
             result = run_campaign(scenario, scheduler=cluster.scheduler_address, **kw)
     assert result.summary["failed"] == [], result.summary["failed"]
     assert result.summary["estimators"]["tiny"]["runs"] == 2
@@ -140,7 +171,12 @@ def test_a_plugin_runs_in_campaign_workers(tiny, where):
 def test_runtime_registrations_are_refused_where_workers_cannot_see_them(monkeypatch):
     monkeypatch.setitem(registry._RUNTIME, "local", lambda scenario, x0, name: None)
     scenario = load_scenario("ifac2021", duration=0.5)
-    with pytest.raises(QuadobsError, match=r"estimators: 'local' is registered at run time, which 'spawn' workers do not see"):
-        run_campaign(scenario, runs=1, estimators=["local"], workers=1, start_method="spawn", record=False)
+    with pytest.raises(
+        QuadobsError,
+        match=r"estimators: 'local' is registered at run time, which 'spawn' workers do not see",
+    ):
+        run_campaign(
+            scenario, runs=1, estimators=["local"], workers=1, start_method="spawn", record=False
+        )
     with pytest.raises(QuadobsError, match=r"start_method: expected one of"):
         run_campaign(scenario, runs=1, workers=1, start_method="thread", record=False)

@@ -26,7 +26,9 @@ try:
     HAVE_GTSAM = True
 except ImportError:
     HAVE_GTSAM = False
-needs_gtsam = pytest.mark.skipif(not HAVE_GTSAM, reason="gtsam is not installed (the data extra): no Plaza logs, no iSAM2 peer")
+needs_gtsam = pytest.mark.skipif(
+    not HAVE_GTSAM, reason="gtsam is not installed (the data extra): no Plaza logs, no iSAM2 peer"
+)
 
 BEACONS = np.array([[-30.0, -20.0], [40.0, -25.0], [35.0, 30.0], [-25.0, 35.0]])
 
@@ -66,9 +68,21 @@ def test_a_log_folder_reads_back_exactly(tmp_path):
 @pytest.mark.parametrize(
     "fname, row, column, cell, expect",
     [
-        ("ranges.csv", 3, 2, "abc", "ranges.csv, row 3, column range: 'abc' is not a finite number"),
+        (
+            "ranges.csv",
+            3,
+            2,
+            "abc",
+            "ranges.csv, row 3, column range: 'abc' is not a finite number",
+        ),
         ("ranges.csv", 5, 0, "nan", "ranges.csv, row 5, column time: 'nan' is not a finite number"),
-        ("inputs.csv", 4, 1, "inf", "inputs.csv, row 4, column speed: 'inf' is not a finite number"),
+        (
+            "inputs.csv",
+            4,
+            1,
+            "inf",
+            "inputs.csv, row 4, column speed: 'inf' is not a finite number",
+        ),
         ("beacons.csv", 2, 1, "", "beacons.csv, row 2, column x: '' is not a finite number"),
         ("ranges.csv", 7, 1, "3", "ranges.csv, row 7, column beacon: unknown beacon id 3"),
         ("ranges.csv", 9, 0, "0", "ranges.csv, row 9, column time: earlier than the row before"),
@@ -90,7 +104,9 @@ def test_a_malformed_log_names_the_file_row_and_column(tmp_path, fname, row, col
 def test_bad_headers_short_rows_and_missing_files_are_named(tmp_path):
     folder = write_log(synthetic_log(20.0), tmp_path / "log")
     (folder / "inputs.csv").write_text("time,speed\n0,1\n")
-    with pytest.raises(QuadobsError, match=r"inputs.csv, row 1: header 'time,speed'; expected time,speed,yaw_rate"):
+    with pytest.raises(
+        QuadobsError, match=r"inputs.csv, row 1: header 'time,speed'; expected time,speed,yaw_rate"
+    ):
         read_log(folder)
     write_log(synthetic_log(20.0), folder)
     text = (folder / "ranges.csv").read_text().splitlines()
@@ -106,17 +122,50 @@ def test_bad_headers_short_rows_and_missing_files_are_named(tmp_path):
 
 def test_the_cli_replays_a_log_folder(tmp_path, capsys):
     folder = write_log(synthetic_log(30.0, bias=1.0), tmp_path / "log")
-    code = main(["replay", str(folder), "--summary", str(tmp_path / "s.json"), "--estimators", "augmented,ekf"])
+    code = main(
+        [
+            "replay",
+            str(folder),
+            "--summary",
+            str(tmp_path / "s.json"),
+            "--estimators",
+            "augmented,ekf",
+        ]
+    )
     assert code == 0
     out = capsys.readouterr().out
     assert "augmented" in out and "ekf" in out and "us/range" in out
     s = json.loads((tmp_path / "s.json").read_text())
-    assert set(s["estimators"]) == {"augmented", "ekf"} and len(s["biases"]) == 4 and s["ranges"]["placed"] > 100
-    for key in ("rmse", "max_error", "final_position_error", "time_to_5m", "time_to_2m", "seconds_per_measurement"):
+    assert (
+        set(s["estimators"]) == {"augmented", "ekf"}
+        and len(s["biases"]) == 4
+        and s["ranges"]["placed"] > 100
+    )
+    for key in (
+        "rmse",
+        "max_error",
+        "final_position_error",
+        "time_to_5m",
+        "time_to_2m",
+        "seconds_per_measurement",
+    ):
         assert key in s["estimators"]["augmented"]
     assert main(["replay", str(folder), "--biases", "1,2", "--no-progress"]) == 2
     assert "--biases: 2 values for 4 beacons" in capsys.readouterr().err
-    assert main(["replay", str(folder), "--estimators", "nosuch", "--no-progress", "--calibrate", "none"]) == 2
+    assert (
+        main(
+            [
+                "replay",
+                str(folder),
+                "--estimators",
+                "nosuch",
+                "--no-progress",
+                "--calibrate",
+                "none",
+            ]
+        )
+        == 2
+    )
     assert "unknown estimator 'nosuch'" in capsys.readouterr().err
 
 
@@ -125,7 +174,11 @@ def test_the_cli_reports_a_malformed_log_in_one_line_with_status_2(tmp_path, cap
     (folder / "beacons.csv").write_text("id,x,y\n0,1,2\n1,zz,3\n")
     assert main(["replay", str(folder), "--no-progress"]) == 2
     err = capsys.readouterr().err.strip()
-    assert err.count("\n") == 0 and err.startswith("quadobs: error: ") and "beacons.csv, row 3, column x" in err
+    assert (
+        err.count("\n") == 0
+        and err.startswith("quadobs: error: ")
+        and "beacons.csv, row 3, column x" in err
+    )
 
 
 # -- the replay world -----------------------------------------------------------------
@@ -139,7 +192,9 @@ def test_the_world_holds_the_odometry_and_places_ranges_in_their_step():
     # integrating the held inputs reproduces the dead reckoning at every grid time
     P, theta = dead_reckoning(log, world.times)
     u = rows[:-1, c.u]
-    np.testing.assert_allclose(P[0] + np.vstack([[0, 0], np.cumsum(u[:, :2] * 0.1, axis=0)]), P, atol=1e-9)
+    np.testing.assert_allclose(
+        P[0] + np.vstack([[0, 0], np.cumsum(u[:, :2] * 0.1, axis=0)]), P, atol=1e-9
+    )
     np.testing.assert_allclose(np.cumsum(u[:, 2]) * 0.1, theta[1:] - theta[0], atol=1e-12)
     # exact odometry on the circle: the dead reckoning follows the truth (mid-step heading)
     assert np.max(np.linalg.norm(P + rows[0, c.truth] - rows[:, c.truth], axis=1)) < 0.01
@@ -149,16 +204,22 @@ def test_the_world_holds_the_odometry_and_places_ranges_in_their_step():
     inside = k < world.steps
     np.testing.assert_allclose(rows[k[inside], c.measured.start + h[inside]], log.ranges[inside, 2])
     y = rows[k[inside], c.y.start + h[inside]]
-    np.testing.assert_allclose(y, 0.5 * log.ranges[inside, 2] ** 2 - 0.5 * np.sum(BEACONS[h[inside]] ** 2, axis=1))
+    np.testing.assert_allclose(
+        y, 0.5 * log.ranges[inside, 2] ** 2 - 0.5 * np.sum(BEACONS[h[inside]] ** 2, axis=1)
+    )
     assert world.placed == inside.sum() and world.merged == 0
-    assert np.isnan(rows[:, c.y]).sum() == world.steps * 4 - world.placed + 4  # the rest missing (and the final row)
+    assert (
+        np.isnan(rows[:, c.y]).sum() == world.steps * 4 - world.placed + 4
+    )  # the rest missing (and the final row)
 
 
 def test_two_ranges_to_one_beacon_in_one_step_keep_the_first():
     log = synthetic_log(10.0)
     dup = log.ranges.copy()
     dup = np.insert(dup, 3, dup[2] + [0.01, 0.0, 5.0], axis=0)
-    world = ReplayWorld(RangeLog("dup", log.beacon_ids, log.beacons, dup, log.inputs, log.heading0, log.truth), 0.1)
+    world = ReplayWorld(
+        RangeLog("dup", log.beacon_ids, log.beacons, dup, log.inputs, log.heading0, log.truth), 0.1
+    )
     assert world.merged == 1
     k = int(np.floor((dup[2, 0] - log.start) / 0.1 + 1e-9))
     assert world._rows[k, world.columns.measured][log.beacon_index(dup[2:3, 1])[0]] == dup[2, 2]
@@ -168,24 +229,41 @@ def test_two_ranges_to_one_beacon_in_one_step_keep_the_first():
 
 
 def test_the_augmented_observer_converges_from_50m_on_exact_data():
-    s = run_replay(synthetic_log(120.0), estimators=["augmented", "ekf"], initial_offset=50.0, batch=False,
-                   setup_options={"range_sigma": 0.05, "q_xy": 1e-3})
+    s = run_replay(
+        synthetic_log(120.0),
+        estimators=["augmented", "ekf"],
+        initial_offset=50.0,
+        batch=False,
+        setup_options={"range_sigma": 0.05, "q_xy": 1e-3},
+    )
     aug = s["estimators"]["augmented"]
     # the ranges are read up to dt early: |v| dt = 0.15 m at most
-    assert aug["final_position_error"] < 0.15 and aug["time_to_2m"] is not None and aug["time_to_2m"] < 60.0
+    assert (
+        aug["final_position_error"] < 0.15
+        and aug["time_to_2m"] is not None
+        and aug["time_to_2m"] < 60.0
+    )
     assert s["ranges"]["placed"] == s["estimators"]["augmented"]["corrections"]
     assert s["estimators"]["ekf"]["seconds_per_measurement"] > 0
 
 
 def test_the_cv_model_replays_too():
-    s = run_replay(synthetic_log(120.0), estimators=["augmented", "ekf"], model="cv", initial_offset=10.0, batch=False,
-                   setup_options={"range_sigma": 0.05, "q_acc": 0.05})
+    s = run_replay(
+        synthetic_log(120.0),
+        estimators=["augmented", "ekf"],
+        model="cv",
+        initial_offset=10.0,
+        batch=False,
+        setup_options={"range_sigma": 0.05, "q_acc": 0.05},
+    )
     assert s["estimators"]["augmented"]["final_position_error"] < 0.5
 
 
 def test_a_replay_is_deterministic_and_writes_its_outputs(tmp_path):
     log = synthetic_log(40.0)
-    a = run_replay(log, initial_offset=20.0, seed=3, out=tmp_path / "r.rrd", summary_path=tmp_path / "s.json")
+    a = run_replay(
+        log, initial_offset=20.0, seed=3, out=tmp_path / "r.rrd", summary_path=tmp_path / "s.json"
+    )
     b = run_replay(log, initial_offset=20.0, seed=3)
     for s in (a, b):
         s.pop("wall_time")
@@ -196,7 +274,9 @@ def test_a_replay_is_deterministic_and_writes_its_outputs(tmp_path):
     assert json.loads((tmp_path / "s.json").read_text())["log"] == "circle"
     from quadobs.recording import list_entities
 
-    assert "errors/augmented/position/norm" in {e.lstrip("/") for e in list_entities(tmp_path / "r.rrd")}
+    assert "errors/augmented/position/norm" in {
+        e.lstrip("/") for e in list_entities(tmp_path / "r.rrd")
+    }
 
 
 def test_a_replay_records_the_layout_of_an_episode(tmp_path):
@@ -205,24 +285,52 @@ def test_a_replay_records_the_layout_of_an_episode(tmp_path):
     from quadobs.studies.plot.run import default_panels
 
     log = synthetic_log(30.0)
-    s = run_replay(log, estimators=["augmented", "ekf"], initial_offset=20.0, out=tmp_path / "r.rrd")
+    s = run_replay(
+        log, estimators=["augmented", "ekf"], initial_offset=20.0, out=tmp_path / "r.rrd"
+    )
     entities = {e.lstrip("/") for e in list_entities(tmp_path / "r.rrd")}
-    for e in ("world/truth/path", "world/estimates/ekf/path", "errors/augmented/position/norm", "errors/ekf/position/axes",
-              "observer/augmented/nis", "observer/ekf/covariance_trace", "measurements/range/3", "measurements/odometry"):
+    for e in (
+        "world/truth/path",
+        "world/estimates/ekf/path",
+        "errors/augmented/position/norm",
+        "errors/ekf/position/axes",
+        "observer/augmented/nis",
+        "observer/ekf/covariance_trace",
+        "measurements/range/3",
+        "measurements/odometry",
+    ):
         assert e in entities
     assert not any("velocity" in e for e in entities)  # the odometry model has no velocity
     err = read_series(tmp_path / "r.rrd", "errors/augmented/position/norm")
-    assert err["step"][-1] == s["steps"] and err["values"][-1, 0] == pytest.approx(s["estimators"]["augmented"]["final_position_error"])
+    assert err["step"][-1] == s["steps"] and err["values"][-1, 0] == pytest.approx(
+        s["estimators"]["augmented"]["final_position_error"]
+    )
     assert err["values"][0, 0] == pytest.approx(20.0)  # the initial offset, at step 0
     truth = read_series(tmp_path / "r.rrd", "world/truth/path")["values"]
     np.testing.assert_allclose(truth[0, :2], log.truth[0, 1:3])  # the log's truth, on the grid
     rng = read_series(tmp_path / "r.rrd", "measurements/range/0")
-    np.testing.assert_array_equal(np.sort(rng["values"][:, 0]), np.sort(log.ranges[log.ranges[:, 1] == 0, 2]))
-    assert default_panels(open_source(tmp_path / "r.rrd")) == ["paths", "position", "covariance", "nis", "ranges"]
+    np.testing.assert_array_equal(
+        np.sort(rng["values"][:, 0]), np.sort(log.ranges[log.ranges[:, 1] == 0, 2])
+    )
+    assert default_panels(open_source(tmp_path / "r.rrd")) == [
+        "paths",
+        "position",
+        "covariance",
+        "nis",
+        "ranges",
+    ]
 
 
 def _noisy(log, seed, *settings, **kw):
-    return run_replay(log, estimators=["augmented", "ekf"], initial_offset=5.0, seed=seed, batch=False, settings=settings, **kw)
+    return run_replay(
+        log,
+        estimators=["augmented", "ekf"],
+        initial_offset=5.0,
+        seed=seed,
+        batch=False,
+        settings=settings,
+        **kw,
+    )
 
 
 def test_the_sensor_layer_adds_nothing_by_default_and_drops_ranges_as_configured(tmp_path):
@@ -230,22 +338,35 @@ def test_the_sensor_layer_adds_nothing_by_default_and_drops_ranges_as_configured
     clean = _noisy(log, 3)
     assert clean["measurements"] == {"range_period_steps": 1, "dropped": 0, "outliers_injected": 0}
     assert clean["estimators"]["augmented"]["corrections"] == clean["ranges"]["placed"]
-    a = _noisy(log, 3, "noise.dropout=0.3", "noise.outlier_probability=0.05", "noise.outlier_std=20")
-    b = _noisy(log, 3, "noise.dropout=0.3", "noise.outlier_probability=0.05", "noise.outlier_std=20")
-    c = _noisy(log, 4, "noise.dropout=0.3", "noise.outlier_probability=0.05", "noise.outlier_std=20")
+    a = _noisy(
+        log, 3, "noise.dropout=0.3", "noise.outlier_probability=0.05", "noise.outlier_std=20"
+    )
+    b = _noisy(
+        log, 3, "noise.dropout=0.3", "noise.outlier_probability=0.05", "noise.outlier_std=20"
+    )
+    c = _noisy(
+        log, 4, "noise.dropout=0.3", "noise.outlier_probability=0.05", "noise.outlier_std=20"
+    )
     for s in (a, b, c):
         s.pop("wall_time")
         for e in s["estimators"].values():
             e.pop("seconds_per_measurement")
-    assert a == b and a["measurements"] != c["measurements"]  # seeded: the same draws, another seed others
+    assert (
+        a == b and a["measurements"] != c["measurements"]
+    )  # seeded: the same draws, another seed others
     placed, m = a["ranges"]["placed"], a["measurements"]
     # binomial counts within 4 standard deviations
     assert abs(m["dropped"] - 0.3 * placed) < 4 * math.sqrt(placed * 0.3 * 0.7)
     kept = placed - m["dropped"]
-    assert abs(m["outliers_injected"] - 0.05 * kept) < 4 * math.sqrt(kept * 0.05) + 1 and m["outliers_injected"] > 0
+    assert (
+        abs(m["outliers_injected"] - 0.05 * kept) < 4 * math.sqrt(kept * 0.05) + 1
+        and m["outliers_injected"] > 0
+    )
     for name in ("augmented", "ekf"):  # every range left is corrected with, none dropped is
         assert a["estimators"][name]["corrections"] == kept
-    assert a["estimators"]["ekf"]["rmse"] > clean["estimators"]["ekf"]["rmse"]  # 20 m outliers, no gate
+    assert (
+        a["estimators"]["ekf"]["rmse"] > clean["estimators"]["ekf"]["rmse"]
+    )  # 20 m outliers, no gate
 
 
 def test_the_sensor_layer_adds_its_noise_and_reads_at_its_rate(tmp_path):
@@ -254,22 +375,39 @@ def test_the_sensor_layer_adds_its_noise_and_reads_at_its_rate(tmp_path):
     log = synthetic_log(120.0)
     s = _noisy(log, 1, "noise.range_std=0.5", out=tmp_path / "n.rrd")
     r = read_series(tmp_path / "n.rrd", "measurements/range/1")
-    exact = dict(zip(np.floor((log.ranges[:, 0] - log.start) / 0.1 + 1e-9).astype(int)[log.ranges[:, 1] == 1],
-                     log.ranges[log.ranges[:, 1] == 1, 2]))
+    exact = dict(
+        zip(
+            np.floor((log.ranges[:, 0] - log.start) / 0.1 + 1e-9).astype(int)[
+                log.ranges[:, 1] == 1
+            ],
+            log.ranges[log.ranges[:, 1] == 1, 2],
+        )
+    )
     noise = r["values"][:, 0] - np.array([exact[k] for k in r["step"]])
-    assert abs(np.std(noise) - 0.5) < 0.1 and abs(np.mean(noise)) < 0.15 and s["measurements"]["dropped"] == 0
+    assert (
+        abs(np.std(noise) - 0.5) < 0.1
+        and abs(np.mean(noise)) < 0.15
+        and s["measurements"]["dropped"] == 0
+    )
     slow = _noisy(log, 1, "noise.range_rate=2")  # one grid step in 5 is read
     k = np.floor((log.ranges[:, 0] - log.start) / 0.1 + 1e-9).astype(int)
     assert slow["measurements"]["range_period_steps"] == 5
-    assert slow["estimators"]["augmented"]["corrections"] == int(np.sum((k % 5 == 0) & (k < slow["steps"])))
+    assert slow["estimators"]["augmented"]["corrections"] == int(
+        np.sum((k % 5 == 0) & (k < slow["steps"]))
+    )
 
 
 def test_replay_settings_are_noise_settings_only(tmp_path, capsys):
     folder = write_log(synthetic_log(20.0), tmp_path / "log")
-    for setting, message in (("duration=3", "--set: duration: does not apply to a replay"),
-                             ("noise.accel_std=1", "noise.accel_std: does not apply"),
-                             ("noise.dropout=2", "noise.dropout: must be at most 1.0")):
-        assert main(["replay", str(folder), "--no-progress", "--calibrate", "none", "--set", setting]) == 2
+    for setting, message in (
+        ("duration=3", "--set: duration: does not apply to a replay"),
+        ("noise.accel_std=1", "noise.accel_std: does not apply"),
+        ("noise.dropout=2", "noise.dropout: must be at most 1.0"),
+    ):
+        assert (
+            main(["replay", str(folder), "--no-progress", "--calibrate", "none", "--set", setting])
+            == 2
+        )
         err = capsys.readouterr().err.strip()
         assert message in err and "\n" not in err
 
@@ -282,52 +420,97 @@ def test_without_truth_there_are_no_errors_but_a_replay():
 
 def test_the_bias_calibration_recovers_a_common_bias_without_the_truth():
     biased = synthetic_log(240.0, bias=2.5)
-    blind = RangeLog("blind", biased.beacon_ids, biased.beacons, biased.ranges, biased.inputs, biased.heading0, None)
+    blind = RangeLog(
+        "blind",
+        biased.beacon_ids,
+        biased.beacons,
+        biased.ranges,
+        biased.inputs,
+        biased.heading0,
+        None,
+    )
     opts = {"range_sigma": 0.1, "q_xy": 1e-2}
     b = calibrate_biases(blind, setup_options=opts)
     # the common bias is recovered; per beacon it trades against the position (within 0.5 m here)
     assert abs(np.mean(b) - 2.5) < 0.15 and np.all(np.abs(b - 2.5) < 0.5)
-    np.testing.assert_array_equal(b, calibrate_biases(biased, setup_options=opts))  # the truth is not read
+    np.testing.assert_array_equal(
+        b, calibrate_biases(biased, setup_options=opts)
+    )  # the truth is not read
 
 
 def _drifting(log: RangeLog, yaw_bias: float) -> RangeLog:
     """``log`` with a yaw-rate bias in its odometry: a heading that drifts, as Plaza2's."""
     inputs = log.inputs.copy()
     inputs[:, 2] += yaw_bias
-    return RangeLog(f"{log.name}-drift", log.beacon_ids, log.beacons, log.ranges, inputs, log.heading0, log.truth)
+    return RangeLog(
+        f"{log.name}-drift",
+        log.beacon_ids,
+        log.beacons,
+        log.ranges,
+        inputs,
+        log.heading0,
+        log.truth,
+    )
 
 
 def _noisy_ranges(log: RangeLog, sigma: float, seed: int) -> RangeLog:
     ranges = log.ranges.copy()
     ranges[:, 2] += sigma * np.random.default_rng(seed).standard_normal(len(ranges))
-    return RangeLog(log.name, log.beacon_ids, log.beacons, ranges, log.inputs, log.heading0, log.truth)
+    return RangeLog(
+        log.name, log.beacon_ids, log.beacons, ranges, log.inputs, log.heading0, log.truth
+    )
 
 
 def test_the_noise_calibration_trusts_good_odometry_and_not_a_drifting_one():
     from quadobs.testbed.logs.calibration import NOISE_FACTORS, calibrate_noise, self_calibrate
 
     good = _noisy_ranges(synthetic_log(240.0), 0.3, 1)
-    drift = _drifting(good, 0.01)  # 0.6 degrees per second: 140 degrees of heading error after 240 s
+    drift = _drifting(
+        good, 0.01
+    )  # 0.6 degrees per second: 140 degrees of heading error after 240 s
     q_good, s_good = calibrate_noise(good, np.zeros(4))
     q_drift, s_drift = calibrate_noise(drift, np.zeros(4))
     assert len(s_good) == len(NOISE_FACTORS) and q_good <= 1.0 / 16 and q_drift >= 4.0
     # the truth is not read; what the calibration picks is what the truth prefers
-    blind = RangeLog("blind", drift.beacon_ids, drift.beacons, drift.ranges, drift.inputs, drift.heading0, None)
+    blind = RangeLog(
+        "blind", drift.beacon_ids, drift.beacons, drift.ranges, drift.inputs, drift.heading0, None
+    )
     assert calibrate_noise(blind, np.zeros(4)) == (q_drift, s_drift)
-    rmse = {q: run_replay(drift, estimators=["ekf"], initial_offset=2.0, batch=False,
-                          setup_options={"q_xy": q})["estimators"]["ekf"]["rmse"] for q in (q_good, q_drift)}
+    rmse = {
+        q: run_replay(
+            drift, estimators=["ekf"], initial_offset=2.0, batch=False, setup_options={"q_xy": q}
+        )["estimators"]["ekf"]["rmse"]
+        for q in (q_good, q_drift)
+    }
     assert rmse[q_drift] < 0.5 * rmse[q_good]
-    b, options, scores = self_calibrate(drift)  # biases, then the noise with them, then the biases again
-    assert set(options) == {"q_xy"} and options["q_xy"] >= 4.0 and len(scores) == len(NOISE_FACTORS) and b.shape == (4,)
-    assert self_calibrate(drift, setup_options={"q_xy": 0.5}, noise=False)[1:] == ({"q_xy": 0.5}, {})
+    b, options, scores = self_calibrate(
+        drift
+    )  # biases, then the noise with them, then the biases again
+    assert (
+        set(options) == {"q_xy"}
+        and options["q_xy"] >= 4.0
+        and len(scores) == len(NOISE_FACTORS)
+        and b.shape == (4,)
+    )
+    assert self_calibrate(drift, setup_options={"q_xy": 0.5}, noise=False)[1:] == (
+        {"q_xy": 0.5},
+        {},
+    )
 
 
 def test_the_replay_estimators_are_declared_as_entry_points():
-    declared = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["entry-points"]["quadobs.replay_estimators"]
+    declared = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["entry-points"][
+        "quadobs.replay_estimators"
+    ]
     assert set(declared) == set(REPLAY_ESTIMATORS)
     for name, value in declared.items():
         assert value.split(":")[1] == REPLAY_ESTIMATORS[name].__name__
-    assert "gtsam>=4.3" in tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["optional-dependencies"]["data"]
+    assert (
+        "gtsam>=4.3"
+        in tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["optional-dependencies"][
+            "data"
+        ]
+    )
 
 
 def test_the_peer_refuses_a_simulated_scenario():
@@ -339,14 +522,35 @@ def test_the_peer_refuses_a_simulated_scenario():
 
 def test_the_estimators_noise_is_tuned_on_the_command_line(tmp_path, capsys):
     folder = write_log(synthetic_log(30.0, bias=1.0), tmp_path / "log")
-    args = ["replay", str(folder), "--no-progress", "--summary", str(tmp_path / "s.json"), "--tune", "q_xy=0.5",
-            "--tune", "range_sigma=0.2", "--tune", "gate=none"]
+    args = [
+        "replay",
+        str(folder),
+        "--no-progress",
+        "--summary",
+        str(tmp_path / "s.json"),
+        "--tune",
+        "q_xy=0.5",
+        "--tune",
+        "range_sigma=0.2",
+        "--tune",
+        "gate=none",
+    ]
     assert main(args) == 0
     s = json.loads((tmp_path / "s.json").read_text())
-    assert s["noise"]["q_xy"] == 0.5 and s["noise"]["range_sigma"] == 0.2 and s["noise"]["gate"] is None
-    np.testing.assert_array_equal(s["biases"], calibrate_biases(read_log(folder), setup_options={"q_xy": 0.5, "range_sigma": 0.2}))
-    for bad, message in (("q_xy=abc", "--tune q_xy: expected a number, got 'abc'"), ("sigma=1", "--tune: expected KEY=VALUE"),
-                         ("P0=-1", "P0: expected a positive finite number")):
+    assert (
+        s["noise"]["q_xy"] == 0.5
+        and s["noise"]["range_sigma"] == 0.2
+        and s["noise"]["gate"] is None
+    )
+    np.testing.assert_array_equal(
+        s["biases"],
+        calibrate_biases(read_log(folder), setup_options={"q_xy": 0.5, "range_sigma": 0.2}),
+    )
+    for bad, message in (
+        ("q_xy=abc", "--tune q_xy: expected a number, got 'abc'"),
+        ("sigma=1", "--tune: expected KEY=VALUE"),
+        ("P0=-1", "P0: expected a positive finite number"),
+    ):
         assert main(["replay", str(folder), "--no-progress", "--tune", bad]) == 2
         err = capsys.readouterr().err.strip()
         assert message in err and "\n" not in err
@@ -359,27 +563,53 @@ def imu_circle_log(duration=60.0, rate=100.0) -> RangeLog:
     """The circle of :func:`synthetic_log` read by an accelerometer at ``rate`` Hz (the centripetal acceleration), with truth velocities."""
     R, w = 15.0, 0.1
     t = np.arange(0.0, duration, 1.0 / rate)
-    acc = -R * w**2 * np.column_stack([np.cos(w * t), np.sin(w * t)])  # exact at each sample time, held
+    acc = (
+        -R * w**2 * np.column_stack([np.cos(w * t), np.sin(w * t)])
+    )  # exact at each sample time, held
     t_r = np.arange(0.05, duration - 0.1, 0.25)
     h = np.arange(t_r.size) % 4
     p = lambda t: R * np.column_stack([np.cos(w * t), np.sin(w * t)])  # noqa: E731
-    ranges = np.column_stack([t_r, np.array([0, 1, 5, 6])[h], np.linalg.norm(p(t_r) - BEACONS[h], axis=1)])
+    ranges = np.column_stack(
+        [t_r, np.array([0, 1, 5, 6])[h], np.linalg.norm(p(t_r) - BEACONS[h], axis=1)]
+    )
     truth = np.column_stack([t, p(t), R * w * np.column_stack([-np.sin(w * t), np.cos(w * t)])])
-    return RangeLog("imu-circle", np.array([0, 1, 5, 6]), BEACONS, ranges, np.column_stack([t, acc]), math.nan, truth,
-                    input_kind="imu", truth_columns=("time", "x", "y", "vx", "vy"))
+    return RangeLog(
+        "imu-circle",
+        np.array([0, 1, 5, 6]),
+        BEACONS,
+        ranges,
+        np.column_stack([t, acc]),
+        math.nan,
+        truth,
+        input_kind="imu",
+        truth_columns=("time", "x", "y", "vx", "vy"),
+    )
 
 
 def test_an_accelerometer_log_reads_back_and_is_held_as_its_mean_over_each_step(tmp_path):
     log = imu_circle_log(20.0)
     back = read_log(write_log(log, tmp_path / "imu"))
-    assert back.input_kind == "imu" and back.truth_columns == log.truth_columns and math.isnan(back.heading0)
+    assert (
+        back.input_kind == "imu"
+        and back.truth_columns == log.truth_columns
+        and math.isnan(back.heading0)
+    )
     np.testing.assert_array_equal(back.inputs, log.inputs)
     assert (tmp_path / "imu" / "inputs.csv").read_text().startswith("time,ax,ay\n")
-    world = ReplayWorld(back, 0.1, "imu")  # 100 Hz samples, a 10 Hz grid: the mean of 10 samples per step
+    world = ReplayWorld(
+        back, 0.1, "imu"
+    )  # 100 Hz samples, a 10 Hz grid: the mean of 10 samples per step
     u = world._rows[: world.steps, world.columns.u]
     np.testing.assert_allclose(u[5], log.inputs[50:60, 1:].mean(axis=0), rtol=1e-9)
-    np.testing.assert_allclose(world._rows[7, world.columns.truth], log.truth[70, 1:], atol=1e-12)  # truth velocity read
-    s = run_replay(back, estimators=["augmented", "ekf"], initial_offset=10.0, setup_options={"range_sigma": 0.05, "q_imu": 1e-4})
+    np.testing.assert_allclose(
+        world._rows[7, world.columns.truth], log.truth[70, 1:], atol=1e-12
+    )  # truth velocity read
+    s = run_replay(
+        back,
+        estimators=["augmented", "ekf"],
+        initial_offset=10.0,
+        setup_options={"range_sigma": 0.05, "q_imu": 1e-4},
+    )
     assert s["model"] == "imu" and s["estimators"]["augmented"]["final_position_error"] < 0.2
     assert s["estimators"]["augmented"]["final_velocity_error"] < 0.05
 
@@ -387,17 +617,26 @@ def test_an_accelerometer_log_reads_back_and_is_held_as_its_mean_over_each_step(
 def test_accelerometer_logs_check_their_dimensions_and_models(tmp_path, capsys):
     folder = write_log(imu_circle_log(5.0), tmp_path / "imu")
     text = (folder / "inputs.csv").read_text().splitlines()
-    (folder / "inputs.csv").write_text("\n".join(["time,ax,ay,az"] + [r + ",0.0" for r in text[1:]]) + "\n")
-    with pytest.raises(QuadobsError, match=r"inputs.csv, row 1: 3 acceleration columns for 2-D beacons"):
+    (folder / "inputs.csv").write_text(
+        "\n".join(["time,ax,ay,az"] + [r + ",0.0" for r in text[1:]]) + "\n"
+    )
+    with pytest.raises(
+        QuadobsError, match=r"inputs.csv, row 1: 3 acceleration columns for 2-D beacons"
+    ):
         read_log(folder)
     folder = write_log(imu_circle_log(5.0), tmp_path / "imu")
-    for args, message in ((["--model", "odometry"], "model odometry: the log 'imu-circle' has accelerometer inputs"),
-                          (["--estimators", "isam2"], "'isam2' needs a planar odometry log"),
-                          (["--set", "noise.airspeed_std=1"], "noise.airspeed_std: does not apply")):
+    for args, message in (
+        (["--model", "odometry"], "model odometry: the log 'imu-circle' has accelerometer inputs"),
+        (["--estimators", "isam2"], "'isam2' needs a planar odometry log"),
+        (["--set", "noise.airspeed_std=1"], "noise.airspeed_std: does not apply"),
+    ):
         assert main(["replay", str(folder), "--no-progress", "--calibrate", "none", *args]) == 2
         assert message in capsys.readouterr().err
     odometry = write_log(synthetic_log(5.0), tmp_path / "odo")
-    assert main(["replay", str(odometry), "--no-progress", "--calibrate", "none", "--model", "imu"]) == 2
+    assert (
+        main(["replay", str(odometry), "--no-progress", "--calibrate", "none", "--model", "imu"])
+        == 2
+    )
     assert "model imu: the log 'circle' has odometry inputs" in capsys.readouterr().err
 
 
@@ -407,12 +646,16 @@ def test_the_accelerometer_noise_of_the_sensor_layer_applies_to_an_accelerometer
     from quadobs.testbed.logs.replay import log_scenario
     from quadobs.testbed.sensors import SensorModel
 
-    noisy = ReplayWorld(log, 0.1, "imu", sensors=SensorModel(log_scenario(log, 0.1, 2, ["noise.accel_std=0.3"])))
+    noisy = ReplayWorld(
+        log, 0.1, "imu", sensors=SensorModel(log_scenario(log, 0.1, 2, ["noise.accel_std=0.3"]))
+    )
     count = noisy.begin_block(0, world.steps)
     noisy.fill(count)
     diff = noisy.out[:count, noisy.columns.u] - world._rows[:count, world.columns.u]
     assert abs(np.std(diff) - 0.3) < 0.03 and abs(np.mean(diff)) < 0.03
-    np.testing.assert_array_equal(noisy.out[:count, noisy.columns.y], world._rows[:count, world.columns.y])  # ranges untouched
+    np.testing.assert_array_equal(
+        noisy.out[:count, noisy.columns.y], world._rows[:count, world.columns.y]
+    )  # ranges untouched
 
 
 @pytest.fixture(scope="module")
@@ -424,15 +667,23 @@ def exported_episode(tmp_path_factory):
 
     folder = tmp_path_factory.mktemp("exported") / "noisy"
     sc = load_scenario("ifac2021-noisy")
-    ep = run_episode(sc, estimators=["augmented", "ekf"], sinks=[LogExportSink(folder)], collect_every=1000)
+    ep = run_episode(
+        sc, estimators=["augmented", "ekf"], sinks=[LogExportSink(folder)], collect_every=1000
+    )
     return sc, ep, read_log(folder)
 
 
 def test_a_simulated_run_written_as_a_log_holds_what_the_estimators_were_given(exported_episode):
     sc, ep, log = exported_episode
     assert ep.summary["exported_log"] and log.dimension == 3 and log.input_kind == "imu"
-    assert log.inputs.shape == (sc.steps + 1, 4) and log.ranges.shape == (3000, 3) and log.truth.shape == (sc.steps + 1, 7)
-    assert np.all(np.diff(log.ranges[:, 0]) >= 0) and log.ranges[1, 0] == pytest.approx(0.01)  # 100 Hz
+    assert (
+        log.inputs.shape == (sc.steps + 1, 4)
+        and log.ranges.shape == (3000, 3)
+        and log.truth.shape == (sc.steps + 1, 7)
+    )
+    assert np.all(np.diff(log.ranges[:, 0]) >= 0) and log.ranges[1, 0] == pytest.approx(
+        0.01
+    )  # 100 Hz
     np.testing.assert_allclose(log.truth[-1, 0], sc.duration)
 
 
@@ -443,26 +694,71 @@ def test_replaying_an_exported_episode_gives_the_episodes_estimates(exported_epi
     sc, ep, log = exported_episode
     x0 = ep.trace["estimates"]["ekf"][0]  # the episode's initial guess
     world = ReplayWorld(log, sc.dt, "imu")
-    summary, _ = run_loop(lambda merged, *rest: merged, frame=world.frame(), world=world,
-                          estimators=build_estimators(sc, ["augmented", "ekf"], x0))
-    for name in ("augmented", "ekf"):  # the scenario's own estimators on the log: the episode to rounding
+    summary, _ = run_loop(
+        lambda merged, *rest: merged,
+        frame=world.frame(),
+        world=world,
+        estimators=build_estimators(sc, ["augmented", "ekf"], x0),
+    )
+    for name in (
+        "augmented",
+        "ekf",
+    ):  # the scenario's own estimators on the log: the episode to rounding
         for key in ("final_position_error", "final_velocity_error"):
-            assert summary["estimators"][name][key] == pytest.approx(ep.summary["estimators"][name][key], abs=1e-6)
+            assert summary["estimators"][name][key] == pytest.approx(
+                ep.summary["estimators"][name][key], abs=1e-6
+            )
     # the replay's own model of an accelerometer log (the double integrator, its default noise, the
     # sensor's 0.5 m), from the same guess: within 5 cm of the episode's observer (0.455 against 0.414 m)
     r = run_replay(log, dt=sc.dt, x0=x0, setup_options={"range_sigma": 0.5}, batch=False)
     final = r["estimators"]["augmented"]["final_position_error"]
-    assert r["model"] == "imu" and abs(final - ep.summary["estimators"]["augmented"]["final_position_error"]) < 0.05
-    assert r["estimators"]["ekf"]["final_position_error"] < 1.0  # the EKF of the replay converges too (the episode's does not)
+    assert (
+        r["model"] == "imu"
+        and abs(final - ep.summary["estimators"]["augmented"]["final_position_error"]) < 0.05
+    )
+    assert (
+        r["estimators"]["ekf"]["final_position_error"] < 1.0
+    )  # the EKF of the replay converges too (the episode's does not)
 
 
 def test_the_cli_writes_a_run_as_a_log_and_refuses_what_the_format_cannot_hold(tmp_path, capsys):
-    assert main(["run", "beacons2d", "--duration", "2", "--no-progress", "--export-log", str(tmp_path / "log")]) == 0
+    assert (
+        main(
+            [
+                "run",
+                "beacons2d",
+                "--duration",
+                "2",
+                "--no-progress",
+                "--export-log",
+                str(tmp_path / "log"),
+            ]
+        )
+        == 0
+    )
     assert "quadobs replay" in capsys.readouterr().out
     log = read_log(tmp_path / "log")
     assert log.dimension == 2 and log.inputs.shape == (2001, 3) and log.beacons.shape == (3, 2)
-    assert main(["replay", str(tmp_path / "log"), "--dt", "0.001", "--calibrate", "none", "--no-progress"]) == 0
-    assert main(["run", "wind", "--duration", "1", "--no-progress", "--export-log", str(tmp_path / "w")]) == 2
+    assert (
+        main(
+            [
+                "replay",
+                str(tmp_path / "log"),
+                "--dt",
+                "0.001",
+                "--calibrate",
+                "none",
+                "--no-progress",
+            ]
+        )
+        == 0
+    )
+    assert (
+        main(
+            ["run", "wind", "--duration", "1", "--no-progress", "--export-log", str(tmp_path / "w")]
+        )
+        == 2
+    )
     err = capsys.readouterr().err
     assert "--export-log: 'wind' is a wind scenario" in err and not (tmp_path / "w").exists()
 
@@ -480,7 +776,9 @@ def test_the_plaza_loaders_handle_the_dataset_conventions():
     expect = {"plaza1": (3529, 1933.4), "plaza2": (1816, 409.5)}
     for name, (count, duration) in expect.items():
         log = load_builtin(name)
-        assert log.ranges.shape[0] == count and log.end - log.start == pytest.approx(duration, abs=0.1)
+        assert log.ranges.shape[0] == count and log.end - log.start == pytest.approx(
+            duration, abs=0.1
+        )
         assert set(log.beacon_ids.tolist()) == {0, 1, 5, 6}
         assert np.all(np.diff(log.ranges[:, 0]) >= 0)  # Plaza1's TD is not in time order: sorted
         # the truth's heading agrees with the odometry's at the start (Plaza2's offset by pi removed)
@@ -515,12 +813,23 @@ def test_regression_on_a_plaza_excerpt(name):
     span, aug_rmse, aug_final, isam_rmse = EXCERPTS[name]
     log = load_builtin(name).excerpt(*span)
     biases, options, _ = self_calibrate(log)
-    s = run_replay(log, estimators=["augmented", "ekf", "isam2"], initial_offset=50.0, seed=0, biases=biases,
-                   setup_options=options)
+    s = run_replay(
+        log,
+        estimators=["augmented", "ekf", "isam2"],
+        initial_offset=50.0,
+        seed=0,
+        biases=biases,
+        setup_options=options,
+    )
     e = s["estimators"]
     assert e["augmented"]["max_error"] >= 49.9  # it starts 50 m off
-    assert e["augmented"]["rmse"] < 1.25 * aug_rmse and e["augmented"]["final_position_error"] < 1.25 * aug_final
+    assert (
+        e["augmented"]["rmse"] < 1.25 * aug_rmse
+        and e["augmented"]["final_position_error"] < 1.25 * aug_final
+    )
     assert e["isam2"]["rmse"] < 1.25 * isam_rmse
     assert e["augmented"]["rmse"] <= 1.2 * e["isam2"]["rmse"]  # the issue's target, on the excerpt
-    assert e["isam2"]["batch_rmse"] <= e["isam2"]["smoothed_rmse"] * 1.05  # the offline optimum is no worse
+    assert (
+        e["isam2"]["batch_rmse"] <= e["isam2"]["smoothed_rmse"] * 1.05
+    )  # the offline optimum is no worse
     assert e["augmented"]["corrections"] == s["ranges"]["placed"] == e["isam2"]["corrections"]

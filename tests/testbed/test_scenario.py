@@ -1,12 +1,20 @@
 """Scenario files: built-ins load, every bad field is named."""
 
 import copy
+import pickle
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 from quadobs import QuadobsError, list_scenarios, load_scenario
-from quadobs.testbed.scenario import parse_scenario
+from quadobs.testbed.scenario import (
+    Scenario,
+    apply_settings,
+    field_reference,
+    parse_scenario,
+    parse_setting,
+)
 
 
 def test_builtins_load_and_round_trip():
@@ -22,9 +30,15 @@ def test_ifac2021_reference_trajectory():
     sc = load_scenario("ifac2021")
     t = np.linspace(0, 5, 11)
     p = sc.trajectory.position(t)
-    np.testing.assert_allclose(p, np.stack([20 * np.cos(t) - 20, 10 * np.sin(2 * t) + 20, -4 * np.cos(4 * t)], 1), atol=1e-12)
+    np.testing.assert_allclose(
+        p,
+        np.stack([20 * np.cos(t) - 20, 10 * np.sin(2 * t) + 20, -4 * np.cos(4 * t)], 1),
+        atol=1e-12,
+    )
     a = sc.trajectory.acceleration(t)
-    np.testing.assert_allclose(a, np.stack([-20 * np.cos(t), -40 * np.sin(2 * t), 64 * np.cos(4 * t)], 1), atol=1e-11)
+    np.testing.assert_allclose(
+        a, np.stack([-20 * np.cos(t), -40 * np.sin(2 * t), 64 * np.cos(4 * t)], 1), atol=1e-11
+    )
 
 
 def test_step_accelerations_are_mean_accelerations():
@@ -107,10 +121,6 @@ def test_unknown_name_and_bad_files(tmp_path):
 # The declarative schema: suggestions, cross-field rules, copies, TOML, settings, reference
 # --------------------------------------------------------------------------------------
 
-import pickle
-from pathlib import Path
-
-from quadobs.testbed.scenario import Scenario, apply_settings, field_reference, parse_setting
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -120,10 +130,21 @@ ROOT = Path(__file__).resolve().parents[2]
     [
         ("duratoin", 1.0, "scenario: unknown field 'duratoin' (did you mean 'duration'?)"),
         ("noise.range_sdt", 0.1, "noise: unknown field 'range_sdt' (did you mean 'range_std'?)"),
-        ("beacons.0.postion", [1.0, 2.0], "beacons[0]: unknown field 'postion' (did you mean 'position'?)"),
-        ("trajectory.terms.0.omgea", 2.0, "trajectory.terms[0]: unknown field 'omgea' (did you mean 'omega'?)"),
-        ("observer.variants", [{"name": "a", "outputs": [0], "ouptuts": [0]}],
-         "observer.variants[0]: unknown field 'ouptuts' (did you mean 'outputs'?)"),
+        (
+            "beacons.0.postion",
+            [1.0, 2.0],
+            "beacons[0]: unknown field 'postion' (did you mean 'position'?)",
+        ),
+        (
+            "trajectory.terms.0.omgea",
+            2.0,
+            "trajectory.terms[0]: unknown field 'omgea' (did you mean 'omega'?)",
+        ),
+        (
+            "observer.variants",
+            [{"name": "a", "outputs": [0], "ouptuts": [0]}],
+            "observer.variants[0]: unknown field 'ouptuts' (did you mean 'outputs'?)",
+        ),
         ("colour", "red", "scenario: unknown field 'colour'"),
     ],
 )
@@ -136,24 +157,63 @@ def test_unknown_fields_suggest_the_close_name(path, value, message):
 @pytest.mark.parametrize(
     "path,value,match",
     [
-        ("noise", {"range_std": 0.1, "range_bound": 0.2}, "noise.range_bound: cannot be combined with noise.range_std"),
-        ("observer.variants", [{"name": "a", "outputs": [0]}, {"name": "a", "outputs": [0]}],
-         r"observer.variants\[1\].name: 'a' must be a new identifier"),
-        ("observer.variants", [{"name": "augmented", "outputs": [0]}], r"observer.variants\[0\].name"),
-        ("observer.variants", [{"name": "a b", "outputs": [0]}], r"observer.variants\[0\].name: 'a b' must be an identifier"),
-        ("observer.variants", [{"name": "a", "outputs": [0, 0]}], r"observer.variants\[0\].outputs: expected distinct"),
+        (
+            "noise",
+            {"range_std": 0.1, "range_bound": 0.2},
+            "noise.range_bound: cannot be combined with noise.range_std",
+        ),
+        (
+            "observer.variants",
+            [{"name": "a", "outputs": [0]}, {"name": "a", "outputs": [0]}],
+            r"observer.variants\[1\].name: 'a' must be a new identifier",
+        ),
+        (
+            "observer.variants",
+            [{"name": "augmented", "outputs": [0]}],
+            r"observer.variants\[0\].name",
+        ),
+        (
+            "observer.variants",
+            [{"name": "a b", "outputs": [0]}],
+            r"observer.variants\[0\].name: 'a b' must be an identifier",
+        ),
+        (
+            "observer.variants",
+            [{"name": "a", "outputs": [0, 0]}],
+            r"observer.variants\[0\].outputs: expected distinct",
+        ),
         ("observer.S0", [1.0, -1.0], r"observer.S0\[1\]: must be positive"),
         ("observer.V", [], "observer.V: expected at least 1 entries"),
-        ("initial", {"kind": "zero", "point": [0.0, 0.0, 0.0, 0.0]}, 'initial.point: only used with kind = "point"'),
-        ("initial", {"kind": "point", "point": [0.0, 0.0]}, "initial.point: expected 4 numbers, got 2"),
+        (
+            "initial",
+            {"kind": "zero", "point": [0.0, 0.0, 0.0, 0.0]},
+            'initial.point: only used with kind = "point"',
+        ),
+        (
+            "initial",
+            {"kind": "point", "point": [0.0, 0.0]},
+            "initial.point: expected 4 numbers, got 2",
+        ),
         ("trajectory.offset", [1.0, 2.0, 3.0], "trajectory.offset: expected 2 numbers, got 3"),
-        ("trajectory.coast", [{"start": 2.0, "end": 3.0}, {"start": 1.0, "end": 4.0}], r"trajectory.coast\[1\]"),
-        ("excitation.window", 0.015, "excitation.window: 0.015 s must be a positive multiple of excitation.step"),
+        (
+            "trajectory.coast",
+            [{"start": 2.0, "end": 3.0}, {"start": 1.0, "end": 4.0}],
+            r"trajectory.coast\[1\]",
+        ),
+        (
+            "excitation.window",
+            0.015,
+            "excitation.window: 0.015 s must be a positive multiple of excitation.step",
+        ),
         ("duration", 1e-5, "duration: 1e-05 s is shorter than one physics step"),
         ("seed", True, "seed: expected an integer, got True"),
         ("excitation.monitor", 1, "excitation.monitor: expected true or false, got 1"),
         ("noise", [1.0], "noise: expected a table, got list"),
-        ("beacons.0.position", [1.0, "x"], r"beacons\[0\].position\[1\]: expected a number, got 'x'"),
+        (
+            "beacons.0.position",
+            [1.0, "x"],
+            r"beacons\[0\].position\[1\]: expected a number, got 'x'",
+        ),
     ],
 )
 def test_cross_field_and_nested_rules_name_the_field(path, value, match):
@@ -164,17 +224,27 @@ def test_cross_field_and_nested_rules_name_the_field(path, value, match):
 
 def test_schema_gives_the_defaults():
     sc = parse_scenario(copy.deepcopy(BASE))
-    assert sc.physics_rate == 1000.0 and sc.seed == 0 and sc.record_every == 1 and sc.kind == "vehicle"
+    assert (
+        sc.physics_rate == 1000.0 and sc.seed == 0 and sc.record_every == 1 and sc.kind == "vehicle"
+    )
     assert sc.noise.range_rate is None and sc.observer.S0 == 100.0 and sc.observer.gate is None
     assert sc.excitation.monitor is True and sc.zonotope.reduction == "parallelotope"
-    assert sc.trajectory.velocity.tolist() == [0.0, 0.0] and sc.wind is None and sc.observer.variants == ()
+    assert (
+        sc.trajectory.velocity.tolist() == [0.0, 0.0]
+        and sc.wind is None
+        and sc.observer.variants == ()
+    )
     assert sc.to_dict()["trajectory"]["velocity"] == [0.0, 0.0]
 
 
 def test_sin_terms_are_stored_as_cosines():
     sc = parse_scenario(_with("trajectory.terms.0.function", "sin"))
     assert sc.to_dict()["trajectory"]["terms"][0] == {
-        "axis": 0, "amplitude": 1.0, "omega": 1.0, "phase": -np.pi / 2, "function": "cos"
+        "axis": 0,
+        "amplitude": 1.0,
+        "omega": 1.0,
+        "phase": -np.pi / 2,
+        "function": "cos",
     }
     t = np.linspace(0.0, 3.0, 7)
     np.testing.assert_allclose(sc.trajectory.position(t)[:, 0], 1.0 + np.sin(t), atol=1e-12)
@@ -188,7 +258,9 @@ def test_scenarios_are_frozen_with_read_only_arrays():
         sc.beacons[0, 0] = 1.0
     with pytest.raises(ValueError):
         sc.wind[0] = 1.0
-    assert sc.observer.variants == () and load_scenario("beacons").observer.variants == (("augmented_1beacon", (0,)),)
+    assert sc.observer.variants == () and load_scenario("beacons").observer.variants == (
+        ("augmented_1beacon", (0,)),
+    )
 
 
 @pytest.mark.parametrize("name", list(list_scenarios()))
@@ -197,7 +269,9 @@ def test_builtins_pickle_and_print_as_toml_that_loads_back(tmp_path, name):
     again = pickle.loads(pickle.dumps(sc))
     assert again == sc and again.source == name
     np.testing.assert_array_equal(again.beacons, sc.beacons)
-    np.testing.assert_array_equal(again.true_state(np.array([0.5, 1.5])), sc.true_state(np.array([0.5, 1.5])))
+    np.testing.assert_array_equal(
+        again.true_state(np.array([0.5, 1.5])), sc.true_state(np.array([0.5, 1.5]))
+    )
     path = tmp_path / f"{name}.toml"
     path.write_text(sc.to_toml())
     back = load_scenario(path)
@@ -218,11 +292,15 @@ def test_settings_override_any_field():
         ],
         duration=2.0,
     )
-    assert sc.noise.range_std == 0.25 and sc.trajectory.terms[1, 2] == 3.0 and sc.observer.W == (2.0,)
+    assert (
+        sc.noise.range_std == 0.25 and sc.trajectory.terms[1, 2] == 3.0 and sc.observer.W == (2.0,)
+    )
     assert sc.wind.tolist() == [1.0, 2.0, 3.0] and sc.state_dim == 9 and sc.beacons.shape == (2, 3)
     assert sc.name == "my run" and sc.steps == 2000 and sc.source == "ifac2021"
     off = sc.with_settings({"excitation.monitor": False})
-    assert off.excitation.monitor is False and sc.excitation.monitor is True and off.noise == sc.noise
+    assert (
+        off.excitation.monitor is False and sc.excitation.monitor is True and off.noise == sc.noise
+    )
 
 
 @pytest.mark.parametrize(
@@ -292,17 +370,46 @@ def test_to_dict_keeps_its_structure():
         {"axis": 2, "amplitude": -4.0, "omega": 4.0, "phase": 0.0, "function": "cos"},
     ]
     assert data == {
-        "name": "ifac2021-outliers", "kind": "vehicle", "dimension": 3, "duration": 30.0, "physics_rate": 1000.0,
-        "seed": 0, "record_every": 1, "beacons": [{"position": [0.0, 0.0, 0.0]}],
+        "name": "ifac2021-outliers",
+        "kind": "vehicle",
+        "dimension": 3,
+        "duration": 30.0,
+        "physics_rate": 1000.0,
+        "seed": 0,
+        "record_every": 1,
+        "beacons": [{"position": [0.0, 0.0, 0.0]}],
         "trajectory": {"offset": [-20.0, 20.0, 0.0], "velocity": [0.0, 0.0, 0.0], "terms": terms},
         "noise": {
-            "range_std": 0.2, "accel_std": 0.0, "airspeed_std": 0.0, "range_rate": 50.0, "dropout": 0.1,
-            "outlier_probability": 0.02, "outlier_std": 20.0, "range_bound": 0.0, "accel_bound": 0.0,
+            "range_std": 0.2,
+            "accel_std": 0.0,
+            "airspeed_std": 0.0,
+            "range_rate": 50.0,
+            "dropout": 0.1,
+            "outlier_probability": 0.02,
+            "outlier_std": 20.0,
+            "range_bound": 0.0,
+            "accel_bound": 0.0,
             "airspeed_bound": 0.0,
         },
-        "observer": {"immersion": "minimal", "S0": 1e4, "V": 1e-4, "W": 2.0, "theta": 0.0, "gate": 16.0},
+        "observer": {
+            "immersion": "minimal",
+            "S0": 1e4,
+            "V": 1e-4,
+            "W": 2.0,
+            "theta": 0.0,
+            "gate": 16.0,
+        },
         "initial": {"kind": "random", "position_spread": 10.0, "velocity_spread": 2.0},
-        "zonotope": {"position_bound": 50.0, "velocity_bound": 30.0, "max_generators": 0, "reduction": "parallelotope"},
+        "zonotope": {
+            "position_bound": 50.0,
+            "velocity_bound": 30.0,
+            "max_generators": 0,
+            "reduction": "parallelotope",
+        },
         "excitation": {"monitor": True, "window": 5.0, "threshold": 1e-6, "update_period": 0.1},
     }
-    assert [type(v) for v in (data["dimension"], data["duration"], data["seed"])] == [int, float, int]
+    assert [type(v) for v in (data["dimension"], data["duration"], data["seed"])] == [
+        int,
+        float,
+        int,
+    ]

@@ -11,7 +11,10 @@ from quadobs.recording import read_series
 
 def _run(tmp_path, target, *extra):
     rrd, js = tmp_path / "run.rrd", tmp_path / "run.json"
-    assert main(["run", str(target), "--out", str(rrd), "--summary", str(js), "--no-progress", *extra]) == 0
+    assert (
+        main(["run", str(target), "--out", str(rrd), "--summary", str(js), "--no-progress", *extra])
+        == 0
+    )
     return rrd, json.loads(js.read_text())
 
 
@@ -110,7 +113,10 @@ def test_show_applies_settings_and_prints_the_reference(tmp_path, capsys):
     from quadobs import load_scenario
     from quadobs.testbed.scenario import field_reference
 
-    assert main(["show", "ifac2021", "--set", "noise.range_std=0.2", "--set", "initial.kind=random"]) == 0
+    assert (
+        main(["show", "ifac2021", "--set", "noise.range_std=0.2", "--set", "initial.kind=random"])
+        == 0
+    )
     path = tmp_path / "shown.toml"
     path.write_text(capsys.readouterr().out)
     sc = load_scenario(path)
@@ -122,13 +128,35 @@ def test_show_applies_settings_and_prints_the_reference(tmp_path, capsys):
 
 
 def test_run_and_excitation_take_settings(tmp_path, capsys):
-    _, s = _run(tmp_path, "ifac2021", "--set", "duration=0.5", "--set", "physics_rate=500", "--set", "noise.range_rate=50")
+    _, s = _run(
+        tmp_path,
+        "ifac2021",
+        "--set",
+        "duration=0.5",
+        "--set",
+        "physics_rate=500",
+        "--set",
+        "noise.range_rate=50",
+    )
     assert s["physics_steps"] == 250 and s["measurements"]["range_period_steps"] == 10
     capsys.readouterr()
-    assert main(["excitation", "ifac2021", "--set", "duration=4", "--set", "excitation.window=2.0"]) == 0
+    assert (
+        main(["excitation", "ifac2021", "--set", "duration=4", "--set", "excitation.window=2.0"])
+        == 0
+    )
     assert "windows: delta = 2 s, starts every 0.05 s over [0, 4] s" in capsys.readouterr().out
     out = tmp_path / "campaign"
-    args = ["campaign", "ifac2021-noisy", "--runs", "1", "--workers", "0", "--no-progress", "--out", str(out)]
+    args = [
+        "campaign",
+        "ifac2021-noisy",
+        "--runs",
+        "1",
+        "--workers",
+        "0",
+        "--no-progress",
+        "--out",
+        str(out),
+    ]
     assert main([*args, "--set", "duration=0.2", "--set", "noise.range_std=0.05"]) == 0
     summary = json.loads((out / "summary.json").read_text())
     assert summary["duration"] == 0.2 and "N(0, 0.05^2)" in capsys.readouterr().out
@@ -137,7 +165,12 @@ def test_run_and_excitation_take_settings(tmp_path, capsys):
 def test_bad_settings_exit_2_naming_the_field(capsys):
     assert main(["run", "ifac2021", "--no-progress", "--set", "noise.range_sdt=0.1"]) == 2
     assert "noise: unknown field 'range_sdt' (did you mean 'range_std'?)" in capsys.readouterr().err
-    assert main(["campaign", "ifac2021", "--runs", "1", "--out", "unused", "--set", "observer.gate=-1"]) == 2
+    assert (
+        main(
+            ["campaign", "ifac2021", "--runs", "1", "--out", "unused", "--set", "observer.gate=-1"]
+        )
+        == 2
+    )
     assert "observer.gate: must be positive, got -1.0" in capsys.readouterr().err
     assert main(["excitation", "ifac2021", "--set", "excitation"]) == 2
     assert "--set: expected FIELD=VALUE" in capsys.readouterr().err

@@ -76,13 +76,22 @@ def test_beacons_are_added_and_existing_ones_moved():
     "edit,match",
     [
         (('<site name="imu" pos="0 0 0" size="0.05"/>', ""), "missing site named 'imu'"),
-        (('<motor name="force_y" joint="vehicle_joint" gear="0 1 0 0 0 0"/>', ""), "missing actuator named 'force_y'"),
-        (('<accelerometer name="accelerometer" site="imu"/>', ""), "missing sensor named 'accelerometer'"),
+        (
+            ('<motor name="force_y" joint="vehicle_joint" gear="0 1 0 0 0 0"/>', ""),
+            "missing actuator named 'force_y'",
+        ),
+        (
+            ('<accelerometer name="accelerometer" site="imu"/>', ""),
+            "missing sensor named 'accelerometer'",
+        ),
         (('integrator="RK4"', 'integrator="Euler"'), "integrator must be RK4"),
         (('contype="0" conaffinity="0"', ""), "must have contype=0"),
         (('gear="0 0 1 0 0 0"', 'gear="0 0 2 0 0 0"'), "actuator 'force_z' must act"),
-        (('<option ', '<option density="1.2" '), "fluid density"),
-        (("<freejoint name=\"vehicle_joint\"/>", '<joint name="vehicle_joint" type="ball"/>'), "free joint"),
+        (("<option ", '<option density="1.2" '), "fluid density"),
+        (
+            ('<freejoint name="vehicle_joint"/>', '<joint name="vehicle_joint" type="ball"/>'),
+            "free joint",
+        ),
         (('mass="2.5"', 'mass="nan"'), r"bad.xml: MuJoCo warns: XML contains a 'NaN'"),
     ],
 )

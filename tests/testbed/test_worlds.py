@@ -26,8 +26,11 @@ class SteeredPointMass(World):
         self.dim, self.a, self.dt = d, scenario.beacons, scenario.dt
         self.target, self.kp, self.kd = np.asarray(target, dtype=float), kp, kd
         self.columns = Columns(
-            truth=slice(0, 2 * d), y=slice(2 * d, 2 * d + qb), u=slice(2 * d + qb, 3 * d + qb),
-            measured=slice(3 * d + qb, 3 * d + 2 * qb), width=3 * d + 2 * qb,
+            truth=slice(0, 2 * d),
+            y=slice(2 * d, 2 * d + qb),
+            u=slice(2 * d + qb, 3 * d + qb),
+            measured=slice(3 * d + qb, 3 * d + 2 * qb),
+            width=3 * d + 2 * qb,
         )
         self.out = np.zeros((capacity + 1, self.columns.width))
         self.events = np.zeros((capacity + 1, 2), dtype=np.int64)
@@ -66,7 +69,9 @@ def test_a_closed_loop_world_is_steered_by_the_named_estimate():
         worlds.append(SteeredPointMass(scenario, sensors, capacity, target))
         return worlds[0]
 
-    res = run_episode(sc, estimators=["augmented", "augmented_1beacon"], collect_every=1, world=make)
+    res = run_episode(
+        sc, estimators=["augmented", "augmented_1beacon"], collect_every=1, world=make
+    )
     w = worlds[0]
     assert len(w.given) == sc.steps
     np.testing.assert_array_equal(np.array(w.given), res.trace["estimates"]["augmented"][:-1])
@@ -133,7 +138,11 @@ def test_summary_agrees_with_the_collected_trace_and_the_recording(tmp_path):
         assert entry["final_velocity_error"] == pytest.approx(np.linalg.norm(e[-1, 3:6]), rel=1e-12)
         for key, c in (("time_to_1m", 1.0), ("time_to_0p1m", 0.1)):
             above = np.flatnonzero(~(ep < c))
-            expected = None if above.size and above[-1] == len(ep) - 1 else round(t[above[-1] + 1] if above.size else t[0], 9)
+            expected = (
+                None
+                if above.size and above[-1] == len(ep) - 1
+                else round(t[above[-1] + 1] if above.size else t[0], 9)
+            )
             assert entry[key] == expected
         if entry.get("gate") is not None:
             with np.errstate(invalid="ignore"):
@@ -146,4 +155,7 @@ def test_summary_agrees_with_the_collected_trace_and_the_recording(tmp_path):
 
 
 def test_merge_is_recursive_and_later_fragments_win():
-    assert merge([{"a": {"b": 1, "c": 2}, "d": 1}, {"a": {"c": 3}, "d": {"e": 1}}]) == {"a": {"b": 1, "c": 3}, "d": {"e": 1}}
+    assert merge([{"a": {"b": 1, "c": 2}, "d": 1}, {"a": {"c": 3}, "d": {"e": 1}}]) == {
+        "a": {"b": 1, "c": 3},
+        "d": {"e": 1},
+    }

@@ -46,7 +46,9 @@ def _blueprint() -> rrb.Blueprint:
                 row_shares=[3, 2],
             ),
             rrb.Vertical(
-                rrb.TimeSeriesView(name="Bounds of x1", contents=["/le2013/truth", "/le2013/bounds/**"]),
+                rrb.TimeSeriesView(
+                    name="Bounds of x1", contents=["/le2013/truth", "/le2013/bounds/**"]
+                ),
                 rrb.TimeSeriesView(name="Width of the bounds (first run)", origin="/le2013/width"),
                 rrb.TimeSeriesView(name="Mean width over runs", origin="/le2013/mean_width"),
                 rrb.TimeSeriesView(name="Volume (first run)", origin="/le2013/volume"),
@@ -64,19 +66,31 @@ def record_le2013(path, res: dict, table: str) -> None:
     first = res["first"]
     methods = res["methods"]
     steps = res["steps"]
-    rec = Recorder(path, recording_id=f"le2013-seed{res['seed']}", blueprint=_blueprint(), capacity=steps + 1)
+    rec = Recorder(
+        path, recording_id=f"le2013-seed{res['seed']}", blueprint=_blueprint(), capacity=steps + 1
+    )
     try:
         truth = rec.series("le2013/truth", 2, names=["true x1", "true x2"], color=_TRUTH)
         s = {}
         for m in methods:
             col = _COLORS.get(m, (120, 120, 120))
             s[m] = {
-                "x1": rec.series(f"le2013/bounds/{m}/x1", 2, names=[f"{m} x1 low", f"{m} x1 high"], color=col),
-                "x2": rec.series(f"le2013/bounds/{m}/x2", 2, names=[f"{m} x2 low", f"{m} x2 high"], color=col),
-                "width": rec.series(f"le2013/width/{m}", 2, names=[f"{m} width x1", f"{m} width x2"]),
+                "x1": rec.series(
+                    f"le2013/bounds/{m}/x1", 2, names=[f"{m} x1 low", f"{m} x1 high"], color=col
+                ),
+                "x2": rec.series(
+                    f"le2013/bounds/{m}/x2", 2, names=[f"{m} x2 low", f"{m} x2 high"], color=col
+                ),
+                "width": rec.series(
+                    f"le2013/width/{m}", 2, names=[f"{m} width x1", f"{m} width x2"]
+                ),
                 "volume": rec.series(f"le2013/volume/{m}", 1, names=[f"{m} volume"], color=col),
-                "mean_width": rec.series(f"le2013/mean_width/{m}", 2, names=[f"{m} mean width x1", f"{m} mean width x2"]),
-                "mean_volume": rec.series(f"le2013/mean_volume/{m}", 1, names=[f"{m} mean volume"], color=col),
+                "mean_width": rec.series(
+                    f"le2013/mean_width/{m}", 2, names=[f"{m} mean width x1", f"{m} mean width x2"]
+                ),
+                "mean_volume": rec.series(
+                    f"le2013/mean_volume/{m}", 1, names=[f"{m} mean volume"], color=col
+                ),
             }
         for k in range(steps + 1):
             i = rec.row(k, float(k))
@@ -98,10 +112,18 @@ def record_le2013(path, res: dict, table: str) -> None:
                 v = first.sets[m][k].vertices()
                 stream.log(
                     f"le2013/sets/{m}",
-                    rr.LineStrips2D([np.vstack([v, v[:1]])], colors=[_COLORS.get(m, (120, 120, 120))], labels=[m]),
+                    rr.LineStrips2D(
+                        [np.vstack([v, v[:1]])],
+                        colors=[_COLORS.get(m, (120, 120, 120))],
+                        labels=[m],
+                    ),
                 )
-            stream.log("le2013/sets/truth", rr.Points2D([first.truth[k]], colors=[_TRUTH], radii=0.02))
+            stream.log(
+                "le2013/sets/truth", rr.Points2D([first.truth[k]], colors=[_TRUTH], radii=0.02)
+            )
         stream.reset_time()
-        rec.static("le2013/table", rr.TextDocument("```\n" + table + "\n```", media_type="text/markdown"))
+        rec.static(
+            "le2013/table", rr.TextDocument("```\n" + table + "\n```", media_type="text/markdown")
+        )
     finally:
         rec.close()

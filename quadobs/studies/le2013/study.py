@@ -29,11 +29,11 @@ from quadobs.sets.zonotope import IntervalMatrix, Zonotope
 
 __all__ = [
     "A_INTERVAL",
-    "C",
-    "F",
     "METHODS",
     "NOISE_BOUND",
     "PAPER_GAINS",
+    "C",
+    "F",
     "Le2013Run",
     "design_gains",
     "make_estimator",
@@ -102,7 +102,9 @@ class Le2013Run:
     sets: dict | None
 
 
-def make_estimator(method: str, designs: dict | None = None, *, backend: str = "auto") -> ZonotopicEstimator:
+def make_estimator(
+    method: str, designs: dict | None = None, *, backend: str = "auto"
+) -> ZonotopicEstimator:
     """The estimator ``method`` (one of :data:`METHODS`) of the example, at ``X_0 = 3 B^2``.
 
     ``designs`` (from :func:`design_gains`) is needed by ``"pradius1"`` and ``"pradius2"``;
@@ -120,10 +122,14 @@ def make_estimator(method: str, designs: dict | None = None, *, backend: str = "
         "pradius2_paper": lambda: np.array(PAPER_GAINS["second_approach"]),
     }[method]()
     X0 = Zonotope(np.zeros(2), X0_RADIUS * np.eye(2))
-    return ZonotopicEstimator(A_INTERVAL, F, C, NOISE_BOUND, X0, gains, max_generators=MAX_GENERATORS, backend=backend)
+    return ZonotopicEstimator(
+        A_INTERVAL, F, C, NOISE_BOUND, X0, gains, max_generators=MAX_GENERATORS, backend=backend
+    )
 
 
-def run_once(designs: dict, seed: int, steps: int, *, keep_sets: bool = False, methods=METHODS) -> Le2013Run:
+def run_once(
+    designs: dict, seed: int, steps: int, *, keep_sets: bool = False, methods=METHODS
+) -> Le2013Run:
     """All methods on the trajectory of ``seed`` (:func:`simulate`)."""
     sim = simulate(seed, steps)
     x, y = sim["x"], sim["y"]
@@ -156,7 +162,9 @@ def run_once(designs: dict, seed: int, steps: int, *, keep_sets: bool = False, m
     return out
 
 
-def reproduce(*, seed: int = 0, steps: int = 50, runs: int = 50, designs: dict | None = None, methods=METHODS) -> dict:
+def reproduce(
+    *, seed: int = 0, steps: int = 50, runs: int = 50, designs: dict | None = None, methods=METHODS
+) -> dict:
     """Section 5 over ``runs`` seeded trajectories (seeds ``seed, seed + 1, ...``).
 
     Returns
@@ -173,7 +181,15 @@ def reproduce(*, seed: int = 0, steps: int = 50, runs: int = 50, designs: dict |
     if designs is None:
         designs = design_gains()
     res = {"designs": designs, "methods": list(methods)}
-    acc = {m: {"inside": 0, "width": np.zeros((steps + 1, 2)), "volume": np.zeros(steps + 1), "seconds": 0.0} for m in methods}
+    acc = {
+        m: {
+            "inside": 0,
+            "width": np.zeros((steps + 1, 2)),
+            "volume": np.zeros(steps + 1),
+            "seconds": 0.0,
+        }
+        for m in methods
+    }
     first = None
     for r in range(runs):
         run = run_once(designs, seed + r, steps, keep_sets=(r == 0), methods=methods)
@@ -220,7 +236,13 @@ def summary_of(res: dict) -> dict:
         "gains": {k: [r(row) for row in v.gains] for k, v in d.items()},
         "paper_gains": PAPER_GAINS,
         "design": {
-            k: {"beta": r(v.beta), "tau": r(v.tau), "lmi_margin": v.lmi_margin, "solver": v.solver, "offline_s": round(v.seconds, 4)}
+            k: {
+                "beta": r(v.beta),
+                "tau": r(v.tau),
+                "lmi_margin": v.lmi_margin,
+                "solver": v.solver,
+                "offline_s": round(v.seconds, 4),
+            }
             for k, v in d.items()
         },
         "containment": {m: res["containment"][m] for m in methods},
@@ -238,7 +260,13 @@ def summary_of(res: dict) -> dict:
 
 
 def run_le2013(
-    out=None, summary_path=None, *, seed: int = 0, steps: int = 50, runs: int = 50, progress: bool = False
+    out=None,
+    summary_path=None,
+    *,
+    seed: int = 0,
+    steps: int = 50,
+    runs: int = 50,
+    progress: bool = False,
 ) -> dict:
     """``quadobs run le2013``: design, reproduce, record (``out``, ``.rrd``) and summarise (``summary_path``)."""
     if out is not None or summary_path is not None:
@@ -267,8 +295,12 @@ def format_table(summary: dict) -> str:
     for k in ("first_approach", "second_approach"):
         ours, paper = summary["gains"][k], summary["paper_gains"][k]
         for i, (a, b) in enumerate(zip(ours, paper)):
-            lines.append(f"{k} lambda_{i + 1}: [{a[0]:+.4f} {a[1]:+.4f}]   paper [{b[0]:+.4f} {b[1]:+.4f}]")
-    lines.append(f"{summary['runs']} runs x {summary['steps']} steps (seeds {summary['seed']}..{summary['seed'] + summary['runs'] - 1})")
+            lines.append(
+                f"{k} lambda_{i + 1}: [{a[0]:+.4f} {a[1]:+.4f}]   paper [{b[0]:+.4f} {b[1]:+.4f}]"
+            )
+    lines.append(
+        f"{summary['runs']} runs x {summary['steps']} steps (seeds {summary['seed']}..{summary['seed'] + summary['runs'] - 1})"
+    )
     head = f"{'method':16s} {'width x1':>9s} {'width x2':>9s} {'volume':>9s} {'inside':>7s} {'us/step':>8s}"
     lines.append(head)
     t = summary["timing"]["online_us_per_step"]
@@ -277,5 +309,7 @@ def format_table(summary: dict) -> str:
             f"{m:16s} {w[0]:9.4f} {w[1]:9.4f} {summary['mean_volume'][m]:9.5f} {summary['containment'][m]:7.3f} {t[m]:8.1f}"
         )
     off = summary["timing"]["offline_s"]
-    lines.append(f"offline LMI design: first approach {off['first_approach']:.3f} s, second approach {off['second_approach']:.3f} s")
+    lines.append(
+        f"offline LMI design: first approach {off['first_approach']:.3f} s, second approach {off['second_approach']:.3f} s"
+    )
     return "\n".join(lines)

@@ -36,10 +36,18 @@ from quadobs.errors import QuadobsError
 from quadobs.studies.plot import campaign as _campaign
 from quadobs.studies.plot import le2013 as _le2013
 from quadobs.studies.plot import run as _run
-from quadobs.studies.plot._figure import DEFAULT_DPI, DEFAULT_SIZE, FORMATS, require_matplotlib, drawing, new_figure, save_figure
+from quadobs.studies.plot._figure import (
+    DEFAULT_DPI,
+    DEFAULT_SIZE,
+    FORMATS,
+    drawing,
+    new_figure,
+    require_matplotlib,
+    save_figure,
+)
 from quadobs.studies.plot._source import open_source
 
-__all__ = ["render", "figure", "PANELS", "DEFAULT_SIZE", "DEFAULT_DPI", "FORMATS"]
+__all__ = ["DEFAULT_DPI", "DEFAULT_SIZE", "FORMATS", "PANELS", "figure", "render"]
 
 _KINDS = {"run": _run, "campaign": _campaign, "le2013": _le2013}
 PANELS: dict[str, list[str]] = {kind: list(mod.PANELS) for kind, mod in _KINDS.items()}
@@ -67,7 +75,9 @@ def _check_size(size, dpi) -> tuple[tuple[float, float], float]:
     size = DEFAULT_SIZE if size is None else tuple(float(v) for v in size)
     dpi = DEFAULT_DPI if dpi is None else float(dpi)
     if len(size) != 2 or not all(0.5 <= v <= 50 for v in size):
-        raise QuadobsError(f"--size: width and height must be between 0.5 and 50 inches, got {size}")
+        raise QuadobsError(
+            f"--size: width and height must be between 0.5 and 50 inches, got {size}"
+        )
     if not 10 <= dpi <= 1200:
         raise QuadobsError(f"--dpi: must be between 10 and 1200, got {dpi:g}")
     return size, dpi
@@ -94,12 +104,19 @@ def figure(input, what=None, *, size=None, dpi=None, samples=None, legend: bool 
             kw = {"samples": samples} if name == "sets" and samples is not None else {}
             mod.PANELS[name](axes[name], src, **kw)
             ax = axes[name]
-            if legend and ax in fig.axes and ax.get_legend() is None and ax.get_legend_handles_labels()[0]:
+            if (
+                legend
+                and ax in fig.axes
+                and ax.get_legend() is None
+                and ax.get_legend_handles_labels()[0]
+            ):
                 ax.legend(loc="best", frameon=False)
     return fig, dpi
 
 
-def render(input, out, what=None, *, size=None, dpi=None, samples=None, legend: bool = True) -> Path:
+def render(
+    input, out, what=None, *, size=None, dpi=None, samples=None, legend: bool = True
+) -> Path:
     """Draw the figure of ``input`` with the panels ``what`` and write it to ``out``.
 
     Parameters
@@ -133,6 +150,8 @@ def render(input, out, what=None, *, size=None, dpi=None, samples=None, legend: 
     """
     out = Path(out)
     if out.suffix.lower().lstrip(".") not in FORMATS:
-        raise QuadobsError(f"--out {str(out)!r}: format {out.suffix or '(none)'!r} not supported (use .png, .pdf or .svg)")
+        raise QuadobsError(
+            f"--out {str(out)!r}: format {out.suffix or '(none)'!r} not supported (use .png, .pdf or .svg)"
+        )
     fig, dpi = figure(input, what, size=size, dpi=dpi, samples=samples, legend=legend)
     return save_figure(fig, out, dpi)

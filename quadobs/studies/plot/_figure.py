@@ -21,7 +21,17 @@ import numpy as np
 
 from quadobs.errors import QuadobsError
 
-__all__ = ["FORMATS", "DEFAULT_SIZE", "DEFAULT_DPI", "require_matplotlib", "drawing", "new_figure", "save_figure", "style", "thin"]
+__all__ = [
+    "DEFAULT_DPI",
+    "DEFAULT_SIZE",
+    "FORMATS",
+    "drawing",
+    "new_figure",
+    "require_matplotlib",
+    "save_figure",
+    "style",
+    "thin",
+]
 
 FORMATS = ("png", "pdf", "svg")
 DEFAULT_SIZE = (7.0, 4.5)  # inches: the full text width of a two-column paper
@@ -33,7 +43,12 @@ _STYLES = [
     {"color": "0.35", "linestyle": "--", "marker": "s", "markerfacecolor": "white"},
     {"color": "0.55", "linestyle": ":", "marker": "^"},
     {"color": "0.2", "linestyle": "-.", "marker": "D"},
-    {"color": "0.45", "linestyle": (0, (5, 1, 1, 1, 1, 1)), "marker": "v", "markerfacecolor": "white"},
+    {
+        "color": "0.45",
+        "linestyle": (0, (5, 1, 1, 1, 1, 1)),
+        "marker": "v",
+        "markerfacecolor": "white",
+    },
     {"color": "0.65", "linestyle": (0, (1, 1)), "marker": "x"},
 ]
 TRUTH_STYLE = {"color": "0.0", "linestyle": "-", "linewidth": 1.6}
@@ -88,7 +103,10 @@ def style(i: int, n: int | None = None, markers: int = 8) -> dict:
         st["marker"] = None
     else:
         step = max(1, n // max(markers, 1))
-        st["markevery"] = ((i * step) // 3 % step, step)  # staggered: markers of two lines do not hide each other
+        st["markevery"] = (
+            (i * step) // 3 % step,
+            step,
+        )  # staggered: markers of two lines do not hide each other
     return st
 
 
@@ -103,7 +121,9 @@ def thin(*arrays: np.ndarray, limit: int = 3000) -> tuple[np.ndarray, ...]:
 
 
 def _grid(n: int) -> tuple[int, int]:
-    return {1: (1, 1), 2: (1, 2), 3: (1, 3), 4: (2, 2), 5: (2, 3), 6: (2, 3)}.get(n, (math.ceil(n / 3), 3))
+    return {1: (1, 1), 2: (1, 2), 3: (1, 3), 4: (2, 2), 5: (2, 3), 6: (2, 3)}.get(
+        n, (math.ceil(n / 3), 3)
+    )
 
 
 def new_figure(panels: list[str], size: tuple[float, float], dpi: float, three_d=()):
@@ -136,10 +156,14 @@ def save_figure(fig, out: str | Path, dpi: float) -> Path:
     out = Path(out)
     fmt = out.suffix.lower().lstrip(".")
     if fmt not in FORMATS:
-        raise QuadobsError(f"--out {str(out)!r}: format {out.suffix or '(none)'!r} not supported (use .png, .pdf or .svg)")
+        raise QuadobsError(
+            f"--out {str(out)!r}: format {out.suffix or '(none)'!r} not supported (use .png, .pdf or .svg)"
+        )
     if out.is_dir():
         raise QuadobsError(f"--out {str(out)!r}: is a directory, expected a file name")
-    made = [p for p in reversed(out.parent.parents) if not p.exists()] + ([out.parent] if not out.parent.exists() else [])
+    made = [p for p in reversed(out.parent.parents) if not p.exists()] + (
+        [out.parent] if not out.parent.exists() else []
+    )
     try:
         out.parent.mkdir(parents=True, exist_ok=True)
         fd, tmp = tempfile.mkstemp(prefix=f".{out.name}.", suffix=f".{fmt}", dir=out.parent)

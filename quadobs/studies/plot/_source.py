@@ -9,8 +9,8 @@ layouts, is refused with a one-line :class:`~quadobs.errors.QuadobsError`.
 from __future__ import annotations
 
 import re
-from contextlib import contextmanager
 import warnings
+from contextlib import contextmanager
 from functools import cached_property
 from pathlib import Path
 
@@ -41,7 +41,9 @@ def _reading(path: Path, what: str = "recording"):
         except QuadobsError:
             raise
         except Exception as exc:
-            raise QuadobsError(f"{what} {str(path)!r}: cannot be read, damaged or not a rerun recording ({_one_line(exc)})") from None
+            raise QuadobsError(
+                f"{what} {str(path)!r}: cannot be read, damaged or not a rerun recording ({_one_line(exc)})"
+            ) from None
 
 
 class Source:
@@ -56,7 +58,9 @@ class Source:
         The campaign folder (``runs.parquet`` beside ``statistics.rrd``).
     """
 
-    def __init__(self, path: Path, kind: str, entities: list[str], folder: Path | None = None) -> None:
+    def __init__(
+        self, path: Path, kind: str, entities: list[str], folder: Path | None = None
+    ) -> None:
         self.path, self.kind, self.entities, self.folder = path, kind, entities, folder
         self._cache: dict[str, dict[str, np.ndarray]] = {}
 
@@ -72,7 +76,9 @@ class Source:
 
     def names(self, pattern: str) -> list[str]:
         """The ``<x>`` of the entities matching ``pattern`` (a path with one ``<x>``), in recording order."""
-        rx = re.compile("^/" + re.escape(pattern.strip("/")).replace(re.escape("<x>"), "([^/]+)") + "$")
+        rx = re.compile(
+            "^/" + re.escape(pattern.strip("/")).replace(re.escape("<x>"), "([^/]+)") + "$"
+        )
         out = []
         for e in self.entities:
             m = rx.match(e)
@@ -101,11 +107,22 @@ class Source:
                 if ch.is_static or str(ch.entity_path) != entity:
                     continue
                 rb = ch.to_record_batch()
-                comp = next((c for c in ("LineStrips2D:strips", "Points2D:positions") if c in rb.schema.names), None)
+                comp = next(
+                    (
+                        c
+                        for c in ("LineStrips2D:strips", "Points2D:positions")
+                        if c in rb.schema.names
+                    ),
+                    None,
+                )
                 if comp is None or "step" not in rb.schema.names:
                     continue
                 for s, v in zip(rb.column("step").to_pylist(), rb.column(comp).to_pylist()):
-                    out[int(s)] = [np.asarray(x, dtype=float) for x in v] if comp.startswith("Line") else [np.asarray(v, dtype=float)]
+                    out[int(s)] = (
+                        [np.asarray(x, dtype=float) for x in v]
+                        if comp.startswith("Line")
+                        else [np.asarray(v, dtype=float)]
+                    )
         if not out:
             raise QuadobsError(f"recording {str(self.path)!r}: no sets at entity {entity!r}")
         return out
@@ -120,20 +137,26 @@ class Source:
                 if ch.is_static and str(ch.entity_path) == entity:
                     rb = ch.to_record_batch()
                     if "Points3D:positions" in rb.schema.names:
-                        return np.asarray(rb.column("Points3D:positions").to_pylist()[-1], dtype=float)
+                        return np.asarray(
+                            rb.column("Points3D:positions").to_pylist()[-1], dtype=float
+                        )
         return None
 
     def runs_table(self) -> dict[str, list]:
         """The campaign's ``runs.parquet`` as columns."""
         path = (self.folder or self.path.parent) / "runs.parquet"
         if not path.is_file():
-            raise QuadobsError(f"campaign {str(path.parent)!r}: no runs.parquet beside statistics.rrd")
+            raise QuadobsError(
+                f"campaign {str(path.parent)!r}: no runs.parquet beside statistics.rrd"
+            )
         import pyarrow.parquet as pq
 
         try:
             return pq.read_table(path).to_pydict()
         except Exception as exc:
-            raise QuadobsError(f"campaign table {str(path)!r}: cannot be read ({_one_line(exc)})") from None
+            raise QuadobsError(
+                f"campaign table {str(path)!r}: cannot be read ({_one_line(exc)})"
+            ) from None
 
 
 def _kind_of(entities: list[str]) -> str | None:
@@ -159,7 +182,9 @@ def open_source(path: str | Path) -> Source:
     if path.is_dir():
         folder, path = path, path / "statistics.rrd"
         if not path.is_file():
-            raise QuadobsError(f"input {str(folder)!r}: a folder without statistics.rrd is not a campaign folder")
+            raise QuadobsError(
+                f"input {str(folder)!r}: a folder without statistics.rrd is not a campaign folder"
+            )
     elif not path.exists():
         raise QuadobsError(f"input {str(path)!r}: no such file or folder")
     with _reading(path, "input"):

@@ -23,7 +23,12 @@ ESTIMATORS = {
     "ifac2021-bounded": ["augmented", "zonotope"],
 }
 """Estimators drawn for a scenario (default: the augmented observer and the scenario's variants)."""
-CAMPAIGN = {"scenario": "ifac2021-noisy", "runs": 16, "duration": 20.0, "estimators": ["augmented", "ekf", "ukf"]}
+CAMPAIGN = {
+    "scenario": "ifac2021-noisy",
+    "runs": 16,
+    "duration": 20.0,
+    "estimators": ["augmented", "ekf", "ukf"],
+}
 
 
 def make_figures(folder, *, only=None, log=print) -> list[Path]:
@@ -68,10 +73,25 @@ def make_figures(folder, *, only=None, log=print) -> list[Path]:
                 written.append(render(rrd, folder / "le2013.png", dpi=DPI))
             elif name == "campaign":
                 sc = load_scenario(CAMPAIGN["scenario"], duration=CAMPAIGN["duration"])
-                run_campaign(sc, runs=CAMPAIGN["runs"], estimators=CAMPAIGN["estimators"], out_dir=Path(tmp) / "camp", progress=False)
-                written.append(render(Path(tmp) / "camp", folder / f"campaign-{CAMPAIGN['scenario']}.png", dpi=DPI))
+                run_campaign(
+                    sc,
+                    runs=CAMPAIGN["runs"],
+                    estimators=CAMPAIGN["estimators"],
+                    out_dir=Path(tmp) / "camp",
+                    progress=False,
+                )
+                written.append(
+                    render(
+                        Path(tmp) / "camp", folder / f"campaign-{CAMPAIGN['scenario']}.png", dpi=DPI
+                    )
+                )
             else:
                 sc = load_scenario(name)
-                run_episode(sc, estimators=ESTIMATORS.get(name, default_estimators(sc)), out=rrd, progress=False)
+                run_episode(
+                    sc,
+                    estimators=ESTIMATORS.get(name, default_estimators(sc)),
+                    out=rrd,
+                    progress=False,
+                )
                 written.append(render(rrd, folder / f"{name}.png", dpi=DPI))
     return written

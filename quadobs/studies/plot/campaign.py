@@ -25,7 +25,16 @@ def _rmse(ax, src, what: str, unit: str) -> None:
     if src.has(f"stats/pcrb/{what}"):
         _line(ax, src, f"stats/pcrb/{what}", 0, "sqrt PCRB", **dict(TRUTH_STYLE, marker=None))
     if src.has(f"stats/immersion_bound/{what}"):
-        _line(ax, src, f"stats/immersion_bound/{what}", 0, "linear bound", color="0.5", linestyle="--", marker=None)
+        _line(
+            ax,
+            src,
+            f"stats/immersion_bound/{what}",
+            0,
+            "linear bound",
+            color="0.5",
+            linestyle="--",
+            marker=None,
+        )
     ax.set_yscale("log")
     ax.set_xlabel("time (s)")
     ax.set_ylabel(f"RMSE ({unit})")
@@ -90,8 +99,13 @@ def final(ax, src) -> None:
     drawn = False
     for i, e in enumerate(src.estimators):
         v = np.array(
-            [x for x, nm, st in zip(table["final_position_error"], table["estimator"], table["status"])
-             if nm == e and st == "ok" and x is not None],
+            [
+                x
+                for x, nm, st in zip(
+                    table["final_position_error"], table["estimator"], table["status"]
+                )
+                if nm == e and st == "ok" and x is not None
+            ],
             dtype=float,
         )
         v = np.sort(v[np.isfinite(v) & (v > 0)])

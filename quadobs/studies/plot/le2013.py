@@ -46,7 +46,9 @@ def sets(ax, src, samples=None) -> None:
             for v in strips[k]:
                 sub.plot(v[:, 0], v[:, 1], label=m, **style(i + 1))
         p = truth[k][0].reshape(-1, 2)[0]
-        sub.plot(p[0], p[1], linestyle="none", marker="*", color="0.0", markersize=7, label="true state")
+        sub.plot(
+            p[0], p[1], linestyle="none", marker="*", color="0.0", markersize=7, label="true state"
+        )
         sub.set_xlabel("x1 (-)")
         sub.set_ylabel("x2 (-)")
         sub.set_title(f"Sets X_k, k = {k}")
@@ -114,7 +116,13 @@ def bounds(ax, src) -> None:
     ax.set_title("Bounds of x1 (first run)")
 
 
-PANELS = {"sets": sets, "width-x1": width_x1, "width-x2": width_x2, "volume": volume, "bounds": bounds}
+PANELS = {
+    "sets": sets,
+    "width-x1": width_x1,
+    "width-x2": width_x2,
+    "volume": volume,
+    "bounds": bounds,
+}
 THREE_D = ()
 
 

@@ -32,7 +32,15 @@ def paths(ax, src, planes=(0, 1)) -> None:
         ax.plot(p[:, a], p[:, b], label=e, **style(i, len(p), markers=12))
     beacons = src.static_points("world/beacons")
     if beacons is not None:
-        ax.plot(beacons[:, a], beacons[:, b], linestyle="none", marker="x", color="0.0", markersize=6, label="beacons")
+        ax.plot(
+            beacons[:, a],
+            beacons[:, b],
+            linestyle="none",
+            marker="x",
+            color="0.0",
+            markersize=6,
+            label="beacons",
+        )
     ax.set_xlabel(f"{_AXES[a]} (m)")
     ax.set_ylabel(f"{_AXES[b]} (m)")
     ax.set_title("Paths (x-y projection)")
@@ -68,7 +76,9 @@ def position(ax, src) -> None:
 def velocity(ax, src) -> None:
     """Velocity error norm ``|v_hat - v|`` over time, log scale (estimators with a velocity)."""
     if not _has_velocity(src):
-        raise QuadobsError("--what velocity: the recording has no velocity estimate (a state without a velocity)")
+        raise QuadobsError(
+            "--what velocity: the recording has no velocity estimate (a state without a velocity)"
+        )
     _error_norm(ax, src, "velocity", "m/s", "Velocity error")
 
 
@@ -127,7 +137,15 @@ def nis(ax, src, confidence: float = 0.95) -> None:
         if not band:
             dof = np.maximum(_measurement_counts(src, steps), 1)
             lo, hi = chi2.ppf((1 - confidence) / 2, dof), chi2.ppf((1 + confidence) / 2, dof)
-            ax.fill_between(t, lo, hi, step="mid", color="0.85", linewidth=0, label=f"chi-square {confidence:.0%}")
+            ax.fill_between(
+                t,
+                lo,
+                hi,
+                step="mid",
+                color="0.85",
+                linewidth=0,
+                label=f"chi-square {confidence:.0%}",
+            )
             band = True
         ax.plot(t, v, label=e, **dict(style(i, 1, markers=1), linestyle="none", markersize=1.5))
     if not band:
@@ -142,7 +160,9 @@ def bounds(ax, src) -> None:
     """Guaranteed position bounds minus the truth, per axis (the truth is the zero line), symlog scale."""
     bounded = [e for e in src.estimators if src.has(f"errors/{e}/position/bounds")]
     if not bounded:
-        raise QuadobsError("--what bounds: the recording has no guaranteed bounds (no set-valued estimator)")
+        raise QuadobsError(
+            "--what bounds: the recording has no guaranteed bounds (no set-valued estimator)"
+        )
     i = 0
     for e in bounded:
         s = src.series(f"errors/{e}/position/bounds")
@@ -163,7 +183,9 @@ def bounds(ax, src) -> None:
 def excitation(ax, src) -> None:
     """The excitation measure ``log10 mu`` against the threshold; windows below it shaded."""
     if not src.has("excitation/log10"):
-        raise QuadobsError("--what excitation: the recording has no excitation monitor (scenario excitation.monitor)")
+        raise QuadobsError(
+            "--what excitation: the recording has no excitation monitor (scenario excitation.monitor)"
+        )
     s = src.series("excitation/log10")
     t, mu, thr = s["sim_time"], s["values"][:, 0], s["values"][:, 1]
     ax.plot(t, mu, label="log10 mu", **style(0))
@@ -172,7 +194,17 @@ def excitation(ax, src) -> None:
     if low.any():
         top = np.nanmax(np.r_[mu, thr])
         bottom = np.nanmin(np.r_[mu, thr])
-        ax.fill_between(t, bottom, top, where=low, step="mid", color="0.85", hatch="//", linewidth=0, label="below threshold")
+        ax.fill_between(
+            t,
+            bottom,
+            top,
+            where=low,
+            step="mid",
+            color="0.85",
+            hatch="//",
+            linewidth=0,
+            label="below threshold",
+        )
     ax.set_xlabel("time (s)")
     ax.set_ylabel("log10 of the Gramian's lambda_min (-)")
     ax.set_title("Persistence of excitation")

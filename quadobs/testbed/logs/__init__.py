@@ -8,4 +8,12 @@
 from quadobs.testbed.logs.format import LOG_FILES, RangeLog, read_log, write_log
 from quadobs.testbed.logs.plaza import BUILTIN_LOGS, load_builtin, open_log
 
-__all__ = ["BUILTIN_LOGS", "LOG_FILES", "RangeLog", "load_builtin", "open_log", "read_log", "write_log"]
+__all__ = [
+    "BUILTIN_LOGS",
+    "LOG_FILES",
+    "RangeLog",
+    "load_builtin",
+    "open_log",
+    "read_log",
+    "write_log",
+]

@@ -41,7 +41,13 @@ from quadobs.testbed.logs.estimators import ReplaySetup, build_replay_estimators
 from quadobs.testbed.sinks import Rows, Sink
 from quadobs.testbed.worlds.replay import ReplayWorld, default_model, state_size
 
-__all__ = ["NOISE_FACTORS", "calibrate_biases", "calibrate_noise", "process_noise_key", "self_calibrate"]
+__all__ = [
+    "NOISE_FACTORS",
+    "calibrate_biases",
+    "calibrate_noise",
+    "process_noise_key",
+    "self_calibrate",
+]
 
 #: The factors of the prior process-noise intensity that :func:`calibrate_noise` tries.
 NOISE_FACTORS = tuple(4.0**j for j in range(-4, 4))
@@ -74,19 +80,33 @@ def _initial(log, model: str, x0) -> np.ndarray:
     return x
 
 
-def _residuals(log, dt, model, biases, x0, estimator, setup_options) -> tuple[np.ndarray, np.ndarray]:
+def _residuals(
+    log, dt, model, biases, x0, estimator, setup_options
+) -> tuple[np.ndarray, np.ndarray]:
     """One replay with ``biases``: the prediction residuals ``r`` of the second half's ranges and their beacons ``h``."""
     P, steps = _replayed_positions(log, dt, model, biases, x0, estimator, setup_options)
     k = np.floor((log.ranges[:, 0] - log.start) / dt + 1e-9).astype(np.int64)
     h = log.beacon_index(log.ranges[:, 1])
     late = (k >= steps // 2) & (k < steps)
-    r = log.ranges[late, 2] - biases[h[late]] - np.linalg.norm(P[k[late]] - log.beacons[h[late]], axis=1)
+    r = (
+        log.ranges[late, 2]
+        - biases[h[late]]
+        - np.linalg.norm(P[k[late]] - log.beacons[h[late]], axis=1)
+    )
     ok = np.isfinite(r)
     return r[ok], h[late][ok]
 
 
-def calibrate_biases(log, *, dt: float = 0.1, model: str | None = None, x0=None, estimator: str = "ekf",
-                     iterations: int = 3, setup_options: dict | None = None) -> np.ndarray:
+def calibrate_biases(
+    log,
+    *,
+    dt: float = 0.1,
+    model: str | None = None,
+    x0=None,
+    estimator: str = "ekf",
+    iterations: int = 3,
+    setup_options: dict | None = None,
+) -> np.ndarray:
     """Per-beacon range biases ``(q,)`` (m) by the fixed-point iteration of the module docstring.
 
     ``model``: default :func:`~quadobs.testbed.worlds.replay.default_model`; ``x0``: the
@@ -103,8 +123,16 @@ def calibrate_biases(log, *, dt: float = 0.1, model: str | None = None, x0=None,
     return b
 
 
-def calibrate_noise(log, biases, *, dt: float = 0.1, model: str | None = None, x0=None, estimator: str = "ekf",
-                    setup_options: dict | None = None) -> tuple[float, dict]:
+def calibrate_noise(
+    log,
+    biases,
+    *,
+    dt: float = 0.1,
+    model: str | None = None,
+    x0=None,
+    estimator: str = "ekf",
+    setup_options: dict | None = None,
+) -> tuple[float, dict]:
     """The model's process-noise intensity with the smallest prediction score (module docstring).
 
     Returns the intensity and the score (m) of every one tried, ``{intensity: score}``.
@@ -117,14 +145,23 @@ def calibrate_noise(log, biases, *, dt: float = 0.1, model: str | None = None, x
     for factor in NOISE_FACTORS:
         q = prior * factor
         r, h = _residuals(log, dt, model, b, x0, estimator, {**(setup_options or {}), key: q})
-        centred = r - np.array([np.median(r[h == j]) if np.any(h == j) else 0.0 for j in range(b.size)])[h]
+        centred = (
+            r
+            - np.array([np.median(r[h == j]) if np.any(h == j) else 0.0 for j in range(b.size)])[h]
+        )
         scores[q] = float(np.median(np.abs(centred)))
     best = min(scores.values())
     return min(q for q, score in scores.items() if score <= (1.0 + TIE) * best), scores
 
 
-def self_calibrate(log, *, dt: float = 0.1, model: str | None = None, setup_options: dict | None = None,
-                   noise: bool = True) -> tuple[np.ndarray, dict, dict]:
+def self_calibrate(
+    log,
+    *,
+    dt: float = 0.1,
+    model: str | None = None,
+    setup_options: dict | None = None,
+    noise: bool = True,
+) -> tuple[np.ndarray, dict, dict]:
     """Biases and (with ``noise``) the process noise from the log (module docstring).
 
     Returns the biases, the setup options (``setup_options`` with the chosen intensity)
@@ -139,7 +176,9 @@ def self_calibrate(log, *, dt: float = 0.1, model: str | None = None, setup_opti
     return calibrate_biases(log, dt=dt, model=model, setup_options=options), options, scores
 
 
-def _replayed_positions(log, dt, model, biases, x0, estimator, setup_options) -> tuple[np.ndarray, int]:
+def _replayed_positions(
+    log, dt, model, biases, x0, estimator, setup_options
+) -> tuple[np.ndarray, int]:
     """One replay of ``log`` with ``biases`` through ``estimator``: its position at every step ``(K + 1, dim)``, and ``K``."""
     from quadobs.testbed.episode import run_loop
 

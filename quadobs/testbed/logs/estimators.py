@@ -45,15 +45,27 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from quadobs.core.immersion import immerse
-from quadobs.core.system import QuadraticSystem, constant_velocity_system, odometry_system, vehicle_system
+from quadobs.core.system import (
+    QuadraticSystem,
+    constant_velocity_system,
+    odometry_system,
+    vehicle_system,
+)
 from quadobs.errors import QuadobsError
 from quadobs.estimators.augmented import AugmentedObserver
 from quadobs.estimators.base import Estimator
 from quadobs.estimators.kalman import ExtendedKalmanFilter, HeldInputModel, OutputModel
 
 __all__ = [
-    "REPLAY_ENTRY_POINT_GROUP", "REPLAY_ESTIMATORS", "ReplaySetup", "build_isam2", "build_replay_estimators",
-    "replay_estimator_names", "replay_setup", "parse_tuning", "TUNING",
+    "REPLAY_ENTRY_POINT_GROUP",
+    "REPLAY_ESTIMATORS",
+    "TUNING",
+    "ReplaySetup",
+    "build_isam2",
+    "build_replay_estimators",
+    "parse_tuning",
+    "replay_estimator_names",
+    "replay_setup",
 ]
 
 #: The entry-point group of the estimators of logged data.
@@ -99,8 +111,12 @@ class ReplaySetup:
     def __post_init__(self) -> None:
         for key in TUNING:
             value = getattr(self, key)
-            if not (key == "gate" and value is None) and not (isinstance(value, (int, float)) and 0 < value < math.inf):
-                raise QuadobsError(f"{key}: expected a positive finite number{' or none' if key == 'gate' else ''}, got {value!r}")
+            if not (key == "gate" and value is None) and not (
+                isinstance(value, (int, float)) and 0 < value < math.inf
+            ):
+                raise QuadobsError(
+                    f"{key}: expected a positive finite number{' or none' if key == 'gate' else ''}, got {value!r}"
+                )
         dim = self.beacons.shape[1]
         inputs = 3 if self.input_kind == "odometry" else dim
         make = {
@@ -133,7 +149,9 @@ def parse_tuning(settings) -> dict:
         key, sep, raw = text.partition("=")
         key = key.strip()
         if not sep or key not in TUNING:
-            raise QuadobsError(f"--tune: expected KEY=VALUE with KEY one of {', '.join(TUNING)}, got {text!r}")
+            raise QuadobsError(
+                f"--tune: expected KEY=VALUE with KEY one of {', '.join(TUNING)}, got {text!r}"
+            )
         if key == "gate" and raw.strip().lower() == "none":
             out[key] = None
             continue
@@ -148,9 +166,18 @@ def replay_setup(log, world, options: dict | None = None) -> ReplaySetup:
     """The setup of a replay of ``log`` on ``world`` (:class:`~quadobs.testbed.worlds.replay.ReplayWorld`), ``options`` its noise settings."""
     from quadobs.testbed.worlds.replay import dead_reckoning
 
-    heading = float(dead_reckoning(log, world.times[:1])[1][0]) if log.input_kind == "odometry" else 0.0
-    return ReplaySetup(log.beacons, world.dt, world.model, heading, float(np.median(log.ranges[:, 2])),
-                       input_kind=log.input_kind, **(options or {}))
+    heading = (
+        float(dead_reckoning(log, world.times[:1])[1][0]) if log.input_kind == "odometry" else 0.0
+    )
+    return ReplaySetup(
+        log.beacons,
+        world.dt,
+        world.model,
+        heading,
+        float(np.median(log.ranges[:, 2])),
+        input_kind=log.input_kind,
+        **(options or {}),
+    )
 
 
 def _acceleration_noise(s: ReplaySetup) -> float:
@@ -179,7 +206,9 @@ def build_augmented(s: ReplaySetup, x0: np.ndarray, name: str = "augmented") -> 
     p0 = np.asarray(x0[: s.dim], dtype=float)
     P = np.eye(im.dim) * s.P0
     z0 = im.lift(x0)
-    if s.model == "odometry":  # the covariance of lift(x) for x ~ N(x0, P0 I): exact for xi = |p|^2/2
+    if (
+        s.model == "odometry"
+    ):  # the covariance of lift(x) for x ~ N(x0, P0 I): exact for xi = |p|^2/2
         P[0, 0] = s.P0 * p0 @ p0 + s.P0**2
         P[0, k : k + s.dim] = P[k : k + s.dim, 0] = s.P0 * p0
     else:
@@ -193,7 +222,9 @@ def build_augmented(s: ReplaySetup, x0: np.ndarray, name: str = "augmented") -> 
 def build_ekf(s: ReplaySetup, x0: np.ndarray, name: str = "ekf") -> ExtendedKalmanFilter:
     """The EKF on ``x`` in the range space (:class:`~quadobs.estimators.kalman.OutputModel` with offsets)."""
     dyn = HeldInputModel(s.system, s.dt, V=_process_noise(s))
-    out = OutputModel(s.system, s.range_sigma**2, offsets=0.5 * np.einsum("hi,hi->h", s.beacons, s.beacons))
+    out = OutputModel(
+        s.system, s.range_sigma**2, offsets=0.5 * np.einsum("hi,hi->h", s.beacons, s.beacons)
+    )
     P0 = np.full(s.n, s.P0)
     P0[s.dim :] = 4.0  # the velocity, for the models that have one
     est = ExtendedKalmanFilter(dyn, out, x0=x0, P0=np.diag(P0), gate=s.gate)
@@ -204,13 +235,26 @@ def build_ekf(s: ReplaySetup, x0: np.ndarray, name: str = "ekf") -> ExtendedKalm
 def build_isam2(s, x0: np.ndarray, name: str = "isam2") -> Estimator:
     """Entry point ``isam2``: the GTSAM peer (:class:`~quadobs.estimators.gtsam_peer.Isam2RangeOnly`); logged data only."""
     if not isinstance(s, ReplaySetup):
-        raise QuadobsError(f"estimators: {name!r} runs on logged data only (quadobs replay), not in a simulated scenario")
+        raise QuadobsError(
+            f"estimators: {name!r} runs on logged data only (quadobs replay), not in a simulated scenario"
+        )
     if s.input_kind != "odometry":
-        raise QuadobsError(f"estimators: {name!r} needs a planar odometry log (inputs time,speed,yaw_rate), not an accelerometer log")
+        raise QuadobsError(
+            f"estimators: {name!r} needs a planar odometry log (inputs time,speed,yaw_rate), not an accelerometer log"
+        )
     from quadobs.estimators.gtsam_peer import Isam2RangeOnly
 
-    est = Isam2RangeOnly(s.beacons, s.dt, x0=x0, heading0=s.heading0, P0=s.P0, n=s.n, range_sigma=s.range_sigma,
-                         q_xy=s.q_xy, q_theta=s.q_theta)
+    est = Isam2RangeOnly(
+        s.beacons,
+        s.dt,
+        x0=x0,
+        heading0=s.heading0,
+        P0=s.P0,
+        n=s.n,
+        range_sigma=s.range_sigma,
+        q_xy=s.q_xy,
+        q_theta=s.q_theta,
+    )
     est.name = name
     return est
 
@@ -235,14 +279,20 @@ def _factory(name: str):
         return REPLAY_ESTIMATORS[name]
     ep = _entry_points().get(name)
     if ep is None:
-        raise QuadobsError(f"estimators: unknown estimator {name!r} for logged data; available: {', '.join(replay_estimator_names())}")
+        raise QuadobsError(
+            f"estimators: unknown estimator {name!r} for logged data; available: {', '.join(replay_estimator_names())}"
+        )
     try:
         return ep.load()
     except Exception as exc:
-        raise QuadobsError(f"estimators: entry point {name!r} ({ep.value}) cannot be loaded: {type(exc).__name__}") from None
+        raise QuadobsError(
+            f"estimators: entry point {name!r} ({ep.value}) cannot be loaded: {type(exc).__name__}"
+        ) from None
 
 
-def build_replay_estimators(setup: ReplaySetup, names: list[str], x0: np.ndarray) -> list[Estimator]:
+def build_replay_estimators(
+    setup: ReplaySetup, names: list[str], x0: np.ndarray
+) -> list[Estimator]:
     """The named estimators, all from ``x0`` (built-in names first, then the entry points)."""
     if len(set(names)) != len(names):
         raise QuadobsError(f"estimators: names must be distinct, got {names}")
@@ -251,7 +301,9 @@ def build_replay_estimators(setup: ReplaySetup, names: list[str], x0: np.ndarray
         factory = _factory(name)
         est = factory(setup, np.array(x0, dtype=float), name)
         if not isinstance(est, Estimator):
-            raise QuadobsError(f"estimators: the factory of {name!r} returned {type(est).__name__}, not an Estimator")
+            raise QuadobsError(
+                f"estimators: the factory of {name!r} returned {type(est).__name__}, not an Estimator"
+            )
         est.name = name
         out.append(est)
     return out

@@ -34,8 +34,10 @@ def check_exportable(scenario) -> None:
     """A one-line error unless ``scenario`` can be written as a log (a vehicle scenario without wind)."""
     if scenario.kind != "vehicle" or scenario.has_wind:
         what = "a quadrotor" if scenario.kind != "vehicle" else "a wind scenario"
-        raise QuadobsError(f"--export-log: {scenario.name!r} is {what}; the log format holds ranges, an accelerometer "
-                           "in the navigation frame and the truth of a vehicle scenario without wind")
+        raise QuadobsError(
+            f"--export-log: {scenario.name!r} is {what}; the log format holds ranges, an accelerometer "
+            "in the navigation frame and the truth of a vehicle scenario without wind"
+        )
 
 
 class LogExportSink(Sink):
@@ -56,7 +58,9 @@ class LogExportSink(Sink):
         super().begin(ctx)
         fr = ctx.frame
         if fr.has_wind or ctx.block.columns.n != 2 * fr.dimension:
-            raise QuadobsError(f"--export-log: {fr.name!r}: the log format holds a position and velocity state only")
+            raise QuadobsError(
+                f"--export-log: {fr.name!r}: the log format holds a position and velocity state only"
+            )
 
     def block(self, rows: Rows) -> None:
         fr, c = self.ctx.frame, rows.block.columns
@@ -76,9 +80,15 @@ class LogExportSink(Sink):
         inputs = np.vstack(self.parts["inputs"] + [np.r_[completed * fr.dt, np.zeros(dim)][None]])
         axes = "xyz"[:dim]
         log = RangeLog(
-            fr.name, np.arange(fr.beacons.shape[0]), np.asarray(fr.beacons, dtype=float),
-            np.vstack(self.parts["ranges"]).reshape(-1, 3), inputs, float("nan"), np.vstack(self.parts["truth"]),
-            input_kind="imu", truth_columns=("time", *axes, *(f"v{a}" for a in axes)),
+            fr.name,
+            np.arange(fr.beacons.shape[0]),
+            np.asarray(fr.beacons, dtype=float),
+            np.vstack(self.parts["ranges"]).reshape(-1, 3),
+            inputs,
+            float("nan"),
+            np.vstack(self.parts["truth"]),
+            input_kind="imu",
+            truth_columns=("time", *axes, *(f"v{a}" for a in axes)),
         )
         write_log(log, self.folder)
         return {"exported_log": str(self.folder)}

@@ -52,7 +52,11 @@ INPUT_KINDS = {"odometry": ("speed", "yaw_rate"), "imu": ("ax", "ay", "az")}
 def _truth_headers() -> tuple[tuple[str, ...], ...]:
     out = []
     for dim, heading, velocity in itertools.product((2, 3), (False, True), (False, True)):
-        out.append(("time", *"xyz"[:dim]) + (("heading",) if heading else ()) + (("vx", "vy", "vz")[:dim] if velocity else ()))
+        out.append(
+            ("time", *"xyz"[:dim])
+            + (("heading",) if heading else ())
+            + (("vx", "vy", "vz")[:dim] if velocity else ())
+        )
     return tuple(out)
 
 
@@ -60,8 +64,10 @@ def _truth_headers() -> tuple[tuple[str, ...], ...]:
 LOG_FILES = {
     "beacons.csv": ((("id", "x", "y"), ("id", "x", "y", "z")), "id,x,y[,z]"),
     "ranges.csv": ((("time", "beacon", "range"),), "time,beacon,range"),
-    "inputs.csv": ((("time", "speed", "yaw_rate"), ("time", "ax", "ay"), ("time", "ax", "ay", "az")),
-                   "time,speed,yaw_rate (odometry) or time,ax,ay[,az] (accelerometer)"),
+    "inputs.csv": (
+        (("time", "speed", "yaw_rate"), ("time", "ax", "ay"), ("time", "ax", "ay", "az")),
+        "time,speed,yaw_rate (odometry) or time,ax,ay[,az] (accelerometer)",
+    ),
     "truth.csv": (_truth_headers(), "time,x,y[,z][,heading][,vx,vy[,vz]]"),
 }
 _OPTIONAL_FILES = ("truth.csv",)
@@ -110,25 +116,37 @@ class RangeLog:
             raise QuadobsError(f"{self.name}: beacons.csv, column id: ids must be distinct")
         for i, b in enumerate(self.ranges[:, 1]):
             if int(b) not in known:
-                raise QuadobsError(f"{self.name}: ranges.csv, row {i + 2}, column beacon: unknown beacon id {int(b)}")
+                raise QuadobsError(
+                    f"{self.name}: ranges.csv, row {i + 2}, column beacon: unknown beacon id {int(b)}"
+                )
         if self.inputs.shape[0] < 2:
             raise QuadobsError(f"{self.name}: inputs.csv: at least two rows are needed")
         if self.truth is not None and not self.truth_columns:
-            object.__setattr__(self, "truth_columns", ("time", "x", "y", "heading")[: self.truth.shape[1]])
+            object.__setattr__(
+                self, "truth_columns", ("time", "x", "y", "heading")[: self.truth.shape[1]]
+            )
         self._check_dimensions()
 
     def _check_dimensions(self) -> None:
         """Inputs and truth in the beacons' dimension; odometry in the plane only."""
         dim = self.dimension
         if self.input_kind not in INPUT_KINDS:
-            raise QuadobsError(f"{self.name}: input kind: expected one of {', '.join(INPUT_KINDS)}, got {self.input_kind!r}")
+            raise QuadobsError(
+                f"{self.name}: input kind: expected one of {', '.join(INPUT_KINDS)}, got {self.input_kind!r}"
+            )
         if self.input_kind == "odometry" and (dim != 2 or self.inputs.shape[1] != 3):
-            raise QuadobsError(f"{self.name}: inputs.csv, row 1: odometry (speed, yaw_rate) needs a planar log (beacons.csv without z)")
+            raise QuadobsError(
+                f"{self.name}: inputs.csv, row 1: odometry (speed, yaw_rate) needs a planar log (beacons.csv without z)"
+            )
         if self.input_kind == "imu" and self.inputs.shape[1] != 1 + dim:
-            raise QuadobsError(f"{self.name}: inputs.csv, row 1: {self.inputs.shape[1] - 1} acceleration columns for "
-                               f"{dim}-D beacons (beacons.csv {'with' if dim == 3 else 'without'} z)")
+            raise QuadobsError(
+                f"{self.name}: inputs.csv, row 1: {self.inputs.shape[1] - 1} acceleration columns for "
+                f"{dim}-D beacons (beacons.csv {'with' if dim == 3 else 'without'} z)"
+            )
         if self.truth is not None and ("z" in self.truth_columns) != (dim == 3):
-            raise QuadobsError(f"{self.name}: truth.csv, row 1: column z {'missing' if dim == 3 else 'given'} for {dim}-D beacons")
+            raise QuadobsError(
+                f"{self.name}: truth.csv, row 1: column z {'missing' if dim == 3 else 'given'} for {dim}-D beacons"
+            )
 
     @property
     def dimension(self) -> int:
@@ -147,7 +165,9 @@ class RangeLog:
 
     def truth_part(self, what: str) -> np.ndarray | None:
         """The truth's ``"position"`` or ``"velocity"`` columns ``(T, dim)``, or None (no truth, or no such columns)."""
-        names = {"position": ("x", "y", "z"), "velocity": ("vx", "vy", "vz")}[what][: self.dimension]
+        names = {"position": ("x", "y", "z"), "velocity": ("vx", "vy", "vz")}[what][
+            : self.dimension
+        ]
         if self.truth is None or not set(names) <= set(self.truth_columns):
             return None
         return self.truth[:, [self.truth_columns.index(c) for c in names]]
@@ -157,7 +177,7 @@ class RangeLog:
         lookup = {int(b): h for h, b in enumerate(self.beacon_ids)}
         return np.array([lookup[int(b)] for b in ids], dtype=np.int64)
 
-    def excerpt(self, t0: float, t1: float) -> "RangeLog":
+    def excerpt(self, t0: float, t1: float) -> RangeLog:
         """The part of the log with ``t0 <= time - start < t1`` (s from :attr:`start`); the odometry's heading carried over.
 
         The truth keeps one sample either side of the span (so that it covers the excerpt).
@@ -172,12 +192,24 @@ class RangeLog:
         new_inp = inp[k:][inp[k:, 0] < b].copy()
         new_inp[0, 0] = max(new_inp[0, 0], a)
         truth = None
-        if self.truth is not None:  # with the samples either side, so that the truth covers the excerpt
+        if (
+            self.truth is not None
+        ):  # with the samples either side, so that the truth covers the excerpt
             i0 = max(int(np.searchsorted(self.truth[:, 0], a, side="right")) - 1, 0)
             i1 = int(np.searchsorted(self.truth[:, 0], b, side="left")) + 1
             truth = self.truth[i0:i1].copy()
-        return RangeLog(f"{self.name}[{t0:g}:{t1:g}]", self.beacon_ids, self.beacons, keep(self.ranges), new_inp, heading,
-                        truth, self.source, self.input_kind, self.truth_columns)
+        return RangeLog(
+            f"{self.name}[{t0:g}:{t1:g}]",
+            self.beacon_ids,
+            self.beacons,
+            keep(self.ranges),
+            new_inp,
+            heading,
+            truth,
+            self.source,
+            self.input_kind,
+            self.truth_columns,
+        )
 
 
 def _read_rows(path: Path, headers: tuple, described: str) -> tuple[list[str], list[list[str]]]:
@@ -204,21 +236,27 @@ def _read_csv(folder: Path, fname: str) -> tuple[list[str], np.ndarray]:
     values = np.empty((len(rows), len(header)))
     for r, row in enumerate(rows, start=2):
         if len(row) != len(header):
-            raise QuadobsError(f"{path}, row {r}: {len(row)} columns, expected {len(header)} ({','.join(header)})")
+            raise QuadobsError(
+                f"{path}, row {r}: {len(row)} columns, expected {len(header)} ({','.join(header)})"
+            )
         for c, cell in enumerate(row):
             try:
                 v = float(cell)
             except ValueError:
                 v = math.nan
             if not math.isfinite(v):
-                raise QuadobsError(f"{path}, row {r}, column {header[c]}: {cell.strip()!r} is not a finite number")
+                raise QuadobsError(
+                    f"{path}, row {r}, column {header[c]}: {cell.strip()!r} is not a finite number"
+                )
             values[r - 2, c] = v
     if values.shape[0] == 0:
         raise QuadobsError(f"{path}, row 2: no data rows")
     if header[0] == "time":
         bad = np.flatnonzero(np.diff(values[:, 0]) < 0)
         if bad.size:
-            raise QuadobsError(f"{path}, row {int(bad[0]) + 3}, column time: earlier than the row before (rows must be sorted by time)")
+            raise QuadobsError(
+                f"{path}, row {int(bad[0]) + 3}, column time: earlier than the row before (rows must be sorted by time)"
+            )
     return header, values
 
 
@@ -247,7 +285,9 @@ def _heading0(folder: Path, meta: dict, kind: str) -> float:
     except ValueError:
         heading0 = math.nan
     if not math.isfinite(heading0):
-        raise QuadobsError(f"{folder / 'meta.csv'}, key heading0: missing or not a finite number (rad)")
+        raise QuadobsError(
+            f"{folder / 'meta.csv'}, key heading0: missing or not a finite number (rad)"
+        )
     return heading0
 
 
@@ -262,7 +302,9 @@ def read_log(folder: str | Path) -> RangeLog:
     """
     folder = Path(folder)
     if not folder.is_dir():
-        raise QuadobsError(f"{folder}: not a log folder (expected beacons.csv, ranges.csv, inputs.csv, meta.csv)")
+        raise QuadobsError(
+            f"{folder}: not a log folder (expected beacons.csv, ranges.csv, inputs.csv, meta.csv)"
+        )
     tables = {}
     for fname in LOG_FILES:
         if fname in _OPTIONAL_FILES and not (folder / fname).exists():
@@ -271,15 +313,25 @@ def read_log(folder: str | Path) -> RangeLog:
     ids = tables["beacons.csv"][1][:, 0]
     for r, i in enumerate(ids):
         if i != int(i):
-            raise QuadobsError(f"{folder / 'beacons.csv'}, row {r + 2}, column id: {i!r} is not an integer")
+            raise QuadobsError(
+                f"{folder / 'beacons.csv'}, row {r + 2}, column id: {i!r} is not an integer"
+            )
     meta = _read_meta(folder)
     kind = "odometry" if tables["inputs.csv"][0][1] == "speed" else "imu"
     truth_header, truth = tables.get("truth.csv", ((), None))
     name = meta.get("name", folder.name)
     try:
         return RangeLog(
-            name, ids.astype(np.int64), tables["beacons.csv"][1][:, 1:], tables["ranges.csv"][1], tables["inputs.csv"][1],
-            _heading0(folder, meta, kind), truth, str(folder), kind, tuple(truth_header),
+            name,
+            ids.astype(np.int64),
+            tables["beacons.csv"][1][:, 1:],
+            tables["ranges.csv"][1],
+            tables["inputs.csv"][1],
+            _heading0(folder, meta, kind),
+            truth,
+            str(folder),
+            kind,
+            tuple(truth_header),
         )
     except QuadobsError as exc:  # name the folder's file, not the log's name
         raise QuadobsError(str(exc).replace(f"{name}: ", f"{folder}/", 1)) from None
@@ -293,7 +345,12 @@ def _write_csv(path: Path, header: list[str], values, ints: tuple[int, ...] = ()
     w = csv.writer(text)
     w.writerow(header)
     for row in values:
-        w.writerow([v if isinstance(v, str) else str(int(v)) if c in ints else repr(float(v)) for c, v in enumerate(row)])
+        w.writerow(
+            [
+                v if isinstance(v, str) else str(int(v)) if c in ints else repr(float(v))
+                for c, v in enumerate(row)
+            ]
+        )
     write_text_staged(path, text.getvalue(), "log file")
 
 
@@ -305,11 +362,22 @@ def write_log(log: RangeLog, folder: str | Path) -> Path:
     except OSError as exc:
         raise QuadobsError(f"{folder}: cannot be created ({exc.strerror or exc})") from None
     dim = log.dimension
-    _write_csv(folder / "beacons.csv", ["id", *"xyz"[:dim]], np.column_stack([log.beacon_ids, log.beacons]), ints=(0,))
+    _write_csv(
+        folder / "beacons.csv",
+        ["id", *"xyz"[:dim]],
+        np.column_stack([log.beacon_ids, log.beacons]),
+        ints=(0,),
+    )
     _write_csv(folder / "ranges.csv", ["time", "beacon", "range"], log.ranges, ints=(1,))
-    _write_csv(folder / "inputs.csv", ["time", *INPUT_KINDS[log.input_kind][: log.inputs.shape[1] - 1]], log.inputs)
+    _write_csv(
+        folder / "inputs.csv",
+        ["time", *INPUT_KINDS[log.input_kind][: log.inputs.shape[1] - 1]],
+        log.inputs,
+    )
     if log.truth is not None:
         _write_csv(folder / "truth.csv", list(log.truth_columns), log.truth)
-    meta = [["name", log.name]] + ([["heading0", repr(float(log.heading0))]] if log.input_kind == "odometry" else [])
+    meta = [["name", log.name]] + (
+        [["heading0", repr(float(log.heading0))]] if log.input_kind == "odometry" else []
+    )
     _write_csv(folder / "meta.csv", ["key", "value"], meta)
     return folder

@@ -56,7 +56,9 @@ def plaza_file(name: str) -> Path:
     try:
         return Path(gtsam.findExampleDataFile(BUILTIN_LOGS[name]))
     except (RuntimeError, IndexError) as exc:  # pragma: no cover - a gtsam build without its data
-        raise QuadobsError(f"log {name!r}: {BUILTIN_LOGS[name]} is not in this gtsam installation ({exc})") from None
+        raise QuadobsError(
+            f"log {name!r}: {BUILTIN_LOGS[name]} is not in this gtsam installation ({exc})"
+        ) from None
 
 
 def _wrap(a: np.ndarray) -> np.ndarray:
@@ -69,7 +71,9 @@ def load_builtin(name: str) -> RangeLog:
     import scipy.io
 
     if name not in BUILTIN_LOGS:
-        raise QuadobsError(f"log: unknown built-in log {name!r}; built-in: {', '.join(BUILTIN_LOGS)}")
+        raise QuadobsError(
+            f"log: unknown built-in log {name!r}; built-in: {', '.join(BUILTIN_LOGS)}"
+        )
     m = scipy.io.loadmat(plaza_file(name))
     DR, DRp, GT, TD, TL = (np.asarray(m[k], dtype=float) for k in ("DR", "DRp", "GT", "TD", "TL"))
     t = np.concatenate([[DRp[0, 0]], DR[:, 0]])
@@ -79,7 +83,9 @@ def load_builtin(name: str) -> RangeLog:
     truth = GT.copy()
     truth[:, 3] = _wrap(truth[:, 3] - _TRUTH_HEADING_OFFSET[name])
     ranges = TD[np.argsort(TD[:, 0], kind="stable")][:, [0, 2, 3]]
-    return RangeLog(name, TL[:, 0].astype(np.int64), TL[:, 1:3], ranges, inputs, float(DRp[0, 3]), truth)
+    return RangeLog(
+        name, TL[:, 0].astype(np.int64), TL[:, 1:3], ranges, inputs, float(DRp[0, 3]), truth
+    )
 
 
 def open_log(source: str | Path) -> RangeLog:

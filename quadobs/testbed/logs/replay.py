@@ -34,7 +34,7 @@ from quadobs.errors import QuadobsError
 from quadobs.testbed.logs.estimators import build_replay_estimators, replay_setup
 from quadobs.testbed.logs.format import LOG_FILES
 
-__all__ = ["initial_guess", "log_scenario", "run_replay", "DEFAULT_ESTIMATORS"]
+__all__ = ["DEFAULT_ESTIMATORS", "initial_guess", "log_scenario", "run_replay"]
 
 DEFAULT_ESTIMATORS = ("augmented", "ekf")
 _BLOCK = 8192
@@ -70,14 +70,26 @@ def log_scenario(log, dt: float, seed: int = 0, settings=()):
     data = {"noise": {}}
     data = apply_settings(data, settings)
     if set(data) != {"noise"}:
-        raise QuadobsError(f"--set: {sorted(set(data) - {'noise'})[0]}: does not apply to a replay (only noise.* settings do)")
-    refused = ("airspeed_std", "airspeed_bound", "airspeed_rate") + (("accel_std", "accel_bound") if log.input_kind == "odometry" else ())
+        raise QuadobsError(
+            f"--set: {sorted(set(data) - {'noise'})[0]}: does not apply to a replay (only noise.* settings do)"
+        )
+    refused = ("airspeed_std", "airspeed_bound", "airspeed_rate") + (
+        ("accel_std", "accel_bound") if log.input_kind == "odometry" else ()
+    )
     for key in refused:
         if data["noise"].get(key):
-            raise QuadobsError(f"noise.{key}: does not apply to a log of ranges and {'odometry' if 'accel' in key else log.input_kind} inputs")
+            raise QuadobsError(
+                f"noise.{key}: does not apply to a log of ranges and {'odometry' if 'accel' in key else log.input_kind} inputs"
+            )
     grid_steps = int(math.floor((log.end - log.start) / dt + 1e-9))
-    data.update(name=log.name, dimension=log.dimension, duration=max(grid_steps, 1) * dt, physics_rate=1.0 / dt, seed=int(seed),
-                beacons=[{"position": [float(a) for a in b]} for b in log.beacons])
+    data.update(
+        name=log.name,
+        dimension=log.dimension,
+        duration=max(grid_steps, 1) * dt,
+        physics_rate=1.0 / dt,
+        seed=int(seed),
+        beacons=[{"position": [float(a) for a in b]} for b in log.beacons],
+    )
     return parse_scenario(data, source=log.source)
 
 
@@ -137,7 +149,9 @@ def run_replay(
     inputs = {f"log {f}": Path(log.source) / f for f in LOG_FILES} if log.source else {}
     check_outputs({"summary": summary_path, "recording": out}, inputs)
     sensors = SensorModel(log_scenario(log, dt, seed, settings))
-    world = ReplayWorld(log, dt, model or default_model(log), _BLOCK, biases, sensors=sensors, peer_batch=batch)
+    world = ReplayWorld(
+        log, dt, model or default_model(log), _BLOCK, biases, sensors=sensors, peer_batch=batch
+    )
     if world.placed == 0:
         raise QuadobsError(f"log {log.name!r}: no range falls inside the inputs' time span")
     if x0 is None:
@@ -147,16 +161,29 @@ def run_replay(
     ests = build_replay_estimators(setup, names, x0)
 
     def summarise(merged, completed, wall, interrupted):
-        summary = _summary(log, world, names, merged, completed, interrupted, x0, biases, setup, out, sensors)
+        summary = _summary(
+            log, world, names, merged, completed, interrupted, x0, biases, setup, out, sensors
+        )
         summary["wall_time"] = wall
         return summary
 
-    summary, _ = run_loop(summarise, summary_path=summary_path, frame=world.frame(seed), world=world, estimators=ests,
-                          sensors=sensors, out=out, progress=progress, timed=True)
+    summary, _ = run_loop(
+        summarise,
+        summary_path=summary_path,
+        frame=world.frame(seed),
+        world=world,
+        estimators=ests,
+        sensors=sensors,
+        out=out,
+        progress=progress,
+        timed=True,
+    )
     return summary
 
 
-def _summary(log, world, names, merged, completed, interrupted, x0, biases, setup, out, sensors) -> dict:
+def _summary(
+    log, world, names, merged, completed, interrupted, x0, biases, setup, out, sensors
+) -> dict:
     """The replay's summary: the log, the grid, the settings, the sensor layer's counts, the sinks' figures."""
     return {
         "log": log.name,
@@ -166,12 +193,24 @@ def _summary(log, world, names, merged, completed, interrupted, x0, biases, setu
         "steps": completed,
         "interrupted": interrupted,
         "has_truth": log.truth is not None,
-        "ranges": {"in_log": int(log.ranges.shape[0]), "placed": world.placed, "merged": world.merged},
+        "ranges": {
+            "in_log": int(log.ranges.shape[0]),
+            "placed": world.placed,
+            "merged": world.merged,
+        },
         "biases": None if biases is None else [float(b) for b in np.asarray(biases).ravel()],
         "initial_guess": [float(v) for v in x0],
-        "noise": {"range_sigma": setup.range_sigma, "q_xy": setup.q_xy, "q_acc": setup.q_acc, "q_imu": setup.q_imu, "gate": setup.gate},
+        "noise": {
+            "range_sigma": setup.range_sigma,
+            "q_xy": setup.q_xy,
+            "q_acc": setup.q_acc,
+            "q_imu": setup.q_imu,
+            "gate": setup.gate,
+        },
         "measurements": {
-            "range_period_steps": sensors.range_every, "dropped": sensors.dropped, "outliers_injected": sensors.outliers_injected,
+            "range_period_steps": sensors.range_every,
+            "dropped": sensors.dropped,
+            "outliers_injected": sensors.outliers_injected,
         },
         "recording": None if out is None else str(out),
         "primary_estimator": names[0],

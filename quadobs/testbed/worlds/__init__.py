@@ -5,10 +5,22 @@
 """
 
 from quadobs.testbed.worlds.base import Columns, World
-from quadobs.testbed.worlds.model import REQUIRED_ELEMENTS, VehicleModel, default_model_path, load_vehicle_model
+from quadobs.testbed.worlds.model import (
+    REQUIRED_ELEMENTS,
+    VehicleModel,
+    default_model_path,
+    load_vehicle_model,
+)
 from quadobs.testbed.worlds.point_mass import BlockStepper, PointMassWorld, VehicleSim
 
 __all__ = [
-    "BlockStepper", "Columns", "PointMassWorld", "REQUIRED_ELEMENTS", "VehicleModel", "VehicleSim", "World",
-    "default_model_path", "load_vehicle_model",
+    "REQUIRED_ELEMENTS",
+    "BlockStepper",
+    "Columns",
+    "PointMassWorld",
+    "VehicleModel",
+    "VehicleSim",
+    "World",
+    "default_model_path",
+    "load_vehicle_model",
 ]

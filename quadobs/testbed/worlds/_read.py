@@ -73,7 +73,19 @@ def _readings(row, j, sensordata, site_xmat, site, consts, draws):
     row[o] = math.sqrt(s2)
     ps = 14 + qb  # the sensor layer
     if consts[ps] != 0.0:
-        sensor_step(row, n, n + qb, n + qb + dim, int(consts[ps + 1]), int(consts[ps + 2]), int(consts[ps + 3]), draws, j, consts, ps + 4)
+        sensor_step(
+            row,
+            n,
+            n + qb,
+            n + qb + dim,
+            int(consts[ps + 1]),
+            int(consts[ps + 2]),
+            int(consts[ps + 3]),
+            draws,
+            j,
+            consts,
+            ps + 4,
+        )
 
 
 @njit(**_OPTS)

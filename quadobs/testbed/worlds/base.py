@@ -70,10 +70,18 @@ class Columns:
     extra: dict = field(default_factory=dict)
 
     def __post_init__(self) -> None:
-        named = {"truth": self.truth, "y": self.y, "u": self.u, "measured": self.measured, **self.extra}
+        named = {
+            "truth": self.truth,
+            "y": self.y,
+            "u": self.u,
+            "measured": self.measured,
+            **self.extra,
+        }
         for name, s in named.items():
             if not (0 <= s.start <= s.stop <= self.width):
-                raise QuadobsError(f"columns.{name}: {s} does not fit in a row of width {self.width}")
+                raise QuadobsError(
+                    f"columns.{name}: {s} does not fit in a row of width {self.width}"
+                )
 
     @property
     def n(self) -> int:
@@ -137,7 +145,9 @@ class World(abc.ABC):
     def fill(self, count: int) -> None:
         """Open loop: every row of the block (``count`` steps). The default steps one at a time."""
         if self.closed_loop:
-            raise QuadobsError(f"{type(self).__name__}: a closed-loop world is stepped one step at a time")
+            raise QuadobsError(
+                f"{type(self).__name__}: a closed-loop world is stepped one step at a time"
+            )
         step = self.step
         for j in range(count):
             step(j)

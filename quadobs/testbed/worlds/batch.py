@@ -27,9 +27,15 @@ def _quat_to_mat(q: np.ndarray) -> np.ndarray:
     w, x, y, z = np.moveaxis(q, -1, 0)
     return np.stack(
         [
-            1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
+            1 - 2 * (y * y + z * z),
+            2 * (x * y - w * z),
+            2 * (x * z + w * y),
+            2 * (x * y + w * z),
+            1 - 2 * (x * x + z * z),
+            2 * (y * z - w * x),
+            2 * (x * z - w * y),
+            2 * (y * z + w * x),
+            1 - 2 * (x * x + y * y),
         ],
         axis=-1,
     ).reshape(q.shape[:-1] + (3, 3))
@@ -53,7 +59,17 @@ class VehicleBatch:
         Threads of the rollout pool; 0 (default) steps the batch on the calling thread.
     """
 
-    def __init__(self, dim: int, beacons, batch: int, *, timestep: float = 1e-3, wind=None, model_path=None, threads: int = 0) -> None:
+    def __init__(
+        self,
+        dim: int,
+        beacons,
+        batch: int,
+        *,
+        timestep: float = 1e-3,
+        wind=None,
+        model_path=None,
+        threads: int = 0,
+    ) -> None:
         if dim not in (2, 3):
             raise QuadobsError(f"dimension: must be 2 or 3, got {dim}")
         if isinstance(batch, bool) or not isinstance(batch, (int, np.integer)) or batch < 1:
@@ -63,7 +79,9 @@ class VehicleBatch:
         self.dim, self.batch, self.threads = dim, int(batch), int(threads)
         beacons = as_array("beacons", beacons, (None, dim))
         self.wind = None if wind is None else as_array("wind", wind, (dim,))
-        self.vm: VehicleModel = load_vehicle_model(beacons, path=model_path, timestep=timestep, wind=self.wind)
+        self.vm: VehicleModel = load_vehicle_model(
+            beacons, path=model_path, timestep=timestep, wind=self.wind
+        )
         m = self.model = self.vm.model
         vm = self.vm
         if m.site_bodyid[vm.site_id] != m.body("vehicle").id:
@@ -91,7 +109,7 @@ class VehicleBatch:
         """Stop the rollout's thread pool (also done at exit)."""
         self._pool.close()
 
-    def __enter__(self) -> "VehicleBatch":
+    def __enter__(self) -> VehicleBatch:
         return self
 
     def __exit__(self, *exc) -> None:
@@ -150,8 +168,16 @@ class VehicleBatch:
         self.controls(accelerations)
         nxt = self._states[1] if self._state.base is self._states[0] else self._states[0]
         self._pool.rollout(
-            self._models, self._datas, self._state, self._control, control_spec=_CTRL.value, skip_checks=True,
-            nstep=1, state=nxt, sensordata=self._sensordata, chunk_size=self._chunk,
+            self._models,
+            self._datas,
+            self._state,
+            self._control,
+            control_spec=_CTRL.value,
+            skip_checks=True,
+            nstep=1,
+            state=nxt,
+            sensordata=self._sensordata,
+            chunk_size=self._chunk,
         )
         self._start, self._state = self._state, nxt[:, 0]
 
@@ -159,7 +185,9 @@ class VehicleBatch:
 
     def _site_rotation(self) -> np.ndarray:
         qa = self._qpos
-        return _quat_to_mat(self._start[:, qa + 3 : qa + 7]) @ self._site_rot  # orientation at the start of the step
+        return (
+            _quat_to_mat(self._start[:, qa + 3 : qa + 7]) @ self._site_rot
+        )  # orientation at the start of the step
 
     def ranges(self) -> np.ndarray:
         """``|p - a_h|`` of each vehicle, ``(B, q_b)``."""

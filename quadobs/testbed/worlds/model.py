@@ -9,7 +9,6 @@ API (``mujoco.MjSpec``) at the scenario's positions.
 from __future__ import annotations
 
 import contextlib
-
 import os
 import stat
 from dataclasses import dataclass
@@ -20,7 +19,14 @@ import numpy as np
 
 from quadobs.errors import QuadobsError, RunFault, as_array, as_finite_scalar
 
-__all__ = ["VehicleModel", "default_model_path", "load_vehicle_model", "REQUIRED_ELEMENTS", "PhysicsFault", "physics_check"]
+__all__ = [
+    "REQUIRED_ELEMENTS",
+    "PhysicsFault",
+    "VehicleModel",
+    "default_model_path",
+    "load_vehicle_model",
+    "physics_check",
+]
 
 #: (kind, name) of the elements a vehicle model must define.
 REQUIRED_ELEMENTS = (
@@ -41,7 +47,9 @@ def default_model_path() -> Path:
     for candidate in (here / "_models" / "vehicle.xml", here.parent / "models" / "vehicle.xml"):
         if candidate.is_file():
             return candidate
-    raise QuadobsError("model: the built-in vehicle.xml was not found beside the package (broken installation)")
+    raise QuadobsError(
+        "model: the built-in vehicle.xml was not found beside the package (broken installation)"
+    )
 
 
 @dataclass(frozen=True, eq=False)
@@ -78,17 +86,23 @@ def _model_file(path) -> Path:
     text = str(path)
     shown = text if len(text) <= 80 else text[:60] + "..."
     if not text.strip() or "\0" in text or len(text) > 4096:
-        raise QuadobsError(f"model: {shown!r} is not a file name (empty, holding NUL or longer than 4096 characters)")
+        raise QuadobsError(
+            f"model: {shown!r} is not a file name (empty, holding NUL or longer than 4096 characters)"
+        )
     try:
         st = os.stat(text)
     except FileNotFoundError:
         raise QuadobsError(f"model: MJCF file {shown!r} does not exist") from None
     except OSError as exc:  # a symbolic-link loop, a name too long, a component that is a file
-        raise QuadobsError(f"model: MJCF file {shown!r} cannot be opened ({exc.strerror})") from None
+        raise QuadobsError(
+            f"model: MJCF file {shown!r} cannot be opened ({exc.strerror})"
+        ) from None
     if stat.S_ISDIR(st.st_mode):
         raise QuadobsError(f"model: {shown!r} is a directory, expected an MJCF file")
     if not stat.S_ISREG(st.st_mode):
-        raise QuadobsError(f"model: {shown!r} is not a regular file (a device or a FIFO), expected an MJCF file")
+        raise QuadobsError(
+            f"model: {shown!r} is not a regular file (a device or a FIFO), expected an MJCF file"
+        )
     return Path(text)
 
 
@@ -96,7 +110,7 @@ def _find(spec: mujoco.MjSpec, kind: str, name: str):
     finder = getattr(spec, kind)
     try:
         return finder(name)
-    except Exception:  # noqa: BLE001 - MjSpec raises various types for a missing name
+    except Exception:
         return None
 
 
@@ -108,7 +122,9 @@ def _add_beacons(spec, beacons: np.ndarray) -> np.ndarray:
         site_name, sensor_name = f"beacon{h}", f"beacon{h}_offset"
         site = _find(spec, "site", site_name)
         if site is None:
-            site = spec.worldbody.add_site(name=site_name, pos=pos, size=[0.4, 0, 0], rgba=[1.0, 0.5, 0.0, 1.0])
+            site = spec.worldbody.add_site(
+                name=site_name, pos=pos, size=[0.4, 0, 0], rgba=[1.0, 0.5, 0.0, 1.0]
+            )
         else:
             site.pos = pos
         if _find(spec, "sensor", sensor_name) is None:
@@ -148,17 +164,23 @@ def _check_dynamics(model, name: str):
             f"model {name}: option integrator must be RK4 (exact for the double integrator under a held input)"
         )
     if model.opt.density != 0 or model.opt.viscosity != 0:
-        raise QuadobsError(f"model {name}: fluid density and viscosity must be 0 (the wind must exert no force)")
+        raise QuadobsError(
+            f"model {name}: fluid density and viscosity must be 0 (the wind must exert no force)"
+        )
     body = model.body("vehicle")
     for g in range(model.ngeom):
         if model.geom_bodyid[g] == body.id and (model.geom_contype[g] or model.geom_conaffinity[g]):
             name = mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_GEOM, g) or f"#{g}"
-            raise QuadobsError(f"model {name}: geom {name!r} of the vehicle must have contype=0 and conaffinity=0")
+            raise QuadobsError(
+                f"model {name}: geom {name!r} of the vehicle must have contype=0 and conaffinity=0"
+            )
     joint = model.joint("vehicle_joint")
     if np.any(model.dof_damping[joint.dofadr[0] : joint.dofadr[0] + 6]) or np.any(
         model.dof_frictionloss[joint.dofadr[0] : joint.dofadr[0] + 6]
     ):
-        raise QuadobsError(f"model {name}: joint 'vehicle_joint' must have no damping or friction loss")
+        raise QuadobsError(
+            f"model {name}: joint 'vehicle_joint' must have no damping or friction loss"
+        )
     return body, joint
 
 
@@ -182,7 +204,9 @@ def _check_beacons(model, b3: np.ndarray, name: str) -> tuple[list[int], np.ndar
         offset_adr.append(int(sensor.adr[0]))
     compiled_beacons = np.array([model.site(f"beacon{h}").pos for h in range(b3.shape[0])])
     if not np.allclose(compiled_beacons, b3):
-        raise QuadobsError(f"model {name}: beacon sites must sit directly in the world body, without a frame offset")
+        raise QuadobsError(
+            f"model {name}: beacon sites must sit directly in the world body, without a frame offset"
+        )
     return offset_adr, compiled_beacons
 
 
@@ -192,12 +216,16 @@ def _check_actuators(model, joint, name: str) -> np.ndarray:
     for a, act in zip("xyz", actuators):
         expected = np.zeros(6)
         expected["xyz".index(a)] = 1.0
-        if model.actuator_trnid[act, 0] != joint.id or not np.allclose(model.actuator_gear[act], expected):
+        if model.actuator_trnid[act, 0] != joint.id or not np.allclose(
+            model.actuator_gear[act], expected
+        ):
             raise QuadobsError(
                 f"model {name}: actuator 'force_{a}' must act on 'vehicle_joint' with gear {expected.astype(int).tolist()}"
             )
         if model.actuator_ctrllimited[act] or model.actuator_forcelimited[act]:
-            raise QuadobsError(f"model {name}: actuator 'force_{a}' must not be control- or force-limited")
+            raise QuadobsError(
+                f"model {name}: actuator 'force_{a}' must not be control- or force-limited"
+            )
     return actuators
 
 
@@ -240,7 +268,7 @@ def load_vehicle_model(
     with _warnings_refused(mjcf.name):
         try:
             spec = mujoco.MjSpec.from_file(str(mjcf))
-        except Exception as exc:  # noqa: BLE001 - MuJoCo's parser error
+        except Exception as exc:
             raise QuadobsError(f"model: cannot parse {mjcf.name}: {exc}") from None
 
     for kind, name in REQUIRED_ELEMENTS:
@@ -258,7 +286,7 @@ def load_vehicle_model(
     with _warnings_refused(mjcf.name):
         try:
             model = spec.compile()
-        except Exception as exc:  # noqa: BLE001
+        except Exception as exc:
             raise QuadobsError(f"model {mjcf.name}: does not compile: {exc}") from None
 
     body, joint = _check_dynamics(model, mjcf.name)
@@ -341,18 +369,18 @@ def _drop_warning(text: str) -> None:
 def physics_check(world, scenario):
     """A check of MuJoCo's warning counters, called after every block of steps.
 
-    Returns ``check(k0, count)``, which raises :class:`PhysicsFault` when any counter of
-    :data:`PHYSICS_FAULTS` has grown during the block of steps ``[k0, k0 + count)``. MuJoCo
-    then resets the state (to ``qpos0``, at rest) and goes on, so the block's truth jumps:
-    the message names the warning and the step and time of the first row whose position
-    does not follow from the velocities (:func:`_first_jump`), or the block's span when
-    there is no such row (a bad control, which MuJoCo zeroes). For a world without a single ``MjData`` the check does nothing.
-A world that computes the next block in the background gives the counts of the block just
-filled (``physics_warnings()``).
+        Returns ``check(k0, count)``, which raises :class:`PhysicsFault` when any counter of
+        :data:`PHYSICS_FAULTS` has grown during the block of steps ``[k0, k0 + count)``. MuJoCo
+        then resets the state (to ``qpos0``, at rest) and goes on, so the block's truth jumps:
+        the message names the warning and the step and time of the first row whose position
+        does not follow from the velocities (:func:`_first_jump`), or the block's span when
+        there is no such row (a bad control, which MuJoCo zeroes). For a world without a single ``MjData`` the check does nothing.
+    A world that computes the next block in the background gives the counts of the block just
+    filled (``physics_warnings()``).
 
-    The check costs a few integer reads per block of thousands of steps. MuJoCo's own printing of
-    its warnings (and its log file in the working directory) is replaced by
-    :func:`_drop_warning`, unless a handler of the user's is installed.
+        The check costs a few integer reads per block of thousands of steps. MuJoCo's own printing of
+        its warnings (and its log file in the working directory) is replaced by
+        :func:`_drop_warning`, unless a handler of the user's is installed.
     """
     counts = _warning_reader(world)
     if counts is None:

@@ -23,12 +23,15 @@ from quadobs.testbed.blocks import block_count
 from quadobs.testbed.worlds.base import Columns, World
 from quadobs.testbed.worlds.model import VehicleModel, load_vehicle_model
 
-__all__ = ["VehicleSim", "BlockStepper", "PointMassWorld"]
+__all__ = ["BlockStepper", "PointMassWorld", "VehicleSim"]
 
 _mj_step = mujoco.mj_step
 _FULL = mujoco.mjtState.mjSTATE_FULLPHYSICS
 _CTRL = int(mujoco.mjtState.mjSTATE_CTRL.value)
-_SAME_ROTATION = (int(mujoco.mjtSameFrame.mjSAMEFRAME_BODY), int(mujoco.mjtSameFrame.mjSAMEFRAME_BODYROT))
+_SAME_ROTATION = (
+    int(mujoco.mjtSameFrame.mjSAMEFRAME_BODY),
+    int(mujoco.mjtSameFrame.mjSAMEFRAME_BODYROT),
+)
 
 
 class VehicleSim:
@@ -45,13 +48,17 @@ class VehicleSim:
         A user MJCF with the names listed in :data:`~quadobs.testbed.worlds.model.REQUIRED_ELEMENTS`.
     """
 
-    def __init__(self, dim: int, beacons, *, timestep: float = 1e-3, wind=None, model_path=None) -> None:
+    def __init__(
+        self, dim: int, beacons, *, timestep: float = 1e-3, wind=None, model_path=None
+    ) -> None:
         if dim not in (2, 3):
             raise QuadobsError(f"dimension: must be 2 or 3, got {dim}")
         self.dim = dim
         beacons = as_array("beacons", beacons, (None, dim))
         self.wind = None if wind is None else as_array("wind", wind, (dim,))
-        self.vm: VehicleModel = load_vehicle_model(beacons, path=model_path, timestep=timestep, wind=self.wind)
+        self.vm: VehicleModel = load_vehicle_model(
+            beacons, path=model_path, timestep=timestep, wind=self.wind
+        )
         self.model = self.vm.model
         self.data = mujoco.MjData(self.model)
         self.dt = float(self.model.opt.timestep)
@@ -183,7 +190,13 @@ class BlockStepper:
             self.y = slice(width, width + q)
             self.u = slice(width + q, width + q + dim)
             self.measured = slice(width + q + dim, width + q + dim + qb)
-            sensor_consts = [1.0, self.y.start, self.u.start, self.measured.start, *sensors.step_params()]
+            sensor_consts = [
+                1.0,
+                self.y.start,
+                self.u.start,
+                self.measured.start,
+                *sensors.step_params(),
+            ]
             width += q + dim + qb
         self.out = np.zeros((int(capacity) + 1, width))
         #: per step of the block: outliers delivered and samples dropped (see :meth:`commit`)
@@ -192,7 +205,16 @@ class BlockStepper:
         wind3 = np.zeros(3) if sim.wind is None else sim._wind3
         self._consts = np.concatenate(
             [
-                [dim, qb, 0.0 if sim.wind is None else 1.0, vm.qpos_adr, vm.qvel_adr, vm.site_id, vm.accel_adr, vm.velocimeter_adr],
+                [
+                    dim,
+                    qb,
+                    0.0 if sim.wind is None else 1.0,
+                    vm.qpos_adr,
+                    vm.qvel_adr,
+                    vm.site_id,
+                    vm.accel_adr,
+                    vm.velocimeter_adr,
+                ],
                 vm.gravity,
                 wind3,
                 vm.offset_adr.astype(float),
@@ -201,7 +223,9 @@ class BlockStepper:
         )
         self._ctrls = np.zeros((0, sim.model.nu))
         self._draws = np.zeros((1, 1 if sensors is None else sensors.draw_width))
-        self._work = np.zeros((2, 9))  # the site's rotation; the quaternion at the start of the step, and its flag
+        self._work = np.zeros(
+            (2, 9)
+        )  # the site's rotation; the quaternion at the start of the step, and its flag
         self._model, self._data = sim.model, sim.data
         try:
             from quadobs.testbed.worlds._read import read_step
@@ -212,7 +236,9 @@ class BlockStepper:
         # What the next prefetched block continues, from step _next_k: (buffers, last row), (queued block, None)
         # or (None, None), the data's current state.
         self._last, self._next_k = None, 0
-        self._queued: collections.deque[_Ahead] = collections.deque()  # blocks handed to the physics thread
+        self._queued: collections.deque[_Ahead] = (
+            collections.deque()
+        )  # blocks handed to the physics thread
         self._buf_i = 0
         self._rollout = self._block_physics(int(capacity)) if read_step is not None else None
         self._work[1, 4] = 0.0 if self._rollout is None else 1.0
@@ -226,8 +252,19 @@ class BlockStepper:
             d = sim.data
             scratch = self._consts.copy()
             scratch[14 + qb] = 0.0  # no sensor layer on the scratch row
-            read_step(0, self.out[:2].copy(), np.zeros((1, sim.model.nu)), d.ctrl.copy(), d.sensordata.copy(),
-                      d.site_xmat.copy(), d.qpos.copy(), d.qvel.copy(), scratch, self._draws.copy(), self._work.copy())
+            read_step(
+                0,
+                self.out[:2].copy(),
+                np.zeros((1, sim.model.nu)),
+                d.ctrl.copy(),
+                d.sensordata.copy(),
+                d.site_xmat.copy(),
+                d.qpos.copy(),
+                d.qvel.copy(),
+                scratch,
+                self._draws.copy(),
+                self._work.copy(),
+            )
 
     def _block_physics(self, capacity: int):
         """Buffers of the one-call block (``mujoco.rollout``), or ``None`` where the model does not allow it.
@@ -244,19 +281,39 @@ class BlockStepper:
         m, vm = self.sim.model, self.sim.vm
         body = int(m.site_bodyid[vm.site_id])
         jnt = int(m.body_jntadr[body])
-        if not (m.body_parentid[body] == 0 and m.body_jntnum[body] == 1 and m.jnt_type[jnt] == mujoco.mjtJoint.mjJNT_FREE
-                and m.jnt_qposadr[jnt] == vm.qpos_adr and int(m.site_sameframe[vm.site_id]) in _SAME_ROTATION):
+        if not (
+            m.body_parentid[body] == 0
+            and m.body_jntnum[body] == 1
+            and m.jnt_type[jnt] == mujoco.mjtJoint.mjJNT_FREE
+            and m.jnt_qposadr[jnt] == vm.qpos_adr
+            and int(m.site_sameframe[vm.site_id]) in _SAME_ROTATION
+        ):
             return None
         self._state0 = np.zeros(mujoco.mj_stateSize(m, _FULL))
-        self._bufs = [(np.zeros((1, capacity, self._state0.size)), np.zeros((1, capacity, m.nsensordata))) for _ in range(3)]
-        self._cols = (1 + vm.qpos_adr, 1 + m.nq + vm.qvel_adr)  # qpos, qvel in a state row (after time)
+        self._bufs = [
+            (np.zeros((1, capacity, self._state0.size)), np.zeros((1, capacity, m.nsensordata)))
+            for _ in range(3)
+        ]
+        self._cols = (
+            1 + vm.qpos_adr,
+            1 + m.nq + vm.qvel_adr,
+        )  # qpos, qvel in a state row (after time)
         self._pool = rollout.Rollout(nthread=0)
         self._read_block = read_block  # loaded (or compiled) now: the kernel of the default path
         scratch = self._consts.copy()
         scratch[14 + vm.offset_adr.shape[0]] = 0.0
         states, sensors = self._bufs[0]
-        read_block(1, self.out[:2].copy(), states[0, :1], sensors[0, :1], self._state0, *self._cols, scratch,
-                   self._draws.copy(), self._work.copy())
+        read_block(
+            1,
+            self.out[:2].copy(),
+            states[0, :1],
+            sensors[0, :1],
+            self._state0,
+            *self._cols,
+            scratch,
+            self._draws.copy(),
+            self._work.copy(),
+        )
         return self._pool
 
     def _physics(self, buf, ctrls, state0, warmstart) -> np.ndarray:
@@ -268,9 +325,19 @@ class BlockStepper:
         m, d = self._model, self._data
         count = ctrls.shape[0]
         states, sensors = buf
-        self._rollout.rollout([m], [d], state0[None], ctrls[None], control_spec=_CTRL, skip_checks=True, nstep=count,
-                              initial_warmstart=warmstart[None], state=states[:, :count], sensordata=sensors[:, :count],
-                              chunk_size=1)
+        self._rollout.rollout(
+            [m],
+            [d],
+            state0[None],
+            ctrls[None],
+            control_spec=_CTRL,
+            skip_checks=True,
+            nstep=count,
+            initial_warmstart=warmstart[None],
+            state=states[:, :count],
+            sensordata=sensors[:, :count],
+            chunk_size=1,
+        )
         return warning_counts(d)
 
     def fill(self, count: int) -> None:
@@ -288,7 +355,9 @@ class BlockStepper:
         ahead, self._current = self._current, None
         if ahead is not None:
             if ahead.count != count:
-                raise QuadobsError(f"fill: the block begun ahead has {ahead.count} steps, not {count}")
+                raise QuadobsError(
+                    f"fill: the block begun ahead has {ahead.count} steps, not {count}"
+                )
             buf, state0, self.warnings = ahead.buf, ahead.state0, ahead.warnings
         else:
             m, d = self._model, self._data
@@ -298,7 +367,17 @@ class BlockStepper:
         if not self._queued:  # else the next block queued continues the last one queued
             self._last, self._next_k = (buf, count - 1), self._k0 + count
         self._filled = count
-        self._read_block(count, self.out, buf[0][0], buf[1][0], state0, *self._cols, self._consts, self._draws, self._work)
+        self._read_block(
+            count,
+            self.out,
+            buf[0][0],
+            buf[1][0],
+            state0,
+            *self._cols,
+            self._consts,
+            self._draws,
+            self._work,
+        )
 
     def _next_buffer(self):
         """The next buffer set in turn: blocks take them in order, so the oldest comes back first."""
@@ -327,7 +406,9 @@ class BlockStepper:
             return False
         ctrls = np.ascontiguousarray(self.sim.controls(accelerations))
         if ctrls.shape[0] + 1 > self.out.shape[0]:
-            raise QuadobsError(f"accelerations: at most {self.out.shape[0] - 1} steps per block, got {ctrls.shape[0]}")
+            raise QuadobsError(
+                f"accelerations: at most {self.out.shape[0] - 1} steps per block, got {ctrls.shape[0]}"
+            )
         ahead = _Ahead(self, int(k0), ctrls, self._last, self._next_buffer())
         with deferred_interrupts():  # a queued block is always known to close()
             _PhysicsWorker.of_this_thread().submit(ahead)
@@ -372,7 +453,12 @@ class BlockStepper:
         self._current = ahead
         s0, nq, nv = ahead.state0, self._model.nq, self._model.nv
         qa = self.sim.vm.qpos_adr
-        return self._start(ahead.ctrls, k0, self.sim.state_of(s0[1 : 1 + nq], s0[1 + nq : 1 + nq + nv]), s0[1 + qa + 3 : 1 + qa + 7])
+        return self._start(
+            ahead.ctrls,
+            k0,
+            self.sim.state_of(s0[1 : 1 + nq], s0[1 + nq : 1 + nq + nv]),
+            s0[1 + qa + 3 : 1 + qa + 7],
+        )
 
     def close(self) -> None:
         """Drop the blocks queued in the background.
@@ -397,7 +483,9 @@ class BlockStepper:
     def _drop_ahead(self) -> None:
         """Undo the queued blocks (the next one begun is not theirs): the data back at the first one's start."""
         first = self._finish_queued()
-        if first is None or first.state0 is None:  # cancelled before it ran: the data was never moved on
+        if (
+            first is None or first.state0 is None
+        ):  # cancelled before it ran: the data was never moved on
             return
         m, d = self._model, self._data
         mujoco.mj_setState(m, d, first.state0, _FULL)
@@ -412,7 +500,9 @@ class BlockStepper:
         """A block's start: its controls, step, noise, the truth of row 0 and the site's quaternion."""
         count = ctrls.shape[0]
         if count + 1 > self.out.shape[0]:
-            raise QuadobsError(f"accelerations: at most {self.out.shape[0] - 1} steps per block, got {count}")
+            raise QuadobsError(
+                f"accelerations: at most {self.out.shape[0] - 1} steps per block, got {count}"
+            )
         self._ctrls = ctrls
         self._k0 = int(k0)
         if self.sensors is not None and self._read is not None:
@@ -433,10 +523,26 @@ class BlockStepper:
         self._last = None
         sim, d = self.sim, self._data
         qa = sim.vm.qpos_adr
-        count = self._start(np.ascontiguousarray(sim.controls(accelerations)), k0, sim.state(), d.qpos[qa + 3 : qa + 7])
+        count = self._start(
+            np.ascontiguousarray(sim.controls(accelerations)),
+            k0,
+            sim.state(),
+            d.qpos[qa + 3 : qa + 7],
+        )
         d.ctrl[:] = self._ctrls[0]
         self.warnings = self._current = None
-        self._args = (self.out, self._ctrls, d.ctrl, d.sensordata, d.site_xmat, d.qpos, d.qvel, self._consts, self._draws, self._work)
+        self._args = (
+            self.out,
+            self._ctrls,
+            d.ctrl,
+            d.sensordata,
+            d.site_xmat,
+            d.qpos,
+            d.qvel,
+            self._consts,
+            self._draws,
+            self._work,
+        )
         return count
 
     def commit(self, rows: int) -> None:
@@ -463,7 +569,11 @@ class BlockStepper:
         if self.sensors is not None:
             s = self.sensors
             before = (s.outliers_injected, s.dropped)
-            row[self.y] = s.outputs(self._k0 + j, row[self.ranges], row[self.airspeed][0] if sim.wind is not None else None)
+            row[self.y] = s.outputs(
+                self._k0 + j,
+                row[self.ranges],
+                row[self.airspeed][0] if sim.wind is not None else None,
+            )
             self.events[j] = (s.outliers_injected - before[0], s.dropped - before[1])
             row[self.measured] = s.measured_ranges
             row[self.u] = s.input(row[self.accel])
@@ -488,7 +598,13 @@ class _Ahead:
     """
 
     def __init__(self, stepper: BlockStepper, k0: int, ctrls, after, buf) -> None:
-        self.k0, self.count, self.ctrls, self.after, self.buf = k0, ctrls.shape[0], ctrls, after, buf
+        self.k0, self.count, self.ctrls, self.after, self.buf = (
+            k0,
+            ctrls.shape[0],
+            ctrls,
+            after,
+            buf,
+        )
         self.state0 = self.warmstart = self.warnings_before = self.warnings = self.error = None
         self.cancelled = False
         self.stepper = stepper
@@ -500,7 +616,9 @@ class _Ahead:
         try:
             src, row = self.after
             if isinstance(src, _Ahead):
-                if src.error is not None or src.state0 is None:  # the block before failed or never ran
+                if (
+                    src.error is not None or src.state0 is None
+                ):  # the block before failed or never ran
                     self.error = src.error
                     return
                 src, row = src.buf, src.count - 1
@@ -511,10 +629,12 @@ class _Ahead:
                 self.state0 = np.empty(mujoco.mj_stateSize(m, _FULL))
                 mujoco.mj_getState(m, d, self.state0, _FULL)
             else:
-                self.state0 = src[0][0, row].copy()  # the full physics state where this block starts
+                self.state0 = src[0][
+                    0, row
+                ].copy()  # the full physics state where this block starts
             self.warmstart, self.warnings_before = d.qacc_warmstart.copy(), warning_counts(d)
             self.warnings = stepper._physics(self.buf, self.ctrls, self.state0, self.warmstart)
-        except BaseException as exc:  # noqa: BLE001 - handed to the thread that waits
+        except BaseException as exc:
             self.error = exc
         finally:
             self.after = None
@@ -547,12 +667,14 @@ class _PhysicsWorker:
     def __init__(self) -> None:
         self.jobs: queue.SimpleQueue = queue.SimpleQueue()
         self.ended = threading.Event()
-        self.thread = threading.Thread(target=self._serve, args=(self.jobs, self.ended), name="quadobs-physics", daemon=True)
+        self.thread = threading.Thread(
+            target=self._serve, args=(self.jobs, self.ended), name="quadobs-physics", daemon=True
+        )
         self.thread.start()
         weakref.finalize(self, _end_worker, self.jobs, self.ended, self.thread)
 
     @classmethod
-    def of_this_thread(cls) -> "_PhysicsWorker":
+    def of_this_thread(cls) -> _PhysicsWorker:
         """The calling thread's worker, started on first use (again in a forked child)."""
         worker = getattr(cls._local, "worker", None)
         if worker is None or not worker.thread.is_alive():
@@ -610,13 +732,23 @@ class PointMassWorld(World):
 
     def __init__(self, scenario, sensors, capacity: int, pipelined: bool = True) -> None:
         traj = scenario.trajectory
-        sim = VehicleSim(scenario.dimension, scenario.beacons, timestep=scenario.dt, wind=scenario.wind, model_path=scenario.model)
+        sim = VehicleSim(
+            scenario.dimension,
+            scenario.beacons,
+            timestep=scenario.dt,
+            wind=scenario.wind,
+            model_path=scenario.model,
+        )
         sim.reset(traj.position(0.0), traj.velocity_at(0.0))
         self.sim, self.dt, self._traj = sim, scenario.dt, traj
         self.stepper = st = BlockStepper(sim, capacity, sensors)
         self.out, self.events = st.out, st.events
         self.columns = Columns(
-            truth=st.truth, y=st.y, u=st.u, measured=st.measured, width=st.out.shape[1],
+            truth=st.truth,
+            y=st.y,
+            u=st.u,
+            measured=st.measured,
+            width=st.out.shape[1],
             extra={"ranges": st.ranges, "accel": st.accel, "airspeed": st.airspeed},
         )
         self.pipelined = bool(pipelined)
@@ -633,7 +765,9 @@ class PointMassWorld(World):
     def begin_block(self, k0: int, count: int) -> int:
         self._k0 = k0
         st = self.stepper
-        if self._queue and not st.ahead_of(k0, count):  # the first block: its physics on the thread too
+        if self._queue and not st.ahead_of(
+            k0, count
+        ):  # the first block: its physics on the thread too
             st.follow_data(k0)
         self._queue_ahead()
         if st.ahead_of(k0, count):  # its physics queued in the background: wait for it

@@ -37,13 +37,20 @@ from quadobs.testbed.imu import ImuModel
 from quadobs.testbed.scenario import ControlSpec, QuadrotorSpec
 from quadobs.testbed.worlds.base import Columns, World
 
-__all__ = ["QuadrotorWorld", "quadrotor_model_path", "FLIGHT_COLUMNS"]
+__all__ = ["FLIGHT_COLUMNS", "QuadrotorWorld", "quadrotor_model_path"]
 
 _mj_step = mujoco.mj_step
 
 #: The world's own columns: reference position, true attitude quaternion, rotor commands,
 #: tracking error, flown on the estimate (0/1), crashed (0/1).
-FLIGHT_COLUMNS = (("reference", 3), ("attitude", 4), ("rotors", 4), ("tracking", 1), ("on_estimate", 1), ("crashed", 1))
+FLIGHT_COLUMNS = (
+    ("reference", 3),
+    ("attitude", 4),
+    ("rotors", 4),
+    ("tracking", 1),
+    ("on_estimate", 1),
+    ("crashed", 1),
+)
 
 
 def quadrotor_model_path() -> Path:
@@ -52,7 +59,9 @@ def quadrotor_model_path() -> Path:
     for candidate in (here / "_models" / "quadrotor.xml", here.parent / "models" / "quadrotor.xml"):
         if candidate.is_file():
             return candidate
-    raise QuadobsError("model: the built-in quadrotor.xml was not found beside the package (broken installation)")
+    raise QuadobsError(
+        "model: the built-in quadrotor.xml was not found beside the package (broken installation)"
+    )
 
 
 def _columns(q: int, q_b: int) -> tuple[Columns, dict]:
@@ -61,7 +70,14 @@ def _columns(q: int, q_b: int) -> tuple[Columns, dict]:
     for name, width in FLIGHT_COLUMNS:
         spans[name] = slice(o, o + width)
         o += width
-    cols = Columns(truth=slice(0, n), y=slice(n, n + q), u=slice(n + q, n + q + 3), measured=slice(n + q + 3, n + q + 3 + q_b), width=o, extra=spans)
+    cols = Columns(
+        truth=slice(0, n),
+        y=slice(n, n + q),
+        u=slice(n + q, n + q + 3),
+        measured=slice(n + q + 3, n + q + 3 + q_b),
+        width=o,
+        extra=spans,
+    )
     return cols, spans
 
 
@@ -82,7 +98,9 @@ class QuadrotorWorld(World):
 
     def __init__(self, scenario, sensors, capacity: int) -> None:
         if scenario.kind != "quadrotor":
-            raise QuadobsError(f"kind: the quadrotor world needs kind = \"quadrotor\", got {scenario.kind!r}")
+            raise QuadobsError(
+                f'kind: the quadrotor world needs kind = "quadrotor", got {scenario.kind!r}'
+            )
         self.scenario, self.sensors = scenario, sensors
         self.control = control = scenario.control or ControlSpec()
         self.spec = spec = scenario.quadrotor or QuadrotorSpec()
@@ -93,10 +111,18 @@ class QuadrotorWorld(World):
         self.dt = scenario.dt
         self._ids(scenario)
         self.controller = None if control.feedback == "truth" else control.feedback
-        self.switch_step = int(round(control.switch_time / scenario.dt)) if self.controller else None
+        self.switch_step = (
+            int(round(control.switch_time / scenario.dt)) if self.controller else None
+        )
         self.control_every = scenario.sample_interval(control.rate, "rate", table="control")
-        self.ctrl = GeometricController(CRAZYFLIE, control.position_bandwidth, control.attitude_bandwidth, control.damping)
-        self.imu = ImuModel(spec, scenario.seed, scenario.sample_interval(spec.attitude_rate, "attitude_rate", table="quadrotor"))
+        self.ctrl = GeometricController(
+            CRAZYFLIE, control.position_bandwidth, control.attitude_bandwidth, control.damping
+        )
+        self.imu = ImuModel(
+            spec,
+            scenario.seed,
+            scenario.sample_interval(spec.attitude_rate, "attitude_rate", table="quadrotor"),
+        )
         self.columns, self.spans = _columns(sensors.q, sensors.q_b)
         self.out = np.full((int(capacity) + 1, self.columns.width), np.nan)
         self.events = np.zeros((int(capacity) + 1, 2), dtype=np.int64)
@@ -111,14 +137,23 @@ class QuadrotorWorld(World):
         self._kq, c, d, qp, qv = kq, self.ctrl, self.data, self._qp, self._qv
         self._gains = np.array([c.kx, c.kv, c.kR, c.kW, c.p.mass, c.tan_tilt, c.p.thrust_max, 0.0])
         imu = self.imu
-        self._imu = np.concatenate([imu.accel_bias, imu.gyro_bias, [imu.accel_std, imu.gyro_std, imu.attitude_std]])
+        self._imu = np.concatenate(
+            [imu.accel_bias, imu.gyro_bias, [imu.accel_std, imu.gyro_std, imu.attitude_std]]
+        )
         self._p, self._v = d.qpos[qp : qp + 3], d.qvel[qv : qv + 3]
         self._q, self._w = d.qpos[qp + 3 : qp + 7], d.qvel[qv + 3 : qv + 6]
         self._ranges, self._R, self._Rc = np.zeros(len(self.anchors)), np.eye(3), np.eye(3)
         self._thrusts = np.zeros(4)
         cols, sp = self.columns, self.spans
         self._o_crashed = sp["crashed"].start
-        self._o = (sp["reference"].start, sp["tracking"].start, sp["rotors"].start, sp["on_estimate"].start, sp["attitude"].start, cols.u.start)
+        self._o = (
+            sp["reference"].start,
+            sp["tracking"].start,
+            sp["rotors"].start,
+            sp["on_estimate"].start,
+            sp["attitude"].start,
+            cols.u.start,
+        )
 
     def _ids(self, scenario) -> None:
         m = self.model
@@ -143,8 +178,15 @@ class QuadrotorWorld(World):
         self.floor = float(d.qpos[qp + 2])
         spec = self.spec
         hovers = [(h.start, h.end) for h in spec.hovers]
-        self.plan = FlightPlan(scenario.trajectory, scenario.duration, takeoff=spec.takeoff, landing=spec.landing,
-                               hovers=hovers, ramp=spec.hover_ramp, floor=self.floor)
+        self.plan = FlightPlan(
+            scenario.trajectory,
+            scenario.duration,
+            takeoff=spec.takeoff,
+            landing=spec.landing,
+            hovers=hovers,
+            ramp=spec.hover_ramp,
+            floor=self.floor,
+        )
         self.attitude_meas = np.array([1.0, 0.0, 0.0, 0.0])
         self.rates_meas = np.zeros(3)
 
@@ -167,7 +209,19 @@ class QuadrotorWorld(World):
         d, row, k, kq, o = self.data, self.out[j], self.k0 + j, self._kq, self._o
         if k % self.control_every == 0:
             self._control(k, self.refs[j], estimate)
-        err = kq.pre_step(self._p, self.anchors, self.refs[j, 0], self._thrusts, float(self._on_estimate), self._ranges, row, o[0], o[1], o[2], o[3])
+        err = kq.pre_step(
+            self._p,
+            self.anchors,
+            self.refs[j, 0],
+            self._thrusts,
+            float(self._on_estimate),
+            self._ranges,
+            row,
+            o[0],
+            o[1],
+            o[2],
+            o[3],
+        )
         s = self.sensors
         o0, d0 = s.outliers_injected, s.dropped
         row[self.columns.y] = s.outputs(k, self._ranges)
@@ -175,22 +229,60 @@ class QuadrotorWorld(World):
         ev[0], ev[1] = s.outliers_injected - o0, s.dropped - d0
         row[self.columns.measured] = s.measured_ranges
         _mj_step(self.model, d)
-        upside = kq.post_step(d.sensordata, self._acc, self._gyro, self._quat, self.noise[j], self._imu, k % self.imu.attitude_every == 0,
-                              self.attitude_meas, self.rates_meas, self._R, row, o[4], o[5], self._p, self._v, self.out[j + 1])
+        upside = kq.post_step(
+            d.sensordata,
+            self._acc,
+            self._gyro,
+            self._quat,
+            self.noise[j],
+            self._imu,
+            k % self.imu.attitude_every == 0,
+            self.attitude_meas,
+            self.rates_meas,
+            self._R,
+            row,
+            o[4],
+            o[5],
+            self._p,
+            self._v,
+            self.out[j + 1],
+        )
         if self.crashed_at is None and (err > self.control.crash_distance or upside):
             self.crashed_at = k
         row[self._o_crashed] = self.crashed_at is not None
 
     def _control(self, k: int, ref: np.ndarray, estimate) -> None:
-        self._on_estimate = self.controller is not None and k >= self.switch_step and estimate is not None
+        self._on_estimate = (
+            self.controller is not None and k >= self.switch_step and estimate is not None
+        )
         if self.crashed_at is not None:
             self._thrusts[:] = 0.0
         elif self._on_estimate:
             self._kq.quat_matrix(self.attitude_meas, self._Rc)
-            self._kq.control(estimate[:3], estimate[3:6], self._Rc, self.rates_meas, ref, self._gains, self.ctrl.J, self.ctrl.mix_inv, self._thrusts)
+            self._kq.control(
+                estimate[:3],
+                estimate[3:6],
+                self._Rc,
+                self.rates_meas,
+                ref,
+                self._gains,
+                self.ctrl.J,
+                self.ctrl.mix_inv,
+                self._thrusts,
+            )
         else:  # a free joint's angular velocity is in the body frame
             self._kq.quat_matrix(self._q, self._Rc)
-            self._kq.control(self._p, self._v, self._Rc, self._w, ref, self._gains, self.ctrl.J, self.ctrl.mix_inv, self._thrusts)
+            self._kq.control(
+                self._p,
+                self._v,
+                self._Rc,
+                self._w,
+                ref,
+                self._gains,
+                self.ctrl.J,
+                self.ctrl.mix_inv,
+                self._thrusts,
+            )
         self.data.ctrl[self._rotors] = self._thrusts
 
     _on_estimate = False

@@ -58,7 +58,16 @@ from quadobs.evaluation.convergence import ConvergenceTracker, json_time
 from quadobs.testbed.sinks import EpisodeContext, EpisodeFrame, Rows, Sink
 from quadobs.testbed.worlds.base import Columns, World
 
-__all__ = ["ReplayErrorSink", "ReplayFiguresSink", "ReplayWorld", "dead_reckoning", "default_model", "grid", "state_size", "MODELS"]
+__all__ = [
+    "MODELS",
+    "ReplayErrorSink",
+    "ReplayFiguresSink",
+    "ReplayWorld",
+    "dead_reckoning",
+    "default_model",
+    "grid",
+    "state_size",
+]
 
 #: Replay models (module docstring).
 MODELS = ("odometry", "cv", "imu")
@@ -74,9 +83,13 @@ def state_size(log, model: str) -> int:
     if model not in MODELS:
         raise QuadobsError(f"model: expected one of {', '.join(MODELS)}, got {model!r}")
     if model == "odometry" and log.input_kind != "odometry":
-        raise QuadobsError(f"model odometry: the log {log.name!r} has accelerometer inputs (use --model imu)")
+        raise QuadobsError(
+            f"model odometry: the log {log.name!r} has accelerometer inputs (use --model imu)"
+        )
     if model == "imu" and log.input_kind != "imu":
-        raise QuadobsError(f"model imu: the log {log.name!r} has odometry inputs, no accelerometer (use --model odometry)")
+        raise QuadobsError(
+            f"model imu: the log {log.name!r} has odometry inputs, no accelerometer (use --model odometry)"
+        )
     if model == "cv" and log.dimension != 2:
         raise QuadobsError(f"model cv: planar logs only (the log {log.name!r} is 3-D)")
     return {"odometry": 2, "cv": 4, "imu": 2 * log.dimension}[model]
@@ -161,8 +174,16 @@ class ReplayWorld(World):
         Ranges placed on the grid.
     """
 
-    def __init__(self, log, dt: float, model: str = "odometry", capacity: int = 8192, biases=None, sensors=None,
-                 peer_batch: bool = True) -> None:
+    def __init__(
+        self,
+        log,
+        dt: float,
+        model: str = "odometry",
+        capacity: int = 8192,
+        biases=None,
+        sensors=None,
+        peer_batch: bool = True,
+    ) -> None:
         n, q = state_size(log, model), log.beacons.shape[0]
         self.log, self.model, self.dt = log, model, float(dt)
         self.sensors = None if sensors is None or sensors.adds_nothing else sensors
@@ -173,8 +194,11 @@ class ReplayWorld(World):
         self._a2 = np.einsum("hi,hi->h", log.beacons, log.beacons)
         p = 3 if log.input_kind == "odometry" else log.dimension
         self.columns = Columns(
-            truth=slice(0, n), y=slice(n, n + q), u=slice(n + q, n + q + p),
-            measured=slice(n + q + p, n + 2 * q + p), width=n + 2 * q + p,
+            truth=slice(0, n),
+            y=slice(n, n + q),
+            u=slice(n + q, n + q + p),
+            measured=slice(n + q + p, n + 2 * q + p),
+            width=n + 2 * q + p,
         )
         rows = np.full((K + 1, self.columns.width), np.nan)
         rows[:, :n] = _truth_rows(log, T, n)
@@ -184,7 +208,9 @@ class ReplayWorld(World):
         self.out = np.full((int(capacity) + 1, self.columns.width), np.nan)
         self.events = np.zeros((int(capacity) + 1, 2), dtype=np.int64)
         self._k0 = 0
-        self._src = self._events = None  # with a sensor layer: the block's rows (row 0: step _k0), its events
+        self._src = self._events = (
+            None  # with a sensor layer: the block's rows (row 0: step _k0), its events
+        )
 
     def _inputs(self, T: np.ndarray) -> np.ndarray:
         """The input held over each grid step ``(K, p)`` (module docstring)."""
@@ -211,11 +237,20 @@ class ReplayWorld(World):
         log, s = self.log, self.sensors
         odometry = log.input_kind == "odometry"
         return EpisodeFrame(
-            name=log.name, steps=self.steps, dt=self.dt, dimension=log.dimension, beacons=log.beacons, physics_rate=1.0 / self.dt,
-            seed=int(seed), description=f"replay of the log {log.name} (model {self.model}, dt {self.dt:g} s)",
-            source=log.source, sensor_events=s is not None and bool(s.dropout or s.outlier_probability),
+            name=log.name,
+            steps=self.steps,
+            dt=self.dt,
+            dimension=log.dimension,
+            beacons=log.beacons,
+            physics_rate=1.0 / self.dt,
+            seed=int(seed),
+            description=f"replay of the log {log.name} (model {self.model}, dt {self.dt:g} s)",
+            source=log.source,
+            sensor_events=s is not None and bool(s.dropout or s.outlier_probability),
             input_name="odometry" if odometry else "accelerometer",
-            input_labels=("v_x (m/s)", "v_y (m/s)", "omega (rad/s)") if odometry else tuple(f"a_{a}" for a in "xyz"[: log.dimension]),
+            input_labels=("v_x (m/s)", "v_y (m/s)", "omega (rad/s)")
+            if odometry
+            else tuple(f"a_{a}" for a in "xyz"[: log.dimension]),
             beacon_labels=tuple(f"beacon {int(i)}" for i in log.beacon_ids),
         )
 
@@ -244,7 +279,9 @@ class ReplayWorld(World):
         rho, self._events = self.sensors.logged_ranges(src[:count, c.measured], draws)
         src[:count, c.measured] = rho
         src[:count, c.y] = 0.5 * (rho - self.biases) ** 2 - 0.5 * self._a2
-        if self.sensors.accel_std:  # an accelerometer log (the layer refuses accelerometer noise on odometry)
+        if (
+            self.sensors.accel_std
+        ):  # an accelerometer log (the layer refuses accelerometer noise on odometry)
             src[:count, c.u] += self.sensors.input_noise(draws)
         self._src = src
 
@@ -258,7 +295,9 @@ class ReplayWorld(World):
 
     def fill(self, count: int) -> None:
         k0 = self._k0
-        self.out[: count + 1] = self._rows[k0 : k0 + count + 1] if self.sensors is None else self._src[: count + 1]
+        self.out[: count + 1] = (
+            self._rows[k0 : k0 + count + 1] if self.sensors is None else self._src[: count + 1]
+        )
 
     def commit(self, rows: int) -> None:
         """The sensor events of the first ``rows`` steps, counted in the sensor layer."""
@@ -274,7 +313,9 @@ class ReplayErrorSink(Sink):
 
     def begin(self, ctx: EpisodeContext) -> None:
         super().begin(ctx)
-        self.sq = {n: [0.0, 0, 0.0, math.nan] for n in ctx.names}  # sum of squares, count, max, last
+        self.sq = {
+            n: [0.0, 0, 0.0, math.nan] for n in ctx.names
+        }  # sum of squares, count, max, last
         self.trackers = {n: ConvergenceTracker((5.0, 2.0)) for n in ctx.names}
 
     def block(self, rows: Rows) -> None:
@@ -321,8 +362,13 @@ class ReplayFiguresSink(Sink):
             if clock is not None:
                 entry["seconds_per_measurement"] = float(clock[e]) / max(w.placed, 1)
             if isinstance(est, Isam2RangeOnly) and w.peer_batch and not interrupted:
-                for key, (steps, P) in (("smoothed", est.online_positions()), ("batch", est.batch_optimum())):
-                    err = np.linalg.norm(P - w.truth_at(steps)[:, :2], axis=1)  # the peer: planar odometry logs
+                for key, (steps, P) in (
+                    ("smoothed", est.online_positions()),
+                    ("batch", est.batch_optimum()),
+                ):
+                    err = np.linalg.norm(
+                        P - w.truth_at(steps)[:, :2], axis=1
+                    )  # the peer: planar odometry logs
                     err = err[np.isfinite(err)]
                     entry[f"{key}_rmse"] = float(np.sqrt(np.mean(err**2))) if err.size else None
                     entry[f"{key}_max_error"] = float(err.max()) if err.size else None
