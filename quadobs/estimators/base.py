@@ -35,10 +35,14 @@ from __future__ import annotations
 
 import abc
 import math
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from quadobs.errors import as_array
+from quadobs.errors import QuadobsError, as_array
+
+if TYPE_CHECKING:
+    from quadobs.core.measurements import Measurement
 
 __all__ = [
     "BlockStep",
@@ -76,6 +80,18 @@ class Estimator(abc.ABC):
         """Consume the output ``y (q,)`` sampled at the start of a physics step (NaN: missing)
         and the input ``u (p,)`` held over it; afterwards :attr:`x_hat` estimates the state at
         the end of the step."""
+
+    def predict(self, t: float) -> None:
+        """Propagate the estimate to time ``t`` (s) with the input held since the last call.
+
+        With :meth:`correct`, the interface in time: measurements at their own times
+        (:class:`~quadobs.core.measurements.Measurement`), the predictor/updater split.
+        """
+        raise QuadobsError(f"{self.name}: does not take measurements at their own times")
+
+    def correct(self, m: Measurement) -> None:
+        """Correct the estimate with one measurement ``m`` taken at the current time."""
+        raise QuadobsError(f"{self.name}: does not take measurements at their own times")
 
     @property
     @abc.abstractmethod
