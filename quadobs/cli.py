@@ -770,6 +770,19 @@ def _add_replay(sub) -> None:
         metavar="noise.FIELD=VALUE",
         help="sensor layer on the logged ranges, e.g. noise.dropout=0.3 (noise.* fields only; default: the log as it is)",
     )
+    p.add_argument(
+        "--burn-in",
+        type=float,
+        default=0.0,
+        metavar="SECONDS",
+        help="take the RMSE and the maximum error from this many seconds after the start (default 0)",
+    )
+    p.add_argument(
+        "--export-tum",
+        type=Path,
+        metavar="DIR",
+        help="write the truth and each estimator's positions as TUM files (truth.tum, NAME.tum) for evo_ape",
+    )
     p.set_defaults(func=_cmd_replay)
 
 
@@ -792,6 +805,7 @@ def _cmd_replay(args) -> int:
         {"--out": args.out, "--summary": args.summary}
     )  # before the calibration's replays
     log_scenario(log, args.dt, args.seed, args.set)  # the --set settings, checked as early
+    _check_field_options(args)
     biases, tuning = _replay_calibration(args, log, parse_tuning(args.tune))
     stop_if_interrupted()
     summary = run_replay(
@@ -807,6 +821,8 @@ def _cmd_replay(args) -> int:
         progress=not args.no_progress,
         settings=args.set,
         setup_options=tuning,
+        burn_in=args.burn_in,
+        export_tum=args.export_tum,
     )
     m = summary["measurements"]
     print(
@@ -819,6 +835,12 @@ def _cmd_replay(args) -> int:
         + ("  [INTERRUPTED]" if summary["interrupted"] else "")
     )
     for name, e in summary["estimators"].items():
+        if e.get("diverged"):
+            d = e["diverged"]
+            print(
+                f"  {name:10s} DIVERGED at t = {d['time']:.3f} s (step {d['step']}): {d['reason']}"
+            )
+            continue
         extra = (
             f"  batch LM rmse {_fmt(e['batch_rmse'], ' m')}"
             if e.get("batch_rmse") is not None
@@ -827,10 +849,32 @@ def _cmd_replay(args) -> int:
         print(
             f"  {name:10s} rmse {_fmt(e['rmse'], ' m')}  max {_fmt(e['max_error'], ' m')}  "
             f"final {_fmt(e['final_position_error'], ' m')}  {e['seconds_per_measurement'] * 1e6:.0f} us/range{extra}"
+            + _field_split(e)
         )
     if args.summary:
         print(f"summary: {args.summary}")
     return 130 if summary["interrupted"] else 0
+
+
+def _check_field_options(args) -> None:
+    """``--burn-in`` and ``--export-tum`` checked before the calibration's replays."""
+    import math
+
+    from quadobs.errors import QuadobsError
+    from quadobs.testbed.logs.figures import check_tum_folder
+
+    if not (math.isfinite(args.burn_in) and args.burn_in >= 0.0):
+        raise QuadobsError(
+            f"--burn-in: expected a non-negative number of seconds, got {args.burn_in}"
+        )
+    check_tum_folder(args.export_tum, (args.out, args.summary))
+
+
+def _field_split(e: dict) -> str:
+    """The horizontal and vertical RMSE of a 3-D replay, for its printed row."""
+    if e.get("rmse_vertical") is None:
+        return ""
+    return f"  (horizontal {_fmt(e['rmse_horizontal'], ' m')}, vertical {_fmt(e['rmse_vertical'], ' m')})"
 
 
 def _replay_calibration(args, log, tuning: dict) -> tuple[list[float] | None, dict]:

@@ -32,7 +32,7 @@ import numpy as np
 from quadobs.errors import QuadobsError, staging_owner, staging_path
 from quadobs.testbed.logs.schema import MAX_FILE_BYTES, MAX_LINE_BYTES, FileSpec, check_values
 
-__all__ = ["read_limited", "read_table", "staged_folder"]
+__all__ = ["check_replaceable_folder", "read_limited", "read_table", "staged_folder"]
 
 
 def read_limited(path: Path) -> bytes | None:
@@ -210,11 +210,12 @@ def _remove_dead_stages(target: Path) -> None:
 
 
 @contextlib.contextmanager
-def staged_folder(folder: str | Path, allowed: set[str], what: str) -> Iterator[Path]:
+def staged_folder(folder: str | Path, allowed, what: str) -> Iterator[Path]:
     """A fresh folder to fill, put in place of ``folder`` in one rename once the block ends.
 
-    An existing ``folder`` may hold only names in ``allowed`` (it is replaced whole; other
-    files would be lost, so such a folder is refused before anything is written). On any
+    An existing ``folder`` may hold only names in ``allowed`` (a set of names, or a test of
+    a name): it is replaced whole, so a folder holding anything else is refused before
+    anything is written. On any
     failure the staging folder is removed and ``folder`` is as it was. The previous
     folder is moved aside, the new one renamed in, and the previous one removed: a crash
     between the two renames leaves the previous folder complete under its staging name.
@@ -265,8 +266,8 @@ def _swap_in(stage: Path, target: Path) -> None:
     shutil.rmtree(old, ignore_errors=True)
 
 
-def check_replaceable_folder(folder: str | Path, allowed: set[str], what: str) -> None:
-    """A one-line error unless ``folder`` is absent, or a writable folder holding only names in ``allowed``."""
+def check_replaceable_folder(folder: str | Path, allowed, what: str) -> None:
+    """A one-line error unless ``folder`` is absent, or a folder holding only names in ``allowed`` (a set, or a test of a name)."""
     path = Path(folder)
     shown = os.fspath(folder)
     if os.path.lexists(path) and not os.path.isdir(path):
@@ -277,7 +278,8 @@ def check_replaceable_folder(folder: str | Path, allowed: set[str], what: str) -
         names = sorted(os.listdir(path))
     except OSError as exc:
         raise QuadobsError(f"{what} {shown!r}: cannot be read ({exc.strerror or exc})") from None
-    other = [n for n in names if n not in allowed]
+    keep = allowed if callable(allowed) else allowed.__contains__
+    other = [n for n in names if not keep(n)]
     if other:
         raise QuadobsError(
             f"{what} {shown!r}: holds {other[0]!r}, which is not part of what is written there; "
