@@ -704,6 +704,7 @@ def build_parser():
     p.set_defaults(func=_cmd_plot)
 
     _add_replay(sub)
+    _add_import_bag(sub)
     return parser
 
 
@@ -875,6 +876,53 @@ def _field_split(e: dict) -> str:
     if e.get("rmse_vertical") is None:
         return ""
     return f"  (horizontal {_fmt(e['rmse_horizontal'], ' m')}, vertical {_fmt(e['rmse_vertical'], ' m')})"
+
+
+def _add_import_bag(sub) -> None:
+    """The ``import-bag`` subcommand (:mod:`quadobs.testbed.logs.rosbag`)."""
+    from pathlib import Path
+
+    p = sub.add_parser(
+        "import-bag",
+        help="import a ROS 1 or ROS 2 bag (IMU, pose truth, ranges, TDOA) as a log folder for 'quadobs replay'",
+    )
+    p.add_argument("bag", type=Path, help="a ROS 1 .bag file or a ROS 2 bag folder")
+    p.add_argument(
+        "--out", type=Path, required=True, help="the log folder to write (written whole)"
+    )
+    p.add_argument(
+        "--map", type=Path, help="TOML topic map: streams, their topics and fields, anchors"
+    )
+    p.add_argument(
+        "--topic",
+        action="append",
+        default=[],
+        metavar="STREAM=TOPIC",
+        help="a stream's topic (imu, truth, ranges, tdoa; repeatable; over the --map file's)",
+    )
+    p.add_argument("--anchors", type=Path, help="anchor positions: a CSV file id,x,y[,z]")
+    p.add_argument("--name", help="the log's name (default: the map's, else the bag's)")
+    p.set_defaults(func=_cmd_import_bag)
+
+
+def _cmd_import_bag(args) -> int:
+    """``quadobs import-bag BAG --out DIR``: a bag as a log folder."""
+    from quadobs.testbed.logs import write_log
+    from quadobs.testbed.logs.files import check_replaceable_folder
+    from quadobs.testbed.logs.format import LOG_FILES
+    from quadobs.testbed.logs.rosbag import TopicMap, import_bag, load_topic_map, with_options
+
+    check_replaceable_folder(args.out, set(LOG_FILES), "--out")
+    topic_map = load_topic_map(args.map) if args.map is not None else TopicMap()
+    topic_map = with_options(topic_map, args.topic, args.anchors, args.name)
+    log = import_bag(args.bag, topic_map)
+    write_log(log, args.out)
+    print(
+        f"log {log.name}: {log.ranges.shape[0]} ranges, {log.tdoa.shape[0]} TDOA, "
+        f"{log.inputs.shape[0]} IMU rows, {0 if log.truth is None else log.truth.shape[0]} truth rows "
+        f"written to {args.out} (replay with: quadobs replay {args.out})"
+    )
+    return 0
 
 
 def _replay_calibration(args, log, tuning: dict) -> tuple[list[float] | None, dict]:
