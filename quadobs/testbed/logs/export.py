@@ -27,7 +27,7 @@ from quadobs.errors import QuadobsError
 from quadobs.testbed.logs.format import RangeLog, write_log
 from quadobs.testbed.sinks import EpisodeContext, Rows, Sink
 
-__all__ = ["LogExportSink", "check_exportable"]
+__all__ = ["LogExportSink", "check_export_folder", "check_exportable"]
 
 
 def check_exportable(scenario) -> None:
@@ -38,6 +38,15 @@ def check_exportable(scenario) -> None:
             f"--export-log: {scenario.name!r} is {what}; the log format holds ranges, an accelerometer "
             "in the navigation frame and the truth of a vehicle scenario without wind"
         )
+
+
+def check_export_folder(folder, outputs=()) -> None:
+    """Before the run: a one-line error unless ``folder`` is new, empty or a log folder, and
+    none of the run's other ``outputs`` lies in it (it is replaced whole at the end)."""
+    from quadobs.testbed.logs.files import check_replaceable_folder
+    from quadobs.testbed.logs.format import LOG_FILES
+
+    check_replaceable_folder(folder, set(LOG_FILES), "--export-log", outputs)
 
 
 class LogExportSink(Sink):

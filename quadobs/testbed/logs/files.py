@@ -266,10 +266,18 @@ def _swap_in(stage: Path, target: Path) -> None:
     shutil.rmtree(old, ignore_errors=True)
 
 
-def check_replaceable_folder(folder: str | Path, allowed, what: str) -> None:
-    """A one-line error unless ``folder`` is absent, or a folder holding only names in ``allowed`` (a set, or a test of a name)."""
+def check_replaceable_folder(folder: str | Path, allowed, what: str, outputs=()) -> None:
+    """A one-line error unless ``folder`` is absent, or a folder holding only names in ``allowed``
+    (a set, or a test of a name); and none of the command's other ``outputs`` (paths or None)
+    lies in it (the folder is replaced whole, they would be lost)."""
     path = Path(folder)
     shown = os.fspath(folder)
+    inside = Path(os.path.realpath(path))
+    for other in outputs:
+        if other is not None and inside in Path(os.path.realpath(other)).parents:
+            raise QuadobsError(
+                f"{what} {shown!r}: holds the output {os.fspath(other)!r}, and the folder is replaced whole"
+            )
     if os.path.lexists(path) and not os.path.isdir(path):
         raise QuadobsError(f"{what} {shown!r}: exists and is not a folder")
     if not path.exists():
