@@ -311,3 +311,21 @@ def test_a_log_folder_is_replaced_whole_or_not_at_all(tmp_path, monkeypatch):
     with pytest.raises(QuadobsError, match=r"holds 'notes.txt'"):
         write_log(alone, folder)
     assert (folder / "notes.txt").read_text() == "mine"
+
+
+def test_a_log_built_in_memory_is_held_to_the_schema_too():
+    log = flight_log(with_truth=False)
+    bad = log.ranges.copy()
+    bad[4, RANGE.range] = -1.0
+    with pytest.raises(
+        QuadobsError, match=r"flight: ranges.csv, row 6, column range: '-1.0' is negative"
+    ):
+        RangeLog("flight", IDS, BEACONS3, bad, log.inputs, math.nan, input_kind="imu_body")
+    with pytest.raises(QuadobsError, match=r"a log without inputs needs ranges or TDOA"):
+        RangeLog(
+            "empty", IDS, BEACONS3, np.empty((0, 3)), np.empty((0, 1)), math.nan, input_kind="none"
+        )
+    with pytest.raises(QuadobsError, match=r"imu.csv, row 1: a body IMU needs a log in space"):
+        RangeLog(
+            "flat", IDS, BEACONS3[:, :2], log.ranges, log.inputs, math.nan, input_kind="imu_body"
+        )

@@ -260,7 +260,7 @@ def parse_meta(where: str, rows: list[list[str]]) -> dict:
     :data:`META_KEYS`, the defaults where absent.
     """
     seen: dict[str, int] = {}
-    meta = {k.name: k.default for k in META_KEYS.values()}
+    meta: dict = {k.name: k.default for k in META_KEYS.values()}
     for r, row in enumerate(rows, start=2):
         if len(row) != 2:
             raise QuadobsError(f"{where}, row {r}: {len(row)} columns, expected 2 (key,value)")
