@@ -4,7 +4,10 @@
 ``t_k = k dt``), what the estimators were given and what was true:
 
 * ``ranges.csv``: each measured range (after the sensor layer: noise, rate, dropouts,
-  outliers) at ``t_k``;
+  outliers) at ``t_k``. A range the noise or an outlier took below zero is written as its
+  magnitude ``|rho|``: the format holds distances (non-negative), and the estimators'
+  output ``y = rho^2 / 2 - |a|^2 / 2`` is the same for both signs, so the replay still
+  gives the episode's outputs; the summary counts them (``exported_log_ranges_negated``);
 * ``inputs.csv``: the measured acceleration ``u_k`` (the accelerometer, with its noise),
   held over ``[t_k, t_(k+1))``, in the navigation frame (``time,ax,ay[,az]``); a last row
   at ``t_K`` (zero) closes the last step, as the format's inputs are held to the next row;
@@ -88,11 +91,14 @@ class LogExportSink(Sink):
         dim = fr.dimension
         inputs = np.vstack(self.parts["inputs"] + [np.r_[completed * fr.dt, np.zeros(dim)][None]])
         axes = "xyz"[:dim]
+        ranges = np.vstack(self.parts["ranges"]).reshape(-1, 3)
+        negated = int(np.count_nonzero(ranges[:, 2] < 0.0))
+        ranges[:, 2] = np.abs(ranges[:, 2])
         log = RangeLog(
             fr.name,
             np.arange(fr.beacons.shape[0]),
             np.asarray(fr.beacons, dtype=float),
-            np.vstack(self.parts["ranges"]).reshape(-1, 3),
+            ranges,
             inputs,
             float("nan"),
             np.vstack(self.parts["truth"]),
@@ -100,4 +106,4 @@ class LogExportSink(Sink):
             truth_columns=("time", *axes, *(f"v{a}" for a in axes)),
         )
         write_log(log, self.folder)
-        return {"exported_log": str(self.folder)}
+        return {"exported_log": str(self.folder), "exported_log_ranges_negated": negated}

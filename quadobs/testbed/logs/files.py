@@ -79,7 +79,11 @@ def read_limited(path: Path) -> bytes | None:
 
 def _line_starts(path: Path, raw: bytes) -> np.ndarray:
     """Offsets of each line's first byte, and one past the end; checks :data:`MAX_LINE_BYTES`."""
-    ends = np.flatnonzero(np.frombuffer(raw, dtype=np.uint8) == 10)
+    data, chunk = np.frombuffer(raw, dtype=np.uint8), 1 << 24  # a chunk's mask at a time
+    ends = np.concatenate(
+        [np.zeros(0, dtype=np.int64)]
+        + [np.flatnonzero(data[i : i + chunk] == 10) + i for i in range(0, data.size, chunk)]
+    )
     starts = np.concatenate([[0], ends + 1, [len(raw) + 1]]) if raw else np.array([0, 1])
     lengths = np.diff(starts) - 1
     bad = np.flatnonzero(lengths > MAX_LINE_BYTES)
