@@ -8,6 +8,8 @@ import threading
 
 import numpy as np
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 from quadobs.errors import QuadobsError
 from quadobs.testbed.logs import RangeLog, read_log, write_log
@@ -329,3 +331,39 @@ def test_a_log_built_in_memory_is_held_to_the_schema_too():
         RangeLog(
             "flat", IDS, BEACONS3[:, :2], log.ranges, log.inputs, math.nan, input_kind="imu_body"
         )
+
+
+_FUZZ_FILES = (
+    "meta.csv",
+    "beacons.csv",
+    "ranges.csv",
+    "tdoa.csv",
+    "imu.csv",
+    "attitude.csv",
+    "truth.csv",
+)
+
+
+@settings(
+    max_examples=150, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture]
+)
+@given(
+    fname=st.sampled_from(_FUZZ_FILES),
+    position=st.floats(0.0, 1.0),
+    cut=st.integers(0, 40),
+    junk=st.binary(max_size=24)
+    | st.sampled_from([b"nan", b"-1e400", b"\n\n", b",,,", b"\xef\xbb\xbf", b'"', b"1e19", b"\r"]),
+)
+def test_a_mutated_log_reads_or_is_refused_in_one_line(
+    tmp_path_factory, fname, position, cut, junk
+):
+    folder = tmp_path_factory.mktemp("fuzz") / "log"
+    write_log(flight_log(), folder)
+    path = folder / fname
+    raw = path.read_bytes()
+    at = int(position * len(raw))
+    path.write_bytes(raw[:at] + junk + raw[at + cut :])
+    try:
+        read_log(folder)
+    except QuadobsError as exc:
+        assert "\n" not in str(exc) and str(exc)

@@ -80,10 +80,13 @@ def read_limited(path: Path) -> bytes | None:
 def _line_starts(path: Path, raw: bytes) -> np.ndarray:
     """Offsets of each line's first byte, and one past the end; checks :data:`MAX_LINE_BYTES`."""
     data, chunk = np.frombuffer(raw, dtype=np.uint8), 1 << 24  # a chunk's mask at a time
-    ends = np.concatenate(
-        [np.zeros(0, dtype=np.int64)]
-        + [np.flatnonzero(data[i : i + chunk] == 10) + i for i in range(0, data.size, chunk)]
-    )
+    parts = [np.zeros(0, dtype=np.int64)]
+    for i in range(0, data.size, chunk):
+        c = data[i : i + chunk]
+        following = np.append(data[i + 1 : i + chunk + 1], 0)[: c.size]
+        # a line ends at LF, or at a CR not followed by LF (as the CSV parser reads it)
+        parts.append(np.flatnonzero((c == 10) | ((c == 13) & (following != 10))) + i)
+    ends = np.concatenate(parts)
     starts = np.concatenate([[0], ends + 1, [len(raw) + 1]]) if raw else np.array([0, 1])
     lengths = np.diff(starts) - 1
     bad = np.flatnonzero(lengths > MAX_LINE_BYTES)
@@ -95,9 +98,15 @@ def _line_starts(path: Path, raw: bytes) -> np.ndarray:
 
 
 def _line(raw: bytes, starts: np.ndarray, k: int) -> list[str]:
-    """The cells of line ``k`` (0-based) as the csv module reads them."""
+    """The cells of line ``k`` (0-based) as the csv module reads them (none past the end)."""
+    if k + 1 >= starts.size:
+        return []
     text = raw[starts[k] : max(starts[k + 1] - 1, starts[k])].decode("utf-8-sig", "replace")
-    return next(csv.reader([text.rstrip("\r")]), [])
+    text = text.rstrip("\r")
+    try:
+        return next(csv.reader([text]), [])
+    except csv.Error:  # a stray carriage return or quote: the cells as split by commas
+        return text.split(",")
 
 
 def text_rows(path: Path, raw: bytes) -> list[list[str]]:
