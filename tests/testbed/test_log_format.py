@@ -367,3 +367,17 @@ def test_a_mutated_log_reads_or_is_refused_in_one_line(
         read_log(folder)
     except QuadobsError as exc:
         assert "\n" not in str(exc) and str(exc)
+
+
+def test_an_excerpt_keeps_every_part_of_its_span():
+    log = flight_log()
+    part = log.excerpt(0.5, 1.0)
+    a, b = log.start + 0.5, log.start + 1.0
+    for table, std in ((part.ranges, part.range_std), (part.tdoa, part.tdoa_std)):
+        assert table.shape[0] == std.shape[0] > 0
+        assert a <= table[0, 0] and table[-1, 0] < b
+    np.testing.assert_array_equal(
+        part.range_std, log.range_std[(log.ranges[:, 0] >= a) & (log.ranges[:, 0] < b)]
+    )
+    assert part.attitude[0, 0] <= a and part.attitude[-1, 0] >= b  # one sample either side
+    assert part.inputs[0, 0] == a and part.input_kind == "imu_body" and part.frame == "ned"
