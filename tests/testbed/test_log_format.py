@@ -381,3 +381,22 @@ def test_an_excerpt_keeps_every_part_of_its_span():
     )
     assert part.attitude[0, 0] <= a and part.attitude[-1, 0] >= b  # one sample either side
     assert part.inputs[0, 0] == a and part.input_kind == "imu_body" and part.frame == "ned"
+
+
+def test_arrow_and_the_row_by_row_reader_give_the_same_values(tmp_path):
+    from quadobs.studies.bench import log_read_figure
+    from quadobs.testbed.logs.schema import FILES
+
+    folder = write_log(flight_log(), tmp_path / "log")
+    for fname in ("ranges.csv", "tdoa.csv", "imu.csv", "attitude.csv", "truth.csv"):
+        path = folder / fname
+        raw = log_files.read_limited(path)
+        header = [h.strip() for h in log_files._line(raw, log_files._line_starts(path, raw), 0)]
+        columns = FILES[fname].columns_of(header, 2)
+        fast = log_files._arrow_values(raw, header, columns)
+        slow = log_files._python_values(
+            path, raw, log_files._line_starts(path, raw), header, columns, FILES[fname]
+        )
+        np.testing.assert_array_equal(fast, slow)
+    figure = log_read_figure(rows=2000, repeats=1)
+    assert figure["rows"] == 2000 and figure["arrow_s"] > 0 and figure["log_read_speedup"] > 0
