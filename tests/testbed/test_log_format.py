@@ -217,6 +217,11 @@ def test_a_version_1_log_still_reads_and_version_2_parts_ask_for_the_version(tmp
         ),
         ("truth.csv", "time,x,y,qw\n0,1,1,1\n", "truth.csv, row 1: the attitude needs all of"),
         (
+            "imu.csv",
+            "time,ax,ay,az,gx,gy,gz\n0,0,0,9.8,0,0,0\n",
+            "imu.csv: a log holds inputs.csv or imu.csv, not both",
+        ),
+        (
             "inputs.csv",
             "time,speed,yaw_rate\n0,1,0\n1e8,1,0\n",
             "the log spans 1e+08 s, more than 1e+07 s",
@@ -400,3 +405,18 @@ def test_arrow_and_the_row_by_row_reader_give_the_same_values(tmp_path):
         np.testing.assert_array_equal(fast, slow)
     figure = log_read_figure(rows=2000, repeats=1)
     assert figure["rows"] == 2000 and figure["arrow_s"] > 0 and figure["log_read_speedup"] > 0
+
+
+def test_a_log_needs_ranges_or_tdoa_and_inputs_only_in_version_1(tmp_path):
+    folder = _write_v1(tmp_path / "log")
+    (folder / "meta.csv").write_text("key,value\nversion,2\nheading0,0.5\n")
+    (folder / "inputs.csv").unlink()
+    with pytest.raises(QuadobsError, match=r"meta.csv, key heading0: only for an odometry log"):
+        read_log(folder)
+    (folder / "meta.csv").write_text("key,value\nversion,2\n")
+    assert read_log(folder).input_kind == "none"
+    (folder / "ranges.csv").unlink()
+    with pytest.raises(
+        QuadobsError, match=r"ranges.csv: missing \(a log holds ranges.csv, tdoa.csv or both\)"
+    ):
+        read_log(folder)
