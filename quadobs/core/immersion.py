@@ -116,6 +116,7 @@ __all__ = [
     "immerse",
     "immerse_chain",
     "immerse_minimal",
+    "lifted_covariance",
     "lifted_input_matrix",
     "lifted_state_matrix",
     "lyapunov_krylov",
@@ -870,3 +871,24 @@ def immerse(
     if method == "chain":
         return immerse_chain(system, rtol)
     raise QuadobsError(f"method: unknown immersion {method!r}; expected 'minimal' or 'chain'")
+
+
+def lifted_covariance(aux_forms: np.ndarray, mean: np.ndarray, cov: np.ndarray) -> np.ndarray:
+    """Covariance of ``z = (xi(x), x)``, ``xi_i = x^T L_i x / 2``, for ``x ~ N(m, P)`` (exact Gaussian moments).
+
+    ``Cov(xi_i, x) = P L_i m`` and ``Cov(xi_i, xi_j) = m^T L_i P L_j m + tr(L_i P L_j P) / 2``.
+    Returns ``(k + n, k + n)``.
+    """
+    L = np.asarray(aux_forms, dtype=float)
+    m = np.asarray(mean, dtype=float)
+    P = np.asarray(cov, dtype=float)
+    k, n = L.shape[0], m.shape[0]
+    out = np.zeros((k + n, k + n))
+    out[k:, k:] = P
+    cross = np.einsum("ab,ibc,c->ia", P, L, m)
+    out[:k, k:] = cross
+    out[k:, :k] = cross.T
+    Lm = np.einsum("iab,b->ia", L, m)
+    LP = np.einsum("iab,bc->iac", L, P)
+    out[:k, :k] = Lm @ P @ Lm.T + 0.5 * np.einsum("iab,jba->ij", LP, LP)
+    return out

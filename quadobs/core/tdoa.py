@@ -66,7 +66,6 @@ from quadobs.errors import QuadobsError, as_array
 
 __all__ = [
     "TdoaImmersion",
-    "lifted_covariance",
     "lifted_noise_gain",
     "pair_constants",
     "relation_residual",
@@ -197,27 +196,6 @@ class TdoaImmersion:
         row[k : k + dim] = (dd - 2.0 * c) * w + 2.0 * dd * self.anchors[j]
         aj2 = float(self.anchors[j] @ self.anchors[j])
         return row, dd * (aj2 + c) - c * c - 0.25 * dd * dd
-
-
-def lifted_covariance(immersion: Immersion, x: np.ndarray, Px: np.ndarray) -> np.ndarray:
-    """Covariance of ``z = (xi(x), x)`` for ``x ~ N(x_hat, P_x)``, exact for Gaussians.
-
-    With ``xi_i = 1/2 x^T L_i x``:
-    ``cov(xi_i, xi_k) = 1/2 tr(L_i P L_k P) + x^T L_i P L_k x``,
-    ``cov(xi_i, x) = (P L_i x)^T``, ``cov(x, x) = P``.
-    """
-    L = immersion.aux_forms
-    x = np.asarray(x, dtype=float)
-    Px = np.asarray(Px, dtype=float)
-    k = L.shape[0]
-    LP = L @ Px  # (k, n, n)
-    Lx = L @ x  # (k, n)
-    P = np.empty((immersion.dim, immersion.dim))
-    P[:k, :k] = 0.5 * np.einsum("iab,kba->ik", LP, LP) + Lx @ Px @ Lx.T
-    P[:k, k:] = Lx @ Px
-    P[k:, :k] = P[:k, k:].T
-    P[k:, k:] = Px
-    return 0.5 * (P + P.T)
 
 
 def lifted_noise_gain(immersion: Immersion, x: np.ndarray) -> np.ndarray:

@@ -19,7 +19,7 @@ current estimate (at least ``min_range``). ``Q_d = dt G(x) Q G(x)^T``: an accele
 white noise of intensity ``accel_psd`` (m²/s³) mapped into ``z`` by
 :func:`~quadobs.core.tdoa.lifted_noise_gain` at the estimate, plus ``V dt`` (a Theorem 3
 tuning on ``z``, zero by default). The initial covariance is the lift of the prior
-``N(x_0, P_0)`` (:func:`~quadobs.core.tdoa.lifted_covariance`), so the auxiliary states
+``N(x_0, P_0)`` (:func:`~quadobs.core.immersion.lifted_covariance`), so the auxiliary states
 start with the spread the position prior implies.
 
 Neither weight changes the fixed point: on noise-free data, started at the truth, the
@@ -35,13 +35,9 @@ import math
 import numpy as np
 
 from quadobs.core.held_input import HeldInputDiscretization, as_covariance
+from quadobs.core.immersion import lifted_covariance
 from quadobs.core.measurements import Measurement
-from quadobs.core.tdoa import (
-    TdoaImmersion,
-    lifted_covariance,
-    lifted_noise_gain,
-    relation_variance,
-)
+from quadobs.core.tdoa import TdoaImmersion, lifted_noise_gain, relation_variance
 from quadobs.errors import QuadobsError, as_array, as_finite_scalar
 from quadobs.estimators.base import Estimator, Gated, check_step
 
@@ -63,7 +59,9 @@ class TdoaObserver(Estimator, Gated):
     std : float
         Default standard deviation of one TDOA (m).
     accel_psd : float
-        Intensity of the white acceleration noise (m²/s³).
+        Intensity of the white acceleration noise (m²/s³): ``sigma_a^2 dt`` for an
+        accelerometer of standard deviation ``sigma_a`` read every step ``dt`` and held,
+        plus what the model misses; 0 (default) for an input known exactly.
     V : float, (N,) or (N, N)
         Additional process-noise intensity on ``z`` (Theorem 3's ``V``).
     pairs : sequence of (i, j), optional
@@ -83,7 +81,7 @@ class TdoaObserver(Estimator, Gated):
         x0,
         P0=25.0,
         std: float = 0.1,
-        accel_psd: float = 1.0,
+        accel_psd: float = 0.0,
         V=0.0,
         pairs=(),
         min_range: float = 0.1,
@@ -107,7 +105,7 @@ class TdoaObserver(Estimator, Gated):
                 raise QuadobsError(f"pairs: ({i}, {j}) is not two distinct anchors below {m}")
         self._steps: dict[float, HeldInputDiscretization] = {}
         self._z = self.model.lift(x0)
-        self._P = lifted_covariance(im, x0, Px)
+        self._P = lifted_covariance(im.aux_forms, x0, Px)
         self._u = np.zeros(im.system.p)
         self.time = 0.0
         self.corrections = 0
