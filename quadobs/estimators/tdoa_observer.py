@@ -41,7 +41,7 @@ from quadobs.core.tdoa import TdoaImmersion, lifted_noise_gain, relation_varianc
 from quadobs.errors import QuadobsError, as_array, as_finite_scalar
 from quadobs.estimators.base import Estimator, Gated, check_step
 
-__all__ = ["TdoaObserver"]
+__all__ = ["TdoaHandover", "TdoaObserver"]
 
 
 class TdoaObserver(Estimator, Gated):
@@ -142,6 +142,10 @@ class TdoaObserver(Estimator, Gated):
             raise QuadobsError("u: the input must be finite")
         self._u = u
 
+    def held_input(self) -> np.ndarray:
+        """The input held now, ``(p,)``."""
+        return self._u.copy()
+
     def _discretization(self, h: float) -> HeldInputDiscretization:
         key = round(h, 12)
         step = self._steps.get(key)
@@ -217,3 +221,95 @@ class TdoaObserver(Estimator, Gated):
             self._correct_pair(i, j, float(y[h]), self.std)
         self.hold(u)
         self.predict(self.time + self.dt)
+
+
+class TdoaHandover(Estimator):
+    """The TDOA observer until it has converged, then a filter on ``x`` started from its estimate.
+
+    The observer converges from far guesses but carries ``3 dim (dim + 1) / 2`` extra states;
+    near the truth an EKF on ``(p, v)`` is the more accurate (docs: TDOA). The handover
+    happens at the first correction after which the observer's position spread is small
+    enough for the filter's linearisation: the curvature of a TDOA, ``e^2 / (2 r)`` for an
+    error ``e`` at a range ``r``, must stay below the noise, so
+
+    .. math:: \\sqrt{\\operatorname{tr} P_{pp}} \\le \\sqrt{\\sigma\\, r_{\\min}},
+
+    ``r_min`` the estimate's distance to its nearest anchor (at least ``min_range`` of the
+    observer). The filter is made by ``make_filter(x, P, time)`` and must take the interface
+    in time (``hold``, ``predict``, ``correct``).
+
+    Parameters
+    ----------
+    observer : TdoaObserver
+    make_filter : callable
+        ``(x (n,), P (n, n), time) -> Estimator``.
+    """
+
+    name = "tdoa-handover"
+
+    def __init__(self, observer: TdoaObserver, make_filter) -> None:
+        if not isinstance(observer, TdoaObserver):
+            raise QuadobsError(f"observer: expected a TdoaObserver, got {type(observer).__name__}")
+        self.observer = observer
+        self.make_filter = make_filter
+        self.filter: Estimator | None = None
+        self.handover_time = math.nan
+
+    @property
+    def active(self) -> Estimator:
+        """The estimator in charge now."""
+        return self.observer if self.filter is None else self.filter
+
+    @property
+    def time(self) -> float:
+        return float(self.active.time)
+
+    @time.setter
+    def time(self, value: float) -> None:  # the time is the active estimator's
+        pass
+
+    @property
+    def x_hat(self) -> np.ndarray:
+        return self.active.x_hat
+
+    @property
+    def x_covariance(self) -> np.ndarray | None:
+        return self.active.x_covariance
+
+    def _ready(self) -> bool:
+        obs = self.observer
+        dim = obs.model.dim
+        x, P = obs.x_hat, obs.x_covariance
+        r = np.linalg.norm(obs.model.anchors - x[:dim], axis=1).min()
+        spread = math.sqrt(max(float(np.trace(P[:dim, :dim])), 0.0))
+        return spread <= math.sqrt(obs.std * max(float(r), obs.min_range))
+
+    def _after_correction(self) -> None:
+        if self.filter is None and self._ready():
+            obs = self.observer
+            self.filter = self.make_filter(obs.x_hat, obs.x_covariance, obs.time)
+            self.filter.hold(obs.held_input())
+            self.handover_time = obs.time
+
+    def hold(self, u) -> None:
+        self.observer.hold(u)
+        if self.filter is not None:
+            self.filter.hold(u)
+
+    def predict(self, t: float) -> None:
+        self.active.predict(t)
+
+    def correct(self, m: Measurement) -> None:
+        self.active.correct(m)
+        self._after_correction()
+
+    def step(self, u, y) -> None:
+        """Pairs as outputs (the observer's ``pairs``): each present TDOA corrected in turn, then
+        a prediction over ``dt``."""
+        obs = self.observer
+        u, y = check_step(u, y, obs.model.immersion.system.p, len(obs.pairs))
+        t = self.time
+        for h in np.flatnonzero(np.isfinite(y)):
+            self.correct(Measurement(t, "tdoa", float(y[h]), obs.pairs[h], obs.std))
+        self.hold(u)
+        self.predict(t + obs.dt)
