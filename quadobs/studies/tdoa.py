@@ -25,14 +25,13 @@ from pathlib import Path
 import numpy as np
 
 from quadobs.core.measurements import TdoaModel
-from quadobs.evaluation.convergence import convergence_times
-from quadobs.evaluation.dop import pdop, range_information, tdoa_information
-from quadobs.estimators.base import Estimator
 from quadobs.estimators.kalman import ExtendedKalmanFilter
 from quadobs.estimators.tdoa_observer import TdoaHandover, TdoaObserver
+from quadobs.evaluation.convergence import convergence_times
+from quadobs.evaluation.dop import pdop, range_information, tdoa_information
 from quadobs.testbed.factories import baseline_settings, extended_kalman_filter, refined_observer
 from quadobs.testbed.scenario import Scenario, load_scenario
-from quadobs.testbed.tdoa import TdoaFlight, fly_reference, reference_run
+from quadobs.testbed.tdoa import PairsInTime, TdoaFlight, fly_reference, reference_run
 
 __all__ = ["dop_figure", "range_outputs_of", "study", "tdoa_estimators"]
 
@@ -78,28 +77,6 @@ def tdoa_estimators(scenario: Scenario, flight: TdoaFlight, x0: np.ndarray) -> d
         "tdoa-handover": TdoaHandover(observer(), filter_from),
         "tdoa-ekf": PairsInTime(tdoa_ekf(scenario, x0, P0), flight.pairs, scenario.dt, flight.std),
     }
-
-
-class PairsInTime(Estimator):
-    """Pairs as outputs for an estimator that takes TDOA at their own times: ``step(u, y)``
-    corrects with each present pair, holds ``u`` and predicts over ``dt``."""
-
-    def __init__(self, inner: Estimator, pairs, dt: float, std: float) -> None:
-        self.inner, self.pairs, self.dt, self.std = inner, list(pairs), float(dt), float(std)
-        self.name = inner.name
-
-    @property
-    def x_hat(self) -> np.ndarray:
-        return self.inner.x_hat
-
-    def step(self, u, y) -> None:
-        from quadobs.core.measurements import Measurement
-
-        t = self.inner.time
-        for h in np.flatnonzero(np.isfinite(y)):
-            self.inner.correct(Measurement(t, "tdoa", float(y[h]), self.pairs[h], self.std))
-        self.inner.hold(u)
-        self.inner.predict(t + self.dt)
 
 
 def range_outputs_of(scenario: Scenario, flight: TdoaFlight, seed: int) -> np.ndarray:

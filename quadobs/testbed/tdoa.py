@@ -31,6 +31,7 @@ from quadobs.estimators.base import Estimator
 from quadobs.testbed.scenario import Scenario
 
 __all__ = [
+    "PairsInTime",
     "TdoaFlight",
     "fly_reference",
     "measurements",
@@ -189,3 +190,23 @@ def reference_run(flight: TdoaFlight, estimators: dict[str, Estimator]) -> dict[
             X[k + 1] = est.x_hat
         out[name] = X
     return out
+
+
+class PairsInTime(Estimator):
+    """Pairs as outputs for an estimator that takes TDOA at their own times: ``step(u, y)``
+    corrects with each present pair, holds ``u`` and predicts over ``dt``."""
+
+    def __init__(self, inner: Estimator, pairs, dt: float, std: float) -> None:
+        self.inner, self.pairs, self.dt, self.std = inner, list(pairs), float(dt), float(std)
+        self.name = inner.name
+
+    @property
+    def x_hat(self) -> np.ndarray:
+        return self.inner.x_hat
+
+    def step(self, u, y) -> None:
+        t = self.inner.time
+        for h in np.flatnonzero(np.isfinite(y)):
+            self.inner.correct(Measurement(t, "tdoa", float(y[h]), self.pairs[h], self.std))
+        self.inner.hold(u)
+        self.inner.predict(t + self.dt)
