@@ -106,7 +106,6 @@ class TdoaObserver(Estimator, Gated):
         self._steps: dict[float, HeldInputDiscretization] = {}
         self._z = self.model.lift(x0)
         self._P = lifted_covariance(im.aux_forms, x0, Px)
-        self._u = np.zeros(im.system.p)
         self.time = 0.0
         self.corrections = 0
         self.rejected = 0
@@ -134,29 +133,20 @@ class TdoaObserver(Estimator, Gated):
 
     # -- time --------------------------------------------------------------------------------
 
-    def hold(self, u) -> None:
-        """Hold the input ``u (p,)`` from the current time on."""
-        p = self.model.immersion.system.p
-        u = as_array("u", u, (p,))
-        if not np.all(np.isfinite(u)):
-            raise QuadobsError("u: the input must be finite")
-        self._u = u
-
-    def held_input(self) -> np.ndarray:
-        """The input held now, ``(p,)``."""
-        return self._u.copy()
+    def _input_dimension(self) -> int:
+        return self.model.immersion.system.p
 
     def _discretization(self, h: float) -> HeldInputDiscretization:
         key = round(h, 12)
         step = self._steps.get(key)
         if step is None:
             step = HeldInputDiscretization(self.model.immersion, key)
-            self._steps[key] = step
+            if len(self._steps) < 256:
+                self._steps[key] = step
         return step
 
-    def _advance(self, h: float) -> None:
+    def _advance(self, h: float, u: np.ndarray) -> None:
         step = self._discretization(h)
-        u = self._u
         Phi = step.transition(u)
         n = self.model.immersion.system.n
         G = lifted_noise_gain(self.model.immersion, self._z[-n:])
@@ -164,22 +154,14 @@ class TdoaObserver(Estimator, Gated):
         self._z = Phi @ self._z + step.input_term(u)
         P = Phi @ self._P @ Phi.T + Q
         self._P = 0.5 * (P + P.T)
-        self.time += h
 
-    def predict(self, t: float) -> None:
-        """Propagate to time ``t`` (s) on the grid ``dt`` (a last shorter step where ``t`` is
-        off it) with the held input."""
-        t = as_finite_scalar("t", t)
-        if t < self.time - 1e-12:
-            raise QuadobsError(f"t: {t} is before the estimator's time {self.time}")
-        left = t - self.time
-        while left > 1e-12:
-            h = min(self.dt, left)
-            if self.dt - h < 1e-12:
-                h = self.dt
-            self._advance(h)
-            left = t - self.time
-        self.time = t
+    def _propagate(self, dt: float, u: np.ndarray) -> None:
+        """Over ``dt`` in steps of :attr:`dt` (a last shorter one where ``dt`` is off the grid)."""
+        left = dt
+        while left > 1e-12 * self.dt:
+            h = self.dt if left >= self.dt * (1.0 - 1e-9) else left
+            self._advance(h, u)
+            left -= h
 
     # -- measurements --------------------------------------------------------------------------
 
@@ -205,8 +187,8 @@ class TdoaObserver(Estimator, Gated):
         self._P = 0.5 * (P + P.T)
         self.corrections += 1
 
-    def correct(self, m: Measurement) -> None:
-        """Correct with one TDOA ``m`` (``kind == "tdoa"``, ``anchors == (i, j)``)."""
+    def _correct_measurement(self, m: Measurement) -> None:
+        """One TDOA ``m`` (``kind == "tdoa"``, ``anchors == (i, j)``) through its row."""
         if m.kind != "tdoa" or len(m.anchors) != 2:
             raise QuadobsError(f"{self.name}: takes TDOA measurements, got kind {m.kind!r}")
         sigma = self.std if math.isnan(m.std) else float(m.std)
@@ -219,8 +201,8 @@ class TdoaObserver(Estimator, Gated):
         for h in np.flatnonzero(np.isfinite(y)):
             i, j = self.pairs[h]
             self._correct_pair(i, j, float(y[h]), self.std)
-        self.hold(u)
-        self.predict(self.time + self.dt)
+        self._advance(self.dt, u)
+        self.time = self.time + self.dt
 
 
 class TdoaHandover(Estimator):
