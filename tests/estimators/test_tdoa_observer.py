@@ -4,9 +4,16 @@ import numpy as np
 import pytest
 
 from quadobs.core.measurements import Measurement, TdoaModel
+from quadobs.core.system import vehicle_system
 from quadobs.errors import QuadobsError
-from quadobs.estimators.tdoa_observer import TdoaObserver
-from quadobs.testbed.tdoa import measurements, ordered_pairs, tdoa_outputs
+from quadobs.estimators.kalman import (
+    ExtendedKalmanFilter,
+    HeldInputModel,
+    OutputModel,
+    UnscentedKalmanFilter,
+)
+from quadobs.estimators.tdoa_observer import TdoaHandover, TdoaObserver
+from quadobs.testbed.tdoa import PairsInTime, measurements, ordered_pairs, tdoa_outputs
 
 ROOM = np.array(
     [[x, y, z] for z in (0.2, 2.8) for x, y in ((-3, -3), (3, -3), (3, 3), (-3, 3))], dtype=float
@@ -149,3 +156,46 @@ def test_bad_input_is_refused_with_one_line():
         TdoaObserver(ROOM, DT, np.zeros(6), pairs=[(0, 8)])
     with pytest.raises(QuadobsError, match="y"):
         obs.step(np.zeros(3), np.zeros(2))
+
+
+def project_filter(cls, x0, P0, q, std):
+    """The project's EKF or UKF on the vehicle, correcting TDOA through TdoaModel."""
+    system = vehicle_system(3, ROOM)
+    dynamics = HeldInputModel(system, DT, input_covariance=q / DT)
+    offsets = 0.5 * np.einsum("hi,hi->h", ROOM, ROOM)
+    outputs = OutputModel(system, 0.01, offsets=offsets)
+    return cls(dynamics, outputs, x0=x0, P0=P0, measurements=[TdoaModel(ROOM, std)])
+
+
+@pytest.mark.parametrize("cls", [ExtendedKalmanFilter, UnscentedKalmanFilter])
+def test_project_filters_on_pairs_agree_with_the_observer_noise_free(cls):
+    x, acc, Y = flight(400)
+    pairs = ordered_pairs(8)
+    near = x[0] + np.array([0.3, -0.2, 0.1, 0.0, 0.0, 0.0])
+    filt = PairsInTime(project_filter(cls, near, 1.0, 0.0, 0.01), pairs, DT, 0.01)
+    obs = TdoaObserver(ROOM, DT, near, P0=1.0, std=0.01, pairs=pairs)
+    F, X = run(filt, x, acc, Y, pairs), run(obs, x, acc, Y, pairs)
+    assert np.linalg.norm(F[-1, :3] - x[-1, :3]) < 1e-3
+    assert np.linalg.norm(F[-1] - X[-1]) < 2e-3
+
+
+def test_handover_from_ten_metres_off_then_the_ekf():
+    x, acc, Y = flight(600, std=0.1, seed=5)
+    pairs = ordered_pairs(8)
+    far = x[0] + np.array([10.0, 0.0, 0.0, 0.0, 0.0, 0.0])
+    P0 = np.diag([100.0] * 3 + [1.0] * 3)
+    obs = TdoaObserver(ROOM, DT, far, P0=P0, std=0.1, accel_psd=1e-6, pairs=pairs)
+
+    def make(xh, P, t):
+        ekf = project_filter(ExtendedKalmanFilter, xh, P, 1e-6, 0.1)
+        ekf.time = t
+        return ekf
+
+    est = TdoaHandover(obs, make)
+    X = run(est, x, acc, Y, pairs)
+    assert est.filter is not None and 0.0 < est.handover_time < 3.0
+    k = round(est.handover_time / DT)
+    assert np.linalg.norm(X[k, :3] - x[k, :3]) < 1.0  # handed over near the truth
+    err = np.linalg.norm(X[:, :3] - x[:, :3], axis=1)
+    assert err[300] < 0.5
+    assert np.sqrt(np.mean(err[300:] ** 2)) < 0.1
