@@ -31,9 +31,22 @@ from quadobs.evaluation.convergence import convergence_times
 from quadobs.evaluation.dop import pdop, range_information, tdoa_information
 from quadobs.testbed.factories import baseline_settings, extended_kalman_filter, refined_observer
 from quadobs.testbed.scenario import Scenario, load_scenario
-from quadobs.testbed.tdoa import PairsInTime, TdoaFlight, fly_reference, reference_run
+from quadobs.testbed.tdoa import (
+    PairsInTime,
+    TdoaFlight,
+    fly_quadrotor,
+    fly_reference,
+    ordered_pairs,
+    reference_run,
+)
 
-__all__ = ["dop_figure", "range_outputs_of", "study", "tdoa_estimators"]
+__all__ = [
+    "dop_figure",
+    "quadrotor_study",
+    "range_outputs_of",
+    "study",
+    "tdoa_estimators",
+]
 
 #: The position error (m) a converged estimate stays below (the issue's target).
 CONVERGED = 0.5
@@ -49,12 +62,14 @@ def tdoa_ekf(scenario: Scenario, x0: np.ndarray, P0: np.ndarray, time: float = 0
     return ekf
 
 
-def tdoa_estimators(scenario: Scenario, flight: TdoaFlight, x0: np.ndarray) -> dict:
-    """The TDOA estimators of the study, started at ``x0``, each taking pairs as outputs."""
+def tdoa_estimators(scenario: Scenario, x0: np.ndarray, spread: float) -> dict:
+    """The TDOA estimators of the study, started at ``x0`` with a position prior of standard
+    deviation ``spread`` per axis (at least the scenario's), each taking pairs as outputs."""
     dim = scenario.dimension
     s = baseline_settings(scenario)
     P0 = np.array(s.P0, dtype=float)
-    spread = float(np.linalg.norm(x0[:dim] - flight.truth[0, :dim]))
+    std = float(scenario.tdoa.std)
+    pairs = ordered_pairs(scenario.beacons.shape[0])
     P0[:dim, :dim] = np.eye(dim) * max(spread**2, P0[0, 0])
     psd = float(s.dynamics.input_covariance[0, 0]) * scenario.dt
 
@@ -64,9 +79,9 @@ def tdoa_estimators(scenario: Scenario, flight: TdoaFlight, x0: np.ndarray) -> d
             scenario.dt,
             x0,
             P0=P0,
-            std=flight.std,
+            std=std,
             accel_psd=psd,
-            pairs=flight.pairs,
+            pairs=pairs,
         )
 
     def filter_from(x, P, t):
@@ -75,7 +90,7 @@ def tdoa_estimators(scenario: Scenario, flight: TdoaFlight, x0: np.ndarray) -> d
     return {
         "tdoa-observer": observer(),
         "tdoa-handover": TdoaHandover(observer(), filter_from),
-        "tdoa-ekf": PairsInTime(tdoa_ekf(scenario, x0, P0), flight.pairs, scenario.dt, flight.std),
+        "tdoa-ekf": PairsInTime(tdoa_ekf(scenario, x0, P0), pairs, scenario.dt, std),
     }
 
 
@@ -109,6 +124,21 @@ def _metrics(flight: TdoaFlight, X: np.ndarray, dim: int, settle: float) -> dict
     }
 
 
+def _summary(runs: dict[str, list[dict]]) -> dict:
+    """Median and worst RMSE, seeds below 0.5 m at 3 s, seeds converged, per estimator."""
+    summary = {}
+    for est_name, rows in runs.items():
+        rmse = np.array([r["rmse"] for r in rows])
+        at3 = np.array([r["error_at_3s"] for r in rows])
+        summary[est_name] = {
+            "rmse_median": float(np.median(rmse)),
+            "rmse_max": float(np.max(rmse)),
+            "below_0.5m_at_3s": f"{int(np.sum(at3 < CONVERGED))}/{len(rows)}",
+            "converged": f"{sum(r['converged_time'] is not None for r in rows)}/{len(rows)}",
+        }
+    return summary
+
+
 def study(
     name: str = "quadrotor-tdoa",
     seeds: int = 10,
@@ -126,7 +156,7 @@ def study(
         flight = fly_reference(scenario, seed)
         x0 = flight.truth[0].copy()
         x0[0] += offset
-        ests = tdoa_estimators(scenario, flight, x0)
+        ests = tdoa_estimators(scenario, x0, offset)
         tdoa = reference_run(flight, ests)
         ranges = range_outputs_of(scenario, flight, seed)
         twr = {"range-ekf": extended_kalman_filter(scenario, x0)}
@@ -137,23 +167,57 @@ def study(
             if est_name == "tdoa-handover":
                 m["handover_time"] = ests[est_name].handover_time
             runs.setdefault(est_name, []).append(m)
-    summary = {}
-    for est_name, rows in runs.items():
-        rmse = np.array([r["rmse"] for r in rows])
-        at3 = np.array([r["error_at_3s"] for r in rows])
-        summary[est_name] = {
-            "rmse_median": float(np.median(rmse)),
-            "rmse_max": float(np.max(rmse)),
-            "below_0.5m_at_3s": f"{int(np.sum(at3 < CONVERGED))}/{len(rows)}",
-            "converged": f"{sum(r['converged_time'] is not None for r in rows)}/{len(rows)}",
-        }
     return {
         "scenario": name,
         "seeds": seeds,
         "duration": scenario.duration,
         "offset": offset,
         "settle": settle,
-        "summary": summary,
+        "summary": _summary(runs),
+        "runs": runs,
+    }
+
+
+def quadrotor_study(
+    name: str = "quadrotor-tdoa",
+    seeds: int = 10,
+    duration: float | None = None,
+    offset: float = 10.0,
+    settle: float = 10.0,
+    flown_on: str = "tdoa-handover",
+    names: tuple[str, ...] | None = None,
+    first_seed: int = 0,
+) -> dict:
+    """The MuJoCo quadrotor flown on a TDOA estimator (:func:`~quadobs.testbed.tdoa.fly_quadrotor`),
+    every TDOA estimator started ``offset`` m off along ``x``: per seed, crash and metrics."""
+    scenario = load_scenario(name)
+    if duration is not None:
+        scenario = scenario.with_overrides(duration=duration)
+    runs: dict[str, list[dict]] = {}
+    crashes = []
+    for seed in range(first_seed, first_seed + seeds):
+        x0 = scenario.with_overrides(seed=seed).true_state(0.0)
+        x0[0] += offset
+        ests = tdoa_estimators(scenario, x0, offset)
+        ests = {k: v for k, v in ests.items() if names is None or k in names or k == flown_on}
+        flight = fly_quadrotor(scenario, ests, flown_on, seed)
+        crashes.append(flight.crashed_at)
+        ref = TdoaFlight(flight.t[:-1], flight.truth, np.zeros(0), np.zeros(0), [], 0.0)
+        for est_name, X in flight.estimates.items():
+            m = _metrics(ref, X, 3, settle)
+            if est_name == "tdoa-handover":
+                m["handover_time"] = ests[est_name].handover_time
+            runs.setdefault(est_name, []).append(m)
+    return {
+        "scenario": name,
+        "seeds": seeds,
+        "duration": scenario.duration,
+        "offset": offset,
+        "settle": settle,
+        "flown_on": flown_on,
+        "crashes": f"{sum(c is not None for c in crashes)}/{seeds}",
+        "crashed_at": crashes,
+        "summary": _summary(runs),
         "runs": runs,
     }
 
@@ -199,11 +263,22 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--offset", type=float, default=10.0)
     parser.add_argument("--settle", type=float, default=10.0)
     parser.add_argument("--no-figure", action="store_true")
+    parser.add_argument(
+        "--quadrotor", action="store_true", help="fly the MuJoCo quadrotor on the TDOA handover"
+    )
+    parser.add_argument("--estimators", default="", help="quadrotor: the TDOA estimators to run")
+    parser.add_argument("--first-seed", type=int, default=0)
     args = parser.parse_args(argv)
     out = Path(args.out)
-    result = study(args.scenario, args.seeds, args.duration, args.offset, args.settle)
+    common = (args.scenario, args.seeds, args.duration, args.offset, args.settle)
+    if args.quadrotor:
+        names = tuple(args.estimators.split(",")) if args.estimators else None
+        result = quadrotor_study(*common, names=names, first_seed=args.first_seed)
+    else:
+        result = study(*common)
     out.mkdir(parents=True, exist_ok=True)
-    (out / "tdoa-study.json").write_text(json.dumps(result, indent=1) + "\n")
+    name = f"tdoa-quadrotor-{args.first_seed}.json" if args.quadrotor else "tdoa-study.json"
+    (out / name).write_text(json.dumps(result, indent=1) + "\n")
     print(json.dumps(result["summary"], indent=1))
     if not args.no_figure:
         anchors = load_scenario(args.scenario).beacons

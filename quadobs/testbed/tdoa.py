@@ -32,7 +32,9 @@ from quadobs.testbed.scenario import Scenario
 
 __all__ = [
     "PairsInTime",
+    "QuadrotorTdoaFlight",
     "TdoaFlight",
+    "fly_quadrotor",
     "fly_reference",
     "measurements",
     "ordered_pairs",
@@ -210,3 +212,89 @@ class PairsInTime(Estimator):
             self.inner.correct(Measurement(t, "tdoa", float(y[h]), self.pairs[h], self.std))
         self.inner.hold(u)
         self.inner.predict(t + self.dt)
+
+
+@dataclass(frozen=True)
+class QuadrotorTdoaFlight:
+    """A MuJoCo quadrotor flight with TDOA estimators aboard (:func:`fly_quadrotor`).
+
+    Attributes
+    ----------
+    t : ndarray (T + 1,)
+    truth : ndarray (T + 1, 6)
+    estimates : dict of name -> ndarray (T + 1, 6)
+        Row ``k``: the estimate at ``t_k`` (before the TDOA of step ``k``).
+    flown_on : str
+        The estimator the controller flew on from ``control.switch_time``.
+    crashed_at : float or None
+        When the flight crashed (tracking error beyond ``control.crash_distance`` or upside down).
+    """
+
+    t: np.ndarray
+    truth: np.ndarray
+    estimates: dict[str, np.ndarray]
+    flown_on: str
+    crashed_at: float | None
+
+
+def fly_quadrotor(
+    scenario: Scenario, estimators: dict[str, Estimator], flown_on: str, seed: int | None = None
+) -> QuadrotorTdoaFlight:
+    """Fly the quadrotor world of ``scenario`` with TDOA estimators, the controller on ``flown_on``.
+
+    Each step ``k``: the controller reads the estimate of ``flown_on`` (from
+    ``control.switch_time`` on; the truth before), the world steps (MuJoCo, IMU, ``u_k`` rebuilt
+    from it), the TDOA of the step (:func:`tdoa_outputs`'s schedule and noise, from the tag's
+    true position at ``t_k``) and ``u_k`` go to every estimator's ``step``. The ranges the world
+    also measures are not used. ``estimators`` take pairs as outputs (:func:`ordered_pairs`).
+    """
+    from quadobs.testbed.sensors import SensorModel, spawn_streams
+    from quadobs.testbed.worlds.quadrotor import QuadrotorWorld
+
+    spec = scenario.tdoa
+    if spec is None or scenario.kind != "quadrotor":
+        raise QuadobsError(
+            f"scenario {scenario.name!r}: needs kind = 'quadrotor' and a [tdoa] table"
+        )
+    if flown_on not in estimators:
+        raise QuadobsError(f"flown_on: {flown_on!r} is not one of {sorted(estimators)}")
+    seed = scenario.seed if seed is None else int(seed)
+    scenario = scenario.with_overrides(seed=seed).with_settings({"control.feedback": flown_on})
+    world = QuadrotorWorld(scenario, SensorModel(scenario, spawn_streams(seed)), 4096)
+    T, cols, a = scenario.steps, world.columns, scenario.beacons
+    rng_order, rng_noise = (
+        np.random.default_rng(s) for s in np.random.SeedSequence([seed, 27]).spawn(2)
+    )
+    interval = scenario.sample_interval(spec.rate, "rate", "tdoa")
+    packets = np.arange(0, T, interval)
+    seq = tdoa3_sequence(rng_order, a.shape[0], packets.size)
+    noise = spec.std * rng_noise.standard_normal(packets.size)
+    index = {pair: h for h, pair in enumerate(ordered_pairs(a.shape[0]))}
+    truth = np.empty((T + 1, 6))
+    est = {name: np.empty((T + 1, 6)) for name in estimators}
+    y = np.full(len(index), np.nan)
+    k0 = 0
+    while k0 < T:
+        count = world.begin_block(k0, T - k0)
+        for j in range(count):
+            k = k0 + j
+            for name, e in estimators.items():
+                est[name][k] = e.x_hat
+            world.step(j, est[flown_on][k])
+            row = world.out[j]
+            truth[k] = row[cols.truth]
+            y[:] = np.nan
+            if k % interval == 0:
+                s = k // interval
+                i, jj = int(seq[s + 1]), int(seq[s])
+                p = truth[k, :3]
+                y[index[(i, jj)]] = np.linalg.norm(p - a[i]) - np.linalg.norm(p - a[jj]) + noise[s]
+            u = row[cols.u]
+            for e in estimators.values():
+                e.step(u, y)
+        truth[k0 + count] = world.out[count, cols.truth]
+        k0 += count
+    for name, e in estimators.items():
+        est[name][T] = e.x_hat
+    crashed = None if world.crashed_at is None else world.crashed_at * scenario.dt
+    return QuadrotorTdoaFlight(np.arange(T + 1) * scenario.dt, truth, est, flown_on, crashed)
