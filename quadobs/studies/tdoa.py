@@ -196,11 +196,14 @@ def quadrotor_study(
     runs: dict[str, list[dict]] = {}
     crashes = []
     for seed in range(first_seed, first_seed + seeds):
-        x0 = scenario.with_overrides(seed=seed).true_state(0.0)
-        x0[0] += offset
-        ests = tdoa_estimators(scenario, x0, offset)
-        ests = {k: v for k, v in ests.items() if names is None or k in names or k == flown_on}
-        flight = fly_quadrotor(scenario, ests, flown_on, seed)
+
+        def make(x_true, scenario=scenario):
+            x0 = x_true.copy()
+            x0[0] += offset
+            ests = tdoa_estimators(scenario, x0, offset)
+            return {k: v for k, v in ests.items() if not names or k in names or k == flown_on}
+
+        flight, ests = fly_quadrotor(scenario, make, flown_on, seed)
         crashes.append(flight.crashed_at)
         ref = TdoaFlight(flight.t[:-1], flight.truth, np.zeros(0), np.zeros(0), [], 0.0)
         for est_name, X in flight.estimates.items():

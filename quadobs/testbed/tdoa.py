@@ -238,9 +238,12 @@ class QuadrotorTdoaFlight:
 
 
 def fly_quadrotor(
-    scenario: Scenario, estimators: dict[str, Estimator], flown_on: str, seed: int | None = None
-) -> QuadrotorTdoaFlight:
+    scenario: Scenario, make_estimators, flown_on: str, seed: int | None = None
+) -> tuple[QuadrotorTdoaFlight, dict[str, Estimator]]:
     """Fly the quadrotor world of ``scenario`` with TDOA estimators, the controller on ``flown_on``.
+
+    ``make_estimators(x_0)`` builds them from the vehicle's true initial state ``x_0 (6,)`` (on
+    the ground, not the reference's first point); they are returned beside the flight.
 
     Each step ``k``: the controller reads the estimate of ``flown_on`` (from
     ``control.switch_time`` on; the truth before), the world steps (MuJoCo, IMU, ``u_k`` rebuilt
@@ -256,11 +259,12 @@ def fly_quadrotor(
         raise QuadobsError(
             f"scenario {scenario.name!r}: needs kind = 'quadrotor' and a [tdoa] table"
         )
-    if flown_on not in estimators:
-        raise QuadobsError(f"flown_on: {flown_on!r} is not one of {sorted(estimators)}")
     seed = scenario.seed if seed is None else int(seed)
     scenario = scenario.with_overrides(seed=seed).with_settings({"control.feedback": flown_on})
     world = QuadrotorWorld(scenario, SensorModel(scenario, spawn_streams(seed)), 4096)
+    estimators = make_estimators(world.state())
+    if flown_on not in estimators:
+        raise QuadobsError(f"flown_on: {flown_on!r} is not one of {sorted(estimators)}")
     T, cols, a = scenario.steps, world.columns, scenario.beacons
     rng_order, rng_noise = (
         np.random.default_rng(s) for s in np.random.SeedSequence([seed, 27]).spawn(2)
@@ -297,4 +301,5 @@ def fly_quadrotor(
     for name, e in estimators.items():
         est[name][T] = e.x_hat
     crashed = None if world.crashed_at is None else world.crashed_at * scenario.dt
-    return QuadrotorTdoaFlight(np.arange(T + 1) * scenario.dt, truth, est, flown_on, crashed)
+    flight = QuadrotorTdoaFlight(np.arange(T + 1) * scenario.dt, truth, est, flown_on, crashed)
+    return flight, estimators

@@ -56,3 +56,39 @@ def test_scenario_without_tdoa_is_refused():
         fly_reference(load_scenario("quadrotor-uwb"))
     with pytest.raises(QuadobsError, match="tdoa.rate"):
         load_scenario("tdoa-room", settings=["tdoa.rate=300.0"])
+
+
+def test_quadrotor_flies_on_a_tdoa_estimate_seeded():
+    """A short MuJoCo flight flown on the TDOA observer from the start: same seed, same flight."""
+    from quadobs.estimators.tdoa_observer import TdoaObserver
+    from quadobs.testbed.factories import baseline_settings
+    from quadobs.testbed.tdoa import fly_quadrotor
+
+    sc = load_scenario("quadrotor-tdoa").with_settings(
+        {
+            "duration": 4.5,
+            "quadrotor.takeoff": 2.0,
+            "quadrotor.landing": 2.0,
+            "control.switch_time": 1.0,
+        }
+    )
+
+    psd = float(baseline_settings(sc).dynamics.input_covariance[0, 0]) * sc.dt
+
+    def make(x0):
+        obs = TdoaObserver(
+            sc.beacons, sc.dt, x0, P0=0.01, std=0.1, accel_psd=psd, pairs=ordered_pairs(8)
+        )
+        return {"obs": obs}
+
+    def run():
+        return fly_quadrotor(sc, make, "obs", seed=1)[0]
+
+    a, b = run(), run()
+    assert a.crashed_at is None
+    assert np.array_equal(a.estimates["obs"], b.estimates["obs"])
+    assert a.truth.shape == (4501, 6) and np.isfinite(a.truth).all()
+    err = np.linalg.norm(a.estimates["obs"][:, :3] - a.truth[:, :3], axis=1)
+    assert err.max() < 0.5
+    with pytest.raises(QuadobsError, match="flown_on"):
+        fly_quadrotor(sc, make, "ekf")
