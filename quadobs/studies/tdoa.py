@@ -118,7 +118,7 @@ def _metrics(flight: TdoaFlight, X: np.ndarray, dim: int, settle: float) -> dict
     return {
         "rmse": float(np.sqrt(np.mean(err[late] ** 2))),
         "final_error": float(err[-1]),
-        "error_at_3s": float(err[k3]),
+        "error_at_3s": float(err[k3]) if k3 < err.size else math.nan,
         "converged_time": None if math.isnan(tc) else tc,
         "max_error_after_settle": float(err[late].max()),
     }
