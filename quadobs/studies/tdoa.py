@@ -34,8 +34,8 @@ from quadobs.testbed.scenario import Scenario, load_scenario
 from quadobs.testbed.tdoa import (
     PairsInTime,
     TdoaFlight,
-    fly_quadrotor,
     fly_reference,
+    fly_world,
     ordered_pairs,
     reference_run,
 )
@@ -188,7 +188,7 @@ def quadrotor_study(
     names: tuple[str, ...] | None = None,
     first_seed: int = 0,
 ) -> dict:
-    """The MuJoCo quadrotor flown on a TDOA estimator (:func:`~quadobs.testbed.tdoa.fly_quadrotor`),
+    """The MuJoCo quadrotor flown on a TDOA estimator (:func:`~quadobs.testbed.tdoa.fly_world`),
     every TDOA estimator started ``offset`` m off along ``x``: per seed, crash and metrics."""
     scenario = load_scenario(name)
     if duration is not None:
@@ -203,7 +203,7 @@ def quadrotor_study(
             ests = tdoa_estimators(scenario, x0, offset)
             return {k: v for k, v in ests.items() if not names or k in names or k == flown_on}
 
-        flight, ests = fly_quadrotor(scenario, make, flown_on, seed)
+        flight, ests = fly_world(scenario, make, flown_on, seed)
         crashes.append(flight.crashed_at)
         ref = TdoaFlight(flight.t[:-1], flight.truth, np.zeros(0), np.zeros(0), [], 0.0)
         for est_name, X in flight.estimates.items():

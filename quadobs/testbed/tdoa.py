@@ -32,10 +32,10 @@ from quadobs.testbed.scenario import Scenario
 
 __all__ = [
     "PairsInTime",
-    "QuadrotorTdoaFlight",
     "TdoaFlight",
-    "fly_quadrotor",
+    "WorldTdoaFlight",
     "fly_reference",
+    "fly_world",
     "measurements",
     "ordered_pairs",
     "reference_run",
@@ -215,57 +215,71 @@ class PairsInTime(Estimator):
 
 
 @dataclass(frozen=True)
-class QuadrotorTdoaFlight:
-    """A MuJoCo quadrotor flight with TDOA estimators aboard (:func:`fly_quadrotor`).
+class WorldTdoaFlight:
+    """A MuJoCo flight (point mass or quadrotor) with TDOA estimators aboard (:func:`fly_world`).
 
     Attributes
     ----------
     t : ndarray (T + 1,)
-    truth : ndarray (T + 1, 6)
-    estimates : dict of name -> ndarray (T + 1, 6)
+    truth : ndarray (T + 1, 2 dim)
+    estimates : dict of name -> ndarray (T + 1, 2 dim)
         Row ``k``: the estimate at ``t_k`` (before the TDOA of step ``k``).
-    flown_on : str
-        The estimator the controller flew on from ``control.switch_time``.
+    flown_on : str or None
+        The estimator the quadrotor's controller flew on from ``control.switch_time``.
     crashed_at : float or None
-        When the flight crashed (tracking error beyond ``control.crash_distance`` or upside down).
+        When the quadrotor crashed (tracking error beyond ``control.crash_distance`` or upside
+        down); ``None`` for the point mass.
     """
 
     t: np.ndarray
     truth: np.ndarray
     estimates: dict[str, np.ndarray]
-    flown_on: str
+    flown_on: str | None
     crashed_at: float | None
 
 
-def fly_quadrotor(
-    scenario: Scenario, make_estimators, flown_on: str, seed: int | None = None
-) -> tuple[QuadrotorTdoaFlight, dict[str, Estimator]]:
-    """Fly the quadrotor world of ``scenario`` with TDOA estimators, the controller on ``flown_on``.
-
-    ``make_estimators(x_0)`` builds them from the vehicle's true initial state ``x_0 (6,)`` (on
-    the ground, not the reference's first point); they are returned beside the flight.
-
-    Each step ``k``: the controller reads the estimate of ``flown_on`` (from
-    ``control.switch_time`` on; the truth before), the world steps (MuJoCo, IMU, ``u_k`` rebuilt
-    from it), the TDOA of the step (:func:`tdoa_outputs`'s schedule and noise, from the tag's
-    true position at ``t_k``) and ``u_k`` go to every estimator's ``step``. The ranges the world
-    also measures are not used. ``estimators`` take pairs as outputs (:func:`ordered_pairs`).
-    """
+def _world(scenario: Scenario, seed: int):
+    """The MuJoCo world of ``scenario`` (its sensor layer's ranges are not used here)."""
     from quadobs.testbed.sensors import SensorModel, spawn_streams
-    from quadobs.testbed.worlds.quadrotor import QuadrotorWorld
 
+    sensors = SensorModel(scenario, spawn_streams(seed))
+    if scenario.kind == "quadrotor":
+        from quadobs.testbed.worlds.quadrotor import QuadrotorWorld
+
+        return QuadrotorWorld(scenario, sensors, 4096)
+    from quadobs.testbed.worlds import PointMassWorld
+
+    return PointMassWorld(scenario, sensors, 4096, pipelined=False)
+
+
+def fly_world(
+    scenario: Scenario, make_estimators, flown_on: str | None = None, seed: int | None = None
+) -> tuple[WorldTdoaFlight, dict[str, Estimator]]:
+    """Run the MuJoCo world of ``scenario`` with TDOA estimators aboard.
+
+    ``make_estimators(x_0)`` builds them (taking pairs as outputs, :func:`ordered_pairs`) from
+    the vehicle's true initial state ``x_0`` (for the quadrotor, on the ground); they are
+    returned beside the flight. Each step ``k``: the quadrotor's controller reads the estimate of
+    ``flown_on`` (from ``control.switch_time`` on; the truth before), the world steps, and the
+    TDOA of the step (the schedule and noise of :func:`tdoa_outputs`, from the true position at
+    ``t_k``) with the world's input ``u_k`` (the point mass's measured acceleration; the
+    quadrotor's ``R~ f~ + g``) go to every estimator's ``step``.
+    """
     spec = scenario.tdoa
-    if spec is None or scenario.kind != "quadrotor":
-        raise QuadobsError(
-            f"scenario {scenario.name!r}: needs kind = 'quadrotor' and a [tdoa] table"
-        )
+    if spec is None or scenario.has_wind:
+        raise QuadobsError(f"scenario {scenario.name!r}: needs a [tdoa] table and no wind")
     seed = scenario.seed if seed is None else int(seed)
-    scenario = scenario.with_overrides(seed=seed).with_settings({"control.feedback": flown_on})
-    world = QuadrotorWorld(scenario, SensorModel(scenario, spawn_streams(seed)), 4096)
+    scenario = scenario.with_overrides(seed=seed)
+    if scenario.kind == "quadrotor":
+        if flown_on is None:
+            raise QuadobsError("flown_on: a quadrotor needs the estimator it flies on")
+        scenario = scenario.with_settings({"control.feedback": flown_on})
+    world = _world(scenario, seed)
     estimators = make_estimators(world.state())
-    if flown_on not in estimators:
+    if flown_on is not None and flown_on not in estimators:
         raise QuadobsError(f"flown_on: {flown_on!r} is not one of {sorted(estimators)}")
     T, cols, a = scenario.steps, world.columns, scenario.beacons
+    n = 2 * scenario.dimension
     rng_order, rng_noise = (
         np.random.default_rng(s) for s in np.random.SeedSequence([seed, 27]).spawn(2)
     )
@@ -274,8 +288,8 @@ def fly_quadrotor(
     seq = tdoa3_sequence(rng_order, a.shape[0], packets.size)
     noise = spec.std * rng_noise.standard_normal(packets.size)
     index = {pair: h for h, pair in enumerate(ordered_pairs(a.shape[0]))}
-    truth = np.empty((T + 1, 6))
-    est = {name: np.empty((T + 1, 6)) for name in estimators}
+    truth = np.empty((T + 1, n))
+    est = {name: np.empty((T + 1, n)) for name in estimators}
     y = np.full(len(index), np.nan)
     k0 = 0
     while k0 < T:
@@ -284,22 +298,25 @@ def fly_quadrotor(
             k = k0 + j
             for name, e in estimators.items():
                 est[name][k] = e.x_hat
-            world.step(j, est[flown_on][k])
+            world.step(j, est[flown_on][k] if flown_on is not None else None)
             row = world.out[j]
             truth[k] = row[cols.truth]
             y[:] = np.nan
             if k % interval == 0:
                 s = k // interval
                 i, jj = int(seq[s + 1]), int(seq[s])
-                p = truth[k, :3]
+                p = truth[k, : a.shape[1]]
                 y[index[(i, jj)]] = np.linalg.norm(p - a[i]) - np.linalg.norm(p - a[jj]) + noise[s]
             u = row[cols.u]
             for e in estimators.values():
                 e.step(u, y)
+        world.commit(count)
         truth[k0 + count] = world.out[count, cols.truth]
         k0 += count
+    world.close()
     for name, e in estimators.items():
         est[name][T] = e.x_hat
-    crashed = None if world.crashed_at is None else world.crashed_at * scenario.dt
-    flight = QuadrotorTdoaFlight(np.arange(T + 1) * scenario.dt, truth, est, flown_on, crashed)
+    crashed_at = getattr(world, "crashed_at", None)
+    crashed = None if crashed_at is None else crashed_at * scenario.dt
+    flight = WorldTdoaFlight(np.arange(T + 1) * scenario.dt, truth, est, flown_on, crashed)
     return flight, estimators

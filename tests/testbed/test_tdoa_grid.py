@@ -62,7 +62,7 @@ def test_quadrotor_flies_on_a_tdoa_estimate_seeded():
     """A short MuJoCo flight flown on the TDOA observer from the start: same seed, same flight."""
     from quadobs.estimators.tdoa_observer import TdoaObserver
     from quadobs.testbed.factories import baseline_settings
-    from quadobs.testbed.tdoa import fly_quadrotor
+    from quadobs.testbed.tdoa import fly_world
 
     sc = load_scenario("quadrotor-tdoa").with_settings(
         {
@@ -82,7 +82,7 @@ def test_quadrotor_flies_on_a_tdoa_estimate_seeded():
         return {"obs": obs}
 
     def run():
-        return fly_quadrotor(sc, make, "obs", seed=1)[0]
+        return fly_world(sc, make, "obs", seed=1)[0]
 
     a, b = run(), run()
     assert a.crashed_at is None
@@ -91,4 +91,32 @@ def test_quadrotor_flies_on_a_tdoa_estimate_seeded():
     err = np.linalg.norm(a.estimates["obs"][:, :3] - a.truth[:, :3], axis=1)
     assert err.max() < 0.5
     with pytest.raises(QuadobsError, match="flown_on"):
-        fly_quadrotor(sc, make, "ekf")
+        fly_world(sc, make, "ekf")
+
+
+def test_point_mass_world_with_tdoa_pairs_end_to_end():
+    """tdoa-room in the MuJoCo point-mass world: pairs as outputs, the observer from 10 m off."""
+    from quadobs.estimators.tdoa_observer import TdoaObserver
+    from quadobs.testbed.tdoa import fly_world
+
+    sc = load_scenario("tdoa-room").with_overrides(duration=3.0)
+    psd = sc.noise.sigma("accel") ** 2 * sc.dt
+
+    def make(x0):
+        far = x0 + np.array([10.0, 0, 0, 0, 0, 0])
+        obs = TdoaObserver(
+            sc.beacons,
+            sc.dt,
+            far,
+            P0=[100.0] * 3 + [0.01] * 3,
+            accel_psd=psd,
+            pairs=ordered_pairs(8),
+        )
+        return {"obs": obs}
+
+    flight, ests = fly_world(sc, make, seed=2)
+    np.testing.assert_allclose(flight.truth[0], sc.true_state(0.0), atol=1e-9)
+    err = np.linalg.norm(flight.estimates["obs"][:, :3] - flight.truth[:, :3], axis=1)
+    assert err[0] == pytest.approx(10.0)
+    assert err[-1] < 0.5
+    assert ests["obs"].corrections == 300
