@@ -41,9 +41,11 @@ from quadobs.testbed.tdoa import (
 )
 
 __all__ = [
+    "convergence_figure",
     "dop_figure",
     "quadrotor_study",
     "range_outputs_of",
+    "reference_errors",
     "study",
     "tdoa_estimators",
 ]
@@ -225,6 +227,45 @@ def quadrotor_study(
     }
 
 
+def reference_errors(
+    name: str = "quadrotor-tdoa", seed: int = 0, duration: float = 10.0, offset: float = 10.0
+) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """Position errors ``(T + 1,)`` of every estimator of :func:`study` on one reference flight."""
+    scenario = load_scenario(name).with_overrides(duration=duration)
+    flight = fly_reference(scenario, seed)
+    x0 = flight.truth[0].copy()
+    x0[0] += offset
+    runs = reference_run(flight, tdoa_estimators(scenario, x0, offset))
+    ranges = range_outputs_of(scenario, flight, seed)
+    twr = {
+        "range-ekf": extended_kalman_filter(scenario, x0),
+        "range-refined": refined_observer(scenario, x0),
+    }
+    runs.update(reference_run(dataclasses.replace(flight, outputs=ranges), twr))
+    dim = scenario.dimension
+    t = np.arange(flight.truth.shape[0]) * scenario.dt
+    return t, {
+        k: np.linalg.norm(X[:, :dim] - flight.truth[:, :dim], axis=1) for k, X in runs.items()
+    }
+
+
+def convergence_figure(t: np.ndarray, errors: dict[str, np.ndarray], out: Path) -> Path:
+    """Position error against time, log scale, one line per estimator."""
+    from quadobs.studies.plot._figure import drawing, new_figure, save_figure, style, thin
+
+    with drawing():
+        fig, axes = new_figure(["error"], (7.0, 3.2), 150)
+        ax = axes["error"]
+        for i, (name, e) in enumerate(errors.items()):
+            tt, ee = thin(t, np.maximum(e, 1e-4))
+            ax.semilogy(tt, ee, label=name, **style(i, tt.size))
+        ax.axhline(CONVERGED, color="0.5", lw=0.8)
+        ax.set_xlabel("t (s)")
+        ax.set_ylabel("position error (m)")
+        ax.legend(fontsize=7, ncol=2)
+        return save_figure(fig, out, 150)
+
+
 def dop_figure(anchors: np.ndarray, height: float, out: Path, extent: float = 5.0) -> Path:
     """PDOP per measurement at ``height`` over ``[-extent, extent]^2``: ranges, TDOA, their ratio."""
     from quadobs.studies.plot._figure import drawing, new_figure, save_figure
@@ -286,6 +327,11 @@ def main(argv: list[str] | None = None) -> int:
     if not args.no_figure:
         anchors = load_scenario(args.scenario).beacons
         dop_figure(anchors, 1.5, out / "tdoa-dop.png")
+        if not args.quadrotor:
+            t, errors = reference_errors(
+                args.scenario, 0, min(10.0, result["duration"]), args.offset
+            )
+            convergence_figure(t, errors, out / "tdoa-convergence.png")
     return 0
 
 
