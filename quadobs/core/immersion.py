@@ -116,6 +116,7 @@ __all__ = [
     "immerse",
     "immerse_chain",
     "immerse_minimal",
+    "lift_jacobian",
     "lifted_covariance",
     "lifted_input_matrix",
     "lifted_state_matrix",
@@ -892,3 +893,20 @@ def lifted_covariance(aux_forms: np.ndarray, mean: np.ndarray, cov: np.ndarray) 
     LP = np.einsum("iab,bc->iac", L, P)
     out[:k, :k] = Lm @ P @ Lm.T + 0.5 * np.einsum("iab,jba->ij", LP, LP)
     return out
+
+
+def lift_jacobian(aux_forms: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """``dz/dx (k + n, n)`` of the lift ``z = (xi(x), x)``, ``xi_i = x^T L_i x / 2``: rows
+    ``x^T L_i`` then ``I_n``.
+
+    A white noise ``w`` on ``x'`` enters ``z'`` through it (``xi_i' = x^T L_i x'``): a noise of
+    intensity ``V_x`` on ``x'`` is ``J V_x J^T`` on ``z``, an input noise ``w`` (``x' = A x +
+    B (u + w)``) is ``(J B) w``.
+    """
+    L = np.asarray(aux_forms, dtype=float)
+    x = np.asarray(x, dtype=float)
+    k, n = L.shape[0], x.shape[0]
+    J = np.empty((k + n, n))
+    J[:k] = L @ x
+    J[k:] = np.eye(n)
+    return J

@@ -66,7 +66,6 @@ from quadobs.errors import QuadobsError, as_array
 
 __all__ = [
     "TdoaImmersion",
-    "lifted_noise_gain",
     "pair_constants",
     "relation_residual",
     "relation_variance",
@@ -196,15 +195,3 @@ class TdoaImmersion:
         row[k : k + dim] = (dd - 2.0 * c) * w + 2.0 * dd * self.anchors[j]
         aj2 = float(self.anchors[j] @ self.anchors[j])
         return row, dd * (aj2 + c) - c * c - 0.25 * dd * dd
-
-
-def lifted_noise_gain(immersion: Immersion, x: np.ndarray) -> np.ndarray:
-    """``G(x) (N, p)``: a white input noise ``w`` (``x' = A x + B (u + w)``) enters ``z`` as
-    ``G(x) w``, with rows ``x^T L_i B`` on ``xi`` (``xi_i' = x^T L_i (A x + B u + B w)``) and
-    ``B`` on ``x``."""
-    B = immersion.system.B
-    k = immersion.n_aux
-    G = np.empty((immersion.dim, B.shape[1]))
-    G[:k] = (immersion.aux_forms @ x) @ B
-    G[k:] = B
-    return G

@@ -17,7 +17,7 @@ Noise. ``R`` is the second-order variance of the relation's residual
 (:func:`~quadobs.core.tdoa.relation_variance`) at the measured ``d`` and the ranges of the
 current estimate (at least ``min_range``). ``Q_d = dt G(x) Q G(x)^T``: an acceleration
 white noise of intensity ``accel_psd`` (m²/s³) mapped into ``z`` by
-:func:`~quadobs.core.tdoa.lifted_noise_gain` at the estimate, plus ``V dt`` (a Theorem 3
+:func:`~quadobs.core.immersion.lift_jacobian` at the estimate (``G = J B``), plus ``V dt`` (a Theorem 3
 tuning on ``z``, zero by default). The initial covariance is the lift of the prior
 ``N(x_0, P_0)`` (:func:`~quadobs.core.immersion.lifted_covariance`), so the auxiliary states
 start with the spread the position prior implies.
@@ -35,9 +35,9 @@ import math
 import numpy as np
 
 from quadobs.core.held_input import HeldInputDiscretization, as_covariance
-from quadobs.core.immersion import lifted_covariance
+from quadobs.core.immersion import lift_jacobian, lifted_covariance
 from quadobs.core.measurements import Measurement
-from quadobs.core.tdoa import TdoaImmersion, lifted_noise_gain, relation_variance
+from quadobs.core.tdoa import TdoaImmersion, relation_variance
 from quadobs.errors import QuadobsError, as_array, as_finite_scalar
 from quadobs.estimators.base import Estimator, Gated, check_step
 
@@ -149,7 +149,8 @@ class TdoaObserver(Estimator, Gated):
         step = self._discretization(h)
         Phi = step.transition(u)
         n = self.model.immersion.system.n
-        G = lifted_noise_gain(self.model.immersion, self._z[-n:])
+        im = self.model.immersion
+        G = lift_jacobian(im.aux_forms, self._z[-n:]) @ im.system.B
         Q = h * (self.accel_psd * (G @ G.T) + self.V)
         self._z = Phi @ self._z + step.input_term(u)
         P = Phi @ self._P @ Phi.T + Q

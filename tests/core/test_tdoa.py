@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from quadobs.core.held_input import HeldInputDiscretization
-from quadobs.core.immersion import lifted_covariance
+from quadobs.core.immersion import lift_jacobian, lifted_covariance
 from quadobs.core.tdoa import (
     TdoaImmersion,
     relation_residual,
@@ -99,3 +99,14 @@ def test_bad_anchors_and_pairs_are_refused():
         model.row(3, 3, 0.0)
     with pytest.raises(QuadobsError, match="finite"):
         model.row(0, 1, float("nan"))
+
+
+def test_lift_jacobian_is_the_derivative_of_the_lift():
+    model = TdoaImmersion(ROOM)
+    x = np.array([0.4, -1.1, 1.3, 0.2, -0.3, 0.5])
+    J = lift_jacobian(model.immersion.aux_forms, x)
+    h = 1e-6
+    numeric = np.stack(
+        [(model.lift(x + h * e) - model.lift(x - h * e)) / (2 * h) for e in np.eye(6)], axis=1
+    )
+    np.testing.assert_allclose(J, numeric, rtol=1e-7, atol=1e-8)
