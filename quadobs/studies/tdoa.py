@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from quadobs.core.measurements import TdoaModel
+from quadobs.errors import QuadobsError
 from quadobs.estimators.kalman import ExtendedKalmanFilter
 from quadobs.estimators.tdoa_observer import TdoaHandover, TdoaObserver
 from quadobs.evaluation.convergence import convergence_times
@@ -335,5 +336,16 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
+def _main() -> int:
+    """:func:`main`, a bad input reported in one line with exit status 2."""
+    import sys
+
+    try:
+        return main()
+    except QuadobsError as exc:
+        print(f"python -m quadobs.studies.tdoa: error: {exc}", file=sys.stderr)
+        return 2
+
+
 if __name__ == "__main__":
-    raise SystemExit(main())
+    raise SystemExit(_main())

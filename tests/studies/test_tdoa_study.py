@@ -26,3 +26,13 @@ def test_one_short_seed_of_the_comparison(tmp_path):
     assert set(result["summary"]) == names
     for rows in result["runs"].values():
         assert np.isfinite(rows[0]["rmse"]) and rows[0]["rmse"] < 1.0
+
+
+def test_bad_input_is_one_line_with_status_2(tmp_path, capsys, monkeypatch):
+    from quadobs.studies import tdoa
+
+    monkeypatch.setattr("sys.argv", ["x", "--out", str(tmp_path), "--scenario", "quadrotor-uwb"])
+    assert tdoa._main() == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "[tdoa]" in err
+    assert not (tmp_path / "tdoa-study.json").exists()
