@@ -116,6 +116,8 @@ __all__ = [
     "immerse",
     "immerse_chain",
     "immerse_minimal",
+    "lift_jacobian",
+    "lifted_covariance",
     "lifted_input_matrix",
     "lifted_state_matrix",
     "lyapunov_krylov",
@@ -870,3 +872,41 @@ def immerse(
     if method == "chain":
         return immerse_chain(system, rtol)
     raise QuadobsError(f"method: unknown immersion {method!r}; expected 'minimal' or 'chain'")
+
+
+def lifted_covariance(aux_forms: np.ndarray, mean: np.ndarray, cov: np.ndarray) -> np.ndarray:
+    """Covariance of ``z = (xi(x), x)``, ``xi_i = x^T L_i x / 2``, for ``x ~ N(m, P)`` (exact Gaussian moments).
+
+    ``Cov(xi_i, x) = P L_i m`` and ``Cov(xi_i, xi_j) = m^T L_i P L_j m + tr(L_i P L_j P) / 2``.
+    Returns ``(k + n, k + n)``.
+    """
+    L = np.asarray(aux_forms, dtype=float)
+    m = np.asarray(mean, dtype=float)
+    P = np.asarray(cov, dtype=float)
+    k, n = L.shape[0], m.shape[0]
+    out = np.zeros((k + n, k + n))
+    out[k:, k:] = P
+    cross = np.einsum("ab,ibc,c->ia", P, L, m)
+    out[:k, k:] = cross
+    out[k:, :k] = cross.T
+    Lm = np.einsum("iab,b->ia", L, m)
+    LP = np.einsum("iab,bc->iac", L, P)
+    out[:k, :k] = Lm @ P @ Lm.T + 0.5 * np.einsum("iab,jba->ij", LP, LP)
+    return out
+
+
+def lift_jacobian(aux_forms: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """``dz/dx (k + n, n)`` of the lift ``z = (xi(x), x)``, ``xi_i = x^T L_i x / 2``: rows
+    ``x^T L_i`` then ``I_n``.
+
+    A white noise ``w`` on ``x'`` enters ``z'`` through it (``xi_i' = x^T L_i x'``): a noise of
+    intensity ``V_x`` on ``x'`` is ``J V_x J^T`` on ``z``, an input noise ``w`` (``x' = A x +
+    B (u + w)``) is ``(J B) w``.
+    """
+    L = np.asarray(aux_forms, dtype=float)
+    x = np.asarray(x, dtype=float)
+    k, n = L.shape[0], x.shape[0]
+    J = np.empty((k + n, n))
+    J[:k] = L @ x
+    J[k:] = np.eye(n)
+    return J

@@ -46,6 +46,7 @@ import numpy as np
 from scipy import stats
 
 from quadobs.core.held_input import as_covariance
+from quadobs.core.immersion import lifted_covariance
 from quadobs.errors import QuadobsError, as_array, as_finite_scalar
 from quadobs.evaluation.convergence import convergence_times
 
@@ -521,24 +522,3 @@ def range_factor(position: np.ndarray, beacons: np.ndarray, std: np.ndarray | fl
     with np.errstate(divide="ignore", invalid="ignore"):
         cols = np.where((r > 0)[:, None], d / (r * std)[:, None], 0.0)
     return cols.T
-
-
-def lifted_covariance(aux_forms: np.ndarray, mean: np.ndarray, cov: np.ndarray) -> np.ndarray:
-    """Covariance of ``z = (xi(x), x)``, ``xi_i = x^T L_i x / 2``, for ``x ~ N(m, P)`` (exact Gaussian moments).
-
-    ``Cov(xi_i, x) = P L_i m`` and ``Cov(xi_i, xi_j) = m^T L_i P L_j m + tr(L_i P L_j P) / 2``.
-    Returns ``(k + n, k + n)``.
-    """
-    L = np.asarray(aux_forms, dtype=float)
-    m = np.asarray(mean, dtype=float)
-    P = np.asarray(cov, dtype=float)
-    k, n = L.shape[0], m.shape[0]
-    out = np.zeros((k + n, k + n))
-    out[k:, k:] = P
-    cross = np.einsum("ab,ibc,c->ia", P, L, m)
-    out[:k, k:] = cross
-    out[k:, :k] = cross.T
-    Lm = np.einsum("iab,b->ia", L, m)
-    LP = np.einsum("iab,bc->iac", L, P)
-    out[:k, :k] = Lm @ P @ Lm.T + 0.5 * np.einsum("iab,jba->ij", LP, LP)
-    return out

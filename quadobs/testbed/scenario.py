@@ -69,6 +69,7 @@ __all__ = [
     "ObserverSpec",
     "QuadrotorSpec",
     "Scenario",
+    "TdoaSpec",
     "ZonotopeSpec",
     "apply_settings",
     "field_reference",
@@ -489,6 +490,15 @@ class QuadrotorSpec(_Table):
 # --------------------------------------------------------------------------------------
 
 
+class TdoaSpec(_Table):
+    """Time differences of arrival (``[tdoa]``): one packet every ``1 / rate`` s from an anchor
+    other than the previous one, TDOA ``d_ij = |p - a_i| - |p - a_j| + noise`` of the pair formed
+    with it (:mod:`quadobs.testbed.tdoa`)."""
+
+    std: Noise = Field(0.1, description="Standard deviation of a TDOA (m).")
+    rate: Rate = Field(100.0, description="Packets per second (Hz), dividing the physics rate.")
+
+
 class Scenario(_Table):
     """A complete, validated description of one episode.
 
@@ -567,6 +577,9 @@ class Scenario(_Table):
         None,
         description='Flight plan and on-board sensors of the quadrotor (`kind = "quadrotor"` only).',
     )
+    tdoa: TdoaSpec | None = Field(
+        None, description="TDOA measurements between anchor pairs (`[tdoa]`, TDoA3-like)."
+    )
 
     _beacons: np.ndarray = PrivateAttr()
     _wind: np.ndarray | None = PrivateAttr(None)
@@ -627,6 +640,8 @@ class Scenario(_Table):
             )
         out.sample_interval(self.noise.range_rate, "range_rate")
         out.sample_interval(self.noise.airspeed_rate, "airspeed_rate")
+        if self.tdoa is not None:
+            out.sample_interval(self.tdoa.rate, "rate", table="tdoa")
         self.excitation.grid(out.dt)
         return out
 
