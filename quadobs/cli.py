@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import os
 import sys
+from typing import TYPE_CHECKING
 
 from quadobs._program import (
     INTERRUPTED,
@@ -29,6 +30,9 @@ from quadobs._program import (
     stop_if_interrupted,
     take_signals,
 )
+
+if TYPE_CHECKING:
+    import numpy as np
 
 # Nothing else at module level: :func:`main` takes SIGINT and SIGTERM before anything heavier
 # (argparse, pathlib, NumPy, ...) loads, so the functions below import what they use.
@@ -833,7 +837,7 @@ def _cmd_replay(args) -> int:
     return 130 if summary["interrupted"] else 0
 
 
-def _replay_calibration(args, log, tuning: dict) -> tuple[list[float] | None, dict]:
+def _replay_calibration(args, log, tuning: dict) -> tuple[list[float] | np.ndarray | None, dict]:
     """The biases and the noise settings: ``--biases`` as given, else self-calibrated (``--calibrate self``) or none.
 
     The self-calibration also picks the model's process noise, unless ``--tune`` sets it.
@@ -844,7 +848,7 @@ def _replay_calibration(args, log, tuning: dict) -> tuple[list[float] | None, di
 
     if args.biases is not None:
         try:
-            biases = [float(v) for v in args.biases.split(",")]
+            biases: list[float] | np.ndarray = [float(v) for v in args.biases.split(",")]
         except ValueError:
             raise QuadobsError(
                 f"--biases: expected comma-separated numbers, got {args.biases!r}"

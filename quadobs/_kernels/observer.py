@@ -85,6 +85,7 @@ the dense path). :class:`quadobs.estimators.augmented.KernelModel` builds ``ic``
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 from numba import njit
@@ -106,10 +107,10 @@ __all__ = [
     "work_size",
 ]
 
-_OPTS = dict(cache=True, nogil=True, error_model="numpy")
+_OPTS: dict[str, Any] = dict(cache=True, nogil=True, error_model="numpy")
 #: The helpers: inlined into each kernel (Numba IR), which compiles in about 3 s less than as
 #: separately compiled callees, at the same speed.
-_INLINE = dict(_OPTS, inline="always")
+_INLINE: dict[str, Any] = dict(_OPTS, inline="always")
 
 #: Length of the header of ``ic``.
 HEADER = 24

@@ -230,7 +230,7 @@ class AugmentedObserver(Estimator, Gated, Immersed, BlockStep):
         theta: float = 0.0,
         x0=None,
         z0=None,
-        sample_period: float | None = None,
+        sample_period: float | np.ndarray | None = None,
         gate: float | None = None,
         backend: str = "auto",
     ) -> None:

@@ -42,6 +42,7 @@ import numpy as np
 from quadobs.errors import QuadobsError, as_array
 
 if TYPE_CHECKING:
+    from quadobs.core.immersion import Immersion
     from quadobs.core.measurements import Measurement
 
 __all__ = [
@@ -230,6 +231,7 @@ class Gated(Counted):
         Corrections rejected by the gate so far.
     """
 
+    name: str  # the estimator's, which this ability is mixed into
     gate: float | None = None
     rejected: int = 0
 
@@ -246,6 +248,7 @@ class Switching(abc.ABC):
         :meth:`Estimator.step` before it.
     """
 
+    name: str  # the estimator's, which this ability is mixed into
     mode: str = ""
     switches: list
 
@@ -266,7 +269,7 @@ class SetValued(abc.ABC):
 class Immersed(abc.ABC):
     """Ability: runs on an immersion (:attr:`immersion`, a :class:`~quadobs.core.immersion.Immersion`)."""
 
-    immersion = None
+    immersion: Immersion
 
 
 class Subset(abc.ABC):
@@ -295,7 +298,9 @@ class BlockStep(abc.ABC):
         testbed calls :meth:`Estimator.step_and_record` row by row itself.
     """
 
-    blockwise: bool = False
+    @property
+    def blockwise(self) -> bool:
+        return False
 
     @abc.abstractmethod
     def step_block(self, U: np.ndarray, Y: np.ndarray, out: np.ndarray) -> None:

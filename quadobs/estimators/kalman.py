@@ -66,6 +66,7 @@ Scenario defaults (the estimators ``"ekf"`` and ``"ukf"``): see
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -165,7 +166,7 @@ class OutputModel:
     """
 
     system: QuadraticSystem
-    R: np.ndarray | float
+    R: Any  # a float, a diagonal or (q, q) as given; (q, q) once built
     offsets: np.ndarray | None = None
 
     def __post_init__(self) -> None:

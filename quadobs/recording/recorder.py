@@ -28,6 +28,7 @@ import threading
 import weakref
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pyarrow as pa
@@ -307,7 +308,7 @@ class Recorder:
         )
         self.series_list.append(s)
         if kind == "scalars" and (names or color):
-            kw = {}
+            kw: dict[str, Any] = {}
             if names:
                 kw["names"] = names
             if color:
@@ -450,7 +451,8 @@ class Recorder:
             pending = exc
         finally:
             self.rec.disconnect()
-            self.rec = None  # the stream is now orphaned: rerun's threads for it end below
+            self.rec = None  # type: ignore[assignment]  # closed: no method reads it after
+            # the stream is now orphaned: rerun's threads for it end below
             _end_orphaned_streams()
             self._file.release()
             self._settle(self._file.finish(CLOSE_TIMEOUT), publish)

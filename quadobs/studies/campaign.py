@@ -46,6 +46,7 @@ import time as _time
 import traceback
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -708,10 +709,10 @@ def _execute(
                     done(fut.result())
                 else:
                     try:
-                        exc = fut.exception()
+                        why: BaseException = fut.exception()
                     except BaseException as e:  # cancelled, lost
-                        exc = e
-                    done(lost(futures[fut], exc))
+                        why = e
+                    done(lost(futures[fut], why))
         except KeyboardInterrupt:
             interrupted = True
             client.cancel(list(futures))
@@ -813,7 +814,8 @@ def _run_local(tasks: list[dict], n: int, context, done, lost, retries: int) -> 
     from collections import deque
     from multiprocessing.connection import wait
 
-    queue, losses = deque(tasks), {}
+    queue = deque(tasks)
+    losses: dict[int, int] = {}
     pool: list[_Worker] = []
     try:
         pool = [_Worker(context) for _ in range(n)]
@@ -1003,7 +1005,7 @@ def _write_series(path: Path, ok: list[dict], names: list[str], times: np.ndarra
     import pyarrow as pa
 
     T = times.shape[0]
-    parts = {
+    parts: dict[str, list] = {
         k: []
         for k in (
             "run",
@@ -1093,7 +1095,7 @@ def _record_statistics(
             blueprint=blueprint,
             capacity=max(T, 1),
         )
-        series = {}
+        series: dict[str, Any] = {}
         if sqrt_bound is not None:
             series["pcrb"] = (
                 rec.series(

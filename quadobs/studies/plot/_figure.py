@@ -16,6 +16,7 @@ import os
 import sys
 import tempfile
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -38,7 +39,7 @@ DEFAULT_SIZE = (7.0, 4.5)  # inches: the full text width of a two-column paper
 DEFAULT_DPI = 150
 
 # Black and greys with distinct dashes and markers: each line reads in greyscale print.
-_STYLES = [
+_STYLES: list[dict[str, Any]] = [
     {"color": "0.0", "linestyle": "-", "marker": "o"},
     {"color": "0.35", "linestyle": "--", "marker": "s", "markerfacecolor": "white"},
     {"color": "0.55", "linestyle": ":", "marker": "^"},
@@ -51,7 +52,7 @@ _STYLES = [
     },
     {"color": "0.65", "linestyle": (0, (1, 1)), "marker": "x"},
 ]
-TRUTH_STYLE = {"color": "0.0", "linestyle": "-", "linewidth": 1.6}
+TRUTH_STYLE: dict[str, Any] = {"color": "0.0", "linestyle": "-", "linewidth": 1.6}
 
 _RC = {
     "font.size": 8,
