@@ -360,15 +360,10 @@ def _cmd_bench(args) -> int:
 
 
 def package_version() -> str:
-    """The installed distribution's version, else the package's ``__version__``."""
-    from importlib.metadata import PackageNotFoundError, version
+    """The installed distribution's version (``quadobs.__version__``, from the package metadata)."""
+    import quadobs
 
-    try:
-        return version("quadobs")
-    except PackageNotFoundError:
-        from quadobs import __version__
-
-        return __version__
+    return quadobs.__version__
 
 
 def _registered_estimators() -> list[str]:

@@ -59,7 +59,7 @@ import numpy as np
 from quadobs.errors import QuadobsError, as_array
 from quadobs.sets.zonotope import IntervalMatrix, Zonotope
 
-__all__ = ["PRadiusDesign", "pradius_gains", "pradius_lmi_matrices"]
+__all__ = ["PRadiusDesign", "pradius_gains", "pradius_lmi_matrices", "require_lmi_solvers"]
 
 #: A solution ``P`` with ``lambda_min(P) <= SINGULAR_RTOL lambda_max(P)`` counts as infeasible:
 #: when no ``P > 0`` satisfies the LMI, the solver's supremum ``tau = 0`` is approached by a
@@ -263,6 +263,25 @@ def _design_step(KG, KF, F, prev, prev_phi, c, phi, offset, betas, refine, solve
     return float(beta), float(tau), P, lam, used, margin
 
 
+#: The optional dependencies of the LMI design, and the extra that installs them.
+LMI_EXTRA = "sets"
+
+
+def require_lmi_solvers(what: str) -> None:
+    """Refuse, in one line naming the extra, an LMI design without cvxpy (and its Clarabel solver).
+
+    The core install leaves them out (about 200 MB with their dependencies): only the offline
+    design of [LE2013] needs them, ``pip install 'quadobs[sets]'`` adds them.
+    """
+    try:
+        import cvxpy  # noqa: F401
+    except ImportError:
+        raise QuadobsError(
+            f"{what}: the LMI design needs cvxpy and Clarabel, not installed: "
+            f"pip install 'quadobs[{LMI_EXTRA}]'"
+        ) from None
+
+
 def pradius_gains(
     A_vertices,
     F,
@@ -329,6 +348,7 @@ def pradius_gains(
     if betas.size == 0 or np.any(betas <= 0) or np.any(betas >= 1):
         raise QuadobsError("betas: expected values in (0, 1)")
     solvers = [solver] if solver else ["CLARABEL", "SCS"]
+    require_lmi_solvers("pradius_gains")
     psi = Zonotope(np.zeros(n), F).p_radius() if F.shape[1] else 0.0
 
     gains = np.zeros((ny, n))
