@@ -295,6 +295,7 @@ def _cmd_campaign(args) -> int:
         confidence=args.confidence,
         progress=not args.no_progress,
         retries=args.retries,
+        resume=args.resume,
     )
     print_campaign(result.summary)
     if result.summary["interrupted"]:
@@ -404,7 +405,9 @@ def _notice_cost(scenario, estimators, recording: bool, runs: int = 1, workers: 
         scenario, estimators or default_estimators(scenario), recording, runs=runs, workers=workers
     )
     if line:
-        print(line, file=sys.stderr, flush=True)
+        import logging
+
+        logging.getLogger("quadobs.cli").warning(line)
 
 
 def _notice_cold_kernels(kernels, file=None) -> bool:
@@ -510,6 +513,21 @@ def build_parser():
         formatter_class=help_formatter,
     )
     parser.add_argument("--version", action="version", version=f"quadobs {package_version()}")
+    parser.add_argument(
+        "-v",
+        "--verbose",
+        dest="log_verbose",
+        action="count",
+        default=0,
+        help="the library's progress messages on stderr (-vv: its debugging messages too)",
+    )
+    parser.add_argument(
+        "-q",
+        "--quiet",
+        dest="log_quiet",
+        action="store_true",
+        help="errors only: no notices, no library warnings",
+    )
     sub = parser.add_subparsers(dest="command", required=True)
     sub.add_parser = functools.partial(sub.add_parser, formatter_class=help_formatter)
 
@@ -643,6 +661,11 @@ def build_parser():
         "--seed", type=int, help="override the scenario seed (the runs' seeds derive from it)"
     )
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument(
+        "--resume",
+        action="store_true",
+        help="keep the runs a stopped campaign into the same --out finished, run only the others",
+    )
     _add_set(p)
     p.set_defaults(func=_cmd_campaign)
 
@@ -883,6 +906,7 @@ def _run_command(argv: list[str] | None) -> int:
     )
 
     args = build_parser().parse_args(argv)
+    handler = _log_to_stderr(args.log_verbose, args.log_quiet)
     try:
         with new_folders_removed_on_failure(*_output_paths(args)):
             return args.func(args)
@@ -899,6 +923,40 @@ def _run_command(argv: list[str] | None) -> int:
             os.dup2(devnull, sys.stdout.fileno())
             return 141
         raise
+    finally:
+        import logging
+
+        logger = logging.getLogger("quadobs")
+        logger.removeHandler(handler)
+        logger.setLevel(logging.NOTSET)
+
+
+def _log_to_stderr(verbose: int, quiet: bool):
+    """The handler that shows the library's log records on stderr for one command (removed after it).
+
+    Default: warnings and notices; ``-v``: progress (INFO); ``-vv``: DEBUG; ``-q``: errors only.
+    Nothing is configured on ``import quadobs``: this is the command line's choice.
+    """
+    import logging
+
+    class OneLine(logging.Formatter):
+        """The command's own notices as they are; the library's records named by their level."""
+
+        def format(self, record: logging.LogRecord) -> str:
+            text = " ".join(record.getMessage().splitlines())
+            if record.name == "quadobs.cli":
+                return text
+            return f"quadobs: {record.levelname.lower()}: {text}"
+
+    level = logging.ERROR if quiet else (logging.WARNING, logging.INFO)[min(verbose, 1)]
+    if verbose >= 2 and not quiet:
+        level = logging.DEBUG
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(OneLine())
+    logger = logging.getLogger("quadobs")
+    logger.addHandler(handler)
+    logger.setLevel(level)
+    return handler
 
 
 def _exit_status(exc: SystemExit) -> int:

@@ -42,6 +42,7 @@ from quadobs.errors import (
     output_target,
     staging_path,
 )
+from quadobs.staging import publish
 
 __all__ = ["Recorder", "Series", "check_writable"]
 
@@ -479,7 +480,7 @@ class Recorder:
         if not self.closed or self.published or self.failed or self._file.error is not None:
             return
         try:
-            os.replace(self.staging, self.target)
+            publish(self.staging, self.target)
         except OSError as exc:
             self._discard()
             raise RunFault(

@@ -12,15 +12,14 @@ string), so the same input gives the same bytes.
 from __future__ import annotations
 
 import math
-import os
 import sys
-import tempfile
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from quadobs.errors import QuadobsError
+from quadobs.staging import write_staged
 
 __all__ = [
     "DEFAULT_DPI",
@@ -149,7 +148,7 @@ def new_figure(panels: list[str], size: tuple[float, float], dpi: float, three_d
 
 
 def save_figure(fig, out: str | Path, dpi: float) -> Path:
-    """Write ``fig`` to ``out`` (format from the suffix) through a temporary file renamed into place.
+    """Write ``fig`` to ``out`` (format from the suffix) through :func:`quadobs.staging.write_staged`.
 
     The parent folder is created only once the figure is drawn; on any error nothing is
     left behind.
@@ -166,21 +165,13 @@ def save_figure(fig, out: str | Path, dpi: float) -> Path:
         [out.parent] if not out.parent.exists() else []
     )
     try:
-        out.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(prefix=f".{out.name}.", suffix=f".{fmt}", dir=out.parent)
-        os.close(fd)
-    except OSError as exc:
-        _remove_dirs(made)
-        raise QuadobsError(f"--out {str(out)!r}: cannot be written ({exc.strerror})") from None
-    try:
         with drawing():
-            fig.savefig(tmp, format=fmt, dpi=dpi, metadata=_METADATA[fmt])
-        mask = os.umask(0)
-        os.umask(mask)
-        os.chmod(tmp, 0o666 & ~mask)
-        os.replace(tmp, out)
+            write_staged(
+                out,
+                lambda tmp: fig.savefig(tmp, format=fmt, dpi=dpi, metadata=_METADATA[fmt]),
+                "--out",
+            )
     except BaseException:
-        Path(tmp).unlink(missing_ok=True)
         _remove_dirs(made)
         raise
     return out
