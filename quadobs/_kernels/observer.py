@@ -205,17 +205,26 @@ def _cholesky_nis(W, oL, onu, otmp, ow, q, r):
 
 
 @njit(**_INLINE)
+def _output_header(ic):
+    """The fields of the header that the correction reads: ``N, q, nm`` and the offsets of
+    ``C`` (CSR pointers, columns, values), of the indices of the outputs present and of ``R``."""
+    return (
+        ic[H_N],
+        ic[H_Q],
+        ic[H_NM],
+        ic[H_O_C_PTR],
+        ic[H_O_C_COL],
+        ic[H_O_IW],
+        ic[H_O_CVAL],
+        ic[H_O_R],
+    )
+
+
+@njit(**_INLINE)
 def _innovation(S, zo, po, W, wo, y, fc, ic, r):
     """For the ``r`` outputs present (indices in ``ic[o_iw:]``): the rows ``C_a P`` (``CP (q, N)`` at
     ``W[wo + 2 N^2:]``), the innovation ``nu`` and the lower triangle of ``C P C^T + R`` (``L``)."""
-    N = ic[H_N]
-    q = ic[H_Q]
-    nm = ic[H_NM]
-    o_cptr = ic[H_O_C_PTR]
-    o_ccol = ic[H_O_C_COL]
-    o_iw = ic[H_O_IW]
-    o_cval = ic[H_O_CVAL]
-    o_R = ic[H_O_R]
+    N, q, nm, o_cptr, o_ccol, o_iw, o_cval, o_R = _output_header(ic)
     oPC = 2 * N * N
     oL = oPC + 4 * N * q + N + nm
     onu = oL + q * q
@@ -304,14 +313,7 @@ def _gain(S, zo, W, wo, ic, r):
 def _joseph(S, po, W, wo, fc, ic, r):
     """``P <- X - (X C^T) K^T + K R K^T`` with ``X = P - K C P`` (``X`` in ``W[wo + N^2:]``), the upper
     triangle computed and mirrored; returns ``trace(P)``."""
-    N = ic[H_N]
-    q = ic[H_Q]
-    nm = ic[H_NM]
-    o_cptr = ic[H_O_C_PTR]
-    o_ccol = ic[H_O_C_COL]
-    o_iw = ic[H_O_IW]
-    o_cval = ic[H_O_CVAL]
-    o_R = ic[H_O_R]
+    N, q, nm, o_cptr, o_ccol, o_iw, o_cval, o_R = _output_header(ic)
     oPC = 2 * N * N
     oK = oPC + N * q
     oXC = oK + N * q  # X C^T, K R: (N, q)

@@ -692,14 +692,53 @@ def run_bench(
 
 def _run_bench(steps, repeats, batch, batch_steps, threads, quick, log) -> dict:
     from quadobs.estimators.augmented import default_backend
-    from quadobs.testbed.registry import available_estimators
     from quadobs.testbed.scenario import load_scenario
 
     say = log or (lambda msg: None)
     sc = load_scenario("ifac2021")
     sc = sc.with_overrides(duration=steps * sc.dt)
     notes: list[str] = []
-    result: dict = {
+    result = _machine_and_config(sc, steps, repeats, batch, batch_steps, threads)
+    _single_vehicle(result, sc, steps, repeats, say)
+    calls = max(min(steps, 5000), 100)
+    _estimator_costs(result, sc, calls, repeats, say, notes)
+    say(f"batch: {batch} vehicles x {batch_steps} steps, {repeats} repeats")
+    result["batch"] = _batch(sc, batch, batch_steps, repeats, threads)
+    result["batch_ratio"] = result["batch"]["batch_ratio"]
+
+    workers = os.cpu_count() or 1
+    episodes = (
+        8 if quick else 2
+    ) * workers  # short episodes: enough of them to time the rate once started
+    say(
+        f"campaign: ifac2021-noisy, {episodes} then {2 * episodes} episodes on {workers} processes, against bare physics"
+    )
+    result["campaign"] = _campaign("ifac2021-noisy", episodes, 1.0 if quick else 10.0, workers)
+    result["campaign_ratio"] = result["campaign"]["campaign_ratio"]
+
+    say("quadrotor: physics + controller + IMU/UWB + observer + recording against bare mj_step")
+    result["quadrotor"] = _quadrotor_case(
+        20000, max(min(repeats, 9), 3)
+    )  # 20 s: take-off, flight on the estimate, landing
+    say("scaling with n and q")
+    result["scaling"] = _scaling(max(min(calls, 2000), 50), quick, max(repeats // 2, 1))
+    dense_row = next(row for row in result["scaling"] if row["system"] == "dense")
+    result["observer_step_us_N38"] = dense_row[f"{default_backend()}_median_us"]
+    say("first run on a fresh kernel cache, with and without 'quadobs compile' before it")
+    result["cold_start"] = _cold_start()
+    notes.append(
+        "GPU batch figure: not measured (quadobs has no GPU path; the batch runs on the CPU)"
+    )
+    result["targets"] = _targets(result)
+    result["notes"] = notes
+    return result
+
+
+def _machine_and_config(sc, steps, repeats, batch, batch_steps, threads) -> dict:
+    """The bench's header: the machine (CPUs, load, versions) and the settings."""
+    from quadobs.estimators.augmented import default_backend
+
+    result: dict[str, Any] = {
         "machine": {
             "cpus": os.cpu_count(),
             "load_average": list(os.getloadavg()) if hasattr(os, "getloadavg") else None,
@@ -726,6 +765,11 @@ def _run_bench(steps, repeats, batch, batch_steps, threads, quick, log) -> dict:
     except ImportError:
         pass
 
+    return result
+
+
+def _single_vehicle(result: dict, sc, steps: int, repeats: int, say) -> None:
+    """Bare physics against the loop, without and with recording, on the block and the per-step path."""
     loops = max(repeats, 9)  # enough for quartiles
     result["config"]["loop_repeats"] = loops
     say(
@@ -773,7 +817,12 @@ def _run_bench(steps, repeats, batch, batch_steps, threads, quick, log) -> dict:
         "step_loop_ratio": min(bare) / min(runs["step_rec"]),
     }
 
-    calls = max(min(steps, 5000), 100)
+
+def _estimator_costs(result: dict, sc, calls: int, repeats: int, say, notes: list[str]) -> None:
+    """Per-step costs of the estimators, the LMI design and the online steps of le2013."""
+    from quadobs.estimators.augmented import default_backend
+    from quadobs.testbed.registry import available_estimators
+
     say("per-step costs of the estimators")
     result["observer_step_us"] = _observer_step_us(sc, calls, repeats, default_backend())
     result["observer_numpy_step_us"] = _observer_step_us(
@@ -795,34 +844,10 @@ def _run_bench(steps, repeats, batch, batch_steps, threads, quick, log) -> dict:
     result["zonotope_step_us"] = result["le2013_step_us"]["pradius2"]["numba"]
     result["registered_estimators"] = available_estimators(sc)
 
-    say(f"batch: {batch} vehicles x {batch_steps} steps, {repeats} repeats")
-    result["batch"] = _batch(sc, batch, batch_steps, repeats, threads)
-    result["batch_ratio"] = result["batch"]["batch_ratio"]
 
-    workers = os.cpu_count() or 1
-    episodes = (
-        8 if quick else 2
-    ) * workers  # short episodes: enough of them to time the rate once started
-    say(
-        f"campaign: ifac2021-noisy, {episodes} then {2 * episodes} episodes on {workers} processes, against bare physics"
-    )
-    result["campaign"] = _campaign("ifac2021-noisy", episodes, 1.0 if quick else 10.0, workers)
-    result["campaign_ratio"] = result["campaign"]["campaign_ratio"]
-
-    say("quadrotor: physics + controller + IMU/UWB + observer + recording against bare mj_step")
-    result["quadrotor"] = _quadrotor_case(
-        20000, max(min(repeats, 9), 3)
-    )  # 20 s: take-off, flight on the estimate, landing
-    say("scaling with n and q")
-    result["scaling"] = _scaling(max(min(calls, 2000), 50), quick, max(repeats // 2, 1))
-    dense_row = next(row for row in result["scaling"] if row["system"] == "dense")
-    result["observer_step_us_N38"] = dense_row[f"{default_backend()}_median_us"]
-    say("first run on a fresh kernel cache, with and without 'quadobs compile' before it")
-    result["cold_start"] = _cold_start()
-    notes.append(
-        "GPU batch figure: not measured (quadobs has no GPU path; the batch runs on the CPU)"
-    )
-    result["targets"] = {
+def _targets(result: dict) -> dict:
+    """Whether each target of the bench is met (``None`` where a figure is missing)."""
+    return {
         "loop_ratio >= 1.0": _meets(result["loop_ratio"], 1.0, ">="),
         "batch_ratio >= 0.5": _meets(result["batch_ratio"], 0.5, ">="),
         "recording_fraction <= 0.1": _meets(result["recording_fraction"], 0.1, "<="),
@@ -837,8 +862,6 @@ def _run_bench(steps, repeats, batch, batch_steps, threads, quick, log) -> dict:
             result["cold_start"]["first_run_s"], 5.0, "<="
         ),
     }
-    result["notes"] = notes
-    return result
 
 
 def _meets(value, bound, op) -> bool | None:
@@ -916,6 +939,11 @@ def print_bench(r: dict, file=None) -> None:
     p("le2013 online step per method (us): compiled / NumPy reference")
     for m, v in r["le2013_step_us"].items():
         p(f"  {m:16s} {v['numba']:>10.2f} / {v['numpy']:>10.2f}")
+    _print_rest(r, p)
+
+
+def _print_rest(r: dict, p) -> None:
+    """The batch, campaign, quadrotor, cold-start and scaling figures, the targets and notes."""
     b = r["batch"]
     p(
         f"batch of {b['vehicles']} vehicles ({b['steps']} steps, threads {b['threads']} for the rollout and for the observers)"

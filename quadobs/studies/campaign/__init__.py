@@ -373,17 +373,7 @@ def run_campaign(
     )
     k_every = _collect_every(scenario, every)
     data = scenario.to_dict()
-    tasks = [
-        {
-            "index": i,
-            "seed": run_seed(scenario.seed, i),
-            "scenario": data,
-            "source": scenario.source,
-            "estimators": names,
-            "collect_every": k_every,
-        }
-        for i in range(runs)
-    ]
+    tasks = [_task(scenario, data, i, names, k_every) for i in range(runs)]
     results, journal = _kept_runs(out_dir, resume, data, names, k_every)
     finished = {r["index"] for r in results}
     todo = [t for t in tasks if t["index"] not in finished]
@@ -404,20 +394,9 @@ def run_campaign(
     )
     curves = tuple(None if b is None else sqrt_traces(scenario, b[1]) for b in (bound, linear))
     ensembles = ensembles_of(scenario, names, ok, times, curves[0], threshold, confidence)
-    summaries = {nm: ensembles[nm].summary() for nm in names}
-    add_converged_nees(summaries, scenario, names, ok, ensembles, times, confidence)
     summary = _summary(scenario, runs, k_every, results, ok, failed, names, threshold, confidence)
-    summary.update(
-        interrupted=interrupted,
-        backend=backend,
-        wall_time=wall,
-        run_wall_time_mean=float(np.mean([r["wall_time"] for r in ok])) if ok else None,
-        seed_rule="seed_i = run_seed(base_seed, i): SeedSequence(base_seed, spawn_key=(i,)), 63 bits",
-        pcrb=bound_summary(bound, *curves),
-        estimators=summaries,
-    )
-    if ok and all("flight" in r for r in ok):
-        summary["flight"] = flight_summary([r["flight"] for r in ok], names)
+    summary.update(interrupted=interrupted, backend=backend, wall_time=wall)
+    _add_statistics(summary, scenario, names, ok, ensembles, times, bound, curves, confidence)
     result = CampaignResult(summary, ensembles, ok + failed, bound)
     if journal is not None:
         write_campaign_folder(
@@ -436,6 +415,32 @@ def run_campaign(
         if not interrupted:
             journal.remove()
     return result
+
+
+def _task(scenario: Scenario, data: dict, i: int, names: list[str], k_every: int) -> dict:
+    """Run ``i``'s task for :func:`run_one`."""
+    return {
+        "index": i,
+        "seed": run_seed(scenario.seed, i),
+        "scenario": data,
+        "source": scenario.source,
+        "estimators": names,
+        "collect_every": k_every,
+    }
+
+
+def _add_statistics(summary, scenario, names, ok, ensembles, times, bound, curves, confidence):
+    """The summary's statistics: per estimator, the bounds, the flight figures of a quadrotor."""
+    summaries = {nm: ensembles[nm].summary() for nm in names}
+    add_converged_nees(summaries, scenario, names, ok, ensembles, times, confidence)
+    summary.update(
+        run_wall_time_mean=float(np.mean([r["wall_time"] for r in ok])) if ok else None,
+        seed_rule="seed_i = run_seed(base_seed, i): SeedSequence(base_seed, spawn_key=(i,)), 63 bits",
+        pcrb=bound_summary(bound, *curves),
+        estimators=summaries,
+    )
+    if ok and all("flight" in r for r in ok):
+        summary["flight"] = flight_summary([r["flight"] for r in ok], names)
 
 
 def _kept_runs(out_dir, resume: bool, data: dict, names: list[str], k_every: int):

@@ -18,6 +18,13 @@ def print_campaign(summary: dict, file=None) -> None:
     import sys
 
     file = file or sys.stdout
+    _print_head(summary, file)
+    _print_table(summary, file)
+    _print_tail(summary, file)
+
+
+def _print_head(summary: dict, file) -> None:
+    """The campaign's line and the bounds' lines."""
     b = summary["backend"]
     where = (
         b["kind"]
@@ -45,6 +52,10 @@ def print_campaign(summary: dict, file=None) -> None:
             )
     else:
         print(f"posterior CRB: not available ({pc['note']})", file=file)
+
+
+def _print_table(summary: dict, file) -> None:
+    """One row per estimator."""
     thr = summary["convergence_threshold"]
     cols = [
         "estimator",
@@ -80,6 +91,10 @@ def print_campaign(summary: dict, file=None) -> None:
     print("  ".join(c.ljust(w) for c, w in zip(cols, widths)), file=file)
     for r in rows:
         print("  ".join(v.ljust(w) for v, w in zip(r, widths)), file=file)
+
+
+def _print_tail(summary: dict, file) -> None:
+    """The flight figures, the NEES over the converged parts, the failed runs, the files."""
     fl = summary.get("flight")
     if fl:
         rmse = ", ".join(
