@@ -5,17 +5,17 @@ through :attr:`Estimator.x_hat` and :attr:`Estimator.x_covariance`. Abilities be
 are declared by inheriting the ability classes below, never discovered by probing
 attributes, so the testbed can ask ``isinstance(est, Gated)``:
 
-=================  ===============================================================
-ability            what the estimator then provides
-=================  ===============================================================
-:class:`Counted`   ``corrections``: the corrections applied so far
-:class:`Gated`     ``gate`` (NIS threshold or ``None``), ``rejected``, and ``corrections`` (a :class:`Counted`)
-:class:`Switching` ``mode``, ``switches`` (``(step, from, to, reason)``) and ``summary()``
-:class:`SetValued` ``bounds (n, 2)``: interval bounds guaranteed to hold the state
-:class:`Immersed`  ``immersion``: the :class:`~quadobs.core.immersion.Immersion` it runs on
-:class:`Subset`    ``outputs (q_used,)``: the indices of the outputs it reads
-:class:`BlockStep` ``step_block(U, Y, out)``: the records of a block of steps in one call
-=================  ===============================================================
+===================  ===============================================================
+ability              what the estimator then provides
+===================  ===============================================================
+:class:`Counted`     ``corrections``: the corrections applied so far
+:class:`Gated`       ``gate`` (NIS threshold or ``None``), ``rejected``, and ``corrections`` (a :class:`Counted`)
+:class:`Switching`   ``mode``, ``switches`` (``(step, from, to, reason)``) and ``summary()``
+:class:`SetValued`   ``bounds (n, 2)``: interval bounds guaranteed to hold the state
+:class:`Immersed`    ``immersion``: the :class:`~quadobs.core.immersion.Immersion` it runs on
+:class:`Subset`      ``outputs (q_used,)``: the indices of the outputs it reads
+:class:`BlockStep`   ``step_block(U, Y, out)``: the records of a block of steps in one call
+===================  ===============================================================
 
 Conventions: ``u (p,)`` is the input held over the step, ``y (q,)`` the outputs sampled
 at its start with NaN where a sample is missing; vectors are ``(n,)``. A step with a
