@@ -63,6 +63,12 @@ class Journal:
         if resume and self.path.is_dir():
             kept = self._read()
         elif self.path.exists():
+            stale = len(list(self.path.glob("run-*.pickle")))
+            if stale:
+                log.warning(
+                    "campaign: %d finished runs of a stopped campaign started over (resume keeps them)",
+                    stale,
+                )
             shutil.rmtree(self.path)
         try:
             self.path.mkdir(parents=True, exist_ok=True)
