@@ -366,7 +366,8 @@ def run_campaign(
     resume : bool
         With ``out_dir``: keep the runs that a campaign stopped before its end (killed, Ctrl-C)
         finished, and run only the others (module docstring, "Resume"); the same
-        campaign is needed (scenario, seed, runs' settings, estimators, sampling).
+        campaign is needed (scenario, seed, runs' settings, estimators, sampling), though
+        ``runs`` may differ (a stopped campaign resumed with more runs is extended).
     """
     names, threshold, confidence = _checked_settings(
         scenario, runs, retries, estimators, scheduler, workers, start_method, threshold, confidence
@@ -374,7 +375,8 @@ def run_campaign(
     k_every = _collect_every(scenario, every)
     data = scenario.to_dict()
     tasks = [_task(scenario, data, i, names, k_every) for i in range(runs)]
-    results, journal = _kept_runs(out_dir, resume, data, names, k_every)
+    kept, journal = _kept_runs(out_dir, resume, data, names, k_every)
+    results = [r for r in kept if r["index"] < runs]  # a resume may ask for fewer runs
     finished = {r["index"] for r in results}
     todo = [t for t in tasks if t["index"] not in finished]
     bound = scenario_crb(scenario, every=k_every)
