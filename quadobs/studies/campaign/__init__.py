@@ -401,19 +401,7 @@ def run_campaign(
     _add_statistics(summary, scenario, names, ok, ensembles, times, bound, curves, confidence)
     result = CampaignResult(summary, ensembles, ok + failed, bound)
     if journal is not None:
-        write_campaign_folder(
-            journal.folder,
-            summary,
-            scenario,
-            names,
-            ok,
-            failed,
-            ensembles,
-            times,
-            record,
-            curves,
-            k_every,
-        )
+        write_campaign_folder(journal.folder, result, scenario, times, curves, k_every, record)
         if not interrupted:
             journal.remove()
     return result

@@ -22,7 +22,7 @@ import os
 import pickle
 import shutil
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -31,6 +31,9 @@ from quadobs.evaluation.ensemble import Ensemble
 from quadobs.staging import write_folder_staged, write_staged
 from quadobs.testbed.outputs import write_json_staged
 from quadobs.testbed.scenario import Scenario
+
+if TYPE_CHECKING:
+    from quadobs.studies.campaign import CampaignResult
 
 __all__ = ["Journal", "write_campaign_folder"]
 
@@ -122,24 +125,18 @@ class Journal:
 
 
 def write_campaign_folder(
-    out: Path,
-    summary: dict,
-    scenario: Scenario,
-    names,
-    ok,
-    failed,
-    ensembles,
-    times,
-    record,
-    curves,
-    k_every,
+    out: Path, result: CampaignResult, scenario: Scenario, times, curves, k_every: int, record: bool
 ) -> None:
     """``runs.parquet``, ``series.parquet``, ``statistics.rrd`` (with ``record``) and ``summary.json``, as one folder.
 
-    ``curves`` is ``(sqrt_bound, sqrt_linear)``. The folder replaces ``out`` once complete
-    (:func:`quadobs.staging.write_folder_staged`); ``summary["files"]`` names the files at
-    their final place.
+    ``result`` holds the summary, the ensembles and the runs (completed, then failed, each in
+    run order); ``curves`` is ``(sqrt_bound, sqrt_linear)``. The folder replaces ``out`` once
+    complete (:func:`quadobs.staging.write_folder_staged`); ``summary["files"]`` names the
+    files at their final place.
     """
+    summary, ensembles, names = result.summary, result.ensembles, result.summary["estimator_names"]
+    ok = [r for r in result.results if r["status"] == "ok"]
+    failed = [r for r in result.results if r["status"] != "ok"]
     files = {
         "summary": str(out / "summary.json"),
         "runs": str(out / "runs.parquet"),
