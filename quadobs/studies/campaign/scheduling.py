@@ -6,7 +6,7 @@ killed while holding a run (``SIGKILL``, the out-of-memory killer) breaks the wh
 executor (``BrokenProcessPool`` for every run still queued), whereas here only that worker
 is replaced and its run started again (``retries`` times, then reported failed with its
 seed); and the workers end with the campaign's process even when it is killed
-(``PR_SET_PDEATHSIG`` and a watch thread), where an executor's workers live on. Each worker
+(``PR_SET_PDEATHSIG`` and a watch thread), which an executor does not arrange. Each worker
 has its own pipe and the loop waits on every pipe and process sentinel at once
 (:func:`multiprocessing.connection.wait`), so no dead worker can block it. pebble's
 ``ProcessPool`` restarts a dead worker too, but reports the run lost rather than retrying it
