@@ -24,9 +24,9 @@ import shutil
 from collections.abc import Callable
 from pathlib import Path
 
-from quadobs.errors import QuadobsError, output_target, staging_path
+from quadobs.errors import QuadobsError, output_target, staging_owner, staging_path
 
-__all__ = ["publish", "write_folder_staged", "write_staged"]
+__all__ = ["check_replaceable_folder", "publish", "write_folder_staged", "write_staged"]
 
 
 def _new_file_mode() -> int:
@@ -81,25 +81,60 @@ def write_staged(
     return target
 
 
+def check_replaceable_folder(folder: str | Path, allowed: set[str], what: str) -> None:
+    """Refuse, in one line, a ``folder`` that :func:`write_folder_staged` may not replace.
+
+    It may be absent, or a folder holding only names in ``allowed`` (the files that the
+    writer puts there) and staging files: replaced whole, anything else in it would be lost.
+    """
+    shown = os.fspath(folder)
+    path = Path(os.path.realpath(shown))
+    if not os.path.lexists(path):
+        return
+    if not path.is_dir():
+        raise QuadobsError(f"{what} {shown!r}: exists and is not a folder")
+    try:
+        names = os.listdir(path)
+    except OSError as exc:
+        raise QuadobsError(f"{what} {shown!r}: cannot be read ({exc.strerror or exc})") from None
+    other = sorted(n for n in names if n not in allowed and staging_owner(Path(n)) is None)
+    if other:
+        raise QuadobsError(
+            f"{what} {shown!r}: holds {other[0]!r}"
+            + (f" and {len(other) - 1} more" if len(other) > 1 else "")
+            + f", not written here; the folder is replaced whole (it may hold only {', '.join(sorted(allowed))})"
+        )
+
+
 def write_folder_staged(
-    folder: str | Path, write: Callable[[Path], object], what: str = "output folder"
+    folder: str | Path,
+    write: Callable[[Path], object],
+    what: str = "output folder",
+    allowed: set[str] | None = None,
 ) -> Path:
     """Call ``write(tmp_folder)`` to fill a staging folder, then put it in place of ``folder`` as a whole.
 
     The staging folder is made beside ``folder`` (same file system). Once ``write`` returns,
     each file in it is put on the disk, and the staging folder replaces ``folder``: the
-    previous folder is first renamed aside, then the new one renamed into place, then the
-    previous one removed. A failure while writing (a full disk) removes the staging folder
-    and leaves ``folder`` as it was; one line names ``what`` and the folder. Returns the folder.
+    previous folder is first renamed aside, then the new one renamed into place (with the
+    previous one's permissions), then the previous one removed. An existing ``folder`` must
+    pass :func:`check_replaceable_folder` with ``allowed`` (default: the names ``write``
+    put in the staging folder). A failure while writing (a full disk) removes the staging
+    folder and leaves ``folder`` as it was; one line names ``what`` and the folder. Returns
+    the folder.
     """
     target = Path(os.path.realpath(os.fspath(folder)))
-    if target.exists() and not target.is_dir():
+    if allowed is not None:
+        check_replaceable_folder(folder, allowed, what)
+    elif target.exists() and not target.is_dir():
         raise QuadobsError(f"{what} {os.fspath(folder)!r}: exists and is not a folder")
     target.parent.mkdir(parents=True, exist_ok=True)
     tmp = staging_path(target)
     try:
         tmp.mkdir()
         write(tmp)
+        if allowed is None:
+            check_replaceable_folder(folder, set(os.listdir(tmp)), what)
         for entry in os.scandir(tmp):
             if entry.is_file(follow_symlinks=False):
                 publish(Path(entry.path), Path(entry.path), _new_file_mode())
@@ -120,6 +155,7 @@ def _swap_in(new: Path, target: Path) -> None:
     if not target.exists():
         os.rename(new, target)
         return
+    os.chmod(new, os.stat(target).st_mode & 0o7777)
     old = staging_path(target).with_suffix(".old")
     os.rename(target, old)
     try:

@@ -43,7 +43,8 @@ def test_a_folder_is_replaced_as_a_whole(tmp_path):
         (tmp / "a.json").write_text("1")
         (tmp / "b.json").write_text("2")
 
-    assert write_folder_staged(folder, write) == folder.resolve()
+    allowed = {"old.json", "a.json", "b.json"}  # names the writer owns
+    assert write_folder_staged(folder, write, allowed=allowed) == folder.resolve()
     assert sorted(p.name for p in folder.iterdir()) == ["a.json", "b.json"]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["camp"]
 
@@ -61,3 +62,15 @@ def test_a_folder_target_that_is_a_file_is_refused(tmp_path):
     (tmp_path / "camp").write_text("not a folder")
     with pytest.raises(QuadobsError, match="exists and is not a folder"):
         write_folder_staged(tmp_path / "camp", lambda tmp: None)
+
+
+def test_a_folder_holding_other_names_is_not_replaced(tmp_path):
+    folder = tmp_path / "camp"
+    folder.mkdir()
+    (folder / "mine.txt").write_text("kept")
+    with pytest.raises(QuadobsError, match="holds 'mine.txt'"):
+        write_folder_staged(folder, lambda tmp: (tmp / "a.json").write_text("1"), "out", {"a.json"})
+    with pytest.raises(QuadobsError, match="holds 'mine.txt'"):
+        write_folder_staged(folder, lambda tmp: (tmp / "a.json").write_text("1"), "out")
+    assert sorted(p.name for p in folder.iterdir()) == ["mine.txt"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["camp"]

@@ -116,3 +116,13 @@ def test_a_failed_write_leaves_the_previous_folder_complete(tmp_path, monkeypatc
         )
     assert {p.name: p.read_bytes() for p in out.iterdir()} == before
     assert sorted(p.name for p in tmp_path.iterdir()) == [".camp.runs", "camp"]  # runs kept
+
+
+def test_a_folder_holding_other_files_is_refused_before_any_run(tmp_path, monkeypatch):
+    out = tmp_path / "notes"
+    out.mkdir()
+    (out / "thesis.tex").write_text("kept")
+    monkeypatch.setattr(campaign, "run_one", lambda task: pytest.fail("a run started"))
+    with pytest.raises(QuadobsError, match=r"holds 'thesis.tex', not written here"):
+        run_campaign(small(), runs=2, estimators=["augmented"], out_dir=out, workers=0)
+    assert (out / "thesis.tex").read_text() == "kept"

@@ -68,6 +68,7 @@ import numpy as np
 
 from quadobs.errors import QuadobsError, as_finite_scalar, caused_by_interrupt
 from quadobs.evaluation.ensemble import Ensemble, nees, set_containment
+from quadobs.staging import check_replaceable_folder
 from quadobs.studies.campaign.report import print_campaign
 from quadobs.studies.campaign.scheduling import execute
 from quadobs.studies.campaign.statistics import (
@@ -77,7 +78,7 @@ from quadobs.studies.campaign.statistics import (
     flight_summary,
     sqrt_traces,
 )
-from quadobs.studies.campaign.storage import Journal, write_campaign_folder
+from quadobs.studies.campaign.storage import CAMPAIGN_FILES, Journal, write_campaign_folder
 from quadobs.testbed.bounds import immersion_bound, scenario_crb
 from quadobs.testbed.registry import available_estimators, default_estimators, estimator_factory
 from quadobs.testbed.scenario import Scenario, parse_scenario
@@ -442,6 +443,7 @@ def _kept_runs(out_dir, resume: bool, data: dict, names: list[str], k_every: int
     from quadobs.errors import check_writable
 
     out = Path(out_dir)
+    check_replaceable_folder(out, CAMPAIGN_FILES, "out_dir")
     check_writable(out / "summary.json")
     journal = Journal(out, {"scenario": data, "estimators": names, "collect_every": k_every})
     return journal.start(resume), journal

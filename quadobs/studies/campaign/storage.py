@@ -39,6 +39,9 @@ __all__ = ["Journal", "write_campaign_folder"]
 
 log = logging.getLogger("quadobs.studies")
 
+#: The files of a campaign's folder: an existing folder holding anything else is not replaced.
+CAMPAIGN_FILES = {"summary.json", "runs.parquet", "series.parquet", "statistics.rrd"}
+
 #: The journal's format; a journal of another format is not resumed from.
 JOURNAL_FORMAT = 1
 
@@ -156,7 +159,7 @@ def write_campaign_folder(
             )
         write_json_staged(folder / "summary.json", summary)
 
-    write_folder_staged(out, write, "out_dir")
+    write_folder_staged(out, write, "out_dir", CAMPAIGN_FILES)
 
 
 def _write_table(path: Path, columns: dict) -> None:
