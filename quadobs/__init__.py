@@ -78,7 +78,6 @@ _SUBMODULES = (
     "testbed",
 )
 
-__version__ = "0.1.0"
 
 __all__ = [
     "AugmentedObserver",
@@ -113,10 +112,22 @@ def __getattr__(name: str):
         value = getattr(importlib.import_module(_EXPORTS[name]), name)
     elif name in _SUBMODULES:
         value = importlib.import_module(f"{__name__}.{name}")
+    elif name == "__version__":
+        value = _distribution_version()
     else:
         raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
     globals()[name] = value
     return value
+
+
+def _distribution_version() -> str:
+    """The installed distribution's version: the one source is ``version`` in pyproject.toml."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("quadobs")
+    except PackageNotFoundError:  # a source tree on the path, never installed
+        return "0+unknown"
 
 
 def __dir__() -> list[str]:

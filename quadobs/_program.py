@@ -15,7 +15,8 @@ from __future__ import annotations
 import os
 import signal
 import sys
-from typing import ClassVar
+from collections.abc import Callable
+from typing import Any, ClassVar
 
 __all__ = [
     "INTERRUPTED",
@@ -52,7 +53,7 @@ class Signals:
     raised = 0
     lost = 0
     said = False
-    hook = None
+    hook: Callable[[Any], Any] | None = None
     status: int | None = None
     ending = False
 

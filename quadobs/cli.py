@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import os
 import sys
+from typing import TYPE_CHECKING
 
 from quadobs._program import (
     INTERRUPTED,
@@ -29,6 +30,9 @@ from quadobs._program import (
     stop_if_interrupted,
     take_signals,
 )
+
+if TYPE_CHECKING:
+    import numpy as np
 
 # Nothing else at module level: :func:`main` takes SIGINT and SIGTERM before anything heavier
 # (argparse, pathlib, NumPy, ...) loads, so the functions below import what they use.
@@ -292,6 +296,7 @@ def _cmd_campaign(args) -> int:
         confidence=args.confidence,
         progress=not args.no_progress,
         retries=args.retries,
+        resume=args.resume,
     )
     print_campaign(result.summary)
     if result.summary["interrupted"]:
@@ -357,15 +362,10 @@ def _cmd_bench(args) -> int:
 
 
 def package_version() -> str:
-    """The installed distribution's version, else the package's ``__version__``."""
-    from importlib.metadata import PackageNotFoundError, version
+    """The installed distribution's version (``quadobs.__version__``, from the package metadata)."""
+    import quadobs
 
-    try:
-        return version("quadobs")
-    except PackageNotFoundError:
-        from quadobs import __version__
-
-        return __version__
+    return quadobs.__version__
 
 
 def _registered_estimators() -> list[str]:
@@ -406,7 +406,9 @@ def _notice_cost(scenario, estimators, recording: bool, runs: int = 1, workers: 
         scenario, estimators or default_estimators(scenario), recording, runs=runs, workers=workers
     )
     if line:
-        print(line, file=sys.stderr, flush=True)
+        import logging
+
+        logging.getLogger("quadobs.cli").warning(line)
 
 
 def _notice_cold_kernels(kernels, file=None) -> bool:
@@ -512,6 +514,21 @@ def build_parser():
         formatter_class=help_formatter,
     )
     parser.add_argument("--version", action="version", version=f"quadobs {package_version()}")
+    parser.add_argument(
+        "-v",
+        "--verbose",
+        dest="log_verbose",
+        action="count",
+        default=0,
+        help="the library's progress messages on stderr (-vv: its debugging messages too)",
+    )
+    parser.add_argument(
+        "-q",
+        "--quiet",
+        dest="log_quiet",
+        action="store_true",
+        help="errors only: no notices, no library warnings",
+    )
     sub = parser.add_subparsers(dest="command", required=True)
     sub.add_parser = functools.partial(sub.add_parser, formatter_class=help_formatter)
 
@@ -645,6 +662,11 @@ def build_parser():
         "--seed", type=int, help="override the scenario seed (the runs' seeds derive from it)"
     )
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument(
+        "--resume",
+        action="store_true",
+        help="keep the runs a stopped campaign into the same --out finished, run only the others",
+    )
     _add_set(p)
     p.set_defaults(func=_cmd_campaign)
 
@@ -944,7 +966,7 @@ def _cmd_import_bag(args) -> int:
     return 0
 
 
-def _replay_calibration(args, log, tuning: dict) -> tuple[list[float] | None, dict]:
+def _replay_calibration(args, log, tuning: dict) -> tuple[list[float] | np.ndarray | None, dict]:
     """The biases and the noise settings: ``--biases`` as given, else self-calibrated (``--calibrate self``) or none.
 
     The self-calibration also picks the model's process noise, unless ``--tune`` sets it.
@@ -957,7 +979,7 @@ def _replay_calibration(args, log, tuning: dict) -> tuple[list[float] | None, di
 
     if args.biases is not None:
         try:
-            biases = [float(v) for v in args.biases.split(",")]
+            biases: list[float] | np.ndarray = [float(v) for v in args.biases.split(",")]
         except ValueError:
             raise QuadobsError(
                 f"--biases: expected comma-separated numbers, got {args.biases!r}"
@@ -999,6 +1021,7 @@ def _run_command(argv: list[str] | None) -> int:
     )
 
     args = build_parser().parse_args(argv)
+    handler = _log_to_stderr(args.log_verbose, args.log_quiet)
     try:
         with new_folders_removed_on_failure(*_output_paths(args)):
             return args.func(args)
@@ -1015,6 +1038,40 @@ def _run_command(argv: list[str] | None) -> int:
             os.dup2(devnull, sys.stdout.fileno())
             return 141
         raise
+    finally:
+        import logging
+
+        logger = logging.getLogger("quadobs")
+        logger.removeHandler(handler)
+        logger.setLevel(logging.NOTSET)
+
+
+def _log_to_stderr(verbose: int, quiet: bool):
+    """The handler that shows the library's log records on stderr for one command (removed after it).
+
+    Default: warnings and notices; ``-v``: progress (INFO); ``-vv``: DEBUG; ``-q``: errors only.
+    Nothing is configured on ``import quadobs``: this is the command line's choice.
+    """
+    import logging
+
+    class OneLine(logging.Formatter):
+        """The command's own notices as they are; the library's records named by their level."""
+
+        def format(self, record: logging.LogRecord) -> str:
+            text = " ".join(record.getMessage().splitlines())
+            if record.name == "quadobs.cli":
+                return text
+            return f"quadobs: {record.levelname.lower()}: {text}"
+
+    level = logging.ERROR if quiet else (logging.WARNING, logging.INFO)[min(verbose, 1)]
+    if verbose >= 2 and not quiet:
+        level = logging.DEBUG
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(OneLine())
+    logger = logging.getLogger("quadobs")
+    logger.addHandler(handler)
+    logger.setLevel(level)
+    return handler
 
 
 def _exit_status(exc: SystemExit) -> int:

@@ -263,7 +263,7 @@ def new_folders_removed_on_failure(*paths: str | Path | None) -> Iterator[None]:
         raise
 
 
-def caused_by_interrupt(exc: BaseException) -> bool:
+def caused_by_interrupt(exc: BaseException | None) -> bool:
     """Whether ``exc`` is a ``KeyboardInterrupt`` or was raised while one was handled (its cause and
     context chain): an import, a compiler or a validator cut short by Ctrl-C or SIGTERM. Such an
     error stands for the interrupt; code that turns errors into messages or records should let
@@ -310,7 +310,7 @@ def deferred_interrupts() -> Iterator[None]:
     held: list[int] = []
     previous: dict[int, Any] = {}
     try:
-        for sig in (signal.SIGINT, signal.SIGTERM):
+        for sig in (int(signal.SIGINT), int(signal.SIGTERM)):
             previous[sig] = signal.signal(sig, lambda signum, frame: held.append(signum))
         yield
     finally:

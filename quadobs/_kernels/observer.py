@@ -85,6 +85,7 @@ the dense path). :class:`quadobs.estimators.augmented.KernelModel` builds ``ic``
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 from numba import njit
@@ -106,13 +107,49 @@ __all__ = [
     "work_size",
 ]
 
-_OPTS = dict(cache=True, nogil=True, error_model="numpy")
+_OPTS: dict[str, Any] = dict(cache=True, nogil=True, error_model="numpy")
 #: The helpers: inlined into each kernel (Numba IR), which compiles in about 3 s less than as
 #: separately compiled callees, at the same speed.
-_INLINE = dict(_OPTS, inline="always")
+_INLINE: dict[str, Any] = dict(_OPTS, inline="always")
 
+#: The integer header of ``ic``, in order (module docstring): the one list that the builder
+#: (:class:`quadobs.estimators.augmented.KernelModel`) writes by name and the kernels read by name.
+HEADER_FIELDS = (
+    "N",
+    "k",
+    "p",
+    "q",
+    "nm",
+    "nq",
+    "o_phi_ptr",
+    "o_phi_col",
+    "o_qi",
+    "o_qj",
+    "o_qr",
+    "o_c_ptr",
+    "o_c_col",
+    "o_iw",
+    "o_fblk",
+    "o_F1",
+    "o_G0",
+    "o_G2",
+    "o_qv",
+    "o_cval",
+    "o_R",
+    "dense",
+    "o_Qc",
+    "o_E",
+)
 #: Length of the header of ``ic``.
-HEADER = 24
+HEADER = len(HEADER_FIELDS)
+_AT = {name: i for i, name in enumerate(HEADER_FIELDS)}
+#: Where each field sits: the kernels read ``ic[H_N]`` (compile-time constants).
+H_N, H_K, H_P, H_Q = (_AT["N"], _AT["k"], _AT["p"], _AT["q"])
+H_NM, H_NQ, H_O_PHI_PTR, H_O_PHI_COL = (_AT["nm"], _AT["nq"], _AT["o_phi_ptr"], _AT["o_phi_col"])
+H_O_QI, H_O_QJ, H_O_QR, H_O_C_PTR = (_AT["o_qi"], _AT["o_qj"], _AT["o_qr"], _AT["o_c_ptr"])
+H_O_C_COL, H_O_IW, H_O_FBLK, H_O_F1 = (_AT["o_c_col"], _AT["o_iw"], _AT["o_fblk"], _AT["o_F1"])
+H_O_G0, H_O_G2, H_O_QV, H_O_CVAL = (_AT["o_G0"], _AT["o_G2"], _AT["o_qv"], _AT["o_cval"])
+H_O_R, H_DENSE, H_O_QC, H_O_E = (_AT["o_R"], _AT["dense"], _AT["o_Qc"], _AT["o_E"])
 #: Least ``nnz(Phi) N`` (multiply-adds of the sparse ``Phi P``) for the dense path.
 DENSE_MIN_WORK = 1000
 #: Least share of structural nonzeros in ``Phi`` for the dense path.
@@ -168,17 +205,26 @@ def _cholesky_nis(W, oL, onu, otmp, ow, q, r):
 
 
 @njit(**_INLINE)
+def _output_header(ic):
+    """The fields of the header that the correction reads: ``N, q, nm`` and the offsets of
+    ``C`` (CSR pointers, columns, values), of the indices of the outputs present and of ``R``."""
+    return (
+        ic[H_N],
+        ic[H_Q],
+        ic[H_NM],
+        ic[H_O_C_PTR],
+        ic[H_O_C_COL],
+        ic[H_O_IW],
+        ic[H_O_CVAL],
+        ic[H_O_R],
+    )
+
+
+@njit(**_INLINE)
 def _innovation(S, zo, po, W, wo, y, fc, ic, r):
     """For the ``r`` outputs present (indices in ``ic[o_iw:]``): the rows ``C_a P`` (``CP (q, N)`` at
     ``W[wo + 2 N^2:]``), the innovation ``nu`` and the lower triangle of ``C P C^T + R`` (``L``)."""
-    N = ic[0]
-    q = ic[3]
-    nm = ic[4]
-    o_cptr = ic[11]
-    o_ccol = ic[12]
-    o_iw = ic[13]
-    o_cval = ic[19]
-    o_R = ic[20]
+    N, q, nm, o_cptr, o_ccol, o_iw, o_cval, o_R = _output_header(ic)
     oPC = 2 * N * N
     oL = oPC + 4 * N * q + N + nm
     onu = oL + q * q
@@ -212,9 +258,9 @@ def _innovation(S, zo, po, W, wo, y, fc, ic, r):
 def _gain(S, zo, W, wo, ic, r):
     """``K^T = (L L^T)^{-1} C P`` (``(q, N)`` at ``W[wo + 2 N^2 + N q:]``, the ``X C^T`` area as scratch)
     and ``z += K nu = (C P)^T w``; entry by entry the operations of a row-by-row solve, in its order."""
-    N = ic[0]
-    q = ic[3]
-    nm = ic[4]
+    N = ic[H_N]
+    q = ic[H_Q]
+    nm = ic[H_NM]
     oPC = 2 * N * N
     oK = oPC + N * q
     oY = oK + N * q
@@ -267,14 +313,7 @@ def _gain(S, zo, W, wo, ic, r):
 def _joseph(S, po, W, wo, fc, ic, r):
     """``P <- X - (X C^T) K^T + K R K^T`` with ``X = P - K C P`` (``X`` in ``W[wo + N^2:]``), the upper
     triangle computed and mirrored; returns ``trace(P)``."""
-    N = ic[0]
-    q = ic[3]
-    nm = ic[4]
-    o_cptr = ic[11]
-    o_ccol = ic[12]
-    o_iw = ic[13]
-    o_cval = ic[19]
-    o_R = ic[20]
+    N, q, nm, o_cptr, o_ccol, o_iw, o_cval, o_R = _output_header(ic)
     oPC = 2 * N * N
     oK = oPC + N * q
     oXC = oK + N * q  # X C^T, K R: (N, q)
@@ -327,10 +366,10 @@ def _joseph(S, po, W, wo, fc, ic, r):
 @njit(**_OPTS)
 def _correct(S, zo, po, so, W, wo, y, fc, ic):
     """The correction (module docstring): returns 0 (nothing present), 1 (corrected) or 2 (rejected by the gate)."""
-    N = ic[0]
-    q = ic[3]
-    nm = ic[4]
-    o_iw = ic[13]
+    N = ic[H_N]
+    q = ic[H_Q]
+    nm = ic[H_NM]
+    o_iw = ic[H_O_IW]
     r = 0
     for h in range(q):
         if not math.isnan(y[h]):
@@ -358,11 +397,11 @@ def _correct(S, zo, po, so, W, wo, y, fc, ic):
 @njit(**_INLINE)
 def _transition(W, wo, u, fc, ic):
     """``Phi(u)`` in ``W[wo:]``: only its aux-x block depends on ``u`` (``F0`` block plus ``sum_j u_j F1[j]``)."""
-    N = ic[0]
-    k = ic[1]
-    p = ic[2]
-    o_fblk = ic[14]
-    o_F1 = ic[15]
+    N = ic[H_N]
+    k = ic[H_K]
+    p = ic[H_P]
+    o_fblk = ic[H_O_FBLK]
+    o_F1 = ic[H_O_F1]
     n = N - k
     for a in range(k):
         row = W[wo + a * N + k : wo + (a + 1) * N]  # slices indexed from 0: unit stride, vectorised
@@ -379,12 +418,12 @@ def _transition(W, wo, u, fc, ic):
 @njit(**_INLINE)
 def _input_term(W, wo, u, fc, ic):
     """``zt += g(u)``, ``g(u) = (u^T G2[., a, .] u, G0 u)``, ``zt`` at its place in ``W[wo:]``."""
-    N = ic[0]
-    k = ic[1]
-    p = ic[2]
-    q = ic[3]
-    o_G0 = ic[16]
-    o_G2 = ic[17]
+    N = ic[H_N]
+    k = ic[H_K]
+    p = ic[H_P]
+    q = ic[H_Q]
+    o_G0 = ic[H_O_G0]
+    o_G2 = ic[H_O_G2]
     ozt = 2 * N * N + 4 * N * q
     for a in range(k):
         s = 0.0
@@ -403,9 +442,9 @@ def _input_term(W, wo, u, fc, ic):
 @njit(**_INLINE)
 def _monomials(W, wo, u, ic):
     """``mono = (1, u_j, u_j u_l (j <= l))`` at its place in ``W[wo:]``; returns its offset there."""
-    N = ic[0]
-    p = ic[2]
-    omono = 2 * N * N + 4 * N * ic[3] + N
+    N = ic[H_N]
+    p = ic[H_P]
+    omono = 2 * N * N + 4 * N * ic[H_Q] + N
     W[wo + omono] = 1.0
     for j in range(p):
         W[wo + omono + 1 + j] = u[j]
@@ -419,17 +458,17 @@ def _monomials(W, wo, u, ic):
 
 @njit(**_INLINE)
 def _products(S, po, W, wo, fc, ic):
-    """``P <- Phi P Phi^T`` (upper triangle) by blocks, ``Phi = [[A, B], [0, E]]`` (``E = e^{A_x dt}``, ``(n, n)``, at ``fc[ic[23]:]``).
+    """``P <- Phi P Phi^T`` (upper triangle) by blocks, ``Phi = [[A, B], [0, E]]`` (``E = e^{A_x dt}``, ``(n, n)``, at ``fc[ic[H_O_E]:]``).
 
     ``T = Phi P`` as ``T[:k] = Phi[:k] P`` and ``T[k:] = E P[k:]``; then ``P[:k] = T[:k] Phi^T`` and
     the upper triangle of ``P[k:, k:] = T[k:, k:] E^T`` (three ``dgemm`` on contiguous views and
     ``n^3 / 2`` products): ``(2 k N^2 + n^2 N + n^3 / 2)`` multiply-adds instead of ``2 N^3``.
     """
-    N = ic[0]
-    k = ic[1]
+    N = ic[H_N]
+    k = ic[H_K]
     n = N - k
     NN = N * N
-    o_e = ic[23]
+    o_e = ic[H_O_E]
     Phi = W[wo : wo + NN].reshape((N, N))
     P = S[po : po + NN].reshape((N, N))
     E = fc[o_e : o_e + n * n].reshape((n, n))
@@ -454,13 +493,13 @@ def _predict_dense(S, zo, po, so, W, wo, u, fc, ic):
 
     ``z <- Phi z + g(u)`` (``dgemv``), ``P <- Phi P Phi^T`` by blocks (:func:`_products`), then on
     the upper triangle ``P_ij <- growth P_ij + sum_r mono_r(u) Qc[r]_ij`` with ``Qc`` dense
-    (``fc[ic[22]:]``, ``(nm, N, N)``), mirrored, so that ``P`` is exactly symmetric.
+    (``fc[ic[H_O_QC]:]``, ``(nm, N, N)``), mirrored, so that ``P`` is exactly symmetric.
     """
-    N = ic[0]
-    nm = ic[4]
-    o_qd = ic[22]
+    N = ic[H_N]
+    nm = ic[H_NM]
+    o_qd = ic[H_O_QC]
     NN = N * N
-    ozt = 2 * NN + 4 * N * ic[3]
+    ozt = 2 * NN + 4 * N * ic[H_Q]
     _transition(W, wo, u, fc, ic)
     Phi = W[wo : wo + NN].reshape((N, N))
     P = S[po : po + NN].reshape((N, N))
@@ -493,15 +532,15 @@ def _predict_dense(S, zo, po, so, W, wo, u, fc, ic):
 @njit(**_OPTS)
 def _predict_sparse(S, zo, po, so, W, wo, u, fc, ic):
     """The prediction through the structure of ``Phi`` (CSR) and of ``Q_d`` (COO), module docstring."""
-    N = ic[0]
-    q = ic[3]
-    nq = ic[5]
-    o_pptr = ic[6]
-    o_pcol = ic[7]
-    o_qi = ic[8]
-    o_qj = ic[9]
-    o_qr = ic[10]
-    o_qv = ic[18]
+    N = ic[H_N]
+    q = ic[H_Q]
+    nq = ic[H_NQ]
+    o_pptr = ic[H_O_PHI_PTR]
+    o_pcol = ic[H_O_PHI_COL]
+    o_qi = ic[H_O_QI]
+    o_qj = ic[H_O_QJ]
+    o_qr = ic[H_O_QR]
+    o_qv = ic[H_O_QV]
     growth = fc[0]
     oT = N * N  # Phi at 0, T at oT
     ozt = 2 * N * N + 4 * N * q
@@ -560,7 +599,7 @@ def augmented_correct(y, S, fc, ic):
     rejections, and hold the trace of ``P``. Returns 0 (nothing present: predict only),
     1 (corrected) or 2 (rejected by the gate, ``NIS > fc[1]``).
     """
-    N = ic[0]
+    N = ic[H_N]
     return _correct(S, 0, N, S.shape[0] - 4, S, N + N * N, y, fc, ic)
 
 
@@ -568,8 +607,8 @@ def augmented_correct(y, S, fc, ic):
 def augmented_predict(u, S, fc, ic):
     """Exact prediction of ``S = [z | P | W]`` over one step with ``u`` held:
     ``z <- Phi(u) z + g(u)``, ``P <- e^{theta dt} Phi(u) P Phi(u)^T + Q_d(u)``."""
-    N = ic[0]
-    if ic[21]:
+    N = ic[H_N]
+    if ic[H_DENSE]:
         _predict_dense(S, 0, N, S.shape[0] - 4, S, N + N * N, u, fc, ic)
     else:
         _predict_sparse(S, 0, N, S.shape[0] - 4, S, N + N * N, u, fc, ic)
@@ -578,10 +617,10 @@ def augmented_predict(u, S, fc, ic):
 @njit(**_OPTS)
 def _refused(u, y, ic):
     """Whether ``u (p,)`` holds a non-finite value or ``y (q,)`` an infinite one (NaN in ``y``: missing)."""
-    for j in range(ic[2]):
+    for j in range(ic[H_P]):
         if not math.isfinite(u[j]):
             return True
-    for h in range(ic[3]):
+    for h in range(ic[H_Q]):
         if math.isinf(y[h]):
             return True
     return False
@@ -593,10 +632,10 @@ def augmented_step(u, y, S, fc, ic):
     code, or -1, changing nothing, when ``u`` holds a non-finite value or ``y`` an infinite one."""
     if _refused(u, y, ic):
         return -1
-    N = ic[0]
+    N = ic[H_N]
     so = S.shape[0] - 4
     code = _correct(S, 0, N, so, S, N + N * N, y, fc, ic)
-    if ic[21]:
+    if ic[H_DENSE]:
         _predict_dense(S, 0, N, so, S, N + N * N, u, fc, ic)
     else:
         _predict_sparse(S, 0, N, so, S, N + N * N, u, fc, ic)
@@ -607,8 +646,8 @@ def augmented_step(u, y, S, fc, ic):
 def batch_refused(U, Y, ic):
     """The first member ``b`` whose ``U[b]`` holds a non-finite value or ``Y[b]`` an infinite one
     (NaN in ``Y``: missing), else -1."""
-    p = ic[2]
-    q = ic[3]
+    p = ic[H_P]
+    q = ic[H_Q]
     for b in range(U.shape[0]):
         for j in range(p):
             if not math.isfinite(U[b, j]):
@@ -633,12 +672,12 @@ def augmented_step_batch(U, Y, SB, W, fc, ic):
     bad = batch_refused(U, Y, ic)
     if bad >= 0:
         return -1 - bad
-    N = ic[0]
+    N = ic[H_N]
     so = SB.shape[1] - 4
     for b in range(SB.shape[0]):
         Sb = SB[b]
         _correct(Sb, 0, N, so, W, 0, Y[b], fc, ic)
-        if ic[21]:
+        if ic[H_DENSE]:
             _predict_dense(Sb, 0, N, so, W, 0, U[b], fc, ic)
         else:
             _predict_sparse(Sb, 0, N, so, W, 0, U[b], fc, ic)
@@ -656,8 +695,8 @@ def range_outputs(ranges, noise, std, beacon_term, measured, y):
 
 @njit(**_OPTS)
 def _step_record(u, y, S, fc, ic, out):
-    N = ic[0]
-    k = ic[1]
+    N = ic[H_N]
+    k = ic[H_K]
     if _refused(u, y, ic):
         return -1
     so = S.shape[0] - 4
@@ -665,7 +704,7 @@ def _step_record(u, y, S, fc, ic, out):
         out[i] = S[k + i]
     out[N - k] = S[so + 3]
     code = _correct(S, 0, N, so, S, N + N * N, y, fc, ic)
-    if ic[21]:
+    if ic[H_DENSE]:
         _predict_dense(S, 0, N, so, S, N + N * N, u, fc, ic)
     else:
         _predict_sparse(S, 0, N, so, S, N + N * N, u, fc, ic)

@@ -19,13 +19,14 @@ import subprocess
 import sys
 import time
 from collections.abc import Iterable
+from typing import Any
 
 __all__ = ["EPISODE", "SIGNATURES", "compile_side_by_side", "signature", "signatures"]
 
 #: Argument types of each kernel as the testbed calls it: ``f``/``I`` float64/int64 arrays of
 #: layout ``A``/``C`` and the dimension given, ``r`` read-only; ``i``, ``f`` alone: scalars. A
 #: kernel called with more than one layout lists each signature (a tuple of tuples).
-SIGNATURES = {
+SIGNATURES: dict[str, Any] = {
     # an episode on the block path (the default): the observer, the world's read-out, the excitation monitor
     "quadobs._kernels.observer:augmented_step_block": (
         ("fA2", "fA2", "fC1", "fC1", "IC1", "fC2"),  # rows of a block: strided views of its columns
@@ -96,13 +97,14 @@ def signature(codes: Iterable[str]) -> tuple:
     """Numba types from the codes of :data:`SIGNATURES`."""
     from numba import types
 
-    out = []
+    out: list[Any] = []
     for code in codes:
         if code in ("i", "f"):
             out.append(types.int64 if code == "i" else types.float64)
             continue
         dtype = types.float64 if code[0] == "f" else types.int64
-        out.append(types.Array(dtype, int(code[2]), code[1], readonly=code.endswith("r")))
+        layout: Any = code[1]  # "C", "F" or "A", as numba.types.Array names them
+        out.append(types.Array(dtype, int(code[2]), layout, readonly=code.endswith("r")))
     return tuple(out)
 
 

@@ -34,6 +34,7 @@ Calling convention (operands packed, as in :mod:`quadobs._kernels.observer`):
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 from numba import njit
@@ -47,7 +48,7 @@ __all__ = [
     "zonotope_strip",
 ]
 
-_OPTS = dict(cache=True, nogil=True, error_model="numpy")
+_OPTS: dict[str, Any] = dict(cache=True, nogil=True, error_model="numpy")
 
 
 def state_size(n: int, cap: int) -> int:

@@ -618,7 +618,7 @@ def immerse_chain(system: QuadraticSystem, rtol: float = DEFAULT_RTOL) -> Immers
     return im
 
 
-def _pivoted_rank(E: np.ndarray, tol: float) -> tuple[int, np.ndarray]:
+def _pivoted_rank(E: np.ndarray, tol: float | np.floating) -> tuple[int, np.ndarray]:
     """Rank of the rows of ``E`` at absolute tolerance ``tol`` and the pivot order of the rows."""
     if E.shape[0] == 0:
         return 0, np.zeros(0, dtype=int)

@@ -64,7 +64,7 @@ class QuadraticSystem:
     A: np.ndarray
     B: np.ndarray
     C: np.ndarray
-    d: np.ndarray | None = None
+    d: np.ndarray = None  # type: ignore[assignment]  # None: zeros, set by __post_init__
     symmetrize: bool = field(default=False, kw_only=True, repr=False)
 
     def __post_init__(self) -> None:

@@ -104,6 +104,15 @@ def _csr(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return np.cumsum(ptr), cols.astype(np.int64)
 
 
+def _offsets(arrays: dict[str, np.ndarray], start: int) -> dict[str, int]:
+    """Where each of ``arrays`` starts once they are packed one after the other from ``start``."""
+    out = {}
+    for name, a in arrays.items():
+        out[name] = start
+        start += a.size
+    return out
+
+
 class KernelModel:
     """The constant operands of the compiled kernels for one observer model (shared by a batch).
 
@@ -119,7 +128,7 @@ class KernelModel:
     def __init__(
         self, model: HeldInputDiscretization, C: np.ndarray, R: np.ndarray, gate: float | None
     ) -> None:
-        from quadobs._kernels.observer import HEADER, dense_path
+        from quadobs._kernels.observer import HEADER, HEADER_FIELDS, dense_path
 
         im = model.immersion
         k, N, n, p = im.n_aux, im.dim, im.system.n, im.system.p
@@ -140,28 +149,40 @@ class KernelModel:
         Qc = np.array(coeffs).reshape(len(coeffs), N, N)
         r_idx, i_idx, j_idx = np.nonzero((Qc != 0) & np.triu(np.ones((N, N), dtype=bool)))
         c_ptr, c_col = _csr(C != 0)
-        ints = [phi_ptr, phi_col, i_idx, j_idx, r_idx, c_ptr, c_col, np.zeros(max(q, 1))]
-        floats = [
-            F0[:k, k:].ravel(),
-            F1.ravel(),
-            np.asarray(model.input_linear, dtype=float).ravel(),
-            np.asarray(model.input_quadratic, dtype=float).ravel(),
-            Qc[r_idx, i_idx, j_idx],
-            C[C != 0],
-            np.asarray(R, dtype=float).ravel(),
-        ]
+        ints = {
+            "o_phi_ptr": phi_ptr,
+            "o_phi_col": phi_col,
+            "o_qi": i_idx,
+            "o_qj": j_idx,
+            "o_qr": r_idx,
+            "o_c_ptr": c_ptr,
+            "o_c_col": c_col,
+            "o_iw": np.zeros(max(q, 1)),
+        }
         dense = dense_path(N, phi_col.size)
-        # the dense path's Q_d coefficients and constant x-x block of Phi
-        floats += [Qc.ravel(), F0[k:, k:].ravel()] if dense else [np.zeros(0), np.zeros(0)]
-        i_off = HEADER + np.concatenate([[0], np.cumsum([a.size for a in ints])[:-1]])
-        f_off = 2 + np.concatenate([[0], np.cumsum([a.size for a in floats])[:-1]])
-        head = [N, k, p, q, len(coeffs), r_idx.size, *i_off, *f_off[:-2], int(dense), *f_off[-2:]]
-        assert len(head) == HEADER
+        floats = {
+            "o_fblk": F0[:k, k:].ravel(),
+            "o_F1": F1.ravel(),
+            "o_G0": np.asarray(model.input_linear, dtype=float).ravel(),
+            "o_G2": np.asarray(model.input_quadratic, dtype=float).ravel(),
+            "o_qv": Qc[r_idx, i_idx, j_idx],
+            "o_cval": C[C != 0],
+            "o_R": np.asarray(R, dtype=float).ravel(),
+            # the dense path's Q_d coefficients and constant x-x block of Phi
+            "o_Qc": Qc.ravel() if dense else np.zeros(0),
+            "o_E": F0[k:, k:].ravel() if dense else np.zeros(0),
+        }
+        head = {"N": N, "k": k, "p": p, "q": q, "nm": len(coeffs), "nq": r_idx.size}
+        head.update(_offsets(ints, HEADER), dense=int(dense))
+        head.update(_offsets(floats, 2))
         self.ic = np.concatenate(
-            [np.array(head, dtype=np.int64)] + [a.astype(np.int64) for a in ints]
+            [np.array([head[name] for name in HEADER_FIELDS], dtype=np.int64)]
+            + [a.astype(np.int64) for a in ints.values()]
         )
         growth = float(np.exp(model.theta * model.dt))
-        self.fc = np.concatenate([[growth, np.inf if gate is None else float(gate)]] + floats)
+        self.fc = np.concatenate(
+            [[growth, np.inf if gate is None else float(gate)]] + list(floats.values())
+        )
         self.k, self.N, self.n, self.p, self.q, self.nm = k, N, n, p, q, len(coeffs)
         self.dense = dense  # the prediction's dense path (quadobs._kernels.observer.dense_path)
         self.F0 = F0
@@ -245,7 +266,7 @@ class AugmentedObserver(Estimator, Gated, Immersed, BlockStep):
         theta: float = 0.0,
         x0=None,
         z0=None,
-        sample_period: float | None = None,
+        sample_period: float | np.ndarray | None = None,
         gate: float | None = None,
         backend: str = "auto",
         measurements=None,

@@ -17,6 +17,7 @@ conventions (:attr:`BatchAugmentedObserver.x_hat` is a copy, never a live view).
 from __future__ import annotations
 
 import copy
+from typing import Any
 
 import numpy as np
 
@@ -104,7 +105,7 @@ class BatchAugmentedObserver:
             self._kernel = _kernels.augmented_step_batch
             self._batch_refused = _kernels.batch_refused
             self._threads = min(int(threads), B)
-            self._pool = None
+            self._pool: Any = None  # a ThreadPoolExecutor once a step runs on threads
             if self._threads > 1:  # contiguous slices of the batch, each with its own work buffer
                 edges = np.linspace(0, B, self._threads + 1).astype(int)
                 self._slices = [slice(a, b) for a, b in zip(edges[:-1], edges[1:])]

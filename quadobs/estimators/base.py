@@ -5,17 +5,17 @@ through :attr:`Estimator.x_hat` and :attr:`Estimator.x_covariance`. Abilities be
 are declared by inheriting the ability classes below, never discovered by probing
 attributes, so the testbed can ask ``isinstance(est, Gated)``:
 
-=================  ===============================================================
-ability            what the estimator then provides
-=================  ===============================================================
-:class:`Counted`   ``corrections``: the corrections applied so far
-:class:`Gated`     ``gate`` (NIS threshold or ``None``), ``rejected``, and ``corrections`` (a :class:`Counted`)
-:class:`Switching` ``mode``, ``switches`` (``(step, from, to, reason)``) and ``summary()``
-:class:`SetValued` ``bounds (n, 2)``: interval bounds guaranteed to hold the state
-:class:`Immersed`  ``immersion``: the :class:`~quadobs.core.immersion.Immersion` it runs on
-:class:`Subset`    ``outputs (q_used,)``: the indices of the outputs it reads
-:class:`BlockStep` ``step_block(U, Y, out)``: the records of a block of steps in one call
-=================  ===============================================================
+===================  ===============================================================
+ability              what the estimator then provides
+===================  ===============================================================
+:class:`Counted`     ``corrections``: the corrections applied so far
+:class:`Gated`       ``gate`` (NIS threshold or ``None``), ``rejected``, and ``corrections`` (a :class:`Counted`)
+:class:`Switching`   ``mode``, ``switches`` (``(step, from, to, reason)``) and ``summary()``
+:class:`SetValued`   ``bounds (n, 2)``: interval bounds guaranteed to hold the state
+:class:`Immersed`    ``immersion``: the :class:`~quadobs.core.immersion.Immersion` it runs on
+:class:`Subset`      ``outputs (q_used,)``: the indices of the outputs it reads
+:class:`BlockStep`   ``step_block(U, Y, out)``: the records of a block of steps in one call
+===================  ===============================================================
 
 Conventions: ``u (p,)`` is the input held over the step, ``y (q,)`` the outputs sampled
 at its start with NaN where a sample is missing; vectors are ``(n,)``. A step with a
@@ -40,6 +40,9 @@ import numpy as np
 
 from quadobs.core.measurements import Measurement
 from quadobs.errors import QuadobsError, as_array
+
+if TYPE_CHECKING:
+    from quadobs.core.immersion import Immersion
 
 __all__ = [
     "BlockStep",
@@ -350,6 +353,7 @@ class Gated(Counted):
         Corrections rejected by the gate so far.
     """
 
+    name: str  # the estimator's, which this ability is mixed into
     gate: float | None = None
     rejected: int = 0
 
@@ -366,6 +370,7 @@ class Switching(abc.ABC):
         :meth:`Estimator.step` before it.
     """
 
+    name: str  # the estimator's, which this ability is mixed into
     mode: str = ""
     switches: list
 
@@ -386,7 +391,7 @@ class SetValued(abc.ABC):
 class Immersed(abc.ABC):
     """Ability: runs on an immersion (:attr:`immersion`, a :class:`~quadobs.core.immersion.Immersion`)."""
 
-    immersion = None
+    immersion: Immersion
 
 
 class Subset(abc.ABC):
@@ -415,7 +420,9 @@ class BlockStep(abc.ABC):
         testbed calls :meth:`Estimator.step_and_record` row by row itself.
     """
 
-    blockwise: bool = False
+    @property
+    def blockwise(self) -> bool:
+        return False
 
     @abc.abstractmethod
     def step_block(self, U: np.ndarray, Y: np.ndarray, out: np.ndarray) -> None:

@@ -67,6 +67,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -178,7 +179,7 @@ class OutputModel:
     """
 
     system: QuadraticSystem
-    R: np.ndarray | float
+    R: Any  # a float, a diagonal or (q, q) as given; (q, q) once built
     offsets: np.ndarray | None = None
 
     def __post_init__(self) -> None:

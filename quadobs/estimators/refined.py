@@ -189,7 +189,7 @@ class _Window:
     """The last ``M`` updates' NIS and degrees of freedom, with running sums (rejected ones kept apart)."""
 
     def __init__(self, size: int) -> None:
-        self.items: deque = deque()
+        self.items: deque[tuple[float, int, bool]] = deque()
         self.size = size
         self.nis = 0.0
         self.dof = 0
@@ -467,6 +467,7 @@ class RefinedObserver(Estimator, Gated, Immersed, Switching):
 
     def _ekf_step(self, u, y, has) -> None:
         ekf = self._ekf
+        assert ekf is not None, "called in the EKF's mode only"
         self.observer.step(u, y)  # the fallback keeps running
         ekf.step(u, y)
         self.nis = ekf.nis

@@ -32,6 +32,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from itertools import combinations
+from typing import Any
 
 import numpy as np
 
@@ -210,8 +211,8 @@ class ZonotopicEstimator(Estimator, SetValued):
             raise QuadobsError(f"noise_bounds: expected {ny} non-negative bounds")
         if not isinstance(X0, Zonotope) or X0.dim != n:
             raise QuadobsError(f"X0: expected a Zonotope of dimension {n}")
-        self.fixed_gains = None
-        self.gain_rule = None
+        self.fixed_gains: Any = None  # (ny, n), or None with a gain rule
+        self.gain_rule: Any = None  # a callable, or None with fixed gains
         if isinstance(gain, str):
             if gain not in GAINS:
                 raise QuadobsError(
@@ -227,8 +228,8 @@ class ZonotopicEstimator(Estimator, SetValued):
         self.reduction = reduction
         reduce_generators(np.zeros((n, 0)), self.max_generators)  # validates max_generators
         self.backend = self._choose_backend(backend)
-        self._Z = None
-        self._S = None
+        self._Z: Zonotope | None = None
+        self._S: Any = None  # the compiled kernels' state buffer, once loaded
         if self.backend == "numba":
             self._setup_kernel()
         self.zonotope = X0.reduce(self.max_generators, reduction)

@@ -39,6 +39,7 @@ Posterior Cramér-Rao bound (Tichavsky, Muravchik and Nehorai 1998)
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -296,6 +297,48 @@ class Ensemble:
         return int(vals[np.argmax(counts)]) if vals.size else None
 
 
+def _nis_statistics(nis, nis_dof, T: int, confidence: float):
+    """Mean NIS over the runs with an update at each time, its chi-square interval, its mean dof."""
+    if nis is None:
+        return np.full(T, np.nan), np.full((T, 2), np.nan), None
+    s = np.asarray(nis, dtype=float)
+    d = (
+        np.asarray(nis_dof, dtype=float)
+        if nis_dof is not None
+        else np.where(np.isfinite(s), 1.0, 0.0)
+    )
+    have = np.isfinite(s) & (d > 0)
+    cnt = have.sum(axis=0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mean_nis = np.where(cnt > 0, np.where(have, s, 0.0).sum(axis=0) / cnt, np.nan)
+    nis_bounds = chi2_interval(np.where(have, d, 0.0).sum(axis=0), cnt, confidence)
+    with np.errstate(invalid="ignore"):
+        dof_rows = np.where(
+            cnt > 0, np.where(have, d, 0.0).sum(axis=0) / np.maximum(cnt, 1), np.nan
+        )
+    return mean_nis, nis_bounds, dof_rows
+
+
+def _ratio(bound, r: np.ndarray, col: int) -> np.ndarray:
+    """``r`` over the bound's column ``col`` (NaN where the bound is zero, or without one)."""
+    if bound is None:
+        return np.full(r.shape[0], np.nan)
+    b = np.asarray(bound, dtype=float)[:, col]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(b > 0, r / b, np.nan)
+
+
+def _over_runs(a, T: int) -> np.ndarray:
+    """The mean over the runs of ``a (R, T)`` at each time where a run has a value (NaN elsewhere)."""
+    if a is None:
+        return np.full(T, np.nan)
+    a = np.asarray(a, dtype=float)
+    ok = np.isfinite(a).any(axis=0)
+    out = np.full(T, np.nan)
+    out[ok] = np.nanmean(a[:, ok], axis=0)
+    return out
+
+
 def ensemble(
     times: np.ndarray,
     position_errors: np.ndarray,
@@ -365,43 +408,9 @@ def ensemble(
     with np.errstate(invalid="ignore"):
         mean_nees = np.where(n_ok == R, np.mean(ne, axis=0), np.nan) if R else np.full(T, np.nan)
     nees_bounds = chi2_interval(np.full(T, R * state_dim), np.full(T, R), confidence)
-    if nis is None:
-        mean_nis = np.full(T, np.nan)
-        nis_bounds = np.full((T, 2), np.nan)
-        dof_rows = None
-    else:
-        s = np.asarray(nis, dtype=float)
-        d = (
-            np.asarray(nis_dof, dtype=float)
-            if nis_dof is not None
-            else np.where(np.isfinite(s), 1.0, 0.0)
-        )
-        have = np.isfinite(s) & (d > 0)
-        cnt = have.sum(axis=0)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            mean_nis = np.where(cnt > 0, np.where(have, s, 0.0).sum(axis=0) / cnt, np.nan)
-        nis_bounds = chi2_interval(np.where(have, d, 0.0).sum(axis=0), cnt, confidence)
-        with np.errstate(invalid="ignore"):
-            dof_rows = np.where(
-                cnt > 0, np.where(have, d, 0.0).sum(axis=0) / np.maximum(cnt, 1), np.nan
-            )
-
-    def ratio(r, col):
-        if bound is None:
-            return np.full(T, np.nan)
-        b = np.asarray(bound, dtype=float)[:, col]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            return np.where(b > 0, r / b, np.nan)
-
-    def over_runs(a):
-        if a is None:
-            return np.full(T, np.nan)
-        a = np.asarray(a, dtype=float)
-        ok = np.isfinite(a).any(axis=0)
-        out = np.full(T, np.nan)
-        out[ok] = np.nanmean(a[:, ok], axis=0)
-        return out
-
+    mean_nis, nis_bounds, dof_rows = _nis_statistics(nis, nis_dof, T, confidence)
+    ratio = functools.partial(_ratio, bound)
+    over_runs = functools.partial(_over_runs, T=T)
     ens = Ensemble(
         runs=R,
         state_dim=int(state_dim),

@@ -135,8 +135,8 @@ class ChainStructure:
     def affine_free(self, rtol: float = 1e-12) -> bool:
         """Whether ``r_m = Gamma^T U_bar`` exactly, i.e. ``d^T A^m = 0`` (always so for ``d = 0``)."""
         scale = (
-            max(np.abs(self.system.d).max(), 1e-300)
-            * max(np.linalg.norm(self.system.A, 2), 1.0) ** self.m
+            max(float(np.abs(self.system.d).max()), 1e-300)
+            * max(float(np.linalg.norm(self.system.A, 2)), 1.0) ** self.m
         )
         return bool(np.abs(self.drift[self.m]).max() <= rtol * scale)
 

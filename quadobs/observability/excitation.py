@@ -33,6 +33,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -328,7 +329,7 @@ class ConditionResult:
         return spans
 
     def to_dict(self, window: float) -> dict:
-        out = {"title": self.title, "status": self.status, "detail": self.detail}
+        out: dict[str, Any] = {"title": self.title, "status": self.status, "detail": self.detail}
         if self.evaluated:
             w = self.worst
             out.update(
@@ -784,7 +785,7 @@ class ExcitationMonitor:
         try:  # a chunk's terms in one compiled call; NumPy (the same quantities) without Numba
             from quadobs._kernels.gramian import held_run_terms
         except ImportError:  # pragma: no cover
-            held_run_terms = None
+            held_run_terms = None  # type: ignore[assignment]  # Numba missing: the NumPy path
         self._kernel = held_run_terms
         N = immersion.dim
         self._work = np.empty((3, N, N))

@@ -116,13 +116,14 @@ def sliding_windows(Phi: np.ndarray, G: np.ndarray, length: int) -> tuple[np.nda
         )
     count = T - length + 1
     seg_P, seg_W = Phi, G  # segments of 2^j steps, starting at 0 .. T - 2^j
-    acc_P = acc_W = None
+    acc_P: np.ndarray | None = None
+    acc_W: np.ndarray | None = None
     offset, j, rest = 0, 0, length
     while rest:
         span = 1 << j
         if rest & 1:
             part = (seg_P[offset : offset + count], seg_W[offset : offset + count])
-            if acc_P is None:
+            if acc_P is None or acc_W is None:
                 acc_P, acc_W = part
             else:
                 acc_P, acc_W = compose((acc_P, acc_W), part)
@@ -135,6 +136,7 @@ def sliding_windows(Phi: np.ndarray, G: np.ndarray, length: int) -> tuple[np.nda
                 (seg_P[span : span + n_next], seg_W[span : span + n_next]),
             )
             j += 1
+    assert acc_P is not None and acc_W is not None, "length >= 1 steps"
     return acc_P, acc_W
 
 

@@ -28,6 +28,7 @@ import threading
 import weakref
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pyarrow as pa
@@ -41,6 +42,7 @@ from quadobs.errors import (
     output_target,
     staging_path,
 )
+from quadobs.staging import publish
 
 __all__ = ["Recorder", "Series", "check_writable"]
 
@@ -307,7 +309,7 @@ class Recorder:
         )
         self.series_list.append(s)
         if kind == "scalars" and (names or color):
-            kw = {}
+            kw: dict[str, Any] = {}
             if names:
                 kw["names"] = names
             if color:
@@ -450,7 +452,8 @@ class Recorder:
             pending = exc
         finally:
             self.rec.disconnect()
-            self.rec = None  # the stream is now orphaned: rerun's threads for it end below
+            self.rec = None  # type: ignore[assignment]  # closed: no method reads it after
+            # the stream is now orphaned: rerun's threads for it end below
             _end_orphaned_streams()
             self._file.release()
             self._settle(self._file.finish(CLOSE_TIMEOUT), publish)
@@ -477,7 +480,7 @@ class Recorder:
         if not self.closed or self.published or self.failed or self._file.error is not None:
             return
         try:
-            os.replace(self.staging, self.target)
+            publish(self.staging, self.target)
         except OSError as exc:
             self._discard()
             raise RunFault(

@@ -59,7 +59,7 @@ import numpy as np
 from quadobs.errors import QuadobsError, as_array
 from quadobs.sets.zonotope import IntervalMatrix, Zonotope
 
-__all__ = ["PRadiusDesign", "pradius_gains", "pradius_lmi_matrices"]
+__all__ = ["PRadiusDesign", "pradius_gains", "pradius_lmi_matrices", "require_lmi_solvers"]
 
 #: A solution ``P`` with ``lambda_min(P) <= SINGULAR_RTOL lambda_max(P)`` counts as infeasible:
 #: when no ``P > 0`` satisfies the LMI, the solver's supremum ``tau = 0`` is approached by a
@@ -263,6 +263,52 @@ def _design_step(KG, KF, F, prev, prev_phi, c, phi, offset, betas, refine, solve
     return float(beta), float(tau), P, lam, used, margin
 
 
+#: The optional dependencies of the LMI design, and the extra that installs them.
+LMI_EXTRA = "sets"
+
+
+def require_lmi_solvers(what: str) -> None:
+    """Refuse, in one line naming the extra, an LMI design without cvxpy (and its Clarabel solver).
+
+    The core install leaves them out (about 200 MB with their dependencies): only the offline
+    design of [LE2013] needs them, ``pip install 'quadobs[sets]'`` adds them.
+    """
+    try:
+        import cvxpy  # noqa: F401
+    except ImportError:
+        raise QuadobsError(
+            f"{what}: the LMI design needs cvxpy and Clarabel, not installed: "
+            f"pip install 'quadobs[{LMI_EXTRA}]'"
+        ) from None
+
+
+def _design_inputs(A_vertices, F, C, noise_bounds, approach, betas):
+    """The design's inputs checked (one-line errors naming each): ``G, F, C, phi, betas``."""
+    G = _as_vertices(A_vertices)
+    n = G.shape[1]
+    F = as_array("F", F)
+    if F.ndim == 1:
+        F = F[:, None]
+    if F.ndim != 2 or F.shape[0] != n:
+        raise QuadobsError(f"F: expected shape ({n}, n_w), got {F.shape}")
+    C = as_array("C", C)
+    if C.ndim == 1:
+        C = C[None]
+    if C.ndim != 2 or C.shape[1] != n or C.shape[0] == 0:
+        raise QuadobsError(f"C: expected shape (n_y, {n}), got {C.shape}")
+    ny = C.shape[0]
+    phi = as_array("noise_bounds", noise_bounds)
+    phi = np.full(ny, float(phi)) if phi.ndim == 0 else phi
+    if phi.shape != (ny,) or np.any(phi <= 0):
+        raise QuadobsError(f"noise_bounds: expected {ny} positive bounds, got {noise_bounds!r}")
+    if approach not in (1, 2):
+        raise QuadobsError(f"approach: expected 1 or 2, got {approach!r}")
+    betas = DEFAULT_BETAS if betas is None else as_array("betas", betas, (None,))
+    if betas.size == 0 or np.any(betas <= 0) or np.any(betas >= 1):
+        raise QuadobsError("betas: expected values in (0, 1)")
+    return G, F, C, phi, betas
+
+
 def pradius_gains(
     A_vertices,
     F,
@@ -306,29 +352,10 @@ def pradius_gains(
         On bad shapes or bounds, or when the LMI is infeasible for every ``beta`` tried.
     """
     t0 = time.perf_counter()
-    G = _as_vertices(A_vertices)
-    n = G.shape[1]
-    F = as_array("F", F)
-    if F.ndim == 1:
-        F = F[:, None]
-    if F.ndim != 2 or F.shape[0] != n:
-        raise QuadobsError(f"F: expected shape ({n}, n_w), got {F.shape}")
-    C = as_array("C", C)
-    if C.ndim == 1:
-        C = C[None]
-    if C.ndim != 2 or C.shape[1] != n or C.shape[0] == 0:
-        raise QuadobsError(f"C: expected shape (n_y, {n}), got {C.shape}")
-    ny = C.shape[0]
-    phi = as_array("noise_bounds", noise_bounds)
-    phi = np.full(ny, float(phi)) if phi.ndim == 0 else phi
-    if phi.shape != (ny,) or np.any(phi <= 0):
-        raise QuadobsError(f"noise_bounds: expected {ny} positive bounds, got {noise_bounds!r}")
-    if approach not in (1, 2):
-        raise QuadobsError(f"approach: expected 1 or 2, got {approach!r}")
-    betas = DEFAULT_BETAS if betas is None else as_array("betas", betas, (None,))
-    if betas.size == 0 or np.any(betas <= 0) or np.any(betas >= 1):
-        raise QuadobsError("betas: expected values in (0, 1)")
+    G, F, C, phi, betas = _design_inputs(A_vertices, F, C, noise_bounds, approach, betas)
+    n, ny = G.shape[1], C.shape[0]
     solvers = [solver] if solver else ["CLARABEL", "SCS"]
+    require_lmi_solvers("pradius_gains")
     psi = Zonotope(np.zeros(n), F).p_radius() if F.shape[1] else 0.0
 
     gains = np.zeros((ny, n))

@@ -29,6 +29,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from itertools import combinations, product
 from math import comb
+from typing import Any
 
 import numpy as np
 
@@ -182,13 +183,14 @@ def reduce_generators(
     if m <= s:
         return H
     if callable(method):
-        fn = method
+        fn: Callable[..., Any] = method
     else:
-        fn = REDUCTION_METHODS.get(method)
-        if fn is None:
+        found = REDUCTION_METHODS.get(method)
+        if found is None:
             raise QuadobsError(
                 f"method: unknown reduction {method!r}; expected one of {', '.join(REDUCTION_METHODS)} or a callable"
             )
+        fn = found
     out = np.asarray(fn(H, s), dtype=float)
     if out.ndim != 2 or out.shape[0] != n or out.shape[1] > s:
         raise QuadobsError(
@@ -497,9 +499,9 @@ class Zonotope:
             scale = np.abs(H).sum() * 1e-12
             zero = np.flatnonzero(np.abs(proj) <= scale)
             base = np.sign(proj)
-            for signs in product((-1.0, 1.0), repeat=len(zero)):
+            for pattern in product((-1.0, 1.0), repeat=len(zero)):
                 z = base.copy()
-                z[zero] = signs
+                z[zero] = pattern
                 pts.append(H @ z)
         d = np.array(pts)
         # zonotopes are centrally symmetric: p - H z is a vertex too

@@ -88,7 +88,9 @@ import statistics
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -115,6 +117,39 @@ BENCH_KEYS = (
 def _median(xs) -> float | None:
     xs = [x for x in xs if x is not None]
     return float(statistics.median(xs)) if xs else None
+
+
+def _middle(xs: list[float]) -> float:
+    """The median of measurements that all exist (at least one)."""
+    return float(statistics.median(xs))
+
+
+def _timed_us(
+    run: Callable[[Any], object], units: int, repeats: int, make: Callable[[], Any] | None = None
+) -> list[float]:
+    """Wall time (us) per unit of work of ``run(obj)``, once per repeat: the one timing loop.
+
+    ``run`` does ``units`` units of work (steps, rows) on ``obj``, which is ``make()`` (a
+    fresh estimator, built outside the timing) or ``None``.
+    """
+    times = []
+    for _ in range(repeats):
+        obj = make() if make is not None else None
+        t0 = time.perf_counter()
+        run(obj)
+        times.append((time.perf_counter() - t0) / units * 1e6)
+    return times
+
+
+def _stepper(est, U, Y, calls: int) -> Callable[[Any], None]:
+    """``est.step(U[k], Y[k])`` for ``k < calls`` (on ``est``, or on the object given when ``est`` is None)."""
+
+    def run(obj) -> None:
+        e = est if est is not None else obj
+        for k in range(calls):
+            e.step(U[k], Y[k])
+
+    return run
 
 
 # -- single vehicle --------------------------------------------------------------------
@@ -222,13 +257,7 @@ def _estimator_step_us(
         U, Y, x0 = _vehicle_data(scenario, calls)
         est = build_estimators(scenario, [name], x0)[0]
         est.step(U[0], Y[0])
-        times = []
-        for _ in range(repeats):
-            t0 = time.perf_counter()
-            for k in range(calls):
-                est.step(U[k], Y[k])
-            times.append((time.perf_counter() - t0) / calls * 1e6)
-        return _median(times), None
+        return _middle(_timed_us(_stepper(est, U, Y, calls), calls, repeats)), None
     except Exception as exc:
         return None, f"{name}: could not be measured ({type(exc).__name__}: {exc})"
 
@@ -253,13 +282,7 @@ def _observer_step_us(scenario, calls: int, repeats: int, backend: str) -> float
             backend=backend,
         )
     obs.prepare("step")  # compiled (or loaded) before the timing
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        for k in range(calls):
-            obs.step(U[k], Y[k])
-        times.append((time.perf_counter() - t0) / calls * 1e6)
-    return _median(times)
+    return _middle(_timed_us(_stepper(obs, U, Y, calls), calls, repeats))
 
 
 def _observer_block_step_us(scenario, calls: int, repeats: int) -> float:
@@ -269,12 +292,7 @@ def _observer_block_step_us(scenario, calls: int, repeats: int) -> float:
     U, Y, x0 = _vehicle_data(scenario, calls)
     obs = augmented_observer(scenario, np.zeros(scenario.state_dim))
     rec = np.zeros((calls, scenario.state_dim + 3))
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        obs.step_block(U, Y, rec)
-        times.append((time.perf_counter() - t0) / calls * 1e6)
-    return _median(times)
+    return _middle(_timed_us(lambda _: obs.step_block(U, Y, rec), calls, repeats))
 
 
 # -- campaign throughput ----------------------------------------------------------------
@@ -352,9 +370,10 @@ def _lmi_design_s() -> tuple[float, dict, float, dict]:
     figures).
     """
     import quadobs.studies.le2013.study as le2013
+    from quadobs.sets.pradius import require_lmi_solvers
 
     t0 = time.perf_counter()
-    import cvxpy  # noqa: F401
+    require_lmi_solvers("bench")  # imports cvxpy
 
     import_s = time.perf_counter() - t0
     t0 = time.perf_counter()
@@ -368,14 +387,13 @@ def _le2013_run_us(designs, method: str, backend: str, steps: int, repeats: int)
     import quadobs.studies.le2013.study as le2013
 
     Y = le2013.simulate(0, steps)["y"]
-    times = []
-    for _ in range(repeats):
-        est = le2013.make_estimator(method, designs, backend=backend)
-        t0 = time.perf_counter()
+
+    def run(est) -> None:
         for k in range(1, steps + 1):
             est.step(Y[k])
-        times.append((time.perf_counter() - t0) / steps * 1e6)
-    return _median(times)
+
+    make = lambda: le2013.make_estimator(method, designs, backend=backend)  # noqa: E731
+    return _middle(_timed_us(run, steps, repeats, make))
 
 
 def _le2013_step_us(designs, calls: int, repeats: int) -> dict:
@@ -419,14 +437,8 @@ def _vehicle_zonotope_us(calls: int, repeats: int) -> dict:
     Ys[::every] = Y[::every]
     res = {"scenario": sc.name, "range_every": every, "steps": calls}
     for key, data in (("step_us", Ys), ("correct_every_step_us", Y)):
-        times = []
-        for _ in range(repeats):
-            est = build_estimators(sc, ["zonotope"], x0)[0]
-            t0 = time.perf_counter()
-            for k in range(calls):
-                est.step(U[k], data[k])
-            times.append((time.perf_counter() - t0) / calls * 1e6)
-        res[key] = _median(times)
+        make = lambda: build_estimators(sc, ["zonotope"], x0)[0]  # noqa: E731
+        res[key] = _middle(_timed_us(_stepper(None, U, data, calls), calls, repeats, make))
     return res
 
 
@@ -479,11 +491,11 @@ def _batch(scenario, B: int, steps: int, repeats: int, threads: int) -> dict:
         "vehicles": B,
         "steps": steps,
         "threads": threads,
-        "physics_vehicle_steps_per_s": 1e6 / _median(phys),
-        "with_observer_vehicle_steps_per_s": 1e6 / _median(full),
-        "physics_us_per_vehicle_step": _median(phys),
-        "with_observer_us_per_vehicle_step": _median(full),
-        "batch_ratio": _median(ratios),
+        "physics_vehicle_steps_per_s": 1e6 / _middle(phys),
+        "with_observer_vehicle_steps_per_s": 1e6 / _middle(full),
+        "physics_us_per_vehicle_step": _middle(phys),
+        "with_observer_us_per_vehicle_step": _middle(full),
+        "batch_ratio": _middle(ratios),
     }
 
 
@@ -521,10 +533,23 @@ def _dense_system():
     return QuadraticSystem(V @ J @ V.T, rng.standard_normal((n, 1)), (V @ Cp @ V.T)[None])
 
 
+def _warm(im, backend: str, u0, y0) -> Callable[[], Any]:
+    """A maker of augmented observers on ``im`` that have taken one step (compiled before the timing)."""
+
+    def make():
+        from quadobs.estimators.augmented import AugmentedObserver
+
+        obs = AugmentedObserver(im, 1e-3, backend=backend)
+        obs.step(u0, y0)
+        return obs
+
+    return make
+
+
 def _scaling(calls: int, quick: bool, repeats: int) -> list[dict]:
     from quadobs.core.immersion import immerse
     from quadobs.core.system import QuadraticSystem, vehicle_system, wind_system
-    from quadobs.estimators.augmented import AugmentedObserver, default_backend
+    from quadobs.estimators.augmented import default_backend
 
     rng = np.random.default_rng(8)
     cases = [
@@ -569,14 +594,9 @@ def _scaling(calls: int, quick: bool, repeats: int) -> list[dict]:
         Y = rng.standard_normal((calls, system.q))
         row = {"system": kind, "n": system.n, "q": system.q, "N": im.dim}
         for backend, n_calls in ((default_backend(), calls), ("numpy", max(calls // 20, 10))):
-            times = []
-            for _ in range(repeats):
-                obs = AugmentedObserver(im, 1e-3, backend=backend)
-                obs.step(U[0], Y[0])
-                t0 = time.perf_counter()
-                for k in range(n_calls):
-                    obs.step(U[k], Y[k])
-                times.append((time.perf_counter() - t0) / n_calls * 1e6)
+            times = _timed_us(
+                _stepper(None, U, Y, n_calls), n_calls, repeats, _warm(im, backend, U[0], Y[0])
+            )
             row[f"{backend}_us"] = min(
                 times
             )  # the fastest of the repeats: the table shows growth, not load
@@ -634,10 +654,10 @@ def _quadrotor_case(steps: int, repeats: int) -> dict:
         "scenario": sc.name,
         "steps": steps,
         "repeats": repeats,
-        "bare_step_us": _median(bare_us),
-        "loop_us": _median(loop_us),
-        "loop_steps_per_s": 1e6 / _median(loop_us),
-        "quadrotor_ratio": _median(ratios),
+        "bare_step_us": _middle(bare_us),
+        "loop_us": _middle(loop_us),
+        "loop_steps_per_s": 1e6 / _middle(loop_us),
+        "quadrotor_ratio": _middle(ratios),
         "spread": _quartiles(ratios),
     }
 
@@ -677,14 +697,55 @@ def run_bench(
 
 def _run_bench(steps, repeats, batch, batch_steps, threads, quick, log) -> dict:
     from quadobs.estimators.augmented import default_backend
-    from quadobs.testbed.registry import available_estimators
     from quadobs.testbed.scenario import load_scenario
 
     say = log or (lambda msg: None)
     sc = load_scenario("ifac2021")
     sc = sc.with_overrides(duration=steps * sc.dt)
     notes: list[str] = []
-    result: dict = {
+    result = _machine_and_config(sc, steps, repeats, batch, batch_steps, threads)
+    _single_vehicle(result, sc, steps, repeats, say)
+    calls = max(min(steps, 5000), 100)
+    _estimator_costs(result, sc, calls, repeats, say, notes)
+    say(f"batch: {batch} vehicles x {batch_steps} steps, {repeats} repeats")
+    result["batch"] = _batch(sc, batch, batch_steps, repeats, threads)
+    result["batch_ratio"] = result["batch"]["batch_ratio"]
+
+    workers = os.cpu_count() or 1
+    episodes = (
+        8 if quick else 2
+    ) * workers  # short episodes: enough of them to time the rate once started
+    say(
+        f"campaign: ifac2021-noisy, {episodes} then {2 * episodes} episodes on {workers} processes, against bare physics"
+    )
+    result["campaign"] = _campaign("ifac2021-noisy", episodes, 1.0 if quick else 10.0, workers)
+    result["campaign_ratio"] = result["campaign"]["campaign_ratio"]
+
+    say("quadrotor: physics + controller + IMU/UWB + observer + recording against bare mj_step")
+    result["quadrotor"] = _quadrotor_case(
+        20000, max(min(repeats, 9), 3)
+    )  # 20 s: take-off, flight on the estimate, landing
+    say("scaling with n and q")
+    result["scaling"] = _scaling(max(min(calls, 2000), 50), quick, max(repeats // 2, 1))
+    dense_row = next(row for row in result["scaling"] if row["system"] == "dense")
+    result["observer_step_us_N38"] = dense_row[f"{default_backend()}_median_us"]
+    say("log reading: a 300k-row ranges.csv, pyarrow against a float() per cell")
+    result["log_read"] = log_read_figure(repeats=max(min(repeats, 5), 1))
+    say("first run on a fresh kernel cache, with and without 'quadobs compile' before it")
+    result["cold_start"] = _cold_start()
+    notes.append(
+        "GPU batch figure: not measured (quadobs has no GPU path; the batch runs on the CPU)"
+    )
+    result["targets"] = _targets(result)
+    result["notes"] = notes
+    return result
+
+
+def _machine_and_config(sc, steps, repeats, batch, batch_steps, threads) -> dict:
+    """The bench's header: the machine (CPUs, load, versions) and the settings."""
+    from quadobs.estimators.augmented import default_backend
+
+    result: dict[str, Any] = {
         "machine": {
             "cpus": os.cpu_count(),
             "load_average": list(os.getloadavg()) if hasattr(os, "getloadavg") else None,
@@ -711,6 +772,11 @@ def _run_bench(steps, repeats, batch, batch_steps, threads, quick, log) -> dict:
     except ImportError:
         pass
 
+    return result
+
+
+def _single_vehicle(result: dict, sc, steps: int, repeats: int, say) -> None:
+    """Bare physics against the loop, without and with recording, on the block and the per-step path."""
     loops = max(repeats, 9)  # enough for quartiles
     result["config"]["loop_repeats"] = loops
     say(
@@ -758,7 +824,12 @@ def _run_bench(steps, repeats, batch, batch_steps, threads, quick, log) -> dict:
         "step_loop_ratio": min(bare) / min(runs["step_rec"]),
     }
 
-    calls = max(min(steps, 5000), 100)
+
+def _estimator_costs(result: dict, sc, calls: int, repeats: int, say, notes: list[str]) -> None:
+    """Per-step costs of the estimators, the LMI design and the online steps of le2013."""
+    from quadobs.estimators.augmented import default_backend
+    from quadobs.testbed.registry import available_estimators
+
     say("per-step costs of the estimators")
     result["observer_step_us"] = _observer_step_us(sc, calls, repeats, default_backend())
     result["observer_numpy_step_us"] = _observer_step_us(
@@ -780,36 +851,10 @@ def _run_bench(steps, repeats, batch, batch_steps, threads, quick, log) -> dict:
     result["zonotope_step_us"] = result["le2013_step_us"]["pradius2"]["numba"]
     result["registered_estimators"] = available_estimators(sc)
 
-    say(f"batch: {batch} vehicles x {batch_steps} steps, {repeats} repeats")
-    result["batch"] = _batch(sc, batch, batch_steps, repeats, threads)
-    result["batch_ratio"] = result["batch"]["batch_ratio"]
 
-    workers = os.cpu_count() or 1
-    runs = (
-        8 if quick else 2
-    ) * workers  # short episodes: enough of them to time the rate once started
-    say(
-        f"campaign: ifac2021-noisy, {runs} then {2 * runs} episodes on {workers} processes, against bare physics"
-    )
-    result["campaign"] = _campaign("ifac2021-noisy", runs, 1.0 if quick else 10.0, workers)
-    result["campaign_ratio"] = result["campaign"]["campaign_ratio"]
-
-    say("quadrotor: physics + controller + IMU/UWB + observer + recording against bare mj_step")
-    result["quadrotor"] = _quadrotor_case(
-        20000, max(min(repeats, 9), 3)
-    )  # 20 s: take-off, flight on the estimate, landing
-    say("scaling with n and q")
-    result["scaling"] = _scaling(max(min(calls, 2000), 50), quick, max(repeats // 2, 1))
-    dense_row = next(row for row in result["scaling"] if row["system"] == "dense")
-    result["observer_step_us_N38"] = dense_row[f"{default_backend()}_median_us"]
-    say("log reading: a 300k-row ranges.csv, pyarrow against a float() per cell")
-    result["log_read"] = log_read_figure(repeats=max(min(repeats, 5), 1))
-    say("first run on a fresh kernel cache, with and without 'quadobs compile' before it")
-    result["cold_start"] = _cold_start()
-    notes.append(
-        "GPU batch figure: not measured (quadobs has no GPU path; the batch runs on the CPU)"
-    )
-    result["targets"] = {
+def _targets(result: dict) -> dict:
+    """Whether each target of the bench is met (``None`` where a figure is missing)."""
+    return {
         "loop_ratio >= 1.0": _meets(result["loop_ratio"], 1.0, ">="),
         "batch_ratio >= 0.5": _meets(result["batch_ratio"], 0.5, ">="),
         "recording_fraction <= 0.1": _meets(result["recording_fraction"], 0.1, "<="),
@@ -823,12 +868,10 @@ def _run_bench(steps, repeats, batch, batch_steps, threads, quick, log) -> dict:
         "first run after quadobs compile <= 5 s": _meets(
             result["cold_start"]["first_run_s"], 5.0, "<="
         ),
+        "log_read_speedup >= 5": _meets(
+            (result.get("log_read") or {}).get("log_read_speedup"), 5.0, ">="
+        ),
     }
-    result["targets"]["log_read_speedup >= 5"] = _meets(
-        result["log_read"]["log_read_speedup"], 5.0, ">="
-    )
-    result["notes"] = notes
-    return result
 
 
 def _meets(value, bound, op) -> bool | None:
@@ -906,6 +949,11 @@ def print_bench(r: dict, file=None) -> None:
     p("le2013 online step per method (us): compiled / NumPy reference")
     for m, v in r["le2013_step_us"].items():
         p(f"  {m:16s} {v['numba']:>10.2f} / {v['numpy']:>10.2f}")
+    _print_rest(r, p)
+
+
+def _print_rest(r: dict, p) -> None:
+    """The batch, campaign, quadrotor, cold-start and scaling figures, the targets and notes."""
     b = r["batch"]
     p(
         f"batch of {b['vehicles']} vehicles ({b['steps']} steps, threads {b['threads']} for the rollout and for the observers)"

@@ -56,7 +56,7 @@ import functools
 import time as _time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -460,9 +460,10 @@ class _Episode:
             World.fill if path == "step" else None
         )  # the per-step path: one step at a time
         lead = self.world.controller
-        self.lead = next((e for e in ests if e.name == lead), None) if lead else ests[0]
-        if self.lead is None:
+        found = next((e for e in ests if e.name == lead), None) if lead else ests[0]
+        if found is None:
             raise QuadobsError(f"world.controller: no estimator named {lead!r} in this episode")
+        self.lead = found
         self.trace = TraceSink(collect_every, self.steps) if collect_every > 0 else None
         self.sinks = self._sinks(out, flush_rows, progress, monitor, sinks)
         ctx = EpisodeContext(frame, tuple(ests), block, self.clock)
@@ -629,7 +630,7 @@ class _EstimatorInfo(Sink):
     def end(self, completed: int, interrupted: bool) -> dict:
         per = {}
         for est in self.ctx.estimators:
-            entry = {}
+            entry: dict[str, Any] = {}
             if isinstance(est, Gated):
                 entry["corrections"], entry["rejected"] = int(est.corrections), int(est.rejected)
                 if est.gate is not None:

@@ -318,6 +318,7 @@ class EpisodeLog:
             for name, s in self.est.items():
                 self._write_estimator(s, name, rows, i, src)
             if self.sc.has_wind:
+                assert rows.truth_wind is not None and rows.airspeed is not None, "with wind"
                 self.wind_truth.buf[i] = rows.truth_wind[src]
                 self.airspeed.buf[i, 0] = rows.airspeed[src]
             for h, series in enumerate(self.ranges):

@@ -81,19 +81,19 @@ class OutputSubset(Estimator, Gated, Immersed, Subset):
         return self.inner.covariance_trace
 
     @property
-    def nis(self) -> float:
+    def nis(self) -> float:  # type: ignore[override]  # the wrapped estimator's, never set on the wrapper
         return self.inner.nis
 
     @property
-    def gate(self) -> float | None:
+    def gate(self) -> float | None:  # type: ignore[override]  # the wrapped estimator's, never set on the wrapper
         return self.inner.gate
 
     @property
-    def corrections(self) -> int:
+    def corrections(self) -> int:  # type: ignore[override]  # the wrapped estimator's, never set on the wrapper
         return self.inner.corrections
 
     @property
-    def rejected(self) -> int:
+    def rejected(self) -> int:  # type: ignore[override]  # the wrapped estimator's, never set on the wrapper
         return self.inner.rejected
 
     @property
@@ -211,9 +211,9 @@ def baseline_settings(scenario: Scenario) -> BaselineSettings:
     if scenario.has_wind:
         stds.append(noise.sigma("airspeed"))
         offsets.append(0.0)
-    stds = np.array(stds)
-    if np.all(stds > 0):
-        outputs = OutputModel(system, np.diag(stds**2), offsets=np.array(offsets))
+    sigma = np.array(stds)
+    if np.all(sigma > 0):
+        outputs = OutputModel(system, np.diag(sigma**2), offsets=np.array(offsets))
         source = "sensors"
     else:
         periods = output_periods(scenario)

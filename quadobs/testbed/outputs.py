@@ -22,14 +22,17 @@ run's inputs (the scenario file, the model).
 from __future__ import annotations
 
 import json
+import logging
 import os
+import shutil
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from quadobs.errors import QuadobsError, check_writable, output_target, staging_owner, staging_path
+from quadobs.errors import QuadobsError, check_writable, output_target, staging_owner
+from quadobs.staging import write_staged
 
 __all__ = [
     "check_outputs",
@@ -41,6 +44,8 @@ __all__ = [
     "write_json_staged",
     "write_text_staged",
 ]
+
+log = logging.getLogger("quadobs.testbed")
 
 
 def _same_file(a: Path, b: Path) -> bool:
@@ -116,7 +121,7 @@ def clean_leftovers(target: Path) -> list[Path]:
     considered, and one is removed only when no process with its pid exists (a running
     writer's file stays).
     """
-    removed = []
+    removed: list[Path] = []
     try:
         entries = list(os.scandir(target.parent))
     except OSError:
@@ -129,8 +134,12 @@ def clean_leftovers(target: Path) -> list[Path]:
         if owner is None or owner[0] != target.name or owner[1] == os.getpid() or _alive(owner[1]):
             continue
         try:
-            os.unlink(entry.path)
+            if entry.is_dir(follow_symlinks=False):  # a staged folder
+                shutil.rmtree(entry.path)
+            else:
+                os.unlink(entry.path)
             removed.append(Path(entry.path))
+            log.info("removed %s, left by a process that is gone", entry.path)
         except OSError:
             pass
     return removed
@@ -152,7 +161,7 @@ def write_json_staged(path: str | Path, data: dict, what: str = "output path") -
 
 
 def write_text_staged(path: str | Path, text: str, what: str = "output path") -> Path:
-    """Write ``text`` to a staging file beside ``path``, on the disk (``fsync``), then rename it onto the target.
+    """Write ``text`` through :func:`quadobs.staging.write_staged`: complete or not at all.
 
     The target is :func:`quadobs.errors.output_target` of ``path`` (a symbolic link is
     written through); a new file gets the usual permissions (``0o666`` less the umask), an
@@ -160,32 +169,12 @@ def write_text_staged(path: str | Path, text: str, what: str = "output path") ->
     is untouched; an ``OSError`` (a full disk) becomes a one-line :class:`QuadobsError`
     naming the path. Returns the target.
     """
-    target = output_target(path, what)
-    tmp = staging_path(target)
-    try:
-        target.parent.mkdir(parents=True, exist_ok=True)
-        try:
-            mode = os.stat(target).st_mode & 0o7777
-        except FileNotFoundError:
-            umask = os.umask(0)
-            os.umask(umask)
-            mode = 0o666 & ~umask
-        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
-        with os.fdopen(fd, "w", newline="") as fh:
-            os.fchmod(fd, mode)
+
+    def write(tmp: Path) -> None:
+        with open(tmp, "x", newline="") as fh:
             fh.write(text)
-            fh.flush()
-            os.fsync(fd)
-        os.replace(tmp, target)
-    except OSError as exc:
-        tmp.unlink(missing_ok=True)
-        raise QuadobsError(
-            f"{what} {os.fspath(path)!r}: cannot be written ({exc.strerror or exc})"
-        ) from None
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
-    return target
+
+    return write_staged(path, write, what)
 
 
 def fault_summary(

@@ -174,11 +174,13 @@ def build_estimators(scenario: Scenario, names: list[str], x0: np.ndarray) -> li
     if len(set(names)) != len(names):
         raise QuadobsError(f"estimators: names must be distinct, got {names}")
     variants = dict(scenario.observer.variants)
-    out = []
+    out: list[Estimator] = []
     for name in names:
         if name in variants:
             inner = augmented_observer(scenario, x0, variants[name])
-            est = OutputSubset(inner, variants[name], name, q=output_periods(scenario).size)
+            est: Estimator = OutputSubset(
+                inner, variants[name], name, q=output_periods(scenario).size
+            )
         else:
             factory, origin = estimator_factory(name, scenario)
             est = factory(scenario, np.array(x0, dtype=float), name)

@@ -36,7 +36,7 @@ import tomllib
 from collections.abc import Iterable, Mapping
 from importlib import resources
 from pathlib import Path
-from typing import Annotated, Any, Literal, Union, get_args, get_origin
+from typing import TYPE_CHECKING, Annotated, Any, Literal, Union, get_args, get_origin
 
 import numpy as np
 import tomli_w
@@ -54,7 +54,7 @@ from pydantic import (
     field_validator,
     model_validator,
 )
-from pydantic_core import PydanticCustomError, PydanticUndefined
+from pydantic_core import ErrorDetails, PydanticCustomError, PydanticUndefined
 
 from quadobs.core.system import QuadraticSystem, vehicle_system, wind_system
 from quadobs.errors import QuadobsError
@@ -120,6 +120,17 @@ def _diagonal(item: Any) -> Any:
         Annotated[item, Tag("scalar")] | Annotated[tuple[item, ...], MinLen(1), Tag("diagonal")],
         Discriminator(lambda v: "diagonal" if isinstance(v, (list, tuple)) else "scalar"),
     ]
+
+
+# The types built at import for pydantic, as a type checker sees them.
+if TYPE_CHECKING:
+    _PositiveDiagonal = float | tuple[float, ...]
+    _NonNegativeDiagonal = float | tuple[float, ...]
+    _Reduction = str
+else:
+    _PositiveDiagonal = _diagonal(Positive)
+    _NonNegativeDiagonal = _diagonal(NonNegative)
+    _Reduction = Literal[tuple(REDUCTION_METHODS)]
 
 
 def _invalid(message: str, field: str = "") -> PydanticCustomError:
@@ -275,14 +286,14 @@ class ObserverSpec(_Table):
     immersion: Literal["minimal", "chain"] = Field(
         "minimal", description="Immersion: `minimal` [ACC2024, Alg. 1] or `chain` [IFAC2021]."
     )
-    S0: _diagonal(Positive) = Field(
+    S0: _PositiveDiagonal = Field(
         100.0,
         description="Initial covariance of the augmented state: scalar (times I) or diagonal.",
     )
-    V: _diagonal(NonNegative) = Field(
+    V: _NonNegativeDiagonal = Field(
         1e-4, description="Process noise of the augmented state: scalar (times I) or diagonal."
     )
-    W: _diagonal(Positive) = Field(1.0, description="Output noise: scalar (times I_q) or diagonal.")
+    W: _PositiveDiagonal = Field(1.0, description="Output noise: scalar (times I_q) or diagonal.")
     theta: Annotated[NonNegative, Le(MAX_RATE)] = Field(
         0.0, description="Forgetting rate `theta` of the observer (1/s)."
     )
@@ -404,7 +415,7 @@ class ZonotopeSpec(_Table):
     max_generators: Annotated[Integer, Ge(0), Le(MAX_COUNT)] = Field(
         0, description="Largest zonotope order (0: ten times the augmented dimension)."
     )
-    reduction: Literal[tuple(REDUCTION_METHODS)] = Field(
+    reduction: _Reduction = Field(
         "parallelotope",
         description="Order-reduction method (`quadobs.sets.zonotope.REDUCTION_METHODS`).",
     )
@@ -731,7 +742,7 @@ class Scenario(_Table):
         """The reference state at ``t``: ``(p, v)``, or ``(p, v_a, v_w)`` with wind."""
         p = self.trajectory.derivative(t, 0)
         v = self.trajectory.derivative(t, 1)
-        if not self.has_wind:
+        if self.wind is None:
             return np.concatenate([p, v], axis=-1)
         w = np.broadcast_to(self.wind, p.shape)
         return np.concatenate([p, v - w, w], axis=-1)
@@ -877,7 +888,7 @@ def _table_class(annotation: Any) -> type[BaseModel] | None:
     return None
 
 
-def _unknown(errors: list[dict]) -> str:
+def _unknown(errors: list[ErrorDetails]) -> str:
     """The message for the unknown keys of one table, with a suggestion for each close one."""
     parent = errors[0]["loc"][:-1]
     keys = [e["loc"][-1] for e in errors if e["loc"][:-1] == parent]
@@ -917,7 +928,7 @@ def _bound_message(kind: str, ctx: dict, value: Any) -> str:
     return f"must be at most {ctx['le']}, got {value}"
 
 
-def _message(error: dict) -> str:
+def _message(error: ErrorDetails) -> str:
     """One error of a validation as ``dotted.path: what is wrong``."""
     kind, ctx, value = error["type"], error.get("ctx") or {}, error.get("input")
     path = _path(error["loc"])

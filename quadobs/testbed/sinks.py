@@ -29,12 +29,16 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from quadobs.estimators.base import Estimator, Gated, SetValued, Subset, Switching
 from quadobs.evaluation.convergence import ConvergenceTracker, json_time, state_errors
 from quadobs.testbed.blocks import LEAD
+
+if TYPE_CHECKING:
+    from quadobs.recording.excitation import ExcitationLog
 
 #: Steps before the end of an episode from which the recording sends its rows only when it closes.
 SEND_AHEAD = 2 * LEAD
@@ -99,8 +103,8 @@ class Block:
     def record_final(self, j: int) -> None:
         """Row ``j`` holds ``t_K``: the estimates and bounds there, no step, no measurement."""
         n = self.columns.n
-        for b, est in self.bounded:
-            self.bounds[b, j] = est.bounds
+        for b, bounded in self.bounded:
+            self.bounds[b, j] = bounded.bounds
         for e, est in enumerate(self.estimators):
             row = self.rec[e, j]
             row[:n] = est.x_hat
@@ -352,7 +356,7 @@ class TraceSink(StepSink):
         super().begin(ctx)
         T, n = self.steps // self.every + 1, ctx.block.columns.n
         names = ctx.names
-        self.trace = {
+        self.trace: dict[str, Any] = {
             "time": np.full(T, np.nan),
             "truth": np.full((T, n), np.nan),
             "estimates": {nm: np.full((T, n), np.nan) for nm in names},
@@ -404,7 +408,9 @@ class BoundsSink(Sink):
 
     def begin(self, ctx: EpisodeContext) -> None:
         super().begin(ctx)
-        self.contained = {est.name: [0, 0, None] for _, est in ctx.block.bounded}
+        self.contained: dict[str, list[Any]] = {
+            est.name: [0, 0, None] for _, est in ctx.block.bounded
+        }
 
     def block(self, rows: Rows) -> None:
         X = rows.truth
@@ -442,7 +448,8 @@ class ExcitationSink(StepSink):
     """
 
     def __init__(self, monitor, recorder=None) -> None:
-        self.monitor, self.recorder, self.log = monitor, recorder, None
+        self.monitor, self.recorder = monitor, recorder
+        self.log: ExcitationLog | None = None
 
     def begin(self, ctx: EpisodeContext) -> None:
         super().begin(ctx)
@@ -456,7 +463,8 @@ class ExcitationSink(StepSink):
 
     def fill(self, rows: slice, steps: np.ndarray) -> None:
         """The monitor's series of the recorded rows (see :meth:`ExcitationLog.fill`)."""
-        self.log.fill(rows, steps)
+        if self.log is not None:
+            self.log.fill(rows, steps)
 
     def after_step(self, s: int, j: int) -> int:
         m, block = self.monitor, self.ctx.block

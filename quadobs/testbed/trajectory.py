@@ -53,8 +53,8 @@ class SinusoidTrajectory:
 
     offset: np.ndarray
     terms: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))
-    velocity: np.ndarray | None = None
-    coast: np.ndarray | None = None
+    velocity: np.ndarray = None  # type: ignore[assignment]  # None: zeros, set by __post_init__
+    coast: np.ndarray = None  # type: ignore[assignment]  # None: no segment, set by __post_init__
 
     def __post_init__(self) -> None:
         offset = as_array("trajectory.offset", self.offset, (None,))

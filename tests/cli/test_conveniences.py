@@ -48,15 +48,20 @@ def test_python_m_quadobs_is_the_command_and_prints_its_version(tmp_path):
     assert done.returncode == 2 and "unknown name 'no-such-scenario'" in done.stderr
 
 
-def test_version_falls_back_to_the_package_attribute(monkeypatch):
+def test_version_has_one_source_the_package_metadata(monkeypatch):
     import importlib.metadata
+    import tomllib
+    from pathlib import Path
+
+    project = tomllib.loads((Path(__file__).parents[2] / "pyproject.toml").read_text())
+    assert quadobs.__version__ == project["project"]["version"]
+    assert "__version__ = " not in Path(quadobs.__file__).read_text()
 
     def missing(name):
         raise importlib.metadata.PackageNotFoundError(name)
 
     monkeypatch.setattr(importlib.metadata, "version", missing)
-    monkeypatch.setattr(quadobs, "__version__", "9.8.7")
-    assert cli.package_version() == "9.8.7"
+    assert quadobs._distribution_version() == "0+unknown"  # a source tree never installed
 
 
 @pytest.mark.parametrize("command", ["run", "campaign"])

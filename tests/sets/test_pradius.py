@@ -103,3 +103,15 @@ def test_bad_input(kwargs, match):
     args.update(kwargs)
     with pytest.raises(QuadobsError, match=match):
         pradius_gains(**args)
+
+
+def test_design_without_cvxpy_names_the_extra(monkeypatch):
+    """A core install (no cvxpy) is told in one line which extra adds the LMI design."""
+    import sys
+
+    monkeypatch.setitem(sys.modules, "cvxpy", None)  # import cvxpy raises ImportError
+    with pytest.raises(QuadobsError) as info:
+        pradius_gains(np.eye(2) * 0.5, np.eye(2) * 0.1, np.array([[1.0, 0.0]]), 0.1)
+    message = str(info.value)
+    assert "\n" not in message
+    assert "pip install 'quadobs[sets]'" in message and message.startswith("pradius_gains:")

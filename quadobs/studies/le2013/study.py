@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -114,11 +115,12 @@ def make_estimator(
         raise QuadobsError(f"method: expected one of {', '.join(METHODS)}, got {method!r}")
     if method in ("pradius1", "pradius2") and designs is None:
         raise QuadobsError(f"designs: method {method!r} needs the designs of design_gains()")
+    found: dict = designs or {}
     gains = {
         "segment": lambda: "segment",
         "volume": lambda: "volume",
-        "pradius1": lambda: designs["first_approach"].gains,
-        "pradius2": lambda: designs["second_approach"].gains,
+        "pradius1": lambda: found["first_approach"].gains,
+        "pradius2": lambda: found["second_approach"].gains,
         "pradius2_paper": lambda: np.array(PAPER_GAINS["second_approach"]),
     }[method]()
     X0 = Zonotope(np.zeros(2), X0_RADIUS * np.eye(2))
@@ -157,7 +159,7 @@ def run_once(
         out.volume[m] = vol
         out.inside[m] = inside
         out.seconds[m] = elapsed
-        if keep_sets:
+        if keep_sets and out.sets is not None:
             out.sets[m] = sets
     return out
 
@@ -180,8 +182,8 @@ def reproduce(
         raise QuadobsError(f"steps, runs: must be at least 1, got {steps}, {runs}")
     if designs is None:
         designs = design_gains()
-    res = {"designs": designs, "methods": list(methods)}
-    acc = {
+    res: dict[str, Any] = {"designs": designs, "methods": list(methods)}
+    acc: dict[str, dict[str, Any]] = {
         m: {
             "inside": 0,
             "width": np.zeros((steps + 1, 2)),

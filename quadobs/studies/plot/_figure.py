@@ -12,14 +12,14 @@ string), so the same input gives the same bytes.
 from __future__ import annotations
 
 import math
-import os
 import sys
-import tempfile
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from quadobs.errors import QuadobsError
+from quadobs.staging import write_staged
 
 __all__ = [
     "DEFAULT_DPI",
@@ -38,7 +38,7 @@ DEFAULT_SIZE = (7.0, 4.5)  # inches: the full text width of a two-column paper
 DEFAULT_DPI = 150
 
 # Black and greys with distinct dashes and markers: each line reads in greyscale print.
-_STYLES = [
+_STYLES: list[dict[str, Any]] = [
     {"color": "0.0", "linestyle": "-", "marker": "o"},
     {"color": "0.35", "linestyle": "--", "marker": "s", "markerfacecolor": "white"},
     {"color": "0.55", "linestyle": ":", "marker": "^"},
@@ -51,7 +51,7 @@ _STYLES = [
     },
     {"color": "0.65", "linestyle": (0, (1, 1)), "marker": "x"},
 ]
-TRUTH_STYLE = {"color": "0.0", "linestyle": "-", "linewidth": 1.6}
+TRUTH_STYLE: dict[str, Any] = {"color": "0.0", "linestyle": "-", "linewidth": 1.6}
 
 _RC = {
     "font.size": 8,
@@ -148,7 +148,7 @@ def new_figure(panels: list[str], size: tuple[float, float], dpi: float, three_d
 
 
 def save_figure(fig, out: str | Path, dpi: float) -> Path:
-    """Write ``fig`` to ``out`` (format from the suffix) through a temporary file renamed into place.
+    """Write ``fig`` to ``out`` (format from the suffix) through :func:`quadobs.staging.write_staged`.
 
     The parent folder is created only once the figure is drawn; on any error nothing is
     left behind.
@@ -165,21 +165,13 @@ def save_figure(fig, out: str | Path, dpi: float) -> Path:
         [out.parent] if not out.parent.exists() else []
     )
     try:
-        out.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(prefix=f".{out.name}.", suffix=f".{fmt}", dir=out.parent)
-        os.close(fd)
-    except OSError as exc:
-        _remove_dirs(made)
-        raise QuadobsError(f"--out {str(out)!r}: cannot be written ({exc.strerror})") from None
-    try:
         with drawing():
-            fig.savefig(tmp, format=fmt, dpi=dpi, metadata=_METADATA[fmt])
-        mask = os.umask(0)
-        os.umask(mask)
-        os.chmod(tmp, 0o666 & ~mask)
-        os.replace(tmp, out)
+            write_staged(
+                out,
+                lambda tmp: fig.savefig(tmp, format=fmt, dpi=dpi, metadata=_METADATA[fmt]),
+                "--out",
+            )
     except BaseException:
-        Path(tmp).unlink(missing_ok=True)
         _remove_dirs(made)
         raise
     return out

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import tempfile
 from pathlib import Path
+from typing import Any
 
 __all__ = ["ESTIMATORS", "make_figures"]
 
@@ -23,7 +24,7 @@ ESTIMATORS = {
     "ifac2021-bounded": ["augmented", "zonotope"],
 }
 """Estimators drawn for a scenario (default: the augmented observer and the scenario's variants)."""
-CAMPAIGN = {
+CAMPAIGN: dict[str, Any] = {
     "scenario": "ifac2021-noisy",
     "runs": 16,
     "duration": 20.0,

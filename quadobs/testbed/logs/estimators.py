@@ -144,7 +144,7 @@ TUNING = ("range_sigma", "q_xy", "q_theta", "q_acc", "q_imu", "gate", "P0")
 
 def parse_tuning(settings) -> dict:
     """``["q_xy=1", "gate=none", ...]`` as setup options (``gate=none``: no gate); one-line errors naming the setting."""
-    out = {}
+    out: dict[str, float | None] = {}
     for text in settings:
         key, sep, raw = text.partition("=")
         key = key.strip()

@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -70,7 +71,7 @@ def log_scenario(log, dt: float, seed: int = 0, settings=()):
     """
     from quadobs.testbed.scenario import apply_settings, parse_scenario
 
-    data = {"noise": {}}
+    data: dict[str, Any] = {"noise": {}}
     data = apply_settings(data, settings)
     if set(data) != {"noise"}:
         raise QuadobsError(

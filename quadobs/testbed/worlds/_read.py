@@ -29,6 +29,7 @@ path is not available.)
 from __future__ import annotations
 
 import math
+from typing import Any
 
 from numba import njit
 
@@ -37,7 +38,7 @@ from quadobs._kernels.observer import sensor_step
 __all__ = ["read_block", "read_step", "site_rotation"]
 
 
-_OPTS = dict(cache=True, nogil=True, error_model="numpy")
+_OPTS: dict[str, Any] = dict(cache=True, nogil=True, error_model="numpy")
 
 
 @njit(**_OPTS)

@@ -14,6 +14,7 @@ import collections
 import queue
 import threading
 import weakref
+from typing import Any
 
 import mujoco
 import numpy as np
@@ -232,10 +233,14 @@ class BlockStepper:
         except ImportError:  # pragma: no cover - Numba missing: the NumPy path
             read_step = None
         self._read = read_step
-        self._current = self._filled = self.warnings = None  # see prefetch, begin_ahead, fill
+        # see prefetch, begin_ahead, fill
+        self._current: _Ahead | None = None
+        self._filled: int | None = None
+        self.warnings: np.ndarray | None = None
         # What the next prefetched block continues, from step _next_k: (buffers, last row), (queued block, None)
         # or (None, None), the data's current state.
-        self._last, self._next_k = None, 0
+        self._last: tuple[Any, Any] | None = None
+        self._next_k = 0
         self._queued: collections.deque[_Ahead] = (
             collections.deque()
         )  # blocks handed to the physics thread
@@ -325,6 +330,7 @@ class BlockStepper:
         m, d = self._model, self._data
         count = ctrls.shape[0]
         states, sensors = buf
+        assert self._rollout is not None, "block physics without mujoco.rollout"
         self._rollout.rollout(
             [m],
             [d],
@@ -452,6 +458,7 @@ class BlockStepper:
         self._queued.popleft()
         self._current = ahead
         s0, nq, nv = ahead.state0, self._model.nq, self._model.nv
+        assert s0 is not None, "a block waited for has run or raised"
         qa = self.sim.vm.qpos_adr
         return self._start(
             ahead.ctrls,
@@ -490,6 +497,7 @@ class BlockStepper:
         m, d = self._model, self._data
         mujoco.mj_setState(m, d, first.state0, _FULL)
         d.qacc_warmstart[:] = first.warmstart
+        assert first.warnings_before is not None, "set with state0"
         d.warning.number[:], d.warning.lastinfo[:] = first.warnings_before
 
     def warning_counts(self) -> np.ndarray:
@@ -605,14 +613,19 @@ class _Ahead:
             after,
             buf,
         )
-        self.state0 = self.warmstart = self.warnings_before = self.warnings = self.error = None
+        self.state0: np.ndarray | None = None
+        self.warmstart: np.ndarray | None = None
+        self.warnings_before: np.ndarray | None = None
+        self.warnings: np.ndarray | None = None
+        self.error: BaseException | None = None
         self.cancelled = False
-        self.stepper = stepper
+        self.stepper: BlockStepper | None = stepper
         self.done = threading.Event()
 
     def run(self) -> None:
         """In the worker: the block's rollout; an error is kept for the thread that waits."""
         stepper, self.stepper = self.stepper, None
+        assert stepper is not None, "a block runs once"
         try:
             src, row = self.after
             if isinstance(src, _Ahead):

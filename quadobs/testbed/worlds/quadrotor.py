@@ -253,7 +253,7 @@ class QuadrotorWorld(World):
 
     def _control(self, k: int, ref: np.ndarray, estimate) -> None:
         self._on_estimate = (
-            self.controller is not None and k >= self.switch_step and estimate is not None
+            self.switch_step is not None and k >= self.switch_step and estimate is not None
         )
         if self.crashed_at is not None:
             self._thrusts[:] = 0.0

@@ -208,9 +208,9 @@ class ReplayWorld(World):
         self.out = np.full((int(capacity) + 1, self.columns.width), np.nan)
         self.events = np.zeros((int(capacity) + 1, 2), dtype=np.int64)
         self._k0 = 0
-        self._src = self._events = (
-            None  # with a sensor layer: the block's rows (row 0: step _k0), its events
-        )
+        # with a sensor layer: the block's rows (row 0: step _k0), its events
+        self._src: np.ndarray = rows[:0]
+        self._events: np.ndarray = self.events[:0]
 
     def _inputs(self, T: np.ndarray) -> np.ndarray:
         """The input held over each grid step ``(K, p)`` (module docstring)."""
@@ -274,6 +274,7 @@ class ReplayWorld(World):
     def _sense(self, count: int) -> None:
         """The block's rows with the sensor layer on the logged ranges (module docstring), in ``_src``."""
         k0, c = self._k0, self.columns
+        assert self.sensors is not None, "called with a sensor layer only"
         src = self._rows[k0 : k0 + count + 1].copy()
         draws = self.sensors.draws(k0, count)
         rho, self._events = self.sensors.logged_ranges(src[:count, c.measured], draws)
@@ -356,7 +357,8 @@ class ReplayFiguresSink(Sink):
     def end(self, completed: int, interrupted: bool) -> dict:
         from quadobs.estimators.gtsam_peer import Isam2RangeOnly  # imports gtsam only when built
 
-        per, clock, w = {}, self.ctx.clock, self.world
+        per: dict[str, dict] = {}
+        clock, w = self.ctx.clock, self.world
         for e, est in enumerate(self.ctx.estimators):
             entry = per[est.name] = {}
             if clock is not None:
