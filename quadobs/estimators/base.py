@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import abc
 import math
+from typing import TYPE_CHECKING
 
 import numpy as np
 
