@@ -438,6 +438,10 @@ class ControlSpec(_Table):
         1.0,
         description="Tracking error beyond which a flight counts as crashed and the rotors stop (m).",
     )
+    rotor_lead: bool = Field(
+        True,
+        description="Invert the identified rotor lag in the thrust commands (`T_c = T_d + tau dT_d/dt`).",
+    )
 
 
 class QuadrotorSpec(_Table):
@@ -469,6 +473,18 @@ class QuadrotorSpec(_Table):
     attitude_rate: Positive | None = Field(
         None,
         description="Attitude sample rate (Hz), dividing the physics rate (default: the physics rate).",
+    )
+    rotor_tau_up: Positive | None = Field(
+        None,
+        description="Rotor spin-up time constant at hover (s); default the identified 0.136 s.",
+    )
+    rotor_tau_down: Positive | None = Field(
+        None,
+        description="Rotor spin-down time constant at hover (s); default the identified 0.108 s, or scaled with `rotor_tau_up`.",
+    )
+    mass_scale: Positive = Field(
+        1.0,
+        description="Factor on the vehicle's mass in the physics (the controller keeps 0.0319 kg).",
     )
 
     @model_validator(mode="after")
