@@ -52,6 +52,7 @@ import numpy as np
 from quadobs.errors import QuadobsError, as_finite_scalar, caused_by_interrupt
 from quadobs.evaluation.ensemble import Ensemble, converged_nees, ensemble, nees, set_containment
 from quadobs.testbed.bounds import immersion_bound, scenario_crb
+from quadobs.testbed.flight import crash_counts, crash_record
 from quadobs.testbed.registry import available_estimators, default_estimators, estimator_factory
 from quadobs.testbed.scenario import Scenario, parse_scenario
 
@@ -180,6 +181,7 @@ def _run_flight(summary: dict) -> dict:
         "flight_position_rmse": {
             nm: num(s.get("flight_position_rmse")) for nm, s in summary["estimators"].items()
         },
+        **crash_record(f),
     }
 
 
@@ -200,6 +202,7 @@ def flight_summary(flights: list[dict], names: list[str]) -> dict:
         "tracking_rms_max": stat(rms, np.max),
         "tracking_max": stat(np.array([f["tracking_max"] for f in flights]), np.max),
         "time_on_estimate_mean": float(np.mean([f["time_on_estimate"] for f in flights])),
+        "crashes_by_estimator": crash_counts(flights),
         "flight_position_rmse": {
             nm: {
                 "median": stat(a, np.median),

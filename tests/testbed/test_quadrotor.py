@@ -219,6 +219,8 @@ def test_the_campaign_summarises_the_flights():
             "tracking_max": 0.1,
             "time_on_estimate": 60.0,
             "flight_position_rmse": {"augmented": 0.02},
+            "flown_on": "augmented",
+            "crash_time": float("nan"),
         },
         {
             "crashed": True,
@@ -226,6 +228,8 @@ def test_the_campaign_summarises_the_flights():
             "tracking_max": 1.2,
             "time_on_estimate": 20.0,
             "flight_position_rmse": {"augmented": 0.06},
+            "flown_on": "augmented",
+            "crash_time": 28.0,
         },
         {
             "crashed": False,
@@ -233,10 +237,15 @@ def test_the_campaign_summarises_the_flights():
             "tracking_max": 0.2,
             "time_on_estimate": 60.0,
             "flight_position_rmse": {"augmented": float("nan")},
+            "flown_on": "augmented",
+            "crash_time": float("nan"),
         },
     ]
     s = flight_summary(flights, ["augmented"])
     assert s["runs"] == 3 and s["crashed"] == 1
+    assert s["crashes_by_estimator"] == {
+        "augmented": {"runs": 3, "crashed": 1, "crash_times": [28.0]}
+    }
     assert s["tracking_rms_median"] == pytest.approx(0.07) and s[
         "tracking_rms_max"
     ] == pytest.approx(0.2)

@@ -151,6 +151,7 @@ class QuadrotorWorld(World):
         self.events = np.zeros((int(capacity) + 1, 2), dtype=np.int64)
         self._place(scenario)
         self.crashed_at: int | None = None
+        self.crash_cause: str | None = None
         self._compiled()
 
     def _compiled(self) -> None:
@@ -296,6 +297,11 @@ class QuadrotorWorld(World):
         )
         if self.crashed_at is None and (err > self.control.crash_distance or upside):
             self.crashed_at = k
+            self.crash_cause = (
+                "turned upside down"
+                if upside
+                else f"tracking error {err:.2f} m > control.crash_distance {self.control.crash_distance:g} m"
+            )
         row[self._o_crashed] = self.crashed_at is not None
 
     def _control(self, k: int, ref: np.ndarray, estimate) -> None:
