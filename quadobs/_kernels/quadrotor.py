@@ -20,7 +20,7 @@ import math
 
 from numba import njit
 
-__all__ = ["control", "lead", "post_step", "pre_step", "quat_matrix", "rotor_step"]
+__all__ = ["body_imu", "control", "lead", "post_step", "pre_step", "quat_matrix", "rotor_step"]
 
 _G = 9.81
 
@@ -182,3 +182,11 @@ def lead(desired, state, tau_up, tau_down, rate, alpha, out):
         out[i] = desired[i] + (tau_up if s > 0.0 else tau_down) * s
         state[i] = desired[i]
         state[4 + i] = s
+
+
+@njit(cache=True)
+def body_imu(sd, ia, n, imu, rates, out):
+    """The body IMU sample into ``out (6,)``: ``f~ = f + b_a + sigma_a n[:3]`` and the measured rates."""
+    for i in range(3):
+        out[i] = sd[ia + i] + imu[i] + imu[6] * n[i]
+        out[3 + i] = rates[i]

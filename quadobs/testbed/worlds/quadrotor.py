@@ -152,6 +152,8 @@ class QuadrotorWorld(World):
         self._place(scenario)
         self.crashed_at: int | None = None
         self.crash_cause: str | None = None
+        #: The latest body IMU sample ``(f~ (3), w~ (3))`` (what an IMU-driven estimator holds).
+        self.body_imu = np.zeros(6)
         self._compiled()
 
     def _compiled(self) -> None:
@@ -294,6 +296,9 @@ class QuadrotorWorld(World):
             self._p,
             self._v,
             self.out[j + 1],
+        )
+        kq.body_imu(
+            d.sensordata, self._acc, self.noise[j], self._imu, self.rates_meas, self.body_imu
         )
         if self.crashed_at is None and (err > self.control.crash_distance or upside):
             self.crashed_at = k
