@@ -486,6 +486,11 @@ class QuadrotorSpec(_Table):
         1.0,
         description="Factor on the vehicle's mass in the physics (the controller keeps 0.0319 kg).",
     )
+    gust_speed: NonNegative = Field(
+        0.0,
+        description="Amplitude of gusts of wind (m/s) on MuJoCo's fluid model: `w(t) = gust_speed (sin(2 pi t / T), sin(2 pi t / (1.7 T) + 1), 0)`.",
+    )
+    gust_period: Positive = Field(3.0, description="Period `T` of the gusts (s).")
 
     @model_validator(mode="after")
     def _sorted_hovers(self) -> QuadrotorSpec:

@@ -11,7 +11,8 @@ Closed loop (:attr:`World.closed_loop`): each physics step ``k`` (time ``t_k``)
    the on-board AHRS and gyroscope give them);
 2. the UWB ranges ``|p_k - a_h|`` of the tag (site ``imu``) go through the sensor layer
    (:class:`~quadobs.testbed.sensors.SensorModel`: noise, rate, dropouts, outliers);
-3. the rotors' speeds follow the commands over the step (the identified asymmetric
+3. (with ``[quadrotor] gust_speed``) the wind of the gusts is set on MuJoCo's fluid model;
+   the rotors' speeds follow the commands over the step (the identified asymmetric
    dynamics of :mod:`quadobs.testbed.rotors`, compiled), and their thrusts drive the
    MuJoCo actuators over the step;
 4. ``mj_step``; MuJoCo's sensors then describe ``t_k``: the specific force ``f`` and the
@@ -30,6 +31,7 @@ arithmetic as :class:`~quadobs.testbed.controllers.GeometricController` and
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import mujoco
@@ -268,6 +270,8 @@ class QuadrotorWorld(World):
         ev = self.events[j]
         ev[0], ev[1] = s.outliers_injected - o0, s.dropped - d0
         row[self.columns.measured] = s.measured_ranges
+        if self.spec.gust_speed:
+            self._gust(k * self.dt)
         kq.rotor_step(
             self._commands,
             self.crashed_at is None,
@@ -343,6 +347,13 @@ class QuadrotorWorld(World):
             )
         tu, td, rate, alpha = self._lead
         self._kq.lead(self._thrusts, self._lead_state, tu, td, rate, alpha, self._commands)
+
+    def _gust(self, t: float) -> None:
+        """The wind of ``[quadrotor] gust_speed`` at ``t`` into MuJoCo's fluid model (``opt.wind``)."""
+        w, T = self.spec.gust_speed, self.spec.gust_period
+        wind = self.model.opt.wind
+        wind[0] = w * math.sin(2.0 * math.pi * t / T)
+        wind[1] = w * math.sin(2.0 * math.pi * t / (1.7 * T) + 1.0)
 
     _on_estimate = False
 
