@@ -8,7 +8,7 @@ from quadobs.testbed.sinks import EpisodeFrame
 
 
 @pytest.mark.parametrize(
-    "name, size", [("quadrotor-uwb", 6.0), ("beacons", 45.0), ("ifac2021", 30.0)]
+    "name, size", [("quadrotor-uwb", 6.0), ("beacons", 40.0), ("ifac2021", 30.0)]
 )
 def test_the_scene_size_is_the_beacons_extent(name, size):
     frame = EpisodeFrame.of(load_scenario(name))
