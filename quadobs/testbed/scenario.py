@@ -438,6 +438,10 @@ class ControlSpec(_Table):
         1.0,
         description="Tracking error beyond which a flight counts as crashed and the rotors stop (m).",
     )
+    integral_bandwidth: NonNegative = Field(
+        0.5,
+        description="Integral action on the position error, `k_i = integral_bandwidth k_x` (rad/s; 0: none), each axis held within 3 m/s^2.",
+    )
     rotor_lead: bool = Field(
         True,
         description="Invert the identified rotor lag in the thrust commands (`T_c = T_d + tau dT_d/dt`).",

@@ -94,6 +94,7 @@ def test_the_lead_keeps_a_margin_over_the_rotor_time_constants():
     tau_u, _ = IDENTIFIED.time_constants(CRAZYFLIE.mass)
     taus = np.linspace(0.06, 0.2, 15)
     assert smallest_damping(2.0, 12.0, 0.9, taus, tau_u, LEAD_FILTER) > 0.5
+    assert smallest_damping(2.0, 12.0, 0.9, taus, tau_u, LEAD_FILTER, integral=0.5) > 0.5
     assert smallest_damping(2.0, 12.0, 0.9, [0.136]) < 0.0  # the same gains without the lead
     # without the lead, the best attitude bandwidth (to 0.25 rad/s) leaves little damping
     best = max(smallest_damping(2.0, wa, 0.9, taus) for wa in np.arange(3.0, 12.0, 0.25))

@@ -3,7 +3,8 @@
 Closed loop (:attr:`World.closed_loop`): each physics step ``k`` (time ``t_k``)
 
 1. the controller (:class:`~quadobs.testbed.controllers.GeometricController`, at
-   ``control.rate``) chooses the rotor thrusts (commanded through the lead that inverts
+   ``control.rate``) chooses the rotor thrusts (with integral action on the position
+   error, ``control.integral_bandwidth``, and commanded through the lead that inverts
    the identified rotor lag, :func:`~quadobs.testbed.controllers.lead`) from the reference
    (:class:`~quadobs.testbed.controllers.FlightPlan`) and either the truth or, from
    ``control.switch_time`` on, the position and velocity estimated by the estimator named
@@ -173,6 +174,8 @@ class QuadrotorWorld(World):
         self._ranges, self._R, self._Rc = np.zeros(len(self.anchors)), np.eye(3), np.eye(3)
         self._thrusts, self._thrust, self._speeds = np.zeros(4), np.zeros(4), np.zeros(4)
         self._commands, self._lead_state = np.zeros(4), np.zeros(8)
+        self._ref, self._acc_i = np.zeros((3, 3)), np.zeros(3)
+        self._ki = self.control.integral_bandwidth * self.ctrl.kx
         self._rotor = self.rotor.packed()
         tau_u, tau_d = IDENTIFIED.time_constants(CRAZYFLIE.mass)  # what the controller knows
         lead_on = self.control.rotor_lead
@@ -317,6 +320,8 @@ class QuadrotorWorld(World):
         self._on_estimate = (
             self.controller is not None and k >= self.switch_step and estimate is not None
         )
+        p = estimate[:3] if self._on_estimate else self._p
+        ref = self._integral(ref, p)
         if self.crashed_at is not None:
             self._thrusts[:] = 0.0
         elif self._on_estimate:
@@ -354,6 +359,20 @@ class QuadrotorWorld(World):
         wind = self.model.opt.wind
         wind[0] = w * math.sin(2.0 * math.pi * t / T)
         wind[1] = w * math.sin(2.0 * math.pi * t / (1.7 * T) + 1.0)
+
+    def _integral(self, ref: np.ndarray, p: np.ndarray) -> np.ndarray:
+        """The reference with the integral action ``k_i int (r - p) dt`` added to its acceleration.
+
+        Each axis's term is held within 3 m/s^2 (anti-windup). Returns a buffer reused by the next call.
+        """
+        out, acc = self._ref, self._acc_i
+        out[:] = ref
+        if self._ki:
+            period = self.control_every * self.dt
+            for i in range(3):
+                acc[i] = min(max(acc[i] + self._ki * (ref[0, i] - p[i]) * period, -3.0), 3.0)
+            out[2] += acc
+        return out
 
     _on_estimate = False
 
