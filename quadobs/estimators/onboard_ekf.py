@@ -115,7 +115,7 @@ class OnboardEKF(Estimator, Gated):
         self.u = np.zeros(6)
         self.imu_source: np.ndarray | None = None
         self.t = 0.0
-        self._rejected = self._corrections = 0
+        self.rejected = self.corrections = 0
         self._beacon_term = 0.5 * np.einsum("hi,hi->h", model.anchors, model.anchors)
         self._ranges = [
             Measurement(0.0, model.kind, 0.0, (i,)) for i in range(model.anchors.shape[0])
@@ -203,7 +203,7 @@ class OnboardEKF(Estimator, Gated):
         r = z - model.h(self.p, m)
         self.nis = r * r / S
         if self.gate is not None and self.nis > self.gate:
-            self._rejected += 1
+            self.rejected += 1
             return
         K = Ph / S
         IKH = np.eye(9)
@@ -217,7 +217,7 @@ class OnboardEKF(Estimator, Gated):
         G = np.eye(9)
         G[6:, 6:] -= 0.5 * skew(delta)
         self.P = G @ self.P @ G.T
-        self._corrections += 1
+        self.corrections += 1
 
     # -- what the testbed reads --------------------------------------------------------
 
@@ -237,14 +237,6 @@ class OnboardEKF(Estimator, Gated):
         T[3:, 3:6] = self.R
         T[3:, 6:] = -self.R @ skew(self.v)
         return T @ self.P @ T.T
-
-    @property
-    def corrections(self) -> int:
-        return self._corrections
-
-    @property
-    def rejected(self) -> int:
-        return self._rejected
 
 
 def range_model(anchors, std: float) -> RangeModel:
