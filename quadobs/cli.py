@@ -48,6 +48,10 @@ def _fmt(value, unit: str = "", digits: int = 4) -> str:
     return f"{value}{unit}"
 
 
+#: Exit status of ``quadobs run --fail-on-crash`` when the quadrotor crashed.
+EXIT_CRASHED = 3
+
+
 def print_summary(summary: dict, file=sys.stdout) -> None:
     """A compact table of the summary: one row per estimator."""
     head = (
@@ -79,11 +83,21 @@ def print_summary(summary: dict, file=sys.stdout) -> None:
     print("  ".join(c.ljust(w) for c, w in zip(cols, widths)), file=file)
     for r in rows:
         print("  ".join(v.ljust(w) for v, w in zip(r, widths)), file=file)
+    _print_crash(summary, file)
     if summary.get("recording"):
         print(
             f"recording: {summary['recording']}  (open with: rerun {summary['recording']})",
             file=file,
         )
+
+
+def _print_crash(summary: dict, file) -> None:
+    """A quadrotor's crash, in one line beside the table (:func:`quadobs.testbed.flight.crash_line`)."""
+    from quadobs.testbed.flight import crash_line
+
+    line = crash_line(summary)
+    if line is not None:
+        print(line, file=file)
 
 
 #: The section 5 reproduction, run by ``quadobs run le2013`` beside the built-in scenarios.
@@ -245,7 +259,10 @@ def _cmd_run(args) -> int:
         print(
             f"log: {args.export_log}  (replay with: quadobs replay {args.export_log} --dt {scenario.dt:g})"
         )
-    return 130 if result.summary.get("interrupted") else 0
+    if result.summary.get("interrupted"):
+        return 130
+    crashed = result.summary.get("flight", {}).get("crashed")
+    return EXIT_CRASHED if crashed and args.fail_on_crash else 0
 
 
 def _cmd_excitation(args) -> int:
@@ -568,6 +585,11 @@ def build_parser():
         type=Path,
         metavar="DIR",
         help="also write the run as a log folder in the open format (ranges, accelerometer, truth), for 'quadobs replay'",
+    )
+    p.add_argument(
+        "--fail-on-crash",
+        action="store_true",
+        help=f"exit with status {EXIT_CRASHED} when the quadrotor crashed (for scripts and CI)",
     )
     _add_set(p)
     p.set_defaults(func=_cmd_run)

@@ -11,6 +11,7 @@ Calling conventions (operands packed):
 
 ``gains`` (float64, 8): ``k_x, k_v, k_R, k_W, mass, tan(max_tilt), thrust_max, yaw``.
 ``imu`` (float64, 9): ``b_a (3), b_w (3), sigma_a, sigma_w, sigma_q``.
+``rotor`` (float64, 6): ``k_u, k_d, a_1, a_2, T_min, T_max`` (:meth:`~quadobs.testbed.rotors.RotorModel.packed`).
 """
 
 from __future__ import annotations
@@ -19,7 +20,7 @@ import math
 
 from numba import njit
 
-__all__ = ["control", "post_step", "pre_step", "quat_matrix"]
+__all__ = ["body_imu", "control", "lead", "post_step", "pre_step", "quat_matrix", "rotor_step"]
 
 _G = 9.81
 
@@ -138,3 +139,54 @@ def post_step(sd, ia, ig, iq, n, imu, update, att, rates, R, row, o_att, o_u, p,
     row[o_u + 2] = R[2, 0] * f0 + R[2, 1] * f1 + R[2, 2] * f2 - _G
     x, y = sd[iq + 1], sd[iq + 2]
     return 1.0 - 2.0 * (x * x + y * y) < 0.0
+
+
+@njit(cache=True)
+def rotor_step(command, running, w, rotor, h, thrust):
+    """Rotor speeds ``w (4,)`` (rpm) advanced by ``h`` with the thrust ``command (4,)`` held; their thrusts into ``thrust``.
+
+    The identified model of :mod:`quadobs.testbed.rotors`, integrated exactly: spinning up
+    ``w_c + (w - w_c) exp(-k_u h)``, spinning down ``w_c (w + w_c s) / (w_c + w s)``,
+    ``s = tanh(k_d w_c h)``; the command clamped to ``[T_min, T_max]`` while ``running``,
+    0 otherwise; ``T = max(a_1 w + a_2 w^2, 0)``.
+    """
+    ku, kd, a1, a2 = rotor[0], rotor[1], rotor[2], rotor[3]
+    decay = math.exp(-ku * h)
+    for i in range(4):
+        c = 0.0
+        if running:
+            T = min(max(command[i], rotor[4]), rotor[5])
+            c = (-a1 + math.sqrt(a1 * a1 + 4.0 * a2 * T)) / (2.0 * a2)
+        w0 = w[i]
+        if c > w0:
+            w1 = c + (w0 - c) * decay
+        elif c > 0.0:
+            s = math.tanh(kd * c * h)
+            w1 = c * (w0 + c * s) / (c + w0 * s)
+        else:
+            w1 = w0 / (1.0 + kd * w0 * h)
+        w[i] = w1
+        thrust[i] = max(a1 * w1 + a2 * w1 * w1, 0.0)
+
+
+@njit(cache=True)
+def lead(desired, state, tau_up, tau_down, rate, alpha, out):
+    """``out = T_d + tau s``, ``s`` the derivative of ``T_d`` low-passed: ``s += alpha ((T_d - T_prev) rate - s)``.
+
+    ``tau = tau_up`` where ``s > 0`` (spinning up), ``tau_down`` otherwise; ``state (8,)``
+    holds ``T_prev`` then ``s`` and is renewed.
+    """
+    for i in range(4):
+        d = (desired[i] - state[i]) * rate
+        s = state[4 + i] + alpha * (d - state[4 + i])
+        out[i] = desired[i] + (tau_up if s > 0.0 else tau_down) * s
+        state[i] = desired[i]
+        state[4 + i] = s
+
+
+@njit(cache=True)
+def body_imu(sd, ia, n, imu, rates, out):
+    """The body IMU sample into ``out (6,)``: ``f~ = f + b_a + sigma_a n[:3]`` and the measured rates."""
+    for i in range(3):
+        out[i] = sd[ia + i] + imu[i] + imu[6] * n[i]
+        out[3 + i] = rates[i]

@@ -17,6 +17,32 @@
   frequencies and a damping ratio (``k_x = w_p^2``, ``k_v = 2 zeta w_p``, ``k_R = w_a^2``,
   ``k_W = 2 zeta w_a``), per unit mass and per unit inertia.
 
+The rotor lag. The rotors follow their commands with time constants of 0.136 s spinning
+up and 0.108 s spinning down (:mod:`quadobs.testbed.rotors`): a lag the attitude loop
+cannot ignore. Linearised about hover, one horizontal axis with a rotor of time constant
+``tau`` has the closed-loop characteristic polynomial (:func:`closed_loop_poles`)
+
+.. math::
+
+    s^2 (\tau s^3 + s^2 + (1 + \tau_c s)(k_W s + k_R)) + k_R (1 + \tau_c s)(k_v s + k_x) ,
+
+with ``tau_c = 0`` for commands sent as they are: the attitude part alone is then stable
+only while ``k_W > tau k_R``, i.e. ``w_a < 2 zeta / tau`` (13 rad/s at 0.136 s), and the
+whole loop with ``w_p`` = 2, ``w_a`` = 12 rad/s is unstable from ``tau`` = 0.128 s.
+Lowering ``w_a`` buys little: the best ``w_a`` for rotor time constants from 0.06 to
+0.2 s (5 rad/s) leaves a smallest damping ratio of 0.097 and is too slow for the
+manoeuvres of ``quadrotor-1beacon``. So the commands invert the identified lag instead
+(:func:`lead`, ``control.rotor_lead``): ``T_c = T_d + tau_c dT_d/dt`` with ``tau_c`` the
+identified spin-up or spin-down time constant as ``T_d`` rises or falls, the derivative a
+difference over the control period low-passed with ``tau_f`` = 0.02 s (so that the jumps
+of an estimate, amplified by ``tau_c / tau_f`` rather than ``tau_c rate``, stay small).
+With it the gains ``w_p`` = 2 rad/s, ``w_a`` = 12 rad/s, ``zeta`` = 0.9 keep a smallest
+damping ratio of 0.54 over true rotor time constants from 0.06 to 0.2 s
+(:func:`smallest_damping`; the filter adds a factor ``1 / (1 + tau_f s)`` to the rotor's lag),
+and so does the integral action on the position error that takes out a mass or thrust
+mismatch (``control.integral_bandwidth`` = 0.5 rad/s, ``k_i = 0.5 k_x``; 1 rad/s would
+leave 0.42).
+
 This module needs no MuJoCo: everything is NumPy on the state the world hands over.
 """
 
@@ -27,9 +53,19 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["CRAZYFLIE", "FlightPlan", "GeometricController", "QuadrotorParameters"]
+__all__ = [
+    "CRAZYFLIE",
+    "FlightPlan",
+    "GeometricController",
+    "QuadrotorParameters",
+    "closed_loop_poles",
+    "smallest_damping",
+]
 
 _G = 9.81
+
+#: Time constant (s) of the low-pass on the derivative of the desired thrusts in :func:`lead`.
+LEAD_FILTER = 0.02
 
 
 @dataclass(frozen=True)
@@ -231,3 +267,69 @@ class GeometricController:
         wrench = np.array([f, M[0], M[1], M[2]])
         np.clip(self.mix_inv @ wrench, 0.0, self.p.thrust_max, out=self.thrusts)
         return self.thrusts
+
+
+def closed_loop_poles(
+    position_bandwidth: float,
+    attitude_bandwidth: float,
+    damping: float,
+    tau: float,
+    tau_c: float = 0.0,
+    tau_f: float = 0.0,
+    integral: float = 0.0,
+) -> np.ndarray:
+    """Roots of the hover-linearised closed loop of one horizontal axis, rotor time constant ``tau``, lead ``tau_c`` filtered by ``tau_f``.
+
+    ``x'' = g theta``, ``J theta'' = M`` delayed by ``(1 + tau_c s) / ((1 + tau s)(1 + tau_f s))``,
+    ``M = J (-k_R (theta - theta_d) - k_W theta')``, ``g theta_d = -(k_x x + k_v x')``: the
+    roots of ``s^2 (s^2 (1 + tau s)(1 + tau_f s) + (1 + tau_c s)(k_W s + k_R)) + k_R (1 + tau_c s)(k_v s + k_x)``;
+    with the integral action ``k_i = integral k_x`` on the position error, of that polynomial
+    times ``s`` plus ``k_R (1 + tau_c s) k_i``.
+    """
+    P = np.polynomial.polynomial
+    kx, kv = position_bandwidth**2, 2.0 * damping * position_bandwidth
+    kR, kW = attitude_bandwidth**2, 2.0 * damping * attitude_bandwidth
+    lead = [1.0, tau_c]
+    lag = P.polymul([0.0, 0.0, 1.0], P.polymul([1.0, tau], [1.0, tau_f]))
+    inner = P.polyadd(lag, P.polymul(lead, [kR, kW]))
+    if integral:
+        ki = integral * kx
+        full = P.polyadd(
+            P.polymul([0.0, 0.0, 0.0, 1.0], inner), P.polymul(lead, [kR * ki, kR * kx, kR * kv])
+        )
+    else:
+        full = P.polyadd(P.polymul([0.0, 0.0, 1.0], inner), P.polymul(lead, [kR * kx, kR * kv]))
+    return np.roots(full[::-1])
+
+
+def smallest_damping(
+    position_bandwidth: float,
+    attitude_bandwidth: float,
+    damping: float,
+    taus,
+    tau_c: float = 0.0,
+    tau_f: float = 0.0,
+    integral: float = 0.0,
+) -> float:
+    """The smallest damping ratio ``-Re(s) / |s|`` of :func:`closed_loop_poles` over the rotor time constants ``taus`` (negative: unstable)."""
+    worst = math.inf
+    for tau in taus:
+        r = closed_loop_poles(
+            position_bandwidth, attitude_bandwidth, damping, tau, tau_c, tau_f, integral
+        )
+        worst = min(worst, float(np.min(-r.real / np.abs(r))))
+    return worst
+
+
+def lead(desired, state, tau_up: float, tau_down: float, rate: float, alpha: float, out) -> None:
+    """Thrust commands ``out = T_d + tau s`` that invert a first-order rotor lag; ``state = (T_prev (4), s (4))`` is renewed.
+
+    ``s`` is the derivative of ``T_d`` low-passed, ``s <- s + alpha ((T_d - T_prev) rate - s)``
+    (``alpha = 1 / (1 + tau_f rate)``, ``rate`` the control rate in Hz); ``tau`` is ``tau_up``
+    where ``s > 0``, ``tau_down`` otherwise. The NumPy reference of
+    :func:`quadobs._kernels.quadrotor.lead`.
+    """
+    desired = np.asarray(desired, dtype=float)
+    s = state[4:] + alpha * ((desired - state[:4]) * rate - state[4:])
+    out[:] = desired + np.where(s > 0.0, tau_up, tau_down) * s
+    state[:4], state[4:] = desired, s

@@ -291,6 +291,9 @@ def scenario_parts(scenario: Scenario, names: list[str], world=None) -> dict:
     check = physics_check(w, scenario)  # MuJoCo's warnings, after every block
     x0 = initial_guess(scenario, w.state(), streams["initial"])
     ests = build_estimators(scenario, names, x0)
+    for est in ests:  # an IMU-driven estimator reads the world's latest body IMU sample
+        if hasattr(est, "bind_imu") and hasattr(w, "body_imu"):
+            est.bind_imu(w.body_imu)
     return {
         "frame": EpisodeFrame.of(scenario),
         "world": w,

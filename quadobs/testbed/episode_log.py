@@ -44,51 +44,91 @@ import rerun.blueprint as rrb
 from quadobs.errors import QuadobsError
 from quadobs.recording.recorder import Recorder
 
-__all__ = ["EpisodeLog", "LoggedRows", "default_blueprint"]
+__all__ = ["EpisodeLog", "LoggedRows", "default_blueprint", "scene_size"]
 
 _PALETTE = [(230, 90, 40), (40, 160, 90), (150, 60, 200), (200, 170, 30), (30, 150, 200)]
 _TRUTH = (40, 90, 220)
 
 
+def scene_size(frame) -> float:
+    """The length (m) the recording's 3-D sizes follow: the beacons' extent (at least 1 m), or 30 m with a single beacon (whose scene the frame does not tell)."""
+    b = np.asarray(frame.beacons, dtype=float)
+    if b.shape[0] < 2:
+        return 30.0
+    return float(max(np.ptp(b, axis=0).max(), 1.0))
+
+
+def _eye(frame) -> rrb.EyeControls3D | None:
+    """The 3-D view's eye: looking at the beacons' centre from a corner, a scene size away (None: rerun's own, with a single beacon)."""
+    if frame.beacons.shape[0] < 2:
+        return None
+    b = np.zeros((frame.beacons.shape[0], 3))
+    b[:, : frame.dimension] = frame.beacons
+    centre, size = b.mean(axis=0), scene_size(frame)
+    return rrb.EyeControls3D(
+        position=centre + size * np.array([1.0, -1.2, 0.8]), look_target=centre, eye_up=[0, 0, 1]
+    )
+
+
 def default_blueprint(frame, estimators: list[str]) -> rrb.Blueprint:
     """3-D view of the vehicle, beacons and trails beside time series of errors, measurements and covariance.
 
-    ``frame``: the run's :class:`~quadobs.testbed.sinks.EpisodeFrame`.
+    ``frame``: the run's :class:`~quadobs.testbed.sinks.EpisodeFrame`. The 3-D view looks at
+    the beacons from a scene size away (:func:`scene_size`); every time series shows the
+    whole run, whatever the time cursor.
     """
     history = rrb.VisibleTimeRange(
         "sim_time",
         start=rrb.TimeRangeBoundary.infinite(),
         end=rrb.TimeRangeBoundary.cursor_relative(),
     )
+    whole = [
+        rrb.VisibleTimeRange(
+            timeline,
+            start=rrb.TimeRangeBoundary.infinite(),
+            end=rrb.TimeRangeBoundary.infinite(),
+        )
+        for timeline in ("sim_time", "step")
+    ]
     plots = [
         rrb.TimeSeriesView(
-            name="Position error (m)", contents=[f"/errors/{e}/position/**" for e in estimators]
+            name="Position error (m)",
+            contents=[f"/errors/{e}/position/**" for e in estimators],
+            time_ranges=whole,
         ),
         rrb.TimeSeriesView(
-            name="Velocity error (m/s)", contents=[f"/errors/{e}/velocity/**" for e in estimators]
+            name="Velocity error (m/s)",
+            contents=[f"/errors/{e}/velocity/**" for e in estimators],
+            time_ranges=whole,
         ),
     ]
     if frame.has_wind:
-        plots.append(rrb.TimeSeriesView(name="Wind (m/s)", origin="/wind"))
+        plots.append(rrb.TimeSeriesView(name="Wind (m/s)", origin="/wind", time_ranges=whole))
     plots += [
-        rrb.TimeSeriesView(name="Measurements", origin="/measurements"),
-        rrb.TimeSeriesView(name="Covariance trace, NIS", origin="/observer"),
+        rrb.TimeSeriesView(name="Measurements", origin="/measurements", time_ranges=whole),
+        rrb.TimeSeriesView(name="Covariance trace, NIS", origin="/observer", time_ranges=whole),
     ]
     if frame.excitation:  # see quadobs.recording.excitation
         plots += [
             rrb.TimeSeriesView(
-                name="Excitation: log10 mu vs threshold", contents=["/excitation/log10"]
+                name="Excitation: log10 mu vs threshold",
+                contents=["/excitation/log10"],
+                time_ranges=whole,
             ),
             rrb.TimeSeriesView(
                 name="Variance in the unexcited directions",
                 contents=["/excitation/unexcited_variance/**"],
+                time_ranges=whole,
             ),
         ]
     return rrb.Blueprint(
         rrb.Horizontal(
             rrb.Vertical(
                 rrb.Spatial3DView(
-                    name="Vehicle, beacons, trajectories", origin="/world", time_ranges=[history]
+                    name="Vehicle, beacons, trajectories",
+                    origin="/world",
+                    time_ranges=[history],
+                    eye_controls=_eye(frame),
                 ),
                 rrb.TextLogView(name="Events", origin="/events"),
                 row_shares=[4, 1],
@@ -188,18 +228,22 @@ class EpisodeLog:
         self.sc = frame
         self.names = list(estimators)
         dim, every, r = frame.dimension, frame.trail_every, recorder
+        size = min(scene_size(frame) / 30.0, 1.0)  # the sizes below fit a 30 m scene
         axes = ["x", "y", "z"][:dim]
         beacons3 = np.zeros((frame.beacons.shape[0], 3))
         beacons3[:, :dim] = frame.beacons
         r.static(
             "world/beacons",
             rr.Points3D(
-                beacons3, radii=0.6, colors=[(255, 140, 0)], labels=list(frame.beacon_labels)
+                beacons3,
+                radii=0.6 * size,
+                colors=[(255, 140, 0)],
+                labels=list(frame.beacon_labels),
             ),
         )
         r.static("description", rr.TextDocument(f"{frame.name}: {frame.description}"))
         self.truth_path = r.series(
-            "world/truth/path", 3, "points3d", every=every, color=_TRUTH, radius=0.15
+            "world/truth/path", 3, "points3d", every=every, color=_TRUTH, radius=0.15 * size
         )
         self.truth_box = r.series(
             "world/truth/vehicle",
@@ -207,7 +251,7 @@ class EpisodeLog:
             "translation",
             every=every,
             color=_TRUTH,
-            half_size=(0.6, 0.4, 0.15),
+            half_size=(0.6 * size, 0.4 * size, 0.15 * size),
         )
         self.est = {
             name: self._estimator(
@@ -241,9 +285,15 @@ class EpisodeLog:
     ) -> dict:
         """The series of one estimator (module docstring), by short key."""
         r, dim, every = self.rec, len(axes), self.sc.trail_every
+        size = min(scene_size(self.sc) / 30.0, 1.0)
         s = {
             "path": r.series(
-                f"world/estimates/{name}/path", 3, "points3d", every=every, color=color, radius=0.12
+                f"world/estimates/{name}/path",
+                3,
+                "points3d",
+                every=every,
+                color=color,
+                radius=0.12 * size,
             ),
             "box": r.series(
                 f"world/estimates/{name}/vehicle",
@@ -251,7 +301,7 @@ class EpisodeLog:
                 "translation",
                 every=every,
                 color=color,
-                half_size=(0.5, 0.35, 0.12),
+                half_size=(0.5 * size, 0.35 * size, 0.12 * size),
             ),
             "pos_norm": r.series(
                 f"errors/{name}/position/norm", 1, names=[f"{name} |e_p|"], color=color

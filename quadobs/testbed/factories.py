@@ -9,6 +9,7 @@ The ``build_*`` functions are the built-in entry points of the group
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -319,6 +320,37 @@ def refined_observer(scenario: Scenario, x0: np.ndarray) -> RefinedObserver:
     return RefinedObserver(obs, s.dynamics, s.outputs, x0=x0, P0=s.P0, gate=scenario.observer.gate)
 
 
+def onboard_ekf(scenario: Scenario, x0: np.ndarray):
+    """The Crazyflie's on-board EKF (:class:`~quadobs.estimators.onboard_ekf.OnboardEKF`) for a quadrotor scenario.
+
+    Its sensor noise is the scenario's: ranges ``noise.range_std`` (1 cm if noise-free),
+    accelerometer and gyroscope the ``[quadrotor]`` white noise with each constant bias
+    matched over a 1 s horizon (``sigma^2 = std^2 + bias^2 (1 s / dt)``, as
+    :func:`quadobs.testbed.imu.input_noise_std` does for the EKF's input); the position
+    and velocity prior as the EKF's (:func:`baseline_settings`); the attitude starts
+    level with 0.05 rad per axis.
+    """
+    from quadobs.estimators.onboard_ekf import OnboardEKF, range_model
+
+    if scenario.kind != "quadrotor":
+        raise QuadobsError(
+            f'onboard-ekf: needs a body IMU (kind = "quadrotor"), not kind = {scenario.kind!r}'
+        )
+    q, dt = scenario.quadrotor, scenario.dt
+    accel = math.sqrt(q.accel_std**2 + q.accel_bias**2 / dt)
+    gyro = math.sqrt(q.gyro_std**2 + q.gyro_bias**2 / dt)
+    std = scenario.noise.range_std or 0.01
+    return OnboardEKF(
+        range_model(scenario.beacons, std),
+        dt,
+        accel_std=accel,
+        gyro_std=gyro,
+        x0=x0,
+        P0=baseline_settings(scenario).P0,
+        gate=scenario.observer.gate,
+    )
+
+
 # -- the built-in entry points: factory(scenario, x0, name) -> Estimator -----------------
 
 
@@ -340,3 +372,4 @@ build_ekf = _entry_point(extended_kalman_filter, "ekf")
 build_ukf = _entry_point(unscented_kalman_filter, "ukf")
 build_zonotope = _entry_point(zonotope_estimator, "zonotope")
 build_refined = _entry_point(refined_observer, "augmented-refined")
+build_onboard_ekf = _entry_point(onboard_ekf, "onboard-ekf")

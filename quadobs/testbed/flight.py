@@ -3,15 +3,20 @@
 Summary (``summary["flight"]``), over the flight ``[takeoff, landing start)``:
 
 * ``tracking_rms``, ``tracking_max``: ``|r(t_k) - p_k|`` (m), reference minus true position;
-* ``crashed`` (and ``crash_time``): the tracking error passed ``control.crash_distance`` or
-  the vehicle turned upside down (the rotors are then stopped);
+* ``crashed`` (and ``crash_time``, ``crash_cause``): the tracking error passed
+  ``control.crash_distance`` or the vehicle turned upside down (the rotors are then
+  stopped); :func:`crash_line` says it in one line beside the printed table;
 * ``time_on_estimate``: seconds flown on an estimate (``control.feedback``);
 * per estimator, ``summary["estimators"][name]["flight_position_rmse"]``: the RMS position
   error over ``[max(takeoff, switch_time), landing start)`` (after convergence).
 
 Recording: ``world/reference/path`` (reference trail), ``world/quadrotor`` (the body with
 its attitude: a ``Transform3D`` per recorded 3-D frame), ``flight/rotors`` (commanded
-thrusts, N), ``flight/tracking_error`` (m), ``flight/on_estimate`` (0/1).
+thrusts, N), ``flight/thrust`` (the rotors' thrusts, N), ``flight/tracking_error`` (m),
+``flight/on_estimate`` (0/1), ``flight/crashed`` (0/1) and, at the crash, a warning
+``events`` message with its time and cause.
+
+:func:`crash_counts` counts a campaign's crashes per estimator flown on.
 """
 
 from __future__ import annotations
@@ -22,7 +27,7 @@ import numpy as np
 
 from quadobs.testbed.sinks import Rows, Sink
 
-__all__ = ["FlightSink"]
+__all__ = ["FlightSink", "crash_counts", "crash_line", "crash_record"]
 
 
 class FlightSink(Sink):
@@ -61,6 +66,11 @@ class FlightSink(Sink):
             "flight/tracking_error", 1, names=["|r - p| (m)"], color=(200, 40, 40)
         )
         self.estimate = r.series("flight/on_estimate", 1, names=["on the estimate"])
+        self.thrust = r.series(
+            "flight/thrust", 4, names=[f"rotor {i} thrust (N)" for i in range(4)]
+        )
+        self.crashed = r.series("flight/crashed", 1, names=["crashed"], color=(200, 0, 0))
+        self.marked = False
         arm = 0.046 * 2
         r.static(
             "world/quadrotor",
@@ -80,6 +90,8 @@ class FlightSink(Sink):
         self.rotors.buf[rows] = raw[:, sp["rotors"]]
         self.tracking.buf[rows, 0] = raw[:, sp["tracking"]][:, 0]
         self.estimate.buf[rows, 0] = raw[:, sp["on_estimate"]][:, 0]
+        self.thrust.buf[rows] = raw[:, sp["thrust"]]
+        self.crashed.buf[rows, 0] = raw[:, sp["crashed"]][:, 0]
 
     def block(self, rows: Rows) -> None:
         w = self.world
@@ -103,6 +115,22 @@ class FlightSink(Sink):
         self.err_n += int(after.sum())
         if self.recording is not None:
             self._attitude(rows, raw)
+            self._mark_crash()
+
+    def _mark_crash(self) -> None:
+        """A warning in the recording's ``events`` at the crash, once."""
+        w = self.world
+        if w.crashed_at is None or self.marked:
+            return
+        self.marked = True
+        dt = self.ctx.frame.dt
+        self.recording.recorder.text(
+            "events",
+            f"crashed at {w.crashed_at * dt:.3f} s: {w.crash_cause}",
+            level="WARN",
+            step=w.crashed_at,
+            time=w.crashed_at * dt,
+        )
 
     def _attitude(self, rows: Rows, raw: np.ndarray) -> None:
         import rerun as rr
@@ -135,6 +163,7 @@ class FlightSink(Sink):
             "tracking_max": self.track_max if self.track_n else None,
             "crashed": crashed,
             "crash_time": w.crashed_at * dt if crashed else None,
+            "crash_cause": w.crash_cause,
             "time_on_estimate": self.on_estimate * dt,
         }
         per = {
@@ -142,3 +171,36 @@ class FlightSink(Sink):
             for name, sq in self.err_sq.items()
         }
         return {"flight": flight, "estimators": per}
+
+
+def crash_line(summary: dict) -> str | None:
+    """``"CRASHED at 6.40 s (flying on augmented): tracking error ..."``, or None for a flight without a crash (or no flight)."""
+    f = summary.get("flight")
+    if not f or not f.get("crashed"):
+        return None
+    on = f["feedback"] if f.get("time_on_estimate") else "truth"
+    return f"CRASHED at {f['crash_time']:.2f} s (flying on {on}): {f.get('crash_cause') or 'unknown cause'}"
+
+
+def crash_counts(flights: list[dict]) -> dict:
+    """Crashes per estimator flown on, over a campaign's flights (``summary["flight"]`` of each run).
+
+    ``flights`` hold at least :func:`crash_record`'s keys. Returns
+    ``{name: {"runs": n, "crashed": k, "crash_times": [...]}}``, ``name`` the estimator
+    flown on (``"truth"`` for flights on the truth only).
+    """
+    out: dict[str, dict] = {}
+    for f in flights:
+        c = out.setdefault(f["flown_on"], {"runs": 0, "crashed": 0, "crash_times": []})
+        c["runs"] += 1
+        if f.get("crashed"):
+            c["crashed"] += 1
+            c["crash_times"].append(float(f["crash_time"]))
+    return out
+
+
+def crash_record(flight: dict) -> dict:
+    """What :func:`crash_counts` needs of one run's ``summary["flight"]``: the estimator flown on and the crash time (NaN: none)."""
+    flown = flight["feedback"] if flight.get("time_on_estimate") else "truth"
+    t = flight.get("crash_time")
+    return {"flown_on": flown, "crash_time": float("nan") if t is None else float(t)}

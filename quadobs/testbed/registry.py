@@ -59,6 +59,7 @@ _BUILTIN = {
     "ukf": "quadobs.testbed.factories:build_ukf",
     "zonotope": "quadobs.testbed.factories:build_zonotope",
     "augmented-refined": "quadobs.testbed.factories:build_refined",
+    "onboard-ekf": "quadobs.testbed.factories:build_onboard_ekf",
 }
 _RUNTIME: dict[str, Factory] = {}
 _REGISTRY = (

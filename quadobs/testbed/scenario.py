@@ -450,6 +450,14 @@ class ControlSpec(_Table):
         1.0,
         description="Tracking error beyond which a flight counts as crashed and the rotors stop (m).",
     )
+    integral_bandwidth: NonNegative = Field(
+        0.5,
+        description="Integral action on the position error, `k_i = integral_bandwidth k_x` (rad/s; 0: none), each axis held within 3 m/s^2.",
+    )
+    rotor_lead: bool = Field(
+        True,
+        description="Invert the identified rotor lag in the thrust commands (`T_c = T_d + tau dT_d/dt`).",
+    )
 
 
 class QuadrotorSpec(_Table):
@@ -482,6 +490,23 @@ class QuadrotorSpec(_Table):
         None,
         description="Attitude sample rate (Hz), dividing the physics rate (default: the physics rate).",
     )
+    rotor_tau_up: Positive | None = Field(
+        None,
+        description="Rotor spin-up time constant at hover (s); default the identified 0.136 s.",
+    )
+    rotor_tau_down: Positive | None = Field(
+        None,
+        description="Rotor spin-down time constant at hover (s); default the identified 0.108 s, or scaled with `rotor_tau_up`.",
+    )
+    mass_scale: Positive = Field(
+        1.0,
+        description="Factor on the vehicle's mass in the physics (the controller keeps 0.0319 kg).",
+    )
+    gust_speed: NonNegative = Field(
+        0.0,
+        description="Amplitude of gusts of wind (m/s) on MuJoCo's fluid model: `w(t) = gust_speed (sin(2 pi t / T), sin(2 pi t / (1.7 T) + 1), 0)`.",
+    )
+    gust_period: Positive = Field(3.0, description="Period `T` of the gusts (s).")
 
     @model_validator(mode="after")
     def _sorted_hovers(self) -> QuadrotorSpec:

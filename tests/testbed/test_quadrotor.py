@@ -31,7 +31,7 @@ def test_the_model_has_the_crazyflie_figures():
     assert body.mass[0] == pytest.approx(0.0319)
     assert np.allclose(body.inertia, [16.8e-6, 16.8e-6, 29.8e-6])
     assert m.nu == 4 and np.allclose(m.actuator_ctrlrange, [0.0, 0.12])
-    assert np.allclose(m.actuator_dynprm[:, 0], 0.06) and m.opt.density > 0 and m.opt.gravity[2] < 0
+    assert np.all(m.actuator_dyntype == 0) and m.opt.density > 0 and m.opt.gravity[2] < 0
     assert np.allclose(np.abs(m.actuator_gear[:, 5]), CRAZYFLIE.torque_ratio)
 
 
@@ -178,7 +178,8 @@ def test_the_excitation_monitor_flags_the_hovers_and_not_the_manoeuvres():
         assert len(inside) == 1, (start, end, low)
         a, b = inside[0]
         assert (
-            start < a <= start + spec.window + sc.quadrotor.hover_ramp + 1.0
+            # the vehicle settles into the hover within 2 s of the reference (rotor lag, position loop)
+            start < a <= start + spec.window + sc.quadrotor.hover_ramp + 2.0
             and end - 1.0 <= b <= end + spec.window
         )
     for a, b in low:  # nothing flagged in the manoeuvres after the take-off
@@ -218,6 +219,8 @@ def test_the_campaign_summarises_the_flights():
             "tracking_max": 0.1,
             "time_on_estimate": 60.0,
             "flight_position_rmse": {"augmented": 0.02},
+            "flown_on": "augmented",
+            "crash_time": float("nan"),
         },
         {
             "crashed": True,
@@ -225,6 +228,8 @@ def test_the_campaign_summarises_the_flights():
             "tracking_max": 1.2,
             "time_on_estimate": 20.0,
             "flight_position_rmse": {"augmented": 0.06},
+            "flown_on": "augmented",
+            "crash_time": 28.0,
         },
         {
             "crashed": False,
@@ -232,10 +237,15 @@ def test_the_campaign_summarises_the_flights():
             "tracking_max": 0.2,
             "time_on_estimate": 60.0,
             "flight_position_rmse": {"augmented": float("nan")},
+            "flown_on": "augmented",
+            "crash_time": float("nan"),
         },
     ]
     s = flight_summary(flights, ["augmented"])
     assert s["runs"] == 3 and s["crashed"] == 1
+    assert s["crashes_by_estimator"] == {
+        "augmented": {"runs": 3, "crashed": 1, "crash_times": [28.0]}
+    }
     assert s["tracking_rms_median"] == pytest.approx(0.07) and s[
         "tracking_rms_max"
     ] == pytest.approx(0.2)
@@ -258,7 +268,7 @@ def test_the_50_flights_on_the_augmented_observer_meet_the_targets():
     ).summary
     f = s["flight"]
     assert s["runs_completed"] == 50 and f["crashed"] == 0
-    assert f["tracking_rms_max"] <= 0.15
+    assert f["tracking_rms_max"] <= 0.10  # with the identified rotor
     for name in ("augmented", "ekf", "ukf"):
         assert f["flight_position_rmse"][name]["max"] <= 0.10, name
 

@@ -80,6 +80,7 @@ from quadobs.studies.campaign.statistics import (
 )
 from quadobs.studies.campaign.storage import CAMPAIGN_FILES, Journal, write_campaign_folder
 from quadobs.testbed.bounds import immersion_bound, scenario_crb
+from quadobs.testbed.flight import crash_record
 from quadobs.testbed.registry import available_estimators, default_estimators, estimator_factory
 from quadobs.testbed.scenario import Scenario, parse_scenario
 
@@ -202,6 +203,7 @@ def _run_flight(summary: dict) -> dict:
         "flight_position_rmse": {
             nm: num(s.get("flight_position_rmse")) for nm, s in summary["estimators"].items()
         },
+        **crash_record(f),
     }
 
 

@@ -11,6 +11,7 @@ import functools
 import numpy as np
 
 from quadobs.evaluation.ensemble import Ensemble, converged_nees, ensemble
+from quadobs.testbed.flight import crash_counts
 from quadobs.testbed.scenario import Scenario
 
 __all__ = ["add_converged_nees", "bound_summary", "ensembles_of", "flight_summary", "sqrt_traces"]
@@ -33,6 +34,7 @@ def flight_summary(flights: list[dict], names: list[str]) -> dict:
         "tracking_rms_max": stat(rms, np.max),
         "tracking_max": stat(np.array([f["tracking_max"] for f in flights]), np.max),
         "time_on_estimate_mean": float(np.mean([f["time_on_estimate"] for f in flights])),
+        "crashes_by_estimator": crash_counts(flights),
         "flight_position_rmse": {
             nm: {
                 "median": stat(a, np.median),

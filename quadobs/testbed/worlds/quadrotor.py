@@ -3,37 +3,45 @@
 Closed loop (:attr:`World.closed_loop`): each physics step ``k`` (time ``t_k``)
 
 1. the controller (:class:`~quadobs.testbed.controllers.GeometricController`, at
-   ``control.rate``) chooses the rotor thrust commands from the reference
+   ``control.rate``) chooses the rotor thrusts (with integral action on the position
+   error, ``control.integral_bandwidth``, and commanded through the lead that inverts
+   the identified rotor lag, :func:`~quadobs.testbed.controllers.lead`) from the reference
    (:class:`~quadobs.testbed.controllers.FlightPlan`) and either the truth or, from
    ``control.switch_time`` on, the position and velocity estimated by the estimator named
    ``control.feedback`` with the attitude and body rates measured one step earlier (as
    the on-board AHRS and gyroscope give them);
 2. the UWB ranges ``|p_k - a_h|`` of the tag (site ``imu``) go through the sensor layer
    (:class:`~quadobs.testbed.sensors.SensorModel`: noise, rate, dropouts, outliers);
-3. ``mj_step``; MuJoCo's sensors then describe ``t_k``: the specific force ``f`` and the
+3. (with ``[quadrotor] gust_speed``) the wind of the gusts is set on MuJoCo's fluid model;
+   the rotors' speeds follow the commands over the step (the identified asymmetric
+   dynamics of :mod:`quadobs.testbed.rotors`, compiled), and their thrusts drive the
+   MuJoCo actuators over the step;
+4. ``mj_step``; MuJoCo's sensors then describe ``t_k``: the specific force ``f`` and the
    body rates in the body frame, the attitude quaternion;
-4. the IMU layer (:class:`~quadobs.testbed.imu.ImuModel`) adds noise and constant biases
+5. the IMU layer (:class:`~quadobs.testbed.imu.ImuModel`) adds noise and constant biases
    to ``f`` and the rates and an attitude error to the quaternion, and the estimators'
    input is the world-frame acceleration rebuilt from them, ``u_k = R~ f~ + g``.
 
 The estimators' model stays the double integrator ``p'' = u``: IMU and attitude errors
 reach them through ``u`` as on a real vehicle.
 
-Steps 1, 2 (the ranges) and 4 run compiled (:mod:`quadobs._kernels.quadrotor`, the same
+Steps 1, 2 (the ranges), 3 and 5 run compiled (:mod:`quadobs._kernels.quadrotor`, the same
 arithmetic as :class:`~quadobs.testbed.controllers.GeometricController` and
 :class:`~quadobs.testbed.imu.ImuModel`) on buffers allocated once.
 """
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import mujoco
 import numpy as np
 
 from quadobs.errors import QuadobsError
-from quadobs.testbed.controllers import CRAZYFLIE, FlightPlan, GeometricController
+from quadobs.testbed.controllers import CRAZYFLIE, LEAD_FILTER, FlightPlan, GeometricController
 from quadobs.testbed.imu import ImuModel
+from quadobs.testbed.rotors import IDENTIFIED, RotorModel
 from quadobs.testbed.scenario import ControlSpec, QuadrotorSpec
 from quadobs.testbed.worlds.base import Columns, World
 
@@ -42,7 +50,7 @@ __all__ = ["FLIGHT_COLUMNS", "QuadrotorWorld", "quadrotor_model_path"]
 _mj_step = mujoco.mj_step
 
 #: The world's own columns: reference position, true attitude quaternion, rotor commands,
-#: tracking error, flown on the estimate (0/1), crashed (0/1).
+#: tracking error, flown on the estimate (0/1), crashed (0/1), the rotors' thrusts (N).
 FLIGHT_COLUMNS = (
     ("reference", 3),
     ("attitude", 4),
@@ -50,6 +58,7 @@ FLIGHT_COLUMNS = (
     ("tracking", 1),
     ("on_estimate", 1),
     ("crashed", 1),
+    ("thrust", 4),
 )
 
 
@@ -62,6 +71,22 @@ def quadrotor_model_path() -> Path:
     raise QuadobsError(
         "model: the built-in quadrotor.xml was not found beside the package (broken installation)"
     )
+
+
+def rotor_model(spec: QuadrotorSpec) -> RotorModel:
+    """The identified rotor (:data:`~quadobs.testbed.rotors.IDENTIFIED`), or its time constants at hover set by ``[quadrotor] rotor_tau_up``/``rotor_tau_down``.
+
+    One of them given alone scales the other by the identified ratio ``tau_d / tau_u``.
+    """
+    up, down = spec.rotor_tau_up, spec.rotor_tau_down
+    if up is None and down is None:
+        return IDENTIFIED
+    tau_u, tau_d = IDENTIFIED.time_constants(CRAZYFLIE.mass)
+    if up is None:
+        up = down * tau_u / tau_d
+    if down is None:
+        down = up * tau_d / tau_u
+    return IDENTIFIED.with_time_constants(CRAZYFLIE.mass, up, down)
 
 
 def _columns(q: int, q_b: int) -> tuple[Columns, dict]:
@@ -107,6 +132,7 @@ class QuadrotorWorld(World):
         path = scenario.model or str(quadrotor_model_path())
         self.model = mujoco.MjModel.from_xml_path(path)
         self.model.opt.timestep = scenario.dt
+        self.rotor = rotor_model(spec)
         self.data = mujoco.MjData(self.model)
         self.dt = scenario.dt
         self._ids(scenario)
@@ -128,6 +154,9 @@ class QuadrotorWorld(World):
         self.events = np.zeros((int(capacity) + 1, 2), dtype=np.int64)
         self._place(scenario)
         self.crashed_at: int | None = None
+        self.crash_cause: str | None = None
+        #: The latest body IMU sample ``(f~ (3), w~ (3))`` (what an IMU-driven estimator holds).
+        self.body_imu = np.zeros(6)
         self._compiled()
 
     def _compiled(self) -> None:
@@ -143,9 +172,23 @@ class QuadrotorWorld(World):
         self._p, self._v = d.qpos[qp : qp + 3], d.qvel[qv : qv + 3]
         self._q, self._w = d.qpos[qp + 3 : qp + 7], d.qvel[qv + 3 : qv + 6]
         self._ranges, self._R, self._Rc = np.zeros(len(self.anchors)), np.eye(3), np.eye(3)
-        self._thrusts = np.zeros(4)
+        self._thrusts, self._thrust, self._speeds = np.zeros(4), np.zeros(4), np.zeros(4)
+        self._commands, self._lead_state = np.zeros(4), np.zeros(8)
+        self._ref, self._acc_i = np.zeros((3, 3)), np.zeros(3)
+        self._ki = self.control.integral_bandwidth * self.ctrl.kx
+        self._rotor = self.rotor.packed()
+        tau_u, tau_d = IDENTIFIED.time_constants(CRAZYFLIE.mass)  # what the controller knows
+        lead_on = self.control.rotor_lead
+        rate = self.control.rate
+        self._lead = (
+            tau_u if lead_on else 0.0,
+            tau_d if lead_on else 0.0,
+            rate,
+            1.0 / (1.0 + LEAD_FILTER * rate),
+        )
         cols, sp = self.columns, self.spans
         self._o_crashed = sp["crashed"].start
+        self._o_thrust = sp["thrust"]
         self._o = (
             sp["reference"].start,
             sp["tracking"].start,
@@ -166,6 +209,8 @@ class QuadrotorWorld(World):
         except KeyError as exc:
             raise QuadobsError(f"model: the quadrotor MJCF lacks an element ({exc})") from None
         self._qp, self._qv = int(joint.qposadr[0]), int(joint.dofadr[0])
+        body = m.body("quadrotor").id
+        m.body_mass[body] *= self.spec.mass_scale
         self.anchors = np.asarray(scenario.beacons, dtype=float)
 
     def _place(self, scenario) -> None:
@@ -213,7 +258,7 @@ class QuadrotorWorld(World):
             self._p,
             self.anchors,
             self.refs[j, 0],
-            self._thrusts,
+            self._commands,
             float(self._on_estimate),
             self._ranges,
             row,
@@ -228,6 +273,18 @@ class QuadrotorWorld(World):
         ev = self.events[j]
         ev[0], ev[1] = s.outliers_injected - o0, s.dropped - d0
         row[self.columns.measured] = s.measured_ranges
+        if self.spec.gust_speed:
+            self._gust(k * self.dt)
+        kq.rotor_step(
+            self._commands,
+            self.crashed_at is None,
+            self._speeds,
+            self._rotor,
+            self.dt,
+            self._thrust,
+        )
+        d.ctrl[self._rotors] = self._thrust
+        row[self._o_thrust] = self._thrust
         _mj_step(self.model, d)
         upside = kq.post_step(
             d.sensordata,
@@ -247,14 +304,24 @@ class QuadrotorWorld(World):
             self._v,
             self.out[j + 1],
         )
+        kq.body_imu(
+            d.sensordata, self._acc, self.noise[j], self._imu, self.rates_meas, self.body_imu
+        )
         if self.crashed_at is None and (err > self.control.crash_distance or upside):
             self.crashed_at = k
+            self.crash_cause = (
+                "turned upside down"
+                if upside
+                else f"tracking error {err:.2f} m > control.crash_distance {self.control.crash_distance:g} m"
+            )
         row[self._o_crashed] = self.crashed_at is not None
 
     def _control(self, k: int, ref: np.ndarray, estimate) -> None:
         self._on_estimate = (
             self.switch_step is not None and k >= self.switch_step and estimate is not None
         )
+        p = estimate[:3] if self._on_estimate else self._p
+        ref = self._integral(ref, p)
         if self.crashed_at is not None:
             self._thrusts[:] = 0.0
         elif self._on_estimate:
@@ -283,7 +350,29 @@ class QuadrotorWorld(World):
                 self.ctrl.mix_inv,
                 self._thrusts,
             )
-        self.data.ctrl[self._rotors] = self._thrusts
+        tu, td, rate, alpha = self._lead
+        self._kq.lead(self._thrusts, self._lead_state, tu, td, rate, alpha, self._commands)
+
+    def _gust(self, t: float) -> None:
+        """The wind of ``[quadrotor] gust_speed`` at ``t`` into MuJoCo's fluid model (``opt.wind``)."""
+        w, T = self.spec.gust_speed, self.spec.gust_period
+        wind = self.model.opt.wind
+        wind[0] = w * math.sin(2.0 * math.pi * t / T)
+        wind[1] = w * math.sin(2.0 * math.pi * t / (1.7 * T) + 1.0)
+
+    def _integral(self, ref: np.ndarray, p: np.ndarray) -> np.ndarray:
+        """The reference with the integral action ``k_i int (r - p) dt`` added to its acceleration.
+
+        Each axis's term is held within 3 m/s^2 (anti-windup). Returns a buffer reused by the next call.
+        """
+        out, acc = self._ref, self._acc_i
+        out[:] = ref
+        if self._ki:
+            period = self.control_every * self.dt
+            for i in range(3):
+                acc[i] = min(max(acc[i] + self._ki * (ref[0, i] - p[i]) * period, -3.0), 3.0)
+            out[2] += acc
+        return out
 
     _on_estimate = False
 
