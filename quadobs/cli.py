@@ -70,16 +70,50 @@ def print_summary(summary: dict, file=sys.stdout) -> None:
         ]
         if wind:
             row.append(_fmt(e.get("final_wind_error")))
+        if e.get("diverged"):  # no figure of a lost estimate (quadobs.testbed.divergence)
+            row[2:] = ["invalid"] * (len(row) - 2)
         rows.append(row)
     widths = [max(len(c), *(len(r[i]) for r in rows)) for i, c in enumerate(cols)]
     print("  ".join(c.ljust(w) for c, w in zip(cols, widths)), file=file)
     for r in rows:
         print("  ".join(v.ljust(w) for v, w in zip(r, widths)), file=file)
+    print_diverged(summary, file)
     if summary.get("recording"):
         print(
             f"recording: {summary['recording']}  (open with: rerun {summary['recording']})",
             file=file,
         )
+
+
+def print_diverged(summary: dict, file=sys.stdout) -> None:
+    """One line per diverged or locked-out estimator (:mod:`quadobs.testbed.divergence`)."""
+    for name, d in summary.get("estimators", {}).items():
+        if isinstance(d, dict) and d.get("diverged"):
+            d = d["diverged"]
+            print(
+                f"{name}: DIVERGED at step {d['step']} (t = {d['t']:.6g} s): {d['reason']}; "
+                "its figures are invalid",
+                file=file,
+            )
+
+
+def diverged_status(summary: dict, requested: list[str] | None) -> int:
+    """1 when an estimator named in ``--estimators`` diverged or locked out (a line on stderr), else 0.
+
+    With the default estimators (``requested`` is ``None``) the table flags them and the
+    status stays 0.
+    """
+    bad = [
+        name
+        for name in requested or ()
+        if (summary.get("estimators", {}).get(name) or {}).get("diverged")
+    ]
+    if bad:
+        print(
+            f"quadobs: error: {', '.join(bad)} diverged; the figures asked for are invalid",
+            file=sys.stderr,
+        )
+    return 1 if bad else 0
 
 
 #: The section 5 reproduction, run by ``quadobs run le2013`` beside the built-in scenarios.
@@ -217,8 +251,13 @@ def _cmd_run(args) -> int:
     sinks = []
     if args.export_log is not None:
         from quadobs.testbed.logs.export import LogExportSink, check_exportable
+        from quadobs.testbed.outputs import check_inside_folders, check_output_folder
 
         check_exportable(scenario)
+        check_output_folder(args.export_log, _LOG_FOLDER_FILES, "--export-log")
+        check_inside_folders(
+            {"--out": args.out, "--summary": args.summary}, {"--export-log": args.export_log}
+        )
         sinks.append(LogExportSink(args.export_log))
     _notice_cost(scenario, estimators, args.out is not None)
     _notice_cold_kernels(_episode_kernels(estimators))
@@ -236,11 +275,15 @@ def _cmd_run(args) -> int:
         raise RunFault(result.summary["output_error"])
     if args.summary:
         print(f"summary: {args.summary}")
+    if "export_error" in result.summary:  # the run's results are kept; the log folder is not
+        raise RunFault(result.summary["export_error"])
     if args.export_log is not None:
         print(
             f"log: {args.export_log}  (replay with: quadobs replay {args.export_log} --dt {scenario.dt:g})"
         )
-    return 130 if result.summary.get("interrupted") else 0
+    if result.summary.get("interrupted"):
+        return 130
+    return diverged_status(result.summary, estimators)
 
 
 def _cmd_excitation(args) -> int:
@@ -779,7 +822,11 @@ def _cmd_replay(args) -> int:
 
     log = open_log(args.log)
     if args.export is not None:
-        write_log(log, args.export)
+        from quadobs.testbed.outputs import check_output_folder, write_folder_staged
+
+        _refuse_with_export(args)
+        check_output_folder(args.export, _LOG_FOLDER_FILES, "--export")
+        write_folder_staged(args.export, lambda tmp: write_log(log, tmp), "--export")
         print(
             f"log {log.name}: {log.ranges.shape[0]} ranges, {log.inputs.shape[0]} inputs written to {args.export}"
         )
@@ -789,7 +836,7 @@ def _cmd_replay(args) -> int:
     from quadobs.testbed.outputs import check_outputs
 
     check_outputs(
-        {"--out": args.out, "--summary": args.summary}
+        {"--out": args.out, "--summary": args.summary}, _log_inputs(log)
     )  # before the calibration's replays
     log_scenario(log, args.dt, args.seed, args.set)  # the --set settings, checked as early
     biases, tuning = _replay_calibration(args, log, parse_tuning(args.tune))
@@ -824,13 +871,53 @@ def _cmd_replay(args) -> int:
             if e.get("batch_rmse") is not None
             else ""
         )
+        if e.get("diverged"):
+            print(f"  {name:10s} rmse invalid (diverged)")
+            continue
         print(
             f"  {name:10s} rmse {_fmt(e['rmse'], ' m')}  max {_fmt(e['max_error'], ' m')}  "
             f"final {_fmt(e['final_position_error'], ' m')}  {e['seconds_per_measurement'] * 1e6:.0f} us/range{extra}"
         )
+    print_diverged(summary)
     if args.summary:
         print(f"summary: {args.summary}")
-    return 130 if summary["interrupted"] else 0
+    if summary["interrupted"]:
+        return 130
+    return diverged_status(summary, _estimator_list(args.estimators))
+
+
+#: The files of a log folder (:mod:`quadobs.testbed.logs.format`), its ``meta.csv`` included.
+_LOG_FOLDER_FILES = (
+    "beacons.csv",
+    "ranges.csv",
+    "inputs.csv",
+    "truth.csv",
+    "meta.csv",
+)
+
+
+def _log_inputs(log) -> dict:
+    """Every file of ``log``'s folder, as inputs no output may name (none for a built-in log)."""
+    from pathlib import Path
+
+    if not log.source or not os.path.isdir(log.source):
+        return {}
+    return {f"log {f}": Path(log.source) / f for f in _LOG_FOLDER_FILES}
+
+
+def _refuse_with_export(args) -> None:
+    """``replay --export`` writes the log and stops: the options of a replay are refused beside it."""
+    from quadobs.errors import QuadobsError
+
+    for flag in ("out", "summary", "estimators", "biases", "model"):
+        if getattr(args, flag) is not None:
+            raise QuadobsError(
+                f"--{flag}: does not apply with --export, which writes the log folder and stops"
+            )
+    if args.tune or args.set:
+        raise QuadobsError(
+            f"--{'tune' if args.tune else 'set'}: does not apply with --export, which writes the log folder and stops"
+        )
 
 
 def _replay_calibration(args, log, tuning: dict) -> tuple[list[float] | None, dict]:
