@@ -136,11 +136,22 @@ def _cmd_compile(args) -> int:
     import time
 
     from quadobs._kernels import cold_kernels
+    from quadobs._kernels.cache import cache_folders, heal, writable
     from quadobs._kernels.precompile import SIGNATURES, compile_side_by_side
+    from quadobs.errors import RunFault
 
     t0 = time.perf_counter()
+    folders = cache_folders(SIGNATURES)
+    for line in heal(folders):
+        print(f"quadobs: note: {line}", file=sys.stderr, flush=True)
     todo = list(SIGNATURES) if args.force else cold_kernels(SIGNATURES)
+    for folder in folders if todo else ():
+        reason = writable(folder)
+        if reason is not None:
+            raise RunFault(f"kernel cache {folder}: cannot be written ({reason})")
     done = compile_side_by_side(todo)
+    for line in heal(folders):  # what was written is read back before it is counted as cached
+        print(f"quadobs: note: {line}", file=sys.stderr, flush=True)
     left = cold_kernels(SIGNATURES)
     print(
         f"quadobs compile: {len(done)} of {len(todo)} kernels compiled in {time.perf_counter() - t0:.1f} s; "
@@ -457,11 +468,39 @@ def _notice_cold_kernels(kernels, file=None) -> bool:
     from quadobs._kernels import cold_kernels
     from quadobs._kernels.precompile import compile_side_by_side
 
+    if not _heal_kernel_cache(kernels, file):  # the cache is bypassed: nothing to compile ahead
+        return False
     cold = cold_kernels(kernels)
     if not cold:
         return False
     print(COMPILING_NOTICE, file=file or sys.stderr, flush=True)
     compile_side_by_side(cold)
+    return True
+
+
+def _heal_kernel_cache(kernels, file=None) -> bool:
+    """Remove unreadable entries of the kernels' cache (one line each); bypass a cache that cannot
+    be written (one line). False when the cache is bypassed (:mod:`quadobs._kernels.cache`)."""
+    from quadobs._kernels import cold_kernels
+    from quadobs._kernels.cache import bypass, cache_folders, heal, writable
+
+    file = file or sys.stderr
+    folders = cache_folders(kernels)
+    for line in heal(folders):
+        print(f"quadobs: note: {line}", file=file, flush=True)
+    if not cold_kernels(kernels):
+        return True
+    for folder in folders:
+        reason = writable(folder)
+        if reason is not None:
+            bypass()
+            print(
+                f"quadobs: note: the kernel cache {folder} cannot be written ({reason}); "
+                "the kernels are compiled for this run only, uncached",
+                file=file,
+                flush=True,
+            )
+            return False
     return True
 
 
@@ -839,6 +878,7 @@ def _cmd_replay(args) -> int:
         {"--out": args.out, "--summary": args.summary}, _log_inputs(log)
     )  # before the calibration's replays
     log_scenario(log, args.dt, args.seed, args.set)  # the --set settings, checked as early
+    _notice_cold_kernels(EPISODE_KERNELS + AUGMENTED_KERNELS)
     biases, tuning = _replay_calibration(args, log, parse_tuning(args.tune))
     stop_if_interrupted()
     summary = run_replay(
