@@ -859,6 +859,7 @@ def _cmd_replay(args) -> int:
     """``quadobs replay LOG``: export the log, or replay it and print one row per estimator."""
     from quadobs.testbed.logs import open_log, write_log
 
+    _check_replay_numbers(args)
     log = open_log(args.log)
     if args.export is not None:
         from quadobs.testbed.outputs import check_output_folder, write_folder_staged
@@ -945,6 +946,50 @@ def _log_inputs(log) -> dict:
     return {f"log {f}": Path(log.source) / f for f in _LOG_FOLDER_FILES}
 
 
+#: Largest magnitude of a ``--tune`` value (squares and products of it stay finite).
+TUNE_MAX = 1e12
+
+
+def _check_replay_numbers(args) -> None:
+    """``--dt`` finite and positive, ``--initial-offset`` finite, ``--biases`` finite numbers, ``--tune``
+    values finite and within :data:`TUNE_MAX`: one-line errors before the log is read."""
+    import math
+
+    from quadobs.errors import QuadobsError
+
+    if not (math.isfinite(args.dt) and args.dt >= 1e-6):
+        raise QuadobsError(
+            f"--dt: the replay grid step must be a number of seconds of at least 1e-06, got {args.dt:g}"
+        )
+    if not math.isfinite(args.initial_offset):
+        raise QuadobsError(
+            f"--initial-offset: expected a finite distance (m), got {args.initial_offset:g}"
+        )
+    for text in (args.biases or "").split(",") if args.biases is not None else ():
+        try:
+            value = float(text)
+        except ValueError:
+            continue  # the calibration names a value that is not a number
+        if not math.isfinite(value):
+            raise QuadobsError(f"--biases: {text.strip()!r} is not a finite number (m)")
+    for text in args.set:
+        path = text.partition("=")[0].strip()
+        if not path.startswith("noise.") or path == "noise.":
+            raise QuadobsError(
+                f"--set {path}: does not apply to a replay (only noise.FIELD=VALUE settings do)"
+            )
+    for text in args.tune:
+        key, _, raw = text.partition("=")
+        try:
+            value = float(raw)
+        except ValueError:
+            continue  # parse_tuning names it
+        if not (math.isfinite(value) and abs(value) <= TUNE_MAX):
+            raise QuadobsError(
+                f"--tune {key.strip()}: expected a finite number of magnitude at most {TUNE_MAX:g}, got {raw.strip()!r}"
+            )
+
+
 def _refuse_with_export(args) -> None:
     """``replay --export`` writes the log and stops: the options of a replay are refused beside it."""
     from quadobs.errors import QuadobsError
@@ -1013,7 +1058,7 @@ def _run_command(argv: list[str] | None) -> int:
     args = build_parser().parse_args(argv)
     try:
         with new_folders_removed_on_failure(*_output_paths(args)):
-            return args.func(args)
+            return _without_exit(args.func, args)
     except Exception as exc:
         if caused_by_interrupt(exc):
             raise KeyboardInterrupt from exc
@@ -1027,6 +1072,20 @@ def _run_command(argv: list[str] | None) -> int:
             os.dup2(devnull, sys.stdout.fileno())
             return 141
         raise
+
+
+def _without_exit(func, args) -> int:
+    """``func(args)``; a ``SystemExit`` from inside the command (a plugin calling ``sys.exit``) is a
+    fault of the run (:class:`~quadobs.errors.RunFault`), not the command's own status."""
+    from quadobs.errors import RunFault
+
+    try:
+        return func(args)
+    except SystemExit as exc:
+        raise RunFault(
+            f"the command was ended from inside by SystemExit({exc.code!r}) (a plugin calling "
+            "sys.exit?); no result was written"
+        ) from None
 
 
 def _exit_status(exc: SystemExit) -> int:

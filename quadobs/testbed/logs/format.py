@@ -264,8 +264,13 @@ def _read_meta(folder: Path) -> dict[str, str]:
     path = folder / "meta.csv"
     if not path.exists():
         raise QuadobsError(f"{path}: missing (key,value rows: name; heading0 for an odometry log)")
-    with path.open(newline="") as fh:
-        rows = list(csv.reader(fh))
+    try:  # not UTF-8, a folder, unreadable: one line naming the file
+        with path.open(newline="") as fh:
+            rows = list(csv.reader(fh))
+    except OSError as exc:
+        raise QuadobsError(f"{path}: cannot be read ({exc.strerror or exc})") from None
+    except (UnicodeDecodeError, csv.Error) as exc:
+        raise QuadobsError(f"{path}: not a CSV text file ({exc})") from None
     if not rows or [h.strip() for h in rows[0]] != ["key", "value"]:
         raise QuadobsError(f"{path}, row 1: expected the header key,value")
     meta = {}

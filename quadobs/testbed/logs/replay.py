@@ -89,6 +89,13 @@ def log_scenario(log, dt: float, seed: int = 0, settings=()):
         physics_rate=1.0 / dt,
         seed=int(seed),
         beacons=[{"position": [float(a) for a in b]} for b in log.beacons],
+        # no excitation monitor in a replay: its grid made whole multiples of any dt
+        excitation={
+            "monitor": False,
+            "step": dt,
+            "window": max(round(5.0 / dt), 2) * dt,
+            "update_period": max(round(0.1 / dt), 1) * dt,
+        },
     )
     return parse_scenario(data, source=log.source)
 
