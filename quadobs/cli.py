@@ -528,6 +528,11 @@ def _cmd_plot(args) -> int:
                 f"{name}: expected numbers separated by commas, got {text!r}"
             ) from None
 
+    from quadobs.testbed.outputs import check_outputs
+
+    check_outputs(
+        {"--out": args.out}, {"input": args.input}
+    )  # as run: read-only, devices, the input
     what = None if args.what is None else [w.strip() for w in args.what.split(",") if w.strip()]
     size = None if args.size is None else numbers(args.size, float, "--size")
     samples = None if args.samples is None else numbers(args.samples, int, "--samples")
@@ -976,7 +981,7 @@ def _check_replay_numbers(args) -> None:
         path = text.partition("=")[0].strip()
         if not path.startswith("noise.") or path == "noise.":
             raise QuadobsError(
-                f"--set {path}: does not apply to a replay (only noise.FIELD=VALUE settings do)"
+                f"--set: {path}: does not apply to a replay (only noise.* settings do)"
             )
     for text in args.tune:
         key, _, raw = text.partition("=")
@@ -1067,11 +1072,41 @@ def _run_command(argv: list[str] | None) -> int:
         ):  # a run that could not go on (1), bad input (2)
             print(f"quadobs: error: {exc}", file=sys.stderr)
             return 1 if isinstance(exc, RunFault) else 2
+        if _out_of_resources(exc):  # ulimit -n, ulimit -v: the system refused, the run stopped (1)
+            print(f"quadobs: error: {_out_of_resources(exc)}", file=sys.stderr)
+            return 1
         if isinstance(exc, BrokenPipeError):  # output piped into a reader that stopped (e.g. head)
             devnull = os.open(os.devnull, os.O_WRONLY)
             os.dup2(devnull, sys.stdout.fileno())
             return 141
         raise
+
+
+def _out_of_resources(exc: BaseException) -> str | None:
+    """One line for an error that says the system ran out of file descriptors or memory, else ``None``.
+
+    ``MemoryError``, an ``OSError`` with ``EMFILE``, ``ENFILE`` or ``ENOMEM``, and an error of a
+    library (an ``ImportError`` of a shared object that cannot be mapped, a rerun error)
+    whose message says the same are such errors: limits of the process (``ulimit -n``,
+    ``ulimit -v``), not faults of the input.
+    """
+    import errno
+
+    limits = {errno.EMFILE: "ulimit -n", errno.ENFILE: "ulimit -n", errno.ENOMEM: "ulimit -v"}
+    text = str(exc).splitlines()[0] if str(exc) else ""
+    if isinstance(exc, MemoryError):
+        return "out of memory (the address space or the machine's memory; see ulimit -v); the command stopped"
+    if isinstance(exc, OSError) and exc.errno in limits:
+        return f"{exc.strerror} (see {limits[exc.errno]}); the command stopped"
+    for phrase, limit in (
+        ("Too many open files", "ulimit -n"),
+        ("Cannot allocate memory", "ulimit -v"),
+        ("failed to map segment", "ulimit -v"),
+        ("Could not find/load shared object", "ulimit -v"),
+    ):
+        if phrase.lower() in text.lower():
+            return f"{type(exc).__name__}: {text[:200]} (see {limit}); the command stopped"
+    return None
 
 
 def _without_exit(func, args) -> int:

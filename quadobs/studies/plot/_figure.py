@@ -178,9 +178,15 @@ def save_figure(fig, out: str | Path, dpi: float) -> Path:
         os.umask(mask)
         os.chmod(tmp, 0o666 & ~mask)
         os.replace(tmp, out)
-    except BaseException:
+    except BaseException as exc:
         Path(tmp).unlink(missing_ok=True)
         _remove_dirs(made)
+        if isinstance(exc, OSError):  # a full disk, a file size limit: a fault, in one line
+            from quadobs.errors import RunFault
+
+            raise RunFault(
+                f"--out {str(out)!r}: cannot be written ({exc.strerror or exc}); the previous file is unchanged"
+            ) from None
         raise
     return out
 
