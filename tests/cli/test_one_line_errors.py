@@ -149,3 +149,23 @@ def test_a_plugin_calling_sys_exit_mid_run_is_reported(plugins, tmp_path, capsys
     )  # fmt: skip
     _one_line(capsys, code, 1, "SystemExit(0)")
     assert not js.exists()
+
+
+@pytest.mark.parametrize(
+    ("fname", "content", "words"),
+    [
+        ("beacons.csv", "id,x,y\n1e19,0,0\n2e19,1,1\n", ("beacons.csv", "1e+19", "2^63")),
+        ("meta.csv", "key,value\nname,\x1b[31mred\x1b[0m\n", ("meta.csv", "control characters")),
+    ],
+)
+def test_huge_ids_and_escape_sequences_in_a_log_are_refused(
+    log_folder, tmp_path, capsys, fname, content, words
+):
+    import shutil
+
+    folder = tmp_path / "L"
+    shutil.copytree(log_folder, folder)
+    (folder / fname).write_text(content)
+    code = main(["replay", str(folder), "--calibrate", "none"])
+    line = _one_line(capsys, code, 2, *words)
+    assert "\x1b" not in line

@@ -317,14 +317,16 @@ def read_log(folder: str | Path) -> RangeLog:
         tables[fname] = _read_csv(folder, fname)
     ids = tables["beacons.csv"][1][:, 0]
     for r, i in enumerate(ids):
-        if i != int(i):
+        if i != int(i) or not -(2**63) <= i < 2**63:  # 1e19 would wrap in int64
             raise QuadobsError(
-                f"{folder / 'beacons.csv'}, row {r + 2}, column id: {i!r} is not an integer"
+                f"{folder / 'beacons.csv'}, row {r + 2}, column id: {float(i)!r} is not an integer below 2^63 in size"
             )
     meta = _read_meta(folder)
     kind = "odometry" if tables["inputs.csv"][0][1] == "speed" else "imu"
     truth_header, truth = tables.get("truth.csv", ((), None))
     name = meta.get("name", folder.name)
+    if any(not ch.isprintable() for ch in name):  # an escape sequence would reach the terminal
+        raise QuadobsError(f"{folder / 'meta.csv'}, key name: {name!r} holds control characters")
     try:
         return RangeLog(
             name,
