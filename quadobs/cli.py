@@ -1079,7 +1079,16 @@ def _run_command(argv: list[str] | None) -> int:
             devnull = os.open(os.devnull, os.O_WRONLY)
             os.dup2(devnull, sys.stdout.fileno())
             return 141
-        raise
+        if os.environ.get("QUADOBS_TRACEBACK"):
+            raise
+        # anything else (a plugin's estimator raising mid-run, a fault of quadobs): one line, status 1
+        text = str(exc).splitlines()[0] if str(exc) else ""
+        print(
+            f"quadobs: error: unexpected {type(exc).__name__}: {text[:300]} "
+            "(the run stopped; QUADOBS_TRACEBACK=1 shows where)",
+            file=sys.stderr,
+        )
+        return 1
 
 
 def _out_of_resources(exc: BaseException) -> str | None:
