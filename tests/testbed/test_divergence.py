@@ -77,3 +77,60 @@ def test_invalidate_keeps_counters():
         "rejected": 4,
         "time_to_5m": None,
     }
+
+
+def _lockout_sink(names=("a",)):
+    from types import SimpleNamespace
+
+    from quadobs.testbed.divergence import DivergenceSink
+
+    sink = DivergenceSink()
+    sink.begin(SimpleNamespace(names=list(names), frame=SimpleNamespace(dt=0.1, steps=1000)))
+    return sink
+
+
+def test_a_gate_that_rejects_everything_from_some_step_on_is_a_lockout():
+    sink = _lockout_sink()
+    ks = np.arange(100)
+    nis = np.where(ks % 2 == 0, 1.0, np.nan)  # a correction every other step
+    rejected = np.cumsum((ks >= 40) & (ks % 2 == 0)).astype(float)  # all refused from step 40
+    sink._lockout("a", nis[:60], rejected[:60], ks[:60])  # across two blocks
+    sink._lockout("a", nis[60:], rejected[60:], ks[60:])
+    found = sink.end(100, False)["estimators"]["a"]["diverged"]
+    assert found["step"] == 40 and "last 30 corrections" in found["reason"]
+
+
+def test_scattered_rejections_and_a_short_final_run_are_no_lockout():
+    sink = _lockout_sink(["scattered", "short"])
+    ks = np.arange(100)
+    nis = np.ones(100)
+    sink._lockout("scattered", nis, np.cumsum(ks % 3 == 0).astype(float), ks)
+    sink._lockout("short", nis, np.cumsum(ks >= 95).astype(float), ks)  # 5 < LOCKOUT_MIN
+    per = sink.end(100, False)["estimators"]
+    assert per["scattered"]["diverged"] is None and per["short"]["diverged"] is None
+
+
+def test_a_diverged_replay_estimator_named_on_the_command_line_exits_1(
+    tmp_path, capsys, monkeypatch
+):
+    from quadobs.cli import main
+    from quadobs.testbed.logs import estimators as replay_estimators
+
+    folder = tmp_path / "log"
+    assert (
+        main(["run", "ifac2021", "--duration", "0.3", "--no-progress", "--export-log", str(folder)])
+        == 0
+    )
+    monkeypatch.setitem(
+        replay_estimators.REPLAY_ESTIMATORS, "runaway", lambda s, x0, nm: Runaway(x0, 2, np.nan)
+    )
+    js = tmp_path / "r.json"
+    argv = ["replay", str(folder), "--calibrate", "none", "--dt", "0.01", "--no-progress"]
+    assert main([*argv, "--estimators", "augmented,runaway", "--summary", str(js)]) == 1
+    captured = capsys.readouterr()
+    assert "runaway: DIVERGED at step" in captured.out and "rmse invalid" in captured.out
+    assert "runaway diverged" in captured.err
+    import json
+
+    entry = json.loads(js.read_text())["estimators"]["runaway"]
+    assert entry["rmse"] is None and entry["diverged"]["reason"] == "non-finite estimate"
