@@ -1140,8 +1140,10 @@ def _exit_status(exc: SystemExit) -> int:
 def main(argv: list[str] | None = None) -> int:
     """The ``quadobs`` command line: run ``argv`` (default ``sys.argv[1:]``); returns the exit status.
 
-    0: done; 1: a run that started and could not go on (a full disk, a physics fault); 2: bad
-    input (one line on stderr); 130: stopped by SIGINT (Ctrl-C) or SIGTERM, what was done kept.
+    0: done; 1: a run that started and could not go on (a full disk, a physics fault), or an
+    estimator named in ``--estimators`` that diverged or locked out (its outputs written,
+    :mod:`quadobs.testbed.divergence`); 2: bad input (one line on stderr); 130: stopped by
+    SIGINT (Ctrl-C) or SIGTERM, what was done kept.
 
     Its first act is to take SIGINT and SIGTERM, before anything heavy is imported (this
     module and :mod:`quadobs.errors` load the standard library alone), so a signal at any
