@@ -16,11 +16,12 @@ An estimator has *diverged* at the first step ``k`` where
   ``e_p,0`` the initial error: a hundred times the size of the scene, which no estimate of a
   vehicle among those beacons reaches unless it is lost (:func:`error_bound`).
 
-An estimator is *locked out* when it rejected every correction it was offered from step
-``k`` to the end, and that stretch holds at least :data:`LOCKOUT_MIN` corrections and at
-least half of all the corrections the run offered it (``"locked out"``): its gate refused
-the measurements and it ran on its model alone. A correction is offered at a step where
-the estimator's NIS is finite; it is rejected when its rejected count grows at that step.
+An estimator is *locked out* when, over the second half of the run (from the first of
+:data:`BINS` equal bins of steps that starts at or after ``K / 2``), it was offered at least
+:data:`LOCKOUT_MIN` corrections and rejected at least :data:`LOCKOUT_SHARE` (90 %) of them
+(``"locked out"``, the step being the start of that half): its gate refused the
+measurements and it ran on its model alone. A correction is offered at a step where the
+estimator's NIS is finite; it is rejected when its rejected count grows at that step.
 
 Either way the estimator's summary gets ``diverged = {"step", "t", "reason"}`` and every
 error figure (``rmse``, ``max_error``, ``final_*_error``, ``time_to_*``, ...) becomes
@@ -37,8 +38,10 @@ import numpy as np
 from quadobs.testbed.sinks import EpisodeContext, Rows, Sink
 
 __all__ = [
+    "BINS",
     "BOUND_FACTOR",
     "LOCKOUT_MIN",
+    "LOCKOUT_SHARE",
     "DivergenceSink",
     "diverged_estimators",
     "error_bound",
@@ -47,8 +50,10 @@ __all__ = [
 
 #: The divergence bound in sizes of the scene (:func:`error_bound`).
 BOUND_FACTOR = 100.0
-#: Fewest rejected corrections in a row, to the end of the run, that make a lock-out.
-LOCKOUT_MIN = 10
+#: Fewest corrections offered in the run's second half for a lock-out, and the share of them refused.
+LOCKOUT_MIN, LOCKOUT_SHARE = 10, 0.9
+#: Bins of steps over which the corrections offered and refused are counted.
+BINS = 64
 
 
 def error_bound(beacons: np.ndarray, initial_error: float) -> float:
@@ -77,9 +82,9 @@ class DivergenceSink(Sink):
         super().begin(ctx)
         self.bound = math.nan  # set from the first row's error
         self.found: dict[str, dict] = {}
-        # per estimator: corrections offered, rejected in a row to now, first step of that run
-        self.offered = dict.fromkeys(ctx.names, 0)
-        self.run = {n: [0, -1] for n in ctx.names}
+        # per estimator: corrections offered and refused per bin of steps, the rejected count so far
+        self.offered = {n: np.zeros(BINS, dtype=np.int64) for n in ctx.names}
+        self.refused = {n: np.zeros(BINS, dtype=np.int64) for n in ctx.names}
         self.last_rejected = dict.fromkeys(ctx.names, 0.0)
 
     def block(self, rows: Rows) -> None:
@@ -116,36 +121,36 @@ class DivergenceSink(Sink):
                     }
 
     def _lockout(self, name: str, nis: np.ndarray, rejected: np.ndarray, ks: np.ndarray) -> None:
+        """Corrections offered and refused by ``name`` in the rows' steps, counted per bin of steps."""
         offered = np.isfinite(nis)
         if not offered.any() or np.all(np.isnan(rejected)):
             return
         prev = np.concatenate(([self.last_rejected[name]], rejected[:-1]))
         refused = offered & (rejected > prev)
-        accepted = offered & ~refused
         self.last_rejected[name] = float(rejected[-1])
-        self.offered[name] += int(offered.sum())
-        run = self.run[name]
-        if accepted.any():
-            last = int(np.flatnonzero(accepted)[-1])
-            after = refused[last + 1 :]
-            run[0] = int(after.sum())
-            run[1] = int(ks[last + 1 + int(np.argmax(after))]) if after.any() else -1
-        elif refused.any():
-            if run[0] == 0:
-                run[1] = int(ks[int(np.argmax(refused))])
-            run[0] += int(refused.sum())
+        bins = ks * BINS // max(self.ctx.frame.steps, 1)
+        np.add.at(self.offered[name], bins[offered], 1)
+        np.add.at(self.refused[name], bins[refused], 1)
+
+    def _locked_out(self, name: str, completed: int) -> dict | None:
+        """The lock-out entry of ``name`` (module docstring), over the bins of the run's second half."""
+        steps = max(self.ctx.frame.steps, 1)
+        first = -(-BINS * (completed // 2) // steps)  # the first bin starting at or after K/2
+        offered = int(self.offered[name][first:].sum())
+        refused = int(self.refused[name][first:].sum())
+        if offered < LOCKOUT_MIN or refused < LOCKOUT_SHARE * offered:
+            return None
+        k = -(-first * steps // BINS)
+        return {
+            "step": k,
+            "t": k * self.ctx.frame.dt,
+            "reason": f"locked out: rejected {refused} of the {offered} corrections offered from step {k} on",
+        }
 
     def end(self, completed: int, interrupted: bool) -> dict:
         per = {}
         for name in self.ctx.names:
-            found = self.found.get(name)
-            count, first = self.run[name]
-            if found is None and count >= max(LOCKOUT_MIN, 0.5 * self.offered[name]):
-                found = {
-                    "step": first,
-                    "t": first * self.ctx.frame.dt,
-                    "reason": f"locked out: rejected all of the last {count} corrections",
-                }
+            found = self.found.get(name) or self._locked_out(name, completed)
             per[name] = {"diverged": found}
         return {"estimators": per}
 

@@ -89,25 +89,27 @@ def _lockout_sink(names=("a",)):
     return sink
 
 
-def test_a_gate_that_rejects_everything_from_some_step_on_is_a_lockout():
-    sink = _lockout_sink()
-    ks = np.arange(100)
+def test_a_gate_that_rejects_nearly_everything_in_the_second_half_is_a_lockout():
+    sink = _lockout_sink()  # 1000 steps, 64 bins: the second half starts at step 500
+    ks = np.arange(1000)
     nis = np.where(ks % 2 == 0, 1.0, np.nan)  # a correction every other step
-    rejected = np.cumsum((ks >= 40) & (ks % 2 == 0)).astype(float)  # all refused from step 40
-    sink._lockout("a", nis[:60], rejected[:60], ks[:60])  # across two blocks
-    sink._lockout("a", nis[60:], rejected[60:], ks[60:])
-    found = sink.end(100, False)["estimators"]["a"]["diverged"]
-    assert found["step"] == 40 and "last 30 corrections" in found["reason"]
+    refused = (ks >= 400) & (ks % 2 == 0) & (ks % 50 != 0)  # all but one in 25 from step 400
+    rejected = np.cumsum(refused).astype(float)
+    sink._lockout("a", nis[:600], rejected[:600], ks[:600])  # across two blocks
+    sink._lockout("a", nis[600:], rejected[600:], ks[600:])
+    found = sink.end(1000, False)["estimators"]["a"]["diverged"]
+    assert found["step"] == 500 and "rejected 240 of the 250 corrections" in found["reason"]
 
 
 def test_scattered_rejections_and_a_short_final_run_are_no_lockout():
-    sink = _lockout_sink(["scattered", "short"])
-    ks = np.arange(100)
-    nis = np.ones(100)
+    sink = _lockout_sink(["scattered", "short", "none"])
+    ks = np.arange(1000)
+    nis = np.ones(1000)
     sink._lockout("scattered", nis, np.cumsum(ks % 3 == 0).astype(float), ks)
-    sink._lockout("short", nis, np.cumsum(ks >= 95).astype(float), ks)  # 5 < LOCKOUT_MIN
-    per = sink.end(100, False)["estimators"]
-    assert per["scattered"]["diverged"] is None and per["short"]["diverged"] is None
+    sink._lockout("short", nis, np.cumsum(ks >= 800).astype(float), ks)  # the last 200 of 500
+    sink._lockout("none", np.full(1000, np.nan), np.zeros(1000), ks)
+    per = sink.end(1000, False)["estimators"]
+    assert all(per[n]["diverged"] is None for n in ("scattered", "short", "none"))
 
 
 def test_a_diverged_replay_estimator_named_on_the_command_line_exits_1(
