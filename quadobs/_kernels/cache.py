@@ -141,7 +141,8 @@ def bypass() -> int:
         if not name.startswith("quadobs") or module is None:
             continue
         for value in list(vars(module).values()):
-            if isinstance(value, Dispatcher) and not isinstance(value._cache, NullCache):
-                value._cache = NullCache()
+            cache = getattr(value, "_cache", None) if isinstance(value, Dispatcher) else None
+            if cache is not None and not isinstance(cache, NullCache):
+                value._cache = NullCache()  # type: ignore[attr-defined]
                 count += 1
     return count

@@ -119,7 +119,7 @@ def clean_leftovers(target: Path) -> list[Path]:
     considered, and one is removed only when no process with its pid exists (a running
     writer's file stays).
     """
-    removed = []
+    removed: list[Path] = []
     try:
         entries = list(os.scandir(target.parent))
     except OSError:
