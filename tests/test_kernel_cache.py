@@ -96,3 +96,21 @@ def test_bypass_turns_the_cache_off_for_the_loaded_kernels():
         timeout=120,
     )
     assert out.stdout.split() == ["True", "True"], out.stderr
+
+
+@pytest.mark.slow
+def test_compile_heals_a_corrupt_entry_and_reports_what_it_read_back(tmp_path, cli_process):
+    """A cache of its own (NUMBA_CACHE_DIR), compiled, one data file damaged: ``quadobs compile`` says
+    so in one line, compiles that kernel again and counts every kernel as cached (minutes)."""
+    env = {"NUMBA_CACHE_DIR": str(tmp_path)}
+    proc = cli_process("compile", env=env)
+    out, err = proc.communicate(timeout=1200)
+    assert proc.returncode == 0 and "7 of 7 in the cache" in out, err
+    (data,) = [p for p in tmp_path.rglob("observer.range_outputs-*.1.nbc")]
+    with open(data, "r+b") as fh:
+        fh.write(bytes(range(256)) * 4)
+    proc = cli_process("compile", env=env)
+    out, err = proc.communicate(timeout=1200)
+    notes = [ln for ln in err.splitlines() if ln.startswith("quadobs: note: kernel cache entry")]
+    assert proc.returncode == 0 and len(notes) == 1 and "range_outputs" in notes[0], err
+    assert "1 of 1 kernels compiled" in out and "7 of 7 in the cache" in out, out
