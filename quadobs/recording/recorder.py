@@ -283,9 +283,12 @@ class Recorder:
         self._discard = weakref.finalize(self, _remove, self.staging)
         self.published = False
         self._check_headroom()
-        self.rec = rr.RecordingStream(application_id, recording_id=recording_id)
         try:
-            self.rec.save(self._file.fifo, default_blueprint=blueprint)
+            # a stop waits until rerun has its file and the blueprint (a Ctrl-C in between made
+            # rerun drop what it had buffered, with a warning of its own on stderr)
+            with deferred_interrupts():
+                self.rec = rr.RecordingStream(application_id, recording_id=recording_id)
+                self.rec.save(self._file.fifo, default_blueprint=blueprint)
         except Exception as exc:  # rerun could not open its end (ulimit -n): nothing left behind
             self._file.release()
             self._file.finish(1.0)
