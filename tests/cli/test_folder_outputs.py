@@ -138,3 +138,14 @@ def test_export_log_on_a_full_disk_keeps_the_runs_results(log_folder, tmp_path, 
     assert "cannot be written" in summary["export_error"] and summary["final_position_error"] > 0
     assert _snapshot(target) == before
     assert sorted(p.name for p in tmp_path.iterdir()) == ["B", "r.json"]
+
+
+def test_the_library_replay_also_refuses_the_logs_meta_file(log_folder):
+    from quadobs import QuadobsError
+    from quadobs.testbed.logs import read_log
+    from quadobs.testbed.logs.replay import run_replay
+
+    before = (log_folder / "meta.csv").read_bytes()
+    with pytest.raises(QuadobsError, match="meta.csv"):
+        run_replay(read_log(log_folder), summary_path=log_folder / "meta.csv")
+    assert (log_folder / "meta.csv").read_bytes() == before

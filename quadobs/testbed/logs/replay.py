@@ -153,7 +153,9 @@ def run_replay(
     from quadobs.testbed.worlds.replay import ReplayWorld, default_model
 
     names = list(estimators) if estimators else list(DEFAULT_ESTIMATORS)
-    inputs = {f"log {f}": Path(log.source) / f for f in LOG_FILES} if log.source else {}
+    inputs = (
+        {f"log {f}": Path(log.source) / f for f in (*LOG_FILES, "meta.csv")} if log.source else {}
+    )  # every file of the log, its meta.csv included
     check_outputs({"summary": summary_path, "recording": out}, inputs)
     sensors = SensorModel(log_scenario(log, dt, seed, settings))
     world = ReplayWorld(
