@@ -78,12 +78,15 @@ def print_summary(summary: dict, file=sys.stdout) -> None:
         ]
         if wind:
             row.append(_fmt(e.get("final_wind_error")))
+        if e.get("diverged"):  # no figure of a lost estimate (quadobs.testbed.divergence)
+            row[2:] = ["invalid"] * (len(row) - 2)
         rows.append(row)
     widths = [max(len(c), *(len(r[i]) for r in rows)) for i, c in enumerate(cols)]
     print("  ".join(c.ljust(w) for c, w in zip(cols, widths)), file=file)
     for r in rows:
         print("  ".join(v.ljust(w) for v, w in zip(r, widths)), file=file)
     _print_crash(summary, file)
+    print_diverged(summary, file)
     if summary.get("recording"):
         print(
             f"recording: {summary['recording']}  (open with: rerun {summary['recording']})",
@@ -98,6 +101,37 @@ def _print_crash(summary: dict, file) -> None:
     line = crash_line(summary)
     if line is not None:
         print(line, file=file)
+
+
+def print_diverged(summary: dict, file=sys.stdout) -> None:
+    """One line per diverged or locked-out estimator (:mod:`quadobs.testbed.divergence`)."""
+    for name, d in summary.get("estimators", {}).items():
+        if isinstance(d, dict) and d.get("diverged"):
+            d = d["diverged"]
+            print(
+                f"{name}: DIVERGED at step {d['step']} (t = {d['t']:.6g} s): {d['reason']}; "
+                "its figures are invalid",
+                file=file,
+            )
+
+
+def diverged_status(summary: dict, requested: list[str] | None) -> int:
+    """1 when an estimator named in ``--estimators`` diverged or locked out (a line on stderr), else 0.
+
+    With the default estimators (``requested`` is ``None``) the table flags them and the
+    status stays 0.
+    """
+    bad = [
+        name
+        for name in requested or ()
+        if (summary.get("estimators", {}).get(name) or {}).get("diverged")
+    ]
+    if bad:
+        print(
+            f"quadobs: error: {', '.join(bad)} diverged; the figures asked for are invalid",
+            file=sys.stderr,
+        )
+    return 1 if bad else 0
 
 
 #: The section 5 reproduction, run by ``quadobs run le2013`` beside the built-in scenarios.
@@ -120,11 +154,22 @@ def _cmd_compile(args) -> int:
     import time
 
     from quadobs._kernels import cold_kernels
+    from quadobs._kernels.cache import cache_folders, heal, writable
     from quadobs._kernels.precompile import SIGNATURES, compile_side_by_side
+    from quadobs.errors import RunFault
 
     t0 = time.perf_counter()
+    folders = cache_folders(SIGNATURES)
+    for line in heal(folders):
+        print(f"quadobs: note: {line}", file=sys.stderr, flush=True)
     todo = list(SIGNATURES) if args.force else cold_kernels(SIGNATURES)
+    for folder in folders if todo else ():
+        reason = writable(folder)
+        if reason is not None:
+            raise RunFault(f"kernel cache {folder}: cannot be written ({reason})")
     done = compile_side_by_side(todo)
+    for line in heal(folders):  # what was written is read back before it is counted as cached
+        print(f"quadobs: note: {line}", file=sys.stderr, flush=True)
     left = cold_kernels(SIGNATURES)
     print(
         f"quadobs compile: {len(done)} of {len(todo)} kernels compiled in {time.perf_counter() - t0:.1f} s; "
@@ -234,10 +279,14 @@ def _cmd_run(args) -> int:
     estimators = _estimator_list(args.estimators)
     sinks = []
     if args.export_log is not None:
-        from quadobs.testbed.logs.export import LogExportSink, check_export_folder, check_exportable
+        from quadobs.testbed.logs.export import LogExportSink, check_exportable
+        from quadobs.testbed.outputs import check_inside_folders, check_output_folder
 
         check_exportable(scenario)
-        check_export_folder(args.export_log, (args.out, args.summary))
+        check_output_folder(args.export_log, _log_folder_files(), "--export-log")
+        check_inside_folders(
+            {"--out": args.out, "--summary": args.summary}, {"--export-log": args.export_log}
+        )
         sinks.append(LogExportSink(args.export_log))
     _notice_cost(scenario, estimators, args.out is not None)
     _notice_cold_kernels(_episode_kernels(estimators))
@@ -255,6 +304,8 @@ def _cmd_run(args) -> int:
         raise RunFault(result.summary["output_error"])
     if args.summary:
         print(f"summary: {args.summary}")
+    if "export_error" in result.summary:  # the run's results are kept; the log folder is not
+        raise RunFault(result.summary["export_error"])
     if args.export_log is not None:
         print(
             f"log: {args.export_log}  (replay with: quadobs replay {args.export_log} --dt {scenario.dt:g})"
@@ -262,7 +313,9 @@ def _cmd_run(args) -> int:
     if result.summary.get("interrupted"):
         return 130
     crashed = result.summary.get("flight", {}).get("crashed")
-    return EXIT_CRASHED if crashed and args.fail_on_crash else 0
+    if crashed and args.fail_on_crash:
+        return EXIT_CRASHED
+    return diverged_status(result.summary, estimators)
 
 
 def _cmd_excitation(args) -> int:
@@ -434,11 +487,39 @@ def _notice_cold_kernels(kernels, file=None) -> bool:
     from quadobs._kernels import cold_kernels
     from quadobs._kernels.precompile import compile_side_by_side
 
+    if not _heal_kernel_cache(kernels, file):  # the cache is bypassed: nothing to compile ahead
+        return False
     cold = cold_kernels(kernels)
     if not cold:
         return False
     print(COMPILING_NOTICE, file=file or sys.stderr, flush=True)
     compile_side_by_side(cold)
+    return True
+
+
+def _heal_kernel_cache(kernels, file=None) -> bool:
+    """Remove unreadable entries of the kernels' cache (one line each); bypass a cache that cannot
+    be written (one line). False when the cache is bypassed (:mod:`quadobs._kernels.cache`)."""
+    from quadobs._kernels import cold_kernels
+    from quadobs._kernels.cache import bypass, cache_folders, heal, writable
+
+    file = file or sys.stderr
+    folders = cache_folders(kernels)
+    for line in heal(folders):
+        print(f"quadobs: note: {line}", file=file, flush=True)
+    if not cold_kernels(kernels):
+        return True
+    for folder in folders:
+        reason = writable(folder)
+        if reason is not None:
+            bypass()
+            print(
+                f"quadobs: note: the kernel cache {folder} cannot be written ({reason}); "
+                "the kernels are compiled for this run only, uncached",
+                file=file,
+                flush=True,
+            )
+            return False
     return True
 
 
@@ -466,6 +547,11 @@ def _cmd_plot(args) -> int:
                 f"{name}: expected numbers separated by commas, got {text!r}"
             ) from None
 
+    from quadobs.testbed.outputs import check_outputs
+
+    check_outputs(
+        {"--out": args.out}, {"input": args.input}
+    )  # as run: read-only, devices, the input
     what = None if args.what is None else [w.strip() for w in args.what.split(",") if w.strip()]
     size = None if args.size is None else numbers(args.size, float, "--size")
     samples = None if args.samples is None else numbers(args.samples, int, "--samples")
@@ -836,18 +922,14 @@ def _cmd_replay(args) -> int:
     """``quadobs replay LOG``: export the log, or replay it and print one row per estimator."""
     from quadobs.testbed.logs import open_log, write_log
 
+    _check_replay_numbers(args)
     log = open_log(args.log)
     if args.export is not None:
-        from quadobs.errors import QuadobsError
-        from quadobs.testbed.logs.export import check_export_folder
+        from quadobs.testbed.outputs import check_output_folder, write_folder_staged
 
-        for flag, value in (("--out", args.out), ("--summary", args.summary)):
-            if value is not None:
-                raise QuadobsError(
-                    f"{flag}: nothing is replayed with --export (it writes the log and stops)"
-                )
-        check_export_folder(args.export)
-        write_log(log, args.export)
+        _refuse_with_export(args)
+        check_output_folder(args.export, _log_folder_files(), "--export")
+        write_folder_staged(args.export, lambda tmp: write_log(log, tmp), "--export")
         print(
             f"log {log.name}: {log.ranges.shape[0]} ranges, {log.inputs.shape[0]} inputs written to {args.export}"
         )
@@ -861,6 +943,7 @@ def _cmd_replay(args) -> int:
     )  # before the calibration's replays
     log_scenario(log, args.dt, args.seed, args.set)  # the --set settings, checked as early
     _check_field_options(args)
+    _notice_cold_kernels(EPISODE_KERNELS + AUGMENTED_KERNELS)
     biases, tuning = _replay_calibration(args, log, parse_tuning(args.tune))
     stop_if_interrupted()
     summary = run_replay(
@@ -901,14 +984,86 @@ def _cmd_replay(args) -> int:
             if e.get("batch_rmse") is not None
             else ""
         )
+        if e.get("diverged"):
+            print(f"  {name:10s} rmse invalid (diverged)")
+            continue
         print(
             f"  {name:10s} rmse {_fmt(e['rmse'], ' m')}  max {_fmt(e['max_error'], ' m')}  "
             f"final {_fmt(e['final_position_error'], ' m')}  {e['seconds_per_measurement'] * 1e6:.0f} us/range{extra}"
             + _field_split(e)
         )
+    print_diverged(summary)
     if args.summary:
         print(f"summary: {args.summary}")
-    return 130 if summary["interrupted"] else 0
+    if summary["interrupted"]:
+        return 130
+    return diverged_status(summary, _estimator_list(args.estimators))
+
+
+#: Largest magnitude of a ``--tune`` value (squares and products of it stay finite).
+TUNE_MAX = 1e12
+
+
+def _check_replay_numbers(args) -> None:
+    """``--dt`` finite and positive, ``--initial-offset`` finite, ``--biases`` finite numbers, ``--tune``
+    values finite and within :data:`TUNE_MAX`: one-line errors before the log is read."""
+    import math
+
+    from quadobs.errors import QuadobsError
+
+    if not (math.isfinite(args.dt) and args.dt >= 1e-6):
+        raise QuadobsError(
+            f"--dt: the replay grid step must be a number of seconds of at least 1e-06, got {args.dt:g}"
+        )
+    if not math.isfinite(args.initial_offset):
+        raise QuadobsError(
+            f"--initial-offset: expected a finite distance (m), got {args.initial_offset:g}"
+        )
+    for text in (args.biases or "").split(",") if args.biases is not None else ():
+        try:
+            value = float(text)
+        except ValueError:
+            continue  # the calibration names a value that is not a number
+        if not math.isfinite(value):
+            raise QuadobsError(f"--biases: {text.strip()!r} is not a finite number (m)")
+    for text in args.set:
+        path = text.partition("=")[0].strip()
+        if not path.startswith("noise.") or path == "noise.":
+            raise QuadobsError(
+                f"--set: {path}: does not apply to a replay (only noise.* settings do)"
+            )
+    for text in args.tune:
+        key, _, raw = text.partition("=")
+        try:
+            value = float(raw)
+        except ValueError:
+            continue  # parse_tuning names it
+        if not (math.isfinite(value) and abs(value) <= TUNE_MAX):
+            raise QuadobsError(
+                f"--tune {key.strip()}: expected a finite number of magnitude at most {TUNE_MAX:g}, got {raw.strip()!r}"
+            )
+
+
+def _refuse_with_export(args) -> None:
+    """``replay --export`` writes the log and stops: the options of a replay are refused beside it."""
+    from quadobs.errors import QuadobsError
+
+    for flag in ("out", "summary", "estimators", "biases", "model"):
+        if getattr(args, flag) is not None:
+            raise QuadobsError(
+                f"--{flag}: does not apply with --export, which writes the log folder and stops"
+            )
+    if args.tune or args.set:
+        raise QuadobsError(
+            f"--{'tune' if args.tune else 'set'}: does not apply with --export, which writes the log folder and stops"
+        )
+
+
+def _log_folder_files() -> tuple[str, ...]:
+    """The files of a log folder (:data:`quadobs.testbed.logs.format.LOG_FILES`), ``meta.csv`` included."""
+    from quadobs.testbed.logs.format import LOG_FILES
+
+    return tuple(LOG_FILES)
 
 
 def _log_inputs(log) -> dict:
@@ -1046,7 +1201,7 @@ def _run_command(argv: list[str] | None) -> int:
     handler = _log_to_stderr(args.log_verbose, args.log_quiet)
     try:
         with new_folders_removed_on_failure(*_output_paths(args)):
-            return args.func(args)
+            return _without_exit(args.func, args)
     except Exception as exc:
         if caused_by_interrupt(exc):
             raise KeyboardInterrupt from exc
@@ -1055,11 +1210,24 @@ def _run_command(argv: list[str] | None) -> int:
         ):  # a run that could not go on (1), bad input (2)
             print(f"quadobs: error: {exc}", file=sys.stderr)
             return 1 if isinstance(exc, RunFault) else 2
+        if _out_of_resources(exc):  # ulimit -n, ulimit -v: the system refused, the run stopped (1)
+            print(f"quadobs: error: {_out_of_resources(exc)}", file=sys.stderr)
+            return 1
         if isinstance(exc, BrokenPipeError):  # output piped into a reader that stopped (e.g. head)
             devnull = os.open(os.devnull, os.O_WRONLY)
             os.dup2(devnull, sys.stdout.fileno())
             return 141
-        raise
+        if os.environ.get("QUADOBS_TRACEBACK"):
+            raise
+        # anything else (a plugin's estimator raising mid-run, a fault of quadobs): one line, status 1
+        text = str(exc).splitlines()[0] if str(exc) else ""
+        print(
+            f"quadobs: error: unexpected {type(exc).__name__}: {text[:300]} "
+            "(the run stopped; QUADOBS_TRACEBACK=1 shows where)",
+            file=sys.stderr,
+        )
+        return 1
+
     finally:
         import logging
 
@@ -1096,6 +1264,47 @@ def _log_to_stderr(verbose: int, quiet: bool):
     return handler
 
 
+def _out_of_resources(exc: BaseException) -> str | None:
+    """One line for an error that says the system ran out of file descriptors or memory, else ``None``.
+
+    ``MemoryError``, an ``OSError`` with ``EMFILE``, ``ENFILE`` or ``ENOMEM``, and an error of a
+    library (an ``ImportError`` of a shared object that cannot be mapped, a rerun error)
+    whose message says the same are such errors: limits of the process (``ulimit -n``,
+    ``ulimit -v``), not faults of the input.
+    """
+    import errno
+
+    limits = {errno.EMFILE: "ulimit -n", errno.ENFILE: "ulimit -n", errno.ENOMEM: "ulimit -v"}
+    text = str(exc).splitlines()[0] if str(exc) else ""
+    if isinstance(exc, MemoryError):
+        return "out of memory (the address space or the machine's memory; see ulimit -v); the command stopped"
+    if isinstance(exc, OSError) and exc.errno in limits:
+        return f"{exc.strerror} (see {limits[exc.errno]}); the command stopped"
+    for phrase, limit in (
+        ("Too many open files", "ulimit -n"),
+        ("Cannot allocate memory", "ulimit -v"),
+        ("failed to map segment", "ulimit -v"),
+        ("Could not find/load shared object", "ulimit -v"),
+    ):
+        if phrase.lower() in text.lower():
+            return f"{type(exc).__name__}: {text[:200]} (see {limit}); the command stopped"
+    return None
+
+
+def _without_exit(func, args) -> int:
+    """``func(args)``; a ``SystemExit`` from inside the command (a plugin calling ``sys.exit``) is a
+    fault of the run (:class:`~quadobs.errors.RunFault`), not the command's own status."""
+    from quadobs.errors import RunFault
+
+    try:
+        return func(args)
+    except SystemExit as exc:
+        raise RunFault(
+            f"the command was ended from inside by SystemExit({exc.code!r}) (a plugin calling "
+            "sys.exit?); no result was written"
+        ) from None
+
+
 def _exit_status(exc: SystemExit) -> int:
     """The status that Python gives ``SystemExit(exc.code)``: 0 for ``None``, the number, else 1."""
     return 0 if exc.code is None else exc.code if isinstance(exc.code, int) else 1
@@ -1104,8 +1313,10 @@ def _exit_status(exc: SystemExit) -> int:
 def main(argv: list[str] | None = None) -> int:
     """The ``quadobs`` command line: run ``argv`` (default ``sys.argv[1:]``); returns the exit status.
 
-    0: done; 1: a run that started and could not go on (a full disk, a physics fault); 2: bad
-    input (one line on stderr); 130: stopped by SIGINT (Ctrl-C) or SIGTERM, what was done kept.
+    0: done; 1: a run that started and could not go on (a full disk, a physics fault), or an
+    estimator named in ``--estimators`` that diverged or locked out (its outputs written,
+    :mod:`quadobs.testbed.divergence`); 2: bad input (one line on stderr); 130: stopped by
+    SIGINT (Ctrl-C) or SIGTERM, what was done kept.
 
     Its first act is to take SIGINT and SIGTERM, before anything heavy is imported (this
     module and :mod:`quadobs.errors` load the standard library alone), so a signal at any

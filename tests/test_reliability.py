@@ -94,6 +94,7 @@ def _check(code, err):
     if code in (1, 2):
         last = err.strip().splitlines()[-1]
         assert last.startswith("quadobs: error: ") or " error: " in last, err
+        assert "quadobs: error: unexpected " not in last, err  # no fault of quadobs' own
 
 
 @st.composite

@@ -74,14 +74,21 @@ class _PipeFile:
         self.written = 0
         self._folder = tempfile.mkdtemp(prefix="quadobs-rrd-")
         self.fifo = os.path.join(self._folder, "stream.rrd")
-        os.mkfifo(self.fifo, 0o600)
-        self._fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
+        try:  # no FIFO left behind when the file cannot be opened (ulimit -n, a full disk)
+            os.mkfifo(self.fifo, 0o600)
+            self._fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
+        except BaseException:
+            self._unlink_fifo()
+            raise
         self._thread = threading.Thread(target=self._drain, name="quadobs-recording", daemon=True)
         self._thread.start()
 
     def _drain(self) -> None:
         try:
             src = os.open(self.fifo, os.O_RDONLY)  # returns once rerun has opened the other end
+        except OSError as exc:  # no descriptor left (ulimit -n): the recorder reports it
+            self.error = exc
+            return
         finally:
             self._unlink_fifo()
         try:
@@ -277,14 +284,52 @@ class Recorder:
         # does, at the latest when the process exits normally.
         self._discard = weakref.finalize(self, _remove, self.staging)
         self.published = False
-        self.rec = rr.RecordingStream(application_id, recording_id=recording_id)
-        self.rec.save(self._file.fifo, default_blueprint=blueprint)
+        self._check_headroom()
+        try:
+            # a stop waits until rerun has its file and the blueprint (a Ctrl-C in between made
+            # rerun drop what it had buffered, with a warning of its own on stderr)
+            with deferred_interrupts():
+                self.rec = rr.RecordingStream(application_id, recording_id=recording_id)
+                self.rec.save(self._file.fifo, default_blueprint=blueprint)
+        except Exception as exc:  # rerun could not open its end (ulimit -n): nothing left behind
+            self._file.release()
+            self._file.finish(1.0)
+            self._file._unlink_fifo()
+            _remove(self.staging)
+            self._discard.detach()
+            reason = str(exc).split(" (os error")[0].split(", path:")[0].splitlines()[0]
+            raise RunFault(f"recording {str(self.path)!r}: cannot be opened ({reason})") from None
         self.series_list: list[Series] = []
         self._steps = np.zeros(self.capacity, dtype=np.int64)
         self._times = np.zeros(self.capacity)
         self.n = 0
         self.rows_sent = 0
         self.closed = False
+
+    #: File descriptors rerun needs free to open its file (its writer, its threads' wakers).
+    HEADROOM = 4
+
+    def _check_headroom(self) -> None:
+        """A one-line fault, before rerun starts, when fewer than :attr:`HEADROOM` descriptors are
+        free (``ulimit -n``): rerun would fail opening its file with a warning of its own."""
+        opened, error = [], None
+        try:
+            for _ in range(self.HEADROOM):
+                opened.append(os.open(os.devnull, os.O_RDONLY))
+        except OSError as exc:
+            error = exc
+        finally:
+            for fd in opened:
+                os.close(fd)
+        if error is not None:
+            self._file.release()
+            self._file.finish(1.0)
+            self._file._unlink_fifo()
+            _remove(self.staging)
+            self._discard.detach()
+            raise RunFault(
+                f"recording {str(self.path)!r}: cannot be opened ({error.strerror}; see ulimit -n)"
+            )
 
     # -- declaration ---------------------------------------------------------------
 

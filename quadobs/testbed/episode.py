@@ -63,6 +63,7 @@ import numpy as np
 from quadobs.errors import QuadobsError, RunFault, deferred_interrupts
 from quadobs.estimators.base import BlockStep, Counted, Gated, Immersed, SetValued, Switching
 from quadobs.testbed.blocks import block_count
+from quadobs.testbed.divergence import DivergenceSink, invalidate_diverged
 from quadobs.testbed.outputs import check_outputs, write_fault_summary
 from quadobs.testbed.registry import build_estimators, default_estimators
 from quadobs.testbed.scenario import Scenario
@@ -365,7 +366,9 @@ def run_loop(summarise, *, summary_path=None, **parts) -> tuple[dict, _Episode]:
     ):  # stopped before the first step: the previous files stay
         raise KeyboardInterrupt
     with deferred_interrupts():  # the summary, then the recording, are replaced together
-        summary = summarise(merge(fragments), episode.completed, wall, interrupted)
+        summary = invalidate_diverged(
+            summarise(merge(fragments), episode.completed, wall, interrupted)
+        )
         if summary_path is not None:
             try:
                 write_json_atomic(summary_path, summary)
@@ -505,7 +508,7 @@ class _Episode:
                 capacity=flush_rows,
             )
             recording = RecordingSink(recorder, send_each_block=self.world.computes_ahead)
-        sinks: list[Sink] = [ConvergenceSink(), _EstimatorInfo(), BoundsSink()]
+        sinks: list[Sink] = [ConvergenceSink(), _EstimatorInfo(), BoundsSink(), DivergenceSink()]
         sinks += [self.trace] if self.trace is not None else []
         if recording is not None:
             sinks.append(recording)

@@ -35,12 +35,15 @@ from quadobs.errors import QuadobsError, check_writable, output_target, staging_
 from quadobs.staging import write_staged
 
 __all__ = [
+    "check_inside_folders",
+    "check_output_folder",
     "check_outputs",
     "clean_leftovers",
     "cost_notice",
     "expected_cost",
     "fault_summary",
     "write_fault_summary",
+    "write_folder_staged",
     "write_json_staged",
     "write_text_staged",
 ]
@@ -282,3 +285,138 @@ def _bytes(n: float) -> str:
         if n >= span:
             return f"{_two_digits(n / span)} {unit}"
     return f"{n:.0f} bytes"
+
+
+def _exchange(a: Path, b: Path) -> bool:
+    """Swap the names ``a`` and ``b`` in one atomic step (Linux ``renameat2(RENAME_EXCHANGE)``).
+
+    Returns False where the system call is missing or refused (another system, a file system
+    without it); then nothing has changed.
+    """
+    import ctypes
+
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        renameat2 = libc.renameat2
+    except (OSError, AttributeError):
+        return False
+    at_fdcwd, rename_exchange = -100, 2
+    done = renameat2(at_fdcwd, os.fsencode(a), at_fdcwd, os.fsencode(b), rename_exchange)
+    return done == 0
+
+
+def _sync_tree(folder: Path) -> None:
+    """Every file of ``folder`` (one level) and the folder itself on the disk."""
+    for entry in os.scandir(folder):
+        if entry.is_file(follow_symlinks=False):
+            fd = os.open(entry.path, os.O_RDONLY)
+            try:
+                os.fsync(fd)
+            finally:
+                os.close(fd)
+    fd = os.open(folder, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def check_output_folder(folder, known: tuple[str, ...], what: str) -> Path:
+    """Check a folder output before any work; returns its resolved path.
+
+    The folder is replaced as a whole (:func:`write_folder_staged`), so an existing one
+    may hold only files named in ``known`` (a previous output of the same kind): anything
+    else (a user's notes, another run's recording) would be lost, and is refused. A target
+    that exists and is not a folder, or whose parent cannot take a new entry, is refused too.
+    """
+    text = os.fspath(folder)
+    if "\0" in text or not text or len(text) > 1024:
+        raise QuadobsError(f"{what} {text[:60]!r}: expected a folder name of 1 to 1024 characters")
+    try:
+        real = Path(os.path.realpath(text))
+    except (OSError, RuntimeError) as exc:
+        raise QuadobsError(f"{what} {text!r}: cannot be resolved ({exc})") from None
+    if os.path.lexists(real):
+        if not real.is_dir():
+            raise QuadobsError(f"{what} {text!r}: exists and is not a folder")
+        try:
+            others = sorted(e.name for e in os.scandir(real) if e.name not in known)
+        except OSError as exc:
+            raise QuadobsError(f"{what} {text!r}: cannot be read ({exc.strerror})") from None
+        if others:
+            raise QuadobsError(
+                f"{what} {text!r}: holds {others[0]!r}, which is not one of its files; "
+                "the folder is replaced as a whole, so give a new or an output folder"
+            )
+    return real
+
+
+def check_inside_folders(outputs: Mapping[str, Any], folders: Mapping[str, Any]) -> None:
+    """Refuse an output file that lies in (or is) a folder output, which is replaced as a whole."""
+    for fname, fpath in outputs.items():
+        if fpath is None:
+            continue
+        real = Path(os.path.realpath(os.fspath(fpath)))
+        for dname, dpath in folders.items():
+            if dpath is None:
+                continue
+            folder = Path(os.path.realpath(os.fspath(dpath)))
+            if real == folder or folder in real.parents:
+                raise QuadobsError(
+                    f"{fname}: {os.fspath(fpath)!r} lies in the {dname} folder, which is "
+                    "replaced as a whole; write it elsewhere"
+                )
+
+
+def write_folder_staged(folder, fill, what: str = "output folder") -> Path:
+    """Write a folder output complete or not at all: ``fill(staging)``, then one rename onto ``folder``.
+
+    ``fill`` writes the folder's files into a fresh staging folder beside the target
+    (:func:`quadobs.errors.staging_path`); they and the folder are synced to the disk,
+    then the staging folder takes the target's name in one step: a rename when the target
+    does not exist, an atomic exchange of the two names (Linux ``renameat2``) when it does,
+    after which the previous folder, now under the staging name, is removed. Where the
+    exchange is not available the previous folder is first renamed aside, and renamed back
+    if the second rename fails. On any failure (a full disk, an error of ``fill``) the
+    staging folder is removed and the previous folder is untouched; an ``OSError`` becomes a
+    one-line :class:`QuadobsError` naming ``what`` and the folder. Returns the target.
+    """
+    import shutil
+
+    target = Path(os.path.realpath(os.fspath(folder)))
+    tmp = staging_path(target)
+    try:
+        target.parent.mkdir(parents=True, exist_ok=True)
+        clean_leftovers(target)
+        os.mkdir(tmp)
+        fill(tmp)
+        _sync_tree(tmp)
+        if not os.path.lexists(target):
+            os.rename(tmp, target)
+        elif _exchange(tmp, target):
+            shutil.rmtree(tmp, ignore_errors=True)
+        else:
+            aside = staging_path(target)
+            os.rename(target, aside)
+            try:
+                os.rename(tmp, target)
+            except BaseException:
+                os.rename(aside, target)
+                raise
+            shutil.rmtree(aside, ignore_errors=True)
+    except OSError as exc:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise QuadobsError(
+            f"{what} {os.fspath(folder)!r}: cannot be written ({exc.strerror or exc})"
+        ) from None
+    except QuadobsError as exc:  # a file of the folder: named in the folder, not the staging one
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise QuadobsError(
+            f"{what} {os.fspath(folder)!r}: "
+            + str(exc).replace(os.fspath(tmp), os.fspath(folder))
+            + "; the previous folder is unchanged"
+        ) from None
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return target

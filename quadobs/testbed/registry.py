@@ -38,6 +38,7 @@ __all__ = [
     "ENTRY_POINT_GROUP",
     "available_estimators",
     "build_estimators",
+    "call_factory",
     "default_estimators",
     "estimator_factory",
     "refresh",
@@ -163,6 +164,31 @@ def estimator_factory(name: str, scenario: Scenario | None = None) -> tuple[Fact
     return _load(name, values[0]), values[0]
 
 
+def call_factory(factory, name: str, origin: str, *args) -> Estimator:
+    """``factory(*args, name)``, a failure of the plugin's own made one line.
+
+    A :class:`QuadobsError` (a factory refusing its input) goes on as it is; any other
+    exception becomes a :class:`~quadobs.errors.RunFault` naming the estimator, where it
+    comes from and the error's first line (the command line's status 1); an error made of
+    a Ctrl-C keeps its cause, so it still counts as the interrupt.
+    """
+    from quadobs.errors import RunFault
+
+    if not callable(factory):
+        raise QuadobsError(
+            f"estimators: the factory of {name!r} ({origin}) is not callable ({type(factory).__name__})"
+        )
+    try:
+        return factory(*args, name)
+    except QuadobsError:
+        raise
+    except Exception as exc:
+        reason = str(exc).splitlines()[0] if str(exc) else ""
+        raise RunFault(
+            f"estimators: the factory of {name!r} ({origin}) failed: {type(exc).__name__}: {reason}"
+        ) from exc
+
+
 def build_estimators(scenario: Scenario, names: list[str], x0: np.ndarray) -> list[Estimator]:
     """Instantiate the named estimators, all starting from the initial guess ``x0``.
 
@@ -184,7 +210,7 @@ def build_estimators(scenario: Scenario, names: list[str], x0: np.ndarray) -> li
             )
         else:
             factory, origin = estimator_factory(name, scenario)
-            est = factory(scenario, np.array(x0, dtype=float), name)
+            est = call_factory(factory, name, origin, scenario, np.array(x0, dtype=float))
             if not isinstance(est, Estimator):
                 raise QuadobsError(
                     f"estimators: the factory of {name!r} ({origin}) returned {type(est).__name__}, "

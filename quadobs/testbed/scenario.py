@@ -32,6 +32,7 @@ import difflib
 import json
 import os
 import re
+import sys
 import tomllib
 from collections.abc import Iterable, Mapping
 from importlib import resources
@@ -1031,12 +1032,42 @@ def parse_setting(text: str) -> tuple[str, Any]:
         value = raw.strip()
     except RecursionError:
         raise QuadobsError(f"--set {path}: the value is nested too deeply") from None
+    except ValueError as exc:  # an integer of more digits than Python converts
+        raise QuadobsError(f"--set {path}: {_unreadable_number(exc)}") from None
     return path, value
+
+
+#: Deepest nesting of tables and lists in a scenario, and most parts of a ``--set`` path.
+MAX_NESTING = 100
+
+
+def _unreadable_number(exc: ValueError) -> str:
+    """The one-line reason for a number Python refuses to convert (``exc``)."""
+    if "digits" in str(exc):
+        return f"a number of more than {sys.get_int_max_str_digits()} digits"
+    return f"a value that cannot be read ({exc})"
+
+
+def _nesting(data: Any) -> int:
+    """How deeply tables and lists nest in ``data`` (0 for a scalar), counted without recursion."""
+    deepest, stack = 0, [(data, 0)]
+    while stack:
+        node, depth = stack.pop()
+        deepest = max(deepest, depth)
+        if depth > MAX_NESTING:
+            break
+        children = (
+            node.values() if isinstance(node, dict) else node if isinstance(node, list) else ()
+        )
+        stack.extend((child, depth + 1) for child in children)
+    return deepest
 
 
 def _split_path(path: str) -> list[str | int]:
     """``"a.b[1].c"`` as ``["a", "b", 1, "c"]``."""
     parts: list[str | int] = []
+    if path.count(".") + path.count("[") >= MAX_NESTING:
+        raise QuadobsError(f"--set: {path[:60]!r}...: more than {MAX_NESTING} parts")
     for name in path.split("."):
         head, *indices = name.split("[")
         if not head or any(not i.endswith("]") or not i[:-1].isdigit() for i in indices):
@@ -1166,6 +1197,12 @@ def _read(name_or_path: str | Path) -> dict:
         raise QuadobsError(f"scenario file {shown}: invalid TOML ({exc})") from None
     except RecursionError:
         raise QuadobsError(f"scenario file {shown}: invalid TOML (nested too deeply)") from None
+    except ValueError as exc:  # an integer of more digits than Python converts
+        raise QuadobsError(f"scenario file {shown}: {_unreadable_number(exc)}") from None
+    if _nesting(data) > MAX_NESTING:  # a table header 5000 names deep parses, then overflows
+        raise QuadobsError(
+            f"scenario file {shown}: invalid TOML (nested too deeply: more than {MAX_NESTING} levels)"
+        )
     model = data.get("model")
     if path.suffix == ".toml" and isinstance(model, str) and not Path(model).is_absolute():
         data["model"] = str((path.parent / model).resolve())

@@ -171,8 +171,14 @@ def save_figure(fig, out: str | Path, dpi: float) -> Path:
                 lambda tmp: fig.savefig(tmp, format=fmt, dpi=dpi, metadata=_METADATA[fmt]),
                 "--out",
             )
-    except BaseException:
+    except BaseException as exc:
         _remove_dirs(made)
+        if isinstance(exc, OSError):  # a full disk, a file size limit: a fault, in one line
+            from quadobs.errors import RunFault
+
+            raise RunFault(
+                f"--out {str(out)!r}: cannot be written ({exc.strerror or exc}); the previous file is unchanged"
+            ) from None
         raise
     return out
 

@@ -185,5 +185,13 @@ def _replayed_positions(
     world = ReplayWorld(log, dt, model, 8192, biases, peer_batch=False)
     ests = build_replay_estimators(replay_setup(log, world, setup_options), [estimator], x0)
     sink = _Estimates(world.steps, log.dimension)
-    run_loop(lambda *args: {}, frame=world.frame(), world=world, estimators=ests, sinks=[sink])
+    done, _ = run_loop(
+        lambda merged, completed, wall, interrupted: {"interrupted": interrupted},
+        frame=world.frame(),
+        world=world,
+        estimators=ests,
+        sinks=[sink],
+    )
+    if done["interrupted"]:  # Ctrl-C, SIGTERM: no calibration from part of a replay
+        raise KeyboardInterrupt
     return sink.P, world.steps

@@ -298,8 +298,11 @@ def build_replay_estimators(
         raise QuadobsError(f"estimators: names must be distinct, got {names}")
     out = []
     for name in names:
+        from quadobs.testbed.registry import call_factory
+
         factory = _factory(name)
-        est = factory(setup, np.array(x0, dtype=float), name)
+        origin = "built-in" if name in REPLAY_ESTIMATORS else "entry point"
+        est = call_factory(factory, name, origin, setup, np.array(x0, dtype=float))
         if not isinstance(est, Estimator):
             raise QuadobsError(
                 f"estimators: the factory of {name!r} returned {type(est).__name__}, not an Estimator"

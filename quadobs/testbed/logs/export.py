@@ -58,8 +58,9 @@ class LogExportSink(Sink):
     Parameters
     ----------
     folder : path
-        The log folder (created; its files are replaced each complete, see
-        :func:`~quadobs.testbed.logs.format.write_log`).
+        The log folder, written as a whole at the end
+        (:func:`~quadobs.testbed.outputs.write_folder_staged`); a failure to write it is
+        the summary's ``export_error``, the run's other results being kept.
     """
 
     def __init__(self, folder: str | Path) -> None:
@@ -105,5 +106,10 @@ class LogExportSink(Sink):
             input_kind="imu",
             truth_columns=("time", *axes, *(f"v{a}" for a in axes)),
         )
-        write_log(log, self.folder)
+        from quadobs.testbed.outputs import write_folder_staged
+
+        try:  # the folder as a whole (a full disk leaves the previous one complete)
+            write_folder_staged(self.folder, lambda tmp: write_log(log, tmp), "--export-log")
+        except QuadobsError as exc:  # the run's own results stay; the command reports it (exit 1)
+            return {"export_error": str(exc), "exported_log_ranges_negated": negated}
         return {"exported_log": str(self.folder), "exported_log_ranges_negated": negated}

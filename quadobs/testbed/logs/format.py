@@ -470,6 +470,8 @@ def read_log(folder: str | Path) -> RangeLog:
     tdoa, tdoa_std = _measurements(tables, "tdoa.csv", len(TDOA))
     truth_columns, truth = tables.get("truth.csv", ((), None))
     name = meta["name"] or folder.name
+    if any(not ch.isprintable() for ch in name):  # an escape sequence would reach the terminal
+        raise QuadobsError(f"{folder / 'meta.csv'}, key name: {name!r} holds control characters")
     try:
         return RangeLog(
             name,

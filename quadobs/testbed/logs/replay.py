@@ -93,6 +93,13 @@ def log_scenario(log, dt: float, seed: int = 0, settings=()):
         physics_rate=1.0 / dt,
         seed=int(seed),
         beacons=[{"position": [float(a) for a in b]} for b in log.beacons],
+        # no excitation monitor in a replay: its grid made whole multiples of any dt
+        excitation={
+            "monitor": False,
+            "step": dt,
+            "window": max(round(5.0 / dt), 2) * dt,
+            "update_period": max(round(0.1 / dt), 1) * dt,
+        },
     )
     return parse_scenario(data, source=log.source)
 
@@ -156,7 +163,9 @@ def run_replay(
     from quadobs.testbed.worlds.replay import ReplayWorld, default_model
 
     names = list(estimators) if estimators else list(DEFAULT_ESTIMATORS)
-    inputs = {f"log {f}": Path(log.source) / f for f in LOG_FILES} if log.source else {}
+    inputs = (
+        {f"log {f}": Path(log.source) / f for f in (*LOG_FILES, "meta.csv")} if log.source else {}
+    )  # every file of the log, its meta.csv included
     check_outputs({"summary": summary_path, "recording": out}, inputs)
     from quadobs.testbed.logs.figures import FieldFiguresSink, check_tum_folder
 

@@ -103,7 +103,35 @@ def _model_file(path) -> Path:
         raise QuadobsError(
             f"model: {shown!r} is not a regular file (a device or a FIFO), expected an MJCF file"
         )
+    _check_model_size(Path(text), st.st_size, shown)
     return Path(text)
+
+
+#: Largest MJCF file read (bytes), and most ``<body>`` elements in it: a vehicle is a few bodies;
+#: MuJoCo's parse, which cannot be interrupted, takes minutes for 100 000 of them.
+MAX_MODEL_BYTES, MAX_BODIES = 4 << 20, 1000
+
+
+def _check_model_size(path: Path, size: int, shown: str) -> None:
+    """Refuse, before MuJoCo parses it, an MJCF file over :data:`MAX_MODEL_BYTES` or :data:`MAX_BODIES` bodies."""
+    if size > MAX_MODEL_BYTES:
+        raise QuadobsError(
+            f"model: {shown!r} has {size:,} bytes; an MJCF vehicle of at most {MAX_MODEL_BYTES:,} is read"
+        )
+    try:
+        text = path.read_bytes()
+    except OSError as exc:
+        raise QuadobsError(f"model: MJCF file {shown!r} cannot be read ({exc.strerror})") from None
+    bodies = text.count(b"<body")
+    if bodies > MAX_BODIES:
+        raise QuadobsError(
+            f"model: {shown!r} has {bodies:,} bodies; a vehicle model of at most {MAX_BODIES:,} is read"
+        )
+
+
+def _one_line_text(text: str) -> str:
+    """MuJoCo's multi-line messages on one line: the lines stripped, joined with "; "."""
+    return "; ".join(line.strip() for line in str(text).splitlines() if line.strip())
 
 
 def _find(spec: mujoco.MjSpec, kind: str, name: str):
@@ -154,7 +182,7 @@ def _warnings_refused(name: str):
     finally:
         mujoco.set_mju_user_warning(previous)
     if said:
-        raise QuadobsError(f"model {name}: MuJoCo warns: {said[0]}")
+        raise QuadobsError(f"model {name}: MuJoCo warns: {_one_line_text(said[0])}")
 
 
 def _check_dynamics(model, name: str):
@@ -269,7 +297,7 @@ def load_vehicle_model(
         try:
             spec = mujoco.MjSpec.from_file(str(mjcf))
         except Exception as exc:
-            raise QuadobsError(f"model: cannot parse {mjcf.name}: {exc}") from None
+            raise QuadobsError(f"model: cannot parse {mjcf.name}: {_one_line_text(exc)}") from None
 
     for kind, name in REQUIRED_ELEMENTS:
         if _find(spec, kind, name) is None:
@@ -287,7 +315,9 @@ def load_vehicle_model(
         try:
             model = spec.compile()
         except Exception as exc:
-            raise QuadobsError(f"model {mjcf.name}: does not compile: {exc}") from None
+            raise QuadobsError(
+                f"model {mjcf.name}: does not compile: {_one_line_text(exc)}"
+            ) from None
 
     body, joint = _check_dynamics(model, mjcf.name)
     offset_adr, compiled_beacons = _check_beacons(model, b3, mjcf.name)

@@ -1,0 +1,171 @@
+"""Hostile input to ``run``, ``show`` and ``replay``: one line and status 2 (bad input) or 1 (a fault)."""
+
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from quadobs.cli import main
+from quadobs.estimators.base import Estimator
+from quadobs.testbed import registry
+from quadobs.testbed.logs import estimators as replay_estimators
+
+
+@pytest.fixture(scope="module")
+def log_folder(tmp_path_factory) -> Path:
+    folder = tmp_path_factory.mktemp("logs") / "L"
+    assert (
+        main(["run", "ifac2021", "--duration", "0.3", "--no-progress", "--export-log", str(folder)])
+        == 0
+    )
+    return folder
+
+
+def _one_line(capsys, code, expected_code, *words):
+    err = capsys.readouterr().err
+    lines = [ln for ln in err.splitlines() if ln.startswith("quadobs: error:")]
+    assert code == expected_code, err
+    assert len(lines) == 1 and "Traceback" not in err, err
+    for word in words:
+        assert word in lines[0], err
+    return lines[0]
+
+
+@pytest.mark.parametrize(
+    ("content", "word"),
+    [(b"key,value\nname,\xff\xfe\n", "not a CSV text file"), (None, "Is a directory")],
+)
+def test_a_meta_file_that_cannot_be_read_is_named(log_folder, tmp_path, capsys, content, word):
+    import shutil
+
+    folder = tmp_path / "M"
+    shutil.copytree(log_folder, folder)
+    (folder / "meta.csv").unlink()
+    if content is None:
+        (folder / "meta.csv").mkdir()
+    else:
+        (folder / "meta.csv").write_bytes(content)
+    code = main(["replay", str(folder), "--calibrate", "none", "--dt", "0.001"])
+    _one_line(capsys, code, 2, "meta.csv", word)
+
+
+@pytest.mark.parametrize(
+    ("options", "word"),
+    [
+        (["--dt", "nan"], "--dt"),
+        (["--dt", "0"], "--dt"),
+        (["--dt", "1e-9"], "--dt"),
+        (["--set", "noise=5"], "--set: noise:"),
+        (["--set", "trajectory.x=1"], "--set: trajectory.x:"),
+        (["--tune", "P0=1e300"], "--tune P0"),
+        (["--tune", "q_xy=inf"], "--tune q_xy"),
+        (["--biases", "nan"], "--biases"),
+        (["--initial-offset", "inf"], "--initial-offset"),
+    ],
+)
+def test_replay_refuses_bad_numbers_and_settings_by_their_option(log_folder, capsys, options, word):
+    code = main(["replay", str(log_folder), "--calibrate", "none", *options])
+    _one_line(capsys, code, 2, word)
+
+
+def test_a_replay_grid_coarser_than_the_excitation_window_runs(log_folder, capsys):
+    """``--dt 0.07`` (5 s is no multiple of it) once failed naming ``excitation.window``."""
+    code = main(["replay", str(log_folder), "--calibrate", "none", "--dt", "0.07", "--no-progress"])
+    assert code == 0, capsys.readouterr().err
+
+
+def test_huge_integers_and_deep_tables_are_refused_in_one_line(tmp_path, capsys):
+    digits = "9" * 5000
+    _one_line(
+        capsys, main(["show", "ifac2021", "--set", f"seed={digits}"]), 2, "--set seed", "digits"
+    )
+    big = tmp_path / "big.toml"
+    big.write_text(f"seed = {digits}\n")
+    _one_line(capsys, main(["show", str(big)]), 2, "big.toml", "digits")
+    deep = tmp_path / "deep.toml"
+    deep.write_text("[" + ".".join(["a"] * 5000) + "]\nx = 1\n")
+    _one_line(capsys, main(["show", str(deep)]), 2, "deep.toml", "nested too deeply")
+
+
+def test_a_set_path_of_many_parts_is_refused_at_once(capsys):
+    t0 = time.perf_counter()
+    code = main(["show", "ifac2021", "--set", ".".join(["a"] * 60000) + "=1"])
+    assert time.perf_counter() - t0 < 2.0
+    _one_line(capsys, code, 2, "--set", "parts")
+
+
+class _Exiting(Estimator):
+    def __init__(self, x0):
+        self._x, self.k = np.array(x0, dtype=float), 0
+
+    def step(self, u, y):
+        self.k += 1
+        if self.k == 5:
+            sys.exit(0)
+
+    @property
+    def x_hat(self):
+        return self._x.copy()
+
+    @property
+    def x_covariance(self):
+        return np.eye(self._x.size)
+
+
+def _raising(*args):
+    raise RuntimeError("plugin bug\nsecond line")
+
+
+@pytest.fixture
+def plugins(monkeypatch):
+    registry.register_estimator("raising", _raising)
+    registry.register_estimator("exiting", lambda sc, x0, nm: _Exiting(x0))
+    monkeypatch.setitem(replay_estimators.REPLAY_ESTIMATORS, "raising", _raising)
+    monkeypatch.setitem(replay_estimators.REPLAY_ESTIMATORS, "uncallable", 42)
+    yield
+    for name in ("raising", "exiting"):
+        registry._RUNTIME.pop(name, None)
+    registry.refresh()
+
+
+def test_a_plugin_factory_that_raises_is_a_fault_in_one_line(plugins, log_folder, tmp_path, capsys):
+    code = main(
+        ["run", "ifac2021", "--duration", "0.1", "--estimators", "raising", "--no-progress"]
+    )
+    _one_line(capsys, code, 1, "'raising'", "RuntimeError: plugin bug")
+    code = main(["replay", str(log_folder), "--calibrate", "none", "--estimators", "raising"])
+    _one_line(capsys, code, 1, "'raising'", "RuntimeError: plugin bug")
+    code = main(["replay", str(log_folder), "--calibrate", "none", "--estimators", "uncallable"])
+    _one_line(capsys, code, 2, "'uncallable'", "not callable")
+
+
+def test_a_plugin_calling_sys_exit_mid_run_is_reported(plugins, tmp_path, capsys):
+    out, js = tmp_path / "r.rrd", tmp_path / "r.json"
+    code = main(
+        ["run", "ifac2021", "--duration", "0.1", "--estimators", "augmented,exiting", "--no-progress",
+         "--out", str(out), "--summary", str(js)]
+    )  # fmt: skip
+    _one_line(capsys, code, 1, "SystemExit(0)")
+    assert not js.exists()
+
+
+@pytest.mark.parametrize(
+    ("fname", "content", "words"),
+    [
+        ("beacons.csv", "id,x,y\n1e19,0,0\n2e19,1,1\n", ("beacons.csv", "1e+19", "2^63")),
+        ("meta.csv", "key,value\nname,\x1b[31mred\x1b[0m\n", ("meta.csv", "control characters")),
+    ],
+)
+def test_huge_ids_and_escape_sequences_in_a_log_are_refused(
+    log_folder, tmp_path, capsys, fname, content, words
+):
+    import shutil
+
+    folder = tmp_path / "L"
+    shutil.copytree(log_folder, folder)
+    (folder / fname).write_text(content)
+    code = main(["replay", str(folder), "--calibrate", "none"])
+    line = _one_line(capsys, code, 2, *words)
+    assert "\x1b" not in line
