@@ -103,8 +103,10 @@ def _print_crash(summary: dict, file) -> None:
         print(line, file=file)
 
 
-def print_diverged(summary: dict, file=sys.stdout) -> None:
-    """One line per diverged or locked-out estimator (:mod:`quadobs.testbed.divergence`)."""
+def print_diverged(summary: dict, file=None) -> None:
+    """One line per diverged or locked-out estimator (:mod:`quadobs.testbed.divergence`), on
+    ``file`` (default: the standard output at the call)."""
+    file = sys.stdout if file is None else file
     for name, d in summary.get("estimators", {}).items():
         if isinstance(d, dict) and d.get("diverged"):
             d = d["diverged"]
@@ -929,7 +931,9 @@ def _cmd_replay(args) -> int:
 
         _refuse_with_export(args)
         check_output_folder(args.export, _log_folder_files(), "--export")
-        write_folder_staged(args.export, lambda tmp: write_log(log, tmp), "--export")
+        write_folder_staged(
+            args.export, lambda tmp: write_log(log, tmp), "--export", set(_log_folder_files())
+        )
         print(
             f"log {log.name}: {log.ranges.shape[0]} ranges, {log.inputs.shape[0]} inputs written to {args.export}"
         )
@@ -973,12 +977,6 @@ def _cmd_replay(args) -> int:
         + ("  [INTERRUPTED]" if summary["interrupted"] else "")
     )
     for name, e in summary["estimators"].items():
-        if e.get("diverged"):
-            d = e["diverged"]
-            print(
-                f"  {name:10s} DIVERGED at t = {d['time']:.3f} s (step {d['step']}): {d['reason']}"
-            )
-            continue
         extra = (
             f"  batch LM rmse {_fmt(e['batch_rmse'], ' m')}"
             if e.get("batch_rmse") is not None

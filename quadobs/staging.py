@@ -26,7 +26,7 @@ from pathlib import Path
 
 from quadobs.errors import QuadobsError, output_target, staging_owner, staging_path
 
-__all__ = ["check_replaceable_folder", "publish", "write_folder_staged", "write_staged"]
+__all__ = ["check_replaceable_folder", "publish", "swap_in", "write_folder_staged", "write_staged"]
 
 
 def _new_file_mode() -> int:
@@ -138,11 +138,19 @@ def write_folder_staged(
         for entry in os.scandir(tmp):
             if entry.is_file(follow_symlinks=False):
                 publish(Path(entry.path), Path(entry.path), _new_file_mode())
-        _swap_in(tmp, target)
+        swap_in(tmp, target)
     except OSError as exc:
         shutil.rmtree(tmp, ignore_errors=True)
         raise QuadobsError(
-            f"{what} {os.fspath(folder)!r}: cannot be written ({exc.strerror or exc})"
+            f"{what} {os.fspath(folder)!r}: cannot be written ({exc.strerror or exc}); "
+            "the previous folder is unchanged"
+        ) from None
+    except QuadobsError as exc:  # a file of the folder: named in the folder, not the staging one
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise QuadobsError(
+            f"{what} {os.fspath(folder)!r}: "
+            + str(exc).replace(os.fspath(tmp), os.fspath(folder))
+            + "; the previous folder is unchanged"
         ) from None
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
@@ -150,12 +158,15 @@ def write_folder_staged(
     return target
 
 
-def _swap_in(new: Path, target: Path) -> None:
+def swap_in(new: Path, target: Path) -> None:
     """Rename the complete folder ``new`` onto ``target``, the previous ``target`` removed after."""
     if not target.exists():
         os.rename(new, target)
         return
     os.chmod(new, os.stat(target).st_mode & 0o7777)
+    if _exchange(new, target):  # one atomic step: the previous folder now under the staging name
+        shutil.rmtree(new, ignore_errors=True)
+        return
     old = staging_path(target).with_suffix(".old")
     os.rename(target, old)
     try:
@@ -164,3 +175,21 @@ def _swap_in(new: Path, target: Path) -> None:
         os.rename(old, target)  # the previous folder back in place
         raise
     shutil.rmtree(old, ignore_errors=True)
+
+
+def _exchange(a: Path, b: Path) -> bool:
+    """Swap the names ``a`` and ``b`` in one atomic step (Linux ``renameat2(RENAME_EXCHANGE)``).
+
+    Returns False where the system call is missing or refused (another system, a file system
+    without it); then nothing has changed.
+    """
+    import ctypes
+
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        renameat2 = libc.renameat2
+    except (OSError, AttributeError):
+        return False
+    at_fdcwd, rename_exchange = -100, 2
+    done = renameat2(at_fdcwd, os.fsencode(a), at_fdcwd, os.fsencode(b), rename_exchange)
+    return done == 0

@@ -84,7 +84,7 @@ class TrajectoryErrors:
                 if not np.all(np.isfinite(est[i]))
                 else f"position error beyond {DIVERGED_ERROR:g} m"
             )
-            self.diverged = {"step": int(ks[i]), "time": float(t[i]), "reason": reason}
+            self.diverged = {"step": int(ks[i]), "t": float(t[i]), "reason": reason}
             return
         if known.any():
             self.final = float(norm[known][-1])

@@ -32,7 +32,7 @@ from typing import Any
 import numpy as np
 
 from quadobs.errors import QuadobsError, check_writable, output_target, staging_owner
-from quadobs.staging import write_staged
+from quadobs.staging import write_folder_staged, write_staged
 
 __all__ = [
     "check_inside_folders",
@@ -287,40 +287,6 @@ def _bytes(n: float) -> str:
     return f"{n:.0f} bytes"
 
 
-def _exchange(a: Path, b: Path) -> bool:
-    """Swap the names ``a`` and ``b`` in one atomic step (Linux ``renameat2(RENAME_EXCHANGE)``).
-
-    Returns False where the system call is missing or refused (another system, a file system
-    without it); then nothing has changed.
-    """
-    import ctypes
-
-    try:
-        libc = ctypes.CDLL(None, use_errno=True)
-        renameat2 = libc.renameat2
-    except (OSError, AttributeError):
-        return False
-    at_fdcwd, rename_exchange = -100, 2
-    done = renameat2(at_fdcwd, os.fsencode(a), at_fdcwd, os.fsencode(b), rename_exchange)
-    return done == 0
-
-
-def _sync_tree(folder: Path) -> None:
-    """Every file of ``folder`` (one level) and the folder itself on the disk."""
-    for entry in os.scandir(folder):
-        if entry.is_file(follow_symlinks=False):
-            fd = os.open(entry.path, os.O_RDONLY)
-            try:
-                os.fsync(fd)
-            finally:
-                os.close(fd)
-    fd = os.open(folder, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-
-
 def check_output_folder(folder, known: tuple[str, ...], what: str) -> Path:
     """Check a folder output before any work; returns its resolved path.
 
@@ -366,57 +332,3 @@ def check_inside_folders(outputs: Mapping[str, Any], folders: Mapping[str, Any])
                     f"{fname}: {os.fspath(fpath)!r} lies in the {dname} folder, which is "
                     "replaced as a whole; write it elsewhere"
                 )
-
-
-def write_folder_staged(folder, fill, what: str = "output folder") -> Path:
-    """Write a folder output complete or not at all: ``fill(staging)``, then one rename onto ``folder``.
-
-    ``fill`` writes the folder's files into a fresh staging folder beside the target
-    (:func:`quadobs.errors.staging_path`); they and the folder are synced to the disk,
-    then the staging folder takes the target's name in one step: a rename when the target
-    does not exist, an atomic exchange of the two names (Linux ``renameat2``) when it does,
-    after which the previous folder, now under the staging name, is removed. Where the
-    exchange is not available the previous folder is first renamed aside, and renamed back
-    if the second rename fails. On any failure (a full disk, an error of ``fill``) the
-    staging folder is removed and the previous folder is untouched; an ``OSError`` becomes a
-    one-line :class:`QuadobsError` naming ``what`` and the folder. Returns the target.
-    """
-    import shutil
-
-    target = Path(os.path.realpath(os.fspath(folder)))
-    tmp = staging_path(target)
-    try:
-        target.parent.mkdir(parents=True, exist_ok=True)
-        clean_leftovers(target)
-        os.mkdir(tmp)
-        fill(tmp)
-        _sync_tree(tmp)
-        if not os.path.lexists(target):
-            os.rename(tmp, target)
-        elif _exchange(tmp, target):
-            shutil.rmtree(tmp, ignore_errors=True)
-        else:
-            aside = staging_path(target)
-            os.rename(target, aside)
-            try:
-                os.rename(tmp, target)
-            except BaseException:
-                os.rename(aside, target)
-                raise
-            shutil.rmtree(aside, ignore_errors=True)
-    except OSError as exc:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise QuadobsError(
-            f"{what} {os.fspath(folder)!r}: cannot be written ({exc.strerror or exc})"
-        ) from None
-    except QuadobsError as exc:  # a file of the folder: named in the folder, not the staging one
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise QuadobsError(
-            f"{what} {os.fspath(folder)!r}: "
-            + str(exc).replace(os.fspath(tmp), os.fspath(folder))
-            + "; the previous folder is unchanged"
-        ) from None
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
-    return target

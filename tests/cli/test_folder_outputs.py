@@ -37,7 +37,9 @@ def log_folder(tmp_path_factory) -> Path:
 def test_the_staged_folder_writer_replaces_a_folder_whole_or_not_at_all(tmp_path):
     target = tmp_path / "out"
     write_folder_staged(target, lambda d: (d / "a.txt").write_text("one"))
-    write_folder_staged(target, lambda d: (d / "b.txt").write_text("two"))
+    write_folder_staged(
+        target, lambda d: (d / "b.txt").write_text("two"), allowed={"a.txt", "b.txt"}
+    )
     assert _snapshot(target) == {"b.txt": b"two"}
 
     def failing(d):

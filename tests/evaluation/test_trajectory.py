@@ -52,7 +52,7 @@ def test_a_diverged_estimator_gets_no_rmse(bad, reason):
     acc = TrajectoryErrors(2)
     acc.update(np.arange(20), t, est, np.zeros((20, 2)))
     f = acc.figures()
-    assert f["diverged"]["step"] == 10 and f["diverged"]["time"] == 5.0
+    assert f["diverged"]["step"] == 10 and f["diverged"]["t"] == 5.0
     assert reason in f["diverged"]["reason"]
     assert f["rmse"] is None and f["max_error"] is None and f["final_position_error"] is None
 

@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from quadobs.errors import QuadobsError
-from quadobs.testbed.logs.format import RangeLog, write_log
+from quadobs.testbed.logs.format import LOG_FILES, RangeLog, write_log
 from quadobs.testbed.sinks import EpisodeContext, Rows, Sink
 
 __all__ = ["LogExportSink", "check_export_folder", "check_exportable"]
@@ -109,7 +109,9 @@ class LogExportSink(Sink):
         from quadobs.testbed.outputs import write_folder_staged
 
         try:  # the folder as a whole (a full disk leaves the previous one complete)
-            write_folder_staged(self.folder, lambda tmp: write_log(log, tmp), "--export-log")
+            write_folder_staged(
+                self.folder, lambda tmp: write_log(log, tmp), "--export-log", set(LOG_FILES)
+            )
         except QuadobsError as exc:  # the run's own results stay; the command reports it (exit 1)
             return {"export_error": str(exc), "exported_log_ranges_negated": negated}
         return {"exported_log": str(self.folder), "exported_log_ranges_negated": negated}

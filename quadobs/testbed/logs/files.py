@@ -258,25 +258,17 @@ def staged_folder(folder: str | Path, allowed, what: str) -> Iterator[Path]:
 
 
 def _swap_in(stage: Path, target: Path) -> None:
-    """Rename ``stage`` onto ``target`` (an existing folder moved aside first, then removed)."""
+    """Every file of ``stage`` on the disk, then ``stage`` in place of ``target``
+    (:func:`quadobs.staging.swap_in`: one atomic exchange where the system has it)."""
+    from quadobs.staging import swap_in
+
     for entry in os.scandir(stage):
         fd = os.open(entry.path, os.O_RDONLY)
         try:
             os.fsync(fd)
         finally:
             os.close(fd)
-    if not target.exists():
-        os.rename(stage, target)
-        return
-    os.chmod(stage, stat.S_IMODE(os.stat(target).st_mode))
-    old = staging_path(target)
-    os.rename(target, old)
-    try:
-        os.rename(stage, target)
-    except OSError:
-        os.rename(old, target)
-        raise
-    shutil.rmtree(old, ignore_errors=True)
+    swap_in(stage, target)
 
 
 def check_replaceable_folder(folder: str | Path, allowed, what: str, outputs=()) -> None:
