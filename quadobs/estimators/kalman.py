@@ -73,6 +73,12 @@ from quadobs.core.held_input import as_covariance, held_input_step, van_loan
 from quadobs.core.system import QuadraticSystem
 from quadobs.errors import QuadobsError, as_array, as_finite_scalar
 from quadobs.estimators.base import Estimator, Gated, step_operands
+from quadobs.estimators.robust import (
+    LockOut,
+    multilateration,
+    reinitialised_covariance,
+    reweight,
+)
 
 __all__ = [
     "ExtendedKalmanFilter",
@@ -250,7 +256,15 @@ class _GaussianFilter(Estimator, Gated):
     name = "gaussian"
 
     def __init__(
-        self, dynamics: HeldInputModel, outputs: OutputModel, *, x0, P0, gate: float | None = None
+        self,
+        dynamics: HeldInputModel,
+        outputs: OutputModel,
+        *,
+        x0,
+        P0,
+        gate: float | None = None,
+        robust=None,
+        lockout: LockOut | None = None,
     ) -> None:
         if not isinstance(dynamics, HeldInputModel):
             raise QuadobsError(
@@ -275,6 +289,12 @@ class _GaussianFilter(Estimator, Gated):
         self._pending = 0
         self._powers: dict[int, tuple[np.ndarray, np.ndarray]] = {0: (np.eye(n), np.zeros((n, n)))}
         self._F, self._G = dynamics.F, dynamics.G
+        # Robust corrections and lock-out (:mod:`quadobs.estimators.robust`).
+        self.robust = robust
+        self.lockout = lockout if lockout is not None else LockOut()
+        self._P0 = self._P.copy()
+        self._clock, self._steps = 0.0, 0
+        self._latest = np.full(self.q, np.nan)  # the latest value of each output
 
     # -- estimator interface -----------------------------------------------------------
 
@@ -298,6 +318,8 @@ class _GaussianFilter(Estimator, Gated):
         u, y = step_operands(u, y, self._G.shape[1], self.q)
         self.correct(y)
         self.predict(u)
+        self._clock += self.dynamics.dt
+        self._steps += 1
 
     def predict(self, u: np.ndarray) -> None:
         """Exact mean prediction ``x = F x + G u``; the covariance follows lazily."""
@@ -312,9 +334,21 @@ class _GaussianFilter(Estimator, Gated):
             self.nis, self.nis_dof = float("nan"), 0
             return
         idx = np.flatnonzero(present) if not present.all() else slice(None)
+        self._latest[idx] = y[idx]
         self._settle()
         R = self.outputs.R if isinstance(idx, slice) else self.outputs.R[np.ix_(idx, idx)]
         z = self.outputs.measure(y[idx], idx)
+        if (
+            self.robust is not None
+            and z.shape[0] > 1
+            and np.count_nonzero(R - np.diag(np.diag(R))) == 0
+        ):
+            # a robust rule judges each output on its own (one degree of freedom), as
+            # measurements at their own times are: one scalar correction after the other
+            rows = np.flatnonzero(present)
+            for i in range(rows.shape[0]):
+                self._update(z[i : i + 1], rows[i : i + 1], R[i : i + 1, i : i + 1])
+            return
         self._update(z, idx, R)
 
     # -- internals ---------------------------------------------------------------------
@@ -346,9 +380,44 @@ class _GaussianFilter(Estimator, Gated):
         self.nis_dof = int(nu.shape[0])
         if self.gate is not None and self.nis > self.gate:
             self.rejected += 1
+            self._watch(False, nu)
             return False, Sinv_nu
         self.corrections += 1
+        self._watch(True, nu)
         return True, Sinv_nu
+
+    @property
+    def diverged(self) -> dict | None:
+        """``None``, or the time, step and reason at which the filter was given up (:class:`~quadobs.estimators.robust.LockOut`)."""
+        return self.lockout.diverged
+
+    def _robust(self, nu: np.ndarray, S: np.ndarray, R: np.ndarray):
+        """``(S, R)`` re-weighted by :attr:`robust`, or ``None`` when it rejects the correction."""
+        if self.robust is None:
+            return S, R
+        R_w = reweight(self.robust, nu, S, R)
+        if R_w is None:
+            self.nis = float(nu @ np.linalg.solve(S, nu))
+            self.nis_dof = int(nu.shape[0])
+            self.rejected += 1
+            self._watch(False, nu)
+            return None
+        return (S, R) if R_w is R else (S + (R_w - R), R_w)
+
+    def _watch(self, accepted: bool, nu: np.ndarray) -> None:
+        """Lock-out: re-initialise the covariance, or give the filter up (see :mod:`~quadobs.estimators.robust`)."""
+        lock, t = self.lockout, self._clock
+        if not lock.observe(t, accepted, float(np.max(np.abs(nu)))):
+            return
+        span = t - lock.last_accepted
+        reason = f"more than half of the corrections of the last {lock.timeout} s rejected"
+        largest, dim = lock.largest, self.outputs.system.p
+        if lock.reset(t, self._steps, reason):
+            self._P = reinitialised_covariance(self._P, self._P0, largest, dim, span)
+            system = self.outputs.system
+            fixed = multilateration(system.C, system.d, self._latest)
+            if fixed is not None:
+                self._x[fixed[0]] = fixed[1]
 
     def _update(self, z: np.ndarray, idx, R: np.ndarray) -> None:  # pragma: no cover - interface
         raise NotImplementedError
@@ -384,6 +453,10 @@ class ExtendedKalmanFilter(_GaussianFilter):
         nu = z - z_pred[idx]
         PHt = P @ H.T
         S = H @ PHt + R
+        robust = self._robust(nu, S, R)
+        if robust is None:
+            return
+        S, R = robust
         ok, _ = self._accept(nu, S)
         if not ok:
             return
@@ -427,8 +500,10 @@ class UnscentedKalmanFilter(_GaussianFilter):
         alpha: float = 1.0,
         beta: float = 2.0,
         kappa: float = 0.0,
+        robust=None,
+        lockout: LockOut | None = None,
     ) -> None:
-        super().__init__(dynamics, outputs, x0=x0, P0=P0, gate=gate)
+        super().__init__(dynamics, outputs, x0=x0, P0=P0, gate=gate, robust=robust, lockout=lockout)
         n = self.n
         self.alpha = as_finite_scalar("alpha", alpha, positive=True)
         self.beta = as_finite_scalar("beta", beta)
@@ -469,6 +544,10 @@ class UnscentedKalmanFilter(_GaussianFilter):
         S = (dZ.T * self._wc) @ dZ + R
         Pxz = (dX.T * self._wc) @ dZ
         nu = z - z_pred
+        robust = self._robust(nu, S, R)
+        if robust is None:
+            return
+        S, R = robust
         ok, _ = self._accept(nu, S)
         if not ok:
             return

@@ -271,6 +271,7 @@ class RefinedObserver(Estimator, Gated, Immersed, Switching):
         P0,
         gate: float | None = None,
         policy: HandoverPolicy | None = None,
+        robust=None,
     ) -> None:
         if not isinstance(observer, AugmentedObserver):
             raise QuadobsError(
@@ -292,6 +293,9 @@ class RefinedObserver(Estimator, Gated, Immersed, Switching):
                 f"policy: expected a HandoverPolicy, got {type(self.policy).__name__}"
             )
         self.gate = probe.gate
+        #: The EKF's robust correction (:mod:`quadobs.estimators.robust`); its lock-out is the
+        #: hand-back to the observer below.
+        self.robust = robust
         self.n, self.q = n, q
         self._x0 = as_array("x0", x0, (n,)).copy()
         self._P0 = probe.x_covariance.copy()
@@ -382,11 +386,17 @@ class RefinedObserver(Estimator, Gated, Immersed, Switching):
     def _ekf_step(self, u, y, has) -> None:
         ekf = self._ekf
         self.observer.step(u, y)  # the fallback keeps running
+        before = ekf.rejected
         ekf.step(u, y)
         self.nis = ekf.nis
         if not has:
             return
-        rejected = self._count(ekf.nis)
+        if self.robust is None:
+            rejected = self._count(ekf.nis)
+        else:  # the EKF's own rule decided
+            rejected = ekf.rejected > before
+            self.rejected += rejected
+            self.corrections += not rejected
         self._ekf_window.push(ekf.nis, ekf.nis_dof, rejected)
         w = self._ekf_window
         if w.full and (w.rejected_fraction() > 0.5 or not w.passes(self.policy.guard)):
@@ -455,7 +465,9 @@ class RefinedObserver(Estimator, Gated, Immersed, Switching):
             self._next_try = self._updates + self._wait
             self._wait = min(2 * self._wait, 4 * pol.window)
             return None
-        ekf = ExtendedKalmanFilter(self.dynamics, self.outputs, x0=x, P0=P, gate=self.gate)
+        ekf = ExtendedKalmanFilter(
+            self.dynamics, self.outputs, x0=x, P0=P, gate=self.gate, robust=self.robust
+        )
         ekf.nis, ekf.nis_dof = window.items[-1][0], window.items[-1][1]
         self._ekf_window = _Window(pol.window)
         for item in window.items:

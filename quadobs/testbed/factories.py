@@ -237,16 +237,49 @@ def _input_std(scenario: Scenario) -> float:
     return scenario.noise.sigma("accel")
 
 
+def robust_settings(scenario: Scenario) -> dict:
+    """The filters' robust correction and lock-out from ``[noise]`` (:mod:`quadobs.estimators.robust`).
+
+    ``noise.gate`` (a probability) gives a chi-square gate with one degree of freedom per
+    output corrected; ``noise.huber`` Huber's M-estimator; both at once are refused.
+    """
+    from quadobs.estimators.robust import ChiSquareGate, Huber, LockOut
+
+    noise = scenario.noise
+    if noise.gate is not None and noise.huber is not None:
+        raise QuadobsError("noise.huber: cannot be combined with noise.gate (choose one rule)")
+    rule = None
+    if noise.gate is not None:
+        rule = ChiSquareGate(noise.gate)
+    elif noise.huber is not None:
+        rule = Huber(noise.huber)
+    return {"robust": rule, "lockout": LockOut(noise.lockout or LockOut.timeout)}
+
+
 def extended_kalman_filter(scenario: Scenario, x0: np.ndarray) -> ExtendedKalmanFilter:
     """The ``"ekf"`` estimator of ``scenario`` (:func:`baseline_settings`), started at ``x0``."""
     s = baseline_settings(scenario)
-    return ExtendedKalmanFilter(s.dynamics, s.outputs, x0=x0, P0=s.P0, gate=scenario.observer.gate)
+    return ExtendedKalmanFilter(
+        s.dynamics,
+        s.outputs,
+        x0=x0,
+        P0=s.P0,
+        gate=scenario.observer.gate,
+        **robust_settings(scenario),
+    )
 
 
 def unscented_kalman_filter(scenario: Scenario, x0: np.ndarray) -> UnscentedKalmanFilter:
     """The ``"ukf"`` estimator of ``scenario`` (:func:`baseline_settings`), started at ``x0``."""
     s = baseline_settings(scenario)
-    return UnscentedKalmanFilter(s.dynamics, s.outputs, x0=x0, P0=s.P0, gate=scenario.observer.gate)
+    return UnscentedKalmanFilter(
+        s.dynamics,
+        s.outputs,
+        x0=x0,
+        P0=s.P0,
+        gate=scenario.observer.gate,
+        **robust_settings(scenario),
+    )
 
 
 def zonotope_estimator(scenario: Scenario, x0: np.ndarray) -> ZonotopicAugmentedEstimator:
@@ -316,7 +349,15 @@ def refined_observer(scenario: Scenario, x0: np.ndarray) -> RefinedObserver:
     """
     s = baseline_settings(scenario)
     obs = augmented_observer(scenario, x0)
-    return RefinedObserver(obs, s.dynamics, s.outputs, x0=x0, P0=s.P0, gate=scenario.observer.gate)
+    return RefinedObserver(
+        obs,
+        s.dynamics,
+        s.outputs,
+        x0=x0,
+        P0=s.P0,
+        gate=scenario.observer.gate,
+        robust=robust_settings(scenario)["robust"],
+    )
 
 
 # -- the built-in entry points: factory(scenario, x0, name) -> Estimator -----------------

@@ -226,6 +226,18 @@ class NoiseSpec(_Table):
     range_bound: Noise = Field(0.0, description="Bound of the uniform range error (m).")
     accel_bound: Noise = Field(0.0, description="Bound of the uniform accelerometer error (m/s^2).")
     airspeed_bound: Noise = Field(0.0, description="Bound of the uniform airspeed error (m/s).")
+    gate: Annotated[Positive, Le(1.0)] | None = Field(
+        None,
+        description="EKF/UKF/refined: chi-square gate of this probability on each correction's NIS, with one degree of freedom per output corrected (1 for a range at its own time); default: no gate.",
+    )
+    huber: Positive | None = Field(
+        None,
+        description="EKF/UKF/refined: Huber M-estimator with this threshold in standard deviations (1.345: 95 % Gaussian efficiency); default: none.",
+    )
+    lockout: Positive | None = Field(
+        None,
+        description="EKF/UKF (default 2 s): window over which more than half of the corrections rejected count as a lock-out, after which the filter re-initialises its covariance; after 3 re-initialisations it is reported as diverged.",
+    )
 
     @model_validator(mode="after")
     def _std_or_bound(self) -> NoiseSpec:
