@@ -180,7 +180,7 @@ def output_row(C_h: np.ndarray, h: int, m: int, rho: float) -> np.ndarray:
     >>> from quadobs.core.immersion import immerse
     >>> from quadobs.core.system import vehicle_system
     >>> a = np.array([[3.0, 0.0, 1.0], [0.0, 4.0, 0.0]])
-    >>> ext = BiasedRangeImmersion(immerse(vehicle_system(3, a)))
+    >>> ext = BiasedRangeImmersion(immerse(vehicle_system(3, a)), squares=True)
     >>> x, b = np.array([1.0, 2.0, 0.5, 0.1, 0.0, 0.0]), np.array([0.3, -0.2])
     >>> rho = np.linalg.norm(x[:3] - a[0]) + b[0]
     >>> bool(np.isclose(ext.output_row(0, rho) @ ext.lift(x, b), rho**2 / 2 - a[0] @ a[0] / 2))
