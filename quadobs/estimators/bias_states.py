@@ -23,9 +23,20 @@ import numpy as np
 from quadobs.core.measurements import RangeModel
 from quadobs.core.system import QuadraticSystem
 from quadobs.errors import QuadobsError
-from quadobs.estimators.kalman import HeldInputModel, OutputModel
+from quadobs.estimators.kalman import (
+    ExtendedKalmanFilter,
+    HeldInputModel,
+    OutputModel,
+    UnscentedKalmanFilter,
+)
 
-__all__ = ["BiasedRangeOutputModel", "biased_models", "extended_system"]
+__all__ = [
+    "BiasedExtendedKalmanFilter",
+    "BiasedRangeOutputModel",
+    "BiasedUnscentedKalmanFilter",
+    "biased_models",
+    "extended_system",
+]
 
 
 def extended_system(system: QuadraticSystem) -> QuadraticSystem:
@@ -101,3 +112,45 @@ def biased_models(
     Pe[:n, :n] = P0
     Pe[n:, n:] = np.diag([e.prior_std**2 for e in extra])
     return dynamics, outputs, Pe
+
+
+class _VehicleBlock:
+    """Reports the vehicle's state ``x`` (the first ``n`` entries) and keeps the biases apart."""
+
+    vehicle_n: int = 0
+
+    @property
+    def x_hat(self) -> np.ndarray:
+        return self._x[: self.vehicle_n].copy()
+
+    @property
+    def x_covariance(self) -> np.ndarray:
+        self._settle()
+        k = self.vehicle_n
+        return self._P[:k, :k].copy()
+
+    @property
+    def biases(self) -> np.ndarray:
+        """The estimated per-anchor biases ``(q,)`` (m)."""
+        return self._x[self.vehicle_n :].copy()
+
+
+class BiasedExtendedKalmanFilter(_VehicleBlock, ExtendedKalmanFilter):
+    """:class:`~quadobs.estimators.kalman.ExtendedKalmanFilter` on ``(x, b)`` (:func:`biased_models`);
+    :attr:`x_hat` is ``x``, :attr:`biases` is ``b``."""
+
+    name = "ekf-bias"
+
+    def __init__(self, dynamics, outputs, *, vehicle_n: int, **kw) -> None:
+        super().__init__(dynamics, outputs, **kw)
+        self.vehicle_n = int(vehicle_n)
+
+
+class BiasedUnscentedKalmanFilter(_VehicleBlock, UnscentedKalmanFilter):
+    """:class:`~quadobs.estimators.kalman.UnscentedKalmanFilter` on ``(x, b)`` (:func:`biased_models`)."""
+
+    name = "ukf-bias"
+
+    def __init__(self, dynamics, outputs, *, vehicle_n: int, **kw) -> None:
+        super().__init__(dynamics, outputs, **kw)
+        self.vehicle_n = int(vehicle_n)

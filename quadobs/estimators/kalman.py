@@ -310,7 +310,6 @@ class _GaussianFilter(Estimator, Gated):
         self.robust = robust
         self.lockout = lockout if lockout is not None else LockOut()
         self._P0 = self._P.copy()
-        self._steps = 0
         self._latest = np.full(self.q, np.nan)  # the latest value of each output
 
     # -- estimator interface -----------------------------------------------------------
@@ -336,7 +335,6 @@ class _GaussianFilter(Estimator, Gated):
         self.correct_outputs(y)
         self.predict_step(u)
         self._time += self.dynamics.dt
-        self._steps += 1
 
     def predict(self, t) -> None:
         """Propagate to the time ``t`` (:meth:`Estimator.predict`, exact over any interval); an
@@ -497,7 +495,7 @@ class _GaussianFilter(Estimator, Gated):
         span = t - lock.last_accepted
         reason = f"more than half of the corrections of the last {lock.timeout} s rejected"
         largest, dim = lock.largest, self.outputs.system.p
-        if lock.reset(t, self._steps, reason):
+        if lock.reset(t, int(round(t / self.dynamics.dt)), reason):
             self._P = reinitialised_covariance(self._P, self._P0, largest, dim, span)
             system = self.outputs.system
             fixed = multilateration(system.C, system.d, self._latest)

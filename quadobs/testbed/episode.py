@@ -435,8 +435,10 @@ class _Episode:
         ests = list(estimators)
         self.block = block = Block(self.world, ests, _BLOCK)
         self.clock = np.zeros(len(ests)) if timed else None
+        feed = getattr(self.world, "recorder", None)  # a world that feeds measurements in time
         self.slots = [
-            (self._clocked(est.step_and_record, e), block.rec[e]) for e, est in enumerate(ests)
+            (self._clocked(feed(est) if feed else est.step_and_record, e), block.rec[e])
+            for e, est in enumerate(ests)
         ]
         self.blockwise = (
             path == "auto"

@@ -381,3 +381,83 @@ build_ekf = _entry_point(extended_kalman_filter, "ekf")
 build_ukf = _entry_point(unscented_kalman_filter, "ukf")
 build_zonotope = _entry_point(zonotope_estimator, "zonotope")
 build_refined = _entry_point(refined_observer, "augmented-refined")
+
+
+# -- per-anchor range biases as states (quadobs.core.range_bias, quadobs.estimators.bias_states) --
+
+
+def _range_sigma(scenario: Scenario) -> float:
+    """The stated range noise: the radio's ``std``, else ``noise.range_std`` (or its bound's)."""
+    radio = getattr(scenario, "radio", None)
+    sigma = radio.std if radio is not None else scenario.noise.sigma("range")
+    if not sigma > 0.0:
+        raise QuadobsError(
+            "noise.range_std: estimating range biases needs the stated range noise (positive)"
+        )
+    return float(sigma)
+
+
+def _bias_filter(scenario: Scenario, x0: np.ndarray, cls):
+    from quadobs.core.measurements import RangeModel
+    from quadobs.estimators.bias_states import biased_models
+
+    if scenario.has_wind:
+        raise QuadobsError("wind: bias states are for range-only systems (no airspeed output)")
+    system, sigma = scenario.system(), _range_sigma(scenario)
+    P0, _ = initial_covariance(scenario)
+    model = RangeModel(scenario.beacons, sigma, bias="state")
+    dyn, out, Pe = biased_models(system, scenario.dt, sigma, _input_std(scenario), P0, model)
+    xe = np.concatenate([np.asarray(x0, dtype=float), np.zeros(system.q)])
+    return cls(dyn, out, x0=xe, P0=Pe, vehicle_n=system.n, **robust_settings(scenario))
+
+
+def biased_extended_kalman_filter(scenario: Scenario, x0: np.ndarray):
+    """The ``"ekf-bias"`` estimator: the EKF with one range bias per anchor as a state
+    (prior :meth:`~quadobs.core.measurements.RangeModel.extra_states`), the scenario's robust rule."""
+    from quadobs.estimators.bias_states import BiasedExtendedKalmanFilter
+
+    return _bias_filter(scenario, x0, BiasedExtendedKalmanFilter)
+
+
+def biased_unscented_kalman_filter(scenario: Scenario, x0: np.ndarray):
+    """The ``"ukf-bias"`` estimator: the UKF with one range bias per anchor as a state."""
+    from quadobs.estimators.bias_states import BiasedUnscentedKalmanFilter
+
+    return _bias_filter(scenario, x0, BiasedUnscentedKalmanFilter)
+
+
+def biased_augmented_observer(scenario: Scenario, x0: np.ndarray):
+    """The ``"augmented-bias"`` estimator: Theorem 3's observer with the range biases in the
+    immersion (:mod:`quadobs.core.range_bias`): ``V``, ``S0`` and ``theta`` of ``[observer]``,
+    ``R`` from the stated range noise."""
+    from quadobs.estimators.augmented_bias import BiasedAugmentedObserver
+
+    if scenario.has_wind:
+        raise QuadobsError("wind: bias states are for range-only systems (no airspeed output)")
+    obs = scenario.observer
+    im = immerse(scenario.system(), method=obs.immersion)
+    return BiasedAugmentedObserver(
+        im,
+        scenario.dt,
+        sigma=_range_sigma(scenario),
+        V=np.asarray(obs.V, dtype=float),
+        P0=np.asarray(obs.S0, dtype=float),
+        theta=obs.theta,
+        x0=x0,
+        robust=_huber_only(scenario),
+    )
+
+
+def _huber_only(scenario: Scenario):
+    """The observer's robust rule: Huber's when the scenario asks for it; a chi-square gate is
+    not applied to it, as its covariance is a tuning (``V``, ``S0``), not a calibrated one, and
+    the gate would lock it out of the global convergence it is there for."""
+    from quadobs.estimators.robust import Huber
+
+    rule = robust_settings(scenario)["robust"]
+    return rule if isinstance(rule, Huber) else None
+
+
+build_ekf_bias = _entry_point(biased_extended_kalman_filter, "ekf-bias")
+build_ukf_bias = _entry_point(biased_unscented_kalman_filter, "ukf-bias")
+build_augmented_bias = _entry_point(biased_augmented_observer, "augmented-bias")

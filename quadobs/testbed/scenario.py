@@ -68,6 +68,7 @@ __all__ = [
     "NoiseSpec",
     "ObserverSpec",
     "QuadrotorSpec",
+    "RadioSpec",
     "Scenario",
     "ZonotopeSpec",
     "apply_settings",
@@ -496,6 +497,50 @@ class QuadrotorSpec(_Table):
         return self
 
 
+class RadioSpec(_Table):
+    """The ``[radio]`` table: a simulated UWB radio (:mod:`quadobs.testbed.uwb`) instead of the
+    grid ranges of ``[noise]`` (quadrotor scenarios): each range or TDOA at its own time."""
+
+    protocol: Literal["twr", "tdoa"] = Field(
+        "twr",
+        description="`twr`: two-way ranging, anchors polled in turn; `tdoa`: TDoA3-style differences, random order.",
+    )
+    rate: Rate = Field(
+        100.0, description="Exchanges (twr) or packets (tdoa) per second over all anchors (Hz)."
+    )
+    rates: tuple[Rate, ...] | None = Field(
+        None, description="twr: each anchor's own rate (Hz) instead of the round-robin."
+    )
+    std: Annotated[Positive, Le(MAX_NOISE)] = Field(
+        0.1, description="Line-of-sight noise of one range (m)."
+    )
+    biases: tuple[Coordinate, ...] | None = Field(
+        None, description="Per-anchor biases (m); default: drawn from the seed with `bias_std`."
+    )
+    bias_std: Noise = Field(
+        0.0, description="Standard deviation of the drawn per-anchor biases (m)."
+    )
+    jitter: Noise = Field(
+        0.0, description="Standard deviation of each exchange's timing jitter (s)."
+    )
+    dropout: Annotated[NonNegative, Le(0.99)] = Field(
+        0.0, description="Probability that an exchange is lost."
+    )
+    outlier_probability: Annotated[NonNegative, Le(0.99)] = Field(
+        0.0, description="Probability that a range carries an outlier."
+    )
+    outlier_std: Noise = Field(0.0, description="Standard deviation of an outlier's error (m).")
+    nlos_median: Noise = Field(
+        0.0,
+        description="Median of the non-line-of-sight excess (m, log-normal), where the room blocks the path.",
+    )
+    nlos_shape: Noise = Field(0.5, description="Log-normal shape of the non-line-of-sight excess.")
+    room: Annotated[String, MaxLen(MAX_TEXT)] | None = Field(
+        None,
+        description="MJCF file of the obstacles cast against with `mj_ray` (relative to the scenario file; `builtin` for the package's room).",
+    )
+
+
 # --------------------------------------------------------------------------------------
 # The scenario
 # --------------------------------------------------------------------------------------
@@ -579,6 +624,10 @@ class Scenario(_Table):
         None,
         description='Flight plan and on-board sensors of the quadrotor (`kind = "quadrotor"` only).',
     )
+    radio: RadioSpec | None = Field(
+        None,
+        description='A simulated UWB radio feeding each measurement at its own time (`kind = "quadrotor"` only).',
+    )
 
     _beacons: np.ndarray = PrivateAttr()
     _wind: np.ndarray | None = PrivateAttr(None)
@@ -646,7 +695,7 @@ class Scenario(_Table):
     def _quadrotor_tables(self) -> Scenario:
         """``[control]`` and ``[quadrotor]`` belong to quadrotor scenarios, which move in 3-D."""
         if self.kind != "quadrotor":
-            for table in ("control", "quadrotor"):
+            for table in ("control", "quadrotor", "radio"):
                 if getattr(self, table) is not None:
                     raise QuadobsError(
                         f'{table}: only used with kind = "quadrotor", not {self.kind!r}'

@@ -67,7 +67,7 @@ import numpy as np
 from quadobs.core.measurements import Measurement
 from quadobs.errors import QuadobsError
 
-__all__ = ["RadioConfig", "Room", "UwbRadio", "room_model_path"]
+__all__ = ["RadioConfig", "Room", "UwbRadio", "radio_of", "room_model_path"]
 
 _STREAMS = ("schedule", "noise", "nlos", "outlier", "dropout", "bias")
 #: Most of a nominal spacing a jittered event may move, so that one anchor's events keep their order.
@@ -348,3 +348,37 @@ class UwbRadio:
             v = (np.asarray(position(t + 0.5 * dt)) - np.asarray(position(t - 0.5 * dt))) / dt
             out.extend(self.take(t, t + dt, p, v))
         return out
+
+
+def radio_of(scenario) -> UwbRadio | None:
+    """The radio of a scenario's ``[radio]`` table (``None`` without one), seeded by its seed.
+
+    ``room = "builtin"`` is the package's room (``uwb_room.xml``); another name is read
+    relative to the scenario file.
+    """
+    spec = getattr(scenario, "radio", None)
+    if spec is None:
+        return None
+    room = spec.room
+    if room == "builtin":
+        room = str(room_model_path())
+    elif room is not None and not Path(room).is_absolute():
+        source = Path(scenario.source) if scenario.source else None
+        if source is not None and source.is_file():
+            room = str(source.parent / room)
+    config = RadioConfig(
+        protocol=spec.protocol,
+        rate=spec.rate,
+        rates=spec.rates,
+        std=spec.std,
+        biases=spec.biases,
+        bias_std=spec.bias_std,
+        jitter=spec.jitter,
+        dropout=spec.dropout,
+        outlier_probability=spec.outlier_probability,
+        outlier_std=spec.outlier_std,
+        nlos_median=spec.nlos_median,
+        nlos_shape=spec.nlos_shape,
+        room=room,
+    )
+    return UwbRadio(scenario.beacons, config, scenario.seed)
