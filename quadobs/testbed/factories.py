@@ -253,7 +253,25 @@ def robust_settings(scenario: Scenario) -> dict:
         rule = ChiSquareGate(noise.gate)
     elif noise.huber is not None:
         rule = Huber(noise.huber)
-    return {"robust": rule, "lockout": LockOut(noise.lockout or LockOut.timeout)}
+    return {"robust": rule, "lockout": LockOut(noise.lockout or lockout_window(scenario))}
+
+
+#: Corrections a lock-out window holds by default (:func:`lockout_window`).
+LOCKOUT_CORRECTIONS = 30
+
+
+def lockout_window(scenario: Scenario) -> float:
+    """The default lock-out window (s): the time the scenario's ranges take to bring
+    :data:`LOCKOUT_CORRECTIONS` corrections (the radio's rate, or every range output at its
+    sample rate). Under the model with a gate of probability 0.999, more than half of 30
+    corrections rejected has a probability below 1e-40; a real lock-out is caught in a
+    fraction of a second at UWB rates."""
+    radio = getattr(scenario, "radio", None)
+    if radio is not None:
+        rate = radio.rate if radio.rates is None else float(sum(radio.rates))
+    else:
+        rate = float(np.sum(1.0 / output_periods(scenario)))
+    return LOCKOUT_CORRECTIONS / rate
 
 
 def extended_kalman_filter(scenario: Scenario, x0: np.ndarray) -> ExtendedKalmanFilter:

@@ -59,6 +59,9 @@ _BUILTIN = {
     "ukf": "quadobs.testbed.factories:build_ukf",
     "zonotope": "quadobs.testbed.factories:build_zonotope",
     "augmented-refined": "quadobs.testbed.factories:build_refined",
+    "ekf-bias": "quadobs.testbed.factories:build_ekf_bias",
+    "ukf-bias": "quadobs.testbed.factories:build_ukf_bias",
+    "augmented-bias": "quadobs.testbed.factories:build_augmented_bias",
 }
 _RUNTIME: dict[str, Factory] = {}
 _REGISTRY = (

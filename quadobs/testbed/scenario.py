@@ -237,7 +237,7 @@ class NoiseSpec(_Table):
     )
     lockout: Positive | None = Field(
         None,
-        description="EKF/UKF (default 2 s): window over which more than half of the corrections rejected count as a lock-out, after which the filter re-initialises its covariance; after 3 re-initialisations it is reported as diverged.",
+        description="EKF/UKF (default: the time 30 corrections take at the scenario's range rate): window over which more than half of the corrections rejected count as a lock-out, after which the filter re-initialises its covariance; after 3 re-initialisations it is reported as diverged.",
     )
 
     @model_validator(mode="after")

@@ -136,3 +136,25 @@ def test_tdoa_pairs_differences_and_per_pair_bias():
 def test_bad_settings_are_named(change, field):
     with pytest.raises(QuadobsError, match=field):
         UwbRadio(ANCHORS, RadioConfig(**change), seed=0)
+
+
+def test_realistic_quadrotor_feeds_each_range_at_its_own_time():
+    from quadobs.testbed.episode import run_episode
+    from quadobs.testbed.scenario import load_scenario
+
+    scenario = load_scenario("quadrotor-uwb-realistic", duration=3.0)
+    result = run_episode(scenario, estimators=["ekf-bias", "augmented"])
+    ekf = result.summary["estimators"]["ekf-bias"]
+    # 100 exchanges a second for 3 s, less the dropped ones, each corrected or rejected
+    tried = ekf["corrections"] + ekf["rejected"]
+    assert 250 < tried < 300 and ekf["rejected"] < 0.1 * tried
+    assert "chi-square gate" in ekf["robust"] and ekf["diverged"] is None
+    # started 20 m off: within 1 m in well under the 2 s target, and it stays there
+    assert ekf["time_to_1m"] < 2.0 and ekf["final_position_error"] < 0.5
+
+
+def test_radio_table_belongs_to_quadrotors():
+    from quadobs.testbed.scenario import load_scenario
+
+    with pytest.raises(QuadobsError, match="radio"):
+        load_scenario("ifac2021", settings=["radio.rate=50"])
