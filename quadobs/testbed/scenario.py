@@ -227,7 +227,7 @@ class NoiseSpec(_Table):
     range_bound: Noise = Field(0.0, description="Bound of the uniform range error (m).")
     accel_bound: Noise = Field(0.0, description="Bound of the uniform accelerometer error (m/s^2).")
     airspeed_bound: Noise = Field(0.0, description="Bound of the uniform airspeed error (m/s).")
-    gate: Annotated[Positive, Le(1.0)] | None = Field(
+    gate: Positive | None = Field(
         None,
         description="EKF/UKF/refined: chi-square gate of this probability on each correction's NIS, with one degree of freedom per output corrected (1 for a range at its own time); default: no gate.",
     )
@@ -239,6 +239,16 @@ class NoiseSpec(_Table):
         None,
         description="EKF/UKF (default: the time 30 corrections take at the scenario's range rate): window over which more than half of the corrections rejected count as a lock-out, after which the filter re-initialises its covariance; after 3 re-initialisations it is reported as diverged.",
     )
+
+    @field_validator("gate")
+    @classmethod
+    def _a_probability(cls, gate: float | None) -> float | None:
+        if gate is not None and not gate < 1.0:
+            raise _invalid(
+                f"expected the gate's probability in (0, 1), e.g. 0.999: a correction is rejected when its NIS "
+                f"exceeds that quantile of chi-square with one degree of freedom per output corrected; got {gate}"
+            )
+        return gate
 
     @model_validator(mode="after")
     def _std_or_bound(self) -> NoiseSpec:

@@ -104,3 +104,17 @@ def test_multilateration_is_exact_on_noise_free_ranges():
     y = system.output(x)
     y[1:] = np.nan  # one range fixes nothing
     assert multilateration(system.C, system.d, y) is None
+
+
+def test_noise_gate_is_a_probability_and_says_its_degrees_of_freedom():
+    from quadobs.testbed.factories import robust_settings
+    from quadobs.testbed.scenario import load_scenario
+
+    with pytest.raises(QuadobsError, match="one degree of freedom per output"):
+        load_scenario("quadrotor-uwb", settings=["noise.gate=5"])
+    rule = robust_settings(load_scenario("quadrotor-uwb", settings=["noise.gate=0.99"]))["robust"]
+    assert rule.threshold(1) == pytest.approx(stats.chi2.ppf(0.99, 1))
+    with pytest.raises(QuadobsError, match="noise.huber"):
+        robust_settings(
+            load_scenario("quadrotor-uwb", settings=["noise.gate=0.99", "noise.huber=1.5"])
+        )
