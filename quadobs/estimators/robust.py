@@ -194,7 +194,7 @@ class LockOut:
     """Watches a filter's corrections in time (see the module docstring).
 
     The filter counts as locked out when, over the last ``timeout`` seconds (and at least
-    ``timeout`` after its start or last re-initialisation), more than half of the
+    :attr:`grace` after its start or last re-initialisation), more than half of the
     corrections it tried were rejected: under the model, with a gate of probability
     ``P``, the expected fraction is ``1 - P``. This catches a filter that rejects
     everything and one that keeps a few outputs consistent with a wrong position (a
@@ -227,7 +227,14 @@ class LockOut:
         if accepted or self.diverged is not None:
             return False
         self.largest = max(e[2] for e in w if not e[1])
-        return t - self.since >= self.timeout and 2 * self._rejected > len(w)
+        return t - self.since >= self.grace and 2 * self._rejected > len(w)
+
+    @property
+    def grace(self) -> float:
+        """Time after the start or the last re-initialisation before a lock-out can be declared:
+        the window, doubled at each re-initialisation (a filter re-initialised far off gets
+        longer to converge each time, as the refined observer's hand-over waits twice as long)."""
+        return self.timeout * 2.0 ** len(self.resets)
 
     @property
     def last_accepted(self) -> float:
