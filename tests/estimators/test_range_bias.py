@@ -107,18 +107,3 @@ def test_filters_estimate_the_biases_as_states(cls):
     for a, rho, _ in flight(2000, dt, sigma=sigma, seed=3):
         est.step(a, 0.5 * rho**2 - 0.5 * (ANCHORS**2).sum(1))
     assert np.abs(est.x_hat[6:] - BIASES).max() < 0.03
-
-
-def test_ekf_bias_considers_the_biases_while_the_position_is_unknown():
-    from quadobs.estimators.bias_states import BiasedExtendedKalmanFilter
-
-    system = vehicle_system(3, ANCHORS)
-    model = RangeModel(ANCHORS, 0.1, bias="state")
-    dyn, out, P0 = biased_models(system, 0.01, 0.1, 0.02, 100.0 * np.eye(6), model)
-    x0 = np.r_[12.0, 16.0, 0.0, 0, 0, 0, np.zeros(8)]
-    est = BiasedExtendedKalmanFilter(dyn, out, x0=x0, P0=P0, vehicle_n=6)
-    assert not est.estimating_biases
-    a, rho, _ = next(flight(1, 0.01))
-    est.step(a, 0.5 * rho**2 - 0.5 * (ANCHORS**2).sum(1))
-    assert np.all(est.biases == 0.0) and np.linalg.norm(est.x_hat[:2] - [12.0, 16.0]) > 1.0
-    assert np.allclose(np.diag(est._P)[6:], 0.25)  # considered: their variance untouched
