@@ -137,34 +137,13 @@ class _VehicleBlock:
 
 class BiasedExtendedKalmanFilter(_VehicleBlock, ExtendedKalmanFilter):
     """:class:`~quadobs.estimators.kalman.ExtendedKalmanFilter` on ``(x, b)`` (:func:`biased_models`);
-    :attr:`x_hat` is ``x``, :attr:`biases` is ``b``.
-
-    While the position is known worse than the biases' prior (the mean variance of the
-    position above the mean prior variance of the biases: far from the start, or after a
-    lock-out), the biases are *considered* rather than estimated (Schmidt): their rows of
-    the gain are zero, so a range innovation of metres moves the position and not the
-    biases, and the Joseph update keeps their covariance and correlations exact.
-    """
+    :attr:`x_hat` is ``x``, :attr:`biases` is ``b``."""
 
     name = "ekf-bias"
 
     def __init__(self, dynamics, outputs, *, vehicle_n: int, **kw) -> None:
         super().__init__(dynamics, outputs, **kw)
         self.vehicle_n = int(vehicle_n)
-        self._bias_variance = float(np.mean(np.diag(self._P)[self.vehicle_n :]))
-
-    @property
-    def estimating_biases(self) -> bool:
-        """Whether the biases are being estimated (else considered)."""
-        d = self.dynamics.system.p
-        return float(np.mean(np.diag(self._P)[:d])) <= self._bias_variance
-
-    def _gain(self, K: np.ndarray) -> np.ndarray:
-        if self.estimating_biases:
-            return K
-        K = K.copy()
-        K[self.vehicle_n :] = 0.0
-        return K
 
 
 class BiasedUnscentedKalmanFilter(_VehicleBlock, UnscentedKalmanFilter):

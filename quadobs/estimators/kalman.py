@@ -474,11 +474,6 @@ class _GaussianFilter(Estimator, Gated):
         """``None``, or the time, step and reason at which the filter was given up (:class:`~quadobs.estimators.robust.LockOut`)."""
         return self.lockout.diverged
 
-    def _gain(self, K: np.ndarray) -> np.ndarray:
-        """The gain the EKF's Joseph update applies: the Kalman gain (a subclass may zero rows of
-        states it only considers, the Joseph form holding for any gain)."""
-        return K
-
     def _robust(self, nu: np.ndarray, S: np.ndarray, R: np.ndarray):
         """``(S, R)`` re-weighted by :attr:`robust`, or ``None`` when it rejects the correction."""
         if self.robust is None:
@@ -555,7 +550,7 @@ class ExtendedKalmanFilter(_GaussianFilter):
         ok, _ = self._accept(nu, S)
         if not ok:
             return
-        K = self._gain(np.linalg.solve(S, PHt.T).T)
+        K = np.linalg.solve(S, PHt.T).T
         self._x = x + K @ nu
         IKH = np.eye(self.n) - K @ H
         P = IKH @ P @ IKH.T + K @ R @ K.T
