@@ -274,6 +274,17 @@ def lockout_window(scenario: Scenario) -> float:
     return LOCKOUT_CORRECTIONS / rate
 
 
+def radio_models(scenario: Scenario) -> dict:
+    """``{"measurements": [TdoaModel]}`` for a scenario whose radio sends TDOAs (the filters then
+    correct with ``h`` and its Jacobian, :class:`~quadobs.core.measurements.TdoaModel`), else ``{}``."""
+    radio = getattr(scenario, "radio", None)
+    if radio is None or radio.protocol != "tdoa":
+        return {}
+    from quadobs.core.measurements import TdoaModel
+
+    return {"measurements": [TdoaModel(scenario.beacons, radio.std)]}
+
+
 def extended_kalman_filter(scenario: Scenario, x0: np.ndarray) -> ExtendedKalmanFilter:
     """The ``"ekf"`` estimator of ``scenario`` (:func:`baseline_settings`), started at ``x0``."""
     s = baseline_settings(scenario)
@@ -284,6 +295,7 @@ def extended_kalman_filter(scenario: Scenario, x0: np.ndarray) -> ExtendedKalman
         P0=s.P0,
         gate=scenario.observer.gate,
         **robust_settings(scenario),
+        **radio_models(scenario),
     )
 
 
@@ -297,6 +309,7 @@ def unscented_kalman_filter(scenario: Scenario, x0: np.ndarray) -> UnscentedKalm
         P0=s.P0,
         gate=scenario.observer.gate,
         **robust_settings(scenario),
+        **radio_models(scenario),
     )
 
 

@@ -158,3 +158,14 @@ def test_radio_table_belongs_to_quadrotors():
 
     with pytest.raises(QuadobsError, match="radio"):
         load_scenario("ifac2021", settings=["radio.rate=50"])
+
+
+def test_tdoa_radio_is_refused_by_name_by_an_estimator_without_a_tdoa_model():
+    from quadobs.testbed.episode import run_episode
+    from quadobs.testbed.scenario import load_scenario
+
+    scenario = load_scenario(
+        "quadrotor-uwb-realistic", duration=7.0, settings=["radio.protocol=tdoa"]
+    )
+    with pytest.raises(QuadobsError, match="'augmented' takes no tdoa measurements"):
+        run_episode(scenario, estimators=["augmented"])

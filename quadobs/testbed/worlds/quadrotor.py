@@ -327,6 +327,13 @@ class QuadrotorWorld(World):
             return est.step_and_record
         from quadobs.estimators.base import Gated
 
+        kind = "tdoa" if self.radio.config.protocol == "tdoa" else "range"
+        models = getattr(est, "measurement_models", None)
+        if kind not in (models if models is not None else ("range",)):
+            raise QuadobsError(
+                f"radio.protocol: estimator {est.name!r} takes no {kind} measurements "
+                f"(protocol {self.radio.config.protocol!r})"
+            )
         gated = isinstance(est, Gated)
 
         def record(u: np.ndarray, y: np.ndarray, out: np.ndarray) -> None:
