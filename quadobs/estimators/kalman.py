@@ -76,6 +76,12 @@ from quadobs.core.measurements import Measurement, MeasurementModel
 from quadobs.core.system import QuadraticSystem
 from quadobs.errors import QuadobsError, as_array, as_finite_scalar
 from quadobs.estimators.base import Estimator, Gated, measurement_models, step_operands
+from quadobs.estimators.robust import (
+    LockOut,
+    multilateration,
+    reinitialised_covariance,
+    reweight,
+)
 
 __all__ = [
     "ExtendedKalmanFilter",
@@ -271,6 +277,8 @@ class _GaussianFilter(Estimator, Gated):
         x0,
         P0,
         gate: float | None = None,
+        robust=None,
+        lockout: LockOut | None = None,
         measurements=None,
     ) -> None:
         if not isinstance(dynamics, HeldInputModel):
@@ -299,6 +307,11 @@ class _GaussianFilter(Estimator, Gated):
         self.measurement_models = measurement_models(dynamics.system, measurements)
         self._intervals: dict[float, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
         self._time = 0.0
+        # Robust corrections and lock-out (:mod:`quadobs.estimators.robust`).
+        self.robust = robust
+        self.lockout = lockout if lockout is not None else LockOut()
+        self._P0 = self._P.copy()
+        self._latest = np.full(self.q, np.nan)  # the latest value of each output
 
     # -- estimator interface -----------------------------------------------------------
 
@@ -359,9 +372,21 @@ class _GaussianFilter(Estimator, Gated):
             self.nis, self.nis_dof = float("nan"), 0
             return
         idx = np.flatnonzero(present) if not present.all() else slice(None)
+        self._latest[idx] = y[idx]
         self._settle()
         R = self.outputs.R if isinstance(idx, slice) else self.outputs.R[np.ix_(idx, idx)]
         z = self.outputs.measure(y[idx], idx)
+        if (
+            self.robust is not None
+            and z.shape[0] > 1
+            and np.count_nonzero(R - np.diag(np.diag(R))) == 0
+        ):
+            # a robust rule judges each output on its own (one degree of freedom), as
+            # measurements at their own times are: one scalar correction after the other
+            rows = np.flatnonzero(present)
+            for i in range(rows.shape[0]):
+                self._update(z[i : i + 1], rows[i : i + 1], R[i : i + 1, i : i + 1])
+            return
         self._update(z, idx, R)
 
     # -- the interface in time ---------------------------------------------------------
@@ -398,6 +423,7 @@ class _GaussianFilter(Estimator, Gated):
             self._update_model(m, model, np.array([[s * s]]))
             return
         h, yh, var = model.quadratic_output(m)
+        self._latest[h] = yh
         idx = np.array([h])
         if math.isnan(m.std):
             R = self.outputs.R[np.ix_(idx, idx)]
@@ -438,9 +464,44 @@ class _GaussianFilter(Estimator, Gated):
         self.nis_dof = int(nu.shape[0])
         if self.gate is not None and self.nis > self.gate:
             self.rejected += 1
+            self._watch(False, nu)
             return False, Sinv_nu
         self.corrections += 1
+        self._watch(True, nu)
         return True, Sinv_nu
+
+    @property
+    def diverged(self) -> dict | None:
+        """``None``, or the time, step and reason at which the filter was given up (:class:`~quadobs.estimators.robust.LockOut`)."""
+        return self.lockout.diverged
+
+    def _robust(self, nu: np.ndarray, S: np.ndarray, R: np.ndarray):
+        """``(S, R)`` re-weighted by :attr:`robust`, or ``None`` when it rejects the correction."""
+        if self.robust is None:
+            return S, R
+        R_w = reweight(self.robust, nu, S, R)
+        if R_w is None:
+            self.nis = float(nu @ np.linalg.solve(S, nu))
+            self.nis_dof = int(nu.shape[0])
+            self.rejected += 1
+            self._watch(False, nu)
+            return None
+        return (S, R) if R_w is R else (S + (R_w - R), R_w)
+
+    def _watch(self, accepted: bool, nu: np.ndarray) -> None:
+        """Lock-out: re-initialise the covariance, or give the filter up (see :mod:`~quadobs.estimators.robust`)."""
+        lock, t = self.lockout, self._time
+        if not lock.observe(t, accepted, float(np.max(np.abs(nu)))):
+            return
+        span = t - lock.last_accepted
+        reason = f"more than half of the corrections of the last {lock.timeout} s rejected"
+        largest, dim = lock.largest, self.outputs.system.p
+        if lock.reset(t, int(round(t / self.dynamics.dt)), reason):
+            self._P = reinitialised_covariance(self._P, self._P0, largest, dim, span)
+            system = self.outputs.system
+            fixed = multilateration(system.C, system.d, self._latest)
+            if fixed is not None:
+                self._x[fixed[0]] = fixed[1]
 
     def _update(self, z: np.ndarray, idx, R: np.ndarray) -> None:  # pragma: no cover - interface
         raise NotImplementedError
@@ -483,6 +544,10 @@ class ExtendedKalmanFilter(_GaussianFilter):
         x, P = self._x, self._P
         PHt = P @ H.T
         S = H @ PHt + R
+        robust = self._robust(nu, S, R)
+        if robust is None:
+            return
+        S, R = robust
         ok, _ = self._accept(nu, S)
         if not ok:
             return
@@ -526,9 +591,20 @@ class UnscentedKalmanFilter(_GaussianFilter):
         alpha: float = 1.0,
         beta: float = 2.0,
         kappa: float = 0.0,
+        robust=None,
+        lockout: LockOut | None = None,
         measurements=None,
     ) -> None:
-        super().__init__(dynamics, outputs, x0=x0, P0=P0, gate=gate, measurements=measurements)
+        super().__init__(
+            dynamics,
+            outputs,
+            x0=x0,
+            P0=P0,
+            gate=gate,
+            measurements=measurements,
+            robust=robust,
+            lockout=lockout,
+        )
         n = self.n
         self.alpha = as_finite_scalar("alpha", alpha, positive=True)
         self.beta = as_finite_scalar("beta", beta)
@@ -577,6 +653,10 @@ class UnscentedKalmanFilter(_GaussianFilter):
         S = (dZ.T * self._wc) @ dZ + R
         Pxz = (dX.T * self._wc) @ dZ
         nu = z - z_pred
+        robust = self._robust(nu, S, R)
+        if robust is None:
+            return
+        S, R = robust
         ok, _ = self._accept(nu, S)
         if not ok:
             return

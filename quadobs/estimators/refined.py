@@ -57,6 +57,7 @@ gives them as a dict.
 
 from __future__ import annotations
 
+import math
 from collections import deque
 from dataclasses import dataclass
 
@@ -67,8 +68,15 @@ from quadobs.errors import QuadobsError, as_array, as_finite_scalar
 from quadobs.estimators.augmented import AugmentedObserver
 from quadobs.estimators.base import Estimator, Gated, Immersed, Switching
 from quadobs.estimators.kalman import ExtendedKalmanFilter, HeldInputModel, OutputModel, step_power
+from quadobs.estimators.robust import LockOut
 
 __all__ = ["HandoverPolicy", "RefinedObserver", "curvature_index"]
+
+
+def _NO_LOCKOUT() -> LockOut:
+    """The EKF's own lock-out is off here: the hand-back to the observer is this estimator's."""
+    return LockOut(timeout=math.inf)
+
 
 #: The two modes of :class:`RefinedObserver`.
 MODES = ("augmented", "ekf")
@@ -271,6 +279,7 @@ class RefinedObserver(Estimator, Gated, Immersed, Switching):
         P0,
         gate: float | None = None,
         policy: HandoverPolicy | None = None,
+        robust=None,
     ) -> None:
         if not isinstance(observer, AugmentedObserver):
             raise QuadobsError(
@@ -292,6 +301,9 @@ class RefinedObserver(Estimator, Gated, Immersed, Switching):
                 f"policy: expected a HandoverPolicy, got {type(self.policy).__name__}"
             )
         self.gate = probe.gate
+        #: The EKF's robust correction (:mod:`quadobs.estimators.robust`); its lock-out is the
+        #: hand-back to the observer below.
+        self.robust = robust
         self.n, self.q = n, q
         self._x0 = as_array("x0", x0, (n,)).copy()
         self._P0 = probe.x_covariance.copy()
@@ -430,6 +442,8 @@ class RefinedObserver(Estimator, Gated, Immersed, Switching):
             P0=P,
             gate=self.gate,
             measurements=list(self.measurement_models.values()),
+            robust=self.robust,
+            lockout=_NO_LOCKOUT(),
         )
         ekf.time = self._time
         ekf.hold(self.observer.held_input())
@@ -469,11 +483,17 @@ class RefinedObserver(Estimator, Gated, Immersed, Switching):
         ekf = self._ekf
         assert ekf is not None, "called in the EKF's mode only"
         self.observer.step(u, y)  # the fallback keeps running
+        before = ekf.rejected
         ekf.step(u, y)
         self.nis = ekf.nis
         if not has:
             return
-        rejected = self._count(ekf.nis)
+        if self.robust is None:
+            rejected = self._count(ekf.nis)
+        else:  # the EKF's own rule decided
+            rejected = ekf.rejected > before
+            self.rejected += rejected
+            self.corrections += not rejected
         self._ekf_window.push(ekf.nis, ekf.nis_dof, rejected)
         w = self._ekf_window
         if w.full and (w.rejected_fraction() > 0.5 or not w.passes(self.policy.guard)):
@@ -542,7 +562,15 @@ class RefinedObserver(Estimator, Gated, Immersed, Switching):
             self._next_try = self._updates + self._wait
             self._wait = min(2 * self._wait, 4 * pol.window)
             return None
-        ekf = ExtendedKalmanFilter(self.dynamics, self.outputs, x0=x, P0=P, gate=self.gate)
+        ekf = ExtendedKalmanFilter(
+            self.dynamics,
+            self.outputs,
+            x0=x,
+            P0=P,
+            gate=self.gate,
+            robust=self.robust,
+            lockout=_NO_LOCKOUT(),
+        )
         ekf.nis, ekf.nis_dof = window.items[-1][0], window.items[-1][1]
         self._ekf_window = _Window(pol.window)
         for item in window.items:

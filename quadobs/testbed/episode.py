@@ -441,8 +441,10 @@ class _Episode:
         ests = list(estimators)
         self.block = block = Block(self.world, ests, _BLOCK)
         self.clock = np.zeros(len(ests)) if timed else None
+        feed = getattr(self.world, "recorder", None)  # a world that feeds measurements in time
         self.slots = [
-            (self._clocked(est.step_and_record, e), block.rec[e]) for e, est in enumerate(ests)
+            (self._clocked(feed(est) if feed else est.step_and_record, e), block.rec[e])
+            for e, est in enumerate(ests)
         ]
         self.blockwise = (
             path == "auto"
@@ -645,11 +647,25 @@ class _EstimatorInfo(Sink):
                 entry["corrections"] = int(est.corrections)
             if isinstance(est, Switching):
                 entry["modes"] = est.summary()
+            entry.update(_robust_info(est))
             if isinstance(est, Immersed) and est.immersion is not None:
                 entry["immersion"] = est.immersion.summary()
                 entry["outputs"] = int(est.immersion.system.q)
             per[est.name] = entry
         return {"estimators": per}
+
+
+def _robust_info(est) -> dict:
+    """The robust rule, lock-out re-initialisations and divergence of a filter that has them
+    (:mod:`quadobs.estimators.robust`): a diverged filter is reported as such."""
+    out: dict = {}
+    rule = getattr(est, "robust", None)
+    if rule is not None:
+        out["robust"] = rule.describe()
+    lock = getattr(est, "lockout", None)
+    if lock is not None and (lock.resets or lock.diverged):
+        out.update(lock.summary())
+    return out
 
 
 def _finite_or_none(x: float) -> float | None:

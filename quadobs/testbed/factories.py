@@ -238,16 +238,80 @@ def _input_std(scenario: Scenario) -> float:
     return scenario.noise.sigma("accel")
 
 
+def robust_settings(scenario: Scenario) -> dict:
+    """The filters' robust correction and lock-out from ``[noise]`` (:mod:`quadobs.estimators.robust`).
+
+    ``noise.gate`` (a probability) gives a chi-square gate with one degree of freedom per
+    output corrected; ``noise.huber`` Huber's M-estimator; both at once are refused.
+    """
+    from quadobs.estimators.robust import ChiSquareGate, Huber, LockOut
+
+    noise = scenario.noise
+    if noise.gate is not None and noise.huber is not None:
+        raise QuadobsError("noise.huber: cannot be combined with noise.gate (choose one rule)")
+    rule = None
+    if noise.gate is not None:
+        rule = ChiSquareGate(noise.gate)
+    elif noise.huber is not None:
+        rule = Huber(noise.huber)
+    return {"robust": rule, "lockout": LockOut(noise.lockout or lockout_window(scenario))}
+
+
+#: Corrections a lock-out window holds by default (:func:`lockout_window`).
+LOCKOUT_CORRECTIONS = 30
+
+
+def lockout_window(scenario: Scenario) -> float:
+    """The default lock-out window (s): the time the scenario's ranges take to bring
+    :data:`LOCKOUT_CORRECTIONS` corrections (the radio's rate, or every range output at its
+    sample rate). Under the model with a gate of probability 0.999, more than half of 30
+    corrections rejected has a probability below 1e-40; a real lock-out is caught in a
+    fraction of a second at UWB rates."""
+    radio = getattr(scenario, "radio", None)
+    if radio is not None:
+        rate = radio.rate if radio.rates is None else float(sum(radio.rates))
+    else:
+        rate = float(np.sum(1.0 / output_periods(scenario)))
+    return LOCKOUT_CORRECTIONS / rate
+
+
+def radio_models(scenario: Scenario) -> dict:
+    """``{"measurements": [TdoaModel]}`` for a scenario whose radio sends TDOAs (the filters then
+    correct with ``h`` and its Jacobian, :class:`~quadobs.core.measurements.TdoaModel`), else ``{}``."""
+    radio = getattr(scenario, "radio", None)
+    if radio is None or radio.protocol != "tdoa":
+        return {}
+    from quadobs.core.measurements import TdoaModel
+
+    return {"measurements": [TdoaModel(scenario.beacons, radio.std)]}
+
+
 def extended_kalman_filter(scenario: Scenario, x0: np.ndarray) -> ExtendedKalmanFilter:
     """The ``"ekf"`` estimator of ``scenario`` (:func:`baseline_settings`), started at ``x0``."""
     s = baseline_settings(scenario)
-    return ExtendedKalmanFilter(s.dynamics, s.outputs, x0=x0, P0=s.P0, gate=scenario.observer.gate)
+    return ExtendedKalmanFilter(
+        s.dynamics,
+        s.outputs,
+        x0=x0,
+        P0=s.P0,
+        gate=scenario.observer.gate,
+        **robust_settings(scenario),
+        **radio_models(scenario),
+    )
 
 
 def unscented_kalman_filter(scenario: Scenario, x0: np.ndarray) -> UnscentedKalmanFilter:
     """The ``"ukf"`` estimator of ``scenario`` (:func:`baseline_settings`), started at ``x0``."""
     s = baseline_settings(scenario)
-    return UnscentedKalmanFilter(s.dynamics, s.outputs, x0=x0, P0=s.P0, gate=scenario.observer.gate)
+    return UnscentedKalmanFilter(
+        s.dynamics,
+        s.outputs,
+        x0=x0,
+        P0=s.P0,
+        gate=scenario.observer.gate,
+        **robust_settings(scenario),
+        **radio_models(scenario),
+    )
 
 
 def zonotope_estimator(scenario: Scenario, x0: np.ndarray) -> ZonotopicAugmentedEstimator:
@@ -317,7 +381,15 @@ def refined_observer(scenario: Scenario, x0: np.ndarray) -> RefinedObserver:
     """
     s = baseline_settings(scenario)
     obs = augmented_observer(scenario, x0)
-    return RefinedObserver(obs, s.dynamics, s.outputs, x0=x0, P0=s.P0, gate=scenario.observer.gate)
+    return RefinedObserver(
+        obs,
+        s.dynamics,
+        s.outputs,
+        x0=x0,
+        P0=s.P0,
+        gate=scenario.observer.gate,
+        robust=robust_settings(scenario)["robust"],
+    )
 
 
 def onboard_ekf(scenario: Scenario, x0: np.ndarray):
@@ -373,3 +445,83 @@ build_ukf = _entry_point(unscented_kalman_filter, "ukf")
 build_zonotope = _entry_point(zonotope_estimator, "zonotope")
 build_refined = _entry_point(refined_observer, "augmented-refined")
 build_onboard_ekf = _entry_point(onboard_ekf, "onboard-ekf")
+
+
+# -- per-anchor range biases as states (quadobs.core.range_bias, quadobs.estimators.bias_states) --
+
+
+def _range_sigma(scenario: Scenario) -> float:
+    """The stated range noise: the radio's ``std``, else ``noise.range_std`` (or its bound's)."""
+    radio = getattr(scenario, "radio", None)
+    sigma = radio.std if radio is not None else scenario.noise.sigma("range")
+    if not sigma > 0.0:
+        raise QuadobsError(
+            "noise.range_std: estimating range biases needs the stated range noise (positive)"
+        )
+    return float(sigma)
+
+
+def _bias_filter(scenario: Scenario, x0: np.ndarray, cls):
+    from quadobs.core.measurements import RangeModel
+    from quadobs.estimators.bias_states import biased_models
+
+    if scenario.has_wind:
+        raise QuadobsError("wind: bias states are for range-only systems (no airspeed output)")
+    system, sigma = scenario.system(), _range_sigma(scenario)
+    P0, _ = initial_covariance(scenario)
+    model = RangeModel(scenario.beacons, sigma, bias="state")
+    dyn, out, Pe = biased_models(system, scenario.dt, sigma, _input_std(scenario), P0, model)
+    xe = np.concatenate([np.asarray(x0, dtype=float), np.zeros(system.q)])
+    return cls(dyn, out, x0=xe, P0=Pe, vehicle_n=system.n, **robust_settings(scenario))
+
+
+def biased_extended_kalman_filter(scenario: Scenario, x0: np.ndarray):
+    """The ``"ekf-bias"`` estimator: the EKF with one range bias per anchor as a state
+    (prior :meth:`~quadobs.core.measurements.RangeModel.extra_states`), the scenario's robust rule."""
+    from quadobs.estimators.bias_states import BiasedExtendedKalmanFilter
+
+    return _bias_filter(scenario, x0, BiasedExtendedKalmanFilter)
+
+
+def biased_unscented_kalman_filter(scenario: Scenario, x0: np.ndarray):
+    """The ``"ukf-bias"`` estimator: the UKF with one range bias per anchor as a state."""
+    from quadobs.estimators.bias_states import BiasedUnscentedKalmanFilter
+
+    return _bias_filter(scenario, x0, BiasedUnscentedKalmanFilter)
+
+
+def biased_augmented_observer(scenario: Scenario, x0: np.ndarray):
+    """The ``"augmented-bias"`` estimator: Theorem 3's observer with the range biases in the
+    immersion (:mod:`quadobs.core.range_bias`): ``V``, ``S0`` and ``theta`` of ``[observer]``,
+    ``R`` from the stated range noise."""
+    from quadobs.estimators.augmented_bias import BiasedAugmentedObserver
+
+    if scenario.has_wind:
+        raise QuadobsError("wind: bias states are for range-only systems (no airspeed output)")
+    obs = scenario.observer
+    im = immerse(scenario.system(), method=obs.immersion)
+    return BiasedAugmentedObserver(
+        im,
+        scenario.dt,
+        sigma=_range_sigma(scenario),
+        V=np.asarray(obs.V, dtype=float),
+        P0=np.asarray(obs.S0, dtype=float),
+        theta=obs.theta,
+        x0=x0,
+        robust=_huber_only(scenario),
+    )
+
+
+def _huber_only(scenario: Scenario):
+    """The observer's robust rule: Huber's when the scenario asks for it; a chi-square gate is
+    not applied to it, as its covariance is a tuning (``V``, ``S0``), not a calibrated one, and
+    the gate would lock it out of the global convergence it is there for."""
+    from quadobs.estimators.robust import Huber
+
+    rule = robust_settings(scenario)["robust"]
+    return rule if isinstance(rule, Huber) else None
+
+
+build_ekf_bias = _entry_point(biased_extended_kalman_filter, "ekf-bias")
+build_ukf_bias = _entry_point(biased_unscented_kalman_filter, "ukf-bias")
+build_augmented_bias = _entry_point(biased_augmented_observer, "augmented-bias")

@@ -61,6 +61,9 @@ _BUILTIN = {
     "zonotope": "quadobs.testbed.factories:build_zonotope",
     "augmented-refined": "quadobs.testbed.factories:build_refined",
     "onboard-ekf": "quadobs.testbed.factories:build_onboard_ekf",
+    "ekf-bias": "quadobs.testbed.factories:build_ekf_bias",
+    "ukf-bias": "quadobs.testbed.factories:build_ukf_bias",
+    "augmented-bias": "quadobs.testbed.factories:build_augmented_bias",
 }
 _RUNTIME: dict[str, Factory] = {}
 _REGISTRY = (

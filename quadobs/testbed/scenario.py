@@ -69,6 +69,7 @@ __all__ = [
     "NoiseSpec",
     "ObserverSpec",
     "QuadrotorSpec",
+    "RadioSpec",
     "Scenario",
     "TdoaSpec",
     "ZonotopeSpec",
@@ -239,6 +240,28 @@ class NoiseSpec(_Table):
     range_bound: Noise = Field(0.0, description="Bound of the uniform range error (m).")
     accel_bound: Noise = Field(0.0, description="Bound of the uniform accelerometer error (m/s^2).")
     airspeed_bound: Noise = Field(0.0, description="Bound of the uniform airspeed error (m/s).")
+    gate: Positive | None = Field(
+        None,
+        description="EKF/UKF/refined: chi-square gate of this probability on each correction's NIS, with one degree of freedom per output corrected (1 for a range at its own time); default: no gate.",
+    )
+    huber: Positive | None = Field(
+        None,
+        description="EKF/UKF/refined: Huber M-estimator with this threshold in standard deviations (1.345: 95 % Gaussian efficiency); default: none.",
+    )
+    lockout: Positive | None = Field(
+        None,
+        description="EKF/UKF (default: the time 30 corrections take at the scenario's range rate): window over which more than half of the corrections rejected count as a lock-out, after which the filter re-initialises its covariance; after 3 re-initialisations it is reported as diverged.",
+    )
+
+    @field_validator("gate")
+    @classmethod
+    def _a_probability(cls, gate: float | None) -> float | None:
+        if gate is not None and not gate < 1.0:
+            raise _invalid(
+                f"expected the gate's probability in (0, 1), e.g. 0.999: a correction is rejected when its NIS "
+                f"exceeds that quantile of chi-square with one degree of freedom per output corrected; got {gate}"
+            )
+        return gate
 
     @model_validator(mode="after")
     def _std_or_bound(self) -> NoiseSpec:
@@ -522,6 +545,50 @@ class QuadrotorSpec(_Table):
         return self
 
 
+class RadioSpec(_Table):
+    """The ``[radio]`` table: a simulated UWB radio (:mod:`quadobs.testbed.uwb`) instead of the
+    grid ranges of ``[noise]`` (quadrotor scenarios): each range or TDOA at its own time."""
+
+    protocol: Literal["twr", "tdoa"] = Field(
+        "twr",
+        description="`twr`: two-way ranging, anchors polled in turn; `tdoa`: TDoA3-style differences, random order.",
+    )
+    rate: Rate = Field(
+        100.0, description="Exchanges (twr) or packets (tdoa) per second over all anchors (Hz)."
+    )
+    rates: tuple[Rate, ...] | None = Field(
+        None, description="twr: each anchor's own rate (Hz) instead of the round-robin."
+    )
+    std: Annotated[Positive, Le(MAX_NOISE)] = Field(
+        0.1, description="Line-of-sight noise of one range (m)."
+    )
+    biases: tuple[Coordinate, ...] | None = Field(
+        None, description="Per-anchor biases (m); default: drawn from the seed with `bias_std`."
+    )
+    bias_std: Noise = Field(
+        0.0, description="Standard deviation of the drawn per-anchor biases (m)."
+    )
+    jitter: Noise = Field(
+        0.0, description="Standard deviation of each exchange's timing jitter (s)."
+    )
+    dropout: Annotated[NonNegative, Le(0.99)] = Field(
+        0.0, description="Probability that an exchange is lost."
+    )
+    outlier_probability: Annotated[NonNegative, Le(0.99)] = Field(
+        0.0, description="Probability that a range carries an outlier."
+    )
+    outlier_std: Noise = Field(0.0, description="Standard deviation of an outlier's error (m).")
+    nlos_median: Noise = Field(
+        0.0,
+        description="Median of the non-line-of-sight excess (m, log-normal), where the room blocks the path.",
+    )
+    nlos_shape: Noise = Field(0.5, description="Log-normal shape of the non-line-of-sight excess.")
+    room: Annotated[String, MaxLen(MAX_TEXT)] | None = Field(
+        None,
+        description="MJCF file of the obstacles cast against with `mj_ray` (relative to the scenario file; `builtin` for the package's room).",
+    )
+
+
 # --------------------------------------------------------------------------------------
 # The scenario
 # --------------------------------------------------------------------------------------
@@ -614,6 +681,10 @@ class Scenario(_Table):
         None,
         description='Flight plan and on-board sensors of the quadrotor (`kind = "quadrotor"` only).',
     )
+    radio: RadioSpec | None = Field(
+        None,
+        description='A simulated UWB radio feeding each measurement at its own time (`kind = "quadrotor"` only).',
+    )
     tdoa: TdoaSpec | None = Field(
         None, description="TDOA measurements between anchor pairs (`[tdoa]`, TDoA3-like)."
     )
@@ -686,7 +757,7 @@ class Scenario(_Table):
     def _quadrotor_tables(self) -> Scenario:
         """``[control]`` and ``[quadrotor]`` belong to quadrotor scenarios, which move in 3-D."""
         if self.kind != "quadrotor":
-            for table in ("control", "quadrotor"):
+            for table in ("control", "quadrotor", "radio"):
                 if getattr(self, table) is not None:
                     raise QuadobsError(
                         f'{table}: only used with kind = "quadrotor", not {self.kind!r}'

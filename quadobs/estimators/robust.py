@@ -1,0 +1,258 @@
+"""Robust corrections for the Kalman filters: a chi-square gate or Huber's M-estimator, and lock-out.
+
+UWB ranges carry outliers of metres and positive, heavy-tailed non-line-of-sight errors;
+a Gaussian update takes every one of them at full weight. Two standard answers, one per
+rule object, applied to an innovation ``nu (k,)`` with covariance ``S = H P H^T + R``:
+
+* :class:`ChiSquareGate`: reject the correction when the normalised innovation squared
+  ``nis = nu^T S^{-1} nu`` exceeds the ``probability`` quantile of ``chi^2`` with ``k``
+  degrees of freedom, ``k`` the number of outputs in the correction (1 for a single range
+  at its own time). Under the model a correct measurement is rejected with probability
+  ``1 - probability``.
+* :class:`Huber`: the M-estimator of Huber (1964) as a Kalman update (Karlgaard and
+  Schaub's re-weighting): each standardised residual ``r_h = nu_h / sqrt(S_hh)`` gets the
+  weight ``w_h = min(1, c / |r_h|)`` (quadratic loss inside ``|r| <= c``, linear outside),
+  and the update uses ``R_w = W^{-1/2} R W^{-1/2}``, ``W = diag(w)``. Nothing is ever
+  rejected: a range ``d`` metres off moves the estimate as one about ``c sqrt(S)`` off
+  would. ``c = 1.345`` gives 95 % efficiency under Gaussian noise.
+
+No silent lock-out. A gate that rejects everything leaves a filter predicting on its
+inputs alone while it reports figures as if it ran (a filter started 50 m off with a
+small prior rejects every range). :class:`LockOut` watches the corrections in time: when
+more than half of those tried over the last ``timeout`` seconds were rejected, the
+filter re-initialises: its position from a multilateration of the latest outputs
+(:func:`multilateration`, where they determine it) and its covariance
+(:func:`reinitialised_covariance`), and says so in
+``resets``; after ``max_resets`` re-initialisations without recovering it is reported as
+diverged (``diverged``: time, step and reason), never summarised as if it had run.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import dataclass, field
+from functools import lru_cache
+
+import numpy as np
+from scipy import stats
+
+from quadobs.errors import QuadobsError
+
+__all__ = [
+    "ChiSquareGate",
+    "Huber",
+    "LockOut",
+    "chi2_threshold",
+    "multilateration",
+    "reinitialised_covariance",
+    "reweight",
+]
+
+
+@lru_cache(maxsize=64)
+def chi2_threshold(probability: float, dof: int) -> float:
+    """The ``probability`` quantile of ``chi^2(dof)`` (e.g. 10.83 for 0.999 and one degree of freedom)."""
+    return float(stats.chi2.ppf(probability, dof))
+
+
+@dataclass(frozen=True)
+class ChiSquareGate:
+    """Reject a correction whose NIS exceeds the ``probability`` quantile of ``chi^2(k)``.
+
+    Parameters
+    ----------
+    probability : float
+        In ``(0, 1)``: the probability that a measurement that follows the model passes.
+    """
+
+    probability: float = 0.999
+
+    def __post_init__(self) -> None:
+        if not (0.0 < self.probability < 1.0):
+            raise QuadobsError(
+                f"noise.gate: expected the gate's probability in (0, 1) (e.g. 0.999; the threshold "
+                f"is the chi-square quantile with one degree of freedom per output), got {self.probability}"
+            )
+
+    def threshold(self, dof: int) -> float:
+        """The NIS threshold for a correction of ``dof`` outputs."""
+        return chi2_threshold(self.probability, int(dof))
+
+    def describe(self) -> str:
+        """One line for summaries: the rule, its degrees of freedom and threshold."""
+        return (
+            f"chi-square gate, P = {self.probability}, k = outputs per correction "
+            f"(threshold {self.threshold(1):.2f} for k = 1)"
+        )
+
+
+@dataclass(frozen=True)
+class Huber:
+    """Huber's M-estimator as a re-weighted Kalman update (see the module docstring).
+
+    Parameters
+    ----------
+    c : float
+        The residual, in standard deviations, beyond which the loss is linear.
+    """
+
+    c: float = 1.345
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.c) and self.c > 0.0):
+            raise QuadobsError(f"noise.huber: expected a positive number, got {self.c}")
+
+    def weights(self, nu: np.ndarray, S: np.ndarray) -> np.ndarray:
+        """``w_h = min(1, c / |r_h|)`` with ``r_h = nu_h / sqrt(S_hh)``."""
+        r = np.abs(nu) / np.sqrt(np.diag(S))
+        return np.minimum(1.0, self.c / np.maximum(r, 1e-300))
+
+    def describe(self) -> str:
+        return f"Huber M-estimator, c = {self.c} standard deviations"
+
+
+def reweight(rule, nu: np.ndarray, S: np.ndarray, R: np.ndarray) -> np.ndarray | None:
+    """The measurement covariance to update with: ``R``, ``R`` re-weighted, or ``None`` (rejected).
+
+    Parameters
+    ----------
+    rule : ChiSquareGate, Huber or None
+    nu : ndarray (k,)
+        The innovation.
+    S : ndarray (k, k)
+        Its covariance ``H P H^T + R``.
+    R : ndarray (k, k)
+        The measurement covariance.
+    """
+    if rule is None:
+        return R
+    if isinstance(rule, ChiSquareGate):
+        nis = float(nu @ np.linalg.solve(S, nu))
+        return None if nis > rule.threshold(nu.shape[0]) else R
+    w = rule.weights(nu, S)
+    if np.all(w == 1.0):
+        return R
+    s = 1.0 / np.sqrt(w)
+    return R * np.outer(s, s)
+
+
+def reinitialised_covariance(
+    P: np.ndarray, P0: np.ndarray, innovation: float, dim: int, span: float
+):
+    """The covariance a locked-out filter restarts from.
+
+    A range innovation ``nu`` bounds the position error along the line of sight from
+    below, so the position block becomes at least ``nu^2 I`` (``nu``: the largest
+    innovation seen while locked out), the velocity block at least ``(nu / span)^2 I``
+    (that error grown over the lock-out's ``span`` seconds), and never less than the prior
+    ``P0``; the correlations are dropped.
+    """
+    n = P.shape[0]
+    diag = np.maximum(np.diag(P), np.diag(P0))
+    diag[:dim] = np.maximum(diag[:dim], innovation**2)
+    diag[dim : 2 * dim] = np.maximum(diag[dim : 2 * dim], (innovation / max(span, 1e-9)) ** 2)
+    return np.diag(diag[:n])
+
+
+def multilateration(
+    C: np.ndarray, d: np.ndarray, y: np.ndarray
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """The state entries fixed by one snapshot of outputs that share one quadratic form.
+
+    For ranges, ``y_h = 1/2 x^T C x + d_h^T x`` with the same ``C`` for every anchor
+    (``d_h = -a_h`` on the position), so differences are linear,
+    ``y_h - y_0 = (d_h - d_0)^T x``: the position is the least-squares solution, exact
+    for noise-free ranges to at least ``dim + 1`` anchors in general position.
+
+    Parameters
+    ----------
+    C : ndarray (q, n, n)
+    d : ndarray (q, n)
+    y : ndarray (q,)
+        The latest value of each output (NaN: none).
+
+    Returns
+    -------
+    (columns, values) or None
+        The indices of the state entries determined and their values; ``None`` when the
+        outputs differ in their quadratic form or do not determine those entries.
+    """
+    rows = np.flatnonzero(~np.isnan(y))
+    if rows.shape[0] < 2 or not np.allclose(C[rows], C[rows[0]]):
+        return None
+    D = d[rows[1:]] - d[rows[0]]
+    cols = np.flatnonzero(np.any(D != 0.0, axis=0))
+    if cols.shape[0] == 0 or np.linalg.matrix_rank(D[:, cols]) < cols.shape[0]:
+        return None
+    sol = np.linalg.lstsq(D[:, cols], y[rows[1:]] - y[rows[0]], rcond=None)[0]
+    return cols, sol
+
+
+@dataclass
+class LockOut:
+    """Watches a filter's corrections in time (see the module docstring).
+
+    The filter counts as locked out when, over the last ``timeout`` seconds (and at least
+    :attr:`grace` after its start or last re-initialisation), more than half of the
+    corrections it tried were rejected: under the model, with a gate of probability
+    ``P``, the expected fraction is ``1 - P``. This catches a filter that rejects
+    everything and one that keeps a few outputs consistent with a wrong position (a
+    mirror image of the anchors' geometry) while it rejects the others.
+
+    Parameters
+    ----------
+    timeout : float
+        The window (s).
+    max_resets : int
+        Re-initialisations before the filter is reported as diverged.
+    """
+
+    timeout: float = 2.0
+    max_resets: int = 3
+    since: float = 0.0
+    largest: float = 0.0
+    resets: list = field(default_factory=list)
+    diverged: dict | None = None
+    _window: deque = field(default_factory=deque, repr=False)
+    _rejected: int = field(default=0, repr=False)
+
+    def observe(self, t: float, accepted: bool, innovation: float) -> bool:
+        """Record a correction tried at ``t``; returns whether the filter is now locked out."""
+        w = self._window
+        w.append((t, accepted, abs(innovation)))
+        self._rejected += not accepted
+        while w and w[0][0] < t - self.timeout:
+            self._rejected -= not w.popleft()[1]
+        if accepted or self.diverged is not None:
+            return False
+        self.largest = max(e[2] for e in w if not e[1])
+        return t - self.since >= self.grace and 2 * self._rejected > len(w)
+
+    @property
+    def grace(self) -> float:
+        """Time after the start or the last re-initialisation before a lock-out can be declared:
+        the window, doubled at each re-initialisation (a filter re-initialised far off gets
+        longer to converge each time, as the refined observer's hand-over waits twice as long)."""
+        return self.timeout * 2.0 ** len(self.resets)
+
+    @property
+    def last_accepted(self) -> float:
+        """Start of the current window (s): the span the lock-out is judged over ends at the last correction."""
+        return self._window[0][0] if self._window else self.since
+
+    def reset(self, t: float, step: int, reason: str) -> bool:
+        """Count a re-initialisation at ``t``; returns ``False`` (and sets :attr:`diverged`)
+        when the filter has used up its re-initialisations."""
+        if len(self.resets) >= self.max_resets:
+            self.diverged = {"time": t, "step": step, "reason": reason}
+            return False
+        self.resets.append({"time": t, "step": step, "reason": reason})
+        self.since, self.largest = t, 0.0
+        self._window.clear()
+        self._rejected = 0
+        return True
+
+    def summary(self) -> dict:
+        """Re-initialisations and divergence as plain data."""
+        return {"resets": list(self.resets), "diverged": self.diverged}

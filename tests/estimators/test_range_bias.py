@@ -1,0 +1,109 @@
+"""Range biases as states: the quadratic-output form with a measured coefficient, the observer on
+it (exact convergence on noise-free data), its observability, and the filters' bias states."""
+
+import numpy as np
+import pytest
+
+from quadobs.core.immersion import immerse
+from quadobs.core.measurements import Measurement, RangeModel
+from quadobs.core.range_bias import BiasedRangeImmersion, excitation_gramian
+from quadobs.core.system import vehicle_system
+from quadobs.estimators.augmented_bias import BiasedAugmentedObserver
+from quadobs.estimators.bias_states import biased_models
+from quadobs.estimators.kalman import ExtendedKalmanFilter, UnscentedKalmanFilter
+
+ANCHORS = np.array(
+    [
+        [-3, -3, 0.2],
+        [3, -3, 0.2],
+        [3, 3, 0.2],
+        [-3, 3, 0.2],
+        [-3, -3, 2.8],
+        [3, -3, 2.8],
+        [3, 3, 2.8],
+        [-3, 3, 2.8],
+    ],
+    dtype=float,
+)
+BIASES = np.array([0.1, -0.2, 0.3, 0.05, -0.15, 0.2, 0.0, -0.3])
+W = 0.314
+
+
+def acc(t):
+    return np.array(
+        [-2 * W * W * np.sin(W * t), -4.8 * W * W * np.sin(2 * W * t), -0.4 * W * W * np.sin(W * t)]
+    )
+
+
+def flight(steps, dt, sigma=0.0, seed=0):
+    """A figure eight integrated exactly under the held input, and its biased ranges."""
+    rng = np.random.default_rng(seed)
+    p, v = np.array([0.0, 0.0, 1.5]), np.array([2 * W, 2.4 * W, 0.4 * W])
+    for k in range(steps):
+        a = acc(k * dt)
+        rho = np.linalg.norm(p - ANCHORS, axis=1) + BIASES + sigma * rng.standard_normal(8)
+        yield a, rho, p.copy()
+        p, v = p + v * dt + 0.5 * a * dt * dt, v + a * dt
+
+
+def test_output_row_reproduces_the_squared_range_exactly():
+    ext = BiasedRangeImmersion(immerse(vehicle_system(3, ANCHORS)), squares=True)
+    x = np.array([1.0, -0.7, 1.2, 0.3, 0.1, 0.0])
+    zeta = ext.lift(x, BIASES)
+    for h in range(8):
+        rho = np.linalg.norm(x[:3] - ANCHORS[h]) + BIASES[h]
+        row, y = ext.measurement(h, rho, zeta)
+        assert row @ zeta == pytest.approx(y, abs=1e-12)
+        assert y == pytest.approx(rho**2 / 2 - ANCHORS[h] @ ANCHORS[h] / 2)
+
+
+def test_squares_as_states_are_not_observable_and_the_tangent_form_is():
+    dt, T = 0.05, 400
+    ts = np.arange(T) * dt
+    P = np.array([p for _, _, p in flight(T, dt)])
+    U = np.array([acc(t) for t in ts])
+    rhos = np.linalg.norm(P[:, None] - ANCHORS[None], axis=2) + BIASES
+    im = immerse(vehicle_system(3, ANCHORS))
+    exact = np.linalg.eigvalsh(excitation_gramian(BiasedRangeImmersion(im, True), P, U, rhos, dt))
+    tangent = np.linalg.eigvalsh(excitation_gramian(BiasedRangeImmersion(im), P, U, rhos, dt))
+    assert exact[1] / exact[-1] < 1e-15  # two directions the outputs never see
+    assert tangent[0] / tangent[-1] > 1e-8  # every direction seen over 20 s of flight
+
+
+def test_observer_converges_exactly_on_noise_free_ranges_from_far():
+    dt = 0.01
+    im = immerse(vehicle_system(3, ANCHORS))
+    est = BiasedAugmentedObserver(im, dt, sigma=1e-6, V=1e-10, P0=100.0, x0=[15.0, 10, 5, 0, 0, 0])
+    for a, rho, _ in flight(6000, dt):
+        est.step(a, 0.5 * rho**2 - 0.5 * (ANCHORS**2).sum(1))
+    # x_hat after the last step is the estimate at t + dt: the next truth
+    truth_next = [p for _, _, p in flight(6001, dt)][-1]
+    final = np.linalg.norm(est.x_hat[:3] - truth_next)
+    assert final < 1e-3 and np.abs(est.biases - BIASES).max() < 1e-3
+
+
+def test_observer_in_time_matches_the_fixed_grid():
+    dt = 0.01
+    im = immerse(vehicle_system(3, ANCHORS))
+    grid = BiasedAugmentedObserver(im, dt, sigma=0.1, V=1e-3, x0=[1.0, 1, 1, 0, 0, 0])
+    timed = BiasedAugmentedObserver(im, dt, sigma=0.1, V=1e-3, x0=[1.0, 1, 1, 0, 0, 0])
+    for k, (a, rho, _) in enumerate(flight(300, dt, sigma=0.1)):
+        grid.step(a, 0.5 * rho**2 - 0.5 * (ANCHORS**2).sum(1))
+        for h in range(8):
+            timed.correct(Measurement(k * dt, "range", float(rho[h]), (h,)))
+        timed.hold(a)
+        timed.predict((k + 1) * dt)
+    assert np.allclose(grid.zeta, timed.zeta, rtol=1e-9, atol=1e-9)
+
+
+@pytest.mark.parametrize("cls", [ExtendedKalmanFilter, UnscentedKalmanFilter])
+def test_filters_estimate_the_biases_as_states(cls):
+    dt, sigma = 0.01, 0.05
+    system = vehicle_system(3, ANCHORS)
+    model = RangeModel(ANCHORS, sigma, bias="state")
+    dyn, out, P0 = biased_models(system, dt, sigma, 0.02, np.eye(6), model)
+    x0 = np.r_[0.3, -0.2, 1.6, 2 * W, 2.4 * W, 0.4 * W, np.zeros(8)]
+    est = cls(dyn, out, x0=x0, P0=P0)
+    for a, rho, _ in flight(2000, dt, sigma=sigma, seed=3):
+        est.step(a, 0.5 * rho**2 - 0.5 * (ANCHORS**2).sum(1))
+    assert np.abs(est.x_hat[6:] - BIASES).max() < 0.03

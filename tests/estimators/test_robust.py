@@ -1,0 +1,120 @@
+"""Robust corrections (chi-square gate, Huber) and the lock-out of the Kalman filters."""
+
+import numpy as np
+import pytest
+from scipy import stats
+
+from quadobs.core.system import vehicle_system
+from quadobs.errors import QuadobsError
+from quadobs.estimators.kalman import (
+    ExtendedKalmanFilter,
+    HeldInputModel,
+    OutputModel,
+    UnscentedKalmanFilter,
+)
+from quadobs.estimators.robust import ChiSquareGate, Huber, LockOut, chi2_threshold, reweight
+
+BEACONS = np.array([[-5.0, -5.0], [5.0, -5.0], [5.0, 5.0], [-5.0, 5.0]])
+DT = 0.01
+
+
+def test_gate_threshold_is_the_chi_square_quantile():
+    # one degree of freedom: the square of the two-sided normal quantile
+    assert chi2_threshold(0.999, 1) == pytest.approx(stats.norm.ppf(0.9995) ** 2)
+    assert ChiSquareGate(0.95).threshold(2) == pytest.approx(-2 * np.log(0.05))
+    assert "k = outputs per correction" in ChiSquareGate().describe()
+    with pytest.raises(QuadobsError, match="noise.gate"):
+        ChiSquareGate(5.0)
+
+
+def test_huber_reweighting_closed_form():
+    R, S = np.array([[0.04]]), np.array([[0.09]])
+    assert reweight(Huber(1.5), np.array([0.3]), S, R) is R  # |r| = 1 <= c: unchanged
+    nu = np.array([3.0])  # r = 10: weight c / r, R divided by it
+    assert reweight(Huber(1.5), nu, S, R)[0, 0] == pytest.approx(0.04 * 10 / 1.5)
+    assert reweight(ChiSquareGate(0.99), nu, S, R) is None
+    assert reweight(None, nu, S, R) is R
+
+
+def _filter(kind, x0, P0, **kw):
+    system = vehicle_system(2, BEACONS)
+    dyn = HeldInputModel(system, DT, input_covariance=0.01)
+    out = OutputModel(system, 0.01 * np.eye(4), offsets=0.5 * (BEACONS**2).sum(1))
+    cls = ExtendedKalmanFilter if kind == "ekf" else UnscentedKalmanFilter
+    return cls(dyn, out, x0=x0, P0=P0, **kw)
+
+
+def _outputs(p, rng, sigma=0.1, outlier=0.0):
+    rho = np.linalg.norm(p - BEACONS, axis=1) + sigma * rng.standard_normal(4)
+    rho[0] += outlier
+    return 0.5 * rho**2 - 0.5 * (BEACONS**2).sum(1)
+
+
+def _run(est, steps, rng, outlier_every=0, outlier=0.0):
+    x = np.array([1.0, -0.5, 0.2, 0.1])
+    for k in range(steps):
+        y = _outputs(x[:2], rng, outlier=outlier if outlier_every and k % outlier_every == 0 else 0)
+        est.step(np.zeros(2), y)
+        x = np.concatenate([x[:2] + DT * x[2:], x[2:]])
+    return np.linalg.norm(est.x_hat[:2] - x[:2])
+
+
+@pytest.mark.parametrize("kind", ["ekf", "ukf"])
+def test_huber_limits_the_pull_of_outliers(kind):
+    x0, P0 = np.array([1.0, -0.5, 0.2, 0.1]), np.diag([0.01, 0.01, 0.01, 0.01])
+    plain = _run(_filter(kind, x0, P0), 300, np.random.default_rng(1), 10, 8.0)
+    robust = _run(_filter(kind, x0, P0, robust=Huber()), 300, np.random.default_rng(1), 10, 8.0)
+    assert robust < 0.5 * plain
+
+
+def test_locked_out_filter_reinitialises_and_recovers():
+    # 20 m off with a prior of 0.1 m: every correction fails the gate
+    x0, P0 = np.array([21.0, -0.5, 0.2, 0.1]), 0.01 * np.eye(4)
+    est = _filter("ekf", x0, P0, robust=ChiSquareGate(0.999), lockout=LockOut(timeout=0.5))
+    err = _run(est, 600, np.random.default_rng(2))
+    assert est.lockout.resets and est.lockout.resets[0]["time"] == pytest.approx(0.51, abs=0.02)
+    assert est.diverged is None and err < 0.3
+
+
+def test_filter_out_of_resets_is_reported_diverged():
+    x0, P0 = np.array([21.0, -0.5, 0.2, 0.1]), 0.01 * np.eye(4)
+    lock = LockOut(timeout=0.5, max_resets=0)
+    est = _filter("ekf", x0, P0, robust=ChiSquareGate(0.999), lockout=lock)
+    _run(est, 200, np.random.default_rng(2))
+    assert est.diverged is not None and est.diverged["step"] == 50
+    assert "rejected" in est.diverged["reason"]
+    assert est.corrections == 0 and est.rejected == 4 * 200  # one per range
+
+
+def test_no_rule_is_bit_identical_to_the_plain_filter():
+    x0, P0 = np.array([1.5, -0.5, 0.2, 0.1]), 0.5 * np.eye(4)
+    a, b = _filter("ekf", x0, P0), _filter("ekf", x0, P0, lockout=LockOut(0.1))
+    _run(a, 100, np.random.default_rng(3))
+    _run(b, 100, np.random.default_rng(3))
+    assert np.array_equal(a.x_hat, b.x_hat) and np.array_equal(a.x_covariance, b.x_covariance)
+
+
+def test_multilateration_is_exact_on_noise_free_ranges():
+    from quadobs.estimators.robust import multilateration
+
+    system = vehicle_system(2, BEACONS)
+    x = np.array([1.3, -2.1, 0.4, 0.2])
+    cols, p = multilateration(system.C, system.d, system.output(x))
+    assert cols.tolist() == [0, 1] and np.allclose(p, x[:2], atol=1e-10)
+    y = system.output(x)
+    y[1:] = np.nan  # one range fixes nothing
+    assert multilateration(system.C, system.d, y) is None
+
+
+def test_noise_gate_is_a_probability_and_says_its_degrees_of_freedom():
+    from quadobs.testbed.factories import robust_settings
+    from quadobs.testbed.scenario import load_scenario
+
+    with pytest.raises(QuadobsError, match="one degree of freedom per output"):
+        load_scenario("quadrotor-uwb", settings=["noise.gate=5"])
+    rule = robust_settings(load_scenario("quadrotor-uwb", settings=["noise.gate=0.99"]))["robust"]
+    assert rule.threshold(1) == pytest.approx(stats.chi2.ppf(0.99, 1))
+    with pytest.raises(QuadobsError, match="noise.huber"):
+        robust_settings(
+            load_scenario("quadrotor-uwb", settings=["noise.gate=0.99", "noise.huber=1.5"])
+        )
