@@ -12,7 +12,8 @@ the known input of the double integrator (model ``imu``). The rotation comes fro
 interpolation, held before its first and after its last sample), else it is estimated from
 the IMU alone by the Mahony complementary filter of the maintained ``ahrs`` package
 (:class:`ahrs.filters.Mahony`, chosen over a hand-written filter: tested, and it estimates
-the gyroscope's bias through its integral gain ``k_I``). Without a magnetometer the heading
+the gyroscope's bias through its integral gain ``k_I``; :data:`MAHONY_GAINS`). Without a
+magnetometer the heading
 is not observable: it starts at zero and follows the bias-corrected gyroscope, so an
 estimated attitude suits logs that start with the body axes along the navigation axes
 (as the simulated quadrotor's) or whose horizontal accelerations are small.
@@ -26,9 +27,14 @@ from quadobs.errors import QuadobsError
 
 __all__ = ["MAHONY_GAINS", "attitude_at", "estimate_attitude", "navigation_accelerations"]
 
-#: The Mahony filter's gains (``k_P`` 1/s, ``k_I`` 1/s^2): ``ahrs``' defaults, a time constant of
-#: about a second for the tilt, which the quadrotor's accelerations (a fraction of g) do not upset.
-MAHONY_GAINS = (1.0, 0.3)
+#: The Mahony filter's gains (``k_P`` 1/s, ``k_I`` 1/s^2). The filter takes the specific force
+#: for gravity, which a moving vehicle's own accelerations (and a multirotor's thrust, always
+#: along its body z) contradict; they average out over a few seconds of manoeuvres, so the tilt
+#: is pulled towards the accelerometer's with a time constant of ``1 / k_P = 10`` s and follows
+#: the gyroscope in between; ``k_I = k_P^2 / 4`` makes the loop critically damped (natural
+#: frequency ``sqrt(k_I)``, damping ``k_P / (2 sqrt(k_I)) = 1``). ``ahrs``' defaults (1, 0.3)
+#: trust the accelerometer ten times faster.
+MAHONY_GAINS = (0.1, 0.0025)
 
 
 def _rotation(quaternions: np.ndarray):

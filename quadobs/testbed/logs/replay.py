@@ -217,6 +217,12 @@ def _timing(log, world, ests, events) -> dict:
     out = {"tdoa_in_log": int(log.tdoa.shape[0]), "in_time": timed, "on_grid": grid}
     if timed:
         out["measurements_in_time"] = events.count
+        # the grid ends within dt of the log's end: what lies after its last time is not replayed
+        n_log = int(log.ranges.shape[0] + log.tdoa.shape[0])
+        out["after_the_last_step"] = sum(
+            1 for t in np.concatenate([log.ranges[:, 0], log.tdoa[:, 0]]) if t >= world.times[-1]
+        )
+        out["before_the_first_input"] = n_log - events.count - out["after_the_last_step"]
     if not grid:
         out["placed"], out["merged"] = events.count, 0
     return out
