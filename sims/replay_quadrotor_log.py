@@ -39,18 +39,19 @@ def thrust_attitude(a: np.ndarray) -> Rotation:
 def flight_log(scenario, t, X, rng, range_rate, imu_rate) -> RangeLog:
     anchors = scenario.beacons
     m = anchors.shape[0]
+    sigma = scenario.noise.range_std
     p, v = X[:, :3], X[:, 3:]
     a = np.gradient(v, t, axis=0)
-    spec = scenario.data["quadrotor"] if hasattr(scenario, "data") else {}
-    accel_std, accel_bias = spec.get("accel_std", 0.03), spec.get("accel_bias", 0.02)
-    gyro_std, gyro_bias = spec.get("gyro_std", 0.005), spec.get("gyro_bias", 0.002)
+    spec = scenario.quadrotor
+    accel_std, accel_bias = spec.accel_std, spec.accel_bias
+    gyro_std, gyro_bias = spec.gyro_std, spec.gyro_bias
     # ranges: anchor h at h / (m rate) + k / rate
     period = 1.0 / range_rate
     rows = []
     for h in range(m):
         tr = np.arange(h * period / m, t[-1], period)
         ph = np.column_stack([np.interp(tr, t, p[:, i]) for i in range(3)])
-        rho = np.linalg.norm(ph - anchors[h], axis=1) + 0.1 * rng.standard_normal(tr.size)
+        rho = np.linalg.norm(ph - anchors[h], axis=1) + sigma * rng.standard_normal(tr.size)
         rows.append(np.column_stack([tr, np.full(tr.size, h), rho]))
     ranges = np.vstack(rows)
     ranges = ranges[np.argsort(ranges[:, 0], kind="stable")]
@@ -65,15 +66,17 @@ def flight_log(scenario, t, X, rng, range_rate, imu_rate) -> RangeLog:
     w = R.inv().apply(w)
     w += gyro_bias * rng.choice([-1.0, 1.0], 3) + gyro_std * rng.standard_normal(w.shape)
     ta = ti[:: max(int(round(imu_rate / 250.0)), 1)]
-    err = Rotation.from_rotvec(0.01 * rng.standard_normal((ta.size, 3)))
-    Ra = err * Rotation.from_rotvec(np.column_stack([np.interp(ta, ti, rv[:, i]) for i in range(3)]))
+    err = Rotation.from_rotvec(spec.attitude_std * rng.standard_normal((ta.size, 3)))
+    Ra = err * Rotation.from_rotvec(
+        np.column_stack([np.interp(ta, ti, rv[:, i]) for i in range(3)])
+    )
     q = Ra.as_quat()[:, [3, 0, 1, 2]]
     q *= np.sign(q[:, :1]) + (q[:, :1] == 0)
     return RangeLog(
         "quadrotor-uwb-log", np.arange(m), anchors, ranges, np.column_stack([ti, f, w]),
         float("nan"), np.column_stack([t, p, v]), input_kind="imu_body",
         truth_columns=("time", "x", "y", "z", "vx", "vy", "vz"), attitude=np.column_stack([ta, q]),
-        range_std=np.full(ranges.shape[0], 0.1),
+        range_std=np.full(ranges.shape[0], sigma),
     )  # fmt: skip
 
 
@@ -88,13 +91,17 @@ def main() -> None:
     ap.add_argument("--out")
     ap.add_argument("--tune", action="append", default=[], help="KEY=VALUE of the replay's setup")
     ap.add_argument("--burn-in", type=float, default=0.0)
-    ap.add_argument("--calibrate", action="store_true", help="self-calibrate as quadobs replay does")
+    ap.add_argument(
+        "--calibrate", action="store_true", help="self-calibrate as quadobs replay does"
+    )
     args = ap.parse_args()
     names = args.estimators.split(",")
     scenario = load_scenario("quadrotor-uwb", duration=args.duration, seed=args.seed)
     live = run_episode(scenario, estimators=names, collect_every=1)
     t, X = live.trace["time"], live.trace["truth"]
-    log = flight_log(scenario, t, X, np.random.default_rng(args.seed), args.range_rate, args.imu_rate)
+    log = flight_log(
+        scenario, t, X, np.random.default_rng(args.seed), args.range_rate, args.imu_rate
+    )
     if args.out:
         write_log(log, args.out)
     x0 = live.trace["estimates"][names[0]][0]
