@@ -192,3 +192,17 @@ def test_calibration_falls_back_to_no_biases_when_they_do_not_help():
     assert clean.biases is None and clean.reason
     biased = calibrate(log(0.6), setup_options=opts, noise=False)
     assert biased.biases is not None and np.all(np.abs(biased.biases - 0.6) < 0.15), biased
+
+
+def test_the_initial_offset_applies_when_the_truth_starts_late():
+    rng = np.random.default_rng(6)
+    t = np.arange(0.0, 20.0, 0.04)
+    p, v = _straight(t, 2)
+    truth, cols = _truth(t[t >= 2.0], p[t >= 2.0], v[t >= 2.0], 2)
+    log = RangeLog(
+        "late", np.arange(4), ANCHORS_2D, _ranges(t, ANCHORS_2D, p, rng, 0.05),
+        np.empty((0, 1)), float("nan"), truth, input_kind="none", truth_columns=cols,
+    )  # fmt: skip
+    s = run_replay(log, estimators=["ekf"], initial_offset=7.0, batch=False)
+    guess = np.array(s["initial_guess"][:2])
+    assert np.linalg.norm(guess - truth[0, 1:3]) == pytest.approx(7.0)

@@ -47,11 +47,15 @@ _BLOCK = 8192
 def initial_guess(log, world, offset: float, seed: int) -> np.ndarray:
     """The estimators' initial state: the truth at ``t_0`` moved by ``offset`` metres in a horizontal direction drawn from ``seed``.
 
+    Where the truth starts after ``t_0``, its first position stands for the truth at ``t_0``.
     Without a truth: the beacons' centroid. Velocities (models ``cv``, ``imu``) start at zero.
     """
     n, dim = world.columns.n, log.dimension
     x0 = np.zeros(n)
     truth = world.state()
+    first = log.truth_part("position")
+    if not np.all(np.isfinite(truth[:dim])) and first is not None and first.shape[0]:
+        truth = first[0]
     if np.all(np.isfinite(truth[:dim])):
         phi = np.random.default_rng(seed).uniform(0.0, 2.0 * math.pi)
         x0[:dim] = truth[:dim]
