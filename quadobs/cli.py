@@ -216,9 +216,10 @@ def _cmd_run(args) -> int:
     estimators = _estimator_list(args.estimators)
     sinks = []
     if args.export_log is not None:
-        from quadobs.testbed.logs.export import LogExportSink, check_exportable
+        from quadobs.testbed.logs.export import LogExportSink, check_export_folder, check_exportable
 
         check_exportable(scenario)
+        check_export_folder(args.export_log, (args.out, args.summary))
         sinks.append(LogExportSink(args.export_log))
     _notice_cost(scenario, estimators, args.out is not None)
     _notice_cold_kernels(_episode_kernels(estimators))
@@ -793,6 +794,15 @@ def _cmd_replay(args) -> int:
 
     log = open_log(args.log)
     if args.export is not None:
+        from quadobs.errors import QuadobsError
+        from quadobs.testbed.logs.export import check_export_folder
+
+        for flag, value in (("--out", args.out), ("--summary", args.summary)):
+            if value is not None:
+                raise QuadobsError(
+                    f"{flag}: nothing is replayed with --export (it writes the log and stops)"
+                )
+        check_export_folder(args.export)
         write_log(log, args.export)
         print(
             f"log {log.name}: {log.ranges.shape[0]} ranges, {log.inputs.shape[0]} inputs written to {args.export}"
@@ -803,7 +813,7 @@ def _cmd_replay(args) -> int:
     from quadobs.testbed.outputs import check_outputs
 
     check_outputs(
-        {"--out": args.out, "--summary": args.summary}
+        {"--out": args.out, "--summary": args.summary}, _log_inputs(log)
     )  # before the calibration's replays
     log_scenario(log, args.dt, args.seed, args.set)  # the --set settings, checked as early
     _check_field_options(args)
@@ -862,6 +872,15 @@ def _cmd_replay(args) -> int:
     if args.summary:
         print(f"summary: {args.summary}")
     return 130 if summary["interrupted"] else 0
+
+
+def _log_inputs(log) -> dict:
+    """Every file of the log's folder, as inputs no output may name."""
+    from pathlib import Path
+
+    from quadobs.testbed.logs.format import LOG_FILES
+
+    return {f"log {f}": Path(log.source) / f for f in LOG_FILES} if log.source else {}
 
 
 def _check_field_options(args) -> None:
@@ -937,6 +956,8 @@ def _replay_calibration(args, log, tuning: dict) -> tuple[list[float] | None, di
 
     The self-calibration also picks the model's process noise, unless ``--tune`` sets it.
     """
+    import math
+
     from quadobs.errors import QuadobsError
     from quadobs.testbed.logs.calibration import calibrate, process_noise_key
     from quadobs.testbed.worlds.replay import default_model
@@ -948,6 +969,8 @@ def _replay_calibration(args, log, tuning: dict) -> tuple[list[float] | None, di
             raise QuadobsError(
                 f"--biases: expected comma-separated numbers, got {args.biases!r}"
             ) from None
+        if not all(math.isfinite(b) for b in biases):
+            raise QuadobsError(f"--biases: every bias must be a finite number, got {args.biases!r}")
         if len(biases) != log.beacons.shape[0]:
             raise QuadobsError(f"--biases: {len(biases)} values for {log.beacons.shape[0]} beacons")
         return biases, tuning

@@ -8,6 +8,8 @@ import threading
 
 import numpy as np
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 from quadobs.errors import QuadobsError
 from quadobs.testbed.logs import RangeLog, read_log, write_log
@@ -215,6 +217,11 @@ def test_a_version_1_log_still_reads_and_version_2_parts_ask_for_the_version(tmp
         ),
         ("truth.csv", "time,x,y,qw\n0,1,1,1\n", "truth.csv, row 1: the attitude needs all of"),
         (
+            "imu.csv",
+            "time,ax,ay,az,gx,gy,gz\n0,0,0,9.8,0,0,0\n",
+            "imu.csv: a log holds inputs.csv or imu.csv, not both",
+        ),
+        (
             "inputs.csv",
             "time,speed,yaw_rate\n0,1,0\n1e8,1,0\n",
             "the log spans 1e+08 s, more than 1e+07 s",
@@ -311,3 +318,105 @@ def test_a_log_folder_is_replaced_whole_or_not_at_all(tmp_path, monkeypatch):
     with pytest.raises(QuadobsError, match=r"holds 'notes.txt'"):
         write_log(alone, folder)
     assert (folder / "notes.txt").read_text() == "mine"
+
+
+def test_a_log_built_in_memory_is_held_to_the_schema_too():
+    log = flight_log(with_truth=False)
+    bad = log.ranges.copy()
+    bad[4, RANGE.range] = -1.0
+    with pytest.raises(
+        QuadobsError, match=r"flight: ranges.csv, row 6, column range: '-1.0' is negative"
+    ):
+        RangeLog("flight", IDS, BEACONS3, bad, log.inputs, math.nan, input_kind="imu_body")
+    with pytest.raises(QuadobsError, match=r"a log without inputs needs ranges or TDOA"):
+        RangeLog(
+            "empty", IDS, BEACONS3, np.empty((0, 3)), np.empty((0, 1)), math.nan, input_kind="none"
+        )
+    with pytest.raises(QuadobsError, match=r"imu.csv, row 1: a body IMU needs a log in space"):
+        RangeLog(
+            "flat", IDS, BEACONS3[:, :2], log.ranges, log.inputs, math.nan, input_kind="imu_body"
+        )
+
+
+_FUZZ_FILES = (
+    "meta.csv",
+    "beacons.csv",
+    "ranges.csv",
+    "tdoa.csv",
+    "imu.csv",
+    "attitude.csv",
+    "truth.csv",
+)
+
+
+@settings(
+    max_examples=150, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture]
+)
+@given(
+    fname=st.sampled_from(_FUZZ_FILES),
+    position=st.floats(0.0, 1.0),
+    cut=st.integers(0, 40),
+    junk=st.binary(max_size=24)
+    | st.sampled_from([b"nan", b"-1e400", b"\n\n", b",,,", b"\xef\xbb\xbf", b'"', b"1e19", b"\r"]),
+)
+def test_a_mutated_log_reads_or_is_refused_in_one_line(
+    tmp_path_factory, fname, position, cut, junk
+):
+    folder = tmp_path_factory.mktemp("fuzz") / "log"
+    write_log(flight_log(), folder)
+    path = folder / fname
+    raw = path.read_bytes()
+    at = int(position * len(raw))
+    path.write_bytes(raw[:at] + junk + raw[at + cut :])
+    try:
+        read_log(folder)
+    except QuadobsError as exc:
+        assert "\n" not in str(exc) and str(exc)
+
+
+def test_an_excerpt_keeps_every_part_of_its_span():
+    log = flight_log()
+    part = log.excerpt(0.5, 1.0)
+    a, b = log.start + 0.5, log.start + 1.0
+    for table, std in ((part.ranges, part.range_std), (part.tdoa, part.tdoa_std)):
+        assert table.shape[0] == std.shape[0] > 0
+        assert a <= table[0, 0] and table[-1, 0] < b
+    np.testing.assert_array_equal(
+        part.range_std, log.range_std[(log.ranges[:, 0] >= a) & (log.ranges[:, 0] < b)]
+    )
+    assert part.attitude[0, 0] <= a and part.attitude[-1, 0] >= b  # one sample either side
+    assert part.inputs[0, 0] == a and part.input_kind == "imu_body" and part.frame == "ned"
+
+
+def test_arrow_and_the_row_by_row_reader_give_the_same_values(tmp_path):
+    from quadobs.studies.bench import log_read_figure
+    from quadobs.testbed.logs.schema import FILES
+
+    folder = write_log(flight_log(), tmp_path / "log")
+    for fname in ("ranges.csv", "tdoa.csv", "imu.csv", "attitude.csv", "truth.csv"):
+        path = folder / fname
+        raw = log_files.read_limited(path)
+        header = [h.strip() for h in log_files._line(raw, log_files._line_starts(path, raw), 0)]
+        columns = FILES[fname].columns_of(header, 2)
+        fast = log_files._arrow_values(raw, header, columns)
+        slow = log_files._python_values(
+            path, raw, log_files._line_starts(path, raw), header, columns, FILES[fname]
+        )
+        np.testing.assert_array_equal(fast, slow)
+    figure = log_read_figure(rows=2000, repeats=1)
+    assert figure["rows"] == 2000 and figure["arrow_s"] > 0 and figure["log_read_speedup"] > 0
+
+
+def test_a_log_needs_ranges_or_tdoa_and_inputs_only_in_version_1(tmp_path):
+    folder = _write_v1(tmp_path / "log")
+    (folder / "meta.csv").write_text("key,value\nversion,2\nheading0,0.5\n")
+    (folder / "inputs.csv").unlink()
+    with pytest.raises(QuadobsError, match=r"meta.csv, key heading0: only for an odometry log"):
+        read_log(folder)
+    (folder / "meta.csv").write_text("key,value\nversion,2\n")
+    assert read_log(folder).input_kind == "none"
+    (folder / "ranges.csv").unlink()
+    with pytest.raises(
+        QuadobsError, match=r"ranges.csv: missing \(a log holds ranges.csv, tdoa.csv or both\)"
+    ):
+        read_log(folder)

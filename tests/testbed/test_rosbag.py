@@ -204,3 +204,51 @@ def test_a_topic_map_refuses_unknown_keys_and_missing_fields(tmp_path):
         import_bag(tmp_path / "flight", bad)
     with pytest.raises(QuadobsError, match=r"cannot be read as a ROS bag"):
         import_bag(tmp_path / "anchors.csv", m)
+
+
+def test_transform_truth_and_receive_times(tmp_path):
+    from rosbags.rosbag2 import Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    ts = get_typestore(Stores.ROS2_HUMBLE)
+    T = ts.types
+    bag = tmp_path / "tf"
+    with Writer(bag, version=9) as w:
+        tf = w.add_connection("/mocap", "geometry_msgs/msg/TransformStamped", typestore=ts)
+        r = w.add_connection("/r", "sensor_msgs/msg/Range", typestore=ts)
+        for k in range(10):
+            t = T0 + 0.1 * k
+            header = T["std_msgs/msg/Header"](
+                stamp=T["builtin_interfaces/msg/Time"](sec=0, nanosec=0), frame_id="a7"
+            )
+            msg = T["geometry_msgs/msg/TransformStamped"](
+                header=header,
+                child_frame_id="body",
+                transform=T["geometry_msgs/msg/Transform"](
+                    translation=T["geometry_msgs/msg/Vector3"](x=float(k), y=1.0, z=2.0),
+                    rotation=T["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0),
+                ),
+            )
+            w.write(tf, int(t * 1e9), ts.serialize_cdr(msg, "geometry_msgs/msg/TransformStamped"))
+            rng = T["sensor_msgs/msg/Range"](
+                header=header,
+                radiation_type=0,
+                field_of_view=0.0,
+                min_range=0.0,
+                max_range=9.0,
+                range=1.5,
+            )
+            w.write(r, int((t + 0.05) * 1e9), ts.serialize_cdr(rng, "sensor_msgs/msg/Range"))
+    topic_map = parse_topic_map(
+        {
+            "time": "receive",  # the stamps are zero: the bag's receive times instead
+            "anchors": {"7": [0.0, 0.0, 1.0]},
+            "truth": {"topic": "/mocap"},
+            "ranges": {"topic": "/r"},
+        }
+    )
+    log = import_bag(bag, topic_map)
+    np.testing.assert_allclose(log.truth[:, 0], T0 + 0.1 * np.arange(10), atol=1e-6)
+    np.testing.assert_allclose(log.truth[:, 1], np.arange(10.0))
+    np.testing.assert_allclose(log.ranges[:, 0], T0 + 0.05 + 0.1 * np.arange(10), atol=1e-6)
+    assert set(log.ranges[:, 1]) == {7}

@@ -4,7 +4,10 @@
 ``t_k = k dt``), what the estimators were given and what was true:
 
 * ``ranges.csv``: each measured range (after the sensor layer: noise, rate, dropouts,
-  outliers) at ``t_k``;
+  outliers) at ``t_k``. A range the noise or an outlier took below zero is written as its
+  magnitude ``|rho|``: the format holds distances (non-negative), and the estimators'
+  output ``y = rho^2 / 2 - |a|^2 / 2`` is the same for both signs, so the replay still
+  gives the episode's outputs; the summary counts them (``exported_log_ranges_negated``);
 * ``inputs.csv``: the measured acceleration ``u_k`` (the accelerometer, with its noise),
   held over ``[t_k, t_(k+1))``, in the navigation frame (``time,ax,ay[,az]``); a last row
   at ``t_K`` (zero) closes the last step, as the format's inputs are held to the next row;
@@ -27,7 +30,7 @@ from quadobs.errors import QuadobsError
 from quadobs.testbed.logs.format import RangeLog, write_log
 from quadobs.testbed.sinks import EpisodeContext, Rows, Sink
 
-__all__ = ["LogExportSink", "check_exportable"]
+__all__ = ["LogExportSink", "check_export_folder", "check_exportable"]
 
 
 def check_exportable(scenario) -> None:
@@ -38,6 +41,15 @@ def check_exportable(scenario) -> None:
             f"--export-log: {scenario.name!r} is {what}; the log format holds ranges, an accelerometer "
             "in the navigation frame and the truth of a vehicle scenario without wind"
         )
+
+
+def check_export_folder(folder, outputs=()) -> None:
+    """Before the run: a one-line error unless ``folder`` is new, empty or a log folder, and
+    none of the run's other ``outputs`` lies in it (it is replaced whole at the end)."""
+    from quadobs.testbed.logs.files import check_replaceable_folder
+    from quadobs.testbed.logs.format import LOG_FILES
+
+    check_replaceable_folder(folder, set(LOG_FILES), "--export-log", outputs)
 
 
 class LogExportSink(Sink):
@@ -79,11 +91,14 @@ class LogExportSink(Sink):
         dim = fr.dimension
         inputs = np.vstack(self.parts["inputs"] + [np.r_[completed * fr.dt, np.zeros(dim)][None]])
         axes = "xyz"[:dim]
+        ranges = np.vstack(self.parts["ranges"]).reshape(-1, 3)
+        negated = int(np.count_nonzero(ranges[:, 2] < 0.0))
+        ranges[:, 2] = np.abs(ranges[:, 2])
         log = RangeLog(
             fr.name,
             np.arange(fr.beacons.shape[0]),
             np.asarray(fr.beacons, dtype=float),
-            np.vstack(self.parts["ranges"]).reshape(-1, 3),
+            ranges,
             inputs,
             float("nan"),
             np.vstack(self.parts["truth"]),
@@ -91,4 +106,4 @@ class LogExportSink(Sink):
             truth_columns=("time", *axes, *(f"v{a}" for a in axes)),
         )
         write_log(log, self.folder)
-        return {"exported_log": str(self.folder)}
+        return {"exported_log": str(self.folder), "exported_log_ranges_negated": negated}

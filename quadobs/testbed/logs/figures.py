@@ -18,7 +18,6 @@ alignment). The folder is built beside its target and renamed into place whole
 
 from __future__ import annotations
 
-import os
 import re
 from pathlib import Path
 
@@ -44,16 +43,8 @@ def _is_tum(name: str) -> bool:
 def check_tum_folder(folder: str | Path | None, outputs=()) -> None:
     """Before a replay: a one-line error unless ``folder`` is new, empty or holds only ``.tum``
     files, and none of the run's other ``outputs`` (paths or None) lies in it."""
-    if folder is None:
-        return
-    check_replaceable_folder(folder, _is_tum, "--export-tum")
-    inside = Path(os.path.realpath(folder))
-    for path in outputs:
-        if path is not None and inside in Path(os.path.realpath(path)).parents:
-            raise QuadobsError(
-                f"--export-tum {os.fspath(folder)!r}: holds the output {os.fspath(path)!r}, "
-                "and the folder is replaced whole"
-            )
+    if folder is not None:
+        check_replaceable_folder(folder, _is_tum, "--export-tum", outputs)
 
 
 class FieldFiguresSink(Sink):

@@ -79,7 +79,14 @@ def read_limited(path: Path) -> bytes | None:
 
 def _line_starts(path: Path, raw: bytes) -> np.ndarray:
     """Offsets of each line's first byte, and one past the end; checks :data:`MAX_LINE_BYTES`."""
-    ends = np.flatnonzero(np.frombuffer(raw, dtype=np.uint8) == 10)
+    data, chunk = np.frombuffer(raw, dtype=np.uint8), 1 << 24  # a chunk's mask at a time
+    parts = [np.zeros(0, dtype=np.int64)]
+    for i in range(0, data.size, chunk):
+        c = data[i : i + chunk]
+        following = np.append(data[i + 1 : i + chunk + 1], 0)[: c.size]
+        # a line ends at LF, or at a CR not followed by LF (as the CSV parser reads it)
+        parts.append(np.flatnonzero((c == 10) | ((c == 13) & (following != 10))) + i)
+    ends = np.concatenate(parts)
     starts = np.concatenate([[0], ends + 1, [len(raw) + 1]]) if raw else np.array([0, 1])
     lengths = np.diff(starts) - 1
     bad = np.flatnonzero(lengths > MAX_LINE_BYTES)
@@ -91,22 +98,28 @@ def _line_starts(path: Path, raw: bytes) -> np.ndarray:
 
 
 def _line(raw: bytes, starts: np.ndarray, k: int) -> list[str]:
-    """The cells of line ``k`` (0-based) as the csv module reads them."""
+    """The cells of line ``k`` (0-based) as the csv module reads them (none past the end)."""
+    if k + 1 >= starts.size:
+        return []
     text = raw[starts[k] : max(starts[k + 1] - 1, starts[k])].decode("utf-8-sig", "replace")
-    return next(csv.reader([text.rstrip("\r")]), [])
+    text = text.rstrip("\r")
+    try:
+        return next(csv.reader([text]), [])
+    except csv.Error:  # a stray carriage return or quote: the cells as split by commas
+        return text.split(",")
 
 
 def text_rows(path: Path, raw: bytes) -> list[list[str]]:
     """Every row of a small CSV file (``meta.csv``), line lengths checked, a BOM skipped."""
-    _line_starts(path, raw)
+    starts = _line_starts(path, raw)
     try:
-        text = raw.decode("utf-8-sig")
+        raw.decode("utf-8-sig")
     except UnicodeDecodeError as exc:
         raise QuadobsError(f"{path}: not UTF-8 text (byte {exc.start})") from None
-    try:
-        return list(csv.reader(text.splitlines()))
-    except csv.Error as exc:
-        raise QuadobsError(f"{path}: not a CSV text file ({exc})") from None
+    lines = starts.size - 1
+    if lines and starts[-2] >= len(raw):  # the last line end, not an empty line
+        lines -= 1
+    return [_line(raw, starts, k) for k in range(lines)]  # numbered as the data files' rows
 
 
 def read_table(
@@ -266,10 +279,18 @@ def _swap_in(stage: Path, target: Path) -> None:
     shutil.rmtree(old, ignore_errors=True)
 
 
-def check_replaceable_folder(folder: str | Path, allowed, what: str) -> None:
-    """A one-line error unless ``folder`` is absent, or a folder holding only names in ``allowed`` (a set, or a test of a name)."""
+def check_replaceable_folder(folder: str | Path, allowed, what: str, outputs=()) -> None:
+    """A one-line error unless ``folder`` is absent, or a folder holding only names in ``allowed``
+    (a set, or a test of a name); and none of the command's other ``outputs`` (paths or None)
+    lies in it (the folder is replaced whole, they would be lost)."""
     path = Path(folder)
     shown = os.fspath(folder)
+    inside = Path(os.path.realpath(path))
+    for other in outputs:
+        if other is not None and inside in Path(os.path.realpath(other)).parents:
+            raise QuadobsError(
+                f"{what} {shown!r}: holds the output {os.fspath(other)!r}, and the folder is replaced whole"
+            )
     if os.path.lexists(path) and not os.path.isdir(path):
         raise QuadobsError(f"{what} {shown!r}: exists and is not a folder")
     if not path.exists():

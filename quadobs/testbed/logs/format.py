@@ -40,7 +40,7 @@ import csv
 import dataclasses
 import io
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -125,7 +125,7 @@ class RangeLog:
     version : {1, 2}
         The format version it was read from (2 for a log built in memory).
     range_std : ndarray (M,), optional
-        Standard deviation of each range (m); NaN: the estimator's default (all NaN when None).
+        Standard deviation of each range (m); NaN: the estimator's default (all NaN when not given).
     tdoa : ndarray (N, 4), optional
         ``time, anchor_i, anchor_j, difference`` rows (:data:`~quadobs.testbed.logs.schema.TDOA`).
     tdoa_std : ndarray (N,), optional
@@ -150,9 +150,9 @@ class RangeLog:
     input_kind: str = "odometry"
     truth_columns: tuple = ()
     version: int = 2
-    range_std: np.ndarray | None = None
-    tdoa: np.ndarray | None = None
-    tdoa_std: np.ndarray | None = None
+    range_std: np.ndarray = field(default_factory=lambda: np.empty(0))
+    tdoa: np.ndarray = field(default_factory=lambda: _empty(len(TDOA)))
+    tdoa_std: np.ndarray = field(default_factory=lambda: np.empty(0))
     attitude: np.ndarray | None = None
     frame: str = "enu"
     gravity: float = 9.80665
@@ -161,10 +161,13 @@ class RangeLog:
     def __post_init__(self) -> None:
         fix = lambda key, value: object.__setattr__(self, key, value)  # noqa: E731
         fix("ranges", np.asarray(self.ranges, dtype=float).reshape(-1, len(RANGE)))
-        fix("tdoa", _empty(len(TDOA)) if self.tdoa is None else np.asarray(self.tdoa, float))
+        tdoa = _empty(len(TDOA)) if self.tdoa is None else self.tdoa
+        fix("tdoa", np.asarray(tdoa, dtype=float).reshape(-1, len(TDOA)))
         for key, table in (("range_std", self.ranges), ("tdoa_std", self.tdoa)):
             std = getattr(self, key)
-            fix(key, np.full(table.shape[0], np.nan) if std is None else np.asarray(std, float))
+            if std is None or (np.size(std) == 0 and table.shape[0]):  # not given: all NaN
+                std = np.full(table.shape[0], np.nan)
+            fix(key, np.asarray(std, dtype=float))
             if getattr(self, key).shape != (table.shape[0],):
                 raise QuadobsError(f"{self.name}: {key}: one value per row expected")
         if self.truth is not None and not self.truth_columns:
@@ -206,6 +209,10 @@ class RangeLog:
         if kind == "none":
             if self.inputs.shape[0]:
                 raise QuadobsError(f"{self.name}: input kind none: the log holds inputs")
+            if not (self.ranges.shape[0] or self.tdoa.shape[0]):
+                raise QuadobsError(
+                    f"{self.name}: ranges.csv: a log without inputs needs ranges or TDOA"
+                )
             return
         if self.inputs.shape[0] < 2:
             raise QuadobsError(f"{self.name}: {fname}: at least two rows are needed")
@@ -421,14 +428,12 @@ def _read_tables(folder: Path, version: int) -> dict:
     return tables
 
 
-def _measurements(
-    tables: dict, fname: str, width: int
-) -> tuple[np.ndarray | None, np.ndarray | None]:
+def _measurements(tables: dict, fname: str, width: int) -> tuple[np.ndarray, np.ndarray]:
     """The rows (without ``std``) and the standard deviations of ``ranges.csv`` or ``tdoa.csv``."""
     if fname not in tables:
-        return _empty(width), None
+        return _empty(width), np.empty(0)
     columns, values = tables[fname]
-    std = values[:, columns.index(STD)] if STD in columns else None
+    std = values[:, columns.index(STD)] if STD in columns else np.empty(0)
     return values[:, :width], std
 
 

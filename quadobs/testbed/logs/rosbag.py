@@ -48,6 +48,7 @@ import re
 import tomllib
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -57,7 +58,7 @@ from quadobs.testbed.logs.format import RangeLog
 __all__ = ["STREAMS", "TopicMap", "import_bag", "load_topic_map", "parse_topic_map"]
 
 #: The streams a topic map may name, and the fields each reads (with their defaults).
-STREAMS = {
+STREAMS: dict[str, dict[str, Any]] = {
     "imu": {"attitude": False},
     "truth": {},
     "ranges": {"anchor": "header.frame_id", "value": "range", "std": ""},
