@@ -118,6 +118,7 @@ def test_tdoa_log_through_the_ekf_and_refused_by_the_observer_before_calibration
         "'augmented' takes ranges only, and the log holds TDOA" in err and "\n" not in err.strip()
     )
     assert "calibrated" not in out  # refused before any calibration
+    assert run_replay(log, batch=False)["primary_estimator"] == "ekf"  # the defaults take TDOA
 
 
 def _imu_body_log(with_attitude: bool, yaw_rate: float = 0.0):

@@ -38,9 +38,26 @@ from quadobs.testbed.logs.estimators import build_replay_estimators, replay_setu
 from quadobs.testbed.logs.events import InTimeOnGrid, LogEvents, in_time, takes_time
 from quadobs.testbed.logs.format import LOG_FILES
 
-__all__ = ["DEFAULT_ESTIMATORS", "check_replay", "initial_guess", "log_scenario", "run_replay"]
+__all__ = [
+    "DEFAULT_ESTIMATORS",
+    "check_replay",
+    "default_estimators",
+    "initial_guess",
+    "log_scenario",
+    "run_replay",
+]
 
 DEFAULT_ESTIMATORS = ("augmented", "ekf")
+
+
+def default_estimators(log) -> list[str]:
+    """:data:`DEFAULT_ESTIMATORS`, with the UKF in place of the augmented observer for a log
+    holding TDOA (which the observer cannot take)."""
+    if log.tdoa.shape[0]:
+        return ["ekf", "ukf"]
+    return list(DEFAULT_ESTIMATORS)
+
+
 _BLOCK = 8192
 
 
@@ -127,7 +144,7 @@ def run_replay(
     ----------
     log : RangeLog
     estimators : list of str, optional
-        Default :data:`DEFAULT_ESTIMATORS`.
+        Default :func:`default_estimators`.
     dt : float
         Replay grid step (s), see :mod:`quadobs.testbed.worlds.replay`.
     model : {"odometry", "cv", "imu"}, optional
@@ -163,7 +180,7 @@ def run_replay(
     from quadobs.testbed.sensors import SensorModel
     from quadobs.testbed.worlds.replay import ReplayWorld, default_model
 
-    names = list(estimators) if estimators else list(DEFAULT_ESTIMATORS)
+    names = list(estimators) if estimators else default_estimators(log)
     inputs = {f"log {f}": Path(log.source) / f for f in LOG_FILES} if log.source else {}
     check_outputs({"summary": summary_path, "recording": out}, inputs)
     from quadobs.testbed.logs.figures import FieldFiguresSink, check_tum_folder
@@ -247,7 +264,7 @@ def check_replay(log, names, *, dt: float = 0.1, model: str | None = None, optio
     )  # fmt: skip
     x0 = np.zeros(n)
     x0[: log.dimension] = log.beacons.mean(axis=0)
-    build_replay_estimators(setup, list(names) if names else list(DEFAULT_ESTIMATORS), x0)
+    build_replay_estimators(setup, list(names) if names else default_estimators(log), x0)
 
 
 def _summary(
