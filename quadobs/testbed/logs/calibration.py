@@ -297,7 +297,7 @@ def calibrate(
     if log.ranges.shape[0] == 0:
         return Calibration(None, options, {}, "the log holds no ranges", np.zeros(q))
     b, res = _fixed_point(log, dt, model, None, estimator, ITERATIONS, options)
-    scores = {}
+    scores: dict = {}
     if noise:
         key = process_noise_key(model)
         options[key], scores = calibrate_noise(

@@ -131,7 +131,7 @@ class InTimeOnGrid(Estimator):
         self._k = 0
         self._i = 0  # next input
         self._j = 0  # next measurement
-        self._nis = math.nan
+        self.nis = math.nan
         est.time = self.grid[0]
         self._it, self._u = events.inputs(getattr(est, "replay_input", None) == "imu_body")
         first = int(np.searchsorted(self._it, self.grid[0], side="right")) - 1
@@ -153,12 +153,12 @@ class InTimeOnGrid(Estimator):
         return self.inner.covariance_trace
 
     @property
-    def nis(self) -> float:
-        return self._nis
-
-    @property
     def time(self) -> float:
         return self.inner.time
+
+    @time.setter
+    def time(self, value: float) -> None:
+        self.inner.time = value
 
     # the wrapped estimator's abilities (declared by the class :func:`in_time` builds)
     gate = property(lambda self: self.inner.gate)
@@ -169,7 +169,8 @@ class InTimeOnGrid(Estimator):
     switches = property(lambda self: self.inner.switches)
 
     def summary(self) -> dict:
-        return self.inner.summary()
+        summary = self.inner.summary  # type: ignore[attr-defined]  # Switching declares it
+        return summary()
 
     def step(self, u, y) -> None:
         """Consume the events of the next grid step and predict to its end."""
@@ -197,7 +198,7 @@ class InTimeOnGrid(Estimator):
                 j += 1
         est.predict(t_next)
         self._i, self._j, self._k = i, j, k + 1
-        self._nis = nis
+        self.nis = nis
 
 
 _ABILITIES = (Gated, Counted, Immersed, Switching)
