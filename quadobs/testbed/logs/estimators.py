@@ -234,6 +234,10 @@ def build_ekf(s: ReplaySetup, x0: np.ndarray, name: str = "ekf") -> ExtendedKalm
 
 def build_isam2(s, x0: np.ndarray, name: str = "isam2") -> Estimator:
     """Entry point ``isam2``: the GTSAM peer (:func:`quadobs.testbed.logs.peer.build_peer`); logged data only."""
+    if not isinstance(s, ReplaySetup):
+        raise QuadobsError(
+            f"estimators: {name!r} runs on logged data only (quadobs replay), not in a simulated scenario"
+        )
     from quadobs.testbed.logs.peer import build_peer
 
     return build_peer(s, x0, name)

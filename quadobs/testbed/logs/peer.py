@@ -46,13 +46,7 @@ def check_peer(input_kind: str, dimension: int, name: str = "isam2") -> None:
 
 
 def build_peer(s, x0: np.ndarray, name: str = "isam2"):
-    """Entry point ``isam2``: the GTSAM peer on the replay's log (module docstring); logged data only."""
-    from quadobs.testbed.logs.estimators import ReplaySetup
-
-    if not isinstance(s, ReplaySetup):
-        raise QuadobsError(
-            f"estimators: {name!r} runs on logged data only (quadobs replay), not in a simulated scenario"
-        )
+    """The GTSAM peer on the replay's log (module docstring), ``s`` a :class:`~quadobs.testbed.logs.estimators.ReplaySetup`."""
     check_peer(s.input_kind, s.dim, name)
     from quadobs.estimators.gtsam_peer import Isam2Peer, PeerNoise
 
