@@ -792,6 +792,10 @@ def _cmd_replay(args) -> int:
         {"--out": args.out, "--summary": args.summary}
     )  # before the calibration's replays
     log_scenario(log, args.dt, args.seed, args.set)  # the --set settings, checked as early
+    if "isam2" in (_estimator_list(args.estimators) or ()):  # the peer's inputs, as early
+        from quadobs.testbed.logs.peer import check_peer
+
+        check_peer(log.input_kind, log.dimension)
     biases, tuning = _replay_calibration(args, log, parse_tuning(args.tune))
     stop_if_interrupted()
     summary = run_replay(
