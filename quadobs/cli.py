@@ -704,6 +704,7 @@ def build_parser():
     p.set_defaults(func=_cmd_plot)
 
     _add_replay(sub)
+    _add_import_bag(sub)
     return parser
 
 
@@ -770,6 +771,19 @@ def _add_replay(sub) -> None:
         metavar="noise.FIELD=VALUE",
         help="sensor layer on the logged ranges, e.g. noise.dropout=0.3 (noise.* fields only; default: the log as it is)",
     )
+    p.add_argument(
+        "--burn-in",
+        type=float,
+        default=0.0,
+        metavar="SECONDS",
+        help="take the RMSE and the maximum error from this many seconds after the start (default 0)",
+    )
+    p.add_argument(
+        "--export-tum",
+        type=Path,
+        metavar="DIR",
+        help="write the truth and each estimator's positions as TUM files (truth.tum, NAME.tum) for evo_ape",
+    )
     p.set_defaults(func=_cmd_replay)
 
 
@@ -792,6 +806,7 @@ def _cmd_replay(args) -> int:
         {"--out": args.out, "--summary": args.summary}
     )  # before the calibration's replays
     log_scenario(log, args.dt, args.seed, args.set)  # the --set settings, checked as early
+    _check_field_options(args)
     if "isam2" in (_estimator_list(args.estimators) or ()):  # the peer's inputs, as early
         from quadobs.testbed.logs.peer import check_peer
 
@@ -811,6 +826,8 @@ def _cmd_replay(args) -> int:
         progress=not args.no_progress,
         settings=args.set,
         setup_options=tuning,
+        burn_in=args.burn_in,
+        export_tum=args.export_tum,
     )
     m = summary["measurements"]
     print(
@@ -823,6 +840,12 @@ def _cmd_replay(args) -> int:
         + ("  [INTERRUPTED]" if summary["interrupted"] else "")
     )
     for name, e in summary["estimators"].items():
+        if e.get("diverged"):
+            d = e["diverged"]
+            print(
+                f"  {name:10s} DIVERGED at t = {d['time']:.3f} s (step {d['step']}): {d['reason']}"
+            )
+            continue
         extra = (
             f"  batch LM rmse {_fmt(e['batch_rmse'], ' m')}"
             if e.get("batch_rmse") is not None
@@ -831,10 +854,79 @@ def _cmd_replay(args) -> int:
         print(
             f"  {name:10s} rmse {_fmt(e['rmse'], ' m')}  max {_fmt(e['max_error'], ' m')}  "
             f"final {_fmt(e['final_position_error'], ' m')}  {e['seconds_per_measurement'] * 1e6:.0f} us/range{extra}"
+            + _field_split(e)
         )
     if args.summary:
         print(f"summary: {args.summary}")
     return 130 if summary["interrupted"] else 0
+
+
+def _check_field_options(args) -> None:
+    """``--burn-in`` and ``--export-tum`` checked before the calibration's replays."""
+    import math
+
+    from quadobs.errors import QuadobsError
+    from quadobs.testbed.logs.figures import check_tum_folder
+
+    if not (math.isfinite(args.burn_in) and args.burn_in >= 0.0):
+        raise QuadobsError(
+            f"--burn-in: expected a non-negative number of seconds, got {args.burn_in}"
+        )
+    check_tum_folder(args.export_tum, (args.out, args.summary))
+
+
+def _field_split(e: dict) -> str:
+    """The horizontal and vertical RMSE of a 3-D replay, for its printed row."""
+    if e.get("rmse_vertical") is None:
+        return ""
+    return f"  (horizontal {_fmt(e['rmse_horizontal'], ' m')}, vertical {_fmt(e['rmse_vertical'], ' m')})"
+
+
+def _add_import_bag(sub) -> None:
+    """The ``import-bag`` subcommand (:mod:`quadobs.testbed.logs.rosbag`)."""
+    from pathlib import Path
+
+    p = sub.add_parser(
+        "import-bag",
+        help="import a ROS 1 or ROS 2 bag (IMU, pose truth, ranges, TDOA) as a log folder for 'quadobs replay'",
+    )
+    p.add_argument("bag", type=Path, help="a ROS 1 .bag file or a ROS 2 bag folder")
+    p.add_argument(
+        "--out", type=Path, required=True, help="the log folder to write (written whole)"
+    )
+    p.add_argument(
+        "--map", type=Path, help="TOML topic map: streams, their topics and fields, anchors"
+    )
+    p.add_argument(
+        "--topic",
+        action="append",
+        default=[],
+        metavar="STREAM=TOPIC",
+        help="a stream's topic (imu, truth, ranges, tdoa; repeatable; over the --map file's)",
+    )
+    p.add_argument("--anchors", type=Path, help="anchor positions: a CSV file id,x,y[,z]")
+    p.add_argument("--name", help="the log's name (default: the map's, else the bag's)")
+    p.set_defaults(func=_cmd_import_bag)
+
+
+def _cmd_import_bag(args) -> int:
+    """``quadobs import-bag BAG --out DIR``: a bag as a log folder."""
+    from quadobs.testbed.logs import write_log
+    from quadobs.testbed.logs.files import check_replaceable_folder
+    from quadobs.testbed.logs.format import LOG_FILES
+    from quadobs.testbed.logs.rosbag import TopicMap, import_bag, load_topic_map, with_options
+
+    check_replaceable_folder(args.out, set(LOG_FILES), "--out")
+    topic_map = load_topic_map(args.map) if args.map is not None else TopicMap()
+    topic_map = with_options(topic_map, args.topic, args.anchors, args.name)
+    log = import_bag(args.bag, topic_map)
+    write_log(log, args.out)
+    print(
+        f"log {log.name}: {log.ranges.shape[0]} ranges, {log.tdoa.shape[0]} TDOA, "
+        f"{log.inputs.shape[0]} IMU rows, {0 if log.truth is None else log.truth.shape[0]} truth rows "
+        f"written to {args.out} (replay with: quadobs replay {args.out})"
+    )
+    return 0
 
 
 def _replay_calibration(args, log, tuning: dict) -> tuple[list[float] | None, dict]:

@@ -42,8 +42,10 @@ __all__ = [
     "Input",
     "Measurement",
     "MeasurementModel",
+    "QuadraticForm",
     "RangeModel",
     "TdoaModel",
+    "range_model_of",
 ]
 
 #: The measurement kinds the project knows, each with its model class below.
@@ -174,10 +176,51 @@ class MeasurementModel(abc.ABC):
         """The states this model asks an estimator to carry (none by default)."""
         return []
 
-    def quadratic_form(self) -> object | None:
+    def bias_of(self, m: Measurement) -> float:
+        """The known bias of ``m`` that :meth:`unbiased` removes (0 unless ``bias="fixed"``)."""
+        return 0.0
+
+    def unbiased(self, m: Measurement) -> float:
+        """``m.value`` less its known bias (``bias="fixed"``), the value the estimators compare
+        with :meth:`h`."""
+        return float(m.value) - self.bias_of(m)
+
+    def quadratic_form(self) -> QuadraticForm | None:
         """The quadratic-output form of this kind for the immersion, or ``None`` where the kind
         has none (then the immersion-based observers refuse it by name)."""
         return None
+
+    def quadratic_output(self, m: Measurement) -> tuple[int, float, float]:
+        """``(h, y_h, var y_h)``: the output row ``m`` informs, its value in the quadratic-output
+        form and that value's variance (:meth:`quadratic_form`; refused where there is none)."""
+        raise QuadobsError(f"{self.kind} measurements have no quadratic-output form")
+
+    def check(self, m: Measurement) -> None:
+        """Refuse ``m`` when it is not of this kind or names anchors this model lacks."""
+        count = 1 if self.kind == "range" else 2
+        if m.kind != self.kind or len(m.anchors) != count:
+            raise QuadobsError(
+                f"{self.kind} model: a {m.kind} measurement with anchors {m.anchors} does not fit"
+            )
+        if any(not 0 <= i < self.anchors.shape[0] for i in m.anchors):
+            raise QuadobsError(
+                f"{m.kind} measurement at t = {m.t:.9g} s: anchor index {m.anchors} outside "
+                f"0..{self.anchors.shape[0] - 1}"
+            )
+
+
+@dataclass(frozen=True, eq=False)
+class QuadraticForm:
+    """Outputs ``y_h = x^T C_h x / 2 + d_h^T x`` on the position ``x (d,)``, one per anchor.
+
+    Attributes
+    ----------
+    C : ndarray (m, d, d)
+    d : ndarray (m, d)
+    """
+
+    C: np.ndarray
+    d: np.ndarray
 
 
 class RangeModel(MeasurementModel):
@@ -202,12 +245,37 @@ class RangeModel(MeasurementModel):
             return []
         return [ExtraState(f"bias[{i}]", 0.5) for i in range(self.anchors.shape[0])]
 
+    def bias_of(self, m: Measurement) -> float:
+        return float(self.fixed_bias[m.anchors[0]]) if self.bias == "fixed" else 0.0
+
+    def quadratic_form(self) -> QuadraticForm:
+        """``C_h = I``, ``d_h = -a_h``: ``y_h = |p - a_h|^2 / 2 - |a_h|^2 / 2`` [IFAC2021, eq. 44]."""
+        m, d = self.anchors.shape
+        return QuadraticForm(np.broadcast_to(np.eye(d), (m, d, d)).copy(), -self.anchors)
+
+    def quadratic_output(self, m: Measurement) -> tuple[int, float, float]:
+        """``(i, rho^2 / 2 - |a_i|^2 / 2, rho^2 sigma^2 + sigma^4 / 2)`` for a range ``rho`` to anchor ``i``.
+
+        The variance is the exact one of ``(r + e)^2 / 2`` for ``e ~ N(0, sigma^2)``, with the
+        measured ``rho`` for the unknown ``r``.
+        """
+        i = m.anchors[0]
+        rho, s2 = self.unbiased(m), self.sigma(m) ** 2
+        a = self.anchors[i]
+        return i, 0.5 * rho * rho - 0.5 * float(a @ a), rho * rho * s2 + 0.5 * s2 * s2
+
 
 class TdoaModel(MeasurementModel):
     """Time difference of arrival between anchors ``i`` and ``j``, as a distance:
     ``d_ij = |p - a_i| - |p - a_j| + noise``."""
 
     kind = "tdoa"
+
+    def bias_of(self, m: Measurement) -> float:
+        if self.bias != "fixed":
+            return 0.0
+        i, j = m.anchors
+        return float(self.fixed_bias[i] - self.fixed_bias[j])
 
     def h(self, p: np.ndarray, m: Measurement) -> float:
         i, j = m.anchors
@@ -220,3 +288,26 @@ class TdoaModel(MeasurementModel):
         gi = di / ri if ri > 0.0 else np.zeros_like(di)
         gj = dj / rj if rj > 0.0 else np.zeros_like(dj)
         return gi - gj
+
+
+def range_model_of(system, std: float = 1.0) -> RangeModel | None:
+    """The :class:`RangeModel` whose anchors are the range outputs of a quadratic-output system.
+
+    Output ``h`` is a range to anchor ``a_h`` when ``C_h = diag(I_d, 0)`` and
+    ``d_h = (-a_h, 0)`` (:func:`quadobs.core.system.vehicle_system`); the range outputs must be
+    the first rows, anchor ``h`` being output ``h``. ``None`` when the first output is not a range.
+    """
+    C, dvec, n = system.C, system.d, system.n
+    anchors = []
+    for dim in (3, 2):
+        if n < dim:
+            continue
+        block = np.zeros((n, n))
+        block[:dim, :dim] = np.eye(dim)
+        for h in range(C.shape[0]):
+            if not (np.array_equal(C[h], block) and not dvec[h, dim:].any()):
+                break
+            anchors.append(-dvec[h, :dim])
+        if anchors:
+            return RangeModel(np.array(anchors), std)
+    return None

@@ -26,14 +26,29 @@ and ``P`` in place.
 
 from __future__ import annotations
 
+import math
 import warnings
 
 import numpy as np
 
-from quadobs.core.held_input import HeldInputDiscretization, as_covariance
+from quadobs.core.held_input import (
+    HeldInputDiscretization,
+    as_covariance,
+    held_input_step,
+    van_loan,
+)
 from quadobs.core.immersion import Immersion
+from quadobs.core.measurements import Measurement
 from quadobs.errors import QuadobsError, as_array, as_finite_scalar
-from quadobs.estimators.base import BlockStep, Estimator, Gated, Immersed, check_step, step_operands
+from quadobs.estimators.base import (
+    BlockStep,
+    Estimator,
+    Gated,
+    Immersed,
+    check_step,
+    measurement_models,
+    step_operands,
+)
 
 __all__ = ["BACKENDS", "AugmentedObserver", "default_backend"]
 
@@ -233,11 +248,20 @@ class AugmentedObserver(Estimator, Gated, Immersed, BlockStep):
         sample_period: float | None = None,
         gate: float | None = None,
         backend: str = "auto",
+        measurements=None,
     ) -> None:
         if not isinstance(immersion, Immersion):
             raise QuadobsError(f"immersion: expected an Immersion, got {type(immersion).__name__}")
         self.immersion = immersion
         self.model = HeldInputDiscretization(immersion, dt, V, theta)
+        self.measurement_models = measurement_models(immersion.system, measurements)
+        for model in self.measurement_models.values():
+            if model.quadratic_form() is None:
+                raise QuadobsError(
+                    f"measurements: {model.kind} measurements have no quadratic-output form, "
+                    "which the augmented observer needs"
+                )
+        self._time = 0.0
         N, q, n = immersion.dim, immersion.system.q, immersion.system.n
         if sample_period is None:
             period = np.full(q, self.model.dt)
@@ -434,8 +458,9 @@ class AugmentedObserver(Estimator, Gated, Immersed, BlockStep):
         kernel = self._kernel
         if kernel is None:
             u, y = step_operands(u, y, *self._ushape, *self._yshape)
-            self.correct(y)
-            self.predict(u)
+            self.correct_outputs(y)
+            self.predict_step(u)
+            self._time += self.model.dt
             return
         try:  # float64 arrays of the right shapes go straight to the kernel, which checks the values
             fast = (
@@ -453,6 +478,7 @@ class AugmentedObserver(Estimator, Gated, Immersed, BlockStep):
             raise QuadobsError(
                 "u, y: refused by the compiled step"
             )  # pragma: no cover - check_step raised
+        self._time += self.model.dt
 
     def step_and_record(self, u: np.ndarray, y: np.ndarray, out: np.ndarray) -> None:
         """:meth:`step`, recording ``[x_hat, covariance_trace]`` before it and ``nis`` after it into ``out`` (one compiled call)."""
@@ -482,6 +508,7 @@ class AugmentedObserver(Estimator, Gated, Immersed, BlockStep):
             raise QuadobsError(
                 "u, y: refused by the compiled step"
             )  # pragma: no cover - check_step raised
+        self._time += self.model.dt
 
     @property
     def blockwise(self) -> bool:
@@ -509,6 +536,7 @@ class AugmentedObserver(Estimator, Gated, Immersed, BlockStep):
                 self.step_and_record(U[i], Y[i], out[i])
             return
         code = self._kblock(U, Y, *self._kops, out)
+        self._time += (m if code >= 0 else -1 - code) * self.model.dt
         if code < 0:  # row -1 - code was refused: the rows before it are done, nothing after
             j = -1 - code
             check_step(U[j], Y[j], *self._ushape, *self._yshape)  # raises, naming it
@@ -530,8 +558,27 @@ class AugmentedObserver(Estimator, Gated, Immersed, BlockStep):
 
     # -- the two halves ----------------------------------------------------------------
 
-    def correct(self, y: np.ndarray) -> None:
-        """Kalman correction with the outputs present in ``y`` (NaN marks a missing sample)."""
+    def correct(self, m) -> None:
+        """Correct with one :class:`~quadobs.core.measurements.Measurement` at the current time
+        (:meth:`Estimator.correct`); an array ``y (q,)`` is :meth:`correct_outputs` (the grid's half step)."""
+        if isinstance(m, Measurement):
+            Estimator.correct(self, m)
+        else:
+            self.correct_outputs(m)
+
+    def predict(self, t) -> None:
+        """Propagate to the time ``t`` (:meth:`Estimator.predict`, exact over any interval); an
+        array ``u (p,)`` is :meth:`predict_step` (the grid's half step)."""
+        if np.ndim(t) == 0:
+            Estimator.predict(self, t)
+        else:
+            self.predict_step(t)
+
+    def correct_outputs(self, y: np.ndarray) -> None:
+        """Kalman correction with the outputs present in ``y`` (NaN marks a missing sample).
+
+        The first half of :meth:`step`; leaves :attr:`time` as it is.
+        """
         y = self._checked("y", y, self._yshape)
         if self._kernel is not None:
             self._kcorrect(y, *self._kops)
@@ -562,8 +609,11 @@ class AugmentedObserver(Estimator, Gated, Immersed, BlockStep):
         stats[1] += 1
         stats[3] = np.trace(self._P)
 
-    def predict(self, u: np.ndarray) -> None:
-        """Exact propagation over one step with ``u`` held (``P`` with ``Q_d(u)`` and forgetting)."""
+    def predict_step(self, u: np.ndarray) -> None:
+        """Exact propagation over one step with ``u`` held (``P`` with ``Q_d(u)`` and forgetting).
+
+        The second half of :meth:`step`; leaves :attr:`time` as it is.
+        """
         u = self._checked("u", u, self._ushape)
         if self._kernel is not None:
             self._kpredict(u, *self._kops)
@@ -574,6 +624,74 @@ class AugmentedObserver(Estimator, Gated, Immersed, BlockStep):
         P = self._growth * (Phi @ self._P @ Phi.T) + m.process_noise(u)
         self._P[...] = 0.5 * (P + P.T)
         self._stats[3] = np.trace(self._P)
+
+    # -- the interface in time ------------------------------------------------------
+
+    def _input_dimension(self) -> int:
+        return self._ushape[0]
+
+    def _propagate(self, dt: float, u: np.ndarray) -> None:
+        """Exact propagation over ``dt`` with ``u`` held: the precomputed step when ``dt`` is the
+        observer's own (within ``1e-9`` relative), else from the matrix exponentials themselves.
+
+        Over any ``dt``, with ``A(u)`` and ``B`` of the augmented system ([IFAC2021, eq. 14]):
+
+        .. math::
+
+            \\exp\\left(\\begin{bmatrix} A(u) & B u \\\\ 0 & 0 \\end{bmatrix} dt\\right)
+            = \\begin{bmatrix} \\Phi & g \\\\ 0 & 1 \\end{bmatrix}, \\qquad
+            P^- = e^{\\theta dt} \\Phi P \\Phi^\\top + Q_d(u, dt)
+
+        with ``Q_d`` by Van Loan's exponential of ``A(u) + theta I / 2`` and ``V``
+        (:mod:`quadobs.core.held_input`): the same maths as the precomputed step.
+        """
+        m = self.model
+        if abs(dt - m.dt) <= 1e-9 * m.dt:
+            self.predict_step(u)
+            return
+        im = self.immersion
+        A = im.state_matrix(u)
+        Phi, g = held_input_step(A, (im.input_matrix @ u)[:, None], dt)
+        Q = van_loan(A + 0.5 * m.theta * self._eye, m.V, dt)[1]
+        z, P = self._z, self._P
+        z[...] = Phi @ z + g[:, 0]
+        P_new = math.exp(m.theta * dt) * (Phi @ P @ Phi.T) + Q
+        P[...] = 0.5 * (P_new + P_new.T)
+        self._stats[3] = np.trace(P)
+        if not (np.isfinite(z).all() and np.isfinite(P).all()):
+            raise QuadobsError(f"{self.name}: the estimate is no longer finite after dt = {dt:g} s")
+
+    def _correct_measurement(self, m: Measurement) -> None:
+        """One measurement through its model's quadratic-output form: output ``h``, value ``y_h``,
+        variance the measurement's own (``m.std``) or, when it has none, the observer's ``R_hh``
+        (then the very arithmetic of :meth:`correct_outputs` with only ``y_h`` present)."""
+        model = self._model_of(m)
+        h, yh, var = model.quadratic_output(m)
+        if math.isnan(m.std):
+            y = np.full(self._yshape, np.nan)
+            y[h] = yh
+            self.correct_outputs(y)
+            return
+        self._correct_scalar(h, yh, var)
+
+    def _correct_scalar(self, h: int, yh: float, r: float) -> None:
+        """Joseph-form correction with the single output ``y_h`` of variance ``r``."""
+        z, P, stats = self._z, self._P, self._stats
+        c = self._C[h]
+        Pc = P @ c
+        s = float(c @ Pc) + r
+        nu = yh - float(c @ z)
+        stats[0] = nu * nu / s
+        if self.gate is not None and stats[0] > self.gate:
+            stats[2] += 1
+            return
+        k = Pc / s
+        z += k * nu
+        IKC = self._eye - np.outer(k, c)
+        P_new = IKC @ P @ IKC.T + r * np.outer(k, k)
+        P[...] = 0.5 * (P_new + P_new.T)
+        stats[1] += 1
+        stats[3] = np.trace(P)
 
 
 #: The compiled :meth:`AugmentedObserver.step_and_record` that :meth:`~AugmentedObserver.step_block` reproduces.

@@ -231,8 +231,8 @@ class BatchAugmentedObserver:
         ref = self._ref
         for b in range(self.batch):
             ref._z, ref._P, ref._stats = self.Z[b], self.P[b], self._stats[b]
-            ref.correct(Y[b])
-            ref.predict(U[b])
+            ref.correct_outputs(Y[b])
+            ref.predict_step(U[b])
 
     def _step_threads(self, U: np.ndarray, Y: np.ndarray) -> None:
         """The compiled kernel on contiguous slices of the batch, one thread each, once every member is checked."""

@@ -35,14 +35,11 @@ from __future__ import annotations
 
 import abc
 import math
-from typing import TYPE_CHECKING
 
 import numpy as np
 
+from quadobs.core.measurements import Measurement
 from quadobs.errors import QuadobsError, as_array
-
-if TYPE_CHECKING:
-    from quadobs.core.measurements import Measurement
 
 __all__ = [
     "BlockStep",
@@ -55,6 +52,7 @@ __all__ = [
     "Switching",
     "check_step",
     "covariance_trace",
+    "measurement_models",
     "step_operands",
 ]
 
@@ -81,17 +79,101 @@ class Estimator(abc.ABC):
         and the input ``u (p,)`` held over it; afterwards :attr:`x_hat` estimates the state at
         the end of the step."""
 
+    # -- the interface in time ----------------------------------------------------------
+
+    @property
+    def time(self) -> float:
+        """The time (s) the estimate refers to: advanced by :meth:`predict`, by ``dt`` per
+        :meth:`step`; 0 at construction unless set."""
+        return self.__dict__.get("_time", 0.0)
+
+    @time.setter
+    def time(self, value: float) -> None:
+        t = float(value)
+        if not math.isfinite(t):
+            raise QuadobsError(f"time: expected a finite number of seconds, got {value!r}")
+        self._time = t
+
+    def hold(self, u) -> None:
+        """Hold the input ``u (p,)`` from the current time on, until the next call.
+
+        :meth:`predict` propagates with it (zero until a first call). :meth:`step` uses its own
+        ``u`` and leaves the held input as it is.
+        """
+        p = self._input_dimension()
+        self._held = as_array("u", u, (p,)).copy()
+
+    def held_input(self) -> np.ndarray:
+        """The input held now, ``(p,)`` (zeros before any :meth:`hold`)."""
+        held = self.__dict__.get("_held")
+        return np.zeros(self._input_dimension()) if held is None else held
+
     def predict(self, t: float) -> None:
-        """Propagate the estimate to time ``t`` (s) with the input held since the last call.
+        """Propagate the estimate from :attr:`time` to ``t`` (s) with the input held since the last
+        :meth:`hold`, exactly over any interval where the model allows it.
 
         With :meth:`correct`, the interface in time: measurements at their own times
-        (:class:`~quadobs.core.measurements.Measurement`), the predictor/updater split.
+        (:class:`~quadobs.core.measurements.Measurement`), the predictor/updater split of Stone
+        Soup and filterpy. ``t`` before :attr:`time` is refused; ``t`` equal to it changes nothing.
         """
-        raise QuadobsError(f"{self.name}: does not take measurements at their own times")
+        dt = self._interval(t)
+        if dt > 0.0:
+            self._propagate(dt, self.held_input())
+        self._time = float(t)
 
     def correct(self, m: Measurement) -> None:
-        """Correct the estimate with one measurement ``m`` taken at the current time."""
+        """Correct the estimate with one measurement ``m`` taken at the current time
+        (``m.t`` equal to :attr:`time` within a nanosecond)."""
+        self._check_measurement(m)
+        self._correct_measurement(m)
+
+    # hooks of the interface in time (estimators that take measurements at their own times)
+
+    def _input_dimension(self) -> int:
         raise QuadobsError(f"{self.name}: does not take measurements at their own times")
+
+    def _propagate(self, dt: float, u: np.ndarray) -> None:
+        """Propagate over ``dt > 0`` seconds with ``u`` held."""
+        raise QuadobsError(f"{self.name}: does not take measurements at their own times")
+
+    def _correct_measurement(self, m: Measurement) -> None:
+        raise QuadobsError(f"{self.name}: does not take measurements at their own times")
+
+    def _interval(self, t) -> float:
+        """``t - time``, checked: ``t`` a finite number not before :attr:`time`."""
+        try:
+            t = float(t)
+        except (TypeError, ValueError):
+            raise QuadobsError(f"predict: t must be a time in seconds, got {t!r}") from None
+        if not math.isfinite(t):
+            raise QuadobsError(f"predict: t must be finite, got {t}")
+        dt = t - self.time
+        if dt < 0.0:
+            raise QuadobsError(
+                f"{self.name}: predict to t = {t:.9g} s, before its current time {self.time:.9g} s"
+            )
+        return dt
+
+    def _model_of(self, m: Measurement):
+        """The measurement model of ``m``'s kind (``self.measurement_models``), ``m`` checked against it."""
+        model = self.__dict__.get("measurement_models", {}).get(m.kind)
+        if model is None:
+            raise QuadobsError(f"{self.name}: has no model of {m.kind} measurements")
+        model.check(m)
+        return model
+
+    def _check_measurement(self, m) -> None:
+        if not isinstance(m, Measurement):
+            raise QuadobsError(f"correct: expected a Measurement, got {type(m).__name__}")
+        if abs(m.t - self.time) > 1e-9 * max(1.0, abs(self.time)):
+            raise QuadobsError(
+                f"{self.name}: a {m.kind} measurement at t = {m.t:.9g} s, but the estimate is at "
+                f"{self.time:.9g} s (predict to its time first)"
+            )
+        if not math.isfinite(m.value):
+            raise QuadobsError(
+                f"{self.name}: a {m.kind} measurement at t = {m.t:.9g} s is not finite"
+            )
 
     @property
     @abc.abstractmethod
@@ -204,6 +286,44 @@ def step_operands(u, y, p: int, q: int) -> tuple[np.ndarray, np.ndarray]:
     except AttributeError:
         pass
     return check_step(u, y, p, q)
+
+
+def measurement_models(system, models=None, std: float = 1.0) -> dict:
+    """The measurement models of an estimator on ``system``, by kind.
+
+    ``models``: a :class:`~quadobs.core.measurements.MeasurementModel` or a list of them (one per
+    kind); by default the range model of the system's range outputs
+    (:func:`~quadobs.core.measurements.range_model_of`, standard deviation ``std``). A range
+    model must name the system's anchors, anchor ``h`` being output ``h``; models that ask for
+    extra states are refused (these estimators carry none).
+    """
+    from quadobs.core.measurements import MeasurementModel, range_model_of
+
+    if models is None:
+        default = range_model_of(system, std)
+        return {} if default is None else {"range": default}
+    models = [models] if isinstance(models, MeasurementModel) else list(models)
+    out = {}
+    for model in models:
+        if not isinstance(model, MeasurementModel):
+            raise QuadobsError(
+                f"measurement_models: expected MeasurementModel objects, got {type(model).__name__}"
+            )
+        if model.kind in out:
+            raise QuadobsError(f"measurement_models: two models of kind {model.kind!r}")
+        if model.extra_states():
+            raise QuadobsError(
+                f"measurement_models: the {model.kind} model asks for extra states "
+                f"(bias={model.bias!r}), which this estimator does not carry"
+            )
+        if model.kind == "range":
+            own = range_model_of(system)
+            if own is None or not np.allclose(own.anchors, model.anchors, rtol=0, atol=1e-9):
+                raise QuadobsError(
+                    "measurement_models: the range model's anchors differ from the system's range outputs"
+                )
+        out[model.kind] = model
+    return out
 
 
 def covariance_trace(est: Estimator) -> float:

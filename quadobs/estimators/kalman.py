@@ -65,14 +65,16 @@ Scenario defaults (the estimators ``"ekf"`` and ``"ukf"``): see
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from quadobs.core.held_input import as_covariance, held_input_step, van_loan
+from quadobs.core.measurements import Measurement, MeasurementModel
 from quadobs.core.system import QuadraticSystem
 from quadobs.errors import QuadobsError, as_array, as_finite_scalar
-from quadobs.estimators.base import Estimator, Gated, step_operands
+from quadobs.estimators.base import Estimator, Gated, measurement_models, step_operands
 
 __all__ = [
     "ExtendedKalmanFilter",
@@ -147,6 +149,17 @@ class HeldInputModel:
         for name, arr in (("V", V), ("input_covariance", Su), ("F", F), ("G", G), ("Q", Q)):
             arr.setflags(write=False)
             object.__setattr__(self, name, arr)
+
+    def over(self, dt: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(F, G, Q)`` of the same model over an interval of ``dt`` seconds (any ``dt > 0``),
+        by the same exponentials as the step's own: ``Q = Q_V(dt) + G Sigma_u G^T``, the
+        measured input's error held over the interval."""
+        dt = as_finite_scalar("dt", dt, positive=True)
+        sys_ = self.system
+        F, G = held_input_step(sys_.A, sys_.B, dt)
+        Q = van_loan(sys_.A, self.V, dt)[1] if self.V.any() else np.zeros_like(F)
+        Q = Q + G @ self.input_covariance @ G.T
+        return F, G, 0.5 * (Q + Q.T)
 
 
 @dataclass(frozen=True, eq=False)
@@ -250,7 +263,14 @@ class _GaussianFilter(Estimator, Gated):
     name = "gaussian"
 
     def __init__(
-        self, dynamics: HeldInputModel, outputs: OutputModel, *, x0, P0, gate: float | None = None
+        self,
+        dynamics: HeldInputModel,
+        outputs: OutputModel,
+        *,
+        x0,
+        P0,
+        gate: float | None = None,
+        measurements=None,
     ) -> None:
         if not isinstance(dynamics, HeldInputModel):
             raise QuadobsError(
@@ -275,6 +295,9 @@ class _GaussianFilter(Estimator, Gated):
         self._pending = 0
         self._powers: dict[int, tuple[np.ndarray, np.ndarray]] = {0: (np.eye(n), np.zeros((n, n)))}
         self._F, self._G = dynamics.F, dynamics.G
+        self.measurement_models = measurement_models(dynamics.system, measurements)
+        self._intervals: dict[float, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+        self._time = 0.0
 
     # -- estimator interface -----------------------------------------------------------
 
@@ -296,16 +319,39 @@ class _GaussianFilter(Estimator, Gated):
         and leaves the filter unchanged.
         """
         u, y = step_operands(u, y, self._G.shape[1], self.q)
-        self.correct(y)
-        self.predict(u)
+        self.correct_outputs(y)
+        self.predict_step(u)
+        self._time += self.dynamics.dt
 
-    def predict(self, u: np.ndarray) -> None:
-        """Exact mean prediction ``x = F x + G u``; the covariance follows lazily."""
+    def predict(self, t) -> None:
+        """Propagate to the time ``t`` (:meth:`Estimator.predict`, exact over any interval); an
+        array ``u (p,)`` is :meth:`predict_step` (the grid's half step)."""
+        if np.ndim(t) == 0:
+            Estimator.predict(self, t)
+        else:
+            self.predict_step(t)
+
+    def correct(self, m) -> None:
+        """Correct with one :class:`~quadobs.core.measurements.Measurement` at the current time
+        (:meth:`Estimator.correct`); an array ``y (q,)`` is :meth:`correct_outputs` (the grid's half step)."""
+        if isinstance(m, Measurement):
+            Estimator.correct(self, m)
+        else:
+            self.correct_outputs(m)
+
+    def predict_step(self, u: np.ndarray) -> None:
+        """Exact mean prediction over one step ``x = F x + G u``; the covariance follows lazily.
+
+        The second half of :meth:`step`; leaves :attr:`time` as it is.
+        """
         self._x = self._F @ self._x + self._G @ np.asarray(u, dtype=float)
         self._pending += 1
 
-    def correct(self, y: np.ndarray) -> None:
-        """Update with the outputs present in ``y`` (NaN marks a missing sample)."""
+    def correct_outputs(self, y: np.ndarray) -> None:
+        """Update with the outputs present in ``y`` (NaN marks a missing sample).
+
+        The first half of :meth:`step`; leaves :attr:`time` as it is.
+        """
         y = np.asarray(y, dtype=float)
         present = ~np.isnan(y)
         if not present.any():
@@ -316,6 +362,51 @@ class _GaussianFilter(Estimator, Gated):
         R = self.outputs.R if isinstance(idx, slice) else self.outputs.R[np.ix_(idx, idx)]
         z = self.outputs.measure(y[idx], idx)
         self._update(z, idx, R)
+
+    # -- the interface in time ---------------------------------------------------------
+
+    def _input_dimension(self) -> int:
+        return self._G.shape[1]
+
+    def _propagate(self, dt: float, u: np.ndarray) -> None:
+        """Exact prediction over ``dt`` with ``u`` held: the step's own map when ``dt`` is its step
+        (within ``1e-9`` relative), else :meth:`HeldInputModel.over` (cached by ``dt``)."""
+        if abs(dt - self.dynamics.dt) <= 1e-9 * self.dynamics.dt:
+            self.predict_step(u)
+            return
+        self._settle()
+        hit = self._intervals.get(dt)
+        if hit is None:
+            hit = self.dynamics.over(dt)
+            if len(self._intervals) < 256:
+                self._intervals[dt] = hit
+        F, G, Q = hit
+        self._x = F @ self._x + G @ u
+        P = F @ self._P @ F.T + Q
+        self._P = 0.5 * (P + P.T)
+
+    def _correct_measurement(self, m: Measurement) -> None:
+        """A range of the system's anchors goes through the filter's own output space (the
+        arithmetic of :meth:`correct_outputs` with that output alone; its variance ``m.std^2``, or
+        ``R_hh`` when ``m`` has none); any other kind through its model's ``h`` and Jacobian on the
+        position (:meth:`_update_model`), with variance ``model.sigma(m)^2``."""
+        model = self._model_of(m)
+        self._settle()
+        if model.kind != "range":
+            s = model.sigma(m)
+            self._update_model(m, model, np.array([[s * s]]))
+            return
+        h, yh, var = model.quadratic_output(m)
+        idx = np.array([h])
+        if math.isnan(m.std):
+            R = self.outputs.R[np.ix_(idx, idx)]
+        else:
+            R = np.array([[m.std**2 if self.outputs.space == "norm" else var]])
+        self._update(self.outputs.measure(np.array([yh]), idx), idx, R)
+
+    def _update_model(self, m: Measurement, model: MeasurementModel, R: np.ndarray) -> None:
+        """Update with one measurement through ``model.h`` on the position ``x[:d]``."""
+        raise NotImplementedError  # pragma: no cover - interface
 
     # -- internals ---------------------------------------------------------------------
 
@@ -378,10 +469,17 @@ class ExtendedKalmanFilter(_GaussianFilter):
     name = "ekf"
 
     def _update(self, z: np.ndarray, idx, R: np.ndarray) -> None:
+        z_pred, H = self.outputs.linearize(self._x)
+        self._joseph(z - z_pred[idx], H[idx], R)
+
+    def _update_model(self, m: Measurement, model: MeasurementModel, R: np.ndarray) -> None:
+        d = model.dimension
+        H = np.zeros((1, self.n))
+        H[0, :d] = model.jacobian(self._x[:d], m)
+        self._joseph(np.array([model.unbiased(m) - model.h(self._x[:d], m)]), H, R)
+
+    def _joseph(self, nu: np.ndarray, H: np.ndarray, R: np.ndarray) -> None:
         x, P = self._x, self._P
-        z_pred, H = self.outputs.linearize(x)
-        H = H[idx]
-        nu = z - z_pred[idx]
         PHt = P @ H.T
         S = H @ PHt + R
         ok, _ = self._accept(nu, S)
@@ -427,8 +525,9 @@ class UnscentedKalmanFilter(_GaussianFilter):
         alpha: float = 1.0,
         beta: float = 2.0,
         kappa: float = 0.0,
+        measurements=None,
     ) -> None:
-        super().__init__(dynamics, outputs, x0=x0, P0=P0, gate=gate)
+        super().__init__(dynamics, outputs, x0=x0, P0=P0, gate=gate, measurements=measurements)
         n = self.n
         self.alpha = as_finite_scalar("alpha", alpha, positive=True)
         self.beta = as_finite_scalar("beta", beta)
@@ -460,9 +559,17 @@ class UnscentedKalmanFilter(_GaussianFilter):
         return np.concatenate([x[None], x + D, x - D])
 
     def _update(self, z: np.ndarray, idx, R: np.ndarray) -> None:
+        X = self._sigma(self._x, self._P)
+        self._unscented(z, X, self.outputs.predict(X)[:, idx], R)
+
+    def _update_model(self, m: Measurement, model: MeasurementModel, R: np.ndarray) -> None:
+        X = self._sigma(self._x, self._P)
+        d = model.dimension
+        Z = np.array([[model.h(X[i, :d], m)] for i in range(X.shape[0])])
+        self._unscented(np.array([model.unbiased(m)]), X, Z, R)
+
+    def _unscented(self, z: np.ndarray, X: np.ndarray, Z: np.ndarray, R: np.ndarray) -> None:
         x, P = self._x, self._P
-        X = self._sigma(x, P)
-        Z = self.outputs.predict(X)[:, idx]
         z_pred = self._wm @ Z
         dZ = Z - z_pred
         dX = X - x

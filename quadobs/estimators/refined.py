@@ -314,6 +314,8 @@ class RefinedObserver(Estimator, Gated, Immersed, Switching):
         self.nis = float("nan")
         self.corrections = 0
         self.rejected = 0
+        self.measurement_models = observer.measurement_models
+        self._time = observer.time
 
     # -- estimator interface -----------------------------------------------------------
 
@@ -350,6 +352,90 @@ class RefinedObserver(Estimator, Gated, Immersed, Switching):
             self._ekf_step(u, y, has)
         self._d = self._F @ self._d + self._G @ u
         self._k += 1
+        self._time += self.dynamics.dt
+
+    # -- the interface in time ---------------------------------------------------------
+    #
+    # The observer and, once handed over, the EKF are advanced by their own predict(t) and
+    # correct(m). The handover's replay reprocesses the measurements on the grid of steps; in
+    # time the EKF starts instead at the observer's estimate and covariance, once the same
+    # window of NIS and the curvature index allow it (the module docstring's tests).
+
+    def _input_dimension(self) -> int:
+        return self.dynamics.system.p
+
+    def _propagate(self, dt: float, u: np.ndarray) -> None:
+        t = self._time + dt
+        for est in (self.observer, self._ekf):
+            if est is not None:
+                est.hold(u)
+                est.predict(t)
+
+    def _correct_measurement(self, m) -> None:
+        model = self._model_of(m)
+        self._updates += 1
+        obs = self.observer
+        if self._ekf is None:
+            before = (obs.corrections, obs.rejected)
+            xo, Po = obs.x_hat, np.array(obs.x_covariance)
+            nis = self._measurement_nis(model, m, xo, Po)
+            self._obs_window.push(nis, 1, self.gate is not None and nis > self.gate)
+            w = self._obs_window
+            if (
+                self._updates >= self._next_try
+                and w.full
+                and w.passes(self.policy.confidence)
+                and curvature_index(self.outputs, xo, Po) <= self.policy.curvature
+            ):
+                self._handover_in_time(xo, Po)
+            obs.correct(m)
+            if self._ekf is None:
+                self.nis = obs.nis
+                self.corrections += obs.corrections - before[0]
+                self.rejected += obs.rejected - before[1]
+                return
+        else:
+            obs.correct(m)
+        ekf = self._ekf
+        ekf.correct(m)
+        self.nis = ekf.nis
+        rejected = self._count(ekf.nis)
+        self._ekf_window.push(ekf.nis, 1, rejected)
+        w = self._ekf_window
+        if w.full and (w.rejected_fraction() > 0.5 or not w.passes(self.policy.guard)):
+            self._ekf = None
+            self._obs_window = _Window(self.policy.window)
+            self._next_try = self._updates + self.policy.window
+            self._switch("ekf", "augmented", "EKF rejected or inconsistent")
+
+    def _measurement_nis(self, model, m, x, P) -> float:
+        """NIS of one range under the true measurement model at ``(x, P)``."""
+        h, yh, var = model.quadratic_output(m)
+        idx = np.array([h])
+        z = self.outputs.measure(np.array([yh]), idx)
+        zp, H = self.outputs.linearize(x)
+        R = self.outputs.R[h, h] if np.isnan(m.std) else m.std**2
+        if self.outputs.offsets is None and not np.isnan(m.std):
+            R = var
+        nu = float(z[0] - zp[h])
+        S = float(H[h] @ P @ H[h]) + R
+        return nu * nu / S if S > 0 else float("inf")
+
+    def _handover_in_time(self, x: np.ndarray, P: np.ndarray) -> None:
+        self.attempts += 1
+        ekf = ExtendedKalmanFilter(
+            self.dynamics,
+            self.outputs,
+            x0=x,
+            P0=P,
+            gate=self.gate,
+            measurements=list(self.measurement_models.values()),
+        )
+        ekf.time = self._time
+        ekf.hold(self.observer.held_input())
+        self._ekf = ekf
+        self._ekf_window = _Window(self.policy.window)
+        self._switch("augmented", "ekf", "observer consistent (in time: at its estimate)")
 
     # -- the two modes -----------------------------------------------------------------
 
@@ -376,7 +462,7 @@ class RefinedObserver(Estimator, Gated, Immersed, Switching):
         self._ekf = handed
         self.nis = handed.nis
         self._count(handed.nis)
-        handed.predict(u)
+        handed.predict_step(u)
         self._switch("augmented", "ekf", "observer consistent: replay accepted")
 
     def _ekf_step(self, u, y, has) -> None:

@@ -48,8 +48,16 @@ import numpy as np
 
 from quadobs.core.held_input import HeldInputDiscretization
 from quadobs.core.immersion import Immersion
+from quadobs.core.measurements import Measurement
 from quadobs.errors import QuadobsError, as_array
-from quadobs.estimators.base import Counted, Estimator, Immersed, SetValued, check_step
+from quadobs.estimators.base import (
+    Counted,
+    Estimator,
+    Immersed,
+    SetValued,
+    check_step,
+    measurement_models,
+)
 from quadobs.sets.zonotope import Zonotope, reduce_generators, strip_update
 
 __all__ = ["ROUNDING_MARGIN", "ZonotopicAugmentedEstimator", "lift_box", "range_strip"]
@@ -190,6 +198,9 @@ class ZonotopicAugmentedEstimator(Estimator, SetValued, Immersed, Counted):
         self._Phi = self._F0.copy()
         self.zonotope = lift_box(immersion, x0, radius)
         self.corrections = 0
+        self.measurement_models = measurement_models(sys_, None)
+        self._intervals: dict[float, HeldInputDiscretization] = {}
+        self._time = 0.0
 
     # -- estimator interface -------------------------------------------------------
 
@@ -213,8 +224,9 @@ class ZonotopicAugmentedEstimator(Estimator, SetValued, Immersed, Counted):
         and leaves the set unchanged.
         """
         u, y = check_step(u, y, self._F1.shape[0], self.offsets.shape[0])  # before the set changes
-        self.correct(y)
-        self.predict(u)
+        self.correct_outputs(y)
+        self.predict_step(u)
+        self._time += self.model.dt
 
     def _input(self, u) -> np.ndarray:
         u = np.asarray(u, dtype=float)
@@ -224,7 +236,47 @@ class ZonotopicAugmentedEstimator(Estimator, SetValued, Immersed, Counted):
 
     # -- the two halves -------------------------------------------------------------
 
-    def correct(self, y) -> None:
+    def correct(self, m) -> None:
+        """Intersect with the strip of one :class:`~quadobs.core.measurements.Measurement` at the
+        current time (:meth:`Estimator.correct`; its error bound the output's ``output_bounds``);
+        an array ``y (q,)`` is :meth:`correct_outputs` (the grid's half step)."""
+        if isinstance(m, Measurement):
+            Estimator.correct(self, m)
+        else:
+            self.correct_outputs(m)
+
+    def predict(self, t) -> None:
+        """Propagate the set to the time ``t`` (:meth:`Estimator.predict`, exact over any interval:
+        the held-input discretisation over that interval, cached by its length); an array
+        ``u (p,)`` is :meth:`predict_step` (the grid's half step)."""
+        if np.ndim(t) == 0:
+            Estimator.predict(self, t)
+        else:
+            self.predict_step(t)
+
+    def _input_dimension(self) -> int:
+        return self._F1.shape[0]
+
+    def _propagate(self, dt: float, u: np.ndarray) -> None:
+        if abs(dt - self.model.dt) <= 1e-9 * self.model.dt:
+            self.predict_step(u)
+            return
+        model = self._intervals.get(dt)
+        if model is None:
+            model = HeldInputDiscretization(self.immersion, dt)
+            if len(self._intervals) < 64:
+                self._intervals[dt] = model
+        self.predict_step(u, model)
+
+    def _correct_measurement(self, m: Measurement) -> None:
+        model = self._model_of(m)
+        if model.kind != "range":
+            raise QuadobsError(f"{self.name}: takes ranges only, not {m.kind} measurements")
+        y = np.full(self.offsets.shape, np.nan)
+        y[m.anchors[0]] = model.unbiased(m) ** 2 / 2.0 - self.offsets[m.anchors[0]]
+        self.correct_outputs(y)
+
+    def correct_outputs(self, y) -> None:
         """One strip per sampled output (NaN: not sampled), segment-minimising gains."""
         y = np.asarray(y, dtype=float)
         if y.shape != self.offsets.shape or np.isinf(y).any():
@@ -242,25 +294,36 @@ class ZonotopicAugmentedEstimator(Estimator, SetValued, Immersed, Counted):
         H.setflags(write=False)
         self.zonotope = Zonotope._trusted(p, H)
 
-    def predict(self, u) -> None:
-        """Exact held-input step of the set, plus the input-error and rounding terms (module docstring)."""
+    def predict_step(self, u, model: HeldInputDiscretization | None = None) -> None:
+        """Exact held-input step of the set, plus the input-error and rounding terms (module docstring).
+
+        Over the estimator's own step, or over ``model.dt`` with ``model`` (the interface in time).
+        """
         u = self._input(u)
         k, N = self._k, self._N
         Z = self.zonotope
         pz, H = Z.center, Z.generators
-        Phi = self.model.transition(u, out=self._Phi)
-        center = Phi @ pz + self.model.input_term(u)
+        if model is None:
+            model = self.model
+            F1, G0, G2s, G2abs = self._F1, self._G0, self._G2s, self._G2abs
+            Phi = model.transition(u, out=self._Phi)
+        else:
+            F1, G0, G2 = model.transition_input, model.input_linear, model.input_quadratic
+            G2s = np.transpose(G2, (1, 0, 2)) + np.transpose(G2, (1, 2, 0))
+            G2abs = np.abs(G2).sum(axis=(0, 2))
+            Phi = model.transition(u)
+        center = Phi @ pz + model.input_term(u)
         gens = [Phi @ H]
         ubar = self.input_bound * (1.0 + ROUNDING_MARGIN) + ROUNDING_MARGIN * (1.0 + np.abs(u))
         box = np.zeros(N)
         if np.any(ubar > 0):
             px, Hx = pz[k:], H[k:]
             mid = np.zeros((N, u.shape[0]))
-            mid[:k] = np.einsum("jan,n->aj", self._F1, px) + np.einsum("apq,q->ap", self._G2s, u)
-            mid[k:] = self._G0
+            mid[:k] = np.einsum("jan,n->aj", F1, px) + np.einsum("apq,q->ap", G2s, u)
+            mid[k:] = G0
             gens.append(mid * ubar)
-            rad = np.abs(np.einsum("jan,nm->ajm", self._F1, Hx)).sum(axis=2)  # (k, p)
-            box[:k] += rad @ ubar + self._G2abs * float(np.max(ubar)) ** 2
+            rad = np.abs(np.einsum("jan,nm->ajm", F1, Hx)).sum(axis=2)  # (k, p)
+            box[:k] += rad @ ubar + G2abs * float(np.max(ubar)) ** 2
         extent = np.abs(center) + np.abs(H).sum(axis=1)
         box += ROUNDING_MARGIN * (1.0 + extent)
         if not (

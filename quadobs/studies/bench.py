@@ -73,6 +73,11 @@ Figures (keys of the JSON written by ``--json``):
     One :meth:`AugmentedObserver.step` on a system with a dense transition and ``N = 38``
     (the ``dense`` row of ``scaling``, :func:`_dense_system`; median over the repeats): the
     compiled kernel's dense path (:mod:`quadobs._kernels.observer`).
+``log_read``
+    Reading a log's ``ranges.csv`` of 300 000 rows (:func:`log_read_figure`): seconds of
+    the format's reader (``pyarrow.csv`` and the schema's checks) against a ``float()`` per
+    cell in Python (how the format was read before, and how it is still read to name a
+    faulty row), the median of the repeats, and ``log_read_speedup``, their ratio.
 """
 
 from __future__ import annotations
@@ -797,6 +802,8 @@ def _run_bench(steps, repeats, batch, batch_steps, threads, quick, log) -> dict:
     result["scaling"] = _scaling(max(min(calls, 2000), 50), quick, max(repeats // 2, 1))
     dense_row = next(row for row in result["scaling"] if row["system"] == "dense")
     result["observer_step_us_N38"] = dense_row[f"{default_backend()}_median_us"]
+    say("log reading: a 300k-row ranges.csv, pyarrow against a float() per cell")
+    result["log_read"] = log_read_figure(repeats=max(min(repeats, 5), 1))
     say("first run on a fresh kernel cache, with and without 'quadobs compile' before it")
     result["cold_start"] = _cold_start()
     notes.append(
@@ -817,6 +824,9 @@ def _run_bench(steps, repeats, batch, batch_steps, threads, quick, log) -> dict:
             result["cold_start"]["first_run_s"], 5.0, "<="
         ),
     }
+    result["targets"]["log_read_speedup >= 5"] = _meets(
+        result["log_read"]["log_read_speedup"], 5.0, ">="
+    )
     result["notes"] = notes
     return result
 
@@ -937,6 +947,12 @@ def print_bench(r: dict, file=None) -> None:
         p(
             f"  {row['system']:8s} {row['n']:>3d} {row['q']:>3d} {row['N']:>4d} {row.get(backend + '_us', float('nan')):>8.2f} {row['numpy_us']:>8.1f}"
         )
+    if "log_read" in r:
+        lr = r["log_read"]
+        p(
+            f"log reading ({lr['rows']:,} ranges): pyarrow {lr['arrow_s']:.3f} s, a float() per cell "
+            f"{lr['per_cell_s']:.3f} s; {lr['log_read_speedup']:.1f}x"
+        )
     p(
         "targets: "
         + ", ".join(
@@ -946,3 +962,40 @@ def print_bench(r: dict, file=None) -> None:
     )
     for note in r["notes"]:
         p(f"note: {note}")
+
+
+def log_read_figure(rows: int = 300_000, repeats: int = 3) -> dict:
+    """Seconds to read and check a ``ranges.csv`` of ``rows`` rows: the format's reader and a ``float()`` per cell.
+
+    The file holds times at 100 Hz, ids of 8 beacons and ranges written as the format
+    writes them (``repr``). Both readers are given the file's bytes and check every value
+    against the schema; the medians over ``repeats`` are reported.
+    """
+    from quadobs.testbed.logs import files
+    from quadobs.testbed.logs.schema import FILES, check_values
+
+    rng = np.random.default_rng(0)
+    t = np.arange(rows) * 0.01
+    text = "time,beacon,range\n" + "".join(
+        f"{float(a)!r},{int(b)},{float(c)!r}\n"
+        for a, b, c in zip(t, np.arange(rows) % 8, rng.uniform(0.5, 30.0, rows))
+    )
+    spec = FILES["ranges.csv"]
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "ranges.csv"
+        path.write_text(text)
+        raw = path.read_bytes()
+        header = ["time", "beacon", "range"]
+        arrow, per_cell = [], []
+        for _ in range(repeats):
+            t0 = time.perf_counter()
+            files.read_table(path, files.read_limited(path), spec, 2)
+            arrow.append(time.perf_counter() - t0)
+            t0 = time.perf_counter()
+            raw = files.read_limited(path)
+            starts = files._line_starts(path, raw)
+            values = files._python_values(path, raw, starts, header, tuple(header), spec)
+            check_values(str(path), spec, tuple(header), values)
+            per_cell.append(time.perf_counter() - t0)
+    a, b = _median(arrow), _median(per_cell)
+    return {"rows": rows, "arrow_s": a, "per_cell_s": b, "log_read_speedup": b / a}

@@ -1,40 +1,44 @@
-"""The open log format: a folder of CSV files holding a range-only log, planar or in space.
+"""The open log format, version 2: a folder of CSV files holding a log of ranges (or TDOA), planar or in space.
 
-===============  =================================  =====================================
-file             columns (header row)               meaning
-===============  =================================  =====================================
-``beacons.csv``  ``id,x,y[,z]``                     surveyed beacon positions (m); with
-                                                    ``z`` the log is in space (3-D)
-``ranges.csv``   ``time,beacon,range``              one range (m) to beacon ``beacon`` at
-                                                    ``time``
-``inputs.csv``   ``time,speed,yaw_rate``            wheel odometry (planar logs): forward
-                                                    speed (m/s), yaw rate (rad/s)
-                 or ``time,ax,ay[,az]``             accelerometer: the acceleration (m/s^2)
-                                                    in the navigation frame, gravity
-                                                    removed (``az`` in 3-D logs)
-``truth.csv``    ``time,x,y[,z][,heading]``         optional ground truth: position (m),
-                 ``[,vx,vy[,vz]]``                  heading (rad), velocity (m/s)
-``meta.csv``     ``key,value``                      ``name``; odometry logs: ``heading0``,
-                                                    the heading (rad) at the first input
-===============  =================================  =====================================
+=================  ==============================================  ==================================
+file               columns (header row; names in any order)        meaning
+=================  ==============================================  ==================================
+``meta.csv``       ``key,value``                                   ``version`` (2), ``name``, ...
+                                                                   (:data:`~quadobs.testbed.logs.schema.META_KEYS`)
+``beacons.csv``    ``id,x,y[,z]``                                  surveyed anchor positions (m);
+                                                                   with ``z`` the log is in space
+``ranges.csv``     ``time,beacon,range[,std]``                     one range (m) to anchor ``beacon``
+``tdoa.csv``       ``time,anchor_i,anchor_j,difference[,std]``     ``|p - a_i| - |p - a_j|`` (m)
+``inputs.csv``     ``time,speed,yaw_rate``                         planar wheel odometry (m/s, rad/s)
+                   or ``time,ax,ay[,az]``                          accelerometer, navigation frame,
+                                                                   gravity removed (m/s^2)
+``imu.csv``        ``time,ax,ay,az,gx,gy,gz``                      body IMU: specific force (m/s^2),
+                                                                   angular rate (rad/s)
+``attitude.csv``   ``time,qw,qx,qy,qz``                            body-to-navigation quaternion
+``truth.csv``      ``time,x,y[,z][,heading][,qw,qx,qy,qz]``        ground truth, for the errors only
+                   ``[,vx,vy[,vz]]``
+=================  ==============================================  ==================================
 
-Each input row is held from its time to the next row's. An accelerometer log assumes a
-vehicle whose attitude the accelerometer's axes already follow (a strapdown unit with its
-rotation and gravity removed, as the simulated point mass reads it): the replay's models
-take the acceleration as the known input of a double integrator.
+A log holds ``meta.csv``, ``beacons.csv`` and at least one of ``ranges.csv`` and
+``tdoa.csv``; at most one of ``inputs.csv`` and ``imu.csv`` (none: a log of measurements
+alone); ``attitude.csv`` and ``truth.csv`` are optional. Version 1 (no ``version`` key) is
+the earlier format: ``inputs.csv`` required, no ``std``, TDOA, IMU, attitude or truth
+attitude; it is still read. Each input row is held from its time to the next row's.
 
-Times are seconds on any common clock, each file sorted by time (ties allowed); the
-ranges arrive at their own irregular times. Every value must be finite; a beacon id in
-``ranges.csv`` must be listed in ``beacons.csv``. A malformed file raises
-:class:`~quadobs.errors.QuadobsError` with one line naming the file, the row (1-based,
-the header being row 1) and the column.
+Times are seconds on one clock common to the files, each file sorted by time (ties
+allowed). Every value must be finite (a ``std`` cell may be empty: the estimator's
+default), ids integers, ranges non-negative, quaternions of unit norm; every id in
+``ranges.csv`` or ``tdoa.csv`` must be listed in ``beacons.csv``. The checks and the
+limits a log file is held to are in :mod:`quadobs.testbed.logs.schema`; a malformed file
+raises :class:`~quadobs.errors.QuadobsError` with one line naming the file, the row
+(1-based, the header being row 1) and the column.
 """
 
 from __future__ import annotations
 
 import csv
+import dataclasses
 import io
-import itertools
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -42,40 +46,59 @@ from pathlib import Path
 import numpy as np
 
 from quadobs.errors import QuadobsError
+from quadobs.testbed.logs.schema import (
+    ACCEL_NAV,
+    ATTITUDE,
+    FILES,
+    IMU,
+    MAX_SPAN,
+    ODOMETRY,
+    QUATERNION,
+    RANGE,
+    STD,
+    TDOA,
+    check_values,
+    parse_meta,
+)
 
-__all__ = ["INPUT_KINDS", "LOG_FILES", "RangeLog", "read_log", "write_log"]
+__all__ = [
+    "EVENT_INPUT_KINDS",
+    "INPUT_KINDS",
+    "LOG_FILES",
+    "RangeLog",
+    "read_log",
+    "write_log",
+]
 
-#: The input columns (after ``time``) of each kind of input.
-INPUT_KINDS = {"odometry": ("speed", "yaw_rate"), "imu": ("ax", "ay", "az")}
-
-
-def _truth_headers() -> tuple[tuple[str, ...], ...]:
-    out = []
-    for dim, heading, velocity in itertools.product((2, 3), (False, True), (False, True)):
-        out.append(
-            ("time", *"xyz"[:dim])
-            + (("heading",) if heading else ())
-            + (("vx", "vy", "vz")[:dim] if velocity else ())
-        )
-    return tuple(out)
-
-
-#: The files of a log: their accepted headers, and how the headers are described in errors.
-LOG_FILES = {
-    "beacons.csv": ((("id", "x", "y"), ("id", "x", "y", "z")), "id,x,y[,z]"),
-    "ranges.csv": ((("time", "beacon", "range"),), "time,beacon,range"),
-    "inputs.csv": (
-        (("time", "speed", "yaw_rate"), ("time", "ax", "ay"), ("time", "ax", "ay", "az")),
-        "time,speed,yaw_rate (odometry) or time,ax,ay[,az] (accelerometer)",
-    ),
-    "truth.csv": (_truth_headers(), "time,x,y[,z][,heading][,vx,vy[,vz]]"),
+#: The input columns (after ``time``) of each kind of input: ``imu`` is an accelerometer in
+#: the navigation frame (``az`` in 3-D), ``imu_body`` a body-frame IMU, ``none`` no input.
+INPUT_KINDS = {
+    "odometry": ODOMETRY._fields[1:],
+    "imu": ACCEL_NAV._fields[1:],
+    "imu_body": IMU._fields[1:],
+    "none": (),
 }
-_OPTIONAL_FILES = ("truth.csv",)
+#: The kind of :class:`quadobs.core.measurements.Input` each log input kind is.
+EVENT_INPUT_KINDS = {
+    "odometry": "odometry",
+    "imu": "accel_nav",
+    "imu_body": "imu_body",
+    "none": "none",
+}
+#: The file each input kind is read from and written to.
+INPUT_FILES = {"odometry": "inputs.csv", "imu": "inputs.csv", "imu_body": "imu.csv"}
+
+#: The files of a log (every file a log folder may hold, ``meta.csv`` included).
+LOG_FILES = ("meta.csv", *FILES)
+
+
+def _empty(columns: int) -> np.ndarray:
+    return np.empty((0, columns))
 
 
 @dataclass(frozen=True, eq=False)
 class RangeLog:
-    """A range-only log (see the module docstring for the files).
+    """A log of ranges and/or TDOA (see the module docstring for the files).
 
     Attributes
     ----------
@@ -84,19 +107,36 @@ class RangeLog:
     beacons : ndarray (B, dim)
         Positions, in the order of ``beacon_ids`` (the order of the outputs); ``dim`` 2 or 3.
     ranges : ndarray (M, 3)
-        ``time, beacon id, range`` rows, sorted by time.
+        ``time, beacon id, range`` rows (columns :data:`~quadobs.testbed.logs.schema.RANGE`),
+        sorted by time; ``(0, 3)`` for a log of TDOA alone.
     inputs : ndarray (K, 1 + p)
-        ``time, speed, yaw_rate`` (odometry) or ``time, ax, ay[, az]`` (accelerometer) rows,
-        sorted by time; each held until the next.
+        ``time`` and the columns :data:`INPUT_KINDS` ``[input_kind]`` (``dim`` of them for
+        ``imu``), sorted by time, each held until the next; ``(0, 1)`` for ``none``.
     heading0 : float
-        Odometry: the heading at ``inputs[0, 0]`` (rad); NaN for an accelerometer log.
+        Odometry: the heading at ``inputs[0, 0]`` (rad); NaN otherwise.
     truth : ndarray (T, c) or None
         Rows of the columns :attr:`truth_columns`.
     source : str
         The folder it was read from (``""``: none).
-    input_kind : {"odometry", "imu"}
+    input_kind : {"odometry", "imu", "imu_body", "none"}
+        ``imu`` is an accelerometer in the navigation frame, gravity removed (version 1's).
     truth_columns : tuple of str
         Names of the truth's columns (default for a planar log: ``time, x, y[, heading]``).
+    version : {1, 2}
+        The format version it was read from (2 for a log built in memory).
+    range_std : ndarray (M,), optional
+        Standard deviation of each range (m); NaN: the estimator's default (all NaN when None).
+    tdoa : ndarray (N, 4), optional
+        ``time, anchor_i, anchor_j, difference`` rows (:data:`~quadobs.testbed.logs.schema.TDOA`).
+    tdoa_std : ndarray (N,), optional
+        As ``range_std``, for ``tdoa``.
+    attitude : ndarray (A, 5) or None
+        ``time, qw, qx, qy, qz``: the body-to-navigation rotation.
+    frame : {"enu", "ned"}
+        Navigation frame of a log in space (z up or down): the direction of gravity.
+    gravity : float
+        Magnitude of gravity (m/s^2).
+    description : str
     """
 
     name: str
@@ -109,44 +149,131 @@ class RangeLog:
     source: str = ""
     input_kind: str = "odometry"
     truth_columns: tuple = ()
+    version: int = 2
+    range_std: np.ndarray | None = None
+    tdoa: np.ndarray | None = None
+    tdoa_std: np.ndarray | None = None
+    attitude: np.ndarray | None = None
+    frame: str = "enu"
+    gravity: float = 9.80665
+    description: str = ""
 
     def __post_init__(self) -> None:
-        known = set(int(i) for i in self.beacon_ids)
-        if len(known) != len(self.beacon_ids):
-            raise QuadobsError(f"{self.name}: beacons.csv, column id: ids must be distinct")
-        for i, b in enumerate(self.ranges[:, 1]):
-            if int(b) not in known:
-                raise QuadobsError(
-                    f"{self.name}: ranges.csv, row {i + 2}, column beacon: unknown beacon id {int(b)}"
-                )
-        if self.inputs.shape[0] < 2:
-            raise QuadobsError(f"{self.name}: inputs.csv: at least two rows are needed")
+        fix = lambda key, value: object.__setattr__(self, key, value)  # noqa: E731
+        fix("ranges", np.asarray(self.ranges, dtype=float).reshape(-1, len(RANGE)))
+        fix("tdoa", _empty(len(TDOA)) if self.tdoa is None else np.asarray(self.tdoa, float))
+        for key, table in (("range_std", self.ranges), ("tdoa_std", self.tdoa)):
+            std = getattr(self, key)
+            fix(key, np.full(table.shape[0], np.nan) if std is None else np.asarray(std, float))
+            if getattr(self, key).shape != (table.shape[0],):
+                raise QuadobsError(f"{self.name}: {key}: one value per row expected")
         if self.truth is not None and not self.truth_columns:
-            object.__setattr__(
-                self, "truth_columns", ("time", "x", "y", "heading")[: self.truth.shape[1]]
-            )
-        self._check_dimensions()
+            fix("truth_columns", ("time", "x", "y", "heading")[: self.truth.shape[1]])
+        self._check_ids()
+        self._check_inputs()
+        self._check_truth()
+        self._check_values()
 
-    def _check_dimensions(self) -> None:
-        """Inputs and truth in the beacons' dimension; odometry in the plane only."""
-        dim = self.dimension
-        if self.input_kind not in INPUT_KINDS:
+    def _check_ids(self) -> None:
+        ids = np.asarray(self.beacon_ids)
+        if len(set(int(i) for i in ids)) != len(ids):
+            raise QuadobsError(f"{self.name}: beacons.csv, column id: ids must be distinct")
+        for fname, table, cols in (
+            ("ranges.csv", self.ranges, (RANGE.beacon,)),
+            ("tdoa.csv", self.tdoa, (TDOA.anchor_i, TDOA.anchor_j)),
+        ):
+            for c in cols:
+                bad = np.flatnonzero(~np.isin(table[:, c], ids))
+                if bad.size:
+                    name = (RANGE._fields if fname == "ranges.csv" else TDOA._fields)[c]
+                    raise QuadobsError(
+                        f"{self.name}: {fname}, row {int(bad[0]) + 2}, column {name}: unknown beacon id {table[bad[0], c]:g}"
+                    )
+        same = np.flatnonzero(self.tdoa[:, TDOA.anchor_i] == self.tdoa[:, TDOA.anchor_j])
+        if same.size:
             raise QuadobsError(
-                f"{self.name}: input kind: expected one of {', '.join(INPUT_KINDS)}, got {self.input_kind!r}"
+                f"{self.name}: tdoa.csv, row {int(same[0]) + 2}, column anchor_j: the same anchor as anchor_i"
             )
-        if self.input_kind == "odometry" and (dim != 2 or self.inputs.shape[1] != 3):
+
+    def _check_inputs(self) -> None:
+        """Inputs in the beacons' dimension; odometry in the plane only, a body IMU in space only."""
+        dim, kind = self.dimension, self.input_kind
+        fname = INPUT_FILES.get(kind, "inputs.csv")
+        if kind not in INPUT_KINDS:
+            raise QuadobsError(
+                f"{self.name}: input kind: expected one of {', '.join(INPUT_KINDS)}, got {kind!r}"
+            )
+        if kind == "none":
+            if self.inputs.shape[0]:
+                raise QuadobsError(f"{self.name}: input kind none: the log holds inputs")
+            return
+        if self.inputs.shape[0] < 2:
+            raise QuadobsError(f"{self.name}: {fname}: at least two rows are needed")
+        if kind == "odometry" and (dim != 2 or self.inputs.shape[1] != len(ODOMETRY)):
             raise QuadobsError(
                 f"{self.name}: inputs.csv, row 1: odometry (speed, yaw_rate) needs a planar log (beacons.csv without z)"
             )
-        if self.input_kind == "imu" and self.inputs.shape[1] != 1 + dim:
+        if kind == "imu" and self.inputs.shape[1] != 1 + dim:
             raise QuadobsError(
                 f"{self.name}: inputs.csv, row 1: {self.inputs.shape[1] - 1} acceleration columns for "
                 f"{dim}-D beacons (beacons.csv {'with' if dim == 3 else 'without'} z)"
             )
-        if self.truth is not None and ("z" in self.truth_columns) != (dim == 3):
+        if kind == "imu_body" and (dim != 3 or self.inputs.shape[1] != len(IMU)):
+            raise QuadobsError(
+                f"{self.name}: imu.csv, row 1: a body IMU needs a log in space (beacons.csv with z)"
+            )
+
+    def _check_truth(self) -> None:
+        """The truth's columns: z as the beacons, a whole quaternion, a velocity of the dimension."""
+        if self.truth is None:
+            return
+        dim, cols = self.dimension, set(self.truth_columns)
+        if ("z" in cols) != (dim == 3):
             raise QuadobsError(
                 f"{self.name}: truth.csv, row 1: column z {'missing' if dim == 3 else 'given'} for {dim}-D beacons"
             )
+        if cols & set(QUATERNION) and not set(QUATERNION) <= cols:
+            raise QuadobsError(
+                f"{self.name}: truth.csv, row 1: the attitude needs all of qw,qx,qy,qz"
+            )
+        velocity = {"vx", "vy", "vz"} & cols
+        if velocity and velocity != set(("vx", "vy", "vz")[:dim]):
+            raise QuadobsError(
+                f"{self.name}: truth.csv, row 1: the velocity needs {','.join(('vx', 'vy', 'vz')[:dim])} in {dim}-D"
+            )
+
+    def _check_values(self) -> None:
+        """Every table held to the schema; the span, the frame and gravity."""
+        tables = [
+            (
+                "beacons.csv",
+                ("id", *"xyz"[: self.dimension]),
+                np.column_stack([self.beacon_ids, self.beacons]),
+            ),
+            ("ranges.csv", (*RANGE._fields, STD), np.column_stack([self.ranges, self.range_std])),
+            ("tdoa.csv", (*TDOA._fields, STD), np.column_stack([self.tdoa, self.tdoa_std])),
+        ]
+        if self.input_kind != "none":
+            cols = ("time", *INPUT_KINDS[self.input_kind][: self.inputs.shape[1] - 1])
+            tables.append((INPUT_FILES[self.input_kind], cols, self.inputs))
+        if self.attitude is not None:
+            tables.append(("attitude.csv", ATTITUDE._fields, self.attitude))
+        if self.truth is not None:
+            tables.append(("truth.csv", tuple(self.truth_columns), self.truth))
+        for fname, columns, values in tables:
+            if values.shape[0]:
+                check_values(f"{self.name}: {fname}", FILES[fname], columns, values)
+        times = [v[[0, -1], 0] for f, c, v in tables if f != "beacons.csv" and v.shape[0]]
+        if times and (span := float(np.ptp(np.concatenate(times)))) > MAX_SPAN:
+            raise QuadobsError(f"{self.name}: the log spans {span:.3g} s, more than {MAX_SPAN:g} s")
+        if self.frame not in ("enu", "ned") or not (
+            math.isfinite(self.gravity) and self.gravity > 0
+        ):
+            raise QuadobsError(
+                f"{self.name}: meta.csv: frame enu or ned and a positive gravity expected"
+            )
+        if self.version not in (1, 2):
+            raise QuadobsError(f"{self.name}: meta.csv, key version: expected 1 or 2")
 
     @property
     def dimension(self) -> int:
@@ -155,229 +282,282 @@ class RangeLog:
 
     @property
     def start(self) -> float:
-        """First input time (s): the replay's time origin."""
-        return float(self.inputs[0, 0])
+        """The replay's time origin (s): the first input time; without inputs, the first measurement's."""
+        if self.input_kind != "none":
+            return float(self.inputs[0, 0])
+        return float(min(t[0, 0] for t in (self.ranges, self.tdoa) if t.shape[0]))
 
     @property
     def end(self) -> float:
-        """Last input time (s)."""
-        return float(self.inputs[-1, 0])
+        """The last input time (s); without inputs, the last measurement's."""
+        if self.input_kind != "none":
+            return float(self.inputs[-1, 0])
+        return float(max(t[-1, 0] for t in (self.ranges, self.tdoa) if t.shape[0]))
+
+    @property
+    def gravity_vector(self) -> np.ndarray:
+        """Gravity in the navigation frame ``(3,)`` (m/s^2): ``-g e_z`` (enu) or ``+g e_z`` (ned)."""
+        return np.array([0.0, 0.0, -self.gravity if self.frame == "enu" else self.gravity])
 
     def truth_part(self, what: str) -> np.ndarray | None:
-        """The truth's ``"position"`` or ``"velocity"`` columns ``(T, dim)``, or None (no truth, or no such columns)."""
-        names = {"position": ("x", "y", "z"), "velocity": ("vx", "vy", "vz")}[what][
-            : self.dimension
-        ]
+        """The truth's ``"position"``, ``"velocity"`` or ``"attitude"`` columns, or None (no truth, or no such columns)."""
+        names = {
+            "position": ("x", "y", "z")[: self.dimension],
+            "velocity": ("vx", "vy", "vz")[: self.dimension],
+            "attitude": QUATERNION,
+        }[what]
         if self.truth is None or not set(names) <= set(self.truth_columns):
             return None
         return self.truth[:, [self.truth_columns.index(c) for c in names]]
 
     def beacon_index(self, ids: np.ndarray) -> np.ndarray:
         """Output indices (positions in :attr:`beacon_ids`) of beacon ids."""
-        lookup = {int(b): h for h, b in enumerate(self.beacon_ids)}
-        return np.array([lookup[int(b)] for b in ids], dtype=np.int64)
+        ids = np.asarray(ids).astype(np.int64)
+        order = np.argsort(self.beacon_ids, kind="stable")
+        return order[np.searchsorted(np.asarray(self.beacon_ids)[order], ids)].astype(np.int64)
+
+    def measurements(self) -> list:
+        """Every range and TDOA as a :class:`~quadobs.core.measurements.Measurement`, in time order.
+
+        Anchors are indices into :attr:`beacons`; at equal times, ranges come first, each
+        kind in file order.
+        """
+        from quadobs.core.measurements import Measurement
+
+        r_anchor = self.beacon_index(self.ranges[:, RANGE.beacon])
+        t_i = self.beacon_index(self.tdoa[:, TDOA.anchor_i])
+        t_j = self.beacon_index(self.tdoa[:, TDOA.anchor_j])
+        events = [
+            Measurement(
+                float(row[RANGE.time]), "range", float(row[RANGE.range]), (int(a),), float(s)
+            )
+            for row, a, s in zip(self.ranges, r_anchor, self.range_std)
+        ] + [
+            Measurement(
+                float(row[TDOA.time]),
+                "tdoa",
+                float(row[TDOA.difference]),
+                (int(i), int(j)),
+                float(s),
+            )
+            for row, i, j, s in zip(self.tdoa, t_i, t_j, self.tdoa_std)
+        ]
+        return sorted(events, key=lambda m: m.t)
 
     def excerpt(self, t0: float, t1: float) -> RangeLog:
         """The part of the log with ``t0 <= time - start < t1`` (s from :attr:`start`); the odometry's heading carried over.
 
-        The truth keeps one sample either side of the span (so that it covers the excerpt).
+        The truth and the attitude keep one sample either side of the span (so that they
+        cover the excerpt); the inputs, the one held at ``start + t0``.
         """
         a, b = self.start + t0, self.start + t1
-        inp = self.inputs
-        k = max(int(np.searchsorted(inp[:, 0], a, side="right") - 1), 0)
-        heading = self.heading0
-        if self.input_kind == "odometry":
-            heading = self.heading0 + float(np.sum(np.diff(inp[: k + 1, 0]) * inp[:k, 2]))
-        keep = lambda arr: arr[(arr[:, 0] >= a) & (arr[:, 0] < b)]  # noqa: E731
-        new_inp = inp[k:][inp[k:, 0] < b].copy()
-        new_inp[0, 0] = max(new_inp[0, 0], a)
-        truth = None
-        if (
-            self.truth is not None
-        ):  # with the samples either side, so that the truth covers the excerpt
-            i0 = max(int(np.searchsorted(self.truth[:, 0], a, side="right")) - 1, 0)
-            i1 = int(np.searchsorted(self.truth[:, 0], b, side="left")) + 1
-            truth = self.truth[i0:i1].copy()
-        return RangeLog(
-            f"{self.name}[{t0:g}:{t1:g}]",
-            self.beacon_ids,
-            self.beacons,
-            keep(self.ranges),
-            new_inp,
-            heading,
-            truth,
-            self.source,
-            self.input_kind,
-            self.truth_columns,
+        inp, heading = self.inputs, self.heading0
+        if self.input_kind != "none":
+            k = max(int(np.searchsorted(inp[:, 0], a, side="right") - 1), 0)
+            if self.input_kind == "odometry":
+                heading = self.heading0 + float(np.sum(np.diff(inp[: k + 1, 0]) * inp[:k, 2]))
+            inp = inp[k:][inp[k:, 0] < b].copy()
+            inp[0, 0] = max(inp[0, 0], a)
+        r = (self.ranges[:, 0] >= a) & (self.ranges[:, 0] < b)
+        d = (self.tdoa[:, 0] >= a) & (self.tdoa[:, 0] < b)
+
+        def around(table):
+            if table is None:
+                return None
+            i0 = max(int(np.searchsorted(table[:, 0], a, side="right")) - 1, 0)
+            i1 = int(np.searchsorted(table[:, 0], b, side="left")) + 1
+            return table[i0:i1].copy()
+
+        return dataclasses.replace(
+            self,
+            name=f"{self.name}[{t0:g}:{t1:g}]",
+            ranges=self.ranges[r],
+            range_std=self.range_std[r],
+            tdoa=self.tdoa[d],
+            tdoa_std=self.tdoa_std[d],
+            inputs=inp,
+            heading0=heading,
+            truth=around(self.truth),
+            attitude=around(self.attitude),
         )
 
 
-def _read_rows(path: Path, headers: tuple, described: str) -> tuple[list[str], list[list[str]]]:
-    """The header (one of ``headers``) and the data rows of a CSV file."""
-    try:
-        with path.open(newline="") as fh:
-            rows = list(csv.reader(fh))
-    except OSError as exc:
-        raise QuadobsError(f"{path}: cannot be read ({exc.strerror or exc})") from None
-    except (UnicodeDecodeError, csv.Error) as exc:
-        raise QuadobsError(f"{path}: not a CSV text file ({exc})") from None
-    if not rows:
-        raise QuadobsError(f"{path}, row 1: empty file; expected the header {described}")
-    header = [h.strip() for h in rows[0]]
-    if tuple(header) not in headers:
-        raise QuadobsError(f"{path}, row 1: header {','.join(header)!r}; expected {described}")
-    return header, rows[1:]
+def _read_meta(folder: Path) -> dict:
+    from quadobs.testbed.logs.files import read_limited, text_rows
 
-
-def _read_csv(folder: Path, fname: str) -> tuple[list[str], np.ndarray]:
-    """The header and the values of one file, each checked: one-line errors naming file, row and column."""
-    path = folder / fname
-    header, rows = _read_rows(path, *LOG_FILES[fname])
-    values = np.empty((len(rows), len(header)))
-    for r, row in enumerate(rows, start=2):
-        if len(row) != len(header):
-            raise QuadobsError(
-                f"{path}, row {r}: {len(row)} columns, expected {len(header)} ({','.join(header)})"
-            )
-        for c, cell in enumerate(row):
-            try:
-                v = float(cell)
-            except ValueError:
-                v = math.nan
-            if not math.isfinite(v):
-                raise QuadobsError(
-                    f"{path}, row {r}, column {header[c]}: {cell.strip()!r} is not a finite number"
-                )
-            values[r - 2, c] = v
-    if values.shape[0] == 0:
-        raise QuadobsError(f"{path}, row 2: no data rows")
-    if header[0] == "time":
-        bad = np.flatnonzero(np.diff(values[:, 0]) < 0)
-        if bad.size:
-            raise QuadobsError(
-                f"{path}, row {int(bad[0]) + 3}, column time: earlier than the row before (rows must be sorted by time)"
-            )
-    return header, values
-
-
-def _read_meta(folder: Path) -> dict[str, str]:
     path = folder / "meta.csv"
-    if not path.exists():
-        raise QuadobsError(f"{path}: missing (key,value rows: name; heading0 for an odometry log)")
-    with path.open(newline="") as fh:
-        rows = list(csv.reader(fh))
+    raw = read_limited(path)
+    if raw is None:
+        raise QuadobsError(f"{path}: missing (key,value rows: version, name, ...)")
+    rows = text_rows(path, raw)
     if not rows or [h.strip() for h in rows[0]] != ["key", "value"]:
         raise QuadobsError(f"{path}, row 1: expected the header key,value")
-    meta = {}
-    for r, row in enumerate(rows[1:], start=2):
-        if len(row) != 2:
-            raise QuadobsError(f"{path}, row {r}: {len(row)} columns, expected 2 (key,value)")
-        meta[row[0].strip()] = row[1].strip()
-    return meta
+    return parse_meta(str(path), rows[1:])
 
 
-def _heading0(folder: Path, meta: dict, kind: str) -> float:
-    """``heading0`` of an odometry log (required); NaN for an accelerometer log."""
-    if kind != "odometry":
-        return math.nan
-    try:
-        heading0 = float(meta.get("heading0", "nan"))
-    except ValueError:
-        heading0 = math.nan
-    if not math.isfinite(heading0):
+def _read_tables(folder: Path, version: int) -> dict:
+    """Every file of the folder present (:data:`~quadobs.testbed.logs.schema.FILES`), as ``(columns, values)``."""
+    from quadobs.testbed.logs.files import read_limited, read_table
+
+    tables = {}
+    for fname, spec in FILES.items():
+        raw = read_limited(folder / fname)
+        if raw is None:
+            required = spec.required or (fname == "inputs.csv" and version == 1)
+            if required:
+                raise QuadobsError(f"{folder / fname}: missing ({spec.described})")
+            continue
+        if spec.since > version:
+            raise QuadobsError(
+                f"{folder / fname}: a version-2 file; add the row version,2 to meta.csv"
+            )
+        tables[fname] = read_table(folder / fname, raw, spec, version)
+    if "ranges.csv" not in tables and "tdoa.csv" not in tables:
         raise QuadobsError(
-            f"{folder / 'meta.csv'}, key heading0: missing or not a finite number (rad)"
+            f"{folder / 'ranges.csv'}: missing (a log holds ranges.csv, tdoa.csv or both)"
         )
-    return heading0
+    if "inputs.csv" in tables and "imu.csv" in tables:
+        raise QuadobsError(f"{folder / 'imu.csv'}: a log holds inputs.csv or imu.csv, not both")
+    return tables
+
+
+def _measurements(
+    tables: dict, fname: str, width: int
+) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """The rows (without ``std``) and the standard deviations of ``ranges.csv`` or ``tdoa.csv``."""
+    if fname not in tables:
+        return _empty(width), None
+    columns, values = tables[fname]
+    std = values[:, columns.index(STD)] if STD in columns else None
+    return values[:, :width], std
 
 
 def read_log(folder: str | Path) -> RangeLog:
-    """Read a log folder (see the module docstring).
+    """Read a log folder of version 1 or 2 (see the module docstring).
 
     Raises
     ------
     QuadobsError
-        A missing folder or file, or a malformed value: one line naming the file, the row
-        and the column.
+        A missing folder or file, a file that is not a regular file or too large, or a
+        malformed value: one line naming the file, the row and the column.
     """
     folder = Path(folder)
     if not folder.is_dir():
         raise QuadobsError(
-            f"{folder}: not a log folder (expected beacons.csv, ranges.csv, inputs.csv, meta.csv)"
+            f"{folder}: not a log folder (expected meta.csv, beacons.csv, ranges.csv, ...)"
         )
-    tables = {}
-    for fname in LOG_FILES:
-        if fname in _OPTIONAL_FILES and not (folder / fname).exists():
-            continue
-        tables[fname] = _read_csv(folder, fname)
-    ids = tables["beacons.csv"][1][:, 0]
-    for r, i in enumerate(ids):
-        if i != int(i):
-            raise QuadobsError(
-                f"{folder / 'beacons.csv'}, row {r + 2}, column id: {i!r} is not an integer"
-            )
     meta = _read_meta(folder)
-    kind = "odometry" if tables["inputs.csv"][0][1] == "speed" else "imu"
-    truth_header, truth = tables.get("truth.csv", ((), None))
-    name = meta.get("name", folder.name)
+    tables = _read_tables(folder, meta["version"])
+    ids = tables["beacons.csv"][1][:, 0]
+    if "imu.csv" in tables:
+        kind = "imu_body"
+    elif "inputs.csv" in tables:
+        kind = "odometry" if tables["inputs.csv"][0][1] == "speed" else "imu"
+    else:
+        kind = "none"
+    if not math.isnan(meta["heading0"]) and kind != "odometry":
+        raise QuadobsError(f"{folder / 'meta.csv'}, key heading0: only for an odometry log")
+    if kind == "odometry" and math.isnan(meta["heading0"]):
+        raise QuadobsError(
+            f"{folder / 'meta.csv'}, key heading0: missing or not a finite number (rad)"
+        )
+    ranges, range_std = _measurements(tables, "ranges.csv", len(RANGE))
+    tdoa, tdoa_std = _measurements(tables, "tdoa.csv", len(TDOA))
+    truth_columns, truth = tables.get("truth.csv", ((), None))
+    name = meta["name"] or folder.name
     try:
         return RangeLog(
             name,
             ids.astype(np.int64),
             tables["beacons.csv"][1][:, 1:],
-            tables["ranges.csv"][1],
-            tables["inputs.csv"][1],
-            _heading0(folder, meta, kind),
+            ranges,
+            tables[INPUT_FILES[kind]][1] if kind != "none" else _empty(1),
+            meta["heading0"] if kind == "odometry" else math.nan,
             truth,
             str(folder),
             kind,
-            tuple(truth_header),
+            tuple(truth_columns),
+            version=meta["version"],
+            range_std=range_std,
+            tdoa=tdoa,
+            tdoa_std=tdoa_std,
+            attitude=tables.get("attitude.csv", (None, None))[1],
+            frame=meta["frame"],
+            gravity=meta["gravity"],
+            description=meta["description"],
         )
     except QuadobsError as exc:  # name the folder's file, not the log's name
         raise QuadobsError(str(exc).replace(f"{name}: ", f"{folder}/", 1)) from None
 
 
-def _write_csv(path: Path, header: list[str], values, ints: tuple[int, ...] = ()) -> None:
-    """``values`` under ``header``, written to a staging file renamed onto ``path`` once complete."""
-    from quadobs.testbed.outputs import write_text_staged
-
+def _csv_text(header: list[str], values, ints: tuple[int, ...] = ()) -> str:
+    """``values`` under ``header`` as CSV text; floats as ``repr`` (read back exactly), NaN as an empty cell."""
     text = io.StringIO(newline="")
     w = csv.writer(text)
     w.writerow(header)
     for row in values:
         w.writerow(
             [
-                v if isinstance(v, str) else str(int(v)) if c in ints else repr(float(v))
+                v
+                if isinstance(v, str)
+                else str(int(v))
+                if c in ints
+                else ""
+                if math.isnan(v)
+                else repr(float(v))
                 for c, v in enumerate(row)
             ]
         )
-    write_text_staged(path, text.getvalue(), "log file")
+    return text.getvalue()
+
+
+def _log_texts(log: RangeLog) -> dict[str, str]:
+    """Every file of ``log`` in format version 2, as text."""
+    dim = log.dimension
+    texts = {
+        "beacons.csv": _csv_text(
+            ["id", *"xyz"[:dim]], np.column_stack([log.beacon_ids, log.beacons]), ints=(0,)
+        )
+    }
+    for fname, cols, values, std, ints in (
+        ("ranges.csv", RANGE._fields, log.ranges, log.range_std, (RANGE.beacon,)),
+        ("tdoa.csv", TDOA._fields, log.tdoa, log.tdoa_std, (TDOA.anchor_i, TDOA.anchor_j)),
+    ):
+        if values.shape[0] == 0:
+            continue
+        with_std = not np.all(np.isnan(std))
+        table = np.column_stack([values, std]) if with_std else values
+        texts[fname] = _csv_text([*cols, *((STD,) if with_std else ())], table, ints)
+    if log.input_kind != "none":
+        columns = ["time", *INPUT_KINDS[log.input_kind][: log.inputs.shape[1] - 1]]
+        texts[INPUT_FILES[log.input_kind]] = _csv_text(columns, log.inputs)
+    if log.attitude is not None:
+        texts["attitude.csv"] = _csv_text(list(ATTITUDE._fields), log.attitude)
+    if log.truth is not None:
+        texts["truth.csv"] = _csv_text(list(log.truth_columns), log.truth)
+    meta = [["version", "2"], ["name", log.name]]
+    if log.description:
+        meta.append(["description", log.description])
+    if log.input_kind == "odometry":
+        meta.append(["heading0", repr(float(log.heading0))])
+    if dim == 3:
+        meta += [["frame", log.frame], ["gravity", repr(float(log.gravity))]]
+    texts["meta.csv"] = _csv_text(["key", "value"], meta)
+    return texts
 
 
 def write_log(log: RangeLog, folder: str | Path) -> Path:
-    """Write ``log`` as a log folder (created if needed), each file complete or not at all; :func:`read_log` gives it back exactly."""
-    folder = Path(folder)
-    try:
-        folder.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise QuadobsError(f"{folder}: cannot be created ({exc.strerror or exc})") from None
-    dim = log.dimension
-    _write_csv(
-        folder / "beacons.csv",
-        ["id", *"xyz"[:dim]],
-        np.column_stack([log.beacon_ids, log.beacons]),
-        ints=(0,),
-    )
-    _write_csv(folder / "ranges.csv", ["time", "beacon", "range"], log.ranges, ints=(1,))
-    _write_csv(
-        folder / "inputs.csv",
-        ["time", *INPUT_KINDS[log.input_kind][: log.inputs.shape[1] - 1]],
-        log.inputs,
-    )
-    if log.truth is not None:
-        _write_csv(folder / "truth.csv", list(log.truth_columns), log.truth)
-    meta = [["name", log.name]] + (
-        [["heading0", repr(float(log.heading0))]] if log.input_kind == "odometry" else []
-    )
-    _write_csv(folder / "meta.csv", ["key", "value"], meta)
-    return folder
+    """Write ``log`` as a log folder of format version 2; :func:`read_log` gives it back exactly.
+
+    The folder is written whole: built beside its target and renamed into place once
+    complete (:func:`~quadobs.testbed.logs.files.staged_folder`), so a failure leaves the
+    previous folder as it was. An existing folder may hold only log files (it is replaced).
+    """
+    from quadobs.testbed.logs.files import staged_folder
+
+    texts = _log_texts(log)
+    with staged_folder(folder, set(LOG_FILES), "log folder") as stage:
+        for fname, text in texts.items():
+            with open(stage / fname, "w", newline="", encoding="utf-8") as fh:
+                fh.write(text)
+    return Path(folder)

@@ -20,7 +20,10 @@ added unless ``noise.*`` settings ask for it, :func:`log_scenario`) and the summ
 * for the GTSAM peer, also ``smoothed_rmse`` (iSAM2's final estimate of every keyframe)
   and ``batch_rmse`` (the Levenberg-Marquardt optimum of the whole log), at its keyframes;
 * ``measurements``: the sensor layer's ``range_period_steps``, ``dropped`` and
-  ``outliers_injected``, as in an episode.
+  ``outliers_injected``, as in an episode;
+* from :class:`~quadobs.testbed.logs.figures.FieldFiguresSink`: ``rmse`` and ``max_error``
+  after ``burn_in`` seconds, ``rmse_horizontal``, ``rmse_vertical`` (3-D), ``samples`` and
+  ``diverged`` per estimator; ``tum`` (the folder and its files) with ``export_tum``.
 """
 
 from __future__ import annotations
@@ -109,6 +112,8 @@ def run_replay(
     setup_options: dict | None = None,
     settings=(),
     x0=None,
+    burn_in: float = 0.0,
+    export_tum: str | Path | None = None,
 ) -> dict:
     """Replay ``log`` through the estimators; returns the summary (module docstring), also written to ``summary_path``.
 
@@ -139,6 +144,10 @@ def run_replay(
         log's ranges as they are.
     x0 : array_like (n,), optional
         The initial state itself (replaces ``initial_offset``).
+    burn_in : float
+        Seconds from the start before the RMSE and the maximum error are taken.
+    export_tum : path, optional
+        Folder for the TUM files of the truth and of each estimator (written whole).
     """
     from quadobs.testbed.episode import run_loop
     from quadobs.testbed.outputs import check_outputs
@@ -148,6 +157,10 @@ def run_replay(
     names = list(estimators) if estimators else list(DEFAULT_ESTIMATORS)
     inputs = {f"log {f}": Path(log.source) / f for f in LOG_FILES} if log.source else {}
     check_outputs({"summary": summary_path, "recording": out}, inputs)
+    from quadobs.testbed.logs.figures import FieldFiguresSink, check_tum_folder
+
+    check_tum_folder(export_tum, (summary_path, out))
+    field = FieldFiguresSink(log.start, burn_in, export_tum)
     sensors = SensorModel(log_scenario(log, dt, seed, settings))
     world = ReplayWorld(
         log, dt, model or default_model(log), _BLOCK, biases, sensors=sensors, peer_batch=batch
@@ -177,6 +190,7 @@ def run_replay(
         out=out,
         progress=progress,
         timed=True,
+        sinks=[field],
     )
     return summary
 
@@ -214,5 +228,7 @@ def _summary(
         },
         "recording": None if out is None else str(out),
         "primary_estimator": names[0],
+        "burn_in": merged.get("burn_in", 0.0),
+        "tum": merged.get("tum"),
         "estimators": merged.get("estimators", {}),
     }

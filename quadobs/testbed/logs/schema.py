@@ -1,0 +1,351 @@
+"""The schema of the open log format: its files, columns and metadata keys, and the checks of each.
+
+One table (:data:`FILES`) says, for every file of a log folder, which columns it may hold,
+which of them are integers, non-negative or optional, and from which format version on it
+exists; :data:`META_KEYS` does the same for the keys of ``meta.csv``. The reader
+(:mod:`quadobs.testbed.logs.format`) and the documentation follow these tables; the
+checks below hold every value to them and name, on failure, the file, the row (1-based,
+the header being row 1) and the column in one line.
+
+Column names are constants (:data:`RANGE`, :data:`TDOA`, :data:`IMU`, ...): each is a
+named tuple whose fields are the column offsets of the in-memory array of that file, so
+``log.ranges[:, RANGE.beacon]`` reads the beacon ids, never ``log.ranges[:, 1]``.
+
+The limits a log file is held to (the same spirit as a scenario file's): a regular file
+(no FIFO, device, directory, dangling link or link loop), at most :data:`MAX_FILE_BYTES`
+bytes, lines of at most :data:`MAX_LINE_BYTES` bytes, and a log spanning at most
+:data:`MAX_SPAN` seconds (nothing is allocated per second of span by the format).
+"""
+
+from __future__ import annotations
+
+import math
+import unicodedata
+from collections import namedtuple
+from dataclasses import dataclass
+
+import numpy as np
+
+from quadobs.errors import QuadobsError
+
+__all__ = [
+    "ATTITUDE",
+    "BEACON",
+    "FILES",
+    "IMU",
+    "MAX_FILE_BYTES",
+    "MAX_ID",
+    "MAX_LINE_BYTES",
+    "MAX_SPAN",
+    "META_KEYS",
+    "ODOMETRY",
+    "QUATERNION",
+    "RANGE",
+    "STD",
+    "TDOA",
+    "TIME",
+    "FileSpec",
+    "MetaKey",
+    "check_values",
+    "column_index",
+    "parse_meta",
+]
+
+#: Largest log file read (bytes): 512 MiB, about 5 million rows of a body IMU.
+MAX_FILE_BYTES = 512 << 20
+#: Longest line of a log file (bytes, the line end excluded).
+MAX_LINE_BYTES = 4096
+#: Longest span of a log (s, first to last time over all its files): a scenario's longest duration.
+MAX_SPAN = 1e7
+#: Largest beacon id magnitude: ids are read as floats, exact up to 2^53.
+MAX_ID = 2**53
+#: Largest deviation of a unit quaternion's norm from 1.
+QUATERNION_TOLERANCE = 1e-3
+
+TIME = "time"
+#: The optional per-measurement standard deviation column (m) of ``ranges.csv`` and ``tdoa.csv``.
+STD = "std"
+
+
+def column_index(name: str, columns: tuple[str, ...]):
+    """A named tuple type ``name`` whose fields are ``columns`` and an instance holding their offsets."""
+    return namedtuple(name, columns)(*range(len(columns)))
+
+
+#: ``beacons.csv``: id, then the position (m); ``z`` for a log in space.
+BEACON = column_index("Beacon", ("id", "x", "y", "z"))
+#: ``ranges.csv`` (in memory, without :data:`STD`): time (s), beacon id, range (m).
+RANGE = column_index("Range", (TIME, "beacon", "range"))
+#: ``tdoa.csv`` (in memory, without :data:`STD`): time, anchors i and j (ids), ``|p - a_i| - |p - a_j|`` (m).
+TDOA = column_index("Tdoa", (TIME, "anchor_i", "anchor_j", "difference"))
+#: ``inputs.csv`` of an odometry log: time, forward speed (m/s), yaw rate (rad/s).
+ODOMETRY = column_index("Odometry", (TIME, "speed", "yaw_rate"))
+#: ``inputs.csv`` of an accelerometer log (navigation frame, gravity removed; ``az`` in 3-D).
+ACCEL_NAV = column_index("AccelNav", (TIME, "ax", "ay", "az"))
+#: ``imu.csv``: time, specific force (m/s^2) and angular rate (rad/s), body frame.
+IMU = column_index("Imu", (TIME, "ax", "ay", "az", "gx", "gy", "gz"))
+#: ``attitude.csv``: time, the unit quaternion of the body-to-navigation rotation (scalar first).
+ATTITUDE = column_index("Attitude", (TIME, "qw", "qx", "qy", "qz"))
+#: The attitude columns, in ``attitude.csv`` and (optional) in ``truth.csv``.
+QUATERNION = ("qw", "qx", "qy", "qz")
+#: The truth's optional columns, in the order they are written.
+TRUTH_OPTIONAL = ("heading", *QUATERNION, "vx", "vy", "vz")
+
+
+@dataclass(frozen=True)
+class FileSpec:
+    """What one file of a log folder holds.
+
+    Attributes
+    ----------
+    name : str
+        File name.
+    variants : tuple of tuple of str
+        The accepted sets of required columns, each in its in-memory order.
+    optional : tuple of str
+        Columns any variant may add (in the order they are appended in memory).
+    integers, non_negative, std : tuple of str
+        Columns holding integers (ids), values ``>= 0``, and a standard deviation
+        (``> 0``, or empty/NaN for the model's default).
+    since : int
+        The first format version holding the file.
+    required : bool
+        Whether every log has it (else optional, or required by another's absence).
+    described : str
+        The accepted headers, as errors and the docs show them.
+    meaning : str
+        One line for the docs.
+    """
+
+    name: str
+    variants: tuple[tuple[str, ...], ...]
+    optional: tuple[str, ...] = ()
+    integers: tuple[str, ...] = ()
+    non_negative: tuple[str, ...] = ()
+    std: tuple[str, ...] = ()
+    since: int = 1
+    required: bool = False
+    described: str = ""
+    meaning: str = ""
+
+    def columns_of(self, header: list[str], version: int) -> tuple[str, ...] | None:
+        """The in-memory column order for ``header`` (names in any order), or None if not accepted."""
+        names = set(header)
+        if len(names) != len(header):
+            return None
+        optional = self.optional if version >= 2 else ()
+        for variant in self.variants:
+            extra = names - set(variant)
+            if set(variant) <= names and extra <= set(optional):
+                return variant + tuple(c for c in optional if c in extra)
+        return None
+
+
+_TRUTH_2D, _TRUTH_3D = (TIME, "x", "y"), (TIME, "x", "y", "z")
+
+#: Every file of a log folder, in the order they are read.
+FILES = {
+    "beacons.csv": FileSpec(
+        "beacons.csv",
+        (BEACON._fields[:3], BEACON._fields),
+        integers=("id",),
+        required=True,
+        described="id,x,y[,z]",
+        meaning="surveyed anchor positions (m), navigation frame; with z the log is in space (3-D)",
+    ),
+    "ranges.csv": FileSpec(
+        "ranges.csv",
+        (RANGE._fields,),
+        optional=(STD,),
+        integers=("beacon",),
+        non_negative=("range",),
+        std=(STD,),
+        described="time,beacon,range[,std]",
+        meaning="one range (m) to anchor beacon at time (s); std (m) optional, per range",
+    ),
+    "tdoa.csv": FileSpec(
+        "tdoa.csv",
+        (TDOA._fields,),
+        optional=(STD,),
+        integers=("anchor_i", "anchor_j"),
+        std=(STD,),
+        since=2,
+        described="time,anchor_i,anchor_j,difference[,std]",
+        meaning="one time difference of arrival as a distance, |p - a_i| - |p - a_j| (m)",
+    ),
+    "inputs.csv": FileSpec(
+        "inputs.csv",
+        (ODOMETRY._fields, ACCEL_NAV._fields[:3], ACCEL_NAV._fields),
+        described="time,speed,yaw_rate (odometry) or time,ax,ay[,az] (accelerometer)",
+        meaning="wheel odometry (m/s, rad/s) or an accelerometer in the navigation frame, "
+        "gravity removed (m/s^2); each row held until the next",
+    ),
+    "imu.csv": FileSpec(
+        "imu.csv",
+        (IMU._fields,),
+        since=2,
+        described="time,ax,ay,az,gx,gy,gz",
+        meaning="body-frame IMU: specific force (m/s^2) and angular rate (rad/s); held until the next row",
+    ),
+    "attitude.csv": FileSpec(
+        "attitude.csv",
+        (ATTITUDE._fields,),
+        since=2,
+        described="time,qw,qx,qy,qz",
+        meaning="attitude: unit quaternion of the body-to-navigation rotation",
+    ),
+    "truth.csv": FileSpec(
+        "truth.csv",
+        (_TRUTH_2D, _TRUTH_3D),
+        optional=TRUTH_OPTIONAL,
+        described="time,x,y[,z][,heading][,qw,qx,qy,qz][,vx,vy[,vz]]",
+        meaning="ground truth, for the errors only: position (m), heading (rad), attitude, velocity (m/s)",
+    ),
+}
+
+
+@dataclass(frozen=True)
+class MetaKey:
+    """One key of ``meta.csv``: its meaning, its default and the version it appeared in."""
+
+    name: str
+    meaning: str
+    default: object
+    since: int = 1
+
+
+#: Every key ``meta.csv`` may hold, each at most once.
+META_KEYS = {
+    k.name: k
+    for k in (
+        MetaKey("version", "format version, 1 or 2 (absent: 1)", 1, 2),
+        MetaKey("name", "the log's name (printable text; absent: the folder's name)", ""),
+        MetaKey("description", "free text (printable)", "", 2),
+        MetaKey("heading0", "odometry logs: the heading (rad) at the first input time", math.nan),
+        MetaKey(
+            "frame",
+            "navigation frame of a log in space: enu (z up, the default) or ned (z down)",
+            "enu",
+            2,
+        ),
+        MetaKey("gravity", "magnitude of gravity (m/s^2; default 9.80665)", 9.80665, 2),
+    )
+}
+FRAMES = ("enu", "ned")
+
+
+def _printable(where: str, text: str) -> str:
+    bad = [c for c in text if unicodedata.category(c).startswith("C")]
+    if bad:
+        raise QuadobsError(f"{where}: control character {bad[0]!r} (printable text only)")
+    return text
+
+
+def _float_value(where: str, text: str, positive: bool = False) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not math.isfinite(value) or (positive and value <= 0.0):
+        raise QuadobsError(
+            f"{where}: {text!r} is not a {'positive ' if positive else ''}finite number"
+        )
+    return value
+
+
+def parse_meta(where: str, rows: list[list[str]]) -> dict:
+    """The metadata of ``meta.csv``'s data rows ``(key, value)``, each key once and known.
+
+    ``where`` names the file; rows are numbered from 2. Returns every key of
+    :data:`META_KEYS`, the defaults where absent.
+    """
+    seen: dict[str, int] = {}
+    meta = {k.name: k.default for k in META_KEYS.values()}
+    for r, row in enumerate(rows, start=2):
+        if len(row) != 2:
+            raise QuadobsError(f"{where}, row {r}: {len(row)} columns, expected 2 (key,value)")
+        key, text = row[0].strip(), row[1].strip()
+        at = f"{where}, row {r}, key {key}"
+        if key not in META_KEYS:
+            raise QuadobsError(
+                f"{where}, row {r}: unknown key {key!r} (known: {', '.join(META_KEYS)})"
+            )
+        if key in seen:
+            raise QuadobsError(f"{at}: given twice (first in row {seen[key]})")
+        seen[key] = r
+        if key == "version":
+            if text not in ("1", "2"):
+                raise QuadobsError(f"{at}: {text!r}; expected 1 or 2")
+            meta[key] = int(text)
+        elif key in ("name", "description"):
+            meta[key] = _printable(at, text)
+        elif key == "heading0":
+            meta[key] = _float_value(at, text)
+        elif key == "gravity":
+            meta[key] = _float_value(at, text, positive=True)
+        elif key == "frame":
+            if text.lower() not in FRAMES:
+                raise QuadobsError(f"{at}: {text!r}; expected one of {', '.join(FRAMES)}")
+            meta[key] = text.lower()
+    for key, r in seen.items():
+        if META_KEYS[key].since > meta["version"]:
+            raise QuadobsError(
+                f"{where}, row {r}, key {key}: a version-2 key; add the row version,2"
+            )
+    return meta
+
+
+def _first(mask: np.ndarray) -> tuple[int, int] | None:
+    """``(row, column)`` offsets of the first True of a 2-D mask in row-major order, or None."""
+    hits = np.argwhere(mask)
+    return None if hits.size == 0 else (int(hits[0, 0]), int(hits[0, 1]))
+
+
+def check_values(
+    where: str, spec: FileSpec, columns: tuple[str, ...], values: np.ndarray, cell=None
+) -> None:
+    """Hold the values of one file (rows in file order, ``columns`` named) to ``spec``.
+
+    Every value finite (a standard deviation may be NaN: the model's default), integer
+    columns integers of magnitude at most :data:`MAX_ID`, non-negative columns ``>= 0``,
+    standard deviations ``> 0``, times non-decreasing, quaternions of unit norm.
+
+    ``cell(row_offset, column_offset)`` gives the text of a cell as written (for the
+    message); default: the value itself. Raises a one-line :class:`QuadobsError` naming
+    ``where``, the row (data row ``i`` is row ``i + 2``) and the column.
+    """
+
+    def fail(i: int, c: int, problem: str) -> None:
+        text = cell(i, c) if cell is not None else repr(float(values[i, c]))
+        raise QuadobsError(f"{where}, row {i + 2}, column {columns[c]}: {text!r} {problem}")
+
+    if values.shape[0] == 0:
+        raise QuadobsError(f"{where}, row 2: no data rows")
+    std = np.array([c in spec.std for c in columns])
+    finite = np.isfinite(values) | (std & np.isnan(values))
+    if (at := _first(~finite)) is not None:
+        fail(*at, "is not a finite number")
+    for c, name in enumerate(columns):
+        col = values[:, c]
+        if name in spec.integers:
+            bad = np.flatnonzero((col != np.round(col)) | (np.abs(col) > MAX_ID))
+            if bad.size:
+                fail(int(bad[0]), c, "is not an integer id (|id| <= 2^53)")
+        if name in spec.non_negative and (bad := np.flatnonzero(col < 0.0)).size:
+            fail(int(bad[0]), c, "is negative")
+        if name in spec.std and (bad := np.flatnonzero(col <= 0.0)).size:
+            fail(int(bad[0]), c, "is not a positive standard deviation")
+    if columns[0] == TIME:
+        bad = np.flatnonzero(np.diff(values[:, 0]) < 0)
+        if bad.size:
+            raise QuadobsError(
+                f"{where}, row {int(bad[0]) + 3}, column time: earlier than the row before (rows must be sorted by time)"
+            )
+    if set(QUATERNION) <= set(columns):
+        q = values[:, [columns.index(c) for c in QUATERNION]]
+        bad = np.flatnonzero(np.abs(np.linalg.norm(q, axis=1) - 1.0) > QUATERNION_TOLERANCE)
+        if bad.size:
+            raise QuadobsError(
+                f"{where}, row {int(bad[0]) + 2}, columns qw,qx,qy,qz: not a unit quaternion "
+                f"(norm {float(np.linalg.norm(q[bad[0]])):.6g})"
+            )

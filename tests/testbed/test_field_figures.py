@@ -1,0 +1,121 @@
+"""A replay's figures as the field reports them: burn-in, horizontal/vertical split, divergence, TUM files read by evo."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from quadobs.cli import main
+from quadobs.testbed.logs import RangeLog, write_log
+from quadobs.testbed.logs.replay import run_replay
+
+BEACONS = np.array([[-20.0, -15.0, 0.5], [25.0, -20.0, 6.0], [20.0, 25.0, 0.5], [-15.0, 20.0, 8.0]])
+R, W = 10.0, 0.2
+
+
+def position(t):
+    return np.column_stack([R * np.cos(W * t), R * np.sin(W * t), 2.0 + np.sin(0.5 * t)])
+
+
+def velocity(t):
+    return np.column_stack([-R * W * np.sin(W * t), R * W * np.cos(W * t), 0.5 * np.cos(0.5 * t)])
+
+
+def helix_log(duration=20.0, rate=100.0, spike=None) -> RangeLog:
+    """A helix in space: an exact accelerometer (navigation frame) at ``rate``, exact ranges round-robin at 20 Hz."""
+    t = np.arange(0.0, duration, 1.0 / rate)
+    acc = np.column_stack(
+        [-R * W**2 * np.cos(W * t), -R * W**2 * np.sin(W * t), -0.25 * np.sin(0.5 * t)]
+    )
+    t_r = np.arange(0.02, duration - 0.1, 0.05)
+    h = np.arange(t_r.size) % 4
+    ranges = np.column_stack([t_r, h, np.linalg.norm(position(t_r) - BEACONS[h], axis=1)])
+    if spike is not None:
+        ranges[spike, 2] = 1e150
+    truth = np.column_stack([t, position(t), velocity(t)])
+    return RangeLog(
+        "helix",
+        np.arange(4),
+        BEACONS,
+        ranges,
+        np.column_stack([t, acc]),
+        math.nan,
+        truth,
+        input_kind="imu",
+        truth_columns=("time", "x", "y", "z", "vx", "vy", "vz"),
+    )
+
+
+SETUP = {"range_sigma": 0.05, "q_imu": 1e-3}
+
+
+def test_the_burn_in_drops_the_transient_and_the_tum_files_give_evos_rmse(tmp_path):
+    from evo.core import metrics, sync
+    from evo.tools import file_interface
+
+    log = helix_log()
+    whole = run_replay(log, dt=0.01, initial_offset=5.0, setup_options=SETUP, progress=False)
+    s = run_replay(
+        log,
+        dt=0.01,
+        initial_offset=5.0,
+        setup_options=SETUP,
+        burn_in=5.0,
+        export_tum=tmp_path / "tum",
+    )
+    for name in ("augmented", "ekf"):
+        e, w = s["estimators"][name], whole["estimators"][name]
+        assert e["diverged"] is None and e["burn_in"] == 5.0
+        assert e["rmse"] < w["rmse"] and e["rmse"] < 0.05  # the 5 m start excluded
+        assert e["rmse"] ** 2 == pytest.approx(e["rmse_horizontal"] ** 2 + e["rmse_vertical"] ** 2)
+        ref = file_interface.read_tum_trajectory_file(str(tmp_path / "tum" / "truth.tum"))
+        est = file_interface.read_tum_trajectory_file(str(tmp_path / "tum" / f"{name}.tum"))
+        ref, est = sync.associate_trajectories(ref, est, max_diff=1e-6)
+        ape = metrics.APE(metrics.PoseRelation.translation_part)
+        ape.process_data((ref, est))
+        assert ape.get_statistic(metrics.StatisticsType.rmse) == pytest.approx(e["rmse"], rel=1e-9)
+        assert ref.num_poses == e["samples"]
+    assert ref.timestamps[0] == pytest.approx(log.start + 5.0)
+    assert s["tum"]["files"] == ["truth.tum", "augmented.tum", "ekf.tum"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["tum"]  # no staging folder left
+
+
+def test_a_diverged_estimator_is_reported_and_has_no_figures(tmp_path, capsys):
+    folder = write_log(helix_log(10.0, spike=40), tmp_path / "log")
+    code = main(
+        ["replay", str(folder), "--dt", "0.01", "--calibrate", "none", "--no-progress"]
+        + ["--tune", "range_sigma=0.05", "--tune", "q_imu=1e-3", "--initial-offset", "5"]
+        + ["--summary", str(tmp_path / "s.json"), "--export-tum", str(tmp_path / "tum")]
+    )
+    out = capsys.readouterr().out
+    s = json.loads((tmp_path / "s.json").read_text())
+    diverged = {n: e for n, e in s["estimators"].items() if e["diverged"] is not None}
+    assert code == 0 and diverged, out
+    for name, e in diverged.items():
+        assert e["rmse"] is None and e["max_error"] is None and e["final_position_error"] is None
+        spike = 0.02 + 40 * 0.05  # the time of the range of 1e150 m: from its step on
+        assert spike <= e["diverged"]["time"] <= spike + 0.02
+        assert f"{name:10s} DIVERGED at t = " in out
+        assert not (tmp_path / "tum" / f"{name}.tum").exists()
+
+
+def test_the_field_options_are_checked_before_the_replay(tmp_path, capsys):
+    folder = write_log(helix_log(2.0), tmp_path / "log")
+    base = ["replay", str(folder), "--dt", "0.01", "--calibrate", "none", "--no-progress"]
+    assert main(base + ["--burn-in", "-1"]) == 2
+    assert "--burn-in: expected a non-negative number of seconds" in capsys.readouterr().err
+    (tmp_path / "tum").mkdir()
+    (tmp_path / "tum" / "notes.txt").write_text("mine")
+    assert main(base + ["--export-tum", str(tmp_path / "tum")]) == 2
+    assert "holds 'notes.txt'" in capsys.readouterr().err
+    assert (
+        main(
+            base
+            + ["--export-tum", str(tmp_path / "t2"), "--summary", str(tmp_path / "t2" / "s.json")]
+        )
+        == 2
+    )
+    assert "holds the output" in capsys.readouterr().err

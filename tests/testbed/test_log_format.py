@@ -1,0 +1,313 @@
+"""The open log format, version 2: the data model, the schema, the limits on log files, the staged folder."""
+
+from __future__ import annotations
+
+import math
+import os
+import threading
+
+import numpy as np
+import pytest
+
+from quadobs.errors import QuadobsError
+from quadobs.testbed.logs import RangeLog, read_log, write_log
+from quadobs.testbed.logs import files as log_files
+from quadobs.testbed.logs.schema import IMU, RANGE, TDOA
+
+BEACONS3 = np.array([[0.0, 0.0, 0.2], [6.0, 0.0, 2.5], [6.0, 5.0, 0.3], [0.0, 5.0, 2.4]])
+IDS = np.array([3, 7, 11, 12])
+
+
+def _unit(q: np.ndarray) -> np.ndarray:
+    return q / np.linalg.norm(q, axis=1, keepdims=True)
+
+
+def flight_log(with_truth: bool = True) -> RangeLog:
+    """A 3-D log with every part of version 2: ranges with some std, TDOA, body IMU, attitude, truth with attitude."""
+    rng = np.random.default_rng(4)
+    t_imu = np.arange(0.0, 2.0, 0.01)
+    imu = np.column_stack([t_imu, rng.normal(size=(t_imu.size, 6))])
+    imu[:, IMU.az] += 9.80665
+    t_r = np.arange(0.005, 1.99, 0.03)
+    pos = np.column_stack([3 + np.cos(t_r), 2 + np.sin(t_r), np.full_like(t_r, 1.0)])
+    h = np.arange(t_r.size) % 4
+    ranges = np.column_stack([t_r, IDS[h], np.linalg.norm(pos - BEACONS3[h], axis=1)])
+    std = np.where(h == 2, np.nan, 0.1 + 0.01 * h)
+    t_d = t_r[::2] + 0.001
+    tdoa = np.column_stack([t_d, IDS[1 + h[::2] % 3], np.full_like(t_d, IDS[0]), 0.5 * h[::2]])
+    q = _unit(rng.normal(size=(t_imu.size, 4)))
+    attitude = np.column_stack([t_imu, q])
+    truth = None
+    if with_truth:
+        truth = np.column_stack(
+            [t_imu, 3 + np.cos(t_imu), 2 + np.sin(t_imu), np.ones_like(t_imu), q, -np.sin(t_imu)]
+            + [np.cos(t_imu), np.zeros_like(t_imu)]
+        )
+    return RangeLog(
+        "flight",
+        IDS,
+        BEACONS3,
+        ranges,
+        imu,
+        math.nan,
+        truth,
+        input_kind="imu_body",
+        truth_columns=("time", "x", "y", "z", "qw", "qx", "qy", "qz", "vx", "vy", "vz"),
+        range_std=std,
+        tdoa=tdoa,
+        attitude=attitude,
+        frame="ned",
+        gravity=9.81,
+        description="a short flight",
+    )
+
+
+def test_a_version_2_log_reads_back_exactly(tmp_path):
+    log = flight_log()
+    back = read_log(write_log(log, tmp_path / "log"))
+    for key in ("beacon_ids", "beacons", "ranges", "inputs", "truth", "range_std", "tdoa"):
+        np.testing.assert_array_equal(getattr(back, key), getattr(log, key))
+    np.testing.assert_array_equal(back.attitude, log.attitude)
+    assert np.all(np.isnan(back.tdoa_std)) and back.tdoa.shape == (34, 4)
+    assert (back.version, back.input_kind, back.frame, back.gravity) == (2, "imu_body", "ned", 9.81)
+    assert back.description == "a short flight" and back.truth_columns == log.truth_columns
+    np.testing.assert_array_equal(back.gravity_vector, [0.0, 0.0, 9.81])
+    assert back.truth_part("attitude").shape == (200, 4)
+    text = (tmp_path / "log" / "ranges.csv").read_text().splitlines()
+    assert text[0] == "time,beacon,range,std" and text[3].endswith(",")  # NaN: an empty cell
+    assert "version,2" in (tmp_path / "log" / "meta.csv").read_text()
+
+
+def test_columns_may_come_in_any_order_and_a_bom_is_skipped(tmp_path):
+    folder = write_log(flight_log(), tmp_path / "log")
+    lines = (folder / "ranges.csv").read_text().splitlines()
+    swapped = [",".join([c[2], c[0], c[3], c[1]]) for c in (row.split(",") for row in lines)]
+    (folder / "ranges.csv").write_text("\ufeff" + "\n".join(swapped) + "\n", encoding="utf-8")
+    (folder / "meta.csv").write_text("\ufeff" + (folder / "meta.csv").read_text())
+    back = read_log(folder)
+    np.testing.assert_array_equal(back.ranges, flight_log().ranges)
+
+
+def test_a_log_of_ranges_alone_is_valid(tmp_path):
+    log = flight_log(with_truth=False)
+    alone = RangeLog(
+        "alone",
+        log.beacon_ids,
+        log.beacons,
+        log.ranges,
+        np.empty((0, 1)),
+        math.nan,
+        input_kind="none",
+    )
+    back = read_log(write_log(alone, tmp_path / "alone"))
+    assert back.input_kind == "none" and back.inputs.shape == (0, 1)
+    assert not (tmp_path / "alone" / "inputs.csv").exists()
+    assert back.start == log.ranges[0, RANGE.time] and back.end == log.ranges[-1, RANGE.time]
+    part = back.excerpt(0.5, 1.0)
+    assert part.ranges[0, 0] >= back.start + 0.5 and part.ranges[-1, 0] < back.start + 1.0
+
+
+def test_the_measurements_come_as_events_in_time_order():
+    log = flight_log()
+    events = log.measurements()
+    assert len(events) == log.ranges.shape[0] + log.tdoa.shape[0]
+    assert all(a.t <= b.t for a, b in zip(events, events[1:]))
+    first_tdoa = next(m for m in events if m.kind == "tdoa")
+    row = log.tdoa[0]
+    assert first_tdoa.anchors == (
+        int(np.flatnonzero(IDS == row[TDOA.anchor_i])[0]),
+        int(np.flatnonzero(IDS == row[TDOA.anchor_j])[0]),
+    )
+    ranges = [m for m in events if m.kind == "range"]
+    np.testing.assert_array_equal([m.std for m in ranges], log.range_std)
+    assert ranges[1].anchors == (1,)
+
+
+def _write_v1(folder, ranges_header="time,beacon,range"):
+    folder.mkdir()
+    (folder / "beacons.csv").write_text("id,x,y\n0,0,0\n1,10,0\n")
+    (folder / "ranges.csv").write_text(f"{ranges_header}\n0.5,0,3.0\n0.7,1,7.5\n")
+    (folder / "inputs.csv").write_text("time,speed,yaw_rate\n0,1,0\n1,1,0\n")
+    (folder / "meta.csv").write_text("key,value\nname,old\nheading0,0.5\n")
+    return folder
+
+
+def test_a_version_1_log_still_reads_and_version_2_parts_ask_for_the_version(tmp_path):
+    log = read_log(_write_v1(tmp_path / "v1"))
+    assert log.version == 1 and log.input_kind == "odometry" and log.heading0 == 0.5
+    folder = _write_v1(tmp_path / "v1std", "time,beacon,range,std")
+    with pytest.raises(
+        QuadobsError, match=r"ranges.csv, row 1: .*add the row version,2 to meta.csv"
+    ):
+        read_log(folder)
+    (folder / "ranges.csv").write_text("time,beacon,range\n0.5,0,3.0\n")
+    (folder / "tdoa.csv").write_text("time,anchor_i,anchor_j,difference\n0.5,0,1,3.0\n")
+    with pytest.raises(QuadobsError, match=r"tdoa.csv: a version-2 file; add the row version,2"):
+        read_log(folder)
+    (folder / "tdoa.csv").unlink()
+    (folder / "inputs.csv").unlink()
+    with pytest.raises(QuadobsError, match=r"inputs.csv: missing"):
+        read_log(folder)
+
+
+@pytest.mark.parametrize(
+    "fname, text, expect",
+    [
+        (
+            "ranges.csv",
+            "time,beacon,range\n0.5,0.7,3\n",
+            "row 2, column beacon: '0.7' is not an integer",
+        ),
+        (
+            "ranges.csv",
+            "time,beacon,range\n0.5,0,3\n0.6,1,-5\n",
+            "row 3, column range: '-5' is negative",
+        ),
+        (
+            "ranges.csv",
+            "time,beacon,range,std\n0.5,0,3,0\n",
+            "row 2, column std: '0' is not a positive",
+        ),
+        (
+            "ranges.csv",
+            "time,beacon,range,std\n0.5,0,3,inf\n",
+            "row 2, column std: 'inf' is not a finite",
+        ),
+        (
+            "ranges.csv",
+            "time,beacon,range\n0.5,0,1e400\n",
+            "column range: '1e400' is not a finite number",
+        ),
+        ("ranges.csv", "time,beacon,time\n0.5,0,3\n", "row 1: header 'time,beacon,time'"),
+        (
+            "ranges.csv",
+            "time,beacon,range,speed\n0.5,0,3,1\n",
+            "row 1: header 'time,beacon,range,speed'",
+        ),
+        ("beacons.csv", "id,x,y\n0,0,0\n2e19,1,1\n", "row 3, column id: '2e19' is not an integer"),
+        (
+            "meta.csv",
+            "key,value\nversion,2\nheading0,0\nheading0,1\n",
+            "row 4, key heading0: given twice",
+        ),
+        ("meta.csv", "key,value\nversion,2\nheadng0,0\n", "row 3: unknown key 'headng0'"),
+        ("meta.csv", "key,value\nversion,3\n", "key version: '3'; expected 1 or 2"),
+        (
+            "meta.csv",
+            "key,value\nversion,2\nname,a\x1b[31mb\nheading0,0\n",
+            "key name: control character",
+        ),
+        ("meta.csv", "key,value\nframe,ned\nheading0,0\n", "key frame: a version-2 key"),
+        (
+            "tdoa.csv",
+            "time,anchor_i,anchor_j,difference\n0.5,1,1,0.3\n",
+            "tdoa.csv, row 2, column anchor_j: the same anchor as anchor_i",
+        ),
+        (
+            "tdoa.csv",
+            "time,anchor_i,anchor_j,difference\n0.5,1,4,0.3\n",
+            "tdoa.csv, row 2, column anchor_j: unknown beacon id 4",
+        ),
+        (
+            "truth.csv",
+            "time,x,y,qw,qx,qy,qz\n0,1,1,1,0,0,0.1\n",
+            "truth.csv, row 2, columns qw,qx,qy,qz: not a unit quaternion",
+        ),
+        ("truth.csv", "time,x,y,qw\n0,1,1,1\n", "truth.csv, row 1: the attitude needs all of"),
+        (
+            "inputs.csv",
+            "time,speed,yaw_rate\n0,1,0\n1e8,1,0\n",
+            "the log spans 1e+08 s, more than 1e+07 s",
+        ),
+    ],
+)
+def test_the_schema_refuses_each_bad_field_in_one_line(tmp_path, fname, text, expect):
+    folder = _write_v1(tmp_path / "log")
+    (folder / "meta.csv").write_text("key,value\nversion,2\nheading0,0.5\n")
+    (folder / fname).write_text(text)
+    with pytest.raises(QuadobsError) as err:
+        read_log(folder)
+    assert expect in str(err.value) and "\n" not in str(err.value)
+    assert str(folder / fname) in str(err.value) or "spans" in str(err.value)
+
+
+def test_a_std_cell_may_be_empty_and_other_cells_may_not(tmp_path):
+    folder = _write_v1(tmp_path / "log")
+    (folder / "meta.csv").write_text("key,value\nversion,2\nheading0,0.5\n")
+    (folder / "ranges.csv").write_text("time,beacon,range,std\n0.5,0,3,\n0.6,1,4,0.2\n")
+    np.testing.assert_array_equal(read_log(folder).range_std, [np.nan, 0.2])
+    (folder / "ranges.csv").write_text("time,beacon,range,std\n0.5,0,,0.1\n")
+    with pytest.raises(QuadobsError, match=r"row 2, column range: '' is not a finite number"):
+        read_log(folder)
+
+
+def test_log_files_are_regular_files_within_bounds(tmp_path, monkeypatch):
+    folder = _write_v1(tmp_path / "log")
+    (folder / "truth.csv").symlink_to(tmp_path / "nowhere.csv")
+    with pytest.raises(QuadobsError, match=r"truth.csv: a dangling symbolic link"):
+        read_log(folder)
+    (folder / "truth.csv").unlink()
+    (folder / "truth.csv").symlink_to(folder / "truth.csv")
+    with pytest.raises(QuadobsError, match=r"truth.csv: a symbolic link loop"):
+        read_log(folder)
+    (folder / "truth.csv").unlink()
+    (folder / "truth.csv").symlink_to("/dev/zero")
+    with pytest.raises(QuadobsError, match=r"truth.csv: not a regular file"):
+        read_log(folder)
+    (folder / "truth.csv").unlink()
+    os.mkfifo(folder / "truth.csv")  # refused at once, not waited on
+    done: list = []
+    reader = threading.Thread(target=lambda: done.append(_error(folder)), daemon=True)
+    reader.start()
+    reader.join(10.0)
+    assert done and "truth.csv: not a regular file" in done[0]
+    (folder / "truth.csv").unlink()
+    (folder / "ranges.csv").write_text("time,beacon,range\n0.5,0," + "1" * 5000 + "\n")
+    with pytest.raises(
+        QuadobsError, match=r"ranges.csv, row 2: a line of 5006 bytes, more than 4096"
+    ):
+        read_log(folder)
+    monkeypatch.setattr(log_files, "MAX_FILE_BYTES", 35)
+    (folder / "ranges.csv").write_text("time,beacon,range\n0.5,0,3.0\n0.7,1,7.5\n")
+    with pytest.raises(QuadobsError, match=r"ranges.csv: larger than 35 bytes"):
+        read_log(folder)
+
+
+def _error(folder) -> str:
+    try:
+        read_log(folder)
+    except QuadobsError as exc:
+        return str(exc)
+    return ""
+
+
+def test_a_log_folder_is_replaced_whole_or_not_at_all(tmp_path, monkeypatch):
+    folder = write_log(flight_log(), tmp_path / "log")
+    before = {p.name: p.read_bytes() for p in folder.iterdir()}
+
+    def fail(stage, target):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(log_files, "_swap_in", fail)
+    alone = RangeLog(
+        "other",
+        IDS,
+        BEACONS3,
+        flight_log().ranges[:5],
+        np.empty((0, 1)),
+        math.nan,
+        input_kind="none",
+    )
+    with pytest.raises(
+        QuadobsError, match=r"log folder .*: cannot be written \(No space left on device\)"
+    ):
+        write_log(alone, folder)
+    assert {p.name: p.read_bytes() for p in folder.iterdir()} == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["log"]  # no staging folder left
+    monkeypatch.undo()
+    write_log(alone, folder)
+    assert sorted(p.name for p in folder.iterdir()) == ["beacons.csv", "meta.csv", "ranges.csv"]
+    (folder / "notes.txt").write_text("mine")
+    with pytest.raises(QuadobsError, match=r"holds 'notes.txt'"):
+        write_log(alone, folder)
+    assert (folder / "notes.txt").read_text() == "mine"
