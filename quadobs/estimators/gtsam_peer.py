@@ -184,7 +184,8 @@ class Isam2Peer(Estimator, Counted):
     heading0 : float
         Odometry: the heading at ``t0`` (rad). ``imu_body``: the initial yaw guess.
     fixed_bias : array_like (m,), optional
-        Known range biases subtracted from every range (with ``bias="none"``).
+        Known range biases subtracted from every range (the range model's ``bias="fixed"``;
+        not with ``bias="state"``).
     """
 
     name = "isam2"
@@ -217,14 +218,19 @@ class Isam2Peer(Estimator, Counted):
             raise QuadobsError(f"x0: expected {d} or {2 * d} entries, got {self.n}")
         self.dt = None if dt is None else as_finite_scalar("dt", dt, positive=True)
         self.time = self._t0 = float(t0)
-        self.ranges = RangeModel(self.anchors, noise.range_sigma, bias=noise.bias)
+        if fixed_bias is not None and noise.bias == "state":
+            raise QuadobsError("fixed_bias: known biases and biases as states exclude each other")
+        self.ranges = RangeModel(
+            self.anchors,
+            noise.range_sigma,
+            bias="fixed" if fixed_bias is not None else noise.bias,
+            fixed_bias=None
+            if fixed_bias is None
+            else as_array("fixed_bias", fixed_bias, (len(self.anchors),)),
+        )
         tdoa_sigma = noise.range_sigma if math.isnan(noise.tdoa_sigma) else noise.tdoa_sigma
         self.tdoas = TdoaModel(self.anchors, tdoa_sigma)
-        self.fixed_bias = (
-            np.zeros(len(self.anchors))
-            if fixed_bias is None
-            else as_array("fixed_bias", fixed_bias, (len(self.anchors),))
-        )
+        self.measurement_models = {"range": self.ranges, "tdoa": self.tdoas}
         self._a2 = np.einsum("hi,hi->h", self.anchors, self.anchors)
         self._noises: dict = {}
         self.motion = make_motion(gtsam, input_kind, d, noise)
@@ -307,36 +313,33 @@ class Isam2Peer(Estimator, Counted):
 
     def predict(self, t: float) -> None:
         """Propagate to ``t`` with the held input (the graph's new part goes to iSAM2 first)."""
-        t = float(t)
-        if not math.isfinite(t) or t < self.time:
-            raise QuadobsError(f"isam2: predict to t = {t}: before the current time {self.time}")
+        dt = self._interval(t)
         self._flush()
-        if t > self.time:
-            self.motion.advance(t - self.time)
-            self.time = t
+        if dt > 0.0:
+            self.motion.advance(dt)
+        self.time = t
 
     def correct(self, m: Measurement) -> None:
-        """The factor of one range or TDOA ``m`` taken at the current time, on its node."""
-        if abs(m.t - self.time) > 1e-6 * max(1.0, abs(self.time)):
-            raise QuadobsError(f"isam2: a measurement at t = {m.t} while at t = {self.time}")
-        if not math.isfinite(m.value):
-            return
+        """The factor of one range or TDOA ``m`` taken at the current time, on its node.
+
+        The value less its known bias (:meth:`MeasurementModel.unbiased`); its own standard
+        deviation, or the model's.
+        """
+        self._check_measurement(m)
+        model = self._model_of(m)
         key = self.motion.position_key(self._node_for(self.time))
-        kind = self.motion.position_type
+        kind, noise = self.motion.position_type, self._noise(model.sigma(m))
         if m.kind == "range":
             (h,) = m.anchors
             bias_key = self._bias_key(h) if self.noise.bias == "state" else None
-            noise = self._noise(self.ranges.sigma(m))
-            rho = m.value - self.fixed_bias[h]
-            self._g_new.add(range_factor(self._g, noise, key, kind, self.anchors[h], rho, bias_key))
-        elif m.kind == "tdoa":
-            i, j = m.anchors
-            noise = self._noise(self.tdoas.sigma(m))
-            self._g_new.add(
-                tdoa_factor(self._g, noise, key, kind, self.anchors[i], self.anchors[j], m.value)
+            factor = range_factor(
+                self._g, noise, key, kind, self.anchors[h], model.unbiased(m), bias_key
             )
         else:
-            raise QuadobsError(f"isam2: measurements of kind {m.kind!r} are not taken")
+            i, j = m.anchors
+            a = self.anchors
+            factor = tdoa_factor(self._g, noise, key, kind, a[i], a[j], model.unbiased(m))
+        self._g_new.add(factor)
         self.corrections += 1
 
     def step(self, u: np.ndarray, y: np.ndarray) -> None:

@@ -136,6 +136,19 @@ def test_the_range_and_tdoa_jacobians_match_finite_differences(kind):
             np.testing.assert_allclose(A[:, -1], [1.0])  # d e / d bias
 
 
+def test_known_biases_are_subtracted():
+    bias = np.array([0.3, -0.2, 0.1, 0.25, -0.3, 0.0])
+    out = {}
+    for known in (None, bias):
+        rng = np.random.default_rng(1)
+        x0 = np.concatenate([line(0.0)[0] + 1.0, np.zeros(3)])
+        noise = PeerNoise(range_sigma=0.02)
+        est = Isam2Peer(ANCHORS_3D, "none", x0=x0, P0=4.0, noise=noise, fixed_bias=known)
+        times, errs = run(est, line, ranges(ANCHORS_3D, 0.02, rng, bias), rate=25, duration=4.0)
+        out[known is None] = rms(errs[times > 2.0])
+    assert out[False] < 0.1 and out[False] < 0.5 * out[True], out
+
+
 def test_the_factors_vanish_on_noise_free_data():
     p = np.array([1.0, 2.0, 0.5])
     a, c = ANCHORS_3D[1], ANCHORS_3D[3]
@@ -334,10 +347,18 @@ def test_what_the_peer_cannot_take_is_refused_in_one_line():
         PeerNoise(loss="tukey")
     est = Isam2Peer(ANCHORS_3D, "none", x0=np.zeros(3))
     est.predict(1.0)
-    with pytest.raises(QuadobsError, match="before the current time"):
+    with pytest.raises(QuadobsError, match="before its current time"):
         est.predict(0.5)
-    with pytest.raises(QuadobsError, match="a measurement at t = 2.0 while at t = 1.0"):
+    with pytest.raises(
+        QuadobsError, match="a range measurement at t = 2 s, but the estimate is at 1 s"
+    ):
         est.correct(Measurement(2.0, "range", 1.0, (0,)))
+    with pytest.raises(QuadobsError, match="anchor index"):
+        est.correct(Measurement(1.0, "tdoa", 1.0, (0, 9)))
+    with pytest.raises(QuadobsError, match="exclude each other"):
+        Isam2Peer(
+            ANCHORS_3D, "none", x0=np.zeros(3), noise=PeerNoise(bias="state"), fixed_bias=np.ones(6)
+        )
     imu = Isam2Peer(ANCHORS_3D, "imu_body", x0=np.zeros(3))
     with pytest.raises(QuadobsError, match="needs an input held"):
         imu.predict(0.1)
