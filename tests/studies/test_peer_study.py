@@ -6,7 +6,7 @@ import pytest
 
 pytest.importorskip("gtsam", reason="gtsam is not installed (the data extra)")
 
-from quadobs.studies.peer import CASES, run_case  # noqa: E402
+from quadobs.studies.peer import CASES, run_case
 
 
 def test_a_short_case_runs_and_repeats_with_its_seed():
