@@ -215,7 +215,7 @@ class ImuMotion:
         self.params = params
         self.bias = gtsam.imuBias.ConstantBias()
         self.pim = gtsam.PreintegratedCombinedMeasurements(params, self.bias)
-        self.u = None
+        self.u: np.ndarray | None = None
 
     def position_key(self, i: int) -> int:
         return self.g.symbol("x", i)

@@ -104,7 +104,8 @@ def run_case(
     est = Isam2Peer(anchors, input_kind, x0=x0, P0=4 * offset**2 * dim, noise=noise)
     sub = imu_rate // rate if input_kind in ("imu_body", "accel_nav") else 1
     dt = 1.0 / (rate * sub)
-    errs, times = [], []
+    err_list: list[float] = []
+    time_list: list[float] = []
     start = time.perf_counter()
     for k in range(int(round(duration / dt)) + 1):
         t = k * dt
@@ -112,8 +113,8 @@ def run_case(
         p, a = _truth(t)
         if k % sub == 0 and k > 0:
             est.correct(_measure(case, t, k // sub, p[:dim], anchors, sigma, rng))
-            errs.append(float(np.linalg.norm(est.x_hat[:dim] - p[:dim])))
-            times.append(t)
+            err_list.append(float(np.linalg.norm(est.x_hat[:dim] - p[:dim])))
+            time_list.append(t)
         if input_kind == "imu_body":
             est.hold(_imu(t, a) + _imu_noise(rng))
         elif input_kind == "accel_nav":
@@ -121,7 +122,7 @@ def run_case(
     online = time.perf_counter() - start
     T, P = est.batch_trajectory()
     batch_err = np.linalg.norm(P - np.array([_truth(s)[0][:dim] for s in T]), axis=1)
-    times, errs = np.array(times), np.array(errs)
+    times, errs = np.array(time_list), np.array(err_list)
     out = {
         "online_rmse": float(np.sqrt(np.mean(errs[times > burn_in] ** 2))),
         "batch_rmse": float(np.sqrt(np.mean(batch_err[T > burn_in] ** 2))),
