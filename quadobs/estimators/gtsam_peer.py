@@ -146,11 +146,19 @@ class PeerNoise:
             raise QuadobsError(f"loss: expected one of {', '.join(LOSSES)}, got {self.loss!r}")
         if self.bias not in ("none", "state"):
             raise QuadobsError(f"bias: expected 'none' or 'state', got {self.bias!r}")
-        for key, value in vars(self).items():
-            if key in ("loss", "bias", "attitude_sigma", "tdoa_sigma"):
-                continue
-            if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
-                raise QuadobsError(f"{key}: expected a non-negative finite number, got {value!r}")
+        numbers = {k: v for k, v in vars(self).items() if k not in ("loss", "bias")}
+        numbers.update(
+            {f"attitude_sigma[{i}]": v for i, v in enumerate(numbers.pop("attitude_sigma"))}
+        )
+        if math.isnan(numbers["tdoa_sigma"]):
+            del numbers["tdoa_sigma"]
+        for key, value in numbers.items():
+            low = 0.0 if key == "key_period" else math.nextafter(0.0, 1.0)
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= low):
+                what = "non-negative" if key == "key_period" else "positive"
+                raise QuadobsError(f"{key}: expected a {what} finite number, got {value!r}")
+        if len(self.attitude_sigma) != 3:
+            raise QuadobsError("attitude_sigma: expected three numbers (roll, pitch, yaw)")
 
 
 def peer_refusal(input_kind: str, dimension: int) -> str | None:
@@ -249,6 +257,9 @@ class Isam2Peer(Estimator, Counted):
         self._bias_priors()
         self.key, self.node_times, self._steps, self.key_steps = 0, [self.time], 0, [0]
         self.corrections = 0
+        #: Why iSAM2 stopped (gtsam refused an update), or ``None``: from then on the estimate
+        #: is NaN, which the replay reports as a divergence, never summarised as if it ran.
+        self.failure: str | None = None
         self._flush()
 
     # -- the graph ------------------------------------------------------------------------
@@ -289,10 +300,18 @@ class Isam2Peer(Estimator, Counted):
         """The graph's new part to iSAM2 (one update), and the last node's estimate read back."""
         if self._g_new.size() == 0 and self._v_new.size() == 0:
             return
-        self.graph.push_back(self._g_new)
-        self.values.insert(self._v_new)
-        self.isam.update(self._g_new, self._v_new)
+        g, v = self._g_new, self._v_new
         self._g_new, self._v_new = self._g.NonlinearFactorGraph(), self._g.Values()
+        if self.failure is not None:
+            return
+        self.graph.push_back(g)
+        self.values.insert(v)
+        try:
+            self.isam.update(g, v)
+        except RuntimeError as exc:  # gtsam's indeterminate system: the estimate is lost
+            first = next((line for line in str(exc).splitlines() if line.strip()), "")
+            self.failure = f"iSAM2 update at t = {self.time:.9g} s failed: {first.strip()}"
+            return
         self.motion.read(self.isam, self.key)
 
     def _node_for(self, t: float) -> int:
@@ -358,6 +377,8 @@ class Isam2Peer(Estimator, Counted):
     def x_hat(self) -> np.ndarray:
         """iSAM2's estimate of the last node propagated to the current time: the position (and velocity)."""
         self._flush()
+        if self.failure is not None:
+            return np.full(self.n, np.nan)
         return self.motion.current(self.n)
 
     @property
@@ -372,18 +393,28 @@ class Isam2Peer(Estimator, Counted):
     # -- the whole log ----------------------------------------------------------------------
 
     def online_trajectory(self) -> tuple[np.ndarray, np.ndarray]:
-        """The nodes' times ``(m,)`` and iSAM2's current (smoothed) positions of them ``(m, d)``."""
+        """The nodes' times ``(m,)`` and iSAM2's current (smoothed) positions of them ``(m, d)`` (NaN after a :attr:`failure`)."""
         self._flush()
+        if self.failure is not None:
+            return self._lost()
         return self._positions(self.isam.calculateEstimate())
 
     def batch_trajectory(self, max_iterations: int = 100) -> tuple[np.ndarray, np.ndarray]:
         """The nodes' times and positions in the Levenberg-Marquardt optimum of the whole graph, started at iSAM2's estimate."""
         self._flush()
+        if self.failure is not None:
+            return self._lost()
         gtsam = self._g
         params = gtsam.LevenbergMarquardtParams()
         params.setMaxIterations(int(max_iterations))
         opt = gtsam.LevenbergMarquardtOptimizer(self.graph, self.isam.calculateEstimate(), params)
-        return self._positions(opt.optimize())
+        try:
+            return self._positions(opt.optimize())
+        except RuntimeError:  # an indeterminate system for Levenberg-Marquardt too
+            return self._lost()
+
+    def _lost(self) -> tuple[np.ndarray, np.ndarray]:
+        return np.array(self.node_times), np.full((len(self.node_times), self.dim), np.nan)
 
     def online_positions(self) -> tuple[np.ndarray, np.ndarray]:
         """:meth:`online_trajectory` with the nodes' grid steps (the calls of :meth:`step` before them)."""

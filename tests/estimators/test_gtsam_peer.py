@@ -345,6 +345,10 @@ def test_what_the_peer_cannot_take_is_refused_in_one_line():
         Isam2Peer(ANCHORS_3D, "gps", x0=np.zeros(3))
     with pytest.raises(QuadobsError, match="loss: expected one of huber, cauchy, none"):
         PeerNoise(loss="tukey")
+    with pytest.raises(QuadobsError, match="range_sigma: expected a positive finite number"):
+        PeerNoise(range_sigma=0.0)
+    with pytest.raises(QuadobsError, match=r"attitude_sigma\[2\]: expected a positive"):
+        PeerNoise(attitude_sigma=(0.1, 0.1, math.inf))
     est = Isam2Peer(ANCHORS_3D, "none", x0=np.zeros(3))
     est.predict(1.0)
     with pytest.raises(QuadobsError, match="before its current time"):
@@ -362,3 +366,25 @@ def test_what_the_peer_cannot_take_is_refused_in_one_line():
     imu = Isam2Peer(ANCHORS_3D, "imu_body", x0=np.zeros(3))
     with pytest.raises(QuadobsError, match="needs an input held"):
         imu.predict(0.1)
+
+
+def test_an_update_gtsam_refuses_is_reported_as_lost_not_as_an_estimate(monkeypatch):
+    """gtsam's Cholesky declares this graph indeterminate (the reason the double integrator runs
+    on QR): the peer says why and its estimate turns NaN, which the replay reports as diverged."""
+    from quadobs.estimators import gtsam_motion
+
+    monkeypatch.setattr(gtsam_motion.DoubleIntegratorMotion, "factorization", "CHOLESKY")
+    est = Isam2Peer(
+        ANCHORS_3D,
+        "none",
+        x0=np.array([9.0, 0.0, 2.5, 0.0, 0.0, 0.0]),
+        P0=100.0,
+        noise=PeerNoise(range_sigma=0.05),
+    )
+    est.predict(0.02)
+    est.correct(Measurement(0.02, "range", 6.0, (1,)))
+    assert np.all(np.isnan(est.x_hat))
+    assert est.failure.startswith("iSAM2 update at t = 0.02 s failed: Indeterminate linear system")
+    est.predict(0.04)  # time still moves on; nothing more is solved
+    est.correct(Measurement(0.04, "range", 6.0, (2,)))
+    assert np.all(np.isnan(est.x_hat)) and np.all(np.isnan(est.batch_trajectory()[1]))
