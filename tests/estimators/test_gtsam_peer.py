@@ -388,3 +388,13 @@ def test_an_update_gtsam_refuses_is_reported_as_lost_not_as_an_estimate(monkeypa
     est.predict(0.04)  # time still moves on; nothing more is solved
     est.correct(Measurement(0.04, "range", 6.0, (2,)))
     assert np.all(np.isnan(est.x_hat)) and np.all(np.isnan(est.batch_trajectory()[1]))
+
+
+def test_the_replay_names_what_a_log_has_that_the_peer_cannot_take():
+    from quadobs.testbed.logs.peer import check_peer, peer_input_kind
+
+    assert peer_input_kind("imu") == "accel_nav" and peer_input_kind("none") == "none"
+    for kind, dim in (("odometry", 2), ("imu", 2), ("imu", 3), ("none", 2), ("imu_body", 3)):
+        check_peer(kind, dim)  # taken
+    with pytest.raises(QuadobsError, match=r"^estimators: 'isam2' cannot take a log with a body"):
+        check_peer("imu_body", 2)
