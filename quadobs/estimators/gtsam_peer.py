@@ -225,7 +225,7 @@ class Isam2Peer(Estimator, Counted):
         if self.n not in (d, 2 * d):
             raise QuadobsError(f"x0: expected {d} or {2 * d} entries, got {self.n}")
         self.dt = None if dt is None else as_finite_scalar("dt", dt, positive=True)
-        self.time = self._t0 = float(t0)
+        self._time = self._t0 = float(as_finite_scalar("t0", t0))
         if fixed_bias is not None and noise.bias == "state":
             raise QuadobsError("fixed_bias: known biases and biases as states exclude each other")
         self.ranges = RangeModel(
@@ -326,6 +326,20 @@ class Isam2Peer(Estimator, Counted):
 
     # -- the estimator interface ----------------------------------------------------------
 
+    @property
+    def time(self) -> float:
+        """The current time (s). Set before anything happened, it moves the first node there too
+        (the start of a log)."""
+        return self._time
+
+    @time.setter
+    def time(self, value: float) -> None:
+        t = as_finite_scalar("time", value)
+        fresh = self.key == 0 and self.corrections == 0 and self._time == self.node_times[0]
+        if not fresh:
+            raise QuadobsError(f"{self.name}: time can be set only before the first correction")
+        self._time = self.node_times[0] = float(t)
+
     def hold(self, u) -> None:
         """Hold the input ``u`` from the current time on (its layout: :mod:`quadobs.estimators.gtsam_motion`)."""
         self.motion.hold(as_array("u", u, (None,)))
@@ -336,7 +350,7 @@ class Isam2Peer(Estimator, Counted):
         self._flush()
         if dt > 0.0:
             self.motion.advance(dt)
-        self.time = t
+        self._time = float(t)
 
     def correct(self, m: Measurement) -> None:
         """The factor of one range or TDOA ``m`` taken at the current time, on its node.

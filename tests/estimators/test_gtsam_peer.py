@@ -398,3 +398,20 @@ def test_the_replay_names_what_a_log_has_that_the_peer_cannot_take():
         check_peer(kind, dim)  # taken
     with pytest.raises(QuadobsError, match=r"^estimators: 'isam2' cannot take a log with a body"):
         check_peer("imu_body", 2)
+
+
+def test_the_start_of_a_log_moves_the_first_node():
+    rng = np.random.default_rng(0)
+    est = Isam2Peer(ANCHORS_3D, "none", x0=np.concatenate([line(0.0)[0], np.zeros(3)]), P0=1.0)
+    est.time = 1000.0  # a log's clock
+    for k in range(1, 50):
+        t = 1000.0 + k / 25
+        est.predict(t)
+        p = line(t - 1000.0)[0]
+        rho = float(np.linalg.norm(p - ANCHORS_3D[k % 6]) + 0.01 * rng.standard_normal())
+        est.correct(Measurement(t, "range", rho, (k % 6,)))
+    times, _ = est.online_trajectory()
+    assert times[0] == 1000.0 and times[1] == pytest.approx(1000.04)
+    assert np.linalg.norm(est.x_hat[:3] - line(49 / 25)[0]) < 0.1
+    with pytest.raises(QuadobsError, match="only before the first correction"):
+        est.time = 0.0
