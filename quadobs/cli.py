@@ -807,10 +807,12 @@ def _cmd_replay(args) -> int:
     )  # before the calibration's replays
     log_scenario(log, args.dt, args.seed, args.set)  # the --set settings, checked as early
     _check_field_options(args)
-    if "isam2" in (_estimator_list(args.estimators) or ()):  # the peer's inputs, as early
-        from quadobs.testbed.logs.peer import check_peer
+    from quadobs.testbed.logs.replay import check_replay
 
-        check_peer(log.input_kind, log.dimension)
+    check_replay(  # the model and the estimators against the log, before the calibration
+        log, _estimator_list(args.estimators), dt=args.dt, model=args.model,
+        options=parse_tuning(args.tune),
+    )  # fmt: skip
     biases, tuning = _replay_calibration(args, log, parse_tuning(args.tune))
     stop_if_interrupted()
     summary = run_replay(
@@ -828,6 +830,7 @@ def _cmd_replay(args) -> int:
         setup_options=tuning,
         burn_in=args.burn_in,
         export_tum=args.export_tum,
+        calibration=getattr(args, "calibration_report", None),
     )
     m = summary["measurements"]
     print(
@@ -935,7 +938,7 @@ def _replay_calibration(args, log, tuning: dict) -> tuple[list[float] | None, di
     The self-calibration also picks the model's process noise, unless ``--tune`` sets it.
     """
     from quadobs.errors import QuadobsError
-    from quadobs.testbed.logs.calibration import process_noise_key, self_calibrate
+    from quadobs.testbed.logs.calibration import calibrate, process_noise_key
     from quadobs.testbed.worlds.replay import default_model
 
     if args.biases is not None:
@@ -951,18 +954,20 @@ def _replay_calibration(args, log, tuning: dict) -> tuple[list[float] | None, di
     if args.calibrate == "none":
         return None, tuning
     key = process_noise_key(args.model or default_model(log))
-    biases, tuning, scores = self_calibrate(
+    cal = calibrate(
         log, dt=args.dt, model=args.model, setup_options=tuning, noise=key not in tuning
     )
+    chosen = "none" if cal.biases is None else ", ".join(f"{b:.2f}" for b in cal.biases) + " m"
     print(
-        f"calibrated from the log: biases {', '.join(f'{b:.2f}' for b in biases)} m"
+        f"calibrated from the log: biases {chosen} ({cal.reason})"
         + (
-            f"; {key} {tuning[key]:g} (prediction score {scores[tuning[key]]:.3f} m)"
-            if scores
+            f"; {key} {cal.options[key]:g} (prediction score {cal.scores[cal.options[key]]:.3f} m)"
+            if cal.scores
             else ""
         )
     )
-    return list(biases), tuning
+    args.calibration_report = cal.summary()
+    return None if cal.biases is None else [float(b) for b in cal.biases], cal.options
 
 
 def _run_command(argv: list[str] | None) -> int:

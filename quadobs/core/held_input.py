@@ -43,7 +43,15 @@ import scipy.linalg as sla
 from quadobs.core.immersion import Immersion
 from quadobs.errors import QuadobsError, as_array, as_finite_scalar
 
-__all__ = ["HeldInputDiscretization", "as_covariance", "held_input_step", "van_loan"]
+__all__ = [
+    "HeldInputDiscretization",
+    "as_covariance",
+    "expm_exact",
+    "held_input_interval",
+    "held_input_step",
+    "van_loan",
+    "van_loan_interval",
+]
 
 
 #: Largest magnitude of a covariance entry: the filters' products (``K R K^T``, ``C P C^T``)
@@ -159,6 +167,53 @@ def van_loan(A: np.ndarray, V: np.ndarray, dt: float) -> tuple[np.ndarray, np.nd
     big[:N, N:] = V
     big[N:, N:] = A.T
     E = sla.expm(big * dt)
+    Phi = E[N:, N:].T
+    Q = Phi @ E[:N, N:]
+    return Phi, 0.5 * (Q + Q.T)
+
+
+def expm_exact(M: np.ndarray) -> np.ndarray:
+    """``e^M``: the finite series ``sum_{i<k} M^i / i!`` when ``M^k`` is exactly zero for some
+    ``k <= n`` (a nilpotent matrix, as the replay models' ``A`` and their immersions' ``A(u)``
+    and Van Loan blocks are), else :func:`scipy.linalg.expm`. Exact either way; the series
+    costs a few products where ``expm`` costs a Padé approximant with scaling and squaring.
+
+    Examples
+    --------
+    >>> expm_exact(np.array([[0.0, 2.0], [0.0, 0.0]])).tolist()
+    [[1.0, 2.0], [0.0, 1.0]]
+    """
+    n = M.shape[0]
+    out = np.eye(n)
+    term = np.eye(n)
+    for i in range(1, n + 1):
+        term = term @ M / i
+        if not term.any():
+            return out
+        out = out + term
+    return sla.expm(M)
+
+
+def held_input_interval(A: np.ndarray, B: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`held_input_step` through :func:`expm_exact`: the same map, for intervals of any
+    length taken one at a time (the interface in time); the precomputed steps keep
+    :func:`held_input_step`."""
+    n, p = A.shape[0], B.shape[1]
+    big = np.zeros((n + p, n + p))
+    big[:n, :n] = A
+    big[:n, n:] = B
+    E = expm_exact(big * dt)
+    return E[:n, :n].copy(), E[:n, n:].copy()
+
+
+def van_loan_interval(A: np.ndarray, V: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`van_loan` through :func:`expm_exact` (see :func:`held_input_interval`)."""
+    N = A.shape[0]
+    big = np.zeros((2 * N, 2 * N))
+    big[:N, :N] = -A
+    big[:N, N:] = V
+    big[N:, N:] = A.T
+    E = expm_exact(big * dt)
     Phi = E[N:, N:].T
     Q = Phi @ E[:N, N:]
     return Phi, 0.5 * (Q + Q.T)

@@ -232,19 +232,25 @@ def odometry_system(beacons: np.ndarray) -> QuadraticSystem:
 
 
 def constant_velocity_system(beacons: np.ndarray, inputs: int = 3) -> QuadraticSystem:
-    """A ground vehicle in the plane with a constant velocity, driven by process noise only.
+    """A vehicle with a constant velocity, driven by process noise only, in the plane or in space.
 
     State ``x = (p, v)``; ``p' = v``, ``v' = w`` (the process noise of the estimator);
     an input of ``inputs`` components (the ``u = (v_x, v_y, omega)`` of :func:`odometry_system`
     by default, or an acceleration) is accepted and ignored (``B = 0``), so the models
-    replay the same rows. Outputs as in :func:`odometry_system`.
+    replay the same rows. Outputs as in :func:`odometry_system` (:func:`vehicle_system` for
+    beacons in space: ``beacons (q, 3)``).
     Assumption: the velocity changes slowly against the range rate (its changes are white
     noise of the intensity the estimator is given). Three auxiliary states
     ``|p|^2/2, p^T v, |v|^2/2`` (as for :func:`vehicle_system`).
     """
-    beacons = as_array("beacons", beacons, (None, 2))
+    beacons = np.asarray(beacons, dtype=float)
+    dim = beacons.shape[1] if beacons.ndim == 2 and beacons.shape[1] == 3 else 2
+    beacons = as_array("beacons", beacons, (None, dim))
     if beacons.shape[0] == 0:
         raise QuadobsError("beacons: at least one beacon is needed")
+    if dim == 3:
+        system = vehicle_system(3, beacons)
+        return QuadraticSystem(system.A, np.zeros((6, int(inputs))), system.C, system.d)
     A, _ = _double_integrator(2)
     C, d = _planar_ranges(beacons, 4)
     return QuadraticSystem(A, np.zeros((4, int(inputs))), C, d)

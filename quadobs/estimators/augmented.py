@@ -34,8 +34,8 @@ import numpy as np
 from quadobs.core.held_input import (
     HeldInputDiscretization,
     as_covariance,
-    held_input_step,
-    van_loan,
+    held_input_interval,
+    van_loan_interval,
 )
 from quadobs.core.immersion import Immersion
 from quadobs.core.measurements import Measurement
@@ -210,6 +210,12 @@ class AugmentedObserver(Estimator, Gated, Immersed, BlockStep):
     backend : {"auto", "numba", "numpy"}
         ``"numba"``: the compiled kernels of :mod:`quadobs._kernels.observer`; ``"numpy"``: the
         reference implementation; ``"auto"`` (default): Numba when it imports.
+    measurements : MeasurementModel or list, optional
+        The models of the measurements :meth:`correct` takes (default: the range model of the
+        system's range outputs); each needs a quadratic-output form.
+    noise_of : callable, optional
+        ``z -> V (N, N)``: a process noise that depends on the state, used by :meth:`predict`
+        over each interval (at the interval's start) in place of ``V``; :meth:`step` keeps ``V``.
 
     Attributes
     ----------
@@ -249,12 +255,14 @@ class AugmentedObserver(Estimator, Gated, Immersed, BlockStep):
         gate: float | None = None,
         backend: str = "auto",
         measurements=None,
+        noise_of=None,
     ) -> None:
         if not isinstance(immersion, Immersion):
             raise QuadobsError(f"immersion: expected an Immersion, got {type(immersion).__name__}")
         self.immersion = immersion
         self.model = HeldInputDiscretization(immersion, dt, V, theta)
         self.measurement_models = measurement_models(immersion.system, measurements)
+        self.noise_of = noise_of
         for model in self.measurement_models.values():
             if model.quadratic_form() is None:
                 raise QuadobsError(
@@ -633,6 +641,9 @@ class AugmentedObserver(Estimator, Gated, Immersed, BlockStep):
     def _propagate(self, dt: float, u: np.ndarray) -> None:
         """Exact propagation over ``dt`` with ``u`` held: the precomputed step when ``dt`` is the
         observer's own (within ``1e-9`` relative), else from the matrix exponentials themselves.
+        With ``noise_of`` (a function of ``z`` giving ``V``), the process noise of each interval is
+        ``noise_of(z)`` at its start (a noise whose map into the augmented state depends on the
+        state, as ``p^T w`` in ``(|p|^2 / 2)' = p^T (v + w)``).
 
         Over any ``dt``, with ``A(u)`` and ``B`` of the augmented system ([IFAC2021, eq. 14]):
 
@@ -646,13 +657,14 @@ class AugmentedObserver(Estimator, Gated, Immersed, BlockStep):
         (:mod:`quadobs.core.held_input`): the same maths as the precomputed step.
         """
         m = self.model
-        if abs(dt - m.dt) <= 1e-9 * m.dt:
+        if self.noise_of is None and abs(dt - m.dt) <= 1e-9 * m.dt:
             self.predict_step(u)
             return
         im = self.immersion
         A = im.state_matrix(u)
-        Phi, g = held_input_step(A, (im.input_matrix @ u)[:, None], dt)
-        Q = van_loan(A + 0.5 * m.theta * self._eye, m.V, dt)[1]
+        V = m.V if self.noise_of is None else self.noise_of(self._z)
+        Phi, g = held_input_interval(A, (im.input_matrix @ u)[:, None], dt)
+        Q = van_loan_interval(A + 0.5 * m.theta * self._eye, V, dt)[1]
         z, P = self._z, self._P
         z[...] = Phi @ z + g[:, 0]
         P_new = math.exp(m.theta * dt) * (Phi @ P @ Phi.T) + Q

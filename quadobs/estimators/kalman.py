@@ -70,7 +70,13 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from quadobs.core.held_input import as_covariance, held_input_step, van_loan
+from quadobs.core.held_input import (
+    as_covariance,
+    held_input_interval,
+    held_input_step,
+    van_loan,
+    van_loan_interval,
+)
 from quadobs.core.measurements import Measurement, MeasurementModel
 from quadobs.core.system import QuadraticSystem
 from quadobs.errors import QuadobsError, as_array, as_finite_scalar
@@ -153,11 +159,24 @@ class HeldInputModel:
     def over(self, dt: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``(F, G, Q)`` of the same model over an interval of ``dt`` seconds (any ``dt > 0``),
         by the same exponentials as the step's own: ``Q = Q_V(dt) + G Sigma_u G^T``, the
-        measured input's error held over the interval."""
+        measured input's error held over the interval.
+
+        Where ``A^2 = 0`` the exponentials' series end after their linear terms:
+        ``F = I + A dt``, ``G = B dt + A B dt^2 / 2`` and
+        ``Q_V = V dt + (A V + V A^T) dt^2 / 2 + A V A^T dt^3 / 3`` (exact).
+        """
         dt = as_finite_scalar("dt", dt, positive=True)
         sys_ = self.system
-        F, G = held_input_step(sys_.A, sys_.B, dt)
-        Q = van_loan(sys_.A, self.V, dt)[1] if self.V.any() else np.zeros_like(F)
+        A, B, V = sys_.A, sys_.B, self.V
+        if not (A @ A).any():  # A^2 = 0 (single and double integrators): the series ends at A
+            F = np.eye(A.shape[0]) + dt * A
+            G = dt * B + (0.5 * dt * dt) * (A @ B)
+            AV = A @ V
+            Q = dt * V + (0.5 * dt * dt) * (AV + AV.T) + (dt**3 / 3.0) * (AV @ A.T)
+            Q = Q + G @ self.input_covariance @ G.T
+            return F, G, 0.5 * (Q + Q.T)
+        F, G = held_input_interval(sys_.A, sys_.B, dt)
+        Q = van_loan_interval(sys_.A, self.V, dt)[1] if self.V.any() else np.zeros_like(F)
         Q = Q + G @ self.input_covariance @ G.T
         return F, G, 0.5 * (Q + Q.T)
 

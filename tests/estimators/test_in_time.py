@@ -250,3 +250,14 @@ def test_refined_in_time_hands_over_and_ends_near_the_truth():
         x = model.F @ x + model.G @ u
     assert np.linalg.norm(ref.x_hat[:2] - x[:2]) < 0.1
     assert ref.time == pytest.approx(steps * DT)
+
+
+def test_exact_exponential_of_nilpotent_and_general_matrices():
+    from scipy.linalg import expm
+
+    from quadobs.core.held_input import expm_exact
+
+    system = vehicle_system(3, np.array([[1.0, 2.0, 3.0], [4.0, -1.0, 0.5]]))
+    im = immerse(system)
+    for M in (im.state_matrix(np.array([0.3, -1.0, 2.0])) * 0.7, np.array([[0.1, 1.0], [0, 0]])):
+        np.testing.assert_allclose(expm_exact(M), expm(M), rtol=1e-13, atol=1e-14)

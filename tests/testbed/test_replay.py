@@ -626,7 +626,7 @@ def test_accelerometer_logs_check_their_dimensions_and_models(tmp_path, capsys):
         read_log(folder)
     folder = write_log(imu_circle_log(5.0), tmp_path / "imu")
     for args, message in (
-        (["--model", "odometry"], "model odometry: the log 'imu-circle' has accelerometer inputs"),
+        (["--model", "odometry"], "model odometry: the log 'imu-circle' lacks wheel odometry"),
         (["--set", "noise.airspeed_std=1"], "noise.airspeed_std: does not apply"),
     ):
         assert main(["replay", str(folder), "--no-progress", "--calibrate", "none", *args]) == 2
@@ -636,7 +636,7 @@ def test_accelerometer_logs_check_their_dimensions_and_models(tmp_path, capsys):
         main(["replay", str(odometry), "--no-progress", "--calibrate", "none", "--model", "imu"])
         == 2
     )
-    assert "model imu: the log 'circle' has odometry inputs" in capsys.readouterr().err
+    assert "model imu: the log 'circle' lacks an accelerometer" in capsys.readouterr().err
 
 
 @needs_gtsam

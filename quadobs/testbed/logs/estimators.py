@@ -45,6 +45,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from quadobs.core.immersion import immerse
+from quadobs.core.measurements import RangeModel, TdoaModel
 from quadobs.core.system import (
     QuadraticSystem,
     constant_velocity_system,
@@ -54,7 +55,12 @@ from quadobs.core.system import (
 from quadobs.errors import QuadobsError
 from quadobs.estimators.augmented import AugmentedObserver
 from quadobs.estimators.base import Estimator
-from quadobs.estimators.kalman import ExtendedKalmanFilter, HeldInputModel, OutputModel
+from quadobs.estimators.kalman import (
+    ExtendedKalmanFilter,
+    HeldInputModel,
+    OutputModel,
+    UnscentedKalmanFilter,
+)
 
 __all__ = [
     "REPLAY_ENTRY_POINT_GROUP",
@@ -89,8 +95,10 @@ class ReplaySetup:
         Noise settings (module docstring).
     P0 : float
         Variance of the initial position guess per axis (m^2).
-    input_kind : {"odometry", "imu"}
+    input_kind : {"odometry", "imu", "imu_body", "none"}
         The log's inputs (:class:`~quadobs.testbed.logs.format.RangeLog`).
+    kinds : tuple of str
+        The kinds of measurement the log holds (``"range"``, ``"tdoa"``).
     """
 
     beacons: np.ndarray
@@ -106,6 +114,7 @@ class ReplaySetup:
     gate: float | None = None
     P0: float = 2500.0
     input_kind: str = "odometry"
+    kinds: tuple = ("range",)
     system: QuadraticSystem = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
@@ -119,6 +128,8 @@ class ReplaySetup:
                 )
         dim = self.beacons.shape[1]
         inputs = 3 if self.input_kind == "odometry" else dim
+        if self.model == "odometry" and dim != 2:
+            raise QuadobsError("model odometry: planar logs only")
         make = {
             "odometry": lambda: odometry_system(self.beacons),
             "cv": lambda: constant_velocity_system(self.beacons, inputs),
@@ -136,6 +147,24 @@ class ReplaySetup:
     def dim(self) -> int:
         """Dimension of the positions."""
         return int(self.beacons.shape[1])
+
+    def measurement_std(self) -> dict:
+        """The standard deviation by kind given to the measurements that the log gives none:
+        ``range_sigma``, and ``sqrt(2) range_sigma`` for a TDOA (the difference of two ranges of
+        independent errors). In the augmented observer a range's own standard deviation sets
+        its output's variance ``rho^2 sigma^2 + sigma^4 / 2``
+        (:meth:`~quadobs.core.measurements.RangeModel.quadratic_output`)."""
+        return {"range": self.range_sigma, "tdoa": math.sqrt(2.0) * self.range_sigma}
+
+    def measurement_models(self) -> list:
+        """The models of the log's measurement kinds: ranges and TDOA with ``range_sigma``
+        (a TDOA is the difference of two ranges of independent errors: ``sqrt(2) range_sigma``)."""
+        models = []
+        if "range" in self.kinds:
+            models.append(RangeModel(self.beacons, self.range_sigma))
+        if "tdoa" in self.kinds:
+            models.append(TdoaModel(self.beacons, self.measurement_std()["tdoa"]))
+        return models
 
 
 #: The settings of :class:`ReplaySetup` a user may tune (``quadobs replay --tune KEY=VALUE``).
@@ -169,15 +198,25 @@ def replay_setup(log, world, options: dict | None = None) -> ReplaySetup:
     heading = (
         float(dead_reckoning(log, world.times[:1])[1][0]) if log.input_kind == "odometry" else 0.0
     )
+    kinds = tuple(k for k, table in (("range", log.ranges), ("tdoa", log.tdoa)) if table.shape[0])
     return ReplaySetup(
         log.beacons,
         world.dt,
         world.model,
         heading,
-        float(np.median(log.ranges[:, 2])),
+        _typical_range(log),
         input_kind=log.input_kind,
+        kinds=kinds,
         **(options or {}),
     )
+
+
+def _typical_range(log) -> float:
+    """The median measured range; for a log without ranges, the median distance of the anchors
+    from their centroid (the geometry's scale)."""
+    if log.ranges.shape[0]:
+        return float(np.median(log.ranges[:, 2]))
+    return float(np.median(np.linalg.norm(log.beacons - log.beacons.mean(axis=0), axis=1)))
 
 
 def _acceleration_noise(s: ReplaySetup) -> float:
@@ -193,10 +232,19 @@ def _process_noise(s: ReplaySetup) -> np.ndarray:
 
 
 def build_augmented(s: ReplaySetup, x0: np.ndarray, name: str = "augmented") -> AugmentedObserver:
-    """The observer of [IFAC2021, Thm. 3] on the immersion of the replay model [ACC2024, Alg. 1]."""
+    """The observer of [IFAC2021, Thm. 3] on the immersion of the replay model [ACC2024, Alg. 1].
+
+    Ranges only: a log holding TDOA is refused by name (its measurements have no
+    quadratic-output form in this observer).
+    """
+    if "tdoa" in s.kinds:
+        raise QuadobsError(
+            f"estimators: {name!r} takes ranges only, and the log holds TDOA "
+            "(no quadratic-output form in the observer; use ekf or ukf)"
+        )
     im = immerse(s.system)
     k = im.n_aux
-    r = float(np.max(np.linalg.norm(s.beacons, axis=1))) + 20.0
+    r = float(np.max(np.linalg.norm(s.beacons, axis=1)))
     V = np.zeros((im.dim, im.dim))
     V[k:, k:] = _process_noise(s)
     if s.model == "odometry":
@@ -214,12 +262,33 @@ def build_augmented(s: ReplaySetup, x0: np.ndarray, name: str = "augmented") -> 
     else:
         P[:k, :k] = np.eye(k) * (s.P0 * (p0 @ p0 + 1.0) + s.P0**2)
     R = (s.range_median * s.range_sigma) ** 2
-    est = AugmentedObserver(im, s.dt, V=V, W=R * s.dt, P0=P, z0=z0, gate=s.gate)
+    est = AugmentedObserver(
+        im, s.dt, V=V, W=R * s.dt, P0=P, z0=z0, gate=s.gate, noise_of=_noise_map(s, im)
+    )
     est.name = name
     return est
 
 
-def build_ekf(s: ReplaySetup, x0: np.ndarray, name: str = "ekf") -> ExtendedKalmanFilter:
+def _noise_map(s: ReplaySetup, im):
+    """``z -> V(z)``: the model's white noise on ``x'`` mapped into the augmented state at the
+    estimate (module docstring). With ``xi_i = x^T L_i x / 2`` (the immersion's auxiliary forms),
+    a noise ``w`` of intensity ``V_x`` on ``x'`` drives ``xi_i'`` by ``x^T L_i w``, so
+    ``V(z) = J V_x J^T`` with ``J = [x^T L_1; ...; x^T L_k; I_n]``: no constant of any scale."""
+    k, n = im.n_aux, s.n
+    Vx = _process_noise(s)
+    L = im.aux_forms
+    J = np.zeros((im.dim, n))
+    J[k:] = np.eye(n)
+
+    def noise(z: np.ndarray) -> np.ndarray:
+        J[:k] = L @ z[k:]  # rows x^T L_i (L_i symmetric)
+        V = J @ Vx @ J.T
+        return 0.5 * (V + V.T)
+
+    return noise
+
+
+def build_ekf(s: ReplaySetup, x0: np.ndarray, name: str = "ekf", cls=ExtendedKalmanFilter):
     """The EKF on ``x`` in the range space (:class:`~quadobs.estimators.kalman.OutputModel` with offsets)."""
     dyn = HeldInputModel(s.system, s.dt, V=_process_noise(s))
     out = OutputModel(
@@ -227,9 +296,14 @@ def build_ekf(s: ReplaySetup, x0: np.ndarray, name: str = "ekf") -> ExtendedKalm
     )
     P0 = np.full(s.n, s.P0)
     P0[s.dim :] = 4.0  # the velocity, for the models that have one
-    est = ExtendedKalmanFilter(dyn, out, x0=x0, P0=np.diag(P0), gate=s.gate)
+    est = cls(dyn, out, x0=x0, P0=np.diag(P0), gate=s.gate, measurements=s.measurement_models())
     est.name = name
     return est
+
+
+def build_ukf(s: ReplaySetup, x0: np.ndarray, name: str = "ukf") -> UnscentedKalmanFilter:
+    """The UKF on ``x``, with the EKF's models and noise (:func:`build_ekf`)."""
+    return build_ekf(s, x0, name, UnscentedKalmanFilter)
 
 
 def build_isam2(s, x0: np.ndarray, name: str = "isam2") -> Estimator:
@@ -244,7 +318,16 @@ def build_isam2(s, x0: np.ndarray, name: str = "isam2") -> Estimator:
 
 
 #: The built-in estimators of logged data (as declared in pyproject.toml; a test checks that they agree).
-REPLAY_ESTIMATORS = {"augmented": build_augmented, "ekf": build_ekf, "isam2": build_isam2}
+#: An estimator that reads a body IMU as its input (the Crazyflie's on-board EKF,
+#: ``u = (f_body, omega_body)``) is registered here beside them and marks its instances with
+#: ``replay_input = "imu_body"``: the replay then holds the log's raw body IMU samples for it
+#: instead of the navigation-frame acceleration (:mod:`quadobs.testbed.logs.events`).
+REPLAY_ESTIMATORS = {
+    "augmented": build_augmented,
+    "ekf": build_ekf,
+    "ukf": build_ukf,
+    "isam2": build_isam2,
+}
 
 
 def _entry_points() -> dict:

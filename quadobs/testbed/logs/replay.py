@@ -35,9 +35,10 @@ import numpy as np
 
 from quadobs.errors import QuadobsError
 from quadobs.testbed.logs.estimators import build_replay_estimators, replay_setup
+from quadobs.testbed.logs.events import InTimeOnGrid, LogEvents, in_time, takes_time
 from quadobs.testbed.logs.format import LOG_FILES
 
-__all__ = ["DEFAULT_ESTIMATORS", "initial_guess", "log_scenario", "run_replay"]
+__all__ = ["DEFAULT_ESTIMATORS", "check_replay", "initial_guess", "log_scenario", "run_replay"]
 
 DEFAULT_ESTIMATORS = ("augmented", "ekf")
 _BLOCK = 8192
@@ -114,6 +115,7 @@ def run_replay(
     x0=None,
     burn_in: float = 0.0,
     export_tum: str | Path | None = None,
+    calibration: dict | None = None,
 ) -> dict:
     """Replay ``log`` through the estimators; returns the summary (module docstring), also written to ``summary_path``.
 
@@ -148,6 +150,9 @@ def run_replay(
         Seconds from the start before the RMSE and the maximum error are taken.
     export_tum : path, optional
         Folder for the TUM files of the truth and of each estimator (written whole).
+    calibration : dict, optional
+        What the self-calibration chose and why
+        (:meth:`~quadobs.testbed.logs.calibration.Calibration.summary`), kept in the summary.
     """
     from quadobs.testbed.episode import run_loop
     from quadobs.testbed.outputs import check_outputs
@@ -165,18 +170,27 @@ def run_replay(
     world = ReplayWorld(
         log, dt, model or default_model(log), _BLOCK, biases, sensors=sensors, peer_batch=batch
     )
-    if world.placed == 0:
-        raise QuadobsError(f"log {log.name!r}: no range falls inside the inputs' time span")
+    setup = replay_setup(log, world, setup_options)
+    events = LogEvents(
+        log, biases, start=world.times[0], end=world.times[-1], std=setup.measurement_std()
+    )
+    timed = world.sensors is None  # a sensor layer (noise.* settings) acts on the grid's rows
+    if (events.count if timed else world.placed) == 0:
+        raise QuadobsError(f"log {log.name!r}: no measurement falls inside the inputs' time span")
     if x0 is None:
         x0 = initial_guess(log, world, float(initial_offset), seed)
     x0 = np.array(x0, dtype=float)
-    setup = replay_setup(log, world, setup_options)
-    ests = build_replay_estimators(setup, names, x0)
+    built = build_replay_estimators(setup, names, x0)
+    ests = [in_time(e, events, world.times) if timed and takes_time(e) else e for e in built]
+    world.in_time_count = events.count if timed else None
 
     def summarise(merged, completed, wall, interrupted):
         summary = _summary(
             log, world, names, merged, completed, interrupted, x0, biases, setup, out, sensors
         )
+        summary["ranges"].update(_timing(log, world, ests, events))
+        if calibration is not None:
+            summary["calibration"] = calibration
         summary["wall_time"] = wall
         return summary
 
@@ -193,6 +207,43 @@ def run_replay(
         sinks=[field],
     )
     return summary
+
+
+def _timing(log, world, ests, events) -> dict:
+    """How the measurements reached the estimators: in time (each at its own timestamp, none
+    merged) or on the grid (floored onto its steps, a second range to a beacon in a step merged)."""
+    timed = [e.name for e in ests if isinstance(e, InTimeOnGrid)]
+    grid = [e.name for e in ests if not isinstance(e, InTimeOnGrid)]
+    out = {"tdoa_in_log": int(log.tdoa.shape[0]), "in_time": timed, "on_grid": grid}
+    if timed:
+        out["measurements_in_time"] = events.count
+        # the grid ends within dt of the log's end: what lies after its last time is not replayed
+        n_log = int(log.ranges.shape[0] + log.tdoa.shape[0])
+        out["after_the_last_step"] = sum(
+            1 for t in np.concatenate([log.ranges[:, 0], log.tdoa[:, 0]]) if t >= world.times[-1]
+        )
+        out["before_the_first_input"] = n_log - events.count - out["after_the_last_step"]
+    if not grid:
+        out["placed"], out["merged"] = events.count, 0
+    return out
+
+
+def check_replay(log, names, *, dt: float = 0.1, model: str | None = None, options=None) -> None:
+    """Refuse, before any calibration or replay, a model the log cannot drive or an estimator
+    that cannot take the log (each factory's one-line error, naming what the log lacks or holds)."""
+    from quadobs.testbed.logs.estimators import ReplaySetup, _typical_range
+    from quadobs.testbed.worlds.replay import default_model, state_size
+
+    model = model or default_model(log)
+    n = state_size(log, model)
+    kinds = tuple(k for k, table in (("range", log.ranges), ("tdoa", log.tdoa)) if table.shape[0])
+    setup = ReplaySetup(
+        log.beacons, dt, model, 0.0, _typical_range(log), input_kind=log.input_kind, kinds=kinds,
+        **(options or {}),
+    )  # fmt: skip
+    x0 = np.zeros(n)
+    x0[: log.dimension] = log.beacons.mean(axis=0)
+    build_replay_estimators(setup, list(names) if names else list(DEFAULT_ESTIMATORS), x0)
 
 
 def _summary(

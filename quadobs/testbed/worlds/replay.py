@@ -66,6 +66,8 @@ __all__ = [
     "dead_reckoning",
     "default_model",
     "grid",
+    "held_samples",
+    "input_width",
     "state_size",
 ]
 
@@ -74,25 +76,44 @@ MODELS = ("odometry", "cv", "imu")
 
 
 def default_model(log) -> str:
-    """``odometry`` for an odometry log, ``imu`` for an accelerometer log."""
-    return "odometry" if log.input_kind == "odometry" else "imu"
+    """The model a log's inputs ask for: ``odometry`` for wheel odometry, ``imu`` for an
+    accelerometer or a body IMU, ``cv`` for a log of measurements alone."""
+    return {"odometry": "odometry", "imu": "imu", "imu_body": "imu", "none": "cv"}[log.input_kind]
 
 
 def state_size(log, model: str) -> int:
     """The estimator state size ``n`` of ``model`` on ``log``; a one-line error where the model does not apply."""
     if model not in MODELS:
         raise QuadobsError(f"model: expected one of {', '.join(MODELS)}, got {model!r}")
+    lacks = {
+        "odometry": "wheel odometry (inputs.csv: time,speed,yaw_rate)",
+        "imu": "an accelerometer (inputs.csv: time,ax,ay[,az]) or a body IMU (imu.csv)",
+    }
     if model == "odometry" and log.input_kind != "odometry":
-        raise QuadobsError(
-            f"model odometry: the log {log.name!r} has accelerometer inputs (use --model imu)"
-        )
-    if model == "imu" and log.input_kind != "imu":
-        raise QuadobsError(
-            f"model imu: the log {log.name!r} has odometry inputs, no accelerometer (use --model odometry)"
-        )
-    if model == "cv" and log.dimension != 2:
-        raise QuadobsError(f"model cv: planar logs only (the log {log.name!r} is 3-D)")
-    return {"odometry": 2, "cv": 4, "imu": 2 * log.dimension}[model]
+        raise QuadobsError(f"model odometry: the log {log.name!r} lacks {lacks['odometry']}")
+    if model == "imu" and log.input_kind not in ("imu", "imu_body"):
+        raise QuadobsError(f"model imu: the log {log.name!r} lacks {lacks['imu']}")
+    return {"odometry": 2, "cv": 2 * log.dimension, "imu": 2 * log.dimension}[model]
+
+
+def input_width(log) -> int:
+    """The width of the input the replay's models read: 3 for odometry (``v_x, v_y, omega``),
+    else the dimension (an acceleration in the navigation frame; zeros for a log without inputs)."""
+    return 3 if log.input_kind == "odometry" else log.dimension
+
+
+def held_samples(log) -> np.ndarray:
+    """The log's inputs as the replay's held samples, ``time`` then :func:`input_width` columns:
+    the odometry's ``speed, yaw_rate`` rows, an accelerometer's rows, a body IMU rotated into
+    the navigation frame (:func:`~quadobs.testbed.attitude.navigation_accelerations`), or,
+    without inputs, zeros at the log's start and end."""
+    if log.input_kind == "imu_body":
+        from quadobs.testbed.attitude import navigation_accelerations
+
+        return navigation_accelerations(log)
+    if log.input_kind == "none":
+        return np.column_stack([[log.start, log.end], np.zeros((2, log.dimension))])
+    return log.inputs
 
 
 def grid(log, dt: float) -> np.ndarray:
@@ -117,9 +138,13 @@ def dead_reckoning(log, times: np.ndarray, origin=(0.0, 0.0)) -> tuple[np.ndarra
     return np.column_stack([x, y]), np.interp(times, t, theta)
 
 
-def held_mean(log, times: np.ndarray) -> np.ndarray:
-    """The mean of the held accelerometer input over each grid step ``[t_k, t_(k+1))``, ``(K, dim)`` (module docstring)."""
-    t, a = log.inputs[:, 0], log.inputs[:, 1:]
+def held_mean(log, times: np.ndarray, samples: np.ndarray | None = None) -> np.ndarray:
+    """The mean of the held accelerometer input over each grid step ``[t_k, t_(k+1))``, ``(K, dim)`` (module docstring).
+
+    ``samples``: the ``time, a...`` rows (default: the log's inputs).
+    """
+    samples = log.inputs if samples is None else samples
+    t, a = samples[:, 0], samples[:, 1:]
     V = np.vstack([np.zeros(a.shape[1]), np.cumsum(a[:-1] * np.diff(t)[:, None], axis=0)])
     Vg = np.column_stack([np.interp(times, t, V[:, i]) for i in range(a.shape[1])])
     return np.diff(Vg, axis=0) / np.diff(times)[:, None]
@@ -192,7 +217,7 @@ class ReplayWorld(World):
         self.steps = K = T.size - 1
         self.biases = np.zeros(q) if biases is None else np.asarray(biases, dtype=float).reshape(q)
         self._a2 = np.einsum("hi,hi->h", log.beacons, log.beacons)
-        p = 3 if log.input_kind == "odometry" else log.dimension
+        p = input_width(log)
         self.columns = Columns(
             truth=slice(0, n),
             y=slice(n, n + q),
@@ -208,6 +233,8 @@ class ReplayWorld(World):
         self.out = np.full((int(capacity) + 1, self.columns.width), np.nan)
         self.events = np.zeros((int(capacity) + 1, 2), dtype=np.int64)
         self._k0 = 0
+        #: Measurements fed in time to the estimators that take them (set by the replay), or None.
+        self.in_time_count: int | None = None
         self._src = self._events = (
             None  # with a sensor layer: the block's rows (row 0: step _k0), its events
         )
@@ -215,7 +242,7 @@ class ReplayWorld(World):
     def _inputs(self, T: np.ndarray) -> np.ndarray:
         """The input held over each grid step ``(K, p)`` (module docstring)."""
         if self.log.input_kind != "odometry":
-            return held_mean(self.log, T)
+            return held_mean(self.log, T, held_samples(self.log))
         P, theta = dead_reckoning(self.log, T)
         return np.column_stack([np.diff(P, axis=0) / self.dt, np.diff(theta) / self.dt])
 
@@ -359,8 +386,11 @@ class ReplayFiguresSink(Sink):
         per, clock, w = {}, self.ctx.clock, self.world
         for e, est in enumerate(self.ctx.estimators):
             entry = per[est.name] = {}
+            timed = w.in_time_count is not None and hasattr(est, "inner")
             if clock is not None:
-                entry["seconds_per_measurement"] = float(clock[e]) / max(w.placed, 1)
+                used = w.in_time_count if timed else w.placed
+                entry["seconds_per_measurement"] = float(clock[e]) / max(used, 1)
+            est = getattr(est, "inner", est)
             if isinstance(est, Isam2RangeOnly) and w.peer_batch and not interrupted:
                 for key, (steps, P) in (
                     ("smoothed", est.online_positions()),

@@ -1,0 +1,100 @@
+"""A body-frame IMU as the navigation-frame acceleration the replay models take.
+
+A body IMU (``imu.csv``) reads the specific force ``f`` and the angular rate ``omega`` in the
+body frame. With the body-to-navigation rotation ``R`` and gravity ``g`` (the log's
+:attr:`~quadobs.testbed.logs.format.RangeLog.gravity_vector`, ``-g e_z`` in an ``enu``
+frame), the acceleration in the navigation frame is
+
+.. math:: a = R f + g ,
+
+the known input of the double integrator (model ``imu``). The rotation comes from the log's
+``attitude.csv`` where it has one (interpolated to the IMU's times by spherical linear
+interpolation, held before its first and after its last sample), else it is estimated from
+the IMU alone by the Mahony complementary filter of the maintained ``ahrs`` package
+(:class:`ahrs.filters.Mahony`, chosen over a hand-written filter: tested, and it estimates
+the gyroscope's bias through its integral gain ``k_I``; :data:`MAHONY_GAINS`). Without a
+magnetometer the heading
+is not observable: it starts at zero and follows the bias-corrected gyroscope, so an
+estimated attitude suits logs that start with the body axes along the navigation axes
+(as the simulated quadrotor's) or whose horizontal accelerations are small.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from quadobs.errors import QuadobsError
+
+__all__ = ["MAHONY_GAINS", "attitude_at", "estimate_attitude", "navigation_accelerations"]
+
+#: The Mahony filter's gains (``k_P`` 1/s, ``k_I`` 1/s^2). The filter takes the specific force
+#: for gravity, which a moving vehicle's own accelerations (and a multirotor's thrust, always
+#: along its body z) contradict; they average out over a few seconds of manoeuvres, so the tilt
+#: is pulled towards the accelerometer's with a time constant of ``1 / k_P = 10`` s and follows
+#: the gyroscope in between; ``k_I = k_P^2 / 4`` makes the loop critically damped (natural
+#: frequency ``sqrt(k_I)``, damping ``k_P / (2 sqrt(k_I)) = 1``). ``ahrs``' defaults (1, 0.3)
+#: trust the accelerometer ten times faster.
+MAHONY_GAINS = (0.1, 0.0025)
+
+
+def _rotation(quaternions: np.ndarray):
+    from scipy.spatial.transform import Rotation
+
+    q = np.asarray(quaternions, dtype=float)
+    return Rotation.from_quat(q[:, [1, 2, 3, 0]])  # scipy: scalar last
+
+
+def attitude_at(attitude: np.ndarray, times: np.ndarray):
+    """The rotations of ``attitude (A, 5)`` (``time, qw, qx, qy, qz``) at ``times``, by slerp."""
+    from scipy.spatial.transform import Slerp
+
+    t = attitude[:, 0]
+    if t.size == 1:
+        return _rotation(np.repeat(attitude[:, 1:], times.size, axis=0))
+    keep = np.concatenate([[True], np.diff(t) > 0])
+    slerp = Slerp(t[keep], _rotation(attitude[keep, 1:]))
+    return slerp(np.clip(times, t[0], t[-1]))
+
+
+def estimate_attitude(times: np.ndarray, accel: np.ndarray, gyro: np.ndarray) -> np.ndarray:
+    """Body-to-navigation quaternions ``(K, 4)`` (``qw, qx, qy, qz``) from the IMU alone (Mahony).
+
+    The first from the first specific force (tilt; heading zero), then one ``ahrs`` update per
+    sample over its own interval.
+    """
+    from ahrs.filters import Mahony
+
+    k_p, k_i = MAHONY_GAINS
+    dts = np.diff(times)
+    rate = 1.0 / float(np.median(dts)) if dts.size and np.median(dts) > 0 else 100.0
+    filt = Mahony(frequency=rate, k_P=k_p, k_I=k_i)
+    f0 = accel[0] / max(float(np.linalg.norm(accel[0])), 1e-12)
+    # tilt aligning f0 with +z (the filter's reference: the specific force at rest points up)
+    roll, pitch = np.arctan2(f0[1], f0[2]), np.arctan2(-f0[0], np.hypot(f0[1], f0[2]))
+    cr, sr, cp, sp = np.cos(roll / 2), np.sin(roll / 2), np.cos(pitch / 2), np.sin(pitch / 2)
+    q = np.array([cr * cp, sr * cp, cr * sp, -sr * sp])
+    Q = np.empty((times.size, 4))
+    Q[0] = q
+    for k in range(1, times.size):
+        dt = float(dts[k - 1])
+        if dt > 0:
+            q = filt.updateIMU(q, gyro[k - 1], accel[k - 1], dt=dt)
+        Q[k] = q
+    return Q
+
+
+def navigation_accelerations(log) -> np.ndarray:
+    """The body IMU of ``log`` as ``time, ax, ay, az`` rows in the navigation frame (module docstring)."""
+    if log.input_kind != "imu_body":
+        raise QuadobsError(f"{log.name}: navigation accelerations need a body IMU (imu.csv)")
+    t, f, w = log.inputs[:, 0], log.inputs[:, 1:4], log.inputs[:, 4:7]
+    if log.attitude is not None and log.attitude.shape[0]:
+        R = attitude_at(log.attitude, t)
+    else:
+        if log.frame != "enu":
+            raise QuadobsError(
+                f"{log.name}: a body IMU in a {log.frame} frame needs attitude.csv "
+                "(the attitude is estimated in enu frames only)"
+            )
+        R = _rotation(estimate_attitude(t, f, w))
+    return np.column_stack([t, R.apply(f) + log.gravity_vector])
