@@ -197,6 +197,9 @@ class Isam2Peer(Estimator, Counted):
     """
 
     name = "isam2"
+    #: The input the replay holds for it: ``"imu_body"`` for the raw body IMU (set for a body-IMU
+    #: log), else ``None`` (the replay's own input of the log).
+    replay_input: str | None = None
 
     def __init__(
         self,
@@ -349,8 +352,12 @@ class Isam2Peer(Estimator, Counted):
         dt = self._interval(t)
         self._flush()
         if dt > 0.0:
-            self.motion.advance(dt)
+            self._propagate(dt, None)
         self._time = float(t)
+
+    def _propagate(self, dt: float, u) -> None:
+        """The motion's inputs accumulated over ``dt`` (the input the motion holds; ``u`` unused)."""
+        self.motion.advance(dt)
 
     def correct(self, m: Measurement) -> None:
         """The factor of one range or TDOA ``m`` taken at the current time, on its node.
@@ -431,12 +438,25 @@ class Isam2Peer(Estimator, Counted):
         return np.array(self.node_times), np.full((len(self.node_times), self.dim), np.nan)
 
     def online_positions(self) -> tuple[np.ndarray, np.ndarray]:
-        """:meth:`online_trajectory` with the nodes' grid steps (the calls of :meth:`step` before them)."""
-        return np.array(self.key_steps), self.online_trajectory()[1]
+        """:meth:`online_trajectory` on the grid of ``dt`` (:meth:`_on_grid`)."""
+        return self._on_grid(*self.online_trajectory())
 
     def batch_optimum(self) -> tuple[np.ndarray, np.ndarray]:
-        """:meth:`batch_trajectory` with the nodes' grid steps."""
-        return np.array(self.key_steps), self.batch_trajectory()[1]
+        """:meth:`batch_trajectory` on the grid of ``dt`` (:meth:`_on_grid`)."""
+        return self._on_grid(*self.batch_trajectory())
+
+    def _on_grid(self, T: np.ndarray, P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Grid steps ``k`` (of ``t_k = t_0 + k dt``) and positions there.
+
+        Stepped on the grid (:meth:`step`), the nodes are grid steps: their steps and their
+        positions. Run in time, the nodes lie anywhere: the positions interpolated linearly
+        between the nodes to every grid time within their span.
+        """
+        if self._steps > 0 or self.dt is None:
+            return np.array(self.key_steps), P
+        k = np.arange(int(np.floor((T[-1] - T[0]) / self.dt + 1e-9)) + 1)
+        t = T[0] + k * self.dt
+        return k, np.column_stack([np.interp(t, T, P[:, c]) for c in range(P.shape[1])])
 
     def _positions(self, values) -> tuple[np.ndarray, np.ndarray]:
         from quadobs.estimators.gtsam_factors import position_of

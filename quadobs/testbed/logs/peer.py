@@ -69,4 +69,6 @@ def build_peer(s, x0: np.ndarray, name: str = "isam2"):
         heading0=s.heading0,
     )
     est.name = name
+    if est.input_kind == "imu_body":  # the replay holds the raw body IMU samples for it
+        est.replay_input = "imu_body"
     return est
