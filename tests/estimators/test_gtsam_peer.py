@@ -415,3 +415,14 @@ def test_the_start_of_a_log_moves_the_first_node():
     assert np.linalg.norm(est.x_hat[:3] - line(49 / 25)[0]) < 0.1
     with pytest.raises(QuadobsError, match="only before the first correction"):
         est.time = 0.0
+
+
+def test_nodes_in_time_reach_the_grid_by_interpolation_over_short_gaps_only():
+    est = Isam2Peer(ANCHORS_2D, "none", x0=np.zeros(2), dt=0.1)
+    T = np.array([0.0, 0.25, 0.5, 3.0, 3.2])
+    P = np.column_stack([T, 2 * T])  # a straight line: interpolation is exact on it
+    k, Q = est._on_grid(T, P)
+    t = k * 0.1
+    assert np.all((t <= 0.5 + 1e-9) | (t >= 3.0 - 1e-9))  # none across the 2.5 s gap
+    assert k[0] == 0 and k[-1] == 32 and 30 in k
+    np.testing.assert_allclose(Q, np.column_stack([t, 2 * t]), atol=1e-12)
