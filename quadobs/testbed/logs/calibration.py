@@ -23,10 +23,13 @@ only as good as the geometry separates them.
 
 Process noise. The model's process-noise intensity (``q_xy``, ``q_acc`` or ``q_imu``) on the
 grid ``prior 4^j``, ``j = -4 .. 3`` (:data:`NOISE_FACTORS`), that minimises the prequential
-score ``median |r - median_h(r)|`` over every range of the second half (each predicted
-before it is used, so none is fitted; the biases' offsets aside), in replays that correct
-with every range; scores within 1 % of the best are ties, won by the smallest intensity (the
-model trusted as far as the ranges allow).
+score over every range of the second half (each predicted before it is used, so none is
+fitted), in replays that correct with every range: the root mean square of
+``r - median_h(r)`` (the biases' offsets aside) without its largest 5 % (:data:`TRIM`,
+outliers). The mean square is ``sigma^2 + E e^2`` for a range noise ``sigma`` and a
+prediction error ``e``, so it ranks the settings by the prediction's accuracy, where a
+median of ``|r|`` is flattened by the noise. The smallest score wins (ties to rounding,
+:data:`TIE`, go to the smallest intensity).
 
 Cannot make things worse. :func:`calibrate` keeps the calibrated biases only when
 
@@ -64,8 +67,10 @@ __all__ = [
 
 #: The factors of the prior process-noise intensity that :func:`calibrate_noise` tries.
 NOISE_FACTORS = tuple(4.0**j for j in range(-4, 4))
-#: Scores within this fraction of the best are ties, won by the smallest intensity.
-TIE = 0.01
+#: Scores within this fraction of the best are ties, won by the smallest intensity (rounding only).
+TIE = 1e-6
+#: The fraction of the largest squared residuals the noise score leaves out (outliers).
+TRIM = 0.05
 #: Every HOLD_OUT-th range is held out of the corrections (module docstring).
 HOLD_OUT = 5
 #: The fixed-point iterations of the bias calibration.
@@ -162,6 +167,14 @@ def _range_index(log, events: LogEvents) -> np.ndarray:
     return out
 
 
+def _trimmed_rms(r: np.ndarray) -> float:
+    """The root mean square of ``r`` without its largest :data:`TRIM` fraction (inf when empty)."""
+    if r.size == 0:
+        return math.inf
+    r2 = np.sort(r * r)
+    return float(np.sqrt(np.mean(r2[: max(int(math.ceil((1.0 - TRIM) * r2.size)), 1)])))
+
+
 def _median_by_anchor(r: np.ndarray, h: np.ndarray, q: int) -> np.ndarray:
     return np.array([np.median(r[h == j]) if np.any(h == j) else 0.0 for j in range(q)])
 
@@ -223,8 +236,7 @@ def calibrate_noise(
             setup_options={**(setup_options or {}), key: q}, hold_out=False,
         )  # fmt: skip
         r, h = res.r, res.h
-        centred = r - _median_by_anchor(r, h, b.size)[h]
-        scores[q] = float(np.median(np.abs(centred))) if r.size else math.inf
+        scores[q] = _trimmed_rms(r - _median_by_anchor(r, h, b.size)[h])
     best = min(scores.values())
     return min(q for q, score in scores.items() if score <= (1.0 + TIE) * best), scores
 

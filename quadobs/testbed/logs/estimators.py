@@ -14,20 +14,24 @@ per second over a second for the odometry, ``1e-3`` rad^2/s for its heading, a m
 a second for an unknown acceleration, a tenth of a m/s^2 for an accelerometer. The replay's
 self-calibration (:mod:`quadobs.testbed.logs.calibration`, the default of ``quadobs
 replay``) replaces the model's process-noise intensity with one it picks from the log's
-ranges, never from the truth.
+ranges, never from the truth. No default is tied to one log's scale.
 
-* ranges: standard deviation ``range_sigma`` (1 m). The augmented observer's output is the
-  half squared range, whose standard deviation is about ``rho sigma``: it is given
-  ``R = (rho_med range_sigma)^2`` with ``rho_med`` the median measured range of the log;
+* ranges: a measurement's own standard deviation where the log gives one, else
+  ``range_sigma`` (1 m; a TDOA ``sqrt(2) range_sigma``, :meth:`ReplaySetup.measurement_std`).
+  The augmented observer's output is the half squared range, of variance
+  ``rho^2 sigma^2 + sigma^4 / 2`` for each range ``rho`` in time; on the grid (a replay with a
+  sensor layer) ``R = (rho_med range_sigma)^2`` with ``rho_med`` the median measured range;
 * odometry (model ``odometry``): a white noise of intensity ``q_xy`` (1 m^2/s) on ``p'``
-  (it covers the speed noise and the heading drift of the odometry); on
-  the auxiliary state ``xi = |p|^2/2`` (``xi' = u^T p``) the matching intensity
-  ``r^2 q_xy``, ``r`` the largest beacon distance from the origin plus 20 m;
-* model ``cv``: a white acceleration of intensity ``q_acc`` (1 m^2/s^3), and ``r^2 q_acc`` on
-  each auxiliary state;
+  (it covers the speed noise and the heading drift of the odometry);
+* model ``cv``: a white acceleration of intensity ``q_acc`` (1 m^2/s^3);
 * model ``imu``: the accelerometer's white noise, of intensity ``q_imu`` (``1e-2`` m^2/s^3)
-  on ``v' = u``, and ``r^2 q_imu`` on each auxiliary state (``|p|^2/2, p^T v, |v|^2/2``);
-  the initial velocity with variance 4 m^2/s^2 per axis, as for ``cv``;
+  on ``v' = u``; the initial velocity with variance 4 m^2/s^2 per axis, as for ``cv``;
+* the auxiliary states ``xi_i = x^T L_i x / 2`` of the augmented observer: the same noise
+  ``w`` on ``x'`` drives ``xi_i'`` through ``x^T L_i w``, so in time the observer's process
+  noise is ``V(z) = J V_x J^T`` with ``J = [x^T L_1; ...; x^T L_k; I]`` at its estimate
+  (:func:`_noise_map`), with no scale constant; its fixed ``V`` (the grid's step) bounds
+  ``|p|`` by the largest anchor distance from the origin (``|p| <= max |a_h|`` for a vehicle
+  inside the anchors' hull, the norm being convex);
 * the initial guess ``x0`` with variance ``P0`` per position axis (``50^2`` m^2, the
   replay's default initial offset); the augmented observer's initial covariance is that
   of ``lift(x)`` for ``x ~ N(x0, P0 I)`` on the position: ``var xi = P0 |p0|^2 + P0^2``,
