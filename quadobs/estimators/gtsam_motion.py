@@ -206,7 +206,8 @@ class ImuMotion:
     def __init__(self, gtsam, noise) -> None:
         self.g, self.noise = gtsam, noise
         eye = np.eye(3)
-        params = gtsam.PreintegrationCombinedParams.MakeSharedU(noise.gravity)
+        make = gtsam.PreintegrationCombinedParams
+        params = (make.MakeSharedU if noise.frame == "enu" else make.MakeSharedD)(noise.gravity)
         params.setAccelerometerCovariance(noise.q_imu * eye)
         params.setGyroscopeCovariance(noise.q_gyro * eye)
         params.setIntegrationCovariance(1e-8 * eye)

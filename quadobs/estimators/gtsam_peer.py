@@ -119,7 +119,9 @@ class PeerNoise:
     velocity_sigma : float
         Standard deviation of the initial velocity per axis (m/s; 2, as the replay's filters).
     gravity : float
-        Gravity (m/s^2), along ``-z`` of the navigation frame.
+        Magnitude of gravity (m/s^2; standard gravity, the log format's default).
+    frame : {"enu", "ned"}
+        The navigation frame's z axis: up (gravity along ``-z``) or down (along ``+z``).
     key_period : float
         Measurements within this many seconds after a node share it (0: a node per time).
     """
@@ -142,7 +144,8 @@ class PeerNoise:
     gyro_bias_sigma: float = 0.02
     attitude_sigma: tuple = (0.1, 0.1, 1.0)
     velocity_sigma: float = 2.0
-    gravity: float = 9.81
+    gravity: float = 9.80665
+    frame: str = "enu"
     key_period: float = 0.0
 
     def __post_init__(self) -> None:
@@ -150,7 +153,9 @@ class PeerNoise:
             raise QuadobsError(f"loss: expected one of {', '.join(LOSSES)}, got {self.loss!r}")
         if self.bias not in ("none", "state"):
             raise QuadobsError(f"bias: expected 'none' or 'state', got {self.bias!r}")
-        numbers = {k: v for k, v in vars(self).items() if k not in ("loss", "bias")}
+        if self.frame not in ("enu", "ned"):
+            raise QuadobsError(f"frame: expected 'enu' or 'ned', got {self.frame!r}")
+        numbers = {k: v for k, v in vars(self).items() if k not in ("loss", "bias", "frame")}
         numbers.update(
             {f"attitude_sigma[{i}]": v for i, v in enumerate(numbers.pop("attitude_sigma"))}
         )

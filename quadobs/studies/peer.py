@@ -60,7 +60,7 @@ def _imu(t: float, a: np.ndarray) -> np.ndarray:
     psi = _YAW0 + _YAW_RATE * t
     c, s = math.cos(psi), math.sin(psi)
     R = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-    return np.concatenate([R.T @ (a + [0.0, 0.0, 9.81]), [0.0, 0.0, _YAW_RATE]])
+    return np.concatenate([R.T @ (a + [0.0, 0.0, 9.80665]), [0.0, 0.0, _YAW_RATE]])
 
 
 def _measure(case, t: float, k: int, p: np.ndarray, anchors, sigma: float, rng):

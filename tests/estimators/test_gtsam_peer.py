@@ -280,7 +280,7 @@ def _imu(t: float, yaw0: float, yaw_rate: float) -> np.ndarray:
     psi = yaw0 + yaw_rate * t
     c, s = math.cos(psi), math.sin(psi)
     R = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-    return np.concatenate([R.T @ (a + [0.0, 0.0, 9.81]), [0.0, 0.0, yaw_rate]])
+    return np.concatenate([R.T @ (a + [0.0, 0.0, 9.80665]), [0.0, 0.0, yaw_rate]])
 
 
 def test_ranges_with_body_imu_preintegration_and_an_unknown_yaw():
@@ -426,3 +426,24 @@ def test_nodes_in_time_reach_the_grid_by_interpolation_over_short_gaps_only():
     assert np.all((t <= 0.5 + 1e-9) | (t >= 3.0 - 1e-9))  # none across the 2.5 s gap
     assert k[0] == 0 and k[-1] == 32 and 30 in k
     np.testing.assert_allclose(Q, np.column_stack([t, 2 * t]), atol=1e-12)
+
+
+def test_a_body_imu_in_a_north_east_down_frame():
+    """At rest in a z-down frame the accelerometer reads ``-g`` along the body's z."""
+    p = np.array([3.0, 2.0, -1.5])
+    anchors = ANCHORS_3D * [1.0, 1.0, -1.0]
+    errors = {}
+    for frame in ("ned", "enu"):
+        x0 = np.r_[p + 0.5, np.zeros(3)]
+        noise = PeerNoise(range_sigma=0.01, frame=frame)
+        est = Isam2Peer(anchors, "imu_body", x0=x0, P0=1.0, noise=noise)
+        est.hold(np.array([0.0, 0.0, -9.80665, 0.0, 0.0, 0.0]))
+        for k in range(1, 61):
+            t = k / 30
+            est.predict(t)
+            rho = float(np.linalg.norm(p - anchors[k % 6]))
+            est.correct(Measurement(t, "range", rho, (k % 6,)))
+        errors[frame] = float(np.linalg.norm(est.x_hat[:3] - p))
+    assert errors["ned"] < 0.02 and errors["enu"] > 10 * errors["ned"], errors
+    with pytest.raises(QuadobsError, match="frame: expected 'enu' or 'ned'"):
+        PeerNoise(frame="nwu")

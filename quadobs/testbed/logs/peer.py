@@ -7,8 +7,9 @@ navigation frame) the double integrator driven by the accelerometer, a log of ra
 alone the constant-velocity prior, a body-frame IMU log gtsam's IMU preintegration. Its
 noise is the setup's (the same stated noise as the other estimators): ``range_sigma``,
 ``q_xy``, ``q_theta``, ``q_acc``, ``q_imu``; the rest is
-:class:`~quadobs.estimators.gtsam_peer.PeerNoise`'s defaults. A setup attribute
-``range_bias = "state"`` (where the setup has one) carries a constant bias per anchor.
+:class:`~quadobs.estimators.gtsam_peer.PeerNoise`'s defaults. Where the setup has them, the
+attributes ``range_bias = "state"`` (a constant bias per anchor as a state), ``gravity``
+and ``frame`` (the log's, for the IMU preintegration) are read too.
 
 :func:`check_peer` refuses a log the peer cannot take, with one line naming what the log
 has, before any calibration.
@@ -57,6 +58,7 @@ def build_peer(s, x0: np.ndarray, name: str = "isam2"):
         q_acc=s.q_acc,
         q_imu=s.q_imu,
         bias="state" if getattr(s, "range_bias", "none") == "state" else "none",
+        **{k: getattr(s, k) for k in ("gravity", "frame") if hasattr(s, k)},
     )
     est = Isam2Peer(
         s.beacons,
