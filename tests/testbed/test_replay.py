@@ -627,7 +627,6 @@ def test_accelerometer_logs_check_their_dimensions_and_models(tmp_path, capsys):
     folder = write_log(imu_circle_log(5.0), tmp_path / "imu")
     for args, message in (
         (["--model", "odometry"], "model odometry: the log 'imu-circle' lacks wheel odometry"),
-        (["--estimators", "isam2"], "'isam2' needs a planar odometry log"),
         (["--set", "noise.airspeed_std=1"], "noise.airspeed_std: does not apply"),
     ):
         assert main(["replay", str(folder), "--no-progress", "--calibrate", "none", *args]) == 2
@@ -638,6 +637,18 @@ def test_accelerometer_logs_check_their_dimensions_and_models(tmp_path, capsys):
         == 2
     )
     assert "model imu: the log 'circle' lacks an accelerometer" in capsys.readouterr().err
+
+
+@needs_gtsam
+def test_the_peer_replays_an_accelerometer_log():
+    s = run_replay(
+        imu_circle_log(20.0),
+        estimators=["augmented", "isam2"],
+        initial_offset=10.0,
+        setup_options={"range_sigma": 0.05, "q_imu": 1e-4},
+    )
+    e = s["estimators"]["isam2"]
+    assert e["final_position_error"] < 0.2 and e["batch_rmse"] < e["rmse"]
 
 
 def test_the_accelerometer_noise_of_the_sensor_layer_applies_to_an_accelerometer_log(tmp_path):

@@ -311,30 +311,14 @@ def build_ukf(s: ReplaySetup, x0: np.ndarray, name: str = "ukf") -> UnscentedKal
 
 
 def build_isam2(s, x0: np.ndarray, name: str = "isam2") -> Estimator:
-    """Entry point ``isam2``: the GTSAM peer (:class:`~quadobs.estimators.gtsam_peer.Isam2RangeOnly`); logged data only."""
+    """Entry point ``isam2``: the GTSAM peer (:func:`quadobs.testbed.logs.peer.build_peer`); logged data only."""
     if not isinstance(s, ReplaySetup):
         raise QuadobsError(
             f"estimators: {name!r} runs on logged data only (quadobs replay), not in a simulated scenario"
         )
-    if s.input_kind != "odometry":
-        raise QuadobsError(
-            f"estimators: {name!r} needs a planar odometry log (inputs time,speed,yaw_rate), not an accelerometer log"
-        )
-    from quadobs.estimators.gtsam_peer import Isam2RangeOnly
+    from quadobs.testbed.logs.peer import build_peer
 
-    est = Isam2RangeOnly(
-        s.beacons,
-        s.dt,
-        x0=x0,
-        heading0=s.heading0,
-        P0=s.P0,
-        n=s.n,
-        range_sigma=s.range_sigma,
-        q_xy=s.q_xy,
-        q_theta=s.q_theta,
-    )
-    est.name = name
-    return est
+    return build_peer(s, x0, name)
 
 
 #: The built-in estimators of logged data (as declared in pyproject.toml; a test checks that they agree).

@@ -398,9 +398,7 @@ class ReplayFiguresSink(Sink):
                     ("smoothed", est.online_positions()),
                     ("batch", est.batch_optimum()),
                 ):
-                    err = np.linalg.norm(
-                        P - w.truth_at(steps)[:, :2], axis=1
-                    )  # the peer: planar odometry logs
+                    err = np.linalg.norm(P - w.truth_at(steps)[:, : P.shape[1]], axis=1)
                     err = err[np.isfinite(err)]
                     entry[f"{key}_rmse"] = float(np.sqrt(np.mean(err**2))) if err.size else None
                     entry[f"{key}_max_error"] = float(err.max()) if err.size else None
