@@ -143,6 +143,6 @@ def bypass() -> int:
         for value in list(vars(module).values()):
             cache = getattr(value, "_cache", None) if isinstance(value, Dispatcher) else None
             if cache is not None and not isinstance(cache, NullCache):
-                value._cache = NullCache()  # type: ignore[attr-defined]
+                value._cache = NullCache()
                 count += 1
     return count

@@ -27,6 +27,7 @@ robust rule (:mod:`quadobs.estimators.robust`) re-weights or gates each range.
 from __future__ import annotations
 
 import math
+from typing import cast
 
 import numpy as np
 
@@ -98,7 +99,7 @@ class BiasedAugmentedObserver(Estimator, Gated, Immersed):
         s = as_finite_scalar("bias_std", bias_std, positive=True)
         self.model = HeldInputDiscretization(immersion, dt, V, theta)
         self.dt, self.theta = self.model.dt, self.model.theta
-        self._V = self.model.V
+        self._V = cast(np.ndarray, self.model.V)  # an array once the discretization is built
         d = immersion.system.d
         self._offsets = 0.5 * np.einsum("hi,hi->h", d, d)  # |a_h|^2 / 2 (d_h = (-a_h, 0))
         x = np.zeros(n) if x0 is None else as_array("x0", x0, (n,))

@@ -18,6 +18,8 @@ filters' own.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 
 from quadobs.core.measurements import RangeModel
@@ -118,6 +120,12 @@ class _VehicleBlock:
     """Reports the vehicle's state ``x`` (the first ``n`` entries) and keeps the biases apart."""
 
     vehicle_n: int = 0
+    # the filter's own (the class this one is mixed into); declared for the type checker only
+    _x: np.ndarray
+    _P: np.ndarray
+    if TYPE_CHECKING:
+
+        def _settle(self) -> None: ...
 
     @property
     def x_hat(self) -> np.ndarray:

@@ -128,6 +128,13 @@ class OnboardEKF(Estimator, Gated):
         """The current time (s)."""
         return self.t
 
+    @time.setter
+    def time(self, value: float) -> None:
+        t = float(value)
+        if not math.isfinite(t):
+            raise QuadobsError(f"time: expected a finite number of seconds, got {value!r}")
+        self.t = t
+
     def bind_imu(self, source: np.ndarray) -> None:
         """Read the held input of :meth:`step` from ``source (6,)`` (a world's latest body IMU sample)."""
         self.imu_source = source
@@ -147,7 +154,7 @@ class OnboardEKF(Estimator, Gated):
         if h < 0.0:
             raise QuadobsError(f"onboard-ekf: cannot predict back in time ({t} < {self.t})")
         if h > 0.0:
-            self._propagate(h)
+            self._propagate_imu(h)
         self.t = float(t)
 
     def correct(self, m: Measurement) -> None:
@@ -173,7 +180,7 @@ class OnboardEKF(Estimator, Gated):
 
     # -- the filter --------------------------------------------------------------------
 
-    def _propagate(self, h: float) -> None:
+    def _propagate_imu(self, h: float) -> None:
         f, w = self.u[:3], self.u[3:]
         R, v = self.R, self.v
         A = np.zeros((9, 9))

@@ -1032,18 +1032,22 @@ def log_read_figure(rows: int = 300_000, repeats: int = 3) -> dict:
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / "ranges.csv"
         path.write_text(text)
-        raw = path.read_bytes()
+        raw: bytes | None = path.read_bytes()
         header = ["time", "beacon", "range"]
         arrow, per_cell = [], []
         for _ in range(repeats):
             t0 = time.perf_counter()
-            files.read_table(path, files.read_limited(path), spec, 2)
+            raw = files.read_limited(path)
+            assert raw is not None, "the file was just written"
+            files.read_table(path, raw, spec, 2)
             arrow.append(time.perf_counter() - t0)
             t0 = time.perf_counter()
             raw = files.read_limited(path)
+            assert raw is not None, "the file was just written"
             starts = files._line_starts(path, raw)
             values = files._python_values(path, raw, starts, header, tuple(header), spec)
             check_values(str(path), spec, tuple(header), values)
             per_cell.append(time.perf_counter() - t0)
     a, b = _median(arrow), _median(per_cell)
+    assert a is not None and b is not None, "repeats >= 1"
     return {"rows": rows, "arrow_s": a, "per_cell_s": b, "log_read_speedup": b / a}

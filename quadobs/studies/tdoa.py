@@ -21,11 +21,13 @@ import dataclasses
 import json
 import math
 from pathlib import Path
+from typing import cast
 
 import numpy as np
 
 from quadobs.core.measurements import TdoaModel
 from quadobs.errors import QuadobsError
+from quadobs.estimators.base import Estimator
 from quadobs.estimators.kalman import ExtendedKalmanFilter
 from quadobs.estimators.tdoa_observer import TdoaHandover, TdoaObserver
 from quadobs.evaluation.convergence import convergence_times
@@ -59,6 +61,8 @@ def tdoa_ekf(scenario: Scenario, x0: np.ndarray, P0: np.ndarray, time: float = 0
     """The scenario's EKF (:func:`~quadobs.testbed.factories.baseline_settings`) correcting with
     TDOA through :class:`~quadobs.core.measurements.TdoaModel`, started at ``x0, P0``."""
     s = baseline_settings(scenario)
+    if scenario.tdoa is None:
+        raise QuadobsError(f"scenario {scenario.name!r}: has no [tdoa] table")
     model = TdoaModel(scenario.beacons, scenario.tdoa.std)
     ekf = ExtendedKalmanFilter(s.dynamics, s.outputs, x0=x0, P0=P0, measurements=[model])
     ekf.time = time
@@ -71,10 +75,13 @@ def tdoa_estimators(scenario: Scenario, x0: np.ndarray, spread: float) -> dict:
     dim = scenario.dimension
     s = baseline_settings(scenario)
     P0 = np.array(s.P0, dtype=float)
+    if scenario.tdoa is None:
+        raise QuadobsError(f"scenario {scenario.name!r}: has no [tdoa] table")
     std = float(scenario.tdoa.std)
     pairs = ordered_pairs(scenario.beacons.shape[0])
     P0[:dim, :dim] = np.eye(dim) * max(spread**2, P0[0, 0])
-    psd = float(s.dynamics.input_covariance[0, 0]) * scenario.dt
+    # input_covariance is an array once the model is built
+    psd = float(cast(np.ndarray, s.dynamics.input_covariance)[0, 0]) * scenario.dt
 
     def observer() -> TdoaObserver:
         return TdoaObserver(
@@ -162,7 +169,7 @@ def study(
         ests = tdoa_estimators(scenario, x0, offset)
         tdoa = reference_run(flight, ests)
         ranges = range_outputs_of(scenario, flight, seed)
-        twr = {"range-ekf": extended_kalman_filter(scenario, x0)}
+        twr: dict[str, Estimator] = {"range-ekf": extended_kalman_filter(scenario, x0)}
         twr["range-refined"] = refined_observer(scenario, x0)
         ranged = reference_run(dataclasses.replace(flight, outputs=ranges), twr)
         for est_name, X in {**tdoa, **ranged}.items():
@@ -212,7 +219,7 @@ def quadrotor_study(
         for est_name, X in flight.estimates.items():
             m = _metrics(ref, X, 3, settle)
             if est_name == "tdoa-handover":
-                m["handover_time"] = ests[est_name].handover_time
+                m["handover_time"] = cast(TdoaHandover, ests[est_name]).handover_time
             runs.setdefault(est_name, []).append(m)
     return {
         "scenario": name,
@@ -238,7 +245,7 @@ def reference_errors(
     x0[0] += offset
     runs = reference_run(flight, tdoa_estimators(scenario, x0, offset))
     ranges = range_outputs_of(scenario, flight, seed)
-    twr = {
+    twr: dict[str, Estimator] = {
         "range-ekf": extended_kalman_filter(scenario, x0),
         "range-refined": refined_observer(scenario, x0),
     }

@@ -28,7 +28,7 @@ from quadobs.estimators.kalman import (
 )
 from quadobs.estimators.refined import RefinedObserver
 from quadobs.estimators.zonotopic_vehicle import ZonotopicAugmentedEstimator
-from quadobs.testbed.scenario import Scenario
+from quadobs.testbed.scenario import QuadrotorSpec, Scenario
 
 
 def output_periods(scenario: Scenario) -> np.ndarray:
@@ -249,7 +249,7 @@ def robust_settings(scenario: Scenario) -> dict:
     noise = scenario.noise
     if noise.gate is not None and noise.huber is not None:
         raise QuadobsError("noise.huber: cannot be combined with noise.gate (choose one rule)")
-    rule = None
+    rule: ChiSquareGate | Huber | None = None
     if noise.gate is not None:
         rule = ChiSquareGate(noise.gate)
     elif noise.huber is not None:
@@ -408,7 +408,7 @@ def onboard_ekf(scenario: Scenario, x0: np.ndarray):
         raise QuadobsError(
             f'onboard-ekf: needs a body IMU (kind = "quadrotor"), not kind = {scenario.kind!r}'
         )
-    q, dt = scenario.quadrotor, scenario.dt
+    q, dt = scenario.quadrotor or QuadrotorSpec(), scenario.dt
     accel = math.sqrt(q.accel_std**2 + q.accel_bias**2 / dt)
     gyro = math.sqrt(q.gyro_std**2 + q.gyro_bias**2 / dt)
     std = scenario.noise.range_std or 0.01

@@ -217,7 +217,7 @@ class UwbRadio:
         if anchors.ndim != 2 or anchors.shape[1] != 3:
             raise QuadobsError(f"anchors: the radio needs shape (m, 3), got {anchors.shape}")
         config.check(anchors.shape[0])
-        self.anchors, self.config, self.m = anchors, config, anchors.shape[0]
+        self.anchors, self.config, self.m = anchors, config, int(anchors.shape[0])
         children = np.random.SeedSequence([int(seed), 0x55B]).spawn(len(_STREAMS))
         self._rng = {k: np.random.default_rng(c) for k, c in zip(_STREAMS, children)}
         drawn = config.bias_std * self._rng["bias"].standard_normal(self.m)

@@ -129,7 +129,7 @@ def _check_model_size(path: Path, size: int, shown: str) -> None:
         )
 
 
-def _one_line_text(text: str) -> str:
+def _one_line_text(text: object) -> str:
     """MuJoCo's multi-line messages on one line: the lines stripped, joined with "; "."""
     return "; ".join(line.strip() for line in str(text).splitlines() if line.strip())
 

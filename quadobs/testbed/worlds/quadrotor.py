@@ -83,6 +83,7 @@ def rotor_model(spec: QuadrotorSpec) -> RotorModel:
         return IDENTIFIED
     tau_u, tau_d = IDENTIFIED.time_constants(CRAZYFLIE.mass)
     if up is None:
+        assert down is not None, "both None returned above"
         up = down * tau_u / tau_d
     if down is None:
         down = up * tau_d / tau_u
@@ -401,6 +402,7 @@ class QuadrotorWorld(World):
 
     def _radio_step(self, k: int, row: np.ndarray) -> None:
         """The radio's measurements of ``[t_k, t_k+1)``, from the tag's position and velocity at ``t_k``."""
+        assert self.radio is not None, "called with a radio only"
         t = k * self.dt
         self.step_end = (k + 1) * self.dt
         self.step_events = self.radio.take(t, self.step_end, self._p, self._v)
