@@ -683,7 +683,7 @@ class AugmentedObserver(Estimator, Gated, Immersed, BlockStep):
             return
         im = self.immersion
         A = im.state_matrix(u)
-        V = m.V if self.noise_of is None else self.noise_of(self._z)
+        V = np.asarray(m.V) if self.noise_of is None else self.noise_of(self._z)
         Phi, g = held_input_interval(A, (im.input_matrix @ u)[:, None], dt)
         Q = van_loan_interval(A + 0.5 * m.theta * self._eye, V, dt)[1]
         z, P = self._z, self._P

@@ -183,7 +183,8 @@ class HeldInputModel:
             Q = Q + G @ self.input_covariance @ G.T
             return F, G, 0.5 * (Q + Q.T)
         F, G = held_input_interval(sys_.A, sys_.B, dt)
-        Q = van_loan_interval(sys_.A, self.V, dt)[1] if self.V.any() else np.zeros_like(F)
+        V = np.asarray(self.V)  # stored as an array when the model is built
+        Q = van_loan_interval(sys_.A, V, dt)[1] if V.any() else np.zeros_like(F)
         Q = Q + G @ self.input_covariance @ G.T
         return F, G, 0.5 * (Q + Q.T)
 

@@ -49,7 +49,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from quadobs.core.immersion import immerse
-from quadobs.core.measurements import RangeModel, TdoaModel
+from quadobs.core.measurements import MeasurementModel, RangeModel, TdoaModel
 from quadobs.core.system import (
     QuadraticSystem,
     constant_velocity_system,
@@ -163,7 +163,7 @@ class ReplaySetup:
     def measurement_models(self) -> list:
         """The models of the log's measurement kinds: ranges and TDOA with ``range_sigma``
         (a TDOA is the difference of two ranges of independent errors: ``sqrt(2) range_sigma``)."""
-        models = []
+        models: list[MeasurementModel] = []
         if "range" in self.kinds:
             models.append(RangeModel(self.beacons, self.range_sigma))
         if "tdoa" in self.kinds:

@@ -390,7 +390,7 @@ class ReplayFiguresSink(Sink):
             entry = per[est.name] = {}
             timed = w.in_time_count is not None and hasattr(est, "inner")
             if clock is not None:
-                used = w.in_time_count if timed else w.placed
+                used = w.in_time_count if timed and w.in_time_count is not None else w.placed
                 entry["seconds_per_measurement"] = float(clock[e]) / max(used, 1)
             est = getattr(est, "inner", est)
             if isinstance(est, Isam2RangeOnly) and w.peer_batch and not interrupted:
