@@ -24,7 +24,7 @@ import shutil
 from collections.abc import Callable
 from pathlib import Path
 
-from quadobs.errors import QuadobsError, output_target, staging_owner, staging_path
+from quadobs.errors import QuadobsError, RunFault, output_target, staging_owner, staging_path
 
 __all__ = ["check_replaceable_folder", "publish", "swap_in", "write_folder_staged", "write_staged"]
 
@@ -61,8 +61,8 @@ def write_staged(
 
     The target is :func:`quadobs.errors.output_target` of ``path`` (a symbolic link is written
     through). On any failure the staging file is removed and the target is untouched; an
-    ``OSError`` becomes a one-line :class:`~quadobs.errors.QuadobsError` naming ``what`` and the
-    path. Returns the target.
+    ``OSError`` becomes a one-line :class:`~quadobs.errors.RunFault` (a fault of the run, exit
+    status 1) naming ``what`` and the path. Returns the target.
     """
     target = output_target(path, what)
     tmp = staging_path(target)
@@ -70,9 +70,9 @@ def write_staged(
         target.parent.mkdir(parents=True, exist_ok=True)
         write(tmp)
         publish(tmp, target)
-    except OSError as exc:
+    except OSError as exc:  # a full disk, a file size limit: a fault of the run (exit 1)
         tmp.unlink(missing_ok=True)
-        raise QuadobsError(
+        raise RunFault(
             f"{what} {os.fspath(path)!r}: cannot be written ({exc.strerror or exc})"
         ) from None
     except BaseException:

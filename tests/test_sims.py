@@ -42,6 +42,16 @@ CASES = {
         ["runs/long_run.json"],
         "NaN: False",
     ),
+    "replay_quadrotor_log.py": (
+        ["--duration", "7", "--estimators", "ekf", "--range-rate", "20", "--imu-rate", "200"],
+        [],
+        "replayed RMSE",
+    ),
+    "uwb_realistic.py": (
+        ["--seeds", "0:1", "--duration", "7", "--estimators", "ekf"],
+        [],
+        "rmse_after_burn_in",
+    ),
     "tuned_baselines.py": (
         ["--duration", "1", "--runs", "2", "--workers", "0", "--out", "{tmp}/campaign"],
         ["campaign/summary.json", "campaign/runs.parquet", "campaign/statistics.rrd"],

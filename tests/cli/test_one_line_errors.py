@@ -35,7 +35,7 @@ def _one_line(capsys, code, expected_code, *words):
 
 @pytest.mark.parametrize(
     ("content", "word"),
-    [(b"key,value\nname,\xff\xfe\n", "not a CSV text file"), (None, "Is a directory")],
+    [(b"key,value\nname,\xff\xfe\n", "not UTF-8 text"), (None, "not a regular file")],
 )
 def test_a_meta_file_that_cannot_be_read_is_named(log_folder, tmp_path, capsys, content, word):
     import shutil
@@ -154,8 +154,12 @@ def test_a_plugin_calling_sys_exit_mid_run_is_reported(plugins, tmp_path, capsys
 @pytest.mark.parametrize(
     ("fname", "content", "words"),
     [
-        ("beacons.csv", "id,x,y\n1e19,0,0\n2e19,1,1\n", ("beacons.csv", "1e+19", "2^63")),
-        ("meta.csv", "key,value\nname,\x1b[31mred\x1b[0m\n", ("meta.csv", "control characters")),
+        (
+            "beacons.csv",
+            "id,x,y\n1e19,0,0\n2e19,1,1\n",
+            ("beacons.csv", "1e19", "not an integer id"),
+        ),
+        ("meta.csv", "key,value\nname,\x1b[31mred\x1b[0m\n", ("meta.csv", "control character")),
     ],
 )
 def test_huge_ids_and_escape_sequences_in_a_log_are_refused(

@@ -61,7 +61,7 @@ def test_export_is_alone_and_its_folder_is_checked_first(tmp_path, capsys):
     folder = _log(tmp_path / "log")
     out = ["replay", str(folder), "--export", str(tmp_path / "copy")]
     assert main([*out, "--summary", str(tmp_path / "s.json")]) == 2
-    assert "--summary: nothing is replayed with --export" in capsys.readouterr().err
+    assert "--summary: does not apply with --export" in capsys.readouterr().err
     (tmp_path / "copy").mkdir()
     (tmp_path / "copy" / "notes.txt").write_text("mine")
     assert main(out) == 2
@@ -93,7 +93,7 @@ def test_a_run_exported_as_a_log_refuses_outputs_inside_the_folder(tmp_path, cap
 def test_biases_must_be_finite(tmp_path, capsys):
     folder = _log(tmp_path / "log")
     assert main(["replay", str(folder), "--no-progress", "--biases", "nan,0,0"]) == 2
-    assert "--biases: every bias must be a finite number" in capsys.readouterr().err
+    assert "--biases: 'nan' is not a finite number" in capsys.readouterr().err
 
 
 def test_a_run_with_ranges_below_zero_is_exported_and_replays_as_it_ran(tmp_path):
