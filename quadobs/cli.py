@@ -895,7 +895,7 @@ def _add_replay(sub) -> None:
         action="append",
         default=[],
         metavar="KEY=VALUE",
-        help="the estimators' noise settings: range_sigma, q_xy, q_theta, q_acc, q_imu, gate (a number or none), P0 (repeatable)",
+        help="the estimators' noise settings: range_sigma, q_xy, q_theta, q_acc, q_imu, gate (a number or none), P0, range_bias (1: the peer's bias per anchor as a state) (repeatable)",
     )
     p.add_argument(
         "--set",

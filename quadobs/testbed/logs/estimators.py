@@ -100,6 +100,9 @@ class ReplaySetup:
         Noise settings (module docstring).
     P0 : float
         Variance of the initial position guess per axis (m^2).
+    range_bias : {0, 1}
+        1: the GTSAM peer estimates a constant range bias per anchor as a state
+        (:class:`~quadobs.estimators.gtsam_peer.PeerNoise` ``bias="state"``); 0 (default): none.
     input_kind : {"odometry", "imu", "imu_body", "none"}
         The log's inputs (:class:`~quadobs.testbed.logs.format.RangeLog`).
     kinds : tuple of str
@@ -129,6 +132,7 @@ class ReplaySetup:
     gate: float | None = None
     P0: float = 2500.0
     input_kind: str = "odometry"
+    range_bias: float = 0.0
     kinds: tuple = ("range",)
     frame: str = "enu"
     gravity: float = 9.80665
@@ -137,7 +141,13 @@ class ReplaySetup:
     system: QuadraticSystem = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
+        if self.range_bias not in (0, 1):
+            raise QuadobsError(
+                f"range_bias: expected 0 (off) or 1 (a state), got {self.range_bias!r}"
+            )
         for key in TUNING:
+            if key == "range_bias":
+                continue
             value = getattr(self, key)
             if not (key == "gate" and value is None) and not (
                 isinstance(value, (int, float)) and 0 < value < math.inf
@@ -187,7 +197,7 @@ class ReplaySetup:
 
 
 #: The settings of :class:`ReplaySetup` a user may tune (``quadobs replay --tune KEY=VALUE``).
-TUNING = ("range_sigma", "q_xy", "q_theta", "q_acc", "q_imu", "gate", "P0")
+TUNING = ("range_sigma", "q_xy", "q_theta", "q_acc", "q_imu", "gate", "P0", "range_bias")
 
 
 def parse_tuning(settings) -> dict:

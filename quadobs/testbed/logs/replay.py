@@ -305,6 +305,7 @@ def _summary(
             "q_acc": setup.q_acc,
             "q_imu": setup.q_imu,
             "gate": setup.gate,
+            "range_bias": setup.range_bias,
         },
         "measurements": {
             "range_period_steps": sensors.range_every,
