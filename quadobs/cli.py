@@ -895,7 +895,7 @@ def _add_replay(sub) -> None:
         action="append",
         default=[],
         metavar="KEY=VALUE",
-        help="the estimators' noise settings: range_sigma, q_xy, q_theta, q_acc, q_imu, gate (a number or none), P0 (repeatable)",
+        help="the estimators' noise settings: range_sigma, q_xy, q_theta, q_acc, q_imu, gate (a number or none), P0, range_bias (1: the peer's bias per anchor as a state) (repeatable)",
     )
     p.add_argument(
         "--set",
@@ -1190,6 +1190,35 @@ def _replay_calibration(args, log, tuning: dict) -> tuple[list[float] | np.ndarr
     return None if cal.biases is None else [float(b) for b in cal.biases], cal.options
 
 
+#: The options whose value may start with a minus sign (a list of numbers such as ``-0.2,0.1``).
+NEGATIVE_VALUE_OPTIONS = ("--biases",)
+
+
+def negative_values(argv: list[str]) -> list[str]:
+    """``argv`` with ``--biases -0.2,0.1`` written ``--biases=-0.2,0.1``.
+
+    argparse takes a value that starts with ``-`` for an option unless it is one plain negative
+    number, so a list of numbers whose first is negative would leave the option without its
+    value; joined to the option with ``=``, it is read as written. Only a value starting with
+    ``-`` and a digit or ``.`` is joined (no option is spelled so); nothing after ``--`` is.
+    """
+    out: list[str] = []
+    i = 0
+    while i < len(argv):
+        token = argv[i]
+        if token == "--":
+            return out + list(argv[i:])
+        following = argv[i + 1] if i + 1 < len(argv) else ""
+        if token in NEGATIVE_VALUE_OPTIONS and len(following) > 1 and following[0] == "-":
+            if following[1].isdigit() or following[1] == ".":
+                out.append(f"{token}={following}")
+                i += 2
+                continue
+        out.append(token)
+        i += 1
+    return out
+
+
 def _run_command(argv: list[str] | None) -> int:
     """Parse ``argv`` and run its command: the exit status, the error printed on one line.
 
@@ -1204,7 +1233,7 @@ def _run_command(argv: list[str] | None) -> int:
         new_folders_removed_on_failure,
     )
 
-    args = build_parser().parse_args(argv)
+    args = build_parser().parse_args(negative_values(sys.argv[1:] if argv is None else argv))
     handler = _log_to_stderr(args.log_verbose, args.log_quiet)
     try:
         with new_folders_removed_on_failure(*_output_paths(args)):

@@ -83,11 +83,18 @@ class OnboardEKF(Estimator, Gated):
         Initial position and world velocity.
     P0 : ndarray (6, 6)
         Their initial covariance.
-    attitude_std : float
-        Initial attitude error (rad per axis); the attitude starts level.
+    attitude_std : float or array_like (3,)
+        Initial attitude error (rad, per body axis or one for all).
     gate : float or None
         Largest normalised innovation squared accepted (None: every measurement).
+    R0 : ndarray (3, 3), optional
+        Initial attitude (world from body); default level, heading zero.
+    gravity : array_like (3,), optional
+        Gravity in the world frame (m/s^2); default ``(0, 0, -9.81)`` (z up).
     """
+
+    #: ``"imu_body"`` where a replay is to hold the log's raw body IMU samples as its input.
+    replay_input: str | None = None
 
     def __init__(
         self,
@@ -98,18 +105,21 @@ class OnboardEKF(Estimator, Gated):
         gyro_std: float,
         x0,
         P0,
-        attitude_std: float = 0.05,
+        attitude_std: float | np.ndarray = 0.05,
         gate: float | None = None,
+        R0: np.ndarray | None = None,
+        gravity: np.ndarray | None = None,
     ) -> None:
         if model.dimension != 3:
             raise QuadobsError("onboard-ekf: needs anchors in 3-D")
         self.model, self.dt = model, float(dt)
         self.p = np.array(x0[:3], dtype=float)
-        self.R = np.eye(3)
-        self.v = np.array(x0[3:6], dtype=float)  # body = world for a level start
+        self.R = np.eye(3) if R0 is None else np.array(R0, dtype=float)
+        self.g = _GRAVITY.copy() if gravity is None else np.array(gravity, dtype=float)
+        self.v = self.R.T @ np.array(x0[3:6], dtype=float)  # the body-frame velocity
         self.P = np.zeros((9, 9))
         self.P[:6, :6] = np.asarray(P0, dtype=float)
-        self.P[6:, 6:] = np.eye(3) * attitude_std**2
+        self.P[6:, 6:] = np.diag(np.broadcast_to(np.square(attitude_std), (3,)))
         self.q_v, self.q_a = accel_std**2, gyro_std**2
         self.gate = gate
         self.u = np.zeros(6)
@@ -187,14 +197,14 @@ class OnboardEKF(Estimator, Gated):
         A[0:3, 3:6] = R
         A[0:3, 6:9] = -R @ skew(v)
         A[3:6, 3:6] = -skew(w)
-        A[3:6, 6:9] = skew(R.T @ _GRAVITY)
+        A[3:6, 6:9] = skew(R.T @ self.g)
         A[6:9, 6:9] = -skew(w)
         F = np.eye(9) + A * h
         P = F @ self.P @ F.T
         P[3:6, 3:6] += np.eye(3) * (self.q_v * h * h)
         P[6:9, 6:9] += np.eye(3) * (self.q_a * h * h)
         self.P = 0.5 * (P + P.T)
-        a = R @ f + _GRAVITY
+        a = R @ f + self.g
         vw = R @ v
         self.p += vw * h + 0.5 * a * h * h
         vw += a * h

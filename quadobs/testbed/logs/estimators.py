@@ -72,6 +72,7 @@ __all__ = [
     "TUNING",
     "ReplaySetup",
     "build_isam2",
+    "build_onboard_ekf",
     "build_replay_estimators",
     "parse_tuning",
     "replay_estimator_names",
@@ -99,10 +100,23 @@ class ReplaySetup:
         Noise settings (module docstring).
     P0 : float
         Variance of the initial position guess per axis (m^2).
+    range_bias : {0, 1}
+        1: the GTSAM peer estimates a constant range bias per anchor as a state
+        (:class:`~quadobs.estimators.gtsam_peer.PeerNoise` ``bias="state"``); 0 (default): none.
     input_kind : {"odometry", "imu", "imu_body", "none"}
         The log's inputs (:class:`~quadobs.testbed.logs.format.RangeLog`).
     kinds : tuple of str
         The kinds of measurement the log holds (``"range"``, ``"tdoa"``).
+    frame : {"enu", "ned"}
+        The log's navigation frame (z up or down).
+    gravity : float
+        The log's magnitude of gravity (m/s^2).
+    attitude0 : ndarray (4,) or None
+        The body-to-navigation quaternion ``(qw, qx, qy, qz)`` at the start: the first sample
+        of the log's ``attitude.csv``, else the odometry heading's yaw where the log gives
+        one, else None (unknown).
+    imu_period : float or None
+        The median interval of a body IMU's samples (s), else None.
     """
 
     beacons: np.ndarray
@@ -118,11 +132,22 @@ class ReplaySetup:
     gate: float | None = None
     P0: float = 2500.0
     input_kind: str = "odometry"
+    range_bias: float = 0.0
     kinds: tuple = ("range",)
+    frame: str = "enu"
+    gravity: float = 9.80665
+    attitude0: np.ndarray | None = None
+    imu_period: float | None = None
     system: QuadraticSystem = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
+        if self.range_bias not in (0, 1):
+            raise QuadobsError(
+                f"range_bias: expected 0 (off) or 1 (a state), got {self.range_bias!r}"
+            )
         for key in TUNING:
+            if key == "range_bias":
+                continue
             value = getattr(self, key)
             if not (key == "gate" and value is None) and not (
                 isinstance(value, (int, float)) and 0 < value < math.inf
@@ -172,7 +197,7 @@ class ReplaySetup:
 
 
 #: The settings of :class:`ReplaySetup` a user may tune (``quadobs replay --tune KEY=VALUE``).
-TUNING = ("range_sigma", "q_xy", "q_theta", "q_acc", "q_imu", "gate", "P0")
+TUNING = ("range_sigma", "q_xy", "q_theta", "q_acc", "q_imu", "gate", "P0", "range_bias")
 
 
 def parse_tuning(settings) -> dict:
@@ -211,8 +236,28 @@ def replay_setup(log, world, options: dict | None = None) -> ReplaySetup:
         _typical_range(log),
         input_kind=log.input_kind,
         kinds=kinds,
+        **log_frame(log),
         **(options or {}),
     )
+
+
+def log_frame(log) -> dict:
+    """The setup's fields read from the log's frame and attitude: ``frame``, ``gravity``,
+    ``attitude0`` and ``imu_period`` (:class:`ReplaySetup`)."""
+    attitude0 = None
+    if log.attitude is not None and log.attitude.shape[0]:
+        attitude0 = np.array(log.attitude[0, 1:5], dtype=float)
+    elif math.isfinite(log.heading0):
+        attitude0 = np.array([math.cos(log.heading0 / 2), 0.0, 0.0, math.sin(log.heading0 / 2)])
+    period = None
+    if log.input_kind == "imu_body" and log.inputs.shape[0] > 1:
+        period = float(np.median(np.diff(log.inputs[:, 0])))
+    return {
+        "frame": log.frame,
+        "gravity": float(log.gravity),
+        "attitude0": attitude0,
+        "imu_period": period,
+    }
 
 
 def _typical_range(log) -> float:
@@ -321,6 +366,70 @@ def build_isam2(s, x0: np.ndarray, name: str = "isam2") -> Estimator:
     return build_peer(s, x0, name)
 
 
+#: The gyroscope's white noise (rad^2/s) of :func:`build_onboard_ekf`: the Crazyflie firmware's
+#: Kalman filter states its gyro noise as 0.1 rad/s per axis over its 10 ms prediction step,
+#: an intensity of ``0.1^2 * 0.01 = 1e-4`` rad^2/s (a few times a consumer MEMS gyroscope's
+#: noise density, which leaves room for its unmodelled bias).
+GYRO_NOISE = 1e-4
+
+#: The initial yaw error (rad) of :func:`build_onboard_ekf` where the log gives no attitude and
+#: no heading: the standard deviation of a heading uniform on the circle, ``pi / sqrt(3)``.
+UNKNOWN_YAW_STD = math.pi / math.sqrt(3.0)
+
+
+def build_onboard_ekf(s: ReplaySetup, x0: np.ndarray, name: str = "onboard-ekf") -> Estimator:
+    """Entry point ``onboard-ekf``: the Crazyflie's on-board EKF
+    (:class:`~quadobs.estimators.onboard_ekf.OnboardEKF`) on a 3-D body-IMU log.
+
+    The replay holds the log's raw body IMU ``u = (f, omega)`` for it (``replay_input =
+    "imu_body"``). Its noise is the setup's stated noise: ranges (or TDOA) ``range_sigma``; the
+    filter adds ``sigma_a^2 h^2`` to the velocity over each interval ``h`` between IMU samples,
+    so the accelerometer's white noise of intensity ``q_imu`` (m^2/s^3) is the per-sample
+    ``sigma_a = sqrt(q_imu / h_s)`` at the log's median IMU interval ``h_s`` (``q_imu h`` per
+    interval ``h = h_s``), and the gyroscope's likewise from :data:`GYRO_NOISE`. Its initial
+    attitude is :attr:`ReplaySetup.attitude0` with 0.05 rad per axis; without one, level with
+    yaw zero, 0.05 rad in roll and pitch and :data:`UNKNOWN_YAW_STD` in yaw. Gravity is the
+    log's, along ``-z`` (enu) or ``+z`` (ned). The position prior is ``P0`` per axis, the
+    velocity's 4 m^2/s^2 per axis (as :func:`build_ekf`).
+    """
+    from scipy.spatial.transform import Rotation
+
+    from quadobs.estimators.onboard_ekf import OnboardEKF
+
+    if s.input_kind != "imu_body" or s.dim != 3:
+        raise QuadobsError(
+            f"estimators: {name!r} needs a 3-D body-IMU log (imu.csv), and the log has "
+            f"{'a planar geometry' if s.dim != 3 else f'inputs of kind {s.input_kind!r}'}"
+        )
+    if s.frame not in ("enu", "ned"):
+        raise QuadobsError(f"estimators: {name!r} takes a frame enu or ned, got {s.frame!r}")
+    models = s.measurement_models()
+    if len(models) != 1:
+        raise QuadobsError(f"estimators: {name!r} takes ranges or TDOA, and the log holds both")
+    h = s.imu_period if s.imu_period is not None and s.imu_period > 0 else s.dt
+    if s.attitude0 is None:
+        R0, att_std = np.eye(3), np.array([0.05, 0.05, UNKNOWN_YAW_STD])
+    else:
+        q = np.asarray(s.attitude0, dtype=float)
+        R0, att_std = Rotation.from_quat(q[[1, 2, 3, 0]]).as_matrix(), np.full(3, 0.05)
+    P0 = np.diag([s.P0] * 3 + [4.0] * 3)
+    est = OnboardEKF(
+        models[0],
+        h,
+        accel_std=math.sqrt(s.q_imu / h),
+        gyro_std=math.sqrt(GYRO_NOISE / h),
+        x0=np.asarray(x0, dtype=float)[:6],
+        P0=P0,
+        attitude_std=att_std,
+        gate=s.gate,
+        R0=R0,
+        gravity=np.array([0.0, 0.0, -s.gravity if s.frame == "enu" else s.gravity]),
+    )
+    est.name = name
+    est.replay_input = "imu_body"
+    return est
+
+
 #: The built-in estimators of logged data (as declared in pyproject.toml; a test checks that they agree).
 #: An estimator that reads a body IMU as its input (the Crazyflie's on-board EKF,
 #: ``u = (f_body, omega_body)``) is registered here beside them and marks its instances with
@@ -331,6 +440,7 @@ REPLAY_ESTIMATORS = {
     "ekf": build_ekf,
     "ukf": build_ukf,
     "isam2": build_isam2,
+    "onboard-ekf": build_onboard_ekf,
 }
 
 

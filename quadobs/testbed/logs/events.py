@@ -34,8 +34,10 @@ __all__ = ["InTimeOnGrid", "LogEvents", "held_inputs", "in_time", "takes_time"]
 
 
 def takes_time(est: Estimator) -> bool:
-    """Whether ``est`` implements the interface in time (``hold``, ``predict(t)``, ``correct(m)``)."""
-    return type(est)._propagate is not Estimator._propagate
+    """Whether ``est`` implements the interface in time (``hold``, ``predict(t)``, ``correct(m)``):
+    through the base class's hooks, or with its own ``predict``."""
+    cls = type(est)
+    return cls._propagate is not Estimator._propagate or cls.predict is not Estimator.predict
 
 
 def held_inputs(log, raw: bool = False) -> tuple[np.ndarray, np.ndarray]:

@@ -8,7 +8,8 @@ alone the constant-velocity prior, a body-frame IMU log gtsam's IMU preintegrati
 noise is the setup's (the same stated noise as the other estimators): ``range_sigma``,
 ``q_xy``, ``q_theta``, ``q_acc``, ``q_imu``; the rest is
 :class:`~quadobs.estimators.gtsam_peer.PeerNoise`'s defaults. Where the setup has them, the
-attributes ``range_bias = "state"`` (a constant bias per anchor as a state), ``gravity``
+attributes ``range_bias`` (1 or ``"state"``: a constant bias per anchor as a state;
+:attr:`ReplaySetup.range_bias`, ``quadobs replay --tune range_bias=1``), ``gravity``
 and ``frame`` (the log's, for the IMU preintegration) are read too.
 
 :func:`check_peer` refuses a log the peer cannot take, with one line naming what the log
@@ -57,7 +58,7 @@ def build_peer(s, x0: np.ndarray, name: str = "isam2"):
         q_theta=s.q_theta,
         q_acc=s.q_acc,
         q_imu=s.q_imu,
-        bias="state" if getattr(s, "range_bias", "none") == "state" else "none",
+        bias="state" if getattr(s, "range_bias", 0) in (1, "state") else "none",
         **{k: getattr(s, k) for k in ("gravity", "frame") if hasattr(s, k)},
     )
     est = Isam2Peer(

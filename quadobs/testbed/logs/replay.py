@@ -210,6 +210,11 @@ def run_replay(
         x0 = initial_guess(log, world, float(initial_offset), seed)
     x0 = np.array(x0, dtype=float)
     built = build_replay_estimators(setup, names, x0)
+    for e in built:  # on the grid, such an estimator reads a bound IMU source, which a log has not
+        if hasattr(e, "bind_imu") and not (timed and takes_time(e)):
+            raise QuadobsError(
+                f"estimators: {e.name!r} reads the raw body IMU in time, not on the grid of a sensor layer (--set noise.*)"
+            )
     ests = [in_time(e, events, world.times) if timed and takes_time(e) else e for e in built]
     world.in_time_count = events.count if timed else None
 
@@ -260,7 +265,7 @@ def _timing(log, world, ests, events) -> dict:
 def check_replay(log, names, *, dt: float = 0.1, model: str | None = None, options=None) -> None:
     """Refuse, before any calibration or replay, a model the log cannot drive or an estimator
     that cannot take the log (each factory's one-line error, naming what the log lacks or holds)."""
-    from quadobs.testbed.logs.estimators import ReplaySetup, _typical_range
+    from quadobs.testbed.logs.estimators import ReplaySetup, _typical_range, log_frame
     from quadobs.testbed.worlds.replay import default_model, state_size
 
     model = model or default_model(log)
@@ -268,7 +273,7 @@ def check_replay(log, names, *, dt: float = 0.1, model: str | None = None, optio
     kinds = tuple(k for k, table in (("range", log.ranges), ("tdoa", log.tdoa)) if table.shape[0])
     setup = ReplaySetup(
         log.beacons, dt, model, 0.0, _typical_range(log), input_kind=log.input_kind, kinds=kinds,
-        **(options or {}),
+        **log_frame(log), **(options or {}),
     )  # fmt: skip
     x0 = np.zeros(n)
     x0[: log.dimension] = log.beacons.mean(axis=0)
@@ -300,6 +305,7 @@ def _summary(
             "q_acc": setup.q_acc,
             "q_imu": setup.q_imu,
             "gate": setup.gate,
+            "range_bias": setup.range_bias,
         },
         "measurements": {
             "range_period_steps": sensors.range_every,
