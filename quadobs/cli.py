@@ -610,7 +610,6 @@ def build_parser():
     """The ``argparse.ArgumentParser`` of the command line."""
     import argparse
     import functools
-    from pathlib import Path
 
     help_formatter, estimators_option = _parser_classes()
     parser = argparse.ArgumentParser(
@@ -637,9 +636,27 @@ def build_parser():
     sub = parser.add_subparsers(dest="command", required=True)
     sub.add_parser = functools.partial(sub.add_parser, formatter_class=help_formatter)
 
+    _add_list(sub, estimators_option)
+    _add_compile(sub, estimators_option)
+    _add_run(sub, estimators_option)
+    _add_show(sub, estimators_option)
+    _add_excitation(sub, estimators_option)
+    _add_campaign(sub, estimators_option)
+    _add_bench(sub, estimators_option)
+    _add_plot(sub, estimators_option)
+    _add_replay(sub)
+    _add_import_bag(sub)
+    return parser
+
+
+def _add_list(sub, estimators_option) -> None:
+    """The ``list`` subcommand."""
     p = sub.add_parser("list", help="name the built-in scenarios")
     p.set_defaults(func=_cmd_list)
 
+
+def _add_compile(sub, estimators_option) -> None:
+    """The ``compile`` subcommand."""
     p = sub.add_parser(
         "compile",
         help="compile the kernels into the on-disk cache now (side by side), so a first run starts at once",
@@ -648,6 +665,11 @@ def build_parser():
         "--force", action="store_true", help="compile every kernel, even those already cached"
     )
     p.set_defaults(func=_cmd_compile)
+
+
+def _add_run(sub, estimators_option) -> None:
+    """The ``run`` subcommand."""
+    from pathlib import Path
 
     p = sub.add_parser("run", help="run one episode headless, record it and print a summary")
     p.add_argument(
@@ -682,6 +704,9 @@ def build_parser():
     _add_set(p)
     p.set_defaults(func=_cmd_run)
 
+
+def _add_show(sub, estimators_option) -> None:
+    """The ``show`` subcommand."""
     p = sub.add_parser(
         "show", help="print a scenario's TOML after any --set overrides (or the field reference)"
     )
@@ -697,6 +722,11 @@ def build_parser():
     )
     _add_set(p)
     p.set_defaults(func=_cmd_show)
+
+
+def _add_excitation(sub, estimators_option) -> None:
+    """The ``excitation`` subcommand."""
+    from pathlib import Path
 
     p = sub.add_parser(
         "excitation",
@@ -714,6 +744,11 @@ def build_parser():
     p.add_argument("--json", type=Path, help="also write the report as JSON")
     _add_set(p)
     p.set_defaults(func=_cmd_excitation)
+
+
+def _add_campaign(sub, estimators_option) -> None:
+    """The ``campaign`` subcommand."""
+    from pathlib import Path
 
     p = sub.add_parser(
         "campaign",
@@ -780,6 +815,11 @@ def build_parser():
     _add_set(p)
     p.set_defaults(func=_cmd_campaign)
 
+
+def _add_bench(sub, estimators_option) -> None:
+    """The ``bench`` subcommand."""
+    from pathlib import Path
+
     p = sub.add_parser(
         "bench",
         help="measure the estimators' cost beside the physics (single vehicle, batch, scaling)",
@@ -809,6 +849,11 @@ def build_parser():
     p.add_argument("--quiet", action="store_true", help="no progress messages")
     p.set_defaults(func=_cmd_bench)
 
+
+def _add_plot(sub, estimators_option) -> None:
+    """The ``plot`` subcommand."""
+    from pathlib import Path
+
     p = sub.add_parser(
         "plot",
         help="draw a figure (PNG, PDF, SVG) of a run's .rrd, a campaign folder or the le2013 recording (needs quadobs[plot])",
@@ -835,10 +880,6 @@ def build_parser():
     )
     p.add_argument("--no-legend", action="store_true", help="no legends")
     p.set_defaults(func=_cmd_plot)
-
-    _add_replay(sub)
-    _add_import_bag(sub)
-    return parser
 
 
 def _add_replay(sub) -> None:

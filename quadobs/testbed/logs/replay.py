@@ -126,6 +126,23 @@ def log_scenario(log, dt: float, seed: int = 0, settings=()):
     return parse_scenario(data, source=log.source)
 
 
+def _replay_estimators(log, world, setup, events, names, x0) -> list:
+    """The estimators of a replay, each taking the log's measurements at their own times where it
+    can (:func:`~quadobs.testbed.logs.events.in_time`), on the grid where a sensor layer
+    (``noise.*`` settings) acts on the grid's rows; sets ``world.in_time_count``."""
+    timed = world.sensors is None
+    if (events.count if timed else world.placed) == 0:
+        raise QuadobsError(f"log {log.name!r}: no measurement falls inside the inputs' time span")
+    built = build_replay_estimators(setup, names, x0)
+    for e in built:  # on the grid, such an estimator reads a bound IMU source, which a log has not
+        if hasattr(e, "bind_imu") and not (timed and takes_time(e)):
+            raise QuadobsError(
+                f"estimators: {e.name!r} reads the raw body IMU in time, not on the grid of a sensor layer (--set noise.*)"
+            )
+    world.in_time_count = events.count if timed else None
+    return [in_time(e, events, world.times) if timed and takes_time(e) else e for e in built]
+
+
 def run_replay(
     log,
     *,
@@ -203,20 +220,10 @@ def run_replay(
     events = LogEvents(
         log, biases, start=world.times[0], end=world.times[-1], std=setup.measurement_std()
     )
-    timed = world.sensors is None  # a sensor layer (noise.* settings) acts on the grid's rows
-    if (events.count if timed else world.placed) == 0:
-        raise QuadobsError(f"log {log.name!r}: no measurement falls inside the inputs' time span")
     if x0 is None:
         x0 = initial_guess(log, world, float(initial_offset), seed)
     x0 = np.array(x0, dtype=float)
-    built = build_replay_estimators(setup, names, x0)
-    for e in built:  # on the grid, such an estimator reads a bound IMU source, which a log has not
-        if hasattr(e, "bind_imu") and not (timed and takes_time(e)):
-            raise QuadobsError(
-                f"estimators: {e.name!r} reads the raw body IMU in time, not on the grid of a sensor layer (--set noise.*)"
-            )
-    ests = [in_time(e, events, world.times) if timed and takes_time(e) else e for e in built]
-    world.in_time_count = events.count if timed else None
+    ests = _replay_estimators(log, world, setup, events, names, x0)
 
     def summarise(merged, completed, wall, interrupted):
         summary = _summary(
