@@ -39,6 +39,11 @@ WORLDS = {
 }
 
 
+def find_chromium() -> str | None:
+    """Chromium's executable on the PATH, or None."""
+    return shutil.which("chromium") or shutil.which("chromium-browser")
+
+
 def free_port() -> int:
     """A TCP port free on 127.0.0.1 now (the OS picks it)."""
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
@@ -106,7 +111,7 @@ class DevTools:
     """Headless Chromium driven by the DevTools protocol over a pipe (JSON messages, NUL-ended)."""
 
     def __init__(self, width: int, height: int, log) -> None:
-        chromium = shutil.which("chromium") or shutil.which("chromium-browser")
+        chromium = find_chromium()
         if chromium is None:
             raise RuntimeError("chromium is not on the PATH")
         self.commands_r, self.commands_w = os.pipe()  # we write, Chromium reads (its fd 3)
@@ -254,10 +259,17 @@ def main() -> None:
     unknown = sorted(set(worlds) - set(WORLDS))
     if unknown:
         parser.error(f"unknown world(s) {', '.join(unknown)}; known: {', '.join(WORLDS)}")
+    if find_chromium() is None:
+        parser.error("chromium is not on the PATH (Debian: apt-get install chromium)")
     Path(args.out).mkdir(parents=True, exist_ok=True)
+    # a SIGTERM unwinds like Ctrl-C, so that the viewer and Chromium are stopped on the way out
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))
     with tempfile.TemporaryDirectory(prefix="quadobs-screenshots-") as work:
         for world in worlds:
-            path = shoot(world, args, Path(work))
+            try:
+                path = shoot(world, args, Path(work))
+            except (RuntimeError, OSError, subprocess.SubprocessError) as err:
+                sys.exit(f"screenshots: {world}: {err}")
             print(f"{world}: screenshot {path} ({path.stat().st_size} bytes)")
 
 
