@@ -77,11 +77,14 @@ def default_blueprint(frame, estimators: list[str]) -> rrb.Blueprint:
     the beacons from a scene size away (:func:`scene_size`); every time series shows the
     whole run, whatever the time cursor.
     """
-    history = rrb.VisibleTimeRange(
-        "sim_time",
-        start=rrb.TimeRangeBoundary.infinite(),
-        end=rrb.TimeRangeBoundary.cursor_relative(),
-    )
+    history = [  # on both timelines: the viewer may open on either
+        rrb.VisibleTimeRange(
+            timeline,
+            start=rrb.TimeRangeBoundary.infinite(),
+            end=rrb.TimeRangeBoundary.cursor_relative(),
+        )
+        for timeline in ("sim_time", "step")
+    ]
     whole = [
         rrb.VisibleTimeRange(
             timeline,
@@ -90,23 +93,36 @@ def default_blueprint(frame, estimators: list[str]) -> rrb.Blueprint:
         )
         for timeline in ("sim_time", "step")
     ]
+    run = rrb.TimeAxis(  # the x axis opens on the whole run, not on the cursor's neighbourhood
+        view_range=rrb.TimeRange(
+            start=rrb.TimeRangeBoundary.infinite(), end=rrb.TimeRangeBoundary.infinite()
+        )
+    )
     plots = [
         rrb.TimeSeriesView(
             name="Position error (m)",
             contents=[f"/errors/{e}/position/**" for e in estimators],
             time_ranges=whole,
+            axis_x=run,
         ),
         rrb.TimeSeriesView(
             name="Velocity error (m/s)",
             contents=[f"/errors/{e}/velocity/**" for e in estimators],
             time_ranges=whole,
+            axis_x=run,
         ),
     ]
     if frame.has_wind:
-        plots.append(rrb.TimeSeriesView(name="Wind (m/s)", origin="/wind", time_ranges=whole))
+        plots.append(
+            rrb.TimeSeriesView(name="Wind (m/s)", origin="/wind", time_ranges=whole, axis_x=run)
+        )
     plots += [
-        rrb.TimeSeriesView(name="Measurements", origin="/measurements", time_ranges=whole),
-        rrb.TimeSeriesView(name="Covariance trace, NIS", origin="/observer", time_ranges=whole),
+        rrb.TimeSeriesView(
+            name="Measurements", origin="/measurements", time_ranges=whole, axis_x=run
+        ),
+        rrb.TimeSeriesView(
+            name="Covariance trace, NIS", origin="/observer", time_ranges=whole, axis_x=run
+        ),
     ]
     if frame.excitation:  # see quadobs.recording.excitation
         plots += [
@@ -114,11 +130,13 @@ def default_blueprint(frame, estimators: list[str]) -> rrb.Blueprint:
                 name="Excitation: log10 mu vs threshold",
                 contents=["/excitation/log10"],
                 time_ranges=whole,
+                axis_x=run,
             ),
             rrb.TimeSeriesView(
                 name="Variance in the unexcited directions",
                 contents=["/excitation/unexcited_variance/**"],
                 time_ranges=whole,
+                axis_x=run,
             ),
         ]
     return rrb.Blueprint(
@@ -127,7 +145,7 @@ def default_blueprint(frame, estimators: list[str]) -> rrb.Blueprint:
                 rrb.Spatial3DView(
                     name="Vehicle, beacons, trajectories",
                     origin="/world",
-                    time_ranges=[history],
+                    time_ranges=history,
                     eye_controls=_eye(frame),
                 ),
                 rrb.TextLogView(name="Events", origin="/events"),
