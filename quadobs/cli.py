@@ -1335,6 +1335,9 @@ def _log_to_stderr(verbose: int, quiet: bool):
         level = logging.DEBUG
     handler = logging.StreamHandler(sys.stderr)
     handler.setFormatter(OneLine())
+    for name, known in logging.root.manager.loggerDict.items():  # a library's dictConfig (dask's)
+        if name.startswith("quadobs") and isinstance(known, logging.Logger):  # may disable them
+            known.disabled = False
     logger = logging.getLogger("quadobs")
     logger.addHandler(handler)
     logger.setLevel(level)

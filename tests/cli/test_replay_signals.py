@@ -21,18 +21,18 @@ def log_folder(tmp_path_factory) -> Path:
 
 
 def test_an_interrupt_in_a_calibration_replay_stops_the_command(log_folder, monkeypatch, capsys):
-    """A Ctrl-C after the first block of a calibration replay (which the loop answers by ending
-    the replay early) stops the calibration: status 130, no "calibrated" line, no replay after it."""
+    """A Ctrl-C in the second replay of the calibration (as the program's signal handler raises
+    it) stops the calibration: status 130, no "calibrated" line, no replay after it."""
     calls = []
-    block = calibration._Estimates.block
+    replay = calibration.prediction_residuals
 
-    def interrupted_block(self, rows):
-        calls.append(rows.count)
+    def interrupted_replay(*args, **kwargs):
+        calls.append(1)
         if len(calls) == 2:
             raise KeyboardInterrupt
-        block(self, rows)
+        return replay(*args, **kwargs)
 
-    monkeypatch.setattr(calibration._Estimates, "block", interrupted_block)
+    monkeypatch.setattr(calibration, "prediction_residuals", interrupted_replay)
     code = main(["replay", str(log_folder), "--dt", "0.00005", "--no-progress"])
     out = capsys.readouterr().out
     assert code == 130 and "calibrated" not in out and "rmse" not in out
