@@ -55,8 +55,8 @@ __all__ = [
     "LogExportSink",
     "QuadrotorLogTap",
     "check_export_folder",
-    "stated_range_std",
     "check_exportable",
+    "stated_range_std",
 ]
 
 
