@@ -126,6 +126,20 @@ def test_the_exported_flight_replays_as_it_flew(exported_flight):
         assert r["estimators"][n]["rmse"] == pytest.approx(_rmse(ep.trace, n, burn_in), rel=0.25), n
 
 
+def test_a_tdoa_radio_is_exported_as_differences(tmp_path):
+    folder = tmp_path / "log"
+    args = ["run", "quadrotor-uwb-realistic", "--duration", "8", "--no-progress"]
+    args += ["--estimators", "ekf", "--export-log", str(folder), "--set", "radio.protocol=tdoa"]
+    for s in SHORT:
+        args += ["--set", s]
+    assert main(args) == 0
+    log = read_log(folder)
+    assert log.ranges.shape[0] == 0 and not (folder / "ranges.csv").exists()
+    i, j = log.tdoa[:, 1].astype(int), log.tdoa[:, 2].astype(int)
+    assert log.tdoa.shape[0] > 600 and np.all(i != j) and np.all(np.diff(log.tdoa[:, 0]) > 0)
+    assert np.all(log.tdoa_std == 0.1)
+
+
 def test_the_radio_of_a_realistic_flight_is_exported_at_its_own_times(tmp_path):
     folder = tmp_path / "log"
     args = ["run", "quadrotor-uwb-realistic", "--duration", "8", "--no-progress"]
