@@ -130,8 +130,12 @@ class LogExportSink(Sink):
 
     def __init__(self, folder: str | Path) -> None:
         self.folder = Path(folder)
-        self.parts: dict[str, list[np.ndarray]] = {"ranges": [], "inputs": [], "truth": []}
-        self.parts.update(attitude=[])
+        self.parts: dict[str, list[np.ndarray]] = {
+            "ranges": [],
+            "inputs": [],
+            "truth": [],
+            "attitude": [],
+        }
         self.tap: QuadrotorLogTap | None = None
 
     def begin(self, ctx: EpisodeContext) -> None:
