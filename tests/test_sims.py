@@ -57,6 +57,11 @@ CASES = {
         ["campaign/summary.json", "campaign/runs.parquet", "campaign/statistics.rrd"],
         "ekf_tuned",
     ),
+    "replay_exported_quadrotor.py": (
+        ["--duration", "8", "--burn-in", "3", "--out", "{tmp}/log"],
+        ["log/imu.csv", "log/attitude.csv"],
+        "own tuning",
+    ),
 }
 
 

@@ -474,7 +474,7 @@ class _Episode:
         self.lead = found
         self.trace = TraceSink(collect_every, self.steps) if collect_every > 0 else None
         self.sinks = self._sinks(out, flush_rows, progress, monitor, sinks)
-        ctx = EpisodeContext(frame, tuple(ests), block, self.clock)
+        ctx = EpisodeContext(frame, tuple(ests), block, self.clock, self.world)
         try:
             for sink in self.sinks:
                 sink.begin(ctx)

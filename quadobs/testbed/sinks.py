@@ -240,13 +240,16 @@ class EpisodeContext:
     """What the sinks learn at ``begin``: the frame, the estimators, the block and the estimators' clock.
 
     ``clock`` (``(E,)``, seconds) accumulates the wall time of each estimator's steps when
-    the episode times them (``None`` otherwise).
+    the episode times them (``None`` otherwise). ``world`` is the episode's world (``None``
+    where the caller gives none), for a sink that reads what the world's rows do not hold
+    (:class:`~quadobs.testbed.logs.export.LogExportSink`: a quadrotor's body IMU).
     """
 
     frame: EpisodeFrame
     estimators: tuple
     block: Block
     clock: np.ndarray | None = None
+    world: Any = None
 
     @property
     def names(self) -> list[str]:

@@ -16,12 +16,33 @@
 
 Replayed at ``dt`` equal to the physics step (``quadobs replay DIR --dt DT --model imu``)
 the log gives the estimators the same outputs and, to rounding, the same inputs as the
-episode (tested in ``tests/testbed/test_replay.py``). Only vehicle scenarios without wind
-are written: the format holds neither an airspeed nor a quadrotor's attitude.
+episode (tested in ``tests/testbed/test_replay.py``). Vehicle scenarios with wind are not
+written: the format holds no airspeed.
+
+A quadrotor scenario (:class:`~quadobs.testbed.worlds.quadrotor.QuadrotorWorld`) is written
+as a log of version 2 with a body IMU, what the vehicle's own sensors gave the estimators
+(:class:`QuadrotorLogTap` reads them each step):
+
+* ``imu.csv``: the body IMU of each step, ``time,ax,ay,az,gx,gy,gz``: the specific force
+  ``f~`` and the angular rate ``w~`` in the body frame, with their noise and biases, held
+  over ``[t_k, t_(k+1))``; a last row at ``t_K`` repeats the last sample;
+* ``attitude.csv``: the AHRS attitude ``q~`` (with its error) at the samples it was renewed
+  (``[quadrotor] attitude_rate``): the rotation the episode built ``u_k = R~ f~ + g`` with;
+* ``ranges.csv``: with a ``[radio]`` table, each of the radio's ranges at its own time, with
+  the radio's stated standard deviation (``std``); a TDOA radio's differences go to
+  ``tdoa.csv``; without one, the sensor layer's ranges on the physics grid as above, with
+  its stated noise ``[noise] range_std`` as ``std`` (:func:`stated_range_std`);
+* ``truth.csv``: ``time,x,y,z,qw,qx,qy,qz,vx,vy,vz``, the true position, attitude and
+  velocity at each step;
+* ``meta.csv``: ``frame`` ``enu`` (z up) and the MuJoCo model's ``gravity``.
+
+The replay (``quadobs replay DIR --model imu``) rebuilds the navigation-frame acceleration
+``R~ f~ + g`` from ``imu.csv`` and ``attitude.csv`` (:mod:`quadobs.testbed.attitude`).
 """
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import numpy as np
@@ -30,16 +51,25 @@ from quadobs.errors import QuadobsError
 from quadobs.testbed.logs.format import LOG_FILES, RangeLog, write_log
 from quadobs.testbed.sinks import EpisodeContext, Rows, Sink
 
-__all__ = ["LogExportSink", "check_export_folder", "check_exportable"]
+__all__ = [
+    "LogExportSink",
+    "QuadrotorLogTap",
+    "check_export_folder",
+    "check_exportable",
+    "stated_range_std",
+]
 
 
 def check_exportable(scenario) -> None:
-    """A one-line error unless ``scenario`` can be written as a log (a vehicle scenario without wind)."""
+    """A one-line error unless ``scenario`` can be written as a log (a quadrotor, or a vehicle scenario without wind)."""
+    if scenario.kind == "quadrotor":
+        return
     if scenario.kind != "vehicle" or scenario.has_wind:
-        what = "a quadrotor" if scenario.kind != "vehicle" else "a wind scenario"
+        what = f"of kind {scenario.kind!r}" if scenario.kind != "vehicle" else "a wind scenario"
         raise QuadobsError(
             f"--export-log: {scenario.name!r} is {what}; the log format holds ranges, an accelerometer "
-            "in the navigation frame and the truth of a vehicle scenario without wind"
+            "in the navigation frame and the truth of a vehicle scenario without wind, or a quadrotor's "
+            "body IMU"
         )
 
 
@@ -50,6 +80,41 @@ def check_export_folder(folder, outputs=()) -> None:
     from quadobs.testbed.logs.format import LOG_FILES
 
     check_replaceable_folder(folder, set(LOG_FILES), "--export-log", outputs)
+
+
+def stated_range_std(world) -> float:
+    """The sensor layer's stated range noise (m): ``noise.range_std``, or a bound's uniform
+    ``range_bound / sqrt(3)``; NaN (the replay's default) for noiseless ranges."""
+    noise = world.scenario.noise
+    std = float(noise.range_std) or float(noise.range_bound or 0.0) / math.sqrt(3.0)
+    return std if std > 0 else math.nan
+
+
+class QuadrotorLogTap:
+    """Per step of a quadrotor world: its body IMU sample, its AHRS attitude and the radio's measurements.
+
+    Set as the world's ``log_tap``, it is called at the end of each step ``k`` (block row
+    ``j``), after the IMU and the radio have been read, and keeps them in arrays allocated
+    once (the rows of the current block) and, for the radio, a list.
+
+    Parameters
+    ----------
+    world : QuadrotorWorld
+    """
+
+    def __init__(self, world) -> None:
+        rows = world.out.shape[0]
+        self.world = world
+        self.imu = np.full((rows, 6), np.nan)
+        self.attitude = np.full((rows, 4), np.nan)
+        self.events: list = []
+
+    def __call__(self, j: int, k: int) -> None:
+        w = self.world
+        self.imu[j] = w.body_imu
+        self.attitude[j] = w.attitude_meas
+        if w.step_events:
+            self.events.extend(w.step_events)
 
 
 class LogExportSink(Sink):
@@ -65,7 +130,13 @@ class LogExportSink(Sink):
 
     def __init__(self, folder: str | Path) -> None:
         self.folder = Path(folder)
-        self.parts: dict[str, list[np.ndarray]] = {"ranges": [], "inputs": [], "truth": []}
+        self.parts: dict[str, list[np.ndarray]] = {
+            "ranges": [],
+            "inputs": [],
+            "truth": [],
+            "attitude": [],
+        }
+        self.tap: QuadrotorLogTap | None = None
 
     def begin(self, ctx: EpisodeContext) -> None:
         super().begin(ctx)
@@ -74,28 +145,58 @@ class LogExportSink(Sink):
             raise QuadobsError(
                 f"--export-log: {fr.name!r}: the log format holds a position and velocity state only"
             )
+        world = ctx.world
+        if world is not None and hasattr(world, "log_tap"):  # a quadrotor: its body IMU
+            self.tap = world.log_tap = QuadrotorLogTap(world)
 
     def block(self, rows: Rows) -> None:
         fr, c = self.ctx.frame, rows.block.columns
         steps = rows.ks < fr.steps  # the final row has no step: its truth only
         t = rows.t
-        self.parts["truth"].append(np.column_stack([t, rows.truth]))
-        self.parts["inputs"].append(np.column_stack([t[steps], rows.block.u[: rows.count][steps]]))
         measured = rows.block.raw[: rows.count, c.measured][steps]
         k, h = np.nonzero(~np.isnan(measured))  # row-major: by time, then by beacon
         self.parts["ranges"].append(np.column_stack([t[steps][k], h, measured[k, h]]))
+        if self.tap is not None:
+            self._quadrotor_block(rows, steps)
+            return
+        self.parts["truth"].append(np.column_stack([t, rows.truth]))
+        self.parts["inputs"].append(np.column_stack([t[steps], rows.block.u[: rows.count][steps]]))
+
+    def _quadrotor_block(self, rows: Rows, steps: np.ndarray) -> None:
+        """The body IMU, the AHRS attitude where renewed, and the truth with its attitude."""
+        assert self.tap is not None, "a quadrotor export only"
+        world, t, n = self.tap.world, rows.t, rows.count
+        self.parts["inputs"].append(np.column_stack([t[steps], self.tap.imu[:n][steps]]))
+        renewed = steps & (rows.ks % world.imu.attitude_every == 0)
+        self.parts["attitude"].append(np.column_stack([t[renewed], self.tap.attitude[:n][renewed]]))
+        q = rows.block.raw[:n, world.spans["attitude"]].copy()
+        q[~steps] = world.attitude()  # the final row (no step): MuJoCo's state at t_K
+        self.parts["truth"].append(np.column_stack([t, rows.truth[:, :3], q, rows.truth[:, 3:]]))
 
     def end(self, completed: int, interrupted: bool) -> dict:
         if completed == 0:
             return {}
+        ranges = np.vstack(self.parts["ranges"]).reshape(-1, 3)
+        negated = int(np.count_nonzero(ranges[:, 2] < 0.0))
+        ranges[:, 2] = np.abs(ranges[:, 2])
+        log = self._quadrotor_log(completed, ranges) if self.tap else self._log(completed, ranges)
+        from quadobs.testbed.outputs import write_folder_staged
+
+        try:  # the folder as a whole (a full disk leaves the previous one complete)
+            write_folder_staged(
+                self.folder, lambda tmp: write_log(log, tmp), "--export-log", set(LOG_FILES)
+            )
+        except QuadobsError as exc:  # the run's own results stay; the command reports it (exit 1)
+            return {"export_error": str(exc), "exported_log_ranges_negated": negated}
+        return {"exported_log": str(self.folder), "exported_log_ranges_negated": negated}
+
+    def _log(self, completed: int, ranges: np.ndarray) -> RangeLog:
+        """A vehicle's log: the navigation-frame accelerometer, position and velocity truth."""
         fr = self.ctx.frame
         dim = fr.dimension
         inputs = np.vstack(self.parts["inputs"] + [np.r_[completed * fr.dt, np.zeros(dim)][None]])
         axes = "xyz"[:dim]
-        ranges = np.vstack(self.parts["ranges"]).reshape(-1, 3)
-        negated = int(np.count_nonzero(ranges[:, 2] < 0.0))
-        ranges[:, 2] = np.abs(ranges[:, 2])
-        log = RangeLog(
+        return RangeLog(
             fr.name,
             np.arange(fr.beacons.shape[0]),
             np.asarray(fr.beacons, dtype=float),
@@ -106,12 +207,37 @@ class LogExportSink(Sink):
             input_kind="imu",
             truth_columns=("time", *axes, *(f"v{a}" for a in axes)),
         )
-        from quadobs.testbed.outputs import write_folder_staged
 
-        try:  # the folder as a whole (a full disk leaves the previous one complete)
-            write_folder_staged(
-                self.folder, lambda tmp: write_log(log, tmp), "--export-log", set(LOG_FILES)
-            )
-        except QuadobsError as exc:  # the run's own results stay; the command reports it (exit 1)
-            return {"export_error": str(exc), "exported_log_ranges_negated": negated}
-        return {"exported_log": str(self.folder), "exported_log_ranges_negated": negated}
+    def _quadrotor_log(self, completed: int, grid_ranges: np.ndarray) -> RangeLog:
+        """A quadrotor's log: body IMU, AHRS attitude, ranges (the radio's or the grid's), truth."""
+        assert self.tap is not None, "a quadrotor export only"
+        fr, world = self.ctx.frame, self.tap.world
+        imu = np.vstack(self.parts["inputs"])
+        inputs = np.vstack([imu, np.r_[completed * fr.dt, imu[-1, 1:]][None]])
+        events = self.tap.events
+        radio = [(m.t, m.anchors[0], m.value, m.std) for m in events if m.kind == "range"]
+        tdoa = [(m.t, *m.anchors, m.value, m.std) for m in events if m.kind == "tdoa"]
+        grid = np.column_stack(
+            [grid_ranges, np.full(grid_ranges.shape[0], stated_range_std(world))]
+        )
+        ranges = np.vstack([grid, np.asarray(radio, dtype=float).reshape(-1, 4)])
+        ranges = ranges.reshape(-1, 4)[np.argsort(ranges[:, 0], kind="stable")]
+        tdoa_rows = np.asarray(tdoa, dtype=float).reshape(-1, 5)
+        return RangeLog(
+            fr.name,
+            np.arange(fr.beacons.shape[0]),
+            np.asarray(fr.beacons, dtype=float),
+            ranges[:, :3],
+            inputs,
+            float("nan"),
+            np.vstack(self.parts["truth"]),
+            input_kind="imu_body",
+            truth_columns=("time", "x", "y", "z", "qw", "qx", "qy", "qz", "vx", "vy", "vz"),
+            range_std=ranges[:, 3],
+            tdoa=tdoa_rows[:, :4],
+            tdoa_std=tdoa_rows[:, 4],
+            attitude=np.vstack(self.parts["attitude"]),
+            frame="enu",
+            gravity=float(-world.model.opt.gravity[2]),
+            description=(fr.description.splitlines() or [""])[0],
+        )

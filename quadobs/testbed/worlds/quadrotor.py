@@ -158,6 +158,9 @@ class QuadrotorWorld(World):
         self.crash_cause: str | None = None
         #: The latest body IMU sample ``(f~ (3), w~ (3))`` (what an IMU-driven estimator holds).
         self.body_imu = np.zeros(6)
+        #: Called as ``log_tap(j, k)`` at the end of each step when set (a log export's
+        #: :class:`~quadobs.testbed.logs.export.QuadrotorLogTap`); ``None``: nothing.
+        self.log_tap = None
         self._compiled()
         self._radio_setup(scenario)
 
@@ -243,6 +246,10 @@ class QuadrotorWorld(World):
         d = self.data
         return np.concatenate([d.qpos[self._qp : self._qp + 3], d.qvel[self._qv : self._qv + 3]])
 
+    def attitude(self) -> np.ndarray:
+        """The true body-to-world quaternion ``(w, x, y, z)`` of the vehicle now (a copy)."""
+        return self._q.copy()
+
     def begin_block(self, k0: int, count: int) -> int:
         count = min(count, self.out.shape[0] - 1)
         self.k0 = k0
@@ -311,6 +318,8 @@ class QuadrotorWorld(World):
         kq.body_imu(
             d.sensordata, self._acc, self.noise[j], self._imu, self.rates_meas, self.body_imu
         )
+        if self.log_tap is not None:
+            self.log_tap(j, k)
         if self.crashed_at is None and (err > self.control.crash_distance or upside):
             self.crashed_at = k
             self.crash_cause = (
