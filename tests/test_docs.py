@@ -7,6 +7,8 @@ Each block runs in a fresh namespace with a temporary directory as the working d
 
 from __future__ import annotations
 
+import contextlib
+import logging
 import re
 from pathlib import Path
 
@@ -75,7 +77,25 @@ def test_docs_exist():
 def test_python_example_runs(path: Path, line: int, code: str, tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     namespace = {"__name__": "__doc_example__"}
-    exec(compile(code, f"{path}:{line}", "exec"), namespace)
+    with _logging_restored():  # an example may configure logging, as a user's program does
+        exec(compile(code, f"{path}:{line}", "exec"), namespace)
+
+
+@contextlib.contextmanager
+def _logging_restored():
+    """The root logger's handlers and the project's loggers' levels as they were before."""
+    root = logging.getLogger()
+    handlers, level = list(root.handlers), root.level
+    names = [n for n in logging.root.manager.loggerDict if n.startswith("quadobs")]
+    levels = {n: logging.getLogger(n).level for n in names}
+    try:
+        yield
+    finally:
+        root.handlers[:] = handlers
+        root.setLevel(level)
+        for n in logging.root.manager.loggerDict:
+            if n.startswith("quadobs"):
+                logging.getLogger(n).setLevel(levels.get(n, logging.NOTSET))
 
 
 def relative_links(text: str) -> list[str]:
