@@ -54,6 +54,7 @@ __all__ = [
     "SetValued",
     "Subset",
     "Switching",
+    "Wrapper",
     "check_step",
     "covariance_trace",
     "measurement_models",
@@ -333,6 +334,28 @@ def measurement_models(system, models=None, std: float = 1.0) -> dict:
 def covariance_trace(est: Estimator) -> float:
     """``est.covariance_trace`` (kept for callers holding any :class:`Estimator`)."""
     return est.covariance_trace
+
+
+class Wrapper(Estimator):
+    """An estimator that wraps another, ``inner``, and reads the estimate from it.
+
+    Subclasses implement :meth:`step`; :attr:`x_hat`, :attr:`x_covariance` and
+    :attr:`covariance_trace` are the wrapped estimator's.
+    """
+
+    inner: Estimator
+
+    @property
+    def x_hat(self) -> np.ndarray:
+        return self.inner.x_hat
+
+    @property
+    def x_covariance(self) -> np.ndarray | None:
+        return self.inner.x_covariance
+
+    @property
+    def covariance_trace(self) -> float:
+        return self.inner.covariance_trace
 
 
 class Counted(abc.ABC):

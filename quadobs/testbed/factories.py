@@ -19,7 +19,7 @@ from quadobs.core.immersion import immerse
 from quadobs.core.system import QuadraticSystem
 from quadobs.errors import QuadobsError
 from quadobs.estimators.augmented import AugmentedObserver
-from quadobs.estimators.base import Estimator, Gated, Immersed, Subset
+from quadobs.estimators.base import Estimator, Gated, Immersed, Subset, Wrapper
 from quadobs.estimators.kalman import (
     ExtendedKalmanFilter,
     HeldInputModel,
@@ -49,8 +49,10 @@ def _matrix_subset(value, idx: tuple[int, ...]):
     return arr[list(idx)] if arr.ndim == 1 else arr[np.ix_(idx, idx)]
 
 
-class OutputSubset(Estimator, Gated, Immersed, Subset):
+class OutputSubset(Wrapper, Gated, Immersed, Subset):
     """An augmented observer that reads some of the outputs only (``y[outputs]``): a scenario's variant."""
+
+    inner: AugmentedObserver
 
     def __init__(
         self, inner: AugmentedObserver, outputs: tuple[int, ...], name: str, *, q: int | None = None
@@ -68,18 +70,6 @@ class OutputSubset(Estimator, Gated, Immersed, Subset):
 
     def step_and_record(self, u, y, out) -> None:
         self.inner.step_and_record(u, np.asarray(y)[self.outputs], out)
-
-    @property
-    def x_hat(self) -> np.ndarray:
-        return self.inner.x_hat
-
-    @property
-    def x_covariance(self):
-        return self.inner.x_covariance
-
-    @property
-    def covariance_trace(self) -> float:
-        return self.inner.covariance_trace
 
     @property
     def nis(self) -> float:  # type: ignore[override]  # the wrapped estimator's, never set on the wrapper

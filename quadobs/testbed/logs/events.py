@@ -28,7 +28,7 @@ import numpy as np
 
 from quadobs.core.measurements import Measurement
 from quadobs.errors import QuadobsError
-from quadobs.estimators.base import Counted, Estimator, Gated, Immersed, Switching
+from quadobs.estimators.base import Counted, Estimator, Gated, Immersed, Switching, Wrapper
 
 __all__ = ["InTimeOnGrid", "LogEvents", "held_inputs", "in_time", "takes_time"]
 
@@ -119,7 +119,7 @@ class LogEvents:
         return self._inputs[raw]
 
 
-class InTimeOnGrid(Estimator):
+class InTimeOnGrid(Wrapper):
     """An estimator that takes measurements in time, stepped on the replay's grid (module docstring).
 
     Its :meth:`step` ignores the row's ``u`` and ``y`` (the grid's placement, kept for the
@@ -140,19 +140,6 @@ class InTimeOnGrid(Estimator):
         if first >= 0:
             est.hold(self._u[first])
         self._i = first + 1
-
-    # forwarded state
-    @property
-    def x_hat(self) -> np.ndarray:
-        return self.inner.x_hat
-
-    @property
-    def x_covariance(self):
-        return self.inner.x_covariance
-
-    @property
-    def covariance_trace(self) -> float:
-        return self.inner.covariance_trace
 
     @property
     def time(self) -> float:
