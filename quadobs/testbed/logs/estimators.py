@@ -71,9 +71,11 @@ __all__ = [
     "REPLAY_ESTIMATORS",
     "TUNING",
     "ReplaySetup",
+    "build_ekf_heading",
     "build_isam2",
     "build_onboard_ekf",
     "build_replay_estimators",
+    "build_ukf_heading",
     "parse_tuning",
     "replay_estimator_names",
     "replay_setup",
@@ -430,6 +432,49 @@ def build_onboard_ekf(s: ReplaySetup, x0: np.ndarray, name: str = "onboard-ekf")
     return est
 
 
+def build_ekf_heading(s: ReplaySetup, x0: np.ndarray, name: str = "ekf-heading", cls=None):
+    """Entry point ``ekf-heading``: the EKF of an odometry log with the heading and the yaw rate's
+    bias as states (:class:`~quadobs.estimators.heading_ekf.HeadingEKF`).
+
+    Its noise is the setup's: ``q_xy`` on the position, ``q_theta`` on the heading, ranges (or
+    TDOA) ``range_sigma``; the bias's random walk ``GYRO_BIAS_STD^2 / GYRO_BIAS_TIME``. Its prior:
+    the position ``P0`` per axis, the heading's correction 0 with ``HEADING_STD`` (the log's
+    start heading being ``heading0``), the bias 0 with ``GYRO_BIAS_STD``
+    (:mod:`quadobs.estimators.heading_ekf`).
+    """
+    from quadobs.estimators import heading_ekf as hk
+
+    if s.model != "odometry" or s.input_kind != "odometry":
+        raise QuadobsError(
+            f"estimators: {name!r} needs a planar log with wheel odometry (inputs.csv: "
+            f"time,speed,yaw_rate) and the model odometry, and the replay has the model {s.model!r}"
+        )
+    state0 = np.zeros(4)
+    state0[:2] = np.asarray(x0, dtype=float)[:2]
+    est = (cls or hk.HeadingEKF)(
+        s.beacons,
+        x0=state0,
+        P0=np.array([s.P0, s.P0, hk.HEADING_STD**2, hk.GYRO_BIAS_STD**2]),
+        dt=s.dt,
+        q_xy=s.q_xy,
+        q_theta=s.q_theta,
+        q_bias=hk.GYRO_BIAS_STD**2 / hk.GYRO_BIAS_TIME,
+        range_sigma=s.range_sigma,
+        heading0=s.heading0,
+        gate=s.gate,
+        measurements=s.measurement_models(),
+    )
+    est.name = name
+    return est
+
+
+def build_ukf_heading(s: ReplaySetup, x0: np.ndarray, name: str = "ukf-heading"):
+    """Entry point ``ukf-heading``: the UKF of :func:`build_ekf_heading`'s model and noise."""
+    from quadobs.estimators.heading_ekf import HeadingUKF
+
+    return build_ekf_heading(s, x0, name, HeadingUKF)
+
+
 #: The built-in estimators of logged data (as declared in pyproject.toml; a test checks that they agree).
 #: An estimator that reads a body IMU as its input (the Crazyflie's on-board EKF,
 #: ``u = (f_body, omega_body)``) is registered here beside them and marks its instances with
@@ -441,6 +486,8 @@ REPLAY_ESTIMATORS = {
     "ukf": build_ukf,
     "isam2": build_isam2,
     "onboard-ekf": build_onboard_ekf,
+    "ekf-heading": build_ekf_heading,
+    "ukf-heading": build_ukf_heading,
 }
 
 

@@ -1,0 +1,404 @@
+"""Kalman filters of a wheeled vehicle whose heading and gyroscope bias are states (odometry logs).
+
+The replay's ``odometry`` model (:func:`~quadobs.core.system.odometry_system`) takes the
+odometry's dead-reckoned heading as right: its input is the forward speed ``s`` rotated by
+that heading, ``u = (s cos theta_o, s sin theta_o, omega_m)``, with ``theta_o`` the integral
+of the measured yaw rate ``omega_m`` from the log's start heading. A yaw rate read with a
+constant bias ``b`` (a gyroscope's, or an odometry's unequal wheel radii) makes
+``theta_o`` drift linearly, and a wrong start heading turns the whole path. These filters
+estimate both. The state is
+
+.. math:: x = (p_x,\\ p_y,\\ \\delta,\\ b), \\qquad \\theta = \\theta_o + \\delta ,
+
+``delta`` the heading's correction to the dead reckoning (rad) and ``b`` the yaw rate's
+bias (rad/s). With ``omega_m = theta' + b + n_theta`` and ``theta_o' = omega_m``,
+
+.. math::
+
+    \\dot p = s \\begin{bmatrix} \\cos\\theta \\\\ \\sin\\theta \\end{bmatrix}
+            = R(\\delta)\\, u_{xy} + w_p, \\qquad
+    \\dot\\delta = -b - n_\\theta, \\qquad \\dot b = w_b,
+
+``R(delta)`` the rotation by ``delta``: the replay's own held input drives it, on the grid and
+in time alike, and ``theta_o`` is needed only to report the heading. The white noises have
+intensities ``q_xy`` (m^2/s per axis: the speed's noise), ``q_theta`` (rad^2/s: the yaw
+rate's) and ``q_bias`` (rad^2/s^3: the bias's random walk).
+
+Prediction over an interval ``h`` with ``u`` held is exact for the mean: ``delta`` falls
+linearly, ``delta(tau) = delta_0 - b tau``, and
+
+.. math::
+
+    p(h) = p_0 + \\int_0^h R(\\delta_0 - b\\tau)\\, d\\tau\\ u_{xy}
+         = p_0 + h\\, \\operatorname{sinc}(b h / 2)\\, R(\\delta_0 - b h / 2)\\, u_{xy},
+
+``sinc x = sin x / x`` (the chord of an arc). :class:`HeadingEKF` propagates the covariance
+with the Jacobian ``F`` of that map and the noise ``Q_d`` of Van Loan's integral
+(:func:`~quadobs.core.held_input.van_loan_interval`) for the model linearised at the
+interval's middle heading; :class:`HeadingUKF` sends sigma points through the same map.
+A range ``rho = |p - a_h| + e`` (or a TDOA) corrects through its
+:class:`~quadobs.core.measurements.MeasurementModel` (``h`` and its Jacobian on the
+position), with the robust rules, the gate and the lock-out of the other Kalman filters
+(:mod:`quadobs.estimators.robust`).
+
+The heading is observable only while the vehicle moves (``u_xy != 0``): at rest the
+filters keep its prior, and its bias follows from the heading's change over time. The
+estimate the testbed reads (:attr:`HeadingEKF.x_hat`) is the position, the state of the
+replay's odometry model; :attr:`~HeadingEKF.state`, :attr:`~HeadingEKF.heading` and
+:attr:`~HeadingEKF.gyro_bias` give the rest.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from quadobs.core.held_input import van_loan_interval
+from quadobs.core.measurements import Measurement, RangeModel
+from quadobs.errors import QuadobsError, as_array, as_finite_scalar
+from quadobs.estimators.base import Estimator, Gated, step_operands
+from quadobs.estimators.robust import LockOut, multilateration, reinitialised_covariance, reweight
+
+__all__ = [
+    "GYRO_BIAS_STD",
+    "GYRO_BIAS_TIME",
+    "HEADING_STD",
+    "HeadingEKF",
+    "HeadingUKF",
+    "arc_step",
+]
+
+#: The prior standard deviation of the yaw rate's bias (rad/s): 1 deg/s, the turn-on bias a
+#: consumer MEMS gyroscope's data sheet states (and beyond what a wheel odometry's unequal
+#: wheel radii give at walking speeds: 1 % of 1 m/s over a 0.5 m track is 0.02 rad/s).
+GYRO_BIAS_STD = math.radians(1.0)
+
+#: The time (s) over which the bias may wander by :data:`GYRO_BIAS_STD`: an hour, the scale of a
+#: gyroscope's thermal drift; the random walk's intensity is ``GYRO_BIAS_STD^2 / GYRO_BIAS_TIME``.
+GYRO_BIAS_TIME = 3600.0
+
+#: The prior standard deviation of the start heading a log states (rad): 0.1 rad (6 deg), a
+#: heading read off a survey or a compass at the start; the heading becomes observable as soon
+#: as the vehicle moves among the anchors.
+HEADING_STD = 0.1
+
+_J = np.array([[0.0, -1.0], [1.0, 0.0]])  # d R(phi) / d phi = R(phi) J
+
+
+def _rotation(phi: float) -> np.ndarray:
+    c, s = math.cos(phi), math.sin(phi)
+    return np.array([[c, -s], [s, c]])
+
+
+def _sinc(x: float) -> tuple[float, float]:
+    """``(sin x / x, d/dx (sin x / x))``, by their series near 0."""
+    if abs(x) < 1e-4:
+        return 1.0 - x * x / 6.0, -x / 3.0
+    s, c = math.sin(x), math.cos(x)
+    return s / x, (x * c - s) / (x * x)
+
+
+def arc_step(x: np.ndarray, u: np.ndarray, h: float) -> tuple[np.ndarray, np.ndarray]:
+    """The exact mean map over ``h`` seconds with ``u`` held, and its Jacobian (module docstring).
+
+    Parameters
+    ----------
+    x : ndarray (4,)
+        ``(p_x, p_y, delta, b)``.
+    u : ndarray (3,)
+        ``(v_x, v_y, omega)``: the odometry's velocity along its own heading and its yaw rate.
+    h : float
+        The interval (s).
+
+    Returns
+    -------
+    x_next : ndarray (4,)
+    F : ndarray (4, 4)
+        ``d x_next / d x``.
+
+    Examples
+    --------
+    A bias ``b`` turns the path at ``-b``: a quarter circle of radius 1 in ``pi / 2`` s.
+
+    >>> x, F = arc_step(np.zeros(4) + [0, 0, 0, -1.0], np.array([1.0, 0.0, 0.0]), np.pi / 2)
+    >>> np.round(x, 12).tolist()
+    [1.0, 1.0, 1.570796326795, -1.0]
+    """
+    delta, b = float(x[2]), float(x[3])
+    xh = 0.5 * b * h
+    sig, dsig = _sinc(xh)
+    Rm = _rotation(delta - xh)
+    v = Rm @ u[:2]
+    w = Rm @ (_J @ u[:2])
+    out = np.array([x[0] + h * sig * v[0], x[1] + h * sig * v[1], delta - b * h, b])
+    F = np.eye(4)
+    F[:2, 2] = h * sig * w
+    F[:2, 3] = 0.5 * h * h * (dsig * v - sig * w)
+    F[2, 3] = -h
+    return out, F
+
+
+class _HeadingFilter(Estimator, Gated):
+    """The shared state, prediction noise, measurement models, robust rules and lock-out."""
+
+    def __init__(
+        self,
+        anchors,
+        *,
+        x0,
+        P0,
+        dt: float,
+        q_xy: float,
+        q_theta: float,
+        q_bias: float,
+        range_sigma: float = 1.0,
+        heading0: float = 0.0,
+        gate: float | None = None,
+        robust=None,
+        lockout: LockOut | None = None,
+        measurements=None,
+    ) -> None:
+        self.anchors = as_array("anchors", anchors, (None, 2))
+        self._x = as_array("x0", x0, (4,)).copy()
+        P = np.diag(as_array("P0", P0, (4,))) if np.ndim(P0) == 1 else as_array("P0", P0, (4, 4))
+        self._P = 0.5 * (P + P.T)
+        self.dt = as_finite_scalar("dt", dt, positive=True)
+        self.Qc = np.diag([q_xy, q_xy, q_theta, q_bias]).astype(float)
+        if not np.all(np.isfinite(self.Qc)) or np.any(np.diag(self.Qc) < 0.0):
+            raise QuadobsError("q_xy, q_theta, q_bias: expected non-negative finite intensities")
+        self.range_sigma = as_finite_scalar("range_sigma", range_sigma, positive=True)
+        self.theta_o = as_finite_scalar("heading0", heading0)
+        self.gate = None if gate is None else as_finite_scalar("gate", gate, positive=True)
+        models = (
+            [RangeModel(self.anchors, self.range_sigma)] if measurements is None else measurements
+        )
+        self.measurement_models = {m.kind: m for m in models}
+        self.robust = robust
+        self.lockout = lockout if lockout is not None else LockOut()
+        self._P0 = self._P.copy()
+        self._latest = np.full(self.anchors.shape[0], np.nan)  # y_h = rho^2/2 - |a_h|^2/2
+        self.nis, self.corrections, self.rejected = math.nan, 0, 0
+        self._time = 0.0
+
+    # -- what the testbed reads ---------------------------------------------------------
+
+    @property
+    def x_hat(self) -> np.ndarray:
+        """The position ``(2,)`` (the replay odometry model's state; a copy)."""
+        return self._x[:2].copy()
+
+    @property
+    def x_covariance(self) -> np.ndarray:
+        return self._P[:2, :2].copy()
+
+    @property
+    def state(self) -> np.ndarray:
+        """``(p_x, p_y, delta, b)`` (a copy)."""
+        return self._x.copy()
+
+    @property
+    def state_covariance(self) -> np.ndarray:
+        return self._P.copy()
+
+    @property
+    def heading(self) -> float:
+        """``theta = theta_o + delta`` (rad): the dead-reckoned heading corrected."""
+        return self.theta_o + float(self._x[2])
+
+    @property
+    def gyro_bias(self) -> float:
+        """The yaw rate's bias ``b`` (rad/s): measured minus true."""
+        return float(self._x[3])
+
+    @property
+    def diverged(self) -> dict | None:
+        """``None``, or when and why the filter was given up (:class:`~quadobs.estimators.robust.LockOut`)."""
+        return self.lockout.diverged
+
+    # -- the grid and time -------------------------------------------------------------
+
+    def step(self, u: np.ndarray, y: np.ndarray) -> None:
+        """Correct with the outputs ``y_h = rho_h^2 / 2 - |a_h|^2 / 2`` present in ``y`` (NaN:
+        missing), one range at a time, then predict over ``dt`` with ``u`` held."""
+        q = self.anchors.shape[0]
+        u, y = step_operands(u, y, 3, q)
+        for i in np.flatnonzero(~np.isnan(y)):
+            rho = math.sqrt(max(2.0 * y[i] + float(self.anchors[i] @ self.anchors[i]), 0.0))
+            self._latest[i] = y[i]
+            self._correct_range(self.measurement_models["range"], Measurement(
+                self._time, "range", rho, (int(i),), self.range_sigma
+            ))  # fmt: skip
+        self._propagate(self.dt, u)
+        self._time += self.dt
+
+    def _input_dimension(self) -> int:
+        return 3
+
+    def _propagate(self, dt: float, u: np.ndarray) -> None:
+        self.theta_o += float(u[2]) * dt
+        self._predict(dt, u)
+
+    def _noise(self, dt: float, u: np.ndarray) -> np.ndarray:
+        """Van Loan's ``Q_d`` of the model linearised at the interval's middle heading."""
+        A = np.zeros((4, 4))
+        A[:2, 2] = _rotation(float(self._x[2]) - 0.5 * float(self._x[3]) * dt) @ (_J @ u[:2])
+        A[2, 3] = -1.0
+        return van_loan_interval(A, self.Qc, dt)[1]
+
+    def _correct_measurement(self, m: Measurement) -> None:
+        model = self.measurement_models.get(m.kind)
+        if model is None:
+            raise QuadobsError(f"{self.name}: has no model of {m.kind} measurements")
+        model.check(m)
+        if m.kind == "range":
+            h = m.anchors[0]
+            rho = model.unbiased(m)
+            self._latest[h] = 0.5 * rho * rho - 0.5 * float(self.anchors[h] @ self.anchors[h])
+        self._correct_range(model, m)
+
+    def _gain(self, nu: float, S: float, Pxz: np.ndarray, R: float) -> None:
+        """Robust rule, gate and lock-out on the innovation ``nu`` (variance ``S``), then the
+        update ``x += K nu``, ``P -= K S K^T`` with ``K = P_xz / S`` (``P_xz``: the state's
+        cross-covariance with the measurement)."""
+        R_w = reweight(self.robust, np.array([nu]), np.array([[S]]), np.array([[R]]))
+        if R_w is not None:
+            S = S + float(R_w[0, 0]) - R
+        self.nis = nu * nu / S
+        if R_w is None or (self.gate is not None and self.nis > self.gate):
+            self.rejected += 1
+            self._watch(False, nu)
+            return
+        self.corrections += 1
+        self._watch(True, nu)
+        K = Pxz / S
+        self._x = self._x + K * nu
+        P = self._P - S * np.outer(K, K)
+        self._P = 0.5 * (P + P.T)
+
+    def _watch(self, accepted: bool, nu: float) -> None:
+        """Lock-out: re-initialise the covariance and the position, or give the filter up."""
+        lock, t = self.lockout, self._time
+        if not lock.observe(t, accepted, abs(nu)):
+            return
+        span = t - lock.last_accepted
+        reason = f"more than half of the corrections of the last {lock.timeout} s rejected"
+        if lock.reset(t, int(round(t / self.dt)), reason):
+            self._P = reinitialised_covariance(self._P, self._P0, lock.largest, 2, span)
+            q = self.anchors.shape[0]
+            C = np.broadcast_to(np.eye(2), (q, 2, 2))
+            fixed = multilateration(C, -self.anchors, self._latest)
+            if fixed is not None:
+                self._x[fixed[0]] = fixed[1]
+
+    def _predict(self, dt: float, u: np.ndarray) -> None:  # pragma: no cover - interface
+        raise NotImplementedError
+
+    def _correct_range(self, model, m: Measurement) -> None:  # pragma: no cover - interface
+        raise NotImplementedError
+
+
+class HeadingEKF(_HeadingFilter):
+    """EKF on ``(p, delta, b)``: exact mean prediction, covariance through its Jacobian.
+
+    Parameters
+    ----------
+    anchors : array_like (q, 2)
+    x0 : array_like (4,)
+        ``(p_x, p_y, delta, b)``.
+    P0 : array_like (4,) or (4, 4)
+        Initial covariance (its diagonal, or whole).
+    dt : float
+        The grid's step (s) of :meth:`step`.
+    q_xy, q_theta, q_bias : float
+        White-noise intensities on ``p'`` (m^2/s), ``delta'`` (rad^2/s), ``b'`` (rad^2/s^3).
+    range_sigma : float
+        Standard deviation of a range without its own (m).
+    heading0 : float
+        The dead-reckoned heading at the start (rad), for :attr:`heading`.
+    gate : float, optional
+        Reject a correction whose NIS exceeds it (one degree of freedom per measurement).
+    robust : ChiSquareGate or Huber, optional
+    lockout : LockOut, optional
+    measurements : list of MeasurementModel, optional
+        Default: ranges to ``anchors``.
+
+    Notes
+    -----
+    ``P = F P F^T + Q_d`` over an interval (module docstring); a measurement ``z`` with
+    ``H = [dh/dp, 0, 0]``: ``S = H P H^T + sigma^2``, ``K = P H^T / S``, ``x += K (z - h(p))``,
+    ``P -= K S K^T``.
+    """
+
+    name = "ekf-heading"
+
+    def _predict(self, dt: float, u: np.ndarray) -> None:
+        Q = self._noise(dt, u)
+        self._x, F = arc_step(self._x, u, dt)
+        P = F @ self._P @ F.T + Q
+        self._P = 0.5 * (P + P.T)
+
+    def _correct_range(self, model, m: Measurement) -> None:
+        H = np.zeros(4)
+        H[:2] = model.jacobian(self._x[:2], m)
+        PHt = self._P @ H
+        s = model.sigma(m)
+        R = s * s
+        self._gain(model.unbiased(m) - model.h(self._x[:2], m), float(H @ PHt) + R, PHt, R)
+
+
+class HeadingUKF(_HeadingFilter):
+    """UKF on ``(p, delta, b)``: sigma points through the exact mean map and the measurement.
+
+    Parameters as :class:`HeadingEKF`, and the scaled unscented transform's ``alpha``,
+    ``beta``, ``kappa`` (defaults 1, 2, 0, as :class:`~quadobs.estimators.kalman.UnscentedKalmanFilter`).
+
+    Notes
+    -----
+    Sigma points ``X_0 = x``, ``X_i, X_(n+i) = x +- sqrt(n + lambda) L_i`` (``L`` the Cholesky
+    factor of ``P``); prediction ``x = sum W^m_i f(X_i)``, ``P = sum W^c_i (f(X_i) - x)(.)^T + Q_d``;
+    a measurement ``Z_i = h(X_i)``, ``S = sum W^c_i (Z_i - z)^2 + sigma^2``,
+    ``P_xz = sum W^c_i (X_i - x)(Z_i - z)``, ``K = P_xz / S``.
+    """
+
+    name = "ukf-heading"
+
+    def __init__(self, anchors, *, alpha=1.0, beta=2.0, kappa=0.0, **kwargs) -> None:
+        super().__init__(anchors, **kwargs)
+        n = 4
+        lam = alpha**2 * (n + kappa) - n
+        if not n + lam > 0:
+            raise QuadobsError(f"alpha, kappa: need alpha^2 (n + kappa) > 0, got {n + lam:.3g}")
+        self._scale = math.sqrt(n + lam)
+        self._wm = np.full(2 * n + 1, 0.5 / (n + lam))
+        self._wm[0] = lam / (n + lam)
+        self._wc = self._wm.copy()
+        self._wc[0] += 1.0 - alpha**2 + beta
+
+    def _sigma(self) -> np.ndarray:
+        try:
+            L = np.linalg.cholesky(self._P)
+        except np.linalg.LinAlgError:
+            w, U = np.linalg.eigh(self._P)
+            L = U * np.sqrt(np.maximum(w, 0.0))
+        D = self._scale * L.T
+        return np.concatenate([self._x[None], self._x + D, self._x - D])
+
+    def _predict(self, dt: float, u: np.ndarray) -> None:
+        Q = self._noise(dt, u)
+        X = np.array([arc_step(xi, u, dt)[0] for xi in self._sigma()])
+        x = self._wm @ X
+        dX = X - x
+        P = (dX.T * self._wc) @ dX + Q
+        self._x, self._P = x, 0.5 * (P + P.T)
+
+    def _correct_range(self, model, m: Measurement) -> None:
+        X = self._sigma()
+        Z = np.array([model.h(xi[:2], m) for xi in X])
+        z = float(self._wm @ Z)
+        dZ = Z - z
+        s = model.sigma(m)
+        R = s * s
+        S = float(self._wc @ (dZ * dZ)) + R
+        Pxz = ((X - self._x).T * self._wc) @ dZ
+        self._gain(model.unbiased(m) - z, S, Pxz, R)
