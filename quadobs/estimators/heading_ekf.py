@@ -57,13 +57,14 @@ import numpy as np
 from quadobs.core.held_input import van_loan_interval
 from quadobs.core.measurements import Measurement, RangeModel
 from quadobs.errors import QuadobsError, as_array, as_finite_scalar
-from quadobs.estimators.base import Estimator, Gated, step_operands
+from quadobs.estimators.base import Estimator, Gated, Immersed, Wrapper, step_operands
 from quadobs.estimators.robust import LockOut, multilateration, reinitialised_covariance, reweight
 
 __all__ = [
     "GYRO_BIAS_STD",
     "GYRO_BIAS_TIME",
     "HEADING_STD",
+    "HeadingCascade",
     "HeadingEKF",
     "HeadingUKF",
     "arc_step",
@@ -402,3 +403,75 @@ class HeadingUKF(_HeadingFilter):
         S = float(self._wc @ (dZ * dZ)) + R
         Pxz = ((X - self._x).T * self._wc) @ dZ
         self._gain(model.unbiased(m) - z, S, Pxz, R)
+
+
+class HeadingCascade(Wrapper, Gated, Immersed):
+    """A cascade: an observer driven by the odometry turned by a heading filter's estimate.
+
+    The observer (``inner``, e.g. the augmented observer of the replay's odometry model) takes
+    the held input ``u = (v_x, v_y, omega)`` of the dead reckoning; the cascade gives it instead,
+    over each interval ``[t, t + h)``, the mean velocity of the heading filter's model over that
+    interval at its current estimate (the chord of :func:`arc_step`),
+
+    .. math:: u' = \\big(\\operatorname{sinc}(\\hat b h / 2)\\, R(\\hat\\delta - \\hat b h / 2)\\,
+              u_{xy},\\ \\omega\\big),
+
+    so the observer integrates the odometry along the estimated heading, not the drifting dead
+    reckoning. Both correct with every measurement; the estimate read is the observer's. The
+    heading filter's estimate is used as if it were exact (the observer does not see its
+    uncertainty): a cascade, not a joint estimator.
+
+    Parameters
+    ----------
+    observer : Estimator
+        Takes the interface in time with the input ``(v_x, v_y, omega)``.
+    heading : HeadingEKF or HeadingUKF
+    """
+
+    def __init__(self, observer: Estimator, heading: _HeadingFilter) -> None:
+        self.inner, self.heading_filter = observer, heading
+        self.name = f"{observer.name}-heading"
+        self._u = np.zeros(3)
+        self.immersion = getattr(observer, "immersion", None)
+
+    gate = property(lambda self: getattr(self.inner, "gate", None))
+    corrections = property(lambda self: getattr(self.inner, "corrections", 0))
+    rejected = property(lambda self: getattr(self.inner, "rejected", 0))
+
+    @property
+    def time(self) -> float:
+        return self.inner.time
+
+    @time.setter
+    def time(self, value: float) -> None:
+        self.inner.time = value
+        self.heading_filter.time = value
+
+    def _turned(self, u: np.ndarray, h: float) -> np.ndarray:
+        """The input ``u'`` of the observer over the next ``h`` seconds (class docstring)."""
+        x = self.heading_filter._x
+        out = np.array(u, dtype=float)
+        if h > 0.0:
+            out[:2] = (arc_step(x, out, h)[0][:2] - x[:2]) / h
+        return out
+
+    def hold(self, u) -> None:
+        self.heading_filter.hold(u)
+        self._u = self.heading_filter.held_input()
+
+    def predict(self, t) -> None:
+        h = self.heading_filter._interval(t)
+        self.inner.hold(self._turned(self._u, h))
+        self.inner.predict(t)
+        self.heading_filter.predict(t)
+
+    def correct(self, m: Measurement) -> None:
+        self.heading_filter.correct(m)
+        self.inner.correct(m)
+        self.nis = self.inner.nis
+
+    def step(self, u: np.ndarray, y: np.ndarray) -> None:
+        """The grid's step: the observer with the turned input, then the heading filter."""
+        self.inner.step(self._turned(np.asarray(u, dtype=float), self.heading_filter.dt), y)
+        self.heading_filter.step(u, y)
+        self.nis = self.inner.nis

@@ -34,6 +34,17 @@ covariance is carried over with the reset's Jacobian [MUELLER2017]:
 
 The estimate it reports is the vehicle's ``(p, R v)`` (world position and velocity) and
 its covariance ``T P T^T``, ``T = [[I, 0, 0], [0, R, -R [v]x]]``.
+
+The accelerometer's bias as a state (``accel_bias_std``; the replay's ``onboard-ekf-bias``).
+A constant bias ``b`` (``f_m = f + b + n``, body frame; a MEMS accelerometer's offset of 0.01
+to 0.5 m/s^2) integrates into a velocity error ``R b t`` between ranges. With
+``accel_bias_std`` given, the error state gains ``db`` (12 states), a random walk of
+intensity ``q_b``: the prediction uses ``f_m - b``, ``A`` gains ``d dv' / d db = -I`` and ``Q``
+gains ``q_b h`` on ``db``; a correction moves ``db`` into ``b`` with the rest of the error (the
+attitude reset leaves it as it is). In the body frame ``b`` is told apart from a tilt of the
+attitude (which also adds a constant horizontal specific force, ``R^T g``) once the vehicle
+yaws or changes its tilt, and along the thrust axis by the height, which the ranges give.
+Without it (the default) the filter is the 9-state one above.
 """
 
 from __future__ import annotations
@@ -91,6 +102,11 @@ class OnboardEKF(Estimator, Gated):
         Initial attitude (world from body); default level, heading zero.
     gravity : array_like (3,), optional
         Gravity in the world frame (m/s^2); default ``(0, 0, -9.81)`` (z up).
+    accel_bias_std : float, optional
+        With it, the accelerometer's bias is a state (module docstring), of this prior standard
+        deviation per axis (m/s^2) and mean zero; default none (9 states).
+    accel_bias_walk : float
+        The intensity of the bias's random walk (m^2/s^5).
     """
 
     #: ``"imu_body"`` where a replay is to hold the log's raw body IMU samples as its input.
@@ -109,6 +125,8 @@ class OnboardEKF(Estimator, Gated):
         gate: float | None = None,
         R0: np.ndarray | None = None,
         gravity: np.ndarray | None = None,
+        accel_bias_std: float | None = None,
+        accel_bias_walk: float = 0.0,
     ) -> None:
         if model.dimension != 3:
             raise QuadobsError("onboard-ekf: needs anchors in 3-D")
@@ -117,9 +135,13 @@ class OnboardEKF(Estimator, Gated):
         self.R = np.eye(3) if R0 is None else np.array(R0, dtype=float)
         self.g = _GRAVITY.copy() if gravity is None else np.array(gravity, dtype=float)
         self.v = self.R.T @ np.array(x0[3:6], dtype=float)  # the body-frame velocity
-        self.P = np.zeros((9, 9))
+        self.P = np.zeros((9, 9) if accel_bias_std is None else (12, 12))
         self.P[:6, :6] = np.asarray(P0, dtype=float)
-        self.P[6:, 6:] = np.diag(np.broadcast_to(np.square(attitude_std), (3,)))
+        self.P[6:9, 6:9] = np.diag(np.broadcast_to(np.square(attitude_std), (3,)))
+        self.b = np.zeros(3)  # the accelerometer's bias (body frame), zero when not a state
+        if accel_bias_std is not None:
+            self.P[9:, 9:] = np.eye(3) * float(accel_bias_std) ** 2
+        self.q_b = float(accel_bias_walk)
         self.q_v, self.q_a = accel_std**2, gyro_std**2
         self.gate = gate
         self.u = np.zeros(6)
@@ -191,18 +213,23 @@ class OnboardEKF(Estimator, Gated):
     # -- the filter --------------------------------------------------------------------
 
     def _propagate_imu(self, h: float) -> None:
-        f, w = self.u[:3], self.u[3:]
+        f, w = self.u[:3] - self.b, self.u[3:]
         R, v = self.R, self.v
-        A = np.zeros((9, 9))
+        n = self.P.shape[0]
+        A = np.zeros((n, n))
         A[0:3, 3:6] = R
         A[0:3, 6:9] = -R @ skew(v)
         A[3:6, 3:6] = -skew(w)
         A[3:6, 6:9] = skew(R.T @ self.g)
         A[6:9, 6:9] = -skew(w)
-        F = np.eye(9) + A * h
+        if n > 9:
+            A[3:6, 9:12] = -np.eye(3)
+        F = np.eye(n) + A * h
         P = F @ self.P @ F.T
         P[3:6, 3:6] += np.eye(3) * (self.q_v * h * h)
         P[6:9, 6:9] += np.eye(3) * (self.q_a * h * h)
+        if n > 9:
+            P[9:, 9:] += np.eye(3) * (self.q_b * h)
         self.P = 0.5 * (P + P.T)
         a = R @ f + self.g
         vw = R @ v
@@ -223,16 +250,19 @@ class OnboardEKF(Estimator, Gated):
             self.rejected += 1
             return
         K = Ph / S
-        IKH = np.eye(9)
+        n = self.P.shape[0]
+        IKH = np.eye(n)
         IKH[:, :3] -= np.outer(K, g)
         self.P = IKH @ self.P @ IKH.T + sigma2 * np.outer(K, K)
         e = K * r
         self.p += e[:3]
         self.v += e[3:6]
-        delta = e[6:]
+        delta = e[6:9]
+        if n > 9:
+            self.b += e[9:]
         self.R = self.R @ rotation_exp(delta)
-        G = np.eye(9)
-        G[6:, 6:] -= 0.5 * skew(delta)
+        G = np.eye(n)
+        G[6:9, 6:9] -= 0.5 * skew(delta)
         self.P = G @ self.P @ G.T
         self.corrections += 1
 
@@ -248,11 +278,16 @@ class OnboardEKF(Estimator, Gated):
         return self.R.copy()
 
     @property
+    def accel_bias(self) -> np.ndarray:
+        """The accelerometer's bias ``b (3,)`` (m/s^2, body frame; zero when not a state), a copy."""
+        return self.b.copy()
+
+    @property
     def x_covariance(self) -> np.ndarray:
-        T = np.zeros((6, 9))
+        T = np.zeros((6, self.P.shape[0]))
         T[:3, :3] = np.eye(3)
         T[3:, 3:6] = self.R
-        T[3:, 6:] = -self.R @ skew(self.v)
+        T[3:, 6:9] = -self.R @ skew(self.v)
         return T @ self.P @ T.T
 
 

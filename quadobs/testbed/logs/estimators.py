@@ -71,9 +71,11 @@ __all__ = [
     "REPLAY_ESTIMATORS",
     "TUNING",
     "ReplaySetup",
+    "build_augmented_heading",
     "build_ekf_heading",
     "build_isam2",
     "build_onboard_ekf",
+    "build_onboard_ekf_bias",
     "build_replay_estimators",
     "build_ukf_heading",
     "parse_tuning",
@@ -379,7 +381,20 @@ GYRO_NOISE = 1e-4
 UNKNOWN_YAW_STD = math.pi / math.sqrt(3.0)
 
 
-def build_onboard_ekf(s: ReplaySetup, x0: np.ndarray, name: str = "onboard-ekf") -> Estimator:
+#: The prior standard deviation of each axis of the accelerometer's bias in
+#: :func:`build_onboard_ekf_bias` (m/s^2): 0.2 m/s^2 (20 mg), the zero-g offset a consumer MEMS
+#: accelerometer's data sheet states, and the GTSAM peer's prior on the same bias
+#: (:class:`~quadobs.estimators.gtsam_peer.PeerNoise`).
+ACCEL_BIAS_STD = 0.2
+
+#: The time (s) over which that bias may wander by :data:`ACCEL_BIAS_STD` (an hour: thermal
+#: drift); its random walk's intensity is ``ACCEL_BIAS_STD^2 / ACCEL_BIAS_TIME``.
+ACCEL_BIAS_TIME = 3600.0
+
+
+def build_onboard_ekf(
+    s: ReplaySetup, x0: np.ndarray, name: str = "onboard-ekf", accel_bias: bool = False
+) -> Estimator:
     """Entry point ``onboard-ekf``: the Crazyflie's on-board EKF
     (:class:`~quadobs.estimators.onboard_ekf.OnboardEKF`) on a 3-D body-IMU log.
 
@@ -426,10 +441,25 @@ def build_onboard_ekf(s: ReplaySetup, x0: np.ndarray, name: str = "onboard-ekf")
         gate=s.gate,
         R0=R0,
         gravity=np.array([0.0, 0.0, -s.gravity if s.frame == "enu" else s.gravity]),
+        **(
+            {
+                "accel_bias_std": ACCEL_BIAS_STD,
+                "accel_bias_walk": ACCEL_BIAS_STD**2 / ACCEL_BIAS_TIME,
+            }
+            if accel_bias
+            else {}
+        ),
     )
     est.name = name
     est.replay_input = "imu_body"
     return est
+
+
+def build_onboard_ekf_bias(s: ReplaySetup, x0: np.ndarray, name: str = "onboard-ekf-bias"):
+    """Entry point ``onboard-ekf-bias``: :func:`build_onboard_ekf` with the accelerometer's bias as
+    a state (prior :data:`ACCEL_BIAS_STD` per axis, random walk ``ACCEL_BIAS_STD^2 /
+    ACCEL_BIAS_TIME``; :class:`~quadobs.estimators.onboard_ekf.OnboardEKF`)."""
+    return build_onboard_ekf(s, x0, name, accel_bias=True)
 
 
 def build_ekf_heading(s: ReplaySetup, x0: np.ndarray, name: str = "ekf-heading", cls=None):
@@ -475,6 +505,19 @@ def build_ukf_heading(s: ReplaySetup, x0: np.ndarray, name: str = "ukf-heading")
     return build_ekf_heading(s, x0, name, HeadingUKF)
 
 
+def build_augmented_heading(s: ReplaySetup, x0: np.ndarray, name: str = "augmented-heading"):
+    """Entry point ``augmented-heading``: the augmented observer of the odometry model
+    (:func:`build_augmented`) in a cascade behind :func:`build_ukf_heading`, whose estimated
+    heading turns the odometry it integrates
+    (:class:`~quadobs.estimators.heading_ekf.HeadingCascade`)."""
+    from quadobs.estimators.heading_ekf import HeadingCascade
+
+    heading = build_ukf_heading(s, x0, f"{name}:ukf-heading")
+    est = HeadingCascade(build_augmented(s, x0), heading)
+    est.name = name
+    return est
+
+
 #: The built-in estimators of logged data (as declared in pyproject.toml; a test checks that they agree).
 #: An estimator that reads a body IMU as its input (the Crazyflie's on-board EKF,
 #: ``u = (f_body, omega_body)``) is registered here beside them and marks its instances with
@@ -488,6 +531,8 @@ REPLAY_ESTIMATORS = {
     "onboard-ekf": build_onboard_ekf,
     "ekf-heading": build_ekf_heading,
     "ukf-heading": build_ukf_heading,
+    "augmented-heading": build_augmented_heading,
+    "onboard-ekf-bias": build_onboard_ekf_bias,
 }
 
 
