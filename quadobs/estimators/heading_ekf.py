@@ -224,12 +224,14 @@ class _HeadingFilter(Estimator, Gated):
         missing), one range at a time, then predict over ``dt`` with ``u`` held."""
         q = self.anchors.shape[0]
         u, y = step_operands(u, y, 3, q)
+        model = self.measurement_models.get("range")
+        if model is None and not np.all(np.isnan(y)):
+            raise QuadobsError(f"{self.name}: has no model of range outputs")
         for i in np.flatnonzero(~np.isnan(y)):
             rho = math.sqrt(max(2.0 * y[i] + float(self.anchors[i] @ self.anchors[i]), 0.0))
             self._latest[i] = y[i]
-            self._correct_range(self.measurement_models["range"], Measurement(
-                self._time, "range", rho, (int(i),), self.range_sigma
-            ))  # fmt: skip
+            m = Measurement(self._time, "range", rho, (int(i),), self.range_sigma)
+            self._correct_range(model, m)
         self._propagate(self.dt, u)
         self._time += self.dt
 
@@ -432,7 +434,7 @@ class HeadingCascade(Wrapper, Gated, Immersed):
         self.inner, self.heading_filter = observer, heading
         self.name = f"{observer.name}-heading"
         self._u = np.zeros(3)
-        self.immersion = getattr(observer, "immersion", None)
+        self.immersion = observer.immersion if isinstance(observer, Immersed) else None  # type: ignore[assignment]
 
     gate = property(lambda self: getattr(self.inner, "gate", None))
     corrections = property(lambda self: getattr(self.inner, "corrections", 0))
