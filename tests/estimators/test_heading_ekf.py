@@ -116,3 +116,27 @@ def test_the_replay_runs_them_on_an_odometry_log_and_refuses_other_logs(tmp_path
         assert grid["estimators"][name]["final_position_error"] < 0.3
     with pytest.raises(QuadobsError, match="'ekf-heading' needs a planar log with wheel odometry"):
         check_replay(log, ["ekf-heading"], model="cv")
+
+
+def test_a_filter_whose_gate_rejects_everything_is_reinitialised_then_reported_diverged():
+    log = circle_log(bias=0.0, heading_error=0.0, duration=60.0)
+    f = run_in_time(log, HeadingEKF, [1.0, 1.0, 0.01, 1e-4], gate=1e-12, **NOISE)
+    assert f.corrections == 0 and f.rejected == len(log.measurements())
+    assert len(f.lockout.resets) == f.lockout.max_resets
+    assert f.diverged is not None and "rejected" in f.diverged["reason"]
+
+
+def test_the_cascade_turns_the_odometry_by_the_estimated_heading():
+    from quadobs.core.immersion import immerse
+    from quadobs.core.system import odometry_system
+    from quadobs.estimators.augmented import AugmentedObserver
+    from quadobs.estimators.heading_ekf import HeadingCascade
+
+    im = immerse(odometry_system(BEACONS))
+    obs = AugmentedObserver(im, 0.1, V=1e-3, W=0.05, z0=im.lift(np.zeros(2)))
+    heading = HeadingEKF(BEACONS, x0=[0.0, 0.0, 0.3, 0.0], P0=np.ones(4), dt=0.1, **NOISE)
+    cascade = HeadingCascade(obs, heading)
+    cascade.hold([2.0, 0.0, 0.1])
+    cascade.predict(1.0)  # no bias: the odometry's velocity turned by delta = 0.3 for 1 s
+    np.testing.assert_allclose(cascade.x_hat, 2.0 * np.array([math.cos(0.3), math.sin(0.3)]))
+    assert heading.theta_o == pytest.approx(0.1) and cascade.time == 1.0
