@@ -496,6 +496,7 @@ def _notice_cold_kernels(kernels, file=None) -> bool:
         return False
     print(COMPILING_NOTICE, file=file or sys.stderr, flush=True)
     compile_side_by_side(cold)
+    _heal_kernel_cache(kernels, file)  # what was written is read back and its sha256 recorded
     return True
 
 
