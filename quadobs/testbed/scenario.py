@@ -32,6 +32,7 @@ import difflib
 import json
 import os
 import re
+import stat
 import sys
 import tomllib
 from collections.abc import Iterable, Mapping
@@ -1236,9 +1237,9 @@ MAX_FILE_BYTES = 1 << 20
 
 def _read_text(path: Path, shown: str) -> str:
     """The UTF-8 text of a scenario file: a regular file of at most :data:`MAX_FILE_BYTES`."""
-    try:
-        with open(path, "rb") as fh:
-            if not os.path.isfile(path):
+    try:  # opened without blocking: a FIFO with no writer would wait for one for ever
+        with os.fdopen(os.open(path, os.O_RDONLY | os.O_NONBLOCK), "rb") as fh:
+            if not stat.S_ISREG(os.fstat(fh.fileno()).st_mode):
                 raise QuadobsError(f"scenario file {shown}: not a regular file")
             raw = fh.read(MAX_FILE_BYTES + 1)
     except OSError as exc:
