@@ -82,7 +82,7 @@ def _read(path: Path, files: dict[str, dict]) -> bytes:
             raise OSError(f"{path.name} is not a regular file")
         if status.st_size > MAX_FILE_BYTES:
             raise OSError(f"{path.name} is larger than {MAX_FILE_BYTES} bytes")
-        raw = fh.read(MAX_FILE_BYTES + 1)
+        raw = fh.read(status.st_size + 1)  # not MAX_FILE_BYTES: a buffer of that size every time
     digest = hashlib.sha256(raw).hexdigest()
     files[path.name] = {"sha256": digest, "size": len(raw), "inode": status.st_ino}
     return raw
@@ -135,7 +135,10 @@ def _load_manifest(folder: Path) -> dict[str, dict]:
     """The records of :data:`MANIFEST` in ``folder``; none when it is missing or unreadable."""
     try:
         with open(folder / MANIFEST, "rb") as fh:
-            data = json.loads(fh.read(MAX_FILE_BYTES))
+            size = os.fstat(fh.fileno()).st_size
+            if size > MAX_FILE_BYTES:
+                return {}
+            data = json.loads(fh.read(size + 1))
         files = data["files"]
         return {k: v for k, v in files.items() if isinstance(k, str) and isinstance(v, dict)}
     except (OSError, ValueError, KeyError, TypeError, AttributeError, RecursionError):
