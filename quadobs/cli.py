@@ -496,6 +496,7 @@ def _notice_cold_kernels(kernels, file=None) -> bool:
         return False
     print(COMPILING_NOTICE, file=file or sys.stderr, flush=True)
     compile_side_by_side(cold)
+    _heal_kernel_cache(kernels, file)  # what was written is read back and its sha256 recorded
     return True
 
 
@@ -1275,6 +1276,10 @@ def _run_command(argv: list[str] | None) -> int:
     )
 
     args = build_parser().parse_args(negative_values(sys.argv[1:] if argv is None else argv))
+    too_little = _address_space_too_small()
+    if too_little:  # before NumPy, Numba or rerun load: below the floor they abort the process
+        print(f"quadobs: error: {too_little}", file=sys.stderr)
+        return 1
     handler = _log_to_stderr(args.log_verbose, args.log_quiet)
     try:
         with new_folders_removed_on_failure(*_output_paths(args)):
@@ -1342,6 +1347,27 @@ def _log_to_stderr(verbose: int, quiet: bool):
     logger.addHandler(handler)
     logger.setLevel(level)
     return handler
+
+
+#: Least address space (``ulimit -v``) a command starts with. Below it NumPy's OpenBLAS, rerun or
+#: a thread's stack fail to be mapped inside native code, which ends the process with its own
+#: message (status 1, 134 or 255) instead of an error quadobs can report: measured with ``run
+#: ifac2021 --duration 0.2`` on a 2-core machine, 0.6 to 1.8 GB aborted so, 2.2 GB ended with
+#: the one-line "out of memory", 2.6 GB and more ran.
+MIN_ADDRESS_SPACE = 2 << 30
+
+
+def _address_space_too_small() -> str | None:
+    """One line when ``ulimit -v`` is below :data:`MIN_ADDRESS_SPACE`, else ``None``."""
+    import resource
+
+    soft, _ = resource.getrlimit(resource.RLIMIT_AS)
+    if soft == resource.RLIM_INFINITY or soft >= MIN_ADDRESS_SPACE:
+        return None
+    return (
+        f"the address space is limited to {soft >> 20} MiB (ulimit -v); quadobs needs at least "
+        f"{MIN_ADDRESS_SPACE >> 20} MiB (NumPy, Numba and rerun abort below it); nothing was run"
+    )
 
 
 def _out_of_resources(exc: BaseException) -> str | None:

@@ -139,15 +139,15 @@ def write_folder_staged(
             if entry.is_file(follow_symlinks=False):
                 publish(Path(entry.path), Path(entry.path), _new_file_mode())
         swap_in(tmp, target)
-    except OSError as exc:
+    except OSError as exc:  # a full disk: a fault of the run (status 1), not bad input
         shutil.rmtree(tmp, ignore_errors=True)
-        raise QuadobsError(
+        raise RunFault(
             f"{what} {os.fspath(folder)!r}: cannot be written ({exc.strerror or exc}); "
             "the previous folder is unchanged"
         ) from None
     except QuadobsError as exc:  # a file of the folder: named in the folder, not the staging one
         shutil.rmtree(tmp, ignore_errors=True)
-        raise QuadobsError(
+        raise type(exc)(  # a write that failed (RunFault) stays one, bad input stays bad input
             f"{what} {os.fspath(folder)!r}: "
             + str(exc).replace(os.fspath(tmp), os.fspath(folder))
             + "; the previous folder is unchanged"

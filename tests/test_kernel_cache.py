@@ -1,14 +1,18 @@
 """The kernels' on-disk cache heals: unreadable entries removed and recompiled, an unwritable cache bypassed."""
 
+import hashlib
+import json
 import os
+import pickle
 import shutil
 import subprocess
 import sys
+import threading
 from pathlib import Path
 
 import pytest
 
-from quadobs._kernels.cache import cache_folders, heal, writable
+from quadobs._kernels.cache import MANIFEST, cache_folders, heal, writable
 from quadobs.cli import AUGMENTED_KERNELS, EPISODE_KERNELS
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -35,7 +39,15 @@ def cache_copy(tmp_path):
 def test_an_intact_cache_is_left_alone(cache_copy):
     before = sorted(p.name for p in cache_copy.iterdir())
     assert heal([cache_copy]) == []
-    assert sorted(p.name for p in cache_copy.iterdir()) == before
+    assert sorted(p.name for p in cache_copy.iterdir() if p.name != MANIFEST) == before
+    recorded = json.loads((cache_copy / MANIFEST).read_text())["files"]
+    assert sorted(recorded) == before
+    for name, record in recorded.items():
+        data = (cache_copy / name).read_bytes()
+        assert record["sha256"] == hashlib.sha256(data).hexdigest()
+        assert record["size"] == len(data) and record["inode"] == os.stat(cache_copy / name).st_ino
+    assert heal([cache_copy]) == []  # read again: the same records
+    assert json.loads((cache_copy / MANIFEST).read_text())["files"] == recorded
 
 
 @pytest.mark.parametrize("damage", ["random data file", "empty index", "truncated data file"])
@@ -53,6 +65,112 @@ def test_an_unreadable_entry_is_reported_in_one_line_and_removed(cache_copy, dam
     assert len(lines) == 1 and "\n" not in lines[0]
     assert str(index) in lines[0] and "compiled again" in lines[0]
     assert list(cache_copy.iterdir()) == []
+
+
+def _flip_middle(path: Path, count: int = 64) -> None:
+    """Invert ``count`` bytes in the middle of ``path``, in place (the same file)."""
+    data = bytearray(path.read_bytes())
+    middle = len(data) // 2
+    data[middle : middle + count] = bytes(b ^ 0xFF for b in data[middle : middle + count])
+    with open(path, "r+b") as fh:
+        fh.write(data)
+
+
+def test_bytes_changed_inside_the_machine_code_are_detected(cache_copy):
+    """Damage that still unpickles: caught by the sha256 recorded when the entry was read intact."""
+    assert heal([cache_copy]) == []  # recorded
+    index = next(cache_copy.glob("*.nbi"))
+    data = max(cache_copy.glob("*.nbc"), key=lambda p: p.stat().st_size)
+    _flip_middle(data)
+    pickle.loads(data.read_bytes())  # the damage is not in the pickle's framing
+    lines = heal([cache_copy])
+    assert len(lines) == 1 and "\n" not in lines[0], lines
+    assert str(index) in lines[0] and "damaged" in lines[0] and data.name in lines[0]
+    assert "sha256" in lines[0] and "compiled again" in lines[0]
+    assert sorted(p.name for p in cache_copy.iterdir()) == [MANIFEST]
+    assert json.loads((cache_copy / MANIFEST).read_text())["files"] == {}
+
+
+def test_a_file_written_whole_again_is_recorded_afresh(cache_copy):
+    """Numba rewrites a file under a temporary name and renames it (a new signature, a new source):
+    not damage; the new bytes are recorded."""
+    assert heal([cache_copy]) == []
+    data = sorted(cache_copy.glob("*.nbc"))[0]
+    other = pickle.dumps(pickle.loads(data.read_bytes()), protocol=2)
+    assert hashlib.sha256(other).digest() != hashlib.sha256(data.read_bytes()).digest()
+    staging = data.with_name(data.name + ".tmp.x")
+    staging.write_bytes(other)
+    os.replace(staging, data)
+    assert heal([cache_copy]) == []
+    record = json.loads((cache_copy / MANIFEST).read_text())["files"][data.name]
+    assert record["sha256"] == hashlib.sha256(other).hexdigest()
+
+
+@pytest.mark.parametrize("manifest", [b"", b"{not json", b'{"files": [1, 2]}', b"[" * 100000])
+def test_an_unusable_manifest_is_written_anew(cache_copy, manifest):
+    (cache_copy / MANIFEST).write_bytes(manifest)
+    assert heal([cache_copy]) == []
+    recorded = json.loads((cache_copy / MANIFEST).read_text())["files"]
+    assert sorted(recorded) == sorted(p.name for p in cache_copy.iterdir() if p.name != MANIFEST)
+
+
+def test_a_fifo_in_the_cache_is_removed_without_blocking(cache_copy):
+    index = next(cache_copy.glob("*.nbi"))
+    index.unlink()
+    os.mkfifo(index)
+    out: list = []
+    reader = threading.Thread(target=lambda: out.append(heal([cache_copy])), daemon=True)
+    reader.start()
+    reader.join(30)
+    assert out, "heal blocked on a FIFO"
+    (line,) = out[0]
+    assert "not a regular file" in line and not index.exists()
+
+
+KERNEL_MODULE = """
+import numpy as np
+from numba import njit
+
+@njit(cache=True)
+def f(x):
+    s = 0.0
+    for i in range(x.shape[0]):
+        s += np.sin(x[i]) * x[i] ** 2 + np.sqrt(abs(x[i]))
+    return s
+"""
+
+
+def test_a_kernel_damaged_inside_its_machine_code_is_compiled_again(tmp_path):
+    """A kernel of its own, cached; bytes flipped in the middle of its machine code: the next
+    process is told in one line, compiles it again and gets the same number (Numba alone
+    aborted, raised or returned the number, depending on where the bytes were changed)."""
+    (tmp_path / "kmod.py").write_text(KERNEL_MODULE)
+    code = (
+        "import sys, numpy as np; from quadobs._kernels.cache import heal; "
+        "[print(line, file=sys.stderr) for line in heal([sys.argv[1]])]; "
+        "import kmod; print(repr(kmod.f(np.arange(10.0))))"
+    )
+
+    def child():
+        return subprocess.run(
+            [sys.executable, "-c", code, str(tmp_path / "__pycache__")],
+            capture_output=True,
+            text=True,
+            cwd=tmp_path,
+            env=dict(os.environ, PYTHONPATH=os.pathsep.join([str(tmp_path), str(ROOT)])),
+            timeout=300,
+        )
+
+    first = child()  # compiles and caches
+    assert first.returncode == 0 and first.stderr == "", first.stderr
+    assert child().stdout == first.stdout  # loads the cache, and records it
+    (data,) = (tmp_path / "__pycache__").glob("kmod.f-*.nbc")
+    _flip_middle(data)
+    healed = child()
+    notes = healed.stderr.splitlines()
+    assert healed.returncode == 0 and len(notes) == 1 and "damaged" in notes[0], healed.stderr
+    assert healed.stdout == first.stdout
+    assert child().stderr == ""  # compiled again, cached and recorded: intact
 
 
 def test_the_episode_kernels_cache_lives_in_the_package_or_numba_cache_dir():

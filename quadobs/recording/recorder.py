@@ -81,7 +81,13 @@ class _PipeFile:
             self._unlink_fifo()
             raise
         self._thread = threading.Thread(target=self._drain, name="quadobs-recording", daemon=True)
-        self._thread.start()
+        try:  # no thread (ulimit -v, ulimit -u): neither the file nor the FIFO is left behind
+            self._thread.start()
+        except BaseException:
+            os.close(self._fd)
+            _remove(Path(path))
+            self._unlink_fifo()
+            raise
 
     def _drain(self) -> None:
         try:
@@ -219,6 +225,13 @@ def _remove(path: Path) -> None:
         pass
 
 
+def _abandon(file: _PipeFile, staging: Path) -> None:
+    """Remove a staging file never published; free its copying thread if rerun never opened the pipe
+    (a stop between the two), so that neither the thread nor the FIFO outlives the recorder."""
+    file.release()
+    _remove(staging)
+
+
 @dataclass(eq=False)
 class Series:
     """One entity's buffered per-step values.
@@ -275,14 +288,17 @@ class Recorder:
         self.failed = False
         self.error: RunFault | None = None
         try:
-            self._file = _PipeFile(self.staging)
+            # A staging file never published (a stop before the end, an exit) goes when the
+            # recorder does, at the latest when the process exits normally. A stop waits until
+            # that clean-up is in place: a Ctrl-C while the copying thread started (which takes
+            # milliseconds on a loaded machine) left the staging file behind.
+            with deferred_interrupts():
+                self._file = _PipeFile(self.staging)
+                self._discard = weakref.finalize(self, _abandon, self._file, self.staging)
         except OSError as exc:
             raise QuadobsError(
                 f"output path {str(self.path)!r}: cannot be written ({exc.strerror})"
             ) from None
-        # A staging file never published (a stop before the end, an exit) goes when the recorder
-        # does, at the latest when the process exits normally.
-        self._discard = weakref.finalize(self, _remove, self.staging)
         self.published = False
         self._check_headroom()
         try:

@@ -32,6 +32,7 @@ import difflib
 import json
 import os
 import re
+import stat
 import sys
 import tomllib
 from collections.abc import Iterable, Mapping
@@ -1135,17 +1136,23 @@ def _nesting(data: Any) -> int:
 
 
 def _split_path(path: str) -> list[str | int]:
-    """``"a.b[1].c"`` as ``["a", "b", 1, "c"]``."""
+    """``"a.b[1].c"`` as ``["a", "b", 1, "c"]``, in time linear in the length of ``path``.
+
+    A path of :data:`MAX_NESTING` parts or more is refused before it is split (no field of a
+    scenario lies that deep), so the cost of a hostile path is one count of its separators.
+    """
     parts: list[str | int] = []
     if path.count(".") + path.count("[") >= MAX_NESTING:
         raise QuadobsError(f"--set: {path[:60]!r}...: more than {MAX_NESTING} parts")
     for name in path.split("."):
         head, *indices = name.split("[")
         if not head or any(not i.endswith("]") or not i[:-1].isdigit() for i in indices):
+            shown = path if len(path) <= 80 else path[:77] + "..."
             raise QuadobsError(
-                f"--set: {path!r} is not a dotted field path (e.g. trajectory.terms[0].omega)"
+                f"--set: {shown!r} is not a dotted field path (e.g. trajectory.terms[0].omega)"
             )
-        parts += [head] + [int(i[:-1]) for i in indices]
+        parts.append(head)
+        parts.extend(int(i[:-1]) for i in indices)
     return parts
 
 
@@ -1169,20 +1176,26 @@ def apply_settings(data: dict, settings: Iterable[str] | Mapping[str, Any]) -> d
     for path, value in pairs:
         parts = _split_path(path)
         node: Any = out
-        for depth, part in enumerate(parts[:-1]):
-            node = _child(node, part, parts[depth + 1], _path(parts[: depth + 1]))
+        for depth in range(len(parts) - 1):
+            node = _child(node, parts, depth)
         _assign(node, parts, value)
     return out
 
 
-def _child(node: Any, part: str | int, following: str | int, where: str) -> Any:
+def _child(node: Any, parts: list[str | int], depth: int) -> Any:
+    """The entry ``parts[depth]`` of ``node``, created when missing (the path is named on error only).
+
+    Naming the path only when it is wrong keeps :func:`apply_settings` linear in the number
+    of parts (naming the prefix at every step made it quadratic).
+    """
+    part, following = parts[depth], parts[depth + 1]
     if isinstance(part, int):
         if not isinstance(node, list) or not 0 <= part < len(node):
             size = len(node) if isinstance(node, list) else 0
-            raise QuadobsError(f"{where}: no such entry ({size} in the list)")
+            raise QuadobsError(f"{_path(parts[: depth + 1])}: no such entry ({size} in the list)")
         return node[part]
     if not isinstance(node, dict):
-        raise QuadobsError(f"{where}: is not a table")
+        raise QuadobsError(f"{_path(parts[: depth + 1])}: is not a table")
     return node.setdefault(part, [] if isinstance(following, int) else {})
 
 
@@ -1224,9 +1237,9 @@ MAX_FILE_BYTES = 1 << 20
 
 def _read_text(path: Path, shown: str) -> str:
     """The UTF-8 text of a scenario file: a regular file of at most :data:`MAX_FILE_BYTES`."""
-    try:
-        with open(path, "rb") as fh:
-            if not os.path.isfile(path):
+    try:  # opened without blocking: a FIFO with no writer would wait for one for ever
+        with os.fdopen(os.open(path, os.O_RDONLY | os.O_NONBLOCK), "rb") as fh:
+            if not stat.S_ISREG(os.fstat(fh.fileno()).st_mode):
                 raise QuadobsError(f"scenario file {shown}: not a regular file")
             raw = fh.read(MAX_FILE_BYTES + 1)
     except OSError as exc:

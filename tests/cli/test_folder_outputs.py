@@ -119,7 +119,7 @@ def test_a_full_disk_leaves_the_previous_export_complete(log_folder, tmp_path, c
     )
     out, err = proc.communicate(timeout=120)
     assert (
-        proc.returncode == 2 and "Traceback" not in err and "previous folder is unchanged" in err
+        proc.returncode == 1 and "Traceback" not in err and "previous folder is unchanged" in err
     ), err
     assert _snapshot(target) == before
     assert sorted(p.name for p in tmp_path.iterdir()) == ["B"]

@@ -29,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-from quadobs.errors import QuadobsError, staging_owner, staging_path
+from quadobs.errors import QuadobsError, RunFault, staging_owner, staging_path
 from quadobs.testbed.logs.schema import MAX_FILE_BYTES, MAX_LINE_BYTES, FileSpec, check_values
 
 __all__ = ["check_replaceable_folder", "read_limited", "read_table", "staged_folder"]
@@ -247,9 +247,9 @@ def staged_folder(folder: str | Path, allowed, what: str) -> Iterator[Path]:
     try:
         yield stage
         _swap_in(stage, target)
-    except OSError as exc:
+    except OSError as exc:  # a full disk: a fault of the run (status 1), not bad input
         shutil.rmtree(stage, ignore_errors=True)
-        raise QuadobsError(
+        raise RunFault(
             f"{what} {os.fspath(folder)!r}: cannot be written ({exc.strerror or exc})"
         ) from None
     except BaseException:
