@@ -14,6 +14,27 @@ which is :class:`~quadobs.core.measurements.RangeModel` with ``bias="state"``: i
 :meth:`~quadobs.core.measurements.RangeModel.extra_states` give the biases' prior.
 Everything else (exact held-input prediction, Joseph update, robust rules) is the
 filters' own.
+
+Start-up. Linearising ``|p - a_h|`` at an estimate ``e`` metres off errs by up to
+``e^2 / (2 |p - a_h|)``: from 20 m off the first corrections point the wrong way, the
+velocity takes metres per second of the error, and free bias states take the rest (a bias
+of 1.8 m for an anchor whose bias is -0.14 m). Two rules keep the start-up error out of them:
+
+* **Fix.** When the prior position is wider than the error of a multilateration of one
+  round of ranges (:func:`fix_std`, ``sqrt(sigma^2 + sigma_b^2)`` from the stated range
+  noise and the biases' prior), the filter waits for one range from every anchor and sets
+  its position to their least-squares multilateration
+  (:func:`~quadobs.estimators.robust.multilateration`: differences of the quadratic
+  outputs are linear in the position), its position covariance to ``fix_std^2 I`` (its
+  correlations dropped); the ranges are then corrected from there. (The UKF needs the
+  covariance too: sigma points spread over a 10 m prior straddle the anchors.)
+* **Consider until consistent.** The biases' rows of the gain are held at zero (a Schmidt,
+  or consider, update: their covariance and cross-covariances are carried, so the position
+  knows how uncertain they are) until the normalised innovations of the last two rounds of
+  anchors (``2 q`` corrections) sum below the gate's ``P`` quantile of ``chi^2(2 q)``
+  (39.25 for ``q = 8``, ``P = 0.999``): the vehicle's state then explains the ranges within
+  the biases' prior, and the biases are opened. A lock-out's re-initialisation puts the
+  biases back to their prior mean and closes them again.
 """
 
 from __future__ import annotations
@@ -154,6 +175,7 @@ class _VehicleBlock:
     fixes: list
     opened_at: list
     _bias_prior: np.ndarray
+    _fix_var: float
     _nis_window: deque
     # the filter's own (the class this one is mixed into); declared for the type checker only
     _x: np.ndarray
@@ -178,7 +200,9 @@ class _VehicleBlock:
         self.fixes, self.opened_at, self.held = [], [], 0
         d = int(self.outputs.system.p)  # the position block: as many entries as inputs
         prior_std = math.sqrt(float(np.max(np.diag(self._P)[:d])))
-        self.fix_pending = prior_std > fix_std(self.outputs.R, self._P[k:, k:])
+        std = fix_std(self.outputs.R, self._P[k:, k:])
+        self.fix_pending = prior_std > std
+        self._fix_var = std * std
         self.biases_open = False
         self._nis_window = deque(maxlen=2 * q)
         self.open_threshold = chi2_threshold(probability, 2 * q)
@@ -217,7 +241,12 @@ class _VehicleBlock:
         fixed = multilateration(system.C, system.d, self._latest)
         if fixed is None:
             return False
-        self._x[fixed[0]] = fixed[1]
+        cols = fixed[0]
+        self._x[cols] = fixed[1]
+        self._settle()
+        self._P[cols, :] = 0.0
+        self._P[:, cols] = 0.0
+        self._P[cols, cols] = self._fix_var
         self.fix_pending = False
         self.fixes.append(self._time)
         return True
