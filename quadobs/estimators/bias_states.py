@@ -253,7 +253,9 @@ class _VehicleBlock:
 
     def _watch(self, accepted: bool, nu: np.ndarray) -> None:
         """The opening test on the NIS window, then the lock-out; a re-initialisation also puts
-        the biases back to their prior mean and closes them."""
+        the biases back to their prior mean, closes them, and gives the multilaterated position
+        the covariance of a fix (the innovation-sized one of the re-initialisation bounds the
+        error of the estimate it replaces, and spreads the UKF's sigma points over metres)."""
         if not self.biases_open:
             w = self._nis_window
             w.append(self.nis)
@@ -266,6 +268,7 @@ class _VehicleBlock:
             self._x[self.vehicle_n :] = self._bias_prior
             self.biases_open = False
             self._nis_window.clear()
+            self._try_fix()  # the position covariance of a fix, as at the start
 
     @property
     def x_hat(self) -> np.ndarray:
