@@ -22,7 +22,8 @@ of 1.8 m for an anchor whose bias is -0.14 m). Two rules keep the start-up error
 
 * **Fix.** When the prior position is wider than the error of a multilateration of one
   round of ranges (:func:`fix_std`, ``sqrt(sigma^2 + sigma_b^2)`` from the stated range
-  noise and the biases' prior), the filter waits for one range from every anchor and sets
+  noise and the biases' prior), the filter waits for one range from every anchor (or two
+  rounds' worth of ranges, when one is silent) and sets
   its position to their least-squares multilateration
   (:func:`~quadobs.estimators.robust.multilateration`: differences of the quadratic
   outputs are linear in the position), its position covariance to ``fix_std^2 I`` (its
@@ -176,6 +177,7 @@ class _VehicleBlock:
     opened_at: list
     _bias_prior: np.ndarray
     _fix_var: float
+    _waited: int
     _nis_window: deque
     # the filter's own (the class this one is mixed into); declared for the type checker only
     _x: np.ndarray
@@ -202,6 +204,7 @@ class _VehicleBlock:
         prior_std = math.sqrt(float(np.max(np.diag(self._P)[:d])))
         std = fix_std(self.outputs.R, self._P[k:, k:])
         self.fix_pending = prior_std > std
+        self._waited = 0
         self._fix_var = std * std
         self.biases_open = False
         self._nis_window = deque(maxlen=2 * q)
@@ -220,6 +223,7 @@ class _VehicleBlock:
         if self.fix_pending and m.kind == "range":
             h, yh, _ = self._model_of(m).quadratic_output(m)
             self._latest[h] = yh
+            self._waited += 1
             if not self._try_fix():
                 return
         super()._correct_measurement(m)  # type: ignore[misc]
@@ -229,18 +233,26 @@ class _VehicleBlock:
             y = np.asarray(y, dtype=float)
             present = ~np.isnan(y)
             self._latest[present] = y[present]
+            self._waited += int(np.count_nonzero(present))
             if not self._try_fix():
                 return
         super().correct_outputs(y)  # type: ignore[misc]
 
     def _try_fix(self) -> bool:
-        """The position from a multilateration once every anchor has a range; ``False`` before."""
-        if np.isnan(self._latest).any():
+        """The position from a multilateration once every anchor has a range, or, after two
+        rounds' worth of ranges (an anchor silent), of those present; ``False`` while waiting.
+        After four rounds without a multilateration (anchors in too few directions) the fix is
+        given up and the prior kept."""
+        q = self._latest.shape[0]
+        if np.isnan(self._latest).any() and self._waited < 2 * q:
             return False
         system = self.outputs.system
         fixed = multilateration(system.C, system.d, self._latest)
         if fixed is None:
-            return False
+            if self._waited < 4 * q:
+                return False
+            self.fix_pending = False
+            return True
         cols = fixed[0]
         self._x[cols] = fixed[1]
         self._settle()

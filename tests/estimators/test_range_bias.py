@@ -159,3 +159,15 @@ def test_bias_states_do_not_take_in_non_line_of_sight_excess():
         errors[label] = est.biases[1] - BIASES[1]
     assert abs(errors["skewed"]) < 0.08
     assert errors["chi2"] > 0.13
+
+
+def test_bias_filter_fixes_its_start_without_a_silent_anchor():
+    """An anchor that never answers delays the fix by two rounds of ranges, no more."""
+    est = _bias_filter("ekf", 0.05, np.array([12.0, 16.0, 0.0, 0.0, 0.0, 0.0]))
+    truth = list(flight(1001, 0.01))
+    for a, rho, _ in truth[:-1]:
+        y = 0.5 * rho**2 - 0.5 * (ANCHORS**2).sum(1)
+        y[7] = np.nan
+        est.step(a, y)
+    assert est.fixes == [0.02]  # 7 ranges a step: the 16th range comes with the third step
+    assert np.linalg.norm(est.x_hat[:3] - truth[-1][2]) < 0.1
