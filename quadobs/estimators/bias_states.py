@@ -14,15 +14,39 @@ which is :class:`~quadobs.core.measurements.RangeModel` with ``bias="state"``: i
 :meth:`~quadobs.core.measurements.RangeModel.extra_states` give the biases' prior.
 Everything else (exact held-input prediction, Joseph update, robust rules) is the
 filters' own.
+
+Start-up. Linearising ``|p - a_h|`` at an estimate ``e`` metres off errs by up to
+``e^2 / (2 |p - a_h|)``: from 20 m off the first corrections point the wrong way, the
+velocity takes metres per second of the error, and free bias states take the rest (a bias
+of 1.8 m for an anchor whose bias is -0.14 m). Two rules keep the start-up error out of them:
+
+* **Fix.** When the prior position is wider than the error of a multilateration of one
+  round of ranges (:func:`fix_std`, ``sqrt(sigma^2 + sigma_b^2)`` from the stated range
+  noise and the biases' prior), the filter waits for one range from every anchor (or two
+  rounds' worth of ranges, when one is silent) and sets
+  its position to their least-squares multilateration
+  (:func:`~quadobs.estimators.robust.multilateration`: differences of the quadratic
+  outputs are linear in the position), its position covariance to ``fix_std^2 I`` (its
+  correlations dropped); the ranges are then corrected from there. (The UKF needs the
+  covariance too: sigma points spread over a 10 m prior straddle the anchors.)
+* **Consider until consistent.** The biases' rows of the gain are held at zero (a Schmidt,
+  or consider, update: their covariance and cross-covariances are carried, so the position
+  knows how uncertain they are) until the normalised innovations of the last two rounds of
+  anchors (``2 q`` corrections) sum below the gate's ``P`` quantile of ``chi^2(2 q)``
+  (39.25 for ``q = 8``, ``P = 0.999``): the vehicle's state then explains the ranges within
+  the biases' prior, and the biases are opened. A lock-out's re-initialisation puts the
+  biases back to their prior mean and closes them again.
 """
 
 from __future__ import annotations
 
+import math
+from collections import deque
 from typing import TYPE_CHECKING
 
 import numpy as np
 
-from quadobs.core.measurements import RangeModel
+from quadobs.core.measurements import Measurement, RangeModel
 from quadobs.core.system import QuadraticSystem
 from quadobs.errors import QuadobsError
 from quadobs.estimators.kalman import (
@@ -31,6 +55,7 @@ from quadobs.estimators.kalman import (
     OutputModel,
     UnscentedKalmanFilter,
 )
+from quadobs.estimators.robust import ChiSquareGate, LockOut, chi2_threshold, multilateration
 
 __all__ = [
     "BiasedExtendedKalmanFilter",
@@ -116,16 +141,146 @@ def biased_models(
     return dynamics, outputs, Pe
 
 
+def fix_std(R: np.ndarray, P_bias: np.ndarray) -> float:
+    """The error to expect of a multilateration of one round of ranges: the range noise and the
+    biases' prior together, ``sqrt(max_h R_hh + max_h P_bias,hh)`` (m); a prior position wider
+    than this is replaced by the multilateration (the module docstring's "Start-up")."""
+    return math.sqrt(float(np.max(np.diag(R))) + float(np.max(np.diag(P_bias), initial=0.0)))
+
+
+def _gate_probability(rule) -> float:
+    """The probability of the filter's gate, else the default gate's (0.999)."""
+    return float(getattr(rule, "probability", ChiSquareGate().probability))
+
+
 class _VehicleBlock:
-    """Reports the vehicle's state ``x`` (the first ``n`` entries) and keeps the biases apart."""
+    """Reports the vehicle's state ``x`` (the first ``n`` entries), keeps the biases apart,
+    and starts the biases only once the vehicle's state is known (the module docstring's
+    "Start-up").
+
+    Attributes
+    ----------
+    fixes : list of float
+        Times (s) at which the position was set by multilateration.
+    opened_at : list of float
+        Times (s) at which the bias states were opened (after the start or a re-initialisation).
+    held : int
+        Corrections whose bias rows of the gain were held at zero.
+    """
 
     vehicle_n: int = 0
+    fix_pending: bool = False
+    biases_open: bool = True
+    open_threshold: float = 0.0
+    held: int = 0
+    fixes: list
+    opened_at: list
+    _bias_prior: np.ndarray
+    _fix_var: float
+    _waited: int
+    _nis_window: deque
     # the filter's own (the class this one is mixed into); declared for the type checker only
     _x: np.ndarray
     _P: np.ndarray
+    _latest: np.ndarray
+    _time: float
+    nis: float
+    lockout: LockOut
+    outputs: OutputModel
     if TYPE_CHECKING:
 
         def _settle(self) -> None: ...
+        def _model_of(self, m: Measurement) -> RangeModel: ...
+
+    def _start_block(self, vehicle_n: int, probability: float) -> None:
+        """Set the start-up state: a fix pending when the prior position is wider than a
+        multilateration's error, the biases closed until the innovations say the vehicle's
+        state is known (window of two rounds of anchors, ``chi^2`` at ``probability``)."""
+        self.vehicle_n = k = int(vehicle_n)
+        q = self._x.shape[0] - k
+        self._bias_prior = self._x[k:].copy()
+        self.fixes, self.opened_at, self.held = [], [], 0
+        d = int(self.outputs.system.p)  # the position block: as many entries as inputs
+        prior_std = math.sqrt(float(np.max(np.diag(self._P)[:d])))
+        std = fix_std(self.outputs.R, self._P[k:, k:])
+        self.fix_pending = prior_std > std
+        self._waited = 0
+        self._fix_var = std * std
+        self.biases_open = False
+        self._nis_window = deque(maxlen=2 * q)
+        self.open_threshold = chi2_threshold(probability, 2 * q)
+
+    def _shape_gain(self, K: np.ndarray, nu: np.ndarray, S: np.ndarray) -> np.ndarray:
+        """The biases' rows of the gain held at zero until they are open (a consider update)."""
+        if self.biases_open:
+            return K
+        self.held += 1
+        K = K.copy()
+        K[self.vehicle_n :] = 0.0
+        return K
+
+    def _correct_measurement(self, m: Measurement) -> None:
+        if self.fix_pending and m.kind == "range":
+            h, yh, _ = self._model_of(m).quadratic_output(m)
+            self._latest[h] = yh
+            self._waited += 1
+            if not self._try_fix():
+                return
+        super()._correct_measurement(m)  # type: ignore[misc]
+
+    def correct_outputs(self, y: np.ndarray) -> None:
+        if self.fix_pending:
+            y = np.asarray(y, dtype=float)
+            present = ~np.isnan(y)
+            self._latest[present] = y[present]
+            self._waited += int(np.count_nonzero(present))
+            if not self._try_fix():
+                return
+        super().correct_outputs(y)  # type: ignore[misc]
+
+    def _try_fix(self) -> bool:
+        """The position from a multilateration once every anchor has a range, or, after two
+        rounds' worth of ranges (an anchor silent), of those present; ``False`` while waiting.
+        After four rounds without a multilateration (anchors in too few directions) the fix is
+        given up and the prior kept."""
+        q = self._latest.shape[0]
+        if np.isnan(self._latest).any() and self._waited < 2 * q:
+            return False
+        system = self.outputs.system
+        fixed = multilateration(system.C, system.d, self._latest)
+        if fixed is None:
+            if self._waited < 4 * q:
+                return False
+            self.fix_pending = False
+            return True
+        cols = fixed[0]
+        self._x[cols] = fixed[1]
+        self._settle()
+        self._P[cols, :] = 0.0
+        self._P[:, cols] = 0.0
+        self._P[cols, cols] = self._fix_var
+        self.fix_pending = False
+        self.fixes.append(self._time)
+        return True
+
+    def _watch(self, accepted: bool, nu: np.ndarray) -> None:
+        """The opening test on the NIS window, then the lock-out; a re-initialisation also puts
+        the biases back to their prior mean, closes them, and gives the multilaterated position
+        the covariance of a fix (the innovation-sized one of the re-initialisation bounds the
+        error of the estimate it replaces, and spreads the UKF's sigma points over metres)."""
+        if not self.biases_open:
+            w = self._nis_window
+            w.append(self.nis)
+            if len(w) == w.maxlen and sum(w) <= self.open_threshold:
+                self.biases_open = True
+                self.opened_at.append(self._time)
+        before = len(self.lockout.resets)
+        super()._watch(accepted, nu)  # type: ignore[misc]
+        if len(self.lockout.resets) > before:
+            self._x[self.vehicle_n :] = self._bias_prior
+            self.biases_open = False
+            self._nis_window.clear()
+            self._try_fix()  # the position covariance of a fix, as at the start
 
     @property
     def x_hat(self) -> np.ndarray:
@@ -151,7 +306,7 @@ class BiasedExtendedKalmanFilter(_VehicleBlock, ExtendedKalmanFilter):
 
     def __init__(self, dynamics, outputs, *, vehicle_n: int, **kw) -> None:
         super().__init__(dynamics, outputs, **kw)
-        self.vehicle_n = int(vehicle_n)
+        self._start_block(vehicle_n, _gate_probability(self.robust))
 
 
 class BiasedUnscentedKalmanFilter(_VehicleBlock, UnscentedKalmanFilter):
@@ -161,4 +316,4 @@ class BiasedUnscentedKalmanFilter(_VehicleBlock, UnscentedKalmanFilter):
 
     def __init__(self, dynamics, outputs, *, vehicle_n: int, **kw) -> None:
         super().__init__(dynamics, outputs, **kw)
-        self.vehicle_n = int(vehicle_n)
+        self._start_block(vehicle_n, _gate_probability(self.robust))

@@ -526,6 +526,12 @@ class _GaussianFilter(Estimator, Gated):
     def _update(self, z: np.ndarray, idx, R: np.ndarray) -> None:  # pragma: no cover - interface
         raise NotImplementedError
 
+    def _shape_gain(self, K: np.ndarray, nu: np.ndarray, S: np.ndarray) -> np.ndarray:
+        """The gain the update uses, given the optimal one ``K`` for the innovation ``nu`` with
+        covariance ``S``: ``K`` itself (a subclass may zero rows of states that must not take this
+        correction; the covariance update then follows the gain used)."""
+        return K
+
 
 class ExtendedKalmanFilter(_GaussianFilter):
     """EKF on ``x``: exact held-input prediction, update linearised at the predicted estimate.
@@ -571,7 +577,7 @@ class ExtendedKalmanFilter(_GaussianFilter):
         ok, _ = self._accept(nu, S)
         if not ok:
             return
-        K = np.linalg.solve(S, PHt.T).T
+        K = self._shape_gain(np.linalg.solve(S, PHt.T).T, nu, S)
         self._x = x + K @ nu
         IKH = np.eye(self.n) - K @ H
         P = IKH @ P @ IKH.T + K @ R @ K.T
@@ -680,7 +686,11 @@ class UnscentedKalmanFilter(_GaussianFilter):
         ok, _ = self._accept(nu, S)
         if not ok:
             return
-        K = np.linalg.solve(S, Pxz.T).T
+        K_opt = np.linalg.solve(S, Pxz.T).T
+        K = self._shape_gain(K_opt, nu, S)
         self._x = x + K @ nu
-        P = P - K @ S @ K.T
+        if K is K_opt:
+            P = P - K @ S @ K.T
+        else:  # any other gain: P - K Pxz^T - Pxz K^T + K S K^T
+            P = P - K @ Pxz.T - Pxz @ K.T + K @ S @ K.T
         self._P = 0.5 * (P + P.T)

@@ -43,6 +43,7 @@ __all__ = [
     "ChiSquareGate",
     "Huber",
     "LockOut",
+    "SkewedGate",
     "chi2_threshold",
     "multilateration",
     "reinitialised_covariance",
@@ -112,6 +113,59 @@ class Huber:
         return f"Huber M-estimator, c = {self.c} standard deviations"
 
 
+@dataclass(frozen=True)
+class SkewedGate:
+    """A chi-square gate that also rejects a range too *long* for line of sight.
+
+    Non-line-of-sight excess only lengthens a range (the signal takes a longer path), so
+    its standardised innovation ``r = nu / sqrt(S)`` is positive; Gaussian noise gives
+    either sign. The rule rejects a scalar correction when ``nis = r^2`` exceeds the
+    ``probability`` quantile of ``chi^2(1)`` (as :class:`ChiSquareGate`) or when ``r``
+    exceeds ``z_+ = Phi^{-1}(line_of_sight)``, the one-sided quantile of the standard
+    normal: a line-of-sight range is then rejected with probability
+    ``1 - line_of_sight``, and the accepted ones have the mean
+    ``-sqrt(S) phi(z_+) / Phi(z_+)`` (``-0.11 sqrt(S)`` for ``line_of_sight = 0.95``), the
+    same for every anchor. A correction of ``k > 1`` outputs is judged by the chi-square
+    gate alone.
+
+    Parameters
+    ----------
+    probability : float
+        The two-sided gate's probability (as :class:`ChiSquareGate`).
+    line_of_sight : float
+        In ``(0.5, 1)``: the probability that a line-of-sight range passes the one-sided test.
+    """
+
+    probability: float = 0.999
+    line_of_sight: float = 0.95
+
+    def __post_init__(self) -> None:
+        ChiSquareGate(self.probability)
+        if not (0.5 < self.line_of_sight < 1.0):
+            raise QuadobsError(
+                f"line_of_sight: expected a probability in (0.5, 1) (e.g. 0.95), got {self.line_of_sight}"
+            )
+
+    @property
+    def upper(self) -> float:
+        """``z_+``: the largest standardised innovation accepted (1.645 for 0.95)."""
+        return float(stats.norm.ppf(self.line_of_sight))
+
+    def rejects(self, nu: np.ndarray, S: np.ndarray) -> bool:
+        """Whether the correction ``nu`` with covariance ``S`` is rejected."""
+        nis = float(nu @ np.linalg.solve(S, nu))
+        if nis > chi2_threshold(self.probability, nu.shape[0]):
+            return True
+        return nu.shape[0] == 1 and nu[0] > self.upper * math.sqrt(S[0, 0])
+
+    def describe(self) -> str:
+        return (
+            f"chi-square gate, P = {self.probability}, k = outputs per correction, and a "
+            f"one-sided gate on ranges longer than line of sight (r > {self.upper:.3f}, "
+            f"P = {self.line_of_sight})"
+        )
+
+
 def reweight(rule, nu: np.ndarray, S: np.ndarray, R: np.ndarray) -> np.ndarray | None:
     """The measurement covariance to update with: ``R``, ``R`` re-weighted, or ``None`` (rejected).
 
@@ -127,6 +181,8 @@ def reweight(rule, nu: np.ndarray, S: np.ndarray, R: np.ndarray) -> np.ndarray |
     """
     if rule is None:
         return R
+    if isinstance(rule, SkewedGate):
+        return None if rule.rejects(nu, S) else R
     if isinstance(rule, ChiSquareGate):
         nis = float(nu @ np.linalg.solve(S, nu))
         return None if nis > rule.threshold(nu.shape[0]) else R

@@ -462,7 +462,21 @@ def _bias_filter(scenario: Scenario, x0: np.ndarray, cls):
     model = RangeModel(scenario.beacons, sigma, bias="state")
     dyn, out, Pe = biased_models(system, scenario.dt, sigma, _input_std(scenario), P0, model)
     xe = np.concatenate([np.asarray(x0, dtype=float), np.zeros(system.q)])
-    return cls(dyn, out, x0=xe, P0=Pe, vehicle_n=system.n, **robust_settings(scenario))
+    return cls(dyn, out, x0=xe, P0=Pe, vehicle_n=system.n, **bias_robust_settings(scenario))
+
+
+def bias_robust_settings(scenario: Scenario) -> dict:
+    """The bias-state filters' robust rule: :func:`robust_settings`, with a chi-square gate made
+    a :class:`~quadobs.estimators.robust.SkewedGate` (the same probability, and ranges longer
+    than line of sight at the one-sided 95 % level rejected: non-line-of-sight excess is
+    positive, and a bias state would otherwise take it in)."""
+    from quadobs.estimators.robust import ChiSquareGate, SkewedGate
+
+    settings = robust_settings(scenario)
+    rule = settings["robust"]
+    if isinstance(rule, ChiSquareGate):
+        settings["robust"] = SkewedGate(rule.probability)
+    return settings
 
 
 def biased_extended_kalman_filter(scenario: Scenario, x0: np.ndarray):

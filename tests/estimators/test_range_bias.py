@@ -107,3 +107,67 @@ def test_filters_estimate_the_biases_as_states(cls):
     for a, rho, _ in flight(2000, dt, sigma=sigma, seed=3):
         est.step(a, 0.5 * rho**2 - 0.5 * (ANCHORS**2).sum(1))
     assert np.abs(est.x_hat[6:] - BIASES).max() < 0.03
+
+
+def _bias_filter(cls, sigma, x0, rule=None, p0=100.0):
+    from quadobs.estimators.bias_states import (
+        BiasedExtendedKalmanFilter,
+        BiasedUnscentedKalmanFilter,
+    )
+
+    system = vehicle_system(3, ANCHORS)
+    model = RangeModel(ANCHORS, sigma, bias="state")
+    dyn, out, P0 = biased_models(system, 0.01, sigma, 0.02, p0 * np.eye(6), model)
+    kind = {"ekf": BiasedExtendedKalmanFilter, "ukf": BiasedUnscentedKalmanFilter}[cls]
+    return kind(dyn, out, x0=np.r_[x0, np.zeros(8)], P0=P0, vehicle_n=6, robust=rule)
+
+
+@pytest.mark.parametrize("cls", ["ekf", "ukf"])
+def test_bias_filter_recovers_the_biases_from_far_on_noise_free_ranges(cls):
+    """From 20 m off: the position fixed by multilateration at the first full round, the biases
+    opened once the innovations are consistent, and then recovered."""
+    est = _bias_filter(cls, 0.05, np.array([12.0, 16.0, 0.0, 0.0, 0.0, 0.0]))
+    assert est.fix_pending  # a 10 m prior is wider than a multilateration's error
+    truth = list(flight(2001, 0.01))
+    for a, rho, _ in truth[:-1]:
+        est.step(a, 0.5 * rho**2 - 0.5 * (ANCHORS**2).sum(1))
+    p = truth[-1][2]  # the truth at the estimate's time
+    assert est.fixes == [0.0] and len(est.opened_at) == 1 and est.opened_at[0] < 1.0
+    assert np.abs(est.biases - BIASES).max() < 0.02
+    assert np.linalg.norm(est.x_hat[:3] - p) < 0.02
+
+
+def test_bias_states_do_not_take_in_non_line_of_sight_excess():
+    """Anchor 1 hidden 75 % of the time (positive excess, median 0.3 m): with the one-sided
+    gate its bias stays near the truth; with the two-sided gate alone it absorbs the excess.
+
+    The fixed points where the accepted innovations of anchor 1 average zero (line-of-sight noise
+    0.1 m, ``sqrt(S)`` about 0.1 m, computed by sampling the mixture): 0.06 m above the truth
+    with the one-sided gate at ``z_+ = 1.645``, 0.20 m with the two-sided gate at 3.29."""
+    from quadobs.estimators.robust import ChiSquareGate, SkewedGate
+
+    sigma, steps, rng = 0.1, 1200, np.random.default_rng(7)
+    hidden = rng.random(steps) < 0.75
+    excess = 0.3 * np.exp(0.6 * rng.standard_normal(steps))
+    errors = {}
+    for label, rule in (("skewed", SkewedGate(0.999)), ("chi2", ChiSquareGate(0.999))):
+        x0 = np.array([0.3, -0.2, 1.6, 2 * W, 2.4 * W, 0.4 * W])
+        est = _bias_filter("ekf", sigma, x0, rule, p0=0.01)  # near the truth: no fix
+        for k, (a, rho, _) in enumerate(flight(steps, 0.01, sigma=sigma, seed=5)):
+            rho[1] += excess[k] * hidden[k]
+            est.step(a, 0.5 * rho**2 - 0.5 * (ANCHORS**2).sum(1))
+        errors[label] = est.biases[1] - BIASES[1]
+    assert abs(errors["skewed"]) < 0.08
+    assert errors["chi2"] > 0.13
+
+
+def test_bias_filter_fixes_its_start_without_a_silent_anchor():
+    """An anchor that never answers delays the fix by two rounds of ranges, no more."""
+    est = _bias_filter("ekf", 0.05, np.array([12.0, 16.0, 0.0, 0.0, 0.0, 0.0]))
+    truth = list(flight(1001, 0.01))
+    for a, rho, _ in truth[:-1]:
+        y = 0.5 * rho**2 - 0.5 * (ANCHORS**2).sum(1)
+        y[7] = np.nan
+        est.step(a, y)
+    assert est.fixes == [0.02]  # 7 ranges a step: the 16th range comes with the third step
+    assert np.linalg.norm(est.x_hat[:3] - truth[-1][2]) < 0.1

@@ -118,3 +118,28 @@ def test_noise_gate_is_a_probability_and_says_its_degrees_of_freedom():
         robust_settings(
             load_scenario("quadrotor-uwb", settings=["noise.gate=0.99", "noise.huber=1.5"])
         )
+
+
+def test_skewed_gate_rejects_long_ranges_beyond_the_one_sided_quantile():
+    from quadobs.estimators.robust import SkewedGate
+
+    gate = SkewedGate(0.999, 0.95)
+    assert np.isclose(gate.upper, 1.6448536, atol=1e-6)
+    S = np.array([[0.04]])  # sqrt(S) = 0.2
+    R = np.array([[0.01]])
+    assert reweight(gate, np.array([0.2 * 1.6]), S, R) is R  # long, but within line of sight
+    assert reweight(gate, np.array([0.2 * 1.7]), S, R) is None  # too long for line of sight
+    assert reweight(gate, np.array([-0.2 * 3.2]), S, R) is R  # short: only the chi-square gate
+    assert reweight(gate, np.array([-0.2 * 3.4]), S, R) is None  # beyond sqrt(10.83) = 3.29
+    # two outputs at once: the chi-square gate with two degrees of freedom alone
+    assert reweight(gate, np.array([0.4, 0.4]), 0.04 * np.eye(2), 0.01 * np.eye(2)) is not None
+
+
+def test_skewed_gate_refuses_a_probability_outside_its_range():
+    from quadobs.errors import QuadobsError
+    from quadobs.estimators.robust import SkewedGate
+
+    with pytest.raises(QuadobsError, match="line_of_sight"):
+        SkewedGate(0.999, 0.4)
+    with pytest.raises(QuadobsError, match="noise.gate"):
+        SkewedGate(1.5)
