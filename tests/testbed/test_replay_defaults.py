@@ -56,16 +56,19 @@ def test_a_replay_reports_the_derived_initial_variance():
     assert tuned["noise"]["P0"] == 7.0
 
 
-def test_the_gyro_noise_is_the_log_s_stated_density_else_the_fallback(tmp_path):
+def test_the_gyro_noise_is_the_log_s_stated_density_above_the_floor(tmp_path):
     from quadobs.testbed.logs.estimators import ReplaySetup
 
-    stated = read_log(write_log(_log(gyro_noise=2e-3, accel_noise=1e-3), tmp_path / "s"))
-    assert stated.gyro_noise == 2e-3 and stated.accel_noise == 1e-3
-    assert "gyro_noise,0.002" in (tmp_path / "s" / "meta.csv").read_text()
+    stated = read_log(write_log(_log(gyro_noise=0.02, accel_noise=1e-3), tmp_path / "s"))
+    assert stated.gyro_noise == 0.02 and stated.accel_noise == 1e-3
+    assert "gyro_noise,0.02" in (tmp_path / "s" / "meta.csv").read_text()
+    quiet = read_log(
+        write_log(_log(gyro_noise=2e-3), tmp_path / "q")
+    )  # 4e-6 rad^2/s: below the floor
     plain = read_log(write_log(_log(), tempfile.mkdtemp()))
     assert math.isnan(plain.gyro_noise)
     h = 0.01
-    for log, intensity in ((stated, 4e-6), (plain, GYRO_NOISE)):
+    for log, intensity in ((stated, 4e-4), (quiet, GYRO_NOISE), (plain, GYRO_NOISE)):
         s = ReplaySetup(ANCHORS, 0.1, "imu", 0.0, 4.0, input_kind="imu_body", **log_frame(log))
         est = build_onboard_ekf(s, np.r_[3.0, 3.0, 1.5, 0.0, 0.0, 0.0])
         assert est.q_a == pytest.approx(intensity / h)  # the per-sample variance at the IMU's rate

@@ -27,9 +27,12 @@ wins only if
 
 .. math:: \\bar D + K \\, s_D / \\sqrt{B} < 0 ,
 
-with ``s_D`` the standard deviation of the ``D_k``, ``B`` = :data:`BLOCKS` and ``K`` =
-:data:`SIGNIFICANCE` (3: about 0.2 % one-sided for one candidate, under 2 % over the
-candidates tried). Paired differences cancel the range noise that both settings see, so a
+with ``s_D`` the standard deviation of the ``D_k``, ``B`` = :data:`BLOCKS` and ``K`` the
+one-sided quantile of Student's t with ``B - 1`` degrees of freedom at the level
+:data:`SIGNIFICANCE` divided by the number ``m`` of candidates the winner was chosen from
+(Bonferroni: the chance that any of them passes by luck stays below the level): ``K = 2.09``
+for one candidate (the biases), ``3.0`` for the best of the seven other noise intensities.
+Paired differences cancel the range noise that both settings see, so a
 real improvement shows where the scores' own spread would hide it.
 
 Order (:func:`calibrate`):
@@ -43,7 +46,10 @@ Order (:func:`calibrate`):
 3. the model's process-noise intensity (``q_xy``, ``q_acc`` or ``q_imu``) on the grid
    ``prior 4^j``, ``j = -4 .. 3`` (:data:`NOISE_FACTORS`), with the biases of step 2: the
    candidate of the smallest score is kept only if significantly better than the prior's
-   intensity.
+   intensity;
+4. where the intensity changed, the biases again at it (the fixed point from the biases of
+   step 2, or from zero): kept if identified, significantly better than the prior and
+   predicting the held-out ranges at least as well as the biases of step 2.
 
 Whatever is not kept stays at the prior; :attr:`Calibration.reason` says what was chosen and
 why. Radio ranges carry a bias per anchor (an antenna delay; +2 to +5 m on the Plaza logs),
@@ -78,6 +84,7 @@ __all__ = [
     "prediction_residuals",
     "process_noise_key",
     "self_calibrate",
+    "threshold",
 ]
 
 #: The factors of the prior process-noise intensity that :func:`calibrate_noise` tries.
@@ -94,8 +101,16 @@ SCORED_FROM = 0.5
 CAP = 5.0
 #: The number of consecutive blocks of held-out ranges of the significance test.
 BLOCKS = 20
-#: A candidate wins when its mean loss difference is below -SIGNIFICANCE standard errors.
-SIGNIFICANCE = 3.0
+#: The one-sided level of the paired test (over all the candidates of one choice).
+SIGNIFICANCE = 0.025
+
+
+def threshold(candidates: int = 1) -> float:
+    """``K``: the one-sided Student-t quantile (``BLOCKS - 1`` degrees of freedom) at
+    :data:`SIGNIFICANCE` / ``candidates`` (module docstring)."""
+    from scipy.stats import t
+
+    return float(t.ppf(1.0 - SIGNIFICANCE / max(int(candidates), 1), BLOCKS - 1))
 
 
 def process_noise_key(model: str) -> str:
@@ -243,9 +258,12 @@ class Comparison:
         }
 
 
-def compare(candidate: Residuals, reference: Residuals, cap: float | None = None) -> Comparison:
+def compare(
+    candidate: Residuals, reference: Residuals, cap: float | None = None, candidates: int = 1
+) -> Comparison:
     """The paired test of the module docstring: is ``candidate`` significantly better than
-    ``reference`` on their held-out ranges? ``cap`` defaults to the reference's (:func:`_cap`)."""
+    ``reference`` on their held-out ranges? ``cap`` defaults to the reference's (:func:`_cap`);
+    ``candidates``: how many the candidate was the best of (:func:`threshold`)."""
     cap = _cap(reference) if cap is None else cap
     a, b = _loss(candidate, cap), _loss(reference, cap)
     score, ref = math.sqrt(float(np.mean(a))), math.sqrt(float(np.mean(b)))
@@ -253,7 +271,7 @@ def compare(candidate: Residuals, reference: Residuals, cap: float | None = None
         return Comparison(score, ref, math.nan, math.nan, False)
     D = np.array([np.mean(d) for d in np.array_split(a - b, BLOCKS)])
     mean, se = float(np.mean(D)), float(np.std(D, ddof=1) / math.sqrt(BLOCKS))
-    return Comparison(score, ref, mean, se, mean + SIGNIFICANCE * se < 0.0)
+    return Comparison(score, ref, mean, se, mean + threshold(candidates) * se < 0.0)
 
 
 def _replay(log, dt, model, biases, estimator, options) -> Residuals:
@@ -262,11 +280,12 @@ def _replay(log, dt, model, biases, estimator, options) -> Residuals:
     )
 
 
-def _fixed_point(log, dt, model, estimator, iterations, options, first=None):
-    """The biases and the residuals of the replay with them; ``first``: the replay without
-    biases at these options, already run (it is the first iteration's)."""
+def _fixed_point(log, dt, model, estimator, iterations, options, first=None, start=None):
+    """The biases and the residuals of the replay with them, from the biases ``start`` (default
+    zero); ``first``: the replay with ``start`` at these options, already run (the first
+    iteration's)."""
     q = log.beacons.shape[0]
-    b = np.zeros(q)
+    b = np.zeros(q) if start is None else np.array(start, dtype=float)
     res = first
     for i in range(int(iterations)):
         if res is None or i > 0:
@@ -309,37 +328,50 @@ def calibrate_noise(
     model: str | None = None,
     estimator: str = "ekf",
     setup_options: dict | None = None,
-    reference: Residuals | None = None,
-    cap: float | None = None,
 ) -> tuple[float, dict, dict]:
     """The model's process-noise intensity: the candidate ``prior 4^j`` of the smallest held-out
     score if it is significantly better than the prior's, else the prior (module docstring).
 
-    ``reference``: the replay at the prior with ``biases``, if already run. Returns the
-    intensity, the held-out score (m) of every intensity tried ``{intensity: score}``, and the
-    comparison of the best candidate with the prior (:meth:`Comparison.as_dict`).
+    Returns the intensity, the held-out score (m) of every intensity tried ``{intensity: score}``,
+    and the comparison of the best candidate with the prior (:meth:`Comparison.as_dict`).
     """
     model = model or default_model(log)
-    key = process_noise_key(model)
     options = dict(setup_options or {})
-    prior = options.get(key, getattr(ReplaySetup, key))
     b = np.asarray(biases, dtype=float)
-    if reference is None:
-        reference = _replay(log, dt, model, b, estimator, {**options, key: prior})
-    cap = _cap(reference) if cap is None else cap
-    scores, tests = {}, {}
+    reference = _replay(log, dt, model, b, estimator, options)
+    return _noise_step(log, dt, model, estimator, options, b, reference, _cap(reference))[:3]
+
+
+def _noise_step(log, dt, model, estimator, options, b, reference, cap):
+    """Step 3 of the module docstring against ``reference``, the replay at the prior with ``b``:
+    ``(intensity, scores, test, runs)``, ``runs`` the replays ``{intensity: Residuals}``."""
+    key = process_noise_key(model)
+    prior = options.get(key, getattr(ReplaySetup, key))
+    scores, runs = {prior: compare(reference, reference, cap).score}, {prior: reference}
     for factor in NOISE_FACTORS:
-        q = prior * factor
-        if factor == 1.0:
-            scores[q] = compare(reference, reference, cap).score
-            continue
-        tests[q] = compare(
-            _replay(log, dt, model, b, estimator, {**options, key: q}), reference, cap
-        )
-        scores[q] = tests[q].score
-    best = min(tests, key=lambda q: (tests[q].score, q))
-    chosen = best if tests[best].better else prior
-    return chosen, scores, {"candidate": best, **tests[best].as_dict()}
+        if factor != 1.0:
+            q = prior * factor
+            runs[q] = _replay(log, dt, model, b, estimator, {**options, key: q})
+            scores[q] = compare(runs[q], reference, cap).score
+    best = min((q for q in runs if q != prior), key=lambda q: (scores[q], q))
+    test = compare(runs[best], reference, cap, candidates=len(runs) - 1)
+    scores = {q: scores[q] for q in sorted(scores)}
+    chosen = best if test.better else prior
+    return chosen, scores, {"candidate": best, **test.as_dict()}, runs
+
+
+def _refit_biases(log, dt, model, estimator, options, current, current_res, prior_res, cap):
+    """Step 4 of the module docstring: the biases again at the chosen intensity, from the
+    current ones; ``(biases, residuals, test, kept)``, the current ones where the refit is not
+    kept."""
+    b, res = _fixed_point(
+        log, dt, model, estimator, ITERATIONS, options, first=current_res, start=current
+    )
+    test = compare(res, prior_res, cap)
+    now = compare(current_res, prior_res, cap).score
+    if _identified(b, res) and test.better and test.score <= now:
+        return b, res, test, True
+    return current, current_res, test, False
 
 
 @dataclass
@@ -431,24 +463,33 @@ def calibrate(
     tests = {"biases": btest.as_dict()}
     reason = f"biases {'applied' if biases is not None else 'none'}: {why}"
     scores: dict = {}
-    chosen_score = btest.score if biases is not None else btest.reference_score
+    chosen_res = ref
     if noise:
         key = process_noise_key(model)
         prior = options.get(key, getattr(ReplaySetup, key))
-        options[key], scores, tests["noise"] = calibrate_noise(
-            log, np.zeros(q) if biases is None else biases, dt=dt, model=model,
-            estimator=estimator, setup_options=options, reference=ref, cap=cap,
-        )  # fmt: skip
-        t = tests["noise"]
-        chosen_score = scores[options[key]]
-        kept = options[key] != prior
+        b = np.zeros(q) if biases is None else biases
+        options[key], scores, tests["noise"], runs = _noise_step(
+            log, dt, model, estimator, options, b, ref, cap
+        )
+        t, kept = tests["noise"], options[key] != prior
+        chosen_res = runs[options[key]]
         reason += (
             f"; {key} {options[key]:g} ({'calibrated' if kept else 'the prior'}): the best"
             f" candidate {key} {t['candidate']:g} predicts the held-out ranges to"
             f" {t['score']:.3f} m, the prior {prior:g} to {t['reference_score']:.3f} m,"
             f" {'' if t['significantly_better'] else 'not '}significantly better"
         )
-    held["chosen"] = chosen_score
+        if kept:
+            biases, chosen_res, rtest, refit = _refit_biases(
+                log, dt, model, estimator, options, biases, chosen_res, prior_res, cap
+            )
+            tests["refit"] = {**rtest.as_dict(), "kept": refit}
+            if refit:
+                cand = biases
+                reason += (
+                    f"; biases refitted at {key} {options[key]:g}: {rtest.score:.3f} m held out"
+                )
+    held["chosen"] = compare(chosen_res, prior_res, cap).score
     return Calibration(biases, options, scores, reason, cand, held, tests)
 
 
