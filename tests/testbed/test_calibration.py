@@ -38,9 +38,9 @@ def test_the_paired_test_needs_a_significant_improvement():
     broken = noise.copy()
     broken[::7] = np.nan
     assert not compare(_residuals(broken), reference).better
-    assert not compare(
-        _residuals(noise[: 2 * BLOCKS - 1]), _residuals(noise[: 2 * BLOCKS - 1] + 1)
-    ).better
+    assert not compare(_residuals(noise[:5]), _residuals(noise[:5] + 1)).better  # two blocks
+    short = compare(_residuals(noise[:12]), _residuals(noise[:12] + 1))  # six blocks
+    assert short.better and BLOCKS == 20
 
 
 def _random_acceleration_log(q: float, biases=(0.0, 0.0, 0.0, 0.0), seed: int = 3) -> RangeLog:

@@ -19,15 +19,16 @@ out in every replay, so two settings are compared range by range.
 The score. The held-out loss of a range is ``min(r^2, c^2)``, its cap ``c`` :data:`CAP` times
 the prior's median held-out ``|r|`` (an outlier of metres counts as ``c``, a non-finite
 prediction too); the score of a setting is the root of its mean loss. A candidate beats the
-reference setting only *significantly*: the held-out ranges are cut into :data:`BLOCKS`
-consecutive blocks in time, ``D_k`` is the mean of ``loss_candidate - loss_reference`` over
+reference setting only *significantly*: the held-out ranges are cut into ``B`` =
+:data:`BLOCKS` consecutive blocks (fewer where fewer than two ranges a block are held out;
+no test below three blocks) in time, ``D_k`` is the mean of ``loss_candidate - loss_reference`` over
 block ``k`` (blocks, not ranges: the prediction errors of neighbouring ranges are correlated,
 and the block means are close to independent, the method of batch means), and the candidate
 wins only if
 
 .. math:: \\bar D + K \\, s_D / \\sqrt{B} < 0 ,
 
-with ``s_D`` the standard deviation of the ``D_k``, ``B`` = :data:`BLOCKS` and ``K`` the
+with ``s_D`` the standard deviation of the ``D_k`` and ``K`` the
 one-sided quantile of Student's t with ``B - 1`` degrees of freedom at the level
 :data:`SIGNIFICANCE` divided by the number ``m`` of candidates the winner was chosen from
 (Bonferroni: the chance that any of them passes by luck stays below the level): ``K = 2.09``
@@ -49,7 +50,9 @@ Order (:func:`calibrate`):
    intensity;
 4. where the intensity changed, the biases again at it (the fixed point from the biases of
    step 2, or from zero): kept if identified, significantly better than the prior and
-   predicting the held-out ranges at least as well as the biases of step 2.
+   predicting the held-out ranges at least as well as the biases before; then step 3 once
+   more with them (:data:`PASSES`), as a bias fitted at the prior's intensity also biases
+   the choice of the intensity (it stops where the intensity or the biases stay).
 
 Whatever is not kept stays at the prior; :attr:`Calibration.reason` says what was chosen and
 why. Radio ranges carry a bias per anchor (an antenna delay; +2 to +5 m on the Plaza logs),
@@ -97,6 +100,8 @@ ITERATIONS = 3
 IDENTIFIED = 3.0
 #: The fraction of the log after which the residuals are scored (before: the transient).
 SCORED_FROM = 0.5
+#: The most passes of the process noise and the biases refitted at it (module docstring).
+PASSES = 2
 #: The held-out loss is capped at CAP times the prior's median held-out ``|r|``.
 CAP = 5.0
 #: The number of consecutive blocks of held-out ranges of the significance test.
@@ -105,12 +110,12 @@ BLOCKS = 20
 SIGNIFICANCE = 0.025
 
 
-def threshold(candidates: int = 1) -> float:
-    """``K``: the one-sided Student-t quantile (``BLOCKS - 1`` degrees of freedom) at
+def threshold(candidates: int = 1, blocks: int = BLOCKS) -> float:
+    """``K``: the one-sided Student-t quantile (``blocks - 1`` degrees of freedom) at
     :data:`SIGNIFICANCE` / ``candidates`` (module docstring)."""
     from scipy.stats import t
 
-    return float(t.ppf(1.0 - SIGNIFICANCE / max(int(candidates), 1), BLOCKS - 1))
+    return float(t.ppf(1.0 - SIGNIFICANCE / max(int(candidates), 1), int(blocks) - 1))
 
 
 def process_noise_key(model: str) -> str:
@@ -249,13 +254,23 @@ class Comparison:
     better: bool
 
     def as_dict(self) -> dict:
+        """As plain data (JSON: a figure that is not finite, as where too few ranges were held
+        out to test, is None)."""
         return {
-            "score": self.score,
-            "reference_score": self.reference_score,
-            "difference": self.difference,
-            "standard_error": self.standard_error,
+            "score": _finite(self.score),
+            "reference_score": _finite(self.reference_score),
+            "difference": _finite(self.difference),
+            "standard_error": _finite(self.standard_error),
             "significantly_better": self.better,
         }
+
+
+def _finite(v: float) -> float | None:
+    return float(v) if math.isfinite(v) else None
+
+
+def _metres(v: float | None) -> str:
+    return "no figure" if v is None or not math.isfinite(v) else f"{v:.3f} m"
 
 
 def compare(
@@ -267,11 +282,12 @@ def compare(
     cap = _cap(reference) if cap is None else cap
     a, b = _loss(candidate, cap), _loss(reference, cap)
     score, ref = math.sqrt(float(np.mean(a))), math.sqrt(float(np.mean(b)))
-    if a.size != b.size or a.size < 2 * BLOCKS or not math.isfinite(cap):
+    B = min(BLOCKS, a.size // 2)
+    if a.size != b.size or B < 3 or not math.isfinite(cap):
         return Comparison(score, ref, math.nan, math.nan, False)
-    D = np.array([np.mean(d) for d in np.array_split(a - b, BLOCKS)])
-    mean, se = float(np.mean(D)), float(np.std(D, ddof=1) / math.sqrt(BLOCKS))
-    return Comparison(score, ref, mean, se, mean + threshold(candidates) * se < 0.0)
+    D = np.array([np.mean(d) for d in np.array_split(a - b, B)])
+    mean, se = float(np.mean(D)), float(np.std(D, ddof=1) / math.sqrt(B))
+    return Comparison(score, ref, mean, se, mean + threshold(candidates, B) * se < 0.0)
 
 
 def _replay(log, dt, model, biases, estimator, options) -> Residuals:
@@ -413,9 +429,9 @@ class Calibration:
             "biases": None if self.biases is None else [float(v) for v in self.biases],
             "candidate_biases": [float(v) for v in self.candidate],
             "reason": self.reason,
-            "held_out_score": self.held_out,
+            "held_out_score": {k: _finite(v) for k, v in self.held_out.items()},
             "tests": self.tests,
-            "noise_scores": {f"{k:g}": v for k, v in self.scores.items()},
+            "noise_scores": {f"{k:g}": _finite(v) for k, v in self.scores.items()},
             "process_noise": {
                 k: v for k, v in self.options.items() if k in ("q_xy", "q_acc", "q_imu")
             },
@@ -467,28 +483,32 @@ def calibrate(
     if noise:
         key = process_noise_key(model)
         prior = options.get(key, getattr(ReplaySetup, key))
-        b = np.zeros(q) if biases is None else biases
-        options[key], scores, tests["noise"], runs = _noise_step(
-            log, dt, model, estimator, options, b, ref, cap
-        )
-        t, kept = tests["noise"], options[key] != prior
-        chosen_res = runs[options[key]]
-        reason += (
-            f"; {key} {options[key]:g} ({'calibrated' if kept else 'the prior'}): the best"
-            f" candidate {key} {t['candidate']:g} predicts the held-out ranges to"
-            f" {t['score']:.3f} m, the prior {prior:g} to {t['reference_score']:.3f} m,"
-            f" {'' if t['significantly_better'] else 'not '}significantly better"
-        )
-        if kept:
+        for i in range(PASSES):
+            b = np.zeros(q) if biases is None else biases
+            if i:  # the prior intensity with the refitted biases: the pass's reference
+                ref = _replay(log, dt, model, b, estimator, {**options, key: prior})
+            last = options.get(key, prior)
+            options[key], scores, tests["noise"], runs = _noise_step(
+                log, dt, model, estimator, {**options, key: prior}, b, ref, cap
+            )
+            t, kept = tests["noise"], options[key] != prior
+            chosen_res = runs[options[key]]
+            reason += (
+                f"; {key} {options[key]:g} ({'calibrated' if kept else 'the prior'}): the best"
+                f" candidate {key} {t['candidate']:g} predicts the held-out ranges to"
+                f" {_metres(t['score'])}, the prior {prior:g} to {_metres(t['reference_score'])},"
+                f" {'' if t['significantly_better'] else 'not '}significantly better"
+            )
+            if not kept or (i and options[key] == last):
+                break
             biases, chosen_res, rtest, refit = _refit_biases(
                 log, dt, model, estimator, options, biases, chosen_res, prior_res, cap
             )
             tests["refit"] = {**rtest.as_dict(), "kept": refit}
-            if refit:
-                cand = biases
-                reason += (
-                    f"; biases refitted at {key} {options[key]:g}: {rtest.score:.3f} m held out"
-                )
+            if not refit:
+                break
+            cand = biases
+            reason += f"; biases refitted at {key} {options[key]:g}: {rtest.score:.3f} m held out"
     held["chosen"] = compare(chosen_res, prior_res, cap).score
     return Calibration(biases, options, scores, reason, cand, held, tests)
 
