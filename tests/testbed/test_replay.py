@@ -812,7 +812,10 @@ def test_export_writes_the_open_format(tmp_path, capsys):
 # biases and the process noise self-calibrated on the excerpt, never from its truth;
 # initial guess 50 m off, seed 0): the bounds are the measured values plus 25 %.
 # name: (excerpt s, augmented RMSE, augmented final error, iSAM2 online RMSE), measured
-EXCERPTS = {"plaza1": ((0.0, 300.0), 5.02, 3.74, 5.01), "plaza2": ((0.0, 150.0), 3.10, 1.38, 6.71)}
+# Plaza2's excerpt: the calibration keeps q_xy at its prior there (q_xy = 4 predicts the held-out
+# ranges no better: 2.151 against 2.154 m), whose final error is 3.17 m (1.38 m at the setting
+# the previous score picked)
+EXCERPTS = {"plaza1": ((0.0, 300.0), 5.02, 3.74, 5.01), "plaza2": ((0.0, 150.0), 3.10, 3.17, 6.71)}
 
 
 @needs_gtsam
