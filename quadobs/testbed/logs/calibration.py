@@ -21,8 +21,8 @@ the prior's median held-out ``|r|`` (an outlier of metres counts as ``c``, a non
 prediction too); the score of a setting is the root of its mean loss. A candidate beats the
 reference setting only *significantly*: the held-out ranges are cut into ``B`` =
 :data:`BLOCKS` consecutive blocks (fewer where fewer than two ranges a block are held out;
-no test below three blocks) in time, ``D_k`` is the mean of ``loss_candidate - loss_reference`` over
-block ``k`` (blocks, not ranges: the prediction errors of neighbouring ranges are correlated,
+no test below three blocks) in time, ``D_k`` is the mean of
+``loss_candidate - loss_reference`` over block ``k`` (blocks, not ranges: the prediction errors of neighbouring ranges are correlated,
 and the block means are close to independent, the method of batch means), and the candidate
 wins only if
 
@@ -32,7 +32,7 @@ with ``s_D`` the standard deviation of the ``D_k`` and ``K`` the
 one-sided quantile of Student's t with ``B - 1`` degrees of freedom at the level
 :data:`SIGNIFICANCE` divided by the number ``m`` of candidates the winner was chosen from
 (Bonferroni: the chance that any of them passes by luck stays below the level): ``K = 2.09``
-for one candidate (the biases), ``3.0`` for the best of the seven other noise intensities.
+for one candidate (the biases), ``3.01`` for the best of the seven other noise intensities.
 Paired differences cancel the range noise that both settings see, so a
 real improvement shows where the scores' own spread would hide it.
 
@@ -52,7 +52,9 @@ Order (:func:`calibrate`):
    step 2, or from zero): kept if identified, significantly better than the prior and
    predicting the held-out ranges at least as well as the biases before; then step 3 once
    more with them (:data:`PASSES`), as a bias fitted at the prior's intensity also biases
-   the choice of the intensity (it stops where the intensity or the biases stay).
+   the choice of the intensity (it stops where the intensity or the biases stay);
+5. the setting chosen, as a whole, against the prior (one candidate): where it is not
+   significantly better, everything reverts to the prior.
 
 Whatever is not kept stays at the prior; :attr:`Calibration.reason` says what was chosen and
 why. Radio ranges carry a bias per anchor (an antenna delay; +2 to +5 m on the Plaza logs),
@@ -492,6 +494,9 @@ def calibrate(
                 log, dt, model, estimator, {**options, key: prior}, b, ref, cap
             )
             t, kept = tests["noise"], options[key] != prior
+            if i and not kept:  # the first pass's choice stands
+                options[key] = last
+                break
             chosen_res = runs[options[key]]
             reason += (
                 f"; {key} {options[key]:g} ({'calibrated' if kept else 'the prior'}): the best"
@@ -509,6 +514,14 @@ def calibrate(
                 break
             cand = biases
             reason += f"; biases refitted at {key} {options[key]:g}: {rtest.score:.3f} m held out"
+    final = compare(chosen_res, prior_res, cap)
+    tests["final"] = final.as_dict()
+    changed = biases is not None or (noise and options[key] != prior)
+    if changed and not final.better:  # the whole setting against the prior, once more
+        biases, chosen_res = None, prior_res
+        if noise:
+            options[key] = prior
+        reason += "; all reverted to the prior: the setting as a whole is not significantly better"
     held["chosen"] = compare(chosen_res, prior_res, cap).score
     return Calibration(biases, options, scores, reason, cand, held, tests)
 
