@@ -1220,14 +1220,7 @@ def _replay_calibration(args, log, tuning: dict) -> tuple[list[float] | np.ndarr
         log, dt=args.dt, model=args.model, setup_options=tuning, noise=key not in tuning
     )
     chosen = "none" if cal.biases is None else ", ".join(f"{b:.2f}" for b in cal.biases) + " m"
-    print(
-        f"calibrated from the log: biases {chosen} ({cal.reason})"
-        + (
-            f"; {key} {cal.options[key]:g} (prediction score {cal.scores[cal.options[key]]:.3f} m)"
-            if cal.scores
-            else ""
-        )
-    )
+    print(f"calibrated from the log: biases {chosen}; {cal.reason}")
     args.calibration_report = cal.summary()
     return None if cal.biases is None else [float(b) for b in cal.biases], cal.options
 

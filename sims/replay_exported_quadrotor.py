@@ -2,13 +2,16 @@
 
 Runs the live episode with :class:`~quadobs.testbed.logs.export.LogExportSink` (what
 ``quadobs run SCENARIO --export-log DIR`` does), reads the log back, replays it in time
-(``--calibrate none``, the replay's own noise settings) from the live episode's initial
-guess, and prints each estimator's position RMSE after the burn-in, live and replayed;
+with the replay's defaults (``--calibrate self``, as ``quadobs replay``: the calibration
+keeps the prior unless a candidate predicts held-out ranges significantly better; or
+``--calibrate none``) from the live episode's initial guess (its variance from its distance
+to the anchors, as for any guess given as such), and prints each estimator's position RMSE
+after the burn-in, live and replayed;
 then the scenario's own estimators (its observer tuning) on the log's rows on the physics
 grid (:class:`~quadobs.testbed.worlds.replay.ReplayWorld`), which isolates what the log
 carries from the replay's own noise settings.
 
-    python sims/replay_exported_quadrotor.py --duration 70 --burn-in 5 --out /tmp/quad-export
+    python sims/replay_exported_quadrotor.py --duration 70 --burn-in 5 --out quad-export [--calibrate none]
 """
 
 from __future__ import annotations
@@ -21,6 +24,7 @@ import numpy as np
 from quadobs import load_scenario
 from quadobs.testbed.episode import run_episode
 from quadobs.testbed.logs import read_log
+from quadobs.testbed.logs.calibration import calibrate
 from quadobs.testbed.logs.export import LogExportSink
 from quadobs.testbed.logs.replay import run_replay
 
@@ -67,6 +71,7 @@ def main() -> None:
     )
     ap.add_argument("--burn-in", type=float, default=5.0)
     ap.add_argument("--out", help="the log folder (default: a temporary one)")
+    ap.add_argument("--calibrate", choices=("self", "none"), default="self")
     args = ap.parse_args()
     names = args.estimators.split(",")
     scenario = load_scenario(args.scenario, duration=args.duration, seed=args.seed)
@@ -74,9 +79,15 @@ def main() -> None:
     live = run_episode(scenario, estimators=names, collect_every=1, sinks=[LogExportSink(folder)])
     log = read_log(folder)
     x0 = live.trace["estimates"][names[0]][0]
+    dt = args.dt or scenario.dt
+    biases, options = None, {}
+    if args.calibrate == "self":
+        cal = calibrate(log, dt=dt)
+        biases, options = cal.biases, cal.options
+        print(f"calibrated from the log: {cal.reason}")
     s = run_replay(
-        log, estimators=names, dt=args.dt or scenario.dt, x0=x0,
-        batch=False, burn_in=args.burn_in,
+        log, estimators=names, dt=dt, x0=x0, batch=False, burn_in=args.burn_in,
+        biases=biases, setup_options=options,
     )  # fmt: skip
     print(f"log {folder}: {log.ranges.shape[0]} ranges, {log.inputs.shape[0]} IMU rows")
     print("initial guess:", " ".join(f"{v:.6g}" for v in x0))

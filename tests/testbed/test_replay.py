@@ -468,14 +468,14 @@ def test_the_noise_calibration_trusts_good_odometry_and_not_a_drifting_one():
     drift = _drifting(
         good, 0.01
     )  # 0.6 degrees per second: 140 degrees of heading error after 240 s
-    q_good, s_good = calibrate_noise(good, np.zeros(4))
-    q_drift, s_drift = calibrate_noise(drift, np.zeros(4))
+    q_good, s_good, _ = calibrate_noise(good, np.zeros(4))
+    q_drift, s_drift, _ = calibrate_noise(drift, np.zeros(4))
     assert len(s_good) == len(NOISE_FACTORS) and q_good <= 1.0 / 16 and q_drift >= 4.0
     # the truth is not read; what the calibration picks is what the truth prefers
     blind = RangeLog(
         "blind", drift.beacon_ids, drift.beacons, drift.ranges, drift.inputs, drift.heading0, None
     )
-    assert calibrate_noise(blind, np.zeros(4)) == (q_drift, s_drift)
+    assert calibrate_noise(blind, np.zeros(4))[:2] == (q_drift, s_drift)
     rmse = {
         q: run_replay(
             drift, estimators=["ekf"], initial_offset=2.0, batch=False, setup_options={"q_xy": q}
@@ -812,7 +812,10 @@ def test_export_writes_the_open_format(tmp_path, capsys):
 # biases and the process noise self-calibrated on the excerpt, never from its truth;
 # initial guess 50 m off, seed 0): the bounds are the measured values plus 25 %.
 # name: (excerpt s, augmented RMSE, augmented final error, iSAM2 online RMSE), measured
-EXCERPTS = {"plaza1": ((0.0, 300.0), 5.02, 3.74, 5.01), "plaza2": ((0.0, 150.0), 3.10, 1.38, 6.71)}
+# Plaza2's excerpt: the calibration keeps q_xy at its prior there (q_xy = 4 predicts the held-out
+# ranges no better: 2.151 against 2.154 m), whose final error is 3.17 m (1.38 m at the setting
+# the previous score picked)
+EXCERPTS = {"plaza1": ((0.0, 300.0), 5.02, 3.74, 5.01), "plaza2": ((0.0, 150.0), 3.10, 3.17, 6.71)}
 
 
 @needs_gtsam

@@ -1,44 +1,66 @@
 """Range biases and process noise, calibrated from the log itself (never from the ground truth),
-with a fallback to no correction wherever the data do not support one.
+each kept only where it predicts held-out ranges significantly better than the prior defaults.
 
 Prequential residuals. One replay of the log *in time* through one estimator (the EKF by
-default) from the anchors' centroid: at each range, at its own time and before the estimator
-corrects with it,
+default) from the anchors' centroid, its initial variance the anchors' extent
+(:func:`~quadobs.testbed.logs.estimators.initial_variance`): at each range, at its own time and
+before the estimator corrects with it,
 
 .. math:: r = \\rho - b_h - |\\hat p^- - a_h| ,
 
-kept over the second half of the log (the first half is left to the transient). Only the
+kept from :data:`SCORED_FROM` of the log on (the start is left to the transient). Only the
 ranges, the inputs and the estimator's own prediction enter: the truth is not read.
 
 Held-out ranges. Every :data:`HOLD_OUT`-th range of the log (by its index among the ranges)
 is predicted but never corrected with, in every replay of the calibration: its residual is
-an honest test of a setting, since the estimator never fitted it.
+an honest test of a setting, since the estimator never fitted it. The same ranges are held
+out in every replay, so two settings are compared range by range.
 
-Range biases. Radio ranges carry a bias per anchor (an antenna delay; +2 to +5 m on the
-Plaza logs), which the quadratic output model cannot hold as a state (``(rho - b)^2`` is not
-quadratic in ``(p, b)``). :func:`calibrate_biases`, a fixed-point iteration on the fitted
-ranges' residuals: ``b^(0) = 0``, ``b_h^(i+1) = b_h^(i) + median_h(r)`` (the median resists
-outliers), :data:`ITERATIONS` times. A bias trades against the position, so the estimate is
-only as good as the geometry separates them.
+The score. The held-out loss of a range is ``min(r^2, c^2)``, its cap ``c`` :data:`CAP` times
+the prior's median held-out ``|r|`` (an outlier of metres counts as ``c``, a non-finite
+prediction too); the score of a setting is the root of its mean loss. A candidate beats the
+reference setting only *significantly*: the held-out ranges are cut into ``B`` =
+:data:`BLOCKS` consecutive blocks (fewer where fewer than two ranges a block are held out;
+no test below three blocks) in time, ``D_k`` is the mean of
+``loss_candidate - loss_reference`` over block ``k`` (blocks, not ranges: the prediction errors of neighbouring ranges are correlated,
+and the block means are close to independent, the method of batch means), and the candidate
+wins only if
 
-Process noise. The model's process-noise intensity (``q_xy``, ``q_acc`` or ``q_imu``) on the
-grid ``prior 4^j``, ``j = -4 .. 3`` (:data:`NOISE_FACTORS`), that minimises the prequential
-score over every range of the second half (each predicted before it is used, so none is
-fitted), in replays that correct with every range: the root mean square of
-``r - median_h(r)`` (the biases' offsets aside) without its largest 5 % (:data:`TRIM`,
-outliers). The mean square is ``sigma^2 + E e^2`` for a range noise ``sigma`` and a
-prediction error ``e``, so it ranks the settings by the prediction's accuracy, where a
-median of ``|r|`` is flattened by the noise. The smallest score wins (ties to rounding,
-:data:`TIE`, go to the smallest intensity).
+.. math:: \\bar D + K \\, s_D / \\sqrt{B} < 0 ,
 
-Cannot make things worse. :func:`calibrate` keeps the calibrated biases only when
+with ``s_D`` the standard deviation of the ``D_k`` and ``K`` the
+one-sided quantile of Student's t with ``B - 1`` degrees of freedom at the level
+:data:`SIGNIFICANCE` divided by the number ``m`` of candidates the winner was chosen from
+(Bonferroni: the chance that any of them passes by luck stays below the level): ``K = 2.09``
+for one candidate (the biases), ``3.01`` for the best of the seven other noise intensities.
+Paired differences cancel the range noise that both settings see, so a
+real improvement shows where the scores' own spread would hide it.
 
-1. they are identified: some ``|b_h|`` exceeds three standard errors of its median
-   (``1.253 * 1.4826 MAD_h / sqrt(n_h)``), and
-2. they predict the held-out ranges better than no correction: the held-out score
-   ``median |r|`` with them is below :data:`MARGIN` times the score without;
+Order (:func:`calibrate`):
 
-otherwise it applies none, and says which test failed (:attr:`Calibration.reason`).
+1. the prior: the setup's defaults, no biases (the reference of everything below);
+2. range biases at the prior's noise, a fixed-point iteration on the fitted (not held-out)
+   residuals, ``b^(0) = 0``, ``b_h^(i+1) = b_h^(i) + median_h(r)`` (the median resists
+   outliers), :data:`ITERATIONS` times; kept only when *identified* (some ``|b_h|`` beyond
+   :data:`IDENTIFIED` standard errors of its median, ``1.253 * 1.4826 MAD_h / sqrt(n_h)``)
+   *and* significantly better on the held-out ranges than no correction;
+3. the model's process-noise intensity (``q_xy``, ``q_acc`` or ``q_imu``) on the grid
+   ``prior 4^j``, ``j = -4 .. 3`` (:data:`NOISE_FACTORS`), with the biases of step 2: the
+   candidate of the smallest score is kept only if significantly better than the prior's
+   intensity;
+4. where the intensity changed, the biases again at it (the fixed point from the biases of
+   step 2, or from zero): kept if identified, significantly better than the prior and
+   predicting the held-out ranges at least as well as the biases before; then step 3 once
+   more with them (:data:`PASSES`), as a bias fitted at the prior's intensity also biases
+   the choice of the intensity (it stops where the intensity or the biases stay);
+5. the setting chosen, as a whole, against the prior (one candidate): where it is not
+   significantly better, everything reverts to the prior.
+
+Whatever is not kept stays at the prior; :attr:`Calibration.reason` says what was chosen and
+why. Radio ranges carry a bias per anchor (an antenna delay; +2 to +5 m on the Plaza logs),
+which the quadratic output model cannot hold as a state (``(rho - b)^2`` is not quadratic in
+``(p, b)``); a bias trades against the position, so its estimate is only as good as the
+geometry separates them, which is what the held-out test checks.
 """
 
 from __future__ import annotations
@@ -53,32 +75,49 @@ from quadobs.testbed.logs.events import LogEvents
 from quadobs.testbed.worlds.replay import ReplayWorld, default_model, state_size
 
 __all__ = [
+    "BLOCKS",
+    "CAP",
     "HOLD_OUT",
-    "MARGIN",
     "NOISE_FACTORS",
+    "SIGNIFICANCE",
     "Calibration",
+    "Comparison",
     "calibrate",
     "calibrate_biases",
     "calibrate_noise",
+    "compare",
     "prediction_residuals",
     "process_noise_key",
     "self_calibrate",
+    "threshold",
 ]
 
 #: The factors of the prior process-noise intensity that :func:`calibrate_noise` tries.
 NOISE_FACTORS = tuple(4.0**j for j in range(-4, 4))
-#: Scores within this fraction of the best are ties, won by the smallest intensity (rounding only).
-TIE = 1e-6
-#: The fraction of the largest squared residuals the noise score leaves out (outliers).
-TRIM = 0.05
 #: Every HOLD_OUT-th range is held out of the corrections (module docstring).
 HOLD_OUT = 5
 #: The fixed-point iterations of the bias calibration.
 ITERATIONS = 3
-#: The calibrated biases are kept when their held-out score is below MARGIN times no correction's.
-MARGIN = 0.95
 #: A bias counts as identified beyond this many standard errors of its median.
 IDENTIFIED = 3.0
+#: The fraction of the log after which the residuals are scored (before: the transient).
+SCORED_FROM = 0.5
+#: The most passes of the process noise and the biases refitted at it (module docstring).
+PASSES = 2
+#: The held-out loss is capped at CAP times the prior's median held-out ``|r|``.
+CAP = 5.0
+#: The number of consecutive blocks of held-out ranges of the significance test.
+BLOCKS = 20
+#: The one-sided level of the paired test (over all the candidates of one choice).
+SIGNIFICANCE = 0.025
+
+
+def threshold(candidates: int = 1, blocks: int = BLOCKS) -> float:
+    """``K``: the one-sided Student-t quantile (``blocks - 1`` degrees of freedom) at
+    :data:`SIGNIFICANCE` / ``candidates`` (module docstring)."""
+    from scipy.stats import t
+
+    return float(t.ppf(1.0 - SIGNIFICANCE / max(int(candidates), 1), int(blocks) - 1))
 
 
 def process_noise_key(model: str) -> str:
@@ -97,16 +136,22 @@ def _initial(log, model: str, x0) -> np.ndarray:
 
 @dataclass
 class Residuals:
-    """The second half's prequential range residuals of one replay: ``r``, anchor ``h``, and
-    whether each was ``held`` out of the corrections."""
+    """The scored prequential range residuals of one replay: ``r`` (NaN where the prediction
+    was not finite), anchor ``h``, time ``t`` and whether each was ``held`` out."""
 
     r: np.ndarray
     h: np.ndarray
     held: np.ndarray
+    t: np.ndarray
 
     def fitted(self) -> tuple[np.ndarray, np.ndarray]:
-        keep = ~self.held
+        """The finite residuals of the ranges corrected with, and their anchors."""
+        keep = ~self.held & np.isfinite(self.r)
         return self.r[keep], self.h[keep]
+
+    def held_out(self) -> np.ndarray:
+        """The held-out residuals in time order (NaN kept: the same ranges in every replay)."""
+        return self.r[self.held]
 
 
 def prediction_residuals(
@@ -120,8 +165,9 @@ def prediction_residuals(
     setup_options=None,
     hold_out: bool = True,
 ) -> Residuals:
-    """One replay in time with ``biases`` (module docstring): the residuals of the second half's
-    ranges; with ``hold_out``, every :data:`HOLD_OUT`-th range is not corrected with."""
+    """One replay in time with ``biases`` (module docstring): the residuals of the ranges from
+    :data:`SCORED_FROM` of the log on; with ``hold_out``, every :data:`HOLD_OUT`-th range is not
+    corrected with."""
     model = model or default_model(log)
     q = log.beacons.shape[0]
     b = np.zeros(q) if biases is None else np.asarray(biases, dtype=float)
@@ -134,9 +180,9 @@ def prediction_residuals(
     i = int(np.searchsorted(t_in, world.times[0], side="right"))
     if i:
         est.hold(U[i - 1])
-    half = world.times[0] + 0.5 * (world.times[-1] - world.times[0])
-    dim, index = log.dimension, _range_index(log, events)
-    out_r, out_h, out_held = [], [], []
+    start = world.times[0] + SCORED_FROM * (world.times[-1] - world.times[0])
+    dim, index = log.dimension, _range_index(events)
+    out_r, out_h, out_held, out_t = [], [], [], []
     for j, m in enumerate(events.measurements):
         while i < t_in.size and t_in[i] <= m.t:
             est.predict(t_in[i])
@@ -144,19 +190,22 @@ def prediction_residuals(
             i += 1
         est.predict(m.t)
         held = hold_out and m.kind == "range" and index[j] % HOLD_OUT == HOLD_OUT // 2
-        if m.kind == "range" and m.t >= half:
+        if m.kind == "range" and m.t >= start:
             p = est.x_hat[:dim]
             out_r.append(m.value - float(np.linalg.norm(p - log.beacons[m.anchors[0]])))
             out_h.append(m.anchors[0])
             out_held.append(held)
+            out_t.append(m.t)
         if not held:
             est.correct(m)
-    r = np.array(out_r)
-    ok = np.isfinite(r)
-    return Residuals(r[ok], np.array(out_h, dtype=np.int64)[ok], np.array(out_held, bool)[ok])
+    r = np.array(out_r, dtype=float)
+    r[~np.isfinite(r)] = np.nan
+    return Residuals(
+        r, np.array(out_h, dtype=np.int64), np.array(out_held, dtype=bool), np.array(out_t)
+    )
 
 
-def _range_index(log, events: LogEvents) -> np.ndarray:
+def _range_index(events: LogEvents) -> np.ndarray:
     """For each event, its index among the log's ranges (``-1`` for other kinds)."""
     out = np.full(events.count, -1, dtype=np.int64)
     k = 0
@@ -167,16 +216,100 @@ def _range_index(log, events: LogEvents) -> np.ndarray:
     return out
 
 
-def _trimmed_rms(r: np.ndarray) -> float:
-    """The root mean square of ``r`` without its largest :data:`TRIM` fraction (inf when empty)."""
-    if r.size == 0:
-        return math.inf
-    r2 = np.sort(r * r)
-    return float(np.sqrt(np.mean(r2[: max(int(math.ceil((1.0 - TRIM) * r2.size)), 1)])))
-
-
 def _median_by_anchor(r: np.ndarray, h: np.ndarray, q: int) -> np.ndarray:
     return np.array([np.median(r[h == j]) if np.any(h == j) else 0.0 for j in range(q)])
+
+
+def _cap(reference: Residuals) -> float:
+    """The loss cap ``c`` (module docstring): :data:`CAP` times the reference's median held-out ``|r|``."""
+    r = reference.held_out()
+    r = r[np.isfinite(r)]
+    return CAP * float(np.median(np.abs(r))) if r.size else math.inf
+
+
+def _loss(res: Residuals, cap: float) -> np.ndarray:
+    """The held-out losses ``min(r^2, c^2)``, a non-finite residual counted as ``c``."""
+    r = res.held_out()
+    return np.where(np.isfinite(r), np.minimum(r * r, cap * cap), cap * cap)
+
+
+@dataclass
+class Comparison:
+    """A candidate against a reference on the same held-out ranges (module docstring).
+
+    Attributes
+    ----------
+    score, reference_score : float
+        The root mean held-out loss (m) of the candidate and of the reference.
+    difference : float
+        ``D``: the mean of the blocks' mean loss differences (m^2; negative: the candidate better).
+    standard_error : float
+        ``s_D / sqrt(B)`` (m^2).
+    better : bool
+        ``D + K s_D / sqrt(B) < 0``.
+    """
+
+    score: float
+    reference_score: float
+    difference: float
+    standard_error: float
+    better: bool
+
+    def as_dict(self) -> dict:
+        """As plain data (JSON: a figure that is not finite, as where too few ranges were held
+        out to test, is None)."""
+        return {
+            "score": _finite(self.score),
+            "reference_score": _finite(self.reference_score),
+            "difference": _finite(self.difference),
+            "standard_error": _finite(self.standard_error),
+            "significantly_better": self.better,
+        }
+
+
+def _finite(v: float) -> float | None:
+    return float(v) if math.isfinite(v) else None
+
+
+def _metres(v: float | None) -> str:
+    return "no figure" if v is None or not math.isfinite(v) else f"{v:.3f} m"
+
+
+def compare(
+    candidate: Residuals, reference: Residuals, cap: float | None = None, candidates: int = 1
+) -> Comparison:
+    """The paired test of the module docstring: is ``candidate`` significantly better than
+    ``reference`` on their held-out ranges? ``cap`` defaults to the reference's (:func:`_cap`);
+    ``candidates``: how many the candidate was the best of (:func:`threshold`)."""
+    cap = _cap(reference) if cap is None else cap
+    a, b = _loss(candidate, cap), _loss(reference, cap)
+    score, ref = math.sqrt(float(np.mean(a))), math.sqrt(float(np.mean(b)))
+    B = min(BLOCKS, a.size // 2)
+    if a.size != b.size or B < 3 or not math.isfinite(cap):
+        return Comparison(score, ref, math.nan, math.nan, False)
+    D = np.array([np.mean(d) for d in np.array_split(a - b, B)])
+    mean, se = float(np.mean(D)), float(np.std(D, ddof=1) / math.sqrt(B))
+    return Comparison(score, ref, mean, se, mean + threshold(candidates, B) * se < 0.0)
+
+
+def _replay(log, dt, model, biases, estimator, options) -> Residuals:
+    return prediction_residuals(
+        log, dt=dt, model=model, biases=biases, estimator=estimator, setup_options=options
+    )
+
+
+def _fixed_point(log, dt, model, estimator, iterations, options, first=None, start=None):
+    """The biases and the residuals of the replay with them, from the biases ``start`` (default
+    zero); ``first``: the replay with ``start`` at these options, already run (the first
+    iteration's)."""
+    q = log.beacons.shape[0]
+    b = np.zeros(q) if start is None else np.array(start, dtype=float)
+    res = first
+    for i in range(int(iterations)):
+        if res is None or i > 0:
+            res = _replay(log, dt, model, b, estimator, options)
+        b = b + _median_by_anchor(*res.fitted(), q)
+    return b, _replay(log, dt, model, b, estimator, options)
 
 
 def calibrate_biases(
@@ -184,30 +317,25 @@ def calibrate_biases(
     *,
     dt: float = 0.1,
     model: str | None = None,
-    x0=None,
     estimator: str = "ekf",
     iterations: int = ITERATIONS,
     setup_options: dict | None = None,
 ) -> np.ndarray:
-    """Per-anchor range biases ``(q,)`` (m) by the fixed-point iteration of the module docstring."""
-    return _fixed_point(log, dt, model, x0, estimator, iterations, setup_options)[0]
+    """Per-anchor range biases ``(q,)`` (m) by the fixed-point iteration of the module docstring
+    (candidates: :func:`calibrate` decides whether they are applied)."""
+    return _fixed_point(log, dt, model, estimator, iterations, dict(setup_options or {}))[0]
 
 
-def _fixed_point(log, dt, model, x0, estimator, iterations, setup_options):
-    """The biases and the residuals of the replay with them (the last one run)."""
-    q = log.beacons.shape[0]
-    b = np.zeros(q)
-    res = None
-    for _ in range(int(iterations)):
-        res = prediction_residuals(
-            log, dt=dt, model=model, biases=b, x0=x0, estimator=estimator,
-            setup_options=setup_options,
-        )  # fmt: skip
-        b = b + _median_by_anchor(*res.fitted(), q)
-    res = prediction_residuals(
-        log, dt=dt, model=model, biases=b, x0=x0, estimator=estimator, setup_options=setup_options
-    )
-    return b, res
+def _identified(b: np.ndarray, res: Residuals) -> bool:
+    """Some ``|b_h|`` beyond :data:`IDENTIFIED` standard errors of its median."""
+    r, h = res.fitted()
+    for j, bj in enumerate(b):
+        rj = r[h == j]
+        if rj.size > 1:
+            se = 1.2533 * 1.4826 * np.median(np.abs(rj - np.median(rj))) / math.sqrt(rj.size)
+            if abs(bj) > IDENTIFIED * se:
+                return True
+    return False
 
 
 def calibrate_noise(
@@ -216,29 +344,52 @@ def calibrate_noise(
     *,
     dt: float = 0.1,
     model: str | None = None,
-    x0=None,
     estimator: str = "ekf",
     setup_options: dict | None = None,
-) -> tuple[float, dict]:
-    """The model's process-noise intensity with the smallest prequential score (module docstring).
+) -> tuple[float, dict, dict]:
+    """The model's process-noise intensity: the candidate ``prior 4^j`` of the smallest held-out
+    score if it is significantly better than the prior's, else the prior (module docstring).
 
-    Returns the intensity and the score (m) of every one tried, ``{intensity: score}``.
+    Returns the intensity, the held-out score (m) of every intensity tried ``{intensity: score}``,
+    and the comparison of the best candidate with the prior (:meth:`Comparison.as_dict`).
     """
     model = model or default_model(log)
-    key = process_noise_key(model)
-    prior = (setup_options or {}).get(key, getattr(ReplaySetup, key))
+    options = dict(setup_options or {})
     b = np.asarray(biases, dtype=float)
-    scores = {}
+    reference = _replay(log, dt, model, b, estimator, options)
+    return _noise_step(log, dt, model, estimator, options, b, reference, _cap(reference))[:3]
+
+
+def _noise_step(log, dt, model, estimator, options, b, reference, cap):
+    """Step 3 of the module docstring against ``reference``, the replay at the prior with ``b``:
+    ``(intensity, scores, test, runs)``, ``runs`` the replays ``{intensity: Residuals}``."""
+    key = process_noise_key(model)
+    prior = options.get(key, getattr(ReplaySetup, key))
+    scores, runs = {prior: compare(reference, reference, cap).score}, {prior: reference}
     for factor in NOISE_FACTORS:
-        q = prior * factor
-        res = prediction_residuals(
-            log, dt=dt, model=model, biases=b, x0=x0, estimator=estimator,
-            setup_options={**(setup_options or {}), key: q}, hold_out=False,
-        )  # fmt: skip
-        r, h = res.r, res.h
-        scores[q] = _trimmed_rms(r - _median_by_anchor(r, h, b.size)[h])
-    best = min(scores.values())
-    return min(q for q, score in scores.items() if score <= (1.0 + TIE) * best), scores
+        if factor != 1.0:
+            q = prior * factor
+            runs[q] = _replay(log, dt, model, b, estimator, {**options, key: q})
+            scores[q] = compare(runs[q], reference, cap).score
+    best = min((q for q in runs if q != prior), key=lambda q: (scores[q], q))
+    test = compare(runs[best], reference, cap, candidates=len(runs) - 1)
+    scores = {q: scores[q] for q in sorted(scores)}
+    chosen = best if test.better else prior
+    return chosen, scores, {"candidate": best, **test.as_dict()}, runs
+
+
+def _refit_biases(log, dt, model, estimator, options, current, current_res, prior_res, cap):
+    """Step 4 of the module docstring: the biases again at the chosen intensity, from the
+    current ones; ``(biases, residuals, test, kept)``, the current ones where the refit is not
+    kept."""
+    b, res = _fixed_point(
+        log, dt, model, estimator, ITERATIONS, options, first=current_res, start=current
+    )
+    test = compare(res, prior_res, cap)
+    now = compare(current_res, prior_res, cap).score
+    if _identified(b, res) and test.better and test.score <= now:
+        return b, res, test, True
+    return current, current_res, test, False
 
 
 @dataclass
@@ -252,13 +403,18 @@ class Calibration:
     options : dict
         The setup options, with the chosen process-noise intensity.
     scores : dict
-        The prequential score of every intensity tried (empty when the noise was not calibrated).
+        The held-out score (m) of every intensity tried (empty when the noise was not calibrated).
     reason : str
-        Why the biases were kept or not (module docstring).
+        What was chosen and why, biases and noise (module docstring).
     candidate : ndarray (q,)
         The calibrated biases, applied or not.
     held_out : dict
-        ``{"with_biases": m, "without": m}``: the held-out scores ``median |r|``.
+        The held-out scores (m): ``prior`` (the defaults, no biases), ``with_biases`` (the
+        candidate biases at the prior's noise), ``without`` (no biases, the prior's noise),
+        ``chosen`` (the setting applied).
+    tests : dict
+        The paired tests (:meth:`Comparison.as_dict`) of the candidate biases (``biases``) and
+        of the best candidate intensity (``noise``).
     """
 
     biases: np.ndarray | None
@@ -267,6 +423,7 @@ class Calibration:
     reason: str
     candidate: np.ndarray
     held_out: dict = field(default_factory=dict)
+    tests: dict = field(default_factory=dict)
 
     def summary(self) -> dict:
         """As plain data, for the replay's summary."""
@@ -274,11 +431,30 @@ class Calibration:
             "biases": None if self.biases is None else [float(v) for v in self.biases],
             "candidate_biases": [float(v) for v in self.candidate],
             "reason": self.reason,
-            "held_out_score": self.held_out,
+            "held_out_score": {k: _finite(v) for k, v in self.held_out.items()},
+            "tests": self.tests,
+            "noise_scores": {f"{k:g}": _finite(v) for k, v in self.scores.items()},
             "process_noise": {
                 k: v for k, v in self.options.items() if k in ("q_xy", "q_acc", "q_imu")
             },
         }
+
+
+def _bias_step(log, dt, model, estimator, options, prior_res, cap):
+    """Step 2 of the module docstring: ``(biases or None, candidate, residuals, test, reason)``."""
+    b, res = _fixed_point(log, dt, model, estimator, ITERATIONS, options, first=prior_res)
+    test = compare(res, prior_res, cap)
+    if not _identified(b, res):
+        why = f"not identified (every |b_h| within {IDENTIFIED:g} standard errors of its median)"
+        return None, b, prior_res, test, why
+    if not test.better:
+        why = (
+            f"not significantly better on the held-out ranges ({test.score:.3f} m with them, "
+            f"{test.reference_score:.3f} m without)"
+        )
+        return None, b, prior_res, test, why
+    why = f"held-out ranges {test.score:.3f} m with them, {test.reference_score:.3f} m without"
+    return b, b, res, test, why
 
 
 def calibrate(
@@ -290,47 +466,64 @@ def calibrate(
     noise: bool = True,
     estimator: str = "ekf",
 ) -> Calibration:
-    """Biases and (with ``noise``) the process noise from the log, kept only where they help (module docstring)."""
+    """Biases and (with ``noise``) the process noise from the log, each kept only where it
+    predicts the held-out ranges significantly better than the prior (module docstring)."""
     model = model or default_model(log)
     options = dict(setup_options or {})
     q = log.beacons.shape[0]
     if log.ranges.shape[0] == 0:
         return Calibration(None, options, {}, "the log holds no ranges", np.zeros(q))
-    b, res = _fixed_point(log, dt, model, None, estimator, ITERATIONS, options)
+    prior_res = _replay(log, dt, model, None, estimator, options)
+    cap = _cap(prior_res)
+    biases, cand, ref, btest, why = _bias_step(log, dt, model, estimator, options, prior_res, cap)
+    held = {"prior": btest.reference_score, "with_biases": btest.score,
+            "without": btest.reference_score}  # fmt: skip
+    tests = {"biases": btest.as_dict()}
+    reason = f"biases {'applied' if biases is not None else 'none'}: {why}"
     scores: dict = {}
+    chosen_res = ref
     if noise:
         key = process_noise_key(model)
-        options[key], scores = calibrate_noise(
-            log, b, dt=dt, model=model, estimator=estimator, setup_options=options
-        )
-        b, res = _fixed_point(log, dt, model, None, estimator, ITERATIONS, options)
-    plain = prediction_residuals(
-        log, dt=dt, model=model, biases=None, estimator=estimator, setup_options=options
-    )
-    with_b = float(np.median(np.abs(res.r[res.held]))) if res.held.any() else math.inf
-    without = float(np.median(np.abs(plain.r[plain.held]))) if plain.held.any() else math.inf
-    held = {"with_biases": with_b, "without": without}
-    r, h = res.fitted()
-    se = np.array(
-        [
-            1.2533 * 1.4826 * np.median(np.abs(r[h == j] - np.median(r[h == j])))
-            / math.sqrt(np.sum(h == j)) if np.any(h == j) else math.inf
-            for j in range(q)
-        ]
-    )  # fmt: skip
-    if not np.any(np.abs(b) > IDENTIFIED * se):
-        reason = f"not identified: every |b_h| within {IDENTIFIED:g} standard errors of its median"
-        return Calibration(None, options, scores, reason, b, held)
-    if not with_b < MARGIN * without:
-        reason = (
-            f"no better on the held-out ranges: {with_b:.3f} m with the biases, "
-            f"{without:.3f} m without"
-        )
-        return Calibration(None, options, scores, reason, b, held)
-    reason = (
-        f"held-out ranges predicted better: {with_b:.3f} m with the biases, {without:.3f} m without"
-    )
-    return Calibration(b, options, scores, reason, b, held)
+        prior = options.get(key, getattr(ReplaySetup, key))
+        for i in range(PASSES):
+            b = np.zeros(q) if biases is None else biases
+            if i:  # the prior intensity with the refitted biases: the pass's reference
+                ref = _replay(log, dt, model, b, estimator, {**options, key: prior})
+            last = options.get(key, prior)
+            options[key], scores, tests["noise"], runs = _noise_step(
+                log, dt, model, estimator, {**options, key: prior}, b, ref, cap
+            )
+            t, kept = tests["noise"], options[key] != prior
+            if i and not kept:  # the first pass's choice stands
+                options[key] = last
+                break
+            chosen_res = runs[options[key]]
+            reason += (
+                f"; {key} {options[key]:g} ({'calibrated' if kept else 'the prior'}): the best"
+                f" candidate {key} {t['candidate']:g} predicts the held-out ranges to"
+                f" {_metres(t['score'])}, the prior {prior:g} to {_metres(t['reference_score'])},"
+                f" {'' if t['significantly_better'] else 'not '}significantly better"
+            )
+            if not kept or (i and options[key] == last):
+                break
+            biases, chosen_res, rtest, refit = _refit_biases(
+                log, dt, model, estimator, options, biases, chosen_res, prior_res, cap
+            )
+            tests["refit"] = {**rtest.as_dict(), "kept": refit}
+            if not refit:
+                break
+            cand = biases
+            reason += f"; biases refitted at {key} {options[key]:g}: {rtest.score:.3f} m held out"
+    final = compare(chosen_res, prior_res, cap)
+    tests["final"] = final.as_dict()
+    changed = biases is not None or (noise and options[key] != prior)
+    if changed and not final.better:  # the whole setting against the prior, once more
+        biases, chosen_res = None, prior_res
+        if noise:
+            options[key] = prior
+        reason += "; all reverted to the prior: the setting as a whole is not significantly better"
+    held["chosen"] = compare(chosen_res, prior_res, cap).score
+    return Calibration(biases, options, scores, reason, cand, held, tests)
 
 
 def self_calibrate(

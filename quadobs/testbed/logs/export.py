@@ -240,4 +240,16 @@ class LogExportSink(Sink):
             frame="enu",
             gravity=float(-world.model.opt.gravity[2]),
             description=(fr.description.splitlines() or [""])[0],
+            **_imu_noise(world.imu, fr.dt),
         )
+
+
+def _imu_noise(imu, dt: float) -> dict:
+    """The IMU's stated white-noise densities (``meta.csv``): a standard deviation ``s`` per
+    sample at the physics step ``dt`` is a density ``s sqrt(dt)``; none where it is zero."""
+    q = imu
+    return {
+        key: std * math.sqrt(dt)
+        for key, std in (("accel_noise", q.accel_std), ("gyro_noise", q.gyro_std))
+        if std > 0
+    }

@@ -137,6 +137,8 @@ class RangeLog:
     gravity : float
         Magnitude of gravity (m/s^2).
     description : str
+    accel_noise, gyro_noise : float
+        A body IMU's stated white-noise densities (m/s^2/sqrt(Hz), rad/s/sqrt(Hz)); NaN: unknown.
     """
 
     name: str
@@ -157,6 +159,8 @@ class RangeLog:
     frame: str = "enu"
     gravity: float = 9.80665
     description: str = ""
+    accel_noise: float = math.nan
+    gyro_noise: float = math.nan
 
     def __post_init__(self) -> None:
         fix = lambda key, value: object.__setattr__(self, key, value)  # noqa: E731
@@ -492,6 +496,8 @@ def read_log(folder: str | Path) -> RangeLog:
             frame=meta["frame"],
             gravity=meta["gravity"],
             description=meta["description"],
+            accel_noise=meta["accel_noise"],
+            gyro_noise=meta["gyro_noise"],
         )
     except QuadobsError as exc:  # name the folder's file, not the log's name
         raise QuadobsError(str(exc).replace(f"{name}: ", f"{folder}/", 1)) from None
@@ -549,6 +555,9 @@ def _log_texts(log: RangeLog) -> dict[str, str]:
         meta.append(["heading0", repr(float(log.heading0))])
     if dim == 3:
         meta += [["frame", log.frame], ["gravity", repr(float(log.gravity))]]
+    for key in ("accel_noise", "gyro_noise"):
+        if math.isfinite(getattr(log, key)):
+            meta.append([key, repr(float(getattr(log, key)))])
     texts["meta.csv"] = _csv_text(["key", "value"], meta)
     return texts
 

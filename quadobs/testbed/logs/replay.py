@@ -70,17 +70,23 @@ def initial_guess(log, world, offset: float, seed: int) -> np.ndarray:
     """
     n, dim = world.columns.n, log.dimension
     x0 = np.zeros(n)
-    truth = world.state()
-    first = log.truth_part("position")
-    if not np.all(np.isfinite(truth[:dim])) and first is not None and first.shape[0]:
-        truth = first[0]
-    if np.all(np.isfinite(truth[:dim])):
+    truth = _truth_at_start(log, world)
+    if truth is not None:
         phi = np.random.default_rng(seed).uniform(0.0, 2.0 * math.pi)
         x0[:dim] = truth[:dim]
         x0[:2] += offset * np.array([math.cos(phi), math.sin(phi)])
     else:
         x0[:dim] = log.beacons.mean(axis=0)
     return x0
+
+
+def _truth_at_start(log, world) -> np.ndarray | None:
+    """The true state at ``t_0`` (its first position where the truth starts later), or None."""
+    truth = world.state()
+    first = log.truth_part("position")
+    if not np.all(np.isfinite(truth[: log.dimension])) and first is not None and first.shape[0]:
+        truth = first[0]
+    return truth if np.all(np.isfinite(truth[: log.dimension])) else None
 
 
 def log_scenario(log, dt: float, seed: int = 0, settings=()):
@@ -191,7 +197,9 @@ def run_replay(
         ``noise.*`` settings of the sensor layer (:func:`log_scenario`); default: none, the
         log's ranges as they are.
     x0 : array_like (n,), optional
-        The initial state itself (replaces ``initial_offset``).
+        The initial state itself (replaces ``initial_offset``; its variance ``P0``, unless
+        ``setup_options`` gives one, from its distance to the anchors,
+        :func:`~quadobs.testbed.logs.estimators.initial_variance`).
     burn_in : float
         Seconds from the start before the RMSE and the maximum error are taken.
     export_tum : path, optional
@@ -216,13 +224,15 @@ def run_replay(
     world = ReplayWorld(
         log, dt, model or default_model(log), _BLOCK, biases, sensors=sensors, peer_batch=batch
     )
-    setup = replay_setup(log, world, setup_options)
-    events = LogEvents(
-        log, biases, start=world.times[0], end=world.times[-1], std=setup.measurement_std()
-    )
+    # P0 from the guess's uncertainty: the offset of a guess drawn from the truth, else the anchors' extent
+    drawn = x0 is None and _truth_at_start(log, world) is not None
     if x0 is None:
         x0 = initial_guess(log, world, float(initial_offset), seed)
     x0 = np.array(x0, dtype=float)
+    setup = replay_setup(log, world, setup_options, float(initial_offset) if drawn else None, x0)
+    events = LogEvents(
+        log, biases, start=world.times[0], end=world.times[-1], std=setup.measurement_std()
+    )
     ests = _replay_estimators(log, world, setup, events, names, x0)
 
     def summarise(merged, completed, wall, interrupted):
@@ -313,6 +323,7 @@ def _summary(
             "q_imu": setup.q_imu,
             "gate": setup.gate,
             "range_bias": setup.range_bias,
+            "P0": setup.P0,
         },
         "measurements": {
             "range_period_steps": sensors.range_every,

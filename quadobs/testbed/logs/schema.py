@@ -229,6 +229,18 @@ META_KEYS = {
             2,
         ),
         MetaKey("gravity", "magnitude of gravity (m/s^2; default 9.80665)", 9.80665, 2),
+        MetaKey(
+            "accel_noise",
+            "a body IMU's stated accelerometer white-noise density (m/s^2/sqrt(Hz); absent: unknown)",
+            math.nan,
+            2,
+        ),
+        MetaKey(
+            "gyro_noise",
+            "a body IMU's stated gyroscope white-noise density (rad/s/sqrt(Hz); absent: unknown)",
+            math.nan,
+            2,
+        ),
     )
 }
 FRAMES = ("enu", "ned")
@@ -281,7 +293,7 @@ def parse_meta(where: str, rows: list[list[str]]) -> dict:
             meta[key] = _printable(at, text)
         elif key == "heading0":
             meta[key] = _float_value(at, text)
-        elif key == "gravity":
+        elif key in ("gravity", "accel_noise", "gyro_noise"):
             meta[key] = _float_value(at, text, positive=True)
         elif key == "frame":
             if text.lower() not in FRAMES:

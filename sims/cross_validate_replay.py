@@ -1,0 +1,97 @@
+"""The replay's defaults across sources: each source's calibrated setting applied to the others.
+
+Sources: two simulated flights exported as logs (``quadrotor-uwb`` and
+``quadrotor-uwb-realistic``, what ``quadobs run SCENARIO --export-log DIR`` writes) and the
+CMU Plaza1 and Plaza2 logs (``gtsam`` needed). For each source the self-calibration
+(:func:`~quadobs.testbed.logs.calibration.calibrate`, never the truth) picks the process noise
+and the range biases. The noise is carried to another source as its factor of the model's prior
+(``q / prior``: ``q_imu`` on the flights, ``q_xy`` on the Plaza logs, whose models differ);
+the biases belong to a log's anchors, so each log keeps its own calibrated ones. Every log is
+replayed in time with ``augmented,ekf`` from ``--initial-offset`` metres off, at the prior
+(``--calibrate none``), and at each source's factor; the table gives the position RMSE after
+each log's burn-in (5 s on the flights, none on the Plaza logs, as in the docs' figures).
+
+    python sims/cross_validate_replay.py [--quad-duration 20] [--sources quad,realistic,plaza1,plaza2]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import tempfile
+
+from quadobs import load_scenario
+from quadobs.testbed.episode import run_episode
+from quadobs.testbed.logs import load_builtin, read_log
+from quadobs.testbed.logs.calibration import calibrate, process_noise_key
+from quadobs.testbed.logs.estimators import ReplaySetup
+from quadobs.testbed.logs.export import LogExportSink
+from quadobs.testbed.logs.replay import run_replay
+from quadobs.testbed.worlds.replay import default_model
+
+NAMES = ["augmented", "ekf"]
+SCENARIOS = {"quad": "quadrotor-uwb", "realistic": "quadrotor-uwb-realistic"}
+
+
+def source_log(name: str, durations: dict):
+    """The log of a source, its replay step and burn-in (s)."""
+    if name in SCENARIOS:
+        scenario = load_scenario(SCENARIOS[name], duration=durations[name], seed=0)
+        folder = tempfile.mkdtemp(prefix=f"{name}-")
+        run_episode(scenario, estimators=["ekf"], sinks=[LogExportSink(folder)])
+        return read_log(folder), scenario.dt, 5.0
+    return load_builtin(name), 0.1, 0.0
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--sources", default="quad,realistic,plaza1,plaza2")
+    ap.add_argument("--quad-duration", type=float, default=20.0)
+    ap.add_argument("--realistic-duration", type=float, default=40.0)
+    ap.add_argument("--initial-offset", type=float, default=50.0)
+    ap.add_argument("--json", help="write the results here")
+    args = ap.parse_args()
+    names = args.sources.split(",")
+    durations = {"quad": args.quad_duration, "realistic": args.realistic_duration}
+    logs, factors, cals = {}, {}, {}
+    for name in names:
+        log, dt, burn = source_log(name, durations)
+        key = process_noise_key(default_model(log))
+        cal = calibrate(log, dt=dt)
+        prior = getattr(ReplaySetup, key)
+        logs[name], cals[name] = (log, dt, burn, key, prior), cal
+        factors[name] = cal.options[key] / prior
+        print(f"{name}: {key} {cal.options[key]:g} (factor {factors[name]:g}); {cal.reason}")
+    rows = {}
+    for name, (log, dt, burn, key, prior) in logs.items():
+        biases = cals[name].biases
+        runs = {"prior": 1.0, **{f"from {s}": f for s, f in factors.items()}}
+        done: dict = {}
+        for label, f in runs.items():
+            if f not in done:
+                s = run_replay(
+                    log, estimators=NAMES, dt=dt, initial_offset=args.initial_offset,
+                    batch=False, burn_in=burn, biases=biases, setup_options={key: prior * f},
+                )  # fmt: skip
+                done[f] = {n: s["estimators"][n]["rmse"] for n in NAMES}
+            rows.setdefault(name, {})[label] = done[f]
+        print(
+            f"{name}: "
+            + "; ".join(
+                f"{label} " + ", ".join(f"{n} {v:.4g}" for n, v in r.items())
+                for label, r in rows[name].items()
+            ),
+            flush=True,
+        )
+    if args.json:
+        with open(args.json, "w") as fh:
+            json.dump({"factors": factors, "rmse": rows}, fh, indent=1)
+    header = "evaluated on | " + " | ".join(["prior", *(f"from {s}" for s in names)])
+    print(header)
+    for name, r in rows.items():
+        print(f"{name} | " + " | ".join(" / ".join(f"{v:.3g}" for v in r[c].values()) for c in r))
+    print("(augmented / EKF position RMSE, m)")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,117 @@
+"""The self-calibration keeps the prior defaults unless a candidate predicts the held-out ranges
+significantly better: the paired test itself, a log whose prior is right, a log whose prior is
+wrong, a log with per-anchor biases."""
+
+import numpy as np
+import pytest
+
+from quadobs.testbed.logs import RangeLog
+from quadobs.testbed.logs.calibration import (
+    BLOCKS,
+    Residuals,
+    calibrate,
+    compare,
+)
+from quadobs.testbed.logs.replay import run_replay
+
+ANCHORS = np.array([[0.0, 0.0], [12.0, 0.0], [12.0, 9.0], [0.0, 9.0]])
+
+
+def _residuals(r: np.ndarray) -> Residuals:
+    """Every residual held out, in time order."""
+    return Residuals(r, np.zeros(r.size, dtype=np.int64), np.ones(r.size, bool), np.arange(r.size))
+
+
+def test_the_paired_test_needs_a_significant_improvement():
+    rng = np.random.default_rng(0)
+    noise = 0.1 * rng.standard_normal(4000)
+    reference = _residuals(noise + 0.05)
+    same = compare(_residuals(noise + 0.05), reference)
+    assert not same.better and same.difference == 0.0 and same.score == same.reference_score
+    # a 5 mm smaller systematic error under 0.1 m of noise: paired, the noise cancels
+    better = compare(_residuals(noise), reference)
+    assert better.better and better.score < better.reference_score
+    # as good on average, differently noisy: not significant
+    other = compare(_residuals(0.1 * rng.standard_normal(4000) + 0.05), reference)
+    assert not other.better
+    # a non-finite prediction counts as the cap, and too few held-out ranges decide nothing
+    broken = noise.copy()
+    broken[::7] = np.nan
+    assert not compare(_residuals(broken), reference).better
+    assert not compare(_residuals(noise[:5]), _residuals(noise[:5] + 1)).better  # two blocks
+    short = compare(_residuals(noise[:12]), _residuals(noise[:12] + 1))  # six blocks
+    assert short.better and BLOCKS == 20
+
+
+def _random_acceleration_log(q: float, biases=(0.0, 0.0, 0.0, 0.0), seed: int = 3) -> RangeLog:
+    """40 s of a vehicle driven by a white acceleration of intensity ``q`` (m^2/s^3), ranged at
+    20 Hz to the four anchors in turn with 0.1 m noise and per-anchor ``biases``; no inputs."""
+    rng = np.random.default_rng(seed)
+    h = 0.01
+    t = np.arange(0.0, 40.0, h)
+    a = np.sqrt(q / h) * rng.standard_normal((t.size, 2))
+    v = np.array([0.1, 0.05]) + np.cumsum(a, axis=0) * h
+    p = np.array([5.0, 4.0]) + np.cumsum(v, axis=0) * h
+    k = np.arange(0, t.size, 5)
+    anchor = np.arange(k.size) % 4
+    rho = np.linalg.norm(p[k] - ANCHORS[anchor], axis=1) + np.asarray(biases)[anchor]
+    rho += 0.1 * rng.standard_normal(k.size)
+    return RangeLog(
+        "walk", np.arange(4), ANCHORS, np.column_stack([t[k], anchor, rho]), np.empty((0, 1)),
+        float("nan"), np.column_stack([t, p, v]), input_kind="none",
+        truth_columns=("time", "x", "y", "vx", "vy"),
+    )  # fmt: skip
+
+
+def test_a_right_prior_is_kept():
+    log = _random_acceleration_log(1e-3)
+    cal = calibrate(log, setup_options={"range_sigma": 0.1, "q_acc": 1e-3})
+    assert cal.biases is None and cal.options["q_acc"] == 1e-3, cal.reason
+    assert (
+        not cal.tests["noise"]["significantly_better"]
+        and not cal.tests["biases"]["significantly_better"]
+    )
+    assert "the prior" in cal.reason and len(cal.scores) == 8
+
+
+def test_a_wrong_prior_is_replaced_and_the_replay_is_not_worse():
+    log = _random_acceleration_log(1e-3)
+    prior = {"range_sigma": 0.1, "q_acc": 1.0}  # a thousand times the truth's
+    cal = calibrate(log, setup_options=prior)
+    assert cal.options["q_acc"] < 0.1 and cal.tests["noise"]["significantly_better"], cal.reason
+
+    def rmse(options):
+        s = run_replay(log, estimators=["ekf"], initial_offset=2.0, batch=False,
+                       setup_options=options, burn_in=5.0)  # fmt: skip
+        return s["estimators"]["ekf"]["rmse"]
+
+    assert rmse(cal.options) < rmse(prior)
+
+
+def _circle_log(biases, seed: int = 5) -> RangeLog:
+    """A lap of a 3.5 m circle about the room's centre in 40 s, ranged as above."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(0.0, 40.0, 0.05)
+    w = 2.0 * np.pi / 40.0
+    p = np.array([6.0, 4.5]) + 3.5 * np.column_stack([np.cos(w * t), np.sin(w * t)])
+    v = 3.5 * w * np.column_stack([-np.sin(w * t), np.cos(w * t)])
+    anchor = np.arange(t.size) % 4
+    rho = np.linalg.norm(p - ANCHORS[anchor], axis=1) + np.asarray(biases)[anchor]
+    rho += 0.1 * rng.standard_normal(t.size)
+    return RangeLog(
+        "lap", np.arange(4), ANCHORS, np.column_stack([t, anchor, rho]), np.empty((0, 1)),
+        float("nan"), np.column_stack([t, p, v]), input_kind="none",
+        truth_columns=("time", "x", "y", "vx", "vy"),
+    )  # fmt: skip
+
+
+def test_per_anchor_biases_are_found_and_applied():
+    truth = np.array([0.4, -0.3, 0.25, 0.0])
+    options = {"range_sigma": 0.1, "q_acc": 1e-2}
+    cal = calibrate(_circle_log(truth), setup_options=options, noise=False)
+    assert cal.biases is not None, cal.reason
+    # a bias trades against the position: the fixed point comes within half the biases' size
+    err = np.sqrt(np.mean((cal.biases - truth) ** 2))
+    assert err < 0.5 * np.sqrt(np.mean(truth**2)), cal.biases
+    assert cal.held_out["with_biases"] < cal.held_out["without"]
+    assert cal.summary()["biases"] == pytest.approx(list(cal.biases))
