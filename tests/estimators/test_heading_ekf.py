@@ -140,3 +140,13 @@ def test_the_cascade_turns_the_odometry_by_the_estimated_heading():
     cascade.predict(1.0)  # no bias: the odometry's velocity turned by delta = 0.3 for 1 s
     np.testing.assert_allclose(cascade.x_hat, 2.0 * np.array([math.cos(0.3), math.sin(0.3)]))
     assert heading.theta_o == pytest.approx(0.1) and cascade.time == 1.0
+
+
+def test_an_odometry_log_gets_the_heading_filter_by_default_and_a_model_without_it_does_not():
+    from quadobs.testbed.logs.replay import default_estimators
+
+    log = circle_log(bias=0.0, heading_error=0.0, duration=5.0)
+    assert default_estimators(log) == ["augmented", "ekf", "ukf-heading"]
+    assert "ukf-heading" not in default_estimators(log, "cv")
+    check_replay(log, [])  # the default set builds on the log
+    check_replay(log, [], model="cv")  # and the one without the heading filter under cv

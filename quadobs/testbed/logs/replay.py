@@ -51,11 +51,16 @@ __all__ = [
 DEFAULT_ESTIMATORS = ("augmented", "ekf")
 
 
-def default_estimators(log) -> list[str]:
+def default_estimators(log, model: str | None = None) -> list[str]:
     """:data:`DEFAULT_ESTIMATORS`, with the UKF in place of the augmented observer for a log
-    holding TDOA (which the observer cannot take)."""
+    holding TDOA (which the observer cannot take), and the heading filter ``ukf-heading`` beside
+    them for a log of wheel odometry replayed with the model ``odometry`` (``model`` ``None``: the
+    log's default) (whose dead-reckoned heading drifts with the yaw rate's
+    bias, which the other two take as known)."""
     if log.tdoa.shape[0]:
         return ["ekf", "ukf"]
+    if log.input_kind == "odometry" and model in (None, "odometry"):
+        return [*DEFAULT_ESTIMATORS, "ukf-heading"]
     return list(DEFAULT_ESTIMATORS)
 
 
@@ -213,7 +218,7 @@ def run_replay(
     from quadobs.testbed.sensors import SensorModel
     from quadobs.testbed.worlds.replay import ReplayWorld, default_model
 
-    names = list(estimators) if estimators else default_estimators(log)
+    names = list(estimators) if estimators else default_estimators(log, model)
     inputs = {f"log {f}": Path(log.source) / f for f in LOG_FILES} if log.source else {}
     check_outputs({"summary": summary_path, "recording": out}, inputs)
     from quadobs.testbed.logs.figures import FieldFiguresSink, check_tum_folder
@@ -294,7 +299,7 @@ def check_replay(log, names, *, dt: float = 0.1, model: str | None = None, optio
     )  # fmt: skip
     x0 = np.zeros(n)
     x0[: log.dimension] = log.beacons.mean(axis=0)
-    build_replay_estimators(setup, list(names) if names else default_estimators(log), x0)
+    build_replay_estimators(setup, list(names) if names else default_estimators(log, model), x0)
 
 
 def _summary(
