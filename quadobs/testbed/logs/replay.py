@@ -52,10 +52,12 @@ DEFAULT_ESTIMATORS = ("augmented", "ekf")
 
 
 def default_estimators(log) -> list[str]:
-    """:data:`DEFAULT_ESTIMATORS`, with the UKF in place of the augmented observer for a log
-    holding TDOA (which the observer cannot take)."""
+    """:data:`DEFAULT_ESTIMATORS`; for a log holding TDOA (which the range observer cannot
+    take): where its input is an acceleration, the TDOA observer handing over to the EKF and
+    the observer alone; then the EKF and the UKF."""
     if log.tdoa.shape[0]:
-        return ["ekf", "ukf"]
+        tdoa = ["tdoa-handover", "tdoa-observer"] if log.input_kind in ("imu", "imu_body") else []
+        return tdoa + ["ekf", "ukf"]
     return list(DEFAULT_ESTIMATORS)
 
 
