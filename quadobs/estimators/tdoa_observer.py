@@ -267,7 +267,7 @@ class TdoaHandover(Estimator):
         return self.observer.measurement_models
 
     @property
-    def nis(self) -> float:  # type: ignore[override]
+    def nis(self) -> float:
         """The normalised innovation squared of the active estimator's last correction."""
         return float(getattr(self.active, "nis", math.nan))
 

@@ -47,6 +47,7 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -215,7 +216,7 @@ class LogExportSink(Sink):
         dim = fr.dimension
         inputs = np.vstack(self.parts["inputs"] + [np.r_[completed * fr.dt, np.zeros(dim)][None]])
         axes = "xyz"[:dim]
-        extra = {}
+        extra: dict[str, Any] = {}
         if self.radio_events:  # the radio's ranges or TDOA at their own times, with their std
             ranges, tdoa = radio_rows(self.radio_events, ranges, math.nan)
             extra = {"range_std": ranges[:, 3], "tdoa": tdoa[:, :4], "tdoa_std": tdoa[:, 4]}

@@ -27,12 +27,11 @@ import numpy as np
 from quadobs.errors import QuadobsError
 from quadobs.estimators.kalman import ExtendedKalmanFilter, HeldInputModel, OutputModel
 from quadobs.estimators.tdoa_observer import TdoaHandover, TdoaObserver
-from quadobs.testbed.logs.estimators import ReplaySetup, _process_noise
 
 __all__ = ["build_tdoa_handover", "build_tdoa_observer", "replay_tdoa_ekf"]
 
 
-def _check(s: ReplaySetup, name: str) -> None:
+def _check(s, name: str) -> None:
     if "tdoa" not in s.kinds:
         raise QuadobsError(f"estimators: {name!r} takes TDOA, and the log holds no tdoa.csv")
     if s.model != "imu":
@@ -41,13 +40,16 @@ def _check(s: ReplaySetup, name: str) -> None:
         )
 
 
-def _P0(s: ReplaySetup) -> np.ndarray:
+def _P0(s) -> np.ndarray:
     return np.diag([s.P0] * s.dim + [4.0] * s.dim)
 
 
-def replay_tdoa_ekf(s: ReplaySetup, x0: np.ndarray, P0: np.ndarray, time: float = 0.0):
-    """The replay's EKF on TDOA (the models and noise of ``ekf``) from ``x0, P0`` at ``time``."""
-    dyn = HeldInputModel(s.system, s.dt, V=_process_noise(s))
+def replay_tdoa_ekf(s, x0: np.ndarray, P0: np.ndarray, time: float = 0.0):
+    """The replay's EKF on TDOA (the models and noise of ``ekf`` for model ``imu``: the white
+    acceleration ``q_imu`` on ``v' = u``) from ``x0, P0`` at ``time``; ``s`` a
+    :class:`~quadobs.testbed.logs.estimators.ReplaySetup`."""
+    V = np.diag([0.0] * s.dim + [s.q_imu] * s.dim)
+    dyn = HeldInputModel(s.system, s.dt, V=V)
     out = OutputModel(
         s.system, s.range_sigma**2, offsets=0.5 * np.einsum("hi,hi->h", s.beacons, s.beacons)
     )
@@ -58,7 +60,7 @@ def replay_tdoa_ekf(s: ReplaySetup, x0: np.ndarray, P0: np.ndarray, time: float 
     return ekf
 
 
-def _observer(s: ReplaySetup, x0: np.ndarray) -> TdoaObserver:
+def _observer(s, x0: np.ndarray) -> TdoaObserver:
     return TdoaObserver(
         s.beacons,
         s.dt,
@@ -70,7 +72,7 @@ def _observer(s: ReplaySetup, x0: np.ndarray) -> TdoaObserver:
     )
 
 
-def build_tdoa_observer(s: ReplaySetup, x0: np.ndarray, name: str = "tdoa-observer"):
+def build_tdoa_observer(s, x0: np.ndarray, name: str = "tdoa-observer"):
     """Entry point ``tdoa-observer``: the TDOA observer on the log (module docstring)."""
     _check(s, name)
     est = _observer(s, x0)
@@ -78,7 +80,7 @@ def build_tdoa_observer(s: ReplaySetup, x0: np.ndarray, name: str = "tdoa-observ
     return est
 
 
-def build_tdoa_handover(s: ReplaySetup, x0: np.ndarray, name: str = "tdoa-handover"):
+def build_tdoa_handover(s, x0: np.ndarray, name: str = "tdoa-handover"):
     """Entry point ``tdoa-handover``: the TDOA observer handing over to the replay's EKF."""
     _check(s, name)
 
