@@ -2,8 +2,8 @@
 
 ``python -m quadobs.studies.tdoa --out DIR [--seeds N] [--duration S] [--offset M]`` flies the
 reference flight of ``quadrotor-tdoa`` (:func:`quadobs.testbed.tdoa.fly_reference`) once per
-seed, measures TDOA (TDoA3-like, the radio's ``std`` and ``rate``) and two-way ranges (``[noise]``: every anchor each
-``1 / range_rate`` s) on it, runs the estimators from a guess ``offset`` metres off along
+seed, measures TDOA (TDoA3-like, the radio's ``std`` and ``rate``) and two-way ranges
+(``[noise]``: every anchor each ``1 / range_rate`` s) on it, runs the estimators from a guess ``offset`` metres off along
 ``x`` and writes ``DIR/tdoa-study.json`` (per estimator: the position RMSE after ``settle`` s,
 the time the position error last crosses 0.5 m, how many seeds are below 0.5 m at 3 s) and
 ``DIR/tdoa-dop.png`` (the DOP maps of :mod:`quadobs.evaluation.dop`).

@@ -15,8 +15,9 @@ is the TDOA of ``pairs[h]`` at a step where it was measured, NaN elsewhere, so a
 
 :func:`reference_run` flies the scenario's reference trajectory (the point-mass world's
 motion, sampled exactly), measures the acceleration with the scenario's accelerometer noise
-and runs estimators on the TDOA of the radio's ``std`` and ``rate`` (``[radio]`` with ``protocol = "tdoa"``). Random draws come from streams spawned
-from the seed, one for the schedule and one per noise.
+and runs estimators on TDOA with the radio's ``std`` and ``rate`` (``[radio]`` with
+``protocol = "tdoa"``). Random draws come from streams spawned from the seed, one for the
+schedule and one per noise.
 """
 
 from __future__ import annotations
