@@ -683,7 +683,7 @@ def _add_run(sub, estimators_option) -> None:
     p.add_argument(
         "--estimators",
         action=estimators_option,
-        help="comma-separated estimator names (default: augmented and the scenario's variants)",
+        help="comma-separated estimator names (default: augmented and the scenario's variants; with a TDOA radio, the TDOA estimators)",
     )
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument(

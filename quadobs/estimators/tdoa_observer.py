@@ -36,7 +36,7 @@ import numpy as np
 
 from quadobs.core.held_input import HeldInputDiscretization, as_covariance
 from quadobs.core.immersion import lift_jacobian, lifted_covariance
-from quadobs.core.measurements import Measurement
+from quadobs.core.measurements import Measurement, TdoaModel
 from quadobs.core.tdoa import TdoaImmersion, relation_variance
 from quadobs.errors import QuadobsError, as_array, as_finite_scalar
 from quadobs.estimators.base import Estimator, Gated, check_step
@@ -104,6 +104,8 @@ class TdoaObserver(Estimator, Gated):
             if not (0 <= i < m and 0 <= j < m and i != j):
                 raise QuadobsError(f"pairs: ({i}, {j}) is not two distinct anchors below {m}")
         self._steps: dict[float, HeldInputDiscretization] = {}
+        #: The kind of measurement it takes (what a world asks before feeding it).
+        self.measurement_models = {"tdoa": TdoaModel(self.model.anchors, self.std)}
         self._z = self.model.lift(x0)
         self._P = lifted_covariance(im.aux_forms, x0, Px)
         self.time = 0.0
@@ -137,11 +139,11 @@ class TdoaObserver(Estimator, Gated):
         return self.model.immersion.system.p
 
     def _discretization(self, h: float) -> HeldInputDiscretization:
-        key = round(h, 12)
+        key = round(h, 12)  # intervals equal to a picosecond share one discretisation
         step = self._steps.get(key)
         if step is None:
-            step = HeldInputDiscretization(self.model.immersion, key)
-            if len(self._steps) < 256:
+            step = HeldInputDiscretization(self.model.immersion, key if key > 0.0 else h)
+            if key > 0.0 and len(self._steps) < 256:
                 self._steps[key] = step
         return step
 
@@ -258,6 +260,20 @@ class TdoaHandover(Estimator):
     @property
     def x_covariance(self) -> np.ndarray | None:
         return self.active.x_covariance
+
+    @property
+    def measurement_models(self) -> dict:
+        """The observer's (TDOA)."""
+        return self.observer.measurement_models
+
+    @property
+    def nis(self) -> float:
+        """The normalised innovation squared of the active estimator's last correction."""
+        return float(getattr(self.active, "nis", math.nan))
+
+    @nis.setter
+    def nis(self, value: float) -> None:  # the active estimator's
+        pass
 
     def _ready(self) -> bool:
         obs = self.observer

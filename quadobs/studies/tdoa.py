@@ -2,8 +2,8 @@
 
 ``python -m quadobs.studies.tdoa --out DIR [--seeds N] [--duration S] [--offset M]`` flies the
 reference flight of ``quadrotor-tdoa`` (:func:`quadobs.testbed.tdoa.fly_reference`) once per
-seed, measures TDOA (TDoA3-like, ``[tdoa]``) and two-way ranges (``[noise]``: every anchor each
-``1 / range_rate`` s) on it, runs the estimators from a guess ``offset`` metres off along
+seed, measures TDOA (TDoA3-like, the radio's ``std`` and ``rate``) and two-way ranges
+(``[noise]``: every anchor each ``1 / range_rate`` s) on it, runs the estimators from a guess ``offset`` metres off along
 ``x`` and writes ``DIR/tdoa-study.json`` (per estimator: the position RMSE after ``settle`` s,
 the time the position error last crosses 0.5 m, how many seeds are below 0.5 m at 3 s) and
 ``DIR/tdoa-dop.png`` (the DOP maps of :mod:`quadobs.evaluation.dop`).
@@ -25,11 +25,9 @@ from typing import cast
 
 import numpy as np
 
-from quadobs.core.measurements import TdoaModel
 from quadobs.errors import QuadobsError
 from quadobs.estimators.base import Estimator
-from quadobs.estimators.kalman import ExtendedKalmanFilter
-from quadobs.estimators.tdoa_observer import TdoaHandover, TdoaObserver
+from quadobs.estimators.tdoa_observer import TdoaHandover
 from quadobs.evaluation.convergence import convergence_times
 from quadobs.evaluation.dop import pdop, range_information, tdoa_information
 from quadobs.testbed.factories import baseline_settings, extended_kalman_filter, refined_observer
@@ -41,6 +39,9 @@ from quadobs.testbed.tdoa import (
     fly_world,
     ordered_pairs,
     reference_run,
+    tdoa_ekf,
+    tdoa_handover,
+    tdoa_observer,
 )
 
 __all__ = [
@@ -57,49 +58,19 @@ __all__ = [
 CONVERGED = 0.5
 
 
-def tdoa_ekf(scenario: Scenario, x0: np.ndarray, P0: np.ndarray, time: float = 0.0):
-    """The scenario's EKF (:func:`~quadobs.testbed.factories.baseline_settings`) correcting with
-    TDOA through :class:`~quadobs.core.measurements.TdoaModel`, started at ``x0, P0``."""
-    s = baseline_settings(scenario)
-    if scenario.tdoa is None:
-        raise QuadobsError(f"scenario {scenario.name!r}: has no [tdoa] table")
-    model = TdoaModel(scenario.beacons, scenario.tdoa.std)
-    ekf = ExtendedKalmanFilter(s.dynamics, s.outputs, x0=x0, P0=P0, measurements=[model])
-    ekf.time = time
-    return ekf
-
-
 def tdoa_estimators(scenario: Scenario, x0: np.ndarray, spread: float) -> dict:
     """The TDOA estimators of the study, started at ``x0`` with a position prior of standard
     deviation ``spread`` per axis (at least the scenario's), each taking pairs as outputs."""
     dim = scenario.dimension
-    s = baseline_settings(scenario)
-    P0 = np.array(s.P0, dtype=float)
+    P0 = np.array(baseline_settings(scenario).P0, dtype=float)
     if scenario.tdoa is None:
-        raise QuadobsError(f"scenario {scenario.name!r}: has no [tdoa] table")
+        raise QuadobsError(f'scenario {scenario.name!r}: has no [radio] with protocol = "tdoa"')
     std = float(scenario.tdoa.std)
     pairs = ordered_pairs(scenario.beacons.shape[0])
     P0[:dim, :dim] = np.eye(dim) * max(spread**2, P0[0, 0])
-    # input_covariance is an array once the model is built
-    psd = float(cast(np.ndarray, s.dynamics.input_covariance)[0, 0]) * scenario.dt
-
-    def observer() -> TdoaObserver:
-        return TdoaObserver(
-            scenario.beacons,
-            scenario.dt,
-            x0,
-            P0=P0,
-            std=std,
-            accel_psd=psd,
-            pairs=pairs,
-        )
-
-    def filter_from(x, P, t):
-        return tdoa_ekf(scenario, x, P, t)
-
     return {
-        "tdoa-observer": observer(),
-        "tdoa-handover": TdoaHandover(observer(), filter_from),
+        "tdoa-observer": tdoa_observer(scenario, x0, P0),
+        "tdoa-handover": tdoa_handover(scenario, x0, P0),
         "tdoa-ekf": PairsInTime(tdoa_ekf(scenario, x0, P0), pairs, scenario.dt, std),
     }
 

@@ -288,6 +288,8 @@ def scenario_parts(scenario: Scenario, names: list[str], world=None) -> dict:
     sensors = SensorModel(scenario, streams)
     if world is None and scenario.kind == "quadrotor":  # the quadrotor flown by its controller
         from quadobs.testbed.worlds.quadrotor import QuadrotorWorld as world
+    if world is None and scenario.radio is not None:  # the point mass measuring with its radio
+        from quadobs.testbed.worlds.radio_feed import RadioPointMassWorld as world
     w = (world or PointMassWorld)(scenario, sensors, _BLOCK)
     check = physics_check(w, scenario)  # MuJoCo's warnings, after every block
     x0 = initial_guess(scenario, w.state(), streams["initial"])

@@ -64,6 +64,8 @@ _BUILTIN = {
     "ekf-bias": "quadobs.testbed.factories:build_ekf_bias",
     "ukf-bias": "quadobs.testbed.factories:build_ukf_bias",
     "augmented-bias": "quadobs.testbed.factories:build_augmented_bias",
+    "tdoa-observer": "quadobs.testbed.tdoa:build_tdoa_observer",
+    "tdoa-handover": "quadobs.testbed.tdoa:build_tdoa_handover",
 }
 _RUNTIME: dict[str, Factory] = {}
 _REGISTRY = (
@@ -121,8 +123,16 @@ def available_estimators(scenario: Scenario | None = None) -> list[str]:
 
 
 def default_estimators(scenario: Scenario) -> list[str]:
-    """The augmented observer and the scenario's variants of it."""
+    """The augmented observer and the scenario's variants of it; for a scenario whose radio
+    sends TDOA (:data:`TDOA_ESTIMATORS`), the estimators that take TDOA."""
+    if scenario.tdoa is not None:
+        return list(TDOA_ESTIMATORS)
     return ["augmented"] + [n for n, _ in scenario.observer.variants]
+
+
+#: The default estimators of a scenario whose radio sends TDOA: the TDOA observer handing over
+#: to the EKF, the observer alone, the EKF and the UKF (the range observers take no TDOA).
+TDOA_ESTIMATORS = ("tdoa-handover", "tdoa-observer", "ekf", "ukf")
 
 
 def _load(name: str, value: str) -> Factory:

@@ -596,9 +596,9 @@ class RadioSpec(_Table):
 
 
 class TdoaSpec(_Table):
-    """Time differences of arrival (``[tdoa]``): one packet every ``1 / rate`` s from an anchor
-    other than the previous one, TDOA ``d_ij = |p - a_i| - |p - a_j| + noise`` of the pair formed
-    with it (:mod:`quadobs.testbed.tdoa`)."""
+    """The former ``[tdoa]`` table (deprecated): read as ``[radio]`` with ``protocol = "tdoa"``
+    and these ``std`` and ``rate`` (:meth:`Scenario._tdoa_table_into_radio`), the one description
+    of TDOA (:mod:`quadobs.testbed.uwb`)."""
 
     std: Noise = Field(0.1, description="Standard deviation of a TDOA (m).")
     rate: Rate = Field(100.0, description="Packets per second (Hz), dividing the physics rate.")
@@ -684,10 +684,7 @@ class Scenario(_Table):
     )
     radio: RadioSpec | None = Field(
         None,
-        description='A simulated UWB radio feeding each measurement at its own time (`kind = "quadrotor"` only).',
-    )
-    tdoa: TdoaSpec | None = Field(
-        None, description="TDOA measurements between anchor pairs (`[tdoa]`, TDoA3-like)."
+        description='A simulated UWB radio feeding each range or TDOA at its own time (a tag in 3-D, without wind); `protocol = "tdoa"` is the scenario\'s TDOA (the former `[tdoa]` table, deprecated).',
     )
 
     _beacons: np.ndarray = PrivateAttr()
@@ -749,16 +746,52 @@ class Scenario(_Table):
             )
         out.sample_interval(self.noise.range_rate, "range_rate")
         out.sample_interval(self.noise.airspeed_rate, "airspeed_rate")
-        if self.tdoa is not None:
-            out.sample_interval(self.tdoa.rate, "rate", table="tdoa")
         self.excitation.grid(out.dt)
         return out
+
+    @model_validator(mode="before")
+    @classmethod
+    def _tdoa_table_into_radio(cls, data: Any) -> Any:
+        """The deprecated ``[tdoa]`` table (``std``, ``rate``) read as ``[radio]`` with
+        ``protocol = "tdoa"``: its keys take the place of the radio's (so that ``--set
+        tdoa.std=...`` still works), with a :class:`DeprecationWarning`."""
+        if not isinstance(data, dict) or data.get("tdoa") is None:
+            return data
+        import warnings
+
+        data = dict(data)
+        table = data.pop("tdoa")
+        try:
+            spec = TdoaSpec.model_validate(table)
+        except ValidationError as exc:
+            raise QuadobsError(f"tdoa.{_first_error(exc)}") from None
+        radio = dict(data.get("radio") or {})
+        if radio.get("protocol", "tdoa") != "tdoa":
+            raise QuadobsError(
+                'tdoa: deprecated, and [radio] protocol is not "tdoa" (use [radio] alone)'
+            )
+        radio.update(protocol="tdoa", **spec.model_dump(exclude_unset=True))
+        data["radio"] = radio
+        warnings.warn(
+            'scenario: the [tdoa] table is deprecated; write [radio] with protocol = "tdoa"',
+            DeprecationWarning,
+            stacklevel=2,
+        )
+        return data
+
+    @property
+    def tdoa(self) -> RadioSpec | None:
+        """The radio when it sends TDOA (``[radio]`` with ``protocol = "tdoa"``), else ``None``."""
+        radio = self.radio
+        return radio if radio is not None and radio.protocol == "tdoa" else None
 
     @model_validator(mode="after")
     def _quadrotor_tables(self) -> Scenario:
         """``[control]`` and ``[quadrotor]`` belong to quadrotor scenarios, which move in 3-D."""
         if self.kind != "quadrotor":
-            for table in ("control", "quadrotor", "radio"):
+            if self.radio is not None and (self.dimension != 3 or self.wind_spec is not None):
+                raise QuadobsError("radio: the radio's tag moves in 3-D, without wind")
+            for table in ("control", "quadrotor"):
                 if getattr(self, table) is not None:
                     raise QuadobsError(
                         f'{table}: only used with kind = "quadrotor", not {self.kind!r}'

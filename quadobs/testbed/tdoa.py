@@ -15,8 +15,9 @@ is the TDOA of ``pairs[h]`` at a step where it was measured, NaN elsewhere, so a
 
 :func:`reference_run` flies the scenario's reference trajectory (the point-mass world's
 motion, sampled exactly), measures the acceleration with the scenario's accelerometer noise
-and runs estimators on the TDOA of the ``[tdoa]`` table. Random draws come from streams spawned
-from the seed, one for the schedule and one per noise.
+and runs estimators on TDOA with the radio's ``std`` and ``rate`` (``[radio]`` with
+``protocol = "tdoa"``). Random draws come from streams spawned from the seed, one for the
+schedule and one per noise.
 """
 
 from __future__ import annotations
@@ -25,7 +26,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from quadobs.core.measurements import Measurement
+from quadobs.core.measurements import Measurement, TdoaModel
 from quadobs.errors import QuadobsError
 from quadobs.estimators.base import Estimator
 from quadobs.testbed.scenario import Scenario
@@ -34,12 +35,17 @@ __all__ = [
     "PairsInTime",
     "TdoaFlight",
     "WorldTdoaFlight",
+    "build_tdoa_handover",
+    "build_tdoa_observer",
     "fly_reference",
     "fly_world",
     "measurements",
     "ordered_pairs",
     "reference_run",
     "tdoa3_sequence",
+    "tdoa_ekf",
+    "tdoa_handover",
+    "tdoa_observer",
     "tdoa_outputs",
 ]
 
@@ -149,7 +155,7 @@ def _accel_std(scenario: Scenario) -> float:
 
 
 def fly_reference(scenario: Scenario, seed: int | None = None) -> TdoaFlight:
-    """Sample the scenario's reference motion on the physics grid and its TDOA (``[tdoa]``).
+    """Sample the scenario's reference motion on the physics grid and its TDOA (``[radio]`` with ``protocol = "tdoa"``).
 
     The acceleration is held over each step at its value at the step's midpoint, and the
     truth integrated exactly with it, so the truth is the flight the estimators' model
@@ -157,7 +163,7 @@ def fly_reference(scenario: Scenario, seed: int | None = None) -> TdoaFlight:
     """
     spec = scenario.tdoa
     if spec is None:
-        raise QuadobsError(f"scenario {scenario.name!r}: has no [tdoa] table")
+        raise QuadobsError(f'scenario {scenario.name!r}: has no [radio] with protocol = "tdoa"')
     if scenario.has_wind:
         raise QuadobsError(f"scenario {scenario.name!r}: TDOA runs take no wind")
     seed = scenario.seed if seed is None else int(seed)
@@ -174,7 +180,7 @@ def fly_reference(scenario: Scenario, seed: int | None = None) -> TdoaFlight:
         x[k + 1, :dim] = p + dt * v + 0.5 * dt * dt * a
         x[k + 1, dim:] = v + dt * a
     inputs = accel + _accel_std(scenario) * rng_accel.standard_normal(accel.shape)
-    interval = scenario.sample_interval(spec.rate, "rate", "tdoa")
+    interval = scenario.sample_interval(spec.rate, "rate", "radio")
     Y = tdoa_outputs(x[:T, :dim], scenario.beacons, interval, spec.std, rng_order, rng_noise)
     pairs = ordered_pairs(scenario.beacons.shape[0])
     return TdoaFlight(t, x, inputs, Y, pairs, float(spec.std))
@@ -267,7 +273,9 @@ def fly_world(
     """
     spec = scenario.tdoa
     if spec is None or scenario.has_wind:
-        raise QuadobsError(f"scenario {scenario.name!r}: needs a [tdoa] table and no wind")
+        raise QuadobsError(
+            f'scenario {scenario.name!r}: needs a [radio] with protocol = "tdoa", and no wind'
+        )
     seed = scenario.seed if seed is None else int(seed)
     scenario = scenario.with_overrides(seed=seed)
     if scenario.kind == "quadrotor":
@@ -283,7 +291,7 @@ def fly_world(
     rng_order, rng_noise = (
         np.random.default_rng(s) for s in np.random.SeedSequence([seed, 27]).spawn(2)
     )
-    interval = scenario.sample_interval(spec.rate, "rate", "tdoa")
+    interval = scenario.sample_interval(spec.rate, "rate", "radio")
     packets = np.arange(0, T, interval)
     seq = tdoa3_sequence(rng_order, a.shape[0], packets.size)
     noise = spec.std * rng_noise.standard_normal(packets.size)
@@ -320,3 +328,81 @@ def fly_world(
     crashed = None if crashed_at is None else crashed_at * scenario.dt
     flight = WorldTdoaFlight(np.arange(T + 1) * scenario.dt, truth, est, flown_on, crashed)
     return flight, estimators
+
+
+# -- the TDOA estimators of a scenario ([radio] protocol = "tdoa") -----------------------------
+
+
+def _radio_tdoa(scenario: Scenario, name: str):
+    spec = scenario.tdoa
+    if spec is None:
+        raise QuadobsError(
+            f"estimators: {name!r} takes TDOA, and scenario {scenario.name!r} has no [radio] "
+            'with protocol = "tdoa"'
+        )
+    return spec
+
+
+def tdoa_ekf(scenario: Scenario, x0: np.ndarray, P0: np.ndarray, time: float = 0.0):
+    """The scenario's EKF (:func:`~quadobs.testbed.factories.baseline_settings`) correcting with
+    TDOA through :class:`~quadobs.core.measurements.TdoaModel`, started at ``x0, P0`` at ``time``."""
+    from quadobs.estimators.kalman import ExtendedKalmanFilter
+    from quadobs.testbed.factories import baseline_settings
+
+    spec = _radio_tdoa(scenario, "tdoa-ekf")
+    s = baseline_settings(scenario)
+    model = TdoaModel(scenario.beacons, spec.std)
+    ekf = ExtendedKalmanFilter(s.dynamics, s.outputs, x0=x0, P0=P0, measurements=[model])
+    ekf.time = time
+    return ekf
+
+
+def tdoa_observer(scenario: Scenario, x0: np.ndarray, P0: np.ndarray):
+    """The TDOA observer (:class:`~quadobs.estimators.tdoa_observer.TdoaObserver`) of the
+    scenario, started at ``x0`` with covariance ``P0``: the radio's ``std``, the baseline's
+    input noise as the acceleration white noise (``sigma_u^2 dt``), pairs as outputs
+    (:func:`ordered_pairs`) for a run on the grid."""
+    from quadobs.estimators.tdoa_observer import TdoaObserver
+    from quadobs.testbed.factories import baseline_settings
+
+    spec = _radio_tdoa(scenario, "tdoa-observer")
+    s = baseline_settings(scenario)
+    Q = np.asarray(s.dynamics.input_covariance, dtype=float)  # an array once the model is built
+    return TdoaObserver(
+        scenario.beacons,
+        scenario.dt,
+        x0,
+        P0=P0,
+        std=float(spec.std),
+        accel_psd=float(Q[0, 0]) * scenario.dt,
+        pairs=ordered_pairs(scenario.beacons.shape[0]),
+    )
+
+
+def tdoa_handover(scenario: Scenario, x0: np.ndarray, P0: np.ndarray):
+    """The TDOA observer handing over to :func:`tdoa_ekf`
+    (:class:`~quadobs.estimators.tdoa_observer.TdoaHandover`)."""
+    from quadobs.estimators.tdoa_observer import TdoaHandover
+
+    def filter_from(x, P, t):
+        return tdoa_ekf(scenario, x, P, t)
+
+    return TdoaHandover(tdoa_observer(scenario, x0, P0), filter_from)
+
+
+def _baseline_P0(scenario: Scenario) -> np.ndarray:
+    from quadobs.testbed.factories import baseline_settings
+
+    return np.array(baseline_settings(scenario).P0, dtype=float)
+
+
+def build_tdoa_observer(scenario: Scenario, x0: np.ndarray, name: str = "tdoa-observer"):
+    """Entry point ``tdoa-observer``: :func:`tdoa_observer` with the baseline's ``P0``."""
+    _radio_tdoa(scenario, name)
+    return tdoa_observer(scenario, x0, _baseline_P0(scenario))
+
+
+def build_tdoa_handover(scenario: Scenario, x0: np.ndarray, name: str = "tdoa-handover"):
+    """Entry point ``tdoa-handover``: :func:`tdoa_handover` with the baseline's ``P0``."""
+    _radio_tdoa(scenario, name)
+    return tdoa_handover(scenario, x0, _baseline_P0(scenario))

@@ -34,5 +34,5 @@ def test_bad_input_is_one_line_with_status_2(tmp_path, capsys, monkeypatch):
     monkeypatch.setattr("sys.argv", ["x", "--out", str(tmp_path), "--scenario", "quadrotor-uwb"])
     assert tdoa._main() == 2
     err = capsys.readouterr().err
-    assert err.count("\n") == 1 and "[tdoa]" in err
+    assert err.count("\n") == 1 and '[radio] with protocol = "tdoa"' in err
     assert not (tmp_path / "tdoa-study.json").exists()

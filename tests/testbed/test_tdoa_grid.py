@@ -52,10 +52,23 @@ def test_reference_flight_is_seeded_and_consistent():
 
 
 def test_scenario_without_tdoa_is_refused():
-    with pytest.raises(QuadobsError, match=r"\[tdoa\]"):
+    with pytest.raises(QuadobsError, match='protocol = "tdoa"'):
         fly_reference(load_scenario("quadrotor-uwb"))
-    with pytest.raises(QuadobsError, match="tdoa.rate"):
-        load_scenario("tdoa-room", settings=["tdoa.rate=300.0"])
+    with pytest.raises(QuadobsError, match="radio.rate"):  # the grid needs a whole interval
+        fly_reference(load_scenario("tdoa-room", settings=["radio.rate=300.0"]))
+
+
+def test_the_former_tdoa_table_is_read_as_the_radio_with_a_warning():
+    with pytest.warns(DeprecationWarning, match=r"\[tdoa\] table is deprecated"):
+        sc = load_scenario("tdoa-room", settings=["tdoa.std=0.2", "tdoa.rate=50.0"])
+    assert sc.radio.protocol == "tdoa" and sc.tdoa.std == 0.2 and sc.tdoa.rate == 50.0
+    assert "tdoa" not in sc.to_dict() and sc == load_scenario(sc.to_dict()["name"]).with_settings(
+        {"radio.std": 0.2, "radio.rate": 50.0}
+    )
+    with pytest.raises(QuadobsError, match="tdoa: deprecated"):
+        load_scenario("quadrotor-uwb-realistic", settings=["tdoa.std=0.2"])
+    with pytest.raises(QuadobsError, match="tdoa.std"):
+        load_scenario("tdoa-room", settings=["tdoa.std=-1"])
 
 
 def test_quadrotor_flies_on_a_tdoa_estimate_seeded():

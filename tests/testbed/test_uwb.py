@@ -155,11 +155,13 @@ def test_realistic_quadrotor_feeds_each_range_at_its_own_time():
     assert ekf["time_to_1m"] < 2.0 and ekf["final_position_error"] < 0.5
 
 
-def test_radio_table_belongs_to_quadrotors():
+def test_radio_table_needs_a_tag_in_space_without_wind():
     from quadobs.testbed.scenario import load_scenario
 
-    with pytest.raises(QuadobsError, match="radio"):
-        load_scenario("ifac2021", settings=["radio.rate=50"])
+    for name in ("beacons2d", "wind"):
+        with pytest.raises(QuadobsError, match="radio"):
+            load_scenario(name, settings=["radio.rate=50"])
+    assert load_scenario("ifac2021", settings=["radio.rate=50"]).radio.rate == 50.0
 
 
 def test_tdoa_radio_is_refused_by_name_by_an_estimator_without_a_tdoa_model():

@@ -408,6 +408,20 @@ def build_isam2(s, x0: np.ndarray, name: str = "isam2") -> Estimator:
     return build_peer(s, x0, name)
 
 
+def build_tdoa_observer(s: ReplaySetup, x0: np.ndarray, name: str = "tdoa-observer") -> Estimator:
+    """Entry point ``tdoa-observer`` (:mod:`quadobs.testbed.logs.tdoa_estimators`)."""
+    from quadobs.testbed.logs import tdoa_estimators
+
+    return tdoa_estimators.build_tdoa_observer(s, x0, name)
+
+
+def build_tdoa_handover(s: ReplaySetup, x0: np.ndarray, name: str = "tdoa-handover") -> Estimator:
+    """Entry point ``tdoa-handover`` (:mod:`quadobs.testbed.logs.tdoa_estimators`)."""
+    from quadobs.testbed.logs import tdoa_estimators
+
+    return tdoa_estimators.build_tdoa_handover(s, x0, name)
+
+
 #: The gyroscope's white noise (rad^2/s) of :func:`build_onboard_ekf`, its floor (:func:`gyro_noise`):
 #: the Crazyflie firmware's Kalman filter states its gyro noise as 0.1 rad/s per axis over its
 #: 10 ms prediction step, an intensity of ``0.1^2 * 0.01 = 1e-4`` rad^2/s (a few times a
@@ -588,6 +602,8 @@ REPLAY_ESTIMATORS = {
     "ukf-heading": build_ukf_heading,
     "augmented-heading": build_augmented_heading,
     "onboard-ekf-bias": build_onboard_ekf_bias,
+    "tdoa-observer": build_tdoa_observer,
+    "tdoa-handover": build_tdoa_handover,
 }
 
 

@@ -12,7 +12,10 @@
   held over ``[t_k, t_(k+1))``, in the navigation frame (``time,ax,ay[,az]``); a last row
   at ``t_K`` (zero) closes the last step, as the format's inputs are held to the next row;
 * ``truth.csv``: the true position and velocity ``x_k`` (``time,x,y[,z],vx,vy[,vz]``);
-* ``beacons.csv``: the scenario's beacons, ids ``0 .. q - 1``.
+* ``beacons.csv``: the scenario's beacons, ids ``0 .. q - 1``;
+* with a ``[radio]`` table, the radio's measurements at their own times with its stated
+  ``std`` instead of the grid's ranges: ranges in ``ranges.csv``, TDOA in ``tdoa.csv``
+  (:func:`radio_rows`).
 
 Replayed at ``dt`` equal to the physics step (``quadobs replay DIR --dt DT --model imu``)
 the log gives the estimators the same outputs and, to rounding, the same inputs as the
@@ -44,6 +47,7 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -88,6 +92,19 @@ def stated_range_std(world) -> float:
     noise = world.scenario.noise
     std = float(noise.range_std) or float(noise.range_bound or 0.0) / math.sqrt(3.0)
     return std if std > 0 else math.nan
+
+
+def radio_rows(events, grid_ranges: np.ndarray, grid_std: float) -> tuple[np.ndarray, np.ndarray]:
+    """The rows of ``ranges.csv`` ``(time, anchor, range, std)`` and ``tdoa.csv`` ``(time,
+    anchor_i, anchor_j, difference, std)``: the radio's measurements (``events``) with their
+    stated standard deviation, and the grid's ranges ``(time, anchor, range)`` with ``grid_std``,
+    in time order."""
+    radio = [(m.t, m.anchors[0], m.value, m.std) for m in events if m.kind == "range"]
+    tdoa = [(m.t, *m.anchors, m.value, m.std) for m in events if m.kind == "tdoa"]
+    grid = np.column_stack([grid_ranges, np.full(grid_ranges.shape[0], grid_std)])
+    ranges = np.vstack([grid, np.asarray(radio, dtype=float).reshape(-1, 4)])
+    ranges = ranges.reshape(-1, 4)[np.argsort(ranges[:, 0], kind="stable")]
+    return ranges, np.asarray(tdoa, dtype=float).reshape(-1, 5)
 
 
 class QuadrotorLogTap:
@@ -137,6 +154,7 @@ class LogExportSink(Sink):
             "attitude": [],
         }
         self.tap: QuadrotorLogTap | None = None
+        self.radio_events: list = []
 
     def begin(self, ctx: EpisodeContext) -> None:
         super().begin(ctx)
@@ -148,6 +166,8 @@ class LogExportSink(Sink):
         world = ctx.world
         if world is not None and hasattr(world, "log_tap"):  # a quadrotor: its body IMU
             self.tap = world.log_tap = QuadrotorLogTap(world)
+        elif getattr(world, "radio", None) is not None:  # a point mass's radio: its events
+            self.radio_events = world.event_log = []
 
     def block(self, rows: Rows) -> None:
         fr, c = self.ctx.frame, rows.block.columns
@@ -196,6 +216,11 @@ class LogExportSink(Sink):
         dim = fr.dimension
         inputs = np.vstack(self.parts["inputs"] + [np.r_[completed * fr.dt, np.zeros(dim)][None]])
         axes = "xyz"[:dim]
+        extra: dict[str, Any] = {}
+        if self.radio_events:  # the radio's ranges or TDOA at their own times, with their std
+            ranges, tdoa = radio_rows(self.radio_events, ranges, math.nan)
+            extra = {"range_std": ranges[:, 3], "tdoa": tdoa[:, :4], "tdoa_std": tdoa[:, 4]}
+            ranges = ranges[:, :3]
         return RangeLog(
             fr.name,
             np.arange(fr.beacons.shape[0]),
@@ -206,6 +231,7 @@ class LogExportSink(Sink):
             np.vstack(self.parts["truth"]),
             input_kind="imu",
             truth_columns=("time", *axes, *(f"v{a}" for a in axes)),
+            **extra,
         )
 
     def _quadrotor_log(self, completed: int, grid_ranges: np.ndarray) -> RangeLog:
@@ -214,15 +240,7 @@ class LogExportSink(Sink):
         fr, world = self.ctx.frame, self.tap.world
         imu = np.vstack(self.parts["inputs"])
         inputs = np.vstack([imu, np.r_[completed * fr.dt, imu[-1, 1:]][None]])
-        events = self.tap.events
-        radio = [(m.t, m.anchors[0], m.value, m.std) for m in events if m.kind == "range"]
-        tdoa = [(m.t, *m.anchors, m.value, m.std) for m in events if m.kind == "tdoa"]
-        grid = np.column_stack(
-            [grid_ranges, np.full(grid_ranges.shape[0], stated_range_std(world))]
-        )
-        ranges = np.vstack([grid, np.asarray(radio, dtype=float).reshape(-1, 4)])
-        ranges = ranges.reshape(-1, 4)[np.argsort(ranges[:, 0], kind="stable")]
-        tdoa_rows = np.asarray(tdoa, dtype=float).reshape(-1, 5)
+        ranges, tdoa_rows = radio_rows(self.tap.events, grid_ranges, stated_range_std(world))
         return RangeLog(
             fr.name,
             np.arange(fr.beacons.shape[0]),

@@ -52,13 +52,15 @@ DEFAULT_ESTIMATORS = ("augmented", "ekf")
 
 
 def default_estimators(log, model: str | None = None) -> list[str]:
-    """:data:`DEFAULT_ESTIMATORS`, with the UKF in place of the augmented observer for a log
-    holding TDOA (which the observer cannot take), and the heading filter ``ukf-heading`` beside
-    them for a log of wheel odometry replayed with the model ``odometry`` (``model`` ``None``: the
-    log's default) (whose dead-reckoned heading drifts with the yaw rate's
-    bias, which the other two take as known)."""
+    """:data:`DEFAULT_ESTIMATORS`; for a log holding TDOA (which the range observer cannot
+    take): where its input is an acceleration, the TDOA observer handing over to the EKF and
+    the observer alone; then the EKF and the UKF. For a log of wheel odometry replayed with the
+    model ``odometry`` (``model`` ``None``: the log's default), the heading filter
+    ``ukf-heading`` beside them: the dead-reckoned heading drifts with the yaw rate's bias,
+    which the other two take as known."""
     if log.tdoa.shape[0]:
-        return ["ekf", "ukf"]
+        tdoa = ["tdoa-handover", "tdoa-observer"] if log.input_kind in ("imu", "imu_body") else []
+        return tdoa + ["ekf", "ukf"]
     if log.input_kind == "odometry" and model in (None, "odometry"):
         return [*DEFAULT_ESTIMATORS, "ukf-heading"]
     return list(DEFAULT_ESTIMATORS)

@@ -44,6 +44,7 @@ from quadobs.testbed.imu import ImuModel
 from quadobs.testbed.rotors import IDENTIFIED, RotorModel
 from quadobs.testbed.scenario import ControlSpec, QuadrotorSpec
 from quadobs.testbed.worlds.base import Columns, World
+from quadobs.testbed.worlds.radio_feed import RadioFeed
 
 __all__ = ["FLIGHT_COLUMNS", "QuadrotorWorld", "quadrotor_model_path"]
 
@@ -107,7 +108,7 @@ def _columns(q: int, q_b: int) -> tuple[Columns, dict]:
     return cols, spans
 
 
-class QuadrotorWorld(World):
+class QuadrotorWorld(RadioFeed, World):
     """A ``quadrotor`` scenario's vehicle, controller, IMU and UWB (see the module docstring).
 
     Parameters
@@ -398,54 +399,10 @@ class QuadrotorWorld(World):
     def commit(self, rows: int) -> None:
         """The sensor events were counted step by step (:meth:`step`)."""
 
-    # -- the UWB radio's measurement feed (:mod:`quadobs.testbed.uwb`) ----------------------
-
-    def _radio_setup(self, scenario) -> None:
-        """With a ``[radio]`` table, the ranges come from the simulated radio at their own times
-        (and the grid outputs ``y`` stay NaN); without one nothing changes."""
-        from quadobs.testbed.uwb import radio_of
-
-        self.radio = radio_of(scenario)
-        self.step_events: list = []
-        self.step_end = 0.0
+    # -- the UWB radio's measurement feed (:mod:`quadobs.testbed.worlds.radio_feed`) -----------
 
     def _radio_step(self, k: int, row: np.ndarray) -> None:
         """The radio's measurements of ``[t_k, t_k+1)``, from the tag's position and velocity at ``t_k``."""
-        assert self.radio is not None, "called with a radio only"
-        t = k * self.dt
-        self.step_end = (k + 1) * self.dt
-        self.step_events = self.radio.take(t, self.step_end, self._p, self._v)
+        self._radio_take(k, self._p, self._v)
         row[self.columns.y] = np.nan
         row[self.columns.measured] = np.nan
-
-    def recorder(self, est):
-        """What the episode calls for ``est`` each step: :meth:`Estimator.step_and_record`, or,
-        with a radio, the interface in time: hold ``u_k``, then for each measurement of the step
-        ``predict(m.t)`` and ``correct(m)``, then ``predict(t_k+1)``; the record row as
-        :meth:`~quadobs.estimators.base.Estimator.step_and_record` writes it."""
-        if self.radio is None:
-            return est.step_and_record
-        from quadobs.estimators.base import Gated
-
-        kind = "tdoa" if self.radio.config.protocol == "tdoa" else "range"
-        models = getattr(est, "measurement_models", None)
-        if kind not in (models if models is not None else ("range",)):
-            raise QuadobsError(
-                f"radio.protocol: estimator {est.name!r} takes no {kind} measurements "
-                f"(protocol {self.radio.config.protocol!r})"
-            )
-        gated = isinstance(est, Gated)
-
-        def record(u: np.ndarray, y: np.ndarray, out: np.ndarray) -> None:
-            n = out.shape[0] - 3
-            out[:n] = est.x_hat
-            out[n] = est.covariance_trace
-            est.hold(u)
-            for m in self.step_events:
-                est.predict(m.t)
-                est.correct(m)
-            est.predict(self.step_end)
-            out[n + 1] = est.nis
-            out[n + 2] = est.rejected if gated else np.nan
-
-        return record
