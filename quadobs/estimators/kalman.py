@@ -508,6 +508,26 @@ class _GaussianFilter(Estimator, Gated):
             return None
         return (S, R) if R_w is R else (S + (R_w - R), R_w)
 
+    def _gain(self, nu: np.ndarray, S: np.ndarray, R: np.ndarray, cross: np.ndarray):
+        """The gain of a correction with innovation ``nu``, its covariance ``S``, the outputs' ``R``
+        and the state-output cross-covariance ``cross`` (``P H^T``, ``P_xz``).
+
+        The robust rule re-weights ``(S, R)`` (:meth:`_robust`) and the gate judges the NIS
+        (:meth:`_accept`); when both let the correction through, ``K = cross S^-1`` and the mean
+        moves, ``x += K nu``. Returns ``(K, S, R)`` (``S``, ``R`` re-weighted) for the covariance's
+        update, or ``None`` when the correction is refused.
+        """
+        robust = self._robust(nu, S, R)
+        if robust is None:
+            return None
+        S, R = robust
+        ok, _ = self._accept(nu, S)
+        if not ok:
+            return None
+        K = np.linalg.solve(S, cross.T).T
+        self._x = self._x + K @ nu
+        return K, S, R
+
     def _watch(self, accepted: bool, nu: np.ndarray) -> None:
         """Lock-out: re-initialise the covariance, or give the filter up (see :mod:`~quadobs.estimators.robust`)."""
         lock, t = self.lockout, self._time
@@ -561,18 +581,12 @@ class ExtendedKalmanFilter(_GaussianFilter):
         self._joseph(np.array([model.unbiased(m) - model.h(self._x[:d], m)]), H, R)
 
     def _joseph(self, nu: np.ndarray, H: np.ndarray, R: np.ndarray) -> None:
-        x, P = self._x, self._P
+        P = self._P
         PHt = P @ H.T
-        S = H @ PHt + R
-        robust = self._robust(nu, S, R)
-        if robust is None:
+        gain = self._gain(nu, H @ PHt + R, R, PHt)
+        if gain is None:
             return
-        S, R = robust
-        ok, _ = self._accept(nu, S)
-        if not ok:
-            return
-        K = np.linalg.solve(S, PHt.T).T
-        self._x = x + K @ nu
+        K, _, R = gain
         IKH = np.eye(self.n) - K @ H
         P = IKH @ P @ IKH.T + K @ R @ K.T
         self._P = 0.5 * (P + P.T)
@@ -672,15 +686,9 @@ class UnscentedKalmanFilter(_GaussianFilter):
         dX = X - x
         S = (dZ.T * self._wc) @ dZ + R
         Pxz = (dX.T * self._wc) @ dZ
-        nu = z - z_pred
-        robust = self._robust(nu, S, R)
-        if robust is None:
+        gain = self._gain(z - z_pred, S, R, Pxz)
+        if gain is None:
             return
-        S, R = robust
-        ok, _ = self._accept(nu, S)
-        if not ok:
-            return
-        K = np.linalg.solve(S, Pxz.T).T
-        self._x = x + K @ nu
+        K, S, _ = gain
         P = P - K @ S @ K.T
         self._P = 0.5 * (P + P.T)
