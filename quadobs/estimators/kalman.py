@@ -597,11 +597,14 @@ class UnscentedKalmanFilter(_GaussianFilter):
 
     Parameters
     ----------
-    dynamics, outputs, x0, P0, gate
+    dynamics, outputs
         As for :class:`ExtendedKalmanFilter`.
     alpha, beta, kappa : float
         Scaled unscented transform parameters (see the module docstring); defaults
         ``1, 2, 0``.
+    **kwargs
+        The keywords of :class:`ExtendedKalmanFilter` (``x0``, ``P0``, ``gate``, ``robust``,
+        ``lockout``, ``measurements``), with their meanings.
 
     Notes
     -----
@@ -619,26 +622,12 @@ class UnscentedKalmanFilter(_GaussianFilter):
         dynamics: HeldInputModel,
         outputs: OutputModel,
         *,
-        x0,
-        P0,
-        gate: float | None = None,
         alpha: float = 1.0,
         beta: float = 2.0,
         kappa: float = 0.0,
-        robust=None,
-        lockout: LockOut | None = None,
-        measurements=None,
+        **kwargs,
     ) -> None:
-        super().__init__(
-            dynamics,
-            outputs,
-            x0=x0,
-            P0=P0,
-            gate=gate,
-            measurements=measurements,
-            robust=robust,
-            lockout=lockout,
-        )
+        super().__init__(dynamics, outputs, **kwargs)
         n = self.n
         self.alpha = as_finite_scalar("alpha", alpha, positive=True)
         self.beta = as_finite_scalar("beta", beta)
