@@ -81,7 +81,7 @@ from quadobs.core.held_input import (
 from quadobs.core.measurements import Measurement, MeasurementModel
 from quadobs.core.system import QuadraticSystem
 from quadobs.errors import QuadobsError, as_array, as_finite_scalar
-from quadobs.estimators.base import Estimator, Gated, measurement_models, step_operands
+from quadobs.estimators.base import Gated, HalfSteps, measurement_models, step_operands
 from quadobs.estimators.robust import (
     LockOut,
     multilateration,
@@ -284,7 +284,7 @@ def step_power(F: np.ndarray, Q: np.ndarray, m: int) -> tuple[np.ndarray, np.nda
 # --------------------------------------------------------------------------------------
 
 
-class _GaussianFilter(Estimator, Gated):
+class _GaussianFilter(HalfSteps, Gated):
     """Shared prediction, lazy covariance, missing outputs, NIS and gating (see the module docstring)."""
 
     name = "gaussian"
@@ -356,22 +356,6 @@ class _GaussianFilter(Estimator, Gated):
         self.correct_outputs(y)
         self.predict_step(u)
         self._time += self.dynamics.dt
-
-    def predict(self, t) -> None:
-        """Propagate to the time ``t`` (:meth:`Estimator.predict`, exact over any interval); an
-        array ``u (p,)`` is :meth:`predict_step` (the grid's half step)."""
-        if np.ndim(t) == 0:
-            Estimator.predict(self, t)
-        else:
-            self.predict_step(t)
-
-    def correct(self, m) -> None:
-        """Correct with one :class:`~quadobs.core.measurements.Measurement` at the current time
-        (:meth:`Estimator.correct`); an array ``y (q,)`` is :meth:`correct_outputs` (the grid's half step)."""
-        if isinstance(m, Measurement):
-            Estimator.correct(self, m)
-        else:
-            self.correct_outputs(m)
 
     def predict_step(self, u: np.ndarray) -> None:
         """Exact mean prediction over one step ``x = F x + G u``; the covariance follows lazily.
