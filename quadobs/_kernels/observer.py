@@ -207,7 +207,7 @@ def _layout(ic):
     return _work_layout(ic[H_N], ic[H_Q], ic[H_NM])
 
 
-# -- vector helpers (inlined: the loops LLVM sees are those written out in place) --------------
+# -- row operations (inlined: the loops LLVM sees are those written out in place) -------------
 
 
 @njit(**_INLINE)
