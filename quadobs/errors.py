@@ -31,6 +31,7 @@ __all__ = [
     "RunFault",
     "as_array",
     "as_finite_scalar",
+    "as_float_array",
     "caused_by_interrupt",
     "check_writable",
     "deferred_interrupts",
@@ -118,6 +119,20 @@ def staging_owner(path: Path) -> tuple[str, int] | None:
     return None if m is None else (m["stem"], int(m["pid"]))
 
 
+def as_float_array(name: str, value: Any, *, copy: bool = True) -> np.ndarray:
+    """``value`` converted to a float64 array: a new one, or with ``copy=False`` a C-contiguous one
+    that is ``value`` itself where it already is one; a :class:`QuadobsError` naming ``name`` when it is
+    not numeric. Neither its shape nor its values are checked (:func:`as_array` does)."""
+    import numpy as np
+
+    try:
+        return np.array(value, dtype=float) if copy else np.ascontiguousarray(value, dtype=float)
+    except (TypeError, ValueError) as exc:
+        raise QuadobsError(
+            f"{name}: expected a numeric array, got {type(value).__name__} ({exc})"
+        ) from None
+
+
 def as_array(
     name: str,
     value: Any,
@@ -148,12 +163,7 @@ def as_array(
     """
     import numpy as np
 
-    try:
-        arr = np.array(value, dtype=float)
-    except (TypeError, ValueError) as exc:
-        raise QuadobsError(
-            f"{name}: expected a numeric array, got {type(value).__name__} ({exc})"
-        ) from None
+    arr = as_float_array(name, value)
     if shape is not None:
         ok = arr.ndim == len(shape) and all(s is None or s == a for s, a in zip(shape, arr.shape))
         if not ok:

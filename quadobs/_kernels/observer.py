@@ -69,7 +69,7 @@ nanoseconds, more than most of the arithmetic here, so the operands travel packe
     ``G0 (n, p)``, ``G2 (p, k, p)``, the ``Qc`` values (COO), the ``C`` values, ``R (q, q)``
     and, for the dense path only, ``Qc (nm, N, N)`` and ``E (n, n)``, each row-major at its
     offset;
-``W`` (float64 work, :func:`work_size`)
+``W`` (float64 work, :func:`work_layout`, :func:`work_size`)
     ``Phi``, ``T`` (or ``X``) (``N * N`` each), ``C P``, ``K^T`` (``(q, N)`` each),
     ``X C^T`` (first ``L^{-1} C P``, ``(q, N)``), ``K R`` (``(N, q)`` each), ``zt (N)``,
     ``mono (nm)``, ``L (q * q)``, ``nu``, ``w``, ``tmp`` (``q`` each), then the observer's
@@ -85,6 +85,7 @@ the dense path). :class:`quadobs.estimators.augmented.KernelModel` builds ``ic``
 from __future__ import annotations
 
 import math
+from collections import namedtuple
 from typing import Any
 
 import numpy as np
@@ -94,6 +95,7 @@ __all__ = [
     "DENSE_MIN_FILL",
     "DENSE_MIN_WORK",
     "HEADER",
+    "WorkLayout",
     "augmented_correct",
     "augmented_predict",
     "augmented_step",
@@ -104,6 +106,7 @@ __all__ = [
     "dense_path",
     "range_outputs",
     "sensor_step",
+    "work_layout",
     "work_size",
 ]
 
@@ -165,9 +168,87 @@ def dense_path(N: int, nnz: int) -> bool:
     return nnz * N >= DENSE_MIN_WORK and nnz >= DENSE_MIN_FILL * N * N
 
 
+#: The offsets of the parts of the work buffer ``W`` (module docstring); ``Phi`` is at 0.
+WorkLayout = namedtuple("WorkLayout", "T CP Kt XC KR zt mono L nu w tmp stats")
+
+
+def work_layout(N: int, q: int, nm: int) -> WorkLayout:
+    """Where each part of ``W`` starts, for ``N`` states, ``q`` outputs and ``nm`` monomials.
+
+    ``Phi, T (N * N)``, ``C P, K^T, X C^T, K R (q N)``, ``zt (N)``, ``mono (nm)``, ``L (q * q)``,
+    ``nu, w, tmp (q)``, ``stats (4)``, one after the other: the one statement of the layout, read by
+    :func:`work_size` and, compiled, by every kernel.
+    """
+    T = N * N
+    CP = T + N * N
+    Kt = CP + q * N
+    XC = Kt + q * N
+    KR = XC + N * q
+    zt = KR + N * q
+    mono = zt + N
+    L = mono + nm
+    nu = L + q * q
+    w = nu + q
+    tmp = w + q
+    return WorkLayout(T, CP, Kt, XC, KR, zt, mono, L, nu, w, tmp, tmp + q)
+
+
 def work_size(N: int, q: int, nm: int) -> int:
     """Length of the work buffer ``W`` (stats included) for ``N`` states, ``q`` outputs, ``nm`` monomials."""
-    return 2 * N * N + 4 * N * q + N + nm + q * q + 3 * q + 4
+    return work_layout(N, q, nm).stats + 4
+
+
+_work_layout = njit(**_INLINE)(work_layout)
+
+
+@njit(**_INLINE)
+def _layout(ic):
+    """:func:`work_layout` of the observer described by the header of ``ic``."""
+    return _work_layout(ic[H_N], ic[H_Q], ic[H_NM])
+
+
+# -- row operations (inlined: the loops LLVM sees are those written out in place) -------------
+
+
+@njit(**_INLINE)
+def _row(A, i, n):
+    """Row ``i`` of a row-major matrix of ``n`` columns held flat in ``A``: a slice indexed from 0."""
+    return A[i * n : (i + 1) * n]
+
+
+@njit(**_INLINE)
+def _fill(x, value, n):
+    """``x[:n] = value``."""
+    for i in range(n):
+        x[i] = value
+
+
+@njit(**_INLINE)
+def _copy(x, y, n):
+    """``x[:n] = y[:n]``."""
+    for i in range(n):
+        x[i] = y[i]
+
+
+@njit(**_INLINE)
+def _add_scaled(x, f, y, n):
+    """``x[:n] += f y[:n]``."""
+    for i in range(n):
+        x[i] += f * y[i]
+
+
+@njit(**_INLINE)
+def _sub_scaled(x, f, y, n):
+    """``x[:n] -= f y[:n]``."""
+    for i in range(n):
+        x[i] -= f * y[i]
+
+
+@njit(**_INLINE)
+def _divide(x, d, n):
+    """``x[:n] /= d``."""
+    for i in range(n):
+        x[i] /= d
 
 
 @njit(**_INLINE)
@@ -206,12 +287,11 @@ def _cholesky_nis(W, oL, onu, otmp, ow, q, r):
 
 @njit(**_INLINE)
 def _output_header(ic):
-    """The fields of the header that the correction reads: ``N, q, nm`` and the offsets of
-    ``C`` (CSR pointers, columns, values), of the indices of the outputs present and of ``R``."""
+    """The fields of the header that the correction reads: ``N, q`` and the offsets of ``C`` (CSR
+    pointers, columns, values), of the indices of the outputs present and of ``R``."""
     return (
         ic[H_N],
         ic[H_Q],
-        ic[H_NM],
         ic[H_O_C_PTR],
         ic[H_O_C_COL],
         ic[H_O_IW],
@@ -222,117 +302,89 @@ def _output_header(ic):
 
 @njit(**_INLINE)
 def _innovation(S, zo, po, W, wo, y, fc, ic, r):
-    """For the ``r`` outputs present (indices in ``ic[o_iw:]``): the rows ``C_a P`` (``CP (q, N)`` at
-    ``W[wo + 2 N^2:]``), the innovation ``nu`` and the lower triangle of ``C P C^T + R`` (``L``)."""
-    N, q, nm, o_cptr, o_ccol, o_iw, o_cval, o_R = _output_header(ic)
-    oPC = 2 * N * N
-    oL = oPC + 4 * N * q + N + nm
-    onu = oL + q * q
+    """For the ``r`` outputs present (indices in ``ic[o_iw:]``): the rows ``C_a P`` (``CP (q, N)``),
+    the innovation ``nu`` and the lower triangle of ``C P C^T + R`` (``L``), in ``W[wo:]``."""
+    N, q, o_cptr, o_ccol, o_iw, o_cval, o_R = _output_header(ic)
+    lay = _layout(ic)
     P = S[po : po + N * N]
-    CP = W[wo + oPC : wo + oPC + q * N]
+    CP = W[wo + lay.CP : wo + lay.CP + q * N]
     # Row a of C P (P symmetric: row m of P is column m), and nu.
     for a in range(r):
         h = ic[o_iw + a]
-        CPa = CP[a * N : (a + 1) * N]
-        for i in range(N):
-            CPa[i] = 0.0
+        CPa = _row(CP, a, N)
+        _fill(CPa, 0.0, N)
         s = y[h]
         for t in range(ic[o_cptr + h], ic[o_cptr + h + 1]):
             m = ic[o_ccol + t]
             c = fc[o_cval + t]
             s -= c * S[zo + m]
-            Pm = P[m * N : (m + 1) * N]
-            for i in range(N):
-                CPa[i] += c * Pm[i]
-        W[wo + onu + a] = s
+            _add_scaled(CPa, c, _row(P, m, N), N)
+        W[wo + lay.nu + a] = s
     for a in range(r):
         h = ic[o_iw + a]
         for b in range(a + 1):
             s = fc[o_R + h * q + ic[o_iw + b]]
             for t in range(ic[o_cptr + h], ic[o_cptr + h + 1]):
                 s += fc[o_cval + t] * CP[b * N + ic[o_ccol + t]]
-            W[wo + oL + a * q + b] = s
+            W[wo + lay.L + a * q + b] = s
 
 
 @njit(**_INLINE)
 def _gain(S, zo, W, wo, ic, r):
-    """``K^T = (L L^T)^{-1} C P`` (``(q, N)`` at ``W[wo + 2 N^2 + N q:]``, the ``X C^T`` area as scratch)
-    and ``z += K nu = (C P)^T w``; entry by entry the operations of a row-by-row solve, in its order."""
+    """``K^T = (L L^T)^{-1} C P`` (``(q, N)``, the ``X C^T`` area as scratch) and
+    ``z += K nu = (C P)^T w``; entry by entry the operations of a row-by-row solve, in its order."""
     N = ic[H_N]
     q = ic[H_Q]
-    nm = ic[H_NM]
-    oPC = 2 * N * N
-    oK = oPC + N * q
-    oY = oK + N * q
-    ozt = oPC + 4 * N * q
-    oL = ozt + N + nm
-    ow = oL + q * q + q
-    CP = W[wo + oPC : wo + oPC + q * N]
-    Kt = W[wo + oK : wo + oK + q * N]
-    Y = W[wo + oY : wo + oY + q * N]
-    L = W[wo + oL : wo + oL + q * q]
+    lay = _layout(ic)
+    CP = W[wo + lay.CP : wo + lay.CP + q * N]
+    Kt = W[wo + lay.Kt : wo + lay.Kt + q * N]
+    Y = W[wo + lay.XC : wo + lay.XC + q * N]
+    L = W[wo + lay.L : wo + lay.L + q * q]
     for a in range(r):  # forward: Y = L^{-1} C P
-        Ya = Y[a * N : (a + 1) * N]
-        CPa = CP[a * N : (a + 1) * N]
-        for i in range(N):
-            Ya[i] = CPa[i]
+        Ya = _row(Y, a, N)
+        _copy(Ya, _row(CP, a, N), N)
         for t in range(a):
-            f = L[a * q + t]
-            Yt = Y[t * N : (t + 1) * N]
-            for i in range(N):
-                Ya[i] -= f * Yt[i]
-        d = L[a * q + a]
-        for i in range(N):
-            Ya[i] /= d
+            _sub_scaled(Ya, L[a * q + t], _row(Y, t, N), N)
+        _divide(Ya, L[a * q + a], N)
     for a in range(r - 1, -1, -1):  # back: K^T = L^{-T} Y
-        Ka = Kt[a * N : (a + 1) * N]
-        Ya = Y[a * N : (a + 1) * N]
-        for i in range(N):
-            Ka[i] = Ya[i]
+        Ka = _row(Kt, a, N)
+        _copy(Ka, _row(Y, a, N), N)
         for t in range(a + 1, r):
-            f = L[t * q + a]
-            Kb = Kt[t * N : (t + 1) * N]
-            for i in range(N):
-                Ka[i] -= f * Kb[i]
-        d = L[a * q + a]
-        for i in range(N):
-            Ka[i] /= d
-    zt = W[wo + ozt : wo + ozt + N]
-    for i in range(N):
-        zt[i] = 0.0
+            _sub_scaled(Ka, L[t * q + a], _row(Kt, t, N), N)
+        _divide(Ka, L[a * q + a], N)
+    zt = W[wo + lay.zt : wo + lay.zt + N]
+    _fill(zt, 0.0, N)
     for a in range(r):
-        f = W[wo + ow + a]
-        CPa = CP[a * N : (a + 1) * N]
-        for i in range(N):
-            zt[i] += CPa[i] * f
+        _add_scaled(zt, W[wo + lay.w + a], _row(CP, a, N), N)
     for i in range(N):
         S[zo + i] += zt[i]
 
 
 @njit(**_INLINE)
+def _mirror(P, N, i):
+    """Row ``i`` of the upper triangle of ``P (N, N)`` (flat) copied into column ``i`` below the diagonal."""
+    for j in range(i + 1, N):
+        P[j * N + i] = P[i * N + j]
+
+
+@njit(**_INLINE)
 def _joseph(S, po, W, wo, fc, ic, r):
-    """``P <- X - (X C^T) K^T + K R K^T`` with ``X = P - K C P`` (``X`` in ``W[wo + N^2:]``), the upper
-    triangle computed and mirrored; returns ``trace(P)``."""
-    N, q, nm, o_cptr, o_ccol, o_iw, o_cval, o_R = _output_header(ic)
-    oPC = 2 * N * N
-    oK = oPC + N * q
-    oXC = oK + N * q  # X C^T, K R: (N, q)
-    oKR = oXC + N * q
-    otmp = oKR + N * q + N + nm + q * q + 2 * q
+    """``P <- X - (X C^T) K^T + K R K^T`` with ``X = P - K C P`` (``X`` in the ``T`` area of ``W[wo:]``),
+    the upper triangle computed and mirrored; returns ``trace(P)``."""
+    N, q, o_cptr, o_ccol, o_iw, o_cval, o_R = _output_header(ic)
+    lay = _layout(ic)
+    oXC = lay.XC  # X C^T, K R: (N, q)
+    oKR = lay.KR
+    otmp = lay.tmp
     P = S[po : po + N * N]
-    X = W[wo + N * N : wo + 2 * N * N]
-    CP = W[wo + oPC : wo + oPC + q * N]
-    Kt = W[wo + oK : wo + oK + q * N]
+    X = W[wo + lay.T : wo + lay.T + N * N]
+    CP = W[wo + lay.CP : wo + lay.CP + q * N]
+    Kt = W[wo + lay.Kt : wo + lay.Kt + q * N]
     for i in range(N):  # X = (I - K C) P = P - K (C P)
-        Xi = X[i * N : (i + 1) * N]
-        Pi = P[i * N : (i + 1) * N]
-        for j in range(N):
-            Xi[j] = Pi[j]
+        Xi = _row(X, i, N)
+        _copy(Xi, _row(P, i, N), N)
         for a in range(r):
-            f = Kt[a * N + i]
-            CPa = CP[a * N : (a + 1) * N]
-            for j in range(N):
-                Xi[j] -= f * CPa[j]
+            _sub_scaled(Xi, Kt[a * N + i], _row(CP, a, N), N)
     for a in range(r):
         h = ic[o_iw + a]
         for i in range(N):
@@ -349,16 +401,10 @@ def _joseph(S, po, W, wo, fc, ic, r):
         for a in range(r):
             W[wo + otmp + a] = W[wo + oKR + i * q + a] - W[wo + oXC + i * q + a]
         Pi = P[i * N + i : (i + 1) * N]
-        Xi = X[i * N + i : (i + 1) * N]
-        for j in range(N - i):
-            Pi[j] = Xi[j]
+        _copy(Pi, X[i * N + i : (i + 1) * N], N - i)
         for a in range(r):
-            f = W[wo + otmp + a]
-            Ka = Kt[a * N + i : (a + 1) * N]
-            for j in range(N - i):
-                Pi[j] += f * Ka[j]
-        for j in range(i + 1, N):
-            P[j * N + i] = P[i * N + j]
+            _add_scaled(Pi, W[wo + otmp + a], Kt[a * N + i : (a + 1) * N], N - i)
+        _mirror(P, N, i)
         tr += P[i * N + i]
     return tr
 
@@ -366,9 +412,7 @@ def _joseph(S, po, W, wo, fc, ic, r):
 @njit(**_OPTS)
 def _correct(S, zo, po, so, W, wo, y, fc, ic):
     """The correction (module docstring): returns 0 (nothing present), 1 (corrected) or 2 (rejected by the gate)."""
-    N = ic[H_N]
     q = ic[H_Q]
-    nm = ic[H_NM]
     o_iw = ic[H_O_IW]
     r = 0
     for h in range(q):
@@ -378,12 +422,9 @@ def _correct(S, zo, po, so, W, wo, y, fc, ic):
     if r == 0:
         S[so + 0] = math.nan
         return 0
-    oL = 2 * N * N + 4 * N * q + N + nm  # L (q, q), then nu, w, tmp
-    onu = oL + q * q
-    ow = onu + q
-    otmp = ow + q
+    lay = _layout(ic)
     _innovation(S, zo, po, W, wo, y, fc, ic, r)
-    nis = _cholesky_nis(W, wo + oL, wo + onu, wo + otmp, wo + ow, q, r)
+    nis = _cholesky_nis(W, wo + lay.L, wo + lay.nu, wo + lay.tmp, wo + lay.w, q, r)
     S[so + 0] = nis
     if nis > fc[1]:
         S[so + 2] += 1.0
@@ -395,36 +436,29 @@ def _correct(S, zo, po, so, W, wo, y, fc, ic):
 
 
 @njit(**_INLINE)
+def _input_header(ic):
+    """The fields of the header that the input terms of the prediction read: ``N, k, p`` and the
+    offsets of the aux-x block of ``F0``, of ``F1``, ``G0`` and ``G2``."""
+    return (ic[H_N], ic[H_K], ic[H_P], ic[H_O_FBLK], ic[H_O_F1], ic[H_O_G0], ic[H_O_G2])
+
+
+@njit(**_INLINE)
 def _transition(W, wo, u, fc, ic):
     """``Phi(u)`` in ``W[wo:]``: only its aux-x block depends on ``u`` (``F0`` block plus ``sum_j u_j F1[j]``)."""
-    N = ic[H_N]
-    k = ic[H_K]
-    p = ic[H_P]
-    o_fblk = ic[H_O_FBLK]
-    o_F1 = ic[H_O_F1]
+    N, k, p, o_fblk, o_F1, _, _ = _input_header(ic)
     n = N - k
     for a in range(k):
         row = W[wo + a * N + k : wo + (a + 1) * N]  # slices indexed from 0: unit stride, vectorised
-        f0 = fc[o_fblk + a * n : o_fblk + (a + 1) * n]
-        for b in range(n):
-            row[b] = f0[b]
+        _copy(row, fc[o_fblk + a * n : o_fblk + (a + 1) * n], n)
         for j in range(p):
-            uj = u[j]
-            f1 = fc[o_F1 + (j * k + a) * n : o_F1 + (j * k + a + 1) * n]
-            for b in range(n):
-                row[b] += uj * f1[b]
+            _add_scaled(row, u[j], fc[o_F1 + (j * k + a) * n : o_F1 + (j * k + a + 1) * n], n)
 
 
 @njit(**_INLINE)
 def _input_term(W, wo, u, fc, ic):
     """``zt += g(u)``, ``g(u) = (u^T G2[., a, .] u, G0 u)``, ``zt`` at its place in ``W[wo:]``."""
-    N = ic[H_N]
-    k = ic[H_K]
-    p = ic[H_P]
-    q = ic[H_Q]
-    o_G0 = ic[H_O_G0]
-    o_G2 = ic[H_O_G2]
-    ozt = 2 * N * N + 4 * N * q
+    N, k, p, _, _, o_G0, o_G2 = _input_header(ic)
+    ozt = _layout(ic).zt
     for a in range(k):
         s = 0.0
         for j in range(p):
@@ -442,9 +476,8 @@ def _input_term(W, wo, u, fc, ic):
 @njit(**_INLINE)
 def _monomials(W, wo, u, ic):
     """``mono = (1, u_j, u_j u_l (j <= l))`` at its place in ``W[wo:]``; returns its offset there."""
-    N = ic[H_N]
     p = ic[H_P]
-    omono = 2 * N * N + 4 * N * ic[H_Q] + N
+    omono = _layout(ic).mono
     W[wo + omono] = 1.0
     for j in range(p):
         W[wo + omono + 1 + j] = u[j]
@@ -469,11 +502,12 @@ def _products(S, po, W, wo, fc, ic):
     n = N - k
     NN = N * N
     o_e = ic[H_O_E]
+    oT = wo + _layout(ic).T
     Phi = W[wo : wo + NN].reshape((N, N))
     P = S[po : po + NN].reshape((N, N))
     E = fc[o_e : o_e + n * n].reshape((n, n))
-    T_top = W[wo + NN : wo + NN + k * N].reshape((k, N))
-    T_bot = W[wo + NN + k * N : wo + 2 * NN].reshape((n, N))
+    T_top = W[oT : oT + k * N].reshape((k, N))
+    T_bot = W[oT + k * N : oT + NN].reshape((n, N))
     np.dot(Phi[:k], P, T_top)
     np.dot(E, P[k:], T_bot)
     np.dot(T_top, Phi.T, P[:k])
@@ -499,33 +533,28 @@ def _predict_dense(S, zo, po, so, W, wo, u, fc, ic):
     nm = ic[H_NM]
     o_qd = ic[H_O_QC]
     NN = N * N
-    ozt = 2 * NN + 4 * N * ic[H_Q]
+    ozt = _layout(ic).zt
     _transition(W, wo, u, fc, ic)
     Phi = W[wo : wo + NN].reshape((N, N))
-    P = S[po : po + NN].reshape((N, N))
     z = S[zo : zo + N]
     zt = W[wo + ozt : wo + ozt + N]
     Qc = fc[o_qd : o_qd + nm * NN]
     np.dot(Phi, z, zt)
     _input_term(W, wo, u, fc, ic)
-    for i in range(N):
-        z[i] = zt[i]
+    _copy(z, zt, N)
     _products(S, po, W, wo, fc, ic)
     omono = _monomials(W, wo, u, ic)
     growth = fc[0]
+    P = S[po : po + NN]
     tr = 0.0
     for i in range(N):
-        Pi = P[i, i:]  # row slices, indexed from 0: unit stride, no negative-index wraparound
+        Pi = P[i * N + i : (i + 1) * N]  # row slices, indexed from 0: unit stride, no wraparound
         for j in range(N - i):
             Pi[j] *= growth
         for r in range(nm):
-            m = W[wo + omono + r]
-            Qi = Qc[r * NN + i * N + i : (r * N + i + 1) * N]
-            for j in range(N - i):
-                Pi[j] += Qi[j] * m
-        for j in range(i + 1, N):
-            P[j, i] = P[i, j]
-        tr += P[i, i]
+            _add_scaled(Pi, W[wo + omono + r], Qc[r * NN + i * N + i : (r * N + i + 1) * N], N - i)
+        _mirror(P, N, i)
+        tr += P[i * N + i]
     S[so + 3] = tr
 
 
@@ -533,7 +562,6 @@ def _predict_dense(S, zo, po, so, W, wo, u, fc, ic):
 def _predict_sparse(S, zo, po, so, W, wo, u, fc, ic):
     """The prediction through the structure of ``Phi`` (CSR) and of ``Q_d`` (COO), module docstring."""
     N = ic[H_N]
-    q = ic[H_Q]
     nq = ic[H_NQ]
     o_pptr = ic[H_O_PHI_PTR]
     o_pcol = ic[H_O_PHI_COL]
@@ -542,8 +570,9 @@ def _predict_sparse(S, zo, po, so, W, wo, u, fc, ic):
     o_qr = ic[H_O_QR]
     o_qv = ic[H_O_QV]
     growth = fc[0]
-    oT = N * N  # Phi at 0, T at oT
-    ozt = 2 * N * N + 4 * N * q
+    lay = _layout(ic)
+    oT = lay.T
+    ozt = lay.zt
     _transition(W, wo, u, fc, ic)
     # z <- Phi z + g(u)
     for i in range(N):
@@ -558,14 +587,10 @@ def _predict_sparse(S, zo, po, so, W, wo, u, fc, ic):
     # T = Phi P: row i of T combines the rows of P picked by row i of Phi.
     for i in range(N):
         Ti = W[wo + oT + i * N : wo + oT + (i + 1) * N]  # slices indexed from 0: unit stride
-        for j in range(N):
-            Ti[j] = 0.0
+        _fill(Ti, 0.0, N)
         for t in range(ic[o_pptr + i], ic[o_pptr + i + 1]):
             m = ic[o_pcol + t]
-            f = W[wo + i * N + m]
-            Pm = S[po + m * N : po + (m + 1) * N]
-            for j in range(N):
-                Ti[j] += f * Pm[j]
+            _add_scaled(Ti, W[wo + i * N + m], S[po + m * N : po + (m + 1) * N], N)
     # P <- growth T Phi^T + Q_d(u), written straight into P (T holds all that is needed of
     # the old P): the upper triangle, mirrored, then the entries of Q_d(u) added to both.
     for i in range(N):
@@ -591,6 +616,23 @@ def _predict_sparse(S, zo, po, so, W, wo, u, fc, ic):
     S[so + 3] = tr
 
 
+@njit(**_INLINE)
+def _predict(S, zo, po, so, W, wo, u, fc, ic):
+    """The prediction on the path the model takes (``ic[H_DENSE]``, :func:`dense_path`)."""
+    if ic[H_DENSE]:
+        _predict_dense(S, zo, po, so, W, wo, u, fc, ic)
+    else:
+        _predict_sparse(S, zo, po, so, W, wo, u, fc, ic)
+
+
+@njit(**_INLINE)
+def _step(S, zo, po, so, W, wo, u, y, fc, ic):
+    """:func:`_correct` with ``y`` then :func:`_predict` with ``u``; returns the correction code."""
+    code = _correct(S, zo, po, so, W, wo, y, fc, ic)
+    _predict(S, zo, po, so, W, wo, u, fc, ic)
+    return code
+
+
 @njit(**_OPTS)
 def augmented_correct(y, S, fc, ic):
     """Kalman correction of ``S = [z | P | W]`` with the outputs present in ``y`` (NaN = missing).
@@ -608,10 +650,7 @@ def augmented_predict(u, S, fc, ic):
     """Exact prediction of ``S = [z | P | W]`` over one step with ``u`` held:
     ``z <- Phi(u) z + g(u)``, ``P <- e^{theta dt} Phi(u) P Phi(u)^T + Q_d(u)``."""
     N = ic[H_N]
-    if ic[H_DENSE]:
-        _predict_dense(S, 0, N, S.shape[0] - 4, S, N + N * N, u, fc, ic)
-    else:
-        _predict_sparse(S, 0, N, S.shape[0] - 4, S, N + N * N, u, fc, ic)
+    _predict(S, 0, N, S.shape[0] - 4, S, N + N * N, u, fc, ic)
 
 
 @njit(**_OPTS)
@@ -633,28 +672,16 @@ def augmented_step(u, y, S, fc, ic):
     if _refused(u, y, ic):
         return -1
     N = ic[H_N]
-    so = S.shape[0] - 4
-    code = _correct(S, 0, N, so, S, N + N * N, y, fc, ic)
-    if ic[H_DENSE]:
-        _predict_dense(S, 0, N, so, S, N + N * N, u, fc, ic)
-    else:
-        _predict_sparse(S, 0, N, so, S, N + N * N, u, fc, ic)
-    return code
+    return _step(S, 0, N, S.shape[0] - 4, S, N + N * N, u, y, fc, ic)
 
 
 @njit(**_OPTS)
 def batch_refused(U, Y, ic):
     """The first member ``b`` whose ``U[b]`` holds a non-finite value or ``Y[b]`` an infinite one
     (NaN in ``Y``: missing), else -1."""
-    p = ic[H_P]
-    q = ic[H_Q]
     for b in range(U.shape[0]):
-        for j in range(p):
-            if not math.isfinite(U[b, j]):
-                return b
-        for h in range(q):
-            if math.isinf(Y[b, h]):
-                return b
+        if _refused(U[b], Y[b], ic):
+            return b
     return -1
 
 
@@ -675,12 +702,7 @@ def augmented_step_batch(U, Y, SB, W, fc, ic):
     N = ic[H_N]
     so = SB.shape[1] - 4
     for b in range(SB.shape[0]):
-        Sb = SB[b]
-        _correct(Sb, 0, N, so, W, 0, Y[b], fc, ic)
-        if ic[H_DENSE]:
-            _predict_dense(Sb, 0, N, so, W, 0, U[b], fc, ic)
-        else:
-            _predict_sparse(Sb, 0, N, so, W, 0, U[b], fc, ic)
+        _step(SB[b], 0, N, so, W, 0, U[b], Y[b], fc, ic)
     return 0
 
 
@@ -703,11 +725,7 @@ def _step_record(u, y, S, fc, ic, out):
     for i in range(N - k):
         out[i] = S[k + i]
     out[N - k] = S[so + 3]
-    code = _correct(S, 0, N, so, S, N + N * N, y, fc, ic)
-    if ic[H_DENSE]:
-        _predict_dense(S, 0, N, so, S, N + N * N, u, fc, ic)
-    else:
-        _predict_sparse(S, 0, N, so, S, N + N * N, u, fc, ic)
+    code = _step(S, 0, N, so, S, N + N * N, u, y, fc, ic)
     out[N - k + 1] = S[so]
     out[N - k + 2] = S[so + 2]
     return code

@@ -40,7 +40,7 @@ from itertools import combinations
 import numpy as np
 import scipy.linalg as sla
 
-from quadobs.core.immersion import Immersion
+from quadobs.core.immersion import Immersion, as_immersion
 from quadobs.errors import QuadobsError, as_array, as_finite_scalar
 
 __all__ = [
@@ -293,9 +293,7 @@ class HeldInputDiscretization:
     noise_quadratic: np.ndarray = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
-        im = self.immersion
-        if not isinstance(im, Immersion):
-            raise QuadobsError(f"immersion: expected an Immersion, got {type(im).__name__}")
+        im = as_immersion(self.immersion)
         dt = as_finite_scalar("dt", self.dt, positive=True)
         theta = as_finite_scalar("theta", self.theta, nonnegative=True)
         k, n, p, N = im.n_aux, im.system.n, im.system.p, im.dim

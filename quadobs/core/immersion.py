@@ -112,6 +112,7 @@ __all__ = [
     "Immersion",
     "ImmersionError",
     "LyapunovKrylov",
+    "as_immersion",
     "duplication_matrix",
     "immerse",
     "immerse_chain",
@@ -568,6 +569,13 @@ class Immersion:
 # --------------------------------------------------------------------------------------
 # Constructions
 # --------------------------------------------------------------------------------------
+
+
+def as_immersion(value) -> Immersion:
+    """``value``, checked to be an :class:`Immersion`; else a :class:`~quadobs.errors.QuadobsError` naming its type."""
+    if not isinstance(value, Immersion):
+        raise QuadobsError(f"immersion: expected an Immersion, got {type(value).__name__}")
+    return value
 
 
 def immerse_chain(system: QuadraticSystem, rtol: float = DEFAULT_RTOL) -> Immersion:

@@ -37,13 +37,14 @@ from quadobs.core.held_input import (
     held_input_interval,
     van_loan_interval,
 )
-from quadobs.core.immersion import Immersion
+from quadobs.core.immersion import Immersion, as_immersion
 from quadobs.core.measurements import Measurement
-from quadobs.errors import QuadobsError, as_array, as_finite_scalar
+from quadobs.errors import QuadobsError, as_array, as_finite_scalar, as_float_array
 from quadobs.estimators.base import (
     BlockStep,
     Estimator,
     Gated,
+    HalfSteps,
     Immersed,
     check_step,
     measurement_models,
@@ -111,6 +112,15 @@ def _offsets(arrays: dict[str, np.ndarray], start: int) -> dict[str, int]:
         out[name] = start
         start += a.size
     return out
+
+
+def _float64_operands(u, y, ushape: tuple[int, ...], yshape: tuple[int, ...]) -> bool:
+    """Whether ``u`` and ``y`` are float64 arrays of shapes ``ushape`` and ``yshape`` (anything else:
+    ``False``): such operands go straight to a compiled kernel, which checks their values itself."""
+    try:
+        return u.dtype is _F64 and y.dtype is _F64 and u.shape == ushape and y.shape == yshape
+    except AttributeError:
+        return False
 
 
 class KernelModel:
@@ -197,7 +207,7 @@ class KernelModel:
         return W
 
 
-class AugmentedObserver(Estimator, Gated, Immersed, BlockStep):
+class AugmentedObserver(HalfSteps, Gated, Immersed, BlockStep):
     """Theorem 3's observer on an immersion, advanced one held-input step at a time.
 
     Parameters
@@ -278,9 +288,7 @@ class AugmentedObserver(Estimator, Gated, Immersed, BlockStep):
         measurements=None,
         noise_of=None,
     ) -> None:
-        if not isinstance(immersion, Immersion):
-            raise QuadobsError(f"immersion: expected an Immersion, got {type(immersion).__name__}")
-        self.immersion = immersion
+        self.immersion = as_immersion(immersion)
         self.model = HeldInputDiscretization(immersion, dt, V, theta)
         self.measurement_models = measurement_models(immersion.system, measurements)
         self.noise_of = noise_of
@@ -455,12 +463,7 @@ class AugmentedObserver(Estimator, Gated, Immersed, BlockStep):
     @staticmethod
     def _checked(name: str, value, shape: tuple[int, ...]) -> np.ndarray:
         """``value`` as a contiguous float64 array of ``shape`` (NaN allowed: a missing output)."""
-        try:
-            arr = np.ascontiguousarray(value, dtype=float)
-        except (TypeError, ValueError) as exc:
-            raise QuadobsError(
-                f"{name}: expected a numeric array, got {type(value).__name__} ({exc})"
-            ) from None
+        arr = as_float_array(name, value, copy=False)
         if arr.shape != shape:
             raise QuadobsError(f"{name}: expected shape {shape}, got {arr.shape}")
         return arr
@@ -491,16 +494,7 @@ class AugmentedObserver(Estimator, Gated, Immersed, BlockStep):
             self.predict_step(u)
             self._time += self.model.dt
             return
-        try:  # float64 arrays of the right shapes go straight to the kernel, which checks the values
-            fast = (
-                u.dtype is _F64
-                and y.dtype is _F64
-                and u.shape == self._ushape
-                and y.shape == self._yshape
-            )
-        except AttributeError:
-            fast = False
-        if not fast:
+        if not _float64_operands(u, y, self._ushape, self._yshape):
             u, y = check_step(u, y, *self._ushape, *self._yshape)
         if kernel(u, y, *self._kops) < 0:  # a non-finite u or an infinite y: nothing changed
             check_step(u, y, *self._ushape, *self._yshape)  # raises, naming it
@@ -513,17 +507,11 @@ class AugmentedObserver(Estimator, Gated, Immersed, BlockStep):
         """:meth:`step`, recording ``[x_hat, covariance_trace]`` before it and ``nis`` after it into ``out`` (one compiled call)."""
         if self._kernel is None:
             return Estimator.step_and_record(self, u, y, out)
-        try:
-            fast = (
-                u.dtype is _F64
-                and y.dtype is _F64
-                and u.shape == self._ushape
-                and y.shape == self._yshape
-                and out.shape == self._rshape
-                and out.dtype is _F64
-            )
-        except AttributeError:
-            fast = False
+        fast = (
+            _float64_operands(u, y, self._ushape, self._yshape)
+            and getattr(out, "dtype", None) is _F64
+            and out.shape == self._rshape
+        )
         if not fast:
             u, y = self._checked("u", u, self._ushape), self._checked("y", y, self._yshape)
             if not (
@@ -586,22 +574,6 @@ class AugmentedObserver(Estimator, Gated, Immersed, BlockStep):
         return value.shape[0]
 
     # -- the two halves ----------------------------------------------------------------
-
-    def correct(self, m) -> None:
-        """Correct with one :class:`~quadobs.core.measurements.Measurement` at the current time
-        (:meth:`Estimator.correct`); an array ``y (q,)`` is :meth:`correct_outputs` (the grid's half step)."""
-        if isinstance(m, Measurement):
-            Estimator.correct(self, m)
-        else:
-            self.correct_outputs(m)
-
-    def predict(self, t) -> None:
-        """Propagate to the time ``t`` (:meth:`Estimator.predict`, exact over any interval); an
-        array ``u (p,)`` is :meth:`predict_step` (the grid's half step)."""
-        if np.ndim(t) == 0:
-            Estimator.predict(self, t)
-        else:
-            self.predict_step(t)
 
     def correct_outputs(self, y: np.ndarray) -> None:
         """Kalman correction with the outputs present in ``y`` (NaN marks a missing sample).

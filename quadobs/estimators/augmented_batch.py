@@ -22,11 +22,14 @@ from typing import Any
 import numpy as np
 
 from quadobs.errors import QuadobsError, as_array
-from quadobs.estimators.augmented import AugmentedObserver, KernelModel, resolve_backend
+from quadobs.estimators.augmented import (
+    AugmentedObserver,
+    KernelModel,
+    _float64_operands,
+    resolve_backend,
+)
 
 __all__ = ["BatchAugmentedObserver"]
-
-_F64 = np.dtype(np.float64)
 
 
 class BatchAugmentedObserver:
@@ -195,17 +198,11 @@ class BatchAugmentedObserver:
         unchanged. The compiled kernel checks the values itself before it changes anything
         (:func:`quadobs._kernels.observer.batch_refused`), so the good path costs nothing more.
         """
-        try:
-            fast = (
-                U.dtype is _F64
-                and Y.dtype is _F64
-                and U.shape == self._ushape
-                and Y.shape == self._yshape
-                and U.flags.c_contiguous
-                and Y.flags.c_contiguous
-            )
-        except AttributeError:
-            fast = False
+        fast = (
+            _float64_operands(U, Y, self._ushape, self._yshape)
+            and U.flags.c_contiguous
+            and Y.flags.c_contiguous
+        )
         if not fast:
             _checked = AugmentedObserver._checked
             U, Y = _checked("U", U, self._ushape), _checked("Y", Y, self._yshape)

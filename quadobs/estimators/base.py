@@ -50,6 +50,7 @@ __all__ = [
     "Counted",
     "Estimator",
     "Gated",
+    "HalfSteps",
     "Immersed",
     "SetValued",
     "Subset",
@@ -356,6 +357,41 @@ class Wrapper(Estimator):
     @property
     def covariance_trace(self) -> float:
         return self.inner.covariance_trace
+
+
+class HalfSteps(Estimator):
+    """An estimator whose :meth:`step` is two halves that may also be called on their own.
+
+    :meth:`correct_outputs` takes the outputs ``y (q,)`` sampled at the start of a step (NaN:
+    missing) and :meth:`predict_step` predicts over the step with ``u (p,)`` held; neither moves
+    :attr:`time`. :meth:`predict` and :meth:`correct` take either the operands of the interface in
+    time (a time in seconds, a :class:`~quadobs.core.measurements.Measurement`) or those of the
+    grid's half steps (an array ``u``, an array ``y``).
+    """
+
+    @abc.abstractmethod
+    def correct_outputs(self, y: np.ndarray) -> None:
+        """Correct with the outputs present in ``y (q,)``, the first half of :meth:`step`."""
+
+    @abc.abstractmethod
+    def predict_step(self, u: np.ndarray) -> None:
+        """Predict over one step with ``u (p,)`` held, the second half of :meth:`step`."""
+
+    def predict(self, t) -> None:
+        """Propagate to the time ``t`` (:meth:`Estimator.predict`, exact over any interval); an
+        array ``u (p,)`` is :meth:`predict_step` (the grid's half step)."""
+        if np.ndim(t) == 0:
+            super().predict(t)
+        else:
+            self.predict_step(t)
+
+    def correct(self, m) -> None:
+        """Correct with one :class:`~quadobs.core.measurements.Measurement` at the current time
+        (:meth:`Estimator.correct`); an array ``y (q,)`` is :meth:`correct_outputs` (the grid's half step)."""
+        if isinstance(m, Measurement):
+            super().correct(m)
+        else:
+            self.correct_outputs(m)
 
 
 class Counted(abc.ABC):

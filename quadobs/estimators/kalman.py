@@ -81,7 +81,7 @@ from quadobs.core.held_input import (
 from quadobs.core.measurements import Measurement, MeasurementModel
 from quadobs.core.system import QuadraticSystem
 from quadobs.errors import QuadobsError, as_array, as_finite_scalar
-from quadobs.estimators.base import Estimator, Gated, measurement_models, step_operands
+from quadobs.estimators.base import Gated, HalfSteps, measurement_models, step_operands
 from quadobs.estimators.robust import (
     LockOut,
     multilateration,
@@ -284,7 +284,7 @@ def step_power(F: np.ndarray, Q: np.ndarray, m: int) -> tuple[np.ndarray, np.nda
 # --------------------------------------------------------------------------------------
 
 
-class _GaussianFilter(Estimator, Gated):
+class _GaussianFilter(HalfSteps, Gated):
     """Shared prediction, lazy covariance, missing outputs, NIS and gating (see the module docstring)."""
 
     name = "gaussian"
@@ -356,22 +356,6 @@ class _GaussianFilter(Estimator, Gated):
         self.correct_outputs(y)
         self.predict_step(u)
         self._time += self.dynamics.dt
-
-    def predict(self, t) -> None:
-        """Propagate to the time ``t`` (:meth:`Estimator.predict`, exact over any interval); an
-        array ``u (p,)`` is :meth:`predict_step` (the grid's half step)."""
-        if np.ndim(t) == 0:
-            Estimator.predict(self, t)
-        else:
-            self.predict_step(t)
-
-    def correct(self, m) -> None:
-        """Correct with one :class:`~quadobs.core.measurements.Measurement` at the current time
-        (:meth:`Estimator.correct`); an array ``y (q,)`` is :meth:`correct_outputs` (the grid's half step)."""
-        if isinstance(m, Measurement):
-            Estimator.correct(self, m)
-        else:
-            self.correct_outputs(m)
 
     def predict_step(self, u: np.ndarray) -> None:
         """Exact mean prediction over one step ``x = F x + G u``; the covariance follows lazily.
@@ -508,6 +492,29 @@ class _GaussianFilter(Estimator, Gated):
             return None
         return (S, R) if R_w is R else (S + (R_w - R), R_w)
 
+    def _gain(self, nu: np.ndarray, S: np.ndarray, R: np.ndarray, cross: np.ndarray):
+        """The gain of a correction with innovation ``nu``, its covariance ``S``, the outputs' ``R``
+        and the state-output cross-covariance ``cross`` (``P H^T``, ``P_xz``).
+
+        The robust rule re-weights ``(S, R)`` (:meth:`_robust`) and the gate judges the NIS
+        (:meth:`_accept`); when both let the correction through, the gain is the optimal
+        ``K = cross S^-1`` as :meth:`_shape_gain` shapes it, and the mean moves, ``x += K nu``.
+        Returns ``(K, S, R, optimal)`` (``S``, ``R`` re-weighted; ``optimal`` whether ``K`` is
+        the optimal gain itself) for the covariance's update, or ``None`` when the correction is
+        refused.
+        """
+        robust = self._robust(nu, S, R)
+        if robust is None:
+            return None
+        S, R = robust
+        ok, _ = self._accept(nu, S)
+        if not ok:
+            return None
+        K_opt = np.linalg.solve(S, cross.T).T
+        K = self._shape_gain(K_opt, nu, S)
+        self._x = self._x + K @ nu
+        return K, S, R, K is K_opt
+
     def _watch(self, accepted: bool, nu: np.ndarray) -> None:
         """Lock-out: re-initialise the covariance, or give the filter up (see :mod:`~quadobs.estimators.robust`)."""
         lock, t = self.lockout, self._time
@@ -567,18 +574,12 @@ class ExtendedKalmanFilter(_GaussianFilter):
         self._joseph(np.array([model.unbiased(m) - model.h(self._x[:d], m)]), H, R)
 
     def _joseph(self, nu: np.ndarray, H: np.ndarray, R: np.ndarray) -> None:
-        x, P = self._x, self._P
+        P = self._P
         PHt = P @ H.T
-        S = H @ PHt + R
-        robust = self._robust(nu, S, R)
-        if robust is None:
+        gain = self._gain(nu, H @ PHt + R, R, PHt)
+        if gain is None:
             return
-        S, R = robust
-        ok, _ = self._accept(nu, S)
-        if not ok:
-            return
-        K = self._shape_gain(np.linalg.solve(S, PHt.T).T, nu, S)
-        self._x = x + K @ nu
+        K, _, R, _ = gain
         IKH = np.eye(self.n) - K @ H
         P = IKH @ P @ IKH.T + K @ R @ K.T
         self._P = 0.5 * (P + P.T)
@@ -589,11 +590,14 @@ class UnscentedKalmanFilter(_GaussianFilter):
 
     Parameters
     ----------
-    dynamics, outputs, x0, P0, gate
+    dynamics, outputs
         As for :class:`ExtendedKalmanFilter`.
     alpha, beta, kappa : float
         Scaled unscented transform parameters (see the module docstring); defaults
         ``1, 2, 0``.
+    **kwargs
+        The keywords of :class:`ExtendedKalmanFilter` (``x0``, ``P0``, ``gate``, ``robust``,
+        ``lockout``, ``measurements``), with their meanings.
 
     Notes
     -----
@@ -611,26 +615,12 @@ class UnscentedKalmanFilter(_GaussianFilter):
         dynamics: HeldInputModel,
         outputs: OutputModel,
         *,
-        x0,
-        P0,
-        gate: float | None = None,
         alpha: float = 1.0,
         beta: float = 2.0,
         kappa: float = 0.0,
-        robust=None,
-        lockout: LockOut | None = None,
-        measurements=None,
+        **kwargs,
     ) -> None:
-        super().__init__(
-            dynamics,
-            outputs,
-            x0=x0,
-            P0=P0,
-            gate=gate,
-            measurements=measurements,
-            robust=robust,
-            lockout=lockout,
-        )
+        super().__init__(dynamics, outputs, **kwargs)
         n = self.n
         self.alpha = as_finite_scalar("alpha", alpha, positive=True)
         self.beta = as_finite_scalar("beta", beta)
@@ -678,18 +668,11 @@ class UnscentedKalmanFilter(_GaussianFilter):
         dX = X - x
         S = (dZ.T * self._wc) @ dZ + R
         Pxz = (dX.T * self._wc) @ dZ
-        nu = z - z_pred
-        robust = self._robust(nu, S, R)
-        if robust is None:
+        gain = self._gain(z - z_pred, S, R, Pxz)
+        if gain is None:
             return
-        S, R = robust
-        ok, _ = self._accept(nu, S)
-        if not ok:
-            return
-        K_opt = np.linalg.solve(S, Pxz.T).T
-        K = self._shape_gain(K_opt, nu, S)
-        self._x = x + K @ nu
-        if K is K_opt:
+        K, S, _, optimal = gain
+        if optimal:
             P = P - K @ S @ K.T
         else:  # any other gain: P - K Pxz^T - Pxz K^T + K S K^T
             P = P - K @ Pxz.T - Pxz @ K.T + K @ S @ K.T

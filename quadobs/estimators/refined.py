@@ -433,18 +433,24 @@ class RefinedObserver(Estimator, Gated, Immersed, Switching):
         S = float(H[h] @ P @ H[h]) + R
         return nu * nu / S if S > 0 else float("inf")
 
-    def _handover_in_time(self, x: np.ndarray, P: np.ndarray) -> None:
-        self.attempts += 1
-        ekf = ExtendedKalmanFilter(
+    def _ekf_at(self, x: np.ndarray, P: np.ndarray, measurements=None) -> ExtendedKalmanFilter:
+        """The EKF handed over to, started at ``x``, ``P``: this estimator's models, gate and robust
+        rule, without a lock-out of its own (:func:`_NO_LOCKOUT`); ``measurements`` for the
+        interface in time."""
+        return ExtendedKalmanFilter(
             self.dynamics,
             self.outputs,
             x0=x,
             P0=P,
             gate=self.gate,
-            measurements=list(self.measurement_models.values()),
+            measurements=measurements,
             robust=self.robust,
             lockout=_NO_LOCKOUT(),
         )
+
+    def _handover_in_time(self, x: np.ndarray, P: np.ndarray) -> None:
+        self.attempts += 1
+        ekf = self._ekf_at(x, P, measurements=list(self.measurement_models.values()))
         ekf.time = self._time
         ekf.hold(self.observer.held_input())
         self._ekf = ekf
@@ -562,15 +568,7 @@ class RefinedObserver(Estimator, Gated, Immersed, Switching):
             self._next_try = self._updates + self._wait
             self._wait = min(2 * self._wait, 4 * pol.window)
             return None
-        ekf = ExtendedKalmanFilter(
-            self.dynamics,
-            self.outputs,
-            x0=x,
-            P0=P,
-            gate=self.gate,
-            robust=self.robust,
-            lockout=_NO_LOCKOUT(),
-        )
+        ekf = self._ekf_at(x, P)
         ekf.nis, ekf.nis_dof = window.items[-1][0], window.items[-1][1]
         self._ekf_window = _Window(pol.window)
         for item in window.items:

@@ -47,12 +47,12 @@ from __future__ import annotations
 import numpy as np
 
 from quadobs.core.held_input import HeldInputDiscretization
-from quadobs.core.immersion import Immersion
+from quadobs.core.immersion import Immersion, as_immersion
 from quadobs.core.measurements import Measurement
 from quadobs.errors import QuadobsError, as_array
 from quadobs.estimators.base import (
     Counted,
-    Estimator,
+    HalfSteps,
     Immersed,
     SetValued,
     check_step,
@@ -111,7 +111,7 @@ def lift_box(immersion: Immersion, x0, radius) -> Zonotope:
     return Zonotope(center, H)
 
 
-class ZonotopicAugmentedEstimator(Estimator, SetValued, Immersed, Counted):
+class ZonotopicAugmentedEstimator(HalfSteps, SetValued, Immersed, Counted):
     """Algorithm 1 on the exactly discretised augmented system (module docstring).
 
     Parameters
@@ -162,9 +162,7 @@ class ZonotopicAugmentedEstimator(Estimator, SetValued, Immersed, Counted):
         max_generators: int | None = None,
         reduction="parallelotope",
     ) -> None:
-        if not isinstance(immersion, Immersion):
-            raise QuadobsError(f"immersion: expected an Immersion, got {type(immersion).__name__}")
-        self.immersion = immersion
+        self.immersion = as_immersion(immersion)
         self.model = HeldInputDiscretization(immersion, dt)
         sys_ = immersion.system
         n, p, q, k, N = sys_.n, sys_.p, sys_.q, immersion.n_aux, immersion.dim
@@ -236,28 +234,12 @@ class ZonotopicAugmentedEstimator(Estimator, SetValued, Immersed, Counted):
 
     # -- the two halves -------------------------------------------------------------
 
-    def correct(self, m) -> None:
-        """Intersect with the strip of one :class:`~quadobs.core.measurements.Measurement` at the
-        current time (:meth:`Estimator.correct`; its error bound the output's ``output_bounds``);
-        an array ``y (q,)`` is :meth:`correct_outputs` (the grid's half step)."""
-        if isinstance(m, Measurement):
-            Estimator.correct(self, m)
-        else:
-            self.correct_outputs(m)
-
-    def predict(self, t) -> None:
-        """Propagate the set to the time ``t`` (:meth:`Estimator.predict`, exact over any interval:
-        the held-input discretisation over that interval, cached by its length); an array
-        ``u (p,)`` is :meth:`predict_step` (the grid's half step)."""
-        if np.ndim(t) == 0:
-            Estimator.predict(self, t)
-        else:
-            self.predict_step(t)
-
     def _input_dimension(self) -> int:
         return self._F1.shape[0]
 
     def _propagate(self, dt: float, u: np.ndarray) -> None:
+        """The set over ``dt`` (exact: the held-input discretisation over that interval, cached by
+        its length)."""
         if abs(dt - self.model.dt) <= 1e-9 * self.model.dt:
             self.predict_step(u)
             return
@@ -269,6 +251,7 @@ class ZonotopicAugmentedEstimator(Estimator, SetValued, Immersed, Counted):
         self.predict_step(u, model)
 
     def _correct_measurement(self, m: Measurement) -> None:
+        """Intersect with the strip of a range (its error bound the output's ``output_bounds``)."""
         model = self._model_of(m)
         if model.kind != "range":
             raise QuadobsError(f"{self.name}: takes ranges only, not {m.kind} measurements")

@@ -55,7 +55,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from quadobs.core.held_input import HeldInputDiscretization, quadratic_coefficients, van_loan
-from quadobs.core.immersion import Immersion
+from quadobs.core.immersion import Immersion, as_immersion
 from quadobs.errors import QuadobsError, as_array, as_finite_scalar
 
 __all__ = [
@@ -193,9 +193,7 @@ class GramianModel:
     gramian_quadratic: np.ndarray = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
-        im = self.immersion
-        if not isinstance(im, Immersion):
-            raise QuadobsError(f"immersion: expected an Immersion, got {type(im).__name__}")
+        im = as_immersion(self.immersion)
         dt = as_finite_scalar("dt", self.dt, positive=True)
         p = im.system.p
         CtC = im.output_matrix.T @ im.output_matrix

@@ -160,14 +160,7 @@ def _bare_physics_us(scenario, steps: int) -> float:
 
     from quadobs.testbed.worlds import VehicleSim
 
-    sim = VehicleSim(
-        scenario.dimension,
-        scenario.beacons,
-        timestep=scenario.dt,
-        wind=scenario.wind,
-        model_path=scenario.model,
-    )
-    sim.reset(scenario.trajectory.position(0.0), scenario.trajectory.velocity_at(0.0))
+    sim = VehicleSim.of(scenario)
     m, d, step = sim.model, sim.data, mujoco.mj_step
     for _ in range(min(steps, 1000)):  # warm caches
         step(m, d)
@@ -308,8 +301,7 @@ def _bare_episode(task: tuple) -> float:
     name, steps = task
     sc = load_scenario(name)
     t0 = time.perf_counter()
-    sim = VehicleSim(sc.dimension, sc.beacons, timestep=sc.dt, wind=sc.wind, model_path=sc.model)
-    sim.reset(sc.trajectory.position(0.0), sc.trajectory.velocity_at(0.0))
+    sim = VehicleSim.of(sc)
     m, d, step = sim.model, sim.data, mujoco.mj_step
     for _ in range(steps):
         step(m, d)

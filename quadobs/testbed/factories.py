@@ -276,10 +276,11 @@ def radio_models(scenario: Scenario) -> dict:
     return {"measurements": [TdoaModel(scenario.beacons, radio.std)]}
 
 
-def extended_kalman_filter(scenario: Scenario, x0: np.ndarray) -> ExtendedKalmanFilter:
-    """The ``"ekf"`` estimator of ``scenario`` (:func:`baseline_settings`), started at ``x0``."""
+def _gaussian_filter(cls, scenario: Scenario, x0: np.ndarray):
+    """A filter of class ``cls`` on the baseline models of ``scenario`` (:func:`baseline_settings`),
+    its gate, robust rule (:func:`robust_settings`) and radio (:func:`radio_models`), started at ``x0``."""
     s = baseline_settings(scenario)
-    return ExtendedKalmanFilter(
+    return cls(
         s.dynamics,
         s.outputs,
         x0=x0,
@@ -288,20 +289,16 @@ def extended_kalman_filter(scenario: Scenario, x0: np.ndarray) -> ExtendedKalman
         **robust_settings(scenario),
         **radio_models(scenario),
     )
+
+
+def extended_kalman_filter(scenario: Scenario, x0: np.ndarray) -> ExtendedKalmanFilter:
+    """The ``"ekf"`` estimator of ``scenario`` (:func:`baseline_settings`), started at ``x0``."""
+    return _gaussian_filter(ExtendedKalmanFilter, scenario, x0)
 
 
 def unscented_kalman_filter(scenario: Scenario, x0: np.ndarray) -> UnscentedKalmanFilter:
     """The ``"ukf"`` estimator of ``scenario`` (:func:`baseline_settings`), started at ``x0``."""
-    s = baseline_settings(scenario)
-    return UnscentedKalmanFilter(
-        s.dynamics,
-        s.outputs,
-        x0=x0,
-        P0=s.P0,
-        gate=scenario.observer.gate,
-        **robust_settings(scenario),
-        **radio_models(scenario),
-    )
+    return _gaussian_filter(UnscentedKalmanFilter, scenario, x0)
 
 
 def zonotope_estimator(scenario: Scenario, x0: np.ndarray) -> ZonotopicAugmentedEstimator:

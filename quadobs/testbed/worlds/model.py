@@ -23,6 +23,7 @@ __all__ = [
     "REQUIRED_ELEMENTS",
     "PhysicsFault",
     "VehicleModel",
+    "builtin_model_path",
     "default_model_path",
     "load_vehicle_model",
     "physics_check",
@@ -41,15 +42,20 @@ REQUIRED_ELEMENTS = (
 )
 
 
-def default_model_path() -> Path:
-    """The built-in vehicle MJCF: inside the installed package, or ``models/`` of a source checkout."""
+def builtin_model_path(name: str) -> Path:
+    """The built-in MJCF file ``name``: inside the installed package, or ``models/`` of a source checkout."""
     here = Path(__file__).resolve().parents[2]
-    for candidate in (here / "_models" / "vehicle.xml", here.parent / "models" / "vehicle.xml"):
+    for candidate in (here / "_models" / name, here.parent / "models" / name):
         if candidate.is_file():
             return candidate
     raise QuadobsError(
-        "model: the built-in vehicle.xml was not found beside the package (broken installation)"
+        f"model: the built-in {name} was not found beside the package (broken installation)"
     )
+
+
+def default_model_path() -> Path:
+    """The built-in vehicle MJCF (:func:`builtin_model_path`)."""
+    return builtin_model_path("vehicle.xml")
 
 
 @dataclass(frozen=True, eq=False)

@@ -72,6 +72,21 @@ class VehicleSim:
         self._vel = slice(vm.velocimeter_adr, vm.velocimeter_adr + 3)
         self._off = np.stack([np.arange(a, a + 3) for a in vm.offset_adr])  # (q_b, 3)
 
+    @classmethod
+    def of(cls, scenario) -> VehicleSim:
+        """The vehicle of a scenario (its dimension, beacons, step, wind and model), placed at the
+        start of its trajectory."""
+        sim = cls(
+            scenario.dimension,
+            scenario.beacons,
+            timestep=scenario.dt,
+            wind=scenario.wind,
+            model_path=scenario.model,
+        )
+        traj = scenario.trajectory
+        sim.reset(traj.position(0.0), traj.velocity_at(0.0))
+        return sim
+
     # -- state ---------------------------------------------------------------------
 
     def reset(self, position, velocity) -> None:
@@ -745,14 +760,7 @@ class PointMassWorld(World):
 
     def __init__(self, scenario, sensors, capacity: int, pipelined: bool = True) -> None:
         traj = scenario.trajectory
-        sim = VehicleSim(
-            scenario.dimension,
-            scenario.beacons,
-            timestep=scenario.dt,
-            wind=scenario.wind,
-            model_path=scenario.model,
-        )
-        sim.reset(traj.position(0.0), traj.velocity_at(0.0))
+        sim = VehicleSim.of(scenario)
         self.sim, self.dt, self._traj = sim, scenario.dt, traj
         self.stepper = st = BlockStepper(sim, capacity, sensors)
         self.out, self.events = st.out, st.events

@@ -44,6 +44,7 @@ from quadobs.testbed.imu import ImuModel
 from quadobs.testbed.rotors import IDENTIFIED, RotorModel
 from quadobs.testbed.scenario import ControlSpec, QuadrotorSpec
 from quadobs.testbed.worlds.base import Columns, World
+from quadobs.testbed.worlds.model import builtin_model_path
 from quadobs.testbed.worlds.radio_feed import RadioFeed
 
 __all__ = ["FLIGHT_COLUMNS", "QuadrotorWorld", "quadrotor_model_path"]
@@ -64,14 +65,8 @@ FLIGHT_COLUMNS = (
 
 
 def quadrotor_model_path() -> Path:
-    """The built-in quadrotor MJCF: inside the installed package, or ``models/`` of a source checkout."""
-    here = Path(__file__).resolve().parents[2]
-    for candidate in (here / "_models" / "quadrotor.xml", here.parent / "models" / "quadrotor.xml"):
-        if candidate.is_file():
-            return candidate
-    raise QuadobsError(
-        "model: the built-in quadrotor.xml was not found beside the package (broken installation)"
-    )
+    """The built-in quadrotor MJCF (:func:`~quadobs.testbed.worlds.model.builtin_model_path`)."""
+    return builtin_model_path("quadrotor.xml")
 
 
 def rotor_model(spec: QuadrotorSpec) -> RotorModel:
