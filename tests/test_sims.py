@@ -62,6 +62,25 @@ CASES = {
         ["log/imu.csv", "log/attitude.csv"],
         "own tuning",
     ),
+    "replay_exported_tdoa.py": (
+        ["--duration", "8", "--burn-in", "3", "--no-isam2", "--out", "{tmp}/tdoa-log"],
+        ["tdoa-log/tdoa.csv"],
+        "live / replayed (ratio)",
+    ),
+    "cross_validate_replay.py": (
+        [
+            "--sources",
+            "quad",
+            "--quad-duration",
+            "8",
+            "--initial-offset",
+            "2",
+            "--json",
+            "{tmp}/cv.json",
+        ],
+        ["cv.json"],
+        "evaluated on | prior | from quad",
+    ),
 }
 
 
