@@ -231,12 +231,7 @@ def run_replay(
     world = ReplayWorld(
         log, dt, model or default_model(log), _BLOCK, biases, sensors=sensors, peer_batch=batch
     )
-    # P0 from the guess's uncertainty: the offset of a guess drawn from the truth, else the anchors' extent
-    drawn = x0 is None and _truth_at_start(log, world) is not None
-    if x0 is None:
-        x0 = initial_guess(log, world, float(initial_offset), seed)
-    x0 = np.array(x0, dtype=float)
-    setup = replay_setup(log, world, setup_options, float(initial_offset) if drawn else None, x0)
+    x0, setup = _initial_state(log, world, x0, float(initial_offset), seed, setup_options)
     events = LogEvents(
         log, biases, start=world.times[0], end=world.times[-1], std=setup.measurement_std()
     )
@@ -265,6 +260,17 @@ def run_replay(
         sinks=[field],
     )
     return summary
+
+
+def _initial_state(log, world, x0, initial_offset: float, seed: int, options) -> tuple:
+    """The initial state ``x0`` (given, else :func:`initial_guess`) and the replay's setup, whose
+    ``P0`` is the guess's uncertainty: the offset of a guess drawn from the truth, else the
+    anchors' extent (:func:`~quadobs.testbed.logs.estimators.initial_variance`)."""
+    drawn = x0 is None and _truth_at_start(log, world) is not None
+    if x0 is None:
+        x0 = initial_guess(log, world, initial_offset, seed)
+    x0 = np.array(x0, dtype=float)
+    return x0, replay_setup(log, world, options, initial_offset if drawn else None, x0)
 
 
 def _timing(log, world, ests, events) -> dict:
