@@ -143,19 +143,31 @@ def study(
         twr: dict[str, Estimator] = {"range-ekf": extended_kalman_filter(scenario, x0)}
         twr["range-refined"] = refined_observer(scenario, x0)
         ranged = reference_run(dataclasses.replace(flight, outputs=ranges), twr)
-        for est_name, X in {**tdoa, **ranged}.items():
-            m = _metrics(flight, X, dim, settle)
-            if est_name == "tdoa-handover":
-                m["handover_time"] = ests[est_name].handover_time
-            runs.setdefault(est_name, []).append(m)
+        _add_runs(runs, flight, {**tdoa, **ranged}, ests, dim, settle)
+    return {
+        **_header(name, seeds, scenario, offset, settle),
+        "summary": _summary(runs),
+        "runs": runs,
+    }
+
+
+def _add_runs(runs: dict, flight, estimates: dict, ests: dict, dim: int, settle: float) -> None:
+    """Append each estimate's :func:`_metrics` to ``runs`` (the handover's time with them)."""
+    for est_name, X in estimates.items():
+        m = _metrics(flight, X, dim, settle)
+        if est_name == "tdoa-handover":
+            m["handover_time"] = cast(TdoaHandover, ests[est_name]).handover_time
+        runs.setdefault(est_name, []).append(m)
+
+
+def _header(name: str, seeds: int, scenario, offset: float, settle: float) -> dict:
+    """The settings a study's result records."""
     return {
         "scenario": name,
         "seeds": seeds,
         "duration": scenario.duration,
         "offset": offset,
         "settle": settle,
-        "summary": _summary(runs),
-        "runs": runs,
     }
 
 
@@ -187,17 +199,9 @@ def quadrotor_study(
         flight, ests = fly_world(scenario, make, flown_on, seed)
         crashes.append(flight.crashed_at)
         ref = TdoaFlight(flight.t[:-1], flight.truth, np.zeros(0), np.zeros(0), [], 0.0)
-        for est_name, X in flight.estimates.items():
-            m = _metrics(ref, X, 3, settle)
-            if est_name == "tdoa-handover":
-                m["handover_time"] = cast(TdoaHandover, ests[est_name]).handover_time
-            runs.setdefault(est_name, []).append(m)
+        _add_runs(runs, ref, flight.estimates, ests, 3, settle)
     return {
-        "scenario": name,
-        "seeds": seeds,
-        "duration": scenario.duration,
-        "offset": offset,
-        "settle": settle,
+        **_header(name, seeds, scenario, offset, settle),
         "flown_on": flown_on,
         "crashes": f"{sum(c is not None for c in crashes)}/{seeds}",
         "crashed_at": crashes,

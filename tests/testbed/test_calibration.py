@@ -115,3 +115,27 @@ def test_per_anchor_biases_are_found_and_applied():
     assert err < 0.5 * np.sqrt(np.mean(truth**2)), cal.biases
     assert cal.held_out["with_biases"] < cal.held_out["without"]
     assert cal.summary()["biases"] == pytest.approx(list(cal.biases))
+
+
+def test_the_replays_bias_filters_beat_the_ekf_on_biased_ranges_and_refuse_tdoa():
+    """``ekf-bias`` / ``ukf-bias`` of the replay (the default set holds ``ekf-bias``)."""
+    from quadobs.errors import QuadobsError
+    from quadobs.testbed.logs.replay import check_replay, default_estimators
+
+    log = _circle_log(np.array([0.4, -0.3, 0.25, 0.0]))
+    assert "ekf-bias" in default_estimators(log)
+    names = ["ekf", "ekf-bias", "ukf-bias"]
+    options = {"range_sigma": 0.1, "q_acc": 1e-2}
+    s = run_replay(log, estimators=names, initial_offset=2.0, batch=False,
+                   setup_options=options, burn_in=10.0)["estimators"]  # fmt: skip
+    for name in names[1:]:
+        assert s[name]["diverged"] is None
+        assert s[name]["rmse"] < 0.6 * s["ekf"]["rmse"], (name, s[name]["rmse"], s["ekf"]["rmse"])
+    tdoa = RangeLog(
+        "tdoa", np.arange(4), ANCHORS, np.empty((0, 3)), np.empty((0, 1)), float("nan"),
+        None, input_kind="none", tdoa=np.array([[0.0, 0, 1, 0.5], [0.1, 1, 2, -0.2]]),
+    )  # fmt: skip
+    with pytest.raises(
+        QuadobsError, match="'ekf-bias' estimates range biases and the log holds TDOA"
+    ):
+        check_replay(tdoa, ["ekf-bias"])

@@ -80,7 +80,7 @@ def test_the_burn_in_drops_the_transient_and_the_tum_files_give_evos_rmse(tmp_pa
         assert ape.get_statistic(metrics.StatisticsType.rmse) == pytest.approx(e["rmse"], rel=1e-9)
         assert ref.num_poses == e["samples"]
     assert ref.timestamps[0] == pytest.approx(log.start + 5.0)
-    assert s["tum"]["files"] == ["truth.tum", "augmented.tum", "ekf.tum"]
+    assert s["tum"]["files"] == ["truth.tum", "augmented.tum", "ekf.tum", "ekf-bias.tum"]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["tum"]  # no staging folder left
 
 

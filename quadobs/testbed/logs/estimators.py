@@ -76,11 +76,13 @@ __all__ = [
     "TUNING",
     "ReplaySetup",
     "build_augmented_heading",
+    "build_ekf_bias",
     "build_ekf_heading",
     "build_isam2",
     "build_onboard_ekf",
     "build_onboard_ekf_bias",
     "build_replay_estimators",
+    "build_ukf_bias",
     "build_ukf_heading",
     "gyro_noise",
     "initial_variance",
@@ -422,6 +424,20 @@ def build_tdoa_handover(s: ReplaySetup, x0: np.ndarray, name: str = "tdoa-handov
     return tdoa_estimators.build_tdoa_handover(s, x0, name)
 
 
+def build_ekf_bias(s: ReplaySetup, x0: np.ndarray, name: str = "ekf-bias") -> Estimator:
+    """Entry point ``ekf-bias`` (:mod:`quadobs.testbed.logs.bias_estimators`)."""
+    from quadobs.testbed.logs import bias_estimators
+
+    return bias_estimators.build_ekf_bias(s, x0, name, _process_noise(s))
+
+
+def build_ukf_bias(s: ReplaySetup, x0: np.ndarray, name: str = "ukf-bias") -> Estimator:
+    """Entry point ``ukf-bias`` (:mod:`quadobs.testbed.logs.bias_estimators`)."""
+    from quadobs.testbed.logs import bias_estimators
+
+    return bias_estimators.build_ukf_bias(s, x0, name, _process_noise(s))
+
+
 #: The gyroscope's white noise (rad^2/s) of :func:`build_onboard_ekf`, its floor (:func:`gyro_noise`):
 #: the Crazyflie firmware's Kalman filter states its gyro noise as 0.1 rad/s per axis over its
 #: 10 ms prediction step, an intensity of ``0.1^2 * 0.01 = 1e-4`` rad^2/s (a few times a
@@ -604,6 +620,8 @@ REPLAY_ESTIMATORS = {
     "onboard-ekf-bias": build_onboard_ekf_bias,
     "tdoa-observer": build_tdoa_observer,
     "tdoa-handover": build_tdoa_handover,
+    "ekf-bias": build_ekf_bias,
+    "ukf-bias": build_ukf_bias,
 }
 
 

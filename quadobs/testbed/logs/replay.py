@@ -54,16 +54,19 @@ DEFAULT_ESTIMATORS = ("augmented", "ekf")
 def default_estimators(log, model: str | None = None) -> list[str]:
     """:data:`DEFAULT_ESTIMATORS`; for a log holding TDOA (which the range observer cannot
     take): where its input is an acceleration, the TDOA observer handing over to the EKF and
-    the observer alone; then the EKF and the UKF. For a log of wheel odometry replayed with the
-    model ``odometry`` (``model`` ``None``: the log's default), the heading filter
-    ``ukf-heading`` beside them: the dead-reckoned heading drifts with the yaw rate's bias,
-    which the other two take as known."""
+    the observer alone; then the EKF and the UKF. A log of ranges gets ``ekf-bias`` beside
+    them (the anchors' range biases as states: real two-way ranges carry a per-anchor bias and
+    positive non-line-of-sight excess, which the calibration's constant biases do not follow);
+    a log of wheel odometry replayed with the model ``odometry`` (``model`` ``None``: the log's
+    default) also the heading filter ``ukf-heading``: the dead-reckoned heading drifts with
+    the yaw rate's bias, which the others take as known."""
     if log.tdoa.shape[0]:
         tdoa = ["tdoa-handover", "tdoa-observer"] if log.input_kind in ("imu", "imu_body") else []
         return tdoa + ["ekf", "ukf"]
+    names = [*DEFAULT_ESTIMATORS, "ekf-bias"]
     if log.input_kind == "odometry" and model in (None, "odometry"):
-        return [*DEFAULT_ESTIMATORS, "ukf-heading"]
-    return list(DEFAULT_ESTIMATORS)
+        names.append("ukf-heading")
+    return names
 
 
 _BLOCK = 8192

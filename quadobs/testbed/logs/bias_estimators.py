@@ -1,0 +1,81 @@
+"""The replay's filters with one range bias per anchor as a state: ``ekf-bias`` and ``ukf-bias``.
+
+The filters of :mod:`quadobs.estimators.bias_states` (the start-up fix, the biases held in a
+consider update until the innovations are consistent, the re-initialisation after a lock-out)
+on the replay's model of the log (:class:`~quadobs.testbed.logs.estimators.ReplaySetup`): the
+vehicle's state and its process noise are those of the replay's EKF
+(:func:`~quadobs.testbed.logs.estimators.build_ekf`), each anchor's bias a constant state of
+prior standard deviation :data:`~quadobs.core.measurements.RangeModel`'s extra state (0.5 m,
+the order of a UWB antenna delay's calibration error).
+
+Their gate is a :class:`~quadobs.estimators.robust.SkewedGate`: a range whose standardised
+innovation is too *long* for line of sight is left out, since non-line-of-sight excess is
+positive and a bias state would take it in. Its two-sided probability is that of the replay's
+``gate`` (a threshold on ``chi^2(1)``), else 0.999.
+
+These filters run on logs of ranges (any model); a log of TDOA is refused by name (a TDOA
+cancels a bias common to both anchors, and the per-pair bias is not a state here).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from quadobs.errors import QuadobsError
+
+__all__ = ["build_ekf_bias", "build_ukf_bias"]
+
+
+def _gate_probability(gate: float | None) -> float:
+    """The probability of ``chi^2(1)`` below the threshold ``gate`` (``None``: 0.999)."""
+    if gate is None:
+        return 0.999
+    return math.erf(math.sqrt(float(gate) / 2.0))
+
+
+def _build(s, x0: np.ndarray, name: str, cls, process_noise: np.ndarray):
+    from quadobs.core.measurements import RangeModel
+    from quadobs.estimators.bias_states import BiasedRangeOutputModel, extended_system
+    from quadobs.estimators.kalman import HeldInputModel
+    from quadobs.estimators.robust import SkewedGate
+
+    if "tdoa" in s.kinds:
+        raise QuadobsError(
+            f"estimators: {name!r} estimates range biases and the log holds TDOA (use ekf or ukf)"
+        )
+    system = s.system
+    n, q = system.n, system.q
+    ext = extended_system(system)
+    V = np.zeros((n + q, n + q))
+    V[:n, :n] = process_noise
+    dynamics = HeldInputModel(ext, s.dt, V=V)
+    offsets = 0.5 * np.einsum("hi,hi->h", system.d, system.d)
+    outputs = BiasedRangeOutputModel(ext, s.range_sigma**2 * np.eye(q), offsets=offsets)
+    P = np.zeros((n + q, n + q))
+    P0 = np.full(n, s.P0)
+    P0[s.dim :] = 4.0  # the velocity, as the replay's EKF
+    P[:n, :n] = np.diag(P0)
+    extra = RangeModel(s.beacons, s.range_sigma, bias="state").extra_states()
+    P[n:, n:] = np.diag([e.prior_std**2 for e in extra])
+    xe = np.concatenate([np.asarray(x0, dtype=float)[:n], np.zeros(q)])
+    rule = SkewedGate(_gate_probability(s.gate))
+    est = cls(dynamics, outputs, x0=xe, P0=P, vehicle_n=n, robust=rule)
+    est.name = name
+    return est
+
+
+def build_ekf_bias(s, x0: np.ndarray, name: str, process_noise: np.ndarray):
+    """The EKF with the anchors' range biases as states; ``process_noise`` the continuous
+    intensity on the vehicle's state (that of the replay's EKF)."""
+    from quadobs.estimators.bias_states import BiasedExtendedKalmanFilter
+
+    return _build(s, x0, name, BiasedExtendedKalmanFilter, process_noise)
+
+
+def build_ukf_bias(s, x0: np.ndarray, name: str, process_noise: np.ndarray):
+    """The UKF with the anchors' range biases as states (as :func:`build_ekf_bias`)."""
+    from quadobs.estimators.bias_states import BiasedUnscentedKalmanFilter
+
+    return _build(s, x0, name, BiasedUnscentedKalmanFilter, process_noise)
