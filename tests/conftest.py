@@ -91,3 +91,19 @@ def random_system(rng, n, p, q, linear=True):
     C = C + C.transpose(0, 2, 1)
     d = rng.standard_normal((q, n)) if linear else None
     return QuadraticSystem(A, B, C, d)
+
+
+def call_main(argv):
+    """``quadobs.cli.main(argv)`` in this process: the exit status, stdout and stderr."""
+    import io
+    from contextlib import redirect_stderr, redirect_stdout
+
+    from quadobs.cli import main
+
+    out, err = io.StringIO(), io.StringIO()
+    with redirect_stdout(out), redirect_stderr(err):
+        try:
+            code = main(argv)
+        except SystemExit as exc:  # argparse's own usage errors
+            code = exc.code
+    return code, out.getvalue(), err.getvalue()

@@ -5,20 +5,17 @@ Every answer is an exit status of 0, 1 (a run fault, named), 2 (bad input, one l
 (interrupted), never a traceback, and a previous output is never lost.
 """
 
-import io
 import json
 import os
 import random
 import shutil
 import tempfile
-from contextlib import redirect_stderr, redirect_stdout
 from pathlib import Path
 
 import pytest
+from conftest import call_main
 from hypothesis import HealthCheck, event, given, seed, settings
 from hypothesis import strategies as st
-
-from quadobs.cli import main
 
 ROOT = Path(__file__).resolve().parents[1]
 SCENARIO_TEXT = (ROOT / "quadobs/testbed/scenarios/ifac2021-noisy.toml").read_text()
@@ -77,15 +74,7 @@ VALUES = HOSTILE_NUMBERS + [
 ]
 
 
-def _call(argv):
-    """``main(argv)`` in this process: the exit status, stdout and stderr."""
-    out, err = io.StringIO(), io.StringIO()
-    with redirect_stdout(out), redirect_stderr(err):
-        try:
-            code = main(argv)
-        except SystemExit as exc:  # argparse's own usage errors
-            code = exc.code
-    return code, out.getvalue(), err.getvalue()
+_call = call_main
 
 
 def _check(code, err):

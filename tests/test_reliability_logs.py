@@ -5,17 +5,16 @@ traceback; the log folder read is never changed; an ``--export`` target is eithe
 complete log; a previous output is replaced only by a command that succeeded.
 """
 
-import io
 import math
 import random
 import shutil
 import sys
 import tempfile
-from contextlib import redirect_stderr, redirect_stdout
 from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import call_main
 from hypothesis import HealthCheck, Phase, event, given, seed, settings
 from hypothesis import strategies as st
 
@@ -41,14 +40,7 @@ HOSTILE_CELLS = [
 ]
 
 
-def _call(argv):
-    out, err = io.StringIO(), io.StringIO()
-    with redirect_stdout(out), redirect_stderr(err):
-        try:
-            code = main(argv)
-        except SystemExit as exc:  # argparse's own usage errors
-            code = exc.code
-    return code, out.getvalue(), err.getvalue()
+_call = call_main
 
 
 def _check(code, err):

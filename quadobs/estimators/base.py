@@ -52,6 +52,7 @@ __all__ = [
     "Gated",
     "HalfSteps",
     "Immersed",
+    "InnerClock",
     "SetValued",
     "Subset",
     "Switching",
@@ -357,6 +358,22 @@ class Wrapper(Estimator):
     @property
     def covariance_trace(self) -> float:
         return self.inner.covariance_trace
+
+
+class InnerClock(Wrapper):
+    """A :class:`Wrapper` whose :attr:`time` is the wrapped estimator's: reading it reads
+    ``inner.time``, setting it sets that (and whatever :meth:`_set_time` adds)."""
+
+    @property
+    def time(self) -> float:
+        return self.inner.time
+
+    @time.setter
+    def time(self, value: float) -> None:
+        self._set_time(value)
+
+    def _set_time(self, value: float) -> None:
+        self.inner.time = value
 
 
 class HalfSteps(Estimator):

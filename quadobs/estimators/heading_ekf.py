@@ -57,7 +57,7 @@ import numpy as np
 from quadobs.core.held_input import van_loan_interval
 from quadobs.core.measurements import Measurement, RangeModel
 from quadobs.errors import QuadobsError, as_array, as_finite_scalar
-from quadobs.estimators.base import Estimator, Gated, Immersed, Wrapper, step_operands
+from quadobs.estimators.base import Estimator, Gated, Immersed, InnerClock, step_operands
 from quadobs.estimators.robust import LockOut, multilateration, reinitialised_covariance, reweight
 
 __all__ = [
@@ -407,7 +407,7 @@ class HeadingUKF(_HeadingFilter):
         self._gain(model.unbiased(m) - z, S, Pxz, R)
 
 
-class HeadingCascade(Wrapper, Gated, Immersed):
+class HeadingCascade(InnerClock, Gated, Immersed):
     """A cascade: an observer driven by the odometry turned by a heading filter's estimate.
 
     The observer (``inner``, e.g. the augmented observer of the replay's odometry model) takes
@@ -440,12 +440,7 @@ class HeadingCascade(Wrapper, Gated, Immersed):
     corrections = property(lambda self: getattr(self.inner, "corrections", 0))
     rejected = property(lambda self: getattr(self.inner, "rejected", 0))
 
-    @property
-    def time(self) -> float:
-        return self.inner.time
-
-    @time.setter
-    def time(self, value: float) -> None:
+    def _set_time(self, value: float) -> None:
         self.inner.time = value
         self.heading_filter.time = value
 

@@ -28,7 +28,7 @@ import numpy as np
 
 from quadobs.core.measurements import Measurement
 from quadobs.errors import QuadobsError
-from quadobs.estimators.base import Counted, Estimator, Gated, Immersed, Switching, Wrapper
+from quadobs.estimators.base import Counted, Estimator, Gated, Immersed, InnerClock, Switching
 
 __all__ = ["InTimeOnGrid", "LogEvents", "held_inputs", "in_time", "takes_time"]
 
@@ -119,7 +119,7 @@ class LogEvents:
         return self._inputs[raw]
 
 
-class InTimeOnGrid(Wrapper):
+class InTimeOnGrid(InnerClock):
     """An estimator that takes measurements in time, stepped on the replay's grid (module docstring).
 
     Its :meth:`step` ignores the row's ``u`` and ``y`` (the grid's placement, kept for the
@@ -140,14 +140,6 @@ class InTimeOnGrid(Wrapper):
         if first >= 0:
             est.hold(self._u[first])
         self._i = first + 1
-
-    @property
-    def time(self) -> float:
-        return self.inner.time
-
-    @time.setter
-    def time(self, value: float) -> None:
-        self.inner.time = value
 
     # the wrapped estimator's abilities (declared by the class :func:`in_time` builds)
     gate = property(lambda self: self.inner.gate)
