@@ -75,6 +75,7 @@ __all__ = [
     "REPLAY_ESTIMATORS",
     "TUNING",
     "ReplaySetup",
+    "build_augmented_bias",
     "build_augmented_heading",
     "build_ekf_bias",
     "build_ekf_heading",
@@ -438,6 +439,15 @@ def build_ukf_bias(s: ReplaySetup, x0: np.ndarray, name: str = "ukf-bias") -> Es
     return bias_estimators.build_ukf_bias(s, x0, name, _process_noise(s))
 
 
+def build_augmented_bias(s: ReplaySetup, x0: np.ndarray, name: str = "augmented-bias"):
+    """Entry point ``augmented-bias`` (:mod:`quadobs.testbed.logs.bias_estimators`): the settings
+    of :func:`build_augmented`'s observer for the same log and guess."""
+    from quadobs.testbed.logs import bias_estimators
+
+    observer = build_augmented(s, x0, name)
+    return bias_estimators.build_augmented_bias(s, x0, name, observer)
+
+
 #: The gyroscope's white noise (rad^2/s) of :func:`build_onboard_ekf`, its floor (:func:`gyro_noise`):
 #: the Crazyflie firmware's Kalman filter states its gyro noise as 0.1 rad/s per axis over its
 #: 10 ms prediction step, an intensity of ``0.1^2 * 0.01 = 1e-4`` rad^2/s (a few times a
@@ -622,6 +632,7 @@ REPLAY_ESTIMATORS = {
     "tdoa-handover": build_tdoa_handover,
     "ekf-bias": build_ekf_bias,
     "ukf-bias": build_ukf_bias,
+    "augmented-bias": build_augmented_bias,
 }
 
 
