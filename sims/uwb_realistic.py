@@ -8,7 +8,11 @@ on the estimators) with, on the same measurements:
 * ``ekf-known-bias``: the same EKF, gate and lock-out without bias states, given the radio's
   true biases (its range model subtracts them: ``RangeModel(bias="fixed")``);
 * with ``--given``, ``ekf-bias-given``: ``ekf-bias`` itself with its bias states pinned at
-  the true biases (its robust rule and start-up unchanged).
+  the true biases (its robust rule and start-up unchanged);
+* with ``--line-of-sight`` (a diagnostic no estimator can have), ``ekf-bias-los`` (and, with
+  ``--given``, ``ekf-bias-given-los``): the same filters given only the ranges whose path the
+  room leaves clear (the radio's own ray test at the tag's position when the range is
+  corrected), which measures what the non-line-of-sight excess costs the bias states.
 
 Printed per seed and in total: the time from which each estimator's position error stays
 below 1 m (the summary's ``time_to_1m``), the position RMSE over the flight after a 5 s
@@ -17,6 +21,7 @@ burn-in, and the ratio of each estimator's RMSE to the known-bias EKF's.
 Usage::
 
     python sims/uwb_realistic.py --seeds 0:50 [--duration 40] [--estimators ekf-bias,ukf-bias]
+        [--given] [--line-of-sight]
 """
 
 from __future__ import annotations
@@ -71,16 +76,41 @@ def given_bias_filter(scenario, world, x0: np.ndarray):
     return est
 
 
-def one_seed(seed: int, duration: float | None, names: list[str], given: bool = False) -> dict:
+def line_of_sight_only(est, world):
+    """``est`` given only the ranges whose path the radio's room leaves clear at the tag's
+    current position (its other ranges are dropped before they reach it): a diagnostic."""
+    correct, radio = est.correct, world.radio
+
+    def clear_only(m):
+        if not radio.room.blocked(radio.anchors[m.anchors[0]], world.state()[:3]):
+            correct(m)
+
+    est.correct = clear_only
+    est.name += "-los"
+    return est
+
+
+def one_seed(
+    seed: int, duration: float | None, names: list[str], given: bool = False, los: bool = False
+) -> dict:
     over = {"seed": seed} | ({"duration": duration} if duration else {})
     scenario = load_scenario("quadrotor-uwb-realistic", **over)
     parts = scenario_parts(scenario, names)
+    world = parts["world"]
     x0 = parts["estimators"][0].x_hat
-    parts["estimators"] = list(parts["estimators"]) + [known_bias_ekf(scenario, parts["world"], x0)]
+    parts["estimators"] = list(parts["estimators"]) + [known_bias_ekf(scenario, world, x0)]
     all_names = names + ["ekf-known-bias"]
     if given:
-        parts["estimators"].append(given_bias_filter(scenario, parts["world"], x0))
+        parts["estimators"].append(given_bias_filter(scenario, world, x0))
         all_names.append("ekf-bias-given")
+    if los:
+        from quadobs.testbed.factories import biased_extended_kalman_filter
+
+        extra = [biased_extended_kalman_filter(scenario, x0)]
+        extra += [given_bias_filter(scenario, world, x0)] if given else []
+        for est in extra:
+            parts["estimators"].append(line_of_sight_only(est, world))
+            all_names.append(est.name)
 
     def summarise(merged, completed, wall, interrupted):
         return _summarise(
@@ -116,11 +146,17 @@ def main() -> None:
         action="store_true",
         help="also ekf-bias with its bias states pinned at the truth",
     )
+    ap.add_argument(
+        "--line-of-sight",
+        action="store_true",
+        help="also ekf-bias (and, with --given, ekf-bias-given) given the line-of-sight ranges only",
+    )
     args = ap.parse_args()
     a, b = (int(v) for v in args.seeds.split(":"))
     names = args.estimators.split(",")
     for seed in range(a, b):
-        print(json.dumps(one_seed(seed, args.duration, names, args.given)), flush=True)
+        row = one_seed(seed, args.duration, names, args.given, args.line_of_sight)
+        print(json.dumps(row), flush=True)
 
 
 if __name__ == "__main__":

@@ -106,6 +106,7 @@ def biased_models(
     P0: np.ndarray,
     model: RangeModel,
     bias_walk: float = 0.0,
+    bias_std: float | None = None,
 ) -> tuple[HeldInputModel, BiasedRangeOutputModel, np.ndarray]:
     """The dynamics, measurement model and prior of a filter with bias states.
 
@@ -121,6 +122,9 @@ def biased_models(
         With ``bias="state"``: its extra states give the biases' prior.
     bias_walk : float
         Random-walk intensity of the biases (m^2/s).
+    bias_std : float, optional
+        The biases' prior standard deviation (m), where the hardware states their spread;
+        default: the model's extra states' prior.
     """
     extra = model.extra_states()
     if len(extra) != system.q:
@@ -137,7 +141,10 @@ def biased_models(
     outputs = BiasedRangeOutputModel(ext, sigma**2 * np.eye(q), offsets=offsets)
     Pe = np.zeros((n + q, n + q))
     Pe[:n, :n] = P0
-    Pe[n:, n:] = np.diag([e.prior_std**2 for e in extra])
+    prior = [e.prior_std if bias_std is None else bias_std for e in extra]
+    if not all(math.isfinite(v) and v > 0.0 for v in prior):
+        raise QuadobsError(f"bias_std: expected a positive number of metres, got {bias_std!r}")
+    Pe[n:, n:] = np.diag(np.square(prior))
     return dynamics, outputs, Pe
 
 

@@ -457,9 +457,30 @@ def _bias_filter(scenario: Scenario, x0: np.ndarray, cls):
     system, sigma = scenario.system(), _range_sigma(scenario)
     P0, _ = initial_covariance(scenario)
     model = RangeModel(scenario.beacons, sigma, bias="state")
-    dyn, out, Pe = biased_models(system, scenario.dt, sigma, _input_std(scenario), P0, model)
+    dyn, out, Pe = biased_models(
+        system,
+        scenario.dt,
+        sigma,
+        _input_std(scenario),
+        P0,
+        model,
+        bias_std=bias_prior_std(scenario),
+    )
     xe = np.concatenate([np.asarray(x0, dtype=float), np.zeros(system.q)])
     return cls(dyn, out, x0=xe, P0=Pe, vehicle_n=system.n, **bias_robust_settings(scenario))
+
+
+def bias_prior_std(scenario: Scenario) -> float | None:
+    """The biases' prior standard deviation (m) where the radio states their spread: its
+    ``bias_std`` when its biases are drawn with one (``radio.biases`` not given); else ``None``,
+    the range model's prior (0.5 m, the upper end of antenna delays). The stated spread is
+    the hardware's figure, as ``radio.std`` is the stated range noise (:func:`_range_sigma`):
+    a prior wider than it leaves the weak directions (a position offset against a pattern of
+    biases) to the data alone."""
+    radio = getattr(scenario, "radio", None)
+    if radio is None or radio.biases is not None or not radio.bias_std > 0.0:
+        return None
+    return float(radio.bias_std)
 
 
 def bias_robust_settings(scenario: Scenario) -> dict:
@@ -510,6 +531,7 @@ def biased_augmented_observer(scenario: Scenario, x0: np.ndarray):
         theta=obs.theta,
         x0=x0,
         robust=_huber_only(scenario),
+        **({} if (b := bias_prior_std(scenario)) is None else {"bias_std": b}),
     )
 
 

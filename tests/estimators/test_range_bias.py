@@ -171,3 +171,37 @@ def test_bias_filter_fixes_its_start_without_a_silent_anchor():
         est.step(a, y)
     assert est.fixes == [0.02]  # 7 ranges a step: the 16th range comes with the third step
     assert np.linalg.norm(est.x_hat[:3] - truth[-1][2]) < 0.1
+
+
+def test_the_biases_prior_is_the_radios_stated_spread():
+    """``ekf-bias``, ``ukf-bias`` and ``augmented-bias`` take the biases' prior from the radio's
+    stated spread (``radio.bias_std``) where its biases are drawn with one; given biases or no
+    radio leave the range model's 0.5 m."""
+    from quadobs.errors import QuadobsError
+    from quadobs.testbed.factories import (
+        bias_prior_std,
+        biased_augmented_observer,
+        biased_extended_kalman_filter,
+        biased_unscented_kalman_filter,
+    )
+    from quadobs.testbed.scenario import load_scenario
+
+    scenario = load_scenario("quadrotor-uwb-realistic")
+    assert bias_prior_std(scenario) == scenario.radio.bias_std == 0.2
+    x0 = np.array([1.0, 2.0, 1.5, 0.0, 0.0, 0.0])
+    for make in (biased_extended_kalman_filter, biased_unscented_kalman_filter):
+        est = make(scenario, x0)
+        np.testing.assert_allclose(np.diag(est._P)[6:], 0.04)
+    obs = biased_augmented_observer(scenario, x0)
+    N = obs.immersion.dim
+    np.testing.assert_allclose(np.diag(obs._P)[N:], 0.04)
+    given = scenario.model_copy(
+        update={"radio": scenario.radio.model_copy(update={"biases": (0.1,) * 8})}
+    )
+    assert bias_prior_std(given) is None
+    assert bias_prior_std(load_scenario("quadrotor-uwb")) is None
+    system, model = vehicle_system(3, ANCHORS), RangeModel(ANCHORS, 0.1, bias="state")
+    _, _, P = biased_models(system, 0.01, 0.1, 0.02, np.eye(6), model)
+    np.testing.assert_allclose(np.diag(P)[6:], 0.25)
+    with pytest.raises(QuadobsError, match="bias_std"):
+        biased_models(system, 0.01, 0.1, 0.02, np.eye(6), model, bias_std=-0.1)
