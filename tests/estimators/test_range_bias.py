@@ -205,3 +205,39 @@ def test_the_biases_prior_is_the_radios_stated_spread():
     np.testing.assert_allclose(np.diag(P)[6:], 0.25)
     with pytest.raises(QuadobsError, match="bias_std"):
         biased_models(system, 0.01, 0.1, 0.02, np.eye(6), model, bias_std=-0.1)
+
+
+def test_a_hovering_vehicles_position_is_bounded_by_the_biases_prior():
+    """Hovering, a position offset ``d`` and the biases ``-U d`` fit every range alike, so only
+    the biases' prior ``s`` separates them: the position's posterior covariance is
+    ``(U^T U / (s^2 + sigma^2 / K) + P0^-1)^-1`` after ``K`` rounds (``U`` the unit vectors from
+    the anchors). A Kalman filter with the Jacobian at the true position reaches that; the EKF,
+    whose Jacobian follows its own estimate, reports less (the linearisation point moves along
+    the unobservable direction and lends it information it does not have)."""
+    from quadobs.estimators.bias_states import BiasedRangeOutputModel
+
+    p, sigma, s, K = np.array([0.5, -0.4, 1.5]), 0.1, 0.5, 600
+    U = (p - ANCHORS) / np.linalg.norm(p - ANCHORS, axis=1)[:, None]
+    closed = np.linalg.inv(U.T @ U / (s * s + sigma**2 / K) + np.eye(3) / 0.04)
+
+    class AtTruth(BiasedRangeOutputModel):
+        def linearize(self, x):
+            z = super().linearize(x)[0]
+            return z, super().linearize(np.r_[p, x[3:]])[1]
+
+    system, model = vehicle_system(3, ANCHORS), RangeModel(ANCHORS, sigma, bias="state")
+    traces = {}
+    for label in ("ekf", "at truth"):
+        dyn, out, P0 = biased_models(system, 0.01, sigma, 0.0, 0.04 * np.eye(6), model, bias_std=s)
+        if label == "at truth":
+            out = AtTruth(out.system, out.R, offsets=out.offsets)
+        rng = np.random.default_rng(1)
+        x0 = np.r_[p + 0.2 * rng.standard_normal(3), np.zeros(3), np.zeros(8)]
+        est = ExtendedKalmanFilter(dyn, out, x0=x0, P0=P0)
+        b = s * rng.standard_normal(8)
+        for _ in range(K):
+            rho = np.linalg.norm(p - ANCHORS, axis=1) + b + sigma * rng.standard_normal(8)
+            est.step(np.zeros(3), 0.5 * rho**2 - 0.5 * (ANCHORS**2).sum(1))
+        traces[label] = np.trace(est.x_covariance[:3, :3])
+    assert traces["at truth"] == pytest.approx(np.trace(closed), rel=0.05)
+    assert traces["ekf"] < 0.85 * np.trace(closed), traces
