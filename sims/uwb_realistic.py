@@ -12,7 +12,10 @@ on the estimators) with, on the same measurements:
 * with ``--line-of-sight`` (a diagnostic no estimator can have), ``ekf-bias-los`` (and, with
   ``--given``, ``ekf-bias-given-los``): the same filters given only the ranges whose path the
   room leaves clear (the radio's own ray test at the tag's position when the range is
-  corrected), which measures what the non-line-of-sight excess costs the bias states.
+  corrected), which measures what the non-line-of-sight excess costs the bias states;
+* with ``--jacobian-at-truth`` (a diagnostic), ``ekf-bias-truejac``: ``ekf-bias`` whose range
+  Jacobian is taken at the tag's true position (its predicted ranges still at its estimate),
+  which measures what linearising at its own estimate costs it.
 
 Printed per seed and in total: the time from which each estimator's position error stays
 below 1 m (the summary's ``time_to_1m``), the position RMSE over the flight after a 5 s
@@ -21,7 +24,7 @@ burn-in, and the ratio of each estimator's RMSE to the known-bias EKF's.
 Usage::
 
     python sims/uwb_realistic.py --seeds 0:50 [--duration 40] [--estimators ekf-bias,ukf-bias]
-        [--given] [--line-of-sight]
+        [--given] [--line-of-sight] [--jacobian-at-truth]
 """
 
 from __future__ import annotations
@@ -90,8 +93,30 @@ def line_of_sight_only(est, world):
     return est
 
 
+def jacobian_at_truth(est, world):
+    """``est`` (a bias-state filter) with its range Jacobian at the tag's current true position:
+    a diagnostic."""
+    from quadobs.estimators.bias_states import BiasedRangeOutputModel
+
+    class AtTruth(BiasedRangeOutputModel):
+        def linearize(self, x):
+            x_true = x.copy()
+            x_true[:3] = world.state()[:3]
+            return super().linearize(x)[0], super().linearize(x_true)[1]
+
+    out = est.outputs
+    est.outputs = AtTruth(out.system, out.R, offsets=out.offsets)
+    est.name += "-truejac"
+    return est
+
+
 def one_seed(
-    seed: int, duration: float | None, names: list[str], given: bool = False, los: bool = False
+    seed: int,
+    duration: float | None,
+    names: list[str],
+    given: bool = False,
+    los: bool = False,
+    truejac: bool = False,
 ) -> dict:
     over = {"seed": seed} | ({"duration": duration} if duration else {})
     scenario = load_scenario("quadrotor-uwb-realistic", **over)
@@ -111,6 +136,12 @@ def one_seed(
         for est in extra:
             parts["estimators"].append(line_of_sight_only(est, world))
             all_names.append(est.name)
+    if truejac:
+        from quadobs.testbed.factories import biased_extended_kalman_filter
+
+        est = jacobian_at_truth(biased_extended_kalman_filter(scenario, x0), world)
+        parts["estimators"].append(est)
+        all_names.append(est.name)
 
     def summarise(merged, completed, wall, interrupted):
         return _summarise(
@@ -151,11 +182,18 @@ def main() -> None:
         action="store_true",
         help="also ekf-bias (and, with --given, ekf-bias-given) given the line-of-sight ranges only",
     )
+    ap.add_argument(
+        "--jacobian-at-truth",
+        action="store_true",
+        help="also ekf-bias with its range Jacobian at the true position",
+    )
     args = ap.parse_args()
     a, b = (int(v) for v in args.seeds.split(":"))
     names = args.estimators.split(",")
     for seed in range(a, b):
-        row = one_seed(seed, args.duration, names, args.given, args.line_of_sight)
+        row = one_seed(
+            seed, args.duration, names, args.given, args.line_of_sight, args.jacobian_at_truth
+        )
         print(json.dumps(row), flush=True)
 
 
