@@ -11,8 +11,8 @@ on the estimators) with, on the same measurements:
   the true biases (its robust rule and start-up unchanged);
 * with ``--line-of-sight`` (a diagnostic no estimator can have), ``ekf-bias-los`` (and, with
   ``--given``, ``ekf-bias-given-los``): the same filters given only the ranges whose path the
-  room leaves clear (the radio's own ray test at the tag's position when the range is
-  corrected), which measures what the non-line-of-sight excess costs the bias states;
+  room left clear (the radio's own ray test when it drew the range), which measures what the
+  non-line-of-sight excess costs the bias states;
 * with ``--jacobian-at-truth`` (a diagnostic), ``ekf-bias-truejac``: ``ekf-bias`` whose range
   Jacobian is taken at the tag's true position (its predicted ranges still at its estimate),
   which measures what linearising at its own estimate costs it.
@@ -79,13 +79,40 @@ def given_bias_filter(scenario, world, x0: np.ndarray):
     return est
 
 
+def drawn_events(radio) -> dict:
+    """Each range the radio draws from now on, ``id -> (event, tag position, blocked)``: the
+    tag's true position at the event's time and whether the room blocked its path (the radio's
+    own ray test), recorded by wrapping the radio's ``room.blocked`` and ``_event`` (the events
+    are kept, so that no id is reused)."""
+    if hasattr(radio, "drawn_events"):
+        return radio.drawn_events
+    events: dict = {}
+    last = {"blocked": False}
+    blocked, event = radio.room.blocked, radio._event
+
+    def blocked_kept(a, p):
+        last["blocked"] = out = blocked(a, p)
+        return out
+
+    def event_kept(t, lane, p):
+        last["blocked"] = False
+        m = event(t, lane, p)
+        if m is not None:
+            events[id(m)] = (m, np.array(p, dtype=float), last["blocked"])
+        return m
+
+    radio.room.blocked, radio._event = blocked_kept, event_kept
+    radio.drawn_events = events
+    return events
+
+
 def line_of_sight_only(est, world):
-    """``est`` given only the ranges whose path the radio's room leaves clear at the tag's
-    current position (its other ranges are dropped before they reach it): a diagnostic."""
-    correct, radio = est.correct, world.radio
+    """``est`` given only the ranges whose path the radio's room left clear when it drew them
+    (:func:`drawn_events`; its other ranges are dropped before they reach it): a diagnostic."""
+    correct, events = est.correct, drawn_events(world.radio)
 
     def clear_only(m):
-        if not radio.room.blocked(radio.anchors[m.anchors[0]], world.state()[:3]):
+        if not events[id(m)][2]:
             correct(m)
 
     est.correct = clear_only
@@ -94,18 +121,27 @@ def line_of_sight_only(est, world):
 
 
 def jacobian_at_truth(est, world):
-    """``est`` (a bias-state filter) with its range Jacobian at the tag's current true position:
-    a diagnostic."""
+    """``est`` (a bias-state filter) with its range Jacobian at the tag's true position when
+    the radio drew the range (:func:`drawn_events`): a diagnostic."""
     from quadobs.estimators.bias_states import BiasedRangeOutputModel
+
+    truth = np.zeros(3)
 
     class AtTruth(BiasedRangeOutputModel):
         def linearize(self, x):
             x_true = x.copy()
-            x_true[:3] = world.state()[:3]
+            x_true[:3] = truth
             return super().linearize(x)[0], super().linearize(x_true)[1]
+
+    correct, events = est.correct, drawn_events(world.radio)
+
+    def correct_at_truth(m):
+        truth[:] = events[id(m)][1]
+        correct(m)
 
     out = est.outputs
     est.outputs = AtTruth(out.system, out.R, offsets=out.offsets)
+    est.correct = correct_at_truth
     est.name += "-truejac"
     return est
 

@@ -48,9 +48,9 @@ CASES = {
         "replayed RMSE",
     ),
     "uwb_realistic.py": (
-        ["--seeds", "0:1", "--duration", "7", "--estimators", "ekf", "--given", "--line-of-sight"],
+        "--seeds 0:1 --duration 7 --estimators ekf --given --line-of-sight --jacobian-at-truth".split(),
         [],
-        '"ekf-bias-given-los": {"time_to_1m"',
+        '"ekf-bias-truejac": {"time_to_1m"',
     ),
     "tuned_baselines.py": (
         ["--duration", "1", "--runs", "2", "--workers", "0", "--out", "{tmp}/campaign"],
