@@ -73,6 +73,9 @@ class BiasedAugmentedObserver(Estimator, Gated, Immersed):
     """
 
     name = "augmented-bias"
+    #: The biases' prior standard deviation (m) when none is given: the upper end of UWB
+    #: antenna delays, as :meth:`~quadobs.core.measurements.RangeModel.extra_states`.
+    DEFAULT_BIAS_STD = 0.5
 
     def __init__(
         self,
@@ -82,7 +85,7 @@ class BiasedAugmentedObserver(Estimator, Gated, Immersed):
         sigma: float,
         V=1e-4,
         P0=100.0,
-        bias_std: float = 0.5,
+        bias_std: float = DEFAULT_BIAS_STD,
         squares: bool = False,
         bias_walk: float = 0.0,
         theta: float = 0.0,

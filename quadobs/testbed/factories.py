@@ -531,7 +531,7 @@ def biased_augmented_observer(scenario: Scenario, x0: np.ndarray):
         theta=obs.theta,
         x0=x0,
         robust=_huber_only(scenario),
-        **({} if (b := bias_prior_std(scenario)) is None else {"bias_std": b}),
+        bias_std=bias_prior_std(scenario) or BiasedAugmentedObserver.DEFAULT_BIAS_STD,
     )
 
 
