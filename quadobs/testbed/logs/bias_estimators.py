@@ -23,7 +23,7 @@ augmented observer (:func:`~quadobs.testbed.logs.estimators.build_augmented`), r
 instance of it so that both follow one rule: the immersion, the fixed process-noise intensity
 ``V`` (the auxiliary states' noise bounded through the largest anchor distance; the
 state-dependent ``V(z)`` the augmented observer uses in time was measured worse here: 0.57 m
-against 0.45 m on the 40 s circle of the tests), the initial
+against 0.45 m after 10 s on the one-lap circle of ``tests/testbed/test_calibration.py``), the initial
 covariance (that of ``lift(x)`` around the guess), ``theta``; each range's own standard
 deviation, else ``range_sigma``, gives its output's variance ``rho^2 sigma^2 + sigma^4 / 2``;
 the biases' prior is the filters' (0.5 m). No robust rule: its covariance is a tuning, and
