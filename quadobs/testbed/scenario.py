@@ -603,10 +603,15 @@ class OdometrySpec(_Table):
     ``omega~ = omega + yaw_rate_bias + yaw_rate_std n'``, each sample held until the next.
     """
 
-    rate: Rate = Field(50.0, description="Odometry samples per second (Hz), dividing the physics rate.")
-    speed_std: Noise = Field(0.0, description="Standard deviation of the speed's white noise (m/s).")
+    rate: Rate = Field(
+        50.0, description="Odometry samples per second (Hz), dividing the physics rate."
+    )
+    speed_std: Noise = Field(
+        0.0, description="Standard deviation of the speed's white noise (m/s)."
+    )
     scale_error: Annotated[Number, Gt(-1.0), Le(1.0)] = Field(
-        0.0, description="Relative error of the wheel scale: the speed reads `(1 + scale_error)` times the true one."
+        0.0,
+        description="Relative error of the wheel scale: the speed reads `(1 + scale_error)` times the true one.",
     )
     yaw_rate_std: Noise = Field(
         0.0, description="Standard deviation of the yaw rate's white noise (rad/s)."
@@ -824,7 +829,9 @@ class Scenario(_Table):
                 raise QuadobsError("radio: the radio's tag moves without wind")
             if self.odometry is not None:
                 if self.dimension != 2 or self.wind_spec is not None:
-                    raise QuadobsError("odometry: wheel odometry is planar: a 2-D vehicle without wind")
+                    raise QuadobsError(
+                        "odometry: wheel odometry is planar: a 2-D vehicle without wind"
+                    )
                 self.sample_interval(self.odometry.rate, "rate", table="odometry")
             for table in ("control", "quadrotor"):
                 if getattr(self, table) is not None:
