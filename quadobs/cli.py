@@ -1215,9 +1215,15 @@ def _replay_calibration(args, log, tuning: dict) -> tuple[list[float] | np.ndarr
         return biases, tuning
     if args.calibrate == "none":
         return None, tuning
+    from quadobs.testbed.logs.estimators import log_defaults
+
     key = process_noise_key(args.model or default_model(log))
-    cal = calibrate(
-        log, dt=args.dt, model=args.model, setup_options=tuning, noise=key not in tuning
+    cal = calibrate(  # the log's own defaults (its odometry's speed) as the prior
+        log,
+        dt=args.dt,
+        model=args.model,
+        setup_options={**log_defaults(log), **tuning},
+        noise=key not in tuning,
     )
     chosen = "none" if cal.biases is None else ", ".join(f"{b:.2f}" for b in cal.biases) + " m"
     print(f"calibrated from the log: biases {chosen}; {cal.reason}")
