@@ -9,12 +9,12 @@ stated ``std``) and with the ``std`` column left out, as a log converted by hand
 replay's ``range_sigma`` then applies).
 
 Beside them, the reference: what a short script does that is *given* what the replay must find
-out, the true per-anchor biases and the simulation's true noise: the range noise ``std`` of the
-radio, and for the heading filter ``ukf-heading`` the odometry's white noise as intensities
-``q_xy = speed_std^2 / rate`` and ``q_theta = yaw_rate_std^2 / rate`` (a sample held over
-``1 / rate``); the EKF of the odometry model (no heading state) with the default ``q_xy``, as
-its heading drift is no white noise. Every figure is the position RMSE (m) after the 5 s
-burn-in.
+out, the true per-anchor biases, the simulation's true noise and the true start (no initial
+offset): the range noise ``std`` of the radio, and for the heading filters the odometry's white
+noise as intensities ``q_xy = speed_std^2 / rate`` and ``q_theta = yaw_rate_std^2 / rate`` (a
+sample held over ``1 / rate``); the EKF of the odometry model (no heading state) with the
+default ``q_xy``, as its heading drift is no white noise. Every figure is the position RMSE (m)
+after the 5 s burn-in.
 
     python sims/replay_rover_room.py [--seeds 0,1,2] [--duration 90]
 """
@@ -39,7 +39,7 @@ from quadobs.testbed.logs.replay import run_replay
 from quadobs.testbed.uwb import radio_of
 
 BURN_IN = 5.0
-REFERENCE = ("ukf-heading", "ekf")
+REFERENCE = ("ekf-heading", "ukf-heading", "ekf")
 
 
 def export(seed: int, duration: float, folder: Path):
@@ -86,10 +86,11 @@ def reference(folder: Path, scenario) -> dict:
     }
     out = {}
     for name in REFERENCE:
-        opts = options if name == "ukf-heading" else {"range_sigma": radio.std}
+        opts = options if name.endswith("-heading") else {"range_sigma": radio.std}
         summary = run_replay(
-            log, estimators=[name], biases=truth, setup_options=opts, burn_in=BURN_IN, batch=False
-        )
+            log, estimators=[name], biases=truth, setup_options=opts, burn_in=BURN_IN,
+            batch=False, initial_offset=0.0,
+        )  # fmt: skip
         out[f"{name} (truth)"] = summary["estimators"][name]["rmse"]
     return out
 

@@ -143,3 +143,38 @@ def test_the_exported_log_replays_with_the_odometry_defaults(rover_log):
     assert summary["model"] == "odometry"
     for name in names:
         assert summary["estimators"][name]["rmse"] < 1.0, name
+
+
+def _odometry_log(times, speeds):
+    from quadobs.testbed.logs.format import RangeLog
+
+    inputs = np.column_stack([times, speeds, np.zeros(len(times))])
+    beacons = np.array([[0.0, 0.0], [3.0, 0.0], [3.0, 2.4]])
+    ranges = np.array([[0.5, 0, 1.0], [0.6, 1, 2.0]])
+    return RangeLog("odo", np.arange(3), beacons, ranges, inputs, 0.0)
+
+
+def test_the_odometry_noise_prior_is_the_mean_square_speed_over_a_second():
+    from quadobs.testbed.logs.estimators import (
+        ODOMETRY_ERROR_TIME,
+        log_defaults,
+        odometry_noise,
+    )
+
+    # 0.3 m/s for 2 s, then 0.6 m/s for 1 s (the last row only closes the span)
+    log = _odometry_log([0.0, 2.0, 3.0], [0.3, 0.6, 5.0])
+    expected = (2.0 * 0.09 + 1.0 * 0.36) / 3.0 * ODOMETRY_ERROR_TIME
+    assert odometry_noise(log) == pytest.approx(expected, rel=1e-12)
+    assert log_defaults(log) == {"q_xy": pytest.approx(expected, rel=1e-12)}
+    # a robot that never moves still gets the floor's noise, (0.01 m/s)^2 over a second
+    assert odometry_noise(_odometry_log([0.0, 1.0], [0.0, 0.0])) == pytest.approx(1e-4)
+
+
+def test_the_replay_takes_the_log_s_prior_unless_an_option_sets_it():
+    from quadobs.testbed.logs.estimators import odometry_noise, replay_setup
+    from quadobs.testbed.worlds.replay import ReplayWorld
+
+    log = _odometry_log([0.0, 2.0, 3.0], [0.3, 0.6, 0.6])
+    world = ReplayWorld(log, 0.1, "odometry", 8, None, peer_batch=False)
+    assert replay_setup(log, world).q_xy == pytest.approx(odometry_noise(log))
+    assert replay_setup(log, world, {"q_xy": 2.0}).q_xy == 2.0
