@@ -59,13 +59,16 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from quadobs.errors import QuadobsError
 from quadobs.testbed.logs.format import LOG_FILES, RangeLog, write_log
 from quadobs.testbed.sinks import EpisodeContext, Rows, Sink
+
+if TYPE_CHECKING:
+    from quadobs.testbed.odometry import WheelOdometry
 
 __all__ = [
     "LogExportSink",
@@ -167,7 +170,7 @@ class LogExportSink(Sink):
         }
         self.tap: QuadrotorLogTap | None = None
         self.radio_events: list = []
-        self.odometry = None  # a ground robot's wheel odometry (an [odometry] table)
+        self.odometry: WheelOdometry | None = None  # a ground robot's wheel odometry ([odometry])
         self.odometry_parts: list[np.ndarray] = []
 
     def begin(self, ctx: EpisodeContext) -> None:
