@@ -309,9 +309,9 @@ def _cmd_run(args) -> int:
     if "export_error" in result.summary:  # the run's results are kept; the log folder is not
         raise RunFault(result.summary["export_error"])
     if args.export_log is not None:
-        print(
-            f"log: {args.export_log}  (replay with: quadobs replay {args.export_log} --dt {scenario.dt:g})"
-        )
+        # an odometry log is replayed in time on the default grid (its inputs held between rows)
+        grid = "" if scenario.odometry is not None else f" --dt {scenario.dt:g}"
+        print(f"log: {args.export_log}  (replay with: quadobs replay {args.export_log}{grid})")
     if result.summary.get("interrupted"):
         return 130
     crashed = result.summary.get("flight", {}).get("crashed")

@@ -178,3 +178,14 @@ def test_the_replay_takes_the_log_s_prior_unless_an_option_sets_it():
     world = ReplayWorld(log, 0.1, "odometry", 8, None, peer_batch=False)
     assert replay_setup(log, world).q_xy == pytest.approx(odometry_noise(log))
     assert replay_setup(log, world, {"q_xy": 2.0}).q_xy == 2.0
+
+
+def test_the_command_line_exports_and_replays_the_odometry_log(tmp_path, capsys):
+    from quadobs.cli import main
+
+    folder = tmp_path / "rover"
+    assert main(["run", "rover-room", "--duration", "6", "--export-log", str(folder)]) == 0
+    assert f"replay with: quadobs replay {folder})" in capsys.readouterr().out
+    assert main(["replay", str(folder), "--burn-in", "5", "--calibrate", "none"]) == 0
+    out = capsys.readouterr().out
+    assert "model odometry" in out and "ekf-bias" in out and "ukf-heading" in out
