@@ -184,8 +184,8 @@ def test_the_command_line_exports_and_replays_the_odometry_log(tmp_path, capsys)
     from quadobs.cli import main
 
     folder = tmp_path / "rover"
-    assert main(["run", "rover-room", "--duration", "6", "--export-log", str(folder)]) == 0
+    assert main(["run", "rover-room", "--duration", "2", "--export-log", str(folder)]) == 0
     assert f"replay with: quadobs replay {folder})" in capsys.readouterr().out
-    assert main(["replay", str(folder), "--burn-in", "5", "--calibrate", "none"]) == 0
+    assert main(["replay", str(folder), "--burn-in", "1", "--calibrate", "none"]) == 0
     out = capsys.readouterr().out
     assert "model odometry" in out and "ekf-bias" in out and "ukf-heading" in out
