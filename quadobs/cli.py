@@ -309,9 +309,9 @@ def _cmd_run(args) -> int:
     if "export_error" in result.summary:  # the run's results are kept; the log folder is not
         raise RunFault(result.summary["export_error"])
     if args.export_log is not None:
-        print(
-            f"log: {args.export_log}  (replay with: quadobs replay {args.export_log} --dt {scenario.dt:g})"
-        )
+        # an odometry log is replayed in time on the default grid (its inputs held between rows)
+        grid = "" if scenario.odometry is not None else f" --dt {scenario.dt:g}"
+        print(f"log: {args.export_log}  (replay with: quadobs replay {args.export_log}{grid})")
     if result.summary.get("interrupted"):
         return 130
     crashed = result.summary.get("flight", {}).get("crashed")
@@ -1215,9 +1215,15 @@ def _replay_calibration(args, log, tuning: dict) -> tuple[list[float] | np.ndarr
         return biases, tuning
     if args.calibrate == "none":
         return None, tuning
+    from quadobs.testbed.logs.estimators import log_defaults
+
     key = process_noise_key(args.model or default_model(log))
-    cal = calibrate(
-        log, dt=args.dt, model=args.model, setup_options=tuning, noise=key not in tuning
+    cal = calibrate(  # the log's own defaults (its odometry's speed) as the prior
+        log,
+        dt=args.dt,
+        model=args.model,
+        setup_options={**log_defaults(log), **tuning},
+        noise=key not in tuning,
     )
     chosen = "none" if cal.biases is None else ", ".join(f"{b:.2f}" for b in cal.biases) + " m"
     print(f"calibrated from the log: biases {chosen}; {cal.reason}")

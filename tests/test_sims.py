@@ -81,6 +81,11 @@ CASES = {
         ["cv.json"],
         "evaluated on | prior | from quad",
     ),
+    "replay_rover_room.py": (
+        ["--seeds", "0", "--duration", "8", "--json", "{tmp}/rover.json"],
+        ["rover.json"],
+        "| seed | log |",
+    ),
 }
 
 

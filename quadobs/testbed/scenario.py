@@ -69,6 +69,7 @@ __all__ = [
     "InitialGuess",
     "NoiseSpec",
     "ObserverSpec",
+    "OdometrySpec",
     "QuadrotorSpec",
     "RadioSpec",
     "Scenario",
@@ -569,6 +570,10 @@ class RadioSpec(_Table):
     bias_std: Noise = Field(
         0.0, description="Standard deviation of the drawn per-anchor biases (m)."
     )
+    bias_mean: Annotated[Number, Ge(-MAX_NOISE), Le(MAX_NOISE)] | None = Field(
+        None,
+        description="Mean of the drawn per-anchor biases (m; default 0): an antenna delay lengthens every range, so real biases are mostly positive.",
+    )
     jitter: Noise = Field(
         0.0, description="Standard deviation of each exchange's timing jitter (s)."
     )
@@ -587,6 +592,32 @@ class RadioSpec(_Table):
     room: Annotated[String, MaxLen(MAX_TEXT)] | None = Field(
         None,
         description="MJCF file of the obstacles cast against with `mj_ray` (relative to the scenario file; `builtin` for the package's room).",
+    )
+
+
+class OdometrySpec(_Table):
+    """The ``[odometry]`` table: a planar ground robot's wheel odometry (:mod:`quadobs.testbed.odometry`),
+    written as the inputs of an exported log (``time,speed,yaw_rate``) instead of the accelerometer.
+
+    The speed is along the direction of travel: ``s~ = (1 + scale_error) |v| + speed_std n``,
+    ``omega~ = omega + yaw_rate_bias + yaw_rate_std n'``, each sample held until the next.
+    """
+
+    rate: Rate = Field(
+        50.0, description="Odometry samples per second (Hz), dividing the physics rate."
+    )
+    speed_std: Noise = Field(
+        0.0, description="Standard deviation of the speed's white noise (m/s)."
+    )
+    scale_error: Annotated[Number, Gt(-1.0), Le(1.0)] = Field(
+        0.0,
+        description="Relative error of the wheel scale: the speed reads `(1 + scale_error)` times the true one.",
+    )
+    yaw_rate_std: Noise = Field(
+        0.0, description="Standard deviation of the yaw rate's white noise (rad/s)."
+    )
+    yaw_rate_bias: Annotated[Number, Ge(-MAX_RATE), Le(MAX_RATE)] = Field(
+        0.0, description="Constant bias of the yaw rate (rad/s)."
     )
 
 
@@ -684,7 +715,12 @@ class Scenario(_Table):
     )
     radio: RadioSpec | None = Field(
         None,
-        description='A simulated UWB radio feeding each range or TDOA at its own time (a tag in 3-D, without wind); `protocol = "tdoa"` is the scenario\'s TDOA (the former `[tdoa]` table, deprecated).',
+        description='A simulated UWB radio feeding each range or TDOA at its own time (a tag in 2-D or 3-D, without wind); `protocol = "tdoa"` is the scenario\'s TDOA (the former `[tdoa]` table, deprecated).',
+    )
+
+    odometry: OdometrySpec | None = Field(
+        None,
+        description="Wheel odometry of a planar ground robot (speed, yaw rate), written as the inputs of an exported log (a 2-D vehicle without wind).",
     )
 
     _beacons: np.ndarray = PrivateAttr()
@@ -789,8 +825,14 @@ class Scenario(_Table):
     def _quadrotor_tables(self) -> Scenario:
         """``[control]`` and ``[quadrotor]`` belong to quadrotor scenarios, which move in 3-D."""
         if self.kind != "quadrotor":
-            if self.radio is not None and (self.dimension != 3 or self.wind_spec is not None):
-                raise QuadobsError("radio: the radio's tag moves in 3-D, without wind")
+            if self.radio is not None and self.wind_spec is not None:
+                raise QuadobsError("radio: the radio's tag moves without wind")
+            if self.odometry is not None:
+                if self.dimension != 2 or self.wind_spec is not None:
+                    raise QuadobsError(
+                        "odometry: wheel odometry is planar: a 2-D vehicle without wind"
+                    )
+                self.sample_interval(self.odometry.rate, "rate", table="odometry")
             for table in ("control", "quadrotor"):
                 if getattr(self, table) is not None:
                     raise QuadobsError(
@@ -799,6 +841,8 @@ class Scenario(_Table):
             return self
         if self.dimension != 3:
             raise QuadobsError(f"dimension: a quadrotor flies in 3-D, got {self.dimension}")
+        if self.odometry is not None:
+            raise QuadobsError('odometry: wheel odometry is for kind = "vehicle" in 2-D')
         if self.wind_spec is not None:
             raise QuadobsError('wind: not modelled for kind = "quadrotor"')
         quad, control = self.quadrotor or QuadrotorSpec(), self.control or ControlSpec()

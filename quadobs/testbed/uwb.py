@@ -19,7 +19,8 @@ For a range to anchor ``i`` at time ``t`` (tag at ``p``):
 
 with ``n, n_o, n_e`` standard normal:
 
-* ``b_i``: a constant per-anchor bias (antenna delay), given or drawn once ``N(0, bias_std^2)``;
+* ``b_i``: a constant per-anchor bias (antenna delay), given or drawn once
+  ``N(bias_mean, bias_std^2)`` (an antenna delay lengthens the range: ``bias_mean > 0``);
 * ``sigma n``: the line-of-sight noise;
 * non-line-of-sight, decided by geometry: the segment from the anchor to the tag is cast
   against the obstacles of an MJCF room with MuJoCo's ray casting (``mj_ray``); when it
@@ -98,9 +99,11 @@ class RadioConfig:
     std : float
         Line-of-sight noise of one range or one difference (m).
     biases : tuple of float or None
-        Per-anchor biases (m); ``None``: drawn once ``N(0, bias_std^2)``.
+        Per-anchor biases (m); ``None``: drawn once ``N(bias_mean, bias_std^2)``.
     bias_std : float
         Standard deviation of the drawn biases (m).
+    bias_mean : float
+        Mean of the drawn biases (m).
     jitter : float
         Standard deviation of each event's timing jitter (s).
     dropout, outlier_probability : float
@@ -120,6 +123,7 @@ class RadioConfig:
     biases: tuple[float, ...] | None = None
     bias_std: float = 0.0
     jitter: float = 0.0
+    bias_mean: float = 0.0
     dropout: float = 0.0
     outlier_probability: float = 0.0
     outlier_std: float = 0.0
@@ -141,6 +145,8 @@ class RadioConfig:
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0.0):
                 raise QuadobsError(f"radio.{name}: expected a non-negative number, got {value}")
+        if not math.isfinite(self.bias_mean):
+            raise QuadobsError(f"radio.bias_mean: expected a finite number, got {self.bias_mean}")
         for name in ("dropout", "outlier_probability"):
             value = getattr(self, name)
             if not 0.0 <= value < 1.0:
@@ -221,6 +227,8 @@ class UwbRadio:
         children = np.random.SeedSequence([int(seed), 0x55B]).spawn(len(_STREAMS))
         self._rng = {k: np.random.default_rng(c) for k, c in zip(_STREAMS, children)}
         drawn = config.bias_std * self._rng["bias"].standard_normal(self.m)
+        if config.bias_mean:  # added only when set: a zero mean leaves the draws bit-identical
+            drawn = config.bias_mean + drawn
         self.biases = drawn if config.biases is None else np.array(config.biases, dtype=float)
         self.biases.setflags(write=False)
         self.room = room if room is not None else (Room(config.room) if config.room else None)
@@ -353,6 +361,9 @@ class UwbRadio:
 def radio_of(scenario) -> UwbRadio | None:
     """The radio of a scenario's ``[radio]`` table (``None`` without one), seeded by its seed.
 
+    A planar scenario's anchors are placed in the plane ``z = 0`` (the tag's position is
+    padded likewise by the world, :class:`~quadobs.testbed.worlds.radio_feed.RadioFeed`).
+
     ``room = "builtin"`` is the package's room (``uwb_room.xml``); another name is read
     relative to the scenario file.
     """
@@ -373,6 +384,7 @@ def radio_of(scenario) -> UwbRadio | None:
         std=spec.std,
         biases=spec.biases,
         bias_std=spec.bias_std,
+        bias_mean=spec.bias_mean or 0.0,
         jitter=spec.jitter,
         dropout=spec.dropout,
         outlier_probability=spec.outlier_probability,
@@ -381,4 +393,7 @@ def radio_of(scenario) -> UwbRadio | None:
         nlos_shape=spec.nlos_shape,
         room=room,
     )
-    return UwbRadio(scenario.beacons, config, scenario.seed)
+    anchors = np.asarray(scenario.beacons, dtype=float)
+    if anchors.shape[1] == 2:  # a planar tag: the anchors and the tag in the plane z = 0
+        anchors = np.column_stack([anchors, np.zeros(anchors.shape[0])])
+    return UwbRadio(anchors, config, scenario.seed)

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from quadobs.errors import QuadobsError
-from quadobs.testbed.uwb import RadioConfig, Room, UwbRadio, room_model_path
+from quadobs.testbed.uwb import RadioConfig, Room, UwbRadio, radio_of, room_model_path
 
 ANCHORS = np.array(
     [[-3, -3, 0.2], [3, -3, 0.2], [3, 3, 0.2], [-3, 3, 0.2], [-3, -3, 2.8], [3, -3, 2.8]],
@@ -155,13 +155,15 @@ def test_realistic_quadrotor_feeds_each_range_at_its_own_time():
     assert ekf["time_to_1m"] < 2.0 and ekf["final_position_error"] < 0.5
 
 
-def test_radio_table_needs_a_tag_in_space_without_wind():
+def test_radio_table_needs_a_tag_without_wind():
     from quadobs.testbed.scenario import load_scenario
 
-    for name in ("beacons2d", "wind"):
-        with pytest.raises(QuadobsError, match="radio"):
-            load_scenario(name, settings=["radio.rate=50"])
+    with pytest.raises(QuadobsError, match="radio"):
+        load_scenario("wind", settings=["radio.rate=50"])
     assert load_scenario("ifac2021", settings=["radio.rate=50"]).radio.rate == 50.0
+    # a planar tag: the anchors in the plane z = 0 (rover-room)
+    planar = load_scenario("beacons2d", settings=["radio.rate=50"])
+    assert planar.radio.rate == 50.0 and radio_of(planar).anchors[:, 2].tolist() == [0.0] * 3
 
 
 def test_tdoa_radio_is_refused_by_name_by_an_estimator_without_a_tdoa_model():

@@ -9,9 +9,10 @@ name) -> Estimator`` with ``setup`` a :class:`ReplaySetup`. The simulated scenar
 group ``quadobs.estimators`` is kept apart: its factories take a scenario.
 
 Noise (the defaults of :class:`ReplaySetup`; the same for every estimator). The defaults
-are round priors, chosen without looking at any log: a metre for a radio range, a metre
-per second over a second for the odometry, ``1e-3`` rad^2/s for its heading, a m/s^2 over
-a second for an unknown acceleration, a tenth of a m/s^2 for an accelerometer. The replay's
+are round priors, chosen without looking at any log's truth: a metre for a radio range, the
+odometry's own root-mean-square speed over a second for the odometry (:func:`log_defaults`),
+``1e-3`` rad^2/s for its heading, a m/s^2 over a second for an unknown acceleration, a tenth
+of a m/s^2 for an accelerometer. The replay's
 self-calibration (:mod:`quadobs.testbed.logs.calibration`, the default of ``quadobs
 replay``) replaces the model's process-noise intensity with one it picks from the log's
 ranges, never from the truth. No default is tied to one log's scale.
@@ -21,8 +22,14 @@ ranges, never from the truth. No default is tied to one log's scale.
   The augmented observer's output is the half squared range, of variance
   ``rho^2 sigma^2 + sigma^4 / 2`` for each range ``rho`` in time; on the grid (a replay with a
   sensor layer) ``R = (rho_med range_sigma)^2`` with ``rho_med`` the median measured range;
-* odometry (model ``odometry``): a white noise of intensity ``q_xy`` (1 m^2/s) on ``p'``
-  (it covers the speed noise and the heading drift of the odometry);
+* odometry (model ``odometry``): a white noise of intensity ``q_xy`` on ``p'`` (it covers the
+  speed noise, the wheel-scale error and the heading drift of the odometry, each an error of the
+  velocity in proportion to the speed): by default ``q_xy = s_rms^2 T`` (:func:`odometry_noise`)
+  with ``s_rms`` the log's root-mean-square odometry speed and ``T`` =
+  :data:`ODOMETRY_ERROR_TIME` (1 s), a velocity error of the order of the speed itself over a
+  second; the fixed 1 m^2/s before it was that prior for a vehicle at 1 m/s only (Plaza1:
+  ``s_rms`` 1.06 m/s, ``q_xy`` 1.13 m^2/s; Plaza2 3.46 m/s, 11.9; the ``rover-room`` robot
+  0.36 m/s, 0.13);
 * model ``cv``: a white acceleration of intensity ``q_acc`` (1 m^2/s^3);
 * model ``imu``: the accelerometer's white noise, of intensity ``q_imu`` (``1e-2`` m^2/s^3)
   on ``v' = u``; the initial velocity with variance 4 m^2/s^2 per axis, as for ``cv``;
@@ -87,6 +94,8 @@ __all__ = [
     "build_ukf_heading",
     "gyro_noise",
     "initial_variance",
+    "log_defaults",
+    "odometry_noise",
     "parse_tuning",
     "replay_estimator_names",
     "replay_setup",
@@ -254,6 +263,40 @@ def initial_variance(log, offset: float | None = None, range_sigma: float = 1.0,
     return max(d + extent, range_sigma) ** 2
 
 
+#: The time (s) over which the odometry's velocity may be wrong by its own typical speed
+#: (:func:`odometry_noise`).
+ODOMETRY_ERROR_TIME = 1.0
+#: The least speed (m/s) of :func:`odometry_noise`: a log that never moves still gets a
+#: process noise (a centimetre per second over a second).
+ODOMETRY_SPEED_FLOOR = 0.01
+
+
+def odometry_noise(log) -> float:
+    """The default odometry process-noise intensity ``q_xy`` (m^2/s) of a log: ``s_rms^2 T``.
+
+    ``s_rms^2`` is the time-weighted mean of the squared odometry speed (each sample held to
+    the next, as the replay integrates it), at least :data:`ODOMETRY_SPEED_FLOOR` squared;
+    ``T`` is :data:`ODOMETRY_ERROR_TIME`. The errors that the odometry model leaves to this
+    noise (the speed's scale, the heading's drift) are errors of the velocity in proportion to
+    the speed, so the intensity scales with the square of the speed, and no constant of one
+    log's scale enters: a robot at 0.35 m/s in a room gets 0.12 m^2/s, a car at 3.5 m/s 12.
+    """
+    t, speed = log.inputs[:, 0], log.inputs[:-1, 1]
+    span = np.diff(t)
+    total = float(np.sum(span))
+    mean_square = float(np.sum(span * speed * speed)) / total if total > 0 else 0.0
+    return max(mean_square, ODOMETRY_SPEED_FLOOR**2) * ODOMETRY_ERROR_TIME
+
+
+def log_defaults(log) -> dict:
+    """The setup options whose defaults a log sets (:class:`ReplaySetup`): ``q_xy`` of an
+    odometry log (:func:`odometry_noise`); empty for other logs. :func:`replay_setup` fills
+    them where ``options`` does not set them; the self-calibration takes them as its prior."""
+    if log.input_kind == "odometry" and log.inputs.shape[0] >= 2:
+        return {"q_xy": odometry_noise(log)}
+    return {}
+
+
 def replay_setup(
     log, world, options: dict | None = None, initial_offset: float | None = None, x0=None
 ) -> ReplaySetup:
@@ -262,7 +305,7 @@ def replay_setup(
     ``initial_offset`` from the truth (:func:`initial_variance`)."""
     from quadobs.testbed.worlds.replay import dead_reckoning
 
-    options = dict(options or {})
+    options = {**log_defaults(log), **(options or {})}
     if "P0" not in options:
         sigma = options.get("range_sigma", ReplaySetup.range_sigma)
         options["P0"] = initial_variance(log, initial_offset, sigma, x0)

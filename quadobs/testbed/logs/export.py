@@ -17,6 +17,18 @@
   ``std`` instead of the grid's ranges: ranges in ``ranges.csv``, TDOA in ``tdoa.csv``
   (:func:`radio_rows`).
 
+With an ``[odometry]`` table (a planar ground robot, :mod:`quadobs.testbed.odometry`) the log
+is an odometry log of version 2 instead:
+
+* ``inputs.csv``: ``time,speed,yaw_rate``, the wheel odometry's samples (with its noise,
+  scale error and yaw-rate bias) at its ``rate``, each held until the next; a last row at
+  ``t_K`` repeats the last sample;
+* ``meta.csv``: ``heading0``, the true heading (the direction of travel) at the first sample;
+* ``truth.csv``: ``time,x,y,heading`` at each step;
+* ``ranges.csv``: the radio's ranges at their own times with its stated ``std``, as above.
+
+``quadobs replay DIR`` reads it with its odometry defaults (the model ``odometry``).
+
 Replayed at ``dt`` equal to the physics step (``quadobs replay DIR --dt DT --model imu``)
 the log gives the estimators the same outputs and, to rounding, the same inputs as the
 episode (tested in ``tests/testbed/test_replay.py``). Vehicle scenarios with wind are not
@@ -47,13 +59,16 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from quadobs.errors import QuadobsError
 from quadobs.testbed.logs.format import LOG_FILES, RangeLog, write_log
 from quadobs.testbed.sinks import EpisodeContext, Rows, Sink
+
+if TYPE_CHECKING:
+    from quadobs.testbed.odometry import WheelOdometry
 
 __all__ = [
     "LogExportSink",
@@ -155,6 +170,8 @@ class LogExportSink(Sink):
         }
         self.tap: QuadrotorLogTap | None = None
         self.radio_events: list = []
+        self.odometry: WheelOdometry | None = None  # a ground robot's wheel odometry ([odometry])
+        self.odometry_parts: list[np.ndarray] = []
 
     def begin(self, ctx: EpisodeContext) -> None:
         super().begin(ctx)
@@ -168,6 +185,10 @@ class LogExportSink(Sink):
             self.tap = world.log_tap = QuadrotorLogTap(world)
         elif getattr(world, "radio", None) is not None:  # a point mass's radio: its events
             self.radio_events = world.event_log = []
+        if self.tap is None:
+            from quadobs.testbed.odometry import odometry_of
+
+            self.odometry = odometry_of(getattr(world, "scenario", None))
 
     def block(self, rows: Rows) -> None:
         fr, c = self.ctx.frame, rows.block.columns
@@ -179,8 +200,22 @@ class LogExportSink(Sink):
         if self.tap is not None:
             self._quadrotor_block(rows, steps)
             return
+        if self.odometry is not None:
+            self._odometry_block(rows, steps)
+            return
         self.parts["truth"].append(np.column_stack([t, rows.truth]))
         self.parts["inputs"].append(np.column_stack([t[steps], rows.block.u[: rows.count][steps]]))
+
+    def _odometry_block(self, rows: Rows, steps: np.ndarray) -> None:
+        """A ground robot: the odometry's samples of the block's steps, and the truth with its heading."""
+        odo, truth = self.odometry, rows.truth
+        assert odo is not None, "an odometry export only"
+        sampled = steps & (rows.ks % odo.every == 0)
+        accel = rows.block.raw[: rows.count, rows.block.columns.extra["accel"]]
+        measured, _, _ = odo.sample(truth[sampled, 2:4], accel[sampled])
+        self.parts["inputs"].append(np.column_stack([rows.t[sampled], measured]))
+        heading = np.arctan2(truth[:, 3], truth[:, 2])
+        self.parts["truth"].append(np.column_stack([rows.t, truth[:, :2], heading]))
 
     def _quadrotor_block(self, rows: Rows, steps: np.ndarray) -> None:
         """The body IMU, the AHRS attitude where renewed, and the truth with its attitude."""
@@ -199,7 +234,12 @@ class LogExportSink(Sink):
         ranges = np.vstack(self.parts["ranges"]).reshape(-1, 3)
         negated = int(np.count_nonzero(ranges[:, 2] < 0.0))
         ranges[:, 2] = np.abs(ranges[:, 2])
-        log = self._quadrotor_log(completed, ranges) if self.tap else self._log(completed, ranges)
+        if self.tap:
+            log = self._quadrotor_log(completed, ranges)
+        elif self.odometry is not None:
+            log = self._odometry_log(completed, ranges)
+        else:
+            log = self._log(completed, ranges)
         from quadobs.testbed.outputs import write_folder_staged
 
         try:  # the folder as a whole (a full disk leaves the previous one complete)
@@ -231,6 +271,31 @@ class LogExportSink(Sink):
             np.vstack(self.parts["truth"]),
             input_kind="imu",
             truth_columns=("time", *axes, *(f"v{a}" for a in axes)),
+            **extra,
+        )
+
+    def _odometry_log(self, completed: int, ranges: np.ndarray) -> RangeLog:
+        """A ground robot's log: wheel odometry, its start heading, ranges, position and heading truth."""
+        fr = self.ctx.frame
+        odo = np.vstack(self.parts["inputs"])
+        inputs = np.vstack([odo, np.r_[completed * fr.dt, odo[-1, 1:]][None]])
+        truth = np.vstack(self.parts["truth"])
+        extra: dict[str, Any] = {}
+        if self.radio_events:  # the radio's ranges at their own times, with their std
+            ranges, tdoa = radio_rows(self.radio_events, ranges, math.nan)
+            extra = {"range_std": ranges[:, 3], "tdoa": tdoa[:, :4], "tdoa_std": tdoa[:, 4]}
+            ranges = ranges[:, :3]
+        return RangeLog(
+            fr.name,
+            np.arange(fr.beacons.shape[0]),
+            np.asarray(fr.beacons, dtype=float),
+            ranges,
+            inputs,
+            float(truth[0, 3]),
+            truth,
+            input_kind="odometry",
+            truth_columns=("time", "x", "y", "heading"),
+            description=(fr.description.splitlines() or [""])[0],
             **extra,
         )
 

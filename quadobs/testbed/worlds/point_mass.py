@@ -762,6 +762,7 @@ class PointMassWorld(World):
         traj = scenario.trajectory
         sim = VehicleSim.of(scenario)
         self.sim, self.dt, self._traj = sim, scenario.dt, traj
+        self.scenario = scenario
         self.stepper = st = BlockStepper(sim, capacity, sensors)
         self.out, self.events = st.out, st.events
         self.columns = Columns(

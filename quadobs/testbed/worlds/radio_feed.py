@@ -125,12 +125,17 @@ class RadioPointMassWorld(RadioFeed, PointMassWorld):
         self._radio_setup(scenario)
         if self.radio is None:
             raise QuadobsError(f"scenario {scenario.name!r}: has no [radio] table")
+        self._tag = np.zeros((2, 3))  # a planar tag's position and velocity in the plane z = 0
 
     def step(self, j: int, estimate: np.ndarray | None = None) -> None:
         self.stepper.step(j)
         row = self.out[j]
         x = row[self.columns.truth]
         dim = x.shape[0] // 2
-        self._radio_take(self._k0 + j, x[:dim], x[dim:])
+        if dim == 2:  # the radio's anchors lie in z = 0 (:func:`~quadobs.testbed.uwb.radio_of`)
+            self._tag[0, :2], self._tag[1, :2] = x[:2], x[2:]
+            self._radio_take(self._k0 + j, self._tag[0], self._tag[1])
+        else:
+            self._radio_take(self._k0 + j, x[:dim], x[dim:])
         row[self.columns.y] = np.nan
         row[self.columns.measured] = np.nan
