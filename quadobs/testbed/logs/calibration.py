@@ -528,8 +528,7 @@ def calibrate(
     model = model or default_model(log)
     options = dict(setup_options or {})
     q = log.beacons.shape[0]
-    keys = noise_keys(log, model)
-    fit = keys if noise is True else tuple(k for k in keys if noise and k in noise)
+    fit = _fitted_keys(log, model, noise)
     noise = process_noise_key(model) in fit
     if log.ranges.shape[0] == 0:
         return Calibration(None, options, {}, "the log holds no ranges", np.zeros(q))
@@ -583,15 +582,18 @@ def calibrate(
             options[key] = prior
         reason += "; all reverted to the prior: the setting as a whole is not significantly better"
     held["chosen"] = compare(chosen_res, prior_res, cap).score
-    more: dict = {}
     heading = tuple(k for k in fit if k in HEADING_KEYS)
-    if heading:
-        options, more, heading_tests, why = heading_noise(
-            log, biases, dt=dt, model=model, setup_options=options, keys=heading
-        )
-        tests.update(heading_tests)
-        reason += why
-    return Calibration(biases, options, scores, reason, cand, held, tests, more)
+    options, more, heading_tests, why = heading_noise(
+        log, biases, dt=dt, model=model, setup_options=options, keys=heading
+    )
+    tests.update(heading_tests)
+    return Calibration(biases, options, scores, reason + why, cand, held, tests, more)
+
+
+def _fitted_keys(log, model: str, noise) -> tuple[str, ...]:
+    """The intensities of :func:`noise_keys` that ``noise`` (True, False or keys) asks for."""
+    keys = noise_keys(log, model)
+    return keys if noise is True else tuple(k for k in keys if noise and k in noise)
 
 
 def heading_noise(
@@ -612,6 +614,8 @@ def heading_noise(
     """
     model = model or default_model(log)
     options = dict(setup_options or {})
+    if not keys:
+        return options, {}, {}, ""
     b = np.zeros(log.beacons.shape[0]) if biases is None else np.asarray(biases, dtype=float)
     current = _replay(log, dt, model, b, HEADING_SCORER, options)
     cap = _cap(current)
