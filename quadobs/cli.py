@@ -1193,13 +1193,13 @@ def _cmd_import_bag(args) -> int:
 def _replay_calibration(args, log, tuning: dict) -> tuple[list[float] | np.ndarray | None, dict]:
     """The biases and the noise settings: ``--biases`` as given, else self-calibrated (``--calibrate self``) or none.
 
-    The self-calibration also picks the model's process noise, unless ``--tune`` sets it.
+    The self-calibration also picks the process noise (each intensity of
+    :func:`~quadobs.testbed.logs.calibration.noise_keys`), unless ``--tune`` sets it.
     """
     import math
 
     from quadobs.errors import QuadobsError
-    from quadobs.testbed.logs.calibration import calibrate, process_noise_key
-    from quadobs.testbed.worlds.replay import default_model
+    from quadobs.testbed.logs.calibration import calibrate, noise_keys
 
     if args.biases is not None:
         try:
@@ -1217,14 +1217,11 @@ def _replay_calibration(args, log, tuning: dict) -> tuple[list[float] | np.ndarr
         return None, tuning
     from quadobs.testbed.logs.estimators import log_defaults
 
-    key = process_noise_key(args.model or default_model(log))
+    keys = noise_keys(log, args.model)  # an intensity fixed by --tune is not calibrated
     cal = calibrate(  # the log's own defaults (its odometry's speed) as the prior
-        log,
-        dt=args.dt,
-        model=args.model,
-        setup_options={**log_defaults(log), **tuning},
-        noise=key not in tuning,
-    )
+        log, dt=args.dt, model=args.model, setup_options={**log_defaults(log), **tuning},
+        noise=tuple(k for k in keys if k not in tuning),
+    )  # fmt: skip
     chosen = "none" if cal.biases is None else ", ".join(f"{b:.2f}" for b in cal.biases) + " m"
     print(f"calibrated from the log: biases {chosen}; {cal.reason}")
     args.calibration_report = cal.summary()

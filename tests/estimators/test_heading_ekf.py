@@ -99,7 +99,7 @@ def test_the_heading_converges_from_a_wrong_start_heading(cls):
 
 def test_the_replay_runs_them_on_an_odometry_log_and_refuses_other_logs(tmp_path):
     log = circle_log(bias=0.01, heading_error=0.05, duration=40.0)
-    options = {"range_sigma": 0.05, "q_xy": 1e-3}
+    options = {"range_sigma": 0.05, "q_xy": 1e-3, "q_xy_heading": 1e-3}
     names = ["ekf-heading", "ukf-heading", "augmented-heading", "augmented", "ekf"]
     s = run_replay(log, estimators=names, initial_offset=5.0, setup_options=options, batch=False)
     est = s["estimators"]
@@ -146,7 +146,8 @@ def test_an_odometry_log_gets_the_heading_filter_by_default_and_a_model_without_
     from quadobs.testbed.logs.replay import default_estimators
 
     log = circle_log(bias=0.0, heading_error=0.0, duration=5.0)
-    assert default_estimators(log) == ["augmented", "ekf", "ekf-bias", "ukf-heading"]
-    assert "ukf-heading" not in default_estimators(log, "cv")
+    names = ["augmented", "ekf", "ekf-bias", "ukf-heading", "augmented-heading"]
+    assert default_estimators(log) == names
+    assert not {"ukf-heading", "augmented-heading"} & set(default_estimators(log, "cv"))
     check_replay(log, [])  # the default set builds on the log
     check_replay(log, [], model="cv")  # and the one without the heading filter under cv

@@ -487,7 +487,7 @@ def test_the_noise_calibration_trusts_good_odometry_and_not_a_drifting_one():
         drift
     )  # biases, then the noise with them, then the biases again
     assert (
-        set(options) == {"q_xy"}
+        set(options) == {"q_xy", "q_xy_heading", "q_theta"}  # the heading filters' own too
         and options["q_xy"] >= 4.0
         and len(scores) == len(NOISE_FACTORS)
         and b.shape == (4,)

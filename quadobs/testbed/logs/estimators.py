@@ -142,6 +142,10 @@ class ReplaySetup:
         The median interval of a body IMU's samples (s), else None.
     gyro_noise : float or None
         The log's stated gyroscope white-noise density (rad/s/sqrt(Hz); ``meta.csv``), else None.
+    q_xy_heading : float
+        The white noise on the position of the heading filters (m^2/s per axis;
+        :func:`build_ekf_heading`): the speed's noise alone, where ``q_xy`` of the model
+        ``odometry`` also carries the heading's drift. Its prior is ``q_xy``'s (1 m^2/s).
     """
 
     beacons: np.ndarray
@@ -164,6 +168,7 @@ class ReplaySetup:
     attitude0: np.ndarray | None = None
     imu_period: float | None = None
     gyro_noise: float | None = None
+    q_xy_heading: float = 1.0
     system: QuadraticSystem = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
@@ -223,7 +228,10 @@ class ReplaySetup:
 
 
 #: The settings of :class:`ReplaySetup` a user may tune (``quadobs replay --tune KEY=VALUE``).
-TUNING = ("range_sigma", "q_xy", "q_theta", "q_acc", "q_imu", "gate", "P0", "range_bias")
+TUNING = (
+    "range_sigma", "q_xy", "q_theta", "q_acc", "q_imu", "gate", "P0", "range_bias",
+    "q_xy_heading",
+)  # fmt: skip
 
 
 def parse_tuning(settings) -> dict:
@@ -604,7 +612,8 @@ def build_ekf_heading(s: ReplaySetup, x0: np.ndarray, name: str = "ekf-heading",
     """Entry point ``ekf-heading``: the EKF of an odometry log with the heading and the yaw rate's
     bias as states (:class:`~quadobs.estimators.heading_ekf.HeadingEKF`).
 
-    Its noise is the setup's: ``q_xy`` on the position, ``q_theta`` on the heading, ranges (or
+    Its noise is the setup's: ``q_xy_heading`` on the position (the speed's noise: the
+    heading's drift is a state here, not position noise), ``q_theta`` on the heading, ranges (or
     TDOA) ``range_sigma``; the bias's random walk ``GYRO_BIAS_STD^2 / GYRO_BIAS_TIME``. Its prior:
     the position ``P0`` per axis, the heading's correction 0 with ``HEADING_STD`` (the log's
     start heading being ``heading0``), the bias 0 with ``GYRO_BIAS_STD``
@@ -624,7 +633,7 @@ def build_ekf_heading(s: ReplaySetup, x0: np.ndarray, name: str = "ekf-heading",
         x0=state0,
         P0=np.array([s.P0, s.P0, hk.HEADING_STD**2, hk.GYRO_BIAS_STD**2]),
         dt=s.dt,
-        q_xy=s.q_xy,
+        q_xy=s.q_xy_heading,
         q_theta=s.q_theta,
         q_bias=hk.GYRO_BIAS_STD**2 / hk.GYRO_BIAS_TIME,
         range_sigma=s.range_sigma,
@@ -647,11 +656,16 @@ def build_augmented_heading(s: ReplaySetup, x0: np.ndarray, name: str = "augment
     """Entry point ``augmented-heading``: the augmented observer of the odometry model
     (:func:`build_augmented`) in a cascade behind :func:`build_ukf_heading`, whose estimated
     heading turns the odometry it integrates
-    (:class:`~quadobs.estimators.heading_ekf.HeadingCascade`)."""
+    (:class:`~quadobs.estimators.heading_ekf.HeadingCascade`). The observer's position noise is
+    the heading filters' ``q_xy_heading``: its input is turned by the estimated heading, so its
+    noise is the speed's alone, as theirs."""
+    import dataclasses
+
     from quadobs.estimators.heading_ekf import HeadingCascade
 
     heading = build_ukf_heading(s, x0, f"{name}:ukf-heading")
-    est = HeadingCascade(build_augmented(s, x0), heading)
+    observer = build_augmented(dataclasses.replace(s, q_xy=s.q_xy_heading), x0)
+    est = HeadingCascade(observer, heading)
     est.name = name
     return est
 

@@ -58,14 +58,15 @@ def default_estimators(log, model: str | None = None) -> list[str]:
     them (the anchors' range biases as states: real two-way ranges carry a per-anchor bias and
     positive non-line-of-sight excess, which the calibration's constant biases do not follow);
     a log of wheel odometry replayed with the model ``odometry`` (``model`` ``None``: the log's
-    default) also the heading filter ``ukf-heading``: the dead-reckoned heading drifts with
-    the yaw rate's bias, which the others take as known."""
+    default) also the heading filter ``ukf-heading`` and the observer driven by its heading,
+    ``augmented-heading``: the dead-reckoned heading drifts with the yaw rate's bias, which the
+    others take as known (measured on both Plaza logs: docs/replay.md)."""
     if log.tdoa.shape[0]:
         tdoa = ["tdoa-handover", "tdoa-observer"] if log.input_kind in ("imu", "imu_body") else []
         return tdoa + ["ekf", "ukf"]
     names = [*DEFAULT_ESTIMATORS, "ekf-bias"]
     if log.input_kind == "odometry" and model in (None, "odometry"):
-        names.append("ukf-heading")
+        names += ["ukf-heading", "augmented-heading"]
     return names
 
 
