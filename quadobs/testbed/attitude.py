@@ -17,6 +17,14 @@ magnetometer the heading
 is not observable: it starts at zero and follows the bias-corrected gyroscope, so an
 estimated attitude suits logs that start with the body axes along the navigation axes
 (as the simulated quadrotor's) or whose horizontal accelerations are small.
+
+The filter starts from an initial alignment (:func:`initial_alignment`), as an inertial
+system is aligned before it moves: over the first :data:`ALIGN_TIME` seconds, the median
+specific force gives the tilt (the median, not the first sample: a log's first rows may
+hold a transient, such as a vehicle settling on its legs), and, where the vehicle rests
+there, the median angular rate is the gyroscope's bias, the filter's initial ``b``. A
+Mahony filter started from one bad sample with ``k_P = 0.1`` takes tens of seconds to find
+the tilt, and every second of a tilt error ``delta`` puts ``g delta`` into the acceleration.
 """
 
 from __future__ import annotations
@@ -25,7 +33,15 @@ import numpy as np
 
 from quadobs.errors import QuadobsError
 
-__all__ = ["MAHONY_GAINS", "attitude_at", "estimate_attitude", "navigation_accelerations"]
+__all__ = [
+    "ALIGN_TIME",
+    "MAHONY_GAINS",
+    "REST_TOLERANCE",
+    "attitude_at",
+    "estimate_attitude",
+    "initial_alignment",
+    "navigation_accelerations",
+]
 
 #: The Mahony filter's gains (``k_P`` 1/s, ``k_I`` 1/s^2). The filter takes the specific force
 #: for gravity, which a moving vehicle's own accelerations (and a multirotor's thrust, always
@@ -35,6 +51,42 @@ __all__ = ["MAHONY_GAINS", "attitude_at", "estimate_attitude", "navigation_accel
 #: frequency ``sqrt(k_I)``, damping ``k_P / (2 sqrt(k_I)) = 1``). ``ahrs``' defaults (1, 0.3)
 #: trust the accelerometer ten times faster.
 MAHONY_GAINS = (0.1, 0.0025)
+
+
+#: The initial alignment's window (s) from the log's first IMU sample: long enough for a median
+#: over hundreds of samples at an IMU's 100 Hz to 1 kHz (its tilt error then a small fraction of
+#: the accelerometer's per-sample noise over ``g``), short against the seconds a vehicle rests
+#: before it moves.
+ALIGN_TIME = 0.5
+
+#: How far (a fraction of ``g``) the median specific force's magnitude may be from gravity for
+#: the vehicle to be taken as resting during the alignment: 5 % (0.49 m/s^2), above a MEMS
+#: accelerometer's bias and scale error (up to 0.3 m/s^2 and 1 %; 2.5 times the 0.2 m/s^2
+#: prior of the replay's bias states), below the thrust excess of a take-off (a fifth of ``g``
+#: and more).
+REST_TOLERANCE = 0.05
+
+
+def initial_alignment(
+    times: np.ndarray, accel: np.ndarray, gyro: np.ndarray, gravity: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """The attitude ``(qw, qx, qy, qz)`` (tilt only, heading zero) and the gyroscope's bias (rad/s)
+    from the first :data:`ALIGN_TIME` seconds of a body IMU (module docstring).
+
+    With ``f`` the median specific force over the window, the rotation takes ``f / |f|`` to
+    ``+z``: roll ``atan2(f_y, f_z)``, pitch ``atan2(-f_x, sqrt(f_y^2 + f_z^2))``. The bias is the
+    median angular rate when ``| |f| - g | <= REST_TOLERANCE g`` (resting), else zero.
+    """
+    window = times <= times[0] + ALIGN_TIME
+    f = np.median(accel[window], axis=0)
+    norm = float(np.linalg.norm(f))
+    f0 = f / max(norm, 1e-12)
+    roll, pitch = np.arctan2(f0[1], f0[2]), np.arctan2(-f0[0], np.hypot(f0[1], f0[2]))
+    cr, sr, cp, sp = np.cos(roll / 2), np.sin(roll / 2), np.cos(pitch / 2), np.sin(pitch / 2)
+    q = np.array([cr * cp, sr * cp, cr * sp, -sr * sp])
+    resting = abs(norm - gravity) <= REST_TOLERANCE * gravity
+    bias = np.median(gyro[window], axis=0) if resting else np.zeros(3)
+    return q, bias
 
 
 def _rotation(quaternions: np.ndarray):
@@ -56,23 +108,22 @@ def attitude_at(attitude: np.ndarray, times: np.ndarray):
     return slerp(np.clip(times, t[0], t[-1]))
 
 
-def estimate_attitude(times: np.ndarray, accel: np.ndarray, gyro: np.ndarray) -> np.ndarray:
+def estimate_attitude(
+    times: np.ndarray, accel: np.ndarray, gyro: np.ndarray, gravity: float = 9.80665
+) -> np.ndarray:
     """Body-to-navigation quaternions ``(K, 4)`` (``qw, qx, qy, qz``) from the IMU alone (Mahony).
 
-    The first from the first specific force (tilt; heading zero), then one ``ahrs`` update per
-    sample over its own interval.
+    The first from the initial alignment (:func:`initial_alignment`: tilt, heading zero, the
+    gyroscope's bias where the vehicle rests), then one ``ahrs`` update per sample over its
+    own interval.
     """
     from ahrs.filters import Mahony
 
     k_p, k_i = MAHONY_GAINS
     dts = np.diff(times)
     rate = 1.0 / float(np.median(dts)) if dts.size and np.median(dts) > 0 else 100.0
-    filt = Mahony(frequency=rate, k_P=k_p, k_I=k_i)
-    f0 = accel[0] / max(float(np.linalg.norm(accel[0])), 1e-12)
-    # tilt aligning f0 with +z (the filter's reference: the specific force at rest points up)
-    roll, pitch = np.arctan2(f0[1], f0[2]), np.arctan2(-f0[0], np.hypot(f0[1], f0[2]))
-    cr, sr, cp, sp = np.cos(roll / 2), np.sin(roll / 2), np.cos(pitch / 2), np.sin(pitch / 2)
-    q = np.array([cr * cp, sr * cp, cr * sp, -sr * sp])
+    q, bias = initial_alignment(times, accel, gyro, gravity)
+    filt = Mahony(frequency=rate, k_P=k_p, k_I=k_i, b0=bias)
     Q = np.empty((times.size, 4))
     Q[0] = q
     for k in range(1, times.size):
@@ -96,5 +147,5 @@ def navigation_accelerations(log) -> np.ndarray:
                 f"{log.name}: a body IMU in a {log.frame} frame needs attitude.csv "
                 "(the attitude is estimated in enu frames only)"
             )
-        R = _rotation(estimate_attitude(t, f, w))
+        R = _rotation(estimate_attitude(t, f, w, float(log.gravity)))
     return np.column_stack([t, R.apply(f) + log.gravity_vector])
