@@ -605,10 +605,11 @@ def build_augmented_heading(s: ReplaySetup, x0: np.ndarray, name: str = "augment
 
 def build_ekf_bias_imu(s: ReplaySetup, x0: np.ndarray, name: str = "ekf-bias-imu") -> Estimator:
     """Entry point ``ekf-bias-imu``: the range biases and the acceleration's bias as states
-    (:func:`quadobs.testbed.logs.imu_bias.build_ekf_bias_imu`)."""
+    (:func:`quadobs.testbed.logs.imu_bias.build_ekf_bias_imu`; the acceleration bias's prior
+    :data:`ACCEL_BIAS_STD`, its drift over :data:`ACCEL_BIAS_TIME` where the log has an attitude)."""
     from quadobs.testbed.logs import imu_bias
 
-    return imu_bias.build_ekf_bias_imu(s, x0, name)
+    return imu_bias.build_ekf_bias_imu(s, x0, name, ACCEL_BIAS_STD, ACCEL_BIAS_TIME)
 
 
 #: The built-in estimators of logged data (as declared in pyproject.toml; a test checks that they agree).

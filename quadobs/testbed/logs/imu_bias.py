@@ -23,7 +23,7 @@ linear dynamics with the quadratic outputs of the range model
 :mod:`quadobs.estimators.bias_states` runs unchanged (its start-up fix, the biases held in a
 consider update until the innovations are consistent, the one-sided gate against
 non-line-of-sight excess). The prior of ``c`` is :data:`~quadobs.testbed.logs.estimators.ACCEL_BIAS_STD`
-per axis; its random walk ``w_c`` lets it move by that much over the time the error changes
+per axis (the prior of the accelerometer's bias in ``onboard-ekf-bias``); its random walk ``w_c`` lets it move by that much over the time the error changes
 on (:func:`acceleration_bias_walk`): the attitude filter's time constant where the attitude
 is estimated from the IMU, else the bias's thermal drift (an hour). The filter reports the
 vehicle's ``(p, v)``; ``c`` is :attr:`AccelerationBiasEKF.acceleration_bias`.
@@ -67,16 +67,15 @@ def acceleration_bias_system(dim: int, beacons: np.ndarray) -> QuadraticSystem:
     return QuadraticSystem(A, B, C, d)
 
 
-def acceleration_bias_walk(bias_std: float, estimated_attitude: bool) -> float:
+def acceleration_bias_walk(bias_std: float, estimated_attitude: bool, drift_time: float) -> float:
     """The random walk's intensity of ``c`` (m^2/s^5): ``bias_std^2 / T``, ``T`` the time over
     which ``c`` may change by ``bias_std``: the Mahony filter's time constant ``1 / k_P``
     (:data:`~quadobs.testbed.attitude.MAHONY_GAINS`) where the attitude is estimated from the
-    IMU (its tilt error is renewed on that scale), else
-    :data:`~quadobs.testbed.logs.estimators.ACCEL_BIAS_TIME` (the accelerometer's drift)."""
+    IMU (its tilt error is renewed on that scale), else ``drift_time`` (the accelerometer's
+    drift, :data:`~quadobs.testbed.logs.estimators.ACCEL_BIAS_TIME`)."""
     from quadobs.testbed.attitude import MAHONY_GAINS
-    from quadobs.testbed.logs.estimators import ACCEL_BIAS_TIME
 
-    horizon = 1.0 / MAHONY_GAINS[0] if estimated_attitude else ACCEL_BIAS_TIME
+    horizon = 1.0 / MAHONY_GAINS[0] if estimated_attitude else float(drift_time)
     return float(bias_std) ** 2 / horizon
 
 
@@ -106,11 +105,13 @@ class AccelerationBiasEKF(BiasedExtendedKalmanFilter):
         return self._x[2 * self.dim : 3 * self.dim].copy()
 
 
-def build_ekf_bias_imu(s, x0: np.ndarray, name: str = "ekf-bias-imu") -> AccelerationBiasEKF:
-    """Entry point ``ekf-bias-imu`` (module docstring): a 3-D log with a body IMU (``imu.csv``).
+def build_ekf_bias_imu(
+    s, x0: np.ndarray, name: str, bias_std: float, drift_time: float
+) -> AccelerationBiasEKF:
+    """``ekf-bias-imu`` (module docstring) on the replay's setup ``s`` of a 3-D body-IMU log.
 
     The vehicle's process noise is the replay EKF's (``q_imu`` on the velocity), ``c`` has the
-    prior ``ACCEL_BIAS_STD^2`` per axis and the walk of :func:`acceleration_bias_walk`, each
+    prior ``bias_std^2`` per axis and the walk of :func:`acceleration_bias_walk`, each
     anchor's bias the range model's prior (0.5 m); the gate is ``ekf-bias``'s
     (:mod:`quadobs.testbed.logs.bias_estimators`).
     """
@@ -119,7 +120,6 @@ def build_ekf_bias_imu(s, x0: np.ndarray, name: str = "ekf-bias-imu") -> Acceler
     from quadobs.estimators.kalman import HeldInputModel
     from quadobs.estimators.robust import SkewedGate
     from quadobs.testbed.logs.bias_estimators import _gate_probability
-    from quadobs.testbed.logs.estimators import ACCEL_BIAS_STD
 
     if s.input_kind != "imu_body" or s.dim != 3:
         raise QuadobsError(
@@ -135,13 +135,13 @@ def build_ekf_bias_imu(s, x0: np.ndarray, name: str = "ekf-bias-imu") -> Acceler
     n, q = 3 * dim, s.beacons.shape[0]
     V = np.zeros((n + q, n + q))
     V[dim : 2 * dim, dim : 2 * dim] = s.q_imu * np.eye(dim)
-    walk = acceleration_bias_walk(ACCEL_BIAS_STD, s.attitude0 is None)  # no attitude.csv
+    walk = acceleration_bias_walk(bias_std, s.attitude0 is None, drift_time)  # no attitude.csv
     V[2 * dim : n, 2 * dim : n] = walk * np.eye(dim)
     dynamics = HeldInputModel(system, s.dt, V=V)
     offsets = 0.5 * np.einsum("hi,hi->h", s.beacons, s.beacons)
     outputs = BiasedRangeOutputModel(system, s.range_sigma**2 * np.eye(q), offsets=offsets)
     extra = RangeModel(s.beacons, s.range_sigma, bias="state").extra_states()
-    prior = [s.P0] * dim + [4.0] * dim + [ACCEL_BIAS_STD**2] * dim  # velocity as the replay's EKF
+    prior = [s.P0] * dim + [4.0] * dim + [bias_std**2] * dim  # velocity as the replay's EKF
     P = np.diag(prior + [e.prior_std**2 for e in extra])
     xe = np.zeros(n + q)
     xe[: 2 * dim] = np.asarray(x0, dtype=float)[: 2 * dim]
