@@ -96,3 +96,14 @@ def test_body_imu_logs_replay_ekf_bias_imu_by_default():
     body = _imu_body_log(False)
     navigation_frame = dataclasses.replace(body, input_kind="imu", inputs=body.inputs[:, :4])
     assert "ekf-bias-imu" not in default_estimators(navigation_frame)
+
+
+def test_the_navigation_accelerations_are_computed_once_per_log():
+    from quadobs.testbed import attitude
+
+    log = _imu_body_log(False)
+    first = attitude.navigation_accelerations(log)
+    assert log in attitude._NAVIGATION  # the calibration's replays read it again
+    first[:, 1:] = 0.0  # a caller's copy: the cached rows are not changed through it
+    again = attitude.navigation_accelerations(log)
+    assert np.any(again[:, 1:] != 0.0)
