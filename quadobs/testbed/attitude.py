@@ -42,6 +42,7 @@ __all__ = [
     "REST_TOLERANCE",
     "attitude_at",
     "estimate_attitude",
+    "heading_offset",
     "initial_alignment",
     "navigation_accelerations",
 ]
@@ -156,6 +157,81 @@ def estimate_attitude(
     return R.as_quat()[:, [3, 0, 1, 2]]
 
 
+#: The heading offset's windows (s): each window's median range per anchor is multilaterated
+#: into one position (a tag's round robin over 8 anchors at 100 Hz gives each anchor about 6
+#: ranges in 0.5 s; the median leaves its outliers out).
+HEADING_WINDOW = 0.5
+
+#: The half-span ``T`` (s) of the second differences that turn those positions into
+#: accelerations: their noise falls as ``1 / T^2`` (0.2 m over ``T = 2`` s: 0.05 m/s^2), while
+#: a vehicle's manoeuvres of periods of seconds and more are kept.
+HEADING_SPAN = 2.0
+
+
+def heading_offset(log, nav: np.ndarray) -> float:
+    """The heading (rad) of the AHRS's frame in the log's navigation frame, from the ranges; 0 when
+    the ranges do not show it.
+
+    An attitude estimated from the IMU alone has its heading zero at the start (no
+    magnetometer), so its navigation-frame acceleration ``u`` (``nav``, ``time, ax, ay, az``)
+    is the log's ``a`` turned by an unknown ``psi`` about the vertical: ``a_h = R_z(psi) u_h``.
+    The ranges give ``a`` without the IMU: positions ``p_j`` multilaterated every
+    :data:`HEADING_WINDOW` seconds, their second differences over ``T =`` :data:`HEADING_SPAN`
+    equal ``int (T - |s|) a(t_j + s) ds / T^2``, and the same of ``u`` is the second difference
+    of its double integral (initial conditions cancel). ``psi`` is the least-squares rotation
+    between the two sets of horizontal vectors, ``arg sum conj(u_j) a_j`` (as complex numbers).
+    It is applied when their coherence ``|sum conj(u_j) a_j| / sum |u_j| |a_j|`` exceeds
+    ``3 / sqrt(N)``, three times what ``N`` independent spans (``N = duration / (2 T)``) of
+    unrelated vectors give.
+    """
+    from quadobs.core.system import vehicle_system
+    from quadobs.estimators.robust import multilateration
+    from quadobs.testbed.logs.schema import RANGE
+
+    if log.ranges.shape[0] == 0 or log.dimension != 3:
+        return 0.0
+    t_r = log.ranges[:, RANGE.time]
+    anchor = log.beacon_index(log.ranges[:, RANGE.beacon])
+    rho = log.ranges[:, RANGE.range]
+    edges = np.arange(log.start, log.end, HEADING_WINDOW)
+    system = vehicle_system(3, log.beacons)
+    q = log.beacons.shape[0]
+    P = np.full((edges.size, 3), np.nan)
+    slot = np.searchsorted(edges, t_r, side="right") - 1
+    for j in range(edges.size):
+        sel = slot == j
+        y = np.full(q, np.nan)
+        for h in np.unique(anchor[sel]):
+            r = float(np.median(rho[sel][anchor[sel] == h]))
+            y[h] = 0.5 * r * r - 0.5 * float(log.beacons[h] @ log.beacons[h])
+        if np.count_nonzero(~np.isnan(y)) >= 4:
+            fixed = multilateration(system.C, system.d, y)
+            if fixed is not None and fixed[0].size == 3:
+                P[j] = fixed[1]
+    k = max(int(round(HEADING_SPAN / HEADING_WINDOW)), 1)
+    T = k * HEADING_WINDOW
+    tc = edges + 0.5 * HEADING_WINDOW
+    a = (P[2 * k :] - 2.0 * P[k:-k] + P[: -2 * k]) / (T * T)
+    t, u = nav[:, 0], nav[:, 1:3]
+    dt = np.diff(t)[:, None]
+    U1 = np.vstack([np.zeros((1, 2)), np.cumsum(0.5 * (u[1:] + u[:-1]) * dt, axis=0)])
+    U2 = np.vstack([np.zeros((1, 2)), np.cumsum(0.5 * (U1[1:] + U1[:-1]) * dt, axis=0)])
+    at = lambda times: np.column_stack([np.interp(times, t, U2[:, i]) for i in range(2)])  # noqa: E731
+    mid = tc[k:-k]
+    b = (at(mid + T) - 2.0 * at(mid) + at(mid - T)) / (T * T)
+    ok = np.all(np.isfinite(a), axis=1) & (mid - T >= t[0]) & (mid + T <= t[-1])
+    if not np.any(ok):
+        return 0.0
+    za = a[ok, 0] + 1j * a[ok, 1]
+    zu = b[ok, 0] + 1j * b[ok, 1]
+    cross = complex(np.sum(np.conj(zu) * za))
+    scale = float(np.sum(np.abs(zu) * np.abs(za)))
+    spans = max((t[-1] - t[0]) / (2.0 * T), 1.0)
+    if scale <= 0.0 or abs(cross) / scale <= 3.0 / np.sqrt(spans):
+        return 0.0
+    return float(np.angle(cross))
+
+
 _NAVIGATION: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
 
@@ -176,5 +252,9 @@ def navigation_accelerations(log) -> np.ndarray:
             )
         R = _rotation(estimate_attitude(t, f, w, float(log.gravity)))
     out = np.column_stack([t, R.apply(f) + log.gravity_vector])
+    if log.attitude is None or not log.attitude.shape[0]:  # the AHRS's heading is not the log's
+        psi = heading_offset(log, out)
+        c, s = np.cos(psi), np.sin(psi)
+        out[:, 1:3] = out[:, 1:3] @ np.array([[c, s], [-s, c]])
     _NAVIGATION[log] = out
     return out.copy()
