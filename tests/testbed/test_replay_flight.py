@@ -107,3 +107,49 @@ def test_the_navigation_accelerations_are_computed_once_per_log():
     first[:, 1:] = 0.0  # a caller's copy: the cached rows are not changed through it
     again = attitude.navigation_accelerations(log)
     assert np.any(again[:, 1:] != 0.0)
+
+
+def _circling_log(psi: float, seconds: float = 60.0):
+    """A level body circling (radius 2 m, 0.3 rad/s) without turning, its IMU at 100 Hz (gyro
+    noise 0.002 rad/s: ahrs skips a sample of exactly zero rate) and no attitude, ranges 0.05 m
+    at 50 Hz; the log's frame turned by ``psi`` about the vertical from the IMU's first heading."""
+    from test_replay_in_time import ANCHORS_3D, _ranges
+
+    from quadobs.testbed.logs import RangeLog
+
+    rng = np.random.default_rng(3)
+    c, s = np.cos(psi), np.sin(psi)
+    rot = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    t = np.arange(0.0, seconds, 0.01)
+    w, r = 0.3, 2.0
+    p = np.column_stack([r * np.cos(w * t), r * np.sin(w * t), 0 * t])
+    v = np.column_stack([-r * w * np.sin(w * t), r * w * np.cos(w * t), 0 * t])
+    a = -w * w * p
+    p = p + [3.0, 3.0, 1.5]
+    f = a + [0.0, 0.0, G]  # body axes along the IMU's frame
+    gyro = 0.002 * rng.standard_normal((t.size, 3))
+    anchors = ANCHORS_3D @ rot.T
+    ranges = _ranges(t[::2], ANCHORS_3D, p[::2], rng, 0.05)
+    truth = np.column_stack([t, p @ rot.T, v @ rot.T])
+    log = RangeLog(
+        "circling", np.arange(5), anchors, ranges, np.column_stack([t, f, gyro]), float("nan"),
+        truth, input_kind="imu_body", truth_columns=("time", "x", "y", "z", "vx", "vy", "vz"),
+    )  # fmt: skip
+    return log, rot, np.column_stack([t, a @ rot.T])
+
+
+@pytest.mark.parametrize("psi", [0.0, 2.0, -2.5])
+def test_the_ahrs_heading_is_found_in_the_log_s_frame(psi):
+    """The ranges give the turn between the IMU's first heading and the log's frame, and the
+    navigation-frame accelerations follow it."""
+    from quadobs.testbed.attitude import heading_offset, navigation_accelerations
+
+    log, rot, expected = _circling_log(psi)
+    nav = navigation_accelerations(log)
+    t = nav[:, 0]
+    assert np.abs(nav[t > 20.0, 1:] - expected[t > 20.0, 1:]).mean() < 0.03
+    unturned = nav.copy()
+    unturned[:, 1:3] = nav[:, 1:3] @ rot[:2, :2]  # back in the AHRS's frame
+    assert heading_offset(log, unturned) == pytest.approx(psi, abs=0.05)
+    short, _, _ = _circling_log(psi, seconds=12.0)  # three spans of 4 s: not enough to tell
+    assert heading_offset(short, navigation_accelerations(short)) == 0.0
