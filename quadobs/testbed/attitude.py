@@ -197,12 +197,12 @@ def heading_offset(log, nav: np.ndarray) -> float:
     system = vehicle_system(3, log.beacons)
     q = log.beacons.shape[0]
     P = np.full((edges.size, 3), np.nan)
-    slot = np.searchsorted(edges, t_r, side="right") - 1
+    bounds = np.searchsorted(t_r, np.r_[edges, np.inf])  # the ranges are in time order
     for j in range(edges.size):
-        sel = slot == j
+        a_j, r_j = anchor[bounds[j] : bounds[j + 1]], rho[bounds[j] : bounds[j + 1]]
         y = np.full(q, np.nan)
-        for h in np.unique(anchor[sel]):
-            r = float(np.median(rho[sel][anchor[sel] == h]))
+        for h in np.unique(a_j):
+            r = float(np.median(r_j[a_j == h]))
             y[h] = 0.5 * r * r - 0.5 * float(log.beacons[h] @ log.beacons[h])
         if np.count_nonzero(~np.isnan(y)) >= 4:
             fixed = multilateration(system.C, system.d, y)
