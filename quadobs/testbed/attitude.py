@@ -25,6 +25,10 @@ hold a transient, such as a vehicle settling on its legs), and, where the vehicl
 there, the median angular rate is the gyroscope's bias, the filter's initial ``b``. A
 Mahony filter started from one bad sample with ``k_P = 0.1`` takes tens of seconds to find
 the tilt, and every second of a tilt error ``delta`` puts ``g delta`` into the acceleration.
+
+The estimated heading starts at zero, the IMU's first heading, which need not be the log's x
+axis: :func:`heading_offset` finds the turn between the two from the ranges, and the
+acceleration is turned by it where the ranges show it.
 """
 
 from __future__ import annotations
@@ -236,7 +240,9 @@ _NAVIGATION: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
 
 def navigation_accelerations(log) -> np.ndarray:
-    """The body IMU of ``log`` as ``time, ax, ay, az`` rows in the navigation frame (module docstring)."""
+    """The body IMU of ``log`` as ``time, ax, ay, az`` rows in the navigation frame (module
+    docstring): rotated by the log's attitude, else by the AHRS's turned by
+    :func:`heading_offset`; computed once per log."""
     if log.input_kind != "imu_body":
         raise QuadobsError(f"{log.name}: navigation accelerations need a body IMU (imu.csv)")
     if log in _NAVIGATION:  # a log is replayed several times (the calibration's candidates)
