@@ -195,13 +195,13 @@ def heading_offset(log, nav: np.ndarray) -> float:
     if log.ranges.shape[0] == 0 or log.dimension != 3:
         return 0.0
     t_r = log.ranges[:, RANGE.time]
-    anchor = log.beacon_index(log.ranges[:, RANGE.beacon])
+    anchor = np.asarray(log.beacon_index(log.ranges[:, RANGE.beacon]), dtype=int)
     rho = log.ranges[:, RANGE.range]
     edges = np.arange(log.start, log.end, HEADING_WINDOW)
     system = vehicle_system(3, log.beacons)
     q = log.beacons.shape[0]
     P = np.full((edges.size, 3), np.nan)
-    bounds = np.searchsorted(t_r, np.r_[edges, np.inf])  # the ranges are in time order
+    bounds = np.searchsorted(t_r, np.r_[edges, np.inf]).astype(int)  # ranges in time order
     for j in range(edges.size):
         a_j, r_j = anchor[bounds[j] : bounds[j + 1]], rho[bounds[j] : bounds[j + 1]]
         y = np.full(q, np.nan)
