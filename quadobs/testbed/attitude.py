@@ -190,13 +190,13 @@ def heading_offset(log, nav: np.ndarray) -> float:
     """
     from quadobs.core.system import vehicle_system
     from quadobs.estimators.robust import multilateration
-    from quadobs.testbed.logs.schema import RANGE
 
     if log.ranges.shape[0] == 0 or log.dimension != 3:
         return 0.0
-    t_r = log.ranges[:, RANGE.time]
-    anchor = np.asarray(log.beacon_index(log.ranges[:, RANGE.beacon]), dtype=int)
-    rho = log.ranges[:, RANGE.range]
+    ranges = [m for m in log.measurements() if m.kind == "range"]  # in time order
+    t_r = np.array([m.t for m in ranges])
+    anchor = np.array([m.anchors[0] for m in ranges], dtype=int)
+    rho = np.array([m.value for m in ranges])
     edges = np.arange(log.start, log.end, HEADING_WINDOW)
     system = vehicle_system(3, log.beacons)
     q = log.beacons.shape[0]
