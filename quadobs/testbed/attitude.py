@@ -200,7 +200,7 @@ def heading_offset(log, nav: np.ndarray) -> float:
     edges = np.arange(log.start, log.end, HEADING_WINDOW)
     system = vehicle_system(3, log.beacons)
     q = log.beacons.shape[0]
-    P = np.full((edges.size, 3), np.nan)
+    P = np.full((edges.size, 2), np.nan)  # horizontal positions (anchors in one plane give no z)
     bounds = np.searchsorted(t_r, np.r_[edges, np.inf]).astype(int)  # ranges in time order
     for j in range(edges.size):
         a_j, r_j = anchor[bounds[j] : bounds[j + 1]], rho[bounds[j] : bounds[j + 1]]
@@ -210,8 +210,8 @@ def heading_offset(log, nav: np.ndarray) -> float:
             y[h] = 0.5 * r * r - 0.5 * float(log.beacons[h] @ log.beacons[h])
         if np.count_nonzero(~np.isnan(y)) >= 4:
             fixed = multilateration(system.C, system.d, y)
-            if fixed is not None and fixed[0].size == 3:
-                P[j] = fixed[1]
+            if fixed is not None and list(fixed[0][:2]) == [0, 1]:
+                P[j] = fixed[1][:2]
     k = max(int(round(HEADING_SPAN / HEADING_WINDOW)), 1)
     T = k * HEADING_WINDOW
     tc = edges + 0.5 * HEADING_WINDOW
@@ -224,8 +224,9 @@ def heading_offset(log, nav: np.ndarray) -> float:
     mid = tc[k:-k]
     b = (at(mid + T) - 2.0 * at(mid) + at(mid - T)) / (T * T)
     ok = np.all(np.isfinite(a), axis=1) & (mid - T >= t[0]) & (mid + T <= t[-1])
-    if not np.any(ok):
+    if np.count_nonzero(ok) < 2:
         return 0.0
+    a = _as_the_ahrs_sees(mid, a, ok)
     za = a[ok, 0] + 1j * a[ok, 1]
     zu = b[ok, 0] + 1j * b[ok, 1]
     cross = complex(np.sum(np.conj(zu) * za))
@@ -234,6 +235,31 @@ def heading_offset(log, nav: np.ndarray) -> float:
     if scale <= 0.0 or abs(cross) / scale <= 3.0 / np.sqrt(spans):
         return 0.0
     return float(np.angle(cross))
+
+
+def _as_the_ahrs_sees(times: np.ndarray, a: np.ndarray, ok: np.ndarray) -> np.ndarray:
+    """The horizontal accelerations ``a (J, 2)`` at ``times`` (equally spaced) as the Mahony
+    filter's acceleration shows them: high-passed by ``s^2 / (s^2 + k_P s + k_I)``.
+
+    The filter takes the specific force's horizontal part for a tilt (a multirotor's thrust
+    along its body z says "level", a level body's horizontal acceleration says "tilted"), and
+    its proportional-integral loop follows that reading with the transfer
+    ``(k_P s + k_I) / (s^2 + k_P s + k_I)``; the acceleration it leaves, ``R~ f + g``, is the
+    rest, so slow manoeuvres reach it attenuated and advanced in phase (at 0.3 rad/s by a
+    third, 0.4 rad). The ranges' accelerations pass through the same filter (bilinear
+    transform; gaps ``~ok`` filled linearly) before they are compared.
+    """
+    from scipy.signal import bilinear, lfilter
+
+    k_p, k_i = MAHONY_GAINS
+    fs = 1.0 / float(times[1] - times[0])
+    b, den = bilinear([1.0, 0.0, 0.0], [1.0, k_p, k_i], fs=fs)
+    out = np.empty_like(a)
+    idx = np.flatnonzero(ok)
+    for i in range(2):
+        filled = np.interp(np.arange(a.shape[0]), idx, a[idx, i])
+        out[:, i] = lfilter(b, den, filled)
+    return out
 
 
 _NAVIGATION: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
