@@ -93,6 +93,7 @@ def test_ekf_bias_imu_removes_an_accelerometer_bias(with_attitude):
 
 def test_body_imu_logs_replay_ekf_bias_imu_by_default():
     assert "ekf-bias-imu" in default_estimators(_imu_body_log(False))
+    assert "ekf-bias-imu" not in default_estimators(_imu_body_log(False), "cv")
     body = _imu_body_log(False)
     navigation_frame = dataclasses.replace(body, input_kind="imu", inputs=body.inputs[:, :4])
     assert "ekf-bias-imu" not in default_estimators(navigation_frame)
@@ -171,3 +172,15 @@ def test_the_ahrs_heading_is_found_with_the_anchors_in_one_plane():
     ceiling = np.array([[0.0, 0.0, 3.0], [6.0, 0.0, 3.0], [6.0, 6.0, 3.0], [0.0, 6.0, 3.0]])
     log, _, _ = _circling_log(1.0, anchors=ceiling)
     assert heading_offset(log, _ahrs_accelerations(log)) == pytest.approx(1.0, abs=0.1)
+
+
+def test_ekf_bias_imu_refuses_what_it_cannot_take_before_any_work():
+    from quadobs.errors import QuadobsError
+    from quadobs.testbed.logs.replay import check_replay
+
+    body = _imu_body_log(False)
+    with pytest.raises(QuadobsError, match="takes the model imu, not 'cv'"):
+        check_replay(body, ["ekf-bias-imu"], model="cv")
+    navigation_frame = dataclasses.replace(body, input_kind="imu", inputs=body.inputs[:, :4])
+    with pytest.raises(QuadobsError, match="needs a 3-D body-IMU log"):
+        check_replay(navigation_frame, ["ekf-bias-imu"])

@@ -130,6 +130,8 @@ def build_ekf_bias_imu(
         raise QuadobsError(
             f"estimators: {name!r} estimates range biases and the log holds TDOA (use ekf or ukf)"
         )
+    if s.model != "imu":
+        raise QuadobsError(f"estimators: {name!r} takes the model imu, not {s.model!r}")
     dim = s.dim
     system = extended_system(acceleration_bias_system(dim, s.beacons))
     n, q = 3 * dim, s.beacons.shape[0]

@@ -66,7 +66,7 @@ def default_estimators(log, model: str | None = None) -> list[str]:
         tdoa = ["tdoa-handover", "tdoa-observer"] if log.input_kind in ("imu", "imu_body") else []
         return tdoa + ["ekf", "ukf"]
     names = [*DEFAULT_ESTIMATORS, "ekf-bias"]
-    if log.input_kind == "imu_body" and log.dimension == 3:  # the acceleration's bias too
+    if log.input_kind == "imu_body" and log.dimension == 3 and model in (None, "imu"):
         names.append("ekf-bias-imu")
     if log.input_kind == "odometry" and model in (None, "odometry"):
         names.append("ukf-heading")
