@@ -9,7 +9,9 @@ to the anchors, as for any guess given as such), and prints each estimator's pos
 after the burn-in, live and replayed;
 then the scenario's own estimators (its observer tuning) on the log's rows on the physics
 grid (:class:`~quadobs.testbed.worlds.replay.ReplayWorld`), which isolates what the log
-carries from the replay's own noise settings.
+carries from the replay's own noise settings, and the same estimators fed each measurement at
+its own time as the replay feeds its own (:func:`~quadobs.testbed.logs.events.in_time`), which
+isolates the replay's noise settings from its way of feeding the measurements.
 
     python sims/replay_exported_quadrotor.py --duration 70 --burn-in 5 --out quad-export [--calibrate none]
 """
@@ -36,20 +38,26 @@ def live_rmse(result, name: str, burn_in: float) -> float:
     return float(np.sqrt(np.mean(np.sum(e * e, axis=1))))
 
 
-def scenario_estimators_rmse(scenario, log, names, x0, burn_in: float) -> dict:
-    """Position RMSE after ``burn_in`` of the scenario's own estimators driven by the log's rows on its grid."""
+def scenario_estimators_rmse(scenario, log, names, x0, burn_in: float, timed: bool = False) -> dict:
+    """Position RMSE after ``burn_in`` of the scenario's own estimators driven by the log's rows
+    on its grid, or (``timed``) by each measurement at its own time as the replay feeds them."""
     from quadobs.testbed.episode import run_loop
+    from quadobs.testbed.logs.events import LogEvents, in_time, takes_time
     from quadobs.testbed.registry import build_estimators
     from quadobs.testbed.sinks import TraceSink
     from quadobs.testbed.worlds.replay import ReplayWorld
 
     world = ReplayWorld(log, scenario.dt, "imu")
     trace = TraceSink(1, world.steps)
+    built = build_estimators(scenario, names, x0)
+    if timed:
+        events = LogEvents(log, start=world.times[0], end=world.times[-1])
+        built = [in_time(e, events, world.times) if takes_time(e) else e for e in built]
     run_loop(
         lambda merged, *rest: merged,
         frame=world.frame(),
         world=world,
-        estimators=build_estimators(scenario, names, x0),
+        estimators=built,
         sinks=[trace],
     )
     t, X = trace.trace["time"], trace.trace["truth"]
@@ -92,13 +100,18 @@ def main() -> None:
     print(f"log {folder}: {log.ranges.shape[0]} ranges, {log.inputs.shape[0]} IMU rows")
     print("initial guess:", " ".join(f"{v:.6g}" for v in x0))
     own = scenario_estimators_rmse(scenario, log, names, x0, args.burn_in)
+    timed = scenario_estimators_rmse(scenario, log, names, x0, args.burn_in, timed=True)
     print(f"position RMSE after {args.burn_in:g} s (m); ratio to the live episode's")
     print(
         f"{'estimator':12s} {'live':>8s} {'replayed':>9s} {'ratio':>6s} {'own tuning':>11s} {'ratio':>6s}"
+        f" {'own, in time':>12s} {'ratio':>6s}"
     )
     for n in names:
         rl, rr = live_rmse(live, n, args.burn_in), s["estimators"][n]["rmse"]
-        print(f"{n:12s} {rl:8.4f} {rr:9.4f} {rr / rl:6.3f} {own[n]:11.4f} {own[n] / rl:6.3f}")
+        print(
+            f"{n:12s} {rl:8.4f} {rr:9.4f} {rr / rl:6.3f} {own[n]:11.4f} {own[n] / rl:6.3f}"
+            f" {timed[n]:12.4f} {timed[n] / rl:6.3f}"
+        )
 
 
 if __name__ == "__main__":

@@ -86,6 +86,12 @@ CASES = {
         ["rover.json"],
         "| seed | log |",
     ),
+    "replay_flight_variants.py": (
+        ["--seeds", "0", "--duration", "8", "--variants", "noatt", "--estimators", "ekf-bias-imu"]
+        + ["--out", "{tmp}/flights"],
+        ["flights/seed0/imu.csv", "flights/seed0-noatt/imu.csv"],
+        "seed 0  noatt  ekf-bias-imu",
+    ),
 }
 
 

@@ -17,15 +17,39 @@ magnetometer the heading
 is not observable: it starts at zero and follows the bias-corrected gyroscope, so an
 estimated attitude suits logs that start with the body axes along the navigation axes
 (as the simulated quadrotor's) or whose horizontal accelerations are small.
+
+The filter starts from an initial alignment (:func:`initial_alignment`), as an inertial
+system is aligned before it moves: over the first :data:`ALIGN_TIME` seconds, the median
+specific force gives the tilt (the median, not the first sample: a log's first rows may
+hold a transient, such as a vehicle settling on its legs), and, where the vehicle rests
+there, the median angular rate is the gyroscope's bias, the filter's initial ``b``. A
+Mahony filter started from one bad sample with ``k_P = 0.1`` takes tens of seconds to find
+the tilt, and every second of a tilt error ``delta`` puts ``g delta`` into the acceleration.
+
+The estimated heading starts at zero, the IMU's first heading, which need not be the log's x
+axis: :func:`heading_offset` finds the turn between the two from the ranges, and the
+acceleration is turned by it where the ranges show it.
 """
 
 from __future__ import annotations
+
+import weakref
 
 import numpy as np
 
 from quadobs.errors import QuadobsError
 
-__all__ = ["MAHONY_GAINS", "attitude_at", "estimate_attitude", "navigation_accelerations"]
+__all__ = [
+    "AHRS_RATE",
+    "ALIGN_TIME",
+    "MAHONY_GAINS",
+    "REST_TOLERANCE",
+    "attitude_at",
+    "estimate_attitude",
+    "heading_offset",
+    "initial_alignment",
+    "navigation_accelerations",
+]
 
 #: The Mahony filter's gains (``k_P`` 1/s, ``k_I`` 1/s^2). The filter takes the specific force
 #: for gravity, which a moving vehicle's own accelerations (and a multirotor's thrust, always
@@ -35,6 +59,42 @@ __all__ = ["MAHONY_GAINS", "attitude_at", "estimate_attitude", "navigation_accel
 #: frequency ``sqrt(k_I)``, damping ``k_P / (2 sqrt(k_I)) = 1``). ``ahrs``' defaults (1, 0.3)
 #: trust the accelerometer ten times faster.
 MAHONY_GAINS = (0.1, 0.0025)
+
+
+#: The initial alignment's window (s) from the log's first IMU sample: long enough for a median
+#: over hundreds of samples at an IMU's 100 Hz to 1 kHz (its tilt error then a small fraction of
+#: the accelerometer's per-sample noise over ``g``), short against the seconds a vehicle rests
+#: before it moves.
+ALIGN_TIME = 0.5
+
+#: How far (a fraction of ``g``) the median specific force's magnitude may be from gravity for
+#: the vehicle to be taken as resting during the alignment: 5 % (0.49 m/s^2), above a MEMS
+#: accelerometer's bias and scale error (up to 0.3 m/s^2 and 1 %; 2.5 times the 0.2 m/s^2
+#: prior of the replay's bias states), below the thrust excess of a take-off (a fifth of ``g``
+#: and more).
+REST_TOLERANCE = 0.05
+
+
+def initial_alignment(
+    times: np.ndarray, accel: np.ndarray, gyro: np.ndarray, gravity: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """The attitude ``(qw, qx, qy, qz)`` (tilt only, heading zero) and the gyroscope's bias (rad/s)
+    from the first :data:`ALIGN_TIME` seconds of a body IMU (module docstring).
+
+    With ``f`` the median specific force over the window, the rotation takes ``f / |f|`` to
+    ``+z``: roll ``atan2(f_y, f_z)``, pitch ``atan2(-f_x, sqrt(f_y^2 + f_z^2))``. The bias is the
+    median angular rate when ``| |f| - g | <= REST_TOLERANCE g`` (resting), else zero.
+    """
+    window = times <= times[0] + ALIGN_TIME
+    f = np.median(accel[window], axis=0)
+    norm = float(np.linalg.norm(f))
+    f0 = f / max(norm, 1e-12)
+    roll, pitch = np.arctan2(f0[1], f0[2]), np.arctan2(-f0[0], np.hypot(f0[1], f0[2]))
+    cr, sr, cp, sp = np.cos(roll / 2), np.sin(roll / 2), np.cos(pitch / 2), np.sin(pitch / 2)
+    q = np.array([cr * cp, sr * cp, cr * sp, -sr * sp])
+    resting = abs(norm - gravity) <= REST_TOLERANCE * gravity
+    bias = np.median(gyro[window], axis=0) if resting else np.zeros(3)
+    return q, bias
 
 
 def _rotation(quaternions: np.ndarray):
@@ -56,37 +116,163 @@ def attitude_at(attitude: np.ndarray, times: np.ndarray):
     return slerp(np.clip(times, t[0], t[-1]))
 
 
-def estimate_attitude(times: np.ndarray, accel: np.ndarray, gyro: np.ndarray) -> np.ndarray:
+#: The rate (Hz) at which the Mahony filter is updated: an IMU sampled faster is averaged over
+#: blocks of ``m = round(1 / (AHRS_RATE h_s))`` samples (interval ``h_s``). The filter's loop
+#: (``1 / k_P = 10`` s) and a multirotor's attitude motion (a bandwidth of about 10 rad/s) are
+#: far slower than 100 Hz; the block's mean rate integrates a rotation about a fixed axis
+#: exactly, and a coning motion of rate ``omega`` with an error of the order of
+#: ``(omega h)^2``, 1e-4 rad at 1 rad/s. Between the blocks' starts the attitude is
+#: interpolated (:func:`attitude_at`). It makes the Python loop ``m`` times shorter.
+AHRS_RATE = 100.0
+
+
+def estimate_attitude(
+    times: np.ndarray, accel: np.ndarray, gyro: np.ndarray, gravity: float = 9.80665
+) -> np.ndarray:
     """Body-to-navigation quaternions ``(K, 4)`` (``qw, qx, qy, qz``) from the IMU alone (Mahony).
 
-    The first from the first specific force (tilt; heading zero), then one ``ahrs`` update per
-    sample over its own interval.
+    The first from the initial alignment (:func:`initial_alignment`: tilt, heading zero, the
+    gyroscope's bias where the vehicle rests), then one ``ahrs`` update per block of samples
+    (:data:`AHRS_RATE`) with the block's mean specific force and rate over the block's span;
+    the samples' attitudes interpolated between the blocks' starts.
     """
     from ahrs.filters import Mahony
 
     k_p, k_i = MAHONY_GAINS
     dts = np.diff(times)
-    rate = 1.0 / float(np.median(dts)) if dts.size and np.median(dts) > 0 else 100.0
-    filt = Mahony(frequency=rate, k_P=k_p, k_I=k_i)
-    f0 = accel[0] / max(float(np.linalg.norm(accel[0])), 1e-12)
-    # tilt aligning f0 with +z (the filter's reference: the specific force at rest points up)
-    roll, pitch = np.arctan2(f0[1], f0[2]), np.arctan2(-f0[0], np.hypot(f0[1], f0[2]))
-    cr, sr, cp, sp = np.cos(roll / 2), np.sin(roll / 2), np.cos(pitch / 2), np.sin(pitch / 2)
-    q = np.array([cr * cp, sr * cp, cr * sp, -sr * sp])
-    Q = np.empty((times.size, 4))
+    h = float(np.median(dts)) if dts.size and np.median(dts) > 0 else 1.0 / AHRS_RATE
+    m = max(int(round(1.0 / (AHRS_RATE * h))), 1)
+    starts = np.arange(0, times.size, m)
+    t_block = times[starts]
+    f_block = np.add.reduceat(accel, starts, axis=0) / np.diff(np.r_[starts, times.size])[:, None]
+    w_block = np.add.reduceat(gyro, starts, axis=0) / np.diff(np.r_[starts, times.size])[:, None]
+    q, bias = initial_alignment(times, accel, gyro, gravity)
+    filt = Mahony(frequency=1.0 / (m * h), k_P=k_p, k_I=k_i, b0=bias)
+    Q = np.empty((t_block.size, 4))
     Q[0] = q
-    for k in range(1, times.size):
-        dt = float(dts[k - 1])
+    for k in range(1, t_block.size):
+        dt = float(t_block[k] - t_block[k - 1])
         if dt > 0:
-            q = filt.updateIMU(q, gyro[k - 1], accel[k - 1], dt=dt)
+            q = filt.updateIMU(q, w_block[k - 1], f_block[k - 1], dt=dt)
         Q[k] = q
-    return Q
+    if m == 1:
+        return Q
+    R = attitude_at(np.column_stack([t_block, Q]), times)
+    return R.as_quat()[:, [3, 0, 1, 2]]
+
+
+#: The heading offset's windows (s): each window's median range per anchor is multilaterated
+#: into one position (a tag's round robin over 8 anchors at 100 Hz gives each anchor about 6
+#: ranges in 0.5 s; the median leaves its outliers out).
+HEADING_WINDOW = 0.5
+
+#: The half-span ``T`` (s) of the second differences that turn those positions into
+#: accelerations: their noise falls as ``1 / T^2`` (0.2 m over ``T = 2`` s: 0.05 m/s^2), while
+#: a vehicle's manoeuvres of periods of seconds and more are kept.
+HEADING_SPAN = 2.0
+
+
+def heading_offset(log, nav: np.ndarray) -> float:
+    """The heading (rad) of the AHRS's frame in the log's navigation frame, from the ranges; 0 when
+    the ranges do not show it.
+
+    An attitude estimated from the IMU alone has its heading zero at the start (no
+    magnetometer), so its navigation-frame acceleration ``u`` (``nav``, ``time, ax, ay, az``)
+    is the log's ``a`` turned by an unknown ``psi`` about the vertical: ``a_h = R_z(psi) u_h``.
+    The ranges give ``a`` without the IMU: positions ``p_j`` multilaterated every
+    :data:`HEADING_WINDOW` seconds, their second differences over ``T =`` :data:`HEADING_SPAN`
+    equal ``int (T - |s|) a(t_j + s) ds / T^2``, and the same of ``u`` is the second difference
+    of its double integral (initial conditions cancel). ``psi`` is the least-squares rotation
+    between the two sets of horizontal vectors, ``arg sum conj(u_j) a_j`` (as complex numbers).
+    It is applied when their coherence ``|sum conj(u_j) a_j| / sum |u_j| |a_j|`` exceeds
+    ``3 / sqrt(N)``, three times what ``N`` independent spans (``N = duration / (2 T)``) of
+    unrelated vectors give.
+    """
+    from quadobs.core.system import vehicle_system
+    from quadobs.estimators.robust import multilateration
+
+    if log.ranges.shape[0] == 0 or log.dimension != 3:
+        return 0.0
+    ranges = [m for m in log.measurements() if m.kind == "range"]  # in time order
+    t_r = np.array([m.t for m in ranges])
+    anchor = np.array([m.anchors[0] for m in ranges], dtype=int)
+    rho = np.array([m.value for m in ranges])
+    edges = np.arange(log.start, log.end, HEADING_WINDOW)
+    system = vehicle_system(3, log.beacons)
+    q = log.beacons.shape[0]
+    P = np.full((edges.size, 2), np.nan)  # horizontal positions (anchors in one plane give no z)
+    bounds = np.searchsorted(t_r, np.r_[edges, np.inf]).astype(int)  # ranges in time order
+    for j in range(edges.size):
+        a_j, r_j = anchor[bounds[j] : bounds[j + 1]], rho[bounds[j] : bounds[j + 1]]
+        y = np.full(q, np.nan)
+        for h in np.unique(a_j):
+            r = float(np.median(r_j[a_j == h]))
+            y[h] = 0.5 * r * r - 0.5 * float(log.beacons[h] @ log.beacons[h])
+        if np.count_nonzero(~np.isnan(y)) >= 4:
+            fixed = multilateration(system.C, system.d, y)
+            if fixed is not None and list(fixed[0][:2]) == [0, 1]:
+                P[j] = fixed[1][:2]
+    k = max(int(round(HEADING_SPAN / HEADING_WINDOW)), 1)
+    T = k * HEADING_WINDOW
+    tc = edges + 0.5 * HEADING_WINDOW
+    a = (P[2 * k :] - 2.0 * P[k:-k] + P[: -2 * k]) / (T * T)
+    t, u = nav[:, 0], nav[:, 1:3]
+    dt = np.diff(t)[:, None]
+    U1 = np.vstack([np.zeros((1, 2)), np.cumsum(0.5 * (u[1:] + u[:-1]) * dt, axis=0)])
+    U2 = np.vstack([np.zeros((1, 2)), np.cumsum(0.5 * (U1[1:] + U1[:-1]) * dt, axis=0)])
+    at = lambda times: np.column_stack([np.interp(times, t, U2[:, i]) for i in range(2)])  # noqa: E731
+    mid = tc[k:-k]
+    b = (at(mid + T) - 2.0 * at(mid) + at(mid - T)) / (T * T)
+    ok = np.all(np.isfinite(a), axis=1) & (mid - T >= t[0]) & (mid + T <= t[-1])
+    if np.count_nonzero(ok) < 2:
+        return 0.0
+    a = _as_the_ahrs_sees(mid, a, ok)
+    za = a[ok, 0] + 1j * a[ok, 1]
+    zu = b[ok, 0] + 1j * b[ok, 1]
+    cross = complex(np.sum(np.conj(zu) * za))
+    scale = float(np.sum(np.abs(zu) * np.abs(za)))
+    spans = max((t[-1] - t[0]) / (2.0 * T), 1.0)
+    if scale <= 0.0 or abs(cross) / scale <= 3.0 / np.sqrt(spans):
+        return 0.0
+    return float(np.angle(cross))
+
+
+def _as_the_ahrs_sees(times: np.ndarray, a: np.ndarray, ok: np.ndarray) -> np.ndarray:
+    """The horizontal accelerations ``a (J, 2)`` at ``times`` (equally spaced) as the Mahony
+    filter's acceleration shows them: high-passed by ``s^2 / (s^2 + k_P s + k_I)``.
+
+    The filter takes the specific force's horizontal part for a tilt (a multirotor's thrust
+    along its body z says "level", a level body's horizontal acceleration says "tilted"), and
+    its proportional-integral loop follows that reading with the transfer
+    ``(k_P s + k_I) / (s^2 + k_P s + k_I)``; the acceleration it leaves, ``R~ f + g``, is the
+    rest, so slow manoeuvres reach it attenuated and advanced in phase (at 0.3 rad/s by a
+    third, 0.4 rad). The ranges' accelerations pass through the same filter (bilinear
+    transform; gaps ``~ok`` filled linearly) before they are compared.
+    """
+    from scipy.signal import bilinear, lfilter
+
+    k_p, k_i = MAHONY_GAINS
+    fs = 1.0 / float(times[1] - times[0])
+    b, den = bilinear([1.0, 0.0, 0.0], [1.0, k_p, k_i], fs=fs)
+    out = np.empty_like(a)
+    idx = np.flatnonzero(ok)
+    for i in range(2):
+        filled = np.interp(np.arange(a.shape[0]), idx, a[idx, i])
+        out[:, i] = lfilter(b, den, filled)
+    return out
+
+
+_NAVIGATION: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
 
 def navigation_accelerations(log) -> np.ndarray:
-    """The body IMU of ``log`` as ``time, ax, ay, az`` rows in the navigation frame (module docstring)."""
+    """The body IMU of ``log`` as ``time, ax, ay, az`` rows in the navigation frame (module
+    docstring): rotated by the log's attitude, else by the AHRS's turned by
+    :func:`heading_offset`; computed once per log."""
     if log.input_kind != "imu_body":
         raise QuadobsError(f"{log.name}: navigation accelerations need a body IMU (imu.csv)")
+    if log in _NAVIGATION:  # a log is replayed several times (the calibration's candidates)
+        return _NAVIGATION[log].copy()
     t, f, w = log.inputs[:, 0], log.inputs[:, 1:4], log.inputs[:, 4:7]
     if log.attitude is not None and log.attitude.shape[0]:
         R = attitude_at(log.attitude, t)
@@ -96,5 +282,11 @@ def navigation_accelerations(log) -> np.ndarray:
                 f"{log.name}: a body IMU in a {log.frame} frame needs attitude.csv "
                 "(the attitude is estimated in enu frames only)"
             )
-        R = _rotation(estimate_attitude(t, f, w))
-    return np.column_stack([t, R.apply(f) + log.gravity_vector])
+        R = _rotation(estimate_attitude(t, f, w, float(log.gravity)))
+    out = np.column_stack([t, R.apply(f) + log.gravity_vector])
+    if log.attitude is None or not log.attitude.shape[0]:  # the AHRS's heading is not the log's
+        psi = heading_offset(log, out)
+        c, s = np.cos(psi), np.sin(psi)
+        out[:, 1:3] = out[:, 1:3] @ np.array([[c, s], [-s, c]])
+    _NAVIGATION[log] = out
+    return out.copy()

@@ -670,6 +670,15 @@ def build_augmented_heading(s: ReplaySetup, x0: np.ndarray, name: str = "augment
     return est
 
 
+def build_ekf_bias_imu(s: ReplaySetup, x0: np.ndarray, name: str = "ekf-bias-imu") -> Estimator:
+    """Entry point ``ekf-bias-imu``: the range biases and the acceleration's bias as states
+    (:func:`quadobs.testbed.logs.imu_bias.build_ekf_bias_imu`; the acceleration bias's prior
+    :data:`ACCEL_BIAS_STD`, its drift over :data:`ACCEL_BIAS_TIME` where the log has an attitude)."""
+    from quadobs.testbed.logs import imu_bias
+
+    return imu_bias.build_ekf_bias_imu(s, x0, name, ACCEL_BIAS_STD, ACCEL_BIAS_TIME)
+
+
 #: The built-in estimators of logged data (as declared in pyproject.toml; a test checks that they agree).
 #: An estimator that reads a body IMU as its input (the Crazyflie's on-board EKF,
 #: ``u = (f_body, omega_body)``) is registered here beside them and marks its instances with
@@ -690,6 +699,7 @@ REPLAY_ESTIMATORS = {
     "ekf-bias": build_ekf_bias,
     "ukf-bias": build_ukf_bias,
     "augmented-bias": build_augmented_bias,
+    "ekf-bias-imu": build_ekf_bias_imu,
 }
 
 

@@ -60,11 +60,15 @@ def default_estimators(log, model: str | None = None) -> list[str]:
     a log of wheel odometry replayed with the model ``odometry`` (``model`` ``None``: the log's
     default) also the heading filter ``ukf-heading`` and the observer driven by its heading,
     ``augmented-heading``: the dead-reckoned heading drifts with the yaw rate's bias, which the
-    others take as known (measured on both Plaza logs: docs/replay.md)."""
+    others take as known (measured on both Plaza logs: docs/replay.md); a 3-D log of a body IMU
+    also ``ekf-bias-imu`` (:mod:`quadobs.testbed.logs.imu_bias`: the accelerometer's bias and the
+    estimated attitude's tilt error reach the navigation-frame acceleration as a slow bias)."""
     if log.tdoa.shape[0]:
         tdoa = ["tdoa-handover", "tdoa-observer"] if log.input_kind in ("imu", "imu_body") else []
         return tdoa + ["ekf", "ukf"]
     names = [*DEFAULT_ESTIMATORS, "ekf-bias"]
+    if log.input_kind == "imu_body" and log.dimension == 3 and model in (None, "imu"):
+        names.append("ekf-bias-imu")
     if log.input_kind == "odometry" and model in (None, "odometry"):
         names += ["ukf-heading", "augmented-heading"]
     return names
