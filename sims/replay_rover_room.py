@@ -11,7 +11,7 @@ replay's ``range_sigma`` then applies).
 Beside them, the reference: what a short script does that is *given* what the replay must find
 out, the true per-anchor biases, the simulation's true noise and the true start (no initial
 offset): the range noise ``std`` of the radio, and for the heading filters the odometry's white
-noise as intensities ``q_xy = speed_std^2 / rate`` and ``q_theta = yaw_rate_std^2 / rate`` (a
+noise as intensities ``q_xy_heading = speed_std^2 / rate`` and ``q_theta = yaw_rate_std^2 / rate`` (a
 sample held over ``1 / rate``); the EKF of the odometry model (no heading state) with the
 default ``q_xy``, as its heading drift is no white noise. Every figure is the position RMSE (m)
 after the 5 s burn-in.
@@ -81,7 +81,7 @@ def reference(folder: Path, scenario) -> dict:
     truth = radio_of(scenario).biases
     options = {
         "range_sigma": radio.std,
-        "q_xy": odo.speed_std**2 / odo.rate,
+        "q_xy_heading": odo.speed_std**2 / odo.rate,
         "q_theta": odo.yaw_rate_std**2 / odo.rate,
     }
     out = {}

@@ -177,10 +177,16 @@ class _HeadingFilter(Estimator, Gated):
         self.measurement_models = {m.kind: m for m in models}
         self.robust = robust
         self.lockout = lockout if lockout is not None else LockOut()
-        self._P0 = self._P.copy()
+        self._P0, self._x0 = self._P.copy(), self._x.copy()
         self._latest = np.full(self.anchors.shape[0], np.nan)  # y_h = rho^2/2 - |a_h|^2/2
         self.nis, self.corrections, self.rejected = math.nan, 0, 0
         self._time = 0.0
+        # start-up: a prior position wider than one range's noise is set by a multilateration
+        self.fix_pending = "range" in self.measurement_models and math.sqrt(
+            float(np.max(np.diag(self._P)[:2]))
+        ) > self.range_sigma
+        self.fixes: list[float] = []
+        self._waited = 0
 
     # -- what the testbed reads ---------------------------------------------------------
 
@@ -232,6 +238,7 @@ class _HeadingFilter(Estimator, Gated):
             self._latest[i] = y[i]
             m = Measurement(self._time, "range", rho, (int(i),), self.range_sigma)
             self._correct_range(model, m)
+            self._starting()
         self._propagate(self.dt, u)
         self._time += self.dt
 
@@ -259,6 +266,50 @@ class _HeadingFilter(Estimator, Gated):
             rho = model.unbiased(m)
             self._latest[h] = 0.5 * rho * rho - 0.5 * float(self.anchors[h] @ self.anchors[h])
         self._correct_range(model, m)
+        if m.kind == "range":
+            self._starting()
+
+    def _starting(self) -> None:
+        """Start-up (as the bias filters', :mod:`quadobs.estimators.bias_states`): while the
+        prior position is wider than one range's noise ``range_sigma``, once every anchor has a
+        range (or two rounds' worth have come, an anchor silent) the position is set by their
+        least-squares multilateration (:func:`~quadobs.estimators.robust.multilateration`) with
+        the variance ``range_sigma^2`` per axis, and the heading's correction and its bias go
+        back to their prior: what the corrections made of them from a prior of tens of metres
+        (a UKF's sigma points spread over it) is not kept. After four rounds without a
+        multilateration (anchors in too few directions) the prior is kept."""
+        if not self.fix_pending:
+            return
+        q = self.anchors.shape[0]
+        self._waited += 1
+        if np.isnan(self._latest).any() and self._waited < 2 * q:
+            return
+        fixed = multilateration(np.broadcast_to(np.eye(2), (q, 2, 2)), -self.anchors, self._latest)
+        if fixed is None and self._waited < 4 * q:
+            return
+        self.fix_pending = False
+        if fixed is not None:
+            self._x[:2] = fixed[1] if fixed[0].shape[0] == 2 else self._x[:2]
+            self._x[2:] = self._x0[2:]
+            self._P = self._P0.copy()
+            self._P[:2, :2] = self.range_sigma**2 * np.eye(2)
+            self.fixes.append(self._time)
+        q = self.anchors.shape[0]
+        self._waited += 1
+        if np.isnan(self._latest).any() and self._waited < 2 * q:
+            return True
+        fixed = multilateration(np.broadcast_to(np.eye(2), (q, 2, 2)), -self.anchors, self._latest)
+        if fixed is None and self._waited < 4 * q:
+            return True
+        self.fix_pending = False
+        if fixed is not None:
+            cols = fixed[0]
+            self._x[cols] = fixed[1]
+            self._P[cols, :] = 0.0
+            self._P[:, cols] = 0.0
+            self._P[cols, cols] = self.range_sigma**2
+            self.fixes.append(self._time)
+        return False
 
     def _gain(self, nu: float, S: float, Pxz: np.ndarray, R: float) -> None:
         """Robust rule, gate and lock-out on the innovation ``nu`` (variance ``S``), then the
