@@ -5,7 +5,8 @@ Sources: two simulated flights exported as logs (``quadrotor-uwb`` and
 CMU Plaza1 and Plaza2 logs (``gtsam`` needed). For each source the self-calibration
 (:func:`~quadobs.testbed.logs.calibration.calibrate`, never the truth) picks the process noise
 and the range biases. The noise is carried to another source as its factor of the model's prior
-(``q / prior``: ``q_imu`` on the flights, ``q_xy`` on the Plaza logs, whose models differ);
+(``q / prior``: ``q_imu`` on the flights, ``q_xy`` on the Plaza logs, whose models differ; the
+prior is the log's own where its metadata gives one, ``log_noise_defaults``);
 the biases belong to a log's anchors, so each log keeps its own calibrated ones. Every log is
 replayed in time with ``augmented,ekf`` from ``--initial-offset`` metres off, at the prior
 (``--calibrate none``), and at each source's factor; the table gives the position RMSE after
@@ -24,7 +25,7 @@ from quadobs import load_scenario
 from quadobs.testbed.episode import run_episode
 from quadobs.testbed.logs import load_builtin, read_log
 from quadobs.testbed.logs.calibration import calibrate, process_noise_key
-from quadobs.testbed.logs.estimators import ReplaySetup
+from quadobs.testbed.logs.estimators import ReplaySetup, log_noise_defaults
 from quadobs.testbed.logs.export import LogExportSink
 from quadobs.testbed.logs.replay import run_replay
 from quadobs.testbed.worlds.replay import default_model
@@ -58,7 +59,7 @@ def main() -> None:
         log, dt, burn = source_log(name, durations)
         key = process_noise_key(default_model(log))
         cal = calibrate(log, dt=dt)
-        prior = getattr(ReplaySetup, key)
+        prior = log_noise_defaults(log).get(key, getattr(ReplaySetup, key))
         logs[name], cals[name] = (log, dt, burn, key, prior), cal
         factors[name] = cal.options[key] / prior
         print(f"{name}: {key} {cal.options[key]:g} (factor {factors[name]:g}); {cal.reason}")

@@ -81,6 +81,12 @@ CASES = {
         ["cv.json"],
         "evaluated on | prior | from quad",
     ),
+    "tdoa_seeds.py": (
+        ["--seeds", "0", "--duration", "7", "--settle", "3", "--estimators", "tdoa-handover"]
+        + ["--jsonl", "{tmp}/seeds.jsonl"],
+        ["seeds.jsonl"],
+        "tdoa-handover | 1/1",
+    ),
 }
 
 
