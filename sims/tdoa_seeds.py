@@ -102,11 +102,12 @@ def table(rows: list[dict]) -> str:
 
 
 def parse_seeds(text: str) -> list[int]:
-    """``"0-49"`` or ``"0,3,7"``."""
-    if "-" in text:
-        a, b = text.split("-")
-        return list(range(int(a), int(b) + 1))
-    return [int(s) for s in text.split(",")]
+    """``"0-49"``, ``"0,3,7"`` or both (``"0-9,25-34"``)."""
+    out: list[int] = []
+    for part in text.split(","):
+        a, _, b = part.partition("-")
+        out += list(range(int(a), int(b or a) + 1))
+    return out
 
 
 def main() -> None:
