@@ -123,7 +123,9 @@ class PeerNoise:
     frame : {"enu", "ned"}
         The navigation frame's z axis: up (gravity along ``-z``) or down (along ``+z``).
     key_period : float
-        Measurements within this many seconds after a node share it (0: a node per time).
+        Measurements within this many seconds after a node share it (0: a node per time); a
+        TDOA then sits on the node's position and velocity at its own time, and iSAM2 updates
+        once a node, when the next one opens (:meth:`Isam2Peer._flush`).
     """
 
     range_sigma: float = 1.0
