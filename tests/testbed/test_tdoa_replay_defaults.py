@@ -2,6 +2,7 @@
 ``q_imu`` (floored), and the self-calibration scores the held-out TDOA where the log holds no
 ranges, keeping the prior unless a candidate is significantly better."""
 
+import json
 import math
 
 import numpy as np
@@ -93,3 +94,23 @@ def test_a_wrong_tdoa_prior_is_replaced_and_a_right_one_kept():
         return s["estimators"]["tdoa-handover"]["rmse"]
 
     assert rmse(wrong.options) < rmse({"q_imu": 1.0})
+
+
+def test_quadobs_replay_of_a_tdoa_log_calibrates_from_its_tdoa_and_its_density(tmp_path):
+    from conftest import call_main
+
+    from quadobs.testbed.logs import write_log
+
+    folder = write_log(_tdoa_log(1e-3, duration=12.0, accel_noise=1e-3), tmp_path / "log")
+    summary = tmp_path / "s.json"
+    code, out, err = call_main(
+        ["replay", str(folder), "--dt", "0.01", "--estimators", "tdoa-handover,ekf",
+         "--summary", str(summary), "--no-progress"]
+    )  # fmt: skip
+    assert code == 0, err
+    assert "a log of TDOA, scored by tdoa-handover" in out
+    s = json.loads(summary.read_text())
+    # the candidates are the log's prior (its density, floored) times 4^j, not the default's
+    scores = s["calibration"]["noise_scores"]
+    assert len(scores) == 8 and "0.0025" in scores and "0.01" in scores and "0.64" not in scores
+    assert s["noise"]["q_imu"] == s["calibration"]["process_noise"]["q_imu"]
