@@ -1215,11 +1215,9 @@ def _replay_calibration(args, log, tuning: dict) -> tuple[list[float] | np.ndarr
         return biases, tuning
     if args.calibrate == "none":
         return None, tuning
-    from quadobs.testbed.logs.estimators import log_defaults
-
     keys = noise_keys(log, args.model)  # an intensity fixed by --tune is not calibrated
-    cal = calibrate(  # the log's own defaults (its odometry's speed) as the prior
-        log, dt=args.dt, model=args.model, setup_options={**log_defaults(log), **tuning},
+    cal = calibrate(  # the prior: the log's own defaults (log_defaults) below --tune
+        log, dt=args.dt, model=args.model, setup_options=tuning,
         noise=tuple(k for k in keys if k not in tuning),
     )  # fmt: skip
     chosen = "none" if cal.biases is None else ", ".join(f"{b:.2f}" for b in cal.biases) + " m"

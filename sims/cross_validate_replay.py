@@ -6,7 +6,8 @@ CMU Plaza1 and Plaza2 logs (``gtsam`` needed). For each source the self-calibrat
 (:func:`~quadobs.testbed.logs.calibration.calibrate`, never the truth) picks the process noise
 and the range biases. The noise is carried to another source as its factor of the model's prior
 (``q / prior``: ``q_imu`` on the flights, ``q_xy`` on the Plaza logs, whose models differ; the
-prior of an odometry log is its own, :func:`~quadobs.testbed.logs.estimators.log_defaults`);
+prior is the log's own where it sets one, :func:`~quadobs.testbed.logs.estimators.log_defaults`:
+an odometry's speed, a stated accelerometer density);
 the heading filters' intensities (``q_xy_heading``, ``q_theta``, calibrated on odometry logs)
 likewise where both logs have them, else the target's prior; the biases belong to a log's
 anchors, so each log keeps its own calibrated ones. Every log is replayed in time with
@@ -75,7 +76,7 @@ def main() -> None:
         log, dt, burn = source_log(name, durations)
         key = process_noise_key(default_model(log))
         prior = {**{k: getattr(ReplaySetup, k) for k in noise_keys(log)}, **log_defaults(log)}
-        cal = calibrate(log, dt=dt, setup_options=log_defaults(log))  # the log's own prior
+        cal = calibrate(log, dt=dt)  # the log's own prior (log_defaults)
         logs[name], cals[name] = (log, dt, burn, key, prior), cal
         factors[name] = {"model": cal.options[key] / prior[key]}
         factors[name].update({k: cal.options[k] / prior[k] for k in noise_keys(log)[1:]})

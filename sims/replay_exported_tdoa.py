@@ -4,8 +4,9 @@ Runs the live episode of a TDOA scenario (``quadrotor-tdoa`` by default: the qua
 on ``tdoa-handover``) with :class:`~quadobs.testbed.logs.export.LogExportSink` (what
 ``quadobs run SCENARIO --export-log DIR`` does), reads the log back (``tdoa.csv``, the body
 IMU, the AHRS attitude, the truth), replays it in time on the physics grid from the live
-episode's initial guess with the replay's defaults (``--calibrate none``: the log holds no
-ranges to calibrate from), and prints each estimator's position RMSE after the burn-in, live
+episode's initial guess with the replay's defaults (those of ``quadobs replay --calibrate
+none``; with ``--calibrate``, the self-calibration's choice from the held-out TDOA, as
+``quadobs replay`` by default), and prints each estimator's position RMSE after the burn-in, live
 and replayed, and their ratio. The GTSAM peer (``isam2``, the TDOA factor) runs in the
 replay beside them: its online estimate, iSAM2's smoothed keyframes and the batch optimum.
 
@@ -22,6 +23,7 @@ import numpy as np
 from quadobs import load_scenario
 from quadobs.testbed.episode import run_episode
 from quadobs.testbed.logs import read_log
+from quadobs.testbed.logs.calibration import calibrate
 from quadobs.testbed.logs.export import LogExportSink
 from quadobs.testbed.logs.replay import run_replay
 
@@ -44,9 +46,15 @@ def one_seed(args, seed: int) -> dict:
     log = read_log(folder)
     x0 = live.trace["estimates"][names[0]][0]
     replayed = names + (["isam2"] if args.isam2 else [])
+    options, calibration = None, None
+    if args.calibrate:
+        cal = calibrate(log, dt=scenario.dt)
+        options, calibration = cal.options, cal.summary()
+        print(f"seed {seed}: calibrated from the log: {cal.reason}")
     s = run_replay(
-        log, estimators=replayed, dt=scenario.dt, x0=x0, batch=args.isam2, burn_in=args.burn_in
-    )
+        log, estimators=replayed, dt=scenario.dt, x0=x0, batch=args.isam2, burn_in=args.burn_in,
+        setup_options=options, calibration=calibration,
+    )  # fmt: skip
     flight = live.summary.get("flight", {})
     print(
         f"seed {seed}: {log.tdoa.shape[0]} TDOA, {log.inputs.shape[0]} IMU rows; flown on "
@@ -60,6 +68,18 @@ def one_seed(args, seed: int) -> dict:
         out["isam2"] = (np.nan, peer["rmse"])
         out["isam2 smoothed"] = (np.nan, peer.get("smoothed_rmse", np.nan))
         out["isam2 batch"] = (np.nan, peer.get("batch_rmse", np.nan))
+    count = s["ranges"].get("measurements_in_time", log.tdoa.shape[0])
+    cost = {n: s["estimators"][n].get("seconds_per_measurement", np.nan) * count for n in replayed}
+    print(
+        f"seed {seed}: replay wall time {s['wall_time']:.1f} s; per estimator (s): "
+        + ", ".join(f"{n} {c:.1f}" for n, c in cost.items())
+        + (
+            f"; isam2 smoothed {s['estimators']['isam2'].get('smoothed_seconds', np.nan):.1f},"
+            f" batch {s['estimators']['isam2'].get('batch_seconds', np.nan):.1f}"
+            if args.isam2
+            else ""
+        )
+    )
     return out
 
 
@@ -71,6 +91,9 @@ def main() -> None:
     ap.add_argument("--seeds", default="0")
     ap.add_argument("--burn-in", type=float, default=10.0)
     ap.add_argument("--no-isam2", dest="isam2", action="store_false")
+    ap.add_argument(
+        "--calibrate", action="store_true", help="the replay's noise from the self-calibration"
+    )
     ap.add_argument("--out", help="the log folder (default: a temporary one per seed)")
     args = ap.parse_args()
     rows: dict[str, list] = {}

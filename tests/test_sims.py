@@ -92,6 +92,12 @@ CASES = {
         ["flights/seed0/imu.csv", "flights/seed0-noatt/imu.csv"],
         "seed 0  noatt  ekf-bias-imu",
     ),
+    "tdoa_seeds.py": (
+        ["--seeds", "0", "--duration", "7", "--settle", "3", "--estimators", "tdoa-handover"]
+        + ["--jsonl", "{tmp}/seeds.jsonl"],
+        ["seeds.jsonl"],
+        "tdoa-handover | 1/1",
+    ),
 }
 
 

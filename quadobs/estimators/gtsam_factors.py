@@ -20,7 +20,10 @@ order.
   ``e = |p - a| + b - rho``, ``d e / d p = u^T`` with ``u = (p - a) / |p - a|``,
   ``d e / d b = 1``.
 * TDOA between anchors ``a_i`` and ``a_j`` (the model of :class:`~quadobs.core.measurements.TdoaModel`):
-  ``e = |p - a_i| - |p - a_j| - d_ij``, ``d e / d p = u_i^T - u_j^T``.
+  ``e = |p - a_i| - |p - a_j| - d_ij``, ``d e / d p = u_i^T - u_j^T``. Taken ``tau`` seconds
+  after its node (keyframes), on the node's position and velocity: ``p = p_node + v tau``,
+  whose error is the acceleration's ``a tau^2 / 2`` (5 mm for ``a = 1`` m/s^2, ``tau = 0.1``
+  s), and ``d e / d v = tau (u_i - u_j)^T``.
 * The double integrator between ``(p_i, v_i)`` and ``(p_j, v_j)``, ``T`` seconds apart, with
   a known input contribution ``(Delta p, Delta v)`` (``int int a`` and ``int a`` over the
   interval; zero for the constant-velocity prior):
@@ -94,20 +97,41 @@ def range_factor(
     return gtsam.CustomFactor(noise, keys, error)
 
 
-def tdoa_factor(gtsam, noise, key: int, kind: str, anchor_i, anchor_j, d: float):
-    """``d_ij = |p - a_i| - |p - a_j|``: a ``CustomFactor`` on the position variable ``key``."""
+def tdoa_factor(
+    gtsam,
+    noise,
+    key: int,
+    kind: str,
+    anchor_i,
+    anchor_j,
+    d: float,
+    velocity_key: int | None = None,
+    offset: float = 0.0,
+):
+    """``d_ij = |p - a_i| - |p - a_j|``: a ``CustomFactor`` on the position variable ``key``.
+
+    With ``velocity_key`` (a vector variable, the node's velocity ``v`` in the navigation frame)
+    the TDOA was taken ``offset`` seconds after the node: ``p`` is then ``p_node + v offset``
+    (module docstring), and ``d e / d v = offset (u_i - u_j)^T``.
+    """
     ai, aj = np.asarray(anchor_i, dtype=float), np.asarray(anchor_j, dtype=float)
-    d = float(d)
+    d, tau = float(d), float(offset)
 
     def error(this, values, jacobians):
         p, dp = position_of(values, key, kind)
+        if velocity_key is not None:
+            p = p + tau * np.asarray(values.atVector(velocity_key), dtype=float)
         ri, ui = _unit(p - ai)
         rj, uj = _unit(p - aj)
         if jacobians is not None:
-            jacobians[0] = ((ui - uj) @ dp)[None, :]
+            g = ui - uj
+            jacobians[0] = (g @ dp)[None, :]
+            if velocity_key is not None:
+                jacobians[1] = tau * g[None, :]
         return np.array([ri - rj - d])
 
-    return gtsam.CustomFactor(noise, [key], error)
+    keys = [key] if velocity_key is None else [key, velocity_key]
+    return gtsam.CustomFactor(noise, keys, error)
 
 
 def double_integrator_covariance(q: float, T: float, d: int) -> np.ndarray:

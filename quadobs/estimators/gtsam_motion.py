@@ -221,8 +221,11 @@ class ImuMotion:
     def position_key(self, i: int) -> int:
         return self.g.symbol("x", i)
 
+    def velocity_key(self, i: int) -> int:
+        return self.g.symbol("v", i)
+
     def _keys(self, i: int) -> tuple[int, int, int]:
-        return self.g.symbol("x", i), self.g.symbol("v", i), self.g.symbol("b", i)
+        return self.g.symbol("x", i), self.velocity_key(i), self.g.symbol("b", i)
 
     def start(self, graph, values, x0, P0: float, heading0: float) -> None:
         g, n = self.g, self.noise

@@ -123,7 +123,9 @@ class PeerNoise:
     frame : {"enu", "ned"}
         The navigation frame's z axis: up (gravity along ``-z``) or down (along ``+z``).
     key_period : float
-        Measurements within this many seconds after a node share it (0: a node per time).
+        Measurements within this many seconds after a node share it (0: a node per time); a
+        TDOA then sits on the node's position and velocity at its own time, and iSAM2 updates
+        once a node, when the next one opens (:meth:`Isam2Peer._flush`).
     """
 
     range_sigma: float = 1.0
@@ -308,9 +310,16 @@ class Isam2Peer(Estimator, Counted):
             self._noises[sigma] = model
         return model
 
-    def _flush(self) -> None:
-        """The graph's new part to iSAM2 (one update), and the last node's estimate read back."""
+    def _flush(self, keyframe: bool = False) -> None:
+        """The graph's new part to iSAM2 (one update), and the last node's estimate read back.
+
+        ``keyframe`` (time moving on, the estimate read): with ``key_period > 0``, only once a
+        node has opened since the last update, so that iSAM2 updates once per keyframe, not
+        once per measurement; the estimate between takes the last node's measurements from
+        the next node on."""
         if self._g_new.size() == 0 and self._v_new.size() == 0:
+            return
+        if keyframe and self.noise.key_period > 0.0 and self._v_new.size() == 0:
             return
         g, v = self._g_new, self._v_new
         self._g_new, self._v_new = self._g.NonlinearFactorGraph(), self._g.Values()
@@ -359,7 +368,7 @@ class Isam2Peer(Estimator, Counted):
     def predict(self, t: float) -> None:
         """Propagate to ``t`` with the held input (the graph's new part goes to iSAM2 first)."""
         dt = self._interval(t)
-        self._flush()
+        self._flush(keyframe=True)
         if dt > 0.0:
             self._propagate(dt, None)
         self._time = float(t)
@@ -376,7 +385,8 @@ class Isam2Peer(Estimator, Counted):
         """
         self._check_measurement(m)
         model = self._model_of(m)
-        key = self.motion.position_key(self._node_for(self.time))
+        node = self._node_for(self.time)
+        key = self.motion.position_key(node)
         kind, noise = self.motion.position_type, self._noise(model.sigma(m))
         if m.kind == "range":
             (h,) = m.anchors
@@ -386,10 +396,20 @@ class Isam2Peer(Estimator, Counted):
             )
         else:
             i, j = m.anchors
-            a = self.anchors
-            factor = tdoa_factor(self._g, noise, key, kind, a[i], a[j], model.unbiased(m))
+            a, (v_key, tau) = self.anchors, self._offset(node)
+            d = model.unbiased(m)
+            factor = tdoa_factor(self._g, noise, key, kind, a[i], a[j], d, v_key, tau)
         self._g_new.add(factor)
         self.corrections += 1
+
+    def _offset(self, node: int) -> tuple[int | None, float]:
+        """The velocity variable of ``node`` and the time since it (s) of a measurement taken now
+        (a keyframe's), or ``(None, 0)`` at the node's own time or without a velocity variable."""
+        tau = self.time - self.node_times[node]
+        velocity_key = getattr(self.motion, "velocity_key", None)
+        if tau <= 0.0 or velocity_key is None:
+            return None, 0.0
+        return velocity_key(node), tau
 
     def step(self, u: np.ndarray, y: np.ndarray) -> None:
         """The fixed grid: the ranges ``y_h = rho_h^2 / 2 - |a_h|^2 / 2`` (NaN: none) at the current time, then ``u`` held over ``dt``."""
@@ -406,7 +426,7 @@ class Isam2Peer(Estimator, Counted):
     @property
     def x_hat(self) -> np.ndarray:
         """iSAM2's estimate of the last node propagated to the current time: the position (and velocity)."""
-        self._flush()
+        self._flush(keyframe=True)
         if self.failure is not None:
             return np.full(self.n, np.nan)
         return self.motion.current(self.n)

@@ -182,9 +182,10 @@ class _HeadingFilter(Estimator, Gated):
         self.nis, self.corrections, self.rejected = math.nan, 0, 0
         self._time = 0.0
         # start-up: a prior position wider than one range's noise is set by a multilateration
-        self.fix_pending = "range" in self.measurement_models and math.sqrt(
-            float(np.max(np.diag(self._P)[:2]))
-        ) > self.range_sigma
+        self.fix_pending = (
+            "range" in self.measurement_models
+            and math.sqrt(float(np.max(np.diag(self._P)[:2]))) > self.range_sigma
+        )
         self.fixes: list[float] = []
         self._waited = 0
 

@@ -32,7 +32,10 @@ ranges, never from the truth. No default is tied to one log's scale.
   0.36 m/s, 0.13);
 * model ``cv``: a white acceleration of intensity ``q_acc`` (1 m^2/s^3);
 * model ``imu``: the accelerometer's white noise, of intensity ``q_imu`` (``1e-2`` m^2/s^3)
-  on ``v' = u``; the initial velocity with variance 4 m^2/s^2 per axis, as for ``cv``;
+  on ``v' = u``; the initial velocity with variance 4 m^2/s^2 per axis, as for ``cv``. Where
+  the log states its accelerometer's density (``meta.csv`` key ``accel_noise``, written by
+  ``quadobs run --export-log``), ``q_imu`` is its square, floored at :data:`ACCEL_NOISE` for the
+  bias and attitude error that the density leaves out (:func:`log_defaults`);
 * the auxiliary states ``xi_i = x^T L_i x / 2`` of the augmented observer: the same noise
   ``w`` on ``x'`` drives ``xi_i'`` through ``x^T L_i w``, so in time the observer's process
   noise is ``V(z) = J V_x J^T`` with ``J = [x^T L_1; ...; x^T L_k; I]`` at its estimate
@@ -78,10 +81,12 @@ from quadobs.estimators.kalman import (
 )
 
 __all__ = [
+    "ACCEL_NOISE",
     "REPLAY_ENTRY_POINT_GROUP",
     "REPLAY_ESTIMATORS",
     "TUNING",
     "ReplaySetup",
+    "accel_noise",
     "build_augmented_bias",
     "build_augmented_heading",
     "build_ekf_bias",
@@ -298,11 +303,16 @@ def odometry_noise(log) -> float:
 
 def log_defaults(log) -> dict:
     """The setup options whose defaults a log sets (:class:`ReplaySetup`): ``q_xy`` of an
-    odometry log (:func:`odometry_noise`); empty for other logs. :func:`replay_setup` fills
+    odometry log (:func:`odometry_noise`), ``q_imu`` from a stated accelerometer density
+    (:func:`accel_noise`); empty for a log that gives neither. :func:`replay_setup` fills
     them where ``options`` does not set them; the self-calibration takes them as its prior."""
+    out = {}
     if log.input_kind == "odometry" and log.inputs.shape[0] >= 2:
-        return {"q_xy": odometry_noise(log)}
-    return {}
+        out["q_xy"] = odometry_noise(log)
+    q = accel_noise(getattr(log, "accel_noise", None))
+    if q is not None:
+        out["q_imu"] = q
+    return out
 
 
 def replay_setup(
@@ -313,7 +323,7 @@ def replay_setup(
     ``initial_offset`` from the truth (:func:`initial_variance`)."""
     from quadobs.testbed.worlds.replay import dead_reckoning
 
-    options = {**log_defaults(log), **(options or {})}
+    options = {**log_defaults(log), **dict(options or {})}
     if "P0" not in options:
         sigma = options.get("range_sigma", ReplaySetup.range_sigma)
         options["P0"] = initial_variance(log, initial_offset, sigma, x0)
@@ -519,6 +529,27 @@ def gyro_noise(s: ReplaySetup) -> float:
     """
     stated = 0.0 if s.gyro_noise is None else float(s.gyro_noise) ** 2
     return max(stated, GYRO_NOISE)
+
+
+#: The floor of the accelerometer's white-noise intensity (m^2/s^3) of the model ``imu``
+#: (:func:`accel_noise`): the Crazyflie firmware's Kalman filter adds a horizontal acceleration
+#: process noise of 0.5 m/s^2 over its 10 ms prediction step, an intensity of
+#: ``0.5^2 * 0.01 = 2.5e-3`` m^2/s^3 (:data:`GYRO_NOISE` is from the same filter). It stands
+#: for what a stated density leaves out: the input ``u = R~ f~ + g`` rebuilt from the IMU also
+#: carries the accelerometer's bias and the attitude's error times gravity, and a bias ``b``
+#: matched over a filter memory ``tau`` weighs as a white noise of intensity ``b^2 tau``
+#: (:func:`quadobs.testbed.imu.input_noise_std`): the floor is ``b = 0.05`` m/s^2 over a second.
+ACCEL_NOISE = 2.5e-3
+
+
+def accel_noise(density: float | None) -> float | None:
+    """The model ``imu``'s accelerometer white-noise intensity ``q_imu`` (m^2/s^3) from a log's
+    stated density (m/s^2/sqrt(Hz), ``meta.csv`` key ``accel_noise``): its square where it
+    exceeds :data:`ACCEL_NOISE`, else :data:`ACCEL_NOISE`; None where the log states none (the
+    setup's default :attr:`ReplaySetup.q_imu` then stands)."""
+    if density is None or not math.isfinite(float(density)):
+        return None
+    return max(float(density) ** 2, ACCEL_NOISE)
 
 
 #: The initial yaw error (rad) of :func:`build_onboard_ekf` where the log gives no attitude and

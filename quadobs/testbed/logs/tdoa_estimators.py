@@ -13,7 +13,11 @@ Noise, from the setup as for the replay's other estimators (no value read from t
   (:meth:`~quadobs.testbed.logs.estimators.ReplaySetup.measurement_std`);
 * the acceleration white noise of intensity ``q_imu`` (m^2/s^3), the EKF's
   (:func:`~quadobs.testbed.logs.estimators.build_ekf`), lifted into the observer's auxiliary
-  states at its estimate (:class:`~quadobs.estimators.tdoa_observer.TdoaObserver`);
+  states at its estimate (:class:`~quadobs.estimators.tdoa_observer.TdoaObserver`); where the
+  log states its accelerometer's density, ``q_imu`` is its square floored at
+  :data:`~quadobs.testbed.logs.estimators.ACCEL_NOISE`
+  (:func:`~quadobs.testbed.logs.estimators.log_defaults`), and the self-calibration
+  scores held-out TDOA (:func:`~quadobs.testbed.logs.calibration.calibrate_tdoa`);
 * the initial position with variance ``P0`` per axis, the velocity 4 m^2/s^2 per axis.
 
 The handover's EKF is the replay's ``ekf`` (the same models and noise) started from the

@@ -1,0 +1,101 @@
+"""The GTSAM peer's keyframes: a TDOA taken after its node is placed on the node's position and
+velocity at its own time (its Jacobians against finite differences, exact on a constant
+velocity), and iSAM2 updates once per node, not once per measurement."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from quadobs.core.measurements import Measurement
+
+gtsam = pytest.importorskip("gtsam", reason="gtsam is not installed (the data extra)")
+
+from quadobs.estimators.gtsam_factors import tdoa_factor  # noqa: E402
+from quadobs.estimators.gtsam_peer import Isam2Peer, PeerNoise  # noqa: E402
+from quadobs.testbed.logs.peer import TDOA_KEY_PERIOD  # noqa: E402
+
+ANCHORS = np.array(
+    [[0, 0, 0.2], [8, 0, 2.5], [8, 6, 0.3], [0, 6, 2.8], [4, -1, 1.5], [4, 7, 0.5]], float
+)
+P0, V = np.array([2.0, 1.0, 1.0]), np.array([0.4, 0.3, 0.05])
+
+
+def _tangent_difference(factor, values, key, kind, eps=1e-6):
+    """Central differences of the factor's error along the tangent of ``key``."""
+
+    def at(delta):
+        v = gtsam.Values(values)
+        if kind == "pose3":
+            v.update(key, values.atPose3(key).retract(delta))
+        else:
+            v.update(key, values.atVector(key) + delta)
+        return factor.unwhitenedError(v)
+
+    n = 6 if kind == "pose3" else 3
+    return np.column_stack([(at(eps * e) - at(-eps * e)) / (2 * eps) for e in np.eye(n)])
+
+
+@pytest.mark.parametrize("kind", ["point", "pose3"])
+def test_a_tdoa_after_its_node_has_the_jacobians_of_its_position_and_velocity(kind):
+    rng = np.random.default_rng(2)
+    x, v = gtsam.symbol("x", 0), gtsam.symbol("v", 0)
+    values = gtsam.Values()
+    if kind == "pose3":
+        values.insert(x, gtsam.Pose3(gtsam.Rot3.RzRyRx(*rng.uniform(-1, 1, 3)), rng.normal(size=3)))
+    else:
+        values.insert(x, rng.normal(size=3))
+    values.insert(v, rng.normal(size=3))
+    noise = gtsam.noiseModel.Unit.Create(1)
+    factor = tdoa_factor(gtsam, noise, x, kind, ANCHORS[0], ANCHORS[3], 0.4, v, 0.07)
+    A = factor.linearize(values).jacobian()[0]
+    np.testing.assert_allclose(A[:, :-3], _tangent_difference(factor, values, x, kind), atol=1e-6)
+    np.testing.assert_allclose(
+        A[:, -3:], _tangent_difference(factor, values, v, "point"), atol=1e-6
+    )
+    # the position 0.07 s on: the error is that of a factor on p + 0.07 v
+    p = values.atPose3(x).translation() if kind == "pose3" else values.atVector(x)
+    p = np.asarray(p) + 0.07 * values.atVector(v)
+    d = np.linalg.norm(p - ANCHORS[0]) - np.linalg.norm(p - ANCHORS[3])
+    assert abs(factor.unwhitenedError(values)[0] - (d - 0.4)) < 1e-12
+
+
+def _constant_velocity_tdoa(key_period: float):
+    """TDOA at 50 Hz without noise on a constant velocity, the peer 1.5 m off."""
+    noise = PeerNoise(range_sigma=0.05, velocity_sigma=100.0, key_period=key_period)
+    est = Isam2Peer(ANCHORS, "none", x0=np.r_[P0 + [1.5, -1.0, 0.8], 0, 0, 0], P0=1e4, noise=noise)
+    updates = []
+    update = est.isam.update
+
+    class Counting:  # the ISAM2 object's update, counted
+        def __getattr__(self, name):
+            return getattr(est.isam_inner, name)
+
+        def update(self, *args):
+            updates.append(est.time)
+            return update(*args)
+
+    est.isam_inner, est.isam = est.isam, Counting()
+    for k in range(1, 301):
+        t = k * 0.02
+        est.predict(t)
+        p = P0 + V * t
+        i, j = k % 6, (k + 1 + (k // 6) % 5) % 6
+        d = np.linalg.norm(p - ANCHORS[i]) - np.linalg.norm(p - ANCHORS[j])
+        est.correct(Measurement(t, "tdoa", float(d), (i, j)))
+        _ = est.x_hat  # read every step, as the replay does
+    return est, updates
+
+
+def test_keyframes_are_exact_on_a_constant_velocity_and_update_once_a_node():
+    every, updates = _constant_velocity_tdoa(0.0)
+    keyed, key_updates = _constant_velocity_tdoa(0.1)
+    assert len(every.node_times) == 301 and len(updates) >= 300  # a node, an update a TDOA
+    # a node opens with the first TDOA more than 0.1 s after the last (six TDOA each): one
+    # update a node
+    assert len(keyed.node_times) == 51 and len(key_updates) <= 51
+    T, P = keyed.batch_trajectory()
+    truth = P0 + V * np.asarray(T)[:, None]
+    assert np.max(np.linalg.norm(P - truth, axis=1)) < 1e-4  # the offsets: exact, not v tau off
+    assert np.linalg.norm(keyed.x_hat[:3] - (P0 + V * 6.0)) < 1e-3
+    assert TDOA_KEY_PERIOD == 0.1
