@@ -181,11 +181,11 @@ class _HeadingFilter(Estimator, Gated):
         self._latest = np.full(self.anchors.shape[0], np.nan)  # y_h = rho^2/2 - |a_h|^2/2
         self.nis, self.corrections, self.rejected = math.nan, 0, 0
         self._time = 0.0
-        # start-up: a prior position wider than one range's noise is set by a multilateration
-        self.fix_pending = (
-            "range" in self.measurement_models
-            and math.sqrt(float(np.max(np.diag(self._P)[:2]))) > self.range_sigma
-        )
+        # start-up (_starting): a prior position as wide as the anchors' geometry
+        c = self.anchors.mean(axis=0)
+        scale = max(0.5 * float(np.max(np.linalg.norm(self.anchors - c, axis=1))), self.range_sigma)
+        prior_std = math.sqrt(float(np.max(np.diag(self._P)[:2])))
+        self.fix_pending = "range" in self.measurement_models and prior_std > scale
         self.fixes: list[float] = []
         self._waited = 0
 
@@ -271,8 +271,10 @@ class _HeadingFilter(Estimator, Gated):
             self._starting()
 
     def _starting(self) -> None:
-        """Start-up (as the bias filters', :mod:`quadobs.estimators.bias_states`): while the
-        prior position is wider than one range's noise ``range_sigma``, once every anchor has a
+        """Start-up (as the bias filters', :mod:`quadobs.estimators.bias_states`): where the
+        prior position's standard deviation exceeds half the anchors' extent ``e = max_h |a_h -
+        c|`` (``c`` their centroid; at least ``range_sigma``), the scale on which a range bends
+        over the prior and a UKF's sigma points no longer see its slope, once every anchor has a
         range (or two rounds' worth have come, an anchor silent) the position is set by their
         least-squares multilateration (:func:`~quadobs.estimators.robust.multilateration`) with
         the variance ``range_sigma^2`` per axis, and the heading's correction and its bias go
@@ -289,28 +291,12 @@ class _HeadingFilter(Estimator, Gated):
         if fixed is None and self._waited < 4 * q:
             return
         self.fix_pending = False
-        if fixed is not None:
-            self._x[:2] = fixed[1] if fixed[0].shape[0] == 2 else self._x[:2]
+        if fixed is not None and fixed[0].shape[0] == 2:
+            self._x[:2] = fixed[1]
             self._x[2:] = self._x0[2:]
             self._P = self._P0.copy()
             self._P[:2, :2] = self.range_sigma**2 * np.eye(2)
             self.fixes.append(self._time)
-        q = self.anchors.shape[0]
-        self._waited += 1
-        if np.isnan(self._latest).any() and self._waited < 2 * q:
-            return True
-        fixed = multilateration(np.broadcast_to(np.eye(2), (q, 2, 2)), -self.anchors, self._latest)
-        if fixed is None and self._waited < 4 * q:
-            return True
-        self.fix_pending = False
-        if fixed is not None:
-            cols = fixed[0]
-            self._x[cols] = fixed[1]
-            self._P[cols, :] = 0.0
-            self._P[:, cols] = 0.0
-            self._P[cols, cols] = self.range_sigma**2
-            self.fixes.append(self._time)
-        return False
 
     def _gain(self, nu: float, S: float, Pxz: np.ndarray, R: float) -> None:
         """Robust rule, gate and lock-out on the innovation ``nu`` (variance ``S``), then the

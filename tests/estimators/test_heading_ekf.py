@@ -97,6 +97,32 @@ def test_the_heading_converges_from_a_wrong_start_heading(cls):
     assert abs(math.remainder(f.theta_o - heading, 2 * math.pi)) > 0.5
 
 
+@pytest.mark.parametrize("cls", [HeadingEKF, HeadingUKF])
+def test_a_prior_as_wide_as_the_anchors_is_replaced_by_a_multilateration(cls):
+    # 50 m off with a 50 m prior: one round of ranges sets the position, then the heading converges
+    log = circle_log(bias=0.01, heading_error=-0.3)
+    tin, U = held_inputs(log)
+    f = cls(log.beacons, x0=[RADIUS + 30.0, 40.0, 0.0, 0.0], P0=[2500.0, 2500.0, 0.3**2, 1e-3],
+            dt=0.1, heading0=log.heading0, **NOISE)  # fmt: skip
+    assert f.fix_pending
+    f.time, i = tin[0], 1
+    f.hold(U[0])
+    for m in log.measurements():
+        while i < tin.size and tin[i] <= m.t:
+            f.predict(tin[i])
+            f.hold(U[i])
+            i += 1
+        f.predict(m.t)
+        f.correct(m)
+    assert len(f.fixes) == 1 and f.fixes[0] < 1.5  # one round of four ranges at 4 Hz
+    truth = RADIUS * np.array([math.cos(OMEGA * f.time), math.sin(OMEGA * f.time)])
+    assert np.linalg.norm(f.x_hat - truth) < 1e-2
+    assert abs(f.gyro_bias - 0.01) < 1e-3
+    # a prior narrower than half the anchors' extent is kept
+    g = cls(log.beacons, x0=[RADIUS, 0.0, 0.0, 0.0], P0=[1.0, 1.0, 0.1, 1e-3], dt=0.1, **NOISE)
+    assert not g.fix_pending
+
+
 def test_the_replay_runs_them_on_an_odometry_log_and_refuses_other_logs(tmp_path):
     log = circle_log(bias=0.01, heading_error=0.05, duration=40.0)
     options = {"range_sigma": 0.05, "q_xy": 1e-3, "q_xy_heading": 1e-3}
