@@ -45,9 +45,11 @@ Order (:func:`calibrate`):
    :data:`IDENTIFIED` standard errors of its median, ``1.253 * 1.4826 MAD_h / sqrt(n_h)``)
    *and* significantly better on the held-out ranges than no correction;
 3. the model's process-noise intensity (``q_xy``, ``q_acc`` or ``q_imu``) on the grid
-   ``prior 4^j``, ``j = -4 .. 3`` (:data:`NOISE_FACTORS`), with the biases of step 2: the
+   ``prior 4^j``, ``j = -4 .. 3`` (:data:`NOISE_FACTORS`), with the biases of step 2, the grid
+   going on by factors of 4 past an edge that scores best (at most :data:`EXTEND` steps, while
+   the score falls: a prior may be orders of magnitude off on a log of another scale): the
    candidate of the smallest score is kept only if significantly better than the prior's
-   intensity;
+   intensity (Bonferroni over every candidate tried);
 4. where the intensity changed, the biases again at it (the fixed point from the biases of
    step 2, or from zero): kept if identified, significantly better than the prior and
    predicting the held-out ranges at least as well as the biases before; then step 3 once
@@ -104,6 +106,7 @@ from quadobs.testbed.worlds.replay import ReplayWorld, default_model, state_size
 __all__ = [
     "BLOCKS",
     "CAP",
+    "EXTEND",
     "HEADING_KEYS",
     "HEADING_SCORER",
     "HOLD_OUT",
@@ -129,6 +132,9 @@ __all__ = [
 
 #: The factors of the prior process-noise intensity that :func:`calibrate_noise` tries.
 NOISE_FACTORS = tuple(4.0**j for j in range(-4, 4))
+#: The most steps (each a factor 4) by which :func:`calibrate_noise`'s grid goes on past its
+#: smallest or largest factor while that edge scores best (module docstring).
+EXTEND = 4
 #: Every HOLD_OUT-th range is held out of the corrections (module docstring).
 HOLD_OUT = 5
 #: The fixed-point iterations of the bias calibration.
@@ -446,6 +452,16 @@ def _noise_step(log, dt, model, estimator, options, b, reference, cap, key=None)
             runs[q] = _replay(log, dt, model, b, estimator, {**options, key: q})
             scores[q] = compare(runs[q], reference, cap).score
     best = min((q for q in runs if q != prior), key=lambda q: (scores[q], q))
+    for _ in range(EXTEND):  # the grid goes on past its edge while the edge scores best
+        edge = {min(runs): 0.25, max(runs): 4.0}.get(best)
+        if edge is None:
+            break
+        q = best * edge
+        runs[q] = _replay(log, dt, model, b, estimator, {**options, key: q})
+        scores[q] = compare(runs[q], reference, cap).score
+        if not scores[q] < scores[best]:
+            break
+        best = q
     test = compare(runs[best], reference, cap, candidates=len(runs) - 1)
     scores = {q: scores[q] for q in sorted(scores)}
     chosen = best if test.better else prior
