@@ -32,10 +32,10 @@ def circle_log(bias: float, heading_error: float, duration: float = 120.0) -> Ra
     )
 
 
-def run_in_time(log: RangeLog, cls, P0, **noise):
+def run_in_time(log: RangeLog, cls, P0, x0=(RADIUS, 0.0, 0.0, 0.0), **noise):
     """The filter fed the log's held inputs and its ranges at their own times."""
     tin, U = held_inputs(log)
-    f = cls(log.beacons, x0=[RADIUS, 0.0, 0.0, 0.0], P0=P0, dt=0.1, heading0=log.heading0, **noise)
+    f = cls(log.beacons, x0=x0, P0=P0, dt=0.1, heading0=log.heading0, **noise)
     f.time = tin[0]
     f.hold(U[0])
     i = 1
@@ -101,19 +101,9 @@ def test_the_heading_converges_from_a_wrong_start_heading(cls):
 def test_a_prior_as_wide_as_the_anchors_is_replaced_by_a_multilateration(cls):
     # 50 m off with a 50 m prior: one round of ranges sets the position, then the heading converges
     log = circle_log(bias=0.01, heading_error=-0.3)
-    tin, U = held_inputs(log)
-    f = cls(log.beacons, x0=[RADIUS + 30.0, 40.0, 0.0, 0.0], P0=[2500.0, 2500.0, 0.3**2, 1e-3],
-            dt=0.1, heading0=log.heading0, **NOISE)  # fmt: skip
-    assert f.fix_pending
-    f.time, i = tin[0], 1
-    f.hold(U[0])
-    for m in log.measurements():
-        while i < tin.size and tin[i] <= m.t:
-            f.predict(tin[i])
-            f.hold(U[i])
-            i += 1
-        f.predict(m.t)
-        f.correct(m)
+    P0 = [2500.0, 2500.0, 0.3**2, 1e-3]
+    assert cls(log.beacons, x0=[45.0, 40.0, 0.0, 0.0], P0=P0, dt=0.1, **NOISE).fix_pending
+    f = run_in_time(log, cls, P0, x0=(RADIUS + 30.0, 40.0, 0.0, 0.0), **NOISE)
     assert len(f.fixes) == 1 and f.fixes[0] < 1.5  # one round of four ranges at 4 Hz
     truth = RADIUS * np.array([math.cos(OMEGA * f.time), math.sin(OMEGA * f.time)])
     assert np.linalg.norm(f.x_hat - truth) < 1e-2

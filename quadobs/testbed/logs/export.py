@@ -256,11 +256,7 @@ class LogExportSink(Sink):
         dim = fr.dimension
         inputs = np.vstack(self.parts["inputs"] + [np.r_[completed * fr.dt, np.zeros(dim)][None]])
         axes = "xyz"[:dim]
-        extra: dict[str, Any] = {}
-        if self.radio_events:  # the radio's ranges or TDOA at their own times, with their std
-            ranges, tdoa = radio_rows(self.radio_events, ranges, math.nan)
-            extra = {"range_std": ranges[:, 3], "tdoa": tdoa[:, :4], "tdoa_std": tdoa[:, 4]}
-            ranges = ranges[:, :3]
+        ranges, extra = self._radio_extra(ranges)
         return RangeLog(
             fr.name,
             np.arange(fr.beacons.shape[0]),
@@ -274,17 +270,22 @@ class LogExportSink(Sink):
             **extra,
         )
 
+    def _radio_extra(self, ranges: np.ndarray) -> tuple[np.ndarray, dict[str, Any]]:
+        """The ranges and the log's extra fields: with a radio, its ranges and TDOA at their own
+        times with their std (the grid's ``ranges`` otherwise, and no extra field)."""
+        if not self.radio_events:
+            return ranges, {}
+        rows, tdoa = radio_rows(self.radio_events, ranges, math.nan)
+        extra = {"range_std": rows[:, 3], "tdoa": tdoa[:, :4], "tdoa_std": tdoa[:, 4]}
+        return rows[:, :3], extra
+
     def _odometry_log(self, completed: int, ranges: np.ndarray) -> RangeLog:
         """A ground robot's log: wheel odometry, its start heading, ranges, position and heading truth."""
         fr = self.ctx.frame
         odo = np.vstack(self.parts["inputs"])
         inputs = np.vstack([odo, np.r_[completed * fr.dt, odo[-1, 1:]][None]])
         truth = np.vstack(self.parts["truth"])
-        extra: dict[str, Any] = {}
-        if self.radio_events:  # the radio's ranges at their own times, with their std
-            ranges, tdoa = radio_rows(self.radio_events, ranges, math.nan)
-            extra = {"range_std": ranges[:, 3], "tdoa": tdoa[:, :4], "tdoa_std": tdoa[:, 4]}
-            ranges = ranges[:, :3]
+        ranges, extra = self._radio_extra(ranges)
         return RangeLog(
             fr.name,
             np.arange(fr.beacons.shape[0]),
