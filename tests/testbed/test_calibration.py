@@ -88,11 +88,12 @@ def test_a_wrong_prior_is_replaced_and_the_replay_is_not_worse():
     assert rmse(cal.options) < rmse(prior)
 
 
-def _circle_log(biases, seed: int = 5) -> RangeLog:
-    """A lap of a 3.5 m circle about the room's centre in 40 s, ranged as above."""
+def circle_laps(biases, seed: int = 5, period: float = 40.0) -> RangeLog:
+    """Laps of a 3.5 m circle about the room's centre in 40 s (one lap a ``period``), one anchor
+    at a time at 20 Hz, with per-anchor ``biases`` and 0.1 m of Gaussian noise."""
     rng = np.random.default_rng(seed)
     t = np.arange(0.0, 40.0, 0.05)
-    w = 2.0 * np.pi / 40.0
+    w = 2.0 * np.pi / period
     p = np.array([6.0, 4.5]) + 3.5 * np.column_stack([np.cos(w * t), np.sin(w * t)])
     v = 3.5 * w * np.column_stack([-np.sin(w * t), np.cos(w * t)])
     anchor = np.arange(t.size) % 4
@@ -108,7 +109,7 @@ def _circle_log(biases, seed: int = 5) -> RangeLog:
 def test_per_anchor_biases_are_found_and_applied():
     truth = np.array([0.4, -0.3, 0.25, 0.0])
     options = {"range_sigma": 0.1, "q_acc": 1e-2}
-    cal = calibrate(_circle_log(truth), setup_options=options, noise=False)
+    cal = calibrate(circle_laps(truth), setup_options=options, noise=False)
     assert cal.biases is not None, cal.reason
     # a bias trades against the position: the fixed point comes within half the biases' size
     err = np.sqrt(np.mean((cal.biases - truth) ** 2))
@@ -122,7 +123,7 @@ def test_the_replays_bias_filters_beat_the_ekf_on_biased_ranges_and_refuse_tdoa(
     from quadobs.errors import QuadobsError
     from quadobs.testbed.logs.replay import check_replay, default_estimators
 
-    log = _circle_log(np.array([0.4, -0.3, 0.25, 0.0]))
+    log = circle_laps(np.array([0.4, -0.3, 0.25, 0.0]))
     assert "ekf-bias" in default_estimators(log)
     names = ["ekf", "ekf-bias", "ukf-bias"]
     options = {"range_sigma": 0.1, "q_acc": 1e-2}

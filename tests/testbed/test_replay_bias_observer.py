@@ -3,6 +3,7 @@ immersion, built with the settings of the replay's augmented observer."""
 
 import numpy as np
 import pytest
+from test_calibration import ANCHORS, circle_laps
 
 from quadobs.errors import QuadobsError
 from quadobs.testbed.logs import RangeLog
@@ -15,25 +16,10 @@ from quadobs.testbed.logs.estimators import (
 )
 from quadobs.testbed.logs.replay import check_replay, run_replay
 
-ANCHORS = np.array([[0.0, 0.0], [12.0, 0.0], [12.0, 9.0], [0.0, 9.0]])
-
 
 def _circle_log(biases) -> RangeLog:
-    """Laps of a 3.5 m circle about the room's centre, one anchor at a time at 20 Hz, with
-    per-anchor biases and 0.1 m of Gaussian noise."""
-    rng = np.random.default_rng(5)
-    t = np.arange(0.0, 40.0, 0.05)
-    w = 2.0 * np.pi / 20.0
-    p = np.array([6.0, 4.5]) + 3.5 * np.column_stack([np.cos(w * t), np.sin(w * t)])
-    v = 3.5 * w * np.column_stack([-np.sin(w * t), np.cos(w * t)])
-    anchor = np.arange(t.size) % 4
-    rho = np.linalg.norm(p - ANCHORS[anchor], axis=1) + np.asarray(biases)[anchor]
-    rho += 0.1 * rng.standard_normal(t.size)
-    return RangeLog(
-        "lap", np.arange(4), ANCHORS, np.column_stack([t, anchor, rho]), np.empty((0, 1)),
-        float("nan"), np.column_stack([t, p, v]), input_kind="none",
-        truth_columns=("time", "x", "y", "vx", "vy"),
-    )  # fmt: skip
+    """Two laps of the calibration tests' circle in 40 s (:func:`test_calibration.circle_laps`)."""
+    return circle_laps(biases, period=20.0)
 
 
 def test_augmented_bias_is_registered_and_takes_the_augmented_observers_settings():
