@@ -59,7 +59,7 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -256,28 +256,21 @@ class LogExportSink(Sink):
         dim = fr.dimension
         inputs = np.vstack(self.parts["inputs"] + [np.r_[completed * fr.dt, np.zeros(dim)][None]])
         axes = "xyz"[:dim]
-        ranges, extra = self._radio_extra(ranges)
-        return RangeLog(
-            fr.name,
-            np.arange(fr.beacons.shape[0]),
-            np.asarray(fr.beacons, dtype=float),
-            ranges,
-            inputs,
-            float("nan"),
-            np.vstack(self.parts["truth"]),
-            input_kind="imu",
+        return self._range_log(
+            ranges, inputs, math.nan, np.vstack(self.parts["truth"]), input_kind="imu",
             truth_columns=("time", *axes, *(f"v{a}" for a in axes)),
-            **extra,
-        )
+        )  # fmt: skip
 
-    def _radio_extra(self, ranges: np.ndarray) -> tuple[np.ndarray, dict[str, Any]]:
-        """The ranges and the log's extra fields: with a radio, its ranges and TDOA at their own
-        times with their std (the grid's ``ranges`` otherwise, and no extra field)."""
-        if not self.radio_events:
-            return ranges, {}
-        rows, tdoa = radio_rows(self.radio_events, ranges, math.nan)
-        extra = {"range_std": rows[:, 3], "tdoa": tdoa[:, :4], "tdoa_std": tdoa[:, 4]}
-        return rows[:, :3], extra
+    def _range_log(self, ranges, inputs, heading0: float, truth, **fields) -> RangeLog:
+        """The log of the episode's anchors, with the radio's ranges and TDOA at their own times
+        and their std where it has a radio (the grid's ``ranges`` otherwise), and ``fields``."""
+        fr = self.ctx.frame
+        if self.radio_events:
+            rows, tdoa = radio_rows(self.radio_events, ranges, math.nan)
+            fields.update(range_std=rows[:, 3], tdoa=tdoa[:, :4], tdoa_std=tdoa[:, 4])
+            ranges = rows[:, :3]
+        ids, beacons = np.arange(fr.beacons.shape[0]), np.asarray(fr.beacons, dtype=float)
+        return RangeLog(fr.name, ids, beacons, ranges, inputs, float(heading0), truth, **fields)
 
     def _odometry_log(self, completed: int, ranges: np.ndarray) -> RangeLog:
         """A ground robot's log: wheel odometry, its start heading, ranges, position and heading truth."""
@@ -285,20 +278,11 @@ class LogExportSink(Sink):
         odo = np.vstack(self.parts["inputs"])
         inputs = np.vstack([odo, np.r_[completed * fr.dt, odo[-1, 1:]][None]])
         truth = np.vstack(self.parts["truth"])
-        ranges, extra = self._radio_extra(ranges)
-        return RangeLog(
-            fr.name,
-            np.arange(fr.beacons.shape[0]),
-            np.asarray(fr.beacons, dtype=float),
-            ranges,
-            inputs,
-            float(truth[0, 3]),
-            truth,
-            input_kind="odometry",
+        return self._range_log(
+            ranges, inputs, truth[0, 3], truth, input_kind="odometry",
             truth_columns=("time", "x", "y", "heading"),
             description=(fr.description.splitlines() or [""])[0],
-            **extra,
-        )
+        )  # fmt: skip
 
     def _quadrotor_log(self, completed: int, grid_ranges: np.ndarray) -> RangeLog:
         """A quadrotor's log: body IMU, AHRS attitude, ranges (the radio's or the grid's), truth."""
