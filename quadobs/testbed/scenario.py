@@ -870,6 +870,24 @@ class Scenario(_Table):
         self._trajectory = SinusoidTrajectory(
             np.array(t.offset), terms, np.array(t.velocity), coast
         )
+        if self.odometry is not None:
+            self._check_moving()
+
+    def _check_moving(self) -> None:
+        """A wheeled robot's heading is its direction of travel (:mod:`quadobs.testbed.odometry`):
+        refuse, before any step, a reference path whose speed falls to a standstill at one of
+        the odometry's sample times (at most a million of them, spread over the duration)."""
+        from quadobs.testbed.odometry import STANDSTILL
+
+        n = int(min(self.duration * self.odometry.rate, 1e6)) + 1  # type: ignore[union-attr]
+        t = np.linspace(0.0, self.duration, n)
+        speed = np.linalg.norm(self._trajectory.velocity_at(t), axis=1)
+        k = int(np.argmin(speed))
+        if speed[k] < STANDSTILL:
+            raise QuadobsError(
+                f"odometry: the trajectory stops at t = {t[k]:.6g} s (speed {speed[k]:.3g} m/s); "
+                "a wheeled robot's heading is its direction of travel: give it a speed that stays positive"
+            )
 
     # -- the tables as arrays ----------------------------------------------------------
 

@@ -189,3 +189,16 @@ def test_the_command_line_exports_and_replays_the_odometry_log(tmp_path, capsys)
     assert main(["replay", str(folder), "--burn-in", "1", "--calibrate", "none"]) == 0
     out = capsys.readouterr().out
     assert "model odometry" in out and "ekf-bias" in out and "ukf-heading" in out
+
+
+def test_a_path_that_stops_is_refused_when_the_scenario_is_read():
+    # a straight line at 0.3 m/s forward and back: the speed falls to zero at t = 5 s
+    with pytest.raises(QuadobsError, match=r"odometry: the trajectory stops at t = 5 s"):
+        load_scenario(
+            "rover-room",
+            settings=[
+                'trajectory.terms=[{axis = 0, amplitude = 0.3, omega = 0.3141592653589793, function = "sin"}]',
+                "trajectory.offset=[1.5, 1.2]",
+                "duration=20",
+            ],
+        )
