@@ -37,7 +37,7 @@ def quat_to_matrix(q) -> np.ndarray:
 
 
 def input_noise_std(
-    spec, attitude_every: int, dt: float, gravity: float = 9.81, horizon: float = 1.0
+    spec, attitude_every: float, dt: float, gravity: float = 9.81, horizon: float = 1.0
 ) -> float:
     """The white input noise (m/s^2 per physics step) equivalent to the IMU's errors on ``u = R~ f~ + g``.
 
@@ -55,12 +55,18 @@ def input_noise_std(
     over-stated). Measured on ``quadrotor-uwb`` (30 s, 0.1 s window means), the white part
     is 0.20 m/s^2 across the thrust and 0.03 m/s^2 along it, as the first two terms give.
 
+    As an intensity on ``v' = u`` (m^2/s^3), ``q = sigma_u^2 dt = N_a^2 + m dt (g sigma_q)^2 +
+    b^2 tau`` with ``N_a = sigma_a sqrt(dt)`` the accelerometer's density: the live filters
+    take it from the scenario's ``[quadrotor]`` table, the replay from the figures a log states
+    (:func:`quadobs.testbed.logs.estimators.imu_input_noise`), through this one function.
+
     Parameters
     ----------
     spec : QuadrotorSpec
         ``accel_std`` (``sigma_a``), ``accel_bias`` (``b``) and ``attitude_std`` (``sigma_q``).
-    attitude_every : int
-        Physics steps between attitude samples (``m``).
+    attitude_every : float
+        Physics steps between attitude samples (``m``; a log's attitude interval over its IMU
+        interval need not be a whole number).
     dt : float
         Physics step (s).
     gravity : float
@@ -68,7 +74,7 @@ def input_noise_std(
     horizon : float
         The window ``tau`` (s) over which the bias is matched.
     """
-    white = spec.accel_std**2 + int(attitude_every) * (gravity * spec.attitude_std) ** 2
+    white = spec.accel_std**2 + float(attitude_every) * (gravity * spec.attitude_std) ** 2
     return float(np.sqrt(white + spec.accel_bias**2 * horizon / dt))
 
 

@@ -69,6 +69,22 @@ def test_a_quadrotor_run_is_written_as_a_body_imu_log(exported_flight):
     assert np.allclose(np.linalg.norm(q, axis=1), 1.0) and q[-1, 0] > 0.9  # near level at the end
 
 
+def test_the_replay_sizes_the_imu_noise_by_the_live_rule(exported_flight):
+    """The log states the scenario's IMU figures, and the replay's ``q_imu`` from them is the live
+    filters' input noise ``sigma_u^2 dt`` (4.4e-4 m^2/s^3, not the floor of a bare density)."""
+    from quadobs.testbed.factories import baseline_settings
+    from quadobs.testbed.logs.estimators import ACCEL_NOISE, log_defaults
+
+    sc, _, log, _, _ = exported_flight
+    q = sc.quadrotor
+    assert (log.accel_bias, log.gyro_bias, log.attitude_std) == (
+        q.accel_bias, q.gyro_bias, q.attitude_std,
+    )  # fmt: skip
+    live = float(np.asarray(baseline_settings(sc).dynamics.input_covariance).flat[0]) * sc.dt
+    assert log_defaults(log)["q_imu"] == pytest.approx(live, rel=1e-12)
+    assert live == pytest.approx(4.394e-4, rel=1e-3) and live < ACCEL_NOISE
+
+
 def test_the_log_rebuilds_the_inputs_the_estimators_were_given(exported_flight):
     """At each AHRS sample ``R~ f~ + g`` from imu.csv and attitude.csv is the episode's ``u_k``."""
     from quadobs.testbed.attitude import navigation_accelerations

@@ -33,9 +33,11 @@ ranges, never from the truth. No default is tied to one log's scale.
 * model ``cv``: a white acceleration of intensity ``q_acc`` (1 m^2/s^3);
 * model ``imu``: the accelerometer's white noise, of intensity ``q_imu`` (``1e-2`` m^2/s^3)
   on ``v' = u``; the initial velocity with variance 4 m^2/s^2 per axis, as for ``cv``. Where
-  the log states its accelerometer's density (``meta.csv`` key ``accel_noise``, written by
-  ``quadobs run --export-log``), ``q_imu`` is its square, floored at :data:`ACCEL_NOISE` for the
-  bias and attitude error that the density leaves out (:func:`log_defaults`);
+  the log states its accelerometer's bias (``meta.csv`` key ``accel_bias``, written by
+  ``quadobs run --export-log`` with ``accel_noise`` and ``attitude_std``), ``q_imu`` is the live
+  filters' rule on the stated figures (:func:`imu_input_noise`); where it states only a density
+  (``accel_noise``), its square, floored at :data:`ACCEL_NOISE` for the bias and attitude error
+  that the density leaves out (:func:`log_defaults`);
 * the auxiliary states ``xi_i = x^T L_i x / 2`` of the augmented observer: the same noise
   ``w`` on ``x'`` drives ``xi_i'`` through ``x^T L_i w``, so in time the observer's process
   noise is ``V(z) = J V_x J^T`` with ``J = [x^T L_1; ...; x^T L_k; I]`` at its estimate
@@ -98,6 +100,7 @@ __all__ = [
     "build_ukf_bias",
     "build_ukf_heading",
     "gyro_noise",
+    "imu_input_noise",
     "initial_variance",
     "log_defaults",
     "odometry_noise",
@@ -303,13 +306,13 @@ def odometry_noise(log) -> float:
 
 def log_defaults(log) -> dict:
     """The setup options whose defaults a log sets (:class:`ReplaySetup`): ``q_xy`` of an
-    odometry log (:func:`odometry_noise`), ``q_imu`` from a stated accelerometer density
-    (:func:`accel_noise`); empty for a log that gives neither. :func:`replay_setup` fills
+    odometry log (:func:`odometry_noise`), ``q_imu`` from the IMU's stated figures
+    (:func:`imu_input_noise`); empty for a log that gives neither. :func:`replay_setup` fills
     them where ``options`` does not set them; the self-calibration takes them as its prior."""
     out = {}
     if log.input_kind == "odometry" and log.inputs.shape[0] >= 2:
         out["q_xy"] = odometry_noise(log)
-    q = accel_noise(getattr(log, "accel_noise", None))
+    q = imu_input_noise(log)
     if q is not None:
         out["q_imu"] = q
     return out
@@ -550,6 +553,57 @@ def accel_noise(density: float | None) -> float | None:
     if density is None or not math.isfinite(float(density)):
         return None
     return max(float(density) ** 2, ACCEL_NOISE)
+
+
+def _median_interval(table) -> float:
+    """The median interval (s) between a table's rows (its first column the time); NaN if
+    fewer than two rows or none positive."""
+    if table is None or table.shape[0] < 2:
+        return math.nan
+    steps = np.diff(np.asarray(table[:, 0], dtype=float))
+    steps = steps[steps > 0]
+    return float(np.median(steps)) if steps.size else math.nan
+
+
+def imu_input_noise(log) -> float | None:
+    """The model ``imu``'s input-noise intensity ``q_imu`` (m^2/s^3) from the IMU figures a log
+    states (``meta.csv``); None where it states none (the default :attr:`ReplaySetup.q_imu`).
+
+    Where the log states the accelerometer's bias (``accel_bias``, the standard deviation
+    ``b`` of its constant bias per axis), ``q_imu`` is the rule of the live filters,
+    :func:`quadobs.testbed.imu.input_noise_std` itself:
+
+    .. math:: q_{imu} = N_a^2 + m\\,h\\,(g\\,\\sigma_q)^2 + b^2\\,\\tau,
+
+    ``N_a`` the density ``accel_noise`` (0 if not stated), ``sigma_q`` the attitude's error
+    ``attitude_std`` with ``m h`` the median interval of ``attitude.csv`` (the term is 0 where
+    either is missing: an attitude estimated in the replay has no stated error), ``g`` the log's
+    gravity, ``h`` the median IMU interval and ``tau`` = 1 s the horizon over which the bias is
+    matched. An exported simulated flight states every figure, so its replay takes the same
+    ``q_imu`` as the live filters (4.4e-4 m^2/s^3 for ``quadrotor-uwb`` and ``quadrotor-tdoa``).
+
+    Where the log states a density and no bias, :func:`accel_noise` (the density's square,
+    floored at :data:`ACCEL_NOISE` for the bias and attitude error it leaves out).
+    """
+    from types import SimpleNamespace
+
+    from quadobs.testbed.imu import input_noise_std
+
+    density = float(getattr(log, "accel_noise", math.nan))
+    bias = float(getattr(log, "accel_bias", math.nan))
+    h = _median_interval(log.inputs)
+    if not (math.isfinite(bias) and math.isfinite(h)):
+        return accel_noise(density)
+    attitude_std = float(getattr(log, "attitude_std", math.nan))
+    period = _median_interval(getattr(log, "attitude", None))
+    if not (math.isfinite(attitude_std) and math.isfinite(period)):
+        attitude_std, period = 0.0, h
+    spec = SimpleNamespace(
+        accel_std=density / math.sqrt(h) if math.isfinite(density) else 0.0,
+        accel_bias=bias,
+        attitude_std=attitude_std,
+    )
+    return input_noise_std(spec, period / h, h, gravity=float(log.gravity)) ** 2 * h
 
 
 #: The initial yaw error (rad) of :func:`build_onboard_ekf` where the log gives no attitude and

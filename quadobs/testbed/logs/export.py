@@ -49,7 +49,9 @@ as a log of version 2 with a body IMU, what the vehicle's own sensors gave the e
   its stated noise ``[noise] range_std`` as ``std`` (:func:`stated_range_std`);
 * ``truth.csv``: ``time,x,y,z,qw,qx,qy,qz,vx,vy,vz``, the true position, attitude and
   velocity at each step;
-* ``meta.csv``: ``frame`` ``enu`` (z up) and the MuJoCo model's ``gravity``.
+* ``meta.csv``: ``frame`` ``enu`` (z up) and the MuJoCo model's ``gravity``; the IMU's
+  stated figures from ``[quadrotor]``: the densities ``accel_noise`` and ``gyro_noise``, the
+  biases' standard deviations ``accel_bias`` and ``gyro_bias``, and ``attitude_std``.
 
 The replay (``quadobs replay DIR --model imu``) rebuilds the navigation-frame acceleration
 ``R~ f~ + g`` from ``imu.csv`` and ``attitude.csv`` (:mod:`quadobs.testbed.attitude`).
@@ -65,6 +67,7 @@ import numpy as np
 
 from quadobs.errors import QuadobsError
 from quadobs.testbed.logs.format import LOG_FILES, RangeLog, write_log
+from quadobs.testbed.logs.schema import IMU_FIGURES
 from quadobs.testbed.sinks import EpisodeContext, Rows, Sink
 
 if TYPE_CHECKING:
@@ -308,16 +311,20 @@ class LogExportSink(Sink):
             frame="enu",
             gravity=float(-world.model.opt.gravity[2]),
             description=(fr.description.splitlines() or [""])[0],
-            **_imu_noise(world.imu, fr.dt),
+            **_imu_noise(world.spec, fr.dt),
         )
 
 
-def _imu_noise(imu, dt: float) -> dict:
-    """The IMU's stated white-noise densities (``meta.csv``): a standard deviation ``s`` per
-    sample at the physics step ``dt`` is a density ``s sqrt(dt)``; none where it is zero."""
-    q = imu
-    return {
+def _imu_noise(spec, dt: float) -> dict:
+    """The IMU's stated figures (``meta.csv``) from the scenario's ``[quadrotor]`` table
+    ``spec``: the white-noise densities (a standard deviation ``s`` per sample at the physics
+    step ``dt`` is a density ``s sqrt(dt)``; none where it is zero), and the standard deviations
+    of the constant biases and of the attitude's error as the table states them (zero included:
+    a sensor stated to have none), from which the replay sizes the input noise as the live
+    filters do (:func:`quadobs.testbed.logs.estimators.imu_input_noise`)."""
+    densities = {
         key: std * math.sqrt(dt)
-        for key, std in (("accel_noise", q.accel_std), ("gyro_noise", q.gyro_std))
+        for key, std in (("accel_noise", spec.accel_std), ("gyro_noise", spec.gyro_std))
         if std > 0
     }
+    return {**densities, **{key: float(getattr(spec, key)) for key in IMU_FIGURES}}

@@ -51,6 +51,7 @@ from quadobs.testbed.logs.schema import (
     ATTITUDE,
     FILES,
     IMU,
+    IMU_FIGURES,
     MAX_SPAN,
     ODOMETRY,
     QUATERNION,
@@ -139,6 +140,11 @@ class RangeLog:
     description : str
     accel_noise, gyro_noise : float
         A body IMU's stated white-noise densities (m/s^2/sqrt(Hz), rad/s/sqrt(Hz)); NaN: unknown.
+    accel_bias, gyro_bias : float
+        The stated standard deviation of the accelerometer's and the gyroscope's constant bias
+        per axis (m/s^2, rad/s); NaN: unknown.
+    attitude_std : float
+        The stated error of each attitude sample per axis (rad); NaN: unknown.
     """
 
     name: str
@@ -161,6 +167,9 @@ class RangeLog:
     description: str = ""
     accel_noise: float = math.nan
     gyro_noise: float = math.nan
+    accel_bias: float = math.nan
+    gyro_bias: float = math.nan
+    attitude_std: float = math.nan
 
     def __post_init__(self) -> None:
         fix = lambda key, value: object.__setattr__(self, key, value)  # noqa: E731
@@ -498,6 +507,7 @@ def read_log(folder: str | Path) -> RangeLog:
             description=meta["description"],
             accel_noise=meta["accel_noise"],
             gyro_noise=meta["gyro_noise"],
+            **{key: meta[key] for key in IMU_FIGURES},
         )
     except QuadobsError as exc:  # name the folder's file, not the log's name
         raise QuadobsError(str(exc).replace(f"{name}: ", f"{folder}/", 1)) from None
@@ -555,7 +565,7 @@ def _log_texts(log: RangeLog) -> dict[str, str]:
         meta.append(["heading0", repr(float(log.heading0))])
     if dim == 3:
         meta += [["frame", log.frame], ["gravity", repr(float(log.gravity))]]
-    for key in ("accel_noise", "gyro_noise"):
+    for key in ("accel_noise", "gyro_noise", *IMU_FIGURES):
         if math.isfinite(getattr(log, key)):
             meta.append([key, repr(float(getattr(log, key)))])
     texts["meta.csv"] = _csv_text(["key", "value"], meta)

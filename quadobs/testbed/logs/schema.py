@@ -33,6 +33,7 @@ __all__ = [
     "BEACON",
     "FILES",
     "IMU",
+    "IMU_FIGURES",
     "MAX_FILE_BYTES",
     "MAX_ID",
     "MAX_LINE_BYTES",
@@ -241,8 +242,32 @@ META_KEYS = {
             math.nan,
             2,
         ),
+        MetaKey(
+            "accel_bias",
+            "the stated standard deviation of the accelerometer's constant bias per axis "
+            "(m/s^2, non-negative; absent: unknown)",
+            math.nan,
+            2,
+        ),
+        MetaKey(
+            "gyro_bias",
+            "the stated standard deviation of the gyroscope's constant bias per axis "
+            "(rad/s, non-negative; absent: unknown)",
+            math.nan,
+            2,
+        ),
+        MetaKey(
+            "attitude_std",
+            "the stated error of each attitude.csv sample per axis (rad, non-negative; "
+            "absent: unknown)",
+            math.nan,
+            2,
+        ),
     )
 }
+#: The ``meta.csv`` keys of an IMU's stated error figures beyond its densities (non-negative;
+#: :func:`quadobs.testbed.logs.estimators.imu_input_noise` sizes the input noise from them).
+IMU_FIGURES = ("accel_bias", "gyro_bias", "attitude_std")
 FRAMES = ("enu", "ned")
 
 
@@ -253,15 +278,16 @@ def _printable(where: str, text: str) -> str:
     return text
 
 
-def _float_value(where: str, text: str, positive: bool = False) -> float:
+def _float_value(
+    where: str, text: str, positive: bool = False, non_negative: bool = False
+) -> float:
     try:
         value = float(text)
     except ValueError:
         value = math.nan
-    if not math.isfinite(value) or (positive and value <= 0.0):
-        raise QuadobsError(
-            f"{where}: {text!r} is not a {'positive ' if positive else ''}finite number"
-        )
+    if not math.isfinite(value) or (positive and value <= 0.0) or (non_negative and value < 0.0):
+        sign = "positive " if positive else "non-negative " if non_negative else ""
+        raise QuadobsError(f"{where}: {text!r} is not a {sign}finite number")
     return value
 
 
@@ -295,6 +321,8 @@ def parse_meta(where: str, rows: list[list[str]]) -> dict:
             meta[key] = _float_value(at, text)
         elif key in ("gravity", "accel_noise", "gyro_noise"):
             meta[key] = _float_value(at, text, positive=True)
+        elif key in IMU_FIGURES:
+            meta[key] = _float_value(at, text, non_negative=True)
         elif key == "frame":
             if text.lower() not in FRAMES:
                 raise QuadobsError(f"{at}: {text!r}; expected one of {', '.join(FRAMES)}")
