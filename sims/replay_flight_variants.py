@@ -8,8 +8,9 @@ gyroscope's biases drawn with ``--accel-bias`` and ``--gyro-bias`` per axis) and
 variants of each log:
 
 * ``full``: the export as it is (body IMU, AHRS attitude, stated noise, truth with attitude);
-* ``noatt``: no ``attitude.csv``, no ``accel_noise`` / ``gyro_noise`` in ``meta.csv``, the
-  truth's attitude columns removed (so nothing can read them);
+* ``noatt``: no ``attitude.csv``, no ``accel_noise`` / ``gyro_noise`` (nor the IMU's bias and
+  attitude figures) in ``meta.csv``, the truth's attitude columns removed (so nothing can read
+  them);
 * ``yaw``: ``noatt`` with the navigation frame turned by ``--yaw`` radians about the vertical
   (anchors, true positions and velocities rotated; the body IMU unchanged): the vehicle
   starts with a heading the log does not state.
@@ -34,6 +35,7 @@ import numpy as np
 
 from quadobs import cli
 from quadobs.testbed.logs import read_log, write_log
+from quadobs.testbed.logs.schema import IMU_FIGURES
 
 VARIANTS = ("full", "noatt", "yaw")
 
@@ -72,6 +74,7 @@ def variant(log, kind: str, yaw: float):
         attitude=None,
         accel_noise=math.nan,
         gyro_noise=math.nan,
+        **dict.fromkeys(IMU_FIGURES, math.nan),
         source="",
         name=f"{log.name}-{kind}",
     )
