@@ -14,9 +14,9 @@ Noise, from the setup as for the replay's other estimators (no value read from t
 * the acceleration white noise of intensity ``q_imu`` (m^2/s^3), the EKF's
   (:func:`~quadobs.testbed.logs.estimators.build_ekf`), lifted into the observer's auxiliary
   states at its estimate (:class:`~quadobs.estimators.tdoa_observer.TdoaObserver`); where the
-  log states its accelerometer's density, ``q_imu`` is its square floored at
-  :data:`~quadobs.testbed.logs.estimators.ACCEL_NOISE`
-  (:func:`~quadobs.testbed.logs.estimators.log_defaults`), and the self-calibration
+  log states its IMU's figures, ``q_imu`` is sized from them as the live filters size it
+  (:func:`~quadobs.testbed.logs.estimators.imu_input_noise`; a density alone: its square
+  floored at :data:`~quadobs.testbed.logs.estimators.ACCEL_NOISE`), and the self-calibration
   scores held-out TDOA (:func:`~quadobs.testbed.logs.calibration.calibrate_tdoa`);
 * the initial position with variance ``P0`` per axis, the velocity 4 m^2/s^2 per axis.
 
