@@ -65,7 +65,9 @@ def test_q_imu_is_the_live_rule_on_the_stated_figures():
     assert log_defaults(stated) == {"q_imu": pytest.approx(expected, rel=1e-12)}
     # no attitude error stated (or no attitude.csv): that term is zero; no density: zero
     assert imu_input_noise(_log(accel_noise=1e-3, accel_bias=0.02)) == pytest.approx(4.01e-4)
-    assert imu_input_noise(_log(accel_bias=0.0)) == 0.0
+    assert imu_input_noise(_log(accel_bias=0.0, attitude_std=0.01)) == pytest.approx(9.604e-5)
+    # figures that give zero (an IMU stated perfect): not a filter's noise; the default stands
+    assert imu_input_noise(_log(accel_bias=0.0, attitude_std=0.0)) is None
     # a density without a bias: its square, floored; nothing stated: no default of the log
     assert imu_input_noise(_log(accel_noise=1e-3, attitude_std=0.01)) == ACCEL_NOISE
     assert imu_input_noise(_log()) is None and log_defaults(_log()) == {}

@@ -583,7 +583,9 @@ def imu_input_noise(log) -> float | None:
     ``q_imu`` as the live filters (4.4e-4 m^2/s^3 for ``quadrotor-uwb`` and ``quadrotor-tdoa``).
 
     Where the log states a density and no bias, :func:`accel_noise` (the density's square,
-    floored at :data:`ACCEL_NOISE` for the bias and attitude error it leaves out).
+    floored at :data:`ACCEL_NOISE` for the bias and attitude error it leaves out); so too where
+    the stated figures give zero (an IMU stated perfect: the replay's filters need a positive
+    intensity).
     """
     from types import SimpleNamespace
 
@@ -603,7 +605,8 @@ def imu_input_noise(log) -> float | None:
         accel_bias=bias,
         attitude_std=attitude_std,
     )
-    return input_noise_std(spec, period / h, h, gravity=float(log.gravity)) ** 2 * h
+    q = input_noise_std(spec, period / h, h, gravity=float(log.gravity)) ** 2 * h
+    return q if q > 0.0 else accel_noise(density)
 
 
 #: The initial yaw error (rad) of :func:`build_onboard_ekf` where the log gives no attitude and
