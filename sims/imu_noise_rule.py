@@ -40,9 +40,10 @@ def live_rmse(result, name: str, burn_in: float) -> float:
 
 def live_q(scenario) -> float:
     """The live filters' input-noise intensity (m^2/s^3): ``sigma_u^2 dt``."""
-    from quadobs.testbed.factories import _input_std
+    from quadobs.testbed.factories import baseline_settings
 
-    return _input_std(scenario) ** 2 * scenario.dt
+    variance = np.asarray(baseline_settings(scenario).dynamics.input_covariance, dtype=float)
+    return float(variance.flat[0]) * scenario.dt
 
 
 def intensity(label: str, scenario, log) -> float:
