@@ -1,0 +1,77 @@
+"""The replay's filters with each anchor's bias and height above the tag as states: ``ekf-height``
+and ``ukf-height``.
+
+The filters of :mod:`quadobs.estimators.height_states` on the replay's model of a planar log
+(:class:`~quadobs.testbed.logs.estimators.ReplaySetup`): ``ekf-bias`` / ``ukf-bias``
+(:mod:`quadobs.testbed.logs.bias_estimators`: the vehicle's state and process noise of the
+replay's EKF, the biases' prior 0.5 m, the one-sided gate) with one more constant state per
+anchor, the offset of its squared range ``e_h = delta z_h^2 / 2``.
+
+The offsets' prior. A planar log says nothing of its anchors' heights; indoors they hang
+between the floor and the ceiling of one storey, :data:`STOREY` = 3 m, so ``|delta z_h| <= 3 m``
+and ``0 <= e_h <= 4.5 m^2``. The offsets start at ``e_h = 0`` (the anchors in the tag's plane,
+as the log says) with the prior standard deviation :data:`E_STD` ``= STOREY^2 / 4``, half the
+largest offset. A log in space (3-D beacons) has its heights and is refused by name.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from quadobs.errors import QuadobsError
+
+__all__ = ["E_STD", "STOREY", "build_ekf_height", "build_ukf_height"]
+
+#: The height of one storey (m): the largest height of an indoor anchor above a ground tag.
+STOREY = 3.0
+#: Prior standard deviation of each squared-range offset ``e_h = dz_h^2 / 2`` (m^2).
+E_STD = STOREY**2 / 4.0
+
+
+def _build(s, x0: np.ndarray, name: str, cls, process_noise: np.ndarray):
+    from quadobs.core.measurements import RangeModel
+    from quadobs.estimators.height_states import HeightRangeOutputModel, height_system
+    from quadobs.estimators.kalman import HeldInputModel
+    from quadobs.estimators.robust import SkewedGate
+    from quadobs.testbed.logs.bias_estimators import _gate_probability
+
+    if "tdoa" in s.kinds:
+        raise QuadobsError(
+            f"estimators: {name!r} estimates range biases and the log holds TDOA (use ekf or ukf)"
+        )
+    if s.dim != 2:
+        raise QuadobsError(
+            f"estimators: {name!r} estimates the anchors' heights above a planar tag; the log "
+            "is in space (its beacons have z): use ekf-bias"
+        )
+    system = s.system
+    n, q = system.n, system.q
+    ext = height_system(system)
+    V = np.zeros((n + 2 * q, n + 2 * q))
+    V[:n, :n] = process_noise
+    dynamics = HeldInputModel(ext, s.dt, V=V)
+    offsets = 0.5 * np.einsum("hi,hi->h", system.d, system.d)
+    outputs = HeightRangeOutputModel(ext, s.range_sigma**2 * np.eye(q), offsets=offsets)
+    P0 = np.full(n, s.P0)
+    P0[s.dim :] = 4.0  # the velocity, as the replay's EKF
+    extra = RangeModel(s.beacons, s.range_sigma, bias="state").extra_states()
+    prior = np.concatenate([P0, [e.prior_std**2 for e in extra], np.full(q, E_STD**2)])
+    xe = np.concatenate([np.asarray(x0, dtype=float)[:n], np.zeros(2 * q)])
+    rule = SkewedGate(_gate_probability(s.gate))
+    est = cls(dynamics, outputs, x0=xe, P0=np.diag(prior), vehicle_n=n, robust=rule)
+    est.name = name
+    return est
+
+
+def build_ekf_height(s, x0: np.ndarray, name: str, process_noise: np.ndarray):
+    """The EKF with the anchors' biases and squared-range offsets as states (module docstring)."""
+    from quadobs.estimators.height_states import HeightBiasedExtendedKalmanFilter
+
+    return _build(s, x0, name, HeightBiasedExtendedKalmanFilter, process_noise)
+
+
+def build_ukf_height(s, x0: np.ndarray, name: str, process_noise: np.ndarray):
+    """The UKF with the anchors' biases and squared-range offsets as states (module docstring)."""
+    from quadobs.estimators.height_states import HeightBiasedUnscentedKalmanFilter
+
+    return _build(s, x0, name, HeightBiasedUnscentedKalmanFilter, process_noise)
