@@ -46,7 +46,7 @@ from quadobs.testbed.logs import read_log
 from quadobs.testbed.logs.export import LogExportSink
 from quadobs.testbed.logs.format import write_log
 from quadobs.testbed.logs.posed import posed_log
-from quadobs.testbed.logs.replay import run_replay
+from quadobs.testbed.logs.replay import default_estimators, run_replay
 from quadobs.testbed.uwb import radio_of
 
 BURN_IN = 5.0
@@ -97,10 +97,14 @@ def without_std(folder: Path, into: Path) -> Path:
     return into
 
 
-def replay_defaults(folder: Path) -> dict:
-    """``quadobs replay FOLDER --burn-in 5``, every other setting its default: RMSE by estimator."""
+def replay_defaults(folder: Path, extra: tuple[str, ...] = ()) -> dict:
+    """``quadobs replay FOLDER --burn-in 5``, every other setting its default: RMSE by estimator
+    (with ``extra``, the default set and those estimators beside it, calibrated once)."""
     summary = folder.parent / f"{folder.name}-summary.json"
     cmd = [sys.executable, "-m", "quadobs", "replay", str(folder), "--burn-in", str(BURN_IN)]
+    if extra:
+        names = [*default_estimators(read_log(folder)), *extra]
+        cmd += ["--estimators", ",".join(dict.fromkeys(names))]
     done = subprocess.run(
         [*cmd, "--summary", str(summary)], capture_output=True, text=True, check=False
     )
@@ -137,12 +141,16 @@ def main() -> None:
     ap.add_argument("--duration", type=float, default=90.0)
     ap.add_argument("--json", help="write the results here")
     ap.add_argument("--variants", help=f"posed logs, comma-separated ({', '.join(VARIANTS)})")
+    ap.add_argument(
+        "--extra", default="", help="estimators replayed beside the default set (e.g. ukf-height)"
+    )
     args = ap.parse_args()
+    extra = tuple(x for x in args.extra.split(",") if x)
     rows = []
     with tempfile.TemporaryDirectory(prefix="rover-room-") as tmp:
         for seed in (int(s) for s in args.seeds.split(",")):
             if args.variants:
-                rows += posed_rows(seed, args.duration, args.variants.split(","), Path(tmp))
+                rows += posed_rows(seed, args.duration, args.variants.split(","), Path(tmp), extra)
                 continue
             folder = Path(tmp) / f"seed{seed}"
             scenario = export(seed, args.duration, folder)
@@ -162,7 +170,7 @@ def main() -> None:
     print(f"(position RMSE after {BURN_IN:g} s, m)")
 
 
-def posed_rows(seed: int, duration: float, variants: list[str], tmp: Path) -> list[dict]:
+def posed_rows(seed: int, duration: float, variants: list[str], tmp: Path, extra=()) -> list[dict]:
     """One row per variant of the seed: the defaults' RMSE and the reference's."""
     rows = []
     for variant in variants:

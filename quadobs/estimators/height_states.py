@@ -42,7 +42,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from quadobs.core.measurements import RangeModel
 from quadobs.core.system import QuadraticSystem
+from quadobs.estimators.augmented import AugmentedObserver
 from quadobs.estimators.bias_states import (
     BiasedExtendedKalmanFilter,
     BiasedUnscentedKalmanFilter,
@@ -51,9 +53,11 @@ from quadobs.estimators.bias_states import (
 from quadobs.estimators.kalman import OutputModel
 
 __all__ = [
+    "HeightAugmentedObserver",
     "HeightBiasedExtendedKalmanFilter",
     "HeightBiasedUnscentedKalmanFilter",
     "HeightRangeOutputModel",
+    "height_quadratic_system",
     "height_system",
 ]
 
@@ -112,3 +116,59 @@ class HeightBiasedUnscentedKalmanFilter(BiasedUnscentedKalmanFilter):
     name = "ukf-height"
     biases = HeightBiasedExtendedKalmanFilter.biases
     heights = HeightBiasedExtendedKalmanFilter.heights
+
+
+def height_quadratic_system(system: QuadraticSystem) -> QuadraticSystem:
+    """``system`` with one constant state ``e_h`` per output that enters its quadratic output
+    linearly, ``y_h = x^T C_h x / 2 + d_h^T x + e_h`` (module docstring): ``A_e = blockdiag(A, 0)``,
+    ``B_e = (B, 0)``, ``C_e,h = blockdiag(C_h, 0)``, ``d_e,h = (d_h, e_h)`` (``e_h`` the unit vector)."""
+    n, q = system.n, system.q
+    A = np.zeros((n + q, n + q))
+    A[:n, :n] = system.A
+    B = np.vstack([system.B, np.zeros((q, system.p))])
+    C = np.zeros((q, n + q, n + q))
+    C[:, :n, :n] = system.C
+    d = np.hstack([system.d, np.eye(q)])
+    return QuadraticSystem(A, B, C, d)
+
+
+class HeightAugmentedObserver(AugmentedObserver):
+    """The observer of [IFAC2021, Thm. 3] on the immersion of :func:`height_quadratic_system`:
+    the squared-range offsets ``e`` are constant states of the linear immersed system, so the
+    observer stays linear in ``z = (xi, x, e)`` (its convergence from any guess unchanged).
+    :attr:`x_hat` is the vehicle's ``x`` (``vehicle_n`` entries); :attr:`heights` the anchors'
+    heights above the tag ``sqrt(2 max(e, 0))``.
+
+    Parameters
+    ----------
+    vehicle_n : int
+        The vehicle's state dimension ``n``; the rest of ``x`` are the offsets ``e``.
+    anchors : ndarray (q, d)
+        The anchors of the outputs: its ranges' model (:class:`~quadobs.core.measurements.RangeModel`,
+        whose quadratic output ``(rho^2 - |a_h|^2) / 2`` is the immersion's output ``h``).
+    *args, **kw
+        Those of :class:`~quadobs.estimators.augmented.AugmentedObserver`.
+    """
+
+    name = "augmented-height"
+
+    def __init__(self, *args, vehicle_n: int, anchors: np.ndarray, **kw) -> None:
+        super().__init__(*args, **kw)
+        self.vehicle_n = int(vehicle_n)
+        self.measurement_models = {"range": RangeModel(np.asarray(anchors, dtype=float), 1.0)}
+
+    @property
+    def x_hat(self) -> np.ndarray:
+        k = self.immersion.n_aux
+        return self._z[k : k + self.vehicle_n].copy()
+
+    @property
+    def x_covariance(self) -> np.ndarray:
+        k, n = self.immersion.n_aux, self.vehicle_n
+        return self._P[k : k + n, k : k + n].copy()
+
+    @property
+    def heights(self) -> np.ndarray:
+        """``|delta z_h| = sqrt(2 e_h)`` (m), from the estimated offsets (negative ones as 0)."""
+        e = self._z[self.immersion.n_aux + self.vehicle_n :]
+        return np.sqrt(2.0 * np.maximum(e, 0.0))

@@ -165,12 +165,29 @@ def test_the_height_model_is_the_3d_range_and_its_jacobian():
     np.testing.assert_allclose(J, fd, atol=1e-8)
 
 
-def test_the_height_filter_follows_3d_ranges_that_the_bias_filter_cannot():
+def test_the_height_states_follow_3d_ranges_that_constant_biases_cannot():
     from quadobs.testbed.logs.posed import posed_log
     from quadobs.testbed.logs.replay import run_replay
 
     log = posed_log(_planar_log(), anchor_heights=[2.3, 0.3, 1.8, 1.1], tag_height=0.25)
-    names = ["ekf-bias", "ekf-height"]
-    summary = run_replay(log, estimators=names, initial_offset=0.0, batch=False, burn_in=10.0)
+    names = ["augmented", "augmented-height", "ekf-bias", "ekf-height"]
+    summary = run_replay(log, estimators=names, initial_offset=2.0, batch=False, burn_in=10.0)
     rmse = {n: summary["estimators"][n]["rmse"] for n in names}
+    assert rmse["augmented-height"] < 0.5 * rmse["augmented"], rmse
     assert rmse["ekf-height"] < 0.5 * rmse["ekf-bias"], rmse
+
+
+def test_the_offsets_enter_the_quadratic_output_linearly():
+    from quadobs.core.immersion import immerse
+    from quadobs.core.system import odometry_system
+    from quadobs.estimators.height_states import height_quadratic_system
+
+    beacons = np.array([[0.1, 0.1], [2.9, 0.2], [2.8, 2.3], [0.2, 2.3]])
+    ext = height_quadratic_system(odometry_system(beacons))
+    p, e = np.array([1.2, 0.7]), np.array([0.5, 2.0, 0.0, 1.1])
+    x = np.concatenate([p, e])
+    # y_h + |a_h|^2 / 2 = rho_h^2 / 2 with rho_h^2 = |p - a_h|^2 + 2 e_h
+    rho2 = np.sum((p - beacons) ** 2, axis=1) + 2 * e
+    np.testing.assert_allclose(ext.output(x) + 0.5 * np.sum(beacons**2, axis=1), rho2 / 2)
+    im = immerse(ext)  # still one auxiliary state, |p|^2 / 2: the offsets are linear states
+    assert im.n_aux == 1 and im.dim == 1 + 2 + 4

@@ -514,6 +514,13 @@ def build_ukf_height(s: ReplaySetup, x0: np.ndarray, name: str = "ukf-height") -
     return height_estimators.build_ukf_height(s, x0, name, _process_noise(s))
 
 
+def build_augmented_height(s: ReplaySetup, x0: np.ndarray, name: str = "augmented-height"):
+    """Entry point ``augmented-height`` (:mod:`quadobs.testbed.logs.height_estimators`)."""
+    from quadobs.testbed.logs import height_estimators
+
+    return height_estimators.build_augmented_height(s, x0, name, _process_noise(s))
+
+
 def build_augmented_bias(s: ReplaySetup, x0: np.ndarray, name: str = "augmented-bias"):
     """Entry point ``augmented-bias`` (:mod:`quadobs.testbed.logs.bias_estimators`): the settings
     of :func:`build_augmented`'s observer for the same log and guess."""
@@ -747,6 +754,7 @@ REPLAY_ESTIMATORS = {
     "ekf-bias-imu": build_ekf_bias_imu,
     "ekf-height": build_ekf_height,
     "ukf-height": build_ukf_height,
+    "augmented-height": build_augmented_height,
 }
 
 

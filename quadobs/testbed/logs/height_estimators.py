@@ -20,7 +20,13 @@ import numpy as np
 
 from quadobs.errors import QuadobsError
 
-__all__ = ["E_STD", "STOREY", "build_ekf_height", "build_ukf_height"]
+__all__ = [
+    "E_STD",
+    "STOREY",
+    "build_augmented_height",
+    "build_ekf_height",
+    "build_ukf_height",
+]
 
 #: The height of one storey (m): the largest height of an indoor anchor above a ground tag.
 STOREY = 3.0
@@ -75,3 +81,44 @@ def build_ukf_height(s, x0: np.ndarray, name: str, process_noise: np.ndarray):
     from quadobs.estimators.height_states import HeightBiasedUnscentedKalmanFilter
 
     return _build(s, x0, name, HeightBiasedUnscentedKalmanFilter, process_noise)
+
+
+def build_augmented_height(s, x0: np.ndarray, name: str, process_noise: np.ndarray):
+    """The augmented observer with the anchors' squared-range offsets as constant states of its
+    immersion (:class:`~quadobs.estimators.height_states.HeightAugmentedObserver`), on a planar
+    odometry log. Its settings are the replay's augmented observer's
+    (:func:`~quadobs.testbed.logs.estimators.build_augmented`): the process noise
+    ``process_noise`` on ``x'`` mapped into the immersed state at the estimate, the prior of
+    ``lift(x)``, the output noise ``(median range * range_sigma)^2``; the offsets' prior :data:`E_STD`."""
+    from quadobs.core.immersion import immerse
+    from quadobs.estimators.height_states import HeightAugmentedObserver, height_quadratic_system
+
+    if "tdoa" in s.kinds or s.dim != 2 or s.model != "odometry":
+        raise QuadobsError(
+            f"estimators: {name!r} takes the ranges of a planar odometry log (the anchors' "
+            "heights above the tag as states)"
+        )
+    n, q = s.n, s.system.q
+    im = immerse(height_quadratic_system(s.system))
+    k = im.n_aux
+    xe = np.concatenate([np.asarray(x0, dtype=float)[:n], np.zeros(q)])
+    p0 = xe[: s.dim]
+    P = np.eye(im.dim) * s.P0
+    P[0, 0] = s.P0 * p0 @ p0 + s.P0**2  # the covariance of xi = |p|^2 / 2 for p ~ N(p0, P0 I)
+    P[0, k : k + s.dim] = P[k : k + s.dim, 0] = s.P0 * p0
+    P[k + n :, k + n :] = np.eye(q) * E_STD**2
+    L, J = im.aux_forms, np.zeros((im.dim, n))
+    J[k : k + n] = np.eye(n)
+
+    def noise(z: np.ndarray) -> np.ndarray:  # V(z) = J V_x J^T, J = [x^T L_i; I_n; 0]
+        J[:k] = (L @ z[k:])[:, :n]
+        V = J @ process_noise @ J.T
+        return 0.5 * (V + V.T)
+
+    R = (s.range_median * s.range_sigma) ** 2
+    est = HeightAugmentedObserver(
+        im, s.dt, V=noise(im.lift(xe)), W=R * s.dt, P0=P, z0=im.lift(xe), gate=s.gate,
+        noise_of=noise, vehicle_n=n, anchors=s.beacons,
+    )  # fmt: skip
+    est.name = name
+    return est
