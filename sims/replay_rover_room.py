@@ -181,7 +181,7 @@ def posed_rows(seed: int, duration: float, variants: list[str], tmp: Path, extra
         row = {
             "seed": seed,
             "log": variant,
-            **replay_defaults(folder),
+            **replay_defaults(folder, extra),
             **reference(folder, scenario),
         }
         rows.append(row)
