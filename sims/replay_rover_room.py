@@ -25,7 +25,7 @@ odometry at 20 Hz with wheel slip in turns, ranges at 16 Hz) and the exported lo
 planar ``beacons.csv``, the tag off the tracked point, the odometry's clock apart, a Unix time
 base); each log is replayed as exported (with ``std``) only:
 
-    python sims/replay_rover_room.py --seeds 0 --variants today,heights,rest,rates,clocks,lever,all
+    python sims/replay_rover_room.py --seeds 0 --variants today,heights,low,rest,rates,clocks,lever,all
 """
 
 from __future__ import annotations
@@ -59,12 +59,15 @@ TAG_HEIGHT = 0.25
 _STOPS = "trajectory.stops=[{start=0.0,end=5.0,ramp=1.0},{start=40.0,end=46.0,ramp=1.0}]"
 _RATES = ("odometry.rate=20", "radio.rate=16", "odometry.turn_slip=0.05")
 _HEIGHTS = {"anchor_heights": ANCHOR_HEIGHTS, "tag_height": TAG_HEIGHT}
+#: Anchors on stands a little above the tag (0.25 to 0.65 m higher).
+_LOW = {"anchor_heights": (0.50, 0.90, 0.70, 0.60), "tag_height": TAG_HEIGHT}
 _LEVER = {"lever_arm": (0.10, 0.0)}
 _CLOCKS = {"odometry_offset": 0.05, "time_base": 1.7e9}
 #: Each variant: the scenario's settings, and the posing of its exported log.
 VARIANTS = {
     "today": ((), {}),
     "heights": ((), _HEIGHTS),
+    "low": ((), _LOW),
     "rest": ((_STOPS,), {}),
     "rates": (_RATES, {}),
     "clocks": ((), _CLOCKS),
