@@ -32,6 +32,8 @@ __all__ = [
 STOREY = 3.0
 #: Prior standard deviation of each squared-range offset ``e_h = dz_h^2 / 2`` (m^2).
 E_STD = STOREY**2 / 4.0
+#: Prior mean of each offset (m^2).
+E_MEAN = 0.0
 
 
 def _build(s, x0: np.ndarray, name: str, cls, process_noise: np.ndarray):
@@ -62,7 +64,7 @@ def _build(s, x0: np.ndarray, name: str, cls, process_noise: np.ndarray):
     P0[s.dim :] = 4.0  # the velocity, as the replay's EKF
     extra = RangeModel(s.beacons, s.range_sigma, bias="state").extra_states()
     prior = np.concatenate([P0, [e.prior_std**2 for e in extra], np.full(q, E_STD**2)])
-    xe = np.concatenate([np.asarray(x0, dtype=float)[:n], np.zeros(2 * q)])
+    xe = np.concatenate([np.asarray(x0, dtype=float)[:n], np.zeros(q), np.full(q, E_MEAN)])
     rule = SkewedGate(_gate_probability(s.gate))
     est = cls(dynamics, outputs, x0=xe, P0=np.diag(prior), vehicle_n=n, robust=rule)
     est.name = name
@@ -101,7 +103,7 @@ def build_augmented_height(s, x0: np.ndarray, name: str, process_noise: np.ndarr
     n, q = s.n, s.system.q
     im = immerse(height_quadratic_system(s.system))
     k = im.n_aux
-    xe = np.concatenate([np.asarray(x0, dtype=float)[:n], np.zeros(q)])
+    xe = np.concatenate([np.asarray(x0, dtype=float)[:n], np.full(q, E_MEAN)])
     p0 = xe[: s.dim]
     P = np.eye(im.dim) * s.P0
     P[0, 0] = s.P0 * p0 @ p0 + s.P0**2  # the covariance of xi = |p|^2 / 2 for p ~ N(p0, P0 I)
