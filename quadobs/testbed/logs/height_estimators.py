@@ -8,10 +8,20 @@ replay's EKF, the biases' prior 0.5 m, the one-sided gate) with one more constan
 anchor, the offset of its squared range ``e_h = delta z_h^2 / 2``.
 
 The offsets' prior. A planar log says nothing of its anchors' heights; indoors they hang
-between the floor and the ceiling of one storey, :data:`STOREY` = 3 m, so ``|delta z_h| <= 3 m``
-and ``0 <= e_h <= 4.5 m^2``. The offsets start at ``e_h = 0`` (the anchors in the tag's plane,
-as the log says) with the prior standard deviation :data:`E_STD` ``= STOREY^2 / 4``, half the
-largest offset. A log in space (3-D beacons) has its heights and is refused by name.
+between the floor and the ceiling of one storey, :data:`STOREY` = 3 m. With the height of an
+anchor above the tag taken uniform on ``[0, STOREY]`` (``H`` for short), ``e_h = dz_h^2 / 2`` has
+the mean and standard deviation
+
+.. math::
+
+    \\mathrm E[e_h] = \\frac{\\mathrm E[\\delta z^2]}{2} = \\frac{H^2}{6}, \\qquad
+    \\sqrt{\\operatorname{Var} e_h} = \\frac{\\sqrt{\\mathrm E[\\delta z^4] - \\mathrm E[\\delta z^2]^2}}{2}
+    = \\frac{H^2}{\\sqrt{45}},
+
+1.5 m^2 and 1.34 m^2 (:data:`E_MEAN`, :data:`E_STD`): the offsets start there. (A prior at
+``e_h = 0``, the anchors in the tag's plane as the log draws them, with the standard deviation
+``H^2 / 4``, was measured worse where the anchors are high: docs/error-sources.md.) A log in
+space (3-D beacons) has its heights and is refused by name.
 """
 
 from __future__ import annotations
@@ -21,6 +31,7 @@ import numpy as np
 from quadobs.errors import QuadobsError
 
 __all__ = [
+    "E_MEAN",
     "E_STD",
     "STOREY",
     "build_augmented_height",
@@ -30,10 +41,10 @@ __all__ = [
 
 #: The height of one storey (m): the largest height of an indoor anchor above a ground tag.
 STOREY = 3.0
-#: Prior standard deviation of each squared-range offset ``e_h = dz_h^2 / 2`` (m^2).
-E_STD = STOREY**2 / 4.0
-#: Prior mean of each offset (m^2).
-E_MEAN = 0.0
+#: Prior mean of each squared-range offset ``e_h = dz_h^2 / 2`` (m^2): ``dz`` uniform on ``[0, STOREY]``.
+E_MEAN = STOREY**2 / 6.0
+#: Prior standard deviation of each offset (m^2), for the same uniform ``dz``.
+E_STD = STOREY**2 / 45.0**0.5
 
 
 def _build(s, x0: np.ndarray, name: str, cls, process_noise: np.ndarray):
@@ -91,7 +102,8 @@ def build_augmented_height(s, x0: np.ndarray, name: str, process_noise: np.ndarr
     odometry log. Its settings are the replay's augmented observer's
     (:func:`~quadobs.testbed.logs.estimators.build_augmented`): the process noise
     ``process_noise`` on ``x'`` mapped into the immersed state at the estimate, the prior of
-    ``lift(x)``, the output noise ``(median range * range_sigma)^2``; the offsets' prior :data:`E_STD`."""
+    ``lift(x)``, the output noise ``(median range * range_sigma)^2``; the offsets' prior
+    :data:`E_MEAN`, :data:`E_STD`."""
     from quadobs.core.immersion import immerse
     from quadobs.estimators.height_states import HeightAugmentedObserver, height_quadratic_system
 
