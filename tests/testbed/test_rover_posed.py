@@ -191,3 +191,12 @@ def test_the_offsets_enter_the_quadratic_output_linearly():
     np.testing.assert_allclose(ext.output(x) + 0.5 * np.sum(beacons**2, axis=1), rho2 / 2)
     im = immerse(ext)  # still one auxiliary state, |p|^2 / 2: the offsets are linear states
     assert im.n_aux == 1 and im.dim == 1 + 2 + 4
+
+
+def test_the_height_filters_refuse_what_they_cannot_take_by_name():
+    from quadobs.testbed.logs.replay import run_replay
+
+    with pytest.raises(
+        QuadobsError, match="'augmented-height' takes the ranges of a planar odometry"
+    ):
+        run_replay(_planar_log(), estimators=["augmented-height"], model="cv", batch=False)
