@@ -17,6 +17,15 @@ default ``q_xy``, as its heading drift is no white noise. Every figure is the po
 after the 5 s burn-in.
 
     python sims/replay_rover_room.py [--seeds 0,1,2] [--duration 90]
+
+``--variants`` poses the simulated robot as a real one logs it (:data:`VARIANTS`): the
+scenario changed by settings (a rest at the start and a stop mid-log with the heading held,
+odometry at 20 Hz with wheel slip in turns, ranges at 16 Hz) and the exported log by
+:func:`quadobs.testbed.logs.posed.posed_log` (anchors at other heights than the tag with a
+planar ``beacons.csv``, the tag off the tracked point, the odometry's clock apart, a Unix time
+base); each log is replayed as exported (with ``std``) only:
+
+    python sims/replay_rover_room.py --seeds 0 --variants today,heights,low,rest,rates,clocks,lever,all
 """
 
 from __future__ import annotations
@@ -35,17 +44,47 @@ from quadobs import load_scenario
 from quadobs.testbed.episode import run_episode
 from quadobs.testbed.logs import read_log
 from quadobs.testbed.logs.export import LogExportSink
-from quadobs.testbed.logs.replay import run_replay
+from quadobs.testbed.logs.format import write_log
+from quadobs.testbed.logs.posed import posed_log
+from quadobs.testbed.logs.replay import default_estimators, run_replay
 from quadobs.testbed.uwb import radio_of
 
 BURN_IN = 5.0
 REFERENCE = ("ekf-heading", "ukf-heading", "ekf")
 
+#: Anchor heights (m) of the posed room, the tag at :data:`TAG_HEIGHT`: anchors on a table,
+#: on walls and near the ceiling, as in a room fitted by hand.
+ANCHOR_HEIGHTS = (0.30, 2.30, 1.05, 1.80)
+TAG_HEIGHT = 0.25
+_STOPS = "trajectory.stops=[{start=0.0,end=5.0,ramp=1.0},{start=40.0,end=46.0,ramp=1.0}]"
+_RATES = ("odometry.rate=20", "radio.rate=16", "odometry.turn_slip=0.05")
+_HEIGHTS = {"anchor_heights": ANCHOR_HEIGHTS, "tag_height": TAG_HEIGHT}
+#: Anchors on stands a little above the tag (0.25 to 0.65 m higher).
+_LOW = {"anchor_heights": (0.50, 0.90, 0.70, 0.60), "tag_height": TAG_HEIGHT}
+_LEVER = {"lever_arm": (0.10, 0.0)}
+_CLOCKS = {"odometry_offset": 0.05, "time_base": 1.7e9}
+#: Each variant: the scenario's settings, and the posing of its exported log.
+VARIANTS = {
+    "today": ((), {}),
+    "heights": ((), _HEIGHTS),
+    "low": ((), _LOW),
+    "rest": ((_STOPS,), {}),
+    "rates": (_RATES, {}),
+    "clocks": ((), _CLOCKS),
+    "lever": ((), _LEVER),
+    "all": ((_STOPS, *_RATES), {**_HEIGHTS, **_LEVER, **_CLOCKS}),
+}
 
-def export(seed: int, duration: float, folder: Path):
-    """The seed's ``rover-room`` run written as a log in ``folder``; the scenario."""
+
+def export(seed: int, duration: float, folder: Path, variant: str = "today"):
+    """The seed's ``rover-room`` run written as a log in ``folder`` (posed as ``variant``); the scenario."""
+    settings, pose = VARIANTS[variant]
     scenario = load_scenario("rover-room", seed=seed, duration=duration)
+    if settings:
+        scenario = scenario.with_settings(settings)
     run_episode(scenario, estimators=["ekf"], sinks=[LogExportSink(folder)])
+    if pose:
+        write_log(posed_log(read_log(folder), **pose), folder)
     return scenario
 
 
@@ -61,10 +100,14 @@ def without_std(folder: Path, into: Path) -> Path:
     return into
 
 
-def replay_defaults(folder: Path) -> dict:
-    """``quadobs replay FOLDER --burn-in 5``, every other setting its default: RMSE by estimator."""
+def replay_defaults(folder: Path, extra: tuple[str, ...] = ()) -> dict:
+    """``quadobs replay FOLDER --burn-in 5``, every other setting its default: RMSE by estimator
+    (with ``extra``, the default set and those estimators beside it, calibrated once)."""
     summary = folder.parent / f"{folder.name}-summary.json"
     cmd = [sys.executable, "-m", "quadobs", "replay", str(folder), "--burn-in", str(BURN_IN)]
+    if extra:
+        names = [*default_estimators(read_log(folder)), *extra]
+        cmd += ["--estimators", ",".join(dict.fromkeys(names))]
     done = subprocess.run(
         [*cmd, "--summary", str(summary)], capture_output=True, text=True, check=False
     )
@@ -100,10 +143,18 @@ def main() -> None:
     ap.add_argument("--seeds", default="0,1,2")
     ap.add_argument("--duration", type=float, default=90.0)
     ap.add_argument("--json", help="write the results here")
+    ap.add_argument("--variants", help=f"posed logs, comma-separated ({', '.join(VARIANTS)})")
+    ap.add_argument(
+        "--extra", default="", help="estimators replayed beside the default set (e.g. ukf-height)"
+    )
     args = ap.parse_args()
+    extra = tuple(x for x in args.extra.split(",") if x)
     rows = []
     with tempfile.TemporaryDirectory(prefix="rover-room-") as tmp:
         for seed in (int(s) for s in args.seeds.split(",")):
+            if args.variants:
+                rows += posed_rows(seed, args.duration, args.variants.split(","), Path(tmp), extra)
+                continue
             folder = Path(tmp) / f"seed{seed}"
             scenario = export(seed, args.duration, folder)
             bare = without_std(folder, Path(tmp) / f"seed{seed}-nostd")
@@ -120,6 +171,25 @@ def main() -> None:
     for r in rows:
         print(f"| {r['seed']} | {r['log']} | " + " | ".join(_fmt(r[c]) for c in columns) + " |")
     print(f"(position RMSE after {BURN_IN:g} s, m)")
+
+
+def posed_rows(seed: int, duration: float, variants: list[str], tmp: Path, extra=()) -> list[dict]:
+    """One row per variant of the seed: the defaults' RMSE and the reference's."""
+    rows = []
+    for variant in variants:
+        if variant not in VARIANTS:
+            raise SystemExit(f"--variants: unknown {variant!r} (one of {', '.join(VARIANTS)})")
+        folder = tmp / f"seed{seed}-{variant}"
+        scenario = export(seed, duration, folder, variant)
+        row = {
+            "seed": seed,
+            "log": variant,
+            **replay_defaults(folder, extra),
+            **reference(folder, scenario),
+        }
+        rows.append(row)
+        print(", ".join(f"{k} {_fmt(v)}" for k, v in row.items()), flush=True)
+    return rows
 
 
 def _fmt(value) -> str:

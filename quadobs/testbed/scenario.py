@@ -193,6 +193,19 @@ class Coast(_Table):
     end: Seconds = Field(description="End of the segment (s); segments are sorted and disjoint.")
 
 
+class Stop(_Table):
+    """A ``[[trajectory.stops]]`` stop: the vehicle halts on its path over ``[start, end]``, its
+    heading held (:class:`~quadobs.testbed.trajectory.SinusoidTrajectory`)."""
+
+    start: Annotated[NonNegative, Le(MAX_DURATION)] = Field(
+        description="Start of the standstill (s); 0: the vehicle starts at rest."
+    )
+    end: Seconds = Field(description="End of the standstill (s); stops are sorted and disjoint.")
+    ramp: Annotated[Positive, Le(MAX_DURATION)] = Field(
+        1.0, description="Length of the cosine ramps down to rest and up again (s)."
+    )
+
+
 class TrajectorySpec(_Table):
     """The ``[trajectory]`` table: offsets, a constant velocity and sinusoids per axis."""
 
@@ -207,6 +220,10 @@ class TrajectorySpec(_Table):
     )
     coast: Annotated[tuple[Coast, ...], MaxLen(MAX_ENTRIES)] = Field(
         (), description="Segments without commanded acceleration."
+    )
+    stops: Annotated[tuple[Stop, ...], MaxLen(MAX_ENTRIES)] | None = Field(
+        None,
+        description="Stops on the path (`[[trajectory.stops]]`: start, end, ramp), the heading held.",
     )
 
 
@@ -619,6 +636,10 @@ class OdometrySpec(_Table):
     yaw_rate_bias: Annotated[Number, Ge(-MAX_RATE), Le(MAX_RATE)] = Field(
         0.0, description="Constant bias of the yaw rate (rad/s)."
     )
+    turn_slip: Annotated[NonNegative, Le(MAX_RATE)] | None = Field(
+        None,
+        description="Wheel slip in turns (s/rad): the speed reads `(1 + scale_error + turn_slip |omega|)` times the true one.",
+    )
 
 
 # --------------------------------------------------------------------------------------
@@ -867,8 +888,9 @@ class Scenario(_Table):
             [(x.axis, x.amplitude, x.omega, x.phase) for x in t.terms], dtype=float
         ).reshape(-1, 4)
         coast = np.array([(c.start, c.end) for c in t.coast], dtype=float).reshape(-1, 2)
+        stops = np.array([(x.start, x.end, x.ramp) for x in t.stops or ()], dtype=float)
         self._trajectory = SinusoidTrajectory(
-            np.array(t.offset), terms, np.array(t.velocity), coast
+            np.array(t.offset), terms, np.array(t.velocity), coast, stops.reshape(-1, 3)
         )
         if self.odometry is not None:
             self._check_moving()
@@ -876,17 +898,20 @@ class Scenario(_Table):
     def _check_moving(self) -> None:
         """A wheeled robot's heading is its direction of travel (:mod:`quadobs.testbed.odometry`):
         refuse, before any step, a reference path whose speed falls to a standstill at one of
-        the odometry's sample times (at most a million of them, spread over the duration)."""
+        the odometry's sample times (at most a million of them, spread over the duration). A
+        stop (``[[trajectory.stops]]``) halts the robot on its path, its heading held: the speed
+        checked is the path's own."""
         from quadobs.testbed.odometry import STANDSTILL
 
         n = int(min(self.duration * self.odometry.rate, 1e6)) + 1  # type: ignore[union-attr]
         t = np.linspace(0.0, self.duration, n)
-        speed = np.linalg.norm(self._trajectory.velocity_at(t), axis=1)
+        speed = np.linalg.norm(self._trajectory.path_velocity(t), axis=1)  # held at a stop
         k = int(np.argmin(speed))
         if speed[k] < STANDSTILL:
             raise QuadobsError(
                 f"odometry: the trajectory stops at t = {t[k]:.6g} s (speed {speed[k]:.3g} m/s); "
-                "a wheeled robot's heading is its direction of travel: give it a speed that stays positive"
+                "a wheeled robot's heading is its direction of travel: give it a speed that stays positive "
+                "(a stop on the path: [[trajectory.stops]])"
             )
 
     # -- the tables as arrays ----------------------------------------------------------

@@ -22,6 +22,21 @@ each segment changes the reference by
 and the derivatives of order 2 and more are zero inside ``[s, e)`` (taken piecewise: the
 jumps at the ends are not differentiated). A segment whose length is a common period of
 all the terms leaves no lasting velocity change.
+
+Stops ``[s, e]`` with ramps of ``tau`` halt the vehicle on its path (a wheeled robot standing
+still, its heading held): the reference follows the path ``p_0`` at a warped time ``sigma(t)``,
+
+.. math::
+
+    p(t) = p_0(\\sigma), \\quad v(t) = p_0'(\\sigma)\\, g, \\quad
+    a(t) = p_0''(\\sigma)\\, g^2 + p_0'(\\sigma)\\, \\dot g, \\qquad
+    \\sigma(t) = \\int_0^t g ,
+
+with the speed factor ``g = 1`` away from the stops, ``g = 0`` on ``[s, e]``, and cosine ramps
+``g = (1 + cos(pi u)) / 2``, ``u = (t - s + tau) / tau``, over ``[s - tau, s]`` (none for a stop
+at ``s = 0``: the vehicle starts at rest) and ``g = (1 - cos(pi u)) / 2``, ``u = (t - e) / tau``,
+over ``[e, e + tau]``: the velocity and the acceleration stay continuous, and the direction of
+travel ``p_0'(sigma)`` is defined at rest (:meth:`SinusoidTrajectory.path_velocity`).
 """
 
 from __future__ import annotations
@@ -49,12 +64,16 @@ class SinusoidTrajectory:
         Constant-velocity part ``w`` (zero by default).
     coast : array_like (S, 2), optional
         Coasting segments ``(start, end)`` in s, sorted and disjoint, ``0 <= start < end``.
+    stops : array_like (S, 3), optional
+        Stops ``(start, end, ramp)`` in s (module docstring), sorted, ``start = 0`` or
+        ``start >= ramp``, each ramp clear of the next stop's; not with ``coast``.
     """
 
     offset: np.ndarray
     terms: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))
     velocity: np.ndarray = None  # type: ignore[assignment]  # None: zeros, set by __post_init__
     coast: np.ndarray = None  # type: ignore[assignment]  # None: no segment, set by __post_init__
+    stops: np.ndarray = None  # type: ignore[assignment]  # None: no stop, set by __post_init__
 
     def __post_init__(self) -> None:
         offset = as_array("trajectory.offset", self.offset, (None,))
@@ -87,11 +106,13 @@ class SinusoidTrajectory:
                     f"trajectory.coast[{i}]: segments must be sorted and disjoint, start {start} is before the end "
                     f"{coast[i - 1, 1]} of segment {i - 1}"
                 )
+        stops = _checked_stops(self.stops, coast)
         for name, arr in (
             ("offset", offset),
             ("terms", terms),
             ("velocity", vel),
             ("coast", coast),
+            ("stops", stops),
         ):
             arr.setflags(write=False)
             object.__setattr__(self, name, arr)
@@ -109,10 +130,59 @@ class SinusoidTrajectory:
         return inside
 
     def derivative(self, t, order: int = 0) -> np.ndarray:
-        """``d^order p / dt^order`` at times ``t`` (scalar or ``(T,)``); returns ``(dim,)`` or ``(T, dim)``."""
+        """``d^order p / dt^order`` at times ``t`` (scalar or ``(T,)``); returns ``(dim,)`` or ``(T, dim)``.
+
+        With stops, orders 0 to 2 (module docstring); a higher order is refused."""
         t = np.asarray(t, dtype=float)
         scalar = t.ndim == 0
         tt = np.atleast_1d(t)
+        if self.stops.size:
+            out = self._warped(tt, order)
+        else:
+            out = self._path(tt, order)
+        return out[0] if scalar else out
+
+    def warp(self, t) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The warped time ``sigma``, the speed factor ``g`` and its rate ``g'`` at times
+        ``t (T,)`` (module docstring; ``sigma = t``, ``g = 1`` without stops)."""
+        tt = np.atleast_1d(np.asarray(t, dtype=float))
+        sigma, g, g_dot = tt.copy(), np.ones(tt.shape), np.zeros(tt.shape)
+        for start, end, tau in self.stops:
+            if start > 0.0:  # the ramp down over [start - tau, start]
+                u = np.clip((tt - start + tau) / tau, 0.0, 1.0)
+                sigma -= 0.5 * tau * (u - np.sin(np.pi * u) / np.pi)
+                down = (tt > start - tau) & (tt < start)
+                g[down] -= 0.5 * (1.0 - np.cos(np.pi * u[down]))
+                g_dot[down] -= 0.5 * np.pi / tau * np.sin(np.pi * u[down])
+            sigma -= np.clip(tt, start, end) - start
+            g[(tt >= start) & (tt <= end)] = 0.0
+            u = np.clip((tt - end) / tau, 0.0, 1.0)  # the ramp up over [end, end + tau]
+            sigma -= 0.5 * tau * (u + np.sin(np.pi * u) / np.pi)
+            up = (tt > end) & (tt < end + tau)
+            g[up] -= 0.5 * (1.0 + np.cos(np.pi * u[up]))
+            g_dot[up] += 0.5 * np.pi / tau * np.sin(np.pi * u[up])
+        return sigma, g, g_dot
+
+    def path_velocity(self, t) -> np.ndarray:
+        """The velocity along the path at the warped time, ``p_0'(sigma(t))``: the direction of
+        travel, defined at rest (``(T, dim)``; the velocity itself without stops)."""
+        return self._path(self.warp(t)[0], 1)
+
+    def _warped(self, tt: np.ndarray, order: int) -> np.ndarray:
+        """The derivative of order 0 to 2 of ``p_0(sigma(t))`` (module docstring)."""
+        if order > 2:
+            raise QuadobsError(
+                f"trajectory.stops: derivatives of order {order} are not defined with stops (at most 2)"
+            )
+        sigma, g, g_dot = self.warp(tt)
+        if order == 0:
+            return self._path(sigma, 0)
+        if order == 1:
+            return self._path(sigma, 1) * g[:, None]
+        return self._path(sigma, 2) * (g**2)[:, None] + self._path(sigma, 1) * g_dot[:, None]
+
+    def _path(self, tt: np.ndarray, order: int) -> np.ndarray:
+        """The reference without stops at ``tt (T,)``: the sinusoids with the coasting segments."""
         out = self._sinusoid(tt, order)
         if self.coast.size:
             if order >= 2:
@@ -132,7 +202,7 @@ class SinusoidTrajectory:
                         - v_s * (c - start)[:, None]
                     )
                     out -= dv * (tt - c)[:, None]
-        return out[0] if scalar else out
+        return out
 
     def _sinusoid(self, tt: np.ndarray, order: int) -> np.ndarray:
         """The reference without coasting, at ``tt (T,)``: ``(T, dim)``."""
@@ -173,3 +243,30 @@ class SinusoidTrajectory:
         for start, end in self.coast:
             out[(t[:-1] >= start) & (t[1:] <= end)] = 0.0
         return out
+
+
+def _checked_stops(stops, coast: np.ndarray) -> np.ndarray:
+    """The stops as ``(S, 3)`` rows ``(start, end, ramp)``, refused (naming the stop) where
+    they overlap, a ramp would begin before ``t = 0``, or coasting segments are also given."""
+    if stops is None:
+        return np.zeros((0, 3))
+    stops = as_array("trajectory.stops", stops).reshape(-1, 3)
+    if stops.size and coast.size:
+        raise QuadobsError("trajectory.stops: not with coasting segments (trajectory.coast)")
+    for i, (start, end, tau) in enumerate(stops):
+        if not (0.0 <= start < end and tau > 0.0):
+            raise QuadobsError(
+                f"trajectory.stops[{i}]: expected 0 <= start < end and ramp > 0, got start = "
+                f"{start}, end = {end}, ramp = {tau}"
+            )
+        if 0.0 < start < tau:
+            raise QuadobsError(
+                f"trajectory.stops[{i}]: the ramp {tau} s down to the stop would begin before "
+                f"t = 0 (start {start} s): start at 0 or at least one ramp later"
+            )
+        if i and start - tau < stops[i - 1, 1] + stops[i - 1, 2]:
+            raise QuadobsError(
+                f"trajectory.stops[{i}]: its ramp down begins at {start - tau} s, before the "
+                f"ramp up of stop {i - 1} ends ({stops[i - 1, 1] + stops[i - 1, 2]} s)"
+            )
+    return stops

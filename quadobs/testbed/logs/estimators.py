@@ -503,6 +503,27 @@ def build_ukf_bias(s: ReplaySetup, x0: np.ndarray, name: str = "ukf-bias") -> Es
     return bias_estimators.build_ukf_bias(s, x0, name, _process_noise(s))
 
 
+def build_ekf_height(s: ReplaySetup, x0: np.ndarray, name: str = "ekf-height") -> Estimator:
+    """Entry point ``ekf-height`` (:mod:`quadobs.testbed.logs.height_estimators`)."""
+    from quadobs.testbed.logs import height_estimators
+
+    return height_estimators.build_ekf_height(s, x0, name, _process_noise(s))
+
+
+def build_ukf_height(s: ReplaySetup, x0: np.ndarray, name: str = "ukf-height") -> Estimator:
+    """Entry point ``ukf-height`` (:mod:`quadobs.testbed.logs.height_estimators`)."""
+    from quadobs.testbed.logs import height_estimators
+
+    return height_estimators.build_ukf_height(s, x0, name, _process_noise(s))
+
+
+def build_augmented_height(s: ReplaySetup, x0: np.ndarray, name: str = "augmented-height"):
+    """Entry point ``augmented-height`` (:mod:`quadobs.testbed.logs.height_estimators`)."""
+    from quadobs.testbed.logs import height_estimators
+
+    return height_estimators.build_augmented_height(s, x0, name, _process_noise(s))
+
+
 def build_augmented_bias(s: ReplaySetup, x0: np.ndarray, name: str = "augmented-bias"):
     """Entry point ``augmented-bias`` (:mod:`quadobs.testbed.logs.bias_estimators`): the settings
     of :func:`build_augmented`'s observer for the same log and guess."""
@@ -788,6 +809,9 @@ REPLAY_ESTIMATORS = {
     "ukf-bias": build_ukf_bias,
     "augmented-bias": build_augmented_bias,
     "ekf-bias-imu": build_ekf_bias_imu,
+    "ekf-height": build_ekf_height,
+    "ukf-height": build_ukf_height,
+    "augmented-height": build_augmented_height,
 }
 
 

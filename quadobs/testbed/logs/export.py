@@ -215,9 +215,15 @@ class LogExportSink(Sink):
         assert odo is not None, "an odometry export only"
         sampled = steps & (rows.ks % odo.every == 0)
         accel = rows.block.raw[: rows.count, rows.block.columns.extra["accel"]]
-        measured, _, _ = odo.sample(truth[sampled, 2:4], accel[sampled])
+        measured, _, _ = odo.sample(truth[sampled, 2:4], accel[sampled], rows.t[sampled])
         self.parts["inputs"].append(np.column_stack([rows.t[sampled], measured]))
         heading = np.arctan2(truth[:, 3], truth[:, 2])
+        direction = odo.direction(rows.t)  # a stop: the heading held (the path's direction)
+        if direction is not None:
+            from quadobs.testbed.odometry import STANDSTILL
+
+            still = np.hypot(truth[:, 2], truth[:, 3]) < STANDSTILL
+            heading[still] = np.arctan2(direction[still, 1], direction[still, 0])
         self.parts["truth"].append(np.column_stack([rows.t, truth[:, :2], heading]))
 
     def _quadrotor_block(self, rows: Rows, steps: np.ndarray) -> None:

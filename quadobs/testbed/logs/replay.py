@@ -71,6 +71,8 @@ def default_estimators(log, model: str | None = None) -> list[str]:
         names.append("ekf-bias-imu")
     if log.input_kind == "odometry" and model in (None, "odometry"):
         names += ["ukf-heading", "augmented-heading"]
+    if log.input_kind == "odometry" and log.dimension == 2 and model in (None, "odometry"):
+        names += ["ekf-height", "augmented-height"]  # anchors above a planar tag: error-sources.md
     return names
 
 

@@ -1,0 +1,138 @@
+"""The replay's filters with each anchor's bias and height above the tag as states: ``ekf-height``
+and ``ukf-height``.
+
+The filters of :mod:`quadobs.estimators.height_states` on the replay's model of a planar log
+(:class:`~quadobs.testbed.logs.estimators.ReplaySetup`): ``ekf-bias`` / ``ukf-bias``
+(:mod:`quadobs.testbed.logs.bias_estimators`: the vehicle's state and process noise of the
+replay's EKF, the biases' prior 0.5 m, the one-sided gate) with one more constant state per
+anchor, the offset of its squared range ``e_h = delta z_h^2 / 2``.
+
+The offsets' prior. A planar log says nothing of its anchors' heights; indoors they hang
+between the floor and the ceiling of one storey, :data:`STOREY` = 3 m. With the height of an
+anchor above the tag taken uniform on ``[0, STOREY]`` (``H`` for short), ``e_h = dz_h^2 / 2`` has
+the mean and standard deviation
+
+.. math::
+
+    \\mathrm E[e_h] = \\frac{\\mathrm E[\\delta z^2]}{2} = \\frac{H^2}{6}, \\qquad
+    \\sqrt{\\operatorname{Var} e_h} = \\frac{\\sqrt{\\mathrm E[\\delta z^4] - \\mathrm E[\\delta z^2]^2}}{2}
+    = \\frac{H^2}{\\sqrt{45}},
+
+1.5 m^2 and 1.34 m^2 (:data:`E_MEAN`, :data:`E_STD`): the offsets start there. (A prior at
+``e_h = 0``, the anchors in the tag's plane as the log draws them, with the standard deviation
+``H^2 / 4``, was measured worse where the anchors are high: docs/error-sources.md.) A log in
+space (3-D beacons) has its heights and is refused by name.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from quadobs.errors import QuadobsError
+
+__all__ = [
+    "E_MEAN",
+    "E_STD",
+    "STOREY",
+    "build_augmented_height",
+    "build_ekf_height",
+    "build_ukf_height",
+]
+
+#: The height of one storey (m): the largest height of an indoor anchor above a ground tag.
+STOREY = 3.0
+#: Prior mean of each squared-range offset ``e_h = dz_h^2 / 2`` (m^2): ``dz`` uniform on ``[0, STOREY]``.
+E_MEAN = STOREY**2 / 6.0
+#: Prior standard deviation of each offset (m^2), for the same uniform ``dz``.
+E_STD = STOREY**2 / 45.0**0.5
+
+
+def _build(s, x0: np.ndarray, name: str, cls, process_noise: np.ndarray):
+    from quadobs.core.measurements import RangeModel
+    from quadobs.estimators.height_states import HeightRangeOutputModel, height_system
+    from quadobs.estimators.kalman import HeldInputModel
+    from quadobs.estimators.robust import SkewedGate
+    from quadobs.testbed.logs.bias_estimators import _gate_probability
+
+    if "tdoa" in s.kinds:
+        raise QuadobsError(
+            f"estimators: {name!r} estimates range biases and the log holds TDOA (use ekf or ukf)"
+        )
+    if s.dim != 2:
+        raise QuadobsError(
+            f"estimators: {name!r} estimates the anchors' heights above a planar tag; the log "
+            "is in space (its beacons have z): use ekf-bias"
+        )
+    system = s.system
+    n, q = system.n, system.q
+    ext = height_system(system)
+    V = np.zeros((n + 2 * q, n + 2 * q))
+    V[:n, :n] = process_noise
+    dynamics = HeldInputModel(ext, s.dt, V=V)
+    offsets = 0.5 * np.einsum("hi,hi->h", system.d, system.d)
+    outputs = HeightRangeOutputModel(ext, s.range_sigma**2 * np.eye(q), offsets=offsets)
+    P0 = np.full(n, s.P0)
+    P0[s.dim :] = 4.0  # the velocity, as the replay's EKF
+    extra = RangeModel(s.beacons, s.range_sigma, bias="state").extra_states()
+    prior = np.concatenate([P0, [e.prior_std**2 for e in extra], np.full(q, E_STD**2)])
+    xe = np.concatenate([np.asarray(x0, dtype=float)[:n], np.zeros(q), np.full(q, E_MEAN)])
+    rule = SkewedGate(_gate_probability(s.gate))
+    est = cls(dynamics, outputs, x0=xe, P0=np.diag(prior), vehicle_n=n, robust=rule)
+    est.name = name
+    return est
+
+
+def build_ekf_height(s, x0: np.ndarray, name: str, process_noise: np.ndarray):
+    """The EKF with the anchors' biases and squared-range offsets as states (module docstring)."""
+    from quadobs.estimators.height_states import HeightBiasedExtendedKalmanFilter
+
+    return _build(s, x0, name, HeightBiasedExtendedKalmanFilter, process_noise)
+
+
+def build_ukf_height(s, x0: np.ndarray, name: str, process_noise: np.ndarray):
+    """The UKF with the anchors' biases and squared-range offsets as states (module docstring)."""
+    from quadobs.estimators.height_states import HeightBiasedUnscentedKalmanFilter
+
+    return _build(s, x0, name, HeightBiasedUnscentedKalmanFilter, process_noise)
+
+
+def build_augmented_height(s, x0: np.ndarray, name: str, process_noise: np.ndarray):
+    """The augmented observer with the anchors' squared-range offsets as constant states of its
+    immersion (:class:`~quadobs.estimators.height_states.HeightAugmentedObserver`), on a planar
+    odometry log. Its settings are the replay's augmented observer's
+    (:func:`~quadobs.testbed.logs.estimators.build_augmented`): the process noise
+    ``process_noise`` on ``x'`` mapped into the immersed state at the estimate, the prior of
+    ``lift(x)``, the output noise ``(median range * range_sigma)^2``; the offsets' prior
+    :data:`E_MEAN`, :data:`E_STD`."""
+    from quadobs.core.immersion import immerse
+    from quadobs.estimators.height_states import HeightAugmentedObserver, height_quadratic_system
+
+    if "tdoa" in s.kinds or s.dim != 2 or s.model != "odometry":
+        raise QuadobsError(
+            f"estimators: {name!r} takes the ranges of a planar odometry log (the anchors' "
+            "heights above the tag as states)"
+        )
+    n, q = s.n, s.system.q
+    im = immerse(height_quadratic_system(s.system))
+    k = im.n_aux
+    xe = np.concatenate([np.asarray(x0, dtype=float)[:n], np.full(q, E_MEAN)])
+    p0 = xe[: s.dim]
+    P = np.eye(im.dim) * s.P0
+    P[0, 0] = s.P0 * p0 @ p0 + s.P0**2  # the covariance of xi = |p|^2 / 2 for p ~ N(p0, P0 I)
+    P[0, k : k + s.dim] = P[k : k + s.dim, 0] = s.P0 * p0
+    P[k + n :, k + n :] = np.eye(q) * E_STD**2
+    L, J = im.aux_forms, np.zeros((im.dim, n))
+    J[k : k + n] = np.eye(n)
+
+    def noise(z: np.ndarray) -> np.ndarray:  # V(z) = J V_x J^T, J = [x^T L_i; I_n; 0]
+        J[:k] = (L @ z[k:])[:, :n]
+        V = J @ process_noise @ J.T
+        return 0.5 * (V + V.T)
+
+    R = (s.range_median * s.range_sigma) ** 2
+    est = HeightAugmentedObserver(
+        im, s.dt, V=noise(im.lift(xe)), W=R * s.dt, P0=P, z0=im.lift(xe), gate=s.gate,
+        noise_of=noise, vehicle_n=n, anchors=s.beacons,
+    )  # fmt: skip
+    est.name = name
+    return est
