@@ -14,6 +14,25 @@ variants of each log:
   (anchors, true positions and velocities rotated; the body IMU unchanged): the vehicle
   starts with a heading the log does not state.
 
+and, each of them ``noatt`` with one thing a real flight log has (``real``: all of them), made
+from the exported files by cheap transforms (seeded by ``--seed`` and the log's seed):
+
+* ``vib``: motor vibration, white noise of ``--accel-vibration`` m/s^2 and ``--gyro-vibration``
+  rad/s per sample added to the accelerometer and the gyroscope (at the export's 1 kHz);
+* ``vib100``: ``vib`` decimated to 100 Hz (every tenth sample, its per-sample noise kept);
+* ``uneven``: the IMU's intervals uneven (each time moved by up to 0.3 of an interval) and
+  :data:`GAPS` gaps of 50 ms (the samples in them removed);
+* ``clock``: the IMU's clock 20 ms behind the ranges' (its times +0.02 s), and every time on a
+  Unix clock (+1.7e9 s);
+* ``frd``: the body axes forward-right-down (y and z of the accelerometer and the gyroscope
+  negated: ``az = -g`` at rest);
+* ``bias``: range biases of both signs (uniform in +-0.3 m, anchor 0 at -0.3 m) and more
+  non-line-of-sight (a tenth of the ranges longer by an exponential excess of mean 0.3 m);
+* ``truth100``: the truth as a motion capture gives it: positions only (no velocity), at 100
+  Hz, from 2 s after the IMU's first sample;
+* ``nostd``: no ``std`` column in ``ranges.csv`` (a hand-converted log states none);
+* ``real``: every one of the above at once (``vib100`` for the rate).
+
 Each variant is replayed with the command's defaults (``quadobs replay DIR --burn-in 5``,
 in-process through :func:`quadobs.cli.main`), and the table gives every estimator's position
 RMSE after the burn-in and its ``diverged`` flag.
@@ -36,6 +55,12 @@ from quadobs import cli
 from quadobs.testbed.logs import read_log, write_log
 
 VARIANTS = ("full", "noatt", "yaw")
+#: The variants of a real flight log, each ``noatt`` with one transform (module docstring).
+REAL = ("vib", "vib100", "uneven", "clock", "frd", "bias", "truth100", "nostd", "real")
+#: The IMU's gaps of 50 ms in the variant ``uneven``.
+GAPS = 5
+#: The Unix time (s) at which the variant ``clock`` starts.
+EPOCH = 1.7e9
 
 
 def export(seed: int, duration: float, accel_bias: float, gyro_bias: float, folder: Path) -> None:
@@ -77,6 +102,89 @@ def variant(log, kind: str, yaw: float):
     )
 
 
+def _vibration(log, rng, accel: float, gyro: float):
+    imu = log.inputs.copy()
+    imu[:, 1:4] += accel * rng.standard_normal((imu.shape[0], 3))
+    imu[:, 4:7] += gyro * rng.standard_normal((imu.shape[0], 3))
+    return dataclasses.replace(log, inputs=imu)
+
+
+def _uneven(log, rng):
+    t = log.inputs[:, 0]
+    h = float(np.median(np.diff(t)))
+    moved = t + rng.uniform(-0.3 * h, 0.3 * h, t.size)
+    moved[0] = t[0]
+    keep = np.ones(t.size, dtype=bool)
+    for start in rng.uniform(t[0] + 1.0, t[-1] - 1.0, GAPS):
+        keep &= ~((moved >= start) & (moved < start + 0.05))
+    imu = np.column_stack([moved, log.inputs[:, 1:]])[keep]
+    return dataclasses.replace(log, inputs=imu)
+
+
+def _clock(log):
+    imu = log.inputs.copy()
+    imu[:, 0] += 0.02 + EPOCH
+    ranges, truth = log.ranges.copy(), log.truth.copy()
+    ranges[:, 0] += EPOCH
+    truth[:, 0] += EPOCH
+    return dataclasses.replace(log, inputs=imu, ranges=ranges, truth=truth)
+
+
+def _frd(log):
+    imu = log.inputs.copy()
+    imu[:, [2, 3, 5, 6]] *= -1.0  # y and z of the specific force and of the rates
+    return dataclasses.replace(log, inputs=imu)
+
+
+def _range_errors(log, rng):
+    q = log.beacons.shape[0]
+    bias = rng.uniform(-0.3, 0.3, q)
+    bias[0] = -0.3
+    ranges = log.ranges.copy()
+    anchor = log.beacon_index(ranges[:, 1])
+    ranges[:, 2] += bias[anchor]
+    nlos = rng.random(ranges.shape[0]) < 0.1
+    ranges[nlos, 2] += rng.exponential(0.3, int(nlos.sum()))
+    ranges[:, 2] = np.maximum(ranges[:, 2], 0.0)
+    return dataclasses.replace(log, ranges=ranges)
+
+
+def _mocap(log):
+    keep = [i for i, c in enumerate(log.truth_columns) if c in ("time", "x", "y", "z")]
+    rows = log.truth[log.truth[:, 0] >= log.inputs[0, 0] + 2.0]
+    t = rows[:, 0]
+    picked = np.searchsorted(t, np.arange(t[0], t[-1], 0.01))  # 100 Hz
+    columns = tuple(log.truth_columns[i] for i in keep)
+    return dataclasses.replace(log, truth=rows[picked][:, keep], truth_columns=columns)
+
+
+def real_variant(log, kind: str, rng, accel: float, gyro: float):
+    """``log`` (the variant ``noatt``) with what a real flight log has (module docstring)."""
+    steps = REAL[:-1] if kind == "real" else (kind,)
+    if "vib" in steps and "vib100" in steps:
+        steps = tuple(s for s in steps if s != "vib")
+    for step in ("frd", *(s for s in steps if s != "frd")):  # the axes before the noise
+        if step not in steps:
+            continue
+        if step in ("vib", "vib100"):
+            log = _vibration(log, rng, accel, gyro)
+            if step == "vib100":
+                log = dataclasses.replace(log, inputs=log.inputs[::10].copy())
+        elif step == "uneven":
+            log = _uneven(log, rng)
+        elif step == "frd":
+            log = _frd(log)
+        elif step == "bias":
+            log = _range_errors(log, rng)
+        elif step == "truth100":
+            log = _mocap(log)
+        elif step == "nostd":
+            log = dataclasses.replace(log, range_std=np.full(log.ranges.shape[0], np.nan))
+    if "clock" in steps:
+        log = _clock(log)
+    return dataclasses.replace(log, name=f"{log.name.removesuffix('-noatt')}-{kind}")
+
+
 def replay(folder: Path, estimators: str | None, burn_in: float) -> dict:
     """``quadobs replay FOLDER --burn-in B`` (defaults otherwise); its summary."""
     summary = folder.parent / f"{folder.name}.json"
@@ -84,7 +192,7 @@ def replay(folder: Path, estimators: str | None, burn_in: float) -> dict:
     argv += ["--no-progress"] + (["--estimators", estimators] if estimators else [])
     code = cli.main(argv)
     if code not in (0, 1):
-        raise SystemExit(f"replay of {folder} failed ({code})")
+        return {"failed": code, "estimators": {}}
     return json.loads(summary.read_text())
 
 
@@ -95,7 +203,9 @@ def main() -> None:
     ap.add_argument("--accel-bias", type=float, default=0.2, help="m/s^2 per axis (std)")
     ap.add_argument("--gyro-bias", type=float, default=0.01, help="rad/s per axis (std)")
     ap.add_argument("--yaw", type=float, default=1.0, help="rad, the variant yaw's frame turn")
-    ap.add_argument("--variants", default=",".join(VARIANTS))
+    ap.add_argument("--variants", default=",".join(VARIANTS + REAL))
+    ap.add_argument("--accel-vibration", type=float, default=1.0, help="m/s^2 per sample")
+    ap.add_argument("--gyro-vibration", type=float, default=0.05, help="rad/s per sample")
     ap.add_argument("--estimators", default=None, help="default: the replay's default set")
     ap.add_argument("--burn-in", type=float, default=5.0)
     ap.add_argument("--out", help="folder for the logs and summaries (default: a temporary one)")
@@ -109,16 +219,30 @@ def main() -> None:
         log = read_log(base)
         for kind in args.variants.split(","):
             folder = out / f"seed{seed}-{kind}"
-            if kind != "full":
+            if kind in REAL:
+                rng = np.random.default_rng([seed, REAL.index(kind)])
+                noatt = variant(log, "noatt", args.yaw)
+                vib = (args.accel_vibration, args.gyro_vibration)
+                write_log(real_variant(noatt, kind, rng, *vib), folder)
+            elif kind != "full":
                 write_log(variant(log, kind, args.yaw), folder)
             s = replay(base if kind == "full" else folder, args.estimators, args.burn_in)
+            if "failed" in s:
+                rows.append((seed, kind, "-", None, f"replay exited {s['failed']}"))
             for name, e in s["estimators"].items():
                 rows.append((seed, kind, name, e.get("rmse"), e.get("diverged")))
     print(f"position RMSE after {args.burn_in:g} s (m), logs in {out}")
     for seed, kind, name, rmse, diverged in rows:
         flag = "" if diverged is None else f"  DIVERGED {diverged}"
         text = "-" if rmse is None else f"{rmse:.4f}"
-        print(f"seed {seed}  {kind:6s} {name:18s} {text}{flag}")
+        print(f"seed {seed}  {kind:8s} {name:18s} {text}{flag}")
+    print("best after the burn-in, by variant (m):")
+    for kind in args.variants.split(","):
+        best = [
+            min((r[3] for r in rows if r[:2] == (seed, kind) and r[3] is not None), default=None)
+            for seed in sorted({r[0] for r in rows})
+        ]
+        print(f"  {kind:8s} " + "  ".join("-" if b is None else f"{b:.3f}" for b in best))
 
 
 if __name__ == "__main__":
