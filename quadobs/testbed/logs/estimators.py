@@ -18,7 +18,9 @@ replay``) replaces the model's process-noise intensity with one it picks from th
 ranges, never from the truth. No default is tied to one log's scale.
 
 * ranges: a measurement's own standard deviation where the log gives one, else
-  ``range_sigma`` (1 m; a TDOA ``sqrt(2) range_sigma``, :meth:`ReplaySetup.measurement_std`).
+  ``range_sigma`` (1 m; a TDOA ``sqrt(2) range_sigma``, :meth:`ReplaySetup.measurement_std`);
+  where ``ranges.csv`` states none, ``range_sigma`` is the ranges' own noise where they show
+  it (:func:`~quadobs.testbed.logs.range_noise.stated_range_noise`, in :func:`log_defaults`).
   The augmented observer's output is the half squared range, of variance
   ``rho^2 sigma^2 + sigma^4 / 2`` for each range ``rho`` in time; on the grid (a replay with a
   sensor layer) ``R = (rho_med range_sigma)^2`` with ``rho_med`` the median measured range;
@@ -309,7 +311,9 @@ def odometry_noise(log) -> float:
 def log_defaults(log) -> dict:
     """The setup options whose defaults a log sets (:class:`ReplaySetup`): ``q_xy`` of an
     odometry log (:func:`odometry_noise`), ``q_imu`` from a stated accelerometer density
-    (:func:`accel_noise`); empty for a log that gives neither. :func:`replay_setup` fills
+    (:func:`accel_noise`), ``range_sigma`` from the ranges of a log that states none
+    (:func:`~quadobs.testbed.logs.range_noise.stated_range_noise`); empty for a log that gives
+    none of them. :func:`replay_setup` fills
     them where ``options`` does not set them; the self-calibration takes them as its prior."""
     out = {}
     if log.input_kind == "odometry" and log.inputs.shape[0] >= 2:
@@ -317,6 +321,11 @@ def log_defaults(log) -> dict:
     q = accel_noise(getattr(log, "accel_noise", None))
     if q is not None:
         out["q_imu"] = q
+    from quadobs.testbed.logs.range_noise import stated_range_noise
+
+    sigma = stated_range_noise(log)  # ranges stating no std: their own noise, where it shows
+    if sigma is not None:
+        out["range_sigma"] = sigma
     return out
 
 
