@@ -31,6 +31,10 @@ Measured: the exported ``quadrotor-uwb-realistic`` flight (ranges at 100 Hz over
 0.1 m noise) gives 0.113 m native, 0.114 m at the doubled span; the Plaza logs (a car at 1 to
 3.5 m/s ranged every 0.5 to 1 s per anchor) 0.55 / 0.91 m and 0.61 / 0.81 m: there the motion
 dominates, and the prior stands.
+
+The replay takes it for the logs of a body IMU
+(:func:`~quadobs.testbed.logs.estimators.log_defaults`): the flights it was measured on. Logs of wheel odometry keep the prior, with which their
+process noise's calibration and the heading filters' figures were measured.
 """
 
 from __future__ import annotations
