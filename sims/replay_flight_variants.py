@@ -19,7 +19,10 @@ from the exported files by cheap transforms (seeded by ``--seed`` and the log's 
 
 * ``vib``: motor vibration, white noise of ``--accel-vibration`` m/s^2 and ``--gyro-vibration``
   rad/s per sample added to the accelerometer and the gyroscope (at the export's 1 kHz);
-* ``vib100``: ``vib`` decimated to 100 Hz (every tenth sample, its per-sample noise kept);
+* ``vib100``: ``vib`` at 100 Hz, each sample the mean of ten (a flight controller low-passes
+  its IMU before it logs it at a lower rate: the per-sample noise falls by ``sqrt(10)``);
+* ``alias100``: ``vib`` decimated to 100 Hz without a filter (every tenth sample, its
+  per-sample noise kept: ten times the noise intensity of ``vib``);
 * ``uneven``: the IMU's intervals uneven (each time moved by up to 0.3 of an interval) and
   :data:`GAPS` gaps of 50 ms (the samples in them removed);
 * ``clock``: the IMU's clock 20 ms behind the ranges' (its times +0.02 s), and every time on a
@@ -56,7 +59,7 @@ from quadobs.testbed.logs import read_log, write_log
 
 VARIANTS = ("full", "noatt", "yaw")
 #: The variants of a real flight log, each ``noatt`` with one transform (module docstring).
-REAL = ("vib", "vib100", "uneven", "clock", "frd", "bias", "truth100", "nostd", "real")
+REAL = ("vib", "vib100", "uneven", "clock", "frd", "bias", "truth100", "nostd", "alias100", "real")
 #: The IMU's gaps of 50 ms in the variant ``uneven``.
 GAPS = 5
 #: The Unix time (s) at which the variant ``clock`` starts.
@@ -107,6 +110,14 @@ def _vibration(log, rng, accel: float, gyro: float):
     imu[:, 1:4] += accel * rng.standard_normal((imu.shape[0], 3))
     imu[:, 4:7] += gyro * rng.standard_normal((imu.shape[0], 3))
     return dataclasses.replace(log, inputs=imu)
+
+
+def _block_mean(imu: np.ndarray, m: int) -> np.ndarray:
+    """Each ``m`` consecutive rows as one: their mean, at the first one's time."""
+    k = imu.shape[0] // m
+    out = imu[: k * m].reshape(k, m, -1).mean(axis=1)
+    out[:, 0] = imu[: k * m : m, 0]
+    return out
 
 
 def _uneven(log, rng):
@@ -160,16 +171,18 @@ def _mocap(log):
 
 def real_variant(log, kind: str, rng, accel: float, gyro: float):
     """``log`` (the variant ``noatt``) with what a real flight log has (module docstring)."""
-    steps = REAL[:-1] if kind == "real" else (kind,)
-    if "vib" in steps and "vib100" in steps:
-        steps = tuple(s for s in steps if s != "vib")
+    steps = (
+        tuple(s for s in REAL[:-1] if s not in ("vib", "alias100")) if kind == "real" else (kind,)
+    )
     for step in ("frd", *(s for s in steps if s != "frd")):  # the axes before the noise
         if step not in steps:
             continue
-        if step in ("vib", "vib100"):
+        if step in ("vib", "vib100", "alias100"):
             log = _vibration(log, rng, accel, gyro)
-            if step == "vib100":
+            if step == "alias100":
                 log = dataclasses.replace(log, inputs=log.inputs[::10].copy())
+            elif step == "vib100":
+                log = dataclasses.replace(log, inputs=_block_mean(log.inputs, 10))
         elif step == "uneven":
             log = _uneven(log, rng)
         elif step == "frd":
@@ -185,9 +198,12 @@ def real_variant(log, kind: str, rng, accel: float, gyro: float):
     return dataclasses.replace(log, name=f"{log.name.removesuffix('-noatt')}-{kind}")
 
 
-def replay(folder: Path, estimators: str | None, burn_in: float) -> dict:
-    """``quadobs replay FOLDER --burn-in B`` (defaults otherwise); its summary."""
+def replay(folder: Path, estimators: str | None, burn_in: float, reuse: bool = False) -> dict:
+    """``quadobs replay FOLDER --burn-in B`` (defaults otherwise); its summary (with ``reuse``,
+    the summary a previous run left, if any)."""
     summary = folder.parent / f"{folder.name}.json"
+    if reuse and summary.exists():
+        return json.loads(summary.read_text())
     argv = ["replay", str(folder), "--burn-in", f"{burn_in:g}", "--summary", str(summary)]
     argv += ["--no-progress"] + (["--estimators", estimators] if estimators else [])
     code = cli.main(argv)
@@ -209,6 +225,7 @@ def main() -> None:
     ap.add_argument("--estimators", default=None, help="default: the replay's default set")
     ap.add_argument("--burn-in", type=float, default=5.0)
     ap.add_argument("--out", help="folder for the logs and summaries (default: a temporary one)")
+    ap.add_argument("--reuse", action="store_true", help="take the summaries a previous run left")
     args = ap.parse_args()
     out = Path(args.out or tempfile.mkdtemp(prefix="flights-"))
     rows = []
@@ -226,7 +243,9 @@ def main() -> None:
                 write_log(real_variant(noatt, kind, rng, *vib), folder)
             elif kind != "full":
                 write_log(variant(log, kind, args.yaw), folder)
-            s = replay(base if kind == "full" else folder, args.estimators, args.burn_in)
+            s = replay(
+                base if kind == "full" else folder, args.estimators, args.burn_in, args.reuse
+            )
             if "failed" in s:
                 rows.append((seed, kind, "-", None, f"replay exited {s['failed']}"))
             for name, e in s["estimators"].items():
@@ -235,7 +254,7 @@ def main() -> None:
     for seed, kind, name, rmse, diverged in rows:
         flag = "" if diverged is None else f"  DIVERGED {diverged}"
         text = "-" if rmse is None else f"{rmse:.4f}"
-        print(f"seed {seed}  {kind:8s} {name:18s} {text}{flag}")
+        print(f"seed {seed}  {kind:6s} {name:18s} {text}{flag}")
     print("best after the burn-in, by variant (m):")
     for kind in args.variants.split(","):
         best = [
