@@ -15,7 +15,8 @@ variants of each log:
   starts with a heading the log does not state.
 
 and, each of them ``noatt`` with one thing a real flight log has (``real``: all of them), made
-from the exported files by cheap transforms (seeded by ``--seed`` and the log's seed):
+from the exported files by cheap transforms (their draws seeded by the log's seed and the
+variant):
 
 * ``vib``: motor vibration, white noise of ``--accel-vibration`` m/s^2 and ``--gyro-vibration``
   rad/s per sample added to the accelerometer and the gyroscope (at the export's 1 kHz);
@@ -25,8 +26,8 @@ from the exported files by cheap transforms (seeded by ``--seed`` and the log's 
   per-sample noise kept: ten times the noise intensity of ``vib``);
 * ``uneven``: the IMU's intervals uneven (each time moved by up to 0.3 of an interval) and
   :data:`GAPS` gaps of 50 ms (the samples in them removed);
-* ``clock``: the IMU's clock 20 ms behind the ranges' (its times +0.02 s), and every time on a
-  Unix clock (+1.7e9 s);
+* ``clock``: the IMU stamped 20 ms late against the ranges' clock (its times +0.02 s), and
+  every time on a Unix clock (+1.7e9 s);
 * ``frd``: the body axes forward-right-down (y and z of the accelerometer and the gyroscope
   negated: ``az = -g`` at rest);
 * ``bias``: range biases of both signs (uniform in +-0.3 m, anchor 0 at -0.3 m) and more
@@ -38,7 +39,8 @@ from the exported files by cheap transforms (seeded by ``--seed`` and the log's 
 
 Each variant is replayed with the command's defaults (``quadobs replay DIR --burn-in 5``,
 in-process through :func:`quadobs.cli.main`), and the table gives every estimator's position
-RMSE after the burn-in and its ``diverged`` flag.
+RMSE after the burn-in and its ``diverged`` flag (diverged or locked out), then the best
+estimator's RMSE per variant and seed.
 
     python sims/replay_flight_variants.py --seeds 0,1,2 --duration 40 --out flights/
 """
