@@ -15,9 +15,33 @@ variants of each log:
   (anchors, true positions and velocities rotated; the body IMU unchanged): the vehicle
   starts with a heading the log does not state.
 
+and, each of them ``noatt`` with one thing a real flight log has (``real``: all of them), made
+from the exported files by cheap transforms (their draws seeded by the log's seed and the
+variant):
+
+* ``vib``: motor vibration, white noise of ``--accel-vibration`` m/s^2 and ``--gyro-vibration``
+  rad/s per sample added to the accelerometer and the gyroscope (at the export's 1 kHz);
+* ``vib100``: ``vib`` at 100 Hz, each sample the mean of ten (a flight controller low-passes
+  its IMU before it logs it at a lower rate: the per-sample noise falls by ``sqrt(10)``);
+* ``alias100``: ``vib`` decimated to 100 Hz without a filter (every tenth sample, its
+  per-sample noise kept: ten times the noise intensity of ``vib``);
+* ``uneven``: the IMU's intervals uneven (each time moved by up to 0.3 of an interval) and
+  :data:`GAPS` gaps of 50 ms (the samples in them removed);
+* ``clock``: the IMU stamped 20 ms late against the ranges' clock (its times +0.02 s), and
+  every time on a Unix clock (+1.7e9 s);
+* ``frd``: the body axes forward-right-down (y and z of the accelerometer and the gyroscope
+  negated: ``az = -g`` at rest);
+* ``bias``: range biases of both signs (uniform in +-0.3 m, anchor 0 at -0.3 m) and more
+  non-line-of-sight (a tenth of the ranges longer by an exponential excess of mean 0.3 m);
+* ``truth100``: the truth as a motion capture gives it: positions only (no velocity), at 100
+  Hz, from 2 s after the IMU's first sample;
+* ``nostd``: no ``std`` column in ``ranges.csv`` (a hand-converted log states none);
+* ``real``: every one of the above at once (``vib100`` for the rate).
+
 Each variant is replayed with the command's defaults (``quadobs replay DIR --burn-in 5``,
 in-process through :func:`quadobs.cli.main`), and the table gives every estimator's position
-RMSE after the burn-in and its ``diverged`` flag.
+RMSE after the burn-in and its ``diverged`` flag (diverged or locked out), then the best
+estimator's RMSE per variant and seed.
 
     python sims/replay_flight_variants.py --seeds 0,1,2 --duration 40 --out flights/
 """
@@ -38,6 +62,12 @@ from quadobs.testbed.logs import read_log, write_log
 from quadobs.testbed.logs.schema import IMU_FIGURES
 
 VARIANTS = ("full", "noatt", "yaw")
+#: The variants of a real flight log, each ``noatt`` with one transform (module docstring).
+REAL = ("vib", "vib100", "uneven", "clock", "frd", "bias", "truth100", "nostd", "alias100", "real")
+#: The IMU's gaps of 50 ms in the variant ``uneven``.
+GAPS = 5
+#: The Unix time (s) at which the variant ``clock`` starts.
+EPOCH = 1.7e9
 
 
 def export(seed: int, duration: float, accel_bias: float, gyro_bias: float, folder: Path) -> None:
@@ -80,14 +110,110 @@ def variant(log, kind: str, yaw: float):
     )
 
 
-def replay(folder: Path, estimators: str | None, burn_in: float) -> dict:
-    """``quadobs replay FOLDER --burn-in B`` (defaults otherwise); its summary."""
+def _vibration(log, rng, accel: float, gyro: float):
+    imu = log.inputs.copy()
+    imu[:, 1:4] += accel * rng.standard_normal((imu.shape[0], 3))
+    imu[:, 4:7] += gyro * rng.standard_normal((imu.shape[0], 3))
+    return dataclasses.replace(log, inputs=imu)
+
+
+def _block_mean(imu: np.ndarray, m: int) -> np.ndarray:
+    """Each ``m`` consecutive rows as one: their mean, at the first one's time."""
+    k = imu.shape[0] // m
+    out = imu[: k * m].reshape(k, m, -1).mean(axis=1)
+    out[:, 0] = imu[: k * m : m, 0]
+    return out
+
+
+def _uneven(log, rng):
+    t = log.inputs[:, 0]
+    h = float(np.median(np.diff(t)))
+    moved = t + rng.uniform(-0.3 * h, 0.3 * h, t.size)
+    moved[0] = t[0]
+    keep = np.ones(t.size, dtype=bool)
+    for start in rng.uniform(t[0] + 1.0, t[-1] - 1.0, GAPS):
+        keep &= ~((moved >= start) & (moved < start + 0.05))
+    imu = np.column_stack([moved, log.inputs[:, 1:]])[keep]
+    return dataclasses.replace(log, inputs=imu)
+
+
+def _clock(log):
+    imu = log.inputs.copy()
+    imu[:, 0] += 0.02 + EPOCH
+    ranges, truth = log.ranges.copy(), log.truth.copy()
+    ranges[:, 0] += EPOCH
+    truth[:, 0] += EPOCH
+    return dataclasses.replace(log, inputs=imu, ranges=ranges, truth=truth)
+
+
+def _frd(log):
+    imu = log.inputs.copy()
+    imu[:, [2, 3, 5, 6]] *= -1.0  # y and z of the specific force and of the rates
+    return dataclasses.replace(log, inputs=imu)
+
+
+def _range_errors(log, rng):
+    q = log.beacons.shape[0]
+    bias = rng.uniform(-0.3, 0.3, q)
+    bias[0] = -0.3
+    ranges = log.ranges.copy()
+    anchor = log.beacon_index(ranges[:, 1])
+    ranges[:, 2] += bias[anchor]
+    nlos = rng.random(ranges.shape[0]) < 0.1
+    ranges[nlos, 2] += rng.exponential(0.3, int(nlos.sum()))
+    ranges[:, 2] = np.maximum(ranges[:, 2], 0.0)
+    return dataclasses.replace(log, ranges=ranges)
+
+
+def _mocap(log):
+    keep = [i for i, c in enumerate(log.truth_columns) if c in ("time", "x", "y", "z")]
+    rows = log.truth[log.truth[:, 0] >= log.inputs[0, 0] + 2.0]
+    t = rows[:, 0]
+    picked = np.searchsorted(t, np.arange(t[0], t[-1], 0.01))  # 100 Hz
+    columns = tuple(log.truth_columns[i] for i in keep)
+    return dataclasses.replace(log, truth=rows[picked][:, keep], truth_columns=columns)
+
+
+def real_variant(log, kind: str, rng, accel: float, gyro: float):
+    """``log`` (the variant ``noatt``) with what a real flight log has (module docstring)."""
+    steps = (
+        tuple(s for s in REAL[:-1] if s not in ("vib", "alias100")) if kind == "real" else (kind,)
+    )
+    for step in ("frd", *(s for s in steps if s != "frd")):  # the axes before the noise
+        if step not in steps:
+            continue
+        if step in ("vib", "vib100", "alias100"):
+            log = _vibration(log, rng, accel, gyro)
+            if step == "alias100":
+                log = dataclasses.replace(log, inputs=log.inputs[::10].copy())
+            elif step == "vib100":
+                log = dataclasses.replace(log, inputs=_block_mean(log.inputs, 10))
+        elif step == "uneven":
+            log = _uneven(log, rng)
+        elif step == "frd":
+            log = _frd(log)
+        elif step == "bias":
+            log = _range_errors(log, rng)
+        elif step == "truth100":
+            log = _mocap(log)
+        elif step == "nostd":
+            log = dataclasses.replace(log, range_std=np.full(log.ranges.shape[0], np.nan))
+    if "clock" in steps:
+        log = _clock(log)
+    return dataclasses.replace(log, name=f"{log.name.removesuffix('-noatt')}-{kind}")
+
+
+def replay(folder: Path, estimators: str | None, burn_in: float, reuse: bool = False) -> dict:
+    """``quadobs replay FOLDER --burn-in B`` (defaults otherwise); its summary (with ``reuse``,
+    the summary a previous run left, if any)."""
     summary = folder.parent / f"{folder.name}.json"
+    if reuse and summary.exists():
+        return json.loads(summary.read_text())
     argv = ["replay", str(folder), "--burn-in", f"{burn_in:g}", "--summary", str(summary)]
     argv += ["--no-progress"] + (["--estimators", estimators] if estimators else [])
     code = cli.main(argv)
     if code not in (0, 1):
-        raise SystemExit(f"replay of {folder} failed ({code})")
+        return {"failed": code, "estimators": {}}
     return json.loads(summary.read_text())
 
 
@@ -98,10 +224,13 @@ def main() -> None:
     ap.add_argument("--accel-bias", type=float, default=0.2, help="m/s^2 per axis (std)")
     ap.add_argument("--gyro-bias", type=float, default=0.01, help="rad/s per axis (std)")
     ap.add_argument("--yaw", type=float, default=1.0, help="rad, the variant yaw's frame turn")
-    ap.add_argument("--variants", default=",".join(VARIANTS))
+    ap.add_argument("--variants", default=",".join(VARIANTS + REAL))
+    ap.add_argument("--accel-vibration", type=float, default=1.0, help="m/s^2 per sample")
+    ap.add_argument("--gyro-vibration", type=float, default=0.05, help="rad/s per sample")
     ap.add_argument("--estimators", default=None, help="default: the replay's default set")
     ap.add_argument("--burn-in", type=float, default=5.0)
     ap.add_argument("--out", help="folder for the logs and summaries (default: a temporary one)")
+    ap.add_argument("--reuse", action="store_true", help="take the summaries a previous run left")
     args = ap.parse_args()
     out = Path(args.out or tempfile.mkdtemp(prefix="flights-"))
     rows = []
@@ -112,9 +241,18 @@ def main() -> None:
         log = read_log(base)
         for kind in args.variants.split(","):
             folder = out / f"seed{seed}-{kind}"
-            if kind != "full":
+            if kind in REAL:
+                rng = np.random.default_rng([seed, REAL.index(kind)])
+                noatt = variant(log, "noatt", args.yaw)
+                vib = (args.accel_vibration, args.gyro_vibration)
+                write_log(real_variant(noatt, kind, rng, *vib), folder)
+            elif kind != "full":
                 write_log(variant(log, kind, args.yaw), folder)
-            s = replay(base if kind == "full" else folder, args.estimators, args.burn_in)
+            s = replay(
+                base if kind == "full" else folder, args.estimators, args.burn_in, args.reuse
+            )
+            if "failed" in s:
+                rows.append((seed, kind, "-", None, f"replay exited {s['failed']}"))
             for name, e in s["estimators"].items():
                 rows.append((seed, kind, name, e.get("rmse"), e.get("diverged")))
     print(f"position RMSE after {args.burn_in:g} s (m), logs in {out}")
@@ -122,6 +260,13 @@ def main() -> None:
         flag = "" if diverged is None else f"  DIVERGED {diverged}"
         text = "-" if rmse is None else f"{rmse:.4f}"
         print(f"seed {seed}  {kind:6s} {name:18s} {text}{flag}")
+    print("best after the burn-in, by variant (m):")
+    for kind in args.variants.split(","):
+        best = [
+            min((r[3] for r in rows if r[:2] == (seed, kind) and r[3] is not None), default=None)
+            for seed in sorted({r[0] for r in rows})
+        ]
+        print(f"  {kind:8s} " + "  ".join("-" if b is None else f"{b:.3f}" for b in best))
 
 
 if __name__ == "__main__":

@@ -33,6 +33,7 @@ acceleration is turned by it where the ranges show it.
 
 from __future__ import annotations
 
+import math
 import weakref
 
 import numpy as np
@@ -42,9 +43,11 @@ from quadobs.errors import QuadobsError
 __all__ = [
     "AHRS_RATE",
     "ALIGN_TIME",
+    "GYRO_FULL_SCALE",
     "MAHONY_GAINS",
     "REST_TOLERANCE",
     "attitude_at",
+    "check_body_imu",
     "estimate_attitude",
     "heading_offset",
     "initial_alignment",
@@ -262,6 +265,75 @@ def _as_the_ahrs_sees(times: np.ndarray, a: np.ndarray, ok: np.ndarray) -> np.nd
     return out
 
 
+#: The largest full scale of a MEMS rate gyroscope (rad/s): +-2000 deg/s (the Crazyflie's BMI088
+#: and most flight controllers' parts at their widest range). A rate beyond it cannot have been
+#: read by such a sensor: :func:`check_body_imu` takes it for a gyroscope logged in deg/s.
+GYRO_FULL_SCALE = math.radians(2000.0)
+
+
+def _imu_file(log) -> str:
+    return f"{log.source}/imu.csv" if log.source else f"{log.name}: imu.csv"
+
+
+def check_body_imu(log) -> None:
+    """Refuse a body IMU logged in other units than m/s^2 and rad/s, in one line naming the file
+    and the columns (:class:`~quadobs.errors.QuadobsError`).
+
+    * the accelerometer: the median of ``|f|`` over the log must lie within a factor 2 of the
+      log's gravity ``g``. A vehicle resting, hovering or flying reads ``|f| = |a - g|``, whose
+      median is ``g`` to within its typical acceleration (a multirotor's thrust stays within
+      a few tenths of ``g`` of its weight for most of a flight); a log in ``g`` reads about 1,
+      one in ``mg`` about 1000;
+    * the gyroscope: no rate beyond :data:`GYRO_FULL_SCALE` (a log in deg/s of a vehicle
+      turning faster than 0.6 rad/s reads beyond it).
+
+    The rates of a gyroscope in deg/s that turns slowly stay within the full scale; where the
+    log has no attitude, :func:`navigation_accelerations` then finds the attitude integrated
+    from them not keeping gravity vertical (:func:`_check_gravity_held`).
+    """
+    g = float(log.gravity)
+    f = np.linalg.norm(log.inputs[:, 1:4], axis=1)
+    median = float(np.median(f)) if f.size else g
+    if not 0.5 * g <= median <= 2.0 * g:
+        hint = " (a log in g: times g)" if median < 0.5 * g else ""
+        raise QuadobsError(
+            f"{_imu_file(log)}, columns ax,ay,az: the median |a| is {median:.4g}, and a body's "
+            f"specific force in m/s^2 has a median near gravity {g:g}{hint}"
+        )
+    w = np.abs(log.inputs[:, 4:7])
+    if w.size and float(w.max()) > GYRO_FULL_SCALE:
+        row, col = np.unravel_index(int(np.argmax(w)), w.shape)
+        raise QuadobsError(
+            f"{_imu_file(log)}, row {int(row) + 2}, column g{'xyz'[int(col)]}: "
+            f"{float(log.inputs[row, 4 + col]):.4g} is beyond any MEMS gyroscope's range "
+            f"({GYRO_FULL_SCALE:.1f} rad/s = 2000 deg/s): the rates must be in rad/s"
+        )
+
+
+def _check_gravity_held(log, nav: np.ndarray) -> None:
+    """Refuse an attitude estimated from the IMU that does not keep gravity vertical.
+
+    The mean of the navigation-frame acceleration ``a = R f + g`` over a log of span ``T`` is
+    ``(v(T) - v(0)) / T``: for any vehicle (a few m/s over tens of seconds) a small fraction of
+    ``g``. An attitude integrated from rates in the wrong unit (deg/s read as rad/s: every turn
+    57 times too large) leaves ``R f`` pointing anywhere, and its mean far from ``-g``: refused
+    where ``|mean a| > g / 2`` (a change of velocity of ``g T / 2``, 200 m/s over 40 s).
+    """
+    t = nav[:, 0]
+    span = float(t[-1] - t[0]) if t.size > 1 else 0.0
+    if span <= 0.0:
+        return
+    dt = np.diff(t)[:, None]
+    mean = np.sum(nav[:-1, 1:] * dt, axis=0) / span
+    g = float(log.gravity)
+    if float(np.linalg.norm(mean)) > 0.5 * g:
+        raise QuadobsError(
+            f"{_imu_file(log)}, columns gx,gy,gz: the attitude integrated from the rates does "
+            f"not keep gravity vertical (mean acceleration {np.linalg.norm(mean):.3g} m/s^2 over "
+            f"{span:.4g} s, at most g / 2 for any vehicle): the rates must be in rad/s"
+        )
+
+
 _NAVIGATION: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
 
@@ -273,6 +345,7 @@ def navigation_accelerations(log) -> np.ndarray:
         raise QuadobsError(f"{log.name}: navigation accelerations need a body IMU (imu.csv)")
     if log in _NAVIGATION:  # a log is replayed several times (the calibration's candidates)
         return _NAVIGATION[log].copy()
+    check_body_imu(log)
     t, f, w = log.inputs[:, 0], log.inputs[:, 1:4], log.inputs[:, 4:7]
     if log.attitude is not None and log.attitude.shape[0]:
         R = attitude_at(log.attitude, t)
@@ -284,6 +357,8 @@ def navigation_accelerations(log) -> np.ndarray:
             )
         R = _rotation(estimate_attitude(t, f, w, float(log.gravity)))
     out = np.column_stack([t, R.apply(f) + log.gravity_vector])
+    if log.attitude is None or not log.attitude.shape[0]:
+        _check_gravity_held(log, out)
     if log.attitude is None or not log.attitude.shape[0]:  # the AHRS's heading is not the log's
         psi = heading_offset(log, out)
         c, s = np.cos(psi), np.sin(psi)

@@ -60,7 +60,8 @@ def test_a_ned_log_takes_gravity_along_plus_z():
 
 def test_noise_and_initial_attitude_from_the_setup():
     """Over one IMU interval ``h`` from a zero covariance the velocity gains ``q_imu h``; without
-    attitude.csv the attitude starts level with the wide yaw prior, with it at its first sample."""
+    attitude.csv the attitude starts at the IMU's alignment with the wide yaw prior, with it at
+    its first sample."""
     log = _imu_body_log(True, yaw_rate=0.2)
     h = 0.005
     for with_attitude in (True, False):
@@ -72,10 +73,14 @@ def test_noise_and_initial_attitude_from_the_setup():
         est = build_onboard_ekf(setup, np.zeros(6))
         assert est.replay_input == "imu_body"
         yaw_var = est.P[8, 8]
-        assert np.allclose(est.attitude, np.eye(3), atol=1e-12)  # the first sample is level
+        if with_attitude:
+            assert np.allclose(est.attitude, np.eye(3), atol=1e-12)  # the first sample is level
+        else:  # the alignment: the circle's centripetal 0.18 m/s^2 read as a pitch of 0.018 rad
+            tilt = math.acos(est.attitude[2, 2])
+            assert tilt == pytest.approx(0.18 / 9.80665, rel=0.05)
         assert yaw_var == pytest.approx((0.05 if with_attitude else UNKNOWN_YAW_STD) ** 2)
         est.P[:] = 0.0
-        est.hold(np.array([0.0, 0.0, 9.80665, 0.0, 0.0, 0.0]))
+        est.hold(np.r_[est.attitude.T @ [0.0, 0.0, 9.80665], 0.0, 0.0, 0.0])
         est.predict(h)
         np.testing.assert_allclose(est.P[3:6, 3:6], 0.04 * h * np.eye(3), rtol=1e-12)
         np.testing.assert_allclose(est.x_hat, 0.0, atol=1e-12)  # hovering: f balances gravity
@@ -96,3 +101,15 @@ def test_a_planar_log_is_refused_in_one_line_before_calibration(tmp_path, capsys
     ranges_alone = ReplaySetup(np.eye(3), 0.1, "cv", 0.0, 1.0, input_kind="none")
     with pytest.raises(QuadobsError, match="inputs of kind 'none'"):
         build_onboard_ekf(ranges_alone, np.zeros(6))
+
+
+def test_a_forward_right_down_body_starts_the_right_way_up():
+    """The body axes forward-right-down (y and z of the IMU negated: ``az = -g`` at rest) and no
+    attitude.csv: the initial alignment turns the filter upside down from the start; started
+    level it would take gravity for an upward 2 g and fly off."""
+    log = _imu_body_log(False, yaw_rate=0.2)
+    imu = log.inputs.copy()
+    imu[:, [2, 3, 5, 6]] *= -1.0
+    frd = dataclasses.replace(log, inputs=imu)
+    assert log_frame(frd)["alignment0"] == pytest.approx([0.0, 1.0, 0.0, 0.0], abs=0.02)
+    assert _replay(frd)["rmse"] < 0.1

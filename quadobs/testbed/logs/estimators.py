@@ -18,7 +18,10 @@ replay``) replaces the model's process-noise intensity with one it picks from th
 ranges, never from the truth. No default is tied to one log's scale.
 
 * ranges: a measurement's own standard deviation where the log gives one, else
-  ``range_sigma`` (1 m; a TDOA ``sqrt(2) range_sigma``, :meth:`ReplaySetup.measurement_std`).
+  ``range_sigma`` (1 m; a TDOA ``sqrt(2) range_sigma``, :meth:`ReplaySetup.measurement_std`);
+  where the ``ranges.csv`` of a body-IMU log states none, ``range_sigma`` is the ranges' own
+  noise where they show it (:func:`~quadobs.testbed.logs.range_noise.stated_range_noise`, in
+  :func:`log_defaults`; odometry logs keep the prior, with which their calibration was measured).
   The augmented observer's output is the half squared range, of variance
   ``rho^2 sigma^2 + sigma^4 / 2`` for each range ``rho`` in time; on the grid (a replay with a
   sensor layer) ``R = (rho_med range_sigma)^2`` with ``rho_med`` the median measured range;
@@ -150,6 +153,10 @@ class ReplaySetup:
         The median interval of a body IMU's samples (s), else None.
     gyro_noise : float or None
         The log's stated gyroscope white-noise density (rad/s/sqrt(Hz); ``meta.csv``), else None.
+    alignment0 : ndarray (4,) or None
+        Where a body-IMU log has no ``attitude.csv``: the initial alignment's quaternion (the
+        tilt from the first half second's median specific force, heading zero;
+        :func:`~quadobs.testbed.attitude.initial_alignment`), else None.
     q_xy_heading : float
         The white noise on the position of the heading filters (m^2/s per axis;
         :func:`build_ekf_heading`): the speed's noise alone, where ``q_xy`` of the model
@@ -177,6 +184,7 @@ class ReplaySetup:
     imu_period: float | None = None
     gyro_noise: float | None = None
     q_xy_heading: float = 1.0
+    alignment0: np.ndarray | None = None
     system: QuadraticSystem = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
@@ -307,7 +315,9 @@ def odometry_noise(log) -> float:
 def log_defaults(log) -> dict:
     """The setup options whose defaults a log sets (:class:`ReplaySetup`): ``q_xy`` of an
     odometry log (:func:`odometry_noise`), ``q_imu`` from the IMU's stated figures
-    (:func:`imu_input_noise`); empty for a log that gives neither. :func:`replay_setup` fills
+    (:func:`imu_input_noise`), ``range_sigma`` from the ranges of a body-IMU log that states none
+    (:func:`~quadobs.testbed.logs.range_noise.stated_range_noise`); empty for a log that gives
+    none of them. :func:`replay_setup` fills
     them where ``options`` does not set them; the self-calibration takes them as its prior."""
     out = {}
     if log.input_kind == "odometry" and log.inputs.shape[0] >= 2:
@@ -315,6 +325,11 @@ def log_defaults(log) -> dict:
     q = imu_input_noise(log)
     if q is not None:
         out["q_imu"] = q
+    from quadobs.testbed.logs.range_noise import stated_range_noise
+
+    sigma = stated_range_noise(log) if log.input_kind == "imu_body" else None
+    if sigma is not None:  # a body-IMU log's ranges stating no std: their own noise, if shown
+        out["range_sigma"] = sigma
     return out
 
 
@@ -360,13 +375,31 @@ def log_frame(log) -> dict:
     if log.input_kind == "imu_body" and log.inputs.shape[0] > 1:
         period = float(np.median(np.diff(log.inputs[:, 0])))
     gyro = float(getattr(log, "gyro_noise", math.nan))
+    alignment0 = None
+    if log.input_kind == "imu_body" and attitude0 is None and log.inputs.shape[0]:
+        alignment0 = _alignment(log)
     return {
         "frame": log.frame,
         "gravity": float(log.gravity),
         "attitude0": attitude0,
         "imu_period": period,
         "gyro_noise": gyro if math.isfinite(gyro) else None,
+        "alignment0": alignment0,
     }
+
+
+def _alignment(log) -> np.ndarray:
+    """The initial alignment of a body IMU (:func:`~quadobs.testbed.attitude.initial_alignment`)
+    in the log's frame: it turns the resting specific force to ``+z`` (``enu``, gravity down);
+    in ``ned`` that rotation is followed by the turn by ``pi`` about ``x`` (``qw, qx, qy, qz ->
+    -qx, qw, -qz, qy``), which takes ``+z`` to ``-z``."""
+    from quadobs.testbed.attitude import initial_alignment
+
+    t, f, w = log.inputs[:, 0], log.inputs[:, 1:4], log.inputs[:, 4:7]
+    q, _ = initial_alignment(t, f, w, float(log.gravity))
+    if log.frame == "ned":
+        q = np.array([-q[1], q[0], -q[3], q[2]])
+    return q
 
 
 def _typical_range(log) -> float:
@@ -659,8 +692,10 @@ def build_onboard_ekf(
     ``sigma_a = sqrt(q_imu / h_s)`` at the log's median IMU interval ``h_s`` (``q_imu h`` per
     interval ``h = h_s``), and the gyroscope's likewise from :func:`gyro_noise` (the log's
     stated density where it exceeds the floor :data:`GYRO_NOISE`). Its initial
-    attitude is :attr:`ReplaySetup.attitude0` with 0.05 rad per axis; without one, level with
-    yaw zero, 0.05 rad in roll and pitch and :data:`UNKNOWN_YAW_STD` in yaw. Gravity is the
+    attitude is :attr:`ReplaySetup.attitude0` with 0.05 rad per axis; without one, the IMU's
+    initial alignment (:attr:`ReplaySetup.alignment0`: the tilt from the resting specific
+    force, so a body frame of any orientation, forward-right-down included, starts the right
+    way up) with yaw zero, 0.05 rad in roll and pitch and :data:`UNKNOWN_YAW_STD` in yaw. Gravity is the
     log's, along ``-z`` (enu) or ``+z`` (ned). The position prior is ``P0`` per axis, the
     velocity's 4 m^2/s^2 per axis (as :func:`build_ekf`).
     """
@@ -680,7 +715,9 @@ def build_onboard_ekf(
         raise QuadobsError(f"estimators: {name!r} takes ranges or TDOA, and the log holds both")
     h = s.imu_period if s.imu_period is not None and s.imu_period > 0 else s.dt
     if s.attitude0 is None:
-        R0, att_std = np.eye(3), np.array([0.05, 0.05, UNKNOWN_YAW_STD])
+        q = np.array([1.0, 0.0, 0.0, 0.0]) if s.alignment0 is None else s.alignment0
+        R0 = Rotation.from_quat(np.asarray(q, dtype=float)[[1, 2, 3, 0]]).as_matrix()
+        att_std = np.array([0.05, 0.05, UNKNOWN_YAW_STD])
     else:
         q = np.asarray(s.attitude0, dtype=float)
         R0, att_std = Rotation.from_quat(q[[1, 2, 3, 0]]).as_matrix(), np.full(3, 0.05)

@@ -304,7 +304,8 @@ def _timing(log, world, ests, events) -> dict:
 
 def check_replay(log, names, *, dt: float = 0.1, model: str | None = None, options=None) -> None:
     """Refuse, before any calibration or replay, a model the log cannot drive or an estimator
-    that cannot take the log (each factory's one-line error, naming what the log lacks or holds)."""
+    that cannot take the log (each factory's one-line error, naming what the log lacks or holds),
+    and a body IMU in the wrong units (:func:`~quadobs.testbed.attitude.check_body_imu`)."""
     from quadobs.testbed.logs.estimators import ReplaySetup, _typical_range, log_frame
     from quadobs.testbed.worlds.replay import default_model, state_size
 
@@ -318,6 +319,12 @@ def check_replay(log, names, *, dt: float = 0.1, model: str | None = None, optio
     x0 = np.zeros(n)
     x0[: log.dimension] = log.beacons.mean(axis=0)
     build_replay_estimators(setup, list(names) if names else default_estimators(log, model), x0)
+    if log.input_kind == "imu_body":  # its units, and the attitude the model imu rotates it by
+        from quadobs.testbed.attitude import check_body_imu, navigation_accelerations
+
+        check_body_imu(log)
+        if model == "imu":
+            navigation_accelerations(log)  # computed once per log: the replay reads it again
 
 
 def _summary(

@@ -1,0 +1,99 @@
+"""The white noise of a log's ranges, read from the ranges themselves where the log states none.
+
+A log converted by hand seldom has a ``std`` column in ``ranges.csv``, and the replay's round
+prior for a radio range (``range_sigma`` = 1 m) is ten times a UWB radio's line-of-sight noise
+(0.05 to 0.15 m): the filters then weigh every range ten times too little, their gates pass a
+non-line-of-sight excess of a metre and more, and the bias states cannot be told from the
+noise. A tag that ranges each anchor several times a second measures its own noise: between
+three consecutive ranges to one anchor at ``t_(k-1) < t_k < t_(k+1)`` the motion is nearly
+linear, so the interpolation residual
+
+.. math::
+
+    e_k = \\rho_k - (w \\rho_{k-1} + (1 - w) \\rho_{k+1}), \\qquad
+    w = \\frac{t_{k+1} - t_k}{t_{k+1} - t_{k-1}},
+
+of ranges with independent errors of standard deviation ``sigma`` has the variance
+``sigma^2 (1 + w^2 + (1 - w)^2)`` (1.5 ``sigma^2`` for equal intervals), plus the motion's
+curvature ``rho'' w (1 - w) (t_(k+1) - t_(k-1))^2 / 2``. The estimate is the normalised
+residuals' median absolute value times 1.4826 (the standard deviation of a Gaussian; the
+median leaves most of the non-line-of-sight excess and the outliers out: a tenth of the
+ranges longer by 0.5 m spoils three residuals each and raises the figure by about 30 %,
+``tests/testbed/test_range_noise.py``), pooled over the anchors (:func:`range_noise`).
+
+It is a noise figure only where the motion's term is small against it, which the ranges
+also show (the test of an Allan variance): the residuals over every other range (the span
+doubled) keep the same spread where the noise dominates, and grow four times the motion's
+part where the motion does. The estimate is taken where the doubled span's figure is at most
+:data:`SPAN_RATIO` times the native one, that is where the motion's part is at most a fifth of
+the noise (``(sigma^2 + 16 m^2) / (sigma^2 + m^2) <= 1.25^2`` gives ``m <= 0.197 sigma``).
+Measured: the exported ``quadrotor-uwb-realistic`` flight (ranges at 100 Hz over 8 anchors,
+0.1 m noise) gives 0.113 m native, 0.114 m at the doubled span; the Plaza logs (a car at 1 to
+3.5 m/s ranged every 0.5 to 1 s per anchor) 0.55 / 0.91 m and 0.61 / 0.81 m: there the motion
+dominates, and the prior stands.
+
+The replay takes it for the logs of a body IMU
+(:func:`~quadobs.testbed.logs.estimators.log_defaults`): the flights it was measured on. Logs of wheel odometry keep the prior, with which their
+process noise's calibration and the heading filters' figures were measured.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from quadobs.testbed.logs.schema import RANGE
+
+__all__ = ["MIN_RESIDUALS", "SPAN_RATIO", "range_noise", "stated_range_noise"]
+
+#: The largest ratio of the doubled span's figure to the native one for the figure to be the
+#: ranges' noise (module docstring).
+SPAN_RATIO = 1.25
+
+#: The fewest interpolation residuals (over all anchors) for an estimate: the median's relative
+#: standard error is ``1.25 / sqrt(n)``, 6 % at 400 (a few seconds of a tag's ranges).
+MIN_RESIDUALS = 400
+
+
+def _residuals(times: np.ndarray, anchors: np.ndarray, ranges: np.ndarray, step: int) -> np.ndarray:
+    """The normalised interpolation residuals ``e_k / sqrt(1 + w^2 + (1 - w)^2)`` of every
+    ``step``-th range to each anchor (module docstring)."""
+    out = []
+    for h in np.unique(anchors):
+        pick = np.flatnonzero(anchors == h)[::step]
+        t, r = times[pick], ranges[pick]
+        if t.size < 3:
+            continue
+        span = t[2:] - t[:-2]
+        ok = span > 0.0
+        w = (t[2:] - t[1:-1])[ok] / span[ok]
+        e = r[1:-1][ok] - (w * r[:-2][ok] + (1.0 - w) * r[2:][ok])
+        out.append(e / np.sqrt(1.0 + w * w + (1.0 - w) ** 2))
+    return np.concatenate(out) if out else np.empty(0)
+
+
+def range_noise(log) -> tuple[float, float, int]:
+    """``(sigma, sigma_2, n)``: the ranges' noise estimated at the native span and at the doubled
+    one (m; NaN where fewer than three ranges to any anchor), and the number of native
+    residuals (module docstring)."""
+    t, h, r = log.ranges[:, RANGE.time], log.ranges[:, RANGE.beacon], log.ranges[:, RANGE.range]
+    figures = []
+    for step in (1, 2):
+        e = _residuals(t, h, r, step)
+        figures.append(1.4826 * float(np.median(np.abs(e))) if e.size else float("nan"))
+        if step == 1:
+            n = int(e.size)
+    return figures[0], figures[1], n
+
+
+def stated_range_noise(log) -> float | None:
+    """The ranges' standard deviation (m) for a log whose ``ranges.csv`` states none: the
+    estimate of :func:`range_noise` where it is the noise (at least :data:`MIN_RESIDUALS`
+    residuals, the doubled span's figure within :data:`SPAN_RATIO` of it, positive); else
+    None (the setup's prior ``range_sigma`` stands). None also where any range states its
+    own."""
+    if log.ranges.shape[0] == 0 or not np.all(np.isnan(log.range_std)):
+        return None
+    sigma, sigma_2, n = range_noise(log)
+    if n < MIN_RESIDUALS or not (0.0 < sigma and sigma_2 <= SPAN_RATIO * sigma):
+        return None
+    return sigma
