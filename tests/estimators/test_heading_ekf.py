@@ -158,6 +158,34 @@ def test_the_cascade_turns_the_odometry_by_the_estimated_heading():
     assert heading.theta_o == pytest.approx(0.1) and cascade.time == 1.0
 
 
+def test_the_cascade_gives_its_observer_the_turned_inputs_error():
+    """Over ``h`` with ``b = 0``: ``u' = R(delta) u_xy``, its error ``w e_delta`` with ``w = R(delta) J
+    u_xy`` across the track, so the intensity written is ``h P_delta w w^T`` (the displacement's
+    variance ``h^2 P_delta w w^T`` over the interval), and the observer's position covariance grows
+    by it across the track only."""
+    from quadobs.estimators.heading_ekf import HeadingCascade
+    from quadobs.testbed.logs.estimators import ReplaySetup, _noise_map, build_augmented
+
+    setup = ReplaySetup(BEACONS, 0.1, "odometry", 0.0, 30.0, q_xy=1e-4, P0=1.0)
+    runs = {}
+    for extra in (None, np.zeros((2, 2))):
+        heading = HeadingEKF(BEACONS, x0=[0.0, 0.0, 0.3, 0.0], P0=[1, 1, 0.01, 0], dt=0.1, **NOISE)
+        obs = build_augmented(setup, np.zeros(2))
+        obs.noise_of = _noise_map(setup, obs.immersion, extra)
+        cascade = HeadingCascade(obs, heading, input_noise=extra)
+        cascade.time = 0.0
+        cascade.hold([2.0, 0.0, 0.1])
+        cascade.predict(0.5)
+        runs[extra is None] = (extra, cascade.x_covariance)
+    w = 2.0 * np.array([-math.sin(0.3), math.cos(0.3)])
+    written, P = runs[False]
+    np.testing.assert_allclose(written, 0.5 * 0.01 * np.outer(w, w), rtol=1e-12, atol=1e-15)
+    grown = P - runs[True][1]
+    np.testing.assert_allclose(w @ grown @ w / (w @ w), 0.5**2 * 0.01 * (w @ w), rtol=1e-6)
+    along = np.array([math.cos(0.3), math.sin(0.3)])
+    assert abs(along @ grown @ along) < 1e-12
+
+
 def test_an_odometry_log_gets_the_heading_filter_by_default_and_a_model_without_it_does_not():
     from quadobs.testbed.logs.replay import default_estimators
 

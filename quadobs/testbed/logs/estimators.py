@@ -420,15 +420,18 @@ def build_augmented(s: ReplaySetup, x0: np.ndarray, name: str = "augmented") -> 
     est = AugmentedObserver(
         im, s.dt, V=V, W=R * s.dt, P0=P, z0=z0, gate=s.gate, noise_of=_noise_map(s, im)
     )
+    est.range_variance = "larger"  # a range read short gets no more weight than predicted
     est.name = name
     return est
 
 
-def _noise_map(s: ReplaySetup, im):
+def _noise_map(s: ReplaySetup, im, extra: np.ndarray | None = None):
     """``z -> V(z)``: the model's white noise on ``x'`` mapped into the augmented state at the
     estimate (module docstring). With ``xi_i = x^T L_i x / 2`` (the immersion's auxiliary forms),
     a noise ``w`` of intensity ``V_x`` on ``x'`` drives ``xi_i'`` by ``x^T L_i w``, so
-    ``V(z) = J V_x J^T`` with ``J = [x^T L_1; ...; x^T L_k; I_n]``: no constant of any scale."""
+    ``V(z) = J V_x J^T`` with ``J = [x^T L_1; ...; x^T L_k; I_n]``: no constant of any scale.
+    ``extra`` ``(n, n)``, read at each call, is added to ``V_x`` (an input's error that its
+    owner updates in place: :class:`~quadobs.estimators.heading_ekf.HeadingCascade`)."""
     k, n = im.n_aux, s.n
     Vx = _process_noise(s)
     L = im.aux_forms
@@ -437,7 +440,7 @@ def _noise_map(s: ReplaySetup, im):
 
     def noise(z: np.ndarray) -> np.ndarray:
         J[:k] = L @ z[k:]  # rows x^T L_i (L_i symmetric)
-        V = J @ Vx @ J.T
+        V = J @ (Vx if extra is None else Vx + extra) @ J.T
         return 0.5 * (V + V.T)
 
     return noise
@@ -688,15 +691,20 @@ def build_augmented_heading(s: ReplaySetup, x0: np.ndarray, name: str = "augment
     (:func:`build_augmented`) in a cascade behind :func:`build_ukf_heading`, whose estimated
     heading turns the odometry it integrates
     (:class:`~quadobs.estimators.heading_ekf.HeadingCascade`). The observer's position noise is
-    the heading filters' ``q_xy_heading``: its input is turned by the estimated heading, so its
-    noise is the speed's alone, as theirs."""
+    the heading filters' ``q_xy_heading`` (its input is turned by the estimated heading, so its
+    noise is the speed's alone, as theirs) plus the turned input's own error, the heading filter's
+    covariance carried through the turn (``Q_u``, written by the cascade before each interval into
+    the array its noise map adds)."""
     import dataclasses
 
     from quadobs.estimators.heading_ekf import HeadingCascade
 
     heading = build_ukf_heading(s, x0, f"{name}:ukf-heading")
-    observer = build_augmented(dataclasses.replace(s, q_xy=s.q_xy_heading), x0)
-    est = HeadingCascade(observer, heading)
+    inner = dataclasses.replace(s, q_xy=s.q_xy_heading)
+    observer = build_augmented(inner, x0)
+    extra = np.zeros((2, 2))  # the turned input's error, written by the cascade
+    observer.noise_of = _noise_map(inner, observer.immersion, extra)
+    est = HeadingCascade(observer, heading, input_noise=extra)
     est.name = name
     return est
 
