@@ -20,7 +20,10 @@ ranges, never from the truth. No default is tied to one log's scale.
 * ranges: a measurement's own standard deviation where the log gives one, else
   ``range_sigma`` (1 m; a TDOA ``sqrt(2) range_sigma``, :meth:`ReplaySetup.measurement_std`).
   The augmented observer's output is the half squared range, of variance
-  ``rho^2 sigma^2 + sigma^4 / 2`` for each range ``rho`` in time; on the grid (a replay with a
+  ``r^2 sigma^2 + sigma^4 / 2`` for each range in time, ``r`` the larger of the measured range
+  and the one its estimate predicts (``range_variance = "larger"`` of
+  :class:`~quadobs.estimators.augmented.AugmentedObserver`: a range read short, an outlier near
+  an anchor, gets no more weight than the prediction gives it); on the grid (a replay with a
   sensor layer) ``R = (rho_med range_sigma)^2`` with ``rho_med`` the median measured range;
 * odometry (model ``odometry``): a white noise of intensity ``q_xy`` on ``p'`` (it covers the
   speed noise, the wheel-scale error and the heading drift of the odometry, each an error of the
