@@ -171,6 +171,7 @@ def test_the_cascade_gives_its_observer_the_turned_inputs_error():
     for extra in (None, np.zeros((2, 2))):
         heading = HeadingEKF(BEACONS, x0=[0.0, 0.0, 0.3, 0.0], P0=[1, 1, 0.01, 0], dt=0.1, **NOISE)
         obs = build_augmented(setup, np.zeros(2))
+        assert obs.range_variance == "larger"  # the replay's observers
         obs.noise_of = _noise_map(setup, obs.immersion, extra)
         cascade = HeadingCascade(obs, heading, input_noise=extra)
         cascade.time = 0.0
