@@ -164,14 +164,18 @@ def test_the_cascade_gives_its_observer_the_turned_inputs_error():
     variance ``h^2 P_delta w w^T`` over the interval), and the observer's position covariance grows
     by it across the track only."""
     from quadobs.estimators.heading_ekf import HeadingCascade
-    from quadobs.testbed.logs.estimators import ReplaySetup, _noise_map, build_augmented
+    from quadobs.testbed.logs.estimators import (
+        ReplaySetup,
+        _noise_map,
+        build_augmented,
+        build_augmented_heading,
+    )
 
     setup = ReplaySetup(BEACONS, 0.1, "odometry", 0.0, 30.0, q_xy=1e-4, P0=1.0)
     runs = {}
     for extra in (None, np.zeros((2, 2))):
         heading = HeadingEKF(BEACONS, x0=[0.0, 0.0, 0.3, 0.0], P0=[1, 1, 0.01, 0], dt=0.1, **NOISE)
         obs = build_augmented(setup, np.zeros(2))
-        assert obs.range_variance == "larger"  # the replay's observers
         obs.noise_of = _noise_map(setup, obs.immersion, extra)
         cascade = HeadingCascade(obs, heading, input_noise=extra)
         cascade.time = 0.0
@@ -185,6 +189,8 @@ def test_the_cascade_gives_its_observer_the_turned_inputs_error():
     np.testing.assert_allclose(w @ grown @ w / (w @ w), 0.5**2 * 0.01 * (w @ w), rtol=1e-6)
     along = np.array([math.cos(0.3), math.sin(0.3)])
     assert abs(along @ grown @ along) < 1e-12
+    assert build_augmented_heading(setup, np.zeros(2)).inner.range_variance == "larger"
+    assert obs.range_variance == "measured"  # the plain observer keeps the measured range
 
 
 def test_an_odometry_log_gets_the_heading_filter_by_default_and_a_model_without_it_does_not():

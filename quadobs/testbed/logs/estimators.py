@@ -20,10 +20,9 @@ ranges, never from the truth. No default is tied to one log's scale.
 * ranges: a measurement's own standard deviation where the log gives one, else
   ``range_sigma`` (1 m; a TDOA ``sqrt(2) range_sigma``, :meth:`ReplaySetup.measurement_std`).
   The augmented observer's output is the half squared range, of variance
-  ``r^2 sigma^2 + sigma^4 / 2`` for each range in time, ``r`` the larger of the measured range
-  and the one its estimate predicts (``range_variance = "larger"`` of
-  :class:`~quadobs.estimators.augmented.AugmentedObserver`: a range read short, an outlier near
-  an anchor, gets no more weight than the prediction gives it); on the grid (a replay with a
+  ``rho^2 sigma^2 + sigma^4 / 2`` for each range ``rho`` in time (in the cascade
+  ``augmented-heading``, ``rho`` the larger of the measured range and the one its estimate
+  predicts: :func:`build_augmented_heading`); on the grid (a replay with a
   sensor layer) ``R = (rho_med range_sigma)^2`` with ``rho_med`` the median measured range;
 * odometry (model ``odometry``): a white noise of intensity ``q_xy`` on ``p'`` (it covers the
   speed noise, the wheel-scale error and the heading drift of the odometry, each an error of the
@@ -423,7 +422,6 @@ def build_augmented(s: ReplaySetup, x0: np.ndarray, name: str = "augmented") -> 
     est = AugmentedObserver(
         im, s.dt, V=V, W=R * s.dt, P0=P, z0=z0, gate=s.gate, noise_of=_noise_map(s, im)
     )
-    est.range_variance = "larger"  # a range read short gets no more weight than predicted
     est.name = name
     return est
 
@@ -697,7 +695,11 @@ def build_augmented_heading(s: ReplaySetup, x0: np.ndarray, name: str = "augment
     the heading filters' ``q_xy_heading`` (its input is turned by the estimated heading, so its
     noise is the speed's alone, as theirs) plus the turned input's own error, the heading filter's
     covariance carried through the turn (``Q_u``, written by the cascade before each interval into
-    the array its noise map adds)."""
+    the array its noise map adds). A range's output variance is taken at the larger of the
+    measured and the predicted range (``range_variance = "larger"``): a range read short (an
+    outlier near an anchor) gets no more weight than the prediction gives it. The cascade's
+    prediction is good enough for it (its input follows the estimated heading); the plain
+    observer's, on a drifting dead-reckoned heading, is not, and keeps the measured range."""
     import dataclasses
 
     from quadobs.estimators.heading_ekf import HeadingCascade
@@ -705,6 +707,7 @@ def build_augmented_heading(s: ReplaySetup, x0: np.ndarray, name: str = "augment
     heading = build_ukf_heading(s, x0, f"{name}:ukf-heading")
     inner = dataclasses.replace(s, q_xy=s.q_xy_heading)
     observer = build_augmented(inner, x0)
+    observer.range_variance = "larger"  # a range read short gets no more weight than predicted
     extra = np.zeros((2, 2))  # the turned input's error, written by the cascade
     observer.noise_of = _noise_map(inner, observer.immersion, extra)
     est = HeadingCascade(observer, heading, input_noise=extra)
