@@ -14,7 +14,8 @@ anchors, so each log keeps its own calibrated ones. Every log is replayed in tim
 ``--estimators`` (default ``augmented,ekf``) from ``--initial-offset`` metres off, at the prior
 (``--calibrate none``), and at each source's factors; the table gives the position RMSE after
 each log's burn-in (5 s on the flights, none on the Plaza logs, as in the docs' figures), and,
-with ``isam2`` among the estimators, each one's ratio to iSAM2's online RMSE.
+with ``isam2`` among the estimators, each one's ratio to iSAM2's online RMSE. An estimator the
+replay reports diverged has no figure: ``diverged`` stands in its place (and in its ratios).
 
     python sims/cross_validate_replay.py [--quad-duration 20] [--sources quad,realistic,plaza1,plaza2]
     python sims/cross_validate_replay.py --sources plaza1,plaza2 \
