@@ -193,6 +193,37 @@ def test_the_cascade_gives_its_observer_the_turned_inputs_error():
     assert obs.range_variance == "measured"  # the plain observer keeps the measured range
 
 
+def test_the_cascade_takes_a_range_read_short_with_the_predicted_ranges_variance(monkeypatch):
+    """One range read at a fifth of its 26.7 m (noise-free circle, 0.05 m stated) at 30 s: with its
+    variance at the measured range the cascade's observer takes it almost whole and is metres off
+    for seconds; at the larger of the measured and the predicted range it stays within 2.5 m."""
+    import dataclasses
+
+    import quadobs.testbed.logs.estimators as E
+
+    log = circle_log(bias=0.0, heading_error=0.0, duration=40.0)
+    ranges = log.ranges.copy()
+    k = int(np.searchsorted(ranges[:, 0], 30.0))
+    ranges[k, 2] *= 0.2
+    log = dataclasses.replace(log, ranges=ranges)
+    figures = {}
+    for mode in ("measured", "larger"):
+
+        def build(s, x0, name="augmented-heading", mode=mode):
+            est = E.build_augmented_heading(s, x0, name)
+            est.inner.range_variance = mode
+            return est
+
+        monkeypatch.setitem(E.REPLAY_ESTIMATORS, "augmented-heading", build)
+        summary = run_replay(
+            log, estimators=["augmented-heading"], initial_offset=0.0, batch=False, burn_in=30.0,
+            setup_options={"range_sigma": 0.05, "q_xy_heading": 1e-4, "q_theta": 1e-6},
+        )  # fmt: skip
+        figures[mode] = summary["estimators"]["augmented-heading"]["max_error"]
+    assert figures["measured"] > 5.0
+    assert figures["larger"] < 2.5
+
+
 def test_an_odometry_log_gets_the_heading_filter_by_default_and_a_model_without_it_does_not():
     from quadobs.testbed.logs.replay import default_estimators
 
