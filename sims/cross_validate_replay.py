@@ -14,7 +14,8 @@ anchors, so each log keeps its own calibrated ones. Every log is replayed in tim
 ``--estimators`` (default ``augmented,ekf``) from ``--initial-offset`` metres off, at the prior
 (``--calibrate none``), and at each source's factors; the table gives the position RMSE after
 each log's burn-in (5 s on the flights, none on the Plaza logs, as in the docs' figures), and,
-with ``isam2`` among the estimators, each one's ratio to iSAM2's online RMSE.
+with ``isam2`` among the estimators, each one's ratio to iSAM2's online RMSE. An estimator the
+replay reports diverged has no figure: ``diverged`` stands in its place (and in its ratios).
 
     python sims/cross_validate_replay.py [--quad-duration 20] [--sources quad,realistic,plaza1,plaza2]
     python sims/cross_validate_replay.py --sources plaza1,plaza2 \
@@ -94,11 +95,14 @@ def main() -> None:
                     batch=False, burn_in=burn, biases=biases, setup_options=options,
                 )  # fmt: skip
                 done[tag] = {n: s["estimators"][n]["rmse"] for n in estimators}
+                for n in estimators:
+                    if s["estimators"][n].get("diverged"):
+                        print(f"{name} {label}: {n} diverged: {s['estimators'][n]['diverged']}")
             rows.setdefault(name, {})[label] = done[tag]
         print(
             f"{name}: "
             + "; ".join(
-                f"{label} " + ", ".join(f"{n} {v:.4g}" for n, v in r.items())
+                f"{label} " + ", ".join(f"{n} {_fmt(v, '.4g')}" for n, v in r.items())
                 for label, r in rows[name].items()
             ),
             flush=True,
@@ -109,7 +113,7 @@ def main() -> None:
     header = "evaluated on | " + " | ".join(["prior", *(f"from {s}" for s in names)])
     print(header)
     for name, r in rows.items():
-        print(f"{name} | " + " | ".join(" / ".join(f"{v:.3g}" for v in r[c].values()) for c in r))
+        print(f"{name} | " + " | ".join(" / ".join(_fmt(v) for v in r[c].values()) for c in r))
     print(f"({' / '.join(estimators)} position RMSE, m)")
     if "isam2" in estimators:
         print("ratio to iSAM2's online RMSE:")
@@ -117,10 +121,19 @@ def main() -> None:
             print(
                 f"{name} | "
                 + " | ".join(
-                    " / ".join(f"{v / r[c]['isam2']:.3g}" for n, v in r[c].items() if n != "isam2")
+                    " / ".join(
+                        _fmt(None if v is None or r[c]["isam2"] is None else v / r[c]["isam2"])
+                        for n, v in r[c].items()
+                        if n != "isam2"
+                    )
                     for c in r
                 )
             )
+
+
+def _fmt(value, spec: str = ".3g") -> str:
+    """A figure, or ``diverged`` where the replay gave none (an estimator reported diverged)."""
+    return "diverged" if value is None else format(value, spec)
 
 
 if __name__ == "__main__":

@@ -270,6 +270,15 @@ class AugmentedObserver(HalfSteps, Gated, Immersed, BlockStep):
 
     name = "augmented"
 
+    #: Where a range's output variance ``r^2 sigma^2 + sigma^4 / 2`` takes the unknown true range
+    #: ``r`` (:meth:`correct`, a measurement with its own ``std``): ``"measured"``, at the measured
+    #: range (:meth:`~quadobs.core.measurements.RangeModel.quadratic_output`); ``"larger"``, the
+    #: larger of that and the variance at the range the estimate predicts, so that a range read
+    #: short (an outlier of a metre near an anchor) gets no more weight than the prediction gives it:
+    #: with the measured range alone, a range read ``0.3`` m where ``2.4`` m was predicted, with
+    #: ``sigma = 0.08`` m, is taken with the standard deviation ``0.024`` in ``y`` against ``0.19``.
+    range_variance: str = "measured"
+
     def __init__(
         self,
         immersion: Immersion,
@@ -675,7 +684,17 @@ class AugmentedObserver(HalfSteps, Gated, Immersed, BlockStep):
             y[h] = yh
             self.correct_outputs(y)
             return
+        if self.range_variance == "larger" and m.kind == "range":
+            var = max(var, self._predicted_variance(model, m, h))
         self._correct_scalar(h, yh, var)
+
+    def _predicted_variance(self, model, m: Measurement, h: int) -> float:
+        """``r^2 sigma^2 + sigma^4 / 2`` at the predicted range ``r``: ``r^2 = 2 c_h^T z + |a_h|^2``
+        (the output ``y_h = r^2 / 2 - |a_h|^2 / 2`` of the estimate before the correction)."""
+        a = model.anchors[m.anchors[0]]
+        r2 = max(2.0 * float(self._C[h] @ self._z) + float(a @ a), 0.0)
+        s2 = model.sigma(m) ** 2
+        return r2 * s2 + 0.5 * s2 * s2
 
     def _correct_scalar(self, h: int, yh: float, r: float) -> None:
         """Joseph-form correction with the single output ``y_h`` of variance ``r``."""

@@ -457,21 +457,43 @@ class HeadingCascade(InnerClock, Gated, Immersed):
               u_{xy},\\ \\omega\\big),
 
     so the observer integrates the odometry along the estimated heading, not the drifting dead
-    reckoning. Both correct with every measurement; the estimate read is the observer's. The
-    heading filter's estimate is used as if it were exact (the observer does not see its
-    uncertainty): a cascade, not a joint estimator.
+    reckoning. Both correct with every measurement; the estimate read is the observer's: a
+    cascade, not a joint estimator.
+
+    The turned input carries the heading filter's error: with ``G = d u' / d(delta, b)`` (the
+    last two columns of :func:`arc_step`'s Jacobian over ``h``, divided by ``h``; ``G = [w, .]``
+    with ``w = R(delta) J u_xy`` across the track where ``b = 0``) and ``P_(delta b)`` the filter's
+    covariance of ``(delta, b)``, the velocity's error has the covariance ``G P_(delta b) G^T``
+    (``v^2 P_delta`` across the track). Where ``input_noise`` is given, before each interval the
+    cascade writes there the intensity
+
+    .. math:: Q_u = h\\, G P_{\\delta b} G^\\top \\quad (\\mathrm{m^2/s}),
+
+    whose integral over the interval is the variance ``h^2 G P G^T`` of the displacement the
+    turned input makes over it; the observer's noise map adds it to its own white noise on
+    ``x'``. The intervals' errors are taken as independent, a lower bound: the heading's error
+    persists over many of them.
 
     Parameters
     ----------
     observer : Estimator
         Takes the interface in time with the input ``(v_x, v_y, omega)``.
     heading : HeadingEKF or HeadingUKF
+    input_noise : ndarray (2, 2), optional
+        Where the cascade writes ``Q_u`` (in place) for the observer's noise map to add; the
+        grid's :meth:`step` leaves it as it is (the observer's fixed ``V`` there).
     """
 
-    def __init__(self, observer: Estimator, heading: _HeadingFilter) -> None:
+    def __init__(
+        self,
+        observer: Estimator,
+        heading: _HeadingFilter,
+        input_noise: np.ndarray | None = None,
+    ) -> None:
         self.inner, self.heading_filter = observer, heading
         self.name = f"{observer.name}-heading"
         self._u = np.zeros(3)
+        self.input_noise = input_noise
         self.immersion = observer.immersion if isinstance(observer, Immersed) else None  # type: ignore[assignment]
 
     gate = property(lambda self: getattr(self.inner, "gate", None))
@@ -483,11 +505,18 @@ class HeadingCascade(InnerClock, Gated, Immersed):
         self.heading_filter.time = value
 
     def _turned(self, u: np.ndarray, h: float) -> np.ndarray:
-        """The input ``u'`` of the observer over the next ``h`` seconds (class docstring)."""
-        x = self.heading_filter._x
+        """The input ``u'`` of the observer over the next ``h`` seconds (class docstring), and
+        the intensity of its error written into :attr:`input_noise`."""
+        f = self.heading_filter
+        x = f._x
         out = np.array(u, dtype=float)
         if h > 0.0:
-            out[:2] = (arc_step(x, out, h)[0][:2] - x[:2]) / h
+            x_next, F = arc_step(x, out, h)
+            out[:2] = (x_next[:2] - x[:2]) / h
+            if self.input_noise is not None:
+                G = F[:2, 2:] / h  # d u' / d (delta, b)
+                Q = h * (G @ f._P[2:, 2:] @ G.T)
+                self.input_noise[...] = 0.5 * (Q + Q.T)
         return out
 
     def hold(self, u) -> None:

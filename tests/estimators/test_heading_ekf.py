@@ -158,6 +158,72 @@ def test_the_cascade_turns_the_odometry_by_the_estimated_heading():
     assert heading.theta_o == pytest.approx(0.1) and cascade.time == 1.0
 
 
+def test_the_cascade_gives_its_observer_the_turned_inputs_error():
+    """Over ``h`` with ``b = 0``: ``u' = R(delta) u_xy``, its error ``w e_delta`` with ``w = R(delta) J
+    u_xy`` across the track, so the intensity written is ``h P_delta w w^T`` (the displacement's
+    variance ``h^2 P_delta w w^T`` over the interval), and the observer's position covariance grows
+    by it across the track only."""
+    from quadobs.estimators.heading_ekf import HeadingCascade
+    from quadobs.testbed.logs.estimators import (
+        ReplaySetup,
+        _noise_map,
+        build_augmented,
+        build_augmented_heading,
+    )
+
+    setup = ReplaySetup(BEACONS, 0.1, "odometry", 0.0, 30.0, q_xy=1e-4, P0=1.0)
+    runs = {}
+    for extra in (None, np.zeros((2, 2))):
+        heading = HeadingEKF(BEACONS, x0=[0.0, 0.0, 0.3, 0.0], P0=[1, 1, 0.01, 0], dt=0.1, **NOISE)
+        obs = build_augmented(setup, np.zeros(2))
+        obs.noise_of = _noise_map(setup, obs.immersion, extra)
+        cascade = HeadingCascade(obs, heading, input_noise=extra)
+        cascade.time = 0.0
+        cascade.hold([2.0, 0.0, 0.1])
+        cascade.predict(0.5)
+        runs[extra is None] = (extra, cascade.x_covariance)
+    w = 2.0 * np.array([-math.sin(0.3), math.cos(0.3)])
+    written, P = runs[False]
+    np.testing.assert_allclose(written, 0.5 * 0.01 * np.outer(w, w), rtol=1e-12, atol=1e-15)
+    grown = P - runs[True][1]
+    np.testing.assert_allclose(w @ grown @ w / (w @ w), 0.5**2 * 0.01 * (w @ w), rtol=1e-6)
+    along = np.array([math.cos(0.3), math.sin(0.3)])
+    assert abs(along @ grown @ along) < 1e-12
+    assert build_augmented_heading(setup, np.zeros(2)).inner.range_variance == "larger"
+    assert obs.range_variance == "measured"  # the plain observer keeps the measured range
+
+
+def test_the_cascade_takes_a_range_read_short_with_the_predicted_ranges_variance(monkeypatch):
+    """One range read at a fifth of its 26.7 m (noise-free circle, 0.05 m stated) at 30 s: with its
+    variance at the measured range the cascade's observer takes it almost whole and is metres off
+    for seconds; at the larger of the measured and the predicted range it stays within 2.5 m."""
+    import dataclasses
+
+    import quadobs.testbed.logs.estimators as E
+
+    log = circle_log(bias=0.0, heading_error=0.0, duration=40.0)
+    ranges = log.ranges.copy()
+    k = int(np.searchsorted(ranges[:, 0], 30.0))
+    ranges[k, 2] *= 0.2
+    log = dataclasses.replace(log, ranges=ranges)
+    figures = {}
+    for mode in ("measured", "larger"):
+
+        def build(s, x0, name="augmented-heading", mode=mode):
+            est = E.build_augmented_heading(s, x0, name)
+            est.inner.range_variance = mode
+            return est
+
+        monkeypatch.setitem(E.REPLAY_ESTIMATORS, "augmented-heading", build)
+        summary = run_replay(
+            log, estimators=["augmented-heading"], initial_offset=0.0, batch=False, burn_in=30.0,
+            setup_options={"range_sigma": 0.05, "q_xy_heading": 1e-4, "q_theta": 1e-6},
+        )  # fmt: skip
+        figures[mode] = summary["estimators"]["augmented-heading"]["max_error"]
+    assert figures["measured"] > 5.0
+    assert figures["larger"] < 2.5
+
+
 def test_an_odometry_log_gets_the_heading_filter_by_default_and_a_model_without_it_does_not():
     from quadobs.testbed.logs.replay import default_estimators
 

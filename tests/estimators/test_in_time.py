@@ -172,6 +172,32 @@ def test_measurement_std_enters_as_the_squared_range_variance():
     np.testing.assert_allclose(timed.P, ref.P, rtol=1e-10, atol=1e-12)
 
 
+@pytest.mark.parametrize("rho", [5.0, 30.0])
+def test_a_range_read_short_takes_the_variance_at_the_predicted_range(rho):
+    """``range_variance = "larger"``: ``R_hh`` is the larger of ``rho^2 s^2 + s^4 / 2`` at the
+    measured range and at the predicted one, ``|p0 - a_1| = sqrt(362)`` from ``p0 = (1, 1)``: a
+    range read short (5 m) takes the prediction's, a range read long (30 m) its own."""
+    system = vehicle_system(2, BEACONS)
+    s = 0.3
+    timed = _augmented(system, "numpy")
+    timed.range_variance = "larger"
+    timed.correct(Measurement(0.0, "range", rho, (1,), std=s))
+    r2 = max(rho**2, float(np.sum((np.array([1.0, 1.0]) - BEACONS[1]) ** 2)))
+    r = r2 * s**2 + s**4 / 2
+    im = immerse(system)
+    ref = AugmentedObserver(
+        im, DT, V=1e-3, W=np.diag([1.0, r * DT, 1.0]), P0=10.0,
+        z0=im.lift(np.array([1.0, 1.0, 0.0, 0.0])), theta=0.1, backend="numpy",
+    )  # fmt: skip
+    y = np.full(3, np.nan)
+    y[1] = range_outputs(np.array([rho]), BEACONS[1:2])[0]
+    ref.correct(y)
+    np.testing.assert_allclose(timed.z, ref.z, rtol=1e-12)
+    measured = _augmented(system, "numpy")
+    measured.correct(Measurement(0.0, "range", rho, (1,), std=s))
+    assert np.allclose(measured.z, timed.z) == (rho > 20.0)  # the default: the measured range
+
+
 def test_fixed_bias_is_removed_before_the_correction():
     system = vehicle_system(2, BEACONS)
     biased = _filter(

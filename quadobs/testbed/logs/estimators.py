@@ -23,7 +23,9 @@ ranges, never from the truth. No default is tied to one log's scale.
   noise where they show it (:func:`~quadobs.testbed.logs.range_noise.stated_range_noise`, in
   :func:`log_defaults`; odometry logs keep the prior, with which their calibration was measured).
   The augmented observer's output is the half squared range, of variance
-  ``rho^2 sigma^2 + sigma^4 / 2`` for each range ``rho`` in time; on the grid (a replay with a
+  ``rho^2 sigma^2 + sigma^4 / 2`` for each range ``rho`` in time (in the cascade
+  ``augmented-heading``, ``rho`` the larger of the measured range and the one its estimate
+  predicts: :func:`build_augmented_heading`); on the grid (a replay with a
   sensor layer) ``R = (rho_med range_sigma)^2`` with ``rho_med`` the median measured range;
 * odometry (model ``odometry``): a white noise of intensity ``q_xy`` on ``p'`` (it covers the
   speed noise, the wheel-scale error and the heading drift of the odometry, each an error of the
@@ -460,11 +462,13 @@ def build_augmented(s: ReplaySetup, x0: np.ndarray, name: str = "augmented") -> 
     return est
 
 
-def _noise_map(s: ReplaySetup, im):
+def _noise_map(s: ReplaySetup, im, extra: np.ndarray | None = None):
     """``z -> V(z)``: the model's white noise on ``x'`` mapped into the augmented state at the
     estimate (module docstring). With ``xi_i = x^T L_i x / 2`` (the immersion's auxiliary forms),
     a noise ``w`` of intensity ``V_x`` on ``x'`` drives ``xi_i'`` by ``x^T L_i w``, so
-    ``V(z) = J V_x J^T`` with ``J = [x^T L_1; ...; x^T L_k; I_n]``: no constant of any scale."""
+    ``V(z) = J V_x J^T`` with ``J = [x^T L_1; ...; x^T L_k; I_n]``: no constant of any scale.
+    ``extra`` ``(n, n)``, read at each call, is added to ``V_x`` (an input's error that its
+    owner updates in place: :class:`~quadobs.estimators.heading_ekf.HeadingCascade`)."""
     k, n = im.n_aux, s.n
     Vx = _process_noise(s)
     L = im.aux_forms
@@ -473,7 +477,7 @@ def _noise_map(s: ReplaySetup, im):
 
     def noise(z: np.ndarray) -> np.ndarray:
         J[:k] = L @ z[k:]  # rows x^T L_i (L_i symmetric)
-        V = J @ Vx @ J.T
+        V = J @ (Vx if extra is None else Vx + extra) @ J.T
         return 0.5 * (V + V.T)
 
     return noise
@@ -803,15 +807,25 @@ def build_augmented_heading(s: ReplaySetup, x0: np.ndarray, name: str = "augment
     (:func:`build_augmented`) in a cascade behind :func:`build_ukf_heading`, whose estimated
     heading turns the odometry it integrates
     (:class:`~quadobs.estimators.heading_ekf.HeadingCascade`). The observer's position noise is
-    the heading filters' ``q_xy_heading``: its input is turned by the estimated heading, so its
-    noise is the speed's alone, as theirs."""
+    the heading filters' ``q_xy_heading`` (its input is turned by the estimated heading, so its
+    noise is the speed's alone, as theirs) plus the turned input's own error, the heading filter's
+    covariance carried through the turn (``Q_u``, written by the cascade before each interval into
+    the array its noise map adds). A range's output variance is taken at the larger of the
+    measured and the predicted range (``range_variance = "larger"``): a range read short (an
+    outlier near an anchor) gets no more weight than the prediction gives it. The cascade's
+    prediction is good enough for it (its input follows the estimated heading); the plain
+    observer's, on a drifting dead-reckoned heading, is not, and keeps the measured range."""
     import dataclasses
 
     from quadobs.estimators.heading_ekf import HeadingCascade
 
     heading = build_ukf_heading(s, x0, f"{name}:ukf-heading")
-    observer = build_augmented(dataclasses.replace(s, q_xy=s.q_xy_heading), x0)
-    est = HeadingCascade(observer, heading)
+    inner = dataclasses.replace(s, q_xy=s.q_xy_heading)
+    observer = build_augmented(inner, x0)
+    observer.range_variance = "larger"  # a range read short gets no more weight than predicted
+    extra = np.zeros((2, 2))  # the turned input's error, written by the cascade
+    observer.noise_of = _noise_map(inner, observer.immersion, extra)
+    est = HeadingCascade(observer, heading, input_noise=extra)
     est.name = name
     return est
 
