@@ -92,6 +92,12 @@ CASES = {
         ["flights/seed0/imu.csv", "flights/seed0-noatt/imu.csv"],
         "seed 0  noatt  ekf-bias-imu",
     ),
+    "imu_noise_rule.py": (
+        ["--duration", "8", "--burn-in", "3", "--estimators", "tdoa-handover", "--seeds", "0"]
+        + ["--q", "live"],
+        [],
+        "tdoa-handover  mean ratio to live: live",
+    ),
     "tdoa_seeds.py": (
         ["--seeds", "0", "--duration", "7", "--settle", "3", "--estimators", "tdoa-handover"]
         + ["--jsonl", "{tmp}/seeds.jsonl"],
