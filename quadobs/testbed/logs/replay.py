@@ -60,7 +60,9 @@ def default_estimators(log, model: str | None = None) -> list[str]:
     a log of wheel odometry replayed with the model ``odometry`` (``model`` ``None``: the log's
     default) also the heading filter ``ukf-heading`` and the observer driven by its heading,
     ``augmented-heading``: the dead-reckoned heading drifts with the yaw rate's bias, which the
-    others take as known (measured on both Plaza logs: docs/replay.md); a 3-D log of a body IMU
+    others take as known (measured on both Plaza logs: docs/replay.md), and for a planar log
+    ``ekf-height`` and ``augmented-height`` (anchors at other heights than the tag: each
+    anchor's squared-range offset as a state, docs/error-sources.md); a 3-D log of a body IMU
     also ``ekf-bias-imu`` (:mod:`quadobs.testbed.logs.imu_bias`: the accelerometer's bias and the
     estimated attitude's tilt error reach the navigation-frame acceleration as a slow bias)."""
     if log.tdoa.shape[0]:
