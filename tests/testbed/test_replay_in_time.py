@@ -207,3 +207,18 @@ def test_the_initial_offset_applies_when_the_truth_starts_late():
     s = run_replay(log, estimators=["ekf"], initial_offset=7.0, batch=False)
     guess = np.array(s["initial_guess"][:2])
     assert np.linalg.norm(guess - truth[0, 1:3]) == pytest.approx(7.0)
+
+
+def test_the_final_error_is_the_last_truths_when_the_truth_ends_early():
+    rng = np.random.default_rng(7)
+    t = np.arange(0.0, 20.0, 0.04)
+    p, v = _straight(t, 2)
+    truth, cols = _truth(t[t <= 15.0], p[t <= 15.0], v[t <= 15.0], 2)
+    log = RangeLog(
+        "early", np.arange(4), ANCHORS_2D, _ranges(t, ANCHORS_2D, p, rng, 0.05),
+        np.empty((0, 1)), float("nan"), truth, input_kind="none", truth_columns=cols,
+    )  # fmt: skip
+    s = run_replay(log, estimators=["ekf"], initial_offset=0.0, batch=False)
+    e = s["estimators"]["ekf"]
+    assert e["final_position_error"] is not None
+    assert 0.0 < e["final_position_error"] <= e["max_error"]

@@ -338,7 +338,11 @@ class ReplayWorld(World):
 
 
 class ReplayErrorSink(Sink):
-    """Position RMSE, maximum and final error, and convergence times (5 m, 2 m) per estimator, over the rows with a truth."""
+    """Position RMSE, maximum and final error, and convergence times (5 m, 2 m) per estimator, over the rows with a truth.
+
+    The final error is the one at the last row with a truth (a truth that ends before the log
+    does still has one); it is None where the estimate there is not finite (lost).
+    """
 
     def begin(self, ctx: EpisodeContext) -> None:
         super().begin(ctx)
@@ -356,7 +360,9 @@ class ReplayErrorSink(Sink):
             acc[0] += float(np.sum(e[ok] ** 2))
             acc[1] += int(ok.sum())
             acc[2] = max(acc[2], float(e[ok].max())) if ok.any() else acc[2]
-            acc[3] = float(e[-1])
+            truth = np.flatnonzero(np.isfinite(rows.truth[:, 0]))
+            if truth.size:  # the error at the last row with a truth (NaN: the estimate is lost)
+                acc[3] = float(e[truth[-1]])
             if ok.any():
                 self.trackers[name].update_many(rows.t[ok], e[ok])
 
