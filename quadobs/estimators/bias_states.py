@@ -66,16 +66,18 @@ __all__ = [
 ]
 
 
-def extended_system(system: QuadraticSystem) -> QuadraticSystem:
+def extended_system(system: QuadraticSystem, linear: bool = False) -> QuadraticSystem:
     """``system`` with one constant state per output appended: ``A_e = blockdiag(A, 0)``,
-    ``B_e = (B, 0)``, ``C_e,h = blockdiag(C_h, 0)``, ``d_e,h = (d_h, 0)``."""
+    ``B_e = (B, 0)``, ``C_e,h = blockdiag(C_h, 0)``, ``d_e,h = (d_h, 0)``; with ``linear``,
+    ``d_e,h = (d_h, e_h)`` (``e_h`` the unit vector): output ``h``'s constant enters it
+    linearly."""
     n, q = system.n, system.q
     A = np.zeros((n + q, n + q))
     A[:n, :n] = system.A
     B = np.vstack([system.B, np.zeros((q, system.p))])
     C = np.zeros((q, n + q, n + q))
     C[:, :n, :n] = system.C
-    d = np.hstack([system.d, np.zeros((q, q))])
+    d = np.hstack([system.d, np.eye(q) if linear else np.zeros((q, q))])
     return QuadraticSystem(A, B, C, d)
 
 

@@ -121,15 +121,9 @@ class HeightBiasedUnscentedKalmanFilter(BiasedUnscentedKalmanFilter):
 def height_quadratic_system(system: QuadraticSystem) -> QuadraticSystem:
     """``system`` with one constant state ``e_h`` per output that enters its quadratic output
     linearly, ``y_h = x^T C_h x / 2 + d_h^T x + e_h`` (module docstring): ``A_e = blockdiag(A, 0)``,
-    ``B_e = (B, 0)``, ``C_e,h = blockdiag(C_h, 0)``, ``d_e,h = (d_h, e_h)`` (``e_h`` the unit vector)."""
-    n, q = system.n, system.q
-    A = np.zeros((n + q, n + q))
-    A[:n, :n] = system.A
-    B = np.vstack([system.B, np.zeros((q, system.p))])
-    C = np.zeros((q, n + q, n + q))
-    C[:, :n, :n] = system.C
-    d = np.hstack([system.d, np.eye(q)])
-    return QuadraticSystem(A, B, C, d)
+    ``B_e = (B, 0)``, ``C_e,h = blockdiag(C_h, 0)``, ``d_e,h = (d_h, e_h)`` (``e_h`` the unit vector;
+    :func:`~quadobs.estimators.bias_states.extended_system` with ``linear``)."""
+    return extended_system(system, linear=True)
 
 
 class HeightAugmentedObserver(AugmentedObserver):

@@ -153,13 +153,9 @@ def test_filter_prediction_closed_form_constant_velocity(cls):
     np.testing.assert_allclose(f.x_covariance, F @ P0 @ F.T + Q, rtol=1e-10)
 
 
-def test_measurement_std_enters_as_the_squared_range_variance():
-    """A range with its own std: the observer's correction with ``R_hh = rho^2 s^2 + s^4 / 2``."""
-    system = vehicle_system(2, BEACONS)
-    rho, s = 12.0, 0.3
-    timed = _augmented(system, "numpy")
-    timed.correct(Measurement(0.0, "range", rho, (1,), std=s))
-    r = rho**2 * s**2 + s**4 / 2
+def _grid_reference(system, rho: float, r: float) -> AugmentedObserver:
+    """The grid observer from ``(1, 1)`` after one correction by a range ``rho`` to anchor 1 whose
+    output has the variance ``r``."""
     im = immerse(system)
     ref = AugmentedObserver(
         im, DT, V=1e-3, W=np.diag([1.0, r * DT, 1.0]), P0=10.0,
@@ -168,6 +164,17 @@ def test_measurement_std_enters_as_the_squared_range_variance():
     y = np.full(3, np.nan)
     y[1] = range_outputs(np.array([rho]), BEACONS[1:2])[0]
     ref.correct(y)
+    return ref
+
+
+def test_measurement_std_enters_as_the_squared_range_variance():
+    """A range with its own std: the observer's correction with ``R_hh = rho^2 s^2 + s^4 / 2``."""
+    system = vehicle_system(2, BEACONS)
+    rho, s = 12.0, 0.3
+    timed = _augmented(system, "numpy")
+    timed.correct(Measurement(0.0, "range", rho, (1,), std=s))
+    r = rho**2 * s**2 + s**4 / 2
+    ref = _grid_reference(system, rho, r)
     np.testing.assert_allclose(timed.z, ref.z, rtol=1e-12)
     np.testing.assert_allclose(timed.P, ref.P, rtol=1e-10, atol=1e-12)
 
@@ -184,14 +191,7 @@ def test_a_range_read_short_takes_the_variance_at_the_predicted_range(rho):
     timed.correct(Measurement(0.0, "range", rho, (1,), std=s))
     r2 = max(rho**2, float(np.sum((np.array([1.0, 1.0]) - BEACONS[1]) ** 2)))
     r = r2 * s**2 + s**4 / 2
-    im = immerse(system)
-    ref = AugmentedObserver(
-        im, DT, V=1e-3, W=np.diag([1.0, r * DT, 1.0]), P0=10.0,
-        z0=im.lift(np.array([1.0, 1.0, 0.0, 0.0])), theta=0.1, backend="numpy",
-    )  # fmt: skip
-    y = np.full(3, np.nan)
-    y[1] = range_outputs(np.array([rho]), BEACONS[1:2])[0]
-    ref.correct(y)
+    ref = _grid_reference(system, rho, r)
     np.testing.assert_allclose(timed.z, ref.z, rtol=1e-12)
     measured = _augmented(system, "numpy")
     measured.correct(Measurement(0.0, "range", rho, (1,), std=s))
