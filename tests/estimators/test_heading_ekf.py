@@ -272,3 +272,19 @@ def test_a_lever_arm_as_states_is_recovered_in_turns_and_the_tracked_point_repor
     assert with_lever.state.shape == (6,) and np.all(without.lever_arm == 0.0)
     # without the lever arm's states the ranges place the tag, not the tracked point
     assert np.linalg.norm(without.x_hat - p_end[0]) > 0.05
+
+
+def test_the_replay_runs_ukf_lever_in_time_and_on_the_grid_and_refuses_other_logs():
+    log = circle_log(bias=0.01, heading_error=0.05, duration=40.0)  # no lever arm
+    options = {"range_sigma": 0.05, "q_xy": 1e-3, "q_xy_heading": 1e-3}
+    names = ["ukf-heading", "ukf-lever"]
+    for settings in ((), ("noise.dropout=0.1",)):
+        s = run_replay(
+            log, estimators=names, initial_offset=5.0, setup_options=options, batch=False,
+            settings=list(settings),
+        )  # fmt: skip
+        assert s["ranges"]["on_grid"] == (names if settings else [])
+        err = {name: s["estimators"][name]["final_position_error"] for name in names}
+        assert err["ukf-lever"] < 0.3 and err["ukf-lever"] < err["ukf-heading"] + 0.05
+    with pytest.raises(QuadobsError, match="'ukf-lever' needs a planar log with wheel odometry"):
+        check_replay(log, ["ukf-lever"], model="cv")
