@@ -46,6 +46,21 @@ filters keep its prior, and its bias follows from the heading's change over time
 estimate the testbed reads (:attr:`HeadingEKF.x_hat`) is the position, the state of the
 replay's odometry model; :attr:`~HeadingEKF.state`, :attr:`~HeadingEKF.heading` and
 :attr:`~HeadingEKF.gyro_bias` give the rest.
+
+A lever arm. On a real robot the tag sits off the point the odometry describes (the axle's
+centre): at ``q = p + R(theta) l``, ``l`` a constant offset in the body frame (x forward).
+With ``lever_arm_std`` given, the filters append ``l`` to the state as two constants (prior
+mean 0 and that standard deviation, no process noise),
+
+.. math:: x = (p_x,\\ p_y,\\ \\delta,\\ b,\\ l_x,\\ l_y), \\qquad
+          \\rho_h = |p + R(\\theta_o + \\delta)\\, l - a_h| + e ,
+
+the measurement models taking the tag's position ``q`` where they took ``p`` (the EKF's
+Jacobian ``dh/dx = dh/dq [I,\\ R(\\theta) J l,\\ 0,\\ R(\\theta)]``). The estimate read stays
+``p``, the odometry's point. ``l`` is observable in turns: the tag's velocity is
+``R(delta) u_xy + omega R(theta) J l``, so a yaw rate that changes separates ``l`` from ``p``
+and the heading (on a circle of constant turn rate its forward component trades against
+``delta``).
 """
 
 from __future__ import annotations
@@ -64,6 +79,7 @@ __all__ = [
     "GYRO_BIAS_STD",
     "GYRO_BIAS_TIME",
     "HEADING_STD",
+    "LEVER_ARM_STD",
     "HeadingCascade",
     "HeadingEKF",
     "HeadingUKF",
@@ -83,6 +99,11 @@ GYRO_BIAS_TIME = 3600.0
 #: heading read off a survey or a compass at the start; the heading becomes observable as soon
 #: as the vehicle moves among the anchors.
 HEADING_STD = 0.1
+
+#: The prior standard deviation of the tag's lever arm per body axis (m): 0.2 m, half the size of
+#: a small wheeled robot (a 0.4 m base), as far as a tag mounted on it can sit from its axle's
+#: centre when nobody measured where.
+LEVER_ARM_STD = 0.2
 
 _J = np.array([[0.0, -1.0], [1.0, 0.0]])  # d R(phi) / d phi = R(phi) J
 
@@ -159,6 +180,7 @@ class _HeadingFilter(Estimator, Gated):
         robust=None,
         lockout: LockOut | None = None,
         measurements=None,
+        lever_arm_std: float | None = None,
     ) -> None:
         self.anchors = as_array("anchors", anchors, (None, 2))
         self._x = as_array("x0", x0, (4,)).copy()
@@ -168,6 +190,11 @@ class _HeadingFilter(Estimator, Gated):
         self.Qc = np.diag([q_xy, q_xy, q_theta, q_bias]).astype(float)
         if not np.all(np.isfinite(self.Qc)) or np.any(np.diag(self.Qc) < 0.0):
             raise QuadobsError("q_xy, q_theta, q_bias: expected non-negative finite intensities")
+        self.lever = lever_arm_std is not None
+        if self.lever:
+            var = as_finite_scalar("lever_arm_std", lever_arm_std, positive=True) ** 2
+            self._x = np.concatenate([self._x, np.zeros(2)])
+            self._P = np.block([[self._P, np.zeros((4, 2))], [np.zeros((2, 4)), var * np.eye(2)]])
         self.range_sigma = as_finite_scalar("range_sigma", range_sigma, positive=True)
         self.theta_o = as_finite_scalar("heading0", heading0)
         self.gate = None if gate is None else as_finite_scalar("gate", gate, positive=True)
@@ -202,7 +229,7 @@ class _HeadingFilter(Estimator, Gated):
 
     @property
     def state(self) -> np.ndarray:
-        """``(p_x, p_y, delta, b)`` (a copy)."""
+        """``(p_x, p_y, delta, b)``, and ``(l_x, l_y)`` with a lever arm (a copy)."""
         return self._x.copy()
 
     @property
@@ -218,6 +245,27 @@ class _HeadingFilter(Estimator, Gated):
     def gyro_bias(self) -> float:
         """The yaw rate's bias ``b`` (rad/s): measured minus true."""
         return float(self._x[3])
+
+    @property
+    def lever_arm(self) -> np.ndarray:
+        """The tag's offset ``l`` (m) in the body frame: its estimate, or zero without those states."""
+        return self._x[4:6].copy() if self.lever else np.zeros(2)
+
+    def _tag(self, x: np.ndarray) -> np.ndarray:
+        """The tag's position ``q = p + R(theta_o + delta) l`` of the state ``x`` (``p`` without
+        a lever arm)."""
+        if not self.lever:
+            return x[:2]
+        return x[:2] + _rotation(self.theta_o + float(x[2])) @ x[4:6]
+
+    def _arc(self, x: np.ndarray, u: np.ndarray, h: float) -> tuple[np.ndarray, np.ndarray]:
+        """:func:`arc_step` on the whole state: the lever arm (where a state) is constant."""
+        if not self.lever:
+            return arc_step(x, u, h)
+        out, F4 = arc_step(x[:4], u, h)
+        F = np.eye(6)
+        F[:4, :4] = F4
+        return np.concatenate([out, x[4:]]), F
 
     @property
     def diverged(self) -> dict | None:
@@ -255,7 +303,12 @@ class _HeadingFilter(Estimator, Gated):
         A = np.zeros((4, 4))
         A[:2, 2] = _rotation(float(self._x[2]) - 0.5 * float(self._x[3]) * dt) @ (_J @ u[:2])
         A[2, 3] = -1.0
-        return van_loan_interval(A, self.Qc, dt)[1]
+        Q = van_loan_interval(A, self.Qc, dt)[1]
+        if not self.lever:
+            return Q
+        out = np.zeros((6, 6))
+        out[:4, :4] = Q
+        return out
 
     def _correct_measurement(self, m: Measurement) -> None:
         model = self.measurement_models.get(m.kind)
@@ -363,29 +416,39 @@ class HeadingEKF(_HeadingFilter):
     lockout : LockOut, optional
     measurements : list of MeasurementModel, optional
         Default: ranges to ``anchors``.
+    lever_arm_std : float, optional
+        With it, the tag's lever arm ``(l_x, l_y)`` (m, body frame) as two more states, prior
+        mean 0 and this standard deviation each (e.g. :data:`LEVER_ARM_STD`); without, the tag
+        is at ``p``.
 
     Notes
     -----
     ``P = F P F^T + Q_d`` over an interval (module docstring); a measurement ``z`` with
     ``H = [dh/dp, 0, 0]``: ``S = H P H^T + sigma^2``, ``K = P H^T / S``, ``x += K (z - h(p))``,
-    ``P -= K S K^T``.
+    ``P -= K S K^T``. With a lever arm (``lever_arm_std``), ``H = dh/dq [I, R(theta) J l, 0,
+    R(theta)]`` at the tag's position ``q`` (module docstring).
     """
 
     name = "ekf-heading"
 
     def _predict(self, dt: float, u: np.ndarray) -> None:
         Q = self._noise(dt, u)
-        self._x, F = arc_step(self._x, u, dt)
+        self._x, F = self._arc(self._x, u, dt)
         P = F @ self._P @ F.T + Q
         self._P = 0.5 * (P + P.T)
 
     def _correct_range(self, model, m: Measurement) -> None:
-        H = np.zeros(4)
-        H[:2] = model.jacobian(self._x[:2], m)
+        q = self._tag(self._x)
+        H = np.zeros(self._x.size)
+        H[:2] = model.jacobian(q, m)
+        if self.lever:
+            Rt = _rotation(self.theta_o + float(self._x[2]))
+            H[2] = H[:2] @ Rt @ _J @ self._x[4:6]
+            H[4:6] = H[:2] @ Rt
         PHt = self._P @ H
         s = model.sigma(m)
         R = s * s
-        self._gain(model.unbiased(m) - model.h(self._x[:2], m), float(H @ PHt) + R, PHt, R)
+        self._gain(model.unbiased(m) - model.h(q, m), float(H @ PHt) + R, PHt, R)
 
 
 class HeadingUKF(_HeadingFilter):
@@ -406,7 +469,7 @@ class HeadingUKF(_HeadingFilter):
 
     def __init__(self, anchors, *, alpha=1.0, beta=2.0, kappa=0.0, **kwargs) -> None:
         super().__init__(anchors, **kwargs)
-        n = 4
+        n = self._x.size
         lam = alpha**2 * (n + kappa) - n
         if not n + lam > 0:
             raise QuadobsError(f"alpha, kappa: need alpha^2 (n + kappa) > 0, got {n + lam:.3g}")
@@ -427,7 +490,7 @@ class HeadingUKF(_HeadingFilter):
 
     def _predict(self, dt: float, u: np.ndarray) -> None:
         Q = self._noise(dt, u)
-        X = np.array([arc_step(xi, u, dt)[0] for xi in self._sigma()])
+        X = np.array([self._arc(xi, u, dt)[0] for xi in self._sigma()])
         x = self._wm @ X
         dX = X - x
         P = (dX.T * self._wc) @ dX + Q
@@ -435,7 +498,7 @@ class HeadingUKF(_HeadingFilter):
 
     def _correct_range(self, model, m: Measurement) -> None:
         X = self._sigma()
-        Z = np.array([model.h(xi[:2], m) for xi in X])
+        Z = np.array([model.h(self._tag(xi), m) for xi in X])
         z = float(self._wm @ Z)
         dZ = Z - z
         s = model.sigma(m)

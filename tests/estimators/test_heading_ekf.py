@@ -233,3 +233,58 @@ def test_an_odometry_log_gets_the_heading_filter_by_default_and_a_model_without_
     assert not {"ukf-heading", "augmented-heading"} & set(default_estimators(log, "cv"))
     check_replay(log, [])  # the default set builds on the log
     check_replay(log, [], model="cv")  # and the one without the heading filter under cv
+
+
+def s_curve(t: np.ndarray, lever_arm) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A vehicle turning left on a circle of radius 15 m for 60 s, then right on another
+    (at 1.5 m/s): the yaw rate, the odometry's point ``p`` and the tag's ``p + R(theta) l``."""
+    t1 = 60.0
+    left = t < t1
+    a = np.where(left, OMEGA * t, OMEGA * t1 + math.pi - OMEGA * (t - t1))
+    centre = np.where(
+        left[:, None], 0.0, 2 * RADIUS * np.array([math.cos(OMEGA * t1), math.sin(OMEGA * t1)])
+    )
+    p = centre + RADIUS * np.column_stack([np.cos(a), np.sin(a)])
+    theta = np.where(left, OMEGA * t, 2 * OMEGA * t1 - OMEGA * t) + math.pi / 2
+    lx, ly = lever_arm
+    c, s = np.cos(theta), np.sin(theta)
+    tag = p + np.column_stack([c * lx - s * ly, s * lx + c * ly])
+    return np.where(left, OMEGA, -OMEGA), p, tag
+
+
+@pytest.mark.parametrize("cls", [HeadingEKF, HeadingUKF])
+def test_a_lever_arm_as_states_is_recovered_in_turns_and_the_tracked_point_reported(cls):
+    lever = (0.12, -0.07)
+    t = np.arange(0.0, 110.0, 0.1)
+    omega, _, _ = s_curve(t + 0.05, lever)  # the yaw rate held over each interval
+    inputs = np.column_stack([t, np.full_like(t, SPEED), omega])
+    tr = np.arange(0.05, 109.9, 0.25)
+    h = np.arange(tr.size) % 4
+    _, p, tag = s_curve(tr, lever)
+    ranges = np.column_stack([tr, h, np.linalg.norm(tag - BEACONS[h], axis=1)])
+    log = RangeLog("s-curve", np.arange(4), BEACONS, ranges, inputs, math.pi / 2, None)
+    P0 = [1.0, 1.0, 0.01, 1e-4]
+    with_lever = run_in_time(log, cls, P0, lever_arm_std=0.2, **NOISE)
+    without = run_in_time(log, cls, P0, **NOISE)
+    _, p_end, _ = s_curve(np.array([with_lever.time]), lever)
+    np.testing.assert_allclose(with_lever.lever_arm, lever, atol=2e-3)
+    assert np.linalg.norm(with_lever.x_hat - p_end[0]) < 5e-3
+    assert with_lever.state.shape == (6,) and np.all(without.lever_arm == 0.0)
+    # without the lever arm's states the ranges place the tag, not the tracked point
+    assert np.linalg.norm(without.x_hat - p_end[0]) > 0.05
+
+
+def test_the_replay_runs_ukf_lever_in_time_and_on_the_grid_and_refuses_other_logs():
+    log = circle_log(bias=0.01, heading_error=0.05, duration=40.0)  # no lever arm
+    options = {"range_sigma": 0.05, "q_xy": 1e-3, "q_xy_heading": 1e-3}
+    names = ["ukf-heading", "ukf-lever"]
+    for settings in ((), ("noise.dropout=0.1",)):
+        s = run_replay(
+            log, estimators=names, initial_offset=5.0, setup_options=options, batch=False,
+            settings=list(settings),
+        )  # fmt: skip
+        assert s["ranges"]["on_grid"] == (names if settings else [])
+        err = {name: s["estimators"][name]["final_position_error"] for name in names}
+        assert err["ukf-lever"] < 0.3 and err["ukf-lever"] < err["ukf-heading"] + 0.05
+    with pytest.raises(QuadobsError, match="'ukf-lever' needs a planar log with wheel odometry"):
+        check_replay(log, ["ukf-lever"], model="cv")

@@ -104,6 +104,7 @@ __all__ = [
     "build_replay_estimators",
     "build_ukf_bias",
     "build_ukf_heading",
+    "build_ukf_lever",
     "gyro_noise",
     "imu_input_noise",
     "initial_variance",
@@ -800,6 +801,18 @@ def build_ukf_heading(s: ReplaySetup, x0: np.ndarray, name: str = "ukf-heading")
     from quadobs.estimators.heading_ekf import HeadingUKF
 
     return build_ekf_heading(s, x0, name, HeadingUKF)
+
+
+def build_ukf_lever(s: ReplaySetup, x0: np.ndarray, name: str = "ukf-lever"):
+    """Entry point ``ukf-lever``: :func:`build_ukf_heading` with the tag's lever arm as two more
+    states, prior mean 0 and :data:`~quadobs.estimators.heading_ekf.LEVER_ARM_STD` per axis (the
+    ranges are the tag's, ``|p + R(theta) l - a_h|``; the position reported is the odometry's
+    point ``p``: :mod:`quadobs.estimators.heading_ekf`)."""
+    from functools import partial
+
+    from quadobs.estimators.heading_ekf import LEVER_ARM_STD, HeadingUKF
+
+    return build_ekf_heading(s, x0, name, partial(HeadingUKF, lever_arm_std=LEVER_ARM_STD))
 
 
 def build_augmented_heading(s: ReplaySetup, x0: np.ndarray, name: str = "augmented-heading"):
