@@ -105,6 +105,10 @@ HEADING_STD = 0.1
 #: centre when nobody measured where.
 LEVER_ARM_STD = 0.2
 
+#: The 0.999 quantile of ``chi^2(2)`` (``-2 ln 0.001``): a lever arm whose squared distance to
+#: its prior's mean exceeds this many prior variances is implausible (:meth:`_check_lever`).
+LEVER_CHI2 = -2.0 * math.log(1e-3)
+
 _J = np.array([[0.0, -1.0], [1.0, 0.0]])  # d R(phi) / d phi = R(phi) J
 
 
@@ -193,6 +197,7 @@ class _HeadingFilter(Estimator, Gated):
         self.lever = lever_arm_std is not None
         if self.lever:
             var = as_finite_scalar("lever_arm_std", lever_arm_std, positive=True) ** 2
+            self._lever_var = var
             self._x = np.concatenate([self._x, np.zeros(2)])
             self._P = np.block([[self._P, np.zeros((4, 2))], [np.zeros((2, 4)), var * np.eye(2)]])
         self.range_sigma = as_finite_scalar("range_sigma", range_sigma, positive=True)
@@ -369,6 +374,26 @@ class _HeadingFilter(Estimator, Gated):
         self._x = self._x + K * nu
         P = self._P - S * np.outer(K, K)
         self._P = 0.5 * (P + P.T)
+        if self.lever:
+            self._check_lever()
+
+    def _check_lever(self) -> None:
+        """The lever arm's plausibility: where its estimate lies beyond the :data:`LEVER_CHI2`
+        quantile of its own prior (``l^T P_l0^-1 l``, 2 degrees of freedom), the offset has
+        taken up what the ranges carry and the filter does not model (an anchor's bias left
+        in them, a height), and the filter is reported as diverged (its lock-out's record),
+        never summarised as if it had run."""
+        lock = self.lockout
+        if lock.diverged is not None:
+            return
+        l = self._x[4:6]
+        if float(l @ l) > LEVER_CHI2 * self._lever_var:
+            lock.diverged = {
+                "time": self._time,
+                "step": int(round(self._time / self.dt)),
+                "reason": f"lever arm ({l[0]:.3g}, {l[1]:.3g}) m beyond its prior's 0.999 "
+                "quantile: the ranges carry an error the filter does not model",
+            }
 
     def _watch(self, accepted: bool, nu: float) -> None:
         """Lock-out: re-initialise the covariance and the position, or give the filter up."""

@@ -45,6 +45,7 @@ __all__ = [
     "DivergenceSink",
     "diverged_estimators",
     "error_bound",
+    "given_up",
     "invalidate_diverged",
 ]
 
@@ -149,10 +150,22 @@ class DivergenceSink(Sink):
 
     def end(self, completed: int, interrupted: bool) -> dict:
         per = {}
+        own = {est.name: est for est in getattr(self.ctx, "estimators", ())}
         for name in self.ctx.names:
-            found = self.found.get(name) or self._locked_out(name, completed)
+            found = (
+                self.found.get(name) or given_up(own.get(name)) or self._locked_out(name, completed)
+            )
             per[name] = {"diverged": found}
         return {"estimators": per}
+
+
+def given_up(est) -> dict | None:
+    """The estimator's own record of having given up (its lock-out's ``diverged``: out of
+    re-initialisations, or a state it judged implausible), as this sink's entry."""
+    record = getattr(getattr(est, "lockout", None), "diverged", None)
+    if not record:
+        return None
+    return {"step": int(record["step"]), "t": float(record["time"]), "reason": record["reason"]}
 
 
 #: Summary keys of an estimator that are figures of its error (made ``None`` once it diverged).

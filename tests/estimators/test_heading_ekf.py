@@ -229,7 +229,7 @@ def test_an_odometry_log_gets_the_heading_filter_by_default_and_a_model_without_
 
     log = circle_log(bias=0.0, heading_error=0.0, duration=5.0)
     names = ["augmented", "ekf", "ekf-bias", "ukf-heading", "augmented-heading"]
-    assert default_estimators(log) == [*names, "ekf-height", "augmented-height"]
+    assert default_estimators(log) == [*names, "ekf-height", "augmented-height", "ukf-lever"]
     assert not {"ukf-heading", "augmented-heading"} & set(default_estimators(log, "cv"))
     check_replay(log, [])  # the default set builds on the log
     check_replay(log, [], model="cv")  # and the one without the heading filter under cv
@@ -288,3 +288,17 @@ def test_the_replay_runs_ukf_lever_in_time_and_on_the_grid_and_refuses_other_log
         assert err["ukf-lever"] < 0.3 and err["ukf-lever"] < err["ukf-heading"] + 0.05
     with pytest.raises(QuadobsError, match="'ukf-lever' needs a planar log with wheel odometry"):
         check_replay(log, ["ukf-lever"], model="cv")
+
+
+def test_a_lever_arm_beyond_its_prior_reports_the_filter_diverged():
+    """An anchor's bias left in its ranges (1 m): the offset takes it up and leaves its prior's
+    0.999 region; the replay reports ``ukf-lever`` diverged, its error figures withheld."""
+    log = circle_log(bias=0.0, heading_error=0.0, duration=40.0)
+    log.ranges[log.ranges[:, 1] == 0, 2] += 1.0
+    options = {"range_sigma": 0.05, "q_xy": 1e-3, "q_xy_heading": 1e-3}
+    s = run_replay(
+        log, estimators=["ukf-lever"], initial_offset=0.0, setup_options=options, batch=False
+    )
+    entry = s["estimators"]["ukf-lever"]
+    assert entry["diverged"] is not None and "lever arm" in entry["diverged"]["reason"]
+    assert entry["rmse"] is None and entry["final_position_error"] is None

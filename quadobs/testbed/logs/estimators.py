@@ -876,6 +876,7 @@ REPLAY_ESTIMATORS = {
     "ekf-height": build_ekf_height,
     "ukf-height": build_ukf_height,
     "augmented-height": build_augmented_height,
+    "ukf-lever": build_ukf_lever,
 }
 
 

@@ -148,6 +148,10 @@ class InTimeOnGrid(InnerClock):
     immersion = property(lambda self: self.inner.immersion)
     mode = property(lambda self: self.inner.mode)
     switches = property(lambda self: self.inner.switches)
+    # the inner filter's robust rule and lock-out record (re-initialisations, a filter given
+    # up), for the summary (quadobs.testbed.episode, quadobs.testbed.divergence)
+    robust = property(lambda self: getattr(self.inner, "robust", None))
+    lockout = property(lambda self: getattr(self.inner, "lockout", None))
 
     def summary(self) -> dict:
         summary = self.inner.summary  # type: ignore[attr-defined]  # Switching declares it

@@ -25,6 +25,7 @@ import numpy as np
 
 from quadobs.errors import QuadobsError, RunFault
 from quadobs.evaluation.trajectory import TrajectoryErrors, tum_text
+from quadobs.testbed.divergence import given_up
 from quadobs.testbed.logs.files import check_replaceable_folder, staged_folder
 from quadobs.testbed.sinks import EpisodeContext, Rows, Sink
 
@@ -90,8 +91,11 @@ class FieldFiguresSink(Sink):
 
     def end(self, completed: int, interrupted: bool) -> dict:
         per = {}
+        own = {est.name: est for est in getattr(self.ctx, "estimators", ())}
         for name, err in self.errors.items():
             per[name] = figures = err.figures()
+            if figures["diverged"] is None:  # the filter's own record of having given up
+                figures["diverged"] = given_up(own.get(name))
             if figures["diverged"] is None:  # the final error as the replay's own sink gives it
                 del figures["final_position_error"]
             else:  # nothing of a diverged estimator is summarised as if it ran

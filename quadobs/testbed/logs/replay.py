@@ -62,7 +62,8 @@ def default_estimators(log, model: str | None = None) -> list[str]:
     ``augmented-heading``: the dead-reckoned heading drifts with the yaw rate's bias, which the
     others take as known (measured on both Plaza logs: docs/replay.md), and for a planar log
     ``ekf-height`` and ``augmented-height`` (anchors at other heights than the tag: each
-    anchor's squared-range offset as a state, docs/error-sources.md); a 3-D log of a body IMU
+    anchor's squared-range offset as a state) and ``ukf-lever`` (the tag off the point the
+    odometry describes: its offset as states; both in docs/error-sources.md); a 3-D log of a body IMU
     also ``ekf-bias-imu`` (:mod:`quadobs.testbed.logs.imu_bias`: the accelerometer's bias and the
     estimated attitude's tilt error reach the navigation-frame acceleration as a slow bias)."""
     if log.tdoa.shape[0]:
@@ -75,6 +76,7 @@ def default_estimators(log, model: str | None = None) -> list[str]:
         names += ["ukf-heading", "augmented-heading"]
     if log.input_kind == "odometry" and log.dimension == 2 and model in (None, "odometry"):
         names += ["ekf-height", "augmented-height"]  # anchors above a planar tag: error-sources.md
+        names.append("ukf-lever")  # the tag off the odometry's point: error-sources.md
     return names
 
 
