@@ -101,6 +101,28 @@ def test_a_gate_that_rejects_nearly_everything_in_the_second_half_is_a_lockout()
     assert found["step"] == 500 and "rejected 240 of the 250 corrections" in found["reason"]
 
 
+def test_a_filter_that_gave_up_is_reported_diverged_by_its_own_record():
+    """A lock-out out of re-initialisations (or a state the filter judged implausible) is the
+    filter's own record; the sink reports it, where the rows alone show nothing wrong."""
+    from types import SimpleNamespace
+
+    from quadobs.estimators.robust import LockOut
+    from quadobs.testbed.divergence import DivergenceSink
+
+    gave_up, fine = LockOut(), LockOut()
+    gave_up.diverged = {"time": 4.5, "step": 45, "reason": "out of re-initialisations"}
+    estimators = [
+        SimpleNamespace(name="a", lockout=gave_up),
+        SimpleNamespace(name="b", lockout=fine),
+    ]
+    sink = DivergenceSink()
+    frame = SimpleNamespace(dt=0.1, steps=1000)
+    sink.begin(SimpleNamespace(names=["a", "b"], frame=frame, estimators=estimators))
+    per = sink.end(1000, False)["estimators"]
+    assert per["a"]["diverged"] == {"step": 45, "t": 4.5, "reason": "out of re-initialisations"}
+    assert per["b"]["diverged"] is None
+
+
 def test_scattered_rejections_and_a_short_final_run_are_no_lockout():
     sink = _lockout_sink(["scattered", "short", "none"])
     ks = np.arange(1000)

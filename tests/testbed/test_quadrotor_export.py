@@ -146,7 +146,10 @@ def test_the_exported_flight_replays_as_it_flew(exported_flight):
 def test_a_tdoa_radio_is_exported_as_differences(tmp_path):
     folder = tmp_path / "log"
     args = ["run", "quadrotor-uwb-realistic", "--duration", "8", "--no-progress"]
-    args += ["--estimators", "ekf", "--export-log", str(folder), "--set", "radio.protocol=tdoa"]
+    # the TDOA estimator of the default set (the EKF alone gives up on this radio's TDOA: its
+    # lock-out runs out of re-initialisations, and the run exits 1 as it reports it)
+    args += ["--estimators", "tdoa-handover", "--export-log", str(folder)]
+    args += ["--set", "radio.protocol=tdoa"]
     for s in SHORT:
         args += ["--set", s]
     assert main(args) == 0
