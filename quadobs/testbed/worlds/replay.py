@@ -352,6 +352,7 @@ class ReplayErrorSink(Sink):
         self.trackers = {n: ConvergenceTracker((5.0, 2.0)) for n in ctx.names}
 
     def block(self, rows: Rows) -> None:
+        truth = np.flatnonzero(np.isfinite(rows.truth[:, 0]))  # the rows with a truth
         for name, err in rows.errors.items():
             ep = err["position"]
             e = np.sqrt(np.einsum("ij,ij->i", ep, ep))
@@ -360,7 +361,6 @@ class ReplayErrorSink(Sink):
             acc[0] += float(np.sum(e[ok] ** 2))
             acc[1] += int(ok.sum())
             acc[2] = max(acc[2], float(e[ok].max())) if ok.any() else acc[2]
-            truth = np.flatnonzero(np.isfinite(rows.truth[:, 0]))
             if truth.size:  # the error at the last row with a truth (NaN: the estimate is lost)
                 acc[3] = float(e[truth[-1]])
             if ok.any():
