@@ -8,7 +8,8 @@ on the estimators) with, on the same measurements:
 * ``ekf-known-bias``: the same EKF, gate and lock-out without bias states, given the radio's
   true biases (its range model subtracts them: ``RangeModel(bias="fixed")``);
 * with ``--given``, ``ekf-bias-given``: ``ekf-bias`` itself with its bias states pinned at
-  the true biases (its robust rule and start-up unchanged);
+  the true biases (its robust rule, the excess mixture of the radio's stated
+  non-line-of-sight excess, and its start-up unchanged);
 * with ``--line-of-sight`` (a diagnostic no estimator can have), ``ekf-bias-los`` (and, with
   ``--given``, ``ekf-bias-given-los``): the same filters given only the ranges whose path the
   room left clear (the radio's own ray test when it drew the range), which measures what the
