@@ -8,7 +8,9 @@ on the estimators) with, on the same measurements:
 * ``ekf-known-bias``: the same EKF, gate and lock-out without bias states, given the radio's
   true biases (its range model subtracts them: ``RangeModel(bias="fixed")``);
 * with ``--given``, ``ekf-bias-given``: ``ekf-bias`` itself with its bias states pinned at
-  the true biases (its robust rule and start-up unchanged);
+  the true biases (its robust rule, the excess mixture of the radio's stated
+  non-line-of-sight excess, and its start-up unchanged); and ``ukf-bias-given``, the same
+  for ``ukf-bias``, when it is among the estimators;
 * with ``--line-of-sight`` (a diagnostic no estimator can have), ``ekf-bias-los`` (and, with
   ``--given``, ``ekf-bias-given-los``): the same filters given only the ranges whose path the
   room left clear (the radio's own ray test when it drew the range), which measures what the
@@ -62,20 +64,24 @@ def known_bias_ekf(scenario, world, x0: np.ndarray) -> ExtendedKalmanFilter:
     return est
 
 
-def given_bias_filter(scenario, world, x0: np.ndarray):
-    """``ekf-bias`` itself with its bias states pinned at the radio's true biases (zero prior
-    covariance, and the biases a re-initialisation returns to): the same estimator, rule and
-    start-up, given the true biases."""
-    from quadobs.testbed.factories import biased_extended_kalman_filter
+def given_bias_filter(scenario, world, x0: np.ndarray, kind: str = "ekf"):
+    """``ekf-bias`` (``kind="ukf"``: ``ukf-bias``) itself with its bias states pinned at the
+    radio's true biases (zero prior covariance, and the biases a re-initialisation returns to):
+    the same estimator, rule and start-up, given the true biases."""
+    from quadobs.testbed.factories import (
+        biased_extended_kalman_filter,
+        biased_unscented_kalman_filter,
+    )
 
-    est = biased_extended_kalman_filter(scenario, x0)
+    make = {"ekf": biased_extended_kalman_filter, "ukf": biased_unscented_kalman_filter}[kind]
+    est = make(scenario, x0)
     k, b = est.vehicle_n, np.asarray(world.radio.biases, dtype=float)
     est._x[k:] = b
     est._P[k:, :] = 0.0
     est._P[:, k:] = 0.0
     est._P0 = est._P.copy()
     est._bias_prior = b.copy()
-    est.name = "ekf-bias-given"
+    est.name = f"{kind}-bias-given"
     return est
 
 
@@ -164,6 +170,9 @@ def one_seed(
     if given:
         parts["estimators"].append(given_bias_filter(scenario, world, x0))
         all_names.append("ekf-bias-given")
+        if "ukf-bias" in names:
+            parts["estimators"].append(given_bias_filter(scenario, world, x0, "ukf"))
+            all_names.append("ukf-bias-given")
     if los:
         from quadobs.testbed.factories import biased_extended_kalman_filter
 

@@ -55,7 +55,13 @@ from quadobs.estimators.kalman import (
     OutputModel,
     UnscentedKalmanFilter,
 )
-from quadobs.estimators.robust import ChiSquareGate, LockOut, chi2_threshold, multilateration
+from quadobs.estimators.robust import (
+    ChiSquareGate,
+    ExcessMixture,
+    LockOut,
+    chi2_threshold,
+    multilateration,
+)
 
 __all__ = [
     "BiasedExtendedKalmanFilter",
@@ -194,6 +200,10 @@ class _VehicleBlock:
     _latest: np.ndarray
     _time: float
     nis: float
+    nis_dof: int
+    corrections: int
+    rejected: int
+    robust: object
     lockout: LockOut
     outputs: OutputModel
     if TYPE_CHECKING:
@@ -217,6 +227,9 @@ class _VehicleBlock:
         self._fix_var = std * std
         self.biases_open = False
         self._nis_window = deque(maxlen=2 * q)
+        self._anchor = -1
+        self._nlos = np.zeros(q)  # each anchor's chain starts in line of sight
+        self._nlos_time = np.full(q, self._time)
         self.open_threshold = chi2_threshold(probability, 2 * q)
 
     def _shape_gain(self, K: np.ndarray, nu: np.ndarray, S: np.ndarray) -> np.ndarray:
@@ -227,6 +240,43 @@ class _VehicleBlock:
         K = K.copy()
         K[self.vehicle_n :] = 0.0
         return K
+
+    def _gain(self, nu: np.ndarray, S: np.ndarray, R: np.ndarray, cross: np.ndarray):
+        """With an :class:`~quadobs.estimators.robust.ExcessMixture` rule, a range's update
+        corrected by its expected non-line-of-sight excess: ``x += K (nu - E[e | nu])`` with
+        ``K = cross S^-1`` (as the bias rows are shaped), and ``(S, R)`` grown by
+        ``Var[e | nu]`` for the covariance (the exact collapse of the Gaussian sum); the NIS
+        is that of the corrected innovation. Any other rule: the filter's own."""
+        rule, h = self.robust, self._anchor
+        if not isinstance(rule, ExcessMixture) or h < 0 or nu.shape[0] != 1:
+            return super()._gain(nu, S, R, cross)  # type: ignore[misc]
+        nlos = rule.prior(self._nlos[h], self._time - self._nlos_time[h])
+        post = rule.posterior(float(nu[0]), float(S[0, 0]), nlos)
+        if post is None:
+            self.nis, self.nis_dof = float(nu[0] ** 2 / S[0, 0]), 1
+            self.rejected += 1
+            self._watch(False, nu)
+            return None
+        shift, var, p_nlos = post
+        self._nlos[h], self._nlos_time[h] = p_nlos, self._time
+        nu_e = nu - shift
+        self.nis, self.nis_dof = float(nu_e[0] ** 2 / (S[0, 0] + var)), 1
+        self.corrections += 1
+        self._watch(True, nu)
+        K_opt = np.linalg.solve(S, cross.T).T
+        K = self._shape_gain(K_opt, nu_e, S)
+        self._x = self._x + K @ nu_e
+        return K, S + var, R + var, False
+
+    def _update(self, z: np.ndarray, idx, R: np.ndarray) -> None:
+        """A correction of the range outputs ``idx``; one range's anchor is kept for
+        :meth:`_gain` (any other measurement, a TDOA, has none: ``-1``)."""
+        one = not isinstance(idx, slice) and len(idx) == 1
+        self._anchor = int(idx[0]) if one else -1
+        try:
+            super()._update(z, idx, R)  # type: ignore[misc]
+        finally:
+            self._anchor = -1
 
     def _correct_measurement(self, m: Measurement) -> None:
         if self.fix_pending and m.kind == "range":
@@ -287,6 +337,7 @@ class _VehicleBlock:
         super()._watch(accepted, nu)  # type: ignore[misc]
         if len(self.lockout.resets) > before:
             self._x[self.vehicle_n :] = self._bias_prior
+            self._nlos[:], self._nlos_time[:] = 0.0, self._time
             self.biases_open = False
             self._nis_window.clear()
             self._try_fix()  # the position covariance of a fix, as at the start

@@ -41,6 +41,7 @@ from quadobs.errors import QuadobsError
 
 __all__ = [
     "ChiSquareGate",
+    "ExcessMixture",
     "Huber",
     "LockOut",
     "SkewedGate",
@@ -166,6 +167,122 @@ class SkewedGate:
         )
 
 
+@dataclass(frozen=True)
+class ExcessMixture:
+    """A range likelihood with the radio's non-line-of-sight excess as a latent variable.
+
+    A range is ``rho~ = rho + e + sigma n`` with the excess ``e = 0`` in line of sight
+    (prior probability ``1 - nlos``) and ``e = e_50 exp(s n_e)``, ``n_e ~ N(0, 1)``, behind an
+    obstacle (probability ``nlos``): the log-normal of the radio's stated median ``e_50`` and
+    shape ``s``. The log-normal is discretised on ``z_j = -4, -3.8, ..., 4`` standard
+    deviations (weights ``phi(z_j)``, normalised), so that ``e`` takes the values ``e_j``
+    (``e_0 = 0``) with prior weights ``pi_j``. Given the innovation ``nu`` of a range with
+    covariance ``S = H P H^T + R``, every value has the same Gaussian likelihood shape,
+    ``N(nu - e_j; 0, S)``, so the posterior weights are
+    ``gamma_j = pi_j exp(-(nu - e_j)^2 / 2S) / sum_i pi_i exp(-(nu - e_i)^2 / 2S)``,
+    and the Gaussian-sum update collapses exactly to one Kalman update: with the gain
+    ``K = P H^T S^{-1}``, ``x += K (nu - E[e | nu])`` and
+    ``P = (I - K H) P + K Var[e | nu] K^T``, i.e. a range corrected by its expected excess,
+    its variance grown by the excess's posterior variance (:meth:`posterior`). A
+    line-of-sight range (``nu`` within the noise of 0) is taken at full weight; one well
+    beyond it moves the estimate only by what its excess is uncertain by, so that a bias
+    state takes in neither the excess nor, on average, less than it.
+
+    Whether an anchor's path is blocked depends on where the vehicle is, so it persists
+    from one of its ranges to the next: each anchor's probability of non-line-of-sight is a
+    two-state Markov chain (a per-anchor NLOS state). Its prior for a range is the
+    posterior ``P(NLOS | nu) = 1 - gamma_0`` of the anchor's previous range relaxed towards
+    the stationary ``nlos`` over :attr:`memory` (:meth:`prior`); the filter keeps the chain
+    of each anchor. A fixed prior instead (every range with probability ``nlos``) takes a
+    fraction of every line-of-sight range's positive noise for excess.
+
+    A range is rejected (an outlier) when it is shorter than line of sight by more than
+    the chi-square gate of ``probability`` allows (``nu < -z sqrt(S)``, ``z^2`` the
+    ``chi^2(1)`` quantile) or longer than the excess's ``probability`` quantile by as much
+    (``nu > e_50 exp(s Phi^{-1}(probability)) + z sqrt(S)``). A correction of ``k > 1``
+    outputs is judged by the chi-square gate alone.
+
+    Parameters
+    ----------
+    median, shape : float
+        The radio's stated log-normal excess: its median ``e_50`` (m) and shape ``s``.
+    nlos : float
+        In ``(0, 1)``: the stationary probability that a range is non-line-of-sight. The
+        radio states none (the room decides it), so the default is the uninformed ``0.5``.
+    probability : float
+        The gate's probability (as :class:`ChiSquareGate`).
+    memory : float
+        The time (s) over which an anchor's state of sight is remembered (:meth:`prior`):
+        whether a path is blocked is decided by where the vehicle is in the room, which
+        changes over seconds, not between two ranges 0.08 s apart.
+    """
+
+    median: float
+    shape: float
+    nlos: float = 0.5
+    probability: float = 0.999
+    memory: float = 10.0
+    excess: np.ndarray = field(init=False, repr=False, compare=False)
+    log_prior: np.ndarray = field(init=False, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        ChiSquareGate(self.probability)
+        for name, v in (("nlos_median", self.median), ("nlos_shape", self.shape)):
+            if not (math.isfinite(v) and v > 0.0):
+                raise QuadobsError(f"radio.{name}: expected a positive number, got {v}")
+        if not (0.0 < self.nlos < 1.0):
+            raise QuadobsError(f"nlos: expected a probability in (0, 1), got {self.nlos}")
+        if not (math.isfinite(self.memory) and self.memory > 0.0):
+            raise QuadobsError(f"memory: expected a positive number of seconds, got {self.memory}")
+        z = np.linspace(-4.0, 4.0, 41)
+        w = np.exp(-0.5 * z * z)
+        excess = np.concatenate([[0.0], self.median * np.exp(self.shape * z)])
+        object.__setattr__(self, "excess", excess)
+        object.__setattr__(self, "log_prior", np.log(np.concatenate([[1.0], w / w.sum()])))
+
+    @property
+    def upper(self) -> float:
+        """The excess's ``probability`` quantile (m): longer ranges beyond the noise are outliers."""
+        return self.median * math.exp(self.shape * float(stats.norm.ppf(self.probability)))
+
+    def prior(self, last: float, dt: float) -> float:
+        """The prior probability that an anchor's range is non-line-of-sight, given the
+        posterior ``last`` of its previous range ``dt`` seconds before: the two-state Markov
+        chain ``pi = nlos + (last - nlos) exp(-dt / memory)`` (``nlos`` for ``dt`` unknown)."""
+        if not dt > 0.0:
+            return last
+        return self.nlos + (last - self.nlos) * math.exp(-dt / self.memory)
+
+    def posterior(
+        self, nu: float, S: float, nlos: float | None = None
+    ) -> tuple[float, float, float] | None:
+        """``(E[e | nu], Var[e | nu], P(NLOS | nu))`` of a range's excess given its innovation
+        ``nu``, the innovation's variance ``S`` under line of sight and the prior probability
+        ``nlos`` (default :attr:`nlos`) that it is non-line-of-sight; ``None`` when it is
+        rejected."""
+        sd = math.sqrt(S)
+        z = math.sqrt(chi2_threshold(self.probability, 1))
+        if nu < -z * sd or nu > self.upper + z * sd:
+            return None
+        pi = self.nlos if nlos is None else min(max(nlos, 1e-6), 1.0 - 1e-6)
+        r = (nu - self.excess) / sd
+        ll = self.log_prior - 0.5 * r * r
+        ll[0] += math.log1p(-pi)
+        ll[1:] += math.log(pi)
+        g = np.exp(ll - ll.max())
+        g /= g.sum()
+        mean = float(g @ self.excess)
+        var = max(float(g @ (self.excess * self.excess)) - mean * mean, 0.0)
+        return mean, var, 1.0 - float(g[0])
+
+    def describe(self) -> str:
+        return (
+            f"non-line-of-sight mixture likelihood (excess log-normal, median {self.median} m, "
+            f"shape {self.shape}; prior probability {self.nlos}), outliers beyond the "
+            f"P = {self.probability} gate on either side rejected"
+        )
+
+
 def reweight(rule, nu: np.ndarray, S: np.ndarray, R: np.ndarray) -> np.ndarray | None:
     """The measurement covariance to update with: ``R``, ``R`` re-weighted, or ``None`` (rejected).
 
@@ -183,9 +300,10 @@ def reweight(rule, nu: np.ndarray, S: np.ndarray, R: np.ndarray) -> np.ndarray |
         return R
     if isinstance(rule, SkewedGate):
         return None if rule.rejects(nu, S) else R
-    if isinstance(rule, ChiSquareGate):
+    if isinstance(rule, (ChiSquareGate, ExcessMixture)):
+        # an ExcessMixture's scalar update (its shift of the innovation) is the filter's own
         nis = float(nu @ np.linalg.solve(S, nu))
-        return None if nis > rule.threshold(nu.shape[0]) else R
+        return None if nis > chi2_threshold(rule.probability, nu.shape[0]) else R
     w = rule.weights(nu, S)
     if np.all(w == 1.0):
         return R

@@ -487,13 +487,23 @@ def bias_robust_settings(scenario: Scenario) -> dict:
     """The bias-state filters' robust rule: :func:`robust_settings`, with a chi-square gate made
     a :class:`~quadobs.estimators.robust.SkewedGate` (the same probability, and ranges longer
     than line of sight at the one-sided 95 % level rejected: non-line-of-sight excess is
-    positive, and a bias state would otherwise take it in)."""
-    from quadobs.estimators.robust import ChiSquareGate, SkewedGate
+    positive, and a bias state would otherwise take it in). Where the radio states its
+    non-line-of-sight excess (``radio.nlos_median``, ``radio.nlos_shape``), the gate is
+    instead an :class:`~quadobs.estimators.robust.ExcessMixture` of that excess at the same
+    probability: each range corrected by its expected excess, none rejected for being long
+    unless beyond the excess's own tail."""
+    from quadobs.estimators.robust import ChiSquareGate, ExcessMixture, SkewedGate
 
     settings = robust_settings(scenario)
     rule = settings["robust"]
     if isinstance(rule, ChiSquareGate):
-        settings["robust"] = SkewedGate(rule.probability)
+        radio = getattr(scenario, "radio", None)
+        if radio is not None and radio.nlos_median > 0.0:
+            settings["robust"] = ExcessMixture(
+                radio.nlos_median, radio.nlos_shape, probability=rule.probability
+            )
+        else:
+            settings["robust"] = SkewedGate(rule.probability)
     return settings
 
 

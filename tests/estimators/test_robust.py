@@ -143,3 +143,63 @@ def test_skewed_gate_refuses_a_probability_outside_its_range():
         SkewedGate(0.999, 0.4)
     with pytest.raises(QuadobsError, match="noise.gate"):
         SkewedGate(1.5)
+
+
+def _continuous_excess_posterior(nu, S, pi, median=0.3, shape=0.6):
+    """``E[e | nu]``, ``Var[e | nu]`` and ``P(NLOS | nu)`` of ``e = 0`` (probability ``1 - pi``)
+    or log-normal (``pi``), ``nu ~ N(e, S)``, by quadrature of the continuous density."""
+    from scipy import integrate
+
+    lik = stats.norm(0.0, np.sqrt(S)).pdf
+    f = stats.lognorm(shape, scale=median).pdf
+    moments = [
+        integrate.quad(lambda e, k=k: e**k * f(e) * lik(nu - e), 0.0, 20.0, points=[nu])[0]
+        for k in range(3)
+    ]
+    evidence = (1.0 - pi) * lik(nu) + pi * moments[0]
+    mean = pi * moments[1] / evidence
+    return mean, pi * moments[2] / evidence - mean**2, pi * moments[0] / evidence
+
+
+@pytest.mark.parametrize(
+    ("nu", "S", "pi"), [(0.05, 0.012, 0.2), (0.3, 0.015, 0.5), (0.8, 0.02, 0.9)]
+)
+def test_excess_mixture_posterior_is_the_continuous_mixtures(nu, S, pi):
+    """The discretised log-normal's posterior mean, variance and probability of
+    non-line-of-sight against quadrature of the continuous density."""
+    from quadobs.estimators.robust import ExcessMixture
+
+    mean, var, p = ExcessMixture(0.3, 0.6).posterior(nu, S, pi)
+    mean_c, var_c, p_c = _continuous_excess_posterior(nu, S, pi)
+    assert mean == pytest.approx(mean_c, abs=1e-4)
+    assert var == pytest.approx(var_c, rel=1e-3)
+    assert p == pytest.approx(p_c, abs=1e-4)
+
+
+def test_excess_mixture_separates_line_of_sight_from_excess_and_outliers():
+    from quadobs.estimators.robust import ExcessMixture
+
+    rule = ExcessMixture(0.3, 0.6, probability=0.999)
+    sd = 0.11
+    # in line of sight (the anchor's chain says so): taken nearly as it is
+    shift, var, p = rule.posterior(0.0, sd**2, 0.01)
+    assert shift < 0.005 and var < 1e-3 and p < 0.02
+    # 0.6 m long, six standard deviations of the noise: the excess takes nearly all of it
+    shift, var, p = rule.posterior(0.6, sd**2, 0.5)
+    assert p > 0.999 and 0.5 < shift < 0.6 and var < sd**2
+    # outliers: shorter than the gate allows, or longer than the excess's 0.999 quantile
+    z = np.sqrt(chi2_threshold(0.999, 1))
+    assert rule.upper == pytest.approx(0.3 * np.exp(0.6 * stats.norm.ppf(0.999)))
+    assert rule.posterior(-1.01 * z * sd, sd**2) is None
+    assert rule.posterior(-0.99 * z * sd, sd**2) is not None
+    assert rule.posterior(rule.upper + 1.01 * z * sd, sd**2) is None
+    assert rule.posterior(rule.upper + 0.99 * z * sd, sd**2) is not None
+    # the chain: relaxed towards the stationary probability over the memory
+    assert rule.prior(0.9, rule.memory) == pytest.approx(0.5 + 0.4 * np.exp(-1.0))
+    assert rule.prior(0.9, 0.0) == 0.9
+    with pytest.raises(QuadobsError, match="radio.nlos_median"):
+        ExcessMixture(0.0, 0.6)
+    with pytest.raises(QuadobsError, match="nlos"):
+        ExcessMixture(0.3, 0.6, nlos=1.0)
+    with pytest.raises(QuadobsError, match="memory"):
+        ExcessMixture(0.3, 0.6, memory=0.0)

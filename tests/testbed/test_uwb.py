@@ -146,11 +146,12 @@ def test_realistic_quadrotor_feeds_each_range_at_its_own_time():
     result = run_episode(scenario, estimators=["ekf-bias", "augmented"])
     ekf = result.summary["estimators"]["ekf-bias"]
     # 100 exchanges a second for 6.5 s, less the dropped ones, each corrected or rejected
-    # (but the first round, taken by the start-up multilateration); the one-sided gate
-    # rejects one line-of-sight range in 20 and most of the non-line-of-sight ones
+    # (but the first round, taken by the start-up multilateration); the radio states its
+    # non-line-of-sight excess, so the bias filters weigh each range by it (ExcessMixture)
+    # and reject only outliers (1 % of the ranges, those beyond the gate)
     tried = ekf["corrections"] + ekf["rejected"]
-    assert 560 < tried < 650 and ekf["rejected"] < 0.2 * tried
-    assert "one-sided gate" in ekf["robust"] and ekf.get("diverged") is None
+    assert 560 < tried < 650 and ekf["rejected"] < 0.02 * tried
+    assert "non-line-of-sight mixture" in ekf["robust"] and ekf.get("diverged") is None
     # started 20 m off: within 1 m in well under the 2 s target, and it stays there
     assert ekf["time_to_1m"] < 2.0 and ekf["final_position_error"] < 0.5
 
