@@ -74,11 +74,39 @@ VARIANTS = {
     "lever": ((), _LEVER),
     "all": ((_STOPS, *_RATES), {**_HEIGHTS, **_LEVER, **_CLOCKS}),
 }
+#: The effects that ``all`` composes, in its order: a variant ``a+b`` poses the effects ``a`` and
+#: ``b`` together, ``all-a`` every effect of ``all`` but ``a`` (:func:`variant_of`).
+EFFECTS = ("rest", "rates", "heights", "lever", "clocks")
+
+
+def variant_of(name: str) -> tuple[tuple, dict]:
+    """The scenario's settings and the log's posing of the variant ``name``: one of
+    :data:`VARIANTS`, effects joined by ``+`` (``heights+lever``), or ``all-EFFECT`` (``all``
+    without one of :data:`EFFECTS`)."""
+    if name in VARIANTS:
+        return VARIANTS[name]
+    if name.startswith("all-"):
+        left = name[4:].split("-")
+        parts = [e for e in EFFECTS if e not in left]
+    else:
+        left = parts = name.split("+")
+    unknown = [e for e in left if e not in EFFECTS]
+    if unknown or not parts:
+        raise SystemExit(
+            f"--variants: unknown {name!r} (one of {', '.join(VARIANTS)}; effects joined by '+' "
+            f"or taken from 'all-': {', '.join(EFFECTS)})"
+        )
+    settings: tuple = ()
+    pose: dict = {}
+    for effect in (e for e in EFFECTS if e in parts):
+        settings += VARIANTS[effect][0]
+        pose.update(VARIANTS[effect][1])
+    return settings, pose
 
 
 def export(seed: int, duration: float, folder: Path, variant: str = "today"):
     """The seed's ``rover-room`` run written as a log in ``folder`` (posed as ``variant``); the scenario."""
-    settings, pose = VARIANTS[variant]
+    settings, pose = variant_of(variant)
     scenario = load_scenario("rover-room", seed=seed, duration=duration)
     if settings:
         scenario = scenario.with_settings(settings)
@@ -177,8 +205,7 @@ def posed_rows(seed: int, duration: float, variants: list[str], tmp: Path, extra
     """One row per variant of the seed: the defaults' RMSE and the reference's."""
     rows = []
     for variant in variants:
-        if variant not in VARIANTS:
-            raise SystemExit(f"--variants: unknown {variant!r} (one of {', '.join(VARIANTS)})")
+        variant_of(variant)  # an unknown name stops here, before the export
         folder = tmp / f"seed{seed}-{variant}"
         scenario = export(seed, duration, folder, variant)
         row = {
