@@ -39,10 +39,14 @@ import subprocess
 import sys
 import tempfile
 from pathlib import Path
+from unittest.mock import patch
+
+import numpy as np
 
 from quadobs import load_scenario
 from quadobs.testbed.episode import run_episode
 from quadobs.testbed.logs import read_log
+from quadobs.testbed.logs.estimators import REPLAY_ESTIMATORS
 from quadobs.testbed.logs.export import LogExportSink
 from quadobs.testbed.logs.format import write_log
 from quadobs.testbed.logs.posed import posed_log
@@ -145,8 +149,31 @@ def replay_defaults(folder: Path, extra: tuple[str, ...] = ()) -> dict:
     return {name: figures["rmse"] for name, figures in estimators.items()}
 
 
-def reference(folder: Path, scenario) -> dict:
-    """The estimators of :data:`REFERENCE` given the true biases and the true noise (module docstring)."""
+def given_truth(pose: dict):
+    """A factory of the replay's ``ukf-height-lever`` given what the posing put into the log: the
+    lever arm and each anchor's squared-range offset ``(dz_h)^2 / 2`` as states whose prior is
+    the truth (standard deviation 1e-4), no range-bias states (the true biases are subtracted)."""
+    from functools import partial
+
+    from quadobs.estimators.heading_ekf import HeadingUKF
+    from quadobs.testbed.logs.estimators import build_ekf_heading
+
+    heights = pose.get("anchor_heights")
+    dz = 0.0 if heights is None else np.asarray(heights) - pose.get("tag_height", 0.0)
+    known = 1e-4
+    options = {"lever_arm_std": known, "lever_arm": pose.get("lever_arm", (0.0, 0.0))}
+    options["offsets"] = (0.5 * np.square(dz), known)
+
+    def build(s, x0, name):
+        return build_ekf_heading(s, x0, name, partial(HeadingUKF, **options))
+
+    return build
+
+
+def reference(folder: Path, scenario, pose: dict | None = None) -> dict:
+    """The estimators of :data:`REFERENCE` given the true biases and the true noise (module
+    docstring); with ``pose`` (a posed log), also ``ukf-height-lever`` given the lever arm and
+    the anchors' heights of the posing (:func:`given_truth`)."""
     log = read_log(folder)
     odo, radio = scenario.odometry, scenario.radio
     truth = radio_of(scenario).biases
@@ -156,12 +183,15 @@ def reference(folder: Path, scenario) -> dict:
         "q_theta": odo.yaw_rate_std**2 / odo.rate,
     }
     out = {}
-    for name in REFERENCE:
-        opts = options if name.endswith("-heading") else {"range_sigma": radio.std}
-        summary = run_replay(
-            log, estimators=[name], biases=truth, setup_options=opts, burn_in=BURN_IN,
-            batch=False, initial_offset=0.0,
-        )  # fmt: skip
+    names = [*REFERENCE, "ukf-height-lever"] if pose is not None else REFERENCE
+    for name in names:
+        opts = options if "heading" in name or "lever" in name else {"range_sigma": radio.std}
+        given = {"ukf-height-lever": given_truth(pose)} if pose is not None else {}
+        with patch.dict(REPLAY_ESTIMATORS, given):
+            summary = run_replay(
+                log, estimators=[name], biases=truth, setup_options=opts, burn_in=BURN_IN,
+                batch=False, initial_offset=0.0,
+            )  # fmt: skip
         out[f"{name} (truth)"] = summary["estimators"][name]["rmse"]
     return out
 
@@ -212,7 +242,7 @@ def posed_rows(seed: int, duration: float, variants: list[str], tmp: Path, extra
             "seed": seed,
             "log": variant,
             **replay_defaults(folder, extra),
-            **reference(folder, scenario),
+            **reference(folder, scenario, variant_of(variant)[1]),
         }
         rows.append(row)
         print(", ".join(f"{k} {_fmt(v)}" for k, v in row.items()), flush=True)

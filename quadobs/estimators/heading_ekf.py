@@ -200,6 +200,7 @@ class _HeadingFilter(Estimator, Gated):
         lockout: LockOut | None = None,
         measurements=None,
         lever_arm_std: float | None = None,
+        lever_arm=(0.0, 0.0),
         offsets: tuple[float, float] | None = None,
         bias_std: float | None = None,
     ) -> None:
@@ -215,7 +216,7 @@ class _HeadingFilter(Estimator, Gated):
         if self.lever:
             var = as_finite_scalar("lever_arm_std", lever_arm_std, positive=True) ** 2
             self._lever_var = var
-            self._x = np.concatenate([self._x, np.zeros(2)])
+            self._x = np.concatenate([self._x, as_array("lever_arm", lever_arm, (2,))])
             self._P = np.block([[self._P, np.zeros((4, 2))], [np.zeros((2, 4)), var * np.eye(2)]])
         self._append_anchor_states(offsets, bias_std)
         self.range_sigma = as_finite_scalar("range_sigma", range_sigma, positive=True)
@@ -286,10 +287,12 @@ class _HeadingFilter(Estimator, Gated):
             mean.append(np.zeros(q))
             var.append(np.full(q, std * std))
         if offsets is not None:
-            e_mean = as_finite_scalar("offsets' mean", offsets[0])
+            e_mean = np.broadcast_to(np.asarray(offsets[0], dtype=float), (q,))
+            if not np.all(np.isfinite(e_mean)):
+                raise QuadobsError("offsets: expected a finite prior mean (one, or one per anchor)")
             e_std = as_finite_scalar("offsets' standard deviation", offsets[1], positive=True)
             self._ie = self._x.size + q * len(mean)
-            mean.append(np.full(q, e_mean))
+            mean.append(e_mean.copy())
             var.append(np.full(q, e_std * e_std))
         if not mean:
             return
@@ -449,15 +452,16 @@ class _HeadingFilter(Estimator, Gated):
 
     def _check_lever(self) -> None:
         """The lever arm's plausibility: where its estimate lies beyond the :data:`LEVER_CHI2`
-        quantile of its own prior (``l^T P_l0^-1 l``, 2 degrees of freedom), the offset has
-        taken up what the ranges carry and the filter does not model (an anchor's bias left
-        in them, a height), and the filter is reported as diverged (its lock-out's record),
-        never summarised as if it had run."""
+        quantile of its own prior (``(l - l_0)^T P_l0^-1 (l - l_0)``, 2 degrees of freedom,
+        ``l_0`` the prior mean), the offset has taken up what the ranges carry and the filter
+        does not model (an anchor's bias left in them, a height), and the filter is reported
+        as diverged (its lock-out's record), never summarised as if it had run."""
         lock = self.lockout
         if lock.diverged is not None:
             return
         l = self._x[4:6]
-        if float(l @ l) > LEVER_CHI2 * self._lever_var:
+        d = l - self._x0[4:6]
+        if float(d @ d) > LEVER_CHI2 * self._lever_var:
             lock.diverged = {
                 "time": self._time,
                 "step": int(round(self._time / self.dt)),
@@ -513,15 +517,25 @@ class HeadingEKF(_HeadingFilter):
         Default: ranges to ``anchors``.
     lever_arm_std : float, optional
         With it, the tag's lever arm ``(l_x, l_y)`` (m, body frame) as two more states, prior
-        mean 0 and this standard deviation each (e.g. :data:`LEVER_ARM_STD`); without, the tag
-        is at ``p``.
+        mean ``lever_arm`` and this standard deviation each (e.g. :data:`LEVER_ARM_STD`);
+        without, the tag is at ``p``.
+    lever_arm : array_like (2,)
+        The lever arm's prior mean (m; default 0: nobody measured where the tag sits).
+    offsets : (float, float), optional
+        With it, each anchor's squared-range offset ``e_h`` as a state, prior mean (one, or one
+        per anchor) and standard deviation ``offsets`` (m^2; module docstring). Ranges only.
+    bias_std : float, optional
+        With it, each anchor's range bias ``b_h`` as a state, prior mean 0 and this standard
+        deviation (m).
 
     Notes
     -----
     ``P = F P F^T + Q_d`` over an interval (module docstring); a measurement ``z`` with
     ``H = [dh/dp, 0, 0]``: ``S = H P H^T + sigma^2``, ``K = P H^T / S``, ``x += K (z - h(p))``,
     ``P -= K S K^T``. With a lever arm (``lever_arm_std``), ``H = dh/dq [I, R(theta) J l, 0,
-    R(theta)]`` at the tag's position ``q`` (module docstring).
+    R(theta)]`` at the tag's position ``q``; with offsets and biases, ``dh/dq`` is scaled by
+    ``|q - a_h| / s_h`` and ``H`` gains ``1`` at ``b_h`` and ``1 / s_h`` at ``e_h`` (module
+    docstring; :meth:`linearized`).
     """
 
     name = "ekf-heading"

@@ -817,12 +817,11 @@ def build_ukf_lever(s: ReplaySetup, x0: np.ndarray, name: str = "ukf-lever"):
 
 
 def build_ukf_height_lever(s: ReplaySetup, x0: np.ndarray, name: str = "ukf-height-lever"):
-    """Entry point ``ukf-height-lever``: :func:`build_ukf_lever` with each anchor's squared-range
-    offset ``e_h = dz_h^2 / 2`` as one more state (prior
-    :data:`~quadobs.testbed.logs.height_estimators.E_MEAN`,
-    :data:`~quadobs.testbed.logs.height_estimators.E_STD`): the tag off the odometry's point
-    and the anchors above it, together (``rho_h = sqrt(|p + R(theta) l - a_h|^2 + 2 e_h)``;
-    :mod:`quadobs.estimators.heading_ekf`)."""
+    """Entry point ``ukf-height-lever``: :func:`build_ukf_lever` with each anchor's range bias
+    ``b_h`` and squared-range offset ``e_h = dz_h^2 / 2`` as two more states (priors of
+    :func:`~quadobs.testbed.logs.height_estimators.heading_height_options`, as ``ekf-height``'s):
+    the tag off the odometry's point and the anchors above it, together (``rho_h = sqrt(|p +
+    R(theta) l - a_h|^2 + 2 e_h) + b_h``; :mod:`quadobs.estimators.heading_ekf`)."""
     from functools import partial
 
     from quadobs.estimators.heading_ekf import LEVER_ARM_STD, HeadingUKF
