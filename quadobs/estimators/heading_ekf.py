@@ -426,8 +426,33 @@ class _HeadingFilter(Estimator, Gated):
             self._x[:2] = fixed[1]
             self._x[2:] = self._x0[2:]
             self._P = self._P0.copy()
-            self._P[:2, :2] = self.range_sigma**2 * np.eye(2)
+            self._P[:2, :2] = self.range_sigma**2 * np.eye(2) + self._fix_spread()
             self.fixes.append(self._time)
+
+    def _fix_spread(self) -> np.ndarray:
+        """The position's covariance that the anchors' unknown offsets and biases give the
+        multilateration: each output ``y_h = (rho_h - b_h)^2 / 2 - |a_h|^2 / 2 - e_h`` carries the
+        prior variance ``v_h = var e_h + rho_h^2 var b_h``; the fix is linear in the differences
+        ``y_h - y_0`` (:func:`~quadobs.estimators.robust.multilateration`), ``p = M G y``, so it
+        carries ``M G diag(v) G^T M^T`` (common prior means cancel in the differences). Zero
+        without those states."""
+        if self._ie < 0 and self._ib < 0:
+            return np.zeros((2, 2))
+        rows = np.flatnonzero(~np.isnan(self._latest))
+        P0 = np.diag(self._P0)
+        rho2 = 2.0 * self._latest[rows] + np.einsum(
+            "hi,hi->h", self.anchors[rows], self.anchors[rows]
+        )
+        v = np.zeros(rows.size)
+        if self._ie >= 0:
+            v += P0[self._ie + rows]
+        if self._ib >= 0:
+            v += np.maximum(rho2, 0.0) * P0[self._ib + rows]
+        D = self.anchors[rows[0]] - self.anchors[rows[1:]]
+        M = np.linalg.pinv(D)
+        G = np.hstack([-np.ones((rows.size - 1, 1)), np.eye(rows.size - 1)])
+        MG = M @ G
+        return (MG * v) @ MG.T
 
     def _gain(self, nu: float, S: float, Pxz: np.ndarray, R: float) -> None:
         """Robust rule, gate and lock-out on the innovation ``nu`` (variance ``S``), then the

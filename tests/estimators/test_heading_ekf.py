@@ -229,7 +229,8 @@ def test_an_odometry_log_gets_the_heading_filter_by_default_and_a_model_without_
 
     log = circle_log(bias=0.0, heading_error=0.0, duration=5.0)
     names = ["augmented", "ekf", "ekf-bias", "ukf-heading", "augmented-heading"]
-    assert default_estimators(log) == [*names, "ekf-height", "augmented-height", "ukf-lever"]
+    planar = ["ekf-height", "augmented-height", "ukf-lever", "ukf-height-lever"]
+    assert default_estimators(log) == [*names, *planar]
     assert not {"ukf-heading", "augmented-heading"} & set(default_estimators(log, "cv"))
     check_replay(log, [])  # the default set builds on the log
     check_replay(log, [], model="cv")  # and the one without the heading filter under cv
