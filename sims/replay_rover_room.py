@@ -26,6 +26,13 @@ planar ``beacons.csv``, the tag off the tracked point, the odometry's clock apar
 base); each log is replayed as exported (with ``std``) only:
 
     python sims/replay_rover_room.py --seeds 0 --variants today,heights,low,rest,rates,clocks,lever,all
+
+Effects compose (:func:`variant_of`): ``heights+lever`` poses two of them, ``all-rest`` every
+effect of ``all`` but one (to see which effects add up). On a posed log the reference also
+holds ``ukf-height-lever`` given the posing's lever arm and anchors' heights beside the true
+biases (:func:`given_truth`): the floor of the model that knows every posed effect.
+
+    python sims/replay_rover_room.py --seeds 0 --variants all-rest,all-rates,all-heights,all-lever,all-clocks
 """
 
 from __future__ import annotations
