@@ -180,6 +180,23 @@ def arc_step(x: np.ndarray, u: np.ndarray, h: float) -> tuple[np.ndarray, np.nda
     return out, F
 
 
+def arc_points(X: np.ndarray, u: np.ndarray, h: float) -> np.ndarray:
+    """The mean map of :func:`arc_step` on every row of ``X`` (``(p, delta, b, ...)``, the
+    entries after ``b`` constant) at once, without the Jacobian."""
+    b = X[:, 3]
+    xh = 0.5 * b * h
+    small = np.abs(xh) < 1e-4
+    safe = np.where(small, 1.0, xh)
+    sig = np.where(small, 1.0 - xh * xh / 6.0, np.sin(safe) / safe)
+    phi = X[:, 2] - xh
+    c, s = np.cos(phi), np.sin(phi)
+    out = X.copy()
+    out[:, 0] += h * sig * (c * u[0] - s * u[1])
+    out[:, 1] += h * sig * (s * u[0] + c * u[1])
+    out[:, 2] = X[:, 2] - b * h
+    return out
+
+
 class _HeadingFilter(Estimator, Gated):
     """The shared state, prediction noise, measurement models, robust rules and lock-out."""
 
@@ -635,15 +652,33 @@ class HeadingUKF(_HeadingFilter):
 
     def _predict(self, dt: float, u: np.ndarray) -> None:
         Q = self._noise(dt, u)
-        X = np.array([self._arc(xi, u, dt)[0] for xi in self._sigma()])
+        if self._ie >= 0 or self._ib >= 0:  # the anchors' states: every point at once
+            X = arc_points(self._sigma(), u, dt)
+        else:
+            X = np.array([self._arc(xi, u, dt)[0] for xi in self._sigma()])
         x = self._wm @ X
         dX = X - x
         P = (dX.T * self._wc) @ dX + Q
         self._x, self._P = x, 0.5 * (P + P.T)
 
+    def _points_ranges(self, model, m: Measurement, X: np.ndarray) -> np.ndarray:
+        """:meth:`_range` of every sigma point (rows of ``X``) at once, for a range with the
+        anchors' states; one at a time otherwise."""
+        if m.kind != "range" or not isinstance(model, RangeModel) or self._ie < 0:
+            return np.array([self._range(model, m, xi)[0] for xi in X])
+        h = m.anchors[0]
+        q = X[:, :2]
+        if self.lever:
+            theta = self.theta_o + X[:, 2]
+            c, s = np.cos(theta), np.sin(theta)
+            q = q + np.column_stack([c * X[:, 4] - s * X[:, 5], s * X[:, 4] + c * X[:, 5]])
+        d = q - model.anchors[h]
+        out = np.sqrt(np.maximum(np.einsum("ij,ij->i", d, d) + 2.0 * X[:, self._ie + h], 0.0))
+        return out + X[:, self._ib + h] if self._ib >= 0 else out
+
     def _correct_range(self, model, m: Measurement) -> None:
         X = self._sigma()
-        Z = np.array([self._range(model, m, xi)[0] for xi in X])
+        Z = self._points_ranges(model, m, X)
         z = float(self._wm @ Z)
         dZ = Z - z
         s = model.sigma(m)

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from quadobs.errors import QuadobsError
-from quadobs.estimators.heading_ekf import HeadingEKF, HeadingUKF, arc_step
+from quadobs.estimators.heading_ekf import HeadingEKF, HeadingUKF, arc_points, arc_step
 from quadobs.testbed.logs import RangeLog
 from quadobs.testbed.logs.events import held_inputs
 from quadobs.testbed.logs.replay import check_replay, run_replay
@@ -388,3 +388,12 @@ def test_a_lever_arm_and_the_anchors_biases_and_heights_are_recovered_together()
     np.testing.assert_allclose(f.range_biases, bias, atol=0.015)
     assert np.linalg.norm(f.x_hat - p_end) < 0.02
     assert np.linalg.norm(lever_only.x_hat - p_end) > 0.1
+
+
+def test_the_points_map_is_the_arc_step_on_every_row():
+    rng = np.random.default_rng(3)
+    X = rng.normal(size=(9, 8))
+    X[0, 3] = 1e-6  # the series near b = 0
+    u = np.array([0.4, 0.1, 0.3])
+    expected = [np.r_[arc_step(x[:4], u, 0.05)[0], x[4:]] for x in X]
+    np.testing.assert_allclose(arc_points(X, u, 0.05), expected, rtol=1e-13, atol=1e-15)
