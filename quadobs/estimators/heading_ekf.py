@@ -61,6 +61,21 @@ Jacobian ``dh/dx = dh/dq [I,\\ R(\\theta) J l,\\ 0,\\ R(\\theta)]``). The estima
 ``R(delta) u_xy + omega R(theta) J l``, so a yaw rate that changes separates ``l`` from ``p``
 and the heading (on a circle of constant turn rate its forward component trades against
 ``delta``).
+
+Anchors above or below the tag. A planar log draws its anchors in the tag's plane, while each
+range is the 3-D distance. With ``offsets`` given (the prior mean and standard deviation of
+``e_h``), the filters append one constant per anchor, the offset of its squared range
+``e_h = delta z_h^2 / 2`` (:mod:`quadobs.estimators.height_states`), and with ``bias_std`` one
+more, its range bias ``b_h`` (prior mean 0); the state is ``(p, delta, b, [l], [b_1..q],
+[e_1..q])`` and a range
+
+.. math:: \\rho_h = s_h + b_h, \\qquad s_h = \\sqrt{|q - a_h|^2 + 2 e_h},
+
+``q`` the tag's position (``p`` without a lever arm). Its derivatives: ``d rho_h / d q =
+(q - a_h)^T / s_h`` (carried to ``p``, ``delta`` and ``l`` as above), ``d rho_h / d e_h = 1 /
+s_h``, ``d rho_h / d b_h = 1``. ``e_h`` and ``b_h`` are told apart by the distance (``e_h / s_h``
+falls as the tag moves away, ``b_h`` does not), ``e_h`` and ``l`` by the heading (the tag's
+offset turns with the robot, ``e_h`` does not). Such filters take ranges only (no TDOA).
 """
 
 from __future__ import annotations
@@ -165,6 +180,23 @@ def arc_step(x: np.ndarray, u: np.ndarray, h: float) -> tuple[np.ndarray, np.nda
     return out, F
 
 
+def arc_points(X: np.ndarray, u: np.ndarray, h: float) -> np.ndarray:
+    """The mean map of :func:`arc_step` on every row of ``X`` (``(p, delta, b, ...)``, the
+    entries after ``b`` constant) at once, without the Jacobian."""
+    b = X[:, 3]
+    xh = 0.5 * b * h
+    small = np.abs(xh) < 1e-4
+    safe = np.where(small, 1.0, xh)
+    sig = np.where(small, 1.0 - xh * xh / 6.0, np.sin(safe) / safe)
+    phi = X[:, 2] - xh
+    c, s = np.cos(phi), np.sin(phi)
+    out = X.copy()
+    out[:, 0] += h * sig * (c * u[0] - s * u[1])
+    out[:, 1] += h * sig * (s * u[0] + c * u[1])
+    out[:, 2] = X[:, 2] - b * h
+    return out
+
+
 class _HeadingFilter(Estimator, Gated):
     """The shared state, prediction noise, measurement models, robust rules and lock-out."""
 
@@ -185,6 +217,9 @@ class _HeadingFilter(Estimator, Gated):
         lockout: LockOut | None = None,
         measurements=None,
         lever_arm_std: float | None = None,
+        lever_arm=(0.0, 0.0),
+        offsets: tuple[float, float] | None = None,
+        bias_std: float | None = None,
     ) -> None:
         self.anchors = as_array("anchors", anchors, (None, 2))
         self._x = as_array("x0", x0, (4,)).copy()
@@ -198,8 +233,9 @@ class _HeadingFilter(Estimator, Gated):
         if self.lever:
             var = as_finite_scalar("lever_arm_std", lever_arm_std, positive=True) ** 2
             self._lever_var = var
-            self._x = np.concatenate([self._x, np.zeros(2)])
+            self._x = np.concatenate([self._x, as_array("lever_arm", lever_arm, (2,))])
             self._P = np.block([[self._P, np.zeros((4, 2))], [np.zeros((2, 4)), var * np.eye(2)]])
+        self._append_anchor_states(offsets, bias_std)
         self.range_sigma = as_finite_scalar("range_sigma", range_sigma, positive=True)
         self.theta_o = as_finite_scalar("heading0", heading0)
         self.gate = None if gate is None else as_finite_scalar("gate", gate, positive=True)
@@ -256,6 +292,60 @@ class _HeadingFilter(Estimator, Gated):
         """The tag's offset ``l`` (m) in the body frame: its estimate, or zero without those states."""
         return self._x[4:6].copy() if self.lever else np.zeros(2)
 
+    def _append_anchor_states(self, offsets, bias_std) -> None:
+        """The anchors' range biases (prior 0, ``bias_std``) and squared-range offsets (prior
+        ``offsets = (mean, std)``) appended to the state where given (module docstring)."""
+        q = self.anchors.shape[0]
+        mean, var = [], []
+        self._ib = self._ie = -1  # the first index of b, of e (-1: not states)
+        if bias_std is not None:
+            std = as_finite_scalar("bias_std", bias_std, positive=True)
+            self._ib = self._x.size
+            mean.append(np.zeros(q))
+            var.append(np.full(q, std * std))
+        if offsets is not None:
+            e_mean = np.broadcast_to(np.asarray(offsets[0], dtype=float), (q,))
+            if not np.all(np.isfinite(e_mean)):
+                raise QuadobsError("offsets: expected a finite prior mean (one, or one per anchor)")
+            e_std = as_finite_scalar("offsets' standard deviation", offsets[1], positive=True)
+            self._ie = self._x.size + q * len(mean)
+            mean.append(e_mean.copy())
+            var.append(np.full(q, e_std * e_std))
+        if not mean:
+            return
+        n = self._x.size
+        self._x = np.concatenate([self._x, *mean])
+        P = np.diag(np.concatenate([np.zeros(n), *var]))
+        P[:n, :n] = self._P
+        self._P = P
+
+    @property
+    def offsets(self) -> np.ndarray:
+        """The anchors' squared-range offsets ``e_h = delta z_h^2 / 2`` (m^2): their estimate, or
+        zero without those states."""
+        q = self.anchors.shape[0]
+        return self._x[self._ie : self._ie + q].copy() if self._ie >= 0 else np.zeros(q)
+
+    @property
+    def range_biases(self) -> np.ndarray:
+        """The anchors' range biases ``b_h`` (m): their estimate, or zero without those states."""
+        q = self.anchors.shape[0]
+        return self._x[self._ib : self._ib + q].copy() if self._ib >= 0 else np.zeros(q)
+
+    def _range(self, model, m: Measurement, x: np.ndarray) -> tuple[float, float, float]:
+        """The range ``rho_h`` predicted at the state ``x``, ``|q - a_h| / s_h`` (the factor of
+        ``d rho / d q``) and ``1 / s_h`` (``d rho / d e_h``; 0 where ``s_h = 0``) (module
+        docstring). Without offsets ``s_h = |q - a_h|`` and the factor is 1."""
+        r = model.h(self._tag(x), m)
+        if self._ie < 0 and self._ib < 0:
+            return r, 1.0, 0.0
+        h = m.anchors[0]
+        s = math.sqrt(max(r * r + 2.0 * float(x[self._ie + h]), 0.0)) if self._ie >= 0 else r
+        b = float(x[self._ib + h]) if self._ib >= 0 else 0.0
+        if s <= 0.0:
+            return b, 0.0, 0.0
+        return s + b, r / s, 1.0 / s
+
     def _tag(self, x: np.ndarray) -> np.ndarray:
         """The tag's position ``q = p + R(theta_o + delta) l`` of the state ``x`` (``p`` without
         a lever arm)."""
@@ -265,10 +355,10 @@ class _HeadingFilter(Estimator, Gated):
 
     def _arc(self, x: np.ndarray, u: np.ndarray, h: float) -> tuple[np.ndarray, np.ndarray]:
         """:func:`arc_step` on the whole state: the lever arm (where a state) is constant."""
-        if not self.lever:
+        if x.size == 4:
             return arc_step(x, u, h)
         out, F4 = arc_step(x[:4], u, h)
-        F = np.eye(6)
+        F = np.eye(x.size)
         F[:4, :4] = F4
         return np.concatenate([out, x[4:]]), F
 
@@ -309,9 +399,9 @@ class _HeadingFilter(Estimator, Gated):
         A[:2, 2] = _rotation(float(self._x[2]) - 0.5 * float(self._x[3]) * dt) @ (_J @ u[:2])
         A[2, 3] = -1.0
         Q = van_loan_interval(A, self.Qc, dt)[1]
-        if not self.lever:
+        if self._x.size == 4:
             return Q
-        out = np.zeros((6, 6))
+        out = np.zeros((self._x.size, self._x.size))
         out[:4, :4] = Q
         return out
 
@@ -353,8 +443,33 @@ class _HeadingFilter(Estimator, Gated):
             self._x[:2] = fixed[1]
             self._x[2:] = self._x0[2:]
             self._P = self._P0.copy()
-            self._P[:2, :2] = self.range_sigma**2 * np.eye(2)
+            self._P[:2, :2] = self.range_sigma**2 * np.eye(2) + self._fix_spread()
             self.fixes.append(self._time)
+
+    def _fix_spread(self) -> np.ndarray:
+        """The position's covariance that the anchors' unknown offsets and biases give the
+        multilateration: each output ``y_h = (rho_h - b_h)^2 / 2 - |a_h|^2 / 2 - e_h`` carries the
+        prior variance ``v_h = var e_h + rho_h^2 var b_h``; the fix is linear in the differences
+        ``y_h - y_0`` (:func:`~quadobs.estimators.robust.multilateration`), ``p = M G y``, so it
+        carries ``M G diag(v) G^T M^T`` (common prior means cancel in the differences). Zero
+        without those states."""
+        if self._ie < 0 and self._ib < 0:
+            return np.zeros((2, 2))
+        rows = np.flatnonzero(~np.isnan(self._latest))
+        P0 = np.diag(self._P0)
+        rho2 = 2.0 * self._latest[rows] + np.einsum(
+            "hi,hi->h", self.anchors[rows], self.anchors[rows]
+        )
+        v = np.zeros(rows.size)
+        if self._ie >= 0:
+            v += P0[self._ie + rows]
+        if self._ib >= 0:
+            v += np.maximum(rho2, 0.0) * P0[self._ib + rows]
+        D = self.anchors[rows[0]] - self.anchors[rows[1:]]
+        M = np.linalg.pinv(D)
+        G = np.hstack([-np.ones((rows.size - 1, 1)), np.eye(rows.size - 1)])
+        MG = M @ G
+        return (MG * v) @ MG.T
 
     def _gain(self, nu: float, S: float, Pxz: np.ndarray, R: float) -> None:
         """Robust rule, gate and lock-out on the innovation ``nu`` (variance ``S``), then the
@@ -379,15 +494,16 @@ class _HeadingFilter(Estimator, Gated):
 
     def _check_lever(self) -> None:
         """The lever arm's plausibility: where its estimate lies beyond the :data:`LEVER_CHI2`
-        quantile of its own prior (``l^T P_l0^-1 l``, 2 degrees of freedom), the offset has
-        taken up what the ranges carry and the filter does not model (an anchor's bias left
-        in them, a height), and the filter is reported as diverged (its lock-out's record),
-        never summarised as if it had run."""
+        quantile of its own prior (``(l - l_0)^T P_l0^-1 (l - l_0)``, 2 degrees of freedom,
+        ``l_0`` the prior mean), the offset has taken up what the ranges carry and the filter
+        does not model (an anchor's bias left in them, a height), and the filter is reported
+        as diverged (its lock-out's record), never summarised as if it had run."""
         lock = self.lockout
         if lock.diverged is not None:
             return
         l = self._x[4:6]
-        if float(l @ l) > LEVER_CHI2 * self._lever_var:
+        d = l - self._x0[4:6]
+        if float(d @ d) > LEVER_CHI2 * self._lever_var:
             lock.diverged = {
                 "time": self._time,
                 "step": int(round(self._time / self.dt)),
@@ -443,15 +559,25 @@ class HeadingEKF(_HeadingFilter):
         Default: ranges to ``anchors``.
     lever_arm_std : float, optional
         With it, the tag's lever arm ``(l_x, l_y)`` (m, body frame) as two more states, prior
-        mean 0 and this standard deviation each (e.g. :data:`LEVER_ARM_STD`); without, the tag
-        is at ``p``.
+        mean ``lever_arm`` and this standard deviation each (e.g. :data:`LEVER_ARM_STD`);
+        without, the tag is at ``p``.
+    lever_arm : array_like (2,)
+        The lever arm's prior mean (m; default 0: nobody measured where the tag sits).
+    offsets : (float, float), optional
+        With it, each anchor's squared-range offset ``e_h`` as a state, prior mean (one, or one
+        per anchor) and standard deviation ``offsets`` (m^2; module docstring). Ranges only.
+    bias_std : float, optional
+        With it, each anchor's range bias ``b_h`` as a state, prior mean 0 and this standard
+        deviation (m).
 
     Notes
     -----
     ``P = F P F^T + Q_d`` over an interval (module docstring); a measurement ``z`` with
     ``H = [dh/dp, 0, 0]``: ``S = H P H^T + sigma^2``, ``K = P H^T / S``, ``x += K (z - h(p))``,
     ``P -= K S K^T``. With a lever arm (``lever_arm_std``), ``H = dh/dq [I, R(theta) J l, 0,
-    R(theta)]`` at the tag's position ``q`` (module docstring).
+    R(theta)]`` at the tag's position ``q``; with offsets and biases, ``dh/dq`` is scaled by
+    ``|q - a_h| / s_h`` and ``H`` gains ``1`` at ``b_h`` and ``1 / s_h`` at ``e_h`` (module
+    docstring; :meth:`linearized`).
     """
 
     name = "ekf-heading"
@@ -462,18 +588,29 @@ class HeadingEKF(_HeadingFilter):
         P = F @ self._P @ F.T + Q
         self._P = 0.5 * (P + P.T)
 
-    def _correct_range(self, model, m: Measurement) -> None:
-        q = self._tag(self._x)
-        H = np.zeros(self._x.size)
-        H[:2] = model.jacobian(q, m)
+    def linearized(self, model, m: Measurement, x: np.ndarray) -> tuple[float, np.ndarray]:
+        """The measurement ``m`` predicted at the state ``x`` and its Jacobian ``d h / d x``
+        (class docstring; the model's own Jacobian on the tag's position, carried to the state)."""
+        q = self._tag(x)
+        z, scale, de = self._range(model, m, x)
+        H = np.zeros(x.size)
+        H[:2] = scale * model.jacobian(q, m)
+        if self._ie >= 0:
+            H[self._ie + m.anchors[0]] = de
+        if self._ib >= 0:
+            H[self._ib + m.anchors[0]] = 1.0
         if self.lever:
-            Rt = _rotation(self.theta_o + float(self._x[2]))
-            H[2] = H[:2] @ Rt @ _J @ self._x[4:6]
+            Rt = _rotation(self.theta_o + float(x[2]))
+            H[2] = H[:2] @ Rt @ _J @ x[4:6]
             H[4:6] = H[:2] @ Rt
+        return z, H
+
+    def _correct_range(self, model, m: Measurement) -> None:
+        z, H = self.linearized(model, m, self._x)
         PHt = self._P @ H
         s = model.sigma(m)
         R = s * s
-        self._gain(model.unbiased(m) - model.h(q, m), float(H @ PHt) + R, PHt, R)
+        self._gain(model.unbiased(m) - z, float(H @ PHt) + R, PHt, R)
 
 
 class HeadingUKF(_HeadingFilter):
@@ -515,15 +652,33 @@ class HeadingUKF(_HeadingFilter):
 
     def _predict(self, dt: float, u: np.ndarray) -> None:
         Q = self._noise(dt, u)
-        X = np.array([self._arc(xi, u, dt)[0] for xi in self._sigma()])
+        if self._ie >= 0 or self._ib >= 0:  # the anchors' states: every point at once
+            X = arc_points(self._sigma(), u, dt)
+        else:
+            X = np.array([self._arc(xi, u, dt)[0] for xi in self._sigma()])
         x = self._wm @ X
         dX = X - x
         P = (dX.T * self._wc) @ dX + Q
         self._x, self._P = x, 0.5 * (P + P.T)
 
+    def _points_ranges(self, model, m: Measurement, X: np.ndarray) -> np.ndarray:
+        """:meth:`_range` of every sigma point (rows of ``X``) at once, for a range with the
+        anchors' states; one at a time otherwise."""
+        if m.kind != "range" or not isinstance(model, RangeModel) or self._ie < 0:
+            return np.array([self._range(model, m, xi)[0] for xi in X])
+        h = m.anchors[0]
+        q = X[:, :2]
+        if self.lever:
+            theta = self.theta_o + X[:, 2]
+            c, s = np.cos(theta), np.sin(theta)
+            q = q + np.column_stack([c * X[:, 4] - s * X[:, 5], s * X[:, 4] + c * X[:, 5]])
+        d = q - model.anchors[h]
+        out = np.sqrt(np.maximum(np.einsum("ij,ij->i", d, d) + 2.0 * X[:, self._ie + h], 0.0))
+        return out + X[:, self._ib + h] if self._ib >= 0 else out
+
     def _correct_range(self, model, m: Measurement) -> None:
         X = self._sigma()
-        Z = np.array([model.h(self._tag(xi), m) for xi in X])
+        Z = self._points_ranges(model, m, X)
         z = float(self._wm @ Z)
         dZ = Z - z
         s = model.sigma(m)
@@ -603,7 +758,7 @@ class HeadingCascade(InnerClock, Gated, Immersed):
             out[:2] = (x_next[:2] - x[:2]) / h
             if self.input_noise is not None:
                 G = F[:2, 2:] / h  # d u' / d (delta, b)
-                Q = h * (G @ f._P[2:, 2:] @ G.T)
+                Q = h * (G @ f._P[2:4, 2:4] @ G.T)
                 self.input_noise[...] = 0.5 * (Q + Q.T)
         return out
 

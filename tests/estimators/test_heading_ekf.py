@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from quadobs.errors import QuadobsError
-from quadobs.estimators.heading_ekf import HeadingEKF, HeadingUKF, arc_step
+from quadobs.estimators.heading_ekf import HeadingEKF, HeadingUKF, arc_points, arc_step
 from quadobs.testbed.logs import RangeLog
 from quadobs.testbed.logs.events import held_inputs
 from quadobs.testbed.logs.replay import check_replay, run_replay
@@ -229,7 +229,8 @@ def test_an_odometry_log_gets_the_heading_filter_by_default_and_a_model_without_
 
     log = circle_log(bias=0.0, heading_error=0.0, duration=5.0)
     names = ["augmented", "ekf", "ekf-bias", "ukf-heading", "augmented-heading"]
-    assert default_estimators(log) == [*names, "ekf-height", "augmented-height", "ukf-lever"]
+    planar = ["ekf-height", "augmented-height", "ukf-lever", "ukf-height-lever"]
+    assert default_estimators(log) == [*names, *planar]
     assert not {"ukf-heading", "augmented-heading"} & set(default_estimators(log, "cv"))
     check_replay(log, [])  # the default set builds on the log
     check_replay(log, [], model="cv")  # and the one without the heading filter under cv
@@ -302,3 +303,97 @@ def test_a_lever_arm_beyond_its_prior_reports_the_filter_diverged():
     entry = s["estimators"]["ukf-lever"]
     assert entry["diverged"] is not None and "lever arm" in entry["diverged"]["reason"]
     assert entry["rmse"] is None and entry["final_position_error"] is None
+
+
+ROOM = np.array([[0.12, 0.10], [2.90, 0.16], [2.86, 2.28], [0.15, 2.31]])
+
+
+def test_a_range_with_lever_arm_biases_and_offsets_and_its_jacobian_are_the_closed_forms():
+    """``rho_h = sqrt(|p + R(theta_o + delta) l - a_h|^2 + 2 e_h) + b_h`` and its derivative by
+    central differences, at a state off every prior mean."""
+    from quadobs.core.measurements import Measurement, RangeModel
+
+    f = HeadingEKF(
+        ROOM, x0=[1.0, 1.0, 0.0, 0.0], P0=[1.0, 1.0, 0.01, 1e-4], dt=0.1, q_xy=1e-3,
+        q_theta=1e-4, q_bias=1e-8, heading0=0.7, lever_arm_std=0.2, offsets=(1.5, 1.34),
+        bias_std=0.5,
+    )  # fmt: skip
+    assert f.state.shape == (14,)
+    assert np.all(f.offsets == 1.5) and np.all(f.range_biases == 0.0)
+    x = np.array([1.3, 0.8, 0.2, 0.01, 0.1, -0.04, 0.1, 0.2, -0.1, 0.05, 0.02, 2.1, 0.3, 1.2])
+    model = RangeModel(ROOM, 0.05)
+    theta = 0.7 + x[2]
+    tag = (
+        x[:2]
+        + np.array([[math.cos(theta), -math.sin(theta)], [math.sin(theta), math.cos(theta)]])
+        @ x[4:6]
+    )
+    for h in range(4):
+        m = Measurement(0.0, "range", 1.0, (h,), 0.05)
+        z, H = f.linearized(model, m, x)
+        expected = math.sqrt(np.sum((tag - ROOM[h]) ** 2) + 2 * x[10 + h]) + x[6 + h]
+        assert z == pytest.approx(expected, rel=1e-12)
+        eps = 1e-6
+        numeric = [
+            (f.linearized(model, m, x + eps * e)[0] - f.linearized(model, m, x - eps * e)[0])
+            / (2 * eps)
+            for e in np.eye(14)
+        ]
+        np.testing.assert_allclose(H, numeric, atol=1e-8)
+        assert H[6 + h] == 1.0 and H[10 + h] == pytest.approx(1.0 / (expected - x[6 + h]))
+
+
+def room_s_curve(t: np.ndarray, lever_arm, radius: float = 0.6, omega: float = 0.5):
+    """A robot in a 3.0 x 2.4 m room turning left on a circle of radius 0.6 m for one lap, then
+    right on the next circle for one lap, and again (0.3 m/s): the yaw rate, ``p`` and the tag."""
+    lap = 2 * math.pi / omega
+    k = np.floor(t / lap).astype(int)
+    left = k % 2 == 0
+    tau = t - k * lap
+    centres = np.array([[0.9, 1.2], [2.1, 1.2]])
+    c = centres[np.where(left, 0, 1)]
+    a = np.where(left, omega * tau, math.pi - omega * tau)  # both circles meet at (1.5, 1.2)
+    p = c + radius * np.column_stack([np.cos(a), np.sin(a)])
+    theta = np.where(left, a + math.pi / 2, a - math.pi / 2)
+    cs, sn = np.cos(theta), np.sin(theta)
+    lx, ly = lever_arm
+    tag = p + np.column_stack([cs * lx - sn * ly, sn * lx + cs * ly])
+    return np.where(left, omega, -omega), p, tag, theta
+
+
+def test_a_lever_arm_and_the_anchors_biases_and_heights_are_recovered_together():
+    """Noise-free 3-D ranges in a small room from a tag 0.1 m ahead of the tracked point, anchors
+    0.05 to 2.05 m above it with biases of 0.05 to 0.15 m: the UKF with all three as states finds
+    them and the tracked point; with the lever arm alone it cannot place the point."""
+    lever, dz = (0.10, 0.03), np.array([0.05, 2.05, 0.80, 1.55])
+    bias = np.array([0.10, 0.05, 0.15, 0.08])
+    t = np.arange(0.0, 38.0, 0.1)
+    omega = room_s_curve(t + 0.05, lever)[0]  # the yaw rate held over each interval
+    inputs = np.column_stack([t, np.full_like(t, 0.3), omega])
+    tr = np.arange(0.05, 37.9, 0.25)
+    h = np.arange(tr.size) % 4
+    tag = room_s_curve(tr, lever)[2]
+    rho = np.sqrt(np.sum((tag - ROOM[h]) ** 2, axis=1) + dz[h] ** 2) + bias[h]
+    log = RangeLog(
+        "room", np.arange(4), ROOM, np.column_stack([tr, h, rho]), inputs, math.pi / 2, None
+    )
+    noise = {**NOISE, "range_sigma": 0.02}
+    start = {"x0": (1.5, 1.2, 0.0, 0.0), "lever_arm_std": 0.2}
+    P0 = [0.01, 0.01, 0.01, 1e-4]
+    f = run_in_time(log, HeadingUKF, P0, offsets=(1.5, 1.34), bias_std=0.5, **start, **noise)
+    lever_only = run_in_time(log, HeadingUKF, P0, **start, **noise)
+    p_end = room_s_curve(np.array([f.time]), lever)[1][0]
+    np.testing.assert_allclose(f.lever_arm, lever, atol=5e-3)
+    np.testing.assert_allclose(f.offsets, dz**2 / 2, atol=0.03)
+    np.testing.assert_allclose(f.range_biases, bias, atol=0.015)
+    assert np.linalg.norm(f.x_hat - p_end) < 0.02
+    assert np.linalg.norm(lever_only.x_hat - p_end) > 0.1
+
+
+def test_the_points_map_is_the_arc_step_on_every_row():
+    rng = np.random.default_rng(3)
+    X = rng.normal(size=(9, 8))
+    X[0, 3] = 1e-6  # the series near b = 0
+    u = np.array([0.4, 0.1, 0.3])
+    expected = [np.r_[arc_step(x[:4], u, 0.05)[0], x[4:]] for x in X]
+    np.testing.assert_allclose(arc_points(X, u, 0.05), expected, rtol=1e-13, atol=1e-15)

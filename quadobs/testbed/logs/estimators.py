@@ -104,6 +104,7 @@ __all__ = [
     "build_replay_estimators",
     "build_ukf_bias",
     "build_ukf_heading",
+    "build_ukf_height_lever",
     "build_ukf_lever",
     "gyro_noise",
     "imu_input_noise",
@@ -815,6 +816,22 @@ def build_ukf_lever(s: ReplaySetup, x0: np.ndarray, name: str = "ukf-lever"):
     return build_ekf_heading(s, x0, name, partial(HeadingUKF, lever_arm_std=LEVER_ARM_STD))
 
 
+def build_ukf_height_lever(s: ReplaySetup, x0: np.ndarray, name: str = "ukf-height-lever"):
+    """Entry point ``ukf-height-lever``: :func:`build_ukf_lever` with each anchor's range bias
+    ``b_h`` and squared-range offset ``e_h = dz_h^2 / 2`` as two more states (priors of
+    :func:`~quadobs.testbed.logs.height_estimators.heading_height_options`, as ``ekf-height``'s):
+    the tag off the odometry's point and the anchors above it, together (``rho_h = sqrt(|p +
+    R(theta) l - a_h|^2 + 2 e_h) + b_h``; :mod:`quadobs.estimators.heading_ekf`)."""
+    from functools import partial
+
+    from quadobs.estimators.heading_ekf import LEVER_ARM_STD, HeadingUKF
+    from quadobs.testbed.logs.height_estimators import heading_height_options
+
+    options = heading_height_options(s, name)
+    cls = partial(HeadingUKF, lever_arm_std=LEVER_ARM_STD, **options)
+    return build_ekf_heading(s, x0, name, cls)
+
+
 def build_augmented_heading(s: ReplaySetup, x0: np.ndarray, name: str = "augmented-heading"):
     """Entry point ``augmented-heading``: the augmented observer of the odometry model
     (:func:`build_augmented`) in a cascade behind :func:`build_ukf_heading`, whose estimated
@@ -877,6 +894,7 @@ REPLAY_ESTIMATORS = {
     "ukf-height": build_ukf_height,
     "augmented-height": build_augmented_height,
     "ukf-lever": build_ukf_lever,
+    "ukf-height-lever": build_ukf_height_lever,
 }
 
 

@@ -37,6 +37,7 @@ __all__ = [
     "build_augmented_height",
     "build_ekf_height",
     "build_ukf_height",
+    "heading_height_options",
 ]
 
 #: The height of one storey (m): the largest height of an indoor anchor above a ground tag.
@@ -136,3 +137,21 @@ def build_augmented_height(s, x0: np.ndarray, name: str, process_noise: np.ndarr
     )  # fmt: skip
     est.name = name
     return est
+
+
+def heading_height_options(s, name: str) -> dict:
+    """The options of a heading filter (:mod:`quadobs.estimators.heading_ekf`) that carries each
+    anchor's range bias (prior 0 and the bias states' stated 0.5 m of
+    :meth:`~quadobs.core.measurements.RangeModel.extra_states`, as ``ekf-height``) and its
+    squared-range offset (prior :data:`E_MEAN`, :data:`E_STD`): a planar log of ranges only.
+    The biases are states as well as the offsets because the self-calibration's constant
+    biases, fitted by a model without heights, take up part of them."""
+    from quadobs.core.measurements import RangeModel
+
+    if "tdoa" in s.kinds or s.dim != 2:
+        raise QuadobsError(
+            f"estimators: {name!r} estimates the anchors' heights above a planar tag from "
+            "ranges; the log holds TDOA or is in space (use ukf-heading)"
+        )
+    bias = RangeModel(s.beacons, s.range_sigma, bias="state").extra_states()[0].prior_std
+    return {"offsets": (E_MEAN, E_STD), "bias_std": bias}

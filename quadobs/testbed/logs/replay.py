@@ -63,7 +63,8 @@ def default_estimators(log, model: str | None = None) -> list[str]:
     others take as known (measured on both Plaza logs: docs/replay.md), and for a planar log
     ``ekf-height`` and ``augmented-height`` (anchors at other heights than the tag: each
     anchor's squared-range offset as a state) and ``ukf-lever`` (the tag off the point the
-    odometry describes: its offset as states; both in docs/error-sources.md); a 3-D log of a body IMU
+    odometry describes: its offset as states) and ``ukf-height-lever`` (the offset, the anchors'
+    biases and heights together; all in docs/error-sources.md); a 3-D log of a body IMU
     also ``ekf-bias-imu`` (:mod:`quadobs.testbed.logs.imu_bias`: the accelerometer's bias and the
     estimated attitude's tilt error reach the navigation-frame acceleration as a slow bias)."""
     if log.tdoa.shape[0]:
@@ -77,6 +78,7 @@ def default_estimators(log, model: str | None = None) -> list[str]:
     if log.input_kind == "odometry" and log.dimension == 2 and model in (None, "odometry"):
         names += ["ekf-height", "augmented-height"]  # anchors above a planar tag: error-sources.md
         names.append("ukf-lever")  # the tag off the odometry's point: error-sources.md
+        names.append("ukf-height-lever")  # both, and the anchors' biases: error-sources.md
     return names
 
 
