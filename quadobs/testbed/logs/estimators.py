@@ -81,10 +81,15 @@ from quadobs.errors import QuadobsError
 from quadobs.estimators.augmented import AugmentedObserver
 from quadobs.estimators.base import Estimator
 from quadobs.estimators.kalman import (
-    ExtendedKalmanFilter,
     HeldInputModel,
     OutputModel,
     UnscentedKalmanFilter,
+)
+from quadobs.estimators.startup import (
+    FixedStartEKF,
+    FixedStartUKF,
+    MultilaterationStart,
+    start_threshold,
 )
 
 __all__ = [
@@ -484,8 +489,10 @@ def _noise_map(s: ReplaySetup, im, extra: np.ndarray | None = None):
     return noise
 
 
-def build_ekf(s: ReplaySetup, x0: np.ndarray, name: str = "ekf", cls=ExtendedKalmanFilter):
-    """The EKF on ``x`` in the range space (:class:`~quadobs.estimators.kalman.OutputModel` with offsets)."""
+def build_ekf(s: ReplaySetup, x0: np.ndarray, name: str = "ekf", cls=FixedStartEKF):
+    """The EKF on ``x`` in the range space (:class:`~quadobs.estimators.kalman.OutputModel` with
+    offsets), started from a multilateration of its first round of ranges where its prior
+    position is wider than half the anchors' extent (:mod:`quadobs.estimators.startup`)."""
     dyn = HeldInputModel(s.system, s.dt, V=_process_noise(s))
     out = OutputModel(
         s.system, s.range_sigma**2, offsets=0.5 * np.einsum("hi,hi->h", s.beacons, s.beacons)
@@ -493,13 +500,15 @@ def build_ekf(s: ReplaySetup, x0: np.ndarray, name: str = "ekf", cls=ExtendedKal
     P0 = np.full(s.n, s.P0)
     P0[s.dim :] = 4.0  # the velocity, for the models that have one
     est = cls(dyn, out, x0=x0, P0=np.diag(P0), gate=s.gate, measurements=s.measurement_models())
+    if isinstance(est, MultilaterationStart) and "range" in s.kinds:
+        est.start_from_fix(s.dim, start_threshold(s.beacons, s.range_sigma))
     est.name = name
     return est
 
 
 def build_ukf(s: ReplaySetup, x0: np.ndarray, name: str = "ukf") -> UnscentedKalmanFilter:
-    """The UKF on ``x``, with the EKF's models and noise (:func:`build_ekf`)."""
-    return build_ekf(s, x0, name, UnscentedKalmanFilter)
+    """The UKF on ``x``, with the EKF's models, noise and start-up (:func:`build_ekf`)."""
+    return build_ekf(s, x0, name, FixedStartUKF)
 
 
 def build_isam2(s, x0: np.ndarray, name: str = "isam2") -> Estimator:

@@ -1,0 +1,192 @@
+"""A Gaussian filter started from a multilateration of its first round of ranges.
+
+Linearising a range ``|p - a_h|`` at an estimate ``e`` metres off errs by up to
+``e^2 / (2 |p - a_h|)``: from a prior as wide as the anchors' geometry the first corrections
+of an EKF point the wrong way, and the estimate can wander far from both the guess and the
+truth before it settles (from 50 m off on a car park, 150 m). The start-up here replaces that
+prior by what one round of ranges says on its own, the rule that the bias filters
+(:mod:`quadobs.estimators.bias_states`) and the heading filters
+(:mod:`quadobs.estimators.heading_ekf`) follow:
+
+* **When.** The prior position's largest standard deviation exceeds the scale on which a
+  range bends over it, half the anchors' extent ``e = max_h |a_h - c|`` (``c`` their
+  centroid), and at least the range noise ``sigma``.
+* **Waiting.** The filter predicts as usual; its ranges are kept (the latest per anchor, with
+  the predicted position at its time) and not corrected with, until every anchor has one or,
+  an anchor silent, two rounds' worth (``2 q``) have come. After ``4 q`` ranges without a
+  fix (anchors in too few directions) the prior is kept.
+* **Fix.** The ranges of a moving vehicle are of different times: range ``h`` taken at
+  ``t_h`` is a range from ``p(t) - Delta_h`` with ``Delta_h = p^-(t) - p^-(t_h)`` the motion
+  the filter predicted since (exact for odometry, whose displacement does not depend on the
+  unknown start). So it is a range from ``p(t)`` to the anchor moved to ``a_h + Delta_h``,
+  and with the quadratic outputs ``y_h = (rho_h^2 - |a_h'|^2) / 2`` the differences
+  ``y_h - y_0 = -(a_h' - a_0')^T p`` are linear in ``p``
+  (:func:`~quadobs.estimators.robust.multilateration`); the least-squares solution
+  ``p = D^+ (y_{1:} - y_0)`` has the covariance
+
+  .. math:: P_{fix} = D^+ \\Sigma D^{+\\top} + (P^-_{pp}(t) - P^-_{pp}(t_0)),
+
+  ``Sigma`` the covariance of the differences (``var y_h = rho_h^2 sigma_h^2 + sigma_h^4 / 2``,
+  the first output's variance shared by all), the last term the uncertainty the prediction
+  added to the position since the oldest range used. The position takes the fix and
+  ``P_fix``, its correlations with the other states dropped; the range that completed the
+  round is then corrected as usual.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from quadobs.core.measurements import Measurement
+from quadobs.estimators.kalman import ExtendedKalmanFilter, UnscentedKalmanFilter
+from quadobs.estimators.robust import multilateration
+
+__all__ = ["FixedStartEKF", "FixedStartUKF", "MultilaterationStart", "start_threshold"]
+
+
+def start_threshold(anchors: np.ndarray, sigma: float) -> float:
+    """The prior position's standard deviation (m) beyond which the filter starts from a fix:
+    half the anchors' extent ``max_h |a_h - c| / 2``, at least ``sigma``."""
+    a = np.asarray(anchors, dtype=float)
+    extent = float(np.max(np.linalg.norm(a - a.mean(axis=0), axis=1)))
+    return max(0.5 * extent, float(sigma))
+
+
+class MultilaterationStart:
+    """Mixed into a filter of :mod:`quadobs.estimators.kalman`: the start-up of the module
+    docstring. :meth:`start_from_fix` arms it (a filter never armed behaves as its class).
+
+    Attributes
+    ----------
+    fix_pending : bool
+        Waiting for a round of ranges.
+    fixes : list of float
+        Times (s) at which the position was set by multilateration.
+    """
+
+    fix_pending: bool = False
+    fixes: list
+    _dim: int
+    _waited: int
+    _at: np.ndarray
+    _P_at: np.ndarray
+    _t_at: np.ndarray
+    _var_y: np.ndarray
+    # the filter's own; declared for the type checker only
+    _x: np.ndarray
+    _P: np.ndarray
+    _latest: np.ndarray
+    _time: float
+    q: int
+    if TYPE_CHECKING:
+        outputs: object
+
+        def _settle(self) -> None: ...
+        def _model_of(self, m: Measurement): ...
+
+    def start_from_fix(self, dim: int, threshold: float) -> None:
+        """Arm the start-up when the prior position (``x[:dim]``) has a standard deviation
+        above ``threshold`` (:func:`start_threshold`) on some axis."""
+        self._dim = int(dim)
+        self.fixes = []
+        self._waited = 0
+        self._at = np.full((self.q, self._dim), np.nan)
+        self._P_at = np.zeros((self.q, self._dim, self._dim))
+        self._t_at = np.full(self.q, np.inf)
+        self._var_y = np.full(self.q, np.nan)
+        prior_std = math.sqrt(float(np.max(np.diag(self._P)[: self._dim])))
+        self.fix_pending = prior_std > threshold
+
+    def _keep(self, h: int, y: float, s2: float | None) -> None:
+        """Keep output ``h`` (``y = rho^2 / 2 - |a_h|^2 / 2``, a range ``rho`` of variance ``s2``,
+        by default the filter's own ``R_hh``) for the fix, with the predicted position and its
+        covariance now; the output's variance is ``rho^2 s2 + s2^2 / 2``."""
+        d = self._dim
+        if s2 is None:
+            s2 = float(self.outputs.R[h, h])  # type: ignore[attr-defined]
+        rho2 = 2.0 * y + float(self.outputs.offsets[h]) * 2.0  # type: ignore[attr-defined]
+        self._latest[h] = y
+        self._var_y[h] = rho2 * s2 + 0.5 * s2 * s2
+        self._at[h] = self._x[:d]
+        self._P_at[h] = self._P[:d, :d]
+        self._t_at[h] = self._time
+        self._waited += 1
+
+    def _correct_measurement(self, m: Measurement) -> None:
+        if self.fix_pending and m.kind == "range":
+            self._settle()
+            h, yh, _ = self._model_of(m).quadratic_output(m)
+            self._keep(h, yh, m.std**2 if math.isfinite(m.std) else None)
+            if not self._try_fix():
+                return
+        super()._correct_measurement(m)  # type: ignore[misc]
+
+    def correct_outputs(self, y: np.ndarray) -> None:
+        if self.fix_pending:
+            y = np.asarray(y, dtype=float)
+            present = np.flatnonzero(~np.isnan(y))
+            if present.size:
+                self._settle()
+                for h in present:
+                    self._keep(int(h), float(y[h]), None)
+                if not self._try_fix():
+                    return
+        super().correct_outputs(y)  # type: ignore[misc]
+
+    def _try_fix(self) -> bool:
+        """Set the position from the kept ranges once a round is in (module docstring);
+        ``False`` while waiting."""
+        q = self.q
+        if np.isnan(self._latest).any() and self._waited < 2 * q:
+            return False
+        fixed = self._fix()
+        if fixed is None:
+            if self._waited < 4 * q:
+                return False
+            self.fix_pending = False
+            return True
+        cols, p, cov = fixed
+        self._x[cols] = p
+        self._P[cols, :] = 0.0
+        self._P[:, cols] = 0.0
+        self._P[np.ix_(cols, cols)] = cov
+        self.fix_pending = False
+        self.fixes.append(self._time)
+        return True
+
+    def _fix(self):
+        """``(columns, position, covariance)`` of the time-aligned multilateration, or None."""
+        system = self.outputs.system  # type: ignore[attr-defined]
+        d, dim = np.array(system.d, dtype=float), self._dim
+        rows = np.flatnonzero(~np.isnan(self._latest))
+        shift = np.zeros((self.q, dim))
+        shift[rows] = self._x[:dim] - self._at[rows]  # Delta_h: the motion since range h
+        a = -d[:, :dim]
+        moved = a + shift
+        y = self._latest + 0.5 * (np.sum(a * a, axis=1) - np.sum(moved * moved, axis=1))
+        d[:, :dim] = -moved
+        fixed = multilateration(system.C, d, y)
+        if fixed is None or np.any(fixed[0] >= dim):
+            return None
+        cols = fixed[0]
+        D = d[rows[1:]][:, cols] - d[rows[0]][cols]
+        pinv = np.linalg.pinv(D)
+        v = self._var_y[rows]
+        Sigma = np.diag(v[1:]) + v[0]
+        oldest = rows[np.argmin(self._t_at[rows])]
+        growth = self._P[np.ix_(cols, cols)] - self._P_at[oldest][np.ix_(cols, cols)]
+        cov = pinv @ Sigma @ pinv.T + growth
+        return cols, fixed[1], 0.5 * (cov + cov.T)
+
+
+class FixedStartEKF(MultilaterationStart, ExtendedKalmanFilter):
+    """:class:`~quadobs.estimators.kalman.ExtendedKalmanFilter` with the start-up of the module
+    docstring (armed by :meth:`~MultilaterationStart.start_from_fix`)."""
+
+
+class FixedStartUKF(MultilaterationStart, UnscentedKalmanFilter):
+    """:class:`~quadobs.estimators.kalman.UnscentedKalmanFilter` with the start-up of the module
+    docstring (armed by :meth:`~MultilaterationStart.start_from_fix`)."""
