@@ -30,7 +30,8 @@ prior by what one round of ranges says on its own, the rule that the bias filter
   the first output's variance shared by all), the last term the uncertainty the prediction
   added to the position since the oldest range used. The position takes the fix and
   ``P_fix``, its correlations with the other states dropped; the range that completed the
-  round is then corrected as usual.
+  round is then corrected as usual. The ranges the fix took count among the filter's
+  corrections (a range superseded by a later one of its anchor while waiting does not).
 """
 
 from __future__ import annotations
@@ -120,7 +121,7 @@ class MultilaterationStart:
             self._settle()
             h, yh, _ = self._model_of(m).quadratic_output(m)
             self._keep(h, yh, m.std**2 if math.isfinite(m.std) else None)
-            if not self._try_fix():
+            if not self._try_fix(1):
                 return
         super()._correct_measurement(m)  # type: ignore[misc]
 
@@ -132,13 +133,14 @@ class MultilaterationStart:
                 self._settle()
                 for h in present:
                     self._keep(int(h), float(y[h]), None)
-                if not self._try_fix():
+                if not self._try_fix(present.size):
                     return
         super().correct_outputs(y)  # type: ignore[misc]
 
-    def _try_fix(self) -> bool:
+    def _try_fix(self, now: int) -> bool:
         """Set the position from the kept ranges once a round is in (module docstring);
-        ``False`` while waiting."""
+        ``False`` while waiting. The ranges the fix takes count as corrections, those of this
+        call (``now`` of them) when the filter corrects with them next."""
         q = self.q
         if np.isnan(self._latest).any() and self._waited < 2 * q:
             return False
@@ -155,6 +157,7 @@ class MultilaterationStart:
         self._P[np.ix_(cols, cols)] = cov
         self.fix_pending = False
         self.fixes.append(self._time)
+        self.corrections += int(np.count_nonzero(~np.isnan(self._latest))) - now
         return True
 
     def _fix(self):

@@ -53,6 +53,7 @@ def test_moving_vehicle_fixed_exactly_from_ranges_of_different_times(cls):
     np.testing.assert_allclose(est.x_hat, [60.0 + 0.9 * 3.0, -40.0 - 0.9], atol=1e-12)
     _drive(est, p0, vel, [1.2], first=3)  # the fourth anchor's range completes the round
     assert not est.fix_pending and est.fixes == [pytest.approx(1.2)]
+    assert est.corrections == 4  # the three ranges of the fix, and the fourth's own correction
     # the EKF corrects the completing range at the exact position (no innovation); the UKF's
     # unscented mean over the fix's metre-wide covariance moves it by centimetres
     tol = 1e-9 if cls is FixedStartEKF else 0.05
@@ -101,7 +102,7 @@ def test_collinear_anchors_fix_the_coordinate_they_determine():
     _drive(est, np.array([5.0, 7.0]), (0.0, 0.0), [0.1, 0.2], anchors=line)
     assert est.fix_pending and est.corrections == 0
     _drive(est, np.array([5.0, 7.0]), (0.0, 0.0), [0.3], anchors=line, first=2)
-    assert not est.fix_pending and est.fixes == [pytest.approx(0.3)]
+    assert not est.fix_pending and est.fixes == [pytest.approx(0.3)] and est.corrections == 3
     # (the completing range is then corrected at the prior's y, which moves x by millimetres)
     assert est.x_hat[0] == pytest.approx(5.0, abs=0.01)
 

@@ -56,7 +56,10 @@ ranges, never from the truth. No default is tied to one log's scale.
   largest distance of an anchor from their centroid ``c``, which bounds the distance of any
   point of their hull from ``c`` (the distance being convex); the augmented observer's initial covariance is that
   of ``lift(x)`` for ``x ~ N(x0, P0 I)`` on the position: ``var xi = P0 |p0|^2 + P0^2``,
-  ``cov(xi, p) = P0 p0``;
+  ``cov(xi, p) = P0 p0``; the EKF and the UKF, where ``P0`` exceeds the square of half the
+  anchors' extent (the scale on which a range bends over the prior), start from a
+  multilateration of their first round of ranges instead, each range moved by the motion the
+  filter predicted since it came (:mod:`quadobs.estimators.startup`);
 * no gate on the NIS (``gate``: a threshold; a gate at 10.83, the 0.999 quantile of
   chi-square with 1 degree of freedom, rejects the ranges that disagree with a drifting
   odometry heading, and the estimates diverge).
