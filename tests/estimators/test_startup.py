@@ -127,3 +127,15 @@ def test_grid_outputs_fix_a_vehicle_with_velocity():
     np.testing.assert_allclose(
         est.x_covariance[3:, 3:], 4.0 * np.eye(3) + 1e-2 * 0.01 * np.eye(3), rtol=1e-6
     )
+
+
+def test_the_replay_builders_arm_the_start_up_from_a_wide_prior_only():
+    """``build_ekf``/``build_ukf`` of a replay: armed from 50 m (``P0 = 2500``), not from 2 m."""
+    from quadobs.testbed.logs.estimators import ReplaySetup, build_ekf, build_ukf
+
+    x0 = np.array([1.0, 2.0])
+    for P0, armed in ((2500.0, True), (4.0, False)):
+        s = ReplaySetup(ANCHORS, 0.1, "odometry", 0.0, 20.0, range_sigma=SIGMA, P0=P0)
+        ekf, ukf = build_ekf(s, x0), build_ukf(s, x0)
+        assert isinstance(ekf, FixedStartEKF) and isinstance(ukf, FixedStartUKF)
+        assert ekf.fix_pending is armed and ukf.fix_pending is armed
