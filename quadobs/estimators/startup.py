@@ -3,22 +3,23 @@
 Linearising a range ``|p - a_h|`` at an estimate ``e`` metres off errs by up to
 ``e^2 / (2 |p - a_h|)``: from a prior as wide as the anchors' geometry the first corrections
 of an EKF point the wrong way, and the estimate can wander far from both the guess and the
-truth before it settles (from 50 m off on a car park, 150 m). The start-up here replaces that
-prior by what one round of ranges says on its own, the rule that the bias filters
+truth before it settles (from 50 m off on a car park, 150 m). The start-up here replaces what
+came of that prior by what one round of ranges says on its own, the rule that the bias filters
 (:mod:`quadobs.estimators.bias_states`) and the heading filters
 (:mod:`quadobs.estimators.heading_ekf`) follow:
 
 * **When.** The prior position's largest standard deviation exceeds the scale on which a
   range bends over it, half the anchors' extent ``e = max_h |a_h - c|`` (``c`` their
   centroid), and at least the range noise ``sigma``.
-* **Waiting.** The filter predicts as usual; its ranges are kept (the latest per anchor, with
-  the predicted position at its time) and not corrected with, until every anchor has one or,
-  an anchor silent, two rounds' worth (``2 q``) have come. After ``4 q`` ranges without a
-  fix (anchors in too few directions) the prior is kept.
+* **Waiting.** The filter predicts and corrects as usual, and keeps its ranges (the latest per
+  anchor, with the position the prediction alone gives at its time: the estimate less the
+  corrections' effect carried through the dynamics), until every anchor has one or, an anchor
+  silent, two rounds' worth (``2 q``) have come. After ``4 q`` ranges without a fix (anchors
+  in too few directions) the filter goes on as it is.
 * **Fix.** The ranges of a moving vehicle are of different times: range ``h`` taken at
   ``t_h`` is a range from ``p(t) - Delta_h`` with ``Delta_h = p^-(t) - p^-(t_h)`` the motion
-  the filter predicted since (exact for odometry, whose displacement does not depend on the
-  unknown start). So it is a range from ``p(t)`` to the anchor moved to ``a_h + Delta_h``,
+  the prediction alone gives since (exact for odometry, whose displacement does not depend on
+  the unknown start). So it is a range from ``p(t)`` to the anchor moved to ``a_h + Delta_h``,
   and with the quadratic outputs ``y_h = (rho_h^2 - |a_h'|^2) / 2`` the differences
   ``y_h - y_0 = -(a_h' - a_0')^T p`` are linear in ``p``
   (:func:`~quadobs.estimators.robust.multilateration`); the least-squares solution
@@ -28,15 +29,17 @@ prior by what one round of ranges says on its own, the rule that the bias filter
 
   ``Sigma`` the covariance of the differences (``var y_h = rho_h^2 sigma_h^2 + sigma_h^4 / 2``,
   the first output's variance shared by all), the last term the uncertainty the prediction
-  added to the position since the oldest range used. The position takes the fix and
-  ``P_fix``, its correlations with the other states dropped; the range that completed the
-  round is then corrected as usual. The ranges the fix took count among the filter's
-  corrections (a range superseded by a later one of its anchor while waiting does not).
+  alone added to the position since the oldest range used (``P^-`` carried from the prior of
+  the other states, a velocity, with the process noise). The position takes the fix and
+  ``P_fix``, its correlations with the other states dropped, in place of what the corrections
+  made of it from the wide prior; the range that completed the round is then corrected as
+  usual.
 """
 
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -76,14 +79,19 @@ class MultilaterationStart:
     _P_at: np.ndarray
     _t_at: np.ndarray
     _var_y: np.ndarray
+    _offset: np.ndarray
+    _P_dr: np.ndarray
     # the filter's own; declared for the type checker only
     _x: np.ndarray
     _P: np.ndarray
+    _F: np.ndarray
     _latest: np.ndarray
+    _intervals: dict
     _time: float
     q: int
     if TYPE_CHECKING:
         outputs: object
+        dynamics: object
 
         def _settle(self) -> None: ...
         def _model_of(self, m: Measurement): ...
@@ -91,15 +99,44 @@ class MultilaterationStart:
     def start_from_fix(self, dim: int, threshold: float) -> None:
         """Arm the start-up when the prior position (``x[:dim]``) has a standard deviation
         above ``threshold`` (:func:`start_threshold`) on some axis."""
-        self._dim = int(dim)
+        self._dim = d = int(dim)
         self.fixes = []
         self._waited = 0
-        self._at = np.full((self.q, self._dim), np.nan)
-        self._P_at = np.zeros((self.q, self._dim, self._dim))
+        self._at = np.full((self.q, d), np.nan)
+        self._P_at = np.zeros((self.q, d, d))
         self._t_at = np.full(self.q, np.inf)
         self._var_y = np.full(self.q, np.nan)
-        prior_std = math.sqrt(float(np.max(np.diag(self._P)[: self._dim])))
+        # x - offset: the prediction alone from the start; P_dr: its error's covariance from
+        # the prior of the states other than the position (a velocity) and the process noise
+        self._offset = np.zeros_like(self._x)
+        self._P_dr = self._P.copy()
+        self._P_dr[:d, :] = 0.0
+        self._P_dr[:, :d] = 0.0
+        prior_std = math.sqrt(float(np.max(np.diag(self._P)[:d])))
         self.fix_pending = prior_std > threshold
+
+    # -- the prediction alone, beside the filter's own while a fix is pending --------------
+
+    def predict_step(self, u: np.ndarray) -> None:
+        super().predict_step(u)  # type: ignore[misc]
+        if self.fix_pending:
+            self._carry(self._F, self.dynamics.Q)  # type: ignore[attr-defined]
+
+    def _propagate(self, dt: float, u: np.ndarray) -> None:
+        step = self.dynamics.dt  # type: ignore[attr-defined]
+        super()._propagate(dt, u)  # type: ignore[misc]
+        if self.fix_pending and abs(dt - step) > 1e-9 * step:  # the step: predict_step did it
+            hit = self._intervals.get(dt)
+            F, _, Q = hit if hit is not None else self.dynamics.over(dt)  # type: ignore[attr-defined]
+            self._carry(F, Q)
+
+    def _carry(self, F: np.ndarray, Q: np.ndarray) -> None:
+        """Carry the corrections' offset and the prediction's covariance over an interval."""
+        self._offset = F @ self._offset
+        P = F @ self._P_dr @ F.T + Q
+        self._P_dr = 0.5 * (P + P.T)
+
+    # -- keeping the ranges, and the fix ---------------------------------------------------
 
     def _keep(self, h: int, y: float, s2: float | None) -> None:
         """Keep output ``h`` (``y = rho^2 / 2 - |a_h|^2 / 2``, a range ``rho`` of variance ``s2``,
@@ -111,54 +148,71 @@ class MultilaterationStart:
         rho2 = 2.0 * y + float(self.outputs.offsets[h]) * 2.0  # type: ignore[attr-defined]
         self._latest[h] = y
         self._var_y[h] = rho2 * s2 + 0.5 * s2 * s2
-        self._at[h] = self._x[:d]
-        self._P_at[h] = self._P[:d, :d]
+        self._at[h] = (self._x - self._offset)[:d]
+        self._P_at[h] = self._P_dr[:d, :d]
         self._t_at[h] = self._time
         self._waited += 1
 
     def _correct_measurement(self, m: Measurement) -> None:
-        if self.fix_pending and m.kind == "range":
-            self._settle()
-            h, yh, _ = self._model_of(m).quadratic_output(m)
-            self._keep(h, yh, m.std**2 if math.isfinite(m.std) else None)
-            if not self._try_fix(1):
-                return
+        if not (self.fix_pending and m.kind == "range"):
+            super()._correct_measurement(m)  # type: ignore[misc]
+            return
+        h, yh, _ = self._model_of(m).quadratic_output(m)
+        s2 = m.std**2 if math.isfinite(m.std) else float(self.outputs.R[h, h])  # type: ignore[attr-defined]
+        self._keep(h, yh, s2)
+        self._try_fix()
+        before = self._x.copy()
+        if self.fix_pending:  # the linearisation's second-order term as noise (module docstring)
+            m = replace(m, std=math.sqrt(s2 + self._curvature_variance(h)))
         super()._correct_measurement(m)  # type: ignore[misc]
+        if self.fix_pending:
+            self._offset += self._x - before
 
     def correct_outputs(self, y: np.ndarray) -> None:
-        if self.fix_pending:
-            y = np.asarray(y, dtype=float)
-            present = np.flatnonzero(~np.isnan(y))
-            if present.size:
-                self._settle()
-                for h in present:
-                    self._keep(int(h), float(y[h]), None)
-                if not self._try_fix(present.size):
-                    return
+        if not self.fix_pending:
+            super().correct_outputs(y)  # type: ignore[misc]
+            return
+        y = np.asarray(y, dtype=float)
+        for h in np.flatnonzero(~np.isnan(y)):
+            self._keep(int(h), float(y[h]), None)
+        self._try_fix()
+        before = self._x.copy()
         super().correct_outputs(y)  # type: ignore[misc]
+        if self.fix_pending:
+            self._offset += self._x - before
 
-    def _try_fix(self, now: int) -> bool:
-        """Set the position from the kept ranges once a round is in (module docstring);
-        ``False`` while waiting. The ranges the fix takes count as corrections, those of this
-        call (``now`` of them) when the filter corrects with them next."""
+    def _curvature_variance(self, h: int) -> float:
+        """The variance of the second-order term of ``|p - a_h|`` about the estimate for
+        ``p ~ N(x, P)``: ``tr((H_2 P)^2) / 2`` with the Hessian ``H_2 = (I - u u^T) / rho``
+        (``u`` the unit vector from the anchor, ``rho`` the predicted range)."""
+        self._settle()
+        d = self._dim
+        r = self._x[:d] + self.outputs.system.d[h, :d]  # type: ignore[attr-defined]
+        rho = float(np.linalg.norm(r))
+        if rho == 0.0:
+            return 0.0
+        u = r / rho
+        HP = (np.eye(d) - np.outer(u, u)) @ self._P[:d, :d] / rho
+        return 0.5 * float(np.trace(HP @ HP))
+
+    def _try_fix(self) -> None:
+        """Set the position from the kept ranges once a round is in (module docstring)."""
         q = self.q
         if np.isnan(self._latest).any() and self._waited < 2 * q:
-            return False
+            return
         fixed = self._fix()
         if fixed is None:
-            if self._waited < 4 * q:
-                return False
-            self.fix_pending = False
-            return True
+            if self._waited >= 4 * q:
+                self.fix_pending = False
+            return
         cols, p, cov = fixed
+        self._settle()
         self._x[cols] = p
         self._P[cols, :] = 0.0
         self._P[:, cols] = 0.0
         self._P[np.ix_(cols, cols)] = cov
         self.fix_pending = False
         self.fixes.append(self._time)
-        self.corrections += int(np.count_nonzero(~np.isnan(self._latest))) - now
-        return True
 
     def _fix(self):
         """``(columns, position, covariance)`` of the time-aligned multilateration, or None."""
@@ -166,7 +220,8 @@ class MultilaterationStart:
         d, dim = np.array(system.d, dtype=float), self._dim
         rows = np.flatnonzero(~np.isnan(self._latest))
         shift = np.zeros((self.q, dim))
-        shift[rows] = self._x[:dim] - self._at[rows]  # Delta_h: the motion since range h
+        now = (self._x - self._offset)[:dim]
+        shift[rows] = now - self._at[rows]  # Delta_h: the motion predicted since range h
         a = -d[:, :dim]
         moved = a + shift
         y = self._latest + 0.5 * (np.sum(a * a, axis=1) - np.sum(moved * moved, axis=1))
@@ -180,7 +235,7 @@ class MultilaterationStart:
         v = self._var_y[rows]
         Sigma = np.diag(v[1:]) + v[0]
         oldest = rows[np.argmin(self._t_at[rows])]
-        growth = self._P[np.ix_(cols, cols)] - self._P_at[oldest][np.ix_(cols, cols)]
+        growth = self._P_dr[np.ix_(cols, cols)] - self._P_at[oldest][np.ix_(cols, cols)]
         cov = pinv @ Sigma @ pinv.T + growth
         return cols, fixed[1], 0.5 * (cov + cov.T)
 
