@@ -11,11 +11,16 @@ came of that prior by what one round of ranges says on its own, the rule that th
 * **When.** The prior position's largest standard deviation exceeds the scale on which a
   range bends over it, half the anchors' extent ``e = max_h |a_h - c|`` (``c`` their
   centroid), and at least the range noise ``sigma``.
-* **Waiting.** The filter predicts and corrects as usual, and keeps its ranges (the latest per
+* **Waiting.** The filter predicts and corrects as usual, each range's variance taking the
+  second-order term of its linearisation as noise, ``sigma^2 + tr((H_2 P)^2) / 2`` with
+  ``H_2 = (I - u u^T) / rho`` the Hessian of ``|p - a_h|`` at the estimate (the variance term
+  of the Gaussian second-order filter; in the plane, 35 m of standard deviation for a 50 m prior at 50 m
+  from the anchor, nothing once the position is known): a correction linearised far from the
+  truth is weighed by what its linearisation may miss. It keeps its ranges (the latest per
   anchor, with the position the prediction alone gives at its time: the estimate less the
-  corrections' effect carried through the dynamics), until every anchor has one or, an anchor
+  corrections' effect carried through the dynamics) until every anchor has one or, an anchor
   silent, two rounds' worth (``2 q``) have come. After ``4 q`` ranges without a fix (anchors
-  in too few directions) the filter goes on as it is.
+  in too few directions) the filter goes on as it is, without the second-order term.
 * **Fix.** The ranges of a moving vehicle are of different times: range ``h`` taken at
   ``t_h`` is a range from ``p(t) - Delta_h`` with ``Delta_h = p^-(t) - p^-(t_h)`` the motion
   the prediction alone gives since (exact for odometry, whose displacement does not depend on

@@ -138,3 +138,14 @@ def test_the_replay_builders_arm_the_start_up_from_a_wide_prior_only():
         ekf, ukf = build_ekf(s, x0), build_ukf(s, x0)
         assert isinstance(ekf, FixedStartEKF) and isinstance(ukf, FixedStartUKF)
         assert ekf.fix_pending is armed and ukf.fix_pending is armed
+
+
+def test_the_waiting_corrections_weigh_the_second_order_term():
+    """``tr((H_2 P)^2) / 2`` in closed form: ``P = s^2 I`` at ``rho`` from the anchor in the
+    plane, ``H_2 P = (s^2 / rho) (I - u u^T)`` of rank one: ``s^4 / (2 rho^2)`` (1250 m^2 for a
+    50 m prior at 50 m); after the fix the term is gone."""
+    est = _filter(FixedStartEKF, 50.0**2, x0=(50.0, 0.0))
+    assert est._curvature_variance(0) == pytest.approx(50.0**4 / (2 * 50.0**2))
+    p = np.array([12.0, 9.0])
+    _drive(est, p, (0.0, 0.0), [0.1, 0.2, 0.3, 0.4])
+    assert est.fixes and est._curvature_variance(0) < 1.0

@@ -57,9 +57,10 @@ ranges, never from the truth. No default is tied to one log's scale.
   point of their hull from ``c`` (the distance being convex); the augmented observer's initial covariance is that
   of ``lift(x)`` for ``x ~ N(x0, P0 I)`` on the position: ``var xi = P0 |p0|^2 + P0^2``,
   ``cov(xi, p) = P0 p0``; the EKF and the UKF, where ``P0`` exceeds the square of half the
-  anchors' extent (the scale on which a range bends over the prior), start from a
-  multilateration of their first round of ranges instead, each range moved by the motion the
-  filter predicted since it came (:mod:`quadobs.estimators.startup`);
+  anchors' extent (the scale on which a range bends over the prior), correct their first
+  round of ranges with the linearisation's second-order term as noise and then take the
+  position from a multilateration of that round, each range moved by the motion the
+  prediction alone gives since it came (:mod:`quadobs.estimators.startup`);
 * no gate on the NIS (``gate``: a threshold; a gate at 10.83, the 0.999 quantile of
   chi-square with 1 degree of freedom, rejects the ranges that disagree with a drifting
   odometry heading, and the estimates diverge).
@@ -494,8 +495,9 @@ def _noise_map(s: ReplaySetup, im, extra: np.ndarray | None = None):
 
 def build_ekf(s: ReplaySetup, x0: np.ndarray, name: str = "ekf", cls=FixedStartEKF):
     """The EKF on ``x`` in the range space (:class:`~quadobs.estimators.kalman.OutputModel` with
-    offsets), started from a multilateration of its first round of ranges where its prior
-    position is wider than half the anchors' extent (:mod:`quadobs.estimators.startup`)."""
+    offsets); where its prior position is wider than half the anchors' extent, its first round
+    of ranges weighs the linearisation's second-order term and then fixes the position by
+    multilateration (:mod:`quadobs.estimators.startup`)."""
     dyn = HeldInputModel(s.system, s.dt, V=_process_noise(s))
     out = OutputModel(
         s.system, s.range_sigma**2, offsets=0.5 * np.einsum("hi,hi->h", s.beacons, s.beacons)
