@@ -50,7 +50,12 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from quadobs.core.measurements import Measurement
-from quadobs.estimators.kalman import ExtendedKalmanFilter, UnscentedKalmanFilter
+from quadobs.estimators.kalman import (
+    ExtendedKalmanFilter,
+    HeldInputModel,
+    OutputModel,
+    UnscentedKalmanFilter,
+)
 from quadobs.estimators.robust import multilateration
 
 __all__ = ["FixedStartEKF", "FixedStartUKF", "MultilaterationStart", "start_threshold"]
@@ -85,6 +90,7 @@ class MultilaterationStart:
     _t_at: np.ndarray
     _var_y: np.ndarray
     _offset: np.ndarray
+    _offsets: np.ndarray
     _P_dr: np.ndarray
     # the filter's own; declared for the type checker only
     _x: np.ndarray
@@ -95,15 +101,16 @@ class MultilaterationStart:
     _time: float
     q: int
     if TYPE_CHECKING:
-        outputs: object
-        dynamics: object
+        outputs: OutputModel
+        dynamics: HeldInputModel
 
         def _settle(self) -> None: ...
         def _model_of(self, m: Measurement): ...
 
     def start_from_fix(self, dim: int, threshold: float) -> None:
         """Arm the start-up when the prior position (``x[:dim]``) has a standard deviation
-        above ``threshold`` (:func:`start_threshold`) on some axis."""
+        above ``threshold`` (:func:`start_threshold`) on some axis and the outputs are ranges
+        with their offsets (``y_h = rho_h^2 / 2 - |a_h|^2 / 2``, as the replay's EKF has them)."""
         self._dim = d = int(dim)
         self.fixes = []
         self._waited = 0
@@ -117,22 +124,24 @@ class MultilaterationStart:
         self._P_dr = self._P.copy()
         self._P_dr[:d, :] = 0.0
         self._P_dr[:, :d] = 0.0
+        offsets = self.outputs.offsets
+        self._offsets = np.zeros(self.q) if offsets is None else offsets
         prior_std = math.sqrt(float(np.max(np.diag(self._P)[:d])))
-        self.fix_pending = prior_std > threshold
+        self.fix_pending = offsets is not None and prior_std > threshold
 
     # -- the prediction alone, beside the filter's own while a fix is pending --------------
 
     def predict_step(self, u: np.ndarray) -> None:
         super().predict_step(u)  # type: ignore[misc]
         if self.fix_pending:
-            self._carry(self._F, self.dynamics.Q)  # type: ignore[attr-defined]
+            self._carry(self._F, self.dynamics.Q)
 
     def _propagate(self, dt: float, u: np.ndarray) -> None:
-        step = self.dynamics.dt  # type: ignore[attr-defined]
+        step = self.dynamics.dt
         super()._propagate(dt, u)  # type: ignore[misc]
         if self.fix_pending and abs(dt - step) > 1e-9 * step:  # the step: predict_step did it
             hit = self._intervals.get(dt)
-            F, _, Q = hit if hit is not None else self.dynamics.over(dt)  # type: ignore[attr-defined]
+            F, _, Q = hit if hit is not None else self.dynamics.over(dt)
             self._carry(F, Q)
 
     def _carry(self, F: np.ndarray, Q: np.ndarray) -> None:
@@ -149,8 +158,8 @@ class MultilaterationStart:
         covariance now; the output's variance is ``rho^2 s2 + s2^2 / 2``."""
         d = self._dim
         if s2 is None:
-            s2 = float(self.outputs.R[h, h])  # type: ignore[attr-defined]
-        rho2 = 2.0 * y + float(self.outputs.offsets[h]) * 2.0  # type: ignore[attr-defined]
+            s2 = float(self.outputs.R[h, h])
+        rho2 = 2.0 * (y + float(self._offsets[h]))
         self._latest[h] = y
         self._var_y[h] = rho2 * s2 + 0.5 * s2 * s2
         self._at[h] = (self._x - self._offset)[:d]
@@ -163,7 +172,7 @@ class MultilaterationStart:
             super()._correct_measurement(m)  # type: ignore[misc]
             return
         h, yh, _ = self._model_of(m).quadratic_output(m)
-        s2 = m.std**2 if math.isfinite(m.std) else float(self.outputs.R[h, h])  # type: ignore[attr-defined]
+        s2 = m.std**2 if math.isfinite(m.std) else float(self.outputs.R[h, h])
         self._keep(h, yh, s2)
         self._try_fix()
         before = self._x.copy()
@@ -192,7 +201,7 @@ class MultilaterationStart:
         (``u`` the unit vector from the anchor, ``rho`` the predicted range)."""
         self._settle()
         d = self._dim
-        r = self._x[:d] + self.outputs.system.d[h, :d]  # type: ignore[attr-defined]
+        r = self._x[:d] + self.outputs.system.d[h, :d]
         rho = float(np.linalg.norm(r))
         if rho == 0.0:
             return 0.0
@@ -221,7 +230,7 @@ class MultilaterationStart:
 
     def _fix(self):
         """``(columns, position, covariance)`` of the time-aligned multilateration, or None."""
-        system = self.outputs.system  # type: ignore[attr-defined]
+        system = self.outputs.system
         d, dim = np.array(system.d, dtype=float), self._dim
         rows = np.flatnonzero(~np.isnan(self._latest))
         shift = np.zeros((self.q, dim))
