@@ -16,7 +16,8 @@ came of that prior by what one round of ranges says on its own, the rule that th
   ``H_2 = (I - u u^T) / rho`` the Hessian of ``|p - a_h|`` at the estimate (the variance term
   of the Gaussian second-order filter; in the plane, 35 m of standard deviation for a 50 m prior at 50 m
   from the anchor, nothing once the position is known): a correction linearised far from the
-  truth is weighed by what its linearisation may miss. It keeps its ranges (the latest per
+  truth is weighed by what its linearisation may miss (ranges in time, :meth:`correct`; a
+  grid step's outputs, :meth:`correct_outputs`, are corrected as they are). It keeps its ranges (the latest per
   anchor, with the position the prediction alone gives at its time: the estimate less the
   corrections' effect carried through the dynamics) until every anchor has one or, an anchor
   silent, two rounds' worth (``2 q``) have come. After ``4 q`` ranges without a fix (anchors
