@@ -56,7 +56,11 @@ ranges, never from the truth. No default is tied to one log's scale.
   largest distance of an anchor from their centroid ``c``, which bounds the distance of any
   point of their hull from ``c`` (the distance being convex); the augmented observer's initial covariance is that
   of ``lift(x)`` for ``x ~ N(x0, P0 I)`` on the position: ``var xi = P0 |p0|^2 + P0^2``,
-  ``cov(xi, p) = P0 p0``;
+  ``cov(xi, p) = P0 p0``; the EKF and the UKF, where ``P0`` exceeds the square of half the
+  anchors' extent (the scale on which a range bends over the prior), correct their first
+  round of ranges with the linearisation's second-order term as noise and then take the
+  position from a multilateration of that round, each range moved by the motion the
+  prediction alone gives since it came (:mod:`quadobs.estimators.startup`);
 * no gate on the NIS (``gate``: a threshold; a gate at 10.83, the 0.999 quantile of
   chi-square with 1 degree of freedom, rejects the ranges that disagree with a drifting
   odometry heading, and the estimates diverge).
@@ -81,10 +85,15 @@ from quadobs.errors import QuadobsError
 from quadobs.estimators.augmented import AugmentedObserver
 from quadobs.estimators.base import Estimator
 from quadobs.estimators.kalman import (
-    ExtendedKalmanFilter,
     HeldInputModel,
     OutputModel,
     UnscentedKalmanFilter,
+)
+from quadobs.estimators.startup import (
+    FixedStartEKF,
+    FixedStartUKF,
+    MultilaterationStart,
+    start_threshold,
 )
 
 __all__ = [
@@ -485,8 +494,11 @@ def _noise_map(s: ReplaySetup, im, extra: np.ndarray | None = None):
     return noise
 
 
-def build_ekf(s: ReplaySetup, x0: np.ndarray, name: str = "ekf", cls=ExtendedKalmanFilter):
-    """The EKF on ``x`` in the range space (:class:`~quadobs.estimators.kalman.OutputModel` with offsets)."""
+def build_ekf(s: ReplaySetup, x0: np.ndarray, name: str = "ekf", cls=FixedStartEKF):
+    """The EKF on ``x`` in the range space (:class:`~quadobs.estimators.kalman.OutputModel` with
+    offsets); where its prior position is wider than half the anchors' extent, its first round
+    of ranges weighs the linearisation's second-order term and then fixes the position by
+    multilateration (:mod:`quadobs.estimators.startup`)."""
     dyn = HeldInputModel(s.system, s.dt, V=_process_noise(s))
     out = OutputModel(
         s.system, s.range_sigma**2, offsets=0.5 * np.einsum("hi,hi->h", s.beacons, s.beacons)
@@ -494,13 +506,15 @@ def build_ekf(s: ReplaySetup, x0: np.ndarray, name: str = "ekf", cls=ExtendedKal
     P0 = np.full(s.n, s.P0)
     P0[s.dim :] = 4.0  # the velocity, for the models that have one
     est = cls(dyn, out, x0=x0, P0=np.diag(P0), gate=s.gate, measurements=s.measurement_models())
+    if isinstance(est, MultilaterationStart) and "range" in s.kinds:
+        est.start_from_fix(s.dim, start_threshold(s.beacons, s.range_sigma))
     est.name = name
     return est
 
 
 def build_ukf(s: ReplaySetup, x0: np.ndarray, name: str = "ukf") -> UnscentedKalmanFilter:
-    """The UKF on ``x``, with the EKF's models and noise (:func:`build_ekf`)."""
-    return build_ekf(s, x0, name, UnscentedKalmanFilter)
+    """The UKF on ``x``, with the EKF's models, noise and start-up (:func:`build_ekf`)."""
+    return build_ekf(s, x0, name, FixedStartUKF)
 
 
 def build_isam2(s, x0: np.ndarray, name: str = "isam2") -> Estimator:

@@ -1,0 +1,265 @@
+"""A Gaussian filter started from a multilateration of its first round of ranges.
+
+Linearising a range ``|p - a_h|`` at an estimate ``e`` metres off errs by up to
+``e^2 / (2 |p - a_h|)``: from a prior as wide as the anchors' geometry the first corrections
+of an EKF point the wrong way, and the estimate can wander far from both the guess and the
+truth before it settles (from 50 m off on a car park, 150 m). The start-up here replaces what
+came of that prior by what one round of ranges says on its own, the rule that the bias filters
+(:mod:`quadobs.estimators.bias_states`) and the heading filters
+(:mod:`quadobs.estimators.heading_ekf`) follow:
+
+* **When.** The prior position's largest standard deviation exceeds the scale on which a
+  range bends over it, half the anchors' extent ``e = max_h |a_h - c|`` (``c`` their
+  centroid), and at least the range noise ``sigma``.
+* **Waiting.** The filter predicts and corrects as usual, each range's variance taking the
+  second-order term of its linearisation as noise, ``sigma^2 + tr((H_2 P)^2) / 2`` with
+  ``H_2 = (I - u u^T) / rho`` the Hessian of ``|p - a_h|`` at the estimate (the variance term
+  of the Gaussian second-order filter; in the plane, 35 m of standard deviation for a 50 m prior at 50 m
+  from the anchor, nothing once the position is known): a correction linearised far from the
+  truth is weighed by what its linearisation may miss (ranges in time, :meth:`correct`; a
+  grid step's outputs, :meth:`correct_outputs`, are corrected as they are). It keeps its ranges (the latest per
+  anchor, with the position the prediction alone gives at its time: the estimate less the
+  corrections' effect carried through the dynamics) until every anchor has one or, an anchor
+  silent, two rounds' worth (``2 q``) have come. After ``4 q`` ranges without a fix (anchors
+  in too few directions) the filter goes on as it is, without the second-order term.
+* **Fix.** The ranges of a moving vehicle are of different times: range ``h`` taken at
+  ``t_h`` is a range from ``p(t) - Delta_h`` with ``Delta_h = p^-(t) - p^-(t_h)`` the motion
+  the prediction alone gives since (exact for odometry, whose displacement does not depend on
+  the unknown start). So it is a range from ``p(t)`` to the anchor moved to ``a_h + Delta_h``,
+  and with the quadratic outputs ``y_h = (rho_h^2 - |a_h'|^2) / 2`` the differences
+  ``y_h - y_0 = -(a_h' - a_0')^T p`` are linear in ``p``
+  (:func:`~quadobs.estimators.robust.multilateration`); the least-squares solution
+  ``p = D^+ (y_{1:} - y_0)`` has the covariance
+
+  .. math:: P_{fix} = D^+ \\Sigma D^{+\\top} + (P^-_{pp}(t) - P^-_{pp}(t_0)),
+
+  ``Sigma`` the covariance of the differences (``var y_h = rho_h^2 sigma_h^2 + sigma_h^4 / 2``,
+  the first output's variance shared by all), the last term the uncertainty the prediction
+  alone added to the position since the oldest range used (``P^-`` carried from the prior of
+  the other states, a velocity, with the process noise). The position takes the fix and
+  ``P_fix``, its correlations with the other states dropped, in place of what the corrections
+  made of it from the wide prior; the range that completed the round is then corrected as
+  usual.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from quadobs.core.measurements import Measurement
+from quadobs.estimators.kalman import (
+    ExtendedKalmanFilter,
+    HeldInputModel,
+    OutputModel,
+    UnscentedKalmanFilter,
+)
+from quadobs.estimators.robust import multilateration
+
+__all__ = ["FixedStartEKF", "FixedStartUKF", "MultilaterationStart", "start_threshold"]
+
+
+def start_threshold(anchors: np.ndarray, sigma: float) -> float:
+    """The prior position's standard deviation (m) beyond which the filter starts from a fix:
+    half the anchors' extent ``max_h |a_h - c| / 2``, at least ``sigma``."""
+    a = np.asarray(anchors, dtype=float)
+    extent = float(np.max(np.linalg.norm(a - a.mean(axis=0), axis=1)))
+    return max(0.5 * extent, float(sigma))
+
+
+class MultilaterationStart:
+    """Mixed into a filter of :mod:`quadobs.estimators.kalman`: the start-up of the module
+    docstring. :meth:`start_from_fix` arms it (a filter never armed behaves as its class).
+
+    Attributes
+    ----------
+    fix_pending : bool
+        Waiting for a round of ranges.
+    fixes : list of float
+        Times (s) at which the position was set by multilateration.
+    """
+
+    fix_pending: bool = False
+    fixes: list
+    _dim: int
+    _waited: int
+    _at: np.ndarray
+    _P_at: np.ndarray
+    _t_at: np.ndarray
+    _var_y: np.ndarray
+    _offset: np.ndarray
+    _offsets: np.ndarray
+    _P_dr: np.ndarray
+    # the filter's own; declared for the type checker only
+    _x: np.ndarray
+    _P: np.ndarray
+    _F: np.ndarray
+    _latest: np.ndarray
+    _intervals: dict
+    _time: float
+    q: int
+    if TYPE_CHECKING:
+        outputs: OutputModel
+        dynamics: HeldInputModel
+
+        def _settle(self) -> None: ...
+        def _model_of(self, m: Measurement): ...
+
+    def start_from_fix(self, dim: int, threshold: float) -> None:
+        """Arm the start-up when the prior position (``x[:dim]``) has a standard deviation
+        above ``threshold`` (:func:`start_threshold`) on some axis and the outputs are ranges
+        with their offsets (``y_h = rho_h^2 / 2 - |a_h|^2 / 2``, as the replay's EKF has them)."""
+        self._dim = d = int(dim)
+        self.fixes = []
+        self._waited = 0
+        self._at = np.full((self.q, d), np.nan)
+        self._P_at = np.zeros((self.q, d, d))
+        self._t_at = np.full(self.q, np.inf)
+        self._var_y = np.full(self.q, np.nan)
+        # x - offset: the prediction alone from the start; P_dr: its error's covariance from
+        # the prior of the states other than the position (a velocity) and the process noise
+        self._offset = np.zeros_like(self._x)
+        self._P_dr = self._P.copy()
+        self._P_dr[:d, :] = 0.0
+        self._P_dr[:, :d] = 0.0
+        offsets = self.outputs.offsets
+        self._offsets = np.zeros(self.q) if offsets is None else offsets
+        prior_std = math.sqrt(float(np.max(np.diag(self._P)[:d])))
+        self.fix_pending = offsets is not None and prior_std > threshold
+
+    # -- the prediction alone, beside the filter's own while a fix is pending --------------
+
+    def predict_step(self, u: np.ndarray) -> None:
+        super().predict_step(u)  # type: ignore[misc]
+        if self.fix_pending:
+            self._carry(self._F, self.dynamics.Q)
+
+    def _propagate(self, dt: float, u: np.ndarray) -> None:
+        step = self.dynamics.dt
+        super()._propagate(dt, u)  # type: ignore[misc]
+        if self.fix_pending and abs(dt - step) > 1e-9 * step:  # the step: predict_step did it
+            hit = self._intervals.get(dt)
+            F, _, Q = hit if hit is not None else self.dynamics.over(dt)
+            self._carry(F, Q)
+
+    def _carry(self, F: np.ndarray, Q: np.ndarray) -> None:
+        """Carry the corrections' offset and the prediction's covariance over an interval."""
+        self._offset = F @ self._offset
+        P = F @ self._P_dr @ F.T + Q
+        self._P_dr = 0.5 * (P + P.T)
+
+    # -- keeping the ranges, and the fix ---------------------------------------------------
+
+    def _keep(self, h: int, y: float, s2: float | None) -> None:
+        """Keep output ``h`` (``y = rho^2 / 2 - |a_h|^2 / 2``, a range ``rho`` of variance ``s2``,
+        by default the filter's own ``R_hh``) for the fix, with the predicted position and its
+        covariance now; the output's variance is ``rho^2 s2 + s2^2 / 2``."""
+        d = self._dim
+        if s2 is None:
+            s2 = float(self.outputs.R[h, h])
+        rho2 = 2.0 * (y + float(self._offsets[h]))
+        self._latest[h] = y
+        self._var_y[h] = rho2 * s2 + 0.5 * s2 * s2
+        self._at[h] = (self._x - self._offset)[:d]
+        self._P_at[h] = self._P_dr[:d, :d]
+        self._t_at[h] = self._time
+        self._waited += 1
+
+    def _correct_measurement(self, m: Measurement) -> None:
+        if not (self.fix_pending and m.kind == "range"):
+            super()._correct_measurement(m)  # type: ignore[misc]
+            return
+        h, yh, _ = self._model_of(m).quadratic_output(m)
+        s2 = m.std**2 if math.isfinite(m.std) else float(self.outputs.R[h, h])
+        self._keep(h, yh, s2)
+        self._try_fix()
+        before = self._x.copy()
+        if self.fix_pending:  # the linearisation's second-order term as noise (module docstring)
+            m = replace(m, std=math.sqrt(s2 + self._curvature_variance(h)))
+        super()._correct_measurement(m)  # type: ignore[misc]
+        if self.fix_pending:
+            self._offset += self._x - before
+
+    def correct_outputs(self, y: np.ndarray) -> None:
+        if not self.fix_pending:
+            super().correct_outputs(y)  # type: ignore[misc]
+            return
+        y = np.asarray(y, dtype=float)
+        for h in np.flatnonzero(~np.isnan(y)):
+            self._keep(int(h), float(y[h]), None)
+        self._try_fix()
+        before = self._x.copy()
+        super().correct_outputs(y)  # type: ignore[misc]
+        if self.fix_pending:
+            self._offset += self._x - before
+
+    def _curvature_variance(self, h: int) -> float:
+        """The variance of the second-order term of ``|p - a_h|`` about the estimate for
+        ``p ~ N(x, P)``: ``tr((H_2 P)^2) / 2`` with the Hessian ``H_2 = (I - u u^T) / rho``
+        (``u`` the unit vector from the anchor, ``rho`` the predicted range)."""
+        self._settle()
+        d = self._dim
+        r = self._x[:d] + self.outputs.system.d[h, :d]
+        rho = float(np.linalg.norm(r))
+        if rho == 0.0:
+            return 0.0
+        u = r / rho
+        HP = (np.eye(d) - np.outer(u, u)) @ self._P[:d, :d] / rho
+        return 0.5 * float(np.trace(HP @ HP))
+
+    def _try_fix(self) -> None:
+        """Set the position from the kept ranges once a round is in (module docstring)."""
+        q = self.q
+        if np.isnan(self._latest).any() and self._waited < 2 * q:
+            return
+        fixed = self._fix()
+        if fixed is None:
+            if self._waited >= 4 * q:
+                self.fix_pending = False
+            return
+        cols, p, cov = fixed
+        self._settle()
+        self._x[cols] = p
+        self._P[cols, :] = 0.0
+        self._P[:, cols] = 0.0
+        self._P[np.ix_(cols, cols)] = cov
+        self.fix_pending = False
+        self.fixes.append(self._time)
+
+    def _fix(self):
+        """``(columns, position, covariance)`` of the time-aligned multilateration, or None."""
+        system = self.outputs.system
+        d, dim = np.array(system.d, dtype=float), self._dim
+        rows = np.flatnonzero(~np.isnan(self._latest))
+        shift = np.zeros((self.q, dim))
+        now = (self._x - self._offset)[:dim]
+        shift[rows] = now - self._at[rows]  # Delta_h: the motion predicted since range h
+        a = -d[:, :dim]
+        moved = a + shift
+        y = self._latest + 0.5 * (np.sum(a * a, axis=1) - np.sum(moved * moved, axis=1))
+        d[:, :dim] = -moved
+        fixed = multilateration(system.C, d, y)
+        if fixed is None or np.any(fixed[0] >= dim):
+            return None
+        cols = fixed[0]
+        D = d[rows[1:]][:, cols] - d[rows[0]][cols]
+        pinv = np.linalg.pinv(D)
+        v = self._var_y[rows]
+        Sigma = np.diag(v[1:]) + v[0]
+        oldest = rows[np.argmin(self._t_at[rows])]
+        growth = self._P_dr[np.ix_(cols, cols)] - self._P_at[oldest][np.ix_(cols, cols)]
+        cov = pinv @ Sigma @ pinv.T + growth
+        return cols, fixed[1], 0.5 * (cov + cov.T)
+
+
+class FixedStartEKF(MultilaterationStart, ExtendedKalmanFilter):
+    """:class:`~quadobs.estimators.kalman.ExtendedKalmanFilter` with the start-up of the module
+    docstring (armed by :meth:`~MultilaterationStart.start_from_fix`)."""
+
+
+class FixedStartUKF(MultilaterationStart, UnscentedKalmanFilter):
+    """:class:`~quadobs.estimators.kalman.UnscentedKalmanFilter` with the start-up of the module
+    docstring (armed by :meth:`~MultilaterationStart.start_from_fix`)."""

@@ -1,0 +1,151 @@
+"""The multilateration start-up of the replay's EKF and UKF (quadobs.estimators.startup)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from quadobs.core.measurements import Measurement
+from quadobs.core.system import odometry_system, vehicle_system
+from quadobs.estimators.kalman import ExtendedKalmanFilter, HeldInputModel, OutputModel
+from quadobs.estimators.startup import FixedStartEKF, FixedStartUKF, start_threshold
+
+ANCHORS = np.array([[0.0, 0.0], [40.0, 0.0], [40.0, 30.0], [0.0, 30.0]])
+SIGMA = 0.5
+
+
+def _filter(cls, P0: float, anchors=ANCHORS, q_xy: float = 1.0, x0=(60.0, -40.0)):
+    system = odometry_system(anchors)
+    dyn = HeldInputModel(system, 0.1, V=q_xy * np.eye(2))
+    out = OutputModel(system, SIGMA**2, offsets=0.5 * np.einsum("hi,hi->h", anchors, anchors))
+    est = cls(dyn, out, x0=np.array(x0), P0=P0 * np.eye(2))
+    if hasattr(est, "start_from_fix"):
+        est.start_from_fix(2, start_threshold(anchors, SIGMA))
+    return est
+
+
+def _drive(est, p0, velocity, times, anchors=ANCHORS, first: int = 0):
+    """Noise-free ranges one anchor at a time (from anchor ``first`` on), the vehicle at
+    ``p0 + velocity t``."""
+    est.hold(np.array([*velocity, 0.0]))
+    for k, t in enumerate(times, start=first):
+        h = k % anchors.shape[0]
+        p = p0 + np.asarray(velocity) * t
+        est.predict(t)
+        est.correct(Measurement(t, "range", float(np.linalg.norm(p - anchors[h])), (h,)))
+
+
+def test_threshold_is_half_the_extent_at_least_sigma():
+    assert start_threshold(ANCHORS, 0.5) == pytest.approx(12.5)  # extent 25 m
+    assert start_threshold(ANCHORS, 20.0) == 20.0
+
+
+@pytest.mark.parametrize("cls", [FixedStartEKF, FixedStartUKF])
+def test_moving_vehicle_fixed_exactly_from_ranges_of_different_times(cls):
+    """Ranges 0.3 s apart from a vehicle at 3 m/s: the fix, each range moved by the odometry's
+    displacement since, is the true position at the fourth range (noise-free: to rounding)."""
+    p0, vel = np.array([12.0, 9.0]), np.array([3.0, -1.0])
+    est = _filter(cls, 50.0**2)
+    assert est.fix_pending
+    times = [0.3, 0.6, 0.9]
+    _drive(est, p0, vel, times)
+    assert est.fix_pending and est.corrections == 3  # waiting: corrected as usual
+    _drive(est, p0, vel, [1.2], first=3)  # the fourth anchor's range completes the round
+    assert not est.fix_pending and est.fixes == [pytest.approx(1.2)]
+    assert est.corrections == 4
+    # the EKF corrects the completing range at the exact position (no innovation); the UKF's
+    # unscented mean over the fix's metre-wide covariance moves it by centimetres
+    tol = 1e-9 if cls is FixedStartEKF else 0.05
+    np.testing.assert_allclose(est.x_hat, p0 + vel * 1.2, atol=tol)
+
+
+def test_fix_covariance_is_the_least_squares_one_plus_the_prediction_since():
+    """``P = D^+ Sigma D^+T + q_xy (t - t_0) I`` (closed form) before the completing range's
+    own correction: checked on the range that completes the round, corrected by hand."""
+    p, q_xy = np.array([12.0, 9.0]), 2.0
+    est = _filter(FixedStartEKF, 50.0**2, q_xy=q_xy)
+    _drive(est, p, (0.0, 0.0), [0.1, 0.2, 0.3])
+    rho = np.linalg.norm(p - ANCHORS, axis=1)
+    var = rho**2 * SIGMA**2 + 0.5 * SIGMA**4
+    D = -(ANCHORS[1:] - ANCHORS[0])
+    pinv = np.linalg.pinv(D)
+    P_fix = pinv @ (np.diag(var[1:]) + var[0]) @ pinv.T + q_xy * (0.4 - 0.1) * np.eye(2)
+    # the completing range (anchor 3) corrects from the fix: Joseph update at the exact position
+    H = ((p - ANCHORS[3]) / rho[3])[None, :]
+    S = H @ P_fix @ H.T + SIGMA**2
+    K = P_fix @ H.T / S
+    expected = (np.eye(2) - K @ H) @ P_fix @ (np.eye(2) - K @ H).T + SIGMA**2 * K @ K.T
+    _drive(est, p, (0.0, 0.0), [0.4], first=3)
+    np.testing.assert_allclose(est.x_covariance, expected, rtol=1e-9)
+
+
+def test_narrow_prior_is_the_plain_filter():
+    """A prior narrower than the threshold: no fix, the plain EKF's estimates to the bit."""
+    est, plain = (
+        _filter(FixedStartEKF, 4.0, x0=(11.0, 8.0)),
+        _filter(ExtendedKalmanFilter, 4.0, x0=(11.0, 8.0)),
+    )
+    assert not est.fix_pending
+    times = np.arange(1, 13) * 0.25
+    _drive(est, np.array([12.0, 9.0]), (1.0, 0.5), times)
+    _drive(plain, np.array([12.0, 9.0]), (1.0, 0.5), times)
+    assert est.fixes == []
+    np.testing.assert_array_equal(est.x_hat, plain.x_hat)
+
+
+def test_collinear_anchors_fix_the_coordinate_they_determine():
+    """Anchors on the x axis fix ``x`` alone (differences of the outputs are ``-(a_h - a_0)_x x``):
+    after one round ``x`` is the truth's (the guess was 55 m off)."""
+    line = np.array([[0.0, 0.0], [10.0, 0.0], [20.0, 0.0]])
+    est = _filter(FixedStartEKF, 50.0**2, anchors=line, q_xy=1.0)
+    _drive(est, np.array([5.0, 7.0]), (0.0, 0.0), [0.1, 0.2], anchors=line)
+    assert est.fix_pending
+    _drive(est, np.array([5.0, 7.0]), (0.0, 0.0), [0.3], anchors=line, first=2)
+    assert not est.fix_pending and est.fixes == [pytest.approx(0.3)]
+    # (the completing range is then corrected at the estimate's y, which moves x by centimetres)
+    assert est.x_hat[0] == pytest.approx(5.0, abs=0.1)
+
+
+def test_grid_outputs_fix_a_vehicle_with_velocity():
+    """The grid's ``step(u, y)`` path: one snapshot of all anchors fixes the position of a
+    3-D vehicle (state ``(p, v)``) exactly; its velocity keeps its prior."""
+    anchors = np.array(
+        [[-3.0, -3.0, 0.2], [3.0, -3.0, 0.2], [3.0, 3.0, 2.8], [-3.0, 3.0, 2.8], [0.0, 0.0, 3.0]]
+    )
+    system = vehicle_system(3, anchors)
+    dyn = HeldInputModel(system, 0.01, V=np.diag([0.0] * 3 + [1e-2] * 3))
+    out = OutputModel(system, SIGMA**2, offsets=0.5 * np.einsum("hi,hi->h", anchors, anchors))
+    P0 = np.diag([100.0] * 3 + [4.0] * 3)
+    est = FixedStartEKF(dyn, out, x0=np.array([9.0, -9.0, 5.0, 0.0, 0.0, 0.0]), P0=P0)
+    est.start_from_fix(3, start_threshold(anchors, SIGMA))
+    p = np.array([0.5, -1.0, 1.5])
+    y = 0.5 * p @ p - anchors @ p
+    est.step(np.zeros(3), y)
+    assert est.fixes == [0.0]
+    np.testing.assert_allclose(est.x_hat[:3], p, atol=1e-9)
+    np.testing.assert_allclose(
+        est.x_covariance[3:, 3:], 4.0 * np.eye(3) + 1e-2 * 0.01 * np.eye(3), rtol=1e-6
+    )
+
+
+def test_the_replay_builders_arm_the_start_up_from_a_wide_prior_only():
+    """``build_ekf``/``build_ukf`` of a replay: armed from 50 m (``P0 = 2500``), not from 2 m."""
+    from quadobs.testbed.logs.estimators import ReplaySetup, build_ekf, build_ukf
+
+    x0 = np.array([1.0, 2.0])
+    for P0, armed in ((2500.0, True), (4.0, False)):
+        s = ReplaySetup(ANCHORS, 0.1, "odometry", 0.0, 20.0, range_sigma=SIGMA, P0=P0)
+        ekf, ukf = build_ekf(s, x0), build_ukf(s, x0)
+        assert isinstance(ekf, FixedStartEKF) and isinstance(ukf, FixedStartUKF)
+        assert ekf.fix_pending is armed and ukf.fix_pending is armed
+
+
+def test_the_waiting_corrections_weigh_the_second_order_term():
+    """``tr((H_2 P)^2) / 2`` in closed form: ``P = s^2 I`` at ``rho`` from the anchor in the
+    plane, ``H_2 P = (s^2 / rho) (I - u u^T)`` of rank one: ``s^4 / (2 rho^2)`` (1250 m^2 for a
+    50 m prior at 50 m); after the fix the term is gone."""
+    est = _filter(FixedStartEKF, 50.0**2, x0=(50.0, 0.0))
+    assert est._curvature_variance(0) == pytest.approx(50.0**4 / (2 * 50.0**2))
+    p = np.array([12.0, 9.0])
+    _drive(est, p, (0.0, 0.0), [0.1, 0.2, 0.3, 0.4])
+    assert est.fixes and est._curvature_variance(0) < 1.0
