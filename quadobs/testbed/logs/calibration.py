@@ -119,8 +119,10 @@ __all__ = [
     "calibrate_noise",
     "calibrate_tdoa",
     "compare",
+    "estimator_biases",
     "heading_noise",
     "heading_scored",
+    "holds_range_biases",
     "noise_keys",
     "prediction_residuals",
     "process_noise_key",
@@ -214,6 +216,28 @@ class Residuals:
         return self.r[self.held]
 
 
+def holds_range_biases(est) -> bool:
+    """Whether ``est`` holds the anchors' range biases as states (its ``biases`` (m), added to
+    the ranges it predicts): the filters of :mod:`quadobs.estimators.bias_states` and the
+    augmented observer with the biases in its immersion."""
+    from quadobs.estimators.augmented_bias import BiasedAugmentedObserver
+    from quadobs.estimators.bias_states import (
+        BiasedExtendedKalmanFilter,
+        BiasedUnscentedKalmanFilter,
+    )
+
+    kinds = (BiasedExtendedKalmanFilter, BiasedUnscentedKalmanFilter, BiasedAugmentedObserver)
+    return isinstance(est, kinds)
+
+
+def _scoring_estimator(log, dt, model, b, estimator, setup_options, x0):
+    """``(world, estimator)``: the replay's world with the biases ``b`` and ``estimator`` built
+    on it from ``x0`` (default the anchors' centroid)."""
+    world = ReplayWorld(log, dt, model, 8, b, peer_batch=False)
+    setup = replay_setup(log, world, setup_options)
+    return world, build_replay_estimators(setup, [estimator], _initial(log, model, x0))[0]
+
+
 def prediction_residuals(
     log,
     *,
@@ -227,13 +251,14 @@ def prediction_residuals(
 ) -> Residuals:
     """One replay in time with ``biases`` (module docstring): the residuals of the ranges from
     :data:`SCORED_FROM` of the log on; with ``hold_out``, every :data:`HOLD_OUT`-th range is not
-    corrected with."""
+    corrected with. An estimator that holds the range biases as states
+    (:func:`holds_range_biases`) predicts a range with its own bias estimate added,
+    ``r = rho - b_h - |p^- - a_h| - beta_h^-``."""
     model = model or default_model(log)
     q = log.beacons.shape[0]
     b = np.zeros(q) if biases is None else np.asarray(biases, dtype=float)
-    world = ReplayWorld(log, dt, model, 8, b, peer_batch=False)
-    setup = replay_setup(log, world, setup_options)
-    est = build_replay_estimators(setup, [estimator], _initial(log, model, x0))[0]
+    world, est = _scoring_estimator(log, dt, model, b, estimator, setup_options, x0)
+    own = holds_range_biases(est)
     events = LogEvents(log, b, start=world.times[0], end=world.times[-1])
     t_in, U = events.inputs()
     est.time = world.times[0]
@@ -253,7 +278,8 @@ def prediction_residuals(
         held = hold_out and m.kind == kind and index[j] % HOLD_OUT == HOLD_OUT // 2
         if m.kind == kind and m.t >= start:
             p = est.x_hat[:dim]
-            out_r.append(m.value - _predicted(log.beacons, p, m))
+            beta = float(est.biases[m.anchors[0]]) if own and m.kind == "range" else 0.0
+            out_r.append(m.value - _predicted(log.beacons, p, m) - beta)
             out_h.append(m.anchors[0])
             out_held.append(held)
             out_t.append(m.t)
@@ -509,6 +535,11 @@ class Calibration:
     more_scores : dict
         The held-out scores (m) of each of :data:`HEADING_KEYS` fitted, ``{key: {intensity:
         score}}`` (scored by :data:`HEADING_SCORER`).
+    per_estimator : dict
+        For each estimator that holds the range biases as states and was checked
+        (:func:`estimator_biases`): ``{name: {"biases": "calibrated" or "as logged", **test}}``,
+        ``test`` the paired test of the calibrated biases against the ranges as logged, scored
+        by that estimator (:meth:`Comparison.as_dict`).
     """
 
     biases: np.ndarray | None
@@ -519,6 +550,12 @@ class Calibration:
     held_out: dict = field(default_factory=dict)
     tests: dict = field(default_factory=dict)
     more_scores: dict = field(default_factory=dict)
+    per_estimator: dict = field(default_factory=dict)
+
+    @property
+    def as_logged(self) -> tuple[str, ...]:
+        """The estimators that take the ranges as logged (:func:`estimator_biases`)."""
+        return tuple(k for k, v in self.per_estimator.items() if v["biases"] == "as logged")
 
     def summary(self) -> dict:
         """As plain data, for the replay's summary."""
@@ -537,6 +574,7 @@ class Calibration:
                 f"{key}_scores": {f"{k:g}": _finite(v) for k, v in sc.items()}
                 for key, sc in self.more_scores.items()
             },
+            **({"per_estimator": self.per_estimator} if self.per_estimator else {}),
         }
 
 
@@ -638,6 +676,52 @@ def calibrate(
     )
     tests.update(heading_tests)
     return Calibration(biases, options, scores, reason + why, cand, held, tests, more)
+
+
+def estimator_biases(
+    log, cal: Calibration, names, *, dt: float = 0.1, model: str | None = None
+) -> tuple[str, ...]:
+    """Step 7 of the module docstring: for each estimator of ``names`` that holds the range
+    biases as states (:func:`holds_range_biases`), the calibrated biases ``cal.biases`` kept
+    only where they predict the held-out ranges, through that estimator, better than the ranges
+    as logged (a smaller score; a tie: as logged); else it takes the ranges as logged.
+
+    Subtracting the biases from the ranges is the same as starting the filter's bias states at
+    them: the choice is the bias states' prior mean, the calibrated biases or zero, between two
+    filters that both estimate the biases. Neither is the reference of a significance test
+    (the paired test is reported beside the choice): the weak direction of a position offset
+    against a pattern of biases (docs/error-sources.md) predicts the ranges almost as well
+    from either prior, so the test seldom decides, and the calibration's biases were fitted by
+    an estimator without the filter's states (the EKF, whose biases also take up what the
+    filter holds as states, such as an acceleration's bias).
+
+    Records each choice in ``cal.per_estimator`` and ``cal.reason``; returns the names that take
+    the ranges as logged (:attr:`Calibration.as_logged`). Nothing to check where no biases were
+    applied.
+    """
+    if cal.biases is None:
+        return ()
+    model = model or default_model(log)
+    zero = np.zeros(log.beacons.shape[0])
+    for name in names:
+        if not holds_range_biases(
+            _scoring_estimator(log, dt, model, zero, name, cal.options, None)[1]
+        ):
+            continue
+        logged = _replay(log, dt, model, None, name, cal.options)
+        test = compare(_replay(log, dt, model, cal.biases, name, cal.options), logged)
+        kept = test.score < test.reference_score
+        cal.per_estimator[name] = {
+            "biases": "calibrated" if kept else "as logged",
+            **test.as_dict(),
+        }
+        what = "the calibrated biases subtracted" if kept else "the ranges as logged"
+        cal.reason += (
+            f"; {name} (range biases as states): {what}; scored by {name}, the held-out ranges"
+            f" {_metres(test.score)} with the calibrated biases, {_metres(test.reference_score)}"
+            f" as logged ({'' if test.better else 'not '}significantly better)"
+        )
+    return cal.as_logged
 
 
 def _fitted_keys(log, model: str, noise) -> tuple[str, ...]:
