@@ -63,6 +63,16 @@ Order (:func:`calibrate`):
    each best candidate is kept only if significantly better than the setting before it
    (:func:`heading_noise`).
 
+7. each estimator of the replay that holds the range biases as states (``ekf-bias``,
+   ``ekf-bias-imu``; :func:`holds_range_biases`), where biases were chosen: the biases kept
+   for it only where, replayed through *that* estimator (its prediction of a range adding its
+   own bias estimate), they predict the held-out ranges significantly better than the ranges
+   as logged, or where they lie outside its bias states' prior; else it takes the ranges as
+   logged (:func:`estimator_biases`). The biases of steps 2 to 5 are
+   fitted and tested through the EKF, which holds neither the range biases nor what else a
+   filter may hold as states (an acceleration's bias): its biases take up those errors too,
+   and a filter that holds them would start its states from the EKF's compromise.
+
 Two scorers on an odometry log. The model ``odometry`` takes the dead-reckoned heading as
 right, so its ``q_xy`` must also carry the heading's drift (a yaw rate's bias: Plaza2's
 drifts at 0.005 rad/s): scored by the EKF of that model, Plaza2 picks ``q_xy = 16``. The
@@ -114,6 +124,7 @@ __all__ = [
     "SIGNIFICANCE",
     "Calibration",
     "Comparison",
+    "bias_prior_std",
     "calibrate",
     "calibrate_biases",
     "calibrate_noise",
@@ -124,6 +135,7 @@ __all__ = [
     "heading_scored",
     "holds_range_biases",
     "noise_keys",
+    "outside_prior",
     "prediction_residuals",
     "process_noise_key",
     "scored_kind",
@@ -678,22 +690,47 @@ def calibrate(
     return Calibration(biases, options, scores, reason + why, cand, held, tests, more)
 
 
+def bias_prior_std(log) -> np.ndarray:
+    """The prior standard deviation (m) of each anchor's bias state in the replay's filters:
+    :class:`~quadobs.core.measurements.RangeModel`'s extra states (0.5 m)."""
+    from quadobs.core.measurements import RangeModel
+
+    extra = RangeModel(log.beacons, 1.0, bias="state").extra_states()
+    return np.array([e.prior_std for e in extra])
+
+
+def outside_prior(biases, prior_std) -> tuple[float, float]:
+    """``(chi2, limit)``: ``chi2 = sum_h (b_h / sigma_h)^2`` of ``biases`` under the bias
+    states' prior ``N(0, diag(sigma^2))``, and its ``1 -`` :data:`SIGNIFICANCE` quantile of
+    ``chi^2(q)``; biases with ``chi2 > limit`` are improbable under that prior."""
+    from scipy.stats import chi2
+
+    z = np.asarray(biases, dtype=float) / np.asarray(prior_std, dtype=float)
+    return float(z @ z), float(chi2.ppf(1.0 - SIGNIFICANCE, z.size))
+
+
 def estimator_biases(
     log, cal: Calibration, names, *, dt: float = 0.1, model: str | None = None
 ) -> tuple[str, ...]:
     """Step 7 of the module docstring: for each estimator of ``names`` that holds the range
     biases as states (:func:`holds_range_biases`), the calibrated biases ``cal.biases`` kept
-    only where they predict the held-out ranges, through that estimator, better than the ranges
-    as logged (a smaller score; a tie: as logged); else it takes the ranges as logged.
+    only where the data say its own prior is wrong; else it takes the ranges as logged.
 
     Subtracting the biases from the ranges is the same as starting the filter's bias states at
-    them: the choice is the bias states' prior mean, the calibrated biases or zero, between two
-    filters that both estimate the biases. Neither is the reference of a significance test
-    (the paired test is reported beside the choice): the weak direction of a position offset
-    against a pattern of biases (docs/error-sources.md) predicts the ranges almost as well
-    from either prior, so the test seldom decides, and the calibration's biases were fitted by
-    an estimator without the filter's states (the EKF, whose biases also take up what the
-    filter holds as states, such as an acceleration's bias).
+    them: the choice is the bias states' prior mean, zero (the filter's own prior, the
+    reference) or the calibrated biases, which are kept where
+
+    * replayed through that estimator, they predict the held-out ranges significantly better
+      than the ranges as logged (the paired test of the module docstring), or
+    * they are improbable under the bias states' prior (:func:`outside_prior`: ``sum_h
+      (b_h / sigma_b)^2`` beyond the ``1 -`` :data:`SIGNIFICANCE` quantile of ``chi^2(q)``):
+      a filter started from zero would have to find biases its prior all but excludes.
+
+    Within the prior, the filter finds the biases itself, and the EKF's biases (fitted without
+    the filter's states, so also taking up what it holds as states, such as an acceleration's
+    bias) would start it from that compromise. The held-out test seldom decides for such a
+    filter: a position offset against a pattern of biases predicts the ranges almost as well
+    from either start.
 
     Records each choice in ``cal.per_estimator`` and ``cal.reason``; returns the names that take
     the ranges as logged (:attr:`Calibration.as_logged`). Nothing to check where no biases were
@@ -703,6 +740,7 @@ def estimator_biases(
         return ()
     model = model or default_model(log)
     zero = np.zeros(log.beacons.shape[0])
+    chi2, limit = outside_prior(cal.biases, bias_prior_std(log))
     for name in names:
         if not holds_range_biases(
             _scoring_estimator(log, dt, model, zero, name, cal.options, None)[1]
@@ -710,16 +748,20 @@ def estimator_biases(
             continue
         logged = _replay(log, dt, model, None, name, cal.options)
         test = compare(_replay(log, dt, model, cal.biases, name, cal.options), logged)
-        kept = test.score < test.reference_score
+        kept = test.better or chi2 > limit
         cal.per_estimator[name] = {
             "biases": "calibrated" if kept else "as logged",
+            "prior_chi2": chi2,
+            "prior_limit": limit,
             **test.as_dict(),
         }
         what = "the calibrated biases subtracted" if kept else "the ranges as logged"
         cal.reason += (
-            f"; {name} (range biases as states): {what}; scored by {name}, the held-out ranges"
-            f" {_metres(test.score)} with the calibrated biases, {_metres(test.reference_score)}"
-            f" as logged ({'' if test.better else 'not '}significantly better)"
+            f"; {name} (range biases as states): {what}; the biases' chi-square under its"
+            f" prior {chi2:.1f} ({'above' if chi2 > limit else 'within'} {limit:.1f}); scored"
+            f" by {name}, the held-out ranges {_metres(test.score)} with them,"
+            f" {_metres(test.reference_score)} as logged,"
+            f" {'' if test.better else 'not '}significantly better"
         )
     return cal.as_logged
 
