@@ -229,17 +229,22 @@ class Residuals:
 
 
 def holds_range_biases(est) -> bool:
-    """Whether ``est`` holds the anchors' range biases as states (its ``biases`` (m), added to
-    the ranges it predicts): the filters of :mod:`quadobs.estimators.bias_states` and the
+    """Whether ``est`` holds the anchors' range biases as states and predicts a range as
+    ``|p - a_h| + b_h``, ``b`` its ``biases`` (m): the filters of
+    :mod:`quadobs.estimators.bias_states` on :class:`~quadobs.estimators.bias_states.BiasedRangeOutputModel`
+    (not those whose range also holds other states, such as an anchor's height) and the
     augmented observer with the biases in its immersion."""
     from quadobs.estimators.augmented_bias import BiasedAugmentedObserver
     from quadobs.estimators.bias_states import (
         BiasedExtendedKalmanFilter,
+        BiasedRangeOutputModel,
         BiasedUnscentedKalmanFilter,
     )
 
-    kinds = (BiasedExtendedKalmanFilter, BiasedUnscentedKalmanFilter, BiasedAugmentedObserver)
-    return isinstance(est, kinds)
+    if isinstance(est, BiasedAugmentedObserver):
+        return True
+    filters = (BiasedExtendedKalmanFilter, BiasedUnscentedKalmanFilter)
+    return isinstance(est, filters) and isinstance(est.outputs, BiasedRangeOutputModel)
 
 
 def _scoring_estimator(log, dt, model, b, estimator, setup_options, x0):
