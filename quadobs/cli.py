@@ -1014,6 +1014,7 @@ def _cmd_replay(args) -> int:
         burn_in=args.burn_in,
         export_tum=args.export_tum,
         calibration=getattr(args, "calibration_report", None),
+        as_logged=getattr(args, "as_logged", ()),
     )
     m = summary["measurements"]
     print(
@@ -1220,6 +1221,11 @@ def _replay_calibration(args, log, tuning: dict) -> tuple[list[float] | np.ndarr
         log, dt=args.dt, model=args.model, setup_options=tuning,
         noise=tuple(k for k in keys if k not in tuning),
     )  # fmt: skip
+    from quadobs.testbed.logs.calibration import estimator_biases
+    from quadobs.testbed.logs.replay import default_estimators
+
+    names = _estimator_list(args.estimators) or default_estimators(log, args.model)
+    args.as_logged = estimator_biases(log, cal, names, dt=args.dt, model=args.model)
     chosen = "none" if cal.biases is None else ", ".join(f"{b:.2f}" for b in cal.biases) + " m"
     print(f"calibrated from the log: biases {chosen}; {cal.reason}")
     args.calibration_report = cal.summary()

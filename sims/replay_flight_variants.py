@@ -38,7 +38,8 @@ variant):
 * ``nostd``: no ``std`` column in ``ranges.csv`` (a hand-converted log states none);
 * ``real``: every one of the above at once (``vib100`` for the rate).
 
-Each variant is replayed with the command's defaults (``quadobs replay DIR --burn-in 5``,
+Each variant is replayed with the command's defaults (``quadobs replay DIR --burn-in 5``;
+``--calibrate none``: without the self-calibration,
 in-process through :func:`quadobs.cli.main`), and the table gives every estimator's position
 RMSE after the burn-in and its ``diverged`` flag (diverged or locked out), then the best
 estimator's RMSE per variant and seed.
@@ -203,13 +204,17 @@ def real_variant(log, kind: str, rng, accel: float, gyro: float):
     return dataclasses.replace(log, name=f"{log.name.removesuffix('-noatt')}-{kind}")
 
 
-def replay(folder: Path, estimators: str | None, burn_in: float, reuse: bool = False) -> dict:
-    """``quadobs replay FOLDER --burn-in B`` (defaults otherwise); its summary (with ``reuse``,
-    the summary a previous run left, if any)."""
-    summary = folder.parent / f"{folder.name}.json"
+def replay(
+    folder: Path, estimators: str | None, burn_in: float, reuse: bool = False, calibrate="self"
+) -> dict:
+    """``quadobs replay FOLDER --burn-in B --calibrate C`` (defaults otherwise); its summary
+    (with ``reuse``, the summary a previous run left, if any)."""
+    tag = "" if calibrate == "self" else f"-{calibrate}"
+    summary = folder.parent / f"{folder.name}{tag}.json"
     if reuse and summary.exists():
         return json.loads(summary.read_text())
     argv = ["replay", str(folder), "--burn-in", f"{burn_in:g}", "--summary", str(summary)]
+    argv += ["--calibrate", calibrate]
     argv += ["--no-progress"] + (["--estimators", estimators] if estimators else [])
     code = cli.main(argv)
     if code not in (0, 1):
@@ -231,6 +236,7 @@ def main() -> None:
     ap.add_argument("--burn-in", type=float, default=5.0)
     ap.add_argument("--out", help="folder for the logs and summaries (default: a temporary one)")
     ap.add_argument("--reuse", action="store_true", help="take the summaries a previous run left")
+    ap.add_argument("--calibrate", default="self", choices=("self", "none"), help="the replay's")
     args = ap.parse_args()
     out = Path(args.out or tempfile.mkdtemp(prefix="flights-"))
     rows = []
@@ -249,7 +255,11 @@ def main() -> None:
             elif kind != "full":
                 write_log(variant(log, kind, args.yaw), folder)
             s = replay(
-                base if kind == "full" else folder, args.estimators, args.burn_in, args.reuse
+                base if kind == "full" else folder,
+                args.estimators,
+                args.burn_in,
+                args.reuse,
+                args.calibrate,
             )
             if "failed" in s:
                 rows.append((seed, kind, "-", None, f"replay exited {s['failed']}"))

@@ -140,3 +140,70 @@ def test_the_replays_bias_filters_beat_the_ekf_on_biased_ranges_and_refuse_tdoa(
         QuadobsError, match="'ekf-bias' estimates range biases and the log holds TDOA"
     ):
         check_replay(tdoa, ["ekf-bias"])
+
+
+def test_a_bias_filter_is_scored_with_its_own_bias_estimates():
+    """The prequential residual of a filter that holds the biases as states subtracts its own
+    estimate: on the ranges as logged its residuals are centred per anchor, the EKF's are not."""
+    from quadobs.testbed.logs.calibration import prediction_residuals
+
+    truth = np.array([0.4, -0.3, 0.25, 0.0])
+    log = circle_laps(truth)
+    options = {"range_sigma": 0.1, "q_acc": 1e-2}
+    for name, centred in (("ekf-bias", True), ("ekf", False)):
+        res = prediction_residuals(log, estimator=name, setup_options=options)
+        r, h = res.fitted()
+        medians = np.array([np.median(r[h == j]) for j in range(4)])
+        assert (np.max(np.abs(medians)) < 0.1) == centred, (name, medians)
+
+
+def test_the_biases_chi_square_under_the_bias_states_prior():
+    from scipy.stats import chi2
+
+    from quadobs.testbed.logs.calibration import SIGNIFICANCE, bias_prior_std, outside_prior
+
+    sigma = bias_prior_std(circle_laps(np.zeros(4)))
+    assert sigma == pytest.approx([0.5] * 4)
+    value, limit = outside_prior([0.5, -1.0, 0.0, 0.25], sigma)
+    assert value == pytest.approx(1.0 + 4.0 + 0.0 + 0.25)
+    assert limit == pytest.approx(chi2.ppf(1.0 - SIGNIFICANCE, 4)) and 11.0 < limit < 11.2
+
+
+def test_bias_filters_take_the_calibrated_biases_only_where_the_data_contradict_their_prior():
+    """Biases of one sign, two to three times the bias states' 0.5 m prior: the calibrated
+    biases lie outside that prior and predict the held-out ranges significantly better through
+    ``ekf-bias``: they are kept for it (and it is far better for them); an estimator without
+    bias states is not checked; a filter that takes the ranges as logged gets exactly what it
+    gets without biases, while the others get the biases. Biases within the prior: the ranges
+    as logged."""
+    from quadobs.testbed.logs.calibration import estimator_biases
+
+    log = circle_laps(np.array([1.0, 1.3, 1.1, 1.4]))
+    options = {"range_sigma": 0.1, "q_acc": 1e-2}
+    cal = calibrate(log, setup_options=options, noise=False)
+    assert cal.biases is not None, cal.reason
+    assert estimator_biases(log, cal, ["ekf", "ekf-bias"]) == ()
+    assert list(cal.per_estimator) == ["ekf-bias"], cal.per_estimator
+    test = cal.summary()["per_estimator"]["ekf-bias"]
+    assert test["biases"] == "calibrated" and test["prior_chi2"] > test["prior_limit"], test
+    assert "ekf-bias (range biases as states): the calibrated biases subtracted" in cal.reason
+
+    def replay(biases, as_logged=()):
+        s = run_replay(log, estimators=["ekf", "ekf-bias"], initial_offset=2.0, batch=False,
+                       setup_options=options, burn_in=10.0, biases=biases, as_logged=as_logged)  # fmt: skip
+        return s, {k: e["rmse"] for k, e in s["estimators"].items()}
+
+    s, logged = replay(cal.biases, as_logged=["ekf-bias"])
+    _, raw = replay(None)
+    _, applied = replay(cal.biases)
+    assert s["ranges_as_logged"] == ["ekf-bias"]
+    assert logged["ekf-bias"] == raw["ekf-bias"] and logged["ekf"] == applied["ekf"]
+    assert applied["ekf-bias"] < 0.5 * logged["ekf-bias"], (applied, logged)
+
+    small = circle_laps(np.array([0.4, -0.3, 0.25, 0.0]))
+    cal = calibrate(small, setup_options=options, noise=False)
+    assert cal.biases is not None, cal.reason
+    logged_names = estimator_biases(small, cal, ["ekf-bias"])
+    test = cal.per_estimator["ekf-bias"]
+    assert test["prior_chi2"] < test["prior_limit"], test
+    assert logged_names == (() if test["significantly_better"] else ("ekf-bias",)), test

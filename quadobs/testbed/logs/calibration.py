@@ -63,6 +63,16 @@ Order (:func:`calibrate`):
    each best candidate is kept only if significantly better than the setting before it
    (:func:`heading_noise`).
 
+7. each estimator of the replay that holds the range biases as states (``ekf-bias``,
+   ``ekf-bias-imu``; :func:`holds_range_biases`), where biases were chosen: the biases kept
+   for it only where, replayed through *that* estimator (its prediction of a range adding its
+   own bias estimate), they predict the held-out ranges significantly better than the ranges
+   as logged, or where they lie outside its bias states' prior; else it takes the ranges as
+   logged (:func:`estimator_biases`). The biases of steps 2 to 5 are
+   fitted and tested through the EKF, which holds neither the range biases nor what else a
+   filter may hold as states (an acceleration's bias): its biases take up those errors too,
+   and a filter that holds them would start its states from the EKF's compromise.
+
 Two scorers on an odometry log. The model ``odometry`` takes the dead-reckoned heading as
 right, so its ``q_xy`` must also carry the heading's drift (a yaw rate's bias: Plaza2's
 drifts at 0.005 rad/s): scored by the EKF of that model, Plaza2 picks ``q_xy = 16``. The
@@ -114,14 +124,18 @@ __all__ = [
     "SIGNIFICANCE",
     "Calibration",
     "Comparison",
+    "bias_prior_std",
     "calibrate",
     "calibrate_biases",
     "calibrate_noise",
     "calibrate_tdoa",
     "compare",
+    "estimator_biases",
     "heading_noise",
     "heading_scored",
+    "holds_range_biases",
     "noise_keys",
+    "outside_prior",
     "prediction_residuals",
     "process_noise_key",
     "scored_kind",
@@ -214,6 +228,33 @@ class Residuals:
         return self.r[self.held]
 
 
+def holds_range_biases(est) -> bool:
+    """Whether ``est`` holds the anchors' range biases as states and predicts a range as
+    ``|p - a_h| + b_h``, ``b`` its ``biases`` (m): the filters of
+    :mod:`quadobs.estimators.bias_states` on :class:`~quadobs.estimators.bias_states.BiasedRangeOutputModel`
+    (not those whose range also holds other states, such as an anchor's height) and the
+    augmented observer with the biases in its immersion."""
+    from quadobs.estimators.augmented_bias import BiasedAugmentedObserver
+    from quadobs.estimators.bias_states import (
+        BiasedExtendedKalmanFilter,
+        BiasedRangeOutputModel,
+        BiasedUnscentedKalmanFilter,
+    )
+
+    if isinstance(est, BiasedAugmentedObserver):
+        return True
+    filters = (BiasedExtendedKalmanFilter, BiasedUnscentedKalmanFilter)
+    return isinstance(est, filters) and isinstance(est.outputs, BiasedRangeOutputModel)
+
+
+def _scoring_estimator(log, dt, model, b, estimator, setup_options, x0):
+    """``(world, estimator)``: the replay's world with the biases ``b`` and ``estimator`` built
+    on it from ``x0`` (default the anchors' centroid)."""
+    world = ReplayWorld(log, dt, model, 8, b, peer_batch=False)
+    setup = replay_setup(log, world, setup_options)
+    return world, build_replay_estimators(setup, [estimator], _initial(log, model, x0))[0]
+
+
 def prediction_residuals(
     log,
     *,
@@ -227,13 +268,14 @@ def prediction_residuals(
 ) -> Residuals:
     """One replay in time with ``biases`` (module docstring): the residuals of the ranges from
     :data:`SCORED_FROM` of the log on; with ``hold_out``, every :data:`HOLD_OUT`-th range is not
-    corrected with."""
+    corrected with. An estimator that holds the range biases as states
+    (:func:`holds_range_biases`) predicts a range with its own bias estimate added,
+    ``r = rho - b_h - |p^- - a_h| - beta_h^-``."""
     model = model or default_model(log)
     q = log.beacons.shape[0]
     b = np.zeros(q) if biases is None else np.asarray(biases, dtype=float)
-    world = ReplayWorld(log, dt, model, 8, b, peer_batch=False)
-    setup = replay_setup(log, world, setup_options)
-    est = build_replay_estimators(setup, [estimator], _initial(log, model, x0))[0]
+    world, est = _scoring_estimator(log, dt, model, b, estimator, setup_options, x0)
+    own = holds_range_biases(est)
     events = LogEvents(log, b, start=world.times[0], end=world.times[-1])
     t_in, U = events.inputs()
     est.time = world.times[0]
@@ -253,7 +295,8 @@ def prediction_residuals(
         held = hold_out and m.kind == kind and index[j] % HOLD_OUT == HOLD_OUT // 2
         if m.kind == kind and m.t >= start:
             p = est.x_hat[:dim]
-            out_r.append(m.value - _predicted(log.beacons, p, m))
+            beta = float(est.biases[m.anchors[0]]) if own and m.kind == "range" else 0.0
+            out_r.append(m.value - _predicted(log.beacons, p, m) - beta)
             out_h.append(m.anchors[0])
             out_held.append(held)
             out_t.append(m.t)
@@ -509,6 +552,11 @@ class Calibration:
     more_scores : dict
         The held-out scores (m) of each of :data:`HEADING_KEYS` fitted, ``{key: {intensity:
         score}}`` (scored by :data:`HEADING_SCORER`).
+    per_estimator : dict
+        For each estimator that holds the range biases as states and was checked
+        (:func:`estimator_biases`): ``{name: {"biases": "calibrated" or "as logged", **test}}``,
+        ``test`` the paired test of the calibrated biases against the ranges as logged, scored
+        by that estimator (:meth:`Comparison.as_dict`).
     """
 
     biases: np.ndarray | None
@@ -519,6 +567,12 @@ class Calibration:
     held_out: dict = field(default_factory=dict)
     tests: dict = field(default_factory=dict)
     more_scores: dict = field(default_factory=dict)
+    per_estimator: dict = field(default_factory=dict)
+
+    @property
+    def as_logged(self) -> tuple[str, ...]:
+        """The estimators that take the ranges as logged (:func:`estimator_biases`)."""
+        return tuple(k for k, v in self.per_estimator.items() if v["biases"] == "as logged")
 
     def summary(self) -> dict:
         """As plain data, for the replay's summary."""
@@ -537,6 +591,7 @@ class Calibration:
                 f"{key}_scores": {f"{k:g}": _finite(v) for k, v in sc.items()}
                 for key, sc in self.more_scores.items()
             },
+            **({"per_estimator": self.per_estimator} if self.per_estimator else {}),
         }
 
 
@@ -638,6 +693,82 @@ def calibrate(
     )
     tests.update(heading_tests)
     return Calibration(biases, options, scores, reason + why, cand, held, tests, more)
+
+
+def bias_prior_std(log) -> np.ndarray:
+    """The prior standard deviation (m) of each anchor's bias state in the replay's filters:
+    :class:`~quadobs.core.measurements.RangeModel`'s extra states (0.5 m)."""
+    from quadobs.core.measurements import RangeModel
+
+    extra = RangeModel(log.beacons, 1.0, bias="state").extra_states()
+    return np.array([e.prior_std for e in extra])
+
+
+def outside_prior(biases, prior_std) -> tuple[float, float]:
+    """``(chi2, limit)``: ``chi2 = sum_h (b_h / sigma_h)^2`` of ``biases`` under the bias
+    states' prior ``N(0, diag(sigma^2))``, and its ``1 -`` :data:`SIGNIFICANCE` quantile of
+    ``chi^2(q)``; biases with ``chi2 > limit`` are improbable under that prior."""
+    from scipy.stats import chi2
+
+    z = np.asarray(biases, dtype=float) / np.asarray(prior_std, dtype=float)
+    return float(z @ z), float(chi2.ppf(1.0 - SIGNIFICANCE, z.size))
+
+
+def estimator_biases(
+    log, cal: Calibration, names, *, dt: float = 0.1, model: str | None = None
+) -> tuple[str, ...]:
+    """Step 7 of the module docstring: for each estimator of ``names`` that holds the range
+    biases as states (:func:`holds_range_biases`), the calibrated biases ``cal.biases`` kept
+    only where the data say its own prior is wrong; else it takes the ranges as logged.
+
+    Subtracting the biases from the ranges is the same as starting the filter's bias states at
+    them: the choice is the bias states' prior mean, zero (the filter's own prior, the
+    reference) or the calibrated biases, which are kept where
+
+    * replayed through that estimator, they predict the held-out ranges significantly better
+      than the ranges as logged (the paired test of the module docstring), or
+    * they are improbable under the bias states' prior (:func:`outside_prior`: ``sum_h
+      (b_h / sigma_b)^2`` beyond the ``1 -`` :data:`SIGNIFICANCE` quantile of ``chi^2(q)``):
+      a filter started from zero would have to find biases its prior all but excludes.
+
+    Within the prior, the filter finds the biases itself, and the EKF's biases (fitted without
+    the filter's states, so also taking up what it holds as states, such as an acceleration's
+    bias) would start it from that compromise. The held-out test seldom decides for such a
+    filter: a position offset against a pattern of biases predicts the ranges almost as well
+    from either start.
+
+    Records each choice in ``cal.per_estimator`` and ``cal.reason``; returns the names that take
+    the ranges as logged (:attr:`Calibration.as_logged`). Nothing to check where no biases were
+    applied.
+    """
+    if cal.biases is None:
+        return ()
+    model = model or default_model(log)
+    zero = np.zeros(log.beacons.shape[0])
+    chi2, limit = outside_prior(cal.biases, bias_prior_std(log))
+    for name in names:
+        if not holds_range_biases(
+            _scoring_estimator(log, dt, model, zero, name, cal.options, None)[1]
+        ):
+            continue
+        logged = _replay(log, dt, model, None, name, cal.options)
+        test = compare(_replay(log, dt, model, cal.biases, name, cal.options), logged)
+        kept = test.better or chi2 > limit
+        cal.per_estimator[name] = {
+            "biases": "calibrated" if kept else "as logged",
+            "prior_chi2": chi2,
+            "prior_limit": limit,
+            **test.as_dict(),
+        }
+        what = "the calibrated biases subtracted" if kept else "the ranges as logged"
+        cal.reason += (
+            f"; {name} (range biases as states): {what}; the biases' chi-square under its"
+            f" prior {chi2:.1f} ({'above' if chi2 > limit else 'within'} {limit:.1f}); scored"
+            f" by {name}, the held-out ranges {_metres(test.score)} with them,"
+            f" {_metres(test.reference_score)} as logged,"
+            f" {'' if test.better else 'not '}significantly better"
+        )
+    return cal.as_logged
 
 
 def _fitted_keys(log, model: str, noise) -> tuple[str, ...]:

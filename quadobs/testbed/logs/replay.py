@@ -155,10 +155,11 @@ def log_scenario(log, dt: float, seed: int = 0, settings=()):
     return parse_scenario(data, source=log.source)
 
 
-def _replay_estimators(log, world, setup, events, names, x0) -> list:
+def _replay_estimators(log, world, setup, events, names, x0, own=None) -> list:
     """The estimators of a replay, each taking the log's measurements at their own times where it
     can (:func:`~quadobs.testbed.logs.events.in_time`), on the grid where a sensor layer
-    (``noise.*`` settings) acts on the grid's rows; sets ``world.in_time_count``."""
+    (``noise.*`` settings) acts on the grid's rows; sets ``world.in_time_count``. ``own``:
+    ``{name: LogEvents}``, the events an estimator takes in time instead of ``events``."""
     timed = world.sensors is None
     if (events.count if timed else world.placed) == 0:
         raise QuadobsError(f"log {log.name!r}: no measurement falls inside the inputs' time span")
@@ -169,7 +170,11 @@ def _replay_estimators(log, world, setup, events, names, x0) -> list:
                 f"estimators: {e.name!r} reads the raw body IMU in time, not on the grid of a sensor layer (--set noise.*)"
             )
     world.in_time_count = events.count if timed else None
-    return [in_time(e, events, world.times) if timed and takes_time(e) else e for e in built]
+    own = own or {}
+    return [
+        in_time(e, own.get(e.name, events), world.times) if timed and takes_time(e) else e
+        for e in built
+    ]
 
 
 def run_replay(
@@ -191,6 +196,7 @@ def run_replay(
     burn_in: float = 0.0,
     export_tum: str | Path | None = None,
     calibration: dict | None = None,
+    as_logged=(),
 ) -> dict:
     """Replay ``log`` through the estimators; returns the summary (module docstring), also written to ``summary_path``.
 
@@ -230,6 +236,11 @@ def run_replay(
     calibration : dict, optional
         What the self-calibration chose and why
         (:meth:`~quadobs.testbed.logs.calibration.Calibration.summary`), kept in the summary.
+    as_logged : iterable of str
+        Estimators that take the ranges as logged, ``biases`` not subtracted (those holding the
+        range biases as states for which the calibration's biases did not predict better:
+        :func:`~quadobs.testbed.logs.calibration.estimator_biases`); where measurements reach
+        the estimators on the grid (``noise.*`` settings), every one takes ``biases``.
     """
     from quadobs.testbed.episode import run_loop
     from quadobs.testbed.outputs import check_outputs
@@ -251,7 +262,12 @@ def run_replay(
     events = LogEvents(
         log, biases, start=world.times[0], end=world.times[-1], std=setup.measurement_std()
     )
-    ests = _replay_estimators(log, world, setup, events, names, x0)
+    timed = world.sensors is None  # as _replay_estimators: the measurements reach them in time
+    logged = set(as_logged) & set(names) if biases is not None and timed else set()
+    raw = LogEvents(
+        log, None, start=world.times[0], end=world.times[-1], std=setup.measurement_std()
+    ) if logged else None  # fmt: skip
+    ests = _replay_estimators(log, world, setup, events, names, x0, {n: raw for n in logged})
 
     def summarise(merged, completed, wall, interrupted):
         summary = _summary(
@@ -260,6 +276,8 @@ def run_replay(
         summary["ranges"].update(_timing(log, world, ests, events))
         if calibration is not None:
             summary["calibration"] = calibration
+        if logged:  # the estimators that took the ranges as logged, biases not subtracted
+            summary["ranges_as_logged"] = [n for n in names if n in logged]
         summary["wall_time"] = wall
         return summary
 
