@@ -33,6 +33,11 @@ holds ``ukf-height-lever`` given the posing's lever arm and anchors' heights bes
 biases (:func:`given_truth`): the floor of the model that knows every posed effect.
 
     python sims/replay_rover_room.py --seeds 0 --variants all-rest,all-rates,all-heights,all-lever,all-clocks
+
+``--without-std`` replays each posed log with its ranges' ``std`` column left out (the
+replay then takes the ranges' own noise, docs/error-sources.md):
+
+    python sims/replay_rover_room.py --seeds 0,1,2 --variants all --without-std
 """
 
 from __future__ import annotations
@@ -213,6 +218,11 @@ def main() -> None:
     ap.add_argument("--json", help="write the results here")
     ap.add_argument("--variants", help=f"posed logs, comma-separated ({', '.join(VARIANTS)})")
     ap.add_argument(
+        "--without-std",
+        action="store_true",
+        help="replay each posed log with its ranges' std column left out (with --variants)",
+    )
+    ap.add_argument(
         "--extra", default="", help="estimators replayed beside the default set (e.g. ukf-height)"
     )
     args = ap.parse_args()
@@ -221,7 +231,10 @@ def main() -> None:
     with tempfile.TemporaryDirectory(prefix="rover-room-") as tmp:
         for seed in (int(s) for s in args.seeds.split(",")):
             if args.variants:
-                rows += posed_rows(seed, args.duration, args.variants.split(","), Path(tmp), extra)
+                variants = args.variants.split(",")
+                rows += posed_rows(
+                    seed, args.duration, variants, Path(tmp), extra, args.without_std
+                )
                 continue
             folder = Path(tmp) / f"seed{seed}"
             scenario = export(seed, args.duration, folder)
@@ -241,17 +254,21 @@ def main() -> None:
     print(f"(position RMSE after {BURN_IN:g} s, m)")
 
 
-def posed_rows(seed: int, duration: float, variants: list[str], tmp: Path, extra=()) -> list[dict]:
-    """One row per variant of the seed: the defaults' RMSE and the reference's."""
+def posed_rows(
+    seed: int, duration: float, variants: list[str], tmp: Path, extra=(), bare: bool = False
+) -> list[dict]:
+    """One row per variant of the seed: the defaults' RMSE and the reference's (``bare``: the
+    defaults on the log with its ranges' ``std`` column left out)."""
     rows = []
     for variant in variants:
         variant_of(variant)  # an unknown name stops here, before the export
         folder = tmp / f"seed{seed}-{variant}"
         scenario = export(seed, duration, folder, variant)
+        replayed = without_std(folder, tmp / f"seed{seed}-{variant}-nostd") if bare else folder
         row = {
             "seed": seed,
-            "log": variant,
-            **replay_defaults(folder, extra),
+            "log": f"{variant}, no std" if bare else variant,
+            **replay_defaults(replayed, extra),
             **reference(folder, scenario, variant_of(variant)[1]),
         }
         rows.append(row)

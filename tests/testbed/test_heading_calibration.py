@@ -68,8 +68,9 @@ def test_a_drifting_heading_is_left_to_the_heading_filter_not_to_its_position_no
     estimates the bias, is scored best with a smaller one, no worse on held-out ranges than its
     prior, and the truth (never read by the calibration) agrees."""
     log = circle_log(120.0, 0.01)
-    q_xy = calibrate_noise(log, np.zeros(4))[0]
-    options, scores, tests, reason = heading_noise(log, np.zeros(4))
+    prior = {"range_sigma": 1.0}  # the replay's prior (this log's own noise, 0.3 m, is found)
+    q_xy = calibrate_noise(log, np.zeros(4), setup_options=prior)[0]
+    options, scores, tests, reason = heading_noise(log, np.zeros(4), setup_options=prior)
     q = options["q_xy_heading"]
     assert q_xy >= 4.0 and q < q_xy, (q_xy, reason)
     t = tests["q_xy_heading"]
@@ -79,7 +80,8 @@ def test_a_drifting_heading_is_left_to_the_heading_filter_not_to_its_position_no
 
     def rmse(q_heading):
         s = run_replay(log, estimators=["ekf-heading"], initial_offset=2.0, batch=False,
-                       setup_options={"q_xy_heading": q_heading, "q_theta": options["q_theta"]},
+                       setup_options={**prior, "q_xy_heading": q_heading,
+                                      "q_theta": options["q_theta"]},
                        burn_in=10.0)  # fmt: skip
         return s["estimators"]["ekf-heading"]["rmse"]
 

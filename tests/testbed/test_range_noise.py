@@ -66,4 +66,25 @@ def test_the_plaza_logs_keep_the_prior():
     for name in ("plaza1", "plaza2"):
         sigma, sigma_2, _ = range_noise(load_builtin(name))
         assert sigma_2 > 1.25 * sigma, name
-        assert "range_sigma" not in log_defaults(load_builtin(name))
+        assert not {"range_sigma", "range_sigma_heading"} & set(log_defaults(load_builtin(name)))
+
+
+def test_an_odometry_log_gives_its_noise_to_every_filter():
+    """A planar odometry log stating no ``std`` takes the ranges' own noise, as a body-IMU log
+    does; a ``range_sigma`` the user sets stands."""
+    from quadobs.testbed.logs.estimators import build_ukf_heading, replay_setup
+    from quadobs.testbed.worlds.replay import ReplayWorld
+
+    body = _log(rate=100.0, speed=1.0, sigma=0.1)
+    t = body.ranges[:, 0]
+    odometry = np.column_stack([t, np.full(t.size, 1.0), np.full(t.size, 0.5)])
+    log = dataclasses.replace(
+        body, beacons=ANCHORS[:, :2], inputs=odometry, input_kind="odometry", heading0=0.0
+    )
+    sigma = stated_range_noise(log)
+    assert 0.09 < sigma < 0.12 and log_defaults(log)["range_sigma"] == sigma
+    world = ReplayWorld(log, dt=0.1)
+    setup = replay_setup(log, world, initial_offset=1.0)
+    assert setup.range_sigma == sigma
+    assert build_ukf_heading(setup, np.zeros(setup.n)).range_sigma == sigma
+    assert replay_setup(log, world, {"range_sigma": 0.3}, initial_offset=1.0).range_sigma == 0.3

@@ -468,6 +468,7 @@ def test_the_noise_calibration_trusts_good_odometry_and_not_a_drifting_one():
         calibrate_noise,
         self_calibrate,
     )
+    from quadobs.testbed.logs.range_noise import stated_range_noise
 
     tried = range(len(NOISE_FACTORS), len(NOISE_FACTORS) + EXTEND + 1)  # the grid, and past it
 
@@ -493,14 +494,16 @@ def test_the_noise_calibration_trusts_good_odometry_and_not_a_drifting_one():
     b, options, scores = self_calibrate(
         drift
     )  # biases, then the noise with them, then the biases again
+    own = {"range_sigma": stated_range_noise(drift)}  # the ranges' own noise (log_defaults)
+    assert own["range_sigma"] == pytest.approx(0.3, rel=0.15)
     assert (
-        set(options) == {"q_xy", "q_xy_heading", "q_theta"}  # the heading filters' own too
+        set(options) == {"q_xy", "q_xy_heading", "q_theta", *own}  # the heading filters' own too
         and options["q_xy"] >= 4.0
         and len(scores) in tried
         and b.shape == (4,)
     )
     assert self_calibrate(drift, setup_options={"q_xy": 0.5}, noise=False)[1:] == (
-        {"q_xy": 0.5},
+        {"q_xy": 0.5, **own},
         {},
     )
 

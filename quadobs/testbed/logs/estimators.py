@@ -19,9 +19,9 @@ ranges, never from the truth. No default is tied to one log's scale.
 
 * ranges: a measurement's own standard deviation where the log gives one, else
   ``range_sigma`` (1 m; a TDOA ``sqrt(2) range_sigma``, :meth:`ReplaySetup.measurement_std`);
-  where the ``ranges.csv`` of a body-IMU log states none, ``range_sigma`` is the ranges' own
-  noise where they show it (:func:`~quadobs.testbed.logs.range_noise.stated_range_noise`, in
-  :func:`log_defaults`; odometry logs keep the prior, with which their calibration was measured).
+  where the ``ranges.csv`` of a body-IMU or odometry log states none, ``range_sigma`` is the
+  ranges' own noise where they show it (:func:`~quadobs.testbed.logs.range_noise.stated_range_noise`,
+  in :func:`log_defaults`; the Plaza logs do not, and keep the prior).
   The augmented observer's output is the half squared range, of variance
   ``rho^2 sigma^2 + sigma^4 / 2`` for each range ``rho`` in time (in the cascade
   ``augmented-heading``, ``rho`` the larger of the measured range and the one its estimate
@@ -328,7 +328,7 @@ def odometry_noise(log) -> float:
 def log_defaults(log) -> dict:
     """The setup options whose defaults a log sets (:class:`ReplaySetup`): ``q_xy`` of an
     odometry log (:func:`odometry_noise`), ``q_imu`` from the IMU's stated figures
-    (:func:`imu_input_noise`), ``range_sigma`` from the ranges of a body-IMU log that states none
+    (:func:`imu_input_noise`), ``range_sigma`` from the ranges of a log that states none
     (:func:`~quadobs.testbed.logs.range_noise.stated_range_noise`); empty for a log that gives
     none of them. :func:`replay_setup` fills
     them where ``options`` does not set them; the self-calibration takes them as its prior."""
@@ -340,8 +340,8 @@ def log_defaults(log) -> dict:
         out["q_imu"] = q
     from quadobs.testbed.logs.range_noise import stated_range_noise
 
-    sigma = stated_range_noise(log) if log.input_kind == "imu_body" else None
-    if sigma is not None:  # a body-IMU log's ranges stating no std: their own noise, if shown
+    sigma = stated_range_noise(log) if log.input_kind in ("imu_body", "odometry") else None
+    if sigma is not None:  # ranges stating no std: their own noise, where they show it
         out["range_sigma"] = sigma
     return out
 
