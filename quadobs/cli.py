@@ -424,6 +424,7 @@ def _cmd_bench(args) -> int:
         batch_steps=args.batch_steps,
         threads=args.threads,
         quick=args.quick,
+        cold_start=not args.no_cold_start,
         log=log,
     )
     print_bench(result)
@@ -847,6 +848,11 @@ def _add_bench(sub, estimators_option) -> None:
         help="threads for the batch: MuJoCo's rollout and the observers (default 0: calling thread)",
     )
     p.add_argument("--quick", action="store_true", help="a small scaling table")
+    p.add_argument(
+        "--no-cold-start",
+        action="store_true",
+        help="skip the first run on a fresh kernel cache (it compiles every kernel twice)",
+    )
     p.add_argument("--quiet", action="store_true", help="no progress messages")
     p.set_defaults(func=_cmd_bench)
 

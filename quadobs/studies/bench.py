@@ -32,7 +32,8 @@ Figures (keys of the JSON written by ``--json``):
     load on the machine).
 ``cold_start``
     A first run on a fresh kernel cache (:func:`_cold_start`): ``cold_run_s``,
-    ``compile_s`` (``quadobs compile``), ``first_run_s`` (the run after it).
+    ``compile_s`` (``quadobs compile``), ``first_run_s`` (the run after it). Absent with
+    ``--no-cold-start``.
 ``observer_block_step_us``
     One row of :meth:`AugmentedObserver.step_block` (a block of rows in one compiled call).
 ``campaign``
@@ -662,6 +663,7 @@ def run_bench(
     batch_steps: int = 200,
     threads: int = 0,
     quick: bool = False,
+    cold_start: bool = True,
     log=None,
 ) -> dict:
     """Measure every figure of the module docstring; returns the JSON-ready dictionary.
@@ -678,16 +680,20 @@ def run_bench(
         Threads of MuJoCo's rollout pool and of the batched observer (0: the calling thread).
     quick : bool
         A small table of systems for the scaling figure.
+    cold_start : bool
+        Measure the first run on a fresh kernel cache (:func:`_cold_start`: it compiles every
+        kernel twice, the longest part of a quick bench); ``False`` leaves ``cold_start`` out
+        and its target unmeasured.
     log : callable, optional
         Called with a progress message before each part.
     """
     from quadobs.testbed.episode import single_threaded_blas
 
     with single_threaded_blas():  # as in ``quadobs run``: no BLAS worker threads beside the loop
-        return _run_bench(steps, repeats, batch, batch_steps, threads, quick, log)
+        return _run_bench(steps, repeats, batch, batch_steps, threads, quick, cold_start, log)
 
 
-def _run_bench(steps, repeats, batch, batch_steps, threads, quick, log) -> dict:
+def _run_bench(steps, repeats, batch, batch_steps, threads, quick, cold_start, log) -> dict:
     from quadobs.estimators.augmented import default_backend
     from quadobs.testbed.scenario import load_scenario
 
@@ -723,8 +729,9 @@ def _run_bench(steps, repeats, batch, batch_steps, threads, quick, log) -> dict:
     result["observer_step_us_N38"] = dense_row[f"{default_backend()}_median_us"]
     say("log reading: a 300k-row ranges.csv, pyarrow against a float() per cell")
     result["log_read"] = log_read_figure(repeats=max(min(repeats, 5), 1))
-    say("first run on a fresh kernel cache, with and without 'quadobs compile' before it")
-    result["cold_start"] = _cold_start()
+    if cold_start:
+        say("first run on a fresh kernel cache, with and without 'quadobs compile' before it")
+        result["cold_start"] = _cold_start()
     notes.append(
         "GPU batch figure: not measured (quadobs has no GPU path; the batch runs on the CPU)"
     )
@@ -858,7 +865,7 @@ def _targets(result: dict) -> dict:
         "zonotope_step_us < 50": _meets(result["zonotope_step_us"], 50.0, "<"),
         "quadrotor_ratio >= 0.3": _meets(result["quadrotor"]["quadrotor_ratio"], 0.3, ">="),
         "first run after quadobs compile <= 5 s": _meets(
-            result["cold_start"]["first_run_s"], 5.0, "<="
+            (result.get("cold_start") or {}).get("first_run_s"), 5.0, "<="
         ),
         "log_read_speedup >= 5": _meets(
             (result.get("log_read") or {}).get("log_read_speedup"), 5.0, ">="
@@ -975,11 +982,14 @@ def _print_rest(r: dict, p) -> None:
         f"loop with recording {q['loop_us']:.2f} us/step ({q['loop_steps_per_s']:,.0f} steps/s); ratio {q['quadrotor_ratio']:.2f} "
         f"[{q['spread']['q1']:.2f}, {q['spread']['q3']:.2f}]"
     )
-    cs = r["cold_start"]
-    p(
-        f"first run on a fresh kernel cache (one-step run, whole process): {cs['cold_run_s']:.1f} s compiling in the run; "
-        f"'quadobs compile' {cs['compile_s']:.1f} s, then the first run {cs['first_run_s']:.1f} s"
-    )
+    cs = r.get("cold_start")
+    if cs is None:
+        p("first run on a fresh kernel cache: not measured (--no-cold-start)")
+    else:
+        p(
+            f"first run on a fresh kernel cache (one-step run, whole process): {cs['cold_run_s']:.1f} s compiling in the run; "
+            f"'quadobs compile' {cs['compile_s']:.1f} s, then the first run {cs['first_run_s']:.1f} s"
+        )
     p("observer step against the dimensions (us per step, fastest of a few repeats)")
     backend = r["backend"]
     p(f"  {'system':8s} {'n':>3s} {'q':>3s} {'N':>4s} {backend:>8s} {'numpy':>8s}")
