@@ -1268,6 +1268,10 @@ def _replay_clock_offset(args, log, tuning: dict):
 
     if args.clock_offset == 0.0:
         return log
+    if log.input_kind == "none":
+        from quadobs.errors import QuadobsError
+
+        raise QuadobsError(f"--clock-offset: {log.name} holds no inputs to move against its ranges")
     if args.clock_offset == "auto":
         from quadobs.testbed.logs.estimators import log_defaults
         from quadobs.testbed.worlds.replay import default_model

@@ -62,7 +62,7 @@ def test_with_input_offset_moves_the_inputs_and_the_attitude_only():
 def test_a_known_offset_is_found_and_none_is_kept_where_there_is_none(late):
     log = _swinging_log(late)
     found = estimate_clock_offset(log, setup_options={"q_imu": 0.01, "range_sigma": 0.02})
-    assert found.offset == pytest.approx(late, abs=0.5 * offset_step(log) / 2)
+    assert found.offset == pytest.approx(late, abs=0.5 * offset_step(log))
     if late:
         assert found.test["significantly_better"], found.reason
         assert found.scores[found.offset] < 0.5 * found.scores[0.0]

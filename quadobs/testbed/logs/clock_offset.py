@@ -17,10 +17,14 @@ offset stays zero.
 
 The grid (:func:`offset_step`) is derived from the log's rates, not from its values: its step
 ``h`` is the longer of the inputs' median interval and the ranges' median interval (over all
-anchors: one range's worth of time, finer than which the ranges do not tell two offsets
-apart), its span ``+-`` :data:`SPAN` steps, going on by :data:`SPAN` steps past an edge that
-scores best (at most :data:`EXTEND` times, while the score falls), then refined by halving
-the step :data:`REFINE` times about the best candidate.
+anchors: finer than one range's worth of time, the ranges do not tell two offsets apart). The
+search scores ``0`` and ``+-h``; where the better of ``+-h`` predicts the held-out ranges
+better than ``0`` by more than the standard error of the paired difference, it goes on along
+that side by steps of ``h`` (at most :data:`STEPS`) while each step gains as much on the one
+before, then halves the step :data:`REFINE` times about the best candidate. Where neither
+``+-h`` gains, the offset stays zero after three replays. Every candidate replays the same
+ranges (those at least the search's reach inside the inputs' span) and scores them from the
+same time, so the candidates are compared range by range.
 
 Which logs: those whose inputs drive the motion between ranges and carry their own times: a
 body IMU or a navigation-frame accelerometer (models ``imu``). An odometry log could take the
@@ -184,21 +188,33 @@ def estimate_clock_offset(
         scored_from=start,
     )  # fmt: skip
     cap = _cap(runs[0.0])
+
+    def gains(tau: float, than: float) -> bool:  # lower by more than its standard error
+        score(tau)
+        c = compare(runs[tau], runs[than], cap)
+        return c.difference + c.standard_error < 0.0
+
     best = min((0.0, -h, h), key=lambda t: (score(t), abs(t)))
-    if best:  # on along the better side while the score falls
+    if best and gains(best, 0.0):  # on along the better side while the score falls
         sign = math.copysign(1.0, best)
         for k in range(2, STEPS + 1):
-            if not score(sign * k * h) < score(best):
+            if not gains(round(sign * k * h, 9), best):
                 break
             best = round(sign * k * h, 9)
-    step = h
-    for _ in range(REFINE):
-        step /= 2.0
-        near = (best, round(best - step, 9), round(best + step, 9))
-        best = min(near, key=lambda t: (score(t), abs(t)))
+        step = h
+        for _ in range(REFINE):
+            step /= 2.0
+            near = (best, round(best - step, 9), round(best + step, 9))
+            best = min(near, key=lambda t: (score(t), abs(t)))
+    else:
+        best = 0.0
     scores = {t: score(t) for t in sorted(runs)}
     if best == 0.0:
-        reason = "clock offset of the inputs +0.0 ms: no offset predicts the held-out ranges better"
+        reason = (
+            f"clock offset of the inputs +0.0 ms: neither {h * 1e3:+.3g} ms nor"
+            f" {-h * 1e3:+.3g} ms predicts the held-out ranges better by more than its standard"
+            f" error ({scores[-h]:.3f} and {scores[h]:.3f} m, none {scores[0.0]:.3f} m)"
+        )
         return ClockOffset(0.0, 0.0, h, scores, {}, reason)
     test = compare(runs[best], runs[0.0], cap, candidates=len(runs) - 1)
     chosen = best if test.better else 0.0
