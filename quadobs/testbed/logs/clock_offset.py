@@ -134,7 +134,7 @@ class ClockOffset:
         return {
             "offset": self.offset,
             "candidate": self.candidate,
-            "step": self.step,
+            "step": self.step if math.isfinite(self.step) else None,
             "scores": {f"{k:.6g}": v for k, v in sorted(self.scores.items())},
             "test": self.test,
         }
