@@ -1253,6 +1253,9 @@ def _replay_calibration(args, log, tuning: dict) -> tuple[list[float] | np.ndarr
     chosen = "none" if cal.biases is None else ", ".join(f"{b:.2f}" for b in cal.biases) + " m"
     print(f"calibrated from the log: biases {chosen}; {cal.reason}")
     args.calibration_report = {**cal.summary(), **getattr(args, "clock_report", {})}
+    if "clock_offset" in args.calibration_report:  # the offset's reason first, as it came first
+        clock = args.calibration_report["clock_offset"]["reason"]
+        args.calibration_report["reason"] = f"{clock}; {cal.reason}"
     return None if cal.biases is None else [float(b) for b in cal.biases], cal.options
 
 
@@ -1287,7 +1290,7 @@ def _replay_clock_offset(args, log, tuning: dict):
             tau, tau, 0.0, reason=f"clock offset of the inputs {tau * 1e3:+.1f} ms: given"
         )
     args.clock_report = {"clock_offset": found.summary() | {"reason": found.reason}}
-    args.calibration_report = args.clock_report
+    args.calibration_report = {**args.clock_report, "reason": found.reason}
     return with_input_offset(log, found.offset)
 
 

@@ -83,6 +83,7 @@ def test_the_replay_applies_and_reports_the_clock_offset(tmp_path, capsys):
         summaries[offset] = json.loads(path.read_text())
     given = summaries["0.1"]["calibration"]["clock_offset"]
     assert given["offset"] == 0.1 and "given" in given["reason"]
+    assert summaries["0.1"]["calibration"]["reason"] == given["reason"]  # --calibrate none
     rmse = {k: s["estimators"]["ekf"]["rmse"] for k, s in summaries.items()}
     assert rmse["0.1"] < 0.5 * rmse["0"], rmse
 
