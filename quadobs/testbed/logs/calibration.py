@@ -36,7 +36,9 @@ for one candidate (the biases), ``3.01`` for the best of the seven other noise i
 Paired differences cancel the range noise that both settings see, so a
 real improvement shows where the scores' own spread would hide it.
 
-Order (:func:`calibrate`):
+Order (:func:`calibrate`), on the log with its inputs moved onto the ranges' clock where the
+replay is given a clock offset or asked to search one (``--clock-offset``, not by default:
+:mod:`~quadobs.testbed.logs.clock_offset`, scored as below):
 
 1. the prior: the setup's defaults, no biases (the reference of everything below);
 2. range biases at the prior's noise, a fixed-point iteration on the fitted (not held-out)
