@@ -965,7 +965,30 @@ def _add_replay(sub) -> None:
         metavar="DIR",
         help="write the truth and each estimator's positions as TUM files (truth.tum, NAME.tum) for evo_ape",
     )
+    p.add_argument(
+        "--clock-offset",
+        type=_clock_offset_value,
+        default=0.0,
+        metavar="SECONDS|auto",
+        help="the inputs (IMU, odometry) stamped this many seconds late against the ranges: moved onto the ranges' clock for every estimator; auto: searched from the log's held-out ranges (default 0)",
+    )
     p.set_defaults(func=_cmd_replay)
+
+
+def _clock_offset_value(text: str) -> float | str:
+    """``--clock-offset``: ``auto`` or a finite number of seconds."""
+    import argparse
+    import math
+
+    if text.strip().lower() == "auto":
+        return "auto"
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected seconds or auto, got {text!r}") from None
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"expected a finite number of seconds, got {text!r}")
+    return value
 
 
 def _cmd_replay(args) -> int:
@@ -1002,6 +1025,7 @@ def _cmd_replay(args) -> int:
         log, _estimator_list(args.estimators), dt=args.dt, model=args.model,
         options=parse_tuning(args.tune),
     )  # fmt: skip
+    log = _replay_clock_offset(args, log, parse_tuning(args.tune))
     biases, tuning = _replay_calibration(args, log, parse_tuning(args.tune))
     stop_if_interrupted()
     summary = run_replay(
@@ -1234,8 +1258,46 @@ def _replay_calibration(args, log, tuning: dict) -> tuple[list[float] | np.ndarr
     args.as_logged = estimator_biases(log, cal, names, dt=args.dt, model=args.model)
     chosen = "none" if cal.biases is None else ", ".join(f"{b:.2f}" for b in cal.biases) + " m"
     print(f"calibrated from the log: biases {chosen}; {cal.reason}")
-    args.calibration_report = cal.summary()
+    args.calibration_report = {**cal.summary(), **getattr(args, "clock_report", {})}
+    if "clock_offset" in args.calibration_report:  # the offset's reason first, as it came first
+        clock = args.calibration_report["clock_offset"]["reason"]
+        args.calibration_report["reason"] = f"{clock}; {cal.reason}"
     return None if cal.biases is None else [float(b) for b in cal.biases], cal.options
+
+
+def _replay_clock_offset(args, log, tuning: dict):
+    """The log with its inputs moved onto the ranges' clock by ``--clock-offset``: as given, or
+    (``auto``) searched from the log (:mod:`quadobs.testbed.logs.clock_offset`); the choice and
+    its reason kept for the summary's ``calibration``."""
+    from quadobs.testbed.logs.clock_offset import (
+        ClockOffset,
+        estimate_clock_offset,
+        with_input_offset,
+    )
+
+    if args.clock_offset == 0.0:
+        return log
+    if log.input_kind == "none":
+        from quadobs.errors import QuadobsError
+
+        raise QuadobsError(f"--clock-offset: {log.name} holds no inputs to move against its ranges")
+    if args.clock_offset == "auto":
+        from quadobs.testbed.logs.estimators import log_defaults
+        from quadobs.testbed.worlds.replay import default_model
+
+        options = {**log_defaults(log), **tuning}
+        found = estimate_clock_offset(
+            log, dt=args.dt, model=args.model or default_model(log), setup_options=options
+        )
+        print(f"calibrated from the log: {found.reason}")
+    else:
+        tau = float(args.clock_offset)
+        found = ClockOffset(
+            tau, tau, 0.0, reason=f"clock offset of the inputs {tau * 1e3:+.1f} ms: given"
+        )
+    args.clock_report = {"clock_offset": found.summary() | {"reason": found.reason}}
+    args.calibration_report = {**args.clock_report, "reason": found.reason}
+    return with_input_offset(log, found.offset)
 
 
 #: The options whose value may start with a minus sign (a list of numbers such as ``-0.2,0.1``).

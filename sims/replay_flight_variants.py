@@ -39,7 +39,8 @@ variant):
 * ``real``: every one of the above at once (``vib100`` for the rate).
 
 Each variant is replayed with the command's defaults (``quadobs replay DIR --burn-in 5``;
-``--calibrate none``: without the self-calibration,
+``--calibrate none``: without the self-calibration; ``--clock-offset auto``: the inputs' clock
+offset searched, :mod:`quadobs.testbed.logs.clock_offset`;
 in-process through :func:`quadobs.cli.main`), and the table gives every estimator's position
 RMSE after the burn-in and its ``diverged`` flag (diverged or locked out), then the best
 estimator's RMSE per variant and seed.
@@ -205,16 +206,22 @@ def real_variant(log, kind: str, rng, accel: float, gyro: float):
 
 
 def replay(
-    folder: Path, estimators: str | None, burn_in: float, reuse: bool = False, calibrate="self"
+    folder: Path,
+    estimators: str | None,
+    burn_in: float,
+    reuse: bool = False,
+    calibrate="self",
+    clock_offset: str = "0",
 ) -> dict:
-    """``quadobs replay FOLDER --burn-in B --calibrate C`` (defaults otherwise); its summary
-    (with ``reuse``, the summary a previous run left, if any)."""
+    """``quadobs replay FOLDER --burn-in B --calibrate C --clock-offset O`` (defaults
+    otherwise); its summary (with ``reuse``, the summary a previous run left, if any)."""
     tag = "" if calibrate == "self" else f"-{calibrate}"
+    tag += "" if clock_offset == "0" else f"-clock{clock_offset}"
     summary = folder.parent / f"{folder.name}{tag}.json"
     if reuse and summary.exists():
         return json.loads(summary.read_text())
     argv = ["replay", str(folder), "--burn-in", f"{burn_in:g}", "--summary", str(summary)]
-    argv += ["--calibrate", calibrate]
+    argv += ["--calibrate", calibrate, "--clock-offset", clock_offset]
     argv += ["--no-progress"] + (["--estimators", estimators] if estimators else [])
     code = cli.main(argv)
     if code not in (0, 1):
@@ -237,6 +244,7 @@ def main() -> None:
     ap.add_argument("--out", help="folder for the logs and summaries (default: a temporary one)")
     ap.add_argument("--reuse", action="store_true", help="take the summaries a previous run left")
     ap.add_argument("--calibrate", default="self", choices=("self", "none"), help="the replay's")
+    ap.add_argument("--clock-offset", default="0", help="the replay's (seconds or auto)")
     args = ap.parse_args()
     out = Path(args.out or tempfile.mkdtemp(prefix="flights-"))
     rows = []
@@ -260,6 +268,7 @@ def main() -> None:
                 args.burn_in,
                 args.reuse,
                 args.calibrate,
+                args.clock_offset,
             )
             if "failed" in s:
                 rows.append((seed, kind, "-", None, f"replay exited {s['failed']}"))

@@ -36,7 +36,9 @@ for one candidate (the biases), ``3.01`` for the best of the seven other noise i
 Paired differences cancel the range noise that both settings see, so a
 real improvement shows where the scores' own spread would hide it.
 
-Order (:func:`calibrate`):
+Order (:func:`calibrate`), on the log with its inputs moved onto the ranges' clock where the
+replay is given a clock offset or asked to search one (``--clock-offset``, not by default:
+:mod:`~quadobs.testbed.logs.clock_offset`, scored as below):
 
 1. the prior: the setup's defaults, no biases (the reference of everything below);
 2. range biases at the prior's noise, a fixed-point iteration on the fitted (not held-out)
@@ -265,12 +267,15 @@ def prediction_residuals(
     estimator="ekf",
     setup_options=None,
     hold_out: bool = True,
+    scored_from: float | None = None,
 ) -> Residuals:
     """One replay in time with ``biases`` (module docstring): the residuals of the ranges from
     :data:`SCORED_FROM` of the log on; with ``hold_out``, every :data:`HOLD_OUT`-th range is not
     corrected with. An estimator that holds the range biases as states
     (:func:`holds_range_biases`) predicts a range with its own bias estimate added,
-    ``r = rho - b_h - |p^- - a_h| - beta_h^-``."""
+    ``r = rho - b_h - |p^- - a_h| - beta_h^-``. ``scored_from``: the time (s, the log's
+    clock) from which the ranges are scored, in place of :data:`SCORED_FROM` of the log (the
+    same ranges scored in replays whose spans differ, :mod:`~quadobs.testbed.logs.clock_offset`)."""
     model = model or default_model(log)
     q = log.beacons.shape[0]
     b = np.zeros(q) if biases is None else np.asarray(biases, dtype=float)
@@ -283,6 +288,7 @@ def prediction_residuals(
     if i:
         est.hold(U[i - 1])
     start = world.times[0] + SCORED_FROM * (world.times[-1] - world.times[0])
+    start = start if scored_from is None else float(scored_from)
     kind = scored_kind(log)
     dim, index = log.dimension, _range_index(events, kind)
     out_r, out_h, out_held, out_t = [], [], [], []
