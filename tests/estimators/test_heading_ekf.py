@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -111,6 +112,26 @@ def test_a_prior_as_wide_as_the_anchors_is_replaced_by_a_multilateration(cls):
     # a prior narrower than half the anchors' extent is kept
     g = cls(log.beacons, x0=[RADIUS, 0.0, 0.0, 0.0], P0=[1.0, 1.0, 0.1, 1e-3], dt=0.1, **NOISE)
     assert not g.fix_pending
+
+
+@pytest.mark.parametrize("cls", [HeadingEKF, HeadingUKF])
+@pytest.mark.parametrize("stated", [0.05, math.nan])
+def test_the_fix_takes_the_variance_of_the_ranges_it_was_made_of(cls, stated):
+    # ranges stating their std (0.05 m) under a setup prior of 1 m: the fix's position variance
+    # is the stated std's square, not the prior's; ranges stating none take the prior
+    log = circle_log(bias=0.0, heading_error=0.0)
+    noise = {**NOISE, "range_sigma": 1.0}
+    f = cls(log.beacons, x0=[45.0, 40.0, 0.0, 0.0], P0=[2500.0, 2500.0, 0.1, 1e-3], dt=0.1, **noise)
+    f.time = 0.0
+    f.hold(np.array([SPEED, 0.0, OMEGA]))
+    for m in log.measurements():
+        f.predict(m.t)
+        f.correct(dataclasses.replace(m, std=stated))
+        if f.fixes:
+            break
+    sigma = 1.0 if math.isnan(stated) else stated
+    assert len(f.fixes) == 1
+    assert np.allclose(f.state_covariance[:2, :2], sigma**2 * np.eye(2))
 
 
 def test_the_replay_runs_them_on_an_odometry_log_and_refuses_other_logs(tmp_path):
