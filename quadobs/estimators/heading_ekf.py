@@ -380,7 +380,7 @@ class _HeadingFilter(Estimator, Gated):
             raise QuadobsError(f"{self.name}: has no model of range outputs")
         for i in np.flatnonzero(~np.isnan(y)):
             rho = math.sqrt(max(2.0 * y[i] + float(self.anchors[i] @ self.anchors[i]), 0.0))
-            self._latest[i] = y[i]
+            self._latest[i], self._latest_std[i] = y[i], self.range_sigma
             m = Measurement(self._time, "range", rho, (int(i),), self.range_sigma)
             self._correct_range(model, m)
             self._starting()
