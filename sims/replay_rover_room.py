@@ -6,7 +6,7 @@ dropouts, wheel odometry with a scale error and a yaw-rate bias) and ``quadobs r
 --burn-in 5`` with every other setting at its default (self-calibration, 50 m initial offset,
 the default estimators). Each log is replayed twice: as exported (each range with the radio's
 stated ``std``) and with the ``std`` column left out, as a log converted by hand holds it (the
-replay's ``range_sigma`` then applies).
+replay then takes the ranges' own noise, docs/error-sources.md).
 
 Beside them, the reference: what a short script does that is *given* what the replay must find
 out, the true per-anchor biases, the simulation's true noise and the true start (no initial

@@ -247,6 +247,7 @@ class _HeadingFilter(Estimator, Gated):
         self.lockout = lockout if lockout is not None else LockOut()
         self._P0, self._x0 = self._P.copy(), self._x.copy()
         self._latest = np.full(self.anchors.shape[0], np.nan)  # y_h = rho^2/2 - |a_h|^2/2
+        self._latest_std = np.full(self.anchors.shape[0], self.range_sigma)  # each one's sigma
         self.nis, self.corrections, self.rejected = math.nan, 0, 0
         self._time = 0.0
         # start-up (_starting): a prior position as wide as the anchors' geometry
@@ -379,7 +380,7 @@ class _HeadingFilter(Estimator, Gated):
             raise QuadobsError(f"{self.name}: has no model of range outputs")
         for i in np.flatnonzero(~np.isnan(y)):
             rho = math.sqrt(max(2.0 * y[i] + float(self.anchors[i] @ self.anchors[i]), 0.0))
-            self._latest[i] = y[i]
+            self._latest[i], self._latest_std[i] = y[i], self.range_sigma
             m = Measurement(self._time, "range", rho, (int(i),), self.range_sigma)
             self._correct_range(model, m)
             self._starting()
@@ -414,6 +415,7 @@ class _HeadingFilter(Estimator, Gated):
             h = m.anchors[0]
             rho = model.unbiased(m)
             self._latest[h] = 0.5 * rho * rho - 0.5 * float(self.anchors[h] @ self.anchors[h])
+            self._latest_std[h] = model.sigma(m)
         self._correct_range(model, m)
         if m.kind == "range":
             self._starting()
@@ -425,7 +427,8 @@ class _HeadingFilter(Estimator, Gated):
         over the prior and a UKF's sigma points no longer see its slope, once every anchor has a
         range (or two rounds' worth have come, an anchor silent) the position is set by their
         least-squares multilateration (:func:`~quadobs.estimators.robust.multilateration`) with
-        the variance ``range_sigma^2`` per axis, and the heading's correction and its bias go
+        the variance ``sigma^2`` per axis (``sigma`` the largest standard deviation of the ranges
+        it took, :meth:`_fix_sigma`), and the heading's correction and its bias go
         back to their prior: what the corrections made of them from a prior of tens of metres
         (a UKF's sigma points spread over it) is not kept. After four rounds without a
         multilateration (anchors in too few directions) the prior is kept."""
@@ -443,8 +446,17 @@ class _HeadingFilter(Estimator, Gated):
             self._x[:2] = fixed[1]
             self._x[2:] = self._x0[2:]
             self._P = self._P0.copy()
-            self._P[:2, :2] = self.range_sigma**2 * np.eye(2) + self._fix_spread()
+            self._P[:2, :2] = self._fix_sigma() ** 2 * np.eye(2) + self._fix_spread()
             self.fixes.append(self._time)
+
+    def _fix_sigma(self) -> float:
+        """The range noise of the fix: the largest standard deviation among the ranges it took,
+        each range's own (a log's stated ``std``), else ``range_sigma``. A stated ``std`` is the
+        radio's; ``range_sigma`` is then only the setup's prior for ranges that state none (1 m
+        in the replay), and as the fix's variance it left the position ten times less certain
+        than the ranges make it (measured: docs/error-sources.md, a log with a stated std)."""
+        rows = ~np.isnan(self._latest)
+        return float(np.max(self._latest_std[rows])) if rows.any() else self.range_sigma
 
     def _fix_spread(self) -> np.ndarray:
         """The position's covariance that the anchors' unknown offsets and biases give the

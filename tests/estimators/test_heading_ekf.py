@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -111,6 +112,26 @@ def test_a_prior_as_wide_as_the_anchors_is_replaced_by_a_multilateration(cls):
     # a prior narrower than half the anchors' extent is kept
     g = cls(log.beacons, x0=[RADIUS, 0.0, 0.0, 0.0], P0=[1.0, 1.0, 0.1, 1e-3], dt=0.1, **NOISE)
     assert not g.fix_pending
+
+
+@pytest.mark.parametrize("cls", [HeadingEKF, HeadingUKF])
+@pytest.mark.parametrize("stated", [0.05, math.nan])
+def test_the_fix_takes_the_variance_of_the_ranges_it_was_made_of(cls, stated):
+    # ranges stating their std (0.05 m) under a setup prior of 1 m: the fix's position variance
+    # is the stated std's square, not the prior's; ranges stating none take the prior
+    log = circle_log(bias=0.0, heading_error=0.0)
+    noise = {**NOISE, "range_sigma": 1.0}
+    f = cls(log.beacons, x0=[45.0, 40.0, 0.0, 0.0], P0=[2500.0, 2500.0, 0.1, 1e-3], dt=0.1, **noise)
+    f.time = 0.0
+    f.hold(np.array([SPEED, 0.0, OMEGA]))
+    for m in log.measurements():
+        f.predict(m.t)
+        f.correct(dataclasses.replace(m, std=stated))
+        if f.fixes:
+            break
+    sigma = 1.0 if math.isnan(stated) else stated
+    assert len(f.fixes) == 1
+    assert np.allclose(f.state_covariance[:2, :2], sigma**2 * np.eye(2))
 
 
 def test_the_replay_runs_them_on_an_odometry_log_and_refuses_other_logs(tmp_path):
@@ -397,3 +418,43 @@ def test_the_points_map_is_the_arc_step_on_every_row():
     u = np.array([0.4, 0.1, 0.3])
     expected = [np.r_[arc_step(x[:4], u, 0.05)[0], x[4:]] for x in X]
     np.testing.assert_allclose(arc_points(X, u, 0.05), expected, rtol=1e-13, atol=1e-15)
+
+
+def test_the_filter_with_the_anchors_states_bounds_an_outliers_correction_by_hubers_rule():
+    """``ukf-height-lever``'s rule: Huber's bound at the replay's gate (3.29 standard deviations of
+    the innovation for the default 0.999); a range 1 m long at a stated 0.05 m corrects as with
+    its variance multiplied by ``|r| / c`` (the closed form of the re-weighting), a range within
+    the bound in full."""
+    from types import SimpleNamespace
+
+    from quadobs.core.measurements import Measurement, RangeModel
+    from quadobs.testbed.logs.height_estimators import heading_height_options, huber_rule
+
+    anchors = np.array([[0.12, 0.10], [2.90, 0.16], [2.86, 2.28], [0.15, 2.31]])
+    setup = SimpleNamespace(kinds=("range",), dim=2, beacons=anchors, range_sigma=1.0, gate=None)
+    rule = heading_height_options(setup, "ukf-height-lever")["robust"]
+    assert rule.c == pytest.approx(math.sqrt(10.828), abs=1e-3) == huber_rule(None).c
+    assert huber_rule(13.8).c == pytest.approx(math.sqrt(13.8))
+
+    def corrected(error: float, robust):
+        f = HeadingEKF(anchors, x0=[1.5, 1.2, 0, 0], P0=[0.01, 0.01, 0.01, 1e-4], dt=0.1,
+                       q_xy=1e-3, q_theta=1e-4, q_bias=1e-8, lever_arm_std=0.2,
+                       offsets=(1.5, 0.01), bias_std=0.01, robust=robust)  # fmt: skip
+        rho = RangeModel(anchors, 0.05)
+        m0 = Measurement(0.0, "range", 0.0, (1,), 0.05)
+        m = Measurement(0.0, "range", f.linearized(rho, m0, f.state)[0] + error, (1,), 0.05)
+        x = f.state.copy()
+        f.correct(m)
+        return f.state - x, f.nis
+
+    seen = []
+    for error in (1.0, 0.1):
+        dx0, nis0 = corrected(error, None)
+        seen.append(math.sqrt(nis0) > rule.c)
+        dx, _ = corrected(error, rule)
+        r = math.sqrt(nis0)  # |nu| / sqrt(S), the same prediction for both
+        S = error**2 / nis0
+        inflated = S + 0.05**2 * (max(r / rule.c, 1.0) - 1.0)
+        assert np.allclose(dx, dx0 * S / inflated, rtol=1e-9, atol=1e-12)
+        assert (r > rule.c) == (np.linalg.norm(dx) < 0.999 * np.linalg.norm(dx0))
+    assert seen == [True, False]  # the outlier beyond the bound, the 0.1 m within it
