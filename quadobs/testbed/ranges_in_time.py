@@ -15,8 +15,9 @@ which is what the replay in time does with the same samples read from a log
 (:class:`~quadobs.testbed.logs.events.InTimeOnGrid`). The augmented observer then takes each
 range with its own output variance ``rho^2 sigma^2 + sigma^4 / 2`` and the state-dependent
 process noise ``V(z)`` (:mod:`quadobs.estimators.augmented_tuning`) rather than the grid's
-constant ``R`` and ``V``. A step costs the interval's matrix exponentials (about 0.3 ms on a
-laptop core against 2.4 us for the compiled grid step).
+constant ``R`` and ``V``. A step costs the interval's matrix exponentials: 155 us of CPU per
+1 ms step on ``quadrotor-uwb`` (8 ranges every 10 steps; 11 s over its 70 s flight), against
+2.4 us for the compiled grid step.
 """
 
 from __future__ import annotations
