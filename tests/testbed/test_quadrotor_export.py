@@ -103,8 +103,9 @@ def _rmse(trace, name: str, burn_in: float) -> float:
 
 def test_the_scenarios_estimators_on_the_log_fly_as_they_did(exported_flight):
     """The scenario's own estimators driven by the log's rows on the physics grid: the live RMSE
-    within 1 % (measured 0.997 and 0.998: the inputs differ between AHRS samples only, where the
-    replay interpolates the attitude that the episode held)."""
+    within 1 % (measured 0.999 and 0.998, the observer taking each range in time as live: the
+    inputs differ between AHRS samples only, where the replay interpolates the attitude that
+    the episode held)."""
     from quadobs.testbed.episode import run_loop
     from quadobs.testbed.registry import build_estimators
     from quadobs.testbed.sinks import TraceSink
