@@ -49,6 +49,8 @@ class RangesInTime(InnerClock, Gated, Immersed):
 
     Attributes
     ----------
+    q : int
+        The outputs ``y`` holds (the inner observer's ranges).
     nis : float
         The sum of the scalar corrections' NIS over the step: for independent outputs, the
         NIS of their joint correction (NaN where no range was sampled).
@@ -65,7 +67,7 @@ class RangesInTime(InnerClock, Gated, Immersed):
         self.range_sigma = float(range_sigma)
         anchors = inner.measurement_models["range"].anchors
         self._a2 = np.einsum("hi,hi->h", anchors, anchors)
-        self._p, self._q = inner.immersion.system.p, inner.immersion.system.q
+        self._p, self.q = inner.immersion.system.p, inner.immersion.system.q
         self.nis = math.nan
 
     gate = property(lambda self: self.inner.gate)
@@ -75,7 +77,7 @@ class RangesInTime(InnerClock, Gated, Immersed):
 
     def step(self, u, y) -> None:
         """Correct with each range sampled in ``y``, then hold ``u`` and predict over the step."""
-        u, y = step_operands(u, y, self._p, self._q)
+        u, y = step_operands(u, y, self._p, self.q)
         est, t = self.inner, self.inner.time
         nis = math.nan
         for h in range(self._a2.size):

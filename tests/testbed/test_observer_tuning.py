@@ -100,3 +100,22 @@ def test_a_derived_tuning_survives_a_copy_and_leaves_the_other_scenarios_as_they
     )
     assert explicit.observer.V == 3e-2
     assert "tuning" not in load_scenario("ifac2021").to_dict()["observer"]
+
+
+def test_a_variant_of_a_derived_observer_takes_its_own_anchors_in_time():
+    from quadobs.testbed.ranges_in_time import RangesInTime
+    from quadobs.testbed.registry import build_estimators
+
+    sc = load_scenario(
+        "quadrotor-uwb", settings=['observer.variants=[{name = "low", outputs = [0, 1, 2, 3]}]']
+    )
+    x0 = np.array([1.2, -0.7, 1.1, 0.3, -0.2, 0.05])
+    full, low = build_estimators(sc, ["augmented", "low"], x0)
+    assert isinstance(low.inner, RangesInTime) and low.inner.q == 4
+    rho = np.linalg.norm(sc.beacons - x0[:3], axis=1)
+    y = 0.5 * rho**2 - 0.5 * np.sum(sc.beacons**2, axis=1)
+    for est in (full, low):
+        est.step(np.zeros(3), y)
+    assert full.corrections == 8 and low.corrections == 4
+    # exact ranges at the guess: no correction moves it, and the step carries it by v dt
+    np.testing.assert_allclose(low.x_hat[:3], x0[:3] + x0[3:] * sc.dt, atol=1e-9)
