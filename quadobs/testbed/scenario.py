@@ -361,7 +361,7 @@ class ObserverSpec(_Table):
                 if key in self.model_fields_set:
                     raise _invalid(
                         'not used with tuning = "derived" (S0, V and W are then derived from the '
-                        "stated noise, anchors and initial spread, theta is 0); remove it or the tuning",
+                        'stated noise, anchors and initial spread, theta is 0); set tuning = "explicit" to give it',
                         key,
                     )
         return self
