@@ -17,7 +17,12 @@ the body-IMU filters, ``onboard-ekf``: NaN there).
     python sims/replay_exported_quadrotor.py --duration 70 --burn-in 5 --out quad-export [--calibrate none]
 
 ``--live-and-replay`` prints the first two columns alone (a quarter of the work: for a sweep
-over seeds).
+over seeds); ``--live-only`` the live column alone (for a sweep of a change to the live side). ``--beside KEY=VALUE ...`` also runs, live in the same episode, the augmented
+observer of the scenario with those settings (``augmented-beside``), e.g. the explicit tuning
+``quadrotor-uwb`` had before its ``tuning = "derived"``:
+
+    python sims/replay_exported_quadrotor.py --duration 20 --seed 7 --live-and-replay \
+        --beside 'observer.tuning="explicit"' observer.S0=100 observer.V=3e-2 observer.W=0.2
 """
 
 from __future__ import annotations
@@ -28,7 +33,6 @@ import tempfile
 import numpy as np
 
 from quadobs import load_scenario
-from quadobs.testbed.episode import run_episode
 from quadobs.testbed.logs import read_log
 from quadobs.testbed.logs.calibration import calibrate
 from quadobs.testbed.logs.export import LogExportSink
@@ -38,11 +42,29 @@ from quadobs.testbed.logs.replay import run_replay
 BODY_IMU = ("onboard-ekf", "onboard-ekf-bias")
 
 
-def live_rmse(result, name: str, burn_in: float) -> float:
-    """Position RMSE of ``name`` over ``t >= burn_in`` of a run collected every step."""
-    t, X = result.trace["time"], result.trace["truth"]
-    e = (result.trace["estimates"][name][:, :3] - X[:, :3])[t >= burn_in]
+def live_rmse(trace: dict, name: str, burn_in: float) -> float:
+    """Position RMSE of ``name`` over ``t >= burn_in`` of a run's trace collected every step."""
+    t, X = trace["time"], trace["truth"]
+    e = (trace["estimates"][name][:, :3] - X[:, :3])[t >= burn_in]
     return float(np.sqrt(np.mean(np.sum(e * e, axis=1))))
+
+
+def run_live(scenario, names, folder, beside=None) -> dict:
+    """The live episode of ``scenario`` with the estimators ``names``, exported to ``folder``
+    (as ``quadobs run --export-log``; None: not exported), and its trace every step; ``beside`` (a scenario): its
+    ``augmented`` runs in the same episode from the same guess, as ``augmented-beside``."""
+    from quadobs.testbed.episode import run_loop, scenario_parts
+    from quadobs.testbed.registry import build_estimators
+
+    parts = scenario_parts(scenario, names)
+    if beside is not None:
+        x0 = parts["estimators"][0].x_hat  # every estimator's initial guess
+        extra = build_estimators(beside, ["augmented"], x0)[0]
+        extra.name = "augmented-beside"
+        parts["estimators"].append(extra)
+    sinks = [] if folder is None else [LogExportSink(folder)]
+    _, episode = run_loop(lambda merged, *rest: merged, collect_every=1, sinks=sinks, **parts)
+    return episode.trace.trace
 
 
 def scenario_estimators_rmse(scenario, log, names, x0, burn_in: float, timed: bool = False) -> dict:
@@ -92,13 +114,30 @@ def main() -> None:
         action="store_true",
         help="only the live and the replayed RMSE (not the scenario's own estimators on the log)",
     )
+    ap.add_argument(
+        "--beside",
+        nargs="+",
+        metavar="KEY=VALUE",
+        help="settings of a second observer run live beside (augmented-beside)",
+    )
+    ap.add_argument(
+        "--live-only",
+        action="store_true",
+        help="only the live RMSE (no export read back, no replay): a sweep of a live change",
+    )
     args = ap.parse_args()
     names = args.estimators.split(",")
     scenario = load_scenario(args.scenario, duration=args.duration, seed=args.seed)
+    beside = scenario.with_settings(args.beside) if args.beside else None
     folder = args.out or tempfile.mkdtemp(prefix="quad-export-")
-    live = run_episode(scenario, estimators=names, collect_every=1, sinks=[LogExportSink(folder)])
+    live = run_live(scenario, names, None if args.live_only else folder, beside)
+    if args.live_only:
+        print(f"position RMSE after {args.burn_in:g} s (m), live")
+        for n in names + (["augmented-beside"] if beside is not None else []):
+            print(f"{n:16s} {live_rmse(live, n, args.burn_in):8.4f}")
+        return
     log = read_log(folder)
-    x0 = live.trace["estimates"][names[0]][0]
+    x0 = live["estimates"][names[0]][0]
     dt = args.dt or scenario.dt
     biases, options = None, {}
     if args.calibrate == "self":
@@ -122,6 +161,10 @@ def main() -> None:
         f"{'estimator':12s} {'live':>8s} {'replayed':>9s} {'ratio':>6s} {'own tuning':>11s} {'ratio':>6s}"
         f" {'own, in time':>12s} {'ratio':>6s}"
     )
+    if beside is not None:
+        rl = live_rmse(live, "augmented-beside", args.burn_in)
+        print(f"{'augmented-beside':12s} {rl:8.4f} (live only; augmented / it: "
+              f"{live_rmse(live, 'augmented', args.burn_in) / rl:.3f})")  # fmt: skip
     for n in names:
         rl, rr = live_rmse(live, n, args.burn_in), s["estimators"][n]["rmse"]
         o, t = own.get(n, np.nan), timed.get(n, np.nan)

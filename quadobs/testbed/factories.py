@@ -19,6 +19,7 @@ from quadobs.core.immersion import immerse
 from quadobs.core.system import QuadraticSystem
 from quadobs.errors import QuadobsError
 from quadobs.estimators.augmented import AugmentedObserver
+from quadobs.estimators.augmented_tuning import anchor_scale, derived_observer, guess_variance
 from quadobs.estimators.base import Estimator, Gated, Immersed, Subset, Wrapper
 from quadobs.estimators.kalman import (
     ExtendedKalmanFilter,
@@ -28,6 +29,7 @@ from quadobs.estimators.kalman import (
 )
 from quadobs.estimators.refined import RefinedObserver
 from quadobs.estimators.zonotopic_vehicle import ZonotopicAugmentedEstimator
+from quadobs.testbed.ranges_in_time import RangesInTime
 from quadobs.testbed.scenario import QuadrotorSpec, Scenario
 
 
@@ -52,10 +54,15 @@ def _matrix_subset(value, idx: tuple[int, ...]):
 class OutputSubset(Wrapper, Gated, Immersed, Subset):
     """An augmented observer that reads some of the outputs only (``y[outputs]``): a scenario's variant."""
 
-    inner: AugmentedObserver
+    inner: AugmentedObserver | RangesInTime
 
     def __init__(
-        self, inner: AugmentedObserver, outputs: tuple[int, ...], name: str, *, q: int | None = None
+        self,
+        inner: AugmentedObserver | RangesInTime,
+        outputs: tuple[int, ...],
+        name: str,
+        *,
+        q: int | None = None,
     ) -> None:
         self.inner = inner
         self.outputs = np.asarray(outputs, dtype=int)
@@ -95,7 +102,11 @@ class OutputSubset(Wrapper, Gated, Immersed, Subset):
 def augmented_observer(
     scenario: Scenario, x0: np.ndarray, outputs: tuple[int, ...] | None = None
 ) -> AugmentedObserver:
-    """Theorem 3's observer for ``scenario`` (optionally on a subset of the outputs), starting at ``lift(x0)``."""
+    """Theorem 3's observer for ``scenario`` (optionally on a subset of the outputs), starting at ``lift(x0)``.
+
+    ``[observer] tuning = "derived"``: ``V``, ``W`` and the initial covariance by the rule of
+    the replay (:func:`derived_settings`), else ``S0``, ``V`` and ``W`` as the table gives them.
+    """
     system = scenario.system()
     periods = output_periods(scenario)
     W = scenario.observer.W
@@ -107,6 +118,18 @@ def augmented_observer(
         W = _matrix_subset(W, outputs)
     im = immerse(system, method=scenario.observer.immersion)
     obs = scenario.observer
+    if obs.tuning == "derived":
+        beacons = scenario.beacons if outputs is None else scenario.beacons[list(outputs)]
+        settings = derived_settings(scenario, x0)
+        return derived_observer(
+            im,
+            scenario.dt,
+            beacons=beacons,
+            x0=x0,
+            sample_period=periods,
+            gate=obs.gate,
+            **settings,
+        )
     return AugmentedObserver(
         im,
         scenario.dt,
@@ -118,6 +141,62 @@ def augmented_observer(
         sample_period=periods,
         gate=obs.gate,
     )
+
+
+def derived_settings(scenario: Scenario, x0: np.ndarray) -> dict:
+    """The figures of ``[observer] tuning = "derived"``
+    (:func:`~quadobs.estimators.augmented_tuning.derived_observer`) from the scenario's statements.
+
+    * ``Vx``: the input noise of the EKF and UKF (:func:`_input_std`, the quadrotor IMU's
+      equivalent or ``noise.accel_std``) as an intensity ``sigma_u^2 dt`` on the velocity;
+    * ``range_sigma``: ``noise.range_std`` (or its bound's);
+    * ``typical_range``: the anchors' median distance from their centroid
+      (:func:`~quadobs.estimators.augmented_tuning.anchor_scale`; a log's replay takes its
+      median measured range instead);
+    * ``P0``: ``max(position_spread, range_sigma)^2`` for a random guess, else the distance
+      of the guess from the anchors' centroid plus their extent, squared
+      (:func:`~quadobs.estimators.augmented_tuning.guess_variance`, as a replay's guess).
+
+    Raises
+    ------
+    QuadobsError
+        A scenario with an airspeed output (wind) or without a stated range noise.
+    """
+    if scenario.has_wind:
+        raise QuadobsError(
+            'observer.tuning: "derived" takes ranges only, and a [wind] scenario has an airspeed '
+            "output; give S0, V and W instead"
+        )
+    sigma = float(scenario.noise.sigma("range"))
+    if not sigma > 0.0:
+        raise QuadobsError(
+            'observer.tuning: "derived" needs the stated range noise (noise.range_std or '
+            "range_bound), and the ranges are noise-free; give S0, V and W instead"
+        )
+    n, dim = scenario.state_dim, scenario.dimension
+    Vx = np.zeros((n, n))
+    Vx[dim:, dim:] = _input_std(scenario) ** 2 * scenario.dt * np.eye(n - dim)
+    init = scenario.initial
+    spread = init.position_spread if init.kind == "random" else None
+    return {
+        "Vx": Vx,
+        "range_sigma": sigma,
+        "typical_range": anchor_scale(scenario.beacons),
+        "P0": guess_variance(scenario.beacons, sigma, offset=spread, x0=x0),
+    }
+
+
+def live_observer(
+    scenario: Scenario, x0: np.ndarray, outputs: tuple[int, ...] | None = None
+) -> AugmentedObserver | RangesInTime:
+    """The ``"augmented"`` estimator (and its variants): :func:`augmented_observer`; with
+    ``tuning = "derived"`` in a world that samples its ranges on the grid (no ``[radio]``),
+    handed each range at its own time with its own variance and the state-dependent process
+    noise, as a replay takes a log's (:class:`~quadobs.testbed.ranges_in_time.RangesInTime`)."""
+    obs = augmented_observer(scenario, x0, outputs)
+    if scenario.observer.tuning != "derived" or scenario.radio is not None:
+        return obs
+    return RangesInTime(obs, scenario.dt, scenario.noise.sigma("range"))
 
 
 @dataclass(frozen=True, eq=False)
@@ -426,7 +505,7 @@ def _entry_point(make, doc: str):
     return factory
 
 
-build_augmented = _entry_point(augmented_observer, "augmented")
+build_augmented = _entry_point(live_observer, "augmented")
 build_ekf = _entry_point(extended_kalman_filter, "ekf")
 build_ukf = _entry_point(unscented_kalman_filter, "ukf")
 build_zonotope = _entry_point(zonotope_estimator, "zonotope")

@@ -31,7 +31,7 @@ import numpy as np
 
 from quadobs.errors import QuadobsError
 from quadobs.estimators.base import Estimator
-from quadobs.testbed.factories import OutputSubset, augmented_observer, output_periods
+from quadobs.testbed.factories import OutputSubset, live_observer, output_periods
 from quadobs.testbed.scenario import Scenario
 
 __all__ = [
@@ -217,7 +217,7 @@ def build_estimators(scenario: Scenario, names: list[str], x0: np.ndarray) -> li
     out: list[Estimator] = []
     for name in names:
         if name in variants:
-            inner = augmented_observer(scenario, x0, variants[name])
+            inner = live_observer(scenario, x0, variants[name])
             est: Estimator = OutputSubset(
                 inner, variants[name], name, q=output_periods(scenario).size
             )

@@ -323,7 +323,9 @@ class ObserverSpec(_Table):
     ``S0``, ``V`` are scalars times the identity of the augmented state, or lists (a
     diagonal); ``W`` a scalar times ``I_q`` or a list (diagonal). ``variants`` are extra
     observers with the same settings that use only some outputs, run side by side; the
-    attribute holds ``(name, output indices)`` pairs.
+    attribute holds ``(name, output indices)`` pairs. ``tuning = "derived"`` replaces ``S0``,
+    ``V`` and ``W`` by the replay's rule on the scenario's stated figures
+    (:func:`quadobs.testbed.factories.derived_settings`); they must not be given then.
     """
 
     immersion: Literal["minimal", "chain"] = Field(
@@ -346,6 +348,23 @@ class ObserverSpec(_Table):
     variant_specs: tuple[Variant, ...] = Field(
         (), alias="variants", description="Extra observers restricted to some outputs."
     )
+    tuning: Literal["explicit", "derived"] | None = Field(
+        None,
+        description="`explicit` (default): `S0`, `V`, `W` as given; `derived`: from the stated range noise, "
+        "IMU noise, anchors and initial spread, by the rule of the replay (docs/replay.md).",
+    )
+
+    @model_validator(mode="after")
+    def _derived_alone(self) -> ObserverSpec:
+        if self.tuning == "derived":
+            for key in ("S0", "V", "W", "theta"):
+                if key in self.model_fields_set:
+                    raise _invalid(
+                        'not used with tuning = "derived" (S0, V and W are then derived from the '
+                        'stated noise, anchors and initial spread, theta is 0); set tuning = "explicit" to give it',
+                        key,
+                    )
+        return self
 
     @model_validator(mode="after")
     def _new_names(self) -> ObserverSpec:
@@ -1000,6 +1019,9 @@ class Scenario(_Table):
         out = self.model_dump(mode="json", by_alias=True, exclude_none=True)
         if not out["observer"]["variants"]:
             del out["observer"]["variants"]
+        if out["observer"].get("tuning") == "derived":  # derived, not set (a reload refuses them)
+            for key in ("S0", "V", "W", "theta"):
+                del out["observer"][key]
         if not out["trajectory"]["coast"]:
             del out["trajectory"]["coast"]
         return out

@@ -107,6 +107,10 @@ def test_noise_free_imu_input_is_the_true_acceleration_and_the_observer_converge
         "quadrotor.gyro_std=0.0",
         "quadrotor.gyro_bias=0.0",
         "noise.range_std=0.0",
+        # noise-free ranges state no noise to derive the observer's tuning from: a hand-set one
+        'observer.tuning="explicit"',
+        "observer.V=3e-2",
+        "observer.W=0.2",
     )
     world, kept = _rows_world()
     res = run_episode(sc, estimators=["augmented"], world=world)

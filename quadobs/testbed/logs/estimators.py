@@ -83,6 +83,12 @@ from quadobs.core.system import (
 )
 from quadobs.errors import QuadobsError
 from quadobs.estimators.augmented import AugmentedObserver
+from quadobs.estimators.augmented_tuning import (
+    anchor_scale,
+    derived_observer,
+    guess_variance,
+    state_noise_map,
+)
 from quadobs.estimators.base import Estimator
 from quadobs.estimators.kalman import (
     HeldInputModel,
@@ -292,12 +298,7 @@ def initial_variance(log, offset: float | None = None, range_sigma: float = 1.0,
     extent ``e = max_h |a_h - c|`` of their centroid ``c`` (the distance being convex): a guess
     ``x0`` (default ``c``) is then within ``|p0 - c| + e`` of it, and ``P0`` is that squared.
     """
-    if offset is not None:
-        return float(max(float(offset), range_sigma) ** 2)
-    c = log.beacons.mean(axis=0)
-    extent = float(np.max(np.linalg.norm(log.beacons - c, axis=1)))
-    d = 0.0 if x0 is None else float(np.linalg.norm(np.asarray(x0, float)[: c.size] - c))
-    return max(d + extent, range_sigma) ** 2
+    return guess_variance(log.beacons, range_sigma, offset=offset, x0=x0)
 
 
 #: The time (s) over which the odometry's velocity may be wrong by its own typical speed
@@ -420,7 +421,7 @@ def _typical_range(log) -> float:
     from their centroid (the geometry's scale)."""
     if log.ranges.shape[0]:
         return float(np.median(log.ranges[:, 2]))
-    return float(np.median(np.linalg.norm(log.beacons - log.beacons.mean(axis=0), axis=1)))
+    return anchor_scale(log.beacons)
 
 
 def _acceleration_noise(s: ReplaySetup) -> float:
@@ -436,7 +437,10 @@ def _process_noise(s: ReplaySetup) -> np.ndarray:
 
 
 def build_augmented(s: ReplaySetup, x0: np.ndarray, name: str = "augmented") -> AugmentedObserver:
-    """The observer of [IFAC2021, Thm. 3] on the immersion of the replay model [ACC2024, Alg. 1].
+    """The observer of [IFAC2021, Thm. 3] on the immersion of the replay model [ACC2024, Alg. 1],
+    tuned by the rule that a simulated scenario's ``[observer] tuning = "derived"`` also takes
+    (:func:`~quadobs.estimators.augmented_tuning.derived_observer`): the setup's noise, anchors,
+    median range and prior.
 
     Ranges only: a log holding TDOA is refused by name (its measurements have no
     quadratic-output form in this observer).
@@ -446,29 +450,11 @@ def build_augmented(s: ReplaySetup, x0: np.ndarray, name: str = "augmented") -> 
             f"estimators: {name!r} takes ranges only, and the log holds TDOA "
             "(no quadratic-output form in the observer; use ekf or ukf)"
         )
-    im = immerse(s.system)
-    k = im.n_aux
-    r = float(np.max(np.linalg.norm(s.beacons, axis=1)))
-    V = np.zeros((im.dim, im.dim))
-    V[k:, k:] = _process_noise(s)
-    if s.model == "odometry":
-        V[0, 0] = r**2 * s.q_xy
-    else:  # xi spans |p|^2/2, p.v, |v|^2/2: the acceleration noise reaches them through p.w, v.w
-        V[:k, :k] = r**2 * _acceleration_noise(s) * np.eye(k)
-    p0 = np.asarray(x0[: s.dim], dtype=float)
-    P = np.eye(im.dim) * s.P0
-    z0 = im.lift(x0)
-    if (
-        s.model == "odometry"
-    ):  # the covariance of lift(x) for x ~ N(x0, P0 I): exact for xi = |p|^2/2
-        P[0, 0] = s.P0 * p0 @ p0 + s.P0**2
-        P[0, k : k + s.dim] = P[k : k + s.dim, 0] = s.P0 * p0
-    else:
-        P[:k, :k] = np.eye(k) * (s.P0 * (p0 @ p0 + 1.0) + s.P0**2)
-    R = (s.range_median * s.range_sigma) ** 2
-    est = AugmentedObserver(
-        im, s.dt, V=V, W=R * s.dt, P0=P, z0=z0, gate=s.gate, noise_of=_noise_map(s, im)
-    )
+    x0 = np.asarray(x0, dtype=float)
+    est = derived_observer(
+        immerse(s.system), s.dt, Vx=_process_noise(s), beacons=s.beacons,
+        range_sigma=s.range_sigma, typical_range=s.range_median, x0=x0, P0=s.P0, gate=s.gate,
+    )  # fmt: skip
     est.name = name
     return est
 
@@ -480,18 +466,7 @@ def _noise_map(s: ReplaySetup, im, extra: np.ndarray | None = None):
     ``V(z) = J V_x J^T`` with ``J = [x^T L_1; ...; x^T L_k; I_n]``: no constant of any scale.
     ``extra`` ``(n, n)``, read at each call, is added to ``V_x`` (an input's error that its
     owner updates in place: :class:`~quadobs.estimators.heading_ekf.HeadingCascade`)."""
-    k, n = im.n_aux, s.n
-    Vx = _process_noise(s)
-    L = im.aux_forms
-    J = np.zeros((im.dim, n))
-    J[k:] = np.eye(n)
-
-    def noise(z: np.ndarray) -> np.ndarray:
-        J[:k] = L @ z[k:]  # rows x^T L_i (L_i symmetric)
-        V = J @ (Vx if extra is None else Vx + extra) @ J.T
-        return 0.5 * (V + V.T)
-
-    return noise
+    return state_noise_map(im, _process_noise(s), extra)
 
 
 def build_ekf(s: ReplaySetup, x0: np.ndarray, name: str = "ekf", cls=FixedStartEKF):
