@@ -56,6 +56,7 @@ from quadobs.estimators.kalman import (
     UnscentedKalmanFilter,
 )
 from quadobs.estimators.robust import (
+    BiasSightGrid,
     ChiSquareGate,
     ExcessMixture,
     LockOut,
@@ -168,6 +169,14 @@ def _gate_probability(rule) -> float:
     return float(getattr(rule, "probability", ChiSquareGate().probability))
 
 
+def _sight_model(name: str) -> str:
+    """``"chain"`` or ``"grid"``: how an :class:`~quadobs.estimators.robust.ExcessMixture`
+    filter keeps each anchor's state of sight (:class:`_VehicleBlock`)."""
+    if name not in ("chain", "grid"):
+        raise QuadobsError(f"sight_model: expected 'chain' or 'grid', got {name!r}")
+    return name
+
+
 class _VehicleBlock:
     """Reports the vehicle's state ``x`` (the first ``n`` entries), keeps the biases apart,
     and starts the biases only once the vehicle's state is known (the module docstring's
@@ -184,6 +193,7 @@ class _VehicleBlock:
     """
 
     vehicle_n: int = 0
+    sight_model: str = "chain"
     fix_pending: bool = False
     biases_open: bool = True
     open_threshold: float = 0.0
@@ -230,6 +240,7 @@ class _VehicleBlock:
         self._anchor = -1
         self._nlos = np.zeros(q)  # each anchor's chain starts in line of sight
         self._nlos_time = np.full(q, self._time)
+        self.sight = None  # the ExcessMixture's BiasSightGrid, from the biases' opening
         self.open_threshold = chi2_threshold(probability, 2 * q)
 
     def _shape_gain(self, K: np.ndarray, nu: np.ndarray, S: np.ndarray) -> np.ndarray:
@@ -250,7 +261,15 @@ class _VehicleBlock:
         rule, h = self.robust, self._anchor
         if not isinstance(rule, ExcessMixture) or h < 0 or nu.shape[0] != 1:
             return super()._gain(nu, S, R, cross)  # type: ignore[misc]
-        nlos = rule.prior(self._nlos[h], self._time - self._nlos_time[h])
+        k = self.vehicle_n
+        if self.sight is None and self.biases_open and self.sight_model == "grid":
+            std = np.sqrt(np.diag(self._P)[k:])
+            self.sight = BiasSightGrid(rule, self._x[k:], std, start=self._nlos)
+            self.sight.time[:] = self._nlos_time
+        if self.sight is None:
+            nlos = rule.prior(self._nlos[h], self._time - self._nlos_time[h])
+        else:
+            nlos = self.sight.predict(h, self._time)
         post = rule.posterior(float(nu[0]), float(S[0, 0]), nlos)
         if post is None:
             self.nis, self.nis_dof = float(nu[0] ** 2 / S[0, 0]), 1
@@ -258,7 +277,15 @@ class _VehicleBlock:
             self._watch(False, nu)
             return None
         shift, var, p_nlos = post
-        self._nlos[h], self._nlos_time[h] = p_nlos, self._time
+        if self.sight is None:
+            self._nlos[h], self._nlos_time[h] = p_nlos, self._time
+        else:
+            # the anchor's (bias, sight) posterior takes the range less the predicted distance,
+            # of the variance of the position and the noise: S less the bias's part of it
+            j = k + h
+            S_p = float(S[0, 0] - 2.0 * cross[j, 0] + self._P[j, j])
+            R_h = float(R[0, 0])
+            self.sight.update(h, float(nu[0]) + float(self._x[j]), max(S_p, R_h), R_h)
         nu_e = nu - shift
         self.nis, self.nis_dof = float(nu_e[0] ** 2 / (S[0, 0] + var)), 1
         self.corrections += 1
@@ -337,6 +364,7 @@ class _VehicleBlock:
         super()._watch(accepted, nu)  # type: ignore[misc]
         if len(self.lockout.resets) > before:
             self._x[self.vehicle_n :] = self._bias_prior
+            self.sight = None
             self._nlos[:], self._nlos_time[:] = 0.0, self._time
             self.biases_open = False
             self._nis_window.clear()
@@ -364,8 +392,11 @@ class BiasedExtendedKalmanFilter(_VehicleBlock, ExtendedKalmanFilter):
 
     name = "ekf-bias"
 
-    def __init__(self, dynamics, outputs, *, vehicle_n: int, **kw) -> None:
+    def __init__(
+        self, dynamics, outputs, *, vehicle_n: int, sight_model: str = "chain", **kw
+    ) -> None:
         super().__init__(dynamics, outputs, **kw)
+        self.sight_model = _sight_model(sight_model)
         self._start_block(vehicle_n, _gate_probability(self.robust))
 
 
@@ -374,6 +405,9 @@ class BiasedUnscentedKalmanFilter(_VehicleBlock, UnscentedKalmanFilter):
 
     name = "ukf-bias"
 
-    def __init__(self, dynamics, outputs, *, vehicle_n: int, **kw) -> None:
+    def __init__(
+        self, dynamics, outputs, *, vehicle_n: int, sight_model: str = "chain", **kw
+    ) -> None:
         super().__init__(dynamics, outputs, **kw)
+        self.sight_model = _sight_model(sight_model)
         self._start_block(vehicle_n, _gate_probability(self.robust))
