@@ -194,6 +194,7 @@ class _VehicleBlock:
 
     vehicle_n: int = 0
     sight_model: str = "chain"
+    sight: BiasSightGrid | None = None
     fix_pending: bool = False
     biases_open: bool = True
     open_threshold: float = 0.0

@@ -227,6 +227,7 @@ class ExcessMixture:
     memory: float = 10.0
     excess: np.ndarray = field(init=False, repr=False, compare=False)
     log_prior: np.ndarray = field(init=False, repr=False, compare=False)
+    _work: np.ndarray = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         ChiSquareGate(self.probability)
