@@ -36,6 +36,13 @@ of 1.8 m for an anchor whose bias is -0.14 m). Two rules keep the start-up error
   (39.25 for ``q = 8``, ``P = 0.999``): the vehicle's state then explains the ranges within
   the biases' prior, and the biases are opened. A lock-out's re-initialisation puts the
   biases back to their prior mean and closes them again.
+
+State of sight. Under an :class:`~quadobs.estimators.robust.ExcessMixture` each range's prior
+probability of a blocked path comes from a per-anchor two-state chain on the filter's own
+bias estimate (``sight_model="chain"``, the default), or, from the biases' opening, from each
+anchor's joint posterior of its bias and its state of sight
+(``sight_model="grid"``: :class:`~quadobs.estimators.robust.BiasSightGrid`, started where the
+chain was).
 """
 
 from __future__ import annotations
@@ -258,7 +265,8 @@ class _VehicleBlock:
         corrected by its expected non-line-of-sight excess: ``x += K (nu - E[e | nu])`` with
         ``K = cross S^-1`` (as the bias rows are shaped), and ``(S, R)`` grown by
         ``Var[e | nu]`` for the covariance (the exact collapse of the Gaussian sum); the NIS
-        is that of the corrected innovation. Any other rule: the filter's own."""
+        is that of the corrected innovation. The range's prior probability of a blocked path
+        comes from :attr:`sight_model` (the module docstring). Any other rule: the filter's own."""
         rule, h = self.robust, self._anchor
         if not isinstance(rule, ExcessMixture) or h < 0 or nu.shape[0] != 1:
             return super()._gain(nu, S, R, cross)  # type: ignore[misc]
