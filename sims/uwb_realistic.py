@@ -15,6 +15,9 @@ on the estimators) with, on the same measurements:
   ``--given``, ``ekf-bias-given-los``): the same filters given only the ranges whose path the
   room left clear (the radio's own ray test when it drew the range), which measures what the
   non-line-of-sight excess costs the bias states;
+* with ``--sight-model grid``, every bias-state filter (the ``-given`` ones too) keeps each
+  anchor's state of sight jointly with its bias (:class:`~quadobs.estimators.robust.BiasSightGrid`)
+  instead of the chain on its own bias estimate;
 * with ``--jacobian-at-truth`` (a diagnostic), ``ekf-bias-truejac``: ``ekf-bias`` whose range
   Jacobian is taken at the tag's true position (its predicted ranges still at its estimate),
   which measures what linearising at its own estimate costs it.
@@ -26,7 +29,7 @@ burn-in, and the ratio of each estimator's RMSE to the known-bias EKF's.
 Usage::
 
     python sims/uwb_realistic.py --seeds 0:50 [--duration 40] [--estimators ekf-bias,ukf-bias]
-        [--given] [--line-of-sight] [--jacobian-at-truth]
+        [--given] [--line-of-sight] [--jacobian-at-truth] [--sight-model grid]
 """
 
 from __future__ import annotations
@@ -159,6 +162,7 @@ def one_seed(
     given: bool = False,
     los: bool = False,
     truejac: bool = False,
+    sight: str = "chain",
 ) -> dict:
     over = {"seed": seed} | ({"duration": duration} if duration else {})
     scenario = load_scenario("quadrotor-uwb-realistic", **over)
@@ -187,6 +191,10 @@ def one_seed(
         est = jacobian_at_truth(biased_extended_kalman_filter(scenario, x0), world)
         parts["estimators"].append(est)
         all_names.append(est.name)
+
+    for est in parts["estimators"]:
+        if hasattr(est, "sight_model"):
+            est.sight_model = sight
 
     def summarise(merged, completed, wall, interrupted):
         return _summarise(
@@ -232,12 +240,24 @@ def main() -> None:
         action="store_true",
         help="also ekf-bias with its range Jacobian at the true position",
     )
+    ap.add_argument(
+        "--sight-model",
+        choices=("chain", "grid"),
+        default="chain",
+        help="how the bias filters keep each anchor's state of sight (default: chain)",
+    )
     args = ap.parse_args()
     a, b = (int(v) for v in args.seeds.split(":"))
     names = args.estimators.split(",")
     for seed in range(a, b):
         row = one_seed(
-            seed, args.duration, names, args.given, args.line_of_sight, args.jacobian_at_truth
+            seed,
+            args.duration,
+            names,
+            args.given,
+            args.line_of_sight,
+            args.jacobian_at_truth,
+            args.sight_model,
         )
         print(json.dumps(row), flush=True)
 

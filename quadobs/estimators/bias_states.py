@@ -36,6 +36,13 @@ of 1.8 m for an anchor whose bias is -0.14 m). Two rules keep the start-up error
   (39.25 for ``q = 8``, ``P = 0.999``): the vehicle's state then explains the ranges within
   the biases' prior, and the biases are opened. A lock-out's re-initialisation puts the
   biases back to their prior mean and closes them again.
+
+State of sight. Under an :class:`~quadobs.estimators.robust.ExcessMixture` each range's prior
+probability of a blocked path comes from a per-anchor two-state chain on the filter's own
+bias estimate (``sight_model="chain"``, the default), or, from the biases' opening, from each
+anchor's joint posterior of its bias and its state of sight
+(``sight_model="grid"``: :class:`~quadobs.estimators.robust.BiasSightGrid`, started where the
+chain was).
 """
 
 from __future__ import annotations
@@ -56,6 +63,7 @@ from quadobs.estimators.kalman import (
     UnscentedKalmanFilter,
 )
 from quadobs.estimators.robust import (
+    BiasSightGrid,
     ChiSquareGate,
     ExcessMixture,
     LockOut,
@@ -168,6 +176,14 @@ def _gate_probability(rule) -> float:
     return float(getattr(rule, "probability", ChiSquareGate().probability))
 
 
+def _sight_model(name: str) -> str:
+    """``"chain"`` or ``"grid"``: how an :class:`~quadobs.estimators.robust.ExcessMixture`
+    filter keeps each anchor's state of sight (:class:`_VehicleBlock`)."""
+    if name not in ("chain", "grid"):
+        raise QuadobsError(f"sight_model: expected 'chain' or 'grid', got {name!r}")
+    return name
+
+
 class _VehicleBlock:
     """Reports the vehicle's state ``x`` (the first ``n`` entries), keeps the biases apart,
     and starts the biases only once the vehicle's state is known (the module docstring's
@@ -184,6 +200,8 @@ class _VehicleBlock:
     """
 
     vehicle_n: int = 0
+    sight_model: str = "chain"
+    sight: BiasSightGrid | None = None
     fix_pending: bool = False
     biases_open: bool = True
     open_threshold: float = 0.0
@@ -230,6 +248,7 @@ class _VehicleBlock:
         self._anchor = -1
         self._nlos = np.zeros(q)  # each anchor's chain starts in line of sight
         self._nlos_time = np.full(q, self._time)
+        self.sight = None  # the ExcessMixture's BiasSightGrid, from the biases' opening
         self.open_threshold = chi2_threshold(probability, 2 * q)
 
     def _shape_gain(self, K: np.ndarray, nu: np.ndarray, S: np.ndarray) -> np.ndarray:
@@ -246,11 +265,20 @@ class _VehicleBlock:
         corrected by its expected non-line-of-sight excess: ``x += K (nu - E[e | nu])`` with
         ``K = cross S^-1`` (as the bias rows are shaped), and ``(S, R)`` grown by
         ``Var[e | nu]`` for the covariance (the exact collapse of the Gaussian sum); the NIS
-        is that of the corrected innovation. Any other rule: the filter's own."""
+        is that of the corrected innovation. The range's prior probability of a blocked path
+        comes from :attr:`sight_model` (the module docstring). Any other rule: the filter's own."""
         rule, h = self.robust, self._anchor
         if not isinstance(rule, ExcessMixture) or h < 0 or nu.shape[0] != 1:
             return super()._gain(nu, S, R, cross)  # type: ignore[misc]
-        nlos = rule.prior(self._nlos[h], self._time - self._nlos_time[h])
+        k = self.vehicle_n
+        if self.sight is None and self.biases_open and self.sight_model == "grid":
+            std = np.sqrt(np.diag(self._P)[k:])
+            self.sight = BiasSightGrid(rule, self._x[k:], std, start=self._nlos)
+            self.sight.time[:] = self._nlos_time
+        if self.sight is None:
+            nlos = rule.prior(self._nlos[h], self._time - self._nlos_time[h])
+        else:
+            nlos = self.sight.predict(h, self._time)
         post = rule.posterior(float(nu[0]), float(S[0, 0]), nlos)
         if post is None:
             self.nis, self.nis_dof = float(nu[0] ** 2 / S[0, 0]), 1
@@ -258,7 +286,15 @@ class _VehicleBlock:
             self._watch(False, nu)
             return None
         shift, var, p_nlos = post
-        self._nlos[h], self._nlos_time[h] = p_nlos, self._time
+        if self.sight is None:
+            self._nlos[h], self._nlos_time[h] = p_nlos, self._time
+        else:
+            # the anchor's (bias, sight) posterior takes the range less the predicted distance,
+            # of the variance of the position and the noise: S less the bias's part of it
+            j = k + h
+            S_p = float(S[0, 0] - 2.0 * cross[j, 0] + self._P[j, j])
+            R_h = float(R[0, 0])
+            self.sight.update(h, float(nu[0]) + float(self._x[j]), max(S_p, R_h), R_h)
         nu_e = nu - shift
         self.nis, self.nis_dof = float(nu_e[0] ** 2 / (S[0, 0] + var)), 1
         self.corrections += 1
@@ -337,6 +373,7 @@ class _VehicleBlock:
         super()._watch(accepted, nu)  # type: ignore[misc]
         if len(self.lockout.resets) > before:
             self._x[self.vehicle_n :] = self._bias_prior
+            self.sight = None
             self._nlos[:], self._nlos_time[:] = 0.0, self._time
             self.biases_open = False
             self._nis_window.clear()
@@ -364,8 +401,11 @@ class BiasedExtendedKalmanFilter(_VehicleBlock, ExtendedKalmanFilter):
 
     name = "ekf-bias"
 
-    def __init__(self, dynamics, outputs, *, vehicle_n: int, **kw) -> None:
+    def __init__(
+        self, dynamics, outputs, *, vehicle_n: int, sight_model: str = "chain", **kw
+    ) -> None:
         super().__init__(dynamics, outputs, **kw)
+        self.sight_model = _sight_model(sight_model)
         self._start_block(vehicle_n, _gate_probability(self.robust))
 
 
@@ -374,6 +414,9 @@ class BiasedUnscentedKalmanFilter(_VehicleBlock, UnscentedKalmanFilter):
 
     name = "ukf-bias"
 
-    def __init__(self, dynamics, outputs, *, vehicle_n: int, **kw) -> None:
+    def __init__(
+        self, dynamics, outputs, *, vehicle_n: int, sight_model: str = "chain", **kw
+    ) -> None:
         super().__init__(dynamics, outputs, **kw)
+        self.sight_model = _sight_model(sight_model)
         self._start_block(vehicle_n, _gate_probability(self.robust))

@@ -40,6 +40,7 @@ from scipy import stats
 from quadobs.errors import QuadobsError
 
 __all__ = [
+    "BiasSightGrid",
     "ChiSquareGate",
     "ExcessMixture",
     "Huber",
@@ -192,8 +193,10 @@ class ExcessMixture:
     from one of its ranges to the next: each anchor's probability of non-line-of-sight is a
     two-state Markov chain (a per-anchor NLOS state). Its prior for a range is the
     posterior ``P(NLOS | nu) = 1 - gamma_0`` of the anchor's previous range relaxed towards
-    the stationary ``nlos`` over :attr:`memory` (:meth:`prior`); the filter keeps the chain
-    of each anchor. A fixed prior instead (every range with probability ``nlos``) takes a
+    the stationary ``nlos`` over :attr:`memory` (:meth:`prior`). The bias-state filters keep
+    each anchor's chain jointly with its bias (:class:`BiasSightGrid`): a chain conditioned on
+    the filter's own bias estimate reads a clear anchor whose bias is estimated low as
+    blocked. A fixed prior instead (every range with probability ``nlos``) takes a
     fraction of every line-of-sight range's positive noise for excess.
 
     A range is rejected (an outlier) when it is shorter than line of sight by more than
@@ -224,6 +227,7 @@ class ExcessMixture:
     memory: float = 10.0
     excess: np.ndarray = field(init=False, repr=False, compare=False)
     log_prior: np.ndarray = field(init=False, repr=False, compare=False)
+    _work: np.ndarray = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         ChiSquareGate(self.probability)
@@ -239,6 +243,8 @@ class ExcessMixture:
         excess = np.concatenate([[0.0], self.median * np.exp(self.shape * z)])
         object.__setattr__(self, "excess", excess)
         object.__setattr__(self, "log_prior", np.log(np.concatenate([[1.0], w / w.sum()])))
+        # work space of :meth:`posterior` (the hot path allocates nothing per range)
+        object.__setattr__(self, "_work", np.empty((2, excess.shape[0])))
 
     @property
     def upper(self) -> float:
@@ -265,14 +271,20 @@ class ExcessMixture:
         if nu < -z * sd or nu > self.upper + z * sd:
             return None
         pi = self.nlos if nlos is None else min(max(nlos, 1e-6), 1.0 - 1e-6)
-        r = (nu - self.excess) / sd
-        ll = self.log_prior - 0.5 * r * r
-        ll[0] += math.log1p(-pi)
-        ll[1:] += math.log(pi)
-        g = np.exp(ll - ll.max())
+        g, e2 = self._work
+        np.subtract(nu, self.excess, out=g)
+        g /= sd
+        g *= g
+        g *= -0.5
+        g += self.log_prior
+        g[0] += math.log1p(-pi)
+        g[1:] += math.log(pi)
+        g -= g.max()
+        np.exp(g, out=g)
         g /= g.sum()
         mean = float(g @ self.excess)
-        var = max(float(g @ (self.excess * self.excess)) - mean * mean, 0.0)
+        np.multiply(self.excess, self.excess, out=e2)
+        var = max(float(g @ e2) - mean * mean, 0.0)
         return mean, var, 1.0 - float(g[0])
 
     def describe(self) -> str:
@@ -281,6 +293,144 @@ class ExcessMixture:
             f"shape {self.shape}; prior probability {self.nlos}), outliers beyond the "
             f"P = {self.probability} gate on either side rejected"
         )
+
+
+class BiasSightGrid:
+    """Each anchor's joint posterior of its range bias and its state of sight, on a bias grid.
+
+    Under an :class:`ExcessMixture` a bias estimated low by ``c`` makes the anchor's
+    line-of-sight ranges long by ``c``, which an excess explains as well: one Gaussian bias
+    and one probability of sight, updated range by range, cannot tell the two apart, and a
+    clear anchor read as blocked keeps its bias low. What separates them is the shape of the
+    residuals over many ranges: in line of sight they are spread by the noise alone around
+    the bias, behind an obstacle they only add the excess's spread above it. The joint
+    posterior of ``(b_h, s)``, ``s`` in {line of sight, blocked}, keeps both explanations.
+
+    The bias of anchor ``h`` takes the values ``b_hj = m_h + sd_h z_j``, ``z_j`` on
+    ``[-4, 4]`` (``points`` values; ``m_h``, ``sd_h`` the filter's bias estimate and standard
+    deviation when the grid is built), with prior weights ``phi(z_j)`` and the probability
+    ``start`` of a blocked path. Between two ranges of the anchor ``dt`` apart the state of sight follows
+    the mixture's two-state chain (:meth:`ExcessMixture.prior`, at every bias value: the
+    bias is constant); a range with the residual ``r = rho - |p^ - a_h|`` (the range less
+    the filter's predicted distance) of variance ``S_p = H_p P_pp H_p^T + R`` (the position's
+    uncertainty and the noise, without the bias's) multiplies the weights by
+
+    .. math::
+
+        \\ell(r \\mid b_j, \\text{sight}) = \\mathcal N(r - b_j; 0, S_p), \\qquad
+        \\ell(r \\mid b_j, \\text{blocked}) = \\sum_i \\pi_i\\, \\mathcal N(r - b_j - e_i; 0, S_p)
+
+    (the mixture's discretised log-normal ``e_i``, ``pi_i``). The residual's error is the
+    position's along the anchor, ``H_p (p - p^)``, as well as the noise, and the position's
+    error persists from one range to the next: taken as independent, a few hundred ranges
+    would narrow the bias to millimetres around wherever the position sat. So before each
+    range the bias values take a random walk of variance ``(S_p - R)^2 / S_p``: the variance
+    at which a walk observed through ranges of noise ``R`` settles to the position's own
+    variance ``P = S_p - R`` (a scalar Kalman filter's steady state, ``Q = P^2 / (P + R)``),
+    so that the grid resolves the bias no finer than the filter knows the position.
+
+    The filter takes the prior
+    probability that a range is blocked from :meth:`predict` (the weight of ``blocked``
+    summed over the bias values) instead of a chain conditioned on its own bias estimate;
+    its bias state and its update are unchanged.
+
+    Parameters
+    ----------
+    rule : ExcessMixture
+    mean, std : ndarray (q,)
+        The biases' estimate and standard deviation (m) the grid spans.
+    points : int
+        Bias values per anchor.
+    start : float or ndarray (q,)
+        Each anchor's probability of a blocked path when the grid is built.
+    """
+
+    def __init__(
+        self,
+        rule: ExcessMixture,
+        mean: np.ndarray,
+        std: np.ndarray,
+        points: int = 81,
+        start: float | np.ndarray = 0.0,
+    ) -> None:
+        self.rule = rule
+        z = np.linspace(-4.0, 4.0, int(points))
+        self.bias = (
+            np.asarray(mean, dtype=float)[:, None] + np.asarray(std, dtype=float)[:, None] * z
+        )
+        q = self.bias.shape[0]
+        self._prior = np.exp(-0.5 * z * z)
+        self._prior /= self._prior.sum()
+        self.weights = np.zeros((q, 2, z.shape[0]))
+        start = np.broadcast_to(np.asarray(start, dtype=float), (q,))[:, None]
+        self.weights[:, 0] = (1.0 - start) * self._prior
+        self.weights[:, 1] = start * self._prior
+        self.time = np.full(q, np.nan)
+        self._excess = rule.excess[1:]
+        self._excess_prior = np.exp(rule.log_prior[1:])
+        self._work = np.empty((z.shape[0], self._excess.shape[0]))
+        self._lik = np.empty((2, z.shape[0]))
+        self._lap = np.empty((2, z.shape[0]))
+
+    def predict(self, h: int, t: float) -> float:
+        """Move anchor ``h``'s state of sight to the time ``t`` of its next range (the chain at
+        every bias value); returns the prior probability that this range is blocked."""
+        w, last = self.weights[h], self.time[h]
+        dt = t - last if math.isfinite(last) else 0.0
+        if dt > 0.0:
+            p = self.rule.nlos * (1.0 - math.exp(-dt / self.rule.memory))
+            q = p / self.rule.nlos * (1.0 - self.rule.nlos)  # blocked -> clear
+            moved = w[0] * p - w[1] * q
+            w[0] -= moved
+            w[1] += moved
+        self.time[h] = t
+        return float(w[1].sum())
+
+    def _diffuse(self, w: np.ndarray, var: float, step: float) -> None:
+        """The bias values' random walk over a variance ``var``: explicit steps of the heat
+        equation on the grid (reflecting ends)."""
+        if not step > 0.0:
+            return
+        n = max(1, math.ceil(2.0 * var / (step * step)))
+        a, lap = var / (n * step * step), self._lap
+        for _ in range(n):
+            lap[:, 1:-1] = w[:, :-2] + w[:, 2:]
+            lap[:, 1:-1] -= 2.0 * w[:, 1:-1]
+            lap[:, 0] = w[:, 1] - w[:, 0]
+            lap[:, -1] = w[:, -2] - w[:, -1]
+            lap *= a
+            w += lap
+
+    def update(self, h: int, r: float, S: float, R: float) -> None:
+        """Weigh anchor ``h``'s grid by a range's residual ``r`` of variance ``S`` (``R`` of it
+        the range's noise), after the walk of its bias values by ``(S - R)^2 / S``."""
+        D, lik, w = self._work, self._lik, self.weights[h]
+        if S > R:
+            self._diffuse(w, (S - R) ** 2 / S, self.bias[h, 1] - self.bias[h, 0])
+        np.subtract(r, self.bias[h], out=lik[0])
+        np.subtract(lik[0][:, None], self._excess, out=D)
+        D *= D
+        D *= -0.5 / S
+        np.exp(D, out=D)
+        np.dot(D, self._excess_prior, out=lik[1])
+        lik[0] *= lik[0]
+        lik[0] *= -0.5 / S
+        np.exp(lik[0], out=lik[0])
+        w *= lik
+        total = w.sum()
+        if total > 1e-300 and math.isfinite(total):
+            w /= total
+        else:  # no bias value explains the range: the anchor's prior, its sight unknown
+            np.multiply(self._prior, 1.0 - self.rule.nlos, out=w[0])
+            np.multiply(self._prior, self.rule.nlos, out=w[1])
+
+    def blocked(self) -> np.ndarray:
+        """Each anchor's probability of being blocked at its last range ``(q,)``."""
+        return self.weights[:, 1].sum(axis=1)
+
+    def bias_mean(self) -> np.ndarray:
+        """Each anchor's posterior mean bias ``(q,)`` (m)."""
+        return np.einsum("hsj,hj->h", self.weights, self.bias)
 
 
 def reweight(rule, nu: np.ndarray, S: np.ndarray, R: np.ndarray) -> np.ndarray | None:
