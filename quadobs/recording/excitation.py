@@ -33,12 +33,19 @@ _COLOR = (200, 60, 60)
 _THRESHOLD = (120, 120, 120)
 
 
-def _same_coordinates(est, monitor: ExcitationMonitor) -> bool:
-    """Whether ``est`` is an augmented observer (:class:`~quadobs.estimators.augmented.AugmentedObserver`,
-    whose ``P`` is the covariance of the augmented state) on the monitor's immersion."""
-    if not (isinstance(est, AugmentedObserver) and isinstance(est, Immersed)):
-        return False
-    im, P, mine = est.immersion, est.P, monitor.immersion
+def _augmented(est) -> AugmentedObserver | None:
+    """The augmented observer that ``est`` is, or that it drives as its ``inner`` (a wrapper that
+    feeds it in time, such as the live scenario's ranges one at a time); else ``None``."""
+    for candidate in (est, getattr(est, "inner", None)):
+        if isinstance(candidate, AugmentedObserver) and isinstance(candidate, Immersed):
+            return candidate
+    return None
+
+
+def _same_coordinates(obs: AugmentedObserver, monitor: ExcitationMonitor) -> bool:
+    """Whether the augmented observer ``obs`` (whose ``P`` is the covariance of the augmented
+    state) is on the monitor's immersion."""
+    im, P, mine = obs.immersion, obs.P, monitor.immersion
     if im is None or np.shape(P) != (mine.dim, mine.dim) or im.n_aux != mine.n_aux:
         return False
     if im.system.q != mine.system.q:
@@ -86,19 +93,20 @@ class ExcitationLog:
             skip_nan=True,
             names=["unexcited directions"],
         )
+        observers = [(est.name, _augmented(est)) for est in estimators]
         self.weak = {
-            est.name: (
-                est,
+            name: (
+                obs,
                 r.series(
-                    f"excitation/unexcited_variance/{est.name}",
+                    f"excitation/unexcited_variance/{name}",
                     1,
                     every=every,
                     skip_nan=True,
-                    names=[f"{est.name} max var"],
+                    names=[f"{name} max var"],
                 ),
             )
-            for est in estimators
-            if _same_coordinates(est, monitor)
+            for name, obs in observers
+            if obs is not None and _same_coordinates(obs, monitor)
         }
         self._pending: dict[int, tuple[list[float], list[float]]] = {}
 

@@ -103,3 +103,28 @@ def test_monitor_reuses_the_observer_immersion_and_reports_the_same():
             m.push_many(u[k : k + take])
             k += take
     assert json.dumps(shared.summary(), sort_keys=True) == json.dumps(own.summary(), sort_keys=True)
+
+
+def test_an_observer_fed_in_time_keeps_its_covariance_series():
+    """``quadrotor-uwb``'s observer takes its ranges one at a time through a wrapper: the
+    recording's unexcited-variance series reads the wrapped observer's covariance."""
+    from quadobs.recording.excitation import ExcitationLog
+    from quadobs.testbed.episode import scenario_parts
+
+    sc = load_scenario("quadrotor-uwb")
+    parts = scenario_parts(sc, ["augmented"])
+    (est,) = parts["estimators"]
+    assert est.inner.P.shape == (est.immersion.dim, est.immersion.dim)  # a wrapper, as stated
+
+    class Recorder:  # what ExcitationLog declares on a recorder: the series' names
+        def __init__(self):
+            self.names = []
+
+        def series(self, name, *args, **kwargs):
+            self.names.append(name)
+            return name
+
+    rec = Recorder()
+    log = ExcitationLog(rec, parts["monitor"], [est])
+    assert "excitation/unexcited_variance/augmented" in rec.names
+    assert log.weak["augmented"][0] is est.inner
