@@ -324,10 +324,12 @@ class BiasSightGrid:
     position's along the anchor, ``H_p (p - p^)``, as well as the noise, and the position's
     error persists from one range to the next: taken as independent, a few hundred ranges
     would narrow the bias to millimetres around wherever the position sat. So before each
-    range the bias values take a random walk of variance ``(S_p - R)^2 / S_p``: the variance
-    at which a walk observed through ranges of noise ``R`` settles to the position's own
-    variance ``P = S_p - R`` (a scalar Kalman filter's steady state, ``Q = P^2 / (P + R)``),
-    so that the grid resolves the bias no finer than the filter knows the position.
+    range the bias values take a random walk of variance ``2 (S_p - R)^2 / S_p``: twice the
+    variance at which a walk observed through ranges of noise ``R`` settles to the position's
+    own variance ``P = S_p - R`` (a scalar Kalman filter's steady state, ``Q = P^2 / (P + R)``),
+    so that the grid resolves the bias no finer than the filter knows the position (the
+    factor 2 is the walk measured in ``docs/error-sources.md``; the steady state's own
+    variance was not measured).
 
     The filter takes the prior
     probability that a range is blocked from :meth:`predict` (the weight of ``blocked``
@@ -387,12 +389,18 @@ class BiasSightGrid:
         return float(w[1].sum())
 
     def _diffuse(self, w: np.ndarray, var: float, step: float) -> None:
-        """The bias values' random walk over a variance ``var``: explicit steps of the heat
-        equation on the grid (reflecting ends)."""
+        """The bias values' random walk of variance ``var``: ``n`` explicit steps of the heat
+        equation on the grid (reflecting ends), each adding ``2 a step^2`` with ``a <= 1/2``.
+        A walk wider than half the grid's span forgets where the bias was: each state's weight
+        is spread as the grid's prior (no unbounded number of steps)."""
         if not step > 0.0:
             return
-        n = max(1, math.ceil(2.0 * var / (step * step)))
-        a, lap = var / (n * step * step), self._lap
+        half_span = 0.5 * step * (w.shape[1] - 1)
+        if var > half_span * half_span:
+            w[:] = w.sum(axis=1, keepdims=True) * self._prior
+            return
+        n = max(1, math.ceil(var / (step * step)))
+        a, lap = var / (2 * n * step * step), self._lap
         for _ in range(n):
             lap[:, 1:-1] = w[:, :-2] + w[:, 2:]
             lap[:, 1:-1] -= 2.0 * w[:, 1:-1]
@@ -403,10 +411,10 @@ class BiasSightGrid:
 
     def update(self, h: int, r: float, S: float, R: float) -> None:
         """Weigh anchor ``h``'s grid by a range's residual ``r`` of variance ``S`` (``R`` of it
-        the range's noise), after the walk of its bias values by ``(S - R)^2 / S``."""
+        the range's noise), after the walk of its bias values by ``2 (S - R)^2 / S``."""
         D, lik, w = self._work, self._lik, self.weights[h]
         if S > R:
-            self._diffuse(w, (S - R) ** 2 / S, self.bias[h, 1] - self.bias[h, 0])
+            self._diffuse(w, 2.0 * (S - R) ** 2 / S, self.bias[h, 1] - self.bias[h, 0])
         np.subtract(r, self.bias[h], out=lik[0])
         np.subtract(lik[0][:, None], self._excess, out=D)
         D *= D

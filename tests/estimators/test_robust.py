@@ -270,3 +270,19 @@ def test_bias_filters_name_their_model_of_sight():
         BiasedExtendedKalmanFilter(
             est.dynamics, est.outputs, x0=est._x, P0=est._P, vehicle_n=6, sight_model="joint"
         )
+
+
+def test_the_grids_bias_walk_adds_the_variance_it_is_given_and_forgets_a_wider_one():
+    from quadobs.estimators.robust import BiasSightGrid, ExcessMixture
+
+    grid = BiasSightGrid(ExcessMixture(0.2, 0.3, 0.5), np.zeros(1), np.full(1, 0.2))
+    b, step = grid.bias[0], grid.bias[0, 1] - grid.bias[0, 0]
+    w = np.zeros((2, b.size))
+    w[0, b.size // 2] = 1.0  # the bias known at 0, in line of sight
+    grid._diffuse(w, 0.003, step)  # a walk of sd 0.055 m, well inside the span of +-0.8 m
+    assert w.sum() == pytest.approx(1.0)
+    assert np.sum(w[0] * b * b) == pytest.approx(0.003, rel=1e-9)  # mean 0: the variance
+    w[1] = 0.25 * w[0]
+    grid._diffuse(w, 1.0, step)  # sd 1 m, beyond half the span: the prior's shape, weights kept
+    np.testing.assert_allclose(w[0] / w[0].sum(), grid._prior)
+    assert w[1].sum() / w[0].sum() == pytest.approx(0.25)
