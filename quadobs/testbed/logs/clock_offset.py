@@ -24,7 +24,8 @@ side by steps of ``h`` (at most :data:`STEPS`) while each step is significantly 
 the one before, then halves the step :data:`REFINE` times about the best candidate. (A
 looser rule, a step lower by more than one standard error, walked 13 steps on a flight along
 a trend of 3e-5 m per step that the final test rejected.) Where neither
-``+-h`` gains, the offset stays zero after three replays. Every candidate replays the same
+``+-h`` gains, the offset stays zero after three replays; with fewer than :data:`HELD_MIN`
+held-out ranges scored (:func:`held_out_count`), it stays zero after none. Every candidate replays the same
 ranges (those at least the search's reach inside the inputs' span) and scores them from the
 same time, so the candidates are compared range by range.
 
