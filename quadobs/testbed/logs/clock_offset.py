@@ -23,9 +23,9 @@ significantly better than ``0`` (the paired test for one candidate), it goes on 
 side by steps of ``h`` (at most :data:`STEPS`) while each step is significantly better than
 the one before, then halves the step :data:`REFINE` times about the best candidate. (A
 looser rule, a step lower by more than one standard error, walked 13 steps on a flight along
-a trend of 3e-5 m per step that the final test rejected.) Where neither
-``+-h`` gains, the offset stays zero after three replays; with fewer than :data:`HELD_MIN`
-held-out ranges scored (:func:`held_out_count`), it stays zero after none. Every candidate replays the same
+a trend of 3e-5 m per step that the final test rejected.) Where neither ``+-h`` gains, the
+offset stays zero after three replays; with fewer than :data:`HELD_MIN` held-out ranges
+scored (:func:`held_out_count`), it stays zero after none. Every candidate replays the same
 ranges (those at least the search's reach inside the inputs' span) and scores them from the
 same time, so the candidates are compared range by range.
 
