@@ -965,6 +965,12 @@ def _add_replay(sub) -> None:
         metavar="DIR",
         help="write the truth and each estimator's positions as TUM files (truth.tum, NAME.tum) for evo_ape",
     )
+    _add_clock_offset(p)
+    p.set_defaults(func=_cmd_replay)
+
+
+def _add_clock_offset(p) -> None:
+    """``replay --clock-offset`` (:func:`_replay_clock_offset`)."""
     p.add_argument(
         "--clock-offset",
         type=_clock_offset_value,
@@ -972,7 +978,6 @@ def _add_replay(sub) -> None:
         metavar="SECONDS|auto",
         help="the inputs (IMU, odometry) stamped this many seconds late against the ranges: moved onto the ranges' clock for every estimator; auto: searched from the log's held-out ranges (default 0)",
     )
-    p.set_defaults(func=_cmd_replay)
 
 
 def _clock_offset_value(text: str) -> float | str:
@@ -993,22 +998,12 @@ def _clock_offset_value(text: str) -> float | str:
 
 def _cmd_replay(args) -> int:
     """``quadobs replay LOG``: export the log, or replay it and print one row per estimator."""
-    from quadobs.testbed.logs import open_log, write_log
+    from quadobs.testbed.logs import open_log
 
     _check_replay_numbers(args)
     log = open_log(args.log)
     if args.export is not None:
-        from quadobs.testbed.outputs import check_output_folder, write_folder_staged
-
-        _refuse_with_export(args)
-        check_output_folder(args.export, _log_folder_files(), "--export")
-        write_folder_staged(
-            args.export, lambda tmp: write_log(log, tmp), "--export", set(_log_folder_files())
-        )
-        print(
-            f"log {log.name}: {log.ranges.shape[0]} ranges, {log.inputs.shape[0]} inputs written to {args.export}"
-        )
-        return 0
+        return _replay_export(args, log)
     from quadobs.testbed.logs.estimators import parse_tuning
     from quadobs.testbed.logs.replay import log_scenario, run_replay
     from quadobs.testbed.outputs import check_outputs
@@ -1078,6 +1073,22 @@ def _cmd_replay(args) -> int:
     return diverged_status(summary, _estimator_list(args.estimators))
 
 
+def _replay_export(args, log) -> int:
+    """``quadobs replay LOG --export DIR``: the log written in the open format, and stop."""
+    from quadobs.testbed.logs import write_log
+    from quadobs.testbed.outputs import check_output_folder, write_folder_staged
+
+    _refuse_with_export(args)
+    check_output_folder(args.export, _log_folder_files(), "--export")
+    write_folder_staged(
+        args.export, lambda tmp: write_log(log, tmp), "--export", set(_log_folder_files())
+    )
+    print(
+        f"log {log.name}: {log.ranges.shape[0]} ranges, {log.inputs.shape[0]} inputs written to {args.export}"
+    )
+    return 0
+
+
 #: Largest magnitude of a ``--tune`` value (squares and products of it stay finite).
 TUNE_MAX = 1e12
 
@@ -1134,6 +1145,10 @@ def _refuse_with_export(args) -> None:
     if args.tune or args.set:
         raise QuadobsError(
             f"--{'tune' if args.tune else 'set'}: does not apply with --export, which writes the log folder and stops"
+        )
+    if args.clock_offset != 0.0:  # a number or auto: the log is written as it is
+        raise QuadobsError(
+            "--clock-offset: does not apply with --export, which writes the log folder as it is and stops"
         )
 
 
@@ -1297,7 +1312,31 @@ def _replay_clock_offset(args, log, tuning: dict):
         )
     args.clock_report = {"clock_offset": found.summary() | {"reason": found.reason}}
     args.calibration_report = {**args.clock_report, "reason": found.reason}
-    return with_input_offset(log, found.offset)
+    moved = with_input_offset(log, found.offset)
+    if found.offset:
+        _check_moved_span(args, moved, found.offset)
+    return moved
+
+
+def _check_moved_span(args, moved, tau: float) -> None:
+    """Refuse, before the calibration, an offset ``tau`` (s) whose moved inputs' span holds no
+    measurement of the log, or, self-calibrated, fewer held-out ranges than the calibration's
+    paired test needs (:data:`~quadobs.testbed.logs.clock_offset.HELD_MIN`)."""
+    from quadobs.errors import QuadobsError
+    from quadobs.testbed.logs.calibration import SCORED_FROM, scored_kind
+    from quadobs.testbed.logs.clock_offset import HELD_MIN, held_out_count
+
+    table = moved.ranges if scored_kind(moved) == "range" else moved.tdoa
+    t0, t1 = moved.start, moved.end
+    t = table[(table[:, 0] >= t0) & (table[:, 0] <= t1), 0]
+    span = f"--clock-offset {tau:g}: the inputs moved to {t0:.3f} .. {t1:.3f} s hold {t.size} of the log's {table.shape[0]} {scored_kind(moved)} measurements"
+    if t.size == 0:
+        raise QuadobsError(f"{span}; none is left to replay")
+    held = held_out_count(t, t0 + SCORED_FROM * (t1 - t0))
+    if args.biases is None and args.calibrate == "self" and held < HELD_MIN:
+        raise QuadobsError(
+            f"{span}: too few for the self-calibration ({held} held out and scored, its paired test needs {HELD_MIN}; --calibrate none replays them)"
+        )
 
 
 #: The options whose value may start with a minus sign (a list of numbers such as ``-0.2,0.1``).

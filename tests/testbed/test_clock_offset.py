@@ -9,7 +9,9 @@ from test_replay_in_time import ANCHORS_3D, _ranges
 
 from quadobs.testbed.logs import RangeLog, write_log
 from quadobs.testbed.logs.clock_offset import (
+    HELD_MIN,
     estimate_clock_offset,
+    held_out_count,
     offset_step,
     with_input_offset,
 )
@@ -58,11 +60,12 @@ def test_with_input_offset_moves_the_inputs_and_the_attitude_only():
     assert offset_step(log) == pytest.approx(0.04)  # the ranges, coarser than the inputs
 
 
-@pytest.mark.parametrize("late", [0.0, 0.1])
-def test_a_known_offset_is_found_and_none_is_kept_where_there_is_none(late):
-    log = _swinging_log(late)
+@pytest.mark.parametrize(("late", "seed"), [(0.0, 4), (0.1, 4), (0.1, 5)])
+def test_a_known_offset_is_found_and_none_is_kept_where_there_is_none(late, seed):
+    """Within the finest grid step, ``h / 4`` (two halvings): 10 ms here."""
+    log = _swinging_log(late, seed=seed)
     found = estimate_clock_offset(log, setup_options={"q_imu": 0.01, "range_sigma": 0.02})
-    assert found.offset == pytest.approx(late, abs=0.5 * offset_step(log))
+    assert abs(found.offset - late) <= 0.25 * offset_step(log) + 1e-9, found.reason
     if late:
         assert found.test["significantly_better"], found.reason
         assert found.scores[found.offset] < 0.5 * found.scores[0.0]
@@ -95,3 +98,47 @@ def test_a_clock_offset_that_is_not_a_number_is_refused(tmp_path, capsys):
         cli.main(["replay", str(tmp_path), "--clock-offset", "soon"])
     assert exit_.value.code == 2
     assert "expected seconds or auto" in capsys.readouterr().err
+
+
+def test_too_few_held_out_ranges_for_the_paired_test_are_not_searched():
+    """3.4 s: 43 ranges at least the search's reach inside the inputs, 4 of them held out and
+    scored, fewer than the paired test's three blocks of two: no replay, "too few ranges"."""
+    log = _swinging_log(0.1, seconds=3.4)
+    found = estimate_clock_offset(log, setup_options={"q_imu": 0.01, "range_sigma": 0.02})
+    assert found.offset == 0.0 and found.scores == {}, found.reason
+    assert "too few ranges" in found.reason and f"needs {HELD_MIN}" in found.reason
+    t = np.arange(20.0)  # held: the 3rd of every 5 (2, 7, 12, 17), scored from 7
+    assert held_out_count(t, 7.0) == 3 and held_out_count(t[::-1], 0.0) == 4
+
+
+@pytest.mark.parametrize(
+    ("offset", "says"),
+    [("-30", "none is left to replay"), ("1e6", "none is left to replay"), ("3", "too few")],
+)
+def test_a_clock_offset_that_leaves_too_few_ranges_is_refused_first(
+    tmp_path, capsys, monkeypatch, offset, says
+):
+    from quadobs import cli
+    from quadobs.testbed.logs import calibration
+
+    def refused(*args, **kwargs):
+        raise AssertionError("the calibration ran before the refusal")
+
+    monkeypatch.setattr(calibration, "calibrate", refused)
+    write_log(_swinging_log(0.0, seconds=4.0), tmp_path / "log")
+    argv = ["replay", str(tmp_path / "log"), "--no-progress", "--clock-offset", offset]
+    assert cli.main([*argv, "--summary", str(tmp_path / "s.json")]) == 2
+    err = capsys.readouterr().err
+    assert f"--clock-offset {float(offset):g}: the inputs moved to" in err and says in err, err
+    assert len(err.strip().splitlines()) == 1 and not (tmp_path / "s.json").exists()
+
+
+@pytest.mark.parametrize("offset", ["0.1", "auto"])
+def test_a_clock_offset_is_refused_with_export(tmp_path, capsys, offset):
+    from quadobs import cli
+
+    write_log(_swinging_log(0.0, seconds=2.0), tmp_path / "log")
+    argv = ["replay", str(tmp_path / "log"), "--export", str(tmp_path / "copy")]
+    assert cli.main([*argv, "--clock-offset", offset]) == 2
+    assert "--clock-offset: does not apply with --export" in capsys.readouterr().err
+    assert not (tmp_path / "copy").exists()

@@ -23,8 +23,9 @@ significantly better than ``0`` (the paired test for one candidate), it goes on 
 side by steps of ``h`` (at most :data:`STEPS`) while each step is significantly better than
 the one before, then halves the step :data:`REFINE` times about the best candidate. (A
 looser rule, a step lower by more than one standard error, walked 13 steps on a flight along
-a trend of 3e-5 m per step that the final test rejected.) Where neither
-``+-h`` gains, the offset stays zero after three replays. Every candidate replays the same
+a trend of 3e-5 m per step that the final test rejected.) Where neither ``+-h`` gains, the
+offset stays zero after three replays; with fewer than :data:`HELD_MIN` held-out ranges
+scored (:func:`held_out_count`), it stays zero after none. Every candidate replays the same
 ranges (those at least the search's reach inside the inputs' span) and scores them from the
 same time, so the candidates are compared range by range.
 
@@ -48,6 +49,7 @@ __all__ = [
     "STEPS",
     "ClockOffset",
     "estimate_clock_offset",
+    "held_out_count",
     "offset_step",
     "takes_offset",
     "with_input_offset",
@@ -55,9 +57,9 @@ __all__ = [
 
 #: The most steps the search goes along the better side (module docstring).
 STEPS = 20
-#: Fewer held-out ranges than twice this and the offset is not searched (the paired test's
-#: fewest blocks).
-BLOCKS_MIN = 3 * 5
+#: Fewer scored held-out ranges than this and the offset is not searched: the paired test
+#: (:func:`~quadobs.testbed.logs.calibration.compare`) needs three blocks of two.
+HELD_MIN = 3 * 2
 #: The halvings of the step about the best candidate.
 REFINE = 2
 
@@ -140,6 +142,17 @@ class ClockOffset:
         }
 
 
+def held_out_count(times: np.ndarray, start: float) -> int:
+    """How many of the ranges at ``times`` (s) the calibration holds out and scores: every
+    :data:`~quadobs.testbed.logs.calibration.HOLD_OUT`-th range in time (the replay's count),
+    of those at ``start`` (s) or later."""
+    from quadobs.testbed.logs.calibration import HOLD_OUT
+
+    t = np.sort(np.asarray(times, dtype=float))
+    held = np.arange(t.size) % HOLD_OUT == HOLD_OUT // 2
+    return int(np.count_nonzero(held & (t >= start)))
+
+
 def _interior(log, margin: float):
     """``log`` with only the ranges at least ``margin`` seconds inside its inputs' span: every
     candidate offset up to ``margin`` then replays the same ranges."""
@@ -170,10 +183,14 @@ def estimate_clock_offset(
         return ClockOffset(0.0, 0.0, math.nan, reason=f"clock offset of the inputs: {why}")
     h = round(offset_step(log), 9)
     t0, t1 = float(log.inputs[0, 0]), float(log.inputs[-1, 0])
-    inner = _interior(log, (STEPS + 1) * h)
-    if inner.ranges.shape[0] < 2 * BLOCKS_MIN or not math.isfinite(h):
-        return ClockOffset(0.0, 0.0, h, reason="clock offset of the inputs: none (too few ranges)")
     start = t0 + SCORED_FROM * (t1 - t0)
+    inner = _interior(log, (STEPS + 1) * h) if math.isfinite(h) else log
+    held = held_out_count(inner.ranges[:, 0], start)
+    if held < HELD_MIN or not math.isfinite(h):
+        why = f"{held} held-out ranges scored, the paired test needs {HELD_MIN}"
+        return ClockOffset(
+            0.0, 0.0, h, reason=f"clock offset of the inputs: none (too few ranges: {why})"
+        )
     runs: dict = {}
 
     def score(tau: float) -> float:
