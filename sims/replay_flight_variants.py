@@ -36,7 +36,9 @@ variant):
 * ``truth100``: the truth as a motion capture gives it: positions only (no velocity), at 100
   Hz, from 2 s after the IMU's first sample;
 * ``nostd``: no ``std`` column in ``ranges.csv`` (a hand-converted log states none);
-* ``real``: every one of the above at once (``vib100`` for the rate).
+* ``real``: every one of the above at once (``vib100`` for the rate);
+* ``real-STEP`` (not in the default set): ``real`` without the one transform ``STEP`` (one of
+  :data:`REAL_STEPS`), every other drawn as in ``real``: what ``STEP`` costs in ``real``.
 
 Each variant is replayed with the command's defaults (``quadobs replay DIR --burn-in 5``;
 ``--calibrate none``: without the self-calibration; ``--clock-offset auto``: the inputs' clock
@@ -263,7 +265,7 @@ def main() -> None:
     ap.add_argument("--accel-bias", type=float, default=0.2, help="m/s^2 per axis (std)")
     ap.add_argument("--gyro-bias", type=float, default=0.01, help="rad/s per axis (std)")
     ap.add_argument("--yaw", type=float, default=1.0, help="rad, the variant yaw's frame turn")
-    ap.add_argument("--variants", default=",".join(VARIANTS + REAL))
+    ap.add_argument("--variants", default=",".join(VARIANTS + REAL), help="also real-STEP")
     ap.add_argument("--accel-vibration", type=float, default=1.0, help="m/s^2 per sample")
     ap.add_argument("--gyro-vibration", type=float, default=0.05, help="rad/s per sample")
     ap.add_argument("--estimators", default=None, help="default: the replay's default set")
