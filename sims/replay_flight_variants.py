@@ -275,6 +275,9 @@ def main() -> None:
     ap.add_argument("--calibrate", default="self", choices=("self", "none"), help="the replay's")
     ap.add_argument("--clock-offset", default="0", help="the replay's (seconds or auto)")
     args = ap.parse_args()
+    unknown = set(args.variants.split(",")) - set(VARIANTS + REAL + REAL_LESS)
+    if unknown:
+        ap.error(f"--variants: unknown {', '.join(sorted(unknown))}")
     out = Path(args.out or tempfile.mkdtemp(prefix="flights-"))
     rows = []
     for seed in (int(s) for s in args.seeds.split(",")):
