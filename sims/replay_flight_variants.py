@@ -36,7 +36,9 @@ variant):
 * ``truth100``: the truth as a motion capture gives it: positions only (no velocity), at 100
   Hz, from 2 s after the IMU's first sample;
 * ``nostd``: no ``std`` column in ``ranges.csv`` (a hand-converted log states none);
-* ``real``: every one of the above at once (``vib100`` for the rate).
+* ``real``: every one of the above at once (``vib100`` for the rate);
+* ``real-STEP`` (not in the default set): ``real`` without the one transform ``STEP`` (one of
+  :data:`REAL_STEPS`), every other drawn as in ``real``: what ``STEP`` costs in ``real``.
 
 Each variant is replayed with the command's defaults (``quadobs replay DIR --burn-in 5``;
 ``--calibrate none``: without the self-calibration; ``--clock-offset auto``: the inputs' clock
@@ -176,32 +178,59 @@ def _mocap(log):
     return dataclasses.replace(log, truth=rows[picked][:, keep], truth_columns=columns)
 
 
+#: The transforms of ``real`` in the order they are made (the axes before the noise; the
+#: clock's shift last, outside the draws).
+REAL_STEPS = ("frd", "vib100", "uneven", "bias", "truth100", "nostd", "clock")
+#: ``real`` less one of its transforms: ``real-STEP`` for each step of :data:`REAL_STEPS`.
+REAL_LESS = tuple(f"real-{s}" for s in REAL_STEPS)
+
+
+def _apply(step: str, log, rng, accel: float, gyro: float):
+    """``log`` with the one transform ``step`` (module docstring)."""
+    if step in ("vib", "vib100", "alias100"):
+        log = _vibration(log, rng, accel, gyro)
+        if step == "alias100":
+            return dataclasses.replace(log, inputs=log.inputs[::10].copy())
+        if step == "vib100":
+            return dataclasses.replace(log, inputs=_block_mean(log.inputs, 10))
+        return log
+    if step == "uneven":
+        return _uneven(log, rng)
+    if step == "frd":
+        return _frd(log)
+    if step == "bias":
+        return _range_errors(log, rng)
+    if step == "truth100":
+        return _mocap(log)
+    if step == "nostd":
+        return dataclasses.replace(log, range_std=np.full(log.ranges.shape[0], np.nan))
+    if step == "clock":
+        return _clock(log)
+    raise ValueError(f"unknown transform {step!r}")
+
+
 def real_variant(log, kind: str, rng, accel: float, gyro: float):
-    """``log`` (the variant ``noatt``) with what a real flight log has (module docstring)."""
-    steps = (
-        tuple(s for s in REAL[:-1] if s not in ("vib", "alias100")) if kind == "real" else (kind,)
-    )
-    for step in ("frd", *(s for s in steps if s != "frd")):  # the axes before the noise
-        if step not in steps:
-            continue
-        if step in ("vib", "vib100", "alias100"):
-            log = _vibration(log, rng, accel, gyro)
-            if step == "alias100":
-                log = dataclasses.replace(log, inputs=log.inputs[::10].copy())
-            elif step == "vib100":
-                log = dataclasses.replace(log, inputs=_block_mean(log.inputs, 10))
-        elif step == "uneven":
-            log = _uneven(log, rng)
-        elif step == "frd":
-            log = _frd(log)
-        elif step == "bias":
-            log = _range_errors(log, rng)
-        elif step == "truth100":
-            log = _mocap(log)
-        elif step == "nostd":
-            log = dataclasses.replace(log, range_std=np.full(log.ranges.shape[0], np.nan))
-    if "clock" in steps:
-        log = _clock(log)
+    """``log`` (the variant ``noatt``) with what a real flight log has (module docstring).
+
+    ``real-STEP`` is ``real`` without the transform ``STEP``, every other transform drawn as
+    in ``real`` (``rng`` seeded as for ``real``: each step starts from the generator's state at
+    which it starts in ``real``), so that ``real`` minus ``real-STEP`` is what ``STEP`` costs
+    on the same draws.
+    """
+    if kind in REAL_LESS:
+        left_out = kind.removeprefix("real-")
+        start = []  # the generator's state at each step of ``real``
+        probe = log
+        for step in REAL_STEPS:
+            start.append(rng.bit_generator.state)
+            probe = _apply(step, probe, rng, accel, gyro)
+        for step, state in zip(REAL_STEPS, start, strict=True):
+            if step != left_out:
+                rng.bit_generator.state = state
+                log = _apply(step, log, rng, accel, gyro)
+    else:
+        for step in REAL_STEPS if kind == "real" else (kind,):
+            log = _apply(step, log, rng, accel, gyro)
     return dataclasses.replace(log, name=f"{log.name.removesuffix('-noatt')}-{kind}")
 
 
@@ -236,7 +265,7 @@ def main() -> None:
     ap.add_argument("--accel-bias", type=float, default=0.2, help="m/s^2 per axis (std)")
     ap.add_argument("--gyro-bias", type=float, default=0.01, help="rad/s per axis (std)")
     ap.add_argument("--yaw", type=float, default=1.0, help="rad, the variant yaw's frame turn")
-    ap.add_argument("--variants", default=",".join(VARIANTS + REAL))
+    ap.add_argument("--variants", default=",".join(VARIANTS + REAL), help="also real-STEP")
     ap.add_argument("--accel-vibration", type=float, default=1.0, help="m/s^2 per sample")
     ap.add_argument("--gyro-vibration", type=float, default=0.05, help="rad/s per sample")
     ap.add_argument("--estimators", default=None, help="default: the replay's default set")
@@ -246,6 +275,9 @@ def main() -> None:
     ap.add_argument("--calibrate", default="self", choices=("self", "none"), help="the replay's")
     ap.add_argument("--clock-offset", default="0", help="the replay's (seconds or auto)")
     args = ap.parse_args()
+    unknown = set(args.variants.split(",")) - set(VARIANTS + REAL + REAL_LESS)
+    if unknown:
+        ap.error(f"--variants: unknown {', '.join(sorted(unknown))}")
     out = Path(args.out or tempfile.mkdtemp(prefix="flights-"))
     rows = []
     for seed in (int(s) for s in args.seeds.split(",")):
@@ -255,8 +287,9 @@ def main() -> None:
         log = read_log(base)
         for kind in args.variants.split(","):
             folder = out / f"seed{seed}-{kind}"
-            if kind in REAL:
-                rng = np.random.default_rng([seed, REAL.index(kind)])
+            if kind in REAL + REAL_LESS:
+                index = REAL.index("real" if kind in REAL_LESS else kind)
+                rng = np.random.default_rng([seed, index])
                 noatt = variant(log, "noatt", args.yaw)
                 vib = (args.accel_vibration, args.gyro_vibration)
                 write_log(real_variant(noatt, kind, rng, *vib), folder)

@@ -1,6 +1,7 @@
 """The transforms by which ``sims/replay_flight_variants.py`` gives an exported flight what a real
 flight log has: each checked on a small body-IMU log (the replays themselves are the script's)."""
 
+import dataclasses
 import importlib.util
 import math
 from pathlib import Path
@@ -62,3 +63,29 @@ def test_ranges_and_truth(variants):
     _, real = _real(variants, "real")
     assert np.all(np.isnan(real.range_std)) and real.name.endswith("-real")
     assert math.isclose(real.inputs[0, 0], variants.EPOCH + 0.02)
+
+
+def test_real_less_one_step(variants):
+    """``real-STEP`` is ``real`` on the same draws with only ``STEP``'s change undone."""
+    log = _imu_body_log(False)
+    log = dataclasses.replace(log, range_std=np.full(log.ranges.shape[0], 0.1))
+    _, real = _real(variants, "real", log)
+    _, no_bias = _real(variants, "real-bias", log)
+    _, no_nostd = _real(variants, "real-nostd", log)
+    _, no_clock = _real(variants, "real-clock", log)
+    _, no_vib = _real(variants, "real-vib100", log)
+    # the ranges as logged, the IMU drawn as in ``real``
+    assert np.array_equal(no_bias.ranges[:, 2], log.ranges[:, 2])
+    assert np.array_equal(no_bias.inputs, real.inputs)
+    # the stated std kept, every draw as in ``real``
+    assert np.all(np.isnan(real.range_std)) and np.all(no_nostd.range_std == 0.1)
+    assert np.array_equal(no_nostd.ranges, real.ranges)
+    assert np.array_equal(no_nostd.inputs, real.inputs)
+    # the clocks as logged, the rest as in ``real``
+    assert math.isclose(no_clock.inputs[0, 0], log.inputs[0, 0])
+    assert np.array_equal(no_clock.ranges[:, 2], real.ranges[:, 2])
+    assert np.allclose(no_clock.inputs[:, 1:], real.inputs[:, 1:])
+    # no vibration: the native rate, and the range errors drawn as in ``real``
+    assert no_vib.inputs.shape[0] > real.inputs.shape[0]
+    assert np.array_equal(no_vib.ranges, real.ranges)
+    assert no_bias.name.endswith("-real-bias")
