@@ -67,8 +67,11 @@ def test_the_gyro_noise_is_the_log_s_stated_density_above_the_floor(tmp_path):
     )  # 4e-6 rad^2/s: below the floor
     plain = read_log(write_log(_log(), tempfile.mkdtemp()))
     assert math.isnan(plain.gyro_noise)
+    # a stated bias: the live filter's rule N^2 + b^2 (1 s), below the floor too
+    biased = read_log(write_log(_log(gyro_noise=2e-3, gyro_bias=2e-3), tmp_path / "b"))
     h = 0.01
-    for log, intensity in ((stated, 4e-4), (quiet, GYRO_NOISE), (plain, GYRO_NOISE)):
+    cases = ((stated, 4e-4), (quiet, GYRO_NOISE), (plain, GYRO_NOISE), (biased, 8e-6))
+    for log, intensity in cases:
         s = ReplaySetup(ANCHORS, 0.1, "imu", 0.0, 4.0, input_kind="imu_body", **log_frame(log))
         est = build_onboard_ekf(s, np.r_[3.0, 3.0, 1.5, 0.0, 0.0, 0.0])
         assert est.q_a == pytest.approx(intensity / h)  # the per-sample variance at the IMU's rate

@@ -172,6 +172,9 @@ class ReplaySetup:
         The median interval of a body IMU's samples (s), else None.
     gyro_noise : float or None
         The log's stated gyroscope white-noise density (rad/s/sqrt(Hz); ``meta.csv``), else None.
+    gyro_bias : float or None
+        The log's stated standard deviation of the gyroscope's constant bias per axis (rad/s;
+        ``meta.csv``), else None.
     alignment0 : ndarray (4,) or None
         Where a body-IMU log has no ``attitude.csv``: the initial alignment's quaternion (the
         tilt from the first half second's median specific force, heading zero;
@@ -202,6 +205,7 @@ class ReplaySetup:
     attitude0: np.ndarray | None = None
     imu_period: float | None = None
     gyro_noise: float | None = None
+    gyro_bias: float | None = None
     q_xy_heading: float = 1.0
     alignment0: np.ndarray | None = None
     system: QuadraticSystem = field(init=False, repr=False)
@@ -379,7 +383,7 @@ def replay_setup(
 
 def log_frame(log) -> dict:
     """The setup's fields read from the log's frame, attitude and IMU: ``frame``, ``gravity``,
-    ``attitude0``, ``imu_period`` and ``gyro_noise`` (:class:`ReplaySetup`)."""
+    ``attitude0``, ``imu_period``, ``gyro_noise`` and ``gyro_bias`` (:class:`ReplaySetup`)."""
     attitude0 = None
     if log.attitude is not None and log.attitude.shape[0]:
         attitude0 = np.array(log.attitude[0, 1:5], dtype=float)
@@ -389,6 +393,7 @@ def log_frame(log) -> dict:
     if log.input_kind == "imu_body" and log.inputs.shape[0] > 1:
         period = float(np.median(np.diff(log.inputs[:, 0])))
     gyro = float(getattr(log, "gyro_noise", math.nan))
+    gyro_bias = float(getattr(log, "gyro_bias", math.nan))
     alignment0 = None
     if log.input_kind == "imu_body" and attitude0 is None and log.inputs.shape[0]:
         alignment0 = _alignment(log)
@@ -398,6 +403,7 @@ def log_frame(log) -> dict:
         "attitude0": attitude0,
         "imu_period": period,
         "gyro_noise": gyro if math.isfinite(gyro) else None,
+        "gyro_bias": gyro_bias if math.isfinite(gyro_bias) else None,
         "alignment0": alignment0,
     }
 
@@ -569,18 +575,35 @@ GYRO_NOISE = 1e-4
 
 
 def gyro_noise(s: ReplaySetup) -> float:
-    """The gyroscope's white-noise intensity (rad^2/s): the square of the log's stated density
-    (:attr:`ReplaySetup.gyro_noise`, ``meta.csv`` key ``gyro_noise``) where it exceeds
-    :data:`GYRO_NOISE`, else :data:`GYRO_NOISE`.
+    """The gyroscope's white-noise intensity (rad^2/s).
 
-    A stated density is the sensor's white noise only: the filter has no gyroscope-bias state,
-    and a bias of the order of 0.002 rad/s (a consumer MEMS part's) is not in it. On the
-    exported ``quadrotor-uwb`` flight (20 s, density 1.6e-4 rad/s/sqrt(Hz), bias 0.002 rad/s)
-    the density alone gave the filter 0.0276 m of position RMSE after 5 s, the floor
-    0.0265 m: a stated density raises the intensity, never lowers it below the floor.
+    Where the log states the gyroscope's bias (:attr:`ReplaySetup.gyro_bias`, ``meta.csv``
+    key ``gyro_bias``, the standard deviation ``b_g`` of its constant bias per axis), the rule
+    of the live on-board filter (:func:`quadobs.testbed.factories.onboard_ekf`): the bias
+    matched over the horizon ``tau`` = 1 s, as the accelerometer's in
+    :func:`quadobs.testbed.imu.input_noise_std`,
+
+    .. math:: q_g = N_g^2 + b_g^2\\,\\tau,
+
+    ``N_g`` the stated density (0 if none). Otherwise the square of the stated density
+    (:attr:`ReplaySetup.gyro_noise`) where it exceeds :data:`GYRO_NOISE`, else
+    :data:`GYRO_NOISE`: a density alone is the sensor's white noise only, the filter has no
+    gyroscope-bias state, and a bias of the order of 0.002 rad/s (a consumer MEMS part's) is
+    not in it. On the exported ``quadrotor-uwb`` flight (20 s, density 1.6e-4 rad/s/sqrt(Hz),
+    bias 0.002 rad/s) the density alone gave the filter 0.0276 m of position RMSE after 5 s,
+    the floor 0.0265 m. A rule that gives zero (a gyroscope stated perfect) takes the floor.
     """
-    stated = 0.0 if s.gyro_noise is None else float(s.gyro_noise) ** 2
-    return max(stated, GYRO_NOISE)
+    density2 = 0.0 if s.gyro_noise is None else float(s.gyro_noise) ** 2
+    if s.gyro_bias is not None:
+        stated = density2 + float(s.gyro_bias) ** 2 * BIAS_HORIZON
+        if stated > 0.0:
+            return stated
+    return max(density2, GYRO_NOISE)
+
+
+#: The horizon (s) over which a stated constant bias is matched by a white noise of intensity
+#: ``b^2 tau`` (the ``horizon`` of :func:`quadobs.testbed.imu.input_noise_std`).
+BIAS_HORIZON = 1.0
 
 
 #: The floor of the accelerometer's white-noise intensity (m^2/s^3) of the model ``imu``
