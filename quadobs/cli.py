@@ -453,7 +453,10 @@ EPISODE_KERNELS = (  # the default (block) path: the world's read-out with the s
     "quadobs._kernels.gramian:held_run_terms",
     "quadobs._kernels.observer:range_outputs",
 )
-AUGMENTED_KERNELS = ("quadobs._kernels.observer:augmented_step_block",)
+AUGMENTED_KERNELS = (
+    "quadobs._kernels.observer:augmented_step_block",
+    "quadobs._kernels.held_input:expm_series",  # the prediction over intervals of any length
+)
 LE2013_KERNELS = ("quadobs._kernels.zonotope:zonotope_step",)
 BENCH_KERNELS = (
     "quadobs._kernels.observer:augmented_step",

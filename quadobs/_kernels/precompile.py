@@ -81,6 +81,8 @@ SIGNATURES: dict[str, Any] = {
         "fC2",
         "fC2",
     ),
+    # the interface in time (measurements at their own times): the exponentials of each interval
+    "quadobs._kernels.held_input:expm_series": ("fC2", "fC2", "fC2", "fC2"),
 }
 
 #: The kernels of an episode on the default path.

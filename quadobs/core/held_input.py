@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from functools import cache
 from itertools import combinations
 
 import numpy as np
@@ -47,6 +48,7 @@ __all__ = [
     "HeldInputDiscretization",
     "as_covariance",
     "expm_exact",
+    "expm_series_numpy",
     "held_input_interval",
     "held_input_step",
     "van_loan",
@@ -172,16 +174,16 @@ def van_loan(A: np.ndarray, V: np.ndarray, dt: float) -> tuple[np.ndarray, np.nd
     return Phi, 0.5 * (Q + Q.T)
 
 
-def expm_exact(M: np.ndarray) -> np.ndarray:
-    """``e^M``: the finite series ``sum_{i<k} M^i / i!`` when ``M^k`` is exactly zero for some
-    ``k <= n`` (a nilpotent matrix, as the replay models' ``A`` and their immersions' ``A(u)``
-    and Van Loan blocks are), else :func:`scipy.linalg.expm`. Exact either way; the series
-    costs a few products where ``expm`` costs a Padé approximant with scaling and squaring.
+def expm_series_numpy(M: np.ndarray) -> np.ndarray | None:
+    """The finite series ``sum_{i<k} M^i / i!`` when ``M^k`` is exactly zero for some ``k <= n``, else ``None``.
 
-    Examples
-    --------
-    >>> expm_exact(np.array([[0.0, 2.0], [0.0, 0.0]])).tolist()
-    [[1.0, 2.0], [0.0, 1.0]]
+    The NumPy reference of the compiled :func:`quadobs._kernels.held_input.expm_series`
+    (the same operations in the same order):
+
+    .. math::
+
+        T_0 = I, \\qquad T_i = (T_{i-1} M) / i, \\qquad e^M = \\sum_{i < k} T_i
+        \\quad \\text{when } T_k = 0 .
     """
     n = M.shape[0]
     out = np.eye(n)
@@ -191,7 +193,41 @@ def expm_exact(M: np.ndarray) -> np.ndarray:
         if not term.any():
             return out
         out = out + term
-    return sla.expm(M)
+    return None
+
+
+@cache
+def _compiled_series():
+    """:func:`quadobs._kernels.held_input.expm_series` when Numba imports, else ``None``."""
+    try:
+        from quadobs._kernels.held_input import expm_series
+    except ImportError:
+        return None
+    return expm_series
+
+
+def expm_exact(M: np.ndarray) -> np.ndarray:
+    """``e^M``: the finite series ``sum_{i<k} M^i / i!`` when ``M^k`` is exactly zero for some
+    ``k <= n`` (a nilpotent matrix, as the replay models' ``A`` and their immersions' ``A(u)``
+    and Van Loan blocks are), else :func:`scipy.linalg.expm`. Exact either way; the series
+    costs a few products where ``expm`` costs a Padé approximant with scaling and squaring.
+
+    The series is compiled (:func:`quadobs._kernels.held_input.expm_series`) when Numba
+    imports, else :func:`expm_series_numpy`; both give the same bits.
+
+    Examples
+    --------
+    >>> expm_exact(np.array([[0.0, 2.0], [0.0, 0.0]])).tolist()
+    [[1.0, 2.0], [0.0, 1.0]]
+    """
+    series = _compiled_series()
+    if series is None:
+        out = expm_series_numpy(M)
+        return sla.expm(M) if out is None else out
+    M = np.ascontiguousarray(M, dtype=float)
+    n = M.shape[0]
+    out, term, work = np.empty((n, n)), np.empty((n, n)), np.empty((n, n))
+    return out if series(M, out, term, work) else sla.expm(M)
 
 
 def held_input_interval(A: np.ndarray, B: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:

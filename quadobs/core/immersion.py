@@ -96,7 +96,7 @@ certified ``dim K``.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from math import comb
+from math import comb, prod
 
 import numpy as np
 import scipy.linalg as sla
@@ -549,7 +549,13 @@ class Immersion:
         u = np.asarray(u, dtype=float)
         if u.shape[-1:] != (self.system.p,):
             raise QuadobsError(f"u: expected shape (..., {self.system.p}), got {u.shape}")
-        return self.state_matrix_constant + np.tensordot(u, self.state_matrix_input, axes=(-1, 0))
+        p, N = self.system.p, self.dim
+        # sum_j u_j A_j as one matrix product: what np.tensordot(u, A_j, axes=(-1, 0)) forms,
+        # without its shape bookkeeping (the interface in time calls this at every interval)
+        coupling = np.dot(
+            u.reshape(prod(u.shape[:-1]), p), self.state_matrix_input.reshape(p, N * N)
+        )
+        return self.state_matrix_constant + coupling.reshape(u.shape[:-1] + (N, N))
 
     def output(self, z: np.ndarray) -> np.ndarray:
         """``y = C z`` for ``z`` of shape ``(..., dim)``."""

@@ -36,6 +36,10 @@ Figures (keys of the JSON written by ``--json``):
     ``--no-cold-start``.
 ``observer_block_step_us``
     One row of :meth:`AugmentedObserver.step_block` (a block of rows in one compiled call).
+``observer_in_time_step_us``, ``observer_in_time``
+    One step of ``quadrotor-uwb``'s live observer, each range at its own time and the
+    prediction through the exponentials of the interval (:func:`_observer_in_time_us`), with
+    the grid step of the same observer beside it (``observer_in_time["grid_step_us"]``).
 ``campaign``
     Episodes per second of ``ifac2021-noisy`` (the default estimators, with the traces a
     campaign collects) over all cores, against as many bare physics episodes of the same
@@ -112,6 +116,7 @@ BENCH_KEYS = (
     "step_loop_ratio",
     "observer_block_step_us",
     "campaign_ratio",
+    "observer_in_time_step_us",
 )
 
 
@@ -287,6 +292,33 @@ def _observer_block_step_us(scenario, calls: int, repeats: int) -> float:
     obs = augmented_observer(scenario, np.zeros(scenario.state_dim))
     rec = np.zeros((calls, scenario.state_dim + 3))
     return _middle(_timed_us(lambda _: obs.step_block(U, Y, rec), calls, repeats))
+
+
+def _observer_in_time_us(calls: int, repeats: int) -> dict:
+    """One step of ``quadrotor-uwb``'s live observer, ranges in time, against the grid step.
+
+    ``in_time_step_us``: :class:`~quadobs.testbed.ranges_in_time.RangesInTime` (each range
+    corrected at its own time with its own variance, then the prediction over the step through
+    the exponentials of the interval with the state-dependent noise); ``grid_step_us``: the
+    same scenario's :class:`~quadobs.estimators.augmented.AugmentedObserver` step on the grid
+    (compiled). Both take the reference trajectory's noise-free inputs and one range per step,
+    the anchors in turn.
+    """
+    from quadobs.testbed.factories import augmented_observer, live_observer
+    from quadobs.testbed.scenario import load_scenario
+
+    sc = load_scenario("quadrotor-uwb")
+    U, Y, x0 = _vehicle_data(sc, calls)
+    Y = np.where(np.arange(Y.shape[1]) == (np.arange(calls) % Y.shape[1])[:, None], Y, np.nan)
+    times = {}
+    for key, build in (("in_time_step_us", live_observer), ("grid_step_us", augmented_observer)):
+        _stepper(build(sc, x0), U, Y, min(calls, 20))(None)  # kernels compiled (or loaded)
+
+        def make(build=build):
+            return build(sc, x0)
+
+        times[key] = _middle(_timed_us(_stepper(None, U, Y, calls), calls, repeats, make))
+    return {"scenario": sc.name, "steps": calls, **times}
 
 
 # -- campaign throughput ----------------------------------------------------------------
@@ -835,6 +867,8 @@ def _estimator_costs(result: dict, sc, calls: int, repeats: int, say, notes: lis
         sc, max(calls // 20, 50), max(repeats // 2, 1), "numpy"
     )
     result["observer_block_step_us"] = _observer_block_step_us(sc, calls, repeats)
+    result["observer_in_time"] = _observer_in_time_us(max(min(calls, 2000), 100), repeats)
+    result["observer_in_time_step_us"] = result["observer_in_time"]["in_time_step_us"]
     for name, key in (("ekf", "ekf_step_us"), ("ukf", "ukf_step_us")):
         value, note = _estimator_step_us(sc, name, calls, repeats)
         result[key] = value
@@ -930,6 +964,11 @@ def print_bench(r: dict, file=None) -> None:
     )
     p(
         f"  augmented observer, block path  {_fmt(r['observer_block_step_us'], '.2f')}   (one compiled call per block of rows)"
+    )
+    oit = r["observer_in_time"]
+    p(
+        f"  augmented observer, in time     {_fmt(r['observer_in_time_step_us'], '.2f')}   ({oit['scenario']}: ranges at their own times; "
+        f"{_fmt(oit['grid_step_us'], '.2f')} on the grid)"
     )
     p(f"  EKF                             {_fmt(r['ekf_step_us'], '.2f')}")
     p(f"  UKF                             {_fmt(r['ukf_step_us'], '.2f')}")

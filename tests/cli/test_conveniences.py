@@ -359,7 +359,9 @@ from quadobs.testbed.factories import augmented_observer
 sc = quadobs.load_scenario("ifac2021", duration=0.05)
 run_episode(quadobs.load_scenario("ifac2021", duration=10.0))
 run_episode(sc, path="step")
-augmented_observer(sc, np.zeros(sc.state_dim)).step(np.zeros(sc.dimension), np.zeros(1))
+obs = augmented_observer(sc, np.zeros(sc.state_dim))
+obs.step(np.zeros(sc.dimension), np.zeros(1))
+obs.predict(obs.time + 0.37 * sc.dt)  # an interval off the grid: the interface in time
 out = {}
 for spec in SIGNATURES:
     module, _, name = spec.partition(":")

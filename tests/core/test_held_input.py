@@ -1,6 +1,8 @@
 """The one held-input discretisation: closed forms of the double integrator, Phi(u) against
 the matrix exponential of the augmented system, and the in-place and batched forms."""
 
+import math
+
 import numpy as np
 import pytest
 import scipy.linalg as sla
@@ -115,3 +117,55 @@ def test_transition_is_affine_in_u(rng):
     rhs = a * disc.transition(u) + (1 - a) * disc.transition(v)
     np.testing.assert_allclose(lhs, rhs, rtol=1e-12, atol=1e-14)
     assert not np.allclose(disc.transition(u), disc.transition(v))  # the input does enter
+
+
+def _nilpotent_blocks():
+    """The blocks the interface in time exponentiates: ``[[A(u), B u], [0, 0]] dt`` and Van Loan's
+    ``[[-A(u), V], [0, A(u)^T]] dt`` of an immersed vehicle, and a general (non-nilpotent) matrix."""
+    im = immerse(vehicle_system(3, np.array([[1.0, 2.0, 3.0], [4.0, -1.0, 0.5], [0.0, 1.0, -2.0]])))
+    rng = np.random.default_rng(3)
+    u, dt, N = rng.standard_normal(3), 0.013, im.dim
+    A = im.state_matrix(u)
+    held = np.zeros((N + 1, N + 1))
+    held[:N, :N], held[:N, N] = A, im.input_matrix @ u
+    V = np.diag(rng.uniform(0.1, 2.0, N))
+    loan = np.block([[-A, V], [np.zeros((N, N)), A.T]])
+    return [held * dt, loan * dt, rng.standard_normal((5, 5))]
+
+
+def test_compiled_series_is_the_numpy_reference_bit_for_bit():
+    """The compiled series performs the reference's operations in the same order: the same bits;
+    a matrix that is not nilpotent is refused by both (then ``expm`` takes over)."""
+    pytest.importorskip("numba")
+    from quadobs._kernels.held_input import expm_series
+    from quadobs.core.held_input import expm_exact, expm_series_numpy
+
+    nilpotent, general = _nilpotent_blocks()[:2], _nilpotent_blocks()[2]
+    for M in nilpotent:
+        n = M.shape[0]
+        out, term, work = np.empty((n, n)), np.empty((n, n)), np.empty((n, n))
+        assert expm_series(M, out, term, work)
+        ref = expm_series_numpy(M)
+        assert ref is not None and np.array_equal(out, ref)
+        np.testing.assert_allclose(out, sla.expm(M), rtol=1e-12, atol=1e-14)
+        assert np.array_equal(expm_exact(M), ref)
+    n = general.shape[0]
+    assert not expm_series(general, np.empty((n, n)), np.empty((n, n)), np.empty((n, n)))
+    assert expm_series_numpy(general) is None
+    np.testing.assert_array_equal(expm_exact(general), sla.expm(general))
+
+
+def test_series_of_a_nilpotent_closed_form():
+    """``e^M`` of the shift ``M = c J`` (``J`` ones above the diagonal): ``(e^M)_ab = c^(b-a) / (b-a)!``."""
+    from quadobs.core.held_input import expm_exact, expm_series_numpy
+
+    c, n = 0.5, 5
+    M = c * np.eye(n, k=1)
+    cf = np.array(
+        [
+            [c ** (b - a) / math.factorial(b - a) if b >= a else 0.0 for b in range(n)]
+            for a in range(n)
+        ]
+    )
+    np.testing.assert_allclose(expm_exact(M), cf, rtol=1e-15, atol=0)
+    np.testing.assert_allclose(expm_series_numpy(M), cf, rtol=1e-15, atol=0)
