@@ -71,3 +71,42 @@ def test_q_imu_is_the_live_rule_on_the_stated_figures():
     # a density without a bias: its square, floored; nothing stated: no default of the log
     assert imu_input_noise(_log(accel_noise=1e-3, attitude_std=0.01)) == ACCEL_NOISE
     assert imu_input_noise(_log()) is None and log_defaults(_log()) == {}
+
+
+def test_the_ranges_error_model_round_trips_and_sets_the_bias_filters_gate(tmp_path):
+    from quadobs.estimators.robust import SkewedGate
+    from quadobs.testbed.logs.estimators import (
+        ReplaySetup,
+        _typical_range,
+        build_replay_estimators,
+        log_frame,
+    )
+
+    stated = read_log(write_log(_log(range_errors="gaussian"), tmp_path / "s"))
+    plain = read_log(write_log(_log(), tmp_path / "p"))
+    assert (stated.range_errors, plain.range_errors) == ("gaussian", "")
+    assert "range_errors" not in (tmp_path / "p" / "meta.csv").read_text()
+    x0 = np.r_[3.0, 3.0, 1.5, 0.0, 0.0, 0.0]
+    rules = {}
+    for key, log, options in (
+        ("gaussian", stated, {}),
+        ("unknown", plain, {}),
+        ("gaussian, gate asked", stated, {"gate": 6.6}),
+    ):
+        setup = ReplaySetup(
+            log.beacons, 0.01, "imu", 0.0, _typical_range(log), input_kind=log.input_kind,
+            **log_frame(log), **options,
+        )  # fmt: skip
+        est = build_replay_estimators(setup, ["ekf-bias", "ukf-bias"], x0)
+        rules[key] = [e.robust for e in est]
+    assert rules["gaussian"] == [None, None]  # as the live filters of a scenario without a radio
+    assert all(isinstance(r, SkewedGate) for r in rules["unknown"] + rules["gaussian, gate asked"])
+
+
+def test_a_bad_range_error_model_is_named(tmp_path):
+    folder = write_log(_log(), tmp_path / "log")
+    meta = folder / "meta.csv"
+    lines = meta.read_text().splitlines()
+    meta.write_text("\n".join([*lines[:2], "range_errors,normal", *lines[2:]]) + "\n")
+    with pytest.raises(QuadobsError, match="key range_errors: 'normal'; expected one of gaussian"):
+        read_log(folder)

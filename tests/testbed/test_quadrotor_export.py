@@ -59,6 +59,7 @@ def test_a_quadrotor_run_is_written_as_a_body_imu_log(exported_flight):
     assert log.ranges.shape == (8 * K // 10, 3) and np.all(np.diff(log.ranges[:, 0]) >= 0)
     np.testing.assert_array_equal(log.ranges[:8, 1], np.arange(8))
     assert log.ranges[8, 0] == pytest.approx(0.01) and np.all(log.range_std == 0.1)
+    assert log.range_errors == "gaussian"  # no radio: the sensor layer's Gaussian ranges
     # the AHRS attitude at 250 Hz
     np.testing.assert_allclose(np.diff(log.attitude[:, 0]), 0.004, atol=1e-12)
     # the truth: position, attitude, velocity at every step; the live trace's
@@ -175,3 +176,4 @@ def test_the_radio_of_a_realistic_flight_is_exported_at_its_own_times(tmp_path):
     assert np.mean(np.abs(t * 1000.0 - np.rint(t * 1000.0)) > 1e-6) > 0.9
     assert np.all(log.range_std == 0.1) and set(log.ranges[:, 1].astype(int)) == set(range(8))
     assert log.input_kind == "imu_body" and log.inputs[-1, 0] == pytest.approx(8.0)
+    assert log.range_errors == ""  # its radio's ranges carry non-line-of-sight excess

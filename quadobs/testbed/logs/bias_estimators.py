@@ -12,6 +12,9 @@ Their gate is a :class:`~quadobs.estimators.robust.SkewedGate`: a range whose st
 innovation is too *long* for line of sight is left out, since non-line-of-sight excess is
 positive and a bias state would take it in. Its two-sided probability is that of the replay's
 ``gate`` (a threshold on ``chi^2(1)``), else 0.999.
+A log that states its ranges Gaussian (``meta.csv`` ``range_errors`` ``gaussian``, as an
+exported scenario without a radio does) gives them no gate unless ``gate`` is asked for: as the
+live filters of such a scenario, which take no robust rule where ``[noise]`` sets none.
 
 These filters run on logs of ranges (any model); a log of TDOA is refused by name (a TDOA
 cancels a bias common to both anchors, and the per-pair bias is not a state here).
@@ -74,7 +77,11 @@ def _build(s, x0: np.ndarray, name: str, cls, process_noise: np.ndarray):
     extra = RangeModel(s.beacons, s.range_sigma, bias="state").extra_states()
     P[n:, n:] = np.diag([e.prior_std**2 for e in extra])
     xe = np.concatenate([np.asarray(x0, dtype=float)[:n], np.zeros(q)])
-    rule = SkewedGate(_gate_probability(s.gate))
+    rule = (
+        None
+        if s.gate is None and s.range_errors == "gaussian"
+        else SkewedGate(_gate_probability(s.gate))
+    )
     est = cls(dynamics, outputs, x0=xe, P0=P, vehicle_n=n, robust=rule)
     est.name = name
     return est

@@ -175,6 +175,9 @@ class ReplaySetup:
     gyro_bias : float or None
         The log's stated standard deviation of the gyroscope's constant bias per axis (rad/s;
         ``meta.csv``), else None.
+    range_errors : str
+        The log's stated error model of its ranges (``meta.csv`` ``range_errors``):
+        ``"gaussian"``, ``"nlos"``, or ``""`` (unknown, as ``"nlos"``).
     alignment0 : ndarray (4,) or None
         Where a body-IMU log has no ``attitude.csv``: the initial alignment's quaternion (the
         tilt from the first half second's median specific force, heading zero;
@@ -206,6 +209,7 @@ class ReplaySetup:
     imu_period: float | None = None
     gyro_noise: float | None = None
     gyro_bias: float | None = None
+    range_errors: str = ""
     q_xy_heading: float = 1.0
     alignment0: np.ndarray | None = None
     system: QuadraticSystem = field(init=False, repr=False)
@@ -383,7 +387,8 @@ def replay_setup(
 
 def log_frame(log) -> dict:
     """The setup's fields read from the log's frame, attitude and IMU: ``frame``, ``gravity``,
-    ``attitude0``, ``imu_period``, ``gyro_noise`` and ``gyro_bias`` (:class:`ReplaySetup`)."""
+    ``attitude0``, ``imu_period``, ``gyro_noise``, ``gyro_bias`` and ``range_errors``
+    (:class:`ReplaySetup`)."""
     attitude0 = None
     if log.attitude is not None and log.attitude.shape[0]:
         attitude0 = np.array(log.attitude[0, 1:5], dtype=float)
@@ -404,6 +409,7 @@ def log_frame(log) -> dict:
         "imu_period": period,
         "gyro_noise": gyro if math.isfinite(gyro) else None,
         "gyro_bias": gyro_bias if math.isfinite(gyro_bias) else None,
+        "range_errors": str(getattr(log, "range_errors", "")),
         "alignment0": alignment0,
     }
 

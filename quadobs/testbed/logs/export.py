@@ -52,6 +52,8 @@ as a log of version 2 with a body IMU, what the vehicle's own sensors gave the e
 * ``meta.csv``: ``frame`` ``enu`` (z up) and the MuJoCo model's ``gravity``; the IMU's
   stated figures from ``[quadrotor]``: the densities ``accel_noise`` and ``gyro_noise``, the
   biases' standard deviations ``accel_bias`` and ``gyro_bias``, and ``attitude_std``.
+  ``range_errors`` ``gaussian`` where the scenario has no radio and draws its ranges with
+  Gaussian noise and no outliers (:func:`stated_range_errors`).
 
 The replay (``quadobs replay DIR --model imu``) rebuilds the navigation-frame acceleration
 ``R~ f~ + g`` from ``imu.csv`` and ``attitude.csv`` (:mod:`quadobs.testbed.attitude`).
@@ -110,6 +112,19 @@ def stated_range_std(world) -> float:
     noise = world.scenario.noise
     std = float(noise.range_std) or float(noise.range_bound or 0.0) / math.sqrt(3.0)
     return std if std > 0 else math.nan
+
+
+def stated_range_errors(world) -> str:
+    """The ranges' error model for ``meta.csv``'s ``range_errors``: ``"gaussian"`` where the
+    scenario has no radio and its sensor layer draws each range with Gaussian noise of
+    ``noise.range_std`` and no outliers (nothing adds a non-line-of-sight excess); else ``""``
+    (not stated: the replay takes the ranges as it would a real log's)."""
+    scenario = world.scenario
+    noise = scenario.noise
+    plain = getattr(scenario, "radio", None) is None and float(noise.range_std) > 0.0
+    if plain and not float(noise.range_bound) and not float(noise.outlier_probability):
+        return "gaussian"
+    return ""
 
 
 def radio_rows(events, grid_ranges: np.ndarray, grid_std: float) -> tuple[np.ndarray, np.ndarray]:
@@ -318,6 +333,7 @@ class LogExportSink(Sink):
             gravity=float(-world.model.opt.gravity[2]),
             description=(fr.description.splitlines() or [""])[0],
             **_imu_noise(world.spec, fr.dt),
+            range_errors=stated_range_errors(world),
         )
 
 

@@ -145,6 +145,9 @@ class RangeLog:
         per axis (m/s^2, rad/s); NaN: unknown.
     attitude_std : float
         The stated error of each attitude sample per axis (rad); NaN: unknown.
+    range_errors : str
+        The stated error model of ``ranges``: ``"gaussian"`` (no non-line-of-sight excess, no
+        outliers), ``"nlos"``, or ``""`` (unknown, taken as ``"nlos"``).
     """
 
     name: str
@@ -170,6 +173,7 @@ class RangeLog:
     accel_bias: float = math.nan
     gyro_bias: float = math.nan
     attitude_std: float = math.nan
+    range_errors: str = ""
 
     def __post_init__(self) -> None:
         fix = lambda key, value: object.__setattr__(self, key, value)  # noqa: E731
@@ -508,6 +512,7 @@ def read_log(folder: str | Path) -> RangeLog:
             accel_noise=meta["accel_noise"],
             gyro_noise=meta["gyro_noise"],
             **{key: meta[key] for key in IMU_FIGURES},
+            range_errors=meta["range_errors"],
         )
     except QuadobsError as exc:  # name the folder's file, not the log's name
         raise QuadobsError(str(exc).replace(f"{name}: ", f"{folder}/", 1)) from None
@@ -568,6 +573,8 @@ def _log_texts(log: RangeLog) -> dict[str, str]:
     for key in ("accel_noise", "gyro_noise", *IMU_FIGURES):
         if math.isfinite(getattr(log, key)):
             meta.append([key, repr(float(getattr(log, key)))])
+    if log.range_errors:
+        meta.append(["range_errors", log.range_errors])
     texts["meta.csv"] = _csv_text(["key", "value"], meta)
     return texts
 

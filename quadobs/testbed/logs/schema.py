@@ -42,6 +42,7 @@ __all__ = [
     "ODOMETRY",
     "QUATERNION",
     "RANGE",
+    "RANGE_ERRORS",
     "STD",
     "TDOA",
     "TIME",
@@ -263,12 +264,22 @@ META_KEYS = {
             math.nan,
             2,
         ),
+        MetaKey(
+            "range_errors",
+            "the stated error model of ranges.csv: gaussian (zero-mean Gaussian about the range "
+            "plus any constant bias, of the stated std: no non-line-of-sight excess, no outliers) "
+            "or nlos (may carry a positive excess); absent: unknown, taken as nlos",
+            "",
+            2,
+        ),
     )
 }
 #: The ``meta.csv`` keys of an IMU's stated error figures beyond its densities (non-negative;
 #: :func:`quadobs.testbed.logs.estimators.imu_input_noise` sizes the input noise from them).
 IMU_FIGURES = ("accel_bias", "gyro_bias", "attitude_std")
 FRAMES = ("enu", "ned")
+#: The values of ``meta.csv``'s ``range_errors`` (:data:`META_KEYS`).
+RANGE_ERRORS = ("gaussian", "nlos")
 
 
 def _printable(where: str, text: str) -> str:
@@ -326,6 +337,10 @@ def parse_meta(where: str, rows: list[list[str]]) -> dict:
         elif key == "frame":
             if text.lower() not in FRAMES:
                 raise QuadobsError(f"{at}: {text!r}; expected one of {', '.join(FRAMES)}")
+            meta[key] = text.lower()
+        elif key == "range_errors":
+            if text.lower() not in RANGE_ERRORS:
+                raise QuadobsError(f"{at}: {text!r}; expected one of {', '.join(RANGE_ERRORS)}")
             meta[key] = text.lower()
     for key, r in seen.items():
         if META_KEYS[key].since > meta["version"]:
