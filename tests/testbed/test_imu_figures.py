@@ -103,6 +103,27 @@ def test_the_ranges_error_model_round_trips_and_sets_the_bias_filters_gate(tmp_p
     assert all(isinstance(r, SkewedGate) for r in rules["unknown"] + rules["gaussian, gate asked"])
 
 
+def test_the_bias_filters_take_the_stated_range_noise():
+    from quadobs.testbed.logs.estimators import (
+        ReplaySetup,
+        _typical_range,
+        build_replay_estimators,
+        log_frame,
+    )
+
+    x0 = np.r_[3.0, 3.0, 1.5, 0.0, 0.0, 0.0]
+    base = _log()
+    std = np.full(base.ranges.shape[0], 0.1)
+    std[::3] = 0.2  # median 0.1
+    for log, sigma in ((_log(range_std=std), 0.1), (base, 0.7)):
+        setup = ReplaySetup(
+            log.beacons, 0.01, "imu", 0.0, _typical_range(log), input_kind=log.input_kind,
+            range_sigma=0.7, **log_frame(log),
+        )  # fmt: skip
+        for est in build_replay_estimators(setup, ["ekf-bias", "ukf-bias"], x0):
+            np.testing.assert_allclose(est.outputs.R, sigma**2 * np.eye(4), rtol=1e-12)
+
+
 def test_a_bad_range_error_model_is_named(tmp_path):
     folder = write_log(_log(), tmp_path / "log")
     meta = folder / "meta.csv"

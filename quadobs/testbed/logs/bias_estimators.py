@@ -16,6 +16,11 @@ A log that states its ranges Gaussian (``meta.csv`` ``range_errors`` ``gaussian`
 exported scenario without a radio does) gives them no gate unless ``gate`` is asked for: as the
 live filters of such a scenario, which take no robust rule where ``[noise]`` sets none.
 
+The output noise ``R`` (the variance of a range that states none, and of the start-up fix:
+:func:`~quadobs.estimators.bias_states.fix_std`) is that of the log's stated ranges, the median
+of ``ranges.csv``'s ``std`` where every row states one, as the live filters take the
+scenario's stated range noise; else the replay's ``range_sigma``.
+
 These filters run on logs of ranges (any model); a log of TDOA is refused by name (a TDOA
 cancels a bias common to both anchors, and the per-pair bias is not a state here).
 
@@ -69,7 +74,8 @@ def _build(s, x0: np.ndarray, name: str, cls, process_noise: np.ndarray):
     V[:n, :n] = process_noise
     dynamics = HeldInputModel(ext, s.dt, V=V)
     offsets = 0.5 * np.einsum("hi,hi->h", system.d, system.d)
-    outputs = BiasedRangeOutputModel(ext, s.range_sigma**2 * np.eye(q), offsets=offsets)
+    sigma = s.range_sigma if s.range_std_stated is None else s.range_std_stated
+    outputs = BiasedRangeOutputModel(ext, sigma**2 * np.eye(q), offsets=offsets)
     P = np.zeros((n + q, n + q))
     P0 = np.full(n, s.P0)
     P0[s.dim :] = 4.0  # the velocity, as the replay's EKF

@@ -178,6 +178,9 @@ class ReplaySetup:
     range_errors : str
         The log's stated error model of its ranges (``meta.csv`` ``range_errors``):
         ``"gaussian"``, ``"nlos"``, or ``""`` (unknown, as ``"nlos"``).
+    range_std_stated : float or None
+        The median of the standard deviations that ``ranges.csv`` states, where every row
+        states one (its ``std`` column), else None.
     alignment0 : ndarray (4,) or None
         Where a body-IMU log has no ``attitude.csv``: the initial alignment's quaternion (the
         tilt from the first half second's median specific force, heading zero;
@@ -210,6 +213,7 @@ class ReplaySetup:
     gyro_noise: float | None = None
     gyro_bias: float | None = None
     range_errors: str = ""
+    range_std_stated: float | None = None
     q_xy_heading: float = 1.0
     alignment0: np.ndarray | None = None
     system: QuadraticSystem = field(init=False, repr=False)
@@ -387,8 +391,8 @@ def replay_setup(
 
 def log_frame(log) -> dict:
     """The setup's fields read from the log's frame, attitude and IMU: ``frame``, ``gravity``,
-    ``attitude0``, ``imu_period``, ``gyro_noise``, ``gyro_bias`` and ``range_errors``
-    (:class:`ReplaySetup`)."""
+    ``attitude0``, ``imu_period``, ``gyro_noise``, ``gyro_bias``, ``range_errors`` and
+    ``range_std_stated`` (:class:`ReplaySetup`)."""
     attitude0 = None
     if log.attitude is not None and log.attitude.shape[0]:
         attitude0 = np.array(log.attitude[0, 1:5], dtype=float)
@@ -410,8 +414,18 @@ def log_frame(log) -> dict:
         "gyro_noise": gyro if math.isfinite(gyro) else None,
         "gyro_bias": gyro_bias if math.isfinite(gyro_bias) else None,
         "range_errors": str(getattr(log, "range_errors", "")),
+        "range_std_stated": _stated_range_std(log),
         "alignment0": alignment0,
     }
+
+
+def _stated_range_std(log) -> float | None:
+    """The median of the log's stated range standard deviations where every row states one
+    (:attr:`ReplaySetup.range_std_stated`), else None."""
+    std = np.asarray(getattr(log, "range_std", np.empty(0)), dtype=float)
+    if std.size == 0 or not np.all(np.isfinite(std)):
+        return None
+    return float(np.median(std))
 
 
 def _alignment(log) -> np.ndarray:
