@@ -228,6 +228,8 @@ class ExcessMixture:
     excess: np.ndarray = field(init=False, repr=False, compare=False)
     log_prior: np.ndarray = field(init=False, repr=False, compare=False)
     _work: np.ndarray = field(init=False, repr=False, compare=False)
+    _upper: float = field(init=False, repr=False, compare=False)
+    _z: float = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         ChiSquareGate(self.probability)
@@ -245,16 +247,20 @@ class ExcessMixture:
         object.__setattr__(self, "log_prior", np.log(np.concatenate([[1.0], w / w.sum()])))
         # work space of :meth:`posterior` (the hot path allocates nothing per range)
         object.__setattr__(self, "_work", np.empty((2, excess.shape[0])))
+        # the gate's bounds, computed once: :meth:`posterior` runs for every range
+        quantile = float(stats.norm.ppf(self.probability))
+        object.__setattr__(self, "_upper", self.median * math.exp(self.shape * quantile))
+        object.__setattr__(self, "_z", math.sqrt(chi2_threshold(self.probability, 1)))
 
     @property
     def upper(self) -> float:
         """The excess's ``probability`` quantile (m): longer ranges beyond the noise are outliers."""
-        return self.median * math.exp(self.shape * float(stats.norm.ppf(self.probability)))
+        return self._upper
 
     def prior(self, last: float, dt: float) -> float:
         """The prior probability that an anchor's range is non-line-of-sight, given the
         posterior ``last`` of its previous range ``dt`` seconds before: the two-state Markov
-        chain ``pi = nlos + (last - nlos) exp(-dt / memory)`` (``nlos`` for ``dt`` unknown)."""
+        chain ``pi = nlos + (last - nlos) exp(-dt / memory)`` (``last`` itself where ``dt`` is not positive)."""
         if not dt > 0.0:
             return last
         return self.nlos + (last - self.nlos) * math.exp(-dt / self.memory)
@@ -266,9 +272,10 @@ class ExcessMixture:
         ``nu``, the innovation's variance ``S`` under line of sight and the prior probability
         ``nlos`` (default :attr:`nlos`) that it is non-line-of-sight; ``None`` when it is
         rejected."""
-        sd = math.sqrt(S)
-        z = math.sqrt(chi2_threshold(self.probability, 1))
-        if nu < -z * sd or nu > self.upper + z * sd:
+        if not S > 0.0:
+            raise QuadobsError(f"innovation variance: expected a positive number, got {S}")
+        sd, z = math.sqrt(S), self._z
+        if nu < -z * sd or nu > self._upper + z * sd:
             return None
         pi = self.nlos if nlos is None else min(max(nlos, 1e-6), 1.0 - 1e-6)
         g, e2 = self._work
@@ -391,12 +398,13 @@ class BiasSightGrid:
     def _diffuse(self, w: np.ndarray, var: float, step: float) -> None:
         """The bias values' random walk of variance ``var``: ``n`` explicit steps of the heat
         equation on the grid (reflecting ends), each adding ``2 a step^2`` with ``a <= 1/2``.
-        A walk wider than half the grid's span forgets where the bias was: each state's weight
-        is spread as the grid's prior (no unbounded number of steps)."""
+        A walk of more than the grid's prior variance (its span is +-4 prior standard
+        deviations) forgets where the bias was: each state's weight is spread as the grid's
+        prior (at most 100 steps otherwise)."""
         if not step > 0.0:
             return
-        half_span = 0.5 * step * (w.shape[1] - 1)
-        if var > half_span * half_span:
+        prior_sd = 0.125 * step * (w.shape[1] - 1)  # the grid spans +-4 prior sd
+        if var > prior_sd * prior_sd:
             w[:] = w.sum(axis=1, keepdims=True) * self._prior
             return
         n = max(1, math.ceil(var / (step * step)))

@@ -1012,7 +1012,9 @@ class Scenario(_Table):
         >>> load_scenario("ifac2021").with_settings({"excitation.monitor": False}).excitation.monitor
         False
         """
-        return parse_scenario(apply_settings(self.to_dict(), settings), source=self.source)
+        base = self.to_dict()
+        data = _derived_by_settings(base, apply_settings(copy.deepcopy(base), settings))
+        return parse_scenario(data, source=self.source)
 
     def to_dict(self) -> dict:
         """The scenario as plain data (the TOML structure), for summaries and reloading."""
@@ -1298,6 +1300,18 @@ def _split_path(path: str) -> list[str | int]:
     return parts
 
 
+def _derived_by_settings(base: dict, data: dict) -> dict:
+    """``data`` (``base`` with settings applied) without the observer's ``S0``, ``V``, ``W``
+    and ``theta`` that ``base`` gave, where the settings made its tuning ``"derived"``: a
+    setting cannot remove a field, and a derived tuning refuses them."""
+    was, now = base.get("observer") or {}, data.get("observer") or {}
+    if now.get("tuning") == "derived" and was.get("tuning") != "derived":
+        for key in ("S0", "V", "W", "theta"):
+            if key in now and key in was and now[key] == was[key]:
+                del now[key]
+    return data
+
+
 def apply_settings(data: dict, settings: Iterable[str] | Mapping[str, Any]) -> dict:
     """A copy of scenario data with fields set by dotted path (missing tables are created).
 
@@ -1454,7 +1468,8 @@ def load_scenario(
     QuadobsError
         Unknown name, unreadable file, TOML syntax error, or an invalid field.
     """
-    data = apply_settings(_read(name_or_path), settings)
+    base = _read(name_or_path)
+    data = _derived_by_settings(base, apply_settings(copy.deepcopy(base), settings))
     data.update({k: v for k, v in overrides.items() if v is not None})
     return parse_scenario(data, source=str(name_or_path))
 

@@ -283,6 +283,14 @@ def test_the_grids_bias_walk_adds_the_variance_it_is_given_and_forgets_a_wider_o
     assert w.sum() == pytest.approx(1.0)
     assert np.sum(w[0] * b * b) == pytest.approx(0.003, rel=1e-9)  # mean 0: the variance
     w[1] = 0.25 * w[0]
-    grid._diffuse(w, 1.0, step)  # sd 1 m, beyond half the span: the prior's shape, weights kept
+    grid._diffuse(w, 0.05, step)  # more than the prior's 0.04 m^2: its shape, weights kept
     np.testing.assert_allclose(w[0] / w[0].sum(), grid._prior)
     assert w[1].sum() / w[0].sum() == pytest.approx(0.25)
+
+
+@pytest.mark.parametrize("S", [0.0, -1.0, float("nan")])
+def test_excess_mixture_refuses_a_variance_that_is_not_positive(S):
+    from quadobs.estimators.robust import ExcessMixture
+
+    with pytest.raises(QuadobsError, match="innovation variance"):
+        ExcessMixture(0.3, 0.6).posterior(0.1, S)

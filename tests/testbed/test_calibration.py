@@ -206,4 +206,7 @@ def test_bias_filters_take_the_calibrated_biases_only_where_the_data_contradict_
     logged_names = estimator_biases(small, cal, ["ekf-bias"])
     test = cal.per_estimator["ekf-bias"]
     assert test["prior_chi2"] < test["prior_limit"], test
-    assert logged_names == (() if test["significantly_better"] else ("ekf-bias",)), test
+    # biases inside the prior, yet predicting held-out ranges better through the filter itself:
+    # taken for that reason alone (the prior's test would have left the ranges as logged)
+    assert test["significantly_better"] and test["biases"] == "calibrated", test
+    assert logged_names == (), test

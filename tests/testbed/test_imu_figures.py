@@ -131,3 +131,9 @@ def test_a_bad_range_error_model_is_named(tmp_path):
     meta.write_text("\n".join([*lines[:2], "range_errors,normal", *lines[2:]]) + "\n")
     with pytest.raises(QuadobsError, match="key range_errors: 'normal'; expected one of gaussian"):
         read_log(folder)
+
+
+def test_a_log_built_in_memory_states_its_range_errors_as_a_read_one_does():
+    assert _log(range_errors="Gaussian").range_errors == "gaussian"  # as read_log lowercases
+    with pytest.raises(QuadobsError, match="range_errors: 'normal'; expected one of gaussian"):
+        _log(range_errors="normal")

@@ -119,3 +119,18 @@ def test_a_variant_of_a_derived_observer_takes_its_own_anchors_in_time():
     assert full.corrections == 8 and low.corrections == 4
     # exact ranges at the guess: no correction moves it, and the step carries it by v dt
     np.testing.assert_allclose(low.x_hat[:3], x0[:3] + x0[3:] * sc.dt, atol=1e-9)
+
+
+def test_a_setting_switches_a_tabled_scenario_to_the_derived_tuning():
+    """``--set observer.tuning="derived"`` on a scenario whose table gives ``S0``, ``V`` and
+    ``W`` drops them (a setting cannot remove a field); one given with it is still refused."""
+    from quadobs import load_scenario
+    from quadobs.errors import QuadobsError
+
+    for sc in (
+        load_scenario("ifac2021", settings=['observer.tuning="derived"']),
+        load_scenario("ifac2021").with_settings(['observer.tuning="derived"']),
+    ):
+        assert sc.observer.tuning == "derived"
+    with pytest.raises(QuadobsError, match="observer.W: not used"):
+        load_scenario("ifac2021", settings=['observer.tuning="derived"', "observer.W=0.3"])

@@ -56,6 +56,7 @@ from quadobs.testbed.logs.schema import (
     ODOMETRY,
     QUATERNION,
     RANGE,
+    RANGE_ERRORS,
     STD,
     TDOA,
     check_values,
@@ -177,6 +178,13 @@ class RangeLog:
 
     def __post_init__(self) -> None:
         fix = lambda key, value: object.__setattr__(self, key, value)  # noqa: E731
+        errors = str(self.range_errors).lower()
+        if errors not in ("", *RANGE_ERRORS):
+            raise QuadobsError(
+                f"{self.name}: range_errors: {self.range_errors!r}; expected one of "
+                f"{', '.join(RANGE_ERRORS)} (or none)"
+            )
+        fix("range_errors", errors)
         fix("ranges", np.asarray(self.ranges, dtype=float).reshape(-1, len(RANGE)))
         tdoa = _empty(len(TDOA)) if self.tdoa is None else self.tdoa
         fix("tdoa", np.asarray(tdoa, dtype=float).reshape(-1, len(TDOA)))
