@@ -36,7 +36,9 @@ came of that prior by what one round of ranges says on its own, the rule that th
   ``Sigma`` the covariance of the differences (``var y_h = rho_h^2 sigma_h^2 + sigma_h^4 / 2``,
   the first output's variance shared by all), the last term the uncertainty the prediction
   alone added to the position since the oldest range used (``P^-`` carried from the prior of
-  the other states, a velocity, with the process noise). The position takes the fix and
+  the other states, a velocity, with the process noise): the variance of the displacement
+  for the process noise's independent increments, larger than it for a velocity's prior error
+  ``e_v`` (``P_vv (t^2 - t_0^2)`` against ``P_vv (t - t_0)^2``), so conservative. The position takes the fix and
   ``P_fix``, its correlations with the other states dropped, in place of what the corrections
   made of it from the wide prior; the range that completed the round is then corrected as
   usual.
