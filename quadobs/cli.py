@@ -456,6 +456,9 @@ EPISODE_KERNELS = (  # the default (block) path: the world's read-out with the s
 AUGMENTED_KERNELS = (
     "quadobs._kernels.observer:augmented_step_block",
     "quadobs._kernels.held_input:expm_series",  # the prediction over intervals of any length
+    "quadobs._kernels.in_time:interval_predict",  # the observer in time (quadobs.estimators.augmented_in_time)
+    "quadobs._kernels.in_time:state_noise",
+    "quadobs._kernels.in_time:scalar_correct",
 )
 LE2013_KERNELS = ("quadobs._kernels.zonotope:zonotope_step",)
 BENCH_KERNELS = (

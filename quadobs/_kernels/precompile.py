@@ -83,6 +83,34 @@ SIGNATURES: dict[str, Any] = {
     ),
     # the interface in time (measurements at their own times): the exponentials of each interval
     "quadobs._kernels.held_input:expm_series": ("fC2", "fC2", "fC2", "fC2"),
+    # the augmented observer in time: the interval's prediction, the state noise, one range's correction
+    "quadobs._kernels.in_time:interval_predict": (
+        "fC1",
+        "fC2",
+        "fC1",
+        "f",
+        "fC2",
+        "fC3",
+        "fC2",
+        "IC1",
+        "IC1",
+        "fC2",
+        "fC3",
+        "fC2",
+        "fC1",
+    ),
+    "quadobs._kernels.in_time:state_noise": ("fC1", "fC3", "fC2", "fC2", "fC2", "fC2", "fC2"),
+    "quadobs._kernels.in_time:scalar_correct": (
+        "fC1",
+        "fC2",
+        "fC2",
+        "i",
+        "f",
+        "f",
+        "f",
+        "fC1",
+        "fC1",
+    ),
 }
 
 #: The kernels of an episode on the default path.

@@ -40,6 +40,7 @@ from quadobs.core.held_input import (
 from quadobs.core.immersion import Immersion, as_immersion
 from quadobs.core.measurements import Measurement
 from quadobs.errors import QuadobsError, as_array, as_finite_scalar, as_float_array
+from quadobs.estimators.augmented_in_time import InTimeKernels
 from quadobs.estimators.base import (
     BlockStep,
     Estimator,
@@ -354,6 +355,9 @@ class AugmentedObserver(HalfSteps, Gated, Immersed, BlockStep):
         else:
             self._stats = np.array([np.nan, 0.0, 0.0, 0.0])  # nis, corrections, rejected, trace(P)
         self._stats[3] = np.trace(self._P)
+        self._V = as_covariance("V", V, N, definite=False)  # the interval's noise without noise_of
+        # the interface in time compiled (quadobs.estimators.augmented_in_time), where it applies
+        self.in_time_compiled = True
 
     def prepare(self, path: str) -> None:
         """Load (or compile) the kernel of ``path`` (see :meth:`Estimator.prepare`) on scratch copies.
@@ -439,6 +443,21 @@ class AugmentedObserver(HalfSteps, Gated, Immersed, BlockStep):
         N = self.immersion.dim
         self._P[...] = as_array("P", value, (N, N))
         self._stats[3] = np.trace(self._P)
+
+    @property
+    def in_time_compiled(self) -> bool:
+        """Whether :meth:`predict` over an interval and :meth:`correct` by one measurement take the
+        compiled kernels (:mod:`quadobs.estimators.augmented_in_time`): with the compiled
+        backend, no forgetting factor and a nilpotent ``A(u)``. Set it to ``False`` for the NumPy
+        reference (the same maths, to rounding); ``True`` restores the kernels where they apply."""
+        return self._in_time is not None
+
+    @in_time_compiled.setter
+    def in_time_compiled(self, value: bool) -> None:
+        compiled = bool(value) and self.backend == "numba"
+        self._in_time = (
+            InTimeKernels.of(self.immersion, self._V, self.model.theta) if compiled else None
+        )
 
     @property
     def covariance_trace(self) -> float:
@@ -662,9 +681,18 @@ class AugmentedObserver(HalfSteps, Gated, Immersed, BlockStep):
         if self.noise_of is None and abs(dt - m.dt) <= 1e-9 * m.dt:
             self.predict_step(u)
             return
-        im = self.immersion
+        fast = self._in_time
+        if fast is not None and fast.predict(self._z, self._P, u, dt, self.noise_of, self._stats):
+            return
+        self._propagate_reference(dt, u)
+
+    def _propagate_reference(self, dt: float, u: np.ndarray) -> None:
+        """The NumPy reference of :meth:`_propagate` off the grid: the two exponentials of the
+        interval (:func:`~quadobs.core.held_input.held_input_interval`,
+        :func:`~quadobs.core.held_input.van_loan_interval`), then ``P`` as in its docstring."""
+        m, im = self.model, self.immersion
         A = im.state_matrix(u)
-        V = np.asarray(m.V) if self.noise_of is None else self.noise_of(self._z)
+        V = self._V if self.noise_of is None else self.noise_of(self._z)
         Phi, g = held_input_interval(A, (im.input_matrix @ u)[:, None], dt)
         Q = van_loan_interval(A + 0.5 * m.theta * self._eye, V, dt)[1]
         z, P = self._z, self._P
@@ -697,7 +725,23 @@ class AugmentedObserver(HalfSteps, Gated, Immersed, BlockStep):
         return r2 * s2 + 0.5 * s2 * s2
 
     def _correct_scalar(self, h: int, yh: float, r: float) -> None:
-        """Joseph-form correction with the single output ``y_h`` of variance ``r``."""
+        """Joseph-form correction with the single output ``y_h = c^T z`` of variance ``r``.
+
+        For one scalar output the Joseph form needs no matrix product: with ``k = P c / s``,
+        ``s = c^T P c + r`` and ``P`` symmetric,
+
+        .. math::
+
+            (I - k c^\\top) P (I - k c^\\top)^\\top + r k k^\\top
+            = P - k (P c)^\\top - (P c) k^\\top + s\\, k k^\\top ,
+
+        ``O(N^2)``. Compiled (:func:`quadobs._kernels.in_time.scalar_correct`, no allocation)
+        with the compiled backend; the NumPy reference below otherwise.
+        """
+        fast = self._in_time
+        if fast is not None:
+            fast.correct(self._z, self._P, h, yh, r, self.gate, self._stats)
+            return
         z, P, stats = self._z, self._P, self._stats
         c = self._C[h]
         Pc = P @ c
@@ -709,8 +753,7 @@ class AugmentedObserver(HalfSteps, Gated, Immersed, BlockStep):
             return
         k = Pc / s
         z += k * nu
-        IKC = self._eye - np.outer(k, c)
-        P_new = IKC @ P @ IKC.T + r * np.outer(k, k)
+        P_new = P - np.outer(k, Pc) - np.outer(Pc, k) + s * np.outer(k, k)
         P[...] = 0.5 * (P_new + P_new.T)
         stats[1] += 1
         stats[3] = np.trace(P)

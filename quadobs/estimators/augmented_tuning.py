@@ -38,6 +38,7 @@ import numpy as np
 
 from quadobs.core.immersion import Immersion
 from quadobs.estimators.augmented import AugmentedObserver
+from quadobs.estimators.augmented_in_time import StateNoise
 
 __all__ = [
     "anchor_scale",
@@ -93,17 +94,7 @@ def state_noise_map(im: Immersion, Vx: np.ndarray, extra: np.ndarray | None = No
     """``z -> V(z) = J V_x J^T`` with ``J = [x^T L_1; ...; x^T L_k; I_n]`` at ``z``'s ``x``
     (module docstring). ``extra (n, n)``, read at each call, is added to ``V_x`` (an input's
     error that its owner updates in place: :class:`~quadobs.estimators.heading_ekf.HeadingCascade`)."""
-    k, n = im.n_aux, im.system.n
-    L = im.aux_forms
-    J = np.zeros((im.dim, n))
-    J[k:] = np.eye(n)
-
-    def noise(z: np.ndarray) -> np.ndarray:
-        J[:k] = L @ z[k:]  # rows x^T L_i (L_i symmetric)
-        V = J @ (Vx if extra is None else Vx + extra) @ J.T
-        return 0.5 * (V + V.T)
-
-    return noise
+    return StateNoise(im, Vx, extra)  # a callable whose operands the compiled prediction reads
 
 
 def grid_output_variance(range_sigma: float, typical_range: float) -> float:

@@ -39,7 +39,8 @@ Figures (keys of the JSON written by ``--json``):
 ``observer_in_time_step_us``, ``observer_in_time``
     One step of ``quadrotor-uwb``'s live observer, each range at its own time and the
     prediction through the exponentials of the interval (:func:`_observer_in_time_us`), with
-    the grid step of the same observer beside it (``observer_in_time["grid_step_us"]``).
+    the grid step of the same observer beside it (``observer_in_time["grid_step_us"]``) and the
+    same step in time through the NumPy reference (``observer_in_time["in_time_numpy_step_us"]``).
 ``campaign``
     Episodes per second of ``ifac2021-noisy`` (the default estimators, with the traces a
     campaign collects) over all cores, against as many bare physics episodes of the same
@@ -302,7 +303,8 @@ def _observer_in_time_us(calls: int, repeats: int) -> dict:
     the exponentials of the interval with the state-dependent noise); ``grid_step_us``: the
     same scenario's :class:`~quadobs.estimators.augmented.AugmentedObserver` step on the grid
     (compiled). Both take the reference trajectory's noise-free inputs and one range per step,
-    the anchors in turn.
+    the anchors in turn. ``in_time_numpy_step_us``: the same step in time through the NumPy
+    reference of the prediction and the correction (``in_time_compiled = False``), side by side.
     """
     from quadobs.testbed.factories import augmented_observer, live_observer
     from quadobs.testbed.scenario import load_scenario
@@ -310,8 +312,18 @@ def _observer_in_time_us(calls: int, repeats: int) -> dict:
     sc = load_scenario("quadrotor-uwb")
     U, Y, x0 = _vehicle_data(sc, calls)
     Y = np.where(np.arange(Y.shape[1]) == (np.arange(calls) % Y.shape[1])[:, None], Y, np.nan)
+
+    def numpy_in_time(sc, x0):
+        est = live_observer(sc, x0)
+        est.inner.in_time_compiled = False
+        return est
+
     times = {}
-    for key, build in (("in_time_step_us", live_observer), ("grid_step_us", augmented_observer)):
+    for key, build in (
+        ("in_time_step_us", live_observer),
+        ("grid_step_us", augmented_observer),
+        ("in_time_numpy_step_us", numpy_in_time),
+    ):
         _stepper(build(sc, x0), U, Y, min(calls, 20))(None)  # kernels compiled (or loaded)
 
         def make(build=build):
@@ -968,7 +980,8 @@ def print_bench(r: dict, file=None) -> None:
     oit = r["observer_in_time"]
     p(
         f"  augmented observer, in time     {_fmt(r['observer_in_time_step_us'], '.2f')}   ({oit['scenario']}: ranges at their own times; "
-        f"{_fmt(oit['grid_step_us'], '.2f')} on the grid)"
+        f"{_fmt(oit['grid_step_us'], '.2f')} on the grid; "
+        f"{_fmt(oit.get('in_time_numpy_step_us'), '.2f')} in time through NumPy)"
     )
     p(f"  EKF                             {_fmt(r['ekf_step_us'], '.2f')}")
     p(f"  UKF                             {_fmt(r['ukf_step_us'], '.2f')}")

@@ -355,6 +355,8 @@ import quadobs
 from quadobs._kernels.precompile import SIGNATURES, signature, signatures
 from quadobs.testbed.episode import run_episode
 from quadobs.testbed.factories import augmented_observer
+from quadobs.core.measurements import Measurement
+from quadobs.estimators.augmented_tuning import state_noise_map
 
 sc = quadobs.load_scenario("ifac2021", duration=0.05)
 run_episode(quadobs.load_scenario("ifac2021", duration=10.0))
@@ -362,6 +364,11 @@ run_episode(sc, path="step")
 obs = augmented_observer(sc, np.zeros(sc.state_dim))
 obs.step(np.zeros(sc.dimension), np.zeros(1))
 obs.predict(obs.time + 0.37 * sc.dt)  # an interval off the grid: the interface in time
+obs.noise_of = state_noise_map(obs.immersion, np.eye(sc.state_dim))  # the state noise, compiled
+obs.predict(obs.time + 0.37 * sc.dt)
+obs.correct(Measurement(obs.time, "range", 5.0, (0,), 0.1))  # one range at its own time
+obs.in_time_compiled = False  # the NumPy reference: the exponentials' series
+obs.predict(obs.time + 0.37 * sc.dt)
 out = {}
 for spec in SIGNATURES:
     module, _, name = spec.partition(":")

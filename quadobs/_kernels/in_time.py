@@ -1,0 +1,315 @@
+"""Compiled (Numba) kernels of the augmented observer's interface in time.
+
+The observer of [IFAC2021, Thm. 3] fed one measurement at its own time does two things per
+measurement: the exact prediction over the interval since the last one (the input held) and
+the correction by one scalar output. Both kernels here work in place on ``z`` and ``P`` and on
+work arrays allocated once per observer; neither allocates.
+
+**Prediction over ``dt``** (:func:`interval_predict`). For ``z' = A(u) z + B u`` with ``A(u)``
+nilpotent (``A^m = 0``: the augmented double integrator and odometry models, whose state
+graph has no cycle), both exponentials of the interval are finite sums of the powers
+``F_i = (A dt)^i / i!``:
+
+.. math::
+
+    \\Phi = \\sum_{i \\ge 0} F_i, \\qquad g = \\sum_{i \\ge 1} F_{i-1} B u\\, dt / i,
+
+and Van Loan's block ``exp([[-A, V], [0, A^T]] dt)`` has the terms ``[[X_i, Y_i], [0, Z_i]]``
+with ``X_i = (-1)^i F_i``, ``Z_i = F_i^T`` and
+
+.. math::
+
+    Y_i = \\left(X_{i-1} V dt + Y_{i-1} (A dt)^\\top\\right) / i, \\qquad
+    Q_d = \\Phi \\sum_{i \\ge 1} Y_i,
+
+the same series as :func:`quadobs.core.held_input.van_loan_interval` takes through
+:func:`~quadobs.core.held_input.expm_exact`, block by block: the zero blocks are never
+multiplied and ``A`` is multiplied through its nonzeros only (CSR). The series stops at the
+first term that is exactly zero. Then ``z <- Phi z + g`` and
+``P <- (M + M^T) / 2`` with ``M = Phi P Phi^T + (Q_d + Q_d^T) / 2``.
+
+**Correction by one scalar output** (:func:`scalar_correct`). For ``y_h = c^T z + e``,
+``var e = r``, the Joseph form ``P+ = (I - k c^T) P (I - k c^T)^T + r k k^T`` with
+``k = P c / s``, ``s = c^T P c + r``, written out for a symmetric ``P``:
+
+.. math::
+
+    P^+ = P - k (P c)^\\top - (P c) k^\\top + s\\, k k^\\top ,
+
+``O(N^2)`` where the matrix products cost ``O(N^3)``; the lower triangle is formed and
+mirrored, so that ``P`` stays exactly symmetric.
+"""
+
+from __future__ import annotations
+
+from numba import njit
+
+__all__ = ["interval_predict", "scalar_correct", "state_noise"]
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def state_noise(z, L, Vx, extra, V, J, JV):
+    """``V = (J (V_x + E) J^T + (.)^T) / 2`` with ``J = [x^T L_1; ...; x^T L_k; I_n]`` at ``z = (xi, x)``.
+
+    Parameters
+    ----------
+    z : ndarray (N,)
+    L : ndarray (k, n, n)
+        The auxiliary states' symmetric forms ``xi_i = x^T L_i x / 2``.
+    Vx, extra : ndarray (n, n)
+        The noise intensity on ``x'`` and a term added to it (zeros where none).
+    V : ndarray (N, N)
+        Receives the augmented noise intensity.
+    J, JV : ndarray (N, n)
+        Work arrays.
+    """
+    k, n = L.shape[0], L.shape[1]
+    N = k + n
+    for i in range(k):
+        for a in range(n):
+            acc = 0.0
+            for b in range(n):
+                acc += L[i, a, b] * z[k + b]
+            J[i, a] = acc
+    for i in range(n):
+        for a in range(n):
+            J[k + i, a] = 1.0 if i == a else 0.0
+    for i in range(N):
+        for b in range(n):
+            acc = 0.0
+            for a in range(n):
+                acc += J[i, a] * (Vx[a, b] + extra[a, b])
+            JV[i, b] = acc
+    for i in range(N):
+        for j in range(i + 1):
+            acc = 0.0
+            for a in range(n):
+                acc += JV[i, a] * J[j, a]
+            V[i, j] = acc
+    for i in range(N):  # J (V_x + E) J^T is symmetric in exact arithmetic: the two halves averaged
+        for j in range(i):
+            acc = 0.0
+            for a in range(n):
+                acc += JV[j, a] * J[i, a]
+            V[j, i] = acc
+    for i in range(N):
+        for j in range(i):
+            s = 0.5 * (V[i, j] + V[j, i])
+            V[i, j] = s
+            V[j, i] = s
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _sparse_times(F, Adt, ptr, col, out, scale):
+    """``out = (F A dt) / scale`` with ``A dt`` through its structural nonzeros (row ``c``:
+    ``col[ptr[c]:ptr[c+1]]``); returns whether ``out`` has a nonzero entry."""
+    N = F.shape[0]
+    nonzero = False
+    for a in range(N):
+        for b in range(N):
+            out[a, b] = 0.0
+        for c in range(N):
+            f = F[a, c]
+            if f != 0.0:
+                for idx in range(ptr[c], ptr[c + 1]):
+                    b = col[idx]
+                    out[a, b] += f * Adt[c, b]
+        for b in range(N):
+            x = out[a, b] / scale
+            out[a, b] = x
+            if x != 0.0:
+                nonzero = True
+    return nonzero
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _van_loan_term(F, sign, Vdt, Y, Adt, ptr, col, out, scale):
+    """``out = (sign F V dt + Y (A dt)^T) / scale``; returns whether it has a nonzero entry."""
+    N = F.shape[0]
+    nonzero = False
+    for a in range(N):
+        for b in range(N):
+            out[a, b] = 0.0
+        for c in range(N):
+            f = F[a, c]
+            if f != 0.0:
+                f = sign * f
+                for b in range(N):
+                    out[a, b] += f * Vdt[c, b]
+        for b in range(N):
+            acc = out[a, b]
+            for idx in range(ptr[b], ptr[b + 1]):
+                acc += Y[a, col[idx]] * Adt[b, col[idx]]
+            x = acc / scale
+            out[a, b] = x
+            if x != 0.0:
+                nonzero = True
+    return nonzero
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def interval_predict(z, P, u, dt, A0, Au, Bz, ptr, col, V, W, w, stats):
+    """The exact prediction of ``z`` and ``P`` over ``dt`` with ``u`` held (module docstring).
+
+    Parameters
+    ----------
+    z : ndarray (N,)
+    P : ndarray (N, N)
+        Updated in place (only when the function returns ``True``).
+    u : ndarray (p,)
+    dt : float
+    A0, Au : ndarray (N, N), (p, N, N)
+        ``A(u) = A0 + sum_j u_j Au[j]``.
+    Bz : ndarray (N, p)
+    ptr, col : ndarray of int64
+        The structural nonzeros of ``A(u)`` for every ``u`` (CSR: the union of the patterns).
+    V : ndarray (N, N)
+        The process-noise intensity over the interval.
+    W : ndarray (8, N, N), w : ndarray (3, N)
+        Work arrays.
+    stats : ndarray (4,)
+        Its last entry receives ``trace P`` (with the prediction).
+
+    Returns
+    -------
+    bool
+        ``True`` when a term of Van Loan's series was exactly zero within ``2 N`` terms (the
+        prediction is done); ``False`` otherwise (``z`` and ``P`` unchanged: the caller takes
+        the general exponential).
+    """
+    N, p = A0.shape[0], Au.shape[0]
+    Adt, F, Fn, Y, Yn, Phi, E12, Vdt = W[0], W[1], W[2], W[3], W[4], W[5], W[6], W[7]
+    b, g, zt = w[0], w[1], w[2]
+    for r in range(N):
+        for c in range(N):
+            Adt[r, c] = 0.0
+            Vdt[r, c] = V[r, c] * dt
+            one = 1.0 if r == c else 0.0
+            F[r, c] = one
+            Phi[r, c] = one
+            Y[r, c] = 0.0
+            E12[r, c] = 0.0
+        for idx in range(ptr[r], ptr[r + 1]):
+            c = col[idx]
+            acc = 0.0
+            for j in range(p):
+                acc += u[j] * Au[j, r, c]
+            Adt[r, c] = (A0[r, c] + acc) * dt
+        acc = 0.0
+        for j in range(p):
+            acc += Bz[r, j] * u[j]
+        b[r] = acc * dt
+        g[r] = 0.0
+    done = False
+    sign = 1.0  # (-1)^(i-1): X_(i-1) = sign F_(i-1)
+    for i in range(1, 2 * N + 1):
+        fi = float(i)
+        for a in range(N):  # g += F_(i-1) b / i
+            acc = 0.0
+            for c in range(N):
+                acc += F[a, c] * b[c]
+            g[a] += acc / fi
+        y_nonzero = _van_loan_term(F, sign, Vdt, Y, Adt, ptr, col, Yn, fi)
+        f_nonzero = _sparse_times(F, Adt, ptr, col, Fn, fi)
+        for a in range(N):
+            for c in range(N):
+                Phi[a, c] += Fn[a, c]
+                E12[a, c] += Yn[a, c]
+        F, Fn = Fn, F  # the new terms become the current ones (buffers swapped, nothing copied)
+        Y, Yn = Yn, Y
+        sign = -sign
+        if not (y_nonzero or f_nonzero):
+            done = True
+            break
+    if not done:
+        return False
+    # z <- Phi z + g
+    for a in range(N):
+        acc = 0.0
+        for c in range(N):
+            acc += Phi[a, c] * z[c]
+        zt[a] = acc + g[a]
+    for a in range(N):
+        z[a] = zt[a]
+    # Q = Phi E12 (into Fn), T = Phi P (into Yn), M = T Phi^T + (Q + Q^T) / 2 (into Y)
+    for a in range(N):
+        for c in range(N):
+            Fn[a, c] = 0.0
+            Yn[a, c] = 0.0
+        for m in range(N):
+            f = Phi[a, m]
+            if f != 0.0:
+                for c in range(N):
+                    Fn[a, c] += f * E12[m, c]
+                    Yn[a, c] += f * P[m, c]
+    for a in range(N):
+        for c in range(N):
+            acc = 0.0
+            for m in range(N):
+                acc += Yn[a, m] * Phi[c, m]
+            Y[a, c] = acc + 0.5 * (Fn[a, c] + Fn[c, a])
+    trace = 0.0
+    for a in range(N):
+        for c in range(N):
+            P[a, c] = 0.5 * (Y[a, c] + Y[c, a])
+        trace += P[a, a]
+    stats[3] = trace
+    return True
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def scalar_correct(z, P, C, h, yh, r, gate, stats, Pc):
+    """The Joseph-form correction of ``z`` and ``P`` by the output ``y_h = C[h] z`` of variance ``r``.
+
+    ``O(N^2)`` (module docstring). ``stats = [nis, corrections, rejected, trace P]`` is updated
+    as by the compiled grid step: the NIS always, then either the rejection (NIS above
+    ``gate``: nothing else changes) or the correction, its count and the trace.
+
+    Parameters
+    ----------
+    z : ndarray (N,)
+    P : ndarray (N, N)
+        Symmetric; updated in place.
+    C : ndarray (q, N)
+    h : int
+    yh, r, gate : float
+        The output, its variance, the NIS gate (``inf``: none).
+    stats : ndarray (4,)
+    Pc : ndarray (N,)
+        Work array.
+    """
+    N = z.shape[0]
+    s = 0.0
+    cz = 0.0
+    for i in range(N):
+        acc = 0.0
+        for j in range(N):
+            cj = C[h, j]
+            if cj != 0.0:
+                acc += P[i, j] * cj
+        Pc[i] = acc
+    for i in range(N):
+        ci = C[h, i]
+        if ci != 0.0:
+            s += ci * Pc[i]
+            cz += ci * z[i]
+    s = s + r
+    nu = yh - cz
+    nis = nu * nu / s
+    stats[0] = nis
+    if nis > gate:
+        stats[2] += 1.0
+        return
+    for i in range(N):
+        z[i] += Pc[i] / s * nu
+    trace = 0.0
+    for i in range(N):
+        ki = Pc[i] / s
+        for j in range(i + 1):
+            kj = Pc[j] / s
+            v = ((P[i, j] - ki * Pc[j]) - Pc[i] * kj) + s * (ki * kj)
+            P[i, j] = v
+            P[j, i] = v
+        trace += P[i, i]
+    stats[1] += 1.0
+    stats[3] = trace
