@@ -201,21 +201,26 @@ def interval_predict(z, P, u, dt, A0, Au, Bz, ptr, col, V, W, w, stats):
         b[r] = acc * dt
         g[r] = 0.0
     done = False
+    f_nonzero = True  # F_(i-1) != 0: once a power of A dt is zero, so are the later ones
     sign = 1.0  # (-1)^(i-1): X_(i-1) = sign F_(i-1)
     for i in range(1, 2 * N + 1):
         fi = float(i)
-        for a in range(N):  # g += F_(i-1) b / i
-            acc = 0.0
-            for c in range(N):
-                acc += F[a, c] * b[c]
-            g[a] += acc / fi
+        if f_nonzero:
+            for a in range(N):  # g += F_(i-1) b / i
+                acc = 0.0
+                for c in range(N):
+                    acc += F[a, c] * b[c]
+                g[a] += acc / fi
         y_nonzero = _van_loan_term(F, sign, Vdt, Y, Adt, ptr, col, Yn, fi)
-        f_nonzero = _sparse_times(F, Adt, ptr, col, Fn, fi)
+        if f_nonzero:
+            f_nonzero = _sparse_times(F, Adt, ptr, col, Fn, fi)
+            for a in range(N):
+                for c in range(N):
+                    Phi[a, c] += Fn[a, c]
+            F, Fn = Fn, F  # the new power becomes the current one (buffers swapped, not copied)
         for a in range(N):
             for c in range(N):
-                Phi[a, c] += Fn[a, c]
                 E12[a, c] += Yn[a, c]
-        F, Fn = Fn, F  # the new terms become the current ones (buffers swapped, nothing copied)
         Y, Yn = Yn, Y
         sign = -sign
         if not (y_nonzero or f_nonzero):

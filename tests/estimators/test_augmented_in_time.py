@@ -8,7 +8,6 @@ import pytest
 
 from quadobs import vehicle_system
 from quadobs.core.immersion import immerse
-from quadobs.core.measurements import Measurement
 from quadobs.estimators.augmented import AugmentedObserver, default_backend
 from quadobs.estimators.augmented_in_time import StateNoise, structurally_nilpotent
 from quadobs.estimators.augmented_tuning import state_noise_map
