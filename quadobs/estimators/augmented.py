@@ -659,6 +659,17 @@ class AugmentedObserver(HalfSteps, Gated, Immersed, BlockStep):
     def _input_dimension(self) -> int:
         return self._ushape[0]
 
+    def hold(self, u) -> None:
+        """:meth:`Estimator.hold`, with a fast path for a finite float64 array of the right shape
+        (one dot product checks it): a copy of ``u`` is held either way."""
+        try:
+            if u.dtype is _F64 and u.shape == self._ushape and math.isfinite(u.dot(u)):
+                self._held = u.copy()
+                return
+        except AttributeError:
+            pass
+        super().hold(u)
+
     def _propagate(self, dt: float, u: np.ndarray) -> None:
         """Exact propagation over ``dt`` with ``u`` held: the precomputed step when ``dt`` is the
         observer's own (within ``1e-9`` relative), else from the matrix exponentials themselves.
