@@ -15,10 +15,12 @@ which is what the replay in time does with the same samples read from a log
 (:class:`~quadobs.testbed.logs.events.InTimeOnGrid`). The augmented observer then takes each
 range with its own output variance ``rho^2 sigma^2 + sigma^4 / 2`` and the state-dependent
 process noise ``V(z)`` (:mod:`quadobs.estimators.augmented_tuning`) rather than the grid's
-constant ``R`` and ``V``. A step costs the interval's matrix exponentials (their series
-compiled) and the corrections in NumPy: on ``quadrotor-uwb`` 56 us of CPU per 1 ms step
-without a range and 74 us with one (a loaded 2-core machine), some 20 to 30 times the
-compiled grid step (``quadobs bench``: ``observer_in_time_step_us`` beside ``grid_step_us``).
+constant ``R`` and ``V``. A step costs the interval's prediction and each range's correction,
+both compiled and free of allocation (:mod:`quadobs.estimators.augmented_in_time`), and the
+interface's Python around them: on ``quadrotor-uwb`` 24 us of CPU per 1 ms step without a
+range and 32 us with one (62 us and 94 us with only the exponentials' series compiled; a
+2-core machine under load), some 5 to 12 times the compiled grid step (``quadobs bench``:
+``observer_in_time_step_us`` beside ``grid_step_us`` and ``in_time_numpy_step_us``).
 """
 
 from __future__ import annotations

@@ -203,6 +203,8 @@ def test_bench_command_writes_the_figures(tmp_path, capsys):
     assert data["bare_steps_per_s"] > 0
     assert data["recording_fraction"] < 1  # 1 - t_norec / t_rec
     assert data["batch"]["vehicles"] == 4 and data["scaling"]
+    oit = data["observer_in_time"]  # compiled, on the grid and through the NumPy reference
+    assert all(oit[k] > 0 for k in ("in_time_step_us", "grid_step_us", "in_time_numpy_step_us"))
     for key in ("loop_ratio", "step_loop_ratio", "recording_fraction", "step_recording_fraction"):
         q = data["spread"][key]  # median and quartiles over the repeats
         assert q["q1"] <= q["median"] == data[key] <= q["q3"] and q["iqr"] == pytest.approx(
