@@ -177,18 +177,23 @@ def interval_predict(z, P, u, dt, A0, Au, Bz, ptr, col, V, W, w, stats):
         prediction is done); ``False`` otherwise (``z`` and ``P`` unchanged: the caller takes
         the general exponential).
     """
-    N, p = A0.shape[0], Au.shape[0]
     Adt, F, Fn, Y, Yn, Phi, E12, Vdt = W[0], W[1], W[2], W[3], W[4], W[5], W[6], W[7]
     b, g, zt = w[0], w[1], w[2]
+    _interval_operands(u, dt, A0, Au, Bz, ptr, col, V, Adt, Vdt, b)
+    if not _series(Adt, Vdt, b, ptr, col, F, Fn, Y, Yn, Phi, E12, g):
+        return False
+    _transition(z, P, Phi, g, E12, W[1], W[2], W[3], zt, stats)
+    return True
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _interval_operands(u, dt, A0, Au, Bz, ptr, col, V, Adt, Vdt, b):
+    """``A(u) dt`` on its structural nonzeros (zero elsewhere), ``V dt`` and ``b = B u dt``."""
+    N, p = A0.shape[0], Au.shape[0]
     for r in range(N):
         for c in range(N):
             Adt[r, c] = 0.0
             Vdt[r, c] = V[r, c] * dt
-            one = 1.0 if r == c else 0.0
-            F[r, c] = one
-            Phi[r, c] = one
-            Y[r, c] = 0.0
-            E12[r, c] = 0.0
         for idx in range(ptr[r], ptr[r + 1]):
             c = col[idx]
             acc = 0.0
@@ -199,8 +204,21 @@ def interval_predict(z, P, u, dt, A0, Au, Bz, ptr, col, V, W, w, stats):
         for j in range(p):
             acc += Bz[r, j] * u[j]
         b[r] = acc * dt
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _series(Adt, Vdt, b, ptr, col, F, Fn, Y, Yn, Phi, E12, g):
+    """``Phi``, ``g`` and ``E12 = sum_i Y_i`` (module docstring) until a term is exactly zero;
+    returns whether one was within ``2 N`` terms. ``F, Fn, Y, Yn``: work arrays."""
+    N = Adt.shape[0]
+    for r in range(N):
         g[r] = 0.0
-    done = False
+        for c in range(N):
+            one = 1.0 if r == c else 0.0
+            F[r, c] = one
+            Phi[r, c] = one
+            Y[r, c] = 0.0
+            E12[r, c] = 0.0
     f_nonzero = True  # F_(i-1) != 0: once a power of A dt is zero, so are the later ones
     sign = 1.0  # (-1)^(i-1): X_(i-1) = sign F_(i-1)
     for i in range(1, 2 * N + 1):
@@ -224,11 +242,15 @@ def interval_predict(z, P, u, dt, A0, Au, Bz, ptr, col, V, W, w, stats):
         Y, Yn = Yn, Y
         sign = -sign
         if not (y_nonzero or f_nonzero):
-            done = True
-            break
-    if not done:
-        return False
-    # z <- Phi z + g
+            return True
+    return False
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _transition(z, P, Phi, g, E12, Q, T, M, zt, stats):
+    """``z <- Phi z + g``; ``P <- (M + M^T) / 2``, ``M = Phi P Phi^T + (Q + Q^T) / 2``,
+    ``Q = Phi E12``; ``stats[3] = trace P``. ``Q, T, M, zt``: work arrays."""
+    N = z.shape[0]
     for a in range(N):
         acc = 0.0
         for c in range(N):
@@ -236,30 +258,28 @@ def interval_predict(z, P, u, dt, A0, Au, Bz, ptr, col, V, W, w, stats):
         zt[a] = acc + g[a]
     for a in range(N):
         z[a] = zt[a]
-    # Q = Phi E12 (into Fn), T = Phi P (into Yn), M = T Phi^T + (Q + Q^T) / 2 (into Y)
-    for a in range(N):
+    for a in range(N):  # Q = Phi E12, T = Phi P (Phi's zeros skipped)
         for c in range(N):
-            Fn[a, c] = 0.0
-            Yn[a, c] = 0.0
+            Q[a, c] = 0.0
+            T[a, c] = 0.0
         for m in range(N):
             f = Phi[a, m]
             if f != 0.0:
                 for c in range(N):
-                    Fn[a, c] += f * E12[m, c]
-                    Yn[a, c] += f * P[m, c]
+                    Q[a, c] += f * E12[m, c]
+                    T[a, c] += f * P[m, c]
     for a in range(N):
         for c in range(N):
             acc = 0.0
             for m in range(N):
-                acc += Yn[a, m] * Phi[c, m]
-            Y[a, c] = acc + 0.5 * (Fn[a, c] + Fn[c, a])
+                acc += T[a, m] * Phi[c, m]
+            M[a, c] = acc + 0.5 * (Q[a, c] + Q[c, a])
     trace = 0.0
     for a in range(N):
         for c in range(N):
-            P[a, c] = 0.5 * (Y[a, c] + Y[c, a])
+            P[a, c] = 0.5 * (M[a, c] + M[c, a])
         trace += P[a, a]
     stats[3] = trace
-    return True
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
