@@ -26,7 +26,9 @@ the same series as :func:`quadobs.core.held_input.van_loan_interval` takes throu
 :func:`~quadobs.core.held_input.expm_exact`, block by block: the zero blocks are never
 multiplied and ``A`` is multiplied through its nonzeros only (CSR). The series stops at the
 first term that is exactly zero. Then ``z <- Phi z + g`` and
-``P <- (M + M^T) / 2`` with ``M = Phi P Phi^T + (Q_d + Q_d^T) / 2``.
+``P <- (M + M^T) / 2`` with ``M = Phi P Phi^T + (Q_d + Q_d^T) / 2``. The sums run in another
+order than the reference's products, so the two agree to rounding, not bit for bit (about
+``1e-13`` relative over 2000 steps of ``quadrotor-uwb``, tested to ``1e-12`` per interval).
 
 **Correction by one scalar output** (:func:`scalar_correct`). For ``y_h = c^T z + e``,
 ``var e = r``, the Joseph form ``P+ = (I - k c^T) P (I - k c^T)^T + r k k^T`` with
