@@ -110,8 +110,9 @@ def print_diverged(summary: dict, file=None) -> None:
     for name, d in summary.get("estimators", {}).items():
         if isinstance(d, dict) and d.get("diverged"):
             d = d["diverged"]
+            what = "NOT STARTED" if d["reason"].startswith("not started") else "DIVERGED"
             print(
-                f"{name}: DIVERGED at step {d['step']} (t = {d['t']:.6g} s): {d['reason']}; "
+                f"{name}: {what} at step {d['step']} (t = {d['t']:.6g} s): {d['reason']}; "
                 "its figures are invalid",
                 file=file,
             )
@@ -1064,7 +1065,10 @@ def _cmd_replay(args) -> int:
             else ""
         )
         if e.get("diverged"):
-            print(f"  {name:10s} rmse invalid (diverged)")
+            what = (
+                "not started" if e["diverged"]["reason"].startswith("not started") else "diverged"
+            )
+            print(f"  {name:10s} rmse invalid ({what})")
             continue
         print(
             f"  {name:10s} rmse {_fmt(e['rmse'], ' m')}  max {_fmt(e['max_error'], ' m')}  "

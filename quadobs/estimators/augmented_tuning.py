@@ -37,6 +37,8 @@ from __future__ import annotations
 import numpy as np
 
 from quadobs.core.immersion import Immersion
+from quadobs.core.immersion import lifted_covariance as gaussian_lift_covariance
+from quadobs.errors import QuadobsError
 from quadobs.estimators.augmented import AugmentedObserver
 from quadobs.estimators.augmented_in_time import StateNoise
 
@@ -104,23 +106,25 @@ def grid_output_variance(range_sigma: float, typical_range: float) -> float:
 
 
 def lifted_covariance(im: Immersion, x0: np.ndarray, P0: float, dim: int) -> np.ndarray:
-    """The initial covariance of ``lift(x)`` for ``x ~ N(x0, P0 I)`` on the position (``dim``
-    entries).
+    """The initial covariance of ``lift(x)`` for ``x ~ N(x0, P0 I_n)``: ``P0`` on every entry
+    of ``x``, the position's first ``dim`` entries and any others (a velocity) alike.
 
-    For a state that is the position alone (``xi = |p|^2 / 2``), exact in the plane:
-    ``var xi = P0 |p0|^2 + P0^2``, ``cov(xi, p) = P0 p0``. With a velocity (``xi`` spans
-    ``|p|^2 / 2``, ``p.v``, ``|v|^2 / 2``), ``P0 (|p0|^2 + 1) + P0^2`` on each auxiliary
-    state and no cross terms. ``P0`` on every entry of ``x``.
+    Exact Gaussian moments (:func:`quadobs.core.immersion.lifted_covariance`): with
+    ``xi_i = x^T L_i x / 2``, ``x = x0 + e``,
+
+    .. math:: \\operatorname{cov}(\\xi_i, \\xi_j) = P_0 x_0^\\top L_i L_j x_0
+              + \\tfrac{1}{2} P_0^2 \\operatorname{tr}(L_i L_j), \\qquad
+              \\operatorname{cov}(\\xi_i, x) = P_0 L_i x_0,
+
+    the first from the part ``x0^T L_i e`` linear in the error, the second from ``e^T L_i e / 2``
+    (Isserlis: ``cov(e^T A e, e^T B e) = 2 tr(A P B P)``). For the state of a position alone,
+    ``xi = |p|^2 / 2`` (``L = I_d``): ``var xi = P0 |p0|^2 + d P0^2 / 2``, that is
+    ``var |p|^2 = 4 P0 |p0|^2 + 2 d P0^2``; ``P0^2`` in the plane, ``1.5 P0^2`` in space.
     """
-    k = im.n_aux
-    p0 = np.asarray(x0[:dim], dtype=float)
-    P = np.eye(im.dim) * P0
-    if im.system.n == dim:
-        P[0, 0] = P0 * p0 @ p0 + P0**2
-        P[0, k : k + dim] = P[k : k + dim, 0] = P0 * p0
-    else:
-        P[:k, :k] = np.eye(k) * (P0 * (p0 @ p0 + 1.0) + P0**2)
-    return P
+    if not 0 < dim <= im.system.n:
+        raise QuadobsError(f"dim: expected 1 to {im.system.n} position entries, got {dim}")
+    x0 = np.asarray(x0, dtype=float)[: im.system.n]
+    return gaussian_lift_covariance(im.aux_forms, x0, P0 * np.eye(im.system.n))
 
 
 def derived_observer(

@@ -203,6 +203,7 @@ class _VehicleBlock:
     sight_model: str = "chain"
     sight: BiasSightGrid | None = None
     fix_pending: bool = False
+    fix_abandoned: float | None = None
     biases_open: bool = True
     open_threshold: float = 0.0
     held: int = 0
@@ -347,6 +348,7 @@ class _VehicleBlock:
             if self._waited < 4 * q:
                 return False
             self.fix_pending = False
+            self.fix_abandoned = self._time  # reported as not started (startup.not_started)
             return True
         cols = fixed[0]
         self._x[cols] = fixed[1]

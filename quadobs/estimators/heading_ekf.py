@@ -256,6 +256,7 @@ class _HeadingFilter(Estimator, Gated):
         prior_std = math.sqrt(float(np.max(np.diag(self._P)[:2])))
         self.fix_pending = "range" in self.measurement_models and prior_std > scale
         self.fixes: list[float] = []
+        self.fix_abandoned: float | None = None
         self._waited = 0
 
     # -- what the testbed reads ---------------------------------------------------------
@@ -448,6 +449,8 @@ class _HeadingFilter(Estimator, Gated):
             self._P = self._P0.copy()
             self._P[:2, :2] = self._fix_sigma() ** 2 * np.eye(2) + self._fix_spread()
             self.fixes.append(self._time)
+        else:  # reported as not started (quadobs.estimators.startup.not_started)
+            self.fix_abandoned = self._time
 
     def _fix_sigma(self) -> float:
         """The range noise of the fix: the largest standard deviation among the ranges it took,

@@ -11,8 +11,9 @@ came of that prior by what one round of ranges says on its own, the rule that th
 * **When.** The prior position's largest standard deviation exceeds the scale on which a
   range bends over it, half the anchors' extent ``e = max_h |a_h - c|`` (``c`` their
   centroid), and at least the range noise ``sigma``.
-* **Waiting.** The filter predicts and corrects as usual, each range's variance taking the
-  second-order term of its linearisation as noise, ``sigma^2 + tr((H_2 P)^2) / 2`` with
+* **Waiting.** The filter predicts and corrects as usual, the EKF with each range's variance grown by the
+  second-order term of its linearisation as noise (the UKF's sigma points already spread over
+  it: :class:`FixedStartUKF`), ``sigma^2 + tr((H_2 P)^2) / 2`` with
   ``H_2 = (I - u u^T) / rho`` the Hessian of ``|p - a_h|`` at the estimate (the variance term
   of the Gaussian second-order filter; in the plane, 35 m of standard deviation for a 50 m prior at 50 m
   from the anchor, nothing once the position is known): a correction linearised far from the
@@ -42,6 +43,10 @@ came of that prior by what one round of ranges says on its own, the rule that th
   ``P_fix``, its correlations with the other states dropped, in place of what the corrections
   made of it from the wide prior; the range that completed the round is then corrected as
   usual.
+* **Not started.** A filter still waiting at the end of its run, or one that gave up without a
+  fix, never took the position its ranges give: :func:`not_started` records it as a lock-out
+  records a filter given up, and the testbed's summaries give it no error figure
+  (:func:`quadobs.testbed.divergence.given_up`).
 """
 
 from __future__ import annotations
@@ -61,7 +66,13 @@ from quadobs.estimators.kalman import (
 )
 from quadobs.estimators.robust import multilateration
 
-__all__ = ["FixedStartEKF", "FixedStartUKF", "MultilaterationStart", "start_threshold"]
+__all__ = [
+    "FixedStartEKF",
+    "FixedStartUKF",
+    "MultilaterationStart",
+    "not_started",
+    "start_threshold",
+]
 
 
 def start_threshold(anchors: np.ndarray, sigma: float) -> float:
@@ -70,6 +81,40 @@ def start_threshold(anchors: np.ndarray, sigma: float) -> float:
     a = np.asarray(anchors, dtype=float)
     extent = float(np.max(np.linalg.norm(a - a.mean(axis=0), axis=1)))
     return max(0.5 * extent, float(sigma))
+
+
+def not_started(est) -> dict | None:
+    """The record of a filter whose start-up from a multilateration never set its position
+    (this module's, the bias filters' of :mod:`quadobs.estimators.bias_states`, the heading
+    filters' of :mod:`quadobs.estimators.heading_ekf`), as a lock-out's ``diverged``
+    (:class:`~quadobs.estimators.robust.LockOut`): ``{"time", "step", "reason"}``, else None.
+
+    Armed and still waiting at the end of the run (its anchors never heard in enough
+    directions, or no range at all: ``fix_pending``), or given up without a fix
+    (``fix_abandoned``, the time at which it was: anchors in too few directions over four
+    rounds, or a fix the filter refused), its estimate is what its prior and corrections from
+    a prior as wide as the anchors' geometry made of it: reported as not started, never
+    summarised as if it had run. ``step`` counts the filter's own steps (``time / dt``). A
+    wrapper (:class:`~quadobs.estimators.base.Wrapper`, one taking a log's measurements in
+    time) is read through its ``inner``.
+    """
+    while est is not None and not hasattr(est, "fixes"):
+        est = getattr(est, "inner", None)
+    if est is None or est.fixes:
+        return None
+    if getattr(est, "fix_pending", False):
+        t = float(est.time)
+        why = "no multilateration fix from its ranges by the end of the run"
+    else:
+        abandoned = getattr(est, "fix_abandoned", None)
+        if abandoned is None:
+            return None
+        t = float(abandoned)
+        why = "its multilateration fix given up (anchors in too few directions)"
+    dynamics = getattr(est, "dynamics", est)  # a Kalman filter's step, else the filter's own
+    dt = float(getattr(dynamics, "dt", 0.0))
+    step = int(round(t / dt)) if dt > 0.0 else 0
+    return {"time": t, "step": step, "reason": f"not started: {why}"}
 
 
 class MultilaterationStart:
@@ -82,9 +127,12 @@ class MultilaterationStart:
         Waiting for a round of ranges.
     fixes : list of float
         Times (s) at which the position was set by multilateration.
+    fix_abandoned : float or None
+        Time (s) at which the start-up was given up without a fix (:func:`not_started`).
     """
 
     fix_pending: bool = False
+    fix_abandoned: float | None = None
     fixes: list
     _dim: int
     _waited: int
@@ -179,8 +227,9 @@ class MultilaterationStart:
         self._keep(h, yh, s2)
         self._try_fix()
         before = self._x.copy()
-        if self.fix_pending:  # the linearisation's second-order term as noise (module docstring)
-            m = replace(m, std=math.sqrt(s2 + self._curvature_variance(h)))
+        extra = self._waiting_variance(h) if self.fix_pending else 0.0
+        if extra > 0.0:  # the linearisation's second-order term as noise (module docstring)
+            m = replace(m, std=math.sqrt(s2 + extra))
         super()._correct_measurement(m)  # type: ignore[misc]
         if self.fix_pending:
             self._offset += self._x - before
@@ -197,6 +246,12 @@ class MultilaterationStart:
         super().correct_outputs(y)  # type: ignore[misc]
         if self.fix_pending:
             self._offset += self._x - before
+
+    def _waiting_variance(self, h: int) -> float:
+        """The variance a waiting correction of range ``h`` adds to the range's own: the
+        second-order term (:meth:`_curvature_variance`) that a correction linearised at the
+        estimate leaves out."""
+        return self._curvature_variance(h)
 
     def _curvature_variance(self, h: int) -> float:
         """The variance of the second-order term of ``|p - a_h|`` about the estimate for
@@ -221,6 +276,7 @@ class MultilaterationStart:
         if fixed is None:
             if self._waited >= 4 * q:
                 self.fix_pending = False
+                self.fix_abandoned = self._time
             return
         cols, p, cov = fixed
         self._settle()
@@ -264,4 +320,16 @@ class FixedStartEKF(MultilaterationStart, ExtendedKalmanFilter):
 
 class FixedStartUKF(MultilaterationStart, UnscentedKalmanFilter):
     """:class:`~quadobs.estimators.kalman.UnscentedKalmanFilter` with the start-up of the module
-    docstring (armed by :meth:`~MultilaterationStart.start_from_fix`)."""
+    docstring (armed by :meth:`~MultilaterationStart.start_from_fix`).
+
+    Its waiting corrections take each range with the range's own variance: the sigma points
+    ``Z_i = |X_i - a_h|`` already follow the range's curvature over the prior, so the
+    unscented ``S = sum W^c_i (Z_i - z^-)^2 + sigma^2`` carries what the curvature adds;
+    adding ``tr((H_2 P)^2) / 2`` to ``sigma^2`` as the EKF does would count it twice. For
+    ``P = s^2 I`` in the plane at ``rho = s`` from the anchor (the default ``alpha = 1``,
+    ``beta = 2``, ``kappa = 0``) the range's variance is ``0.60 s^2`` (sampled), the sigma
+    points' spread ``1.18 s^2``, the EKF's linear ``s^2`` with the term ``s^2 / 2`` ``1.5 s^2``,
+    and the spread with the term again ``1.68 s^2``."""
+
+    def _waiting_variance(self, h: int) -> float:
+        return 0.0

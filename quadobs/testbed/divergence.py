@@ -35,6 +35,7 @@ import math
 
 import numpy as np
 
+from quadobs.estimators.startup import not_started
 from quadobs.testbed.sinks import EpisodeContext, Rows, Sink
 
 __all__ = [
@@ -161,8 +162,10 @@ class DivergenceSink(Sink):
 
 def given_up(est) -> dict | None:
     """The estimator's own record of having given up (its lock-out's ``diverged``: out of
-    re-initialisations, or a state it judged implausible), as this sink's entry."""
-    record = getattr(getattr(est, "lockout", None), "diverged", None)
+    re-initialisations, or a state it judged implausible) or of never having started (a
+    start-up from a multilateration without a fix:
+    :func:`~quadobs.estimators.startup.not_started`), as this sink's entry."""
+    record = getattr(getattr(est, "lockout", None), "diverged", None) or not_started(est)
     if not record:
         return None
     return {"step": int(record["step"]), "t": float(record["time"]), "reason": record["reason"]}

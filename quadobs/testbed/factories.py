@@ -463,20 +463,22 @@ def onboard_ekf(scenario: Scenario, x0: np.ndarray):
 
     Its sensor noise is the scenario's: ranges ``noise.range_std`` (1 cm if noise-free),
     accelerometer and gyroscope the ``[quadrotor]`` white noise with each constant bias
-    matched over a 1 s horizon (``sigma^2 = std^2 + bias^2 (1 s / dt)``, as
-    :func:`quadobs.testbed.imu.input_noise_std` does for the EKF's input); the position
+    matched over the horizon ``tau`` (:data:`~quadobs.testbed.imu.BIAS_HORIZON`, 1 s:
+    ``sigma^2 = std^2 + bias^2 tau / dt``, as :func:`quadobs.testbed.imu.input_noise_std`
+    does for the EKF's input); the position
     and velocity prior as the EKF's (:func:`baseline_settings`); the attitude starts
     level with 0.05 rad per axis.
     """
     from quadobs.estimators.onboard_ekf import OnboardEKF, range_model
+    from quadobs.testbed.imu import BIAS_HORIZON
 
     if scenario.kind != "quadrotor":
         raise QuadobsError(
             f'onboard-ekf: needs a body IMU (kind = "quadrotor"), not kind = {scenario.kind!r}'
         )
     q, dt = scenario.quadrotor or QuadrotorSpec(), scenario.dt
-    accel = math.sqrt(q.accel_std**2 + q.accel_bias**2 / dt)
-    gyro = math.sqrt(q.gyro_std**2 + q.gyro_bias**2 / dt)
+    accel = math.sqrt(q.accel_std**2 + q.accel_bias**2 * BIAS_HORIZON / dt)
+    gyro = math.sqrt(q.gyro_std**2 + q.gyro_bias**2 * BIAS_HORIZON / dt)
     std = scenario.noise.range_std or 0.01
     return OnboardEKF(
         range_model(scenario.beacons, std),

@@ -18,10 +18,21 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["IMU_SPAWN_KEY", "ImuModel", "input_noise_std", "quat_to_matrix"]
+__all__ = ["BIAS_HORIZON", "IMU_SPAWN_KEY", "ImuModel", "input_noise_std", "quat_to_matrix"]
 
 #: The spawn key of the IMU's random stream (beside :func:`~quadobs.testbed.sensors.spawn_streams`'s).
 IMU_SPAWN_KEY = (1016,)
+
+#: The horizon ``tau`` (s) over which a filter without a state for an inertial sensor's constant
+#: bias ``b`` (accelerometer or gyroscope) takes it as a white noise of intensity ``b^2 tau``
+#: (per sample of ``dt``: variance ``b^2 tau / dt``): over a window ``tau`` that noise's mean
+#: has the bias's variance, so ``tau`` stands for how long the filter remembers its input
+#: before the ranges (10 Hz and faster in the testbed) re-set what the input moved. On
+#: ``quadrotor-uwb`` this term keeps the EKF consistent (docs/quadrotor.md: without it its NEES
+#: is about 24 for 6 expected). The live EKF's input (:func:`input_noise_std`), the live
+#: on-board EKF (:func:`quadobs.testbed.factories.onboard_ekf`) and the replay's gyroscope
+#: (:func:`quadobs.testbed.logs.estimators.gyro_noise`) take it from here.
+BIAS_HORIZON = 1.0
 
 
 def quat_to_matrix(q) -> np.ndarray:
@@ -37,7 +48,11 @@ def quat_to_matrix(q) -> np.ndarray:
 
 
 def input_noise_std(
-    spec, attitude_every: float, dt: float, gravity: float = 9.81, horizon: float = 1.0
+    spec,
+    attitude_every: float,
+    dt: float,
+    gravity: float = 9.81,
+    horizon: float | None = None,
 ) -> float:
     """The white input noise (m/s^2 per physics step) equivalent to the IMU's errors on ``u = R~ f~ + g``.
 
@@ -72,10 +87,11 @@ def input_noise_std(
     gravity : float
         m/s^2.
     horizon : float
-        The window ``tau`` (s) over which the bias is matched.
+        The window ``tau`` (s) over which the bias is matched (default :data:`BIAS_HORIZON`).
     """
+    tau = BIAS_HORIZON if horizon is None else horizon
     white = spec.accel_std**2 + float(attitude_every) * (gravity * spec.attitude_std) ** 2
-    return float(np.sqrt(white + spec.accel_bias**2 * horizon / dt))
+    return float(np.sqrt(white + spec.accel_bias**2 * tau / dt))
 
 
 def _perturb(q: np.ndarray, angle: np.ndarray) -> np.ndarray:

@@ -149,3 +149,27 @@ def test_the_waiting_corrections_weigh_the_second_order_term():
     p = np.array([12.0, 9.0])
     _drive(est, p, (0.0, 0.0), [0.1, 0.2, 0.3, 0.4])
     assert est.fixes and est._curvature_variance(0) < 1.0
+
+
+def test_the_ukf_waits_with_the_ranges_own_variance():
+    """The UKF's sigma points already follow the range's curvature: its first waiting correction
+    is the plain UKF's with the range's variance ``sigma^2`` (to the bit), its ``S`` the closed
+    form of the unscented transform (``n + lambda = 2``, ``W^c_0 = 2``, ``W_i = 1/4``) plus
+    ``sigma^2`` (1.18 s^2 of spread for a 50 m prior at 50 m), not ``tr((H_2 P)^2) / 2`` more."""
+    from quadobs.estimators.kalman import UnscentedKalmanFilter
+
+    est = _filter(FixedStartUKF, 50.0**2, x0=(50.0, 0.0))
+    plain = _filter(UnscentedKalmanFilter, 50.0**2, x0=(50.0, 0.0))
+    assert est.fix_pending
+    rho = 30.0
+    for f in (est, plain):
+        f.correct(Measurement(0.0, "range", rho, (0,)))
+    assert est.fix_pending and est.corrections == 1
+    np.testing.assert_array_equal(est.x_hat, plain.x_hat)
+    np.testing.assert_array_equal(est.x_covariance, plain.x_covariance)
+    x, d = np.array([50.0, 0.0]), 50.0 * np.sqrt(2.0) * np.eye(2)
+    Z = np.linalg.norm(np.array([x, x + d[0], x + d[1], x - d[0], x - d[1]]), axis=1)
+    z = Z[1:].mean()
+    S = 2.0 * (Z[0] - z) ** 2 + np.sum((Z[1:] - z) ** 2) / 4.0 + SIGMA**2
+    assert S / 50.0**2 == pytest.approx(1.18, abs=0.005)
+    assert est.nis == pytest.approx((rho - z) ** 2 / S, rel=1e-12)

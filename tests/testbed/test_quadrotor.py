@@ -213,6 +213,39 @@ def test_the_filters_input_noise_comes_from_the_imu_settings():
     assert np.all(np.diag(baseline_settings(louder).dynamics.input_covariance) > np.diag(Q))
 
 
+def test_every_bias_rule_takes_the_one_horizon(monkeypatch):
+    """The live EKF's input, the live on-board EKF and the replay's gyroscope match a constant
+    bias over :data:`~quadobs.testbed.imu.BIAS_HORIZON`: at 1 s to the bit as written before, and
+    a changed horizon reaches all three (``b^2 tau`` per unit time)."""
+    import math
+
+    from quadobs.testbed import factories, imu
+    from quadobs.testbed.logs import estimators as replay_estimators
+    from quadobs.testbed.logs.estimators import ReplaySetup, gyro_noise
+
+    sc = load_scenario("quadrotor-uwb")
+    q, dt = sc.quadrotor, sc.dt
+    beacons = np.array(sc.beacons)
+    setup = ReplaySetup(beacons, 0.1, "imu", 0.0, 3.0, gyro_noise=1e-4, gyro_bias=q.gyro_bias)
+
+    def rules():
+        ekf = factories.onboard_ekf(sc, np.zeros(6))
+        return imu.input_noise_std(q, 4, dt) ** 2, ekf.q_v, ekf.q_a, gyro_noise(setup)
+
+    white = q.accel_std**2 + 4 * (9.81 * q.attitude_std) ** 2
+    one = rules()
+    assert imu.BIAS_HORIZON == 1.0
+    assert one[1] == math.sqrt(q.accel_std**2 + q.accel_bias**2 / dt) ** 2
+    assert one[2] == math.sqrt(q.gyro_std**2 + q.gyro_bias**2 / dt) ** 2
+    assert one[3] == 1e-8 + q.gyro_bias**2
+    for module in (imu, replay_estimators):  # factories reads it from imu at the call
+        monkeypatch.setattr(module, "BIAS_HORIZON", 3.0)
+    three = rules()
+    assert three[0] - white == pytest.approx(3.0 * (one[0] - white))
+    for k, b2 in ((1, q.accel_bias**2 / dt), (2, q.gyro_bias**2 / dt), (3, q.gyro_bias**2)):
+        assert math.isclose(three[k] - one[k], 2.0 * b2, rel_tol=1e-9)
+
+
 def test_the_campaign_summarises_the_flights():
     from quadobs.studies.campaign import flight_summary
 

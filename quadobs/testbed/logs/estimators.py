@@ -101,6 +101,7 @@ from quadobs.estimators.startup import (
     MultilaterationStart,
     start_threshold,
 )
+from quadobs.testbed.imu import BIAS_HORIZON
 
 __all__ = [
     "ACCEL_NOISE",
@@ -600,7 +601,7 @@ def gyro_noise(s: ReplaySetup) -> float:
     Where the log states the gyroscope's bias (:attr:`ReplaySetup.gyro_bias`, ``meta.csv``
     key ``gyro_bias``, the standard deviation ``b_g`` of its constant bias per axis), the rule
     of the live on-board filter (:func:`quadobs.testbed.factories.onboard_ekf`): the bias
-    matched over the horizon ``tau`` = 1 s, as the accelerometer's in
+    matched over the horizon ``tau`` (:data:`~quadobs.testbed.imu.BIAS_HORIZON`), as the accelerometer's in
     :func:`quadobs.testbed.imu.input_noise_std`,
 
     .. math:: q_g = N_g^2 + b_g^2\\,\\tau,
@@ -619,11 +620,6 @@ def gyro_noise(s: ReplaySetup) -> float:
         if stated > 0.0:
             return stated
     return max(density2, GYRO_NOISE)
-
-
-#: The horizon (s) over which a stated constant bias is matched by a white noise of intensity
-#: ``b^2 tau`` (the ``horizon`` of :func:`quadobs.testbed.imu.input_noise_std`).
-BIAS_HORIZON = 1.0
 
 
 #: The floor of the accelerometer's white-noise intensity (m^2/s^3) of the model ``imu``
@@ -670,8 +666,8 @@ def imu_input_noise(log) -> float | None:
     ``N_a`` the density ``accel_noise`` (0 if not stated), ``sigma_q`` the attitude's error
     ``attitude_std`` with ``m h`` the median interval of ``attitude.csv`` (the term is 0 where
     either is missing: an attitude estimated in the replay has no stated error), ``g`` the log's
-    gravity, ``h`` the median IMU interval and ``tau`` = 1 s the horizon over which the bias is
-    matched. An exported simulated flight states every figure, so its replay takes the same
+    gravity, ``h`` the median IMU interval and ``tau`` (:data:`~quadobs.testbed.imu.BIAS_HORIZON`) the
+    horizon over which the bias is matched. An exported simulated flight states every figure, so its replay takes the same
     ``q_imu`` as the live filters (4.4e-4 m^2/s^3 for ``quadrotor-uwb`` and ``quadrotor-tdoa``).
 
     Where the log states a density and no bias, :func:`accel_noise` (the density's square,
