@@ -142,13 +142,17 @@ class Estimator(abc.ABC):
         Kalman filter's ``S = H P H^T + R``, ``K = P H^T S^-1`` with ``H``, ``R`` stacked), as
         :meth:`step` takes a grid step's outputs. The default corrects by them one after the
         other (:meth:`correct`), which for a model linear in the state and uncorrelated noise
-        gives the same posterior.
+        gives the same posterior. Every measurement is checked (its type, its time, a finite
+        value) before any is applied.
 
         Parameters
         ----------
         measurements : sequence of Measurement
             Each at :attr:`time` (as for :meth:`correct`).
         """
+        measurements = list(measurements)
+        for m in measurements:
+            self._check_measurement(m)
         for m in measurements:
             self.correct(m)
 
