@@ -134,6 +134,28 @@ class Estimator(abc.ABC):
         self._check_measurement(m)
         self._correct_measurement(m)
 
+    def correct_many(self, measurements) -> None:
+        """Correct the estimate with measurements all taken at the current time.
+
+        Measurements of one time are one measurement vector ``y = (y_1, ..., y_m)``: an
+        estimator that can takes them in one joint correction (the batch update, e.g. the
+        Kalman filter's ``S = H P H^T + R``, ``K = P H^T S^-1`` with ``H``, ``R`` stacked), as
+        :meth:`step` takes a grid step's outputs. The default corrects by them one after the
+        other (:meth:`correct`), which for a model linear in the state and uncorrelated noise
+        gives the same posterior. Every measurement is checked (its type, its time, a finite
+        value) before any is applied.
+
+        Parameters
+        ----------
+        measurements : sequence of Measurement
+            Each at :attr:`time` (as for :meth:`correct`).
+        """
+        measurements = list(measurements)
+        for m in measurements:
+            self._check_measurement(m)
+        for m in measurements:
+            self.correct(m)
+
     # hooks of the interface in time (estimators that take measurements at their own times)
 
     def _input_dimension(self) -> int:

@@ -334,6 +334,26 @@ class _VehicleBlock:
                 return
         super().correct_outputs(y)  # type: ignore[misc]
 
+    def correct_many(self, measurements) -> None:
+        """Ranges of one time (:meth:`~quadobs.estimators.kalman._GaussianFilter.correct_many`):
+        while the fix is pending they are kept for it together, as :meth:`correct_outputs` keeps
+        a grid step's, and, once it is made, corrected by jointly; until then nothing is corrected."""
+        measurements = list(measurements)
+        if self.fix_pending and len(measurements) > 1:
+            kept = []
+            for m in measurements:
+                self._check_measurement(m)  # type: ignore[attr-defined]
+                if m.kind != "range":
+                    break
+                kept.append(self._model_of(m).quadratic_output(m))
+            else:
+                for h, yh, _ in kept:
+                    self._latest[h] = yh
+                self._waited += len(kept)
+                if not self._try_fix():
+                    return
+        super().correct_many(measurements)  # type: ignore[misc]
+
     def _try_fix(self) -> bool:
         """The position from a multilateration once every anchor has a range, or, after two
         rounds' worth of ranges (an anchor silent), of those present; ``False`` while waiting.

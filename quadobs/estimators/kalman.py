@@ -288,6 +288,9 @@ class _GaussianFilter(HalfSteps, Gated):
     """Shared prediction, lazy covariance, missing outputs, NIS and gating (see the module docstring)."""
 
     name = "gaussian"
+    #: A start-up (:mod:`quadobs.estimators.startup`, :mod:`quadobs.estimators.bias_states`)
+    #: waiting for its fix: measurements of one time are then corrected one at a time.
+    fix_pending: bool = False
 
     def __init__(
         self,
@@ -379,15 +382,20 @@ class _GaussianFilter(HalfSteps, Gated):
         self._latest[idx] = y[idx]
         self._settle()
         R = self.outputs.R if isinstance(idx, slice) else self.outputs.R[np.ix_(idx, idx)]
-        z = self.outputs.measure(y[idx], idx)
+        self._correct_rows(y[idx], idx, R)
+
+    def _correct_rows(self, y: np.ndarray, idx, R: np.ndarray) -> None:
+        """Correct with the outputs ``idx`` (indices, or ``slice(None)``: all) of values ``y`` and
+        noise ``R``: one joint correction; under a robust rule with uncorrelated noise, one
+        scalar correction after the other (each output judged on its own, one degree of
+        freedom, as measurements at their own times are)."""
+        z = self.outputs.measure(y, idx)
         if (
             self.robust is not None
             and z.shape[0] > 1
             and np.count_nonzero(R - np.diag(np.diag(R))) == 0
         ):
-            # a robust rule judges each output on its own (one degree of freedom), as
-            # measurements at their own times are: one scalar correction after the other
-            rows = np.flatnonzero(present)
+            rows = np.arange(self.q)[idx]
             for i in range(rows.shape[0]):
                 self._update(z[i : i + 1], rows[i : i + 1], R[i : i + 1, i : i + 1])
             return
@@ -438,6 +446,49 @@ class _GaussianFilter(HalfSteps, Gated):
     def _update_model(self, m: Measurement, model: MeasurementModel, R: np.ndarray) -> None:
         """Update with one measurement through ``model.h`` on the position ``x[:d]``."""
         raise NotImplementedError  # pragma: no cover - interface
+
+    def correct_many(self, measurements) -> None:
+        """Ranges of the system's anchors taken at the current time, one per anchor: ONE joint
+        correction by the vector of them, the arithmetic of :meth:`correct_outputs` with those
+        outputs present (each range's variance ``m.std^2``, or ``R_hh`` when it states none, as in
+        :meth:`correct`). Anything else (another kind, two ranges of one anchor, a single
+        measurement), and any batch while a start-up waits for its fix (:attr:`fix_pending`),
+        one measurement after the other (:meth:`Estimator.correct_many`)."""
+        measurements = list(measurements)
+        joint = None if self.fix_pending else self._joint_outputs(measurements)
+        if joint is None:
+            super().correct_many(measurements)
+            return
+        idx, y, R = joint
+        self._latest[idx] = y
+        self._settle()
+        self._correct_rows(y, idx, R)
+
+    def _joint_outputs(self, measurements: list):
+        """``(idx, y, R)``: the anchors (ascending), quadratic outputs and noise of ranges one per
+        anchor, each checked as :meth:`correct` checks it; ``None`` when they are not such a batch."""
+        if len(measurements) < 2:
+            return None
+        rows = []
+        for m in measurements:
+            self._check_measurement(m)
+            model = self._model_of(m)
+            if model.kind != "range":
+                return None
+            h, yh, var = model.quadratic_output(m)
+            s2 = m.std**2 if self.outputs.space == "norm" else var
+            rows.append((h, yh, math.nan if math.isnan(m.std) else s2))
+        rows.sort(key=lambda r: r[0])
+        idx = np.array([r[0] for r in rows])
+        if np.any(np.diff(idx) == 0):
+            return None
+        R = self.outputs.R[np.ix_(idx, idx)].copy()
+        for k, (_, _, s2) in enumerate(rows):
+            if not math.isnan(s2):
+                R[k, :] = 0.0
+                R[:, k] = 0.0
+                R[k, k] = s2
+        return idx, np.array([r[1] for r in rows]), R
 
     # -- internals ---------------------------------------------------------------------
 

@@ -10,6 +10,14 @@ episode's loop as one that steps on the grid, each step ``[t_k, t_(k+1))`` consu
 events inside it and ending with a prediction to ``t_(k+1)``; the row the loop records
 at ``t_k`` is the estimate at ``t_k``.
 
+Measurements that share a timestamp exactly (a log that stamps a round of anchors with one
+time, as ``quadobs run --export-log`` of a scenario without a radio does) are one measurement
+vector, and the estimator takes them in one call,
+:meth:`~quadobs.estimators.base.Estimator.correct_many`: the Kalman filters correct by them
+jointly, as they correct by a grid step's outputs, rather than relinearising between them;
+measurements at distinct times stay one at a time. An input sampled at the same time is held
+first.
+
 Inputs held between samples (:func:`held_inputs`):
 
 * odometry: over ``[t_i, t_(i+1))`` the world-frame velocity and the yaw rate
@@ -178,9 +186,15 @@ class InTimeOnGrid(InnerClock):
                 i += 1
             else:
                 est.predict(tm)
-                est.correct(ev.measurements[j])
+                last = j + 1
+                while last < mt.size and mt[last] == tm:
+                    last += 1
+                if last == j + 1:
+                    est.correct(ev.measurements[j])
+                else:  # one time, one measurement vector (module docstring)
+                    est.correct_many(ev.measurements[j:last])
                 nis = est.nis
-                j += 1
+                j = last
         est.predict(t_next)
         self._i, self._j, self._k = i, j, k + 1
         self.nis = nis
