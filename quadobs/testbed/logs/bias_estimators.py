@@ -47,7 +47,7 @@ import numpy as np
 
 from quadobs.errors import QuadobsError
 
-__all__ = ["build_augmented_bias", "build_ekf_bias", "build_ukf_bias"]
+__all__ = ["build_augmented_bias", "build_ekf_bias", "build_ukf_bias", "range_rule"]
 
 
 def _gate_probability(gate: float | None) -> float:
@@ -57,11 +57,26 @@ def _gate_probability(gate: float | None) -> float:
     return math.erf(math.sqrt(float(gate) / 2.0))
 
 
+def range_rule(s):
+    """The robust rule of the replay's range-bias filters on the setup ``s``: none for a log
+    that states its ranges Gaussian (unless ``gate`` is asked for); an
+    :class:`~quadobs.estimators.robust.ExcessMixture` of the excess where the setup knows it
+    (``nlos_median``, ``nlos_shape``: stated by the log or estimated from it); else the
+    :class:`~quadobs.estimators.robust.SkewedGate`. Both at the probability of ``gate``."""
+    from quadobs.estimators.robust import ExcessMixture, SkewedGate
+
+    if s.gate is None and s.range_errors == "gaussian":
+        return None
+    probability = _gate_probability(s.gate)
+    if s.nlos_median is not None and s.nlos_shape is not None:
+        return ExcessMixture(s.nlos_median, s.nlos_shape, probability=probability)
+    return SkewedGate(probability)
+
+
 def _build(s, x0: np.ndarray, name: str, cls, process_noise: np.ndarray):
     from quadobs.core.measurements import RangeModel
     from quadobs.estimators.bias_states import BiasedRangeOutputModel, extended_system
     from quadobs.estimators.kalman import HeldInputModel
-    from quadobs.estimators.robust import SkewedGate
 
     if "tdoa" in s.kinds:
         raise QuadobsError(
@@ -83,12 +98,7 @@ def _build(s, x0: np.ndarray, name: str, cls, process_noise: np.ndarray):
     extra = RangeModel(s.beacons, s.range_sigma, bias="state").extra_states()
     P[n:, n:] = np.diag([e.prior_std**2 for e in extra])
     xe = np.concatenate([np.asarray(x0, dtype=float)[:n], np.zeros(q)])
-    rule = (
-        None
-        if s.gate is None and s.range_errors == "gaussian"
-        else SkewedGate(_gate_probability(s.gate))
-    )
-    est = cls(dynamics, outputs, x0=xe, P0=P, vehicle_n=n, robust=rule)
+    est = cls(dynamics, outputs, x0=xe, P0=P, vehicle_n=n, robust=range_rule(s))
     est.name = name
     return est
 

@@ -75,6 +75,12 @@ replay is given a clock offset or asked to search one (``--clock-offset``, not b
    filter may hold as states (an acceleration's bias): its biases take up those errors too,
    and a filter that holds them would start its states from the EKF's compromise.
 
+8. the ranges' non-line-of-sight excess, fitted to the chosen setting's residuals (a
+   Gaussian and a Gaussian shifted by a log-normal excess, :mod:`~quadobs.testbed.logs.excess_model`):
+   given to the range-bias filters (``nlos_median``, ``nlos_shape``: their
+   :class:`~quadobs.estimators.robust.ExcessMixture`) only where the residuals identify it,
+   else they keep the one-sided gate.
+
 Two scorers on an odometry log. The model ``odometry`` takes the dead-reckoned heading as
 right, so its ``q_xy`` must also carry the heading's drift (a yaw rate's bias: Plaza2's
 drifts at 0.005 rad/s): scored by the EKF of that model, Plaza2 picks ``q_xy = 16``. The
@@ -113,6 +119,7 @@ from quadobs.testbed.logs.estimators import (
     replay_setup,
 )
 from quadobs.testbed.logs.events import LogEvents
+from quadobs.testbed.logs.excess_model import calibrated_excess
 from quadobs.testbed.worlds.replay import ReplayWorld, default_model, state_size
 
 __all__ = [
@@ -563,6 +570,9 @@ class Calibration:
         (:func:`estimator_biases`): ``{name: {"biases": "calibrated" or "as logged", **test}}``,
         ``test`` the paired test of the calibrated biases against the ranges as logged, scored
         by that estimator (:meth:`Comparison.as_dict`).
+    excess : dict
+        The non-line-of-sight excess fitted to the chosen replay's residuals (step 8,
+        :func:`~quadobs.testbed.logs.excess_model.calibrated_excess`): ``chosen`` and the fit.
     """
 
     biases: np.ndarray | None
@@ -574,6 +584,7 @@ class Calibration:
     tests: dict = field(default_factory=dict)
     more_scores: dict = field(default_factory=dict)
     per_estimator: dict = field(default_factory=dict)
+    excess: dict = field(default_factory=dict)
 
     @property
     def as_logged(self) -> tuple[str, ...]:
@@ -598,6 +609,7 @@ class Calibration:
                 for key, sc in self.more_scores.items()
             },
             **({"per_estimator": self.per_estimator} if self.per_estimator else {}),
+            **({"excess": self.excess} if self.excess else {}),
         }
 
 
@@ -698,7 +710,9 @@ def calibrate(
         log, biases, dt=dt, model=model, setup_options=options, keys=heading
     )
     tests.update(heading_tests)
-    return Calibration(biases, options, scores, reason + why, cand, held, tests, more)
+    excess, excess_why = calibrated_excess(log, chosen_res, options)  # step 8
+    reason += f"{why}; non-line-of-sight excess {excess_why}"
+    return Calibration(biases, options, scores, reason, cand, held, tests, more, excess=excess)
 
 
 def bias_prior_std(log) -> np.ndarray:
