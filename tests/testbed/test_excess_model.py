@@ -76,3 +76,20 @@ def test_the_replays_range_rule_follows_what_the_setup_knows():
     assert isinstance(rule, ExcessMixture)
     assert (rule.median, rule.shape) == (0.4, 0.7)
     assert rule.probability == pytest.approx(0.999, abs=1e-5)
+
+
+def test_the_calibration_step_gives_the_filters_an_identified_excess():
+    """A log whose ranges state their noise and whose residuals show an excess: the step sets
+    ``nlos_median`` and ``nlos_shape`` for the range-bias filters and says so; options that
+    already state them are left as they are."""
+    r, h = _residuals(1000, 3)
+    log = SimpleNamespace(
+        range_errors="", beacons=np.zeros((Q, 3)), range_std=np.full(r.size, SIGMA)
+    )
+    options = {}
+    summary, why = calibrated_excess(log, SimpleNamespace(r=r, h=h), options)
+    assert summary["chosen"] and why.startswith("estimated")
+    assert options == {"nlos_median": summary["median"], "nlos_shape": summary["shape"]}
+    stated = {"nlos_median": 0.3, "nlos_shape": 0.6}
+    assert calibrated_excess(log, SimpleNamespace(r=r, h=h), stated)[1] == "as given"
+    assert stated == {"nlos_median": 0.3, "nlos_shape": 0.6}

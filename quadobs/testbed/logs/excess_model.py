@@ -234,7 +234,7 @@ def calibrated_excess(log, residuals, options: dict) -> tuple[dict, str]:
     if "nlos_median" in options or "nlos_shape" in options:
         return {"chosen": False}, "as given"
     fit, ok, why = excess_model(residuals.r, residuals.h, log.beacons.shape[0], known_noise(log))
-    if ok:
+    if ok and fit is not None:
         options["nlos_median"], options["nlos_shape"] = fit.median, fit.shape
     summary = {"chosen": ok, **({} if fit is None else fit.summary())}
     return summary, why
