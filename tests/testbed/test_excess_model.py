@@ -61,8 +61,9 @@ def test_without_the_ranges_noise_nothing_is_fitted():
 
 
 def test_the_replays_range_rule_follows_what_the_setup_knows():
-    """``ekf-bias``'s rule: none for ranges stated Gaussian, the excess's mixture where the setup
-    knows it (at the probability of ``gate``), else the one-sided gate."""
+    """The range-bias filters' rule: none for ranges stated Gaussian, the excess's mixture where
+    the setup knows it (at the probability of ``gate``; ``ekf-bias-imu``), else the one-sided
+    gate (and always for ``ekf-bias`` and ``ukf-bias``)."""
     from quadobs.estimators.robust import ExcessMixture, SkewedGate
     from quadobs.testbed.logs.bias_estimators import range_rule
 
@@ -76,6 +77,8 @@ def test_the_replays_range_rule_follows_what_the_setup_knows():
     assert isinstance(rule, ExcessMixture)
     assert (rule.median, rule.shape) == (0.4, 0.7)
     assert rule.probability == pytest.approx(0.999, abs=1e-5)
+    known = setup(nlos_median=0.4, nlos_shape=0.7)
+    assert isinstance(range_rule(known, excess=False), SkewedGate)  # ekf-bias, ukf-bias
 
 
 def test_the_calibration_step_gives_the_filters_an_identified_excess():

@@ -68,6 +68,7 @@ import numpy as np
 from scipy import stats
 
 __all__ = [
+    "EXCESS_KEYS",
     "GRID",
     "ITERATIONS",
     "MIN_TAIL",
@@ -80,6 +81,8 @@ __all__ = [
     "known_noise",
 ]
 
+#: The setup options that state the excess (:class:`~quadobs.testbed.logs.estimators.ReplaySetup`).
+EXCESS_KEYS = ("nlos_median", "nlos_shape")
 #: The log-excess grid ``u_k = log e_k`` (e from 1 cm to 100 m, 0.08 apart in ``log e``: a
 #: tenth of the smallest shape a radio is likely to state).
 GRID = np.linspace(math.log(1e-2), math.log(1e2), 120)
@@ -231,7 +234,7 @@ def calibrated_excess(log, residuals, options: dict) -> tuple[dict, str]:
     excess, is left as it is."""
     if getattr(log, "range_errors", "") == "gaussian":
         return {"chosen": False}, "not estimated: the log states its ranges Gaussian"
-    if "nlos_median" in options or "nlos_shape" in options:
+    if any(k in options for k in EXCESS_KEYS):
         return {"chosen": False}, "as given"
     fit, ok, why = excess_model(residuals.r, residuals.h, log.beacons.shape[0], known_noise(log))
     if ok and fit is not None:
