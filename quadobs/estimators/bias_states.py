@@ -222,6 +222,7 @@ class _VehicleBlock:
     corrections: int
     rejected: int
     robust: object
+    gate: float | None
     lockout: LockOut
     outputs: OutputModel
     if TYPE_CHECKING:
