@@ -46,7 +46,7 @@ excess only above. The excess is taken (:func:`excess_model`) only where
 
 * the ranges' line-of-sight noise is known (stated by ``ranges.csv`` or estimated from the
   ranges, :mod:`~quadobs.testbed.logs.range_noise`): where the ranges do not show their own
-  noise (a log whose ranges come seconds apart, Plaza's), the residuals are the prediction's
+  noise (a log whose ranges to one anchor come half a second to a second apart, Plaza's), the residuals are the prediction's
   error more than the radio's, and the gate stays;
 * the residuals beyond ``TAIL sigma`` above the centre outnumber those below it beyond chance:
   the one-sided binomial test of ``U`` above among ``U + L`` at the level
