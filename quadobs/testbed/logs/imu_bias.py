@@ -112,9 +112,10 @@ def build_ekf_bias_imu(
 
     The vehicle's process noise is the replay EKF's (``q_imu`` on the velocity), ``c`` has the
     prior ``bias_std^2`` per axis and the walk of :func:`acceleration_bias_walk`, each
-    anchor's bias the range model's prior (0.5 m); the rule is ``ekf-bias``'s
-    (:func:`~quadobs.testbed.logs.bias_estimators.range_rule`), the one-sided gate in place of
-    none.
+    anchor's bias the range model's prior (0.5 m); the rule
+    :func:`~quadobs.testbed.logs.bias_estimators.range_rule`'s: the excess's mixture where the
+    self-calibration estimated the excess, else ``ekf-bias``'s one-sided gate (also on a log
+    that states its ranges Gaussian, where ``ekf-bias`` takes none).
     """
     from quadobs.core.measurements import RangeModel
     from quadobs.estimators.bias_states import BiasedRangeOutputModel, extended_system
