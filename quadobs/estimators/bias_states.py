@@ -223,6 +223,7 @@ class _VehicleBlock:
     corrections: int
     rejected: int
     robust: object
+    gate: float | None
     lockout: LockOut
     outputs: OutputModel
     if TYPE_CHECKING:
@@ -267,7 +268,9 @@ class _VehicleBlock:
         ``K = cross S^-1`` (as the bias rows are shaped), and ``(S, R)`` grown by
         ``Var[e | nu]`` for the covariance (the exact collapse of the Gaussian sum); the NIS
         is that of the corrected innovation. The range's prior probability of a blocked path
-        comes from :attr:`sight_model` (the module docstring). Any other rule: the filter's own."""
+        comes from :attr:`sight_model` (the module docstring). The filter's ``gate``, where it
+        has one, judges that NIS as it judges any correction's: a range beyond it is rejected
+        and leaves the state of sight as it was. Any other rule: the filter's own."""
         rule, h = self.robust, self._anchor
         if not isinstance(rule, ExcessMixture) or h < 0 or nu.shape[0] != 1:
             return super()._gain(nu, S, R, cross)  # type: ignore[misc]
@@ -281,6 +284,9 @@ class _VehicleBlock:
         else:
             nlos = self.sight.predict(h, self._time)
         post = rule.posterior(float(nu[0]), float(S[0, 0]), nlos)
+        if post is not None and self.gate is not None:  # the filter's own gate on the NIS
+            if (nu[0] - post[0]) ** 2 / (S[0, 0] + post[1]) > self.gate:
+                post = None
         if post is None:
             self.nis, self.nis_dof = float(nu[0] ** 2 / S[0, 0]), 1
             self.rejected += 1

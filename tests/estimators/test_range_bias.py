@@ -262,3 +262,29 @@ def test_a_hovering_vehicles_position_is_bounded_by_the_biases_prior():
         traces[label] = np.trace(est.x_covariance[:3, :3])
     assert traces["at truth"] == pytest.approx(np.trace(closed), rel=0.05)
     assert traces["ekf"] < 0.85 * np.trace(closed), traces
+
+
+def test_the_excess_mixture_keeps_the_filters_gate():
+    """A filter given both a ``gate`` (a NIS threshold) and an
+    :class:`~quadobs.estimators.robust.ExcessMixture` rejects a range whose NIS, its innovation
+    corrected by the expected excess, exceeds the gate: a range 0.25 m short of line of sight
+    with 0.1 m noise (the position and the bias known to 0.01 m) passes the mixture's own bounds
+    (3.29 standard deviations) but not a gate of 1; without the gate it is taken."""
+    from quadobs.estimators.bias_states import BiasedExtendedKalmanFilter
+    from quadobs.estimators.robust import ExcessMixture
+
+    system = vehicle_system(3, ANCHORS)
+    model = RangeModel(ANCHORS, 0.1, bias="state")
+    dyn, out, P0 = biased_models(system, 0.01, 0.1, 0.02, 1e-4 * np.eye(6), model, bias_std=0.01)
+    p = np.array([0.3, -0.2, 1.6])
+    x0 = np.r_[p, np.zeros(3), np.zeros(8)]
+    rho = np.linalg.norm(ANCHORS[0] - p) - 0.25
+    taken = {}
+    for gate in (None, 1.0):
+        est = BiasedExtendedKalmanFilter(
+            dyn, out, x0=x0, P0=P0, vehicle_n=6, robust=ExcessMixture(0.3, 0.6), gate=gate
+        )
+        est.correct(Measurement(0.0, "range", rho, (0,), 0.1))
+        taken[gate] = (est.corrections, est.rejected, est.nis)
+    assert taken[None][:2] == (1, 0)
+    assert taken[1.0][:2] == (0, 1) and taken[1.0][2] > 1.0

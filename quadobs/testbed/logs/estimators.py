@@ -186,6 +186,12 @@ class ReplaySetup:
         Where a body-IMU log has no ``attitude.csv``: the initial alignment's quaternion (the
         tilt from the first half second's median specific force, heading zero;
         :func:`~quadobs.testbed.attitude.initial_alignment`), else None.
+    nlos_median, nlos_shape : float or None
+        The log-normal non-line-of-sight excess of the ranges (median, m; shape), stated by the
+        log (``meta.csv``) or estimated from it
+        (:func:`~quadobs.testbed.logs.excess_model.excess_model`); None: unknown (the
+        bias-state filters then take the one-sided gate,
+        :func:`~quadobs.testbed.logs.bias_estimators.range_rule`).
     q_xy_heading : float
         The white noise on the position of the heading filters (m^2/s per axis;
         :func:`build_ekf_heading`): the speed's noise alone, where ``q_xy`` of the model
@@ -217,6 +223,8 @@ class ReplaySetup:
     range_std_stated: float | None = None
     q_xy_heading: float = 1.0
     alignment0: np.ndarray | None = None
+    nlos_median: float | None = None
+    nlos_shape: float | None = None
     system: QuadraticSystem = field(init=False, repr=False)
 
     def __post_init__(self) -> None:

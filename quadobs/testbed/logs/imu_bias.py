@@ -112,14 +112,16 @@ def build_ekf_bias_imu(
 
     The vehicle's process noise is the replay EKF's (``q_imu`` on the velocity), ``c`` has the
     prior ``bias_std^2`` per axis and the walk of :func:`acceleration_bias_walk`, each
-    anchor's bias the range model's prior (0.5 m); the gate is ``ekf-bias``'s
-    (:mod:`quadobs.testbed.logs.bias_estimators`).
+    anchor's bias the range model's prior (0.5 m); the rule
+    :func:`~quadobs.testbed.logs.bias_estimators.range_rule`'s: the excess's mixture where the
+    self-calibration estimated the excess, else ``ekf-bias``'s one-sided gate (also on a log
+    that states its ranges Gaussian, where ``ekf-bias`` takes none).
     """
     from quadobs.core.measurements import RangeModel
     from quadobs.estimators.bias_states import BiasedRangeOutputModel, extended_system
     from quadobs.estimators.kalman import HeldInputModel
-    from quadobs.estimators.robust import SkewedGate
-    from quadobs.testbed.logs.bias_estimators import _gate_probability
+    from quadobs.estimators.robust import ExcessMixture, SkewedGate
+    from quadobs.testbed.logs.bias_estimators import _gate_probability, range_rule
 
     if s.input_kind != "imu_body" or s.dim != 3:
         raise QuadobsError(
@@ -147,6 +149,9 @@ def build_ekf_bias_imu(
     P = np.diag(prior + [e.prior_std**2 for e in extra])
     xe = np.zeros(n + q)
     xe[: 2 * dim] = np.asarray(x0, dtype=float)[: 2 * dim]
+    rule = range_rule(s)  # the excess's mixture where it is known, else the one-sided gate
+    if not isinstance(rule, ExcessMixture):
+        rule = SkewedGate(_gate_probability(s.gate))
     est = AccelerationBiasEKF(
         dynamics,
         outputs,
@@ -154,7 +159,7 @@ def build_ekf_bias_imu(
         P0=P,
         vehicle_n=n,
         dim=dim,
-        robust=SkewedGate(_gate_probability(s.gate)),
+        robust=rule,
     )
     est.name = name
     return est
