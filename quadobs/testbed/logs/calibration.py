@@ -74,6 +74,10 @@ replay is given a clock offset or asked to search one (``--clock-offset``, not b
    fitted and tested through the EKF, which holds neither the range biases nor what else a
    filter may hold as states (an acceleration's bias): its biases take up those errors too,
    and a filter that holds them would start its states from the EKF's compromise.
+   The filters that hold each anchor's height beside its bias (``ekf-height``, ``ukf-height``,
+   ``ukf-height-lever``) take the ranges as logged unless their own prior of bias and height
+   excludes the biases (:func:`~quadobs.testbed.logs.height_estimators.offsets_keep_calibrated`):
+   the EKF's biases hold the heights' share too, which they would count twice.
 
 Two scorers on an odometry log. The model ``odometry`` takes the dead-reckoned heading as
 right, so its ``q_xy`` must also carry the heading's drift (a yaw rate's bias: Plaza2's
@@ -743,6 +747,9 @@ def estimator_biases(
     filter: a position offset against a pattern of biases predicts the ranges almost as well
     from either start.
 
+    A filter that holds each anchor's height beside its bias (``ekf-height``,
+    ``ukf-height-lever``) is decided by its prior alone (:func:`_offsets_biases`).
+
     Records each choice in ``cal.per_estimator`` and ``cal.reason``; returns the names that take
     the ranges as logged (:attr:`Calibration.as_logged`). Nothing to check where no biases were
     applied.
@@ -753,9 +760,10 @@ def estimator_biases(
     zero = np.zeros(log.beacons.shape[0])
     chi2, limit = outside_prior(cal.biases, bias_prior_std(log))
     for name in names:
-        if not holds_range_biases(
-            _scoring_estimator(log, dt, model, zero, name, cal.options, None)[1]
-        ):
+        est = _scoring_estimator(log, dt, model, zero, name, cal.options, None)[1]
+        if _offsets_biases(log, cal, name, est):
+            continue
+        if not holds_range_biases(est):
             continue
         logged = _replay(log, dt, model, None, name, cal.options)
         test = compare(_replay(log, dt, model, cal.biases, name, cal.options), logged)
@@ -775,6 +783,33 @@ def estimator_biases(
             f" {'' if test.better else 'not '}significantly better"
         )
     return cal.as_logged
+
+
+def _offsets_biases(log, cal: Calibration, name: str, est) -> bool:
+    """Step 7 for a filter that holds the anchors' heights beside their biases: the calibrated
+    biases kept only where its own prior excludes them
+    (:func:`~quadobs.testbed.logs.height_estimators.offsets_keep_calibrated`); recorded as
+    :func:`estimator_biases` records its choices. ``False`` for any other estimator."""
+    from quadobs.testbed.logs.height_estimators import (
+        holds_anchor_offsets,
+        offsets_keep_calibrated,
+    )
+
+    if not holds_anchor_offsets(est):
+        return False
+    kept, chi2, limit = offsets_keep_calibrated(log, cal.biases, bias_prior_std(log))
+    cal.per_estimator[name] = {
+        "biases": "calibrated" if kept else "as logged",
+        "prior_chi2": chi2,
+        "prior_limit": limit,
+    }
+    what = "the calibrated biases subtracted" if kept else "the ranges as logged"
+    cal.reason += (
+        f"; {name} (range biases and heights as states): {what}; the biases less the heights'"
+        f" apparent bias, chi-square under its prior {chi2:.1f}"
+        f" ({'above' if chi2 > limit else 'within'} {limit:.1f})"
+    )
+    return True
 
 
 def _fitted_keys(log, model: str, noise) -> tuple[str, ...]:

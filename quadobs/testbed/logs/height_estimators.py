@@ -34,11 +34,14 @@ __all__ = [
     "E_MEAN",
     "E_STD",
     "STOREY",
+    "apparent_bias_prior",
     "build_augmented_height",
     "build_ekf_height",
     "build_ukf_height",
     "heading_height_options",
+    "holds_anchor_offsets",
     "huber_rule",
+    "offsets_keep_calibrated",
 ]
 
 #: The height of one storey (m): the largest height of an indoor anchor above a ground tag.
@@ -181,3 +184,68 @@ def huber_rule(gate: float | None):
     from quadobs.testbed.logs.bias_estimators import _gate_probability
 
     return Huber(math.sqrt(chi2_threshold(_gate_probability(gate), 1)))
+
+
+def holds_anchor_offsets(est) -> bool:
+    """Whether ``est`` holds each anchor's range bias and squared-range offset as states (the
+    range ``sqrt(|q - a_h|^2 + 2 e_h) + b_h``): ``ekf-height``, ``ukf-height`` and
+    ``ukf-height-lever``."""
+    from quadobs.estimators.heading_ekf import HeadingEKF, HeadingUKF
+    from quadobs.estimators.height_states import (
+        HeightBiasedExtendedKalmanFilter,
+        HeightBiasedUnscentedKalmanFilter,
+    )
+
+    if isinstance(est, (HeightBiasedExtendedKalmanFilter, HeightBiasedUnscentedKalmanFilter)):
+        return True
+    if isinstance(est, (HeadingEKF, HeadingUKF)):
+        return est._ib >= 0 and est._ie >= 0
+    return False
+
+
+def apparent_bias_prior(log) -> tuple[np.ndarray, np.ndarray]:
+    """The constant bias ``(mean, std)`` (m, per anchor) that the offsets' prior gives a range
+    read by a model without heights, as the self-calibration's EKF reads it.
+
+    At the anchor's typical range ``r_h`` (the median of its logged ranges) the offset ``e_h``
+    adds ``g_h = sqrt(r_h^2 + 2 e_h) - r_h`` to the planar distance; at the prior mean
+    :data:`E_MEAN`, to first order in ``e_h`` about it,
+
+    .. math::
+
+        \\bar g_h = \\sqrt{r_h^2 + 2 \\bar e} - r_h, \\qquad
+        \\sigma_{g,h} = \\frac{\\sigma_e}{\\sqrt{r_h^2 + 2 \\bar e}} ,
+
+    ``sigma_e`` = :data:`E_STD`. In a room (``r_h`` about 1.5 m) that is 0.79 +- 0.58 m; on a
+    field of tens of metres, centimetres."""
+    from quadobs.testbed.logs.schema import RANGE
+
+    anchor = log.beacon_index(log.ranges[:, RANGE.beacon])
+    r = np.zeros(log.beacons.shape[0])
+    for h in range(r.size):
+        rows = log.ranges[anchor == h, RANGE.range]
+        r[h] = float(np.median(rows)) if rows.size else 0.0  # none: the height's whole share
+    s = np.sqrt(r * r + 2.0 * E_MEAN)
+    return s - r, E_STD / s
+
+
+def offsets_keep_calibrated(log, biases, bias_std) -> tuple[bool, float, float]:
+    """``(kept, chi2, limit)``: whether a filter holding the anchors' biases and offsets as
+    states (:func:`holds_anchor_offsets`) takes the ranges with the calibrated ``biases``
+    subtracted.
+
+    The self-calibration fits constant biases with a model that has no heights, so each holds
+    the anchor's bias and the apparent bias of its height (:func:`apparent_bias_prior`), which
+    such a filter holds as its offset state, started at :data:`E_MEAN`: subtracting them counts
+    the height twice. Under the filter's own prior (the bias ``N(0, bias_std^2)``, the offset's
+    apparent bias beside it) a calibrated bias is ``N(g_h, bias_std^2 + sigma_g^2)``; the
+    biases are kept only where that prior all but excludes them, ``chi2 = sum_h (c_h -
+    g_h)^2 / (bias_std^2 + sigma_g^2)`` beyond ``limit``, the quantile of
+    :func:`~quadobs.testbed.logs.calibration.outside_prior` (the Plaza field's biases of metres
+    at ranges of tens of metres); else the filter finds them from the ranges as logged."""
+    from quadobs.testbed.logs.calibration import outside_prior
+
+    mean, std = apparent_bias_prior(log)
+    total = np.sqrt(np.square(np.asarray(bias_std, dtype=float)) + std * std)
+    chi2, limit = outside_prior(np.asarray(biases, dtype=float) - mean, total)
+    return chi2 > limit, chi2, limit
