@@ -76,8 +76,8 @@ replay is given a clock offset or asked to search one (``--clock-offset``, not b
    and a filter that holds them would start its states from the EKF's compromise.
    The filters that hold each anchor's height beside its bias (``ekf-height``, ``ukf-height``,
    ``ukf-height-lever``) take the ranges as logged unless their own prior of bias and height
-   excludes the biases (:func:`~quadobs.testbed.logs.height_estimators.offsets_keep_calibrated`):
-   the EKF's biases hold the heights' share too, which they would count twice.
+   excludes the biases (:func:`_offsets_biases`): the EKF's biases hold the heights' share
+   too, which they would count twice.
 
 Two scorers on an odometry log. The model ``odometry`` takes the dead-reckoned heading as
 right, so its ``q_xy`` must also carry the heading's drift (a yaw rate's bias: Plaza2's
@@ -786,18 +786,27 @@ def estimator_biases(
 
 
 def _offsets_biases(log, cal: Calibration, name: str, est) -> bool:
-    """Step 7 for a filter that holds the anchors' heights beside their biases: the calibrated
-    biases kept only where its own prior excludes them
-    (:func:`~quadobs.testbed.logs.height_estimators.offsets_keep_calibrated`); recorded as
-    :func:`estimator_biases` records its choices. ``False`` for any other estimator."""
-    from quadobs.testbed.logs.height_estimators import (
-        holds_anchor_offsets,
-        offsets_keep_calibrated,
-    )
+    """Step 7 for a filter that holds each anchor's height beside its bias
+    (:func:`~quadobs.testbed.logs.height_estimators.holds_anchor_offsets`); ``False`` for any
+    other estimator.
+
+    The biases fitted here by a model without heights hold each anchor's bias and the apparent
+    bias of its height (:func:`~quadobs.testbed.logs.height_estimators.apparent_bias_prior`,
+    ``g_h +- sigma_g,h``), which such a filter holds as its offset state, started at its prior
+    mean: subtracting them counts the height twice. Under the filter's own prior (the bias
+    ``N(0, sigma_b^2)``, the height's share beside it) a calibrated bias is ``N(g_h, sigma_b^2 +
+    sigma_g,h^2)``; the biases are kept only where that prior all but excludes them
+    (:func:`outside_prior` of ``c - g``: the Plaza field's biases of metres, where ``g`` is
+    centimetres), else the filter takes the ranges as logged and finds them itself. Recorded as
+    :func:`estimator_biases` records its choices."""
+    from quadobs.testbed.logs.height_estimators import apparent_bias_prior, holds_anchor_offsets
 
     if not holds_anchor_offsets(est):
         return False
-    kept, chi2, limit = offsets_keep_calibrated(log, cal.biases, bias_prior_std(log))
+    mean, std = apparent_bias_prior(log)
+    spread = np.sqrt(np.square(bias_prior_std(log)) + std * std)
+    chi2, limit = outside_prior(np.asarray(cal.biases, dtype=float) - mean, spread)
+    kept = chi2 > limit
     cal.per_estimator[name] = {
         "biases": "calibrated" if kept else "as logged",
         "prior_chi2": chi2,
@@ -807,7 +816,7 @@ def _offsets_biases(log, cal: Calibration, name: str, est) -> bool:
     cal.reason += (
         f"; {name} (range biases and heights as states): {what}; the biases less the heights'"
         f" apparent bias, chi-square under its prior {chi2:.1f}"
-        f" ({'above' if chi2 > limit else 'within'} {limit:.1f})"
+        f" ({'above' if kept else 'within'} {limit:.1f})"
     )
     return True
 

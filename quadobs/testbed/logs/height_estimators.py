@@ -41,7 +41,6 @@ __all__ = [
     "heading_height_options",
     "holds_anchor_offsets",
     "huber_rule",
-    "offsets_keep_calibrated",
 ]
 
 #: The height of one storey (m): the largest height of an indoor anchor above a ground tag.
@@ -217,7 +216,9 @@ def apparent_bias_prior(log) -> tuple[np.ndarray, np.ndarray]:
         \\sigma_{g,h} = \\frac{\\sigma_e}{\\sqrt{r_h^2 + 2 \\bar e}} ,
 
     ``sigma_e`` = :data:`E_STD`. In a room (``r_h`` about 1.5 m) that is 0.79 +- 0.58 m; on a
-    field of tens of metres, centimetres."""
+    field of tens of metres, centimetres. The self-calibration checks its biases against it
+    for the filters that hold the offsets (:func:`holds_anchor_offsets`;
+    :mod:`quadobs.testbed.logs.calibration`, step 7)."""
     from quadobs.testbed.logs.schema import RANGE
 
     anchor = log.beacon_index(log.ranges[:, RANGE.beacon])
@@ -227,25 +228,3 @@ def apparent_bias_prior(log) -> tuple[np.ndarray, np.ndarray]:
         r[h] = float(np.median(rows)) if rows.size else 0.0  # none: the height's whole share
     s = np.sqrt(r * r + 2.0 * E_MEAN)
     return s - r, E_STD / s
-
-
-def offsets_keep_calibrated(log, biases, bias_std) -> tuple[bool, float, float]:
-    """``(kept, chi2, limit)``: whether a filter holding the anchors' biases and offsets as
-    states (:func:`holds_anchor_offsets`) takes the ranges with the calibrated ``biases``
-    subtracted.
-
-    The self-calibration fits constant biases with a model that has no heights, so each holds
-    the anchor's bias and the apparent bias of its height (:func:`apparent_bias_prior`), which
-    such a filter holds as its offset state, started at :data:`E_MEAN`: subtracting them counts
-    the height twice. Under the filter's own prior (the bias ``N(0, bias_std^2)``, the offset's
-    apparent bias beside it) a calibrated bias is ``N(g_h, bias_std^2 + sigma_g^2)``; the
-    biases are kept only where that prior all but excludes them, ``chi2 = sum_h (c_h -
-    g_h)^2 / (bias_std^2 + sigma_g^2)`` beyond ``limit``, the quantile of
-    :func:`~quadobs.testbed.logs.calibration.outside_prior` (the Plaza field's biases of metres
-    at ranges of tens of metres); else the filter finds them from the ranges as logged."""
-    from quadobs.testbed.logs.calibration import outside_prior
-
-    mean, std = apparent_bias_prior(log)
-    total = np.sqrt(np.square(np.asarray(bias_std, dtype=float)) + std * std)
-    chi2, limit = outside_prior(np.asarray(biases, dtype=float) - mean, total)
-    return chi2 > limit, chi2, limit
