@@ -223,11 +223,12 @@ def test_the_heights_apparent_bias_is_the_closed_form_at_each_anchors_median_ran
     assert mean[3] == pytest.approx(math.sqrt(2 * E_MEAN)) and mean[2] < 0.08
 
 
-def test_the_height_filters_take_the_ranges_as_logged_unless_their_prior_excludes_the_biases():
+def test_the_height_lever_filter_takes_the_ranges_as_logged_unless_its_prior_excludes_the_biases():
     """Biases calibrated without heights in a room (each anchor's bias and its height's share)
-    lie within the prior of a filter that holds both: ``ekf-height`` and ``ukf-height-lever``
-    take the ranges as logged; biases of metres at a room's ranges lie outside it and are
-    subtracted. A filter without bias states is not checked; the chi-square is the closed form."""
+    lie within the prior of the heading filter that holds both: ``ukf-height-lever`` takes the
+    ranges as logged; biases of metres at a room's ranges lie outside it and are subtracted.
+    ``ekf-height`` (the heading taken as known) and a filter without bias states are not
+    checked; the chi-square is the closed form."""
     from quadobs.testbed.logs.calibration import Calibration, estimator_biases
     from quadobs.testbed.logs.height_estimators import apparent_bias_prior
     from quadobs.testbed.logs.posed import posed_log
@@ -238,8 +239,8 @@ def test_the_height_filters_take_the_ranges_as_logged_unless_their_prior_exclude
     for biases, kept in ((0.1 + mean, False), (np.full(4, 3.0), True)):
         cal = Calibration(biases, {}, {}, "", biases)
         logged = estimator_biases(log, cal, names)
-        assert list(cal.per_estimator) == ["ekf-height", "ukf-height-lever"], cal.per_estimator
-        assert logged == (() if kept else ("ekf-height", "ukf-height-lever"))
+        assert list(cal.per_estimator) == ["ukf-height-lever"], cal.per_estimator
+        assert logged == (() if kept else ("ukf-height-lever",))
         chi2 = np.sum((biases - mean) ** 2 / (0.25 + std**2))
         record = cal.per_estimator["ukf-height-lever"]
         assert record["prior_chi2"] == pytest.approx(chi2, rel=1e-12)

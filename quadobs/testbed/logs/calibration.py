@@ -74,10 +74,10 @@ replay is given a clock offset or asked to search one (``--clock-offset``, not b
    fitted and tested through the EKF, which holds neither the range biases nor what else a
    filter may hold as states (an acceleration's bias): its biases take up those errors too,
    and a filter that holds them would start its states from the EKF's compromise.
-   The filters that hold each anchor's height beside its bias (``ekf-height``, ``ukf-height``,
-   ``ukf-height-lever``) take the ranges as logged unless their own prior of bias and height
-   excludes the biases (:func:`_offsets_biases`): the EKF's biases hold the heights' share
-   too, which they would count twice.
+   The heading filter that holds each anchor's height beside its bias (``ukf-height-lever``)
+   takes the ranges as logged unless its own prior of bias and height excludes the biases
+   (:func:`_offsets_biases`): the EKF's biases hold the heights' share too, which it would
+   count twice.
 
 Two scorers on an odometry log. The model ``odometry`` takes the dead-reckoned heading as
 right, so its ``q_xy`` must also carry the heading's drift (a yaw rate's bias: Plaza2's
@@ -747,8 +747,8 @@ def estimator_biases(
     filter: a position offset against a pattern of biases predicts the ranges almost as well
     from either start.
 
-    A filter that holds each anchor's height beside its bias (``ekf-height``,
-    ``ukf-height-lever``) is decided by its prior alone (:func:`_offsets_biases`).
+    The heading filter that holds each anchor's height beside its bias (``ukf-height-lever``)
+    is decided by its prior alone (:func:`_offsets_biases`).
 
     Records each choice in ``cal.per_estimator`` and ``cal.reason``; returns the names that take
     the ranges as logged (:attr:`Calibration.as_logged`). Nothing to check where no biases were
@@ -786,7 +786,7 @@ def estimator_biases(
 
 
 def _offsets_biases(log, cal: Calibration, name: str, est) -> bool:
-    """Step 7 for a filter that holds each anchor's height beside its bias
+    """Step 7 for the heading filter that holds each anchor's height beside its bias
     (:func:`~quadobs.testbed.logs.height_estimators.holds_anchor_offsets`); ``False`` for any
     other estimator.
 

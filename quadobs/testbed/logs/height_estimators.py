@@ -186,20 +186,18 @@ def huber_rule(gate: float | None):
 
 
 def holds_anchor_offsets(est) -> bool:
-    """Whether ``est`` holds each anchor's range bias and squared-range offset as states (the
-    range ``sqrt(|q - a_h|^2 + 2 e_h) + b_h``): ``ekf-height``, ``ukf-height`` and
-    ``ukf-height-lever``."""
-    from quadobs.estimators.heading_ekf import HeadingEKF, HeadingUKF
-    from quadobs.estimators.height_states import (
-        HeightBiasedExtendedKalmanFilter,
-        HeightBiasedUnscentedKalmanFilter,
-    )
+    """Whether ``est`` is a heading filter that holds each anchor's range bias and squared-range
+    offset as states (``ukf-height-lever``: the range ``sqrt(|q - a_h|^2 + 2 e_h) + b_h``, the
+    heading and the lever arm beside them): a filter that models every error the
+    self-calibration's constant biases take up (the heights, the tag's offset, the heading's
+    drift).
 
-    if isinstance(est, (HeightBiasedExtendedKalmanFilter, HeightBiasedUnscentedKalmanFilter)):
-        return True
-    if isinstance(est, (HeadingEKF, HeadingUKF)):
-        return est._ib >= 0 and est._ie >= 0
-    return False
+    Not ``ekf-height``: it takes the dead-reckoned heading as known, as the calibration's EKF
+    does, so the calibrated biases also take up the heading's drift, which it does not model;
+    taking the ranges as logged was measured no better for it (docs/error-sources.md)."""
+    from quadobs.estimators.heading_ekf import HeadingEKF, HeadingUKF
+
+    return isinstance(est, (HeadingEKF, HeadingUKF)) and est._ib >= 0 and est._ie >= 0
 
 
 def apparent_bias_prior(log) -> tuple[np.ndarray, np.ndarray]:
@@ -217,7 +215,7 @@ def apparent_bias_prior(log) -> tuple[np.ndarray, np.ndarray]:
 
     ``sigma_e`` = :data:`E_STD`. In a room (``r_h`` about 1.5 m) that is 0.79 +- 0.58 m; on a
     field of tens of metres, centimetres. The self-calibration checks its biases against it
-    for the filters that hold the offsets (:func:`holds_anchor_offsets`;
+    for the heading filter that holds the offsets (:func:`holds_anchor_offsets`;
     :mod:`quadobs.testbed.logs.calibration`, step 7)."""
     from quadobs.testbed.logs.schema import RANGE
 
