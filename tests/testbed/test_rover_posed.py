@@ -200,3 +200,50 @@ def test_the_height_filters_refuse_what_they_cannot_take_by_name():
         QuadobsError, match="'augmented-height' takes the ranges of a planar odometry"
     ):
         run_replay(_planar_log(), estimators=["augmented-height"], model="cv", batch=False)
+
+
+def test_the_heights_apparent_bias_is_the_closed_form_at_each_anchors_median_range():
+    """Anchors of ids 0, 1, 5, 6 (columns by id, not by row): at a median range ``r`` the
+    offset's prior mean ``E_MEAN`` adds ``sqrt(r^2 + 2 E_MEAN) - r``, its spread ``E_STD`` that
+    over ``sqrt(r^2 + 2 E_MEAN)``; an anchor without ranges the height's whole share."""
+    from quadobs.testbed.logs.format import RangeLog
+    from quadobs.testbed.logs.height_estimators import E_MEAN, E_STD, apparent_bias_prior
+
+    beacons = np.array([[0.0, 0.0], [3.0, 0.0], [3.0, 2.0], [0.0, 2.0]])
+    ids = np.array([0, 1, 5, 6])
+    rows = [(0, 1.0), (0, 1.5), (0, 9.0), (5, 20.0), (5, 20.0), (1, 0.4)]
+    ranges = np.array([[0.1 * i, b, r] for i, (b, r) in enumerate(rows)])
+    inputs = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]])
+    log = RangeLog("ids", ids, beacons, ranges, inputs, 0.0, None)
+    mean, std = apparent_bias_prior(log)
+    r = np.array([1.5, 0.4, 20.0, 0.0])
+    s = np.sqrt(r**2 + 2 * E_MEAN)
+    np.testing.assert_allclose(mean, s - r, rtol=1e-12)
+    np.testing.assert_allclose(std, E_STD / s, rtol=1e-12)
+    assert mean[3] == pytest.approx(math.sqrt(2 * E_MEAN)) and mean[2] < 0.08
+
+
+def test_the_height_lever_filter_takes_the_ranges_as_logged_unless_its_prior_excludes_the_biases():
+    """Biases calibrated without heights in a room (each anchor's bias and its height's share)
+    lie within the prior of the heading filter that holds both: ``ukf-height-lever`` takes the
+    ranges as logged; biases of metres at a room's ranges lie outside it and are subtracted.
+    ``ekf-height`` (the heading taken as known) and a filter without bias states are not
+    checked; the chi-square is the closed form."""
+    from quadobs.testbed.logs.calibration import Calibration, estimator_biases
+    from quadobs.testbed.logs.height_estimators import apparent_bias_prior
+    from quadobs.testbed.logs.posed import posed_log
+
+    log = posed_log(_planar_log(), anchor_heights=[2.3, 0.3, 1.8, 1.1], tag_height=0.25)
+    names = ["ekf", "ekf-height", "ukf-height-lever"]
+    mean, std = apparent_bias_prior(log)
+    for biases, kept in ((0.1 + mean, False), (np.full(4, 3.0), True)):
+        cal = Calibration(biases, {}, {}, "", biases)
+        logged = estimator_biases(log, cal, names)
+        assert list(cal.per_estimator) == ["ukf-height-lever"], cal.per_estimator
+        assert logged == (() if kept else ("ukf-height-lever",))
+        chi2 = np.sum((biases - mean) ** 2 / (0.25 + std**2))
+        record = cal.per_estimator["ukf-height-lever"]
+        assert record["prior_chi2"] == pytest.approx(chi2, rel=1e-12)
+        assert (record["prior_chi2"] > record["prior_limit"]) == kept
+        what = "the calibrated biases subtracted" if kept else "the ranges as logged"
+        assert f"ukf-height-lever (range biases and heights as states): {what}" in cal.reason

@@ -74,6 +74,10 @@ replay is given a clock offset or asked to search one (``--clock-offset``, not b
    fitted and tested through the EKF, which holds neither the range biases nor what else a
    filter may hold as states (an acceleration's bias): its biases take up those errors too,
    and a filter that holds them would start its states from the EKF's compromise.
+   The heading filter that holds each anchor's height beside its bias (``ukf-height-lever``)
+   takes the ranges as logged unless its own prior of bias and height excludes the biases
+   (:func:`_offsets_biases`): the EKF's biases hold the heights' share too, which it would
+   count twice.
 
 8. the ranges' non-line-of-sight excess, fitted to the chosen setting's residuals (a
    Gaussian and a Gaussian shifted by a log-normal excess, :mod:`~quadobs.testbed.logs.excess_model`)
@@ -766,6 +770,8 @@ def estimator_biases(
     ``sims/replay_flight_variants.py``, seed 0, it took the calibrated biases for
     ``ekf-bias-imu``, 0.200 against 0.235 m held out, and reached 0.223 m where the ranges as
     logged reach 0.123 m).
+    The heading filter that holds each anchor's height beside its bias (``ukf-height-lever``)
+    is decided by its prior alone (:func:`_offsets_biases`).
 
     Records each choice in ``cal.per_estimator`` and ``cal.reason``; returns the names that take
     the ranges as logged (:attr:`Calibration.as_logged`). Nothing to check where no biases were
@@ -778,7 +784,10 @@ def estimator_biases(
     chi2, limit = outside_prior(cal.biases, bias_prior_std(log))
     options = {k: v for k, v in cal.options.items() if k not in EXCESS_KEYS}  # the gate's
     for name in names:
-        if not holds_range_biases(_scoring_estimator(log, dt, model, zero, name, options, None)[1]):
+        est = _scoring_estimator(log, dt, model, zero, name, options, None)[1]
+        if _offsets_biases(log, cal, name, est):
+            continue
+        if not holds_range_biases(est):
             continue
         logged = _replay(log, dt, model, None, name, options)
         test = compare(_replay(log, dt, model, cal.biases, name, options), logged)
@@ -798,6 +807,42 @@ def estimator_biases(
             f" {'' if test.better else 'not '}significantly better"
         )
     return cal.as_logged
+
+
+def _offsets_biases(log, cal: Calibration, name: str, est) -> bool:
+    """Step 7 for the heading filter that holds each anchor's height beside its bias
+    (:func:`~quadobs.testbed.logs.height_estimators.holds_anchor_offsets`); ``False`` for any
+    other estimator.
+
+    The biases fitted here by a model without heights hold each anchor's bias and the apparent
+    bias of its height (:func:`~quadobs.testbed.logs.height_estimators.apparent_bias_prior`,
+    ``g_h +- sigma_g,h``), which such a filter holds as its offset state, started at its prior
+    mean: subtracting them counts the height twice. Under the filter's own prior (the bias
+    ``N(0, sigma_b^2)``, the height's share beside it) a calibrated bias is ``N(g_h, sigma_b^2 +
+    sigma_g,h^2)``; the biases are kept only where that prior all but excludes them
+    (:func:`outside_prior` of ``c - g``: the Plaza field's biases of metres, where ``g`` is
+    centimetres), else the filter takes the ranges as logged and finds them itself. Recorded as
+    :func:`estimator_biases` records its choices."""
+    from quadobs.testbed.logs.height_estimators import apparent_bias_prior, holds_anchor_offsets
+
+    if not holds_anchor_offsets(est):
+        return False
+    mean, std = apparent_bias_prior(log)
+    spread = np.sqrt(np.square(bias_prior_std(log)) + std * std)
+    chi2, limit = outside_prior(np.asarray(cal.biases, dtype=float) - mean, spread)
+    kept = chi2 > limit
+    cal.per_estimator[name] = {
+        "biases": "calibrated" if kept else "as logged",
+        "prior_chi2": chi2,
+        "prior_limit": limit,
+    }
+    what = "the calibrated biases subtracted" if kept else "the ranges as logged"
+    cal.reason += (
+        f"; {name} (range biases and heights as states): {what}; the biases less the heights'"
+        f" apparent bias, chi-square under its prior {chi2:.1f}"
+        f" ({'above' if kept else 'within'} {limit:.1f})"
+    )
+    return True
 
 
 def _fitted_keys(log, model: str, noise) -> tuple[str, ...]:

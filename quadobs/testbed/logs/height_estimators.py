@@ -34,10 +34,12 @@ __all__ = [
     "E_MEAN",
     "E_STD",
     "STOREY",
+    "apparent_bias_prior",
     "build_augmented_height",
     "build_ekf_height",
     "build_ukf_height",
     "heading_height_options",
+    "holds_anchor_offsets",
     "huber_rule",
 ]
 
@@ -181,3 +183,46 @@ def huber_rule(gate: float | None):
     from quadobs.testbed.logs.bias_estimators import _gate_probability
 
     return Huber(math.sqrt(chi2_threshold(_gate_probability(gate), 1)))
+
+
+def holds_anchor_offsets(est) -> bool:
+    """Whether ``est`` is a heading filter that holds each anchor's range bias and squared-range
+    offset as states (``ukf-height-lever``: the range ``sqrt(|q - a_h|^2 + 2 e_h) + b_h``, the
+    heading and the lever arm beside them): a filter that models every error the
+    self-calibration's constant biases take up (the heights, the tag's offset, the heading's
+    drift).
+
+    Not ``ekf-height``: it takes the dead-reckoned heading as known, as the calibration's EKF
+    does, so the calibrated biases also take up the heading's drift, which it does not model;
+    taking the ranges as logged was measured no better for it (docs/error-sources.md)."""
+    from quadobs.estimators.heading_ekf import HeadingEKF, HeadingUKF
+
+    return isinstance(est, (HeadingEKF, HeadingUKF)) and est._ib >= 0 and est._ie >= 0
+
+
+def apparent_bias_prior(log) -> tuple[np.ndarray, np.ndarray]:
+    """The constant bias ``(mean, std)`` (m, per anchor) that the offsets' prior gives a range
+    read by a model without heights, as the self-calibration's EKF reads it.
+
+    At the anchor's typical range ``r_h`` (the median of its logged ranges) the offset ``e_h``
+    adds ``g_h = sqrt(r_h^2 + 2 e_h) - r_h`` to the planar distance; at the prior mean
+    :data:`E_MEAN`, to first order in ``e_h`` about it,
+
+    .. math::
+
+        \\bar g_h = \\sqrt{r_h^2 + 2 \\bar e} - r_h, \\qquad
+        \\sigma_{g,h} = \\frac{\\sigma_e}{\\sqrt{r_h^2 + 2 \\bar e}} ,
+
+    ``sigma_e`` = :data:`E_STD`. In a room (``r_h`` about 1.5 m) that is 0.79 +- 0.58 m; on a
+    field of tens of metres, centimetres. The self-calibration checks its biases against it
+    for the heading filter that holds the offsets (:func:`holds_anchor_offsets`;
+    :mod:`quadobs.testbed.logs.calibration`, step 7)."""
+    from quadobs.testbed.logs.schema import RANGE
+
+    anchor = log.beacon_index(log.ranges[:, RANGE.beacon])
+    r = np.zeros(log.beacons.shape[0])
+    for h in range(r.size):
+        rows = log.ranges[anchor == h, RANGE.range]
+        r[h] = float(np.median(rows)) if rows.size else 0.0  # none: the height's whole share
+    s = np.sqrt(r * r + 2.0 * E_MEAN)
+    return s - r, E_STD / s
