@@ -1021,7 +1021,9 @@ def _cmd_replay(args) -> int:
     log_scenario(log, args.dt, args.seed, args.set)  # the --set settings, checked as early
     _check_field_options(args)
     _notice_cold_kernels(EPISODE_KERNELS + AUGMENTED_KERNELS)
-    from quadobs.testbed.logs.replay import check_replay
+    from quadobs.testbed.logs.replay import check_burn_in, check_replay
+
+    check_burn_in(log, args.burn_in)  # a burn-in past the log or its truth: nothing to score
 
     check_replay(  # the model and the estimators against the log, before the calibration
         log, _estimator_list(args.estimators), dt=args.dt, model=args.model,
@@ -1069,6 +1071,10 @@ def _cmd_replay(args) -> int:
                 "not started" if e["diverged"]["reason"].startswith("not started") else "diverged"
             )
             print(f"  {name:10s} rmse invalid ({what})")
+            continue
+        if not summary["has_truth"]:  # "never" would read as never converged
+            us = e["seconds_per_measurement"] * 1e6
+            print(f"  {name:10s} no error measured (the log has no truth.csv)  {us:.0f} us/range")
             continue
         print(
             f"  {name:10s} rmse {_fmt(e['rmse'], ' m')}  max {_fmt(e['max_error'], ' m')}  "

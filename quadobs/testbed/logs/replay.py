@@ -41,6 +41,7 @@ from quadobs.testbed.logs.format import LOG_FILES
 
 __all__ = [
     "DEFAULT_ESTIMATORS",
+    "check_burn_in",
     "check_replay",
     "default_estimators",
     "initial_guess",
@@ -324,6 +325,23 @@ def _timing(log, world, ests, events) -> dict:
     if not grid:
         out["placed"], out["merged"] = events.count, 0
     return out
+
+
+def check_burn_in(log, burn_in: float) -> None:
+    """Refuse, before any work, a burn-in after which nothing would be scored: one that reaches
+    the end of the log (its last input, or measurement without inputs), or, where the log has a
+    truth, the truth's last time. Such a replay would report no error for any estimator."""
+    span = log.end - log.start
+    if burn_in > 0.0 and burn_in >= span:
+        raise QuadobsError(
+            f"--burn-in {burn_in:g} s: not shorter than the log ({span:.3g} s from "
+            f"t = {log.start:.10g} s), so no error would be measured"
+        )
+    if burn_in > 0.0 and log.truth is not None and log.truth[-1, 0] < log.start + burn_in:
+        raise QuadobsError(
+            f"--burn-in {burn_in:g} s: truth.csv ends {log.truth[-1, 0] - log.start:.3g} s "
+            "after the log's start, before the burn-in, so no error would be measured"
+        )
 
 
 def check_replay(log, names, *, dt: float = 0.1, model: str | None = None, options=None) -> None:
