@@ -195,3 +195,20 @@ def test_no_truth_is_made_up_across_a_gap_of_the_truth():
     assert np.array_equal(T[gap], T[(T > tt[399]) & (T < 7.0)])
     assert not _in_truth_gap(np.arange(0.0, 10.0, 0.01), T).any()
     assert not _in_truth_gap(np.arange(0.0, 10.0, 0.3), T).any()  # sparse but even: no gap
+
+
+def test_an_anchor_never_ranged_is_left_out_of_the_replay():
+    """Its position would move the geometry the defaults come from; the rest is the plain log."""
+    from quadobs.testbed.logs.replay import heard_anchors
+
+    log = helix()
+    listed = dataclasses.replace(
+        log,
+        beacon_ids=np.array([9, 0, 1, 2, 3]),
+        beacons=np.vstack([[[40.0, 40.0, 9.0]], ANCHORS]),
+    )
+    heard, unheard = heard_anchors(listed)
+    assert unheard == [9]
+    assert np.array_equal(heard.beacon_ids, log.beacon_ids)
+    assert np.array_equal(heard.beacons, log.beacons)
+    assert heard_anchors(log) == (log, [])

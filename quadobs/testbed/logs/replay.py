@@ -44,6 +44,7 @@ __all__ = [
     "check_burn_in",
     "check_replay",
     "default_estimators",
+    "heard_anchors",
     "initial_guess",
     "log_scenario",
     "run_replay",
@@ -325,6 +326,29 @@ def _timing(log, world, ests, events) -> dict:
     if not grid:
         out["placed"], out["merged"] = events.count, 0
     return out
+
+
+def heard_anchors(log):
+    """``log`` without the anchors that no range or TDOA names, and those anchors' ids.
+
+    An anchor never heard carries nothing for the estimators, yet its position would enter
+    what the replay derives from the anchors' geometry (the initial guess and its variance
+    without a truth, the typical range, a state per anchor): the log replays as if it were
+    not listed."""
+    import dataclasses
+
+    from quadobs.testbed.logs.schema import RANGE, TDOA
+
+    named = np.concatenate(
+        [log.ranges[:, RANGE.beacon], log.tdoa[:, TDOA.anchor_i], log.tdoa[:, TDOA.anchor_j]]
+    )
+    heard = np.isin(log.beacon_ids, named)
+    if heard.all():
+        return log, []
+    unheard = [int(i) for i in log.beacon_ids[~heard]]
+    return dataclasses.replace(
+        log, beacon_ids=log.beacon_ids[heard], beacons=log.beacons[heard]
+    ), unheard
 
 
 def check_burn_in(log, burn_in: float) -> None:
