@@ -1021,12 +1021,12 @@ def _cmd_replay(args) -> int:
     log_scenario(log, args.dt, args.seed, args.set)  # the --set settings, checked as early
     _check_field_options(args)
     _notice_cold_kernels(EPISODE_KERNELS + AUGMENTED_KERNELS)
-    from quadobs.testbed.logs.replay import check_burn_in, check_replay, heard_anchors
+    from quadobs.testbed.logs.replay import check_burn_in, check_replay, replayable_log
 
     check_burn_in(log, args.burn_in)  # a burn-in past the log or its truth: nothing to score
-    log, unheard = heard_anchors(log) if args.biases is None else (log, [])  # --biases: one each
-    if unheard:
-        print(f"anchors never ranged, left out: {', '.join(map(str, unheard))}")
+    log, notes = replayable_log(log, keep_anchors=args.biases is not None)  # --biases: one each
+    for note in notes:
+        print(note)
 
     check_replay(  # the model and the estimators against the log, before the calibration
         log, _estimator_list(args.estimators), dt=args.dt, model=args.model,

@@ -212,3 +212,19 @@ def test_an_anchor_never_ranged_is_left_out_of_the_replay():
     assert np.array_equal(heard.beacon_ids, log.beacon_ids)
     assert np.array_equal(heard.beacons, log.beacons)
     assert heard_anchors(log) == (log, [])
+
+
+def test_a_range_of_zero_is_left_out_and_said_so(plain):
+    """One failed exchange reported as 0 m: left out, and the replay is the plain log's."""
+    from quadobs.testbed.logs.replay import replayable_log
+
+    log = helix()
+    ranges, std = log.ranges.copy(), log.range_std.copy()
+    k = ranges.shape[0] // 2
+    ranges = np.insert(ranges, k, [ranges[k, 0], ranges[k, 1], 0.0], axis=0)
+    std = np.insert(std, k, 0.05)
+    back, notes = replayable_log(dataclasses.replace(log, ranges=ranges, range_std=std))
+    assert notes == ["ranges of 0 m (a radio's failed exchange), left out: 1"]
+    assert np.array_equal(back.ranges, log.ranges) and np.array_equal(back.range_std, log.range_std)
+    assert _replay(back)["rmse"] == pytest.approx(plain[1]["rmse"], rel=1e-12)
+    assert replayable_log(log) == (log, [])

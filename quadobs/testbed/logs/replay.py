@@ -47,7 +47,9 @@ __all__ = [
     "heard_anchors",
     "initial_guess",
     "log_scenario",
+    "replayable_log",
     "run_replay",
+    "without_zero_ranges",
 ]
 
 DEFAULT_ESTIMATORS = ("augmented", "ekf")
@@ -328,6 +330,25 @@ def _timing(log, world, ests, events) -> dict:
     return out
 
 
+def without_zero_ranges(log):
+    """``log`` without its ranges of exactly 0 m, and how many there were.
+
+    A two-way ranging radio reports 0 where an exchange failed; a tag is never at an
+    antenna's phase centre. Taken as a measurement, one such range pulls an estimator without
+    a gate by the whole distance to that anchor (on a simulated room log, one range of 0 among
+    453 moved the EKF's RMSE from 0.078 to 0.109 m)."""
+    import dataclasses
+
+    from quadobs.testbed.logs.schema import RANGE
+
+    keep = log.ranges[:, RANGE.range] != 0.0
+    if keep.all():
+        return log, 0
+    return dataclasses.replace(log, ranges=log.ranges[keep], range_std=log.range_std[keep]), int(
+        (~keep).sum()
+    )
+
+
 def heard_anchors(log):
     """``log`` without the anchors that no range or TDOA names, and those anchors' ids.
 
@@ -349,6 +370,21 @@ def heard_anchors(log):
     return dataclasses.replace(
         log, beacon_ids=log.beacon_ids[heard], beacons=log.beacons[heard]
     ), unheard
+
+
+def replayable_log(log, keep_anchors: bool = False) -> tuple:
+    """``log`` as the replay takes it, and one line for each thing left out: its ranges of 0 m
+    (:func:`without_zero_ranges`), then, unless ``keep_anchors`` (biases given per listed
+    anchor), the anchors that no measurement names (:func:`heard_anchors`)."""
+    notes = []
+    log, zeros = without_zero_ranges(log)
+    if zeros:
+        notes.append(f"ranges of 0 m (a radio's failed exchange), left out: {zeros}")
+    if not keep_anchors:
+        log, unheard = heard_anchors(log)
+        if unheard:
+            notes.append(f"anchors never ranged, left out: {', '.join(map(str, unheard))}")
+    return log, notes
 
 
 def check_burn_in(log, burn_in: float) -> None:
