@@ -1061,6 +1061,7 @@ def _cmd_replay(args) -> int:
             if m["dropped"] or m["outliers_injected"]
             else ""
         )
+        + _outside_inputs(summary["ranges"], log.beacons.shape[0])
         + ("  [INTERRUPTED]" if summary["interrupted"] else "")
     )
     for name, e in summary["estimators"].items():
@@ -1185,6 +1186,17 @@ def _log_inputs(log) -> dict:
     from quadobs.testbed.logs.format import LOG_FILES
 
     return {f"log {f}": Path(log.source) / f for f in LOG_FILES} if log.source else {}
+
+
+def _outside_inputs(counts: dict, anchors: int) -> str:
+    """The measurements a replay left out, before the inputs' first sample or after the grid's
+    last step, for its printed head line; after the end, only more than one round of the
+    anchors (the grid ends within a step of the log's end, and leaves out that step's ranges)."""
+    before, after = counts.get("before_the_first_input", 0), counts.get("after_the_last_step", 0)
+    parts = [f"{before} before the first input"] if before else []
+    if after > anchors:
+        parts.append(f"{after} after the last step")
+    return f" ({' and '.join(parts)}: not replayed)" if parts else ""
 
 
 def _check_field_options(args) -> None:

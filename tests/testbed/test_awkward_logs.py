@@ -228,3 +228,14 @@ def test_a_range_of_zero_is_left_out_and_said_so(plain):
     assert np.array_equal(back.ranges, log.ranges) and np.array_equal(back.range_std, log.range_std)
     assert _replay(back)["rmse"] == pytest.approx(plain[1]["rmse"], rel=1e-12)
     assert replayable_log(log) == (log, [])
+
+
+def test_the_ranges_outside_the_inputs_span_are_said_in_the_head_line():
+    from quadobs.cli import _outside_inputs
+
+    assert _outside_inputs({"placed": 10}, 4) == ""
+    assert _outside_inputs({"before_the_first_input": 0, "after_the_last_step": 4}, 4) == ""
+    line = _outside_inputs({"before_the_first_input": 76, "after_the_last_step": 1}, 4)
+    assert line == " (76 before the first input: not replayed)"
+    line = _outside_inputs({"before_the_first_input": 76, "after_the_last_step": 90}, 4)
+    assert line == " (76 before the first input and 90 after the last step: not replayed)"
