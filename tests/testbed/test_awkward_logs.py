@@ -239,3 +239,17 @@ def test_the_ranges_outside_the_inputs_span_are_said_in_the_head_line():
     assert line == " (76 before the first input: not replayed)"
     line = _outside_inputs({"before_the_first_input": 76, "after_the_last_step": 90}, 4)
     assert line == " (76 before the first input and 90 after the last step: not replayed)"
+
+
+def test_anchors_in_one_plane_are_said_to_leave_a_mirror_image():
+    from quadobs.testbed.logs.replay import anchor_plane, replayable_log
+
+    flat = ANCHORS.copy()
+    flat[:, 2] = 0.2
+    assert anchor_plane(ANCHORS) is None
+    assert anchor_plane(flat) == pytest.approx(0.0, abs=1e-12)
+    tilted = flat @ np.array([[1.0, 0.0, 0.0], [0.0, 0.8, 0.6], [0.0, -0.6, 0.8]])  # any plane
+    assert anchor_plane(tilted) == pytest.approx(0.0, abs=1e-12)
+    assert anchor_plane(flat[:, :2]) is None  # a planar log has no mirror
+    _, notes = replayable_log(dataclasses.replace(helix(), beacons=flat))
+    assert len(notes) == 1 and "mirror" in notes[0]

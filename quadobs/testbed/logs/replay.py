@@ -384,7 +384,31 @@ def replayable_log(log, keep_anchors: bool = False) -> tuple:
         log, unheard = heard_anchors(log)
         if unheard:
             notes.append(f"anchors never ranged, left out: {', '.join(map(str, unheard))}")
+    plane = anchor_plane(log.beacons)
+    if plane is not None:
+        notes.append(
+            f"the anchors lie in one plane (within {plane:.3g} m): a position and its mirror "
+            "image through that plane give the same ranges, so an estimate may settle on the "
+            "mirror side"
+        )
     return log, notes
+
+
+#: The anchors of a 3-D log lie in one plane where their spread across it is below this
+#: fraction of their extent along it (a survey's error, against a room's size).
+PLANE_FRACTION = 0.01
+
+
+def anchor_plane(beacons: np.ndarray) -> float | None:
+    """The anchors' spread (m) about their best plane where a 3-D log's anchors lie in one
+    (:data:`PLANE_FRACTION`), else None: the smallest singular value of the centred positions
+    over ``sqrt(B)``, against the largest."""
+    if beacons.shape[1] != 3 or beacons.shape[0] < 3:
+        return None
+    s = np.linalg.svd(beacons - beacons.mean(axis=0), compute_uv=False) / math.sqrt(
+        beacons.shape[0]
+    )
+    return float(s[-1]) if s[-1] <= PLANE_FRACTION * s[0] else None
 
 
 def check_burn_in(log, burn_in: float) -> None:
