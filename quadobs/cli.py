@@ -1021,7 +1021,12 @@ def _cmd_replay(args) -> int:
     log_scenario(log, args.dt, args.seed, args.set)  # the --set settings, checked as early
     _check_field_options(args)
     _notice_cold_kernels(EPISODE_KERNELS + AUGMENTED_KERNELS)
-    from quadobs.testbed.logs.replay import check_replay
+    from quadobs.testbed.logs.replay import check_burn_in, check_replay, replayable_log
+
+    check_burn_in(log, args.burn_in)  # a burn-in past the log or its truth: nothing to score
+    log, notes = replayable_log(log, keep_anchors=args.biases is not None)  # --biases: one each
+    for note in notes:
+        print(note)
 
     check_replay(  # the model and the estimators against the log, before the calibration
         log, _estimator_list(args.estimators), dt=args.dt, model=args.model,
@@ -1056,6 +1061,7 @@ def _cmd_replay(args) -> int:
             if m["dropped"] or m["outliers_injected"]
             else ""
         )
+        + _outside_inputs(summary["ranges"], log.beacons.shape[0])
         + ("  [INTERRUPTED]" if summary["interrupted"] else "")
     )
     for name, e in summary["estimators"].items():
@@ -1069,6 +1075,10 @@ def _cmd_replay(args) -> int:
                 "not started" if e["diverged"]["reason"].startswith("not started") else "diverged"
             )
             print(f"  {name:10s} rmse invalid ({what})")
+            continue
+        if not summary["has_truth"]:  # "never" would read as never converged
+            us = e["seconds_per_measurement"] * 1e6
+            print(f"  {name:10s} no error measured (the log has no truth.csv)  {us:.0f} us/range")
             continue
         print(
             f"  {name:10s} rmse {_fmt(e['rmse'], ' m')}  max {_fmt(e['max_error'], ' m')}  "
@@ -1176,6 +1186,17 @@ def _log_inputs(log) -> dict:
     from quadobs.testbed.logs.format import LOG_FILES
 
     return {f"log {f}": Path(log.source) / f for f in LOG_FILES} if log.source else {}
+
+
+def _outside_inputs(counts: dict, anchors: int) -> str:
+    """The measurements a replay left out, before the inputs' first sample or after the grid's
+    last step, for its printed head line; after the end, only more than one round of the
+    anchors (the grid ends within a step of the log's end, and leaves out that step's ranges)."""
+    before, after = counts.get("before_the_first_input", 0), counts.get("after_the_last_step", 0)
+    parts = [f"{before} before the first input"] if before else []
+    if after > anchors:
+        parts.append(f"{after} after the last step")
+    return f" ({' and '.join(parts)}: not replayed)" if parts else ""
 
 
 def _check_field_options(args) -> None:

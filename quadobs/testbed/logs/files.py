@@ -109,8 +109,17 @@ def _line(raw: bytes, starts: np.ndarray, k: int) -> list[str]:
         return text.split(",")
 
 
+def _trimmed(raw: bytes) -> bytes:
+    """``raw`` without blank lines (or spaces) after its last row: an editor's trailing empty
+    lines are no rows. A blank line between rows is kept, and refused as a row."""
+    body = raw.rstrip(b" \t\r\n")
+    return body + b"\n" if body else body
+
+
 def text_rows(path: Path, raw: bytes) -> list[list[str]]:
-    """Every row of a small CSV file (``meta.csv``), line lengths checked, a BOM skipped."""
+    """Every row of a small CSV file (``meta.csv``), line lengths checked, a BOM skipped,
+    blank lines after the last row left out."""
+    raw = _trimmed(raw)
     starts = _line_starts(path, raw)
     try:
         raw.decode("utf-8-sig")
@@ -128,8 +137,10 @@ def read_table(
     """The columns (in memory order, :meth:`FileSpec.columns_of`) and values of one log file.
 
     Every value is held to ``spec`` (:func:`~quadobs.testbed.logs.schema.check_values`);
-    errors name the file, the row and the column in one line.
+    errors name the file, the row and the column in one line. Blank lines after the last row
+    are left out.
     """
+    raw = _trimmed(raw)
     starts = _line_starts(path, raw)
     try:
         header = [h.strip() for h in _line(raw, starts, 0)]

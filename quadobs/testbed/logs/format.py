@@ -297,7 +297,10 @@ class RangeLog:
                 check_values(f"{self.name}: {fname}", FILES[fname], columns, values)
         times = [v[[0, -1], 0] for f, c, v in tables if f != "beacons.csv" and v.shape[0]]
         if times and (span := float(np.ptp(np.concatenate(times)))) > MAX_SPAN:
-            raise QuadobsError(f"{self.name}: the log spans {span:.3g} s, more than {MAX_SPAN:g} s")
+            raise QuadobsError(
+                f"{self.name}: the log spans {span:.3g} s, more than {MAX_SPAN:g} s: times must "
+                "be seconds on one clock in every file (nanoseconds: divide by 1e9)"
+            )
         if self.frame not in ("enu", "ned") or not (
             math.isfinite(self.gravity) and self.gravity > 0
         ):

@@ -26,7 +26,7 @@ replay uses the grid ``t_k = t_start + k dt`` (``t_start``: the first odometry t
   ``V(t) = int_(t_start)^t a`` (the sample itself where the log's clock is the grid's), so
   the double integrator's velocity follows the integrated acceleration at every grid time;
 * interpolates the truth (when the log has one) linearly to the grid (NaN outside its
-  span); for a model with a velocity, the truth's velocity where the log has one, else
+  span and inside its gaps, :data:`TRUTH_GAP_FACTOR`); for a model with a velocity, the truth's velocity where the log has one, else
   the central difference of its positions.
 
 Models (:func:`state_size`): ``odometry`` (odometry logs: ``p' = u``, ``n = 2``), ``cv``
@@ -151,12 +151,29 @@ def held_mean(log, times: np.ndarray, samples: np.ndarray | None = None) -> np.n
     return np.diff(Vg, axis=0) / np.diff(times)[:, None]
 
 
+#: A truth's interval longer than this many times its median interval, and than
+#: :data:`TRUTH_GAP_MIN` seconds, is a gap (a motion capture that lost the body): no truth is
+#: interpolated across it, so no error is scored there.
+TRUTH_GAP_FACTOR = 10.0
+TRUTH_GAP_MIN = 0.5
+
+
+def _in_truth_gap(tt: np.ndarray, T: np.ndarray) -> np.ndarray:
+    """Which grid times ``T`` lie strictly inside a gap of the truth's times ``tt``."""
+    gaps = np.diff(tt)
+    if gaps.size < 2:
+        return np.zeros(T.size, dtype=bool)
+    wide = np.flatnonzero(gaps > max(TRUTH_GAP_FACTOR * float(np.median(gaps)), TRUTH_GAP_MIN))
+    k = np.searchsorted(tt, T, side="right") - 1  # the truth sample at or before each time
+    return np.isin(k, wide) & (T > tt[np.clip(k, 0, tt.size - 1)])
+
+
 def _truth_rows(log, T: np.ndarray, n: int) -> np.ndarray:
     X = np.full((T.size, n), np.nan)
     if log.truth is None:
         return X
     dim, tt = log.dimension, log.truth[:, 0]
-    inside = (T >= tt[0]) & (T <= tt[-1])
+    inside = (T >= tt[0]) & (T <= tt[-1]) & ~_in_truth_gap(tt, T)
     for c, col in enumerate(log.truth_part("position").T):
         X[inside, c] = np.interp(T[inside], tt, col)
     if n == 2 * dim:

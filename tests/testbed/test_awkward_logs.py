@@ -1,0 +1,255 @@
+"""Valid but awkward log folders: each is replayed as its plain form, or refused in one line.
+
+A log written by hand from a real recording differs from an exported one in ways the format
+allows (anchor ids that are not 0..n-1, anchors listed in any order or never heard, Windows
+line ends, a header with spaces, trailing empty lines, an epoch clock) and in ways it does
+not (times in nanoseconds, a burn-in past the log). The first kind must give the same
+figures as the plain log; the second a one-line :class:`~quadobs.errors.QuadobsError` before
+any work.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+
+from quadobs.errors import QuadobsError
+from quadobs.testbed.logs import RangeLog, read_log, write_log
+from quadobs.testbed.logs.replay import check_burn_in, run_replay
+from quadobs.testbed.logs.schema import RANGE
+
+ANCHORS = np.array([[-6.0, -5.0, 0.5], [7.0, -6.0, 2.5], [6.0, 7.0, 0.3], [-5.0, 6.0, 2.8]])
+
+
+def helix(duration: float = 8.0) -> RangeLog:
+    """A helix read by a navigation-frame accelerometer, ranged round-robin at 20 Hz, with a truth."""
+    t = np.arange(0.0, duration, 0.02)
+
+    def p(s):
+        return np.column_stack([3 * np.cos(0.3 * s), 3 * np.sin(0.3 * s), 1.5 + 0.3 * np.sin(s)])
+
+    v = np.column_stack(
+        [-0.9 * np.sin(0.3 * t), 0.9 * np.cos(0.3 * t), 0.3 * np.cos(t)]
+    )  # fmt: skip
+    acc = np.column_stack([-0.27 * np.cos(0.3 * t), -0.27 * np.sin(0.3 * t), -0.3 * np.sin(t)])
+    tr = np.arange(0.01, duration - 0.02, 0.05)
+    h = np.arange(tr.size) % 4
+    rng = np.random.default_rng(7)
+    r = np.linalg.norm(p(tr) - ANCHORS[h], axis=1) + rng.normal(0.0, 0.05, tr.size)
+    return RangeLog(
+        "helix", np.arange(4), ANCHORS, np.column_stack([tr, h, r]), np.column_stack([t, acc]),
+        math.nan, np.column_stack([t, p(t), v]), input_kind="imu",
+        truth_columns=("time", "x", "y", "z", "vx", "vy", "vz"), range_std=np.full(tr.size, 0.05),
+    )  # fmt: skip
+
+
+def _replay(log: RangeLog) -> dict:
+    s = run_replay(
+        log, estimators=["ekf"], dt=0.1, initial_offset=2.0, burn_in=2.0, batch=False,
+        setup_options={"range_sigma": 0.05, "q_imu": 1e-2},
+    )  # fmt: skip
+    return s["estimators"]["ekf"]
+
+
+def _rewrite(path, edit) -> None:
+    path.write_bytes(edit(path.read_bytes()))
+
+
+def _spaced_header(text: bytes) -> bytes:
+    """The header's names padded with spaces: ``time , beacon , range``."""
+    header, rest = text.split(b"\r\n", 1)
+    return b" , ".join(b" " + name + b" " for name in header.split(b",")) + b"\r\n" + rest
+
+
+@pytest.fixture(scope="module")
+def plain(tmp_path_factory):
+    folder = write_log(helix(), tmp_path_factory.mktemp("plain") / "helix")
+    return folder, _replay(read_log(folder))
+
+
+def test_anchor_ids_out_of_order_and_one_never_heard_replay_as_the_plain_log(tmp_path, plain):
+    """Ids 101, 7, 3, 55 listed in reverse, beside an anchor no range names: the same figures."""
+    log = helix()
+    ids = np.array([101, 7, 3, 55])
+    ranges = log.ranges.copy()
+    ranges[:, RANGE.beacon] = ids[log.ranges[:, RANGE.beacon].astype(int)]
+    order = [4, 3, 2, 1, 0]  # 4: the unheard anchor, first in beacons.csv
+    awkward = dataclasses.replace(
+        log,
+        beacon_ids=np.append(ids, 9)[order],
+        beacons=np.vstack([ANCHORS, [[0.0, 0.0, 3.0]]])[order],
+        ranges=ranges,
+    )
+    folder = write_log(awkward, tmp_path / "awkward")
+    e = _replay(read_log(folder))
+    assert e["diverged"] is None and e["rmse"] == pytest.approx(plain[1]["rmse"], rel=1e-9)
+
+
+@pytest.mark.parametrize(
+    "edit",
+    [
+        pytest.param(lambda b: b.replace(b"\r\n", b"\n"), id="unix-line-ends"),
+        pytest.param(
+            lambda b: b.replace(b"\r\n", b"\n").replace(b"\n", b"\r\n"), id="windows-line-ends"
+        ),
+        pytest.param(lambda b: b"\xef\xbb\xbf" + b, id="byte-order-mark"),
+        pytest.param(lambda b: b + b"\n\n  \r\n", id="trailing-empty-lines"),
+        pytest.param(_spaced_header, id="header-with-spaces"),
+    ],
+)
+def test_text_conventions_of_other_editors_read_as_the_plain_log(tmp_path, plain, edit):
+    """Every file of the folder edited alike; the log reads back exactly."""
+    folder = tmp_path / "edited"
+    expected = read_log(plain[0])
+    write_log(expected, folder)
+    for path in folder.iterdir():
+        _rewrite(path, edit)
+    back = read_log(folder)
+    assert np.array_equal(back.ranges, expected.ranges)
+    assert np.array_equal(back.inputs, expected.inputs)
+    assert np.array_equal(back.truth, expected.truth)
+    assert back.name == expected.name
+
+
+def test_a_blank_line_between_rows_is_still_refused_with_its_row(tmp_path, plain):
+    folder = tmp_path / "gap"
+    write_log(read_log(plain[0]), folder)
+    _rewrite(
+        folder / "ranges.csv",
+        lambda b: (
+            b.replace(b"\r\n", b"\n", 3).replace(b"\n", b"\n\n", 3).replace(b"\n\n", b"\n", 2)
+        ),
+    )
+    with pytest.raises(QuadobsError, match=r"ranges.csv, row 4, column time: '' is not a finite"):
+        read_log(folder)
+
+
+def test_an_epoch_clock_in_seconds_replays_as_the_plain_log(tmp_path, plain):
+    log = helix()
+
+    def moved(table):
+        table = table.copy()
+        table[:, 0] += 1.7e9
+        return table
+
+    epoch = dataclasses.replace(
+        log, ranges=moved(log.ranges), inputs=moved(log.inputs), truth=moved(log.truth)
+    )
+    e = _replay(read_log(write_log(epoch, tmp_path / "epoch")))
+    # 1.7e9 s holds times to 2.4e-7 s: the same figures to far below the range noise
+    assert e["diverged"] is None and e["rmse"] == pytest.approx(plain[1]["rmse"], abs=1e-4)
+
+
+def test_times_in_nanoseconds_are_refused_in_one_line_naming_the_unit(tmp_path):
+    log = helix()
+    folder = write_log(log, tmp_path / "ns")
+    for name in ("ranges.csv", "inputs.csv", "truth.csv"):
+        rows = (folder / name).read_text().splitlines()
+        out = [rows[0]]
+        for row in rows[1:]:
+            cells = row.split(",")
+            cells[0] = str(int(round(float(cells[0]) * 1e9)) + 1_700_000_000_000_000_000)
+            out.append(",".join(cells))
+        (folder / name).write_text("\n".join(out) + "\n")
+    with pytest.raises(
+        QuadobsError, match=r"spans \S+ s, more than 1e\+07 s: .*nanoseconds"
+    ) as err:
+        read_log(folder)
+    assert "\n" not in str(err.value)
+
+
+@pytest.mark.parametrize(
+    ("truth_end", "burn_in", "expect"),
+    [
+        (None, 8.0, "not shorter than the log"),
+        (None, 20.0, "not shorter than the log"),
+        (3.0, 5.0, "truth.csv ends 3"),
+    ],
+)
+def test_a_burn_in_past_the_log_or_its_truth_is_refused(truth_end, burn_in, expect):
+    log = helix()
+    if truth_end is not None:
+        log = dataclasses.replace(log, truth=log.truth[log.truth[:, 0] <= truth_end])
+    with pytest.raises(QuadobsError, match=expect):
+        check_burn_in(log, burn_in)
+
+
+def test_a_burn_in_inside_the_log_and_its_truth_is_accepted():
+    log = helix()
+    check_burn_in(log, 0.0)
+    check_burn_in(log, 5.0)
+    check_burn_in(dataclasses.replace(log, truth=None), 5.0)  # no truth: nothing to score anyway
+
+
+def test_no_truth_is_made_up_across_a_gap_of_the_truth():
+    """A motion capture losing the body for 3 s: the rows inside the gap get no truth (a straight
+    line across it is not where the body went), the rows of a dense truth all get one."""
+    from quadobs.testbed.worlds.replay import _in_truth_gap
+
+    tt = np.concatenate([np.arange(0.0, 4.0, 0.01), np.arange(7.0, 10.0, 0.01)])
+    T = np.arange(0.0, 10.0, 0.1)
+    gap = _in_truth_gap(tt, T)
+    assert np.array_equal(T[gap], T[(T > tt[399]) & (T < 7.0)])
+    assert not _in_truth_gap(np.arange(0.0, 10.0, 0.01), T).any()
+    assert not _in_truth_gap(np.arange(0.0, 10.0, 0.3), T).any()  # sparse but even: no gap
+
+
+def test_an_anchor_never_ranged_is_left_out_of_the_replay():
+    """Its position would move the geometry the defaults come from; the rest is the plain log."""
+    from quadobs.testbed.logs.replay import heard_anchors
+
+    log = helix()
+    listed = dataclasses.replace(
+        log,
+        beacon_ids=np.array([9, 0, 1, 2, 3]),
+        beacons=np.vstack([[[40.0, 40.0, 9.0]], ANCHORS]),
+    )
+    heard, unheard = heard_anchors(listed)
+    assert unheard == [9]
+    assert np.array_equal(heard.beacon_ids, log.beacon_ids)
+    assert np.array_equal(heard.beacons, log.beacons)
+    assert heard_anchors(log) == (log, [])
+
+
+def test_a_range_of_zero_is_left_out_and_said_so(plain):
+    """One failed exchange reported as 0 m: left out, and the replay is the plain log's."""
+    from quadobs.testbed.logs.replay import replayable_log
+
+    log = helix()
+    ranges, std = log.ranges.copy(), log.range_std.copy()
+    k = ranges.shape[0] // 2
+    ranges = np.insert(ranges, k, [ranges[k, 0], ranges[k, 1], 0.0], axis=0)
+    std = np.insert(std, k, 0.05)
+    back, notes = replayable_log(dataclasses.replace(log, ranges=ranges, range_std=std))
+    assert notes == ["ranges of 0 m (a radio's failed exchange), left out: 1"]
+    assert np.array_equal(back.ranges, log.ranges) and np.array_equal(back.range_std, log.range_std)
+    assert _replay(back)["rmse"] == pytest.approx(plain[1]["rmse"], rel=1e-12)
+    assert replayable_log(log) == (log, [])
+
+
+def test_the_ranges_outside_the_inputs_span_are_said_in_the_head_line():
+    from quadobs.cli import _outside_inputs
+
+    assert _outside_inputs({"placed": 10}, 4) == ""
+    assert _outside_inputs({"before_the_first_input": 0, "after_the_last_step": 4}, 4) == ""
+    line = _outside_inputs({"before_the_first_input": 76, "after_the_last_step": 1}, 4)
+    assert line == " (76 before the first input: not replayed)"
+    line = _outside_inputs({"before_the_first_input": 76, "after_the_last_step": 90}, 4)
+    assert line == " (76 before the first input and 90 after the last step: not replayed)"
+
+
+def test_anchors_in_one_plane_are_said_to_leave_a_mirror_image():
+    from quadobs.testbed.logs.replay import anchor_plane, replayable_log
+
+    flat = ANCHORS.copy()
+    flat[:, 2] = 0.2
+    assert anchor_plane(ANCHORS) is None
+    assert anchor_plane(flat) == pytest.approx(0.0, abs=1e-12)
+    tilted = flat @ np.array([[1.0, 0.0, 0.0], [0.0, 0.8, 0.6], [0.0, -0.6, 0.8]])  # any plane
+    assert anchor_plane(tilted) == pytest.approx(0.0, abs=1e-12)
+    assert anchor_plane(flat[:, :2]) is None  # a planar log has no mirror
+    _, notes = replayable_log(dataclasses.replace(helix(), beacons=flat))
+    assert len(notes) == 1 and "mirror" in notes[0]
