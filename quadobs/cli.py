@@ -104,16 +104,23 @@ def _print_crash(summary: dict, file) -> None:
 
 
 def print_diverged(summary: dict, file=None) -> None:
-    """One line per diverged or locked-out estimator (:mod:`quadobs.testbed.divergence`), on
-    ``file`` (default: the standard output at the call)."""
+    """One line per diverged or locked-out estimator (:mod:`quadobs.testbed.divergence`), and
+    one per filter whose start-up never got its multilateration fix, on ``file`` (default: the
+    standard output at the call)."""
     file = sys.stdout if file is None else file
     for name, d in summary.get("estimators", {}).items():
         if isinstance(d, dict) and d.get("diverged"):
             d = d["diverged"]
-            what = "NOT STARTED" if d["reason"].startswith("not started") else "DIVERGED"
             print(
-                f"{name}: {what} at step {d['step']} (t = {d['t']:.6g} s): {d['reason']}; "
+                f"{name}: DIVERGED at step {d['step']} (t = {d['t']:.6g} s): {d['reason']}; "
                 "its figures are invalid",
+                file=file,
+            )
+        elif isinstance(d, dict) and d.get("startup"):
+            s = d["startup"]
+            print(
+                f"{name}: NO START-UP FIX (t = {s['t']:.6g} s): {s['reason']}; "
+                "its figures are those of the filter run from its prior",
                 file=file,
             )
 
@@ -1071,11 +1078,10 @@ def _cmd_replay(args) -> int:
             else ""
         )
         if e.get("diverged"):
-            what = (
-                "not started" if e["diverged"]["reason"].startswith("not started") else "diverged"
-            )
-            print(f"  {name:10s} rmse invalid ({what})")
+            print(f"  {name:10s} rmse invalid (diverged)")
             continue
+        if e.get("startup"):
+            extra += "  [no start-up fix: ran from its prior]"
         if not summary["has_truth"]:  # "never" would read as never converged
             us = e["seconds_per_measurement"] * 1e6
             print(f"  {name:10s} no error measured (the log has no truth.csv)  {us:.0f} us/range")

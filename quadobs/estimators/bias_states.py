@@ -374,7 +374,7 @@ class _VehicleBlock:
             if self._waited < 4 * q:
                 return False
             self.fix_pending = False
-            self.fix_abandoned = self._time  # reported as not started (startup.not_started)
+            self.fix_abandoned = self._time  # reported without a fix (startup.not_started)
             return True
         cols = fixed[0]
         self._x[cols] = fixed[1]

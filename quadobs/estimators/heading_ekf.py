@@ -449,7 +449,7 @@ class _HeadingFilter(Estimator, Gated):
             self._P = self._P0.copy()
             self._P[:2, :2] = self._fix_sigma() ** 2 * np.eye(2) + self._fix_spread()
             self.fixes.append(self._time)
-        else:  # reported as not started (quadobs.estimators.startup.not_started)
+        else:  # reported without a fix (quadobs.estimators.startup.not_started)
             self.fix_abandoned = self._time
 
     def _fix_sigma(self) -> float:

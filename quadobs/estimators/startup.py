@@ -43,10 +43,11 @@ came of that prior by what one round of ranges says on its own, the rule that th
   ``P_fix``, its correlations with the other states dropped, in place of what the corrections
   made of it from the wide prior; the range that completed the round is then corrected as
   usual.
-* **Not started.** A filter still waiting at the end of its run, or one that gave up without a
-  fix, never took the position its ranges give: :func:`not_started` records it as a lock-out
-  records a filter given up, and the testbed's summaries give it no error figure
-  (:func:`quadobs.testbed.divergence.given_up`).
+* **No fix.** A filter still waiting at the end of its run, or one that gave up without a
+  fix, never took the position its ranges give; it ran from its prior, correcting every range
+  with the grown variance above. :func:`not_started` records it, and the testbed's summaries
+  give it a ``startup`` entry beside its figures
+  (:func:`quadobs.testbed.divergence.startup_record`).
 """
 
 from __future__ import annotations
@@ -93,8 +94,10 @@ def not_started(est) -> dict | None:
     directions, or no range at all: ``fix_pending``), or given up without a fix
     (``fix_abandoned``, the time at which it was: anchors in too few directions over four
     rounds, or a fix the filter refused), its estimate is what its prior and corrections from
-    a prior as wide as the anchors' geometry made of it: reported as not started, never
-    summarised as if it had run. ``step`` counts the filter's own steps (``time / dt``). A
+    a prior as wide as the anchors' geometry made of it: it ran, as the filter without the
+    start-up would have (one anchor alone can still bring it in, as the IFAC 2021 setting's
+    EKF shows), and the summary says that it never took its position from a fix
+    (:func:`quadobs.testbed.divergence.startup_record`). ``step`` counts the filter's own steps (``time / dt``). A
     wrapper (:class:`~quadobs.estimators.base.Wrapper`, one taking a log's measurements in
     time) is read through its ``inner``.
     """
@@ -114,7 +117,7 @@ def not_started(est) -> dict | None:
     dynamics = getattr(est, "dynamics", est)  # a Kalman filter's step, else the filter's own
     dt = float(getattr(dynamics, "dt", 0.0))
     step = int(round(t / dt)) if dt > 0.0 else 0
-    return {"time": t, "step": step, "reason": f"not started: {why}"}
+    return {"time": t, "step": step, "reason": why}
 
 
 class MultilaterationStart:

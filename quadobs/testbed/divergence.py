@@ -47,6 +47,7 @@ __all__ = [
     "diverged_estimators",
     "error_bound",
     "given_up",
+    "startup_record",
     "invalidate_diverged",
 ]
 
@@ -157,15 +158,28 @@ class DivergenceSink(Sink):
                 self.found.get(name) or given_up(own.get(name)) or self._locked_out(name, completed)
             )
             per[name] = {"diverged": found}
+            started = startup_record(own.get(name))
+            if started is not None:  # only then: every other summary keeps its keys
+                per[name]["startup"] = started
         return {"estimators": per}
 
 
 def given_up(est) -> dict | None:
     """The estimator's own record of having given up (its lock-out's ``diverged``: out of
-    re-initialisations, or a state it judged implausible) or of never having started (a
-    start-up from a multilateration without a fix:
-    :func:`~quadobs.estimators.startup.not_started`), as this sink's entry."""
-    record = getattr(getattr(est, "lockout", None), "diverged", None) or not_started(est)
+    re-initialisations, or a state it judged implausible), as this sink's entry."""
+    record = getattr(getattr(est, "lockout", None), "diverged", None)
+    if not record:
+        return None
+    return {"step": int(record["step"]), "t": float(record["time"]), "reason": record["reason"]}
+
+
+def startup_record(est) -> dict | None:
+    """A start-up from a multilateration that never set the position
+    (:func:`~quadobs.estimators.startup.not_started`) as a summary's ``startup`` entry, else
+    None. The filter ran from its prior, correcting every range with the start-up's grown
+    variance, so its figures stand; the entry says that they are those of a filter that never
+    took its position from a fix."""
+    record = not_started(est)
     if not record:
         return None
     return {"step": int(record["step"]), "t": float(record["time"]), "reason": record["reason"]}

@@ -25,7 +25,7 @@ import numpy as np
 
 from quadobs.errors import QuadobsError, RunFault
 from quadobs.evaluation.trajectory import TrajectoryErrors, tum_text
-from quadobs.testbed.divergence import given_up
+from quadobs.testbed.divergence import given_up, startup_record
 from quadobs.testbed.logs.files import check_replaceable_folder, staged_folder
 from quadobs.testbed.sinks import EpisodeContext, Rows, Sink
 
@@ -96,6 +96,9 @@ class FieldFiguresSink(Sink):
             per[name] = figures = err.figures()
             if figures["diverged"] is None:  # the filter's own record of having given up
                 figures["diverged"] = given_up(own.get(name))
+            started = startup_record(own.get(name))
+            if started is not None:  # ran from its prior: its figures stand, the entry says so
+                figures["startup"] = started
             if figures["diverged"] is None:  # the final error as the replay's own sink gives it
                 del figures["final_position_error"]
             else:  # nothing of a diverged estimator is summarised as if it ran
