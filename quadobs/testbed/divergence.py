@@ -47,8 +47,8 @@ __all__ = [
     "diverged_estimators",
     "error_bound",
     "given_up",
-    "startup_record",
     "invalidate_diverged",
+    "startup_record",
 ]
 
 #: The divergence bound in sizes of the scene (:func:`error_bound`).
