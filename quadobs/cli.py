@@ -1281,9 +1281,6 @@ def _replay_calibration(args, log, tuning: dict) -> tuple[list[float] | np.ndarr
 
     names = _estimator_list(args.estimators) or default_estimators(log, args.model)
     args.as_logged = estimator_biases(log, cal, names, dt=args.dt, model=args.model)
-    from quadobs.testbed.logs.calibration import estimator_excess
-
-    estimator_excess(log, cal, names, dt=args.dt, model=args.model)  # step 9: the excess kept?
     chosen = "none" if cal.biases is None else ", ".join(f"{b:.2f}" for b in cal.biases) + " m"
     print(f"calibrated from the log: biases {chosen}; {cal.reason}")
     args.calibration_report = {**cal.summary(), **getattr(args, "clock_report", {})}
