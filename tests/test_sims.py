@@ -110,6 +110,8 @@ CASES = {
 #: script -> why it has no short run here, and where it is tested instead
 NOT_SHORT = {
     "screenshots.py": "needs chromium and about 30 s a world: tests/test_screenshots.py (slow)",
+    "check_excess.py": "needs an exported flight log and a minute of self-calibration: its check"
+    " is tested in tests/testbed/test_excess_model.py",
 }
 
 

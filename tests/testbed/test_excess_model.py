@@ -96,3 +96,67 @@ def test_the_calibration_step_gives_the_filters_an_identified_excess():
     stated = {"nlos_median": 0.3, "nlos_shape": 0.6}
     assert calibrated_excess(log, SimpleNamespace(r=r, h=h), stated)[1] == "as given"
     assert stated == {"nlos_median": 0.3, "nlos_shape": 0.6}
+
+
+def test_the_likelihood_is_the_mixtures_density():
+    """``excess_nll``: a density (it integrates to one over the residual), the Gaussian's own
+    negative log-likelihood where no range has an excess, a short residual the line of
+    sight's alone, and a long one likelier than a short one of the same size."""
+    from scipy import integrate, stats
+
+    from quadobs.testbed.logs.excess_model import excess_nll
+
+    args = (0.5, 0.6, 0.1, 0.15)
+    mass = integrate.quad(lambda r: np.exp(-excess_nll(np.array([r]), *args)[0]), -3, 60, limit=400)
+    assert mass[0] == pytest.approx(1.0, abs=1e-6)
+    r = np.array([-0.2, 0.0, 0.3])
+    gauss = -stats.norm(0.0, 0.15).logpdf(r)
+    np.testing.assert_allclose(excess_nll(r, 0.5, 0.6, 1e-12, 0.15), gauss, rtol=1e-9)
+    long, short = excess_nll(np.array([0.6, -0.6]), *args)
+    sight = -np.log(0.9) - stats.norm(0.0, 0.15).logpdf(-0.6)  # the line of sight's alone
+    assert short == pytest.approx(sight, rel=1e-3) and short < sight
+    assert long < short
+
+
+def _check(monkeypatch, mixture_noise: float, fit_excess=True):
+    """``estimator_excess`` on a stand-in log: one estimator takes the mixture; its held-out
+    residuals under the gate have a 0.15 m core and under the mixture ``mixture_noise``, both
+    with the same excess on a tenth of the ranges."""
+    from quadobs.testbed.logs import calibration as cal_mod
+    from quadobs.testbed.logs.calibration import Calibration, Residuals, estimator_excess
+
+    rng = np.random.default_rng(4)
+    n = 800
+    excess = (rng.random(n) < 0.1) * 0.5 * np.exp(0.6 * rng.standard_normal(n))
+    z = rng.standard_normal(n)
+    runs = {False: 0.15 * z + excess, True: mixture_noise * z + excess}
+
+    def replay(log, dt, model, b, name, options):
+        r = runs["nlos_median" in options]
+        return Residuals(r, np.zeros(n, np.int64), np.ones(n, bool), np.arange(n, dtype=float))
+
+    monkeypatch.setattr(cal_mod, "_replay", replay)
+    monkeypatch.setattr(cal_mod, "_takes_excess", lambda log, dt, m, name, o: name == "imu")
+    fit = {"chosen": fit_excess, "median": 0.5, "shape": 0.6, "fraction": 0.1, "sigma": 0.15}
+    options = {"q_imu": 1.0, "nlos_median": 0.5, "nlos_shape": 0.6}
+    cal = Calibration(None, options, {}, "", np.zeros(Q), excess=fit)
+    estimator_excess(SimpleNamespace(), cal, ["plain", "imu"], model="imu")
+    return cal
+
+
+def test_the_excess_is_kept_only_where_the_held_out_ranges_say_it_helps(monkeypatch):
+    """Step 9: where the mixture predicts the held-out ranges better (a tighter core), the
+    excess stays in the options and the check is recorded; where it predicts them no better,
+    the options lose it and the summary says the gate stays; with no excess chosen, nothing
+    is replayed."""
+    better = _check(monkeypatch, 0.10)
+    check = better.excess["check"]["imu"]
+    assert better.excess["chosen"] and better.options["nlos_median"] == 0.5
+    assert check["significantly_better"] and check["score"] < check["reference_score"]
+    assert "plain" not in better.excess["check"] and "significantly better" in better.reason
+    same = _check(monkeypatch, 0.15)
+    assert not same.excess["chosen"] and "nlos_median" not in same.options
+    assert "nlos_shape" not in same.options and "the excess dropped" in same.reason
+    assert same.excess["check"]["imu"]["difference"] == 0.0
+    none = _check(monkeypatch, 0.10, fit_excess=False)
+    assert "check" not in none.excess and none.reason == ""

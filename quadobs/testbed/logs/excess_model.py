@@ -77,6 +77,7 @@ __all__ = [
     "ExcessFit",
     "calibrated_excess",
     "excess_model",
+    "excess_nll",
     "fit_excess",
     "known_noise",
 ]
@@ -189,6 +190,27 @@ def fit_excess(r: np.ndarray, h: np.ndarray, q: int, iterations: int = ITERATION
     upper, lower = int(np.sum(d > TAIL * sigma)), int(np.sum(d < -TAIL * sigma))
     p = float(stats.binomtest(upper, upper + lower, 0.5, "greater").pvalue) if upper else 1.0
     return ExcessFit(math.exp(m), s, pi, sigma, mu, upper, lower, p, int(r.size))
+
+
+def excess_nll(r, median: float, shape: float, fraction: float, sigma: float) -> np.ndarray:
+    """The negative log-likelihood of the residuals ``r`` (centred: ``mu_h = 0``, as a filter that
+    holds each anchor's bias predicts a range) under the mixture of the module docstring,
+
+    .. math::
+
+        -\\log \\Big[ (1 - \\pi) \\, \\phi_\\sigma(r) + \\pi \\sum_k w_k \\, \\phi_\\sigma(r - e_k)
+        \\Big],
+
+    ``phi_sigma`` the density of ``N(0, sigma^2)``, ``w_k`` the log-normal's weights on
+    :data:`GRID` (median ``e_50``, shape ``s``, normalised on the grid)."""
+    r = np.asarray(r, dtype=float)
+    log_w = -0.5 * ((GRID - math.log(median)) / max(shape, 1e-6)) ** 2
+    log_w -= np.logaddexp.reduce(log_w)
+    z = np.concatenate([[0.0], np.exp(GRID)])
+    ll = -0.5 * ((r[:, None] - z[None, :]) / sigma) ** 2
+    ll[:, 0] += math.log1p(-fraction)
+    ll[:, 1:] += math.log(fraction) + log_w
+    return -(np.logaddexp.reduce(ll, axis=1) - math.log(sigma * math.sqrt(2.0 * math.pi)))
 
 
 def excess_model(r, h, q: int, noise: float | None) -> tuple[ExcessFit | None, bool, str]:
