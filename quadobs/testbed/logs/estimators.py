@@ -906,6 +906,17 @@ def build_ekf_bias_imu(s: ReplaySetup, x0: np.ndarray, name: str = "ekf-bias-imu
     return imu_bias.build_ekf_bias_imu(s, x0, name, ACCEL_BIAS_STD, ACCEL_BIAS_TIME)
 
 
+def build_ekf_bias_imu_nlos(
+    s: ReplaySetup, x0: np.ndarray, name: str = "ekf-bias-imu-nlos"
+) -> Estimator:
+    """Entry point ``ekf-bias-imu-nlos``: ``ekf-bias-imu`` weighing each range by the
+    non-line-of-sight excess's mixture where the self-calibration estimated the excess from
+    the log (:mod:`quadobs.testbed.logs.excess_model`), else the same filter."""
+    from quadobs.testbed.logs import imu_bias
+
+    return imu_bias.build_ekf_bias_imu(s, x0, name, ACCEL_BIAS_STD, ACCEL_BIAS_TIME, excess=True)
+
+
 #: The built-in estimators of logged data (as declared in pyproject.toml; a test checks that they agree).
 #: An estimator that reads a body IMU as its input (the Crazyflie's on-board EKF,
 #: ``u = (f_body, omega_body)``) is registered here beside them and marks its instances with
@@ -927,6 +938,7 @@ REPLAY_ESTIMATORS = {
     "ukf-bias": build_ukf_bias,
     "augmented-bias": build_augmented_bias,
     "ekf-bias-imu": build_ekf_bias_imu,
+    "ekf-bias-imu-nlos": build_ekf_bias_imu_nlos,
     "ekf-height": build_ekf_height,
     "ukf-height": build_ukf_height,
     "augmented-height": build_augmented_height,

@@ -106,16 +106,18 @@ class AccelerationBiasEKF(BiasedExtendedKalmanFilter):
 
 
 def build_ekf_bias_imu(
-    s, x0: np.ndarray, name: str, bias_std: float, drift_time: float
+    s, x0: np.ndarray, name: str, bias_std: float, drift_time: float, excess: bool = False
 ) -> AccelerationBiasEKF:
     """``ekf-bias-imu`` (module docstring) on the replay's setup ``s`` of a 3-D body-IMU log.
 
     The vehicle's process noise is the replay EKF's (``q_imu`` on the velocity), ``c`` has the
     prior ``bias_std^2`` per axis and the walk of :func:`acceleration_bias_walk`, each
-    anchor's bias the range model's prior (0.5 m); the rule
-    :func:`~quadobs.testbed.logs.bias_estimators.range_rule`'s: the excess's mixture where the
-    self-calibration estimated the excess, else ``ekf-bias``'s one-sided gate (also on a log
-    that states its ranges Gaussian, where ``ekf-bias`` takes none).
+    anchor's bias the range model's prior (0.5 m); the rule ``ekf-bias``'s one-sided gate
+    (also on a log that states its ranges Gaussian, where ``ekf-bias`` takes none), or with
+    ``excess`` (``ekf-bias-imu-nlos``) :func:`~quadobs.testbed.logs.bias_estimators.range_rule`'s
+    excess mixture where the self-calibration estimated the excess, else the same gate. The
+    two are kept apart because no score on held-out ranges tells which of them places the
+    vehicle better (docs/error-sources.md, in the replay: the excess estimated from the log).
     """
     from quadobs.core.measurements import RangeModel
     from quadobs.estimators.bias_states import BiasedRangeOutputModel, extended_system
@@ -149,7 +151,7 @@ def build_ekf_bias_imu(
     P = np.diag(prior + [e.prior_std**2 for e in extra])
     xe = np.zeros(n + q)
     xe[: 2 * dim] = np.asarray(x0, dtype=float)[: 2 * dim]
-    rule = range_rule(s)  # the excess's mixture where it is known, else the one-sided gate
+    rule = range_rule(s, excess=excess)  # with excess: the mixture where it is known
     if not isinstance(rule, ExcessMixture):
         rule = SkewedGate(_gate_probability(s.gate))
     est = AccelerationBiasEKF(
