@@ -91,6 +91,32 @@ def test_ekf_bias_imu_removes_an_accelerometer_bias(with_attitude):
     assert imu < 0.6 * plain, (plain, imu)
 
 
+def test_the_gate_and_the_estimated_excess_are_two_filters():
+    """``ekf-bias-imu`` keeps the one-sided gate where the setup knows an excess;
+    ``ekf-bias-imu-nlos`` takes the excess's mixture there, and the gate where none is known."""
+    from quadobs.estimators.robust import ExcessMixture, SkewedGate
+    from quadobs.testbed.logs.estimators import REPLAY_ESTIMATORS, replay_setup
+    from quadobs.testbed.worlds.replay import ReplayWorld
+
+    log = _imu_body_log(False)
+    world = ReplayWorld(log, 0.1, "imu")
+    known = replay_setup(log, world, {"nlos_median": 0.4, "nlos_shape": 0.7}, 3.0)
+    unknown = replay_setup(log, world, {}, 3.0)
+    x0 = np.zeros(6)
+    rules = {
+        (name, bool(s.nlos_median)): type(REPLAY_ESTIMATORS[name](s, x0).robust)
+        for name in ("ekf-bias-imu", "ekf-bias-imu-nlos")
+        for s in (known, unknown)
+    }
+    assert rules == {
+        ("ekf-bias-imu", True): SkewedGate,
+        ("ekf-bias-imu", False): SkewedGate,
+        ("ekf-bias-imu-nlos", True): ExcessMixture,
+        ("ekf-bias-imu-nlos", False): SkewedGate,
+    }
+    assert {"ekf-bias-imu", "ekf-bias-imu-nlos"} <= set(default_estimators(log))
+
+
 def test_body_imu_logs_replay_ekf_bias_imu_by_default():
     assert "ekf-bias-imu" in default_estimators(_imu_body_log(False))
     assert "ekf-bias-imu" not in default_estimators(_imu_body_log(False), "cv")
