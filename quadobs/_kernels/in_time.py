@@ -32,14 +32,20 @@ order than the reference's products, so the two agree to rounding, not bit for b
 
 **Correction by one scalar output** (:func:`scalar_correct`). For ``y_h = c^T z + e``,
 ``var e = r``, the Joseph form ``P+ = (I - k c^T) P (I - k c^T)^T + r k k^T`` with
-``k = P c / s``, ``s = c^T P c + r``, written out for a symmetric ``P``:
+``k = P c / s``, ``s = c^T P c + r``, as its two factors for a symmetric ``P``:
 
 .. math::
 
-    P^+ = P - k (P c)^\\top - (P c) k^\\top + s\\, k k^\\top ,
+    W = P (I - k c^\\top)^\\top = P - (P c) k^\\top, \\qquad
+    P^+ = (I - k c^\\top) W + r k k^\\top = W - k (c^\\top W) + r k k^\\top ,
 
-``O(N^2)`` where the matrix products cost ``O(N^3)``; the lower triangle is formed and
-mirrored, so that ``P`` stays exactly symmetric.
+``O(N^2)`` where the matrix products cost ``O(N^3)`` (``W`` is formed entry by entry, only
+``c^T W`` is kept). Expanded, this is ``P - k (P c)^T - (P c) k^T + s k k^T``, but that sum
+cancels ``P``'s large terms against each other and can leave a direction's variance at zero
+or below where the noise ``r`` is far below ``P``'s; the factored form keeps ``r k k^T`` apart
+and the result positive semi-definite, as the Joseph form is meant to. The lower triangle is
+formed and mirrored, so that ``P`` stays exactly symmetric; a NIS that is not a number (a
+zero or non-finite innovation variance) is rejected as one above the gate.
 """
 
 from __future__ import annotations
@@ -285,7 +291,7 @@ def _transition(z, P, Phi, g, E12, Q, T, M, zt, stats):
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def scalar_correct(z, P, C, h, yh, r, gate, stats, Pc):
+def scalar_correct(z, P, C, h, yh, r, gate, stats, work):
     """The Joseph-form correction of ``z`` and ``P`` by the output ``y_h = C[h] z`` of variance ``r``.
 
     ``O(N^2)`` (module docstring). ``stats = [nis, corrections, rejected, trace P]`` is updated
@@ -302,10 +308,12 @@ def scalar_correct(z, P, C, h, yh, r, gate, stats, Pc):
     yh, r, gate : float
         The output, its variance, the NIS gate (``inf``: none).
     stats : ndarray (4,)
-    Pc : ndarray (N,)
-        Work array.
+    work : ndarray (2, N)
+        Work array: ``P c`` and ``c^T W``.
     """
     N = z.shape[0]
+    Pc = work[0]
+    cW = work[1]
     s = 0.0
     cz = 0.0
     for i in range(N):
@@ -324,9 +332,17 @@ def scalar_correct(z, P, C, h, yh, r, gate, stats, Pc):
     nu = yh - cz
     nis = nu * nu / s
     stats[0] = nis
-    if nis > gate:
+    if not nis <= gate:  # above the gate, or not a number
         stats[2] += 1.0
         return
+    for j in range(N):  # (c^T W)_j = sum_i c_i (P_ij - Pc_i k_j)
+        kj = Pc[j] / s
+        acc = 0.0
+        for i in range(N):
+            ci = C[h, i]
+            if ci != 0.0:
+                acc += ci * (P[i, j] - Pc[i] * kj)
+        cW[j] = acc
     for i in range(N):
         z[i] += Pc[i] / s * nu
     trace = 0.0
@@ -334,7 +350,7 @@ def scalar_correct(z, P, C, h, yh, r, gate, stats, Pc):
         ki = Pc[i] / s
         for j in range(i + 1):
             kj = Pc[j] / s
-            v = ((P[i, j] - ki * Pc[j]) - Pc[i] * kj) + s * (ki * kj)
+            v = ((P[i, j] - Pc[i] * kj) - ki * cW[j]) + r * (ki * kj)
             P[i, j] = v
             P[j, i] = v
         trace += P[i, i]

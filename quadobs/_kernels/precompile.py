@@ -109,7 +109,7 @@ SIGNATURES: dict[str, Any] = {
         "f",
         "f",
         "fC1",
-        "fC1",
+        "fC2",
     ),
 }
 

@@ -748,14 +748,16 @@ class AugmentedObserver(HalfSteps, Gated, Immersed, BlockStep):
         """Joseph-form correction with the single output ``y_h = c^T z`` of variance ``r``.
 
         For one scalar output the Joseph form needs no matrix product: with ``k = P c / s``,
-        ``s = c^T P c + r`` and ``P`` symmetric,
+        ``s = c^T P c + r`` and ``P`` symmetric, as its two factors
 
         .. math::
 
-            (I - k c^\\top) P (I - k c^\\top)^\\top + r k k^\\top
-            = P - k (P c)^\\top - (P c) k^\\top + s\\, k k^\\top ,
+            W = P - (P c) k^\\top, \\qquad
+            (I - k c^\\top) P (I - k c^\\top)^\\top + r k k^\\top = W - k (c^\\top W) + r k k^\\top ,
 
-        ``O(N^2)``. Compiled (:func:`quadobs._kernels.in_time.scalar_correct`, no allocation)
+        ``O(N^2)``, positive semi-definite where the expanded sum
+        ``P - k (P c)^T - (P c) k^T + s k k^T`` can cancel a variance to zero
+        (:mod:`quadobs._kernels.in_time`). Compiled (:func:`quadobs._kernels.in_time.scalar_correct`, no allocation)
         with the compiled backend; the NumPy reference below otherwise.
         """
         fast = self._in_time
@@ -768,13 +770,14 @@ class AugmentedObserver(HalfSteps, Gated, Immersed, BlockStep):
         s = float(c @ Pc) + r
         nu = yh - float(c @ z)
         stats[0] = nu * nu / s
-        if self.gate is not None and stats[0] > self.gate:
+        if not stats[0] <= (np.inf if self.gate is None else self.gate):  # or not a number
             stats[2] += 1
             return
         k = Pc / s
         z += k * nu
-        P_new = P - np.outer(k, Pc) - np.outer(Pc, k) + s * np.outer(k, k)
-        P[...] = 0.5 * (P_new + P_new.T)
+        W = P - np.outer(Pc, k)
+        P_new = W - np.outer(k, c @ W) + r * np.outer(k, k)
+        P[...] = np.tril(P_new) + np.tril(P_new, -1).T  # the lower triangle, as compiled
         stats[1] += 1
         stats[3] = np.trace(P)
 

@@ -118,7 +118,7 @@ class InTimeKernels:
         self._noise = np.zeros((N, N))  # V(z) of the interval
         self._W = np.zeros((8, N, N))
         self._w = np.zeros((3, N))
-        self._Pc = np.zeros(N)
+        self._Pc = np.zeros((2, N))  # P c and c^T W of the correction
         self._J = np.zeros((2, N, im.system.n))
         self._zero_extra = np.zeros((im.system.n, im.system.n))
 

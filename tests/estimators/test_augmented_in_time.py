@@ -54,6 +54,51 @@ def test_the_scalar_correction_is_the_joseph_form():
         assert obs.corrections == 1 and obs.covariance_trace == pytest.approx(np.trace(P_ref))
 
 
+@pytest.mark.parametrize("compiled", [True, False])
+def test_an_ill_conditioned_correction_keeps_the_variance_it_is_given(compiled):
+    """A covariance of 1e8 m^2 along a ridge corrected by an output of variance 1e-9: the
+    posterior variance of the output is ``r c^T P c / s``, about 1e-9 (the closed form), where
+    the expanded sum ``P - k (Pc)^T - (Pc) k^T + s k k^T`` cancels it to 0; likewise for 200
+    covariances with eigenvalues from 1e-6 to 1e8 in random axes, each corrected once by one
+    of their coordinates (the expanded sum misses it on about a quarter of them), none with
+    an eigenvalue below rounding."""
+    from quadobs._kernels import in_time
+
+    def correct(z, P, C, h, yh, r):
+        if compiled:
+            in_time.scalar_correct(z, P, C, h, yh, r, np.inf, np.zeros(4), np.zeros((2, z.size)))
+            return
+        obs = _observer()
+        obs.in_time_compiled = False
+        obs._z, obs._P, obs._C, obs._stats = z, P, C, np.zeros(4)
+        obs._correct_scalar(h, yh, r)
+
+    P = np.array([[1e8, 1e8 - 1e-2], [1e8 - 1e-2, 1e8]])
+    correct(np.zeros(2), P, np.array([[1.0, 0.0]]), 0, 0.0, 1e-9)
+    assert P[0, 0] == pytest.approx(1e-9, rel=1e-3)
+    rng = np.random.default_rng(1)
+    for _ in range(200):
+        Q = np.linalg.qr(rng.standard_normal((9, 9)))[0]
+        P = Q @ np.diag(np.logspace(-6, 8, 9)) @ Q.T
+        P = 0.5 * (P + P.T)
+        h = int(rng.integers(9))
+        prior = P[h, h]
+        correct(np.zeros(9), P, np.eye(9), h, 0.0, 1e-9)
+        assert P[h, h] == pytest.approx(1e-9 * prior / (prior + 1e-9), rel=0.5)
+        eig = np.linalg.eigvalsh(P)
+        assert eig[0] >= -1e-15 * eig[-1]
+
+
+def test_a_nan_innovation_variance_is_rejected_not_spread():
+    """A NIS that is not a number (a range variance of NaN) counts as rejected; z and P stay."""
+    from quadobs._kernels import in_time
+
+    z, P = np.ones(3), np.eye(3)
+    stats = np.zeros(4)
+    in_time.scalar_correct(z, P, np.eye(3), 0, 2.0, np.nan, np.inf, stats, np.zeros((2, 3)))
+    assert stats[2] == 1.0 and np.array_equal(z, np.ones(3)) and np.array_equal(P, np.eye(3))
+
+
 def test_a_gated_scalar_correction_changes_nothing_but_the_count():
     obs = _observer(gate=1.0)
     z, P = obs.z.copy(), obs.P.copy()
