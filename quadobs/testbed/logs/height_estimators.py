@@ -213,7 +213,7 @@ def apparent_bias_prior(log) -> tuple[np.ndarray, np.ndarray]:
         \\bar g_h = \\sqrt{r_h^2 + 2 \\bar e} - r_h, \\qquad
         \\sigma_{g,h} = \\frac{\\sigma_e}{\\sqrt{r_h^2 + 2 \\bar e}} ,
 
-    ``sigma_e`` = :data:`E_STD`. In a room (``r_h`` about 1.5 m) that is 0.79 +- 0.58 m; on a
+    ``sigma_e`` = :data:`E_STD`. In a room (``r_h`` about 1.5 m) that is 0.79 +- 0.59 m; on a
     field of tens of metres, centimetres. The self-calibration checks its biases against it
     for the heading filter that holds the offsets (:func:`holds_anchor_offsets`;
     :mod:`quadobs.testbed.logs.calibration`, step 7)."""
