@@ -11,6 +11,7 @@ from quadobs.testbed.logs import RangeLog
 from quadobs.testbed.logs.estimators import ReplaySetup, build_ekf, log_frame
 from quadobs.testbed.logs.start_prior import (
     REST_K,
+    SLICE,
     START_WINDOW,
     UNKNOWN_VELOCITY_STD,
     start_prior,
@@ -41,24 +42,30 @@ def _imu_log(accel: np.ndarray | None = None, rate: float = 0.0, seed: int = 0, 
 
 def test_an_imu_at_rest_gives_the_bound_its_window_cannot_exclude():
     prior = start_prior(_imu_log(accel_noise=ACCEL_NOISE, gyro_noise=GYRO_NOISE))
-    assert prior.at_rest
-    n = round(START_WINDOW / H) + 1  # the samples of the closed window
-    delta = REST_K * ACCEL_NOISE / math.sqrt(H * n)  # k sigma_f / sqrt(N)
-    expected = math.sqrt((G + delta) ** 2 - G**2) * n * H
-    assert prior.velocity_std == pytest.approx(expected)
-    assert 0.05 < prior.velocity_std < 1.0 < UNKNOWN_VELOCITY_STD
+    assert prior.at_rest and prior.reason == "no motion in the first 0.5 s"
+    n = round(SLICE / H)  # the samples of a slice
+    delta = REST_K * math.sqrt(math.pi / 2) * ACCEL_NOISE / math.sqrt(H * n)  # k sigma_median
+    expected = math.sqrt((G + delta) ** 2 - G**2) * START_WINDOW
+    assert prior.velocity_std == pytest.approx(expected, rel=0.1)
+    assert 0.05 < prior.velocity_std < 2.0 == UNKNOWN_VELOCITY_STD
 
 
 def test_the_window_s_own_spread_stands_for_unstated_noise():
     prior = start_prior(_imu_log())
-    assert prior.at_rest and prior.velocity_std < 1.0
+    assert prior.at_rest and prior.velocity_std < 2.0
+
+
+def test_a_corrupt_first_sample_does_not_decide():
+    log = _imu_log(accel_noise=ACCEL_NOISE, gyro_noise=GYRO_NOISE)
+    log.inputs[0, 1:4] = 0.0  # a first sample before the IMU's filter settled
+    assert start_prior(log).at_rest
 
 
 @pytest.mark.parametrize(
     ("accel", "rate", "why"),
     [
-        (np.array([0.0, 0.0, 0.3]), 0.0, "norm"),  # climbing at 0.3 m/s^2
-        (None, 0.2, "gyroscope"),  # turning at 0.2 rad/s
+        (np.array([0.0, 0.0, 1.0]), 0.0, "norm"),  # climbing at 1 m/s^2
+        (None, 0.3, "gyroscope"),  # turning at 0.3 rad/s
     ],
 )
 def test_an_imu_in_motion_keeps_the_unknown_start(accel, rate, why):
@@ -67,12 +74,14 @@ def test_an_imu_in_motion_keeps_the_unknown_start(accel, rate, why):
     assert prior.velocity_std == UNKNOWN_VELOCITY_STD
 
 
-def test_a_vibrating_imu_is_not_at_rest():
+def test_a_take_off_ends_the_rest():
     t = np.arange(0.0, 2.0, H)
-    shake = np.zeros((t.size, 3))
-    shake[:, 0] = 2.0 * np.sin(2 * np.pi * 7.0 * t)  # 2 m/s^2 at 7 Hz: mean near zero
-    prior = start_prior(_imu_log(shake, accel_noise=ACCEL_NOISE, gyro_noise=GYRO_NOISE))
-    assert not prior.at_rest and "varies" in prior.reason
+    climb = np.zeros((t.size, 3))
+    climb[t >= 0.2, 2] = 3.0  # on the ground for 0.2 s, then a take-off at 3 m/s^2
+    still = start_prior(_imu_log(accel_noise=ACCEL_NOISE, gyro_noise=GYRO_NOISE))
+    prior = start_prior(_imu_log(climb, accel_noise=ACCEL_NOISE, gyro_noise=GYRO_NOISE))
+    assert prior.at_rest and prior.reason == "no motion in the first 0.2 s"
+    assert prior.velocity_std < still.velocity_std  # a shorter rest, a smaller bound
 
 
 def test_a_log_without_an_imu_keeps_the_unknown_start():
@@ -95,5 +104,5 @@ def test_the_builders_and_the_summary_take_the_start():
     plain = ReplaySetup(ANCHORS, 0.1, "imu", 0.0, 4.0, input_kind="imu_body")
     assert np.diag(build_ekf(plain, np.zeros(6))._P)[3:] == pytest.approx([4.0] * 3)
     assert frame["start"].summary() == {
-        "at_rest": True, "velocity_std": std, "reason": "no motion in the first window",
+        "at_rest": True, "velocity_std": std, "reason": "no motion in the first 0.5 s",
     }  # fmt: skip
