@@ -62,7 +62,7 @@ def _build(s, x0: np.ndarray, name: str, cls, process_noise: np.ndarray):
     from quadobs.estimators.bias_states import BiasedRangeOutputModel, extended_system
     from quadobs.estimators.kalman import HeldInputModel
     from quadobs.estimators.robust import SkewedGate
-    from quadobs.testbed.logs.estimators import velocity_variance
+    from quadobs.testbed.logs.start_prior import velocity_variance
 
     if "tdoa" in s.kinds:
         raise QuadobsError(

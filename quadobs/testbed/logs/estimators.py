@@ -102,7 +102,7 @@ from quadobs.estimators.startup import (
     start_threshold,
 )
 from quadobs.testbed.imu import BIAS_HORIZON
-from quadobs.testbed.logs.start_prior import UNKNOWN_VELOCITY_STD, StartPrior, start_prior
+from quadobs.testbed.logs.start_prior import StartPrior, start_prior, velocity_variance
 
 __all__ = [
     "ACCEL_NOISE",
@@ -428,14 +428,6 @@ def log_frame(log) -> dict:
     }
 
 
-def velocity_variance(s: ReplaySetup) -> float:
-    """The velocity's prior variance per axis (m^2/s^2) of the replay's filters: that of the
-    log's start (:attr:`ReplaySetup.start`, :mod:`~quadobs.testbed.logs.start_prior`), else
-    ``UNKNOWN_VELOCITY_STD^2``."""
-    std = UNKNOWN_VELOCITY_STD if s.start is None else s.start.velocity_std
-    return std * std
-
-
 def _stated_range_std(log) -> float | None:
     """The median of the log's stated range standard deviations where every row states one
     (:attr:`ReplaySetup.range_std_stated`), else None."""
@@ -747,7 +739,7 @@ def build_onboard_ekf(
     force, so a body frame of any orientation, forward-right-down included, starts the right
     way up) with yaw zero, 0.05 rad in roll and pitch and :data:`UNKNOWN_YAW_STD` in yaw. Gravity is the
     log's, along ``-z`` (enu) or ``+z`` (ned). The position prior is ``P0`` per axis, the
-    velocity's :func:`velocity_variance` per axis (as :func:`build_ekf`).
+    velocity's :func:`~quadobs.testbed.logs.start_prior.velocity_variance` per axis (as :func:`build_ekf`).
     """
     from scipy.spatial.transform import Rotation
 

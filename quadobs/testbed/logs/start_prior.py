@@ -46,7 +46,15 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["REST_K", "SLICE", "START_WINDOW", "UNKNOWN_VELOCITY_STD", "StartPrior", "start_prior"]
+__all__ = [
+    "REST_K",
+    "SLICE",
+    "START_WINDOW",
+    "UNKNOWN_VELOCITY_STD",
+    "StartPrior",
+    "start_prior",
+    "velocity_variance",
+]
 
 #: The window at the log's start that the rest test reads (s): the initial alignment's.
 START_WINDOW = 0.5
@@ -146,7 +154,7 @@ def start_prior(
         if n < MIN_SAMPLES:
             break
         tol_f = k * math.sqrt(MEDIAN_VARIANCE * sigma_f**2 / n + b_f**2)
-        tol_w = None if w is None else k * np.sqrt(MEDIAN_VARIANCE * sigma_w**2 / n + b_w**2)
+        tol_w = None if sigma_w is None else k * np.sqrt(MEDIAN_VARIANCE * sigma_w**2 / n + b_w**2)
         why = _still(f[m], None if w is None else w[m], tol_f, tol_w, g)
         if why:
             break
@@ -155,3 +163,12 @@ def start_prior(
         return _unknown(why + " in the first slice" if why else "no slice to test")
     a_max = delta if g is None else math.sqrt((g + delta) ** 2 - g**2)
     return StartPrior(True, a_max * rest, f"no motion in the first {rest:.2g} s")
+
+
+def velocity_variance(setup) -> float:
+    """The velocity's prior variance per axis (m^2/s^2) of a replay's filter built on ``setup``
+    (:class:`~quadobs.testbed.logs.estimators.ReplaySetup`): that of its ``start``, else
+    ``UNKNOWN_VELOCITY_STD^2``."""
+    start = getattr(setup, "start", None)
+    std = UNKNOWN_VELOCITY_STD if start is None else start.velocity_std
+    return std * std
