@@ -106,3 +106,12 @@ def test_the_builders_and_the_summary_take_the_start():
     assert frame["start"].summary() == {
         "at_rest": True, "velocity_std": std, "reason": "no motion in the first 0.5 s",
     }  # fmt: skip
+
+
+def test_the_replay_s_summary_reports_the_start():
+    from quadobs.testbed.logs.replay import run_replay
+
+    log = _imu_log(accel_noise=ACCEL_NOISE, gyro_noise=GYRO_NOISE)
+    summary = run_replay(log, estimators=["ekf"], batch=False, initial_offset=1.0)
+    assert summary["start"] == start_prior(log).summary()
+    assert summary["start"]["at_rest"]
