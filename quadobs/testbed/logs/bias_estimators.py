@@ -87,6 +87,7 @@ def _build(s, x0: np.ndarray, name: str, cls, process_noise: np.ndarray):
     from quadobs.core.measurements import RangeModel
     from quadobs.estimators.bias_states import BiasedRangeOutputModel, extended_system
     from quadobs.estimators.kalman import HeldInputModel
+    from quadobs.testbed.logs.start_prior import velocity_variance
 
     if "tdoa" in s.kinds:
         raise QuadobsError(
@@ -103,7 +104,7 @@ def _build(s, x0: np.ndarray, name: str, cls, process_noise: np.ndarray):
     outputs = BiasedRangeOutputModel(ext, sigma**2 * np.eye(q), offsets=offsets)
     P = np.zeros((n + q, n + q))
     P0 = np.full(n, s.P0)
-    P0[s.dim :] = 4.0  # the velocity, as the replay's EKF
+    P0[s.dim :] = velocity_variance(s)  # the velocity, as the replay's EKF
     P[:n, :n] = np.diag(P0)
     extra = RangeModel(s.beacons, s.range_sigma, bias="state").extra_states()
     P[n:, n:] = np.diag([e.prior_std**2 for e in extra])

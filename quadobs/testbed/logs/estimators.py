@@ -102,6 +102,7 @@ from quadobs.estimators.startup import (
     start_threshold,
 )
 from quadobs.testbed.imu import BIAS_HORIZON
+from quadobs.testbed.logs.start_prior import StartPrior, start_prior, velocity_variance
 
 __all__ = [
     "ACCEL_NOISE",
@@ -196,6 +197,10 @@ class ReplaySetup:
         The white noise on the position of the heading filters (m^2/s per axis;
         :func:`build_ekf_heading`): the speed's noise alone, where ``q_xy`` of the model
         ``odometry`` also carries the heading's drift. Its prior is ``q_xy``'s (1 m^2/s).
+    start : StartPrior or None
+        Whether the log's first half second shows the vehicle at rest, and the velocity's
+        prior standard deviation that follows (:mod:`~quadobs.testbed.logs.start_prior`);
+        None: :data:`~quadobs.testbed.logs.start_prior.UNKNOWN_VELOCITY_STD`.
     """
 
     beacons: np.ndarray
@@ -225,6 +230,7 @@ class ReplaySetup:
     alignment0: np.ndarray | None = None
     nlos_median: float | None = None
     nlos_shape: float | None = None
+    start: StartPrior | None = None
     system: QuadraticSystem = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
@@ -401,7 +407,8 @@ def replay_setup(
 def log_frame(log) -> dict:
     """The setup's fields read from the log's frame, attitude and IMU: ``frame``, ``gravity``,
     ``attitude0``, ``imu_period``, ``gyro_noise``, ``gyro_bias``, ``range_errors`` and
-    ``range_std_stated`` (:class:`ReplaySetup`)."""
+    ``range_std_stated``, and the velocity's prior at the ``start``
+    (:func:`~quadobs.testbed.logs.start_prior.start_prior`; :class:`ReplaySetup`)."""
     attitude0 = None
     if log.attitude is not None and log.attitude.shape[0]:
         attitude0 = np.array(log.attitude[0, 1:5], dtype=float)
@@ -425,6 +432,7 @@ def log_frame(log) -> dict:
         "range_errors": str(getattr(log, "range_errors", "")),
         "range_std_stated": _stated_range_std(log),
         "alignment0": alignment0,
+        "start": start_prior(log),
     }
 
 
@@ -514,7 +522,7 @@ def build_ekf(s: ReplaySetup, x0: np.ndarray, name: str = "ekf", cls=FixedStartE
         s.system, s.range_sigma**2, offsets=0.5 * np.einsum("hi,hi->h", s.beacons, s.beacons)
     )
     P0 = np.full(s.n, s.P0)
-    P0[s.dim :] = 4.0  # the velocity, for the models that have one
+    P0[s.dim :] = velocity_variance(s)  # the velocity, for the models that have one
     est = cls(dyn, out, x0=x0, P0=np.diag(P0), gate=s.gate, measurements=s.measurement_models())
     if isinstance(est, MultilaterationStart) and "range" in s.kinds:
         est.start_from_fix(s.dim, start_threshold(s.beacons, s.range_sigma))
@@ -739,7 +747,7 @@ def build_onboard_ekf(
     force, so a body frame of any orientation, forward-right-down included, starts the right
     way up) with yaw zero, 0.05 rad in roll and pitch and :data:`UNKNOWN_YAW_STD` in yaw. Gravity is the
     log's, along ``-z`` (enu) or ``+z`` (ned). The position prior is ``P0`` per axis, the
-    velocity's 4 m^2/s^2 per axis (as :func:`build_ekf`).
+    velocity's :func:`~quadobs.testbed.logs.start_prior.velocity_variance` per axis (as :func:`build_ekf`).
     """
     from scipy.spatial.transform import Rotation
 
@@ -763,7 +771,7 @@ def build_onboard_ekf(
     else:
         q = np.asarray(s.attitude0, dtype=float)
         R0, att_std = Rotation.from_quat(q[[1, 2, 3, 0]]).as_matrix(), np.full(3, 0.05)
-    P0 = np.diag([s.P0] * 3 + [4.0] * 3)
+    P0 = np.diag([s.P0] * 3 + [velocity_variance(s)] * 3)
     est = OnboardEKF(
         models[0],
         h,

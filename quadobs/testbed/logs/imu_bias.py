@@ -147,7 +147,9 @@ def build_ekf_bias_imu(
     offsets = 0.5 * np.einsum("hi,hi->h", s.beacons, s.beacons)
     outputs = BiasedRangeOutputModel(system, s.range_sigma**2 * np.eye(q), offsets=offsets)
     extra = RangeModel(s.beacons, s.range_sigma, bias="state").extra_states()
-    prior = [s.P0] * dim + [4.0] * dim + [bias_std**2] * dim  # velocity as the replay's EKF
+    from quadobs.testbed.logs.start_prior import velocity_variance
+
+    prior = [s.P0] * dim + [velocity_variance(s)] * dim + [bias_std**2] * dim  # as the EKF
     P = np.diag(prior + [e.prior_std**2 for e in extra])
     xe = np.zeros(n + q)
     xe[: 2 * dim] = np.asarray(x0, dtype=float)[: 2 * dim]

@@ -24,6 +24,8 @@ added unless ``noise.*`` settings ask for it, :func:`log_scenario`) and the summ
 * from :class:`~quadobs.testbed.logs.figures.FieldFiguresSink`: ``rmse`` and ``max_error``
   after ``burn_in`` seconds, ``rmse_horizontal``, ``rmse_vertical`` (3-D), ``samples`` and
   ``diverged`` per estimator; ``tum`` (the folder and its files) with ``export_tum``.
+* ``start``: whether the log's first half second shows the vehicle at rest, the velocity's
+  prior standard deviation that follows and why (:mod:`~quadobs.testbed.logs.start_prior`).
 """
 
 from __future__ import annotations
@@ -475,6 +477,7 @@ def _summary(
         },
         "biases": None if biases is None else [float(b) for b in np.asarray(biases).ravel()],
         "initial_guess": [float(v) for v in x0],
+        "start": None if setup.start is None else setup.start.summary(),
         "noise": {
             "range_sigma": setup.range_sigma,
             "q_xy": setup.q_xy,
