@@ -5,7 +5,12 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from quadobs.testbed.logs.excess_model import calibrated_excess, excess_model
+from quadobs.testbed.logs.excess_model import (
+    MIN_TAIL,
+    calibrated_excess,
+    excess_model,
+    tail_signs,
+)
 
 Q, SIGMA = 8, 0.1
 
@@ -46,6 +51,26 @@ def test_tails_of_either_sign_do_not_identify_an_excess(tail):
     r, h = _residuals(1500, 1, tail)
     _, ok, why = excess_model(r, h, Q, SIGMA)
     assert not ok and "not identified" in why
+
+
+def test_the_tails_are_counted_about_a_centre_the_fit_does_not_move():
+    """A Student-t(3) error made exactly symmetric about each anchor's centre (each draw and its
+    negative, 4000 residuals): counted about each anchor's median, the tails above and below
+    are equal however the mixture is fitted. The fit's own centres ``mu_h`` sit below the
+    median where it puts excess on the upper tail (here 48 above against 42 below about
+    them), which would make a symmetric tail look one-sided."""
+    rng = np.random.default_rng(2)
+    half = rng.integers(0, 4, 2000)
+    x = SIGMA * rng.standard_t(3, half.size)
+    centre = rng.normal(0.0, 0.2, 4)
+    h = np.concatenate([half, half])
+    r = centre[h] + np.concatenate([x, -x])
+    fit, ok, why = excess_model(r, h, 4, SIGMA)
+    assert not ok and "not identified" in why
+    assert fit.fraction > 0.0 and fit.upper >= MIN_TAIL
+    assert fit.upper == fit.lower and fit.p_value > 0.5
+    about_fit = tail_signs(r - fit.centres[h], fit.sigma)
+    assert about_fit[0] > about_fit[1]  # the bias that counting about the median removes
 
 
 def test_without_the_ranges_noise_nothing_is_fitted():

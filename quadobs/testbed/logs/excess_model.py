@@ -47,8 +47,13 @@ excess only above. The excess is taken (:func:`excess_model`) only where
 * the ranges' line-of-sight noise is known (stated by ``ranges.csv`` or estimated from the
   ranges, :mod:`~quadobs.testbed.logs.range_noise`): where the ranges do not show their own
   noise (a log whose ranges to one anchor come half a second to a second apart, Plaza's), the residuals are the prediction's
-  error more than the radio's, and the gate stays;
-* the residuals beyond ``TAIL sigma`` above the centre outnumber those below it beyond chance:
+  error more than the radio's, and the gate stays (the noise's value only gates: the tails
+  are counted in the fitted core's ``sigma``, which holds the prediction's error as well, and
+  is not compared with it);
+* the residuals beyond ``TAIL sigma`` (the fitted core's) above each anchor's median residual
+  outnumber those below it beyond chance (the median, not the fitted ``mu_h``: the fit's
+  centres sit below a symmetric tail's centre wherever it puts excess on the upper half, and
+  counted about them a symmetric tail looks one-sided):
   the one-sided binomial test of ``U`` above among ``U + L`` at the level
   :data:`SIGNIFICANCE`, and at least :data:`MIN_TAIL` of them above (the log-normal's two
   parameters are then fitted to no fewer: the median's relative standard error
@@ -80,6 +85,7 @@ __all__ = [
     "excess_nll",
     "fit_excess",
     "known_noise",
+    "tail_signs",
 ]
 
 #: The setup options that state the excess (:class:`~quadobs.testbed.logs.estimators.ReplaySetup`).
@@ -112,7 +118,8 @@ class ExcessFit:
     centres : ndarray (q,)
         Each anchor's centre ``mu_h`` (m; NaN where it has no residual).
     upper, lower : int
-        Residuals beyond ``TAIL sigma`` above and below the centres.
+        Residuals beyond ``TAIL sigma`` above and below each anchor's median residual (a
+        centre that does not depend on the fit; :func:`tail_signs`).
     p_value : float
         The one-sided binomial test's probability of ``upper`` or more among ``upper + lower``.
     n : int
@@ -166,7 +173,8 @@ def fit_excess(r: np.ndarray, h: np.ndarray, q: int, iterations: int = ITERATION
     keep = np.isfinite(r)
     r, h = np.asarray(r, dtype=float)[keep], np.asarray(h)[keep]
     counts = np.bincount(h, minlength=q).astype(float)
-    mu = np.array([np.median(r[h == j]) if counts[j] else np.nan for j in range(q)])
+    median = np.array([np.median(r[h == j]) if counts[j] else np.nan for j in range(q)])
+    mu = median.copy()
     sigma = max(1.4826 * float(np.median(np.abs(r - mu[h]))), 1e-6)
     pi, m, s = 0.2, math.log(3.0 * sigma), 0.5
     e, du = np.exp(GRID), float(GRID[1] - GRID[0])
@@ -186,10 +194,26 @@ def fit_excess(r: np.ndarray, h: np.ndarray, q: int, iterations: int = ITERATION
         D2 = r - mu[h]
         D2 = np.subtract(D2[:, None], np.concatenate([[0.0], e])[None, :]) ** 2
         sigma = max(math.sqrt(float(np.einsum("ik,ik->", g, D2)) / r.size), 1e-6)
-    d = r - mu[h]
+    upper, lower, p = tail_signs(r - median[h], sigma)
+    return ExcessFit(math.exp(m), s, pi, sigma, mu, upper, lower, p, int(r.size))
+
+
+def tail_signs(d: np.ndarray, sigma: float) -> tuple[int, int, float]:
+    """``(U, L, p)``: the deviations ``d`` beyond ``TAIL sigma`` above (``U``) and below
+    (``L``) their centre, and the one-sided binomial test's probability of ``U`` or more
+    among ``U + L`` at one half,
+
+    .. math::
+
+        p = \\sum_{k \\ge U} \\binom{U + L}{k} 2^{-(U + L)}
+
+    (1 where ``U = 0``). The centre must not depend on the fit under test: centres fitted
+    under the excess (``mu_h`` of the M-step) are pulled below a symmetric heavy tail's
+    centre by the excess the fit puts on its upper half, which lengthens the upper tail
+    against the lower; :func:`fit_excess` gives each anchor's median residual."""
     upper, lower = int(np.sum(d > TAIL * sigma)), int(np.sum(d < -TAIL * sigma))
     p = float(stats.binomtest(upper, upper + lower, 0.5, "greater").pvalue) if upper else 1.0
-    return ExcessFit(math.exp(m), s, pi, sigma, mu, upper, lower, p, int(r.size))
+    return upper, lower, p
 
 
 def excess_nll(r, median: float, shape: float, fraction: float, sigma: float) -> np.ndarray:
