@@ -808,22 +808,32 @@ def estimator_biases(
             continue
         logged = _replay(log, dt, model, None, name, options)
         test = compare(_replay(log, dt, model, cal.biases, name, options), logged)
-        kept = test.better or chi2 > limit
-        cal.per_estimator[name] = {
-            "biases": "calibrated" if kept else "as logged",
-            "prior_chi2": chi2,
-            "prior_limit": limit,
-            **test.as_dict(),
-        }
-        what = "the calibrated biases subtracted" if kept else "the ranges as logged"
-        cal.reason += (
-            f"; {name} (range biases as states): {what}; the biases' chi-square under its"
-            f" prior {chi2:.1f} ({'above' if chi2 > limit else 'within'} {limit:.1f}); scored"
-            f" by {name}, the held-out ranges {_metres(test.score)} with them,"
+        scored = (
+            f"; scored by {name}, the held-out ranges {_metres(test.score)} with them,"
             f" {_metres(test.reference_score)} as logged,"
             f" {'' if test.better else 'not '}significantly better"
         )
+        _record_biases(
+            cal, name, test.better or chi2 > limit, (chi2, limit), "range biases as states",
+            "the biases'", test.as_dict(), scored,
+        )  # fmt: skip
     return cal.as_logged
+
+
+def _record_biases(cal, name, kept, chi2_limit, states, what_chi2, figures, scored="") -> None:
+    """Step 7's choice for ``name`` in ``cal.per_estimator`` and a clause of ``cal.reason``."""
+    chi2, limit = chi2_limit
+    cal.per_estimator[name] = {
+        "biases": "calibrated" if kept else "as logged",
+        "prior_chi2": chi2,
+        "prior_limit": limit,
+        **figures,
+    }
+    what = "the calibrated biases subtracted" if kept else "the ranges as logged"
+    cal.reason += (
+        f"; {name} ({states}): {what}; {what_chi2} chi-square under its prior {chi2:.1f}"
+        f" ({'above' if chi2 > limit else 'within'} {limit:.1f}){scored}"
+    )
 
 
 def _offsets_biases(log, cal: Calibration, name: str, est) -> bool:
@@ -847,18 +857,10 @@ def _offsets_biases(log, cal: Calibration, name: str, est) -> bool:
     mean, std = apparent_bias_prior(log)
     spread = np.sqrt(np.square(bias_prior_std(log)) + std * std)
     chi2, limit = outside_prior(np.asarray(cal.biases, dtype=float) - mean, spread)
-    kept = chi2 > limit
-    cal.per_estimator[name] = {
-        "biases": "calibrated" if kept else "as logged",
-        "prior_chi2": chi2,
-        "prior_limit": limit,
-    }
-    what = "the calibrated biases subtracted" if kept else "the ranges as logged"
-    cal.reason += (
-        f"; {name} (range biases and heights as states): {what}; the biases less the heights'"
-        f" apparent bias, chi-square under its prior {chi2:.1f}"
-        f" ({'above' if kept else 'within'} {limit:.1f})"
-    )
+    _record_biases(
+        cal, name, chi2 > limit, (chi2, limit), "range biases and heights as states",
+        "the biases less the heights' apparent bias,", {},
+    )  # fmt: skip
     return True
 
 
