@@ -32,8 +32,9 @@ of 1.8 m for an anchor whose bias is -0.14 m). Two rules keep the start-up error
 * **Consider until consistent.** The biases' rows of the gain are held at zero (a Schmidt,
   or consider, update: their covariance and cross-covariances are carried, so the position
   knows how uncertain they are) until the normalised innovations of the last two rounds of
-  anchors (``2 q`` corrections) sum below the gate's ``P`` quantile of ``chi^2(2 q)``
-  (39.25 for ``q = 8``, ``P = 0.999``): the vehicle's state then explains the ranges within
+  anchors (``2 q`` ranges: ``2 q`` scalar corrections, or two joint ones of ``q`` ranges)
+  sum below the gate's ``P`` quantile of ``chi^2`` of their degrees of freedom (39.25 for
+  ``q = 8``, ``P = 0.999``; :class:`NisWindow`): the vehicle's state then explains the ranges within
   the biases' prior, and the biases are opened. A lock-out's re-initialisation puts the
   biases back to their prior mean and closes them again.
 
