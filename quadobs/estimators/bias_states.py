@@ -32,8 +32,9 @@ of 1.8 m for an anchor whose bias is -0.14 m). Two rules keep the start-up error
 * **Consider until consistent.** The biases' rows of the gain are held at zero (a Schmidt,
   or consider, update: their covariance and cross-covariances are carried, so the position
   knows how uncertain they are) until the normalised innovations of the last two rounds of
-  anchors (``2 q`` corrections) sum below the gate's ``P`` quantile of ``chi^2(2 q)``
-  (39.25 for ``q = 8``, ``P = 0.999``): the vehicle's state then explains the ranges within
+  anchors (``2 q`` ranges: ``2 q`` scalar corrections, or two joint ones of ``q`` ranges)
+  sum below the gate's ``P`` quantile of ``chi^2`` of their degrees of freedom (39.25 for
+  ``q = 8``, ``P = 0.999``; :class:`NisWindow`): the vehicle's state then explains the ranges within
   the biases' prior, and the biases are opened. A lock-out's re-initialisation puts the
   biases back to their prior mean and closes them again.
 
@@ -184,6 +185,62 @@ def _sight_model(name: str) -> str:
     return name
 
 
+class NisWindow:
+    """The latest NIS values of a filter, each with its degrees of freedom, covering ``length``
+    degrees of freedom in all, and the test that their sum is consistent.
+
+    A correction by ``k`` outputs together adds one NIS of ``k`` degrees of freedom; the window
+    keeps the fewest latest values whose degrees of freedom sum to at least ``length`` (``length``
+    scalar ranges, or as many ranges in joint corrections). Under the model the sum of
+    independent NIS values of ``k_i`` degrees of freedom follows ``chi^2(sum_i k_i)``, so
+    :meth:`consistent` tests ``sum_i NIS_i <= chi^2_probability(sum_i k_i)``.
+
+    Parameters
+    ----------
+    length : int
+        Degrees of freedom the window covers (``2q``: two rounds of ``q`` anchors).
+    probability : float
+        The quantile of the test.
+    """
+
+    def __init__(self, length: int, probability: float) -> None:
+        self.length = int(length)
+        self.probability = float(probability)
+        self._values: deque = deque()
+        self.dof = 0
+        self._thresholds: dict[int, float] = {}
+
+    def __len__(self) -> int:
+        return len(self._values)
+
+    def threshold(self, dof: int) -> float:
+        """``chi^2_probability(dof)`` (cached by ``dof``)."""
+        hit = self._thresholds.get(dof)
+        if hit is None:
+            hit = self._thresholds[dof] = chi2_threshold(self.probability, dof)
+        return hit
+
+    def append(self, nis: float, dof: int) -> None:
+        """Add one NIS of ``dof`` degrees of freedom, dropping the oldest ones no longer needed."""
+        w = self._values
+        w.append((nis, int(dof)))
+        self.dof += int(dof)
+        while self.dof - w[0][1] >= self.length:
+            self.dof -= w.popleft()[1]
+
+    def consistent(self) -> bool:
+        """Whether the window covers ``length`` degrees of freedom and its sum is within
+        ``chi^2_probability(dof)``."""
+        if self.dof < self.length:
+            return False
+        return sum(v for v, _ in self._values) <= self.threshold(self.dof)
+
+    def clear(self) -> None:
+        """Empty the window."""
+        self._values.clear()
+        self.dof = 0
+
+
 class _VehicleBlock:
     """Reports the vehicle's state ``x`` (the first ``n`` entries), keeps the biases apart,
     and starts the biases only once the vehicle's state is known (the module docstring's
@@ -212,7 +269,7 @@ class _VehicleBlock:
     _bias_prior: np.ndarray
     _fix_var: float
     _waited: int
-    _nis_window: deque
+    _nis_window: NisWindow
     # the filter's own (the class this one is mixed into); declared for the type checker only
     _x: np.ndarray
     _P: np.ndarray
@@ -246,12 +303,12 @@ class _VehicleBlock:
         self._waited = 0
         self._fix_var = std * std
         self.biases_open = False
-        self._nis_window = deque(maxlen=2 * q)
+        self._nis_window = NisWindow(2 * q, probability)
         self._anchor = -1
         self._nlos = np.zeros(q)  # each anchor's chain starts in line of sight
         self._nlos_time = np.full(q, self._time)
         self.sight = None  # the ExcessMixture's BiasSightGrid, from the biases' opening
-        self.open_threshold = chi2_threshold(probability, 2 * q)
+        self.open_threshold = self._nis_window.threshold(2 * q)
 
     def _shape_gain(self, K: np.ndarray, nu: np.ndarray, S: np.ndarray) -> np.ndarray:
         """The biases' rows of the gain held at zero until they are open (a consider update)."""
@@ -393,8 +450,8 @@ class _VehicleBlock:
         error of the estimate it replaces, and spreads the UKF's sigma points over metres)."""
         if not self.biases_open:
             w = self._nis_window
-            w.append(self.nis)
-            if len(w) == w.maxlen and sum(w) <= self.open_threshold:
+            w.append(self.nis, self.nis_dof)
+            if w.consistent():
                 self.biases_open = True
                 self.opened_at.append(self._time)
         before = len(self.lockout.resets)

@@ -384,14 +384,14 @@ class _GaussianFilter(HalfSteps, Gated):
         R = self.outputs.R if isinstance(idx, slice) else self.outputs.R[np.ix_(idx, idx)]
         self._correct_rows(y[idx], idx, R)
 
-    def _correct_rows(self, y: np.ndarray, idx, R: np.ndarray) -> None:
+    def _correct_rows(self, y: np.ndarray, idx, R: np.ndarray, scalar: bool = False) -> None:
         """Correct with the outputs ``idx`` (indices, or ``slice(None)``: all) of values ``y`` and
-        noise ``R``: one joint correction; under a robust rule with uncorrelated noise, one
-        scalar correction after the other (each output judged on its own, one degree of
-        freedom, as measurements at their own times are)."""
+        noise ``R``: one joint correction; under a robust rule, or when ``scalar`` is asked for,
+        with uncorrelated noise, one scalar correction after the other (each output judged on
+        its own, one degree of freedom, as measurements at their own times are)."""
         z = self.outputs.measure(y, idx)
         if (
-            self.robust is not None
+            (self.robust is not None or scalar)
             and z.shape[0] > 1
             and np.count_nonzero(R - np.diag(np.diag(R))) == 0
         ):
@@ -453,7 +453,12 @@ class _GaussianFilter(HalfSteps, Gated):
         outputs present (each range's variance ``m.std^2``, or ``R_hh`` when it states none, as in
         :meth:`correct`). Anything else (another kind, two ranges of one anchor, a single
         measurement), and any batch while a start-up waits for its fix (:attr:`fix_pending`),
-        one measurement after the other (:meth:`Estimator.correct_many`)."""
+        one measurement after the other (:meth:`Estimator.correct_many`).
+
+        With a ``gate``, ranges of uncorrelated noise are corrected one after the other, each
+        gated alone: the gate is a quantile of ``chi^2(1)``, while the NIS of ``k`` ranges
+        together follows ``chi^2(k)`` (a consistent filter would lose whole rounds to it, and
+        one outlier would take the round's other ranges with it)."""
         measurements = list(measurements)
         joint = None if self.fix_pending else self._joint_outputs(measurements)
         if joint is None:
@@ -462,7 +467,7 @@ class _GaussianFilter(HalfSteps, Gated):
         idx, y, R = joint
         self._latest[idx] = y
         self._settle()
-        self._correct_rows(y, idx, R)
+        self._correct_rows(y, idx, R, scalar=self.gate is not None)
 
     def _joint_outputs(self, measurements: list):
         """``(idx, y, R)``: the anchors (ascending), quadratic outputs and noise of ranges one per

@@ -215,3 +215,113 @@ def test_the_replay_feeds_equal_stamps_as_one_vector_and_distinct_ones_singly():
         feed.step(np.zeros(1), np.zeros(3))
     assert spy.calls == [("many", 0.0, 3), ("one", 0.013), ("many", 0.02, 2)]
     assert math.isclose(spy.time, 0.03)
+
+
+GATED_BEACONS = np.array([[0.0, 0.0], [20.0, 0.0], [5.0, 15.0], [18.0, 17.0]])
+
+
+def _gated(cls):
+    """A filter at the truth, consistent with ranges of 0.1 m, gated at ``chi^2_0.999(1)``."""
+    system = vehicle_system(2, GATED_BEACONS)
+    dyn = HeldInputModel(system, DT, V=np.diag([0.0, 0.0, 1e-6, 1e-6]))
+    offsets = 0.5 * np.einsum("hi,hi->h", GATED_BEACONS, GATED_BEACONS)
+    out = OutputModel(system, 0.01, offsets=offsets)
+    x0, P0 = [6.0, 3.0, 0.0, 0.0], np.diag([1e-4, 1e-4, 1e-6, 1e-6])
+    return cls(dyn, out, x0=x0, P0=P0, gate=10.83)
+
+
+def _gated_round(est, rho):
+    return [Measurement(est.time, "range", float(r), (h,), 0.1) for h, r in enumerate(rho)]
+
+
+def test_a_gated_filter_judges_each_range_of_one_time_alone():
+    """With a gate on ``chi^2(1)``, four ranges of one time are corrected one after the other
+    (the result of ``correct`` on each, exactly), each judged alone: a consistent filter
+    rejects about ``0.1 %`` of them, where one joint NIS of ``chi^2(4)`` against that gate
+    would reject about 3 % of the rounds."""
+    joint, seq = _gated(ExtendedKalmanFilter), _gated(ExtendedKalmanFilter)
+    rng = np.random.default_rng(0)
+    truth = np.linalg.norm(np.array([6.0, 3.0]) - GATED_BEACONS, axis=1)
+    for _ in range(400):
+        ms = _gated_round(joint, truth + 0.1 * rng.standard_normal(4))
+        joint.correct_many(ms)
+        for m in ms:
+            seq.correct(m)
+        joint.predict(joint.time + DT)
+        seq.predict(seq.time + DT)
+    np.testing.assert_array_equal(joint.x_hat, seq.x_hat)
+    assert (joint.corrections, joint.rejected) == (seq.corrections, seq.rejected)
+    assert joint.corrections + joint.rejected == 1600 and joint.nis_dof == 1
+    assert joint.rejected / 1600 < 0.005
+
+
+@pytest.mark.parametrize("cls", [ExtendedKalmanFilter, UnscentedKalmanFilter])
+def test_one_outlier_of_a_gated_round_leaves_the_other_ranges(cls):
+    """A range 2 m long among four of one time is rejected alone; the other three correct."""
+    est = _gated(cls)
+    rho = np.linalg.norm(np.array([6.0, 3.0]) - GATED_BEACONS, axis=1) + [0.05, 2.0, -0.04, 0.02]
+    est.correct_many(_gated_round(est, rho))
+    assert (est.corrections, est.rejected) == (3, 1)
+
+
+def test_the_nis_window_covers_its_degrees_of_freedom_and_tests_their_chi2():
+    """Scalar NIS values: the window of ``2q`` of them against ``chi^2(2q)``, as before; an
+    8-dof NIS takes the place of eight of them; NIS values drawn from ``chi^2(8)`` pass the
+    test at ``probability`` (window of two of them, ``chi^2(16)``)."""
+    from scipy import stats
+
+    from quadobs.estimators.bias_states import NisWindow
+
+    w = NisWindow(16, 0.9)
+    for _ in range(20):
+        w.append(0.5, 1)
+    assert (len(w), w.dof) == (16, 16) and w.consistent()
+    w.append(30.0, 8)
+    assert (len(w), w.dof) == (9, 16)
+    assert w.threshold(16) == pytest.approx(stats.chi2.ppf(0.9, 16), rel=1e-12)
+    assert not w.consistent()  # 8 * 0.5 + 30 > 23.5
+    w.clear()
+    rng = np.random.default_rng(3)
+    passed = []
+    for nis in rng.chisquare(8, 2000):
+        w.append(float(nis), 8)
+        if w.dof >= 16:
+            passed.append(w.consistent())
+    assert len(w) == 2 and abs(np.mean(passed) - 0.9) < 0.04
+
+
+def test_a_bias_filter_fed_whole_rounds_opens_its_biases_after_two_rounds():
+    """The eight ranges of one time corrected jointly (one NIS of 8 dof each): the biases open
+    once two rounds (16 dof) are consistent, at the second round, as the same ranges corrected
+    one at a time open them after sixteen."""
+    from quadobs.core.measurements import RangeModel
+    from quadobs.estimators.bias_states import BiasedExtendedKalmanFilter, biased_models
+
+    anchors = np.array(
+        [[x, y, z] for z in (0.2, 2.8) for x, y in ((-3, -3), (3, -3), (3, 3), (-3, 3))]
+    )
+    biases = np.array([0.1, -0.2, 0.3, 0.05, -0.15, 0.2, 0.0, -0.3])
+    system = vehicle_system(3, anchors)
+    opened = {}
+    for mode in ("joint", "sequential"):
+        model = RangeModel(anchors, 0.05, bias="state")
+        dyn, out, P0 = biased_models(system, 0.01, 0.05, 0.02, 4.0 * np.eye(6), model)
+        x0 = np.r_[2.0, 3.0, 0.0, np.zeros(3), np.zeros(8)]
+        est = BiasedExtendedKalmanFilter(dyn, out, x0=x0, P0=P0, vehicle_n=6)
+        rng = np.random.default_rng(2)
+        p, v = np.array([0.0, 0.0, 1.5]), np.array([0.6, 0.8, 0.1])
+        for k in range(20):
+            a = np.array([np.sin(0.3 * k), np.cos(0.2 * k), 0.0])
+            rho = np.linalg.norm(p - anchors, axis=1) + biases + 0.05 * rng.standard_normal(8)
+            p, v = p + v * 0.01 + 0.5 * a * 1e-4, v + a * 0.01
+            ms = [Measurement(k * 0.01, "range", float(r), (h,)) for h, r in enumerate(rho)]
+            if mode == "joint":
+                est.correct_many(ms)
+            else:
+                for m in ms:
+                    est.correct(m)
+            est.hold(a)
+            est.predict(k * 0.01 + 0.01)
+        opened[mode] = est.opened_at
+    assert opened["joint"] == pytest.approx([0.01])
+    assert opened["sequential"] == pytest.approx([0.02])
