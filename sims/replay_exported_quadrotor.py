@@ -19,7 +19,7 @@ the body-IMU filters, ``onboard-ekf``: NaN there).
 ``--live-prior`` adds a column: the replay's filters with the anchors' biases as states
 (``ekf-bias``, ``ukf-bias``: its settings, fed in time) started from the live episode's prior on
 the vehicle's state (the scenario's initial covariance: 0.1 m/s on the velocity, where a log's
-replay takes what the log's start shows: :mod:`quadobs.testbed.logs.start_prior`), which isolates the
+replay takes 2 m/s: :mod:`quadobs.testbed.logs.start_prior`), which isolates the
 prior from the way the ranges are fed.
 
 ``--live-and-replay`` prints the first two columns alone (a quarter of the work: for a sweep

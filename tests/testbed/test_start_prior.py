@@ -1,12 +1,14 @@
 """The replay's velocity prior from the log's start (:mod:`quadobs.testbed.logs.start_prior`):
 an IMU at rest gives the bound its window cannot exclude, one in motion or a log without an
-IMU the unknown start's 2 m/s; the builders and the summary take it."""
+IMU the unknown start's 2 m/s; the summary reports it, the builders take 2 m/s unless a
+velocity_std is given."""
 
 import math
 
 import numpy as np
 import pytest
 
+from quadobs.errors import QuadobsError
 from quadobs.testbed.logs import RangeLog
 from quadobs.testbed.logs.estimators import ReplaySetup, build_ekf, log_frame
 from quadobs.testbed.logs.start_prior import (
@@ -94,18 +96,25 @@ def test_a_log_without_an_imu_keeps_the_unknown_start():
     assert not prior.at_rest and prior.velocity_std == UNKNOWN_VELOCITY_STD
 
 
-def test_the_builders_and_the_summary_take_the_start():
+def test_the_builders_report_the_start_and_take_a_given_velocity_std():
+    """The rest test's bound is reported, not applied (an IMU cannot tell rest from a constant
+    velocity): the filters keep 2 m/s unless ``velocity_std`` is given."""
     log = _imu_log(accel_noise=ACCEL_NOISE, gyro_noise=GYRO_NOISE)
     frame = log_frame(log)
     s = ReplaySetup(ANCHORS, 0.1, "imu", 0.0, 4.0, input_kind="imu_body", **frame)
     ekf = build_ekf(s, np.r_[3.0, 3.0, 1.5, 0.0, 0.0, 0.0])
+    assert np.diag(ekf._P)[3:] == pytest.approx([4.0] * 3)
     std = frame["start"].velocity_std
-    assert np.diag(ekf._P)[3:] == pytest.approx([std**2] * 3)
-    plain = ReplaySetup(ANCHORS, 0.1, "imu", 0.0, 4.0, input_kind="imu_body")
-    assert np.diag(build_ekf(plain, np.zeros(6))._P)[3:] == pytest.approx([4.0] * 3)
+    given = ReplaySetup(
+        ANCHORS, 0.1, "imu", 0.0, 4.0, input_kind="imu_body", velocity_std=std, **frame
+    )
+    assert np.diag(build_ekf(given, np.zeros(6))._P)[3:] == pytest.approx([std**2] * 3)
     assert frame["start"].summary() == {
         "at_rest": True, "velocity_std": std, "reason": "no motion in the first 0.5 s",
+        "applied": False,
     }  # fmt: skip
+    with pytest.raises(QuadobsError, match="velocity_std"):
+        ReplaySetup(ANCHORS, 0.1, "imu", 0.0, 4.0, input_kind="imu_body", velocity_std=-1.0)
 
 
 def test_the_replay_s_summary_reports_the_start():

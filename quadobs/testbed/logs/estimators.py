@@ -199,8 +199,13 @@ class ReplaySetup:
         ``odometry`` also carries the heading's drift. Its prior is ``q_xy``'s (1 m^2/s).
     start : StartPrior or None
         Whether the log's first half second shows the vehicle at rest, and the velocity's
-        prior standard deviation that follows (:mod:`~quadobs.testbed.logs.start_prior`);
-        None: :data:`~quadobs.testbed.logs.start_prior.UNKNOWN_VELOCITY_STD`.
+        bound that would follow (:mod:`~quadobs.testbed.logs.start_prior`): reported, not
+        applied (an IMU cannot tell rest from a constant velocity).
+    velocity_std : float or None
+        The velocity's prior standard deviation per axis (m/s) of the filters with a velocity
+        state (``--tune velocity_std=...``); None:
+        :data:`~quadobs.testbed.logs.start_prior.UNKNOWN_VELOCITY_STD`
+        (:func:`~quadobs.testbed.logs.start_prior.velocity_variance`).
     """
 
     beacons: np.ndarray
@@ -231,6 +236,7 @@ class ReplaySetup:
     nlos_median: float | None = None
     nlos_shape: float | None = None
     start: StartPrior | None = None
+    velocity_std: float | None = None
     system: QuadraticSystem = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
@@ -242,7 +248,7 @@ class ReplaySetup:
             if key == "range_bias":
                 continue
             value = getattr(self, key)
-            if not (key == "gate" and value is None) and not (
+            if not (key in ("gate", "velocity_std") and value is None) and not (
                 isinstance(value, (int, float)) and 0 < value < math.inf
             ):
                 raise QuadobsError(
@@ -292,7 +298,7 @@ class ReplaySetup:
 #: The settings of :class:`ReplaySetup` a user may tune (``quadobs replay --tune KEY=VALUE``).
 TUNING = (
     "range_sigma", "q_xy", "q_theta", "q_acc", "q_imu", "gate", "P0", "range_bias",
-    "q_xy_heading",
+    "q_xy_heading", "velocity_std",
 )  # fmt: skip
 
 
