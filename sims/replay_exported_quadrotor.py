@@ -76,7 +76,6 @@ def run_live(scenario, names, folder, beside=None) -> dict:
 def scenario_estimators_rmse(scenario, log, names, x0, burn_in: float, timed: bool = False) -> dict:
     """Position RMSE after ``burn_in`` of the scenario's own estimators driven by the log's rows
     on its grid, or (``timed``) by each measurement at its own time as the replay feeds them."""
-    from quadobs.testbed.episode import run_loop
     from quadobs.testbed.logs.events import LogEvents, in_time, takes_time
     from quadobs.testbed.registry import build_estimators
     from quadobs.testbed.sinks import TraceSink
@@ -88,26 +87,14 @@ def scenario_estimators_rmse(scenario, log, names, x0, burn_in: float, timed: bo
     if timed:
         events = LogEvents(log, start=world.times[0], end=world.times[-1])
         built = [in_time(e, events, world.times) if takes_time(e) else e for e in built]
-    run_loop(
-        lambda merged, *rest: merged,
-        frame=world.frame(),
-        world=world,
-        estimators=built,
-        sinks=[trace],
-    )
-    t, X = trace.trace["time"], trace.trace["truth"]
-    out = {}
-    for n in names:
-        e = (trace.trace["estimates"][n][:, :3] - X[:, :3])[t >= burn_in]
-        out[n] = float(np.sqrt(np.mean(np.sum(e * e, axis=1))))
-    return out
+    _run(world, built, trace)
+    return _rmse(trace, names, burn_in)
 
 
 def replayed_from_live_prior(scenario, log, names, x0, burn_in: float, dt: float) -> dict:
     """Position RMSE after ``burn_in`` of the replay's bias filters (``ekf-bias``, ``ukf-bias``)
     fed in time as :func:`~quadobs.testbed.logs.replay.run_replay` feeds them, with the vehicle
     block of their prior set to the scenario's initial covariance (the others: not run)."""
-    from quadobs.testbed.episode import run_loop
     from quadobs.testbed.factories import initial_covariance
     from quadobs.testbed.logs.estimators import build_replay_estimators
     from quadobs.testbed.logs.events import LogEvents, in_time
@@ -129,13 +116,25 @@ def replayed_from_live_prior(scenario, log, names, x0, burn_in: float, dt: float
         e._P[:k, :k] = P0
     events = LogEvents(log, start=world.times[0], end=world.times[-1], std=setup.measurement_std())
     trace = TraceSink(1, world.steps)
+    _run(world, [in_time(e, events, world.times) for e in built], trace)
+    return _rmse(trace, names, burn_in)
+
+
+def _run(world, estimators, trace) -> None:
+    """The episode's loop over the log's world, recording into ``trace``."""
+    from quadobs.testbed.episode import run_loop
+
     run_loop(
         lambda merged, *rest: merged,
         frame=world.frame(),
         world=world,
-        estimators=[in_time(e, events, world.times) for e in built],
+        estimators=estimators,
         sinks=[trace],
     )
+
+
+def _rmse(trace, names, burn_in: float) -> dict:
+    """Each estimator's position RMSE in ``trace`` after ``burn_in`` seconds."""
     t, X = trace.trace["time"], trace.trace["truth"]
     out = {}
     for n in names:
