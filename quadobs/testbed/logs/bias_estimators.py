@@ -13,7 +13,7 @@ innovation is too *long* for line of sight is left out, since non-line-of-sight 
 positive and a bias state would take it in. Its two-sided probability is that of the replay's
 ``gate`` (a threshold on ``chi^2(1)``), else 0.999.
 They keep that gate where the self-calibration estimated the ranges' non-line-of-sight excess
-(:mod:`~quadobs.testbed.logs.excess_model`), which ``ekf-bias-imu`` takes through an
+(:mod:`~quadobs.testbed.logs.excess_model`), which ``ekf-bias-imu-nlos`` takes through an
 :class:`~quadobs.estimators.robust.ExcessMixture` (:func:`range_rule`): under the mixture they
 lost on two of four body-IMU flights (their innovations also carry the acceleration's slow
 error, which they do not hold as a state; the cause was not examined further). Measured on the flights of

@@ -82,7 +82,7 @@ replay is given a clock offset or asked to search one (``--clock-offset``, not b
 8. the ranges' non-line-of-sight excess, fitted to the chosen setting's residuals (a
    Gaussian and a Gaussian shifted by a log-normal excess, :mod:`~quadobs.testbed.logs.excess_model`)
    where the log states no Gaussian ranges and their noise is known: set in the options
-   (``nlos_median``, ``nlos_shape``; ``ekf-bias-imu`` then weighs each range by an
+   (``nlos_median``, ``nlos_shape``; ``ekf-bias-imu-nlos`` then weighs each range by an
    :class:`~quadobs.estimators.robust.ExcessMixture` of it,
    :func:`~quadobs.testbed.logs.bias_estimators.range_rule`) only where the residuals
    identify it, else the filters keep the one-sided gate.
