@@ -494,9 +494,9 @@ class RefinedObserver(Estimator, Gated, Immersed, Switching):
         self.nis = ekf.nis
         if not has:
             return
-        if self.robust is None:
+        if self.robust is None and self.gate is None:
             rejected = self._count(ekf.nis)
-        else:  # the EKF's own rule decided
+        else:  # the EKF's own rule decided (its gate judges each output of the step alone)
             rejected = ekf.rejected > before
             self.rejected += rejected
             self.corrections += not rejected

@@ -41,8 +41,19 @@ came of that prior by what one round of ranges says on its own, the rule that th
   for the process noise's independent increments, larger than it for a velocity's prior error
   ``e_v`` (``P_vv (t^2 - t_0^2)`` against ``P_vv (t - t_0)^2``), so conservative. The position takes the fix and
   ``P_fix``, its correlations with the other states dropped, in place of what the corrections
-  made of it from the wide prior; the range that completed the round is then corrected as
-  usual.
+  made of it from the wide prior.
+* **No second correction.** The ranges the fix is made of (the latest of each anchor: the range
+  that completed the round, or all the outputs of the grid step that did) are not corrected
+  by again. ``P_fix`` is the covariance of an error made of their noise; a correction by one of
+  them would take that noise as independent of the estimate's error and count it twice. In
+  the linear case ``z = H p + n`` fixed by least squares, ``p_fix = (H^T R^-1 H)^-1 H^T R^-1 z``
+  with ``P_fix = (H^T R^-1 H)^-1``, a correction by ``z`` leaves the mean where it is (the
+  residual ``z - H p_fix`` is ``R^-1``-orthogonal to ``H``) and halves the covariance,
+  ``(2 H^T R^-1 H)^-1 = P_fix / 2``, while the error's is still ``P_fix``. Growing ``P_fix`` so
+  that the correction would shrink it back is no remedy: the fix takes the ``q - 1``
+  differences of the outputs, not the ranges themselves, so no factor makes the second
+  correction exact, while leaving it out is: the position and ``P_fix`` are what those
+  ranges say. The step's :attr:`nis` is then NaN (no correction).
 * **No fix.** A filter still waiting at the end of its run, or one that gave up without a
   fix, never took the position its ranges give; it ran from its prior, correcting every range
   with the grown variance above. :func:`not_started` records it, and the testbed's summaries
@@ -228,7 +239,9 @@ class MultilaterationStart:
         h, yh, _ = self._model_of(m).quadratic_output(m)
         s2 = m.std**2 if math.isfinite(m.std) else float(self.outputs.R[h, h])
         self._keep(h, yh, s2)
-        self._try_fix()
+        if self._try_fix():  # the fix is made of this range: it is not corrected by again
+            self.nis, self.nis_dof = float("nan"), 0
+            return
         before = self._x.copy()
         extra = self._waiting_variance(h) if self.fix_pending else 0.0
         if extra > 0.0:  # the linearisation's second-order term as noise (module docstring)
@@ -244,7 +257,9 @@ class MultilaterationStart:
         y = np.asarray(y, dtype=float)
         for h in np.flatnonzero(~np.isnan(y)):
             self._keep(int(h), float(y[h]), None)
-        self._try_fix()
+        if self._try_fix():  # the fix is made of every output of the step (the latest of each)
+            self.nis, self.nis_dof = float("nan"), 0
+            return
         before = self._x.copy()
         super().correct_outputs(y)  # type: ignore[misc]
         if self.fix_pending:
@@ -270,17 +285,18 @@ class MultilaterationStart:
         HP = (np.eye(d) - np.outer(u, u)) @ self._P[:d, :d] / rho
         return 0.5 * float(np.trace(HP @ HP))
 
-    def _try_fix(self) -> None:
-        """Set the position from the kept ranges once a round is in (module docstring)."""
+    def _try_fix(self) -> bool:
+        """Set the position from the kept ranges once a round is in (module docstring); whether
+        it was set (the ranges kept then are in the fix, and are not corrected by again)."""
         q = self.q
         if np.isnan(self._latest).any() and self._waited < 2 * q:
-            return
+            return False
         fixed = self._fix()
         if fixed is None:
             if self._waited >= 4 * q:
                 self.fix_pending = False
                 self.fix_abandoned = self._time
-            return
+            return False
         cols, p, cov = fixed
         self._settle()
         self._x[cols] = p
@@ -289,6 +305,7 @@ class MultilaterationStart:
         self._P[np.ix_(cols, cols)] = cov
         self.fix_pending = False
         self.fixes.append(self._time)
+        return True
 
     def _fix(self):
         """``(columns, position, covariance)`` of the time-aligned multilateration, or None."""

@@ -251,8 +251,81 @@ def test_a_gated_filter_judges_each_range_of_one_time_alone():
         seq.predict(seq.time + DT)
     np.testing.assert_array_equal(joint.x_hat, seq.x_hat)
     assert (joint.corrections, joint.rejected) == (seq.corrections, seq.rejected)
-    assert joint.corrections + joint.rejected == 1600 and joint.nis_dof == 1
+    assert joint.corrections + joint.rejected == 1600 and joint.nis_dof == 4
     assert joint.rejected / 1600 < 0.005
+
+
+def _round_outputs(rho):
+    """The grid's outputs ``y_h = rho_h^2 / 2 - |a_h|^2 / 2`` of ranges ``rho``."""
+    return 0.5 * np.asarray(rho) ** 2 - 0.5 * np.einsum("hi,hi->h", GATED_BEACONS, GATED_BEACONS)
+
+
+@pytest.mark.parametrize("cls", [ExtendedKalmanFilter, UnscentedKalmanFilter])
+def test_the_gated_grid_step_judges_each_output_alone_as_correct_many_does(cls):
+    """``step(u, y)`` with four ranges present and a gate: the result of ``correct_many`` on the
+    same ranges, to the bit (one place), and of ``correct`` on each in turn; the recorded NIS
+    is the sum of the four scalar ones with four degrees of freedom."""
+    grid, many, seq = _gated(cls), _gated(cls), _gated(cls)
+    rng = np.random.default_rng(1)
+    truth = np.linalg.norm(np.array([6.0, 3.0]) - GATED_BEACONS, axis=1)
+    for _ in range(20):
+        rho = truth + 0.1 * rng.standard_normal(4)
+        ms = _gated_round(many, rho)
+        nis = 0.0
+        for m in ms:
+            seq.correct(m)
+            nis += seq.nis
+        many.correct_many(ms)
+        grid.step(np.zeros(2), _round_outputs(rho))
+        for f in (many, seq):
+            f.predict(f.time + DT)
+        assert (grid.nis, grid.nis_dof) == (pytest.approx(nis, rel=1e-9), 4)
+    for f in (many, seq):
+        np.testing.assert_allclose(grid.x_hat, f.x_hat, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(grid.x_covariance, f.x_covariance, rtol=0, atol=1e-15)
+        assert (grid.corrections, grid.rejected) == (f.corrections, f.rejected) == (80, 0)
+
+
+def test_a_round_each_range_of_which_passes_is_not_rejected_for_its_joint_nis():
+    """Four ranges each ``2.9 sqrt(S)`` off (NIS about 8.4 < 10.83 each, about 25 jointly, beyond
+    the gate stated for one range): the grid step takes all four, one at a time, where a
+    joint NIS against the gate would have rejected the round; a 2 m outlier among them is
+    rejected alone."""
+    for outlier, counts in ((0.0, (4, 0)), (2.0, (3, 1))):
+        est = _gated(ExtendedKalmanFilter)
+        _, H = est.outputs.linearize(est.x_hat)
+        S = np.einsum("hi,ij,hj->h", H, est.x_covariance, H) + 0.01
+        rho = np.linalg.norm(np.array([6.0, 3.0]) - GATED_BEACONS, axis=1)
+        rho = rho + 2.9 * np.sqrt(S) * np.array([1.0, -1.0, 1.0, -1.0])
+        rho[1] += outlier
+        est.step(np.zeros(2), _round_outputs(rho))
+        assert (est.corrections, est.rejected) == counts
+
+
+def test_correlated_outputs_are_gated_jointly_at_the_same_probability():
+    """Correlated noise cannot be split: one joint correction, gated at the ``chi^2(k)`` quantile
+    of the probability the gate keeps for one output (10.83 -> 0.999 -> 13.82 for two, 18.47
+    for four); the threshold is closed form, and a joint NIS between the two is accepted."""
+    from scipy import stats
+
+    est = _gated(ExtendedKalmanFilter)
+    assert est.gate_threshold(1) == 10.83
+    p = stats.chi2.cdf(10.83, 1)
+    for k in (2, 4):
+        assert est.gate_threshold(k) == pytest.approx(stats.chi2.ppf(p, k), rel=1e-9)
+    assert est.gate_threshold(2) == pytest.approx(13.82, abs=0.01)
+    R = 0.01 * (np.eye(4) + 0.5 * (np.ones((4, 4)) - np.eye(4)))
+    system = est.outputs.system
+    for scale, counts in ((1.0, (1, 0)), (1.5, (0, 1))):
+        f = _gated(ExtendedKalmanFilter)
+        f.outputs = OutputModel(system, R, offsets=f.outputs.offsets)
+        z, H = f.outputs.linearize(f.x_hat)
+        S = H @ f.x_covariance @ H.T + R
+        nu = np.array([1.0, -1.0, 1.0, -1.0])
+        nu *= scale * np.sqrt(15.0 / (nu @ np.linalg.solve(S, nu)))  # NIS 15, then 33.75
+        f.step(np.zeros(2), _round_outputs(z + nu))
+        assert (f.corrections, f.rejected, f.nis_dof) == (*counts, 4)
+        assert f.nis == pytest.approx(15.0 * scale**2, rel=1e-9)
 
 
 @pytest.mark.parametrize("cls", [ExtendedKalmanFilter, UnscentedKalmanFilter])

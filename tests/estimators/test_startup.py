@@ -52,31 +52,57 @@ def test_moving_vehicle_fixed_exactly_from_ranges_of_different_times(cls):
     assert est.fix_pending and est.corrections == 3  # waiting: corrected as usual
     _drive(est, p0, vel, [1.2], first=3)  # the fourth anchor's range completes the round
     assert not est.fix_pending and est.fixes == [pytest.approx(1.2)]
-    assert est.corrections == 4
-    # the EKF corrects the completing range at the exact position (no innovation); the UKF's
-    # unscented mean over the fix's metre-wide covariance moves it by centimetres
-    tol = 1e-9 if cls is FixedStartEKF else 0.05
-    np.testing.assert_allclose(est.x_hat, p0 + vel * 1.2, atol=tol)
+    # the completing range is in the fix and is not corrected by again: the fix itself
+    assert est.corrections == 3 and np.isnan(est.nis) and est.nis_dof == 0
+    np.testing.assert_allclose(est.x_hat, p0 + vel * 1.2, atol=1e-9)
+
+
+def _least_squares_fix_covariance(p):
+    """``D^+ Sigma D^+T`` of a round of noise-free ranges from ``p`` (closed form of the module
+    docstring, ``var y_h = rho_h^2 sigma^2 + sigma^4 / 2``, the first output's shared)."""
+    rho = np.linalg.norm(p - ANCHORS, axis=1)
+    var = rho**2 * SIGMA**2 + 0.5 * SIGMA**4
+    pinv = np.linalg.pinv(-(ANCHORS[1:] - ANCHORS[0]))
+    return pinv @ (np.diag(var[1:]) + var[0]) @ pinv.T
 
 
 def test_fix_covariance_is_the_least_squares_one_plus_the_prediction_since():
-    """``P = D^+ Sigma D^+T + q_xy (t - t_0) I`` (closed form) before the completing range's
-    own correction: checked on the range that completes the round, corrected by hand."""
+    """``P = D^+ Sigma D^+T + q_xy (t - t_0) I`` (closed form) after the range that completes the
+    round: the fix's own, that range not corrected by a second time (which would shrink ``P``
+    below the covariance of the fix's error: the double count)."""
     p, q_xy = np.array([12.0, 9.0]), 2.0
     est = _filter(FixedStartEKF, 50.0**2, q_xy=q_xy)
-    _drive(est, p, (0.0, 0.0), [0.1, 0.2, 0.3])
-    rho = np.linalg.norm(p - ANCHORS, axis=1)
-    var = rho**2 * SIGMA**2 + 0.5 * SIGMA**4
-    D = -(ANCHORS[1:] - ANCHORS[0])
-    pinv = np.linalg.pinv(D)
-    P_fix = pinv @ (np.diag(var[1:]) + var[0]) @ pinv.T + q_xy * (0.4 - 0.1) * np.eye(2)
-    # the completing range (anchor 3) corrects from the fix: Joseph update at the exact position
-    H = ((p - ANCHORS[3]) / rho[3])[None, :]
-    S = H @ P_fix @ H.T + SIGMA**2
-    K = P_fix @ H.T / S
-    expected = (np.eye(2) - K @ H) @ P_fix @ (np.eye(2) - K @ H).T + SIGMA**2 * K @ K.T
-    _drive(est, p, (0.0, 0.0), [0.4], first=3)
-    np.testing.assert_allclose(est.x_covariance, expected, rtol=1e-9)
+    _drive(est, p, (0.0, 0.0), [0.1, 0.2, 0.3, 0.4])
+    P_fix = _least_squares_fix_covariance(p) + q_xy * (0.4 - 0.1) * np.eye(2)
+    np.testing.assert_allclose(est.x_covariance, P_fix, rtol=1e-9)
+    # the re-correction by the completing range (anchor 3) the fix is made of, as it was made
+    H = ((p - ANCHORS[3]) / np.linalg.norm(p - ANCHORS[3]))[None, :]
+    twice = np.linalg.inv(np.linalg.inv(P_fix) + H.T @ H / SIGMA**2)
+    assert np.trace(twice) < 0.8 * np.trace(est.x_covariance)
+
+
+@pytest.mark.parametrize("cls", [FixedStartEKF, FixedStartUKF])
+def test_grid_step_fix_is_not_corrected_by_its_own_outputs(cls):
+    """One grid step with every range present fixes the position from them: the estimate is the
+    truth and its covariance ``D^+ Sigma D^+T`` (closed form, no prediction since); before, the
+    same outputs corrected it once more, and ``P`` came out near half of it (the double count of
+    the linear case, ``(2 H^T R^-1 H)^-1``)."""
+    p = np.array([12.0, 9.0])
+    est = _filter(cls, 50.0**2)
+    y = 0.5 * p @ p - ANCHORS @ p
+    est.correct_outputs(y)
+    assert est.fixes == [0.0] and est.corrections == 0 and np.isnan(est.nis)
+    np.testing.assert_allclose(est.x_hat, p, atol=1e-9)
+    P_fix = _least_squares_fix_covariance(p)
+    np.testing.assert_allclose(est.x_covariance, P_fix, rtol=1e-9)
+    # what the second correction by the same four ranges would have made of it: about P_fix / 2
+    H = (p - ANCHORS) / np.linalg.norm(p - ANCHORS, axis=1)[:, None]
+    twice = np.linalg.inv(np.linalg.inv(P_fix) + H.T @ H / SIGMA**2)
+    ratio = np.linalg.eigvals(np.linalg.solve(P_fix, twice)).real
+    assert np.all((ratio > 0.45) & (ratio < 0.55))
+    # the next step's outputs are new ranges: corrected as usual (one joint correction)
+    est.correct_outputs(y)
+    assert est.corrections == 1 and est.nis_dof == 4
 
 
 def test_narrow_prior_is_the_plain_filter():
