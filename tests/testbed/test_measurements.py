@@ -86,3 +86,21 @@ def test_missing_samples_mean_predict_only_in_an_episode():
     assert np.count_nonzero(np.isfinite(nis)) == est["corrections"]
     assert np.all(np.isnan(nis[np.arange(nis.size) % 10 != 0]))  # no sample: no correction
     assert s["final_position_error"] < 0.5
+
+
+def test_a_gated_ekf_on_the_grid_uses_or_rejects_every_range_of_a_step():
+    """Four beacons ranged in the same steps, 2 % outliers, the EKF gated at 10.83 (``chi^2(1)``,
+    0.999): each range of a step is judged alone, so every delivered sample is corrected with or
+    rejected (before, a step's ranges counted once, and one outlier took its step's others)."""
+    data = load_scenario("beacons", duration=3.0, seed=2).to_dict()
+    data["noise"] = {
+        "range_std": 0.2, "range_rate": 50.0, "dropout": 0.1,
+        "outlier_probability": 0.02, "outlier_std": 20.0,
+    }  # fmt: skip
+    data["observer"]["gate"] = 10.83
+    data["initial"] = {"kind": "random", "position_spread": 10.0, "velocity_spread": 2.0}
+    s = run_episode(parse_scenario(data), estimators=["ekf"], collect_every=20).summary
+    m, est = s["measurements"], s["estimators"]["ekf"]
+    assert est["corrections"] + est["rejected"] == 4 * (3000 // 20) - m["dropped"]
+    assert m["outliers_injected"] > 0 and est["rejected"] >= m["outliers_injected"] - 2
+    assert est["final_position_error"] < 0.5
