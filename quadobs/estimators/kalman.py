@@ -398,11 +398,12 @@ class _GaussianFilter(HalfSteps, Gated):
         with one degree of freedom, as a measurement at its own time is. A consistent filter's
         joint NIS of ``k`` outputs follows ``chi^2(k)``: the gate 10.83 (``P = 0.999`` for one
         output) would reject 1.3 % of its rounds of 3 ranges and 21 % of those of 8, not 0.1 %,
-        and one outlier would take the other outputs of its time with it. The recorded :attr:`nis` is then the sum of the
-        scalar corrections' NIS with :attr:`nis_dof` ``= k``: for a linear model, the joint NIS
-        itself (the sequential innovations are independent, ``nu^T S^-1 nu = sum_i nu_i^2 / s_i``).
-        Correlated noise cannot be split: one joint correction, gated at the quantile of
-        ``chi^2(k)`` of the gate's probability (:meth:`gate_threshold`)."""
+        and one outlier would take the other outputs of its time with it. The recorded
+        :attr:`nis` is then the sum of the scalar corrections' NIS (rejected ones included) with
+        :attr:`nis_dof` ``= k``: for a linear model, the joint NIS itself (the sequential
+        innovations are independent, ``nu^T S^-1 nu = sum_i nu_i^2 / s_i``). Correlated noise
+        cannot be split: one joint correction, gated at the quantile of ``chi^2(k)`` of the
+        gate's probability (:meth:`gate_threshold`)."""
         z = self.outputs.measure(y, idx)
         k = z.shape[0]
         if (
