@@ -445,7 +445,9 @@ class Gated(Counted):
     Attributes
     ----------
     gate : float or None
-        The threshold (``None``: no gate).
+        The threshold (``None``: no gate), stated for a correction of one output; the Kalman
+        filters judge each output of one time alone against it
+        (:meth:`~quadobs.estimators.kalman.ExtendedKalmanFilter.gate_threshold`).
     corrections : int
         Corrections applied so far.
     rejected : int
