@@ -201,6 +201,7 @@ def main() -> None:
     )  # fmt: skip
     print(f"log {folder}: {log.ranges.shape[0]} ranges, {log.inputs.shape[0]} IMU rows")
     print("initial guess:", " ".join(f"{v:.6g}" for v in x0))
+    print("start:", s["start"])
     # the navigation-frame grid feeds R~ f~ + g: the body-IMU filters take no part there
     nav = [n for n in names if n not in BODY_IMU]
     own, timed = {}, {}
