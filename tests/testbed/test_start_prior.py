@@ -16,6 +16,7 @@ from quadobs.testbed.logs.start_prior import (
     SLICE,
     START_WINDOW,
     UNKNOWN_VELOCITY_STD,
+    range_velocity,
     start_prior,
 )
 
@@ -158,11 +159,14 @@ def test_the_ranges_of_the_rest_tell_the_velocity(velocity):
     """At rest, and gliding at about 1 m/s with no acceleration (the IMU shows rest in both):
     the ranges' lines identify the velocity within three of the prior's standard deviations,
     and it is applied."""
-    _, prior = _applied(velocity)
+    log, prior = _applied(velocity)
     assert prior.at_rest and prior.applied, prior.why
     error = prior.velocity - np.asarray(velocity)
     z = error @ np.linalg.solve(prior.covariance, error)  # chi^2 with 3 degrees of freedom
     assert z < 14.2  # its 0.997 quantile (three standard deviations)
+    lines = range_velocity(log, 0.0, START_WINDOW)  # the ranges' own part: C_v and the fix's
+    assert error @ np.linalg.solve(lines.covariance, error) < 14.2
+    assert np.all(np.sqrt(np.diag(lines.covariance)) < 0.2)  # 51 ranges of 0.05 m in 0.5 s
     # the fix's term, the drift a_max (t_m - t_0) and C_v: all below the unknown start's
     assert np.max(np.linalg.eigvalsh(prior.covariance)) < UNKNOWN_VELOCITY_STD**2
     assert np.min(np.linalg.eigvalsh(prior.covariance)) > (prior.velocity_std / 2) ** 2 * 0.9
@@ -202,3 +206,30 @@ def test_a_constant_bias_of_one_anchor_keeps_the_prior_true():
     prior = start_prior(dataclasses.replace(log, ranges=biased))
     assert prior.applied
     assert prior.velocity @ np.linalg.solve(prior.covariance, prior.velocity) < 14.2
+
+
+def test_the_tdoa_of_the_rest_tell_a_gliding_velocity():
+    """TDOA: each difference is that of two anchors' lines (the intercepts' common shift left
+    free); gliding at about 1 m/s, the velocity is found within its prior and applied."""
+    import dataclasses
+
+    log = _imu_log(accel_noise=ACCEL_NOISE, gyro_noise=GYRO_NOISE)
+    t = log.inputs[:, 0]
+    velocity = np.array([0.6, 0.75, 0.15])
+    p = np.array([3.0, 3.0, 1.5]) + t[:, None] * velocity
+    i = np.arange(t.size) % 4
+    j = (i + 1 + np.arange(t.size) // 4 % 3) % 4  # every pair in turn
+    rng = np.random.default_rng(1)
+    d = np.linalg.norm(p - ANCHORS[i], axis=1) - np.linalg.norm(p - ANCHORS[j], axis=1)
+    d = d + rng.normal(0.0, RANGE_STD, t.size)
+    tdoa = dataclasses.replace(
+        log,
+        ranges=np.empty((0, 3)),
+        range_std=np.empty(0),
+        tdoa=np.column_stack([t, i, j, d]),
+        tdoa_std=np.full(t.size, RANGE_STD),
+    )
+    prior = start_prior(tdoa)
+    assert prior.applied, prior.why
+    error = prior.velocity - velocity
+    assert error @ np.linalg.solve(prior.covariance, error) < 14.2

@@ -154,17 +154,15 @@ class StartPrior:
     def summary(self) -> dict:
         """The replay summary's ``start`` entry: the rest test, the ranges' velocity and its
         standard deviation per axis, and whether the filters take it (``applied``, ``why``)."""
-        moving = self.velocity is not None and self.covariance is not None
+        v, C = self.velocity, self.covariance
         return {
             "at_rest": self.at_rest,
             "velocity_std": self.velocity_std,
             "reason": self.reason,
             "applied": self.applied,
             "why": self.why,
-            "velocity": [float(v) for v in self.velocity] if moving else None,
-            "velocity_prior_std": (
-                [float(math.sqrt(c)) for c in np.diag(self.covariance)] if moving else None
-            ),
+            "velocity": None if v is None else [float(x) for x in v],
+            "velocity_prior_std": None if C is None else [float(x) for x in np.sqrt(np.diag(C))],
         }
 
 
@@ -275,15 +273,22 @@ def _window(log, t0: float, t1: float, sigma: float):
 
     B = log.beacons.shape[0]
     rows, parts = [], []
-    for table, std, cols, fallback in (
-        (log.ranges, log.range_std, (RANGE.beacon,), sigma),
-        (log.tdoa, log.tdoa_std, (TDOA.anchor_i, TDOA.anchor_j), math.sqrt(2.0) * sigma),
+    for table, std, cols, value, fallback in (
+        (log.ranges, log.range_std, (RANGE.beacon,), RANGE.range, sigma),
+        (
+            log.tdoa,
+            log.tdoa_std,
+            (TDOA.anchor_i, TDOA.anchor_j),
+            TDOA.difference,
+            math.sqrt(2.0) * sigma,
+        ),
     ):
         if not table.shape[0]:
             continue
-        keep = (table[:, 0] >= t0) & (table[:, 0] < t1)
+        t = table[:, RANGE.time if len(cols) == 1 else TDOA.time]
+        keep = (t >= t0) & (t < t1)
         if len(cols) == 1:
-            keep &= table[:, -1] > 0.0  # a failed exchange's 0 (the replay drops those)
+            keep &= table[:, value] > 0.0  # a failed exchange's 0 (the replay drops those)
         W = np.zeros((int(np.count_nonzero(keep)), B))
         for sign, c in zip((1.0, -1.0), cols, strict=False):
             W[np.arange(W.shape[0]), log.beacon_index(table[keep, c])] += sign
@@ -291,7 +296,7 @@ def _window(log, t0: float, t1: float, sigma: float):
         rows.append(W)
         parts.append(
             np.column_stack(
-                [table[keep, 0], table[keep, -1], np.where(np.isfinite(given), given, fallback)]
+                [t[keep], table[keep, value], np.where(np.isfinite(given), given, fallback)]
             )
         )
     W = np.vstack(rows) if rows else np.zeros((0, B))
