@@ -75,6 +75,7 @@ __all__ = [
     "RangeVelocity",
     "StartPrior",
     "range_velocity",
+    "set_velocity_prior",
     "start_prior",
     "velocity_prior",
     "velocity_variance",
@@ -95,6 +96,8 @@ MEDIAN_VARIANCE = math.pi / 2
 #: The alternations of the fix and the lines (:func:`range_velocity`): from ``v = 0``, the
 #: second fix moves each measurement by the first lines' velocity.
 FIX_ROUNDS = 2
+#: The most Gauss-Newton steps of a fix (from the anchors' centroid: a few suffice).
+FIX_STEPS = 20
 
 
 @dataclass(frozen=True, eq=False)
@@ -307,10 +310,10 @@ def _window(log, t0: float, t1: float, sigma: float):
 def _fix(anchors, t, W, y, std, v, t_m, p):
     """The position at ``t_m`` from the window's measurements, each moved by ``v (t - t_m)``
     (Gauss-Newton from ``p``; the anchors' own intercepts are not used), and its covariance;
-    None where the normal matrix is singular."""
+    None where the normal matrix is singular or the steps do not settle."""
     moved = (t - t_m)[:, None] * v
     w = 1.0 / std
-    for _ in range(20):
+    for _ in range(FIX_STEPS):
         r = p + moved[:, None, :] - anchors[None, :, :]  # (N, B, dim)
         rho = np.linalg.norm(r, axis=2)
         if np.any(rho == 0.0):
@@ -325,6 +328,8 @@ def _fix(anchors, t, W, y, std, v, t_m, p):
             return None
         if np.linalg.norm(step) < 1e-9:
             break
+    else:
+        return None  # no convergence in FIX_STEPS steps
     N = (J * (w * w)[:, None]).T @ J
     return p, np.linalg.inv(N)
 
