@@ -19,8 +19,9 @@ the body-IMU filters, ``onboard-ekf``: NaN there).
 ``--live-prior`` adds a column: the replay's filters with the anchors' biases as states
 (``ekf-bias``, ``ukf-bias``: its settings, fed in time) started from the live episode's prior on
 the vehicle's state (the scenario's initial covariance: 0.1 m/s on the velocity, where a log's
-replay takes 2 m/s: :mod:`quadobs.testbed.logs.start_prior`), which isolates the
-prior from the way the ranges are fed.
+replay takes the velocity that the ranges of the IMU's rest tell, else 2 m/s:
+:mod:`quadobs.testbed.logs.start_prior`), which isolates the prior from the way the ranges are
+fed. The replay's ``start`` (that prior, and whether it is applied) is printed.
 
 ``--live-and-replay`` prints the first two columns alone (a quarter of the work: for a sweep
 over seeds); ``--live-only`` the live column alone (for a sweep of a change to the live side). ``--beside KEY=VALUE ...`` also runs, live in the same episode, the augmented
@@ -201,6 +202,7 @@ def main() -> None:
     )  # fmt: skip
     print(f"log {folder}: {log.ranges.shape[0]} ranges, {log.inputs.shape[0]} IMU rows")
     print("initial guess:", " ".join(f"{v:.6g}" for v in x0))
+    print("start:", s["start"])
     # the navigation-frame grid feeds R~ f~ + g: the body-IMU filters take no part there
     nav = [n for n in names if n not in BODY_IMU]
     own, timed = {}, {}

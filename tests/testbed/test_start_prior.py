@@ -1,7 +1,7 @@
 """The replay's velocity prior from the log's start (:mod:`quadobs.testbed.logs.start_prior`):
 an IMU at rest gives the bound its window cannot exclude, one in motion or a log without an
-IMU the unknown start's 2 m/s; the summary reports it, the builders take 2 m/s unless a
-velocity_std is given."""
+IMU the unknown start's 2 m/s; over a rest, the ranges' lines give the velocity, applied
+where they identify it; the summary reports it, a given velocity_std stands over it."""
 
 import math
 
@@ -16,6 +16,7 @@ from quadobs.testbed.logs.start_prior import (
     SLICE,
     START_WINDOW,
     UNKNOWN_VELOCITY_STD,
+    range_velocity,
     start_prior,
 )
 
@@ -25,20 +26,33 @@ H = 0.01  # the IMU's interval (s)
 ACCEL_NOISE, GYRO_NOISE = 0.02, 0.005  # stated densities (per sqrt(Hz))
 
 
-def _imu_log(accel: np.ndarray | None = None, rate: float = 0.0, seed: int = 0, **extra):
+def _imu_log(
+    accel: np.ndarray | None = None,
+    rate: float = 0.0,
+    seed: int = 0,
+    velocity=(0.0, 0.0, 0.0),
+    range_std: float | None = None,
+    anchors: int = 4,
+    **extra,
+):
     """A 2 s body-IMU log, level, its specific force ``g e_z + accel`` with white noise of the
-    stated densities, its angular rate ``rate`` about z."""
+    stated densities, its angular rate ``rate`` about z; ranges to ``anchors`` of the anchors in
+    turn at 100 Hz from a vehicle moving at ``velocity`` from (3, 3, 1.5), exact where
+    ``range_std`` is None, else with that noise, stated."""
     rng = np.random.default_rng(seed)
     t = np.arange(0.0, 2.0, H)
     f = np.tile([0.0, 0.0, G], (t.size, 1)) + (0.0 if accel is None else accel)
     f = f + rng.normal(0.0, ACCEL_NOISE / math.sqrt(H), f.shape)
     w = rng.normal(0.0, GYRO_NOISE / math.sqrt(H), f.shape) + [0.0, 0.0, rate]
-    p = np.tile([3.0, 3.0, 1.5], (t.size, 1))
-    k = np.arange(t.size) % 4
-    ranges = np.column_stack([t, k, np.linalg.norm(p - ANCHORS[k], axis=1)])
+    p = np.array([3.0, 3.0, 1.5]) + t[:, None] * np.asarray(velocity)
+    k = np.arange(t.size) % anchors
+    r = np.linalg.norm(p - ANCHORS[k], axis=1)
+    if range_std is not None:
+        r = r + rng.normal(0.0, range_std, t.size)
+        extra["range_std"] = np.full(t.size, range_std)
     return RangeLog(
-        "start", np.arange(4), ANCHORS, ranges, np.column_stack([t, f, w]), float("nan"),
-        input_kind="imu_body", **extra,
+        "start", np.arange(4), ANCHORS, np.column_stack([t, k, r]), np.column_stack([t, f, w]),
+        float("nan"), input_kind="imu_body", **extra,
     )  # fmt: skip
 
 
@@ -97,8 +111,9 @@ def test_a_log_without_an_imu_keeps_the_unknown_start():
 
 
 def test_the_builders_report_the_start_and_take_a_given_velocity_std():
-    """The rest test's bound is reported, not applied (an IMU cannot tell rest from a constant
-    velocity): the filters keep 2 m/s unless ``velocity_std`` is given."""
+    """Ranges too noisy to tell the velocity better than 2 m/s: the rest test's bound is
+    reported, not applied (an IMU cannot tell rest from a constant velocity); the filters keep
+    2 m/s unless ``velocity_std`` is given."""
     log = _imu_log(accel_noise=ACCEL_NOISE, gyro_noise=GYRO_NOISE)
     frame = log_frame(log)
     s = ReplaySetup(ANCHORS, 0.1, "imu", 0.0, 4.0, input_kind="imu_body", **frame)
@@ -109,10 +124,13 @@ def test_the_builders_report_the_start_and_take_a_given_velocity_std():
         ANCHORS, 0.1, "imu", 0.0, 4.0, input_kind="imu_body", velocity_std=std, **frame
     )
     assert np.diag(build_ekf(given, np.zeros(6))._P)[3:] == pytest.approx([std**2] * 3)
-    assert frame["start"].summary() == {
+    summary = frame["start"].summary()
+    assert {k: summary[k] for k in ("at_rest", "velocity_std", "reason", "applied")} == {
         "at_rest": True, "velocity_std": std, "reason": "no motion in the first 0.5 s",
         "applied": False,
     }  # fmt: skip
+    # exact ranges that state no noise: the setup's 1 m leaves the velocity unidentified
+    assert "no better than 2 m/s" in summary["why"] and max(summary["velocity_prior_std"]) > 1.0
     with pytest.raises(QuadobsError, match="velocity_std"):
         ReplaySetup(ANCHORS, 0.1, "imu", 0.0, 4.0, input_kind="imu_body", velocity_std=-1.0)
 
@@ -124,3 +142,94 @@ def test_the_replay_s_summary_reports_the_start():
     summary = run_replay(log, estimators=["ekf"], batch=False, initial_offset=1.0)
     assert summary["start"] == start_prior(log).summary()
     assert summary["start"]["at_rest"]
+
+
+RANGE_STD = 0.05  # stated range noise (m)
+
+
+def _applied(velocity=(0.0, 0.0, 0.0), **kw):
+    log = _imu_log(
+        velocity=velocity, range_std=RANGE_STD, accel_noise=ACCEL_NOISE, gyro_noise=GYRO_NOISE, **kw
+    )
+    return log, start_prior(log)
+
+
+@pytest.mark.parametrize("velocity", [(0.0, 0.0, 0.0), (0.6, 0.75, 0.15)])
+def test_the_ranges_of_the_rest_tell_the_velocity(velocity):
+    """At rest, and gliding at about 1 m/s with no acceleration (the IMU shows rest in both):
+    the ranges' lines identify the velocity within three of the prior's standard deviations,
+    and it is applied."""
+    log, prior = _applied(velocity)
+    assert prior.at_rest and prior.applied, prior.why
+    error = prior.velocity - np.asarray(velocity)
+    z = error @ np.linalg.solve(prior.covariance, error)  # chi^2 with 3 degrees of freedom
+    assert z < 14.2  # its 0.997 quantile (three standard deviations)
+    lines = range_velocity(log, 0.0, START_WINDOW)  # the ranges' own part: C_v and the fix's
+    assert error @ np.linalg.solve(lines.covariance, error) < 14.2
+    assert np.all(np.sqrt(np.diag(lines.covariance)) < 0.2)  # 51 ranges of 0.05 m in 0.5 s
+    # the fix's term, the drift a_max (t_m - t_0) and C_v: all below the unknown start's
+    assert np.max(np.linalg.eigvalsh(prior.covariance)) < UNKNOWN_VELOCITY_STD**2
+    assert np.min(np.linalg.eigvalsh(prior.covariance)) > (prior.velocity_std / 2) ** 2 * 0.9
+
+
+def test_the_filters_take_the_applied_prior_and_a_given_std_stands_over_it():
+    log, prior = _applied((0.6, 0.75, 0.15))
+    frame = log_frame(log)
+    s = ReplaySetup(ANCHORS, 0.1, "imu", 0.0, 4.0, input_kind="imu_body", **frame)
+    ekf = build_ekf(s, np.r_[3.0, 3.0, 1.5, 0.0, 0.0, 0.0])
+    np.testing.assert_allclose(ekf.x_hat[3:], prior.velocity)
+    np.testing.assert_allclose(ekf._P[3:, 3:], prior.covariance)
+    assert np.all(ekf._P[:3, 3:] == 0.0)
+    given = ReplaySetup(
+        ANCHORS, 0.1, "imu", 0.0, 4.0, input_kind="imu_body", velocity_std=0.5, **frame
+    )
+    ekf = build_ekf(given, np.r_[3.0, 3.0, 1.5, 0.0, 0.0, 0.0])
+    assert np.all(ekf.x_hat[3:] == 0.0)
+    np.testing.assert_allclose(ekf._P[3:, 3:], 0.25 * np.eye(3))
+
+
+def test_three_anchors_in_space_do_not_tell_the_velocity():
+    _, prior = _applied(anchors=3)
+    assert prior.at_rest and not prior.applied
+    assert prior.why == "the ranges: 3 anchors measured in 0.5 s, fewer than 4"
+    assert prior.summary()["velocity"] is None
+
+
+def test_a_constant_bias_of_one_anchor_keeps_the_prior_true():
+    """Each anchor's line has its own intercept, which takes in a constant bias of that anchor;
+    the bias moves the velocity through the fix's unit vectors alone, within the prior."""
+    import dataclasses
+
+    log, _ = _applied()
+    biased = log.ranges.copy()
+    biased[biased[:, 1] == 2, 2] += 0.4
+    prior = start_prior(dataclasses.replace(log, ranges=biased))
+    assert prior.applied
+    assert prior.velocity @ np.linalg.solve(prior.covariance, prior.velocity) < 14.2
+
+
+def test_the_tdoa_of_the_rest_tell_a_gliding_velocity():
+    """TDOA: each difference is that of two anchors' lines (the intercepts' common shift left
+    free); gliding at about 1 m/s, the velocity is found within its prior and applied."""
+    import dataclasses
+
+    log = _imu_log(accel_noise=ACCEL_NOISE, gyro_noise=GYRO_NOISE)
+    t = log.inputs[:, 0]
+    velocity = np.array([0.6, 0.75, 0.15])
+    p = np.array([3.0, 3.0, 1.5]) + t[:, None] * velocity
+    i = np.arange(t.size) % 4
+    j = (i + 1 + np.arange(t.size) // 4 % 3) % 4  # every pair in turn
+    rng = np.random.default_rng(1)
+    d = np.linalg.norm(p - ANCHORS[i], axis=1) - np.linalg.norm(p - ANCHORS[j], axis=1)
+    d = d + rng.normal(0.0, RANGE_STD, t.size)
+    tdoa = dataclasses.replace(
+        log,
+        ranges=np.empty((0, 3)),
+        range_std=np.empty(0),
+        tdoa=np.column_stack([t, i, j, d]),
+        tdoa_std=np.full(t.size, RANGE_STD),
+    )
+    prior = start_prior(tdoa)
+    assert prior.applied, prior.why
+    error = prior.velocity - velocity
+    assert error @ np.linalg.solve(prior.covariance, error) < 14.2

@@ -87,7 +87,7 @@ def _build(s, x0: np.ndarray, name: str, cls, process_noise: np.ndarray):
     from quadobs.core.measurements import RangeModel
     from quadobs.estimators.bias_states import BiasedRangeOutputModel, extended_system
     from quadobs.estimators.kalman import HeldInputModel
-    from quadobs.testbed.logs.start_prior import velocity_variance
+    from quadobs.testbed.logs.start_prior import set_velocity_prior
 
     if "tdoa" in s.kinds:
         raise QuadobsError(
@@ -103,12 +103,12 @@ def _build(s, x0: np.ndarray, name: str, cls, process_noise: np.ndarray):
     sigma = s.range_sigma if s.range_std_stated is None else s.range_std_stated
     outputs = BiasedRangeOutputModel(ext, sigma**2 * np.eye(q), offsets=offsets)
     P = np.zeros((n + q, n + q))
-    P0 = np.full(n, s.P0)
-    P0[s.dim :] = velocity_variance(s)  # the velocity, as the replay's EKF
-    P[:n, :n] = np.diag(P0)
+    P[:n, :n] = np.diag(np.full(n, s.P0))
     extra = RangeModel(s.beacons, s.range_sigma, bias="state").extra_states()
     P[n:, n:] = np.diag([e.prior_std**2 for e in extra])
     xe = np.concatenate([np.asarray(x0, dtype=float)[:n], np.zeros(q)])
+    if n > s.dim:  # the velocity, as the replay's EKF
+        set_velocity_prior(s, xe, P, s.dim)
     rule = range_rule(s, excess=False)
     est = cls(dynamics, outputs, x0=xe, P0=P, vehicle_n=n, robust=rule)
     est.name = name

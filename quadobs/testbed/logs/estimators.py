@@ -102,7 +102,7 @@ from quadobs.estimators.startup import (
     start_threshold,
 )
 from quadobs.testbed.imu import BIAS_HORIZON
-from quadobs.testbed.logs.start_prior import StartPrior, start_prior, velocity_variance
+from quadobs.testbed.logs.start_prior import StartPrior, set_velocity_prior, start_prior
 
 __all__ = [
     "ACCEL_NOISE",
@@ -199,13 +199,14 @@ class ReplaySetup:
         ``odometry`` also carries the heading's drift. Its prior is ``q_xy``'s (1 m^2/s).
     start : StartPrior or None
         Whether the log's first half second shows the vehicle at rest, and the velocity's
-        bound that would follow (:mod:`~quadobs.testbed.logs.start_prior`): reported, not
-        applied (an IMU cannot tell rest from a constant velocity).
+        bound that would follow, and the velocity that the ranges of that window tell
+        (:mod:`~quadobs.testbed.logs.start_prior`): the filters' prior where it is applied.
     velocity_std : float or None
         The velocity's prior standard deviation per axis (m/s) of the filters with a velocity
         state (``--tune velocity_std=...``); None:
+        the ``start``'s prior where applied, else
         :data:`~quadobs.testbed.logs.start_prior.UNKNOWN_VELOCITY_STD`
-        (:func:`~quadobs.testbed.logs.start_prior.velocity_variance`).
+        (:func:`~quadobs.testbed.logs.start_prior.velocity_prior`).
     """
 
     beacons: np.ndarray
@@ -405,16 +406,17 @@ def replay_setup(
         _typical_range(log),
         input_kind=log.input_kind,
         kinds=kinds,
-        **log_frame(log),
+        **log_frame(log, options.get("range_sigma")),
         **options,
     )
 
 
-def log_frame(log) -> dict:
+def log_frame(log, range_sigma: float | None = None) -> dict:
     """The setup's fields read from the log's frame, attitude and IMU: ``frame``, ``gravity``,
     ``attitude0``, ``imu_period``, ``gyro_noise``, ``gyro_bias``, ``range_errors`` and
     ``range_std_stated``, and the velocity's prior at the ``start``
-    (:func:`~quadobs.testbed.logs.start_prior.start_prior`; :class:`ReplaySetup`)."""
+    (:func:`~quadobs.testbed.logs.start_prior.start_prior`, ``range_sigma`` the standard
+    deviation of a range that states none; :class:`ReplaySetup`)."""
     attitude0 = None
     if log.attitude is not None and log.attitude.shape[0]:
         attitude0 = np.array(log.attitude[0, 1:5], dtype=float)
@@ -438,7 +440,7 @@ def log_frame(log) -> dict:
         "range_errors": str(getattr(log, "range_errors", "")),
         "range_std_stated": _stated_range_std(log),
         "alignment0": alignment0,
-        "start": start_prior(log),
+        "start": start_prior(log, range_sigma=range_sigma),
     }
 
 
@@ -527,9 +529,10 @@ def build_ekf(s: ReplaySetup, x0: np.ndarray, name: str = "ekf", cls=FixedStartE
     out = OutputModel(
         s.system, s.range_sigma**2, offsets=0.5 * np.einsum("hi,hi->h", s.beacons, s.beacons)
     )
-    P0 = np.full(s.n, s.P0)
-    P0[s.dim :] = velocity_variance(s)  # the velocity, for the models that have one
-    est = cls(dyn, out, x0=x0, P0=np.diag(P0), gate=s.gate, measurements=s.measurement_models())
+    x0, P0 = np.array(x0, dtype=float), np.diag(np.full(s.n, s.P0))
+    if s.n > s.dim:  # the velocity, for the models that have one
+        set_velocity_prior(s, x0, P0, s.dim)
+    est = cls(dyn, out, x0=x0, P0=P0, gate=s.gate, measurements=s.measurement_models())
     if isinstance(est, MultilaterationStart) and "range" in s.kinds:
         est.start_from_fix(s.dim, start_threshold(s.beacons, s.range_sigma))
     est.name = name
@@ -753,7 +756,7 @@ def build_onboard_ekf(
     force, so a body frame of any orientation, forward-right-down included, starts the right
     way up) with yaw zero, 0.05 rad in roll and pitch and :data:`UNKNOWN_YAW_STD` in yaw. Gravity is the
     log's, along ``-z`` (enu) or ``+z`` (ned). The position prior is ``P0`` per axis, the
-    velocity's :func:`~quadobs.testbed.logs.start_prior.velocity_variance` per axis (as :func:`build_ekf`).
+    velocity's :func:`~quadobs.testbed.logs.start_prior.velocity_prior` (as :func:`build_ekf`).
     """
     from scipy.spatial.transform import Rotation
 
@@ -777,13 +780,14 @@ def build_onboard_ekf(
     else:
         q = np.asarray(s.attitude0, dtype=float)
         R0, att_std = Rotation.from_quat(q[[1, 2, 3, 0]]).as_matrix(), np.full(3, 0.05)
-    P0 = np.diag([s.P0] * 3 + [velocity_variance(s)] * 3)
+    x0, P0 = np.array(x0, dtype=float)[:6], np.diag(np.full(6, s.P0))
+    set_velocity_prior(s, x0, P0, 3)
     est = OnboardEKF(
         models[0],
         h,
         accel_std=math.sqrt(s.q_imu / h),
         gyro_std=math.sqrt(gyro_noise(s) / h),
-        x0=np.asarray(x0, dtype=float)[:6],
+        x0=x0,
         P0=P0,
         attitude_std=att_std,
         gate=s.gate,

@@ -147,12 +147,13 @@ def build_ekf_bias_imu(
     offsets = 0.5 * np.einsum("hi,hi->h", s.beacons, s.beacons)
     outputs = BiasedRangeOutputModel(system, s.range_sigma**2 * np.eye(q), offsets=offsets)
     extra = RangeModel(s.beacons, s.range_sigma, bias="state").extra_states()
-    from quadobs.testbed.logs.start_prior import velocity_variance
+    from quadobs.testbed.logs.start_prior import set_velocity_prior
 
-    prior = [s.P0] * dim + [velocity_variance(s)] * dim + [bias_std**2] * dim  # as the EKF
+    prior = [s.P0] * dim + [0.0] * dim + [bias_std**2] * dim  # the velocity's: as the EKF
     P = np.diag(prior + [e.prior_std**2 for e in extra])
     xe = np.zeros(n + q)
     xe[: 2 * dim] = np.asarray(x0, dtype=float)[: 2 * dim]
+    set_velocity_prior(s, xe, P, dim)
     rule = range_rule(s, excess=excess)  # with excess: the mixture where it is known
     if not isinstance(rule, ExcessMixture):
         rule = SkewedGate(_gate_probability(s.gate))

@@ -24,8 +24,9 @@ added unless ``noise.*`` settings ask for it, :func:`log_scenario`) and the summ
 * from :class:`~quadobs.testbed.logs.figures.FieldFiguresSink`: ``rmse`` and ``max_error``
   after ``burn_in`` seconds, ``rmse_horizontal``, ``rmse_vertical`` (3-D), ``samples`` and
   ``diverged`` per estimator; ``tum`` (the folder and its files) with ``export_tum``.
-* ``start``: whether the log's first half second shows the vehicle at rest, the velocity's
-  prior standard deviation that follows and why (:mod:`~quadobs.testbed.logs.start_prior`).
+* ``start``: whether the log's first half second shows the vehicle at rest, the velocity
+  that the ranges of that rest tell, and whether the filters take it as their prior and why
+  (:mod:`~quadobs.testbed.logs.start_prior`).
 """
 
 from __future__ import annotations

@@ -21,22 +21,43 @@ deviations). Medians of short slices, not the window's mean and spread: a single
 first sample does not decide, a vibration that averages out within a slice (motors on the
 ground) moves no velocity, and a take-off within the window ends the rest at its slice.
 
-Over a rest of ``T`` seconds, the velocity's prior standard deviation per axis is what the
-test cannot exclude: a steady acceleration ``a_max`` that no slice shows, acting over ``T``,
-so ``sigma_v = a_max T``. In the navigation frame ``a_max = delta`` (without bias
+Over a rest of ``T`` seconds, the velocity that the test cannot exclude for a vehicle that
+stands at the start (the summary's ``velocity_std``, per axis) is a steady acceleration
+``a_max`` that no slice shows, acting over ``T``: ``sigma_v = a_max T``. In the navigation frame ``a_max = delta`` (without bias
 ``k a_d sqrt(c T_s) / T_s``, ``T_s`` the slice). A body IMU's norm test is first-order in an
 acceleration along gravity only; one across gravity changes the norm by ``a^2 / (2 g)``, so
 there ``a_max = sqrt((g + delta)^2 - g^2)``: the acceleration across gravity whose specific
 force's norm is ``g + delta``. Where the first slice shows motion, and for a log without an
-IMU (odometry, ranges alone), the velocity keeps :data:`UNKNOWN_VELOCITY_STD` (2 m/s, a
+IMU (odometry, ranges alone), the test reports :data:`UNKNOWN_VELOCITY_STD` (2 m/s, a
 walking or hovering vehicle's speed).
 
 An IMU tells accelerations, not velocity: a vehicle gliding at a constant velocity when its
-log starts passes the test. The bound is therefore reported (the summary's ``start``:
-``at_rest``, ``velocity_std``, ``reason``, ``applied: false``), not applied: the filters take
-``UNKNOWN_VELOCITY_STD`` unless the user, who knows the vehicle starts standing, gives
-``--tune velocity_std=...`` (:func:`velocity_variance`). Wheel odometry measures the speed itself: the replay's odometry model holds no
-velocity state, so this prior does not enter it.
+log starts passes the test (the exported ``tdoa-room``, at 1 m/s). What the test does tell is
+that the velocity hardly changes over the rest's ``T`` seconds; the ranges (or TDOA) of the
+same window then tell the velocity itself (:func:`range_velocity`). Each anchor ``a`` gets a
+line ``r_a(t) = rho_a + (u_a . v) (t - t_m)`` (its own intercept ``rho_a``, which takes in a
+constant bias of that anchor; ``t_m`` the window's mean measurement time), a TDOA of anchors
+``i, j`` the difference of two such lines, with ``u_a = (p - a) / |p - a|`` the unit vector
+from the anchor to the position ``p`` at ``t_m``: the fix of the window's measurements (a
+least-squares fit of ``p``, each measurement moved by ``v (t - t_m)``, alternated with the lines
+twice from ``v = 0``). The intercepts and ``v`` are one weighted linear least-squares problem
+with the measurements' standard deviations (their own, else ``range_sigma``, ``sqrt 2`` that for
+a TDOA); ``v``'s covariance is the inverse normal matrix's velocity block, scaled by the
+residuals' ``chi^2 / dof`` where that exceeds 1 (ranges noisier than stated). The prior on the
+velocity at the log's start ``t_0`` is then
+
+``v_0 ~ N(v_hat, C_v + (|v_hat| sigma_p / r_min)^2 I + (a_max (t_m - t_0))^2 I)``
+
+with ``sigma_p`` the fix's largest position standard deviation over the nearest anchor's
+distance ``r_min`` (the unit vectors' error, first order) and ``a_max (t_m - t_0)`` the velocity
+that an acceleration no slice shows moves between the start and ``t_m``. It is applied (the
+summary's ``start``: ``applied``, ``why``) where the IMU shows rest and the ranges identify
+``v``: at least ``dim + 1`` anchors measured, more measurements than unknowns, and the prior's
+largest variance below :data:`UNKNOWN_VELOCITY_STD` squared (it then says more than the unknown
+start in every direction). Elsewhere the filters take ``UNKNOWN_VELOCITY_STD``; a user who
+knows better gives ``--tune velocity_std=...`` (:func:`velocity_prior`), which stands over
+both. Wheel odometry measures the speed itself: the replay's odometry model holds no velocity
+state, so this prior does not enter it.
 """
 
 from __future__ import annotations
@@ -51,8 +72,12 @@ __all__ = [
     "SLICE",
     "START_WINDOW",
     "UNKNOWN_VELOCITY_STD",
+    "RangeVelocity",
     "StartPrior",
+    "range_velocity",
+    "set_velocity_prior",
     "start_prior",
+    "velocity_prior",
     "velocity_variance",
 ]
 
@@ -60,7 +85,7 @@ __all__ = [
 START_WINDOW = 0.5
 #: The test's bound in standard deviations.
 REST_K = 3.0
-#: The velocity's prior standard deviation per axis where the log does not show rest (m/s).
+#: The velocity's prior standard deviation per axis where the log does not tell it (m/s).
 UNKNOWN_VELOCITY_STD = 2.0
 #: The slices the window is tested in (s): shorter than a take-off's first tenths of a second.
 SLICE = 0.1
@@ -68,39 +93,84 @@ SLICE = 0.1
 MIN_SAMPLES = 5
 #: The variance of the median of Gaussian samples over that of their mean (large ``N``).
 MEDIAN_VARIANCE = math.pi / 2
+#: The alternations of the fix and the lines (:func:`range_velocity`): from ``v = 0``, the
+#: second fix moves each measurement by the first lines' velocity.
+FIX_ROUNDS = 2
+#: The most Gauss-Newton steps of a fix (from the anchors' centroid: a few suffice).
+FIX_STEPS = 20
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
+class RangeVelocity:
+    """The velocity that the ranges (or TDOA) of a window tell (module docstring).
+
+    Attributes
+    ----------
+    velocity : ndarray (dim,)
+        ``v_hat`` at the window's mean measurement time ``t_m`` (m/s).
+    covariance : ndarray (dim, dim)
+        ``C_v`` plus the fix's term ``(|v_hat| sigma_p / r_min)^2 I`` (m^2/s^2).
+    time : float
+        ``t_m`` (s).
+    anchors : int
+        The anchors the window's measurements involve.
+    measurements : int
+    """
+
+    velocity: np.ndarray
+    covariance: np.ndarray
+    time: float
+    anchors: int
+    measurements: int
+
+
+@dataclass(frozen=True, eq=False)
 class StartPrior:
     """The velocity's prior of a replay (module docstring).
 
     Attributes
     ----------
     at_rest : bool
-        Whether the log's first window shows the vehicle at rest.
+        Whether the log's first window shows no acceleration (the IMU's rest test).
     velocity_std : float
-        The velocity's prior standard deviation per axis (m/s).
+        The rest test's bound per axis (m/s): the velocity it cannot exclude for a vehicle
+        standing at the start; :data:`UNKNOWN_VELOCITY_STD` where it shows no rest.
     reason : str
-        Why: the test that failed, or that the log holds no IMU.
+        The rest test's outcome: the test that failed, or that the log holds no IMU.
+    velocity, covariance : ndarray or None
+        The prior's mean (dim,) and covariance (dim, dim) at the log's start, from the ranges
+        of the rest's window (:func:`range_velocity`); None where they tell none.
+    applied : bool
+        Whether the filters take ``velocity`` and ``covariance`` (module docstring).
+    why : str
+        Why it is applied or not.
     """
 
     at_rest: bool
     velocity_std: float
     reason: str
+    velocity: np.ndarray | None = None
+    covariance: np.ndarray | None = None
+    applied: bool = False
+    why: str = ""
 
     def summary(self) -> dict:
-        """The replay summary's ``start`` entry: the test's outcome and bound, reported (the
-        filters take 2 m/s unless told otherwise: :func:`velocity_variance`)."""
+        """The replay summary's ``start`` entry: the rest test, the ranges' velocity and its
+        standard deviation per axis, and whether the filters take it (``applied``, ``why``)."""
+        v, C = self.velocity, self.covariance
         return {
             "at_rest": self.at_rest,
             "velocity_std": self.velocity_std,
             "reason": self.reason,
-            "applied": False,
+            "applied": self.applied,
+            "why": self.why,
+            "velocity": None if v is None else [float(x) for x in v],
+            "velocity_prior_std": None if C is None else [float(x) for x in np.sqrt(np.diag(C))],
         }
 
 
 def _unknown(reason: str) -> StartPrior:
-    return StartPrior(False, UNKNOWN_VELOCITY_STD, reason)
+    return StartPrior(False, UNKNOWN_VELOCITY_STD, reason, why=f"no rest: {reason}")
 
 
 def _stated(value) -> float:
@@ -131,17 +201,16 @@ def _still(f: np.ndarray, w: np.ndarray | None, tol_f: float, tol_w, g: float | 
     return ""
 
 
-def start_prior(
-    log, window: float = START_WINDOW, k: float = REST_K, slice_: float = SLICE
-) -> StartPrior:
-    """The velocity's prior of a replay of ``log`` (module docstring)."""
+def _rest(log, window: float, k: float, slice_: float) -> tuple[float, float, str]:
+    """``(T, a_max, reason)``: the rest's length (0: none) and the largest acceleration that its
+    slices cannot exclude (module docstring)."""
     kind = log.input_kind
     if kind not in ("imu_body", "imu"):
-        return _unknown(f"no IMU (inputs: {kind})")
+        return 0.0, math.inf, f"no IMU (inputs: {kind})"
     t = log.inputs[:, 0]
     inside = t < t[0] + window if t.size else np.zeros(0, dtype=bool)
     if np.count_nonzero(inside) < 2 * MIN_SAMPLES:
-        return _unknown(f"{np.count_nonzero(inside)} IMU samples in the first {window:g} s")
+        return 0.0, math.inf, f"{np.count_nonzero(inside)} IMU samples in the first {window:g} s"
     h = float(np.median(np.diff(t[inside])))
     dim = log.beacons.shape[1]
     f = log.inputs[inside, 1:4] if kind == "imu_body" else log.inputs[inside, 1 : 1 + dim]
@@ -149,7 +218,7 @@ def start_prior(
     sigma_f = float(np.max(_sample_noise(f, getattr(log, "accel_noise", None), h)))
     sigma_w = None if w is None else _sample_noise(w, getattr(log, "gyro_noise", None), h)
     if not sigma_f > 0 or (sigma_w is not None and not np.all(sigma_w > 0)):
-        return _unknown("the IMU states no noise and shows none")
+        return 0.0, math.inf, "the IMU states no noise and shows none"
     b_f, b_w = _stated(getattr(log, "accel_bias", None)), _stated(getattr(log, "gyro_bias", None))
     g = float(log.gravity) if kind == "imu_body" else None
     which = np.floor((t[inside] - t[0]) / slice_).astype(int)
@@ -166,21 +235,178 @@ def start_prior(
             break
         rest, delta = rest + n * h, min(delta, tol_f)
     if rest == 0.0:
-        return _unknown(why + " in the first slice" if why else "no slice to test")
+        return 0.0, math.inf, why + " in the first slice" if why else "no slice to test"
     a_max = delta if g is None else math.sqrt((g + delta) ** 2 - g**2)
-    return StartPrior(True, a_max * rest, f"no motion in the first {rest:.2g} s")
+    return rest, a_max, f"no motion in the first {rest:.2g} s"
+
+
+def start_prior(
+    log,
+    window: float = START_WINDOW,
+    k: float = REST_K,
+    slice_: float = SLICE,
+    range_sigma: float | None = None,
+) -> StartPrior:
+    """The velocity's prior of a replay of ``log`` (module docstring); ``range_sigma`` the
+    standard deviation of a range that states none (default: the setup's 1 m)."""
+    rest, a_max, reason = _rest(log, window, k, slice_)
+    if rest == 0.0:
+        return _unknown(reason)
+    t0 = float(log.inputs[0, 0])
+    sigma = 1.0 if range_sigma is None else float(range_sigma)
+    found = range_velocity(log, t0, t0 + rest, sigma)
+    if isinstance(found, str):
+        return StartPrior(True, a_max * rest, reason, why=f"the ranges: {found}")
+    drift = a_max * (found.time - t0)  # the velocity's change from t_0 to t_m left open
+    cov = found.covariance + drift**2 * np.eye(found.velocity.size)
+    largest = float(np.sqrt(np.max(np.linalg.eigvalsh(cov))))
+    applied = largest < UNKNOWN_VELOCITY_STD
+    why = (
+        f"{found.measurements} measurements of {found.anchors} anchors in the rest's "
+        f"{rest:.2g} s: the velocity to {largest:.2g} m/s in its worst direction"
+        + ("" if applied else f", no better than {UNKNOWN_VELOCITY_STD:g} m/s")
+    )
+    return StartPrior(True, a_max * rest, reason, found.velocity, cov, applied, why)
+
+
+def _window(log, t0: float, t1: float, sigma: float):
+    """The window's measurements: times ``(N,)``, anchor weights ``W (N, B)`` (a range ``e_a``,
+    a TDOA ``e_i - e_j``), values ``(N,)`` and standard deviations ``(N,)``."""
+    from quadobs.testbed.logs.schema import RANGE, TDOA
+
+    B = log.beacons.shape[0]
+    rows, parts = [], []
+    for table, std, cols, value, fallback in (
+        (log.ranges, log.range_std, (RANGE.beacon,), RANGE.range, sigma),
+        (
+            log.tdoa,
+            log.tdoa_std,
+            (TDOA.anchor_i, TDOA.anchor_j),
+            TDOA.difference,
+            math.sqrt(2.0) * sigma,
+        ),
+    ):
+        if not table.shape[0]:
+            continue
+        t = table[:, RANGE.time if len(cols) == 1 else TDOA.time]
+        keep = (t >= t0) & (t < t1)
+        if len(cols) == 1:
+            keep &= table[:, value] > 0.0  # a failed exchange's 0 (the replay drops those)
+        W = np.zeros((int(np.count_nonzero(keep)), B))
+        for sign, c in zip((1.0, -1.0), cols, strict=False):
+            W[np.arange(W.shape[0]), log.beacon_index(table[keep, c])] += sign
+        given = np.asarray(std, dtype=float)[keep] if len(std) else np.full(W.shape[0], np.nan)
+        rows.append(W)
+        parts.append(
+            np.column_stack(
+                [t[keep], table[keep, value], np.where(np.isfinite(given), given, fallback)]
+            )
+        )
+    W = np.vstack(rows) if rows else np.zeros((0, B))
+    part = np.vstack(parts) if parts else np.zeros((0, 3))
+    return part[:, 0], W, part[:, 1], part[:, 2]
+
+
+def _fix(anchors, t, W, y, std, v, t_m, p):
+    """The position at ``t_m`` from the window's measurements, each moved by ``v (t - t_m)``
+    (Gauss-Newton from ``p``; the anchors' own intercepts are not used), and its covariance;
+    None where the normal matrix is singular or the steps do not settle."""
+    moved = (t - t_m)[:, None] * v
+    w = 1.0 / std
+    for _ in range(FIX_STEPS):
+        r = p + moved[:, None, :] - anchors[None, :, :]  # (N, B, dim)
+        rho = np.linalg.norm(r, axis=2)
+        if np.any(rho == 0.0):
+            return None
+        J = np.einsum("nb,nbd->nd", W, r / rho[:, :, None])
+        e = y - np.einsum("nb,nb->n", W, rho)
+        step, _, rank, _ = np.linalg.lstsq(J * w[:, None], e * w, rcond=None)
+        if rank < p.size:
+            return None
+        p = p + step
+        if not np.all(np.isfinite(p)):
+            return None
+        if np.linalg.norm(step) < 1e-9:
+            break
+    else:
+        return None  # no convergence in FIX_STEPS steps
+    N = (J * (w * w)[:, None]).T @ J
+    return p, np.linalg.inv(N)
+
+
+def _lines(anchors, t, W, y, std, p, t_m):
+    """The lines' velocity and its covariance (intercepts per anchor, module docstring),
+    scaled by ``max(1, chi^2 / dof)``; None where ``v`` is not identified."""
+    r = p - anchors
+    U = r / np.linalg.norm(r, axis=1)[:, None]
+    A = np.column_stack([W, (t - t_m)[:, None] * (W @ U)])
+    w = 1.0 / std
+    theta, _, rank, _ = np.linalg.lstsq(A * w[:, None], y * w, rcond=None)
+    dof = A.shape[0] - rank
+    dim = anchors.shape[1]
+    if dof < 1 or rank - np.linalg.matrix_rank(W * w[:, None]) < dim:
+        return None  # v is not identified where the intercepts alone reach the rank
+    N_inv = np.linalg.pinv((A * (w * w)[:, None]).T @ A)
+    chi2 = float(np.sum(((y - A @ theta) * w) ** 2))
+    return theta[-dim:], N_inv[-dim:, -dim:] * max(1.0, chi2 / dof)
+
+
+def range_velocity(log, t0: float, t1: float, sigma: float = 1.0) -> RangeVelocity | str:
+    """The velocity that the ranges (or TDOA) of ``[t0, t1)`` tell, taken constant over it
+    (module docstring), or why they tell none; ``sigma`` the standard deviation of a range
+    that states none."""
+    anchors = np.asarray(log.beacons, dtype=float)
+    dim = anchors.shape[1]
+    t, W, y, std = _window(log, t0, t1, sigma)
+    used = int(np.count_nonzero(np.any(W != 0.0, axis=0)))
+    if used < dim + 1:
+        return f"{used} anchors measured in {t1 - t0:.2g} s, fewer than {dim + 1}"
+    t_m = float(np.mean(t))
+    p, v = anchors[np.any(W != 0.0, axis=0)].mean(axis=0), np.zeros(dim)
+    for _ in range(FIX_ROUNDS):
+        fixed = _fix(anchors, t, W, y, std, v, t_m, p)
+        if fixed is None:
+            return "the window's measurements fix no position"
+        p, C_p = fixed
+        lines = _lines(anchors, t, W, y, std, p, t_m)
+        if lines is None:
+            return f"{t.size} measurements of {used} anchors do not fix a velocity"
+        v, C_v = lines
+    r_min = float(np.min(np.linalg.norm(p - anchors, axis=1)))
+    sigma_p = math.sqrt(float(np.max(np.linalg.eigvalsh(C_p))))
+    cov = C_v + (float(np.linalg.norm(v)) * sigma_p / r_min) ** 2 * np.eye(dim)
+    return RangeVelocity(v, 0.5 * (cov + cov.T), t_m, used, int(t.size))
+
+
+def velocity_prior(setup) -> tuple[np.ndarray | None, np.ndarray]:
+    """The velocity's prior ``(mean, covariance)`` of a replay's filter built on ``setup``
+    (:class:`~quadobs.testbed.logs.estimators.ReplaySetup`); ``mean`` None: the initial guess's.
+
+    ``--tune velocity_std=...`` (``setup.velocity_std``) stands over the log: ``std^2 I``
+    about the guess's velocity. Else the start's prior where it is applied (``setup.start``,
+    module docstring), else ``UNKNOWN_VELOCITY_STD^2 I``."""
+    dim = int(setup.beacons.shape[1])
+    std = getattr(setup, "velocity_std", None)
+    start = getattr(setup, "start", None)
+    if std is None and start is not None and start.applied:
+        return np.array(start.velocity, dtype=float), np.array(start.covariance, dtype=float)
+    std = UNKNOWN_VELOCITY_STD if std is None else float(std)
+    return None, std * std * np.eye(dim)
+
+
+def set_velocity_prior(setup, x: np.ndarray, P: np.ndarray, first: int) -> None:
+    """Put :func:`velocity_prior` into a filter's initial state ``x`` and covariance ``P`` (in
+    place), the velocity at ``x[first : first + dim]``, uncorrelated with the other states."""
+    mean, cov = velocity_prior(setup)
+    block = slice(first, first + cov.shape[0])
+    if mean is not None:
+        x[block] = mean
+    P[block, :] = 0.0
+    P[:, block] = 0.0
+    P[block, block] = cov
 
 
 def velocity_variance(setup) -> float:
-    """The velocity's prior variance per axis (m^2/s^2) of a replay's filter built on ``setup``
-    (:class:`~quadobs.testbed.logs.estimators.ReplaySetup`): the square of its ``velocity_std``
-    where the user gives one (``--tune velocity_std=...``), else ``UNKNOWN_VELOCITY_STD^2``.
-
-    The rest test's bound (``setup.start``) is reported, not applied: an IMU cannot tell rest
-    from a constant velocity, and a log that starts in flight at a steady speed passes the test
-    (the exported ``tdoa-room``, moving at 1 m/s: its EKF 0.021 m live, 0.083 m replayed from
-    the bound of 0.002 m/s). A default that can make the filters worse than 2 m/s does is
-    not taken; a user who knows the vehicle starts standing gives the bound."""
-    std = getattr(setup, "velocity_std", None)
-    std = UNKNOWN_VELOCITY_STD if std is None else float(std)
-    return std * std
+    """The velocity's largest prior variance per axis (m^2/s^2) of a replay's filter built on
+    ``setup`` (:func:`velocity_prior`)."""
+    return float(np.max(np.diag(velocity_prior(setup)[1])))
