@@ -177,6 +177,12 @@ def main() -> None:
         action="store_true",
         help="also the replay's bias filters from the live episode's prior on the vehicle's state",
     )
+    ap.add_argument(
+        "--velocity-from-log",
+        action="store_true",
+        help="the replay's velocity prior from the log's start where identified "
+        "(the CLI's --tune velocity_std=log)",
+    )
     args = ap.parse_args()
     names = args.estimators.split(",")
     scenario = load_scenario(args.scenario, duration=args.duration, seed=args.seed)
@@ -196,6 +202,8 @@ def main() -> None:
         cal = calibrate(log, dt=dt)
         biases, options = cal.biases, cal.options
         print(f"calibrated from the log: {cal.reason}")
+    if args.velocity_from_log:
+        options = {**options, "velocity_std": "log"}
     s = run_replay(
         log, estimators=names, dt=dt, x0=x0, batch=False, burn_in=args.burn_in,
         biases=biases, setup_options=options,

@@ -151,7 +151,24 @@ def _applied(velocity=(0.0, 0.0, 0.0), **kw):
     log = _imu_log(
         velocity=velocity, range_std=RANGE_STD, accel_noise=ACCEL_NOISE, gyro_noise=GYRO_NOISE, **kw
     )
-    return log, start_prior(log)
+    return log, start_prior(log, apply=True)
+
+
+def test_the_identified_prior_is_reported_not_applied_unless_asked_for():
+    """By default the filters keep the unknown start (the prior brought the replayed bias
+    filters nearer the live ones but further from the truth); ``--tune velocity_std=log``
+    applies it."""
+    from quadobs.testbed.logs.estimators import parse_tuning, tuning_fields, velocity_from_log
+
+    log, _ = _applied((0.6, 0.75, 0.15))
+    prior = start_prior(log)
+    assert prior.at_rest and not prior.applied and "not applied" in prior.why
+    s = ReplaySetup(ANCHORS, 0.1, "imu", 0.0, 4.0, input_kind="imu_body", **log_frame(log))
+    ekf = build_ekf(s, np.r_[3.0, 3.0, 1.5, 0.0, 0.0, 0.0])
+    assert np.diag(ekf._P)[3:] == pytest.approx([UNKNOWN_VELOCITY_STD**2] * 3)
+    options = parse_tuning(["velocity_std=log", "q_acc=2"])
+    assert velocity_from_log(options) and tuning_fields(options) == {"q_acc": 2.0}
+    assert not velocity_from_log(parse_tuning(["velocity_std=0.5"]))
 
 
 @pytest.mark.parametrize("velocity", [(0.0, 0.0, 0.0), (0.6, 0.75, 0.15)])
@@ -174,7 +191,7 @@ def test_the_ranges_of_the_rest_tell_the_velocity(velocity):
 
 def test_the_filters_take_the_applied_prior_and_a_given_std_stands_over_it():
     log, prior = _applied((0.6, 0.75, 0.15))
-    frame = log_frame(log)
+    frame = log_frame(log, None, apply_start=True)
     s = ReplaySetup(ANCHORS, 0.1, "imu", 0.0, 4.0, input_kind="imu_body", **frame)
     ekf = build_ekf(s, np.r_[3.0, 3.0, 1.5, 0.0, 0.0, 0.0])
     np.testing.assert_allclose(ekf.x_hat[3:], prior.velocity)
@@ -203,7 +220,7 @@ def test_a_constant_bias_of_one_anchor_keeps_the_prior_true():
     log, _ = _applied()
     biased = log.ranges.copy()
     biased[biased[:, 1] == 2, 2] += 0.4
-    prior = start_prior(dataclasses.replace(log, ranges=biased))
+    prior = start_prior(dataclasses.replace(log, ranges=biased), apply=True)
     assert prior.applied
     assert prior.velocity @ np.linalg.solve(prior.covariance, prior.velocity) < 14.2
 
@@ -229,7 +246,7 @@ def test_the_tdoa_of_the_rest_tell_a_gliding_velocity():
         tdoa=np.column_stack([t, i, j, d]),
         tdoa_std=np.full(t.size, RANGE_STD),
     )
-    prior = start_prior(tdoa)
+    prior = start_prior(tdoa, apply=True)
     assert prior.applied, prior.why
     error = prior.velocity - velocity
     assert error @ np.linalg.solve(prior.covariance, error) < 14.2

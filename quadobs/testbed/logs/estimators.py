@@ -296,6 +296,25 @@ class ReplaySetup:
         return models
 
 
+#: ``--tune velocity_std=log``: the velocity's prior from the log's start where it is identified
+#: (:func:`~quadobs.testbed.logs.start_prior.start_prior`), else the unknown start's.
+LOG_VELOCITY = "log"
+
+
+def velocity_from_log(options) -> bool:
+    """Whether the tuning asks for the velocity's prior from the log's start
+    (``velocity_std=log``, :data:`LOG_VELOCITY`)."""
+    return bool(options) and options.get("velocity_std") == LOG_VELOCITY
+
+
+def tuning_fields(options) -> dict:
+    """The tuning as :class:`ReplaySetup`'s fields: ``velocity_std=log`` goes to
+    :func:`log_frame` (:func:`velocity_from_log`), not to the setup."""
+    return {
+        k: v for k, v in (options or {}).items() if not (k == "velocity_std" and v == LOG_VELOCITY)
+    }
+
+
 #: The settings of :class:`ReplaySetup` a user may tune (``quadobs replay --tune KEY=VALUE``).
 TUNING = (
     "range_sigma", "q_xy", "q_theta", "q_acc", "q_imu", "gate", "P0", "range_bias",
@@ -305,7 +324,7 @@ TUNING = (
 
 def parse_tuning(settings) -> dict:
     """``["q_xy=1", "gate=none", ...]`` as setup options (``gate=none``: no gate); one-line errors naming the setting."""
-    out: dict[str, float | None] = {}
+    out: dict[str, float | str | None] = {}
     for text in settings:
         key, sep, raw = text.partition("=")
         key = key.strip()
@@ -315,6 +334,9 @@ def parse_tuning(settings) -> dict:
             )
         if key == "gate" and raw.strip().lower() == "none":
             out[key] = None
+            continue
+        if key == "velocity_std" and raw.strip().lower() == LOG_VELOCITY:
+            out[key] = LOG_VELOCITY  # the log's start prior where identified (start_prior)
             continue
         try:
             out[key] = float(raw)
@@ -406,12 +428,12 @@ def replay_setup(
         _typical_range(log),
         input_kind=log.input_kind,
         kinds=kinds,
-        **log_frame(log, options.get("range_sigma")),
-        **options,
+        **log_frame(log, options.get("range_sigma"), velocity_from_log(options)),
+        **tuning_fields(options),
     )
 
 
-def log_frame(log, range_sigma: float | None = None) -> dict:
+def log_frame(log, range_sigma: float | None = None, apply_start: bool = False) -> dict:
     """The setup's fields read from the log's frame, attitude and IMU: ``frame``, ``gravity``,
     ``attitude0``, ``imu_period``, ``gyro_noise``, ``gyro_bias``, ``range_errors`` and
     ``range_std_stated``, and the velocity's prior at the ``start``
@@ -440,7 +462,7 @@ def log_frame(log, range_sigma: float | None = None) -> dict:
         "range_errors": str(getattr(log, "range_errors", "")),
         "range_std_stated": _stated_range_std(log),
         "alignment0": alignment0,
-        "start": start_prior(log, range_sigma=range_sigma),
+        "start": start_prior(log, range_sigma=range_sigma, apply=apply_start),
     }
 
 

@@ -438,7 +438,13 @@ def check_replay(log, names, *, dt: float = 0.1, model: str | None = None, optio
     """Refuse, before any calibration or replay, a model the log cannot drive or an estimator
     that cannot take the log (each factory's one-line error, naming what the log lacks or holds),
     and a body IMU in the wrong units (:func:`~quadobs.testbed.attitude.check_body_imu`)."""
-    from quadobs.testbed.logs.estimators import ReplaySetup, _typical_range, log_frame
+    from quadobs.testbed.logs.estimators import (
+        ReplaySetup,
+        _typical_range,
+        log_frame,
+        tuning_fields,
+        velocity_from_log,
+    )
     from quadobs.testbed.worlds.replay import default_model, state_size
 
     model = model or default_model(log)
@@ -446,7 +452,7 @@ def check_replay(log, names, *, dt: float = 0.1, model: str | None = None, optio
     kinds = tuple(k for k, table in (("range", log.ranges), ("tdoa", log.tdoa)) if table.shape[0])
     setup = ReplaySetup(
         log.beacons, dt, model, 0.0, _typical_range(log), input_kind=log.input_kind, kinds=kinds,
-        **log_frame(log), **(options or {}),
+        **log_frame(log, None, velocity_from_log(options)), **tuning_fields(options),
     )  # fmt: skip
     x0 = np.zeros(n)
     x0[: log.dimension] = log.beacons.mean(axis=0)
