@@ -67,6 +67,7 @@ Scenario defaults (the estimators ``"ekf"`` and ``"ukf"``): see
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass, field
 from typing import Any
@@ -97,6 +98,7 @@ __all__ = [
     "HeldInputModel",
     "OutputModel",
     "UnscentedKalmanFilter",
+    "gate_quantile",
     "step_power",
 ]
 
@@ -261,6 +263,17 @@ class OutputModel:
         return s, J * scale[:, None]
 
 
+@functools.lru_cache(maxsize=64)
+def gate_quantile(gate: float, dof: int) -> float:
+    """The NIS threshold of ``dof`` outputs for a gate stated per output: ``gate`` for one, else
+    the quantile of ``chi^2(dof)`` of the same probability ``P = P(chi^2(1) <= gate) =
+    erf(sqrt(gate / 2))`` (10.83 -> ``P = 0.999`` -> 13.82 for two outputs)."""
+    if dof == 1:
+        return float(gate)
+    tail = math.erfc(math.sqrt(0.5 * gate))  # P(chi^2(1) > gate), accurate in the tail
+    return float(stats.chi2.isf(tail, dof))
+
+
 def step_power(F: np.ndarray, Q: np.ndarray, m: int) -> tuple[np.ndarray, np.ndarray]:
     """``(F^m, Q_m)``: the map of ``m`` steps ``x+ = F x + w``, ``w ~ N(0, Q)``, with ``Q_m = sum_{i<m} F^i Q F^iT``.
 
@@ -323,7 +336,6 @@ class _GaussianFilter(HalfSteps, Gated):
         self._x = as_array("x0", x0, (n,)).copy()
         self._P = as_covariance("P0", P0, n, definite=False).copy()
         self.gate = None if gate is None else as_finite_scalar("gate", gate, positive=True)
-        self._gate_thresholds: dict[int, float] = {}
         self.nis = float("nan")
         self.nis_dof = 0
         self.corrections = 0
@@ -425,16 +437,7 @@ class _GaussianFilter(HalfSteps, Gated):
         gate is stated per output), else the quantile of ``chi^2(dof)`` of the same probability,
         ``P = P(chi^2(1) <= gate) = erf(sqrt(gate / 2))`` (e.g. 10.83 -> ``P = 0.999`` -> 13.82
         for two outputs); ``inf`` without a gate."""
-        gate = self.gate
-        if gate is None:
-            return math.inf
-        if dof == 1:
-            return gate
-        hit = self._gate_thresholds.get(dof)
-        if hit is None:
-            tail = math.erfc(math.sqrt(0.5 * gate))  # P(chi^2(1) > gate), accurate in the tail
-            hit = self._gate_thresholds[dof] = float(stats.chi2.isf(tail, dof))
-        return hit
+        return math.inf if self.gate is None else gate_quantile(self.gate, dof)
 
     # -- the interface in time ---------------------------------------------------------
 

@@ -67,7 +67,13 @@ from scipy import stats
 from quadobs.errors import QuadobsError, as_array, as_finite_scalar
 from quadobs.estimators.augmented import AugmentedObserver
 from quadobs.estimators.base import Estimator, Gated, Immersed, Switching
-from quadobs.estimators.kalman import ExtendedKalmanFilter, HeldInputModel, OutputModel, step_power
+from quadobs.estimators.kalman import (
+    ExtendedKalmanFilter,
+    HeldInputModel,
+    OutputModel,
+    gate_quantile,
+    step_power,
+)
 from quadobs.estimators.robust import LockOut
 
 __all__ = ["HandoverPolicy", "RefinedObserver", "curvature_index"]
@@ -481,7 +487,7 @@ class RefinedObserver(Estimator, Gated, Immersed, Switching):
             return
         self._ekf = handed
         self.nis = handed.nis
-        self._count(handed.nis)
+        self._count(handed.nis, handed.nis_dof)
         handed.predict_step(u)
         self._switch("augmented", "ekf", "observer consistent: replay accepted")
 
@@ -489,7 +495,7 @@ class RefinedObserver(Estimator, Gated, Immersed, Switching):
         ekf = self._ekf
         assert ekf is not None, "called in the EKF's mode only"
         self.observer.step(u, y)  # the fallback keeps running
-        before = ekf.rejected
+        before = (ekf.rejected, ekf.corrections)
         ekf.step(u, y)
         self.nis = ekf.nis
         if not has:
@@ -497,9 +503,10 @@ class RefinedObserver(Estimator, Gated, Immersed, Switching):
         if self.robust is None and self.gate is None:
             rejected = self._count(ekf.nis)
         else:  # the EKF's own rule decided (its gate judges each output of the step alone)
-            rejected = ekf.rejected > before
-            self.rejected += rejected
-            self.corrections += not rejected
+            n_rejected, n_accepted = ekf.rejected - before[0], ekf.corrections - before[1]
+            self.rejected += n_rejected
+            self.corrections += n_accepted
+            rejected = n_rejected > 0 and n_accepted == 0  # the step brought nothing
         self._ekf_window.push(ekf.nis, ekf.nis_dof, rejected)
         w = self._ekf_window
         if w.full and (w.rejected_fraction() > 0.5 or not w.passes(self.policy.guard)):
@@ -513,11 +520,13 @@ class RefinedObserver(Estimator, Gated, Immersed, Switching):
             self._next_try, self._wait = self._updates + self.policy.window, self.policy.window
             self._switch("ekf", "augmented", reason)
 
-    def _count(self, nis: float) -> bool:
-        """Count an update of the reported filter; returns whether the gate rejected it."""
+    def _count(self, nis: float, dof: int = 1) -> bool:
+        """Count an update of the reported filter (its NIS of ``dof`` outputs); returns whether
+        the gate, stated per output, rejects it at that many degrees of freedom
+        (:func:`~quadobs.estimators.kalman.gate_quantile`)."""
         if not np.isfinite(nis):
             return False
-        rejected = self.gate is not None and nis > self.gate
+        rejected = self.gate is not None and nis > gate_quantile(self.gate, dof)
         if rejected:
             self.rejected += 1
         else:

@@ -398,3 +398,15 @@ def test_a_bias_filter_fed_whole_rounds_opens_its_biases_after_two_rounds():
         opened[mode] = est.opened_at
     assert opened["joint"] == pytest.approx([0.01])
     assert opened["sequential"] == pytest.approx([0.02])
+
+
+def test_the_gate_s_quantile_follows_a_reassigned_gate():
+    """``chi^2(2)``'s tail is ``exp(-x / 2)``: the threshold for two outputs is
+    ``-2 ln P(chi^2(1) > gate)`` in closed form, for whatever gate the filter holds now."""
+    import math
+
+    est = _gated(ExtendedKalmanFilter)
+    for gate in (10.83, 6.63):
+        est.gate = gate
+        tail = math.erfc(math.sqrt(gate / 2))
+        assert est.gate_threshold(2) == pytest.approx(-2.0 * math.log(tail), rel=1e-9)
