@@ -82,7 +82,6 @@ __all__ = [
     "set_velocity_prior",
     "start_prior",
     "velocity_prior",
-    "velocity_variance",
 ]
 
 #: The window at the log's start that the rest test reads (s): the initial alignment's.
@@ -413,8 +412,3 @@ def set_velocity_prior(setup, x: np.ndarray, P: np.ndarray, first: int) -> None:
     P[:, block] = 0.0
     P[block, block] = cov
 
-
-def velocity_variance(setup) -> float:
-    """The velocity's largest prior variance per axis (m^2/s^2) of a replay's filter built on
-    ``setup`` (:func:`velocity_prior`)."""
-    return float(np.max(np.diag(velocity_prior(setup)[1])))
