@@ -12,7 +12,8 @@ whether the mixture was significantly better (kept) or not (dropped).
 ``--diagnose`` (a log with a truth; the truth is read here, never by the replay): the
 self-calibration as the replay runs it, then
 
-* the excess fitted to the calibration's residuals (what the replay gives the filter), and the
+* the excess fitted to the calibration's residuals (what the replay gives the filter), its
+  standard errors over ``--bootstrap`` resamples of those residuals (seeded), and the
   same model fitted to the ranges' own errors against the truth (each range less the true
   distance, each anchor's median error removed: the radio's noise and excess without any
   prediction's error), with the fraction of those errors beyond 0.3 and 0.6 m;
@@ -79,7 +80,29 @@ def _fit_text(fit) -> str:
     )
 
 
-def diagnose(folder: str, given: list[str], dt: float, burn_in: float) -> None:
+def _bootstrap_text(fit, r, h, q: int, count: int) -> str:
+    """The fit's standard errors over ``count`` resamples of the residuals (seeded): of
+    ``log e_50``, of the shape, and of the separation ``log(e_50 / sigma)``, and the
+    separation in its standard errors."""
+    from quadobs.testbed.logs.excess_model import fit_excess
+
+    keep = np.isfinite(r)
+    r, h = r[keep], h[keep]
+    rng = np.random.default_rng(0)
+    draws = []
+    for _ in range(count):
+        i = rng.integers(0, r.size, r.size)
+        f = fit_excess(r[i], h[i], q)
+        draws.append((np.log(f.median), f.shape, np.log(f.median / f.sigma)))
+    se = np.std(draws, axis=0, ddof=1)
+    separation = float(np.log(fit.median / fit.sigma))
+    return (
+        f"{count} resamples: standard error of log median {se[0]:.2f}, of shape {se[1]:.2f}; "
+        f"log(median / core) {separation:.2f} +- {se[2]:.2f} ({separation / se[2]:.1f} of them)"
+    )
+
+
+def diagnose(folder: str, given: list[str], dt: float, burn_in: float, bootstrap: int) -> None:
     """``--diagnose`` (module docstring): printed line by line."""
     from quadobs.testbed.logs import calibration as cm
     from quadobs.testbed.logs import excess_model as em
@@ -99,7 +122,9 @@ def diagnose(folder: str, given: list[str], dt: float, burn_in: float) -> None:
     finally:
         cm.calibrated_excess = step8
     q = log.beacons.shape[0]
-    print(f"{folder}: residuals' fit {_fit_text(em.fit_excess(seen['r'], seen['h'], q))}")
+    fit = em.fit_excess(seen["r"], seen["h"], q)
+    print(f"{folder}: residuals' fit {_fit_text(fit)}")
+    print(f"  {_bootstrap_text(fit, seen['r'], seen['h'], q, bootstrap)}")
     e, h = truth_errors(log)
     ok = np.isfinite(e)
     print(
@@ -145,10 +170,11 @@ def main() -> None:
     ap.add_argument("--diagnose", action="store_true", help="the fit against the truth's errors")
     ap.add_argument("--given", default="fit,gate", help="with --diagnose: MEDIAN:SHAPE, fit, gate")
     ap.add_argument("--burn-in", type=float, default=5.0)
+    ap.add_argument("--bootstrap", type=int, default=20, help="with --diagnose: resamples")
     args = ap.parse_args()
     for folder in args.folders:
         if args.diagnose:
-            diagnose(folder, args.given.split(","), args.dt, args.burn_in)
+            diagnose(folder, args.given.split(","), args.dt, args.burn_in, args.bootstrap)
         else:
             print(check(folder, args.estimator, args.dt), flush=True)
 
