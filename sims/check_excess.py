@@ -58,7 +58,8 @@ def check(folder: str, estimator: str, dt: float) -> str:
 
 def truth_errors(log) -> tuple[np.ndarray, np.ndarray]:
     """``(e, h)``: each range less its true distance (the truth's position interpolated to
-    the range's time; NaN outside the truth's span), less its anchor's median, and its anchor."""
+    the range's time; NaN outside the truth's span and for a range of 0 m or less, which the
+    replay leaves out), less its anchor's median, and its anchor."""
     t = log.truth[:, 0]
     cols = log.truth_columns
     at = log.ranges[:, 0]
@@ -67,7 +68,7 @@ def truth_errors(log) -> tuple[np.ndarray, np.ndarray]:
     )
     h = log.beacon_index(log.ranges[:, 1])
     e = log.ranges[:, 2] - np.linalg.norm(p - log.beacons[h], axis=1)
-    e[(at < t[0]) | (at > t[-1])] = np.nan
+    e[(at < t[0]) | (at > t[-1]) | (log.ranges[:, 2] <= 0.0)] = np.nan  # as the replay
     for j in np.unique(h):
         e[h == j] -= np.nanmedian(e[h == j])
     return e, h
@@ -162,6 +163,16 @@ def diagnose(folder: str, given: list[str], dt: float, burn_in: float, bootstrap
         )
 
 
+def _excess_text_ok(text: str) -> bool:
+    """Whether ``text`` is ``MEDIAN:SHAPE`` with two positive finite numbers."""
+    parts = text.split(":")
+    try:
+        values = [float(v) for v in parts]
+    except ValueError:
+        return False
+    return len(values) == 2 and all(np.isfinite(v) and v > 0 for v in values)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("folders", nargs="+", help="log folders (quadobs replay's)")
@@ -172,6 +183,11 @@ def main() -> None:
     ap.add_argument("--burn-in", type=float, default=5.0)
     ap.add_argument("--bootstrap", type=int, default=20, help="with --diagnose: resamples")
     args = ap.parse_args()
+    if args.bootstrap < 2:
+        ap.error(f"--bootstrap: at least 2 resamples for a standard error, got {args.bootstrap}")
+    for g in args.given.split(","):
+        if g not in ("fit", "gate") and not _excess_text_ok(g):
+            ap.error(f"--given: expected fit, gate or MEDIAN:SHAPE (positive numbers), got {g!r}")
     for folder in args.folders:
         if args.diagnose:
             diagnose(folder, args.given.split(","), args.dt, args.burn_in, args.bootstrap)
