@@ -61,7 +61,8 @@ def test_realistic_ukf_converges_from_20_m_off():
     """The realistic scenario's prior (20 m off, ``S0 = 100``): its UKF starts from a fix, and
     over the second second of ranges it is within centimetres with a spread to match; the
     plain UKF of the same settings, after the same 200 ranges, has a position spread wider
-    than its prior's (``sqrt(tr P_pp) = sqrt(300)``) and errs by more than half a metre."""
+    than its prior's (``sqrt(tr P_pp) = sqrt(300)``) and errs by more than half a metre, and
+    says so (:meth:`uninformed`)."""
     sc = load_scenario(REALISTIC)
     assert ukf_starts_from_fix(sc)
     p = np.array([0.5, -0.3, 1.5])
@@ -72,8 +73,12 @@ def test_realistic_ukf_converges_from_20_m_off():
     assert ukf.fixes and ukf.fixes[0] <= 0.2  # one round of 8 ranges at 100 Hz
     assert np.sqrt(np.mean(errors[100:] ** 2)) < 0.2
     assert np.sqrt(np.trace(ukf.x_covariance[:3, :3])) < 0.2
+    assert ukf.uninformed() is None
     plain = _gaussian_filter(UnscentedKalmanFilter, sc, x0)
     errors = _hover(plain, sc.beacons, p, 2.0)
     assert plain.rejected == 0
     assert np.sqrt(np.trace(plain.x_covariance[:3, :3])) > np.sqrt(300.0)
     assert np.sqrt(np.mean(errors[100:] ** 2)) > 0.5
+    record = plain.uninformed()  # what the run's summary says of such a filter
+    assert record["corrections"] == 200
+    assert record["position_spread"] > record["prior_spread"] == pytest.approx(np.sqrt(300.0))
