@@ -571,6 +571,24 @@ class _GaussianFilter(HalfSteps, Gated):
         """``None``, or the time, step and reason at which the filter was given up (:class:`~quadobs.estimators.robust.LockOut`)."""
         return self.lockout.diverged
 
+    def uninformed(self) -> dict | None:
+        """``None``, or the record of a filter that took corrections and still ends with a
+        position spread wider than its prior's, ``sqrt(tr P_pp) > sqrt(tr P0_pp)`` (``p`` the
+        first ``dim`` states): its measurements never informed it, whatever its gate accepted.
+        The UKF's transform of a range over sigma points farther apart than the anchors is
+        flat (``P_xz ~ 0``, :class:`UnscentedKalmanFilter`): each range is accepted at a small
+        NIS while the velocity's prior is never reduced and ``P_pp`` grows with it.
+        ``{"position_spread", "prior_spread"}`` (m) and ``corrections``."""
+        if self.corrections == 0:
+            return None
+        d = self.outputs.system.p
+        P = self.x_covariance
+        spread = math.sqrt(float(np.trace(P[:d, :d])))
+        prior = math.sqrt(float(np.trace(self._P0[:d, :d])))
+        if not spread > prior:
+            return None
+        return {"position_spread": spread, "prior_spread": prior, "corrections": self.corrections}
+
     def _robust(self, nu: np.ndarray, S: np.ndarray, R: np.ndarray):
         """``(S, R)`` re-weighted by :attr:`robust`, or ``None`` when it rejects the correction."""
         if self.robust is None:

@@ -650,6 +650,10 @@ class _EstimatorInfo(Sink):
             if isinstance(est, Switching):
                 entry["modes"] = est.summary()
             entry.update(_robust_info(est))
+            uninformed = getattr(est, "uninformed", None)
+            record = uninformed() if callable(uninformed) else None
+            if record is not None:  # only then: every other summary keeps its keys
+                entry["uninformed"] = record
             if isinstance(est, Immersed) and est.immersion is not None:
                 entry["immersion"] = est.immersion.summary()
                 entry["outputs"] = int(est.immersion.system.q)

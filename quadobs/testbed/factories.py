@@ -376,8 +376,49 @@ def extended_kalman_filter(scenario: Scenario, x0: np.ndarray) -> ExtendedKalman
 
 
 def unscented_kalman_filter(scenario: Scenario, x0: np.ndarray) -> UnscentedKalmanFilter:
-    """The ``"ukf"`` estimator of ``scenario`` (:func:`baseline_settings`), started at ``x0``."""
-    return _gaussian_filter(UnscentedKalmanFilter, scenario, x0)
+    """The ``"ukf"`` estimator of ``scenario`` (:func:`baseline_settings`), started at ``x0``;
+    from a multilateration of its first round of ranges where :func:`ukf_starts_from_fix` says so.
+
+    The unscented transform of a range over a prior wider than the anchors' geometry is flat:
+    for a mean among the anchors, sigma points ``+-s`` metres either side of it (``s`` the
+    prior's spread, ``sqrt(n) sigma`` with the default scaling) lie at nearly the same range
+    ``|X_i - a_h| ~ s`` from an anchor, so ``P_xz ~ 0``, ``S ~ s^2`` and each correction
+    barely moves the estimate nor shrinks ``P``: the velocity's prior is never reduced and the
+    position's spread grows with it. The fix of :mod:`quadobs.estimators.startup` (the
+    replay's UKF, :func:`quadobs.testbed.logs.estimators.build_ukf`) replaces that prior by what
+    one round of ranges says."""
+    if not ukf_starts_from_fix(scenario):
+        return _gaussian_filter(UnscentedKalmanFilter, scenario, x0)
+    from quadobs.estimators.startup import FixedStartUKF, start_threshold
+
+    est = _gaussian_filter(FixedStartUKF, scenario, x0)
+    est.start_from_fix(
+        scenario.dimension, start_threshold(scenario.beacons, scenario.noise.sigma("range"))
+    )
+    return est
+
+
+def ukf_starts_from_fix(scenario: Scenario) -> bool:
+    """Whether the ``"ukf"`` of ``scenario`` starts from a multilateration
+    (:mod:`quadobs.estimators.startup`): its outputs are ranges alone, from at least
+    ``dimension + 1`` anchors (a fix exists), each with its noise in the range space, and its
+    prior position's largest standard deviation exceeds
+    :func:`~quadobs.estimators.startup.start_threshold` (half the anchors' extent, at least the
+    range noise). Elsewhere (a prior within the anchors' geometry, one anchor, the airspeed
+    among the outputs, time differences) it is the plain :class:`UnscentedKalmanFilter`, as before."""
+    from quadobs.estimators.startup import start_threshold
+
+    radio = getattr(scenario, "radio", None)
+    if radio is not None and radio.protocol == "tdoa":
+        return False
+    if scenario.has_wind or scenario.beacons.shape[0] < scenario.dimension + 1:
+        return False
+    sigma = scenario.noise.sigma("range")
+    if not sigma > 0:
+        return False
+    P0, _ = initial_covariance(scenario)
+    prior_std = math.sqrt(float(np.max(np.diag(P0)[: scenario.dimension])))
+    return prior_std > start_threshold(scenario.beacons, sigma)
 
 
 def zonotope_estimator(scenario: Scenario, x0: np.ndarray) -> ZonotopicAugmentedEstimator:
