@@ -9,7 +9,8 @@ estimators receive is recorded, and then
   (:class:`~quadobs.estimators.gtsam_peer.Isam2Peer`, the world-frame acceleration as its
   input, ``accel_nav``) with one constant bias per anchor as a variable
   (``PeerNoise(bias="state")``, prior the radio's stated spread), solved by
-  Levenberg-Marquardt over the whole flight;
+  Levenberg-Marquardt over the whole flight (the graph built without iSAM2,
+  ``online=False``, and solved from ``ekf-bias``'s own trajectory and final biases);
 * ``batch-given``: the same graph given the true biases (``fixed_bias``);
 * ``ekf-bias``, ``ekf-bias-given`` (its bias states pinned at the truth), and
   ``ekf-bias-at-batch``: the same filter with its bias states pinned at ``batch-bias``'s
@@ -24,14 +25,17 @@ peer's default). Its online (iSAM2) estimate is not scored: the batch is the ref
 
 Printed per seed (one JSON line): each estimator's position RMSE after a 5 s burn-in over
 the same times as :mod:`uwb_realistic` (every tenth physics step), and the biases' errors.
-``--set radio.nlos_median=0`` flies the same seeds with no non-line-of-sight excess (the
+With ``--line-of-sight`` (a diagnostic no estimator can have) both batches are solved again
+(``batch-bias-los``, ``batch-given-los``; ``ekf-bias-at-batch-los``) given only the ranges whose path the room left clear (the radio's own ray test when it drew the range,
+:func:`uwb_realistic.drawn_events`): the biases as the line-of-sight ranges of the whole
+flight tell them, the excess set aside by an oracle. ``--set radio.nlos_median=0`` flies the same seeds with no non-line-of-sight excess (the
 other draws unchanged: the radio's streams are separate; the filters then take the
 scenario's one-sided gate).
 
 Usage::
 
     python sims/uwb_bias_bound.py --seeds 0:10 [--duration 40] [--loss huber|cauchy|none]
-        [--set radio.nlos_median=0]
+        [--set radio.nlos_median=0] [--line-of-sight] [--burn-in 5]
 """
 
 from __future__ import annotations
@@ -41,6 +45,7 @@ import json
 import math
 
 import numpy as np
+from uwb_realistic import drawn_events
 
 from quadobs.estimators.gtsam_peer import Isam2Peer, PeerNoise
 from quadobs.testbed.episode import _summarise, run_loop, scenario_parts
@@ -52,8 +57,6 @@ from quadobs.testbed.factories import (
     initial_covariance,
 )
 from quadobs.testbed.scenario import load_scenario
-
-BURN_IN = 5.0
 
 
 def recorded(est, calls: list):
@@ -105,9 +108,13 @@ def pinned(est, biases: np.ndarray, name: str):
     return est
 
 
-def batch(scenario, calls, x0, loss: str, fixed_bias=None):
+def batch(scenario, calls, x0, loss: str, start, fixed_bias=None):
     """The peer's graph of the recorded flight solved by Levenberg-Marquardt: the nodes'
-    times and positions and the biases (the variables', or ``fixed_bias``)."""
+    times and positions and the biases (the variables', or ``fixed_bias``).
+
+    The graph is built without iSAM2 (``online=False``) and solved from ``start``: a
+    function of the nodes' times giving the positions and velocities ``(m, 6)``, and the
+    biases ``(q,)`` (the online filter's, no truth)."""
     P0, _ = initial_covariance(scenario)
     noise = PeerNoise(
         range_sigma=_range_sigma(scenario),
@@ -124,25 +131,39 @@ def batch(scenario, calls, x0, loss: str, fixed_bias=None):
         P0=float(np.asarray(P0)[0, 0]),
         noise=noise,
         fixed_bias=fixed_bias,
+        online=False,
     )
     for kind, arg in calls:
         getattr(peer, kind)(arg)
-    if peer.failure is not None:
-        raise RuntimeError(peer.failure)
+    peer._flush()
     import gtsam
 
+    states, biases = start(np.array(peer.node_times))
+    values, motion = peer.values, peer.motion
+    for i, x in enumerate(states):
+        values.update(motion.position_key(i), x[:3])
+        values.update(motion.velocity_key(i), x[3:6])
+    if fixed_bias is None:
+        for h, b in enumerate(biases):
+            values.update(peer._bias_key(h), np.array([b]))
     params = gtsam.LevenbergMarquardtParams()
     params.setMaxIterations(100)
-    opt = gtsam.LevenbergMarquardtOptimizer(peer.graph, peer.isam.calculateEstimate(), params)
-    values = opt.optimize()
-    times, positions = peer._positions(values)
+    solved = gtsam.LevenbergMarquardtOptimizer(peer.graph, values, params).optimize()
+    times, positions = peer._positions(solved)
     if fixed_bias is not None:
         return times, positions, np.asarray(fixed_bias, dtype=float)
-    b = np.array([values.atVector(peer._bias_key(h))[0] for h in range(len(scenario.beacons))])
+    b = np.array([solved.atVector(peer._bias_key(h))[0] for h in range(len(scenario.beacons))])
     return times, positions, b
 
 
-def one_seed(seed: int, duration: float | None, loss: str, settings: list[str]) -> dict:
+def one_seed(
+    seed: int,
+    duration: float | None,
+    loss: str,
+    settings: list[str],
+    los: bool = False,
+    burn_in: float = 5.0,
+) -> dict:
     over = {"seed": seed} | ({"duration": duration} if duration else {})
     scenario = load_scenario("quadrotor-uwb-realistic", settings=settings, **over)
     parts = scenario_parts(scenario, ["ekf-bias"])
@@ -151,6 +172,7 @@ def one_seed(seed: int, duration: float | None, loss: str, settings: list[str]) 
     x0 = est.x_hat[: est.vehicle_n].copy()
     calls: list = []
     recorded(est, calls)
+    events = drawn_events(world.radio)
 
     def summarise(merged, completed, wall, interrupted):
         return _summarise(
@@ -161,8 +183,14 @@ def one_seed(seed: int, duration: float | None, loss: str, settings: list[str]) 
     trace = episode.trace.trace
     t = np.asarray(trace["time"])
     truth = np.asarray(trace["truth"])[:, :3]
-    keep = (t >= BURN_IN) & np.isfinite(t)
+    keep = (t >= burn_in) & np.isfinite(t)
     b_true = np.asarray(world.radio.biases, dtype=float)
+    online = np.asarray(trace["estimates"]["ekf-bias"])[:, :6]
+    ok = np.isfinite(t) & np.all(np.isfinite(online), axis=1)
+    b_online = np.asarray(est.biases, dtype=float)
+
+    def start(times: np.ndarray):
+        return at_times(t[ok], online[ok], times), b_online
 
     def rmse(est_xyz: np.ndarray) -> float:
         err = np.linalg.norm(est_xyz[keep] - truth[keep], axis=1)
@@ -170,23 +198,26 @@ def one_seed(seed: int, duration: float | None, loss: str, settings: list[str]) 
 
     out: dict = {"seed": seed, "biases": b_true.round(4).tolist()}
     out["ekf-bias"] = {"rmse": rmse(np.asarray(trace["estimates"]["ekf-bias"])[:, :3])}
-    found = {}
-    for name, fixed in (("batch-bias", None), ("batch-given", b_true)):
-        T, P, b = batch(scenario, calls, x0, loss, fixed)
-        found[name] = b
-        out[name] = {"rmse": rmse(at_times(T, P, t))}
-        if fixed is None:
-            out[name]["bias_error"] = (b - b_true).round(4).tolist()
-    filters = {
-        "ekf-bias-given": b_true,
-        "ekf-bias-at-batch": found["batch-bias"],
-    }
+    sources = {"": calls}
+    if los:
+        sources["-los"] = [c for c in calls if c[0] != "correct" or not events[id(c[1])][2]]
+    filters = {"ekf-bias-given": b_true}
+    for suffix, given in sources.items():
+        for name, fixed in (("batch-bias", None), ("batch-given", b_true)):
+            T, P, b = batch(scenario, given, x0, loss, start, fixed)
+            out[name + suffix] = {"rmse": rmse(at_times(T, P, t))}
+            if fixed is None:
+                out[name + suffix]["bias_error"] = (b - b_true).round(4).tolist()
+                filters["ekf-bias-at-batch" + suffix] = b
+        ratio = out["batch-bias" + suffix]["rmse"] / out["batch-given" + suffix]["rmse"]
+        out["ratio_batch" + suffix] = ratio
     for name, b in filters.items():
         filt = pinned(biased_extended_kalman_filter(scenario, x0), b, name)
         out[name] = {"rmse": rmse(replay(filt, calls, t))}
-    out["ratio_batch"] = out["batch-bias"]["rmse"] / out["batch-given"]["rmse"]
-    out["ratio_ekf"] = out["ekf-bias"]["rmse"] / out["ekf-bias-given"]["rmse"]
-    out["ratio_ekf_at_batch"] = out["ekf-bias-at-batch"]["rmse"] / out["ekf-bias-given"]["rmse"]
+    given = out["ekf-bias-given"]["rmse"]
+    out["ratio_ekf"] = out["ekf-bias"]["rmse"] / given
+    for suffix in sources:
+        out["ratio_ekf_at_batch" + suffix] = out["ekf-bias-at-batch" + suffix]["rmse"] / given
     return out
 
 
@@ -201,10 +232,17 @@ def main() -> None:
         default=[],
         help="a scenario setting by dotted path, e.g. radio.nlos_median=0",
     )
+    ap.add_argument(
+        "--line-of-sight",
+        action="store_true",
+        help="the batches given only the ranges the room left clear (a diagnostic)",
+    )
+    ap.add_argument("--burn-in", type=float, default=5.0, help="s left out of the RMSE")
     args = ap.parse_args()
     a, b = (int(v) for v in args.seeds.split(":"))
     for seed in range(a, b):
-        print(json.dumps(one_seed(seed, args.duration, args.loss, args.set)), flush=True)
+        row = one_seed(seed, args.duration, args.loss, args.set, args.line_of_sight, args.burn_in)
+        print(json.dumps(row), flush=True)
 
 
 if __name__ == "__main__":

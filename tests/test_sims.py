@@ -52,6 +52,11 @@ CASES = {
         [],
         '"ekf-bias-truejac": {"time_to_1m"',
     ),
+    "uwb_bias_bound.py": (
+        "--seeds 0:1 --duration 7 --burn-in 3 --line-of-sight".split(),
+        [],
+        '"ratio_ekf_at_batch-los"',
+    ),
     "tuned_baselines.py": (
         ["--duration", "1", "--runs", "2", "--workers", "0", "--out", "{tmp}/campaign"],
         ["campaign/summary.json", "campaign/runs.parquet", "campaign/statistics.rrd"],
