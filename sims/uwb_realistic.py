@@ -18,6 +18,9 @@ on the estimators) with, on the same measurements:
 * with ``--sight-model grid``, every bias-state filter (the ``-given`` ones too) keeps each
   anchor's state of sight jointly with its bias (:class:`~quadobs.estimators.robust.BiasSightGrid`)
   instead of the chain on its own bias estimate;
+* with ``--memory SECONDS``, every filter whose rule is an
+  :class:`~quadobs.estimators.robust.ExcessMixture` (the ``-given`` ones too) keeps its
+  anchors' state of sight over that memory instead of the rule's default;
 * with ``--jacobian-at-truth`` (a diagnostic), ``ekf-bias-truejac``: ``ekf-bias`` whose range
   Jacobian is taken at the tag's true position (its predicted ranges still at its estimate),
   which measures what linearising at its own estimate costs it.
@@ -30,17 +33,20 @@ Usage::
 
     python sims/uwb_realistic.py --seeds 0:50 [--duration 40] [--estimators ekf-bias,ukf-bias]
         [--given] [--line-of-sight] [--jacobian-at-truth] [--sight-model grid]
+        [--memory 3]
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 
 import numpy as np
 
 from quadobs.core.measurements import RangeModel
 from quadobs.estimators.kalman import ExtendedKalmanFilter
+from quadobs.estimators.robust import ExcessMixture
 from quadobs.testbed.episode import _summarise, run_loop, scenario_parts
 from quadobs.testbed.factories import baseline_settings, robust_settings
 from quadobs.testbed.scenario import load_scenario
@@ -163,6 +169,7 @@ def one_seed(
     los: bool = False,
     truejac: bool = False,
     sight: str = "chain",
+    memory: float | None = None,
 ) -> dict:
     over = {"seed": seed} | ({"duration": duration} if duration else {})
     scenario = load_scenario("quadrotor-uwb-realistic", **over)
@@ -195,6 +202,8 @@ def one_seed(
     for est in parts["estimators"]:
         if hasattr(est, "sight_model"):
             est.sight_model = sight
+        if memory is not None and isinstance(getattr(est, "robust", None), ExcessMixture):
+            est.robust = dataclasses.replace(est.robust, memory=memory)
 
     def summarise(merged, completed, wall, interrupted):
         return _summarise(
@@ -246,6 +255,12 @@ def main() -> None:
         default="chain",
         help="how the bias filters keep each anchor's state of sight (default: chain)",
     )
+    ap.add_argument(
+        "--memory",
+        type=float,
+        default=None,
+        help="the excess mixture's memory of each anchor's sight (s; default: the rule's)",
+    )
     args = ap.parse_args()
     a, b = (int(v) for v in args.seeds.split(":"))
     names = args.estimators.split(",")
@@ -258,6 +273,7 @@ def main() -> None:
             args.line_of_sight,
             args.jacobian_at_truth,
             args.sight_model,
+            args.memory,
         )
         print(json.dumps(row), flush=True)
 

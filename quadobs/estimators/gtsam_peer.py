@@ -205,6 +205,12 @@ class Isam2Peer(Estimator, Counted):
     fixed_bias : array_like (m,), optional
         Known range biases subtracted from every range (the range model's ``bias="fixed"``;
         not with ``bias="state"``).
+    online : bool
+        ``True`` (default): iSAM2 updates as the measurements arrive. ``False``: the graph is
+        only built (:attr:`graph`, :attr:`values`: each new node's initial value propagated
+        from the previous one by the held inputs), for a batch solution of the whole log
+        (:meth:`batch_trajectory`) at a fraction of the cost; the estimate in between is that
+        propagation, not an estimate from the measurements.
     """
 
     name = "isam2"
@@ -224,8 +230,10 @@ class Isam2Peer(Estimator, Counted):
         dt: float | None = None,
         heading0: float = 0.0,
         fixed_bias=None,
+        online: bool = True,
     ) -> None:
         gtsam = self._g = import_gtsam()
+        self.online = bool(online)
         self.anchors = np.asarray(anchors, dtype=float)
         d = self.anchors.shape[1] if self.anchors.ndim == 2 else 0
         self.anchors = as_array("anchors", anchors, (None, d if d in (2, 3) else 3))
@@ -327,6 +335,8 @@ class Isam2Peer(Estimator, Counted):
             return
         self.graph.push_back(g)
         self.values.insert(v)
+        if not self.online:
+            return
         try:
             self.isam.update(g, v)
         except RuntimeError as exc:  # gtsam's indeterminate system: the estimate is lost
@@ -437,7 +447,7 @@ class Isam2Peer(Estimator, Counted):
         if self.noise.bias != "state":
             return None
         self._flush()
-        est = self.isam.calculateEstimate()
+        est = self._estimate()
         return np.array([est.atVector(self._bias_key(h))[0] for h in range(len(self.anchors))])
 
     # -- the whole log ----------------------------------------------------------------------
@@ -447,21 +457,26 @@ class Isam2Peer(Estimator, Counted):
         self._flush()
         if self.failure is not None:
             return self._lost()
-        return self._positions(self.isam.calculateEstimate())
+        return self._positions(self._estimate())
 
     def batch_trajectory(self, max_iterations: int = 100) -> tuple[np.ndarray, np.ndarray]:
-        """The nodes' times and positions in the Levenberg-Marquardt optimum of the whole graph, started at iSAM2's estimate."""
+        """The nodes' times and positions in the Levenberg-Marquardt optimum of the whole graph,
+        started at iSAM2's estimate (``online=False``: at :attr:`values`)."""
         self._flush()
         if self.failure is not None:
             return self._lost()
         gtsam = self._g
         params = gtsam.LevenbergMarquardtParams()
         params.setMaxIterations(int(max_iterations))
-        opt = gtsam.LevenbergMarquardtOptimizer(self.graph, self.isam.calculateEstimate(), params)
+        opt = gtsam.LevenbergMarquardtOptimizer(self.graph, self._estimate(), params)
         try:
             return self._positions(opt.optimize())
         except RuntimeError:  # an indeterminate system for Levenberg-Marquardt too
             return self._lost()
+
+    def _estimate(self):
+        """iSAM2's current estimate of every variable (``online=False``: :attr:`values`)."""
+        return self.isam.calculateEstimate() if self.online else self.values
 
     def _lost(self) -> tuple[np.ndarray, np.ndarray]:
         return np.array(self.node_times), np.full((len(self.node_times), self.dim), np.nan)

@@ -447,3 +447,34 @@ def test_a_body_imu_in_a_north_east_down_frame():
     assert errors["ned"] < 0.02 and errors["enu"] > 10 * errors["ned"], errors
     with pytest.raises(QuadobsError, match="frame: expected 'enu' or 'ned'"):
         PeerNoise(frame="nwu")
+
+
+def test_a_graph_built_without_isam2_has_the_same_batch_optimum():
+    """``online=False`` builds the same graph without iSAM2's updates: Levenberg-Marquardt
+    from the inputs' propagation reaches the optimum it reaches from iSAM2's estimate."""
+    bias = np.array([0.3, -0.2, 0.1, 0.25, -0.3, 0.0])
+    out = {}
+    for online in (True, False):
+        rng = np.random.default_rng(7)
+        x0 = np.concatenate([circle(0.0)[0] + 1.0, np.zeros(3)])
+        noise = PeerNoise(range_sigma=0.05, q_imu=1e-3, bias="state")
+        est = Isam2Peer(ANCHORS_3D, "accel_nav", x0=x0, P0=4.0, noise=noise, online=online)
+        run(
+            est,
+            circle,
+            ranges(ANCHORS_3D, 0.05, rng, bias),
+            rate=25,
+            duration=4.0,
+            inputs=lambda t, rng=rng: circle(t)[2] + 0.03 * rng.standard_normal(3),
+            imu_rate=100,
+        )
+        out[online] = est.batch_trajectory(), est
+    (t_on, p_on), on = out[True]
+    (t_off, p_off), off = out[False]
+    assert off.isam.size() == 0 and on.isam.size() > 0
+    assert np.array_equal(t_on, t_off)
+    # the same optimum up to Levenberg-Marquardt's stopping tolerance (1e-5 relative in the cost)
+    assert np.max(np.abs(p_on - p_off)) < 1e-3, np.max(np.abs(p_on - p_off))
+    # ... from a start (the inputs' propagation from the guess 1.7 m off) far from it
+    _, p_start = off.online_trajectory()
+    assert np.max(np.linalg.norm(p_start - p_off, axis=1)) > 1.0
