@@ -123,13 +123,21 @@ ROOMS = {
     "today": {"settings": (), "heights": ANCHOR_HEIGHTS},
     "level": {"settings": (), "heights": (2.0, 2.0, 2.0, 2.0)},
     "large": _room(
-        ((0.15, 0.12), (5.85, 0.20), (5.80, 4.85), (0.20, 4.88)),
-        (3.0, 2.5), (2.0, 1.25), 0.16, ANCHOR_HEIGHTS, (2.0, 2.0),
-    ),  # fmt: skip
+        beacons=((0.15, 0.12), (5.85, 0.20), (5.80, 4.85), (0.20, 4.88)),
+        offset=(3.0, 2.5),
+        amplitudes=(2.0, 1.25),
+        omega=0.16,
+        heights=ANCHOR_HEIGHTS,
+        point=(2.0, 2.0),
+    ),
     "walls": _room(
-        ((1.40, 0.05), (2.95, 1.10), (1.70, 2.35), (-2.0, 1.60)),
-        (1.5, 1.2), (1.0, 0.6), 0.32, ANCHOR_HEIGHTS, (1.0, 1.0),
-    ),  # fmt: skip
+        beacons=((1.40, 0.05), (2.95, 1.10), (1.70, 2.35), (-2.0, 1.60)),
+        offset=(1.5, 1.2),
+        amplitudes=(1.0, 0.6),
+        omega=0.32,
+        heights=ANCHOR_HEIGHTS,
+        point=(1.0, 1.0),
+    ),
 }
 #: The effects that ``all`` composes, in its order: a variant ``a+b`` poses the effects ``a`` and
 #: ``b`` together, ``all-a`` every effect of ``all`` but ``a`` (:func:`variant_of`).
