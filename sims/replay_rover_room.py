@@ -38,6 +38,12 @@ biases (:func:`given_truth`): the floor of the model that knows every posed effe
 replay then takes the ranges' own noise, docs/error-sources.md):
 
     python sims/replay_rover_room.py --seeds 0,1,2 --variants all --without-std
+
+``--room`` poses the robot in another room (:data:`ROOMS`: every anchor at one height, a
+6 x 5 m room, anchors on the walls and one outside; default the scenario's own), the posed
+effects as before:
+
+    python sims/replay_rover_room.py --seeds 0,1,2,3,4 --variants all --room walls
 """
 
 from __future__ import annotations
