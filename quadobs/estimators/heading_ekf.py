@@ -659,7 +659,7 @@ class HeadingUKF(_HeadingFilter):
     anchors' positions (by ``x``, then ``y``; :meth:`_canonical_order`), which no listing
     changes, so that (with the centred start-up fix) the filter is the same whatever the order
     of the anchors, to rounding. The symmetric root ``P^(1/2)``, equivariant under any
-    permutation, would do as well, and was measured 0.02 m worse on the wheeled robot
+    permutation, would do as well, and was measured worse on four logs of five of the wheeled robot
     (docs/error-sources.md).
     """
 

@@ -503,7 +503,7 @@ def test_the_noise_calibration_trusts_good_odometry_and_not_a_drifting_one():
         and len(scores) in tried
         and b.shape == (4,)
     )
-    heading = {"q_xy_heading": odometry_noise(drift) / 16}  # a quarter of the speed (log_defaults)
+    heading = {"q_xy_heading": odometry_noise(drift) / 64}  # an eighth of the speed (log_defaults)
     assert self_calibrate(drift, setup_options={"q_xy": 0.5}, noise=False)[1:] == (
         {"q_xy": 0.5, **own, **heading},
         {},

@@ -183,7 +183,7 @@ def test_the_replay_takes_the_log_s_prior_unless_an_option_sets_it():
     world = ReplayWorld(log, 0.1, "odometry", 8, None, peer_batch=False)
     assert replay_setup(log, world).q_xy == pytest.approx(odometry_noise(log))
     assert replay_setup(log, world, {"q_xy": 2.0}).q_xy == 2.0
-    assert replay_setup(log, world).q_xy_heading == pytest.approx(odometry_noise(log) / 16)
+    assert replay_setup(log, world).q_xy_heading == pytest.approx(odometry_noise(log) / 64)
     assert replay_setup(log, world, {"q_xy_heading": 2.0}).q_xy_heading == 2.0
 
 

@@ -344,9 +344,11 @@ ODOMETRY_ERROR_TIME = 1.0
 ODOMETRY_SPEED_FLOOR = 0.01
 #: The heading filters' share of the odometry's velocity error (:func:`log_defaults`): their
 #: position noise is the error of the speed's magnitude alone (a wheel's scale, a few per cent;
-#: slip in turns), taken as a quarter of the speed over :data:`ODOMETRY_ERROR_TIME`; the error
-#: across the track, up to the whole speed where the heading is wrong, is their heading state.
-HEADING_SPEED_ERROR = 0.25
+#: slip in turns), taken as an eighth of the speed over :data:`ODOMETRY_ERROR_TIME` (the middle,
+#: on a log scale, of the shares 0.07 to 0.25 that the calibration picked from held-out ranges
+#: on Plaza1, Plaza2 and the simulated wheeled robot: docs/error-sources.md); the error across
+#: the track, up to the whole speed where the heading is wrong, is their heading state.
+HEADING_SPEED_ERROR = 0.125
 
 
 def odometry_noise(log) -> float:
@@ -371,7 +373,7 @@ def log_defaults(log) -> dict:
     odometry log (:func:`odometry_noise`) and the heading filters' ``q_xy_heading``, the share
     :data:`HEADING_SPEED_ERROR` of it squared (their position noise is the error of the speed's
     magnitude alone, a part of what ``q_xy`` carries; the fixed 1 m^2/s before it was the
-    prior of a vehicle at 4 m/s, 140 times this one for a robot at 0.34 m/s, which the
+    prior of a vehicle at 8 m/s, 560 times this one for a robot at 0.34 m/s, which the
     calibration kept where its test did not decide: docs/error-sources.md), ``q_imu`` from the IMU's stated figures
     (:func:`imu_input_noise`), ``range_sigma`` from the ranges of a log that states none
     (:func:`~quadobs.testbed.logs.range_noise.stated_range_noise`); empty for a log that gives
