@@ -38,6 +38,12 @@ biases (:func:`given_truth`): the floor of the model that knows every posed effe
 replay then takes the ranges' own noise, docs/error-sources.md):
 
     python sims/replay_rover_room.py --seeds 0,1,2 --variants all --without-std
+
+``--room`` poses the robot in another room (:data:`ROOMS`: every anchor at one height, a
+6 x 5 m room, anchors on the walls and one outside; default the scenario's own), the posed
+effects as before:
+
+    python sims/replay_rover_room.py --seeds 0,1,2,3,4 --variants all --room walls
 """
 
 from __future__ import annotations
@@ -90,6 +96,55 @@ VARIANTS = {
     "lever": ((), _LEVER),
     "all": ((_STOPS, *_RATES), {**_HEIGHTS, **_LEVER, **_CLOCKS}),
 }
+
+
+def _room(beacons, offset, amplitudes, omega, heights, point) -> dict:
+    """A room: the scenario's settings (its anchors' plan, the figure eight ``offset +
+    (a_x sin(w t), a_y sin(2 w t))`` and the live estimators' start) and the anchors' heights
+    that the ``heights`` effect poses in it (the tag at :data:`TAG_HEIGHT`)."""
+    anchors = ",".join(f"{{position=[{x},{y}]}}" for x, y in beacons)
+    terms = ",".join(
+        f'{{axis={axis},amplitude={a},omega={w},function="sin"}}'
+        for axis, a, w in ((0, amplitudes[0], omega), (1, amplitudes[1], 2 * omega))
+    )
+    return {
+        "settings": (
+            f"beacons=[{anchors}]",
+            f"trajectory.offset=[{offset[0]},{offset[1]}]",
+            f"trajectory.terms=[{terms}]",
+            f"initial.point=[{point[0]},{point[1]},0.0,0.0]",
+        ),
+        "heights": tuple(heights),
+    }
+
+
+#: The rooms the robot is posed in (``--room``). ``today``: the scenario as it ships (3.0 x 2.4
+#: m, anchors near the corners at :data:`ANCHOR_HEIGHTS`). ``level``: the same plan, every
+#: anchor at 2.0 m (on tripods or at the ceiling, a common layout: the same height offset for
+#: all). ``large``: a 6.0 x 5.0 m room, anchors near its corners, the figure eight scaled by 2
+#: in x and 2.08 in y at half the rate (the same speeds, 0.22 to 0.50 m/s, a lap of 39 s).
+#: ``walls``: the small room's anchors at the middle of three walls and the fourth 2 m outside
+#: the west wall (in the next room, 2.3 m from the path's nearest point).
+ROOMS = {
+    "today": {"settings": (), "heights": ANCHOR_HEIGHTS},
+    "level": {"settings": (), "heights": (2.0, 2.0, 2.0, 2.0)},
+    "large": _room(
+        beacons=((0.15, 0.12), (5.85, 0.20), (5.80, 4.85), (0.20, 4.88)),
+        offset=(3.0, 2.5),
+        amplitudes=(2.0, 1.25),
+        omega=0.16,
+        heights=ANCHOR_HEIGHTS,
+        point=(2.0, 2.0),
+    ),
+    "walls": _room(
+        beacons=((1.40, 0.05), (2.95, 1.10), (1.70, 2.35), (-2.0, 1.60)),
+        offset=(1.5, 1.2),
+        amplitudes=(1.0, 0.6),
+        omega=0.32,
+        heights=ANCHOR_HEIGHTS,
+        point=(1.0, 1.0),
+    ),
+}
 #: The effects that ``all`` composes, in its order: a variant ``a+b`` poses the effects ``a`` and
 #: ``b`` together, ``all-a`` every effect of ``all`` but ``a`` (:func:`variant_of`).
 EFFECTS = ("rest", "rates", "heights", "lever", "clocks")
@@ -120,9 +175,19 @@ def variant_of(name: str) -> tuple[tuple, dict]:
     return settings, pose
 
 
-def export(seed: int, duration: float, folder: Path, variant: str = "today"):
-    """The seed's ``rover-room`` run written as a log in ``folder`` (posed as ``variant``); the scenario."""
+def in_room(pose: dict, room: str) -> dict:
+    """The posing ``pose`` in the room ``room`` (:data:`ROOMS`): the ``heights`` effect's
+    anchors at the room's heights."""
+    if pose.get("anchor_heights") == ANCHOR_HEIGHTS:
+        return {**pose, "anchor_heights": ROOMS[room]["heights"]}
+    return pose
+
+
+def export(seed: int, duration: float, folder: Path, variant: str = "today", room: str = "today"):
+    """The seed's ``rover-room`` run in ``room`` written as a log in ``folder`` (posed as
+    ``variant``); the scenario."""
     settings, pose = variant_of(variant)
+    settings, pose = (*ROOMS[room]["settings"], *settings), in_room(pose, room)
     scenario = load_scenario("rover-room", seed=seed, duration=duration)
     if settings:
         scenario = scenario.with_settings(settings)
@@ -223,6 +288,12 @@ def main() -> None:
         help="replay each posed log with its ranges' std column left out (with --variants)",
     )
     ap.add_argument(
+        "--room",
+        default="today",
+        choices=tuple(ROOMS),
+        help="the room's anchors and path (with --variants; default: the scenario's own)",
+    )
+    ap.add_argument(
         "--extra", default="", help="estimators replayed beside the default set (e.g. ukf-height)"
     )
     args = ap.parse_args()
@@ -233,11 +304,11 @@ def main() -> None:
             if args.variants:
                 variants = args.variants.split(",")
                 rows += posed_rows(
-                    seed, args.duration, variants, Path(tmp), extra, args.without_std
+                    seed, args.duration, variants, Path(tmp), extra, args.without_std, args.room
                 )
                 continue
             folder = Path(tmp) / f"seed{seed}"
-            scenario = export(seed, args.duration, folder)
+            scenario = export(seed, args.duration, folder, "today", args.room)
             bare = without_std(folder, Path(tmp) / f"seed{seed}-nostd")
             ref = reference(folder, scenario)
             for label, log in (("std", folder), ("no std", bare)):
@@ -255,21 +326,27 @@ def main() -> None:
 
 
 def posed_rows(
-    seed: int, duration: float, variants: list[str], tmp: Path, extra=(), bare: bool = False
+    seed: int,
+    duration: float,
+    variants: list[str],
+    tmp: Path,
+    extra=(),
+    bare: bool = False,
+    room: str = "today",
 ) -> list[dict]:
-    """One row per variant of the seed: the defaults' RMSE and the reference's (``bare``: the
-    defaults on the log with its ranges' ``std`` column left out)."""
+    """One row per variant of the seed in ``room``: the defaults' RMSE and the reference's
+    (``bare``: the defaults on the log with its ranges' ``std`` column left out)."""
     rows = []
     for variant in variants:
         variant_of(variant)  # an unknown name stops here, before the export
         folder = tmp / f"seed{seed}-{variant}"
-        scenario = export(seed, duration, folder, variant)
+        scenario = export(seed, duration, folder, variant, room)
         replayed = without_std(folder, tmp / f"seed{seed}-{variant}-nostd") if bare else folder
         row = {
             "seed": seed,
             "log": f"{variant}, no std" if bare else variant,
             **replay_defaults(replayed, extra),
-            **reference(folder, scenario, variant_of(variant)[1]),
+            **reference(folder, scenario, in_room(variant_of(variant)[1], room)),
         }
         rows.append(row)
         print(", ".join(f"{k} {_fmt(v)}" for k, v in row.items()), flush=True)

@@ -294,6 +294,12 @@ class _HeadingFilter(Estimator, Gated):
         """The tag's offset ``l`` (m) in the body frame: its estimate, or zero without those states."""
         return self._x[4:6].copy() if self.lever else np.zeros(2)
 
+    @property
+    def _anchor_states(self) -> bool:
+        """Whether the state holds entries per anchor (biases, offsets): its order is then the
+        log's order of the anchors."""
+        return self._ie >= 0 or self._ib >= 0
+
     def _append_anchor_states(self, offsets, bias_std) -> None:
         """The anchors' range biases (prior 0, ``bias_std``) and squared-range offsets (prior
         ``offsets = (mean, std)``) appended to the state where given (module docstring)."""
@@ -432,14 +438,17 @@ class _HeadingFilter(Estimator, Gated):
         it took, :meth:`_fix_sigma`), and the heading's correction and its bias go
         back to their prior: what the corrections made of them from a prior of tens of metres
         (a UKF's sigma points spread over it) is not kept. After four rounds without a
-        multilateration (anchors in too few directions) the prior is kept."""
+        multilateration (anchors in too few directions) the prior is kept. With the anchors'
+        states the multilateration takes the differences from the ranges' mean (``centred``):
+        its fix, like the filter, is then the same whatever the order of the anchors."""
         if not self.fix_pending:
             return
         q = self.anchors.shape[0]
         self._waited += 1
         if np.isnan(self._latest).any() and self._waited < 2 * q:
             return
-        fixed = multilateration(np.broadcast_to(np.eye(2), (q, 2, 2)), -self.anchors, self._latest)
+        C = np.broadcast_to(np.eye(2), (q, 2, 2))
+        fixed = multilateration(C, -self.anchors, self._latest, centred=self._anchor_states)
         if fixed is None and self._waited < 4 * q:
             return
         self.fix_pending = False
@@ -465,9 +474,10 @@ class _HeadingFilter(Estimator, Gated):
         """The position's covariance that the anchors' unknown offsets and biases give the
         multilateration: each output ``y_h = (rho_h - b_h)^2 / 2 - |a_h|^2 / 2 - e_h`` carries the
         prior variance ``v_h = var e_h + rho_h^2 var b_h``; the fix is linear in the differences
-        ``y_h - y_0`` (:func:`~quadobs.estimators.robust.multilateration`), ``p = M G y``, so it
-        carries ``M G diag(v) G^T M^T`` (common prior means cancel in the differences). Zero
-        without those states."""
+        ``y_h - ybar`` from their mean (:func:`~quadobs.estimators.robust.multilateration`,
+        ``centred``), ``p = M G y`` with ``G = I - 1 1^T / q`` and ``M`` the pseudo-inverse of the
+        centred ``-(a_h - abar)^T``, so it carries ``M G diag(v) G^T M^T`` (common prior means
+        cancel in the differences). Zero without those states."""
         if self._ie < 0 and self._ib < 0:
             return np.zeros((2, 2))
         rows = np.flatnonzero(~np.isnan(self._latest))
@@ -480,9 +490,9 @@ class _HeadingFilter(Estimator, Gated):
             v += P0[self._ie + rows]
         if self._ib >= 0:
             v += np.maximum(rho2, 0.0) * P0[self._ib + rows]
-        D = self.anchors[rows[0]] - self.anchors[rows[1:]]
-        M = np.linalg.pinv(D)
-        G = np.hstack([-np.ones((rows.size - 1, 1)), np.eye(rows.size - 1)])
+        A = self.anchors[rows]
+        M = np.linalg.pinv(A.mean(axis=0) - A)
+        G = np.eye(rows.size) - 1.0 / rows.size
         MG = M @ G
         return (MG * v) @ MG.T
 
@@ -537,7 +547,7 @@ class _HeadingFilter(Estimator, Gated):
             self._P = reinitialised_covariance(self._P, self._P0, lock.largest, 2, span)
             q = self.anchors.shape[0]
             C = np.broadcast_to(np.eye(2), (q, 2, 2))
-            fixed = multilateration(C, -self.anchors, self._latest)
+            fixed = multilateration(C, -self.anchors, self._latest, centred=self._anchor_states)
             if fixed is not None:
                 self._x[fixed[0]] = fixed[1]
 
@@ -637,9 +647,20 @@ class HeadingUKF(_HeadingFilter):
     Notes
     -----
     Sigma points ``X_0 = x``, ``X_i, X_(n+i) = x +- sqrt(n + lambda) L_i`` (``L`` the Cholesky
-    factor of ``P``); prediction ``x = sum W^m_i f(X_i)``, ``P = sum W^c_i (f(X_i) - x)(.)^T + Q_d``;
+    factor of ``P``, its anchors' states taken in the order of the anchors' positions);
+    prediction ``x = sum W^m_i f(X_i)``, ``P = sum W^c_i (f(X_i) - x)(.)^T + Q_d``;
     a measurement ``Z_i = h(X_i)``, ``S = sum W^c_i (Z_i - z)^2 + sigma^2``,
     ``P_xz = sum W^c_i (X_i - x)(Z_i - z)``, ``K = P_xz / S``.
+
+    The Cholesky factor is triangular: its columns, so the sigma points, and so (the
+    measurement being nonlinear) the transform's mean and covariance depend on the order of
+    the state's entries. With the anchors' biases or offsets as states that order would be
+    the log's listing of its anchors; the factor takes them instead in the order of the
+    anchors' positions (by ``x``, then ``y``; :meth:`_canonical_order`), which no listing
+    changes, so that (with the centred start-up fix) the filter is the same whatever the order
+    of the anchors, to rounding. The symmetric root ``P^(1/2)``, equivariant under any
+    permutation, would do as well, and was measured worse on four logs of five of the wheeled robot
+    (docs/error-sources.md).
     """
 
     name = "ukf-heading"
@@ -655,15 +676,30 @@ class HeadingUKF(_HeadingFilter):
         self._wm[0] = lam / (n + lam)
         self._wc = self._wm.copy()
         self._wc[0] += 1.0 - alpha**2 + beta
+        self._root_order = self._canonical_order()
 
     def _sigma(self) -> np.ndarray:
+        o = self._root_order  # the anchors' states in the order of their positions (docstring)
+        P = self._P[np.ix_(o, o)]
         try:
-            L = np.linalg.cholesky(self._P)
+            L = np.linalg.cholesky(P)
         except np.linalg.LinAlgError:
-            w, U = np.linalg.eigh(self._P)
+            w, U = np.linalg.eigh(P)
             L = U * np.sqrt(np.maximum(w, 0.0))
-        D = self._scale * L.T
+        D = np.empty_like(L)
+        D[:, o] = self._scale * L.T  # column k of the factor, back in the state's order
         return np.concatenate([self._x[None], self._x + D, self._x - D])
+
+    def _canonical_order(self) -> np.ndarray:
+        """The state's indices with each block of anchors' states (biases, offsets) in the
+        order of the anchors' positions (by ``x``, then ``y``), not the log's: the order of
+        the Cholesky factor of :meth:`_sigma`."""
+        order = np.arange(self._x.size)
+        rank = np.lexsort(self.anchors.T[::-1])  # by x, then y
+        for first in (self._ib, self._ie):
+            if first >= 0:
+                order[first : first + rank.size] = first + rank
+        return order
 
     def _predict(self, dt: float, u: np.ndarray) -> None:
         Q = self._noise(dt, u)

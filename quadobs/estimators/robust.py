@@ -503,7 +503,7 @@ def reinitialised_covariance(
 
 
 def multilateration(
-    C: np.ndarray, d: np.ndarray, y: np.ndarray
+    C: np.ndarray, d: np.ndarray, y: np.ndarray, centred: bool = False
 ) -> tuple[np.ndarray, np.ndarray] | None:
     """The state entries fixed by one snapshot of outputs that share one quadratic form.
 
@@ -518,6 +518,11 @@ def multilateration(
     d : ndarray (q, n)
     y : ndarray (q,)
         The latest value of each output (NaN: none).
+    centred : bool
+        Differences from the outputs' mean, ``y_h - ybar = (d_h - dbar)^T x``, instead of from
+        the first output. For outputs with independent errors of one variance this is the
+        generalised least squares of the differences (whose errors share the first one's), and
+        the fix does not depend on the outputs' order; from the first output it does.
 
     Returns
     -------
@@ -528,11 +533,14 @@ def multilateration(
     rows = np.flatnonzero(~np.isnan(y))
     if rows.shape[0] < 2 or not np.allclose(C[rows], C[rows[0]]):
         return None
-    D = d[rows[1:]] - d[rows[0]]
+    if centred:
+        D, r = d[rows] - d[rows].mean(axis=0), y[rows] - y[rows].mean()
+    else:
+        D, r = d[rows[1:]] - d[rows[0]], y[rows[1:]] - y[rows[0]]
     cols = np.flatnonzero(np.any(D != 0.0, axis=0))
     if cols.shape[0] == 0 or np.linalg.matrix_rank(D[:, cols]) < cols.shape[0]:
         return None
-    sol = np.linalg.lstsq(D[:, cols], y[rows[1:]] - y[rows[0]], rcond=None)[0]
+    sol = np.linalg.lstsq(D[:, cols], r, rcond=None)[0]
     return cols, sol
 
 

@@ -458,3 +458,51 @@ def test_the_filter_with_the_anchors_states_bounds_an_outliers_correction_by_hub
         assert np.allclose(dx, dx0 * S / inflated, rtol=1e-9, atol=1e-12)
         assert (r > rule.c) == (np.linalg.norm(dx) < 0.999 * np.linalg.norm(dx0))
     assert seen == [True, False]  # the outlier beyond the bound, the 0.1 m within it
+
+
+def test_the_filter_with_the_anchors_states_is_the_same_whatever_the_anchors_order():
+    """The same noisy ranges with the anchors listed in reverse: the UKF with the anchors'
+    biases and offsets as states starts from a centred multilateration and spreads its sigma
+    points by the symmetric root, so it ends where it ends with the anchors in order (to
+    rounding), its anchor states reversed."""
+    lever, dz = (0.10, 0.0), np.array([0.05, 2.05, 0.80, 1.55])
+    t = np.arange(0.0, 6.0, 0.1)
+    omega = room_s_curve(t + 0.05, lever)[0]
+    inputs = np.column_stack([t, np.full_like(t, 0.3), omega])
+    tr = np.arange(0.05, 5.9, 0.25)
+    h = np.arange(tr.size) % 4
+    tag = room_s_curve(tr, lever)[2]
+    rho = np.sqrt(np.sum((tag - ROOM[h]) ** 2, axis=1) + dz[h] ** 2) + 0.1
+    rho += 0.05 * np.random.default_rng(0).standard_normal(tr.size)
+    ends = []
+    for order in (np.arange(4), np.arange(4)[::-1]):
+        index = np.argsort(order)  # anchor h is listed at index[h]
+        ranges = np.column_stack([tr, index[h], rho])
+        log = RangeLog("room", np.arange(4), ROOM[order], ranges, inputs, math.pi / 2, None)
+        f = run_in_time(
+            log, HeadingUKF, [100.0, 100.0, 0.01, 1e-4], x0=(8.0, -5.0, 0.0, 0.0),
+            lever_arm_std=0.2, offsets=(1.5, 1.34), bias_std=0.5, **{**NOISE, "q_xy": 1e-3},
+        )  # fmt: skip
+        assert f.fixes  # the start-up's multilateration was taken
+        ends.append((f.x_hat, f.lever_arm, f.range_biases[index], f.offsets[index]))
+    for a, b in zip(*ends, strict=True):
+        np.testing.assert_allclose(a, b, atol=1e-9)
+
+
+def test_the_centred_multilateration_is_exact_and_does_not_depend_on_the_outputs_order():
+    """Noise-free outputs: both differences give the position; noisy ones: the centred fix of
+    the outputs in any order is the same, the fix from the first output is not."""
+    from quadobs.estimators.robust import multilateration
+
+    p = np.array([1.1, 0.7])
+    y = 0.5 * np.sum((p - ROOM) ** 2, axis=1) - 0.5 * np.sum(ROOM**2, axis=1)
+    C = np.broadcast_to(np.eye(2), (4, 2, 2))
+    for centred in (False, True):
+        np.testing.assert_allclose(multilateration(C, -ROOM, y, centred)[1], p, atol=1e-12)
+    y_noisy = y + np.array([0.05, -0.03, 0.02, 0.04])
+    fixes = {
+        centred: [multilateration(C, -ROOM[o], y_noisy[o], centred)[1] for o in ([0, 1, 2, 3], [2, 3, 0, 1])]
+        for centred in (False, True)
+    }  # fmt: skip
+    np.testing.assert_allclose(fixes[True][0], fixes[True][1], atol=1e-12)
+    assert np.linalg.norm(fixes[False][0] - fixes[False][1]) > 1e-3

@@ -468,6 +468,7 @@ def test_the_noise_calibration_trusts_good_odometry_and_not_a_drifting_one():
         calibrate_noise,
         self_calibrate,
     )
+    from quadobs.testbed.logs.estimators import odometry_noise
     from quadobs.testbed.logs.range_noise import stated_range_noise
 
     tried = range(len(NOISE_FACTORS), len(NOISE_FACTORS) + EXTEND + 1)  # the grid, and past it
@@ -502,8 +503,9 @@ def test_the_noise_calibration_trusts_good_odometry_and_not_a_drifting_one():
         and len(scores) in tried
         and b.shape == (4,)
     )
+    heading = {"q_xy_heading": odometry_noise(drift) / 64}  # an eighth of the speed (log_defaults)
     assert self_calibrate(drift, setup_options={"q_xy": 0.5}, noise=False)[1:] == (
-        {"q_xy": 0.5, **own},
+        {"q_xy": 0.5, **own, **heading},
         {},
     )
 

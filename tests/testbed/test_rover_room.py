@@ -156,6 +156,7 @@ def _odometry_log(times, speeds):
 
 def test_the_odometry_noise_prior_is_the_mean_square_speed_over_a_second():
     from quadobs.testbed.logs.estimators import (
+        HEADING_SPEED_ERROR,
         ODOMETRY_ERROR_TIME,
         log_defaults,
         odometry_noise,
@@ -165,7 +166,11 @@ def test_the_odometry_noise_prior_is_the_mean_square_speed_over_a_second():
     log = _odometry_log([0.0, 2.0, 3.0], [0.3, 0.6, 5.0])
     expected = (2.0 * 0.09 + 1.0 * 0.36) / 3.0 * ODOMETRY_ERROR_TIME
     assert odometry_noise(log) == pytest.approx(expected, rel=1e-12)
-    assert log_defaults(log) == {"q_xy": pytest.approx(expected, rel=1e-12)}
+    heading = pytest.approx(HEADING_SPEED_ERROR**2 * expected, rel=1e-12)  # a speed error's share
+    assert log_defaults(log) == {
+        "q_xy": pytest.approx(expected, rel=1e-12),
+        "q_xy_heading": heading,
+    }
     # a robot that never moves still gets the floor's noise, (0.01 m/s)^2 over a second
     assert odometry_noise(_odometry_log([0.0, 1.0], [0.0, 0.0])) == pytest.approx(1e-4)
 
@@ -178,6 +183,8 @@ def test_the_replay_takes_the_log_s_prior_unless_an_option_sets_it():
     world = ReplayWorld(log, 0.1, "odometry", 8, None, peer_batch=False)
     assert replay_setup(log, world).q_xy == pytest.approx(odometry_noise(log))
     assert replay_setup(log, world, {"q_xy": 2.0}).q_xy == 2.0
+    assert replay_setup(log, world).q_xy_heading == pytest.approx(odometry_noise(log) / 64)
+    assert replay_setup(log, world, {"q_xy_heading": 2.0}).q_xy_heading == 2.0
 
 
 def test_the_command_line_exports_and_replays_the_odometry_log(tmp_path, capsys):

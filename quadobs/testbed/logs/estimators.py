@@ -196,7 +196,9 @@ class ReplaySetup:
     q_xy_heading : float
         The white noise on the position of the heading filters (m^2/s per axis;
         :func:`build_ekf_heading`): the speed's noise alone, where ``q_xy`` of the model
-        ``odometry`` also carries the heading's drift. Its prior is ``q_xy``'s (1 m^2/s).
+        ``odometry`` also carries the heading's drift. Its prior is ``q_xy``'s (1 m^2/s; a log
+        of odometry sets ``q_xy = s_rms^2 T`` and this to ``(HEADING_SPEED_ERROR s_rms)^2 T``,
+        :func:`log_defaults`).
     start : StartPrior or None
         Whether the log's first half second shows the vehicle at rest, and the velocity's
         bound that would follow, and the velocity that the ranges of that window tell
@@ -363,6 +365,13 @@ ODOMETRY_ERROR_TIME = 1.0
 #: The least speed (m/s) of :func:`odometry_noise`: a log that never moves still gets a
 #: process noise (a centimetre per second over a second).
 ODOMETRY_SPEED_FLOOR = 0.01
+#: The heading filters' share of the odometry's velocity error (:func:`log_defaults`): their
+#: position noise is the error of the speed's magnitude alone (a wheel's scale, a few per cent;
+#: slip in turns), taken as an eighth of the speed over :data:`ODOMETRY_ERROR_TIME` (the middle,
+#: on a log scale, of the shares 0.07 to 0.25 that the calibration picked from held-out ranges
+#: on Plaza1, Plaza2 and the simulated wheeled robot: docs/error-sources.md); the error across
+#: the track, up to the whole speed where the heading is wrong, is their heading state.
+HEADING_SPEED_ERROR = 0.125
 
 
 def odometry_noise(log) -> float:
@@ -384,7 +393,11 @@ def odometry_noise(log) -> float:
 
 def log_defaults(log) -> dict:
     """The setup options whose defaults a log sets (:class:`ReplaySetup`): ``q_xy`` of an
-    odometry log (:func:`odometry_noise`), ``q_imu`` from the IMU's stated figures
+    odometry log (:func:`odometry_noise`) and the heading filters' ``q_xy_heading``, the share
+    :data:`HEADING_SPEED_ERROR` of it squared (their position noise is the error of the speed's
+    magnitude alone, a part of what ``q_xy`` carries; the fixed 1 m^2/s before it was the
+    prior of a vehicle at 8 m/s, 560 times this one for a robot at 0.34 m/s, which the
+    calibration kept where its test did not decide: docs/error-sources.md), ``q_imu`` from the IMU's stated figures
     (:func:`imu_input_noise`), ``range_sigma`` from the ranges of a log that states none
     (:func:`~quadobs.testbed.logs.range_noise.stated_range_noise`); empty for a log that gives
     none of them. :func:`replay_setup` fills
@@ -392,6 +405,7 @@ def log_defaults(log) -> dict:
     out = {}
     if log.input_kind == "odometry" and log.inputs.shape[0] >= 2:
         out["q_xy"] = odometry_noise(log)
+        out["q_xy_heading"] = HEADING_SPEED_ERROR**2 * out["q_xy"]
     q = imu_input_noise(log)
     if q is not None:
         out["q_imu"] = q
