@@ -411,4 +411,3 @@ def set_velocity_prior(setup, x: np.ndarray, P: np.ndarray, first: int) -> None:
     P[block, :] = 0.0
     P[:, block] = 0.0
     P[block, block] = cov
-
