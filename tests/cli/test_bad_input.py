@@ -12,7 +12,7 @@ from hypothesis.extra import numpy as hnp
 
 from quadobs import QuadobsError, QuadraticSystem, load_scenario
 from quadobs.cli import main
-from quadobs.testbed.scenario import parse_scenario
+from quadobs.testbed.scenario import Scenario, parse_scenario
 
 FAST = settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 
@@ -87,18 +87,11 @@ def test_scenario_mutations_accept_or_name_the_field(data):
 
 
 # every top-level field a scenario may have (those the base omits: optional ones left at their default)
-KNOWN = set(BASE) | {
-    "model",
-    "record_every",
-    "wind",
-    "kind",
-    "description",
-    "excitation",
-    "zonotope",
-    "initial",
-    "noise",
-    "observer",
-}
+KNOWN = (
+    set(BASE)
+    | set(Scenario.model_fields)
+    | {f.alias for f in Scenario.model_fields.values() if f.alias}
+)  # every field a scenario file may hold, from the model itself
 
 
 @FAST
