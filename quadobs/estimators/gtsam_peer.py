@@ -446,6 +446,7 @@ class Isam2Peer(Estimator, Counted):
         """iSAM2's current estimate of the range bias per anchor (``bias="state"``), else ``None``."""
         if self.noise.bias != "state":
             return None
+        self._online_only("biases")
         self._flush()
         est = self._estimate()
         return np.array([est.atVector(self._bias_key(h))[0] for h in range(len(self.anchors))])
@@ -454,6 +455,7 @@ class Isam2Peer(Estimator, Counted):
 
     def online_trajectory(self) -> tuple[np.ndarray, np.ndarray]:
         """The nodes' times ``(m,)`` and iSAM2's current (smoothed) positions of them ``(m, d)`` (NaN after a :attr:`failure`)."""
+        self._online_only("online_trajectory")
         self._flush()
         if self.failure is not None:
             return self._lost()
@@ -477,6 +479,14 @@ class Isam2Peer(Estimator, Counted):
     def _estimate(self):
         """iSAM2's current estimate of every variable (``online=False``: :attr:`values`)."""
         return self.isam.calculateEstimate() if self.online else self.values
+
+    def _online_only(self, what: str) -> None:
+        """Refuse ``what``, an estimate of iSAM2's, from a graph built with ``online=False``."""
+        if not self.online:
+            raise QuadobsError(
+                f"{what}: the peer was built with online=False (no iSAM2 estimate); "
+                "solve the graph with batch_trajectory"
+            )
 
     def _lost(self) -> tuple[np.ndarray, np.ndarray]:
         return np.array(self.node_times), np.full((len(self.node_times), self.dim), np.nan)

@@ -476,5 +476,9 @@ def test_a_graph_built_without_isam2_has_the_same_batch_optimum():
     # the same optimum up to Levenberg-Marquardt's stopping tolerance (1e-5 relative in the cost)
     assert np.max(np.abs(p_on - p_off)) < 1e-3, np.max(np.abs(p_on - p_off))
     # ... from a start (the inputs' propagation from the guess 1.7 m off) far from it
-    _, p_start = off.online_trajectory()
+    _, p_start = off._positions(off.values)
     assert np.max(np.linalg.norm(p_start - p_off, axis=1)) > 1.0
+    # no iSAM2 estimate to give: refused, not the propagation passed off as one
+    for what in ("online_trajectory", "biases"):
+        with pytest.raises(QuadobsError, match=f"{what}: the peer was built with online=False"):
+            getattr(off, what)() if what == "online_trajectory" else off.biases
