@@ -183,6 +183,12 @@ def in_room(pose: dict, room: str) -> dict:
     return pose
 
 
+def _poses_heights(variant: str) -> bool:
+    """Whether ``variant`` poses the anchors' heights (the ``heights`` effect), where
+    ``--room level`` puts them at one height."""
+    return variant_of(variant)[1].get("anchor_heights") == ANCHOR_HEIGHTS
+
+
 def export(seed: int, duration: float, folder: Path, variant: str = "today", room: str = "today"):
     """The seed's ``rover-room`` run in ``room`` written as a log in ``folder`` (posed as
     ``variant``); the scenario."""
@@ -297,6 +303,10 @@ def main() -> None:
         "--extra", default="", help="estimators replayed beside the default set (e.g. ukf-height)"
     )
     args = ap.parse_args()
+    if args.room == "level":  # its one height is posed by the heights effect alone
+        flat = [v for v in (args.variants or "today").split(",") if not _poses_heights(v)]
+        if flat:
+            ap.error(f"--room level: the variant(s) {', '.join(flat)} pose no anchor heights")
     extra = tuple(x for x in args.extra.split(",") if x)
     rows = []
     with tempfile.TemporaryDirectory(prefix="rover-room-") as tmp:
