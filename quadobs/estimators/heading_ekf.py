@@ -680,20 +680,25 @@ class HeadingUKF(_HeadingFilter):
 
     def _sigma(self) -> np.ndarray:
         o = self._root_order  # the anchors' states in the order of their positions (docstring)
-        P = self._P[np.ix_(o, o)]
+        P = self._P if o is None else self._P[np.ix_(o, o)]
         try:
             L = np.linalg.cholesky(P)
         except np.linalg.LinAlgError:
             w, U = np.linalg.eigh(P)
             L = U * np.sqrt(np.maximum(w, 0.0))
-        D = np.empty_like(L)
-        D[:, o] = self._scale * L.T  # column k of the factor, back in the state's order
+        if o is None:
+            D = self._scale * L.T
+        else:
+            D = np.empty_like(L)
+            D[:, o] = self._scale * L.T  # column k of the factor, back in the state's order
         return np.concatenate([self._x[None], self._x + D, self._x - D])
 
-    def _canonical_order(self) -> np.ndarray:
+    def _canonical_order(self) -> np.ndarray | None:
         """The state's indices with each block of anchors' states (biases, offsets) in the
         order of the anchors' positions (by ``x``, then ``y``), not the log's: the order of
-        the Cholesky factor of :meth:`_sigma`."""
+        the Cholesky factor of :meth:`_sigma`; None without anchors' states (the state's own)."""
+        if not self._anchor_states:
+            return None
         order = np.arange(self._x.size)
         rank = np.lexsort(self.anchors.T[::-1])  # by x, then y
         for first in (self._ib, self._ie):

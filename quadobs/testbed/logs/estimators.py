@@ -202,11 +202,12 @@ class ReplaySetup:
     start : StartPrior or None
         Whether the log's first half second shows the vehicle at rest, and the velocity's
         bound that would follow, and the velocity that the ranges of that window tell
-        (:mod:`~quadobs.testbed.logs.start_prior`): the filters' prior where it is applied.
+        (:mod:`~quadobs.testbed.logs.start_prior`): the filters' prior where it is applied
+        (``--tune velocity_std=log``), else reported only.
     velocity_std : float or None
         The velocity's prior standard deviation per axis (m/s) of the filters with a velocity
-        state (``--tune velocity_std=...``); None:
-        the ``start``'s prior where applied, else
+        state (``--tune velocity_std=...``); None: the ``start``'s prior where
+        ``--tune velocity_std=log`` applies it, else
         :data:`~quadobs.testbed.logs.start_prior.UNKNOWN_VELOCITY_STD`
         (:func:`~quadobs.testbed.logs.start_prior.velocity_prior`).
     """
