@@ -21,7 +21,10 @@ estimators receive is recorded, and then
 The peer's noise is the filters' own: the stated range noise, the input noise's intensity
 ``q = sigma_u^2 dt`` (:func:`~quadobs.testbed.imu.input_noise_std`), the biases' prior the
 radio's ``bias_std``; its loss is ``--loss`` (Huber at 3 standard deviations by default, the
-peer's default). Its online (iSAM2) estimate is not scored: the batch is the reference.
+peer's default). With ``--online`` the batches are left out and the peer runs online
+instead: ``isam2-bias`` (iSAM2 with the biases as variables) and ``isam2-given`` (given the
+true biases), the recorded flight replayed into each and its estimate read as the filters'
+(iSAM2's estimate of the last node propagated by the held input), beside ``ekf-bias-given``.
 ``--key-period`` lets the ranges within that time after a node share it (read as if taken
 at its time: an error of at most the speed times it), for fewer nodes: each of the peer's
 Python factors is handed the whole graph's values when gtsam evaluates it, so the cost of
@@ -40,6 +43,7 @@ Usage::
 
     python sims/uwb_bias_bound.py --seeds 0:10 [--duration 40] [--loss huber|cauchy|none]
         [--set radio.nlos_median=0] [--line-of-sight] [--burn-in 5] [--key-period 0.02]
+        [--online]
 """
 
 from __future__ import annotations
@@ -112,13 +116,9 @@ def pinned(est, biases: np.ndarray, name: str):
     return est
 
 
-def batch(scenario, calls, x0, loss: str, start, fixed_bias=None, key_period: float = 0.0):
-    """The peer's graph of the recorded flight solved by Levenberg-Marquardt: the nodes'
-    times and positions and the biases (the variables', or ``fixed_bias``).
-
-    The graph is built without iSAM2 (``online=False``) and solved from ``start``: a
-    function of the nodes' times giving the positions and velocities ``(m, 6)``, and the
-    biases ``(q,)`` (the online filter's, no truth)."""
+def make_peer(scenario, x0, loss: str, fixed_bias=None, key_period: float = 0.0, online=False):
+    """The GTSAM peer with the filters' own noise (module docstring): biases as states, or
+    given (``fixed_bias``); ``online=False`` builds the graph only."""
     P0, _ = initial_covariance(scenario)
     noise = PeerNoise(
         range_sigma=_range_sigma(scenario),
@@ -129,15 +129,25 @@ def batch(scenario, calls, x0, loss: str, start, fixed_bias=None, key_period: fl
         velocity_sigma=math.sqrt(float(np.asarray(P0)[3, 3])),
         key_period=key_period,
     )
-    peer = Isam2Peer(
+    return Isam2Peer(
         scenario.beacons,
         "accel_nav",
         x0=x0,
         P0=float(np.asarray(P0)[0, 0]),
         noise=noise,
         fixed_bias=fixed_bias,
-        online=False,
+        online=online,
     )
+
+
+def batch(scenario, calls, x0, loss: str, start, fixed_bias=None, key_period: float = 0.0):
+    """The peer's graph of the recorded flight solved by Levenberg-Marquardt: the nodes'
+    times and positions and the biases (the variables', or ``fixed_bias``).
+
+    The graph is built without iSAM2 (``online=False``) and solved from ``start``: a
+    function of the nodes' times giving the positions and velocities ``(m, 6)``, and the
+    biases ``(q,)`` (the online filter's, no truth)."""
+    peer = make_peer(scenario, x0, loss, fixed_bias, key_period)
     for kind, arg in calls:
         getattr(peer, kind)(arg)
     peer._flush()
@@ -169,6 +179,7 @@ def one_seed(
     los: bool = False,
     burn_in: float = 5.0,
     key_period: float = 0.0,
+    peer_online: bool = False,
 ) -> dict:
     over = {"seed": seed} | ({"duration": duration} if duration else {})
     scenario = load_scenario("quadrotor-uwb-realistic", settings=settings, **over)
@@ -204,6 +215,10 @@ def one_seed(
 
     out: dict = {"seed": seed, "biases": b_true.round(4).tolist()}
     out["ekf-bias"] = {"rmse": rmse(np.asarray(trace["estimates"]["ekf-bias"])[:, :3])}
+    if peer_online:
+        out |= online_peers(scenario, calls, x0, loss, b_true, key_period, t, rmse)
+        out["ratio_ekf"] = out["ekf-bias"]["rmse"] / out["ekf-bias-given"]["rmse"]
+        return out
     sources = {"": calls}
     if los:
         sources["-los"] = [c for c in calls if c[0] != "correct" or not events[id(c[1])][2]]
@@ -224,6 +239,28 @@ def one_seed(
     out["ratio_ekf"] = out["ekf-bias"]["rmse"] / given
     for suffix in sources:
         out["ratio_ekf_at_batch" + suffix] = out["ekf-bias-at-batch" + suffix]["rmse"] / given
+    return out
+
+
+def online_peers(scenario, calls, x0, loss, b_true, key_period, times, rmse) -> dict:
+    """``isam2-bias`` (the peer online, biases as states) and ``isam2-given`` (given the true
+    biases), each the recorded flight replayed into iSAM2 and its estimate read as the
+    filters' are (:func:`replay`); ``ekf-bias-given`` beside them, and the ratios of each to
+    itself given the biases. Each has its wall-clock time (s)."""
+    import time
+
+    out: dict = {}
+    for name, fixed in (("isam2-bias", None), ("isam2-given", b_true)):
+        start = time.perf_counter()
+        est = make_peer(scenario, x0, loss, fixed, key_period, online=True)
+        out[name] = {"rmse": rmse(replay(est, calls, times))}
+        out[name]["wall_s"] = round(time.perf_counter() - start, 1)
+        out[name]["failure"] = est.failure
+        if fixed is None:
+            out[name]["bias_error"] = (est.biases - b_true).round(4).tolist()
+    filt = pinned(biased_extended_kalman_filter(scenario, x0), b_true, "ekf-bias-given")
+    out["ekf-bias-given"] = {"rmse": rmse(replay(filt, calls, times))}
+    out["ratio_isam2"] = out["isam2-bias"]["rmse"] / out["isam2-given"]["rmse"]
     return out
 
 
@@ -250,10 +287,24 @@ def main() -> None:
         default=0.0,
         help="the peer's key_period (s): ranges within it after a node share the node",
     )
+    ap.add_argument(
+        "--online",
+        action="store_true",
+        help="instead of the batches, the peer online (iSAM2), biases as states and given",
+    )
     args = ap.parse_args()
     a, b = (int(v) for v in args.seeds.split(":"))
     for seed in range(a, b):
-        row = one_seed(seed, args.duration, args.loss, args.set, args.line_of_sight, args.burn_in)
+        row = one_seed(
+            seed,
+            args.duration,
+            args.loss,
+            args.set,
+            args.line_of_sight,
+            args.burn_in,
+            args.key_period,
+            args.online,
+        )
         print(json.dumps(row), flush=True)
 
 

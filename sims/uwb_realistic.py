@@ -21,6 +21,9 @@ on the estimators) with, on the same measurements:
 * with ``--memory SECONDS``, every filter whose rule is an
   :class:`~quadobs.estimators.robust.ExcessMixture` (the ``-given`` ones too) keeps its
   anchors' state of sight over that memory instead of the rule's default;
+* with ``--fix-correction on|off``, every bias-state filter (the ``-given`` ones too) starts
+  with one joint correction by its fix's round of ranges linearised at the multilateration
+  (``on``), or with the fix's covariance (``off``), instead of the filters' default;
 * with ``--jacobian-at-truth`` (a diagnostic), ``ekf-bias-truejac``: ``ekf-bias`` whose range
   Jacobian is taken at the tag's true position (its predicted ranges still at its estimate),
   which measures what linearising at its own estimate costs it.
@@ -33,7 +36,7 @@ Usage::
 
     python sims/uwb_realistic.py --seeds 0:50 [--duration 40] [--estimators ekf-bias,ukf-bias]
         [--given] [--line-of-sight] [--jacobian-at-truth] [--sight-model grid]
-        [--memory 3]
+        [--memory 3] [--fix-correction on|off]
 """
 
 from __future__ import annotations
@@ -170,6 +173,7 @@ def one_seed(
     truejac: bool = False,
     sight: str = "chain",
     memory: float | None = None,
+    fix_correction: bool | None = None,
 ) -> dict:
     over = {"seed": seed} | ({"duration": duration} if duration else {})
     scenario = load_scenario("quadrotor-uwb-realistic", **over)
@@ -202,6 +206,8 @@ def one_seed(
     for est in parts["estimators"]:
         if hasattr(est, "sight_model"):
             est.sight_model = sight
+        if fix_correction is not None and hasattr(est, "fix_correction"):
+            est.fix_correction = fix_correction
         if memory is not None and isinstance(getattr(est, "robust", None), ExcessMixture):
             est.robust = dataclasses.replace(est.robust, memory=memory)
 
@@ -261,6 +267,13 @@ def main() -> None:
         default=None,
         help="the excess mixture's memory of each anchor's sight (s; default: the rule's)",
     )
+    ap.add_argument(
+        "--fix-correction",
+        choices=("on", "off"),
+        default=None,
+        help="every bias-state filter's start-up: one joint correction by the fix's round of "
+        "ranges linearised at it (on), or the fix's covariance (off); default: the filters'",
+    )
     args = ap.parse_args()
     a, b = (int(v) for v in args.seeds.split(":"))
     names = args.estimators.split(",")
@@ -274,6 +287,7 @@ def main() -> None:
             args.jacobian_at_truth,
             args.sight_model,
             args.memory,
+            None if args.fix_correction is None else args.fix_correction == "on",
         )
         print(json.dumps(row), flush=True)
 

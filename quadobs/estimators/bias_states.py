@@ -27,8 +27,13 @@ of 1.8 m for an anchor whose bias is -0.14 m). Two rules keep the start-up error
   its position to their least-squares multilateration
   (:func:`~quadobs.estimators.robust.multilateration`: differences of the quadratic
   outputs are linear in the position), its position covariance to ``fix_std^2 I`` (its
-  correlations dropped); the ranges are then corrected from there. (The UKF needs the
-  covariance too: sigma points spread over a 10 m prior straddle the anchors.)
+  correlations dropped). The ranges the fix is made of (those that completed the round, or
+  the grid step's or the time's batch that did) are not corrected by again: the fix's
+  covariance is that of an error made of their noise, and a correction by them would take
+  that noise as independent of it and count it twice (the covariance halved in the linear
+  case, :mod:`quadobs.estimators.startup`); the ranges that follow are corrected from there.
+  (The UKF needs the covariance too: sigma points spread over a 10 m prior straddle the
+  anchors.)
 * **Consider until consistent.** The biases' rows of the gain are held at zero (a Schmidt,
   or consider, update: their covariance and cross-covariances are carried, so the position
   knows how uncertain they are) until the normalised innovations of the last two rounds of
@@ -258,6 +263,9 @@ class _VehicleBlock:
 
     vehicle_n: int = 0
     sight_model: str = "chain"
+    #: At the start-up's fix, one joint correction by its round of ranges linearised at the
+    #: multilateration (:meth:`_correct_at_fix`) instead of the fix's covariance ``fix_std^2 I``.
+    fix_correction: bool = False
     sight: BiasSightGrid | None = None
     fix_pending: bool = False
     fix_abandoned: float | None = None
@@ -383,7 +391,7 @@ class _VehicleBlock:
             h, yh, _ = self._model_of(m).quadratic_output(m)
             self._latest[h] = yh
             self._waited += 1
-            if not self._try_fix():
+            if self._wait_or_fix():
                 return
         super()._correct_measurement(m)  # type: ignore[misc]
 
@@ -393,9 +401,22 @@ class _VehicleBlock:
             present = ~np.isnan(y)
             self._latest[present] = y[present]
             self._waited += int(np.count_nonzero(present))
-            if not self._try_fix():
+            if self._wait_or_fix():
                 return
         super().correct_outputs(y)  # type: ignore[misc]
+
+    def _wait_or_fix(self) -> bool:
+        """:meth:`_try_fix` on the ranges just kept; ``True`` when they are not to be corrected
+        by: still waiting, or the position just set by a fix made of them (a correction by them
+        would count their noise twice: the module docstring's "Start-up"; the step's NIS is
+        then NaN). ``False`` when the fix was given up: the ranges are corrected as they are."""
+        before = len(self.fixes)
+        if not self._try_fix():
+            return True
+        if len(self.fixes) == before:
+            return False
+        self.nis, self.nis_dof = float("nan"), 0
+        return True
 
     def correct_many(self, measurements) -> None:
         """Ranges of one time (:meth:`~quadobs.estimators.kalman._GaussianFilter.correct_many`):
@@ -413,7 +434,7 @@ class _VehicleBlock:
                 for h, yh, _ in kept:
                     self._latest[h] = yh
                 self._waited += len(kept)
-                if not self._try_fix():
+                if self._wait_or_fix():
                     return
         super().correct_many(measurements)  # type: ignore[misc]
 
@@ -434,14 +455,48 @@ class _VehicleBlock:
             self.fix_abandoned = self._time  # reported without a fix (startup.not_started)
             return True
         cols = fixed[0]
-        self._x[cols] = fixed[1]
         self._settle()
-        self._P[cols, :] = 0.0
-        self._P[:, cols] = 0.0
-        self._P[cols, cols] = self._fix_var
+        if self.fix_correction and self.fix_pending:
+            self._correct_at_fix(cols, fixed[1])
+        else:
+            self._x[cols] = fixed[1]
+            self._P[cols, :] = 0.0
+            self._P[:, cols] = 0.0
+            self._P[cols, cols] = self._fix_var
         self.fix_pending = False
         self.fixes.append(self._time)
         return True
+
+    def _correct_at_fix(self, cols, p_fix: np.ndarray) -> None:
+        """One joint correction by the kept round of ranges from the prior ``(x0, P0)``,
+        linearised at the multilateration ``x_i`` (``x0`` with its position replaced by
+        ``p_fix``): the first iterate of an iterated EKF (Gauss-Newton on the posterior) started
+        at the fix,
+
+        .. math::
+
+            x^+ = x_0 + K \\big(z - h(x_i) - H (x_0 - x_i)\\big), \\qquad
+            P^+ = (I - K H) P_0 (I - K H)^\\top + K R K^\\top,
+
+        ``H = dh/dx`` at ``x_i``, ``K = P_0 H^\\top (H P_0 H^\\top + R)^{-1}`` with its bias rows
+        held at zero while the biases are closed (the Joseph form is the covariance of any
+        gain: the consider update). The ranges enter once, and the position's covariance with
+        the biases is what they say (the multilateration's error is the biases' pattern
+        ``-U^+ b``), where the fix's ``fix_std^2 I`` drops it."""
+        idx = np.flatnonzero(~np.isnan(self._latest))
+        out = self.outputs
+        x_i = self._x.copy()
+        x_i[cols] = p_fix
+        s, J = out.linearize(x_i)
+        H, R = J[idx], out.R[np.ix_(idx, idx)]
+        nu = out.measure(self._latest[idx], idx) - s[idx] - H @ (self._x - x_i)
+        PHt = self._P @ H.T
+        K = np.linalg.solve(H @ PHt + R, PHt.T).T
+        if not self.biases_open:
+            K[self.vehicle_n :] = 0.0
+        self._x = self._x + K @ nu
+        IKH = np.eye(self._x.shape[0]) - K @ H
+        self._P = IKH @ self._P @ IKH.T + K @ R @ K.T
 
     def _watch(self, accepted: bool, nu: np.ndarray) -> None:
         """The opening test on the NIS window, then the lock-out; a re-initialisation also puts

@@ -194,6 +194,72 @@ def test_bias_filter_fixes_its_start_without_a_silent_anchor():
     assert np.linalg.norm(est.x_hat[:3] - truth[-1][2]) < 0.1
 
 
+@pytest.mark.parametrize("cls", ["ekf", "ukf"])
+@pytest.mark.parametrize("entry", ["outputs", "in_time", "batch"])
+def test_the_fix_is_not_corrected_by_its_own_ranges(cls, entry):
+    """The round of ranges a fix is made of is not corrected by again: the position covariance
+    after the fix is the fix's, ``fix_std^2 I`` with ``fix_std^2 = sigma^2 + sigma_b^2``, not
+    about half of it (what a second correction by the same ranges gives in the linear case)."""
+    sigma = 0.05
+    est = _bias_filter(cls, sigma, np.array([12.0, 16.0, 0.0, 0.0, 0.0, 0.0]))
+    assert est.fix_pending
+    p = np.array([0.4, -0.3, 1.5])
+    rho = np.linalg.norm(p - ANCHORS, axis=1) + BIASES
+    ms = [Measurement(0.0, "range", float(r), (h,), sigma) for h, r in enumerate(rho)]
+    if entry == "outputs":
+        est.correct_outputs(0.5 * rho**2 - 0.5 * (ANCHORS**2).sum(1))
+    elif entry == "in_time":
+        for m in ms:
+            est.correct(m)
+    else:
+        est.correct_many(ms)
+    assert est.fixes == [0.0] and not est.fix_pending
+    var = sigma**2 + 0.5**2  # the range noise and the biases' prior (RangeModel's 0.5 m)
+    assert est.x_covariance[:3, :3] == pytest.approx(var * np.eye(3), abs=1e-12)
+    assert np.isnan(est.nis)  # no correction at the fix
+    # the first range after the fix is corrected by, and narrows the position
+    est.correct(Measurement(0.0, "range", float(rho[0]), (0,), sigma))
+    assert np.trace(est.x_covariance[:3, :3]) < 3 * var
+
+
+@pytest.mark.parametrize("cls", ["ekf", "ukf"])
+def test_the_fix_correction_is_one_joint_update_linearised_at_the_fix(cls):
+    """``fix_correction``: the round of ranges corrects the prior once, linearised at the
+    multilateration (the closed form of an iterated EKF's first iterate, computed here from
+    the unit vectors), the biases' rows of the gain held at zero; the position's covariance
+    with the biases is then ``-K_p P_bb``, where the fix's covariance has none."""
+    from quadobs.estimators.robust import multilateration
+
+    sigma = 0.05
+    x0 = np.array([12.0, 16.0, 0.0, 0.0, 0.0, 0.0])
+    est = _bias_filter(cls, sigma, x0)
+    est.fix_correction = True
+    P0 = est._P.copy()
+    p = np.array([0.4, -0.3, 1.5])
+    rho = np.linalg.norm(p - ANCHORS, axis=1) + BIASES
+    y = 0.5 * rho**2 - 0.5 * (ANCHORS**2).sum(1)
+    est.correct_outputs(y)
+    system = vehicle_system(3, ANCHORS)
+    cols, p_fix = multilateration(system.C, system.d, y)
+    x_i = np.r_[x0, np.zeros(8)]
+    x_i[cols] = p_fix
+    diff = p_fix - ANCHORS
+    H = np.zeros((8, 14))
+    H[:, :3] = diff / np.linalg.norm(diff, axis=1)[:, None]
+    H[:, 6:] = np.eye(8)
+    R = sigma**2 * np.eye(8)
+    K = P0 @ H.T @ np.linalg.inv(H @ P0 @ H.T + R)
+    K[6:] = 0.0  # the biases closed at the start
+    nu = rho - np.linalg.norm(diff, axis=1) - H @ (np.r_[x0, np.zeros(8)] - x_i)
+    IKH = np.eye(14) - K @ H
+    P = IKH @ P0 @ IKH.T + K @ R @ K.T
+    assert est.fixes == [0.0]
+    assert est.x_hat == pytest.approx(x0 + (K @ nu)[:6], abs=1e-9)
+    assert est.x_covariance == pytest.approx(P[:6, :6], abs=1e-12)
+    assert est._P[:3, 6:] == pytest.approx(-K[:3] @ P0[6:, 6:], abs=1e-12)
+    assert np.abs(est._P[:3, 6:]).max() > 0.01  # the fix's error is the biases' pattern
+
+
 def test_the_biases_prior_is_the_radios_stated_spread():
     """``ekf-bias``, ``ukf-bias`` and ``augmented-bias`` take the biases' prior from the radio's
     stated spread (``radio.bias_std``) where its biases are drawn with one; given biases or no
