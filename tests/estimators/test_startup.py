@@ -199,3 +199,62 @@ def test_the_ukf_waits_with_the_ranges_own_variance():
     S = 2.0 * (Z[0] - z) ** 2 + np.sum((Z[1:] - z) ** 2) / 4.0 + SIGMA**2
     assert S / 50.0**2 == pytest.approx(1.18, abs=0.005)
     assert est.nis == pytest.approx((rho - z) ** 2 / S, rel=1e-12)
+
+
+def _moving(cls, velocity_prior, v0=(0.0, 0.0)):
+    """A 2-D vehicle state ``(p, v)`` without process noise, 50 m of prior on the position and
+    ``velocity_prior`` (m/s) on the velocity about ``v0``, armed."""
+    system = vehicle_system(2, ANCHORS)
+    dyn = HeldInputModel(system, 0.1, V=np.zeros((4, 4)))
+    out = OutputModel(system, SIGMA**2, offsets=0.5 * np.einsum("hi,hi->h", ANCHORS, ANCHORS))
+    P0 = np.diag([50.0**2] * 2 + [velocity_prior**2] * 2)
+    est = cls(dyn, out, x0=np.array([60.0, -40.0, *v0]), P0=P0)
+    est.start_from_fix(2, start_threshold(ANCHORS, SIGMA))
+    return est
+
+
+def _cruise(est, p0, velocity, times):
+    """Noise-free ranges one anchor at a time from ``p0 + velocity t``, no input."""
+    est.hold(np.zeros(2))
+    for k, t in enumerate(times):
+        h = k % ANCHORS.shape[0]
+        est.predict(t)
+        p = p0 + np.asarray(velocity) * t
+        est.correct(Measurement(t, "range", float(np.linalg.norm(p - ANCHORS[h])), (h,)))
+
+
+@pytest.mark.parametrize("cls", [FixedStartEKF, FixedStartUKF])
+def test_the_joint_fix_is_exact_where_the_prior_velocity_is_the_truth(cls):
+    """Ranges of a round 0.3 s apart from a vehicle at 3 m/s, the velocity's prior about the
+    truth: the joint fix is the true position and velocity at the round's last range."""
+    p0, vel = np.array([12.0, 9.0]), np.array([3.0, -1.0])
+    est = _moving(cls, 2.0, v0=vel)
+    _cruise(est, p0, vel, [0.3, 0.6, 0.9, 1.2])
+    assert est.fixes == [pytest.approx(1.2)]
+    np.testing.assert_allclose(est.x_hat, [*(p0 + 1.2 * vel), *vel], atol=1e-9)
+
+
+def test_the_joint_fix_takes_the_velocity_from_the_round():
+    """From a 10 m/s prior about 0 the round's ranges tell the velocity: the fix minimises
+    ``sum (rho_h - |p_h - a_h|)^2 / sigma^2 + v^T v / 100`` (its gradient vanishes) and its
+    covariance is the inverse normal matrix (closed form at the estimate, ``p_h = p - v (t - t_h)``)
+    times ``max(1, chi^2 / dof)``, ``dof = 4 - 2``: the velocity's spread falls from 10 m/s."""
+    p0, vel, times = np.array([12.0, 9.0]), np.array([3.0, -1.0]), [0.3, 0.6, 0.9, 1.2]
+    est = _moving(FixedStartEKF, 10.0)
+    _cruise(est, p0, vel, times)
+    assert est.fixes == [pytest.approx(1.2)]
+    p, v = est.x_hat[:2], est.x_hat[2:]
+    J, e = [], []
+    for k, t in enumerate(times):
+        r = p - v * (1.2 - t) - ANCHORS[k]
+        u = r / np.linalg.norm(r)
+        J.append(np.r_[u, -(1.2 - t) * u] / SIGMA)
+        e.append((np.linalg.norm(p0 + vel * t - ANCHORS[k]) - np.linalg.norm(r)) / SIGMA)
+    J, e = np.array(J), np.array(e)
+    prior = np.diag([0.0, 0.0, 0.01, 0.01])
+    np.testing.assert_allclose(J.T @ e - prior @ est.x_hat, 0.0, atol=1e-8)
+    chi2 = e @ e + 0.01 * v @ v
+    expected = np.linalg.inv(J.T @ J + prior) * max(1.0, chi2 / 2)
+    np.testing.assert_allclose(est.x_covariance, expected, rtol=1e-6)
+    assert np.all(np.sqrt(np.diag(est.x_covariance)[2:]) < 2.0)
+    assert np.linalg.norm(v - vel) < 3.0 * np.sqrt(np.max(np.linalg.eigvalsh(expected[2:, 2:])))
