@@ -59,11 +59,17 @@ came of that prior by what one round of ranges says on its own, the rule that th
   .. math:: \\sum_h (\\rho_h - |p_h(\\theta) - a_h|)^2 / \\sigma_h^2 + \\theta_o^T P_{oo}^{-1} \\theta_o,
 
   the second term the prior of the other states ``o`` (``P_oo`` the prediction's, the
-  position's prior left out: it is what the fix replaces). Its covariance is the inverse of
-  the normal matrix ``H = J^T R^-1 J + diag(0, P_oo^-1)``, scaled by ``max(1, chi^2 / dof)``
-  (``chi^2`` the minimum above, ``dof`` the ranges less the position's ``dim``: ranges that
-  disagree with one another, biased or of another time than assumed, widen it), plus the
-  process noise added since the start-up was armed. The state and its covariance take
+  position's prior left out: it is what the fix replaces). Where the minimum ``chi^2``
+  exceeds its degrees of freedom ``dof`` (the ranges less the position's ``dim``: ranges that
+  disagree with one another, biased, of another time than assumed or off the line of sight)
+  the ranges' variances are taken ``s = chi^2 / dof`` times their stated ones and the minimiser
+  found again with them (the prior's weight kept: the ranges' disagreement says nothing of
+  it). The covariance is the inverse of the normal matrix
+  ``H = J^T R^-1 J / s + diag(0, P_oo^-1)`` (``s = 1`` where ``chi^2 <= dof``), plus the
+  process noise added since the start-up was armed (conservative: the ranges relate the
+  states of their times to the state now through the noise between them alone). The steps
+  are halved until the objective falls: ranges that disagree can make plain Gauss-Newton
+  steps swing between two points. The state and its covariance take
   ``x^- + theta`` and that covariance in place of what the waiting corrections made of them.
   In the ``rover-room`` (seed 3) the velocity's standard deviation falls from 10 to 1.1 m/s
   at the fix, 0.2 s in. Where the normal matrix is singular or the steps do not settle, the
@@ -104,8 +110,12 @@ from quadobs.estimators.kalman import (
 )
 from quadobs.estimators.robust import multilateration
 
-#: The most Gauss-Newton steps of the joint fix (from the multilateration: a few suffice).
-JOINT_STEPS = 20
+#: The most Gauss-Newton steps of the joint fix (from the multilateration: a few where the
+#: ranges agree; ranges that disagree (non-line-of-sight) slow its convergence to linear).
+JOINT_STEPS = 50
+#: The joint fix has settled when its step is below this many of its standard deviations
+#: (``step^T H step``, ``H`` the normal matrix).
+JOINT_TOLERANCE = 1e-4
 
 __all__ = [
     "FixedStartEKF",
@@ -398,26 +408,70 @@ class MultilaterationStart:
         theta[:d] = p - x_pred[:d]
         prior = np.zeros((self._x.size, self._x.size))
         prior[d:, d:] = info
+        ranges = _KeptRanges(at, M, anchors[h], rho, w, prior)
+        theta = ranges.minimise(theta, 1.0)
+        dof = rho.size - d
+        scale = 1.0
+        if theta is not None and dof > 0 and ranges.objective(theta, 1.0) > dof:
+            scale = ranges.objective(theta, 1.0) / dof  # the ranges' variance, re-weighted
+            theta = ranges.minimise(theta, scale)
+        if theta is None:
+            return None
+        J = ranges.jacobian(theta, scale)
+        cov = np.linalg.inv(J.T @ J + prior) + self._P_q
+        return x_pred + theta, 0.5 * (cov + cov.T)
+
+
+class _KeptRanges:
+    """The joint fix's least squares (module docstring, "Joint fix"): ranges ``rho`` (N,) with
+    weights ``w = 1 / sigma`` taken at positions ``at + M theta`` (``at`` (N, d), ``M`` (N, d, n))
+    from ``anchors`` (N, d), and the other states' prior information ``prior`` (n, n)."""
+
+    def __init__(self, at, M, anchors, rho, w, prior):
+        self.at, self.M, self.anchors, self.rho, self.w, self.prior = at, M, anchors, rho, w, prior
+
+    def _offsets(self, theta):
+        r = self.at + np.einsum("ndk,k->nd", self.M, theta) - self.anchors
+        return r, np.linalg.norm(r, axis=1)
+
+    def objective(self, theta, scale: float) -> float:
+        """``sum (rho - |p_h - a_h|)^2 w^2 / scale + theta^T prior theta``."""
+        _, dist = self._offsets(theta)
+        e = (self.rho - dist) * self.w
+        return float(e @ e) / scale + float(theta @ self.prior @ theta)
+
+    def jacobian(self, theta, scale: float) -> np.ndarray:
+        """The weighted ranges' Jacobian (N, n), ``u_h^T M_h w_h / sqrt(scale)``."""
+        r, dist = self._offsets(theta)
+        return np.einsum("nd,ndk->nk", r / dist[:, None], self.M) * (self.w / scale**0.5)[:, None]
+
+    def minimise(self, theta, scale: float):
+        """Gauss-Newton with its step halved until the objective falls (two points between
+        which the plain steps would swing, as ranges that disagree can make them); the
+        minimiser, or None where it does not settle in :data:`JOINT_STEPS` steps."""
+        f = self.objective(theta, scale)
         for _ in range(JOINT_STEPS):
-            r = at + np.einsum("ndk,k->nd", M, theta) - anchors[h]
-            dist = np.linalg.norm(r, axis=1)
+            dist = self._offsets(theta)[1]
             if np.any(dist == 0.0):
                 return None
-            J = np.einsum("nd,ndk->nk", r / dist[:, None], M) * w[:, None]
-            e = (rho - dist) * w
-            H = J.T @ J + prior
-            step = np.linalg.solve(H, J.T @ e - prior @ theta)
-            theta = theta + step
+            J = self.jacobian(theta, scale)
+            e = (self.rho - dist) * self.w / scale**0.5
+            H = J.T @ J + self.prior
+            step = np.linalg.solve(H, J.T @ e - self.prior @ theta)
+            if step @ H @ step < JOINT_TOLERANCE**2:  # in standard deviations of the fix
+                return theta + step
+            for _ in range(30):
+                trial = theta + step
+                f_trial = self.objective(trial, scale)
+                if f_trial < f:
+                    break
+                step = 0.5 * step
+            else:
+                return theta  # no step lowers it: the minimum, to rounding
+            theta, f = trial, f_trial
             if not np.all(np.isfinite(theta)):
                 return None
-            if np.linalg.norm(step) <= 1e-9 * (1.0 + np.linalg.norm(theta)):
-                break
-        else:
-            return None
-        chi2 = float(e @ e + theta[d:] @ info @ theta[d:])
-        dof = rho.size - d
-        cov = np.linalg.inv(H) * (max(1.0, chi2 / dof) if dof > 0 else 1.0) + self._P_q
-        return x_pred + theta, 0.5 * (cov + cov.T)
+        return None
 
 
 class FixedStartEKF(MultilaterationStart, ExtendedKalmanFilter):

@@ -237,8 +237,8 @@ def test_the_joint_fix_is_exact_where_the_prior_velocity_is_the_truth(cls):
 def test_the_joint_fix_takes_the_velocity_from_the_round():
     """From a 10 m/s prior about 0 the round's ranges tell the velocity: the fix minimises
     ``sum (rho_h - |p_h - a_h|)^2 / sigma^2 + v^T v / 100`` (its gradient vanishes) and its
-    covariance is the inverse normal matrix (closed form at the estimate, ``p_h = p - v (t - t_h)``)
-    times ``max(1, chi^2 / dof)``, ``dof = 4 - 2``: the velocity's spread falls from 10 m/s."""
+    covariance is the inverse normal matrix (closed form at the estimate, ``p_h = p - v (t - t_h)``;
+    ``chi^2`` below its ``dof = 4 - 2``): the velocity's spread falls from 10 m/s."""
     p0, vel, times = np.array([12.0, 9.0]), np.array([3.0, -1.0]), [0.3, 0.6, 0.9, 1.2]
     est = _moving(FixedStartEKF, 10.0)
     _cruise(est, p0, vel, times)
@@ -253,8 +253,45 @@ def test_the_joint_fix_takes_the_velocity_from_the_round():
     J, e = np.array(J), np.array(e)
     prior = np.diag([0.0, 0.0, 0.01, 0.01])
     np.testing.assert_allclose(J.T @ e - prior @ est.x_hat, 0.0, atol=1e-8)
-    chi2 = e @ e + 0.01 * v @ v
-    expected = np.linalg.inv(J.T @ J + prior) * max(1.0, chi2 / 2)
+    assert e @ e + 0.01 * v @ v < 2.0  # chi^2 within its dof = 4 - 2: the stated variances
+    expected = np.linalg.inv(J.T @ J + prior)
     np.testing.assert_allclose(est.x_covariance, expected, rtol=1e-6)
     assert np.all(np.sqrt(np.diag(est.x_covariance)[2:]) < 2.0)
     assert np.linalg.norm(v - vel) < 3.0 * np.sqrt(np.max(np.linalg.eigvalsh(expected[2:, 2:])))
+
+
+def test_ranges_that_disagree_widen_the_joint_fix():
+    """Anchor 3 silent for a round: seven ranges before the round is in, those of anchors 0 to 2
+    1.5 m long, then as long short (``chi^2`` far above its ``dof = 7 - 2``). The fix takes the
+    ranges' variance ``s = chi^2 / dof`` times the stated one, ``chi^2`` the minimum of the
+    stated weights (found here by scipy), and is the minimiser with the new weights, its
+    covariance ``(J^T J / (s sigma^2) + prior)^-1`` (closed form at the minimiser)."""
+    from scipy.optimize import least_squares
+
+    p0, vel = np.array([12.0, 9.0]), np.array([1.0, 0.5])
+    anchor = [0, 1, 2, 0, 1, 2, 3]
+    lie = np.array([1.5, 1.5, 1.5, -1.5, -1.5, -1.5, 0.0])
+    times = [0.1 * (k + 1) for k in range(7)]
+    rho = np.array([np.linalg.norm(p0 + vel * t - ANCHORS[h]) for h, t in zip(anchor, times)])
+    rho = rho + lie
+    est = _moving(FixedStartEKF, 2.0)
+    est.hold(np.zeros(2))
+    for h, t, r in zip(anchor, times, rho):
+        est.predict(t)
+        est.correct(Measurement(t, "range", float(r), (h,)))
+    assert est.fixes == [pytest.approx(0.7)]
+
+    def residuals(x, s):
+        r = [x[:2] - x[2:] * (0.7 - t) - ANCHORS[h] for h, t in zip(anchor, times)]
+        e = (rho - np.linalg.norm(r, axis=1)) / (SIGMA * np.sqrt(s))
+        return np.r_[e, x[2:] / 2.0]
+
+    tight = {"xtol": 1e-15, "ftol": 1e-15, "gtol": 1e-15}
+    first = least_squares(residuals, est.x_hat, args=(1.0,), **tight)
+    s = 2.0 * first.cost / (7 - 2)
+    assert s > 4.0
+    again = least_squares(residuals, est.x_hat, args=(s,), **tight)
+    np.testing.assert_allclose(est.x_hat, again.x, atol=1e-5)
+    J = again.jac[:7]
+    expected = np.linalg.inv(J.T @ J + np.diag([0.0, 0.0, 0.25, 0.25]))
+    np.testing.assert_allclose(est.x_covariance, expected, rtol=1e-4)
