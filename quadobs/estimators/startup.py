@@ -237,7 +237,7 @@ class MultilaterationStart:
         self._P_dr[:d, :] = 0.0
         self._P_dr[:, :d] = 0.0
         self._P_q = np.zeros_like(self._P)  # the process noise's part of P_dr
-        self._kept = []  # every range kept: (h, rho, s2, t, x^-(t))
+        self._kept: list[tuple] = []  # every range kept: (h, rho, s2, t, x^-(t))
         offsets = self.outputs.offsets
         self._offsets = np.zeros(self.q) if offsets is None else offsets
         prior_std = math.sqrt(float(np.max(np.diag(self._P)[:d])))
