@@ -312,3 +312,23 @@ def test_a_fix_within_the_threshold_leaves_the_velocity_to_the_filter():
     assert est.fixes == [pytest.approx(1.2)]
     np.testing.assert_array_equal(est.x_hat[2:], before)
     assert np.sqrt(np.max(np.linalg.eigvalsh(est.x_covariance[:2, :2]))) < 12.5
+
+
+def test_anchors_at_one_height_fix_the_horizontal_and_leave_the_height_to_its_prior():
+    """Anchors all at 2.5 m: the differences of the outputs hold no vertical term, so one grid
+    step's round fixes ``x`` and ``y`` (exactly, noise-free) and leaves the height, the velocity
+    and their variances at the prior."""
+    anchors = np.array([[0.0, 0.0, 2.5], [6.0, 0.0, 2.5], [6.0, 5.0, 2.5], [0.0, 5.0, 2.5]])
+    system = vehicle_system(3, anchors)
+    dyn = HeldInputModel(system, 0.01, V=np.zeros((6, 6)))
+    out = OutputModel(system, SIGMA**2, offsets=0.5 * np.einsum("hi,hi->h", anchors, anchors))
+    P0 = np.diag([100.0] * 3 + [4.0] * 3)
+    x0 = np.array([9.0, -9.0, 0.5, 0.0, 0.0, 0.0])
+    est = FixedStartEKF(dyn, out, x0=x0, P0=P0)
+    est.start_from_fix(3, start_threshold(anchors, SIGMA))
+    p = np.array([2.0, 3.0, 1.0])
+    est.correct_outputs(0.5 * p @ p - anchors @ p)
+    assert est.fixes == [0.0]
+    np.testing.assert_allclose(est.x_hat[:2], p[:2], atol=1e-9)
+    np.testing.assert_array_equal(est.x_hat[2:], x0[2:])
+    np.testing.assert_array_equal(np.diag(est.x_covariance)[2:], np.diag(P0)[2:])
