@@ -199,3 +199,136 @@ def test_the_ukf_waits_with_the_ranges_own_variance():
     S = 2.0 * (Z[0] - z) ** 2 + np.sum((Z[1:] - z) ** 2) / 4.0 + SIGMA**2
     assert S / 50.0**2 == pytest.approx(1.18, abs=0.005)
     assert est.nis == pytest.approx((rho - z) ** 2 / S, rel=1e-12)
+
+
+def _moving(cls, velocity_prior, v0=(0.0, 0.0)):
+    """A 2-D vehicle state ``(p, v)`` without process noise, 50 m of prior on the position and
+    ``velocity_prior`` (m/s) on the velocity about ``v0``, armed."""
+    system = vehicle_system(2, ANCHORS)
+    dyn = HeldInputModel(system, 0.1, V=np.zeros((4, 4)))
+    out = OutputModel(system, SIGMA**2, offsets=0.5 * np.einsum("hi,hi->h", ANCHORS, ANCHORS))
+    P0 = np.diag([50.0**2] * 2 + [velocity_prior**2] * 2)
+    est = cls(dyn, out, x0=np.array([60.0, -40.0, *v0]), P0=P0)
+    est.start_from_fix(2, start_threshold(ANCHORS, SIGMA))
+    return est
+
+
+def _cruise(est, p0, velocity, times, first: int = 0):
+    """Noise-free ranges one anchor at a time (from anchor ``first`` on) from
+    ``p0 + velocity t``, no input."""
+    est.hold(np.zeros(2))
+    for k, t in enumerate(times, start=first):
+        h = k % ANCHORS.shape[0]
+        est.predict(t)
+        p = p0 + np.asarray(velocity) * t
+        est.correct(Measurement(t, "range", float(np.linalg.norm(p - ANCHORS[h])), (h,)))
+
+
+@pytest.mark.parametrize("cls", [FixedStartEKF, FixedStartUKF])
+def test_the_joint_fix_is_exact_where_the_prior_velocity_is_the_truth(cls):
+    """Ranges of a round 0.3 s apart from a vehicle at 3 m/s, the velocity's prior (20 m/s, which
+    leaves the position's fix wider than the threshold) about the truth: the joint fix is the
+    true position and velocity at the round's last range."""
+    p0, vel = np.array([12.0, 9.0]), np.array([3.0, -1.0])
+    est = _moving(cls, 20.0, v0=vel)
+    _cruise(est, p0, vel, [0.3, 0.6, 0.9, 1.2])
+    assert est.fixes == [pytest.approx(1.2)]
+    np.testing.assert_allclose(est.x_hat, [*(p0 + 1.2 * vel), *vel], atol=1e-9)
+
+
+def test_the_joint_fix_takes_the_velocity_from_the_round():
+    """From a 20 m/s prior about 0 the round's ranges tell the velocity: the fix minimises
+    ``sum (rho_h - |p_h - a_h|)^2 / sigma^2 + v^T v / 400`` (its gradient vanishes) and its
+    covariance is the inverse normal matrix (closed form at the estimate, ``p_h = p - v (t - t_h)``;
+    ``chi^2`` below its ``dof = 4 - 2``): the velocity's spread falls from 20 m/s."""
+    p0, vel, times = np.array([12.0, 9.0]), np.array([3.0, -1.0]), [0.3, 0.6, 0.9, 1.2]
+    est = _moving(FixedStartEKF, 20.0)
+    _cruise(est, p0, vel, times)
+    assert est.fixes == [pytest.approx(1.2)]
+    p, v = est.x_hat[:2], est.x_hat[2:]
+    J, e = [], []
+    for k, t in enumerate(times):
+        r = p - v * (1.2 - t) - ANCHORS[k]
+        u = r / np.linalg.norm(r)
+        J.append(np.r_[u, -(1.2 - t) * u] / SIGMA)
+        e.append((np.linalg.norm(p0 + vel * t - ANCHORS[k]) - np.linalg.norm(r)) / SIGMA)
+    J, e = np.array(J), np.array(e)
+    prior = np.diag([0.0, 0.0, 1.0, 1.0]) / 400.0
+    np.testing.assert_allclose(J.T @ e - prior @ est.x_hat, 0.0, atol=1e-8)
+    assert e @ e + v @ v / 400.0 < 2.0  # chi^2 within its dof = 4 - 2: the stated variances
+    expected = np.linalg.inv(J.T @ J + prior)
+    np.testing.assert_allclose(est.x_covariance, expected, rtol=1e-6)
+    assert np.all(np.sqrt(np.diag(est.x_covariance)[2:]) < 2.0)
+    assert np.linalg.norm(v - vel) < 3.0 * np.sqrt(np.max(np.linalg.eigvalsh(expected[2:, 2:])))
+
+
+def test_ranges_that_disagree_widen_the_joint_fix():
+    """Anchor 3 silent for a round: seven ranges before the round is in, those of anchors 0 to 2
+    1.5 m long, then as long short (``chi^2`` far above its ``dof = 7 - 2``). The fix takes the
+    ranges' variance ``s = chi^2 / dof`` times the stated one, ``chi^2`` the minimum of the
+    stated weights (found here by scipy), and is the minimiser with the new weights, its
+    covariance ``(J^T J / (s sigma^2) + prior)^-1`` (closed form at the minimiser)."""
+    from scipy.optimize import least_squares
+
+    p0, vel = np.array([12.0, 9.0]), np.array([1.0, 0.5])
+    anchor = [0, 1, 2, 0, 1, 2, 3]
+    lie = np.array([1.5, 1.5, 1.5, -1.5, -1.5, -1.5, 0.0])
+    times = [0.1 * (k + 1) for k in range(7)]
+    rho = np.array([np.linalg.norm(p0 + vel * t - ANCHORS[h]) for h, t in zip(anchor, times)])
+    rho = rho + lie
+    est = _moving(FixedStartEKF, 30.0)
+    est.hold(np.zeros(2))
+    for h, t, r in zip(anchor, times, rho):
+        est.predict(t)
+        est.correct(Measurement(t, "range", float(r), (h,)))
+    assert est.fixes == [pytest.approx(0.7)]
+
+    def residuals(x, s):
+        r = [x[:2] - x[2:] * (0.7 - t) - ANCHORS[h] for h, t in zip(anchor, times)]
+        e = (rho - np.linalg.norm(r, axis=1)) / (SIGMA * np.sqrt(s))
+        return np.r_[e, x[2:] / 30.0]
+
+    tight = {"xtol": 1e-15, "ftol": 1e-15, "gtol": 1e-15}
+    first = least_squares(residuals, est.x_hat, args=(1.0,), **tight)
+    s = 2.0 * first.cost / (7 - 2)
+    assert s > 4.0
+    again = least_squares(residuals, est.x_hat, args=(s,), **tight)
+    # the same minimiser, to the steps' tolerance (1e-4 of its standard deviations)
+    assert np.all(np.abs(est.x_hat - again.x) < 1e-3 * np.sqrt(np.diag(est.x_covariance)))
+    J = again.jac[:7]
+    expected = np.linalg.inv(J.T @ J + np.diag([0.0, 0.0, 1.0, 1.0]) / 900.0)
+    np.testing.assert_allclose(est.x_covariance, expected, rtol=1e-4)
+
+
+def test_a_fix_within_the_threshold_leaves_the_velocity_to_the_filter():
+    """The same round from a 2 m/s prior: the position's fix (its growth ``2 m/s x 0.9 s``) is
+    within the threshold (12.5 m), so the position alone is fixed and the velocity keeps what
+    the waiting corrections made of it, as before (``quadrotor-uwb-realistic``, the replay)."""
+    p0, vel = np.array([12.0, 9.0]), np.array([3.0, -1.0])
+    est = _moving(FixedStartEKF, 2.0)
+    _cruise(est, p0, vel, [0.3, 0.6, 0.9])
+    before = est.x_hat[2:].copy()
+    _cruise(est, p0, vel, [1.2], first=3)
+    assert est.fixes == [pytest.approx(1.2)]
+    np.testing.assert_array_equal(est.x_hat[2:], before)
+    assert np.sqrt(np.max(np.linalg.eigvalsh(est.x_covariance[:2, :2]))) < 12.5
+
+
+def test_anchors_at_one_height_fix_the_horizontal_and_leave_the_height_to_its_prior():
+    """Anchors all at 2.5 m: the differences of the outputs hold no vertical term, so one grid
+    step's round fixes ``x`` and ``y`` (exactly, noise-free) and leaves the height, the velocity
+    and their variances at the prior."""
+    anchors = np.array([[0.0, 0.0, 2.5], [6.0, 0.0, 2.5], [6.0, 5.0, 2.5], [0.0, 5.0, 2.5]])
+    system = vehicle_system(3, anchors)
+    dyn = HeldInputModel(system, 0.01, V=np.zeros((6, 6)))
+    out = OutputModel(system, SIGMA**2, offsets=0.5 * np.einsum("hi,hi->h", anchors, anchors))
+    P0 = np.diag([100.0] * 3 + [4.0] * 3)
+    x0 = np.array([9.0, -9.0, 0.5, 0.0, 0.0, 0.0])
+    est = FixedStartEKF(dyn, out, x0=x0, P0=P0)
+    est.start_from_fix(3, start_threshold(anchors, SIGMA))
+    p = np.array([2.0, 3.0, 1.0])
+    est.correct_outputs(0.5 * p @ p - anchors @ p)
+    assert est.fixes == [0.0]
+    np.testing.assert_allclose(est.x_hat[:2], p[:2], atol=1e-9)
+    np.testing.assert_array_equal(est.x_hat[2:], x0[2:])
+    np.testing.assert_array_equal(np.diag(est.x_covariance)[2:], np.diag(P0)[2:])

@@ -33,6 +33,8 @@ def _imu_log(
     velocity=(0.0, 0.0, 0.0),
     range_std: float | None = None,
     anchors: int = 4,
+    beacons: np.ndarray = ANCHORS,
+    start=(3.0, 3.0, 1.5),
     **extra,
 ):
     """A 2 s body-IMU log, level, its specific force ``g e_z + accel`` with white noise of the
@@ -44,14 +46,14 @@ def _imu_log(
     f = np.tile([0.0, 0.0, G], (t.size, 1)) + (0.0 if accel is None else accel)
     f = f + rng.normal(0.0, ACCEL_NOISE / math.sqrt(H), f.shape)
     w = rng.normal(0.0, GYRO_NOISE / math.sqrt(H), f.shape) + [0.0, 0.0, rate]
-    p = np.array([3.0, 3.0, 1.5]) + t[:, None] * np.asarray(velocity)
+    p = np.asarray(start) + t[:, None] * np.asarray(velocity)
     k = np.arange(t.size) % anchors
-    r = np.linalg.norm(p - ANCHORS[k], axis=1)
+    r = np.linalg.norm(p - beacons[k], axis=1)
     if range_std is not None:
         r = r + rng.normal(0.0, range_std, t.size)
         extra["range_std"] = np.full(t.size, range_std)
     return RangeLog(
-        "start", np.arange(4), ANCHORS, np.column_stack([t, k, r]), np.column_stack([t, f, w]),
+        "start", np.arange(4), beacons, np.column_stack([t, k, r]), np.column_stack([t, f, w]),
         float("nan"), input_kind="imu_body", **extra,
     )  # fmt: skip
 
@@ -250,3 +252,53 @@ def test_the_tdoa_of_the_rest_tell_a_gliding_velocity():
     assert prior.applied, prior.why
     error = prior.velocity - velocity
     assert error @ np.linalg.solve(prior.covariance, error) < 14.2
+
+
+@pytest.mark.parametrize("frame", ["enu", "ned"])
+def test_anchors_at_one_height_fix_the_vehicle_below_them(frame):
+    """Anchors at one height fix no height linearly, and on their plane the fix's steps have no
+    gradient across it: the fix starts from the plane's multilateration, below the anchors by
+    the ranges' own distance from it (the stated side), and the velocity is identified."""
+    up = -1.0 if frame == "ned" else 1.0
+    plane = np.array([[0.0, 0.0, 2.5], [6.0, 0.0, 2.5], [6.0, 6.0, 2.5], [0.0, 6.0, 2.5]])
+    plane[:, 2] *= up
+    truth = np.array([2.0, 3.5, 1.0 * up])
+    log, prior = _applied(beacons=plane, start=truth, frame=frame)
+    assert prior.applied, prior.why
+    assert prior.velocity @ np.linalg.solve(prior.covariance, prior.velocity) < 14.2
+    fix = range_velocity(log, 0.0, START_WINDOW, RANGE_STD)
+    error = fix.position - truth
+    assert error @ np.linalg.solve(fix.position_covariance, error) < 14.2
+    assert abs(error[2]) < 0.1  # not the mirror image, 3 m away across the anchors
+
+
+def test_anchors_in_one_vertical_plane_state_no_side():
+    wall = np.array([[0.0, 0.0, 0.5], [6.0, 0.0, 0.5], [6.0, 0.0, 2.5], [0.0, 0.0, 2.5]])
+    _, prior = _applied(beacons=wall, start=(3.0, 2.0, 1.5))
+    assert not prior.applied
+    assert prior.why == (
+        "the ranges: the anchors stand in one vertical plane: the vehicle's side of it is not stated"
+    )
+
+
+@pytest.mark.parametrize("offset", [0.0, 0.2])
+def test_the_fix_s_covariance_is_scaled_by_its_residuals(offset):
+    """At the centre of the anchors (every one 4.5 m away, the unit vectors summing to zero),
+    exact ranges and the same ranges all ``offset`` longer fix the same point; the fix's
+    covariance is the inverse normal matrix ``(sum_a n_a u_a u_a^T / sigma^2)^-1`` times
+    ``max(1, chi^2 / dof)``, ``chi^2 = N offset^2 / sigma^2`` and ``dof = N - 3``."""
+    import dataclasses
+
+    log = _imu_log(accel_noise=ACCEL_NOISE, gyro_noise=GYRO_NOISE)
+    ranges = log.ranges.copy()
+    ranges[:, 2] += offset
+    fix = range_velocity(dataclasses.replace(log, ranges=ranges), 0.0, 0.475, RANGE_STD)
+    centre = np.array([3.0, 3.0, 1.5])
+    np.testing.assert_allclose(fix.position, centre, atol=1e-9)
+    u = (centre - ANCHORS) / 4.5
+    N = 48  # 12 ranges of each anchor in [0, 0.475)
+    normal = 12 * u.T @ u / RANGE_STD**2
+    scale = max(1.0, N * offset**2 / RANGE_STD**2 / (N - 3))
+    expected = np.linalg.inv(normal) * scale
+    np.testing.assert_allclose(fix.position_covariance, expected, rtol=1e-6, atol=1e-12 * scale)
+    assert (scale > 1.0) == (offset > 0.0)

@@ -40,7 +40,9 @@ constant bias of that anchor; ``t_m`` the window's mean measurement time), a TDO
 ``i, j`` the difference of two such lines, with ``u_a = (p - a) / |p - a|`` the unit vector
 from the anchor to the position ``p`` at ``t_m``: the fix of the window's measurements (a
 least-squares fit of ``p``, each measurement moved by ``v (t - t_m)``, alternated with the lines
-twice from ``v = 0``). The intercepts and ``v`` are one weighted linear least-squares problem
+twice from ``v = 0``; its covariance the inverse normal matrix scaled by its residuals'
+``max(1, chi^2 / dof)``, ``dof`` the measurements less ``dim``: a fix from ranges that disagree
+with one another is not reported as certain as one from ranges that agree). The intercepts and ``v`` are one weighted linear least-squares problem
 with the measurements' standard deviations (their own, else ``range_sigma``, ``sqrt 2`` that for
 a TDOA); ``v``'s covariance is the inverse normal matrix's velocity block, scaled by the
 residuals' ``chi^2 / dof`` where that exceeds 1 (ranges noisier than stated). The prior on the
@@ -62,6 +64,18 @@ it was identified, ``ekf-bias`` the same): a default must not make the estimate 
 the filters take ``UNKNOWN_VELOCITY_STD``; a user who knows better gives
 ``--tune velocity_std=...`` (:func:`velocity_prior`), which stands over both. Wheel odometry measures the speed itself: the replay's odometry model holds no velocity
 state, so this prior does not enter it.
+
+Anchors in one plane. The fix's Gauss-Newton steps start at the measured anchors' centroid,
+unless the anchors stand in one plane (in 3-D: every anchor closer than the ranges' standard
+deviation to their best-fitting plane; anchors at one height, common indoors). On that plane
+the Jacobian's column across it vanishes and a linear multilateration fixes no distance from
+it, so the fix starts from what can be fixed (:func:`start_point`): the position in the plane
+from the linear multilateration of each anchor's mean range, and the distance from the plane
+from the ranges' own nonlinear solution, on the side of :data:`COPLANAR_SIDE` (below the
+anchors, as the frame's ``up`` gives it); the steps then stay on that side, whose mirror
+image fits the ranges as well. Anchors in one vertical plane (a wall) leave the side
+unstated, and ranges that put the vehicle in the plane fix no distance from it: the ranges
+then tell no velocity (the summary's ``why`` says which).
 """
 
 from __future__ import annotations
@@ -72,6 +86,7 @@ from dataclasses import dataclass
 import numpy as np
 
 __all__ = [
+    "COPLANAR_SIDE",
     "REST_K",
     "SLICE",
     "START_WINDOW",
@@ -80,6 +95,7 @@ __all__ = [
     "StartPrior",
     "range_velocity",
     "set_velocity_prior",
+    "start_point",
     "start_prior",
     "velocity_prior",
 ]
@@ -101,6 +117,10 @@ MEDIAN_VARIANCE = math.pi / 2
 FIX_ROUNDS = 2
 #: The most Gauss-Newton steps of a fix (from the anchors' centroid: a few suffice).
 FIX_STEPS = 20
+#: The side of a plane of anchors that the vehicle is taken to start on: ``+1`` below them
+#: (anchors at one height are mounted high, on a ceiling or walls, to see over what stands
+#: on the floor), ``-1`` above (:func:`start_point`).
+COPLANAR_SIDE = 1.0
 
 
 @dataclass(frozen=True, eq=False)
@@ -118,6 +138,9 @@ class RangeVelocity:
     anchors : int
         The anchors the window's measurements involve.
     measurements : int
+    position, position_covariance : ndarray (dim,), (dim, dim)
+        The fix ``p`` at ``t_m`` and its covariance, scaled by its residuals'
+        ``max(1, chi^2 / dof)`` (module docstring).
     """
 
     velocity: np.ndarray
@@ -125,6 +148,8 @@ class RangeVelocity:
     time: float
     anchors: int
     measurements: int
+    position: np.ndarray | None = None
+    position_covariance: np.ndarray | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -316,7 +341,8 @@ def _window(log, t0: float, t1: float, sigma: float):
 
 def _fix(anchors, t, W, y, std, v, t_m, p):
     """The position at ``t_m`` from the window's measurements, each moved by ``v (t - t_m)``
-    (Gauss-Newton from ``p``; the anchors' own intercepts are not used), and its covariance;
+    (Gauss-Newton from ``p``; the anchors' own intercepts are not used), and its covariance,
+    the inverse normal matrix times ``max(1, chi^2 / dof)`` (``dof = N - dim > 0``, else 1);
     None where the normal matrix is singular or the steps do not settle."""
     moved = (t - t_m)[:, None] * v
     w = 1.0 / std
@@ -338,7 +364,9 @@ def _fix(anchors, t, W, y, std, v, t_m, p):
     else:
         return None  # no convergence in FIX_STEPS steps
     N = (J * (w * w)[:, None]).T @ J
-    return p, np.linalg.inv(N)
+    dof = y.size - p.size
+    chi2 = float(np.sum((e * w) ** 2))
+    return p, np.linalg.inv(N) * (max(1.0, chi2 / dof) if dof > 0 else 1.0)
 
 
 def _lines(anchors, t, W, y, std, p, t_m):
@@ -358,6 +386,58 @@ def _lines(anchors, t, W, y, std, p, t_m):
     return theta[-dim:], N_inv[-dim:, -dim:] * max(1.0, chi2 / dof)
 
 
+def _plane(anchors: np.ndarray, sigma: float) -> np.ndarray | None:
+    """The unit normal of the plane that the anchors stand in (in 3-D), or None: the largest
+    distance of an anchor from their best-fitting plane (the smallest singular direction of
+    the anchors about their centroid) is at least ``sigma``, which a range then tells apart."""
+    if anchors.shape[1] != 3 or anchors.shape[0] < 3:
+        return None
+    centred = anchors - anchors.mean(axis=0)
+    n = np.linalg.svd(centred)[2][-1]
+    return n if float(np.max(np.abs(centred @ n))) < sigma else None
+
+
+def start_point(
+    anchors: np.ndarray, W: np.ndarray, y: np.ndarray, sigma: float, frame: str = "enu"
+) -> np.ndarray | str:
+    """Where the fix's Gauss-Newton steps start (module docstring, "Anchors in one plane"), or
+    why no fix can be made: the measured anchors' centroid, unless they stand in one plane
+    (:func:`_plane`), where the Jacobian's column across the plane vanishes on it.
+
+    Then the position in the plane is the linear multilateration of each anchor's mean range
+    ``rbar_h``, ``(a_h - abar)^T p = ((|a_h|^2 - mean |a|^2) - (rbar_h^2 - mean rbar^2)) / 2``
+    (least squares of least norm: ``p_s``, moved into the plane, ``p_o = p_s + (abar . n) n``),
+    and its distance from the plane the ranges' own nonlinear solution,
+    ``h^2 = mean_h (rbar_h^2 - |p_o - a_h|^2)``; the point is ``p_o + s h n`` with the side
+    ``s`` of :data:`COPLANAR_SIDE` (below the anchors, ``up`` the frame's: ``+z`` in ``enu``,
+    ``-z`` in ``ned``). A window of TDOA alone starts at ``abar`` moved to that side by the
+    anchors' extent."""
+    used = np.any(W != 0.0, axis=0)
+    a = anchors[used]
+    centre = a.mean(axis=0)
+    n = _plane(a, sigma)
+    if n is None:
+        return centre
+    up = np.array([0.0, 0.0, -1.0 if frame == "ned" else 1.0])
+    if abs(float(n @ up)) < 1e-6:
+        return "the anchors stand in one vertical plane: the vehicle's side of it is not stated"
+    side = -COPLANAR_SIDE * math.copysign(1.0, float(n @ up))  # +1 below: against up
+    ranges = (np.count_nonzero(W, axis=1) == 1)[:, None] & (W[:, used] == 1.0)  # (N, anchors)
+    count = np.count_nonzero(ranges, axis=0)
+    if np.any(count == 0):  # not every anchor ranged (TDOA): off the plane by their extent
+        extent = float(np.max(np.linalg.norm(a - centre, axis=1)))
+        return centre + side * extent * n
+    r = (ranges * y[:, None]).sum(axis=0) / count
+    sq = np.sum(a * a, axis=1)
+    rhs = 0.5 * ((sq - sq.mean()) - (r * r - np.mean(r * r)))
+    p = np.linalg.lstsq(a - centre, rhs, rcond=None)[0]
+    p = p + (float(centre @ n) - float(p @ n)) * n
+    h2 = float(np.mean(r * r - np.sum((p - a) ** 2, axis=1)))
+    if not h2 > 0.0:
+        return "the anchors stand in one plane and the ranges put the vehicle in it"
+    return p + side * math.sqrt(h2) * n
+
+
 def range_velocity(log, t0: float, t1: float, sigma: float = 1.0) -> RangeVelocity | str:
     """The velocity that the ranges (or TDOA) of ``[t0, t1)`` tell, taken constant over it
     (module docstring), or why they tell none; ``sigma`` the standard deviation of a range
@@ -369,7 +449,10 @@ def range_velocity(log, t0: float, t1: float, sigma: float = 1.0) -> RangeVeloci
     if used < dim + 1:
         return f"{used} anchors measured in {t1 - t0:.2g} s, fewer than {dim + 1}"
     t_m = float(np.mean(t))
-    p, v = anchors[np.any(W != 0.0, axis=0)].mean(axis=0), np.zeros(dim)
+    p = start_point(anchors, W, y, float(np.median(std)), getattr(log, "frame", "enu"))
+    if isinstance(p, str):
+        return p
+    v = np.zeros(dim)
     for _ in range(FIX_ROUNDS):
         fixed = _fix(anchors, t, W, y, std, v, t_m, p)
         if fixed is None:
@@ -382,7 +465,7 @@ def range_velocity(log, t0: float, t1: float, sigma: float = 1.0) -> RangeVeloci
     r_min = float(np.min(np.linalg.norm(p - anchors, axis=1)))
     sigma_p = math.sqrt(float(np.max(np.linalg.eigvalsh(C_p))))
     cov = C_v + (float(np.linalg.norm(v)) * sigma_p / r_min) ** 2 * np.eye(dim)
-    return RangeVelocity(v, 0.5 * (cov + cov.T), t_m, used, int(t.size))
+    return RangeVelocity(v, 0.5 * (cov + cov.T), t_m, used, int(t.size), p, C_p)
 
 
 def velocity_prior(setup) -> tuple[np.ndarray | None, np.ndarray]:
