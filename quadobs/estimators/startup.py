@@ -6,7 +6,8 @@ of an EKF point the wrong way, and the estimate can wander far from both the gue
 truth before it settles (from 50 m off on a car park, 150 m). The start-up here replaces what
 came of that prior by what one round of ranges says on its own, the rule that the bias filters
 (:mod:`quadobs.estimators.bias_states`) and the heading filters
-(:mod:`quadobs.estimators.heading_ekf`) follow:
+(:mod:`quadobs.estimators.heading_ekf`) follow (the joint fix of position and velocity below
+is this module's alone):
 
 * **When.** The prior position's largest standard deviation exceeds the scale on which a
   range bends over it, half the anchors' extent ``e = max_h |a_h - c|`` (``c`` their
