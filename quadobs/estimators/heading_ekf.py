@@ -469,11 +469,12 @@ class _HeadingFilter(Estimator, Gated):
             self.fix_abandoned = self._time
 
     def _fix_covariance(self) -> None:
-        """The covariance of the centred multilateration's fix, written into :attr:`_P`.
+        """The fix's position covariance, that of the centred multilateration, written into
+        :attr:`_P` (the rest of the state at its prior, :meth:`_starting`).
 
         Each output ``y_h = rho_h^2 / 2 - |a_h|^2 / 2`` of a measured range ``rho_h = s_h + b_h +
-        n_h`` (``s_h^2 = |q - a_h|^2 + 2 e_h``, module docstring; ``e_h = b_h = 0`` without the
-        anchors' states) is ``-a_h^T q + |q|^2 / 2 + eps_h`` with the error
+        n_h`` (``s_h^2 = |q - a_h|^2 + 2 e_h``, ``q`` the tag, module docstring; ``e_h = b_h =
+        0`` without the anchors' states) is ``-a_h^T q + |q|^2 / 2 + eps_h`` with the error
 
         .. math:: \\varepsilon_h = \\delta e_h + \\rho_h (\\delta b_h + n_h) - (\\delta b_h + n_h)^2 / 2
 
@@ -488,37 +489,30 @@ class _HeadingFilter(Estimator, Gated):
                   v_h = \\rho_h^2 \\sigma_h^2 + \\sigma_h^4 / 2
                         + \\operatorname{var} e_h + \\rho_h^2 \\operatorname{var} b_h
 
-        to first order in the anchors' states (common means cancel in the differences;
-        ``n_h^2 / 2`` has the variance ``sigma_h^4 / 2``): the range noise enters once, in
-        ``v``. The anchors' states keep their prior, and their estimates' errors ``-delta e_h``,
-        ``-delta b_h`` are in the fix: ``P_qe = -M G diag(var e)``, ``P_qb = -M G diag(rho var
-        b)`` (the anchors that have an output). With a lever arm the fix is the tag's, ``p_hat =
-        q_hat - R(theta) l_0`` (``l_0`` its prior mean), and ``P_pp = P_qq + R P_l R^T``, ``P_pl
-        = -R P_l`` (``P_l`` the lever arm's prior covariance). The normalised error ``(q_hat -
-        q)^T P_qq^-1 (q_hat - q)`` is chi-square with 2 degrees of freedom
-        (tests/estimators/test_heading_ekf.py)."""
+        to first order in the anchors' states (common means cancel in the differences; ``n_h^2
+        / 2`` has the variance ``sigma_h^4 / 2``): the range noise enters once, in ``v``, and its
+        normalised error ``(q_hat - q)^T P_qq^-1 (q_hat - q)`` is chi-square with 2 degrees of
+        freedom (tests/estimators/test_heading_ekf.py). With a lever arm the position is the
+        tag's less its prior mean, ``p_hat = q_hat - R(theta) l_0``. The fix's error is
+        correlated with the anchors' states (``-M G diag(var e)``, ``-M G diag(rho var b)``) and
+        with the lever arm (``-R P_l``); the filter keeps those states independent of it, at
+        their prior: with the cross-covariances ``ukf-height-lever`` was measured worse on the
+        wheeled robot (docs/error-sources.md, the order of the anchors)."""
         rows = np.flatnonzero(~np.isnan(self._latest))
         A = self.anchors[rows]
         rho2 = np.maximum(2.0 * self._latest[rows] + np.einsum("hi,hi->h", A, A), 0.0)
         var = self._latest_std[rows] ** 2
         v = rho2 * var + 0.5 * var * var
+        P0 = np.diag(self._P0)
+        if self._ie >= 0:
+            v = v + P0[self._ie + rows]
+        if self._ib >= 0:
+            v = v + rho2 * P0[self._ib + rows]
         MG = np.linalg.pinv(A.mean(axis=0) - A)
         MG = MG - MG.mean(axis=1, keepdims=True)  # M G: the columns' mean taken out
-        P0 = np.diag(self._P0)
-        for first, scale in ((self._ie, np.ones(rows.size)), (self._ib, np.sqrt(rho2))):
-            if first < 0:
-                continue
-            w = scale * P0[first + rows]  # d eps_h / d state_h times the state's prior variance
-            v = v + scale * w
-            self._P[:2, first + rows] = -MG * w
-            self._P[first + rows, :2] = self._P[:2, first + rows].T
         self._P[:2, :2] = (MG * v) @ MG.T
         if self.lever:
-            R = _rotation(self.theta_o + float(self._x[2]))
-            RPl = R @ self._P0[4:6, 4:6]
-            self._x[:2] -= R @ self._x0[4:6]
-            self._P[:2, :2] += RPl @ R.T
-            self._P[:2, 4:6], self._P[4:6, :2] = -RPl, -RPl.T
+            self._x[:2] -= _rotation(self.theta_o + float(self._x[2])) @ self._x0[4:6]
 
     def _gain(self, nu: float, S: float, Pxz: np.ndarray, R: float) -> None:
         """Robust rule, gate and lock-out on the innovation ``nu`` (variance ``S``), then the

@@ -523,33 +523,37 @@ def _one_round(f, anchors, rho, sigma):
         f.correct(Measurement(0.0, "range", float(rho[h]), (h,), sigma))
 
 
-def test_the_fix_s_normalised_error_is_chi_square_with_its_degrees_of_freedom():
-    """Ranges drawn from the model of the filter with the lever arm and the anchors' offsets and
-    biases (all from their priors): the error of the fix with the prior states, (p, l, e, b), is
-    normalised by the covariance the filter gives it to chi-square with 2 + 2 + 2 q degrees of
-    freedom (mean 12 for four anchors), and the position's alone to 2: the centred estimator's
-    covariance with its cross-covariances, no term counted twice."""
+@pytest.mark.parametrize("states", ["none", "lever, offsets, biases"])
+def test_the_fix_s_normalised_error_is_chi_square_with_two_degrees_of_freedom(states):
+    """Ranges drawn from the filter's model (the lever arm, the anchors' offsets and biases from
+    their priors where states): the error of the fix's tag position, normalised by the
+    position covariance the filter gives it, is chi-square with 2 degrees of freedom (mean 2):
+    the centred estimator's covariance, the range noise counted once. The position variance
+    ``sigma^2`` per axis of before gives a mean of 1.0 at this point, the room's centre. The
+    states the fix leaves at their prior keep their prior covariance, independent of it."""
     rng = np.random.default_rng(11)
-    p, theta, sigma, e_prior, b_std, l_std = np.array([2.2, 0.6]), 0.7, 0.08, (1.5, 0.4), 0.1, 0.2
-    kw = dict(x0=(8.0, -5.0, 0.0, 0.0), P0=[100.0, 100.0, 0.01, 1e-4], dt=0.1, heading0=theta,
-              lever_arm_std=l_std, offsets=e_prior, bias_std=b_std, **NOISE)  # fmt: skip
+    p, theta, sigma, e_prior, b_std, l_std = np.array([1.5, 1.2]), 0.7, 0.08, (1.5, 0.4), 0.1, 0.2
     c, sn = math.cos(theta), math.sin(theta)
-    keep = np.r_[0, 1, 4:14]  # p, l, e and b: the heading and the gyro bias keep their prior
-    nees, nees_p = [], []
+    kw = dict(x0=(8.0, -5.0, 0.0, 0.0), P0=[100.0, 100.0, 0.01, 1e-4], dt=0.1, heading0=theta,
+              **NOISE)  # fmt: skip
+    if states != "none":
+        kw.update(lever_arm_std=l_std, offsets=e_prior, bias_std=b_std)
+    nees = []
     for _ in range(400):
-        l, b = l_std * rng.standard_normal(2), b_std * rng.standard_normal(4)
-        e = e_prior[0] + e_prior[1] * rng.standard_normal(4)
+        l, b, e = np.zeros(2), np.zeros(4), np.zeros(4)
+        if states != "none":
+            l, b = l_std * rng.standard_normal(2), b_std * rng.standard_normal(4)
+            e = e_prior[0] + e_prior[1] * rng.standard_normal(4)
         tag = p + np.array([[c, -sn], [sn, c]]) @ l
         s = np.sqrt(np.sum((tag - ROOM) ** 2, axis=1) + 2.0 * e)
         f = HeadingEKF(ROOM, **kw)
         _one_round(f, ROOM, s + b + sigma * rng.standard_normal(4), sigma)
         assert len(f.fixes) == 1
-        err = (f.state - np.r_[p, 0.0, 0.0, l, b, e])[keep]
-        P = f.state_covariance[np.ix_(keep, keep)]
-        nees.append(err @ np.linalg.solve(P, err))
-        nees_p.append(err[:2] @ np.linalg.solve(P[:2, :2], err[:2]))
-    assert abs(np.mean(nees) - 12.0) < 1.0  # the mean of 400 draws: standard error 0.24
-    assert abs(np.mean(nees_p) - 2.0) < 0.3  # standard error 0.1
+        err = f.state[:2] - tag  # the lever arm's prior mean is 0: the fix is the tag's
+        nees.append(err @ np.linalg.solve(f.state_covariance[:2, :2], err))
+        np.testing.assert_array_equal(f.state_covariance[2:, 2:], f._P0[2:, 2:])
+        np.testing.assert_array_equal(f.state_covariance[:2, 2:], 0.0)
+    assert abs(np.mean(nees) - 2.0) < 0.3  # the mean of 400 draws: standard error 0.1
 
 
 @pytest.mark.parametrize("cls", [HeadingEKF, HeadingUKF])
