@@ -223,16 +223,16 @@ HEADING_FILTERS = (
 
 
 def test_the_heading_filters_do_not_depend_on_the_order_of_the_anchors(rover_log, tmp_path):
-    """The same log with ``beacons.csv`` listed in other orders (the ranges name their anchor by
-    id, so nothing else changes), replayed from 50 m off: every heading filter starts from its
-    multilateration and ends on the same trajectory, to rounding."""
+    """The same log with ``beacons.csv`` listed in two other orders (the ranges name their
+    anchor by id, so nothing else changes), replayed from 50 m off: every heading filter starts
+    from its multilateration and ends on the same trajectory, to rounding."""
     import dataclasses
 
     from quadobs.testbed.logs.replay import run_replay
 
     _, log, _ = rover_log
     tracks = []
-    for k, order in enumerate(([0, 1, 2, 3], [3, 2, 1, 0], [1, 3, 0, 2], [2, 0, 3, 1])):
+    for k, order in enumerate(([0, 1, 2, 3], [3, 2, 1, 0], [1, 3, 0, 2])):
         permuted = dataclasses.replace(
             log, beacon_ids=log.beacon_ids[order], beacons=log.beacons[order]
         )
