@@ -476,7 +476,8 @@ class _HeadingFilter(Estimator, Gated):
         n_h`` (``s_h^2 = |q - a_h|^2 + 2 e_h``, ``q`` the tag, module docstring; ``e_h = b_h =
         0`` without the anchors' states) is ``-a_h^T q + |q|^2 / 2 + eps_h`` with the error
 
-        .. math:: \\varepsilon_h = \\delta e_h + \\rho_h (\\delta b_h + n_h) - (\\delta b_h + n_h)^2 / 2
+        .. math:: \\varepsilon_h = \\delta e_h + \\rho_h \\nu_h - \\nu_h^2 / 2, \\qquad
+                  \\nu_h = \\delta b_h + n_h
 
         (``delta e_h``, ``delta b_h``: the offset's and the bias's deviations from their prior
         means; ``n_h`` of variance ``sigma_h^2``, the range's own, else ``range_sigma``). The fix
