@@ -246,6 +246,7 @@ class _HeadingFilter(Estimator, Gated):
         self.robust = robust
         self.lockout = lockout if lockout is not None else LockOut()
         self._P0, self._x0 = self._P.copy(), self._x.copy()
+        self._grid_order = np.lexsort(self.anchors.T[::-1])  # by x, then y (step)
         self._latest = np.full(self.anchors.shape[0], np.nan)  # y_h = rho^2/2 - |a_h|^2/2
         self._latest_std = np.full(self.anchors.shape[0], self.range_sigma)  # each one's sigma
         self.nis, self.corrections, self.rejected = math.nan, 0, 0
@@ -379,13 +380,18 @@ class _HeadingFilter(Estimator, Gated):
 
     def step(self, u: np.ndarray, y: np.ndarray) -> None:
         """Correct with the outputs ``y_h = rho_h^2 / 2 - |a_h|^2 / 2`` present in ``y`` (NaN:
-        missing), one range at a time, then predict over ``dt`` with ``u`` held."""
+        missing), one range at a time, then predict over ``dt`` with ``u`` held. The ranges of
+        a step are taken in the order of their anchors' positions (by ``x``, then ``y``): the
+        corrections of a nonlinear model do not commute, and the log's listing of its anchors
+        must not change the estimate."""
         q = self.anchors.shape[0]
         u, y = step_operands(u, y, 3, q)
         model = self.measurement_models.get("range")
         if model is None and not np.all(np.isnan(y)):
             raise QuadobsError(f"{self.name}: has no model of range outputs")
-        for i in np.flatnonzero(~np.isnan(y)):
+        for i in self._grid_order:  # the anchors by position, not by the log's listing
+            if math.isnan(y[i]):
+                continue
             rho = math.sqrt(max(2.0 * y[i] + float(self.anchors[i] @ self.anchors[i]), 0.0))
             self._latest[i], self._latest_std[i] = y[i], self.range_sigma
             m = Measurement(self._time, "range", rho, (int(i),), self.range_sigma)
@@ -433,14 +439,15 @@ class _HeadingFilter(Estimator, Gated):
         c|`` (``c`` their centroid; at least ``range_sigma``), the scale on which a range bends
         over the prior and a UKF's sigma points no longer see its slope, once every anchor has a
         range (or two rounds' worth have come, an anchor silent) the position is set by their
-        least-squares multilateration (:func:`~quadobs.estimators.robust.multilateration`) with
-        the variance ``sigma^2`` per axis (``sigma`` the largest standard deviation of the ranges
-        it took, :meth:`_fix_sigma`), and the heading's correction and its bias go
-        back to their prior: what the corrections made of them from a prior of tens of metres
-        (a UKF's sigma points spread over it) is not kept. After four rounds without a
-        multilateration (anchors in too few directions) the prior is kept. With the anchors'
-        states the multilateration takes the differences from the ranges' mean (``centred``):
-        its fix, like the filter, is then the same whatever the order of the anchors."""
+        least-squares multilateration with the covariance of that estimator
+        (:meth:`_fix_covariance`), and the heading's correction and its bias go back to their
+        prior: what the corrections made of them from a prior of tens of metres (a UKF's sigma
+        points spread over it) is not kept. After four rounds without a multilateration
+        (anchors in too few directions) the prior is kept. The multilateration takes the
+        differences of the outputs from their mean
+        (:func:`~quadobs.estimators.robust.multilateration`, ``centred``): its fix, like the
+        filter, is the same whatever the order of the anchors (from the first anchor's output
+        it was not)."""
         if not self.fix_pending:
             return
         q = self.anchors.shape[0]
@@ -448,7 +455,7 @@ class _HeadingFilter(Estimator, Gated):
         if np.isnan(self._latest).any() and self._waited < 2 * q:
             return
         C = np.broadcast_to(np.eye(2), (q, 2, 2))
-        fixed = multilateration(C, -self.anchors, self._latest, centred=self._anchor_states)
+        fixed = multilateration(C, -self.anchors, self._latest, centred=True)
         if fixed is None and self._waited < 4 * q:
             return
         self.fix_pending = False
@@ -456,45 +463,57 @@ class _HeadingFilter(Estimator, Gated):
             self._x[:2] = fixed[1]
             self._x[2:] = self._x0[2:]
             self._P = self._P0.copy()
-            self._P[:2, :2] = self._fix_sigma() ** 2 * np.eye(2) + self._fix_spread()
+            self._fix_covariance()
             self.fixes.append(self._time)
         else:  # reported without a fix (quadobs.estimators.startup.not_started)
             self.fix_abandoned = self._time
 
-    def _fix_sigma(self) -> float:
-        """The range noise of the fix: the largest standard deviation among the ranges it took,
-        each range's own (a log's stated ``std``), else ``range_sigma``. A stated ``std`` is the
-        radio's; ``range_sigma`` is then only the setup's prior for ranges that state none (1 m
-        in the replay), and as the fix's variance it left the position ten times less certain
-        than the ranges make it (measured: docs/error-sources.md, a log with a stated std)."""
-        rows = ~np.isnan(self._latest)
-        return float(np.max(self._latest_std[rows])) if rows.any() else self.range_sigma
+    def _fix_covariance(self) -> None:
+        """The fix's position covariance, that of the centred multilateration, written into
+        :attr:`_P` (the rest of the state at its prior, :meth:`_starting`).
 
-    def _fix_spread(self) -> np.ndarray:
-        """The position's covariance that the anchors' unknown offsets and biases give the
-        multilateration: each output ``y_h = (rho_h - b_h)^2 / 2 - |a_h|^2 / 2 - e_h`` carries the
-        prior variance ``v_h = var e_h + rho_h^2 var b_h``; the fix is linear in the differences
-        ``y_h - ybar`` from their mean (:func:`~quadobs.estimators.robust.multilateration`,
-        ``centred``), ``p = M G y`` with ``G = I - 1 1^T / q`` and ``M`` the pseudo-inverse of the
-        centred ``-(a_h - abar)^T``, so it carries ``M G diag(v) G^T M^T`` (common prior means
-        cancel in the differences). Zero without those states."""
-        if self._ie < 0 and self._ib < 0:
-            return np.zeros((2, 2))
+        Each output ``y_h = rho_h^2 / 2 - |a_h|^2 / 2`` of a measured range ``rho_h = s_h + b_h +
+        n_h`` (``s_h^2 = |q - a_h|^2 + 2 e_h``, ``q`` the tag, module docstring; ``e_h = b_h =
+        0`` without the anchors' states) is ``-a_h^T q + |q|^2 / 2 + eps_h`` with the error
+
+        .. math:: \\varepsilon_h = \\delta e_h + \\rho_h \\nu_h - \\nu_h^2 / 2, \\qquad
+                  \\nu_h = \\delta b_h + n_h
+
+        (``delta e_h``, ``delta b_h``: the offset's and the bias's deviations from their prior
+        means; ``n_h`` of variance ``sigma_h^2``, the range's own, else ``range_sigma``). The fix
+        is linear in the outputs' differences from their mean, ``q_hat = M G y`` with ``G = I - 1
+        1^T / q`` and ``M`` the pseudo-inverse of ``-(a_h - abar)^T``
+        (:func:`~quadobs.estimators.robust.multilateration`), so its error is ``M G eps``, of
+        covariance
+
+        .. math:: P_{qq} = M G\\, \\mathrm{diag}(v)\\, G^\\top M^\\top, \\qquad
+                  v_h = \\rho_h^2 \\sigma_h^2 + \\sigma_h^4 / 2
+                        + \\operatorname{var} e_h + \\rho_h^2 \\operatorname{var} b_h
+
+        to first order in the anchors' states (common means cancel in the differences; ``n_h^2
+        / 2`` has the variance ``sigma_h^4 / 2``): the range noise enters once, in ``v``, and its
+        normalised error ``(q_hat - q)^T P_qq^-1 (q_hat - q)`` is chi-square with 2 degrees of
+        freedom (tests/estimators/test_heading_ekf.py). With a lever arm the position is the
+        tag's less its prior mean, ``p_hat = q_hat - R(theta) l_0``. The fix's error is
+        correlated with the anchors' states (``-M G diag(var e)``, ``-M G diag(rho var b)``) and
+        with the lever arm (``-R P_l``); the filter keeps those states independent of it, at
+        their prior: with the cross-covariances ``ukf-height-lever`` was measured worse on the
+        wheeled robot (docs/error-sources.md, the order of the anchors)."""
         rows = np.flatnonzero(~np.isnan(self._latest))
-        P0 = np.diag(self._P0)
-        rho2 = 2.0 * self._latest[rows] + np.einsum(
-            "hi,hi->h", self.anchors[rows], self.anchors[rows]
-        )
-        v = np.zeros(rows.size)
-        if self._ie >= 0:
-            v += P0[self._ie + rows]
-        if self._ib >= 0:
-            v += np.maximum(rho2, 0.0) * P0[self._ib + rows]
         A = self.anchors[rows]
-        M = np.linalg.pinv(A.mean(axis=0) - A)
-        G = np.eye(rows.size) - 1.0 / rows.size
-        MG = M @ G
-        return (MG * v) @ MG.T
+        rho2 = np.maximum(2.0 * self._latest[rows] + np.einsum("hi,hi->h", A, A), 0.0)
+        var = self._latest_std[rows] ** 2
+        v = rho2 * var + 0.5 * var * var
+        P0 = np.diag(self._P0)
+        if self._ie >= 0:
+            v = v + P0[self._ie + rows]
+        if self._ib >= 0:
+            v = v + rho2 * P0[self._ib + rows]
+        MG = np.linalg.pinv(A.mean(axis=0) - A)
+        MG = MG - MG.mean(axis=1, keepdims=True)  # M G: the columns' mean taken out
+        self._P[:2, :2] = (MG * v) @ MG.T
+        if self.lever:
+            self._x[:2] -= _rotation(self.theta_o + float(self._x[2])) @ self._x0[4:6]
 
     def _gain(self, nu: float, S: float, Pxz: np.ndarray, R: float) -> None:
         """Robust rule, gate and lock-out on the innovation ``nu`` (variance ``S``), then the
@@ -547,7 +566,7 @@ class _HeadingFilter(Estimator, Gated):
             self._P = reinitialised_covariance(self._P, self._P0, lock.largest, 2, span)
             q = self.anchors.shape[0]
             C = np.broadcast_to(np.eye(2), (q, 2, 2))
-            fixed = multilateration(C, -self.anchors, self._latest, centred=self._anchor_states)
+            fixed = multilateration(C, -self.anchors, self._latest, centred=True)
             if fixed is not None:
                 self._x[fixed[0]] = fixed[1]
 

@@ -117,8 +117,8 @@ def test_a_prior_as_wide_as_the_anchors_is_replaced_by_a_multilateration(cls):
 @pytest.mark.parametrize("cls", [HeadingEKF, HeadingUKF])
 @pytest.mark.parametrize("stated", [0.05, math.nan])
 def test_the_fix_takes_the_variance_of_the_ranges_it_was_made_of(cls, stated):
-    # ranges stating their std (0.05 m) under a setup prior of 1 m: the fix's position variance
-    # is the stated std's square, not the prior's; ranges stating none take the prior
+    # ranges stating their std (0.05 m) under a setup prior of 1 m: the fix's covariance is made
+    # of the stated std, not the prior's; ranges stating none take the prior
     log = circle_log(bias=0.0, heading_error=0.0)
     noise = {**NOISE, "range_sigma": 1.0}
     f = cls(log.beacons, x0=[45.0, 40.0, 0.0, 0.0], P0=[2500.0, 2500.0, 0.1, 1e-3], dt=0.1, **noise)
@@ -131,7 +131,12 @@ def test_the_fix_takes_the_variance_of_the_ranges_it_was_made_of(cls, stated):
             break
     sigma = 1.0 if math.isnan(stated) else stated
     assert len(f.fixes) == 1
-    assert np.allclose(f.state_covariance[:2, :2], sigma**2 * np.eye(2))
+    # the centred least squares of y_h = rho_h^2 / 2 - |a_h|^2 / 2, each of variance
+    # rho_h^2 sigma^2 + sigma^4 / 2: M G diag(v) G^T M^T (M G = M, the columns of D centred)
+    rho2 = 2.0 * f._latest + np.sum(BEACONS**2, axis=1)
+    M = np.linalg.pinv(BEACONS.mean(axis=0) - BEACONS)
+    expected = (M * (rho2 * sigma**2 + sigma**4 / 2)) @ M.T
+    np.testing.assert_allclose(f.state_covariance[:2, :2], expected, rtol=1e-10)
 
 
 def test_the_replay_runs_them_on_an_odometry_log_and_refuses_other_logs(tmp_path):
@@ -506,3 +511,72 @@ def test_the_centred_multilateration_is_exact_and_does_not_depend_on_the_outputs
     }  # fmt: skip
     np.testing.assert_allclose(fixes[True][0], fixes[True][1], atol=1e-12)
     assert np.linalg.norm(fixes[False][0] - fixes[False][1]) > 1e-3
+
+
+def _one_round(f, anchors, rho, sigma):
+    """Every anchor's range at t = 0 corrected in turn (the fix follows the last)."""
+    from quadobs.core.measurements import Measurement
+
+    f.time = 0.0
+    f.hold(np.zeros(3))
+    for h in range(anchors.shape[0]):
+        f.correct(Measurement(0.0, "range", float(rho[h]), (h,), sigma))
+
+
+@pytest.mark.parametrize("states", ["none", "lever, offsets, biases"])
+def test_the_fix_s_normalised_error_is_chi_square_with_two_degrees_of_freedom(states):
+    """Ranges drawn from the filter's model (the lever arm, the anchors' offsets and biases from
+    their priors where states): the error of the fix's tag position, normalised by the
+    position covariance the filter gives it, is chi-square with 2 degrees of freedom (mean 2):
+    the centred estimator's covariance, the range noise counted once. The position variance
+    ``sigma^2`` per axis of before gives a mean of 1.0 at this point, the room's centre. The
+    states the fix leaves at their prior keep their prior covariance, independent of it."""
+    rng = np.random.default_rng(11)
+    p, theta, sigma, e_prior, b_std, l_std = np.array([1.5, 1.2]), 0.7, 0.08, (1.5, 0.4), 0.1, 0.2
+    c, sn = math.cos(theta), math.sin(theta)
+    kw = dict(x0=(8.0, -5.0, 0.0, 0.0), P0=[100.0, 100.0, 0.01, 1e-4], dt=0.1, heading0=theta,
+              **NOISE)  # fmt: skip
+    if states != "none":
+        kw.update(lever_arm_std=l_std, offsets=e_prior, bias_std=b_std)
+    nees = []
+    for _ in range(400):
+        l, b, e = np.zeros(2), np.zeros(4), np.zeros(4)
+        if states != "none":
+            l, b = l_std * rng.standard_normal(2), b_std * rng.standard_normal(4)
+            e = e_prior[0] + e_prior[1] * rng.standard_normal(4)
+        tag = p + np.array([[c, -sn], [sn, c]]) @ l
+        s = np.sqrt(np.sum((tag - ROOM) ** 2, axis=1) + 2.0 * e)
+        f = HeadingEKF(ROOM, **kw)
+        _one_round(f, ROOM, s + b + sigma * rng.standard_normal(4), sigma)
+        assert len(f.fixes) == 1
+        err = f.state[:2] - tag  # the lever arm's prior mean is 0: the fix is the tag's
+        nees.append(err @ np.linalg.solve(f.state_covariance[:2, :2], err))
+        np.testing.assert_array_equal(f.state_covariance[2:, 2:], f._P0[2:, 2:])
+        np.testing.assert_array_equal(f.state_covariance[:2, 2:], 0.0)
+    assert abs(np.mean(nees) - 2.0) < 0.3  # the mean of 400 draws: standard error 0.1
+
+
+@pytest.mark.parametrize("cls", [HeadingEKF, HeadingUKF])
+def test_the_grid_and_the_lock_out_s_re_fix_do_not_depend_on_the_order_of_the_anchors(cls):
+    """On the grid (several ranges in one step), from 50 m off, with a gate that rejects most
+    corrections so that the lock-out re-fixes the position: the anchors listed in three orders
+    give the same states at every step, to rounding."""
+    rng = np.random.default_rng(5)
+    t = np.arange(0.0, 8.0, 0.1)
+    omega = room_s_curve(t + 0.05, (0.1, 0.0))[0]
+    tag = room_s_curve(t, (0.1, 0.0))[2]
+    Y = 0.5 * np.sum((tag[:, None] - ROOM) ** 2, axis=2) - 0.5 * np.sum(ROOM**2, axis=1)
+    Y += 0.05 * rng.standard_normal(Y.shape)
+    Y[rng.random(Y.shape) < 0.3] = np.nan  # dropouts
+    runs = []
+    for order in ([0, 1, 2, 3], [3, 1, 0, 2], [2, 3, 1, 0]):
+        f = cls(ROOM[order], x0=(40.0, 30.0, 0.0, 0.0), P0=[2500.0, 2500.0, 0.01, 1e-4], dt=0.1,
+                lever_arm_std=0.2, gate=0.5, **{**NOISE, "q_xy": 1e-3})  # fmt: skip
+        states = []
+        for k in range(t.size):
+            f.step(np.array([0.3, 0.0, omega[k]]), Y[k, order])
+            states.append(f.state)
+        assert f.fixes and f.lockout.resets  # the start-up's fix and at least one re-fix
+        runs.append(np.array(states))
+    for other in runs[1:]:
+        np.testing.assert_allclose(other, runs[0], rtol=0, atol=1e-9)
