@@ -494,10 +494,12 @@ class _HeadingFilter(Estimator, Gated):
         / 2`` has the variance ``sigma_h^4 / 2``): the range noise enters once, in ``v``, and its
         normalised error ``(q_hat - q)^T P_qq^-1 (q_hat - q)`` is chi-square with 2 degrees of
         freedom (tests/estimators/test_heading_ekf.py). With a lever arm the position is the
-        tag's less its prior mean, ``p_hat = q_hat - R(theta) l_0``. The fix's error is
-        correlated with the anchors' states (``-M G diag(var e)``, ``-M G diag(rho var b)``) and
-        with the lever arm (``-R P_l``); the filter keeps those states independent of it, at
-        their prior: with the cross-covariances ``ukf-height-lever`` was measured worse on the
+        tag's less its prior mean, ``p_hat = q_hat - R(theta) l_0``, whose error ``(q_hat - q) +
+        R (l - l_0)`` has the marginal covariance ``P_qq + R P_l R^T``: that is the position's.
+        The fix's error is correlated with the anchors' states (``-M G diag(var e)``, ``-M G
+        diag(rho var b)``) and with the lever arm (``-R P_l``); the filter keeps those states
+        independent of it, at their prior (the tag's covariance then errs wide, by ``R P_l
+        R^T``): with the cross-covariances ``ukf-height-lever`` was measured worse on the
         wheeled robot (docs/error-sources.md, the order of the anchors)."""
         rows = np.flatnonzero(~np.isnan(self._latest))
         A = self.anchors[rows]
@@ -513,7 +515,9 @@ class _HeadingFilter(Estimator, Gated):
         MG = MG - MG.mean(axis=1, keepdims=True)  # M G: the columns' mean taken out
         self._P[:2, :2] = (MG * v) @ MG.T
         if self.lever:
-            self._x[:2] -= _rotation(self.theta_o + float(self._x[2])) @ self._x0[4:6]
+            R = _rotation(self.theta_o + float(self._x[2]))
+            self._x[:2] -= R @ self._x0[4:6]
+            self._P[:2, :2] += R @ self._P0[4:6, 4:6] @ R.T  # p = q - R l: the lever's share
 
     def _gain(self, nu: float, S: float, Pxz: np.ndarray, R: float) -> None:
         """Robust rule, gate and lock-out on the innovation ``nu`` (variance ``S``), then the
@@ -567,7 +571,9 @@ class _HeadingFilter(Estimator, Gated):
             q = self.anchors.shape[0]
             C = np.broadcast_to(np.eye(2), (q, 2, 2))
             fixed = multilateration(C, -self.anchors, self._latest, centred=True)
-            if fixed is not None:
+            if fixed is not None and fixed[0].size == 2:  # the tag's fix: p = q - R l
+                self._x[:2] = fixed[1] - (self._tag(self._x) - self._x[:2])
+            elif fixed is not None:
                 self._x[fixed[0]] = fixed[1]
 
     def _predict(self, dt: float, u: np.ndarray) -> None:  # pragma: no cover - interface

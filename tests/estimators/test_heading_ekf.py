@@ -526,9 +526,10 @@ def _one_round(f, anchors, rho, sigma):
 @pytest.mark.parametrize("states", ["none", "lever, offsets, biases"])
 def test_the_fix_s_normalised_error_is_chi_square_with_two_degrees_of_freedom(states):
     """Ranges drawn from the filter's model (the lever arm, the anchors' offsets and biases from
-    their priors where states): the error of the fix's tag position, normalised by the
+    their priors where states): the error of the fix's position (the tag's fix less the lever
+    arm's prior mean 0, so off the point by the tag's error plus ``R l``), normalised by the
     position covariance the filter gives it, is chi-square with 2 degrees of freedom (mean 2):
-    the centred estimator's covariance, the range noise counted once. The position variance
+    the centred estimator's covariance, the range noise counted once, plus ``R P_l R^T``. The position variance
     ``sigma^2`` per axis of before gives a mean of 1.0 at this point, the room's centre. The
     states the fix leaves at their prior keep their prior covariance, independent of it."""
     rng = np.random.default_rng(11)
@@ -549,7 +550,7 @@ def test_the_fix_s_normalised_error_is_chi_square_with_two_degrees_of_freedom(st
         f = HeadingEKF(ROOM, **kw)
         _one_round(f, ROOM, s + b + sigma * rng.standard_normal(4), sigma)
         assert len(f.fixes) == 1
-        err = f.state[:2] - tag  # the lever arm's prior mean is 0: the fix is the tag's
+        err = f.state[:2] - p  # the state's point: the tag less R l (the fix is the tag's)
         nees.append(err @ np.linalg.solve(f.state_covariance[:2, :2], err))
         np.testing.assert_array_equal(f.state_covariance[2:, 2:], f._P0[2:, 2:])
         np.testing.assert_array_equal(f.state_covariance[:2, 2:], 0.0)
