@@ -47,7 +47,6 @@ __all__ = [
     "inputs_late",
     "log_start",
     "posed_log",
-    "ranges_every",
     "started_at",
     "surveyed",
     "tag_positions",
@@ -190,11 +189,6 @@ def truth_from(log: RangeLog, delay: float, rate: float) -> RangeLog:
     ticks = np.arange(rows[0, 0], rows[-1, 0], 1.0 / float(rate))
     picked = np.unique(np.minimum(np.searchsorted(rows[:, 0], ticks), rows.shape[0] - 1))
     return replace(log, truth=rows[picked])
-
-
-def ranges_every(log: RangeLog, k: int) -> RangeLog:
-    """One range in ``k`` kept, in time order (a tag ranging at ``1 / k`` of the rate)."""
-    return replace(log, ranges=log.ranges[::k], range_std=log.range_std[::k])
 
 
 def anchor_gap(log: RangeLog, index: int, start: float, length: float) -> RangeLog:
