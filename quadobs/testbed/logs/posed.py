@@ -156,16 +156,14 @@ def started_at(log: RangeLog, delay: float) -> RangeLog:
     an odometry log's ``heading0`` is its heading at the new first input (:func:`_heading_at`)."""
     t0 = log_start(log) + float(delay)
     keep = log.ranges[:, 0] >= t0
-    fields = {"ranges": log.ranges[keep], "range_std": log.range_std[keep]}
     first = int(np.searchsorted(log.inputs[:, 0], t0))
-    fields["inputs"] = log.inputs[first:]
-    if log.input_kind == "odometry":
-        fields["heading0"] = _heading_at(log, first)
-    if log.truth is not None:
-        fields["truth"] = log.truth[log.truth[:, 0] >= t0]
-    if log.attitude is not None:
-        fields["attitude"] = log.attitude[log.attitude[:, 0] >= t0]
-    return replace(log, **fields)
+    heading0 = _heading_at(log, first) if log.input_kind == "odometry" else log.heading0
+    truth = None if log.truth is None else log.truth[log.truth[:, 0] >= t0]
+    attitude = None if log.attitude is None else log.attitude[log.attitude[:, 0] >= t0]
+    return replace(
+        log, ranges=log.ranges[keep], range_std=log.range_std[keep], inputs=log.inputs[first:],
+        heading0=heading0, truth=truth, attitude=attitude,
+    )  # fmt: skip
 
 
 def _heading_at(log: RangeLog, k: int) -> float:
