@@ -76,8 +76,16 @@ GAPS = 5
 EPOCH = 1.7e9
 
 
-def export(seed: int, duration: float, accel_bias: float, gyro_bias: float, folder: Path) -> None:
-    """Fly ``quadrotor-uwb-realistic`` with ``seed`` and write its log to ``folder``.
+def export(
+    seed: int,
+    duration: float,
+    accel_bias: float,
+    gyro_bias: float,
+    folder: Path,
+    settings: tuple[str, ...] = (),
+) -> None:
+    """Fly ``quadrotor-uwb-realistic`` with ``seed`` and write its log to ``folder`` (with the
+    scenario ``settings`` after the IMU's biases).
 
     ``quadobs run`` needs one live estimator; where it diverges (exit 1, as the live EKF of seed
     7 does at 27 s) the log is written all the same, and only a log not written is a failure."""
@@ -85,6 +93,8 @@ def export(seed: int, duration: float, accel_bias: float, gyro_bias: float, fold
     argv += ["--duration", f"{duration:g}", "--no-progress", "--export-log", str(folder)]
     argv += ["--set", f"quadrotor.accel_bias={accel_bias:g}"]
     argv += ["--set", f"quadrotor.gyro_bias={gyro_bias:g}"]
+    for setting in settings:
+        argv += ["--set", setting]
     code = cli.main(argv)
     if code not in (0, 1) or not (folder / "meta.csv").exists():
         raise SystemExit(f"export of seed {seed} failed ({code})")

@@ -189,11 +189,18 @@ def _poses_heights(variant: str) -> bool:
     return variant_of(variant)[1].get("anchor_heights") == ANCHOR_HEIGHTS
 
 
-def export(seed: int, duration: float, folder: Path, variant: str = "today", room: str = "today"):
+def export(
+    seed: int,
+    duration: float,
+    folder: Path,
+    variant: str = "today",
+    room: str = "today",
+    extra: tuple[str, ...] = (),
+):
     """The seed's ``rover-room`` run in ``room`` written as a log in ``folder`` (posed as
-    ``variant``); the scenario."""
+    ``variant``; ``extra``: scenario settings applied after the variant's); the scenario."""
     settings, pose = variant_of(variant)
-    settings, pose = (*ROOMS[room]["settings"], *settings), in_room(pose, room)
+    settings, pose = (*ROOMS[room]["settings"], *settings, *extra), in_room(pose, room)
     scenario = load_scenario("rover-room", seed=seed, duration=duration)
     if settings:
         scenario = scenario.with_settings(settings)

@@ -39,7 +39,19 @@ import numpy as np
 from quadobs.errors import QuadobsError
 from quadobs.testbed.logs.format import RangeLog
 
-__all__ = ["posed_log", "tag_positions"]
+__all__ = [
+    "accel_scaled",
+    "anchor_gap",
+    "behind_pillar",
+    "blocked_by_pillar",
+    "inputs_late",
+    "log_start",
+    "posed_log",
+    "started_at",
+    "surveyed",
+    "tag_positions",
+    "truth_from",
+]
 
 
 def tag_positions(log: RangeLog, t: np.ndarray, lever_arm=(0.0, 0.0)) -> np.ndarray:
@@ -117,3 +129,115 @@ def posed_log(
     for table in (ranges, inputs, truth):
         table[:, 0] += float(time_base)
     return replace(log, ranges=ranges, inputs=inputs, truth=truth, source="")
+
+
+# Stresses: what a hidden real log may hold that the posed logs above do not. Each is one
+# transform of a log (planar or 3-D), seeded where it draws; ``sims/stress_hidden_logs.py``
+# applies them one at a time. Times are taken from the log's start, :func:`log_start`.
+
+
+def log_start(log: RangeLog) -> float:
+    """The log's first time stamp: its first range or input (s)."""
+    firsts = [table[0, 0] for table in (log.ranges, log.inputs) if table.shape[0]]
+    return float(min(firsts))
+
+
+def surveyed(log: RangeLog, std: float, seed: int) -> RangeLog:
+    """``beacons.csv`` as a tape or total-station survey gives it: each anchor's coordinates
+    moved by ``N(0, std^2)`` per axis (drawn from ``seed``), the ranges left as measured from
+    the true anchors."""
+    rng = np.random.default_rng(seed)
+    return replace(log, beacons=log.beacons + std * rng.standard_normal(log.beacons.shape))
+
+
+def started_at(log: RangeLog, delay: float) -> RangeLog:
+    """The log begun ``delay`` seconds after its start (a recording started while the vehicle
+    moves): every range, input, attitude and truth row before ``log_start + delay`` removed;
+    an odometry log's ``heading0`` is its heading at the new first input (:func:`_heading_at`)."""
+    t0 = log_start(log) + float(delay)
+    keep = log.ranges[:, 0] >= t0
+    first = int(np.searchsorted(log.inputs[:, 0], t0))
+    heading0 = _heading_at(log, first) if log.input_kind == "odometry" else log.heading0
+    truth = None if log.truth is None else log.truth[log.truth[:, 0] >= t0]
+    attitude = None if log.attitude is None else log.attitude[log.attitude[:, 0] >= t0]
+    return replace(
+        log, ranges=log.ranges[keep], range_std=log.range_std[keep], inputs=log.inputs[first:],
+        heading0=heading0, truth=truth, attitude=attitude,
+    )  # fmt: skip
+
+
+def _heading_at(log: RangeLog, k: int) -> float:
+    """An odometry log's heading at its ``k``-th input: the truth's (linear between rows,
+    unwrapped) where the truth holds one, as the export states ``heading0``; else the heading
+    dead-reckoned from ``heading0`` with the yaw rates before it."""
+    t = log.inputs[k, 0]
+    if log.truth is not None and "heading" in log.truth_columns:
+        column = log.truth[:, log.truth_columns.index("heading")]
+        return float(np.interp(t, log.truth[:, 0], np.unwrap(column)))
+    step = np.diff(log.inputs[: k + 1, 0]) * log.inputs[:k, 2]
+    return log.heading0 + float(np.sum(step))
+
+
+def truth_from(log: RangeLog, delay: float, rate: float) -> RangeLog:
+    """The truth as a motion capture started late gives it: from ``log_start + delay`` on, at
+    ``rate`` Hz (the row at or after each tick), every column kept."""
+    if log.truth is None:
+        raise QuadobsError(f"{log.name}: truth_from needs a truth")
+    rows = log.truth[log.truth[:, 0] >= log_start(log) + float(delay)]
+    ticks = np.arange(rows[0, 0], rows[-1, 0], 1.0 / float(rate))
+    picked = np.unique(np.minimum(np.searchsorted(rows[:, 0], ticks), rows.shape[0] - 1))
+    return replace(log, truth=rows[picked])
+
+
+def anchor_gap(log: RangeLog, index: int, start: float, length: float) -> RangeLog:
+    """The ``index``-th anchor of ``beacons.csv`` silent over ``[start, start + length)``
+    seconds from the log's start (an anchor that drops out: its ranges removed)."""
+    t = log.ranges[:, 0] - log_start(log)
+    silent = (log.ranges[:, 1] == log.beacon_ids[index]) & (t >= start) & (t < start + length)
+    return replace(log, ranges=log.ranges[~silent], range_std=log.range_std[~silent])
+
+
+def blocked_by_pillar(log: RangeLog, centre, radius: float) -> np.ndarray:
+    """Which ranges pass through a vertical pillar of ``radius`` about ``centre`` ``(x, y)``:
+    the horizontal segment from the truth's position at the range's time (linear between the
+    truth's rows) to the anchor comes within ``radius`` of the pillar's axis, ``(M,)`` bool.
+
+    With ``d = a - p`` and ``s = clip((c - p)^T d / |d|^2, 0, 1)``, the segment's nearest point
+    to ``c`` is ``p + s d``."""
+    if log.truth is None:
+        raise QuadobsError(f"{log.name}: a pillar's shadow needs the truth's positions")
+    t, cols = log.ranges[:, 0], log.truth_columns
+    p = np.column_stack([np.interp(t, log.truth[:, 0], log.truth[:, cols.index(c)]) for c in "xy"])
+    d = log.beacons[log.beacon_index(log.ranges[:, 1]), :2] - p
+    c = np.asarray(centre, dtype=float)
+    s = np.clip(np.sum((c - p) * d, axis=1) / np.maximum(np.sum(d * d, axis=1), 1e-12), 0.0, 1.0)
+    return np.linalg.norm(p + s[:, None] * d - c, axis=1) < radius
+
+
+def behind_pillar(log: RangeLog, centre, radius: float, excess: float, seed: int) -> RangeLog:
+    """Non-line-of-sight bursts: each range blocked by the pillar (:func:`blocked_by_pillar`)
+    longer by an exponential excess of mean ``excess`` m (drawn from ``seed``), so that every
+    pass of the vehicle behind it lengthens one anchor's ranges for as long as it lasts."""
+    blocked = blocked_by_pillar(log, centre, radius)
+    ranges = log.ranges.copy()
+    ranges[blocked, 2] += np.random.default_rng(seed).exponential(excess, int(blocked.sum()))
+    return replace(log, ranges=ranges)
+
+
+def accel_scaled(log: RangeLog, scale) -> RangeLog:
+    """A body IMU whose accelerometer reads ``(1 + scale_i)`` times the specific force on axis
+    ``i`` (a scale-factor error; gravity's reading scaled with it)."""
+    if log.input_kind != "imu_body":
+        raise QuadobsError(f"{log.name}: an accelerometer's scale needs a body IMU log")
+    inputs = log.inputs.copy()
+    inputs[:, 1:4] *= 1.0 + np.asarray(scale, dtype=float)
+    return replace(log, inputs=inputs)
+
+
+def inputs_late(log: RangeLog, offset: float, jitter: float, seed: int) -> RangeLog:
+    """The inputs stamped ``offset`` seconds late against the ranges, each stamp moved by
+    uniform jitter in ``+-jitter`` s (drawn from ``seed``) and the rows kept in time order."""
+    inputs = log.inputs.copy()
+    moved = offset + np.random.default_rng(seed).uniform(-jitter, jitter, inputs.shape[0])
+    inputs[:, 0] += moved
+    return replace(log, inputs=inputs[np.argsort(inputs[:, 0], kind="stable")])

@@ -1,0 +1,194 @@
+"""Stress: what the stand-ins for a real robot's and a real flight's log had not posed yet.
+
+The stand-ins (``sims/replay_rover_room.py --variants all``, ``sims/replay_flight_variants.py
+--variants real``) pose what a real log holds that the simulator's export does not. A real log
+may differ in more ways; each stress below is one of them, a single switch on top of the
+stand-in (seeded where it draws: the seed of the run and the stress's name), replayed with
+``quadobs replay DIR --burn-in 5`` and every other setting at its default. The table gives the
+best estimator's position RMSE after the burn-in (no estimator reported diverged counts), and
+whether it meets the target: 0.15 m for the robot, 0.20 m for the flight.
+
+Robot (``all`` in ``--room``: anchors above the tag, a lever arm, stops, odometry at 20 Hz
+with slip, clocks apart; :data:`ROVER`):
+
+* ``survey``: ``beacons.csv`` as surveyed, each coordinate off by ``N(0, 0.05^2)`` m;
+* ``rate10``: ranges at 10 Hz over the four anchors (2.5 Hz each);
+* ``scale``: the wheel scale 5 % short (``odometry.scale_error = -0.05``);
+* ``moving``: the log begun 8 s in, the robot at speed (its rest over 0-5 s cut);
+* ``truth``: the motion capture from 3 s after the log's start, at 30 Hz;
+* ``pillar``: a pillar of 0.15 m radius at (1.5, 0.5) m, beside the path: a range whose path
+  crosses it is longer by an exponential excess of mean 0.3 m (bursts as the robot passes);
+* ``gap``: anchor 1 silent for 8 s from 30 s;
+* ``odoclock``: the odometry 0.1 s late against the ranges, its stamps jittered by +-10 ms.
+
+Flight (``real``: no attitude, vibration at 100 Hz, uneven IMU, FRD axes, IMU 20 ms late,
+range biases of both signs, motion capture at 100 Hz, no ``std``; :data:`FLIGHT`, each applied
+to the log without attitude before ``real``'s transforms):
+
+* ``survey``: as the robot's;
+* ``rate50``: ranges at 50 Hz over the eight anchors (``radio.rate = 50``: a tag's
+  round-robin at half the rate; keeping every other range of the 100 Hz export instead would
+  keep half the anchors between two dropouts);
+* ``rate400``: ranges at 400 Hz over the eight anchors (``radio.rate = 400``);
+* ``moving``: the log begun 5 s into the flight;
+* ``gap``: anchor 0 silent for 10 s from 15 s;
+* ``imuclock``: the IMU a further 50 ms late, its stamps jittered by +-2 ms;
+* ``ascale``: the accelerometer's scale off by +2, -1.5 and +1 % on x, y, z.
+
+::
+
+    python sims/stress_hidden_logs.py rover --seeds 0,1,2,3,4
+    python sims/stress_hidden_logs.py rover --seeds 0,1,2,3,4 --room walls
+    python sims/stress_hidden_logs.py flight --seeds 0,1,2,3,4
+
+``--variants`` picks stresses (``none``: the stand-in itself); ``--json`` writes every
+estimator's RMSE.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import tempfile
+import zlib
+from pathlib import Path
+
+import numpy as np
+import replay_flight_variants as flight
+import replay_rover_room as rover
+
+from quadobs.testbed.logs import read_log, write_log
+from quadobs.testbed.logs.posed import (
+    accel_scaled,
+    anchor_gap,
+    behind_pillar,
+    inputs_late,
+    started_at,
+    surveyed,
+    truth_from,
+)
+
+TARGET = {"rover": 0.15, "flight": 0.20}
+SURVEY_STD = 0.05
+
+
+def _none(log, seed):
+    return log
+
+
+#: The robot's stresses: scenario settings and a transform ``(log, seed) -> log``.
+ROVER = {
+    "none": ((), _none),
+    "survey": ((), lambda log, seed: surveyed(log, SURVEY_STD, seed)),
+    "rate10": (("radio.rate=10",), _none),
+    "scale": (("odometry.scale_error=-0.05",), _none),
+    "moving": ((), lambda log, seed: started_at(log, 8.0)),
+    "truth": ((), lambda log, seed: truth_from(log, 3.0, 30.0)),
+    "pillar": ((), lambda log, seed: behind_pillar(log, (1.5, 0.5), 0.15, 0.3, seed)),
+    "gap": ((), lambda log, seed: anchor_gap(log, 1, 30.0, 8.0)),
+    "odoclock": ((), lambda log, seed: inputs_late(log, 0.1, 0.01, seed)),
+}
+#: The flight's stresses, as :data:`ROVER`.
+FLIGHT = {
+    "none": ((), _none),
+    "survey": ((), lambda log, seed: surveyed(log, SURVEY_STD, seed)),
+    "rate50": (("radio.rate=50",), _none),
+    "rate400": (("radio.rate=400",), _none),
+    "moving": ((), lambda log, seed: started_at(log, 5.0)),
+    "gap": ((), lambda log, seed: anchor_gap(log, 0, 15.0, 10.0)),
+    "imuclock": ((), lambda log, seed: inputs_late(log, 0.05, 0.002, seed)),
+    "ascale": ((), lambda log, seed: accel_scaled(log, (0.02, -0.015, 0.01))),
+}
+
+
+def stress_seed(seed: int, name: str) -> int:
+    """The draws of the stress ``name`` on the run ``seed``: one seed from both."""
+    return seed * 1000 + zlib.crc32(name.encode()) % 1000
+
+
+def rover_log(seed: int, name: str, room: str, duration: float, tmp: Path) -> Path:
+    """The robot's stand-in ``all`` in ``room`` with the stress ``name``, written in ``tmp``."""
+    settings, transform = ROVER[name]
+    folder = tmp / f"rover-{room}-seed{seed}-{name}"
+    rover.export(seed, duration, folder, "all", room, settings)
+    write_log(transform(read_log(folder), stress_seed(seed, name)), folder)
+    return folder
+
+
+def flight_log(seed: int, name: str, duration: float, tmp: Path) -> Path:
+    """The flight's stand-in ``real`` with the stress ``name``, written in ``tmp``: the stress
+    on the log without attitude, then ``real``'s transforms drawn as the flight study does."""
+    settings, transform = FLIGHT[name]
+    base = tmp / f"flight-seed{seed}-export{'-'.join(settings)}"
+    if not (base / "meta.csv").exists():
+        flight.export(seed, duration, 0.2, 0.01, base, settings)
+    noatt = flight.variant(read_log(base), "noatt", 1.0)
+    stressed = transform(noatt, stress_seed(seed, name))
+    rng = np.random.default_rng([seed, flight.REAL.index("real")])
+    folder = tmp / f"flight-seed{seed}-{name}"
+    write_log(flight.real_variant(stressed, "real", rng, 1.0, 0.05), folder)
+    return folder
+
+
+def best(rmse: dict) -> tuple[str, float]:
+    """The estimator of least RMSE among those not reported diverged."""
+    ran = {k: v for k, v in rmse.items() if isinstance(v, float) and math.isfinite(v)}
+    if not ran:
+        return "-", math.inf
+    name = min(ran, key=ran.get)
+    return name, ran[name]
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("platform", choices=("rover", "flight"))
+    ap.add_argument("--seeds", default="0,1,2,3,4")
+    ap.add_argument("--variants", help="comma-separated stresses (default: all of them)")
+    ap.add_argument("--room", default="today", choices=tuple(rover.ROOMS), help="the robot's")
+    ap.add_argument("--duration", type=float, help="s (default: 90 robot, 40 flight)")
+    ap.add_argument("--json", help="write every estimator's RMSE here")
+    args = ap.parse_args()
+    table = ROVER if args.platform == "rover" else FLIGHT
+    names = args.variants.split(",") if args.variants else list(table)
+    unknown = [n for n in names if n not in table]
+    if unknown:
+        ap.error(f"unknown stress {', '.join(unknown)} (one of {', '.join(table)})")
+    duration = args.duration or (90.0 if args.platform == "rover" else 40.0)
+    rows = []
+    with tempfile.TemporaryDirectory(prefix="stress-") as tmp:
+        for seed in (int(s) for s in args.seeds.split(",")):
+            for name in names:
+                if args.platform == "rover":
+                    folder = rover_log(seed, name, args.room, duration, Path(tmp))
+                    rmse = rover.replay_defaults(folder)
+                else:
+                    folder = flight_log(seed, name, duration, Path(tmp))
+                    summary = flight.replay(folder, None, rover.BURN_IN)
+                    rmse = {
+                        k: "diverged" if e.get("diverged") else e.get("rmse", math.nan)
+                        for k, e in summary["estimators"].items()
+                    }
+                who, value = best(rmse)
+                rows.append({"seed": seed, "stress": name, "best": who, "rmse": value, **rmse})
+                print(f"seed {seed} {name}: best {who} {value:.3f}", flush=True)
+    if args.json:
+        Path(args.json).write_text(json.dumps(rows, indent=1))
+    _print_table(rows, names, TARGET[args.platform])
+
+
+def _print_table(rows: list[dict], names: list[str], target: float) -> None:
+    """Per stress: the best default's RMSE on each seed, the worst, and the target met."""
+    seeds = sorted({r["seed"] for r in rows})
+    print("| stress | " + " | ".join(f"seed {s}" for s in seeds) + " | worst | target met |")
+    print("|---|" + "---|" * (len(seeds) + 2))
+    for name in names:
+        cells = {r["seed"]: r for r in rows if r["stress"] == name}
+        worst = max(cells[s]["rmse"] for s in seeds)
+        text = " | ".join(f"{cells[s]['rmse']:.3f} ({cells[s]['best']})" for s in seeds)
+        print(f"| {name} | {text} | {worst:.3f} | {'yes' if worst <= target else 'no'} |")
+    print(f"(best default's position RMSE after {rover.BURN_IN:g} s, m; target {target:g} m)")
+
+
+if __name__ == "__main__":
+    main()
