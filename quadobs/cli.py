@@ -111,8 +111,9 @@ def print_diverged(summary: dict, file=None) -> None:
     for name, d in summary.get("estimators", {}).items():
         if isinstance(d, dict) and d.get("diverged"):
             d = d["diverged"]
+            at = f"step {d['step']} " if d["step"] >= 0 else ""  # -1: a time without a step
             print(
-                f"{name}: DIVERGED at step {d['step']} (t = {d['t']:.6g} s): {d['reason']}; "
+                f"{name}: DIVERGED at {at}(t = {d['t']:.6g} s): {d['reason']}; "
                 "its figures are invalid",
                 file=file,
             )

@@ -40,6 +40,7 @@ from scipy import stats
 from quadobs.errors import QuadobsError
 
 __all__ = [
+    "LOCKOUT_END_MIN",
     "BiasSightGrid",
     "ChiSquareGate",
     "ExcessMixture",
@@ -544,6 +545,10 @@ def multilateration(
     return cols, sol
 
 
+#: Fewest corrections in the lock-out's window at the run's end for :meth:`LockOut.locked_at_end`.
+LOCKOUT_END_MIN = 10
+
+
 @dataclass
 class LockOut:
     """Watches a filter's corrections in time (see the module docstring).
@@ -607,6 +612,20 @@ class LockOut:
         self._window.clear()
         self._rejected = 0
         return True
+
+    def locked_at_end(self) -> dict | None:
+        """``None``, or the record of a filter whose window still holds more rejected
+        corrections than accepted ones (at least :data:`LOCKOUT_END_MIN`) when the run ends:
+        the lock-out's own test without the grace after a re-initialisation (the grace lets a
+        re-initialised filter converge; a run that ends inside it has not)."""
+        w = self._window
+        if self.diverged is not None or len(w) < LOCKOUT_END_MIN or 2 * self._rejected <= len(w):
+            return None
+        reason = (
+            f"locked out at the end of the run: {self._rejected} of the last {len(w)} "
+            f"corrections rejected (within {self.timeout:g} s)"
+        )
+        return {"time": float(w[-1][0]), "step": -1, "reason": reason}
 
     def summary(self) -> dict:
         """Re-initialisations and divergence as plain data."""

@@ -20,7 +20,11 @@ An estimator is *locked out* when, over the second half of the run (from the fir
 :data:`BINS` equal bins of steps that starts at or after ``K / 2``), it was offered at least
 :data:`LOCKOUT_MIN` corrections and rejected at least :data:`LOCKOUT_SHARE` (90 %) of them
 (``"locked out"``, the step being the start of that half): its gate refused the
-measurements and it ran on its model alone. A correction is offered at a step where the
+measurements and it ran on its model alone. A filter with a lock-out of its own
+(:class:`~quadobs.estimators.robust.LockOut`) is also reported when the run ends while its
+window still holds more rejected corrections than accepted ones, inside the grace after a
+re-initialisation (:meth:`~quadobs.estimators.robust.LockOut.locked_at_end`; step ``-1``:
+its time alone is known). A correction is offered at a step where the
 estimator's NIS is finite; it is rejected when its rejected count grows at that step.
 
 Either way the estimator's summary gets ``diverged = {"step", "t", "reason"}`` and every
@@ -167,7 +171,10 @@ class DivergenceSink(Sink):
 def given_up(est) -> dict | None:
     """The estimator's own record of having given up (its lock-out's ``diverged``: out of
     re-initialisations, or a state it judged implausible), as this sink's entry."""
-    record = getattr(getattr(est, "lockout", None), "diverged", None)
+    lock = getattr(est, "lockout", None)
+    record = getattr(lock, "diverged", None)
+    if not record and hasattr(lock, "locked_at_end"):
+        record = lock.locked_at_end()
     if not record:
         return None
     return {"step": int(record["step"]), "t": float(record["time"]), "reason": record["reason"]}

@@ -294,3 +294,31 @@ def test_excess_mixture_refuses_a_variance_that_is_not_positive(S):
 
     with pytest.raises(QuadobsError, match="innovation variance"):
         ExcessMixture(0.3, 0.6).posterior(0.1, S)
+
+
+def test_a_run_that_ends_inside_the_grace_still_locked_out_is_reported():
+    """After its re-initialisations a filter gets a doubled grace; a run that ends within it
+    while the window holds more rejected corrections than accepted ones (at least
+    ``LOCKOUT_END_MIN``) is reported as locked out at the end; one that accepts most, or has
+    tried too few in the window, is not."""
+    from quadobs.estimators.robust import LOCKOUT_END_MIN, LockOut
+
+    lock = LockOut(timeout=2.0)
+    for i in range(3):
+        assert lock.reset(10.0 * (i + 1), i, "test")
+    t0 = lock.since  # grace 16 s from here: observe() cannot declare a lock-out before t0 + 16
+    for k in range(40):
+        assert not lock.observe(t0 + 0.05 * k, k % 4 == 0, 3.0)
+    record = lock.locked_at_end()
+    assert record is not None and record["time"] == pytest.approx(t0 + 0.05 * 39)
+    assert "30 of the last 40 corrections rejected" in record["reason"]
+    assert lock.diverged is None  # the record is the end's, not a give-up during the run
+
+    fine = LockOut(timeout=2.0)
+    for k in range(40):
+        fine.observe(0.05 * k, k % 4 != 0, 1.0)
+    assert fine.locked_at_end() is None
+    few = LockOut(timeout=2.0)
+    for k in range(LOCKOUT_END_MIN - 1):
+        few.observe(0.05 * k, False, 3.0)
+    assert few.locked_at_end() is None
