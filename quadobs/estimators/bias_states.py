@@ -447,7 +447,9 @@ class _VehicleBlock:
         if np.isnan(self._latest).any() and self._waited < 2 * q:
             return False
         system = self.outputs.system
-        fixed = multilateration(system.C, system.d, self._latest)
+        rho2 = np.maximum(2.0 * self._latest + np.sum(system.d * system.d, axis=1), 0.0)
+        v = self._fix_var  # each output's variance, rho^2 s^2 + s^4 / 2: the weighted fix
+        fixed = multilateration(system.C, system.d, self._latest, variances=rho2 * v + 0.5 * v * v)
         if fixed is None:
             if self._waited < 4 * q:
                 return False

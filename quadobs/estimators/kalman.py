@@ -636,7 +636,7 @@ class _GaussianFilter(HalfSteps, Gated):
         if lock.reset(t, int(round(t / self.dynamics.dt)), reason):
             self._P = reinitialised_covariance(self._P, self._P0, largest, dim, span)
             system = self.outputs.system
-            fixed = multilateration(system.C, system.d, self._latest)
+            fixed = multilateration(system.C, system.d, self._latest, centred=True)
             if fixed is not None:
                 self._x[fixed[0]] = fixed[1]
 

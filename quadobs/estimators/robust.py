@@ -49,6 +49,7 @@ __all__ = [
     "SkewedGate",
     "chi2_threshold",
     "multilateration",
+    "multilateration_covariance",
     "reinitialised_covariance",
     "reweight",
 ]
@@ -504,7 +505,11 @@ def reinitialised_covariance(
 
 
 def multilateration(
-    C: np.ndarray, d: np.ndarray, y: np.ndarray, centred: bool = False
+    C: np.ndarray,
+    d: np.ndarray,
+    y: np.ndarray,
+    centred: bool = False,
+    variances: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray] | None:
     """The state entries fixed by one snapshot of outputs that share one quadratic form.
 
@@ -524,6 +529,12 @@ def multilateration(
         the first output. For outputs with independent errors of one variance this is the
         generalised least squares of the differences (whose errors share the first one's), and
         the fix does not depend on the outputs' order; from the first output it does.
+    variances : ndarray (q,), optional
+        Each output's error variance ``v_h``: the weighted least squares of ``y_h = c + d_h^T x``
+        with the common term ``c`` (``1/2 x^T C x``) as an unknown, weights ``w_h = 1 / v_h``,
+        i.e. differences from the weighted means ``dbar_w``, ``ybar_w`` solved with the weights
+        (:func:`multilateration_covariance`): the best linear unbiased fix of independent
+        outputs, whatever their order (``centred`` is its case of equal variances).
 
     Returns
     -------
@@ -534,7 +545,12 @@ def multilateration(
     rows = np.flatnonzero(~np.isnan(y))
     if rows.shape[0] < 2 or not np.allclose(C[rows], C[rows[0]]):
         return None
-    if centred:
+    if variances is not None:
+        w = 1.0 / np.asarray(variances, dtype=float)[rows]
+        sw = np.sqrt(w / w.sum())[:, None]
+        D = sw * (d[rows] - w @ d[rows] / w.sum())
+        r = sw[:, 0] * (y[rows] - w @ y[rows] / w.sum())
+    elif centred:
         D, r = d[rows] - d[rows].mean(axis=0), y[rows] - y[rows].mean()
     else:
         D, r = d[rows[1:]] - d[rows[0]], y[rows[1:]] - y[rows[0]]
@@ -543,6 +559,22 @@ def multilateration(
         return None
     sol = np.linalg.lstsq(D[:, cols], r, rcond=None)[0]
     return cols, sol
+
+
+def multilateration_covariance(D: np.ndarray, variances: np.ndarray) -> np.ndarray:
+    """The covariance of :func:`multilateration`'s weighted fix: ``(D_w^T W D_w)^-1`` with
+    ``D_w`` the rows ``d_h - dbar_w`` (``dbar_w`` the mean weighted by ``w_h = 1 / v_h``) and
+    ``W = diag(w)``, the outputs' errors independent of variances ``v_h``.
+
+    Parameters
+    ----------
+    D : ndarray (k, m)
+        The rows ``d_h`` of the outputs used, on the columns the fix determines.
+    variances : ndarray (k,)
+    """
+    w = 1.0 / np.asarray(variances, dtype=float)
+    Dw = D - w @ D / w.sum()
+    return np.linalg.inv((Dw * w[:, None]).T @ Dw)
 
 
 #: Fewest corrections in the lock-out's window at the run's end for :meth:`LockOut.locked_at_end`.

@@ -28,15 +28,18 @@ is this module's alone):
   ``t_h`` is a range from ``p(t) - Delta_h`` with ``Delta_h = p^-(t) - p^-(t_h)`` the motion
   the prediction alone gives since (exact for odometry, whose displacement does not depend on
   the unknown start). So it is a range from ``p(t)`` to the anchor moved to ``a_h + Delta_h``,
-  and with the quadratic outputs ``y_h = (rho_h^2 - |a_h'|^2) / 2`` the differences
-  ``y_h - y_0 = -(a_h' - a_0')^T p`` are linear in ``p``
-  (:func:`~quadobs.estimators.robust.multilateration`); the least-squares solution
-  ``p = D^+ (y_{1:} - y_0)`` has the covariance
+  and the quadratic outputs ``y_h = (rho_h^2 - |a_h'|^2) / 2 = c - a_h'^T p`` (``c =
+  |p|^2 / 2`` common to all) are linear in ``p`` and ``c``
+  (:func:`~quadobs.estimators.robust.multilateration` with ``variances``): the weighted least
+  squares with the weights ``w_h = 1 / v_h`` (``v_h = var y_h = rho_h^2 sigma_h^2 +
+  sigma_h^4 / 2``) and ``c`` as an unknown, the best linear unbiased fix, the same whatever
+  the anchors' order, has the covariance
 
-  .. math:: P_{fix} = D^+ \\Sigma D^{+\\top} + (P^-_{pp}(t) - P^-_{pp}(t_0)),
+  .. math:: P_{fix} = (D_w^\\top W D_w)^{-1} + (P^-_{pp}(t) - P^-_{pp}(t_0)),
 
-  ``Sigma`` the covariance of the differences (``var y_h = rho_h^2 sigma_h^2 + sigma_h^4 / 2``,
-  the first output's variance shared by all), the last term the uncertainty the prediction
+  ``D_w`` the rows ``-(a_h' - abar_w')`` about the weighted mean, ``W = diag(w)``
+  (:func:`~quadobs.estimators.robust.multilateration_covariance`; from the first anchor's
+  output, as before, the fix depended on the anchors' order), the last term the uncertainty the prediction
   alone added to the position since the oldest range used (``P^-`` carried from the prior of
   the other states, a velocity, with the process noise): the variance of the displacement
   for the process noise's independent increments, larger than it for a velocity's prior error
@@ -116,7 +119,7 @@ from quadobs.estimators.kalman import (
     OutputModel,
     UnscentedKalmanFilter,
 )
-from quadobs.estimators.robust import multilateration
+from quadobs.estimators.robust import multilateration, multilateration_covariance
 
 #: The most Gauss-Newton steps of the joint fix (from the multilateration: a few where the
 #: ranges agree; ranges that disagree (non-line-of-sight) slow its convergence to linear).
@@ -377,17 +380,13 @@ class MultilaterationStart:
         moved = a + shift
         y = self._latest + 0.5 * (np.sum(a * a, axis=1) - np.sum(moved * moved, axis=1))
         d[:, :dim] = -moved
-        fixed = multilateration(system.C, d, y)
+        fixed = multilateration(system.C, d, y, variances=self._var_y)
         if fixed is None or np.any(fixed[0] >= dim):
             return None
         cols = fixed[0]
-        D = d[rows[1:]][:, cols] - d[rows[0]][cols]
-        pinv = np.linalg.pinv(D)
-        v = self._var_y[rows]
-        Sigma = np.diag(v[1:]) + v[0]
         oldest = rows[np.argmin(self._t_at[rows])]
         growth = self._P_dr[np.ix_(cols, cols)] - self._P_at[oldest][np.ix_(cols, cols)]
-        cov = pinv @ Sigma @ pinv.T + growth
+        cov = multilateration_covariance(d[rows][:, cols], self._var_y[rows]) + growth
         return cols, fixed[1], 0.5 * (cov + cov.T)
 
     def _back(self, tau: float) -> np.ndarray:

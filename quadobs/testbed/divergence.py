@@ -173,8 +173,9 @@ def given_up(est) -> dict | None:
     re-initialisations, or a state it judged implausible), as this sink's entry."""
     lock = getattr(est, "lockout", None)
     record = getattr(lock, "diverged", None)
-    if not record and hasattr(lock, "locked_at_end"):
-        record = lock.locked_at_end()
+    at_end = getattr(lock, "locked_at_end", None)
+    if not record and at_end is not None:  # the run ended inside a re-initialisation's grace
+        record = at_end()
     if not record:
         return None
     return {"step": int(record["step"]), "t": float(record["time"]), "reason": record["reason"]}

@@ -240,7 +240,9 @@ def test_the_fix_correction_is_one_joint_update_linearised_at_the_fix(cls):
     y = 0.5 * rho**2 - 0.5 * (ANCHORS**2).sum(1)
     est.correct_outputs(y)
     system = vehicle_system(3, ANCHORS)
-    cols, p_fix = multilateration(system.C, system.d, y)
+    v = est._fix_var  # the fix weighs each output by its variance rho^2 v + v^2 / 2
+    variances = (2.0 * y + (ANCHORS**2).sum(1)) * v + 0.5 * v * v
+    cols, p_fix = multilateration(system.C, system.d, y, variances=variances)
     x_i = np.r_[x0, np.zeros(8)]
     x_i[cols] = p_fix
     diff = p_fix - ANCHORS

@@ -58,12 +58,19 @@ def test_moving_vehicle_fixed_exactly_from_ranges_of_different_times(cls):
 
 
 def _least_squares_fix_covariance(p):
-    """``D^+ Sigma D^+T`` of a round of noise-free ranges from ``p`` (closed form of the module
-    docstring, ``var y_h = rho_h^2 sigma^2 + sigma^4 / 2``, the first output's shared)."""
+    """The weighted least squares' ``(B^T W B)^-1`` of a round of noise-free ranges from ``p``,
+    on the position block: ``y_h = c - a_h^T p`` with ``c`` unknown, ``B = [-a_h^T, 1]``, ``W =
+    diag(1 / v_h)``, ``v_h = rho_h^2 sigma^2 + sigma^4 / 2`` (closed form of the module
+    docstring, written as the joint fit of ``(p, c)``, not the code's centring); it is at most
+    the first anchor's differences' ``D^+ Sigma D^+T`` (the fix of before)."""
     rho = np.linalg.norm(p - ANCHORS, axis=1)
     var = rho**2 * SIGMA**2 + 0.5 * SIGMA**4
+    B = np.column_stack([-ANCHORS, np.ones(len(ANCHORS))])
+    P = np.linalg.inv(B.T @ (B / var[:, None]))[:2, :2]
     pinv = np.linalg.pinv(-(ANCHORS[1:] - ANCHORS[0]))
-    return pinv @ (np.diag(var[1:]) + var[0]) @ pinv.T
+    before = pinv @ (np.diag(var[1:]) + var[0]) @ pinv.T
+    assert np.all(np.linalg.eigvalsh(before - P) > -1e-12)
+    return P
 
 
 def test_fix_covariance_is_the_least_squares_one_plus_the_prediction_since():
@@ -74,7 +81,7 @@ def test_fix_covariance_is_the_least_squares_one_plus_the_prediction_since():
     est = _filter(FixedStartEKF, 50.0**2, q_xy=q_xy)
     _drive(est, p, (0.0, 0.0), [0.1, 0.2, 0.3, 0.4])
     P_fix = _least_squares_fix_covariance(p) + q_xy * (0.4 - 0.1) * np.eye(2)
-    np.testing.assert_allclose(est.x_covariance, P_fix, rtol=1e-9)
+    np.testing.assert_allclose(est.x_covariance, P_fix, rtol=1e-9, atol=1e-12)
     # the re-correction by the completing range (anchor 3) the fix is made of, as it was made
     H = ((p - ANCHORS[3]) / np.linalg.norm(p - ANCHORS[3]))[None, :]
     twice = np.linalg.inv(np.linalg.inv(P_fix) + H.T @ H / SIGMA**2)
@@ -94,7 +101,7 @@ def test_grid_step_fix_is_not_corrected_by_its_own_outputs(cls):
     assert est.fixes == [0.0] and est.corrections == 0 and np.isnan(est.nis)
     np.testing.assert_allclose(est.x_hat, p, atol=1e-9)
     P_fix = _least_squares_fix_covariance(p)
-    np.testing.assert_allclose(est.x_covariance, P_fix, rtol=1e-9)
+    np.testing.assert_allclose(est.x_covariance, P_fix, rtol=1e-9, atol=1e-12)
     # what the second correction by the same four ranges would have made of it: about P_fix / 2
     H = (p - ANCHORS) / np.linalg.norm(p - ANCHORS, axis=1)[:, None]
     twice = np.linalg.inv(np.linalg.inv(P_fix) + H.T @ H / SIGMA**2)
@@ -332,3 +339,25 @@ def test_anchors_at_one_height_fix_the_horizontal_and_leave_the_height_to_its_pr
     np.testing.assert_allclose(est.x_hat[:2], p[:2], atol=1e-9)
     np.testing.assert_array_equal(est.x_hat[2:], x0[2:])
     np.testing.assert_array_equal(np.diag(est.x_covariance)[2:], np.diag(P0)[2:])
+
+
+def test_the_weighted_fix_is_the_joint_least_squares_and_does_not_depend_on_the_order():
+    """``multilateration(..., variances=v)``: the position of the weighted least squares of
+    ``y_h = c - a_h^T p`` with ``c`` unknown (closed form, the joint fit of ``(p, c)``), the
+    same for the anchors in any order; from the first anchor's output it is not."""
+    from quadobs.estimators.robust import multilateration
+
+    rng = np.random.default_rng(4)
+    p = np.array([12.0, 9.0])
+    C = np.broadcast_to(np.eye(2), (len(ANCHORS), 2, 2))
+    rho = np.linalg.norm(p - ANCHORS, axis=1) + 0.3 * rng.standard_normal(len(ANCHORS))
+    y, v = 0.5 * rho**2 - 0.5 * np.sum(ANCHORS**2, axis=1), rho**2 * 0.09 + 0.5 * 0.3**4
+    B = np.column_stack([-ANCHORS, np.ones(len(ANCHORS))])
+    joint = np.linalg.solve(B.T @ (B / v[:, None]), B.T @ (y / v))[:2]
+    fixes, plain = [], []
+    for order in ([0, 1, 2, 3], [3, 1, 0, 2], [2, 3, 1, 0]):
+        fixes.append(multilateration(C, -ANCHORS[order], y[order], variances=v[order])[1])
+        plain.append(multilateration(C, -ANCHORS[order], y[order])[1])
+    for f in fixes:
+        np.testing.assert_allclose(f, joint, atol=1e-9)
+    assert max(np.linalg.norm(f - plain[0]) for f in plain[1:]) > 1e-3
