@@ -74,7 +74,7 @@ def _least_squares_fix_covariance(p):
 
 
 def test_fix_covariance_is_the_least_squares_one_plus_the_prediction_since():
-    """``P = D^+ Sigma D^+T + q_xy (t - t_0) I`` (closed form) after the range that completes the
+    """``P = (D_w^T W D_w)^-1 + q_xy (t - t_0) I`` (closed form) after the range that completes the
     round: the fix's own, that range not corrected by a second time (which would shrink ``P``
     below the covariance of the fix's error: the double count)."""
     p, q_xy = np.array([12.0, 9.0]), 2.0
@@ -91,7 +91,7 @@ def test_fix_covariance_is_the_least_squares_one_plus_the_prediction_since():
 @pytest.mark.parametrize("cls", [FixedStartEKF, FixedStartUKF])
 def test_grid_step_fix_is_not_corrected_by_its_own_outputs(cls):
     """One grid step with every range present fixes the position from them: the estimate is the
-    truth and its covariance ``D^+ Sigma D^+T`` (closed form, no prediction since); before, the
+    truth and its covariance ``(D_w^T W D_w)^-1`` (closed form, no prediction since); before, the
     same outputs corrected it once more, and ``P`` came out near half of it (the double count of
     the linear case, ``(2 H^T R^-1 H)^-1``)."""
     p = np.array([12.0, 9.0])
