@@ -91,6 +91,12 @@ CASES = {
         ["rover.json"],
         "| seed | log |",
     ),
+    "stress_hidden_logs.py": (
+        ["rover", "--seeds", "0", "--variants", "survey", "--duration", "8"]
+        + ["--json", "{tmp}/stress.json"],
+        ["stress.json"],
+        "| stress | seed 0 | worst | target met |",
+    ),
     "replay_flight_variants.py": (
         ["--seeds", "0", "--duration", "8", "--variants", "noatt", "--estimators", "ekf-bias-imu"]
         + ["--out", "{tmp}/flights"],

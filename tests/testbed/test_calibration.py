@@ -169,13 +169,15 @@ def test_the_biases_chi_square_under_the_bias_states_prior():
     assert limit == pytest.approx(chi2.ppf(1.0 - SIGNIFICANCE, 4)) and 11.0 < limit < 11.2
 
 
-def test_bias_filters_take_the_calibrated_biases_only_where_the_data_contradict_their_prior():
+def test_bias_filters_take_the_calibrated_biases_only_where_the_data_contradict_their_prior(
+    monkeypatch,
+):
     """Biases of one sign, two to three times the bias states' 0.5 m prior: the calibrated
     biases lie outside that prior and predict the held-out ranges significantly better through
     ``ekf-bias``: they are kept for it (and it is far better for them); an estimator without
     bias states is not checked; a filter that takes the ranges as logged gets exactly what it
-    gets without biases, while the others get the biases. Biases within the prior: the ranges
-    as logged."""
+    gets without biases, while the others get the biases. Biases within the prior: kept only
+    on the paired held-out test's verdict (the rule checked for either verdict)."""
     from quadobs.testbed.logs.calibration import estimator_biases
 
     log = circle_laps(np.array([1.0, 1.3, 1.1, 1.4]))
@@ -200,16 +202,29 @@ def test_bias_filters_take_the_calibrated_biases_only_where_the_data_contradict_
     assert logged["ekf-bias"] == raw["ekf-bias"] and logged["ekf"] == applied["ekf"]
     assert applied["ekf-bias"] < 0.5 * logged["ekf-bias"], (applied, logged)
 
-    # the held-out scores differ by a fraction of a millimetre here, so whether the biases
-    # predict significantly better depends on the draw: seed 3 is one where they do (seeds 1,
-    # 2 and the default 5 are not significant), and the branch under test is that one
-    small = circle_laps(np.array([0.4, -0.3, 0.25, 0.0]), seed=3)
-    cal = calibrate(small, setup_options=options, noise=False)
-    assert cal.biases is not None, cal.reason
-    logged_names = estimator_biases(small, cal, ["ekf-bias"])
-    test = cal.per_estimator["ekf-bias"]
-    assert test["prior_chi2"] < test["prior_limit"], test
-    # biases inside the prior, yet predicting held-out ranges better through the filter itself:
-    # taken for that reason alone (the prior's test would have left the ranges as logged)
-    assert test["significantly_better"] and test["biases"] == "calibrated", test
-    assert logged_names == (), test
+    # biases inside the prior: taken only where the paired held-out test says they predict
+    # significantly better through the filter itself. Here the two starts' held-out scores
+    # differ by a fraction of a millimetre, so the test's verdict depends on the draw; the rule
+    # is checked for both verdicts, the test's own statistics being those of the data
+    import dataclasses
+
+    from quadobs.testbed.logs import calibration as calibration_module
+
+    small = circle_laps(np.array([0.4, -0.3, 0.25, 0.0]))
+    cal_small = calibrate(small, setup_options=options, noise=False)
+    assert cal_small.biases is not None, cal_small.reason
+    real_compare = calibration_module.compare
+    for verdict in (True, False):
+
+        def forced(*args, verdict=verdict, **kwargs):
+            return dataclasses.replace(real_compare(*args, **kwargs), better=verdict)
+
+        cal = dataclasses.replace(cal_small, per_estimator={}, reason=cal_small.reason)
+        monkeypatch.setattr(calibration_module, "compare", forced)
+        logged_names = estimator_biases(small, cal, ["ekf-bias"])
+        monkeypatch.setattr(calibration_module, "compare", real_compare)
+        test = cal.per_estimator["ekf-bias"]
+        assert test["prior_chi2"] < test["prior_limit"], test
+        assert test["significantly_better"] is verdict, test
+        assert test["biases"] == ("calibrated" if verdict else "as logged"), test
+        assert logged_names == (() if verdict else ("ekf-bias",)), test
