@@ -154,10 +154,16 @@ def main() -> None:
     unknown = [n for n in names if n not in table]
     if unknown:
         ap.error(f"unknown stress {', '.join(unknown)} (one of {', '.join(table)})")
+    try:
+        seeds = [int(s) for s in args.seeds.split(",")]
+    except ValueError:
+        ap.error(f"--seeds: expected comma-separated integers, got {args.seeds!r}")
+    if args.duration is not None and not args.duration > 0.0:
+        ap.error(f"--duration: expected a positive number of seconds, got {args.duration}")
     duration = args.duration or (90.0 if args.platform == "rover" else 40.0)
     rows = []
     with tempfile.TemporaryDirectory(prefix="stress-") as tmp:
-        for seed in (int(s) for s in args.seeds.split(",")):
+        for seed in seeds:
             for name in names:
                 if args.platform == "rover":
                     folder = rover_log(seed, name, args.room, duration, Path(tmp))
