@@ -52,6 +52,11 @@ CASES = {
         [],
         '"ekf-bias-truejac": {"time_to_1m"',
     ),
+    "uwb_online_bound.py": (
+        "--seeds 0:1 --duration 7 --burn-in 3".split(),
+        [],
+        "bound ratio (imu-oracle): median",
+    ),
     "uwb_bias_bound.py": (
         "--seeds 0:1 --duration 7 --burn-in 3 --key-period 0.05 --line-of-sight".split(),
         [],
