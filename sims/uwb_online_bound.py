@@ -6,11 +6,19 @@ flown once (on the truth) with ``ekf-bias`` (and the estimators named) and the s
 given the true biases (``ekf-bias-given``: their bias states pinned at the radio's biases),
 and every range the radio draws is kept with the tag's true position and whether the room
 blocked its path (the radio's own ray test, :func:`uwb_realistic.drawn_events`). On those
-ranges, at their times, the posterior Cramér-Rao bound of the filters' own model
-(:func:`quadobs.evaluation.range_bias_bound.range_bias_crb`: the held-input dynamics and
-input noise of ``ekf-bias``, its prior, the biases' prior the radio's stated spread) is run
-twice along the true trajectory: with the biases as states (``bound-bias``) and with them
-known (``bound-given``, the biases' prior block zero). Two sets of ranges:
+ranges, at their times, the posterior Cramér-Rao bound
+(:func:`quadobs.evaluation.range_bias_bound.range_bias_crb`; the prior of ``ekf-bias``, the
+biases' prior the radio's stated spread) is run twice along the true trajectory: with the
+biases as states (``bound-bias``) and with them known (``bound-given``, the biases' prior
+block zero). Two input models:
+
+* ``model``: the filters' own (:func:`extended_model`: the held-input dynamics and input noise
+  of ``ekf-bias``, which stands the accelerometer's constant bias in as white noise, and so
+  over-states the flight's input errors: not a bound of these flights);
+* ``imu``: the flight's own input errors to first order (:func:`imu_model`: the
+  accelerometer's bias as states, its noise and the attitude error as white noise).
+
+and two sets of ranges:
 
 * ``los``: the line-of-sight ranges only, each with the stated noise ``1 / sigma^2``;
 * ``oracle``: those and the blocked ranges too, each with the Fisher information of a range
@@ -33,6 +41,7 @@ Usage::
 
     python sims/uwb_online_bound.py --seeds 0:30 [--duration 40] [--burn-in 5]
         [--estimators ekf-bias,ukf-bias]
+    # the summary of lines printed before
     python sims/uwb_online_bound.py --summary rows.jsonl [--estimators ekf-bias]
 """
 
