@@ -359,6 +359,11 @@ class ExcessHuber:
         ``pi`` in ``[0, 1)``: the prior probability that a range is blocked.
     c : float
         Huber's bound (standard deviations) on what the excess does not explain.
+    memory : float
+        The time (s) over which an anchor's evidence of a blocked path carries to its next
+        range (:meth:`prior`; the filter keeps each anchor's last ``gamma``): an obstacle
+        beside the path blocks every range to an anchor behind it while the vehicle passes,
+        a burst. 0: every range has the prior ``nlos``.
     """
 
     mean: float

@@ -57,7 +57,7 @@ E_STD = STOREY**2 / 45.0**0.5
 #: (:func:`excess_rule`): a vehicle passes an obstacle's shadow in seconds, not between two
 #: rounds of the anchors (a quarter of a second at 16 Hz over four). A stated figure, checked
 #: by measurement on the wheeled robot's stand-ins (docs/error-sources.md, "Stress").
-EXCESS_MEMORY = 3.0
+EXCESS_MEMORY = 1.0
 
 
 def _build(s, x0: np.ndarray, name: str, cls, process_noise: np.ndarray):
