@@ -487,8 +487,11 @@ def test_the_excess_rule_corrects_by_the_innovation_less_its_expected_excess():
     from quadobs.testbed.logs.height_estimators import EXCESS_MEMORY, excess_rule
 
     anchors = np.array([[0.12, 0.10], [2.90, 0.16], [2.86, 2.28], [0.15, 2.31]])
-    setup = SimpleNamespace(kinds=("range",), dim=2, beacons=anchors, range_sigma=0.08, gate=None)
+    setup = SimpleNamespace(
+        kinds=("range",), dim=2, beacons=anchors, range_sigma=1.0, range_std_stated=0.08, gate=None
+    )
     rule = excess_rule(setup)
+    assert excess_rule(SimpleNamespace(**{**vars(setup), "range_std_stated": None})).mean == rule.c
     assert isinstance(rule, ExcessHuber) and rule.memory == EXCESS_MEMORY
     assert rule.mean == pytest.approx(rule.c * 0.08) and rule.nlos == pytest.approx(
         0.0150, abs=1e-4

@@ -181,7 +181,8 @@ def excess_rule(s):
     range's innovation less its expected non-line-of-sight excess
     (:class:`~quadobs.estimators.robust.ExcessHuber`), the excess stated by the range noise
     ``sigma`` (``s.range_sigma``) and ``c`` alone (:meth:`ExcessHuber.at_bound
-    <quadobs.estimators.robust.ExcessHuber.at_bound>`): exponential of mean ``c sigma`` (0.26 m
+    <quadobs.estimators.robust.ExcessHuber.at_bound>`; ``sigma`` the median of the standard
+    deviations the log states, else ``s.range_sigma``): exponential of mean ``c sigma`` (0.26 m
     at 0.08 m), a range ``c sigma`` long as likely blocked as clear (a prior probability of
     0.015), and each anchor's evidence of a blocked path carried over :data:`EXCESS_MEMORY`.
 
@@ -194,7 +195,8 @@ def excess_rule(s):
     posed", ``pillar``)."""
     from quadobs.estimators.robust import ExcessHuber
 
-    return ExcessHuber.at_bound(huber_rule(s.gate).c, s.range_sigma, EXCESS_MEMORY)
+    sigma = s.range_sigma if s.range_std_stated is None else s.range_std_stated
+    return ExcessHuber.at_bound(huber_rule(s.gate).c, sigma, EXCESS_MEMORY)
 
 
 def huber_rule(gate: float | None):
