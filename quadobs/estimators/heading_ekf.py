@@ -405,6 +405,7 @@ class _HeadingFilter(Estimator, Gated):
             rho = math.sqrt(max(2.0 * y[i] + float(self.anchors[i] @ self.anchors[i]), 0.0))
             self._latest[i], self._latest_std[i] = y[i], self.range_sigma
             m = Measurement(self._time, "range", rho, (int(i),), self.range_sigma)
+            self._range_anchor = int(i)
             self._correct_range(model, m)
             self._starting()
         self._propagate(self.dt, u)
