@@ -522,6 +522,32 @@ def test_the_excess_rule_corrects_by_the_innovation_less_its_expected_excess():
     assert 0.0 < moved["excess"] < 0.2 * moved["huber"]
 
 
+def test_the_excess_rule_on_the_grid_weighs_each_range_by_its_own_anchors_chain():
+    """:meth:`step` (the grid's outputs) corrects as :meth:`correct` does, each range's excess
+    read against its own anchor's chain: a range 0.5 m long on anchor 2 alone leaves anchor 2
+    as blocked and the others clear."""
+    from quadobs.core.measurements import Measurement, RangeModel
+    from quadobs.estimators.robust import ExcessHuber
+
+    anchors = np.array([[0.12, 0.10], [2.90, 0.16], [2.86, 2.28], [0.15, 2.31]])
+    rule = ExcessHuber.at_bound(3.29, 0.08, memory=1.0)
+    rho = RangeModel(anchors, 0.08)
+    grid, timed = _height_lever_ekf(anchors, rule), _height_lever_ekf(anchors, rule)
+    for f in (grid, timed):
+        f.range_sigma = 0.08
+    r = [
+        grid.linearized(rho, Measurement(0.0, "range", 0.0, (h,), 0.08), grid.state)[0]
+        for h in range(4)
+    ]
+    r[2] += 0.5
+    y = 0.5 * np.square(r) - 0.5 * np.einsum("hi,hi->h", anchors, anchors)
+    grid.step(np.zeros(3), y)
+    for h in np.lexsort(anchors.T[::-1]):
+        timed.correct(Measurement(0.0, "range", r[h], (int(h),), 0.08))
+    np.testing.assert_allclose(grid.state, timed.state, rtol=1e-9, atol=1e-12)
+    assert grid._blocked[2] > 0.9 and np.all(grid._blocked[[0, 1, 3]] < 0.05)
+
+
 def test_the_filter_with_the_anchors_states_is_the_same_whatever_the_anchors_order():
     """The same noisy ranges with the anchors listed in reverse: the UKF with the anchors'
     biases and offsets as states starts from a centred multilateration and spreads its sigma
