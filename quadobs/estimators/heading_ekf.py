@@ -629,7 +629,11 @@ class HeadingEKF(_HeadingFilter):
         The dead-reckoned heading at the start (rad), for :attr:`heading`.
     gate : float, optional
         Reject a correction whose NIS exceeds it (one degree of freedom per measurement).
-    robust : ChiSquareGate or Huber, optional
+    robust : ChiSquareGate, Huber or ExcessHuber, optional
+        :class:`~quadobs.estimators.robust.ExcessHuber`: a range's innovation less its expected
+        non-line-of-sight excess, each anchor's chain of a blocked path kept by the filter
+        (:meth:`_less_excess`), then Huber's weight; the update ``x += K nu'``, ``P -= (S -
+        Var[e | nu]) K K^T``. A TDOA takes Huber's weight alone.
     lockout : LockOut, optional
     measurements : list of MeasurementModel, optional
         Default: ranges to ``anchors``.
