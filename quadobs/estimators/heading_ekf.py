@@ -534,7 +534,8 @@ class _HeadingFilter(Estimator, Gated):
     def _gain(self, nu: float, S: float, Pxz: np.ndarray, R: float) -> None:
         """Robust rule, gate and lock-out on the innovation ``nu`` (variance ``S``), then the
         update ``x += K nu``, ``P -= K S K^T`` with ``K = P_xz / S`` (``P_xz``: the state's
-        cross-covariance with the measurement)."""
+        cross-covariance with the measurement). Under :class:`~quadobs.estimators.robust.ExcessHuber`
+        a range's ``nu`` is first less its expected excess and ``P -= K (S - Var[e | nu]) K^T``."""
         excess = 0.0
         if isinstance(self.robust, ExcessHuber) and self._range_anchor >= 0:
             nu, excess = self._less_excess(nu, S)
