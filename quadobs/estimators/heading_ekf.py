@@ -88,7 +88,13 @@ from quadobs.core.held_input import van_loan_interval
 from quadobs.core.measurements import Measurement, RangeModel
 from quadobs.errors import QuadobsError, as_array, as_finite_scalar
 from quadobs.estimators.base import Estimator, Gated, Immersed, InnerClock, step_operands
-from quadobs.estimators.robust import LockOut, multilateration, reinitialised_covariance, reweight
+from quadobs.estimators.robust import (
+    ExcessHuber,
+    LockOut,
+    multilateration,
+    reinitialised_covariance,
+    reweight,
+)
 
 __all__ = [
     "GYRO_BIAS_STD",
@@ -249,6 +255,10 @@ class _HeadingFilter(Estimator, Gated):
         self._grid_order = np.lexsort(self.anchors.T[::-1])  # by x, then y (step)
         self._latest = np.full(self.anchors.shape[0], np.nan)  # y_h = rho^2/2 - |a_h|^2/2
         self._latest_std = np.full(self.anchors.shape[0], self.range_sigma)  # each one's sigma
+        # each anchor's probability of a blocked path at its last range, and when (ExcessHuber)
+        self._blocked = np.zeros(self.anchors.shape[0])
+        self._blocked_at = np.full(self.anchors.shape[0], -math.inf)
+        self._range_anchor = -1
         self.nis, self.corrections, self.rejected = math.nan, 0, 0
         self._time = 0.0
         # start-up (_starting): a prior position as wide as the anchors' geometry
@@ -395,6 +405,7 @@ class _HeadingFilter(Estimator, Gated):
             rho = math.sqrt(max(2.0 * y[i] + float(self.anchors[i] @ self.anchors[i]), 0.0))
             self._latest[i], self._latest_std[i] = y[i], self.range_sigma
             m = Measurement(self._time, "range", rho, (int(i),), self.range_sigma)
+            self._range_anchor = int(i)
             self._correct_range(model, m)
             self._starting()
         self._propagate(self.dt, u)
@@ -424,6 +435,7 @@ class _HeadingFilter(Estimator, Gated):
         if model is None:
             raise QuadobsError(f"{self.name}: has no model of {m.kind} measurements")
         model.check(m)
+        self._range_anchor = m.anchors[0] if m.kind == "range" else -1  # the excess's (_gain)
         if m.kind == "range":
             h = m.anchors[0]
             rho = model.unbiased(m)
@@ -522,7 +534,11 @@ class _HeadingFilter(Estimator, Gated):
     def _gain(self, nu: float, S: float, Pxz: np.ndarray, R: float) -> None:
         """Robust rule, gate and lock-out on the innovation ``nu`` (variance ``S``), then the
         update ``x += K nu``, ``P -= K S K^T`` with ``K = P_xz / S`` (``P_xz``: the state's
-        cross-covariance with the measurement)."""
+        cross-covariance with the measurement). Under :class:`~quadobs.estimators.robust.ExcessHuber`
+        a range's ``nu`` is first less its expected excess and ``P -= K (S - Var[e | nu]) K^T``."""
+        excess = 0.0
+        if isinstance(self.robust, ExcessHuber) and self._range_anchor >= 0:
+            nu, excess = self._less_excess(nu, S)
         R_w = reweight(self.robust, np.array([nu]), np.array([[S]]), np.array([[R]]))
         if R_w is not None:
             S = S + float(R_w[0, 0]) - R
@@ -535,10 +551,21 @@ class _HeadingFilter(Estimator, Gated):
         self._watch(True, nu)
         K = Pxz / S
         self._x = self._x + K * nu
-        P = self._P - S * np.outer(K, K)
+        P = self._P - (S - excess) * np.outer(K, K)
         self._P = 0.5 * (P + P.T)
         if self.lever:
             self._check_lever()
+
+    def _less_excess(self, nu: float, S: float) -> tuple[float, float]:
+        """The innovation less its expected non-line-of-sight excess and the excess's variance
+        (:class:`~quadobs.estimators.robust.ExcessHuber`), the range's anchor's prior of a
+        blocked path carried from its previous range (:meth:`ExcessHuber.prior
+        <quadobs.estimators.robust.ExcessHuber.prior>`)."""
+        rule, h = self.robust, self._range_anchor
+        prior = rule.prior(float(self._blocked[h]), self._time - float(self._blocked_at[h]))
+        shift, var, gamma = rule.posterior(nu, S, prior)
+        self._blocked[h], self._blocked_at[h] = gamma, self._time
+        return nu - shift, var
 
     def _check_lever(self) -> None:
         """The lever arm's plausibility: where its estimate lies beyond the :data:`LEVER_CHI2`
@@ -603,7 +630,11 @@ class HeadingEKF(_HeadingFilter):
         The dead-reckoned heading at the start (rad), for :attr:`heading`.
     gate : float, optional
         Reject a correction whose NIS exceeds it (one degree of freedom per measurement).
-    robust : ChiSquareGate or Huber, optional
+    robust : ChiSquareGate, Huber or ExcessHuber, optional
+        :class:`~quadobs.estimators.robust.ExcessHuber`: a range's innovation less its expected
+        non-line-of-sight excess, each anchor's chain of a blocked path kept by the filter
+        (:meth:`_less_excess`), then Huber's weight; the update ``x += K nu'``, ``P -= (S -
+        Var[e | nu]) K K^T``. A TDOA takes Huber's weight alone.
     lockout : LockOut, optional
     measurements : list of MeasurementModel, optional
         Default: ranges to ``anchors``.

@@ -35,7 +35,7 @@ from dataclasses import dataclass, field
 from functools import lru_cache
 
 import numpy as np
-from scipy import stats
+from scipy import special, stats
 
 from quadobs.errors import QuadobsError
 
@@ -43,6 +43,7 @@ __all__ = [
     "LOCKOUT_END_MIN",
     "BiasSightGrid",
     "ChiSquareGate",
+    "ExcessHuber",
     "ExcessMixture",
     "Huber",
     "LockOut",
@@ -309,6 +310,143 @@ class ExcessMixture:
             f"shape {self.shape}; prior probability {self.nlos}), outliers beyond the "
             f"P = {self.probability} gate on either side rejected"
         )
+
+
+@dataclass(frozen=True)
+class ExcessHuber:
+    """Huber's M-estimator on a range's innovation less its expected non-line-of-sight excess.
+
+    A range is ``rho~ = rho + e + n``, ``n ~ N(0, S)`` in the innovation, with ``e = 0`` in line
+    of sight (prior probability ``1 - pi``) and ``e`` exponential of mean ``mu`` (rate
+    ``lambda = 1 / mu``: the largest-entropy law of a positive excess of a given mean) behind
+    an obstacle (probability ``pi``). The innovation's two likelihoods are the Gaussian and
+    the exponentially modified Gaussian,
+
+    .. math::
+
+        \\ell_0(\\nu) = \\frac{\\phi(\\nu / \\sqrt S)}{\\sqrt S}, \\qquad
+        \\ell_1(\\nu) = \\lambda\\, e^{\\lambda^2 S / 2 - \\lambda \\nu}\\,
+        \\Phi\\Big(\\frac{\\nu - \\lambda S}{\\sqrt S}\\Big),
+
+    the responsibility of the excess ``gamma = pi l_1 / ((1 - pi) l_0 + pi l_1)``, and behind
+    an obstacle ``e | nu`` is ``N(m, S)`` truncated to ``e >= 0``, ``m = nu - lambda S``: with
+    ``z = m / sqrt S`` and the inverse Mills ratio ``h = phi(z) / Phi(z)``,
+
+    .. math::
+
+        \\mathrm E[e \\mid \\nu, \\text{blocked}] = m + \\sqrt S\\, h, \\qquad
+        \\operatorname{Var}[e \\mid \\nu, \\text{blocked}] = S\\,(1 - z h - h^2).
+
+    :meth:`posterior` gives ``E[e | nu] = gamma E_1`` and ``Var[e | nu] = gamma (V_1 + E_1^2) -
+    E[e | nu]^2``; the filter corrects with the innovation ``nu' = nu - E[e | nu]`` and adds
+    ``K Var[e | nu] K^T`` to its covariance (the exact collapse of the two-component posterior,
+    as :class:`ExcessMixture`). Huber's weight ``w = min(1, c / |nu'| sqrt(S))`` then bounds what
+    is left (:meth:`weights`): an outlier shorter than line of sight moves the estimate as one
+    ``c`` standard deviations off would, as :class:`Huber`. Nothing is rejected, so the rule
+    cannot lock a filter out.
+
+    Its influence is bounded on both sides: as ``nu -> +inf``, ``gamma -> 1`` and ``nu' ->
+    lambda S``, so a long range moves the estimate by at most ``lambda S`` in the innovation
+    (against ``c sqrt(S)`` for Huber's) and leaves the covariance as it was (``Var[e | nu] ->
+    S``). With ``pi = 0`` (no excess) ``E[e | nu] = Var[e | nu] = 0`` and the rule is
+    :class:`Huber`'s.
+
+    Parameters
+    ----------
+    mean : float
+        ``mu``, the excess's prior mean (m).
+    nlos : float
+        ``pi`` in ``[0, 1)``: the prior probability that a range is blocked.
+    c : float
+        Huber's bound (standard deviations) on what the excess does not explain.
+    memory : float
+        The time (s) over which an anchor's evidence of a blocked path carries to its next
+        range (:meth:`prior`; the filter keeps each anchor's last ``gamma``): an obstacle
+        beside the path blocks every range to an anchor behind it while the vehicle passes,
+        a burst. 0: every range has the prior ``nlos``.
+    """
+
+    mean: float
+    nlos: float = 0.05
+    c: float = 3.29
+    memory: float = 0.0
+
+    def __post_init__(self) -> None:
+        Huber(self.c)
+        if not (math.isfinite(self.mean) and self.mean > 0.0):
+            raise QuadobsError(f"excess mean: expected a positive number (m), got {self.mean}")
+        if not (0.0 <= self.nlos < 1.0):
+            raise QuadobsError(f"nlos: expected a probability in [0, 1), got {self.nlos}")
+
+    @classmethod
+    def at_bound(cls, c: float, sigma: float, memory: float = 0.0) -> ExcessHuber:
+        """The rule whose excess is stated by the range noise ``sigma`` and Huber's bound ``c``
+        alone: an excess worth telling from the noise is one beyond the bound, so its mean is
+        ``mu = c sigma``, and its prior probability ``pi`` is the one at which a range ``c sigma``
+        long (``S = sigma^2``) is as likely blocked as clear (``gamma = 1/2``):
+
+        .. math::
+
+            \\frac{\\pi}{1 - \\pi} = \\frac{\\ell_0(c \\sigma)}{\\ell_1(c \\sigma)}
+            = \\frac{c\\, \\phi(c)}{e^{1 / 2c^2 - 1}\\, \\Phi(c - 1/c)}
+
+        (``lambda sigma = 1 / c``): 0.0151 for ``c = 3.29``, whatever ``sigma``. A range
+        within the noise is then taken as clear (a shift of millimetres, :meth:`posterior`),
+        one beyond the bound as blocked."""
+        log_odds = (
+            math.log(c) - 0.5 * c * c - _HALF_LOG_2PI
+            - (0.5 / (c * c) - 1.0) - float(special.log_ndtr(c - 1.0 / c))
+        )  # fmt: skip
+        return cls(c * sigma, 1.0 / (1.0 + math.exp(-log_odds)), c, memory)
+
+    def prior(self, last: float, dt: float) -> float:
+        """The prior probability that an anchor's range is blocked, its previous range's
+        ``gamma`` being ``last`` ``dt`` seconds before: the two-state Markov chain ``nlos +
+        (last - nlos) exp(-dt / memory)`` (as :meth:`ExcessMixture.prior`); ``nlos`` itself
+        without a memory."""
+        if not self.memory > 0.0 or not dt < math.inf:
+            return self.nlos
+        return self.nlos + (last - self.nlos) * math.exp(-max(dt, 0.0) / self.memory)
+
+    def posterior(
+        self, nu: float, S: float, nlos: float | None = None
+    ) -> tuple[float, float, float]:
+        """``(E[e | nu], Var[e | nu], gamma)`` of a range's excess given its innovation ``nu``
+        of variance ``S`` in line of sight and the prior probability ``nlos`` (default
+        :attr:`nlos`) that it is blocked (class docstring)."""
+        if not S > 0.0:
+            raise QuadobsError(f"innovation variance: expected a positive number, got {S}")
+        pi = self.nlos if nlos is None else min(max(nlos, 0.0), 1.0 - 1e-9)
+        if pi == 0.0:
+            return 0.0, 0.0, 0.0
+        sd, lam = math.sqrt(S), 1.0 / self.mean
+        z = (nu - lam * S) / sd
+        log_cdf = float(special.log_ndtr(z))
+        log_l0 = -0.5 * (nu / sd) ** 2 - math.log(sd) - _HALF_LOG_2PI
+        log_l1 = math.log(lam) + 0.5 * lam * lam * S - lam * nu + log_cdf
+        a = math.log(pi) + log_l1
+        b = math.log1p(-pi) + log_l0
+        gamma = 1.0 / (1.0 + math.exp(min(b - a, 700.0)))
+        h = math.exp(-0.5 * z * z - _HALF_LOG_2PI - log_cdf)  # phi(z) / Phi(z)
+        mean1 = sd * (z + h)
+        var1 = max(S * (1.0 - z * h - h * h), 0.0)
+        mean = gamma * mean1
+        return mean, max(gamma * (var1 + mean1 * mean1) - mean * mean, 0.0), gamma
+
+    def weights(self, nu: np.ndarray, S: np.ndarray) -> np.ndarray:
+        """Huber's weights ``min(1, c / |r|)`` of the innovation ``nu`` (less its expected
+        excess, :meth:`posterior`), ``r = nu / sqrt(S_hh)``."""
+        return Huber(self.c).weights(nu, S)
+
+    def describe(self) -> str:
+        return (
+            f"Huber M-estimator, c = {self.c} standard deviations, on the innovation less its "
+            f"expected non-line-of-sight excess (exponential, mean {self.mean:.3g} m, prior "
+            f"probability {self.nlos})"
+        )
+
+
+_HALF_LOG_2PI = 0.5 * math.log(2.0 * math.pi)
 
 
 class BiasSightGrid:

@@ -437,7 +437,7 @@ def test_the_filter_with_the_anchors_states_bounds_an_outliers_correction_by_hub
 
     anchors = np.array([[0.12, 0.10], [2.90, 0.16], [2.86, 2.28], [0.15, 2.31]])
     setup = SimpleNamespace(kinds=("range",), dim=2, beacons=anchors, range_sigma=1.0, gate=None)
-    rule = heading_height_options(setup, "ukf-height-lever")["robust"]
+    rule = heading_height_options(setup, "ukf-height-lever", excess=False)["robust"]
     assert rule.c == pytest.approx(math.sqrt(10.828), abs=1e-3) == huber_rule(None).c
     assert huber_rule(13.8).c == pytest.approx(math.sqrt(13.8))
 
@@ -463,6 +463,89 @@ def test_the_filter_with_the_anchors_states_bounds_an_outliers_correction_by_hub
         assert np.allclose(dx, dx0 * S / inflated, rtol=1e-9, atol=1e-12)
         assert (r > rule.c) == (np.linalg.norm(dx) < 0.999 * np.linalg.norm(dx0))
     assert seen == [True, False]  # the outlier beyond the bound, the 0.1 m within it
+
+
+def _height_lever_ekf(anchors, robust):
+    """A filter settled to centimetres (its position, lever arm and anchors' states)."""
+    return HeadingEKF(anchors, x0=[1.5, 1.2, 0, 0], P0=[1e-4, 1e-4, 1e-4, 1e-6], dt=0.1,
+                      q_xy=1e-4, q_theta=1e-5, q_bias=1e-8, lever_arm_std=0.01,
+                      offsets=(1.5, 0.01), bias_std=0.01, robust=robust)  # fmt: skip
+
+
+def test_the_excess_rule_corrects_by_the_innovation_less_its_expected_excess():
+    """``ukf-height-lever``'s default rule (:func:`excess_rule`: ``mu = c sigma``, the prior at
+    which a range ``c sigma`` long is as likely blocked as clear): a range ``k`` long corrects
+    the state by ``K (nu - E[e | nu])`` and the covariance by ``-(S - Var[e | nu]) K K^T``, the
+    closed form of the two-component posterior; a burst of ranges 0.3 m long on one anchor
+    moves its bias state by less than a fifth of what Huber's rule lets it (0.009 against
+    0.052 m), and nothing is
+    rejected."""
+    from types import SimpleNamespace
+
+    from quadobs.core.measurements import Measurement, RangeModel
+    from quadobs.estimators.robust import ExcessHuber, Huber
+    from quadobs.testbed.logs.height_estimators import EXCESS_MEMORY, excess_rule
+
+    anchors = np.array([[0.12, 0.10], [2.90, 0.16], [2.86, 2.28], [0.15, 2.31]])
+    setup = SimpleNamespace(
+        kinds=("range",), dim=2, beacons=anchors, range_sigma=1.0, range_std_stated=0.08, gate=None
+    )
+    rule = excess_rule(setup)
+    assert excess_rule(SimpleNamespace(**{**vars(setup), "range_std_stated": None})).mean == rule.c
+    assert isinstance(rule, ExcessHuber) and rule.memory == EXCESS_MEMORY
+    assert rule.mean == pytest.approx(rule.c * 0.08) and rule.nlos == pytest.approx(
+        0.0150, abs=1e-4
+    )
+    rho = RangeModel(anchors, 0.08)
+    m0 = Measurement(0.0, "range", 0.0, (1,), 0.08)
+    for error in (0.05, 0.3, 2.0):
+        f = _height_lever_ekf(anchors, rule)
+        z, H = f.linearized(rho, m0, f.state)
+        P, x = f.state_covariance.copy(), f.state.copy()
+        S = float(H @ P @ H) + 0.08**2
+        K = P @ H / S
+        shift, var, _ = rule.posterior(error, S)
+        f.correct(Measurement(0.0, "range", z + error, (1,), 0.08))
+        np.testing.assert_allclose(f.state - x, K * (error - shift), rtol=1e-9, atol=1e-14)
+        np.testing.assert_allclose(
+            f.state_covariance, P - (S - var) * np.outer(K, K), rtol=1e-9, atol=1e-14
+        )
+    moved = {}
+    for name, robust in (("excess", rule), ("huber", Huber(rule.c))):
+        f = _height_lever_ekf(anchors, robust)
+        b0, z = f.range_biases[1], f.linearized(rho, m0, f.state)[0]
+        for k in range(20):  # 20 ranges 0.3 m long on anchor 1, 0.1 s apart, the robot at rest
+            f.predict(0.1 * (k + 1))
+            f.correct(Measurement(0.1 * (k + 1), "range", z + 0.3, (1,), 0.08))
+        assert f.rejected == 0
+        moved[name] = f.range_biases[1] - b0
+    assert 0.0 < moved["excess"] < 0.2 * moved["huber"]
+
+
+def test_the_excess_rule_on_the_grid_weighs_each_range_by_its_own_anchors_chain():
+    """:meth:`step` (the grid's outputs) corrects as :meth:`correct` does, each range's excess
+    read against its own anchor's chain: a range 0.5 m long on anchor 2 alone leaves anchor 2
+    as blocked and the others clear."""
+    from quadobs.core.measurements import Measurement, RangeModel
+    from quadobs.estimators.robust import ExcessHuber
+
+    anchors = np.array([[0.12, 0.10], [2.90, 0.16], [2.86, 2.28], [0.15, 2.31]])
+    rule = ExcessHuber.at_bound(3.29, 0.08, memory=1.0)
+    rho = RangeModel(anchors, 0.08)
+    grid, timed = _height_lever_ekf(anchors, rule), _height_lever_ekf(anchors, rule)
+    for f in (grid, timed):
+        f.range_sigma = 0.08
+    r = [
+        grid.linearized(rho, Measurement(0.0, "range", 0.0, (h,), 0.08), grid.state)[0]
+        for h in range(4)
+    ]
+    r[2] += 0.5
+    y = 0.5 * np.square(r) - 0.5 * np.einsum("hi,hi->h", anchors, anchors)
+    grid.step(np.zeros(3), y)
+    for h in np.lexsort(anchors.T[::-1]):
+        timed.correct(Measurement(0.0, "range", r[h], (int(h),), 0.08))
+    np.testing.assert_allclose(grid.state, timed.state, rtol=1e-9, atol=1e-12)
+    assert grid._blocked[2] > 0.9 and np.all(grid._blocked[[0, 1, 3]] < 0.05)
 
 
 def test_the_filter_with_the_anchors_states_is_the_same_whatever_the_anchors_order():

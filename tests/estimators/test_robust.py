@@ -1,5 +1,7 @@
 """Robust corrections (chi-square gate, Huber) and the lock-out of the Kalman filters."""
 
+import math
+
 import numpy as np
 import pytest
 from scipy import stats
@@ -322,3 +324,80 @@ def test_a_run_that_ends_inside_the_grace_still_locked_out_is_reported():
     for k in range(LOCKOUT_END_MIN - 1):
         few.observe(0.05 * k, False, 3.0)
     assert few.locked_at_end() is None
+
+
+def _exponential_excess_posterior(nu, S, pi, mean):
+    """``E[e | nu]``, ``Var[e | nu]`` and ``P(blocked | nu)`` of ``e = 0`` (probability
+    ``1 - pi``) or exponential of mean ``mean`` (``pi``), ``nu ~ N(e, S)``, by quadrature."""
+    from scipy import integrate
+
+    lik = stats.norm(0.0, np.sqrt(S)).pdf
+    f = stats.expon(scale=mean).pdf
+    top = max(nu, 0.0) + 12.0 * np.sqrt(S) + 40.0 * mean
+    moments = [
+        integrate.quad(lambda e, k=k: e**k * f(e) * lik(nu - e), 0.0, top, points=[max(nu, 0)])[0]
+        for k in range(3)
+    ]
+    evidence = (1.0 - pi) * lik(nu) + pi * moments[0]
+    m = pi * moments[1] / evidence
+    return m, pi * moments[2] / evidence - m**2, pi * moments[0] / evidence
+
+
+@pytest.mark.parametrize(
+    ("nu", "S", "pi"),
+    [(-0.1, 0.0064, 0.015), (0.1, 0.0064, 0.015), (0.3, 0.01, 0.2), (1.5, 0.0064, 0.5)],
+)
+def test_excess_huber_posterior_is_the_exponential_mixtures(nu, S, pi):
+    """The closed form (the exponentially modified Gaussian and the truncated normal) against
+    quadrature of the mixture's density."""
+    from quadobs.estimators.robust import ExcessHuber
+
+    mean, var, gamma = ExcessHuber(0.26, pi).posterior(nu, S)
+    mean_c, var_c, gamma_c = _exponential_excess_posterior(nu, S, pi, 0.26)
+    assert gamma == pytest.approx(gamma_c, rel=1e-6, abs=1e-12)
+    assert mean == pytest.approx(mean_c, rel=1e-6, abs=1e-12)
+    assert var == pytest.approx(var_c, rel=1e-5, abs=1e-12)
+
+
+def test_excess_huber_is_hubers_rule_without_excess_and_bounds_a_long_ranges_pull():
+    """``nlos = 0``: no excess, Huber's weights on both sides. With an excess, a range
+    ``k`` metres long is left with the innovation ``nu - E[e | nu] -> lambda S`` (bounded, where
+    Huber's keeps ``c sqrt(S)``) and adds nothing to the filter's knowledge (``Var[e | nu] ->
+    S``); one as short keeps Huber's weight ``c / |r|`` (its excess ``~ 0``)."""
+    from quadobs.estimators.robust import ExcessHuber
+
+    S, c = 0.0064, 3.29
+    none = ExcessHuber(0.26, 0.0, c)
+    for nu in (-1.0, -0.1, 0.0, 0.2, 2.0):
+        assert none.posterior(nu, S) == (0.0, 0.0, 0.0)
+        np.testing.assert_array_equal(
+            none.weights(np.array([nu]), np.array([[S]])),
+            Huber(c).weights(np.array([nu]), np.array([[S]])),
+        )
+    rule = ExcessHuber(0.26, 0.015, c)
+    left = [nu - rule.posterior(nu, S)[0] for nu in (0.5, 1.0, 3.0, 10.0)]
+    assert max(left) < S / 0.26 * 1.01 < c * math.sqrt(S)
+    assert left[-1] == pytest.approx(S / 0.26, rel=1e-3)
+    assert rule.posterior(10.0, S)[1] == pytest.approx(S, rel=1e-3)
+    shift, var, gamma = rule.posterior(-1.0, S)
+    assert 0.0 <= shift < 1e-4  # a tenth of a millimetre
+    w = rule.weights(np.array([-1.0 - shift]), np.array([[S]]))
+    assert w[0] == pytest.approx(c * math.sqrt(S) / (1.0 + shift), rel=1e-12)
+    # a range within the noise is taken as line of sight: its shift is millimetres
+    assert rule.posterior(0.08, S)[0] < 0.005
+
+
+def test_excess_huber_carries_an_anchors_blocked_path_over_its_memory():
+    """The chain of :meth:`ExcessHuber.prior`: ``nlos`` without memory; with it, the previous
+    range's ``gamma`` relaxed to ``nlos`` as ``exp(-dt / memory)``."""
+    from quadobs.estimators.robust import ExcessHuber
+
+    assert ExcessHuber(0.26, 0.015).prior(0.9, 0.1) == 0.015
+    rule = ExcessHuber(0.26, 0.015, memory=2.0)
+    assert rule.prior(0.9, 0.0) == pytest.approx(0.9)
+    assert rule.prior(0.9, 2.0) == pytest.approx(0.015 + (0.9 - 0.015) * math.exp(-1.0))
+    assert rule.prior(0.0, math.inf) == 0.015
+    with pytest.raises(QuadobsError, match="excess mean"):
+        ExcessHuber(0.0)
+    with pytest.raises(QuadobsError, match="nlos"):
+        ExcessHuber(0.26, 1.0)

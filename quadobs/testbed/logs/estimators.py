@@ -913,7 +913,8 @@ def build_ukf_height_lever(s: ReplaySetup, x0: np.ndarray, name: str = "ukf-heig
     :func:`~quadobs.testbed.logs.height_estimators.heading_height_options`, as ``ekf-height``'s):
     the tag off the odometry's point and the anchors above it, together (``rho_h = sqrt(|p +
     R(theta) l - a_h|^2 + 2 e_h) + b_h``; :mod:`quadobs.estimators.heading_ekf`), with Huber's
-    rule at the replay's gate bound (:func:`~quadobs.testbed.logs.height_estimators.huber_rule`)."""
+    bound at the replay's gate on each range's innovation less its expected non-line-of-sight
+    excess (:func:`~quadobs.testbed.logs.height_estimators.excess_rule`)."""
     from functools import partial
 
     from quadobs.estimators.heading_ekf import LEVER_ARM_STD, HeadingUKF
