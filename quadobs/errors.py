@@ -16,7 +16,7 @@ import re
 import signal
 import stat
 import threading
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -37,6 +37,7 @@ __all__ = [
     "deferred_interrupts",
     "new_folders_removed_on_failure",
     "output_target",
+    "run_script",
     "staging_owner",
     "staging_path",
 ]
@@ -332,3 +333,30 @@ def deferred_interrupts() -> Iterator[None]:
                 handler(sig, None)
             elif handler == signal.SIG_DFL:
                 signal.raise_signal(sig)
+
+
+def run_script(main: Callable[[], object], name: str) -> None:
+    """Run a script's ``main`` as the command line runs a command: bad input
+    (:class:`QuadobsError`) printed on one line with exit status 2, a run that could not go on
+    (:class:`RunFault`) with status 1, Ctrl-C with status 130; anything else propagates.
+
+    Parameters
+    ----------
+    main : callable
+        The script's entry point (it parses its own arguments).
+    name : str
+        The script's name, which starts the error line (``name: error: ...``).
+    """
+    import sys
+
+    try:
+        main()
+    except KeyboardInterrupt:
+        print(f"{name}: interrupted", file=sys.stderr)
+        raise SystemExit(130) from None
+    except QuadobsError as exc:
+        if caused_by_interrupt(exc):
+            print(f"{name}: interrupted", file=sys.stderr)
+            raise SystemExit(130) from None
+        print(f"{name}: error: {exc}", file=sys.stderr)
+        raise SystemExit(1 if isinstance(exc, RunFault) else 2) from None

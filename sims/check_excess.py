@@ -29,9 +29,11 @@ self-calibration as the replay runs it, then
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 
 import numpy as np
 
+from quadobs.errors import run_script
 from quadobs.testbed.logs import open_log, read_log
 from quadobs.testbed.logs.calibration import calibrate, estimator_biases, estimator_excess
 
@@ -196,4 +198,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_script(main, Path(__file__).name)

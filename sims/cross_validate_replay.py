@@ -27,8 +27,10 @@ from __future__ import annotations
 import argparse
 import json
 import tempfile
+from pathlib import Path
 
 from quadobs import load_scenario
+from quadobs.errors import run_script
 from quadobs.testbed.episode import run_episode
 from quadobs.testbed.logs import load_builtin, read_log
 from quadobs.testbed.logs.calibration import calibrate, noise_keys, process_noise_key
@@ -137,4 +139,4 @@ def _fmt(value, spec: str = ".3g") -> str:
 
 
 if __name__ == "__main__":
-    main()
+    run_script(main, Path(__file__).name)

@@ -9,10 +9,12 @@ the recording with ``rerun runs/degenerate.rrd`` for the same curves.
 """
 
 import argparse
+from pathlib import Path
 
 import numpy as np
 
 from quadobs import QuadobsError, load_scenario
+from quadobs.errors import run_script
 from quadobs.recording import read_series, read_text_log
 from quadobs.testbed.episode import run_episode
 
@@ -72,4 +74,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_script(main, Path(__file__).name)

@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from quadobs import load_scenario
+from quadobs.errors import run_script
 from quadobs.testbed.episode import run_episode
 from quadobs.testbed.excitation import scenario_monitor
 
@@ -69,4 +70,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_script(main, Path(__file__).name)

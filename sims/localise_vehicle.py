@@ -9,11 +9,13 @@ errors go to the recording. `quadobs run` does the same with more bookkeeping.
 """
 
 import argparse
+from pathlib import Path
 
 import numpy as np
 import rerun as rr
 
 from quadobs import load_scenario
+from quadobs.errors import run_script
 from quadobs.recording import Recorder
 from quadobs.testbed.factories import augmented_observer
 from quadobs.testbed.sensors import SensorModel
@@ -57,4 +59,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_script(main, Path(__file__).name)

@@ -19,10 +19,12 @@ error (m per hour); also the wall time.
 
 import argparse
 import time
+from pathlib import Path
 
 import numpy as np
 
 from quadobs import AugmentedObserver, immerse, load_scenario, vehicle_system
+from quadobs.errors import run_script
 from quadobs.testbed.episode import run_episode, write_json_atomic
 
 
@@ -162,4 +164,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_script(main, Path(__file__).name)

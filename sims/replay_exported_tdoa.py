@@ -17,10 +17,12 @@ from __future__ import annotations
 
 import argparse
 import tempfile
+from pathlib import Path
 
 import numpy as np
 
 from quadobs import load_scenario
+from quadobs.errors import run_script
 from quadobs.testbed.episode import run_episode
 from quadobs.testbed.logs import read_log
 from quadobs.testbed.logs.calibration import calibrate
@@ -110,4 +112,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_script(main, Path(__file__).name)

@@ -64,6 +64,7 @@ from pathlib import Path
 import numpy as np
 
 from quadobs import cli
+from quadobs.errors import run_script
 from quadobs.testbed.logs import read_log, write_log
 from quadobs.testbed.logs.schema import IMU_FIGURES
 
@@ -352,4 +353,4 @@ def _excess_text(e: dict | None) -> str:
 
 
 if __name__ == "__main__":
-    main()
+    run_script(main, Path(__file__).name)

@@ -14,11 +14,13 @@ Then replays the log in time and prints each estimator's position RMSE live and 
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
 from quadobs import load_scenario
+from quadobs.errors import run_script
 from quadobs.testbed.episode import run_episode
 from quadobs.testbed.logs import RangeLog, write_log
 from quadobs.testbed.logs.replay import run_replay
@@ -127,4 +129,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_script(main, Path(__file__).name)

@@ -62,6 +62,7 @@ from unittest.mock import patch
 import numpy as np
 
 from quadobs import load_scenario
+from quadobs.errors import run_script
 from quadobs.testbed.episode import run_episode
 from quadobs.testbed.logs import read_log
 from quadobs.testbed.logs.estimators import REPLAY_ESTIMATORS
@@ -375,4 +376,4 @@ def _fmt(value) -> str:
 
 
 if __name__ == "__main__":
-    main()
+    run_script(main, Path(__file__).name)

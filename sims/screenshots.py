@@ -31,6 +31,8 @@ import time
 from pathlib import Path
 from urllib.parse import quote
 
+from quadobs.errors import run_script
+
 #: world -> command-line arguments of quadobs that record it (a replay needs no duration)
 WORLDS = {
     "beacons": ["run", "beacons"],
@@ -274,4 +276,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_script(main, Path(__file__).name)

@@ -58,6 +58,7 @@ import numpy as np
 import replay_flight_variants as flight
 import replay_rover_room as rover
 
+from quadobs.errors import run_script
 from quadobs.testbed.logs import read_log, write_log
 from quadobs.testbed.logs.posed import (
     accel_scaled,
@@ -197,4 +198,4 @@ def _print_table(rows: list[dict], names: list[str], target: float) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_script(main, Path(__file__).name)

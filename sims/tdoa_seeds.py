@@ -27,6 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from quadobs import load_scenario
+from quadobs.errors import run_script
 from quadobs.evaluation.convergence import convergence_times
 from quadobs.testbed.episode import run_episode
 
@@ -139,4 +140,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_script(main, Path(__file__).name)

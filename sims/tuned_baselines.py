@@ -12,8 +12,10 @@ seeds as ``quadobs campaign`` on the scenario).
 """
 
 import argparse
+from pathlib import Path
 
 from quadobs import load_scenario
+from quadobs.errors import run_script
 from quadobs.estimators.kalman import ExtendedKalmanFilter, HeldInputModel, UnscentedKalmanFilter
 from quadobs.studies.campaign import print_campaign, run_campaign
 from quadobs.testbed.factories import baseline_settings
@@ -61,4 +63,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_script(main, Path(__file__).name)

@@ -51,10 +51,12 @@ from __future__ import annotations
 import argparse
 import json
 import math
+from pathlib import Path
 
 import numpy as np
 from uwb_realistic import drawn_events
 
+from quadobs.errors import run_script
 from quadobs.estimators.gtsam_peer import Isam2Peer, PeerNoise
 from quadobs.testbed.episode import _summarise, run_loop, scenario_parts
 from quadobs.testbed.factories import (
@@ -309,4 +311,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_script(main, Path(__file__).name)

@@ -50,11 +50,13 @@ from __future__ import annotations
 import argparse
 import json
 import math
+from pathlib import Path
 
 import numpy as np
 from uwb_realistic import drawn_events, given_bias_filter
 
 from quadobs.core.measurements import RangeModel
+from quadobs.errors import run_script
 from quadobs.estimators.bias_states import biased_models
 from quadobs.evaluation.range_bias_bound import (
     excess_fisher_information,
@@ -278,4 +280,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_script(main, Path(__file__).name)

@@ -44,10 +44,12 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+from pathlib import Path
 
 import numpy as np
 
 from quadobs.core.measurements import RangeModel
+from quadobs.errors import run_script
 from quadobs.estimators.kalman import ExtendedKalmanFilter
 from quadobs.estimators.robust import ExcessMixture
 from quadobs.testbed.episode import _summarise, run_loop, scenario_parts
@@ -293,4 +295,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    run_script(main, Path(__file__).name)

@@ -167,3 +167,25 @@ def test_script_runs_short(script, tmp_path):
     assert not (tmp_path / "runs").exists() or all(
         p.name in {Path(o).name for o in outputs} for p in (tmp_path / "runs").iterdir()
     )
+
+
+def test_every_script_answers_bad_input_on_one_line():
+    for path in SIMS.glob("*.py"):
+        assert path.read_text().rstrip().endswith("run_script(main, Path(__file__).name)"), (
+            path.name
+        )
+
+
+def test_a_scripts_bad_scenario_setting_is_one_line_and_status_2(tmp_path):
+    done = subprocess.run(
+        [sys.executable, str(SIMS / "uwb_realistic.py"), "--seeds", "0:1", "--duration", "4"],
+        capture_output=True,
+        text=True,
+        env={**os.environ, "PYTHONPATH": str(ROOT)},
+        cwd=tmp_path,
+        timeout=120,
+    )
+    assert done.returncode == 2
+    assert done.stderr.strip().splitlines() == [
+        "uwb_realistic.py: error: quadrotor.landing: take-off and landing must fit in the duration 4.0 s"
+    ]
