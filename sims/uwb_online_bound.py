@@ -33,7 +33,9 @@ error. The filters given the true biases are not efficient (their error is sever
 bound's): ``floor`` is the RMSE ``ekf-bias-given`` would have if the unknown biases cost it
 what they cost the bound, ``sqrt(G^2 + B_bias^2 - B_given^2)`` (for the optimal estimators
 the two errors add so: the estimate given the biases is that without them plus an orthogonal
-correction), not itself a bound.
+correction), not itself a bound, and with no footing for a filter that is not efficient. The
+bound holds for the error averaged over the noise and the biases' draws, not one flight's: the
+summary sets it against each filter given the biases as root mean squares over the seeds.
 
 Printed per seed (one JSON line) and, at the end, the medians and means over the seeds.
 
@@ -222,7 +224,8 @@ def one_seed(seed: int, duration: float | None, names: list[str], burn_in: float
 
 
 def summary(rows: list[dict], names: list[str]) -> list[str]:
-    """Median, mean and the seeds above 1.2 of each ratio over the seeds."""
+    """Median, mean and the seeds above 1.2 of each ratio over the seeds; the bound with the
+    biases against the filter given them, both as root mean squares over the seeds."""
 
     def line(label: str, values: list[float]) -> str:
         v = np.array(values)
@@ -243,10 +246,14 @@ def summary(rows: list[dict], names: list[str]) -> list[str]:
         out.append(line(f"{name} / {name}-given", [r[f"ratio_{name}"] for r in rows]))
         for s in VARIANTS:
             out.append(line(f"floor of {name} ({s})", [r[s][f"floor_{name}"] for r in rows]))
-            # the bound with the biases above 1.2 times the filter given them: no online
-            # estimator reaches 1.2x of that filter on that flight
-            above = sum(r[s]["bound-bias"] > 1.2 * r[f"{name}-given"] for r in rows)
-            out.append(f"bound-bias ({s}) above 1.2 x {name}-given on {above} / {len(rows)}")
+            # the bound holds for the error averaged over the draws (noise and biases), not on
+            # one flight: set against the filter given the biases averaged over the same flights
+            bound = math.sqrt(np.mean([r[s]["bound-bias"] ** 2 for r in rows]))
+            given = math.sqrt(np.mean([r[f"{name}-given"] ** 2 for r in rows]))
+            out.append(
+                f"bound-bias ({s}), rms over the seeds: {bound:.4f} m against 1.2 x "
+                f"{name}-given's rms {1.2 * given:.4f} m (ratio {bound / given:.3f})"
+            )
             for label, of in ((name, "bound-bias"), (f"{name}-given", "bound-given")):
                 out.append(line(f"{label} / {of} ({s})", [r[label] / r[s][of] for r in rows]))
     return out
