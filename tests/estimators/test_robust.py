@@ -387,6 +387,24 @@ def test_excess_huber_is_hubers_rule_without_excess_and_bounds_a_long_ranges_pul
     assert rule.posterior(0.08, S)[0] < 0.005
 
 
+def test_excess_huber_leaves_at_most_its_stated_supremum_of_any_innovation():
+    """Over every innovation from 0 to 15 sd, what the shift leaves, ``nu - E[e | nu]``, is
+    largest where ``gamma`` turns (2.29 sd at ``nu`` = 2.71 sd for the prior at the bound), below
+    Huber's ``c``, and lower where a range is more likely blocked (0.69 sd at a prior of 1/2)."""
+    from quadobs.estimators.robust import ExcessHuber
+
+    for sigma in (0.08, 0.3):
+        S = sigma * sigma
+        rule = ExcessHuber.at_bound(3.29, sigma)
+        nus = np.linspace(0.0, 15.0 * sigma, 1501)
+        left = np.array([nu - rule.posterior(nu, S)[0] for nu in nus]) / sigma
+        assert left.max() == pytest.approx(2.29, abs=0.01)
+        assert nus[left.argmax()] / sigma == pytest.approx(2.71, abs=0.02)
+        half = np.array([nu - rule.posterior(nu, S, 0.5)[0] for nu in nus]) / sigma
+        assert half.max() == pytest.approx(0.69, abs=0.01)
+        assert np.all(half <= left + 1e-12)
+
+
 def test_excess_huber_carries_an_anchors_blocked_path_over_its_memory():
     """The chain of :meth:`ExcessHuber.prior`: ``nlos`` without memory; with it, the previous
     range's ``gamma`` relaxed to ``nlos`` as ``exp(-dt / memory)``."""

@@ -188,8 +188,9 @@ def excess_rule(s):
 
     Huber's symmetric rule bounds each long range's pull but takes a burst of them (an obstacle
     beside the path lengthens every range to an anchor behind it while the vehicle passes);
-    this one shifts a long range by its expected excess, so a burst moves the anchor's bias
-    state by at most ``lambda S`` per range. Where no excess shows it is Huber's rule (a range
+    this one shifts a long range by its expected excess, so what a burst's range leaves of its
+    innovation is at most 2.29 standard deviations (the prior 0.015), tending to ``lambda S``
+    for a range far beyond the noise (:class:`~quadobs.estimators.robust.ExcessHuber`). Where no excess shows it is Huber's rule (a range
     within the noise is shifted by millimetres); nothing is rejected, so it cannot lock the
     filter out. Measured in docs/error-sources.md ("Stress: what the stand-ins had not
     posed", ``pillar``)."""
