@@ -106,6 +106,29 @@ def test_the_replays_range_rule_follows_what_the_setup_knows():
     assert isinstance(range_rule(known, excess=False), SkewedGate)  # ekf-bias, ukf-bias
 
 
+def test_the_chains_stationary_probability_is_tuned_within_zero_and_one():
+    """``--tune nlos_prior=P``: the excess mixture's chain of sight at ``P`` (the setup's
+    default the mixture's uninformed 0.5); a value that is not a probability is refused in
+    one line, before any replay."""
+    from quadobs.errors import QuadobsError
+    from quadobs.testbed.logs.bias_estimators import range_rule
+    from quadobs.testbed.logs.estimators import ReplaySetup, parse_tuning
+
+    assert ReplaySetup.nlos_prior == 0.5
+    assert parse_tuning(["nlos_prior=0.1"]) == {"nlos_prior": 0.1}
+    for bad in ("0", "1", "1.5", "-0.2"):
+        with pytest.raises(QuadobsError, match=r"nlos_prior: expected a probability in \(0, 1\)"):
+            parse_tuning([f"nlos_prior={bad}"])
+    base = {"gate": None, "range_errors": "", "nlos_median": 0.4, "nlos_shape": 0.7}
+    assert range_rule(SimpleNamespace(**base)).nlos == 0.5
+    tuned = range_rule(SimpleNamespace(**base, nlos_prior=0.1))
+    assert tuned.nlos == 0.1
+    # a lower stationary probability: a range two noise sd long is read as less likely blocked
+    assert (
+        tuned.posterior(0.2, 0.01)[2] < range_rule(SimpleNamespace(**base)).posterior(0.2, 0.01)[2]
+    )
+
+
 def test_the_calibration_step_gives_the_filters_an_identified_excess():
     """A log whose ranges state their noise and whose residuals show an excess: the step sets
     ``nlos_median`` and ``nlos_shape`` for the range-bias filters and says so; options that

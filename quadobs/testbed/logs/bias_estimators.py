@@ -70,7 +70,8 @@ def range_rule(s, excess: bool = True):
     that states its ranges Gaussian (unless ``gate`` is asked for); with ``excess``, an
     :class:`~quadobs.estimators.robust.ExcessMixture` of the excess where the setup knows it
     (``nlos_median``, ``nlos_shape``: estimated from the log by the self-calibration); else
-    the :class:`~quadobs.estimators.robust.SkewedGate`. Both at the probability of ``gate``.
+    the :class:`~quadobs.estimators.robust.SkewedGate`. Both at the probability of ``gate``;
+    the mixture's chain of sight at the stationary probability ``nlos_prior`` (0.5 unless tuned).
 
     ``ekf-bias`` and ``ukf-bias`` take it without the excess (the module docstring)."""
     from quadobs.estimators.robust import ExcessMixture, SkewedGate
@@ -79,7 +80,8 @@ def range_rule(s, excess: bool = True):
         return None
     probability = _gate_probability(s.gate)
     if excess and s.nlos_median is not None and s.nlos_shape is not None:
-        return ExcessMixture(s.nlos_median, s.nlos_shape, probability=probability)
+        nlos = getattr(s, "nlos_prior", 0.5)  # the chain's stationary probability (tunable)
+        return ExcessMixture(s.nlos_median, s.nlos_shape, nlos=nlos, probability=probability)
     return SkewedGate(probability)
 
 

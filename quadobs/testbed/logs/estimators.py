@@ -193,6 +193,11 @@ class ReplaySetup:
         (:func:`~quadobs.testbed.logs.excess_model.excess_model`); None: unknown (the
         bias-state filters then take the one-sided gate,
         :func:`~quadobs.testbed.logs.bias_estimators.range_rule`).
+    nlos_prior : float
+        The stationary probability that a range is non-line-of-sight in the excess mixture's
+        per-anchor chain of sight (:class:`~quadobs.estimators.robust.ExcessMixture` ``nlos``;
+        ``--tune nlos_prior=...``); the default is the mixture's uninformed 0.5
+        (``docs/error-sources.md``, "Stress": what lower values do on the flights).
     q_xy_heading : float
         The white noise on the position of the heading filters (m^2/s per axis;
         :func:`build_ekf_heading`): the speed's noise alone, where ``q_xy`` of the model
@@ -240,6 +245,7 @@ class ReplaySetup:
     nlos_median: float | None = None
     nlos_shape: float | None = None
     start: StartPrior | None = None
+    nlos_prior: float = 0.5
     velocity_std: float | None = None
     system: QuadraticSystem = field(init=False, repr=False)
 
@@ -321,7 +327,7 @@ def tuning_fields(options) -> dict:
 #: The settings of :class:`ReplaySetup` a user may tune (``quadobs replay --tune KEY=VALUE``).
 TUNING = (
     "range_sigma", "q_xy", "q_theta", "q_acc", "q_imu", "gate", "P0", "range_bias",
-    "q_xy_heading", "velocity_std",
+    "q_xy_heading", "velocity_std", "nlos_prior",
 )  # fmt: skip
 
 
@@ -345,6 +351,10 @@ def parse_tuning(settings) -> dict:
             out[key] = float(raw)
         except ValueError:
             raise QuadobsError(f"--tune {key}: expected a number, got {raw.strip()!r}") from None
+        if key == "nlos_prior" and not 0.0 < out[key] < 1.0:  # type: ignore[operator]
+            raise QuadobsError(
+                f"--tune nlos_prior: expected a probability in (0, 1), got {raw.strip()!r}"
+            )
     return out
 
 
