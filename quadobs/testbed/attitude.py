@@ -42,8 +42,8 @@ were off by 0.016 and 0.010 rad/s and the acceleration by 1.0 to 1.4 m/s^2 over 
 :func:`gyro_bias_from_ranges` fits the bias whose AHRS acceleration best matches the ranges'
 accelerations (the filter's response to a bias step is linear), and the AHRS is run again
 from it where the fit is significant. On that flight it found the bias within 0.003 rad/s of
-the rest's alignment, the acceleration then within 0.07 to 0.24 m/s^2 of the log begun at
-rest. Like :func:`heading_offset`, it reads the whole log's ranges (the replay's attitude is
+the rest's alignment, the acceleration then within 0.06 to 0.24 m/s^2 (5 s means) of the log
+begun at rest. Like :func:`heading_offset`, it reads the whole log's ranges (the replay's attitude is
 prepared from the log before the filters run).
 """
 
@@ -238,7 +238,15 @@ def _range_accelerations(log):
     """``(mid, T, a, ok)``: the horizontal accelerations ``a (J, 2)`` that the ranges give
     (:func:`heading_offset`: positions multilaterated every :data:`HEADING_WINDOW` seconds,
     their second differences over ``T =`` :data:`HEADING_SPAN`) at the times ``mid``, and
-    where they are finite (``ok``)."""
+    where they are finite (``ok``); computed once per log."""
+    if log in _RANGES:
+        return _RANGES[log]
+    _RANGES[log] = found = _range_accelerations_of(log)
+    return found
+
+
+def _range_accelerations_of(log):
+    """:func:`_range_accelerations`, computed."""
     from quadobs.core.system import vehicle_system
     from quadobs.estimators.robust import multilateration
 
@@ -285,9 +293,11 @@ BIAS_STEP = 1e-3
 
 
 #: The update rate (Hz) of the AHRS passes that find its response to the gyroscope's bias
-#: (:func:`gyro_bias_from_ranges`): the response lives on the loop's scale of seconds, and four
-#: passes at a quarter of :data:`AHRS_RATE` cost one at it.
-RESPONSE_RATE = 25.0
+#: (:func:`gyro_bias_from_ranges`): the response lives on the loop's scale of ten seconds
+#: (``1 / k_P``), and four passes at a tenth of :data:`AHRS_RATE` cost less than half of one at
+#: it (the fitted biases of the ``moving`` flights equal those of passes at 100 Hz to 1e-4
+#: rad/s).
+RESPONSE_RATE = 10.0
 
 
 def _navigation(log, bias: np.ndarray, rate: float = AHRS_RATE) -> np.ndarray:
@@ -303,13 +313,15 @@ def gyro_bias_from_ranges(log, nav: np.ndarray) -> np.ndarray | None:
 
     ``nav`` is the AHRS's acceleration from the alignment's bias ``b_0``. A bias error
     ``db`` reaches it through the filter's loop, linearly: ``u(b_0 + db) = u(b_0) + S db``,
-    ``S`` found by stepping each axis by :data:`BIAS_STEP` (passes at :data:`RESPONSE_RATE`). The ranges' horizontal
+    ``S`` found by stepping each of the roll and pitch axes by :data:`BIAS_STEP` (passes at
+    :data:`RESPONSE_RATE`; the yaw rate's bias is left to the alignment: it turns the
+    horizontal acceleration, which :func:`heading_offset` takes up). The ranges' horizontal
     accelerations ``a`` (:func:`_range_accelerations`, as the AHRS sees them,
     :func:`_as_the_ahrs_sees`, turned into its heading by :func:`heading_offset`) and the
     second differences ``D`` of the IMU's (:func:`_imu_second_differences`) give the least
     squares ``db = argmin |R_z(-psi) a - D u(b_0) - D S db|^2``. It is taken where its ``F``
-    statistic, ``(db^T J^T J db / 3) / s^2`` with ``s^2`` the residuals' variance times
-    ``2 T / HEADING_WINDOW`` (the overlap of neighbouring spans), exceeds the ``F(3, N - 3)``
+    statistic, ``(db^T J^T J db / 2) / s^2`` with ``s^2`` the residuals' variance times
+    ``2 T / HEADING_WINDOW`` (the overlap of neighbouring spans), exceeds the ``F(2, N - 2)``
     quantile at three standard deviations (0.9973), ``N`` the spans' ``2 J`` components over
     that overlap.
     """
@@ -332,7 +344,7 @@ def gyro_bias_from_ranges(log, nav: np.ndarray) -> np.ndarray | None:
     D0 = _imu_second_differences(nav, mid, T)
     D_r = _imu_second_differences(_navigation(log, b0, RESPONSE_RATE), mid, T)
     S = []
-    for i in range(3):
+    for i in range(2):  # roll and pitch: a yaw rate's bias turns what the heading offset finds
         step = np.zeros(3)
         step[i] = BIAS_STEP
         D = _imu_second_differences(_navigation(log, b0 + step, RESPONSE_RATE), mid, T)
@@ -341,11 +353,11 @@ def gyro_bias_from_ranges(log, nav: np.ndarray) -> np.ndarray | None:
     r = (a - D0)[ok].ravel()
     db, *_ = np.linalg.lstsq(J, r, rcond=None)
     e = r - J @ db
-    s2 = float(e @ e) / max(e.size - 3, 1) * overlap
-    F = float(db @ (J.T @ J) @ db) / 3.0 / s2 if s2 > 0 else 0.0
-    if not F > float(fisher.ppf(math.erf(3.0 / math.sqrt(2.0)), 3, n - 3)):
+    s2 = float(e @ e) / max(e.size - 2, 1) * overlap
+    F = float(db @ (J.T @ J) @ db) / 2.0 / s2 if s2 > 0 else 0.0
+    if not F > float(fisher.ppf(math.erf(3.0 / math.sqrt(2.0)), 2, n - 2)):
         return None
-    return b0 + db
+    return b0 + np.r_[db, 0.0]
 
 
 def _as_the_ahrs_sees(times: np.ndarray, a: np.ndarray, ok: np.ndarray) -> np.ndarray:
@@ -443,6 +455,7 @@ def _check_gravity_held(log, nav: np.ndarray) -> None:
 
 
 _NAVIGATION: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+_RANGES: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
 
 def navigation_accelerations(log) -> np.ndarray:
