@@ -327,3 +327,14 @@ def test_a_log_begun_at_a_steady_velocity_is_not_reported_at_rest(velocity):
     else:
         assert prior.reason == "no motion in the first 0.5 s"
         assert prior.velocity_std < UNKNOWN_VELOCITY_STD
+
+
+def test_an_imu_in_motion_still_reports_what_the_ranges_show():
+    """The IMU shows motion (turning at 0.3 rad/s): no rest either way, and ``moving`` says
+    whether the ranges of the first 0.5 s show a velocity."""
+    turning = {"rate": 0.3, "range_std": RANGE_STD, "accel_noise": ACCEL_NOISE}
+    still = start_prior(_imu_log(gyro_noise=GYRO_NOISE, **turning))
+    gliding = start_prior(_imu_log(velocity=(0.6, -0.3, 0.0), gyro_noise=GYRO_NOISE, **turning))
+    assert not still.at_rest and not still.moving
+    assert not gliding.at_rest and gliding.moving and "the ranges of the first" in gliding.reason
+    assert gliding.velocity_std == UNKNOWN_VELOCITY_STD

@@ -83,7 +83,9 @@ is :data:`UNKNOWN_VELOCITY_STD`, and the ranges' prior of the rest's window is r
 applied where asked) as before. The flight of ``sims/stress_hidden_logs.py`` begun 5 s in
 (``moving``, 0.75 m/s) showed "no motion in the first 0.1 s" on three of five seeds; the
 ranges of its first second now say 0.56 to 0.67 m/s (``F`` 7.9 to 11.5 against 6.0), and
-the stand-in's own start (``none``, at rest 0.29 s before it takes off) stays at rest.
+the stand-in's own start (``none``, at rest 0.29 s before it takes off) stays at rest. Where
+the IMU shows motion in its first slice (no rest), ``moving`` still says what the ranges of
+those windows show (the ``moving`` flight's seeds 0 and 2: moving; the stand-in's: not).
 
 Anchors in one plane. The fix's Gauss-Newton steps start at the measured anchors' centroid,
 unless the anchors stand in one plane (in 3-D: every anchor closer than the ranges' standard
@@ -101,7 +103,7 @@ then tell no velocity (the summary's ``why`` says which).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -222,8 +224,10 @@ class StartPrior:
         The rest test's bound per axis (m/s): the velocity it cannot exclude for a vehicle
         standing at the start; :data:`UNKNOWN_VELOCITY_STD` where it shows no rest.
     moving : bool
-        Whether the IMU shows no acceleration but the ranges a velocity: the vehicle moves at a
-        steady velocity (not at rest; the ranges' prior of the rest's window still holds).
+        Whether the ranges of the log's start show a velocity (:func:`ranges_moving`): where
+        the IMU shows no acceleration the vehicle moves at a steady velocity (not at rest; the
+        ranges' prior of the rest's window still holds); where it shows motion, over its first
+        :data:`MOTION_WINDOWS` windows.
     reason : str
         The rest test's outcome: the test that failed, or that the log holds no IMU.
     velocity, covariance : ndarray or None
@@ -343,10 +347,16 @@ def start_prior(
     standard deviation of a range that states none (default: the setup's 1 m); ``apply``:
     the filters take the prior where it is identified (``--tune velocity_std=log``)."""
     rest, a_max, reason = _rest(log, window, k, slice_)
-    if rest == 0.0:
-        return _unknown(reason)
-    t0 = float(log.inputs[0, 0])
     sigma = 1.0 if range_sigma is None else float(range_sigma)
+    if rest == 0.0:
+        unknown = _unknown(reason)
+        if log.input_kind not in ("imu_body", "imu") or not log.inputs.shape[0]:
+            return unknown
+        t0 = float(log.inputs[0, 0])
+        spans = tuple(j * window for j in range(1, MOTION_WINDOWS + 1))
+        moving = ranges_moving(log, t0, spans, sigma, None, k)
+        return replace(unknown, moving=True, reason=f"{reason}; {moving}") if moving else unknown
+    t0 = float(log.inputs[0, 0])
     found = range_velocity(log, t0, t0 + rest, sigma)
     spans = (rest, *(j * window for j in range(1, MOTION_WINDOWS + 1) if j * window > rest))
     moving = ranges_moving(log, t0, spans, sigma, found, k)
