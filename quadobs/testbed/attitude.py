@@ -42,7 +42,7 @@ were off by 0.016 and 0.010 rad/s and the acceleration by 1.0 to 1.4 m/s^2 over 
 :func:`gyro_bias_from_ranges` fits the bias whose AHRS acceleration best matches the ranges'
 accelerations (the filter's response to a bias step is linear), and the AHRS is run again
 from it where the fit is significant. On that flight it found the bias within 0.003 rad/s of
-the rest's alignment, the acceleration then within 0.06 to 0.24 m/s^2 (5 s means) of the log
+the rest's alignment, the acceleration then within 0.07 to 0.24 m/s^2 (5 s means) of the log
 begun at rest. Like :func:`heading_offset`, it reads the whole log's ranges (the replay's attitude is
 prepared from the log before the filters run).
 """
