@@ -164,7 +164,7 @@ def test_the_identified_prior_is_reported_not_applied_unless_asked_for():
 
     log, _ = _applied((0.6, 0.75, 0.15))
     prior = start_prior(log)
-    assert prior.at_rest and not prior.applied and "not applied" in prior.why
+    assert prior.moving and not prior.applied and "not applied" in prior.why
     s = ReplaySetup(ANCHORS, 0.1, "imu", 0.0, 4.0, input_kind="imu_body", **log_frame(log))
     ekf = build_ekf(s, np.r_[3.0, 3.0, 1.5, 0.0, 0.0, 0.0])
     assert np.diag(ekf._P)[3:] == pytest.approx([UNKNOWN_VELOCITY_STD**2] * 3)
@@ -175,11 +175,12 @@ def test_the_identified_prior_is_reported_not_applied_unless_asked_for():
 
 @pytest.mark.parametrize("velocity", [(0.0, 0.0, 0.0), (0.6, 0.75, 0.15)])
 def test_the_ranges_of_the_rest_tell_the_velocity(velocity):
-    """At rest, and gliding at about 1 m/s with no acceleration (the IMU shows rest in both):
-    the ranges' lines identify the velocity within three of the prior's standard deviations,
-    and it is applied."""
+    """At rest, and gliding at about 1 m/s with no acceleration (the IMU shows rest in both; the
+    ranges tell the glide from the rest): the ranges' lines identify the velocity within three
+    of the prior's standard deviations, and it is applied."""
     log, prior = _applied(velocity)
-    assert prior.at_rest and prior.applied, prior.why
+    gliding = bool(np.any(velocity))
+    assert prior.applied and prior.at_rest != gliding and prior.moving == gliding, prior.why
     error = prior.velocity - np.asarray(velocity)
     z = error @ np.linalg.solve(prior.covariance, error)  # chi^2 with 3 degrees of freedom
     assert z < 14.2  # its 0.997 quantile (three standard deviations)
@@ -188,7 +189,8 @@ def test_the_ranges_of_the_rest_tell_the_velocity(velocity):
     assert np.all(np.sqrt(np.diag(lines.covariance)) < 0.2)  # 51 ranges of 0.05 m in 0.5 s
     # the fix's term, the drift a_max (t_m - t_0) and C_v: all below the unknown start's
     assert np.max(np.linalg.eigvalsh(prior.covariance)) < UNKNOWN_VELOCITY_STD**2
-    assert np.min(np.linalg.eigvalsh(prior.covariance)) > (prior.velocity_std / 2) ** 2 * 0.9
+    bound = _applied()[1].velocity_std  # the same IMU's rest bound
+    assert np.min(np.linalg.eigvalsh(prior.covariance)) > (bound / 2) ** 2 * 0.9
 
 
 def test_the_filters_take_the_applied_prior_and_a_given_std_stands_over_it():
@@ -302,3 +304,37 @@ def test_the_fix_s_covariance_is_scaled_by_its_residuals(offset):
     expected = np.linalg.inv(normal) * scale
     np.testing.assert_allclose(fix.position_covariance, expected, rtol=1e-6, atol=1e-12 * scale)
     assert (scale > 1.0) == (offset > 0.0)
+
+
+@pytest.mark.parametrize("velocity", [(0.0, 0.0, 0.0), (0.6, -0.3, 0.0)])
+def test_a_log_begun_at_a_steady_velocity_is_not_reported_at_rest(velocity):
+    """An IMU cannot tell rest from a steady velocity; the ranges can. Ranges of 0.1 m that
+    state no noise (weighed by the setup's 1 m, which would hide any velocity): the F test on
+    their own residuals tells 0.67 m/s from rest, and a standing vehicle stays at rest."""
+    import dataclasses
+
+    log = _imu_log(
+        velocity=velocity, range_std=0.1, seed=2, accel_noise=ACCEL_NOISE, gyro_noise=GYRO_NOISE
+    )
+    log = dataclasses.replace(log, range_std=np.full(log.ranges.shape[0], np.nan))
+    prior = start_prior(log)
+    moving = bool(np.any(velocity))
+    assert prior.moving == moving and prior.at_rest != moving, prior.reason
+    assert prior.summary()["moving"] == moving
+    if moving:
+        assert "the ranges of the first 0.5 s show" in prior.reason
+        assert prior.velocity_std == UNKNOWN_VELOCITY_STD
+    else:
+        assert prior.reason == "no motion in the first 0.5 s"
+        assert prior.velocity_std < UNKNOWN_VELOCITY_STD
+
+
+def test_an_imu_in_motion_still_reports_what_the_ranges_show():
+    """The IMU shows motion (turning at 0.3 rad/s): no rest either way, and ``moving`` says
+    whether the ranges of the first 0.5 s show a velocity."""
+    turning = {"rate": 0.3, "range_std": RANGE_STD, "accel_noise": ACCEL_NOISE}
+    still = start_prior(_imu_log(gyro_noise=GYRO_NOISE, **turning))
+    gliding = start_prior(_imu_log(velocity=(0.6, -0.3, 0.0), gyro_noise=GYRO_NOISE, **turning))
+    assert not still.at_rest and not still.moving
+    assert not gliding.at_rest and gliding.moving and "the ranges of the first" in gliding.reason
+    assert gliding.velocity_std == UNKNOWN_VELOCITY_STD
