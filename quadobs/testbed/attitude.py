@@ -41,7 +41,11 @@ were off by 0.016 and 0.010 rad/s and the acceleration by 1.0 to 1.4 m/s^2 over 
 (against the same flight's log begun at rest). The ranges see it:
 :func:`gyro_bias_from_ranges` fits the bias whose AHRS acceleration best matches the ranges'
 accelerations (the filter's response to a bias step is linear), and the AHRS is run again
-from it where the fit is significant. On that flight it found the bias within 0.003 rad/s of
+from it where the fit is significant and the log's start is not a rest: where the IMU's rest
+test and the ranges of its rest say the vehicle stands (the log's ``starts_at_rest``, the start
+prior's ``at_rest``), the alignment measured the bias on a standing body and is kept (a fit at three standard
+deviations whose residuals are serially correlated would otherwise act on any systematic misfit
+of a long log). On that flight it found the bias within 0.003 rad/s of
 the rest's alignment, the acceleration then within 0.07 to 0.24 m/s^2 (5 s means) of the log
 begun at rest. Like :func:`heading_offset`, it reads the whole log's ranges (the replay's attitude is
 prepared from the log before the filters run).
@@ -481,7 +485,7 @@ def navigation_accelerations(log) -> np.ndarray:
     out = np.column_stack([t, R.apply(f) + log.gravity_vector])
     if log.attitude is None or not log.attitude.shape[0]:
         _check_gravity_held(log, out)
-        bias = gyro_bias_from_ranges(log, out)
+        bias = None if log.starts_at_rest() else gyro_bias_from_ranges(log, out)
         if bias is not None:  # the alignment's rate was not the gyroscope's bias
             R = _rotation(estimate_attitude(t, f, w, float(log.gravity), bias))
             out = np.column_stack([t, R.apply(f) + log.gravity_vector])

@@ -66,3 +66,18 @@ def test_an_alignment_at_rest_is_kept_where_the_ranges_say_no_better():
     fitted = gyro_bias_from_ranges(log, _navigation(log, b0))
     chosen = b0 if fitted is None else fitted
     np.testing.assert_allclose(chosen[:2], BIAS[:2], atol=0.004)
+
+
+def test_the_fit_is_tried_only_where_the_start_is_not_a_rest(monkeypatch):
+    """``navigation_accelerations`` keeps the alignment's bias where the log's start is a rest
+    (the start prior's ``at_rest``) and asks the ranges otherwise."""
+    from quadobs.testbed import attitude
+
+    asked = []
+    monkeypatch.setattr(attitude, "gyro_bias_from_ranges", lambda log, nav: asked.append(1))
+    for at_rest, expected in ((True, []), (False, [1])):
+        asked.clear()
+        log = _hover_log(seconds=3.0)
+        monkeypatch.setattr(RangeLog, "starts_at_rest", lambda self, v=at_rest: v)
+        attitude.navigation_accelerations(log)
+        assert asked == expected

@@ -334,6 +334,15 @@ class RangeLog:
         """Gravity in the navigation frame ``(3,)`` (m/s^2): ``-g e_z`` (enu) or ``+g e_z`` (ned)."""
         return np.array([0.0, 0.0, -self.gravity if self.frame == "enu" else self.gravity])
 
+    def starts_at_rest(self) -> bool:
+        """Whether the vehicle stands at the log's start: the IMU's rest test and the ranges of
+        its rest (:func:`~quadobs.testbed.logs.start_prior.start_prior`'s ``at_rest``). Where it
+        does not, the AHRS's alignment did not measure the gyroscope's bias on a standing body
+        (:func:`~quadobs.testbed.attitude.navigation_accelerations`)."""
+        from quadobs.testbed.logs.start_prior import start_prior
+
+        return start_prior(self).at_rest
+
     def truth_part(self, what: str) -> np.ndarray | None:
         """The truth's ``"position"``, ``"velocity"`` or ``"attitude"`` columns, or None (no truth, or no such columns)."""
         names = {
