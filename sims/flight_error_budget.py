@@ -22,6 +22,8 @@ one source taken away by an oracle that reads the simulation's truth, then with 
   room blocks the anchor-to-tag segment at the truth's position (``mj_ray``, as the radio
   decides it) or where the variant added a non-line-of-sight excess (the radio's own outliers,
   1 %, stay);
+* ``excess-room``, ``excess-added``: the ranges that the room blocks dropped, or those the
+  variant lengthened (its independent excess on a tenth of the ranges): which excess costs;
 * ``clock``: the IMU's 20 ms lag behind the ranges removed (``real`` only: ``bias`` has none);
 * ``all``: every oracle above at once (the attitude as in ``attitude``).
 
@@ -55,6 +57,8 @@ ORACLES = (
     "range-bias",
     "accel-bias",
     "excess",
+    "excess-room",
+    "excess-added",
     "clock",
     "all",
 )
@@ -153,6 +157,12 @@ def _true_attitude(f: Flight) -> np.ndarray:
 
 def _line_of_sight(f: Flight, ranges: np.ndarray) -> np.ndarray:
     """Rows of ``ranges`` with no excess: unblocked at the truth's position, none added."""
+    return ~_blocked(f, ranges) & ~f.added_nlos
+
+
+def _blocked(f: Flight, ranges: np.ndarray) -> np.ndarray:
+    """Rows of ``ranges`` whose anchor-to-tag segment a geom of the room crosses at the
+    truth's position (``mj_ray``, as the radio decides it)."""
     from quadobs.testbed.uwb import Room, room_model_path
 
     room = Room(room_model_path())
@@ -161,8 +171,7 @@ def _line_of_sight(f: Flight, ranges: np.ndarray) -> np.ndarray:
     t = ranges[:, 0] - _clock_shifts(f)[0]
     p = np.column_stack([np.interp(t, tt, f.base.truth[:, cols.index(c)]) for c in "xyz"])
     anchor = f.log.beacon_index(ranges[:, 1])
-    blocked = np.array([room.blocked(f.anchors[h], p[k]) for k, h in enumerate(anchor)])
-    return ~blocked & ~f.added_nlos
+    return np.array([room.blocked(f.anchors[h], p[k]) for k, h in enumerate(anchor)], dtype=bool)
 
 
 def range_residuals(f: Flight) -> tuple[np.ndarray, np.ndarray]:
@@ -201,8 +210,13 @@ def with_oracle(f: Flight, oracle: str):
         imu = log.inputs.copy()
         imu[:, 0] -= CLOCK_LAG
         log = dataclasses.replace(log, inputs=imu)
-    if "excess" in wanted:
-        keep = _line_of_sight(f, log.ranges)
+    drop = {
+        "excess": lambda: ~_line_of_sight(f, log.ranges),
+        "excess-room": lambda: _blocked(f, log.ranges),
+        "excess-added": lambda: f.added_nlos,
+    }
+    for name in wanted & set(drop):
+        keep = ~drop[name]()
         log = dataclasses.replace(log, ranges=log.ranges[keep], range_std=log.range_std[keep])
     return log
 
