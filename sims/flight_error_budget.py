@@ -282,7 +282,7 @@ def main() -> None:
     out = Path(args.out or tempfile.mkdtemp(prefix="budget-"))
     flights = [("real", int(s)) for s in args.real_seeds.split(",") if s]
     flights += [("bias", int(s)) for s in args.bias_seeds.split(",") if s]
-    table = {}
+    table: dict[tuple, float | None] = {}
     for kind, seed in flights:
         base_folder = out / f"seed{seed}"
         if not (base_folder / "meta.csv").exists():
