@@ -57,21 +57,14 @@ from pathlib import Path
 import numpy as np
 from uwb_realistic import drawn_events, given_bias_filter
 
-from quadobs.core.measurements import RangeModel
 from quadobs.errors import run_script
-from quadobs.estimators.bias_states import biased_models
 from quadobs.evaluation.range_bias_bound import (
     excess_fisher_information,
     range_bias_crb,
     rmse_bound,
 )
 from quadobs.testbed.episode import _summarise, run_loop, scenario_parts
-from quadobs.testbed.factories import (
-    _input_std,
-    _range_sigma,
-    bias_prior_std,
-    initial_covariance,
-)
+from quadobs.testbed.factories import _range_sigma, bias_filter_models
 from quadobs.testbed.scenario import load_scenario
 
 EVERY = 10  # the trace's period in physics steps (collect_every)
@@ -81,18 +74,7 @@ VARIANTS = ("model-los", "model-oracle", "imu-los", "imu-oracle")
 
 def extended_model(scenario):
     """``(F, Q, P0)`` of the bias filters' extended state, as ``ekf-bias`` builds them."""
-    system, sigma = scenario.system(), _range_sigma(scenario)
-    P0, _ = initial_covariance(scenario)
-    model = RangeModel(scenario.beacons, sigma, bias="state")
-    dyn, _, Pe = biased_models(
-        system,
-        scenario.dt,
-        sigma,
-        _input_std(scenario),
-        P0,
-        model,
-        bias_std=bias_prior_std(scenario),
-    )
+    dyn, _, Pe = bias_filter_models(scenario)
     return dyn.F, dyn.Q, Pe
 
 

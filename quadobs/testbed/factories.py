@@ -570,7 +570,10 @@ def _range_sigma(scenario: Scenario) -> float:
     return float(sigma)
 
 
-def _bias_filter(scenario: Scenario, x0: np.ndarray, cls):
+def bias_filter_models(scenario: Scenario):
+    """``(dynamics, outputs, P0)`` of the bias filters' extended state (the vehicle's state and
+    a bias per anchor) for ``scenario``, as ``ekf-bias`` and ``ukf-bias`` build them
+    (:func:`~quadobs.estimators.bias_states.biased_models`)."""
     from quadobs.core.measurements import RangeModel
     from quadobs.estimators.bias_states import biased_models
 
@@ -579,7 +582,7 @@ def _bias_filter(scenario: Scenario, x0: np.ndarray, cls):
     system, sigma = scenario.system(), _range_sigma(scenario)
     P0, _ = initial_covariance(scenario)
     model = RangeModel(scenario.beacons, sigma, bias="state")
-    dyn, out, Pe = biased_models(
+    return biased_models(
         system,
         scenario.dt,
         sigma,
@@ -588,6 +591,11 @@ def _bias_filter(scenario: Scenario, x0: np.ndarray, cls):
         model,
         bias_std=bias_prior_std(scenario),
     )
+
+
+def _bias_filter(scenario: Scenario, x0: np.ndarray, cls):
+    system = scenario.system()
+    dyn, out, Pe = bias_filter_models(scenario)
     xe = np.concatenate([np.asarray(x0, dtype=float), np.zeros(system.q)])
     return cls(dyn, out, x0=xe, P0=Pe, vehicle_n=system.n, **bias_robust_settings(scenario))
 
