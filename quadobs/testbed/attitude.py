@@ -169,6 +169,8 @@ def estimate_attitude(
     """
     from ahrs.filters import Mahony
 
+    if not (math.isfinite(rate) and rate > 0.0):
+        raise QuadobsError(f"AHRS rate: expected a positive number (Hz), got {rate}")
     k_p, k_i = MAHONY_GAINS
     dts = np.diff(times)
     h = float(np.median(dts)) if dts.size and np.median(dts) > 0 else 1.0 / AHRS_RATE
@@ -489,8 +491,7 @@ def navigation_accelerations(log) -> np.ndarray:
         if bias is not None:  # the alignment's rate was not the gyroscope's bias
             R = _rotation(estimate_attitude(t, f, w, float(log.gravity), bias))
             out = np.column_stack([t, R.apply(f) + log.gravity_vector])
-    if log.attitude is None or not log.attitude.shape[0]:
-        _check_gravity_held(log, out)
+            _check_gravity_held(log, out)
     if log.attitude is None or not log.attitude.shape[0]:  # the AHRS's heading is not the log's
         psi = heading_offset(log, out)
         c, s = np.cos(psi), np.sin(psi)

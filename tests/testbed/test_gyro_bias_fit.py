@@ -81,3 +81,16 @@ def test_the_fit_is_tried_only_where_the_start_is_not_a_rest(monkeypatch):
         monkeypatch.setattr(RangeLog, "starts_at_rest", lambda self, v=at_rest: v)
         attitude.navigation_accelerations(log)
         assert asked == expected
+
+
+def test_an_ahrs_rate_that_is_not_positive_is_refused():
+    import pytest
+
+    from quadobs.errors import QuadobsError
+    from quadobs.testbed.attitude import estimate_attitude
+
+    log = _hover_log(seconds=1.0)
+    t, f, w = log.inputs[:, 0], log.inputs[:, 1:4], log.inputs[:, 4:7]
+    for rate in (0.0, -5.0, float("nan")):
+        with pytest.raises(QuadobsError, match="AHRS rate"):
+            estimate_attitude(t, f, w, G, rate=rate)
