@@ -408,6 +408,7 @@ class _HeadingFilter(Estimator, Gated):
             self._range_anchor = int(i)
             self._correct_range(model, m)
             self._starting()
+        self._range_anchor = -1
         self._propagate(self.dt, u)
         self._time += self.dt
 

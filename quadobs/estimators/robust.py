@@ -372,9 +372,10 @@ class ExcessHuber:
     nlos: float = 0.05
     c: float = 3.29
     memory: float = 0.0
+    _huber: Huber = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
-        Huber(self.c)
+        object.__setattr__(self, "_huber", Huber(self.c))  # checks c; the weights' rule
         if not (math.isfinite(self.mean) and self.mean > 0.0):
             raise QuadobsError(f"excess mean: expected a positive number (m), got {self.mean}")
         if not (0.0 <= self.nlos < 1.0):
@@ -438,7 +439,7 @@ class ExcessHuber:
     def weights(self, nu: np.ndarray, S: np.ndarray) -> np.ndarray:
         """Huber's weights ``min(1, c / |r|)`` of the innovation ``nu`` (less its expected
         excess, :meth:`posterior`), ``r = nu / sqrt(S_hh)``."""
-        return Huber(self.c).weights(nu, S)
+        return self._huber.weights(nu, S)
 
     def describe(self) -> str:
         return (

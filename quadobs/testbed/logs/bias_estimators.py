@@ -80,7 +80,9 @@ def range_rule(s, excess: bool = True):
         return None
     probability = _gate_probability(s.gate)
     if excess and s.nlos_median is not None and s.nlos_shape is not None:
-        nlos = getattr(s, "nlos_prior", 0.5)  # the chain's stationary probability (tunable)
+        nlos = getattr(s, "nlos_prior", None)  # the chain's stationary probability (tunable)
+        if nlos is None:  # a setup that states none: the mixture's own default
+            return ExcessMixture(s.nlos_median, s.nlos_shape, probability=probability)
         return ExcessMixture(s.nlos_median, s.nlos_shape, nlos=nlos, probability=probability)
     return SkewedGate(probability)
 

@@ -95,6 +95,7 @@ from quadobs.estimators.kalman import (
     OutputModel,
     UnscentedKalmanFilter,
 )
+from quadobs.estimators.robust import ExcessMixture
 from quadobs.estimators.startup import (
     FixedStartEKF,
     FixedStartUKF,
@@ -245,7 +246,7 @@ class ReplaySetup:
     nlos_median: float | None = None
     nlos_shape: float | None = None
     start: StartPrior | None = None
-    nlos_prior: float = 0.5
+    nlos_prior: float = ExcessMixture.nlos
     velocity_std: float | None = None
     system: QuadraticSystem = field(init=False, repr=False)
 
