@@ -25,7 +25,17 @@ one source taken away by an oracle that reads the simulation's truth, then with 
 * ``excess-room``, ``excess-added``: the ranges that the room blocks dropped, or those the
   variant lengthened (its independent excess on a tenth of the ranges): which excess costs;
 * ``clock``: the IMU's 20 ms lag behind the ranges removed (``real`` only: ``bias`` has none);
+* ``anchors``, ``survey-varying`` (with ``--stress survey`` only): ``beacons.csv`` written
+  from the radio's anchors (the survey's error taken away), or the ranges moved so that the
+  surveyed anchors hold them up to a constant per anchor (each range's error from the survey,
+  ``|p - a~_h| - |p - a_h|`` at the true position, less its mean over the anchor's ranges,
+  added back): what the range-bias states could not take up of the survey's error;
 * ``all``: every oracle above at once (the attitude as in ``attitude``).
+
+``--stress NAME`` first applies one stress of ``sims/stress_hidden_logs.py`` to the log (on
+the log without attitude, before the variant's transforms, seeded as that script seeds it:
+the same logs); with ``imuclock`` the oracles ``attitude`` and ``clock`` take the IMU's whole
+lag (the variant's 20 ms and the stress's 50 ms; the jitter stays).
 
 The table gives the position RMSE after the burn-in of ``ekf-bias-imu`` per flight and
 oracle; the oracle that lowers it most names the source that costs most. Each flight's
@@ -34,6 +44,8 @@ bias (centred on zero, the radio's noise), the dropped ones (long). ``--line-of-
 replays the filter with its one-sided gate at ``P`` (a probe of the gate, not an oracle).
 
     python sims/flight_error_budget.py --real-seeds 0,1,2,3,4 --bias-seeds 3,7,9 --out budget/
+    python sims/flight_error_budget.py --stress survey --real-seeds 2,3 --bias-seeds "" \
+        --oracles none,anchors,survey-varying,attitude,accel-bias,range-bias,excess
 """
 
 from __future__ import annotations
@@ -46,6 +58,7 @@ from pathlib import Path
 
 import numpy as np
 import replay_flight_variants as flight
+import stress_hidden_logs as stress
 
 from quadobs.errors import run_script
 from quadobs.testbed.logs import read_log, write_log
@@ -60,8 +73,12 @@ ORACLES = (
     "excess-room",
     "excess-added",
     "clock",
+    "anchors",
+    "survey-varying",
     "all",
 )
+#: The oracles that take the survey's error away: ``--stress survey`` only.
+SURVEY_ORACLES = ("anchors", "survey-varying")
 #: The estimator whose budget is taken.
 ESTIMATOR = "ekf-bias-imu"
 #: The IMU's lag behind the ranges in the variant ``clock`` (s), as replay_flight_variants makes it.
@@ -79,11 +96,13 @@ class Flight:
     added_nlos: np.ndarray  # (M,) rows that the variant lengthened by an excess
     accel_bias: np.ndarray  # (3,) the accelerometer's bias, body axes of the export (m/s^2)
     anchors: np.ndarray  # (q, 3) the radio's anchor positions
+    lag: float = 0.0  # the IMU's lag behind the ranges (s), the variant's and the stress's
 
 
 def _variant(base, seed: int, kind: str, args) -> tuple:
-    """The variant ``kind`` of the export ``base`` as replay_flight_variants makes it, and the
-    draws of its range errors (``bias``: the added biases and which rows took an excess)."""
+    """The variant ``kind`` of the export ``base`` as replay_flight_variants makes it (with the
+    stress ``args.stress`` as stress_hidden_logs applies it), and the draws of its range errors
+    (``bias``: the added biases and which rows took an excess)."""
     record: dict = {}
     original = flight._range_errors
 
@@ -102,6 +121,8 @@ def _variant(base, seed: int, kind: str, args) -> tuple:
     try:
         rng = np.random.default_rng([seed, flight.REAL.index(kind)])
         noatt = flight.variant(base, "noatt", args.yaw)
+        transform = stress.FLIGHT[args.stress][1]
+        noatt = transform(noatt, stress.stress_seed(seed, args.stress))
         vib = (args.accel_vibration, args.gyro_vibration)
         log = flight.real_variant(noatt, kind, rng, *vib)
     finally:
@@ -126,6 +147,9 @@ def _truth_of_flight(base, seed: int, kind: str, args) -> Flight:
     added = record.get("bias", np.zeros(q))
     nlos = record.get("nlos", np.zeros(log.ranges.shape[0], dtype=bool))
     steps = flight.REAL_STEPS if kind == "real" else (kind,)
+    lag = (CLOCK_LAG if "clock" in steps else 0.0) + (
+        stress.IMU_LATE[0] if args.stress == "imuclock" else 0.0
+    )
     return Flight(
         log=log,
         base=base,
@@ -134,13 +158,14 @@ def _truth_of_flight(base, seed: int, kind: str, args) -> Flight:
         added_nlos=nlos,
         accel_bias=ImuModel(scenario.quadrotor, seed).accel_bias.copy(),
         anchors=radio.anchors,
+        lag=lag,
     )
 
 
 def _clock_shifts(f: Flight) -> tuple[float, float]:
     """How far the variant moved the ranges' and the IMU's times from the export's (s)."""
     ranges = float(f.log.ranges[0, 0] - f.base.ranges[0, 0])
-    return ranges, ranges + (CLOCK_LAG if "clock" in f.steps else 0.0)
+    return ranges, ranges + f.lag
 
 
 def _true_attitude(f: Flight) -> np.ndarray:
@@ -172,6 +197,29 @@ def _blocked(f: Flight, ranges: np.ndarray) -> np.ndarray:
     p = np.column_stack([np.interp(t, tt, f.base.truth[:, cols.index(c)]) for c in "xyz"])
     anchor = f.log.beacon_index(ranges[:, 1])
     return np.array([room.blocked(f.anchors[h], p[k]) for k, h in enumerate(anchor)], dtype=bool)
+
+
+def _survey_errors(f: Flight) -> np.ndarray:
+    """Each range's error from the survey (m): ``|p - a~_h| - |p - a_h|`` at the truth's
+    position, ``a~_h`` the anchor in ``beacons.csv``, ``a_h`` the radio's."""
+    cols = f.base.truth_columns
+    tt = f.base.truth[:, cols.index("time")]
+    t = f.log.ranges[:, 0] - _clock_shifts(f)[0]
+    p = np.column_stack([np.interp(t, tt, f.base.truth[:, cols.index(c)]) for c in "xyz"])
+    h = f.log.beacon_index(f.log.ranges[:, 1])
+    return np.linalg.norm(p - f.log.beacons[h], axis=1) - np.linalg.norm(p - f.anchors[h], axis=1)
+
+
+def _survey_varying(f: Flight, ranges: np.ndarray) -> np.ndarray:
+    """``ranges`` plus the survey's error less its mean per anchor: the surveyed anchors then
+    hold them up to a constant per anchor (oracle ``survey-varying``)."""
+    e = _survey_errors(f)
+    h = f.log.beacon_index(f.log.ranges[:, 1])
+    q = f.anchors.shape[0]
+    mean = np.bincount(h, e, q) / np.maximum(np.bincount(h, minlength=q), 1)
+    out = ranges.copy()
+    out[:, 2] += e - mean[h]
+    return out
 
 
 def range_residuals(f: Flight) -> tuple[np.ndarray, np.ndarray]:
@@ -206,10 +254,14 @@ def with_oracle(f: Flight, oracle: str):
         sign = np.array([1.0, -1.0, -1.0]) if "frd" in f.steps else np.ones(3)
         imu[:, 1:4] -= sign * f.accel_bias
         log = dataclasses.replace(log, inputs=imu)
-    if "clock" in wanted and "clock" in f.steps:
+    if "clock" in wanted and f.lag:
         imu = log.inputs.copy()
-        imu[:, 0] -= CLOCK_LAG
+        imu[:, 0] -= f.lag
         log = dataclasses.replace(log, inputs=imu)
+    if "anchors" in wanted:
+        log = dataclasses.replace(log, beacons=f.anchors.copy())
+    if "survey-varying" in wanted:
+        log = dataclasses.replace(log, ranges=_survey_varying(f, log.ranges))
     drop = {
         "excess": lambda: ~_line_of_sight(f, log.ranges),
         "excess-room": lambda: _blocked(f, log.ranges),
@@ -265,6 +317,9 @@ def main() -> None:
     ap.add_argument("--accel-vibration", type=float, default=1.0, help="m/s^2 per sample")
     ap.add_argument("--gyro-vibration", type=float, default=0.05, help="rad/s per sample")
     ap.add_argument("--burn-in", type=float, default=5.0)
+    ap.add_argument(
+        "--stress", default="none", choices=tuple(stress.FLIGHT), help="stress_hidden_logs' flight"
+    )
     ap.add_argument("--out", help="folder for the logs and summaries (default: a temporary one)")
     ap.add_argument("--reuse", action="store_true", help="take the summaries a previous run left")
     ap.add_argument(
@@ -279,14 +334,18 @@ def main() -> None:
     unknown = set(oracles) - set(ORACLES)
     if unknown:
         ap.error(f"--oracles: unknown {', '.join(sorted(unknown))}")
+    if args.stress != "survey" and set(oracles) & set(SURVEY_ORACLES):
+        ap.error(f"--oracles: {', '.join(SURVEY_ORACLES)} need --stress survey")
     out = Path(args.out or tempfile.mkdtemp(prefix="budget-"))
     flights = [("real", int(s)) for s in args.real_seeds.split(",") if s]
     flights += [("bias", int(s)) for s in args.bias_seeds.split(",") if s]
     table: dict[tuple, float | None] = {}
+    settings = stress.FLIGHT[args.stress][0]
     for kind, seed in flights:
-        base_folder = out / f"seed{seed}"
+        base_folder = out / f"seed{seed}{''.join('-' + s for s in settings)}"
         if not (base_folder / "meta.csv").exists():
-            flight.export(seed, args.duration, args.accel_bias, args.gyro_bias, base_folder)
+            vary = (args.accel_bias, args.gyro_bias)
+            flight.export(seed, args.duration, *vary, base_folder, settings)
         f = _truth_of_flight(read_log(base_folder), seed, kind, args)
         residual, kept = range_residuals(f)
         inner = residual[kept][np.abs(residual[kept]) < 1.0]  # the radio's outliers aside
@@ -297,10 +356,11 @@ def main() -> None:
             flush=True,
         )
         for oracle in oracles:
-            if oracle == "clock" and "clock" not in f.steps:
+            if oracle == "clock" and not f.lag:
                 table[kind, seed, oracle] = None  # no lag to remove
                 continue
             tag = "" if args.line_of_sight is None else f"-los{args.line_of_sight:g}"
+            tag += "" if args.stress == "none" else f"-{args.stress}"
             folder = out / f"seed{seed}-{kind}-{oracle}{tag}"
             write_log(with_oracle(f, oracle), folder)
             table[kind, seed, oracle] = _replay(

@@ -72,6 +72,8 @@ from quadobs.testbed.logs.posed import (
 
 TARGET = {"rover": 0.15, "flight": 0.20}
 SURVEY_STD = 0.05
+#: The flight's ``imuclock``: the IMU's further lag (s) and its stamps' jitter (+- s).
+IMU_LATE = (0.05, 0.002)
 
 
 def _none(log, seed):
@@ -98,7 +100,7 @@ FLIGHT = {
     "rate400": (("radio.rate=400",), _none),
     "moving": ((), lambda log, seed: started_at(log, 5.0)),
     "gap": ((), lambda log, seed: anchor_gap(log, 0, 15.0, 10.0)),
-    "imuclock": ((), lambda log, seed: inputs_late(log, 0.05, 0.002, seed)),
+    "imuclock": ((), lambda log, seed: inputs_late(log, *IMU_LATE, seed)),
     "ascale": ((), lambda log, seed: accel_scaled(log, (0.02, -0.015, 0.01))),
 }
 
