@@ -218,7 +218,8 @@ def _survey_varying(f: Flight, ranges: np.ndarray) -> np.ndarray:
     q = f.anchors.shape[0]
     mean = np.bincount(h, e, q) / np.maximum(np.bincount(h, minlength=q), 1)
     out = ranges.copy()
-    out[:, 2] += e - mean[h]
+    held = out[:, 2] > 0.0  # a range of 0 m (a failed exchange) stays out of the replay
+    out[held, 2] = np.maximum(out[held, 2] + (e - mean[h])[held], 1e-3)
     return out
 
 

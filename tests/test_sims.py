@@ -121,9 +121,9 @@ CASES = {
         "tdoa-handover | 1/1",
     ),
     "flight_error_budget.py": (
-        ["--real-seeds", "0", "--bias-seeds", "", "--duration", "8", "--oracles", "none,all"]
-        + ["--out", "{tmp}/budget"],
-        ["budget/seed0-real-all/ranges.csv"],
+        ["--real-seeds", "0", "--bias-seeds", "", "--duration", "8", "--stress", "survey"]
+        + ["--oracles", "survey-varying,all", "--out", "{tmp}/budget"],
+        ["budget/seed0-real-all-survey/ranges.csv"],
         "position RMSE after 5 s (m) with one oracle",
     ),
 }
