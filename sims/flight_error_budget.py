@@ -30,7 +30,7 @@ one source taken away by an oracle that reads the simulation's truth, then with 
   surveyed anchors hold them up to a constant per anchor (each range's error from the survey,
   ``|p - a~_h| - |p - a_h|`` at the true position, less its mean over the anchor's ranges,
   added back): what the range-bias states could not take up of the survey's error;
-* ``all``: every oracle above at once (the attitude as in ``attitude``).
+* ``all``: ``attitude``, ``range-bias``, ``accel-bias``, ``excess`` and ``clock`` at once.
 
 ``--stress NAME`` first applies one stress of ``sims/stress_hidden_logs.py`` to the log (on
 the log without attitude, before the variant's transforms, seeded as that script seeds it:
@@ -121,8 +121,8 @@ def _variant(base, seed: int, kind: str, args) -> tuple:
     try:
         rng = np.random.default_rng([seed, flight.REAL.index(kind)])
         noatt = flight.variant(base, "noatt", args.yaw)
-        transform = stress.FLIGHT[args.stress][1]
-        noatt = transform(noatt, stress.stress_seed(seed, args.stress))
+        name = getattr(args, "stress", "none")
+        noatt = stress.FLIGHT[name][1](noatt, stress.stress_seed(seed, name))
         vib = (args.accel_vibration, args.gyro_vibration)
         log = flight.real_variant(noatt, kind, rng, *vib)
     finally:
@@ -148,7 +148,7 @@ def _truth_of_flight(base, seed: int, kind: str, args) -> Flight:
     nlos = record.get("nlos", np.zeros(log.ranges.shape[0], dtype=bool))
     steps = flight.REAL_STEPS if kind == "real" else (kind,)
     lag = (CLOCK_LAG if "clock" in steps else 0.0) + (
-        stress.IMU_LATE[0] if args.stress == "imuclock" else 0.0
+        stress.IMU_LATE[0] if getattr(args, "stress", "none") == "imuclock" else 0.0
     )
     return Flight(
         log=log,
@@ -163,8 +163,10 @@ def _truth_of_flight(base, seed: int, kind: str, args) -> Flight:
 
 
 def _clock_shifts(f: Flight) -> tuple[float, float]:
-    """How far the variant moved the ranges' and the IMU's times from the export's (s)."""
-    ranges = float(f.log.ranges[0, 0] - f.base.ranges[0, 0])
+    """How far the variant moved the ranges' and the IMU's times from the export's (s): the
+    variant ``clock``'s Unix epoch (a stress that cuts the log's start, ``moving``, moves no
+    time), and the IMU's lag on top."""
+    ranges = flight.EPOCH if "clock" in f.steps else 0.0
     return ranges, ranges + f.lag
 
 
