@@ -102,6 +102,11 @@ CASES = {
         ["stress.json"],
         "| stress | seed 0 | worst | target met |",
     ),
+    "pillar_bounds.py": (
+        ["--seeds", "0", "--duration", "8"],
+        [],
+        "| seed | rule | no excess | sight known |",
+    ),
     "replay_flight_variants.py": (
         ["--seeds", "0", "--duration", "8", "--variants", "noatt", "--estimators", "ekf-bias-imu"]
         + ["--out", "{tmp}/flights"],
@@ -143,7 +148,7 @@ def test_every_script_has_a_smoke_test():
 
 
 #: scripts whose short run takes more than the default run's share (about 20 s): marked slow
-SLOW = {"uwb_bias_bound.py"}
+SLOW = {"uwb_bias_bound.py", "pillar_bounds.py"}
 
 
 @pytest.mark.parametrize(

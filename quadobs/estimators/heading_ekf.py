@@ -588,7 +588,10 @@ class _HeadingFilter(Estimator, Gated):
             }
 
     def _watch(self, accepted: bool, nu: float) -> None:
-        """Lock-out: re-initialise the covariance and the position, or give the filter up."""
+        """Lock-out: re-initialise the covariance and the position, or give the filter up. A
+        re-initialisation also restarts each anchor's chain of a blocked path in line of sight
+        (:meth:`_less_excess`): what the ranges said of the sight, read against the estimate
+        given up, is not kept."""
         lock, t = self.lockout, self._time
         if not lock.observe(t, accepted, abs(nu)):
             return
@@ -596,6 +599,8 @@ class _HeadingFilter(Estimator, Gated):
         reason = f"more than half of the corrections of the last {lock.timeout} s rejected"
         if lock.reset(t, int(round(t / self.dt)), reason):
             self._P = reinitialised_covariance(self._P, self._P0, lock.largest, 2, span)
+            self._blocked[:] = 0.0
+            self._blocked_at[:] = -math.inf
             q = self.anchors.shape[0]
             C = np.broadcast_to(np.eye(2), (q, 2, 2))
             fixed = multilateration(C, -self.anchors, self._latest, centred=True)

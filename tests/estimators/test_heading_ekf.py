@@ -548,6 +548,25 @@ def test_the_excess_rule_on_the_grid_weighs_each_range_by_its_own_anchors_chain(
     assert grid._blocked[2] > 0.9 and np.all(grid._blocked[[0, 1, 3]] < 0.05)
 
 
+def test_a_lock_out_reinitialisation_restarts_the_excess_chains_in_line_of_sight():
+    """A re-initialisation by the lock-out forgets each anchor's evidence of a blocked path:
+    the chains restart as at the filter's start (clear, no previous range)."""
+    from quadobs.core.measurements import Measurement
+    from quadobs.estimators.robust import ExcessHuber, LockOut
+
+    anchors = np.array([[0.12, 0.10], [2.90, 0.16], [2.86, 2.28], [0.15, 2.31]])
+    f = _height_lever_ekf(anchors, ExcessHuber.at_bound(3.29, 0.08, memory=1.0))
+    f.range_sigma, f.gate, f.lockout = 0.08, 1e-6, LockOut(timeout=0.3)  # every range rejected
+    f.hold(np.zeros(3))
+    f.correct(Measurement(0.0, "range", 5.0, (2,), 0.08))
+    assert f._blocked[2] > 0.9 and f._blocked_at[2] == 0.0
+    for k in range(1, 9):
+        f.predict(0.05 * k)
+        f.correct(Measurement(0.05 * k, "range", 5.0, (0,), 0.08))
+    assert f.lockout.resets and f.diverged is None
+    assert f._blocked[2] == 0.0 and f._blocked_at[2] == -np.inf
+
+
 def test_the_filter_with_the_anchors_states_is_the_same_whatever_the_anchors_order():
     """The same noisy ranges with the anchors listed in reverse: the UKF with the anchors'
     biases and offsets as states starts from a centred multilateration and spreads its sigma
