@@ -28,6 +28,7 @@ self-calibration as the replay runs it, then
   sign (:func:`outlier_fit`; ``outliers``: its fit to the residuals);
 * ``ekf-bias-imu-nlos`` replayed with the calibration's options under each excess of
   ``--given`` (``MEDIAN:SHAPE``, ``fit``: the fitted one, ``held``, ``window``, ``outliers``: those fits,
+  ``ebi``: the excess fitted to ``ekf-bias-imu``'s own residuals, :func:`own_fit`,
   ``gate``: none, the one-sided gate): its position RMSE after ``--burn-in`` s.
 
     python sims/replay_flight_variants.py --seeds 0 --variants real --out flights/
@@ -237,6 +238,20 @@ def other_fits(log, seen: dict, e: np.ndarray, h: np.ndarray, rounds: float) -> 
     return fits
 
 
+def own_fit(log, cal, dt: float):
+    """``(median, shape)`` of the excess fitted, as step 8 fits it, to ``ekf-bias-imu``'s own
+    prequential residuals (its biases as states, the ranges as logged, the calibration's
+    options without the excess) in place of the EKF's; None where not identified."""
+    from quadobs.testbed.logs import calibration as cm
+    from quadobs.testbed.logs import excess_model as em
+
+    gate = {k: v for k, v in cal.options.items() if k not in em.EXCESS_KEYS}
+    res = cm.prediction_residuals(log, dt=dt, estimator="ekf-bias-imu", setup_options=gate)
+    fit, ok, why = em.excess_model(res.r, res.h, log.beacons.shape[0], em.known_noise(log))
+    print(f"  ekf-bias-imu's own residuals: {why}")
+    return (fit.median, fit.shape) if ok and fit is not None else None
+
+
 def diagnose(
     folder: str, given: list[str], dt: float, burn_in: float, bootstrap: int, rounds: float
 ) -> None:
@@ -269,17 +284,19 @@ def diagnose(
         f"0.3 m {np.mean(e[ok] > 0.3):.3f}, beyond 0.6 m {np.mean(e[ok] > 0.6):.3f}"
     )
     fits = other_fits(log, seen, e[ok], h[ok], rounds)
+    if "ebi" in given:
+        fits["ebi"] = own_fit(log, cal, dt)
     as_logged = estimator_biases(log, cal, [NLOS], dt=dt)
     biases = None if cal.biases is None else [float(b) for b in cal.biases]
     for g in given:
         options = {k: v for k, v in cal.options.items() if k not in em.EXCESS_KEYS}
         if g == "fit":
             options.update({k: cal.options[k] for k in em.EXCESS_KEYS if k in cal.options})
-        elif g in ("held", "window", "outliers"):
-            if g not in fits:
-                print(f"  {NLOS} given {g}: the ranges' noise is not known, nothing fitted")
-                continue
-            options["nlos_median"], options["nlos_shape"] = fits[g]
+        elif g in ("held", "window", "outliers", "ebi"):
+            if fits.get(g) is None:
+                print(f"  {NLOS} given {g}: nothing fitted or identified (the gate)")
+            else:
+                options["nlos_median"], options["nlos_shape"] = fits[g]
         elif g != "gate":
             options["nlos_median"], options["nlos_shape"] = (float(v) for v in g.split(":"))
         s = run_replay(
@@ -324,7 +341,7 @@ def main() -> None:
     ap.add_argument(
         "--given",
         default="fit,gate",
-        help="with --diagnose: MEDIAN:SHAPE, fit, held, window, outliers, gate",
+        help="with --diagnose: MEDIAN:SHAPE, fit, held, window, outliers, ebi, gate",
     )
     ap.add_argument(
         "--rounds", type=float, default=3.0, help="with --diagnose: the window, rounds of anchors"
@@ -337,9 +354,9 @@ def main() -> None:
     if args.bootstrap < 2:
         ap.error(f"--bootstrap: at least 2 resamples for a standard error, got {args.bootstrap}")
     for g in args.given.split(","):
-        if g not in ("fit", "held", "window", "outliers", "gate") and not _excess_text_ok(g):
+        if g not in ("fit", "held", "window", "outliers", "ebi", "gate") and not _excess_text_ok(g):
             ap.error(
-                f"--given: expected fit, held, window, outliers, gate or MEDIAN:SHAPE (positive"
+                f"--given: expected fit, held, window, outliers, ebi, gate or MEDIAN:SHAPE (positive"
                 f" numbers),"
                 f" got {g!r}"
             )

@@ -16,7 +16,9 @@ the truth's position or the variant lengthened it). One row per flight (``docs/e
 * the same fit to the same ranges' own errors (the oracle's, no prediction in them);
 * both with a third component for outliers of either sign
   (:func:`check_excess.outlier_fit`: median, shape, fraction, the outliers' probability;
-  core).
+  core);
+
+and, below the row, each anchor's share of the scored ranges with an excess (the oracle's).
 
     python sims/excess_fit_oracle.py --flights real:0,real:1,real:2,real:3,real:4,bias:3,bias:7,bias:9 --out budget/
 """
@@ -82,7 +84,8 @@ def row(f, kind: str, seed: int) -> str:
     for r in (error, res.r):
         m, s, pi, po, core = check_excess.outlier_fit(r, res.h, q)
         cells.append(f"{m:.2f}, {s:.2f}, {pi:.3f}, {po:.3f}; {core:.3f}")
-    return f"| {kind} {seed} | " + " | ".join(cells) + " |"
+    share = " ".join(f"{np.mean(~clear[res.h == j]):.2f}" for j in range(q))
+    return f"| {kind} {seed} | " + " | ".join(cells) + f" |\n  per anchor, with an excess: {share}"
 
 
 def main() -> None:
@@ -100,7 +103,12 @@ def main() -> None:
             )
         flights.append((kind, int(seed)))
     draws = types.SimpleNamespace(
-        accel_bias=0.2, gyro_bias=0.01, accel_vibration=1.0, gyro_vibration=0.05, yaw=1.0
+        accel_bias=0.2,
+        gyro_bias=0.01,
+        accel_vibration=1.0,
+        gyro_vibration=0.05,
+        yaw=1.0,
+        stress="none",
     )  # flight_error_budget's defaults
     out = Path(args.out or tempfile.mkdtemp(prefix="excess-oracle-"))
     print(

@@ -218,9 +218,7 @@ def test_a_held_core_stays_where_it_is_held():
     residuals' excess, whose core holds the prediction's error too."""
     r, h = _residuals(800, 0)
     fit = fit_excess(r, h, Q, 30, sigma=SIGMA)  # 30 iterations: converged here
-    assert fit.sigma == SIGMA
     assert fit.median == pytest.approx(0.3, rel=0.15)
     assert fit.fraction == pytest.approx(0.3, abs=0.06)
     wide = fit_excess(r, h, Q, 30, sigma=2.0 * SIGMA)
-    assert wide.sigma == 2.0 * SIGMA
     assert wide.fraction < fit.fraction - 0.05 and wide.median > fit.median
