@@ -139,6 +139,8 @@ NOT_SHORT = {
     "screenshots.py": "needs chromium and about 30 s a world: tests/test_screenshots.py (slow)",
     "check_excess.py": "needs an exported flight log and a minute of self-calibration: its check"
     " is tested in tests/testbed/test_excess_model.py",
+    "excess_fit_oracle.py": "needs a 40 s exported flight and a minute of self-calibration per"
+    " flight: its fits are tested in tests/testbed/test_excess_model.py",
 }
 
 

@@ -9,6 +9,7 @@ from quadobs.testbed.logs.excess_model import (
     MIN_TAIL,
     calibrated_excess,
     excess_model,
+    fit_excess,
     tail_signs,
 )
 
@@ -208,3 +209,16 @@ def test_the_excess_is_kept_only_where_the_held_out_ranges_say_it_helps(monkeypa
     assert same.excess["check"]["imu"]["difference"] == 0.0
     none = _check(monkeypatch, 0.10, fit_excess=False)
     assert "check" not in none.excess and none.reason == ""
+
+
+def test_a_held_core_stays_where_it_is_held():
+    """With the core's standard deviation held (``sigma``), the fit keeps it and recovers the
+    drawn excess at the drawn noise; held wider, the core takes the smaller excesses in (a
+    smaller fraction, a longer median): what the fitted core does to the prequential
+    residuals' excess, whose core holds the prediction's error too."""
+    r, h = _residuals(800, 0)
+    fit = fit_excess(r, h, Q, 30, sigma=SIGMA)  # 30 iterations: converged here
+    assert fit.median == pytest.approx(0.3, rel=0.15)
+    assert fit.fraction == pytest.approx(0.3, abs=0.06)
+    wide = fit_excess(r, h, Q, 30, sigma=2.0 * SIGMA)
+    assert wide.fraction < fit.fraction - 0.05 and wide.median > fit.median

@@ -166,22 +166,32 @@ def _responsibilities(d: np.ndarray, sigma: float, pi: float, log_w: np.ndarray)
     return ll
 
 
-def fit_excess(r: np.ndarray, h: np.ndarray, q: int, iterations: int = ITERATIONS) -> ExcessFit:
+def fit_excess(
+    r: np.ndarray,
+    h: np.ndarray,
+    q: int,
+    iterations: int = ITERATIONS,
+    sigma: float | None = None,
+) -> ExcessFit:
     """The mixture of the module docstring fitted to the residuals ``r (n,)`` of the anchors
     ``h (n,)`` (``q`` anchors; non-finite residuals left out) by ``iterations`` steps of
-    expectation-maximisation."""
+    expectation-maximisation; ``sigma`` (m): the line-of-sight core's standard deviation held
+    at that value instead of fitted (a study, ``sims/check_excess.py --diagnose``: the replay
+    fits it, as the core must hold the prediction's error, ``docs/error-sources.md``)."""
     keep = np.isfinite(r)
     r, h = np.asarray(r, dtype=float)[keep], np.asarray(h)[keep]
     counts = np.bincount(h, minlength=q).astype(float)
     median = np.array([np.median(r[h == j]) if counts[j] else np.nan for j in range(q)])
     mu = median.copy()
-    sigma = max(1.4826 * float(np.median(np.abs(r - mu[h]))), 1e-6)
-    pi, m, s = 0.2, math.log(3.0 * sigma), 0.5
+    held = sigma is not None
+    core = float(sigma) if sigma is not None else 1.4826 * float(np.median(np.abs(r - mu[h])))
+    core = max(core, 1e-6)
+    pi, m, s = 0.2, math.log(3.0 * core), 0.5
     e, du = np.exp(GRID), float(GRID[1] - GRID[0])
     for _ in range(int(iterations)):
         log_w = -0.5 * ((GRID - m) / s) ** 2
         log_w -= math.log(np.exp(log_w - log_w.max()).sum()) + log_w.max()
-        g = _responsibilities(r - mu[h], sigma, pi, log_w)
+        g = _responsibilities(r - mu[h], core, pi, log_w)
         gx = g[:, 1:]
         mass = float(gx.sum())
         pi = min(max(mass / r.size, 1e-6), 1.0 - 1e-6)
@@ -191,11 +201,12 @@ def fit_excess(r: np.ndarray, h: np.ndarray, q: int, iterations: int = ITERATION
         shift = gx @ e  # E[excess | r]
         sums = np.bincount(h, weights=r - shift, minlength=q)
         mu = np.where(counts > 0, sums / np.maximum(counts, 1.0), np.nan)
-        D2 = r - mu[h]
-        D2 = np.subtract(D2[:, None], np.concatenate([[0.0], e])[None, :]) ** 2
-        sigma = max(math.sqrt(float(np.einsum("ik,ik->", g, D2)) / r.size), 1e-6)
-    upper, lower, p = tail_signs(r - median[h], sigma)
-    return ExcessFit(math.exp(m), s, pi, sigma, mu, upper, lower, p, int(r.size))
+        if not held:
+            D2 = r - mu[h]
+            D2 = np.subtract(D2[:, None], np.concatenate([[0.0], e])[None, :]) ** 2
+            core = max(math.sqrt(float(np.einsum("ik,ik->", g, D2)) / r.size), 1e-6)
+    upper, lower, p = tail_signs(r - median[h], core)
+    return ExcessFit(math.exp(m), s, pi, core, mu, upper, lower, p, int(r.size))
 
 
 def tail_signs(d: np.ndarray, sigma: float) -> tuple[int, int, float]:
