@@ -134,6 +134,10 @@ NOT_SHORT = {
     "screenshots.py": "needs chromium and about 30 s a world: tests/test_screenshots.py (slow)",
     "check_excess.py": "needs an exported flight log and a minute of self-calibration: its check"
     " is tested in tests/testbed/test_excess_model.py",
+    "bias_filter_options.py": "runs another script (the flight's stress or variants: minutes)"
+    " with the filters' sight model changed",
+    "trace_flight_bias_states.py": "simulates and replays a 40 s flight twice (minutes): a trace"
+    " for docs/error-sources.md, its stress logs tested through stress_hidden_logs.py",
 }
 
 
