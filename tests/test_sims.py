@@ -141,6 +141,10 @@ NOT_SHORT = {
     " is tested in tests/testbed/test_excess_model.py",
     "excess_fit_oracle.py": "needs a 40 s exported flight and a minute of self-calibration per"
     " flight: its fits are tested in tests/testbed/test_excess_model.py",
+    "bias_filter_options.py": "runs another script (the flight's stress or variants: minutes)"
+    " with the filters' sight model changed",
+    "trace_flight_bias_states.py": "simulates and replays a 40 s flight twice (minutes): a trace"
+    " for docs/error-sources.md, its stress logs tested through stress_hidden_logs.py",
 }
 
 

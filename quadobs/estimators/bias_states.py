@@ -48,7 +48,9 @@ probability of a blocked path comes from a per-anchor two-state chain on the fil
 bias estimate (``sight_model="chain"``, the default), or, from the biases' opening, from each
 anchor's joint posterior of its bias and its state of sight
 (``sight_model="grid"``: :class:`~quadobs.estimators.robust.BiasSightGrid`, started where the
-chain was).
+chain was). With the chain, ``onset_test`` (off by default) takes several clear chains turned
+blocked within one round of the anchors as a position error, their joint onset being the
+product of each chain's own Markov prior (:meth:`_VehicleBlock._onset`).
 """
 
 from __future__ import annotations
@@ -267,6 +269,11 @@ class _VehicleBlock:
     #: multilateration (:meth:`_correct_at_fix`) instead of the fix's covariance ``fix_std^2 I``.
     fix_correction: bool = False
     sight: BiasSightGrid | None = None
+    #: The Markov onset test (:meth:`_onset`; off by default: measured on part of the flights
+    #: only, ``docs/error-sources.md``) and its window (s; 0: one round of the anchors).
+    onset_test: bool = False
+    onset_window: float = 0.0
+    _onset_pending: bool = False
     fix_pending: bool = False
     fix_abandoned: float | None = None
     biases_open: bool = True
@@ -274,6 +281,7 @@ class _VehicleBlock:
     held: int = 0
     fixes: list
     opened_at: list
+    onsets: list
     _bias_prior: np.ndarray
     _fix_var: float
     _waited: int
@@ -315,6 +323,12 @@ class _VehicleBlock:
         self._anchor = -1
         self._nlos = np.zeros(q)  # each anchor's chain starts in line of sight
         self._nlos_time = np.full(q, self._time)
+        self._onset_at = np.full(q, -math.inf)  # when each chain turned blocked (onset test)
+        self._onset_pre = np.zeros(q)  # its posterior before it turned
+        self._onset_nu = np.zeros(q)  # the innovation that turned it
+        self._onset_fire = np.zeros(q, dtype=bool)
+        self._onset_pending = False
+        self.onsets = []
         self.sight = None  # the ExcessMixture's BiasSightGrid, from the biases' opening
         self.open_threshold = self._nis_window.threshold(2 * q)
 
@@ -359,6 +373,8 @@ class _VehicleBlock:
             return None
         shift, var, p_nlos = post
         if self.sight is None:
+            if self.onset_test:
+                self._onset(rule, h, nlos, p_nlos, float(nu[0]))
             self._nlos[h], self._nlos_time[h] = p_nlos, self._time
         else:
             # the anchor's (bias, sight) posterior takes the range less the predicted distance,
@@ -376,6 +392,52 @@ class _VehicleBlock:
         self._x = self._x + K @ nu_e
         return K, S + var, R + var, False
 
+    def _onset(self, rule: ExcessMixture, h: int, prior: float, post: float, nu: float) -> None:
+        """The Markov onset test on anchor ``h``'s range: its chain turned blocked
+        (``prior < 1/2 <= post``). A clear chain turns within ``w`` seconds with probability
+        ``pi_j(w) = nlos + (c_j - nlos) exp(-w / memory)`` (:meth:`ExcessMixture.prior` from
+        its posterior ``c_j`` before it turned), independently of the others; so the other
+        anchors ``G`` that turned within ``w`` before it and are still read blocked have the
+        joint probability ``prod_{j in G} pi_j(w)``. Below the gate's ``1 - P`` the joint
+        onset is taken as a state error: :meth:`_onset_release` after the update.
+
+        The window ``w`` is one round of the anchors (1.5 of anchor ``h``'s interval between
+        its ranges), over which a position error reaches every anchor's next range, unless
+        :attr:`onset_window` states one. With ranges every 0.08 s per anchor, ``nlos = 1/2``
+        and a 10 s memory, ``pi_j = 0.006``: three clear chains turned within one round
+        (``0.006^2``) are a state error at ``P = 0.999``, two (0.006) are not."""
+        if post < 0.5:
+            self._onset_at[h] = -math.inf
+            return
+        if prior >= 0.5 or not math.isfinite(self._nlos_time[h]):
+            return
+        self._onset_at[h], self._onset_pre[h], self._onset_nu[h] = self._time, self._nlos[h], nu
+        # the window: one round of the anchors (1.5 of this anchor's interval), over which a
+        # position error reaches every anchor's next range; or the stated one
+        w = self.onset_window or 1.5 * (self._time - float(self._nlos_time[h]))
+        joint, fire = 1.0, self._onset_fire
+        fire[:] = False
+        for j in range(self._nlos.shape[0]):
+            if j != h and self._time - self._onset_at[j] <= w and self._nlos[j] >= 0.5:
+                joint *= rule.prior(float(self._onset_pre[j]), w)
+                fire[j] = True
+        if fire.any() and joint < 1.0 - rule.probability:
+            fire[h] = True
+            self._onset_pending = True
+
+    def _onset_release(self) -> None:
+        """The joint onset taken as a position error: the position's covariance grown by the
+        mean square of the onsets' innovations, ``P_pp += mean(nu_j^2) I``, and each of those
+        chains re-read at its clear state (its posterior before it turned)."""
+        self._onset_pending = False
+        fire = self._onset_fire
+        s2 = float(np.mean(self._onset_nu[fire] ** 2))
+        for i in range(int(self.outputs.system.p)):
+            self._P[i, i] += s2
+        self._nlos[fire] = self._onset_pre[fire]
+        self._onset_at[fire] = -math.inf
+        self.onsets.append(self._time)
+
     def _update(self, z: np.ndarray, idx, R: np.ndarray) -> None:
         """A correction of the range outputs ``idx``; one range's anchor is kept for
         :meth:`_gain` (any other measurement, a TDOA, has none: ``-1``)."""
@@ -385,6 +447,8 @@ class _VehicleBlock:
             super()._update(z, idx, R)  # type: ignore[misc]
         finally:
             self._anchor = -1
+        if self._onset_pending:
+            self._onset_release()
 
     def _correct_measurement(self, m: Measurement) -> None:
         if self.fix_pending and m.kind == "range":
@@ -517,6 +581,7 @@ class _VehicleBlock:
             self._x[self.vehicle_n :] = self._bias_prior
             self.sight = None
             self._nlos[:], self._nlos_time[:] = 0.0, self._time
+            self._onset_at[:] = -math.inf
             self.biases_open = False
             self._nis_window.clear()
             self._try_fix()  # the position covariance of a fix, as at the start

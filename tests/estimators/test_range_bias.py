@@ -356,3 +356,25 @@ def test_the_excess_mixture_keeps_the_filters_gate():
         taken[gate] = (est.corrections, est.rejected, est.nis)
     assert taken[None][:2] == (1, 0)
     assert taken[1.0][:2] == (0, 1) and taken[1.0][2] > 1.0
+
+
+def test_markov_onset_fires_on_three_clear_chains_turned_in_one_round_not_two():
+    from types import SimpleNamespace
+
+    from quadobs.estimators.bias_states import _VehicleBlock
+    from quadobs.estimators.robust import ExcessMixture
+
+    rule, q = ExcessMixture(median=0.4, shape=0.7), 8
+    f = SimpleNamespace(
+        _nlos=np.zeros(q), _nlos_time=np.zeros(q), _onset_at=np.full(q, -np.inf),
+        _onset_pre=np.zeros(q), _onset_nu=np.zeros(q), _onset_fire=np.zeros(q, dtype=bool),
+        _onset_pending=False, onset_window=0.0, _time=0.0,
+    )  # fmt: skip
+    for k, h in enumerate((0, 1, 2)):  # three anchors, 0.01 s apart, each heard 0.08 s before
+        f._time = 1.0 + 0.01 * k
+        f._nlos_time[h] = f._time - 0.08
+        prior = rule.prior(0.0, 0.08)
+        _VehicleBlock._onset(f, rule, h, prior, 0.99, 0.5)
+        f._nlos[h], f._nlos_time[h] = 0.99, f._time
+        assert f._onset_pending == (k == 2)
+    assert f._onset_fire[:3].all() and not f._onset_fire[3:].any()

@@ -1,0 +1,52 @@
+"""Another sims script run with the bias-state filters' state of sight changed.
+
+The replay builds its filters with their defaults; a study of an option the replay does not
+expose runs a sims script in this process with the option set on every bias-state filter the
+script builds:
+
+* ``--sight-model grid``: each anchor's bias and state of sight kept jointly
+  (:class:`~quadobs.estimators.robust.BiasSightGrid`) instead of the default chain (the
+  filters' ``sight_model``, :mod:`quadobs.estimators.bias_states`);
+* ``--onset-test``: the Markov onset test of the excess chains on (the filters'
+  ``onset_test``: several clear chains turned blocked within one round of the anchors taken as
+  a position error).
+
+::
+
+    python sims/bias_filter_options.py --sight-model grid stress_hidden_logs.py flight --seeds 0,1 --variants gap,moving
+    python sims/bias_filter_options.py --onset-test stress_hidden_logs.py flight --seeds 0,1 --variants none,gap,moving
+    python sims/bias_filter_options.py --sight-model grid replay_flight_variants.py --seeds 0,1 --duration 40 --variants real,bias
+"""
+
+from __future__ import annotations
+
+import argparse
+import runpy
+import sys
+from pathlib import Path
+
+from quadobs.errors import run_script
+from quadobs.estimators import bias_states
+
+SIMS = Path(__file__).resolve().parent
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--sight-model", choices=("chain", "grid"), default="chain")
+    ap.add_argument("--onset-test", action="store_true", help="the Markov onset test on")
+    ap.add_argument("script", help="a script of sims/")
+    ap.add_argument("rest", nargs=argparse.REMAINDER, help="the script's own arguments")
+    args = ap.parse_args()
+    script = SIMS / args.script
+    if not script.is_file():
+        ap.error(f"no script {args.script!r} in sims/")
+    model = bias_states._sight_model(args.sight_model)
+    bias_states._sight_model = lambda name: model  # every filter built from here on
+    bias_states._VehicleBlock.onset_test = args.onset_test
+    sys.argv = [str(script), *args.rest]
+    runpy.run_path(str(script), run_name="__main__")
+
+
+if __name__ == "__main__":
+    run_script(main, Path(__file__).name)
