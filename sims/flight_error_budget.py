@@ -103,30 +103,14 @@ def _variant(base, seed: int, kind: str, args) -> tuple:
     """The variant ``kind`` of the export ``base`` as replay_flight_variants makes it (with the
     stress ``args.stress`` as stress_hidden_logs applies it), and the draws of its range errors
     (``bias``: the added biases and which rows took an excess)."""
-    record: dict = {}
-    original = flight._range_errors
-
-    def recorded(log, rng):
-        state = dict(rng.bit_generator.state)
-        out = original(log, rng)
-        probe = np.random.default_rng()
-        probe.bit_generator.state = state  # the same draws, in the same order
-        bias = probe.uniform(-0.3, 0.3, log.beacons.shape[0])
-        bias[0] = -0.3
-        record["bias"] = bias
-        record["nlos"] = probe.random(log.ranges.shape[0]) < 0.1
-        return out
-
-    flight._range_errors = recorded
-    try:
-        rng = np.random.default_rng([seed, flight.REAL.index(kind)])
-        noatt = flight.variant(base, "noatt", args.yaw)
-        name = getattr(args, "stress", "none")
-        noatt = stress.FLIGHT[name][1](noatt, stress.stress_seed(seed, name))
-        vib = (args.accel_vibration, args.gyro_vibration)
-        log = flight.real_variant(noatt, kind, rng, *vib)
-    finally:
-        flight._range_errors = original
+    flight.RANGE_DRAWS.clear()
+    rng = np.random.default_rng([seed, flight.REAL.index(kind)])
+    noatt = flight.variant(base, "noatt", args.yaw)
+    name = getattr(args, "stress", "none")
+    noatt = stress.FLIGHT[name][1](noatt, stress.stress_seed(seed, name))
+    vib = (args.accel_vibration, args.gyro_vibration)
+    log = flight.real_variant(noatt, kind, rng, *vib)
+    record = dict(flight.RANGE_DRAWS)
     return log, record
 
 

@@ -172,6 +172,12 @@ def _frd(log):
     return dataclasses.replace(log, inputs=imu)
 
 
+#: The draws of the latest :func:`_range_errors`: ``bias`` (q,) the biases it added and ``nlos``
+#: (M,) the rows it lengthened (for the studies that need the truth behind a variant's errors;
+#: clear it before making a variant).
+RANGE_DRAWS: dict = {}
+
+
 def _range_errors(log, rng):
     q = log.beacons.shape[0]
     bias = rng.uniform(-0.3, 0.3, q)
@@ -181,6 +187,7 @@ def _range_errors(log, rng):
     ranges[:, 2] += bias[anchor]
     nlos = rng.random(ranges.shape[0]) < 0.1
     ranges[nlos, 2] += rng.exponential(0.3, int(nlos.sum()))
+    RANGE_DRAWS.update(bias=bias.copy(), nlos=nlos.copy())
     ranges[:, 2] = np.maximum(ranges[:, 2], 0.0)
     return dataclasses.replace(log, ranges=ranges)
 

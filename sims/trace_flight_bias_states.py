@@ -44,26 +44,9 @@ from quadobs.testbed.logs import replay as replay_module
 def stressed_flight(seed: int, name: str, duration: float, tmp: Path) -> tuple[Path, dict]:
     """:func:`stress_hidden_logs.flight_log`'s folder and the draws of ``real``'s range
     errors: ``bias`` (q,) the added biases, ``nlos`` (M,) the rows it lengthened."""
-    record: dict = {}
-    original = flight._range_errors
-
-    def recorded(log, rng):
-        state = dict(rng.bit_generator.state)
-        out = original(log, rng)
-        probe = np.random.default_rng()
-        probe.bit_generator.state = state  # the same draws, in the same order
-        bias = probe.uniform(-0.3, 0.3, log.beacons.shape[0])
-        bias[0] = -0.3
-        record["bias"] = bias
-        record["nlos"] = probe.random(log.ranges.shape[0]) < 0.1
-        return out
-
-    flight._range_errors = recorded
-    try:
-        folder = stress.flight_log(seed, name, duration, tmp)
-    finally:
-        flight._range_errors = original
-    return folder, record
+    flight.RANGE_DRAWS.clear()
+    folder = stress.flight_log(seed, name, duration, tmp)
+    return folder, dict(flight.RANGE_DRAWS)
 
 
 def flight_truth(log, seed: int, name: str, record: dict) -> dict:
