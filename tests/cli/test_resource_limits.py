@@ -73,6 +73,11 @@ def test_plot_refuses_a_read_only_file_and_its_input(recording, tmp_path, capsys
 
 def test_plot_on_a_full_disk_keeps_the_previous_figure(recording, tmp_path, cli_process):
     pytest.importorskip("matplotlib")
+    # a first use of matplotlib on a machine writes its font list (and fc-list its cache): done
+    # here, beforehand, so that the full disk meets the figure, the write under test
+    from matplotlib import font_manager
+
+    assert font_manager.fontManager.ttflist
     fig = tmp_path / "f.png"
     fig.write_bytes(b"previous")
 
