@@ -102,6 +102,11 @@ CASES = {
         ["stress.json"],
         "| stress | seed 0 | worst | target met |",
     ),
+    "bias_start_study.py": (
+        ["flight:0:none", "--duration", "8", "--out", "{tmp}/study"],
+        ["study/rows.json"],
+        "| log | estimator | choice |",
+    ),
     "pillar_bounds.py": (
         ["--seeds", "0", "--duration", "8"],
         [],
@@ -154,7 +159,7 @@ def test_every_script_has_a_smoke_test():
 
 
 #: scripts whose short run takes more than the default run's share (about 20 s): marked slow
-SLOW = {"uwb_bias_bound.py", "pillar_bounds.py"}
+SLOW = {"uwb_bias_bound.py", "pillar_bounds.py", "bias_start_study.py"}
 
 
 @pytest.mark.parametrize(

@@ -2,6 +2,8 @@
 significantly better: the paired test itself, a log whose prior is right, a log whose prior is
 wrong, a log with per-anchor biases."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -41,6 +43,31 @@ def test_the_paired_test_needs_a_significant_improvement():
     assert not compare(_residuals(noise[:5]), _residuals(noise[:5] + 1)).better  # two blocks
     short = compare(_residuals(noise[:12]), _residuals(noise[:12] + 1))  # six blocks
     assert short.better and BLOCKS == 20
+
+
+def test_a_margin_asks_for_an_effect_beyond_significance():
+    """The 5 mm systematic gain of the test above lowers the mean loss by 0.05^2 = 0.0025 m^2
+    (the cross term averages out): significant, and beyond a margin of a tenth of it, but not
+    beyond the margin sigma^2 / 3 = 0.0033 m^2 of 0.1 m noise in 3-D (step 7's effect)."""
+    rng = np.random.default_rng(0)
+    noise = 0.1 * rng.standard_normal(4000)
+    candidate, reference = _residuals(noise), _residuals(noise + 0.05)
+    plain = compare(candidate, reference)
+    assert plain.better and abs(plain.difference + 0.0025) < 0.0005, plain
+    assert compare(candidate, reference, margin=0.00025).better
+    large = compare(candidate, reference, margin=0.1**2 / 3)
+    assert not large.better and large.difference == plain.difference, large
+    assert large.as_dict()["margin"] == pytest.approx(0.01 / 3)
+
+
+def test_the_effect_margin_is_a_noise_sized_position_error_projected_on_a_range():
+    from quadobs.testbed.logs.calibration import effect_margin, range_noise
+
+    log = _random_acceleration_log(0.1)
+    assert effect_margin(log, {"range_sigma": 0.2}) == pytest.approx(0.2**2 / 2)
+    stated = dataclasses.replace(log, range_std=np.full(log.ranges.shape[0], 0.3))
+    assert range_noise(stated, {"range_sigma": 0.2}) == pytest.approx(0.3)  # the log's own
+    assert effect_margin(stated) == pytest.approx(0.3**2 / 2)
 
 
 def _random_acceleration_log(q: float, biases=(0.0, 0.0, 0.0, 0.0), seed: int = 3) -> RangeLog:
@@ -206,8 +233,6 @@ def test_bias_filters_take_the_calibrated_biases_only_where_the_data_contradict_
     # significantly better through the filter itself. Here the two starts' held-out scores
     # differ by a fraction of a millimetre, so the test's verdict depends on the draw; the rule
     # is checked for both verdicts, the test's own statistics being those of the data
-    import dataclasses
-
     from quadobs.testbed.logs import calibration as calibration_module
 
     small = circle_laps(np.array([0.4, -0.3, 0.25, 0.0]))
@@ -225,6 +250,7 @@ def test_bias_filters_take_the_calibrated_biases_only_where_the_data_contradict_
         monkeypatch.setattr(calibration_module, "compare", real_compare)
         test = cal.per_estimator["ekf-bias"]
         assert test["prior_chi2"] < test["prior_limit"], test
+        assert test["margin"] == pytest.approx(0.1**2 / 2), test  # step 7's effect, in 2-D
         assert test["significantly_better"] is verdict, test
         assert test["biases"] == ("calibrated" if verdict else "as logged"), test
         assert logged_names == (() if verdict else ("ekf-bias",)), test
