@@ -15,7 +15,8 @@ A log is a folder, a built-in name (``plaza1``, ``plaza2``) or a stand-in drawn 
 ``sims/stress_hidden_logs.py``, ``none`` for none), ``flightbias:SEED`` (the flight variant
 ``bias`` of ``sims/replay_flight_variants.py``), ``rover:SEED:STRESS`` (the robot's stand-in in
 the ``today`` room). Stand-ins are 40 s (flight) and 90 s (robot) long unless ``--duration``
-says, written under ``--out`` and taken from there when they exist.
+says, written under ``--out`` and taken from there when they exist (whatever their duration:
+give another ``--out`` for another duration). A filter reported diverged counts as NaN.
 
     python sims/bias_start_study.py flight:3:none flightbias:7 rover:2:none plaza1 --out study/
 """
@@ -107,7 +108,7 @@ def study(source, burn_in: float) -> list[dict]:
             **cal.per_estimator[n],
             "rmse_calibrated": rmse["calibrated"][n],
             "rmse_zero": rmse["zero"][n],
-            "best_other": min(v for k, v in rmse["zero"].items() if k not in held),
+            "best_other": float(np.nanmin([v for k, v in rmse["zero"].items() if k not in held])),
         }
         for n in held
     ]
@@ -136,7 +137,7 @@ def print_table(rows: list[dict]) -> None:
         pick = [
             r["rmse_calibrated" if r["choice"] == "calibrated" else "rmse_zero"] for r in scored
         ]
-        better = [min(r["rmse_calibrated"], r["rmse_zero"]) for r in scored]
+        better = [np.fmin(r["rmse_calibrated"], r["rmse_zero"]) for r in scored]
         zero = [r["rmse_zero"] for r in scored]
         print(
             f"mean RMSE (m) over {len(scored)}: step 7's choice {np.nanmean(pick):.4f},"

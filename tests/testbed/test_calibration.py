@@ -30,7 +30,7 @@ def test_the_paired_test_needs_a_significant_improvement():
     reference = _residuals(noise + 0.05)
     same = compare(_residuals(noise + 0.05), reference)
     assert not same.better and same.difference == 0.0 and same.score == same.reference_score
-    # a 5 mm smaller systematic error under 0.1 m of noise: paired, the noise cancels
+    # a 5 cm smaller systematic error under 0.1 m of noise: paired, the noise cancels
     better = compare(_residuals(noise), reference)
     assert better.better and better.score < better.reference_score
     # as good on average, differently noisy: not significant
@@ -46,7 +46,7 @@ def test_the_paired_test_needs_a_significant_improvement():
 
 
 def test_a_margin_asks_for_an_effect_beyond_significance():
-    """The 5 mm systematic gain of the test above lowers the mean loss by 0.05^2 = 0.0025 m^2
+    """The 5 cm systematic gain of the test above lowers the mean loss by 0.05^2 = 0.0025 m^2
     (the cross term averages out): significant, and beyond a margin of a tenth of it, but not
     beyond the margin sigma^2 / 3 = 0.0033 m^2 of 0.1 m noise in 3-D (step 7's effect)."""
     rng = np.random.default_rng(0)
@@ -61,13 +61,16 @@ def test_a_margin_asks_for_an_effect_beyond_significance():
 
 
 def test_the_effect_margin_is_a_noise_sized_position_error_projected_on_a_range():
-    from quadobs.testbed.logs.calibration import effect_margin, range_noise
+    from quadobs.testbed.logs.calibration import effect_margin, range_noise_std
 
     log = _random_acceleration_log(0.1)
     assert effect_margin(log, {"range_sigma": 0.2}) == pytest.approx(0.2**2 / 2)
     stated = dataclasses.replace(log, range_std=np.full(log.ranges.shape[0], 0.3))
-    assert range_noise(stated, {"range_sigma": 0.2}) == pytest.approx(0.3)  # the log's own
+    assert range_noise_std(stated, {"range_sigma": 0.2}) == pytest.approx(0.3)  # the log's own
     assert effect_margin(stated) == pytest.approx(0.3**2 / 2)
+    partly = stated.range_std.copy()
+    partly[::2] = np.nan  # stated on some rows only: the filters take range_sigma, as here
+    assert range_noise_std(dataclasses.replace(log, range_std=partly), {"range_sigma": 0.2}) == 0.2
 
 
 def _random_acceleration_log(q: float, biases=(0.0, 0.0, 0.0, 0.0), seed: int = 3) -> RangeLog:

@@ -69,8 +69,8 @@ replay is given a clock offset or asked to search one (``--clock-offset``, not b
    ``ekf-bias-imu``; :func:`holds_range_biases`), where biases were chosen: the biases kept
    for it only where, replayed through *that* estimator (its prediction of a range adding its
    own bias estimate), they predict the held-out ranges significantly better than the ranges
-   as logged by an effect the size of a position error of one noise standard deviation
-   (:func:`effect_margin`), or where they lie outside its bias states' prior; else it takes
+   as logged by an effect the size of a position error as long as the ranges' noise standard
+   deviation (:func:`effect_margin`), or where they lie outside its bias states' prior; else it takes
    the ranges as logged (:func:`estimator_biases`). The biases of steps 2 to 5 are
    fitted and tested through the EKF, which holds neither the range biases nor what else a
    filter may hold as states (an acceleration's bias): its biases take up those errors too,
@@ -131,6 +131,7 @@ from quadobs.testbed.logs.estimators import (
     ReplaySetup,
     build_replay_estimators,
     log_defaults,
+    log_range_std,
     replay_setup,
 )
 from quadobs.testbed.logs.events import LogEvents
@@ -164,7 +165,7 @@ __all__ = [
     "outside_prior",
     "prediction_residuals",
     "process_noise_key",
-    "range_noise",
+    "range_noise_std",
     "scored_kind",
     "self_calibrate",
     "tdoa_estimator",
@@ -418,7 +419,7 @@ class Comparison:
             "difference": _finite(self.difference),
             "standard_error": _finite(self.standard_error),
             "significantly_better": self.better,
-            "margin": self.margin,
+            "margin": _finite(self.margin),
         }
 
 
@@ -774,24 +775,28 @@ def outside_prior(biases, prior_std) -> tuple[float, float]:
     return float(z @ z), float(chi2.ppf(1.0 - SIGNIFICANCE, z.size))
 
 
-def range_noise(log, options: dict | None = None) -> float:
-    """The ranges' noise standard deviation (m): the median of the log's own per-range
-    ``std`` where it states one, else the replay's ``range_sigma`` (``options`` over the log's
-    defaults, :func:`~quadobs.testbed.logs.estimators.log_defaults`)."""
-    stated = np.asarray(log.range_std, dtype=float)
-    stated = stated[np.isfinite(stated) & (stated > 0.0)]
-    if stated.size:
-        return float(np.median(stated))
+def range_noise_std(log, options: dict | None = None) -> float:
+    """The ranges' noise standard deviation (m) as the filters take it: the median of the log's
+    own per-range ``std`` where every row states one
+    (:attr:`~quadobs.testbed.logs.estimators.ReplaySetup.range_std_stated`), else the replay's
+    ``range_sigma`` (``options`` over the log's defaults,
+    :func:`~quadobs.testbed.logs.estimators.log_defaults`)."""
+    stated = log_range_std(log)
+    if stated is not None:
+        return stated
     merged = {**log_defaults(log), **dict(options or {})}
     return float(merged.get("range_sigma", ReplaySetup.range_sigma))
 
 
 def effect_margin(log, options: dict | None = None) -> float:
     """Step 7's effect (m^2 of mean held-out loss): ``sigma^2 / d``, the mean square that a
-    position error of one noise standard deviation ``sigma`` (:func:`range_noise`) adds to a
-    range in ``d`` dimensions (its projection on the range's direction, averaged over
-    directions)."""
-    return range_noise(log, options) ** 2 / int(log.dimension)
+    position error of length ``sigma`` (``sigma / sqrt(d)`` per axis; ``sigma`` the ranges'
+    noise, :func:`range_noise_std`), oriented at random, adds to a range in ``d`` dimensions:
+    its projection on the range's direction. On a planar log whose anchors stand above the
+    tag a range's direction leaves the plane and the projection is smaller by the square of
+    the elevation's cosine, which the margin leaves out (a margin slightly too large asks a
+    little more of the calibrated biases)."""
+    return range_noise_std(log, options) ** 2 / int(log.dimension)
 
 
 def estimator_biases(
@@ -808,7 +813,8 @@ def estimator_biases(
     * replayed through that estimator, they predict the held-out ranges significantly better
       than the ranges as logged *by an effect that matters*: the paired test of the module
       docstring with the margin :func:`effect_margin`, ``D + K s_D / sqrt(B) < -sigma^2 / d``
-      (the mean square a position error of one noise standard deviation adds to a range), or
+      (the mean square that a position error of length ``sigma``, the ranges' noise, adds to
+      a range), or
     * they are improbable under the bias states' prior (:func:`outside_prior`: ``sum_h
       (b_h / sigma_b)^2`` beyond the ``1 -`` :data:`SIGNIFICANCE` quantile of ``chi^2(q)``):
       a filter started from zero would have to find biases its prior all but excludes.

@@ -128,6 +128,7 @@ __all__ = [
     "imu_input_noise",
     "initial_variance",
     "log_defaults",
+    "log_range_std",
     "odometry_noise",
     "parse_tuning",
     "replay_estimator_names",
@@ -486,13 +487,13 @@ def log_frame(log, range_sigma: float | None = None, apply_start: bool = False) 
         "gyro_noise": gyro if math.isfinite(gyro) else None,
         "gyro_bias": gyro_bias if math.isfinite(gyro_bias) else None,
         "range_errors": str(getattr(log, "range_errors", "")),
-        "range_std_stated": _stated_range_std(log),
+        "range_std_stated": log_range_std(log),
         "alignment0": alignment0,
         "start": start_prior(log, range_sigma=range_sigma, apply=apply_start),
     }
 
 
-def _stated_range_std(log) -> float | None:
+def log_range_std(log) -> float | None:
     """The median of the log's stated range standard deviations where every row states one
     (:attr:`ReplaySetup.range_std_stated`), else None."""
     std = np.asarray(getattr(log, "range_std", np.empty(0)), dtype=float)
