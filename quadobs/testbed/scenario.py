@@ -837,6 +837,8 @@ class Scenario(_Table):
 
         data = dict(data)
         table = data.pop("tdoa")
+        if not isinstance(table, dict):
+            raise QuadobsError(f"tdoa: expected a table, got {type(table).__name__}")
         try:
             spec = TdoaSpec.model_validate(table)
         except ValidationError as exc:

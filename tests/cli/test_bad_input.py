@@ -91,7 +91,15 @@ KNOWN = (
     set(BASE)
     | set(Scenario.model_fields)
     | {f.alias for f in Scenario.model_fields.values() if f.alias}
+    | {"tdoa"}  # the deprecated [tdoa] table, still read (as [radio]) with a warning
 )  # every field a scenario file may hold, from the model itself
+
+
+def test_the_deprecated_tdoa_table_must_be_a_table():
+    doc = {**copy.deepcopy(BASE), "tdoa": False}
+    with pytest.raises(QuadobsError) as exc:
+        parse_scenario(doc)
+    assert str(exc.value) == "tdoa: expected a table, got bool"
 
 
 @FAST
