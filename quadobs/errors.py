@@ -29,6 +29,7 @@ __all__ = [
     "STAGING_SUFFIX",
     "QuadobsError",
     "RunFault",
+    "abbreviated",
     "as_array",
     "as_finite_scalar",
     "as_float_array",
@@ -71,6 +72,22 @@ _FILE_KINDS = (
 )
 
 
+def abbreviated(text: str, limit: int = 80) -> str:
+    """``text`` as an error message shows it: whole up to ``limit`` characters, else its start
+    and its end around ``...`` (``limit`` characters in all), so that a long path still shows
+    its file name.
+
+    Examples
+    --------
+    >>> abbreviated("/a/" + "b" * 100 + "/scenario.toml", 40)
+    '/a/bbbbbbbbb...bbbbbbbbbbb/scenario.toml'
+    """
+    if len(text) <= limit:
+        return text
+    head = max((limit - 3) // 3, 1)
+    return text[:head] + "..." + text[len(text) - (limit - 3 - head) :]
+
+
 def output_target(path: str | Path, what: str = "output path") -> Path:
     """The regular file that an output named ``path`` replaces once complete.
 
@@ -82,7 +99,7 @@ def output_target(path: str | Path, what: str = "output path") -> Path:
     :class:`QuadobsError` naming ``what`` and the path.
     """
     text = os.fspath(path)
-    shown = text if len(text) <= 80 else text[:60] + "..."
+    shown = abbreviated(text)
     if "\0" in text:
         raise QuadobsError(f"{what} {shown!r}: holds a NUL character")
     if not text or len(text) > MAX_PATH_CHARS:

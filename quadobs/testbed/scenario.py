@@ -59,7 +59,7 @@ from pydantic import (
 from pydantic_core import ErrorDetails, PydanticCustomError, PydanticUndefined
 
 from quadobs.core.system import QuadraticSystem, vehicle_system, wind_system
-from quadobs.errors import QuadobsError
+from quadobs.errors import QuadobsError, abbreviated
 from quadobs.sets.zonotope import REDUCTION_METHODS
 from quadobs.testbed.trajectory import SinusoidTrajectory
 
@@ -1413,7 +1413,7 @@ def _read_text(path: Path, shown: str) -> str:
 def _read(name_or_path: str | Path) -> dict:
     """The TOML document of a built-in name or a file, with a relative model path made absolute."""
     text_source = str(name_or_path)
-    shown = text_source if len(text_source) <= 80 else text_source[:60] + "..."
+    shown = abbreviated(text_source)
     if len(text_source) > MAX_TEXT or "\0" in text_source:
         raise QuadobsError(
             f"scenario {shown!r}: expected a name or a path of at most {MAX_TEXT} characters without NUL"

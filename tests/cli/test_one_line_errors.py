@@ -76,6 +76,19 @@ def test_a_replay_grid_coarser_than_the_excitation_window_runs(log_folder, capsy
     assert code == 0, capsys.readouterr().err
 
 
+def test_a_long_path_is_shown_with_its_file_name(tmp_path, capsys):
+    from quadobs.errors import abbreviated
+
+    deep = tmp_path.joinpath(*["a-long-folder-name"] * 6)
+    deep.mkdir(parents=True)
+    bad = deep / "broken.toml"
+    bad.write_text("[[[\n")
+    _one_line(capsys, main(["show", str(bad)]), 2, "broken.toml", "invalid TOML")
+    shown = abbreviated(str(bad))
+    assert len(shown) == 80 and "..." in shown and shown.endswith("/broken.toml")
+    assert abbreviated("short.toml") == "short.toml"
+
+
 def test_huge_integers_and_deep_tables_are_refused_in_one_line(tmp_path, capsys):
     digits = "9" * 5000
     _one_line(

@@ -17,7 +17,7 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
-from quadobs.errors import QuadobsError, RunFault, as_array, as_finite_scalar
+from quadobs.errors import QuadobsError, RunFault, abbreviated, as_array, as_finite_scalar
 
 __all__ = [
     "REQUIRED_ELEMENTS",
@@ -90,7 +90,7 @@ class VehicleModel:
 def _model_file(path) -> Path:
     """``path`` if it names a readable regular file, else a :class:`QuadobsError` saying what it is."""
     text = str(path)
-    shown = text if len(text) <= 80 else text[:60] + "..."
+    shown = abbreviated(text)
     if not text.strip() or "\0" in text or len(text) > 4096:
         raise QuadobsError(
             f"model: {shown!r} is not a file name (empty, holding NUL or longer than 4096 characters)"
