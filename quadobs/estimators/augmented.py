@@ -334,7 +334,13 @@ class AugmentedObserver(HalfSteps, Gated, Immersed, BlockStep):
         if z0 is not None:
             z = as_array("z0", z0, (N,))
         else:
-            z = immersion.lift(np.zeros(n) if x0 is None else as_array("x0", x0, (n,)))
+            x = np.zeros(n) if x0 is None else as_array("x0", x0, (n,))
+            with np.errstate(over="ignore", invalid="ignore"):
+                z = immersion.lift(x)
+            if not np.all(np.isfinite(z)):  # finite x0 whose squares overflow float64
+                raise QuadobsError(
+                    f"x0: its augmented state lift(x0) overflows (largest |x0| {np.max(np.abs(x)):.3g})"
+                )
         self._z = np.array(z, dtype=float)
         self._P = np.array(
             as_covariance("P0" if S0 is None else "S0", _initial_covariance(P0, S0), N), dtype=float

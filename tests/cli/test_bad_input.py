@@ -267,6 +267,16 @@ def test_unknown_scenario_name_lists_the_built_ins(capsys):
 OBSERVER_FIELDS = ("dt", "V", "W", "S0", "theta", "x0", "sample_period", "gate", "backend")
 
 
+def test_an_initial_state_whose_lift_overflows_is_named():
+    """A finite ``x0`` whose squares overflow float64 (a fresh clone's hypothesis drew it)."""
+    from quadobs import AugmentedObserver, immerse, vehicle_system
+
+    im = immerse(vehicle_system(2, np.array([[0.0, 0.0], [5.0, 0.0]])))
+    with pytest.raises(QuadobsError, match=r"^x0: its augmented state lift\(x0\) overflows"):
+        AugmentedObserver(im, 0.01, x0=[0.0, 0.0, 0.0, 9.480751908109177e153])
+    assert np.isfinite(AugmentedObserver(im, 0.01, x0=[0.0, 0.0, 0.0, 1e150]).z).all()
+
+
 @SOME
 @given(
     field=st.sampled_from(OBSERVER_FIELDS),
