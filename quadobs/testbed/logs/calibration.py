@@ -70,8 +70,8 @@ replay is given a clock offset or asked to search one (``--clock-offset``, not b
    for it only where, replayed through *that* estimator (its prediction of a range adding its
    own bias estimate), they predict the held-out ranges significantly better than the ranges
    as logged by an effect the size of a position error as long as the ranges' noise standard
-   deviation (:func:`effect_margin`), or where they lie outside its bias states' prior; else it takes
-   the ranges as logged (:func:`estimator_biases`). The biases of steps 2 to 5 are
+   deviation (:func:`effect_margin`), or where they lie outside its bias states' prior; else
+   it takes the ranges as logged (:func:`estimator_biases`). The biases of steps 2 to 5 are
    fitted and tested through the EKF, which holds neither the range biases nor what else a
    filter may hold as states (an acceleration's bias): its biases take up those errors too,
    and a filter that holds them would start its states from the EKF's compromise.
