@@ -958,7 +958,7 @@ def _add_replay(sub) -> None:
         action="append",
         default=[],
         metavar="KEY=VALUE",
-        help="the estimators' noise settings: range_sigma, q_xy, q_theta, q_acc, q_imu, gate (a number or none), P0, range_bias (1: the peer's bias per anchor as a state), q_xy_heading, velocity_std (m/s, or log: the velocity the log's start tells, where it tells one), nlos_prior (the excess mixture's stationary probability of a blocked path, in (0, 1)) (repeatable)",
+        help="the estimators' noise settings: range_sigma, q_xy, q_theta, q_acc, q_imu, gate (a number or none), P0, range_bias (1: the peer's bias per anchor as a state), q_xy_heading, velocity_std (m/s, or log: the velocity the log's start tells, where it tells one), nlos_prior (the excess mixture's stationary probability of a blocked path, in (0, 1)), steady_test (1: ekf-bias-imu-nlos takes a block of ranges read blocked as steady as the noise for its bias's error, the default; 0: off) (repeatable)",
     )
     p.add_argument(
         "--set",

@@ -9,13 +9,18 @@ script builds:
   filters' ``sight_model``, :mod:`quadobs.estimators.bias_states`);
 * ``--onset-test``: the Markov onset test of the excess chains on (the filters'
   ``onset_test``: several clear chains turned blocked within one round of the anchors taken as
-  a position error).
+  a position error);
+* ``--steady-test on|off``: the steady-offset test of the excess chains (the filters'
+  ``steady_test``: a block of an anchor's ranges read blocked as steady as the noise taken as
+  its bias's error) on or off in every bias filter under the mixture, the replay's
+  ``ekf-bias-imu-nlos`` included (whose default is on).
 
 ::
 
     python sims/bias_filter_options.py --sight-model grid stress_hidden_logs.py flight --seeds 0,1 --variants gap,moving
     python sims/bias_filter_options.py --onset-test stress_hidden_logs.py flight --seeds 0,1 --variants none,gap,moving
     python sims/bias_filter_options.py --sight-model grid replay_flight_variants.py --seeds 0,1 --duration 40 --variants real,bias
+    python sims/bias_filter_options.py --steady-test off stress_hidden_logs.py flight --seeds 0,1 --variants gap,moving
 """
 
 from __future__ import annotations
@@ -31,10 +36,28 @@ from quadobs.estimators import bias_states
 SIMS = Path(__file__).resolve().parent
 
 
+def _set_steady_test(on: bool) -> None:
+    """The steady-offset test on or off in every bias filter built from here on: the class's
+    default, and the replay's ``ekf-bias-imu-nlos``, which sets its own."""
+    from quadobs.estimators.robust import ExcessMixture
+    from quadobs.testbed.logs import imu_bias
+
+    bias_states._VehicleBlock.steady_test = on
+    build = imu_bias.build_ekf_bias_imu
+
+    def built(*args, **kwargs):
+        est = build(*args, **kwargs)
+        est.steady_test = on and isinstance(est.robust, ExcessMixture)
+        return est
+
+    imu_bias.build_ekf_bias_imu = built
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--sight-model", choices=("chain", "grid"), default="chain")
     ap.add_argument("--onset-test", action="store_true", help="the Markov onset test on")
+    ap.add_argument("--steady-test", choices=("on", "off"), help="default: as each filter is built")
     ap.add_argument("script", help="a script of sims/")
     ap.add_argument("rest", nargs=argparse.REMAINDER, help="the script's own arguments")
     args = ap.parse_args()
@@ -44,6 +67,8 @@ def main() -> None:
     model = bias_states._sight_model(args.sight_model)
     bias_states._sight_model = lambda name: model  # every filter built from here on
     bias_states._VehicleBlock.onset_test = args.onset_test
+    if args.steady_test is not None:
+        _set_steady_test(args.steady_test == "on")
     sys.argv = [str(script), *args.rest]
     runpy.run_path(str(script), run_name="__main__")
 

@@ -50,16 +50,22 @@ anchor's joint posterior of its bias and its state of sight
 (``sight_model="grid"``: :class:`~quadobs.estimators.robust.BiasSightGrid`, started where the
 chain was). With the chain, ``onset_test`` (off by default) takes several clear chains turned
 blocked within one round of the anchors as a position error, their joint onset being the
-product of each chain's own Markov prior (:meth:`_VehicleBlock._onset`).
+product of each chain's own Markov prior (:meth:`_VehicleBlock._onset`). ``steady_test`` (off
+by default; on in the replay's ``ekf-bias-imu-nlos``) takes a block of an anchor's ranges read
+blocked whose spread is the noise's, not an excess's, for its bias state's error: a bias
+estimated low reads its clear anchor as blocked, and the chain then keeps the ranges from
+correcting it (:meth:`_VehicleBlock._steady`).
 """
 
 from __future__ import annotations
 
+import functools
 import math
 from collections import deque
 from typing import TYPE_CHECKING
 
 import numpy as np
+from scipy import stats
 
 from quadobs.core.measurements import Measurement, RangeModel
 from quadobs.core.system import QuadraticSystem
@@ -179,6 +185,20 @@ def fix_std(R: np.ndarray, P_bias: np.ndarray) -> float:
     return math.sqrt(float(np.max(np.diag(R))) + float(np.max(np.diag(P_bias), initial=0.0)))
 
 
+@functools.lru_cache(maxsize=8)
+def steady_block(probability: float) -> tuple[int, float, float]:
+    """The steady-offset test's block ``N``, the median of ``chi^2(N - 1)`` and ``z`` (``z^2``
+    the ``probability`` quantile of ``chi^2(1)``): ``N`` the fewest ranges (from 3) at which
+    ``chi^2(N - 1)`` scaled by 2 (an excess as spread as the noise) falls at or below that
+    median with probability at most ``1 - probability`` (51 at 0.999)."""
+    z = math.sqrt(chi2_threshold(probability, 1))
+    for n in range(3, 1000):
+        median = float(stats.chi2.ppf(0.5, n - 1))
+        if stats.chi2.cdf(median / 2.0, n - 1) <= 1.0 - probability:
+            return n, median, z
+    raise QuadobsError(f"steady test: no block for the probability {probability}")
+
+
 def _gate_probability(rule) -> float:
     """The probability of the filter's gate, else the default gate's (0.999)."""
     return float(getattr(rule, "probability", ChiSquareGate().probability))
@@ -261,6 +281,9 @@ class _VehicleBlock:
         Times (s) at which the bias states were opened (after the start or a re-initialisation).
     held : int
         Corrections whose bias rows of the gain were held at zero.
+    steady_offsets : list of float
+        Times (s) at which the steady-offset test (:attr:`steady_test`) took a block of ranges
+        read blocked for a bias error.
     """
 
     vehicle_n: int = 0
@@ -274,6 +297,11 @@ class _VehicleBlock:
     onset_test: bool = False
     onset_window: float = 0.0
     _onset_pending: bool = False
+    #: The steady-offset test (:meth:`_steady`): a block of ranges read blocked whose spread is
+    #: the noise's, not the excess's, taken as the anchor's bias error. It reads the chain, so
+    #: it does nothing with ``sight_model="grid"``.
+    steady_test: bool = False
+    _steady_pending: tuple[int, float] | None = None
     fix_pending: bool = False
     fix_abandoned: float | None = None
     biases_open: bool = True
@@ -282,6 +310,7 @@ class _VehicleBlock:
     fixes: list
     opened_at: list
     onsets: list
+    steady_offsets: list
     _bias_prior: np.ndarray
     _fix_var: float
     _waited: int
@@ -329,6 +358,11 @@ class _VehicleBlock:
         self._onset_fire = np.zeros(q, dtype=bool)
         self._onset_pending = False
         self.onsets = []
+        # each anchor's block of ranges read blocked (the steady-offset test): count, sums of
+        # 1 / R, nu / R and nu^2 / R
+        self._block = np.zeros((q, 4))
+        self._steady_pending = None
+        self.steady_offsets = []
         self.sight = None  # the ExcessMixture's BiasSightGrid, from the biases' opening
         self.open_threshold = self._nis_window.threshold(2 * q)
 
@@ -375,6 +409,8 @@ class _VehicleBlock:
         if self.sight is None:
             if self.onset_test:
                 self._onset(rule, h, nlos, p_nlos, float(nu[0]))
+            if self.steady_test:
+                self._steady(rule, h, p_nlos, float(nu[0]), float(R[0, 0]))
             self._nlos[h], self._nlos_time[h] = p_nlos, self._time
         else:
             # the anchor's (bias, sight) posterior takes the range less the predicted distance,
@@ -438,6 +474,54 @@ class _VehicleBlock:
         self._onset_at[fire] = -math.inf
         self.onsets.append(self._time)
 
+    def _steady(self, rule: ExcessMixture, h: int, post: float, nu: float, R: float) -> None:
+        """The steady-offset test on anchor ``h``'s ranges read blocked (``post >= 1/2``), from
+        the biases' opening, in blocks of ``N`` consecutive ones (a range read clear, or any
+        while the biases are closed, restarts the block; a rejected range does not count).
+
+        Behind an obstacle the innovations are ``e_i + n_i``, the excess drawn afresh for each
+        range; a bias state ``delta`` low gives ``delta + n_i`` instead, as steady as the noise
+        ``n_i`` of variance ``R_i``. Over a block, with the weighted mean
+        ``hat delta = sum(nu_i / R_i) / sum(1 / R_i)``, the spread
+        ``Q = sum((nu_i - hat delta)^2 / R_i)`` is ``chi^2(N - 1)`` under a bias error (more
+        where the position's error moves within the block). The block is taken as one
+        (:meth:`_steady_release` after the update) where ``Q`` is at most the median of
+        ``chi^2(N - 1)`` and ``hat delta`` exceeds ``z / sqrt(sum 1 / R_i)`` (``z^2`` the
+        ``chi^2(1)`` quantile at the rule's ``P``). Neither needs the excess's law: ``N``
+        (:func:`steady_block`) is the fewest ranges at which an excess as spread as the noise
+        (``Q`` twice the noise's on average) passes with probability at most ``1 - P`` per
+        block. A bias error passes a block with probability about 1/2."""
+        block = self._block[h]
+        if post < 0.5 or not self.biases_open:
+            if block[0]:
+                block[:] = 0.0
+            return
+        w = 1.0 / R
+        block[0] += 1.0
+        block[1] += w
+        block[2] += w * nu
+        block[3] += w * nu * nu
+        n, median, z = steady_block(rule.probability)
+        if block[0] < n:
+            return
+        delta = block[2] / block[1]
+        spread = block[3] - block[2] * delta
+        if spread <= median and delta * math.sqrt(block[1]) > z:
+            self._steady_pending = (h, delta)
+        block[:] = 0.0
+
+    def _steady_release(self) -> None:
+        """The block's mean ``hat delta`` taken as the bias error of its anchor ``h``: the
+        bias's variance grown by ``hat delta^2`` (process noise on ``b_h`` alone), its chain
+        read clear (and out of the onset test's record)."""
+        assert self._steady_pending is not None
+        (h, delta), self._steady_pending = self._steady_pending, None
+        j = self.vehicle_n + h
+        self._P[j, j] += delta * delta
+        self._nlos[h], self._nlos_time[h] = 0.0, self._time
+        self._onset_at[h] = -math.inf
+        self.steady_offsets.append(self._time)
+
     def _update(self, z: np.ndarray, idx, R: np.ndarray) -> None:
         """A correction of the range outputs ``idx``; one range's anchor is kept for
         :meth:`_gain` (any other measurement, a TDOA, has none: ``-1``)."""
@@ -447,6 +531,8 @@ class _VehicleBlock:
             super()._update(z, idx, R)  # type: ignore[misc]
         finally:
             self._anchor = -1
+            if self._steady_pending is not None:
+                self._steady_release()
         if self._onset_pending:
             self._onset_release()
 
@@ -582,6 +668,8 @@ class _VehicleBlock:
             self.sight = None
             self._nlos[:], self._nlos_time[:] = 0.0, self._time
             self._onset_at[:] = -math.inf
+            self._block[:] = 0.0
+            self._steady_pending = None
             self.biases_open = False
             self._nis_window.clear()
             self._try_fix()  # the position covariance of a fix, as at the start

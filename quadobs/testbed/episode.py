@@ -663,7 +663,8 @@ class _EstimatorInfo(Sink):
 
 def _robust_info(est) -> dict:
     """The robust rule, lock-out re-initialisations and divergence of a filter that has them
-    (:mod:`quadobs.estimators.robust`): a diverged filter is reported as such."""
+    (:mod:`quadobs.estimators.robust`): a diverged filter is reported as such; a bias filter's
+    steady-offset test's firings where it is on (:mod:`quadobs.estimators.bias_states`)."""
     out: dict = {}
     rule = getattr(est, "robust", None)
     if rule is not None:
@@ -671,6 +672,8 @@ def _robust_info(est) -> dict:
     lock = getattr(est, "lockout", None)
     if lock is not None and (lock.resets or lock.diverged):
         out.update(lock.summary())
+    if getattr(est, "steady_test", False):  # the times its steady-offset test took a bias error
+        out["steady_offsets"] = [float(t) for t in est.steady_offsets]
     return out
 
 

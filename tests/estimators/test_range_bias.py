@@ -378,3 +378,115 @@ def test_markov_onset_fires_on_three_clear_chains_turned_in_one_round_not_two():
         f._nlos[h], f._nlos_time[h] = 0.99, f._time
         assert f._onset_pending == (k == 2)
     assert f._onset_fire[:3].all() and not f._onset_fire[3:].any()
+
+
+def _steady_run(innovations, R=0.01):
+    """Feed one anchor's ranges, all read blocked, to the steady-offset test; the count of
+    ranges after which it fired (``None``: it never did)."""
+    from types import SimpleNamespace
+
+    from quadobs.estimators.bias_states import _VehicleBlock
+    from quadobs.estimators.robust import ExcessMixture
+
+    rule = ExcessMixture(median=0.3, shape=0.6)
+    f = SimpleNamespace(_block=np.zeros((8, 4)), _steady_pending=None, biases_open=True)
+    for i, nu in enumerate(innovations, start=1):
+        _VehicleBlock._steady(f, rule, 2, 0.99, float(nu), R)
+        if f._steady_pending is not None:
+            return i
+    return None
+
+
+def test_steady_offset_passes_a_bias_error_and_not_an_excess():
+    """Blocks of 51 ranges (``steady_block`` at ``P = 0.999``) with the noise's 0.1 m: a bias
+    state 0.3 m low (innovations ``0.3 + n``) passes a block with probability 1/2 (the median
+    of ``chi^2(50)``), an excess as spread as the noise (``0.5 + e + n``, ``e ~ N(0, 0.1^2)``)
+    with probability 0.001, and the stand-ins' log-normal excess (median 0.3 m, shape 0.6:
+    0.24 m standard deviation) never; a negative mean is no excess. 400 blocks each."""
+    from quadobs.estimators.bias_states import steady_block
+
+    n, median, z = steady_block(0.999)
+    assert (
+        n == 51 and median == pytest.approx(49.33, abs=0.01) and z == pytest.approx(3.29, abs=0.01)
+    )
+    rng = np.random.default_rng(3)
+
+    def passed(draw):
+        return sum(_steady_run(draw()) is not None for _ in range(400))
+
+    bias = passed(lambda: 0.3 + 0.1 * rng.standard_normal(n))
+    assert 160 <= bias <= 240, bias  # binomial(400, 1/2): 200 +- 20
+    wide = passed(lambda: 0.5 + 0.1 * rng.standard_normal(n) + 0.1 * rng.standard_normal(n))
+    assert wide <= 3, wide  # binomial(400, 0.001): 0.4 expected, 4 or more 0.008
+    lognormal = passed(
+        lambda: 0.3 * np.exp(0.6 * rng.standard_normal(n)) + 0.1 * rng.standard_normal(n)
+    )
+    assert lognormal == 0
+    assert passed(lambda: -0.3 + 0.1 * rng.standard_normal(n)) == 0
+
+
+def test_steady_offset_restarts_on_a_clear_range_and_releases_into_the_bias():
+    """A block restarts on every range read clear, so 200 ranges of a steady 0.6 m offset
+    with one clear range in 40 never fill a block. A block taken as a bias error grows that
+    anchor's bias variance by its mean squared, reads its chain clear, takes it out of the
+    onset test's record and logs the time."""
+    from types import SimpleNamespace
+
+    from quadobs.estimators.bias_states import _VehicleBlock
+    from quadobs.estimators.robust import ExcessMixture
+
+    rule = ExcessMixture(median=0.3, shape=0.6)
+    f = SimpleNamespace(_block=np.zeros((8, 4)), _steady_pending=None, biases_open=True)
+    for k in range(200):
+        post = 0.2 if k % 40 == 39 else 0.99  # every fortieth range read clear
+        _VehicleBlock._steady(f, rule, 0, post, 0.6, 0.01)
+    assert f._steady_pending is None and f._block[0, 0] == 0.0
+    P = np.eye(14) * 0.01
+    g = SimpleNamespace(
+        _steady_pending=(2, 0.4), vehicle_n=6, _P=P.copy(), _nlos=np.ones(8),
+        _nlos_time=np.zeros(8), _time=12.5, _onset_at=np.full(8, 12.0), steady_offsets=[],
+    )  # fmt: skip
+    _VehicleBlock._steady_release(g)
+    grown = P.copy()
+    grown[8, 8] += 0.4 * 0.4
+    np.testing.assert_array_equal(g._P, grown)
+    assert g._nlos[2] == 0.0 and g._nlos_time[2] == 12.5 and g._onset_at[2] == -np.inf
+    assert g._steady_pending is None and g.steady_offsets == [12.5]
+
+
+def test_steady_offset_frees_a_bias_state_trapped_low_in_the_filter():
+    """A vehicle at rest ranged by eight anchors without bias, the filter's bias state of
+    anchor 0 started 0.5 m low and sure of itself (0.01 m): under the excess mixture every
+    range of anchor 0 reads as blocked and the chain keeps it from correcting the bias (still
+    more than 0.3 m low after 200 rounds). With the steady-offset test a block is taken as the
+    bias's error and the bias comes back within 0.05 m, the position with it."""
+    from quadobs.estimators.bias_states import BiasedExtendedKalmanFilter
+    from quadobs.estimators.robust import ExcessMixture
+
+    system = vehicle_system(3, ANCHORS)
+    model = RangeModel(ANCHORS, 0.1, bias="state")
+    dyn, out, P0 = biased_models(system, 0.01, 0.1, 0.02, 1e-4 * np.eye(6), model, bias_std=0.01)
+    p = np.array([0.3, -0.2, 1.6])
+    d = np.linalg.norm(ANCHORS - p, axis=1)
+    found = {}
+    for on in (False, True):
+        rng = np.random.default_rng(0)
+        b0 = np.zeros(8)
+        b0[0] = -0.5
+        est = BiasedExtendedKalmanFilter(
+            dyn,
+            out,
+            x0=np.r_[p, np.zeros(3), b0],
+            P0=P0,
+            vehicle_n=6,
+            robust=ExcessMixture(0.3, 0.6),
+        )
+        est.steady_test = on
+        for _ in range(200):
+            for h in range(8):
+                rho = d[h] + 0.1 * rng.standard_normal()
+                est.correct(Measurement(0.0, "range", rho, (h,), 0.1))
+        found[on] = (est.biases[0], len(est.steady_offsets), np.linalg.norm(est.x_hat[:3] - p))
+    assert found[False][0] < -0.3 and found[False][1] == 0, found
+    assert abs(found[True][0]) < 0.05 and found[True][1] >= 1, found
+    assert found[True][2] < found[False][2], found

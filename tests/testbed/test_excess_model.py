@@ -222,3 +222,40 @@ def test_a_held_core_stays_where_it_is_held():
     assert fit.fraction == pytest.approx(0.3, abs=0.06)
     wide = fit_excess(r, h, Q, 30, sigma=2.0 * SIGMA)
     assert wide.fraction < fit.fraction - 0.05 and wide.median > fit.median
+
+
+def test_the_steady_offset_test_is_on_for_the_mixtures_filter_and_tuned_off():
+    """``ekf-bias-imu-nlos`` takes the steady-offset test where it weighs the ranges by the
+    excess mixture (``--tune steady_test=0`` turns it off); under the one-sided gate (no
+    excess identified) it has no chain to test; any value but 0 or 1 is refused in one line."""
+    from quadobs.errors import QuadobsError
+    from quadobs.testbed.logs.estimators import (
+        ReplaySetup,
+        build_ekf_bias_imu,
+        build_ekf_bias_imu_nlos,
+        parse_tuning,
+    )
+
+    beacons = np.array([[-3, -3, 0.2], [3, -3, 0.2], [3, 3, 2.8], [-3, 3, 2.8]], dtype=float)
+
+    def setup(**kw):
+        base = {
+            "beacons": beacons,
+            "dt": 0.01,
+            "model": "imu",
+            "heading0": 0.0,
+            "input_kind": "imu_body",
+        }
+        return ReplaySetup(**{**base, "range_median": 4.0, "range_sigma": 0.1, **kw})
+
+    x0 = np.zeros(6)
+    excess = {"nlos_median": 0.4, "nlos_shape": 0.7}
+    assert build_ekf_bias_imu_nlos(setup(**excess), x0).steady_test
+    assert not build_ekf_bias_imu_nlos(setup(**excess, steady_test=0), x0).steady_test
+    assert not build_ekf_bias_imu_nlos(setup(), x0).steady_test  # the gate: no chain
+    assert not build_ekf_bias_imu(setup(**excess), x0).steady_test
+    assert parse_tuning(["steady_test=0"]) == {"steady_test": 0.0}
+    with pytest.raises(QuadobsError, match=r"--tune steady_test: expected 0 \(off\) or 1 \(on\)"):
+        parse_tuning(["steady_test=2"])
+    with pytest.raises(QuadobsError, match=r"steady_test: expected 0 \(off\) or 1 \(on\)"):
+        setup(steady_test=0.5)

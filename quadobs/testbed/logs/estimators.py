@@ -217,6 +217,10 @@ class ReplaySetup:
         ``--tune velocity_std=log`` applies it, else
         :data:`~quadobs.testbed.logs.start_prior.UNKNOWN_VELOCITY_STD`
         (:func:`~quadobs.testbed.logs.start_prior.velocity_prior`).
+    steady_test : float
+        1 (the default) or 0: the steady-offset test of the bias filters under the excess
+        mixture (``ekf-bias-imu-nlos``; :meth:`quadobs.estimators.bias_states._VehicleBlock._steady`,
+        ``--tune steady_test=0`` turns it off).
     """
 
     beacons: np.ndarray
@@ -249,6 +253,7 @@ class ReplaySetup:
     start: StartPrior | None = None
     nlos_prior: float = ExcessMixture.nlos
     velocity_std: float | None = None
+    steady_test: float = 1.0
     system: QuadraticSystem = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
@@ -256,8 +261,10 @@ class ReplaySetup:
             raise QuadobsError(
                 f"range_bias: expected 0 (off) or 1 (a state), got {self.range_bias!r}"
             )
+        if self.steady_test not in (0, 1):
+            raise QuadobsError(f"steady_test: expected 0 (off) or 1 (on), got {self.steady_test!r}")
         for key in TUNING:
-            if key == "range_bias":
+            if key in ("range_bias", "steady_test"):
                 continue
             value = getattr(self, key)
             if not (key in ("gate", "velocity_std") and value is None) and not (
@@ -329,7 +336,7 @@ def tuning_fields(options) -> dict:
 #: The settings of :class:`ReplaySetup` a user may tune (``quadobs replay --tune KEY=VALUE``).
 TUNING = (
     "range_sigma", "q_xy", "q_theta", "q_acc", "q_imu", "gate", "P0", "range_bias",
-    "q_xy_heading", "velocity_std", "nlos_prior",
+    "q_xy_heading", "velocity_std", "nlos_prior", "steady_test",
 )  # fmt: skip
 
 
@@ -353,6 +360,10 @@ def parse_tuning(settings) -> dict:
             out[key] = float(raw)
         except ValueError:
             raise QuadobsError(f"--tune {key}: expected a number, got {raw.strip()!r}") from None
+        if key == "steady_test" and out[key] not in (0.0, 1.0):
+            raise QuadobsError(
+                f"--tune steady_test: expected 0 (off) or 1 (on), got {raw.strip()!r}"
+            )
         if key == "nlos_prior" and not 0.0 < out[key] < 1.0:  # type: ignore[operator]
             raise QuadobsError(
                 f"--tune nlos_prior: expected a probability in (0, 1), got {raw.strip()!r}"
@@ -979,7 +990,8 @@ def build_ekf_bias_imu_nlos(
 ) -> Estimator:
     """Entry point ``ekf-bias-imu-nlos``: ``ekf-bias-imu`` weighing each range by the
     non-line-of-sight excess's mixture where the self-calibration estimated the excess from
-    the log (:mod:`quadobs.testbed.logs.excess_model`), else the same filter."""
+    the log (:mod:`quadobs.testbed.logs.excess_model`), with the steady-offset test
+    (``steady_test`` of the setup, on by default), else the same filter."""
     from quadobs.testbed.logs import imu_bias
 
     return imu_bias.build_ekf_bias_imu(s, x0, name, ACCEL_BIAS_STD, ACCEL_BIAS_TIME, excess=True)

@@ -160,6 +160,9 @@ class InTimeOnGrid(InnerClock):
     # up), for the summary (quadobs.testbed.episode, quadobs.testbed.divergence)
     robust = property(lambda self: getattr(self.inner, "robust", None))
     lockout = property(lambda self: getattr(self.inner, "lockout", None))
+    # and the bias filters' steady-offset test, where it is on (quadobs.estimators.bias_states)
+    steady_test = property(lambda self: getattr(self.inner, "steady_test", False))
+    steady_offsets = property(lambda self: getattr(self.inner, "steady_offsets", []))
 
     def summary(self) -> dict:
         summary = self.inner.summary  # type: ignore[attr-defined]  # Switching declares it

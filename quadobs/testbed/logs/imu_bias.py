@@ -118,6 +118,8 @@ def build_ekf_bias_imu(
     excess mixture where the self-calibration estimated the excess, else the same gate. The
     two are kept apart because no score on held-out ranges tells which of them places the
     vehicle better (docs/error-sources.md, in the replay: the excess estimated from the log).
+    Under the mixture the filter takes the steady-offset test where ``s.steady_test`` is 1
+    (:meth:`~quadobs.estimators.bias_states._VehicleBlock._steady`).
     """
     from quadobs.core.measurements import RangeModel
     from quadobs.estimators.bias_states import BiasedRangeOutputModel, extended_system
@@ -166,5 +168,6 @@ def build_ekf_bias_imu(
         dim=dim,
         robust=rule,
     )
+    est.steady_test = isinstance(rule, ExcessMixture) and bool(s.steady_test)
     est.name = name
     return est

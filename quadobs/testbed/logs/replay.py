@@ -492,6 +492,7 @@ def _summary(
             "q_imu": setup.q_imu,
             "gate": setup.gate,
             "range_bias": setup.range_bias,
+            "steady_test": setup.steady_test,
             "P0": setup.P0,
         },
         "measurements": {
