@@ -54,7 +54,9 @@ product of each chain's own Markov prior (:meth:`_VehicleBlock._onset`). ``stead
 by default; on in the replay's ``ekf-bias-imu-nlos``) takes a block of an anchor's ranges read
 blocked whose spread is the noise's, not an excess's, for its bias state's error: a bias
 estimated low reads its clear anchor as blocked, and the chain then keeps the ranges from
-correcting it (:meth:`_VehicleBlock._steady`).
+correcting it (:meth:`_VehicleBlock._steady`); and the other way, a block of its ranges in
+line of sight steadily short, which a bias estimated high rejects as outliers
+(:meth:`_VehicleBlock._steady_short`).
 """
 
 from __future__ import annotations
@@ -91,6 +93,8 @@ __all__ = [
     "BiasedUnscentedKalmanFilter",
     "biased_models",
     "extended_system",
+    "steady_block",
+    "steady_offset",
 ]
 
 
@@ -199,6 +203,42 @@ def steady_block(probability: float) -> tuple[int, float, float]:
     raise QuadobsError(f"steady test: no block for the probability {probability}")
 
 
+def steady_offset(
+    block: np.ndarray,
+    probability: float,
+    counts: bool,
+    nu: float,
+    R: float,
+    sign: float,
+    per_range: bool = False,
+) -> float | None:
+    """One range of the steady-offset test (:meth:`_VehicleBlock._steady`): added to ``block``
+    (its count and the sums of ``1 / R``, ``nu / R``, ``nu^2 / R``, in place) where it
+    ``counts``, else the block restarted. At ``N`` ranges (:func:`steady_block`) the block is
+    tested and restarted: its mean ``hat delta`` is returned where the spread ``Q`` is at most
+    the median of ``chi^2(N - 1)`` and ``sign * hat delta`` exceeds ``z / sqrt(sum 1 / R)``
+    (the mean's bound), or with ``per_range`` ``z sqrt(N / sum 1 / R)`` (one range's bound:
+    an offset its gate rejects), else None."""
+    if not counts:
+        if block[0]:
+            block[:] = 0.0
+        return None
+    w = 1.0 / R
+    block[0] += 1.0
+    block[1] += w
+    block[2] += w * nu
+    block[3] += w * nu * nu
+    n, median, z = steady_block(probability)
+    if block[0] < n:
+        return None
+    delta = float(block[2] / block[1])
+    spread = block[3] - block[2] * delta
+    bound = z * math.sqrt(n if per_range else 1.0)
+    steady = spread <= median and sign * delta * math.sqrt(block[1]) > bound
+    block[:] = 0.0
+    return delta if steady else None
+
+
 def _gate_probability(rule) -> float:
     """The probability of the filter's gate, else the default gate's (0.999)."""
     return float(getattr(rule, "probability", ChiSquareGate().probability))
@@ -297,9 +337,10 @@ class _VehicleBlock:
     onset_test: bool = False
     onset_window: float = 0.0
     _onset_pending: bool = False
-    #: The steady-offset test (:meth:`_steady`): a block of ranges read blocked whose spread is
-    #: the noise's, not the excess's, taken as the anchor's bias error. It reads the chain, so
-    #: it does nothing with ``sight_model="grid"``.
+    #: The steady-offset test (:meth:`_steady`, :meth:`_steady_short`): a block of ranges read
+    #: blocked whose spread is the noise's, not the excess's, or of ranges in line of sight
+    #: steadily short, taken as the anchor's bias error. It reads the chain, so it does nothing
+    #: with ``sight_model="grid"``.
     steady_test: bool = False
     _steady_pending: tuple[int, float] | None = None
     fix_pending: bool = False
@@ -361,6 +402,7 @@ class _VehicleBlock:
         # each anchor's block of ranges read blocked (the steady-offset test): count, sums of
         # 1 / R, nu / R and nu^2 / R
         self._block = np.zeros((q, 4))
+        self._short = np.zeros((q, 4))  # and of ranges rejected as short
         self._steady_pending = None
         self.steady_offsets = []
         self.sight = None  # the ExcessMixture's BiasSightGrid, from the biases' opening
@@ -400,6 +442,9 @@ class _VehicleBlock:
         if post is not None and self.gate is not None:  # the filter's own gate on the NIS
             if (nu[0] - post[0]) ** 2 / (S[0, 0] + post[1]) > self.gate:
                 post = None
+        if self.steady_test and self.sight is None:  # a bias too high: short and clear ranges
+            clear = nu[0] < 0.0 if post is None else post[2] < 0.5
+            self._steady_short(rule, h, clear, float(nu[0]), float(R[0, 0]))
         if post is None:
             self.nis, self.nis_dof = float(nu[0] ** 2 / S[0, 0]), 1
             self.rejected += 1
@@ -491,29 +536,29 @@ class _VehicleBlock:
         (:func:`steady_block`) is the fewest ranges at which an excess as spread as the noise
         (``Q`` twice the noise's on average) passes with probability at most ``1 - P`` per
         block. A bias error passes a block with probability about 1/2."""
-        block = self._block[h]
-        if post < 0.5 or not self.biases_open:
-            if block[0]:
-                block[:] = 0.0
-            return
-        w = 1.0 / R
-        block[0] += 1.0
-        block[1] += w
-        block[2] += w * nu
-        block[3] += w * nu * nu
-        n, median, z = steady_block(rule.probability)
-        if block[0] < n:
-            return
-        delta = block[2] / block[1]
-        spread = block[3] - block[2] * delta
-        if spread <= median and delta * math.sqrt(block[1]) > z:
+        counts = post >= 0.5 and self.biases_open
+        delta = steady_offset(self._block[h], rule.probability, counts, nu, R, 1.0)
+        if delta is not None:
             self._steady_pending = (h, delta)
-        block[:] = 0.0
+
+    def _steady_short(self, rule: ExcessMixture, h: int, clear: bool, nu: float, R: float) -> None:
+        """The same test, the other way, on anchor ``h``'s ranges in line of sight (``clear``:
+        read clear, or rejected as shorter than line of sight; a range read blocked or
+        rejected as too long restarts the block). A bias state too high (an excess taken into
+        it that has ended) makes its anchor's ranges short: beyond the gate most are rejected,
+        and nothing corrects it. A block as steady as the noise with ``hat delta`` below
+        ``-z sqrt(N / sum 1 / R_i)`` (beyond the gate of one range of the mean noise: an
+        offset the mixture would reject) is taken as its error; a smaller one the accepted
+        ranges correct."""
+        counts = clear and self.biases_open
+        delta = steady_offset(self._short[h], rule.probability, counts, nu, R, -1.0, True)
+        if delta is not None:
+            self._steady_pending = (h, delta)
 
     def _steady_release(self) -> None:
-        """The block's mean ``hat delta`` taken as the bias error of its anchor ``h``: the
-        bias's variance grown by ``hat delta^2`` (process noise on ``b_h`` alone), its chain
-        read clear (and out of the onset test's record)."""
+        """The block's mean ``hat delta`` taken as the bias error of its anchor ``h`` (low where
+        positive, high where negative): the bias's variance grown by ``hat delta^2`` (process
+        noise on ``b_h`` alone), its chain read clear (and out of the onset test's record)."""
         assert self._steady_pending is not None
         (h, delta), self._steady_pending = self._steady_pending, None
         j = self.vehicle_n + h
@@ -669,6 +714,7 @@ class _VehicleBlock:
             self._nlos[:], self._nlos_time[:] = 0.0, self._time
             self._onset_at[:] = -math.inf
             self._block[:] = 0.0
+            self._short[:] = 0.0
             self._steady_pending = None
             self.biases_open = False
             self._nis_window.clear()

@@ -425,6 +425,29 @@ def test_steady_offset_passes_a_bias_error_and_not_an_excess():
     assert passed(lambda: -0.3 + 0.1 * rng.standard_normal(n)) == 0
 
 
+def test_steady_offset_the_other_way_passes_a_bias_too_high_and_not_a_right_one():
+    """The test on an anchor's clear and short ranges (a bias state too high): blocks of a
+    steady -0.5 m offset (beyond one range's gate, 3.29 x 0.1 m) pass with probability 1/2;
+    -0.2 m (which the accepted ranges correct), a right bias and a positive mean never (400
+    blocks each, the noise 0.1 m)."""
+    from quadobs.estimators.bias_states import steady_block, steady_offset
+
+    n = steady_block(0.999)[0]
+    rng = np.random.default_rng(5)
+
+    def passed(mean):
+        block, count = np.zeros(4), 0
+        for _ in range(400):
+            for nu in mean + 0.1 * rng.standard_normal(n):
+                count += steady_offset(block, 0.999, True, float(nu), 0.01, -1.0, True) is not None
+        return count
+
+    assert 160 <= passed(-0.5) <= 240
+    assert passed(-0.2) == 0
+    assert passed(0.0) == 0
+    assert passed(0.3) == 0
+
+
 def test_steady_offset_restarts_on_a_clear_range_and_releases_into_the_bias():
     """A block restarts on every range read clear, so 200 ranges of a steady 0.6 m offset
     with one clear range in 40 never fill a block. A block taken as a bias error grows that
@@ -454,12 +477,14 @@ def test_steady_offset_restarts_on_a_clear_range_and_releases_into_the_bias():
     assert g._steady_pending is None and g.steady_offsets == [12.5]
 
 
-def test_steady_offset_frees_a_bias_state_trapped_low_in_the_filter():
+@pytest.mark.parametrize("start", [-0.5, 0.5])
+def test_steady_offset_frees_a_bias_state_trapped_in_the_filter(start):
     """A vehicle at rest ranged by eight anchors without bias, the filter's bias state of
-    anchor 0 started 0.5 m low and sure of itself (0.01 m): under the excess mixture every
-    range of anchor 0 reads as blocked and the chain keeps it from correcting the bias (still
-    more than 0.3 m low after 200 rounds). With the steady-offset test a block is taken as the
-    bias's error and the bias comes back within 0.05 m, the position with it."""
+    anchor 0 started 0.5 m off and sure of itself (0.01 m). Under the excess mixture, low
+    (-0.5) every range of anchor 0 reads as blocked and the chain keeps it from correcting the
+    bias; high (+0.5) most of its ranges are rejected as shorter than line of sight. Either way
+    the bias is still more than 0.3 m off after 200 rounds. With the steady-offset test a block
+    is taken as the bias's error and the bias comes back within 0.05 m, the position with it."""
     from quadobs.estimators.bias_states import BiasedExtendedKalmanFilter
     from quadobs.estimators.robust import ExcessMixture
 
@@ -472,7 +497,7 @@ def test_steady_offset_frees_a_bias_state_trapped_low_in_the_filter():
     for on in (False, True):
         rng = np.random.default_rng(0)
         b0 = np.zeros(8)
-        b0[0] = -0.5
+        b0[0] = start
         est = BiasedExtendedKalmanFilter(
             dyn,
             out,
@@ -487,6 +512,6 @@ def test_steady_offset_frees_a_bias_state_trapped_low_in_the_filter():
                 rho = d[h] + 0.1 * rng.standard_normal()
                 est.correct(Measurement(0.0, "range", rho, (h,), 0.1))
         found[on] = (est.biases[0], len(est.steady_offsets), np.linalg.norm(est.x_hat[:3] - p))
-    assert found[False][0] < -0.3 and found[False][1] == 0, found
+    assert abs(found[False][0]) > 0.3 and found[False][1] == 0, found
     assert abs(found[True][0]) < 0.05 and found[True][1] >= 1, found
     assert found[True][2] < found[False][2], found
