@@ -13,7 +13,8 @@ script builds:
 * ``--steady-test on|off``: the steady-offset test of the excess chains (the filters'
   ``steady_test``: a block of an anchor's ranges read blocked as steady as the noise taken as
   its bias's error) on or off in every bias filter under the mixture, the replay's
-  ``ekf-bias-imu-nlos`` included (whose default is on).
+  ``ekf-bias-imu-nlos`` included (whose default is on; the replay's summary keeps
+  ``noise.steady_test`` at the setup's value, and ``steady_offsets`` follows the filter).
 
 ::
 

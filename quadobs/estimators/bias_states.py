@@ -322,8 +322,8 @@ class _VehicleBlock:
     held : int
         Corrections whose bias rows of the gain were held at zero.
     steady_offsets : list of float
-        Times (s) at which the steady-offset test (:attr:`steady_test`) took a block of ranges
-        read blocked for a bias error.
+        Times (s) at which the steady-offset test (:attr:`steady_test`) took a block of an
+        anchor's ranges (read blocked, or in line of sight and short) for its bias's error.
     """
 
     vehicle_n: int = 0
@@ -402,7 +402,7 @@ class _VehicleBlock:
         # each anchor's block of ranges read blocked (the steady-offset test): count, sums of
         # 1 / R, nu / R and nu^2 / R
         self._block = np.zeros((q, 4))
-        self._short = np.zeros((q, 4))  # and of ranges rejected as short
+        self._short = np.zeros((q, 4))  # and of ranges in line of sight (the other way)
         self._steady_pending = None
         self.steady_offsets = []
         self.sight = None  # the ExcessMixture's BiasSightGrid, from the biases' opening

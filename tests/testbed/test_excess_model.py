@@ -259,3 +259,17 @@ def test_the_steady_offset_test_is_on_for_the_mixtures_filter_and_tuned_off():
         parse_tuning(["steady_test=2"])
     with pytest.raises(QuadobsError, match=r"steady_test: expected 0 \(off\) or 1 \(on\)"):
         setup(steady_test=0.5)
+
+
+def test_the_summary_lists_the_steady_offset_tests_firings_only_where_it_is_on():
+    """A filter with the test on reports each firing's time (``steady_offsets``, an empty
+    list where it never fired); a filter with it off has no such key, so every other
+    summary keeps its keys."""
+    from quadobs.testbed.episode import _robust_info
+
+    on = SimpleNamespace(steady_test=True, steady_offsets=[12.5, 30.0])
+    assert _robust_info(on) == {"steady_offsets": [12.5, 30.0]}
+    assert _robust_info(SimpleNamespace(steady_test=True, steady_offsets=[])) == {
+        "steady_offsets": []
+    }
+    assert "steady_offsets" not in _robust_info(SimpleNamespace(steady_test=False))
