@@ -1061,6 +1061,17 @@ def _cmd_replay(args) -> int:
         calibration=getattr(args, "calibration_report", None),
         as_logged=getattr(args, "as_logged", ()),
     )
+    _print_replay_rows(summary, log)
+    print_diverged(summary)
+    if args.summary:
+        print(f"summary: {args.summary}")
+    if summary["interrupted"]:
+        return 130
+    return diverged_status(summary, _estimator_list(args.estimators))
+
+
+def _print_replay_rows(summary: dict, log) -> None:
+    """The replay's log line and one row per estimator (its RMSE, or why it has none)."""
     m = summary["measurements"]
     print(
         f"log {summary['log']}: {summary['duration']:.1f} s, {summary['ranges']['placed']} ranges, model {summary['model']}"
@@ -1092,12 +1103,6 @@ def _cmd_replay(args) -> int:
             f"final {_fmt(e['final_position_error'], ' m')}  {e['seconds_per_measurement'] * 1e6:.0f} us/range{extra}"
             + _field_split(e)
         )
-    print_diverged(summary)
-    if args.summary:
-        print(f"summary: {args.summary}")
-    if summary["interrupted"]:
-        return 130
-    return diverged_status(summary, _estimator_list(args.estimators))
 
 
 def _replay_export(args, log) -> int:
