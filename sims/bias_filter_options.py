@@ -1,4 +1,4 @@
-"""Another sims script run with the bias-state filters' state of sight changed.
+"""Another sims script (or the command line) run with the bias-state filters' state of sight changed.
 
 The replay builds its filters with their defaults; a study of an option the replay does not
 expose runs a sims script in this process with the option set on every bias-state filter the
@@ -14,7 +14,14 @@ script builds:
   ``steady_test``: a block of an anchor's ranges read blocked as steady as the noise taken as
   its bias's error) on or off in every bias filter under the mixture, the replay's
   ``ekf-bias-imu-nlos`` included (whose default is on; the replay's summary keeps
-  ``noise.steady_test`` at the setup's value, and ``steady_offsets`` follows the filter).
+  ``noise.steady_test`` at the setup's value, and ``steady_offsets`` follows the filter);
+* ``--line-of-sight P``: the one-sided gate's line-of-sight probability (its threshold
+  ``z_+ = Phi^{-1}(P)``, :class:`~quadobs.estimators.robust.SkewedGate`; default 0.95) in
+  every gate built from here on without one of its own: the replay's ``ekf-bias``,
+  ``ekf-bias-imu`` and, where no excess is identified, ``ekf-bias-imu-nlos``.
+
+The script is a file of ``sims/``, or ``quadobs`` for the command line itself (its
+arguments after it).
 
 ::
 
@@ -22,6 +29,7 @@ script builds:
     python sims/bias_filter_options.py --onset-test stress_hidden_logs.py flight --seeds 0,1 --variants none,gap,moving
     python sims/bias_filter_options.py --sight-model grid replay_flight_variants.py --seeds 0,1 --duration 40 --variants real,bias
     python sims/bias_filter_options.py --steady-test off stress_hidden_logs.py flight --seeds 0,1 --variants gap,moving
+    python sims/bias_filter_options.py --line-of-sight 0.99 quadobs replay DIR --burn-in 5
 """
 
 from __future__ import annotations
@@ -54,24 +62,50 @@ def _set_steady_test(on: bool) -> None:
     imu_bias.build_ekf_bias_imu = built
 
 
+def _set_line_of_sight(probability: float) -> None:
+    """The one-sided gate's default line-of-sight probability, for every gate built from here
+    on that is not given its own (the dataclass's generated ``__init__`` reads its defaults)."""
+    from quadobs.estimators.robust import SkewedGate
+
+    SkewedGate(line_of_sight=probability)  # refused in one line outside (0.5, 1)
+    two_sided, _ = SkewedGate.__init__.__defaults__
+    SkewedGate.__init__.__defaults__ = (two_sided, probability)
+
+
+def _run(name: str, rest: list[str], ap: argparse.ArgumentParser) -> None:
+    """The sims script ``name`` with ``rest`` as its arguments, or the command line."""
+    if name == "quadobs":
+        from quadobs import cli
+
+        sys.exit(cli.main(rest))
+    script = SIMS / name
+    if not script.is_file():
+        ap.error(f"no script {name!r} in sims/")
+    sys.argv = [str(script), *rest]
+    runpy.run_path(str(script), run_name="__main__")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--sight-model", choices=("chain", "grid"), default="chain")
     ap.add_argument("--onset-test", action="store_true", help="the Markov onset test on")
     ap.add_argument("--steady-test", choices=("on", "off"), help="default: as each filter is built")
-    ap.add_argument("script", help="a script of sims/")
+    ap.add_argument(
+        "--line-of-sight",
+        type=float,
+        help="the one-sided gate's line-of-sight probability (default 0.95)",
+    )
+    ap.add_argument("script", help="a script of sims/, or quadobs (the command line)")
     ap.add_argument("rest", nargs=argparse.REMAINDER, help="the script's own arguments")
     args = ap.parse_args()
-    script = SIMS / args.script
-    if not script.is_file():
-        ap.error(f"no script {args.script!r} in sims/")
+    if args.line_of_sight is not None:
+        _set_line_of_sight(args.line_of_sight)
     model = bias_states._sight_model(args.sight_model)
     bias_states._sight_model = lambda name: model  # every filter built from here on
     bias_states._VehicleBlock.onset_test = args.onset_test
     if args.steady_test is not None:
         _set_steady_test(args.steady_test == "on")
-    sys.argv = [str(script), *args.rest]
-    runpy.run_path(str(script), run_name="__main__")
+    _run(args.script, args.rest, ap)
 
 
 if __name__ == "__main__":

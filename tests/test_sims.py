@@ -211,3 +211,29 @@ def test_a_scripts_bad_scenario_setting_is_one_line_and_status_2(tmp_path):
     assert done.stderr.strip().splitlines() == [
         "uwb_realistic.py: error: quadrotor.landing: take-off and landing must fit in the duration 4.0 s"
     ]
+
+
+def test_bias_filter_options_sets_the_gate_and_runs_the_command_line():
+    """``--line-of-sight`` reaches every one-sided gate built afterwards (checked in a child, so
+    this process keeps the default); ``quadobs`` runs the command line; a bad value is refused."""
+    code = (
+        "import runpy, sys; from unittest.mock import patch\n"
+        "from quadobs.estimators.robust import SkewedGate\n"
+        "seen = []\n"
+        "def cli_main(argv): seen.append((SkewedGate().line_of_sight, argv)); return 0\n"
+        "sys.argv = ['bias_filter_options.py', '--line-of-sight', '0.99', 'quadobs', '--version']\n"
+        "with patch('quadobs.cli.main', cli_main):\n"
+        f"    try: runpy.run_path({str(SIMS / 'bias_filter_options.py')!r}, run_name='__main__')\n"
+        "    except SystemExit as e: print(e.code, seen)\n"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, timeout=120, cwd=SIMS
+    )
+    assert out.stdout.strip() == "0 [(0.99, ['--version'])]", out.stderr
+    bad = subprocess.run(
+        [sys.executable, str(SIMS / "bias_filter_options.py"), "--line-of-sight", "1.5", "quadobs"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert bad.returncode == 2 and "line_of_sight" in bad.stderr.strip().splitlines()[-1]
