@@ -17,8 +17,9 @@ script builds:
   ``noise.steady_test`` at the setup's value, and ``steady_offsets`` follows the filter);
 * ``--line-of-sight P``: the one-sided gate's line-of-sight probability (its threshold
   ``z_+ = Phi^{-1}(P)``, :class:`~quadobs.estimators.robust.SkewedGate`; default 0.95) in
-  every gate built from here on without one of its own: the replay's ``ekf-bias``,
-  ``ekf-bias-imu`` and, where no excess is identified, ``ekf-bias-imu-nlos``.
+  every gate built without one of its own (:func:`line_of_sight`): the replay's
+  ``ekf-bias``, ``ukf-bias``, ``ekf-bias-imu``, the robot's height filters, ``ekf-bias-imu-nlos``
+  where no excess is identified, and the live bias filters of a radio that states no excess.
 
 The script is a file of ``sims/``, or ``quadobs`` for the command line itself (its
 arguments after it).
@@ -35,6 +36,8 @@ arguments after it).
 from __future__ import annotations
 
 import argparse
+import contextlib
+import dataclasses
 import runpy
 import sys
 from pathlib import Path
@@ -62,14 +65,26 @@ def _set_steady_test(on: bool) -> None:
     imu_bias.build_ekf_bias_imu = built
 
 
-def _set_line_of_sight(probability: float) -> None:
-    """The one-sided gate's default line-of-sight probability, for every gate built from here
-    on that is not given its own (the dataclass's generated ``__init__`` reads its defaults)."""
+@contextlib.contextmanager
+def line_of_sight(probability: float):
+    """Inside, every one-sided gate built without a line-of-sight probability of its own
+    (:class:`~quadobs.estimators.robust.SkewedGate`) takes ``probability``; restored after.
+
+    The dataclass's generated ``__init__`` reads its defaults when called, so setting the one
+    of ``line_of_sight`` reaches every builder, wherever it imported the class from."""
     from quadobs.estimators.robust import SkewedGate
 
     SkewedGate(line_of_sight=probability)  # refused in one line outside (0.5, 1)
-    two_sided, _ = SkewedGate.__init__.__defaults__
-    SkewedGate.__init__.__defaults__ = (two_sided, probability)
+    init = SkewedGate.__init__
+    saved = init.__defaults__
+    named = [f.name for f in dataclasses.fields(SkewedGate) if f.default is not dataclasses.MISSING]
+    init.__defaults__ = tuple(
+        probability if name == "line_of_sight" else value for name, value in zip(named, saved)
+    )
+    try:
+        yield
+    finally:
+        init.__defaults__ = saved
 
 
 def _run(name: str, rest: list[str], ap: argparse.ArgumentParser) -> None:
@@ -98,14 +113,18 @@ def main() -> None:
     ap.add_argument("script", help="a script of sims/, or quadobs (the command line)")
     ap.add_argument("rest", nargs=argparse.REMAINDER, help="the script's own arguments")
     args = ap.parse_args()
-    if args.line_of_sight is not None:
-        _set_line_of_sight(args.line_of_sight)
     model = bias_states._sight_model(args.sight_model)
     bias_states._sight_model = lambda name: model  # every filter built from here on
     bias_states._VehicleBlock.onset_test = args.onset_test
     if args.steady_test is not None:
         _set_steady_test(args.steady_test == "on")
-    _run(args.script, args.rest, ap)
+    gate = (
+        contextlib.nullcontext()
+        if args.line_of_sight is None
+        else line_of_sight(args.line_of_sight)
+    )
+    with gate:
+        _run(args.script, args.rest, ap)
 
 
 if __name__ == "__main__":

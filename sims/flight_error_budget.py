@@ -51,6 +51,7 @@ replays the filter with its one-sided gate at ``P`` (a probe of the gate, not an
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import math
 import tempfile
@@ -267,28 +268,23 @@ def _replay(
     its acceleration bias's walk kept at the estimated attitude's; ``line_of_sight``: its
     one-sided gate's probability, :class:`~quadobs.estimators.robust.SkewedGate`, instead of
     the default)."""
-    from quadobs.estimators import robust
+    from bias_filter_options import line_of_sight as gate_at
+
     from quadobs.testbed.logs import imu_bias
 
-    walk, gate = imu_bias.acceleration_bias_walk, robust.SkewedGate
+    walk = imu_bias.acceleration_bias_walk
     if oracle == "attitude-walk":
 
         def as_estimated(bias_std, estimated_attitude, drift_time):
             return walk(bias_std, True, drift_time)
 
         imu_bias.acceleration_bias_walk = as_estimated
-    if line_of_sight is not None:
-        value = line_of_sight
-
-        @dataclasses.dataclass(frozen=True)
-        class Moved(gate):  # the builders take the module's class when they are called
-            line_of_sight: float = value
-
-        robust.SkewedGate = Moved
+    gate = contextlib.nullcontext() if line_of_sight is None else gate_at(line_of_sight)
     try:
-        s = flight.replay(folder, ESTIMATOR, burn_in, reuse)
+        with gate:
+            s = flight.replay(folder, ESTIMATOR, burn_in, reuse)
     finally:
-        imu_bias.acceleration_bias_walk, robust.SkewedGate = walk, gate
+        imu_bias.acceleration_bias_walk = walk
     e = s["estimators"].get(ESTIMATOR, {})
     return e.get("rmse") if not e.get("diverged") else math.nan
 

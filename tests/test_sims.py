@@ -236,4 +236,5 @@ def test_bias_filter_options_sets_the_gate_and_runs_the_command_line():
         text=True,
         timeout=120,
     )
-    assert bad.returncode == 2 and "line_of_sight" in bad.stderr.strip().splitlines()[-1]
+    assert bad.returncode == 2 and bad.stderr.strip(), bad.stderr
+    assert "line_of_sight" in bad.stderr.strip().splitlines()[-1]
