@@ -958,7 +958,7 @@ def _add_replay(sub) -> None:
         action="append",
         default=[],
         metavar="KEY=VALUE",
-        help="the estimators' noise settings: range_sigma, q_xy, q_theta, q_acc, q_imu, gate (a number or none), P0, range_bias (1: the peer's bias per anchor as a state), q_xy_heading, velocity_std (m/s, or log: the velocity the log's start tells, where it tells one), nlos_prior (the excess mixture's stationary probability of a blocked path, in (0, 1)), steady_test (1: ekf-bias-imu-nlos takes a block of ranges read blocked as steady as the noise for its bias's error, the default; 0: off) (repeatable)",
+        help="the estimators' noise settings: range_sigma, q_xy, q_theta, q_acc, q_imu, gate (a number or none), P0, range_bias (1: the peer's bias per anchor as a state), q_xy_heading, velocity_std (m/s, or log: the velocity the log's start tells, where it tells one), nlos_prior (the excess mixture's stationary probability of a blocked path, in (0, 1)), steady_test (1: ekf-bias-imu-nlos takes a block of ranges read blocked as steady as the noise for its bias's error, the default; 0: off), bias_prior (m: the range biases' prior in the filters that hold them as states, 0.5 by default; log: the spread of the self-calibration's biases) (repeatable)",
     )
     p.add_argument(
         "--set",
@@ -1163,6 +1163,12 @@ def _check_replay_numbers(args) -> None:
             raise QuadobsError(
                 f"--tune {key.strip()}: expected a finite number of magnitude at most {TUNE_MAX:g}, got {raw.strip()!r}"
             )
+    spread = any(t.replace(" ", "").lower() == "bias_prior=log" for t in args.tune)
+    if spread and (args.biases is not None or args.calibrate == "none"):
+        raise QuadobsError(
+            "--tune bias_prior=log: the biases' spread comes from the self-calibration, "
+            f"which {'--biases' if args.biases is not None else '--calibrate none'} turns off"
+        )
 
 
 def _refuse_with_export(args) -> None:

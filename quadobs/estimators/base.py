@@ -100,6 +100,9 @@ class Estimator(abc.ABC):
         if not math.isfinite(t):
             raise QuadobsError(f"time: expected a finite number of seconds, got {value!r}")
         self._time = t
+        lockout = self.__dict__.get("lockout")
+        if lockout is not None:  # the lock-out's grace counts from the time set (a log's start)
+            lockout.begin(t)
 
     def hold(self, u) -> None:
         """Hold the input ``u (p,)`` from the current time on, until the next call.

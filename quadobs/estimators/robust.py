@@ -157,7 +157,11 @@ class SkewedGate:
         return float(stats.norm.ppf(self.line_of_sight))
 
     def rejects(self, nu: np.ndarray, S: np.ndarray) -> bool:
-        """Whether the correction ``nu`` with covariance ``S`` is rejected."""
+        """Whether the correction ``nu`` with covariance ``S`` is rejected; a scalar whose
+        ``S`` is not positive (a covariance that has lost its definiteness) is, and the
+        filter's lock-out watch re-initialises it as for any run of rejections."""
+        if nu.shape[0] == 1 and not S[0, 0] > 0.0:
+            return True
         nis = float(nu @ np.linalg.solve(S, nu))
         if nis > chi2_threshold(self.probability, nu.shape[0]):
             return True
@@ -768,6 +772,13 @@ class LockOut:
         the window, doubled at each re-initialisation (a filter re-initialised far off gets
         longer to converge each time, as the refined observer's hand-over waits twice as long)."""
         return self.timeout * 2.0 ** len(self.resets)
+
+    def begin(self, t: float) -> None:
+        """The watch starts at ``t`` (s), where it has watched nothing yet: the filter's
+        start, from which :attr:`grace` counts, on a clock that does not start at zero (a log
+        stamped in seconds since 1970). A watch already under way is left as it is."""
+        if not self._window and not self.resets and self.diverged is None:
+            self.since = float(t)
 
     @property
     def last_accepted(self) -> float:

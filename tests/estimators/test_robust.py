@@ -78,6 +78,27 @@ def test_locked_out_filter_reinitialises_and_recovers():
     assert est.diverged is None and err < 0.3
 
 
+def test_the_lockouts_grace_counts_from_a_clock_that_does_not_start_at_zero():
+    """A log stamped in Unix seconds: the filter's time set to 1.7e9 s at its start, the grace
+    counts from there (the re-initialisation as on a clock from zero, 0.51 s in), not from
+    zero (which would declare a lock-out at the first rejected range, over a span of none)."""
+    x0, P0 = np.array([21.0, -0.5, 0.2, 0.1]), 0.01 * np.eye(4)
+    est = _filter("ekf", x0, P0, robust=ChiSquareGate(0.999), lockout=LockOut(timeout=0.5))
+    est.time = 1.7e9
+    assert est.lockout.since == 1.7e9
+    err = _run(est, 600, np.random.default_rng(2))
+    assert est.lockout.resets[0]["time"] - 1.7e9 == pytest.approx(0.51, abs=0.02)
+    assert est.diverged is None and err < 0.3
+    from quadobs.estimators.robust import SkewedGate
+
+    assert SkewedGate().rejects(np.array([-0.1]), np.array([[-0.02]]))  # S lost: rejected
+    assert not SkewedGate().rejects(np.array([-0.1]), np.array([[0.02]]))
+    under_way = LockOut(timeout=0.5)
+    under_way.observe(3.0, False, 1.0)
+    under_way.begin(10.0)  # a watch already under way keeps its start
+    assert under_way.since == 0.0
+
+
 def test_filter_out_of_resets_is_reported_diverged():
     x0, P0 = np.array([21.0, -0.5, 0.2, 0.1]), 0.01 * np.eye(4)
     lock = LockOut(timeout=0.5, max_resets=0)

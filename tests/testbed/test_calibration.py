@@ -257,3 +257,57 @@ def test_bias_filters_take_the_calibrated_biases_only_where_the_data_contradict_
         assert test["significantly_better"] is verdict, test
         assert test["biases"] == ("calibrated" if verdict else "as logged"), test
         assert logged_names == (() if verdict else ("ekf-bias",)), test
+
+
+def test_the_bias_states_prior_from_the_calibrated_biases_spread_where_asked():
+    """``--tune bias_prior=log``: at step 5's end the biases' prior of the filters that hold
+    them as states is the maximum-likelihood spread ``sqrt(mean c_h^2)`` of the calibrated
+    biases, within the ranges' noise and the range model's 0.5 m; by default it is not set
+    (0.5 m); the replay's bias filters start from the prior set, and from 0.5 m where none is."""
+    from quadobs.errors import QuadobsError
+    from quadobs.testbed.logs import calibration as calibration_module
+    from quadobs.testbed.logs.bias_estimators import build_ekf_bias
+    from quadobs.testbed.logs.calibration import biases_spread
+    from quadobs.testbed.logs.estimators import (
+        ReplaySetup,
+        build_ekf_bias_imu,
+        build_ekf_bias_imu_nlos,
+        parse_tuning,
+        tuning_fields,
+    )
+
+    assert biases_spread([0.3, -0.4, 0.0, 0.0], 0.1, 0.5) == pytest.approx(0.25)
+    assert biases_spread([0.01, -0.02, 0.0, 0.03], 0.1, 0.5) == 0.1
+    assert biases_spread([2.0, 3.0, 4.0, 5.0], 0.1, 0.5) == 0.5
+    assert biases_spread([0.2, float("nan"), 0.1, 0.0], 0.1, 0.5) == 0.5
+
+    truth = np.array([0.4, -0.3, 0.25, 0.0])
+    log = circle_laps(truth)
+    options = parse_tuning(["range_sigma=0.1", "q_acc=1e-2", "bias_prior=log"])
+    assert options["bias_prior"] == "log" and tuning_fields(options).get("bias_prior") is None
+    cal = calibrate(log, setup_options=options, noise=False)
+    spread = float(np.sqrt(np.mean(np.square(cal.candidate))))
+    assert 0.1 < spread < 0.5, cal.candidate
+    assert cal.options["bias_prior"] == pytest.approx(spread)
+    assert f"the biases' prior {spread:.3f} m" in cal.reason
+    assert calibration_module.bias_prior_std(log, cal.options) == pytest.approx([spread] * 4)
+    default = {"range_sigma": 0.1}  # not asked: nothing set, the range model's 0.5 m
+    assert calibration_module._set_bias_prior(log, default, cal.candidate) == ""
+    assert "bias_prior" not in default
+    assert calibration_module.bias_prior_std(log, default) == pytest.approx([0.5] * 4)
+
+    beacons = np.array([[-3, -3, 0.2], [3, -3, 0.2], [3, 3, 2.8], [-3, 3, 2.8]], dtype=float)
+    base = {"beacons": beacons, "dt": 0.01, "model": "imu", "heading0": 0.0,
+            "input_kind": "imu_body", "range_median": 4.0, "range_sigma": 0.1}  # fmt: skip
+    x0 = np.zeros(6)
+    for prior, variance in ((None, 0.25), (0.2, 0.04)):
+        s = ReplaySetup(**base, bias_prior=prior)
+        for est in (
+            build_ekf_bias(s, x0, "ekf-bias", np.zeros((6, 6))),
+            build_ekf_bias_imu(s, x0),
+            build_ekf_bias_imu_nlos(s, x0),
+        ):
+            assert np.diag(est._P)[-4:] == pytest.approx([variance] * 4), (prior, est.name)
+    assert parse_tuning(["bias_prior=0.5"]) == {"bias_prior": 0.5}
+    with pytest.raises(QuadobsError, match=r"bias_prior: expected a positive finite number"):
+        ReplaySetup(**base, bias_prior=-0.1)

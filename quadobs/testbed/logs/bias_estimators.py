@@ -5,8 +5,11 @@ consider update until the innovations are consistent, the re-initialisation afte
 on the replay's model of the log (:class:`~quadobs.testbed.logs.estimators.ReplaySetup`): the
 vehicle's state and its process noise are those of the replay's EKF
 (:func:`~quadobs.testbed.logs.estimators.build_ekf`), each anchor's bias a constant state of
-prior standard deviation :data:`~quadobs.core.measurements.RangeModel`'s extra state (0.5 m,
-the order of a UWB antenna delay's calibration error).
+prior standard deviation the setup's
+:meth:`~quadobs.testbed.logs.estimators.ReplaySetup.bias_prior_std`: the spread of the
+self-calibration's biases (:func:`~quadobs.testbed.logs.calibration.biases_spread`), else
+:data:`~quadobs.core.measurements.RangeModel`'s extra state (0.5 m, the upper end of UWB
+antenna delays).
 
 Their gate is a :class:`~quadobs.estimators.robust.SkewedGate`: a range whose standardised
 innovation is too *long* for line of sight is left out, since non-line-of-sight excess is
@@ -42,8 +45,9 @@ state-dependent ``V(z)`` the augmented observer uses in time was measured worse 
 against 0.45 m after 10 s on the one-lap circle of ``tests/testbed/test_calibration.py``), the initial
 covariance (that of ``lift(x)`` around the guess), ``theta``; each range's own standard
 deviation, else ``range_sigma``, gives its output's variance ``rho^2 sigma^2 + sigma^4 / 2``;
-the biases' prior is the filters' (0.5 m). No robust rule: its covariance is a tuning, and
-a gate would lock it out of the global convergence it is there for (as in the simulated
+the biases' prior is the filters'
+(:meth:`~quadobs.testbed.logs.estimators.ReplaySetup.bias_prior_std`). No robust rule: its
+covariance is a tuning, and a gate would lock it out of the global convergence it is there for (as in the simulated
 scenarios, where only Huber's rule is applied to it).
 """
 
@@ -88,7 +92,6 @@ def range_rule(s, excess: bool = True):
 
 
 def _build(s, x0: np.ndarray, name: str, cls, process_noise: np.ndarray):
-    from quadobs.core.measurements import RangeModel
     from quadobs.estimators.bias_states import BiasedRangeOutputModel, extended_system
     from quadobs.estimators.kalman import HeldInputModel
     from quadobs.testbed.logs.start_prior import set_velocity_prior
@@ -108,8 +111,7 @@ def _build(s, x0: np.ndarray, name: str, cls, process_noise: np.ndarray):
     outputs = BiasedRangeOutputModel(ext, sigma**2 * np.eye(q), offsets=offsets)
     P = np.zeros((n + q, n + q))
     P[:n, :n] = np.diag(np.full(n, s.P0))
-    extra = RangeModel(s.beacons, s.range_sigma, bias="state").extra_states()
-    P[n:, n:] = np.diag([e.prior_std**2 for e in extra])
+    P[n:, n:] = s.bias_prior_std() ** 2 * np.eye(q)
     xe = np.concatenate([np.asarray(x0, dtype=float)[:n], np.zeros(q)])
     if n > s.dim:  # the velocity, as the replay's EKF
         set_velocity_prior(s, xe, P, s.dim)
@@ -138,21 +140,19 @@ def build_augmented_bias(s, x0: np.ndarray, name: str, observer):
     """The augmented observer with the anchors' range biases in its immersion (module
     docstring); ``observer`` the replay's augmented observer built for the same log and guess,
     whose immersion, ``V``, initial covariance and ``theta`` it takes."""
-    from quadobs.core.measurements import RangeModel
     from quadobs.estimators.augmented_bias import BiasedAugmentedObserver
 
     if "tdoa" in s.kinds:
         raise QuadobsError(
             f"estimators: {name!r} estimates range biases and the log holds TDOA (use ekf or ukf)"
         )
-    (extra, *_) = RangeModel(s.beacons, s.range_sigma, bias="state").extra_states()
     est = BiasedAugmentedObserver(
         observer.immersion,
         s.dt,
         sigma=s.range_sigma,
         V=np.asarray(observer.model.V, dtype=float),
         P0=observer.P,
-        bias_std=extra.prior_std,
+        bias_std=s.bias_prior_std(),
         theta=observer.model.theta,
         x0=np.asarray(x0, dtype=float)[: s.n],
     )

@@ -58,7 +58,10 @@ replay is given a clock offset or asked to search one (``--clock-offset``, not b
    more with them (:data:`PASSES`), as a bias fitted at the prior's intensity also biases
    the choice of the intensity (it stops where the intensity or the biases stay);
 5. the setting chosen, as a whole, against the prior (one candidate): where it is not
-   significantly better, everything reverts to the prior;
+   significantly better, everything reverts to the prior; then, where asked
+   (``--tune bias_prior=log``; not the default), the biases' prior of the filters that hold
+   them as states, the spread of the calibrated biases, applied or not, within the ranges'
+   noise and the range model's 0.5 m (:func:`biases_spread`);
 6. a log of wheel odometry replayed with the model ``odometry``: the heading filters' own
    intensities (:data:`HEADING_KEYS`: ``q_xy_heading`` on their position, ``q_theta`` on their
    heading), in turn on the same grid, scored by :data:`HEADING_SCORER` at the biases chosen:
@@ -150,6 +153,7 @@ __all__ = [
     "Calibration",
     "Comparison",
     "bias_prior_std",
+    "biases_spread",
     "calibrate",
     "calibrate_biases",
     "calibrate_noise",
@@ -654,6 +658,21 @@ class Calibration:
         }
 
 
+def _set_bias_prior(log, options: dict, candidate) -> str:
+    """Step 5's end: where ``options`` ask for it (``bias_prior=log``), the biases' prior of
+    the filters that hold them as states set from the calibrated biases
+    (:func:`biases_spread`); returns the reason's words."""
+    if options.get("bias_prior") != "log":
+        return ""
+    cap = float(bias_prior_std(log)[0])
+    floor = range_noise_std(log, options)
+    options["bias_prior"] = biases_spread(candidate, floor, cap)
+    return (
+        f"; the biases' prior {options['bias_prior']:.3f} m (the calibrated biases' spread,"
+        f" within the ranges' noise {floor:.3g} m and {cap:g} m)"
+    )
+
+
 def _bias_step(log, dt, model, estimator, options, prior_res, cap):
     """Step 2 of the module docstring: ``(biases or None, candidate, residuals, test, reason)``."""
     b, res = _fixed_point(log, dt, model, estimator, ITERATIONS, options, first=prior_res)
@@ -746,6 +765,7 @@ def calibrate(
             options[key] = prior
         reason += "; all reverted to the prior: the setting as a whole is not significantly better"
     held["chosen"] = compare(chosen_res, prior_res, cap).score
+    reason += _set_bias_prior(log, options, cand)
     heading = tuple(k for k in fit if k in HEADING_KEYS)
     options, more, heading_tests, why = heading_noise(
         log, biases, dt=dt, model=model, setup_options=options, keys=heading
@@ -756,13 +776,39 @@ def calibrate(
     return Calibration(biases, options, scores, reason, cand, held, tests, more, excess=excess)
 
 
-def bias_prior_std(log) -> np.ndarray:
+def bias_prior_std(log, options: dict | None = None) -> np.ndarray:
     """The prior standard deviation (m) of each anchor's bias state in the replay's filters:
-    :class:`~quadobs.core.measurements.RangeModel`'s extra states (0.5 m)."""
+    ``options``' ``bias_prior`` where set (``--tune``, or :func:`biases_spread` for
+    ``bias_prior=log``), else :class:`~quadobs.core.measurements.RangeModel`'s extra states
+    (0.5 m)."""
     from quadobs.core.measurements import RangeModel
 
     extra = RangeModel(log.beacons, 1.0, bias="state").extra_states()
-    return np.array([e.prior_std for e in extra])
+    given = (options or {}).get("bias_prior")
+    if given is None or given == "log":  # unset, or not yet resolved (step 5's end)
+        return np.array([e.prior_std for e in extra])
+    return np.full(len(extra), float(given))
+
+
+def biases_spread(candidate, floor: float, cap: float) -> float:
+    """The biases' prior standard deviation set from a log (step 5's end, module docstring):
+    the maximum-likelihood spread of the calibrated biases ``c``,
+    ``sigma_b = sqrt(mean_h c_h^2)``, clipped to ``[floor, cap]``.
+
+    The biases are modelled as drawn ``b_h ~ N(0, sigma_b^2)`` (a hierarchical prior) and
+    ``sigma_b`` is estimated from the log, as its noise intensity is: a prior much wider than
+    the biases leaves a flight's weak direction (a height offset against the pattern of biases
+    ``u_h,z dz`` that it moves, docs/error-sources.md) to the data alone. The calibrated biases
+    also hold what the calibration's EKF does not model (the position error's share, an
+    acceleration's offset), which widens the estimate; ``cap`` (the range model's 0.5 m, the
+    upper end of antenna delays) keeps the estimate from loosening the prior (a field of biases
+    of metres keeps the 0.5 m and its biases are applied, step 7), ``floor`` (the ranges' noise
+    standard deviation) keeps it from holding the biases tighter than one range resolves.
+    Non-finite biases give ``cap``."""
+    c = np.asarray(candidate, dtype=float)
+    if c.size == 0 or not np.all(np.isfinite(c)):
+        return float(cap)
+    return float(min(cap, max(floor, math.sqrt(float(np.mean(c * c))))))
 
 
 def outside_prior(biases, prior_std) -> tuple[float, float]:
@@ -849,7 +895,7 @@ def estimator_biases(
         return ()
     model = model or default_model(log)
     zero = np.zeros(log.beacons.shape[0])
-    chi2, limit = outside_prior(cal.biases, bias_prior_std(log))
+    chi2, limit = outside_prior(cal.biases, bias_prior_std(log, cal.options))
     options = {k: v for k, v in cal.options.items() if k not in EXCESS_KEYS}  # the gate's
     margin = effect_margin(log, cal.options)
     for name in names:
@@ -908,7 +954,7 @@ def _offsets_biases(log, cal: Calibration, name: str, est) -> bool:
     if not holds_anchor_offsets(est):
         return False
     mean, std = apparent_bias_prior(log)
-    spread = np.sqrt(np.square(bias_prior_std(log)) + std * std)
+    spread = np.sqrt(np.square(bias_prior_std(log)) + std * std)  # its own prior: 0.5 m
     chi2, limit = outside_prior(np.asarray(cal.biases, dtype=float) - mean, spread)
     _record_biases(
         cal, name, chi2 > limit, (chi2, limit), "range biases and heights as states",

@@ -221,6 +221,15 @@ class ReplaySetup:
         1 (the default) or 0: the steady-offset test of the bias filters under the excess
         mixture (``ekf-bias-imu-nlos``; :meth:`quadobs.estimators.bias_states._VehicleBlock._steady`,
         ``--tune steady_test=0`` turns it off).
+    bias_prior : float or None
+        The prior standard deviation (m) of each anchor's range bias in the filters that hold
+        the biases as states (``ekf-bias``, ``ukf-bias``, ``augmented-bias``, ``ekf-bias-imu``,
+        ``ekf-bias-imu-nlos``; :meth:`bias_prior_std`). None (the default): the range model's
+        0.5 m. ``--tune bias_prior=log`` asks the self-calibration for the spread of its
+        calibrated biases (:func:`~quadobs.testbed.logs.calibration.biases_spread`; measured,
+        not the default: docs/error-sources.md). The heading filters that hold the anchors'
+        heights beside their biases keep the range model's 0.5 m: their calibrated biases also
+        hold the heights' share.
     """
 
     beacons: np.ndarray
@@ -254,6 +263,7 @@ class ReplaySetup:
     nlos_prior: float = ExcessMixture.nlos
     velocity_std: float | None = None
     steady_test: float = 1.0
+    bias_prior: float | None = None
     system: QuadraticSystem = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
@@ -267,7 +277,7 @@ class ReplaySetup:
             if key in ("range_bias", "steady_test"):
                 continue
             value = getattr(self, key)
-            if not (key in ("gate", "velocity_std") and value is None) and not (
+            if not (key in ("gate", "velocity_std", "bias_prior") and value is None) and not (
                 isinstance(value, (int, float)) and 0 < value < math.inf
             ):
                 raise QuadobsError(
@@ -289,6 +299,13 @@ class ReplaySetup:
     @property
     def n(self) -> int:
         return self.system.n
+
+    def bias_prior_std(self) -> float:
+        """The range biases' prior standard deviation (m): :attr:`bias_prior`, else the
+        range model's (:meth:`~quadobs.core.measurements.RangeModel.extra_states`, 0.5 m)."""
+        if self.bias_prior is not None:
+            return float(self.bias_prior)
+        return RangeModel(self.beacons, 1.0, bias="state").extra_states()[0].prior_std
 
     @property
     def dim(self) -> int:
@@ -327,16 +344,19 @@ def velocity_from_log(options) -> bool:
 
 def tuning_fields(options) -> dict:
     """The tuning as :class:`ReplaySetup`'s fields: ``velocity_std=log`` goes to
-    :func:`log_frame` (:func:`velocity_from_log`), not to the setup."""
+    :func:`log_frame` (:func:`velocity_from_log`), not to the setup; ``bias_prior=log`` is the
+    self-calibration's to resolve (a number by then, :func:`~quadobs.testbed.logs.calibration.calibrate`)."""
     return {
-        k: v for k, v in (options or {}).items() if not (k == "velocity_std" and v == LOG_VELOCITY)
+        k: v
+        for k, v in (options or {}).items()
+        if not (k in ("velocity_std", "bias_prior") and v == LOG_VELOCITY)
     }
 
 
 #: The settings of :class:`ReplaySetup` a user may tune (``quadobs replay --tune KEY=VALUE``).
 TUNING = (
     "range_sigma", "q_xy", "q_theta", "q_acc", "q_imu", "gate", "P0", "range_bias",
-    "q_xy_heading", "velocity_std", "nlos_prior", "steady_test",
+    "q_xy_heading", "velocity_std", "nlos_prior", "steady_test", "bias_prior",
 )  # fmt: skip
 
 
@@ -353,8 +373,8 @@ def parse_tuning(settings) -> dict:
         if key == "gate" and raw.strip().lower() == "none":
             out[key] = None
             continue
-        if key == "velocity_std" and raw.strip().lower() == LOG_VELOCITY:
-            out[key] = LOG_VELOCITY  # the log's start prior where identified (start_prior)
+        if key in ("velocity_std", "bias_prior") and raw.strip().lower() == LOG_VELOCITY:
+            out[key] = LOG_VELOCITY  # the log's start prior (start_prior), the biases' spread
             continue
         try:
             out[key] = float(raw)

@@ -112,8 +112,9 @@ def build_ekf_bias_imu(
 
     The vehicle's process noise is the replay EKF's (``q_imu`` on the velocity), ``c`` has the
     prior ``bias_std^2`` per axis and the walk of :func:`acceleration_bias_walk`, each
-    anchor's bias the range model's prior (0.5 m); the rule ``ekf-bias``'s one-sided gate
-    (also on a log that states its ranges Gaussian, where ``ekf-bias`` takes none), or with
+    anchor's bias the setup's prior
+    (:meth:`~quadobs.testbed.logs.estimators.ReplaySetup.bias_prior_std`); the rule
+    ``ekf-bias``'s one-sided gate (also on a log that states its ranges Gaussian, where ``ekf-bias`` takes none), or with
     ``excess`` (``ekf-bias-imu-nlos``) :func:`~quadobs.testbed.logs.bias_estimators.range_rule`'s
     excess mixture where the self-calibration estimated the excess, else the same gate. The
     two are kept apart because no score on held-out ranges tells which of them places the
@@ -121,7 +122,6 @@ def build_ekf_bias_imu(
     Under the mixture the filter takes the steady-offset test where ``s.steady_test`` is 1
     (:meth:`~quadobs.estimators.bias_states._VehicleBlock._steady`).
     """
-    from quadobs.core.measurements import RangeModel
     from quadobs.estimators.bias_states import BiasedRangeOutputModel, extended_system
     from quadobs.estimators.kalman import HeldInputModel
     from quadobs.estimators.robust import ExcessMixture, SkewedGate
@@ -148,11 +148,10 @@ def build_ekf_bias_imu(
     dynamics = HeldInputModel(system, s.dt, V=V)
     offsets = 0.5 * np.einsum("hi,hi->h", s.beacons, s.beacons)
     outputs = BiasedRangeOutputModel(system, s.range_sigma**2 * np.eye(q), offsets=offsets)
-    extra = RangeModel(s.beacons, s.range_sigma, bias="state").extra_states()
     from quadobs.testbed.logs.start_prior import set_velocity_prior
 
     prior = [s.P0] * dim + [0.0] * dim + [bias_std**2] * dim  # the velocity's: as the EKF
-    P = np.diag(prior + [e.prior_std**2 for e in extra])
+    P = np.diag(prior + [s.bias_prior_std() ** 2] * q)
     xe = np.zeros(n + q)
     xe[: 2 * dim] = np.asarray(x0, dtype=float)[: 2 * dim]
     set_velocity_prior(s, xe, P, dim)

@@ -493,6 +493,7 @@ def _summary(
             "gate": setup.gate,
             "range_bias": setup.range_bias,
             "steady_test": setup.steady_test,
+            "bias_prior": setup.bias_prior_std(),
             "P0": setup.P0,
         },
         "measurements": {
