@@ -6,10 +6,10 @@ on the replay's model of the log (:class:`~quadobs.testbed.logs.estimators.Repla
 vehicle's state and its process noise are those of the replay's EKF
 (:func:`~quadobs.testbed.logs.estimators.build_ekf`), each anchor's bias a constant state of
 prior standard deviation the setup's
-:meth:`~quadobs.testbed.logs.estimators.ReplaySetup.bias_prior_std`: the spread of the
-self-calibration's biases (:func:`~quadobs.testbed.logs.calibration.biases_spread`), else
+:meth:`~quadobs.testbed.logs.estimators.ReplaySetup.bias_prior_std`:
 :data:`~quadobs.core.measurements.RangeModel`'s extra state (0.5 m, the upper end of UWB
-antenna delays).
+antenna delays) unless ``--tune bias_prior`` sets it (``log``: the spread of the
+self-calibration's biases, :func:`~quadobs.testbed.logs.calibration.biases_spread`).
 
 Their gate is a :class:`~quadobs.estimators.robust.SkewedGate`: a range whose standardised
 innovation is too *long* for line of sight is left out, since non-line-of-sight excess is
@@ -47,8 +47,8 @@ covariance (that of ``lift(x)`` around the guess), ``theta``; each range's own s
 deviation, else ``range_sigma``, gives its output's variance ``rho^2 sigma^2 + sigma^4 / 2``;
 the biases' prior is the filters'
 (:meth:`~quadobs.testbed.logs.estimators.ReplaySetup.bias_prior_std`). No robust rule: its
-covariance is a tuning, and a gate would lock it out of the global convergence it is there for (as in the simulated
-scenarios, where only Huber's rule is applied to it).
+covariance is a tuning, and a gate would lock it out of the global convergence it is there
+for (as in the simulated scenarios, where only Huber's rule is applied to it).
 """
 
 from __future__ import annotations
