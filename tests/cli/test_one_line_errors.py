@@ -65,6 +65,7 @@ def test_a_meta_file_that_cannot_be_read_is_named(log_folder, tmp_path, capsys, 
         (["--initial-offset", "inf"], "--initial-offset"),
         (["--tune", "bias_prior=log"], "--tune bias_prior=log"),  # no calibration to ask
         (["--tune", "bias_prior=-1"], "bias_prior"),
+        (["--biases", "0,0,0", "--tune", "bias_prior=log"], "which --biases turns off"),
     ],
 )
 def test_replay_refuses_bad_numbers_and_settings_by_their_option(log_folder, capsys, options, word):

@@ -227,9 +227,9 @@ class ReplaySetup:
         ``ekf-bias-imu-nlos``; :meth:`bias_prior_std`). None (the default): the range model's
         0.5 m. ``--tune bias_prior=log`` asks the self-calibration for the spread of its
         calibrated biases (:func:`~quadobs.testbed.logs.calibration.biases_spread`; measured,
-        not the default: docs/error-sources.md). The heading filters that hold the anchors'
-        heights beside their biases keep the range model's 0.5 m: their calibrated biases also
-        hold the heights' share.
+        not the default: docs/error-sources.md). The filters that hold the anchors' heights
+        (``ekf-height``, ``ukf-height``, ``augmented-height``, ``ukf-height-lever``) keep the
+        range model's 0.5 m: their calibrated biases also hold the heights' share.
     """
 
     beacons: np.ndarray
