@@ -1163,9 +1163,9 @@ def _check_replay_numbers(args) -> None:
             raise QuadobsError(
                 f"--tune {key.strip()}: expected a finite number of magnitude at most {TUNE_MAX:g}, got {raw.strip()!r}"
             )
-    from quadobs.testbed.logs.estimators import LOG_VELOCITY, parse_tuning
+    from quadobs.testbed.logs.estimators import FROM_LOG, parse_tuning
 
-    spread = parse_tuning(args.tune).get("bias_prior") == LOG_VELOCITY  # the last one given
+    spread = parse_tuning(args.tune).get("bias_prior") == FROM_LOG  # the last one given
     if spread and (args.biases is not None or args.calibrate == "none"):
         raise QuadobsError(
             "--tune bias_prior=log: the biases' spread comes from the self-calibration, "

@@ -131,6 +131,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from quadobs.testbed.logs.estimators import (
+    FROM_LOG,
     ReplaySetup,
     build_replay_estimators,
     log_defaults,
@@ -662,7 +663,7 @@ def _set_bias_prior(log, options: dict, candidate) -> str:
     """Step 5's end: where ``options`` ask for it (``bias_prior=log``), the biases' prior of
     the filters that hold them as states set from the calibrated biases
     (:func:`biases_spread`); returns the reason's words."""
-    if options.get("bias_prior") != "log":
+    if options.get("bias_prior") != FROM_LOG:
         return ""
     cap = float(bias_prior_std(log)[0])
     floor = range_noise_std(log, options)
@@ -785,7 +786,7 @@ def bias_prior_std(log, options: dict | None = None) -> np.ndarray:
 
     extra = RangeModel(log.beacons, 1.0, bias="state").extra_states()
     given = (options or {}).get("bias_prior")
-    if given is None or given == "log":  # unset, or not yet resolved (step 5's end)
+    if given is None or given == FROM_LOG:  # unset, or not yet resolved (step 5's end)
         return np.array([e.prior_std for e in extra])
     return np.full(len(extra), float(given))
 

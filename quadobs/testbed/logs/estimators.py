@@ -331,9 +331,13 @@ class ReplaySetup:
         return models
 
 
-#: ``--tune velocity_std=log``: the velocity's prior from the log's start where it is identified
-#: (:func:`~quadobs.testbed.logs.start_prior.start_prior`), else the unknown start's.
-LOG_VELOCITY = "log"
+#: ``--tune KEY=log``: a setting taken from the log itself. ``velocity_std=log``: the velocity's
+#: prior from the log's start where it is identified
+#: (:func:`~quadobs.testbed.logs.start_prior.start_prior`), else the unknown start's;
+#: ``bias_prior=log``: the spread of the self-calibration's biases
+#: (:func:`~quadobs.testbed.logs.calibration.biases_spread`).
+FROM_LOG = "log"
+LOG_VELOCITY = FROM_LOG
 
 
 def velocity_from_log(options) -> bool:
@@ -349,7 +353,7 @@ def tuning_fields(options) -> dict:
     return {
         k: v
         for k, v in (options or {}).items()
-        if not (k in ("velocity_std", "bias_prior") and v == LOG_VELOCITY)
+        if not (k in ("velocity_std", "bias_prior") and v == FROM_LOG)
     }
 
 
@@ -373,8 +377,8 @@ def parse_tuning(settings) -> dict:
         if key == "gate" and raw.strip().lower() == "none":
             out[key] = None
             continue
-        if key in ("velocity_std", "bias_prior") and raw.strip().lower() == LOG_VELOCITY:
-            out[key] = LOG_VELOCITY  # the log's start prior (start_prior), the biases' spread
+        if key in ("velocity_std", "bias_prior") and raw.strip().lower() == FROM_LOG:
+            out[key] = FROM_LOG  # the log's start prior (start_prior), the biases' spread
             continue
         try:
             out[key] = float(raw)
