@@ -67,9 +67,9 @@ from collections import deque
 from typing import TYPE_CHECKING
 
 import numpy as np
-from scipy import stats
 
 from quadobs.core.measurements import Measurement, RangeModel
+from quadobs.core.quantiles import chi2_cdf, chi2_ppf
 from quadobs.core.system import QuadraticSystem
 from quadobs.errors import QuadobsError
 from quadobs.estimators.kalman import (
@@ -197,8 +197,8 @@ def steady_block(probability: float) -> tuple[int, float, float]:
     median with probability at most ``1 - probability`` (51 at 0.999)."""
     z = math.sqrt(chi2_threshold(probability, 1))
     for n in range(3, 1000):
-        median = float(stats.chi2.ppf(0.5, n - 1))
-        if stats.chi2.cdf(median / 2.0, n - 1) <= 1.0 - probability:
+        median = chi2_ppf(0.5, n - 1)
+        if chi2_cdf(median / 2.0, n - 1) <= 1.0 - probability:
             return n, median, z
     raise QuadobsError(f"steady test: no block for the probability {probability}")
 
@@ -446,7 +446,8 @@ class _VehicleBlock:
             clear = nu[0] < 0.0 if post is None else post[2] < 0.5
             self._steady_short(rule, h, clear, float(nu[0]), float(R[0, 0]))
         if post is None:
-            self.nis, self.nis_dof = float(nu[0] ** 2 / S[0, 0]), 1
+            nis = float(nu[0] ** 2 / S[0, 0]) if S[0, 0] > 0.0 else math.inf
+            self.nis, self.nis_dof = nis, 1
             self.rejected += 1
             self._watch(False, nu)
             return None

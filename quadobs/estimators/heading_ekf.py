@@ -595,7 +595,7 @@ class _HeadingFilter(Estimator, Gated):
         lock, t = self.lockout, self._time
         if not lock.observe(t, accepted, abs(nu)):
             return
-        span = t - lock.last_accepted
+        span = lock.span(t)
         reason = f"more than half of the corrections of the last {lock.timeout} s rejected"
         if lock.reset(t, int(round(t / self.dt)), reason):
             self._P = reinitialised_covariance(self._P, self._P0, lock.largest, 2, span)

@@ -73,7 +73,6 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from scipy import stats
 
 from quadobs.core.held_input import (
     as_covariance,
@@ -83,6 +82,7 @@ from quadobs.core.held_input import (
     van_loan_interval,
 )
 from quadobs.core.measurements import Measurement, MeasurementModel
+from quadobs.core.quantiles import chi2_isf
 from quadobs.core.system import QuadraticSystem
 from quadobs.errors import QuadobsError, as_array, as_finite_scalar
 from quadobs.estimators.base import Gated, HalfSteps, measurement_models, step_operands
@@ -271,7 +271,7 @@ def gate_quantile(gate: float, dof: int) -> float:
     if dof == 1:
         return float(gate)
     tail = math.erfc(math.sqrt(0.5 * gate))  # P(chi^2(1) > gate), accurate in the tail
-    return float(stats.chi2.isf(tail, dof))
+    return chi2_isf(tail, dof)
 
 
 def step_power(F: np.ndarray, Q: np.ndarray, m: int) -> tuple[np.ndarray, np.ndarray]:
@@ -630,7 +630,7 @@ class _GaussianFilter(HalfSteps, Gated):
         lock, t = self.lockout, self._time
         if not lock.observe(t, accepted, float(np.max(np.abs(nu)))):
             return
-        span = t - lock.last_accepted
+        span = lock.span(t)
         reason = f"more than half of the corrections of the last {lock.timeout} s rejected"
         largest, dim = lock.largest, self.outputs.system.p
         if lock.reset(t, int(round(t / self.dynamics.dt)), reason):

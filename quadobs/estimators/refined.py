@@ -62,8 +62,8 @@ from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import stats
 
+from quadobs.core.quantiles import chi2_ppf
 from quadobs.errors import QuadobsError, as_array, as_finite_scalar
 from quadobs.estimators.augmented import AugmentedObserver
 from quadobs.estimators.base import Estimator, Gated, Immersed, Switching
@@ -187,7 +187,7 @@ def chi2_quantile(q: float, dof: int) -> float:
     key = (q, int(dof))
     hit = _QUANTILES.get(key)
     if hit is None:
-        hit = _QUANTILES[key] = float(stats.chi2.ppf(q, dof))
+        hit = _QUANTILES[key] = chi2_ppf(q, dof)
     return hit
 
 

@@ -35,8 +35,9 @@ from dataclasses import dataclass, field
 from functools import lru_cache
 
 import numpy as np
-from scipy import special, stats
+from scipy import special
 
+from quadobs.core.quantiles import chi2_ppf, norm_ppf
 from quadobs.errors import QuadobsError
 
 __all__ = [
@@ -59,7 +60,7 @@ __all__ = [
 @lru_cache(maxsize=64)
 def chi2_threshold(probability: float, dof: int) -> float:
     """The ``probability`` quantile of ``chi^2(dof)`` (e.g. 10.83 for 0.999 and one degree of freedom)."""
-    return float(stats.chi2.ppf(probability, dof))
+    return chi2_ppf(probability, dof)
 
 
 @dataclass(frozen=True)
@@ -154,7 +155,7 @@ class SkewedGate:
     @property
     def upper(self) -> float:
         """``z_+``: the largest standardised innovation accepted (1.645 for 0.95)."""
-        return float(stats.norm.ppf(self.line_of_sight))
+        return norm_ppf(self.line_of_sight)
 
     def rejects(self, nu: np.ndarray, S: np.ndarray) -> bool:
         """Whether the correction ``nu`` with covariance ``S`` is rejected; a scalar whose
@@ -262,7 +263,7 @@ class ExcessMixture:
         # work space of :meth:`posterior` (the hot path allocates nothing per range)
         object.__setattr__(self, "_work", np.empty((2, excess.shape[0])))
         # the gate's bounds, computed once: :meth:`posterior` runs for every range
-        quantile = float(stats.norm.ppf(self.probability))
+        quantile = norm_ppf(self.probability)
         object.__setattr__(self, "_upper", self.median * math.exp(self.shape * quantile))
         object.__setattr__(self, "_z", math.sqrt(chi2_threshold(self.probability, 1)))
 
@@ -285,9 +286,11 @@ class ExcessMixture:
         """``(E[e | nu], Var[e | nu], P(NLOS | nu))`` of a range's excess given its innovation
         ``nu``, the innovation's variance ``S`` under line of sight and the prior probability
         ``nlos`` (default :attr:`nlos`) that it is non-line-of-sight; ``None`` when it is
-        rejected."""
+        rejected, and where ``S`` is not positive (a covariance that has lost its
+        definiteness: the range is refused and the filter's lock-out watch counts it, as
+        :class:`SkewedGate` does)."""
         if not S > 0.0:
-            raise QuadobsError(f"innovation variance: expected a positive number, got {S}")
+            return None
         sd, z = math.sqrt(S), self._z
         if nu < -z * sd or nu > self._upper + z * sd:
             return None
@@ -753,6 +756,7 @@ class LockOut:
     diverged: dict | None = None
     _window: deque = field(default_factory=deque, repr=False)
     _rejected: int = field(default=0, repr=False)
+    _before: float | None = field(default=None, repr=False)
 
     def observe(self, t: float, accepted: bool, innovation: float) -> bool:
         """Record a correction tried at ``t``; returns whether the filter is now locked out."""
@@ -760,7 +764,9 @@ class LockOut:
         w.append((t, accepted, abs(innovation)))
         self._rejected += not accepted
         while w and w[0][0] < t - self.timeout:
-            self._rejected -= not w.popleft()[1]
+            dropped = w.popleft()
+            self._rejected -= not dropped[1]
+            self._before = dropped[0]
         if accepted or self.diverged is not None:
             return False
         self.largest = max(e[2] for e in w if not e[1])
@@ -778,12 +784,23 @@ class LockOut:
         start, from which :attr:`grace` counts, on a clock that does not start at zero (a log
         stamped in seconds since 1970). A watch already under way is left as it is."""
         if not self._window and not self.resets and self.diverged is None:
-            self.since = float(t)
+            self.since = self._before = float(t)
 
     @property
     def last_accepted(self) -> float:
         """Start of the current window (s): the span the lock-out is judged over ends at the last correction."""
         return self._window[0][0] if self._window else self.since
+
+    def span(self, t: float) -> float:
+        """Seconds over which a filter locked out at ``t`` has gone wrong: from the window's
+        start, or, where the window follows a silence longer than itself (no correction tried:
+        every output lost), from the last correction tried before the silence (the watch's
+        start or its last re-initialisation where there was none). From the window's start
+        alone, a lock-out declared on the first output after such a silence would span no time."""
+        start, before = self.last_accepted, self._before
+        if before is not None and start - before > self.timeout:
+            return t - before
+        return t - start
 
     def reset(self, t: float, step: int, reason: str) -> bool:
         """Count a re-initialisation at ``t``; returns ``False`` (and sets :attr:`diverged`)
@@ -793,6 +810,7 @@ class LockOut:
             return False
         self.resets.append({"time": t, "step": step, "reason": reason})
         self.since, self.largest = t, 0.0
+        self._before = t
         self._window.clear()
         self._rejected = 0
         return True

@@ -44,7 +44,6 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import stats
 
 from quadobs.core.held_input import as_covariance
 from quadobs.core.immersion import lifted_covariance
@@ -131,6 +130,8 @@ def chi2_interval(
     ``n``-dimensional NEES, ``dof = N n``). Returns ``(..., 2)`` (lower, upper); NaN where
     ``runs`` or ``dof`` is zero.
     """
+    from scipy import stats  # here, not at import: it costs a second (quadobs.core.quantiles)
+
     c = as_finite_scalar("confidence", confidence, positive=True)
     if not c < 1:
         raise QuadobsError(f"confidence: must be below 1, got {c}")

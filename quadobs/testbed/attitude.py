@@ -58,6 +58,7 @@ import weakref
 
 import numpy as np
 
+from quadobs.core.quantiles import fisher_ppf
 from quadobs.errors import QuadobsError
 
 __all__ = [
@@ -332,8 +333,6 @@ def gyro_bias_from_ranges(log, nav: np.ndarray) -> np.ndarray | None:
     quantile at three standard deviations (0.9973), ``N`` the spans' ``2 J`` components over
     that overlap.
     """
-    from scipy.stats import f as fisher
-
     if log.ranges.shape[0] == 0 or log.dimension != 3 or log.input_kind != "imu_body":
         return None
     t, f, w = log.inputs[:, 0], log.inputs[:, 1:4], log.inputs[:, 4:7]
@@ -362,7 +361,7 @@ def gyro_bias_from_ranges(log, nav: np.ndarray) -> np.ndarray | None:
     e = r - J @ db
     s2 = float(e @ e) / max(e.size - 3, 1) * overlap
     F = float(db @ (J.T @ J) @ db) / 3.0 / s2 if s2 > 0 else 0.0
-    if not F > float(fisher.ppf(math.erf(3.0 / math.sqrt(2.0)), 3, n - 3)):
+    if not F > fisher_ppf(math.erf(3.0 / math.sqrt(2.0)), 3, n - 3):
         return None
     return b0 + db
 

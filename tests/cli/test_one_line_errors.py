@@ -189,3 +189,35 @@ def test_huge_ids_and_escape_sequences_in_a_log_are_refused(
     code = main(["replay", str(folder), "--calibrate", "none"])
     line = _one_line(capsys, code, 2, *words)
     assert "\x1b" not in line
+
+
+@pytest.mark.parametrize(
+    ("fname", "columns", "word"),
+    [
+        ("ranges.csv", ("range", "std"), "ranges.csv, column range: the median range is"),
+        ("beacons.csv", ("x", "y"), "beacons.csv: the anchors ranged to span"),
+    ],
+)
+def test_replay_refuses_ranges_and_anchors_in_different_units(
+    tmp_path, capsys, fname, columns, word
+):
+    """Ranges in mm against anchors in m, or the other way: one line before any calibration."""
+    import csv
+
+    folder = tmp_path / "R"
+    assert (
+        main(["run", "rover-room", "--duration", "1", "--no-progress", "--export-log", str(folder)])
+        == 0
+    )
+    capsys.readouterr()
+    assert main(["replay", str(folder), "--calibrate", "none", "--estimators", "ekf"]) == 0
+    capsys.readouterr()
+    rows = list(csv.reader((folder / fname).open()))
+    index = [rows[0].index(c) for c in columns]
+    for row in rows[1:]:
+        for i in index:
+            row[i] = repr(1000.0 * float(row[i]))
+    with (folder / fname).open("w", newline="") as fh:
+        csv.writer(fh).writerows(rows)
+    code = main(["replay", str(folder)])
+    _one_line(capsys, code, 2, word, "must both be in metres")

@@ -14,7 +14,14 @@ from quadobs.estimators.kalman import (
     OutputModel,
     UnscentedKalmanFilter,
 )
-from quadobs.estimators.robust import ChiSquareGate, Huber, LockOut, chi2_threshold, reweight
+from quadobs.estimators.robust import (
+    ChiSquareGate,
+    Huber,
+    LockOut,
+    chi2_threshold,
+    reinitialised_covariance,
+    reweight,
+)
 
 BEACONS = np.array([[-5.0, -5.0], [5.0, -5.0], [5.0, 5.0], [-5.0, 5.0]])
 DT = 0.01
@@ -97,6 +104,28 @@ def test_the_lockouts_grace_counts_from_a_clock_that_does_not_start_at_zero():
     under_way.observe(3.0, False, 1.0)
     under_way.begin(10.0)  # a watch already under way keeps its start
     assert under_way.since == 0.0
+
+
+def test_a_lockout_after_a_silence_spans_the_silence():
+    """No correction tried for 5 s (every range lost), then one rejected: the window holds that
+    range alone, and the span the re-initialisation divides the innovation by runs from the
+    last correction tried before the silence, not from the window's start (no time at all).
+    Without a silence the span is the window's, as before."""
+    lock = LockOut(timeout=2.0)
+    for k in range(400):
+        lock.observe(0.01 * k, True, 0.05)
+    assert lock.span(3.99) == pytest.approx(2.0, abs=0.011)  # the window's start
+    assert lock.observe(9.0, False, 0.8)  # locked out: one tried, one rejected
+    assert lock.span(9.0) == pytest.approx(9.0 - 3.99)
+    P = reinitialised_covariance(np.eye(4) * 1e-4, np.eye(4) * 1e-4, 0.8, 2, lock.span(9.0))
+    assert P[2, 2] == pytest.approx((0.8 / 5.01) ** 2)
+    lock.reset(9.0, 900, "test")
+    assert lock.span(9.5) == pytest.approx(0.5)  # from the re-initialisation
+    steady = LockOut(timeout=2.0)
+    k = 0
+    while not steady.observe(0.01 * k, k < 400, 0.5):  # every range rejected from 4 s on
+        k += 1
+    assert steady.span(0.01 * k) == pytest.approx(2.0, abs=0.011)  # the window's start
 
 
 def test_filter_out_of_resets_is_reported_diverged():
@@ -312,11 +341,13 @@ def test_the_grids_bias_walk_adds_the_variance_it_is_given_and_forgets_a_wider_o
 
 
 @pytest.mark.parametrize("S", [0.0, -1.0, float("nan")])
-def test_excess_mixture_refuses_a_variance_that_is_not_positive(S):
+def test_excess_mixture_rejects_a_range_whose_variance_is_not_positive(S):
+    """A covariance that lost its definiteness: the range is refused (the lock-out watch counts
+    it and re-initialises the filter), not the run ended."""
     from quadobs.estimators.robust import ExcessMixture
 
-    with pytest.raises(QuadobsError, match="innovation variance"):
-        ExcessMixture(0.3, 0.6).posterior(0.1, S)
+    assert ExcessMixture(0.3, 0.6).posterior(0.1, S) is None
+    assert ExcessMixture(0.3, 0.6).posterior(0.1, 0.01) is not None
 
 
 def test_a_run_that_ends_inside_the_grace_still_locked_out_is_reported():

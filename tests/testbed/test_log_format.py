@@ -407,6 +407,42 @@ def test_arrow_and_the_row_by_row_reader_give_the_same_values(tmp_path):
     assert figure["rows"] == 2000 and figure["arrow_s"] > 0 and figure["log_read_speedup"] > 0
 
 
+def test_arrow_columns_are_read_from_their_buffers_nulls_as_nan(tmp_path):
+    """Several chunks (a small block size), nulls among them, and a slice (chunks with an
+    offset): the values and the NaNs where the cells were empty, without pandas."""
+    import subprocess
+    import sys
+
+    import pyarrow as pa
+    import pyarrow.csv as pacsv
+
+    rng = np.random.default_rng(3)
+    values, empty = rng.normal(size=(3000, 2)), rng.random((3000, 2)) < 0.1
+    cells = [
+        ["" if e else repr(float(v)) for v, e in zip(row, gap)] for row, gap in zip(values, empty)
+    ]
+    raw = ("a,b\n" + "".join(",".join(c) + "\n" for c in cells)).encode()
+    table = pacsv.read_csv(
+        pa.BufferReader(raw),
+        read_options=pacsv.ReadOptions(block_size=4096),
+        convert_options=pacsv.ConvertOptions(column_types={"a": pa.float64(), "b": pa.float64()}),
+    )
+    expected = np.where(empty, np.nan, values)
+    assert table.column("a").num_chunks > 10
+    for part, rows in ((table, slice(None)), (table.slice(7, 2900), slice(7, 2907))):
+        for c, name in enumerate("ab"):
+            out = np.empty(part.num_rows)
+            log_files._fill_float_column(out, part.column(name).chunks)
+            np.testing.assert_array_equal(out, expected[rows, c])
+    folder = write_log(flight_log(), tmp_path / "log")
+    code = (
+        f"import sys; from quadobs.testbed.logs import read_log; read_log({str(folder)!r}); "
+        "print(sorted(m for m in ('pandas', 'scipy.stats') if m in sys.modules))"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "[]"
+
+
 def test_a_log_needs_ranges_or_tdoa_and_inputs_only_in_version_1(tmp_path):
     folder = _write_v1(tmp_path / "log")
     (folder / "meta.csv").write_text("key,value\nversion,2\nheading0,0.5\n")

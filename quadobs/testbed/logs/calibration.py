@@ -130,6 +130,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from quadobs.core.quantiles import chi2_ppf, student_t_ppf
 from quadobs.testbed.logs.estimators import (
     FROM_LOG,
     ReplaySetup,
@@ -203,9 +204,7 @@ SIGNIFICANCE = 0.025
 def threshold(candidates: int = 1, blocks: int = BLOCKS) -> float:
     """``K``: the one-sided Student-t quantile (``blocks - 1`` degrees of freedom) at
     :data:`SIGNIFICANCE` / ``candidates`` (module docstring)."""
-    from scipy.stats import t
-
-    return float(t.ppf(1.0 - SIGNIFICANCE / max(int(candidates), 1), int(blocks) - 1))
+    return student_t_ppf(1.0 - SIGNIFICANCE / max(int(candidates), 1), int(blocks) - 1)
 
 
 def process_noise_key(model: str) -> str:
@@ -816,10 +815,8 @@ def outside_prior(biases, prior_std) -> tuple[float, float]:
     """``(chi2, limit)``: ``chi2 = sum_h (b_h / sigma_h)^2`` of ``biases`` under the bias
     states' prior ``N(0, diag(sigma^2))``, and its ``1 -`` :data:`SIGNIFICANCE` quantile of
     ``chi^2(q)``; biases with ``chi2 > limit`` are improbable under that prior."""
-    from scipy.stats import chi2
-
     z = np.asarray(biases, dtype=float) / np.asarray(prior_std, dtype=float)
-    return float(z @ z), float(chi2.ppf(1.0 - SIGNIFICANCE, z.size))
+    return float(z @ z), chi2_ppf(1.0 - SIGNIFICANCE, z.size)
 
 
 def range_noise_std(log, options: dict | None = None) -> float:

@@ -70,7 +70,8 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import stats
+
+from quadobs.core.quantiles import binomial_upper_tail
 
 __all__ = [
     "EXCESS_KEYS",
@@ -223,7 +224,7 @@ def tail_signs(d: np.ndarray, sigma: float) -> tuple[int, int, float]:
     centre by the excess the fit puts on its upper half, which lengthens the upper tail
     against the lower; :func:`fit_excess` gives each anchor's median residual."""
     upper, lower = int(np.sum(d > TAIL * sigma)), int(np.sum(d < -TAIL * sigma))
-    p = float(stats.binomtest(upper, upper + lower, 0.5, "greater").pvalue) if upper else 1.0
+    p = binomial_upper_tail(upper, upper + lower)
     return upper, lower, p
 
 

@@ -45,6 +45,7 @@ from quadobs.testbed.logs.format import LOG_FILES
 __all__ = [
     "DEFAULT_ESTIMATORS",
     "check_burn_in",
+    "check_range_units",
     "check_replay",
     "default_estimators",
     "heard_anchors",
@@ -437,7 +438,8 @@ def check_burn_in(log, burn_in: float) -> None:
 def check_replay(log, names, *, dt: float = 0.1, model: str | None = None, options=None) -> None:
     """Refuse, before any calibration or replay, a model the log cannot drive or an estimator
     that cannot take the log (each factory's one-line error, naming what the log lacks or holds),
-    and a body IMU in the wrong units (:func:`~quadobs.testbed.attitude.check_body_imu`)."""
+    and ranges or a body IMU in the wrong units (:func:`check_range_units`,
+    :func:`~quadobs.testbed.attitude.check_body_imu`)."""
     from quadobs.testbed.logs.estimators import (
         ReplaySetup,
         _typical_range,
@@ -457,12 +459,54 @@ def check_replay(log, names, *, dt: float = 0.1, model: str | None = None, optio
     x0 = np.zeros(n)
     x0[: log.dimension] = log.beacons.mean(axis=0)
     build_replay_estimators(setup, list(names) if names else default_estimators(log, model), x0)
+    check_range_units(log)
     if log.input_kind == "imu_body":  # its units, and the attitude the model imu rotates it by
         from quadobs.testbed.attitude import check_body_imu, navigation_accelerations
 
         check_body_imu(log)
         if model == "imu":
             navigation_accelerations(log)  # computed once per log: the replay reads it again
+
+
+#: How far a log's ranges may lie from the anchors' scale before :func:`check_range_units`
+#: refuses them: a vehicle among its anchors reads ranges of the order of their extent, and a
+#: factor of 100 either way is a unit (mm against m), not a geometry.
+RANGE_SCALE_RATIO = 100.0
+
+
+def check_range_units(log) -> None:
+    """Refuse ranges in another unit than the anchors' coordinates, in one line naming the file.
+
+    ``e``: the diagonal of the box that holds the anchors the log has ranges to (at least 1
+    m). Refused: the median range beyond :data:`RANGE_SCALE_RATIO` ``e`` (ranges in mm against
+    anchors in m), or every ranged anchor's median range below ``e /``
+    :data:`RANGE_SCALE_RATIO` (anchors in mm against ranges in m: a point lies at least ``e /
+    (2 sqrt(3))`` from one of the two anchors farthest apart).
+    """
+    ranges = log.ranges
+    if ranges.shape[0] == 0:
+        return
+    ids, anchor = np.unique(ranges[:, 1].astype(int), return_inverse=True)
+    if ids.size < 2:
+        return
+    ranged = np.asarray(log.beacons, dtype=float)[log.beacon_index(ids)]  # ids, not rows
+    extent = max(float(np.linalg.norm(ranged.max(axis=0) - ranged.min(axis=0))), 1.0)
+    median = float(np.median(ranges[:, 2]))
+    medians = [float(np.median(ranges[anchor == k, 2])) for k in range(ids.size)]
+    source = f"{log.source}/" if log.source else f"{log.name}: "
+    both = "the ranges and the anchors' coordinates must both be in metres"
+    if median > RANGE_SCALE_RATIO * extent:
+        raise QuadobsError(
+            f"{source}ranges.csv, column range: the median range is {median:.4g}, "
+            f"{median / extent:.0f} times the extent of the anchors ranged to ({extent:.4g}, "
+            f"beacons.csv): {both}"
+        )
+    if max(medians) < extent / RANGE_SCALE_RATIO:
+        raise QuadobsError(
+            f"{source}beacons.csv: the anchors ranged to span {extent:.4g}, "
+            f"{extent / max(medians):.0f} times the largest median range of one anchor "
+            f"({max(medians):.4g}, ranges.csv): {both}"
+        )
 
 
 def _summary(

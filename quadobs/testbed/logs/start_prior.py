@@ -112,6 +112,8 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from quadobs.core.quantiles import fisher_ppf
+
 __all__ = [
     "COPLANAR_SIDE",
     "REST_K",
@@ -403,8 +405,6 @@ def ranges_moving(log, t0: float, spans, sigma: float, found=None, k: float = RE
     (:meth:`RangeVelocity.motion`; ``P`` the :func:`rest_probability`, ``m`` the spans: the
     chance that any of the tests rejects a standing vehicle stays below ``1 - P``). ``""``
     where no span's ranges tell a velocity or none rejects: they contradict nothing."""
-    from scipy.stats import f as fisher
-
     spans = sorted(set(float(T) for T in spans))
     level = 1.0 - (1.0 - rest_probability(k)) / len(spans)
     for i, span in enumerate(spans):
@@ -412,7 +412,7 @@ def ranges_moving(log, t0: float, spans, sigma: float, found=None, k: float = RE
         if not isinstance(probe, RangeVelocity) or not math.isfinite(probe.motion()):
             continue
         F = probe.motion()
-        limit = float(fisher.ppf(level, probe.velocity.size, probe.dof))
+        limit = fisher_ppf(level, probe.velocity.size, probe.dof)
         if F > limit:
             speed = float(np.linalg.norm(probe.velocity))
             return (
