@@ -19,8 +19,8 @@ rule object, applied to an innovation ``nu (k,)`` with covariance ``S = H P H^T 
 No silent lock-out. A gate that rejects everything leaves a filter predicting on its
 inputs alone while it reports figures as if it ran (a filter started 50 m off with a
 small prior rejects every range). :class:`LockOut` watches the corrections in time: when
-more than half of those tried over the last ``timeout`` seconds were rejected, the
-filter re-initialises: its position from a multilateration of the latest outputs
+more than half of those tried over the last ``timeout`` seconds were rejected (at least
+:data:`LOCKOUT_MIN_TRIED` tried), the filter re-initialises: its position from a multilateration of the latest outputs
 (:func:`multilateration`, where they determine it) and its covariance
 (:func:`reinitialised_covariance`), and says so in
 ``resets``; after ``max_resets`` re-initialisations without recovering it is reported as
@@ -42,6 +42,7 @@ from quadobs.errors import QuadobsError
 
 __all__ = [
     "LOCKOUT_END_MIN",
+    "LOCKOUT_MIN_TRIED",
     "BiasSightGrid",
     "ChiSquareGate",
     "ExcessHuber",
@@ -728,17 +729,27 @@ def multilateration_covariance(D: np.ndarray, variances: np.ndarray) -> np.ndarr
 #: Fewest corrections in the lock-out's window at the run's end for :meth:`LockOut.locked_at_end`.
 LOCKOUT_END_MIN = 10
 
+#: Fewest corrections the lock-out's window holds (:meth:`LockOut.observe`): it reaches back
+#: past ``timeout`` seconds to hold at least this many, and no lock-out is declared on fewer.
+#: A window of one to four holds too few for the rule's premise: after a pause of every
+#: output longer than the window, one range rejected would be "all of them" (probability
+#: 0.05 under the one-sided gate's 5 %), where three of five or more has probability at most
+#: 1.2e-3, and 5 of 5 3e-7. On a log whose outputs come slower than five a window, the
+#: window holds the last five.
+LOCKOUT_MIN_TRIED = 5
+
 
 @dataclass
 class LockOut:
     """Watches a filter's corrections in time (see the module docstring).
 
-    The filter counts as locked out when, over the last ``timeout`` seconds (and at least
+    The filter counts as locked out when, over the last ``timeout`` seconds or its last
+    :data:`LOCKOUT_MIN_TRIED` corrections, whichever reach further back (and at least
     :attr:`grace` after its start or last re-initialisation), more than half of the
-    corrections it tried were rejected: under the model, with a gate of probability
-    ``P``, the expected fraction is ``1 - P``. This catches a filter that rejects
-    everything and one that keeps a few outputs consistent with a wrong position (a
-    mirror image of the anchors' geometry) while it rejects the others.
+    corrections it tried, at least :data:`LOCKOUT_MIN_TRIED`, were rejected: under the model,
+    with a gate of probability ``P``, the expected fraction is ``1 - P``. This catches a
+    filter that rejects everything and one that keeps a few outputs consistent with a wrong
+    position (a mirror image of the anchors' geometry) while it rejects the others.
 
     Parameters
     ----------
@@ -763,14 +774,15 @@ class LockOut:
         w = self._window
         w.append((t, accepted, abs(innovation)))
         self._rejected += not accepted
-        while w and w[0][0] < t - self.timeout:
+        while len(w) > LOCKOUT_MIN_TRIED and w[0][0] < t - self.timeout:
             dropped = w.popleft()
             self._rejected -= not dropped[1]
             self._before = dropped[0]
         if accepted or self.diverged is not None:
             return False
         self.largest = max(e[2] for e in w if not e[1])
-        return t - self.since >= self.grace and 2 * self._rejected > len(w)
+        enough = len(w) >= LOCKOUT_MIN_TRIED
+        return t - self.since >= self.grace and enough and 2 * self._rejected > len(w)
 
     @property
     def grace(self) -> float:

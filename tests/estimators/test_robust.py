@@ -107,20 +107,25 @@ def test_the_lockouts_grace_counts_from_a_clock_that_does_not_start_at_zero():
 
 
 def test_a_lockout_after_a_silence_spans_the_silence():
-    """No correction tried for 5 s (every range lost), then one rejected: the window holds that
-    range alone, and the span the re-initialisation divides the innovation by runs from the
-    last correction tried before the silence, not from the window's start (no time at all).
-    Without a silence the span is the window's, as before."""
+    """No correction tried for 5 s (every range lost), then ranges rejected: the window reaches
+    back to hold five corrections (:data:`LOCKOUT_MIN_TRIED`), so one rejected range is not a
+    lock-out, three of the last five are, and the span the re-initialisation divides the
+    innovation by runs from the window's start before the silence, not from its first range
+    after it (0.02 s). After a re-initialisation and a silence, the span runs from the
+    re-initialisation. Without a silence the span is the window's, as before."""
     lock = LockOut(timeout=2.0)
     for k in range(400):
         lock.observe(0.01 * k, True, 0.05)
     assert lock.span(3.99) == pytest.approx(2.0, abs=0.011)  # the window's start
-    assert lock.observe(9.0, False, 0.8)  # locked out: one tried, one rejected
-    assert lock.span(9.0) == pytest.approx(9.0 - 3.99)
-    P = reinitialised_covariance(np.eye(4) * 1e-4, np.eye(4) * 1e-4, 0.8, 2, lock.span(9.0))
-    assert P[2, 2] == pytest.approx((0.8 / 5.01) ** 2)
-    lock.reset(9.0, 900, "test")
-    assert lock.span(9.5) == pytest.approx(0.5)  # from the re-initialisation
+    assert not lock.observe(9.0, False, 0.8) and not lock.observe(9.01, False, 0.8)
+    assert lock.observe(9.02, False, 0.8)  # three of the last five rejected
+    assert lock.span(9.02) == pytest.approx(9.02 - 3.98)
+    P = reinitialised_covariance(np.eye(4) * 1e-4, np.eye(4) * 1e-4, 0.8, 2, lock.span(9.02))
+    assert P[2, 2] == pytest.approx((0.8 / 5.04) ** 2)
+    lock.reset(9.02, 902, "test")
+    assert not any(lock.observe(15.0 + 0.01 * k, False, 0.8) for k in range(4))  # four tried
+    assert lock.observe(15.04, False, 0.8)
+    assert lock.span(15.04) == pytest.approx(15.04 - 9.02)  # from the re-initialisation
     steady = LockOut(timeout=2.0)
     k = 0
     while not steady.observe(0.01 * k, k < 400, 0.5):  # every range rejected from 4 s on
