@@ -595,10 +595,10 @@ class _HeadingFilter(Estimator, Gated):
         lock, t = self.lockout, self._time
         if not lock.observe(t, accepted, abs(nu)):
             return
-        span = lock.span(t)
-        reason = f"more than half of the corrections of the last {lock.timeout} s rejected"
+        reason, largest = lock.reason(t), lock.largest  # read before the reset clears it
         if lock.reset(t, int(round(t / self.dt)), reason):
-            self._P = reinitialised_covariance(self._P, self._P0, lock.largest, 2, span)
+            # the position's floor nu^2 alone: the state holds no velocity (an infinite span)
+            self._P = reinitialised_covariance(self._P, self._P0, largest, 2, math.inf)
             self._blocked[:] = 0.0
             self._blocked_at[:] = -math.inf
             q = self.anchors.shape[0]

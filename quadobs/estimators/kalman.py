@@ -631,7 +631,7 @@ class _GaussianFilter(HalfSteps, Gated):
         if not lock.observe(t, accepted, float(np.max(np.abs(nu)))):
             return
         span = lock.span(t)
-        reason = f"more than half of the corrections of the last {lock.timeout} s rejected"
+        reason = lock.reason(t)
         largest, dim = lock.largest, self.outputs.system.p
         if lock.reset(t, int(round(t / self.dynamics.dt)), reason):
             self._P = reinitialised_covariance(self._P, self._P0, largest, dim, span)

@@ -746,9 +746,9 @@ class LockOut:
     The filter counts as locked out when, over the last ``timeout`` seconds or its last
     :data:`LOCKOUT_MIN_TRIED` corrections, whichever reach further back (and at least
     :attr:`grace` after its start or last re-initialisation), more than half of the
-    corrections it tried, at least :data:`LOCKOUT_MIN_TRIED`, were rejected: under the model,
-    with a gate of probability ``P``, the expected fraction is ``1 - P``. This catches a
-    filter that rejects everything and one that keeps a few outputs consistent with a wrong
+    corrections it tried (at least :data:`LOCKOUT_MIN_TRIED` tried) were rejected: under the
+    model, with a gate of probability ``P``, the expected fraction is ``1 - P``. This catches
+    a filter that rejects everything and one that keeps a few outputs consistent with a wrong
     position (a mirror image of the anchors' geometry) while it rejects the others.
 
     Parameters
@@ -802,6 +802,13 @@ class LockOut:
     def last_accepted(self) -> float:
         """Start of the current window (s): the span the lock-out is judged over ends at the last correction."""
         return self._window[0][0] if self._window else self.since
+
+    def reason(self, t: float) -> str:
+        """The re-initialisation's reason at ``t``: the window's seconds, or how far it reached
+        back where it holds corrections older than ``timeout`` (:data:`LOCKOUT_MIN_TRIED`)."""
+        reach = t - self.last_accepted
+        window = self.timeout if reach <= self.timeout else round(reach, 2)
+        return f"more than half of the corrections of the last {window} s rejected"
 
     def span(self, t: float) -> float:
         """Seconds over which a filter locked out at ``t`` has gone wrong: from the window's

@@ -565,6 +565,10 @@ def test_a_lock_out_reinitialisation_restarts_the_excess_chains_in_line_of_sight
         f.correct(Measurement(0.05 * k, "range", 5.0, (0,), 0.08))
     assert f.lockout.resets and f.diverged is None
     assert f._blocked[2] == 0.0 and f._blocked_at[2] == -np.inf
+    # the position's variance at least the largest innovation squared; heading and gyroscope
+    # bias (no velocity in this state) as they were
+    assert np.all(np.diag(f._P)[:2] > 4.0 * np.diag(f._P0)[:2])
+    assert np.all(np.diag(f._P)[2:4] < 2.0 * np.diag(f._P0)[2:4])
 
 
 def test_the_filter_with_the_anchors_states_is_the_same_whatever_the_anchors_order():
