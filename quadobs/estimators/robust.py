@@ -20,11 +20,11 @@ No silent lock-out. A gate that rejects everything leaves a filter predicting on
 inputs alone while it reports figures as if it ran (a filter started 50 m off with a
 small prior rejects every range). :class:`LockOut` watches the corrections in time: when
 more than half of those tried over the last ``timeout`` seconds were rejected (at least
-:data:`LOCKOUT_MIN_TRIED` tried), the filter re-initialises: its position from a multilateration of the latest outputs
-(:func:`multilateration`, where they determine it) and its covariance
-(:func:`reinitialised_covariance`), and says so in
-``resets``; after ``max_resets`` re-initialisations without recovering it is reported as
-diverged (``diverged``: time, step and reason), never summarised as if it had run.
+:data:`LOCKOUT_MIN_TRIED` tried), the filter re-initialises: its position from a
+multilateration of the latest outputs (:func:`multilateration`, where they determine it) and
+its covariance (:func:`reinitialised_covariance`), and says so in ``resets``; after
+``max_resets`` re-initialisations without recovering it is reported as diverged
+(``diverged``: time, step and reason), never summarised as if it had run.
 """
 
 from __future__ import annotations

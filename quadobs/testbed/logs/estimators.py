@@ -349,7 +349,8 @@ def velocity_from_log(options) -> bool:
 def tuning_fields(options) -> dict:
     """The tuning as :class:`ReplaySetup`'s fields: ``velocity_std=log`` goes to
     :func:`log_frame` (:func:`velocity_from_log`), not to the setup; ``bias_prior=log`` is the
-    self-calibration's to resolve (a number by then, :func:`~quadobs.testbed.logs.calibration.calibrate`)."""
+    self-calibration's to resolve (a number by then,
+    :func:`~quadobs.testbed.logs.calibration.calibrate`)."""
     return {
         k: v
         for k, v in (options or {}).items()

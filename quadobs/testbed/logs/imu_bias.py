@@ -114,9 +114,10 @@ def build_ekf_bias_imu(
     prior ``bias_std^2`` per axis and the walk of :func:`acceleration_bias_walk`, each
     anchor's bias the setup's prior
     (:meth:`~quadobs.testbed.logs.estimators.ReplaySetup.bias_prior_std`); the rule
-    ``ekf-bias``'s one-sided gate (also on a log that states its ranges Gaussian, where ``ekf-bias`` takes none), or with
-    ``excess`` (``ekf-bias-imu-nlos``) :func:`~quadobs.testbed.logs.bias_estimators.range_rule`'s
-    excess mixture where the self-calibration estimated the excess, else the same gate. The
+    ``ekf-bias``'s one-sided gate (also on a log that states its ranges Gaussian, where
+    ``ekf-bias`` takes none), or with ``excess`` (``ekf-bias-imu-nlos``)
+    :func:`~quadobs.testbed.logs.bias_estimators.range_rule`'s excess mixture where the
+    self-calibration estimated the excess, else the same gate. The
     two are kept apart because no score on held-out ranges tells which of them places the
     vehicle better (docs/error-sources.md, in the replay: the excess estimated from the log).
     Under the mixture the filter takes the steady-offset test where ``s.steady_test`` is 1
