@@ -4,10 +4,8 @@
 ``t_k = k dt``), what the estimators were given and what was true:
 
 * ``ranges.csv``: each measured range (after the sensor layer: noise, rate, dropouts,
-  outliers) at ``t_k``. A range the noise or an outlier took below zero is written as its
-  magnitude ``|rho|``: the format holds distances (non-negative), and the estimators'
-  output ``y = rho^2 / 2 - |a|^2 / 2`` is the same for both signs, so the replay still
-  gives the episode's outputs; the summary counts them (``exported_log_ranges_negated``);
+  outliers) at ``t_k``, as the estimators received it: a range the noise or an outlier
+  took below zero is written below zero, as a radio's can be;
 * ``inputs.csv``: the measured acceleration ``u_k`` (the accelerometer, with its noise),
   held over ``[t_k, t_(k+1))``, in the navigation frame (``time,ax,ay[,az]``); a last row
   at ``t_K`` (zero) closes the last step, as the format's inputs are held to the next row;
@@ -256,8 +254,6 @@ class LogExportSink(Sink):
         if completed == 0:
             return {}
         ranges = np.vstack(self.parts["ranges"]).reshape(-1, 3)
-        negated = int(np.count_nonzero(ranges[:, 2] < 0.0))
-        ranges[:, 2] = np.abs(ranges[:, 2])
         if self.tap:
             log = self._quadrotor_log(completed, ranges)
         elif self.odometry is not None:
@@ -271,8 +267,8 @@ class LogExportSink(Sink):
                 self.folder, lambda tmp: write_log(log, tmp), "--export-log", set(LOG_FILES)
             )
         except QuadobsError as exc:  # the run's own results stay; the command reports it (exit 1)
-            return {"export_error": str(exc), "exported_log_ranges_negated": negated}
-        return {"exported_log": str(self.folder), "exported_log_ranges_negated": negated}
+            return {"export_error": str(exc)}
+        return {"exported_log": str(self.folder)}
 
     def _log(self, completed: int, ranges: np.ndarray) -> RangeLog:
         """A vehicle's log: the navigation-frame accelerometer, position and velocity truth."""

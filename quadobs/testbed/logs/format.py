@@ -27,7 +27,7 @@ attitude; it is still read. Each input row is held from its time to the next row
 
 Times are seconds on one clock common to the files, each file sorted by time (ties
 allowed). Every value must be finite (a ``std`` cell may be empty: the estimator's
-default), ids integers, ranges non-negative, quaternions of unit norm; every id in
+default), ids integers, quaternions of unit norm; every id in
 ``ranges.csv`` or ``tdoa.csv`` must be listed in ``beacons.csv``. The checks and the
 limits a log file is held to are in :mod:`quadobs.testbed.logs.schema`; a malformed file
 raises :class:`~quadobs.errors.QuadobsError` with one line naming the file, the row

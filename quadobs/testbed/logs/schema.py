@@ -1,7 +1,7 @@
 """The schema of the open log format: its files, columns and metadata keys, and the checks of each.
 
 One table (:data:`FILES`) says, for every file of a log folder, which columns it may hold,
-which of them are integers, non-negative or optional, and from which format version on it
+which of them are integers or optional, and from which format version on it
 exists; :data:`META_KEYS` does the same for the keys of ``meta.csv``. The reader
 (:mod:`quadobs.testbed.logs.format`) and the documentation follow these tables; the
 checks below hold every value to them and name, on failure, the file, the row (1-based,
@@ -106,8 +106,8 @@ class FileSpec:
         The accepted sets of required columns, each in its in-memory order.
     optional : tuple of str
         Columns any variant may add (in the order they are appended in memory).
-    integers, non_negative, std : tuple of str
-        Columns holding integers (ids), values ``>= 0``, and a standard deviation
+    integers, std : tuple of str
+        Columns holding integers (ids) and a standard deviation
         (``> 0``, or empty/NaN for the model's default).
     since : int
         The first format version holding the file.
@@ -123,7 +123,6 @@ class FileSpec:
     variants: tuple[tuple[str, ...], ...]
     optional: tuple[str, ...] = ()
     integers: tuple[str, ...] = ()
-    non_negative: tuple[str, ...] = ()
     std: tuple[str, ...] = ()
     since: int = 1
     required: bool = False
@@ -160,10 +159,12 @@ FILES = {
         (RANGE._fields,),
         optional=(STD,),
         integers=("beacon",),
-        non_negative=("range",),
         std=(STD,),
         described="time,beacon,range[,std]",
-        meaning="one range (m) to anchor beacon at time (s); std (m) optional, per range",
+        meaning=(
+            "one range (m) to anchor beacon at time (s), as measured (noise and a bias can take "
+            "it below zero); std (m) optional, per range"
+        ),
     ),
     "tdoa.csv": FileSpec(
         "tdoa.csv",
@@ -362,7 +363,7 @@ def check_values(
     """Hold the values of one file (rows in file order, ``columns`` named) to ``spec``.
 
     Every value finite (a standard deviation may be NaN: the model's default), integer
-    columns integers of magnitude at most :data:`MAX_ID`, non-negative columns ``>= 0``,
+    columns integers of magnitude at most :data:`MAX_ID`,
     standard deviations ``> 0``, times non-decreasing, quaternions of unit norm.
 
     ``cell(row_offset, column_offset)`` gives the text of a cell as written (for the
@@ -386,8 +387,6 @@ def check_values(
             bad = np.flatnonzero((col != np.round(col)) | (np.abs(col) > MAX_ID))
             if bad.size:
                 fail(int(bad[0]), c, "is not an integer id (|id| <= 2^53)")
-        if name in spec.non_negative and (bad := np.flatnonzero(col < 0.0)).size:
-            fail(int(bad[0]), c, "is negative")
         if name in spec.std and (bad := np.flatnonzero(col <= 0.0)).size:
             fail(int(bad[0]), c, "is not a positive standard deviation")
     if columns[0] == TIME:
