@@ -135,6 +135,15 @@ def test_a_range_below_zero_is_read_as_measured(tmp_path):
     assert [m.value for m in log.measurements() if m.kind == "range"][0] == -0.04
 
 
+def test_wheel_odometry_with_anchors_in_space_says_what_to_write(tmp_path):
+    folder = _write_v1(tmp_path / "log")
+    (folder / "beacons.csv").write_text("id,x,y,z\n0,0,0,0.3\n1,10,0,2.3\n")
+    with pytest.raises(
+        QuadobsError, match=r"inputs.csv, row 1: odometry .* write beacons.csv without z"
+    ):
+        read_log(folder)
+
+
 def _write_v1(folder, ranges_header="time,beacon,range"):
     folder.mkdir()
     (folder / "beacons.csv").write_text("id,x,y\n0,0,0\n1,10,0\n")

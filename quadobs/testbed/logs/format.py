@@ -243,7 +243,9 @@ class RangeLog:
             raise QuadobsError(f"{self.name}: {fname}: at least two rows are needed")
         if kind == "odometry" and (dim != 2 or self.inputs.shape[1] != len(ODOMETRY)):
             raise QuadobsError(
-                f"{self.name}: inputs.csv, row 1: odometry (speed, yaw_rate) needs a planar log (beacons.csv without z)"
+                f"{self.name}: inputs.csv, row 1: odometry (speed, yaw_rate) needs a planar log: "
+                "write beacons.csv without z (the anchors' heights above the tag are then "
+                "estimated by ekf-height, augmented-height and ukf-height-lever)"
             )
         if kind == "imu" and self.inputs.shape[1] != 1 + dim:
             raise QuadobsError(
