@@ -38,6 +38,7 @@ from quadobs.errors import QuadobsError
 __all__ = [
     "INPUT_KINDS",
     "MEASUREMENT_KINDS",
+    "RANGE_BIAS_PRIOR_STD",
     "ExtraState",
     "Input",
     "Measurement",
@@ -53,6 +54,9 @@ MEASUREMENT_KINDS = ("range", "tdoa")
 #: The input kinds: an accelerometer in the navigation frame (gravity removed), a body-frame
 #: IMU (specific force and angular rate), planar wheel odometry (speed, yaw rate), or none.
 INPUT_KINDS = ("accel_nav", "imu_body", "odometry", "none")
+#: The prior standard deviation (m) of a range bias held as a state, around zero: the upper
+#: end of UWB antenna delays (+-0.1 to 0.5 m), where nothing else is stated.
+RANGE_BIAS_PRIOR_STD = 0.5
 
 
 @dataclass(frozen=True, slots=True)
@@ -243,7 +247,9 @@ class RangeModel(MeasurementModel):
     def extra_states(self) -> list[ExtraState]:
         if self.bias != "state":
             return []
-        return [ExtraState(f"bias[{i}]", 0.5) for i in range(self.anchors.shape[0])]
+        return [
+            ExtraState(f"bias[{i}]", RANGE_BIAS_PRIOR_STD) for i in range(self.anchors.shape[0])
+        ]
 
     def bias_of(self, m: Measurement) -> float:
         return float(self.fixed_bias[m.anchors[0]]) if self.bias == "fixed" else 0.0

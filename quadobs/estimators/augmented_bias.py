@@ -33,7 +33,7 @@ import numpy as np
 
 from quadobs.core.held_input import HeldInputDiscretization, as_covariance
 from quadobs.core.immersion import Immersion
-from quadobs.core.measurements import Measurement
+from quadobs.core.measurements import RANGE_BIAS_PRIOR_STD, Measurement
 from quadobs.core.range_bias import BiasedRangeImmersion
 from quadobs.errors import QuadobsError, as_array, as_finite_scalar
 from quadobs.estimators.base import Estimator, Gated, Immersed, step_operands
@@ -73,9 +73,9 @@ class BiasedAugmentedObserver(Estimator, Gated, Immersed):
     """
 
     name = "augmented-bias"
-    #: The biases' prior standard deviation (m) when none is given: the upper end of UWB
-    #: antenna delays, as :meth:`~quadobs.core.measurements.RangeModel.extra_states`.
-    DEFAULT_BIAS_STD = 0.5
+    #: The biases' prior standard deviation (m) when none is given
+    #: (:data:`~quadobs.core.measurements.RANGE_BIAS_PRIOR_STD`).
+    DEFAULT_BIAS_STD = RANGE_BIAS_PRIOR_STD
 
     def __init__(
         self,

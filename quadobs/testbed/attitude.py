@@ -397,10 +397,6 @@ def _as_the_ahrs_sees(times: np.ndarray, a: np.ndarray, ok: np.ndarray) -> np.nd
 GYRO_FULL_SCALE = math.radians(2000.0)
 
 
-def _imu_file(log) -> str:
-    return f"{log.source}/imu.csv" if log.source else f"{log.name}: imu.csv"
-
-
 def check_body_imu(log) -> None:
     """Refuse a body IMU logged in other units than m/s^2 and rad/s, in one line naming the file
     and the columns (:class:`~quadobs.errors.QuadobsError`).
@@ -423,14 +419,14 @@ def check_body_imu(log) -> None:
     if not 0.5 * g <= median <= 2.0 * g:
         hint = " (a log in g: times g)" if median < 0.5 * g else ""
         raise QuadobsError(
-            f"{_imu_file(log)}, columns ax,ay,az: the median |a| is {median:.4g}, and a body's "
+            f"{log.file_label('imu.csv')}, columns ax,ay,az: the median |a| is {median:.4g}, and a body's "
             f"specific force in m/s^2 has a median near gravity {g:g}{hint}"
         )
     w = np.abs(log.inputs[:, 4:7])
     if w.size and float(w.max()) > GYRO_FULL_SCALE:
         row, col = np.unravel_index(int(np.argmax(w)), w.shape)
         raise QuadobsError(
-            f"{_imu_file(log)}, row {int(row) + 2}, column g{'xyz'[int(col)]}: "
+            f"{log.file_label('imu.csv')}, row {int(row) + 2}, column g{'xyz'[int(col)]}: "
             f"{float(log.inputs[row, 4 + col]):.4g} is beyond any MEMS gyroscope's range "
             f"({GYRO_FULL_SCALE:.1f} rad/s = 2000 deg/s): the rates must be in rad/s"
         )
@@ -454,7 +450,7 @@ def _check_gravity_held(log, nav: np.ndarray) -> None:
     g = float(log.gravity)
     if float(np.linalg.norm(mean)) > 0.5 * g:
         raise QuadobsError(
-            f"{_imu_file(log)}, columns gx,gy,gz: the attitude integrated from the rates does "
+            f"{log.file_label('imu.csv')}, columns gx,gy,gz: the attitude integrated from the rates does "
             f"not keep gravity vertical (mean acceleration {np.linalg.norm(mean):.3g} m/s^2 over "
             f"{span:.4g} s, at most g / 2 for any vehicle): the rates must be in rad/s"
         )

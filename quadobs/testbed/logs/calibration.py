@@ -780,14 +780,13 @@ def bias_prior_std(log, options: dict | None = None) -> np.ndarray:
     """The prior standard deviation (m) of each anchor's bias state in the replay's filters:
     ``options``' ``bias_prior`` where set (``--tune``, or :func:`biases_spread` for
     ``bias_prior=log``), else :class:`~quadobs.core.measurements.RangeModel`'s extra states
-    (0.5 m)."""
-    from quadobs.core.measurements import RangeModel
+    (:data:`~quadobs.core.measurements.RANGE_BIAS_PRIOR_STD`, 0.5 m)."""
+    from quadobs.core.measurements import RANGE_BIAS_PRIOR_STD
 
-    extra = RangeModel(log.beacons, 1.0, bias="state").extra_states()
     given = (options or {}).get("bias_prior")
     if given is None or given == FROM_LOG:  # unset, or not yet resolved (step 5's end)
-        return np.array([e.prior_std for e in extra])
-    return np.full(len(extra), float(given))
+        given = RANGE_BIAS_PRIOR_STD
+    return np.full(log.beacons.shape[0], float(given))
 
 
 def biases_spread(candidate, floor: float, cap: float) -> float:

@@ -74,7 +74,12 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from quadobs.core.immersion import immerse
-from quadobs.core.measurements import MeasurementModel, RangeModel, TdoaModel
+from quadobs.core.measurements import (
+    RANGE_BIAS_PRIOR_STD,
+    MeasurementModel,
+    RangeModel,
+    TdoaModel,
+)
 from quadobs.core.system import (
     QuadraticSystem,
     constant_velocity_system,
@@ -302,10 +307,8 @@ class ReplaySetup:
 
     def bias_prior_std(self) -> float:
         """The range biases' prior standard deviation (m): :attr:`bias_prior`, else the
-        range model's (:meth:`~quadobs.core.measurements.RangeModel.extra_states`, 0.5 m)."""
-        if self.bias_prior is not None:
-            return float(self.bias_prior)
-        return RangeModel(self.beacons, 1.0, bias="state").extra_states()[0].prior_std
+        range model's (:data:`~quadobs.core.measurements.RANGE_BIAS_PRIOR_STD`, 0.5 m)."""
+        return RANGE_BIAS_PRIOR_STD if self.bias_prior is None else float(self.bias_prior)
 
     @property
     def dim(self) -> int:

@@ -356,6 +356,11 @@ class RangeLog:
             return None
         return self.truth[:, [self.truth_columns.index(c) for c in names]]
 
+    def file_label(self, fname: str) -> str:
+        """How a message names the log's file ``fname``: its path where the log was read from a
+        folder, else the log's name and the file's."""
+        return f"{self.source}/{fname}" if self.source else f"{self.name}: {fname}"
+
     def beacon_index(self, ids: np.ndarray) -> np.ndarray:
         """Output indices (positions in :attr:`beacon_ids`) of beacon ids."""
         ids = np.asarray(ids).astype(np.int64)

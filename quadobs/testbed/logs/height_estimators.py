@@ -153,8 +153,8 @@ def build_augmented_height(s, x0: np.ndarray, name: str, process_noise: np.ndarr
 
 def heading_height_options(s, name: str, excess: bool = True) -> dict:
     """The options of a heading filter (:mod:`quadobs.estimators.heading_ekf`) that carries each
-    anchor's range bias (prior 0 and the bias states' stated 0.5 m of
-    :meth:`~quadobs.core.measurements.RangeModel.extra_states`, as ``ekf-height``) and its
+    anchor's range bias (prior 0 and the bias states' stated 0.5 m,
+    :data:`~quadobs.core.measurements.RANGE_BIAS_PRIOR_STD`, as ``ekf-height``) and its
     squared-range offset (prior :data:`E_MEAN`, :data:`E_STD`): a planar log of ranges only.
     The biases are states as well as the offsets because the self-calibration's constant
     biases, fitted by a model without heights, take up part of them.
@@ -164,16 +164,15 @@ def heading_height_options(s, name: str, excess: bool = True) -> dict:
     non-line-of-sight excess, as the filters of the same states take the one-sided gate
     (``ekf-height``, ``ekf-bias``): without one, a range's outlier moves the anchor's bias and
     offset states in full, and a burst of long ranges moves them step by step."""
-    from quadobs.core.measurements import RangeModel
+    from quadobs.core.measurements import RANGE_BIAS_PRIOR_STD
 
     if "tdoa" in s.kinds or s.dim != 2:
         raise QuadobsError(
             f"estimators: {name!r} estimates the anchors' heights above a planar tag from "
             "ranges; the log holds TDOA or is in space (use ukf-heading)"
         )
-    bias = RangeModel(s.beacons, s.range_sigma, bias="state").extra_states()[0].prior_std
     rule = excess_rule(s) if excess else huber_rule(s.gate)
-    return {"offsets": (E_MEAN, E_STD), "bias_std": bias, "robust": rule}
+    return {"offsets": (E_MEAN, E_STD), "bias_std": RANGE_BIAS_PRIOR_STD, "robust": rule}
 
 
 def excess_rule(s):

@@ -493,17 +493,16 @@ def check_range_units(log) -> None:
     extent = max(float(np.linalg.norm(ranged.max(axis=0) - ranged.min(axis=0))), 1.0)
     median = float(np.median(ranges[:, 2]))
     medians = [float(np.median(ranges[anchor == k, 2])) for k in range(ids.size)]
-    source = f"{log.source}/" if log.source else f"{log.name}: "
     both = "the ranges and the anchors' coordinates must both be in metres"
     if median > RANGE_SCALE_RATIO * extent:
         raise QuadobsError(
-            f"{source}ranges.csv, column range: the median range is {median:.4g}, "
+            f"{log.file_label('ranges.csv')}, column range: the median range is {median:.4g}, "
             f"{median / extent:.0f} times the extent of the anchors ranged to ({extent:.4g}, "
             f"beacons.csv): {both}"
         )
     if max(medians) < extent / RANGE_SCALE_RATIO:
         raise QuadobsError(
-            f"{source}beacons.csv: the anchors ranged to span {extent:.4g}, "
+            f"{log.file_label('beacons.csv')}: the anchors ranged to span {extent:.4g}, "
             f"{extent / max(medians):.0f} times the largest median range of one anchor "
             f"({max(medians):.4g}, ranges.csv): {both}"
         )
