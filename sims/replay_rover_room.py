@@ -39,6 +39,11 @@ replay then takes the ranges' own noise, docs/error-sources.md):
 
     python sims/replay_rover_room.py --seeds 0,1,2 --variants all --without-std
 
+``--heights-stated`` writes the posed anchors' heights into the log (``beacons.csv`` with
+``z``) and the tag's (``meta.csv`` ``tag_height``), as a log with a survey states them:
+
+    python sims/replay_rover_room.py --seeds 0,1,2 --variants all,heights --heights-stated
+
 ``--room`` poses the robot in another room (:data:`ROOMS`: every anchor at one height, a
 6 x 5 m room, anchors on the walls and one outside; default the scenario's own), the posed
 effects as before:
@@ -197,11 +202,15 @@ def export(
     variant: str = "today",
     room: str = "today",
     extra: tuple[str, ...] = (),
+    heights_stated: bool = False,
 ):
     """The seed's ``rover-room`` run in ``room`` written as a log in ``folder`` (posed as
-    ``variant``; ``extra``: scenario settings applied after the variant's); the scenario."""
+    ``variant``; ``extra``: scenario settings applied after the variant's; ``heights_stated``:
+    a variant posing the anchors' heights states them in the log, with the tag's); the scenario."""
     settings, pose = variant_of(variant)
     settings, pose = (*ROOMS[room]["settings"], *settings, *extra), in_room(pose, room)
+    if heights_stated and "anchor_heights" in pose:
+        pose = {**pose, "heights_stated": True}
     scenario = load_scenario("rover-room", seed=seed, duration=duration)
     if settings:
         scenario = scenario.with_settings(settings)
@@ -310,6 +319,12 @@ def main() -> None:
     ap.add_argument(
         "--extra", default="", help="estimators replayed beside the default set (e.g. ukf-height)"
     )
+    ap.add_argument(
+        "--heights-stated",
+        action="store_true",
+        help="the posed anchors' heights and the tag's stated in the log (beacons.csv z, "
+        "meta.csv tag_height; with --variants)",
+    )
     args = ap.parse_args()
     if args.room == "level":  # its one height is posed by the heights effect alone
         flat = [v for v in (args.variants or "today").split(",") if not _poses_heights(v)]
@@ -322,8 +337,9 @@ def main() -> None:
             if args.variants:
                 variants = args.variants.split(",")
                 rows += posed_rows(
-                    seed, args.duration, variants, Path(tmp), extra, args.without_std, args.room
-                )
+                    seed, args.duration, variants, Path(tmp), extra, args.without_std, args.room,
+                    args.heights_stated,
+                )  # fmt: skip
                 continue
             folder = Path(tmp) / f"seed{seed}"
             scenario = export(seed, args.duration, folder, "today", args.room)
@@ -351,18 +367,21 @@ def posed_rows(
     extra=(),
     bare: bool = False,
     room: str = "today",
+    heights_stated: bool = False,
 ) -> list[dict]:
     """One row per variant of the seed in ``room``: the defaults' RMSE and the reference's
-    (``bare``: the defaults on the log with its ranges' ``std`` column left out)."""
+    (``bare``: the defaults on the log with its ranges' ``std`` column left out;
+    ``heights_stated``: the anchors' and the tag's heights stated in the log, :func:`export`)."""
     rows = []
     for variant in variants:
         variant_of(variant)  # an unknown name stops here, before the export
         folder = tmp / f"seed{seed}-{variant}"
-        scenario = export(seed, duration, folder, variant, room)
+        scenario = export(seed, duration, folder, variant, room, heights_stated=heights_stated)
         replayed = without_std(folder, tmp / f"seed{seed}-{variant}-nostd") if bare else folder
+        label = f"{variant}, no std" if bare else variant
         row = {
             "seed": seed,
-            "log": f"{variant}, no std" if bare else variant,
+            "log": f"{label}, heights stated" if heights_stated else label,
             **replay_defaults(replayed, extra),
             **reference(folder, scenario, in_room(variant_of(variant)[1], room)),
         }

@@ -313,29 +313,31 @@ class _HeadingFilter(Estimator, Gated):
 
     def _append_anchor_states(self, offsets, bias_std) -> None:
         """The anchors' range biases (prior 0, ``bias_std``) and squared-range offsets (prior
-        ``offsets = (mean, std)``) appended to the state where given (module docstring)."""
+        ``offsets = (mean, spread)``) appended to the state where given (module docstring)."""
         q = self.anchors.shape[0]
-        mean, var = [], []
+        mean, cov = [], []
         self._ib = self._ie = -1  # the first index of b, of e (-1: not states)
         if bias_std is not None:
             std = as_finite_scalar("bias_std", bias_std, positive=True)
             self._ib = self._x.size
             mean.append(np.zeros(q))
-            var.append(np.full(q, std * std))
+            cov.append(np.eye(q) * std * std)
         if offsets is not None:
             e_mean = np.broadcast_to(np.asarray(offsets[0], dtype=float), (q,))
             if not np.all(np.isfinite(e_mean)):
                 raise QuadobsError("offsets: expected a finite prior mean (one, or one per anchor)")
-            e_std = as_finite_scalar("offsets' standard deviation", offsets[1], positive=True)
             self._ie = self._x.size + q * len(mean)
             mean.append(e_mean.copy())
-            var.append(np.full(q, e_std * e_std))
+            cov.append(_offsets_covariance(offsets[1], q))
         if not mean:
             return
         n = self._x.size
         self._x = np.concatenate([self._x, *mean])
-        P = np.diag(np.concatenate([np.zeros(n), *var]))
+        P = np.zeros((self._x.size, self._x.size))
         P[:n, :n] = self._P
+        for k, block in enumerate(cov):
+            i = n + k * q
+            P[i : i + q, i : i + q] = block
         self._P = P
 
     @property
@@ -350,6 +352,11 @@ class _HeadingFilter(Estimator, Gated):
         """The anchors' range biases ``b_h`` (m): their estimate, or zero without those states."""
         q = self.anchors.shape[0]
         return self._x[self._ib : self._ib + q].copy() if self._ib >= 0 else np.zeros(q)
+
+    def predicted_range(self, m: Measurement) -> float:
+        """The range ``m`` predicted at the current estimate: from the tag's position, with the
+        anchor's offset and bias where they are states (:meth:`_range`)."""
+        return self._range(self.measurement_models["range"], m, self._x)[0]
 
     def _range(self, model, m: Measurement, x: np.ndarray) -> tuple[float, float, float]:
         """The range ``rho_h`` predicted at the state ``x``, ``|q - a_h| / s_h`` (the factor of
@@ -616,6 +623,25 @@ class _HeadingFilter(Estimator, Gated):
         raise NotImplementedError
 
 
+def _offsets_covariance(spread, q: int) -> np.ndarray:
+    """The offsets' prior covariance from ``spread``: a standard deviation (one, or one per
+    anchor), or a ``(q, q)`` covariance (symmetric, finite, positive diagonal)."""
+    spread = np.asarray(spread, dtype=float)
+    if spread.ndim == 2:
+        ok = spread.shape == (q, q) and np.all(np.isfinite(spread))
+        if not (ok and np.allclose(spread, spread.T) and np.all(np.diag(spread) > 0.0)):
+            raise QuadobsError(
+                f"offsets: expected a symmetric ({q}, {q}) prior covariance with a positive diagonal"
+            )
+        return spread.copy()
+    std = np.broadcast_to(spread, (q,))
+    if not np.all(np.isfinite(std) & (std > 0.0)):
+        raise QuadobsError(
+            "offsets: expected a positive finite prior standard deviation (one, or one per anchor)"
+        )
+    return np.diag(std * std)
+
+
 class HeadingEKF(_HeadingFilter):
     """EKF on ``(p, delta, b)``: exact mean prediction, covariance through its Jacobian.
 
@@ -650,9 +676,10 @@ class HeadingEKF(_HeadingFilter):
         without, the tag is at ``p``.
     lever_arm : array_like (2,)
         The lever arm's prior mean (m; default 0: nobody measured where the tag sits).
-    offsets : (float, float), optional
-        With it, each anchor's squared-range offset ``e_h`` as a state, prior mean (one, or one
-        per anchor) and standard deviation ``offsets`` (m^2; module docstring). Ranges only.
+    offsets : (float or array_like, float or array_like), optional
+        With it, each anchor's squared-range offset ``e_h`` as a state: its prior mean (m^2, one,
+        or one per anchor) and either its standard deviation (m^2, one, or one per anchor) or
+        its ``(q, q)`` covariance (m^4; module docstring). Ranges only.
     bias_std : float, optional
         With it, each anchor's range bias ``b_h`` as a state, prior mean 0 and this standard
         deviation (m).

@@ -110,7 +110,10 @@ def test_a_run_with_ranges_below_zero_is_exported_and_replays_as_it_ran(tmp_path
         settings=["noise.outlier_probability=0.2", "noise.outlier_std=100"],
     )
     ep = run_episode(
-        sc, estimators=["augmented", "ekf"], sinks=[LogExportSink(tmp_path / "log")], collect_every=1
+        sc,
+        estimators=["augmented", "ekf"],
+        sinks=[LogExportSink(tmp_path / "log")],
+        collect_every=1,
     )
     log = read_log(tmp_path / "log")
     assert np.any(log.ranges[:, 2] < 0)  # the outliers' negative ranges, kept as received

@@ -132,15 +132,29 @@ def test_a_range_below_zero_is_read_as_measured(tmp_path):
     (folder / "ranges.csv").write_text("time,beacon,range\n0.5,0,-0.04\n0.7,1,7.5\n")
     log = read_log(folder)
     np.testing.assert_array_equal(log.ranges[:, RANGE.range], [-0.04, 7.5])
-    assert [m.value for m in log.measurements() if m.kind == "range"][0] == -0.04
+    assert next(m.value for m in log.measurements() if m.kind == "range") == -0.04
 
 
-def test_wheel_odometry_with_anchors_in_space_says_what_to_write(tmp_path):
+def test_wheel_odometry_with_anchors_in_space_keeps_their_heights_apart(tmp_path):
+    """A planar vehicle among anchors in space: ``z`` is each anchor's height, the vehicle's
+    model stays planar; ``tag_height`` states the tag's, and both are written back."""
     folder = _write_v1(tmp_path / "log")
     (folder / "beacons.csv").write_text("id,x,y,z\n0,0,0,0.3\n1,10,0,2.3\n")
-    with pytest.raises(
-        QuadobsError, match=r"inputs.csv, row 1: odometry .* write beacons.csv without z"
-    ):
+    (folder / "meta.csv").write_text("key,value\nversion,2\nheading0,0.5\ntag_height,0.25\n")
+    log = read_log(folder)
+    assert log.dimension == 2 and log.tag_height == 0.25
+    np.testing.assert_array_equal(log.beacons, [[0, 0], [10, 0]])
+    np.testing.assert_array_equal(log.anchor_heights, [0.3, 2.3])
+    back = read_log(write_log(log, tmp_path / "back"))
+    np.testing.assert_array_equal(back.anchor_heights, log.anchor_heights)
+    assert back.tag_height == 0.25
+    assert (tmp_path / "back" / "beacons.csv").read_text().startswith("id,x,y,z\n")
+    (folder / "truth.csv").write_text("time,x,y,z\n0,1,1,0.25\n")
+    with pytest.raises(QuadobsError, match=r"column z given for a planar vehicle"):
+        read_log(folder)
+    (folder / "truth.csv").unlink()
+    (folder / "beacons.csv").write_text("id,x,y\n0,0,0\n1,10,0\n")
+    with pytest.raises(QuadobsError, match=r"key tag_height: only for an odometry log whose"):
         read_log(folder)
 
 

@@ -104,16 +104,16 @@ def test_a_rover_at_rest_exports_its_held_heading(tmp_path):
     np.testing.assert_allclose(log.truth[still, 2], 1.2, atol=1e-9)
 
 
-def _planar_log():
+def _planar_log(duration: float = 20.0):
     """A robot on a circle of radius 0.8 m about (1.5, 1.2), heading along it, ranges exact + 0.1 m."""
     from quadobs.testbed.logs.format import RangeLog
 
-    t = np.linspace(0.0, 20.0, 2001)
+    t = np.linspace(0.0, duration, int(round(duration * 100)) + 1)
     phi = 0.4 * t
     p = np.column_stack([1.5 + 0.8 * np.cos(phi), 1.2 + 0.8 * np.sin(phi)])
     truth = np.column_stack([t, p, np.unwrap(phi + np.pi / 2)])
     beacons = np.array([[0.1, 0.1], [2.9, 0.2], [2.8, 2.3], [0.2, 2.3]])
-    k = np.arange(5, 2000, 5)
+    k = np.arange(5, t.size - 1, 5)
     h = k % 4
     ranges = np.column_stack([t[k], h, np.linalg.norm(p[k] - beacons[h], axis=1) + 0.1])
     inputs = np.column_stack([t, np.full(t.size, 0.32), np.full(t.size, 0.4)])
@@ -144,6 +144,83 @@ def test_posing_gives_3d_ranges_from_the_tag_and_moves_the_clocks():
     np.testing.assert_array_equal(posed.truth[:, 0], log.truth[:, 0] + 1.7e9)
     with pytest.raises(QuadobsError, match="expected 4 heights"):
         posed_log(log, anchor_heights=[1.0, 2.0])
+
+
+def test_stated_heights_give_the_offsets_moments_and_the_filters_start_there():
+    """``e_h = (dz_h + delta_h - delta_t)^2 / 2``, each anchor's survey error ``delta_h`` its
+    own, the tag's ``delta_t`` common: the offsets' mean and covariance in closed form, checked
+    by sampling; a posed log that states its heights hands them to every filter holding the
+    offsets, and the summary reports them."""
+    from quadobs.testbed.logs.estimators import (
+        ReplaySetup,
+        build_replay_estimators,
+        log_frame,
+    )
+    from quadobs.testbed.logs.height_estimators import (
+        HEIGHT_SURVEY_STD,
+        TAG_HEIGHT_STD,
+        known_offsets,
+    )
+    from quadobs.testbed.logs.posed import posed_log
+    from quadobs.testbed.logs.replay import run_replay
+
+    heights = np.array([2.3, 0.3, 1.8, 0.25])
+    log = posed_log(_planar_log(), anchor_heights=heights, tag_height=0.25, heights_stated=True)
+    assert known_offsets(_planar_log()) is None
+    mean, cov = known_offsets(log)
+    std = np.sqrt(np.diag(cov))
+    rng = np.random.default_rng(7)
+    draws = 400_000
+    delta = HEIGHT_SURVEY_STD * rng.standard_normal((4, draws))
+    delta -= TAG_HEIGHT_STD * rng.standard_normal(draws)
+    e = 0.5 * (heights[:, None] - 0.25 + delta) ** 2
+    np.testing.assert_allclose(mean, e.mean(axis=1), rtol=3e-3)
+    np.testing.assert_allclose(cov, np.cov(e), rtol=2e-2, atol=2e-3 * cov.max())
+    names = ["ekf-height", "augmented-height", "ukf-height-lever"]
+    part = log.excerpt(0.0, 3.0)
+    np.testing.assert_array_equal(part.anchor_heights, heights)
+    summary = run_replay(part, estimators=names, batch=False)
+    np.testing.assert_allclose(summary["noise"]["offsets"]["mean"], mean, rtol=1e-12)
+    np.testing.assert_allclose(summary["noise"]["offsets"]["std"], std, rtol=1e-12)
+    setup = ReplaySetup(log.beacons, 0.1, "odometry", log.heading0, 1.5, **log_frame(log))
+    for est in build_replay_estimators(setup, names, np.array([1.5, 1.2, log.heading0])):
+        assert np.allclose(_offsets_state(est), mean), est.name
+
+
+def test_stated_heights_the_ranges_contradict_are_not_used():
+    """``ukf-height-lever`` started from the stated heights predicts the held-out ranges no
+    worse than from a storey's prior where the statement is right, and is used; with the tag
+    stated a metre off it predicts them worse, and every filter falls back to the storey's."""
+    import dataclasses
+
+    from quadobs.testbed.logs.calibration import Calibration, check_stated_heights
+    from quadobs.testbed.logs.estimators import ReplaySetup, log_frame, tuning_fields
+    from quadobs.testbed.logs.height_estimators import E_MEAN, known_offsets, offsets_prior
+    from quadobs.testbed.logs.posed import posed_log
+
+    heights = np.array([2.3, 0.3, 1.8, 1.1])
+    log = posed_log(_planar_log(60.0), anchor_heights=heights, tag_height=0.25, heights_stated=True)
+    for tag, used in ((0.25, True), (1.25, False)):
+        stated = dataclasses.replace(log, tag_height=tag)
+        cal = Calibration(np.zeros(4), {}, {}, "", np.zeros(4))
+        check_stated_heights(stated, cal, dt=0.1, model="odometry")
+        assert ("stated_heights" not in cal.options) is used, cal.reason
+        assert (": used" if used else ": not used, the ranges contradict them") in cal.reason
+        setup = ReplaySetup(
+            stated.beacons, 0.1, "odometry", stated.heading0, 1.5, **log_frame(stated),
+            **tuning_fields(cal.options),
+        )  # fmt: skip
+        mean = offsets_prior(setup)[0]
+        expected = known_offsets(stated)[0] if used else np.full(4, E_MEAN)
+        np.testing.assert_allclose(mean, expected, rtol=1e-12)
+
+
+def _offsets_state(est) -> np.ndarray:
+    """A height filter's squared-range offsets: the heading filter's ``offsets``, else from
+    the others' ``heights`` (``|dz| = sqrt(2 e)``)."""
+    if hasattr(est, "offsets"):
+        return np.asarray(est.offsets)
+    return 0.5 * np.asarray(est.heights) ** 2
 
 
 def test_the_height_model_is_the_3d_range_and_its_jacobian():

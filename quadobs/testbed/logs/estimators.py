@@ -108,6 +108,7 @@ from quadobs.estimators.startup import (
     start_threshold,
 )
 from quadobs.testbed.imu import BIAS_HORIZON
+from quadobs.testbed.logs.height_estimators import known_offsets
 from quadobs.testbed.logs.start_prior import StartPrior, set_velocity_prior, start_prior
 
 __all__ = [
@@ -235,6 +236,16 @@ class ReplaySetup:
         not the default: docs/error-sources.md). The filters that hold the anchors' heights
         (``ekf-height``, ``ukf-height``, ``augmented-height``, ``ukf-height-lever``) keep the
         range model's 0.5 m: their calibrated biases also hold the heights' share.
+    offsets : (ndarray (q,), ndarray (q, q)) or None
+        The prior mean (m^2) and covariance (m^4) of the anchors' squared-range offsets
+        ``e_h = dz_h^2 / 2`` where the log states the anchors' heights and the tag's
+        (:func:`~quadobs.testbed.logs.height_estimators.known_offsets`), else None: the
+        filters that hold the offsets take the storey's prior
+        (:data:`~quadobs.testbed.logs.height_estimators.E_MEAN`, ``E_STD``).
+    stated_heights : float
+        1 (the default) or 0: whether the filters take :attr:`offsets` (``--tune
+        stated_heights=0`` turns them off; the self-calibration does where the ranges
+        contradict them, :func:`~quadobs.testbed.logs.calibration.check_stated_heights`).
     """
 
     beacons: np.ndarray
@@ -269,6 +280,8 @@ class ReplaySetup:
     velocity_std: float | None = None
     steady_test: float = 1.0
     bias_prior: float | None = None
+    offsets: tuple | None = None
+    stated_heights: float = 1.0
     system: QuadraticSystem = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
@@ -276,10 +289,11 @@ class ReplaySetup:
             raise QuadobsError(
                 f"range_bias: expected 0 (off) or 1 (a state), got {self.range_bias!r}"
             )
-        if self.steady_test not in (0, 1):
-            raise QuadobsError(f"steady_test: expected 0 (off) or 1 (on), got {self.steady_test!r}")
+        for key in ("steady_test", "stated_heights"):
+            if getattr(self, key) not in (0, 1):
+                raise QuadobsError(f"{key}: expected 0 (off) or 1 (on), got {getattr(self, key)!r}")
         for key in TUNING:
-            if key in ("range_bias", "steady_test"):
+            if key in ("range_bias", "steady_test", "stated_heights"):
                 continue
             value = getattr(self, key)
             if not (key in ("gate", "velocity_std", "bias_prior") and value is None) and not (
@@ -364,7 +378,7 @@ def tuning_fields(options) -> dict:
 #: The settings of :class:`ReplaySetup` a user may tune (``quadobs replay --tune KEY=VALUE``).
 TUNING = (
     "range_sigma", "q_xy", "q_theta", "q_acc", "q_imu", "gate", "P0", "range_bias",
-    "q_xy_heading", "velocity_std", "nlos_prior", "steady_test", "bias_prior",
+    "q_xy_heading", "velocity_std", "nlos_prior", "steady_test", "bias_prior", "stated_heights",
 )  # fmt: skip
 
 
@@ -388,10 +402,8 @@ def parse_tuning(settings) -> dict:
             out[key] = float(raw)
         except ValueError:
             raise QuadobsError(f"--tune {key}: expected a number, got {raw.strip()!r}") from None
-        if key == "steady_test" and out[key] not in (0.0, 1.0):
-            raise QuadobsError(
-                f"--tune steady_test: expected 0 (off) or 1 (on), got {raw.strip()!r}"
-            )
+        if key in ("steady_test", "stated_heights") and out[key] not in (0.0, 1.0):
+            raise QuadobsError(f"--tune {key}: expected 0 (off) or 1 (on), got {raw.strip()!r}")
         if key == "nlos_prior" and not 0.0 < out[key] < 1.0:  # type: ignore[operator]
             raise QuadobsError(
                 f"--tune nlos_prior: expected a probability in (0, 1), got {raw.strip()!r}"
@@ -501,8 +513,9 @@ def replay_setup(
 
 def log_frame(log, range_sigma: float | None = None, apply_start: bool = False) -> dict:
     """The setup's fields read from the log's frame, attitude and IMU: ``frame``, ``gravity``,
-    ``attitude0``, ``imu_period``, ``gyro_noise``, ``gyro_bias``, ``range_errors`` and
-    ``range_std_stated``, and the velocity's prior at the ``start``
+    ``attitude0``, ``imu_period``, ``gyro_noise``, ``gyro_bias``, ``range_errors``,
+    ``range_std_stated``, the anchors' squared-range ``offsets`` where the log states the
+    heights (:func:`~quadobs.testbed.logs.height_estimators.known_offsets`), and the velocity's prior at the ``start``
     (:func:`~quadobs.testbed.logs.start_prior.start_prior`, ``range_sigma`` the standard
     deviation of a range that states none; :class:`ReplaySetup`)."""
     attitude0 = None
@@ -529,6 +542,7 @@ def log_frame(log, range_sigma: float | None = None, apply_start: bool = False) 
         "range_std_stated": log_range_std(log),
         "alignment0": alignment0,
         "start": start_prior(log, range_sigma=range_sigma, apply=apply_start),
+        "offsets": known_offsets(log),
     }
 
 

@@ -7,6 +7,8 @@ file               columns (header row; names in any order)        meaning
                                                                    (:data:`~quadobs.testbed.logs.schema.META_KEYS`)
 ``beacons.csv``    ``id,x,y[,z]``                                  surveyed anchor positions (m);
                                                                    with ``z`` the log is in space
+                                                                   (wheel odometry: the anchors'
+                                                                   heights, the vehicle planar)
 ``ranges.csv``     ``time,beacon,range[,std]``                     one range (m) to anchor ``beacon``
 ``tdoa.csv``       ``time,anchor_i,anchor_j,difference[,std]``     ``|p - a_i| - |p - a_j|`` (m)
 ``inputs.csv``     ``time,speed,yaw_rate``                         planar wheel odometry (m/s, rad/s)
@@ -149,6 +151,13 @@ class RangeLog:
     range_errors : str
         The stated error model of ``ranges``: ``"gaussian"`` (no non-line-of-sight excess, no
         outliers), ``"nlos"``, or ``""`` (unknown, taken as ``"nlos"``).
+    anchor_heights : ndarray (B,) or None
+        A wheel-odometry log whose ``beacons.csv`` holds ``z``: the anchors' heights (m), taken
+        out of ``beacons`` (the vehicle moves in the plane; ``beacons`` keeps ``x, y``). None
+        otherwise. Given ``beacons`` with three columns and odometry, they are split so.
+    tag_height : float
+        With ``anchor_heights``: the tag's height (m) in the same frame, as stated in
+        ``meta.csv`` (NaN: not stated).
     """
 
     name: str
@@ -175,9 +184,12 @@ class RangeLog:
     gyro_bias: float = math.nan
     attitude_std: float = math.nan
     range_errors: str = ""
+    anchor_heights: np.ndarray | None = None
+    tag_height: float = math.nan
 
     def __post_init__(self) -> None:
         fix = lambda key, value: object.__setattr__(self, key, value)  # noqa: E731
+        self._split_heights(fix)
         errors = str(self.range_errors).lower()
         if errors not in ("", *RANGE_ERRORS):
             raise QuadobsError(
@@ -201,6 +213,29 @@ class RangeLog:
         self._check_inputs()
         self._check_truth()
         self._check_values()
+
+    def _split_heights(self, fix) -> None:
+        """An odometry log's anchors in space: ``z`` into :attr:`anchor_heights` (the vehicle
+        moves in the plane); a tag height only beside them."""
+        beacons = np.asarray(self.beacons, dtype=float)
+        if self.input_kind == "odometry" and beacons.ndim == 2 and beacons.shape[1] == 3:
+            if self.anchor_heights is not None:
+                raise QuadobsError(f"{self.name}: beacons.csv: z given twice")
+            fix("anchor_heights", beacons[:, 2].copy())
+            fix("beacons", beacons[:, :2].copy())
+        if self.anchor_heights is not None:
+            heights = np.asarray(self.anchor_heights, dtype=float).ravel()
+            if self.input_kind != "odometry" or heights.shape != (beacons.shape[0],):
+                raise QuadobsError(
+                    f"{self.name}: beacons.csv, column z: anchor heights apart from x, y are "
+                    "for a wheel-odometry log, one per anchor"
+                )
+            fix("anchor_heights", heights)
+        elif math.isfinite(self.tag_height):
+            raise QuadobsError(
+                f"{self.name}: meta.csv, key tag_height: only for an odometry log whose "
+                "beacons.csv holds z"
+            )
 
     def _check_ids(self) -> None:
         ids = np.asarray(self.beacon_ids)
@@ -241,11 +276,9 @@ class RangeLog:
             return
         if self.inputs.shape[0] < 2:
             raise QuadobsError(f"{self.name}: {fname}: at least two rows are needed")
-        if kind == "odometry" and (dim != 2 or self.inputs.shape[1] != len(ODOMETRY)):
+        if kind == "odometry" and self.inputs.shape[1] != len(ODOMETRY):
             raise QuadobsError(
-                f"{self.name}: inputs.csv, row 1: odometry (speed, yaw_rate) needs a planar log: "
-                "write beacons.csv without z (the anchors' heights above the tag are then "
-                "estimated by ekf-height, augmented-height and ukf-height-lever)"
+                f"{self.name}: inputs.csv, row 1: odometry needs the columns time,speed,yaw_rate"
             )
         if kind == "imu" and self.inputs.shape[1] != 1 + dim:
             raise QuadobsError(
@@ -263,8 +296,10 @@ class RangeLog:
             return
         dim, cols = self.dimension, set(self.truth_columns)
         if ("z" in cols) != (dim == 3):
+            what = "a planar vehicle (wheel odometry)" if self.input_kind == "odometry" else ""
             raise QuadobsError(
-                f"{self.name}: truth.csv, row 1: column z {'missing' if dim == 3 else 'given'} for {dim}-D beacons"
+                f"{self.name}: truth.csv, row 1: column z {'missing' if dim == 3 else 'given'} "
+                f"for {what or f'{dim}-D beacons'}"
             )
         if cols & set(QUATERNION) and not set(QUATERNION) <= cols:
             raise QuadobsError(
@@ -279,11 +314,7 @@ class RangeLog:
     def _check_values(self) -> None:
         """Every table held to the schema; the span, the frame and gravity."""
         tables = [
-            (
-                "beacons.csv",
-                ("id", *"xyz"[: self.dimension]),
-                np.column_stack([self.beacon_ids, self.beacons]),
-            ),
+            ("beacons.csv", *self._beacon_table()),
             ("ranges.csv", (*RANGE._fields, STD), np.column_stack([self.ranges, self.range_std])),
             ("tdoa.csv", (*TDOA._fields, STD), np.column_stack([self.tdoa, self.tdoa_std])),
         ]
@@ -311,6 +342,15 @@ class RangeLog:
             )
         if self.version not in (1, 2):
             raise QuadobsError(f"{self.name}: meta.csv, key version: expected 1 or 2")
+
+    def _beacon_table(self) -> tuple[tuple[str, ...], np.ndarray]:
+        """``beacons.csv``'s columns and rows: ``id``, the position and, for an odometry log
+        with them, the anchors' heights as ``z``."""
+        columns = ("id", *"xyz"[: self.dimension])
+        table = np.column_stack([self.beacon_ids, self.beacons])
+        if self.anchor_heights is None:
+            return columns, table
+        return (*columns, "z"), np.column_stack([table, self.anchor_heights])
 
     @property
     def dimension(self) -> int:
@@ -540,6 +580,7 @@ def read_log(folder: str | Path) -> RangeLog:
             gyro_noise=meta["gyro_noise"],
             **{key: meta[key] for key in IMU_FIGURES},
             range_errors=meta["range_errors"],
+            tag_height=meta["tag_height"],
         )
     except QuadobsError as exc:  # name the folder's file, not the log's name
         raise QuadobsError(str(exc).replace(f"{name}: ", f"{folder}/", 1)) from None
@@ -569,11 +610,7 @@ def _csv_text(header: list[str], values, ints: tuple[int, ...] = ()) -> str:
 def _log_texts(log: RangeLog) -> dict[str, str]:
     """Every file of ``log`` in format version 2, as text."""
     dim = log.dimension
-    texts = {
-        "beacons.csv": _csv_text(
-            ["id", *"xyz"[:dim]], np.column_stack([log.beacon_ids, log.beacons]), ints=(0,)
-        )
-    }
+    texts = {"beacons.csv": _csv_text(list(log._beacon_table()[0]), log._beacon_table()[1], (0,))}
     for fname, cols, values, std, ints in (
         ("ranges.csv", RANGE._fields, log.ranges, log.range_std, (RANGE.beacon,)),
         ("tdoa.csv", TDOA._fields, log.tdoa, log.tdoa_std, (TDOA.anchor_i, TDOA.anchor_j)),
@@ -595,6 +632,8 @@ def _log_texts(log: RangeLog) -> dict[str, str]:
         meta.append(["description", log.description])
     if log.input_kind == "odometry":
         meta.append(["heading0", repr(float(log.heading0))])
+    if math.isfinite(log.tag_height):
+        meta.append(["tag_height", repr(float(log.tag_height))])
     if dim == 3:
         meta += [["frame", log.frame], ["gravity", repr(float(log.gravity))]]
     for key in ("accel_noise", "gyro_noise", *IMU_FIGURES):

@@ -22,9 +22,30 @@ the mean and standard deviation
 ``e_h = 0``, the anchors in the tag's plane as the log draws them, with the standard deviation
 ``H^2 / 4``, was measured worse where the anchors are high: docs/error-sources.md.) A log in
 space (3-D beacons) has its heights and is refused by name.
+
+A wheel-odometry log that states its anchors' heights ``z_h`` (``beacons.csv`` with ``z``)
+and the tag's ``z_t`` (``meta.csv`` ``tag_height``) gives the offsets jointly. Each anchor's
+height is surveyed to :data:`HEIGHT_SURVEY_STD` (``sigma_a``, independent errors); the tag's
+height in the anchors' frame is stated to :data:`TAG_HEIGHT_STD` (``sigma_t``, one error
+common to every anchor: a tag height measured on the vehicle from the floor, against anchors
+surveyed in a frame whose floor may sit elsewhere). With ``u_h = dz_h + delta_h - delta_t``,
+Gaussian of mean ``dz_h`` and covariance ``C = sigma_t^2 1 1^T + sigma_a^2 I``, the offsets
+``e_h = u_h^2 / 2`` have (Isserlis' theorem) the mean and covariance
+
+.. math::
+
+    \\mathrm E[e_h] = \\frac{\\delta z_h^2 + C_{hh}}{2}, \\qquad
+    \\operatorname{Cov}(e_h, e_k) = \\delta z_h \\delta z_k C_{hk} + \\frac{C_{hk}^2}{2}
+
+(:func:`known_offsets`): the anchors' heights relative to one another tightly, their common
+height above the tag loosely, which the filters then estimate. They start there instead
+(:func:`offsets_prior`). Heights without the tag's leave the storey's prior: the tag's height
+in the anchors' frame is what ties them to the offsets.
 """
 
 from __future__ import annotations
+
+import math
 
 import numpy as np
 
@@ -34,6 +55,7 @@ __all__ = [
     "EXCESS_MEMORY",
     "E_MEAN",
     "E_STD",
+    "HEIGHT_SURVEY_STD",
     "STOREY",
     "apparent_bias_prior",
     "build_augmented_height",
@@ -43,6 +65,8 @@ __all__ = [
     "heading_height_options",
     "holds_anchor_offsets",
     "huber_rule",
+    "known_offsets",
+    "offsets_prior",
 ]
 
 #: The height of one storey (m): the largest height of an indoor anchor above a ground tag.
@@ -51,6 +75,36 @@ STOREY = 3.0
 E_MEAN = STOREY**2 / 6.0
 #: Prior standard deviation of each offset (m^2), for the same uniform ``dz``.
 E_STD = STOREY**2 / 45.0**0.5
+#: The standard deviation (m) of a surveyed anchor's height: a tape or a total station, as the
+#: anchors' positions (:func:`known_offsets`).
+HEIGHT_SURVEY_STD = 0.05
+#: The standard deviation (m) of the tag's stated height in the anchors' frame, common to every
+#: anchor's offset (:func:`known_offsets`): the height above the floor is measured on the
+#: vehicle to centimetres, the floor's height in the frame of a survey is often not stated,
+#: and an error of tenths of a metre is one of convention, which the ranges then tell.
+TAG_HEIGHT_STD = 0.3
+
+
+def known_offsets(log) -> tuple[np.ndarray, np.ndarray] | None:
+    """The prior ``(mean (q,), covariance (q, q))`` (m^2, m^4) of the squared-range offsets
+    where the log states the anchors' heights and the tag's (module docstring), else None."""
+    heights = getattr(log, "anchor_heights", None)
+    tag = float(getattr(log, "tag_height", math.nan))
+    if heights is None or not math.isfinite(tag):
+        return None
+    dz = np.asarray(heights, dtype=float) - tag
+    C = TAG_HEIGHT_STD**2 + HEIGHT_SURVEY_STD**2 * np.eye(dz.size)
+    return 0.5 * (dz * dz + np.diag(C)), np.outer(dz, dz) * C + 0.5 * C * C
+
+
+def offsets_prior(s) -> tuple[np.ndarray, np.ndarray]:
+    """The offsets' prior ``(mean (q,), covariance (q, q))`` of the setup ``s``: the log's
+    (:attr:`~quadobs.testbed.logs.estimators.ReplaySetup.offsets`), else the storey's
+    :data:`E_MEAN`, :data:`E_STD` for each anchor, independent."""
+    if getattr(s, "offsets", None) is not None and float(getattr(s, "stated_heights", 1.0)):
+        return s.offsets
+    q = s.beacons.shape[0]
+    return np.full(q, E_MEAN), np.eye(q) * E_STD**2
 
 
 #: The time (s) over which a heading filter remembers that an anchor's path was blocked
@@ -87,10 +141,12 @@ def _build(s, x0: np.ndarray, name: str, cls, process_noise: np.ndarray):
     P0 = np.full(n, s.P0)
     P0[s.dim :] = 4.0  # the velocity, as the replay's EKF
     extra = RangeModel(s.beacons, s.range_sigma, bias="state").extra_states()
-    prior = np.concatenate([P0, [e.prior_std**2 for e in extra], np.full(q, E_STD**2)])
-    xe = np.concatenate([np.asarray(x0, dtype=float)[:n], np.zeros(q), np.full(q, E_MEAN)])
+    e_mean, e_cov = offsets_prior(s)
+    prior = np.diag(np.concatenate([P0, [e.prior_std**2 for e in extra], np.zeros(q)]))
+    prior[n + q :, n + q :] = e_cov
+    xe = np.concatenate([np.asarray(x0, dtype=float)[:n], np.zeros(q), e_mean])
     rule = SkewedGate(_gate_probability(s.gate))
-    est = cls(dynamics, outputs, x0=xe, P0=np.diag(prior), vehicle_n=n, robust=rule)
+    est = cls(dynamics, outputs, x0=xe, P0=prior, vehicle_n=n, robust=rule)
     est.name = name
     return est
 
@@ -125,15 +181,16 @@ def build_augmented_height(s, x0: np.ndarray, name: str, process_noise: np.ndarr
             f"estimators: {name!r} takes the ranges of a planar odometry log (the anchors' "
             "heights above the tag as states)"
         )
-    n, q = s.n, s.system.q
+    n = s.n
     im = immerse(height_quadratic_system(s.system))
     k = im.n_aux
-    xe = np.concatenate([np.asarray(x0, dtype=float)[:n], np.full(q, E_MEAN)])
+    e_mean, e_cov = offsets_prior(s)
+    xe = np.concatenate([np.asarray(x0, dtype=float)[:n], e_mean])
     p0 = xe[: s.dim]
     P = np.eye(im.dim) * s.P0
     P[0, 0] = s.P0 * p0 @ p0 + s.P0**2  # the covariance of xi = |p|^2 / 2 for p ~ N(p0, P0 I)
     P[0, k : k + s.dim] = P[k : k + s.dim, 0] = s.P0 * p0
-    P[k + n :, k + n :] = np.eye(q) * E_STD**2
+    P[k + n :, k + n :] = e_cov
     L, J = im.aux_forms, np.zeros((im.dim, n))
     J[k : k + n] = np.eye(n)
 
@@ -172,7 +229,7 @@ def heading_height_options(s, name: str, excess: bool = True) -> dict:
             "ranges; the log holds TDOA or is in space (use ukf-heading)"
         )
     rule = excess_rule(s) if excess else huber_rule(s.gate)
-    return {"offsets": (E_MEAN, E_STD), "bias_std": RANGE_BIAS_PRIOR_STD, "robust": rule}
+    return {"offsets": offsets_prior(s), "bias_std": RANGE_BIAS_PRIOR_STD, "robust": rule}
 
 
 def excess_rule(s):
@@ -235,7 +292,7 @@ def holds_anchor_offsets(est) -> bool:
     return isinstance(est, (HeadingEKF, HeadingUKF)) and est._ib >= 0 and est._ie >= 0
 
 
-def apparent_bias_prior(log) -> tuple[np.ndarray, np.ndarray]:
+def apparent_bias_prior(log, stated: bool = True) -> tuple[np.ndarray, np.ndarray]:
     """The constant bias ``(mean, std)`` (m, per anchor) that the offsets' prior gives a range
     read by a model without heights, as the self-calibration's EKF reads it.
 
@@ -248,7 +305,8 @@ def apparent_bias_prior(log) -> tuple[np.ndarray, np.ndarray]:
         \\bar g_h = \\sqrt{r_h^2 + 2 \\bar e} - r_h, \\qquad
         \\sigma_{g,h} = \\frac{\\sigma_e}{\\sqrt{r_h^2 + 2 \\bar e}} ,
 
-    ``sigma_e`` = :data:`E_STD`. In a room (``r_h`` about 1.5 m) that is 0.79 +- 0.59 m; on a
+    ``sigma_e`` = :data:`E_STD` (the log's own prior where it states the heights,
+    :func:`known_offsets`, unless ``stated`` is False). In a room (``r_h`` about 1.5 m) that is 0.79 +- 0.59 m; on a
     field of tens of metres, centimetres. The self-calibration checks its biases against it
     for the heading filter that holds the offsets (:func:`holds_anchor_offsets`;
     :mod:`quadobs.testbed.logs.calibration`, step 7)."""
@@ -259,5 +317,9 @@ def apparent_bias_prior(log) -> tuple[np.ndarray, np.ndarray]:
     for h in range(r.size):
         rows = log.ranges[anchor == h, RANGE.range]
         r[h] = float(np.median(rows)) if rows.size else 0.0  # none: the height's whole share
-    s = np.sqrt(r * r + 2.0 * E_MEAN)
-    return s - r, E_STD / s
+    stated_prior = known_offsets(log) if stated else None
+    e_mean, e_std = np.full(r.size, E_MEAN), np.full(r.size, E_STD)
+    if stated_prior is not None:
+        e_mean, e_std = stated_prior[0], np.sqrt(np.diag(stated_prior[1]))
+    s = np.sqrt(r * r + 2.0 * e_mean)
+    return s - r, e_std / s

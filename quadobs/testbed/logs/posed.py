@@ -78,6 +78,7 @@ def posed_log(
     lever_arm=(0.0, 0.0),
     odometry_offset: float = 0.0,
     time_base: float = 0.0,
+    heights_stated: bool = False,
 ) -> RangeLog:
     """``log`` as a real robot would have logged it (module docstring).
 
@@ -96,11 +97,14 @@ def posed_log(
         Added to the odometry's time stamps (s): its clock ahead of the radio's.
     time_base : float
         Added to every time stamp (s), e.g. a Unix time.
+    heights_stated : bool
+        Whether the log states the heights it was posed with: ``beacons.csv`` with ``z`` (the
+        anchors' heights) and ``meta.csv`` ``tag_height``, as a survey would give them.
 
     Returns
     -------
     RangeLog
-        The posed log; ``beacons.csv`` stays planar.
+        The posed log; ``beacons.csv`` stays planar unless ``heights_stated``.
     """
     if log.dimension != 2 or log.input_kind != "odometry":
         raise QuadobsError(f"{log.name}: posing takes a planar odometry log")
@@ -128,7 +132,10 @@ def posed_log(
     truth = log.truth.copy()  # type: ignore[union-attr]  # checked by tag_positions
     for table in (ranges, inputs, truth):
         table[:, 0] += float(time_base)
-    return replace(log, ranges=ranges, inputs=inputs, truth=truth, source="")
+    posed = replace(log, ranges=ranges, inputs=inputs, truth=truth, source="")
+    if heights_stated:
+        return replace(posed, anchor_heights=heights, tag_height=float(tag_height))
+    return posed
 
 
 # Stresses: what a hidden real log may hold that the posed logs above do not. Each is one

@@ -508,6 +508,15 @@ def check_range_units(log) -> None:
         )
 
 
+def _offsets_summary(offsets) -> dict | None:
+    """The anchors' squared-range offsets' prior from the log's stated heights (m^2), or None
+    (the storey's prior of the filters that hold them)."""
+    if offsets is None:
+        return None
+    std = np.sqrt(np.diag(offsets[1]))
+    return {"mean": [float(v) for v in offsets[0]], "std": [float(v) for v in std]}
+
+
 def _summary(
     log, world, names, merged, completed, interrupted, x0, biases, setup, out, sensors
 ) -> dict:
@@ -538,6 +547,8 @@ def _summary(
             "steady_test": setup.steady_test,
             "bias_prior": setup.bias_prior_std(),
             "P0": setup.P0,
+            "offsets": _offsets_summary(setup.offsets if setup.stated_heights else None),
+            "stated_heights": setup.stated_heights,
         },
         "measurements": {
             "range_period_steps": sensors.range_every,

@@ -152,7 +152,10 @@ FILES = {
         integers=("id",),
         required=True,
         described="id,x,y[,z]",
-        meaning="surveyed anchor positions (m), navigation frame; with z the log is in space (3-D)",
+        meaning=(
+            "surveyed anchor positions (m), navigation frame; with z the log is in space (3-D), "
+            "but for wheel odometry (a planar vehicle): the anchors' heights"
+        ),
     ),
     "ranges.csv": FileSpec(
         "ranges.csv",
@@ -225,6 +228,13 @@ META_KEYS = {
         MetaKey("name", "the log's name (printable text; absent: the folder's name)", ""),
         MetaKey("description", "free text (printable)", "", 2),
         MetaKey("heading0", "odometry logs: the heading (rad) at the first input time", math.nan),
+        MetaKey(
+            "tag_height",
+            "odometry logs whose beacons.csv holds z: the tag's height (m) in the anchors' "
+            "frame, measured on the vehicle (absent: unknown)",
+            math.nan,
+            2,
+        ),
         MetaKey(
             "frame",
             "navigation frame of a log in space: enu (z up, the default) or ned (z down)",
@@ -329,7 +339,7 @@ def parse_meta(where: str, rows: list[list[str]]) -> dict:
             meta[key] = int(text)
         elif key in ("name", "description"):
             meta[key] = _printable(at, text)
-        elif key == "heading0":
+        elif key in ("heading0", "tag_height"):
             meta[key] = _float_value(at, text)
         elif key in ("gravity", "accel_noise", "gyro_noise"):
             meta[key] = _float_value(at, text, positive=True)
