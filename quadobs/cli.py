@@ -958,7 +958,7 @@ def _add_replay(sub) -> None:
         action="append",
         default=[],
         metavar="KEY=VALUE",
-        help="the estimators' noise settings: range_sigma, q_xy, q_theta, q_acc, q_imu, gate (a number or none), P0, range_bias (1: the peer's bias per anchor as a state), q_xy_heading, velocity_std (m/s, or log: the velocity the log's start tells, where it tells one), nlos_prior (the excess mixture's stationary probability of a blocked path, in (0, 1)), steady_test (1: ekf-bias-imu-nlos takes a block of ranges read blocked as steady as the noise for its bias's error, the default; 0: off), bias_prior (m: the range biases' prior in the filters that hold them as states, 0.5 by default; log: the spread of the self-calibration's biases), stated_heights (1: the height filters start from the heights an odometry log states, the default; 0: from a storey's prior) (repeatable)",
+        help="the estimators' noise settings: range_sigma, q_xy, q_theta, q_acc, q_imu, gate (a number or none), P0, range_bias (1: the peer's bias per anchor as a state), q_xy_heading, velocity_std (m/s, or log: the velocity the log's start tells, where it tells one), nlos_prior (the excess mixture's stationary probability of a blocked path, in (0, 1)), steady_test (1: ekf-bias-imu-nlos takes a block of ranges read blocked as steady as the noise for its bias's error, the default; 0: off), bias_prior (m: the range biases' prior in the filters that hold them as states, 0.5 by default; log: the spread of the self-calibration's biases), stated_heights (1: ukf-height-lever starts from the heights an odometry log states, the default; 0: from a storey's prior) (repeatable)",
     )
     p.add_argument(
         "--set",
@@ -1081,7 +1081,7 @@ def _print_replay_rows(summary: dict, log) -> None:
             else ""
         )
         + _outside_inputs(summary["ranges"], log.beacons.shape[0])
-        + _heights_note(log)
+        + _heights_note(log, summary["noise"])
         + ("  [INTERRUPTED]" if summary["interrupted"] else "")
     )
     for name, e in summary["estimators"].items():
@@ -1220,15 +1220,17 @@ def _outside_inputs(counts: dict, anchors: int) -> str:
     return f" ({' and '.join(parts)}: not replayed)" if parts else ""
 
 
-def _heights_note(log) -> str:
-    """For the replay's head line: what a planar log's stated anchor heights are used for."""
+def _heights_note(log, noise: dict) -> str:
+    """For the replay's head line: whether a planar log's stated anchor heights are used
+    (``noise``: the summary's, where ``offsets`` is None once set aside)."""
     import math
 
     if getattr(log, "anchor_heights", None) is None:
         return ""
-    if math.isfinite(log.tag_height):
-        return f"; anchors' heights stated, the tag at {log.tag_height:g} m"
-    return "; anchors' heights stated without meta.csv tag_height: not used"
+    if not math.isfinite(log.tag_height):
+        return "; anchors' heights stated without meta.csv tag_height: not used"
+    used = noise.get("offsets") is not None
+    return f"; anchors' heights stated, the tag at {log.tag_height:g} m: {'used' if used else 'set aside'}"
 
 
 def _check_field_options(args) -> None:

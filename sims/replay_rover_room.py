@@ -189,6 +189,11 @@ def in_room(pose: dict, room: str) -> dict:
     return pose
 
 
+def _poses(variant: str) -> bool:
+    """Whether ``variant`` poses any anchor heights (which ``--heights-stated`` states)."""
+    return "anchor_heights" in variant_of(variant)[1]
+
+
 def _poses_heights(variant: str) -> bool:
     """Whether ``variant`` poses the anchors' heights (the ``heights`` effect), where
     ``--room level`` puts them at one height."""
@@ -381,7 +386,7 @@ def posed_rows(
         label = f"{variant}, no std" if bare else variant
         row = {
             "seed": seed,
-            "log": f"{label}, heights stated" if heights_stated else label,
+            "log": f"{label}, heights stated" if heights_stated and _poses(variant) else label,
             **replay_defaults(replayed, extra),
             **reference(folder, scenario, in_room(variant_of(variant)[1], room)),
         }

@@ -633,7 +633,13 @@ def _offsets_covariance(spread, q: int) -> np.ndarray:
             raise QuadobsError(
                 f"offsets: expected a symmetric ({q}, {q}) prior covariance with a positive diagonal"
             )
+        try:
+            np.linalg.cholesky(spread)
+        except np.linalg.LinAlgError:
+            raise QuadobsError("offsets: the prior covariance is not positive definite") from None
         return spread.copy()
+    if spread.ndim > 1 or spread.size not in (1, q):
+        raise QuadobsError(f"offsets: expected one standard deviation, or {q} (one per anchor)")
     std = np.broadcast_to(spread, (q,))
     if not np.all(np.isfinite(std) & (std > 0.0)):
         raise QuadobsError(

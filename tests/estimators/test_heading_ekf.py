@@ -687,3 +687,21 @@ def test_the_grid_and_the_lock_out_s_re_fix_do_not_depend_on_the_order_of_the_an
         runs.append(np.array(states))
     for other in runs[1:]:
         np.testing.assert_allclose(other, runs[0], rtol=0, atol=1e-9)
+
+
+@pytest.mark.parametrize(
+    ("spread", "message"),
+    [
+        ([1.0, 2.0], "one standard deviation, or 4"),
+        (np.ones((4, 4)), "not positive definite"),
+        (np.eye(3), r"symmetric \(4, 4\) prior covariance"),
+        ([1.0, 1.0, -1.0, 1.0], "positive finite prior standard deviation"),
+    ],
+)
+def test_the_offsets_prior_is_refused_in_one_line_when_malformed(spread, message):
+    anchors = np.array([[0.12, 0.10], [2.90, 0.16], [2.86, 2.28], [0.15, 2.31]])
+    with pytest.raises(QuadobsError, match=message):
+        HeadingEKF(
+            anchors, x0=[1.5, 1.2, 0, 0], P0=[1, 1, 0.01, 1e-4], dt=0.1, q_xy=1e-3,
+            q_theta=1e-4, q_bias=1e-8, offsets=(1.5, spread),
+        )  # fmt: skip

@@ -151,6 +151,8 @@ def test_stated_heights_give_the_offsets_moments_and_the_filters_start_there():
     own, the tag's ``delta_t`` common: the offsets' mean and covariance in closed form, checked
     by sampling; a posed log that states its heights hands them to ``ukf-height-lever`` (the
     other height filters keep the storey's prior), and the summary reports them."""
+    import dataclasses
+
     from quadobs.testbed.logs.estimators import (
         ReplaySetup,
         build_replay_estimators,
@@ -187,15 +189,25 @@ def test_stated_heights_give_the_offsets_moments_and_the_filters_start_there():
     for est in build_replay_estimators(setup, names, np.array([1.5, 1.2, log.heading0])):
         start = mean if est.name == "ukf-height-lever" else np.full(4, E_MEAN)  # the storey's
         np.testing.assert_allclose(_offsets_state(est), start, rtol=1e-12, err_msg=est.name)
+        if est.name == "ukf-height-lever":  # the offsets are the state's last block
+            np.testing.assert_array_equal(est.state_covariance[-4:, -4:], cov)
+    from quadobs.testbed.logs.replay import replayable_log
+
+    kept = log.ranges[:, 1] != 2
+    quiet = dataclasses.replace(log, ranges=log.ranges[kept], range_std=log.range_std[kept])
+    heard, notes = replayable_log(quiet)  # an anchor never heard goes, with its height
+    np.testing.assert_array_equal(heard.anchor_heights, heights[[0, 1, 3]])
+    assert heard.beacons.shape == (3, 2) and notes
 
 
 def test_stated_heights_the_ranges_contradict_are_not_used():
     """``ukf-height-lever`` started from the stated heights predicts the held-out ranges no
     worse than from a storey's prior where the statement is right, and is used; with the tag
-    stated a metre off it predicts them worse, and every filter falls back to the storey's."""
+    stated a metre off it predicts them worse, and every filter falls back to the storey's.
+    Checked by step 7 whether or not the calibration chose biases (here none)."""
     import dataclasses
 
-    from quadobs.testbed.logs.calibration import Calibration, check_stated_heights
+    from quadobs.testbed.logs.calibration import Calibration, estimator_biases
     from quadobs.testbed.logs.estimators import ReplaySetup, log_frame, tuning_fields
     from quadobs.testbed.logs.height_estimators import E_MEAN, known_offsets, offsets_prior
     from quadobs.testbed.logs.posed import posed_log
@@ -204,8 +216,8 @@ def test_stated_heights_the_ranges_contradict_are_not_used():
     log = posed_log(_planar_log(60.0), anchor_heights=heights, tag_height=0.25, heights_stated=True)
     for tag, used in ((0.25, True), (1.25, False)):
         stated = dataclasses.replace(log, tag_height=tag)
-        cal = Calibration(np.zeros(4), {}, {}, "", np.zeros(4))
-        check_stated_heights(stated, cal, dt=0.1, model="odometry")
+        cal = Calibration(None, {}, {}, "", np.zeros(4))
+        estimator_biases(stated, cal, ["ekf", "ukf-height-lever"], dt=0.1, model="odometry")
         assert ("stated_heights" not in cal.options) is used, cal.reason
         assert (": used" if used else ": not used, the ranges contradict them") in cal.reason
         setup = ReplaySetup(
@@ -326,3 +338,24 @@ def test_the_height_lever_filter_takes_the_ranges_as_logged_unless_its_prior_exc
         assert (record["prior_chi2"] > record["prior_limit"]) == kept
         what = "the calibrated biases subtracted" if kept else "the ranges as logged"
         assert f"ukf-height-lever (range biases and heights as states): {what}" in cal.reason
+
+
+def test_the_head_line_says_whether_the_stated_heights_are_used(tmp_path, capsys):
+    from dataclasses import replace
+
+    from quadobs.cli import main
+    from quadobs.testbed.logs import write_log
+    from quadobs.testbed.logs.posed import posed_log
+
+    log = posed_log(_planar_log(), anchor_heights=[2.3, 0.3, 1.8, 1.1], tag_height=0.25)
+    folder = write_log(replace(log, anchor_heights=[2.3, 0.3, 1.8, 1.1]), tmp_path / "L")
+    base = ["replay", str(folder), "--calibrate", "none", "--no-progress"]
+    base += ["--estimators", "ukf-height-lever", "--initial-offset", "0"]
+    assert main(base) == 0
+    assert (
+        "anchors' heights stated without meta.csv tag_height: not used" in capsys.readouterr().out
+    )
+    write_log(replace(log, anchor_heights=[2.3, 0.3, 1.8, 1.1], tag_height=0.25), folder)
+    for tune, word in ((), "used"), (("--tune", "stated_heights=0"), "set aside"):
+        assert main([*base, *tune]) == 0
+        assert f"the tag at 0.25 m: {word}\n" in capsys.readouterr().out

@@ -231,11 +231,13 @@ class RangeLog:
                     "for a wheel-odometry log, one per anchor"
                 )
             fix("anchor_heights", heights)
-        elif math.isfinite(self.tag_height):
+        elif not math.isnan(self.tag_height):
             raise QuadobsError(
                 f"{self.name}: meta.csv, key tag_height: only for an odometry log whose "
                 "beacons.csv holds z"
             )
+        if not (math.isnan(self.tag_height) or math.isfinite(self.tag_height)):
+            raise QuadobsError(f"{self.name}: meta.csv, key tag_height: not a finite number")
 
     def _check_ids(self) -> None:
         ids = np.asarray(self.beacon_ids)

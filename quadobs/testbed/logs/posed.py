@@ -126,7 +126,7 @@ def posed_log(
     dz = heights[h] - float(tag_height)
     planar = np.linalg.norm(truth_p - a, axis=1)
     ranges[:, 2] += np.sqrt(np.sum((tag - a) ** 2, axis=1) + dz**2) - planar
-    np.maximum(ranges[:, 2], 0.0, out=ranges[:, 2])  # a radio reports no negative range
+    np.maximum(ranges[:, 2], 0.0, out=ranges[:, 2])  # this radio clamps at zero, as many do
     inputs = log.inputs.copy()
     inputs[:, 0] += float(odometry_offset)
     truth = log.truth.copy()  # type: ignore[union-attr]  # checked by tag_positions
@@ -151,10 +151,14 @@ def log_start(log: RangeLog) -> float:
 
 def surveyed(log: RangeLog, std: float, seed: int) -> RangeLog:
     """``beacons.csv`` as a tape or total-station survey gives it: each anchor's coordinates
-    moved by ``N(0, std^2)`` per axis (drawn from ``seed``), the ranges left as measured from
-    the true anchors."""
+    moved by ``N(0, std^2)`` per axis (drawn from ``seed``; stated heights of an odometry log
+    too, drawn after the plane's), the ranges left as measured from the true anchors."""
     rng = np.random.default_rng(seed)
-    return replace(log, beacons=log.beacons + std * rng.standard_normal(log.beacons.shape))
+    beacons = log.beacons + std * rng.standard_normal(log.beacons.shape)
+    if log.anchor_heights is None:
+        return replace(log, beacons=beacons)
+    heights = log.anchor_heights + std * rng.standard_normal(log.anchor_heights.shape)
+    return replace(log, beacons=beacons, anchor_heights=heights)
 
 
 def started_at(log: RangeLog, delay: float) -> RangeLog:

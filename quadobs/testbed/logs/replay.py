@@ -374,8 +374,9 @@ def heard_anchors(log):
     if heard.all():
         return log, []
     unheard = [int(i) for i in log.beacon_ids[~heard]]
+    heights = None if log.anchor_heights is None else log.anchor_heights[heard]
     return dataclasses.replace(
-        log, beacon_ids=log.beacon_ids[heard], beacons=log.beacons[heard]
+        log, beacon_ids=log.beacon_ids[heard], beacons=log.beacons[heard], anchor_heights=heights
     ), unheard
 
 
