@@ -142,6 +142,7 @@ from quadobs.testbed.logs.estimators import (
 )
 from quadobs.testbed.logs.events import LogEvents
 from quadobs.testbed.logs.excess_model import EXCESS_KEYS, calibrated_excess, excess_nll
+from quadobs.testbed.logs.height_estimators import holds_anchor_offsets
 from quadobs.testbed.worlds.replay import ReplayWorld, default_model, state_size
 
 __all__ = [
@@ -312,7 +313,7 @@ def prediction_residuals(
     b = np.zeros(q) if biases is None else np.asarray(biases, dtype=float)
     world, est = _scoring_estimator(log, dt, model, b, estimator, setup_options, x0)
     own = holds_range_biases(est)
-    whole = _holds_offsets(est)  # its own range: the tag, the anchor's offset and bias
+    whole = holds_anchor_offsets(est)  # its own range: the tag, the anchor's offset and bias
     events = LogEvents(log, b, start=world.times[0], end=world.times[-1])
     t_in, U = events.inputs()
     est.time = world.times[0]
@@ -348,15 +349,6 @@ def prediction_residuals(
     return Residuals(
         r, np.array(out_h, dtype=np.int64), np.array(out_held, dtype=bool), np.array(out_t)
     )
-
-
-def _holds_offsets(est) -> bool:
-    """Whether ``est`` is a heading filter holding the anchors' squared-range offsets
-    (:func:`~quadobs.testbed.logs.height_estimators.holds_anchor_offsets`), whose range is
-    predicted by its own model (:meth:`~quadobs.estimators.heading_ekf._HeadingFilter.predicted_range`)."""
-    from quadobs.testbed.logs.height_estimators import holds_anchor_offsets
-
-    return holds_anchor_offsets(est)
 
 
 def scored_kind(log) -> str:
@@ -900,7 +892,8 @@ def estimator_biases(
 
     Records each choice in ``cal.per_estimator`` and ``cal.reason``; returns the names that take
     the ranges as logged (:attr:`Calibration.as_logged`). Nothing to check where no biases were
-    applied.
+    applied, but the heights an odometry log states are checked first in any case
+    (:func:`check_stated_heights`, where ``ukf-height-lever`` is among ``names``).
     """
     model = model or default_model(log)
     if "ukf-height-lever" in names and model == "odometry":

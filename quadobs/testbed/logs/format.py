@@ -612,7 +612,8 @@ def _csv_text(header: list[str], values, ints: tuple[int, ...] = ()) -> str:
 def _log_texts(log: RangeLog) -> dict[str, str]:
     """Every file of ``log`` in format version 2, as text."""
     dim = log.dimension
-    texts = {"beacons.csv": _csv_text(list(log._beacon_table()[0]), log._beacon_table()[1], (0,))}
+    header, rows = log._beacon_table()
+    texts = {"beacons.csv": _csv_text(list(header), rows, ints=(0,))}
     for fname, cols, values, std, ints in (
         ("ranges.csv", RANGE._fields, log.ranges, log.range_std, (RANGE.beacon,)),
         ("tdoa.csv", TDOA._fields, log.tdoa, log.tdoa_std, (TDOA.anchor_i, TDOA.anchor_j)),

@@ -39,8 +39,8 @@ Gaussian of mean ``dz_h`` and covariance ``C = sigma_t^2 1 1^T + sigma_a^2 I``, 
 
 (:func:`known_offsets`): the anchors' heights relative to one another tightly, their common
 height above the tag loosely, which the filter then estimates. The heading filter that holds
-the offsets starts there instead (:func:`offsets_prior`). Heights without the tag's leave the storey's prior: the tag's height
-in the anchors' frame is what ties them to the offsets.
+the offsets starts there instead (:func:`offsets_prior`). Heights without the tag's leave the
+storey's prior: the tag's height in the anchors' frame is what ties them to the offsets.
 """
 
 from __future__ import annotations
@@ -97,10 +97,11 @@ def known_offsets(log) -> tuple[np.ndarray, np.ndarray] | None:
     return 0.5 * (dz * dz + np.diag(C)), np.outer(dz, dz) * C + 0.5 * C * C
 
 
-def offsets_prior(s, stated: bool = True) -> tuple[np.ndarray, np.ndarray]:
-    """The offsets' prior ``(mean (q,), covariance (q, q))`` of the setup ``s``: the log's
-    (:attr:`~quadobs.testbed.logs.estimators.ReplaySetup.offsets`) where ``stated``, else the
-    storey's :data:`E_MEAN`, :data:`E_STD` for each anchor, independent.
+def offsets_prior(s) -> tuple[np.ndarray, np.ndarray]:
+    """The offsets' prior ``(mean (q,), covariance (q, q))`` of ``ukf-height-lever`` on the
+    setup ``s``: the log's (:attr:`~quadobs.testbed.logs.estimators.ReplaySetup.offsets`)
+    unless set aside, else the storey's :data:`E_MEAN`, :data:`E_STD` for each anchor,
+    independent.
 
     Only the heading filter that holds the offsets (``ukf-height-lever``) takes the log's:
     started from them, ``ekf-height`` and ``augmented-height`` (the heading taken as known)
@@ -108,11 +109,7 @@ def offsets_prior(s, stated: bool = True) -> tuple[np.ndarray, np.ndarray]:
     off (``ekf-height`` 0.353 against 0.185 m) and ``augmented-height`` even where it is right
     (0.388 against 0.264 m), ``ukf-height-lever`` better in every case (docs/error-sources.md,
     "Heights stated in the log")."""
-    if (
-        stated
-        and getattr(s, "offsets", None) is not None
-        and float(getattr(s, "stated_heights", 1.0))
-    ):
+    if getattr(s, "offsets", None) is not None and float(getattr(s, "stated_heights", 1.0)):
         return s.offsets
     q = s.beacons.shape[0]
     return np.full(q, E_MEAN), np.eye(q) * E_STD**2
@@ -152,12 +149,10 @@ def _build(s, x0: np.ndarray, name: str, cls, process_noise: np.ndarray):
     P0 = np.full(n, s.P0)
     P0[s.dim :] = 4.0  # the velocity, as the replay's EKF
     extra = RangeModel(s.beacons, s.range_sigma, bias="state").extra_states()
-    e_mean, e_cov = offsets_prior(s, stated=False)
-    prior = np.diag(np.concatenate([P0, [e.prior_std**2 for e in extra], np.zeros(q)]))
-    prior[n + q :, n + q :] = e_cov
-    xe = np.concatenate([np.asarray(x0, dtype=float)[:n], np.zeros(q), e_mean])
+    prior = np.concatenate([P0, [e.prior_std**2 for e in extra], np.full(q, E_STD**2)])
+    xe = np.concatenate([np.asarray(x0, dtype=float)[:n], np.zeros(q), np.full(q, E_MEAN)])
     rule = SkewedGate(_gate_probability(s.gate))
-    est = cls(dynamics, outputs, x0=xe, P0=prior, vehicle_n=n, robust=rule)
+    est = cls(dynamics, outputs, x0=xe, P0=np.diag(prior), vehicle_n=n, robust=rule)
     est.name = name
     return est
 
@@ -192,16 +187,15 @@ def build_augmented_height(s, x0: np.ndarray, name: str, process_noise: np.ndarr
             f"estimators: {name!r} takes the ranges of a planar odometry log (the anchors' "
             "heights above the tag as states)"
         )
-    n = s.n
+    n, q = s.n, s.system.q
     im = immerse(height_quadratic_system(s.system))
     k = im.n_aux
-    e_mean, e_cov = offsets_prior(s, stated=False)
-    xe = np.concatenate([np.asarray(x0, dtype=float)[:n], e_mean])
+    xe = np.concatenate([np.asarray(x0, dtype=float)[:n], np.full(q, E_MEAN)])
     p0 = xe[: s.dim]
     P = np.eye(im.dim) * s.P0
     P[0, 0] = s.P0 * p0 @ p0 + s.P0**2  # the covariance of xi = |p|^2 / 2 for p ~ N(p0, P0 I)
     P[0, k : k + s.dim] = P[k : k + s.dim, 0] = s.P0 * p0
-    P[k + n :, k + n :] = e_cov
+    P[k + n :, k + n :] = np.eye(q) * E_STD**2
     L, J = im.aux_forms, np.zeros((im.dim, n))
     J[k : k + n] = np.eye(n)
 

@@ -126,7 +126,7 @@ def posed_log(
     dz = heights[h] - float(tag_height)
     planar = np.linalg.norm(truth_p - a, axis=1)
     ranges[:, 2] += np.sqrt(np.sum((tag - a) ** 2, axis=1) + dz**2) - planar
-    np.maximum(ranges[:, 2], 0.0, out=ranges[:, 2])  # this radio clamps at zero, as many do
+    np.maximum(ranges[:, 2], 0.0, out=ranges[:, 2])  # this posing's radio clamps at zero
     inputs = log.inputs.copy()
     inputs[:, 0] += float(odometry_offset)
     truth = log.truth.copy()  # type: ignore[union-attr]  # checked by tag_positions
