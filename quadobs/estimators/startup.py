@@ -160,9 +160,23 @@ def not_started(est) -> dict | None:
     EKF shows), and the summary says that it never took its position from a fix
     (:func:`quadobs.testbed.divergence.startup_record`). ``step`` counts the filter's own steps (``time / dt``). A
     wrapper (:class:`~quadobs.estimators.base.Wrapper`, one taking a log's measurements in
-    time) is read through its ``inner``.
+    time) is read through its ``inner``; a model average
+    (:class:`~quadobs.estimators.model_average.ModelAverage`) gives the earliest of its
+    members' records, the reason naming the member.
     """
+    from quadobs.estimators.model_average import ModelAverage
+
     while est is not None and not hasattr(est, "fixes"):
+        if isinstance(est, ModelAverage):
+            return min(
+                (
+                    {**r, "reason": f"member {m.name}: {r['reason']}"}
+                    for m in est.members
+                    if (r := not_started(m))
+                ),
+                key=lambda r: r["time"],
+                default=None,
+            )
         est = getattr(est, "inner", None)
     if est is None or est.fixes:
         return None

@@ -210,3 +210,77 @@ def test_ekf_bias_imu_refuses_what_it_cannot_take_before_any_work():
     navigation_frame = dataclasses.replace(body, input_kind="imu", inputs=body.inputs[:, :4])
     with pytest.raises(QuadobsError, match="needs a 3-D body-IMU log"):
         check_replay(navigation_frame, ["ekf-bias-imu"])
+
+
+def test_the_average_replays_as_the_mean_of_the_gate_and_the_mixture(tmp_path):
+    """``ekf-bias-imu-average`` where the setup knows an excess: its track is the mean of the
+    tracks of ``ekf-bias-imu`` and ``ekf-bias-imu-nlos`` replayed beside it; where none is known
+    it is ``ekf-bias-imu``'s."""
+    from quadobs.testbed.logs.estimators import REPLAY_ESTIMATORS, replay_setup
+    from quadobs.testbed.worlds.replay import ReplayWorld
+
+    log = _imu_body_log(False)
+    names = ["ekf-bias-imu", "ekf-bias-imu-nlos", "ekf-bias-imu-average"]
+    tracks, summaries = {}, {}
+    for known in (True, False):
+        options = {"nlos_median": 0.4, "nlos_shape": 0.7} if known else {}
+        summaries[known] = run_replay(
+            log, estimators=names, initial_offset=3.0, batch=False, setup_options=options,
+            burn_in=2.0, export_tum=tmp_path / str(known),
+        )["estimators"]  # fmt: skip
+        tracks[known] = {n: np.loadtxt(tmp_path / str(known) / f"{n}.tum") for n in names}
+    per = summaries[True]
+    assert per["ekf-bias-imu-average"]["diverged"] is None
+    for key in ("corrections", "rejected"):  # the members' counts, summed
+        assert per["ekf-bias-imu-average"][key] == sum(per[n][key] for n in names[:2]), key
+    assert per["ekf-bias-imu-average"]["robust"] == (
+        f"ekf-bias-imu: {per['ekf-bias-imu']['robust']}; "
+        f"ekf-bias-imu-nlos: {per['ekf-bias-imu-nlos']['robust']}"
+    )
+    two = tracks[True]
+    assert not np.allclose(two["ekf-bias-imu"][:, 1:4], two["ekf-bias-imu-nlos"][:, 1:4])
+    mean = (two["ekf-bias-imu"][:, 1:4] + two["ekf-bias-imu-nlos"][:, 1:4]) / 2
+    np.testing.assert_allclose(two["ekf-bias-imu-average"][:, 1:4], mean, rtol=0, atol=1e-9)
+    one = tracks[False]
+    np.testing.assert_array_equal(one["ekf-bias-imu-average"], one["ekf-bias-imu"])
+    world = ReplayWorld(log, 0.1, "imu")
+    build = REPLAY_ESTIMATORS["ekf-bias-imu-average"]
+    counts = [
+        len(build(replay_setup(log, world, o, 3.0), np.zeros(6)).members)
+        for o in ({"nlos_median": 0.4, "nlos_shape": 0.7}, {})
+    ]
+    assert counts == [2, 1]
+    assert "ekf-bias-imu-average" in default_estimators(log)
+
+
+def test_the_average_takes_the_choice_of_biases_of_the_filter_it_is_when_scored():
+    """Scored without the excess the average is ``ekf-bias-imu``: step 7 of the self-calibration
+    gives it that filter's choice without replaying it again, or, asked alone, the same choice."""
+    from quadobs.testbed.logs.calibration import Calibration, estimator_biases
+
+    log = _imu_body_log(False)
+    q = log.beacons.shape[0]
+    biases = np.linspace(-0.3, 0.3, q)
+
+    def decided(names, options):
+        cal = Calibration(biases, dict(options), {}, "", biases.copy())
+        estimator_biases(log, cal, names, model="imu")
+        return cal
+
+    for options in ({}, {"nlos_median": 0.4, "nlos_shape": 0.7}):  # the excess of step 8 or none
+        both = decided(["ekf-bias-imu", "ekf-bias-imu-average"], options)
+        alone = decided(["ekf-bias-imu-average"], options)
+        assert both.per_estimator["ekf-bias-imu-average"] == both.per_estimator["ekf-bias-imu"]
+        assert alone.per_estimator["ekf-bias-imu-average"] == both.per_estimator["ekf-bias-imu"]
+        assert "ekf-bias-imu-average: as ekf-bias-imu, the same filter when scored" in both.reason
+        assert "ekf-bias-imu-average: as" not in alone.reason  # scored itself
+
+
+def test_a_log_the_average_cannot_take_is_refused_by_its_name():
+    from quadobs import QuadobsError
+    from quadobs.testbed.logs.replay import check_replay
+
+    body = _imu_body_log(False)
+    navigation_frame = dataclasses.replace(body, input_kind="imu", inputs=body.inputs[:, :4])
+    with pytest.raises(QuadobsError, match="'ekf-bias-imu-average' needs a 3-D body-IMU log"):
+        check_replay(navigation_frame, ["ekf-bias-imu-average"])

@@ -74,7 +74,8 @@ replay is given a clock offset or asked to search one (``--clock-offset``, not b
    own bias estimate), they predict the held-out ranges significantly better than the ranges
    as logged by an effect the size of a position error as long as the ranges' noise standard
    deviation (:func:`effect_margin`), or where they lie outside its bias states' prior; else
-   it takes the ranges as logged (:func:`estimator_biases`). The biases of steps 2 to 5 are
+   it takes the ranges as logged (:func:`estimator_biases`). ``ekf-bias-imu-average`` is
+   ``ekf-bias-imu`` when scored (without the excess) and takes that filter's choice. The biases of steps 2 to 5 are
    fitted and tested through the EKF, which holds neither the range biases nor what else a
    filter may hold as states (an acceleration's bias): its biases take up those errors too,
    and a filter that holds them would start its states from the EKF's compromise.
@@ -286,7 +287,21 @@ def _scoring_estimator(log, dt, model, b, estimator, setup_options, x0):
     on it from ``x0`` (default the anchors' centroid)."""
     world = ReplayWorld(log, dt, model, 8, b, peer_batch=False)
     setup = replay_setup(log, world, setup_options)
-    return world, build_replay_estimators(setup, [estimator], _initial(log, model, x0))[0]
+    est = build_replay_estimators(setup, [estimator], _initial(log, model, x0))[0]
+    return world, _scored_member(est)
+
+
+def _scored_member(est):
+    """``est``, or the one member of a model average that has one: scored without the excess
+    (:func:`estimator_biases`), ``ekf-bias-imu-average`` is ``ekf-bias-imu``, and takes its
+    choice of biases."""
+    from quadobs.estimators.model_average import ModelAverage
+
+    if isinstance(est, ModelAverage) and len(est.members) == 1:
+        member = est.members[0]
+        member.scored_as, member.name = member.name, est.name
+        return member
+    return est
 
 
 def prediction_residuals(
@@ -907,6 +922,11 @@ def estimator_biases(
     for name in names:
         est = _scoring_estimator(log, dt, model, zero, name, options, None)[1]
         if _offsets_biases(log, cal, name, est):
+            continue
+        alias = getattr(est, "scored_as", None)
+        if alias in cal.per_estimator:  # scored as an estimator already decided: its choice
+            cal.per_estimator[name] = dict(cal.per_estimator[alias])
+            cal.reason += f"; {name}: as {alias}, the same filter when scored"
             continue
         if not holds_range_biases(est):
             continue

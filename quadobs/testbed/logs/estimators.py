@@ -1039,6 +1039,26 @@ def build_ekf_bias_imu_nlos(
     return imu_bias.build_ekf_bias_imu(s, x0, name, ACCEL_BIAS_STD, ACCEL_BIAS_TIME, excess=True)
 
 
+def build_ekf_bias_imu_average(
+    s: ReplaySetup, x0: np.ndarray, name: str = "ekf-bias-imu-average"
+) -> Estimator:
+    """Entry point ``ekf-bias-imu-average``: ``ekf-bias-imu`` and ``ekf-bias-imu-nlos``
+    averaged with equal weights (:class:`~quadobs.estimators.model_average.ModelAverage`):
+    the two read a range longer than line of sight by rival models (the one-sided gate, the
+    excess mixture), and no score on held-out ranges tells which places the vehicle better
+    (docs/error-sources.md). Where the self-calibration identified no excess the two are one
+    filter, and the average is ``ekf-bias-imu`` alone."""
+    from quadobs.estimators.model_average import ModelAverage
+    from quadobs.estimators.robust import ExcessMixture
+    from quadobs.testbed.logs.bias_estimators import range_rule
+
+    members = [build_ekf_bias_imu(s, x0, name)]  # a log it cannot take: refused by its name
+    members[0].name = "ekf-bias-imu"  # the member's own, which the self-calibration reads
+    if isinstance(range_rule(s, excess=True), ExcessMixture):
+        members.append(build_ekf_bias_imu_nlos(s, x0))
+    return ModelAverage(members, name)
+
+
 #: The built-in estimators of logged data (as declared in pyproject.toml; a test checks that they agree).
 #: An estimator that reads a body IMU as its input (the Crazyflie's on-board EKF,
 #: ``u = (f_body, omega_body)``) is registered here beside them and marks its instances with
@@ -1061,6 +1081,7 @@ REPLAY_ESTIMATORS = {
     "augmented-bias": build_augmented_bias,
     "ekf-bias-imu": build_ekf_bias_imu,
     "ekf-bias-imu-nlos": build_ekf_bias_imu_nlos,
+    "ekf-bias-imu-average": build_ekf_bias_imu_average,
     "ekf-height": build_ekf_height,
     "ukf-height": build_ukf_height,
     "augmented-height": build_augmented_height,

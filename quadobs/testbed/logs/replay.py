@@ -77,13 +77,15 @@ def default_estimators(log, model: str | None = None) -> list[str]:
     estimated attitude's tilt error reach the navigation-frame acceleration as a slow bias) and
     ``ekf-bias-imu-nlos``, the same filter weighing each range by the non-line-of-sight excess
     the self-calibration estimated from the log, where it identified one (no held-out score
-    tells which of the two places the vehicle better: docs/error-sources.md)."""
+    tells which of the two places the vehicle better: docs/error-sources.md), and
+    ``ekf-bias-imu-average``, the two averaged with equal weights."""
     if log.tdoa.shape[0]:
         tdoa = ["tdoa-handover", "tdoa-observer"] if log.input_kind in ("imu", "imu_body") else []
         return tdoa + ["ekf", "ukf"]
     names = [*DEFAULT_ESTIMATORS, "ekf-bias"]
     if log.input_kind == "imu_body" and log.dimension == 3 and model in (None, "imu"):
         names += ["ekf-bias-imu", "ekf-bias-imu-nlos"]  # the gate; the excess estimated
+        names.append("ekf-bias-imu-average")  # the two averaged: neither scores better
     if log.input_kind == "odometry" and model in (None, "odometry"):
         names += ["ukf-heading", "augmented-heading"]
     if log.input_kind == "odometry" and log.dimension == 2 and model in (None, "odometry"):
