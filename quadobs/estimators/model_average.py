@@ -125,7 +125,6 @@ class ModelAverage(Estimator, Gated):
         if any(getattr(m, "robust", None) is not None for m in members):
             self.robust = MembersRule(members)
         self.steady_test = any(getattr(m, "steady_test", False) for m in members)
-        self._mean = np.zeros(shapes.pop())
 
     @property
     def gate(self):  # the first member's
@@ -190,12 +189,7 @@ class ModelAverage(Estimator, Gated):
 
     @property
     def x_hat(self) -> np.ndarray:
-        mean = self._mean
-        mean[:] = 0.0
-        for m in self.members:
-            mean += m.x_hat
-        mean /= len(self.members)
-        return mean.copy()
+        return sum(m.x_hat for m in self.members) / len(self.members)
 
     @property
     def x_covariance(self) -> np.ndarray | None:

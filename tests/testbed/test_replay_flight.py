@@ -200,16 +200,18 @@ def test_the_ahrs_heading_is_found_with_the_anchors_in_one_plane():
     assert heading_offset(log, _ahrs_accelerations(log)) == pytest.approx(1.0, abs=0.1)
 
 
-def test_ekf_bias_imu_refuses_what_it_cannot_take_before_any_work():
+@pytest.mark.parametrize("name", ["ekf-bias-imu", "ekf-bias-imu-average"])
+def test_ekf_bias_imu_refuses_what_it_cannot_take_before_any_work(name):
+    """Refused by its own name (the average too, whose member is ``ekf-bias-imu``)."""
     from quadobs.errors import QuadobsError
     from quadobs.testbed.logs.replay import check_replay
 
     body = _imu_body_log(False)
-    with pytest.raises(QuadobsError, match="takes the model imu, not 'cv'"):
-        check_replay(body, ["ekf-bias-imu"], model="cv")
+    with pytest.raises(QuadobsError, match=f"'{name}' takes the model imu, not 'cv'"):
+        check_replay(body, [name], model="cv")
     navigation_frame = dataclasses.replace(body, input_kind="imu", inputs=body.inputs[:, :4])
-    with pytest.raises(QuadobsError, match="needs a 3-D body-IMU log"):
-        check_replay(navigation_frame, ["ekf-bias-imu"])
+    with pytest.raises(QuadobsError, match=f"'{name}' needs a 3-D body-IMU log"):
+        check_replay(navigation_frame, [name])
 
 
 def test_the_average_replays_as_the_mean_of_the_gate_and_the_mixture(tmp_path):
@@ -274,13 +276,3 @@ def test_the_average_takes_the_choice_of_biases_of_the_filter_it_is_when_scored(
         assert alone.per_estimator["ekf-bias-imu-average"] == both.per_estimator["ekf-bias-imu"]
         assert "ekf-bias-imu-average: as ekf-bias-imu, the same filter when scored" in both.reason
         assert "ekf-bias-imu-average: as" not in alone.reason  # scored itself
-
-
-def test_a_log_the_average_cannot_take_is_refused_by_its_name():
-    from quadobs import QuadobsError
-    from quadobs.testbed.logs.replay import check_replay
-
-    body = _imu_body_log(False)
-    navigation_frame = dataclasses.replace(body, input_kind="imu", inputs=body.inputs[:, :4])
-    with pytest.raises(QuadobsError, match="'ekf-bias-imu-average' needs a 3-D body-IMU log"):
-        check_replay(navigation_frame, ["ekf-bias-imu-average"])

@@ -75,9 +75,10 @@ replay is given a clock offset or asked to search one (``--clock-offset``, not b
    as logged by an effect the size of a position error as long as the ranges' noise standard
    deviation (:func:`effect_margin`), or where they lie outside its bias states' prior; else
    it takes the ranges as logged (:func:`estimator_biases`). ``ekf-bias-imu-average`` is
-   ``ekf-bias-imu`` when scored (without the excess) and takes that filter's choice. The biases of steps 2 to 5 are
-   fitted and tested through the EKF, which holds neither the range biases nor what else a
-   filter may hold as states (an acceleration's bias): its biases take up those errors too,
+   ``ekf-bias-imu`` when scored (without the excess) and takes that filter's choice. The
+   biases of steps 2 to 5 are fitted and tested through the EKF, which holds neither the
+   range biases nor what else a filter may hold as states (an acceleration's bias): its
+   biases take up those errors too,
    and a filter that holds them would start its states from the EKF's compromise.
    The heading filter that holds each anchor's height beside its bias (``ukf-height-lever``)
    takes the ranges as logged unless its own prior of bias and height excludes the biases
@@ -292,9 +293,10 @@ def _scoring_estimator(log, dt, model, b, estimator, setup_options, x0):
 
 
 def _scored_member(est):
-    """``est``, or the one member of a model average that has one: scored without the excess
-    (:func:`estimator_biases`), ``ekf-bias-imu-average`` is ``ekf-bias-imu``, and takes its
-    choice of biases."""
+    """``est``, or the only member of a model average with one member, renamed as the average
+    and marked ``scored_as`` its own name. Scored without the excess (:func:`estimator_biases`),
+    ``ekf-bias-imu-average`` is such an average of ``ekf-bias-imu``, whose choice of biases
+    it then takes."""
     from quadobs.estimators.model_average import ModelAverage
 
     if isinstance(est, ModelAverage) and len(est.members) == 1:
