@@ -1336,6 +1336,10 @@ def _replay_calibration(args, log, tuning: dict) -> tuple[list[float] | np.ndarr
 
     names = _estimator_list(args.estimators) or default_estimators(log, args.model)
     args.as_logged = estimator_biases(log, cal, names, dt=args.dt, model=args.model)
+    from quadobs.testbed.logs.constants_start import estimator_constants
+
+    if not args.set:  # measurements on the grid (noise.*): every filter takes the biases
+        estimator_constants(log, cal, names, dt=args.dt, model=args.model)
     chosen = "none" if cal.biases is None else ", ".join(f"{b:.2f}" for b in cal.biases) + " m"
     print(f"calibrated from the log: biases {chosen}; {cal.reason}")
     args.calibration_report = {**cal.summary(), **getattr(args, "clock_report", {})}

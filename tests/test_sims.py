@@ -158,8 +158,15 @@ def test_every_script_has_a_smoke_test():
     assert not set(CASES) & set(NOT_SHORT)
 
 
-#: scripts whose short run takes more than the default run's share (about 20 s): marked slow
-SLOW = {"uwb_bias_bound.py", "pillar_bounds.py", "bias_start_study.py"}
+#: studies whose short run takes more than the default run's share (about 20 s): marked slow
+#: (the replay's own scripts, replay_*.py, stay in the default run)
+SLOW = {
+    "uwb_bias_bound.py",
+    "pillar_bounds.py",
+    "bias_start_study.py",
+    "flight_error_budget.py",
+    "cross_validate_replay.py",
+}
 
 
 @pytest.mark.parametrize(

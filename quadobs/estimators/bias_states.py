@@ -72,6 +72,7 @@ from quadobs.core.measurements import Measurement, RangeModel
 from quadobs.core.quantiles import chi2_cdf, chi2_ppf
 from quadobs.core.system import QuadraticSystem
 from quadobs.errors import QuadobsError
+from quadobs.estimators.constants import ConstantStates
 from quadobs.estimators.kalman import (
     ExtendedKalmanFilter,
     HeldInputModel,
@@ -308,7 +309,7 @@ class NisWindow:
         self.dof = 0
 
 
-class _VehicleBlock:
+class _VehicleBlock(ConstantStates):
     """Reports the vehicle's state ``x`` (the first ``n`` entries), keeps the biases apart,
     and starts the biases only once the vehicle's state is known (the module docstring's
     "Start-up").
@@ -359,6 +360,8 @@ class _VehicleBlock:
     # the filter's own (the class this one is mixed into); declared for the type checker only
     _x: np.ndarray
     _P: np.ndarray
+    _P0: np.ndarray
+    dynamics: HeldInputModel
     _latest: np.ndarray
     _time: float
     nis: float
@@ -382,12 +385,8 @@ class _VehicleBlock:
         q = self._x.shape[0] - k
         self._bias_prior = self._x[k:].copy()
         self.fixes, self.opened_at, self.held = [], [], 0
-        d = int(self.outputs.system.p)  # the position block: as many entries as inputs
-        prior_std = math.sqrt(float(np.max(np.diag(self._P)[:d])))
-        std = fix_std(self.outputs.R, self._P[k:, k:])
-        self.fix_pending = prior_std > std
+        self._set_fix_spread()
         self._waited = 0
-        self._fix_var = std * std
         self.biases_open = False
         self._nis_window = NisWindow(2 * q, probability)
         self._anchor = -1
@@ -407,6 +406,16 @@ class _VehicleBlock:
         self.steady_offsets = []
         self.sight = None  # the ExcessMixture's BiasSightGrid, from the biases' opening
         self.open_threshold = self._nis_window.threshold(2 * q)
+
+    def _set_fix_spread(self) -> None:
+        """Whether a fix is pending (the prior position wider than a multilateration's error)
+        and the fix's variance, from the biases' covariance."""
+        k = self.vehicle_n
+        d = int(self.outputs.system.p)  # the position block: as many entries as inputs
+        prior_std = math.sqrt(float(np.max(np.diag(self._P)[:d])))
+        std = fix_std(self.outputs.R, self._P[k:, k:])
+        self.fix_pending = prior_std > std
+        self._fix_var = std * std
 
     def _shape_gain(self, K: np.ndarray, nu: np.ndarray, S: np.ndarray) -> np.ndarray:
         """The biases' rows of the gain held at zero until they are open (a consider update)."""
@@ -735,6 +744,22 @@ class _VehicleBlock:
     def biases(self) -> np.ndarray:
         """The estimated per-anchor biases ``(q,)`` (m)."""
         return self._x[self.vehicle_n :].copy()
+
+    @property
+    def constant_states(self) -> np.ndarray:
+        """The indices of the states past the vehicle's that no process noise moves (each
+        anchor's bias, and its offset where held; :mod:`quadobs.estimators.constants`)."""
+        V = np.asarray(self.dynamics.V)
+        k = self.vehicle_n
+        return np.array([i for i in range(k, V.shape[0]) if not np.any(V[i])], dtype=np.int64)
+
+    def _started_constants(self) -> None:
+        """After a start of the constants (:mod:`quadobs.estimators.constants`): the biases'
+        prior that a re-initialisation returns to, and the start-up fix's spread, which the
+        biases' covariance sets (a tighter prior of the biases makes a multilateration's error
+        smaller, so a prior position may now be wider than it and a fix be taken)."""
+        self._bias_prior = self._x[self.vehicle_n :].copy()
+        self._set_fix_spread()
 
 
 class BiasedExtendedKalmanFilter(_VehicleBlock, ExtendedKalmanFilter):

@@ -88,6 +88,7 @@ from quadobs.core.held_input import van_loan_interval
 from quadobs.core.measurements import Measurement, RangeModel
 from quadobs.errors import QuadobsError, as_array, as_finite_scalar
 from quadobs.estimators.base import Estimator, Gated, Immersed, InnerClock, step_operands
+from quadobs.estimators.constants import ConstantStates
 from quadobs.estimators.robust import (
     ExcessHuber,
     LockOut,
@@ -203,7 +204,7 @@ def arc_points(X: np.ndarray, u: np.ndarray, h: float) -> np.ndarray:
     return out
 
 
-class _HeadingFilter(Estimator, Gated):
+class _HeadingFilter(ConstantStates, Estimator, Gated):
     """The shared state, prediction noise, measurement models, robust rules and lock-out."""
 
     def __init__(
@@ -239,7 +240,8 @@ class _HeadingFilter(Estimator, Gated):
         if self.lever:
             var = as_finite_scalar("lever_arm_std", lever_arm_std, positive=True) ** 2
             self._lever_var = var
-            self._x = np.concatenate([self._x, as_array("lever_arm", lever_arm, (2,))])
+            self._lever_mean = as_array("lever_arm", lever_arm, (2,))  # the guard's centre
+            self._x = np.concatenate([self._x, self._lever_mean])
             self._P = np.block([[self._P, np.zeros((4, 2))], [np.zeros((2, 4)), var * np.eye(2)]])
         self._append_anchor_states(offsets, bias_std)
         self.range_sigma = as_finite_scalar("range_sigma", range_sigma, positive=True)
@@ -339,6 +341,16 @@ class _HeadingFilter(Estimator, Gated):
             i = n + k * q
             P[i : i + q, i : i + q] = block
         self._P = P
+
+    @property
+    def constant_states(self) -> np.ndarray:
+        """The indices of the states no process noise moves: the lever arm, each anchor's bias
+        and offset, where held (:mod:`quadobs.estimators.constants`; the yaw rate's bias
+        walks)."""
+        q = self.anchors.shape[0]
+        parts = [np.arange(4, 6)] if self.lever else []
+        parts += [np.arange(i, i + q) for i in (self._ib, self._ie) if i >= 0]
+        return np.concatenate(parts) if parts else np.zeros(0, dtype=np.int64)
 
     @property
     def offsets(self) -> np.ndarray:
@@ -578,14 +590,15 @@ class _HeadingFilter(Estimator, Gated):
     def _check_lever(self) -> None:
         """The lever arm's plausibility: where its estimate lies beyond the :data:`LEVER_CHI2`
         quantile of its own prior (``(l - l_0)^T P_l0^-1 (l - l_0)``, 2 degrees of freedom,
-        ``l_0`` the prior mean), the offset has taken up what the ranges carry and the filter
+        ``l_0`` the filter's own prior mean, which a start of its constants leaves as the
+        guard's centre), the offset has taken up what the ranges carry and the filter
         does not model (an anchor's bias left in them, a height), and the filter is reported
         as diverged (its lock-out's record), never summarised as if it had run."""
         lock = self.lockout
         if lock.diverged is not None:
             return
         l = self._x[4:6]
-        d = l - self._x0[4:6]
+        d = l - self._lever_mean
         if float(d @ d) > LEVER_CHI2 * self._lever_var:
             lock.diverged = {
                 "time": self._time,

@@ -109,7 +109,7 @@ def test_filters_estimate_the_biases_as_states(cls):
     assert np.abs(est.x_hat[6:] - BIASES).max() < 0.03
 
 
-def _bias_filter(cls, sigma, x0, rule=None, p0=100.0):
+def _bias_filter(cls, sigma, x0, rule=None, p0=100.0, bias_walk=0.0):
     from quadobs.estimators.bias_states import (
         BiasedExtendedKalmanFilter,
         BiasedUnscentedKalmanFilter,
@@ -117,7 +117,7 @@ def _bias_filter(cls, sigma, x0, rule=None, p0=100.0):
 
     system = vehicle_system(3, ANCHORS)
     model = RangeModel(ANCHORS, sigma, bias="state")
-    dyn, out, P0 = biased_models(system, 0.01, sigma, 0.02, p0 * np.eye(6), model)
+    dyn, out, P0 = biased_models(system, 0.01, sigma, 0.02, p0 * np.eye(6), model, bias_walk)
     kind = {"ekf": BiasedExtendedKalmanFilter, "ukf": BiasedUnscentedKalmanFilter}[cls]
     return kind(dyn, out, x0=np.r_[x0, np.zeros(8)], P0=P0, vehicle_n=6, robust=rule)
 

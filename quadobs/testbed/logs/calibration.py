@@ -102,6 +102,11 @@ replay is given a clock offset or asked to search one (``--clock-offset``, not b
    run by the replay: on the flights of ``sims/replay_flight_variants.py`` the held-out ranges
    did not tell where the mixture helps (its docstring).
 
+10. each filter of the replay that holds constant states (an anchor's range bias, its
+    height's offset, the tag's lever arm): started from the constants a first pass through
+    the log ended with, where the second pass from them predicts the held-out ranges at least
+    as well (:mod:`~quadobs.testbed.logs.constants_start`; run by the replay after step 7).
+
 Two scorers on an odometry log. The model ``odometry`` takes the dead-reckoned heading as
 right, so its ``q_xy`` must also carry the heading's drift (a yaw rate's bias: Plaza2's
 drifts at 0.005 rad/s): scored by the EKF of that model, Plaza2 picks ``q_xy = 16``. The
@@ -134,6 +139,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from quadobs.core.quantiles import chi2_ppf, student_t_ppf
+from quadobs.estimators.constants import constant_filters
 from quadobs.testbed.logs.estimators import (
     FROM_LOG,
     ReplaySetup,
@@ -247,12 +253,15 @@ def _initial(log, model: str, x0) -> np.ndarray:
 @dataclass
 class Residuals:
     """The scored prequential range residuals of one replay: ``r`` (NaN where the prediction
-    was not finite), anchor ``h``, time ``t`` and whether each was ``held`` out."""
+    was not finite), anchor ``h``, time ``t`` and whether each was ``held`` out; ``constants``:
+    for each filter of the estimator that holds constant states, by its name, their estimate
+    and covariance at the log's end (:mod:`quadobs.estimators.constants`)."""
 
     r: np.ndarray
     h: np.ndarray
     held: np.ndarray
     t: np.ndarray
+    constants: dict = field(default_factory=dict)
 
     def fitted(self) -> tuple[np.ndarray, np.ndarray]:
         """The finite residuals of the ranges corrected with, and their anchors."""
@@ -317,6 +326,8 @@ def prediction_residuals(
     setup_options=None,
     hold_out: bool = True,
     scored_from: float | None = None,
+    own_range: bool = False,
+    read_constants: bool = False,
 ) -> Residuals:
     """One replay in time with ``biases`` (module docstring): the residuals of the ranges from
     :data:`SCORED_FROM` of the log on; with ``hold_out``, every :data:`HOLD_OUT`-th range is not
@@ -324,13 +335,18 @@ def prediction_residuals(
     (:func:`holds_range_biases`) predicts a range with its own bias estimate added,
     ``r = rho - b_h - |p^- - a_h| - beta_h^-``. ``scored_from``: the time (s, the log's
     clock) from which the ranges are scored, in place of :data:`SCORED_FROM` of the log (the
-    same ranges scored in replays whose spans differ, :mod:`~quadobs.testbed.logs.clock_offset`)."""
+    same ranges scored in replays whose spans differ, :mod:`~quadobs.testbed.logs.clock_offset`).
+    ``own_range``: a filter that predicts a range by its own model (a heading filter's tag,
+    lever arm, bias and offset: ``predicted_range``) is scored by that prediction.
+    ``read_constants``: the residuals also hold each filter's constants at the log's end
+    (:attr:`Residuals.constants`; none of a filter that gave up)."""
     model = model or default_model(log)
     q = log.beacons.shape[0]
     b = np.zeros(q) if biases is None else np.asarray(biases, dtype=float)
     world, est = _scoring_estimator(log, dt, model, b, estimator, setup_options, x0)
     own = holds_range_biases(est)
-    whole = holds_anchor_offsets(est)  # its own range: the tag, the anchor's offset and bias
+    # its own range: the tag, the anchor's offset and bias
+    whole = holds_anchor_offsets(est) or (own_range and hasattr(est, "predicted_range"))
     events = LogEvents(log, b, start=world.times[0], end=world.times[-1])
     t_in, U = events.inputs()
     est.time = world.times[0]
@@ -363,9 +379,20 @@ def prediction_residuals(
             est.correct(m)
     r = np.array(out_r, dtype=float)
     r[~np.isfinite(r)] = np.nan
-    return Residuals(
-        r, np.array(out_h, dtype=np.int64), np.array(out_held, dtype=bool), np.array(out_t)
+    constants = (
+        {f.name: f.constants_estimate() for f in constant_filters(est) if not _gave_up(f)}
+        if read_constants
+        else {}
     )
+    return Residuals(
+        r, np.array(out_h, dtype=np.int64), np.array(out_held, dtype=bool), np.array(out_t),
+        constants,
+    )  # fmt: skip
+
+
+def _gave_up(est) -> bool:
+    """Whether ``est``'s lock-out reports it diverged."""
+    return getattr(getattr(est, "lockout", None), "diverged", None) is not None
 
 
 def scored_kind(log) -> str:
@@ -641,6 +668,13 @@ class Calibration:
     excess : dict
         The non-line-of-sight excess fitted to the chosen replay's residuals (step 8,
         :func:`~quadobs.testbed.logs.excess_model.calibrated_excess`): ``chosen`` and the fit.
+    constants : dict
+        For each filter that holds constant states (step 10,
+        :func:`~quadobs.testbed.logs.constants_start.estimator_constants`): ``{name: {"start":
+        "first pass" or "prior", "states": count, **test}}``, ``test`` the paired test of the
+        second pass (from the first pass's constants) against the first
+        (:meth:`Comparison.as_dict`: ``score`` the second's held-out score, ``reference_score``
+        the first's).
     """
 
     biases: np.ndarray | None
@@ -653,11 +687,18 @@ class Calibration:
     more_scores: dict = field(default_factory=dict)
     per_estimator: dict = field(default_factory=dict)
     excess: dict = field(default_factory=dict)
+    constants: dict = field(default_factory=dict)
 
     @property
     def as_logged(self) -> tuple[str, ...]:
         """The estimators that take the ranges as logged (:func:`estimator_biases`)."""
         return tuple(k for k, v in self.per_estimator.items() if v["biases"] == "as logged")
+
+    def biases_for(self, name: str) -> np.ndarray | None:
+        """The biases the replay subtracts from the ranges of the estimator ``name`` where its
+        measurements reach it in time: none where no biases were chosen or it takes the ranges
+        as logged (:func:`~quadobs.testbed.logs.replay.run_replay`'s ``as_logged``)."""
+        return None if self.biases is None or name in self.as_logged else self.biases
 
     def summary(self) -> dict:
         """As plain data, for the replay's summary."""
@@ -678,6 +719,7 @@ class Calibration:
             },
             **({"per_estimator": self.per_estimator} if self.per_estimator else {}),
             **({"excess": self.excess} if self.excess else {}),
+            **({"constants": self.constants} if self.constants else {}),
         }
 
 

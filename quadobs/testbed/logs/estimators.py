@@ -246,6 +246,12 @@ class ReplaySetup:
         1 (the default) or 0: whether the filters take :attr:`offsets` (``--tune
         stated_heights=0`` turns them off; the self-calibration does where the ranges
         contradict them, :func:`~quadobs.testbed.logs.calibration.check_stated_heights`).
+    constants_start : dict or None
+        ``{filter name: (mean (c,), covariance (c, c))}``: the prior of the constant states of
+        the filter of that name (a member of an average too): the constants a first pass
+        through the log ended with, set by the self-calibration where the second pass from
+        them predicts the held-out ranges at least as well
+        (:mod:`~quadobs.testbed.logs.constants_start`); the filters not named keep their own.
     """
 
     beacons: np.ndarray
@@ -282,6 +288,7 @@ class ReplaySetup:
     bias_prior: float | None = None
     offsets: tuple | None = None
     stated_heights: float = 1.0
+    constants_start: dict | None = None
     system: QuadraticSystem = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
@@ -1135,5 +1142,19 @@ def build_replay_estimators(
                 f"estimators: the factory of {name!r} returned {type(est).__name__}, not an Estimator"
             )
         est.name = name
+        _start_constants(est, setup.constants_start)
         out.append(est)
     return out
+
+
+def _start_constants(est, starts: dict | None) -> None:
+    """The constant states' priors of ``starts`` (:attr:`ReplaySetup.constants_start`) set in
+    ``est`` and in each member of an average, by the filter's name."""
+    from quadobs.estimators.constants import constant_filters
+
+    if not starts:
+        return
+    for f in constant_filters(est):
+        start = starts.get(f.name)
+        if start is not None:
+            f.start_constants(*start)
