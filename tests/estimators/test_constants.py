@@ -7,7 +7,7 @@ import re
 
 import numpy as np
 import pytest
-from test_heading_ekf import NOISE, ROOM, room_s_curve
+from test_heading_ekf import NOISE, ROOM, pass_through, room_s_curve
 from test_range_bias import _bias_filter
 
 from quadobs.errors import QuadobsError
@@ -109,29 +109,10 @@ def _error_after_fix(log, tr, start=None) -> tuple[float, HeadingUKF]:
         f.start_constants(*start)
     errors = [
         np.linalg.norm(f.x_hat - room_s_curve(np.array([m.t]), LEVER)[1][0])
-        for k, m in enumerate(_pass(f, log))
+        for k, m in enumerate(pass_through(f, log))
         if tr[k] >= 2.0
     ]
     return float(np.sqrt(np.mean(np.square(errors)))), f
-
-
-def _pass(f, log):
-    """The filter ``f`` run through ``log`` (its inputs held, each range at its time): yields
-    each range after the correction by it."""
-    from quadobs.testbed.logs.events import held_inputs
-
-    tin, U = held_inputs(log)
-    f.time = tin[0]
-    f.hold(U[0])
-    i = 1
-    for m in log.measurements():
-        while i < tin.size and tin[i] <= m.t:
-            f.predict(tin[i])
-            f.hold(U[i])
-            i += 1
-        f.predict(m.t)
-        f.correct(m)
-        yield m
 
 
 @pytest.mark.parametrize("seed", [0, 1])

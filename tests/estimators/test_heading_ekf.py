@@ -33,10 +33,10 @@ def circle_log(bias: float, heading_error: float, duration: float = 120.0) -> Ra
     )
 
 
-def run_in_time(log: RangeLog, cls, P0, x0=(RADIUS, 0.0, 0.0, 0.0), **noise):
-    """The filter fed the log's held inputs and its ranges at their own times."""
+def pass_through(f, log: RangeLog):
+    """The filter ``f`` fed the log's held inputs and its ranges at their own times: yields each
+    range after the correction by it."""
     tin, U = held_inputs(log)
-    f = cls(log.beacons, x0=x0, P0=P0, dt=0.1, heading0=log.heading0, **noise)
     f.time = tin[0]
     f.hold(U[0])
     i = 1
@@ -47,6 +47,14 @@ def run_in_time(log: RangeLog, cls, P0, x0=(RADIUS, 0.0, 0.0, 0.0), **noise):
             i += 1
         f.predict(m.t)
         f.correct(m)
+        yield m
+
+
+def run_in_time(log: RangeLog, cls, P0, x0=(RADIUS, 0.0, 0.0, 0.0), **noise):
+    """The filter fed the log's held inputs and its ranges at their own times."""
+    f = cls(log.beacons, x0=x0, P0=P0, dt=0.1, heading0=log.heading0, **noise)
+    for _ in pass_through(f, log):
+        pass
     return f
 
 
