@@ -16,6 +16,19 @@ OPTIONS = {"range_sigma": 0.1, "q_acc": 1e-2}
 TRUTH = np.array([0.4, -0.3, 0.25, 0.0])
 
 
+def _heading_tests():
+    """tests/estimators/test_heading_ekf.py as a module (its logs of a circling vehicle), loaded
+    by its path: that folder is on the import path only where its tests were collected."""
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "estimators" / "test_heading_ekf.py"
+    spec = importlib.util.spec_from_file_location("heading_ekf_tests", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
 def _calibrated(log: RangeLog, names):
     cal = calibrate(log, setup_options=OPTIONS, noise=False)
     estimator_biases(log, cal, names)
@@ -73,11 +86,9 @@ def test_a_first_pass_that_gives_up_starts_nothing():
     """``ukf-lever`` on ranges with 1 m of bias left in one anchor's (the log of
     tests/estimators/test_heading_ekf.py whose lever arm leaves its prior): its first pass is
     reported diverged, so its constants start nothing and the replay still reports it."""
-    from test_heading_ekf import circle_log
-
     from quadobs.testbed.logs.calibration import Calibration
 
-    log = circle_log(bias=0.0, heading_error=0.0, duration=40.0)
+    log = _heading_tests().circle_log(bias=0.0, heading_error=0.0, duration=40.0)
     log.ranges[log.ranges[:, 1] == 0, 2] += 1.0
     options = {"range_sigma": 0.05, "q_xy": 1e-3, "q_xy_heading": 1e-3}
     cal = Calibration(None, dict(options), {}, "", np.zeros(4))

@@ -41,8 +41,9 @@ which is not their prediction of a range: they keep their own prior. The augment
 What the second pass counts twice. Its prior ``P_N`` holds the ranges that the second pass
 reads again, so at the log's end its constants' covariance is about half what the data
 support, and the position's covariance is the smaller for it. The start is for the position's
-estimate; its covariance errs small by that share. A wider prior counts the ranges less twice
-and starts the constants less well (docs/error-sources.md).
+estimate; its covariance errs small by that share. A wider prior counts the ranges less twice;
+measured on the robot's logs and a simulated room it was no better in general
+(docs/error-sources.md), so the first pass's own covariance is taken.
 
 Where the calibration is not run (``--calibrate none``, ``--biases``) every filter keeps its
 own prior, and the replay is online from its first measurement on; nor where the replay puts
