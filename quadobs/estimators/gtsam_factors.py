@@ -18,7 +18,8 @@ order.
 
 * Range to anchor ``a`` with an optional bias variable ``b`` (a 1-vector):
   ``e = |p - a| + b - rho``, ``d e / d p = u^T`` with ``u = (p - a) / |p - a|``,
-  ``d e / d b = 1``.
+  ``d e / d b = 1``; taken ``tau`` seconds after its node, on ``p_node + v tau`` as a TDOA
+  below (``d e / d v = tau u^T``).
 * TDOA between anchors ``a_i`` and ``a_j`` (the model of :class:`~quadobs.core.measurements.TdoaModel`):
   ``e = |p - a_i| - |p - a_j| - d_ij``, ``d e / d p = u_i^T - u_j^T``. Taken ``tau`` seconds
   after its node (keyframes), on the node's position and velocity: ``p = p_node + v tau``,
@@ -75,14 +76,26 @@ def _unit(diff: np.ndarray) -> tuple[float, np.ndarray]:
 
 
 def range_factor(
-    gtsam, noise, key: int, kind: str, anchor, rho: float, bias_key: int | None = None
+    gtsam,
+    noise,
+    key: int,
+    kind: str,
+    anchor,
+    rho: float,
+    bias_key: int | None = None,
+    velocity_key: int | None = None,
+    offset: float = 0.0,
 ):
-    """``rho = |p - a| + b``: a ``CustomFactor`` on the position variable ``key`` (and the bias ``bias_key``)."""
+    """``rho = |p - a| + b``: a ``CustomFactor`` on the position variable ``key`` (and the bias
+    ``bias_key``; and the velocity ``velocity_key``, the range taken ``offset`` seconds after
+    its node: ``p = p_node + v offset``, as :func:`tdoa_factor`'s)."""
     a = np.asarray(anchor, dtype=float)
-    rho = float(rho)
+    rho, tau = float(rho), float(offset)
 
     def error(this, values, jacobians):
         p, dp = position_of(values, key, kind)
+        if velocity_key is not None:
+            p = p + tau * np.asarray(values.atVector(velocity_key), dtype=float)
         r, u = _unit(p - a)
         e = r - rho
         if bias_key is not None:
@@ -91,9 +104,12 @@ def range_factor(
             jacobians[0] = (u @ dp)[None, :]
             if bias_key is not None:
                 jacobians[1] = np.ones((1, 1))
+            if velocity_key is not None:
+                jacobians[-1] = tau * u[None, :]
         return np.array([e])
 
-    keys = [key] if bias_key is None else [key, bias_key]
+    keys = [key] + ([] if bias_key is None else [bias_key])
+    keys += [] if velocity_key is None else [velocity_key]
     return gtsam.CustomFactor(noise, keys, error)
 
 

@@ -2,7 +2,8 @@
 
 The graph has one node per measurement time (measurements at the same time share it; with
 ``key_period > 0``, every measurement within ``key_period`` seconds after a node shares
-that node, read as if taken at its time), and the variables of the node depend on the
+that node, on its position and velocity at its own time, ``p + v tau``, where the node has
+a velocity, else read as if taken at its time), and the variables of the node depend on the
 log's inputs (:data:`MOTIONS`):
 
 ===============  ========================  ================================================
@@ -124,8 +125,14 @@ class PeerNoise:
         The navigation frame's z axis: up (gravity along ``-z``) or down (along ``+z``).
     key_period : float
         Measurements within this many seconds after a node share it (0: a node per time); a
-        TDOA then sits on the node's position and velocity at its own time, and iSAM2 updates
-        once a node, when the next one opens (:meth:`Isam2Peer._flush`).
+        range or a TDOA then sits on the node's position and velocity at its own time (where
+        the node has a velocity; else it is read as if taken at the node's time).
+    updates : {"node", "measurement"}
+        With ``key_period > 0``: iSAM2 updates once a node, when the next one opens
+        (``"node"``; :meth:`Isam2Peer._flush`), or with each measurement (``"measurement"``,
+        every measurement in the online estimate as it comes; iSAM2 then relinearises at
+        each update, ``relinearizeSkip = 1``, where gtsam's default is every tenth: from a
+        start far off, tenths of a second of measurements would wait for the first).
     """
 
     range_sigma: float = 1.0
@@ -149,6 +156,7 @@ class PeerNoise:
     gravity: float = 9.80665
     frame: str = "enu"
     key_period: float = 0.0
+    updates: str = "node"
 
     def __post_init__(self) -> None:
         if self.loss not in LOSSES:
@@ -157,7 +165,10 @@ class PeerNoise:
             raise QuadobsError(f"bias: expected 'none' or 'state', got {self.bias!r}")
         if self.frame not in ("enu", "ned"):
             raise QuadobsError(f"frame: expected 'enu' or 'ned', got {self.frame!r}")
-        numbers = {k: v for k, v in vars(self).items() if k not in ("loss", "bias", "frame")}
+        if self.updates not in ("node", "measurement"):
+            raise QuadobsError(f"updates: expected 'node' or 'measurement', got {self.updates!r}")
+        words = ("loss", "bias", "frame", "updates")
+        numbers = {k: v for k, v in vars(self).items() if k not in words}
         numbers.update(
             {f"attitude_sigma[{i}]": v for i, v in enumerate(numbers.pop("attitude_sigma"))}
         )
@@ -266,6 +277,8 @@ class Isam2Peer(Estimator, Counted):
         self.motion = make_motion(gtsam, input_kind, d, noise)
         params = gtsam.ISAM2Params()
         params.setFactorization(self.motion.factorization)
+        if noise.key_period > 0.0 and noise.updates == "measurement":
+            params.relinearizeSkip = 1  # relinearised at each update (the class docstring)
         self.isam = gtsam.ISAM2(params)
         self.graph, self.values = gtsam.NonlinearFactorGraph(), gtsam.Values()
         self._g_new, self._v_new = gtsam.NonlinearFactorGraph(), gtsam.Values()
@@ -327,7 +340,8 @@ class Isam2Peer(Estimator, Counted):
         the next node on."""
         if self._g_new.size() == 0 and self._v_new.size() == 0:
             return
-        if keyframe and self.noise.key_period > 0.0 and self._v_new.size() == 0:
+        gated = self.noise.key_period > 0.0 and self.noise.updates == "node"
+        if keyframe and gated and self._v_new.size() == 0:
             return
         g, v = self._g_new, self._v_new
         self._g_new, self._v_new = self._g.NonlinearFactorGraph(), self._g.Values()
@@ -398,16 +412,17 @@ class Isam2Peer(Estimator, Counted):
         node = self._node_for(self.time)
         key = self.motion.position_key(node)
         kind, noise = self.motion.position_type, self._noise(model.sigma(m))
+        v_key, tau = self._offset(node)
         if m.kind == "range":
             (h,) = m.anchors
             bias_key = self._bias_key(h) if self.noise.bias == "state" else None
+            rho = model.unbiased(m)
             factor = range_factor(
-                self._g, noise, key, kind, self.anchors[h], model.unbiased(m), bias_key
+                self._g, noise, key, kind, self.anchors[h], rho, bias_key, v_key, tau
             )
         else:
             i, j = m.anchors
-            a, (v_key, tau) = self.anchors, self._offset(node)
-            d = model.unbiased(m)
+            a, d = self.anchors, model.unbiased(m)
             factor = tdoa_factor(self._g, noise, key, kind, a[i], a[j], d, v_key, tau)
         self._g_new.add(factor)
         self.corrections += 1

@@ -22,7 +22,14 @@ import numpy as np
 
 from quadobs.errors import QuadobsError
 
-__all__ = ["TDOA_KEY_PERIOD", "build_peer", "check_peer", "peer_input_kind"]
+__all__ = [
+    "KEY_PERIOD",
+    "TDOA_KEY_PERIOD",
+    "build_peer",
+    "check_peer",
+    "keyframes",
+    "peer_input_kind",
+]
 
 #: The log's input kinds (:data:`quadobs.testbed.logs.format.INPUT_KINDS` and those of the
 #: measurements' :data:`~quadobs.core.measurements.INPUT_KINDS`) as the peer's.
@@ -47,14 +54,31 @@ def check_peer(input_kind: str, dimension: int, name: str = "isam2") -> None:
         raise QuadobsError(f"estimators: {name!r} cannot take a log with {reason}")
 
 
-#: The peer's keyframe period (s) on a log holding TDOA (:class:`~quadobs.estimators.gtsam_peer.PeerNoise`
-#: ``key_period``). A TDoA3 tag hears a packet every few milliseconds (100 Hz in
-#: ``quadrotor-tdoa``), and a node per packet made iSAM2 update at that rate, most of the
-#: peer's time. A node every 0.1 s, each TDOA on its node's position and velocity at its own
-#: time (``p + v tau``, whose error ``a tau^2 / 2`` is 5 mm at 1 m/s^2, a twentieth of the
-#: radio's 0.1 m), iSAM2 updating once a node: a tenth of the nodes and of the updates (the
-#: timings: the TDOA page of the docs, section 5).
-TDOA_KEY_PERIOD = 0.1
+#: The peer's keyframe period (s) (:class:`~quadobs.estimators.gtsam_peer.PeerNoise`
+#: ``key_period``) on a log holding TDOA, or whose nodes have a velocity (ranges alone, an
+#: accelerometer, a body IMU: every log but wheel odometry's). A TDoA3 tag hears a packet
+#: every few milliseconds (100 Hz in ``quadrotor-tdoa``), a two-way-ranging tag ranges at 50
+#: to 400 Hz over its anchors, and a node per measurement made iSAM2's updates the peer's
+#: whole cost, each growing with the nodes so far (a 20 s flight of ranges at 100 Hz: 25 ms
+#: a range; its first 10 s, 11 ms). A node every 0.1 s, each measurement on its node's
+#: position and velocity at its own time (``p + v tau``, whose error ``a tau^2 / 2`` is 5 mm
+#: at 1 m/s^2, a twentieth of the radio's 0.1 m): a tenth of the nodes. Wheel odometry's
+#: ``Pose2`` nodes have no velocity, so there a range would be moved in time: a node per
+#: measurement time. Ranges update iSAM2 with each (``updates="measurement"``: none waits
+#: for its node to close); TDOA once a node (docs/tdoa.md, section 5). Timings: docs/peer.md.
+KEY_PERIOD = 0.1
+#: The name under which :data:`KEY_PERIOD` was first given, for TDOA alone.
+TDOA_KEY_PERIOD = KEY_PERIOD
+
+
+def keyframes(input_kind: str, kinds) -> dict:
+    """The peer's ``key_period`` and ``updates`` (:class:`~quadobs.estimators.gtsam_peer.PeerNoise`)
+    for a log of ``input_kind`` holding the measurement ``kinds`` (:data:`KEY_PERIOD`)."""
+    if "tdoa" in tuple(kinds):
+        return {"key_period": KEY_PERIOD, "updates": "node"}
+    if peer_input_kind(input_kind) == "odometry":
+        return {"key_period": 0.0, "updates": "node"}
+    return {"key_period": KEY_PERIOD, "updates": "measurement"}
 
 
 def build_peer(s, x0: np.ndarray, name: str = "isam2"):
@@ -69,7 +93,7 @@ def build_peer(s, x0: np.ndarray, name: str = "isam2"):
         q_acc=s.q_acc,
         q_imu=s.q_imu,
         bias="state" if getattr(s, "range_bias", 0) in (1, "state") else "none",
-        key_period=TDOA_KEY_PERIOD if "tdoa" in getattr(s, "kinds", ()) else 0.0,
+        **keyframes(s.input_kind, getattr(s, "kinds", ())),
         **{k: getattr(s, k) for k in ("gravity", "frame") if hasattr(s, k)},
     )
     est = Isam2Peer(
