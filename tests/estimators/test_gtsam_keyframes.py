@@ -38,9 +38,9 @@ def _tangent_difference(factor, values, key, kind, eps=1e-6):
     return np.column_stack([(at(eps * e) - at(-eps * e)) / (2 * eps) for e in np.eye(n)])
 
 
-@pytest.mark.parametrize("kind", ["point", "pose3"])
-def test_a_tdoa_after_its_node_has_the_jacobians_of_its_position_and_velocity(kind):
-    rng = np.random.default_rng(2)
+def _node_values(kind: str, seed: int):
+    """A node's position (a vector or a ``Pose3``) and velocity, drawn: their keys and values."""
+    rng = np.random.default_rng(seed)
     x, v = gtsam.symbol("x", 0), gtsam.symbol("v", 0)
     values = gtsam.Values()
     if kind == "pose3":
@@ -48,6 +48,12 @@ def test_a_tdoa_after_its_node_has_the_jacobians_of_its_position_and_velocity(ki
     else:
         values.insert(x, rng.normal(size=3))
     values.insert(v, rng.normal(size=3))
+    return x, v, values
+
+
+@pytest.mark.parametrize("kind", ["point", "pose3"])
+def test_a_tdoa_after_its_node_has_the_jacobians_of_its_position_and_velocity(kind):
+    x, v, values = _node_values(kind, 2)
     noise = gtsam.noiseModel.Unit.Create(1)
     factor = tdoa_factor(gtsam, noise, x, kind, ANCHORS[0], ANCHORS[3], 0.4, v, 0.07)
     A = factor.linearize(values).jacobian()[0]
@@ -108,14 +114,8 @@ def test_keyframes_are_exact_on_a_constant_velocity_and_update_once_a_node():
 def test_a_range_after_its_node_has_the_jacobians_of_its_position_velocity_and_bias(
     kind, with_bias
 ):
-    rng = np.random.default_rng(3)
-    x, v, b = gtsam.symbol("x", 0), gtsam.symbol("v", 0), gtsam.symbol("r", 0)
-    values = gtsam.Values()
-    if kind == "pose3":
-        values.insert(x, gtsam.Pose3(gtsam.Rot3.RzRyRx(*rng.uniform(-1, 1, 3)), rng.normal(size=3)))
-    else:
-        values.insert(x, rng.normal(size=3))
-    values.insert(v, rng.normal(size=3))
+    x, v, values = _node_values(kind, 3)
+    b = gtsam.symbol("r", 0)
     values.insert(b, np.array([0.3]))
     noise = gtsam.noiseModel.Unit.Create(1)
     bias_key = b if with_bias else None
