@@ -25,10 +25,10 @@ peer's default). With ``--online`` the batches are left out and the peer runs on
 instead: ``isam2-bias`` (iSAM2 with the biases as variables) and ``isam2-given`` (given the
 true biases), the recorded flight replayed into each and its estimate read as the filters'
 (iSAM2's estimate of the last node propagated by the held input), beside ``ekf-bias-given``.
-``--key-period`` lets the ranges within that time after a node share it (read as if taken
-at its time: an error of at most the speed times it), for fewer nodes: each of the peer's
-Python factors is handed the whole graph's values when gtsam evaluates it, so the cost of
-a solution grows with the square of the nodes.
+``--key-period`` lets the ranges within that time after a node share it (each on the
+node's position and velocity at its own time, ``p + v tau``: an error of the acceleration's
+``a tau^2 / 2``), for fewer nodes: the cost of a solution grows faster than the nodes
+(gtsam's elimination, docs/peer.md).
 
 Printed per seed (one JSON line): each estimator's position RMSE after a 5 s burn-in over
 the same times as :mod:`uwb_realistic` (every tenth physics step), and the biases' errors.

@@ -34,8 +34,9 @@ position (``sqrt(P0)`` per axis), of the velocity (``velocity_sigma``), of the h
 (``heading_sigma``, odometry) or attitude and the IMU biases (``imu_body``).
 
 Online: :meth:`Isam2Peer.correct` adds a measurement's factors, and the graph's new part
-goes to iSAM2 (one ``update``) before the estimate is read or time moves on, so
-:attr:`Isam2Peer.x_hat` at any time is iSAM2's current estimate of the last node,
+goes to iSAM2 (one ``update``) before the estimate is read or time moves on (with
+``key_period > 0`` and :class:`PeerNoise` ``updates="node"``, once a node, when the next one
+opens), so :attr:`Isam2Peer.x_hat` at any time is iSAM2's current estimate of the last node,
 propagated with the inputs held since. Offline: :meth:`Isam2Peer.batch_trajectory` solves
 the whole graph by Levenberg-Marquardt (started at iSAM2's final estimate);
 :meth:`Isam2Peer.online_trajectory` is iSAM2's own final (smoothed) estimate of every node.
@@ -517,13 +518,15 @@ class Isam2Peer(Estimator, Counted):
     def _on_grid(self, T: np.ndarray, P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Grid steps ``k`` (of ``t_k = t_0 + k dt``) and positions there.
 
-        Stepped on the grid (:meth:`step`), the nodes are grid steps: their steps and their
-        positions. Run in time, the nodes lie anywhere: the positions interpolated linearly
-        between two consecutive nodes to the grid times between them, where the nodes are at
-        most :data:`INTERPOLATION_GAP` apart (the chord's error, ``v omega T^2 / 8``, is then
-        at most 6 cm at 1 m/s turning at 0.5 rad/s); a longer gap has no figure at its times.
+        Stepped on the grid (:meth:`step`) with a node per step that has a measurement
+        (``key_period`` 0), the nodes are grid steps: their steps and their positions. Run in
+        time, or on keyframes, the nodes lie anywhere or some steps apart: the positions
+        interpolated linearly between two consecutive nodes to the grid times between them,
+        where the nodes are at most :data:`INTERPOLATION_GAP` apart (the chord's error,
+        ``v omega T^2 / 8``, is then at most 6 cm at 1 m/s turning at 0.5 rad/s); a longer gap
+        has no figure at its times.
         """
-        if self._steps > 0 or self.dt is None:
+        if self.dt is None or (self._steps > 0 and self.noise.key_period == 0.0):
             return np.array(self.key_steps), P
         k = np.arange(int(np.floor((T[-1] - T[0]) / self.dt + 1e-9)) + 1)
         t = T[0] + k * self.dt

@@ -186,3 +186,25 @@ def test_the_replay_keeps_a_node_every_tenth_of_a_second_where_a_node_has_a_velo
         assert keyframes(kind, ("tdoa",)) == {"key_period": 0.1, "updates": "node"}
     with pytest.raises(QuadobsError, match="updates: expected 'node' or 'measurement'"):
         PeerNoise(updates="range")
+
+
+def test_keyframes_stepped_on_the_grid_give_a_position_at_every_step():
+    """On the grid (``step``) with keyframes the nodes are some steps apart: the smoothed and
+    batch figures interpolate between them to every step, as in time."""
+    noise = PeerNoise(range_sigma=0.05, velocity_sigma=100.0, key_period=0.1)
+    x0 = np.r_[P0 + [0.5, -0.4, 0.3], 0, 0, 0]
+    est = Isam2Peer(ANCHORS, "accel_nav", x0=x0, P0=1e4, noise=noise, dt=0.02)
+    a2 = np.einsum("hi,hi->h", ANCHORS, ANCHORS)
+    for k in range(300):
+        y = np.full(len(ANCHORS), np.nan)
+        h = k % len(ANCHORS)
+        rho = np.linalg.norm(P0 + V * (k * 0.02) - ANCHORS[h])
+        y[h] = 0.5 * rho**2 - 0.5 * a2[h]
+        est.step(np.zeros(3), y)
+    assert len(est.node_times) < 60  # about one node in six steps
+    k, P = est.batch_optimum()
+    last = round((est.node_times[-1] - est.node_times[0]) / 0.02)
+    assert last >= 294  # every step to the last node's
+    np.testing.assert_array_equal(k, np.arange(last + 1))
+    truth = P0 + V * (k * 0.02)[:, None]
+    assert np.max(np.linalg.norm(P - truth, axis=1)) < 1e-3

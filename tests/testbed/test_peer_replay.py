@@ -1,5 +1,6 @@
-"""The GTSAM peer in the replay in time: ranges alone, TDOA and body-IMU logs, every measurement a
-node at its own time, online and batch figures beside the filters'."""
+"""The GTSAM peer in the replay in time: ranges alone, TDOA and body-IMU logs, every measurement
+at its own time (on its keyframe's position and velocity), online and batch figures beside the
+filters'."""
 
 import numpy as np
 import pytest
@@ -25,7 +26,7 @@ def _figures(s, name="isam2"):
     return e
 
 
-def test_the_peer_replays_ranges_alone_in_3d_with_a_node_per_range():
+def test_the_peer_replays_ranges_alone_in_3d_on_keyframes():
     rng = np.random.default_rng(1)
     t = np.arange(0.0, 8.0, 0.04)
     p, v = _straight(t, 3)

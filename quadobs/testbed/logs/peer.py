@@ -6,8 +6,8 @@ estimate's: the position and the velocity), an accelerometer log (inputs in the
 navigation frame) the double integrator driven by the accelerometer, a log of ranges
 alone the constant-velocity prior, a body-frame IMU log gtsam's IMU preintegration. Its
 noise is the setup's (the same stated noise as the other estimators): ``range_sigma``,
-``q_xy``, ``q_theta``, ``q_acc``, ``q_imu``; the rest is
-:class:`~quadobs.estimators.gtsam_peer.PeerNoise`'s defaults. Where the setup has them, the
+``q_xy``, ``q_theta``, ``q_acc``, ``q_imu``; its keyframes by the log's kind
+(:func:`keyframes`); the rest is :class:`~quadobs.estimators.gtsam_peer.PeerNoise`'s defaults. Where the setup has them, the
 attributes ``range_bias`` (1 or ``"state"``: a constant bias per anchor as a state;
 :attr:`ReplaySetup.range_bias`, ``quadobs replay --tune range_bias=1``), ``gravity``
 and ``frame`` (the log's, for the IMU preintegration) are read too.
@@ -60,7 +60,8 @@ def check_peer(input_kind: str, dimension: int, name: str = "isam2") -> None:
 #: every few milliseconds (100 Hz in ``quadrotor-tdoa``), a two-way-ranging tag ranges at 50
 #: to 400 Hz over its anchors, and a node per measurement made iSAM2's updates the peer's
 #: whole cost, each growing with the nodes so far (a 20 s flight of ranges at 100 Hz: 25 ms
-#: a range; its first 10 s, 11 ms). A node every 0.1 s, each measurement on its node's
+#: a range; its first 10 s, 11 ms). A node about every 0.1 s (opened by the first
+#: measurement more than 0.1 s after the last), each measurement on its node's
 #: position and velocity at its own time (``p + v tau``, whose error ``a tau^2 / 2`` is 5 mm
 #: at 1 m/s^2, a twentieth of the radio's 0.1 m): a tenth of the nodes. Wheel odometry's
 #: ``Pose2`` nodes have no velocity, so there a range would be moved in time: a node per
