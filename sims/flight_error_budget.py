@@ -43,6 +43,17 @@ first line checks the oracles of the ranges: the kept ranges less their true dis
 bias (centred on zero, the radio's noise), the dropped ones (long). ``--line-of-sight P``
 replays the filter with its one-sided gate at ``P`` (a probe of the gate, not an oracle).
 
+``--offset-scan`` asks what the ranges themselves say of a position offset: the true
+trajectory moved by each horizontal offset of a grid (``OFFSET_STEP`` apart, up to
+``OFFSET_SPAN``), each anchor's bias refitted to the moved trajectory (its best value on a grid
+about the median residual), the ranges' cost summed under three losses of the line-of-sight
+residuals' spread ``sigma``: Huber at ``1.5 sigma``, Cauchy of scale ``sigma``, the square
+truncated at ``3 sigma``. Over all ranges, and over the line-of-sight ones alone, it prints
+each loss's best offset and its cost against the truth's (offset 0), and each anchor's share
+of blocked ranges: where the least cost is away from the truth, no estimator that takes the
+excess as symmetric noise (a robust loss, a gate) and a free bias per anchor is drawn to the
+truth by the ranges.
+
     python sims/flight_error_budget.py --real-seeds 0,1,2,3,4 --bias-seeds 3,7,9 --out budget/
     python sims/flight_error_budget.py --stress survey --real-seeds 2,3 --bias-seeds "" \
         --oracles none,anchors,survey-varying,attitude,accel-bias,range-bias,excess
@@ -84,6 +95,10 @@ SURVEY_ORACLES = ("anchors", "survey-varying")
 ESTIMATOR = "ekf-bias-imu"
 #: The IMU's lag behind the ranges in the variant ``clock`` (s), as replay_flight_variants makes it.
 CLOCK_LAG = 0.02
+#: ``--offset-scan``: the grid's spacing and reach per horizontal axis (m), and the biases'
+#: grid about each anchor's median residual (m).
+OFFSET_STEP, OFFSET_SPAN = 0.02, 0.3
+BIAS_GRID = np.linspace(-0.4, 0.4, 161)
 
 
 @dataclasses.dataclass
@@ -224,6 +239,56 @@ def range_residuals(f: Flight) -> tuple[np.ndarray, np.ndarray]:
     return residual, _line_of_sight(f, f.log.ranges)
 
 
+def _losses(sigma: float) -> dict:
+    """``--offset-scan``'s losses of a residual ``r`` (m), as functions of ``r / sigma``."""
+    return {
+        "huber": lambda z: np.where(np.abs(z) < 1.5, z * z, 3.0 * np.abs(z) - 2.25),
+        "cauchy": lambda z: np.log1p(z * z),
+        "truncated": lambda z: np.minimum(z * z, 9.0),
+    }
+
+
+def _fit_cost(r: np.ndarray, h: np.ndarray, q: int, loss, sigma: float) -> float:
+    """The ranges' cost with each anchor's bias at its best (:data:`BIAS_GRID` about the
+    anchor's median residual): ``sum_h min_b sum_i loss((r_i - b) / sigma)``."""
+    total = 0.0
+    for j in range(q):
+        rj = r[h == j]
+        if rj.size:
+            b = np.median(rj) + BIAS_GRID
+            total += float(loss((rj[:, None] - b[None, :]) / sigma).sum(axis=0).min())
+    return total
+
+
+def offset_scan(f: Flight, sigma: float) -> list[str]:
+    """``--offset-scan`` (module docstring): lines of text."""
+    cols = f.base.truth_columns
+    tt = f.base.truth[:, cols.index("time")]
+    t = f.log.ranges[:, 0] - _clock_shifts(f)[0]
+    p = np.column_stack([np.interp(t, tt, f.base.truth[:, cols.index(c)]) for c in "xyz"])
+    h, q = f.log.beacon_index(f.log.ranges[:, 1]), f.log.beacons.shape[0]
+    held = f.log.ranges[:, 2] > 0.0
+    clear = _line_of_sight(f, f.log.ranges)
+    blocked = _blocked(f, f.log.ranges)
+    share = [float(blocked[h == j].mean()) for j in range(q)]
+    lines = ["blocked share per anchor: " + ", ".join(f"{s:.2f}" for s in share)]
+    axis = np.arange(-OFFSET_SPAN, OFFSET_SPAN + 1e-9, OFFSET_STEP)
+    for what, rows in (("all ranges", held), ("line of sight", held & clear)):
+        for name, loss in _losses(sigma).items():
+            cost = {}
+            for dx in axis:
+                for dy in axis:
+                    d = np.linalg.norm(p[rows] + [dx, dy, 0.0] - f.log.beacons[h[rows]], axis=1)
+                    cost[dx, dy] = _fit_cost(f.log.ranges[rows, 2] - d, h[rows], q, loss, sigma)
+            best = min(cost, key=cost.get)
+            zero = min(cost, key=lambda k: abs(k[0]) + abs(k[1]))
+            lines.append(
+                f"{what}, {name}: least cost at offset ({best[0]:+.2f}, {best[1]:+.2f}) m, "
+                f"{cost[best]:.1f} against {cost[zero]:.1f} at the truth"
+            )
+    return lines
+
+
 def with_oracle(f: Flight, oracle: str):
     """The variant's log with the error source ``oracle`` taken away (module docstring)."""
     log = f.log
@@ -311,6 +376,11 @@ def main() -> None:
         default=None,
         help="the one-sided gate's probability (default: the filter's, 0.95)",
     )
+    ap.add_argument(
+        "--offset-scan",
+        action="store_true",
+        help="the ranges' cost of the truth moved by a horizontal offset (module docstring)",
+    )
     args = ap.parse_args()
     args.yaw = 1.0  # unused by real and bias
     oracles = args.oracles.split(",")
@@ -338,6 +408,9 @@ def main() -> None:
             f"with an excess {(~kept).sum()}: median {np.median(residual[~kept]):+.3f} m",
             flush=True,
         )
+        if args.offset_scan:
+            for line in offset_scan(f, float(inner.std())):
+                print(f"{kind} seed {seed}: {line}", flush=True)
         for oracle in oracles:
             if oracle == "clock" and not f.lag:
                 table[kind, seed, oracle] = None  # no lag to remove
