@@ -919,7 +919,8 @@ def _add_replay(sub) -> None:
     p.add_argument("--out", type=Path, help="recording to write (.rrd)")
     p.add_argument("--summary", type=Path, help="JSON summary to write")
     p.add_argument(
-        "--estimators", help="comma-separated names (default: augmented,ekf; isam2: the GTSAM peer)"
+        "--estimators",
+        help="comma-separated names (default: chosen from the log, docs/replay.md; isam2: the GTSAM peer)",
     )
     p.add_argument(
         "--export", type=Path, help="write the log in the open format to this folder and stop"
