@@ -45,14 +45,19 @@ replays the filter with its one-sided gate at ``P`` (a probe of the gate, not an
 
 ``--offset-scan`` asks what the ranges themselves say of a position offset: the true
 trajectory moved by each horizontal offset of a grid (``OFFSET_STEP`` apart, up to
-``OFFSET_SPAN``), each anchor's bias refitted to the moved trajectory (its best value on a grid
-about the median residual), the ranges' cost summed under three losses of the line-of-sight
-residuals' spread ``sigma``: Huber at ``1.5 sigma``, Cauchy of scale ``sigma``, the square
-truncated at ``3 sigma``. Over all ranges, and over the line-of-sight ones alone, it prints
-each loss's best offset and its cost against the truth's (offset 0), and each anchor's share
-of blocked ranges: where the least cost is away from the truth, no estimator that takes the
-excess as symmetric noise (a robust loss, a gate) and a free bias per anchor is drawn to the
-truth by the ranges.
+``OFFSET_SPAN``), its distances taken to the log's anchors (``beacons.csv``: as surveyed under
+``--stress survey``, so that even clean ranges need not fit best at offset 0), each anchor's
+bias refitted to the moved trajectory (its best value on a grid about the median residual),
+the ranges' cost summed under three losses of the log's line-of-sight residuals' spread
+``sigma``: Huber at ``1.5 sigma``, Cauchy of scale ``sigma``, the square truncated at
+``3 sigma``. Ranges of 0 m are left out. Over all ranges, and over the line-of-sight ones
+alone (unblocked, and none of the variant's added excess), it prints each loss's best offset
+and its cost against the truth's (offset 0), and each anchor's share of blocked ranges: where
+the least cost is away from the truth, the ranges do not pull an estimator that takes the
+excess as symmetric noise (a robust loss, a gate) with a free bias per anchor to the truth.
+
+    python sims/flight_error_budget.py --stress survey --real-seeds 0,2,3 --bias-seeds "" \
+        --oracles none --offset-scan
 
     python sims/flight_error_budget.py --real-seeds 0,1,2,3,4 --bias-seeds 3,7,9 --out budget/
     python sims/flight_error_budget.py --stress survey --real-seeds 2,3 --bias-seeds "" \
@@ -182,6 +187,14 @@ def _true_attitude(f: Flight) -> np.ndarray:
     return np.column_stack([t + _clock_shifts(f)[1], q])
 
 
+def _truth_position(f: Flight, ranges: np.ndarray) -> np.ndarray:
+    """The truth's position ``(M, 3)`` at the times of ``ranges`` (on the export's clock)."""
+    cols = f.base.truth_columns
+    tt = f.base.truth[:, cols.index("time")]
+    t = ranges[:, 0] - _clock_shifts(f)[0]
+    return np.column_stack([np.interp(t, tt, f.base.truth[:, cols.index(c)]) for c in "xyz"])
+
+
 def _line_of_sight(f: Flight, ranges: np.ndarray) -> np.ndarray:
     """Rows of ``ranges`` with no excess: unblocked at the truth's position, none added."""
     return ~_blocked(f, ranges) & ~f.added_nlos
@@ -193,10 +206,7 @@ def _blocked(f: Flight, ranges: np.ndarray) -> np.ndarray:
     from quadobs.testbed.uwb import Room, room_model_path
 
     room = Room(room_model_path())
-    cols = f.base.truth_columns
-    tt = f.base.truth[:, cols.index("time")]
-    t = ranges[:, 0] - _clock_shifts(f)[0]
-    p = np.column_stack([np.interp(t, tt, f.base.truth[:, cols.index(c)]) for c in "xyz"])
+    p = _truth_position(f, ranges)
     anchor = f.log.beacon_index(ranges[:, 1])
     return np.array([room.blocked(f.anchors[h], p[k]) for k, h in enumerate(anchor)], dtype=bool)
 
@@ -204,10 +214,7 @@ def _blocked(f: Flight, ranges: np.ndarray) -> np.ndarray:
 def _survey_errors(f: Flight) -> np.ndarray:
     """Each range's error from the survey (m): ``|p - a~_h| - |p - a_h|`` at the truth's
     position, ``a~_h`` the anchor in ``beacons.csv``, ``a_h`` the radio's."""
-    cols = f.base.truth_columns
-    tt = f.base.truth[:, cols.index("time")]
-    t = f.log.ranges[:, 0] - _clock_shifts(f)[0]
-    p = np.column_stack([np.interp(t, tt, f.base.truth[:, cols.index(c)]) for c in "xyz"])
+    p = _truth_position(f, f.log.ranges)
     h = f.log.beacon_index(f.log.ranges[:, 1])
     return np.linalg.norm(p - f.log.beacons[h], axis=1) - np.linalg.norm(p - f.anchors[h], axis=1)
 
@@ -229,18 +236,15 @@ def range_residuals(f: Flight) -> tuple[np.ndarray, np.ndarray]:
     """Each range of the variant less its true distance and its anchor's true bias (m), and
     whether :func:`_line_of_sight` keeps it: the check of the oracles ``range-bias`` and
     ``excess`` (the kept ones centred on zero with the radio's noise, the others long)."""
-    cols = f.base.truth_columns
-    tt = f.base.truth[:, cols.index("time")]
-    t = f.log.ranges[:, 0] - _clock_shifts(f)[0]
-    p = np.column_stack([np.interp(t, tt, f.base.truth[:, cols.index(c)]) for c in "xyz"])
+    p = _truth_position(f, f.log.ranges)
     anchor = f.log.beacon_index(f.log.ranges[:, 1])
     distance = np.linalg.norm(p - f.anchors[anchor], axis=1)
     residual = f.log.ranges[:, 2] - distance - f.range_bias[anchor]
     return residual, _line_of_sight(f, f.log.ranges)
 
 
-def _losses(sigma: float) -> dict:
-    """``--offset-scan``'s losses of a residual ``r`` (m), as functions of ``r / sigma``."""
+def _losses() -> dict:
+    """``--offset-scan``'s losses, as functions of a residual over ``sigma``."""
     return {
         "huber": lambda z: np.where(np.abs(z) < 1.5, z * z, 3.0 * np.abs(z) - 2.25),
         "cauchy": lambda z: np.log1p(z * z),
@@ -248,43 +252,54 @@ def _losses(sigma: float) -> dict:
     }
 
 
-def _fit_cost(r: np.ndarray, h: np.ndarray, q: int, loss, sigma: float) -> float:
+def _fit_cost(r: np.ndarray, masks: list, loss, sigma: float) -> float:
     """The ranges' cost with each anchor's bias at its best (:data:`BIAS_GRID` about the
-    anchor's median residual): ``sum_h min_b sum_i loss((r_i - b) / sigma)``."""
+    anchor's median residual): ``sum_h min_b sum_i loss((r_i - b) / sigma)``, ``masks`` each
+    anchor's rows."""
     total = 0.0
-    for j in range(q):
-        rj = r[h == j]
+    for rows in masks:
+        rj = r[rows]
         if rj.size:
             b = np.median(rj) + BIAS_GRID
             total += float(loss((rj[:, None] - b[None, :]) / sigma).sum(axis=0).min())
     return total
 
 
+def _scan_costs(f: Flight, p: np.ndarray, h: np.ndarray, rows, sigma: float) -> dict:
+    """``{loss: {(dx, dy): cost}}``: the ranges ``rows`` against the truth ``p`` moved by each
+    offset of the grid (exactly 0 at its centre)."""
+    n = round(OFFSET_SPAN / OFFSET_STEP)
+    axis = OFFSET_STEP * np.arange(-n, n + 1)
+    rho, at, hr = f.log.ranges[rows, 2], p[rows], h[rows]
+    anchors = f.log.beacons[hr]
+    masks = [hr == j for j in range(f.log.beacons.shape[0])]
+    losses = _losses()
+    costs: dict = {name: {} for name in losses}
+    for dx in axis:
+        for dy in axis:
+            r = rho - np.linalg.norm(at + [dx, dy, 0.0] - anchors, axis=1)
+            for name, loss in losses.items():
+                costs[name][dx, dy] = _fit_cost(r, masks, loss, sigma)
+    return costs
+
+
 def offset_scan(f: Flight, sigma: float) -> list[str]:
     """``--offset-scan`` (module docstring): lines of text."""
-    cols = f.base.truth_columns
-    tt = f.base.truth[:, cols.index("time")]
-    t = f.log.ranges[:, 0] - _clock_shifts(f)[0]
-    p = np.column_stack([np.interp(t, tt, f.base.truth[:, cols.index(c)]) for c in "xyz"])
+    p = _truth_position(f, f.log.ranges)
     h, q = f.log.beacon_index(f.log.ranges[:, 1]), f.log.beacons.shape[0]
-    held = f.log.ranges[:, 2] > 0.0
-    clear = _line_of_sight(f, f.log.ranges)
+    held = f.log.ranges[:, 2] > 0.0  # a range of 0 m (a failed exchange) left out
     blocked = _blocked(f, f.log.ranges)
-    share = [float(blocked[h == j].mean()) for j in range(q)]
+    share = [float(blocked[held & (h == j)].mean()) for j in range(q) if np.any(h == j)]
     lines = ["blocked share per anchor: " + ", ".join(f"{s:.2f}" for s in share)]
-    axis = np.arange(-OFFSET_SPAN, OFFSET_SPAN + 1e-9, OFFSET_STEP)
+    clear = ~blocked & ~f.added_nlos  # as _line_of_sight
     for what, rows in (("all ranges", held), ("line of sight", held & clear)):
-        for name, loss in _losses(sigma).items():
-            cost = {}
-            for dx in axis:
-                for dy in axis:
-                    d = np.linalg.norm(p[rows] + [dx, dy, 0.0] - f.log.beacons[h[rows]], axis=1)
-                    cost[dx, dy] = _fit_cost(f.log.ranges[rows, 2] - d, h[rows], q, loss, sigma)
+        for name, cost in _scan_costs(f, p, h, rows, sigma).items():
             best = min(cost, key=cost.get)
-            zero = min(cost, key=lambda k: abs(k[0]) + abs(k[1]))
+            edge = max(abs(best[0]), abs(best[1])) >= OFFSET_SPAN - 1e-9
             lines.append(
-                f"{what}, {name}: least cost at offset ({best[0]:+.2f}, {best[1]:+.2f}) m, "
-                f"{cost[best]:.1f} against {cost[zero]:.1f} at the truth"
+                f"{what}, {name}: least cost at offset ({best[0]:+.2f}, {best[1]:+.2f}) m"
+                f"{' (the grid edge)' if edge else ''}, {cost[best]:.1f} against "
+                f"{cost[0.0, 0.0]:.1f} at the truth"
             )
     return lines
 
