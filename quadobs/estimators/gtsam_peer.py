@@ -132,8 +132,8 @@ class PeerNoise:
         With ``key_period > 0``: iSAM2 updates once a node, when the next one opens
         (``"node"``; :meth:`Isam2Peer._flush`), or with each measurement (``"measurement"``,
         every measurement in the online estimate as it comes; iSAM2 then relinearises at
-        each update, ``relinearizeSkip = 1``, where gtsam's default is every tenth: from a
-        start far off, tenths of a second of measurements would wait for the first).
+        each update, ``relinearizeSkip = 1``, where gtsam's default is every tenth: cheaper
+        and quicker from a start far off on the flights measured, docs/peer.md).
     """
 
     range_sigma: float = 1.0
