@@ -959,7 +959,7 @@ def _add_replay(sub) -> None:
         action="append",
         default=[],
         metavar="KEY=VALUE",
-        help="the estimators' noise settings: range_sigma, q_xy, q_theta, q_acc, q_imu, gate (a number or none), P0, range_bias (1: the peer's bias per anchor as a state), q_xy_heading, velocity_std (m/s, or log: the velocity the log's start tells, where it tells one), nlos_prior (the excess mixture's stationary probability of a blocked path, in (0, 1)), steady_test (1: ekf-bias-imu-nlos takes a block of ranges read blocked as steady as the noise for its bias's error, the default; 0: off), bias_prior (m: the range biases' prior in the filters that hold them as states, 0.5 by default; log: the spread of the self-calibration's biases), stated_heights (1: ukf-height-lever starts from the heights an odometry log states, the default; 0: from a storey's prior) (repeatable)",
+        help="the estimators' noise settings: range_sigma, q_xy, q_theta, q_acc, q_imu, gate (a number or none), P0, range_bias (1: the peer's bias per anchor as a state), q_xy_heading, velocity_std (m/s, or log: the velocity the log's start tells, where it tells one), nlos_prior (the excess mixture's stationary probability of a blocked path, in (0, 1)), steady_test (1: ekf-bias-imu-nlos takes a block of ranges read blocked as steady as the noise for its bias's error, the default; 0: off), bias_prior (m: the range biases' prior in the filters that hold them as states, 0.5 by default; log: the spread of the self-calibration's biases), stated_heights (1: ukf-height-lever starts from the heights an odometry log states, the default; 0: from a storey's prior), anchor_sigma (1: a log stating no std gives each range its anchor's own noise read from its ranges, the default; 0: one figure pooled over the anchors) (repeatable)",
     )
     p.add_argument(
         "--set",
@@ -1030,19 +1030,20 @@ def _cmd_replay(args) -> int:
     log_scenario(log, args.dt, args.seed, args.set)  # the --set settings, checked as early
     _check_field_options(args)
     _notice_cold_kernels(EPISODE_KERNELS + AUGMENTED_KERNELS)
+    from quadobs.testbed.logs.range_noise import with_anchor_noise
     from quadobs.testbed.logs.replay import check_burn_in, check_replay, replayable_log
 
     check_burn_in(log, args.burn_in)  # a burn-in past the log or its truth: nothing to score
     log, notes = replayable_log(log, keep_anchors=args.biases is not None)  # --biases: one each
-    for note in notes:
+    log, options, noise_note = with_anchor_noise(log, parse_tuning(args.tune))
+    for note in [*notes, noise_note] if noise_note else notes:
         print(note)
 
     check_replay(  # the model and the estimators against the log, before the calibration
-        log, _estimator_list(args.estimators), dt=args.dt, model=args.model,
-        options=parse_tuning(args.tune),
-    )  # fmt: skip
-    log = _replay_clock_offset(args, log, parse_tuning(args.tune))
-    biases, tuning = _replay_calibration(args, log, parse_tuning(args.tune))
+        log, _estimator_list(args.estimators), dt=args.dt, model=args.model, options=options
+    )
+    log = _replay_clock_offset(args, log, dict(options))
+    biases, tuning = _replay_calibration(args, log, dict(options))
     stop_if_interrupted()
     summary = run_replay(
         log,

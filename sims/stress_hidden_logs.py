@@ -42,7 +42,11 @@ to the log without attitude before ``real``'s transforms):
     python sims/stress_hidden_logs.py flight --seeds 0,1,2,3,4
 
 ``--variants`` picks stresses (``none``: the stand-in itself); ``--json`` writes every
-estimator's RMSE.
+estimator's RMSE. ``--estimators`` and ``--tune`` are handed to each replay (a comparison of
+one setting on the same logs); ``--without-std`` leaves the ranges' ``std`` column out of each
+log (the robot's logs state one, the flight's none), as a log converted by hand would::
+
+    python sims/stress_hidden_logs.py rover --seeds 0,1 --without-std --tune anchor_sigma=0
 """
 
 from __future__ import annotations
@@ -134,6 +138,25 @@ def flight_log(seed: int, name: str, duration: float, tmp: Path) -> Path:
     return folder
 
 
+def replay(folder: Path, estimators: str | None = None, tune=()) -> dict:
+    """``quadobs replay FOLDER --burn-in 5``, with ``--estimators`` and each ``--tune`` where
+    given: the RMSE by estimator (``"diverged"`` where the replay reports it so)."""
+    from quadobs import cli
+
+    summary = folder.with_name(f"{folder.name}-summary.json")
+    argv = ["replay", str(folder), "--burn-in", f"{rover.BURN_IN:g}", "--no-progress"]
+    argv += ["--summary", str(summary)] + (["--estimators", estimators] if estimators else [])
+    for setting in tune:
+        argv += ["--tune", setting]
+    code = cli.main(argv)
+    if code not in (0, 1):  # 1: an estimator reported diverged
+        raise SystemExit(f"quadobs replay {folder.name} failed (status {code})")
+    return {
+        k: "diverged" if e.get("diverged") else e.get("rmse", math.nan)
+        for k, e in json.loads(summary.read_text())["estimators"].items()
+    }
+
+
 def best(rmse: dict) -> tuple[str, float]:
     """The estimator of least RMSE among those not reported diverged."""
     ran = {k: v for k, v in rmse.items() if isinstance(v, float) and math.isfinite(v)}
@@ -151,6 +174,9 @@ def main() -> None:
     ap.add_argument("--room", default="today", choices=tuple(rover.ROOMS), help="the robot's")
     ap.add_argument("--duration", type=float, help="s (default: 90 robot, 40 flight)")
     ap.add_argument("--json", help="write every estimator's RMSE here")
+    ap.add_argument("--estimators", help="comma-separated, for every replay (default: its own)")
+    ap.add_argument("--tune", action="append", default=[], metavar="KEY=VALUE", help="repeatable")
+    ap.add_argument("--without-std", action="store_true", help="the ranges' std column left out")
     args = ap.parse_args()
     table = ROVER if args.platform == "rover" else FLIGHT
     names = args.variants.split(",") if args.variants else list(table)
@@ -170,14 +196,11 @@ def main() -> None:
             for name in names:
                 if args.platform == "rover":
                     folder = rover_log(seed, name, args.room, duration, Path(tmp))
-                    rmse = rover.replay_defaults(folder)
                 else:
                     folder = flight_log(seed, name, duration, Path(tmp))
-                    summary = flight.replay(folder, None, rover.BURN_IN)
-                    rmse = {
-                        k: "diverged" if e.get("diverged") else e.get("rmse", math.nan)
-                        for k, e in summary["estimators"].items()
-                    }
+                if args.without_std:
+                    folder = rover.without_std(folder, folder.with_name(f"{folder.name}-nostd"))
+                rmse = replay(folder, args.estimators, args.tune)
                 who, value = best(rmse)
                 rows.append({"seed": seed, "stress": name, "best": who, "rmse": value, **rmse})
                 print(f"seed {seed} {name}: best {who} {value:.3f}", flush=True)

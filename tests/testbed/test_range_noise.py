@@ -9,20 +9,28 @@ import pytest
 
 from quadobs.testbed.logs import RangeLog
 from quadobs.testbed.logs.estimators import log_defaults
-from quadobs.testbed.logs.range_noise import range_noise, stated_range_noise
+from quadobs.testbed.logs.range_noise import (
+    MIN_ANCHOR_RESIDUALS,
+    anchor_noise,
+    range_noise,
+    stated_range_noise,
+    with_anchor_noise,
+)
 
 ANCHORS = np.array([[-3.0, -3.0, 0.2], [3.0, -3.0, 2.8], [3.0, 3.0, 0.2], [-3.0, 3.0, 2.8]])
 
 
 def _log(rate, speed, sigma, seconds=20.0, nlos=0.0, radius=2.0):
     """Ranges round-robin over four anchors at ``rate`` Hz, a circle of ``radius`` at ``speed`` m/s,
-    Gaussian noise ``sigma`` and a fraction ``nlos`` longer by an exponential 0.5 m; no std."""
+    Gaussian noise ``sigma`` (one figure, or one per anchor) and a fraction ``nlos`` longer by
+    an exponential 0.5 m; no std."""
     rng = np.random.default_rng(7)
     t = np.arange(0.0, seconds, 1.0 / rate) + rng.uniform(0.0, 2e-4, int(round(seconds * rate)))
     w = speed / radius
     p = np.column_stack([radius * np.cos(w * t), radius * np.sin(w * t), 1.5 + 0 * t])
     h = np.arange(t.size) % 4
-    r = np.linalg.norm(p - ANCHORS[h], axis=1) + sigma * rng.standard_normal(t.size)
+    noise = np.broadcast_to(np.asarray(sigma, dtype=float), (4,))[h]
+    r = np.linalg.norm(p - ANCHORS[h], axis=1) + noise * rng.standard_normal(t.size)
     r += (rng.random(t.size) < nlos) * rng.exponential(0.5, t.size)
     imu = np.column_stack([t, np.zeros((t.size, 2)), np.full(t.size, 9.81), np.zeros((t.size, 3))])
     return RangeLog(
@@ -67,6 +75,7 @@ def test_the_plaza_logs_keep_the_prior():
         sigma, sigma_2, _ = range_noise(load_builtin(name))
         assert sigma_2 > 1.25 * sigma, name
         assert not {"range_sigma", "range_sigma_heading"} & set(log_defaults(load_builtin(name)))
+        assert with_anchor_noise(load_builtin(name), {})[2] is None  # nor each anchor's figure
 
 
 def test_an_odometry_log_gives_its_noise_to_every_filter():
@@ -88,3 +97,73 @@ def test_an_odometry_log_gives_its_noise_to_every_filter():
     assert setup.range_sigma == sigma
     assert build_ukf_heading(setup, np.zeros(setup.n)).range_sigma == sigma
     assert replay_setup(log, world, {"range_sigma": 0.3}, initial_offset=1.0).range_sigma == 0.3
+
+
+def test_each_anchor_s_noise_read_from_its_own_ranges():
+    """Anchor 1 three times as noisy as the others: each figure within 10 % of its anchor's
+    noise, the pooled one between; each range takes its anchor's figure, the setup the pooled."""
+    truth = np.array([0.08, 0.24, 0.08, 0.08])
+    log = _log(rate=100.0, speed=1.0, sigma=truth)
+    sigma = anchor_noise(log)
+    np.testing.assert_allclose(sigma, truth, rtol=0.1)
+    pooled = stated_range_noise(log)
+    assert truth[0] < pooled < truth[1]
+    out, options, note = with_anchor_noise(log, {"q_imu": 0.02})
+    assert options == {"q_imu": 0.02, "range_sigma": pooled}
+    h = out.beacon_index(out.ranges[:, 1])
+    np.testing.assert_array_equal(out.range_std, sigma[h])
+    assert note is not None and f"{sigma[1]:.3f}" in note and f"{pooled:.3f}" in note
+    np.testing.assert_array_equal(out.ranges, log.ranges)  # the ranges themselves untouched
+
+
+def test_the_pooled_figure_where_asked_or_where_an_anchor_shows_too_little():
+    log = _log(rate=100.0, speed=1.0, sigma=[0.08, 0.24, 0.08, 0.08])
+    for options in ({"range_sigma": 0.3}, {"anchor_sigma": 0.0}):  # the user's say stands
+        out, same, note = with_anchor_noise(log, options)
+        assert out is log and same == options and note is None
+    # anchor 3 heard for its first 99 residuals only: the pooled figure
+    h = log.ranges[:, 1]
+    keep = (h != 3) | (np.cumsum(h == 3) <= MIN_ANCHOR_RESIDUALS + 1)
+    short = dataclasses.replace(log, ranges=log.ranges[keep], range_std=log.range_std[keep])
+    sigma = anchor_noise(short)
+    assert sigma[3] == stated_range_noise(short) and sigma[1] > 0.2
+
+
+def test_no_anchor_figures_where_the_log_states_its_noise_or_has_no_imu_or_odometry():
+    log = _log(rate=100.0, speed=1.0, sigma=0.1)
+    stated = dataclasses.replace(log, range_std=np.full(log.ranges.shape[0], 0.3))
+    assert anchor_noise(stated) is None and with_anchor_noise(stated, {})[0] is stated
+    ranges_only = dataclasses.replace(log, inputs=np.empty((0, 7)), input_kind="none")
+    assert with_anchor_noise(ranges_only, {})[2] is None
+
+
+def test_anchor_sigma_is_a_switch_the_setup_does_not_take():
+    from quadobs.errors import QuadobsError
+    from quadobs.testbed.logs.estimators import parse_tuning, tuning_fields
+
+    assert parse_tuning(["anchor_sigma=0"]) == {"anchor_sigma": 0.0}
+    with pytest.raises(QuadobsError, match="anchor_sigma: expected 0"):
+        parse_tuning(["anchor_sigma=2"])
+    assert tuning_fields({"anchor_sigma": 1.0, "q_imu": 0.1}) == {"q_imu": 0.1}
+
+
+def test_the_replay_says_each_anchor_s_figure_and_keeps_it_in_the_summary(tmp_path, capsys):
+    import json
+
+    from quadobs.cli import main
+    from quadobs.testbed.logs import write_log
+
+    log = _log(rate=100.0, speed=1.0, sigma=[0.08, 0.24, 0.08, 0.08], seconds=10.0)
+    write_log(log, tmp_path / "log")
+    base = ["replay", str(tmp_path / "log"), "--calibrate", "none", "--estimators", "ekf"]
+    summaries = {}
+    for name, extra in (("own", []), ("pooled", ["--tune", "anchor_sigma=0"])):
+        path = tmp_path / f"{name}.json"
+        assert main([*base, "--no-progress", "--summary", str(path), *extra]) == 0
+        summaries[name] = json.loads(path.read_text())["noise"]
+    said = capsys.readouterr().out
+    assert said.count("ranges' noise by anchor") == 1
+    sigma = anchor_noise(log)
+    assert summaries["own"]["range_std_by_anchor"] == pytest.approx(list(sigma))
+    assert summaries["pooled"]["range_std_by_anchor"] is None
+    assert summaries["own"]["range_sigma"] == summaries["pooled"]["range_sigma"]

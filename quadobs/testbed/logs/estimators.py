@@ -300,7 +300,7 @@ class ReplaySetup:
             if getattr(self, key) not in (0, 1):
                 raise QuadobsError(f"{key}: expected 0 (off) or 1 (on), got {getattr(self, key)!r}")
         for key in TUNING:
-            if key in ("range_bias", "steady_test", "stated_heights"):
+            if key in ("range_bias", *SWITCHES):
                 continue
             value = getattr(self, key)
             if not (key in ("gate", "velocity_std", "bias_prior") and value is None) and not (
@@ -374,11 +374,12 @@ def tuning_fields(options) -> dict:
     """The tuning as :class:`ReplaySetup`'s fields: ``velocity_std=log`` goes to
     :func:`log_frame` (:func:`velocity_from_log`), not to the setup; ``bias_prior=log`` is the
     self-calibration's to resolve (a number by then,
-    :func:`~quadobs.testbed.logs.calibration.calibrate`)."""
+    :func:`~quadobs.testbed.logs.calibration.calibrate`); ``anchor_sigma`` acts on the log
+    before the replay (:func:`~quadobs.testbed.logs.range_noise.with_anchor_noise`)."""
     return {
         k: v
         for k, v in (options or {}).items()
-        if not (k in ("velocity_std", "bias_prior") and v == FROM_LOG)
+        if not (k in ("velocity_std", "bias_prior") and v == FROM_LOG) and k != "anchor_sigma"
     }
 
 
@@ -386,7 +387,10 @@ def tuning_fields(options) -> dict:
 TUNING = (
     "range_sigma", "q_xy", "q_theta", "q_acc", "q_imu", "gate", "P0", "range_bias",
     "q_xy_heading", "velocity_std", "nlos_prior", "steady_test", "bias_prior", "stated_heights",
+    "anchor_sigma",
 )  # fmt: skip
+#: The tuning's switches (0 off, 1 on).
+SWITCHES = ("steady_test", "stated_heights", "anchor_sigma")
 
 
 def parse_tuning(settings) -> dict:
@@ -409,7 +413,7 @@ def parse_tuning(settings) -> dict:
             out[key] = float(raw)
         except ValueError:
             raise QuadobsError(f"--tune {key}: expected a number, got {raw.strip()!r}") from None
-        if key in ("steady_test", "stated_heights") and out[key] not in (0.0, 1.0):
+        if key in SWITCHES and out[key] not in (0.0, 1.0):
             raise QuadobsError(f"--tune {key}: expected 0 (off) or 1 (on), got {raw.strip()!r}")
         if key == "nlos_prior" and not 0.0 < out[key] < 1.0:  # type: ignore[operator]
             raise QuadobsError(
@@ -480,9 +484,9 @@ def log_defaults(log) -> dict:
     q = imu_input_noise(log)
     if q is not None:
         out["q_imu"] = q
-    from quadobs.testbed.logs.range_noise import stated_range_noise
+    from quadobs.testbed.logs.range_noise import OWN_NOISE_KINDS, stated_range_noise
 
-    sigma = stated_range_noise(log) if log.input_kind in ("imu_body", "odometry") else None
+    sigma = stated_range_noise(log) if log.input_kind in OWN_NOISE_KINDS else None
     if sigma is not None:  # ranges stating no std: their own noise, where they show it
         out["range_sigma"] = sigma
     return out

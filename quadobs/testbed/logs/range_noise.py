@@ -40,6 +40,17 @@ heights gain (the best default on the robot posed with every effect, 0.204 to 0.
 the prior, 0.112 to 0.136 m with it), while the EKF and the plain observer, which lump the
 heading's drift into the ranges' noise, lose as they do with a stated ``std``
 (docs/error-sources.md).
+
+Each anchor's own figure (:func:`anchor_noise`) is the same estimate over that anchor's ranges
+alone. Anchors differ: one whose path the room blocks most of the time has residuals of the
+excess's changes as well as of the radio's noise (on the flight stand-ins,
+``sims/stress_hidden_logs.py``, the anchor blocked for 82 % of its ranges shows 0.21 to 0.24 m,
+the others 0.11 to 0.17 m, pooled 0.13 m). Weighing each range by its anchor's figure is what
+the stated noise of each range would do (a log's ``std`` column), and the replay does it
+where the log states none (:func:`with_anchor_noise`): the pooled figure stays the setup's
+``range_sigma`` (the prior, the start and the gates' scale); each range takes its anchor's.
+``--tune anchor_sigma=0`` gives every range the pooled figure, as before; a ``range_sigma``
+the user sets is taken for every range.
 """
 
 from __future__ import annotations
@@ -48,7 +59,16 @@ import numpy as np
 
 from quadobs.testbed.logs.schema import RANGE
 
-__all__ = ["MIN_RESIDUALS", "SPAN_RATIO", "range_noise", "stated_range_noise"]
+__all__ = [
+    "MIN_ANCHOR_RESIDUALS",
+    "MIN_RESIDUALS",
+    "OWN_NOISE_KINDS",
+    "SPAN_RATIO",
+    "anchor_noise",
+    "range_noise",
+    "stated_range_noise",
+    "with_anchor_noise",
+]
 
 #: The largest ratio of the doubled span's figure to the native one for the figure to be the
 #: ranges' noise (module docstring).
@@ -57,6 +77,15 @@ SPAN_RATIO = 1.25
 #: The fewest interpolation residuals (over all anchors) for an estimate: the median's relative
 #: standard error is ``1.25 / sqrt(n)``, 6 % at 400 (a few seconds of a tag's ranges).
 MIN_RESIDUALS = 400
+
+#: The fewest residuals of one anchor for its own figure (:func:`anchor_noise`): the median's
+#: relative standard error ``1.25 / sqrt(n)`` is 12.5 % at 100 (a few seconds of one anchor
+#: in a tag's round-robin); an anchor with fewer takes the pooled figure.
+MIN_ANCHOR_RESIDUALS = 100
+
+#: The logs whose ranges give their own noise where they state none: a body IMU's and wheel
+#: odometry's (:func:`~quadobs.testbed.logs.estimators.log_defaults`).
+OWN_NOISE_KINDS = ("imu_body", "odometry")
 
 
 def _residuals(times: np.ndarray, anchors: np.ndarray, ranges: np.ndarray, step: int) -> np.ndarray:
@@ -76,11 +105,9 @@ def _residuals(times: np.ndarray, anchors: np.ndarray, ranges: np.ndarray, step:
     return np.concatenate(out) if out else np.empty(0)
 
 
-def range_noise(log) -> tuple[float, float, int]:
-    """``(sigma, sigma_2, n)``: the ranges' noise estimated at the native span and at the doubled
-    one (m; NaN where fewer than three ranges to any anchor), and the number of native
-    residuals (module docstring)."""
-    t, h, r = log.ranges[:, RANGE.time], log.ranges[:, RANGE.beacon], log.ranges[:, RANGE.range]
+def _noise(ranges: np.ndarray) -> tuple[float, float, int]:
+    """:func:`range_noise` of the rows ``ranges`` (``time, beacon, range``)."""
+    t, h, r = ranges[:, RANGE.time], ranges[:, RANGE.beacon], ranges[:, RANGE.range]
     figures = []
     for step in (1, 2):
         e = _residuals(t, h, r, step)
@@ -88,6 +115,13 @@ def range_noise(log) -> tuple[float, float, int]:
         if step == 1:
             n = int(e.size)
     return figures[0], figures[1], n
+
+
+def range_noise(log) -> tuple[float, float, int]:
+    """``(sigma, sigma_2, n)``: the ranges' noise estimated at the native span and at the doubled
+    one (m; NaN where fewer than three ranges to any anchor), and the number of native
+    residuals (module docstring)."""
+    return _noise(log.ranges)
 
 
 def stated_range_noise(log) -> float | None:
@@ -102,3 +136,43 @@ def stated_range_noise(log) -> float | None:
     if n < MIN_RESIDUALS or not (0.0 < sigma and sigma_2 <= SPAN_RATIO * sigma):
         return None
     return sigma
+
+
+def anchor_noise(log) -> np.ndarray | None:
+    """Each anchor's own noise (m, in :attr:`~quadobs.testbed.logs.format.RangeLog.beacons`
+    order): :func:`range_noise` over its ranges alone where they show it (at least
+    :data:`MIN_ANCHOR_RESIDUALS` residuals, the doubled span's figure within
+    :data:`SPAN_RATIO` of it), else the pooled figure; None where the pooled figure is not
+    the noise or the log states its own (:func:`stated_range_noise`)."""
+    pooled = stated_range_noise(log)
+    if pooled is None:
+        return None
+    index = log.beacon_index(log.ranges[:, RANGE.beacon])
+    out = np.full(log.beacons.shape[0], pooled)
+    for h in range(out.size):
+        sigma, sigma_2, n = _noise(log.ranges[index == h])
+        if n >= MIN_ANCHOR_RESIDUALS and 0.0 < sigma and sigma_2 <= SPAN_RATIO * sigma:
+            out[h] = sigma
+    return out
+
+
+def with_anchor_noise(log, options: dict) -> tuple:
+    """``(log, options, note)``: a log of :data:`OWN_NOISE_KINDS` whose ranges state no ``std``
+    with each range given its anchor's own noise (:func:`anchor_noise`), and ``options`` with
+    ``range_sigma`` the pooled figure (module docstring); the note names the figures. The log
+    and ``options`` as given, and no note, where the user set ``range_sigma`` or
+    ``anchor_sigma=0``, or where the ranges do not show their noise."""
+    import dataclasses
+
+    if "range_sigma" in options or not options.get("anchor_sigma", 1.0):
+        return log, options, None
+    sigma = anchor_noise(log) if log.input_kind in OWN_NOISE_KINDS else None
+    if sigma is None:
+        return log, options, None
+    pooled = stated_range_noise(log)
+    std = sigma[log.beacon_index(log.ranges[:, RANGE.beacon])]
+    note = (
+        "ranges' noise by anchor, from their own ranges (no std stated; --tune anchor_sigma=0 "
+        f"pools them): {', '.join(f'{s:.3f}' for s in sigma)} m (pooled {pooled:.3f} m)"
+    )
+    return dataclasses.replace(log, range_std=std), {**options, "range_sigma": pooled}, note

@@ -520,6 +520,22 @@ def _offsets_summary(offsets) -> dict | None:
     return {"mean": [float(v) for v in offsets[0]], "std": [float(v) for v in std]}
 
 
+def _std_by_anchor(log) -> list | None:
+    """The median ``std`` of each anchor's ranges as replayed (the log's, or its anchor's own
+    figure, :func:`~quadobs.testbed.logs.range_noise.with_anchor_noise`), None for an anchor
+    whose ranges state none; None where no range states one."""
+    from quadobs.testbed.logs.schema import RANGE
+
+    if not np.isfinite(log.range_std).any():
+        return None
+    index = log.beacon_index(log.ranges[:, RANGE.beacon])
+    out = []
+    for h in range(log.beacons.shape[0]):
+        std = log.range_std[(index == h) & np.isfinite(log.range_std)]
+        out.append(float(np.median(std)) if std.size else None)
+    return out
+
+
 def _summary(
     log, world, names, merged, completed, interrupted, x0, biases, setup, out, sensors
 ) -> dict:
@@ -552,6 +568,7 @@ def _summary(
             "P0": setup.P0,
             "offsets": _offsets_summary(setup.offsets if setup.stated_heights else None),
             "stated_heights": setup.stated_heights,
+            "range_std_by_anchor": _std_by_anchor(log),
         },
         "measurements": {
             "range_period_steps": sensors.range_every,
