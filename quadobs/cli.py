@@ -1020,7 +1020,6 @@ def _cmd_replay(args) -> int:
     log = open_log(args.log)
     if args.export is not None:
         return _replay_export(args, log)
-    from quadobs.testbed.logs.estimators import parse_tuning
     from quadobs.testbed.logs.replay import log_scenario, run_replay
     from quadobs.testbed.outputs import check_outputs
 
@@ -1030,12 +1029,11 @@ def _cmd_replay(args) -> int:
     log_scenario(log, args.dt, args.seed, args.set)  # the --set settings, checked as early
     _check_field_options(args)
     _notice_cold_kernels(EPISODE_KERNELS + AUGMENTED_KERNELS)
-    from quadobs.testbed.logs.range_noise import with_anchor_noise
     from quadobs.testbed.logs.replay import check_burn_in, check_replay, replayable_log
 
     check_burn_in(log, args.burn_in)  # a burn-in past the log or its truth: nothing to score
     log, notes = replayable_log(log, keep_anchors=args.biases is not None)  # --biases: one each
-    log, options, noise_note = with_anchor_noise(log, parse_tuning(args.tune))
+    log, options, noise_note = _replay_noise(args, log)
     for note in [*notes, noise_note] if noise_note else notes:
         print(note)
 
@@ -1070,6 +1068,18 @@ def _cmd_replay(args) -> int:
     if summary["interrupted"]:
         return 130
     return diverged_status(summary, _estimator_list(args.estimators))
+
+
+def _replay_noise(args, log) -> tuple:
+    """``(log, options, note)`` of ``quadobs replay``: the ``--tune`` settings, and each
+    anchor's own range noise where the log states none
+    (:func:`~quadobs.testbed.logs.range_noise.with_anchor_noise`), but on the grid
+    (``--set noise.*``), where every range takes the one figure ``range_sigma``."""
+    from quadobs.testbed.logs.estimators import parse_tuning
+    from quadobs.testbed.logs.range_noise import with_anchor_noise
+
+    options = parse_tuning(args.tune)
+    return (log, options, None) if args.set else with_anchor_noise(log, options)
 
 
 def _print_replay_rows(summary: dict, log) -> None:

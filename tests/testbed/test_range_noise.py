@@ -112,8 +112,13 @@ def test_each_anchor_s_noise_read_from_its_own_ranges():
     assert options == {"q_imu": 0.02, "range_sigma": pooled}
     h = out.beacon_index(out.ranges[:, 1])
     np.testing.assert_array_equal(out.range_std, sigma[h])
-    assert note is not None and f"{sigma[1]:.3f}" in note and f"{pooled:.3f}" in note
+    assert note is not None and f"1: {sigma[1]:.3f}" in note and f"{pooled:.3f}" in note
     np.testing.assert_array_equal(out.ranges, log.ranges)  # the ranges themselves untouched
+    # what reads a log's stated noise reads the figures as a std column stating them
+    from quadobs.testbed.logs.estimators import log_range_std
+    from quadobs.testbed.logs.excess_model import known_noise
+
+    assert log_range_std(out) == known_noise(out) == float(np.median(sigma[h]))
 
 
 def test_the_pooled_figure_where_asked_or_where_an_anchor_shows_too_little():
@@ -157,7 +162,9 @@ def test_the_replay_says_each_anchor_s_figure_and_keeps_it_in_the_summary(tmp_pa
     write_log(log, tmp_path / "log")
     base = ["replay", str(tmp_path / "log"), "--calibrate", "none", "--estimators", "ekf"]
     summaries = {}
-    for name, extra in (("own", []), ("pooled", ["--tune", "anchor_sigma=0"])):
+    runs = (("own", []), ("pooled", ["--tune", "anchor_sigma=0"]))
+    runs += (("grid", ["--set", "noise.dropout=0"]),)  # on the grid: one figure for all
+    for name, extra in runs:
         path = tmp_path / f"{name}.json"
         assert main([*base, "--no-progress", "--summary", str(path), *extra]) == 0
         summaries[name] = json.loads(path.read_text())["noise"]
@@ -166,4 +173,5 @@ def test_the_replay_says_each_anchor_s_figure_and_keeps_it_in_the_summary(tmp_pa
     sigma = anchor_noise(log)
     assert summaries["own"]["range_std_by_anchor"] == pytest.approx(list(sigma))
     assert summaries["pooled"]["range_std_by_anchor"] is None
+    assert summaries["grid"]["range_std_by_anchor"] is None
     assert summaries["own"]["range_sigma"] == summaries["pooled"]["range_sigma"]

@@ -44,16 +44,19 @@ heading's drift into the ranges' noise, lose as they do with a stated ``std``
 Each anchor's own figure (:func:`anchor_noise`) is the same estimate over that anchor's ranges
 alone. Anchors differ: one whose path the room blocks most of the time has residuals of the
 excess's changes as well as of the radio's noise (on the flight stand-ins,
-``sims/stress_hidden_logs.py``, the anchor blocked for 82 % of its ranges shows 0.21 to 0.24 m,
-the others 0.11 to 0.17 m, pooled 0.13 m). Weighing each range by its anchor's figure is what
-the stated noise of each range would do (a log's ``std`` column), and the replay does it
-where the log states none (:func:`with_anchor_noise`): the pooled figure stays the setup's
-``range_sigma`` (the prior, the start and the gates' scale); each range takes its anchor's.
-``--tune anchor_sigma=0`` gives every range the pooled figure, as before; a ``range_sigma``
-the user sets is taken for every range.
+``sims/stress_hidden_logs.py``, the anchor blocked for 82 % of its ranges shows 0.20 to 0.24 m,
+the others 0.11 to 0.17 m, pooled 0.13 m). The replay takes the log as if its ``std`` column
+stated these figures (:func:`with_anchor_noise`): each range is weighed by its anchor's
+figure, and what reads a log's stated noise reads them (the median of the ranges' ``std``:
+the self-calibration's margin, the excess's core noise, the robust rules' scale); the pooled
+figure stays the setup's ``range_sigma`` (the initial variance, the start's threshold, the
+noise of a TDOA that states none). ``--tune anchor_sigma=0`` gives every range the pooled
+figure, as before; a ``range_sigma`` the user sets is taken for every range.
 """
 
 from __future__ import annotations
+
+import dataclasses
 
 import numpy as np
 
@@ -145,8 +148,11 @@ def anchor_noise(log) -> np.ndarray | None:
     :data:`SPAN_RATIO` of it), else the pooled figure; None where the pooled figure is not
     the noise or the log states its own (:func:`stated_range_noise`)."""
     pooled = stated_range_noise(log)
-    if pooled is None:
-        return None
+    return None if pooled is None else _anchor_figures(log, pooled)
+
+
+def _anchor_figures(log, pooled: float) -> np.ndarray:
+    """:func:`anchor_noise` given the pooled figure."""
     index = log.beacon_index(log.ranges[:, RANGE.beacon])
     out = np.full(log.beacons.shape[0], pooled)
     for h in range(out.size):
@@ -159,20 +165,19 @@ def anchor_noise(log) -> np.ndarray | None:
 def with_anchor_noise(log, options: dict) -> tuple:
     """``(log, options, note)``: a log of :data:`OWN_NOISE_KINDS` whose ranges state no ``std``
     with each range given its anchor's own noise (:func:`anchor_noise`), and ``options`` with
-    ``range_sigma`` the pooled figure (module docstring); the note names the figures. The log
-    and ``options`` as given, and no note, where the user set ``range_sigma`` or
-    ``anchor_sigma=0``, or where the ranges do not show their noise."""
-    import dataclasses
-
+    ``range_sigma`` the pooled figure (module docstring); the note names each anchor's figure
+    by its id. The log and ``options`` as given, and no note, where the user set
+    ``range_sigma`` or ``anchor_sigma=0``, or where the ranges do not show their noise."""
     if "range_sigma" in options or not options.get("anchor_sigma", 1.0):
         return log, options, None
-    sigma = anchor_noise(log) if log.input_kind in OWN_NOISE_KINDS else None
-    if sigma is None:
+    pooled = stated_range_noise(log) if log.input_kind in OWN_NOISE_KINDS else None
+    if pooled is None:
         return log, options, None
-    pooled = stated_range_noise(log)
+    sigma = _anchor_figures(log, pooled)
     std = sigma[log.beacon_index(log.ranges[:, RANGE.beacon])]
+    figures = ", ".join(f"{int(i)}: {s:.3f}" for i, s in zip(log.beacon_ids, sigma, strict=True))
     note = (
         "ranges' noise by anchor, from their own ranges (no std stated; --tune anchor_sigma=0 "
-        f"pools them): {', '.join(f'{s:.3f}' for s in sigma)} m (pooled {pooled:.3f} m)"
+        f"pools them): {figures} m (pooled {pooled:.3f} m)"
     )
     return dataclasses.replace(log, range_std=std), {**options, "range_sigma": pooled}, note
