@@ -13,6 +13,7 @@ from quadobs.testbed.logs.range_noise import (
     MIN_ANCHOR_RESIDUALS,
     anchor_noise,
     range_noise,
+    smooth_range_noise,
     stated_range_noise,
     with_anchor_noise,
 )
@@ -58,6 +59,30 @@ def test_sparse_ranges_of_a_fast_vehicle_keep_the_prior():
     sigma, sigma_2, n = range_noise(log)
     assert n >= 400 and sigma_2 > 1.25 * sigma and sigma > 0.2
     assert stated_range_noise(log) is None and "range_sigma" not in log_defaults(log)
+
+
+def test_sparser_ranges_of_a_flight_show_their_noise_against_a_cubic():
+    """Each anchor ranged every 0.5 s on a circle of 2 m at 1 m/s: the linear interpolation's
+    residual is the motion's (the doubled span's figure 1.8 times the native one), the cubic's
+    the noise. A body-IMU log takes it; a wheel-odometry log keeps the linear test alone; where
+    the cubic's residual is the motion's too (2 m/s, every 0.5 s), the prior stands."""
+    log = _log(rate=8.0, speed=1.0, sigma=0.1, seconds=80.0)
+    sigma, sigma_2, _ = range_noise(log)
+    assert sigma_2 > 1.5 * sigma
+    smooth, smooth_2, n = smooth_range_noise(log)
+    assert 0.09 < smooth < 0.11 and smooth_2 < 1.1 * smooth and n >= 400
+    assert stated_range_noise(log) == smooth
+    t = log.ranges[:, 0]
+    odometry = dataclasses.replace(
+        log,
+        beacons=ANCHORS[:, :2],
+        inputs=np.column_stack([t, np.full(t.size, 1.0), np.full(t.size, 0.5)]),
+        input_kind="odometry",
+        heading0=0.0,
+    )
+    assert stated_range_noise(odometry) is None
+    fast = _log(rate=8.0, speed=2.0, sigma=0.1, seconds=80.0, radius=3.0)
+    assert stated_range_noise(fast) is None
 
 
 def test_a_log_that_states_its_noise_or_ranges_too_few_keeps_it():
