@@ -113,7 +113,7 @@ FLIGHT = {
 }
 
 
-#: The flight's stresses run only when named: at these rates no filter meets the target, and
+#: The flight's stresses run only when named (the robot's own ``rate10`` runs by default): at these rates no filter meets the target, and
 #: they pose the noise test's sparse case rather than a log's difference from the stand-in.
 SPARSE = ("rate20", "rate10")
 
@@ -190,7 +190,8 @@ def main() -> None:
     ap.add_argument("--without-std", action="store_true", help="the ranges' std column left out")
     args = ap.parse_args()
     table = ROVER if args.platform == "rover" else FLIGHT
-    names = args.variants.split(",") if args.variants else [n for n in table if n not in SPARSE]
+    sparse = SPARSE if args.platform == "flight" else ()  # the robot's rate10 is in its list
+    names = args.variants.split(",") if args.variants else [n for n in table if n not in sparse]
     unknown = [n for n in names if n not in table]
     if unknown:
         ap.error(f"unknown stress {', '.join(unknown)} (one of {', '.join(table)})")

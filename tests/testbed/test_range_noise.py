@@ -85,6 +85,21 @@ def test_sparser_ranges_of_a_flight_show_their_noise_against_a_cubic():
     assert stated_range_noise(fast) is None
 
 
+def test_the_cubic_s_residual_is_zero_on_a_cubic_and_skips_repeated_times():
+    from quadobs.testbed.logs.range_noise import _cubic_residuals
+
+    t = np.array([0.0, 0.3, 0.35, 1.0, 1.6, 1.7, 2.9, 3.0])
+    r = 2.0 - t + 0.5 * t**2 - 0.1 * t**3
+    e = _cubic_residuals(t, np.zeros(t.size), r, 1)
+    assert e.shape == (t.size - 4,) and np.max(np.abs(e)) < 1e-12
+    r4 = r + 0.01 * t**4  # a quartic does not cancel
+    assert np.max(np.abs(_cubic_residuals(t, np.zeros(t.size), r4, 1))) > 1e-4
+    twice = np.array([0.0, 1.0, 2.0, 2.0, 3.0, 4.0, 5.0, 6.0])  # a stamp repeated
+    with np.errstate(all="raise"):
+        kept = _cubic_residuals(twice, np.zeros(8), twice**2, 1)
+    assert kept.shape == (1,) and abs(kept[0]) < 1e-12  # the window 2, 3, 4, 5, 6 alone
+
+
 def test_a_log_that_states_its_noise_or_ranges_too_few_keeps_it():
     log = _log(rate=100.0, speed=1.0, sigma=0.1)
     stated = dataclasses.replace(log, range_std=np.full(log.ranges.shape[0], 0.3))

@@ -48,7 +48,8 @@ previous and two next ones (:func:`smooth_range_noise`; Lagrange weights ``w_i``
 the residual's variance ``sigma^2 (1 + sum w_i^2)``), in which the motion's curvature cancels,
 where it passes the same test. Measured on the flight stand-in at 20 Hz
 (``docs/error-sources.md``): seeds 0 and 2 fail the linear test (1.36 and 1.25 times at the
-doubled span) and pass the cubic's (0.126 and 0.137 m, 1.13 and 1.02 times); at 10 Hz both fail.
+doubled span) and pass the cubic's (0.126 and 0.137 m, 1.13 and 1.02 times); at 10 Hz (seed 0)
+both fail.
 A wheel-odometry log keeps the linear test alone: Plaza2 passes the cubic's (0.57 m), which
 would move Plaza's figures, not measured with it.
 
@@ -179,39 +180,46 @@ def _is_noise(figures: tuple[float, float, int]) -> bool:
     return n >= MIN_RESIDUALS and 0.0 < sigma and sigma_2 <= SPAN_RATIO * sigma
 
 
+def _pooled(log) -> tuple | None:
+    """``(sigma, residuals)``: :func:`stated_range_noise` and the residuals that gave it
+    (linear, or the cubic's), or None."""
+    if log.ranges.shape[0] == 0 or not np.all(np.isnan(log.range_std)):
+        return None
+    kinds = (_residuals, _cubic_residuals) if log.input_kind == "imu_body" else (_residuals,)
+    for residuals in kinds:
+        figures = _noise(log.ranges, residuals)
+        if _is_noise(figures):
+            return figures[0], residuals
+    return None
+
+
 def stated_range_noise(log) -> float | None:
     """The ranges' standard deviation (m) for a log whose ``ranges.csv`` states none: the
     estimate of :func:`range_noise` where it is the noise (at least :data:`MIN_RESIDUALS`
     residuals, the doubled span's figure within :data:`SPAN_RATIO` of it, positive); else, on a
     body-IMU log, that of :func:`smooth_range_noise` where it is; else None (the setup's prior
     ``range_sigma`` stands). None also where any range states its own."""
-    if log.ranges.shape[0] == 0 or not np.all(np.isnan(log.range_std)):
-        return None
-    figures = range_noise(log)
-    if _is_noise(figures):
-        return figures[0]
-    if log.input_kind == "imu_body":
-        figures = smooth_range_noise(log)
-        return figures[0] if _is_noise(figures) else None
-    return None
+    pooled = _pooled(log)
+    return None if pooled is None else pooled[0]
 
 
 def anchor_noise(log) -> np.ndarray | None:
     """Each anchor's own noise (m, in :attr:`~quadobs.testbed.logs.format.RangeLog.beacons`
-    order): :func:`range_noise` over its ranges alone where they show it (at least
+    order): the estimate of the pooled figure (:func:`stated_range_noise`: the linear
+    residuals, or the cubic's) over its ranges alone where they show it (at least
     :data:`MIN_ANCHOR_RESIDUALS` residuals, the doubled span's figure within
     :data:`SPAN_RATIO` of it), else the pooled figure; None where the pooled figure is not
-    the noise or the log states its own (:func:`stated_range_noise`)."""
-    pooled = stated_range_noise(log)
-    return None if pooled is None else _anchor_figures(log, pooled)
+    the noise or the log states its own."""
+    pooled = _pooled(log)
+    return None if pooled is None else _anchor_figures(log, *pooled)
 
 
-def _anchor_figures(log, pooled: float) -> np.ndarray:
-    """:func:`anchor_noise` given the pooled figure."""
+def _anchor_figures(log, pooled: float, residuals) -> np.ndarray:
+    """:func:`anchor_noise` given the pooled figure and the residuals that gave it."""
     index = log.beacon_index(log.ranges[:, RANGE.beacon])
     out = np.full(log.beacons.shape[0], pooled)
     for h in range(out.size):
-        sigma, sigma_2, n = _noise(log.ranges[index == h])
+        sigma, sigma_2, n = _noise(log.ranges[index == h], residuals)
         if n >= MIN_ANCHOR_RESIDUALS and 0.0 < sigma and sigma_2 <= SPAN_RATIO * sigma:
             out[h] = sigma
     return out
@@ -225,10 +233,11 @@ def with_anchor_noise(log, options: dict) -> tuple:
     ``range_sigma`` or ``anchor_sigma=0``, or where the ranges do not show their noise."""
     if "range_sigma" in options or not options.get("anchor_sigma", 1.0):
         return log, options, None
-    pooled = stated_range_noise(log) if log.input_kind in OWN_NOISE_KINDS else None
-    if pooled is None:
+    found = _pooled(log) if log.input_kind in OWN_NOISE_KINDS else None
+    if found is None:
         return log, options, None
-    sigma = _anchor_figures(log, pooled)
+    pooled = found[0]
+    sigma = _anchor_figures(log, *found)
     std = sigma[log.beacon_index(log.ranges[:, RANGE.beacon])]
     figures = ", ".join(f"{int(i)}: {s:.3f}" for i, s in zip(log.beacon_ids, sigma, strict=True))
     note = (
