@@ -104,47 +104,53 @@ MIN_ANCHOR_RESIDUALS = 100
 OWN_NOISE_KINDS = ("imu_body", "odometry")
 
 
-def _residuals(times: np.ndarray, anchors: np.ndarray, ranges: np.ndarray, step: int) -> np.ndarray:
-    """The normalised interpolation residuals ``e_k / sqrt(1 + w^2 + (1 - w)^2)`` of every
-    ``step``-th range to each anchor (module docstring)."""
+def _by_anchor(times, anchors, ranges, step: int, residual, fewest: int) -> np.ndarray:
+    """``residual(t, r)`` over every ``step``-th range to each anchor with at least ``fewest``."""
     out = []
     for h in np.unique(anchors):
         pick = np.flatnonzero(anchors == h)[::step]
-        t, r = times[pick], ranges[pick]
-        if t.size < 3:
-            continue
-        span = t[2:] - t[:-2]
-        ok = span > 0.0
-        w = (t[2:] - t[1:-1])[ok] / span[ok]
-        e = r[1:-1][ok] - (w * r[:-2][ok] + (1.0 - w) * r[2:][ok])
-        out.append(e / np.sqrt(1.0 + w * w + (1.0 - w) ** 2))
+        if pick.size >= fewest:
+            out.append(residual(times[pick], ranges[pick]))
     return np.concatenate(out) if out else np.empty(0)
+
+
+def _linear(t: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """The normalised interpolation residuals ``e_k / sqrt(1 + w^2 + (1 - w)^2)`` of one
+    anchor's ranges ``r`` at ``t`` (module docstring)."""
+    span = t[2:] - t[:-2]
+    ok = span > 0.0
+    w = (t[2:] - t[1:-1])[ok] / span[ok]
+    e = r[1:-1][ok] - (w * r[:-2][ok] + (1.0 - w) * r[2:][ok])
+    return e / np.sqrt(1.0 + w * w + (1.0 - w) ** 2)
+
+
+def _cubic(t: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """The normalised residuals ``e_k / sqrt(1 + sum_i w_i^2)`` of one anchor's ranges against
+    the cubic through each one's two previous and two next (Lagrange weights ``w_i`` at
+    ``t_k``; windows whose times do not increase strictly are left out)."""
+    near = np.stack([t[:-4], t[1:-3], t[3:-1], t[4:]])
+    ok = np.all(np.diff(np.vstack([near[:2], t[2:-2], near[2:]]), axis=0) > 0.0, axis=0)
+    near, t0 = near[:, ok], t[2:-2][ok]
+    w = np.ones_like(near)
+    for i in range(4):
+        for j in range(4):
+            if i != j:
+                w[i] *= (t0 - near[j]) / (near[i] - near[j])
+    rows = np.stack([r[:-4], r[1:-3], r[3:-1], r[4:]])[:, ok]
+    e = r[2:-2][ok] - np.sum(w * rows, axis=0)
+    return e / np.sqrt(1.0 + np.sum(w * w, axis=0))
+
+
+def _residuals(times: np.ndarray, anchors: np.ndarray, ranges: np.ndarray, step: int) -> np.ndarray:
+    """:func:`_linear` of every ``step``-th range to each anchor (module docstring)."""
+    return _by_anchor(times, anchors, ranges, step, _linear, 3)
 
 
 def _cubic_residuals(
     times: np.ndarray, anchors: np.ndarray, ranges: np.ndarray, step: int
 ) -> np.ndarray:
-    """The normalised residuals ``e_k / sqrt(1 + sum_i w_i^2)`` of every ``step``-th range to
-    each anchor against the cubic through its two previous and two next ones (Lagrange weights
-    ``w_i`` at ``t_k``; :func:`smooth_range_noise`)."""
-    out = []
-    for h in np.unique(anchors):
-        pick = np.flatnonzero(anchors == h)[::step]
-        t, r = times[pick], ranges[pick]
-        if t.size < 5:
-            continue
-        near = np.stack([t[:-4], t[1:-3], t[3:-1], t[4:]])
-        ok = np.all(np.diff(np.vstack([near[:2], t[2:-2], near[2:]]), axis=0) > 0.0, axis=0)
-        near, t0 = near[:, ok], t[2:-2][ok]
-        w = np.ones_like(near)
-        for i in range(4):
-            for j in range(4):
-                if i != j:
-                    w[i] *= (t0 - near[j]) / (near[i] - near[j])
-        rows = np.stack([r[:-4], r[1:-3], r[3:-1], r[4:]])[:, ok]
-        e = r[2:-2][ok] - np.sum(w * rows, axis=0)
-        out.append(e / np.sqrt(1.0 + np.sum(w * w, axis=0)))
-    return np.concatenate(out) if out else np.empty(0)
+    """:func:`_cubic` of every ``step``-th range to each anchor (:func:`smooth_range_noise`)."""
+    return _by_anchor(times, anchors, ranges, step, _cubic, 5)
 
 
 def _noise(ranges: np.ndarray, residuals=_residuals) -> tuple[float, float, int]:
