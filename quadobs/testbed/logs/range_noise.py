@@ -50,8 +50,9 @@ where it passes the same test. Measured on the flight stand-in at 20 Hz
 (``docs/error-sources.md``): seeds 0 and 2 fail the linear test (1.36 and 1.25 times at the
 doubled span) and pass the cubic's (0.126 and 0.137 m, 1.13 and 1.02 times); at 10 Hz (seed 0)
 both fail.
-A wheel-odometry log keeps the linear test alone: Plaza2 passes the cubic's (0.57 m), which
-would move Plaza's figures, not measured with it.
+A wheel-odometry log keeps the linear test alone: Plaza2 passes the cubic's (0.57 m), and
+replayed with that figure is mostly worse than with the prior (the best default 1.743 ->
+1.798 m; docs/error-sources.md).
 
 Each anchor's own figure (:func:`anchor_noise`) is the same estimate over that anchor's ranges
 alone. Anchors differ: one whose path the room blocks most of the time has residuals of the
