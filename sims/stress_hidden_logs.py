@@ -113,8 +113,9 @@ FLIGHT = {
 }
 
 
-#: The flight's stresses run only when named (the robot's own ``rate10`` runs by default): at these rates no filter meets the target, and
-#: they pose the noise test's sparse case rather than a log's difference from the stand-in.
+#: The flight's stresses run only when named (the robot's own ``rate10`` runs by default): at
+#: these rates no filter meets the target, and they pose the noise test's sparse case rather
+#: than a log's difference from the stand-in.
 SPARSE = ("rate20", "rate10")
 
 
@@ -168,6 +169,21 @@ def replay(folder: Path, estimators: str | None = None, tune=()) -> dict:
     }
 
 
+def _check_replay_options(ap, args) -> None:
+    """``--tune`` and ``--estimators`` checked before any log is simulated."""
+    from quadobs.errors import QuadobsError
+    from quadobs.testbed.logs.estimators import parse_tuning, replay_estimator_names
+
+    try:
+        parse_tuning(args.tune)
+    except QuadobsError as exc:
+        ap.error(str(exc))
+    names = [n.strip() for n in (args.estimators or "").split(",") if n.strip()]
+    unknown = sorted(set(names) - set(replay_estimator_names()))
+    if unknown or (args.estimators is not None and not names):
+        ap.error(f"--estimators: unknown {', '.join(unknown) or '(none given)'}")
+
+
 def best(rmse: dict) -> tuple[str, float]:
     """The estimator of least RMSE among those not reported diverged."""
     ran = {k: v for k, v in rmse.items() if isinstance(v, float) and math.isfinite(v)}
@@ -199,6 +215,7 @@ def main() -> None:
         seeds = [int(s) for s in args.seeds.split(",")]
     except ValueError:
         ap.error(f"--seeds: expected comma-separated integers, got {args.seeds!r}")
+    _check_replay_options(ap, args)
     if args.duration is not None and not args.duration > 0.0:
         ap.error(f"--duration: expected a positive number of seconds, got {args.duration}")
     duration = args.duration or (90.0 if args.platform == "rover" else 40.0)

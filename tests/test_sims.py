@@ -222,6 +222,26 @@ def test_a_scripts_bad_scenario_setting_is_one_line_and_status_2(tmp_path):
     ]
 
 
+@pytest.mark.parametrize(
+    ("option", "said"),
+    [
+        ("--tune=anchor_sigma=2", "anchor_sigma: expected 0"),
+        ("--estimators=ekf,nope", "unknown nope"),
+    ],
+)
+def test_the_stress_script_refuses_bad_replay_options_before_any_log(tmp_path, option, said):
+    done = subprocess.run(
+        [sys.executable, str(SIMS / "stress_hidden_logs.py"), "rover", "--seeds", "0", option],
+        capture_output=True,
+        text=True,
+        env={**os.environ, "PYTHONPATH": str(ROOT)},
+        cwd=tmp_path,
+        timeout=120,
+    )
+    assert done.returncode == 2 and said in done.stderr.strip().splitlines()[-1]
+    assert "seed 0" not in done.stdout  # no log simulated, none replayed
+
+
 def test_bias_filter_options_sets_the_gate_and_runs_the_command_line():
     """``--line-of-sight`` reaches every one-sided gate built afterwards (checked in a child, so
     this process keeps the default); ``quadobs`` runs the command line; a bad value is refused."""

@@ -296,7 +296,7 @@ class ReplaySetup:
             raise QuadobsError(
                 f"range_bias: expected 0 (off) or 1 (a state), got {self.range_bias!r}"
             )
-        for key in ("steady_test", "stated_heights"):  # SWITCHES' fields (anchor_sigma: the log's)
+        for key in ("steady_test", "stated_heights"):  # the switches the setup holds
             if getattr(self, key) not in (0, 1):
                 raise QuadobsError(f"{key}: expected 0 (off) or 1 (on), got {getattr(self, key)!r}")
         for key in TUNING:
