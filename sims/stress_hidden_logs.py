@@ -19,7 +19,11 @@ with slip, clocks apart; :data:`ROVER`):
 * ``pillar``: a pillar of 0.15 m radius at (1.5, 0.5) m, beside the path: a range whose path
   crosses it is longer by an exponential excess of mean 0.3 m (bursts as the robot passes);
 * ``gap``: anchor 1 silent for 8 s from 30 s;
-* ``odoclock``: the odometry 0.1 s late against the ranges, its stamps jittered by +-10 ms.
+* ``odoclock``: the odometry 0.1 s late against the ranges, its stamps jittered by +-10 ms;
+* ``pattern``: each anchor's range bias varying with the direction of the tag seen from it,
+  0.1 m over all directions (``radio.pattern = 0.1``: the antennas' radiation patterns, their
+  second-order term, :mod:`quadobs.testbed.uwb`), which neither a constant bias per anchor
+  nor a displaced anchor takes up.
 
 Flight (``real``: no attitude, vibration at 100 Hz, uneven IMU, FRD axes, IMU 20 ms late,
 range biases of both signs, motion capture at 100 Hz, no ``std``; :data:`FLIGHT`, each applied
@@ -35,7 +39,8 @@ to the log without attitude before ``real``'s transforms):
 * ``moving``: the log begun 5 s into the flight;
 * ``gap``: anchor 0 silent for 10 s from 15 s;
 * ``imuclock``: the IMU a further 50 ms late, its stamps jittered by +-2 ms;
-* ``ascale``: the accelerometer's scale off by +2, -1.5 and +1 % on x, y, z.
+* ``ascale``: the accelerometer's scale off by +2, -1.5 and +1 % on x, y, z;
+* ``pattern``: as the robot's.
 
 ::
 
@@ -49,6 +54,13 @@ one setting on the same logs); ``--without-std`` leaves the ranges' ``std`` colu
 log (the robot's logs state one, the flight's none), as a log converted by hand would::
 
     python sims/stress_hidden_logs.py rover --seeds 0,1 --without-std --tune anchor_sigma=0
+
+``--pattern`` sets the ``pattern`` stress's spread (m; default :data:`PATTERN_STD`).
+``--given-biases`` (flight) also replays ``ekf-bias-imu`` given each anchor's constant bias as
+the truth supports it (:func:`truth_biases`) and held to it: what the best constant biases
+allow, beside what the default estimators reach without them::
+
+    python sims/stress_hidden_logs.py flight --seeds 0,1,2,3,4 --variants none,pattern --given-biases
 """
 
 from __future__ import annotations
@@ -78,6 +90,8 @@ from quadobs.testbed.logs.posed import (
 
 TARGET = {"rover": 0.15, "flight": 0.20}
 SURVEY_STD = 0.05
+#: The ``pattern`` stress's spread over directions of each anchor's direction-dependent bias (m).
+PATTERN_STD = 0.1
 #: The flight's ``imuclock``: the IMU's further lag (s) and its stamps' jitter (+- s).
 IMU_LATE = (0.05, 0.002)
 
@@ -97,6 +111,7 @@ ROVER = {
     "pillar": ((), lambda log, seed: behind_pillar(log, (1.5, 0.5), 0.15, 0.3, seed)),
     "gap": ((), lambda log, seed: anchor_gap(log, 1, 30.0, 8.0)),
     "odoclock": ((), lambda log, seed: inputs_late(log, 0.1, 0.01, seed)),
+    "pattern": ((f"radio.pattern={PATTERN_STD}",), _none),
 }
 #: The flight's stresses, as :data:`ROVER`.
 FLIGHT = {
@@ -110,6 +125,7 @@ FLIGHT = {
     "gap": ((), lambda log, seed: anchor_gap(log, 0, 15.0, 10.0)),
     "imuclock": ((), lambda log, seed: inputs_late(log, *IMU_LATE, seed)),
     "ascale": ((), lambda log, seed: accel_scaled(log, (0.02, -0.015, 0.01))),
+    "pattern": ((f"radio.pattern={PATTERN_STD}",), _none),
 }
 
 
@@ -148,10 +164,10 @@ def flight_log(seed: int, name: str, duration: float, tmp: Path) -> Path:
     return folder
 
 
-def replay(folder: Path, estimators: str | None = None, tune=()) -> dict:
-    """``quadobs replay FOLDER --burn-in 5``, with ``--estimators`` and each ``--tune`` where
-    given: the RMSE by estimator (``"diverged"`` where the replay reports it so; none where the
-    replay failed, which the table shows as ``-``)."""
+def replay(folder: Path, estimators: str | None = None, tune=(), biases=None) -> dict:
+    """``quadobs replay FOLDER --burn-in 5``, with ``--estimators``, each ``--tune`` and
+    ``--biases`` where given: the RMSE by estimator (``"diverged"`` where the replay reports it
+    so; none where the replay failed, which the table shows as ``-``)."""
     from quadobs import cli
 
     summary = folder.with_name(f"{folder.name}-summary.json")
@@ -159,6 +175,8 @@ def replay(folder: Path, estimators: str | None = None, tune=()) -> dict:
     argv += ["--summary", str(summary)] + (["--estimators", estimators] if estimators else [])
     for setting in tune:
         argv += ["--tune", setting]
+    if biases is not None:
+        argv.append("--biases=" + ",".join(f"{b:.4f}" for b in biases))
     code = cli.main(argv)
     if code not in (0, 1):  # 1: an estimator reported diverged; else none ran: the next log
         print(f"quadobs replay {folder.name} failed (status {code})", flush=True)
@@ -184,6 +202,30 @@ def _check_replay_options(ap, args) -> None:
         ap.error(f"--estimators: unknown {', '.join(unknown) or '(none given)'}")
 
 
+def truth_biases(folder: Path) -> np.ndarray:
+    """Each anchor's constant range bias as the flight's truth supports it: the median of its
+    ranges less their true distance (the truth's position at the range's time, linear between
+    rows; ranges of 0 m and those before the truth's start left out), 0 for an anchor with
+    none. The noise, the non-line-of-sight excess (a minority of most anchors' ranges) and a
+    direction-dependent bias's mean over the flight are in the ranges alike; the median keeps
+    the constant part of what a range filter given constant biases can use."""
+    log = read_log(folder)
+    t, cols = log.ranges[:, 0], log.truth_columns
+    keep = (log.ranges[:, 2] > 0.0) & (t >= log.truth[0, 0])
+    p = np.column_stack([np.interp(t, log.truth[:, 0], log.truth[:, cols.index(c)]) for c in "xyz"])
+    h = log.beacon_index(log.ranges[:, 1])
+    residual = log.ranges[:, 2] - np.linalg.norm(p - log.beacons[h], axis=1)
+    return np.array(
+        [np.median(residual[keep & (h == i)]) if np.any(keep & (h == i)) else 0.0
+         for i in range(log.beacons.shape[0])]
+    )  # fmt: skip
+
+
+#: ``--given-biases``: the flight's bias filters given :func:`truth_biases` and held to them
+#: (their prior 1 mm, the self-calibration skipped as ``--biases`` does).
+GIVEN = ("ekf-bias-imu", ("bias_prior=0.001",))
+
+
 def best(rmse: dict) -> tuple[str, float]:
     """The estimator of least RMSE among those not reported diverged."""
     ran = {k: v for k, v in rmse.items() if isinstance(v, float) and math.isfinite(v)}
@@ -204,8 +246,26 @@ def main() -> None:
     ap.add_argument("--estimators", help="comma-separated, for every replay (default: its own)")
     ap.add_argument("--tune", action="append", default=[], metavar="KEY=VALUE", help="repeatable")
     ap.add_argument("--without-std", action="store_true", help="the ranges' std column left out")
+    ap.add_argument(
+        "--pattern",
+        type=float,
+        default=PATTERN_STD,
+        help=f"m, the pattern stress's spread over directions (default {PATTERN_STD:g})",
+    )
+    ap.add_argument(
+        "--given-biases",
+        action="store_true",
+        help="flight: also ekf-bias-imu given each anchor's constant bias from the truth",
+    )
     args = ap.parse_args()
+    if args.given_biases and args.platform != "flight":
+        ap.error(
+            "--given-biases: the flight's logs only (the robot's anchors' heights are not in its log)"
+        )
     table = ROVER if args.platform == "rover" else FLIGHT
+    if not (math.isfinite(args.pattern) and args.pattern > 0.0):
+        ap.error(f"--pattern: expected a positive number of metres, got {args.pattern}")
+    table["pattern"] = ((f"radio.pattern={args.pattern:g}",), _none)
     sparse = SPARSE if args.platform == "flight" else ()  # the robot's rate10 is in its list
     names = args.variants.split(",") if args.variants else [n for n in table if n not in sparse]
     unknown = [n for n in names if n not in table]
@@ -231,7 +291,11 @@ def main() -> None:
                     folder = rover.without_std(folder, folder.with_name(f"{folder.name}-nostd"))
                 rmse = replay(folder, args.estimators, args.tune)
                 who, value = best(rmse)
-                rows.append({"seed": seed, "stress": name, "best": who, "rmse": value, **rmse})
+                row = {"seed": seed, "stress": name, "best": who, "rmse": value, **rmse}
+                if args.given_biases:
+                    given = replay(folder, GIVEN[0], GIVEN[1], truth_biases(folder))
+                    row["given"] = given.get(GIVEN[0], math.nan)
+                rows.append(row)
                 print(f"seed {seed} {name}: best {who} {value:.3f}", flush=True)
     if args.json:
         Path(args.json).write_text(json.dumps(rows, indent=1))
@@ -246,9 +310,21 @@ def _print_table(rows: list[dict], names: list[str], target: float) -> None:
     for name in names:
         cells = {r["seed"]: r for r in rows if r["stress"] == name}
         worst = max(cells[s]["rmse"] for s in seeds)
-        text = " | ".join(f"{cells[s]['rmse']:.3f} ({cells[s]['best']})" for s in seeds)
+        text = " | ".join(
+            f"{cells[s]['rmse']:.3f} ({cells[s]['best']}{_given(cells[s])})" for s in seeds
+        )
         print(f"| {name} | {text} | {worst:.3f} | {'yes' if worst <= target else 'no'} |")
     print(f"(best default's position RMSE after {rover.BURN_IN:g} s, m; target {target:g} m)")
+    if any("given" in r for r in rows):
+        print(f"(given: {GIVEN[0]} given each anchor's constant bias from the truth)")
+
+
+def _given(row: dict) -> str:
+    """``; given X`` where the row has the filter given the truth's biases."""
+    value = row.get("given")
+    if value is None:
+        return ""
+    return f"; given {value:.3f}" if isinstance(value, float) else f"; given {value}"
 
 
 if __name__ == "__main__":

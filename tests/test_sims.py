@@ -97,7 +97,7 @@ CASES = {
         "| seed | log |",
     ),
     "stress_hidden_logs.py": (
-        ["rover", "--seeds", "0", "--variants", "survey", "--duration", "8"]
+        ["rover", "--seeds", "0", "--variants", "survey,pattern", "--duration", "8"]
         + ["--json", "{tmp}/stress.json", "--without-std", "--tune", "anchor_sigma=1"],
         ["stress.json"],
         "| stress | seed 0 | worst | target met |",
@@ -227,6 +227,8 @@ def test_a_scripts_bad_scenario_setting_is_one_line_and_status_2(tmp_path):
     [
         ("--tune=anchor_sigma=2", "anchor_sigma: expected 0"),
         ("--estimators=ekf,nope", "unknown nope"),
+        ("--given-biases", "--given-biases: the flight's logs only"),
+        ("--pattern=-1", "--pattern: expected a positive number"),
     ],
 )
 def test_the_stress_script_refuses_bad_replay_options_before_any_log(tmp_path, option, said):
@@ -267,3 +269,37 @@ def test_bias_filter_options_sets_the_gate_and_runs_the_command_line():
     )
     assert bad.returncode == 2 and bad.stderr.strip(), bad.stderr
     assert "line_of_sight" in bad.stderr.strip().splitlines()[-1]
+
+
+def test_the_stress_scripts_given_biases_are_each_anchors_median_against_the_truth(
+    tmp_path, monkeypatch
+):
+    """``truth_biases``: each anchor's median of its ranges less the true distance, outliers
+    of a minority left out by the median, ranges of 0 m and those before the truth's start
+    not counted."""
+    monkeypatch.syspath_prepend(str(SIMS))
+    import numpy as np
+    import stress_hidden_logs
+
+    from quadobs.testbed.logs import write_log
+    from quadobs.testbed.logs.format import RangeLog
+
+    anchors = np.array([[-3, -3, 0.2], [3, -3, 0.2], [3, 3, 2.8], [-3, 3, 2.8]], dtype=float)
+    t = np.linspace(0.0, 20.0, 2001)
+    p = np.column_stack([np.cos(0.3 * t), np.sin(0.3 * t), 1.0 + 0.2 * np.sin(t)])
+    k = np.arange(1, 2000, 3)
+    h = np.arange(k.size) % 4
+    bias = np.array([0.12, -0.3, 0.05, 0.4])
+    r = np.linalg.norm(p[k] - anchors[h], axis=1) + bias[h]
+    r[::7] += 2.0  # a minority of each anchor's ranges far too long
+    r[::11] = 0.0  # failed exchanges
+    early = (t[k] < 1.0) & (h == 0)
+    r[early] += 5.0  # before the truth starts: not counted
+    truth_rows = t >= 1.0
+    log = RangeLog(
+        "given", np.arange(4), anchors, np.column_stack([t[k], h, r]),
+        np.column_stack([t, np.zeros((t.size, 3))]), np.nan,
+        np.column_stack([t, p])[truth_rows], input_kind="imu", truth_columns=("time", "x", "y", "z"),
+    )  # fmt: skip
+    folder = write_log(log, tmp_path / "given")
+    np.testing.assert_allclose(stress_hidden_logs.truth_biases(folder), bias, atol=1e-9)

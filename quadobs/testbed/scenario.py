@@ -625,6 +625,10 @@ class RadioSpec(_Table):
         description="Median of the non-line-of-sight excess (m, log-normal), where the room blocks the path.",
     )
     nlos_shape: Noise = Field(0.5, description="Log-normal shape of the non-line-of-sight excess.")
+    pattern: Noise = Field(
+        0.0,
+        description="Standard deviation over all directions of each anchor's direction-dependent bias (m; an antenna's delay varies with the signal's direction).",
+    )
     room: Annotated[String, MaxLen(MAX_TEXT)] | None = Field(
         None,
         description="MJCF file of the obstacles cast against with `mj_ray` (relative to the scenario file; `builtin` for the package's room).",

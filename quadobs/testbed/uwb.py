@@ -13,14 +13,29 @@ For a range to anchor ``i`` at time ``t`` (tag at ``p``):
 
 .. math::
 
-    \\tilde\\rho = |p - a_i| + b_i + \\sigma n + \\mathbb 1_{\\mathrm{NLOS}}\\, e
+    \\tilde\\rho = |p - a_i| + b_i + u_i^T S_i u_i + \\sigma n + \\mathbb 1_{\\mathrm{NLOS}}\\, e
                   + \\mathbb 1_{\\mathrm{out}}\\, \\sigma_o n_o ,
+    \\qquad u_i = \\frac{p - a_i}{|p - a_i|},
     \\qquad e = e_{50} \\exp(s\\, n_e) > 0,
 
 with ``n, n_o, n_e`` standard normal:
 
 * ``b_i``: a constant per-anchor bias (antenna delay), given or drawn once
   ``N(bias_mean, bias_std^2)`` (an antenna delay lengthens the range: ``bias_mean > 0``);
+* ``u_i^T S_i u_i``: a bias that varies with the direction ``u_i`` of the tag seen from the
+  anchor (``pattern``; none by default). An antenna's delay depends on the direction of the
+  signal through it, so that a real range's bias is no constant but a smooth function of
+  the anchor-tag direction, set by the antennas' radiation patterns (Zhao et al.,
+  arXiv:2003.09371, for two-way ranging and TDOA on a Crazyflie; Zhao, Panerati and
+  Schoellig, RA-L 2021, arXiv:2103.01885). Of its expansion in the direction, the constant
+  is the bias ``b_i`` and the first-order term ``g^T u`` is a displaced phase centre, which
+  is an anchor surveyed off (``|p - a - c| = |p - a| - c^T u`` to first order); the
+  second-order term is taken here, a symmetric traceless ``S_i`` drawn once per anchor (the
+  symmetric part of a standard normal matrix less its trace, scaled), which no constant
+  bias nor displaced anchor takes up. Over directions ``u`` uniform on the sphere its mean is
+  ``tr(S) / 3 = 0`` and its variance ``2 tr(S^2) / 15``, scaled to ``pattern^2``. The tag's
+  attitude is not taken: the pattern is that of a level tag of constant heading, fixed in
+  the room;
 * ``sigma n``: the line-of-sight noise;
 * non-line-of-sight, decided by geometry: the segment from the anchor to the tag is cast
   against the obstacles of an MJCF room with MuJoCo's ray casting (``mj_ray``); when it
@@ -70,7 +85,7 @@ from quadobs.errors import QuadobsError
 
 __all__ = ["RadioConfig", "Room", "UwbRadio", "radio_of", "room_model_path"]
 
-_STREAMS = ("schedule", "noise", "nlos", "outlier", "dropout", "bias")
+_STREAMS = ("schedule", "noise", "nlos", "outlier", "dropout", "bias", "pattern")
 #: Most of a nominal spacing a jittered event may move, so that one anchor's events keep their order.
 _JITTER_CLIP = 0.45
 
@@ -112,6 +127,9 @@ class RadioConfig:
         Standard deviation of an outlier's error (m).
     nlos_median, nlos_shape : float
         Median (m) and log-normal shape of the excess of a non-line-of-sight path.
+    pattern : float
+        Standard deviation over all directions of each anchor's direction-dependent bias
+        ``u_i^T S_i u_i`` (m; 0: none).
     room : str or None
         MJCF file of the obstacles; ``None``: every path is in line of sight.
     """
@@ -129,6 +147,7 @@ class RadioConfig:
     outlier_std: float = 0.0
     nlos_median: float = 0.0
     nlos_shape: float = 0.5
+    pattern: float = 0.0
     room: str | None = None
 
     def check(self, m: int) -> None:
@@ -141,7 +160,7 @@ class RadioConfig:
         for name, value in positive.items():
             if not (math.isfinite(value) and value > 0.0):
                 raise QuadobsError(f"radio.{name}: expected a positive number, got {value}")
-        for name in ("bias_std", "jitter", "outlier_std", "nlos_median", "nlos_shape"):
+        for name in ("bias_std", "jitter", "outlier_std", "nlos_median", "nlos_shape", "pattern"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0.0):
                 raise QuadobsError(f"radio.{name}: expected a non-negative number, got {value}")
@@ -212,6 +231,8 @@ class UwbRadio:
     ----------
     biases : ndarray (m,)
         The per-anchor biases in use (the truth a bias estimate is compared with).
+    pattern_forms : ndarray (m, 3, 3)
+        Each anchor's ``S_i`` of the direction-dependent bias (zeros without ``pattern``).
     counts : dict
         Events so far: ``measurements``, ``dropped``, ``nlos``, ``outliers``.
     """
@@ -231,10 +252,30 @@ class UwbRadio:
             drawn = config.bias_mean + drawn
         self.biases = drawn if config.biases is None else np.array(config.biases, dtype=float)
         self.biases.setflags(write=False)
+        self.pattern_forms = self._pattern_forms(config.pattern)
         self.room = room if room is not None else (Room(config.room) if config.room else None)
         self.counts = {"measurements": 0, "dropped": 0, "nlos": 0, "outliers": 0}
         self._previous: int | None = None
         self._schedule_start()
+
+    def _pattern_forms(self, pattern: float) -> np.ndarray:
+        """Each anchor's ``S_i`` (module docstring) from the stream ``pattern``, drawn only where
+        ``pattern > 0`` (the other streams' draws are the same either way); zeros without one."""
+        forms = np.zeros((self.m, 3, 3))
+        if not pattern > 0.0:
+            return forms
+        g = self._rng["pattern"].standard_normal((self.m, 3, 3))
+        forms[:] = 0.5 * (g + g.transpose(0, 2, 1))
+        forms -= np.trace(forms, axis1=1, axis2=2)[:, None, None] / 3.0 * np.eye(3)
+        spread = np.sqrt(2.0 / 15.0 * np.einsum("hij,hij->h", forms, forms))
+        forms *= (pattern / spread)[:, None, None]
+        return forms
+
+    def pattern_bias(self, i: int, p: np.ndarray) -> float:
+        """Anchor ``i``'s direction-dependent bias ``u_i^T S_i u_i`` (m) for the tag at ``p (3,)``."""
+        d = np.asarray(p, dtype=float) - self.anchors[i]
+        length2 = float(d @ d)
+        return float(d @ self.pattern_forms[i] @ d) / length2 if length2 > 0.0 else 0.0
 
     # -- schedule ------------------------------------------------------------------------
 
@@ -326,7 +367,10 @@ class UwbRadio:
         """One anchor's path: distance, bias, and the excess delay when the line of sight is blocked."""
         a = self.anchors[i]
         d = p - a
-        value = math.sqrt(d @ d) + float(self.biases[i])
+        length = math.sqrt(d @ d)
+        value = length + float(self.biases[i])
+        if self.config.pattern > 0.0 and length > 0.0:
+            value += float(d @ self.pattern_forms[i] @ d) / (length * length)
         if self.room is not None and self.room.blocked(a, p):
             self.counts["nlos"] += 1
             value += self.config.nlos_median * math.exp(self.config.nlos_shape * n_e)
@@ -391,6 +435,7 @@ def radio_of(scenario) -> UwbRadio | None:
         outlier_std=spec.outlier_std,
         nlos_median=spec.nlos_median,
         nlos_shape=spec.nlos_shape,
+        pattern=spec.pattern,
         room=room,
     )
     anchors = np.asarray(scenario.beacons, dtype=float)

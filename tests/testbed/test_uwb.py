@@ -56,6 +56,43 @@ def test_same_seed_same_events_and_sources_independent():
     assert all(kept[m.t] == m.value for m in one)
 
 
+def test_pattern_bias_is_the_second_order_direction_term_of_stated_spread():
+    """``u^T S u``: each range less its distance and constant bias is the direction term, with
+    ``S`` symmetric and traceless; over the sphere of directions its mean is 0 and its
+    standard deviation ``pattern``; a radio without it draws the same events as before."""
+    cfg = RadioConfig(std=1e-12, biases=(0.1, -0.2, 0.3, 0.0, 0.05, -0.4), pattern=0.1)
+    radio = UwbRadio(ANCHORS, cfg, seed=3)
+    S = radio.pattern_forms
+    assert np.allclose(S, S.transpose(0, 2, 1)) and np.allclose(np.trace(S, axis1=1, axis2=2), 0)
+    for m in radio.measurements(figure, 0.5):
+        i, p = m.anchors[0], figure(m.t)
+        u = (p - ANCHORS[i]) / np.linalg.norm(p - ANCHORS[i])
+        expected = np.linalg.norm(p - ANCHORS[i]) + cfg.biases[i] + u @ S[i] @ u
+        assert abs(m.value - expected) < 1e-5
+        assert radio.pattern_bias(i, p) == pytest.approx(u @ S[i] @ u)
+    # a Fibonacci lattice of directions: nearly uniform on the sphere
+    k = np.arange(20000) + 0.5
+    z, phi = 1 - 2 * k / k.size, np.pi * (1 + 5**0.5) * k
+    dirs = np.column_stack([np.sqrt(1 - z * z) * np.cos(phi), np.sqrt(1 - z * z) * np.sin(phi), z])
+    values = np.einsum("ni,hij,nj->nh", dirs, S, dirs)  # (directions, anchors)
+    assert np.allclose(values.mean(axis=0), 0.0, atol=1e-4)
+    assert np.allclose(values.std(axis=0), 0.1, rtol=1e-3)
+    # the opposite direction, the same bias: no displaced anchor (odd in u) takes it up
+    assert np.allclose(np.einsum("ni,hij,nj->nh", -dirs, S, -dirs), values)
+    plain = RadioConfig(jitter=2e-3, outlier_probability=0.05, outlier_std=1.0, bias_std=0.2)
+    with_pattern = RadioConfig(**{**plain.__dict__, "pattern": 0.1})
+    a = UwbRadio(ANCHORS, plain, 7)
+    b = UwbRadio(ANCHORS, with_pattern, 7)
+    assert not a.pattern_forms.any() and np.array_equal(a.biases, b.biases)
+    for m, n in zip(a.measurements(figure, 1.0), b.measurements(figure, 1.0), strict=True):
+        assert m.t == n.t and m.anchors == n.anchors
+        p = figure(m.t)
+        assert n.value == pytest.approx(m.value + b.pattern_bias(m.anchors[0], p), abs=1e-5)
+    again = UwbRadio(ANCHORS, with_pattern, 7).pattern_forms
+    assert np.array_equal(again, b.pattern_forms)
+    assert not np.array_equal(UwbRadio(ANCHORS, with_pattern, 8).pattern_forms, b.pattern_forms)
+
+
 def test_per_anchor_rates():
     rates = (10.0, 20.0, 30.0, 40.0, 50.0, 25.0)
     radio = UwbRadio(ANCHORS, RadioConfig(rates=rates, jitter=1e-3), seed=0)
@@ -131,6 +168,7 @@ def test_tdoa_pairs_differences_and_per_pair_bias():
         ({"biases": (0.1,)}, "radio.biases"),
         ({"rates": (1.0,) * 6, "protocol": "tdoa"}, "radio.rates"),
         ({"room": "/nonexistent/room.xml"}, "radio.room"),
+        ({"pattern": -0.1}, "radio.pattern"),
     ],
 )
 def test_bad_settings_are_named(change, field):
