@@ -140,19 +140,19 @@ def stress_seed(seed: int, name: str) -> int:
     return seed * 1000 + zlib.crc32(name.encode()) % 1000
 
 
-def rover_log(seed: int, name: str, room: str, duration: float, tmp: Path) -> Path:
+def rover_log(seed: int, name: str, room: str, duration: float, tmp: Path, table=None) -> Path:
     """The robot's stand-in ``all`` in ``room`` with the stress ``name``, written in ``tmp``."""
-    settings, transform = ROVER[name]
+    settings, transform = (table or ROVER)[name]
     folder = tmp / f"rover-{room}-seed{seed}-{name}"
     rover.export(seed, duration, folder, "all", room, settings)
     write_log(transform(read_log(folder), stress_seed(seed, name)), folder)
     return folder
 
 
-def flight_log(seed: int, name: str, duration: float, tmp: Path) -> Path:
+def flight_log(seed: int, name: str, duration: float, tmp: Path, table=None) -> Path:
     """The flight's stand-in ``real`` with the stress ``name``, written in ``tmp``: the stress
     on the log without attitude, then ``real``'s transforms drawn as the flight study does."""
-    settings, transform = FLIGHT[name]
+    settings, transform = (table or FLIGHT)[name]
     base = tmp / f"flight-seed{seed}-export{'-'.join(settings)}"
     if not (base / "meta.csv").exists():
         flight.export(seed, duration, 0.2, 0.01, base, settings)
@@ -205,13 +205,13 @@ def _check_replay_options(ap, args) -> None:
 def truth_biases(folder: Path) -> np.ndarray:
     """Each anchor's constant range bias as the flight's truth supports it: the median of its
     ranges less their true distance (the truth's position at the range's time, linear between
-    rows; ranges of 0 m and those before the truth's start left out), 0 for an anchor with
+    rows; ranges of 0 m and those outside the truth's span left out), 0 for an anchor with
     none. The noise, the non-line-of-sight excess (a minority of most anchors' ranges) and a
     direction-dependent bias's mean over the flight are in the ranges alike; the median keeps
     the constant part of what a range filter given constant biases can use."""
     log = read_log(folder)
     t, cols = log.ranges[:, 0], log.truth_columns
-    keep = (log.ranges[:, 2] > 0.0) & (t >= log.truth[0, 0])
+    keep = (log.ranges[:, 2] > 0.0) & (t >= log.truth[0, 0]) & (t <= log.truth[-1, 0])
     p = np.column_stack([np.interp(t, log.truth[:, 0], log.truth[:, cols.index(c)]) for c in "xyz"])
     h = log.beacon_index(log.ranges[:, 1])
     residual = log.ranges[:, 2] - np.linalg.norm(p - log.beacons[h], axis=1)
@@ -224,6 +224,28 @@ def truth_biases(folder: Path) -> np.ndarray:
 #: ``--given-biases``: the flight's bias filters given :func:`truth_biases` and held to them
 #: (their prior 1 mm, the self-calibration skipped as ``--biases`` does).
 GIVEN = ("ekf-bias-imu", ("bias_prior=0.001",))
+
+
+def pattern_spread(base: Path, seed: int, settings) -> tuple[np.ndarray, np.ndarray]:
+    """Each anchor's pattern term ``u^T S u`` over the directions the flight ``base`` (its
+    export, in the radio's frame) visits, every truth row: its standard deviation, and the RMS
+    left of it by a least-squares fit of a constant and a linear term in ``u`` (a bias and a
+    displaced phase centre, which is all a limited cone of directions leaves apart)."""
+    from quadobs import load_scenario
+    from quadobs.testbed.uwb import radio_of
+
+    radio = radio_of(load_scenario("quadrotor-uwb-realistic", seed=seed).with_settings(settings))
+    log = read_log(base)
+    p = log.truth[:, [log.truth_columns.index(c) for c in "xyz"]]
+    spread, left = np.zeros(radio.m), np.zeros(radio.m)
+    for i in range(radio.m):
+        u = p - radio.anchors[i]
+        u /= np.linalg.norm(u, axis=1, keepdims=True)
+        e = np.einsum("ni,ij,nj->n", u, radio.pattern_forms[i], u)
+        X = np.column_stack([np.ones(len(u)), u])
+        fit = np.linalg.lstsq(X, e, rcond=None)[0]
+        spread[i], left[i] = e.std(), math.sqrt(np.mean((e - X @ fit) ** 2))
+    return spread, left
 
 
 def best(rmse: dict) -> tuple[str, float]:
@@ -257,7 +279,14 @@ def main() -> None:
         action="store_true",
         help="flight: also ekf-bias-imu given each anchor's constant bias from the truth",
     )
+    ap.add_argument(
+        "--pattern-fit",
+        action="store_true",
+        help="flight: the pattern's spread over each anchor's directions, and what a bias and a displaced anchor leave of it",
+    )
     args = ap.parse_args()
+    if args.pattern_fit and args.platform != "flight":
+        ap.error("--pattern-fit: the flight's logs only")
     if args.given_biases and args.platform != "flight":
         ap.error(
             "--given-biases: the flight's logs only (the robot's anchors' heights are not in its log)"
@@ -265,7 +294,7 @@ def main() -> None:
     table = ROVER if args.platform == "rover" else FLIGHT
     if not (math.isfinite(args.pattern) and args.pattern > 0.0):
         ap.error(f"--pattern: expected a positive number of metres, got {args.pattern}")
-    table["pattern"] = ((f"radio.pattern={args.pattern:g}",), _none)
+    table = {**table, "pattern": ((f"radio.pattern={args.pattern!r}",), _none)}
     sparse = SPARSE if args.platform == "flight" else ()  # the robot's rate10 is in its list
     names = args.variants.split(",") if args.variants else [n for n in table if n not in sparse]
     unknown = [n for n in names if n not in table]
@@ -284,17 +313,19 @@ def main() -> None:
         for seed in seeds:
             for name in names:
                 if args.platform == "rover":
-                    folder = rover_log(seed, name, args.room, duration, Path(tmp))
+                    folder = rover_log(seed, name, args.room, duration, Path(tmp), table)
                 else:
-                    folder = flight_log(seed, name, duration, Path(tmp))
+                    folder = flight_log(seed, name, duration, Path(tmp), table)
                 if args.without_std:
                     folder = rover.without_std(folder, folder.with_name(f"{folder.name}-nostd"))
                 rmse = replay(folder, args.estimators, args.tune)
                 who, value = best(rmse)
                 row = {"seed": seed, "stress": name, "best": who, "rmse": value, **rmse}
                 if args.given_biases:
-                    given = replay(folder, GIVEN[0], GIVEN[1], truth_biases(folder))
+                    given = replay(folder, GIVEN[0], [*args.tune, *GIVEN[1]], truth_biases(folder))
                     row["given"] = given.get(GIVEN[0], math.nan)
+                if args.pattern_fit and name == "pattern":
+                    _print_pattern(Path(tmp), seed, table["pattern"][0])
                 rows.append(row)
                 print(f"seed {seed} {name}: best {who} {value:.3f}", flush=True)
     if args.json:
@@ -317,6 +348,19 @@ def _print_table(rows: list[dict], names: list[str], target: float) -> None:
     print(f"(best default's position RMSE after {rover.BURN_IN:g} s, m; target {target:g} m)")
     if any("given" in r for r in rows):
         print(f"(given: {GIVEN[0]} given each anchor's constant bias from the truth)")
+
+
+def _print_pattern(tmp: Path, seed: int, settings) -> None:
+    """``--pattern-fit``: the seed's pattern over its flight (:func:`pattern_spread`)."""
+    spread, left = pattern_spread(
+        tmp / f"flight-seed{seed}-export{'-'.join(settings)}", seed, settings
+    )
+    print(
+        f"seed {seed} pattern over the flight's directions, per anchor: spread "
+        f"{spread.min():.3f}-{spread.max():.3f} m, left by a constant and a linear term in u "
+        f"{left.min():.3f}-{left.max():.3f} m",
+        flush=True,
+    )
 
 
 def _given(row: dict) -> str:

@@ -229,6 +229,7 @@ def test_a_scripts_bad_scenario_setting_is_one_line_and_status_2(tmp_path):
         ("--estimators=ekf,nope", "unknown nope"),
         ("--given-biases", "--given-biases: the flight's logs only"),
         ("--pattern=-1", "--pattern: expected a positive number"),
+        ("--pattern-fit", "--pattern-fit: the flight's logs only"),
     ],
 )
 def test_the_stress_script_refuses_bad_replay_options_before_any_log(tmp_path, option, said):
@@ -275,7 +276,7 @@ def test_the_stress_scripts_given_biases_are_each_anchors_median_against_the_tru
     tmp_path, monkeypatch
 ):
     """``truth_biases``: each anchor's median of its ranges less the true distance, outliers
-    of a minority left out by the median, ranges of 0 m and those before the truth's start
+    of a minority left out by the median, ranges of 0 m and those outside the truth's span
     not counted."""
     monkeypatch.syspath_prepend(str(SIMS))
     import numpy as np
@@ -293,9 +294,9 @@ def test_the_stress_scripts_given_biases_are_each_anchors_median_against_the_tru
     r = np.linalg.norm(p[k] - anchors[h], axis=1) + bias[h]
     r[::7] += 2.0  # a minority of each anchor's ranges far too long
     r[::11] = 0.0  # failed exchanges
-    early = (t[k] < 1.0) & (h == 0)
-    r[early] += 5.0  # before the truth starts: not counted
-    truth_rows = t >= 1.0
+    outside = ((t[k] < 1.0) & (h == 0)) | ((t[k] > 8.0) & (h == 1))
+    r[outside] += 5.0  # before the truth starts or after it ends (most of anchor 1's): not counted
+    truth_rows = (t >= 1.0) & (t <= 8.0)
     log = RangeLog(
         "given", np.arange(4), anchors, np.column_stack([t[k], h, r]),
         np.column_stack([t, np.zeros((t.size, 3))]), np.nan,

@@ -31,11 +31,13 @@ with ``n, n_o, n_e`` standard normal:
   is the bias ``b_i`` and the first-order term ``g^T u`` is a displaced phase centre, which
   is an anchor surveyed off (``|p - a - c| = |p - a| - c^T u`` to first order); the
   second-order term is taken here, a symmetric traceless ``S_i`` drawn once per anchor (the
-  symmetric part of a standard normal matrix less its trace, scaled), which no constant
-  bias nor displaced anchor takes up. Over directions ``u`` uniform on the sphere its mean is
-  ``tr(S) / 3 = 0`` and its variance ``2 tr(S^2) / 15``, scaled to ``pattern^2``. The tag's
-  attitude is not taken: the pattern is that of a level tag of constant heading, fixed in
-  the room;
+  symmetric part of a standard normal matrix less its trace, scaled). Over directions ``u``
+  uniform on the sphere its mean is ``tr(S) / 3 = 0`` and its variance ``2 tr(S^2) / 15``,
+  scaled to ``pattern^2``, and being even in ``u`` it is apart from a constant and a
+  displaced anchor there; over the narrow cone of directions in which one anchor sees a
+  vehicle in a room it is mostly a constant and a linear term in ``u`` all the same, i.e. a
+  bias and a phase centre off the anchor (docs/error-sources.md). The tag's attitude is not
+  taken: the pattern is that of a level tag of constant heading, fixed in the room;
 * ``sigma n``: the line-of-sight noise;
 * non-line-of-sight, decided by geometry: the segment from the anchor to the tag is cast
   against the obstacles of an MJCF room with MuJoCo's ray casting (``mj_ray``); when it
@@ -54,7 +56,8 @@ difference of two such one-way paths:
                      + \\mathbb 1_{\\mathrm{NLOS},i} e_i - \\mathbb 1_{\\mathrm{NLOS},j} e_j
                      + \\mathbb 1_{\\mathrm{out}} \\sigma_o n_o ,
 
-so its bias is per pair, ``b_ij = b_i - b_j`` (:meth:`UwbRadio.pair_bias`).
+so its bias is per pair, ``b_ij = b_i - b_j`` (:meth:`UwbRadio.pair_bias`); with a
+``pattern`` each path also carries its own term, ``u_i^T S_i u_i - u_j^T S_j u_j``.
 
 Timing
 ------
@@ -67,7 +70,7 @@ TDOA packets arrive at ``rate`` per second, each from an anchor drawn uniformly 
 the others than the previous one.
 
 Every draw comes from its own stream spawned from the seed (schedule, noise,
-non-line-of-sight, outliers, dropouts, biases), one draw per event whether or not it is
+non-line-of-sight, outliers, dropouts, biases, pattern), one draw per event whether or not it is
 used, so the same seed gives the same events and switching one error source on or off
 leaves the others' draws unchanged.
 """
@@ -274,7 +277,10 @@ class UwbRadio:
     def pattern_bias(self, i: int, p: np.ndarray) -> float:
         """Anchor ``i``'s direction-dependent bias ``u_i^T S_i u_i`` (m) for the tag at ``p (3,)``."""
         d = np.asarray(p, dtype=float) - self.anchors[i]
-        length2 = float(d @ d)
+        return self._pattern_term(i, d, float(d @ d))
+
+    def _pattern_term(self, i: int, d: np.ndarray, length2: float) -> float:
+        """``d^T S_i d / |d|^2`` for the tag at ``d = p - a_i`` (``length2 = |d|^2``), 0 at the anchor."""
         return float(d @ self.pattern_forms[i] @ d) / length2 if length2 > 0.0 else 0.0
 
     # -- schedule ------------------------------------------------------------------------
@@ -369,8 +375,8 @@ class UwbRadio:
         d = p - a
         length = math.sqrt(d @ d)
         value = length + float(self.biases[i])
-        if self.config.pattern > 0.0 and length > 0.0:
-            value += float(d @ self.pattern_forms[i] @ d) / (length * length)
+        if self.config.pattern > 0.0:
+            value += self._pattern_term(i, d, length * length)
         if self.room is not None and self.room.blocked(a, p):
             self.counts["nlos"] += 1
             value += self.config.nlos_median * math.exp(self.config.nlos_shape * n_e)

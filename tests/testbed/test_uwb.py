@@ -77,7 +77,7 @@ def test_pattern_bias_is_the_second_order_direction_term_of_stated_spread():
     values = np.einsum("ni,hij,nj->nh", dirs, S, dirs)  # (directions, anchors)
     assert np.allclose(values.mean(axis=0), 0.0, atol=1e-4)
     assert np.allclose(values.std(axis=0), 0.1, rtol=1e-3)
-    # the opposite direction, the same bias: no displaced anchor (odd in u) takes it up
+    # even in u: over the whole sphere apart from a displaced anchor's term, which is odd in u
     assert np.allclose(np.einsum("ni,hij,nj->nh", -dirs, S, -dirs), values)
     plain = RadioConfig(jitter=2e-3, outlier_probability=0.05, outlier_std=1.0, bias_std=0.2)
     with_pattern = RadioConfig(**{**plain.__dict__, "pattern": 0.1})
