@@ -22,8 +22,8 @@ with slip, clocks apart; :data:`ROVER`):
 * ``odoclock``: the odometry 0.1 s late against the ranges, its stamps jittered by +-10 ms;
 * ``pattern``: each anchor's range bias varying with the direction of the tag seen from it,
   0.1 m over all directions (``radio.pattern = 0.1``: the antennas' radiation patterns, their
-  second-order term, :mod:`quadobs.testbed.uwb`), which neither a constant bias per anchor
-  nor a displaced anchor takes up.
+  second-order term, :mod:`quadobs.testbed.uwb`); over the cone of directions in which an
+  anchor sees the vehicle it acts mostly as a bias and a displaced anchor (``--pattern-fit``).
 
 Flight (``real``: no attitude, vibration at 100 Hz, uneven IMU, FRD axes, IMU 20 ms late,
 range biases of both signs, motion capture at 100 Hz, no ``std``; :data:`FLIGHT`, each applied
