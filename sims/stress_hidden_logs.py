@@ -23,7 +23,9 @@ with slip, clocks apart; :data:`ROVER`):
 * ``pattern``: each anchor's range bias varying with the direction of the tag seen from it,
   0.1 m over all directions (``radio.pattern = 0.1``: the antennas' radiation patterns, their
   second-order term, :mod:`quadobs.testbed.uwb`); over the cone of directions in which an
-  anchor sees the vehicle it acts mostly as a bias and a displaced anchor (``--pattern-fit``).
+  anchor sees the vehicle it acts mostly as a bias and a displaced anchor (``--pattern-fit``);
+* ``level``: every range's bias changing with the distance through the received signal's
+  level, ``0.1 log10 d`` m (``radio.level_bias = 0.1``, :mod:`quadobs.testbed.uwb`).
 
 Flight (``real``: no attitude, vibration at 100 Hz, uneven IMU, FRD axes, IMU 20 ms late,
 range biases of both signs, motion capture at 100 Hz, no ``std``; :data:`FLIGHT`, each applied
@@ -40,7 +42,7 @@ to the log without attitude before ``real``'s transforms):
 * ``gap``: anchor 0 silent for 10 s from 15 s;
 * ``imuclock``: the IMU a further 50 ms late, its stamps jittered by +-2 ms;
 * ``ascale``: the accelerometer's scale off by +2, -1.5 and +1 % on x, y, z;
-* ``pattern``: as the robot's.
+* ``pattern``, ``level``: as the robot's.
 
 ::
 
@@ -92,6 +94,8 @@ TARGET = {"rover": 0.15, "flight": 0.20}
 SURVEY_STD = 0.05
 #: The ``pattern`` stress's spread over directions of each anchor's direction-dependent bias (m).
 PATTERN_STD = 0.1
+#: The ``level`` stress's bias per decade of distance (m).
+LEVEL_BIAS = 0.1
 #: The flight's ``imuclock``: the IMU's further lag (s) and its stamps' jitter (+- s).
 IMU_LATE = (0.05, 0.002)
 
@@ -112,6 +116,7 @@ ROVER = {
     "gap": ((), lambda log, seed: anchor_gap(log, 1, 30.0, 8.0)),
     "odoclock": ((), lambda log, seed: inputs_late(log, 0.1, 0.01, seed)),
     "pattern": ((f"radio.pattern={PATTERN_STD}",), _none),
+    "level": ((f"radio.level_bias={LEVEL_BIAS}",), _none),
 }
 #: The flight's stresses, as :data:`ROVER`.
 FLIGHT = {
@@ -126,6 +131,7 @@ FLIGHT = {
     "imuclock": ((), lambda log, seed: inputs_late(log, *IMU_LATE, seed)),
     "ascale": ((), lambda log, seed: accel_scaled(log, (0.02, -0.015, 0.01))),
     "pattern": ((f"radio.pattern={PATTERN_STD}",), _none),
+    "level": ((f"radio.level_bias={LEVEL_BIAS}",), _none),
 }
 
 

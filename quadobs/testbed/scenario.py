@@ -629,6 +629,10 @@ class RadioSpec(_Table):
         0.0,
         description="Standard deviation over all directions of each anchor's direction-dependent bias (m; an antenna's delay varies with the signal's direction).",
     )
+    level_bias: Annotated[Number, Ge(-MAX_NOISE), Le(MAX_NOISE)] = Field(
+        0.0,
+        description="Bias `k log10 d` that changes with the distance `d` through the received signal's level (m per decade of distance).",
+    )
     room: Annotated[String, MaxLen(MAX_TEXT)] | None = Field(
         None,
         description="MJCF file of the obstacles cast against with `mj_ray` (relative to the scenario file; `builtin` for the package's room).",

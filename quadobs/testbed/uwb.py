@@ -13,7 +13,7 @@ For a range to anchor ``i`` at time ``t`` (tag at ``p``):
 
 .. math::
 
-    \\tilde\\rho = |p - a_i| + b_i + u_i^T S_i u_i + \\sigma n + \\mathbb 1_{\\mathrm{NLOS}}\\, e
+    \\tilde\\rho = |p - a_i| + b_i + u_i^T S_i u_i + k \\log_{10} |p - a_i| + \\sigma n + \\mathbb 1_{\\mathrm{NLOS}}\\, e
                   + \\mathbb 1_{\\mathrm{out}}\\, \\sigma_o n_o ,
     \\qquad u_i = \\frac{p - a_i}{|p - a_i|},
     \\qquad e = e_{50} \\exp(s\\, n_e) > 0,
@@ -38,6 +38,12 @@ with ``n, n_o, n_e`` standard normal:
   vehicle in a room it is mostly a constant and a linear term in ``u`` all the same, i.e. a
   bias and a phase centre off the anchor (docs/error-sources.md). The tag's attitude is not
   taken: the pattern is that of a level tag of constant heading, fixed in the room;
+* ``k log10 |p - a_i|``: a bias that changes with the distance (``level_bias``, ``k`` in m
+  per decade of distance; none by default). The received signal's level falls by 20 dB per
+  decade of distance, and the receiver's leading-edge detection reads the first path
+  earlier or later with it: Decawave's application note APS011 ("Sources of error in DW1000
+  based two-way ranging schemes") tabulates a correction of the order of 0.1 to 0.2 m
+  across its levels. Its value at 1 m is a constant that the bias ``b_i`` holds;
 * ``sigma n``: the line-of-sight noise;
 * non-line-of-sight, decided by geometry: the segment from the anchor to the tag is cast
   against the obstacles of an MJCF room with MuJoCo's ray casting (``mj_ray``); when it
@@ -57,7 +63,7 @@ difference of two such one-way paths:
                      + \\mathbb 1_{\\mathrm{out}} \\sigma_o n_o ,
 
 so its bias is per pair, ``b_ij = b_i - b_j`` (:meth:`UwbRadio.pair_bias`); with a
-``pattern`` each path also carries its own term, ``u_i^T S_i u_i - u_j^T S_j u_j``.
+``pattern`` or a ``level_bias`` each path also carries its own terms.
 
 Timing
 ------
@@ -133,6 +139,9 @@ class RadioConfig:
     pattern : float
         Standard deviation over all directions of each anchor's direction-dependent bias
         ``u_i^T S_i u_i`` (m; 0: none).
+    level_bias : float
+        ``k`` of the bias ``k log10 |p - a_i|`` that changes with the distance, through the
+        received signal's level (m per decade of distance; 0: none).
     room : str or None
         MJCF file of the obstacles; ``None``: every path is in line of sight.
     """
@@ -151,6 +160,7 @@ class RadioConfig:
     nlos_median: float = 0.0
     nlos_shape: float = 0.5
     pattern: float = 0.0
+    level_bias: float = 0.0
     room: str | None = None
 
     def check(self, m: int) -> None:
@@ -167,8 +177,11 @@ class RadioConfig:
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0.0):
                 raise QuadobsError(f"radio.{name}: expected a non-negative number, got {value}")
-        if not math.isfinite(self.bias_mean):
-            raise QuadobsError(f"radio.bias_mean: expected a finite number, got {self.bias_mean}")
+        for name in ("bias_mean", "level_bias"):
+            if not math.isfinite(getattr(self, name)):
+                raise QuadobsError(
+                    f"radio.{name}: expected a finite number, got {getattr(self, name)}"
+                )
         for name in ("dropout", "outlier_probability"):
             value = getattr(self, name)
             if not 0.0 <= value < 1.0:
@@ -377,6 +390,8 @@ class UwbRadio:
         value = length + float(self.biases[i])
         if self.config.pattern > 0.0:
             value += self._pattern_term(i, d, length * length)
+        if self.config.level_bias and length > 0.0:
+            value += self.config.level_bias * math.log10(length)
         if self.room is not None and self.room.blocked(a, p):
             self.counts["nlos"] += 1
             value += self.config.nlos_median * math.exp(self.config.nlos_shape * n_e)
@@ -442,6 +457,7 @@ def radio_of(scenario) -> UwbRadio | None:
         nlos_median=spec.nlos_median,
         nlos_shape=spec.nlos_shape,
         pattern=spec.pattern,
+        level_bias=spec.level_bias,
         room=room,
     )
     anchors = np.asarray(scenario.beacons, dtype=float)

@@ -56,6 +56,19 @@ def test_same_seed_same_events_and_sources_independent():
     assert all(kept[m.t] == m.value for m in one)
 
 
+def test_level_bias_adds_k_log10_of_the_distance_and_leaves_other_draws():
+    cfg = RadioConfig(std=1e-12, biases=(0.1, -0.2, 0.3, 0.0, 0.05, -0.4), level_bias=-0.15)
+    for m in UwbRadio(ANCHORS, cfg, seed=3).measurements(figure, 0.5):
+        d = np.linalg.norm(figure(m.t) - ANCHORS[m.anchors[0]])
+        assert abs(m.value - d - cfg.biases[m.anchors[0]] + 0.15 * np.log10(d)) < 1e-5
+    plain = RadioConfig(jitter=2e-3, outlier_probability=0.05, outlier_std=1.0, bias_std=0.2)
+    level = RadioConfig(**{**plain.__dict__, "level_bias": 0.2})
+    one, two = UwbRadio(ANCHORS, plain, 7), UwbRadio(ANCHORS, level, 7)
+    for m, n in zip(one.measurements(figure, 1.0), two.measurements(figure, 1.0), strict=True):
+        d = np.linalg.norm(figure(m.t) - ANCHORS[m.anchors[0]])
+        assert m.t == n.t and n.value == pytest.approx(m.value + 0.2 * np.log10(d), abs=1e-5)
+
+
 def test_pattern_bias_is_the_second_order_direction_term_of_stated_spread():
     """``u^T S u``: each range less its distance and constant bias is the direction term, with
     ``S`` symmetric and traceless; over the sphere of directions its mean is 0 and its
@@ -169,6 +182,7 @@ def test_tdoa_pairs_differences_and_per_pair_bias():
         ({"rates": (1.0,) * 6, "protocol": "tdoa"}, "radio.rates"),
         ({"room": "/nonexistent/room.xml"}, "radio.room"),
         ({"pattern": -0.1}, "radio.pattern"),
+        ({"level_bias": float("nan")}, "radio.level_bias"),
     ],
 )
 def test_bad_settings_are_named(change, field):
