@@ -57,7 +57,9 @@ log (the robot's logs state one, the flight's none), as a log converted by hand 
 
     python sims/stress_hidden_logs.py rover --seeds 0,1 --without-std --tune anchor_sigma=0
 
-``--pattern`` sets the ``pattern`` stress's spread (m; default :data:`PATTERN_STD`).
+``--pattern`` sets the ``pattern`` stress's spread (m; default :data:`PATTERN_STD`), ``--level``
+the ``level`` stress's bias per decade (m; default :data:`LEVEL_BIAS`); ``--keep DIR`` keeps the
+logs (and the replays' summaries) in a new folder ``DIR``.
 ``--given-biases`` (flight) also replays ``ekf-bias-imu`` given each anchor's constant bias as
 the truth supports it (:func:`truth_biases`) and held to it: what the best constant biases
 allow, beside what the default estimators reach without them::
@@ -182,7 +184,7 @@ def replay(folder: Path, estimators: str | None = None, tune=(), biases=None) ->
     for setting in tune:
         argv += ["--tune", setting]
     if biases is not None:
-        argv.append("--biases=" + ",".join(f"{b:.4f}" for b in biases))
+        argv.append(_biases_text(biases))
     code = cli.main(argv)
     if code not in (0, 1):  # 1: an estimator reported diverged; else none ran: the next log
         print(f"quadobs replay {folder.name} failed (status {code})", flush=True)
@@ -281,6 +283,13 @@ def main() -> None:
         help=f"m, the pattern stress's spread over directions (default {PATTERN_STD:g})",
     )
     ap.add_argument(
+        "--level",
+        type=float,
+        default=LEVEL_BIAS,
+        help=f"m per decade, the level stress's bias (default {LEVEL_BIAS:g})",
+    )
+    ap.add_argument("--keep", help="a new folder to keep the logs in (default: none kept)")
+    ap.add_argument(
         "--given-biases",
         action="store_true",
         help="flight: also ekf-bias-imu given each anchor's constant bias from the truth",
@@ -300,7 +309,12 @@ def main() -> None:
     table = ROVER if args.platform == "rover" else FLIGHT
     if not (math.isfinite(args.pattern) and args.pattern > 0.0):
         ap.error(f"--pattern: expected a positive number of metres, got {args.pattern}")
+    if not math.isfinite(args.level):
+        ap.error(f"--level: expected a finite number of metres per decade, got {args.level}")
     table = {**table, "pattern": ((f"radio.pattern={args.pattern!r}",), _none)}
+    table["level"] = ((f"radio.level_bias={args.level!r}",), _none)
+    if args.keep and Path(args.keep).exists():
+        ap.error(f"--keep: {args.keep} exists (a new folder is made, none is replaced)")
     sparse = SPARSE if args.platform == "flight" else ()  # the robot's rate10 is in its list
     names = args.variants.split(",") if args.variants else [n for n in table if n not in sparse]
     unknown = [n for n in names if n not in table]
@@ -315,7 +329,7 @@ def main() -> None:
         ap.error(f"--duration: expected a positive number of seconds, got {args.duration}")
     duration = args.duration or (90.0 if args.platform == "rover" else 40.0)
     rows = []
-    with tempfile.TemporaryDirectory(prefix="stress-") as tmp:
+    with _logs_folder(args.keep) as tmp:
         for seed in seeds:
             for name in names:
                 if args.platform == "rover":
@@ -328,8 +342,10 @@ def main() -> None:
                 who, value = best(rmse)
                 row = {"seed": seed, "stress": name, "best": who, "rmse": value, **rmse}
                 if args.given_biases:
-                    given = replay(folder, GIVEN[0], [*args.tune, *GIVEN[1]], truth_biases(folder))
+                    biases = truth_biases(folder)
+                    given = replay(folder, GIVEN[0], [*args.tune, *GIVEN[1]], biases)
                     row["given"] = given.get(GIVEN[0], math.nan)
+                    print(f"seed {seed} {name}: given biases {_biases_text(biases)}", flush=True)
                 if args.pattern_fit and name == "pattern":
                     _print_pattern(Path(tmp), seed, table["pattern"][0])
                 rows.append(row)
@@ -367,6 +383,21 @@ def _print_pattern(tmp: Path, seed: int, settings) -> None:
         f"{left.min():.3f}-{left.max():.3f} m",
         flush=True,
     )
+
+
+def _logs_folder(keep: str | None):
+    """The folder the logs are written in: ``keep`` (made, and kept) or a temporary one."""
+    import contextlib
+
+    if keep is None:
+        return tempfile.TemporaryDirectory(prefix="stress-")
+    Path(keep).mkdir(parents=True)
+    return contextlib.nullcontext(keep)
+
+
+def _biases_text(biases) -> str:
+    """``--biases=...`` as the replay takes them."""
+    return "--biases=" + ",".join(f"{b:.4f}" for b in biases)
 
 
 def _given(row: dict) -> str:

@@ -98,8 +98,9 @@ CASES = {
     ),
     "stress_hidden_logs.py": (
         ["rover", "--seeds", "0", "--variants", "survey,pattern", "--duration", "8"]
-        + ["--json", "{tmp}/stress.json", "--without-std", "--tune", "anchor_sigma=1"],
-        ["stress.json"],
+        + ["--json", "{tmp}/stress.json", "--without-std", "--tune", "anchor_sigma=1"]
+        + ["--keep", "{tmp}/logs"],
+        ["stress.json", "logs/rover-today-seed0-pattern/meta.csv"],
         "| stress | seed 0 | worst | target met |",
     ),
     "bias_start_study.py": (
@@ -230,6 +231,7 @@ def test_a_scripts_bad_scenario_setting_is_one_line_and_status_2(tmp_path):
         ("--given-biases", "--given-biases: the flight's logs only"),
         ("--pattern=-1", "--pattern: expected a positive number"),
         ("--pattern-fit", "--pattern-fit: the flight's logs only"),
+        ("--level=nan", "--level: expected a finite number"),
     ],
 )
 def test_the_stress_script_refuses_bad_replay_options_before_any_log(tmp_path, option, said):

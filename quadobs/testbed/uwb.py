@@ -43,7 +43,8 @@ with ``n, n_o, n_e`` standard normal:
   decade of distance, and the receiver's leading-edge detection reads the first path
   earlier or later with it: Decawave's application note APS011 ("Sources of error in DW1000
   based two-way ranging schemes") tabulates a correction of the order of 0.1 to 0.2 m
-  across its levels. Its value at 1 m is a constant that the bias ``b_i`` holds;
+  across its levels. Its value at 1 m is a constant that the bias ``b_i`` holds; below
+  :data:`NEAR_FIELD` (0.1 m, the antennas' near field) it is held at its value there;
 * ``sigma n``: the line-of-sight noise;
 * non-line-of-sight, decided by geometry: the segment from the anchor to the tag is cast
   against the obstacles of an MJCF room with MuJoCo's ray casting (``mj_ray``); when it
@@ -95,6 +96,9 @@ from quadobs.errors import QuadobsError
 __all__ = ["RadioConfig", "Room", "UwbRadio", "radio_of", "room_model_path"]
 
 _STREAMS = ("schedule", "noise", "nlos", "outlier", "dropout", "bias", "pattern")
+#: Distance (m) below which the level's bias is held at its value there: the antennas' near
+#: field, where the received level no longer follows the distance.
+NEAR_FIELD = 0.1
 #: Most of a nominal spacing a jittered event may move, so that one anchor's events keep their order.
 _JITTER_CLIP = 0.45
 
@@ -390,8 +394,8 @@ class UwbRadio:
         value = length + float(self.biases[i])
         if self.config.pattern > 0.0:
             value += self._pattern_term(i, d, length * length)
-        if self.config.level_bias and length > 0.0:
-            value += self.config.level_bias * math.log10(length)
+        if self.config.level_bias:
+            value += self.config.level_bias * math.log10(max(length, NEAR_FIELD))
         if self.room is not None and self.room.blocked(a, p):
             self.counts["nlos"] += 1
             value += self.config.nlos_median * math.exp(self.config.nlos_shape * n_e)

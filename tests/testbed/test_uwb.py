@@ -61,6 +61,11 @@ def test_level_bias_adds_k_log10_of_the_distance_and_leaves_other_draws():
     for m in UwbRadio(ANCHORS, cfg, seed=3).measurements(figure, 0.5):
         d = np.linalg.norm(figure(m.t) - ANCHORS[m.anchors[0]])
         assert abs(m.value - d - cfg.biases[m.anchors[0]] + 0.15 * np.log10(d)) < 1e-5
+    # at an anchor: held at its value at NEAR_FIELD, no unbounded term
+    near = UwbRadio(ANCHORS, RadioConfig(std=1e-12, level_bias=-0.1), seed=0)
+    at = near.measurements(still(ANCHORS[0] + [1e-9, 0.0, 0.0]), 0.2)
+    values = [m.value for m in at if m.anchors[0] == 0]
+    assert values and np.allclose(values, -0.1 * np.log10(0.1), atol=1e-8)
     plain = RadioConfig(jitter=2e-3, outlier_probability=0.05, outlier_std=1.0, bias_std=0.2)
     level = RadioConfig(**{**plain.__dict__, "level_bias": 0.2})
     one, two = UwbRadio(ANCHORS, plain, 7), UwbRadio(ANCHORS, level, 7)
