@@ -306,3 +306,36 @@ def test_the_stress_scripts_given_biases_are_each_anchors_median_against_the_tru
     )  # fmt: skip
     folder = write_log(log, tmp_path / "given")
     np.testing.assert_allclose(stress_hidden_logs.truth_biases(folder), bias, atol=1e-9)
+
+
+def test_the_stress_scripts_pattern_spread_is_the_radios_term_and_its_linear_fit(
+    tmp_path, monkeypatch
+):
+    """``pattern_spread``: each anchor's ``u^T S u`` over the truth's rows, as the scenario's
+    radio gives it for the seed, and what a constant and a linear term in ``u`` leave of it
+    (never more than its spread; over the anchors, far less on a flight's narrow cones of
+    directions)."""
+    monkeypatch.syspath_prepend(str(SIMS))
+    import numpy as np
+    import stress_hidden_logs
+
+    from quadobs import load_scenario
+    from quadobs.testbed.logs import write_log
+    from quadobs.testbed.logs.format import RangeLog
+    from quadobs.testbed.uwb import radio_of
+
+    settings = ("radio.pattern=0.1",)
+    radio = radio_of(load_scenario("quadrotor-uwb-realistic", seed=4).with_settings(settings))
+    t = np.linspace(0.0, 20.0, 401)
+    p = np.column_stack([1.5 * np.cos(0.3 * t), np.sin(0.3 * t), 1.0 + 0.3 * np.sin(t)])
+    log = RangeLog(
+        "flight", np.arange(radio.m), radio.anchors, np.column_stack([t, np.arange(t.size) % radio.m, 3 + 0 * t]),
+        np.column_stack([t, np.zeros((t.size, 3))]), np.nan, np.column_stack([t, p]),
+        input_kind="imu", truth_columns=("time", "x", "y", "z"),
+    )  # fmt: skip
+    folder = write_log(log, tmp_path / "flight")
+    spread, left = stress_hidden_logs.pattern_spread(folder, 4, settings)
+    direct = np.array([[radio.pattern_bias(i, q) for i in range(radio.m)] for q in p])
+    np.testing.assert_allclose(spread, direct.std(axis=0), rtol=1e-9)
+    assert np.all(left <= spread)
+    assert np.sqrt(np.mean(left**2)) < 0.25 * np.sqrt(np.mean(spread**2))
