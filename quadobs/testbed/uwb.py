@@ -387,7 +387,8 @@ class UwbRadio:
         )
 
     def _path(self, i: int, p: np.ndarray, n_e: float) -> float:
-        """One anchor's path: distance, bias, and the excess delay when the line of sight is blocked."""
+        """One anchor's path: distance, bias, the direction's and the level's terms where set,
+        and the excess delay when the line of sight is blocked."""
         a = self.anchors[i]
         d = p - a
         length = math.sqrt(d @ d)
