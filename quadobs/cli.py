@@ -1020,6 +1020,8 @@ def _cmd_replay(args) -> int:
     log = open_log(args.log)
     if args.export is not None:
         return _replay_export(args, log)
+    import time
+
     from quadobs.testbed.logs.replay import log_scenario, run_replay
     from quadobs.testbed.outputs import check_outputs
 
@@ -1040,8 +1042,11 @@ def _cmd_replay(args) -> int:
     check_replay(  # the model and the estimators against the log, before the calibration
         log, _estimator_list(args.estimators), dt=args.dt, model=args.model, options=options
     )
+    started = time.perf_counter()
     log = _replay_clock_offset(args, log, dict(options))
     biases, tuning = _replay_calibration(args, log, dict(options))
+    if getattr(args, "calibration_report", None) is not None:  # the summary's wall_time is the replay's
+        args.calibration_report["seconds"] = time.perf_counter() - started
     stop_if_interrupted()
     summary = run_replay(
         log,
@@ -1096,6 +1101,9 @@ def _print_replay_rows(summary: dict, log) -> None:
         + _heights_note(log, summary["noise"])
         + ("  [INTERRUPTED]" if summary["interrupted"] else "")
     )
+    width = max([10, *(len(n) for n in summary["estimators"])])
+    burn_in = float(summary.get("burn_in") or 0.0)
+    after = f"rmse after {burn_in:g} s" if burn_in > 0.0 else "rmse"
     for name, e in summary["estimators"].items():
         extra = (
             f"  batch LM rmse {_fmt(e['batch_rmse'], ' m')}"
@@ -1103,16 +1111,20 @@ def _print_replay_rows(summary: dict, log) -> None:
             else ""
         )
         if e.get("diverged"):
-            print(f"  {name:10s} rmse invalid (diverged)")
+            print(f"  {name:{width}s} rmse invalid (diverged)")
             continue
         if e.get("startup"):
             extra += "  [no start-up fix: ran from its prior]"
         if not summary["has_truth"]:  # "never" would read as never converged
             us = e["seconds_per_measurement"] * 1e6
-            print(f"  {name:10s} no error measured (the log has no truth.csv)  {us:.0f} us/range")
+            print(
+                f"  {name:{width}s} no error measured (the log has no truth.csv)  {us:.0f} us/range"
+            )
             continue
+        if e.get("within_extent") is False:
+            extra += f"  [error larger than the anchors' extent, {summary['anchor_extent']:.3g} m]"
         print(
-            f"  {name:10s} rmse {_fmt(e['rmse'], ' m')}  max {_fmt(e['max_error'], ' m')}  "
+            f"  {name:{width}s} {after} {_fmt(e['rmse'], ' m')}  max {_fmt(e['max_error'], ' m')}  "
             f"final {_fmt(e['final_position_error'], ' m')}  {e['seconds_per_measurement'] * 1e6:.0f} us/range{extra}"
             + _field_split(e)
         )
@@ -1241,8 +1253,12 @@ def _heights_note(log, noise: dict) -> str:
         return ""
     if not math.isfinite(log.tag_height):
         return "; anchors' heights stated without meta.csv tag_height: not used"
-    used = noise.get("offsets") is not None
-    return f"; anchors' heights stated, the tag at {log.tag_height:g} m: {'used' if used else 'set aside'}"
+    if noise.get("offsets") is None:
+        return f"; anchors' heights stated, the tag at {log.tag_height:g} m: set aside"
+    return (
+        f"; anchors' heights stated, the tag at {log.tag_height:g} m: used by ukf-height-lever "
+        "(the other filters of the plane take the ranges as planar, or hold the heights as states)"
+    )
 
 
 def _check_field_options(args) -> None:
@@ -1286,7 +1302,8 @@ def _add_import_bag(sub) -> None:
         action="append",
         default=[],
         metavar="STREAM=TOPIC",
-        help="a stream's topic (imu, truth, ranges, tdoa; repeatable; over the --map file's)",
+        help="a stream's topic (imu, truth, ranges, tdoa); repeated for one stream: each of its "
+        "topics (e.g. one per anchor); over the --map file's",
     )
     p.add_argument("--anchors", type=Path, help="anchor positions: a CSV file id,x,y[,z]")
     p.add_argument("--name", help="the log's name (default: the map's, else the bag's)")
@@ -1303,8 +1320,11 @@ def _cmd_import_bag(args) -> int:
     check_replaceable_folder(args.out, set(LOG_FILES), "--out")
     topic_map = load_topic_map(args.map) if args.map is not None else TopicMap()
     topic_map = with_options(topic_map, args.topic, args.anchors, args.name)
-    log = import_bag(args.bag, topic_map)
+    notes: list[str] = []
+    log = import_bag(args.bag, topic_map, notes)
     write_log(log, args.out)
+    for note in notes:
+        print(f"note: {note}")
     print(
         f"log {log.name}: {log.ranges.shape[0]} ranges, {log.tdoa.shape[0]} TDOA, "
         f"{log.inputs.shape[0]} IMU rows, {0 if log.truth is None else log.truth.shape[0]} truth rows "
@@ -1353,12 +1373,24 @@ def _replay_calibration(args, log, tuning: dict) -> tuple[list[float] | np.ndarr
     if not args.set:  # measurements on the grid (noise.*): every filter takes the biases
         estimator_constants(log, cal, names, dt=args.dt, model=args.model)
     chosen = "none" if cal.biases is None else ", ".join(f"{b:.2f}" for b in cal.biases) + " m"
-    print(f"calibrated from the log: biases {chosen}; {cal.reason}")
+    print(f"calibrated from the log: biases {chosen}" + _reason_lines(cal.reason))
     args.calibration_report = {**cal.summary(), **getattr(args, "clock_report", {})}
     if "clock_offset" in args.calibration_report:  # the offset's reason first, as it came first
         clock = args.calibration_report["clock_offset"]["reason"]
         args.calibration_report["reason"] = f"{clock}; {cal.reason}"
     return None if cal.biases is None else [float(b) for b in cal.biases], cal.options
+
+
+def _reason_lines(reason: str) -> str:
+    """A calibration's reason, its clauses (``; `` apart, outside brackets) one per line."""
+    clauses, depth, start = [], 0, 0
+    for i, ch in enumerate(reason):
+        depth += (ch in "([") - (ch in ")]")
+        if depth == 0 and reason.startswith("; ", i):
+            clauses.append(reason[start:i])
+            start = i + 2
+    clauses.append(reason[start:])
+    return "".join(f"\n  - {c}" for c in clauses if c)
 
 
 def _replay_clock_offset(args, log, tuning: dict):

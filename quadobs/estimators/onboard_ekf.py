@@ -212,6 +212,9 @@ class OnboardEKF(Estimator, Gated):
 
     # -- the filter --------------------------------------------------------------------
 
+    # a filter run away overflows to inf or NaN; the episode's watch reports it as diverged
+    # (quadobs.testbed.divergence), so NumPy's warnings would only repeat it
+    @np.errstate(over="ignore", invalid="ignore")
     def _propagate_imu(self, h: float) -> None:
         f, w = self.u[:3] - self.b, self.u[3:]
         R, v = self.R, self.v
@@ -238,6 +241,7 @@ class OnboardEKF(Estimator, Gated):
         self.R = R @ rotation_exp(w * h)
         self.v = self.R.T @ vw
 
+    @np.errstate(over="ignore", invalid="ignore")
     def _update(self, m: Measurement, z: float) -> None:
         model = self.model
         g = model.jacobian(self.p, m)

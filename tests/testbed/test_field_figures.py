@@ -120,3 +120,28 @@ def test_the_field_options_are_checked_before_the_replay(tmp_path, capsys):
         == 2
     )
     assert "holds the output" in capsys.readouterr().err
+
+
+def test_an_error_beyond_the_anchors_extent_is_marked_and_the_burn_in_printed(tmp_path, capsys):
+    import dataclasses
+
+    from quadobs.testbed.logs.replay import anchor_extent
+
+    log = helix_log(4.0)
+    extent = max(np.linalg.norm(a - b) for a in BEACONS for b in BEACONS)
+    assert anchor_extent(BEACONS) == pytest.approx(extent, rel=1e-15)
+    moved = log.truth.copy()
+    moved[:, 1] += 2.0 * extent  # a truth in another frame: every error about twice the extent
+    far = write_log(dataclasses.replace(log, truth=moved), tmp_path / "far")
+    base = ["--dt", "0.01", "--calibrate", "none", "--no-progress", "--burn-in", "2"]
+    base += ["--tune", "range_sigma=0.05", "--tune", "q_imu=1e-3", "--estimators", "augmented,ekf"]
+    for folder, within in ((far, False), (write_log(log, tmp_path / "near"), True)):
+        summary = tmp_path / f"{folder.name}.json"
+        assert main(["replay", str(folder), *base, "--summary", str(summary)]) == 0
+        out = capsys.readouterr().out
+        s = json.loads(summary.read_text())
+        assert s["anchor_extent"] == pytest.approx(extent, rel=1e-12)
+        for name in ("augmented", "ekf"):
+            assert s["estimators"][name]["within_extent"] is within
+            assert f"{name:10s} rmse after 2 s " in out
+        assert ("larger than the anchors' extent, 56.6 m" in out) is not within

@@ -244,6 +244,7 @@ def test_a_version_1_log_still_reads_and_version_2_parts_ask_for_the_version(tmp
             "truth.csv, row 2, columns qw,qx,qy,qz: not a unit quaternion",
         ),
         ("truth.csv", "time,x,y,qw\n0,1,1,1\n", "truth.csv, row 1: the attitude needs all of"),
+        ("beacons.csv", "id,x,y\nA1,0,0\n1,10,0\n", "column id: 'A1' is not an integer anchor id"),
         (
             "imu.csv",
             "time,ax,ay,az,gx,gy,gz\n0,0,0,9.8,0,0,0\n",
@@ -252,7 +253,7 @@ def test_a_version_1_log_still_reads_and_version_2_parts_ask_for_the_version(tmp
         (
             "inputs.csv",
             "time,speed,yaw_rate\n0,1,0\n1e8,1,0\n",
-            "the log spans 1e+08 s, more than 1e+07 s",
+            "inputs.csv spans 1e+08 s, more than 1e+07 s: times must be seconds",
         ),
     ],
 )
@@ -263,7 +264,18 @@ def test_the_schema_refuses_each_bad_field_in_one_line(tmp_path, fname, text, ex
     with pytest.raises(QuadobsError) as err:
         read_log(folder)
     assert expect in str(err.value) and "\n" not in str(err.value)
-    assert str(folder / fname) in str(err.value) or "spans" in str(err.value)
+    assert str(folder / fname) in str(err.value)
+
+
+def test_files_on_two_clocks_are_named_with_their_times(tmp_path):
+    folder = _write_v1(tmp_path / "log")
+    (folder / "meta.csv").write_text("key,value\nversion,2\nheading0,0.5\n")
+    (folder / "inputs.csv").write_text("time,speed,yaw_rate\n1.7e9,1,0\n1.7e9,1,0\n")
+    with pytest.raises(QuadobsError) as err:
+        read_log(folder)
+    message = str(err.value)
+    assert message.startswith(f"{folder}: the files' times lie more than 1e+07 s apart (")
+    assert "inputs.csv from 1.7e+09 s" in message and "ranges.csv from 0" in message
 
 
 def test_a_std_cell_may_be_empty_and_other_cells_may_not(tmp_path):

@@ -252,3 +252,198 @@ def test_transform_truth_and_receive_times(tmp_path):
     np.testing.assert_allclose(log.truth[:, 1], np.arange(10.0))
     np.testing.assert_allclose(log.ranges[:, 0], T0 + 0.05 + 0.1 * np.arange(10), atol=1e-6)
     assert set(log.ranges[:, 1]) == {7}
+
+
+def _ros2_bag(path, build, empty=()):
+    """A ROS 2 bag of the events ``build(T, header)`` returns: ``(topic, type, receive, msg)``,
+    and a connection without a message for each ``(topic, type)`` of ``empty``."""
+    from rosbags.rosbag2 import Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    ts = get_typestore(Stores.ROS2_HUMBLE)
+    T = ts.types
+
+    def header(t, frame=""):
+        stamp = T["builtin_interfaces/msg/Time"](sec=int(t), nanosec=int(round((t % 1) * 1e9)))
+        return T["std_msgs/msg/Header"](stamp=stamp, frame_id=frame)
+
+    events = sorted(build(T, header), key=lambda e: e[2])
+    with Writer(path, version=9) as w:
+        conns = {topic: w.add_connection(topic, msgtype, typestore=ts) for topic, msgtype in empty}
+        for topic, msgtype, t, msg in events:
+            if topic not in conns:
+                conns[topic] = w.add_connection(topic, msgtype, typestore=ts)
+            w.write(conns[topic], int(round(t * 1e9)), ts.serialize_cdr(msg, msgtype))
+    return path
+
+
+def _range(T, header, t, frame, value, top=10.0):
+    return T["sensor_msgs/msg/Range"](
+        header=header(t, frame), radiation_type=0, field_of_view=0.0, min_range=0.0,
+        max_range=top, range=value,
+    )  # fmt: skip
+
+
+def _per_anchor(T, header, frame="tag_1", bad=True):
+    """Ranges on one topic per anchor (the tag's frame in frame_id), 10 each; with ``bad`` some
+    marked as none: +inf, -inf, NaN, and one beyond max_range."""
+    marks = {2: math.inf, 4: -math.inf, 6: math.nan, 8: 25.0} if bad else {}
+    for a in sorted(ANCHORS):
+        for k in range(10):
+            t = T0 + 0.1 * k + 0.01 * a
+            value = marks.get(k, 1.0 + 0.01 * k) if a == 3 else 1.0 + 0.01 * k
+            msg = _range(T, header, t, frame, value)
+            yield (f"/uwb/anchor_{a}/range", "sensor_msgs/msg/Range", t, msg)
+
+
+def _map(**streams):
+    return parse_topic_map({"anchors": {str(k): list(v) for k, v in ANCHORS.items()}, **streams})
+
+
+def test_ranges_marked_as_none_are_left_out_and_counted_and_topics_name_anchors(tmp_path):
+    bag = _ros2_bag(tmp_path / "b", lambda T, h: list(_per_anchor(T, h)))
+    topics = [f"/uwb/anchor_{a}/range" for a in sorted(ANCHORS)]
+    notes: list[str] = []
+    by_topic = _map(ranges={"topic": topics, "anchor": "topic", "anchor_pattern": r"anchor_(\d+)"})
+    log = import_bag(bag, by_topic, notes)
+    assert log.ranges.shape[0] == 36  # 40 less the four readings of anchor 3 marked as none
+    assert sorted(set(log.ranges[:, 1].astype(int))) == sorted(ANCHORS)
+    assert np.all(np.isfinite(log.ranges[:, 2])) and log.ranges[:, 2].max() < 2.0
+    assert "[ranges] 3 left out: not finite (no reading)" in notes
+    assert "[ranges] 1 left out: outside min_range..max_range" in notes
+    # the same topics, the id from frame_id 'tag_1': every range would be anchor 1, not one of them
+    with pytest.raises(QuadobsError, match=r"anchor id 1 not among the anchors \(3, 7, 11, 12\)"):
+        import_bag(bag, _map(ranges={"topic": topics}))
+    # a topic's name holding one number needs no pattern
+    log2 = import_bag(bag, _map(ranges={"topic": topics, "anchor": "topic"}))
+    np.testing.assert_array_equal(log2.ranges, log.ranges)
+
+
+def test_a_frame_id_with_two_numbers_needs_a_pattern_and_the_command_line_takes_each_topic(
+    tmp_path, capsys
+):
+    bag = _ros2_bag(tmp_path / "b", lambda T, h: list(_per_anchor(T, h, "anchor_3/antenna_1")))
+    _files(tmp_path)
+    base = ["import-bag", str(bag), "--out", str(tmp_path / "log")]
+    base += ["--anchors", str(tmp_path / "anchors.csv")]
+    topics = [arg for a in (3, 7) for arg in ("--topic", f"ranges=/uwb/anchor_{a}/range")]
+    assert main(base + topics) == 2
+    err = capsys.readouterr().err
+    assert "'anchor_3/antenna_1' holds 2 numbers" in err and err.count("\n") == 1
+    (tmp_path / "map.toml").write_text(
+        'anchors = "anchors.csv"\n[ranges]\ntopic = "/x"\nanchor_pattern = "anchor_(\\\\d+)"\n'
+    )
+    assert main(base + topics + ["--map", str(tmp_path / "map.toml")]) == 0
+    out = capsys.readouterr().out
+    assert "note: [ranges] 3 left out: not finite (no reading)" in out
+    assert "note: anchors that no range or TDOA names: 7, 11, 12" in out
+    log = read_log(tmp_path / "log")
+    assert log.ranges.shape[0] == 16 and set(log.ranges[:, 1]) == {3}  # both topics: anchor 3
+
+
+def test_stamps_unset_or_on_another_clock_are_refused_unless_received_times_are_taken(tmp_path):
+    def build(T, h, boot=False, unset=False):
+        yield from _per_anchor(T, h, bad=False)
+        V3 = T["geometry_msgs/msg/Vector3"]
+        for k in range(20):
+            t = T0 + 0.05 * k
+            stamp = (100.0 + 0.05 * k) if boot else 0.0 if (unset and k == 3) else t
+            imu = T["sensor_msgs/msg/Imu"](
+                header=h(stamp), orientation=T["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0),
+                orientation_covariance=np.array([-1.0] + [0.0] * 8),
+                angular_velocity=V3(x=0.0, y=0.0, z=0.1), angular_velocity_covariance=np.zeros(9),
+                linear_acceleration=V3(x=0.0, y=0.0, z=math.nan if k == 5 else 9.81),
+                linear_acceleration_covariance=np.zeros(9),
+            )  # fmt: skip
+            yield ("/imu", "sensor_msgs/msg/Imu", t + 0.001, imu)
+
+    topics = [f"/uwb/anchor_{a}/range" for a in sorted(ANCHORS)]
+    ranges = {"topic": topics, "anchor": "topic", "anchor_pattern": r"anchor_(\d+)"}
+    boot = _ros2_bag(tmp_path / "boot", lambda T, h: list(build(T, h, boot=True)))
+    with pytest.raises(QuadobsError, match=r"\[imu\] stamps 100 to 100.95 s, .* not one clock"):
+        import_bag(boot, _map(ranges=ranges, imu={"topic": "/imu"}))
+    notes: list[str] = []
+    log = import_bag(boot, _map(ranges=ranges, imu={"topic": "/imu", "time": "receive",
+                                                    "attitude": True}), notes)  # fmt: skip
+    assert log.inputs.shape[0] == 19 and log.inputs[0, 0] == pytest.approx(T0 + 0.001, abs=1e-6)
+    assert "[imu] 1 left out: not finite" in notes and log.attitude is None
+    assert any("19 messages hold no orientation" in n for n in notes)
+    unset = _ros2_bag(tmp_path / "unset", lambda T, h: list(build(T, h, unset=True)))
+    with pytest.raises(QuadobsError, match=r"\[imu\] /imu, message 4: header stamp unset"):
+        import_bag(unset, _map(ranges=ranges, imu={"topic": "/imu"}))
+
+
+def test_truth_from_tf_odometry_and_points(tmp_path):
+    def build(T, h):
+        yield from _per_anchor(T, h, bad=False)
+        V3, Q = T["geometry_msgs/msg/Vector3"], T["geometry_msgs/msg/Quaternion"]
+        P = T["geometry_msgs/msg/Point"]
+        for k in range(10):
+            t = T0 + 0.1 * k
+            q = Q(x=0.0, y=0.0, z=math.sin(0.2), w=math.cos(0.2))
+
+            def tf(child, x, t=t, q=q):
+                return T["geometry_msgs/msg/TransformStamped"](
+                    header=h(t, "world"), child_frame_id=child,
+                    transform=T["geometry_msgs/msg/Transform"](translation=V3(x=x, y=1.0, z=2.0), rotation=q),
+                )  # fmt: skip
+
+            msg = T["tf2_msgs/msg/TFMessage"](transforms=[tf("other", -1.0), tf("cf", float(k))])
+            yield ("/tf", "tf2_msgs/msg/TFMessage", t, msg)
+            pose = T["geometry_msgs/msg/Pose"](position=P(x=float(k), y=2.0, z=1.0), orientation=q)
+            cov = T["geometry_msgs/msg/PoseWithCovariance"](pose=pose, covariance=np.zeros(36))
+            twist = T["geometry_msgs/msg/TwistWithCovariance"](
+                twist=T["geometry_msgs/msg/Twist"](linear=V3(x=0.0, y=0.0, z=0.0), angular=V3(x=0.0, y=0.0, z=0.0)),
+                covariance=np.zeros(36),
+            )  # fmt: skip
+            odom = T["nav_msgs/msg/Odometry"](header=h(t, "world"), child_frame_id="cf", pose=cov, twist=twist)
+            yield ("/odom", "nav_msgs/msg/Odometry", t, odom)
+            point = T["geometry_msgs/msg/PointStamped"](header=h(t, "world"), point=P(x=float(k), y=3.0, z=0.5))
+            yield ("/point", "geometry_msgs/msg/PointStamped", t, point)
+
+    bag = _ros2_bag(tmp_path / "b", lambda T, h: list(build(T, h)))
+    topics = [f"/uwb/anchor_{a}/range" for a in sorted(ANCHORS)]
+    ranges = {"topic": topics, "anchor": "topic", "anchor_pattern": r"anchor_(\d+)"}
+    with pytest.raises(QuadobsError, match=r"TFMessage needs child_frame"):
+        import_bag(bag, _map(ranges=ranges, truth={"topic": "/tf"}))
+    tf = import_bag(bag, _map(ranges=ranges, truth={"topic": "/tf", "child_frame": "cf"}))
+    np.testing.assert_allclose(tf.truth[:, 1], np.arange(10.0))
+    np.testing.assert_allclose(tf.truth[0, 4:], [math.cos(0.2), 0.0, 0.0, math.sin(0.2)])
+    odom = import_bag(bag, _map(ranges=ranges, truth={"topic": "/odom"}))
+    np.testing.assert_allclose(odom.truth[:, 1:4], np.column_stack([np.arange(10.0), np.full(10, 2.0), np.ones(10)]))
+    point = import_bag(bag, _map(ranges=ranges, truth={"topic": "/point"}))
+    assert point.truth_columns == ("time", "x", "y", "z") and point.truth.shape == (10, 4)
+
+
+@pytest.mark.parametrize(
+    "data, message",
+    [
+        ({"frame": "frd"}, "frame: expected 'enu' or 'ned'"),
+        ({"imu": {"topic": "/i", "attitude": "yes"}}, r"\[imu\]: attitude: expected true or false"),
+        ({"ranges": {"topic": "/r", "anchor_pattern": "anchor_"}}, "needs a group around the id"),
+        ({"ranges": {"topic": "/r", "anchor_pattern": "("}}, r"anchor_pattern '\(':"),
+        ({"ranges": {"topic": ["/r", "/r"]}}, "a list of distinct names"),
+        ({"ranges": {"topic": "/r", "time": "bag"}}, r"\[ranges\]: time: expected"),
+        ({"tdoa": {"topic": "/t", "sign": True}}, "sign: expected 1 or -1"),
+    ],
+)
+def test_a_topic_map_checks_the_type_of_each_key(data, message):
+    with pytest.raises(QuadobsError, match=message):
+        parse_topic_map(data)
+
+
+def test_an_empty_topic_and_a_std_of_zero(tmp_path):
+    def build(T, h):
+        for topic, msgtype, t, msg in _per_anchor(T, h, bad=False):
+            msg.field_of_view = 0.0  # a custom message's std field stands in: 0, "none stated"
+            yield topic, msgtype, t, msg
+
+    empty = [("/vicon/pose", "geometry_msgs/msg/PoseStamped")]
+    bag = _ros2_bag(tmp_path / "b", lambda T, h: list(build(T, h)), empty)
+    topics = [f"/uwb/anchor_{a}/range" for a in sorted(ANCHORS)]
+    ranges = {"topic": topics, "anchor": "topic", "std": "field_of_view"}
+    with pytest.raises(QuadobsError, match=r"no message on \[truth\] /vicon/pose"):
+        import_bag(bag, _map(ranges=ranges, truth={"topic": "/vicon/pose"}))
+    notes: list[str] = []
+    log = import_bag(bag, _map(ranges=ranges), notes)
+    assert np.all(np.isnan(log.range_std)) and "[ranges] 40 left out: std 0 or NaN: none stated" in notes

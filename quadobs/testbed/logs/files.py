@@ -228,10 +228,19 @@ def _python_values(
             try:
                 values[i, c] = float(text) if text or columns[c] not in spec.std else math.nan
             except ValueError:
+                what = (
+                    "an integer anchor id (number the anchors; a name may not stand for one)"
+                    if columns[c] in ID_COLUMNS
+                    else "a finite number"
+                )
                 raise QuadobsError(
-                    f"{path}, row {i + 2}, column {columns[c]}: {text!r} is not a finite number"
+                    f"{path}, row {i + 2}, column {columns[c]}: {text!r} is not {what}"
                 ) from None
     return values
+
+
+#: The columns that hold anchor ids (integers).
+ID_COLUMNS = ("id", "beacon", "anchor_i", "anchor_j")
 
 
 def _remove_dead_stages(target: Path) -> None:

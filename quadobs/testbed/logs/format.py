@@ -42,6 +42,7 @@ import csv
 import dataclasses
 import io
 import math
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -330,12 +331,7 @@ class RangeLog:
         for fname, columns, values in tables:
             if values.shape[0]:
                 check_values(f"{self.name}: {fname}", FILES[fname], columns, values)
-        times = [v[[0, -1], 0] for f, c, v in tables if f != "beacons.csv" and v.shape[0]]
-        if times and (span := float(np.ptp(np.concatenate(times)))) > MAX_SPAN:
-            raise QuadobsError(
-                f"{self.name}: the log spans {span:.3g} s, more than {MAX_SPAN:g} s: times must "
-                "be seconds on one clock in every file (nanoseconds: divide by 1e9)"
-            )
+        self._check_clocks(tables)
         if self.frame not in ("enu", "ned") or not (
             math.isfinite(self.gravity) and self.gravity > 0
         ):
@@ -353,6 +349,24 @@ class RangeLog:
         if self.anchor_heights is None:
             return columns, table
         return (*columns, "z"), np.column_stack([table, self.anchor_heights])
+
+    def _check_clocks(self, tables) -> None:
+        """Every file's times seconds on one clock: no file, and not all of them together,
+        spanning more than :data:`MAX_SPAN`."""
+        spans = {f: v[[0, -1], 0] for f, c, v in tables if f != "beacons.csv" and v.shape[0]}
+        if not spans or float(np.ptp(np.concatenate(list(spans.values())))) <= MAX_SPAN:
+            return
+        for fname, (a, b) in spans.items():
+            if b - a > MAX_SPAN:
+                raise QuadobsError(
+                    f"{self.name}: {fname} spans {b - a:.3g} s, more than {MAX_SPAN:g} s: "
+                    "times must be seconds (nanoseconds: divide by 1e9; milliseconds: by 1e3)"
+                )
+        starts = ", ".join(f"{f} from {a:.6g} s" for f, (a, b) in spans.items())
+        raise QuadobsError(
+            f"{self.name}: the files' times lie more than {MAX_SPAN:g} s apart ({starts}): "
+            "times must be seconds on one clock in every file"
+        )
 
     @property
     def dimension(self) -> int:
@@ -585,7 +599,18 @@ def read_log(folder: str | Path) -> RangeLog:
             tag_height=meta["tag_height"],
         )
     except QuadobsError as exc:  # name the folder's file, not the log's name
-        raise QuadobsError(str(exc).replace(f"{name}: ", f"{folder}/", 1)) from None
+        raise QuadobsError(_in_folder(str(exc), name, folder)) from None
+
+
+def _in_folder(message: str, name: str, folder) -> str:
+    """``message`` of the log ``name`` read from ``folder``: ``name: ranges.csv, ...`` as
+    ``folder/ranges.csv, ...``, any other ``name: ...`` as ``folder: ...``."""
+    head = f"{name}: "
+    if not message.startswith(head):
+        return message
+    rest = message[len(head) :]
+    first = re.split(r"[ ,:]", rest, maxsplit=1)[0]
+    return f"{folder}/{rest}" if first.endswith(".csv") else f"{folder}: {rest}"
 
 
 def _csv_text(header: list[str], values, ints: tuple[int, ...] = ()) -> str:

@@ -579,5 +579,25 @@ def _summary(
         "primary_estimator": names[0],
         "burn_in": merged.get("burn_in", 0.0),
         "tum": merged.get("tum"),
-        "estimators": merged.get("estimators", {}),
+        "anchor_extent": anchor_extent(log.beacons),
+        "estimators": _within_extent(merged.get("estimators", {}), anchor_extent(log.beacons)),
     }
+
+
+def anchor_extent(beacons: np.ndarray) -> float:
+    """The largest distance between two anchors (m): the scale of the field they cover."""
+    b = np.asarray(beacons, dtype=float)
+    return float(np.max(np.linalg.norm(b[:, None, :] - b[None, :, :], axis=2)))
+
+
+def _within_extent(estimators: dict, extent: float) -> dict:
+    """Each estimator's figures with ``within_extent``: whether its RMSE (after the burn-in) is
+    at most the anchors' extent (:func:`anchor_extent`). An error larger than the field the
+    anchors cover says the ranges do not hold the estimate (a filter run away short of the
+    divergence watch's 1e9 m, ranges in the wrong unit, a vehicle far outside its anchors).
+    None where no RMSE was measured or the anchors are one point."""
+    for e in estimators.values():
+        rmse = e.get("rmse")
+        ok = rmse is not None and math.isfinite(rmse) and not e.get("diverged") and extent > 0.0
+        e["within_extent"] = bool(rmse <= extent) if ok else None
+    return estimators

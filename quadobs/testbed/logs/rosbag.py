@@ -3,7 +3,8 @@
 ``rosbags`` (pure Python, the ``data`` extra) reads both bag formats and the message
 definitions stored in them, so custom range and TDOA messages need no ROS installation;
 this module only says which topic holds what and which fields to read. A *topic map*
-(:class:`TopicMap`, from a small TOML file or the command line) names up to four streams:
+(:class:`TopicMap`, from a small TOML file or the command line) names up to four streams,
+each from one topic or several (``topic = ["/uwb/anchor_1", "/uwb/anchor_2"]``):
 
 ==========  ======================================  ===========================================
 stream      message                                 written as
@@ -12,22 +13,43 @@ stream      message                                 written as
                                                     force) and ``angular_velocity``, body frame;
                                                     with ``attitude = true`` also ``orientation``
                                                     as ``attitude.csv``
-``truth``   ``geometry_msgs/PoseStamped`` or        ``truth.csv``: position and attitude
-            ``geometry_msgs/TransformStamped``
+``truth``   ``geometry_msgs/PoseStamped``,          ``truth.csv``: position and attitude (a
+            ``PoseWithCovarianceStamped``,          point: position only); ``/tf``: the
+            ``TransformStamped``, ``PointStamped``, transforms whose ``child_frame_id`` is
+            ``nav_msgs/Odometry`` or                ``child_frame`` (and whose
+            ``tf2_msgs/TFMessage``                  ``header.frame_id`` is ``parent_frame``,
+                                                    where given)
 ``ranges``  any message with an anchor id and a     ``ranges.csv``; fields ``anchor`` (default
-            range (e.g. ``sensor_msgs/Range``)      ``header.frame_id``, its last integer),
-                                                    ``value`` (default ``range``), ``std``
+            range (e.g. ``sensor_msgs/Range``)      ``header.frame_id``; ``"topic"``: the
+                                                    topic's name), ``value`` (default
+                                                    ``range``), ``std``
 ``tdoa``    any message with two anchor ids and a   ``tdoa.csv``; fields ``anchor_i`` (``idA``),
             difference (m)                          ``anchor_j`` (``idB``), ``value`` (``data``),
                                                     ``std``; ``sign = -1`` where the message
                                                     holds ``|p - a_j| - |p - a_i|``
 ==========  ======================================  ===========================================
 
+An anchor id is an integer field, or a number in a text field (a frame id, a topic's name):
+the one number it holds (``"anchor_12"``: 12), or the first group of ``anchor_pattern``, a
+regular expression (``'anchor_(\\d+)'`` for ``"anchor_3/antenna_1"``, which holds two and is
+refused without it; a group ``0x...`` is read as hexadecimal).
+
+Readings a message marks as none are left out and counted (the import's notes), not
+refused: a range, TDOA, IMU or truth value that is not finite (``sensor_msgs/Range`` gives
+``+inf`` or ``-inf`` for nothing in reach, NaN for a failed reading), and a
+``sensor_msgs/Range`` outside its ``[min_range, max_range]`` (where ``max_range >
+min_range``). A ``std`` field of 0 or NaN states no standard deviation (the estimator's
+default; a covariance of 0 is ROS's "unknown").
+
 The anchors' positions are not in the bags this targets: they come from a CSV file
 (``id,x,y[,z]``, as ``beacons.csv``) or a TOML table. Times are each message's header
 stamp (``time = "header"``, the default) or its receive time in the bag
-(``time = "receive"``), in seconds; each stream is sorted by time (stably). Quaternions
-(ROS order ``x, y, z, w``) are normalised; a zero one is refused.
+(``time = "receive"``), in seconds, for the whole map or per stream (a ``time`` key in the
+stream's table: an IMU stamped on its own boot clock); each stream is sorted by time
+(stably). A header stamp of zero (unset), a stream whose stamps do not overlap the ranges'
+(another clock), a mapped topic with no message and an anchor id not among the anchors are
+refused in one line. Quaternions (ROS order ``x, y, z, w``) are normalised; a zero one is
+refused.
 
 An example map (``quadobs import-bag BAG --out DIR --map map.toml``)::
 
@@ -58,14 +80,38 @@ from quadobs.testbed.logs.format import RangeLog
 __all__ = ["STREAMS", "TopicMap", "import_bag", "load_topic_map", "parse_topic_map"]
 
 #: The streams a topic map may name, and the fields each reads (with their defaults).
+#: The streams a topic map may name, and the keys of each beside ``topic`` (with their
+#: defaults; ``time`` None: the map's).
 STREAMS: dict[str, dict[str, Any]] = {
-    "imu": {"attitude": False},
-    "truth": {},
-    "ranges": {"anchor": "header.frame_id", "value": "range", "std": ""},
-    "tdoa": {"anchor_i": "idA", "anchor_j": "idB", "value": "data", "std": "", "sign": 1},
+    "imu": {"attitude": False, "time": None},
+    "truth": {"child_frame": "", "parent_frame": "", "time": None},
+    "ranges": {
+        "anchor": "header.frame_id",
+        "anchor_pattern": "",
+        "value": "range",
+        "std": "",
+        "time": None,
+    },
+    "tdoa": {
+        "anchor_i": "idA",
+        "anchor_j": "idB",
+        "anchor_pattern": "",
+        "value": "data",
+        "std": "",
+        "sign": 1,
+        "time": None,
+    },
 }
 _TOP_KEYS = ("name", "description", "frame", "gravity", "time", "anchors")
-_TRUTH_TYPES = ("geometry_msgs/msg/PoseStamped", "geometry_msgs/msg/TransformStamped")
+_TRUTH_TYPES = (
+    "geometry_msgs/msg/PoseStamped",
+    "geometry_msgs/msg/PoseWithCovarianceStamped",
+    "geometry_msgs/msg/TransformStamped",
+    "geometry_msgs/msg/PointStamped",
+    "nav_msgs/msg/Odometry",
+    "tf2_msgs/msg/TFMessage",
+)
+_TEXT_KEYS = ("anchor", "anchor_i", "anchor_j", "value", "std", "child_frame", "parent_frame")
 
 
 @dataclass(frozen=True)
@@ -75,12 +121,14 @@ class TopicMap:
     Attributes
     ----------
     streams : dict of str to dict
-        Per stream of :data:`STREAMS` present: ``topic`` and its fields.
+        Per stream of :data:`STREAMS` present: ``topic`` (a tuple of topic names), ``time``
+        and its fields.
     anchors : dict of int to tuple of float
         Anchor id to position (m).
     name, description, frame : str
     gravity : float
     time : {"header", "receive"}
+        The times of the streams whose table sets none.
     """
 
     streams: dict = field(default_factory=dict)
@@ -120,20 +168,66 @@ def _anchors(value, where: str, base: Path | None) -> dict:
     return out
 
 
+def _topics(value, where: str) -> tuple[str, ...]:
+    """A stream's ``topic``: one name or a non-empty list of distinct names."""
+    names = [value] if isinstance(value, str) else value
+    if (
+        not isinstance(names, list)
+        or not names
+        or not all(isinstance(n, str) and n for n in names)
+        or len(set(names)) != len(names)
+    ):
+        raise QuadobsError(f'{where}: expected topic = "/name" or a list of distinct names')
+    return tuple(names)
+
+
+def _check_stream(key: str, opts: dict, where: str) -> None:
+    """The types of a stream's keys (module docstring), each refused in one line."""
+    for name in _TEXT_KEYS:
+        if name in opts and not isinstance(opts[name], str):
+            raise QuadobsError(f"{where}: {name}: expected text (a field name)")
+    if not isinstance(opts.get("attitude", False), bool):
+        raise QuadobsError(f"{where}: attitude: expected true or false")
+    if opts.get("sign", 1) not in (1, -1) or isinstance(opts.get("sign"), bool):
+        raise QuadobsError(f"{where}: sign: expected 1 or -1")
+    if opts.get("time") not in (None, "header", "receive"):
+        raise QuadobsError(f"{where}: time: expected 'header' or 'receive', got {opts['time']!r}")
+    pattern = opts.get("anchor_pattern", "")
+    if not isinstance(pattern, str):
+        raise QuadobsError(f"{where}: anchor_pattern: expected a regular expression")
+    if pattern:
+        try:
+            groups = re.compile(pattern).groups
+        except re.error as exc:
+            raise QuadobsError(f"{where}: anchor_pattern {pattern!r}: {exc}") from None
+        if groups < 1:
+            raise QuadobsError(
+                f"{where}: anchor_pattern {pattern!r}: needs a group around the id, "
+                "e.g. 'anchor_(\\d+)'"
+            )
+
+
+def _stream(key: str, value, where: str) -> dict:
+    """A stream's table, checked, with its defaults."""
+    where = f"{where}: [{key}]"
+    if not isinstance(value, dict) or "topic" not in value:
+        raise QuadobsError(f'{where}: expected a table with topic = "/name"')
+    unknown = set(value) - {"topic", *STREAMS[key]}
+    if unknown:
+        raise QuadobsError(
+            f"{where}: unknown key {sorted(unknown)[0]!r} (known: topic, {', '.join(STREAMS[key])})"
+        )
+    opts = {**STREAMS[key], **value, "topic": _topics(value["topic"], where)}
+    _check_stream(key, opts, where)
+    return opts
+
+
 def parse_topic_map(data: dict, where: str = "topic map", base: Path | None = None) -> TopicMap:
     """A :class:`TopicMap` from its TOML document (module docstring); unknown keys refused."""
     streams, top = {}, {}
     for key, value in data.items():
         if key in STREAMS:
-            if not isinstance(value, dict) or not isinstance(value.get("topic"), str):
-                raise QuadobsError(f'{where}: [{key}]: expected a table with topic = "/name"')
-            unknown = set(value) - {"topic", *STREAMS[key]}
-            if unknown:
-                raise QuadobsError(
-                    f"{where}: [{key}]: unknown key {sorted(unknown)[0]!r} "
-                    f"(known: topic, {', '.join(STREAMS[key])})"
-                )
-            streams[key] = {**STREAMS[key], **value}
+            streams[key] = _stream(key, value, where)
         elif key in _TOP_KEYS:
             top[key] = value
         else:
@@ -141,15 +235,19 @@ def parse_topic_map(data: dict, where: str = "topic map", base: Path | None = No
             raise QuadobsError(f"{where}: unknown key {key!r} (known: {known})")
     if top.get("time", "header") not in ("header", "receive"):
         raise QuadobsError(f"{where}: time: expected 'header' or 'receive', got {top['time']!r}")
-    if "tdoa" in streams and streams["tdoa"]["sign"] not in (1, -1):
-        raise QuadobsError(f"{where}: [tdoa] sign: expected 1 or -1")
+    if top.get("frame", "enu") not in ("enu", "ned"):
+        raise QuadobsError(
+            f"{where}: frame: expected 'enu' or 'ned' (the navigation frame: z up or down; "
+            f"a body IMU's axes, FLU or FRD, need no setting), got {top['frame']!r}"
+        )
     if "anchors" in top:
         top["anchors"] = _anchors(top["anchors"], where, base)
-    for key in ("name", "description", "frame"):
+    for key in ("name", "description"):
         if key in top and not isinstance(top[key], str):
             raise QuadobsError(f"{where}: {key}: expected text")
     if "gravity" in top and not (
         isinstance(top["gravity"], int | float)
+        and not isinstance(top["gravity"], bool)
         and math.isfinite(top["gravity"])
         and top["gravity"] > 0
     ):
@@ -175,15 +273,21 @@ def load_topic_map(path: str | Path) -> TopicMap:
 
 
 def with_options(topic_map: TopicMap, topics=(), anchors=None, name=None) -> TopicMap:
-    """``topic_map`` with the command line's ``--topic STREAM=TOPIC``, ``--anchors FILE`` and ``--name``."""
+    """``topic_map`` with the command line's ``--topic STREAM=TOPIC`` (repeated for a stream:
+    its topics, in place of the map's), ``--anchors FILE`` and ``--name``."""
     streams = {k: dict(v) for k, v in topic_map.streams.items()}
+    given: dict[str, list[str]] = {}
     for item in topics:
         stream, sep, topic = item.partition("=")
         if not sep or stream not in STREAMS or not topic:
             raise QuadobsError(
                 f"--topic {item!r}: expected STREAM=TOPIC with STREAM one of {', '.join(STREAMS)}"
             )
-        streams[stream] = {**STREAMS[stream], **streams.get(stream, {}), "topic": topic}
+        if topic in given.setdefault(stream, []):
+            raise QuadobsError(f"--topic {item!r}: given twice")
+        given[stream].append(topic)
+    for stream, names in given.items():
+        streams[stream] = {**STREAMS[stream], **streams.get(stream, {}), "topic": tuple(names)}
     changes: dict = {"streams": streams}
     if anchors is not None:
         changes["anchors"] = _anchors(str(anchors), "--anchors", None)
@@ -202,116 +306,232 @@ def _field(msg, path: str, where: str):
     return obj
 
 
-def _anchor_id(value, where: str) -> int:
-    """An anchor id: an integer field, or the last integer in a text field (``"anchor_12"``: 12)."""
+def _anchor_id(value, pattern: str, where: str) -> int:
+    """An anchor id (module docstring): an integer field, or the number in a text field."""
     if isinstance(value, str):
-        digits = re.findall(r"\d+", value)
-        if not digits:
+        if pattern:
+            match = re.search(pattern, value)
+            if match is None or not match.group(1):
+                raise QuadobsError(f"{where}: anchor_pattern {pattern!r} finds no id in {value!r}")
+            text = match.group(1)
+            try:
+                return int(text, 16) if text.lower().startswith("0x") else int(text)
+            except ValueError:
+                raise QuadobsError(
+                    f"{where}: anchor_pattern {pattern!r} gives {text!r} of {value!r}, not an integer"
+                ) from None
+        numbers = re.findall(r"\d+", value)
+        if not numbers:
             raise QuadobsError(f"{where}: no anchor id in {value!r}")
-        return int(digits[-1])
+        if len(numbers) > 1:
+            raise QuadobsError(
+                f"{where}: {value!r} holds {len(numbers)} numbers: say which is the anchor's "
+                "with anchor_pattern, e.g. anchor_pattern = 'anchor_(\\d+)'"
+            )
+        return int(numbers[0])
     number = float(value)
     if not (math.isfinite(number) and number == round(number)):
         raise QuadobsError(f"{where}: anchor id {value!r} is not an integer")
     return int(number)
 
 
-def _quaternion(q, where: str) -> list[float]:
-    """``(qw, qx, qy, qz)`` normalised from a ROS quaternion ``(x, y, z, w)``."""
+def _quaternion(q, where: str) -> list[float] | None:
+    """``(qw, qx, qy, qz)`` normalised from a ROS quaternion ``(x, y, z, w)``; None where it is
+    not finite (no reading)."""
     v = np.array([q.w, q.x, q.y, q.z], dtype=float)
     norm = float(np.linalg.norm(v))
-    if not (math.isfinite(norm) and norm > 0.0):
+    if not math.isfinite(norm):
+        return None
+    if not norm > 0.0:
         raise QuadobsError(f"{where}: not a rotation (quaternion of norm {norm:g})")
     return list(v / norm)
 
 
-def _imu_rows(msg, t: float, opts: dict, out: dict, where: str) -> None:
+@dataclass
+class _Reading:
+    """What the messages of one bag give: rows per table, readings left out by reason, and
+    the times of each message (:meth:`time_of`)."""
+
+    receive: float = 0.0
+    header: bool = True
+    rows: dict = field(
+        default_factory=lambda: {k: [] for k in ("imu", "attitude", "truth", "ranges", "tdoa")}
+    )
+    left_out: dict = field(default_factory=dict)
+    no_attitude: int = 0
+
+    def time_of(self, msg, where: str) -> float:
+        """The message's header stamp (s) or its receive time, as the stream's ``time`` says."""
+        if not self.header:
+            return self.receive
+        stamp = _field(msg, "header.stamp", where + ' (use time = "receive")')
+        if stamp.sec == 0 and stamp.nanosec == 0:
+            raise QuadobsError(f'{where}: header stamp unset (0 s): use time = "receive"')
+        return stamp.sec + stamp.nanosec * 1e-9
+
+    def leave_out(self, stream: str, reason: str) -> None:
+        key = (stream, reason)
+        self.left_out[key] = self.left_out.get(key, 0) + 1
+
+
+def _finite(values) -> bool:
+    return all(math.isfinite(v) for v in values)
+
+
+def _imu_rows(msg, opts: dict, read: _Reading, where: str) -> None:
     a, w = msg.linear_acceleration, msg.angular_velocity
-    out["imu"].append([t, a.x, a.y, a.z, w.x, w.y, w.z])
-    if opts["attitude"] and msg.orientation_covariance[0] != -1.0:  # -1: no orientation (ROS)
-        out["attitude"].append([t, *_quaternion(msg.orientation, where)])
+    row = [float(v) for v in (a.x, a.y, a.z, w.x, w.y, w.z)]
+    if not _finite(row):
+        read.leave_out("imu", "not finite")
+        return
+    t = read.time_of(msg, where)
+    read.rows["imu"].append([t, *row])
+    if opts["attitude"]:
+        if msg.orientation_covariance[0] == -1.0:  # -1: no orientation (ROS)
+            read.no_attitude += 1
+            return
+        q = _quaternion(msg.orientation, where)
+        if q is not None:
+            read.rows["attitude"].append([t, *q])
 
 
-def _truth_rows(msg, t: float, opts: dict, out: dict, where: str) -> None:
+def _pose_of(msg, opts: dict) -> list:
+    """``[(header holder, position, orientation or None), ...]`` of a truth message."""
+    if hasattr(msg, "transforms"):  # tf2_msgs/TFMessage: the transforms of the child frame
+        return [
+            (tf, tf.transform.translation, tf.transform.rotation)
+            for tf in msg.transforms
+            if tf.child_frame_id == opts["child_frame"]
+            and (not opts["parent_frame"] or tf.header.frame_id == opts["parent_frame"])
+        ]
     if hasattr(msg, "transform"):
-        p, q = msg.transform.translation, msg.transform.rotation
-    else:
-        p, q = msg.pose.position, msg.pose.orientation
-    out["truth"].append([t, p.x, p.y, p.z, *_quaternion(q, where)])
+        return [(msg, msg.transform.translation, msg.transform.rotation)]
+    if hasattr(msg, "point"):
+        return [(msg, msg.point, None)]
+    pose = msg.pose.pose if hasattr(msg.pose, "pose") else msg.pose  # Odometry, with covariance
+    return [(msg, pose.position, pose.orientation)]
 
 
-def _std(msg, opts: dict, where: str) -> float:
+def _truth_rows(msg, opts: dict, read: _Reading, where: str) -> None:
+    for holder, p, q in _pose_of(msg, opts):
+        position = [float(p.x), float(p.y), float(p.z)]
+        attitude = [math.nan] * 4 if q is None else _quaternion(q, where)
+        if attitude is None or not _finite(position):
+            read.leave_out("truth", "not finite")
+            continue
+        read.rows["truth"].append([read.time_of(holder, where), *position, *attitude])
+
+
+def _std(msg, opts: dict, read: _Reading, stream: str, where: str) -> float:
+    """The field ``std`` where given: 0 or NaN states none (NaN, counted)."""
     if not opts["std"]:
         return math.nan
     s = float(_field(msg, opts["std"], where))
+    if s == 0.0 or math.isnan(s):
+        read.leave_out(stream, "std 0 or NaN: none stated")
+        return math.nan
     if not (math.isfinite(s) and s > 0.0):
         raise QuadobsError(f"{where}: std {s!r} is not a positive standard deviation")
     return s
 
 
-def _range_rows(msg, t: float, opts: dict, out: dict, where: str) -> None:
-    anchor = _anchor_id(_field(msg, opts["anchor"], where), where)
+def _out_of_reach(msg, value: float) -> bool:
+    """A ``sensor_msgs/Range`` outside its ``[min_range, max_range]`` (where those are set)."""
+    lo, hi = (float(getattr(msg, k, math.nan)) for k in ("min_range", "max_range"))
+    return math.isfinite(lo) and math.isfinite(hi) and hi > lo and not lo <= value <= hi
+
+
+def _range_rows(msg, opts: dict, read: _Reading, where: str, topic: str) -> None:
     value = float(_field(msg, opts["value"], where))
-    out["ranges"].append([t, anchor, value, _std(msg, opts, where)])
+    if not math.isfinite(value):
+        read.leave_out("ranges", "not finite (no reading)")
+        return
+    if opts["value"] == "range" and _out_of_reach(msg, value):
+        read.leave_out("ranges", "outside min_range..max_range")
+        return
+    text = topic if opts["anchor"] == "topic" else _field(msg, opts["anchor"], where)
+    anchor = _anchor_id(text, opts["anchor_pattern"], where)
+    std = _std(msg, opts, read, "ranges", where)
+    read.rows["ranges"].append([read.time_of(msg, where), anchor, value, std])
 
 
-def _tdoa_rows(msg, t: float, opts: dict, out: dict, where: str) -> None:
-    i = _anchor_id(_field(msg, opts["anchor_i"], where), where)
-    j = _anchor_id(_field(msg, opts["anchor_j"], where), where)
+def _tdoa_rows(msg, opts: dict, read: _Reading, where: str, topic: str) -> None:
     value = opts["sign"] * float(_field(msg, opts["value"], where))
-    out["tdoa"].append([t, i, j, value, _std(msg, opts, where)])
-
-
-_READERS = {"imu": _imu_rows, "truth": _truth_rows, "ranges": _range_rows, "tdoa": _tdoa_rows}
+    if not math.isfinite(value):
+        read.leave_out("tdoa", "not finite (no reading)")
+        return
+    i, j = (
+        _anchor_id(_field(msg, opts[k], where), opts["anchor_pattern"], where)
+        for k in ("anchor_i", "anchor_j")
+    )
+    std = _std(msg, opts, read, "tdoa", where)
+    read.rows["tdoa"].append([read.time_of(msg, where), i, j, value, std])
 
 
 def _check_types(connections: dict, streams: dict, bag: str) -> None:
-    """Every stream's topic in the bag, with a message type it can be read as."""
+    """Every stream's topics in the bag, with a message type it can be read as."""
     for stream, opts in streams.items():
-        conn = connections.get(opts["topic"])
-        if conn is None:
-            raise QuadobsError(
-                f"{bag}: [{stream}] topic {opts['topic']!r} is not in the bag "
-                f"(topics: {', '.join(sorted(connections)) or 'none'})"
-            )
-        if stream == "imu" and not conn.msgtype.endswith("/Imu"):
-            raise QuadobsError(
-                f"{bag}: [imu] {opts['topic']}: {conn.msgtype}, expected sensor_msgs/Imu"
-            )
-        if stream == "truth" and conn.msgtype not in _TRUTH_TYPES:
-            raise QuadobsError(
-                f"{bag}: [truth] {opts['topic']}: {conn.msgtype}, expected {' or '.join(_TRUTH_TYPES)}"
-            )
+        for topic in opts["topic"]:
+            conn = connections.get(topic)
+            if conn is None:
+                raise QuadobsError(
+                    f"{bag}: [{stream}] topic {topic!r} is not in the bag "
+                    f"(topics: {', '.join(sorted(connections)) or 'none'})"
+                )
+            if stream == "imu" and not conn.msgtype.endswith("/Imu"):
+                raise QuadobsError(
+                    f"{bag}: [imu] {topic}: {conn.msgtype}, expected sensor_msgs/Imu"
+                )
+            if stream == "truth" and conn.msgtype not in _TRUTH_TYPES:
+                raise QuadobsError(
+                    f"{bag}: [truth] {topic}: {conn.msgtype}, expected one of {', '.join(_TRUTH_TYPES)}"
+                )
+            if (
+                stream == "truth"
+                and conn.msgtype.endswith("/TFMessage")
+                and not opts["child_frame"]
+            ):
+                raise QuadobsError(
+                    f'{bag}: [truth] {topic}: a tf2_msgs/TFMessage needs child_frame = "the body\'s frame"'
+                )
 
 
-def _read_bag(bag: Path, topic_map: TopicMap) -> dict[str, list]:
-    """The rows of every stream, in the bag's order."""
+def _read_bag(bag: Path, topic_map: TopicMap) -> _Reading:
+    """The rows of every stream, in the bag's order, each message numbered on its topic."""
     from rosbags.highlevel import AnyReader
 
-    out: dict[str, list] = {k: [] for k in ("imu", "attitude", "truth", "ranges", "tdoa")}
-    by_topic = {opts["topic"]: (s, opts) for s, opts in topic_map.streams.items()}
-    header = topic_map.time == "header"
+    read = _Reading()
+    by_topic = {t: (s, opts) for s, opts in topic_map.streams.items() for t in opts["topic"]}
+    counts = dict.fromkeys(by_topic, 0)
     try:
         with AnyReader([bag]) as reader:
-            conns = {c.topic: c for c in reader.connections}
-            _check_types(conns, topic_map.streams, str(bag))
+            _check_types({c.topic: c for c in reader.connections}, topic_map.streams, str(bag))
             wanted = [c for c in reader.connections if c.topic in by_topic]
-            for n, (conn, t_ns, raw) in enumerate(reader.messages(connections=wanted)):
+            for conn, t_ns, raw in reader.messages(connections=wanted):
                 stream, opts = by_topic[conn.topic]
-                where = f"{bag}: [{stream}] {conn.topic}, message {n + 1}"
+                counts[conn.topic] += 1
+                where = f"{bag}: [{stream}] {conn.topic}, message {counts[conn.topic]}"
                 msg = reader.deserialize(raw, conn.msgtype)
-                if header:
-                    stamp = _field(msg, "header.stamp", where + ' (use time = "receive")')
-                    t = stamp.sec + stamp.nanosec * 1e-9
+                read.receive = t_ns * 1e-9
+                read.header = (opts["time"] or topic_map.time) == "header"
+                if stream in ("ranges", "tdoa"):
+                    _READ_MEASUREMENT[stream](msg, opts, read, where, conn.topic)
                 else:
-                    t = t_ns * 1e-9
-                _READERS[stream](msg, t, opts, out, where)
+                    _READ_STATE[stream](msg, opts, read, where)
     except QuadobsError:
         raise
     except Exception as exc:  # rosbags' errors: not a bag, a broken one, an unknown message type
         raise QuadobsError(
             f"{bag}: cannot be read as a ROS bag ({type(exc).__name__}: {exc})"
         ) from None
-    return out
+    empty = [f"[{by_topic[t][0]}] {t}" for t, n in counts.items() if n == 0]
+    if empty:
+        raise QuadobsError(f"{bag}: no message on {', '.join(empty)}")
+    return read
+
+
+_READ_STATE = {"imu": _imu_rows, "truth": _truth_rows}
+_READ_MEASUREMENT = {"ranges": _range_rows, "tdoa": _tdoa_rows}
 
 
 def _table(rows: list, width: int) -> np.ndarray:
@@ -320,15 +540,72 @@ def _table(rows: list, width: int) -> np.ndarray:
     return a[np.argsort(a[:, 0], kind="stable")]
 
 
-def import_bag(bag: str | Path, topic_map: TopicMap) -> RangeLog:
+def _check_clocks(bag: Path, tables: dict) -> None:
+    """Every stream's times overlap the ranges' and TDOA's: one clock (module docstring)."""
+    measured = [t[:, 0] for k, t in tables.items() if k in ("ranges", "tdoa") and t.shape[0]]
+    if not measured:
+        return
+    lo = min(float(t.min()) for t in measured)
+    hi = max(float(t.max()) for t in measured)
+    for stream, table in tables.items():
+        if stream in ("ranges", "tdoa") or table is None or not table.shape[0]:
+            continue
+        a, b = float(table[0, 0]), float(table[-1, 0])
+        if b < lo or a > hi:
+            raise QuadobsError(
+                f"{bag}: [{stream}] stamps {a:.6g} to {b:.6g} s, the ranges' {lo:.6g} to "
+                f'{hi:.6g} s: not one clock (time = "receive" in [{stream}] takes the bag\'s)'
+            )
+
+
+def _check_anchor_ids(bag: Path, topic_map: TopicMap, ranges, tdoa, notes) -> None:
+    """Every id the measurements name among the anchors; anchors that none names noted."""
+    named = set(ranges[:, 1].astype(np.int64)) | set(tdoa[:, 1:3].astype(np.int64).ravel())
+    unknown = sorted(named - set(topic_map.anchors))
+    if unknown:
+        raise QuadobsError(
+            f"{bag}: anchor id {', '.join(map(str, unknown[:5]))} not among the anchors "
+            f"({', '.join(map(str, sorted(topic_map.anchors)))}): check the anchors, or the "
+            "field the id is read from (anchor, anchor_pattern)"
+        )
+    silent = sorted(set(topic_map.anchors) - named)
+    if silent and notes is not None:
+        notes.append(
+            f"anchors that no range or TDOA names: {', '.join(map(str, silent))} "
+            "(check the field the id is read from)"
+        )
+
+
+def _notes_of(read: _Reading, topic_map: TopicMap, notes) -> None:
+    if notes is None:
+        return
+    for (stream, reason), n in sorted(read.left_out.items()):
+        notes.append(f"[{stream}] {n} left out: {reason}")
+    if read.no_attitude:
+        notes.append(
+            f"[imu] attitude = true, and {read.no_attitude} messages hold no orientation "
+            "(orientation_covariance[0] = -1): no attitude.csv from them"
+        )
+
+
+def import_bag(bag: str | Path, topic_map: TopicMap, notes: list | None = None) -> RangeLog:
     """Read a ROS 1 (``.bag``) or ROS 2 (a folder) bag into a :class:`RangeLog` (module docstring).
+
+    Parameters
+    ----------
+    bag : str or Path
+    topic_map : TopicMap
+    notes : list, optional
+        Where given, lines are appended saying what was left out and why, and which anchors
+        no measurement names.
 
     Raises
     ------
     QuadobsError
-        No anchors, no ranges or TDOA stream, a topic missing or of the wrong type, a
-        field missing, or a value the format refuses: one line naming the bag, the stream,
-        the topic and the message.
+        No anchors, no ranges or TDOA stream, a topic missing, empty or of the wrong type, a
+        field missing, a stamp unset, streams on different clocks, an anchor id not among the
+        anchors, or a value the format refuses: one line naming the bag, the stream, the topic
+        and the message.
     """
     bag = Path(bag)
     if not bag.exists():
@@ -341,12 +618,20 @@ def import_bag(bag: str | Path, topic_map: TopicMap) -> RangeLog:
     if len(dims) != 1:
         raise QuadobsError("anchors: all with z or all without")
     dim = dims.pop()
-    rows = _read_bag(bag, topic_map)
+    read = _read_bag(bag, topic_map)
+    rows = read.rows
     ids = np.array(sorted(topic_map.anchors), dtype=np.int64)
     ranges, tdoa = _table(rows["ranges"], 4), _table(rows["tdoa"], 5)
     has_imu = "imu" in topic_map.streams
+    imu = _table(rows["imu"], 7) if has_imu else np.empty((0, 1))
     truth = _table(rows["truth"], 8) if "truth" in topic_map.streams else None
-    truth_columns = ("time", *"xyz"[:dim], "qw", "qx", "qy", "qz")
+    attitude = _table(rows["attitude"], 5) if rows["attitude"] else None
+    _check_clocks(bag, {"ranges": ranges, "tdoa": tdoa, "imu": imu, "truth": truth})
+    _check_anchor_ids(bag, topic_map, ranges, tdoa, notes)
+    _notes_of(read, topic_map, notes)
+    truth_columns: tuple = ("time", *"xyz"[:dim], "qw", "qx", "qy", "qz")
+    if truth is not None and np.isnan(truth[:, 4:]).any():  # points: no attitude
+        truth, truth_columns = truth[:, :4], truth_columns[: 1 + dim]
     if truth is not None and dim == 2:
         truth = np.delete(truth, 3, axis=1)  # a planar log: no z
     return RangeLog(
@@ -354,7 +639,7 @@ def import_bag(bag: str | Path, topic_map: TopicMap) -> RangeLog:
         ids,
         np.array([topic_map.anchors[i] for i in ids]),
         ranges[:, :3],
-        _table(rows["imu"], 7) if has_imu else np.empty((0, 1)),
+        imu,
         math.nan,
         truth if truth is not None and truth.shape[0] else None,
         input_kind="imu_body" if has_imu else "none",
@@ -362,7 +647,7 @@ def import_bag(bag: str | Path, topic_map: TopicMap) -> RangeLog:
         range_std=ranges[:, 3],
         tdoa=tdoa[:, :4],
         tdoa_std=tdoa[:, 4],
-        attitude=_table(rows["attitude"], 5) if rows["attitude"] else None,
+        attitude=attitude,
         frame=topic_map.frame,
         gravity=topic_map.gravity,
         description=topic_map.description,
