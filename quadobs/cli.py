@@ -1045,7 +1045,9 @@ def _cmd_replay(args) -> int:
     started = time.perf_counter()
     log = _replay_clock_offset(args, log, dict(options))
     biases, tuning = _replay_calibration(args, log, dict(options))
-    if getattr(args, "calibration_report", None) is not None:  # the summary's wall_time is the replay's
+    if (
+        getattr(args, "calibration_report", None) is not None
+    ):  # the summary's wall_time is the replay's
         args.calibration_report["seconds"] = time.perf_counter() - started
     stop_if_interrupted()
     summary = run_replay(
@@ -1288,7 +1290,7 @@ def _add_import_bag(sub) -> None:
 
     p = sub.add_parser(
         "import-bag",
-        help="import a ROS 1 or ROS 2 bag (IMU, pose truth, ranges, TDOA) as a log folder for 'quadobs replay'",
+        help="import a ROS 1 or ROS 2 bag (IMU or wheel odometry, pose truth, ranges, TDOA) as a log folder for 'quadobs replay'",
     )
     p.add_argument("bag", type=Path, help="a ROS 1 .bag file or a ROS 2 bag folder")
     p.add_argument(
@@ -1302,7 +1304,7 @@ def _add_import_bag(sub) -> None:
         action="append",
         default=[],
         metavar="STREAM=TOPIC",
-        help="a stream's topic (imu, truth, ranges, tdoa); repeated for one stream: each of its "
+        help="a stream's topic (imu, odometry, truth, ranges, tdoa); repeated for one stream: each of its "
         "topics (e.g. one per anchor); over the --map file's",
     )
     p.add_argument("--anchors", type=Path, help="anchor positions: a CSV file id,x,y[,z]")

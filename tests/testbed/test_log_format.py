@@ -246,6 +246,11 @@ def test_a_version_1_log_still_reads_and_version_2_parts_ask_for_the_version(tmp
         ("truth.csv", "time,x,y,qw\n0,1,1,1\n", "truth.csv, row 1: the attitude needs all of"),
         ("beacons.csv", "id,x,y\nA1,0,0\n1,10,0\n", "column id: 'A1' is not an integer anchor id"),
         (
+            "ranges.csv",
+            "time,beacon,range,rssi\n0.5,0,3,-80\n",
+            "'rssi' not a column of the format (leave it out)",
+        ),
+        (
             "imu.csv",
             "time,ax,ay,az,gx,gy,gz\n0,0,0,9.8,0,0,0\n",
             "imu.csv: a log holds inputs.csv or imu.csv, not both",

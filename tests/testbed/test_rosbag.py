@@ -396,9 +396,13 @@ def test_truth_from_tf_odometry_and_points(tmp_path):
                 twist=T["geometry_msgs/msg/Twist"](linear=V3(x=0.0, y=0.0, z=0.0), angular=V3(x=0.0, y=0.0, z=0.0)),
                 covariance=np.zeros(36),
             )  # fmt: skip
-            odom = T["nav_msgs/msg/Odometry"](header=h(t, "world"), child_frame_id="cf", pose=cov, twist=twist)
+            odom = T["nav_msgs/msg/Odometry"](
+                header=h(t, "world"), child_frame_id="cf", pose=cov, twist=twist
+            )
             yield ("/odom", "nav_msgs/msg/Odometry", t, odom)
-            point = T["geometry_msgs/msg/PointStamped"](header=h(t, "world"), point=P(x=float(k), y=3.0, z=0.5))
+            point = T["geometry_msgs/msg/PointStamped"](
+                header=h(t, "world"), point=P(x=float(k), y=3.0, z=0.5)
+            )
             yield ("/point", "geometry_msgs/msg/PointStamped", t, point)
 
     bag = _ros2_bag(tmp_path / "b", lambda T, h: list(build(T, h)))
@@ -410,7 +414,9 @@ def test_truth_from_tf_odometry_and_points(tmp_path):
     np.testing.assert_allclose(tf.truth[:, 1], np.arange(10.0))
     np.testing.assert_allclose(tf.truth[0, 4:], [math.cos(0.2), 0.0, 0.0, math.sin(0.2)])
     odom = import_bag(bag, _map(ranges=ranges, truth={"topic": "/odom"}))
-    np.testing.assert_allclose(odom.truth[:, 1:4], np.column_stack([np.arange(10.0), np.full(10, 2.0), np.ones(10)]))
+    np.testing.assert_allclose(
+        odom.truth[:, 1:4], np.column_stack([np.arange(10.0), np.full(10, 2.0), np.ones(10)])
+    )
     point = import_bag(bag, _map(ranges=ranges, truth={"topic": "/point"}))
     assert point.truth_columns == ("time", "x", "y", "z") and point.truth.shape == (10, 4)
 
@@ -446,4 +452,56 @@ def test_an_empty_topic_and_a_std_of_zero(tmp_path):
         import_bag(bag, _map(ranges=ranges, truth={"topic": "/vicon/pose"}))
     notes: list[str] = []
     log = import_bag(bag, _map(ranges=ranges), notes)
-    assert np.all(np.isnan(log.range_std)) and "[ranges] 40 left out: std 0 or NaN: none stated" in notes
+    assert (
+        np.all(np.isnan(log.range_std))
+        and "[ranges] 40 left out: std 0 or NaN: none stated" in notes
+    )
+
+
+def test_wheel_odometry_from_odometry_messages_makes_a_planar_log(tmp_path):
+    planar = {3: (0.0, 0.0), 7: (6.0, 0.0), 11: (6.0, 5.0), 12: (0.0, 5.0)}
+
+    def build(T, h):
+        V3, Q, P = (T[f"geometry_msgs/msg/{n}"] for n in ("Vector3", "Quaternion", "Point"))
+        for k in range(40):
+            t = T0 + 0.05 * k
+            yaw = 0.3 + 0.2 * (t - T0)
+            q = Q(x=0.0, y=0.0, z=math.sin(yaw / 2), w=math.cos(yaw / 2))
+            pose = T["geometry_msgs/msg/Pose"](
+                position=P(x=1.0 + 0.1 * k, y=2.0, z=0.0), orientation=q
+            )
+            twist = T["geometry_msgs/msg/Twist"](
+                linear=V3(x=0.4, y=0.0, z=0.0), angular=V3(x=0.0, y=0.0, z=0.2)
+            )
+            odom = T["nav_msgs/msg/Odometry"](
+                header=h(t, "odom"), child_frame_id="base_link",
+                pose=T["geometry_msgs/msg/PoseWithCovariance"](pose=pose, covariance=np.zeros(36)),
+                twist=T["geometry_msgs/msg/TwistWithCovariance"](twist=twist, covariance=np.zeros(36)),
+            )  # fmt: skip
+            yield ("/odom", "nav_msgs/msg/Odometry", t, odom)
+            truth = T["geometry_msgs/msg/PoseStamped"](header=h(t, "world"), pose=pose)
+            yield ("/vicon/pose", "geometry_msgs/msg/PoseStamped", t, truth)
+            a = sorted(planar)[k % 4]
+            yield (
+                "/uwb/range",
+                "sensor_msgs/msg/Range",
+                t + 0.01,
+                _range(T, h, t + 0.01, f"anchor_{a}", 2.0),
+            )
+
+    bag = _ros2_bag(tmp_path / "b", lambda T, h: list(build(T, h)))
+    streams = {"ranges": {"topic": "/uwb/range"}, "odometry": {"topic": "/odom"}}
+    streams["truth"] = {"topic": "/vicon/pose"}
+    anchors = {str(k): list(v) for k, v in planar.items()}
+    with pytest.raises(QuadobsError, match=r"\[odometry\] needs heading0"):
+        import_bag(bag, parse_topic_map({"anchors": anchors, **streams}))
+    both = {**streams, "imu": {"topic": "/odom"}}
+    with pytest.raises(QuadobsError, match=r"\[imu\] and \[odometry\]: a log holds one kind"):
+        import_bag(bag, parse_topic_map({"anchors": anchors, "heading0": 0.3, **both}))
+    log = import_bag(bag, parse_topic_map({"anchors": anchors, "heading0": 0.3, **streams}))
+    assert (log.input_kind, log.dimension, log.heading0) == ("odometry", 2, 0.3)
+    np.testing.assert_allclose(log.inputs[:, 1:], [[0.4, 0.2]] * 40)
+    assert log.truth_columns == ("time", "x", "y", "heading")
+    np.testing.assert_allclose(log.truth[:, 3], 0.3 + 0.2 * (log.truth[:, 0] - T0), atol=1e-9)
+    back = read_log(write_log(log, tmp_path / "log"))
+    assert back.input_kind == "odometry" and back.inputs.shape == (40, 3)

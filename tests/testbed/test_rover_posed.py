@@ -356,6 +356,9 @@ def test_the_head_line_says_whether_the_stated_heights_are_used(tmp_path, capsys
         "anchors' heights stated without meta.csv tag_height: not used" in capsys.readouterr().out
     )
     write_log(replace(log, anchor_heights=[2.3, 0.3, 1.8, 1.1], tag_height=0.25), folder)
-    for tune, word in ((), "used by ukf-height-lever ("), (("--tune", "stated_heights=0"), "set aside\n"):
+    for tune, word in (
+        ((), "used by ukf-height-lever ("),
+        (("--tune", "stated_heights=0"), "set aside\n"),
+    ):
         assert main([*base, *tune]) == 0
         assert f"the tag at 0.25 m: {word}" in capsys.readouterr().out

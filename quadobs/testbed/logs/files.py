@@ -153,6 +153,10 @@ def read_table(
     if columns is None:
         newer = spec.columns_of(header, 2) if version < 2 else None
         hint = "; add the row version,2 to meta.csv" if newer else ""
+        known = {c for variant in spec.variants for c in variant} | set(spec.optional)
+        unknown = [h for h in header if h not in known]
+        if unknown and not newer:
+            hint = f"; {', '.join(map(repr, unknown))} not a column of the format (leave it out)"
         raise QuadobsError(
             f"{path}, row 1: header {','.join(header)!r}; expected {spec.described}{hint}"
         )

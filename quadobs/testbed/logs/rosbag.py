@@ -3,31 +3,35 @@
 ``rosbags`` (pure Python, the ``data`` extra) reads both bag formats and the message
 definitions stored in them, so custom range and TDOA messages need no ROS installation;
 this module only says which topic holds what and which fields to read. A *topic map*
-(:class:`TopicMap`, from a small TOML file or the command line) names up to four streams,
+(:class:`TopicMap`, from a small TOML file or the command line) names up to five streams,
 each from one topic or several (``topic = ["/uwb/anchor_1", "/uwb/anchor_2"]``):
 
-==========  ======================================  ===========================================
-stream      message                                 written as
-==========  ======================================  ===========================================
-``imu``     ``sensor_msgs/Imu``                     ``imu.csv``: ``linear_acceleration`` (specific
-                                                    force) and ``angular_velocity``, body frame;
-                                                    with ``attitude = true`` also ``orientation``
-                                                    as ``attitude.csv``
-``truth``   ``geometry_msgs/PoseStamped``,          ``truth.csv``: position and attitude (a
-            ``PoseWithCovarianceStamped``,          point: position only); ``/tf``: the
-            ``TransformStamped``, ``PointStamped``, transforms whose ``child_frame_id`` is
-            ``nav_msgs/Odometry`` or                ``child_frame`` (and whose
-            ``tf2_msgs/TFMessage``                  ``header.frame_id`` is ``parent_frame``,
-                                                    where given)
-``ranges``  any message with an anchor id and a     ``ranges.csv``; fields ``anchor`` (default
-            range (e.g. ``sensor_msgs/Range``)      ``header.frame_id``; ``"topic"``: the
-                                                    topic's name), ``value`` (default
-                                                    ``range``), ``std``
-``tdoa``    any message with two anchor ids and a   ``tdoa.csv``; fields ``anchor_i`` (``idA``),
-            difference (m)                          ``anchor_j`` (``idB``), ``value`` (``data``),
-                                                    ``std``; ``sign = -1`` where the message
-                                                    holds ``|p - a_j| - |p - a_i|``
-==========  ======================================  ===========================================
+============  ======================================  ===========================================
+stream        message                                 written as
+============  ======================================  ===========================================
+``imu``       ``sensor_msgs/Imu``                     ``imu.csv``: ``linear_acceleration`` (specific
+                                                      force) and ``angular_velocity``, body frame;
+                                                      with ``attitude = true`` also ``orientation``
+                                                      as ``attitude.csv``
+``odometry``  ``nav_msgs/Odometry`` or                ``inputs.csv``: ``twist.linear.x`` (speed) and
+              ``geometry_msgs/TwistStamped``          ``twist.angular.z`` (yaw rate), a wheeled
+                                                      robot's (with ``heading0``, the heading at
+                                                      the first message in the anchors' frame)
+``truth``     ``geometry_msgs/PoseStamped``,          ``truth.csv``: position and attitude (a
+              ``PoseWithCovarianceStamped``,          point: position only); ``/tf``: the
+              ``TransformStamped``,                   transforms whose ``child_frame_id`` is
+              ``PointStamped``,                       ``child_frame`` (and whose
+              ``nav_msgs/Odometry`` or                ``header.frame_id`` is ``parent_frame``,
+              ``tf2_msgs/TFMessage``                  where given)
+``ranges``    any message with an anchor id and a     ``ranges.csv``; fields ``anchor`` (default
+              range (e.g. ``sensor_msgs/Range``)      ``header.frame_id``; ``"topic"``: the
+                                                      topic's name), ``value`` (default
+                                                      ``range``), ``std``
+``tdoa``      any message with two anchor ids and a   ``tdoa.csv``; fields ``anchor_i`` (``idA``),
+              difference (m)                          ``anchor_j`` (``idB``), ``value`` (``data``),
+                                                      ``std``; ``sign = -1`` where the message
+                                                      holds ``|p - a_j| - |p - a_i|``
+============  ======================================  ===========================================
 
 An anchor id is an integer field, or a number in a text field (a frame id, a topic's name):
 the one number it holds (``"anchor_12"``: 12), or the first group of ``anchor_pattern``, a
@@ -84,6 +88,7 @@ __all__ = ["STREAMS", "TopicMap", "import_bag", "load_topic_map", "parse_topic_m
 #: defaults; ``time`` None: the map's).
 STREAMS: dict[str, dict[str, Any]] = {
     "imu": {"attitude": False, "time": None},
+    "odometry": {"time": None},
     "truth": {"child_frame": "", "parent_frame": "", "time": None},
     "ranges": {
         "anchor": "header.frame_id",
@@ -102,7 +107,8 @@ STREAMS: dict[str, dict[str, Any]] = {
         "time": None,
     },
 }
-_TOP_KEYS = ("name", "description", "frame", "gravity", "time", "anchors")
+_TOP_KEYS = ("name", "description", "frame", "gravity", "time", "anchors", "heading0")
+_ODOMETRY_TYPES = ("nav_msgs/msg/Odometry", "geometry_msgs/msg/TwistStamped")
 _TRUTH_TYPES = (
     "geometry_msgs/msg/PoseStamped",
     "geometry_msgs/msg/PoseWithCovarianceStamped",
@@ -129,6 +135,8 @@ class TopicMap:
     gravity : float
     time : {"header", "receive"}
         The times of the streams whose table sets none.
+    heading0 : float
+        With wheel odometry: the heading (rad) at its first row, in the anchors' frame.
     """
 
     streams: dict = field(default_factory=dict)
@@ -138,6 +146,7 @@ class TopicMap:
     frame: str = "enu"
     gravity: float = 9.80665
     time: str = "header"
+    heading0: float = math.nan
 
 
 def _anchors(value, where: str, base: Path | None) -> dict:
@@ -252,6 +261,12 @@ def parse_topic_map(data: dict, where: str = "topic map", base: Path | None = No
         and top["gravity"] > 0
     ):
         raise QuadobsError(f"{where}: gravity: expected a positive number (m/s^2)")
+    if "heading0" in top and not (
+        isinstance(top["heading0"], int | float)
+        and not isinstance(top["heading0"], bool)
+        and math.isfinite(top["heading0"])
+    ):
+        raise QuadobsError(f"{where}: heading0: expected a number (rad)")
     return TopicMap(streams=streams, **top)
 
 
@@ -355,7 +370,9 @@ class _Reading:
     receive: float = 0.0
     header: bool = True
     rows: dict = field(
-        default_factory=lambda: {k: [] for k in ("imu", "attitude", "truth", "ranges", "tdoa")}
+        default_factory=lambda: {
+            k: [] for k in ("imu", "odometry", "attitude", "truth", "ranges", "tdoa")
+        }
     )
     left_out: dict = field(default_factory=dict)
     no_attitude: int = 0
@@ -393,6 +410,15 @@ def _imu_rows(msg, opts: dict, read: _Reading, where: str) -> None:
         q = _quaternion(msg.orientation, where)
         if q is not None:
             read.rows["attitude"].append([t, *q])
+
+
+def _odometry_rows(msg, opts: dict, read: _Reading, where: str) -> None:
+    twist = msg.twist.twist if hasattr(msg.twist, "twist") else msg.twist  # Odometry, TwistStamped
+    row = [float(twist.linear.x), float(twist.angular.z)]
+    if not _finite(row):
+        read.leave_out("odometry", "not finite")
+        return
+    read.rows["odometry"].append([read.time_of(msg, where), *row])
 
 
 def _pose_of(msg, opts: dict) -> list:
@@ -482,6 +508,10 @@ def _check_types(connections: dict, streams: dict, bag: str) -> None:
                 raise QuadobsError(
                     f"{bag}: [imu] {topic}: {conn.msgtype}, expected sensor_msgs/Imu"
                 )
+            if stream == "odometry" and conn.msgtype not in _ODOMETRY_TYPES:
+                raise QuadobsError(
+                    f"{bag}: [odometry] {topic}: {conn.msgtype}, expected one of {', '.join(_ODOMETRY_TYPES)}"
+                )
             if stream == "truth" and conn.msgtype not in _TRUTH_TYPES:
                 raise QuadobsError(
                     f"{bag}: [truth] {topic}: {conn.msgtype}, expected one of {', '.join(_TRUTH_TYPES)}"
@@ -530,7 +560,7 @@ def _read_bag(bag: Path, topic_map: TopicMap) -> _Reading:
     return read
 
 
-_READ_STATE = {"imu": _imu_rows, "truth": _truth_rows}
+_READ_STATE = {"imu": _imu_rows, "odometry": _odometry_rows, "truth": _truth_rows}
 _READ_MEASUREMENT = {"ranges": _range_rows, "tdoa": _tdoa_rows}
 
 
@@ -608,41 +638,32 @@ def import_bag(bag: str | Path, topic_map: TopicMap, notes: list | None = None) 
         and the message.
     """
     bag = Path(bag)
-    if not bag.exists():
-        raise QuadobsError(f"{bag}: no such bag (a ROS 1 .bag file or a ROS 2 bag folder)")
-    if not topic_map.anchors:
-        raise QuadobsError("anchors: none given (--anchors FILE, or anchors in the --map file)")
-    if not {"ranges", "tdoa"} & set(topic_map.streams):
-        raise QuadobsError("topic map: no [ranges] or [tdoa] topic (--topic ranges=/TOPIC)")
-    dims = {len(p) for p in topic_map.anchors.values()}
-    if len(dims) != 1:
-        raise QuadobsError("anchors: all with z or all without")
-    dim = dims.pop()
+    dim = _check_map(bag, topic_map)
     read = _read_bag(bag, topic_map)
     rows = read.rows
     ids = np.array(sorted(topic_map.anchors), dtype=np.int64)
     ranges, tdoa = _table(rows["ranges"], 4), _table(rows["tdoa"], 5)
-    has_imu = "imu" in topic_map.streams
-    imu = _table(rows["imu"], 7) if has_imu else np.empty((0, 1))
+    kind = next((k for k in ("imu", "odometry") if k in topic_map.streams), "none")
+    inputs = {
+        "imu": lambda: _table(rows["imu"], 7),
+        "odometry": lambda: _table(rows["odometry"], 3),
+        "none": lambda: np.empty((0, 1)),
+    }[kind]()
     truth = _table(rows["truth"], 8) if "truth" in topic_map.streams else None
     attitude = _table(rows["attitude"], 5) if rows["attitude"] else None
-    _check_clocks(bag, {"ranges": ranges, "tdoa": tdoa, "imu": imu, "truth": truth})
+    _check_clocks(bag, {"ranges": ranges, "tdoa": tdoa, kind: inputs, "truth": truth})
     _check_anchor_ids(bag, topic_map, ranges, tdoa, notes)
     _notes_of(read, topic_map, notes)
-    truth_columns: tuple = ("time", *"xyz"[:dim], "qw", "qx", "qy", "qz")
-    if truth is not None and np.isnan(truth[:, 4:]).any():  # points: no attitude
-        truth, truth_columns = truth[:, :4], truth_columns[: 1 + dim]
-    if truth is not None and dim == 2:
-        truth = np.delete(truth, 3, axis=1)  # a planar log: no z
+    truth, truth_columns = _truth_table(truth, dim, kind == "odometry")
     return RangeLog(
         topic_map.name or bag.stem,
         ids,
         np.array([topic_map.anchors[i] for i in ids]),
         ranges[:, :3],
-        imu,
-        math.nan,
+        inputs,
+        topic_map.heading0 if kind == "odometry" else math.nan,
         truth if truth is not None and truth.shape[0] else None,
-        input_kind="imu_body" if has_imu else "none",
+        input_kind={"imu": "imu_body", "odometry": "odometry", "none": "none"}[kind],
         truth_columns=truth_columns,
         range_std=ranges[:, 3],
         tdoa=tdoa[:, :4],
@@ -652,3 +673,43 @@ def import_bag(bag: str | Path, topic_map: TopicMap, notes: list | None = None) 
         gravity=topic_map.gravity,
         description=topic_map.description,
     )
+
+
+def _check_map(bag: Path, topic_map: TopicMap) -> int:
+    """What the map must hold before the bag is read; the anchors' dimension."""
+    if not bag.exists():
+        raise QuadobsError(f"{bag}: no such bag (a ROS 1 .bag file or a ROS 2 bag folder)")
+    if not topic_map.anchors:
+        raise QuadobsError("anchors: none given (--anchors FILE, or anchors in the --map file)")
+    if not {"ranges", "tdoa"} & set(topic_map.streams):
+        raise QuadobsError("topic map: no [ranges] or [tdoa] topic (--topic ranges=/TOPIC)")
+    if {"imu", "odometry"} <= set(topic_map.streams):
+        raise QuadobsError("topic map: [imu] and [odometry]: a log holds one kind of inputs")
+    if "odometry" in topic_map.streams and not math.isfinite(topic_map.heading0):
+        raise QuadobsError(
+            "topic map: [odometry] needs heading0, the heading (rad) at the first odometry "
+            "message in the anchors' frame (the odometry's own frame does not tell it)"
+        )
+    dims = {len(p) for p in topic_map.anchors.values()}
+    if len(dims) != 1:
+        raise QuadobsError("anchors: all with z or all without")
+    return dims.pop()
+
+
+def _truth_table(truth, dim: int, planar_vehicle: bool) -> tuple:
+    """The truth's rows and columns: position and attitude (a point: position only); for a
+    wheeled vehicle the position in the plane and the heading, the attitude's yaw."""
+    columns: tuple = ("time", *"xyz"[:dim], "qw", "qx", "qy", "qz")
+    if truth is None:
+        return None, columns
+    if planar_vehicle:
+        w, x, y, z = truth[:, 4:8].T
+        heading = np.arctan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
+        if np.isnan(heading).any():  # points: no attitude
+            return truth[:, :3], ("time", "x", "y")
+        return np.column_stack([truth[:, :3], heading]), ("time", "x", "y", "heading")
+    if np.isnan(truth[:, 4:]).any():  # points: no attitude
+        truth, columns = truth[:, :4], columns[: 1 + dim]
+    if dim == 2:
+        truth = np.delete(truth, 3, axis=1)  # a planar log: no z
+    return truth, columns

@@ -1,0 +1,39 @@
+"""Odometry poses as the log's speed and yaw rate: the replay's dead reckoning gives them back."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from quadobs.errors import QuadobsError
+from quadobs.testbed.logs import RangeLog
+from quadobs.testbed.logs.convert import odometry_from_poses
+from quadobs.testbed.worlds.replay import dead_reckoning
+
+
+def test_poses_along_their_heading_come_back_from_the_dead_reckoning():
+    rng = np.random.default_rng(5)
+    t = np.cumsum(rng.uniform(0.01, 0.05, 400))  # uneven intervals
+    v = 0.4 * np.sin(0.3 * t)  # forwards and backwards
+    w = 0.8 * np.cos(0.2 * t)
+    inputs = np.column_stack([t, v, w])
+    log = RangeLog("odo", np.arange(2), np.zeros((2, 2)), np.empty((0, 3)), inputs, 2.5)
+    p, psi = dead_reckoning(log, t, origin=(3.0, -1.0))  # the odometry's own frame and heading
+    wrapped = np.angle(np.exp(1j * psi))
+    back = odometry_from_poses(t, p[:, 0], p[:, 1], wrapped)
+    np.testing.assert_allclose(back[:-1], inputs[:-1], atol=1e-9)
+    np.testing.assert_allclose(back[-1, 1:], back[-2, 1:])
+    again = RangeLog("odo", np.arange(2), np.zeros((2, 2)), np.empty((0, 3)), back, psi[0])
+    np.testing.assert_allclose(dead_reckoning(again, t, origin=(3.0, -1.0))[0], p, atol=1e-9)
+
+
+def test_a_sideways_step_is_left_out_and_bad_times_are_refused():
+    back = odometry_from_poses([0.0, 1.0], [0.0, 0.3], [0.0, 0.4], [0.0, 0.0])
+    np.testing.assert_allclose(back[0, 1:], [0.3, 0.0])  # along the heading only
+    assert back[0, 2] == 0.0
+    with pytest.raises(QuadobsError, match=r"times must increase \(row 3: 1.0 after 1.0\)"):
+        odometry_from_poses([0.0, 1.0, 1.0], [0, 1, 2], [0, 0, 0], [0, 0, 0])
+    with pytest.raises(QuadobsError, match="finite"):
+        odometry_from_poses([0.0, 1.0], [0, math.nan], [0, 0], [0, 0])
