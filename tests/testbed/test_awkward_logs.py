@@ -197,6 +197,28 @@ def test_no_truth_is_made_up_across_a_gap_of_the_truth():
     assert not _in_truth_gap(np.arange(0.0, 10.0, 0.3), T).any()  # sparse but even: no gap
 
 
+def test_gaps_of_the_inputs_and_the_truth_are_said_before_the_replay():
+    from quadobs.testbed.logs.replay import gap_notes, replayable_log
+
+    log = helix()
+    t = log.inputs[:, 0]
+    keep = (t < 4.0) | (t >= 6.5)  # the inputs silent for 2.5 s
+    tt = log.truth[:, 0]
+    cut = ((tt < 2.0) | (tt > 2.8)) & ((tt < 5.0) | (tt > 6.2))  # two gaps of the truth
+    gapped = dataclasses.replace(log, inputs=log.inputs[keep], truth=log.truth[cut])
+    step = float(np.median(np.diff(t)))
+    notes = replayable_log(gapped)[1]
+    assert (
+        f"inputs: a gap of {2.5 + step:.3g} s from {4.0 - step - log.start:.3g} s into the log: each input held across it"
+        in notes
+    )
+    assert any(
+        n.startswith("truth: 2 gaps, the longest 1.2") and n.endswith("no error scored there")
+        for n in notes
+    )
+    assert gap_notes(log) == []
+
+
 def test_an_anchor_never_ranged_is_left_out_of_the_replay():
     """Its position would move the geometry the defaults come from; the rest is the plain log."""
     from quadobs.testbed.logs.replay import heard_anchors

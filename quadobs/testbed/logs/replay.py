@@ -45,6 +45,7 @@ from quadobs.testbed.logs.format import LOG_FILES
 __all__ = [
     "DEFAULT_ESTIMATORS",
     "check_burn_in",
+    "gap_notes",
     "check_range_units",
     "check_replay",
     "default_estimators",
@@ -394,6 +395,7 @@ def replayable_log(log, keep_anchors: bool = False) -> tuple:
         log, unheard = heard_anchors(log)
         if unheard:
             notes.append(f"anchors never ranged, left out: {', '.join(map(str, unheard))}")
+    notes += gap_notes(log)
     plane = anchor_plane(log.beacons)
     if plane is not None:
         notes.append(
@@ -402,6 +404,35 @@ def replayable_log(log, keep_anchors: bool = False) -> tuple:
             "mirror side"
         )
     return log, notes
+
+
+def gap_notes(log) -> list[str]:
+    """One line for each of the inputs and the truth with gaps
+    (:func:`~quadobs.testbed.worlds.replay.wide_gaps`): how many, the longest and when (from
+    the log's start), and what the replay does across them."""
+    from quadobs.testbed.worlds.replay import wide_gaps
+
+    what = {
+        "inputs": "each input held across it",
+        "truth": "no error scored there",
+    }
+    notes = []
+    for name, table in (("inputs", log.inputs), ("truth", log.truth)):
+        if table is None or table.shape[0] < 3:
+            continue
+        t = table[:, 0]
+        wide = wide_gaps(t)
+        if wide.size:
+            length = np.diff(t)[wide]
+            k = int(wide[np.argmax(length)])
+            longest = f"{float(length.max()):.3g} s from {t[k] - log.start:.3g} s into the log"
+            count = (
+                f"a gap of {longest}"
+                if wide.size == 1
+                else f"{wide.size} gaps, the longest {longest}"
+            )
+            notes.append(f"{name}: {count}: {what[name]}")
+    return notes
 
 
 #: The anchors of a 3-D log lie in one plane where their spread across it is below this

@@ -158,12 +158,21 @@ TRUTH_GAP_FACTOR = 10.0
 TRUTH_GAP_MIN = 0.5
 
 
+def wide_gaps(t: np.ndarray) -> np.ndarray:
+    """The indices ``i`` of the intervals ``t[i] .. t[i + 1]`` of sorted times that are gaps:
+    longer than :data:`TRUTH_GAP_FACTOR` times the median interval and than
+    :data:`TRUTH_GAP_MIN` seconds (none where fewer than two intervals)."""
+    gaps = np.diff(np.asarray(t, dtype=float))
+    if gaps.size < 2:
+        return np.zeros(0, dtype=np.int64)
+    return np.flatnonzero(gaps > max(TRUTH_GAP_FACTOR * float(np.median(gaps)), TRUTH_GAP_MIN))
+
+
 def _in_truth_gap(tt: np.ndarray, T: np.ndarray) -> np.ndarray:
     """Which grid times ``T`` lie strictly inside a gap of the truth's times ``tt``."""
-    gaps = np.diff(tt)
-    if gaps.size < 2:
+    wide = wide_gaps(tt)
+    if wide.size == 0:
         return np.zeros(T.size, dtype=bool)
-    wide = np.flatnonzero(gaps > max(TRUTH_GAP_FACTOR * float(np.median(gaps)), TRUTH_GAP_MIN))
     k = np.searchsorted(tt, T, side="right") - 1  # the truth sample at or before each time
     return np.isin(k, wide) & (T > tt[np.clip(k, 0, tt.size - 1)])
 
