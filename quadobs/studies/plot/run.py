@@ -41,10 +41,25 @@ def paths(ax, src, planes=(0, 1)) -> None:
             markersize=6,
             label="beacons",
         )
+    _field_limits(ax, truth[:, [a, b]], None if beacons is None else beacons[:, [a, b]])
     ax.set_xlabel(f"{_AXES[a]} (m)")
     ax.set_ylabel(f"{_AXES[b]} (m)")
     ax.set_title("Paths (x-y projection)")
-    ax.set_aspect("equal", adjustable="datalim")
+    ax.set_aspect("equal", adjustable="box")  # the limits kept: the panel's box adjusts
+
+
+def _field_limits(ax, truth: np.ndarray, beacons: np.ndarray | None) -> None:
+    """The axes' limits about the truth and the beacons, a fifth of their extent around (at
+    least 0.5 m): an estimate's start from a guess tens of metres off would otherwise shrink a
+    room's paths to a dot (it is drawn, and leaves the axes)."""
+    points = truth if beacons is None else np.vstack([truth, beacons])
+    points = points[np.all(np.isfinite(points), axis=1)]
+    if points.shape[0] == 0:
+        return
+    lo, hi = points.min(axis=0), points.max(axis=0)
+    pad = max(0.2 * float(np.max(hi - lo)), 0.5)
+    ax.set_xlim(lo[0] - pad, hi[0] + pad)
+    ax.set_ylim(lo[1] - pad, hi[1] + pad)
 
 
 def paths3d(ax, src) -> None:
