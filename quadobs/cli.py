@@ -1117,6 +1117,8 @@ def _print_replay_rows(summary: dict, log) -> None:
             continue
         if e.get("startup"):
             extra += "  [no start-up fix: ran from its prior]"
+        if e.get("same_as"):
+            extra += f"  [the same filter as {e['same_as']['estimator']}: {e['same_as']['reason']}]"
         if not summary["has_truth"]:  # "never" would read as never converged
             us = e["seconds_per_measurement"] * 1e6
             print(

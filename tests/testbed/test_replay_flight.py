@@ -245,6 +245,13 @@ def test_the_average_replays_as_the_mean_of_the_gate_and_the_mixture(tmp_path):
     np.testing.assert_allclose(two["ekf-bias-imu-average"][:, 1:4], mean, rtol=0, atol=1e-9)
     one = tracks[False]
     np.testing.assert_array_equal(one["ekf-bias-imu-average"], one["ekf-bias-imu"])
+    same = {
+        "estimator": "ekf-bias-imu",
+        "reason": "no non-line-of-sight excess identified in the log",
+    }
+    for name in names[1:]:  # the summary says which rows are that filter
+        assert summaries[False][name]["same_as"] == same and "same_as" not in per[name]
+    assert "same_as" not in summaries[False]["ekf-bias-imu"]
     world = ReplayWorld(log, 0.1, "imu")
     build = REPLAY_ESTIMATORS["ekf-bias-imu-average"]
     counts = [

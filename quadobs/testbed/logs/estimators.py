@@ -1038,6 +1038,11 @@ def build_ekf_bias_imu(s: ReplaySetup, x0: np.ndarray, name: str = "ekf-bias-imu
     return imu_bias.build_ekf_bias_imu(s, x0, name, ACCEL_BIAS_STD, ACCEL_BIAS_TIME)
 
 
+#: Why ``ekf-bias-imu-nlos`` and ``ekf-bias-imu-average`` are ``ekf-bias-imu`` on a log
+#: (their ``same_as``, in the summary).
+NO_EXCESS = "no non-line-of-sight excess identified in the log"
+
+
 def build_ekf_bias_imu_nlos(
     s: ReplaySetup, x0: np.ndarray, name: str = "ekf-bias-imu-nlos"
 ) -> Estimator:
@@ -1045,9 +1050,14 @@ def build_ekf_bias_imu_nlos(
     non-line-of-sight excess's mixture where the self-calibration estimated the excess from
     the log (:mod:`quadobs.testbed.logs.excess_model`), with the steady-offset test
     (``steady_test`` of the setup, on by default), else the same filter."""
+    from quadobs.estimators.robust import ExcessMixture
     from quadobs.testbed.logs import imu_bias
+    from quadobs.testbed.logs.bias_estimators import range_rule
 
-    return imu_bias.build_ekf_bias_imu(s, x0, name, ACCEL_BIAS_STD, ACCEL_BIAS_TIME, excess=True)
+    est = imu_bias.build_ekf_bias_imu(s, x0, name, ACCEL_BIAS_STD, ACCEL_BIAS_TIME, excess=True)
+    if not isinstance(range_rule(s, excess=True), ExcessMixture):
+        est.same_as = ("ekf-bias-imu", NO_EXCESS)  # the summary says it is that filter
+    return est
 
 
 def build_ekf_bias_imu_average(
@@ -1067,7 +1077,10 @@ def build_ekf_bias_imu_average(
     members[0].name = "ekf-bias-imu"  # the member's own, which the self-calibration reads
     if isinstance(range_rule(s, excess=True), ExcessMixture):
         members.append(build_ekf_bias_imu_nlos(s, x0))
-    return ModelAverage(members, name)
+    average = ModelAverage(members, name)
+    if len(members) == 1:
+        average.same_as = ("ekf-bias-imu", NO_EXCESS)  # the average is that filter
+    return average
 
 
 #: The built-in estimators of logged data (as declared in pyproject.toml; a test checks that they agree).

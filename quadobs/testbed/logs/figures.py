@@ -99,6 +99,9 @@ class FieldFiguresSink(Sink):
             started = startup_record(own.get(name))
             if started is not None:  # ran from its prior: its figures stand, the entry says so
                 figures["startup"] = started
+            same_as = _same_as(own.get(name))
+            if same_as is not None:  # built as another estimator of the set (the log decided)
+                figures["same_as"] = {"estimator": same_as[0], "reason": same_as[1]}
             if figures["diverged"] is None:  # the final error as the replay's own sink gives it
                 del figures["final_position_error"]
             else:  # nothing of a diverged estimator is summarised as if it ran
@@ -130,3 +133,14 @@ class FieldFiguresSink(Sink):
         parts = self.tracks[name]
         rows = np.vstack(parts) if parts else np.empty((0, 1 + self.ctx.frame.dimension))
         return tum_text(rows[:, 0], rows[:, 1:])
+
+
+def _same_as(est) -> tuple | None:
+    """The ``same_as`` (another estimator's name, and why) of an estimator or of the one it
+    wraps (``inner``), None where none says it."""
+    while est is not None:
+        same_as = getattr(est, "same_as", None)
+        if same_as is not None:
+            return same_as
+        est = getattr(est, "inner", None)
+    return None

@@ -44,11 +44,12 @@ from quadobs.testbed.logs.format import LOG_FILES
 
 __all__ = [
     "DEFAULT_ESTIMATORS",
+    "anchor_extent",
     "check_burn_in",
-    "gap_notes",
     "check_range_units",
     "check_replay",
     "default_estimators",
+    "gap_notes",
     "heard_anchors",
     "initial_guess",
     "log_scenario",
