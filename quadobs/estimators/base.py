@@ -75,10 +75,14 @@ class Estimator(abc.ABC):
         The name it is registered and recorded under.
     nis : float
         Normalised innovation squared of the last correction (NaN without one).
+    same_as : (str, str) or None
+        Where the data made it another estimator of the same set: that estimator's name and
+        why (a replay's summary says so); None otherwise.
     """
 
     name: str = "estimator"
     nis: float = float("nan")
+    same_as: tuple[str, str] | None = None
 
     @abc.abstractmethod
     def step(self, u: np.ndarray, y: np.ndarray) -> None:
