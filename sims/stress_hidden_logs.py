@@ -89,6 +89,7 @@ from quadobs.testbed.logs.posed import (
     inputs_late,
     started_at,
     surveyed,
+    tag_pattern,
     truth_from,
 )
 
@@ -119,6 +120,7 @@ ROVER = {
     "odoclock": ((), lambda log, seed: inputs_late(log, 0.1, 0.01, seed)),
     "pattern": ((f"radio.pattern={PATTERN_STD}",), _none),
     "level": ((f"radio.level_bias={LEVEL_BIAS}",), _none),
+    "tagpattern": ((), lambda log, seed: tag_pattern(log, PATTERN_STD, seed)),
 }
 #: The flight's stresses, as :data:`ROVER`.
 FLIGHT = {
@@ -134,6 +136,7 @@ FLIGHT = {
     "ascale": ((), lambda log, seed: accel_scaled(log, (0.02, -0.015, 0.01))),
     "pattern": ((f"radio.pattern={PATTERN_STD}",), _none),
     "level": ((f"radio.level_bias={LEVEL_BIAS}",), _none),
+    "tagpattern": ((), lambda log, seed: tag_pattern(log, PATTERN_STD, seed)),
 }
 
 
@@ -141,6 +144,10 @@ FLIGHT = {
 #: these rates no filter meets the target, and they pose the noise test's sparse case rather
 #: than a log's difference from the stand-in.
 SPARSE = ("rate20", "rate10")
+
+#: The flight's stresses that take the truth's attitude: applied to the export before its
+#: attitude is removed (they change the ranges alone).
+WITH_ATTITUDE = ("tagpattern",)
 
 
 def stress_seed(seed: int, name: str) -> int:
@@ -164,8 +171,10 @@ def flight_log(seed: int, name: str, duration: float, tmp: Path, table=None) -> 
     base = tmp / f"flight-seed{seed}-export{'-'.join(settings)}"
     if not (base / "meta.csv").exists():
         flight.export(seed, duration, 0.2, 0.01, base, settings)
-    noatt = flight.variant(read_log(base), "noatt", 1.0)
-    stressed = transform(noatt, stress_seed(seed, name))
+    if name in WITH_ATTITUDE:  # on the export, whose truth holds the attitude, then without it
+        stressed = flight.variant(transform(read_log(base), stress_seed(seed, name)), "noatt", 1.0)
+    else:
+        stressed = transform(flight.variant(read_log(base), "noatt", 1.0), stress_seed(seed, name))
     rng = np.random.default_rng([seed, flight.REAL.index("real")])
     folder = tmp / f"flight-seed{seed}-{name}"
     write_log(flight.real_variant(stressed, "real", rng, 1.0, 0.05), folder)
@@ -313,6 +322,8 @@ def main() -> None:
         ap.error(f"--level: expected a finite number of metres per decade, got {args.level}")
     table = {**table, "pattern": ((f"radio.pattern={args.pattern!r}",), _none)}
     table["level"] = ((f"radio.level_bias={args.level!r}",), _none)
+    spread = args.pattern
+    table["tagpattern"] = ((), lambda log, seed: tag_pattern(log, spread, seed))
     if args.keep and Path(args.keep).exists():
         ap.error(f"--keep: {args.keep} exists (a new folder is made, none is replaced)")
     sparse = SPARSE if args.platform == "flight" else ()  # the robot's rate10 is in its list

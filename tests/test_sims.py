@@ -97,7 +97,7 @@ CASES = {
         "| seed | log |",
     ),
     "stress_hidden_logs.py": (
-        ["rover", "--seeds", "0", "--variants", "survey,pattern", "--duration", "8"]
+        ["rover", "--seeds", "0", "--variants", "pattern,tagpattern", "--duration", "8"]
         + ["--json", "{tmp}/stress.json", "--without-std", "--tune", "anchor_sigma=1"]
         + ["--keep", "{tmp}/logs"],
         ["stress.json", "logs/rover-today-seed0-pattern/meta.csv"],

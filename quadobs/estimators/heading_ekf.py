@@ -76,6 +76,22 @@ more, its range bias ``b_h`` (prior mean 0); the state is ``(p, delta, b, [l], [
 s_h``, ``d rho_h / d b_h = 1``. ``e_h`` and ``b_h`` are told apart by the distance (``e_h / s_h``
 falls as the tag moves away, ``b_h`` does not), ``e_h`` and ``l`` by the heading (the tag's
 offset turns with the robot, ``e_h`` does not). Such filters take ranges only (no TDOA).
+
+The tag's pattern. A tag's antenna delays the signal by an amount that depends on the
+direction of the anchor in the body frame, so that the range's bias turns with the vehicle
+(Ledergerber and D'Andrea, IEEE Access 6, 2018, doi:10.1109/ACCESS.2018.2884720, calibrate it
+against the two antennas' relative orientation). Expanded in the anchor's bearing ``phi_h``
+from the tag less the heading, its constant is in each ``b_h`` and its first harmonic is a
+lever arm (``l``, above); with ``tag_pattern_std`` given the filters append the second,
+
+.. math:: \\rho_h \\mathrel{+}= c \\cos 2\\phi_h + s \\sin 2\\phi_h, \\qquad
+          \\phi_h = \\operatorname{atan2}(a_h - q) - (\\theta_o + \\delta),
+
+``(c, s)`` two constants (prior 0 and ``tag_pattern_std`` each), one for the tag, not per
+anchor. Its derivatives: ``cos 2 phi_h`` and ``sin 2 phi_h`` at ``(c, s)``, ``d phi_h / d q =
+(d_y, -d_x) / |d|^2`` (``d = a_h - q``), ``d phi_h / d delta = -1``. It turns at twice the
+heading's rate where ``l``'s term turns once and ``b_h`` not at all, so a robot that turns
+tells the three apart.
 """
 
 from __future__ import annotations
@@ -102,6 +118,7 @@ __all__ = [
     "GYRO_BIAS_TIME",
     "HEADING_STD",
     "LEVER_ARM_STD",
+    "TAG_PATTERN_STD",
     "HeadingCascade",
     "HeadingEKF",
     "HeadingUKF",
@@ -126,6 +143,12 @@ HEADING_STD = 0.1
 #: a small wheeled robot (a 0.4 m base), as far as a tag mounted on it can sit from its axle's
 #: centre when nobody measured where.
 LEVER_ARM_STD = 0.2
+
+#: The prior standard deviation (m) of each coefficient of the tag's pattern, ``c`` and ``s``:
+#: 0.1 m, the size of the range errors that the relative orientation of two UWB antennas gives
+#: (Ledergerber and D'Andrea, IEEE Access 6, 2018, doi:10.1109/ACCESS.2018.2884720), so that
+#: the term's standard deviation over bearings, ``sqrt((c^2 + s^2) / 2)``, is 0.1 m a priori.
+TAG_PATTERN_STD = 0.1
 
 #: The 0.999 quantile of ``chi^2(2)`` (``-2 ln 0.001``): a lever arm whose squared distance to
 #: its prior's mean exceeds this many prior variances is implausible (:meth:`_check_lever`).
@@ -227,6 +250,7 @@ class _HeadingFilter(ConstantStates, Estimator, Gated):
         lever_arm=(0.0, 0.0),
         offsets: tuple[float, float] | None = None,
         bias_std: float | None = None,
+        tag_pattern_std: float | None = None,
     ) -> None:
         self.anchors = as_array("anchors", anchors, (None, 2))
         self._x = as_array("x0", x0, (4,)).copy()
@@ -244,6 +268,7 @@ class _HeadingFilter(ConstantStates, Estimator, Gated):
             self._x = np.concatenate([self._x, self._lever_mean])
             self._P = np.block([[self._P, np.zeros((4, 2))], [np.zeros((2, 4)), var * np.eye(2)]])
         self._append_anchor_states(offsets, bias_std)
+        self._append_pattern_states(tag_pattern_std)
         self.range_sigma = as_finite_scalar("range_sigma", range_sigma, positive=True)
         self.theta_o = as_finite_scalar("heading0", heading0)
         self.gate = None if gate is None else as_finite_scalar("gate", gate, positive=True)
@@ -342,14 +367,35 @@ class _HeadingFilter(ConstantStates, Estimator, Gated):
             P[i : i + q, i : i + q] = block
         self._P = P
 
+    def _append_pattern_states(self, std) -> None:
+        """The tag's pattern ``(c, s)`` appended to the state where ``std`` is given (prior 0 and
+        ``std`` each; module docstring)."""
+        self._ip = -1
+        if std is None:
+            return
+        var = as_finite_scalar("tag_pattern_std", std, positive=True) ** 2
+        n = self._x.size
+        self._ip = n
+        self._x = np.concatenate([self._x, np.zeros(2)])
+        P = np.zeros((n + 2, n + 2))
+        P[:n, :n] = self._P
+        P[n:, n:] = var * np.eye(2)
+        self._P = P
+
+    @property
+    def tag_pattern(self) -> np.ndarray:
+        """The tag's pattern ``(c, s)`` (m): its estimate, or zero without those states."""
+        return self._x[self._ip : self._ip + 2].copy() if self._ip >= 0 else np.zeros(2)
+
     @property
     def constant_states(self) -> np.ndarray:
         """The indices of the states no process noise moves: the lever arm, each anchor's bias
-        and offset, where held (:mod:`quadobs.estimators.constants`; the yaw rate's bias
-        walks)."""
+        and offset, the tag's pattern, where held (:mod:`quadobs.estimators.constants`; the yaw
+        rate's bias walks)."""
         q = self.anchors.shape[0]
         parts = [np.arange(4, 6)] if self.lever else []
         parts += [np.arange(i, i + q) for i in (self._ib, self._ie) if i >= 0]
+        parts += [np.arange(self._ip, self._ip + 2)] if self._ip >= 0 else []
         return np.concatenate(parts) if parts else np.zeros(0, dtype=np.int64)
 
     @property
@@ -375,14 +421,25 @@ class _HeadingFilter(ConstantStates, Estimator, Gated):
         ``d rho / d q``) and ``1 / s_h`` (``d rho / d e_h``; 0 where ``s_h = 0``) (module
         docstring). Without offsets ``s_h = |q - a_h|`` and the factor is 1."""
         r = model.h(self._tag(x), m)
+        pattern = self._pattern(x, m) if self._ip >= 0 else 0.0
         if self._ie < 0 and self._ib < 0:
-            return r, 1.0, 0.0
+            return r + pattern, 1.0, 0.0
         h = m.anchors[0]
         s = math.sqrt(max(r * r + 2.0 * float(x[self._ie + h]), 0.0)) if self._ie >= 0 else r
-        b = float(x[self._ib + h]) if self._ib >= 0 else 0.0
+        b = float(x[self._ib + h]) + pattern if self._ib >= 0 else pattern
         if s <= 0.0:
             return b, 0.0, 0.0
         return s + b, r / s, 1.0 / s
+
+    def _bearing(self, x: np.ndarray, m: Measurement) -> float:
+        """The anchor's bearing seen from the tag, from the heading: ``phi_h`` (rad)."""
+        d = self.anchors[m.anchors[0]] - self._tag(x)
+        return math.atan2(float(d[1]), float(d[0])) - self.theta_o - float(x[2])
+
+    def _pattern(self, x: np.ndarray, m: Measurement) -> float:
+        """The tag's pattern's term of a range ``c cos 2 phi_h + s sin 2 phi_h`` (m)."""
+        phi = 2.0 * self._bearing(x, m)
+        return float(x[self._ip]) * math.cos(phi) + float(x[self._ip + 1]) * math.sin(phi)
 
     def _tag(self, x: np.ndarray) -> np.ndarray:
         """The tag's position ``q = p + R(theta_o + delta) l`` of the state ``x`` (``p`` without
@@ -543,6 +600,8 @@ class _HeadingFilter(ConstantStates, Estimator, Gated):
             v = v + P0[self._ie + rows]
         if self._ib >= 0:
             v = v + rho2 * P0[self._ib + rows]
+        if self._ip >= 0:  # the pattern's term, of variance var c = var s (either bearing)
+            v = v + rho2 * P0[self._ip]
         MG = np.linalg.pinv(A.mean(axis=0) - A)
         MG = MG - MG.mean(axis=1, keepdims=True)  # M G: the columns' mean taken out
         self._P[:2, :2] = (MG * v) @ MG.T
@@ -702,6 +761,10 @@ class HeadingEKF(_HeadingFilter):
     bias_std : float, optional
         With it, each anchor's range bias ``b_h`` as a state, prior mean 0 and this standard
         deviation (m).
+    tag_pattern_std : float, optional
+        With it, the tag's pattern ``(c, s)`` as two more states, prior mean 0 and this
+        standard deviation each (m; e.g. :data:`TAG_PATTERN_STD`; module docstring). Ranges
+        only.
 
     Notes
     -----
@@ -736,7 +799,27 @@ class HeadingEKF(_HeadingFilter):
             Rt = _rotation(self.theta_o + float(x[2]))
             H[2] = H[:2] @ Rt @ _J @ x[4:6]
             H[4:6] = H[:2] @ Rt
+        if self._ip >= 0:
+            self._pattern_jacobian(x, m, H)
         return z, H
+
+    def _pattern_jacobian(self, x: np.ndarray, m: Measurement, H: np.ndarray) -> None:
+        """The pattern's term's derivatives added to ``H``: ``cos 2 phi`` and ``sin 2 phi`` at
+        ``(c, s)``, and through ``phi = atan2(a - q) - theta``, ``d phi / d q = (d_y, -d_x) /
+        |d|^2`` (``d = a - q``) carried to ``p``, ``delta`` and ``l`` as the range's, and ``d phi
+        / d delta = -1``."""
+        phi = 2.0 * self._bearing(x, m)
+        c, s = float(x[self._ip]), float(x[self._ip + 1])
+        dterm = 2.0 * (s * math.cos(phi) - c * math.sin(phi))  # d term / d phi
+        H[self._ip], H[self._ip + 1] = math.cos(phi), math.sin(phi)
+        d = self.anchors[m.anchors[0]] - self._tag(x)
+        dq = dterm * np.array([d[1], -d[0]]) / max(float(d @ d), 1e-12)  # d term / d q
+        H[:2] += dq
+        H[2] -= dterm
+        if self.lever:
+            Rt = _rotation(self.theta_o + float(x[2]))
+            H[2] += dq @ Rt @ _J @ x[4:6]
+            H[4:6] += dq @ Rt
 
     def _correct_range(self, model, m: Measurement) -> None:
         z, H = self.linearized(model, m, self._x)
@@ -832,12 +915,15 @@ class HeadingUKF(_HeadingFilter):
             return np.array([self._range(model, m, xi)[0] for xi in X])
         h = m.anchors[0]
         q = X[:, :2]
+        theta = self.theta_o + X[:, 2]
         if self.lever:
-            theta = self.theta_o + X[:, 2]
             c, s = np.cos(theta), np.sin(theta)
             q = q + np.column_stack([c * X[:, 4] - s * X[:, 5], s * X[:, 4] + c * X[:, 5]])
         d = q - model.anchors[h]
         out = np.sqrt(np.maximum(np.einsum("ij,ij->i", d, d) + 2.0 * X[:, self._ie + h], 0.0))
+        if self._ip >= 0:  # the tag's pattern: the anchor's bearing from the tag, less theta
+            phi = 2.0 * (np.arctan2(-d[:, 1], -d[:, 0]) - theta)
+            out = out + X[:, self._ip] * np.cos(phi) + X[:, self._ip + 1] * np.sin(phi)
         return out + X[:, self._ib + h] if self._ib >= 0 else out
 
     def _correct_range(self, model, m: Measurement) -> None:

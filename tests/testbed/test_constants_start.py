@@ -148,3 +148,33 @@ def test_the_replay_command_reports_each_start_and_none_with_the_measurements_on
     assert cal["self"]["constants"]["ekf-bias"]["states"] == 4
     assert "ekf" not in cal["self"]["constants"]
     assert "constants" not in cal["grid"]
+
+
+def test_the_tags_pattern_is_kept_as_states_only_where_the_held_out_ranges_ask_for_it():
+    """``ukf-height-lever`` on the S-curve in a small room: with a tag's pattern of 0.18 m over
+    bearings in the ranges the filter that holds it predicts the held-out ranges significantly
+    better, and the options the replay is built from take it; without one it does not, and the
+    filter stays as it was; given by ``--tune`` (in the options) it is not tried."""
+    from quadobs.testbed.logs.calibration import Calibration
+
+    module = _heading_tests()
+    options = {"range_sigma": 0.02, "q_xy": 1e-3, "q_xy_heading": 1e-3}
+    chosen = {}
+    for name, (c, s) in (("pattern", (0.15, -0.20)), ("none", (0.0, 0.0))):
+        log = module.pattern_room_log(c, s, noise=0.02, seed=3)
+        cal = Calibration(None, dict(options), {}, "", np.zeros(4))
+        estimator_constants(log, cal, ["ukf-height-lever"])
+        chosen[name] = cal
+    kept = chosen["pattern"].constants["ukf-height-lever"]["pattern"]
+    assert kept["kept"] and kept["score"] < 0.8 * kept["reference_score"], chosen["pattern"].reason
+    assert chosen["pattern"].options["tag_pattern"] == 1.0
+    assert chosen["pattern"].constants["ukf-height-lever"]["states"] == 12
+    assert "the tag's pattern as states kept" in chosen["pattern"].reason
+    left = chosen["none"].constants["ukf-height-lever"]
+    assert not left["pattern"]["kept"] and "tag_pattern" not in chosen["none"].options
+    assert left["states"] == 10 and "as states not kept" in chosen["none"].reason
+    given = Calibration(None, {**options, "tag_pattern": 0.0}, {}, "", np.zeros(4))
+    estimator_constants(
+        module.pattern_room_log(0.15, -0.2, noise=0.02, seed=3), given, ["ukf-height-lever"]
+    )
+    assert "pattern" not in given.constants["ukf-height-lever"] and "pattern" not in given.reason

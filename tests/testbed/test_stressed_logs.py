@@ -1,6 +1,6 @@
 """Stresses of a log (quadobs.testbed.logs.posed): a surveyed anchor plan, a late start, a late
 truth, an anchor's gap, a pillar's shadow, an accelerometer's scale, inputs
-late against the ranges; each against its closed form."""
+late against the ranges, a tag's direction-dependent delay; each against its closed form."""
 
 from __future__ import annotations
 
@@ -20,6 +20,7 @@ from quadobs.testbed.logs.posed import (
     log_start,
     started_at,
     surveyed,
+    tag_pattern,
     truth_from,
 )
 
@@ -121,3 +122,74 @@ def test_an_accelerometer_scale_and_late_inputs():
     np.testing.assert_array_equal(
         late.inputs[:, 0], inputs_late(log, 0.1, 0.004, seed=2).inputs[:, 0]
     )
+
+
+def _traceless_fit(u: np.ndarray, value: np.ndarray) -> np.ndarray:
+    """The symmetric traceless ``S`` with ``u^T S u = value`` by least squares (exact when the
+    values are such a form): ``S`` spanned by its off-diagonal entries and ``e_i e_i^T - e_k
+    e_k^T`` (``k`` the last axis)."""
+    k = u.shape[1]
+    basis = []
+    for i in range(k):
+        for j in range(i, k):
+            if i == j == k - 1:
+                continue
+            b = np.zeros((k, k))
+            if i == j:
+                b[i, i], b[-1, -1] = 1.0, -1.0
+            else:
+                b[i, j] = b[j, i] = 1.0
+            basis.append(b)
+    design = np.column_stack([np.einsum("ni,ij,nj->n", u, b, u) for b in basis])
+    coef, *_ = np.linalg.lstsq(design, value, rcond=None)
+    return sum(c * b for c, b in zip(coef, basis, strict=True))
+
+
+def test_a_tag_pattern_in_the_plane_is_a_second_harmonic_of_the_body_bearing():
+    log = _circle()
+    log.ranges[3, 2] = 0.0  # nothing received: left at zero
+    posed = tag_pattern(log, 0.1, seed=4)
+    added = posed.ranges[:, 2] - log.ranges[:, 2]
+    assert added[3] == 0.0
+    np.testing.assert_array_equal(posed.ranges, tag_pattern(log, 0.1, seed=4).ranges)
+    assert not np.array_equal(posed.ranges, tag_pattern(log, 0.1, seed=5).ranges)
+    # the anchor's bearing from the vehicle less the heading, from the truth's own rows
+    t = log.ranges[:, 0]
+    p = np.column_stack([np.interp(t, log.truth[:, 0], log.truth[:, c]) for c in (1, 2)])
+    d = BEACONS[log.ranges[:, 1].astype(int)] - p
+    phi = np.arctan2(d[:, 1], d[:, 0]) - np.interp(t, log.truth[:, 0], log.truth[:, 3])
+    design = np.column_stack([np.cos(2 * phi), np.sin(2 * phi)])
+    keep = log.ranges[:, 2] > 0.0
+    (a, b), *_ = np.linalg.lstsq(design[keep], added[keep], rcond=None)
+    np.testing.assert_allclose(design[keep] @ [a, b], added[keep], atol=1e-12)
+    assert (a * a + b * b) / 2.0 == pytest.approx(0.1**2, rel=1e-9)  # the circle's variance
+    with pytest.raises(QuadobsError, match="heading"):
+        tag_pattern(
+            dataclasses.replace(log, truth=log.truth[:, :3], truth_columns=("time", "x", "y")),
+            0.1,
+            1,
+        )
+
+
+def test_a_tag_pattern_in_space_turns_with_the_attitude():
+    from scipy.spatial.transform import Rotation
+
+    t = np.linspace(0.0, 10.0, 1001)
+    p = np.column_stack([1.5 + np.cos(t), 1.2 + np.sin(t), 1.0 + 0.2 * np.sin(3 * t)])
+    turn = Rotation.from_euler("zyx", np.column_stack([0.7 * t, 0.2 * np.sin(t), 0.1 * t]))
+    q = turn.as_quat()[:, [3, 0, 1, 2]]  # scalar first, as truth.csv holds it
+    anchors = np.array([[0, 0, 0.2], [3, 0, 2.5], [3, 2.5, 0.3], [0, 2.5, 2.4], [1.5, 1.2, 3.0]])
+    k = np.arange(0, 1001, 3)  # at truth rows: no interpolation between them
+    h = k % 5
+    ranges = np.column_stack([t[k], h, np.linalg.norm(p[k] - anchors[h], axis=1)])
+    log = RangeLog(
+        "space", np.arange(5), anchors, ranges, np.empty((0, 1)), np.nan,
+        np.column_stack([t, p, q]), input_kind="none",
+        truth_columns=("time", "x", "y", "z", "qw", "qx", "qy", "qz"),
+    )  # fmt: skip
+    added = tag_pattern(log, 0.1, seed=3).ranges[:, 2] - ranges[:, 2]
+    u = turn[k].inv().apply(anchors[h] - p[k])
+    u /= np.linalg.norm(u, axis=1)[:, None]
+    form = _traceless_fit(u, added)
+    np.testing.assert_allclose(np.einsum("ni,ij,nj->n", u, form, u), added, atol=1e-12)
+    assert 2.0 * np.trace(form @ form) / 15.0 == pytest.approx(0.1**2, rel=1e-9)  # the sphere's

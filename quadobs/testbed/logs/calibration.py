@@ -105,7 +105,10 @@ replay is given a clock offset or asked to search one (``--clock-offset``, not b
 10. each filter of the replay that holds constant states (an anchor's range bias, its
     height's offset, the tag's lever arm): started from the constants a first pass through
     the log ended with, where the second pass from them predicts the held-out ranges at least
-    as well (:mod:`~quadobs.testbed.logs.constants_start`; run by the replay after step 7).
+    as well (:mod:`~quadobs.testbed.logs.constants_start`; run by the replay after step 7);
+    for ``ukf-height-lever`` first the tag's pattern as two more constants, kept where, each
+    with its own start, they predict the held-out ranges significantly better than without
+    (``--tune tag_pattern=0`` or ``1`` fixes it).
 
 Two scorers on an odometry log. The model ``odometry`` takes the dead-reckoned heading as
 right, so its ``q_xy`` must also carry the heading's drift (a yaw rate's bias: Plaza2's

@@ -38,6 +38,16 @@ which is not their prediction of a range: they keep their own prior. The augment
    (tests/testbed/test_constants_start.py). A first pass that gave up (reported diverged), or
    whose constants are not finite, starts nothing.
 
+The tag's pattern (``ukf-height-lever``, :data:`PATTERN_FILTERS`). A tag's delay that turns
+with the vehicle, ``c cos 2 phi_h + s sin 2 phi_h`` of the anchor's bearing ``phi_h`` from the
+heading (:mod:`quadobs.estimators.heading_ekf`), can be two more constants of the filter.
+Where the user has not fixed them (``--tune tag_pattern=0`` or ``1``), the first and second
+passes are run both with and without them, and they are kept (the setup's ``tag_pattern``
+set to 1, their start that of their own passes) only where the start kept with them predicts
+the held-out ranges *significantly* better than the start kept without (the paired test, one
+candidate): states that the ranges do not ask for only add to the position's error (measured
+on the robot's logs: docs/error-sources.md).
+
 What the second pass counts twice. Its prior ``P_N`` holds the ranges that the second pass
 reads again, so at the log's end its constants' covariance is about half what the data
 support, and the position's covariance is the smaller for it. The start is for the position's
@@ -72,6 +82,11 @@ __all__ = ["START_KEY", "estimator_constants"]
 
 #: The setup option that carries the starts (:attr:`~quadobs.testbed.logs.estimators.ReplaySetup.constants_start`).
 START_KEY = "constants_start"
+#: The setup switch of the tag's pattern as states (:attr:`~quadobs.testbed.logs.estimators.ReplaySetup.tag_pattern`).
+PATTERN_KEY = "tag_pattern"
+#: The filters that may hold the tag's pattern (the heading filter with the lever arm, the
+#: anchors' biases and heights).
+PATTERN_FILTERS = ("ukf-height-lever",)
 
 
 def _constant_filters_and_biases(log, dt, model, names, cal: Calibration) -> dict:
@@ -142,7 +157,10 @@ def estimator_constants(
     options = {k: v for k, v in cal.options.items() if k != START_KEY}
     kept: dict = {}
     for name, biases in _constant_filters_and_biases(log, dt, model, names, cal).items():
-        first, second, why = _first_and_second(log, dt, model, name, biases, options)
+        passes = _first_and_second(log, dt, model, name, biases, options)
+        if name in PATTERN_FILTERS and PATTERN_KEY not in options:
+            passes = _with_or_without_pattern(log, dt, model, name, biases, options, cal, passes)
+        first, second, why = passes
         if second is None:
             cal.constants[name] = {"start": "prior", "why": why}
             cal.reason += f"; {name}: its own prior, {why}"
@@ -153,6 +171,7 @@ def estimator_constants(
         if better:
             kept[name] = start
         cal.constants[name] = {
+            **cal.constants.get(name, {}),
             "start": "first pass" if better else "prior",
             "states": int(start[0].size),
             **test.as_dict(),
@@ -168,3 +187,34 @@ def estimator_constants(
         )
     if kept:
         cal.options[START_KEY] = kept
+
+
+def _chosen(first, second):
+    """The residuals of the start step 10 keeps: the second pass where it predicts the held-out
+    ranges at least as well as the first, else the first."""
+    if second is None:
+        return first
+    test = compare(second, first)
+    return second if test.score <= test.reference_score else first
+
+
+def _with_or_without_pattern(log, dt, model, name, biases, options, cal, without):
+    """The tag's pattern as states of ``name`` (module docstring) where, each with its own
+    start, they predict the held-out ranges significantly better than without; the passes
+    of the setting kept, the choice and its test in ``cal.constants[name]["pattern"]``, a
+    clause of ``cal.reason``, and ``cal.options[PATTERN_KEY]`` set to 1 where kept."""
+    with_ = _first_and_second(log, dt, model, name, biases, {**options, PATTERN_KEY: 1.0})
+    test = compare(_chosen(*with_[:2]), _chosen(*without[:2]))
+    kept = test.better and not with_[2]
+    cal.constants[name] = {"pattern": {"kept": kept, **test.as_dict()}}
+    cal.reason += (
+        f"; {name}: the tag's pattern as states "
+        + ("kept" if kept else "not kept")
+        + f" (the held-out ranges {test.score:.3f} m with them, {test.reference_score:.3f} m"
+        + (" without)" if kept else " without: not significantly better)")
+    )
+    if kept:
+        cal.options[PATTERN_KEY] = 1.0
+        options[PATTERN_KEY] = 1.0  # the other filters' passes see the same setup
+        return with_
+    return without

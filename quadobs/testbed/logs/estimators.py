@@ -288,6 +288,7 @@ class ReplaySetup:
     bias_prior: float | None = None
     offsets: tuple | None = None
     stated_heights: float = 1.0
+    tag_pattern: float = 0.0
     constants_start: dict | None = None
     system: QuadraticSystem = field(init=False, repr=False)
 
@@ -296,7 +297,7 @@ class ReplaySetup:
             raise QuadobsError(
                 f"range_bias: expected 0 (off) or 1 (a state), got {self.range_bias!r}"
             )
-        for key in ("steady_test", "stated_heights"):  # the switches the setup holds
+        for key in ("steady_test", "stated_heights", "tag_pattern"):  # the setup's switches
             if getattr(self, key) not in (0, 1):
                 raise QuadobsError(f"{key}: expected 0 (off) or 1 (on), got {getattr(self, key)!r}")
         for key in TUNING:
@@ -387,10 +388,10 @@ def tuning_fields(options) -> dict:
 TUNING = (
     "range_sigma", "q_xy", "q_theta", "q_acc", "q_imu", "gate", "P0", "range_bias",
     "q_xy_heading", "velocity_std", "nlos_prior", "steady_test", "bias_prior", "stated_heights",
-    "anchor_sigma",
+    "anchor_sigma", "tag_pattern",
 )  # fmt: skip
 #: The tuning's switches (0 off, 1 on).
-SWITCHES = ("steady_test", "stated_heights", "anchor_sigma")
+SWITCHES = ("steady_test", "stated_heights", "anchor_sigma", "tag_pattern")
 
 
 def parse_tuning(settings) -> dict:
@@ -993,10 +994,12 @@ def build_ukf_height_lever(s: ReplaySetup, x0: np.ndarray, name: str = "ukf-heig
     excess (:func:`~quadobs.testbed.logs.height_estimators.excess_rule`)."""
     from functools import partial
 
-    from quadobs.estimators.heading_ekf import LEVER_ARM_STD, HeadingUKF
+    from quadobs.estimators.heading_ekf import LEVER_ARM_STD, TAG_PATTERN_STD, HeadingUKF
     from quadobs.testbed.logs.height_estimators import heading_height_options
 
     options = heading_height_options(s, name)
+    if s.tag_pattern:
+        options["tag_pattern_std"] = TAG_PATTERN_STD
     cls = partial(HeadingUKF, lever_arm_std=LEVER_ARM_STD, **options)
     return build_ekf_heading(s, x0, name, cls)
 

@@ -49,6 +49,7 @@ __all__ = [
     "posed_log",
     "started_at",
     "surveyed",
+    "tag_pattern",
     "tag_positions",
     "truth_from",
 ]
@@ -252,3 +253,77 @@ def inputs_late(log: RangeLog, offset: float, jitter: float, seed: int) -> Range
     moved = offset + np.random.default_rng(seed).uniform(-jitter, jitter, inputs.shape[0])
     inputs[:, 0] += moved
     return replace(log, inputs=inputs[np.argsort(inputs[:, 0], kind="stable")])
+
+
+def _body_directions(log: RangeLog) -> np.ndarray:
+    """The unit direction from the vehicle to each range's anchor in the body frame, at the
+    range's time from the truth: ``(M, 2)`` rotated by the heading (linear between rows,
+    unwrapped) in a planar log, ``(M, 3)`` by the attitude (spherical between rows) in space."""
+    from scipy.spatial.transform import Rotation, Slerp
+
+    t = log.ranges[:, 0]
+    planar = log.dimension == 2
+    position = log.truth_part("position")
+    turn = "heading" if planar else "attitude"
+    rotation = (
+        log.truth[:, [log.truth_columns.index("heading")]]
+        if planar and log.truth is not None and "heading" in log.truth_columns
+        else None
+        if planar
+        else log.truth_part("attitude")
+    )
+    if position is None or rotation is None:
+        raise QuadobsError(f"{log.name}: a tag's pattern needs the truth's position and {turn}")
+    tt = log.truth[:, 0]  # type: ignore[index]  # checked with its parts
+    t = np.clip(t, tt[0], tt[-1])
+    p = np.column_stack([np.interp(t, tt, column) for column in position.T])
+    d = log.beacons[log.beacon_index(log.ranges[:, 1]), : p.shape[1]] - p
+    if planar:
+        theta = np.interp(t, tt, np.unwrap(rotation[:, 0]))
+        c, s = np.cos(theta), np.sin(theta)
+        d = np.column_stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1]])
+    else:
+        q = rotation[:, [1, 2, 3, 0]]  # scalar last, as scipy takes it
+        d = Slerp(tt, Rotation.from_quat(q))(t).inv().apply(d)
+    return d / np.maximum(np.linalg.norm(d, axis=1), 1e-12)[:, None]
+
+
+def tag_pattern(log: RangeLog, std: float, seed: int) -> RangeLog:
+    """Each range longer by the tag's direction-dependent delay, fixed to the vehicle's body.
+
+    A tag's antenna delays the signal by an amount that depends on the direction of the
+    anchor seen from it in the body frame (the antenna's radiation pattern; the relative
+    orientation of the two antennas in Ledergerber and D'Andrea's calibration of UWB ranges,
+    IEEE Access 6, 2018, doi:10.1109/ACCESS.2018.2884720), so that the bias turns with the
+    vehicle. The first-order term of that function is a lever arm (already posed); this is the
+    second-order term, as the anchors' ``radio.pattern`` of :mod:`quadobs.testbed.uwb`:
+
+    .. math::
+
+        \\tilde\\rho' = \\tilde\\rho + u_b^T S u_b ,
+
+    ``u_b`` the unit direction from the vehicle to the anchor in the body frame
+    (:func:`_body_directions`, the truth's point taken for the tag's), ``S`` symmetric and
+    traceless, drawn once from ``seed`` (the symmetric part of a standard normal matrix less
+    its trace). In space ``S`` is 3 x 3 and scaled so that over directions uniform on the
+    sphere the term's standard deviation is ``std`` (variance ``2 tr(S^2) / 15``); in the
+    plane (an odometry log's heading) ``S`` is 2 x 2, the term a second harmonic
+    ``a cos 2 phi + b sin 2 phi`` of the anchor's bearing ``phi`` from the heading, scaled so
+    that over bearings uniform on the circle its standard deviation is ``std`` (variance
+    ``tr(S^2) / 4``). Ranges of 0 m (nothing received) are left as they are.
+    """
+    if not std >= 0.0:
+        raise QuadobsError(f"{log.name}: a tag's pattern needs a spread >= 0 m, got {std!r}")
+    u = _body_directions(log)
+    k = u.shape[1]
+    g = np.random.default_rng(seed).standard_normal((k, k))
+    form = 0.5 * (g + g.T)
+    form -= np.trace(form) / k * np.eye(k)
+    spread = np.sqrt(
+        (np.trace(form @ form) / 4.0) if k == 2 else 2.0 * np.trace(form @ form) / 15.0
+    )
+    form *= std / spread
+    ranges = log.ranges.copy()
+    received = ranges[:, 2] > 0.0
+    ranges[received, 2] += np.einsum("ni,ij,nj->n", u, form, u)[received]
+    return replace(log, ranges=ranges)
