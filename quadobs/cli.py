@@ -1331,7 +1331,9 @@ def _cmd_import_bag(args) -> int:
         print(f"note: {note}")
     print(
         f"log {log.name}: {log.ranges.shape[0]} ranges, {log.tdoa.shape[0]} TDOA, "
-        f"{log.inputs.shape[0]} IMU rows, {0 if log.truth is None else log.truth.shape[0]} truth rows "
+        f"{log.inputs.shape[0] if log.input_kind != 'none' else 0} "
+        f"{'odometry' if log.input_kind == 'odometry' else 'IMU'} rows, "
+        f"{0 if log.truth is None else log.truth.shape[0]} truth rows "
         f"written to {args.out} (replay with: quadobs replay {args.out})"
     )
     return 0

@@ -276,6 +276,8 @@ class _HeadingFilter(ConstantStates, Estimator, Gated):
             [RangeModel(self.anchors, self.range_sigma)] if measurements is None else measurements
         )
         self.measurement_models = {m.kind: m for m in models}
+        if self._ip >= 0 and set(self.measurement_models) != {"range"}:
+            raise QuadobsError("tag_pattern_std: the tag's pattern is a state of ranges only")
         self.robust = robust
         self.lockout = lockout if lockout is not None else LockOut()
         self._P0, self._x0 = self._P.copy(), self._x.copy()
@@ -310,7 +312,8 @@ class _HeadingFilter(ConstantStates, Estimator, Gated):
 
     @property
     def state(self) -> np.ndarray:
-        """``(p_x, p_y, delta, b)``, and ``(l_x, l_y)`` with a lever arm (a copy)."""
+        """``(p_x, p_y, delta, b)``, then ``(l_x, l_y)`` with a lever arm, the anchors' biases
+        and offsets, and the tag's pattern ``(c, s)``, each where held (a copy)."""
         return self._x.copy()
 
     @property
@@ -575,11 +578,14 @@ class _HeadingFilter(ConstantStates, Estimator, Gated):
         (:func:`~quadobs.estimators.robust.multilateration`), so its error is ``M G eps``, of
         covariance
 
-        .. math:: P_{qq} = M G\\, \\mathrm{diag}(v)\\, G^\\top M^\\top, \\qquad
+        .. math:: P_{qq} = M G\\, (\\mathrm{diag}(v) + W)\\, G^\\top M^\\top, \\qquad
                   v_h = \\rho_h^2 \\sigma_h^2 + \\sigma_h^4 / 2
                         + \\operatorname{var} e_h + \\rho_h^2 \\operatorname{var} b_h
 
-        to first order in the anchors' states (common means cancel in the differences; ``n_h^2
+        and, with the tag's pattern as states, ``W_hk = rho_h rho_k g_h^T P_cs g_k`` (``g_h =
+        (cos 2 phi_h, sin 2 phi_h)`` at the fix and the prior heading, ``P_cs`` the pattern's
+        prior: one pattern for every anchor, so the outputs' errors are correlated), else ``W =
+        0``, to first order in the anchors' states (common means cancel in the differences; ``n_h^2
         / 2`` has the variance ``sigma_h^4 / 2``): the range noise enters once, in ``v``, and its
         normalised error ``(q_hat - q)^T P_qq^-1 (q_hat - q)`` is chi-square with 2 degrees of
         freedom (tests/estimators/test_heading_ekf.py). With a lever arm the position is the
@@ -600,11 +606,17 @@ class _HeadingFilter(ConstantStates, Estimator, Gated):
             v = v + P0[self._ie + rows]
         if self._ib >= 0:
             v = v + rho2 * P0[self._ib + rows]
-        if self._ip >= 0:  # the pattern's term, of variance var c = var s (either bearing)
-            v = v + rho2 * P0[self._ip]
         MG = np.linalg.pinv(A.mean(axis=0) - A)
         MG = MG - MG.mean(axis=1, keepdims=True)  # M G: the columns' mean taken out
-        self._P[:2, :2] = (MG * v) @ MG.T
+        V = np.diag(v)
+        if self._ip >= 0:  # the tag's pattern: one (c, s) for every anchor, so correlated
+            d = A - self._x[:2]
+            phi = 2.0 * (np.arctan2(d[:, 1], d[:, 0]) - self.theta_o - float(self._x[2]))
+            G = np.column_stack([np.cos(phi), np.sin(phi)])
+            rho = np.sqrt(rho2)
+            i = self._ip
+            V += np.outer(rho, rho) * (G @ self._P0[i : i + 2, i : i + 2] @ G.T)
+        self._P[:2, :2] = MG @ V @ MG.T
         if self.lever:
             R = _rotation(self.theta_o + float(self._x[2]))
             self._x[:2] -= R @ self._x0[4:6]

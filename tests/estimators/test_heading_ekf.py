@@ -640,7 +640,7 @@ def _one_round(f, anchors, rho, sigma):
         f.correct(Measurement(0.0, "range", float(rho[h]), (h,), sigma))
 
 
-@pytest.mark.parametrize("states", ["none", "lever, offsets, biases"])
+@pytest.mark.parametrize("states", ["none", "lever, offsets, biases", "and the pattern"])
 def test_the_fix_s_normalised_error_is_chi_square_with_two_degrees_of_freedom(states):
     """Ranges drawn from the filter's model (the lever arm, the anchors' offsets and biases from
     their priors where states): the error of the fix's position (the tag's fix less the lever
@@ -656,14 +656,20 @@ def test_the_fix_s_normalised_error_is_chi_square_with_two_degrees_of_freedom(st
               **NOISE)  # fmt: skip
     if states != "none":
         kw.update(lever_arm_std=l_std, offsets=e_prior, bias_std=b_std)
+    if states == "and the pattern":  # one (c, s) for every anchor: the outputs' errors correlated
+        kw.update(tag_pattern_std=0.15)
     nees = []
     for _ in range(400):
-        l, b, e = np.zeros(2), np.zeros(4), np.zeros(4)
+        l, b, e, cs = np.zeros(2), np.zeros(4), np.zeros(4), np.zeros(2)
         if states != "none":
             l, b = l_std * rng.standard_normal(2), b_std * rng.standard_normal(4)
             e = e_prior[0] + e_prior[1] * rng.standard_normal(4)
+        if states == "and the pattern":
+            cs = 0.15 * rng.standard_normal(2)
         tag = p + np.array([[c, -sn], [sn, c]]) @ l
-        s = np.sqrt(np.sum((tag - ROOM) ** 2, axis=1) + 2.0 * e)
+        d = ROOM - tag
+        phi = 2.0 * (np.arctan2(d[:, 1], d[:, 0]) - theta)
+        s = np.sqrt(np.sum(d**2, axis=1) + 2.0 * e) + cs[0] * np.cos(phi) + cs[1] * np.sin(phi)
         f = HeadingEKF(ROOM, **kw)
         _one_round(f, ROOM, s + b + sigma * rng.standard_normal(4), sigma)
         assert len(f.fixes) == 1

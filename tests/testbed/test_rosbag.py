@@ -166,8 +166,12 @@ def test_the_command_line_imports_a_bag_and_the_log_replays(tmp_path, capsys):
             "[ranges] topic '/nope' is not in the bag (topics: /imu, /tdoa",
         ),
         (
+            ["--topic", "imu=/vicon/pose", "--topic", "ranges=/uwb/range"],
+            "geometry_msgs/msg/PoseStamped, expected sensor_msgs/Imu",
+        ),
+        (
             ["--topic", "imu=/uwb/range", "--topic", "ranges=/uwb/range"],
-            "sensor_msgs/msg/Range, expected sensor_msgs/Imu",
+            "/uwb/range is mapped to [imu] and [ranges]",
         ),
         (["--topic", "speed=/imu"], "--topic 'speed=/imu': expected STREAM=TOPIC"),
         (["--topic", "truth=/vicon/pose"], "no [ranges] or [tdoa] topic"),
@@ -388,7 +392,13 @@ def test_truth_from_tf_odometry_and_points(tmp_path):
                     transform=T["geometry_msgs/msg/Transform"](translation=V3(x=x, y=1.0, z=2.0), rotation=q),
                 )  # fmt: skip
 
-            msg = T["tf2_msgs/msg/TFMessage"](transforms=[tf("other", -1.0), tf("cf", float(k))])
+            other = T["geometry_msgs/msg/TransformStamped"](
+                header=h(t, "odom"), child_frame_id="cf",
+                transform=T["geometry_msgs/msg/Transform"](translation=V3(x=-5.0, y=1.0, z=2.0), rotation=q),
+            )  # fmt: skip
+            msg = T["tf2_msgs/msg/TFMessage"](
+                transforms=[tf("other", -1.0), tf("cf", float(k)), other]
+            )
             yield ("/tf", "tf2_msgs/msg/TFMessage", t, msg)
             pose = T["geometry_msgs/msg/Pose"](position=P(x=float(k), y=2.0, z=1.0), orientation=q)
             cov = T["geometry_msgs/msg/PoseWithCovariance"](pose=pose, covariance=np.zeros(36))
@@ -410,7 +420,15 @@ def test_truth_from_tf_odometry_and_points(tmp_path):
     ranges = {"topic": topics, "anchor": "topic", "anchor_pattern": r"anchor_(\d+)"}
     with pytest.raises(QuadobsError, match=r"TFMessage needs child_frame"):
         import_bag(bag, _map(ranges=ranges, truth={"topic": "/tf"}))
-    tf = import_bag(bag, _map(ranges=ranges, truth={"topic": "/tf", "child_frame": "cf"}))
+    with pytest.raises(
+        QuadobsError,
+        match=r"\[truth\] /tf: no pose read \(no transform \* -> body; transforms seen: odom -> cf, world -> cf, world -> other\)",
+    ):
+        import_bag(bag, _map(ranges=ranges, truth={"topic": "/tf", "child_frame": "body"}))
+    both = import_bag(bag, _map(ranges=ranges, truth={"topic": "/tf", "child_frame": "cf"}))
+    assert both.truth.shape[0] == 20  # the body in two parents' frames: parent_frame picks one
+    tf_map = {"topic": "/tf", "child_frame": "cf", "parent_frame": "world"}
+    tf = import_bag(bag, _map(ranges=ranges, truth=tf_map))
     np.testing.assert_allclose(tf.truth[:, 1], np.arange(10.0))
     np.testing.assert_allclose(tf.truth[0, 4:], [math.cos(0.2), 0.0, 0.0, math.sin(0.2)])
     odom = import_bag(bag, _map(ranges=ranges, truth={"topic": "/odom"}))
@@ -419,6 +437,15 @@ def test_truth_from_tf_odometry_and_points(tmp_path):
     )
     point = import_bag(bag, _map(ranges=ranges, truth={"topic": "/point"}))
     assert point.truth_columns == ("time", "x", "y", "z") and point.truth.shape == (10, 4)
+    with pytest.raises(
+        QuadobsError, match=r"10 of 20 poses hold no attitude \(points beside poses\)"
+    ):
+        import_bag(bag, _map(ranges=ranges, truth={"topic": ["/point", "/odom"]}))
+    with pytest.raises(QuadobsError, match=r"heading0 is for wheel odometry"):
+        import_bag(
+            bag,
+            parse_topic_map({"anchors": {"3": [0.0, 0.0, 0.0]}, "heading0": 0.1, "ranges": ranges}),
+        )
 
 
 @pytest.mark.parametrize(
@@ -438,10 +465,24 @@ def test_a_topic_map_checks_the_type_of_each_key(data, message):
         parse_topic_map(data)
 
 
-def test_an_empty_topic_and_a_std_of_zero(tmp_path):
+def test_a_bag_whose_every_range_is_marked_as_none_is_refused_saying_so(tmp_path):
     def build(T, h):
         for topic, msgtype, t, msg in _per_anchor(T, h, bad=False):
-            msg.field_of_view = 0.0  # a custom message's std field stands in: 0, "none stated"
+            msg.range = math.inf
+            yield topic, msgtype, t, msg
+
+    bag = _ros2_bag(tmp_path / "b", lambda T, h: list(build(T, h)))
+    topics = [f"/uwb/anchor_{a}/range" for a in sorted(ANCHORS)]
+    with pytest.raises(
+        QuadobsError, match=r"no range or TDOA left to replay \(\[ranges\] 40 not finite"
+    ):
+        import_bag(bag, _map(ranges={"topic": topics, "anchor": "topic"}))
+
+
+def test_an_empty_topic_and_a_std_of_zero(tmp_path):
+    def build(T, h):
+        for k, (topic, msgtype, t, msg) in enumerate(_per_anchor(T, h, bad=False)):
+            msg.field_of_view = 0.0 if k % 2 else 0.05  # a std field: 0 is "none stated"
             yield topic, msgtype, t, msg
 
     empty = [("/vicon/pose", "geometry_msgs/msg/PoseStamped")]
@@ -452,10 +493,9 @@ def test_an_empty_topic_and_a_std_of_zero(tmp_path):
         import_bag(bag, _map(ranges=ranges, truth={"topic": "/vicon/pose"}))
     notes: list[str] = []
     log = import_bag(bag, _map(ranges=ranges), notes)
-    assert (
-        np.all(np.isnan(log.range_std))
-        and "[ranges] 40 left out: std 0 or NaN: none stated" in notes
-    )
+    assert log.ranges.shape[0] == 40 and np.isnan(log.range_std).sum() == 20
+    np.testing.assert_allclose(log.range_std[np.isfinite(log.range_std)], 0.05, rtol=1e-6)
+    assert "[ranges] 20 kept with no std stated (the field 0 or NaN)" in notes
 
 
 def test_wheel_odometry_from_odometry_messages_makes_a_planar_log(tmp_path):

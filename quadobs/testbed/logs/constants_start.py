@@ -162,7 +162,7 @@ def estimator_constants(
             passes = _with_or_without_pattern(log, dt, model, name, biases, options, cal, passes)
         first, second, why = passes
         if second is None:
-            cal.constants[name] = {"start": "prior", "why": why}
+            cal.constants[name] = {**cal.constants.get(name, {}), "start": "prior", "why": why}
             cal.reason += f"; {name}: its own prior, {why}"
             continue
         start = first.constants[name]

@@ -341,7 +341,7 @@ def _anchor_id(value, pattern: str, where: str) -> int:
         if len(numbers) > 1:
             raise QuadobsError(
                 f"{where}: {value!r} holds {len(numbers)} numbers: say which is the anchor's "
-                "with anchor_pattern, e.g. anchor_pattern = 'anchor_(\\d+)'"
+                "with anchor_pattern, e.g. 'anchor_(\\d+)' (a hexadecimal id: '(0x[0-9a-fA-F]+)')"
             )
         return int(numbers[0])
     number = float(value)
@@ -376,6 +376,8 @@ class _Reading:
     )
     left_out: dict = field(default_factory=dict)
     no_attitude: int = 0
+    no_std: dict = field(default_factory=dict)
+    frames: set = field(default_factory=set)
 
     def time_of(self, msg, where: str) -> float:
         """The message's header stamp (s) or its receive time, as the stream's ``time`` says."""
@@ -408,8 +410,10 @@ def _imu_rows(msg, opts: dict, read: _Reading, where: str) -> None:
             read.no_attitude += 1
             return
         q = _quaternion(msg.orientation, where)
-        if q is not None:
-            read.rows["attitude"].append([t, *q])
+        if q is None:
+            read.leave_out("imu", "orientation not finite (its attitude row)")
+            return
+        read.rows["attitude"].append([t, *q])
 
 
 def _odometry_rows(msg, opts: dict, read: _Reading, where: str) -> None:
@@ -421,9 +425,10 @@ def _odometry_rows(msg, opts: dict, read: _Reading, where: str) -> None:
     read.rows["odometry"].append([read.time_of(msg, where), *row])
 
 
-def _pose_of(msg, opts: dict) -> list:
+def _pose_of(msg, opts: dict, read: _Reading) -> list:
     """``[(header holder, position, orientation or None), ...]`` of a truth message."""
     if hasattr(msg, "transforms"):  # tf2_msgs/TFMessage: the transforms of the child frame
+        read.frames.update(f"{tf.header.frame_id} -> {tf.child_frame_id}" for tf in msg.transforms)
         return [
             (tf, tf.transform.translation, tf.transform.rotation)
             for tf in msg.transforms
@@ -439,7 +444,7 @@ def _pose_of(msg, opts: dict) -> list:
 
 
 def _truth_rows(msg, opts: dict, read: _Reading, where: str) -> None:
-    for holder, p, q in _pose_of(msg, opts):
+    for holder, p, q in _pose_of(msg, opts, read):
         position = [float(p.x), float(p.y), float(p.z)]
         attitude = [math.nan] * 4 if q is None else _quaternion(q, where)
         if attitude is None or not _finite(position):
@@ -454,7 +459,7 @@ def _std(msg, opts: dict, read: _Reading, stream: str, where: str) -> float:
         return math.nan
     s = float(_field(msg, opts["std"], where))
     if s == 0.0 or math.isnan(s):
-        read.leave_out(stream, "std 0 or NaN: none stated")
+        read.no_std[stream] = read.no_std.get(stream, 0) + 1
         return math.nan
     if not (math.isfinite(s) and s > 0.0):
         raise QuadobsError(f"{where}: std {s!r} is not a positive standard deviation")
@@ -531,7 +536,14 @@ def _read_bag(bag: Path, topic_map: TopicMap) -> _Reading:
     from rosbags.highlevel import AnyReader
 
     read = _Reading()
-    by_topic = {t: (s, opts) for s, opts in topic_map.streams.items() for t in opts["topic"]}
+    by_topic: dict = {}
+    for stream, opts in topic_map.streams.items():
+        for topic in opts["topic"]:
+            if topic in by_topic:
+                raise QuadobsError(
+                    f"topic map: {topic} is mapped to [{by_topic[topic][0]}] and [{stream}]"
+                )
+            by_topic[topic] = (stream, opts)
     counts = dict.fromkeys(by_topic, 0)
     try:
         with AnyReader([bag]) as reader:
@@ -611,6 +623,8 @@ def _notes_of(read: _Reading, topic_map: TopicMap, notes) -> None:
         return
     for (stream, reason), n in sorted(read.left_out.items()):
         notes.append(f"[{stream}] {n} left out: {reason}")
+    for stream, n in sorted(read.no_std.items()):
+        notes.append(f"[{stream}] {n} kept with no std stated (the field 0 or NaN)")
     if read.no_attitude:
         notes.append(
             f"[imu] attitude = true, and {read.no_attitude} messages hold no orientation "
@@ -651,6 +665,7 @@ def import_bag(bag: str | Path, topic_map: TopicMap, notes: list | None = None) 
     }[kind]()
     truth = _table(rows["truth"], 8) if "truth" in topic_map.streams else None
     attitude = _table(rows["attitude"], 5) if rows["attitude"] else None
+    _check_rows(bag, topic_map, read, ranges.shape[0] + tdoa.shape[0], truth)
     _check_clocks(bag, {"ranges": ranges, "tdoa": tdoa, kind: inputs, "truth": truth})
     _check_anchor_ids(bag, topic_map, ranges, tdoa, notes)
     _notes_of(read, topic_map, notes)
@@ -675,6 +690,33 @@ def import_bag(bag: str | Path, topic_map: TopicMap, notes: list | None = None) 
     )
 
 
+def _check_rows(bag: Path, topic_map: TopicMap, read: _Reading, measured: int, truth) -> None:
+    """Something left to replay, and a truth that is one: refused in one line where no range
+    or TDOA is left, where the mapped truth gave no pose (a ``/tf`` without the frame asked
+    for), or where some of its poses hold an attitude and some do not."""
+    if measured == 0:
+        why = "; ".join(f"[{k}] {n} {r}" for (k, r), n in sorted(read.left_out.items()))
+        raise QuadobsError(f"{bag}: no range or TDOA left to replay ({why or 'none read'})")
+    if truth is None:
+        return
+    topics = ", ".join(topic_map.streams["truth"]["topic"])
+    if truth.shape[0] == 0:
+        opts = topic_map.streams["truth"]
+        frames = sorted(read.frames)
+        seen = f"; transforms seen: {', '.join(frames[:8])}" if frames else ""
+        wanted = f"{opts['parent_frame'] or '*'} -> {opts['child_frame']}" if frames else ""
+        raise QuadobsError(
+            f"{bag}: [truth] {topics}: no pose read"
+            + (f" (no transform {wanted}{seen})" if frames else "")
+        )
+    missing = np.isnan(truth[:, 4]).sum()
+    if 0 < missing < truth.shape[0]:
+        raise QuadobsError(
+            f"{bag}: [truth] {topics}: {missing} of {truth.shape[0]} poses hold no attitude "
+            "(points beside poses): map topics of one kind"
+        )
+
+
 def _check_map(bag: Path, topic_map: TopicMap) -> int:
     """What the map must hold before the bag is read; the anchors' dimension."""
     if not bag.exists():
@@ -685,6 +727,8 @@ def _check_map(bag: Path, topic_map: TopicMap) -> int:
         raise QuadobsError("topic map: no [ranges] or [tdoa] topic (--topic ranges=/TOPIC)")
     if {"imu", "odometry"} <= set(topic_map.streams):
         raise QuadobsError("topic map: [imu] and [odometry]: a log holds one kind of inputs")
+    if "odometry" not in topic_map.streams and math.isfinite(topic_map.heading0):
+        raise QuadobsError("topic map: heading0 is for wheel odometry, and no [odometry] is mapped")
     if "odometry" in topic_map.streams and not math.isfinite(topic_map.heading0):
         raise QuadobsError(
             "topic map: [odometry] needs heading0, the heading (rad) at the first odometry "
