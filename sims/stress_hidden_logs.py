@@ -25,7 +25,10 @@ with slip, clocks apart; :data:`ROVER`):
   second-order term, :mod:`quadobs.testbed.uwb`); over the cone of directions in which an
   anchor sees the vehicle it acts mostly as a bias and a displaced anchor (``--pattern-fit``);
 * ``level``: every range's bias changing with the distance through the received signal's
-  level, ``0.1 log10 d`` m (``radio.level_bias = 0.1``, :mod:`quadobs.testbed.uwb`).
+  level, ``0.1 log10 d`` m (``radio.level_bias = 0.1``, :mod:`quadobs.testbed.uwb`);
+* ``tagpattern``: the tag's own pattern, a range bias that turns with the vehicle: a second
+  harmonic of the anchor's bearing from the heading, 0.1 m over bearings
+  (:func:`~quadobs.testbed.logs.posed.tag_pattern`).
 
 Flight (``real``: no attitude, vibration at 100 Hz, uneven IMU, FRD axes, IMU 20 ms late,
 range biases of both signs, motion capture at 100 Hz, no ``std``; :data:`FLIGHT`, each applied
@@ -42,7 +45,10 @@ to the log without attitude before ``real``'s transforms):
 * ``gap``: anchor 0 silent for 10 s from 15 s;
 * ``imuclock``: the IMU a further 50 ms late, its stamps jittered by +-2 ms;
 * ``ascale``: the accelerometer's scale off by +2, -1.5 and +1 % on x, y, z;
-* ``pattern``, ``level``: as the robot's.
+* ``pattern``, ``level``: as the robot's;
+* ``tagpattern``: the tag's pattern as the second-order form of the anchor's direction in the
+  body frame (the truth's attitude), 0.1 m over all directions; applied to the export, whose
+  truth holds the attitude, before it is removed.
 
 ::
 
@@ -57,7 +63,7 @@ log (the robot's logs state one, the flight's none), as a log converted by hand 
 
     python sims/stress_hidden_logs.py rover --seeds 0,1 --without-std --tune anchor_sigma=0
 
-``--pattern`` sets the ``pattern`` stress's spread (m; default :data:`PATTERN_STD`), ``--level``
+``--pattern`` sets the ``pattern`` and ``tagpattern`` stresses' spread (m; default :data:`PATTERN_STD`), ``--level``
 the ``level`` stress's bias per decade (m; default :data:`LEVEL_BIAS`); ``--keep DIR`` keeps the
 logs (and the replays' summaries) in a new folder ``DIR``.
 ``--given-biases`` (flight) also replays ``ekf-bias-imu`` given each anchor's constant bias as
@@ -289,7 +295,7 @@ def main() -> None:
         "--pattern",
         type=float,
         default=PATTERN_STD,
-        help=f"m, the pattern stress's spread over directions (default {PATTERN_STD:g})",
+        help=f"m, the pattern and tagpattern stresses' spread over directions (default {PATTERN_STD:g})",
     )
     ap.add_argument(
         "--level",
