@@ -416,7 +416,7 @@ class _HeadingFilter(ConstantStates, Estimator, Gated):
 
     def predicted_range(self, m: Measurement) -> float:
         """The range ``m`` predicted at the current estimate: from the tag's position, with the
-        anchor's offset and bias where they are states (:meth:`_range`)."""
+        anchor's offset and bias and the tag's pattern where they are states (:meth:`_range`)."""
         return self._range(self.measurement_models["range"], m, self._x)[0]
 
     def _range(self, model, m: Measurement, x: np.ndarray) -> tuple[float, float, float]:
@@ -592,10 +592,14 @@ class _HeadingFilter(ConstantStates, Estimator, Gated):
         tag's less its prior mean, ``p_hat = q_hat - R(theta) l_0``, whose error ``(q_hat - q) +
         R (l - l_0)`` has the marginal covariance ``P_qq + R P_l R^T``: that is the position's.
         The fix's error is correlated with the anchors' states (``-M G diag(var e)``, ``-M G
-        diag(rho var b)``) and with the lever arm (``-R P_l``); the filter keeps those states
+        diag(rho var b)``), with the tag's pattern (``-M G diag(rho) g P_cs``) and with the lever
+        arm (``-R P_l``); the filter keeps those states
         independent of it, at their prior (the tag's covariance then errs wide, by ``R P_l
         R^T``): with the cross-covariances ``ukf-height-lever`` was measured worse on the
-        wheeled robot (docs/error-sources.md, the order of the anchors)."""
+        wheeled robot (docs/error-sources.md, the order of the anchors). The fix takes the
+        ranges as measured: where the constants were started away from zero (a first pass,
+        :mod:`quadobs.testbed.logs.constants_start`), their means are not taken off them, and
+        the fix is off by what they add, its covariance the started constants'."""
         rows = np.flatnonzero(~np.isnan(self._latest))
         A = self.anchors[rows]
         rho2 = np.maximum(2.0 * self._latest[rows] + np.einsum("hi,hi->h", A, A), 0.0)

@@ -545,3 +545,34 @@ def test_wheel_odometry_from_odometry_messages_makes_a_planar_log(tmp_path):
     np.testing.assert_allclose(log.truth[:, 3], 0.3 + 0.2 * (log.truth[:, 0] - T0), atol=1e-9)
     back = read_log(write_log(log, tmp_path / "log"))
     assert back.input_kind == "odometry" and back.inputs.shape == (40, 3)
+
+
+def test_inputs_or_a_truth_whose_every_reading_is_marked_as_none_are_refused_saying_so(tmp_path):
+    def build(T, h):
+        yield from _per_anchor(T, h, bad=False)
+        V3, P = T["geometry_msgs/msg/Vector3"], T["geometry_msgs/msg/Point"]
+        Q = T["geometry_msgs/msg/Quaternion"]
+        for k in range(20):
+            t = T0 + 0.05 * k
+            imu = T["sensor_msgs/msg/Imu"](
+                header=h(t), orientation=Q(x=0.0, y=0.0, z=0.0, w=1.0),
+                orientation_covariance=np.zeros(9), angular_velocity=V3(x=0.0, y=0.0, z=math.nan),
+                angular_velocity_covariance=np.zeros(9), linear_acceleration=V3(x=0.0, y=0.0, z=9.8),
+                linear_acceleration_covariance=np.zeros(9),
+            )  # fmt: skip
+            yield ("/imu", "sensor_msgs/msg/Imu", t, imu)
+            point = T["geometry_msgs/msg/PointStamped"](
+                header=h(t, "world"), point=P(x=math.nan, y=0.0, z=0.0)
+            )
+            yield ("/point", "geometry_msgs/msg/PointStamped", t, point)
+
+    bag = _ros2_bag(tmp_path / "b", lambda T, h: list(build(T, h)))
+    ranges = {"topic": [f"/uwb/anchor_{a}/range" for a in sorted(ANCHORS)], "anchor": "topic"}
+    with pytest.raises(
+        QuadobsError, match=r"\[imu\] fewer than two readings left \(20 left out: not finite\)"
+    ):
+        import_bag(bag, _map(ranges=ranges, imu={"topic": "/imu"}))
+    with pytest.raises(
+        QuadobsError, match=r"\[truth\] /point: no pose read \(20 left out: not finite\)"
+    ):
+        import_bag(bag, _map(ranges=ranges, truth={"topic": "/point"}))

@@ -677,7 +677,8 @@ class Calibration:
         "first pass" or "prior", "states": count, **test}}``, ``test`` the paired test of the
         second pass (from the first pass's constants) against the first
         (:meth:`Comparison.as_dict`: ``score`` the second's held-out score, ``reference_score``
-        the first's).
+        the first's); for ``ukf-height-lever`` also ``"pattern"``: whether the tag's pattern
+        was kept as states, and its paired test (with them against without).
     """
 
     biases: np.ndarray | None

@@ -207,11 +207,12 @@ def _with_or_without_pattern(log, dt, model, name, biases, options, cal, without
     test = compare(_chosen(*with_[:2]), _chosen(*without[:2]))
     kept = test.better and not with_[2]
     cal.constants[name] = {"pattern": {"kept": kept, **test.as_dict()}}
-    cal.reason += (
-        f"; {name}: the tag's pattern as states "
-        + ("kept" if kept else "not kept")
-        + f" (the held-out ranges {test.score:.3f} m with them, {test.reference_score:.3f} m"
-        + (" without)" if kept else " without: not significantly better)")
+    scores = (
+        f"the held-out ranges {test.score:.3f} m with them, {test.reference_score:.3f} m without"
+    )
+    why = f"with them {with_[2]}" if with_[2] else "not significantly better"
+    cal.reason += f"; {name}: the tag's pattern as states " + (
+        f"kept ({scores})" if kept else f"not kept ({scores}: {why})"
     )
     if kept:
         cal.options[PATTERN_KEY] = 1.0

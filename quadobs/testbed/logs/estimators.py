@@ -246,6 +246,11 @@ class ReplaySetup:
         1 (the default) or 0: whether the filters take :attr:`offsets` (``--tune
         stated_heights=0`` turns them off; the self-calibration does where the ranges
         contradict them, :func:`~quadobs.testbed.logs.calibration.check_stated_heights`).
+    tag_pattern : float
+        1 or 0 (the default): whether ``ukf-height-lever`` holds the tag's pattern as two states
+        (:data:`~quadobs.estimators.heading_ekf.TAG_PATTERN_STD`); set by the self-calibration
+        where the held-out ranges ask for it (step 10,
+        :mod:`~quadobs.testbed.logs.constants_start`), or by ``--tune tag_pattern``.
     constants_start : dict or None
         ``{filter name: (mean (c,), covariance (c, c))}``: the prior of the constant states of
         the filter of that name (a member of an average too): the constants a first pass

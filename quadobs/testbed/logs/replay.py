@@ -600,7 +600,7 @@ def _summary(
             "P0": setup.P0,
             "offsets": _offsets_summary(setup.offsets if setup.stated_heights else None),
             "stated_heights": setup.stated_heights,
-            "tag_pattern": setup.tag_pattern,
+            "tag_pattern": setup.tag_pattern if "ukf-height-lever" in names else None,
             "range_std_by_anchor": _std_by_anchor(log),
         },
         "measurements": {

@@ -695,19 +695,26 @@ def _check_rows(bag: Path, topic_map: TopicMap, read: _Reading, measured: int, t
     or TDOA is left, where the mapped truth gave no pose (a ``/tf`` without the frame asked
     for), or where some of its poses hold an attitude and some do not."""
     if measured == 0:
-        why = "; ".join(f"[{k}] {n} {r}" for (k, r), n in sorted(read.left_out.items()))
+        why = "; ".join(
+            f"[{k}] {n} {r}"
+            for (k, r), n in sorted(read.left_out.items())
+            if k in ("ranges", "tdoa")
+        )
         raise QuadobsError(f"{bag}: no range or TDOA left to replay ({why or 'none read'})")
+    for stream in ("imu", "odometry"):
+        if stream in topic_map.streams and len(read.rows[stream]) < 2:
+            left = read.left_out.get((stream, "not finite"), 0)
+            raise QuadobsError(
+                f"{bag}: [{stream}] fewer than two readings left ({left} left out: not finite)"
+            )
     if truth is None:
         return
     topics = ", ".join(topic_map.streams["truth"]["topic"])
     if truth.shape[0] == 0:
-        opts = topic_map.streams["truth"]
-        frames = sorted(read.frames)
-        seen = f"; transforms seen: {', '.join(frames[:8])}" if frames else ""
-        wanted = f"{opts['parent_frame'] or '*'} -> {opts['child_frame']}" if frames else ""
+        left = read.left_out.get(("truth", "not finite"), 0)
         raise QuadobsError(
             f"{bag}: [truth] {topics}: no pose read"
-            + (f" (no transform {wanted}{seen})" if frames else "")
+            + (f" ({left} left out: not finite)" if left else _frames_asked(topic_map, read))
         )
     missing = np.isnan(truth[:, 4]).sum()
     if 0 < missing < truth.shape[0]:
@@ -715,6 +722,18 @@ def _check_rows(bag: Path, topic_map: TopicMap, read: _Reading, measured: int, t
             f"{bag}: [truth] {topics}: {missing} of {truth.shape[0]} poses hold no attitude "
             "(points beside poses): map topics of one kind"
         )
+
+
+def _frames_asked(topic_map: TopicMap, read: _Reading) -> str:
+    """For a ``/tf`` truth that gave no pose: the transform asked for and those seen."""
+    frames = sorted(read.frames)
+    if not frames:
+        return ""
+    opts = topic_map.streams["truth"]
+    return (
+        f" (no transform {opts['parent_frame'] or '*'} -> {opts['child_frame']}; "
+        f"transforms seen: {', '.join(frames[:8])})"
+    )
 
 
 def _check_map(bag: Path, topic_map: TopicMap) -> int:
@@ -732,7 +751,8 @@ def _check_map(bag: Path, topic_map: TopicMap) -> int:
     if "odometry" in topic_map.streams and not math.isfinite(topic_map.heading0):
         raise QuadobsError(
             "topic map: [odometry] needs heading0, the heading (rad) at the first odometry "
-            "message in the anchors' frame (the odometry's own frame does not tell it)"
+            "message in the anchors' frame (the odometry's own frame does not tell it): set "
+            "heading0 = RAD in the --map file"
         )
     dims = {len(p) for p in topic_map.anchors.values()}
     if len(dims) != 1:
