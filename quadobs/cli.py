@@ -1126,7 +1126,9 @@ def _print_replay_rows(summary: dict, log) -> None:
             )
             continue
         if e.get("within_extent") is False:
-            extra += f"  [error larger than the anchors' extent, {summary['anchor_extent']:.3g} m]"
+            extra += (
+                f"  [final error larger than the anchors' extent, {summary['anchor_extent']:.3g} m]"
+            )
         print(
             f"  {name:{width}s} {after} {_fmt(e['rmse'], ' m')}  max {_fmt(e['max_error'], ' m')}  "
             f"final {_fmt(e['final_position_error'], ' m')}  {e['seconds_per_measurement'] * 1e6:.0f} us/range{extra}"

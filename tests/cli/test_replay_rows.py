@@ -45,7 +45,7 @@ def test_the_rows_say_the_burn_in_fit_the_longest_name_and_flag_what_the_summary
     assert lines[2].endswith(
         "[the same filter as ekf-bias-imu: no non-line-of-sight excess identified in the log]"
     )
-    assert lines[3].endswith("[error larger than the anchors' extent, 3.2 m]")
+    assert lines[3].endswith("[final error larger than the anchors' extent, 3.2 m]")
     assert lines[4] == f"  {'ukf':{width}s} rmse invalid (diverged)"
     _print_replay_rows(_summary({"ekf": _figures(0.3)}), log)
     assert capsys.readouterr().out.splitlines()[1].startswith("  ekf        rmse 0.3 m")

@@ -145,4 +145,4 @@ def test_an_error_beyond_the_anchors_extent_is_marked_and_the_burn_in_printed(tm
         for name in ("augmented", "ekf"):
             assert s["estimators"][name]["within_extent"] is within
             assert f"{name:10s} rmse after 2 s " in out
-        assert ("larger than the anchors' extent, 56.6 m" in out) is not within
+        assert ("final error larger than the anchors' extent, 56.6 m" in out) is not within

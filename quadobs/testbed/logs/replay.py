@@ -624,13 +624,15 @@ def anchor_extent(beacons: np.ndarray) -> float:
 
 
 def _within_extent(estimators: dict, extent: float) -> dict:
-    """Each estimator's figures with ``within_extent``: whether its RMSE (after the burn-in) is
-    at most the anchors' extent (:func:`anchor_extent`). An error larger than the field the
-    anchors cover says the ranges do not hold the estimate (a filter run away short of the
-    divergence watch's 1e9 m, ranges in the wrong unit, a vehicle far outside its anchors).
-    None where no RMSE was measured or the anchors are one point."""
+    """Each estimator's figures with ``within_extent``: whether its error at the log's end
+    (``final_position_error``) is at most the anchors' extent (:func:`anchor_extent`). An error
+    larger than the field the anchors cover, at the end of the log, says the ranges do not
+    hold the estimate (a filter run away short of the divergence watch's 1e9 m, ranges in the
+    wrong unit, a vehicle far outside its anchors); the end, not the RMSE, so that a start far
+    off, which the RMSE without a burn-in carries, does not count. None where no final error
+    was measured or the anchors are one point."""
     for e in estimators.values():
-        rmse = e.get("rmse")
-        ok = rmse is not None and math.isfinite(rmse) and not e.get("diverged") and extent > 0.0
-        e["within_extent"] = bool(rmse <= extent) if ok else None
+        final = e.get("final_position_error")
+        ok = final is not None and math.isfinite(final) and not e.get("diverged") and extent > 0.0
+        e["within_extent"] = bool(final <= extent) if ok else None
     return estimators
