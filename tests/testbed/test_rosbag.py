@@ -300,6 +300,18 @@ def _per_anchor(T, header, frame="tag_1", bad=True):
             yield (f"/uwb/anchor_{a}/range", "sensor_msgs/msg/Range", t, msg)
 
 
+def _imu(T, header, yaw_rate: float, az: float, orientation: bool = True):
+    """A ``sensor_msgs/Imu`` at rest but for ``yaw_rate`` (rad/s) and ``az`` (m/s^2), its
+    orientation the identity or (``orientation=False``) marked as none."""
+    V3, Q = T["geometry_msgs/msg/Vector3"], T["geometry_msgs/msg/Quaternion"]
+    return T["sensor_msgs/msg/Imu"](
+        header=header, orientation=Q(x=0.0, y=0.0, z=0.0, w=1.0),
+        orientation_covariance=np.array([0.0 if orientation else -1.0] + [0.0] * 8),
+        angular_velocity=V3(x=0.0, y=0.0, z=yaw_rate), angular_velocity_covariance=np.zeros(9),
+        linear_acceleration=V3(x=0.0, y=0.0, z=az), linear_acceleration_covariance=np.zeros(9),
+    )  # fmt: skip
+
+
 def _map(**streams):
     return parse_topic_map({"anchors": {str(k): list(v) for k, v in ANCHORS.items()}, **streams})
 
@@ -348,17 +360,10 @@ def test_a_frame_id_with_two_numbers_needs_a_pattern_and_the_command_line_takes_
 def test_stamps_unset_or_on_another_clock_are_refused_unless_received_times_are_taken(tmp_path):
     def build(T, h, boot=False, unset=False):
         yield from _per_anchor(T, h, bad=False)
-        V3 = T["geometry_msgs/msg/Vector3"]
         for k in range(20):
             t = T0 + 0.05 * k
             stamp = (100.0 + 0.05 * k) if boot else 0.0 if (unset and k == 3) else t
-            imu = T["sensor_msgs/msg/Imu"](
-                header=h(stamp), orientation=T["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0),
-                orientation_covariance=np.array([-1.0] + [0.0] * 8),
-                angular_velocity=V3(x=0.0, y=0.0, z=0.1), angular_velocity_covariance=np.zeros(9),
-                linear_acceleration=V3(x=0.0, y=0.0, z=math.nan if k == 5 else 9.81),
-                linear_acceleration_covariance=np.zeros(9),
-            )  # fmt: skip
+            imu = _imu(T, h(stamp), 0.1, math.nan if k == 5 else 9.81, orientation=False)
             yield ("/imu", "sensor_msgs/msg/Imu", t + 0.001, imu)
 
     topics = [f"/uwb/anchor_{a}/range" for a in sorted(ANCHORS)]
@@ -550,17 +555,10 @@ def test_wheel_odometry_from_odometry_messages_makes_a_planar_log(tmp_path):
 def test_inputs_or_a_truth_whose_every_reading_is_marked_as_none_are_refused_saying_so(tmp_path):
     def build(T, h):
         yield from _per_anchor(T, h, bad=False)
-        V3, P = T["geometry_msgs/msg/Vector3"], T["geometry_msgs/msg/Point"]
-        Q = T["geometry_msgs/msg/Quaternion"]
+        P = T["geometry_msgs/msg/Point"]
         for k in range(20):
             t = T0 + 0.05 * k
-            imu = T["sensor_msgs/msg/Imu"](
-                header=h(t), orientation=Q(x=0.0, y=0.0, z=0.0, w=1.0),
-                orientation_covariance=np.zeros(9), angular_velocity=V3(x=0.0, y=0.0, z=math.nan),
-                angular_velocity_covariance=np.zeros(9), linear_acceleration=V3(x=0.0, y=0.0, z=9.8),
-                linear_acceleration_covariance=np.zeros(9),
-            )  # fmt: skip
-            yield ("/imu", "sensor_msgs/msg/Imu", t, imu)
+            yield ("/imu", "sensor_msgs/msg/Imu", t, _imu(T, h(t), math.nan, 9.8))
             point = T["geometry_msgs/msg/PointStamped"](
                 header=h(t, "world"), point=P(x=math.nan, y=0.0, z=0.0)
             )
