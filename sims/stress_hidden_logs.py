@@ -50,6 +50,11 @@ to the log without attitude before ``real``'s transforms):
   body frame (the truth's attitude), 0.1 m over all directions; applied to the export, whose
   truth holds the attitude, before it is removed.
 
+Both (``mix``): several of them at once, as a real log would hold them, at moderate sizes:
+the anchors' and the tag's patterns at :data:`MIX_PATTERN_STD` (0.05 m) each, ``level``,
+``survey``, and the robot's ``pillar`` and ``odoclock`` or the flight's ``imuclock`` and
+``ascale`` (the flight's applied to the export, as ``tagpattern``).
+
 ::
 
     python sims/stress_hidden_logs.py rover --seeds 0,1,2,3,4
@@ -113,6 +118,22 @@ def _none(log, seed):
     return log
 
 
+#: The ``mix`` stress's spread of the anchors' and the tag's patterns (m): half the single
+#: stresses', since it poses them together with the others.
+MIX_PATTERN_STD = 0.05
+
+
+def _mixed(*steps):
+    """The transforms ``steps`` applied in turn, the ``k``-th drawn from ``seed + k``."""
+
+    def transform(log, seed):
+        for k, step in enumerate(steps):
+            log = step(log, seed + k)
+        return log
+
+    return transform
+
+
 #: The robot's stresses: scenario settings and a transform ``(log, seed) -> log``.
 ROVER = {
     "none": ((), _none),
@@ -127,6 +148,15 @@ ROVER = {
     "pattern": ((f"radio.pattern={PATTERN_STD}",), _none),
     "level": ((f"radio.level_bias={LEVEL_BIAS}",), _none),
     "tagpattern": ((), lambda log, seed: tag_pattern(log, PATTERN_STD, seed)),
+    "mix": (
+        (f"radio.pattern={MIX_PATTERN_STD}", f"radio.level_bias={LEVEL_BIAS}"),
+        _mixed(
+            lambda log, seed: surveyed(log, SURVEY_STD, seed),
+            lambda log, seed: tag_pattern(log, MIX_PATTERN_STD, seed),
+            lambda log, seed: behind_pillar(log, (1.5, 0.5), 0.15, 0.3, seed),
+            lambda log, seed: inputs_late(log, 0.1, 0.01, seed),
+        ),
+    ),
 }
 #: The flight's stresses, as :data:`ROVER`.
 FLIGHT = {
@@ -143,6 +173,15 @@ FLIGHT = {
     "pattern": ((f"radio.pattern={PATTERN_STD}",), _none),
     "level": ((f"radio.level_bias={LEVEL_BIAS}",), _none),
     "tagpattern": ((), lambda log, seed: tag_pattern(log, PATTERN_STD, seed)),
+    "mix": (
+        (f"radio.pattern={MIX_PATTERN_STD}", f"radio.level_bias={LEVEL_BIAS}"),
+        _mixed(
+            lambda log, seed: surveyed(log, SURVEY_STD, seed),
+            lambda log, seed: tag_pattern(log, MIX_PATTERN_STD, seed),
+            lambda log, seed: inputs_late(log, *IMU_LATE, seed),
+            lambda log, seed: accel_scaled(log, (0.02, -0.015, 0.01)),
+        ),
+    ),
 }
 
 
@@ -153,7 +192,7 @@ SPARSE = ("rate20", "rate10")
 
 #: The flight's stresses that take the truth's attitude: applied to the export before its
 #: attitude is removed (they change the ranges alone).
-WITH_ATTITUDE = ("tagpattern",)
+WITH_ATTITUDE = ("tagpattern", "mix")
 
 
 def stress_seed(seed: int, name: str) -> int:

@@ -339,3 +339,24 @@ def test_the_stress_scripts_pattern_spread_is_the_radios_term_and_its_linear_fit
     np.testing.assert_allclose(spread, direct.std(axis=0), rtol=1e-9)
     assert np.all(left <= spread)
     assert np.sqrt(np.mean(left**2)) < 0.25 * np.sqrt(np.mean(spread**2))
+
+
+def test_the_stress_scripts_mix_is_its_transforms_in_turn_each_from_its_own_draw(monkeypatch):
+    """``mix``: the transforms one after the other, the ``k``-th from ``seed + k``, so that
+    two of them never share a draw (a log stressed twice from one seed would tie the errors
+    of a survey to those of a pattern)."""
+    monkeypatch.syspath_prepend(str(SIMS))
+    import stress_hidden_logs
+
+    seen = []
+
+    def step(name):
+        return lambda log, seed: seen.append((name, seed)) or log + [name]
+
+    mixed = stress_hidden_logs._mixed(step("survey"), step("pattern"), step("clock"))
+    assert mixed([], 7000) == ["survey", "pattern", "clock"]
+    assert seen == [("survey", 7000), ("pattern", 7001), ("clock", 7002)]
+    for table in (stress_hidden_logs.ROVER, stress_hidden_logs.FLIGHT):
+        settings, _ = table["mix"]
+        assert f"radio.pattern={stress_hidden_logs.MIX_PATTERN_STD}" in settings
+    assert "mix" in stress_hidden_logs.WITH_ATTITUDE  # its tag pattern takes the attitude
