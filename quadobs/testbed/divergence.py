@@ -157,20 +157,37 @@ class DivergenceSink(Sink):
     def end(self, completed: int, interrupted: bool) -> dict:
         per = {}
         own = {est.name: est for est in getattr(self.ctx, "estimators", ())}
+        frame = self.ctx.frame  # the estimators' clock to the rows'
+        clock = (getattr(frame, "time_origin", 0.0), frame.dt)
         for name in self.ctx.names:
+            est = own.get(name)
             found = (
-                self.found.get(name) or given_up(own.get(name)) or self._locked_out(name, completed)
+                self.found.get(name) or given_up(est, *clock) or self._locked_out(name, completed)
             )
             per[name] = {"diverged": found}
-            started = startup_record(own.get(name))
+            started = startup_record(est, *clock)
             if started is not None:  # only then: every other summary keeps its keys
                 per[name]["startup"] = started
         return {"estimators": per}
 
 
-def given_up(est) -> dict | None:
+def _entry(record: dict, origin: float, dt: float | None) -> dict:
+    """An estimator's record ``{"time", "step", "reason"}`` as a summary's entry on the run's
+    clock: ``t`` from row 0 (the estimator's time less ``origin``, the clock's time of row 0:
+    a replayed log's own stamps), ``step`` the row at ``t`` where ``origin`` is not 0 (an
+    estimator counting steps from its own clock's zero would give ``t_log / dt``), else the
+    record's own (-1: a time without a step)."""
+    t = float(record["time"]) - float(origin)
+    step = int(record["step"])
+    if origin and dt and step >= 0:
+        step = int(round(t / dt))
+    return {"step": step, "t": t, "reason": record["reason"]}
+
+
+def given_up(est, origin: float = 0.0, dt: float | None = None) -> dict | None:
     """The estimator's own record of having given up (its lock-out's ``diverged``: out of
-    re-initialisations, or a state it judged implausible), as this sink's entry."""
+    re-initialisations, or a state it judged implausible), as this sink's entry on the run's
+    clock (:func:`_entry`)."""
     lock = getattr(est, "lockout", None)
     record = getattr(lock, "diverged", None)
     at_end = getattr(lock, "locked_at_end", None)
@@ -178,19 +195,19 @@ def given_up(est) -> dict | None:
         record = at_end()
     if not record:
         return None
-    return {"step": int(record["step"]), "t": float(record["time"]), "reason": record["reason"]}
+    return _entry(record, origin, dt)
 
 
-def startup_record(est) -> dict | None:
+def startup_record(est, origin: float = 0.0, dt: float | None = None) -> dict | None:
     """A start-up from a multilateration that never set the position
-    (:func:`~quadobs.estimators.startup.not_started`) as a summary's ``startup`` entry, else
-    None. The filter ran from its prior, correcting every range with the start-up's grown
-    variance, so its figures stand; the entry says that they are those of a filter that never
-    took its position from a fix."""
+    (:func:`~quadobs.estimators.startup.not_started`) as a summary's ``startup`` entry on the
+    run's clock (:func:`_entry`), else None. The filter ran from its prior, correcting every
+    range with the start-up's grown variance, so its figures stand; the entry says that they
+    are those of a filter that never took its position from a fix."""
     record = not_started(est)
     if not record:
         return None
-    return {"step": int(record["step"]), "t": float(record["time"]), "reason": record["reason"]}
+    return _entry(record, origin, dt)
 
 
 #: Summary keys of an estimator that are figures of its error (made ``None`` once it diverged).

@@ -188,6 +188,10 @@ class EpisodeFrame:
         Its columns (as many as the world's ``u``).
     beacon_labels : tuple of str
         Labels of the beacons in the recording.
+    time_origin : float
+        The estimators' clock at row 0 (s): a replayed log's first grid time, its own stamps;
+        0 for a simulated episode, whose estimators count from the row times. Their records
+        (a divergence, a start-up) are reported on the rows' clock, less it.
     """
 
     name: str
@@ -207,6 +211,7 @@ class EpisodeFrame:
     input_name: str = "accelerometer"
     input_labels: tuple = ()
     beacon_labels: tuple = ()
+    time_origin: float = 0.0
 
     @classmethod
     def of(cls, scenario) -> EpisodeFrame:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 
@@ -146,3 +147,57 @@ def test_an_error_beyond_the_anchors_extent_is_marked_and_the_burn_in_printed(tm
             assert s["estimators"][name]["within_extent"] is within
             assert f"{name:10s} rmse after 2 s " in out
         assert ("final error larger than the anchors' extent, 56.6 m" in out) is not within
+
+
+def test_an_estimators_own_record_is_reported_on_the_logs_time_from_its_start(tmp_path, capsys):
+    """A replayed filter keeps the log's own clock (here unix seconds): its record of having
+    given up (a lock-out, a guard) and of a start-up without a fix are reported from the log's
+    start, the step the row at that time, as the sink's own divergence is, never ``t =
+    1.7e+09 s`` at step 17000000075."""
+    from types import SimpleNamespace
+
+    from quadobs.testbed.divergence import given_up, startup_record
+
+    t0 = 1.7e9
+    lock = SimpleNamespace(
+        diverged={"time": t0 + 7.5, "step": int(round((t0 + 7.5) / 0.1)), "reason": "guard"},
+        locked_at_end=None,
+    )
+    entry = given_up(SimpleNamespace(lockout=lock), t0, 0.1)
+    assert entry == {"step": 75, "t": pytest.approx(7.5), "reason": "guard"}
+    assert given_up(SimpleNamespace(lockout=lock))["t"] == t0 + 7.5  # a simulated run's clock
+    lock.diverged["step"] = -1  # a time without a step stays without one
+    assert given_up(SimpleNamespace(lockout=lock), t0, 0.1)["step"] == -1
+    start = SimpleNamespace(fix_pending=False, fix_abandoned=t0 + 2.0, dt=0.1, fixes=[])
+    record = startup_record(start, t0, 0.1)
+    assert record is not None and record["t"] == pytest.approx(2.0) and record["step"] == 20
+    shifted = helix_log(10.0, spike=40)
+    shifted = dataclasses.replace(
+        shifted,
+        ranges=shifted.ranges + [t0, 0, 0],
+        inputs=shifted.inputs + [t0, 0, 0, 0],
+        truth=shifted.truth + np.r_[t0, np.zeros(6)],
+    )
+    folder = write_log(shifted, tmp_path / "log")
+    code = main(
+        ["replay", str(folder), "--dt", "0.01", "--calibrate", "none", "--no-progress"]
+        + ["--tune", "range_sigma=0.05", "--tune", "q_imu=1e-3", "--initial-offset", "5"]
+        + ["--summary", str(tmp_path / "s.json")]
+    )
+    out = capsys.readouterr().out
+    s = json.loads((tmp_path / "s.json").read_text())
+    diverged = {n: e["diverged"] for n, e in s["estimators"].items() if e["diverged"]}
+    assert code == 0 and diverged, out
+    for d in diverged.values():
+        assert 0.0 <= d["t"] <= 10.0 and d["step"] == pytest.approx(d["t"] / 0.01, abs=1)
+    two = shifted.ranges[shifted.ranges[:, 1] < 2]  # two anchors: no fix in space
+    folder = write_log(dataclasses.replace(shifted, ranges=two, range_std=None), tmp_path / "two")
+    code = main(
+        ["replay", str(folder), "--dt", "0.01", "--calibrate", "none", "--no-progress"]
+        + ["--estimators", "ekf-bias", "--summary", str(tmp_path / "two.json")]
+    )
+    out = capsys.readouterr().out
+    record = json.loads((tmp_path / "two.json").read_text())["estimators"]["ekf-bias"]["startup"]
+    assert code == 0 and 0.0 <= record["t"] <= 10.0, out
+    assert record["step"] == pytest.approx(record["t"] / 0.01, abs=1)
+    assert "NO START-UP FIX (t = " in out and "t = 1.7e+09" not in out

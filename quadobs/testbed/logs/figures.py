@@ -94,9 +94,10 @@ class FieldFiguresSink(Sink):
         own = {est.name: est for est in getattr(self.ctx, "estimators", ())}
         for name, err in self.errors.items():
             per[name] = figures = err.figures()
+            clock = (self.start, self.ctx.frame.dt)  # the filters' time is the log's
             if figures["diverged"] is None:  # the filter's own record of having given up
-                figures["diverged"] = given_up(own.get(name))
-            started = startup_record(own.get(name))
+                figures["diverged"] = given_up(own.get(name), *clock)
+            started = startup_record(own.get(name), *clock)
             if started is not None:  # ran from its prior: its figures stand, the entry says so
                 figures["startup"] = started
             same_as = _same_as(own.get(name))

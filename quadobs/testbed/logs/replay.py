@@ -495,6 +495,8 @@ def check_replay(log, names, *, dt: float = 0.1, model: str | None = None, optio
     x0[: log.dimension] = log.beacons.mean(axis=0)
     build_replay_estimators(setup, list(names) if names else default_estimators(log, model), x0)
     check_range_units(log)
+    if log.input_kind == "odometry":
+        check_odometry_units(log)
     if log.input_kind == "imu_body":  # its units, and the attitude the model imu rotates it by
         from quadobs.testbed.attitude import check_body_imu, navigation_accelerations
 
@@ -540,6 +542,53 @@ def check_range_units(log) -> None:
             f"{log.file_label('beacons.csv')}: the anchors ranged to span {extent:.4g}, "
             f"{extent / max(medians):.0f} times the largest median range of one anchor "
             f"({max(medians):.4g}, ranges.csv): {both}"
+        )
+
+
+#: How much wider than the region its ranges allow a log's dead-reckoned path may be before
+#: :func:`check_odometry_units` refuses it: wheel odometry drifts by a few per cent of the
+#: distance travelled, and a factor of 10 is a unit (mm/s or cm/s against m/s, times in ms).
+ODOMETRY_SPAN_RATIO = 10.0
+
+
+def check_odometry_units(log) -> None:
+    """Refuse wheel odometry in other units than m/s and rad/s (with times in seconds), in one
+    line naming the file and the column.
+
+    * the yaw rate: no rate beyond
+      :data:`~quadobs.testbed.attitude.GYRO_FULL_SCALE` (a rate in deg/s of a vehicle
+      turning faster than 0.6 rad/s reads beyond it; a yaw in degrees differenced into a rate
+      jumps by 360 where it wraps);
+    * the speed: the path dead-reckoned from it (:func:`~quadobs.testbed.worlds.replay.dead_reckoning`;
+      its extent, the diagonal of the box that holds it, does not depend on the start or the
+      heading's error but for drift) within :data:`ODOMETRY_SPAN_RATIO` times ``2 r``, ``r``
+      the largest range of the log (every position lies within ``r`` of the anchor that range
+      was to, so the true path spans at most ``2 r``). A speed in mm/s, or times in ms,
+      dead-reckon a path a thousand times wider.
+    """
+    from quadobs.testbed.attitude import GYRO_FULL_SCALE
+    from quadobs.testbed.worlds.replay import dead_reckoning
+
+    rates = np.abs(log.inputs[:, 2])
+    if rates.size and float(rates.max()) > GYRO_FULL_SCALE:
+        row = int(np.argmax(rates))
+        raise QuadobsError(
+            f"{log.file_label('inputs.csv')}, row {row + 2}, column yaw_rate: "
+            f"{float(log.inputs[row, 2]):.4g} is beyond any gyroscope's range "
+            f"({GYRO_FULL_SCALE:.1f} rad/s = 2000 deg/s): the yaw rate must be in rad/s"
+        )
+    received = log.ranges[log.ranges[:, 2] > 0.0, 2] if log.ranges.shape[0] else log.ranges[:, 2]
+    if received.size == 0 or log.inputs.shape[0] < 2:
+        return
+    bound = 2.0 * float(received.max())
+    path = dead_reckoning(log, log.inputs[:, 0])[0]
+    span = float(np.linalg.norm(path.max(axis=0) - path.min(axis=0)))
+    if span > ODOMETRY_SPAN_RATIO * bound:
+        raise QuadobsError(
+            f"{log.file_label('inputs.csv')}, column speed: the path dead-reckoned from it spans "
+            f"{span:.4g} m, {span / bound:.0f} times the {bound:.4g} m within which the ranges "
+            "place the vehicle (twice the largest range): the speed must be in m/s and the "
+            "times in seconds"
         )
 
 

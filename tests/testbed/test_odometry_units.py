@@ -1,0 +1,81 @@
+"""Wheel odometry converted by hand in the wrong units (speed in mm/s, yaw rate in deg/s, times
+in ms) is refused in one line naming the file and the column, before any calibration."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from quadobs.cli import main
+from quadobs.errors import QuadobsError
+from quadobs.testbed.logs import RangeLog, write_log
+from quadobs.testbed.logs.plaza import load_builtin
+from quadobs.testbed.logs.replay import ODOMETRY_SPAN_RATIO, check_odometry_units
+from quadobs.testbed.worlds.replay import dead_reckoning
+
+ANCHORS = np.array([[0.0, 0.0], [3.0, 0.0], [3.0, 3.0], [0.0, 3.0]])
+
+
+def _robot_log() -> RangeLog:
+    """A robot on a stadium in a 3 m room (0.8 m/s; half turns of 0.8 rad/s, 0.75 s straight
+    between them), 60 s: odometry at 20 Hz, ranges to four anchors round-robin at 10 Hz from
+    the path it dead-reckons, no truth."""
+    t = np.arange(0.0, 60.0, 0.05)
+    turn = np.pi / 0.8
+    w = np.where(np.mod(t, turn + 0.75) < turn, 0.8, 0.0)
+    log = RangeLog(
+        "robot", np.arange(4), ANCHORS, np.empty((0, 3)), np.column_stack([t, 0.8 + 0 * t, w]), 0.0
+    )
+    t_r = np.arange(0.02, 59.9, 0.1)
+    h = np.arange(t_r.size) % 4
+    p = dead_reckoning(log, t_r, origin=(1.8, 0.5))[0]
+    ranges = np.column_stack([t_r, h, np.linalg.norm(p - ANCHORS[h], axis=1)])
+    return dataclasses.replace(log, ranges=ranges)
+
+
+def _scaled(log: RangeLog, speed=1.0, yaw_rate=1.0, time=1.0) -> RangeLog:
+    inputs = log.inputs * [time, speed, yaw_rate]
+    return dataclasses.replace(log, inputs=inputs, ranges=log.ranges * [time, 1.0, 1.0])
+
+
+def _refused(tmp_path, capsys, log) -> str:
+    folder = write_log(log, tmp_path / "robot")
+    assert main(["replay", str(folder), "--no-progress"]) == 2
+    out, err = capsys.readouterr()
+    errors = [line for line in err.splitlines() if line.startswith("quadobs: error")]
+    assert len(errors) == 1 and "calibrated" not in out, (out, err)
+    assert f"{folder}/inputs.csv" in errors[0]
+    return errors[0]
+
+
+def test_a_speed_in_mm_per_s_is_refused_by_the_path_it_dead_reckons(tmp_path, capsys):
+    error = _refused(tmp_path, capsys, _scaled(_robot_log(), speed=1000.0))
+    assert "column speed: the path dead-reckoned from it spans " in error
+    assert "the speed must be in m/s and the times in seconds" in error
+    check_odometry_units(_robot_log())  # in m/s: accepted
+
+
+def test_times_in_ms_are_refused_as_the_speed_is(tmp_path, capsys):
+    error = _refused(tmp_path, capsys, _scaled(_robot_log(), time=1000.0))
+    assert "column speed: the path dead-reckoned" in error
+
+
+def test_a_yaw_rate_in_deg_per_s_is_beyond_any_gyroscopes_range(tmp_path, capsys):
+    error = _refused(tmp_path, capsys, _scaled(_robot_log(), yaw_rate=np.degrees(1.0)))
+    assert "row 2, column yaw_rate: 45.84 is beyond any gyroscope's range" in error
+    assert "must be in rad/s" in error
+
+
+def test_the_bound_is_far_from_real_odometry_and_its_drift():
+    """The dead-reckoned paths of Plaza1 and Plaza2 (a vehicle's wheel odometry over 20 and 12
+    minutes, drift included) span half the region their ranges allow, twenty times inside the
+    bound; a scale error of 5 % and a yaw rate's bias of 0.01 rad/s on the robot stay inside."""
+    for name in ("plaza1", "plaza2"):
+        check_odometry_units(load_builtin(name))
+    log = _robot_log()
+    drifting = dataclasses.replace(log, inputs=log.inputs * [1.0, 1.05, 1.0] + [0.0, 0.0, 0.01])
+    check_odometry_units(drifting)
+    with pytest.raises(QuadobsError, match="column speed"):
+        check_odometry_units(_scaled(log, speed=2.0 * ODOMETRY_SPAN_RATIO * 3.0))
