@@ -430,16 +430,20 @@ def check_body_imu(log) -> None:
             f"{float(log.inputs[row, 4 + col]):.4g} is beyond any MEMS gyroscope's range "
             f"({GYRO_FULL_SCALE:.1f} rad/s = 2000 deg/s): the rates must be in rad/s"
         )
+    check_rates_against_attitude(log)
 
 
-def _check_gravity_held(log, nav: np.ndarray) -> None:
-    """Refuse an attitude estimated from the IMU that does not keep gravity vertical.
+def _check_gravity_held(log, nav: np.ndarray, given: bool = False) -> None:
+    """Refuse an attitude estimated from the IMU (or, ``given``, the log's ``attitude.csv``)
+    that does not keep gravity vertical.
 
     The mean of the navigation-frame acceleration ``a = R f + g`` over a log of span ``T`` is
     ``(v(T) - v(0)) / T``: for any vehicle (a few m/s over tens of seconds) a small fraction of
     ``g``. An attitude integrated from rates in the wrong unit (deg/s read as rad/s: every turn
     57 times too large) leaves ``R f`` pointing anywhere, and its mean far from ``-g``: refused
-    where ``|mean a| > g / 2`` (a change of velocity of ``g T / 2``, 200 m/s over 40 s).
+    where ``|mean a| > g / 2`` (a change of velocity of ``g T / 2``, 200 m/s over 40 s). A
+    given attitude in another convention (navigation to body, the scalar last) or an
+    accelerometer whose axes are not the body's (an axis's sign flipped) does the same.
     """
     t = nav[:, 0]
     span = float(t[-1] - t[0]) if t.size > 1 else 0.0
@@ -449,10 +453,97 @@ def _check_gravity_held(log, nav: np.ndarray) -> None:
     mean = np.sum(nav[:-1, 1:] * dt, axis=0) / span
     g = float(log.gravity)
     if float(np.linalg.norm(mean)) > 0.5 * g:
+        where, what, fix = (
+            (
+                "attitude.csv",
+                "the attitude given",
+                f"{GIVEN_ATTITUDE_HINT}, and meta.csv's frame the navigation frame's (enu: z up; ned: z down)",
+            )
+            if given
+            else (
+                "imu.csv, columns gx,gy,gz",
+                "the attitude integrated from the rates",
+                "the rates must be in rad/s",
+            )
+        )
         raise QuadobsError(
-            f"{log.file_label('imu.csv')}, columns gx,gy,gz: the attitude integrated from the rates does "
-            f"not keep gravity vertical (mean acceleration {np.linalg.norm(mean):.3g} m/s^2 over "
-            f"{span:.4g} s, at most g / 2 for any vehicle): the rates must be in rad/s"
+            f"{log.file_label(where)}: {what} does not keep gravity vertical (mean acceleration "
+            f"{np.linalg.norm(mean):.3g} m/s^2 over {span:.4g} s, at most g / 2 for any "
+            f"vehicle): {fix}"
+        )
+
+
+#: What a given attitude that the IMU or the ranges contradict may have got wrong.
+GIVEN_ATTITUDE_HINT = (
+    "the quaternion must be scalar first (qw,qx,qy,qz) and turn the body frame into the "
+    "navigation frame, and imu.csv's axes be the body's"
+)
+
+#: The window (s) over which :func:`check_rates_against_attitude` compares the gyroscope's
+#: integrated rotation with the given attitude's, and the least rotation (rad) of a window it
+#: counts: over half a second a multirotor's attitude moves by tenths of a radian, a bias of
+#: 0.01 rad/s by 0.005 rad.
+RATE_WINDOW = (0.5, 0.05)
+
+#: The ratio of the gyroscope's rotation to the attitude's beyond which
+#: :func:`check_rates_against_attitude` refuses the rates (a unit: deg/s read as rad/s is 57).
+RATE_RATIO = 5.0
+
+#: The least median cosine between the gyroscope's rotations and the attitude's, over at least
+#: the given number of windows, below which :func:`check_rates_against_attitude` refuses the
+#: attitude: a body-to-navigation attitude read the other way turns about the opposite axes
+#: (cosine -1), one read scalar last about permuted ones.
+RATE_AXES = (0.5, 5)
+
+
+def check_rates_against_attitude(log) -> None:
+    """Refuse a gyroscope whose rates do not turn as the log's given attitude does, in one line.
+
+    Over windows of :data:`RATE_WINDOW` seconds, the rotation the attitude makes in the body
+    frame (``log(R(t_0)^T R(t_1))``) against the rates integrated (``int omega dt``, exact for a
+    rotation about a fixed axis, within the coning error otherwise); over the windows where
+    the attitude turns by at least :data:`RATE_WINDOW`'s angle, the median ratio of their
+    angles must lie within :data:`RATE_RATIO` either way (rates in deg/s give 57), and, over
+    :data:`RATE_AXES`'s least count of windows, the median cosine between the two rotation
+    vectors must reach its bound (an attitude given navigation to body turns about the
+    opposite axes, one read scalar last about other axes: measured -0.94 and -0.33 on a
+    simulated flight whose own gives 0.94). A log whose attitude never turns that much has
+    nothing to compare and is left as it is.
+    """
+    att = log.attitude
+    if att is None or att.shape[0] < 2 or log.inputs.shape[0] < 2:
+        return
+    window, least = RATE_WINDOW
+    t, w = log.inputs[:, 0], log.inputs[:, 4:7]
+    edges = np.arange(max(t[0], att[0, 0]), min(t[-1], att[-1, 0]) - window, window)
+    if edges.size == 0:
+        return
+    times = np.r_[edges, edges[-1] + window]
+    R = attitude_at(att, times)
+    rotation = (R[:-1].inv() * R[1:]).as_rotvec()
+    dt = np.diff(t)[:, None]
+    W = np.vstack([np.zeros((1, 3)), np.cumsum(0.5 * (w[1:] + w[:-1]) * dt, axis=0)])
+    rates = np.diff(np.column_stack([np.interp(times, t, W[:, i]) for i in range(3)]), axis=0)
+    turned, integrated = np.linalg.norm(rotation, axis=1), np.linalg.norm(rates, axis=1)
+    moving = turned >= least
+    if not moving.any():
+        return
+    ratio = float(np.median(integrated[moving] / turned[moving]))
+    if not 1.0 / RATE_RATIO <= ratio <= RATE_RATIO:
+        unit = " (deg/s read as rad/s: 57)" if ratio > RATE_RATIO else ""
+        raise QuadobsError(
+            f"{log.file_label('imu.csv')}, columns gx,gy,gz: the rates integrated turn "
+            f"{ratio:.3g} times as far as attitude.csv does (median over "
+            f"{int(moving.sum())} windows of {window:g} s){unit}: the rates must be in rad/s, "
+            f"and {GIVEN_ATTITUDE_HINT}"
+        )
+    cosine = np.sum(rotation * rates, axis=1)[moving] / (turned * integrated)[moving]
+    bound, count = RATE_AXES
+    if cosine.size >= count and float(np.median(cosine)) < bound:
+        raise QuadobsError(
+            f"{log.file_label('attitude.csv')}: the body rates of imu.csv turn about other axes "
+            f"than the attitude does (median cosine {float(np.median(cosine)):.2f} over "
+            f"{cosine.size} windows of {window:g} s, {bound:g} at least): {GIVEN_ATTITUDE_HINT}"
         )
 
 
@@ -480,6 +571,8 @@ def navigation_accelerations(log) -> np.ndarray:
             )
         R = _rotation(estimate_attitude(t, f, w, float(log.gravity)))
     out = np.column_stack([t, R.apply(f) + log.gravity_vector])
+    if log.attitude is not None and log.attitude.shape[0]:
+        _check_gravity_held(log, out, given=True)
     if log.attitude is None or not log.attitude.shape[0]:
         _check_gravity_held(log, out)
         bias = None if log.starts_at_rest() else gyro_bias_from_ranges(log, out)

@@ -69,3 +69,59 @@ def test_a_slowly_turning_gyroscope_in_deg_per_s_does_not_keep_gravity_vertical(
         QuadobsError, match="columns gx,gy,gz: the attitude integrated from the rat"
     ):
         navigation_accelerations(wrong)
+
+
+def test_a_given_attitude_that_the_accelerometer_contradicts_is_refused(tmp_path, capsys):
+    """An accelerometer whose y and z axes are flipped against the body the attitude turns
+    leaves gravity far from vertical: refused naming attitude.csv and the conventions (the
+    gyroscope's flipped too turns about other axes than the attitude: refused as well)."""
+    log = _imu_body_log(True, yaw_rate=0.2)
+    flipped = dataclasses.replace(log, inputs=log.inputs * [1, 1, -1, -1, 1, 1, 1])
+    folder = write_log(flipped, tmp_path / "flight")
+    assert main(["replay", str(folder), "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert f"{folder}/attitude.csv: the attitude given does not keep gravity vertical" in err
+    assert "scalar first (qw,qx,qy,qz)" in err
+    both = dataclasses.replace(log, inputs=log.inputs * [1, 1, -1, -1, 1, -1, -1])
+    with pytest.raises(QuadobsError, match="turn about other axes than the attitude does"):
+        check_body_imu(both)
+
+
+def test_rates_in_deg_per_s_beside_a_given_attitude_turn_57_times_as_far():
+    """A gyroscope in deg/s turning slowly (0.2 rad/s: within any full scale) beside a given
+    attitude: its rotations are 57.3 times the attitude's."""
+    log = _scaled(_imu_body_log(True, yaw_rate=0.2), gyro=np.degrees(1.0))
+    with pytest.raises(
+        QuadobsError, match=r"columns gx,gy,gz: the rates integrated turn 57.3 times"
+    ):
+        check_body_imu(log)
+    check_body_imu(_imu_body_log(True, yaw_rate=0.2))  # in rad/s: accepted
+
+
+def test_an_attitude_given_navigation_to_body_turns_about_the_opposite_axes():
+    """The attitude written the other way (its conjugate): the body rates turn about the
+    opposite axis of the attitude's own rotations, which no unit explains."""
+    log = _imu_body_log(True, yaw_rate=0.2)
+    att = log.attitude * [1, 1, -1, -1, -1]
+    with pytest.raises(
+        QuadobsError,
+        match=r"attitude.csv: the body rates of imu.csv turn about other axes than the attitude does \(median cosine -1.00",
+    ):
+        check_body_imu(dataclasses.replace(log, attitude=att))
+
+
+def test_one_file_in_milliseconds_is_refused_by_its_span_and_a_short_truth_is_not(tmp_path):
+    """The IMU stamped in ms beside ranges in s spans a thousand times the measurements; the
+    ranges in ms beside inputs in s, a thousand times the inputs. A truth of one second in a
+    20 s log is a short truth, not a unit."""
+    from quadobs.testbed.logs import read_log
+
+    log = _imu_body_log(False)
+    with pytest.raises(
+        QuadobsError, match=r"imu.csv spans 2e\+04 s, 10\d\d times the measurements'"
+    ):
+        dataclasses.replace(log, inputs=log.inputs * [1000, 1, 1, 1, 1, 1, 1])
+    with pytest.raises(QuadobsError, match=r"ranges.csv spans 1.998e\+04 s, 999 times imu.csv's"):
+        dataclasses.replace(log, ranges=log.ranges * [1000, 1, 1], range_std=None)
+    short = dataclasses.replace(log, truth=log.truth[log.truth[:, 0] < 1.0])
+    assert read_log(write_log(short, tmp_path / "short-truth")).truth.shape[0] == 200

@@ -60,6 +60,7 @@ from quadobs.testbed.logs.schema import (
     QUATERNION,
     RANGE,
     RANGE_ERRORS,
+    SPAN_RATIO,
     STD,
     TDOA,
     check_values,
@@ -332,6 +333,7 @@ class RangeLog:
             if values.shape[0]:
                 check_values(f"{self.name}: {fname}", FILES[fname], columns, values)
         self._check_clocks(tables)
+        self._check_time_units(tables)
         if self.frame not in ("enu", "ned") or not (
             math.isfinite(self.gravity) and self.gravity > 0
         ):
@@ -367,6 +369,31 @@ class RangeLog:
             f"{self.name}: the files' times lie more than {MAX_SPAN:g} s apart ({starts}): "
             "times must be seconds on one clock in every file"
         )
+
+    def _check_time_units(self, tables) -> None:
+        """Every file's times in one unit: a file spanning more than :data:`SPAN_RATIO` times
+        the measurements' span (``ranges.csv`` or ``tdoa.csv``), or measurements spanning that
+        many times the inputs' (which cover the log), holds times in another unit (milliseconds
+        against seconds: a factor of 1000). A short truth is not judged short."""
+        spans = {
+            f: float(np.ptp(v[:, 0])) for f, _, v in tables if f != "beacons.csv" and v.shape[0] > 1
+        }
+        own = [f for f in ("ranges.csv", "tdoa.csv") if spans.get(f, 0.0) > 0.0]
+        if not own:
+            return
+        measured = max(spans[f] for f in own)
+        inputs = INPUT_FILES.get(self.input_kind)
+        for fname, span in spans.items():
+            if span > SPAN_RATIO * measured:
+                culprit, other, ratio = fname, "the measurements'", span / measured
+            elif fname == inputs and 0.0 < span and measured > SPAN_RATIO * span:
+                culprit, span, other, ratio = own[0], measured, f"{inputs}'s", measured / span
+            else:
+                continue
+            raise QuadobsError(
+                f"{self.name}: {culprit} spans {span:.4g} s, {ratio:.0f} times {other}: times "
+                "must be seconds in every file (milliseconds: divide by 1e3)"
+            )
 
     @property
     def dimension(self) -> int:
