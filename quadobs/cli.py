@@ -914,7 +914,7 @@ def _add_replay(sub) -> None:
     )
     p.add_argument(
         "log",
-        help="log folder (beacons.csv, ranges.csv, inputs.csv, meta.csv[, truth.csv]) or plaza1, plaza2",
+        help="log folder (meta.csv, beacons.csv, ranges.csv or tdoa.csv[, inputs.csv or imu.csv][, attitude.csv][, truth.csv]; docs/replaying-your-data.md) or plaza1, plaza2",
     )
     p.add_argument("--out", type=Path, help="recording to write (.rrd)")
     p.add_argument("--summary", type=Path, help="JSON summary to write")

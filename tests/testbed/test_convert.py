@@ -37,3 +37,22 @@ def test_a_sideways_step_is_left_out_and_bad_times_are_refused():
         odometry_from_poses([0.0, 1.0, 1.0], [0, 1, 2], [0, 0, 0], [0, 0, 0])
     with pytest.raises(QuadobsError, match="finite"):
         odometry_from_poses([0.0, 1.0], [0, math.nan], [0, 0], [0, 0])
+
+
+def test_a_differential_drive_turns_left_when_its_right_wheel_is_faster():
+    """Wheels at 0.3 and 0.5 m/s on a track of 0.2 m: 0.4 m/s turning left at 1 rad/s, a circle
+    of 0.4 m that the replay's dead reckoning closes after 2 pi s; equal wheels go straight."""
+    from quadobs.testbed.logs.convert import odometry_from_wheels
+
+    t = np.linspace(0.0, 2.0 * np.pi, 2001)
+    rows = odometry_from_wheels(t, 0.3 + 0 * t, 0.5 + 0 * t, 0.2)
+    np.testing.assert_allclose(rows[:, 1:], np.tile([0.4, 1.0], (t.size, 1)))
+    log = RangeLog("wheels", np.arange(2), np.zeros((2, 2)), np.empty((0, 3)), rows, 0.0)
+    p, psi = dead_reckoning(log, t)
+    assert p[:, 1].max() == pytest.approx(0.8, abs=1e-6)  # left of the start: y > 0
+    np.testing.assert_allclose(p[-1], [0.0, 0.0], atol=1e-6)
+    assert odometry_from_wheels([0.0, 1.0], [0.2, 0.2], [0.2, 0.2], 0.3)[0, 2] == 0.0
+    with pytest.raises(QuadobsError, match="track: a positive distance"):
+        odometry_from_wheels([0.0, 1.0], [0, 0], [0, 0], 0.0)
+    with pytest.raises(QuadobsError, match=r"times must increase \(row 2"):
+        odometry_from_wheels([1.0, 1.0], [0, 0], [0, 0], 0.2)

@@ -33,7 +33,11 @@ Which logs: those whose inputs drive the motion between ranges and carry their o
 body IMU or a navigation-frame accelerometer (models ``imu``). An odometry log could take the
 same step; it is not run there (:func:`takes_offset`): the Plaza logs range a car every 0.5 to
 1 s, so one range's worth of time is already longer than any offset the odometry's rate could
-show, and the step would only add replays.
+show, and the step would only add replays. A robot ranging at 16 Hz would show one, but not
+to this scorer: on a robot's stand-in whose odometry was made 0.35 s late (its anchors above
+the tag), the EKF predicted the held-out ranges to 0.875 m, and neither -63 ms nor +63 ms
+differed from none by more than 0.001 m; `ukf-height-lever` replayed with the true lag gave
+0.053 m against 0.114 m. A lag known in seconds is given as ``--clock-offset SECONDS``.
 """
 
 from __future__ import annotations
@@ -179,7 +183,10 @@ def estimate_clock_offset(
     )
 
     if not takes_offset(log, model):
-        why = "not searched (a log of ranges with an acceleration input and the model imu only)"
+        why = (
+            "not searched (a log of ranges with an acceleration input and the model imu only;"
+            " a lag known in seconds is given as --clock-offset SECONDS)"
+        )
         return ClockOffset(0.0, 0.0, math.nan, reason=f"clock offset of the inputs: {why}")
     h = round(offset_step(log), 9)
     t0, t1 = float(log.inputs[0, 0]), float(log.inputs[-1, 0])

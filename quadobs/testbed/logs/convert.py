@@ -18,6 +18,12 @@ come back exactly where the vehicle moves along it (negative going backwards), a
 slip of the odometry's own is left out. The odometry frame's origin and orientation do not
 enter: the log's ``heading0`` is the heading at the first row in the anchors' frame, which
 the poses do not tell.
+
+A differential drive logs its wheels instead: :func:`odometry_from_wheels` takes the left and
+right wheels' ground speeds (each wheel's rate times its radius) and the track ``b`` (the
+distance between the wheels' contact points), ``v = (v_r + v_l) / 2``, ``omega = (v_r - v_l)
+/ b``, turning left (counter-clockwise seen from above, the sign of a yaw rate about an
+upward axis) when the right wheel is the faster.
 """
 
 from __future__ import annotations
@@ -26,7 +32,7 @@ import numpy as np
 
 from quadobs.errors import QuadobsError
 
-__all__ = ["odometry_from_poses"]
+__all__ = ["odometry_from_poses", "odometry_from_wheels"]
 
 
 def odometry_from_poses(t, x, y, yaw) -> np.ndarray:
@@ -65,3 +71,39 @@ def odometry_from_poses(t, x, y, yaw) -> np.ndarray:
     speed = (np.diff(x) * np.cos(mid) + np.diff(y) * np.sin(mid)) / dt
     rate = np.diff(psi) / dt
     return np.column_stack([t, np.append(speed, speed[-1]), np.append(rate, rate[-1])])
+
+
+def odometry_from_wheels(t, left, right, track: float) -> np.ndarray:
+    """``inputs.csv``'s rows ``time, speed, yaw_rate`` (``(K, 3)``) of a differential drive.
+
+    Parameters
+    ----------
+    t : array_like (K,)
+        Times (s), strictly increasing.
+    left, right : array_like (K,)
+        The left and right wheels' ground speeds (m/s: a wheel's rate in rad/s times its
+        radius), positive forwards.
+    track : float
+        The distance between the wheels' contact points (m), positive.
+
+    Returns
+    -------
+    ndarray (K, 3)
+        ``v = (v_r + v_l) / 2`` and ``omega = (v_r - v_l) / track`` (module docstring).
+    """
+    t, left, right = (np.asarray(v, dtype=float).ravel() for v in (t, left, right))
+    if not (t.size == left.size == right.size) or t.size < 2:
+        raise QuadobsError(
+            "odometry_from_wheels: t, left, right: equal lengths of at least 2 expected"
+        )
+    if not np.all(np.isfinite(np.concatenate([t, left, right]))):
+        raise QuadobsError("odometry_from_wheels: every value must be a finite number")
+    if not (np.isfinite(track) and track > 0.0):
+        raise QuadobsError(f"odometry_from_wheels: track: a positive distance in m, got {track!r}")
+    dt = np.diff(t)
+    if np.any(dt <= 0.0):
+        k = int(np.flatnonzero(dt <= 0.0)[0])
+        raise QuadobsError(
+            f"odometry_from_wheels: times must increase (row {k + 2}: {t[k + 1]} after {t[k]})"
+        )
+    return np.column_stack([t, 0.5 * (right + left), (right - left) / float(track)])
