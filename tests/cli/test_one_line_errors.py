@@ -192,16 +192,18 @@ def test_huge_ids_and_escape_sequences_in_a_log_are_refused(
 
 
 @pytest.mark.parametrize(
-    ("fname", "columns", "word"),
+    ("fname", "columns", "word", "scale"),
     [
-        ("ranges.csv", ("range", "std"), "ranges.csv, column range: the median range is"),
-        ("beacons.csv", ("x", "y"), "beacons.csv: the anchors ranged to span"),
+        ("ranges.csv", ("range", "std"), "ranges.csv, column range: the median range is", 1000.0),
+        ("beacons.csv", ("x", "y"), "beacons.csv: the anchors ranged to span", 1000.0),
+        ("ranges.csv", ("range", "std"), "ranges.csv, column range: the ranges' own noise", 100.0),
     ],
 )
 def test_replay_refuses_ranges_and_anchors_in_different_units(
-    tmp_path, capsys, fname, columns, word
+    tmp_path, capsys, fname, columns, word, scale
 ):
-    """Ranges in mm against anchors in m, or the other way: one line before any calibration."""
+    """Ranges in mm against anchors in m, or the other way, or ranges in cm (their noise beyond
+    half the anchors' extent): one line before any calibration."""
     import csv
 
     folder = tmp_path / "R"
@@ -216,7 +218,7 @@ def test_replay_refuses_ranges_and_anchors_in_different_units(
     index = [rows[0].index(c) for c in columns]
     for row in rows[1:]:
         for i in index:
-            row[i] = repr(1000.0 * float(row[i]))
+            row[i] = repr(scale * float(row[i]))
     with (folder / fname).open("w", newline="") as fh:
         csv.writer(fh).writerows(rows)
     code = main(["replay", str(folder)])

@@ -509,6 +509,9 @@ def check_replay(log, names, *, dt: float = 0.1, model: str | None = None, optio
 #: refuses them: a vehicle among its anchors reads ranges of the order of their extent, and a
 #: factor of 100 either way is a unit (mm against m), not a geometry.
 RANGE_SCALE_RATIO = 100.0
+#: The largest noise of a log's ranges, as a share of the anchors' extent, before
+#: :func:`check_range_units` takes them for another unit (its docstring).
+RANGE_NOISE_RATIO = 0.5
 
 
 def check_range_units(log) -> None:
@@ -518,7 +521,11 @@ def check_range_units(log) -> None:
     m). Refused: the median range beyond :data:`RANGE_SCALE_RATIO` ``e`` (ranges in mm against
     anchors in m), or every ranged anchor's median range below ``e /``
     :data:`RANGE_SCALE_RATIO` (anchors in mm against ranges in m: a point lies at least ``e /
-    (2 sqrt(3))`` from one of the two anchors farthest apart).
+    (2 sqrt(3))`` from one of the two anchors farthest apart), or the ranges' own noise
+    (:func:`~quadobs.testbed.logs.range_noise.range_noise`: the spread of each range about the
+    line through its anchor's neighbours) beyond :data:`RANGE_NOISE_RATIO` ``e`` (ranges in
+    cm: a radio's decimetres read as metres; measured 0.006 to 0.025 ``e`` on the Plaza logs
+    and simulated flights and robots, 1.3 to 1.5 ``e`` on those in cm).
     """
     ranges = log.ranges
     if ranges.shape[0] == 0:
@@ -542,6 +549,16 @@ def check_range_units(log) -> None:
             f"{log.file_label('beacons.csv')}: the anchors ranged to span {extent:.4g}, "
             f"{extent / max(medians):.0f} times the largest median range of one anchor "
             f"({max(medians):.4g}, ranges.csv): {both}"
+        )
+    from quadobs.testbed.logs.range_noise import range_noise
+
+    noise = range_noise(log)[0]
+    if math.isfinite(noise) and noise > RANGE_NOISE_RATIO * extent:
+        raise QuadobsError(
+            f"{log.file_label('ranges.csv')}, column range: the ranges' own noise is "
+            f"{noise:.4g}, {noise / extent:.2g} times the extent of the anchors ranged to "
+            f"({extent:.4g}, beacons.csv), where a radio's is a few hundredths of it (ranges "
+            f"in cm?): {both}"
         )
 
 
