@@ -201,3 +201,19 @@ def test_an_estimators_own_record_is_reported_on_the_logs_time_from_its_start(tm
     assert code == 0 and 0.0 <= record["t"] <= 10.0, out
     assert record["step"] == pytest.approx(record["t"] / 0.01, abs=1)
     assert "NO START-UP FIX (t = " in out and "t = 1.7e+09" not in out
+
+
+def test_a_truth_on_another_clock_is_said_before_the_replay():
+    """The helix's truth stamped 2 s late: its distances agree with the ranges moved by 2 s,
+    and a note says so; on its own clock, and stamped 0.1 s late (within the lags not said),
+    nothing is said."""
+    from quadobs.testbed.logs.replay import replayable_log, truth_lag_note
+
+    log = helix_log(20.0)
+    assert truth_lag_note(log) is None
+    for lag, said in ((2.0, "stamped 2.00 s late"), (-1.5, "stamped 1.50 s early"), (0.1, None)):
+        moved = dataclasses.replace(log, truth=log.truth + np.r_[lag, np.zeros(6)])
+        note = truth_lag_note(moved)
+        assert (note is None) if said is None else (said in note and "ranges' clock" in note)
+    late = dataclasses.replace(log, truth=log.truth + np.r_[2.0, np.zeros(6)])
+    assert any("stamped 2.00 s late" in n for n in replayable_log(late)[1])

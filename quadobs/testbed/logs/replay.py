@@ -397,6 +397,9 @@ def replayable_log(log, keep_anchors: bool = False) -> tuple:
         if unheard:
             notes.append(f"anchors never ranged, left out: {', '.join(map(str, unheard))}")
     notes += gap_notes(log)
+    lag = truth_lag_note(log)
+    if lag:
+        notes.append(lag)
     plane = anchor_plane(log.beacons)
     if plane is not None:
         notes.append(
@@ -434,6 +437,57 @@ def gap_notes(log) -> list[str]:
             )
             notes.append(f"{name}: {count}: {what[name]}")
     return notes
+
+
+#: The lags (s) of the truth against the ranges that :func:`truth_lag_note` tries: -3 to 3 s by
+#: 0.05 s (a motion capture on another clock, or stamped on receipt).
+TRUTH_LAGS = np.round(np.arange(-3.0, 3.0 + 1e-9, 0.05), 2)
+
+
+def truth_lag_note(log) -> str | None:
+    """A line where the truth agrees with the ranges much better at another time than its own,
+    else None.
+
+    For each lag ``s`` of :data:`TRUTH_LAGS`, each range's residual against the truth's point
+    at its time plus ``s``, ``rho - |p(t + s) - a_h|`` (the horizontal distance in a planar
+    log), less its anchor's median residual (a bias, a height), and the median of their
+    absolute values: the spread of the ranges about the truth moved by ``s``. Said where the
+    least spread lies 0.25 s or more from 0 and is under 0.7 times the spread at 0: a truth
+    that scores every estimator from the wrong time (the figures of a truth 2 s late are
+    metres, not the estimators' error). Ranges outside the truth's span at a lag are not
+    counted at it."""
+    truth = log.truth
+    if truth is None or truth.shape[0] < 2 or log.ranges.shape[0] < 20:
+        return None
+    dim = log.dimension
+    t_truth, p_truth = truth[:, 0], truth[:, 1 : 1 + dim]
+    t, anchor, rho = log.ranges[:, 0], log.beacon_index(log.ranges[:, 1]), log.ranges[:, 2]
+    a = np.asarray(log.beacons, dtype=float)[anchor]
+
+    def spread(s: float) -> float:
+        inside = (t + s >= t_truth[0]) & (t + s <= t_truth[-1])
+        if np.count_nonzero(inside) < 20:
+            return math.inf
+        p = np.column_stack([np.interp(t[inside] + s, t_truth, p_truth[:, i]) for i in range(dim)])
+        e = rho[inside] - np.linalg.norm(p - a[inside], axis=1)
+        h = anchor[inside]
+        medians = np.zeros(log.beacons.shape[0])
+        for k in np.unique(h):
+            medians[k] = np.median(e[h == k])
+        return float(np.median(np.abs(e - medians[h])))
+
+    spreads = np.array([spread(float(s)) for s in TRUTH_LAGS])
+    at_zero = spreads[np.flatnonzero(TRUTH_LAGS == 0.0)[0]]
+    k = int(np.argmin(spreads))
+    best = float(TRUTH_LAGS[k])
+    if not (abs(best) >= 0.25 and math.isfinite(at_zero) and spreads[k] < 0.7 * at_zero):
+        return None
+    return (
+        f"truth.csv agrees with the ranges best as if stamped {abs(best):.2f} s "
+        f"{'late' if best > 0 else 'early'} (the ranges spread {spreads[k]:.3g} m about it "
+        f"moved so, {at_zero:.3g} m at its own times): is the truth on the ranges' clock? "
+        "Its figures would score every estimator from the wrong time"
+    )
 
 
 #: The anchors of a 3-D log lie in one plane where their spread across it is below this
