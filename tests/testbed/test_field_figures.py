@@ -217,3 +217,20 @@ def test_a_truth_on_another_clock_is_said_before_the_replay():
         assert (note is None) if said is None else (said in note and "ranges' clock" in note)
     late = dataclasses.replace(log, truth=log.truth + np.r_[2.0, np.zeros(6)])
     assert any("stamped 2.00 s late" in n for n in replayable_log(late)[1])
+
+
+def test_ranges_measured_to_another_anchor_than_their_id_names_are_said():
+    """The helix's ranges of anchors 0 and 1 exchanged (their ids swapped in ranges.csv): each
+    fits the other's position against the truth, and a note names both; the log as written
+    says nothing."""
+    from quadobs.testbed.logs.replay import replayable_log, truth_anchor_note
+
+    log = helix_log(20.0)
+    assert truth_anchor_note(log) is None
+    ranges = log.ranges.copy()
+    ranges[:, 1] = np.choose(ranges[:, 1].astype(int), [1, 0, 2, 3])
+    note = truth_anchor_note(dataclasses.replace(log, ranges=ranges))
+    assert note is not None and "anchor 0 fit anchor 1's position" in note
+    assert "of anchor 1 fit anchor 0's position" in note and "ids name the anchors" in note
+    swapped = dataclasses.replace(log, ranges=ranges)
+    assert any("fit anchor 1's position" in n for n in replayable_log(swapped)[1])

@@ -397,9 +397,7 @@ def replayable_log(log, keep_anchors: bool = False) -> tuple:
         if unheard:
             notes.append(f"anchors never ranged, left out: {', '.join(map(str, unheard))}")
     notes += gap_notes(log)
-    lag = truth_lag_note(log)
-    if lag:
-        notes.append(lag)
+    notes += [n for n in (truth_lag_note(log), truth_anchor_note(log)) if n]
     plane = anchor_plane(log.beacons)
     if plane is not None:
         notes.append(
@@ -487,6 +485,59 @@ def truth_lag_note(log) -> str | None:
         f"{'late' if best > 0 else 'early'} (the ranges spread {spreads[k]:.3g} m about it "
         f"moved so, {at_zero:.3g} m at its own times): is the truth on the ranges' clock? "
         "Its figures would score every estimator from the wrong time"
+    )
+
+
+def _truth_at_ranges(log) -> tuple | None:
+    """``(points, anchor, rho)``: the truth's point at each range's time (the horizontal one in
+    a planar log) for the ranges inside the truth's span, their anchors' rows and values; None
+    without a truth or with fewer than 20 such ranges."""
+    truth = log.truth
+    if truth is None or truth.shape[0] < 2 or log.ranges.shape[0] < 20:
+        return None
+    t = log.ranges[:, 0]
+    inside = (t >= truth[0, 0]) & (t <= truth[-1, 0])
+    if np.count_nonzero(inside) < 20:
+        return None
+    dim = log.dimension
+    p = np.column_stack([np.interp(t[inside], truth[:, 0], truth[:, 1 + i]) for i in range(dim)])
+    return p, log.beacon_index(log.ranges[inside, 1]), log.ranges[inside, 2]
+
+
+def truth_anchor_note(log) -> str | None:
+    """A line naming the anchors whose ranges fit another anchor's position far better than
+    their own, against the truth, else None.
+
+    For each anchor ``h`` and each anchor position ``a_k``, the spread of ``rho - |p - a_k|``
+    over ``h``'s ranges (the median absolute deviation about its median: a bias, or a height
+    above a planar tag, is a constant). Said where some ``k != h`` gives less than a fifth of
+    the spread at ``a_h`` and the spread at ``a_h`` exceeds 0.3 m: ``h``'s ranges were
+    measured to ``k`` (ids mapped to the wrong anchors). A constellation whose symmetry maps
+    the anchors onto each other (a box's corners) fits a wrong mapping from the ranges alone,
+    a whole trajectory turned or mirrored; the truth tells it."""
+    found = _truth_at_ranges(log)
+    if found is None:
+        return None
+    p, anchor, rho = found
+    beacons = np.asarray(log.beacons, dtype=float)
+    wrong = []
+    for h in np.unique(anchor):
+        mine = anchor == h
+        if np.count_nonzero(mine) < 10:
+            continue
+        e = rho[mine, None] - np.linalg.norm(p[mine, None, :] - beacons[None, :, :], axis=2)
+        spread = np.median(np.abs(e - np.median(e, axis=0)), axis=0)
+        k = int(np.argmin(spread))
+        if k != h and spread[h] > 0.3 and spread[k] < 0.2 * spread[h]:
+            wrong.append(
+                f"{int(log.beacon_ids[h])} fit anchor {int(log.beacon_ids[k])}'s position ({spread[k]:.3g} m against {spread[h]:.3g} m at its own)"
+            )
+    if not wrong:
+        return None
+    return (
+        "against the truth, the ranges of anchor "
+        + "; of anchor ".join(wrong)
+        + ": do ranges.csv's ids name the anchors of beacons.csv?"
     )
 
 
