@@ -23,13 +23,15 @@ def _scaled(log, accel=1.0, gyro=1.0):
     return dataclasses.replace(log, inputs=imu)
 
 
-def _refused(tmp_path, capsys, log) -> str:
-    folder = write_log(log, tmp_path / "flight")
+def _refused(tmp_path, capsys, log, file: str = "imu.csv") -> str:
+    """The one error line of ``quadobs replay`` on ``log`` written out, which names ``file``
+    (exit status 2, nothing calibrated)."""
+    folder = write_log(log, tmp_path / "log")
     assert main(["replay", str(folder), "--no-progress"]) == 2
     out, err = capsys.readouterr()
     errors = [line for line in err.splitlines() if line.startswith("quadobs: error")]
     assert len(errors) == 1 and "calibrated" not in out, (out, err)
-    assert f"{folder}/imu.csv" in errors[0]
+    assert f"{folder}/{file}" in errors[0]
     return errors[0]
 
 

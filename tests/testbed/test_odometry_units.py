@@ -7,10 +7,10 @@ import dataclasses
 
 import numpy as np
 import pytest
+from test_flight_log_units import _refused as refused  # the one error line of a replay
 
-from quadobs.cli import main
 from quadobs.errors import QuadobsError
-from quadobs.testbed.logs import RangeLog, write_log
+from quadobs.testbed.logs import RangeLog
 from quadobs.testbed.logs.plaza import load_builtin
 from quadobs.testbed.logs.replay import ODOMETRY_SPAN_RATIO, check_odometry_units
 from quadobs.testbed.worlds.replay import dead_reckoning
@@ -41,13 +41,7 @@ def _scaled(log: RangeLog, speed=1.0, yaw_rate=1.0, time=1.0) -> RangeLog:
 
 
 def _refused(tmp_path, capsys, log) -> str:
-    folder = write_log(log, tmp_path / "robot")
-    assert main(["replay", str(folder), "--no-progress"]) == 2
-    out, err = capsys.readouterr()
-    errors = [line for line in err.splitlines() if line.startswith("quadobs: error")]
-    assert len(errors) == 1 and "calibrated" not in out, (out, err)
-    assert f"{folder}/inputs.csv" in errors[0]
-    return errors[0]
+    return refused(tmp_path, capsys, log, "inputs.csv")
 
 
 def test_a_speed_in_mm_per_s_is_refused_by_the_path_it_dead_reckons(tmp_path, capsys):
