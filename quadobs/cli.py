@@ -582,6 +582,9 @@ def _cmd_plot(args) -> int:
         dpi=args.dpi,
         samples=samples,
         legend=not args.no_legend,
+        estimators=None
+        if args.estimators is None
+        else [e.strip() for e in args.estimators.split(",") if e.strip()],
     )
     print(f"figure: {out}")
     return 0
@@ -901,6 +904,10 @@ def _add_plot(sub, estimators_option) -> None:
         help="le2013 sets: comma-separated samples k to draw (default: one early, the last)",
     )
     p.add_argument("--no-legend", action="store_true", help="no legends")
+    p.add_argument(
+        "--estimators",
+        help="comma-separated: only these estimators (a campaign's methods) in every panel, in this order",
+    )
     p.set_defaults(func=_cmd_plot)
 
 

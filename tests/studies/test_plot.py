@@ -266,3 +266,25 @@ def test_help_lists_the_panels(capsys):
         for name in names:
             assert name in text, (kind, name)
     assert np.isfinite(7.0) and "7.0x4.5" in text
+
+
+def test_estimators_keeps_only_those_named_and_refuses_one_not_recorded(inputs, tmp_path, capsys):
+    """``--estimators``: the position panel of a run with two estimators drawn with one of
+    them; a campaign's method the same; a name not in the recording is refused in one line
+    naming those that are, nothing written."""
+    both, _ = figure(inputs["run"], ["position"], dpi=50)
+    one, _ = figure(inputs["run"], ["position"], dpi=50, estimators=["zonotope"])
+    labels = [line.get_label() for line in one.axes[0].get_lines()]
+    assert len(one.axes[0].get_lines()) < len(both.axes[0].get_lines())
+    assert any("zonotope" in label for label in labels)
+    assert not any("augmented" in label for label in labels)
+    camp, _ = figure(inputs["campaign"], ["rmse"], dpi=50, estimators=["ekf"])
+    assert not any("augmented" in line.get_label() for line in camp.axes[0].get_lines())
+    out = tmp_path / "f.png"
+    code = main(["plot", str(inputs["run"]), "--out", str(out), "--estimators", "ekf"])
+    err = capsys.readouterr().err
+    assert (
+        code == 2
+        and "--estimators: ekf not in run.rrd (its estimators: augmented, zonotope)" in err
+    )
+    assert not out.exists()

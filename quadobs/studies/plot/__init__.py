@@ -83,7 +83,9 @@ def _check_size(size, dpi) -> tuple[tuple[float, float], float]:
     return size, dpi
 
 
-def figure(input, what=None, *, size=None, dpi=None, samples=None, legend: bool = True):
+def figure(
+    input, what=None, *, size=None, dpi=None, samples=None, legend: bool = True, estimators=None
+):
     """The matplotlib figure of ``input`` with the panels ``what`` (arguments as :func:`render`).
 
     Returns
@@ -94,6 +96,8 @@ def figure(input, what=None, *, size=None, dpi=None, samples=None, legend: bool 
     size, dpi = _check_size(size, dpi)
     require_matplotlib()  # the missing extra is said before any reading
     src = open_source(input)
+    if estimators is not None:
+        src.select(estimators)
     panels = _check_panels(what, src.kind, src)
     if samples is not None and (src.kind != "le2013" or "sets" not in panels):
         raise QuadobsError("--samples: applies only to the sets panel of a le2013 recording")
@@ -115,7 +119,15 @@ def figure(input, what=None, *, size=None, dpi=None, samples=None, legend: bool 
 
 
 def render(
-    input, out, what=None, *, size=None, dpi=None, samples=None, legend: bool = True
+    input,
+    out,
+    what=None,
+    *,
+    size=None,
+    dpi=None,
+    samples=None,
+    legend: bool = True,
+    estimators=None,
 ) -> Path:
     """Draw the figure of ``input`` with the panels ``what`` and write it to ``out``.
 
@@ -136,6 +148,9 @@ def render(
         le2013 ``sets``: the samples ``k`` whose zonotopes are drawn.
     legend : bool
         A legend in each panel.
+    estimators : list of str, optional
+        Only these estimators (methods of a campaign), in this order; default: all of the
+        recording's.
 
     Returns
     -------
@@ -153,5 +168,7 @@ def render(
         raise QuadobsError(
             f"--out {str(out)!r}: format {out.suffix or '(none)'!r} not supported (use .png, .pdf or .svg)"
         )
-    fig, dpi = figure(input, what, size=size, dpi=dpi, samples=samples, legend=legend)
+    fig, dpi = figure(
+        input, what, size=size, dpi=dpi, samples=samples, legend=legend, estimators=estimators
+    )
     return save_figure(fig, out, dpi)

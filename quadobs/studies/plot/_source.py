@@ -96,6 +96,19 @@ class Source:
         }[self.kind]
         return sorted(self.names(pattern))
 
+    def select(self, names) -> None:
+        """Keep only the estimators ``names`` (in that order) in every panel; refused in one line
+        where one is not in the recording, naming those that are."""
+        known = self.estimators
+        names = list(dict.fromkeys(names))
+        unknown = [n for n in names if n not in known]
+        if unknown or not names:
+            raise QuadobsError(
+                f"--estimators: {', '.join(unknown) or '(none)'} not in {self.path.name} "
+                f"(its estimators: {', '.join(known)})"
+            )
+        self.__dict__["estimators"] = names  # the cached property's value
+
     def strips(self, entity: str) -> dict[int, list[np.ndarray]]:
         """Line strips (``LineStrips2D``) or points (``Points2D``) logged at ``entity``, per ``step``."""
         from rerun.chunk import RrdReader
