@@ -251,6 +251,11 @@ def test_a_version_1_log_still_reads_and_version_2_parts_ask_for_the_version(tmp
             "'rssi' not a column of the format (leave it out)",
         ),
         (
+            "ranges.csv",
+            "t_twr,beacon,range\n0.5,0,3\n",
+            "'t_twr' not a column of the format (rename it to a column expected, or leave it out)",
+        ),
+        (
             "imu.csv",
             "time,ax,ay,az,gx,gy,gz\n0,0,0,9.8,0,0,0\n",
             "imu.csv: a log holds inputs.csv or imu.csv, not both",

@@ -156,7 +156,9 @@ def read_table(
         known = {c for variant in spec.variants for c in variant} | set(spec.optional)
         unknown = [h for h in header if h not in known]
         if unknown and not newer:
-            hint = f"; {', '.join(map(repr, unknown))} not a column of the format (leave it out)"
+            whole = any(set(v) <= set(header) for v in spec.variants)  # only extra columns
+            fix = "leave it out" if whole else "rename it to a column expected, or leave it out"
+            hint = f"; {', '.join(map(repr, unknown))} not a column of the format ({fix})"
         raise QuadobsError(
             f"{path}, row 1: header {','.join(header)!r}; expected {spec.described}{hint}"
         )
