@@ -144,6 +144,11 @@ HEADING_STD = 0.1
 #: centre when nobody measured where.
 LEVER_ARM_STD = 0.2
 
+#: The prior standard deviation of the lever arm per body axis where the log states the tag's
+#: place on the vehicle (m): 0.02 m, a place measured with a rule to the antenna's mark, whose
+#: phase centre lies within a centimetre or two of it.
+STATED_LEVER_STD = 0.02
+
 #: The prior standard deviation (m) of each coefficient of the tag's pattern, ``c`` and ``s``:
 #: 0.1 m, the size of the range errors that the relative orientation of two UWB antennas gives
 #: (Ledergerber and D'Andrea, IEEE Access 6, 2018, doi:10.1109/ACCESS.2018.2884720), so that

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -56,3 +57,38 @@ def test_a_differential_drive_turns_left_when_its_right_wheel_is_faster():
         odometry_from_wheels([0.0, 1.0], [0, 0], [0, 0], 0.0)
     with pytest.raises(QuadobsError, match=r"times must increase \(row 2"):
         odometry_from_wheels([1.0, 1.0], [0, 0], [0, 0], 0.2)
+
+
+def test_the_tags_stated_place_is_read_written_and_starts_the_lever_arm(tmp_path):
+    """``meta.csv`` ``tag_x``, ``tag_y``: read and written back; both or neither, odometry logs
+    only; the filters that hold the lever arm start from it with the stated prior, and from
+    zero with the wide one where the log states none."""
+    from quadobs.estimators.heading_ekf import LEVER_ARM_STD, STATED_LEVER_STD
+    from quadobs.testbed.logs import read_log, write_log
+    from quadobs.testbed.logs.estimators import lever_prior, log_frame
+
+    anchors = np.array([[0.0, 0.0], [3.0, 0.0], [3.0, 3.0], [0.0, 3.0]])
+    t = np.arange(0.0, 5.0, 0.05)
+    ranges = np.column_stack([t, np.arange(t.size) % 4, np.full(t.size, 2.0)])
+    inputs = np.column_stack([t, 0.2 + 0 * t, 0 * t])
+    log = RangeLog("r", np.arange(4), anchors, ranges, inputs, 0.0, tag_x=0.12, tag_y=-0.03)
+    back = read_log(write_log(log, tmp_path / "r"))
+    assert back.tag_offset == (0.12, -0.03)
+    assert log_frame(back)["lever_arm"] == (0.12, -0.03)
+    setup = SimpleNamespace(lever_arm=(0.12, -0.03))
+    assert lever_prior(setup) == {"lever_arm_std": STATED_LEVER_STD, "lever_arm": (0.12, -0.03)}
+    assert lever_prior(SimpleNamespace(lever_arm=None)) == {"lever_arm_std": LEVER_ARM_STD}
+    from quadobs.testbed.logs.estimators import build_replay_estimators, replay_setup
+    from quadobs.testbed.worlds.replay import ReplayWorld
+
+    s = replay_setup(back, ReplayWorld(back, 0.1, "odometry"), {"P0": 1.0})
+    for est in build_replay_estimators(s, ["ukf-lever", "ukf-height-lever"], np.zeros(2)):
+        np.testing.assert_allclose(est.state[4:6], [0.12, -0.03])
+        np.testing.assert_allclose(np.diag(est.state_covariance)[4:6], STATED_LEVER_STD**2)
+    with pytest.raises(QuadobsError, match="key tag_x: given without tag_y"):
+        RangeLog("r", np.arange(4), anchors, ranges, inputs, 0.0, tag_x=0.1)
+    with pytest.raises(QuadobsError, match="key tag_x: only for a wheel-odometry log"):
+        RangeLog(
+            "r", np.arange(4), anchors, ranges, inputs[:, :3], math.nan, input_kind="imu",
+            tag_x=0.1, tag_y=0.0,
+        )  # fmt: skip

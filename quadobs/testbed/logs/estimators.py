@@ -246,6 +246,12 @@ class ReplaySetup:
         1 (the default) or 0: whether the filters take :attr:`offsets` (``--tune
         stated_heights=0`` turns them off; the self-calibration does where the ranges
         contradict them, :func:`~quadobs.testbed.logs.calibration.check_stated_heights`).
+    lever_arm : (float, float) or None
+        The tag's place on the vehicle as the log states it (``meta.csv`` ``tag_x``, ``tag_y``:
+        forwards and to the left of the odometry's point, m), else None: the filters that hold
+        the lever arm (``ukf-lever``, ``ukf-height-lever``) start from it with the prior
+        :data:`~quadobs.estimators.heading_ekf.STATED_LEVER_STD` per axis, else from zero with
+        :data:`~quadobs.estimators.heading_ekf.LEVER_ARM_STD`.
     tag_pattern : float
         1 or 0 (the default): whether ``ukf-height-lever`` holds the tag's pattern as two states
         (:data:`~quadobs.estimators.heading_ekf.TAG_PATTERN_STD`); set by the self-calibration
@@ -293,6 +299,7 @@ class ReplaySetup:
     bias_prior: float | None = None
     offsets: tuple | None = None
     stated_heights: float = 1.0
+    lever_arm: tuple | None = None
     tag_pattern: float = 0.0
     constants_start: dict | None = None
     system: QuadraticSystem = field(init=False, repr=False)
@@ -560,6 +567,7 @@ def log_frame(log, range_sigma: float | None = None, apply_start: bool = False) 
         "alignment0": alignment0,
         "start": start_prior(log, range_sigma=range_sigma, apply=apply_start),
         "offsets": known_offsets(log),
+        "lever_arm": getattr(log, "tag_offset", None),
     }
 
 
@@ -977,16 +985,28 @@ def build_ukf_heading(s: ReplaySetup, x0: np.ndarray, name: str = "ukf-heading")
     return build_ekf_heading(s, x0, name, HeadingUKF)
 
 
+def lever_prior(s: ReplaySetup) -> dict:
+    """The lever arm's prior of the heading filters that hold it: the log's stated place of the
+    tag with :data:`~quadobs.estimators.heading_ekf.STATED_LEVER_STD` per axis, else zero with
+    :data:`~quadobs.estimators.heading_ekf.LEVER_ARM_STD` (:attr:`ReplaySetup.lever_arm`)."""
+    from quadobs.estimators.heading_ekf import LEVER_ARM_STD, STATED_LEVER_STD
+
+    if s.lever_arm is None:
+        return {"lever_arm_std": LEVER_ARM_STD}
+    return {"lever_arm_std": STATED_LEVER_STD, "lever_arm": tuple(s.lever_arm)}
+
+
 def build_ukf_lever(s: ReplaySetup, x0: np.ndarray, name: str = "ukf-lever"):
     """Entry point ``ukf-lever``: :func:`build_ukf_heading` with the tag's lever arm as two more
-    states, prior mean 0 and :data:`~quadobs.estimators.heading_ekf.LEVER_ARM_STD` per axis (the
-    ranges are the tag's, ``|p + R(theta) l - a_h|``; the position reported is the odometry's
-    point ``p``: :mod:`quadobs.estimators.heading_ekf`)."""
+    states, prior :func:`lever_prior` (mean 0 and :data:`~quadobs.estimators.heading_ekf.LEVER_ARM_STD`
+    per axis where the log does not state the tag's place; the ranges are the tag's, ``|p +
+    R(theta) l - a_h|``; the position reported is the odometry's point ``p``:
+    :mod:`quadobs.estimators.heading_ekf`)."""
     from functools import partial
 
-    from quadobs.estimators.heading_ekf import LEVER_ARM_STD, HeadingUKF
+    from quadobs.estimators.heading_ekf import HeadingUKF
 
-    return build_ekf_heading(s, x0, name, partial(HeadingUKF, lever_arm_std=LEVER_ARM_STD))
+    return build_ekf_heading(s, x0, name, partial(HeadingUKF, **lever_prior(s)))
 
 
 def build_ukf_height_lever(s: ReplaySetup, x0: np.ndarray, name: str = "ukf-height-lever"):
@@ -999,13 +1019,13 @@ def build_ukf_height_lever(s: ReplaySetup, x0: np.ndarray, name: str = "ukf-heig
     excess (:func:`~quadobs.testbed.logs.height_estimators.excess_rule`)."""
     from functools import partial
 
-    from quadobs.estimators.heading_ekf import LEVER_ARM_STD, TAG_PATTERN_STD, HeadingUKF
+    from quadobs.estimators.heading_ekf import TAG_PATTERN_STD, HeadingUKF
     from quadobs.testbed.logs.height_estimators import heading_height_options
 
     options = heading_height_options(s, name)
     if s.tag_pattern:
         options["tag_pattern_std"] = TAG_PATTERN_STD
-    cls = partial(HeadingUKF, lever_arm_std=LEVER_ARM_STD, **options)
+    cls = partial(HeadingUKF, **lever_prior(s), **options)
     return build_ekf_heading(s, x0, name, cls)
 
 

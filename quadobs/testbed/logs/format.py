@@ -160,6 +160,10 @@ class RangeLog:
     tag_height : float
         With ``anchor_heights``: the tag's height (m) in the same frame, as stated in
         ``meta.csv`` (NaN: not stated).
+    tag_x, tag_y : float
+        A wheel-odometry log: the tag's position (m) in the vehicle's frame, forwards and to
+        the left of the point the odometry describes, as measured on the vehicle and stated in
+        ``meta.csv`` (NaN: not stated; both or neither).
     """
 
     name: str
@@ -188,6 +192,8 @@ class RangeLog:
     range_errors: str = ""
     anchor_heights: np.ndarray | None = None
     tag_height: float = math.nan
+    tag_x: float = math.nan
+    tag_y: float = math.nan
 
     def __post_init__(self) -> None:
         fix = lambda key, value: object.__setattr__(self, key, value)  # noqa: E731
@@ -240,6 +246,24 @@ class RangeLog:
             )
         if not (math.isnan(self.tag_height) or math.isfinite(self.tag_height)):
             raise QuadobsError(f"{self.name}: meta.csv, key tag_height: not a finite number")
+        stated = [k for k in ("tag_x", "tag_y") if not math.isnan(getattr(self, k))]
+        if stated and self.input_kind != "odometry":
+            raise QuadobsError(
+                f"{self.name}: meta.csv, key {stated[0]}: only for a wheel-odometry log (the "
+                "tag's place on a vehicle whose odometry describes another point)"
+            )
+        if len(stated) == 1:
+            other = "tag_y" if stated[0] == "tag_x" else "tag_x"
+            raise QuadobsError(f"{self.name}: meta.csv, key {stated[0]}: given without {other}")
+        if any(not math.isfinite(getattr(self, k)) for k in stated):
+            raise QuadobsError(f"{self.name}: meta.csv, keys tag_x, tag_y: not finite numbers")
+
+    @property
+    def tag_offset(self) -> tuple[float, float] | None:
+        """The tag's stated place on the vehicle ``(tag_x, tag_y)`` (m), or None."""
+        if math.isnan(self.tag_x) or math.isnan(self.tag_y):
+            return None
+        return float(self.tag_x), float(self.tag_y)
 
     def _check_ids(self) -> None:
         ids = np.asarray(self.beacon_ids)
@@ -624,6 +648,8 @@ def read_log(folder: str | Path) -> RangeLog:
             **{key: meta[key] for key in IMU_FIGURES},
             range_errors=meta["range_errors"],
             tag_height=meta["tag_height"],
+            tag_x=meta["tag_x"],
+            tag_y=meta["tag_y"],
         )
     except QuadobsError as exc:  # name the folder's file, not the log's name
         raise QuadobsError(_in_folder(str(exc), name, folder)) from None
@@ -689,6 +715,8 @@ def _log_texts(log: RangeLog) -> dict[str, str]:
         meta.append(["heading0", repr(float(log.heading0))])
     if math.isfinite(log.tag_height):
         meta.append(["tag_height", repr(float(log.tag_height))])
+    if log.tag_offset is not None:
+        meta += [["tag_x", repr(log.tag_offset[0])], ["tag_y", repr(log.tag_offset[1])]]
     if dim == 3:
         meta += [["frame", log.frame], ["gravity", repr(float(log.gravity))]]
     for key in ("accel_noise", "gyro_noise", *IMU_FIGURES):

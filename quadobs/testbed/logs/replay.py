@@ -772,6 +772,7 @@ def _summary(
             "offsets": _offsets_summary(setup.offsets if setup.stated_heights else None),
             "stated_heights": setup.stated_heights,
             "tag_pattern": setup.tag_pattern if "ukf-height-lever" in names else None,
+            "lever_arm": None if setup.lever_arm is None else list(setup.lever_arm),
             "range_std_by_anchor": _std_by_anchor(log),
         },
         "measurements": {

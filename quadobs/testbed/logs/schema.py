@@ -239,6 +239,20 @@ META_KEYS = {
             2,
         ),
         MetaKey(
+            "tag_x",
+            "odometry logs: the tag's position (m) forwards of the point the odometry "
+            "describes (its axle's centre), measured on the vehicle (absent: unknown)",
+            math.nan,
+            2,
+        ),
+        MetaKey(
+            "tag_y",
+            "odometry logs: the tag's position (m) to the left of that point, measured on the "
+            "vehicle (absent: unknown)",
+            math.nan,
+            2,
+        ),
+        MetaKey(
             "frame",
             "navigation frame of a log in space: enu (z up, the default) or ned (z down)",
             "enu",
@@ -342,7 +356,7 @@ def parse_meta(where: str, rows: list[list[str]]) -> dict:
             meta[key] = int(text)
         elif key in ("name", "description"):
             meta[key] = _printable(at, text)
-        elif key in ("heading0", "tag_height"):
+        elif key in ("heading0", "tag_height", "tag_x", "tag_y"):
             meta[key] = _float_value(at, text)
         elif key in ("gravity", "accel_noise", "gyro_noise"):
             meta[key] = _float_value(at, text, positive=True)
