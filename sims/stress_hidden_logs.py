@@ -191,7 +191,8 @@ FLIGHT = {
 SPARSE = ("rate20", "rate10")
 
 #: The flight's stresses that take the truth's attitude: applied to the export before its
-#: attitude is removed (they change the ranges alone).
+#: attitude is removed (the tag's pattern reads it; the rest of ``mix`` changes the ranges and
+#: the IMU's samples, which removing the attitude leaves as they are).
 WITH_ATTITUDE = ("tagpattern", "mix")
 
 

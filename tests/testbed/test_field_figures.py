@@ -210,11 +210,15 @@ def test_a_truth_on_another_clock_is_said_before_the_replay():
     from quadobs.testbed.logs.replay import replayable_log, truth_lag_note
 
     log = helix_log(20.0)
+    noisy = log.ranges.copy()
+    noisy[:, 2] += 0.1 * np.random.default_rng(3).standard_normal(noisy.shape[0])  # a radio's
+    log = dataclasses.replace(log, ranges=noisy)
     assert truth_lag_note(log) is None
     for lag, said in ((2.0, "stamped 2.00 s late"), (-1.5, "stamped 1.50 s early"), (0.1, None)):
         moved = dataclasses.replace(log, truth=log.truth + np.r_[lag, np.zeros(6)])
         note = truth_lag_note(moved)
         assert (note is None) if said is None else (said in note and "ranges' clock" in note)
+        assert note is None or "a lever arm" in note  # a tag ahead of the truth's point looks so
     late = dataclasses.replace(log, truth=log.truth + np.r_[2.0, np.zeros(6)])
     assert any("stamped 2.00 s late" in n for n in replayable_log(late)[1])
 
@@ -226,8 +230,10 @@ def test_ranges_measured_to_another_anchor_than_their_id_names_are_said():
     from quadobs.testbed.logs.replay import replayable_log, truth_anchor_note
 
     log = helix_log(20.0)
-    assert truth_anchor_note(log) is None
     ranges = log.ranges.copy()
+    ranges[:, 2] += 0.1 * np.random.default_rng(4).standard_normal(ranges.shape[0])  # a radio's
+    log = dataclasses.replace(log, ranges=ranges.copy())
+    assert truth_anchor_note(log) is None
     ranges[:, 1] = np.choose(ranges[:, 1].astype(int), [1, 0, 2, 3])
     note = truth_anchor_note(dataclasses.replace(log, ranges=ranges))
     assert note is not None and "anchor 0 fit anchor 1's position" in note

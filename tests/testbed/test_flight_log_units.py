@@ -127,3 +127,43 @@ def test_one_file_in_milliseconds_is_refused_by_its_span_and_a_short_truth_is_no
         dataclasses.replace(log, ranges=log.ranges * [1000, 1, 1], range_std=None)
     short = dataclasses.replace(log, truth=log.truth[log.truth[:, 0] < 1.0])
     assert read_log(write_log(short, tmp_path / "short-truth")).truth.shape[0] == 200
+
+
+def test_an_attitude_that_jumps_where_the_rates_do_not_is_left_as_it_is():
+    """A level hover whose attitude.csv jumps by 0.2 rad in yaw twice (an on-board filter's
+    resets) and jitters by 2 degrees per axis (a noisy attitude), the rates right: the attitude
+    turns where the rates do not, which says nothing of the rates' unit or axes."""
+    log = _imu_body_log(True)
+    t = log.attitude[:, 0]
+    rng = np.random.default_rng(7)
+    yaw = 0.2 * ((t > 5.0).astype(float) + (t > 12.0))
+    jitter = np.radians(2.0) * rng.standard_normal((t.size, 3))
+    R = Rotation.from_euler("z", yaw[:, None]) * Rotation.from_rotvec(jitter)
+    check_body_imu(
+        dataclasses.replace(log, attitude=np.column_stack([t, R.as_quat()[:, [3, 0, 1, 2]]]))
+    )
+
+
+def test_a_long_imu_beside_a_short_recording_is_not_taken_for_milliseconds(tmp_path):
+    """An IMU logged from power-up, 120 times the ranges' span, in seconds both: accepted
+    (milliseconds are a factor of 1000; refused between 300 and 3000); TDOA in ms beside an
+    IMU in s is named as TDOA."""
+    log = _imu_body_log(False)
+    t = np.arange(-2380.0, 20.0, 0.005)
+    inputs = np.vstack(
+        [
+            np.column_stack([t[t < 0.0], np.tile(log.inputs[0, 1:], ((t < 0.0).sum(), 1))]),
+            log.inputs,
+        ]
+    )
+    dataclasses.replace(log, inputs=inputs)  # accepted
+    tdoa = np.column_stack(
+        [
+            log.ranges[:, 0] * 1000.0,
+            log.ranges[:, 1],
+            (log.ranges[:, 1] + 1) % 5,
+            0 * log.ranges[:, 0],
+        ]
+    )
+    with pytest.raises(QuadobsError, match=r"tdoa.csv spans 1.998e\+04 s, 999 times imu.csv's"):
+        dataclasses.replace(log, ranges=np.empty((0, 3)), range_std=None, tdoa=tdoa)

@@ -63,9 +63,10 @@ def test_a_yaw_rate_in_deg_per_s_is_beyond_any_gyroscopes_range(tmp_path, capsys
 
 
 def test_the_bound_is_far_from_real_odometry_and_its_drift():
-    """The dead-reckoned paths of Plaza1 and Plaza2 (a vehicle's wheel odometry over 20 and 12
-    minutes, drift included) span half the region their ranges allow, twenty times inside the
-    bound; a scale error of 5 % and a yaw rate's bias of 0.01 rad/s on the robot stay inside."""
+    """The dead-reckoned paths of Plaza1 and Plaza2 (a vehicle's wheel odometry over 32 and 7
+    minutes, drift included) span a third of the region their ranges allow, thirty times inside
+    the bound; a scale error of 5 % and a yaw rate's bias of 0.01 rad/s on the robot stay
+    inside."""
     for name in ("plaza1", "plaza2"):
         check_odometry_units(load_builtin(name))
     log = _robot_log()
@@ -73,3 +74,28 @@ def test_the_bound_is_far_from_real_odometry_and_its_drift():
     check_odometry_units(drifting)
     with pytest.raises(QuadobsError, match="column speed"):
         check_odometry_units(_scaled(log, speed=2.0 * ODOMETRY_SPAN_RATIO * 3.0))
+
+
+def test_a_long_route_among_many_anchors_and_a_gap_in_the_odometry_are_not_refused():
+    """A robot driving 1.5 km down a corridor at 1 m/s, anchors every 30 m heard to 40 m: its
+    path spans far more than twice a range, within the anchors' extent. The stadium's odometry
+    and ranges silent for 200 s while it drives straight on (the replay holds the last input
+    across the gap, and says so): no distance is dead-reckoned across it, where 160 m at the
+    last speed would be ten times the room."""
+    xs = np.arange(0.0, 1501.0, 30.0)
+    corridor = np.column_stack([xs, np.where(np.arange(xs.size) % 2 == 0, 2.0, -2.0)])
+    t = np.arange(0.0, 1500.0, 0.05)
+    inputs = np.column_stack([t, 1.0 + 0 * t, 0 * t])
+    t_r = np.arange(0.02, 1499.0, 0.1)
+    p = np.column_stack([t_r, 0 * t_r])
+    d = np.linalg.norm(p[:, None, :] - corridor[None], axis=2)
+    h = np.array([np.flatnonzero(row < 40.0)[k % 2] for k, row in enumerate(d)])
+    ranges = np.column_stack([t_r, h, d[np.arange(t_r.size), h]])
+    check_odometry_units(RangeLog("corridor", np.arange(xs.size), corridor, ranges, inputs, 0.0))
+    log = _robot_log()
+    k = int(np.flatnonzero((log.inputs[:, 0] > 30.0) & (log.inputs[:, 2] == 0.0))[0])
+    after = log.inputs[:, 0] > log.inputs[k, 0]  # 200 s of silence while driving straight on
+    inputs, ranges = log.inputs.copy(), log.ranges.copy()
+    inputs[after, 0] += 200.0
+    ranges[ranges[:, 0] > log.inputs[k, 0], 0] += 200.0
+    check_odometry_units(dataclasses.replace(log, inputs=inputs, ranges=ranges))

@@ -395,23 +395,26 @@ class RangeLog:
         )
 
     def _check_time_units(self, tables) -> None:
-        """Every file's times in one unit: a file spanning more than :data:`SPAN_RATIO` times
-        the measurements' span (``ranges.csv`` or ``tdoa.csv``), or measurements spanning that
-        many times the inputs' (which cover the log), holds times in another unit (milliseconds
-        against seconds: a factor of 1000). A short truth is not judged short."""
+        """Every file's times in one unit: a file spanning :data:`SPAN_RATIO` times the
+        measurements' span (``ranges.csv`` or ``tdoa.csv``, the longer), or measurements
+        spanning that many times the inputs' (which cover the log), holds times in another
+        unit (milliseconds against seconds: a factor of 1000). A short truth is not judged
+        short."""
         spans = {
             f: float(np.ptp(v[:, 0])) for f, _, v in tables if f != "beacons.csv" and v.shape[0] > 1
         }
         own = [f for f in ("ranges.csv", "tdoa.csv") if spans.get(f, 0.0) > 0.0]
         if not own:
             return
-        measured = max(spans[f] for f in own)
+        longest = max(own, key=spans.__getitem__)
+        measured = spans[longest]
         inputs = INPUT_FILES.get(self.input_kind)
+        low, high = SPAN_RATIO
         for fname, span in spans.items():
-            if span > SPAN_RATIO * measured:
+            if low * measured <= span <= high * measured:
                 culprit, other, ratio = fname, "the measurements'", span / measured
-            elif fname == inputs and 0.0 < span and measured > SPAN_RATIO * span:
-                culprit, span, other, ratio = own[0], measured, f"{inputs}'s", measured / span
+            elif fname == inputs and low * span <= measured <= high * span:
+                culprit, span, other, ratio = longest, measured, f"{inputs}'s", measured / span
             else:
                 continue
             raise QuadobsError(

@@ -31,6 +31,7 @@ added unless ``noise.*`` settings ask for it, :func:`log_scenario`) and the summ
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from pathlib import Path
 from typing import Any
@@ -440,6 +441,8 @@ def gap_notes(log) -> list[str]:
 #: The lags (s) of the truth against the ranges that :func:`truth_lag_note` tries: -3 to 3 s by
 #: 0.05 s (a motion capture on another clock, or stamped on receipt).
 TRUTH_LAGS = np.round(np.arange(-3.0, 3.0 + 1e-9, 0.05), 2)
+#: The most ranges :func:`truth_lag_note` reads (a long log's thinned evenly to these).
+TRUTH_LAG_RANGES = 20000
 
 
 def truth_lag_note(log) -> str | None:
@@ -453,13 +456,16 @@ def truth_lag_note(log) -> str | None:
     least spread lies 0.25 s or more from 0 and is under 0.7 times the spread at 0: a truth
     that scores every estimator from the wrong time (the figures of a truth 2 s late are
     metres, not the estimators' error). Ranges outside the truth's span at a lag are not
-    counted at it."""
+    counted at it; a long log's ranges are thinned evenly to :data:`TRUTH_LAG_RANGES`. A tag
+    mounted ``l`` ahead of the truth's point on a vehicle driving forwards at ``v`` looks the
+    same, a lag of ``l / v``: the note names both."""
     truth = log.truth
     if truth is None or truth.shape[0] < 2 or log.ranges.shape[0] < 20:
         return None
     dim = log.dimension
     t_truth, p_truth = truth[:, 0], truth[:, 1 : 1 + dim]
-    t, anchor, rho = log.ranges[:, 0], log.beacon_index(log.ranges[:, 1]), log.ranges[:, 2]
+    rows = log.ranges[:: max(1, -(-log.ranges.shape[0] // TRUTH_LAG_RANGES))]
+    t, anchor, rho = rows[:, 0], log.beacon_index(rows[:, 1]), rows[:, 2]
     a = np.asarray(log.beacons, dtype=float)[anchor]
 
     def spread(s: float) -> float:
@@ -483,8 +489,9 @@ def truth_lag_note(log) -> str | None:
     return (
         f"truth.csv agrees with the ranges best as if stamped {abs(best):.2f} s "
         f"{'late' if best > 0 else 'early'} (the ranges spread {spreads[k]:.3g} m about it "
-        f"moved so, {at_zero:.3g} m at its own times): is the truth on the ranges' clock? "
-        "Its figures would score every estimator from the wrong time"
+        f"moved so, {at_zero:.3g} m at its own times): is the truth on the ranges' clock, or "
+        "its point off the tag's along the path (a lever arm)? A truth on another clock "
+        "scores every estimator from the wrong time"
     )
 
 
@@ -630,7 +637,8 @@ def check_range_units(log) -> None:
     (:func:`~quadobs.testbed.logs.range_noise.range_noise`: the spread of each range about the
     line through its anchor's neighbours) beyond :data:`RANGE_NOISE_RATIO` ``e`` (ranges in
     cm: a radio's decimetres read as metres; measured 0.006 to 0.025 ``e`` on the Plaza logs
-    and simulated flights and robots, 1.3 to 1.5 ``e`` on those in cm).
+    and simulated flights and robots, 1.3 to 1.5 ``e`` on those in cm; anchors more than about
+    200 times the radio's noise apart, 10 m at 0.05 m, let ranges in cm pass).
     """
     ranges = log.ranges
     if ranges.shape[0] == 0:
@@ -681,15 +689,18 @@ def check_odometry_units(log) -> None:
       :data:`~quadobs.testbed.attitude.GYRO_FULL_SCALE` (a rate in deg/s of a vehicle
       turning faster than 0.6 rad/s reads beyond it; a yaw in degrees differenced into a rate
       jumps by 360 where it wraps);
-    * the speed: the path dead-reckoned from it (:func:`~quadobs.testbed.worlds.replay.dead_reckoning`;
-      its extent, the diagonal of the box that holds it, does not depend on the start or the
-      heading's error but for drift) within :data:`ODOMETRY_SPAN_RATIO` times ``2 r``, ``r``
-      the largest range of the log (every position lies within ``r`` of the anchor that range
-      was to, so the true path spans at most ``2 r``). A speed in mm/s, or times in ms,
-      dead-reckon a path a thousand times wider.
+    * the speed: the path dead-reckoned from it (:func:`~quadobs.testbed.worlds.replay.dead_reckoning`,
+      standing still across the inputs' gaps, :func:`~quadobs.testbed.worlds.replay.wide_gaps`,
+      where the replay holds the last input; its extent, the diagonal of the box that holds
+      it, does not depend on the start or the heading's error but for drift) within
+      :data:`ODOMETRY_SPAN_RATIO` times ``e + 2 r``, ``e`` the extent of the anchors ranged to
+      and ``r`` the log's largest range but for its 0.1 % longest (every position lies within
+      ``r`` of some anchor, so the true path spans at most ``e + 2 r``: a corridor's anchors
+      every 30 m hold a route of kilometres). A speed in mm/s, or times in ms, dead-reckon a
+      path a thousand times wider.
     """
     from quadobs.testbed.attitude import GYRO_FULL_SCALE
-    from quadobs.testbed.worlds.replay import dead_reckoning
+    from quadobs.testbed.worlds.replay import dead_reckoning, wide_gaps
 
     rates = np.abs(log.inputs[:, 2])
     if rates.size and float(rates.max()) > GYRO_FULL_SCALE:
@@ -699,18 +710,22 @@ def check_odometry_units(log) -> None:
             f"{float(log.inputs[row, 2]):.4g} is beyond any gyroscope's range "
             f"({GYRO_FULL_SCALE:.1f} rad/s = 2000 deg/s): the yaw rate must be in rad/s"
         )
-    received = log.ranges[log.ranges[:, 2] > 0.0, 2] if log.ranges.shape[0] else log.ranges[:, 2]
-    if received.size == 0 or log.inputs.shape[0] < 2:
+    received = log.ranges[log.ranges[:, 2] > 0.0] if log.ranges.shape[0] else log.ranges
+    if received.shape[0] == 0 or log.inputs.shape[0] < 2:
         return
-    bound = 2.0 * float(received.max())
-    path = dead_reckoning(log, log.inputs[:, 0])[0]
+    ranged = np.asarray(log.beacons, dtype=float)[log.beacon_index(np.unique(received[:, 1]))]
+    extent = float(np.linalg.norm(ranged.max(axis=0) - ranged.min(axis=0)))
+    bound = extent + 2.0 * float(np.quantile(received[:, 2], 0.999))
+    inputs = log.inputs.copy()
+    inputs[wide_gaps(inputs[:, 0]), 1] = 0.0  # no distance across a gap
+    path = dead_reckoning(dataclasses.replace(log, inputs=inputs), inputs[:, 0])[0]
     span = float(np.linalg.norm(path.max(axis=0) - path.min(axis=0)))
     if span > ODOMETRY_SPAN_RATIO * bound:
         raise QuadobsError(
             f"{log.file_label('inputs.csv')}, column speed: the path dead-reckoned from it spans "
             f"{span:.4g} m, {span / bound:.0f} times the {bound:.4g} m within which the ranges "
-            "place the vehicle (twice the largest range): the speed must be in m/s and the "
-            "times in seconds"
+            "place the vehicle (the anchors' extent and twice the longest range): the speed must "
+            "be in m/s and the times in seconds"
         )
 
 
