@@ -502,16 +502,20 @@ def check_rates_against_attitude(log) -> None:
 
     Over windows of :data:`RATE_WINDOW` seconds, the rotation the attitude makes in the body
     frame (``log(R(t_0)^T R(t_1))``) against the rates integrated (``int omega dt``, exact for a
-    rotation about a fixed axis, within the coning error otherwise), each test over at least
-    :data:`RATE_AXES`'s count of windows:
+    rotation about a fixed axis, within the coning error otherwise), less the gyroscope's bias
+    where the attitude holds still in that many windows (the median of the rates' rotation over
+    the windows where the attitude turns by less than :data:`RATE_WINDOW`'s angle), each test
+    over at least :data:`RATE_AXES`'s count of windows:
 
     * over the windows where the attitude turns by at least :data:`RATE_WINDOW`'s angle, the
       median ratio of the rates' angle to the attitude's at most :data:`RATE_RATIO` (rates in
       deg/s give 57). Not the other way: an attitude that jumps where the rates do not (an
       on-board filter's reset, a motion capture's glitch, a noisy attitude of a hovering
       vehicle) gives ratios near 0 and says nothing of the rates' unit;
-    * over the windows where both turn by that angle, the median cosine between the two
-      rotation vectors at least :data:`RATE_AXES`'s bound (an attitude given navigation to
+    * over the windows where both turn by that angle, and by angles within :data:`RATE_RATIO`
+      of each other (a gyroscope's bias against a jittering attitude turns both, by unrelated
+      amounts), the median cosine between the two rotation vectors at least
+      :data:`RATE_AXES`'s bound (an attitude given navigation to
       body turns about the opposite axes, one read scalar last about other axes: measured
       -0.94 and -0.33 on a simulated flight whose own gives 0.94).
 
@@ -532,9 +536,12 @@ def check_rates_against_attitude(log) -> None:
     dt = np.diff(t)[:, None]
     W = np.vstack([np.zeros((1, 3)), np.cumsum(0.5 * (w[1:] + w[:-1]) * dt, axis=0)])
     rates = np.diff(np.column_stack([np.interp(times, t, W[:, i]) for i in range(3)]), axis=0)
-    turned, integrated = np.linalg.norm(rotation, axis=1), np.linalg.norm(rates, axis=1)
+    turned = np.linalg.norm(rotation, axis=1)
     bound, count = RATE_AXES
     moving = turned >= least
+    if np.count_nonzero(~moving) >= count:  # the gyroscope's bias, where the attitude is still
+        rates = rates - np.median(rates[~moving], axis=0)
+    integrated = np.linalg.norm(rates, axis=1)
     if np.count_nonzero(moving) >= count:
         ratio = float(np.median(integrated[moving] / turned[moving]))
         if ratio > RATE_RATIO:
@@ -544,13 +551,15 @@ def check_rates_against_attitude(log) -> None:
                 f"{int(moving.sum())} windows of {window:g} s; deg/s read as rad/s: 57): the "
                 f"rates must be in rad/s, and {GIVEN_ATTITUDE_HINT}"
             )
-    both = moving & (integrated >= least)
+    both = moving & (integrated >= least)  # and by angles of one size (not a bias against jitter)
+    both &= (integrated <= RATE_RATIO * turned) & (turned <= RATE_RATIO * integrated)
     cosine = np.sum(rotation * rates, axis=1)[both] / (turned * integrated)[both]
     if cosine.size >= count and float(np.median(cosine)) < bound:
         raise QuadobsError(
             f"{log.file_label('attitude.csv')}: the body rates of imu.csv turn about other axes "
             f"than the attitude does (median cosine {float(np.median(cosine)):.2f} over "
-            f"{cosine.size} windows of {window:g} s, {bound:g} at least): {GIVEN_ATTITUDE_HINT}"
+            f"{cosine.size} windows of {window:g} s, {bound:g} at least): the rates must be in "
+            f"rad/s, and {GIVEN_ATTITUDE_HINT}"
         )
 
 

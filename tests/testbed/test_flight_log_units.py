@@ -131,9 +131,11 @@ def test_one_file_in_milliseconds_is_refused_by_its_span_and_a_short_truth_is_no
 
 def test_an_attitude_that_jumps_where_the_rates_do_not_is_left_as_it_is():
     """A level hover whose attitude.csv jumps by 0.2 rad in yaw twice (an on-board filter's
-    resets) and jitters by 2 degrees per axis (a noisy attitude), the rates right: the attitude
-    turns where the rates do not, which says nothing of the rates' unit or axes."""
+    resets) and jitters by 2 degrees per axis (a noisy attitude), the rates right but for a
+    bias of 0.2 rad/s about z: the attitude turns where the rates do not, and the rates where
+    the attitude does not, which says nothing of the rates' unit or axes."""
     log = _imu_body_log(True)
+    log = dataclasses.replace(log, inputs=log.inputs + [0, 0, 0, 0, 0, 0, 0.2])
     t = log.attitude[:, 0]
     rng = np.random.default_rng(7)
     yaw = 0.2 * ((t > 5.0).astype(float) + (t > 12.0))
@@ -145,9 +147,10 @@ def test_an_attitude_that_jumps_where_the_rates_do_not_is_left_as_it_is():
 
 
 def test_a_long_imu_beside_a_short_recording_is_not_taken_for_milliseconds(tmp_path):
-    """An IMU logged from power-up, 120 times the ranges' span, in seconds both: accepted
-    (milliseconds are a factor of 1000; refused between 300 and 3000); TDOA in ms beside an
-    IMU in s is named as TDOA."""
+    """An IMU logged from power-up, 120 times the ranges' span, in seconds both: accepted (it
+    samples every 5 ms and covers the ranges); TDOA in ms beside an IMU in s is named as TDOA;
+    a truth of 4 s stamped in ms (200 times the measurements' span, a row every 5 "s") and a
+    5 s IMU in microseconds are refused."""
     log = _imu_body_log(False)
     t = np.arange(-2380.0, 20.0, 0.005)
     inputs = np.vstack(
@@ -167,3 +170,12 @@ def test_a_long_imu_beside_a_short_recording_is_not_taken_for_milliseconds(tmp_p
     )
     with pytest.raises(QuadobsError, match=r"tdoa.csv spans 1.998e\+04 s, 999 times imu.csv's"):
         dataclasses.replace(log, ranges=np.empty((0, 3)), range_std=None, tdoa=tdoa)
+    truth = log.truth[log.truth[:, 0] < 4.0] * np.r_[1000.0, np.ones(6)]
+    with pytest.raises(QuadobsError, match=r"truth.csv spans 3995 s, 200 times the measurements'"):
+        dataclasses.replace(log, truth=truth)
+    short = dataclasses.replace(
+        log, truth=None, ranges=log.ranges[log.ranges[:, 0] < 5.0], range_std=None
+    )
+    imu = short.inputs[short.inputs[:, 0] < 5.0] * [1e6, 1, 1, 1, 1, 1, 1]
+    with pytest.raises(QuadobsError, match=r"imu.csv spans .* microseconds: 1e6"):
+        dataclasses.replace(short, inputs=imu)

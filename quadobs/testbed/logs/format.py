@@ -60,6 +60,7 @@ from quadobs.testbed.logs.schema import (
     QUATERNION,
     RANGE,
     RANGE_ERRORS,
+    SAMPLED_WITHIN,
     SPAN_RATIO,
     STD,
     TDOA,
@@ -398,28 +399,39 @@ class RangeLog:
         """Every file's times in one unit: a file spanning :data:`SPAN_RATIO` times the
         measurements' span (``ranges.csv`` or ``tdoa.csv``, the longer), or measurements
         spanning that many times the inputs' (which cover the log), holds times in another
-        unit (milliseconds against seconds: a factor of 1000). A short truth is not judged
-        short."""
-        spans = {
-            f: float(np.ptp(v[:, 0])) for f, _, v in tables if f != "beacons.csv" and v.shape[0] > 1
-        }
+        unit (milliseconds or microseconds against seconds), unless it samples at least every
+        :data:`SAMPLED_WITHIN` seconds and covers the other's span: a long file in seconds (an
+        IMU logged from power-up). A short truth is not judged short."""
+        times = {f: v[:, 0] for f, _, v in tables if f != "beacons.csv" and v.shape[0] > 1}
+        spans = {f: float(np.ptp(t)) for f, t in times.items()}
         own = [f for f in ("ranges.csv", "tdoa.csv") if spans.get(f, 0.0) > 0.0]
         if not own:
             return
         longest = max(own, key=spans.__getitem__)
         measured = spans[longest]
         inputs = INPUT_FILES.get(self.input_kind)
-        low, high = SPAN_RATIO
+
+        def in_seconds(long: str, short: str) -> bool:  # samples often, and covers the other
+            t, s = times[long], times[short]
+            return (
+                float(np.median(np.diff(t))) <= SAMPLED_WITHIN and t[0] <= s[0] and s[-1] <= t[-1]
+            )
+
         for fname, span in spans.items():
-            if low * measured <= span <= high * measured:
+            if span > SPAN_RATIO * measured and not in_seconds(fname, longest):
                 culprit, other, ratio = fname, "the measurements'", span / measured
-            elif fname == inputs and low * span <= measured <= high * span:
+            elif (
+                fname == inputs
+                and 0.0 < span
+                and measured > SPAN_RATIO * span
+                and not in_seconds(longest, fname)
+            ):
                 culprit, span, other, ratio = longest, measured, f"{inputs}'s", measured / span
             else:
                 continue
             raise QuadobsError(
                 f"{self.name}: {culprit} spans {span:.4g} s, {ratio:.0f} times {other}: times "
-                "must be seconds in every file (milliseconds: divide by 1e3)"
+                "must be seconds in every file (milliseconds: divide by 1e3; microseconds: 1e6)"
             )
 
     @property

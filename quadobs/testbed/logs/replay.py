@@ -441,7 +441,7 @@ def gap_notes(log) -> list[str]:
 #: The lags (s) of the truth against the ranges that :func:`truth_lag_note` tries: -3 to 3 s by
 #: 0.05 s (a motion capture on another clock, or stamped on receipt).
 TRUTH_LAGS = np.round(np.arange(-3.0, 3.0 + 1e-9, 0.05), 2)
-#: The most ranges :func:`truth_lag_note` reads (a long log's thinned evenly to these).
+#: The most ranges :func:`truth_lag_note` reads (a long log's sampled to these).
 TRUTH_LAG_RANGES = 20000
 
 
@@ -456,7 +456,7 @@ def truth_lag_note(log) -> str | None:
     least spread lies 0.25 s or more from 0 and is under 0.7 times the spread at 0: a truth
     that scores every estimator from the wrong time (the figures of a truth 2 s late are
     metres, not the estimators' error). Ranges outside the truth's span at a lag are not
-    counted at it; a long log's ranges are thinned evenly to :data:`TRUTH_LAG_RANGES`. A tag
+    counted at it; a long log's ranges are sampled (a fixed seed) to :data:`TRUTH_LAG_RANGES`. A tag
     mounted ``l`` ahead of the truth's point on a vehicle driving forwards at ``v`` looks the
     same, a lag of ``l / v``: the note names both."""
     truth = log.truth
@@ -464,7 +464,10 @@ def truth_lag_note(log) -> str | None:
         return None
     dim = log.dimension
     t_truth, p_truth = truth[:, 0], truth[:, 1 : 1 + dim]
-    rows = log.ranges[:: max(1, -(-log.ranges.shape[0] // TRUTH_LAG_RANGES))]
+    rows = log.ranges
+    if rows.shape[0] > TRUTH_LAG_RANGES:  # a sample, not a stride (a round robin aliases)
+        keep = np.random.default_rng(0).choice(rows.shape[0], TRUTH_LAG_RANGES, replace=False)
+        rows = rows[np.sort(keep)]
     t, anchor, rho = rows[:, 0], log.beacon_index(rows[:, 1]), rows[:, 2]
     a = np.asarray(log.beacons, dtype=float)[anchor]
 
@@ -694,10 +697,12 @@ def check_odometry_units(log) -> None:
       where the replay holds the last input; its extent, the diagonal of the box that holds
       it, does not depend on the start or the heading's error but for drift) within
       :data:`ODOMETRY_SPAN_RATIO` times ``e + 2 r``, ``e`` the extent of the anchors ranged to
-      and ``r`` the log's largest range but for its 0.1 % longest (every position lies within
-      ``r`` of some anchor, so the true path spans at most ``e + 2 r``: a corridor's anchors
-      every 30 m hold a route of kilometres). A speed in mm/s, or times in ms, dead-reckon a
-      path a thousand times wider.
+      and ``r`` the anchors' reach, the median over the anchors of each one's 99th percentile
+      range (every position lies within ``r`` of some anchor, so the true path spans at most
+      about ``e + 2 r``: a corridor's anchors every 30 m hold a route of kilometres; a sentinel
+      range of 9999 moves no median). A speed in mm/s, or times in ms, dead-reckon a path a
+      thousand times wider; one in cm/s a hundred times, caught where the path covers more
+      than a tenth of that region. Not run on a log of TDOA alone (no range).
     """
     from quadobs.testbed.attitude import GYRO_FULL_SCALE
     from quadobs.testbed.worlds.replay import dead_reckoning, wide_gaps
@@ -713,9 +718,11 @@ def check_odometry_units(log) -> None:
     received = log.ranges[log.ranges[:, 2] > 0.0] if log.ranges.shape[0] else log.ranges
     if received.shape[0] == 0 or log.inputs.shape[0] < 2:
         return
-    ranged = np.asarray(log.beacons, dtype=float)[log.beacon_index(np.unique(received[:, 1]))]
+    ids = np.unique(received[:, 1])
+    ranged = np.asarray(log.beacons, dtype=float)[log.beacon_index(ids)]
     extent = float(np.linalg.norm(ranged.max(axis=0) - ranged.min(axis=0)))
-    bound = extent + 2.0 * float(np.quantile(received[:, 2], 0.999))
+    reach = np.median([np.quantile(received[received[:, 1] == i, 2], 0.99) for i in ids])
+    bound = extent + 2.0 * float(reach)
     inputs = log.inputs.copy()
     inputs[wide_gaps(inputs[:, 0]), 1] = 0.0  # no distance across a gap
     path = dead_reckoning(dataclasses.replace(log, inputs=inputs), inputs[:, 0])[0]
@@ -724,8 +731,8 @@ def check_odometry_units(log) -> None:
         raise QuadobsError(
             f"{log.file_label('inputs.csv')}, column speed: the path dead-reckoned from it spans "
             f"{span:.4g} m, {span / bound:.0f} times the {bound:.4g} m within which the ranges "
-            "place the vehicle (the anchors' extent and twice the longest range): the speed must "
-            "be in m/s and the times in seconds"
+            "place the vehicle (the anchors' extent and twice their reach): the speed must be in "
+            "m/s and the times in seconds"
         )
 
 

@@ -59,11 +59,15 @@ MAX_FILE_BYTES = 512 << 20
 MAX_LINE_BYTES = 4096
 #: Longest span of a log (s, first to last time over all its files): a scenario's longest duration.
 MAX_SPAN = 1e7
-#: The ratios of two files' spans that are taken for two units of time (milliseconds against
-#: seconds: 1000, within a factor of about 3 for files that cover somewhat different spans; a
-#: flight controller's IMU logged from power-up may span a hundred times a short UWB
-#: recording, in seconds both).
-SPAN_RATIO = (300.0, 3000.0)
+#: How much longer than another one file's span may be before the log's times are taken for
+#: two units (milliseconds against seconds: 1000; microseconds: a million), unless the longer
+#: file samples at least every :data:`SAMPLED_WITHIN` seconds and covers the other's span (a
+#: flight controller's IMU logged from power-up beside a short UWB recording).
+SPAN_RATIO = 100.0
+#: The longest median interval (s) of a file that may span far longer than the others in the
+#: same unit: an IMU, an attitude, an odometry or a motion capture samples every second or
+#: faster, and in milliseconds its interval reads as a thousand seconds' worth.
+SAMPLED_WITHIN = 1.0
 #: Largest beacon id magnitude: ids are read as floats, exact up to 2^53.
 MAX_ID = 2**53
 #: Largest deviation of a unit quaternion's norm from 1.
