@@ -134,6 +134,15 @@ def _mixed(*steps):
     return transform
 
 
+#: The ``mix`` stress's scenario settings (the anchors' pattern, the received level's bias) and
+#: its first transforms (the survey, the tag's pattern), for the robot and the flight alike.
+MIX_SETTINGS = (f"radio.pattern={MIX_PATTERN_STD}", f"radio.level_bias={LEVEL_BIAS}")
+MIX_COMMON = (
+    lambda log, seed: surveyed(log, SURVEY_STD, seed),
+    lambda log, seed: tag_pattern(log, MIX_PATTERN_STD, seed),
+)
+
+
 #: The robot's stresses: scenario settings and a transform ``(log, seed) -> log``.
 ROVER = {
     "none": ((), _none),
@@ -149,10 +158,9 @@ ROVER = {
     "level": ((f"radio.level_bias={LEVEL_BIAS}",), _none),
     "tagpattern": ((), lambda log, seed: tag_pattern(log, PATTERN_STD, seed)),
     "mix": (
-        (f"radio.pattern={MIX_PATTERN_STD}", f"radio.level_bias={LEVEL_BIAS}"),
+        MIX_SETTINGS,
         _mixed(
-            lambda log, seed: surveyed(log, SURVEY_STD, seed),
-            lambda log, seed: tag_pattern(log, MIX_PATTERN_STD, seed),
+            *MIX_COMMON,
             lambda log, seed: behind_pillar(log, (1.5, 0.5), 0.15, 0.3, seed),
             lambda log, seed: inputs_late(log, 0.1, 0.01, seed),
         ),
@@ -174,10 +182,9 @@ FLIGHT = {
     "level": ((f"radio.level_bias={LEVEL_BIAS}",), _none),
     "tagpattern": ((), lambda log, seed: tag_pattern(log, PATTERN_STD, seed)),
     "mix": (
-        (f"radio.pattern={MIX_PATTERN_STD}", f"radio.level_bias={LEVEL_BIAS}"),
+        MIX_SETTINGS,
         _mixed(
-            lambda log, seed: surveyed(log, SURVEY_STD, seed),
-            lambda log, seed: tag_pattern(log, MIX_PATTERN_STD, seed),
+            *MIX_COMMON,
             lambda log, seed: inputs_late(log, *IMU_LATE, seed),
             lambda log, seed: accel_scaled(log, (0.02, -0.015, 0.01)),
         ),
