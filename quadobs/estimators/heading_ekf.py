@@ -684,7 +684,9 @@ class _HeadingFilter(ConstantStates, Estimator, Gated):
                 "time": self._time,
                 "step": int(round(self._time / self.dt)),
                 "reason": f"lever arm ({l[0]:.3g}, {l[1]:.3g}) m beyond its prior's 0.999 "
-                "quantile: the ranges carry an error the filter does not model",
+                "quantile: the ranges carry an error the filter does not model (a heading0 or "
+                "odometry the ranges contradict, an anchor's bias or height, a stated tag_x, "
+                "tag_y off the tag)",
             }
 
     def _watch(self, accepted: bool, nu: float) -> None:
