@@ -517,7 +517,7 @@ def check_rates_against_attitude(log) -> None:
       amounts), the median cosine between the two rotation vectors at least
       :data:`RATE_AXES`'s bound (an attitude given navigation to
       body turns about the opposite axes, one read scalar last about other axes: measured
-      -0.94 and -0.33 on a simulated flight whose own gives 0.94).
+      -0.98 and -0.26 on a simulated flight whose own gives 0.94).
 
     A log whose attitude and rates turn that much in fewer windows has too little to compare
     and is left as it is.

@@ -179,3 +179,9 @@ def test_a_long_imu_beside_a_short_recording_is_not_taken_for_milliseconds(tmp_p
     imu = short.inputs[short.inputs[:, 0] < 5.0] * [1e6, 1, 1, 1, 1, 1, 1]
     with pytest.raises(QuadobsError, match=r"imu.csv spans .* microseconds: 1e6"):
         dataclasses.replace(short, inputs=imu)
+    fast = np.arange(
+        0.0, 20.0, 0.001
+    )  # an IMU at 1 kHz in ms from the ranges' zero: a row a "second"
+    imu_ms = np.column_stack([1000.0 * fast, np.tile(log.inputs[0, 1:], (fast.size, 1))])
+    with pytest.raises(QuadobsError, match=r"imu.csv spans 2e\+04 s"):
+        dataclasses.replace(log, inputs=imu_ms)

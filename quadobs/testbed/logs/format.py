@@ -399,9 +399,9 @@ class RangeLog:
         """Every file's times in one unit: a file spanning :data:`SPAN_RATIO` times the
         measurements' span (``ranges.csv`` or ``tdoa.csv``, the longer), or measurements
         spanning that many times the inputs' (which cover the log), holds times in another
-        unit (milliseconds or microseconds against seconds), unless it samples at least every
-        :data:`SAMPLED_WITHIN` seconds and covers the other's span: a long file in seconds (an
-        IMU logged from power-up). A short truth is not judged short."""
+        unit (milliseconds or microseconds against seconds), unless it samples more often than
+        every :data:`SAMPLED_WITHIN` seconds and covers the other's span: a long file in
+        seconds (an IMU logged from power-up). A short truth is not judged short."""
         times = {f: v[:, 0] for f, _, v in tables if f != "beacons.csv" and v.shape[0] > 1}
         spans = {f: float(np.ptp(t)) for f, t in times.items()}
         own = [f for f in ("ranges.csv", "tdoa.csv") if spans.get(f, 0.0) > 0.0]
@@ -413,9 +413,7 @@ class RangeLog:
 
         def in_seconds(long: str, short: str) -> bool:  # samples often, and covers the other
             t, s = times[long], times[short]
-            return (
-                float(np.median(np.diff(t))) <= SAMPLED_WITHIN and t[0] <= s[0] and s[-1] <= t[-1]
-            )
+            return float(np.median(np.diff(t))) < SAMPLED_WITHIN and t[0] <= s[0] and s[-1] <= t[-1]
 
         for fname, span in spans.items():
             if span > SPAN_RATIO * measured and not in_seconds(fname, longest):

@@ -31,9 +31,9 @@ added unless ``noise.*`` settings ask for it, :func:`log_scenario`) and the summ
 
 from __future__ import annotations
 
-import dataclasses
 import math
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
@@ -725,7 +725,8 @@ def check_odometry_units(log) -> None:
     bound = extent + 2.0 * float(reach)
     inputs = log.inputs.copy()
     inputs[wide_gaps(inputs[:, 0]), 1] = 0.0  # no distance across a gap
-    path = dead_reckoning(dataclasses.replace(log, inputs=inputs), inputs[:, 0])[0]
+    odometry = SimpleNamespace(inputs=inputs, heading0=log.heading0)  # not a whole log again
+    path = dead_reckoning(odometry, inputs[:, 0])[0]
     span = float(np.linalg.norm(path.max(axis=0) - path.min(axis=0)))
     if span > ODOMETRY_SPAN_RATIO * bound:
         raise QuadobsError(

@@ -61,13 +61,13 @@ MAX_LINE_BYTES = 4096
 MAX_SPAN = 1e7
 #: How much longer than another one file's span may be before the log's times are taken for
 #: two units (milliseconds against seconds: 1000; microseconds: a million), unless the longer
-#: file samples at least every :data:`SAMPLED_WITHIN` seconds and covers the other's span (a
-#: flight controller's IMU logged from power-up beside a short UWB recording).
+#: file samples more often than every :data:`SAMPLED_WITHIN` seconds and covers the other's
+#: span (a flight controller's IMU logged from power-up beside a short UWB recording).
 SPAN_RATIO = 100.0
-#: The longest median interval (s) of a file that may span far longer than the others in the
-#: same unit: an IMU, an attitude, an odometry or a motion capture samples every second or
-#: faster, and in milliseconds its interval reads as a thousand seconds' worth.
-SAMPLED_WITHIN = 1.0
+#: The median interval (s) below which a file that spans far longer than the others is taken
+#: to be in the same unit: an IMU, an attitude, an odometry or a motion capture samples at
+#: 2 Hz or faster, and in milliseconds even an IMU at 1 kHz reads every 1 "second".
+SAMPLED_WITHIN = 0.5
 #: Largest beacon id magnitude: ids are read as floats, exact up to 2^53.
 MAX_ID = 2**53
 #: Largest deviation of a unit quaternion's norm from 1.
