@@ -666,6 +666,7 @@ def build_parser():
     _add_plot(sub, estimators_option)
     _add_replay(sub)
     _add_import_bag(sub)
+    _add_import_csv(sub)
     return parser
 
 
@@ -1335,7 +1336,71 @@ def _cmd_import_bag(args) -> int:
     topic_map = with_options(topic_map, args.topic, args.anchors, args.name)
     notes: list[str] = []
     log = import_bag(args.bag, topic_map, notes)
+    _check_imported(log, str(args.bag))
     write_log(log, args.out)
+    _print_imported(log, notes, args.out)
+    return 0
+
+
+def _add_import_csv(sub) -> None:
+    """The ``import-csv`` subcommand (:mod:`quadobs.testbed.logs.csv_map`)."""
+    from pathlib import Path
+
+    p = sub.add_parser(
+        "import-csv",
+        help="import CSV files of another layout (columns and units named in a TOML map) as a log folder for 'quadobs replay'",
+        description="Import CSV files as a log folder. The TOML map names, per stream (ranges, "
+        "tdoa, imu, attitude, odometry, truth), the file, its columns and their units, the "
+        "anchors, and meta.csv's keys; docs/replaying-your-data.md has examples.",
+    )
+    p.add_argument("map", type=Path, help="the TOML column map (its files are found beside it)")
+    p.add_argument(
+        "--out", type=Path, required=True, help="the log folder to write (written whole)"
+    )
+    p.add_argument("--name", help="the log's name (default: the map's name, else its file's)")
+    p.set_defaults(func=_cmd_import_csv)
+
+
+def _cmd_import_csv(args) -> int:
+    """``quadobs import-csv MAP --out DIR``: CSV files as a log folder."""
+    from dataclasses import replace
+
+    from quadobs.testbed.logs import write_log
+    from quadobs.testbed.logs.csv_map import import_csv, load_csv_map
+    from quadobs.testbed.logs.files import check_replaceable_folder
+    from quadobs.testbed.logs.format import LOG_FILES
+
+    check_replaceable_folder(args.out, set(LOG_FILES), "--out")
+    csv_map = load_csv_map(args.map)
+    if args.name is not None:
+        csv_map = replace(csv_map, meta={**csv_map.meta, "name": args.name})
+    notes: list[str] = []
+    log = import_csv(csv_map, notes)
+    _check_imported(log, str(args.map))
+    write_log(log, args.out)
+    _print_imported(log, notes, args.out)
+    return 0
+
+
+def _check_imported(log, source: str) -> None:
+    """The replay's checks of units, run on an imported log before it is written: a unit the
+    map or topic map got wrong is said at once, naming the source."""
+    from quadobs.errors import QuadobsError
+    from quadobs.testbed.attitude import check_body_imu
+    from quadobs.testbed.logs.replay import check_odometry_units, check_range_units
+
+    try:
+        check_range_units(log)
+        if log.input_kind == "odometry":
+            check_odometry_units(log)
+        if log.input_kind == "imu_body":
+            check_body_imu(log)
+    except QuadobsError as exc:
+        raise QuadobsError(f"{source}: as imported, the replay would refuse it: {exc}") from None
+
+
+def _print_imported(log, notes: list[str], out) -> None:
+    """The notes of an import and what it wrote."""
     for note in notes:
         print(f"note: {note}")
     print(
@@ -1343,9 +1408,8 @@ def _cmd_import_bag(args) -> int:
         f"{log.inputs.shape[0] if log.input_kind != 'none' else 0} "
         f"{'odometry' if log.input_kind == 'odometry' else 'IMU'} rows, "
         f"{0 if log.truth is None else log.truth.shape[0]} truth rows "
-        f"written to {args.out} (replay with: quadobs replay {args.out})"
+        f"written to {out} (replay with: quadobs replay {out})"
     )
-    return 0
 
 
 def _replay_calibration(args, log, tuning: dict) -> tuple[list[float] | np.ndarray | None, dict]:

@@ -582,7 +582,9 @@ def _table(rows: list, width: int) -> np.ndarray:
     return a[np.argsort(a[:, 0], kind="stable")]
 
 
-def _check_clocks(bag: Path, tables: dict) -> None:
+def _check_clocks(
+    bag: Path, tables: dict, fix: str = 'time = "receive" in [{}] takes the bag\'s'
+) -> None:
     """Every stream's times overlap the ranges' and TDOA's: one clock (module docstring)."""
     measured = [t[:, 0] for k, t in tables.items() if k in ("ranges", "tdoa") and t.shape[0]]
     if not measured:
@@ -596,21 +598,21 @@ def _check_clocks(bag: Path, tables: dict) -> None:
         if b < lo or a > hi:
             raise QuadobsError(
                 f"{bag}: [{stream}] stamps {a:.6g} to {b:.6g} s, the ranges' {lo:.6g} to "
-                f'{hi:.6g} s: not one clock (time = "receive" in [{stream}] takes the bag\'s)'
+                f"{hi:.6g} s: not one clock ({fix.format(stream)})"
             )
 
 
-def _check_anchor_ids(bag: Path, topic_map: TopicMap, ranges, tdoa, notes) -> None:
+def _check_anchor_ids(bag: Path, anchors: dict, ranges, tdoa, notes) -> None:
     """Every id the measurements name among the anchors; anchors that none names noted."""
     named = set(ranges[:, 1].astype(np.int64)) | set(tdoa[:, 1:3].astype(np.int64).ravel())
-    unknown = sorted(named - set(topic_map.anchors))
+    unknown = sorted(named - set(anchors))
     if unknown:
         raise QuadobsError(
             f"{bag}: anchor id {', '.join(map(str, unknown[:5]))} not among the anchors "
-            f"({', '.join(map(str, sorted(topic_map.anchors)))}): check the anchors, or the "
+            f"({', '.join(map(str, sorted(anchors)))}): check the anchors, or the "
             "field the id is read from (anchor, anchor_pattern)"
         )
-    silent = sorted(set(topic_map.anchors) - named)
+    silent = sorted(set(anchors) - named)
     if silent and notes is not None:
         notes.append(
             f"anchors that no range or TDOA names: {', '.join(map(str, silent))} "
@@ -667,7 +669,7 @@ def import_bag(bag: str | Path, topic_map: TopicMap, notes: list | None = None) 
     attitude = _table(rows["attitude"], 5) if rows["attitude"] else None
     _check_rows(bag, topic_map, read, ranges.shape[0] + tdoa.shape[0], truth)
     _check_clocks(bag, {"ranges": ranges, "tdoa": tdoa, kind: inputs, "truth": truth})
-    _check_anchor_ids(bag, topic_map, ranges, tdoa, notes)
+    _check_anchor_ids(bag, topic_map.anchors, ranges, tdoa, notes)
     _notes_of(read, topic_map, notes)
     truth, truth_columns = _truth_table(truth, dim, kind == "odometry")
     return RangeLog(

@@ -1,0 +1,707 @@
+"""CSV files of another layout imported into the open log format, by a small TOML column map.
+
+Datasets that come as CSV seldom hold the format's columns: a range file may read
+``t_twr_ms, anchor, dist_cm``, a gyroscope deg/s, a motion capture's quaternion scalar-last,
+and a wheeled robot's file its wheels' speeds. Converting each by hand is where units and
+orders go wrong silently. A *column map* (:class:`CsvMap`, a TOML file) states instead, per
+stream, the file, the columns by name and their units, and ``quadobs import-csv MAP --out
+DIR`` writes the log folder; the replay's checks then run on it as on any log.
+
+============  =========================================================================
+stream        keys beside the file's (``file``, ``time``, ``time_unit``, ``time_offset``,
+              ``delimiter``, ``skip_rows``, ``names``)
+============  =========================================================================
+``ranges``    ``anchor`` and ``value`` (one range a row; ``anchor_pattern`` as for bags),
+              or ``columns = {ID = "column", ...}`` (one column per anchor, an empty cell:
+              no range); ``std`` (a column, or one number for every range); ``unit``
+``tdoa``      ``anchor_i``, ``anchor_j``, ``value``, ``std``, ``unit``, ``sign``
+``imu``       ``accel = [x, y, z]`` and ``gyro = [x, y, z]`` (column names, body frame);
+              ``accel_unit`` (``m/s^2`` or ``g``), ``gyro_unit`` (``rad/s`` or ``deg/s``)
+``attitude``  ``quaternion = {w = ..., x = ..., y = ..., z = ...}`` (each component by
+              name: no order to get wrong) or ``euler = {roll = ..., pitch = ...,
+              yaw = ...}`` with ``angle_unit``; the body-to-navigation rotation
+``odometry``  ``speed`` and ``yaw_rate`` (``speed_unit``, ``rate_unit``), or the wheels'
+              ground speeds ``left``, ``right`` and ``track`` (m), or the odometry's poses
+              ``x``, ``y``, ``yaw`` (``unit``, ``angle_unit``)
+``truth``     ``position = [x, y(, z)]`` (``unit``), and a ``quaternion`` or ``euler`` as
+              for ``attitude``, or a planar robot's ``heading`` (``angle_unit``)
+============  =========================================================================
+
+Units: times ``s`` (the default), ``ms``, ``us``, ``ns``; lengths ``m`` (the default),
+``cm``, ``mm``; speeds ``m/s``, ``cm/s``, ``mm/s``; angles ``rad`` (the default) or ``deg``;
+rates ``rad/s`` or ``deg/s``; ``g`` is standard gravity, 9.80665 m/s^2. ``time_offset``
+(s) is added to a stream's times after its unit: a file stamped on another clock. Euler
+angles compose as ``R = Rz(yaw) Ry(pitch) Rx(roll)`` (aerospace order).
+
+A file is comma-separated with a header row unless its table says otherwise:
+``delimiter`` (one character; ``"\\t"`` for tabs), ``skip_rows`` (lines before the header)
+and ``names`` (the columns of a file without a header). Several streams may read one file.
+Files are found beside the map. Each is read by ``pyarrow.csv``; a cell that is not a
+number is named by file, line and column. An empty or non-finite cell leaves its row out of
+that stream, counted in a note.
+
+The map's top level holds ``anchors`` (a ``beacons.csv``-style file or a table, as for
+bags), ``time_unit`` and ``delimiter`` (every stream's default), and the keys of
+``meta.csv``: ``name``, ``description``, ``frame``, ``gravity``, ``heading0`` (wheel
+odometry: required), ``tag_height``, ``tag_x``, ``tag_y``, ``accel_noise``, ``gyro_noise``,
+``accel_bias``, ``gyro_bias``, ``attitude_std`` and ``range_errors``
+(:data:`~quadobs.testbed.logs.schema.META_KEYS`). An example::
+
+    name = "room-2"
+    anchors = "anchors.csv"
+    heading0 = 1.571
+    [ranges]
+    file = "uwb.csv"
+    time = "stamp_ms"
+    time_unit = "ms"
+    anchor = "anchor_id"
+    value = "dist_cm"
+    unit = "cm"
+    [odometry]
+    file = "wheels.csv"
+    time = "stamp_ms"
+    time_unit = "ms"
+    left = "v_left"
+    right = "v_right"
+    track = 0.235
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import math
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from quadobs.errors import QuadobsError
+from quadobs.testbed.logs.format import RangeLog
+
+__all__ = ["STREAMS", "CsvMap", "import_csv", "load_csv_map", "parse_csv_map"]
+
+#: The keys every stream's table may hold (beside its own, :data:`STREAMS`).
+FILE_KEYS = ("file", "time", "time_unit", "time_offset", "delimiter", "skip_rows", "names")
+#: Each stream's own keys.
+STREAMS: dict[str, tuple[str, ...]] = {
+    "ranges": ("anchor", "anchor_pattern", "value", "columns", "std", "unit"),
+    "tdoa": ("anchor_i", "anchor_j", "anchor_pattern", "value", "std", "unit", "sign"),
+    "imu": ("accel", "gyro", "accel_unit", "gyro_unit"),
+    "attitude": ("quaternion", "euler", "angle_unit"),
+    "odometry": (
+        "speed",
+        "yaw_rate",
+        "speed_unit",
+        "rate_unit",
+        "left",
+        "right",
+        "track",
+        "x",
+        "y",
+        "yaw",
+        "unit",
+        "angle_unit",
+    ),
+    "truth": ("position", "quaternion", "euler", "heading", "unit", "angle_unit"),
+}
+#: Each unit's factor to SI.
+UNITS = {
+    "time_unit": {"s": 1.0, "ms": 1e-3, "us": 1e-6, "ns": 1e-9},
+    "unit": {"m": 1.0, "cm": 1e-2, "mm": 1e-3},
+    "speed_unit": {"m/s": 1.0, "cm/s": 1e-2, "mm/s": 1e-3},
+    "angle_unit": {"rad": 1.0, "deg": math.pi / 180.0},
+    "rate_unit": {"rad/s": 1.0, "deg/s": math.pi / 180.0},
+    "gyro_unit": {"rad/s": 1.0, "deg/s": math.pi / 180.0},
+    "accel_unit": {"m/s^2": 1.0, "g": 9.80665},
+}
+_TOP_KEYS = ("anchors", "time_unit", "delimiter")
+#: The ``meta.csv`` keys a map may set at its top level.
+_META_KEYS = (
+    "name",
+    "description",
+    "frame",
+    "gravity",
+    "heading0",
+    "tag_height",
+    "tag_x",
+    "tag_y",
+    "accel_noise",
+    "gyro_noise",
+    "accel_bias",
+    "gyro_bias",
+    "attitude_std",
+    "range_errors",
+)
+
+
+@dataclass(frozen=True)
+class CsvMap:
+    """Which file and columns hold which stream, in which units (module docstring).
+
+    Attributes
+    ----------
+    streams : dict of str to dict
+        Per stream present: its table, checked, with the top level's defaults filled in.
+    anchors : dict of int to tuple of float
+        Anchor id to position (m).
+    meta : dict
+        The ``meta.csv`` keys the map sets (:data:`~quadobs.testbed.logs.schema.META_KEYS`).
+    base : Path
+        The folder the files are named from (the map's).
+    where : str
+        How errors name the map.
+    """
+
+    streams: dict = field(default_factory=dict)
+    anchors: dict = field(default_factory=dict)
+    meta: dict = field(default_factory=dict)
+    base: Path = Path(".")
+    where: str = "column map"
+
+
+def _is_number(value) -> bool:
+    return isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
+
+
+def _column_list(value, sizes: tuple[int, ...], where: str) -> None:
+    if not (
+        isinstance(value, list)
+        and len(value) in sizes
+        and all(isinstance(v, str) and v for v in value)
+    ):
+        n = " or ".join(map(str, sizes))
+        raise QuadobsError(f"{where}: expected a list of {n} column names")
+
+
+def _column_table(value, keys: tuple[str, ...], where: str) -> None:
+    if not (
+        isinstance(value, dict)
+        and set(value) == set(keys)
+        and all(isinstance(v, str) and v for v in value.values())
+    ):
+        spec = ", ".join(f'{k} = "column"' for k in keys)
+        raise QuadobsError(f"{where}: expected a table {{{spec}}}, each component by name")
+
+
+def _check_key(stream: str, key: str, value, where: str) -> None:
+    """One key of a stream's table, by its kind (module docstring)."""
+    at = f"{where}: [{stream}] {key}"
+    if key in UNITS:
+        if value not in UNITS[key]:
+            raise QuadobsError(f"{at}: expected one of {', '.join(UNITS[key])}, got {value!r}")
+    elif key in ("time_offset", "track"):
+        if not _is_number(value) or (key == "track" and value <= 0):
+            raise QuadobsError(f"{at}: expected a {'positive ' if key == 'track' else ''}number")
+    elif key == "skip_rows":
+        if not (isinstance(value, int) and not isinstance(value, bool) and 0 <= value < 1000):
+            raise QuadobsError(f"{at}: expected a whole number of lines")
+    elif key == "delimiter":
+        if not (isinstance(value, str) and len(value) == 1 and value not in '"\r\n'):
+            raise QuadobsError(f'{at}: expected one character, e.g. ",", ";" or "\\t"')
+    elif key == "sign":
+        if value not in (1, -1) or isinstance(value, bool):
+            raise QuadobsError(f"{at}: expected 1 or -1")
+    elif key in ("accel", "gyro"):
+        _column_list(value, (3,), at)
+    elif key == "position":
+        _column_list(value, (2, 3), at)
+    elif key == "names":
+        _column_list(value, tuple(range(1, 1001)), at)
+    elif key == "quaternion":
+        _column_table(value, ("w", "x", "y", "z"), at)
+    elif key == "euler":
+        _column_table(value, ("roll", "pitch", "yaw"), at)
+    elif key == "columns":
+        _check_wide(value, at)
+    elif key == "std":
+        if not (isinstance(value, str) and value) and not (_is_number(value) and value > 0):
+            raise QuadobsError(f"{at}: expected a column name or a positive number")
+    elif not (isinstance(value, str) and value):
+        raise QuadobsError(f"{at}: expected text (a column name)")
+
+
+def _check_wide(value, at: str) -> None:
+    if not isinstance(value, dict) or not value:
+        raise QuadobsError(f'{at}: expected a table of anchor id = "column"')
+    for key, column in value.items():
+        if not key.lstrip("-").isdigit() or len(key) > 15:
+            raise QuadobsError(f"{at}.{key}: the key must be an anchor's integer id")
+        if not (isinstance(column, str) and column):
+            raise QuadobsError(f"{at}.{key}: expected a column name")
+
+
+#: Per stream, the alternatives of columns it needs (one of them, whole), and what each forbids.
+_NEEDS = {
+    "ranges": (("anchor", "value"), ("columns",)),
+    "tdoa": (("anchor_i", "anchor_j", "value"),),
+    "imu": (("accel", "gyro"),),
+    "attitude": (("quaternion",), ("euler",)),
+    "odometry": (("speed", "yaw_rate"), ("left", "right", "track"), ("x", "y", "yaw")),
+    "truth": (("position",),),
+}
+
+
+def _check_needs(stream: str, table: dict, where: str) -> None:
+    """Exactly one of the stream's layouts (:data:`_NEEDS`), whole."""
+    ways = _NEEDS[stream]
+    given = [w for w in ways if any(k in table for k in w)]
+    text = " or ".join("(" + ", ".join(w) + ")" for w in ways)
+    if len(given) != 1:
+        what = "more than one of" if given else "one of"
+        raise QuadobsError(f"{where}: [{stream}] expected {what} {text}, not both")
+    missing = [k for k in given[0] if k not in table]
+    if missing:
+        raise QuadobsError(
+            f"{where}: [{stream}] {', '.join(given[0])} together: {missing[0]} missing"
+        )
+    if sum(k in table for k in ("quaternion", "euler", "heading")) > 1:
+        raise QuadobsError(f"{where}: [{stream}] one of quaternion, euler or heading")
+
+
+def _stream(stream: str, value, top: dict, where: str) -> dict:
+    """A stream's table checked, the top level's ``time_unit`` and ``delimiter`` filled in."""
+    if not isinstance(value, dict):
+        raise QuadobsError(f"{where}: [{stream}]: expected a table")
+    known = (*FILE_KEYS, *STREAMS[stream])
+    unknown = sorted(set(value) - set(known))
+    if unknown:
+        raise QuadobsError(
+            f"{where}: [{stream}] unknown key {unknown[0]!r} (known: {', '.join(known)})"
+        )
+    for key in ("file", "time"):
+        if key not in value:
+            raise QuadobsError(f'{where}: [{stream}] {key} missing ({key} = "...")')
+    for key, item in value.items():
+        _check_key(stream, key, item, where)
+    _check_needs(stream, value, where)
+    table = {"time_unit": top.get("time_unit", "s"), "delimiter": top.get("delimiter", ",")}
+    return {**table, **value}
+
+
+def parse_csv_map(data: dict, where: str = "column map", base: Path | None = None) -> CsvMap:
+    """A :class:`CsvMap` from its TOML document (module docstring); unknown keys refused."""
+    from quadobs.testbed.logs.rosbag import _anchors
+    from quadobs.testbed.logs.schema import parse_meta
+
+    top = {k: v for k, v in data.items() if k not in STREAMS}
+    for key in top:
+        if key not in (*_TOP_KEYS, *_META_KEYS):
+            known = ", ".join((*_TOP_KEYS, *_META_KEYS, *(f"[{s}]" for s in STREAMS)))
+            raise QuadobsError(f"{where}: unknown key {key!r} (known: {known})")
+    for key in ("time_unit", "delimiter"):
+        if key in top:
+            _check_key("top level", key, top[key], where)
+    streams = {k: _stream(k, v, top, where) for k, v in data.items() if k in STREAMS}
+    if not {"ranges", "tdoa"} & set(streams):
+        raise QuadobsError(f"{where}: no [ranges] or [tdoa] table")
+    if {"imu", "odometry"} <= set(streams):
+        raise QuadobsError(f"{where}: [imu] and [odometry]: a log holds one kind of inputs")
+    if "anchors" not in top:
+        raise QuadobsError(f'{where}: anchors missing (anchors = "anchors.csv", or a table)')
+    meta = {}
+    for key, value in top.items():
+        if key in _META_KEYS:
+            text = str(value).lower() if isinstance(value, bool) else str(value)
+            try:
+                meta[key] = parse_meta(where, [["version", "2"], [key, text]])[key]
+            except QuadobsError as exc:  # one key at a time: no row to name in a TOML file
+                raise QuadobsError(str(exc).replace(", row 3", "")) from None
+    if "odometry" in streams and "heading0" not in meta:
+        raise QuadobsError(
+            f"{where}: [odometry] needs heading0, the heading (rad) at its first row in the "
+            "anchors' frame (the odometry's own frame does not tell it)"
+        )
+    if "heading0" in meta and "odometry" not in streams:
+        raise QuadobsError(f"{where}: heading0 is for wheel odometry, and no [odometry] is mapped")
+    anchors = _anchors(top["anchors"], where, base)
+    return CsvMap(streams, anchors, meta, base or Path("."), where)
+
+
+def load_csv_map(path: str | Path) -> CsvMap:
+    """:func:`parse_csv_map` of a TOML file (a regular file of at most 1 MiB)."""
+    from quadobs.testbed.logs.files import read_limited
+
+    path = Path(path)
+    raw = read_limited(path)
+    if raw is None:
+        raise QuadobsError(f"{str(path)!r}: no such column map")
+    if len(raw) > 1 << 20:
+        raise QuadobsError(f"{str(path)!r}: larger than 1 MiB")
+    try:
+        data = tomllib.loads(raw.decode("utf-8"))
+    except (UnicodeDecodeError, tomllib.TOMLDecodeError, RecursionError) as exc:
+        raise QuadobsError(f"{str(path)!r}: not a TOML file ({exc})") from None
+    return parse_csv_map(data, str(path), path.parent)
+
+
+class _Columns:
+    """The map's files read by ``pyarrow.csv``: each stream's columns as arrays (module
+    docstring), with the rows it left out counted for the notes."""
+
+    def __init__(self, csv_map: CsvMap) -> None:
+        self.map = csv_map
+        self.left_out: dict[str, int] = {}
+
+    @staticmethod
+    def _header(opts: dict, path: Path, raw: bytes) -> tuple[list, int]:
+        """The file's column names and the lines before its first row."""
+        skip = opts.get("skip_rows", 0)
+        if "names" in opts:
+            return list(opts["names"]), skip
+        text = raw.decode("utf-8-sig", "replace").splitlines()
+        if len(text) <= skip:
+            raise QuadobsError(f"{path}: no header row (skip_rows = {skip})")
+        header = next(csv.reader(io.StringIO(text[skip]), delimiter=opts["delimiter"]), [])
+        return [h.strip() for h in header], skip + 1
+
+    def read(self, stream: str, numeric: dict, text: dict | None = None) -> tuple[dict, int]:
+        """``{key: values}`` of the stream's columns (``numeric`` as float, NaN where empty;
+        ``text`` as str, None where empty), keyed as given, and the lines before the first row."""
+        from quadobs.testbed.logs.files import read_limited
+
+        text = dict(text or {})
+        opts = self.map.streams[stream]
+        path = self.map.base / opts["file"]
+        raw = read_limited(path)
+        if raw is None:
+            raise QuadobsError(f"{self.map.where}: [{stream}] file {opts['file']!r}: not found")
+        header, skip = self._header(opts, path, raw)
+        for key, column in {**numeric, **text}.items():
+            if column not in header:
+                raise QuadobsError(
+                    f"{path}: no column {column!r} ([{stream}] {key}; its columns: "
+                    f"{', '.join(header[:20])})"
+                )
+        table = _arrow_table(path, raw, header, skip, opts["delimiter"], numeric, text)
+        return _arrays(table, numeric, text), skip
+
+    def time(self, stream: str, values: np.ndarray) -> np.ndarray:
+        """A stream's times in seconds on the ranges' clock."""
+        opts = self.map.streams[stream]
+        return values * UNITS["time_unit"][opts["time_unit"]] + float(opts.get("time_offset", 0.0))
+
+    def keep(self, stream: str, rows: np.ndarray, std: np.ndarray | None = None) -> np.ndarray:
+        """The rows whose every value is finite, sorted by time (stably), the rest counted;
+        with ``std`` (NaN: not stated) as a last column."""
+        ok = np.isfinite(rows).all(axis=1)
+        if not ok.all():
+            self.left_out[stream] = self.left_out.get(stream, 0) + int((~ok).sum())
+        rows = (rows if std is None else np.column_stack([rows, std]))[ok]
+        return rows[np.argsort(rows[:, 0], kind="stable")]
+
+
+def _arrow_table(path: Path, raw: bytes, header: list, skip: int, delimiter: str, numeric, text):
+    """The file's columns asked for, by pyarrow; a cell that is not a number named by line."""
+    import pyarrow as pa
+    import pyarrow.csv as pacsv
+
+    wanted = sorted(set(numeric.values()) | set(text.values()))
+    types = {c: pa.float64() for c in numeric.values()} | {c: pa.string() for c in text.values()}
+
+    def read(column_types):
+        return pacsv.read_csv(
+            pa.BufferReader(raw),
+            read_options=pacsv.ReadOptions(skip_rows=skip, column_names=header),
+            parse_options=pacsv.ParseOptions(delimiter=delimiter),
+            convert_options=pacsv.ConvertOptions(include_columns=wanted, column_types=column_types),
+        )
+
+    try:
+        return read(types)
+    except pa.ArrowInvalid as exc:
+        try:
+            as_text = read({c: pa.string() for c in wanted})
+        except pa.ArrowInvalid:
+            first = str(exc).splitlines()[0]
+            raise QuadobsError(f"{path}: cannot be read as CSV ({first})") from None
+    for column in sorted(set(numeric.values())):
+        for i, cell in enumerate(as_text.column(column).to_pylist()):
+            try:
+                float(cell or "nan")
+            except ValueError:
+                raise QuadobsError(
+                    f"{path}, line {skip + i + 1}, column {column}: {cell!r} is not a number"
+                ) from None
+    raise QuadobsError(f"{path}: cannot be read as CSV")  # pragma: no cover - arrow's own fault
+
+
+def _arrays(table, numeric: dict, text: dict) -> dict:
+    from quadobs.testbed.logs.files import _fill_float_column
+
+    out: dict = {}
+    for key, column in numeric.items():
+        values = np.empty(table.num_rows)
+        _fill_float_column(values, table.column(column).cast("float64").chunks)
+        out[key] = values
+    for key, column in text.items():
+        out[key] = table.column(column).to_pylist()
+    return out
+
+
+def _anchor_ids(cells: list, pattern: str, where: str) -> np.ndarray:
+    """Anchor ids from a text column: an integer, or the number in a name (as for bags); NaN
+    for an empty cell. Each distinct cell is read once."""
+    from quadobs.testbed.logs.rosbag import _anchor_id
+
+    ids: dict = {None: math.nan, "": math.nan}
+    for cell in set(cells) - set(ids):
+        text = cell.strip()
+        try:
+            number = float(text)
+        except ValueError:
+            ids[cell] = float(_anchor_id(text, pattern, where))
+            continue
+        if not (math.isfinite(number) and number == round(number)):
+            raise QuadobsError(f"{where}: anchor id {text!r} is not an integer")
+        ids[cell] = number
+    return np.array([ids[c] for c in cells], dtype=float)
+
+
+def _std(opts: dict, values: dict, n: int) -> np.ndarray:
+    """Each measurement's stated std (m): a column, one number, or NaN (not stated)."""
+    unit = UNITS["unit"][opts.get("unit", "m")]
+    std = opts.get("std")
+    if isinstance(std, str):
+        return values["std"] * unit
+    return np.full(n, math.nan if std is None else float(std) * unit)
+
+
+def _ranges(cols: _Columns) -> np.ndarray:
+    """``time, id, range, std`` rows."""
+    opts = cols.map.streams["ranges"]
+    where = f"{cols.map.where}: [ranges]"
+    unit = UNITS["unit"][opts.get("unit", "m")]
+    std_col = {"std": opts["std"]} if isinstance(opts.get("std"), str) else {}
+    if "columns" in opts:
+        wide = {f"r{k}": c for k, c in opts["columns"].items()}
+        v, _ = cols.read("ranges", {"time": opts["time"], **wide, **std_col})
+        t = cols.time("ranges", v["time"])
+        std = _std(opts, v, t.size)
+        parts = []
+        for key in opts["columns"]:
+            r = v[f"r{key}"] * unit
+            given = ~np.isnan(r)  # an empty cell: that anchor not ranged in the row
+            parts.append(np.column_stack([t, np.full(t.size, int(key)), r, std])[given])
+        rows = np.concatenate(parts)
+        return cols.keep("ranges", rows[:, :3], rows[:, 3])
+    v, _ = cols.read(
+        "ranges", {"time": opts["time"], "value": opts["value"], **std_col}, {"id": opts["anchor"]}
+    )
+    ids = _anchor_ids(v["id"], opts.get("anchor_pattern", ""), where)
+    t = cols.time("ranges", v["time"])
+    rows = np.column_stack([t, ids, v["value"] * unit])
+    return cols.keep("ranges", rows, _std(opts, v, t.size))
+
+
+def _tdoa(cols: _Columns) -> np.ndarray:
+    """``time, i, j, difference, std`` rows."""
+    opts = cols.map.streams["tdoa"]
+    where = f"{cols.map.where}: [tdoa]"
+    unit = UNITS["unit"][opts.get("unit", "m")]
+    std_col = {"std": opts["std"]} if isinstance(opts.get("std"), str) else {}
+    v, _ = cols.read(
+        "tdoa",
+        {"time": opts["time"], "value": opts["value"], **std_col},
+        {"i": opts["anchor_i"], "j": opts["anchor_j"]},
+    )
+    pattern = opts.get("anchor_pattern", "")
+    rows = np.column_stack(
+        [
+            cols.time("tdoa", v["time"]),
+            _anchor_ids(v["i"], pattern, where),
+            _anchor_ids(v["j"], pattern, where),
+            v["value"] * unit * opts.get("sign", 1),
+        ]
+    )
+    return cols.keep("tdoa", rows, _std(opts, v, rows.shape[0]))
+
+
+def _rotation_columns(opts: dict) -> dict:
+    """The columns of a stream's rotation, keyed ``q{w,x,y,z}``, ``e{roll,...}`` or ``heading``."""
+    if "quaternion" in opts:
+        return {f"q{k}": c for k, c in opts["quaternion"].items()}
+    if "euler" in opts:
+        return {f"e{k}": c for k, c in opts["euler"].items()}
+    if "heading" in opts:
+        return {"heading": opts["heading"]}
+    return {}
+
+
+def _quaternions(opts: dict, v: dict, n: int) -> np.ndarray:
+    """``(n, 4)`` unit quaternions ``w, x, y, z`` from the stream's rotation columns (NaN:
+    none, or a quaternion of zero norm); Euler angles as ``Rz(yaw) Ry(pitch) Rx(roll)``."""
+    angle = UNITS["angle_unit"][opts.get("angle_unit", "rad")]
+    if "quaternion" in opts:
+        q = np.column_stack([v[f"q{k}"] for k in "wxyz"])
+    elif "euler" in opts or "heading" in opts:
+        roll, pitch, yaw = (
+            (v["eroll"] * angle, v["epitch"] * angle, v["eyaw"] * angle)
+            if "euler" in opts
+            else (np.zeros(n), np.zeros(n), v["heading"] * angle)
+        )
+        cr, sr = np.cos(roll / 2), np.sin(roll / 2)
+        cp, sp = np.cos(pitch / 2), np.sin(pitch / 2)
+        cy, sy = np.cos(yaw / 2), np.sin(yaw / 2)
+        q = np.column_stack(
+            [
+                cr * cp * cy + sr * sp * sy,
+                sr * cp * cy - cr * sp * sy,
+                cr * sp * cy + sr * cp * sy,
+                cr * cp * sy - sr * sp * cy,
+            ]
+        )
+    else:
+        return np.full((n, 4), math.nan)
+    norm = np.linalg.norm(q, axis=1, keepdims=True)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(norm > 0, q / norm, math.nan)
+
+
+def _imu(cols: _Columns) -> np.ndarray:
+    """``time, ax, ay, az, wx, wy, wz`` rows, body frame, SI."""
+    opts = cols.map.streams["imu"]
+    names = {"time": opts["time"]}
+    names |= {f"a{i}": c for i, c in enumerate(opts["accel"])}
+    names |= {f"w{i}": c for i, c in enumerate(opts["gyro"])}
+    v, _ = cols.read("imu", names)
+    accel = UNITS["accel_unit"][opts.get("accel_unit", "m/s^2")]
+    gyro = UNITS["gyro_unit"][opts.get("gyro_unit", "rad/s")]
+    rows = np.column_stack(
+        [cols.time("imu", v["time"])]
+        + [v[f"a{i}"] * accel for i in range(3)]
+        + [v[f"w{i}"] * gyro for i in range(3)]
+    )
+    return cols.keep("imu", rows)
+
+
+def _attitude(cols: _Columns) -> np.ndarray:
+    """``time, qw, qx, qy, qz`` rows."""
+    opts = cols.map.streams["attitude"]
+    v, _ = cols.read("attitude", {"time": opts["time"], **_rotation_columns(opts)})
+    t = cols.time("attitude", v["time"])
+    return cols.keep("attitude", np.column_stack([t, _quaternions(opts, v, t.size)]))
+
+
+def _odometry(cols: _Columns) -> np.ndarray:
+    """``time, speed, yaw_rate`` rows, from either layout (module docstring)."""
+    from quadobs.testbed.logs.convert import odometry_from_poses, odometry_from_wheels
+
+    opts = cols.map.streams["odometry"]
+    keys = next(w for w in _NEEDS["odometry"] if w[0] in opts)
+    names = {k: opts[k] for k in keys if k != "track"}
+    v, _ = cols.read("odometry", {"time": opts["time"], **names})
+    rows = cols.keep(
+        "odometry", np.column_stack([cols.time("odometry", v["time"])] + [v[k] for k in names])
+    )
+    t = rows[:, 0]
+    if "speed" in opts:
+        speed = UNITS["speed_unit"][opts.get("speed_unit", "m/s")]
+        rate = UNITS["rate_unit"][opts.get("rate_unit", "rad/s")]
+        return np.column_stack([t, rows[:, 1] * speed, rows[:, 2] * rate])
+    if "left" in opts:
+        speed = UNITS["speed_unit"][opts.get("speed_unit", "m/s")]
+        return odometry_from_wheels(t, rows[:, 1] * speed, rows[:, 2] * speed, opts["track"])
+    unit = UNITS["unit"][opts.get("unit", "m")]
+    angle = UNITS["angle_unit"][opts.get("angle_unit", "rad")]
+    return odometry_from_poses(t, rows[:, 1] * unit, rows[:, 2] * unit, rows[:, 3] * angle)
+
+
+def _truth(cols: _Columns) -> np.ndarray:
+    """``time, x, y, z, qw, qx, qy, qz`` rows (z 0 for a planar position; the quaternion NaN
+    where the truth holds no rotation)."""
+    opts = cols.map.streams["truth"]
+    position = {f"p{i}": c for i, c in enumerate(opts["position"])}
+    v, _ = cols.read("truth", {"time": opts["time"], **position, **_rotation_columns(opts)})
+    t = cols.time("truth", v["time"])
+    unit = UNITS["unit"][opts.get("unit", "m")]
+    p = [v[f"p{i}"] * unit for i in range(len(position))] + [np.zeros(t.size)] * (3 - len(position))
+    q = _quaternions(opts, v, t.size)
+    rotated = bool(_rotation_columns(opts))
+    rows = cols.keep("truth", np.column_stack([t, *p, *(q.T if rotated else [])]))
+    return rows if rotated else np.column_stack([rows, np.full((rows.shape[0], 4), math.nan)])
+
+
+def _inputs(cols: _Columns, kind: str) -> np.ndarray:
+    """The inputs' rows (``(0, 1)`` for none), at least two of them where a stream is mapped."""
+    if kind == "none":
+        return np.empty((0, 1))
+    try:
+        rows = _imu(cols) if kind == "imu" else _odometry(cols)
+    except QuadobsError as exc:
+        if str(exc).startswith("odometry_from"):  # the converters name themselves only
+            raise QuadobsError(f"{cols.map.where}: [odometry] {exc}") from None
+        raise
+    if rows.shape[0] < 2:
+        raise QuadobsError(
+            f"{cols.map.where}: [{kind}] fewer than two rows left "
+            f"({cols.left_out.get(kind, 0)} left out: a cell empty or not finite)"
+        )
+    return rows
+
+
+def import_csv(csv_map: CsvMap, notes: list | None = None) -> RangeLog:
+    """Read the files a column map names into a :class:`RangeLog` (module docstring).
+
+    Parameters
+    ----------
+    csv_map : CsvMap
+    notes : list, optional
+        Where given, lines are appended saying how many rows each stream left out (a cell
+        empty or not finite), and which anchors no measurement names.
+
+    Raises
+    ------
+    QuadobsError
+        A file or column missing, a cell that is not a number (named by file, line and
+        column), streams on different clocks, an anchor id not among the anchors, nothing
+        left to replay, or a value the format refuses: one line.
+    """
+    from quadobs.testbed.logs.rosbag import _check_anchor_ids, _check_clocks, _truth_table
+
+    dims = {len(p) for p in csv_map.anchors.values()}
+    if len(dims) != 1:
+        raise QuadobsError(f"{csv_map.where}: anchors: all with z or all without")
+    streams, cols = csv_map.streams, _Columns(csv_map)
+    ranges = _ranges(cols) if "ranges" in streams else np.empty((0, 4))
+    tdoa = _tdoa(cols) if "tdoa" in streams else np.empty((0, 5))
+    if ranges.shape[0] + tdoa.shape[0] == 0:
+        raise QuadobsError(f"{csv_map.where}: no range or TDOA left to replay ({_left(cols)})")
+    kind = next((k for k in ("imu", "odometry") if k in streams), "none")
+    inputs = _inputs(cols, kind)
+    attitude = _attitude(cols) if "attitude" in streams else None
+    truth = _truth(cols) if "truth" in streams else None
+    label = Path(csv_map.where)
+    tables = {"ranges": ranges, "tdoa": tdoa, kind: inputs, "truth": truth, "attitude": attitude}
+    _check_clocks(label, tables, "time_offset = SECONDS in [{}] moves its times")
+    _check_anchor_ids(label, csv_map.anchors, ranges, tdoa, notes)
+    if notes is not None:
+        notes += [
+            f"[{s}] {n} rows left out: a cell empty or not finite"
+            for s, n in sorted(cols.left_out.items())
+        ]
+    truth, truth_columns = _truth_table(truth, dims.pop(), kind == "odometry")
+    ids = np.array(sorted(csv_map.anchors), dtype=np.int64)
+    meta = dict(csv_map.meta)
+    return RangeLog(
+        meta.pop("name", "") or label.stem,
+        ids,
+        np.array([csv_map.anchors[i] for i in ids]),
+        ranges[:, :3],
+        inputs,
+        meta.pop("heading0", math.nan),
+        truth if truth is not None and truth.shape[0] else None,
+        input_kind={"imu": "imu_body", "odometry": "odometry", "none": "none"}[kind],
+        truth_columns=truth_columns,
+        range_std=ranges[:, 3],
+        tdoa=tdoa[:, :4],
+        tdoa_std=tdoa[:, 4],
+        attitude=attitude,
+        **meta,
+    )
+
+
+def _left(cols: _Columns) -> str:
+    counts = [f"[{s}] {n} left out" for s, n in sorted(cols.left_out.items())]
+    return "; ".join(counts) or "none read"

@@ -1,0 +1,354 @@
+"""CSV files of other layouts, with their columns and units named in a TOML map, imported
+into the open log format: each unit and order stated is undone exactly."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from quadobs.cli import main
+from quadobs.errors import QuadobsError
+from quadobs.testbed.logs import read_log
+from quadobs.testbed.logs.convert import odometry_from_wheels
+from quadobs.testbed.logs.csv_map import import_csv, load_csv_map, parse_csv_map
+
+ANCHORS = {3: (0.0, 0.0, 0.2), 7: (6.0, 0.0, 2.5), 11: (6.0, 5.0, 0.3), 12: (0.0, 5.0, 2.4)}
+T0 = 1_700_000_000.0
+
+
+def _position(t):
+    return np.column_stack([3.0 + np.cos(t), 2.0 + np.sin(t), 1.0 + 0.1 * t])
+
+
+def _euler_quaternion(roll, pitch, yaw):
+    """``Rz(yaw) Ry(pitch) Rx(roll)`` as ``w, x, y, z``, composed from the axis rotations."""
+
+    def mul(a, b):
+        w1, x1, y1, z1 = a
+        w2, x2, y2, z2 = b
+        return np.array(
+            [
+                w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2,
+                w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
+                w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2,
+                w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2,
+            ]
+        )
+
+    qz = [math.cos(yaw / 2), 0, 0, math.sin(yaw / 2)]
+    qy = [math.cos(pitch / 2), 0, math.sin(pitch / 2), 0]
+    qx = [math.cos(roll / 2), math.sin(roll / 2), 0, 0]
+    return mul(mul(qz, qy), qx)
+
+
+def _anchors_file(folder):
+    (folder / "anchors.csv").write_text(
+        "id,x,y,z\n" + "".join(f"{i},{x},{y},{z}\n" for i, (x, y, z) in ANCHORS.items())
+    )
+
+
+FLIGHT_MAP = """
+name = "csv-flight"
+anchors = "anchors.csv"
+accel_noise = 0.02
+range_errors = "nlos"
+[ranges]
+file = "uwb.csv"
+delimiter = ";"
+time = "stamp_ms"
+time_unit = "ms"
+anchor = "node"
+value = "dist_cm"
+unit = "cm"
+std = 5.0
+[imu]
+file = "imu.csv"
+time = "t"
+accel = ["ax_g", "ay_g", "az_g"]
+accel_unit = "g"
+gyro = ["gx", "gy", "gz"]
+gyro_unit = "deg/s"
+[attitude]
+file = "ahrs.csv"
+time = "t"
+euler = {roll = "r", pitch = "p", yaw = "y"}
+angle_unit = "deg"
+[truth]
+file = "mocap.txt"
+delimiter = " "
+names = ["time", "px", "py", "pz", "qx", "qy", "qz", "qw"]
+time = "time"
+time_offset = -0.5
+position = ["px", "py", "pz"]
+unit = "mm"
+quaternion = {x = "qx", y = "qy", z = "qz", w = "qw"}
+"""
+
+
+def _flight_files(folder) -> dict:
+    """A 2-s flight's files in four layouts and its values in SI, for the comparison."""
+    _anchors_file(folder)
+    ids = sorted(ANCHORS)
+    t_r = T0 + 0.003 + 0.01 * np.arange(200)
+    a = np.array([ANCHORS[ids[k % 4]] for k in range(200)])
+    rho = np.linalg.norm(_position(t_r - T0) - a, axis=1)
+    lines = ["stamp_ms;node;dist_cm"]
+    lines += [
+        f"{t * 1e3:.17g};anchor_{ids[k % 4]};{r * 100:.17g}"
+        for k, (t, r) in enumerate(zip(t_r, rho))
+    ]
+    (folder / "uwb.csv").write_text("\n".join(lines) + "\n")
+    t_i = T0 + 0.002 * np.arange(1000)
+    acc, gyro = (
+        np.column_stack([0.1 * np.ones(1000), np.zeros(1000), np.ones(1000)]),
+        np.ones((1000, 3)),
+    )
+    cells = [
+        f"{t:.17g},{x:.17g},{y:.17g},{z:.17g},{p:.17g},{q:.17g},{r:.17g}"
+        for t, (x, y, z), (p, q, r) in zip(t_i, acc, gyro * 30)
+    ]
+    cells[10] = f"{t_i[10]:.17g},,0,1,30,30,30"  # an empty cell: that row left out
+    (folder / "imu.csv").write_text("t,ax_g,ay_g,az_g,gx,gy,gz\n" + "\n".join(cells) + "\n")
+    euler = [(10.0, -5.0, 120.0), (20.0, 5.0, -60.0)]
+    (folder / "ahrs.csv").write_text(
+        "t,r,p,y\n" + "".join(f"{T0 + k:.17g},{r},{p},{y}\n" for k, (r, p, y) in enumerate(euler))
+    )
+    t_m = T0 + 0.5 + 0.01 * np.arange(200)  # the truth's clock 0.5 s ahead
+    p = _position(t_m - 0.5 - T0) * 1e3
+    q = np.array([0.0, 0.0, math.sin(0.2), math.cos(0.2)])  # x, y, z, w
+    (folder / "mocap.txt").write_text(
+        "".join(
+            f"{t:.17g} {x:.17g} {y:.17g} {z:.17g} 0.0 0.0 {q[2]:.17g} {q[3]:.17g}\n"
+            for t, (x, y, z) in zip(t_m, p)
+        )
+    )
+    (folder / "map.toml").write_text(FLIGHT_MAP)
+    return {"rho": rho, "t_r": t_r, "euler": euler}
+
+
+def test_a_flight_in_other_units_and_orders_imports_exactly(tmp_path):
+    want = _flight_files(tmp_path)
+    notes: list[str] = []
+    log = import_csv(load_csv_map(tmp_path / "map.toml"), notes)
+    assert (log.name, log.input_kind, log.dimension, log.range_errors) == (
+        "csv-flight",
+        "imu_body",
+        3,
+        "nlos",
+    )
+    assert log.accel_noise == 0.02
+    np.testing.assert_allclose(log.ranges[:, 0], want["t_r"], rtol=0, atol=1e-6)
+    np.testing.assert_allclose(log.ranges[:, 2], want["rho"], rtol=1e-12)
+    assert list(log.ranges[:5, 1]) == [3, 7, 11, 12, 3]
+    np.testing.assert_allclose(log.range_std, 0.05)
+    assert log.inputs.shape == (999, 7) and notes == [
+        "[imu] 1 rows left out: a cell empty or not finite"
+    ]
+    np.testing.assert_allclose(log.inputs[0, 1:4], [0.980665, 0.0, 9.80665])
+    np.testing.assert_allclose(log.inputs[0, 4:], math.radians(30.0))
+    for row, angles in zip(log.attitude, want["euler"]):
+        q = _euler_quaternion(*np.radians(angles))
+        np.testing.assert_allclose(row[1:] * np.sign(row[1] * q[0]), q, atol=1e-12)
+    np.testing.assert_allclose(log.truth[:, 0], T0 + 0.01 * np.arange(200), atol=1e-6)
+    np.testing.assert_allclose(log.truth[:, 1:4], _position(0.01 * np.arange(200)), atol=1e-9)
+    np.testing.assert_allclose(log.truth[0, 4:], [math.cos(0.2), 0.0, 0.0, math.sin(0.2)])
+
+
+ROBOT_MAP = """
+anchors = "anchors.csv"
+heading0 = 1.5
+tag_height = 0.3
+[ranges]
+file = "uwb_wide.csv"
+time = "t"
+columns = {3 = "d3", 7 = "d7", 11 = "d11", 12 = "d12"}
+[odometry]
+file = "wheels.csv"
+time = "t"
+left = "vl"
+right = "vr"
+speed_unit = "mm/s"
+track = 0.25
+[truth]
+file = "truth.csv"
+time = "t"
+position = ["x", "y"]
+heading = "yaw_deg"
+angle_unit = "deg"
+"""
+
+
+def _robot_files(folder) -> int:
+    """A robot's wheels in mm/s, ranges one column per anchor (two of four a row), a truth
+    with its heading in degrees; the number of ranges."""
+    _anchors_file(folder)
+    t = 0.1 * np.arange(50)
+    rows = []
+    for k, tk in enumerate(t):
+        cells = ["", "", "", ""]
+        for c in (k % 4, (k + 1) % 4):
+            cells[c] = repr(2.0 + 0.01 * k + c)
+        rows.append(f"{tk:.17g}," + ",".join(cells))
+    (folder / "uwb_wide.csv").write_text("t,d3,d7,d11,d12\n" + "\n".join(rows) + "\n")
+    (folder / "wheels.csv").write_text(
+        "t,vl,vr\n" + "".join(f"{tk:.17g},{200.0 + k},{300.0}\n" for k, tk in enumerate(t))
+    )
+    (folder / "truth.csv").write_text(
+        "t,x,y,yaw_deg\n" + "".join(f"{tk:.17g},{tk},1.0,{90.0 + 10 * tk}\n" for tk in t)
+    )
+    (folder / "map.toml").write_text(ROBOT_MAP)
+    return 2 * t.size
+
+
+def test_a_robot_with_wheels_and_one_range_column_per_anchor_imports_exactly(tmp_path):
+    count = _robot_files(tmp_path)
+    log = import_csv(load_csv_map(tmp_path / "map.toml"))
+    assert (log.input_kind, log.dimension, log.heading0, log.tag_height) == (
+        "odometry",
+        2,
+        1.5,
+        0.3,
+    )
+    np.testing.assert_allclose(log.anchor_heights, [0.2, 2.5, 0.3, 2.4])
+    assert log.ranges.shape == (count, 3)
+    assert list(log.ranges[:4, 1]) == [3, 7, 7, 11]  # by time, then column
+    np.testing.assert_allclose(log.ranges[:4, 2], [2.0, 3.0, 3.01, 4.01])
+    t = 0.1 * np.arange(50)
+    want = odometry_from_wheels(t, 0.2 + 1e-3 * np.arange(50), np.full(50, 0.3), 0.25)
+    np.testing.assert_allclose(log.inputs, want, rtol=1e-12)
+    assert log.truth_columns == ("time", "x", "y", "heading")
+    np.testing.assert_allclose(log.truth[:, 3], np.radians(90.0 + 10 * t), atol=1e-12)
+
+
+def test_the_command_line_writes_a_log_that_reads_back(tmp_path, capsys):
+    count = _robot_files(tmp_path)
+    assert main(["import-csv", str(tmp_path / "map.toml"), "--out", str(tmp_path / "log")]) == 0
+    assert f"{count} ranges" in capsys.readouterr().out
+    log = read_log(tmp_path / "log")
+    assert log.name == "map" and log.ranges.shape == (count, 3)
+    assert (
+        main(
+            [
+                "import-csv",
+                str(tmp_path / "map.toml"),
+                "--out",
+                str(tmp_path / "log"),
+                "--name",
+                "r",
+            ]
+        )
+        == 0
+    )
+    assert read_log(tmp_path / "log").name == "r"
+
+
+@pytest.mark.parametrize(
+    "edit, message",
+    [
+        (
+            ('value = "dist_cm"', 'value = "dist"'),
+            "no column 'dist' ([ranges] value; its columns: stamp_ms, node, dist_cm)",
+        ),
+        (('unit = "cm"', 'unit = "inch"'), "[ranges] unit: expected one of m, cm, mm, got 'inch'"),
+        (('gyro_unit = "deg/s"', 'gyro_rate = "deg/s"'), "[imu] unknown key 'gyro_rate'"),
+        (('w = "qw"', 'W = "qw"'), '[truth] quaternion: expected a table {w = "column"'),
+        (
+            ("time_offset = -0.5", "time_offset = 1000.0"),
+            "not one clock (time_offset = SECONDS in [truth]",
+        ),
+        (("anchors.csv", "nowhere.csv"), "anchors file"),
+        (
+            ('accel_unit = "g"', 'accel_unit = "m/s^2"'),
+            "map.toml: as imported, the replay would refuse it: csv-flight: imu.csv, columns ax,ay,az",
+        ),
+        (('file = "imu.csv"', 'file = "imu2.csv"'), "[imu] file 'imu2.csv': not found"),
+        (
+            ('gyro = ["gx", "gy", "gz"]', 'gyro = ["gx", "gy"]'),
+            "[imu] gyro: expected a list of 3 column names",
+        ),
+        (
+            ("accel_noise = 0.02", "accel_noise = -1"),
+            "key accel_noise: '-1' is not a positive finite number",
+        ),
+        (("accel_noise = 0.02", "heading0 = 1.0"), "heading0 is for wheel odometry"),
+        (
+            ('anchor = "node"', 'columns = {3 = "x"}'),
+            "[ranges] expected more than one of (anchor, value) or (columns)",
+        ),
+    ],
+)
+def test_a_bad_map_is_one_line_with_status_2(tmp_path, capsys, edit, message):
+    _flight_files(tmp_path)
+    text = (tmp_path / "map.toml").read_text()
+    assert edit[0] in text
+    (tmp_path / "map.toml").write_text(text.replace(edit[0], edit[1], 1))
+    assert main(["import-csv", str(tmp_path / "map.toml"), "--out", str(tmp_path / "log")]) == 2
+    err = capsys.readouterr().err
+    assert message in err and err.count("\n") == 1, err
+    assert not (tmp_path / "log").exists()
+
+
+def test_a_cell_that_is_not_a_number_is_named_by_file_line_and_column(tmp_path):
+    _flight_files(tmp_path)
+    text = (tmp_path / "imu.csv").read_text().splitlines()
+    text[7] = "1700000000.012,0.1,0,one,30,30,30"
+    (tmp_path / "imu.csv").write_text("\n".join(text) + "\n")
+    with pytest.raises(QuadobsError, match=r"imu.csv, line 8, column az_g: 'one' is not a number"):
+        import_csv(load_csv_map(tmp_path / "map.toml"))
+
+
+def test_a_map_refuses_what_it_cannot_import(tmp_path):
+    anchors = {"anchors": {"1": [0.0, 0.0], "2": [5.0, 0.0]}}
+    ranges = {"file": "r.csv", "time": "t", "anchor": "a", "value": "r"}
+    with pytest.raises(QuadobsError, match=r"no \[ranges\] or \[tdoa\] table"):
+        parse_csv_map(anchors)
+    with pytest.raises(QuadobsError, match=r"unknown key 'ranegs'"):
+        parse_csv_map({**anchors, "ranegs": ranges})
+    with pytest.raises(QuadobsError, match=r"\[odometry\] needs heading0"):
+        parse_csv_map(
+            {
+                **anchors,
+                "ranges": ranges,
+                "odometry": {"file": "o.csv", "time": "t", "speed": "v", "yaw_rate": "w"},
+            }
+        )
+    with pytest.raises(
+        QuadobsError, match=r"\[odometry\] left, right, track together: track missing"
+    ):
+        parse_csv_map(
+            {
+                **anchors,
+                "heading0": 0.0,
+                "ranges": ranges,
+                "odometry": {"file": "o.csv", "time": "t", "left": "l", "right": "r"},
+            }
+        )
+    with pytest.raises(QuadobsError, match=r"anchors missing"):
+        parse_csv_map({"ranges": ranges})
+    with pytest.raises(QuadobsError, match=r"\[ranges\] time missing"):
+        parse_csv_map({**anchors, "ranges": {k: v for k, v in ranges.items() if k != "time"}})
+    (tmp_path / "r.csv").write_text("t,a,r\n0.0,1,2.0\n0.1,9,2.0\n")
+    with pytest.raises(QuadobsError, match=r"anchor id 9 not among the anchors \(1, 2\)"):
+        import_csv(parse_csv_map({**anchors, "ranges": ranges}, base=tmp_path))
+
+
+def test_the_docs_maps_parse(tmp_path):
+    import re
+    import tomllib
+    from pathlib import Path
+
+    page = (Path(__file__).parents[2] / "docs" / "replaying-your-data.md").read_text()
+    section = page.split("## From CSV files of another layout")[1].split("\n## ")[0]
+    blocks = [tomllib.loads(b) for b in re.findall(r"```toml\n(.*?)```", section, re.S)]
+    assert len(blocks) == 2
+    _anchors_file(tmp_path)
+    robot = parse_csv_map(blocks[0], base=tmp_path)
+    assert set(robot.streams) == {"ranges", "odometry", "truth"}
+    assert (
+        robot.streams["truth"]["time_unit"] == "s" and robot.streams["ranges"]["time_unit"] == "ms"
+    )
+    ranges = {"file": "r.csv", "time": "t", "anchor": "a", "value": "r"}
+    flight = parse_csv_map({**blocks[1], "anchors": "anchors.csv", "ranges": ranges}, base=tmp_path)
+    assert flight.streams["imu"]["accel_unit"] == "g"
