@@ -87,7 +87,11 @@ def test_the_tags_stated_place_is_read_written_and_starts_the_lever_arm(tmp_path
         np.testing.assert_allclose(np.diag(est.state_covariance)[4:6], STATED_LEVER_STD**2)
     with pytest.raises(QuadobsError, match="key tag_x: given without tag_y"):
         RangeLog("r", np.arange(4), anchors, ranges, inputs, 0.0, tag_x=0.1)
-    with pytest.raises(QuadobsError, match="key tag_x: only for a wheel-odometry log"):
+    with pytest.raises(QuadobsError, match="key tag_z: for a log in space"):
+        RangeLog("r", np.arange(4), anchors, ranges, inputs, 0.0, tag_x=0.1, tag_y=0.0, tag_z=0.1)
+    with pytest.raises(
+        QuadobsError, match=r"key tag_x: for a wheel-odometry log or a log in space \(3-D\)"
+    ):
         RangeLog(
             "r", np.arange(4), anchors, ranges, inputs[:, :3], math.nan, input_kind="imu",
             tag_x=0.1, tag_y=0.0,

@@ -506,3 +506,55 @@ def test_a_log_needs_ranges_or_tdoa_and_inputs_only_in_version_1(tmp_path):
         QuadobsError, match=r"ranges.csv: missing \(a log holds ranges.csv, tdoa.csv or both\)"
     ):
         read_log(folder)
+
+
+def test_a_stated_tag_on_the_truths_body_moves_the_truth_to_the_tag(tmp_path):
+    import dataclasses
+
+    from quadobs.testbed.worlds.replay import _truth_rows
+
+    log = flight_log()
+    lever = np.array([-0.012, 0.001, 0.091])
+    stated = dataclasses.replace(log, tag_x=lever[0], tag_y=lever[1], tag_z=lever[2])
+    q = stated.truth[:, 4:8]
+    w, v = q[:, 0], q[:, 1:]  # R(q) from its closed form, row by row
+    R = np.stack(
+        [
+            np.eye(3) * (w[k] ** 2 - v[k] @ v[k]) + 2 * np.outer(v[k], v[k])
+            + 2 * w[k] * np.array([[0, -v[k, 2], v[k, 1]], [v[k, 2], 0, -v[k, 0]], [-v[k, 1], v[k, 0], 0]])
+            for k in range(q.shape[0])
+        ]
+    )  # fmt: skip
+    want = log.truth[:, 1:4] + R @ lever
+    np.testing.assert_allclose(stated.truth_part("position"), want, atol=1e-12)
+    np.testing.assert_array_equal(stated.truth_part("velocity"), log.truth_part("velocity"))
+    T = log.truth[::7, 0]
+    np.testing.assert_allclose(_truth_rows(stated, T, 3), want[::7], atol=1e-12)  # scored so
+    back = read_log(write_log(stated, tmp_path / "log"))
+    np.testing.assert_array_equal(back.truth, log.truth)  # the file keeps the truth's own point
+    np.testing.assert_array_equal(back.truth_lever, lever)
+    assert back.tag_offset is None
+
+
+@pytest.mark.parametrize(
+    "fields, message",
+    [
+        ({"tag_x": 0.1, "tag_y": 0.0}, "key tag_x: given without tag_z"),
+        ({"tag_z": 0.1}, "key tag_z: given without tag_x, tag_y"),
+        ({"tag_x": 0.1, "tag_y": 0.0, "tag_z": math.inf}, "keys tag_x, tag_y, tag_z: not finite"),
+    ],
+)
+def test_a_tag_on_the_truths_body_is_stated_whole(fields, message):
+    import dataclasses
+
+    with pytest.raises(QuadobsError, match=message):
+        dataclasses.replace(flight_log(), **fields)
+
+
+def test_a_tag_on_the_truths_body_needs_the_truths_attitude():
+    import dataclasses
+
+    log = flight_log()
+    point = dataclasses.replace(log, truth=log.truth[:, :4], truth_columns=("time", "x", "y", "z"))
+    with pytest.raises(QuadobsError, match=r"truth.csv holds none \(qw,qx,qy,qz\)"):
+        dataclasses.replace(point, tag_x=0.0, tag_y=0.0, tag_z=0.09)

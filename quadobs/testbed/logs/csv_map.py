@@ -43,7 +43,7 @@ that stream, counted in a note.
 The map's top level holds ``anchors`` (a ``beacons.csv``-style file or a table, as for
 bags), ``time_unit`` and ``delimiter`` (every stream's default), and the keys of
 ``meta.csv``: ``name``, ``description``, ``frame``, ``gravity``, ``heading0`` (wheel
-odometry: required), ``tag_height``, ``tag_x``, ``tag_y``, ``accel_noise``, ``gyro_noise``,
+odometry: required), ``tag_height``, ``tag_x``, ``tag_y``, ``tag_z``, ``accel_noise``, ``gyro_noise``,
 ``accel_bias``, ``gyro_bias``, ``attitude_std`` and ``range_errors``
 (:data:`~quadobs.testbed.logs.schema.META_KEYS`). An example::
 
@@ -127,6 +127,7 @@ _META_KEYS = (
     "tag_height",
     "tag_x",
     "tag_y",
+    "tag_z",
     "accel_noise",
     "gyro_noise",
     "accel_bias",

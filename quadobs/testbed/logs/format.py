@@ -99,6 +99,16 @@ INPUT_FILES = {"odometry": "inputs.csv", "imu": "inputs.csv", "imu_body": "imu.c
 LOG_FILES = ("meta.csv", *FILES)
 
 
+def rotate_by_quaternions(q: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """``R(q_k) d_k`` for each row ``q_k = (w, x, y, z)`` of ``q`` (normalised here), ``(K, 3)``,
+    with ``d`` one vector ``(3,)`` or one per row: ``d + w t + v x t``, ``t = 2 v x d``,
+    ``v = (x, y, z)``."""
+    q = q / np.linalg.norm(q, axis=1, keepdims=True)
+    v = q[:, 1:]
+    t = 2.0 * np.cross(v, d)
+    return d + q[:, :1] * t + np.cross(v, t)
+
+
 def _empty(columns: int) -> np.ndarray:
     return np.empty((0, columns))
 
@@ -165,6 +175,10 @@ class RangeLog:
         A wheel-odometry log: the tag's position (m) in the vehicle's frame, forwards and to
         the left of the point the odometry describes, as measured on the vehicle and stated in
         ``meta.csv`` (NaN: not stated; both or neither).
+    tag_z : float
+        With ``tag_x``, ``tag_y``, in a log in space whose truth holds its attitude: the tag's
+        position (m) in the body frame of the point the truth describes (all three or none;
+        :attr:`truth_lever`).
     """
 
     name: str
@@ -195,6 +209,7 @@ class RangeLog:
     tag_height: float = math.nan
     tag_x: float = math.nan
     tag_y: float = math.nan
+    tag_z: float = math.nan
 
     def __post_init__(self) -> None:
         fix = lambda key, value: object.__setattr__(self, key, value)  # noqa: E731
@@ -247,22 +262,48 @@ class RangeLog:
             )
         if not (math.isnan(self.tag_height) or math.isfinite(self.tag_height)):
             raise QuadobsError(f"{self.name}: meta.csv, key tag_height: not a finite number")
-        stated = [k for k in ("tag_x", "tag_y") if not math.isnan(getattr(self, k))]
-        if stated and self.input_kind != "odometry":
+        self._check_tag_place()
+
+    def _check_tag_place(self) -> None:
+        """``tag_x``, ``tag_y`` (a wheel-odometry log), or ``tag_x``, ``tag_y``, ``tag_z`` (a log
+        in space whose truth holds its attitude): all of them or none, finite."""
+        keys = ("tag_x", "tag_y") if self.input_kind == "odometry" else ("tag_x", "tag_y", "tag_z")
+        stated = [k for k in ("tag_x", "tag_y", "tag_z") if not math.isnan(getattr(self, k))]
+        if not stated:
+            return
+        at = f"{self.name}: meta.csv, key {stated[0]}"
+        if self.input_kind == "odometry" and "tag_z" in stated:
             raise QuadobsError(
-                f"{self.name}: meta.csv, key {stated[0]}: only for a wheel-odometry log (the "
-                "tag's place on a vehicle whose odometry describes another point)"
+                f"{self.name}: meta.csv, key tag_z: for a log in space (a wheeled robot's tag "
+                "height is tag_height)"
             )
-        if len(stated) == 1:
-            other = "tag_y" if stated[0] == "tag_x" else "tag_x"
-            raise QuadobsError(f"{self.name}: meta.csv, key {stated[0]}: given without {other}")
+        if self.input_kind != "odometry" and self.dimension != 3:
+            raise QuadobsError(f"{at}: for a wheel-odometry log or a log in space (3-D)")
+        missing = [k for k in keys if k not in stated]
+        if missing:
+            raise QuadobsError(f"{at}: given without {', '.join(missing)}")
         if any(not math.isfinite(getattr(self, k)) for k in stated):
-            raise QuadobsError(f"{self.name}: meta.csv, keys tag_x, tag_y: not finite numbers")
+            raise QuadobsError(f"{self.name}: meta.csv, keys {', '.join(keys)}: not finite numbers")
+        if self.input_kind != "odometry" and self.truth_part("attitude") is None:
+            raise QuadobsError(
+                f"{at}: the tag's place on the body the truth describes, which moves the truth "
+                "to the tag by the truth's attitude: truth.csv holds none (qw,qx,qy,qz)"
+            )
+
+    @property
+    def truth_lever(self) -> np.ndarray | None:
+        """A log in space: the tag's stated place in the body frame of the point the truth
+        describes, ``(tag_x, tag_y, tag_z)`` (m), or None. :meth:`truth_part` moves the truth's
+        position to the tag by it."""
+        if self.input_kind == "odometry" or math.isnan(self.tag_z):
+            return None
+        return np.array([self.tag_x, self.tag_y, self.tag_z], dtype=float)
 
     @property
     def tag_offset(self) -> tuple[float, float] | None:
-        """The tag's stated place on the vehicle ``(tag_x, tag_y)`` (m), or None."""
-        if math.isnan(self.tag_x) or math.isnan(self.tag_y):
+        """A wheel-odometry log: the tag's stated place on the vehicle ``(tag_x, tag_y)`` (m),
+        or None."""
+        if self.input_kind != "odometry" or math.isnan(self.tag_x) or math.isnan(self.tag_y):
             return None
         return float(self.tag_x), float(self.tag_y)
 
@@ -466,7 +507,12 @@ class RangeLog:
         return start_prior(self).at_rest
 
     def truth_part(self, what: str) -> np.ndarray | None:
-        """The truth's ``"position"``, ``"velocity"`` or ``"attitude"`` columns, or None (no truth, or no such columns)."""
+        """The truth's ``"position"``, ``"velocity"`` or ``"attitude"`` columns, or None (no
+        truth, or no such columns).
+
+        Where a log in space states the tag's place on the body (:attr:`truth_lever`, ``d``),
+        the position is the tag's, ``p + R(q) d``, with ``R(q)`` the truth's attitude: the point
+        the ranges measure and the estimators estimate."""
         names = {
             "position": ("x", "y", "z")[: self.dimension],
             "velocity": ("vx", "vy", "vz")[: self.dimension],
@@ -474,7 +520,13 @@ class RangeLog:
         }[what]
         if self.truth is None or not set(names) <= set(self.truth_columns):
             return None
-        return self.truth[:, [self.truth_columns.index(c) for c in names]]
+        part = self.truth[:, [self.truth_columns.index(c) for c in names]]
+        lever = self.truth_lever if what == "position" else None
+        if lever is not None:
+            q = self.truth_part("attitude")
+            assert q is not None  # checked on construction
+            part = part + rotate_by_quaternions(q, lever)
+        return part
 
     def file_label(self, fname: str) -> str:
         """How a message names the log's file ``fname``: its path where the log was read from a
@@ -663,6 +715,7 @@ def read_log(folder: str | Path) -> RangeLog:
             tag_height=meta["tag_height"],
             tag_x=meta["tag_x"],
             tag_y=meta["tag_y"],
+            tag_z=meta["tag_z"],
         )
     except QuadobsError as exc:  # name the folder's file, not the log's name
         raise QuadobsError(_in_folder(str(exc), name, folder)) from None
@@ -730,6 +783,8 @@ def _log_texts(log: RangeLog) -> dict[str, str]:
         meta.append(["tag_height", repr(float(log.tag_height))])
     if log.tag_offset is not None:
         meta += [["tag_x", repr(log.tag_offset[0])], ["tag_y", repr(log.tag_offset[1])]]
+    if log.truth_lever is not None:
+        meta += [[k, repr(float(v))] for k, v in zip(("tag_x", "tag_y", "tag_z"), log.truth_lever)]
     if dim == 3:
         meta += [["frame", log.frame], ["gravity", repr(float(log.gravity))]]
     for key in ("accel_noise", "gyro_noise", *IMU_FIGURES):

@@ -463,7 +463,9 @@ def truth_lag_note(log) -> str | None:
     if truth is None or truth.shape[0] < 2 or log.ranges.shape[0] < 20:
         return None
     dim = log.dimension
-    t_truth, p_truth = truth[:, 0], truth[:, 1 : 1 + dim]
+    t_truth, p_truth = truth[:, 0], log.truth_part("position")
+    if p_truth is None:
+        return None
     rows = log.ranges
     if rows.shape[0] > TRUTH_LAG_RANGES:  # a sample, not a stride (a round robin aliases)
         keep = np.random.default_rng(0).choice(rows.shape[0], TRUTH_LAG_RANGES, replace=False)
@@ -509,8 +511,10 @@ def _truth_at_ranges(log) -> tuple | None:
     inside = (t >= truth[0, 0]) & (t <= truth[-1, 0])
     if np.count_nonzero(inside) < 20:
         return None
-    dim = log.dimension
-    p = np.column_stack([np.interp(t[inside], truth[:, 0], truth[:, 1 + i]) for i in range(dim)])
+    position = log.truth_part("position")
+    if position is None:
+        return None
+    p = np.column_stack([np.interp(t[inside], truth[:, 0], c) for c in position.T])
     return p, log.beacon_index(log.ranges[inside, 1]), log.ranges[inside, 2]
 
 

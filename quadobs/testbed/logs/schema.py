@@ -247,14 +247,23 @@ META_KEYS = {
         MetaKey(
             "tag_x",
             "odometry logs: the tag's position (m) forwards of the point the odometry "
-            "describes (its axle's centre), measured on the vehicle (absent: unknown)",
+            "describes (its axle's centre), measured on the vehicle (absent: unknown); logs in "
+            "space: the tag's x in the body frame of the point the truth describes",
             math.nan,
             2,
         ),
         MetaKey(
             "tag_y",
             "odometry logs: the tag's position (m) to the left of that point, measured on the "
-            "vehicle (absent: unknown)",
+            "vehicle (absent: unknown); logs in space: the tag's y in that body frame",
+            math.nan,
+            2,
+        ),
+        MetaKey(
+            "tag_z",
+            "logs in space whose truth holds its attitude: the tag's z (m) in the body frame "
+            "of the point the truth describes (with tag_x, tag_y); the truth is moved to the "
+            "tag (absent: the truth is the tag's)",
             math.nan,
             2,
         ),
@@ -362,7 +371,7 @@ def parse_meta(where: str, rows: list[list[str]]) -> dict:
             meta[key] = int(text)
         elif key in ("name", "description"):
             meta[key] = _printable(at, text)
-        elif key in ("heading0", "tag_height", "tag_x", "tag_y"):
+        elif key in ("heading0", "tag_height", "tag_x", "tag_y", "tag_z"):
             meta[key] = _float_value(at, text)
         elif key in ("gravity", "accel_noise", "gyro_noise"):
             meta[key] = _float_value(at, text, positive=True)
