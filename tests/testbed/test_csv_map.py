@@ -352,3 +352,42 @@ def test_the_docs_maps_parse(tmp_path):
     ranges = {"file": "r.csv", "time": "t", "anchor": "a", "value": "r"}
     flight = parse_csv_map({**blocks[1], "anchors": "anchors.csv", "ranges": ranges}, base=tmp_path)
     assert flight.streams["imu"]["accel_unit"] == "g"
+
+
+def test_one_file_of_every_sensor_each_row_filled_for_one(tmp_path):
+    """A dataset that writes every sensor into one file, each row filling one sensor's
+    columns (its own time column among them): each stream reads its rows, the others' skipped
+    and said."""
+    _anchors_file(tmp_path)
+    header = "t_tdoa,idA,idB,tdoa_meas,t_imu,acc_x,acc_y,acc_z,gyro_x,gyro_y,gyro_z,t_pose,x,y,z\n"
+    rows = []
+    for k in range(300):
+        t = 0.01 * k
+        if k % 3 == 0:
+            rows.append(f"{t},3,{(7, 11, 12)[k % 9 // 3]},{0.01 * k},,,,,,,,,,,")
+        elif k % 3 == 1:
+            rows.append(f",,,,{t},0.0,0.0,1.0,0.0,0.0,{k},,,,")
+        else:
+            rows.append(f",,,,,,,,,,,{t},{k},2.0,1.0")
+    (tmp_path / "all.csv").write_text(header + "\n".join(rows) + "\n")
+    (tmp_path / "map.toml").write_text(
+        'anchors = "anchors.csv"\n'
+        '[tdoa]\nfile = "all.csv"\ntime = "t_tdoa"\nanchor_i = "idA"\nanchor_j = "idB"\n'
+        'value = "tdoa_meas"\n'
+        '[imu]\nfile = "all.csv"\ntime = "t_imu"\naccel = ["acc_x", "acc_y", "acc_z"]\n'
+        'accel_unit = "g"\ngyro = ["gyro_x", "gyro_y", "gyro_z"]\ngyro_unit = "deg/s"\n'
+        '[truth]\nfile = "all.csv"\ntime = "t_pose"\nposition = ["x", "y", "z"]\nunit = "cm"\n'
+    )
+    notes: list[str] = []
+    log = import_csv(load_csv_map(tmp_path / "map.toml"), notes)
+    assert (
+        log.tdoa.shape == (100, 4) and log.inputs.shape == (100, 7) and log.truth.shape == (100, 4)
+    )
+    assert list(log.tdoa[:3, 2]) == [7, 11, 12] and np.all(log.tdoa[:, 1] == 3)
+    np.testing.assert_allclose(log.inputs[:2, 6], np.radians([1.0, 4.0]))
+    np.testing.assert_allclose(log.truth[:2, 1], [0.02, 0.05])
+    assert notes == [
+        f"[{s}] 200 rows with none of its cells filled skipped (other streams' rows, where one "
+        "file holds several)"
+        for s in ("imu", "tdoa", "truth")
+    ]

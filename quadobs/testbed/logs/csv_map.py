@@ -38,7 +38,9 @@ A file is comma-separated with a header row unless its table says otherwise:
 and ``names`` (the columns of a file without a header). Several streams may read one file.
 Files are found beside the map. Each is read by ``pyarrow.csv``; a cell that is not a
 number is named by file, line and column. An empty or non-finite cell leaves its row out of
-that stream, counted in a note.
+that stream, counted in a note; a row with none of the stream's cells filled (another
+sensor's row, where one file holds every sensor with a time column each) is skipped and
+counted apart.
 
 The map's top level holds ``anchors`` (a ``beacons.csv``-style file or a table, as for
 bags), ``time_unit`` and ``delimiter`` (every stream's default), and the keys of
@@ -344,6 +346,7 @@ class _Columns:
     def __init__(self, csv_map: CsvMap) -> None:
         self.map = csv_map
         self.left_out: dict[str, int] = {}
+        self.blank: dict[str, int] = {}
 
     @staticmethod
     def _header(opts: dict, path: Path, raw: bytes) -> tuple[list, int]:
@@ -387,8 +390,11 @@ class _Columns:
         """The rows whose every value is finite, sorted by time (stably), the rest counted;
         with ``std`` (NaN: not stated) as a last column."""
         ok = np.isfinite(rows).all(axis=1)
-        if not ok.all():
-            self.left_out[stream] = self.left_out.get(stream, 0) + int((~ok).sum())
+        blank = np.isnan(rows).all(axis=1)  # another stream's row of a shared file
+        if blank.any():
+            self.blank[stream] = self.blank.get(stream, 0) + int(blank.sum())
+        if not (ok | blank).all():
+            self.left_out[stream] = self.left_out.get(stream, 0) + int((~(ok | blank)).sum())
         rows = (rows if std is None else np.column_stack([rows, std]))[ok]
         return rows[np.argsort(rows[:, 0], kind="stable")]
 
@@ -681,6 +687,11 @@ def import_csv(csv_map: CsvMap, notes: list | None = None) -> RangeLog:
         notes += [
             f"[{s}] {n} rows left out: a cell empty or not finite"
             for s, n in sorted(cols.left_out.items())
+        ]
+        notes += [
+            f"[{s}] {n} rows with none of its cells filled skipped (other streams' rows, where "
+            "one file holds several)"
+            for s, n in sorted(cols.blank.items())
         ]
     truth, truth_columns = _truth_table(truth, dims.pop(), kind == "odometry")
     ids = np.array(sorted(csv_map.anchors), dtype=np.int64)
