@@ -574,3 +574,25 @@ def test_inputs_or_a_truth_whose_every_reading_is_marked_as_none_are_refused_say
         QuadobsError, match=r"\[truth\] /point: no pose read \(20 left out: not finite\)"
     ):
         import_bag(bag, _map(ranges=ranges, truth={"topic": "/point"}))
+
+
+def test_a_topic_map_states_meta_keys_as_meta_csv_would(tmp_path):
+    _files(tmp_path)
+    write_bag(tmp_path / "flight.bag", ros1=True)
+    anchors = {str(k): list(v) for k, v in ANCHORS.items()}
+    stated = {"tag_x": -0.012, "tag_y": 0.001, "tag_z": 0.091, "range_errors": "nlos"}
+    m = parse_topic_map(
+        {
+            "anchors": anchors,
+            **stated,
+            "ranges": {"topic": "/uwb/range"},
+            "truth": {"topic": "/vicon/pose"},
+        }
+    )
+    log = import_bag(tmp_path / "flight.bag", m)
+    np.testing.assert_array_equal(log.truth_lever, [-0.012, 0.001, 0.091])
+    assert log.range_errors == "nlos"
+    with pytest.raises(
+        QuadobsError, match=r"key accel_noise: '-1' is not a positive finite number"
+    ):
+        parse_topic_map({"anchors": anchors, "accel_noise": -1})

@@ -81,6 +81,7 @@ import numpy as np
 
 from quadobs.errors import QuadobsError
 from quadobs.testbed.logs.format import RangeLog
+from quadobs.testbed.logs.importing import STATED_META_KEYS, stated_meta
 
 __all__ = ["STREAMS", "CsvMap", "import_csv", "load_csv_map", "parse_csv_map"]
 
@@ -120,23 +121,7 @@ UNITS = {
 }
 _TOP_KEYS = ("anchors", "time_unit", "delimiter")
 #: The ``meta.csv`` keys a map may set at its top level.
-_META_KEYS = (
-    "name",
-    "description",
-    "frame",
-    "gravity",
-    "heading0",
-    "tag_height",
-    "tag_x",
-    "tag_y",
-    "tag_z",
-    "accel_noise",
-    "gyro_noise",
-    "accel_bias",
-    "gyro_bias",
-    "attitude_std",
-    "range_errors",
-)
+_META_KEYS = ("name", "description", "frame", "gravity", "heading0", *STATED_META_KEYS)
 
 
 @dataclass(frozen=True)
@@ -285,8 +270,7 @@ def _stream(stream: str, value, top: dict, where: str) -> dict:
 
 def parse_csv_map(data: dict, where: str = "column map", base: Path | None = None) -> CsvMap:
     """A :class:`CsvMap` from its TOML document (module docstring); unknown keys refused."""
-    from quadobs.testbed.logs.rosbag import _anchors
-    from quadobs.testbed.logs.schema import parse_meta
+    from quadobs.testbed.logs.importing import read_anchors
 
     top = {k: v for k, v in data.items() if k not in STREAMS}
     for key in top:
@@ -303,14 +287,7 @@ def parse_csv_map(data: dict, where: str = "column map", base: Path | None = Non
         raise QuadobsError(f"{where}: [imu] and [odometry]: a log holds one kind of inputs")
     if "anchors" not in top:
         raise QuadobsError(f'{where}: anchors missing (anchors = "anchors.csv", or a table)')
-    meta = {}
-    for key, value in top.items():
-        if key in _META_KEYS:
-            text = str(value).lower() if isinstance(value, bool) else str(value)
-            try:
-                meta[key] = parse_meta(where, [["version", "2"], [key, text]])[key]
-            except QuadobsError as exc:  # one key at a time: no row to name in a TOML file
-                raise QuadobsError(str(exc).replace(", row 3", "")) from None
+    meta = stated_meta(top, _META_KEYS, where)
     if "odometry" in streams and "heading0" not in meta:
         raise QuadobsError(
             f"{where}: [odometry] needs heading0, the heading (rad) at its first row in the "
@@ -318,7 +295,7 @@ def parse_csv_map(data: dict, where: str = "column map", base: Path | None = Non
         )
     if "heading0" in meta and "odometry" not in streams:
         raise QuadobsError(f"{where}: heading0 is for wheel odometry, and no [odometry] is mapped")
-    anchors = _anchors(top["anchors"], where, base)
+    anchors = read_anchors(top["anchors"], where, base)
     return CsvMap(streams, anchors, meta, base or Path("."), where)
 
 
@@ -450,7 +427,7 @@ def _arrays(table, numeric: dict, text: dict) -> dict:
 def _anchor_ids(cells: list, pattern: str, where: str) -> np.ndarray:
     """Anchor ids from a text column: an integer, or the number in a name (as for bags); NaN
     for an empty cell. Each distinct cell is read once."""
-    from quadobs.testbed.logs.rosbag import _anchor_id
+    from quadobs.testbed.logs.importing import anchor_id
 
     ids: dict = {None: math.nan, "": math.nan}
     for cell in set(cells) - set(ids):
@@ -458,7 +435,7 @@ def _anchor_ids(cells: list, pattern: str, where: str) -> np.ndarray:
         try:
             number = float(text)
         except ValueError:
-            ids[cell] = float(_anchor_id(text, pattern, where))
+            ids[cell] = float(anchor_id(text, pattern, where))
             continue
         if not (math.isfinite(number) and number == round(number)):
             raise QuadobsError(f"{where}: anchor id {text!r} is not an integer")
@@ -665,7 +642,7 @@ def import_csv(csv_map: CsvMap, notes: list | None = None) -> RangeLog:
         column), streams on different clocks, an anchor id not among the anchors, nothing
         left to replay, or a value the format refuses: one line.
     """
-    from quadobs.testbed.logs.rosbag import _check_anchor_ids, _check_clocks, _truth_table
+    from quadobs.testbed.logs.importing import check_anchor_ids, check_clocks, truth_table
 
     dims = {len(p) for p in csv_map.anchors.values()}
     if len(dims) != 1:
@@ -681,8 +658,8 @@ def import_csv(csv_map: CsvMap, notes: list | None = None) -> RangeLog:
     truth = _truth(cols) if "truth" in streams else None
     label = Path(csv_map.where)
     tables = {"ranges": ranges, "tdoa": tdoa, kind: inputs, "truth": truth, "attitude": attitude}
-    _check_clocks(label, tables, "time_offset = SECONDS in [{}] moves its times")
-    _check_anchor_ids(label, csv_map.anchors, ranges, tdoa, notes)
+    check_clocks(label, tables, "time_offset = SECONDS in [{}] moves its times")
+    check_anchor_ids(label, csv_map.anchors, ranges, tdoa, notes)
     if notes is not None:
         notes += [
             f"[{s}] {n} rows left out: a cell empty or not finite"
@@ -693,7 +670,7 @@ def import_csv(csv_map: CsvMap, notes: list | None = None) -> RangeLog:
             "one file holds several)"
             for s, n in sorted(cols.blank.items())
         ]
-    truth, truth_columns = _truth_table(truth, dims.pop(), kind == "odometry")
+    truth, truth_columns = truth_table(truth, dims.pop(), kind == "odometry")
     ids = np.array(sorted(csv_map.anchors), dtype=np.int64)
     meta = dict(csv_map.meta)
     return RangeLog(

@@ -38,6 +38,11 @@ the one number it holds (``"anchor_12"``: 12), or the first group of ``anchor_pa
 regular expression (``'anchor_(\\d+)'`` for ``"anchor_3/antenna_1"``, which holds two and is
 refused without it; a group ``0x...`` is read as hexadecimal).
 
+Beside ``name``, ``description``, ``frame``, ``gravity`` and ``heading0``, the map's top level
+may state ``meta.csv``'s other keys (:data:`~quadobs.testbed.logs.importing.STATED_META_KEYS`:
+the tag's place, an IMU's figures, the ranges' error model), checked as ``meta.csv`` checks
+them.
+
 Readings a message marks as none are left out and counted (the import's notes), not
 refused: a range, TDOA, IMU or truth value that is not finite (``sensor_msgs/Range`` gives
 ``+inf`` or ``-inf`` for nothing in reach, NaN for a failed reading), and a
@@ -80,6 +85,15 @@ import numpy as np
 
 from quadobs.errors import QuadobsError
 from quadobs.testbed.logs.format import RangeLog
+from quadobs.testbed.logs.importing import (
+    STATED_META_KEYS,
+    anchor_id,
+    check_anchor_ids,
+    check_clocks,
+    read_anchors,
+    stated_meta,
+    truth_table,
+)
 
 __all__ = ["STREAMS", "TopicMap", "import_bag", "load_topic_map", "parse_topic_map"]
 
@@ -107,7 +121,16 @@ STREAMS: dict[str, dict[str, Any]] = {
         "time": None,
     },
 }
-_TOP_KEYS = ("name", "description", "frame", "gravity", "time", "anchors", "heading0")
+_TOP_KEYS = (
+    "name",
+    "description",
+    "frame",
+    "gravity",
+    "time",
+    "anchors",
+    "heading0",
+    *STATED_META_KEYS,
+)
 _ODOMETRY_TYPES = ("nav_msgs/msg/Odometry", "geometry_msgs/msg/TwistStamped")
 _TRUTH_TYPES = (
     "geometry_msgs/msg/PoseStamped",
@@ -137,6 +160,10 @@ class TopicMap:
         The times of the streams whose table sets none.
     heading0 : float
         With wheel odometry: the heading (rad) at its first row, in the anchors' frame.
+    meta : dict
+        The other ``meta.csv`` keys the map states
+        (:data:`~quadobs.testbed.logs.importing.STATED_META_KEYS`: the tag's place, an IMU's
+        figures, the ranges' error model).
     """
 
     streams: dict = field(default_factory=dict)
@@ -147,34 +174,7 @@ class TopicMap:
     gravity: float = 9.80665
     time: str = "header"
     heading0: float = math.nan
-
-
-def _anchors(value, where: str, base: Path | None) -> dict:
-    """Anchors from a CSV file name (``beacons.csv``'s columns) or a table ``id = [x, y(, z)]``."""
-    from quadobs.testbed.logs.files import read_limited, read_table
-    from quadobs.testbed.logs.schema import FILES
-
-    if isinstance(value, str):
-        path = Path(value) if base is None or Path(value).is_absolute() else base / value
-        raw = read_limited(path)
-        if raw is None:
-            raise QuadobsError(f"{where}: anchors file {str(path)!r} not found")
-        _, values = read_table(path, raw, FILES["beacons.csv"], 2)
-        return {int(row[0]): tuple(float(v) for v in row[1:]) for row in values}
-    if not isinstance(value, dict) or not value:
-        raise QuadobsError(f"{where}: anchors: expected a CSV file name or a table id = [x, y, z]")
-    out = {}
-    for key, pos in value.items():
-        if not re.fullmatch(r"-?\d{1,15}", str(key)):
-            raise QuadobsError(f"{where}: anchors.{key}: the id must be an integer")
-        if (
-            not isinstance(pos, list)
-            or len(pos) not in (2, 3)
-            or not all(isinstance(v, int | float) and math.isfinite(v) for v in pos)
-        ):
-            raise QuadobsError(f"{where}: anchors.{key}: expected [x, y] or [x, y, z] in metres")
-        out[int(key)] = tuple(float(v) for v in pos)
-    return out
+    meta: dict = field(default_factory=dict)
 
 
 def _topics(value, where: str) -> tuple[str, ...]:
@@ -250,7 +250,7 @@ def parse_topic_map(data: dict, where: str = "topic map", base: Path | None = No
             f"a body IMU's axes, FLU or FRD, need no setting), got {top['frame']!r}"
         )
     if "anchors" in top:
-        top["anchors"] = _anchors(top["anchors"], where, base)
+        top["anchors"] = read_anchors(top["anchors"], where, base)
     for key in ("name", "description"):
         if key in top and not isinstance(top[key], str):
             raise QuadobsError(f"{where}: {key}: expected text")
@@ -267,7 +267,9 @@ def parse_topic_map(data: dict, where: str = "topic map", base: Path | None = No
         and math.isfinite(top["heading0"])
     ):
         raise QuadobsError(f"{where}: heading0: expected a number (rad)")
-    return TopicMap(streams=streams, **top)
+    meta = stated_meta(top, STATED_META_KEYS, where)
+    top = {k: v for k, v in top.items() if k not in STATED_META_KEYS}
+    return TopicMap(streams=streams, meta=meta, **top)
 
 
 def load_topic_map(path: str | Path) -> TopicMap:
@@ -305,7 +307,7 @@ def with_options(topic_map: TopicMap, topics=(), anchors=None, name=None) -> Top
         streams[stream] = {**STREAMS[stream], **streams.get(stream, {}), "topic": tuple(names)}
     changes: dict = {"streams": streams}
     if anchors is not None:
-        changes["anchors"] = _anchors(str(anchors), "--anchors", None)
+        changes["anchors"] = read_anchors(str(anchors), "--anchors", None)
     if name is not None:
         changes["name"] = name
     return replace(topic_map, **changes)
@@ -319,35 +321,6 @@ def _field(msg, path: str, where: str):
             raise QuadobsError(f"{where}: the message has no field {path!r}")
         obj = getattr(obj, part)
     return obj
-
-
-def _anchor_id(value, pattern: str, where: str) -> int:
-    """An anchor id (module docstring): an integer field, or the number in a text field."""
-    if isinstance(value, str):
-        if pattern:
-            match = re.search(pattern, value)
-            if match is None or not match.group(1):
-                raise QuadobsError(f"{where}: anchor_pattern {pattern!r} finds no id in {value!r}")
-            text = match.group(1)
-            try:
-                return int(text, 16) if text.lower().startswith("0x") else int(text)
-            except ValueError:
-                raise QuadobsError(
-                    f"{where}: anchor_pattern {pattern!r} gives {text!r} of {value!r}, not an integer"
-                ) from None
-        numbers = re.findall(r"\d+", value)
-        if not numbers:
-            raise QuadobsError(f"{where}: no anchor id in {value!r}")
-        if len(numbers) > 1:
-            raise QuadobsError(
-                f"{where}: {value!r} holds {len(numbers)} numbers: say which is the anchor's "
-                "with anchor_pattern, e.g. 'anchor_(\\d+)' (a hexadecimal id: '(0x[0-9a-fA-F]+)')"
-            )
-        return int(numbers[0])
-    number = float(value)
-    if not (math.isfinite(number) and number == round(number)):
-        raise QuadobsError(f"{where}: anchor id {value!r} is not an integer")
-    return int(number)
 
 
 def _quaternion(q, where: str) -> list[float] | None:
@@ -481,7 +454,7 @@ def _range_rows(msg, opts: dict, read: _Reading, where: str, topic: str) -> None
         read.leave_out("ranges", "outside min_range..max_range")
         return
     text = topic if opts["anchor"] == "topic" else _field(msg, opts["anchor"], where)
-    anchor = _anchor_id(text, opts["anchor_pattern"], where)
+    anchor = anchor_id(text, opts["anchor_pattern"], where)
     std = _std(msg, opts, read, "ranges", where)
     read.rows["ranges"].append([read.time_of(msg, where), anchor, value, std])
 
@@ -492,7 +465,7 @@ def _tdoa_rows(msg, opts: dict, read: _Reading, where: str, topic: str) -> None:
         read.leave_out("tdoa", "not finite (no reading)")
         return
     i, j = (
-        _anchor_id(_field(msg, opts[k], where), opts["anchor_pattern"], where)
+        anchor_id(_field(msg, opts[k], where), opts["anchor_pattern"], where)
         for k in ("anchor_i", "anchor_j")
     )
     std = _std(msg, opts, read, "tdoa", where)
@@ -582,44 +555,6 @@ def _table(rows: list, width: int) -> np.ndarray:
     return a[np.argsort(a[:, 0], kind="stable")]
 
 
-def _check_clocks(
-    bag: Path, tables: dict, fix: str = 'time = "receive" in [{}] takes the bag\'s'
-) -> None:
-    """Every stream's times overlap the ranges' and TDOA's: one clock (module docstring)."""
-    measured = [t[:, 0] for k, t in tables.items() if k in ("ranges", "tdoa") and t.shape[0]]
-    if not measured:
-        return
-    lo = min(float(t.min()) for t in measured)
-    hi = max(float(t.max()) for t in measured)
-    for stream, table in tables.items():
-        if stream in ("ranges", "tdoa") or table is None or not table.shape[0]:
-            continue
-        a, b = float(table[0, 0]), float(table[-1, 0])
-        if b < lo or a > hi:
-            raise QuadobsError(
-                f"{bag}: [{stream}] stamps {a:.6g} to {b:.6g} s, the ranges' {lo:.6g} to "
-                f"{hi:.6g} s: not one clock ({fix.format(stream)})"
-            )
-
-
-def _check_anchor_ids(bag: Path, anchors: dict, ranges, tdoa, notes) -> None:
-    """Every id the measurements name among the anchors; anchors that none names noted."""
-    named = set(ranges[:, 1].astype(np.int64)) | set(tdoa[:, 1:3].astype(np.int64).ravel())
-    unknown = sorted(named - set(anchors))
-    if unknown:
-        raise QuadobsError(
-            f"{bag}: anchor id {', '.join(map(str, unknown[:5]))} not among the anchors "
-            f"({', '.join(map(str, sorted(anchors)))}): check the anchors, or the "
-            "field the id is read from (anchor, anchor_pattern)"
-        )
-    silent = sorted(set(anchors) - named)
-    if silent and notes is not None:
-        notes.append(
-            f"anchors that no range or TDOA names: {', '.join(map(str, silent))} "
-            "(check the field the id is read from)"
-        )
-
-
 def _notes_of(read: _Reading, topic_map: TopicMap, notes) -> None:
     if notes is None:
         return
@@ -668,10 +603,10 @@ def import_bag(bag: str | Path, topic_map: TopicMap, notes: list | None = None) 
     truth = _table(rows["truth"], 8) if "truth" in topic_map.streams else None
     attitude = _table(rows["attitude"], 5) if rows["attitude"] else None
     _check_rows(bag, topic_map, read, ranges.shape[0] + tdoa.shape[0], truth)
-    _check_clocks(bag, {"ranges": ranges, "tdoa": tdoa, kind: inputs, "truth": truth})
-    _check_anchor_ids(bag, topic_map.anchors, ranges, tdoa, notes)
+    check_clocks(bag, {"ranges": ranges, "tdoa": tdoa, kind: inputs, "truth": truth})
+    check_anchor_ids(bag, topic_map.anchors, ranges, tdoa, notes)
     _notes_of(read, topic_map, notes)
-    truth, truth_columns = _truth_table(truth, dim, kind == "odometry")
+    truth, truth_columns = truth_table(truth, dim, kind == "odometry")
     return RangeLog(
         topic_map.name or bag.stem,
         ids,
@@ -689,6 +624,7 @@ def import_bag(bag: str | Path, topic_map: TopicMap, notes: list | None = None) 
         frame=topic_map.frame,
         gravity=topic_map.gravity,
         description=topic_map.description,
+        **topic_map.meta,
     )
 
 
@@ -760,22 +696,3 @@ def _check_map(bag: Path, topic_map: TopicMap) -> int:
     if len(dims) != 1:
         raise QuadobsError("anchors: all with z or all without")
     return dims.pop()
-
-
-def _truth_table(truth, dim: int, planar_vehicle: bool) -> tuple:
-    """The truth's rows and columns: position and attitude (a point: position only); for a
-    wheeled vehicle the position in the plane and the heading, the attitude's yaw."""
-    columns: tuple = ("time", *"xyz"[:dim], "qw", "qx", "qy", "qz")
-    if truth is None:
-        return None, columns
-    if planar_vehicle:
-        w, x, y, z = truth[:, 4:8].T
-        heading = np.arctan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
-        if np.isnan(heading).any():  # points: no attitude
-            return truth[:, :3], ("time", "x", "y")
-        return np.column_stack([truth[:, :3], heading]), ("time", "x", "y", "heading")
-    if np.isnan(truth[:, 4:]).any():  # points: no attitude
-        truth, columns = truth[:, :4], columns[: 1 + dim]
-    if dim == 2:
-        truth = np.delete(truth, 3, axis=1)  # a planar log: no z
-    return truth, columns
