@@ -73,7 +73,6 @@ from __future__ import annotations
 import csv
 import io
 import math
-import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -301,19 +300,10 @@ def parse_csv_map(data: dict, where: str = "column map", base: Path | None = Non
 
 def load_csv_map(path: str | Path) -> CsvMap:
     """:func:`parse_csv_map` of a TOML file (a regular file of at most 1 MiB)."""
-    from quadobs.testbed.logs.files import read_limited
+    from quadobs.testbed.logs.importing import read_map
 
     path = Path(path)
-    raw = read_limited(path)
-    if raw is None:
-        raise QuadobsError(f"{str(path)!r}: no such column map")
-    if len(raw) > 1 << 20:
-        raise QuadobsError(f"{str(path)!r}: larger than 1 MiB")
-    try:
-        data = tomllib.loads(raw.decode("utf-8"))
-    except (UnicodeDecodeError, tomllib.TOMLDecodeError, RecursionError) as exc:
-        raise QuadobsError(f"{str(path)!r}: not a TOML file ({exc})") from None
-    return parse_csv_map(data, str(path), path.parent)
+    return parse_csv_map(read_map(path, repr(str(path))), str(path), path.parent)
 
 
 class _Columns:

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import math
 import re
+import tomllib
 from pathlib import Path
 
 import numpy as np
@@ -18,6 +19,7 @@ __all__ = [
     "check_anchor_ids",
     "check_clocks",
     "read_anchors",
+    "read_map",
     "stated_meta",
     "truth_table",
 ]
@@ -166,3 +168,19 @@ def truth_table(truth, dim: int, planar_vehicle: bool) -> tuple:
     if dim == 2:
         truth = np.delete(truth, 3, axis=1)  # a planar log: no z
     return truth, columns
+
+
+def read_map(path: Path, label: str) -> dict:
+    """The TOML document of an import's map file (a regular file of at most 1 MiB); errors
+    name it as ``label``."""
+    from quadobs.testbed.logs.files import read_limited
+
+    raw = read_limited(path)
+    if raw is None:
+        raise QuadobsError(f"{label}: not found")
+    if len(raw) > 1 << 20:
+        raise QuadobsError(f"{label}: larger than 1 MiB")
+    try:
+        return tomllib.loads(raw.decode("utf-8"))
+    except (UnicodeDecodeError, tomllib.TOMLDecodeError, RecursionError) as exc:
+        raise QuadobsError(f"{label}: not a TOML file ({exc})") from None

@@ -76,7 +76,6 @@ from __future__ import annotations
 
 import math
 import re
-import tomllib
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -91,6 +90,7 @@ from quadobs.testbed.logs.importing import (
     check_anchor_ids,
     check_clocks,
     read_anchors,
+    read_map,
     stated_meta,
     truth_table,
 )
@@ -274,19 +274,9 @@ def parse_topic_map(data: dict, where: str = "topic map", base: Path | None = No
 
 def load_topic_map(path: str | Path) -> TopicMap:
     """:func:`parse_topic_map` of a TOML file (a regular file of at most 1 MiB)."""
-    from quadobs.testbed.logs.files import read_limited
-
     path = Path(path)
-    raw = read_limited(path)
-    if raw is None:
-        raise QuadobsError(f"--map {str(path)!r}: not found")
-    if len(raw) > 1 << 20:
-        raise QuadobsError(f"--map {str(path)!r}: larger than 1 MiB")
-    try:
-        data = tomllib.loads(raw.decode("utf-8"))
-    except (UnicodeDecodeError, tomllib.TOMLDecodeError, RecursionError) as exc:
-        raise QuadobsError(f"--map {str(path)!r}: not a TOML file ({exc})") from None
-    return parse_topic_map(data, f"--map {str(path)!r}", path.parent)
+    label = f"--map {str(path)!r}"
+    return parse_topic_map(read_map(path, label), label, path.parent)
 
 
 def with_options(topic_map: TopicMap, topics=(), anchors=None, name=None) -> TopicMap:
