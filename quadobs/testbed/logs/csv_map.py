@@ -632,7 +632,7 @@ def import_csv(csv_map: CsvMap, notes: list | None = None) -> RangeLog:
         column), streams on different clocks, an anchor id not among the anchors, nothing
         left to replay, or a value the format refuses: one line.
     """
-    from quadobs.testbed.logs.importing import check_anchor_ids, check_clocks, truth_table
+    from quadobs.testbed.logs.importing import assemble_log, check_anchor_ids, check_clocks
 
     dims = {len(p) for p in csv_map.anchors.values()}
     if len(dims) != 1:
@@ -660,23 +660,12 @@ def import_csv(csv_map: CsvMap, notes: list | None = None) -> RangeLog:
             "one file holds several)"
             for s, n in sorted(cols.blank.items())
         ]
-    truth, truth_columns = truth_table(truth, dims.pop(), kind == "odometry")
-    ids = np.array(sorted(csv_map.anchors), dtype=np.int64)
     meta = dict(csv_map.meta)
-    return RangeLog(
+    return assemble_log(
         meta.pop("name", "") or label.stem,
-        ids,
-        np.array([csv_map.anchors[i] for i in ids]),
-        ranges[:, :3],
-        inputs,
-        meta.pop("heading0", math.nan),
-        truth if truth is not None and truth.shape[0] else None,
-        input_kind={"imu": "imu_body", "odometry": "odometry", "none": "none"}[kind],
-        truth_columns=truth_columns,
-        range_std=ranges[:, 3],
-        tdoa=tdoa[:, :4],
-        tdoa_std=tdoa[:, 4],
-        attitude=attitude,
+        csv_map.anchors,
+        {**tables, "inputs": inputs},
+        kind,
         **meta,
     )
 

@@ -16,6 +16,7 @@ from quadobs.errors import QuadobsError
 __all__ = [
     "STATED_META_KEYS",
     "anchor_id",
+    "assemble_log",
     "check_anchor_ids",
     "check_clocks",
     "read_anchors",
@@ -184,3 +185,34 @@ def read_map(path: Path, label: str) -> dict:
         return tomllib.loads(raw.decode("utf-8"))
     except (UnicodeDecodeError, tomllib.TOMLDecodeError, RecursionError) as exc:
         raise QuadobsError(f"{label}: not a TOML file ({exc})") from None
+
+
+def assemble_log(name: str, anchors: dict, tables: dict, kind: str, **fields):
+    """The :class:`~quadobs.testbed.logs.format.RangeLog` of an import: ``tables`` holds
+    ``ranges`` ``(M, 4)`` and ``tdoa`` ``(N, 5)`` (each with its std last), ``inputs``,
+    ``truth`` ``(T, 8)`` or None (:func:`truth_table`) and ``attitude`` or None; ``kind`` is
+    ``"imu"``, ``"odometry"`` or ``"none"``; ``fields`` the log's others (``heading0``, meta)."""
+    from quadobs.testbed.logs.format import RangeLog
+
+    heading0 = fields.pop("heading0", math.nan) if kind == "odometry" else math.nan
+    fields.pop("heading0", None)
+    ids = np.array(sorted(anchors), dtype=np.int64)
+    dim = len(anchors[int(ids[0])])
+    ranges, tdoa = tables["ranges"], tables["tdoa"]
+    truth, truth_columns = truth_table(tables["truth"], dim, kind == "odometry")
+    return RangeLog(
+        name,
+        ids,
+        np.array([anchors[i] for i in ids]),
+        ranges[:, :3],
+        tables["inputs"],
+        heading0,
+        truth if truth is not None and truth.shape[0] else None,
+        input_kind={"imu": "imu_body", "odometry": "odometry", "none": "none"}[kind],
+        truth_columns=truth_columns,
+        range_std=ranges[:, 3],
+        tdoa=tdoa[:, :4],
+        tdoa_std=tdoa[:, 4],
+        attitude=tables["attitude"],
+        **fields,
+    )

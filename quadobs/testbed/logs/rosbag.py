@@ -87,12 +87,12 @@ from quadobs.testbed.logs.format import RangeLog
 from quadobs.testbed.logs.importing import (
     STATED_META_KEYS,
     anchor_id,
+    assemble_log,
     check_anchor_ids,
     check_clocks,
     read_anchors,
     read_map,
     stated_meta,
-    truth_table,
 )
 
 __all__ = ["STREAMS", "TopicMap", "import_bag", "load_topic_map", "parse_topic_map"]
@@ -579,10 +579,9 @@ def import_bag(bag: str | Path, topic_map: TopicMap, notes: list | None = None) 
         and the message.
     """
     bag = Path(bag)
-    dim = _check_map(bag, topic_map)
+    _check_map(bag, topic_map)
     read = _read_bag(bag, topic_map)
     rows = read.rows
-    ids = np.array(sorted(topic_map.anchors), dtype=np.int64)
     ranges, tdoa = _table(rows["ranges"], 4), _table(rows["tdoa"], 5)
     kind = next((k for k in ("imu", "odometry") if k in topic_map.streams), "none")
     inputs = {
@@ -596,21 +595,13 @@ def import_bag(bag: str | Path, topic_map: TopicMap, notes: list | None = None) 
     check_clocks(bag, {"ranges": ranges, "tdoa": tdoa, kind: inputs, "truth": truth})
     check_anchor_ids(bag, topic_map.anchors, ranges, tdoa, notes)
     _notes_of(read, topic_map, notes)
-    truth, truth_columns = truth_table(truth, dim, kind == "odometry")
-    return RangeLog(
+    tables = {"ranges": ranges, "tdoa": tdoa, "inputs": inputs, "truth": truth}
+    return assemble_log(
         topic_map.name or bag.stem,
-        ids,
-        np.array([topic_map.anchors[i] for i in ids]),
-        ranges[:, :3],
-        inputs,
-        topic_map.heading0 if kind == "odometry" else math.nan,
-        truth if truth is not None and truth.shape[0] else None,
-        input_kind={"imu": "imu_body", "odometry": "odometry", "none": "none"}[kind],
-        truth_columns=truth_columns,
-        range_std=ranges[:, 3],
-        tdoa=tdoa[:, :4],
-        tdoa_std=tdoa[:, 4],
-        attitude=attitude,
+        topic_map.anchors,
+        {**tables, "attitude": attitude},
+        kind,
+        heading0=topic_map.heading0,
         frame=topic_map.frame,
         gravity=topic_map.gravity,
         description=topic_map.description,
