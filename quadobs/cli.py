@@ -1336,7 +1336,7 @@ def _cmd_import_bag(args) -> int:
     topic_map = with_options(topic_map, args.topic, args.anchors, args.name)
     notes: list[str] = []
     log = import_bag(args.bag, topic_map, notes)
-    _check_imported(log, str(args.bag))
+    notes += _check_imported(log, str(args.bag))
     write_log(log, args.out)
     _print_imported(log, notes, args.out)
     return 0
@@ -1376,27 +1376,34 @@ def _cmd_import_csv(args) -> int:
         csv_map = replace(csv_map, meta={**csv_map.meta, "name": args.name})
     notes: list[str] = []
     log = import_csv(csv_map, notes)
-    _check_imported(log, str(args.map))
+    notes += _check_imported(log, str(args.map))
     write_log(log, args.out)
     _print_imported(log, notes, args.out)
     return 0
 
 
-def _check_imported(log, source: str) -> None:
-    """The replay's checks of units, run on an imported log before it is written: a unit the
-    map or topic map got wrong is said at once, naming the source."""
+def _check_imported(log, source: str) -> list[str]:
+    """The replay's checks of units, run on an imported log before it is written (a unit the
+    map or topic map got wrong is refused at once, naming the source), and the notes the
+    replay would print (ranges of 0 m, the truth against the ranges and the odometry)."""
     from quadobs.errors import QuadobsError
     from quadobs.testbed.attitude import check_body_imu
-    from quadobs.testbed.logs.replay import check_odometry_units, check_range_units
+    from quadobs.testbed.logs.replay import (
+        check_odometry_units,
+        check_range_units,
+        replayable_log,
+    )
 
     try:
-        check_range_units(log)
-        if log.input_kind == "odometry":
-            check_odometry_units(log)
-        if log.input_kind == "imu_body":
-            check_body_imu(log)
+        prepared, notes = replayable_log(log)
+        check_range_units(prepared)
+        if prepared.input_kind == "odometry":
+            check_odometry_units(prepared)
+        if prepared.input_kind == "imu_body":
+            check_body_imu(prepared)
     except QuadobsError as exc:
         raise QuadobsError(f"{source}: as imported, the replay would refuse it: {exc}") from None
+    return [f"(replay) {n}" for n in notes]
 
 
 def _print_imported(log, notes: list[str], out) -> None:

@@ -259,6 +259,12 @@ def test_the_command_line_writes_a_log_that_reads_back(tmp_path, capsys):
             "not one clock (time_offset = SECONDS in [truth]",
         ),
         (("anchors.csv", "nowhere.csv"), "anchors file"),
+        (("std = 5.0", "std = 0.05"), "[ranges] std: a median of 0.0005 m"),
+        (
+            ('quaternion = {x = "qx"', 'tag_z = 0.1\nquaternion = {x = "qx"'),
+            "[truth] unknown key 'tag_z' (a key of the map's top level: write it before the first [table])",
+        ),
+        (('file = "imu.csv"', 'file = ["imu.csv"]'), "[imu] file: expected text (a file's name"),
         (
             ('accel_unit = "g"', 'accel_unit = "m/s^2"'),
             "map.toml: as imported, the replay would refuse it: csv-flight: imu.csv, columns ax,ay,az",
@@ -342,7 +348,7 @@ def test_the_docs_maps_parse(tmp_path):
     page = (Path(__file__).parents[2] / "docs" / "replaying-your-data.md").read_text()
     section = page.split("## From CSV files of another layout")[1].split("\n## ")[0]
     blocks = [tomllib.loads(b) for b in re.findall(r"```toml\n(.*?)```", section, re.S)]
-    assert len(blocks) == 2
+    assert len(blocks) == 3
     _anchors_file(tmp_path)
     robot = parse_csv_map(blocks[0], base=tmp_path)
     assert set(robot.streams) == {"ranges", "odometry", "truth"}
@@ -352,6 +358,9 @@ def test_the_docs_maps_parse(tmp_path):
     ranges = {"file": "r.csv", "time": "t", "anchor": "a", "value": "r"}
     flight = parse_csv_map({**blocks[1], "anchors": "anchors.csv", "ranges": ranges}, base=tmp_path)
     assert flight.streams["imu"]["accel_unit"] == "g"
+    _kinematic_robot(tmp_path)  # its survey.txt is the docs' layout
+    surveyed = parse_csv_map({**blocks[2], "ranges": ranges}, base=tmp_path)
+    np.testing.assert_allclose(surveyed.anchors[7], ANCHORS[7])
 
 
 def test_one_file_of_every_sensor_each_row_filled_for_one(tmp_path):
@@ -391,3 +400,152 @@ def test_one_file_of_every_sensor_each_row_filled_for_one(tmp_path):
         "file holds several)"
         for s in ("imu", "tdoa", "truth")
     ]
+
+
+KINEMATIC_MAP = """
+anchors = {file = "survey.txt", delimiter = "whitespace", id = "name", x = "X", y = "Y", z = "Z", unit = "mm"}
+heading0 = 1.5
+[ranges]
+file = "uwb.csv"
+time = "t"
+anchor = "anchor"
+value = "range"
+[odometry]
+file = "wheels.csv"
+time = "t"
+left = "left_degps"
+right = "right_degps"
+rate_unit = "deg/s"
+wheel_radius = 0.05
+left_sign = -1
+track = 0.25
+[truth]
+file = "mocap.txt"
+delimiter = "whitespace"
+time = "when"
+time_unit = "iso8601"
+position = ["x", "y"]
+heading = "yaw"
+"""
+
+
+def _kinematic_robot(folder) -> dict:
+    """A robot's truth integrated from its speed and yaw rate (held over each 0.05 s), its
+    wheels' rates in deg/s with the left motor mirrored (counting backwards), ranges to
+    anchors surveyed in mm with names, a motion capture aligned by spaces with ISO 8601 times."""
+    import datetime
+
+    dt, n = 0.05, 400
+    t = dt * np.arange(n)
+    v, w = 0.3 + 0.1 * np.sin(t), 0.6 * np.cos(0.4 * t)
+    psi = 1.5 + np.concatenate([[0.0], np.cumsum(w[:-1] * dt)])
+    mid = psi + 0.5 * w * dt
+    step = np.column_stack([v * dt * np.cos(mid), v * dt * np.sin(mid)])
+    xy = np.vstack([[1.0, 1.0], np.cumsum(step, axis=0)[:-1] + 1.0])
+    left, right = (v - w * 0.125) / 0.05, (v + w * 0.125) / 0.05
+    (folder / "wheels.csv").write_text(
+        "t,left_degps,right_degps\n"
+        + "".join(
+            f"{a:.17g},{-math.degrees(b):.17g},{math.degrees(c):.17g}\n"
+            for a, b, c in zip(t, left, right)
+        )
+    )
+    (folder / "survey.txt").write_text(
+        "name      X        Y       Z\n"
+        + "".join(
+            f"  anchor_{i}\t{x * 1e3:g}   {y * 1e3:g}  {z * 1e3:g}  \n"
+            for i, (x, y, z) in ANCHORS.items()
+        )
+    )
+    epoch = datetime.datetime(2026, 11, 28, 10, 0, tzinfo=datetime.timezone.utc)
+    stamps = [(epoch + datetime.timedelta(seconds=float(s))).isoformat() for s in t]
+    (folder / "mocap.txt").write_text(
+        "when   x   y   yaw\n"
+        + "".join(f"{s}   {p[0]:.17g} {p[1]:.17g}   {h:.17g}\n" for s, p, h in zip(stamps, xy, psi))
+    )
+    ids = sorted(ANCHORS)
+    anchors = np.array([ANCHORS[i][:2] for i in ids])
+    h = np.arange(n) % 4
+    heights = np.array([ANCHORS[i][2] for i in ids])[h]
+    rho = np.hypot(np.linalg.norm(xy - anchors[h], axis=1), heights)
+    t0 = epoch.timestamp()
+    (folder / "uwb.csv").write_text(
+        "t,anchor,range\n"
+        + "".join(f"{t0 + a:.17g},anchor_{ids[k]},{r:.17g}\n" for a, k, r in zip(t, h, rho))
+    )
+    (folder / "map.toml").write_text(
+        KINEMATIC_MAP.replace(
+            'file = "wheels.csv"\ntime = "t"',
+            'file = "wheels.csv"\ntime = "t"\ntime_offset = ' + repr(t0),
+        )
+    )
+    return {"v": v, "w": w, "t": t0 + t}
+
+
+def test_wheel_rates_a_mirrored_motor_a_survey_file_and_iso_times(tmp_path):
+    want = _kinematic_robot(tmp_path)
+    log = import_csv(load_csv_map(tmp_path / "map.toml"))
+    np.testing.assert_allclose(log.inputs[:, 1], want["v"], rtol=1e-12)
+    np.testing.assert_allclose(log.inputs[:, 2], want["w"], rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(log.anchor_heights, [0.2, 2.5, 0.3, 2.4])
+    np.testing.assert_allclose(log.beacons[1], [6.0, 0.0])
+    np.testing.assert_allclose(log.truth[:, 0], want["t"], atol=1e-6)
+
+
+@pytest.mark.parametrize(
+    "edits, note",
+    [
+        ((), None),
+        (
+            (("left_sign = -1", "left_sign = 1"),),
+            "the odometry's distances (speed) are 0.034 times",
+        ),
+        (
+            (
+                ('left = "left_degps"', 'left = "right_degps"\nright_sign = -1'),
+                ('right = "right_degps"', 'right = "left_degps"'),
+                ("left_sign = -1", "left_sign = 1"),
+            ),
+            "the odometry's turns (yaw_rate) are -1 times the truth's",
+        ),
+        ((("track = 0.25", "track = 0.5"),), "turns (yaw_rate) are 0.5 times the truth's"),
+        ((("heading0 = 1.5", "heading0 = 85.9"),), "heading0 85.9 lies beyond 2 pi"),
+    ],
+)
+def test_the_import_says_where_the_odometry_disagrees_with_the_truth(tmp_path, capsys, edits, note):
+    _kinematic_robot(tmp_path)
+    text = (tmp_path / "map.toml").read_text()
+    for old, new in edits:
+        assert old in text
+        text = text.replace(old, new)
+    (tmp_path / "map.toml").write_text(text)
+    assert main(["import-csv", str(tmp_path / "map.toml"), "--out", str(tmp_path / "log")]) == 0
+    out = capsys.readouterr().out
+    if note is None:
+        assert "note:" not in out, out
+    else:
+        assert "note: (replay) against the truth, " in out and note in out, out
+
+
+def test_zero_ranges_repeated_rows_and_a_byte_order_mark(tmp_path, capsys):
+    """A file of one column per anchor that writes 0 for "not ranged" imports, the replay's
+    note saying it leaves them out; a repeated odometry row is left out and said, two rows of
+    one time with other values refused naming the file; a map saved with a BOM reads."""
+    _robot_files(tmp_path)
+    rows = (tmp_path / "uwb_wide.csv").read_text().splitlines()
+    filled = [rows[0]] + [",".join(c or "0" for c in r.split(",")) for r in rows[1:]]
+    (tmp_path / "uwb_wide.csv").write_text("\n".join(filled) + "\n")
+    wheels = (tmp_path / "wheels.csv").read_text().splitlines()
+    (tmp_path / "wheels.csv").write_text("\n".join(wheels[:5] + [wheels[4]] + wheels[5:]) + "\n")
+    map_text = (tmp_path / "map.toml").read_text()
+    (tmp_path / "map.toml").write_text("\ufeff" + map_text, encoding="utf-8")
+    assert main(["import-csv", str(tmp_path / "map.toml"), "--out", str(tmp_path / "log")]) == 0
+    out = capsys.readouterr().out
+    assert "note: [odometry] 1 repeated rows left out" in out
+    assert "note: (replay) ranges of 0 m (a radio's failed exchange), left out: 100" in out
+    (tmp_path / "wheels.csv").write_text(
+        "\n".join(wheels[:5] + [wheels[4].replace(",300.0", ",301.0")] + wheels[5:]) + "\n"
+    )
+    assert main(["import-csv", str(tmp_path / "map.toml"), "--out", str(tmp_path / "log2")]) == 2
+    err = capsys.readouterr().err
+    assert "wheels.csv: [odometry] 1 rows share their time with another of other values" in err

@@ -13,7 +13,8 @@ stream        keys beside the file's (``file``, ``time``, ``time_unit``, ``time_
 ============  =========================================================================
 ``ranges``    ``anchor`` and ``value`` (one range a row; ``anchor_pattern`` as for bags),
               or ``columns = {ID = "column", ...}`` (one column per anchor, an empty cell:
-              no range); ``std`` (a column, or one number for every range); ``unit``
+              no range); ``std`` (a column, or one number for every range, in ``unit``:
+              a median outside :data:`STD_SPAN` is refused); ``unit``
 ``tdoa``      ``anchor_i``, ``anchor_j``, ``value``, ``std``, ``unit``, ``sign``
 ``imu``       ``accel = [x, y, z]`` and ``gyro = [x, y, z]`` (column names, body frame);
               ``accel_unit`` (``m/s^2`` or ``g``), ``gyro_unit`` (``rad/s`` or ``deg/s``)
@@ -21,20 +22,24 @@ stream        keys beside the file's (``file``, ``time``, ``time_unit``, ``time_
               name: no order to get wrong) or ``euler = {roll = ..., pitch = ...,
               yaw = ...}`` with ``angle_unit``; the body-to-navigation rotation
 ``odometry``  ``speed`` and ``yaw_rate`` (``speed_unit``, ``rate_unit``), or the wheels'
-              ground speeds ``left``, ``right`` and ``track`` (m), or the odometry's poses
-              ``x``, ``y``, ``yaw`` (``unit``, ``angle_unit``)
+              ground speeds ``left``, ``right`` and ``track`` (m; with ``wheel_radius``
+              (m), the wheels' rates in ``rate_unit``; ``left_sign``, ``right_sign`` -1
+              for a wheel counting backwards), or the odometry's poses ``x``, ``y``,
+              ``yaw`` (``unit``, ``angle_unit``); repeated rows left out
 ``truth``     ``position = [x, y(, z)]`` (``unit``), and a ``quaternion`` or ``euler`` as
               for ``attitude``, or a planar robot's ``heading`` (``angle_unit``)
 ============  =========================================================================
 
-Units: times ``s`` (the default), ``ms``, ``us``, ``ns``; lengths ``m`` (the default),
+Units: times ``s`` (the default), ``ms``, ``us``, ``ns``, ``iso8601`` (text such as
+``2023-11-14T22:13:20.062+00:00``; without an offset, UTC); lengths ``m`` (the default),
 ``cm``, ``mm``; speeds ``m/s``, ``cm/s``, ``mm/s``; angles ``rad`` (the default) or ``deg``;
 rates ``rad/s`` or ``deg/s``; ``g`` is standard gravity, 9.80665 m/s^2. ``time_offset``
 (s) is added to a stream's times after its unit: a file stamped on another clock. Euler
 angles compose as ``R = Rz(yaw) Ry(pitch) Rx(roll)`` (aerospace order).
 
 A file is comma-separated with a header row unless its table says otherwise:
-``delimiter`` (one character; ``"\\t"`` for tabs), ``skip_rows`` (lines before the header)
+``delimiter`` (one character, ``"\\t"`` for tabs, or ``"whitespace"``: runs of spaces and
+tabs, as a column-aligned file has), ``skip_rows`` (lines before the header)
 and ``names`` (the columns of a file without a header). Several streams may read one file.
 Files are found beside the map. Each is read by ``pyarrow.csv``; a cell that is not a
 number is named by file, line and column. An empty or non-finite cell leaves its row out of
@@ -43,7 +48,8 @@ sensor's row, where one file holds every sensor with a time column each) is skip
 counted apart.
 
 The map's top level holds ``anchors`` (a ``beacons.csv``-style file or a table, as for
-bags), ``time_unit`` and ``delimiter`` (every stream's default), and the keys of
+bags, or a survey file of its own layout: ``{file = ..., id = ..., x = ..., y = ..., z =
+..., unit = ...}`` with the file keys above), ``time_unit`` and ``delimiter`` (every stream's default), and the keys of
 ``meta.csv``: ``name``, ``description``, ``frame``, ``gravity``, ``heading0`` (wheel
 odometry: required), ``tag_height``, ``tag_x``, ``tag_y``, ``tag_z``, ``accel_noise``, ``gyro_noise``,
 ``accel_bias``, ``gyro_bias``, ``attitude_std`` and ``range_errors``
@@ -73,6 +79,7 @@ from __future__ import annotations
 import csv
 import io
 import math
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -100,6 +107,9 @@ STREAMS: dict[str, tuple[str, ...]] = {
         "left",
         "right",
         "track",
+        "wheel_radius",
+        "left_sign",
+        "right_sign",
         "x",
         "y",
         "yaw",
@@ -110,7 +120,7 @@ STREAMS: dict[str, tuple[str, ...]] = {
 }
 #: Each unit's factor to SI.
 UNITS = {
-    "time_unit": {"s": 1.0, "ms": 1e-3, "us": 1e-6, "ns": 1e-9},
+    "time_unit": {"s": 1.0, "ms": 1e-3, "us": 1e-6, "ns": 1e-9, "iso8601": 1.0},
     "unit": {"m": 1.0, "cm": 1e-2, "mm": 1e-3},
     "speed_unit": {"m/s": 1.0, "cm/s": 1e-2, "mm/s": 1e-3},
     "angle_unit": {"rad": 1.0, "deg": math.pi / 180.0},
@@ -178,16 +188,18 @@ def _check_key(stream: str, key: str, value, where: str) -> None:
     if key in UNITS:
         if value not in UNITS[key]:
             raise QuadobsError(f"{at}: expected one of {', '.join(UNITS[key])}, got {value!r}")
-    elif key in ("time_offset", "track"):
-        if not _is_number(value) or (key == "track" and value <= 0):
-            raise QuadobsError(f"{at}: expected a {'positive ' if key == 'track' else ''}number")
+    elif key in ("time_offset", "track", "wheel_radius"):
+        positive = key != "time_offset"
+        if not _is_number(value) or (positive and value <= 0):
+            raise QuadobsError(f"{at}: expected a {'positive ' if positive else ''}number (m)")
     elif key == "skip_rows":
         if not (isinstance(value, int) and not isinstance(value, bool) and 0 <= value < 1000):
             raise QuadobsError(f"{at}: expected a whole number of lines")
     elif key == "delimiter":
-        if not (isinstance(value, str) and len(value) == 1 and value not in '"\r\n'):
-            raise QuadobsError(f'{at}: expected one character, e.g. ",", ";" or "\\t"')
-    elif key == "sign":
+        one = isinstance(value, str) and len(value) == 1 and value not in '"\r\n'
+        if not (one or value == "whitespace"):
+            raise QuadobsError(f'{at}: expected one character (",", ";", "\\t") or "whitespace"')
+    elif key in ("sign", "left_sign", "right_sign"):
         if value not in (1, -1) or isinstance(value, bool):
             raise QuadobsError(f"{at}: expected 1 or -1")
     elif key in ("accel", "gyro"):
@@ -206,7 +218,8 @@ def _check_key(stream: str, key: str, value, where: str) -> None:
         if not (isinstance(value, str) and value) and not (_is_number(value) and value > 0):
             raise QuadobsError(f"{at}: expected a column name or a positive number")
     elif not (isinstance(value, str) and value):
-        raise QuadobsError(f"{at}: expected text (a column name)")
+        what = "a file's name, beside the map" if key == "file" else "a column name"
+        raise QuadobsError(f"{at}: expected text ({what})")
 
 
 def _check_wide(value, at: str) -> None:
@@ -243,6 +256,14 @@ def _check_needs(stream: str, table: dict, where: str) -> None:
         raise QuadobsError(
             f"{where}: [{stream}] {', '.join(given[0])} together: {missing[0]} missing"
         )
+    if "wheel_radius" in table and "speed_unit" in table:
+        raise QuadobsError(
+            f"{where}: [{stream}] wheel_radius makes left and right the wheels' rates "
+            "(rate_unit), not speeds (speed_unit)"
+        )
+    wheel = ("wheel_radius", "left_sign", "right_sign")
+    if "left" not in table and any(k in table for k in wheel):
+        raise QuadobsError(f"{where}: [{stream}] {', '.join(wheel)}: for left, right and track")
     if sum(k in table for k in ("quaternion", "euler", "heading")) > 1:
         raise QuadobsError(f"{where}: [{stream}] one of quaternion, euler or heading")
 
@@ -254,8 +275,10 @@ def _stream(stream: str, value, top: dict, where: str) -> dict:
     known = (*FILE_KEYS, *STREAMS[stream])
     unknown = sorted(set(value) - set(known))
     if unknown:
+        upper = unknown[0] in (*_TOP_KEYS, *_META_KEYS)
+        hint = " (a key of the map's top level: write it before the first [table])" if upper else ""
         raise QuadobsError(
-            f"{where}: [{stream}] unknown key {unknown[0]!r} (known: {', '.join(known)})"
+            f"{where}: [{stream}] unknown key {unknown[0]!r}{hint} (known: {', '.join(known)})"
         )
     for key in ("file", "time"):
         if key not in value:
@@ -294,8 +317,54 @@ def parse_csv_map(data: dict, where: str = "column map", base: Path | None = Non
         )
     if "heading0" in meta and "odometry" not in streams:
         raise QuadobsError(f"{where}: heading0 is for wheel odometry, and no [odometry] is mapped")
-    anchors = read_anchors(top["anchors"], where, base)
+    spec = top["anchors"]
+    if isinstance(spec, dict) and "file" in spec:
+        anchors = _anchors_from_columns(spec, where, base or Path("."))
+    else:
+        anchors = read_anchors(spec, where, base)
     return CsvMap(streams, anchors, meta, base or Path("."), where)
+
+
+_ANCHOR_KEYS = (
+    "file",
+    "id",
+    "x",
+    "y",
+    "z",
+    "unit",
+    "anchor_pattern",
+    "delimiter",
+    "skip_rows",
+    "names",
+)
+
+
+def _anchors_from_columns(spec: dict, where: str, base: Path) -> dict:
+    """Anchors from a survey file of any layout: ``anchors = {file = ..., id = ..., x = ...,
+    y = ..., z = ..., unit = ...}`` (module docstring); each anchor once, every cell a value."""
+    at = f"{where}: anchors"
+    unknown = sorted(set(spec) - set(_ANCHOR_KEYS))
+    if unknown:
+        raise QuadobsError(f"{at}: unknown key {unknown[0]!r} (known: {', '.join(_ANCHOR_KEYS)})")
+    for key in ("id", "x", "y"):
+        if key not in spec:
+            raise QuadobsError(f'{at}: {key} missing ({key} = "column")')
+    for key, value in spec.items():
+        _check_key("anchors", key, value, where)
+    axes = {k: spec[k] for k in ("x", "y", "z") if k in spec}
+    v, skip = read_columns(spec, base, "[anchors]", axes, {"id": spec["id"]})
+    ids = _anchor_ids(v["id"], spec.get("anchor_pattern", ""), at)
+    table = np.column_stack([ids, *(v[k] * UNITS["unit"][spec.get("unit", "m")] for k in axes)])
+    bad = np.flatnonzero(~np.isfinite(table).all(axis=1))
+    if bad.size:
+        raise QuadobsError(
+            f"{base / spec['file']}, line {skip + bad[0] + 1}: an anchor's cell empty"
+        )
+    if np.unique(ids).size != ids.size:
+        raise QuadobsError(f"{base / spec['file']}: an anchor id given twice")
+    if not ids.size:
+        raise QuadobsError(f"{base / spec['file']}: no anchor")
+    return {int(row[0]): tuple(float(c) for c in row[1:]) for row in table}
 
 
 def load_csv_map(path: str | Path) -> CsvMap:
@@ -314,39 +383,29 @@ class _Columns:
         self.map = csv_map
         self.left_out: dict[str, int] = {}
         self.blank: dict[str, int] = {}
-
-    @staticmethod
-    def _header(opts: dict, path: Path, raw: bytes) -> tuple[list, int]:
-        """The file's column names and the lines before its first row."""
-        skip = opts.get("skip_rows", 0)
-        if "names" in opts:
-            return list(opts["names"]), skip
-        text = raw.decode("utf-8-sig", "replace").splitlines()
-        if len(text) <= skip:
-            raise QuadobsError(f"{path}: no header row (skip_rows = {skip})")
-        header = next(csv.reader(io.StringIO(text[skip]), delimiter=opts["delimiter"]), [])
-        return [h.strip() for h in header], skip + 1
+        self.repeated: dict[str, int] = {}
 
     def read(self, stream: str, numeric: dict, text: dict | None = None) -> tuple[dict, int]:
-        """``{key: values}`` of the stream's columns (``numeric`` as float, NaN where empty;
-        ``text`` as str, None where empty), keyed as given, and the lines before the first row."""
-        from quadobs.testbed.logs.files import read_limited
-
-        text = dict(text or {})
+        """``{key: values}`` of the stream's columns (:func:`read_columns`)."""
         opts = self.map.streams[stream]
-        path = self.map.base / opts["file"]
-        raw = read_limited(path)
-        if raw is None:
-            raise QuadobsError(f"{self.map.where}: [{stream}] file {opts['file']!r}: not found")
-        header, skip = self._header(opts, path, raw)
-        for key, column in {**numeric, **text}.items():
-            if column not in header:
-                raise QuadobsError(
-                    f"{path}: no column {column!r} ([{stream}] {key}; its columns: "
-                    f"{', '.join(header[:20])})"
-                )
-        table = _arrow_table(path, raw, header, skip, opts["delimiter"], numeric, text)
-        return _arrays(table, numeric, text), skip
+        return read_columns(opts, self.map.base, f"[{stream}]", numeric, text)
+
+    def unique_times(self, stream: str, rows: np.ndarray) -> np.ndarray:
+        """Sorted ``rows`` without the repeats of a row (the same time and values, counted
+        for the notes); two rows of one time with other values refused, naming the file."""
+        same = np.flatnonzero(np.diff(rows[:, 0]) == 0.0) + 1
+        if same.size == 0:
+            return rows
+        differ = same[np.any(rows[same] != rows[same - 1], axis=1)]
+        if differ.size:
+            opts = self.map.streams[stream]
+            raise QuadobsError(
+                f"{self.map.base / opts['file']}: [{stream}] {differ.size} rows share their "
+                f"time with another of other values (the first at {opts['time']} = "
+                f"{rows[differ[0], 0]:.10g} s): times must increase"
+            )
+        self.repeated[stream] = self.repeated.get(stream, 0) + int(same.size)
+        return np.delete(rows, same, axis=0)
 
     def time(self, stream: str, values: np.ndarray) -> np.ndarray:
         """A stream's times in seconds on the ranges' clock."""
@@ -357,13 +416,89 @@ class _Columns:
         """The rows whose every value is finite, sorted by time (stably), the rest counted;
         with ``std`` (NaN: not stated) as a last column."""
         ok = np.isfinite(rows).all(axis=1)
-        blank = np.isnan(rows).all(axis=1)  # another stream's row of a shared file
+        blank = np.isnan(rows[:, 1:]).all(axis=1)  # another stream's row of a shared file
         if blank.any():
             self.blank[stream] = self.blank.get(stream, 0) + int(blank.sum())
         if not (ok | blank).all():
             self.left_out[stream] = self.left_out.get(stream, 0) + int((~(ok | blank)).sum())
         rows = (rows if std is None else np.column_stack([rows, std]))[ok]
         return rows[np.argsort(rows[:, 0], kind="stable")]
+
+
+def _header(opts: dict, path: Path, raw: bytes, delimiter: str) -> tuple[list, int]:
+    """The file's column names and the lines before its first row."""
+    skip = opts.get("skip_rows", 0)
+    if "names" in opts:
+        return list(opts["names"]), skip
+    text = raw.decode("utf-8-sig", "replace").splitlines()
+    if len(text) <= skip:
+        raise QuadobsError(f"{path}: no header row (skip_rows = {skip})")
+    header = next(csv.reader(io.StringIO(text[skip]), delimiter=delimiter), [])
+    return [h.strip() for h in header], skip + 1
+
+
+def _check_columns(path: Path, header: list, wanted: dict, label: str, skip_rows: int) -> None:
+    for key, column in wanted.items():
+        if column not in header:
+            hint = ""
+            if header and header[0].lstrip().startswith(("#", "%", "//")):
+                hint = f"; a comment before the header? skip_rows = {skip_rows + 1}"
+            raise QuadobsError(
+                f"{path}: no column {column!r} ({label} {key}; its columns: "
+                f"{', '.join(header[:20])}{hint})"
+            )
+
+
+def _whitespace_separated(raw: bytes) -> bytes:
+    """A file of columns aligned by runs of spaces or tabs, as comma-separated: each line's
+    leading and trailing blanks dropped, each run inside it a comma."""
+    raw = re.sub(rb"(?m)^[ \t]+|[ \t]+(?=\r?$)", b"", raw)
+    return re.sub(rb"[ \t]+", b",", raw)
+
+
+def read_columns(
+    opts: dict, base: Path, label: str, numeric: dict, text: dict | None = None
+) -> tuple[dict, int]:
+    """``{key: values}`` of the columns of the file ``opts`` names (``numeric`` as float, NaN
+    where empty, times in ISO 8601 as seconds where ``time_unit`` says so; ``text`` as str,
+    None where empty), keyed as given, and the lines before the first row."""
+    from quadobs.testbed.logs.files import read_limited
+
+    numeric, text = dict(numeric), dict(text or {})
+    iso = opts.get("time_unit") == "iso8601" and "time" in numeric
+    if iso:
+        text["time"] = numeric.pop("time")
+    path = base / opts["file"]
+    raw = read_limited(path)
+    if raw is None:
+        raise QuadobsError(f"{label} file {opts['file']!r}: not found beside the map ({base})")
+    delimiter = opts.get("delimiter", ",")
+    if delimiter == "whitespace":
+        raw, delimiter = _whitespace_separated(raw), ","
+    header, skip = _header(opts, path, raw, delimiter)
+    _check_columns(path, header, {**numeric, **text}, label, opts.get("skip_rows", 0))
+    table = _arrow_table(path, raw, header, skip, delimiter, numeric, text)
+    values = _arrays(table, numeric, text)
+    if iso:
+        values["time"] = _iso_seconds(table.column(text["time"]), path, text["time"], skip)
+    return values, skip
+
+
+def _iso_seconds(column, path: Path, name: str, skip: int) -> np.ndarray:
+    """ISO 8601 times as seconds since 1970 (UTC; times without an offset taken as UTC)."""
+    import pyarrow as pa
+
+    for kind in (pa.timestamp("ns", tz="UTC"), pa.timestamp("ns")):
+        try:
+            ns = column.cast(kind).cast(pa.int64())
+        except (pa.ArrowInvalid, pa.ArrowNotImplementedError):
+            continue
+        return np.array([math.nan if v is None else v * 1e-9 for v in ns.to_pylist()])
+    first = next((c for c in column.to_pylist() if c), "")
+    raise QuadobsError(
+        f"{path}, column {name}: {first!r} and the cells after line {skip} are not all ISO "
+        "8601 times of one kind (each with an offset, or none)"
+    )
 
 
 def _arrow_table(path: Path, raw: bytes, header: list, skip: int, delimiter: str, numeric, text):
@@ -433,13 +568,31 @@ def _anchor_ids(cells: list, pattern: str, where: str) -> np.ndarray:
     return np.array([ids[c] for c in cells], dtype=float)
 
 
-def _std(opts: dict, values: dict, n: int) -> np.ndarray:
-    """Each measurement's stated std (m): a column, one number, or NaN (not stated)."""
+#: The span (m) within which the median of a stream's stated std must lie: a radio's or an
+#: acoustic beacon's ranges are good to centimetres or decimetres, never to a micrometre or
+#: to tens of metres (a std written in metres beside ranges in mm, or the reverse).
+STD_SPAN = (1e-3, 10.0)
+
+
+def _std(opts: dict, values: dict, n: int, where: str) -> np.ndarray:
+    """Each measurement's stated std (m): a column, one number, or NaN (not stated); refused
+    where their median lies outside :data:`STD_SPAN` (its unit is the stream's ``unit``)."""
     unit = UNITS["unit"][opts.get("unit", "m")]
     std = opts.get("std")
     if isinstance(std, str):
-        return values["std"] * unit
-    return np.full(n, math.nan if std is None else float(std) * unit)
+        out = values["std"] * unit
+    else:
+        out = np.full(n, math.nan if std is None else float(std) * unit)
+    stated = out[np.isfinite(out)]
+    if stated.size:
+        median = float(np.median(stated))
+        if not STD_SPAN[0] <= median <= STD_SPAN[1]:
+            raise QuadobsError(
+                f"{where} std: a median of {median:.3g} m, where a range's std is "
+                f"{STD_SPAN[0]:g} to {STD_SPAN[1]:g} m: the std is read in the stream's unit "
+                f"({opts.get('unit', 'm')!r}), as its values are"
+            )
+    return out
 
 
 def _ranges(cols: _Columns) -> np.ndarray:
@@ -452,7 +605,7 @@ def _ranges(cols: _Columns) -> np.ndarray:
         wide = {f"r{k}": c for k, c in opts["columns"].items()}
         v, _ = cols.read("ranges", {"time": opts["time"], **wide, **std_col})
         t = cols.time("ranges", v["time"])
-        std = _std(opts, v, t.size)
+        std = _std(opts, v, t.size, where)
         parts = []
         for key in opts["columns"]:
             r = v[f"r{key}"] * unit
@@ -466,7 +619,7 @@ def _ranges(cols: _Columns) -> np.ndarray:
     ids = _anchor_ids(v["id"], opts.get("anchor_pattern", ""), where)
     t = cols.time("ranges", v["time"])
     rows = np.column_stack([t, ids, v["value"] * unit])
-    return cols.keep("ranges", rows, _std(opts, v, t.size))
+    return cols.keep("ranges", rows, _std(opts, v, t.size, where))
 
 
 def _tdoa(cols: _Columns) -> np.ndarray:
@@ -489,7 +642,7 @@ def _tdoa(cols: _Columns) -> np.ndarray:
             v["value"] * unit * opts.get("sign", 1),
         ]
     )
-    return cols.keep("tdoa", rows, _std(opts, v, rows.shape[0]))
+    return cols.keep("tdoa", rows, _std(opts, v, rows.shape[0], where))
 
 
 def _rotation_columns(opts: dict) -> dict:
@@ -569,14 +722,20 @@ def _odometry(cols: _Columns) -> np.ndarray:
     rows = cols.keep(
         "odometry", np.column_stack([cols.time("odometry", v["time"])] + [v[k] for k in names])
     )
+    rows = cols.unique_times("odometry", rows)
     t = rows[:, 0]
     if "speed" in opts:
         speed = UNITS["speed_unit"][opts.get("speed_unit", "m/s")]
         rate = UNITS["rate_unit"][opts.get("rate_unit", "rad/s")]
         return np.column_stack([t, rows[:, 1] * speed, rows[:, 2] * rate])
     if "left" in opts:
-        speed = UNITS["speed_unit"][opts.get("speed_unit", "m/s")]
-        return odometry_from_wheels(t, rows[:, 1] * speed, rows[:, 2] * speed, opts["track"])
+        if "wheel_radius" in opts:  # the wheels' rates, times their radius
+            speed = UNITS["rate_unit"][opts.get("rate_unit", "rad/s")] * opts["wheel_radius"]
+        else:
+            speed = UNITS["speed_unit"][opts.get("speed_unit", "m/s")]
+        left = rows[:, 1] * speed * opts.get("left_sign", 1)
+        right = rows[:, 2] * speed * opts.get("right_sign", 1)
+        return odometry_from_wheels(t, left, right, opts["track"])
     unit = UNITS["unit"][opts.get("unit", "m")]
     angle = UNITS["angle_unit"][opts.get("angle_unit", "rad")]
     return odometry_from_poses(t, rows[:, 1] * unit, rows[:, 2] * unit, rows[:, 3] * angle)
@@ -660,14 +819,16 @@ def import_csv(csv_map: CsvMap, notes: list | None = None) -> RangeLog:
             "one file holds several)"
             for s, n in sorted(cols.blank.items())
         ]
+        notes += [f"[{s}] {n} repeated rows left out" for s, n in sorted(cols.repeated.items())]
     meta = dict(csv_map.meta)
-    return assemble_log(
-        meta.pop("name", "") or label.stem,
-        csv_map.anchors,
-        {**tables, "inputs": inputs},
-        kind,
-        **meta,
-    )
+    name = meta.pop("name", "") or label.stem
+    try:
+        return assemble_log(name, csv_map.anchors, {**tables, "inputs": inputs}, kind, **meta)
+    except QuadobsError as exc:  # the format names its own files: say which the map's are
+        text = str(exc).replace(f"{name}: meta.csv, key", f"{csv_map.where}: key")
+        raise QuadobsError(
+            text if text != str(exc) else f"{csv_map.where}: as imported: {exc}"
+        ) from None
 
 
 def _left(cols: _Columns) -> str:

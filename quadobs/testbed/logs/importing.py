@@ -129,8 +129,8 @@ def check_clocks(
         a, b = float(table[0, 0]), float(table[-1, 0])
         if b < lo or a > hi:
             raise QuadobsError(
-                f"{bag}: [{stream}] stamps {a:.6g} to {b:.6g} s, the ranges' {lo:.6g} to "
-                f"{hi:.6g} s: not one clock ({fix.format(stream)})"
+                f"{bag}: [{stream}] stamps {a:.10g} to {b:.10g} s, the ranges' {lo:.10g} to "
+                f"{hi:.10g} s: not one clock ({fix.format(stream)})"
             )
 
 
@@ -182,7 +182,7 @@ def read_map(path: Path, label: str) -> dict:
     if len(raw) > 1 << 20:
         raise QuadobsError(f"{label}: larger than 1 MiB")
     try:
-        return tomllib.loads(raw.decode("utf-8"))
+        return tomllib.loads(raw.decode("utf-8-sig"))  # an editor's byte-order mark skipped
     except (UnicodeDecodeError, tomllib.TOMLDecodeError, RecursionError) as exc:
         raise QuadobsError(f"{label}: not a TOML file ({exc})") from None
 

@@ -398,7 +398,8 @@ def replayable_log(log, keep_anchors: bool = False) -> tuple:
         if unheard:
             notes.append(f"anchors never ranged, left out: {', '.join(map(str, unheard))}")
     notes += gap_notes(log)
-    notes += [n for n in (truth_lag_note(log), truth_anchor_note(log)) if n]
+    found = (truth_lag_note(log), truth_anchor_note(log), truth_odometry_note(log))
+    notes += [n for n in found if n]
     plane = anchor_plane(log.beacons)
     if plane is not None:
         notes.append(
@@ -516,6 +517,98 @@ def _truth_at_ranges(log) -> tuple | None:
         return None
     p = np.column_stack([np.interp(t[inside], truth[:, 0], c) for c in position.T])
     return p, log.beacon_index(log.ranges[inside, 1]), log.ranges[inside, 2]
+
+
+#: The window (s) over which :func:`truth_odometry_note` compares the odometry's turn and
+#: distance with the truth's, and the least turn (rad) and distance (m) a window must show.
+ODOMETRY_WINDOW = 0.5
+ODOMETRY_LEAST_TURN = 0.05
+ODOMETRY_LEAST_DISTANCE = 0.05
+#: How far from 1 the odometry's turns or distances may be, as a share of the truth's, before
+#: :func:`truth_odometry_note` names them (wheels slip and tyres wear by a few per cent), and
+#: how far (rad) ``heading0`` may lie from the truth's heading.
+ODOMETRY_SCALE_TOLERANCE = 0.3
+HEADING0_TOLERANCE = 0.3
+
+
+def _odometry_against_truth(log) -> dict:
+    """Per window of :data:`ODOMETRY_WINDOW` inside the truth's span: the odometry's turn and
+    distance (its rates integrated, each held to the next row) and the truth's (its heading's
+    change, and its displacement along its mean heading), ``{"turn": (odo, truth), ...}``."""
+    t_in, speed, rate = log.inputs[:, 0], log.inputs[:, 1], log.inputs[:, 2]
+    tt = log.truth[:, 0]
+    a, b = max(t_in[0], tt[0]), min(t_in[-1], tt[-1])
+    if b - a < 5 * ODOMETRY_WINDOW:
+        return {}
+    edges = np.arange(a, b, ODOMETRY_WINDOW)
+    held = np.concatenate([[0.0], np.cumsum(np.diff(t_in) * speed[:-1])])
+    turned = np.concatenate([[0.0], np.cumsum(np.diff(t_in) * rate[:-1])])
+
+    def integral(cumulative: np.ndarray, values: np.ndarray, at: np.ndarray) -> np.ndarray:
+        k = np.clip(np.searchsorted(t_in, at, side="right") - 1, 0, t_in.size - 1)
+        return cumulative[k] + (at - t_in[k]) * values[k]
+
+    heading = np.unwrap(log.truth[:, log.truth_columns.index("heading")])
+    psi = np.interp(edges, tt, heading)
+    xy = np.column_stack([np.interp(edges, tt, log.truth[:, c]) for c in (1, 2)])
+    mid = 0.5 * (psi[:-1] + psi[1:])
+    along = np.sum(np.diff(xy, axis=0) * np.column_stack([np.cos(mid), np.sin(mid)]), axis=1)
+    return {
+        "turn": (np.diff(integral(turned, rate, edges)), np.diff(psi)),
+        "distance": (np.diff(integral(held, speed, edges)), along),
+        "heading": (float(log.heading0), float(np.interp(t_in[0], tt, heading))),
+        "covered": bool(tt[0] <= t_in[0]),
+    }
+
+
+def truth_odometry_note(log) -> str | None:
+    """A line where a wheel-odometry log's inputs or ``heading0`` disagree with its truth's
+    heading and path, else None.
+
+    Over windows of :data:`ODOMETRY_WINDOW`, the least-squares ratio of the odometry's turns
+    to the truth's (windows turning :data:`ODOMETRY_LEAST_TURN` or more) and of its distances
+    to the truth's along its heading (windows moving :data:`ODOMETRY_LEAST_DISTANCE` or more),
+    each from five windows at least: said where either is negative (the wheels swapped, a
+    wheel's sign, a yaw rate of the opposite convention) or beyond
+    :data:`ODOMETRY_SCALE_TOLERANCE` of 1 (a wrong track or unit). ``heading0`` is said where
+    it lies more than :data:`HEADING0_TOLERANCE` from the truth's heading at the first input,
+    or beyond 2 pi (degrees). The replay goes on: the truth only scores."""
+    found = []
+    if log.input_kind == "odometry" and abs(float(log.heading0)) > 2.0 * math.pi:
+        found.append(f"heading0 {float(log.heading0):g} lies beyond 2 pi (degrees? it is in rad)")
+    truth = log.truth
+    if log.input_kind != "odometry" or truth is None or "heading" not in log.truth_columns:
+        return "; ".join(found) or None
+    parts = _odometry_against_truth(log)
+    for key, least, what in (
+        ("turn", ODOMETRY_LEAST_TURN, "turns (yaw_rate)"),
+        ("distance", ODOMETRY_LEAST_DISTANCE, "distances (speed)"),
+    ):
+        if key not in parts:
+            break
+        odo, true = parts[key]
+        keep = np.abs(true) >= least
+        if np.count_nonzero(keep) < 5:
+            continue
+        ratio = float(odo[keep] @ true[keep] / (true[keep] @ true[keep]))
+        if ratio < 0.0 or abs(ratio - 1.0) > ODOMETRY_SCALE_TOLERANCE:
+            found.append(f"the odometry's {what} are {ratio:.3g} times the truth's")
+    if parts.get("covered"):
+        given, true_heading = parts["heading"]
+        off = (given - true_heading + math.pi) % (2.0 * math.pi) - math.pi
+        if abs(off) > HEADING0_TOLERANCE:
+            found.append(
+                f"heading0 {given:.4g} rad lies {off:+.3g} rad from the truth's heading at the "
+                f"first input ({true_heading % (2 * math.pi):.4g})"
+            )
+    if not found:
+        return None
+    return (
+        "against the truth, "
+        + "; ".join(found)
+        + ": check the odometry's units, the wheels' order and signs, the track, and heading0 "
+        "(the truth only scores: the replay goes on)"
+    )
 
 
 def truth_anchor_note(log) -> str | None:
@@ -665,10 +758,11 @@ def check_range_units(log) -> None:
             f"beacons.csv): {both}"
         )
     if max(medians) < extent / RANGE_SCALE_RATIO:
+        times = f"{extent / max(medians):.0f} times" if max(medians) > 0 else "beyond"
         raise QuadobsError(
             f"{log.file_label('beacons.csv')}: the anchors ranged to span {extent:.4g}, "
-            f"{extent / max(medians):.0f} times the largest median range of one anchor "
-            f"({max(medians):.4g}, ranges.csv): {both}"
+            f"{times} the largest median range of one anchor ({max(medians):.4g}, "
+            f"ranges.csv): {both}"
         )
     from quadobs.testbed.logs.range_noise import range_noise
 
