@@ -1391,12 +1391,14 @@ def _check_imported(log, source: str) -> list[str]:
     from quadobs.testbed.logs.replay import (
         check_odometry_units,
         check_range_units,
+        check_truth_units,
         replayable_log,
     )
 
     try:
         prepared, notes = replayable_log(log)
         check_range_units(prepared)
+        check_truth_units(prepared)
         if prepared.input_kind == "odometry":
             check_odometry_units(prepared)
         if prepared.input_kind == "imu_body":

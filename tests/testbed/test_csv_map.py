@@ -261,6 +261,10 @@ def test_the_command_line_writes_a_log_that_reads_back(tmp_path, capsys):
         (("anchors.csv", "nowhere.csv"), "anchors file"),
         (("std = 5.0", "std = 0.05"), "[ranges] std: a median of 0.0005 m"),
         (
+            ('unit = "mm"', 'unit = "m"'),
+            "as imported, the replay would refuse it: csv-flight: truth.csv: the truth lies a median",
+        ),
+        (
             ('quaternion = {x = "qx"', 'tag_z = 0.1\nquaternion = {x = "qx"'),
             "[truth] unknown key 'tag_z' (a key of the map's top level: write it before the first [table])",
         ),
@@ -549,3 +553,18 @@ def test_zero_ranges_repeated_rows_and_a_byte_order_mark(tmp_path, capsys):
     assert main(["import-csv", str(tmp_path / "map.toml"), "--out", str(tmp_path / "log2")]) == 2
     err = capsys.readouterr().err
     assert "wheels.csv: [odometry] 1 rows share their time with another of other values" in err
+
+
+def test_anchor_ids_in_text():
+    from quadobs.testbed.logs.importing import anchor_id
+
+    assert [anchor_id(v, "", "x") for v in ("anchor_12", "A3", "0x1a", " 0XFF ", 7.0)] == [
+        12,
+        3,
+        26,
+        255,
+        7,
+    ]
+    assert anchor_id("tag_2/anchor_0x1f", r"anchor_(0x[0-9a-f]+)", "x") == 31
+    with pytest.raises(QuadobsError, match="holds 2 numbers"):
+        anchor_id("tag_2/anchor_5", "", "x")

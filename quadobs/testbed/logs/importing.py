@@ -86,8 +86,11 @@ def read_anchors(value, where: str, base: Path | None) -> dict:
 
 
 def anchor_id(value, pattern: str, where: str) -> int:
-    """An anchor id (module docstring): an integer field, or the number in a text field."""
+    """An anchor id: an integer field, or the number in a text field (the first group of
+    ``pattern`` where given; a text that is one hexadecimal number, ``0x1a``, read as one)."""
     if isinstance(value, str):
+        if not pattern and re.fullmatch(r"\s*0[xX][0-9a-fA-F]+\s*", value):
+            return int(value.strip(), 16)
         if pattern:
             match = re.search(pattern, value)
             if match is None or not match.group(1):

@@ -707,6 +707,7 @@ def check_replay(log, names, *, dt: float = 0.1, model: str | None = None, optio
     x0[: log.dimension] = log.beacons.mean(axis=0)
     build_replay_estimators(setup, list(names) if names else default_estimators(log, model), x0)
     check_range_units(log)
+    check_truth_units(log)
     if log.input_kind == "odometry":
         check_odometry_units(log)
     if log.input_kind == "imu_body":  # its units, and the attitude the model imu rotates it by
@@ -773,6 +774,37 @@ def check_range_units(log) -> None:
             f"{noise:.4g}, {noise / extent:.2g} times the extent of the anchors ranged to "
             f"({extent:.4g}, beacons.csv), where a radio's is a few hundredths of it (ranges "
             f"in cm?): {both}"
+        )
+
+
+#: How far (a factor either way) the truth's distances to the anchors may lie from the ranges
+#: before :func:`check_truth_units` takes the truth for another unit.
+TRUTH_SCALE_RATIO = 10.0
+
+
+def check_truth_units(log) -> None:
+    """Refuse a truth in another unit than the anchors', in one line naming ``truth.csv``.
+
+    The median over ranges of ``|p(t) - a_h|``, the truth's distance to the anchor ranged to
+    at each range's time, against the median range: a truth of the tag (or near it) gives a
+    ratio near 1 (a bias, an excess, a lever arm of centimetres), a truth in mm against
+    anchors in m about 1000. Refused beyond :data:`TRUTH_SCALE_RATIO` either way; logs of
+    TDOA alone are not checked."""
+    found = _truth_at_ranges(log)
+    if found is None:
+        return
+    p, anchor, rho = found
+    dim = p.shape[1]
+    distance = float(np.median(np.linalg.norm(p - np.asarray(log.beacons)[anchor, :dim], axis=1)))
+    measured = float(np.median(rho))
+    if measured <= 0.0:
+        return
+    ratio = distance / measured
+    if not 1.0 / TRUTH_SCALE_RATIO <= ratio <= TRUTH_SCALE_RATIO:
+        raise QuadobsError(
+            f"{log.file_label('truth.csv')}: the truth lies a median {distance:.4g} from the "
+            f"anchors ranged to, where the ranges say {measured:.4g} ({ratio:.3g} times): the "
+            "truth's positions and the anchors' coordinates must both be in metres, in one frame"
         )
 
 
