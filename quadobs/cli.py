@@ -1376,16 +1376,24 @@ def _cmd_import_csv(args) -> int:
         csv_map = replace(csv_map, meta={**csv_map.meta, "name": args.name})
     notes: list[str] = []
     log = import_csv(csv_map, notes)
-    notes += _check_imported(log, str(args.map))
+    notes += _check_imported(log, str(args.map), csv_map.file_names())
     write_log(log, args.out)
     _print_imported(log, notes, args.out)
     return 0
 
 
-def _check_imported(log, source: str) -> list[str]:
+def _in_source_names(text: str, names: dict) -> str:
+    """``text`` with the format's file names replaced by what the user's map calls them."""
+    for fname, theirs in names.items():
+        text = text.replace(fname, theirs)
+    return text
+
+
+def _check_imported(log, source: str, names: dict | None = None) -> list[str]:
     """The replay's checks of units, run on an imported log before it is written (a unit the
-    map or topic map got wrong is refused at once, naming the source), and the notes the
-    replay would print (ranges of 0 m, the truth against the ranges and the odometry)."""
+    map or topic map got wrong is refused at once, naming the source; a body IMU's attitude,
+    given or estimated, must keep gravity vertical), and the notes the replay would print
+    (ranges of 0 m, the truth against the ranges and the odometry)."""
     from quadobs.errors import QuadobsError
     from quadobs.testbed.attitude import check_body_imu
     from quadobs.testbed.logs.replay import (
@@ -1402,10 +1410,14 @@ def _check_imported(log, source: str) -> list[str]:
         if prepared.input_kind == "odometry":
             check_odometry_units(prepared)
         if prepared.input_kind == "imu_body":
+            from quadobs.testbed.attitude import navigation_accelerations
+
             check_body_imu(prepared)
+            navigation_accelerations(prepared)  # gravity held vertical by the attitude
     except QuadobsError as exc:
-        raise QuadobsError(f"{source}: as imported, the replay would refuse it: {exc}") from None
-    return [f"(replay) {n}" for n in notes]
+        said = _in_source_names(str(exc), names or {})
+        raise QuadobsError(f"{source}: as imported, the replay would refuse it: {said}") from None
+    return [f"(replay) {_in_source_names(n, names or {})}" for n in notes]
 
 
 def _print_imported(log, notes: list[str], out) -> None:

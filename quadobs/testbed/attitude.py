@@ -559,7 +559,7 @@ def check_rates_against_attitude(log) -> None:
             f"{log.file_label('attitude.csv')}: the body rates of imu.csv turn about other axes "
             f"than the attitude does (median cosine {float(np.median(cosine)):.2f} over "
             f"{cosine.size} windows of {window:g} s, {bound:g} at least): the rates must be in "
-            f"rad/s, and {GIVEN_ATTITUDE_HINT}"
+            f"rad/s, on the attitude's clock, and {GIVEN_ATTITUDE_HINT}"
         )
 
 

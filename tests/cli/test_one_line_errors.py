@@ -197,13 +197,16 @@ def test_huge_ids_and_escape_sequences_in_a_log_are_refused(
         ("ranges.csv", ("range", "std"), "ranges.csv, column range: the median range is", 1000.0),
         ("beacons.csv", ("x", "y"), "beacons.csv: the anchors ranged to span", 1000.0),
         ("ranges.csv", ("range", "std"), "ranges.csv, column range: the ranges' own noise", 100.0),
+        ("ranges.csv", ("range", "std"), "within 1 s sum to a median", 0.1),
+        ("ranges.csv", ("range", "std"), "the truth lies a median", 10.0),
     ],
 )
 def test_replay_refuses_ranges_and_anchors_in_different_units(
     tmp_path, capsys, fname, columns, word, scale
 ):
     """Ranges in mm against anchors in m, or the other way, or ranges in cm (their noise beyond
-    half the anchors' extent): one line before any calibration."""
+    half the anchors' extent), or ranges a tenth or ten times the anchors' scale (their pairs
+    breaking the triangle inequality): one line before any calibration."""
     import csv
 
     folder = tmp_path / "R"

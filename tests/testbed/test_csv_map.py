@@ -261,8 +261,16 @@ def test_the_command_line_writes_a_log_that_reads_back(tmp_path, capsys):
         (("anchors.csv", "nowhere.csv"), "anchors file"),
         (("std = 5.0", "std = 0.05"), "[ranges] std: a median of 0.0005 m"),
         (
+            ('unit = "cm"', 'unit = "mm"'),
+            "[ranges] uwb.csv, column range: ranges to two anchors within 1 s sum to a median",
+        ),
+        (
+            ('accel = ["ax_g", "ay_g", "az_g"]', 'accel = ["ax_g", "ay_g", "-az_g"]'),
+            "does not keep gravity",
+        ),
+        (
             ('unit = "mm"', 'unit = "m"'),
-            "as imported, the replay would refuse it: csv-flight: truth.csv: the truth lies a median",
+            "as imported, the replay would refuse it: csv-flight: [truth] mocap.txt: the truth lies a median",
         ),
         (
             ('quaternion = {x = "qx"', 'tag_z = 0.1\nquaternion = {x = "qx"'),
@@ -271,7 +279,7 @@ def test_the_command_line_writes_a_log_that_reads_back(tmp_path, capsys):
         (('file = "imu.csv"', 'file = ["imu.csv"]'), "[imu] file: expected text (a file's name"),
         (
             ('accel_unit = "g"', 'accel_unit = "m/s^2"'),
-            "map.toml: as imported, the replay would refuse it: csv-flight: imu.csv, columns ax,ay,az",
+            "map.toml: as imported, the replay would refuse it: csv-flight: [imu] imu.csv, columns ax,ay,az",
         ),
         (('file = "imu.csv"', 'file = "imu2.csv"'), "[imu] file 'imu2.csv': not found"),
         (
@@ -461,7 +469,7 @@ def _kinematic_robot(folder) -> dict:
             for i, (x, y, z) in ANCHORS.items()
         )
     )
-    epoch = datetime.datetime(2026, 11, 28, 10, 0, tzinfo=datetime.timezone.utc)
+    epoch = datetime.datetime(2026, 11, 28, 10, 0, tzinfo=datetime.UTC)
     stamps = [(epoch + datetime.timedelta(seconds=float(s))).isoformat() for s in t]
     (folder / "mocap.txt").write_text(
         "when   x   y   yaw\n"
@@ -568,3 +576,59 @@ def test_anchor_ids_in_text():
     assert anchor_id("tag_2/anchor_0x1f", r"anchor_(0x[0-9a-f]+)", "x") == 31
     with pytest.raises(QuadobsError, match="holds 2 numbers"):
         anchor_id("tag_2/anchor_5", "", "x")
+
+
+def test_a_row_of_another_width_a_repeated_column_name_and_coarse_stamps(tmp_path):
+    _flight_files(tmp_path)
+    text = (tmp_path / "imu.csv").read_text().splitlines()
+    bad = text[:12] + [text[12] + ",9"] + text[13:]
+    (tmp_path / "imu.csv").write_text("\n".join(bad) + "\n")
+    with pytest.raises(QuadobsError, match=r"imu.csv, line 13: 8 cells, where the header names 7"):
+        import_csv(load_csv_map(tmp_path / "map.toml"))
+    (tmp_path / "imu.csv").write_text("\n".join([text[0].replace("gz", "gy")] + text[1:]) + "\n")
+    with pytest.raises(QuadobsError, match=r"imu.csv: 2 columns named 'gy' \(\[imu\] w1"):
+        import_csv(load_csv_map(tmp_path / "map.toml"))
+    coarse = [text[0]]
+    for k, row in enumerate(text[1:]):
+        cells = row.split(",")
+        coarse.append(",".join([f"{float(cells[0]):.1f}", *cells[1:6], str(30 + k)]))
+    (tmp_path / "imu.csv").write_text("\n".join(coarse) + "\n")
+    with pytest.raises(
+        QuadobsError, match=r"times must increase \(stamps written with fewer digits"
+    ):
+        import_csv(load_csv_map(tmp_path / "map.toml"))
+
+
+@pytest.mark.parametrize("scale, words", [(0.1, "sum to a median"), (10.0, "differ by a median")])
+def test_ranges_whose_pairs_break_the_triangle_inequality_are_refused(scale, words):
+    """Exact ranges of a tag circling among four anchors, scaled: a point's two distances sum
+    to at least the anchors' separation and differ by at most it."""
+    from quadobs.testbed.logs import RangeLog
+    from quadobs.testbed.logs.replay import check_range_units
+
+    anchors = np.array([[0.0, 0.0], [10.0, 0.0], [10.0, 10.0], [0.0, 10.0]])
+    t = 0.1 * np.arange(200)
+    p = np.column_stack([5 + 3 * np.cos(0.3 * t), 5 + 3 * np.sin(0.3 * t)])
+    h = np.arange(t.size) % 4
+    rho = np.linalg.norm(p - anchors[h], axis=1)
+    log = RangeLog(
+        "r",
+        np.arange(4),
+        anchors,
+        np.column_stack([t, h, rho]),
+        np.empty((0, 1)),
+        math.nan,
+        input_kind="none",
+    )
+    check_range_units(log)
+    scaled = RangeLog(
+        "r",
+        np.arange(4),
+        anchors,
+        np.column_stack([t, h, scale * rho]),
+        np.empty((0, 1)),
+        math.nan,
+        input_kind="none",
+    )
+    with pytest.raises(QuadobsError, match=words):
+        check_range_units(scaled)

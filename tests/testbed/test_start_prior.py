@@ -338,3 +338,17 @@ def test_an_imu_in_motion_still_reports_what_the_ranges_show():
     assert not still.at_rest and not still.moving
     assert not gliding.at_rest and gliding.moving and "the ranges of the first" in gliding.reason
     assert gliding.velocity_std == UNKNOWN_VELOCITY_STD
+
+
+def test_an_imu_whose_stamps_repeat_is_read_by_its_positive_intervals():
+    """Each IMU row written twice (stamps coarser than the sampling, or a copy): the sampling
+    period is the median positive interval, and the rest is found as with each row once."""
+    import dataclasses
+
+    from quadobs.testbed.logs.schema import sampling_period
+
+    log = _imu_log(accel_noise=ACCEL_NOISE, gyro_noise=GYRO_NOISE)
+    doubled = dataclasses.replace(log, inputs=np.repeat(log.inputs, 2, axis=0))
+    assert sampling_period(doubled.inputs[:, 0]) == pytest.approx(H)
+    assert math.isnan(sampling_period([1.0, 1.0, 1.0]))
+    assert start_prior(doubled).at_rest == start_prior(log).at_rest

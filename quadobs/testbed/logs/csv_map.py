@@ -157,6 +157,15 @@ class CsvMap:
     base: Path = Path(".")
     where: str = "column map"
 
+    def file_names(self) -> dict:
+        """The log format's file names, each with the stream of this map and its file that
+        it is written from (``"ranges.csv"``: ``"[ranges] uwb.csv"``), for messages."""
+        written = {"odometry": "inputs.csv", "imu": "imu.csv"}
+        return {
+            written.get(stream, f"{stream}.csv"): f"[{stream}] {opts['file']}"
+            for stream, opts in self.streams.items()
+        } | {"beacons.csv": "the anchors"}
+
 
 def _is_number(value) -> bool:
     return isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
@@ -402,7 +411,8 @@ class _Columns:
             raise QuadobsError(
                 f"{self.map.base / opts['file']}: [{stream}] {differ.size} rows share their "
                 f"time with another of other values (the first at {opts['time']} = "
-                f"{rows[differ[0], 0]:.10g} s): times must increase"
+                f"{rows[differ[0], 0]:.10g} s): times must increase (stamps written with fewer "
+                "digits than the sampling needs?)"
             )
         self.repeated[stream] = self.repeated.get(stream, 0) + int(same.size)
         return np.delete(rows, same, axis=0)
@@ -439,6 +449,11 @@ def _header(opts: dict, path: Path, raw: bytes, delimiter: str) -> tuple[list, i
 
 def _check_columns(path: Path, header: list, wanted: dict, label: str, skip_rows: int) -> None:
     for key, column in wanted.items():
+        if header.count(column) > 1:
+            raise QuadobsError(
+                f"{path}: {header.count(column)} columns named {column!r} ({label} {key}): "
+                "name each with names = [...] and skip_rows = 1"
+            )
         if column not in header:
             hint = ""
             if header and header[0].lstrip().startswith(("#", "%", "//")):
@@ -523,8 +538,7 @@ def _arrow_table(path: Path, raw: bytes, header: list, skip: int, delimiter: str
         try:
             as_text = read({c: pa.string() for c in wanted})
         except pa.ArrowInvalid:
-            first = str(exc).splitlines()[0]
-            raise QuadobsError(f"{path}: cannot be read as CSV ({first})") from None
+            raise QuadobsError(_row_fault(path, raw, header, skip, delimiter, exc)) from None
     for column in sorted(set(numeric.values())):
         for i, cell in enumerate(as_text.column(column).to_pylist()):
             try:
@@ -534,6 +548,22 @@ def _arrow_table(path: Path, raw: bytes, header: list, skip: int, delimiter: str
                     f"{path}, line {skip + i + 1}, column {column}: {cell!r} is not a number"
                 ) from None
     raise QuadobsError(f"{path}: cannot be read as CSV")  # pragma: no cover - arrow's own fault
+
+
+def _row_fault(path: Path, raw: bytes, header: list, skip: int, delimiter: str, exc) -> str:
+    """Where Arrow refused a file's rows: the first line whose cells are not the header's
+    number, else Arrow's own words."""
+    lines = raw.decode("utf-8-sig", "replace").splitlines()
+    for n, line in enumerate(lines[skip:], start=skip + 1):
+        if not line.strip():
+            continue
+        cells = next(csv.reader([line], delimiter=delimiter), [])
+        if len(cells) != len(header):
+            return (
+                f"{path}, line {n}: {len(cells)} cells, where the header names {len(header)} "
+                f"({line[:60]!r})"
+            )
+    return f"{path}: cannot be read as CSV ({str(exc).splitlines()[0]})"
 
 
 def _arrays(table, numeric: dict, text: dict) -> dict:
@@ -689,18 +719,27 @@ def _quaternions(opts: dict, v: dict, n: int) -> np.ndarray:
 def _imu(cols: _Columns) -> np.ndarray:
     """``time, ax, ay, az, wx, wy, wz`` rows, body frame, SI."""
     opts = cols.map.streams["imu"]
+    accel_cols, accel_signs = _signed(opts["accel"])
+    gyro_cols, gyro_signs = _signed(opts["gyro"])
     names = {"time": opts["time"]}
-    names |= {f"a{i}": c for i, c in enumerate(opts["accel"])}
-    names |= {f"w{i}": c for i, c in enumerate(opts["gyro"])}
+    names |= {f"a{i}": c for i, c in enumerate(accel_cols)}
+    names |= {f"w{i}": c for i, c in enumerate(gyro_cols)}
     v, _ = cols.read("imu", names)
-    accel = UNITS["accel_unit"][opts.get("accel_unit", "m/s^2")]
-    gyro = UNITS["gyro_unit"][opts.get("gyro_unit", "rad/s")]
+    accel = UNITS["accel_unit"][opts.get("accel_unit", "m/s^2")] * accel_signs
+    gyro = UNITS["gyro_unit"][opts.get("gyro_unit", "rad/s")] * gyro_signs
     rows = np.column_stack(
         [cols.time("imu", v["time"])]
-        + [v[f"a{i}"] * accel for i in range(3)]
-        + [v[f"w{i}"] * gyro for i in range(3)]
+        + [v[f"a{i}"] * accel[i] for i in range(3)]
+        + [v[f"w{i}"] * gyro[i] for i in range(3)]
     )
-    return cols.keep("imu", rows)
+    return cols.unique_times("imu", cols.keep("imu", rows))
+
+
+def _signed(columns: list) -> tuple[list, np.ndarray]:
+    """Column names, and a sign per axis: ``"-ay"`` reads the column ``ay`` negated (an axis
+    of the sensor's frame that points the other way)."""
+    names = [c[1:] if c.startswith("-") else c for c in columns]
+    return names, np.array([-1.0 if c.startswith("-") else 1.0 for c in columns])
 
 
 def _attitude(cols: _Columns) -> np.ndarray:
@@ -708,7 +747,8 @@ def _attitude(cols: _Columns) -> np.ndarray:
     opts = cols.map.streams["attitude"]
     v, _ = cols.read("attitude", {"time": opts["time"], **_rotation_columns(opts)})
     t = cols.time("attitude", v["time"])
-    return cols.keep("attitude", np.column_stack([t, _quaternions(opts, v, t.size)]))
+    rows = cols.keep("attitude", np.column_stack([t, _quaternions(opts, v, t.size)]))
+    return cols.unique_times("attitude", rows)
 
 
 def _odometry(cols: _Columns) -> np.ndarray:
@@ -745,14 +785,18 @@ def _truth(cols: _Columns) -> np.ndarray:
     """``time, x, y, z, qw, qx, qy, qz`` rows (z 0 for a planar position; the quaternion NaN
     where the truth holds no rotation)."""
     opts = cols.map.streams["truth"]
-    position = {f"p{i}": c for i, c in enumerate(opts["position"])}
+    position_cols, position_signs = _signed(opts["position"])
+    position = {f"p{i}": c for i, c in enumerate(position_cols)}
     v, _ = cols.read("truth", {"time": opts["time"], **position, **_rotation_columns(opts)})
     t = cols.time("truth", v["time"])
     unit = UNITS["unit"][opts.get("unit", "m")]
-    p = [v[f"p{i}"] * unit for i in range(len(position))] + [np.zeros(t.size)] * (3 - len(position))
+    p = [v[f"p{i}"] * unit * position_signs[i] for i in range(len(position))] + [
+        np.zeros(t.size)
+    ] * (3 - len(position))
     q = _quaternions(opts, v, t.size)
     rotated = bool(_rotation_columns(opts))
     rows = cols.keep("truth", np.column_stack([t, *p, *(q.T if rotated else [])]))
+    rows = cols.unique_times("truth", rows)
     return rows if rotated else np.column_stack([rows, np.full((rows.shape[0], 4), math.nan)])
 
 

@@ -549,7 +549,9 @@ def log_frame(log, range_sigma: float | None = None, apply_start: bool = False) 
         attitude0 = np.array([math.cos(log.heading0 / 2), 0.0, 0.0, math.sin(log.heading0 / 2)])
     period = None
     if log.input_kind == "imu_body" and log.inputs.shape[0] > 1:
-        period = float(np.median(np.diff(log.inputs[:, 0])))
+        from quadobs.testbed.logs.schema import sampling_period
+
+        period = sampling_period(log.inputs[:, 0])
     gyro = float(getattr(log, "gyro_noise", math.nan))
     gyro_bias = float(getattr(log, "gyro_bias", math.nan))
     alignment0 = None
@@ -798,11 +800,11 @@ def accel_noise(density: float | None) -> float | None:
 def _median_interval(table) -> float:
     """The median interval (s) between a table's rows (its first column the time); NaN if
     fewer than two rows or none positive."""
+    from quadobs.testbed.logs.schema import sampling_period
+
     if table is None or table.shape[0] < 2:
         return math.nan
-    steps = np.diff(np.asarray(table[:, 0], dtype=float))
-    steps = steps[steps > 0]
-    return float(np.median(steps)) if steps.size else math.nan
+    return sampling_period(table[:, 0])
 
 
 def imu_input_noise(log) -> float | None:

@@ -66,6 +66,7 @@ from quadobs.testbed.logs.schema import (
     TDOA,
     check_values,
     parse_meta,
+    sampling_period,
 )
 
 __all__ = [
@@ -454,7 +455,7 @@ class RangeLog:
 
         def in_seconds(long: str, short: str) -> bool:  # samples often, and covers the other
             t, s = times[long], times[short]
-            return float(np.median(np.diff(t))) < SAMPLED_WITHIN and t[0] <= s[0] and s[-1] <= t[-1]
+            return sampling_period(t) < SAMPLED_WITHIN and t[0] <= s[0] and s[-1] <= t[-1]
 
         for fname, span in spans.items():
             if span > SPAN_RATIO * measured and not in_seconds(fname, longest):

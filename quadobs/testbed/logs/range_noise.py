@@ -181,7 +181,7 @@ def smooth_range_noise(log) -> tuple[float, float, int]:
     return _noise(log.ranges, _cubic_residuals)
 
 
-def _is_noise(figures: tuple[float, float, int], fewest: int = MIN_RESIDUALS) -> bool:
+def is_noise(figures: tuple[float, float, int], fewest: int = MIN_RESIDUALS) -> bool:
     """Whether ``(sigma, sigma_2, n)`` is the noise: at least ``fewest`` residuals, the doubled
     span's figure within :data:`SPAN_RATIO` of the native one, positive."""
     sigma, sigma_2, n = figures
@@ -196,7 +196,7 @@ def _pooled(log) -> tuple | None:
     kinds = (_residuals, _cubic_residuals) if log.input_kind == "imu_body" else (_residuals,)
     for residuals in kinds:
         figures = _noise(log.ranges, residuals)
-        if _is_noise(figures):
+        if is_noise(figures):
             return figures[0], residuals
     return None
 
@@ -228,7 +228,7 @@ def _anchor_figures(log, pooled: float, residuals) -> np.ndarray:
     out = np.full(log.beacons.shape[0], pooled)
     for h in range(out.size):
         figures = _noise(log.ranges[index == h], residuals)
-        if _is_noise(figures, MIN_ANCHOR_RESIDUALS):
+        if is_noise(figures, MIN_ANCHOR_RESIDUALS):
             out[h] = figures[0]
     return out
 

@@ -398,7 +398,9 @@ def replayable_log(log, keep_anchors: bool = False) -> tuple:
         if unheard:
             notes.append(f"anchors never ranged, left out: {', '.join(map(str, unheard))}")
     notes += gap_notes(log)
-    found = (truth_lag_note(log), truth_anchor_note(log), truth_odometry_note(log))
+    anchors = truth_anchor_note(log)
+    lag = None if anchors else truth_lag_note(log)  # ids mapped wrong shift the best lag too
+    found = (lag, anchors, truth_odometry_note(log), stated_std_note(log))
     notes += [n for n in found if n]
     plane = anchor_plane(log.beacons)
     if plane is not None:
@@ -492,8 +494,9 @@ def truth_lag_note(log) -> str | None:
     best = float(TRUTH_LAGS[k])
     if not (abs(best) >= 0.25 and math.isfinite(at_zero) and spreads[k] < 0.7 * at_zero):
         return None
+    edge = "or more " if abs(best) == float(np.max(np.abs(TRUTH_LAGS))) else ""
     return (
-        f"truth.csv agrees with the ranges best as if stamped {abs(best):.2f} s "
+        f"truth.csv agrees with the ranges best as if stamped {abs(best):.2f} s {edge}"
         f"{'late' if best > 0 else 'early'} (the ranges spread {spreads[k]:.3g} m about it "
         f"moved so, {at_zero:.3g} m at its own times): is the truth on the ranges' clock, or "
         "its point off the tag's along the path (a lever arm)? A truth on another clock "
@@ -517,6 +520,34 @@ def _truth_at_ranges(log) -> tuple | None:
         return None
     p = np.column_stack([np.interp(t[inside], truth[:, 0], c) for c in position.T])
     return p, log.beacon_index(log.ranges[inside, 1]), log.ranges[inside, 2]
+
+
+#: How far (a factor either way) the stated range std may lie from the ranges' own noise
+#: before :func:`stated_std_note` says so.
+STATED_STD_RATIO = 5.0
+
+
+def stated_std_note(log) -> str | None:
+    """A line where the ranges' stated std (``ranges.csv``'s ``std``, its median) lies more
+    than :data:`STATED_STD_RATIO` times from the ranges' own noise
+    (:func:`~quadobs.testbed.logs.range_noise.range_noise`, where it is the noise), else
+    None: every filter corrects with the stated std, so one in another unit, or a datasheet's
+    figure far from the radio's, weighs the ranges wrongly."""
+    from quadobs.testbed.logs.range_noise import is_noise, range_noise
+
+    stated = log.range_std[np.isfinite(log.range_std)]
+    if stated.size == 0:
+        return None
+    figures = range_noise(log)
+    if not is_noise(figures):
+        return None
+    median, noise = float(np.median(stated)), float(figures[0])
+    if 1.0 / STATED_STD_RATIO <= median / noise <= STATED_STD_RATIO:
+        return None
+    return (
+        f"ranges.csv states a std of {median:.3g} m (median), where the ranges' own noise is "
+        f"{noise:.3g} m: every filter corrects with the stated std (is it in metres?)"
+    )
 
 
 #: The window (s) over which :func:`truth_odometry_note` compares the odometry's turn and
@@ -644,7 +675,8 @@ def truth_anchor_note(log) -> str | None:
     return (
         "against the truth, the ranges of anchor "
         + "; of anchor ".join(wrong)
-        + ": do ranges.csv's ids name the anchors of beacons.csv?"
+        + ": do ranges.csv's ids name the anchors of beacons.csv, and are the truth's axes "
+        "the anchors'?"
     )
 
 
@@ -774,6 +806,52 @@ def check_range_units(log) -> None:
             f"{noise:.4g}, {noise / extent:.2g} times the extent of the anchors ranged to "
             f"({extent:.4g}, beacons.csv), where a radio's is a few hundredths of it (ranges "
             f"in cm?): {both}"
+        )
+    _check_range_triangles(log, both)
+
+
+#: Consecutive ranges to two anchors at most this far apart in time (s) are taken as one
+#: point's by :func:`_check_range_triangles`, and the medians beyond which it refuses them:
+#: a point's two distances sum to at least the anchors' separation and differ by at most it
+#: (measured: sums 1.29 to 1.90 times it, differences 0.19 to 0.56 times it, on Plaza and the
+#: stand-ins).
+TRIANGLE_WINDOW = 1.0
+TRIANGLE_SHORT = 0.5
+TRIANGLE_LONG = 2.0
+
+
+def _check_range_triangles(log, both: str) -> None:
+    """Refuse ranges whose pairs break the triangle inequality by a factor: the median of
+    ``(r_i + r_j) / |a_i - a_j|`` below :data:`TRIANGLE_SHORT` (ranges in a smaller unit, cm
+    read as mm) or of ``|r_i - r_j| / |a_i - a_j|`` beyond :data:`TRIANGLE_LONG` (a larger
+    one), over consecutive ranges to two anchors within :data:`TRIANGLE_WINDOW` (20 pairs at
+    least). A robot's anchors with heights apart count them in the separation."""
+    order = np.argsort(log.ranges[:, 0], kind="stable")
+    r = log.ranges[order]
+    anchors = np.asarray(log.beacons, dtype=float)
+    if log.anchor_heights is not None:
+        anchors = np.column_stack([anchors, log.anchor_heights])
+    h = log.beacon_index(r[:, 1])
+    pair = np.flatnonzero((np.diff(r[:, 0]) <= TRIANGLE_WINDOW) & (h[1:] != h[:-1]))
+    if pair.size < 20:
+        return
+    d = np.linalg.norm(anchors[h[pair]] - anchors[h[pair + 1]], axis=1)
+    keep = d > 0
+    ri, rj, d = r[pair, 2][keep], r[pair + 1, 2][keep], d[keep]
+    short = float(np.median((ri + rj) / d))
+    long = float(np.median(np.abs(ri - rj) / d))
+    where = f"{log.file_label('ranges.csv')}, column range"
+    if short < TRIANGLE_SHORT:
+        raise QuadobsError(
+            f"{where}: ranges to two anchors within {TRIANGLE_WINDOW:g} s sum to a median "
+            f"{short:.3g} times the anchors' separation, where a point's two distances sum to "
+            f"at least it (ranges in a smaller unit?): {both}"
+        )
+    if long > TRIANGLE_LONG:
+        raise QuadobsError(
+            f"{where}: ranges to two anchors within {TRIANGLE_WINDOW:g} s differ by a median "
+            f"{long:.3g} times the anchors' separation, where a point's two distances differ "
+            f"by at most it (ranges in a larger unit?): {both}"
         )
 
 

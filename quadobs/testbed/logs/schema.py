@@ -51,6 +51,7 @@ __all__ = [
     "check_values",
     "column_index",
     "parse_meta",
+    "sampling_period",
 ]
 
 #: Largest log file read (bytes): 512 MiB, about 5 million rows of a body IMU.
@@ -446,3 +447,11 @@ def check_values(
                 f"{where}, row {int(bad[0]) + 2}, columns qw,qx,qy,qz: not a unit quaternion "
                 f"(norm {float(np.linalg.norm(q[bad[0]])):.6g})"
             )
+
+
+def sampling_period(t) -> float:
+    """The median of the positive intervals between the times ``t`` (s), NaN where none: a
+    stream's sampling period, times repeated (stamps coarser than the sampling) left out."""
+    steps = np.diff(np.asarray(t, dtype=float))
+    steps = steps[steps > 0.0]
+    return float(np.median(steps)) if steps.size else math.nan

@@ -285,7 +285,7 @@ def _sample_noise(samples: np.ndarray, density, h: float) -> np.ndarray:
     """The per-sample standard deviation per axis: the stated density ``/ sqrt(h)``, else the
     samples' own robust spread (1.4826 times the median absolute deviation)."""
     d = _stated(density)
-    if d > 0:
+    if d > 0 and h > 0:  # h NaN: every time repeated
         return np.full(samples.shape[1], d / math.sqrt(h))
     centre = np.median(samples, axis=0)
     return 1.4826 * np.median(np.abs(samples - centre), axis=0)
@@ -313,7 +313,9 @@ def _rest(log, window: float, k: float, slice_: float) -> tuple[float, float, st
     inside = t < t[0] + window if t.size else np.zeros(0, dtype=bool)
     if np.count_nonzero(inside) < 2 * MIN_SAMPLES:
         return 0.0, math.inf, f"{np.count_nonzero(inside)} IMU samples in the first {window:g} s"
-    h = float(np.median(np.diff(t[inside])))
+    from quadobs.testbed.logs.schema import sampling_period
+
+    h = sampling_period(t[inside])
     dim = log.beacons.shape[1]
     f = log.inputs[inside, 1:4] if kind == "imu_body" else log.inputs[inside, 1 : 1 + dim]
     w = log.inputs[inside, 4:7] if kind == "imu_body" else None
