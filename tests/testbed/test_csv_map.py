@@ -632,3 +632,20 @@ def test_ranges_whose_pairs_break_the_triangle_inequality_are_refused(scale, wor
     )
     with pytest.raises(QuadobsError, match=words):
         check_range_units(scaled)
+
+
+def test_a_truth_with_its_velocity(tmp_path):
+    _robot_files(tmp_path)
+    rows = (tmp_path / "truth.csv").read_text().splitlines()
+    with_v = [rows[0] + ",vx_mm,vy_mm"] + [r + ",1000.0,-20.0" for r in rows[1:]]
+    (tmp_path / "truth.csv").write_text("\n".join(with_v) + "\n")
+    text = (tmp_path / "map.toml").read_text()
+    (tmp_path / "map.toml").write_text(text + 'velocity = ["vx_mm", "-vy_mm"]\nunit = "m"\n')
+    m = load_csv_map(tmp_path / "map.toml")
+    log = import_csv(m)
+    assert log.truth_columns == ("time", "x", "y", "heading", "vx", "vy")
+    np.testing.assert_allclose(log.truth[:, 4:], [[1000.0, 20.0]] * 50)
+    back = read_log(
+        __import__("quadobs.testbed.logs", fromlist=["write_log"]).write_log(log, tmp_path / "log")
+    )
+    assert back.truth_columns == log.truth_columns

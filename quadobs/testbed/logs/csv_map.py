@@ -27,7 +27,8 @@ stream        keys beside the file's (``file``, ``time``, ``time_unit``, ``time_
               for a wheel counting backwards), or the odometry's poses ``x``, ``y``,
               ``yaw`` (``unit``, ``angle_unit``); repeated rows left out
 ``truth``     ``position = [x, y(, z)]`` (``unit``), and a ``quaternion`` or ``euler`` as
-              for ``attitude``, or a planar robot's ``heading`` (``angle_unit``)
+              for ``attitude``, or a planar robot's ``heading`` (``angle_unit``);
+              ``velocity = [vx, vy(, vz)]`` (``unit`` per second) where it holds one
 ============  =========================================================================
 
 Units: times ``s`` (the default), ``ms``, ``us``, ``ns``, ``iso8601`` (text such as
@@ -116,7 +117,7 @@ STREAMS: dict[str, tuple[str, ...]] = {
         "unit",
         "angle_unit",
     ),
-    "truth": ("position", "quaternion", "euler", "heading", "unit", "angle_unit"),
+    "truth": ("position", "quaternion", "euler", "heading", "velocity", "unit", "angle_unit"),
 }
 #: Each unit's factor to SI.
 UNITS = {
@@ -213,7 +214,7 @@ def _check_key(stream: str, key: str, value, where: str) -> None:
             raise QuadobsError(f"{at}: expected 1 or -1")
     elif key in ("accel", "gyro"):
         _column_list(value, (3,), at)
-    elif key == "position":
+    elif key in ("position", "velocity"):
         _column_list(value, (2, 3), at)
     elif key == "names":
         _column_list(value, tuple(range(1, 1001)), at)
@@ -781,23 +782,31 @@ def _odometry(cols: _Columns) -> np.ndarray:
     return odometry_from_poses(t, rows[:, 1] * unit, rows[:, 2] * unit, rows[:, 3] * angle)
 
 
-def _truth(cols: _Columns) -> np.ndarray:
+def _truth(cols: _Columns) -> tuple[np.ndarray, np.ndarray | None]:
     """``time, x, y, z, qw, qx, qy, qz`` rows (z 0 for a planar position; the quaternion NaN
-    where the truth holds no rotation)."""
+    where the truth holds no rotation), and the velocity's rows where the map names it."""
     opts = cols.map.streams["truth"]
     position_cols, position_signs = _signed(opts["position"])
-    position = {f"p{i}": c for i, c in enumerate(position_cols)}
-    v, _ = cols.read("truth", {"time": opts["time"], **position, **_rotation_columns(opts)})
+    velocity_cols, velocity_signs = _signed(opts.get("velocity", []))
+    named = {f"p{i}": c for i, c in enumerate(position_cols)}
+    named |= {f"v{i}": c for i, c in enumerate(velocity_cols)}
+    v, _ = cols.read("truth", {"time": opts["time"], **named, **_rotation_columns(opts)})
     t = cols.time("truth", v["time"])
     unit = UNITS["unit"][opts.get("unit", "m")]
-    p = [v[f"p{i}"] * unit * position_signs[i] for i in range(len(position))] + [
-        np.zeros(t.size)
-    ] * (3 - len(position))
-    q = _quaternions(opts, v, t.size)
+    p = [v[f"p{i}"] * unit * position_signs[i] for i in range(len(position_cols))]
+    p += [np.zeros(t.size)] * (3 - len(position_cols))
     rotated = bool(_rotation_columns(opts))
-    rows = cols.keep("truth", np.column_stack([t, *p, *(q.T if rotated else [])]))
+    q = _quaternions(opts, v, t.size) if rotated else np.full((t.size, 4), math.nan)
+    speed = [v[f"v{i}"] * unit * velocity_signs[i] for i in range(len(velocity_cols))]
+    rows = cols.keep("truth", np.column_stack([t, *p, *(q.T if rotated else []), *speed]))
     rows = cols.unique_times("truth", rows)
-    return rows if rotated else np.column_stack([rows, np.full((rows.shape[0], 4), math.nan)])
+    k = 4 + (4 if rotated else 0)
+    body = (
+        rows[:, :k]
+        if rotated
+        else np.column_stack([rows[:, :4], np.full((rows.shape[0], 4), math.nan)])
+    )
+    return body, (rows[:, k:] if velocity_cols else None)
 
 
 def _inputs(cols: _Columns, kind: str) -> np.ndarray:
@@ -848,7 +857,7 @@ def import_csv(csv_map: CsvMap, notes: list | None = None) -> RangeLog:
     kind = next((k for k in ("imu", "odometry") if k in streams), "none")
     inputs = _inputs(cols, kind)
     attitude = _attitude(cols) if "attitude" in streams else None
-    truth = _truth(cols) if "truth" in streams else None
+    truth, velocity = _truth(cols) if "truth" in streams else (None, None)
     label = Path(csv_map.where)
     tables = {"ranges": ranges, "tdoa": tdoa, kind: inputs, "truth": truth, "attitude": attitude}
     check_clocks(label, tables, "time_offset = SECONDS in [{}] moves its times")
@@ -867,7 +876,8 @@ def import_csv(csv_map: CsvMap, notes: list | None = None) -> RangeLog:
     meta = dict(csv_map.meta)
     name = meta.pop("name", "") or label.stem
     try:
-        return assemble_log(name, csv_map.anchors, {**tables, "inputs": inputs}, kind, **meta)
+        tables |= {"inputs": inputs, "truth_velocity": velocity}
+        return assemble_log(name, csv_map.anchors, tables, kind, **meta)
     except QuadobsError as exc:  # the format names its own files: say which the map's are
         text = str(exc).replace(f"{name}: meta.csv, key", f"{csv_map.where}: key")
         raise QuadobsError(

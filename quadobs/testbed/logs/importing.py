@@ -193,7 +193,8 @@ def read_map(path: Path, label: str) -> dict:
 def assemble_log(name: str, anchors: dict, tables: dict, kind: str, **fields):
     """The :class:`~quadobs.testbed.logs.format.RangeLog` of an import: ``tables`` holds
     ``ranges`` ``(M, 4)`` and ``tdoa`` ``(N, 5)`` (each with its std last), ``inputs``,
-    ``truth`` ``(T, 8)`` or None (:func:`truth_table`) and ``attitude`` or None; ``kind`` is
+    ``truth`` ``(T, 8)`` or None (:func:`truth_table`), optionally ``truth_velocity``
+    ``(T, 2 or 3)``, and ``attitude`` or None; ``kind`` is
     ``"imu"``, ``"odometry"`` or ``"none"``; ``fields`` the log's others (``heading0``, meta)."""
     from quadobs.testbed.logs.format import RangeLog
 
@@ -203,6 +204,10 @@ def assemble_log(name: str, anchors: dict, tables: dict, kind: str, **fields):
     dim = len(anchors[int(ids[0])])
     ranges, tdoa = tables["ranges"], tables["tdoa"]
     truth, truth_columns = truth_table(tables["truth"], dim, kind == "odometry")
+    velocity = tables.get("truth_velocity")
+    if truth is not None and velocity is not None:  # the navigation frame's, in m/s
+        truth = np.column_stack([truth, velocity])
+        truth_columns = (*truth_columns, *("vx", "vy", "vz")[: velocity.shape[1]])
     return RangeLog(
         name,
         ids,
