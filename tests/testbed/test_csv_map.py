@@ -293,7 +293,7 @@ def test_the_command_line_writes_a_log_that_reads_back(tmp_path, capsys):
         (("accel_noise = 0.02", "heading0 = 1.0"), "heading0 is for wheel odometry"),
         (
             ('anchor = "node"', 'columns = {3 = "x"}'),
-            "[ranges] expected more than one of (anchor, value) or (columns)",
+            "[ranges] value is not of (columns): leave it out",
         ),
     ],
 )
@@ -649,3 +649,22 @@ def test_a_truth_with_its_velocity(tmp_path):
         __import__("quadobs.testbed.logs", fromlist=["write_log"]).write_log(log, tmp_path / "log")
     )
     assert back.truth_columns == log.truth_columns
+
+
+def test_one_range_file_per_anchor(tmp_path):
+    count = _robot_files(tmp_path)
+    wide = import_csv(load_csv_map(tmp_path / "map.toml"))
+    for i in sorted(ANCHORS):
+        own = wide.ranges[wide.ranges[:, 1] == i]
+        (tmp_path / f"a{i}.csv").write_text(
+            "t,d\n" + "".join(f"{t:.17g},{r:.17g}\n" for t, _, r in own)
+        )
+    text = (tmp_path / "map.toml").read_text()
+    start = text.index("[ranges]")
+    end = text.index("[odometry]")
+    files = ", ".join(f'{i} = "a{i}.csv"' for i in sorted(ANCHORS))
+    text = text[:start] + f'[ranges]\nfiles = {{{files}}}\ntime = "t"\nvalue = "d"\n' + text[end:]
+    (tmp_path / "map.toml").write_text(text)
+    log = import_csv(load_csv_map(tmp_path / "map.toml"))
+    assert log.ranges.shape == (count, 3)
+    np.testing.assert_array_equal(np.sort(log.ranges, axis=0), np.sort(wide.ranges, axis=0))

@@ -13,7 +13,8 @@ stream        keys beside the file's (``file``, ``time``, ``time_unit``, ``time_
 ============  =========================================================================
 ``ranges``    ``anchor`` and ``value`` (one range a row; ``anchor_pattern`` as for bags),
               or ``columns = {ID = "column", ...}`` (one column per anchor, an empty cell:
-              no range); ``std`` (a column, or one number for every range, in ``unit``:
+              no range), or ``files = {ID = "file", ...}`` and ``value`` (one file per
+              anchor, in place of ``file``); ``std`` (a column, or one number for every range, in ``unit``:
               a median outside :data:`STD_SPAN` is refused); ``unit``
 ``tdoa``      ``anchor_i``, ``anchor_j``, ``value``, ``std``, ``unit``, ``sign``
 ``imu``       ``accel = [x, y, z]`` and ``gyro = [x, y, z]`` (column names, body frame);
@@ -96,7 +97,7 @@ __all__ = ["STREAMS", "CsvMap", "import_csv", "load_csv_map", "parse_csv_map"]
 FILE_KEYS = ("file", "time", "time_unit", "time_offset", "delimiter", "skip_rows", "names")
 #: Each stream's own keys.
 STREAMS: dict[str, tuple[str, ...]] = {
-    "ranges": ("anchor", "anchor_pattern", "value", "columns", "std", "unit"),
+    "ranges": ("anchor", "anchor_pattern", "value", "columns", "files", "std", "unit"),
     "tdoa": ("anchor_i", "anchor_j", "anchor_pattern", "value", "std", "unit", "sign"),
     "imu": ("accel", "gyro", "accel_unit", "gyro_unit"),
     "attitude": ("quaternion", "euler", "angle_unit"),
@@ -163,7 +164,7 @@ class CsvMap:
         it is written from (``"ranges.csv"``: ``"[ranges] uwb.csv"``), for messages."""
         written = {"odometry": "inputs.csv", "imu": "imu.csv"}
         return {
-            written.get(stream, f"{stream}.csv"): f"[{stream}] {opts['file']}"
+            written.get(stream, f"{stream}.csv"): f"[{stream}] {opts.get('file', 'files')}"
             for stream, opts in self.streams.items()
         } | {"beacons.csv": "the anchors"}
 
@@ -222,7 +223,7 @@ def _check_key(stream: str, key: str, value, where: str) -> None:
         _column_table(value, ("w", "x", "y", "z"), at)
     elif key == "euler":
         _column_table(value, ("roll", "pitch", "yaw"), at)
-    elif key == "columns":
+    elif key in ("columns", "files"):
         _check_wide(value, at)
     elif key == "std":
         if not (isinstance(value, str) and value) and not (_is_number(value) and value > 0):
@@ -244,7 +245,7 @@ def _check_wide(value, at: str) -> None:
 
 #: Per stream, the alternatives of columns it needs (one of them, whole), and what each forbids.
 _NEEDS = {
-    "ranges": (("anchor", "value"), ("columns",)),
+    "ranges": (("anchor", "value"), ("columns",), ("files", "value")),
     "tdoa": (("anchor_i", "anchor_j", "value"),),
     "imu": (("accel", "gyro"),),
     "attitude": (("quaternion",), ("euler",)),
@@ -256,11 +257,18 @@ _NEEDS = {
 def _check_needs(stream: str, table: dict, where: str) -> None:
     """Exactly one of the stream's layouts (:data:`_NEEDS`), whole."""
     ways = _NEEDS[stream]
-    given = [w for w in ways if any(k in table for k in w)]
+    shared = {k for w in ways for k in w if sum(k in v for v in ways) > 1}
+    given = [w for w in ways if any(k in table for k in w if k not in shared)]
     text = " or ".join("(" + ", ".join(w) + ")" for w in ways)
     if len(given) != 1:
-        what = "more than one of" if given else "one of"
-        raise QuadobsError(f"{where}: [{stream}] expected {what} {text}, not both")
+        if given:
+            raise QuadobsError(f"{where}: [{stream}] expected one of {text}, not several")
+        raise QuadobsError(f"{where}: [{stream}] expected one of {text}")
+    stray = sorted(k for w in ways for k in w if k in table and k not in given[0])
+    if stray:
+        raise QuadobsError(
+            f"{where}: [{stream}] {stray[0]} is not of ({', '.join(given[0])}): leave it out"
+        )
     missing = [k for k in given[0] if k not in table]
     if missing:
         raise QuadobsError(
@@ -291,8 +299,10 @@ def _stream(stream: str, value, top: dict, where: str) -> dict:
             f"{where}: [{stream}] unknown key {unknown[0]!r}{hint} (known: {', '.join(known)})"
         )
     for key in ("file", "time"):
-        if key not in value:
+        if key not in value and not (key == "file" and "files" in value):
             raise QuadobsError(f'{where}: [{stream}] {key} missing ({key} = "...")')
+    if "file" in value and "files" in value:
+        raise QuadobsError(f"{where}: [{stream}] file or files, not both")
     for key, item in value.items():
         _check_key(stream, key, item, where)
     _check_needs(stream, value, where)
@@ -644,6 +654,8 @@ def _ranges(cols: _Columns) -> np.ndarray:
             parts.append(np.column_stack([t, np.full(t.size, int(key)), r, std])[given])
         rows = np.concatenate(parts)
         return cols.keep("ranges", rows[:, :3], rows[:, 3])
+    if "files" in opts:
+        return _ranges_per_file(cols, std_col)
     v, _ = cols.read(
         "ranges", {"time": opts["time"], "value": opts["value"], **std_col}, {"id": opts["anchor"]}
     )
@@ -651,6 +663,27 @@ def _ranges(cols: _Columns) -> np.ndarray:
     t = cols.time("ranges", v["time"])
     rows = np.column_stack([t, ids, v["value"] * unit])
     return cols.keep("ranges", rows, _std(opts, v, t.size, where))
+
+
+def _ranges_per_file(cols: _Columns, std_col: dict) -> np.ndarray:
+    """``time, id, range, std`` rows of one file per anchor (``files = {ID = "file"}``)."""
+    opts = cols.map.streams["ranges"]
+    where = f"{cols.map.where}: [ranges]"
+    unit = UNITS["unit"][opts.get("unit", "m")]
+    parts = []
+    for key, name in opts["files"].items():
+        one = {**opts, "file": name}
+        v, _ = read_columns(
+            one,
+            cols.map.base,
+            "[ranges]",
+            {"time": opts["time"], "value": opts["value"], **std_col},
+        )
+        t = cols.time("ranges", v["time"])
+        std = _std(opts, v, t.size, where)
+        parts.append(np.column_stack([t, np.full(t.size, int(key)), v["value"] * unit, std]))
+    rows = np.concatenate(parts)
+    return cols.keep("ranges", rows[:, :3], rows[:, 3])
 
 
 def _tdoa(cols: _Columns) -> np.ndarray:
