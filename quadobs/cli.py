@@ -1376,20 +1376,13 @@ def _cmd_import_csv(args) -> int:
         csv_map = replace(csv_map, meta={**csv_map.meta, "name": args.name})
     notes: list[str] = []
     log = import_csv(csv_map, notes)
-    notes += _check_imported(log, str(args.map), csv_map.file_names())
+    notes += _check_imported(log, str(args.map), csv_map.in_its_names)
     write_log(log, args.out)
     _print_imported(log, notes, args.out)
     return 0
 
 
-def _in_source_names(text: str, names: dict) -> str:
-    """``text`` with the format's file names replaced by what the user's map calls them."""
-    for fname, theirs in names.items():
-        text = text.replace(fname, theirs)
-    return text
-
-
-def _check_imported(log, source: str, names: dict | None = None) -> list[str]:
+def _check_imported(log, source: str, rename=None) -> list[str]:
     """The replay's checks of units, run on an imported log before it is written (a unit the
     map or topic map got wrong is refused at once, naming the source; a body IMU's attitude,
     given or estimated, must keep gravity vertical), and the notes the replay would print
@@ -1415,9 +1408,9 @@ def _check_imported(log, source: str, names: dict | None = None) -> list[str]:
             check_body_imu(prepared)
             navigation_accelerations(prepared)  # gravity held vertical by the attitude
     except QuadobsError as exc:
-        said = _in_source_names(str(exc), names or {})
+        said = rename(str(exc)) if rename else str(exc)
         raise QuadobsError(f"{source}: as imported, the replay would refuse it: {said}") from None
-    return [f"(replay) {_in_source_names(n, names or {})}" for n in notes]
+    return [f"(replay) {rename(n) if rename else n}" for n in notes]
 
 
 def _print_imported(log, notes: list[str], out) -> None:

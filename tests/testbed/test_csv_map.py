@@ -4,6 +4,7 @@ into the open log format: each unit and order stated is undone exactly."""
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -558,9 +559,10 @@ def test_zero_ranges_repeated_rows_and_a_byte_order_mark(tmp_path, capsys):
     (tmp_path / "wheels.csv").write_text(
         "\n".join(wheels[:5] + [wheels[4].replace(",300.0", ",301.0")] + wheels[5:]) + "\n"
     )
-    assert main(["import-csv", str(tmp_path / "map.toml"), "--out", str(tmp_path / "log2")]) == 2
-    err = capsys.readouterr().err
-    assert "wheels.csv: [odometry] 1 rows share their time with another of other values" in err
+    assert main(["import-csv", str(tmp_path / "map.toml"), "--out", str(tmp_path / "log2")]) == 0
+    out = capsys.readouterr().out
+    assert "note: [odometry] 1 rows share their time with the next and hold other values" in out
+    assert read_log(tmp_path / "log2").inputs.shape[0] == 50
 
 
 def test_anchor_ids_in_text():
@@ -586,7 +588,7 @@ def test_a_row_of_another_width_a_repeated_column_name_and_coarse_stamps(tmp_pat
     with pytest.raises(QuadobsError, match=r"imu.csv, line 13: 8 cells, where the header names 7"):
         import_csv(load_csv_map(tmp_path / "map.toml"))
     (tmp_path / "imu.csv").write_text("\n".join([text[0].replace("gz", "gy")] + text[1:]) + "\n")
-    with pytest.raises(QuadobsError, match=r"imu.csv: 2 columns named 'gy' \(\[imu\] w1"):
+    with pytest.raises(QuadobsError, match=r"imu.csv: 2 columns named 'gy' \(\[imu\] gyro\[1\]"):
         import_csv(load_csv_map(tmp_path / "map.toml"))
     coarse = [text[0]]
     for k, row in enumerate(text[1:]):
@@ -594,7 +596,8 @@ def test_a_row_of_another_width_a_repeated_column_name_and_coarse_stamps(tmp_pat
         coarse.append(",".join([f"{float(cells[0]):.1f}", *cells[1:6], str(30 + k)]))
     (tmp_path / "imu.csv").write_text("\n".join(coarse) + "\n")
     with pytest.raises(
-        QuadobsError, match=r"times must increase \(stamps written with fewer digits"
+        QuadobsError,
+        match=r"978 of 999 rows share their time with the row before and hold other values",
     ):
         import_csv(load_csv_map(tmp_path / "map.toml"))
 
@@ -668,3 +671,82 @@ def test_one_range_file_per_anchor(tmp_path):
     log = import_csv(load_csv_map(tmp_path / "map.toml"))
     assert log.ranges.shape == (count, 3)
     np.testing.assert_array_equal(np.sort(log.ranges, axis=0), np.sort(wide.ranges, axis=0))
+
+
+def _wrote_map(folder, edits) -> Path:
+    text = (folder / "map.toml").read_text()
+    for old, new in edits:
+        assert old in text
+        text = text.replace(old, new)
+    (folder / "map.toml").write_text(text)
+    return folder / "map.toml"
+
+
+def test_what_a_second_review_found_is_read_or_refused_in_one_line(tmp_path):
+    """ISO times with empty cells (other sensors' rows) and blanks around; a std column whose
+    0 states none; a range row written twice; ids beyond 2^53; a truth of a header alone; a
+    unit key the odometry's layout does not read; a file that is not UTF-8 text."""
+    import datetime
+
+    _anchors_file(tmp_path)
+    t0 = datetime.datetime(2026, 11, 28, tzinfo=datetime.UTC)
+    lines = ["stamp,anchor,range,sd,x,y,z"]
+    for k in range(60):
+        stamp = (t0 + datetime.timedelta(seconds=0.1 * k)).isoformat()
+        lines.append(
+            f" {stamp} ,anchor_{(3, 7, 11, 12)[k % 4]},{4.0 + 0.01 * k},{0 if k % 2 else 0.1},,,"
+        )
+        lines.append(f" {stamp} ,,,,3.0,2.0,1.0")
+    lines.append(lines[1])  # a range written twice
+    (tmp_path / "all.csv").write_text("\n".join(lines) + "\n")
+    (tmp_path / "map.toml").write_text(
+        'anchors = "anchors.csv"\n[ranges]\nfile = "all.csv"\ntime = "stamp"\ntime_unit = "iso8601"\n'
+        'anchor = "anchor"\nvalue = "range"\nstd = "sd"\n'
+        '[truth]\nfile = "all.csv"\ntime = "stamp"\ntime_unit = "iso8601"\nposition = ["x", "y", "z"]\n'
+    )
+    notes: list[str] = []
+    log = import_csv(load_csv_map(tmp_path / "map.toml"), notes)
+    assert log.ranges.shape == (60, 3) and log.truth.shape == (60, 4)
+    assert np.isnan(log.range_std[1::2]).all() and np.all(log.range_std[::2] == 0.1)
+    assert "[ranges] 1 repeated rows left out" in notes
+    (tmp_path / "big.csv").write_text("t,anchor,range\n0.0,0xDECA000000000A01,4.0\n")
+    big = parse_csv_map(
+        {
+            "anchors": "anchors.csv",
+            "ranges": {"file": "big.csv", "time": "t", "anchor": "anchor", "value": "range"},
+        },
+        base=tmp_path,
+    )
+    with pytest.raises(QuadobsError, match=r"is beyond 2\^53"):
+        import_csv(big)
+    (tmp_path / "t.csv").write_text("t,x,y,z\n")
+    text = (tmp_path / "map.toml").read_text()
+    (tmp_path / "map.toml").write_text(
+        text.replace('[truth]\nfile = "all.csv"', '[truth]\nfile = "t.csv"').replace(
+            'time = "stamp"\ntime_unit = "iso8601"\nposition', 'time = "t"\nposition'
+        )
+    )
+    with pytest.raises(QuadobsError, match=r"\[truth\] t.csv: no row read"):
+        import_csv(load_csv_map(tmp_path / "map.toml"))
+    (tmp_path / "u16.csv").write_bytes("t,anchor,range\n".encode("utf-16"))
+    u16 = parse_csv_map(
+        {
+            "anchors": "anchors.csv",
+            "ranges": {"file": "u16.csv", "time": "t", "anchor": "anchor", "value": "range"},
+        },
+        base=tmp_path,
+    )
+    with pytest.raises(QuadobsError, match=r"u16.csv: UTF-16 text: save it as UTF-8"):
+        import_csv(u16)
+
+
+def test_a_unit_key_the_odometry_does_not_read_is_refused(tmp_path):
+    _robot_files(tmp_path)
+    with pytest.raises(
+        QuadobsError, match=r"\[odometry\] angle_unit is not read with \(left, right, track\)"
+    ):
+        load_csv_map(
+            _wrote_map(
+                tmp_path, [('speed_unit = "mm/s"', 'speed_unit = "mm/s"\nangle_unit = "deg"')]
+            )
+        )

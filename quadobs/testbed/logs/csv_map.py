@@ -32,6 +32,9 @@ stream        keys beside the file's (``file``, ``time``, ``time_unit``, ``time_
               ``velocity = [vx, vy(, vz)]`` (``unit`` per second) where it holds one
 ============  =========================================================================
 
+A vector's column (in ``accel``, ``gyro``, ``position``, ``velocity``) written ``"-ay"`` is
+read negated: an axis of the sensor that points the other way.
+
 Units: times ``s`` (the default), ``ms``, ``us``, ``ns``, ``iso8601`` (text such as
 ``2023-11-14T22:13:20.062+00:00``; without an offset, UTC); lengths ``m`` (the default),
 ``cm``, ``mm``; speeds ``m/s``, ``cm/s``, ``mm/s``; angles ``rad`` (the default) or ``deg``;
@@ -166,7 +169,14 @@ class CsvMap:
         return {
             written.get(stream, f"{stream}.csv"): f"[{stream}] {opts.get('file', 'files')}"
             for stream, opts in self.streams.items()
-        } | {"beacons.csv": "the anchors"}
+        } | {"beacons.csv": "the map's anchors"}
+
+    def in_its_names(self, text: str) -> str:
+        """``text`` with the format's file names as this map's streams and files (one pass:
+        a file of the map named like one of the format's is left as it is)."""
+        names = self.file_names()
+        pattern = re.compile("|".join(re.escape(k) for k in sorted(names, key=len, reverse=True)))
+        return pattern.sub(lambda m: names[m.group(0)], text)
 
 
 def _is_number(value) -> bool:
@@ -282,8 +292,28 @@ def _check_needs(stream: str, table: dict, where: str) -> None:
     wheel = ("wheel_radius", "left_sign", "right_sign")
     if "left" not in table and any(k in table for k in wheel):
         raise QuadobsError(f"{where}: [{stream}] {', '.join(wheel)}: for left, right and track")
+    if stream == "odometry":
+        _check_odometry_units(table, given[0], where)
     if sum(k in table for k in ("quaternion", "euler", "heading")) > 1:
         raise QuadobsError(f"{where}: [{stream}] one of quaternion, euler or heading")
+
+
+def _check_odometry_units(table: dict, layout: tuple, where: str) -> None:
+    """The unit keys of the odometry's layout only: a unit the layout does not read would be
+    ignored, and the values read in the default one."""
+    units = {
+        "speed": ("speed_unit", "rate_unit"),
+        "left": ("rate_unit",) if "wheel_radius" in table else ("speed_unit",),
+        "x": ("unit", "angle_unit"),
+    }[layout[0]]
+    stray = [k for k in ("speed_unit", "rate_unit", "unit", "angle_unit") if k in table]
+    stray = [k for k in stray if k not in units]
+    if stray:
+        raise QuadobsError(
+            f"{where}: [odometry] {stray[0]} is not read with ({', '.join(layout)}"
+            f"{', wheel_radius' if 'wheel_radius' in table else ''}): its unit keys are "
+            f"{' and '.join(units)}"
+        )
 
 
 def _stream(stream: str, value, top: dict, where: str) -> dict:
@@ -378,7 +408,14 @@ def _anchors_from_columns(spec: dict, where: str, base: Path) -> dict:
     bad = np.flatnonzero(~np.isfinite(table).all(axis=1))
     if bad.size:
         raise QuadobsError(
-            f"{base / spec['file']}, line {skip + bad[0] + 1}: an anchor's cell empty"
+            f"{base / spec['file']}, line {skip + bad[0] + 1}: an anchor's cell empty or not "
+            "a finite number"
+        )
+    found, counts = np.unique(ids, return_counts=True)
+    if np.any(counts > 1):
+        raise QuadobsError(
+            f"{base / spec['file']}: anchor id {int(found[counts > 1][0])} given "
+            f"{int(counts.max())} times"
         )
     if np.unique(ids).size != ids.size:
         raise QuadobsError(f"{base / spec['file']}: an anchor id given twice")
@@ -404,29 +441,46 @@ class _Columns:
         self.left_out: dict[str, int] = {}
         self.blank: dict[str, int] = {}
         self.repeated: dict[str, int] = {}
+        self.shared: dict[str, int] = {}
 
     def read(self, stream: str, numeric: dict, text: dict | None = None) -> tuple[dict, int]:
         """``{key: values}`` of the stream's columns (:func:`read_columns`)."""
         opts = self.map.streams[stream]
         return read_columns(opts, self.map.base, f"[{stream}]", numeric, text)
 
+    def without_repeats(self, stream: str, rows: np.ndarray) -> np.ndarray:
+        """Measurement rows without exact repeats of a row (a logger's double write), counted
+        for the notes; the order kept."""
+        _, first = np.unique(rows, axis=0, return_index=True)
+        if first.size == rows.shape[0]:
+            return rows
+        self.repeated[stream] = self.repeated.get(stream, 0) + rows.shape[0] - first.size
+        return rows[np.sort(first)]
+
     def unique_times(self, stream: str, rows: np.ndarray) -> np.ndarray:
-        """Sorted ``rows`` without the repeats of a row (the same time and values, counted
-        for the notes); two rows of one time with other values refused, naming the file."""
+        """Sorted ``rows`` with one row per time, the last (an input held until the next row
+        holds an earlier one of its time for no time): repeats of a row (the same values) and
+        rows of other values are counted apart for the notes; where the latter are more than
+        :data:`COARSE_SHARE` of the rows, the stamps are coarser than the sampling, refused
+        naming the file."""
         same = np.flatnonzero(np.diff(rows[:, 0]) == 0.0) + 1
         if same.size == 0:
             return rows
         differ = same[np.any(rows[same] != rows[same - 1], axis=1)]
-        if differ.size:
+        if differ.size > COARSE_SHARE * rows.shape[0]:
             opts = self.map.streams[stream]
             raise QuadobsError(
-                f"{self.map.base / opts['file']}: [{stream}] {differ.size} rows share their "
-                f"time with another of other values (the first at {opts['time']} = "
-                f"{rows[differ[0], 0]:.10g} s): times must increase (stamps written with fewer "
-                "digits than the sampling needs?)"
+                f"{self.map.base / opts['file']}: [{stream}] {differ.size} of "
+                f"{rows.shape[0]} rows share their time with the row before and hold other "
+                f"values (the first at {rows[differ[0], 0]:.10g} s, after time_unit and "
+                "time_offset): stamps written with fewer digits than the sampling needs?"
             )
-        self.repeated[stream] = self.repeated.get(stream, 0) + int(same.size)
-        return np.delete(rows, same, axis=0)
+        if differ.size:
+            self.shared[stream] = self.shared.get(stream, 0) + int(differ.size)
+        repeats = same.size - differ.size
+        if repeats:
+            self.repeated[stream] = self.repeated.get(stream, 0) + repeats
+        return np.delete(rows, same - 1, axis=0)  # the last row of each time
 
     def time(self, stream: str, values: np.ndarray) -> np.ndarray:
         """A stream's times in seconds on the ranges' clock."""
@@ -458,8 +512,29 @@ def _header(opts: dict, path: Path, raw: bytes, delimiter: str) -> tuple[list, i
     return [h.strip() for h in header], skip + 1
 
 
+#: The map's name of each column key the readers use within a stream.
+_KEY_NAMES = {"id": "anchor", "i": "anchor_i", "j": "anchor_j"}
+_VECTOR_KEYS = {"p": "position", "v": "velocity", "a": "accel", "w": "gyro"}
+
+
+def _key_label(key: str) -> str:
+    """How the map names the column a reader's ``key`` stands for (``"a1"``: ``accel[1]``)."""
+    if key in _KEY_NAMES:
+        return _KEY_NAMES[key]
+    if len(key) == 2 and key[0] in _VECTOR_KEYS and key[1].isdigit():
+        return f"{_VECTOR_KEYS[key[0]]}[{key[1]}]"
+    if key[:1] == "q" and key[1:] in ("w", "x", "y", "z"):
+        return f"quaternion.{key[1:]}"
+    if key[:1] == "e" and key[1:] in ("roll", "pitch", "yaw"):
+        return f"euler.{key[1:]}"
+    if key[:1] == "r" and key[1:].lstrip("-").isdigit():
+        return f"columns.{key[1:]}"
+    return key
+
+
 def _check_columns(path: Path, header: list, wanted: dict, label: str, skip_rows: int) -> None:
     for key, column in wanted.items():
+        key = _key_label(key)
         if header.count(column) > 1:
             raise QuadobsError(
                 f"{path}: {header.count(column)} columns named {column!r} ({label} {key}): "
@@ -482,6 +557,21 @@ def _whitespace_separated(raw: bytes) -> bytes:
     return re.sub(rb"[ \t]+", b",", raw)
 
 
+def _check_text(path: Path, raw: bytes) -> None:
+    """Refuse a file that is not UTF-8 text, naming what it looks like."""
+    if raw[:2] == b"\x1f\x8b":
+        raise QuadobsError(f"{path}: gzip-compressed: decompress it first (gunzip)")
+    if raw[:2] in (b"\xff\xfe", b"\xfe\xff"):
+        raise QuadobsError(f"{path}: UTF-16 text: save it as UTF-8")
+    try:
+        raw.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise QuadobsError(
+            f"{path}: not UTF-8 text (byte {exc.start}: {raw[exc.start : exc.start + 1]!r}): "
+            "save it as UTF-8"
+        ) from None
+
+
 def read_columns(
     opts: dict, base: Path, label: str, numeric: dict, text: dict | None = None
 ) -> tuple[dict, int]:
@@ -498,6 +588,7 @@ def read_columns(
     raw = read_limited(path)
     if raw is None:
         raise QuadobsError(f"{label} file {opts['file']!r}: not found beside the map ({base})")
+    _check_text(path, raw)
     delimiter = opts.get("delimiter", ",")
     if delimiter == "whitespace":
         raw, delimiter = _whitespace_separated(raw), ","
@@ -513,18 +604,39 @@ def read_columns(
 def _iso_seconds(column, path: Path, name: str, skip: int) -> np.ndarray:
     """ISO 8601 times as seconds since 1970 (UTC; times without an offset taken as UTC)."""
     import pyarrow as pa
+    import pyarrow.compute as pc
 
+    column = pc.utf8_trim_whitespace(column)
+    column = pc.if_else(pc.equal(column, ""), pa.scalar(None, pa.string()), column)  # none
     for kind in (pa.timestamp("ns", tz="UTC"), pa.timestamp("ns")):
         try:
             ns = column.cast(kind).cast(pa.int64())
         except (pa.ArrowInvalid, pa.ArrowNotImplementedError):
             continue
         return np.array([math.nan if v is None else v * 1e-9 for v in ns.to_pylist()])
-    first = next((c for c in column.to_pylist() if c), "")
+    cells = column.to_pylist()
+    bad = next((i for i, c in enumerate(cells) if c is not None and not _iso_time(c)), None)
+    if bad is not None:
+        raise QuadobsError(
+            f"{path}, line {skip + bad + 1}, column {name}: {cells[bad]!r} is not an ISO 8601 time"
+        )
     raise QuadobsError(
-        f"{path}, column {name}: {first!r} and the cells after line {skip} are not all ISO "
-        "8601 times of one kind (each with an offset, or none)"
+        f"{path}, column {name}: ISO 8601 times of two kinds, some with an offset and some "
+        "without: give each its offset"
     )
+
+
+def _iso_time(text: str) -> bool:
+    """Whether ``text`` reads as one ISO 8601 time (with or without an offset)."""
+    import pyarrow as pa
+
+    for kind in (pa.timestamp("ns", tz="UTC"), pa.timestamp("ns")):
+        try:
+            pa.array([text]).cast(kind)
+            return True
+        except (pa.ArrowInvalid, pa.ArrowNotImplementedError):
+            continue
+    return False
 
 
 def _arrow_table(path: Path, raw: bytes, header: list, skip: int, delimiter: str, numeric, text):
@@ -570,9 +682,14 @@ def _row_fault(path: Path, raw: bytes, header: list, skip: int, delimiter: str, 
             continue
         cells = next(csv.reader([line], delimiter=delimiter), [])
         if len(cells) != len(header):
+            hint = ""
+            if header and header[0].lstrip().startswith(("#", "%", "//")):
+                hint = "; a comment line for a header? give names = [...] and skip_rows"
+            elif n == skip + 1 and len(cells) > len(header):
+                hint = "; a column name with a space in it? give names = [...] and skip_rows = 1"
             return (
                 f"{path}, line {n}: {len(cells)} cells, where the header names {len(header)} "
-                f"({line[:60]!r})"
+                f"({line[:60]!r}){hint}"
             )
     return f"{path}: cannot be read as CSV ({str(exc).splitlines()[0]})"
 
@@ -598,17 +715,27 @@ def _anchor_ids(cells: list, pattern: str, where: str) -> np.ndarray:
     ids: dict = {None: math.nan, "": math.nan}
     for cell in set(cells) - set(ids):
         text = cell.strip()
+        if not text:
+            ids[cell] = math.nan
+            continue
         try:
             number = float(text)
         except ValueError:
-            ids[cell] = float(anchor_id(text, pattern, where))
-            continue
+            number = float(anchor_id(text, pattern, where))
         if not (math.isfinite(number) and number == round(number)):
             raise QuadobsError(f"{where}: anchor id {text!r} is not an integer")
+        if abs(number) > 2**53:  # the format holds ids beside the values, as floats
+            raise QuadobsError(
+                f"{where}: anchor id {text!r} is beyond 2^53, which the log format cannot hold "
+                "exactly: number the anchors (in the anchors' table and the measurements alike)"
+            )
         ids[cell] = number
     return np.array([ids[c] for c in cells], dtype=float)
 
 
+#: The share of a stream's rows that may repeat the time of the row before with other values
+#: (a logger's jitter) before the import takes its stamps for coarser than its sampling.
+COARSE_SHARE = 0.1
 #: The span (m) within which the median of a stream's stated std must lie: a radio's or an
 #: acoustic beacon's ranges are good to centimetres or decimetres, never to a micrometre or
 #: to tens of metres (a std written in metres beside ranges in mm, or the reverse).
@@ -622,6 +749,7 @@ def _std(opts: dict, values: dict, n: int, where: str) -> np.ndarray:
     std = opts.get("std")
     if isinstance(std, str):
         out = values["std"] * unit
+        out[out == 0.0] = math.nan  # 0: none stated (as a covariance of 0 is in ROS)
     else:
         out = np.full(n, math.nan if std is None else float(std) * unit)
     stated = out[np.isfinite(out)]
@@ -653,7 +781,7 @@ def _ranges(cols: _Columns) -> np.ndarray:
             given = ~np.isnan(r)  # an empty cell: that anchor not ranged in the row
             parts.append(np.column_stack([t, np.full(t.size, int(key)), r, std])[given])
         rows = np.concatenate(parts)
-        return cols.keep("ranges", rows[:, :3], rows[:, 3])
+        return cols.without_repeats("ranges", cols.keep("ranges", rows[:, :3], rows[:, 3]))
     if "files" in opts:
         return _ranges_per_file(cols, std_col)
     v, _ = cols.read(
@@ -662,7 +790,7 @@ def _ranges(cols: _Columns) -> np.ndarray:
     ids = _anchor_ids(v["id"], opts.get("anchor_pattern", ""), where)
     t = cols.time("ranges", v["time"])
     rows = np.column_stack([t, ids, v["value"] * unit])
-    return cols.keep("ranges", rows, _std(opts, v, t.size, where))
+    return cols.without_repeats("ranges", cols.keep("ranges", rows, _std(opts, v, t.size, where)))
 
 
 def _ranges_per_file(cols: _Columns, std_col: dict) -> np.ndarray:
@@ -683,7 +811,7 @@ def _ranges_per_file(cols: _Columns, std_col: dict) -> np.ndarray:
         std = _std(opts, v, t.size, where)
         parts.append(np.column_stack([t, np.full(t.size, int(key)), v["value"] * unit, std]))
     rows = np.concatenate(parts)
-    return cols.keep("ranges", rows[:, :3], rows[:, 3])
+    return cols.without_repeats("ranges", cols.keep("ranges", rows[:, :3], rows[:, 3]))
 
 
 def _tdoa(cols: _Columns) -> np.ndarray:
@@ -706,7 +834,9 @@ def _tdoa(cols: _Columns) -> np.ndarray:
             v["value"] * unit * opts.get("sign", 1),
         ]
     )
-    return cols.keep("tdoa", rows, _std(opts, v, rows.shape[0], where))
+    return cols.without_repeats(
+        "tdoa", cols.keep("tdoa", rows, _std(opts, v, rows.shape[0], where))
+    )
 
 
 def _rotation_columns(opts: dict) -> dict:
@@ -891,6 +1021,11 @@ def import_csv(csv_map: CsvMap, notes: list | None = None) -> RangeLog:
     inputs = _inputs(cols, kind)
     attitude = _attitude(cols) if "attitude" in streams else None
     truth, velocity = _truth(cols) if "truth" in streams else (None, None)
+    if truth is not None and truth.shape[0] == 0:
+        raise QuadobsError(
+            f"{csv_map.where}: [truth] {streams['truth']['file']}: no row read "
+            f"({cols.left_out.get('truth', 0)} left out: a cell empty or not finite)"
+        )
     label = Path(csv_map.where)
     tables = {"ranges": ranges, "tdoa": tdoa, kind: inputs, "truth": truth, "attitude": attitude}
     check_clocks(label, tables, "time_offset = SECONDS in [{}] moves its times")
@@ -906,6 +1041,11 @@ def import_csv(csv_map: CsvMap, notes: list | None = None) -> RangeLog:
             for s, n in sorted(cols.blank.items())
         ]
         notes += [f"[{s}] {n} repeated rows left out" for s, n in sorted(cols.repeated.items())]
+        notes += [
+            f"[{s}] {n} rows share their time with the next and hold other values: left out "
+            "(the later kept; an input would hold the earlier for no time)"
+            for s, n in sorted(cols.shared.items())
+        ]
     meta = dict(csv_map.meta)
     name = meta.pop("name", "") or label.stem
     try:
@@ -913,9 +1053,9 @@ def import_csv(csv_map: CsvMap, notes: list | None = None) -> RangeLog:
         return assemble_log(name, csv_map.anchors, tables, kind, **meta)
     except QuadobsError as exc:  # the format names its own files: say which the map's are
         text = str(exc).replace(f"{name}: meta.csv, key", f"{csv_map.where}: key")
-        raise QuadobsError(
-            text if text != str(exc) else f"{csv_map.where}: as imported: {exc}"
-        ) from None
+        if text == str(exc):
+            text = f"{csv_map.where}: as imported: {csv_map.in_its_names(text)}"
+        raise QuadobsError(text) from None
 
 
 def _left(cols: _Columns) -> str:

@@ -587,9 +587,19 @@ def _odometry_against_truth(log) -> dict:
     return {
         "turn": (np.diff(integral(turned, rate, edges)), np.diff(psi)),
         "distance": (np.diff(integral(held, speed, edges)), along),
+        "jitter": (_jitter(heading), max(_jitter(log.truth[:, 1]), _jitter(log.truth[:, 2]))),
         "heading": (float(log.heading0), float(np.interp(t_in[0], tt, heading))),
         "covered": bool(tt[0] <= t_in[0]),
     }
+
+
+def _jitter(x: np.ndarray) -> float:
+    """A sampled signal's white noise, from its second differences (their variance is six
+    times the noise's for independent samples): ``1.4826 MAD / sqrt(6)``."""
+    second = np.diff(np.asarray(x, dtype=float), 2)
+    if second.size < 3:
+        return 0.0
+    return float(1.4826 * np.median(np.abs(second - np.median(second))) / math.sqrt(6.0))
 
 
 def truth_odometry_note(log) -> str | None:
@@ -599,7 +609,8 @@ def truth_odometry_note(log) -> str | None:
     Over windows of :data:`ODOMETRY_WINDOW`, the least-squares ratio of the odometry's turns
     to the truth's (windows turning :data:`ODOMETRY_LEAST_TURN` or more) and of its distances
     to the truth's along its heading (windows moving :data:`ODOMETRY_LEAST_DISTANCE` or more),
-    each from five windows at least: said where either is negative (the wheels swapped, a
+    each window's change six times the truth's own jitter (:func:`_jitter`) at least, each
+    from five windows at least: said where either is negative (the wheels swapped, a
     wheel's sign, a yaw rate of the opposite convention) or beyond
     :data:`ODOMETRY_SCALE_TOLERANCE` of 1 (a wrong track or unit). ``heading0`` is said where
     it lies more than :data:`HEADING0_TOLERANCE` from the truth's heading at the first input,
@@ -611,14 +622,15 @@ def truth_odometry_note(log) -> str | None:
     if log.input_kind != "odometry" or truth is None or "heading" not in log.truth_columns:
         return "; ".join(found) or None
     parts = _odometry_against_truth(log)
-    for key, least, what in (
-        ("turn", ODOMETRY_LEAST_TURN, "turns (yaw_rate)"),
-        ("distance", ODOMETRY_LEAST_DISTANCE, "distances (speed)"),
+    for key, least, what, k in (
+        ("turn", ODOMETRY_LEAST_TURN, "turns (yaw_rate)", 0),
+        ("distance", ODOMETRY_LEAST_DISTANCE, "distances (speed)", 1),
     ):
         if key not in parts:
             break
         odo, true = parts[key]
-        keep = np.abs(true) >= least
+        # a window's change must stand out of the truth's own jitter (two samples' worth)
+        keep = np.abs(true) >= max(least, 6.0 * math.sqrt(2.0) * parts["jitter"][k])
         if np.count_nonzero(keep) < 5:
             continue
         ratio = float(odo[keep] @ true[keep] / (true[keep] @ true[keep]))
@@ -797,9 +809,7 @@ def check_range_units(log) -> None:
             f"{times} the largest median range of one anchor ({max(medians):.4g}, "
             f"ranges.csv): {both}"
         )
-    from quadobs.testbed.logs.range_noise import range_noise
-
-    noise = range_noise(log)[0]
+    noise = _own_noise(log)
     if math.isfinite(noise) and noise > RANGE_NOISE_RATIO * extent:
         raise QuadobsError(
             f"{log.file_label('ranges.csv')}, column range: the ranges' own noise is "
@@ -818,6 +828,18 @@ def check_range_units(log) -> None:
 TRIANGLE_WINDOW = 1.0
 TRIANGLE_SHORT = 0.5
 TRIANGLE_LONG = 2.0
+
+
+def _own_noise(log) -> float:
+    """The ranges' own noise where a figure is one (:func:`~quadobs.testbed.logs.range_noise.
+    is_noise`: against the line through each range's neighbours, else the cubic through four),
+    else NaN: sparse ranges of a fast vehicle spread by its motion, not their noise."""
+    from quadobs.testbed.logs.range_noise import is_noise, range_noise, smooth_range_noise
+
+    for figures in (range_noise(log), smooth_range_noise(log)):
+        if is_noise(figures, fewest=10):  # a short log's few residuals still tell a unit
+            return float(figures[0])
+    return math.nan
 
 
 def _check_range_triangles(log, both: str) -> None:
@@ -864,7 +886,8 @@ def check_truth_units(log) -> None:
     """Refuse a truth in another unit than the anchors', in one line naming ``truth.csv``.
 
     The median over ranges of ``|p(t) - a_h|``, the truth's distance to the anchor ranged to
-    at each range's time, against the median range: a truth of the tag (or near it) gives a
+    at each range's time (with a planar vehicle's anchors' heights above the tag), against the
+    median range: a truth of the tag (or near it) gives a
     ratio near 1 (a bias, an excess, a lever arm of centimetres), a truth in mm against
     anchors in m about 1000. Refused beyond :data:`TRUTH_SCALE_RATIO` either way; logs of
     TDOA alone are not checked."""
@@ -873,7 +896,11 @@ def check_truth_units(log) -> None:
         return
     p, anchor, rho = found
     dim = p.shape[1]
-    distance = float(np.median(np.linalg.norm(p - np.asarray(log.beacons)[anchor, :dim], axis=1)))
+    offset = p - np.asarray(log.beacons)[anchor, :dim]
+    if log.anchor_heights is not None:  # a planar vehicle under anchors: their heights count
+        tag = float(log.tag_height) if math.isfinite(log.tag_height) else 0.0
+        offset = np.column_stack([offset, np.asarray(log.anchor_heights)[anchor] - tag])
+    distance = float(np.median(np.linalg.norm(offset, axis=1)))
     measured = float(np.median(rho))
     if measured <= 0.0:
         return
