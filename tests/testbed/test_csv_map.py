@@ -511,7 +511,7 @@ def test_wheel_rates_a_mirrored_motor_a_survey_file_and_iso_times(tmp_path):
         ((), None),
         (
             (("left_sign = -1", "left_sign = 1"),),
-            "the odometry's distances (speed) are 0.034 times",
+            "the odometry's distances (speed) are 0.00949 times",
         ),
         (
             (
@@ -750,3 +750,12 @@ def test_a_unit_key_the_odometry_does_not_read_is_refused(tmp_path):
                 tmp_path, [('speed_unit = "mm/s"', 'speed_unit = "mm/s"\nangle_unit = "deg"')]
             )
         )
+
+
+def test_a_range_row_written_twice_without_a_std_is_left_out_once(tmp_path):
+    _robot_files(tmp_path)
+    rows = (tmp_path / "uwb_wide.csv").read_text().splitlines()
+    (tmp_path / "uwb_wide.csv").write_text("\n".join(rows[:4] + [rows[3]] + rows[4:]) + "\n")
+    notes: list[str] = []
+    log = import_csv(load_csv_map(tmp_path / "map.toml"), notes)
+    assert log.ranges.shape == (100, 3) and "[ranges] 2 repeated rows left out" in notes

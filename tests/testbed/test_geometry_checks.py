@@ -91,3 +91,76 @@ def test_a_robot_driving_straight_with_a_jittery_truth_heading_is_not_noted():
         truth_columns=("time", "x", "y", "heading"),
     )
     assert "distances (speed) are -1 times" in truth_odometry_note(flipped)
+
+
+def test_a_truth_shrunk_onto_the_origin_is_refused():
+    """A truth in metres read as mm lies near the origin: its distances to the anchors are of
+    the ranges' size, but each differs from its range by metres."""
+    import pytest
+
+    from quadobs.errors import QuadobsError
+
+    anchors = np.array([[0.0, 0.0, 0.2], [6.0, 0.0, 2.5], [6.0, 5.0, 0.3], [0.0, 5.0, 2.4]])
+    t = 0.05 * np.arange(400)
+    p = np.column_stack([3 + 2 * np.cos(0.3 * t), 2.5 + 2 * np.sin(0.3 * t), 1.0 + 0 * t])
+    h = np.arange(t.size) % 4
+    rho = np.linalg.norm(p - anchors[h], axis=1)
+    truth = np.column_stack([t, p])
+    columns = ("time", "x", "y", "z")
+    ok = RangeLog(
+        "f",
+        np.arange(4),
+        anchors,
+        np.column_stack([t, h, rho]),
+        np.empty((0, 1)),
+        math.nan,
+        truth,
+        input_kind="none",
+        truth_columns=columns,
+    )
+    check_truth_units(ok)
+    shrunk = RangeLog(
+        "f",
+        np.arange(4),
+        anchors,
+        np.column_stack([t, h, rho]),
+        np.empty((0, 1)),
+        math.nan,
+        truth * [1, 1e-3, 1e-3, 1e-3],
+        input_kind="none",
+        truth_columns=columns,
+    )
+    with pytest.raises(QuadobsError, match="each range differs from the truth's distance"):
+        check_truth_units(shrunk)
+
+
+def test_a_robot_turning_in_place_with_its_tag_off_the_axle_is_not_noted():
+    """The truth of a tag 0.2 m beside the axle moves as the robot spins on the spot, which
+    the odometry's speed (zero) does not show: only windows that drive straight are compared."""
+    anchors = np.array([[0.0, 0.0], [4.0, 0.0], [4.0, 4.0], [0.0, 4.0]])
+    t = 0.02 * np.arange(3000)
+    rate = np.where((t // 10) % 2 == 0, 0.8, 0.0)  # spin, then drive
+    speed = np.where((t // 10) % 2 == 0, 0.0, 0.2)
+    psi = np.concatenate([[0.0], np.cumsum(rate[:-1] * 0.02)])
+    axle = np.column_stack(
+        [
+            2 + np.concatenate([[0.0], np.cumsum(speed[:-1] * np.cos(psi[:-1]) * 0.02)]),
+            2 + np.concatenate([[0.0], np.cumsum(speed[:-1] * np.sin(psi[:-1]) * 0.02)]),
+        ]
+    )
+    tag = axle + 0.2 * np.column_stack([-np.sin(psi), np.cos(psi)])
+    h = np.arange(t.size) % 4
+    rho = np.linalg.norm(tag - anchors[h], axis=1)
+    truth = np.column_stack([t, tag, psi])
+    inputs = np.column_stack([t, speed, rate])
+    log = RangeLog(
+        "spin",
+        np.arange(4),
+        anchors,
+        np.column_stack([t, h, rho]),
+        inputs,
+        0.0,
+        truth,
+        truth_columns=("time", "x", "y", "heading"),
+    )
+    assert truth_odometry_note(log) is None

@@ -212,7 +212,8 @@ def _check_key(stream: str, key: str, value, where: str) -> None:
     elif key in ("time_offset", "track", "wheel_radius"):
         positive = key != "time_offset"
         if not _is_number(value) or (positive and value <= 0):
-            raise QuadobsError(f"{at}: expected a {'positive ' if positive else ''}number (m)")
+            what = "a positive number (m)" if positive else "a number (s)"
+            raise QuadobsError(f"{at}: expected {what}")
     elif key == "skip_rows":
         if not (isinstance(value, int) and not isinstance(value, bool) and 0 <= value < 1000):
             raise QuadobsError(f"{at}: expected a whole number of lines")
@@ -235,6 +236,10 @@ def _check_key(stream: str, key: str, value, where: str) -> None:
         _column_table(value, ("roll", "pitch", "yaw"), at)
     elif key in ("columns", "files"):
         _check_wide(value, at)
+    elif key == "anchor_pattern":
+        from quadobs.testbed.logs.importing import check_anchor_pattern
+
+        check_anchor_pattern(value, f"{where}: [{stream}]")
     elif key == "std":
         if not (isinstance(value, str) and value) and not (_is_number(value) and value > 0):
             raise QuadobsError(f"{at}: expected a column name or a positive number")
@@ -247,7 +252,7 @@ def _check_wide(value, at: str) -> None:
     if not isinstance(value, dict) or not value:
         raise QuadobsError(f'{at}: expected a table of anchor id = "column"')
     for key, column in value.items():
-        if not key.lstrip("-").isdigit() or len(key) > 15:
+        if not re.fullmatch(r"-?[0-9]{1,15}", key):
             raise QuadobsError(f"{at}.{key}: the key must be an anchor's integer id")
         if not (isinstance(column, str) and column):
             raise QuadobsError(f"{at}.{key}: expected a column name")
@@ -417,8 +422,6 @@ def _anchors_from_columns(spec: dict, where: str, base: Path) -> dict:
             f"{base / spec['file']}: anchor id {int(found[counts > 1][0])} given "
             f"{int(counts.max())} times"
         )
-    if np.unique(ids).size != ids.size:
-        raise QuadobsError(f"{base / spec['file']}: an anchor id given twice")
     if not ids.size:
         raise QuadobsError(f"{base / spec['file']}: no anchor")
     return {int(row[0]): tuple(float(c) for c in row[1:]) for row in table}
@@ -451,7 +454,7 @@ class _Columns:
     def without_repeats(self, stream: str, rows: np.ndarray) -> np.ndarray:
         """Measurement rows without exact repeats of a row (a logger's double write), counted
         for the notes; the order kept."""
-        _, first = np.unique(rows, axis=0, return_index=True)
+        _, first = np.unique(np.nan_to_num(rows, nan=-np.inf), axis=0, return_index=True)
         if first.size == rows.shape[0]:
             return rows
         self.repeated[stream] = self.repeated.get(stream, 0) + rows.shape[0] - first.size
@@ -487,11 +490,16 @@ class _Columns:
         opts = self.map.streams[stream]
         return values * UNITS["time_unit"][opts["time_unit"]] + float(opts.get("time_offset", 0.0))
 
-    def keep(self, stream: str, rows: np.ndarray, std: np.ndarray | None = None) -> np.ndarray:
+    def keep(
+        self, stream: str, rows: np.ndarray, std: np.ndarray | None = None, blank=None
+    ) -> np.ndarray:
         """The rows whose every value is finite, sorted by time (stably), the rest counted;
-        with ``std`` (NaN: not stated) as a last column."""
+        with ``std`` (NaN: not stated) as a last column. ``blank``: the rows of none of the
+        stream's cells (default: those whose values are all NaN)."""
         ok = np.isfinite(rows).all(axis=1)
-        blank = np.isnan(rows[:, 1:]).all(axis=1)  # another stream's row of a shared file
+        if blank is None:
+            blank = np.isnan(rows[:, 1:]).all(axis=1)  # another stream's row of a shared file
+        blank = blank & ~ok
         if blank.any():
             self.blank[stream] = self.blank.get(stream, 0) + int(blank.sum())
         if not (ok | blank).all():
@@ -505,11 +513,25 @@ def _header(opts: dict, path: Path, raw: bytes, delimiter: str) -> tuple[list, i
     skip = opts.get("skip_rows", 0)
     if "names" in opts:
         return list(opts["names"]), skip
-    text = raw.decode("utf-8-sig", "replace").splitlines()
-    if len(text) <= skip:
+    lines = _first_lines(raw, skip + 1)
+    if len(lines) <= skip:
         raise QuadobsError(f"{path}: no header row (skip_rows = {skip})")
-    header = next(csv.reader(io.StringIO(text[skip]), delimiter=delimiter), [])
+    try:
+        header = next(csv.reader(io.StringIO(lines[skip]), delimiter=delimiter), [])
+    except csv.Error as exc:
+        raise QuadobsError(f"{path}, line {skip + 1}: not a CSV header ({exc})") from None
     return [h.strip() for h in header], skip + 1
+
+
+def _first_lines(raw: bytes, count: int) -> list[str]:
+    """The first ``count`` lines of a file (a byte-order mark skipped), without reading on."""
+    end = -1
+    for _ in range(count):
+        end = raw.find(b"\n", end + 1)
+        if end < 0:
+            end = len(raw)
+            break
+    return raw[:end].decode("utf-8-sig", "replace").splitlines()
 
 
 #: The map's name of each column key the readers use within a stream.
@@ -597,11 +619,11 @@ def read_columns(
     table = _arrow_table(path, raw, header, skip, delimiter, numeric, text)
     values = _arrays(table, numeric, text)
     if iso:
-        values["time"] = _iso_seconds(table.column(text["time"]), path, text["time"], skip)
+        values["time"] = _iso_seconds(table.column(text["time"]), path, text["time"], skip, raw)
     return values, skip
 
 
-def _iso_seconds(column, path: Path, name: str, skip: int) -> np.ndarray:
+def _iso_seconds(column, path: Path, name: str, skip: int, raw: bytes) -> np.ndarray:
     """ISO 8601 times as seconds since 1970 (UTC; times without an offset taken as UTC)."""
     import pyarrow as pa
     import pyarrow.compute as pc
@@ -618,7 +640,8 @@ def _iso_seconds(column, path: Path, name: str, skip: int) -> np.ndarray:
     bad = next((i for i, c in enumerate(cells) if c is not None and not _iso_time(c)), None)
     if bad is not None:
         raise QuadobsError(
-            f"{path}, line {skip + bad + 1}, column {name}: {cells[bad]!r} is not an ISO 8601 time"
+            f"{path}, line {_line_of(raw, skip, bad)}, column {name}: {cells[bad]!r} is not an "
+            "ISO 8601 time"
         )
     raise QuadobsError(
         f"{path}, column {name}: ISO 8601 times of two kinds, some with an offset and some "
@@ -665,12 +688,28 @@ def _arrow_table(path: Path, raw: bytes, header: list, skip: int, delimiter: str
     for column in sorted(set(numeric.values())):
         for i, cell in enumerate(as_text.column(column).to_pylist()):
             try:
+                if cell and "_" in cell:  # Python reads 1_000 as a number; the file's reader not
+                    raise ValueError
                 float(cell or "nan")
             except ValueError:
                 raise QuadobsError(
-                    f"{path}, line {skip + i + 1}, column {column}: {cell!r} is not a number"
+                    f"{path}, line {_line_of(raw, skip, i)}, column {column}: {cell!r} is not "
+                    "a number"
                 ) from None
     raise QuadobsError(f"{path}: cannot be read as CSV")  # pragma: no cover - arrow's own fault
+
+
+def _line_of(raw: bytes, skip: int, row: int) -> int:
+    """The line number (from 1) of data row ``row`` (from 0) after ``skip`` lines, blank
+    lines not counted as rows (as the reader skips them)."""
+    seen = -1
+    for n, line in enumerate(raw.decode("utf-8-sig", "replace").splitlines(), start=1):
+        if n <= skip or not line.strip():
+            continue
+        seen += 1
+        if seen == row:
+            return n
+    return skip + row + 1
 
 
 def _row_fault(path: Path, raw: bytes, header: list, skip: int, delimiter: str, exc) -> str:
@@ -680,7 +719,10 @@ def _row_fault(path: Path, raw: bytes, header: list, skip: int, delimiter: str, 
     for n, line in enumerate(lines[skip:], start=skip + 1):
         if not line.strip():
             continue
-        cells = next(csv.reader([line], delimiter=delimiter), [])
+        try:
+            cells = next(csv.reader([line], delimiter=delimiter), [])
+        except csv.Error as fault:
+            return f"{path}, line {n}: not a CSV row ({fault})"
         if len(cells) != len(header):
             hint = ""
             if header and header[0].lstrip().startswith(("#", "%", "//")):
@@ -721,12 +763,14 @@ def _anchor_ids(cells: list, pattern: str, where: str) -> np.ndarray:
         try:
             number = float(text)
         except ValueError:
-            number = float(anchor_id(text, pattern, where))
-        if not (math.isfinite(number) and number == round(number)):
-            raise QuadobsError(f"{where}: anchor id {text!r} is not an integer")
+            whole = anchor_id(text, pattern, where)
+            number = float(whole) if abs(whole) <= 2**53 else math.inf
+        shown = repr(text if len(text) <= 40 else text[:37] + "...")
+        if math.isnan(number) or (math.isfinite(number) and number != round(number)):
+            raise QuadobsError(f"{where}: anchor id {shown} is not an integer")
         if abs(number) > 2**53:  # the format holds ids beside the values, as floats
             raise QuadobsError(
-                f"{where}: anchor id {text!r} is beyond 2^53, which the log format cannot hold "
+                f"{where}: anchor id {shown} is beyond 2^53, which the log format cannot hold "
                 "exactly: number the anchors (in the anchors' table and the measurements alike)"
             )
         ids[cell] = number
@@ -911,7 +955,9 @@ def _attitude(cols: _Columns) -> np.ndarray:
     opts = cols.map.streams["attitude"]
     v, _ = cols.read("attitude", {"time": opts["time"], **_rotation_columns(opts)})
     t = cols.time("attitude", v["time"])
-    rows = cols.keep("attitude", np.column_stack([t, _quaternions(opts, v, t.size)]))
+    blank = np.isnan(np.column_stack([v[k] for k in _rotation_columns(opts)])).all(axis=1)
+    rows = np.column_stack([t, _quaternions(opts, v, t.size)])
+    rows = cols.keep("attitude", rows, blank=blank)
     return cols.unique_times("attitude", rows)
 
 
@@ -927,6 +973,11 @@ def _odometry(cols: _Columns) -> np.ndarray:
         "odometry", np.column_stack([cols.time("odometry", v["time"])] + [v[k] for k in names])
     )
     rows = cols.unique_times("odometry", rows)
+    if rows.shape[0] < 2:
+        raise QuadobsError(
+            f"{cols.map.where}: [odometry] fewer than two rows left "
+            f"({cols.left_out.get('odometry', 0)} left out: a cell empty or not finite)"
+        )
     t = rows[:, 0]
     if "speed" in opts:
         speed = UNITS["speed_unit"][opts.get("speed_unit", "m/s")]
@@ -1020,12 +1071,19 @@ def import_csv(csv_map: CsvMap, notes: list | None = None) -> RangeLog:
     kind = next((k for k in ("imu", "odometry") if k in streams), "none")
     inputs = _inputs(cols, kind)
     attitude = _attitude(cols) if "attitude" in streams else None
+    if "truth" in streams and dims == {3} and kind != "odometry":
+        if len(streams["truth"]["position"]) == 2:
+            raise QuadobsError(
+                f"{csv_map.where}: [truth] position: two columns, where the anchors are in "
+                "space: give its z (or leave the truth out)"
+            )
     truth, velocity = _truth(cols) if "truth" in streams else (None, None)
-    if truth is not None and truth.shape[0] == 0:
-        raise QuadobsError(
-            f"{csv_map.where}: [truth] {streams['truth']['file']}: no row read "
-            f"({cols.left_out.get('truth', 0)} left out: a cell empty or not finite)"
-        )
+    for stream, table in (("attitude", attitude), ("truth", truth)):
+        if table is not None and table.shape[0] == 0:
+            raise QuadobsError(
+                f"{csv_map.where}: [{stream}] {streams[stream]['file']}: no row read "
+                f"({cols.left_out.get(stream, 0)} left out: a cell empty or not finite)"
+            )
     label = Path(csv_map.where)
     tables = {"ranges": ranges, "tdoa": tdoa, kind: inputs, "truth": truth, "attitude": attitude}
     check_clocks(label, tables, "time_offset = SECONDS in [{}] moves its times")

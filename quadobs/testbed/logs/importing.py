@@ -18,6 +18,7 @@ __all__ = [
     "anchor_id",
     "assemble_log",
     "check_anchor_ids",
+    "check_anchor_pattern",
     "check_clocks",
     "read_anchors",
     "read_map",
@@ -83,6 +84,22 @@ def read_anchors(value, where: str, base: Path | None) -> dict:
             raise QuadobsError(f"{where}: anchors.{key}: expected [x, y] or [x, y, z] in metres")
         out[int(key)] = tuple(float(v) for v in pos)
     return out
+
+
+def check_anchor_pattern(pattern, where: str) -> None:
+    """An ``anchor_pattern``: a regular expression with a group around the id, or empty."""
+    if not isinstance(pattern, str):
+        raise QuadobsError(f"{where}: anchor_pattern: expected a regular expression")
+    if pattern:
+        try:
+            groups = re.compile(pattern).groups
+        except re.error as exc:
+            raise QuadobsError(f"{where}: anchor_pattern {pattern!r}: {exc}") from None
+        if groups < 1:
+            raise QuadobsError(
+                f"{where}: anchor_pattern {pattern!r}: needs a group around the id, "
+                "e.g. 'anchor_(\\d+)'"
+            )
 
 
 def anchor_id(value, pattern: str, where: str) -> int:

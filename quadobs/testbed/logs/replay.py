@@ -559,6 +559,9 @@ ODOMETRY_LEAST_DISTANCE = 0.05
 #: :func:`truth_odometry_note` names them (wheels slip and tyres wear by a few per cent), and
 #: how far (rad) ``heading0`` may lie from the truth's heading.
 ODOMETRY_SCALE_TOLERANCE = 0.3
+#: The most a window may turn (rad) for :func:`truth_odometry_note` to compare its distance
+#: (a tag off the axle moves by the turn times its offset, which the odometry does not see).
+STRAIGHT_TURN = 0.1
 HEADING0_TOLERANCE = 0.3
 
 
@@ -631,6 +634,8 @@ def truth_odometry_note(log) -> str | None:
         odo, true = parts[key]
         # a window's change must stand out of the truth's own jitter (two samples' worth)
         keep = np.abs(true) >= max(least, 6.0 * math.sqrt(2.0) * parts["jitter"][k])
+        if key == "distance":  # a tag beside the axle moves as the robot turns in place
+            keep &= np.abs(parts["turn"][1]) < STRAIGHT_TURN
         if np.count_nonzero(keep) < 5:
             continue
         ratio = float(odo[keep] @ true[keep] / (true[keep] @ true[keep]))
@@ -859,6 +864,8 @@ def _check_range_triangles(log, both: str) -> None:
         return
     d = np.linalg.norm(anchors[h[pair]] - anchors[h[pair + 1]], axis=1)
     keep = d > 0
+    if np.count_nonzero(keep) < 20:  # anchors at one spot tell no triangle
+        return
     ri, rj, d = r[pair, 2][keep], r[pair + 1, 2][keep], d[keep]
     short = float(np.median((ri + rj) / d))
     long = float(np.median(np.abs(ri - rj) / d))
@@ -880,6 +887,10 @@ def _check_range_triangles(log, both: str) -> None:
 #: How far (a factor either way) the truth's distances to the anchors may lie from the ranges
 #: before :func:`check_truth_units` takes the truth for another unit.
 TRUTH_SCALE_RATIO = 10.0
+#: The share of the median range by which the ranges may differ, in median, from the truth's
+#: distances before :func:`check_truth_units` takes the truth for another unit or frame (a bias,
+#: an excess, a lever arm or a clock apart give centimetres to decimetres).
+TRUTH_APART = 0.5
 
 
 def check_truth_units(log) -> None:
@@ -889,8 +900,11 @@ def check_truth_units(log) -> None:
     at each range's time (with a planar vehicle's anchors' heights above the tag), against the
     median range: a truth of the tag (or near it) gives a
     ratio near 1 (a bias, an excess, a lever arm of centimetres), a truth in mm against
-    anchors in m about 1000. Refused beyond :data:`TRUTH_SCALE_RATIO` either way; logs of
-    TDOA alone are not checked."""
+    anchors in m about 1000. Refused beyond :data:`TRUTH_SCALE_RATIO` either way, or where the
+    ranges differ from those distances by a median beyond :data:`TRUTH_APART` of the median
+    range (a truth in m read as mm, shrunk onto the origin; another frame), where the ranges
+    and the distances are both slant (a log in space, or anchors with heights); logs of TDOA
+    alone are not checked."""
     found = _truth_at_ranges(log)
     if found is None:
         return
@@ -900,16 +914,25 @@ def check_truth_units(log) -> None:
     if log.anchor_heights is not None:  # a planar vehicle under anchors: their heights count
         tag = float(log.tag_height) if math.isfinite(log.tag_height) else 0.0
         offset = np.column_stack([offset, np.asarray(log.anchor_heights)[anchor] - tag])
-    distance = float(np.median(np.linalg.norm(offset, axis=1)))
+    distances = np.linalg.norm(offset, axis=1)
+    distance = float(np.median(distances))
     measured = float(np.median(rho))
     if measured <= 0.0:
         return
     ratio = distance / measured
+    both = "the truth's positions and the anchors' coordinates must both be in metres, in one frame"
     if not 1.0 / TRUTH_SCALE_RATIO <= ratio <= TRUTH_SCALE_RATIO:
         raise QuadobsError(
             f"{log.file_label('truth.csv')}: the truth lies a median {distance:.4g} from the "
-            f"anchors ranged to, where the ranges say {measured:.4g} ({ratio:.3g} times): the "
-            "truth's positions and the anchors' coordinates must both be in metres, in one frame"
+            f"anchors ranged to, where the ranges say {measured:.4g} ({ratio:.3g} times): {both}"
+        )
+    slant = dim == 3 or log.anchor_heights is not None  # a planar log's ranges may be slant
+    apart = float(np.median(np.abs(rho - distances)))
+    if slant and apart > TRUTH_APART * measured:
+        raise QuadobsError(
+            f"{log.file_label('truth.csv')}: each range differs from the truth's distance to its "
+            f"anchor by a median {apart:.4g}, {apart / measured:.2g} of the median range: {both} "
+            "(and on the ranges' clock)"
         )
 
 

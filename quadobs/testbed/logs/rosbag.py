@@ -75,7 +75,6 @@ An example map (``quadobs import-bag BAG --out DIR --map map.toml``)::
 from __future__ import annotations
 
 import math
-import re
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -89,6 +88,7 @@ from quadobs.testbed.logs.importing import (
     anchor_id,
     assemble_log,
     check_anchor_ids,
+    check_anchor_pattern,
     check_clocks,
     read_anchors,
     read_map,
@@ -201,19 +201,7 @@ def _check_stream(key: str, opts: dict, where: str) -> None:
         raise QuadobsError(f"{where}: sign: expected 1 or -1")
     if opts.get("time") not in (None, "header", "receive"):
         raise QuadobsError(f"{where}: time: expected 'header' or 'receive', got {opts['time']!r}")
-    pattern = opts.get("anchor_pattern", "")
-    if not isinstance(pattern, str):
-        raise QuadobsError(f"{where}: anchor_pattern: expected a regular expression")
-    if pattern:
-        try:
-            groups = re.compile(pattern).groups
-        except re.error as exc:
-            raise QuadobsError(f"{where}: anchor_pattern {pattern!r}: {exc}") from None
-        if groups < 1:
-            raise QuadobsError(
-                f"{where}: anchor_pattern {pattern!r}: needs a group around the id, "
-                "e.g. 'anchor_(\\d+)'"
-            )
+    check_anchor_pattern(opts.get("anchor_pattern", ""), where)
 
 
 def _stream(key: str, value, where: str) -> dict:
