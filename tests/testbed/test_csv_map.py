@@ -709,16 +709,14 @@ def test_what_a_second_review_found_is_read_or_refused_in_one_line(tmp_path):
     assert log.ranges.shape == (60, 3) and log.truth.shape == (60, 4)
     assert np.isnan(log.range_std[1::2]).all() and np.all(log.range_std[::2] == 0.1)
     assert "[ranges] 1 repeated rows left out" in notes
+
+    def ranges_of(name: str):
+        ranges = {"file": name, "time": "t", "anchor": "anchor", "value": "range"}
+        return parse_csv_map({"anchors": "anchors.csv", "ranges": ranges}, base=tmp_path)
+
     (tmp_path / "big.csv").write_text("t,anchor,range\n0.0,0xDECA000000000A01,4.0\n")
-    big = parse_csv_map(
-        {
-            "anchors": "anchors.csv",
-            "ranges": {"file": "big.csv", "time": "t", "anchor": "anchor", "value": "range"},
-        },
-        base=tmp_path,
-    )
     with pytest.raises(QuadobsError, match=r"is beyond 2\^53"):
-        import_csv(big)
+        import_csv(ranges_of("big.csv"))
     (tmp_path / "t.csv").write_text("t,x,y,z\n")
     text = (tmp_path / "map.toml").read_text()
     (tmp_path / "map.toml").write_text(
@@ -729,15 +727,8 @@ def test_what_a_second_review_found_is_read_or_refused_in_one_line(tmp_path):
     with pytest.raises(QuadobsError, match=r"\[truth\] t.csv: no row read"):
         import_csv(load_csv_map(tmp_path / "map.toml"))
     (tmp_path / "u16.csv").write_bytes("t,anchor,range\n".encode("utf-16"))
-    u16 = parse_csv_map(
-        {
-            "anchors": "anchors.csv",
-            "ranges": {"file": "u16.csv", "time": "t", "anchor": "anchor", "value": "range"},
-        },
-        base=tmp_path,
-    )
     with pytest.raises(QuadobsError, match=r"u16.csv: UTF-16 text: save it as UTF-8"):
-        import_csv(u16)
+        import_csv(ranges_of("u16.csv"))
 
 
 def test_a_unit_key_the_odometry_does_not_read_is_refused(tmp_path):
