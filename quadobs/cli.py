@@ -1388,7 +1388,7 @@ def _check_imported(log, source: str, rename=None) -> list[str]:
     given or estimated, must keep gravity vertical), and the notes the replay would print
     (ranges of 0 m, the truth against the ranges and the odometry)."""
     from quadobs.errors import QuadobsError
-    from quadobs.testbed.attitude import check_body_imu
+    from quadobs.testbed.attitude import check_body_imu, navigation_accelerations
     from quadobs.testbed.logs.replay import (
         check_odometry_units,
         check_range_units,
@@ -1403,8 +1403,6 @@ def _check_imported(log, source: str, rename=None) -> list[str]:
         if prepared.input_kind == "odometry":
             check_odometry_units(prepared)
         if prepared.input_kind == "imu_body":
-            from quadobs.testbed.attitude import navigation_accelerations
-
             check_body_imu(prepared)
             navigation_accelerations(prepared)  # gravity held vertical by the attitude
     except QuadobsError as exc:
