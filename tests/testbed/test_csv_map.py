@@ -750,3 +750,38 @@ def test_a_range_row_written_twice_without_a_std_is_left_out_once(tmp_path):
     notes: list[str] = []
     log = import_csv(load_csv_map(tmp_path / "map.toml"), notes)
     assert log.ranges.shape == (100, 3) and "[ranges] 2 repeated rows left out" in notes
+
+
+def test_one_file_of_several_message_kinds_told_by_a_column(tmp_path):
+    """A text log whose lines are messages of several kinds and widths, the first cell naming
+    the kind (``range2``, ``odom2diff``, ``gt2``): each stream selects its lines."""
+    _anchors_file(tmp_path)
+    lines = ["# a robot's log"]
+    for k in range(40):
+        t = 0.1 * k
+        lines.append(f"range2 {t:.1f}  {3.0 + 0.01 * k}  0.1  {(3, 7, 11, 12)[k % 4]}")
+        lines.append(f"odom2diff {t:.1f} 0.3 0.05")
+        lines.append(f"gt2 {t:.1f} {1.0 + 0.03 * k} 2.0 {0.005 * k}")
+    (tmp_path / "robot.log").write_text("\n".join(lines) + "\n")
+    (tmp_path / "map.toml").write_text(
+        'anchors = "anchors.csv"\nheading0 = 0.0\n'
+        '[ranges]\nfile = "robot.log"\ndelimiter = "whitespace"\nskip_rows = 1\n'
+        'names = ["kind", "t", "r", "sd", "id"]\nselect = {kind = "range2"}\n'
+        'time = "t"\nanchor = "id"\nvalue = "r"\nstd = "sd"\n'
+        '[odometry]\nfile = "robot.log"\ndelimiter = "whitespace"\nskip_rows = 1\n'
+        'names = ["kind", "t", "v", "w"]\nselect = {kind = "odom2diff"}\n'
+        'time = "t"\nspeed = "v"\nyaw_rate = "w"\n'
+        '[truth]\nfile = "robot.log"\ndelimiter = "whitespace"\nskip_rows = 1\n'
+        'names = ["kind", "t", "x", "y", "yaw"]\nselect = {kind = "gt2"}\n'
+        'time = "t"\nposition = ["x", "y"]\nheading = "yaw"\n'
+    )
+    log = import_csv(load_csv_map(tmp_path / "map.toml"))
+    assert (
+        log.ranges.shape == (40, 3) and log.inputs.shape == (40, 3) and log.truth.shape == (40, 4)
+    )
+    assert list(log.ranges[:4, 1]) == [3, 7, 11, 12] and np.allclose(log.range_std, 0.1)
+    np.testing.assert_allclose(log.inputs[:, 1:], [[0.3, 0.05]] * 40)
+    lines[5] = lines[5].replace("0.3 0.05", "0.3 fast")  # an odom2diff line's cell
+    (tmp_path / "robot.log").write_text("\n".join(lines) + "\n")
+    with pytest.raises(QuadobsError, match=r"robot.log, line 6, column w: 'fast' is not a number"):
+        import_csv(load_csv_map(tmp_path / "map.toml"))

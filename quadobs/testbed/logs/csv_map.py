@@ -44,7 +44,9 @@ angles compose as ``R = Rz(yaw) Ry(pitch) Rx(roll)`` (aerospace order).
 
 A file is comma-separated with a header row unless its table says otherwise:
 ``delimiter`` (one character, ``"\\t"`` for tabs, or ``"whitespace"``: runs of spaces and
-tabs, as a column-aligned file has), ``skip_rows`` (lines before the header)
+tabs, as a column-aligned file has), ``select = {column = "value"}`` (the lines of one kind,
+in a file that interleaves several: the others are read as blank lines, so line numbers
+hold), ``skip_rows`` (lines before the header)
 and ``names`` (the columns of a file without a header). Several streams may read one file.
 Files are found beside the map. Each is read by ``pyarrow.csv``; a cell that is not a
 number is named by file, line and column. An empty or non-finite cell leaves its row out of
@@ -97,7 +99,16 @@ from quadobs.testbed.logs.importing import STATED_META_KEYS, stated_meta
 __all__ = ["STREAMS", "CsvMap", "import_csv", "load_csv_map", "parse_csv_map"]
 
 #: The keys every stream's table may hold (beside its own, :data:`STREAMS`).
-FILE_KEYS = ("file", "time", "time_unit", "time_offset", "delimiter", "skip_rows", "names")
+FILE_KEYS = (
+    "file",
+    "time",
+    "time_unit",
+    "time_offset",
+    "delimiter",
+    "skip_rows",
+    "names",
+    "select",
+)
 #: Each stream's own keys.
 STREAMS: dict[str, tuple[str, ...]] = {
     "ranges": ("anchor", "anchor_pattern", "value", "columns", "files", "std", "unit"),
@@ -236,6 +247,13 @@ def _check_key(stream: str, key: str, value, where: str) -> None:
         _column_table(value, ("roll", "pitch", "yaw"), at)
     elif key in ("columns", "files"):
         _check_wide(value, at)
+    elif key == "select":
+        if not (
+            isinstance(value, dict)
+            and value
+            and all(isinstance(v, str | int) and not isinstance(v, bool) for v in value.values())
+        ):
+            raise QuadobsError(f'{at}: expected a table {{column = "value"}}')
     elif key == "anchor_pattern":
         from quadobs.testbed.logs.importing import check_anchor_pattern
 
@@ -594,6 +612,20 @@ def _check_text(path: Path, raw: bytes) -> None:
         ) from None
 
 
+def _selected(raw: bytes, skip: int, wanted: list, delimiter: str) -> bytes:
+    """``raw`` with each data line whose cells do not hold ``wanted`` (``(index, value)``
+    pairs, compared without blanks around) made blank: a file that interleaves messages of
+    several kinds, told by a column. Blank lines are no rows, and lines keep their numbers."""
+    lines = raw.split(b"\n")
+    sep = delimiter.encode()
+    keys = [(i, v.encode()) for i, v in wanted]
+    for n in range(skip, len(lines)):
+        cells = lines[n].rstrip(b"\r").split(sep)
+        if not all(i < len(cells) and cells[i].strip() == v for i, v in keys):
+            lines[n] = b""
+    return b"\n".join(lines)
+
+
 def read_columns(
     opts: dict, base: Path, label: str, numeric: dict, text: dict | None = None
 ) -> tuple[dict, int]:
@@ -615,7 +647,12 @@ def read_columns(
     if delimiter == "whitespace":
         raw, delimiter = _whitespace_separated(raw), ","
     header, skip = _header(opts, path, raw, delimiter)
-    _check_columns(path, header, {**numeric, **text}, label, opts.get("skip_rows", 0))
+    select = opts.get("select", {})
+    chosen = {f"select.{c}": c for c in select}
+    _check_columns(path, header, {**numeric, **text, **chosen}, label, opts.get("skip_rows", 0))
+    if select:
+        wanted = [(header.index(c), str(v)) for c, v in select.items()]
+        raw = _selected(raw, skip, wanted, delimiter)
     table = _arrow_table(path, raw, header, skip, delimiter, numeric, text)
     values = _arrays(table, numeric, text)
     if iso:
