@@ -9,7 +9,7 @@ DIR`` writes the log folder; the replay's checks then run on it as on any log.
 
 ============  =========================================================================
 stream        keys beside the file's (``file``, ``time``, ``time_unit``, ``time_offset``,
-              ``delimiter``, ``skip_rows``, ``names``)
+              ``delimiter``, ``skip_rows``, ``names``, ``select``)
 ============  =========================================================================
 ``ranges``    ``anchor`` and ``value`` (one range a row; ``anchor_pattern`` as for bags),
               or ``columns = {ID = "column", ...}`` (one column per anchor, an empty cell:
