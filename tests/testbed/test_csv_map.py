@@ -785,3 +785,35 @@ def test_one_file_of_several_message_kinds_told_by_a_column(tmp_path):
     (tmp_path / "robot.log").write_text("\n".join(lines) + "\n")
     with pytest.raises(QuadobsError, match=r"robot.log, line 6, column w: 'fast' is not a number"):
         import_csv(load_csv_map(tmp_path / "map.toml"))
+
+
+def test_select_reads_quoted_cells_a_byte_order_mark_and_numbers_alike(tmp_path):
+    _anchors_file(tmp_path)
+    rows = ['"note, first",1.0,0.0,4.0,3'] + [
+        f'"n",{1 + k % 2},{0.1 * k:.1f},4.0,{(3, 7, 11, 12)[k % 4]}' for k in range(1, 40)
+    ]
+    (tmp_path / "mixed.csv").write_text("\ufeff" + "\n".join(rows) + "\n", encoding="utf-8")
+    names = '["note", "kind", "t", "r", "id"]'
+    (tmp_path / "map.toml").write_text(
+        f'anchors = "anchors.csv"\n[ranges]\nfile = "mixed.csv"\nnames = {names}\n'
+        'select = {kind = 1}\ntime = "t"\nanchor = "id"\nvalue = "r"\n'
+    )
+    log = import_csv(load_csv_map(tmp_path / "map.toml"))
+    assert log.ranges.shape == (20, 3) and log.ranges[0, 0] == 0.0  # the first line kept
+
+
+def test_a_survey_names_the_line_of_a_cell_past_blank_lines_and_each_ids_count(tmp_path):
+    _anchors_file(tmp_path)
+    (tmp_path / "r.csv").write_text("t,anchor,range\n0.0,3,4.0\n")
+    ranges = {"file": "r.csv", "time": "t", "anchor": "anchor", "value": "range"}
+    survey = {"file": "survey.csv", "id": "name", "x": "X", "y": "Y", "z": "Z"}
+    (tmp_path / "survey.csv").write_text(
+        "name,X,Y,Z\n\n3,0,0,0.2\n\n7,6,0,2.5\n11,6,5,\n12,0,5,2.4\n"
+    )
+    with pytest.raises(QuadobsError, match=r"survey.csv, line 6: an anchor's cell empty"):
+        parse_csv_map({"anchors": survey, "ranges": ranges}, base=tmp_path)
+    (tmp_path / "survey.csv").write_text(
+        "name,X,Y,Z\n3,0,0,0\n3,1,0,0\n7,2,0,0\n7,3,0,0\n7,4,0,0\n"
+    )
+    with pytest.raises(QuadobsError, match=r"anchor id 3 given 2 times"):
+        parse_csv_map({"anchors": survey, "ranges": ranges}, base=tmp_path)

@@ -430,15 +430,17 @@ def _anchors_from_columns(spec: dict, where: str, base: Path) -> dict:
     table = np.column_stack([ids, *(v[k] * UNITS["unit"][spec.get("unit", "m")] for k in axes)])
     bad = np.flatnonzero(~np.isfinite(table).all(axis=1))
     if bad.size:
+        from quadobs.testbed.logs.files import read_limited
+
+        line = _line_of(read_limited(base / spec["file"]) or b"", skip, int(bad[0]))
         raise QuadobsError(
-            f"{base / spec['file']}, line {skip + bad[0] + 1}: an anchor's cell empty or not "
-            "a finite number"
+            f"{base / spec['file']}, line {line}: an anchor's cell empty or not a finite number"
         )
     found, counts = np.unique(ids, return_counts=True)
     if np.any(counts > 1):
+        k = int(np.flatnonzero(counts > 1)[0])
         raise QuadobsError(
-            f"{base / spec['file']}: anchor id {int(found[counts > 1][0])} given "
-            f"{int(counts.max())} times"
+            f"{base / spec['file']}: anchor id {int(found[k])} given {int(counts[k])} times"
         )
     if not ids.size:
         raise QuadobsError(f"{base / spec['file']}: no anchor")
@@ -614,16 +616,33 @@ def _check_text(path: Path, raw: bytes) -> None:
 
 def _selected(raw: bytes, skip: int, wanted: list, delimiter: str) -> bytes:
     """``raw`` with each data line whose cells do not hold ``wanted`` (``(index, value)``
-    pairs, compared without blanks around) made blank: a file that interleaves messages of
-    several kinds, told by a column. Blank lines are no rows, and lines keep their numbers."""
+    pairs, compared without blanks or quotes around, and as numbers where the value is one)
+    made blank: a file that interleaves messages of several kinds, told by a column. Blank
+    lines are no rows, and lines keep their numbers."""
     lines = raw.split(b"\n")
-    sep = delimiter.encode()
-    keys = [(i, v.encode()) for i, v in wanted]
     for n in range(skip, len(lines)):
-        cells = lines[n].rstrip(b"\r").split(sep)
-        if not all(i < len(cells) and cells[i].strip() == v for i, v in keys):
+        line = lines[n].rstrip(b"\r")
+        if n == 0 and line.startswith(b"\xef\xbb\xbf"):  # a byte-order mark
+            line = line[3:]
+        text = line.decode("utf-8", "replace")
+        if '"' in text:
+            cells = next(csv.reader([text], delimiter=delimiter), [])
+        else:
+            cells = text.split(delimiter)
+        if not all(i < len(cells) and _same_cell(cells[i], v) for i, v in wanted):
             lines[n] = b""
     return b"\n".join(lines)
+
+
+def _same_cell(cell: str, value: str) -> bool:
+    """Whether a cell holds ``value`` (blanks around ignored; ``1`` and ``1.0`` alike)."""
+    cell = cell.strip()
+    if cell == value:
+        return True
+    try:
+        return float(cell) == float(value)
+    except ValueError:
+        return False
 
 
 def read_columns(
