@@ -554,7 +554,7 @@ def test_zero_ranges_repeated_rows_and_a_byte_order_mark(tmp_path, capsys):
     (tmp_path / "map.toml").write_text("\ufeff" + map_text, encoding="utf-8")
     assert main(["import-csv", str(tmp_path / "map.toml"), "--out", str(tmp_path / "log")]) == 0
     out = capsys.readouterr().out
-    assert "note: [odometry] 1 repeated rows left out" in out
+    assert "note: [odometry] 1 rows repeated, left out" in out
     assert "note: (replay) ranges of 0 m (a radio's failed exchange), left out: 100" in out
     (tmp_path / "wheels.csv").write_text(
         "\n".join(wheels[:5] + [wheels[4].replace(",300.0", ",301.0")] + wheels[5:]) + "\n"
@@ -708,7 +708,7 @@ def test_what_a_second_review_found_is_read_or_refused_in_one_line(tmp_path):
     log = import_csv(load_csv_map(tmp_path / "map.toml"), notes)
     assert log.ranges.shape == (60, 3) and log.truth.shape == (60, 4)
     assert np.isnan(log.range_std[1::2]).all() and np.all(log.range_std[::2] == 0.1)
-    assert "[ranges] 1 repeated rows left out" in notes
+    assert "[ranges] 1 rows repeated, left out" in notes
 
     def ranges_of(name: str):
         ranges = {"file": name, "time": "t", "anchor": "anchor", "value": "range"}
@@ -749,7 +749,7 @@ def test_a_range_row_written_twice_without_a_std_is_left_out_once(tmp_path):
     (tmp_path / "uwb_wide.csv").write_text("\n".join(rows[:4] + [rows[3]] + rows[4:]) + "\n")
     notes: list[str] = []
     log = import_csv(load_csv_map(tmp_path / "map.toml"), notes)
-    assert log.ranges.shape == (100, 3) and "[ranges] 2 repeated rows left out" in notes
+    assert log.ranges.shape == (100, 3) and "[ranges] 2 rows repeated, left out" in notes
 
 
 def test_one_file_of_several_message_kinds_told_by_a_column(tmp_path):

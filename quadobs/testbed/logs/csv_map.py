@@ -466,6 +466,22 @@ class _Columns:
         self.repeated: dict[str, int] = {}
         self.shared: dict[str, int] = {}
 
+    def notes(self) -> list[str]:
+        """One line per stream and kind of row the reading left out or skipped."""
+        said = {
+            "left out: a cell empty or not finite": self.left_out,
+            "with none of its cells filled skipped (other streams' rows, where one file holds "
+            "several)": self.blank,
+            "repeated, left out": self.repeated,
+            "share their time with the next and hold other values: left out (the later kept; "
+            "an input would hold the earlier for no time)": self.shared,
+        }
+        return [
+            f"[{s}] {n} rows {what}"
+            for what, counts in said.items()
+            for s, n in sorted(counts.items())
+        ]
+
     def read(self, stream: str, numeric: dict, text: dict | None = None) -> tuple[dict, int]:
         """``{key: values}`` of the stream's columns (:func:`read_columns`)."""
         opts = self.map.streams[stream]
@@ -1145,21 +1161,7 @@ def import_csv(csv_map: CsvMap, notes: list | None = None) -> RangeLog:
     check_clocks(label, tables, "time_offset = SECONDS in [{}] moves its times")
     check_anchor_ids(label, csv_map.anchors, ranges, tdoa, notes)
     if notes is not None:
-        notes += [
-            f"[{s}] {n} rows left out: a cell empty or not finite"
-            for s, n in sorted(cols.left_out.items())
-        ]
-        notes += [
-            f"[{s}] {n} rows with none of its cells filled skipped (other streams' rows, where "
-            "one file holds several)"
-            for s, n in sorted(cols.blank.items())
-        ]
-        notes += [f"[{s}] {n} repeated rows left out" for s, n in sorted(cols.repeated.items())]
-        notes += [
-            f"[{s}] {n} rows share their time with the next and hold other values: left out "
-            "(the later kept; an input would hold the earlier for no time)"
-            for s, n in sorted(cols.shared.items())
-        ]
+        notes += cols.notes()
     meta = dict(csv_map.meta)
     name = meta.pop("name", "") or label.stem
     try:
