@@ -28,7 +28,10 @@ with slip, clocks apart; :data:`ROVER`):
   level, ``0.1 log10 d`` m (``radio.level_bias = 0.1``, :mod:`quadobs.testbed.uwb`);
 * ``tagpattern``: the tag's own pattern, a range bias that turns with the vehicle: a second
   harmonic of the anchor's bearing from the heading, 0.1 m over bearings
-  (:func:`~quadobs.testbed.logs.posed.tag_pattern`).
+  (:func:`~quadobs.testbed.logs.posed.tag_pattern`);
+* ``held``: the ranges as a logger at 20 Hz writes every anchor's latest one
+  (:func:`~quadobs.testbed.logs.posed.ranges_held`: each range repeated until its anchor's
+  next, at the logger's times).
 
 Flight (``real``: no attitude, vibration at 100 Hz, uneven IMU, FRD axes, IMU 20 ms late,
 range biases of both signs, motion capture at 100 Hz, no ``std``; :data:`FLIGHT`, each applied
@@ -48,7 +51,8 @@ to the log without attitude before ``real``'s transforms):
 * ``pattern``, ``level``: as the robot's;
 * ``tagpattern``: the tag's pattern as the second-order form of the anchor's direction in the
   body frame (the truth's attitude), 0.1 m over all directions; applied to the export, whose
-  truth holds the attitude, before it is removed.
+  truth holds the attitude, before it is removed;
+* ``held``: as the robot's, the logger at 100 Hz, on the ranges as ``real`` leaves them.
 
 Both (``mix``): several of them at once, as a real log would hold them, at moderate sizes:
 the anchors' and the tag's patterns at :data:`MIX_PATTERN_STD` (0.05 m) each, ``level``,
@@ -98,6 +102,7 @@ from quadobs.testbed.logs.posed import (
     anchor_gap,
     behind_pillar,
     inputs_late,
+    ranges_held,
     started_at,
     surveyed,
     tag_pattern,
@@ -157,6 +162,7 @@ ROVER = {
     "pattern": ((f"radio.pattern={PATTERN_STD}",), _none),
     "level": ((f"radio.level_bias={LEVEL_BIAS}",), _none),
     "tagpattern": ((), lambda log, seed: tag_pattern(log, PATTERN_STD, seed)),
+    "held": ((), lambda log, seed: ranges_held(log, 20.0)),
     "mix": (
         MIX_SETTINGS,
         _mixed(
@@ -181,6 +187,7 @@ FLIGHT = {
     "pattern": ((f"radio.pattern={PATTERN_STD}",), _none),
     "level": ((f"radio.level_bias={LEVEL_BIAS}",), _none),
     "tagpattern": ((), lambda log, seed: tag_pattern(log, PATTERN_STD, seed)),
+    "held": ((), _none),  # the logger's, after real's transforms: FLIGHT_LOGGER
     "mix": (
         MIX_SETTINGS,
         _mixed(
@@ -191,6 +198,11 @@ FLIGHT = {
     ),
 }
 
+
+#: The flight's stresses of its logger, applied after ``real``'s transforms (which draw the
+#: radio's errors per range): the ranges held as the radio gave them.
+FLIGHT_LOGGER = {"held": lambda log, seed: ranges_held(log, 100.0)}
+AFTER_REAL = tuple(FLIGHT_LOGGER)
 
 #: The flight's stresses run only when named (the robot's own ``rate10`` runs by default): at
 #: these rates no filter meets the target, and they pose the noise test's sparse case rather
@@ -219,7 +231,8 @@ def rover_log(seed: int, name: str, room: str, duration: float, tmp: Path, table
 
 def flight_log(seed: int, name: str, duration: float, tmp: Path, table=None) -> Path:
     """The flight's stand-in ``real`` with the stress ``name``, written in ``tmp``: the stress
-    on the log without attitude, then ``real``'s transforms drawn as the flight study does."""
+    on the log without attitude, then ``real``'s transforms drawn as the flight study does (a
+    logger's stress, :data:`FLIGHT_LOGGER`, after them)."""
     settings, transform = (table or FLIGHT)[name]
     base = tmp / f"flight-seed{seed}-export{'-'.join(settings)}"
     if not (base / "meta.csv").exists():
@@ -230,7 +243,10 @@ def flight_log(seed: int, name: str, duration: float, tmp: Path, table=None) -> 
         stressed = transform(flight.variant(read_log(base), "noatt", 1.0), stress_seed(seed, name))
     rng = np.random.default_rng([seed, flight.REAL.index("real")])
     folder = tmp / f"flight-seed{seed}-{name}"
-    write_log(flight.real_variant(stressed, "real", rng, 1.0, 0.05), folder)
+    real = flight.real_variant(stressed, "real", rng, 1.0, 0.05)
+    if name in AFTER_REAL:  # a logger's: on the ranges as the radio gave them, errors and all
+        real = FLIGHT_LOGGER[name](real, stress_seed(seed, name))
+    write_log(real, folder)
     return folder
 
 

@@ -282,9 +282,9 @@ class EpisodeLog:
                 "wind/truth", dim, names=[f"true w_{a}" for a in axes], color=_TRUTH
             )
             self.airspeed = r.series("measurements/airspeed", 1, skip_nan=True, names=["airspeed"])
-        self.ranges = [
+        self.ranges = [  # by the beacons' ids: a log's, as its files name them
             r.series(f"measurements/range/{h}", 1, skip_nan=True, names=[f"range {h}"])
-            for h in range(frame.beacons.shape[0])
+            for h in (frame.beacon_ids or range(frame.beacons.shape[0]))
         ]
         self.inputs = r.series(
             f"measurements/{frame.input_name}",

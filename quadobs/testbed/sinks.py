@@ -188,6 +188,9 @@ class EpisodeFrame:
         Its columns (as many as the world's ``u``).
     beacon_labels : tuple of str
         Labels of the beacons in the recording.
+    beacon_ids : tuple of int
+        The beacons' ids, which name their range series (``measurements/range/<id>``); empty:
+        their indices (a simulated scenario's ids).
     time_origin : float
         The estimators' clock at row 0 (s): a replayed log's first grid time, its own stamps;
         0 for a simulated episode, whose estimators count from the row times. Their records
@@ -211,6 +214,7 @@ class EpisodeFrame:
     input_name: str = "accelerometer"
     input_labels: tuple = ()
     beacon_labels: tuple = ()
+    beacon_ids: tuple = ()
     time_origin: float = 0.0
 
     @classmethod

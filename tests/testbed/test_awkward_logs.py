@@ -275,3 +275,62 @@ def test_anchors_in_one_plane_are_said_to_leave_a_mirror_image():
     assert anchor_plane(flat[:, :2]) is None  # a planar log has no mirror
     _, notes = replayable_log(dataclasses.replace(helix(), beacons=flat))
     assert len(notes) == 1 and "mirror" in notes[0]
+
+
+def test_a_loggers_held_ranges_are_left_out_and_each_range_kept_once():
+    """Every anchor's latest range written at 100 Hz (each range five times or more): the
+    copies go, and each range is kept once, at the logger's first time after its own."""
+    from quadobs.testbed.logs.posed import ranges_held
+    from quadobs.testbed.logs.replay import replayable_log
+
+    log = helix()
+    held = ranges_held(log, 100.0)
+    back, notes = replayable_log(held)
+    assert len(notes) == 1 and notes[0].startswith(
+        "ranges that repeat their anchor's previous value exactly (a logger writing held values), "
+        f"left out: {held.ranges.shape[0] - back.ranges.shape[0]} of {held.ranges.shape[0]}"
+    )
+    r, b = log.ranges, back.ranges
+    for anchor in log.beacon_ids:
+        mine, kept = r[r[:, 1] == anchor], b[b[:, 1] == anchor]
+        assert np.array_equal(kept[:, 2], mine[: kept.shape[0], 2])  # each once, in order
+        late = kept[:, 0] - mine[: kept.shape[0], 0]
+        assert np.all((late > -1e-9) & (late < 0.01 + 1e-9))
+    assert b.shape[0] >= r.shape[0] - 4  # but the last range of each anchor, after the end
+
+
+def test_ranges_at_a_coarse_resolution_are_not_taken_for_held_ones():
+    """Ranges written to the centimetre, to 5 cm and to 10 cm (where a fifth of them repeat
+    their anchor's previous one by chance, past the share alone) repeat as a radio's do:
+    kept, no note."""
+    from quadobs.testbed.logs.replay import repeated_values, replayable_log
+
+    log = helix(40.0)
+    for q in (0.01, 0.05, 0.1):
+        r = log.ranges.copy()
+        r[:, 2] = np.round(r[:, 2] / q) * q
+        coarse = dataclasses.replace(log, ranges=r)
+        repeat, expected = repeated_values(r[:, 1], r[:, 0], r[:, 2])
+        assert repeat.sum() <= 5.0 * expected
+        assert replayable_log(coarse) == (coarse, [])
+
+
+def test_held_differences_are_left_out_by_their_pair():
+    """TDOA rows written three times each (at +0, +0.01 and +0.02 s): two of three go, by
+    pair; the ranges beside them, as the radio gave them, are kept."""
+    from quadobs.testbed.logs.replay import without_held_ranges
+
+    log = helix()
+    r = log.ranges
+    pairs = np.column_stack([r[:, 1], (r[:, 1] + 1) % 4])
+    tdoa = np.column_stack([r[:, 0], pairs, r[:, 2] - 2.0])
+    held = np.vstack([tdoa + [dt, 0, 0, 0] for dt in (0.0, 0.01, 0.02)])
+    held = held[np.argsort(held[:, 0], kind="stable")]
+    withheld = dataclasses.replace(log, tdoa=held, tdoa_std=np.full(held.shape[0], 0.05))
+    back, notes = without_held_ranges(withheld)
+    assert len(notes) == 1 and notes[0].startswith(
+        f"tdoa that repeat their pair's previous value exactly (a logger writing held values), "
+        f"left out: {2 * tdoa.shape[0]} of {held.shape[0]} (at the values' resolution a radio "
+        "repeats about "
+    )
+    assert np.array_equal(back.tdoa, tdoa) and np.array_equal(back.ranges, log.ranges)

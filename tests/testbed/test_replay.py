@@ -296,10 +296,11 @@ def test_a_replay_records_the_layout_of_an_episode(tmp_path):
         "errors/ekf/position/axes",
         "observer/augmented/nis",
         "observer/ekf/covariance_trace",
-        "measurements/range/3",
+        "measurements/range/6",  # by the log's ids (0, 1, 5, 6), not their indices
         "measurements/odometry",
     ):
         assert e in entities
+    assert "measurements/range/3" not in entities
     assert not any("velocity" in e for e in entities)  # the odometry model has no velocity
     err = read_series(tmp_path / "r.rrd", "errors/augmented/position/norm")
     assert err["step"][-1] == s["steps"] and err["values"][-1, 0] == pytest.approx(
@@ -308,10 +309,11 @@ def test_a_replay_records_the_layout_of_an_episode(tmp_path):
     assert err["values"][0, 0] == pytest.approx(20.0)  # the initial offset, at step 0
     truth = read_series(tmp_path / "r.rrd", "world/truth/path")["values"]
     np.testing.assert_allclose(truth[0, :2], log.truth[0, 1:3])  # the log's truth, on the grid
-    rng = read_series(tmp_path / "r.rrd", "measurements/range/0")
-    np.testing.assert_array_equal(
-        np.sort(rng["values"][:, 0]), np.sort(log.ranges[log.ranges[:, 1] == 0, 2])
-    )
+    for anchor in (0, 5):
+        rng = read_series(tmp_path / "r.rrd", f"measurements/range/{anchor}")
+        np.testing.assert_array_equal(
+            np.sort(rng["values"][:, 0]), np.sort(log.ranges[log.ranges[:, 1] == anchor, 2])
+        )
     assert default_panels(open_source(tmp_path / "r.rrd")) == [
         "paths",
         "position",

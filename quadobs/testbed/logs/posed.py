@@ -47,6 +47,7 @@ __all__ = [
     "inputs_late",
     "log_start",
     "posed_log",
+    "ranges_held",
     "started_at",
     "surveyed",
     "tag_pattern",
@@ -253,6 +254,27 @@ def inputs_late(log: RangeLog, offset: float, jitter: float, seed: int) -> Range
     moved = offset + np.random.default_rng(seed).uniform(-jitter, jitter, inputs.shape[0])
     inputs[:, 0] += moved
     return replace(log, inputs=inputs[np.argsort(inputs[:, 0], kind="stable")])
+
+
+def ranges_held(log: RangeLog, rate: float) -> RangeLog:
+    """The ranges as a logger writes them that holds each anchor's latest range and writes
+    every anchor's at ``rate`` Hz from the first range on (a flight controller's log block, a
+    table of one column per anchor): each range repeated until its anchor's next, stamped at
+    the logger's times; the stated ``std`` held with it."""
+    r, std = log.ranges, log.range_std
+    times = np.arange(r[0, 0], r[-1, 0], 1.0 / rate)
+    rows, stds = [], []
+    for anchor in log.beacon_ids:
+        own = np.flatnonzero(r[:, 1] == anchor)
+        latest = np.searchsorted(r[own, 0], times, side="right") - 1
+        seen = latest >= 0
+        rows.append(
+            np.column_stack([times[seen], np.full(seen.sum(), anchor), r[own[latest[seen]], 2]])
+        )
+        stds.append(std[own[latest[seen]]])
+    held, held_std = np.vstack(rows), np.concatenate(stds)
+    order = np.lexsort((held[:, 1], held[:, 0]))
+    return replace(log, ranges=held[order], range_std=held_std[order])
 
 
 def _body_directions(log: RangeLog) -> np.ndarray:

@@ -54,8 +54,10 @@ __all__ = [
     "heard_anchors",
     "initial_guess",
     "log_scenario",
+    "repeated_values",
     "replayable_log",
     "run_replay",
+    "without_held_ranges",
     "without_zero_ranges",
 ]
 
@@ -361,6 +363,85 @@ def without_zero_ranges(log):
     )
 
 
+#: The least share of a log's measurements that repeat their anchor's previous value exactly,
+#: and how many times the repeats a genuine radio would give at the values' resolution, beyond
+#: which :func:`without_held_ranges` takes the repeats for a logger's held values.
+HELD_RANGES = (0.2, 5.0)
+
+
+def repeated_values(keys: np.ndarray, times: np.ndarray, values: np.ndarray) -> tuple:
+    """The measurements that repeat their key's (anchor's) previous value exactly, and how
+    many repeats a genuine radio would give.
+
+    Returns a mask of the repeats, in the order given, and the expected count. Consecutive
+    independent ranges of one anchor, written at a resolution ``q`` (the least gap between
+    its distinct values), differ by ``d`` with a density ``f`` that is smooth over a few
+    ``q`` (the noise, 0.02 m or more for UWB, spans several): the lattice point ``d = 0``
+    then holds about as many pairs as each of ``d = +-q``, ``f(0) q``. So the count of pairs
+    at ``+-q``, halved, is the expected count of exact repeats (at full precision none).
+    """
+    repeat = np.zeros(values.size, dtype=bool)
+    expected = 0.0
+    for key in np.unique(keys):
+        idx = np.flatnonzero(keys == key)
+        idx = idx[np.argsort(times[idx], kind="stable")]
+        v = values[idx]
+        if v.size < 2:
+            continue
+        d = np.diff(v)
+        repeat[idx[1:]] = d == 0.0
+        gaps = np.diff(np.unique(np.round(v, 9)))
+        q = max(float(gaps[gaps > 0].min()) if np.any(gaps > 0) else 0.0, 1e-9)
+        expected += 0.5 * np.count_nonzero((d != 0.0) & (np.abs(d) <= 1.5 * q))
+    return repeat, expected
+
+
+def without_held_ranges(log):
+    """``log`` without the ranges (and TDOA) that a logger held, and a note for each kind.
+
+    A logger that writes every anchor's latest range at its own rate (a log block of a
+    flight controller, a table of one column per anchor) repeats a range until the radio
+    measures the next: each is then counted several times, at times up to one period late
+    (a flight stand-in logged so at 100 Hz: the best default 0.176 -> 0.272 m; without the
+    copies 0.175 m, docs/replaying-your-data.md). Where a kind's exact repeats of an
+    anchor's previous value are at least :data:`HELD_RANGES`'s share of its measurements
+    and that many times the count a genuine radio gives at the values' resolution
+    (:func:`repeated_values`), the repeats are left out, keeping each value at its first
+    time; otherwise the log is as given."""
+    import dataclasses
+
+    from quadobs.testbed.logs.schema import RANGE, TDOA
+
+    share, ratio = HELD_RANGES
+    changes, notes = {}, []
+    tables = (
+        ("ranges", "range_std", log.ranges, [RANGE.beacon], RANGE.range, "their anchor's"),
+        (
+            "tdoa",
+            "tdoa_std",
+            log.tdoa,
+            [TDOA.anchor_i, TDOA.anchor_j],
+            TDOA.difference,
+            "their pair's",
+        ),
+    )
+    for name, std, table, key_cols, value_col, whose in tables:
+        if table.shape[0] < 2:
+            continue
+        keys = np.unique(table[:, key_cols], axis=0, return_inverse=True)[1].ravel()
+        repeat, expected = repeated_values(keys, table[:, 0], table[:, value_col])
+        count = int(repeat.sum())
+        if count < share * table.shape[0] or count <= ratio * max(expected, 1.0):
+            continue
+        changes[name], changes[std] = table[~repeat], getattr(log, std)[~repeat]
+        notes.append(
+            f"{name} that repeat {whose} previous value exactly (a logger writing held values), "
+            f"left out: {count} of {table.shape[0]} (at the values' resolution a radio repeats "
+            f"about {expected:.0f})"
+        )
+    return (dataclasses.replace(log, **changes) if changes else log), notes
+
+
 def heard_anchors(log):
     """``log`` without the anchors that no range or TDOA names, and those anchors' ids.
 
@@ -387,12 +468,14 @@ def heard_anchors(log):
 
 def replayable_log(log, keep_anchors: bool = False) -> tuple:
     """``log`` as the replay takes it, and one line for each thing left out: its ranges of 0 m
-    (:func:`without_zero_ranges`), then, unless ``keep_anchors`` (biases given per listed
+    (:func:`without_zero_ranges`), a logger's held copies (:func:`without_held_ranges`), then, unless ``keep_anchors`` (biases given per listed
     anchor), the anchors that no measurement names (:func:`heard_anchors`)."""
     notes = []
     log, zeros = without_zero_ranges(log)
     if zeros:
         notes.append(f"ranges of 0 m (a radio's failed exchange), left out: {zeros}")
+    log, held = without_held_ranges(log)
+    notes += held
     if not keep_anchors:
         log, unheard = heard_anchors(log)
         if unheard:

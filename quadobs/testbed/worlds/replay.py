@@ -306,6 +306,7 @@ class ReplayWorld(World):
             if odometry
             else tuple(f"a_{a}" for a in "xyz"[: log.dimension]),
             beacon_labels=tuple(f"beacon {int(i)}" for i in log.beacon_ids),
+            beacon_ids=tuple(int(i) for i in log.beacon_ids),
             time_origin=float(self.times[0]),
         )
 
