@@ -522,38 +522,19 @@ def check_rates_against_attitude(log) -> None:
     A log whose attitude and rates turn that much in fewer windows has too little to compare
     and is left as it is.
     """
-    att = log.attitude
-    if att is None or att.shape[0] < 2 or log.inputs.shape[0] < 2:
+    compared = rates_against_attitude(log.attitude, log.inputs)
+    if compared is None:
         return
-    window, least = RATE_WINDOW
-    t, w = log.inputs[:, 0], log.inputs[:, 4:7]
-    edges = np.arange(max(t[0], att[0, 0]), min(t[-1], att[-1, 0]) - window, window)
-    if edges.size == 0:
-        return
-    times = np.r_[edges, edges[-1] + window]
-    R = attitude_at(att, times)
-    rotation = (R[:-1].inv() * R[1:]).as_rotvec()
-    dt = np.diff(t)[:, None]
-    W = np.vstack([np.zeros((1, 3)), np.cumsum(0.5 * (w[1:] + w[:-1]) * dt, axis=0)])
-    rates = np.diff(np.column_stack([np.interp(times, t, W[:, i]) for i in range(3)]), axis=0)
-    turned = np.linalg.norm(rotation, axis=1)
+    window = RATE_WINDOW[0]
+    ratio, windows, cosine = compared
+    if ratio is not None and ratio > RATE_RATIO:
+        raise QuadobsError(
+            f"{log.file_label('imu.csv')}, columns gx,gy,gz: the rates integrated turn "
+            f"{ratio:.3g} times as far as attitude.csv does (median over {windows} windows of "
+            f"{window:g} s; deg/s read as rad/s: 57): the rates must be in rad/s, and "
+            f"{GIVEN_ATTITUDE_HINT}"
+        )
     bound, count = RATE_AXES
-    moving = turned >= least
-    if np.count_nonzero(~moving) >= count:  # the gyroscope's bias, where the attitude is still
-        rates = rates - np.median(rates[~moving], axis=0)
-    integrated = np.linalg.norm(rates, axis=1)
-    if np.count_nonzero(moving) >= count:
-        ratio = float(np.median(integrated[moving] / turned[moving]))
-        if ratio > RATE_RATIO:
-            raise QuadobsError(
-                f"{log.file_label('imu.csv')}, columns gx,gy,gz: the rates integrated turn "
-                f"{ratio:.3g} times as far as attitude.csv does (median over "
-                f"{int(moving.sum())} windows of {window:g} s; deg/s read as rad/s: 57): the "
-                f"rates must be in rad/s, and {GIVEN_ATTITUDE_HINT}"
-            )
-    both = moving & (integrated >= least)  # and by angles of one size (not a bias against jitter)
-    both &= (integrated <= RATE_RATIO * turned) & (turned <= RATE_RATIO * integrated)
-    cosine = np.sum(rotation * rates, axis=1)[both] / (turned * integrated)[both]
     if cosine.size >= count and float(np.median(cosine)) < bound:
         raise QuadobsError(
             f"{log.file_label('attitude.csv')}: the body rates of imu.csv turn about other axes "
@@ -561,6 +542,42 @@ def check_rates_against_attitude(log) -> None:
             f"{cosine.size} windows of {window:g} s, {bound:g} at least): the rates must be in "
             f"rad/s, on the attitude's clock, and {GIVEN_ATTITUDE_HINT}"
         )
+
+
+def rates_against_attitude(att, inputs) -> tuple | None:
+    """A body IMU's rates against an attitude ``att`` (rows ``time, qw, qx, qy, qz``), over
+    windows of :data:`RATE_WINDOW` seconds (:func:`check_rates_against_attitude`).
+
+    Returns None where they share no window, else the median ratio of the rates' angle to the
+    attitude's over the windows where the attitude turns (None in fewer than
+    :data:`RATE_AXES`'s count), that count of windows, and the cosines between the two
+    rotation vectors over the windows where both turn by angles of one size.
+    """
+    if att is None or att.shape[0] < 2 or inputs.shape[0] < 2:
+        return None
+    window, least = RATE_WINDOW
+    t, w = inputs[:, 0], inputs[:, 4:7]
+    edges = np.arange(max(t[0], att[0, 0]), min(t[-1], att[-1, 0]) - window, window)
+    if edges.size == 0:
+        return None
+    times = np.r_[edges, edges[-1] + window]
+    R = attitude_at(att, times)
+    rotation = (R[:-1].inv() * R[1:]).as_rotvec()
+    dt = np.diff(t)[:, None]
+    W = np.vstack([np.zeros((1, 3)), np.cumsum(0.5 * (w[1:] + w[:-1]) * dt, axis=0)])
+    rates = np.diff(np.column_stack([np.interp(times, t, W[:, i]) for i in range(3)]), axis=0)
+    turned = np.linalg.norm(rotation, axis=1)
+    count = RATE_AXES[1]
+    moving = turned >= least
+    if np.count_nonzero(~moving) >= count:  # the gyroscope's bias, where the attitude is still
+        rates = rates - np.median(rates[~moving], axis=0)
+    integrated = np.linalg.norm(rates, axis=1)
+    windows = int(np.count_nonzero(moving))
+    ratio = float(np.median(integrated[moving] / turned[moving])) if windows >= count else None
+    both = moving & (integrated >= least)  # and by angles of one size (not a bias against jitter)
+    both &= (integrated <= RATE_RATIO * turned) & (turned <= RATE_RATIO * integrated)
+    cosine = np.sum(rotation * rates, axis=1)[both] / (turned * integrated)[both]
+    return ratio, windows, cosine
 
 
 _NAVIGATION: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()

@@ -185,3 +185,31 @@ def test_a_long_imu_beside_a_short_recording_is_not_taken_for_milliseconds(tmp_p
     imu_ms = np.column_stack([1000.0 * fast, np.tile(log.inputs[0, 1:], (fast.size, 1))])
     with pytest.raises(QuadobsError, match=r"imu.csv spans 2e\+04 s"):
         dataclasses.replace(log, inputs=imu_ms)
+
+
+def _truth_attitude(log, q):
+    """``log`` without attitude.csv, its truth holding the attitude ``q`` (rows qw, qx, qy, qz
+    at the truth's times, which are the attitude's)."""
+    columns = ("time", "x", "y", "z", "qw", "qx", "qy", "qz")
+    truth = np.column_stack([log.truth[:, :4], q])
+    return dataclasses.replace(log, attitude=None, truth=truth, truth_columns=columns)
+
+
+def test_a_truth_attitude_that_the_rates_contradict_is_said_in_a_note():
+    """The truth's quaternion as the IMU turns: nothing said; its conjugate (navigation to
+    body) turns about the opposite axis, scalar last about another: each said, naming
+    truth.csv and what it moves."""
+    from quadobs.testbed.logs.replay import truth_attitude_note
+
+    log = _imu_body_log(True, yaw_rate=0.2)
+    q = log.attitude[:, 1:]
+    assert truth_attitude_note(_truth_attitude(log, q)) is None
+    note = truth_attitude_note(_truth_attitude(log, q * [1, -1, -1, -1]))
+    assert note is not None and "turn about other axes (median cosine -1.00" in note
+    assert note.startswith("imu-body: truth.csv: the body rates of imu.csv")
+    assert note.endswith("It gives the TUM files' orientation")
+    lever = dataclasses.replace(
+        _truth_attitude(log, q[:, [1, 2, 3, 0]]), tag_x=0.0, tag_y=0.0, tag_z=0.0
+    )
+    note = truth_attitude_note(lever)
+    assert note is not None and "moves the truth to the stated tag and gives" in note

@@ -483,7 +483,7 @@ def replayable_log(log, keep_anchors: bool = False) -> tuple:
     notes += gap_notes(log)
     anchors = truth_anchor_note(log)
     lag = None if anchors else truth_lag_note(log)  # ids mapped wrong shift the best lag too
-    found = (lag, anchors, truth_odometry_note(log), stated_std_note(log))
+    found = (lag, anchors, truth_odometry_note(log), truth_attitude_note(log), stated_std_note(log))
     notes += [n for n in found if n]
     plane = anchor_plane(log.beacons)
     if plane is not None:
@@ -584,6 +584,44 @@ def truth_lag_note(log) -> str | None:
         f"moved so, {at_zero:.3g} m at its own times): is the truth on the ranges' clock, or "
         "its point off the tag's along the path (a lever arm)? A truth on another clock "
         "scores every estimator from the wrong time"
+    )
+
+
+def truth_attitude_note(log) -> str | None:
+    """A note where the truth's attitude (``qw, qx, qy, qz`` of ``truth.csv``) turns about
+    other axes than a body IMU's rates, or a fifth as far or less: a quaternion scalar last,
+    navigation to body, or in another frame.
+
+    The comparison of :func:`~quadobs.testbed.attitude.check_rates_against_attitude` (median
+    cosine of the windows' rotations below :data:`~quadobs.testbed.attitude.RATE_AXES`'s
+    bound, or their angles' median ratio beyond
+    :data:`~quadobs.testbed.attitude.RATE_RATIO`), made on the truth's attitude; a note, not a
+    refusal, since the truth's attitude only moves the truth to a stated tag (``tag_x``,
+    ``tag_y``, ``tag_z``) and writes the TUM files' orientation."""
+    from quadobs.testbed.attitude import RATE_AXES, RATE_RATIO, rates_against_attitude
+
+    q = log.truth_part("attitude") if log.input_kind == "imu_body" else None
+    if q is None:
+        return None
+    compared = rates_against_attitude(np.column_stack([log.truth[:, 0], q]), log.inputs)
+    if compared is None:
+        return None
+    ratio, windows, cosine = compared
+    bound, count = RATE_AXES
+    axes = cosine.size >= count and float(np.median(cosine)) < bound
+    if not axes and (ratio is None or 1.0 / RATE_RATIO <= ratio <= RATE_RATIO):
+        return None
+    said = (
+        f"turn about other axes (median cosine {float(np.median(cosine)):.2f} over "
+        f"{cosine.size} windows)"
+        if axes
+        else f"turn {ratio:.3g} times as far (median over {windows} windows)"
+    )
+    uses = "moves the truth to the stated tag and " if log.truth_lever is not None else ""
+    return (
+        f"{log.file_label('truth.csv')}: the body rates of imu.csv {said} than the truth's "
+        f"attitude (qw,qx,qy,qz) does: is it scalar first, body to navigation, in the anchors' "
+        f"frame? It {uses}gives the TUM files' orientation"
     )
 
 
