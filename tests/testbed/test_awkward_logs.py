@@ -334,3 +334,54 @@ def test_held_differences_are_left_out_by_their_pair():
         "repeats about "
     )
     assert np.array_equal(back.tdoa, tdoa) and np.array_equal(back.ranges, log.ranges)
+
+
+def test_a_truth_of_zeros_where_the_motion_capture_lost_the_body_is_left_out(plain):
+    """Three spells of the truth's rows written as zeros (3 m from the origin on the helix):
+    left out with a note, the replay scored on the rest as the plain log nearly is; a row at
+    the origin between rows near it (a vehicle passing through) is kept."""
+    from quadobs.testbed.logs.replay import replayable_log, without_lost_truth
+
+    log = helix()
+    truth = log.truth.copy()
+    t = truth[:, 0]
+    lost = ((t > 2.5) & (t < 3.0)) | ((t > 4.0) & (t < 4.6)) | ((t > 6.0) & (t < 6.3))
+    truth[lost, 1:4] = 0.0
+    back, notes = replayable_log(dataclasses.replace(log, truth=truth))
+    assert notes[0] == (
+        f"truth: {lost.sum()} rows at exactly the origin between rows farther than 0.25 m "
+        "from it (a motion capture that lost the body), left out: no error scored there"
+    )
+    assert all(n.startswith("truth: a gap of") for n in notes[1:])  # the widest spell
+    assert np.array_equal(back.truth, log.truth[~lost])
+    assert _replay(back)["rmse"] == pytest.approx(plain[1]["rmse"], rel=0.05)
+    through = log.truth.copy()
+    through[:, 1:4] -= through[100, 1:4]  # the origin moved onto the path at row 100
+    passing = dataclasses.replace(log, truth=through)
+    assert without_lost_truth(passing) == (passing, None)
+
+
+def test_a_radios_codes_of_no_range_are_left_out_and_named(plain):
+    """655.35 m (twice), 999 m and -1 m among the helix's ranges (its anchors 17 m apart at
+    most: the bound 170 m): left out, the codes named by count, and the replay is the
+    plain log's; a short range below zero (an antenna delay) is kept."""
+    from quadobs.testbed.logs.replay import replayable_log, without_impossible_ranges
+
+    log = helix()
+    ranges, std = log.ranges.copy(), log.range_std.copy()
+    codes = {10: 655.35, 50: 655.35, 90: 999.0, 130: -1.0}
+    for k in sorted(codes, reverse=True):
+        ranges = np.insert(ranges, k, [ranges[k, 0], ranges[k, 1], codes[k]], axis=0)
+        std = np.insert(std, k, 0.05)
+    back, notes = replayable_log(dataclasses.replace(log, ranges=ranges, range_std=std))
+    bound = 10.0 * np.max(np.linalg.norm(ANCHORS[:, None] - ANCHORS[None], axis=2))
+    assert notes == [
+        f"ranges of -1 m or less, or beyond {bound:.4g} m (10 times the anchors' extent), which "
+        "no radio measures (a code of no range), left out: 4 (655.35 m (2), -1 m (1), 999 m (1))"
+    ]
+    assert np.array_equal(back.ranges, log.ranges) and np.array_equal(back.range_std, log.range_std)
+    assert _replay(back)["rmse"] == pytest.approx(plain[1]["rmse"], rel=1e-12)
+    short = log.ranges.copy()
+    short[0, 2] = -0.4
+    kept = dataclasses.replace(log, ranges=short)
+    assert without_impossible_ranges(kept) == (kept, None)

@@ -26,7 +26,9 @@ def velocity(t):
 
 
 def helix_log(duration=20.0, rate=100.0, spike=None) -> RangeLog:
-    """A helix in space: an exact accelerometer (navigation frame) at ``rate``, exact ranges round-robin at 20 Hz."""
+    """A helix in space: an exact accelerometer (navigation frame) at ``rate``, exact ranges
+    round-robin at 20 Hz; ``spike``: the accelerometer's row at the ``spike``-th range's time
+    read 1e150 m/s^2 (a corrupt sample, which drives every filter to overflow)."""
     t = np.arange(0.0, duration, 1.0 / rate)
     acc = np.column_stack(
         [-R * W**2 * np.cos(W * t), -R * W**2 * np.sin(W * t), -0.25 * np.sin(0.5 * t)]
@@ -35,7 +37,7 @@ def helix_log(duration=20.0, rate=100.0, spike=None) -> RangeLog:
     h = np.arange(t_r.size) % 4
     ranges = np.column_stack([t_r, h, np.linalg.norm(position(t_r) - BEACONS[h], axis=1)])
     if spike is not None:
-        ranges[spike, 2] = 1e150
+        acc[int(np.searchsorted(t, ranges[spike, 0] - 1e-9))] = 1e150
     truth = np.column_stack([t, position(t), velocity(t)])
     return RangeLog(
         "helix",
@@ -99,7 +101,7 @@ def test_a_diverged_estimator_is_reported_and_has_no_figures(tmp_path, capsys):
     width = max(10, *(len(n) for n in s["estimators"]))  # the printed names' column
     for name, e in diverged.items():
         assert e["rmse"] is None and e["max_error"] is None and e["final_position_error"] is None
-        spike = 0.02 + 40 * 0.05  # the time of the range of 1e150 m: from its step on
+        spike = 0.02 + 40 * 0.05  # the time of the sample of 1e150 m/s^2: from its step on
         assert spike <= e["diverged"]["t"] <= spike + 0.02
         assert f"{name}: DIVERGED at step" in out and f"{name:{width}s} rmse invalid" in out
         assert not (tmp_path / "tum" / f"{name}.tum").exists()
@@ -202,7 +204,10 @@ def test_an_estimators_own_record_is_reported_on_the_logs_time_from_its_start(tm
     for d in diverged.values():
         assert 0.0 <= d["t"] <= 10.0 and d["step"] == pytest.approx(d["t"] / 0.01, abs=1)
     two = shifted.ranges[shifted.ranges[:, 1] < 2]  # two anchors: no fix in space
-    folder = write_log(dataclasses.replace(shifted, ranges=two, range_std=None), tmp_path / "two")
+    exact = helix_log(10.0).inputs + [t0, 0, 0, 0]  # without the corrupt sample
+    folder = write_log(
+        dataclasses.replace(shifted, ranges=two, range_std=None, inputs=exact), tmp_path / "two"
+    )
     code = main(
         ["replay", str(folder), "--dt", "0.01", "--calibrate", "none", "--no-progress"]
         + ["--estimators", "ekf-bias", "--summary", str(tmp_path / "two.json")]

@@ -58,6 +58,8 @@ __all__ = [
     "replayable_log",
     "run_replay",
     "without_held_ranges",
+    "without_impossible_ranges",
+    "without_lost_truth",
     "without_zero_ranges",
 ]
 
@@ -363,6 +365,91 @@ def without_zero_ranges(log):
     )
 
 
+#: A range no radio measures (m, and times the anchors' extent): at or below the first (an error
+#: code of -1; an antenna delay takes a range below zero by tenths of a metre at most), or beyond
+#: the second times the largest distance between two anchors (a tag is among its anchors, or
+#: near them: 655.35, 999 or 2^32 mm are a radio's codes of no range).
+IMPOSSIBLE_RANGES = (-1.0, 10.0)
+
+
+def without_impossible_ranges(log):
+    """``log`` without the ranges that no radio measures (:data:`IMPOSSIBLE_RANGES`), and a
+    note naming them, or None.
+
+    A radio's firmware writes a code where an exchange failed (0 m is left out by
+    :func:`without_zero_ranges`; -1, 655.35 = 2^16 - 1 cm, 999, 2^32 - 1 mm are others).
+    Taken as ranges they drag every filter by hundreds of metres: 0.7 % of a flight's ranges
+    at 655.35 m took its best default from 0.176 to 0.326 m and its EKF to 47 m
+    (docs/replaying-your-data.md)."""
+    import dataclasses
+
+    from quadobs.testbed.logs.schema import RANGE
+
+    if log.beacons.shape[0] < 2 or log.ranges.shape[0] == 0:
+        return log, None
+    low, times = IMPOSSIBLE_RANGES
+    high = times * anchor_extent(log.beacons)
+    rho = log.ranges[:, RANGE.range]
+    bad = (rho <= low) | (rho > high)
+    if not bad.any():
+        return log, None
+    values, counts = np.unique(rho[bad], return_counts=True)
+    top = np.argsort(-counts, kind="stable")[:3]
+    listed = ", ".join(f"{values[k]:.6g} m ({counts[k]})" for k in top)
+    more = ", ..." if values.size > 3 else ""
+    note = (
+        f"ranges of {low:g} m or less, or beyond {high:.4g} m ({times:g} times the anchors' "
+        f"extent), which no radio measures (a code of no range), left out: {int(bad.sum())} "
+        f"({listed}{more})"
+    )
+    keep = ~bad
+    return dataclasses.replace(log, ranges=log.ranges[keep], range_std=log.range_std[keep]), note
+
+
+#: How far (m) from the origin the truth's rows about a row at exactly the origin must lie for
+#: :func:`without_lost_truth` to take it for a motion capture's row of a lost body: farther
+#: than a vehicle moves between two rows (0.25 m: 5 m/s at 20 Hz).
+LOST_TRUTH_JUMP = 0.25
+
+
+def without_lost_truth(log):
+    """``log`` without the truth's rows at exactly the origin between rows far from it, and a
+    note, or None.
+
+    A motion capture that loses the body (occluded markers) writes zeros in some exports;
+    scored as the truth, each such row counts the vehicle's whole distance from the origin as
+    error (a flight whose truth lost the body eight times for 0.2 to 1 s: the best default
+    0.176 -> 0.807 m, docs/replaying-your-data.md). A row whose position is exactly zero and
+    whose nearest other rows before and after lie farther than :data:`LOST_TRUTH_JUMP` from
+    the origin is left out: the truth has a gap there, where nothing is scored. A vehicle that
+    passes through the origin does so between rows near it, and keeps them."""
+    import dataclasses
+
+    position = log.truth_part("position") if log.truth is not None else None
+    if position is None or position.shape[0] < 3:
+        return log, None
+    raw = log.truth[:, [log.truth_columns.index(c) for c in ("x", "y", "z")[: log.dimension]]]
+    zero = np.all(raw == 0.0, axis=1)
+    if not zero.any() or zero.all():
+        return log, None
+    others = np.flatnonzero(~zero)
+    away = np.linalg.norm(raw[others], axis=1) > LOST_TRUTH_JUMP
+    rows = np.flatnonzero(zero)
+    after = np.clip(np.searchsorted(others, rows), 0, others.size - 1)
+    before = np.clip(after - 1, 0, others.size - 1)
+    lost = rows[away[before] & away[after]]
+    if lost.size == 0:
+        return log, None
+    keep = np.ones(log.truth.shape[0], dtype=bool)
+    keep[lost] = False
+    note = (
+        f"truth: {lost.size} rows at exactly the origin between rows farther than "
+        f"{LOST_TRUTH_JUMP:g} m from it (a motion capture that lost the body), left out: no "
+        "error scored there"
+    )
+    return dataclasses.replace(log, truth=log.truth[keep]), note
+
+
 #: The least share of a log's measurements that repeat their anchor's previous value exactly,
 #: and how many times the repeats a genuine radio would give at the values' resolution, beyond
 #: which :func:`without_held_ranges` takes the repeats for a logger's held values.
@@ -468,14 +555,19 @@ def heard_anchors(log):
 
 def replayable_log(log, keep_anchors: bool = False) -> tuple:
     """``log`` as the replay takes it, and one line for each thing left out: its ranges of 0 m
-    (:func:`without_zero_ranges`), a logger's held copies (:func:`without_held_ranges`), then, unless ``keep_anchors`` (biases given per listed
+    (:func:`without_zero_ranges`) and others no radio measures (:func:`without_impossible_ranges`),
+    a logger's held copies (:func:`without_held_ranges`), then, unless ``keep_anchors`` (biases given per listed
     anchor), the anchors that no measurement names (:func:`heard_anchors`)."""
     notes = []
     log, zeros = without_zero_ranges(log)
     if zeros:
         notes.append(f"ranges of 0 m (a radio's failed exchange), left out: {zeros}")
+    log, impossible = without_impossible_ranges(log)
+    notes += [impossible] if impossible else []
     log, held = without_held_ranges(log)
     notes += held
+    log, lost = without_lost_truth(log)
+    notes += [lost] if lost else []
     if not keep_anchors:
         log, unheard = heard_anchors(log)
         if unheard:
@@ -679,7 +771,7 @@ ODOMETRY_LEAST_DISTANCE = 0.05
 #: How far from 1 the odometry's turns or distances may be, as a share of the truth's, before
 #: :func:`truth_odometry_note` names them (wheels slip and tyres wear by a few per cent), and
 #: how far (rad) ``heading0`` may lie from the truth's heading.
-ODOMETRY_SCALE_TOLERANCE = 0.3
+ODOMETRY_SCALE_TOLERANCE = 0.1
 #: The most a window may turn (rad) for :func:`truth_odometry_note` to compare its distance
 #: (a tag off the axle moves by the turn times its offset, which the odometry does not see).
 STRAIGHT_TURN = 0.1
@@ -775,8 +867,9 @@ def truth_odometry_note(log) -> str | None:
     return (
         "against the truth, "
         + "; ".join(found)
-        + ": check the odometry's units, the wheels' order and signs, the track, and heading0 "
-        "(the truth only scores: the replay goes on)"
+        + ": check the odometry's units, the wheels' order and signs, the track, its clock "
+        "against the truth's (a lag of seconds), and heading0 (the truth only scores: the "
+        "replay goes on)"
     )
 
 
