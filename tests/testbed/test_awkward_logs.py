@@ -273,8 +273,9 @@ def test_anchors_in_one_plane_are_said_to_leave_a_mirror_image():
     tilted = flat @ np.array([[1.0, 0.0, 0.0], [0.0, 0.8, 0.6], [0.0, -0.6, 0.8]])  # any plane
     assert anchor_plane(tilted) == pytest.approx(0.0, abs=1e-12)
     assert anchor_plane(flat[:, :2]) is None  # a planar log has no mirror
-    _, notes = replayable_log(dataclasses.replace(helix(), beacons=flat))
-    assert len(notes) == 1 and "mirror" in notes[0]
+    _, notes = replayable_log(dataclasses.replace(helix(), beacons=flat, truth=None))
+    assert len(notes) == 1 and "mirror" in notes[0]  # (without the truth: the ranges are not
+    # of these anchors, which the truth's notes would say)
 
 
 def test_a_loggers_held_ranges_are_left_out_and_each_range_kept_once():
@@ -385,3 +386,70 @@ def test_a_radios_codes_of_no_range_are_left_out_and_named(plain):
     short[0, 2] = -0.4
     kept = dataclasses.replace(log, ranges=short)
     assert without_impossible_ranges(kept) == (kept, None)
+
+
+def test_stamps_coarser_than_the_sampling_are_refused_naming_the_file(tmp_path):
+    """Inputs stamped in bursts of five (80 % of the rows share a time with other values) and
+    ranges stamped to whole seconds are refused naming the file (written or read); inputs at 50 Hz stamped to
+    30 ms (a third of them share one) and a round of ranges to several anchors at one time
+    (a grid) are read."""
+    log = helix()
+    burst = log.inputs.copy()
+    burst[:, 0] = burst[(np.arange(burst.shape[0]) // 5) * 5, 0]
+    with pytest.raises(QuadobsError, match=r"inputs.csv: 320 of 400 rows share their time"):
+        write_log(dataclasses.replace(log, inputs=burst), tmp_path / "burst")
+    ranges = log.ranges.copy()
+    ranges[:, 0] = np.floor(ranges[:, 0])
+    with pytest.raises(
+        QuadobsError,
+        match=r"ranges.csv: \d+ of 160 rows share their time with a row of the same id",
+    ):
+        write_log(dataclasses.replace(log, ranges=ranges), tmp_path / "seconds")
+    coarse = log.inputs.copy()
+    coarse[:, 0] = np.floor(coarse[:, 0] / 0.03 + 1e-9) * 0.03
+    grid = log.ranges.copy()
+    grid[:, 0] = grid[(np.arange(grid.shape[0]) // 4) * 4, 0]  # four anchors at one time
+    folder = write_log(dataclasses.replace(log, inputs=coarse, ranges=grid), tmp_path / "fine")
+    back = read_log(folder)
+    assert np.array_equal(back.inputs, coarse) and np.array_equal(back.ranges, grid)
+
+
+def test_rows_stamped_zero_before_a_clock_was_set_are_named():
+    """Three inputs stamped 0 beside a log on unix time (an unset stamp): refused naming the
+    rows, not taken for nanoseconds."""
+    log = helix()
+    t0 = 1.7e9
+    inputs = log.inputs + [t0, 0, 0, 0]
+    inputs[:3, 0] = 0.0
+    with pytest.raises(
+        QuadobsError,
+        match=r"helix: inputs.csv: 3 rows stamped 0 \(the first at row 2\) beside times from 1700000000.06 s",
+    ):
+        dataclasses.replace(
+            log,
+            ranges=log.ranges + [t0, 0, 0],
+            inputs=inputs,
+            truth=log.truth + np.r_[t0, np.zeros(6)],
+        )
+
+
+def test_a_truth_off_the_anchors_origin_is_said_in_a_note():
+    """The helix's truth moved by (0.5, 0, 0) m: the note finds about (-0.5, 0, 0) m back
+    (within 0.1 m along it, the height least told by anchors at two heights); as given, and
+    moved by 0.2 m (within what unmoved logs fit), nothing is said."""
+    import re
+
+    from quadobs.testbed.logs.replay import truth_offset_note
+
+    log = helix(40.0)
+    assert truth_offset_note(log) is None
+    for shift, said in ((0.2, False), (0.5, True)):
+        truth = log.truth.copy()
+        truth[:, 1] += shift
+        note = truth_offset_note(dataclasses.replace(log, truth=truth))
+        assert (note is not None) == said
+    assert note is not None and note.startswith(
+        "against the ranges, truth.csv fits best moved by ("
+    )
+    found = np.array([float(v) for v in re.search(r"moved by \(([^)]*)\)", note)[1].split(",")])
+    assert abs(found[0] + 0.5) <= 0.1 and np.linalg.norm(found[1:]) <= 0.2

@@ -95,6 +95,7 @@ import numpy as np
 from quadobs.errors import QuadobsError
 from quadobs.testbed.logs.format import RangeLog
 from quadobs.testbed.logs.importing import STATED_META_KEYS, stated_meta
+from quadobs.testbed.logs.schema import COARSE_SHARE
 
 __all__ = ["STREAMS", "CsvMap", "import_csv", "load_csv_map", "parse_csv_map"]
 
@@ -849,9 +850,6 @@ def _anchor_ids(cells: list, pattern: str, where: str) -> np.ndarray:
     return np.array([ids[c] for c in cells], dtype=float)
 
 
-#: The share of a stream's rows that may repeat the time of the row before with other values
-#: (a logger's jitter) before the import takes its stamps for coarser than its sampling.
-COARSE_SHARE = 0.1
 #: The span (m) within which the median of a stream's stated std must lie: a radio's or an
 #: acoustic beacon's ranges are good to centimetres or decimetres, never to a micrometre or
 #: to tens of metres (a std written in metres beside ranges in mm, or the reverse).

@@ -426,6 +426,14 @@ class RangeLog:
         if not spans or float(np.ptp(np.concatenate(list(spans.values())))) <= MAX_SPAN:
             return
         for fname, (a, b) in spans.items():
+            rows = next(v for f, _, v in tables if f == fname)
+            zero = np.flatnonzero(rows[:, 0] == 0.0)
+            if b - a > MAX_SPAN and 0 < 2 * zero.size < rows.shape[0] and a == 0.0:
+                raise QuadobsError(
+                    f"{self.name}: {fname}: {zero.size} rows stamped 0 (the first at row "
+                    f"{int(zero[0]) + 2}) beside times from {float(rows[zero.size, 0]):.12g} s: "
+                    "stamps not set (before the clock was synchronised?): leave those rows out"
+                )
             if b - a > MAX_SPAN:
                 raise QuadobsError(
                     f"{self.name}: {fname} spans {b - a:.3g} s, more than {MAX_SPAN:g} s: "

@@ -438,6 +438,7 @@ def check_values(
             raise QuadobsError(
                 f"{where}, row {int(bad[0]) + 3}, column time: earlier than the row before (rows must be sorted by time)"
             )
+        _check_stamps(where, values, columns, spec)
     if set(QUATERNION) <= set(columns):
         q = values[:, [columns.index(c) for c in QUATERNION]]
         with np.errstate(over="ignore"):  # a huge component: an infinite norm, refused below
@@ -447,6 +448,42 @@ def check_values(
                 f"{where}, row {int(bad[0]) + 2}, columns qw,qx,qy,qz: not a unit quaternion "
                 f"(norm {float(np.linalg.norm(q[bad[0]])):.6g})"
             )
+
+
+#: The share of a file's rows that may repeat the time of a row of the same sensor (the same
+#: anchor or pair, in a file of ranges or differences) with other values, before its stamps
+#: are taken for coarser than its sampling. An IMU at 1 kHz stamped to the millisecond with
+#: its jitter repeats a quarter or so, and a row held for no time costs little (a flight's IMU
+#: at about 100 Hz stamped to 10 ms: a quarter of its rows, the best default 0.176 -> 0.138 m);
+#: whole seconds, float32 stamps or bursts of a serial link stamped at once repeat most.
+COARSE_SHARE = 0.5
+
+
+def _check_stamps(where: str, values: np.ndarray, columns, spec: FileSpec) -> None:
+    """Refuse a file whose stamps are coarser than its sampling, in one line.
+
+    Rows of one sensor (one id, in a file that names anchors) at one time with other values
+    cannot both be the sensor's: more than :data:`COARSE_SHARE` of them and the stamps were
+    written with fewer digits than the rate needs (seconds in whole numbers, a time in float32,
+    a burst of a serial link stamped at once). Rows repeated exactly are a logger's copies,
+    left to the replay; rows of several anchors at one time are a round of ranges."""
+    keys = [c for c, name in enumerate(columns) if name in spec.integers]
+    order = np.lexsort([values[:, 0], *(values[:, k] for k in keys)])
+    v = values[order]
+    same = np.diff(v[:, 0]) == 0.0
+    if keys:
+        same &= np.all(v[1:, keys] == v[:-1, keys], axis=1)
+    both_nan = np.isnan(v[1:]) & np.isnan(v[:-1])
+    differ = same & np.any((v[1:] != v[:-1]) & ~both_nan, axis=1)
+    count = int(differ.sum())
+    if count > COARSE_SHARE * values.shape[0]:
+        first = int(order[1:][differ].min())
+        raise QuadobsError(
+            f"{where}: {count} of {values.shape[0]} rows share their time with a row "
+            f"{'of the same id ' if keys else ''}before them and hold other values (the first "
+            f"at row {first + 2}, time {values[first, 0]:.10g}): stamps written with fewer "
+            "digits than the sampling needs (whole seconds, float32, a burst stamped at once)?"
+        )
 
 
 def sampling_period(t) -> float:
