@@ -453,3 +453,24 @@ def test_a_truth_off_the_anchors_origin_is_said_in_a_note():
     )
     found = np.array([float(v) for v in re.search(r"moved by \(([^)]*)\)", note)[1].split(",")])
     assert abs(found[0] + 0.5) <= 0.1 and np.linalg.norm(found[1:]) <= 0.2
+
+
+def test_inputs_on_another_clock_are_refused_or_said():
+    """Inputs an hour late overlap no range: refused naming the file and the hour; inputs 3 s
+    late (of 8 s) leave 3 s of ranges before them: said, with --clock-offset."""
+    from quadobs.testbed.logs.replay import check_burn_in, replayable_log
+
+    log = helix()
+    late = dataclasses.replace(log, inputs=log.inputs + [3600.0, 0, 0, 0])
+    with pytest.raises(
+        QuadobsError, match=r"helix: inputs.csv: its times .* \+3600 s at the start\)"
+    ):
+        check_burn_in(late, 0.0)
+    late = dataclasses.replace(log, inputs=log.inputs + [3.0, 0, 0, 0])
+    notes = replayable_log(late)[1]
+    assert any(
+        n.startswith("inputs.csv starts 2.99 s after the first measurement (60 before it)")
+        and "--clock-offset SECONDS" in n
+        for n in notes
+    ), notes
+    assert not any("starts" in n for n in replayable_log(log)[1])

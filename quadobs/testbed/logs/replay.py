@@ -41,18 +41,20 @@ import numpy as np
 from quadobs.errors import QuadobsError
 from quadobs.testbed.logs.estimators import build_replay_estimators, replay_setup
 from quadobs.testbed.logs.events import InTimeOnGrid, LogEvents, in_time, takes_time
-from quadobs.testbed.logs.format import LOG_FILES
+from quadobs.testbed.logs.format import INPUT_FILES, LOG_FILES
 
 __all__ = [
     "DEFAULT_ESTIMATORS",
     "anchor_extent",
     "check_burn_in",
+    "check_clock_overlap",
     "check_range_units",
     "check_replay",
     "default_estimators",
     "gap_notes",
     "heard_anchors",
     "initial_guess",
+    "inputs_span_note",
     "log_scenario",
     "repeated_values",
     "replayable_log",
@@ -574,6 +576,8 @@ def replayable_log(log, keep_anchors: bool = False) -> tuple:
         if unheard:
             notes.append(f"anchors never ranged, left out: {', '.join(map(str, unheard))}")
     notes += gap_notes(log)
+    span = inputs_span_note(log)
+    notes += [span] if span else []
     anchors = truth_anchor_note(log)
     lag = None if anchors else truth_lag_note(log)  # ids mapped wrong shift the best lag too
     offset = None if anchors or lag else truth_offset_note(log)  # a lag or ids look offset too
@@ -950,8 +954,8 @@ def truth_odometry_note(log) -> str | None:
         "against the truth, "
         + "; ".join(found)
         + ": check the odometry's units, the wheels' order and signs, the track, its clock "
-        "against the truth's (a lag of seconds), and heading0 (the truth only scores: the "
-        "replay goes on)"
+        "against the truth's (a lag of seconds), heading0, and the truth's heading (rad, "
+        "anticlockwise from the anchors' x axis) (the truth only scores: the replay goes on)"
     )
 
 
@@ -1010,10 +1014,72 @@ def anchor_plane(beacons: np.ndarray) -> float | None:
     return float(s[-1]) if s[-1] <= PLANE_FRACTION * s[0] else None
 
 
+def _measured_span(log) -> tuple[float, float] | None:
+    """The first and last time of the log's ranges and TDOA (s), or None without any."""
+    tables = [t[:, 0] for t in (log.ranges, log.tdoa) if t.shape[0]]
+    if not tables:
+        return None
+    return float(min(t[0] for t in tables)), float(max(t[-1] for t in tables))
+
+
+def check_clock_overlap(log) -> None:
+    """Refuse, before any work, inputs or a truth whose times do not overlap the measurements'
+    at all: a file on another clock (a time zone's hours, GPS time's 18 s on a short log, a
+    device's uptime), which nothing in the replay could score or drive."""
+    measured = _measured_span(log)
+    if measured is None:
+        return
+    a, b = measured
+    files = [(INPUT_FILES.get(log.input_kind), log.inputs if log.input_kind != "none" else None)]
+    files.append(("truth.csv", log.truth))
+    for fname, table in files:
+        if fname is None or table is None or not table.shape[0]:
+            continue
+        c, d = float(table[0, 0]), float(table[-1, 0])
+        if d < a or c > b:
+            raise QuadobsError(
+                f"{log.file_label(fname)}: its times ({c:.10g} to {d:.10g} s) do not overlap the "
+                f"measurements' ({a:.10g} to {b:.10g} s; {c - a:+.4g} s at the start): a file on "
+                "another clock (a time zone's hours, GPS time's 18 s)? Every file's times must "
+                "be on the ranges' clock"
+            )
+
+
+#: The share of the measurements outside the inputs' span beyond which
+#: :func:`inputs_span_note` says so.
+OUTSIDE_INPUTS_SHARE = 0.05
+
+
+def inputs_span_note(log) -> str | None:
+    """A line where more than :data:`OUTSIDE_INPUTS_SHARE` of the measurements lie before the
+    first input or after the last (not replayed), naming how far the inputs' span is moved:
+    inputs on another clock (GPS time runs 18 s ahead of UTC), or a recording cut short."""
+    measured = _measured_span(log)
+    fname = INPUT_FILES.get(log.input_kind)
+    if measured is None or fname is None:
+        return None
+    t = np.concatenate([log.ranges[:, 0], log.tdoa[:, 0]])
+    before, after = int(np.sum(t < log.start)), int(np.sum(t > log.end))
+    if before + after <= OUTSIDE_INPUTS_SHARE * t.size:
+        return None
+    where = [
+        f"starts {log.start - measured[0]:.3g} s after the first measurement ({before} before it)"
+        if before
+        else "",
+        f"ends {measured[1] - log.end:.3g} s before the last ({after} after it)" if after else "",
+    ]
+    return (
+        f"{fname} {' and '.join(w for w in where if w)}, not replayed: the inputs on another "
+        "clock (GPS time runs 18 s ahead of UTC; --clock-offset SECONDS moves them), or "
+        "recorded over less of the log?"
+    )
+
+
 def check_burn_in(log, burn_in: float) -> None:
     """Refuse, before any work, a burn-in after which nothing would be scored: one that reaches
     the end of the log (its last input, or measurement without inputs), or, where the log has a
     truth, the truth's last time. Such a replay would report no error for any estimator."""
+    check_clock_overlap(log)
     span = log.end - log.start
     if burn_in > 0.0 and burn_in >= span:
         raise QuadobsError(
