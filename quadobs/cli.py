@@ -1039,10 +1039,20 @@ def _cmd_replay(args) -> int:
     log_scenario(log, args.dt, args.seed, args.set)  # the --set settings, checked as early
     _check_field_options(args)
     _notice_cold_kernels(EPISODE_KERNELS + AUGMENTED_KERNELS)
-    from quadobs.testbed.logs.replay import check_burn_in, check_replay, replayable_log
+    from quadobs.testbed.logs.clock_offset import with_input_offset
+    from quadobs.testbed.logs.replay import (
+        check_burn_in,
+        check_clock_overlap,
+        check_replay,
+        replayable_log,
+    )
 
+    given = args.clock_offset if isinstance(args.clock_offset, float) else 0.0
+    check_clock_overlap(with_input_offset(log, given))  # a file on another clock, as moved
     check_burn_in(log, args.burn_in)  # a burn-in past the log or its truth: nothing to score
-    log, notes = replayable_log(log, keep_anchors=args.biases is not None)  # --biases: one each
+    log, notes = replayable_log(  # --biases: one each
+        log, keep_anchors=args.biases is not None, clock_offset=given
+    )
     log, options, noise_note = _replay_noise(args, log)
     for note in [*notes, noise_note] if noise_note else notes:
         print(note)

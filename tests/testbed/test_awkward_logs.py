@@ -313,7 +313,8 @@ def test_ranges_at_a_coarse_resolution_are_not_taken_for_held_ones():
         coarse = dataclasses.replace(log, ranges=r)
         repeat, expected = repeated_values(r[:, 1], r[:, 0], r[:, 2])
         assert repeat.sum() <= 5.0 * expected
-        assert replayable_log(coarse) == (coarse, [])
+        out, notes = replayable_log(coarse)
+        assert out is coarse and notes == []
 
 
 def test_held_differences_are_left_out_by_their_pair():
@@ -351,9 +352,10 @@ def test_a_truth_of_zeros_where_the_motion_capture_lost_the_body_is_left_out(pla
     back, notes = replayable_log(dataclasses.replace(log, truth=truth))
     assert notes[0] == (
         f"truth: {lost.sum()} rows at exactly the origin between rows farther than 0.25 m "
-        "from it (a motion capture that lost the body), left out: no error scored there"
+        "from it (a motion capture that lost the body), left out: the truth has a gap there "
+        "(interpolated across where short)"
     )
-    assert all(n.startswith("truth: a gap of") for n in notes[1:])  # the widest spell
+    assert len(notes) == 2 and notes[1].startswith("truth: a gap of 0.6")  # the widest spell
     assert np.array_equal(back.truth, log.truth[~lost])
     assert _replay(back)["rmse"] == pytest.approx(plain[1]["rmse"], rel=0.05)
     through = log.truth.copy()
@@ -434,9 +436,9 @@ def test_rows_stamped_zero_before_a_clock_was_set_are_named():
 
 
 def test_a_truth_off_the_anchors_origin_is_said_in_a_note():
-    """The helix's truth moved by (0.5, 0, 0) m: the note finds about (-0.5, 0, 0) m back
-    (within 0.1 m along it, the height least told by anchors at two heights); as given, and
-    moved by 0.2 m (within what unmoved logs fit), nothing is said."""
+    """The helix's truth moved by (0.5, 0, 0) m: the note finds about (-0.5, 0) m back across
+    the horizontal (within 0.1 m; the height is not searched); as given, and moved by 0.2 m
+    (within what unmoved logs fit), nothing is said."""
     import re
 
     from quadobs.testbed.logs.replay import truth_offset_note
@@ -452,20 +454,26 @@ def test_a_truth_off_the_anchors_origin_is_said_in_a_note():
         "against the ranges, truth.csv fits best moved by ("
     )
     found = np.array([float(v) for v in re.search(r"moved by \(([^)]*)\)", note)[1].split(",")])
-    assert abs(found[0] + 0.5) <= 0.1 and np.linalg.norm(found[1:]) <= 0.2
+    assert found.size == 2 and abs(found[0] + 0.5) <= 0.1 and abs(found[1]) <= 0.1
 
 
 def test_inputs_on_another_clock_are_refused_or_said():
-    """Inputs an hour late overlap no range: refused naming the file and the hour; inputs 3 s
-    late (of 8 s) leave 3 s of ranges before them: said, with --clock-offset."""
-    from quadobs.testbed.logs.replay import check_burn_in, replayable_log
+    """Inputs an hour late overlap no range: refused naming the file and the hour, unless moved
+    back by the offset given; a truth 100 s late likewise; inputs 3 s late (of 8 s) leave 3 s
+    of ranges before them: said, with --clock-offset, and not once that offset is given."""
+    from quadobs.testbed.logs.clock_offset import with_input_offset
+    from quadobs.testbed.logs.replay import check_clock_overlap, replayable_log
 
     log = helix()
     late = dataclasses.replace(log, inputs=log.inputs + [3600.0, 0, 0, 0])
     with pytest.raises(
         QuadobsError, match=r"helix: inputs.csv: its times .* \+3600 s at the start\)"
     ):
-        check_burn_in(late, 0.0)
+        check_clock_overlap(late)
+    check_clock_overlap(with_input_offset(late, 3600.0))  # moved back by --clock-offset 3600
+    far = dataclasses.replace(log, truth=log.truth + np.r_[100.0, np.zeros(6)])
+    with pytest.raises(QuadobsError, match=r"helix: truth.csv: its times"):
+        check_clock_overlap(far)
     late = dataclasses.replace(log, inputs=log.inputs + [3.0, 0, 0, 0])
     notes = replayable_log(late)[1]
     assert any(
@@ -474,3 +482,19 @@ def test_inputs_on_another_clock_are_refused_or_said():
         for n in notes
     ), notes
     assert not any("starts" in n for n in replayable_log(log)[1])
+    assert not any("starts" in n for n in replayable_log(late, clock_offset=3.0)[1])
+
+
+def test_inputs_an_hour_late_replay_with_the_offset_given(tmp_path, capsys):
+    """The CLI: refused without --clock-offset (naming the file), replayed with it."""
+    from quadobs.cli import main
+
+    log = helix()
+    folder = write_log(
+        dataclasses.replace(log, inputs=log.inputs + [3600.0, 0, 0, 0]), tmp_path / "late"
+    )
+    base = ["replay", str(folder), "--calibrate", "none", "--estimators", "ekf", "--no-progress"]
+    assert main(base) == 2
+    assert "inputs.csv: its times" in capsys.readouterr().err
+    assert main([*base, "--clock-offset", "3600"]) == 0
+    assert "starts" not in capsys.readouterr().out

@@ -262,6 +262,8 @@ def ranges_held(log: RangeLog, rate: float) -> RangeLog:
     table of one column per anchor): each range repeated until its anchor's next, stamped at
     the logger's times; the stated ``std`` held with it."""
     r, std = log.ranges, log.range_std
+    if r.shape[0] == 0:
+        return log
     times = np.arange(r[0, 0], r[-1, 0], 1.0 / rate)
     rows, stds = [], []
     for anchor in log.beacon_ids:

@@ -454,7 +454,8 @@ def check_values(
 #: anchor or pair, in a file of ranges or differences) with other values, before its stamps
 #: are taken for coarser than its sampling. An IMU at 1 kHz stamped to the millisecond with
 #: its jitter repeats a quarter or so, and a row held for no time costs little (a flight's IMU
-#: at about 100 Hz stamped to 10 ms: a quarter of its rows, the best default 0.176 -> 0.138 m);
+#: at about 100 Hz stamped to 10 ms, a quarter of its rows sharing a time: the best default
+#: 0.138 m, against 0.176 m as logged);
 #: whole seconds, float32 stamps or bursts of a serial link stamped at once repeat most.
 COARSE_SHARE = 0.5
 
