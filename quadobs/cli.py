@@ -1039,7 +1039,6 @@ def _cmd_replay(args) -> int:
     log_scenario(log, args.dt, args.seed, args.set)  # the --set settings, checked as early
     _check_field_options(args)
     _notice_cold_kernels(EPISODE_KERNELS + AUGMENTED_KERNELS)
-    from quadobs.testbed.logs.clock_offset import with_input_offset
     from quadobs.testbed.logs.replay import (
         check_burn_in,
         check_clock_overlap,
@@ -1048,7 +1047,7 @@ def _cmd_replay(args) -> int:
     )
 
     given = args.clock_offset if isinstance(args.clock_offset, float) else 0.0
-    check_clock_overlap(with_input_offset(log, given))  # a file on another clock, as moved
+    check_clock_overlap(log, inputs=not given)  # a file on another clock (given: moved later)
     check_burn_in(log, args.burn_in)  # a burn-in past the log or its truth: nothing to score
     log, notes = replayable_log(  # --biases: one each
         log, keep_anchors=args.biases is not None, clock_offset=given

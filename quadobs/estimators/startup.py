@@ -400,7 +400,10 @@ class MultilaterationStart:
         cols = fixed[0]
         oldest = rows[np.argmin(self._t_at[rows])]
         growth = self._P_dr[np.ix_(cols, cols)] - self._P_at[oldest][np.ix_(cols, cols)]
-        cov = multilateration_covariance(d[rows][:, cols], self._var_y[rows]) + growth
+        try:  # full rank, yet singular to working precision (anchors nearly in line, far off)
+            cov = multilateration_covariance(d[rows][:, cols], self._var_y[rows]) + growth
+        except np.linalg.LinAlgError:
+            return None  # no fix from this round; the next may give one
         return cols, fixed[1], 0.5 * (cov + cov.T)
 
     def _back(self, tau: float) -> np.ndarray:

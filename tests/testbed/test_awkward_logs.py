@@ -288,7 +288,7 @@ def test_a_loggers_held_ranges_are_left_out_and_each_range_kept_once():
     held = ranges_held(log, 100.0)
     back, notes = replayable_log(held)
     assert len(notes) == 1 and notes[0].startswith(
-        "ranges that repeat their anchor's previous value exactly (a logger writing held values), "
+        "ranges that repeat their anchor's previous value exactly (a logger writing held values, or rows written twice), "
         f"left out: {held.ranges.shape[0] - back.ranges.shape[0]} of {held.ranges.shape[0]}"
     )
     r, b = log.ranges, back.ranges
@@ -331,7 +331,7 @@ def test_held_differences_are_left_out_by_their_pair():
     withheld = dataclasses.replace(log, tdoa=held, tdoa_std=np.full(held.shape[0], 0.05))
     back, notes = without_held_ranges(withheld)
     assert len(notes) == 1 and notes[0].startswith(
-        f"tdoa that repeat their pair's previous value exactly (a logger writing held values), "
+        f"tdoa that repeat their pair's previous value exactly (a logger writing held values, or rows written twice), "
         f"left out: {2 * tdoa.shape[0]} of {held.shape[0]} (at the values' resolution a radio "
         "repeats about "
     )
@@ -365,27 +365,30 @@ def test_a_truth_of_zeros_where_the_motion_capture_lost_the_body_is_left_out(pla
 
 
 def test_a_radios_codes_of_no_range_are_left_out_and_named(plain):
-    """655.35 m (twice), 999 m and -1 m among the helix's ranges (its anchors 17 m apart at
-    most: the bound 170 m): left out, the codes named by count, and the replay is the
-    plain log's; a short range below zero (an antenna delay) is kept."""
+    """655.35 m and 999 m three times each and -1 m once among the helix's ranges (its anchors
+    17 m apart at most): left out, the codes named by count, and the replay is the plain
+    log's; a short range below zero (an antenna delay), a code written once and distinct
+    ranges far beyond the anchors (a tag far from them) are kept."""
     from quadobs.testbed.logs.replay import replayable_log, without_impossible_ranges
 
     log = helix()
     ranges, std = log.ranges.copy(), log.range_std.copy()
-    codes = {10: 655.35, 50: 655.35, 90: 999.0, 130: -1.0}
+    codes = {10: 655.35, 30: 655.35, 50: 655.35, 70: 999.0, 90: 999.0, 110: 999.0, 130: -1.0}
     for k in sorted(codes, reverse=True):
         ranges = np.insert(ranges, k, [ranges[k, 0], ranges[k, 1], codes[k]], axis=0)
         std = np.insert(std, k, 0.05)
     back, notes = replayable_log(dataclasses.replace(log, ranges=ranges, range_std=std))
-    bound = 10.0 * np.max(np.linalg.norm(ANCHORS[:, None] - ANCHORS[None], axis=2))
+    bound = 2.0 * np.max(np.linalg.norm(ANCHORS[:, None] - ANCHORS[None], axis=2))
     assert notes == [
-        f"ranges of -1 m or less, or beyond {bound:.4g} m (10 times the anchors' extent), which "
-        "no radio measures (a code of no range), left out: 4 (655.35 m (2), -1 m (1), 999 m (1))"
+        f"ranges of -1 m or less, or one value repeated beyond {bound:.4g} m (2 times the "
+        "anchors' extent), which no radio measures (a code of no range), left out: 7 "
+        "(655.35 m (3), 999 m (3), -1 m (1))"
     ]
     assert np.array_equal(back.ranges, log.ranges) and np.array_equal(back.range_std, log.range_std)
     assert _replay(back)["rmse"] == pytest.approx(plain[1]["rmse"], rel=1e-12)
     short = log.ranges.copy()
-    short[0, 2] = -0.4
+    short[0, 2], short[5, 2] = -0.4, 655.35
+    short[10:40, 2] += 100.0  # a tag 100 m off: distinct values
     kept = dataclasses.replace(log, ranges=short)
     assert without_impossible_ranges(kept) == (kept, None)
 

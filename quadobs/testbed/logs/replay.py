@@ -367,11 +367,25 @@ def without_zero_ranges(log):
     )
 
 
-#: A range no radio measures (m, and times the anchors' extent): at or below the first (an error
-#: code of -1; an antenna delay takes a range below zero by tenths of a metre at most), or beyond
-#: the second times the largest distance between two anchors (a tag is among its anchors, or
-#: near them: 655.35, 999 or 2^32 mm are a radio's codes of no range).
-IMPOSSIBLE_RANGES = (-1.0, 10.0)
+#: A range no radio measures: at or below the first (m; an error code of -1, where an antenna
+#: delay takes a range below zero by tenths of a metre at most), or an exact value beyond the
+#: second times the largest distance between the anchors ranged to, repeated at least the
+#: third's count of times and making at least the fourth's share of the ranges within the
+#: fifth (m) of it: a radio's code of no range (655.35, 65.535, 999, 2^32 - 1 mm), one value
+#: over and over, where a tag far from its anchors ranges a spread of distinct values.
+IMPOSSIBLE_RANGES = (-1.0, 2.0, 3, 0.5, 0.5)
+
+
+def _range_codes(rho: np.ndarray, bound: float) -> np.ndarray:
+    """The exact values of ``rho`` beyond ``bound`` that :data:`IMPOSSIBLE_RANGES` takes for a
+    radio's codes of no range."""
+    _, _, repeats, share, near = IMPOSSIBLE_RANGES
+    beyond = np.sort(rho[rho > bound])
+    values, counts = np.unique(beyond, return_counts=True)
+    around = np.searchsorted(beyond, values + near, side="right") - np.searchsorted(
+        beyond, values - near, side="left"
+    )
+    return values[(counts >= repeats) & (counts >= share * around)]
 
 
 def without_impossible_ranges(log):
@@ -379,37 +393,34 @@ def without_impossible_ranges(log):
     note naming them, or None.
 
     A radio's firmware writes a code where an exchange failed (0 m is left out by
-    :func:`without_zero_ranges`; -1, 655.35 = 2^16 - 1 cm, 999, 2^32 - 1 mm are others).
-    Taken as ranges they drag every filter by hundreds of metres: 0.7 % of a flight's ranges
-    at 655.35 m took its best default from 0.176 to 0.326 m and its EKF to 47 m
-    (docs/replaying-your-data.md). The extent is that of the anchors ranged to (a survey may
-    list far anchors that no range names). Where most ranges lie beyond the bound and take
-    many values, they are in another unit (mm), which :func:`check_range_units` refuses: the
-    log is left as it is; codes are a few values."""
+    :func:`without_zero_ranges`; -1, 655.35 = 2^16 - 1 cm, 65.535, 999, 2^32 - 1 mm are
+    others). Taken as ranges they drag every filter by hundreds of metres: 0.7 % of a
+    flight's ranges at 655.35 m took its best default from 0.176 to 0.326 m and its EKF to
+    47 m (docs/replaying-your-data.md). A code is one exact value repeated far beyond the
+    anchors ranged to (:func:`_range_codes`); a tag genuinely far from a cluster of anchors
+    ranges distinct values, kept, and so are ranges in another unit (mm), which
+    :func:`check_range_units` refuses. A code written once is kept (a gate takes one range)."""
     import dataclasses
 
     from quadobs.testbed.logs.schema import RANGE
 
     if log.ranges.shape[0] == 0:
         return log, None
-    low, times = IMPOSSIBLE_RANGES
+    low, times = IMPOSSIBLE_RANGES[:2]
     ranged = log.beacon_index(np.unique(log.ranges[:, RANGE.beacon]))
-    if ranged.size < 2:
-        return log, None
-    high = times * anchor_extent(log.beacons[ranged])
+    high = times * anchor_extent(log.beacons[ranged]) if ranged.size > 1 else math.inf
     rho = log.ranges[:, RANGE.range]
-    bad = (rho <= low) | (rho > high)
-    beyond = rho[rho > high]
-    if not bad.any() or (beyond.size > 0.5 * rho.size and np.unique(beyond).size > 10):
-        return log, None  # most beyond, and of many values: another unit, refused by units
+    bad = (rho <= low) | np.isin(rho, _range_codes(rho, high))
+    if not bad.any():
+        return log, None
     values, counts = np.unique(rho[bad], return_counts=True)
     top = np.argsort(-counts, kind="stable")[:3]
     listed = ", ".join(f"{values[k]:.6g} m ({counts[k]})" for k in top)
     more = ", ..." if values.size > 3 else ""
     note = (
-        f"ranges of {low:g} m or less, or beyond {high:.4g} m ({times:g} times the anchors' "
-        f"extent), which no radio measures (a code of no range), left out: {int(bad.sum())} "
-        f"({listed}{more})"
+        f"ranges of {low:g} m or less, or one value repeated beyond {high:.4g} m ({times:g} "
+        f"times the anchors' extent), which no radio measures (a code of no range), left out: "
+        f"{int(bad.sum())} ({listed}{more})"
     )
     keep = ~bad
     return dataclasses.replace(log, ranges=log.ranges[keep], range_std=log.range_std[keep]), note
@@ -536,7 +547,8 @@ def without_held_ranges(log):
             continue
         changes[name], changes[std] = table[~repeat], getattr(log, std)[~repeat]
         notes.append(
-            f"{name} that repeat {whose} previous value exactly (a logger writing held values), "
+            f"{name} that repeat {whose} previous value exactly (a logger writing held values, "
+            "or rows written twice), "
             f"left out: {count} of {table.shape[0]} (at the values' resolution a radio repeats "
             f"about {expected:.0f})"
         )
@@ -592,12 +604,13 @@ def replayable_log(log, keep_anchors: bool = False, clock_offset: float = 0.0) -
     notes += gap_notes(log)
     from quadobs.testbed.logs.clock_offset import with_input_offset
 
-    span = inputs_span_note(with_input_offset(log, clock_offset))
+    span = inputs_span_note(with_input_offset(log, clock_offset))  # as the offset moves them
     notes += [span] if span else []
     anchors = truth_anchor_note(log)
     lag = None if anchors else truth_lag_note(log)  # ids mapped wrong shift the best lag too
     offset = None if anchors or lag else truth_offset_note(log)  # a lag or ids look offset too
-    found = [lag, anchors, offset, truth_odometry_note(log), truth_attitude_note(log)]
+    moved = with_input_offset(log, clock_offset)
+    found = [lag, anchors, offset, truth_odometry_note(moved), truth_attitude_note(moved)]
     found.append(stated_std_note(log))
     notes += [n for n in found if n]
     plane = anchor_plane(log.beacons)
@@ -698,7 +711,8 @@ def truth_lag_note(log) -> str | None:
         f"{'late' if best > 0 else 'early'} (the ranges spread {spreads[k]:.3g} m about it "
         f"moved so, {at_zero:.3g} m at its own times): is the truth on the ranges' clock, or "
         "its point off the tag's along the path (a lever arm)? Or are the ranges stamped "
-        f"{'late' if best > 0 else 'early'} (on receipt, on another clock), then against the "
+        f"{'early (on another clock)' if best > 0 else 'late (on receipt, on another clock)'}, "
+        "then against the "
         "inputs as well (--clock-offset)? A truth on another clock scores every estimator "
         "from the wrong time"
     )
@@ -777,7 +791,8 @@ def truth_offset_note(log) -> str | None:
         f"against the ranges, truth.csv fits best moved by ({shown}) m{edge} across the "
         f"horizontal (the ranges "
         f"spread {moved:.3g} m about it so, {at_zero:.3g} m as given; each anchor's bias "
-        f"{'and height ' if p.shape[1] == 2 else ''}fitted): is the truth's origin the anchors'? A truth off the anchors' frame scores "
+        f"{'and height ' if p.shape[1] == 2 else ''}fitted; a component under 0.25 m is within "
+        "what a right truth fits): is the truth's origin the anchors'? A truth off the anchors' frame scores "
         "every estimator with its offset (the truth only scores: the replay goes on)"
     )
 
@@ -958,7 +973,12 @@ def truth_odometry_note(log) -> str | None:
             continue
         ratio = float(odo[keep] @ true[keep] / (true[keep] @ true[keep]))
         if ratio < 0.0 or abs(ratio - 1.0) > ODOMETRY_SCALE_TOLERANCE:
-            found.append(f"the odometry's {what} are {ratio:.3g} times the truth's")
+            degrees = ""
+            if key == "turn" and abs(ratio * 180.0 / math.pi - 1.0) < 0.15:
+                degrees = " (the truth's heading in degrees?)"
+            elif key == "turn" and abs(ratio * math.pi / 180.0 - 1.0) < 0.15:
+                degrees = " (the yaw rate in deg/s?)"
+            found.append(f"the odometry's {what} are {ratio:.3g} times the truth's{degrees}")
     if parts.get("covered"):
         given, true_heading = parts["heading"]
         off = (given - true_heading + math.pi) % (2.0 * math.pi) - math.pi
@@ -1041,18 +1061,20 @@ def _measured_span(log) -> tuple[float, float] | None:
     return float(min(t[0] for t in tables)), float(max(t[-1] for t in tables))
 
 
-def check_clock_overlap(log) -> None:
-    """Refuse, before any work, inputs or a truth whose times do not overlap the measurements'
-    at all: a file on another clock (a time zone's hours, GPS time's 18 s on a short log, a
-    device's uptime), which nothing in the replay could score or drive."""
+def check_clock_overlap(log, inputs: bool = True) -> None:
+    """Refuse, before any work, inputs (unless not ``inputs``: an offset given moves them, and
+    its own check follows) or a truth whose times do not overlap the measurements' at all: a
+    file on another clock (a time zone's hours, GPS time's 18 s on a short log, a device's
+    uptime), which nothing in the replay could score or drive."""
     measured = _measured_span(log)
     if measured is None:
         return
     a, b = measured
-    files = [(INPUT_FILES.get(log.input_kind), log.inputs if log.input_kind != "none" else None)]
-    files.append(("truth.csv", log.truth))
+    files = [("truth.csv", log.truth)]
+    if inputs and log.input_kind != "none":
+        files.append((INPUT_FILES[log.input_kind], log.inputs))
     for fname, table in files:
-        if fname is None or table is None or not table.shape[0]:
+        if table is None or not table.shape[0]:
             continue
         c, d = float(table[0, 0]), float(table[-1, 0])
         if d < a or c > b:

@@ -484,7 +484,7 @@ def _check_stamps(where: str, values: np.ndarray, columns, spec: FileSpec) -> No
         raise QuadobsError(
             f"{where}: {count} of {values.shape[0]} rows share their time with a row "
             f"{'of the same id ' if keys else ''}before them and hold other values (the first "
-            f"at row {first + 2}, time {values[first, 0]:.10g}): stamps written with fewer "
+            f"at row {first + 2}, time {values[first, 0]:.12g}): stamps written with fewer "
             "digits than the sampling needs (whole seconds, float32, a burst stamped at once)?"
         )
 
