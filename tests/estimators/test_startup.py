@@ -361,3 +361,28 @@ def test_the_weighted_fix_is_the_joint_least_squares_and_does_not_depend_on_the_
     for f in fixes:
         np.testing.assert_allclose(f, joint, atol=1e-9)
     assert max(np.linalg.norm(f - plain[0]) for f in plain[1:]) > 1e-3
+
+
+@pytest.mark.parametrize("cls", [FixedStartEKF, FixedStartUKF])
+def test_a_round_whose_fix_covariance_is_singular_waits_for_the_next(cls, monkeypatch):
+    """A round of full rank whose covariance is singular to working precision (anchors nearly
+    in line, seen from far off) gives no fix and no error: the filter waits, corrected as
+    usual, and fixes from the next round."""
+    import quadobs.estimators.startup as startup
+
+    p0, vel = np.array([12.0, 9.0]), np.array([3.0, -1.0])
+    est = _filter(cls, 50.0**2)
+    real = startup.multilateration_covariance
+    calls = []
+
+    def singular_once(D, variances):
+        calls.append(1)
+        if len(calls) == 1:
+            raise np.linalg.LinAlgError("Singular matrix")
+        return real(D, variances)
+
+    monkeypatch.setattr(startup, "multilateration_covariance", singular_once)
+    _drive(est, p0, vel, [0.3, 0.6, 0.9, 1.2])
+    assert est.fix_pending and est.fixes == []  # the first round gave none
+    _drive(est, p0, vel, [1.5], first=4)
+    assert not est.fix_pending and est.fixes == [pytest.approx(1.5)]
