@@ -143,11 +143,12 @@ def check_clocks(
         return
     lo = min(float(t.min()) for t in measured)
     hi = max(float(t.max()) for t in measured)
+    from quadobs.testbed.logs.schema import span_apart
+
     for stream, table in tables.items():
-        if stream in ("ranges", "tdoa") or table is None or not table.shape[0]:
-            continue
-        a, b = float(table[0, 0]), float(table[-1, 0])
-        if b < lo or a > hi:
+        apart = None if stream in ("ranges", "tdoa") else span_apart(table, lo, hi)
+        if apart is not None:
+            a, b = apart
             raise QuadobsError(
                 f"{bag}: [{stream}] stamps {a:.10g} to {b:.10g} s, the ranges' {lo:.10g} to "
                 f"{hi:.10g} s: not one clock ({fix.format(stream)})"

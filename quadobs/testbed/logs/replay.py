@@ -1073,11 +1073,12 @@ def check_clock_overlap(log, inputs: bool = True) -> None:
     files = [("truth.csv", log.truth)]
     if inputs and log.input_kind != "none":
         files.append((INPUT_FILES[log.input_kind], log.inputs))
+    from quadobs.testbed.logs.schema import span_apart
+
     for fname, table in files:
-        if table is None or not table.shape[0]:
-            continue
-        c, d = float(table[0, 0]), float(table[-1, 0])
-        if d < a or c > b:
+        apart = span_apart(table, a, b)
+        if apart is not None:
+            c, d = apart
             raise QuadobsError(
                 f"{log.file_label(fname)}: its times ({c:.10g} to {d:.10g} s) do not overlap the "
                 f"measurements' ({a:.10g} to {b:.10g} s; {c - a:+.4g} s at the start): a file on "

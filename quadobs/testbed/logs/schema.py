@@ -489,6 +489,16 @@ def _check_stamps(where: str, values: np.ndarray, columns, spec: FileSpec) -> No
         )
 
 
+def span_apart(table, lo: float, hi: float) -> tuple[float, float] | None:
+    """A table's first and last time (s, its first column) where its span does not overlap
+    ``[lo, hi]`` (a file on another clock than the measurements'), else None (an empty or
+    missing table too)."""
+    if table is None or not table.shape[0]:
+        return None
+    a, b = float(table[0, 0]), float(table[-1, 0])
+    return (a, b) if b < lo or a > hi else None
+
+
 def sampling_period(t) -> float:
     """The median of the positive intervals between the times ``t`` (s), NaN where none: a
     stream's sampling period, times repeated (stamps coarser than the sampling) left out."""
