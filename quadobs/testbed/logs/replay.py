@@ -444,8 +444,8 @@ def without_lost_truth(log):
     the origin is left out: the truth has a gap there, interpolated across where it is short
     (:func:`~quadobs.testbed.worlds.replay.wide_gaps`), unscored where it is wide. A truth
     whose quaternion is zeroed with the position is refused on reading (not a unit
-    quaternion) before this step. A vehicle that
-    passes through the origin does so between rows near it, and keeps them."""
+    quaternion) before this step. A vehicle that passes through the origin does so between
+    rows near it, and keeps them."""
     import dataclasses
 
     position = log.truth_part("position") if log.truth is not None else None
