@@ -364,6 +364,55 @@ def test_a_truth_of_zeros_where_the_motion_capture_lost_the_body_is_left_out(pla
     assert without_lost_truth(passing) == (passing, None)
 
 
+def test_blank_rows_and_stamps_a_little_out_of_order_replay_as_the_plain_log(tmp_path, plain):
+    """A motion capture's lost frames and a radio's failed exchanges written as empty cells,
+    and an input file whose host stamps jitter past one another by up to 15 ms: the rows
+    without a value are left out and the rest sorted, each said in a line ahead of the
+    replay's notes; the figures are those of the plain log without the rows left out."""
+    from quadobs.testbed.logs.replay import replayable_log
+
+    log = helix()
+    folder = write_log(log, tmp_path / "awkward")
+    lines = (folder / "truth.csv").read_text().splitlines()
+    lost = list(range(120, 140)) + list(range(300, 305))  # data rows
+    for k in lost:
+        cells = lines[k + 1].split(",")
+        lines[k + 1] = ",".join(cells[:1] + [""] * (len(cells) - 1))
+    (folder / "truth.csv").write_text("\n".join(lines) + "\n")
+    lines = (folder / "ranges.csv").read_text().splitlines()
+    failed = [10, 11, 50]
+    for k in failed:
+        lines[k + 1] = lines[k + 1].split(",")[0] + "," + lines[k + 1].split(",")[1] + ",nan,"
+    (folder / "ranges.csv").write_text("\n".join(lines) + "\n")
+    lines = (folder / "inputs.csv").read_text().splitlines()
+    swaps = list(range(20, 300, 25))
+    for k in swaps:  # each row written a little before the one above it
+        lines[k + 1], lines[k + 2] = lines[k + 2], lines[k + 1]
+    (folder / "inputs.csv").write_text("\n".join(lines) + "\n")
+    read = read_log(folder)
+    assert read.read_notes == (
+        "ranges.csv: 3 rows with an empty or NaN value left out (no measurement)",
+        f"inputs.csv: {len(swaps)} rows stamped before an earlier row (by up to 0.02 s) "
+        "sorted by time",
+        "truth.csv: 25 rows with an empty or NaN value left out (no measurement)",
+    )
+    assert np.array_equal(read.inputs, read_log(plain[0]).inputs)
+    plain_log = read_log(plain[0])
+    expected = dataclasses.replace(
+        plain_log,
+        ranges=np.delete(plain_log.ranges, failed, axis=0),
+        range_std=np.delete(plain_log.range_std, failed),
+        truth=np.delete(plain_log.truth, lost, axis=0),
+    )
+    _, notes = replayable_log(read)
+    assert notes[:3] == list(read.read_notes)
+    figures, same = _replay(read), _replay(expected)
+    for timed in ("seconds_per_measurement",):
+        figures.pop(timed), same.pop(timed)
+    assert figures == same
+    assert figures["rmse"] == pytest.approx(plain[1]["rmse"], rel=0.05)
+
+
 def test_a_radios_codes_of_no_range_are_left_out_and_named(plain):
     """655.35 m and 999 m three times each and -1 m once among the helix's ranges (its anchors
     17 m apart at most): left out, the codes named by count, and the replay is the plain

@@ -288,14 +288,57 @@ def test_files_on_two_clocks_are_named_with_their_times(tmp_path):
     assert "inputs.csv from 1.7e+09 s" in message and "ranges.csv from 0" in message
 
 
-def test_a_std_cell_may_be_empty_and_other_cells_may_not(tmp_path):
+def test_a_std_cell_may_be_empty_and_a_row_without_its_value_is_left_out(tmp_path):
     folder = _write_v1(tmp_path / "log")
     (folder / "meta.csv").write_text("key,value\nversion,2\nheading0,0.5\n")
     (folder / "ranges.csv").write_text("time,beacon,range,std\n0.5,0,3,\n0.6,1,4,0.2\n")
-    np.testing.assert_array_equal(read_log(folder).range_std, [np.nan, 0.2])
-    (folder / "ranges.csv").write_text("time,beacon,range,std\n0.5,0,,0.1\n")
-    with pytest.raises(QuadobsError, match=r"row 2, column range: '' is not a finite number"):
+    log = read_log(folder)
+    np.testing.assert_array_equal(log.range_std, [np.nan, 0.2])
+    assert log.read_notes == ()
+    (folder / "ranges.csv").write_text("time,beacon,range,std\n0.5,0,,0.1\n0.6,1,nan,\n0.7,1,4,\n")
+    log = read_log(folder)
+    np.testing.assert_array_equal(log.ranges, [[0.7, 1, 4.0]])
+    assert log.read_notes == (
+        "ranges.csv: 2 rows with an empty or NaN value left out (no measurement)",
+    )
+    (folder / "ranges.csv").write_text("time,beacon,range\n0.5,0,\n0.6,1,nan\n")
+    with pytest.raises(QuadobsError, match=r"ranges.csv: each of its 2 rows has an empty or NaN"):
         read_log(folder)
+    (folder / "ranges.csv").write_text("time,beacon,range\n0.5,,3\n")  # an id is never blank
+    with pytest.raises(QuadobsError, match=r"row 2, column beacon: '' is not a finite number"):
+        read_log(folder)
+    (folder / "ranges.csv").write_text("time,beacon,range\n,0,3\n")  # nor a time
+    with pytest.raises(QuadobsError, match=r"row 2, column time: '' is not a finite number"):
+        read_log(folder)
+
+
+def test_rows_left_out_keep_the_files_row_numbers_in_later_errors(tmp_path):
+    folder = _write_v1(tmp_path / "log")
+    (folder / "ranges.csv").write_text("time,beacon,range\n0.5,0,\n0.6,1,4\n0.7,1,-inf\n")
+    with pytest.raises(QuadobsError, match=r"ranges.csv, row 4, column range: '-inf' is not a"):
+        read_log(folder)
+    (folder / "ranges.csv").write_text("time,beacon,range\n0.5,0,\n0.6,1,4\n0.3,1,5\n")
+    with pytest.raises(QuadobsError, match=r"ranges.csv, row 4, column time: earlier than a row "):
+        read_log(folder)
+
+
+def test_rows_a_little_out_of_time_order_are_sorted_and_a_clock_set_back_is_refused(tmp_path):
+    folder = _write_v1(tmp_path / "log")
+    rows = "time,beacon,range\n0.50,0,3\n0.52,1,4\n0.51,0,3.1\n0.60,1,4.1\n0.55,1,4.2\n"
+    (folder / "ranges.csv").write_text(rows)
+    log = read_log(folder)
+    np.testing.assert_array_equal(log.ranges[:, 0], [0.5, 0.51, 0.52, 0.55, 0.6])
+    np.testing.assert_array_equal(log.ranges[:, 2], [3, 3.1, 4, 4.2, 4.1])
+    assert log.read_notes == (
+        "ranges.csv: 2 rows stamped before an earlier row (by up to 0.05 s) sorted by time",
+    )
+    (folder / "ranges.csv").write_text(rows.replace("0.55,1", "0.35,1"))
+    with pytest.raises(QuadobsError) as err:
+        read_log(folder)
+    assert str(err.value).endswith(
+        "ranges.csv, row 6, column time: earlier than a row before it by 0.25 s (rows must be "
+        "sorted by time; a step back of up to 0.1 s is sorted, more is a clock set back)"
+    )
 
 
 def test_log_files_are_regular_files_within_bounds(tmp_path, monkeypatch):

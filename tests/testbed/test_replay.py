@@ -85,7 +85,13 @@ def test_a_log_folder_reads_back_exactly(tmp_path):
         ),
         ("beacons.csv", 2, 1, "", "beacons.csv, row 2, column x: '' is not a finite number"),
         ("ranges.csv", 7, 1, "3", "ranges.csv, row 7, column beacon: unknown beacon id 3"),
-        ("ranges.csv", 9, 0, "0", "ranges.csv, row 9, column time: earlier than the row before"),
+        (
+            "ranges.csv",
+            9,
+            0,
+            "0",
+            "ranges.csv, row 9, column time: earlier than a row before it by",
+        ),
         ("truth.csv", 2, 2, "x", "truth.csv, row 2, column y: 'x' is not a finite number"),
     ],
 )

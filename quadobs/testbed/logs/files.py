@@ -30,7 +30,15 @@ from pathlib import Path
 import numpy as np
 
 from quadobs.errors import QuadobsError, RunFault, staging_owner, staging_path
-from quadobs.testbed.logs.schema import MAX_FILE_BYTES, MAX_LINE_BYTES, FileSpec, check_values
+from quadobs.testbed.logs.schema import (
+    MAX_FILE_BYTES,
+    MAX_LINE_BYTES,
+    SORT_REACH,
+    TIME,
+    FileSpec,
+    blank_rows,
+    check_values,
+)
 
 __all__ = ["check_replaceable_folder", "read_limited", "read_table", "staged_folder"]
 
@@ -132,13 +140,16 @@ def text_rows(path: Path, raw: bytes) -> list[list[str]]:
 
 
 def read_table(
-    path: Path, raw: bytes, spec: FileSpec, version: int
+    path: Path, raw: bytes, spec: FileSpec, version: int, notes: list | None = None
 ) -> tuple[tuple[str, ...], np.ndarray]:
     """The columns (in memory order, :meth:`FileSpec.columns_of`) and values of one log file.
 
     Every value is held to ``spec`` (:func:`~quadobs.testbed.logs.schema.check_values`);
     errors name the file, the row and the column in one line. Blank lines after the last row
-    are left out.
+    are left out, and so are the rows of a timed file with an empty or NaN value
+    (:func:`~quadobs.testbed.logs.schema.blank_rows`); rows out of time order by at most
+    :data:`~quadobs.testbed.logs.schema.SORT_REACH` are sorted (stably). Each of the two is
+    said in one line appended to ``notes`` (where given).
     """
     raw = _trimmed(raw)
     starts = _line_starts(path, raw)
@@ -168,12 +179,39 @@ def read_table(
     except Exception:  # pyarrow refused a row: find it, or read what Arrow would not
         values = _python_values(path, raw, starts, header, columns, spec)
 
+    blank = blank_rows(spec, columns, values)
+    if blank.size and blank.all():
+        raise QuadobsError(f"{path}: each of its {blank.size} rows has an empty or NaN value")
+    rows = np.flatnonzero(~blank) if blank.any() else None
+    if rows is not None:
+        values = values[rows]
+
     def cell(i: int, c: int) -> str:
-        row = _line(raw, starts, i + 1)
+        row = _line(raw, starts, (i if rows is None else int(rows[i])) + 1)
         return row[order[c]].strip() if order[c] < len(row) else ""
 
-    check_values(str(path), spec, columns, values, cell)
-    return columns, values
+    timed = columns[0] == TIME
+    check_values(str(path), spec, columns, values, cell, rows, SORT_REACH if timed else 0.0)
+    return columns, _sorted(path, values, int(blank.sum()), notes)
+
+
+def _sorted(path: Path, values: np.ndarray, blank: int, notes: list | None) -> np.ndarray:
+    """A timed file's rows sorted by time (stably), with a note of the rows left out blank
+    and of those out of order (how many, and the furthest back)."""
+    said = []
+    if blank:
+        said.append(f"{blank} rows with an empty or NaN value left out (no measurement)")
+    if values.shape[0] and values.ndim == 2:
+        t = values[:, 0]
+        back = np.maximum.accumulate(t) - t
+        if (late := int(np.count_nonzero(back > 0.0))) > 0:
+            values = values[np.argsort(t, kind="stable")]
+            said.append(
+                f"{late} rows stamped before an earlier row (by up to {back.max():.3g} s) sorted by time"
+            )
+    if said and notes is not None:
+        notes.append(f"{path.name}: {'; '.join(said)}")
+    return values
 
 
 def _arrow_values(raw: bytes, header: list[str], columns: tuple[str, ...]) -> np.ndarray:

@@ -28,8 +28,11 @@ the earlier format: ``inputs.csv`` required, no ``std``, TDOA, IMU, attitude or 
 attitude; it is still read. Each input row is held from its time to the next row's.
 
 Times are seconds on one clock common to the files, each file sorted by time (ties
-allowed). Every value must be finite (a ``std`` cell may be empty: the estimator's
-default), ids integers, quaternions of unit norm; every id in
+allowed; the reader sorts a file whose rows step back by at most
+:data:`~quadobs.testbed.logs.schema.SORT_REACH`, 0.1 s, and says so). Every value must be
+finite (a ``std`` cell may be empty: the estimator's default), ids integers, quaternions of
+unit norm; a row of a timed file with an empty or ``nan`` value (a failed exchange, a motion
+capture's lost frame) is left out by the reader with a note; every id in
 ``ranges.csv`` or ``tdoa.csv`` must be listed in ``beacons.csv``. The checks and the
 limits a log file is held to are in :mod:`quadobs.testbed.logs.schema`; a malformed file
 raises :class:`~quadobs.errors.QuadobsError` with one line naming the file, the row
@@ -180,6 +183,10 @@ class RangeLog:
         With ``tag_x``, ``tag_y``, in a log in space whose truth holds its attitude: the tag's
         position (m) in the body frame of the point the truth describes (all three or none;
         :attr:`truth_lever`).
+    read_notes : tuple of str
+        What the reader did to the files' rows (:func:`read_log`): one line per file whose
+        rows with an empty or NaN value it left out or whose rows out of time order it
+        sorted; empty for a log built in memory.
     """
 
     name: str
@@ -211,6 +218,7 @@ class RangeLog:
     tag_x: float = math.nan
     tag_y: float = math.nan
     tag_z: float = math.nan
+    read_notes: tuple = ()
 
     def __post_init__(self) -> None:
         fix = lambda key, value: object.__setattr__(self, key, value)  # noqa: E731
@@ -627,8 +635,10 @@ def _read_meta(folder: Path) -> dict:
     return parse_meta(str(path), rows[1:])
 
 
-def _read_tables(folder: Path, version: int) -> dict:
-    """Every file of the folder present (:data:`~quadobs.testbed.logs.schema.FILES`), as ``(columns, values)``."""
+def _read_tables(folder: Path, version: int, notes: list | None = None) -> dict:
+    """Every file of the folder present (:data:`~quadobs.testbed.logs.schema.FILES`), as
+    ``(columns, values)``; a line appended to ``notes`` for each file whose rows were left out
+    or sorted (:func:`~quadobs.testbed.logs.files.read_table`)."""
     from quadobs.testbed.logs.files import read_limited, read_table
 
     tables = {}
@@ -643,7 +653,7 @@ def _read_tables(folder: Path, version: int) -> dict:
             raise QuadobsError(
                 f"{folder / fname}: a version-2 file; add the row version,2 to meta.csv"
             )
-        tables[fname] = read_table(folder / fname, raw, spec, version)
+        tables[fname] = read_table(folder / fname, raw, spec, version, notes)
     if "ranges.csv" not in tables and "tdoa.csv" not in tables:
         raise QuadobsError(
             f"{folder / 'ranges.csv'}: missing (a log holds ranges.csv, tdoa.csv or both)"
@@ -677,7 +687,8 @@ def read_log(folder: str | Path) -> RangeLog:
             f"{folder}: not a log folder (expected meta.csv, beacons.csv, ranges.csv, ...)"
         )
     meta = _read_meta(folder)
-    tables = _read_tables(folder, meta["version"])
+    read_notes: list[str] = []
+    tables = _read_tables(folder, meta["version"], read_notes)
     ids = tables["beacons.csv"][1][:, 0]
     if "imu.csv" in tables:
         kind = "imu_body"
@@ -725,6 +736,7 @@ def read_log(folder: str | Path) -> RangeLog:
             tag_x=meta["tag_x"],
             tag_y=meta["tag_y"],
             tag_z=meta["tag_z"],
+            read_notes=tuple(read_notes),
         )
     except QuadobsError as exc:  # name the folder's file, not the log's name
         raise QuadobsError(_in_folder(str(exc), name, folder)) from None

@@ -586,8 +586,9 @@ def replayable_log(log, keep_anchors: bool = False, clock_offset: float = 0.0) -
     a motion capture's lost rows (:func:`without_lost_truth`), then, unless ``keep_anchors``
     (biases given per listed anchor), the anchors that no measurement names
     (:func:`heard_anchors`); and the notes on the log. ``clock_offset``: the inputs' offset
-    given (``--clock-offset SECONDS``), applied later, by which the inputs' span is judged."""
-    notes = []
+    given (``--clock-offset SECONDS``), applied later, by which the inputs' span is judged.
+    The reader's lines (rows left out blank, rows sorted: ``log.read_notes``) come first."""
+    notes = list(log.read_notes)
     log, zeros = without_zero_ranges(log)
     if zeros:
         notes.append(f"ranges of 0 m (a radio's failed exchange), left out: {zeros}")

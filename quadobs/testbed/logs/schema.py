@@ -43,11 +43,13 @@ __all__ = [
     "QUATERNION",
     "RANGE",
     "RANGE_ERRORS",
+    "SORT_REACH",
     "STD",
     "TDOA",
     "TIME",
     "FileSpec",
     "MetaKey",
+    "blank_rows",
     "check_values",
     "column_index",
     "parse_meta",
@@ -400,23 +402,54 @@ def _first(mask: np.ndarray) -> tuple[int, int] | None:
     return None if hits.size == 0 else (int(hits[0, 0]), int(hits[0, 1]))
 
 
+#: The most (s) a row's time may lie before an earlier row's in a file that is read, for the
+#: file's rows to be sorted by time (a host's stamps jittered by its scheduler, a serial
+#: link's buffer, two threads writing one file) rather than refused: a step back further is a
+#: clock set back or wrapped, whose rows no sort puts in place. A tenth of a second: a
+#: scheduler's or a buffer's delay is milliseconds to tens of them.
+SORT_REACH = 0.1
+
+
+def blank_rows(spec: FileSpec, columns: tuple[str, ...], values: np.ndarray) -> np.ndarray:
+    """The rows (a mask) of a timed file with a time and an empty or NaN value (neither an id
+    nor a standard deviation): a sensor's row without a measurement (a radio's failed
+    exchange, a motion capture's lost frame written blank), which a reader leaves out."""
+    if not columns or columns[0] != TIME or values.shape[0] == 0:
+        return np.zeros(values.shape[0], dtype=bool)
+    measured = [c for c, n in enumerate(columns) if c and n not in spec.integers + spec.std]
+    return np.isfinite(values[:, 0]) & np.isnan(values[:, measured]).any(axis=1)
+
+
 def check_values(
-    where: str, spec: FileSpec, columns: tuple[str, ...], values: np.ndarray, cell=None
+    where: str,
+    spec: FileSpec,
+    columns: tuple[str, ...],
+    values: np.ndarray,
+    cell=None,
+    rows: np.ndarray | None = None,
+    reach: float = 0.0,
 ) -> None:
     """Hold the values of one file (rows in file order, ``columns`` named) to ``spec``.
 
     Every value finite (a standard deviation may be NaN: the model's default), integer
     columns integers of magnitude at most :data:`MAX_ID`,
-    standard deviations ``> 0``, times non-decreasing, quaternions of unit norm.
+    standard deviations ``> 0``, times non-decreasing (or no row more than ``reach`` seconds
+    before an earlier row, for a reader that then sorts them: :data:`SORT_REACH`),
+    quaternions of unit norm.
 
     ``cell(row_offset, column_offset)`` gives the text of a cell as written (for the
-    message); default: the value itself. Raises a one-line :class:`QuadobsError` naming
-    ``where``, the row (data row ``i`` is row ``i + 2``) and the column.
+    message); default: the value itself. ``rows``: the data row of the file each row of
+    ``values`` was read from (where a reader left rows out), default ``0, 1, ...``. Raises a
+    one-line :class:`QuadobsError` naming ``where``, the row (data row ``i`` is row
+    ``i + 2``) and the column.
     """
+
+    def row(i: int) -> int:
+        return (i if rows is None else int(rows[i])) + 2
 
     def fail(i: int, c: int, problem: str) -> None:
         text = cell(i, c) if cell is not None else repr(float(values[i, c]))
-        raise QuadobsError(f"{where}, row {i + 2}, column {columns[c]}: {text!r} {problem}")
+        raise QuadobsError(f"{where}, row {row(i)}, column {columns[c]}: {text!r} {problem}")
 
     if values.shape[0] == 0:
         raise QuadobsError(f"{where}, row 2: no data rows")
@@ -433,12 +466,13 @@ def check_values(
         if name in spec.std and (bad := np.flatnonzero(col <= 0.0)).size:
             fail(int(bad[0]), c, "is not a positive standard deviation")
     if columns[0] == TIME:
-        bad = np.flatnonzero(np.diff(values[:, 0]) < 0)
-        if bad.size:
-            raise QuadobsError(
-                f"{where}, row {int(bad[0]) + 3}, column time: earlier than the row before (rows must be sorted by time)"
-            )
-        _check_stamps(where, values, columns, spec)
+        _check_order(where, values[:, 0], row, reach)
+        unsorted = reach > 0.0 and bool(np.any(np.diff(values[:, 0]) < 0.0))
+        order = np.argsort(values[:, 0], kind="stable") if unsorted else None
+        if order is None:
+            _check_stamps(where, values, columns, spec, row)
+        else:
+            _check_stamps(where, values[order], columns, spec, lambda i: row(int(order[i])))
     if set(QUATERNION) <= set(columns):
         q = values[:, [columns.index(c) for c in QUATERNION]]
         with np.errstate(over="ignore"):  # a huge component: an infinite norm, refused below
@@ -460,7 +494,24 @@ def check_values(
 COARSE_SHARE = 0.5
 
 
-def _check_stamps(where: str, values: np.ndarray, columns, spec: FileSpec) -> None:
+def _check_order(where: str, t: np.ndarray, row, reach: float) -> None:
+    """Refuse times that step back, or step back more than ``reach`` (s) behind an earlier
+    row's, naming the first such row (``row(i)``: its number in the file)."""
+    back = np.maximum.accumulate(t) - t
+    bad = np.flatnonzero(back > reach)
+    if not bad.size:
+        return
+    i = int(bad[0])
+    sorted_ = (
+        f"; a step back of up to {reach:g} s is sorted, more is a clock set back" if reach else ""
+    )
+    raise QuadobsError(
+        f"{where}, row {row(i)}, column time: earlier than a row before it by "
+        f"{float(back[i]):.6g} s (rows must be sorted by time{sorted_})"
+    )
+
+
+def _check_stamps(where: str, values: np.ndarray, columns, spec: FileSpec, row) -> None:
     """Refuse a file whose stamps are coarser than its sampling, in one line.
 
     Rows of one sensor (one id, in a file that names anchors) at one time with other values
@@ -484,7 +535,7 @@ def _check_stamps(where: str, values: np.ndarray, columns, spec: FileSpec) -> No
         raise QuadobsError(
             f"{where}: {count} of {values.shape[0]} rows share their time with a row "
             f"{'of the same id ' if keys else ''}before them and hold other values (the first "
-            f"at row {first + 2}, time {values[first, 0]:.12g}): stamps written with fewer "
+            f"at row {row(first)}, time {values[first, 0]:.12g}): stamps written with fewer "
             "digits than the sampling needs (whole seconds, float32, a burst stamped at once)?"
         )
 
