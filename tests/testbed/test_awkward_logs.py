@@ -413,6 +413,42 @@ def test_blank_rows_and_stamps_a_little_out_of_order_replay_as_the_plain_log(tmp
     assert figures["rmse"] == pytest.approx(plain[1]["rmse"], rel=0.05)
 
 
+def test_a_truth_holding_a_lost_bodys_last_pose_is_left_out(plain):
+    """Three spells where the motion capture repeated its last pose: the copies are left out
+    with a note (the last pose seen kept), the replay scored on the rest as the plain log
+    nearly is. A vehicle at rest that moves off, and a truth written at six times its rate,
+    repeat their positions too and keep every row."""
+    from quadobs.testbed.logs.replay import replayable_log, without_held_truth
+
+    log = helix()
+    truth = log.truth.copy()
+    t = truth[:, 0]
+    held = np.zeros(t.size, dtype=bool)
+    for start, end in ((2.5, 3.0), (4.0, 4.6), (6.0, 6.3)):
+        spell = np.flatnonzero((t > start) & (t < end))
+        truth[spell, 1:] = truth[spell[0] - 1, 1:]
+        held[spell] = True
+    back, notes = replayable_log(dataclasses.replace(log, truth=truth))
+    assert notes[0] == (
+        f"truth: {held.sum()} rows over 3 spells (the longest 0.58 s) repeating the position "
+        "before them exactly, each ended by a step faster than 3 times the truth's speed "
+        "elsewhere (a motion capture holding a lost body's last pose), left out: the truth has "
+        "a gap there (interpolated across where short)"
+    )
+    assert np.array_equal(back.truth, log.truth[~held])
+    assert _replay(back)["rmse"] == pytest.approx(plain[1]["rmse"], rel=0.05)
+    assert _replay(dataclasses.replace(log, truth=truth))["rmse"] > 1.1 * plain[1]["rmse"]
+    resting = log.truth.copy()
+    s = np.clip(t - 2.0, 0.0, None)  # at rest for 2 s, then off at 0.5 m/s^2
+    resting[:, 1:4] = np.column_stack([0.25 * s**2, 0 * s, 1.0 + 0 * s])
+    moving_off = dataclasses.replace(log, truth=resting)
+    assert without_held_truth(moving_off) == (moving_off, None)
+    coarse = log.truth.copy()
+    coarse[:, 1:] = coarse[(np.arange(t.size) // 6) * 6, 1:]  # each pose written six times
+    upsampled = dataclasses.replace(log, truth=coarse)
+    assert without_held_truth(upsampled) == (upsampled, None)
+
+
 def test_a_radios_codes_of_no_range_are_left_out_and_named(plain):
     """655.35 m and 999 m three times each and -1 m once among the helix's ranges (its anchors
     17 m apart at most): left out, the codes named by count, and the replay is the plain

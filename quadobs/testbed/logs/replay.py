@@ -60,6 +60,7 @@ __all__ = [
     "replayable_log",
     "run_replay",
     "without_held_ranges",
+    "without_held_truth",
     "without_impossible_ranges",
     "without_lost_truth",
     "without_zero_ranges",
@@ -473,6 +474,70 @@ def without_lost_truth(log):
     return dataclasses.replace(log, truth=log.truth[keep]), note
 
 
+#: :func:`without_held_truth`'s bounds: the fewest copies in a spell of the truth's rows that
+#: repeat the position before them exactly, and how many times the truth's fastest speed
+#: elsewhere (the 99th percentile of its steps over their intervals) the step that ends the
+#: spell must imply. A vehicle at rest that moves off takes a small first step; a motion
+#: capture that held the last pose of a lost body jumps to where the body has gone.
+HELD_TRUTH = (2, 3.0)
+
+
+def _copy_spells(same: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The first and last row of each run of ``True`` in ``same`` (``same[i]``: row ``i + 1``
+    repeats row ``i``), as the rows of the copies: ``(first, last)``, inclusive."""
+    edges = np.diff(np.concatenate([[0], same.astype(np.int8), [0]]))
+    return np.flatnonzero(edges == 1) + 1, np.flatnonzero(edges == -1)
+
+
+def without_held_truth(log):
+    """``log`` without the truth's rows that hold a lost body's last position, and a note, or None.
+
+    A motion capture (or the export of one) that loses the body may repeat its last pose
+    until it finds the body again; scored as the truth, the estimators are charged with
+    the vehicle's motion over the spell (a flight whose truth was held over eight losses of
+    0.2 to 1 s: the best default 0.176 -> 0.210 m, docs/replaying-your-data.md). A spell of
+    at least ``HELD_TRUTH[0]`` rows repeating the position before them exactly, ended by a row
+    whose step implies a speed more than ``HELD_TRUTH[1]`` times the 99th percentile of the
+    truth's speeds between its other rows, loses its copies (the first row, the last pose
+    seen, is kept): the truth has a gap there, interpolated across where it is short
+    (:func:`~quadobs.testbed.worlds.replay.wide_gaps`), unscored where it is wide. A vehicle at
+    rest written to a coarse resolution repeats its position too, but moves off by a small
+    step, and keeps its rows; so does a truth written at a multiple of its own rate."""
+    import dataclasses
+
+    if log.truth is None or log.truth.shape[0] < 10 or log.truth_part("position") is None:
+        return log, None
+    t = log.truth[:, 0]
+    p = log.truth[:, [log.truth_columns.index(c) for c in ("x", "y", "z")[: log.dimension]]]
+    step, dt = np.linalg.norm(np.diff(p, axis=0), axis=1), np.diff(t)
+    first, last = _copy_spells(step == 0.0)
+    ended = (last - first + 1 >= HELD_TRUTH[0]) & (last + 1 < t.size)
+    ended[ended] &= dt[last[ended]] > 0.0
+    first, last = first[ended], last[ended]
+    reference = (step > 0.0) & (dt > 0.0)
+    reference[last] = False  # the steps that end a spell
+    if np.count_nonzero(reference) < 10 or first.size == 0:
+        return log, None
+    fastest = float(np.percentile(step[reference] / dt[reference], 99))
+    with np.errstate(divide="ignore"):
+        speed = step[last] / dt[last]
+    held = speed > HELD_TRUTH[1] * fastest
+    if not held.any():
+        return log, None
+    keep = np.ones(t.size, dtype=bool)
+    for a, b in zip(first[held], last[held], strict=True):
+        keep[a : b + 1] = False
+    spans = t[last[held]] - t[first[held] - 1]
+    note = (
+        f"truth: {t.size - keep.sum()} rows over {held.sum()} spells (the longest "
+        f"{spans.max():.3g} s) repeating the position before them exactly, each ended by a "
+        f"step faster than {HELD_TRUTH[1]:g} times the truth's speed elsewhere (a motion "
+        "capture holding a lost body's last pose), left out: the truth has a gap there "
+        "(interpolated across where short)"
+    )
+    return dataclasses.replace(log, truth=log.truth[keep]), note
+
+
 #: The least share of a log's measurements that repeat their anchor's previous value exactly,
 #: and how many times the repeats a genuine radio would give at the values' resolution, beyond
 #: which :func:`without_held_ranges` takes the repeats for a logger's held values.
@@ -583,7 +648,8 @@ def replayable_log(log, keep_anchors: bool = False, clock_offset: float = 0.0) -
     """``log`` as the replay takes it, and one line for each thing left out: its ranges of 0 m
     (:func:`without_zero_ranges`) and others no radio measures
     (:func:`without_impossible_ranges`), a logger's held copies (:func:`without_held_ranges`),
-    a motion capture's lost rows (:func:`without_lost_truth`), then, unless ``keep_anchors``
+    a motion capture's lost rows (:func:`without_lost_truth`, :func:`without_held_truth`),
+    then, unless ``keep_anchors``
     (biases given per listed anchor), the anchors that no measurement names
     (:func:`heard_anchors`); and the notes on the log. ``clock_offset``: the inputs' offset
     given (``--clock-offset SECONDS``), applied later, by which the inputs' span is judged.
@@ -598,6 +664,8 @@ def replayable_log(log, keep_anchors: bool = False, clock_offset: float = 0.0) -
     notes += held
     log, lost = without_lost_truth(log)
     notes += [lost] if lost else []
+    log, held_truth = without_held_truth(log)
+    notes += [held_truth] if held_truth else []
     if not keep_anchors:
         log, unheard = heard_anchors(log)
         if unheard:
