@@ -217,6 +217,15 @@ def test_gaps_of_the_inputs_and_the_truth_are_said_before_the_replay():
         for n in notes
     )
     assert gap_notes(log) == []
+    tr = log.ranges[:, 0]
+    stepped = tr.copy()
+    stepped[tr >= 5.0] += 1.0  # the ranges' host clock set 1 s forward 5 s into the log
+    moved = dataclasses.replace(log, ranges=np.column_stack([stepped, log.ranges[:, 1:]]))
+    assert gap_notes(moved) == [
+        f"measurements: a gap of {1.0 + np.min(tr[tr >= 5.0]) - np.max(tr[tr < 5.0]):.3g} s "
+        f"from {np.max(tr[tr < 5.0]) - log.start:.3g} s into the log: each estimator predicts "
+        "across it (a radio's outage, or the measurements' clock stepped forward?)"
+    ]
 
 
 def test_an_anchor_never_ranged_is_left_out_of_the_replay():

@@ -693,20 +693,28 @@ def replayable_log(log, keep_anchors: bool = False, clock_offset: float = 0.0) -
 
 
 def gap_notes(log) -> list[str]:
-    """One line for each of the inputs and the truth with gaps
-    (:func:`~quadobs.testbed.worlds.replay.wide_gaps`): how many, the longest and when (from
-    the log's start), and what the replay does across them."""
+    """One line for each of the measurements (ranges and TDOA together), the inputs and the
+    truth with gaps (:func:`~quadobs.testbed.worlds.replay.wide_gaps`): how many, the longest
+    and when (from the log's start), and what the replay does across them. A gap of the
+    measurements alone is a radio's outage, or the measurements' clock stepped forward (a
+    host's clock set by NTP mid-log: every measurement after it late by the gap's excess)."""
     from quadobs.testbed.worlds.replay import wide_gaps
 
     what = {
+        "measurements": "each estimator predicts across it (a radio's outage, or the "
+        "measurements' clock stepped forward?)",
         "inputs": "each input held across it",
         "truth": "no error scored there",
     }
+    measured = np.sort(np.concatenate([log.ranges[:, 0], log.tdoa[:, 0]]))
     notes = []
-    for name, table in (("inputs", log.inputs), ("truth", log.truth)):
-        if table is None or table.shape[0] < 3:
+    for name, t in (
+        ("measurements", measured),
+        ("inputs", None if log.input_kind == "none" else log.inputs[:, 0]),
+        ("truth", None if log.truth is None else log.truth[:, 0]),
+    ):
+        if t is None or t.size < 3:
             continue
-        t = table[:, 0]
         wide = wide_gaps(t)
         if wide.size:
             length = np.diff(t)[wide]
