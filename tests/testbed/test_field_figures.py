@@ -221,8 +221,9 @@ def test_an_estimators_own_record_is_reported_on_the_logs_time_from_its_start(tm
 
 def test_a_truth_on_another_clock_is_said_before_the_replay():
     """The helix's truth stamped 2 s late: its distances agree with the ranges moved by 2 s,
-    and a note says so; on its own clock, and stamped 0.1 s late (within the lags not said),
-    nothing is said."""
+    and a note says so, as for 1.5 s early and, beyond the fine search, 7 s late and 6.1 s
+    early; on its own clock, and stamped 0.1 s late (within the lags not said), nothing is
+    said."""
     from quadobs.testbed.logs.replay import replayable_log, truth_lag_note
 
     log = helix_log(20.0)
@@ -230,7 +231,8 @@ def test_a_truth_on_another_clock_is_said_before_the_replay():
     noisy[:, 2] += 0.1 * np.random.default_rng(3).standard_normal(noisy.shape[0])  # a radio's
     log = dataclasses.replace(log, ranges=noisy)
     assert truth_lag_note(log) is None
-    for lag, said in ((2.0, "stamped 2.00 s late"), (-1.5, "stamped 1.50 s early"), (0.1, None)):
+    cases = [(2.0, "stamped 2.00 s late"), (-1.5, "stamped 1.50 s early"), (0.1, None)]
+    for lag, said in [*cases, (7.0, "stamped 7.00 s late"), (-6.1, "stamped 6.10 s early")]:
         moved = dataclasses.replace(log, truth=log.truth + np.r_[lag, np.zeros(6)])
         note = truth_lag_note(moved)
         assert (note is None) if said is None else (said in note and "ranges' clock" in note)

@@ -730,8 +730,15 @@ def gap_notes(log) -> list[str]:
 
 
 #: The lags (s) of the truth against the ranges that :func:`truth_lag_note` tries: -3 to 3 s by
-#: 0.05 s (a motion capture on another clock, or stamped on receipt).
+#: 0.05 s (a motion capture on another clock, or stamped on receipt), and beyond them by
+#: :data:`TRUTH_LAG_COARSE`.
 TRUTH_LAGS = np.round(np.arange(-3.0, 3.0 + 1e-9, 0.05), 2)
+#: The step (s) of :func:`truth_lag_note`'s wider search, out to half the shorter of the
+#: truth's and the ranges' spans, at most :data:`TRUTH_LAG_REACH` (s): a truth on another
+#: clock by seconds (GPS time against UTC: 18 s), not an hour's time zone, which
+#: :func:`check_clock_overlap` refuses. A best lag found there is refined by 0.05 s.
+TRUTH_LAG_COARSE = 0.25
+TRUTH_LAG_REACH = 120.0
 #: The most ranges :func:`truth_lag_note` reads (a long log's sampled to these).
 TRUTH_LAG_RANGES = 20000
 
@@ -740,14 +747,16 @@ def truth_lag_note(log) -> str | None:
     """A line where the truth agrees with the ranges much better at another time than its own,
     else None.
 
-    For each lag ``s`` of :data:`TRUTH_LAGS`, each range's residual against the truth's point
+    For each lag ``s`` of :data:`TRUTH_LAGS` and of the wider search
+    (:data:`TRUTH_LAG_COARSE`), each range's residual against the truth's point
     at its time plus ``s``, ``rho - |p(t + s) - a_h|`` (the horizontal distance in a planar
     log), less its anchor's median residual (a bias, a height), and the median of their
     absolute values: the spread of the ranges about the truth moved by ``s``. Said where the
     least spread lies 0.25 s or more from 0 and is under 0.7 times the spread at 0: a truth
     that scores every estimator from the wrong time (the figures of a truth 2 s late are
     metres, not the estimators' error). Ranges outside the truth's span at a lag are not
-    counted at it; a long log's ranges are sampled (a fixed seed) to :data:`TRUTH_LAG_RANGES`. A tag
+    counted at it, and a lag at which fewer than a quarter of them lie inside is not tried;
+    a long log's ranges are sampled (a fixed seed) to :data:`TRUTH_LAG_RANGES`. A tag
     mounted ``l`` ahead of the truth's point on a vehicle driving forwards at ``v`` looks the
     same, a lag of ``l / v``: the note names both."""
     truth = log.truth
@@ -766,7 +775,7 @@ def truth_lag_note(log) -> str | None:
 
     def spread(s: float) -> float:
         inside = (t + s >= t_truth[0]) & (t + s <= t_truth[-1])
-        if np.count_nonzero(inside) < 20:
+        if np.count_nonzero(inside) < max(20, t.size // 4):
             return math.inf
         p = np.column_stack([np.interp(t[inside] + s, t_truth, p_truth[:, i]) for i in range(dim)])
         e = rho[inside] - np.linalg.norm(p - a[inside], axis=1)
@@ -776,13 +785,18 @@ def truth_lag_note(log) -> str | None:
             medians[k] = np.median(e[h == k])
         return float(np.median(np.abs(e - medians[h])))
 
-    spreads = np.array([spread(float(s)) for s in TRUTH_LAGS])
-    at_zero = spreads[np.flatnonzero(TRUTH_LAGS == 0.0)[0]]
+    lags = _truth_lags(min(t[-1] - t[0], t_truth[-1] - t_truth[0]))
+    spreads = np.array([spread(float(s)) for s in lags])
+    if abs(best := float(lags[np.argmin(spreads)])) > TRUTH_LAGS[-1]:  # refined where coarse
+        fine = np.round(best + np.arange(-0.2, 0.2 + 1e-9, 0.05), 2)
+        lags = np.concatenate([lags, fine])
+        spreads = np.concatenate([spreads, [spread(float(s)) for s in fine]])
+    at_zero = spreads[np.flatnonzero(lags == 0.0)[0]]
     k = int(np.argmin(spreads))
-    best = float(TRUTH_LAGS[k])
+    best = float(lags[k])
     if not (abs(best) >= 0.25 and math.isfinite(at_zero) and spreads[k] < 0.7 * at_zero):
         return None
-    edge = "or more " if abs(best) == float(np.max(np.abs(TRUTH_LAGS))) else ""
+    edge = "or more " if abs(best) >= float(np.max(np.abs(lags))) else ""
     return (
         f"truth.csv agrees with the ranges best as if stamped {abs(best):.2f} s {edge}"
         f"{'late' if best > 0 else 'early'} (the ranges spread {spreads[k]:.3g} m about it "
@@ -793,6 +807,15 @@ def truth_lag_note(log) -> str | None:
         "inputs as well (--clock-offset)? A truth on another clock scores every estimator "
         "from the wrong time"
     )
+
+
+def _truth_lags(span: float) -> np.ndarray:
+    """:data:`TRUTH_LAGS`, and the wider search's lags out to half ``span`` (s), at most
+    :data:`TRUTH_LAG_REACH`, by :data:`TRUTH_LAG_COARSE`: sorted, without repeats."""
+    reach = min(TRUTH_LAG_REACH, 0.5 * span)
+    n = int(reach // TRUTH_LAG_COARSE)
+    coarse = np.round(TRUTH_LAG_COARSE * np.arange(-n, n + 1), 2)
+    return np.union1d(TRUTH_LAGS, coarse[np.abs(coarse) > TRUTH_LAGS[-1]])
 
 
 #: :func:`truth_offset_note`'s search: the reach (m) of the offsets tried per axis, its coarse
