@@ -417,7 +417,7 @@ def check_body_imu(log) -> None:
     f = np.linalg.norm(log.inputs[:, 1:4], axis=1)
     median = float(np.median(f)) if f.size else g
     if not 0.5 * g <= median <= 2.0 * g:
-        hint = " (a log in g: times g)" if median < 0.5 * g else ""
+        hint = _accelerometer_hint(f, median, g)
         raise QuadobsError(
             f"{log.file_label('imu.csv')}, columns ax,ay,az: the median |a| is {median:.4g}, and a body's "
             f"specific force in m/s^2 has a median near gravity {g:g}{hint}"
@@ -431,6 +431,22 @@ def check_body_imu(log) -> None:
             f"({GYRO_FULL_SCALE:.1f} rad/s = 2000 deg/s): the rates must be in rad/s"
         )
     check_rates_against_attitude(log)
+
+
+def _accelerometer_hint(f: np.ndarray, median: float, g: float) -> str:
+    """What an accelerometer's norms ``|f|`` of median ``median`` outside ``[g/2, 2g]`` were
+    likely logged in. A specific force in ``g`` keeps its norm near 1 (a vehicle never falls
+    freely for long: its 5th percentile at least half its median); one with gravity taken
+    out (a linear acceleration) comes near 0 whenever the vehicle does not accelerate; one in
+    ``mg`` reads about 1000."""
+    if median < 0.5 * g:
+        if float(np.percentile(f, 5)) >= 0.5 * median:
+            return " (a log in g: times g)"
+        return (
+            " (gravity taken out? the accelerometer must read the specific force, gravity "
+            "included: g upwards at rest)"
+        )
+    return " (a log in mg: times g / 1000)" if 500.0 <= median <= 2000.0 else ""
 
 
 def _check_gravity_held(log, nav: np.ndarray, given: bool = False) -> None:

@@ -39,6 +39,17 @@ def test_an_accelerometer_in_g_is_refused_naming_the_file_and_columns(tmp_path, 
     error = _refused(tmp_path, capsys, _scaled(_imu_body_log(False), accel=1.0 / G))
     assert "columns ax,ay,az: the median |a| is 1, " in error and "in g" in error
     check_body_imu(_imu_body_log(False))  # in m/s^2: accepted
+    error = _refused(tmp_path / "mg", capsys, _scaled(_imu_body_log(False), accel=1000.0 / G))
+    assert "the median |a| is 1000, " in error and "(a log in mg: times g / 1000)" in error
+
+
+def test_an_accelerometer_with_gravity_taken_out_is_refused_saying_so(tmp_path, capsys):
+    log = _rocking_log()
+    t = log.inputs[:, 0]
+    linear = log.inputs.copy()
+    linear[:, 1:4] = np.column_stack([0.6 * np.sin(3 * t), 0.4 * np.cos(2 * t), 0 * t])
+    error = _refused(tmp_path, capsys, dataclasses.replace(log, inputs=linear))
+    assert "columns ax,ay,az: the median |a| is " in error and "gravity taken out?" in error
 
 
 def test_a_gyroscope_in_deg_per_s_turning_fast_is_beyond_any_full_scale(tmp_path, capsys):

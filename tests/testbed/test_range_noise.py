@@ -177,9 +177,41 @@ def test_the_pooled_figure_where_asked_or_where_an_anchor_shows_too_little():
 def test_no_anchor_figures_where_the_log_states_its_noise_or_has_no_imu_or_odometry():
     log = _log(rate=100.0, speed=1.0, sigma=0.1)
     stated = dataclasses.replace(log, range_std=np.full(log.ranges.shape[0], 0.3))
-    assert anchor_noise(stated) is None and with_anchor_noise(stated, {})[0] is stated
+    assert anchor_noise(stated) is None and with_anchor_noise(stated, {})[:2] == (stated, {})
     ranges_only = dataclasses.replace(log, inputs=np.empty((0, 7)), input_kind="none")
     assert with_anchor_noise(ranges_only, {})[2] is None
+
+
+def test_a_stated_std_far_from_an_anchors_own_noise_gives_way_to_it():
+    """Anchors' noise 0.1 m; the std stated ten times too small on anchor 2 alone (a
+    firmware's per-anchor figure), or on every anchor (another unit): those anchors' ranges
+    take their own figures, with a note naming them; the radio's one figure stated alike on
+    every anchor stays where one anchor reads noisier (a path blocked: its excess's changes),
+    as does any std the user keeps (``stated_std=1``)."""
+    log = _log(rate=100.0, speed=1.0, sigma=0.1)
+    h = log.beacon_index(log.ranges[:, 1])
+    own = anchor_noise(log)
+    firmware = dataclasses.replace(log, range_std=np.where(h == 2, 0.01, 0.1))
+    out, options, note = with_anchor_noise(firmware, {"q_imu": 0.02})
+    assert options == {"q_imu": 0.02}
+    np.testing.assert_array_equal(out.range_std, np.where(h == 2, own[2], 0.1))
+    assert note == (
+        f"ranges.csv's std of anchor 2 (0.01 m, median) lies more than 5 times from the "
+        f"ranges' own noise ({own[2]:.3g} m): those ranges weighed by their own noise (--tune "
+        "stated_std=1 keeps the std stated; is it in metres, and the radio's?)"
+    )
+    unit = dataclasses.replace(log, range_std=np.full(h.size, 0.01))
+    out, _, note = with_anchor_noise(unit, {})
+    np.testing.assert_array_equal(out.range_std, own[h])
+    assert note.startswith("ranges.csv's std of anchors 0, 1, 2, 3 (0.01, 0.01, 0.01, 0.01 m")
+    for kept in ({"stated_std": 1.0}, {"anchor_sigma": 0.0}, {"range_sigma": 0.2}):
+        same, _, note = with_anchor_noise(unit, kept)
+        assert same is unit and "every filter corrects with the stated std" in note
+    blocked = _log(rate=100.0, speed=1.0, sigma=[0.1, 0.1, 0.6, 0.1])
+    radio = dataclasses.replace(blocked, range_std=np.full(h.size, 0.1))
+    assert with_anchor_noise(radio, {})[0] is radio and anchor_noise(blocked)[2] > 0.5
+    right = dataclasses.replace(log, range_std=np.full(h.size, 0.1))
+    assert with_anchor_noise(right, {}) == (right, {}, None)
 
 
 def test_anchor_sigma_is_a_switch_the_setup_does_not_take():
@@ -187,6 +219,7 @@ def test_anchor_sigma_is_a_switch_the_setup_does_not_take():
     from quadobs.testbed.logs.estimators import parse_tuning, tuning_fields
 
     assert parse_tuning(["anchor_sigma=0"]) == {"anchor_sigma": 0.0}
+    assert tuning_fields({"stated_std": 1.0}) == {}
     with pytest.raises(QuadobsError, match="anchor_sigma: expected 0"):
         parse_tuning(["anchor_sigma=2"])
     assert tuning_fields({"anchor_sigma": 1.0, "q_imu": 0.1}) == {"q_imu": 0.1}

@@ -387,12 +387,14 @@ def tuning_fields(options) -> dict:
     """The tuning as :class:`ReplaySetup`'s fields: ``velocity_std=log`` goes to
     :func:`log_frame` (:func:`velocity_from_log`), not to the setup; ``bias_prior=log`` is the
     self-calibration's to resolve (a number by then,
-    :func:`~quadobs.testbed.logs.calibration.calibrate`); ``anchor_sigma`` acts on the log
-    before the replay (:func:`~quadobs.testbed.logs.range_noise.with_anchor_noise`)."""
+    :func:`~quadobs.testbed.logs.calibration.calibrate`); ``anchor_sigma`` and ``stated_std``
+    act on the log before the replay
+    (:func:`~quadobs.testbed.logs.range_noise.with_anchor_noise`)."""
     return {
         k: v
         for k, v in (options or {}).items()
-        if not (k in ("velocity_std", "bias_prior") and v == FROM_LOG) and k != "anchor_sigma"
+        if not (k in ("velocity_std", "bias_prior") and v == FROM_LOG)
+        and k not in ("anchor_sigma", "stated_std")
     }
 
 
@@ -400,10 +402,10 @@ def tuning_fields(options) -> dict:
 TUNING = (
     "range_sigma", "q_xy", "q_theta", "q_acc", "q_imu", "gate", "P0", "range_bias",
     "q_xy_heading", "velocity_std", "nlos_prior", "steady_test", "bias_prior", "stated_heights",
-    "anchor_sigma", "tag_pattern",
+    "anchor_sigma", "tag_pattern", "stated_std",
 )  # fmt: skip
 #: The tuning's switches (0 off, 1 on).
-SWITCHES = ("steady_test", "stated_heights", "anchor_sigma", "tag_pattern")
+SWITCHES = ("steady_test", "stated_heights", "anchor_sigma", "tag_pattern", "stated_std")
 
 
 def parse_tuning(settings) -> dict:

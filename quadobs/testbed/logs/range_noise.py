@@ -80,11 +80,14 @@ __all__ = [
     "MIN_RESIDUALS",
     "OWN_NOISE_KINDS",
     "SPAN_RATIO",
+    "STATED_STD_RATIO",
     "anchor_noise",
     "range_noise",
     "smooth_range_noise",
     "stated_range_noise",
+    "stated_std_note",
     "with_anchor_noise",
+    "with_checked_std",
 ]
 
 #: The largest ratio of the doubled span's figure to the native one for the figure to be the
@@ -238,7 +241,12 @@ def with_anchor_noise(log, options: dict) -> tuple:
     with each range given its anchor's own noise (:func:`anchor_noise`), and ``options`` with
     ``range_sigma`` the pooled figure (module docstring); the note names each anchor's figure
     by its id. The log and ``options`` as given, and no note, where the user set
-    ``range_sigma`` or ``anchor_sigma=0``, or where the ranges do not show their noise."""
+    ``range_sigma`` or ``anchor_sigma=0``, or where the ranges do not show their noise. A
+    log of those kinds that states a ``std`` has it checked per anchor
+    (:func:`with_checked_std`)."""
+    if log.input_kind in OWN_NOISE_KINDS and not np.all(np.isnan(log.range_std)):
+        checked, note = with_checked_std(log, options)
+        return checked, options, note
     if "range_sigma" in options or not options.get("anchor_sigma", 1.0):
         return log, options, None
     found = _pooled(log) if log.input_kind in OWN_NOISE_KINDS else None
@@ -253,3 +261,90 @@ def with_anchor_noise(log, options: dict) -> tuple:
         f"pools them): {figures} m (pooled {pooled:.3f} m)"
     )
     return dataclasses.replace(log, range_std=std), {**options, "range_sigma": pooled}, note
+
+
+#: How far (a factor either way) the stated range std may lie from the ranges' own noise
+#: before :func:`stated_std_note` says so.
+STATED_STD_RATIO = 5.0
+
+
+def stated_std_note(log) -> str | None:
+    """A line where the ranges' stated std (``ranges.csv``'s ``std``, its median) lies more
+    than :data:`STATED_STD_RATIO` times from the ranges' own noise
+    (:func:`~quadobs.testbed.logs.range_noise.range_noise`, where it is the noise), else
+    None: every filter corrects with the stated std, so one in another unit, or a datasheet's
+    figure far from the radio's, weighs the ranges wrongly."""
+    stated = log.range_std[np.isfinite(log.range_std)]
+    if stated.size == 0:
+        return None
+    figures = range_noise(log)
+    if not is_noise(figures):
+        return None
+    median, noise = float(np.median(stated)), float(figures[0])
+    if 1.0 / STATED_STD_RATIO <= median / noise <= STATED_STD_RATIO:
+        return None
+    return (
+        f"ranges.csv states a std of {median:.3g} m (median), where the ranges' own noise is "
+        f"{noise:.3g} m: every filter corrects with the stated std (is it in metres?)"
+    )
+
+
+def with_checked_std(log, options: dict) -> tuple:
+    """``(log, note)``: a log whose ``ranges.csv`` states a ``std``, with the ranges of each
+    anchor whose stated std (its median) lies more than :data:`STATED_STD_RATIO` times from
+    that anchor's own noise (:func:`anchor_noise`, read as if no std were stated) weighed by
+    its own noise instead, and a note naming them.
+
+    An anchor's stated std is taken for wrong where it lies that far from the anchor's own
+    noise and either the stated std's median lies that far from the pooled noise (every
+    anchor stated in another unit, or a datasheet's figure) or the anchor's stated std lies
+    that far from the median of the others' (a per-anchor figure of a firmware): an anchor
+    whose path is blocked for most of a log reads a noise of its excess's changes, and the
+    radio's one figure, stated on every anchor alike, stays (a robot's anchor blocked
+    throughout, its own figure 0.415 m against the 0.08 m stated: 0.090 m as stated, 0.115 m
+    weighed by its own figure).
+
+    A stated std ten times too small on three of a flight's eight anchors (a firmware's
+    per-anchor precision) made every filter trust those ranges past their noise: the best
+    default 0.176 -> 0.675 m, with no note, since the median over all anchors agreed
+    (docs/replaying-your-data.md); ten times too small on all, four filters diverged (0.552
+    m). The log as given, and :func:`stated_std_note` (a pooled check), where the user keeps
+    the stated std (``--tune stated_std=1``, or ``range_sigma``, ``anchor_sigma=0``) or where
+    the ranges do not show their noise."""
+    kept = "range_sigma" in options or not options.get("anchor_sigma", 1.0)
+    found = None
+    if not (kept or options.get("stated_std", 0.0)):
+        found = _pooled(dataclasses.replace(log, range_std=np.full(log.ranges.shape[0], np.nan)))
+    if found is None:
+        return log, stated_std_note(log)
+    own = _anchor_figures(log, *found)
+    index = log.beacon_index(log.ranges[:, RANGE.beacon])
+    std = log.range_std.copy()
+    stated = float(np.nanmedian(std))
+    everywhere = _apart(stated, found[0])  # a unit's or a datasheet's figure for the radio
+    off = []
+    for h in range(own.size):
+        rows = (index == h) & np.isfinite(std)
+        if not rows.any():
+            continue
+        median = float(np.median(std[rows]))
+        if _apart(median, own[h]) and (everywhere or _apart(median, stated)):
+            off.append((h, median))
+            std[index == h] = own[h]
+    if not off:
+        return log, None
+    ids = ", ".join(str(int(log.beacon_ids[h])) for h, _ in off)
+    given = ", ".join(f"{s:.3g}" for _, s in off)
+    figures = ", ".join(f"{own[h]:.3g}" for h, _ in off)
+    note = (
+        f"ranges.csv's std of anchor{'s' if len(off) > 1 else ''} {ids} ({given} m, median) "
+        f"lies more than {STATED_STD_RATIO:g} times from the ranges' own noise ({figures} m): "
+        "those ranges weighed by their own noise (--tune stated_std=1 keeps the std stated; "
+        "is it in metres, and the radio's?)"
+    )
+    return dataclasses.replace(log, range_std=std), note
+
+
+def _apart(a: float, b: float) -> bool:
+    """Whether ``a`` and ``b`` (positive) lie more than :data:`STATED_STD_RATIO` times apart."""
+    return not 1.0 / STATED_STD_RATIO <= a / b <= STATED_STD_RATIO

@@ -680,7 +680,10 @@ def replayable_log(log, keep_anchors: bool = False, clock_offset: float = 0.0) -
     offset = None if anchors or lag else truth_offset_note(log)  # a lag or ids look offset too
     moved = with_input_offset(log, clock_offset)
     found = [lag, anchors, offset, truth_odometry_note(moved), truth_attitude_note(moved)]
-    found.append(stated_std_note(log))
+    from quadobs.testbed.logs.range_noise import OWN_NOISE_KINDS, stated_std_note
+
+    if log.input_kind not in OWN_NOISE_KINDS:  # else checked per anchor with the noise
+        found.append(stated_std_note(log))
     notes += [n for n in found if n]
     plane = anchor_plane(log.beacons)
     if plane is not None:
@@ -954,34 +957,6 @@ def _truth_at_ranges(log) -> tuple | None:
         return None
     p = np.column_stack([np.interp(t[inside], truth[:, 0], c) for c in position.T])
     return p, log.beacon_index(log.ranges[inside, 1]), log.ranges[inside, 2]
-
-
-#: How far (a factor either way) the stated range std may lie from the ranges' own noise
-#: before :func:`stated_std_note` says so.
-STATED_STD_RATIO = 5.0
-
-
-def stated_std_note(log) -> str | None:
-    """A line where the ranges' stated std (``ranges.csv``'s ``std``, its median) lies more
-    than :data:`STATED_STD_RATIO` times from the ranges' own noise
-    (:func:`~quadobs.testbed.logs.range_noise.range_noise`, where it is the noise), else
-    None: every filter corrects with the stated std, so one in another unit, or a datasheet's
-    figure far from the radio's, weighs the ranges wrongly."""
-    from quadobs.testbed.logs.range_noise import is_noise, range_noise
-
-    stated = log.range_std[np.isfinite(log.range_std)]
-    if stated.size == 0:
-        return None
-    figures = range_noise(log)
-    if not is_noise(figures):
-        return None
-    median, noise = float(np.median(stated)), float(figures[0])
-    if 1.0 / STATED_STD_RATIO <= median / noise <= STATED_STD_RATIO:
-        return None
-    return (
-        f"ranges.csv states a std of {median:.3g} m (median), where the ranges' own noise is "
-        f"{noise:.3g} m: every filter corrects with the stated std (is it in metres?)"
-    )
 
 
 #: The window (s) over which :func:`truth_odometry_note` compares the odometry's turn and
