@@ -224,3 +224,42 @@ def test_a_truth_attitude_that_the_rates_contradict_is_said_in_a_note():
     )
     note = truth_attitude_note(lever)
     assert note is not None and "moves the truth to the stated tag and gives" in note
+
+
+def test_rows_of_an_imu_at_its_full_scale_are_left_out_and_said():
+    """Three bursts of 0.1 s of a vibration beyond 16 g and 2000 deg/s, read at the sensors'
+    full scales (an int16's 32767 / 32768 of it, a calibration's 1.005 on the rates): those
+    rows are left out with a note, and the rates are then within any gyroscope's range. An
+    accelerometer clipped at 1 g (no sensor's full scale), or peaking once at 16 g, keeps its
+    rows."""
+    from quadobs.testbed.logs.replay import replayable_log, without_clipped_inputs
+
+    log = _imu_body_log(True, yaw_rate=0.2)
+    t = log.inputs[:, 0]
+    burst = ((t >= 5.0) & (t < 5.1)) | ((t >= 9.0) & (t < 9.1)) | ((t >= 14.0) & (t < 14.1))
+    sign = np.where(np.arange(t.size) % 2 == 0, 1.0, -1.0)[burst, None]
+    imu = log.inputs.copy()
+    accel, rate = 16 * G * 32767 / 32768, np.radians(2000.0) * 32767 / 32768
+    imu[burst, 1:4] = np.clip(imu[burst, 1:4] + 245.0 * sign, -accel, accel)
+    imu[burst, 4:7] = 1.005 * np.clip(imu[burst, 4:7] + 50.0 * sign, -rate, rate)
+    clipped = dataclasses.replace(log, inputs=imu)
+    with pytest.raises(QuadobsError, match="beyond any MEMS gyroscope's range"):
+        check_body_imu(clipped)
+    back, notes = replayable_log(clipped)
+    assert notes[0] == (
+        f"imu.csv: {burst.sum()} rows at a sensor's full scale (ax at 156.902 and -156.902, ay "
+        "at 156.902 and -156.902, az at 156.902 and -156.902, gx at 35.08 and -35.08, gy at "
+        "35.08 and -35.08, gz at 35.08 and -35.08: a reading beyond its range), left out: the "
+        "row before each held across"
+    )
+    np.testing.assert_array_equal(back.inputs, log.inputs[~burst])
+    check_body_imu(back)
+    one_g = log.inputs.copy()
+    one_g[:, 3] = np.minimum(one_g[:, 3], G)  # level at rest reads g: a pile at 1 g
+    assert (one_g[:, 3] == G).sum() > 1000
+    one_g_log = dataclasses.replace(log, inputs=one_g)
+    assert without_clipped_inputs(one_g_log) == (one_g_log, None)
+    peak = log.inputs.copy()
+    peak[100, 1] = 16 * G
+    peak_log = dataclasses.replace(log, inputs=peak)
+    assert without_clipped_inputs(peak_log) == (peak_log, None)

@@ -59,6 +59,7 @@ __all__ = [
     "repeated_values",
     "replayable_log",
     "run_replay",
+    "without_clipped_inputs",
     "without_held_ranges",
     "without_held_truth",
     "without_impossible_ranges",
@@ -474,6 +475,73 @@ def without_lost_truth(log):
     return dataclasses.replace(log, truth=log.truth[keep]), note
 
 
+#: :func:`without_clipped_inputs`'s bounds: the fewest rows of an accelerometer's or a
+#: gyroscope's column at exactly its largest (or least) value, and the band below that value
+#: (a share of it) that must hold fewer rows than it, for the value to be a full scale.
+CLIPPED_INPUTS = (3, 0.01)
+#: The full scales of MEMS accelerometers (in g) and gyroscopes (deg/s) that
+#: :func:`without_clipped_inputs` knows, and how far (a share) a calibrated output's value at
+#: one may lie from it (a scale factor's correction, an int16's 32767 / 32768).
+FULL_SCALES = {"accel": (2, 4, 8, 16, 24, 32), "gyro": (125, 250, 500, 1000, 2000, 4000)}
+FULL_SCALE_TOLERANCE = 0.03
+
+
+def _at_full_scale(column: np.ndarray, scales: np.ndarray) -> tuple[np.ndarray, list[float]]:
+    """The rows (a mask) of one IMU column at a full scale, and the values found: an extreme
+    of the column within :data:`FULL_SCALE_TOLERANCE` of one of ``scales`` (in the column's
+    unit), held by at least ``CLIPPED_INPUTS[0]`` rows and by more rows than the band of
+    ``CLIPPED_INPUTS[1]`` of its size just inside it (a pile at the edge: a sensor read
+    beyond its range gives its full scale; a signal that only peaks there does not pile)."""
+    fewest, band = CLIPPED_INPUTS
+    rows, found = np.zeros(column.size, dtype=bool), []
+    for edge in (float(column.max()), float(column.min())):
+        if not edge or np.min(np.abs(abs(edge) / scales - 1.0)) > FULL_SCALE_TOLERANCE:
+            continue
+        at = column == edge
+        same_side = np.sign(column) == np.sign(edge)
+        inside = same_side & (np.abs(column) >= (1.0 - band) * abs(edge))
+        if np.count_nonzero(at) >= fewest and 2 * np.count_nonzero(at) > np.count_nonzero(inside):
+            rows |= at
+            found.append(edge)
+    return rows, found
+
+
+def without_clipped_inputs(log):
+    """``log`` without the IMU rows at a sensor's full scale, and a note, or None.
+
+    An accelerometer or gyroscope driven beyond its range (a vibration's burst, a hard landing)
+    reads its full scale, and the burst's mean is lost: three bursts of 0.1 s clipped at 16 g
+    and 2000 deg/s put a flight's IMU filters 9.9 m off and the best default went 0.176 ->
+    0.909 m (docs/replaying-your-data.md). A row with any column at a full scale
+    (:func:`_at_full_scale`, :data:`FULL_SCALES`) is left out: the row before it is held across, as over any gap
+    of the inputs (the same flight: 0.176 m). Only a body IMU's rows are read so: a
+    navigation-frame acceleration is no sensor's reading, and wheel odometry has no full
+    scale."""
+    import dataclasses
+
+    if log.input_kind != "imu_body" or log.inputs.shape[0] < 10:
+        return log, None
+    from quadobs.testbed.logs.format import INPUT_FILES, INPUT_KINDS
+
+    names = INPUT_KINDS[log.input_kind]
+    accel = float(log.gravity) * np.array(FULL_SCALES["accel"], dtype=float)
+    gyro = np.radians(np.array(FULL_SCALES["gyro"], dtype=float))
+    clipped = np.zeros(log.inputs.shape[0], dtype=bool)
+    said = []
+    for c, name in enumerate(names[: log.inputs.shape[1] - 1]):
+        rows, found = _at_full_scale(log.inputs[:, c + 1], gyro if name[0] == "g" else accel)
+        clipped |= rows
+        said += [f"{name} at {' and '.join(f'{v:.6g}' for v in found)}"] if found else []
+    if not clipped.any() or clipped.all():
+        return log, None
+    note = (
+        f"{INPUT_FILES[log.input_kind]}: {np.count_nonzero(clipped)} rows at a sensor's "
+        f"full scale ({', '.join(said)}: a reading beyond its range), left out: the row "
+        "before each held across"
+    )
+    return dataclasses.replace(log, inputs=log.inputs[~clipped]), note
+
+
 #: :func:`without_held_truth`'s bounds: the fewest copies in a spell of the truth's rows that
 #: repeat the position before them exactly, and how many times the truth's fastest speed
 #: elsewhere (the 99th percentile of its steps over their intervals) the step that ends the
@@ -666,6 +734,8 @@ def replayable_log(log, keep_anchors: bool = False, clock_offset: float = 0.0) -
     notes += [lost] if lost else []
     log, held_truth = without_held_truth(log)
     notes += [held_truth] if held_truth else []
+    log, clipped = without_clipped_inputs(log)
+    notes += [clipped] if clipped else []
     if not keep_anchors:
         log, unheard = heard_anchors(log)
         if unheard:
