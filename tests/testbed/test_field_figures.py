@@ -85,6 +85,22 @@ def test_the_burn_in_drops_the_transient_and_the_tum_files_give_evos_rmse(tmp_pa
     assert ref.timestamps[0] == pytest.approx(log.start + 5.0)
     assert s["tum"]["files"] == ["truth.tum", "augmented.tum", "ekf.tum", "ekf-bias.tum"]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["tum"]  # no staging folder left
+    blind = run_replay(  # a log without a truth: each trajectory after the burn-in, no truth
+        dataclasses.replace(log, truth=None, truth_columns=()),
+        dt=0.01,
+        initial_offset=5.0,
+        setup_options=SETUP,
+        burn_in=5.0,
+        export_tum=tmp_path / "blind",
+    )
+    assert blind["tum"]["files"] == ["augmented.tum", "ekf.tum", "ekf-bias.tum"]
+    assert sorted(p.name for p in (tmp_path / "blind").iterdir()) == sorted(blind["tum"]["files"])
+    track = file_interface.read_tum_trajectory_file(str(tmp_path / "blind" / "ekf.tum"))
+    mine = file_interface.read_tum_trajectory_file(str(tmp_path / "tum" / "ekf.tum"))
+    assert track.num_poses == mine.num_poses  # the helix's truth covers every row
+    np.testing.assert_array_equal(track.timestamps, mine.timestamps)
+    # started at the anchors' centroid (no truth to start from), it ends where the other does
+    np.testing.assert_allclose(track.positions_xyz[-100:], mine.positions_xyz[-100:], atol=0.05)
 
 
 def test_a_diverged_estimator_is_reported_and_has_no_figures(tmp_path, capsys):

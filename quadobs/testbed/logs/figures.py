@@ -12,7 +12,8 @@ With a folder (``--export-tum DIR``) it also writes, once the replay is complete
 truth and each estimator's position at the same rows (after the burn-in, with a truth,
 timestamps on the log's clock) as ``DIR/truth.tum`` and ``DIR/<estimator>.tum``: ``evo_ape
 tum DIR/truth.tum DIR/ekf.tum`` then gives the RMSE of the summary (translation part, no
-alignment). The folder is built beside its target and renamed into place whole
+alignment). A log without a truth gives each estimator's position at every row after the
+burn-in, and no ``truth.tum``. The folder is built beside its target and renamed into place whole
 (:func:`~quadobs.testbed.logs.files.staged_folder`); a diverged estimator has no file.
 """
 
@@ -58,11 +59,18 @@ class FieldFiguresSink(Sink):
     burn_in : float
         Seconds from the first row before the figures (and the TUM rows) start.
     tum_folder : path, optional
+    with_truth : bool
+        Whether the log holds a truth. Without one, each estimator's TUM file holds its
+        estimate at every row after the burn-in and no ``truth.tum`` is written (the
+        trajectory of a log that nothing scores, for evo's other tools or a plot).
     """
 
-    def __init__(self, start: float, burn_in: float = 0.0, tum_folder=None) -> None:
+    def __init__(
+        self, start: float, burn_in: float = 0.0, tum_folder=None, with_truth: bool = True
+    ) -> None:
         self.start, self.burn_in = float(start), float(burn_in)
         self.tum_folder = None if tum_folder is None else Path(tum_folder)
+        self.with_truth = bool(with_truth)
         TrajectoryErrors(2, self.burn_in)  # the burn-in checked before the run
 
     def begin(self, ctx: EpisodeContext) -> None:
@@ -83,7 +91,9 @@ class FieldFiguresSink(Sink):
             err.update(rows.ks, rows.t, rows.estimates[name], truth)
         if self.tum_folder is None:
             return
-        keep = np.all(np.isfinite(truth), axis=1) & (rows.t - self.t0 >= self.burn_in)
+        keep = rows.t - self.t0 >= self.burn_in
+        if self.with_truth:
+            keep &= np.all(np.isfinite(truth), axis=1)
         t = self.start + rows.t[keep]
         self.tracks["truth"].append(np.column_stack([t, truth[keep]]))
         for name in self.errors:
@@ -112,7 +122,7 @@ class FieldFiguresSink(Sink):
             written = [n for n in self.errors if per[n]["diverged"] is None]
             out["tum"] = {
                 "folder": str(self.tum_folder),
-                "files": ["truth.tum"] + [tum_name(n) for n in written],
+                "files": ["truth.tum"] * self.with_truth + [tum_name(n) for n in written],
             }
             self._written = written
         return out
@@ -121,7 +131,7 @@ class FieldFiguresSink(Sink):
         """The TUM folder, whole (after the summary, beside the recording)."""
         if self.tum_folder is None or not hasattr(self, "_written"):
             return
-        texts = {"truth.tum": self._text("truth")}
+        texts = {"truth.tum": self._text("truth")} if self.with_truth else {}
         texts.update({tum_name(n): self._text(n) for n in self._written})
         try:
             with staged_folder(self.tum_folder, _is_tum, "--export-tum") as stage:

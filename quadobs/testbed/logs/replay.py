@@ -277,7 +277,7 @@ def run_replay(
     from quadobs.testbed.logs.figures import FieldFiguresSink, check_tum_folder
 
     check_tum_folder(export_tum, (summary_path, out))
-    field = FieldFiguresSink(log.start, burn_in, export_tum)
+    field = FieldFiguresSink(log.start, burn_in, export_tum, with_truth=log.truth is not None)
     sensors = SensorModel(log_scenario(log, dt, seed, settings))
     world = ReplayWorld(
         log, dt, model or default_model(log), _BLOCK, biases, sensors=sensors, peer_batch=batch
