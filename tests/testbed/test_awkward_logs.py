@@ -287,6 +287,26 @@ def test_anchors_in_one_plane_are_said_to_leave_a_mirror_image():
     # of these anchors, which the truth's notes would say)
 
 
+def test_a_span_whose_anchors_heard_lie_in_one_plane_is_said():
+    """The helix's fourth anchor silent for its first 4 s: the three heard then lie in one
+    plane (as any three), and a note names the span and the anchors; heard throughout,
+    nothing is said."""
+    from quadobs.testbed.logs.replay import heard_plane_note, replayable_log
+
+    log = helix()
+    assert heard_plane_note(log) is None
+    r = log.ranges
+    keep = (r[:, RANGE.beacon] != 3) | (r[:, 0] >= 4.0)
+    late = dataclasses.replace(log, ranges=r[keep], range_std=log.range_std[keep])
+    note = (
+        "the ranges from 0.01 to 4.01 s into the log name only anchors 0, 1, 2, which lie in one "
+        "plane: there a position and its mirror image through it give the same ranges, so an "
+        "estimate may settle on the mirror side (the other anchors switched on late, out of "
+        "range or blocked?)"
+    )
+    assert heard_plane_note(late) == note and note in replayable_log(late)[1]
+
+
 def test_a_loggers_held_ranges_are_left_out_and_each_range_kept_once():
     """Every anchor's latest range written at 100 Hz (each range five times or more): the
     copies go, and each range is kept once, at the logger's first time after its own."""

@@ -762,7 +762,65 @@ def replayable_log(log, keep_anchors: bool = False, clock_offset: float = 0.0) -
             "image through that plane give the same ranges, so an estimate may settle on the "
             "mirror side"
         )
+    else:
+        heard = heard_plane_note(log)
+        notes += [heard] if heard else []
     return log, notes
+
+
+#: :func:`heard_plane_note`'s window: at least this many seconds, and this many times the
+#: median interval between two ranges of one anchor (a round of the tag's round robin).
+HEARD_WINDOW = (2.0, 3.0)
+
+
+def _round_period(log) -> float:
+    """The median over the anchors of the median interval between two ranges of one anchor."""
+    t, h = log.ranges[:, 0], log.ranges[:, 1]
+    periods = [np.median(np.diff(t[h == k])) for k in np.unique(h) if np.count_nonzero(h == k) > 2]
+    return float(np.median(periods)) if periods else math.inf
+
+
+def heard_plane_note(log) -> str | None:
+    """A line where, for a span of a 3-D log, the anchors heard lie in one plane (or are fewer
+    than four) while the anchors listed do not, else None.
+
+    Each window of :data:`HEARD_WINDOW` (moved by half its length) whose ranges name anchors
+    in one plane (:func:`anchor_plane`) leaves a position and its mirror image through that
+    plane the same ranges; the longest run of such windows is said. A flight whose ceiling
+    anchors were heard only from 20 s (the floor's four at one height before) settled on the
+    mirror side below the floor, 2.8 m off over 5 to 20 s (docs/replaying-your-data.md)."""
+    if log.dimension != 3 or log.ranges.shape[0] < 20:
+        return None
+    width = max(HEARD_WINDOW[0], HEARD_WINDOW[1] * _round_period(log))
+    t, ids = log.ranges[:, 0], log.beacon_index(log.ranges[:, 1])
+    starts = np.arange(t[0], max(t[-1] - width, t[0]) + 1e-9, width / 2)
+    flat = []
+    for a in starts:
+        heard = np.unique(ids[(t >= a) & (t < a + width)])
+        flat.append(heard.size < 4 or anchor_plane(log.beacons[heard]) is not None)
+    best, run, first = (0, 0), 0, 0
+    for k, f in enumerate(flat):
+        run = run + 1 if f else 0
+        first = k - run + 1 if f else first
+        best = max(best, (run, first))
+    if best[0] < 2:
+        return None
+    a = float(starts[best[1]])
+    b = min(float(starts[best[1] + best[0] - 1]) + width, float(t[-1]))
+    window = (t >= a) & (t <= b)
+    heard = np.unique(log.ranges[window, 1])
+    named = ", ".join(str(int(i)) for i in heard)
+    where = (
+        "which lie in one plane: there a position and its mirror image through it give the "
+        "same ranges, so an estimate may settle on the mirror side"
+        if heard.size >= 3
+        else "too few to place a position in space"
+    )
+    return (
+        f"the ranges from {max(a - log.start, 0.0):.3g} to {b - log.start:.3g} s into the log "
+        f"name only anchor{'s' if heard.size > 1 else ''} {named}, {where} (the other "
+        "anchors switched on late, out of range or blocked?)"
+    )
 
 
 def gap_notes(log) -> list[str]:
