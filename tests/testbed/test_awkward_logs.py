@@ -307,6 +307,29 @@ def test_a_span_whose_anchors_heard_lie_in_one_plane_is_said():
     assert heard_plane_note(late) == note and note in replayable_log(late)[1]
 
 
+def test_anchor_heights_turned_over_are_said_against_the_truth():
+    """The helix's anchors written with their heights measured down from a 3.1 m ceiling:
+    against the truth the ranges fit them turned over, and a note says so (and no other note
+    on the truth); as given, nothing is said."""
+    from quadobs.testbed.logs.replay import replayable_log, truth_heights_note
+
+    log = helix()
+    noisy = log.ranges.copy()
+    noisy[:, 2] += 0.05 * np.random.default_rng(5).standard_normal(noisy.shape[0])
+    log = dataclasses.replace(log, ranges=noisy)
+    assert truth_heights_note(log) is None
+    ceiling = ANCHORS.copy()
+    ceiling[:, 2] = 3.1 - ANCHORS[:, 2]
+    note = truth_heights_note(dataclasses.replace(log, beacons=ceiling))
+    assert note.startswith(
+        "against the truth, the ranges fit the anchors turned over in height (z -> 0.3 + 2.8 - z"
+    )
+    assert note.endswith("are beacons.csv's heights measured down from the ceiling, or the z "
+                         "axis pointing down?")  # fmt: skip
+    notes = replayable_log(dataclasses.replace(log, beacons=ceiling))[1]
+    assert [n for n in notes if "truth" in n] == [note]  # not the truth moved, nor late
+
+
 def test_a_loggers_held_ranges_are_left_out_and_each_range_kept_once():
     """Every anchor's latest range written at 100 Hz (each range five times or more): the
     copies go, and each range is kept once, at the logger's first time after its own."""

@@ -747,9 +747,10 @@ def replayable_log(log, keep_anchors: bool = False, clock_offset: float = 0.0) -
     notes += [span] if span else []
     anchors = truth_anchor_note(log)
     lag = None if anchors else truth_lag_note(log)  # ids mapped wrong shift the best lag too
-    offset = None if anchors or lag else truth_offset_note(log)  # a lag or ids look offset too
+    heights = None if anchors or lag else truth_heights_note(log)
+    offset = None if anchors or lag or heights else truth_offset_note(log)  # they look offset too
     moved = with_input_offset(log, clock_offset)
-    found = [lag, anchors, offset, truth_odometry_note(moved), truth_attitude_note(moved)]
+    found = [lag, anchors, heights, offset, truth_odometry_note(moved), truth_attitude_note(moved)]
     from quadobs.testbed.logs.range_noise import OWN_NOISE_KINDS, stated_std_note
 
     if log.input_kind not in OWN_NOISE_KINDS:  # else checked per anchor with the noise
@@ -1238,6 +1239,44 @@ def truth_anchor_note(log) -> str | None:
         + "; of anchor ".join(wrong)
         + ": do ranges.csv's ids name the anchors of beacons.csv, and are the truth's axes "
         "the anchors'?"
+    )
+
+
+def _spread_about(p, anchor, rho, beacons) -> float:
+    """The median over the anchors of the spread (median absolute deviation) of each anchor's
+    residuals ``rho - |p - a_h|`` about their median."""
+    e = rho - np.linalg.norm(p - beacons[anchor], axis=1)
+    spreads = [
+        np.median(np.abs(e[anchor == h] - np.median(e[anchor == h]))) for h in np.unique(anchor)
+    ]
+    return float(np.median(spreads))
+
+
+def truth_heights_note(log) -> str | None:
+    """A line where a 3-D log's ranges fit the truth much better with the anchors' heights
+    turned over (``z -> z_min + z_max - z``: heights measured down from a ceiling, or along
+    an axis pointing down), else None.
+
+    The spread of the ranges about the truth (:func:`_spread_about`) as the anchors are given
+    and turned over; said where the second is under 0.7 times the first. Measured on a
+    flight's stand-in whose heights were written ``3.0 - z``: 0.166 m as given, 0.080 m turned
+    over (the log as recorded the reverse); the filters followed the ranges to the mirrored
+    track (0.176 -> 0.704 m) and the only note blamed the truth's origin."""
+    found = _truth_at_ranges(log) if log.dimension == 3 else None
+    beacons = np.asarray(log.beacons, dtype=float)
+    if found is None or np.ptp(beacons[:, 2]) == 0.0:
+        return None
+    p, anchor, rho = found
+    turned = beacons.copy()
+    turned[:, 2] = beacons[:, 2].min() + beacons[:, 2].max() - beacons[:, 2]
+    given, over = _spread_about(p, anchor, rho, beacons), _spread_about(p, anchor, rho, turned)
+    if not over < 0.7 * given:
+        return None
+    return (
+        f"against the truth, the ranges fit the anchors turned over in height (z -> "
+        f"{beacons[:, 2].min():.3g} + {beacons[:, 2].max():.3g} - z: spread {over:.3g} m, "
+        f"against {given:.3g} m as given): are beacons.csv's heights measured down from the "
+        "ceiling, or the z axis pointing down?"
     )
 
 
