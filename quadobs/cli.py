@@ -1459,6 +1459,13 @@ def _replay_calibration(args, log, tuning: dict) -> tuple[list[float] | np.ndarr
     if args.calibrate == "none":
         return None, tuning
     keys = noise_keys(log, args.model)  # an intensity fixed by --tune is not calibrated
+    if not args.no_progress:  # minutes on a long log, and nothing else printed meanwhile
+        print(
+            f"calibrating from the log's {log.ranges.shape[0] + log.tdoa.shape[0]} "
+            "measurements: replays scored on held-out ones (--calibrate none skips them)",
+            file=sys.stderr,
+            flush=True,
+        )
     cal = calibrate(  # the prior: the log's own defaults (log_defaults) below --tune
         log, dt=args.dt, model=args.model, setup_options=tuning,
         noise=tuple(k for k in keys if k not in tuning),
