@@ -114,16 +114,22 @@ def test_text_conventions_of_other_editors_read_as_the_plain_log(tmp_path, plain
     assert back.name == expected.name
 
 
-def test_a_blank_line_between_rows_is_still_refused_with_its_row(tmp_path, plain):
-    folder = tmp_path / "gap"
-    write_log(read_log(plain[0]), folder)
-    _rewrite(
-        folder / "ranges.csv",
-        lambda b: (
-            b.replace(b"\r\n", b"\n", 3).replace(b"\n", b"\n\n", 3).replace(b"\n\n", b"\n", 2)
-        ),
-    )
-    with pytest.raises(QuadobsError, match=r"ranges.csv, row 4, column time: '' is not a finite"):
+def test_empty_lines_between_rows_are_left_out_and_a_row_of_empty_cells_refused(tmp_path, plain):
+    """A writer's doubled line ends (an empty line after every row, ``\\r\\r\\n``): the log
+    reads as the plain one, with a note; a line of empty cells (``,,``) has an empty time, and
+    is refused with its row."""
+    expected = read_log(plain[0])
+    folder = write_log(expected, tmp_path / "doubled")
+    for name in ("ranges.csv", "inputs.csv"):
+        _rewrite(folder / name, lambda b: b.replace(b"\r\n", b"\r\r\n"))
+    back = read_log(folder)
+    assert np.array_equal(back.ranges, expected.ranges)
+    assert np.array_equal(back.inputs, expected.inputs)
+    n = expected.ranges.shape[0]
+    assert back.read_notes[0] == f"ranges.csv: {n} empty lines between rows left out"
+    folder = write_log(expected, tmp_path / "commas")
+    _rewrite(folder / "ranges.csv", lambda b: b.replace(b"\r\n", b"\r\n,,,\r\n", 3))
+    with pytest.raises(QuadobsError, match=r"ranges.csv, row 2, column time: '' is not a finite"):
         read_log(folder)
 
 

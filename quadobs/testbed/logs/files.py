@@ -119,7 +119,8 @@ def _line(raw: bytes, starts: np.ndarray, k: int) -> list[str]:
 
 def _trimmed(raw: bytes) -> bytes:
     """``raw`` without blank lines (or spaces) after its last row: an editor's trailing empty
-    lines are no rows. A blank line between rows is kept, and refused as a row."""
+    lines are no rows. A blank line between rows is kept here, and left out by
+    :func:`read_table` with a note."""
     body = raw.rstrip(b" \t\r\n")
     return body + b"\n" if body else body
 
@@ -146,7 +147,8 @@ def read_table(
 
     Every value is held to ``spec`` (:func:`~quadobs.testbed.logs.schema.check_values`);
     errors name the file, the row and the column in one line. Blank lines after the last row
-    are left out, and so are the rows of a timed file with an empty or NaN value
+    are left out, and so are empty lines between rows and the rows of a timed file with an
+    empty or NaN value
     (:func:`~quadobs.testbed.logs.schema.blank_rows`); rows out of time order by at most
     :data:`~quadobs.testbed.logs.schema.SORT_REACH` are sorted (stably). Each of the two is
     said in one line appended to ``notes`` (where given).
@@ -179,7 +181,8 @@ def read_table(
     except Exception:  # pyarrow refused a row: find it, or read what Arrow would not
         values = _python_values(path, raw, starts, header, columns, spec)
 
-    blank = blank_rows(spec, columns, values)
+    empty = _empty_lines(raw, starts, values)
+    blank = blank_rows(spec, columns, values) | empty
     if blank.size and blank.all():
         raise QuadobsError(f"{path}: each of its {blank.size} rows has an empty or NaN value")
     rows = np.flatnonzero(~blank) if blank.any() else None
@@ -192,16 +195,35 @@ def read_table(
 
     timed = columns[0] == TIME
     check_values(str(path), spec, columns, values, cell, rows, SORT_REACH if timed else 0.0)
-    return columns, _sorted(path, values, int(blank.sum()), notes)
+    counts = (int(empty.sum()), int(blank.sum() - empty.sum()))
+    return columns, _sorted(path, values, counts, notes, timed)
 
 
-def _sorted(path: Path, values: np.ndarray, blank: int, notes: list | None) -> np.ndarray:
-    """A timed file's rows sorted by time (stably), with a note of the rows left out blank
-    and of those out of order (how many, and the furthest back)."""
+def _empty_lines(raw: bytes, starts: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """The rows (a mask) that are empty lines between rows (no cell, or only spaces: a
+    writer's doubled line ends), which a reader leaves out."""
+    empty = np.zeros(values.shape[0], dtype=bool)
+    if values.ndim != 2 or not values.shape[1]:
+        return empty
+    for i in np.flatnonzero(np.isnan(values).all(axis=1)):
+        k = int(i) + 1  # the data row's line
+        if k + 1 < starts.size:
+            empty[i] = not raw[starts[k] : max(starts[k + 1] - 1, starts[k])].strip()
+    return empty
+
+
+def _sorted(
+    path: Path, values: np.ndarray, left_out: tuple, notes: list | None, timed: bool
+) -> np.ndarray:
+    """A file's rows sorted by time (stably, where timed), with a note of the rows left out
+    (``left_out``: the empty lines, and the rows with an empty or NaN value) and of those
+    out of order (how many, and the furthest back)."""
     said = []
-    if blank:
-        said.append(f"{blank} rows with an empty or NaN value left out (no measurement)")
-    if values.shape[0] and values.ndim == 2:
+    if left_out[0]:
+        said.append(f"{left_out[0]} empty lines between rows left out")
+    if left_out[1]:
+        said.append(f"{left_out[1]} rows with an empty or NaN value left out (no measurement)")
+    if values.shape[0] and values.ndim == 2 and timed:
         t = values[:, 0]
         back = np.maximum.accumulate(t) - t
         if (late := int(np.count_nonzero(back > 0.0))) > 0:
