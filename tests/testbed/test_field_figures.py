@@ -257,6 +257,29 @@ def test_a_truth_on_another_clock_is_said_before_the_replay():
     assert any("stamped 2.00 s late" in n for n in replayable_log(late)[1])
 
 
+def test_a_lag_is_said_over_anchors_mapped_by_chance_and_a_truth_mostly_off_the_ranges():
+    """Where a truth seconds late also fits some anchors' ranges to others' positions, the
+    lag is said when no relabelling of ids gives that mapping (two anchors sent to one) or
+    when it fits at least as well; a truth covering under half of the ranges' span is said."""
+    from quadobs.testbed.logs.replay import _lag_explains, truth_span_note
+
+    lag = (10.0, 0.12, 1.4, False)
+    onto_one = [(0, 1, 0.2, 1.0), (4, 1, 0.3, 1.2)]
+    swapped = [(0, 1, 0.08, 1.0), (1, 0, 0.1, 1.1)]
+    assert _lag_explains(onto_one, lag) and not _lag_explains(swapped, lag)
+    assert _lag_explains(swapped, (10.0, 0.08, 1.4, False))  # the lag fits as well
+    assert not _lag_explains(swapped, None) and _lag_explains([], lag)
+    assert not _lag_explains([], None)
+    log = helix_log(20.0)
+    assert truth_span_note(log) is None
+    late = dataclasses.replace(log, truth=log.truth + np.r_[15.0, np.zeros(6)])
+    note = truth_span_note(late)
+    assert note.startswith("truth.csv covers 4.87 s") and "of the measurements' 19.9" in note
+    assert note.endswith(
+        "every estimator is scored there alone; is the truth on the ranges' clock?"
+    )
+
+
 def test_ranges_measured_to_another_anchor_than_their_id_names_are_said():
     """The helix's ranges of anchors 0 and 1 exchanged (their ids swapped in ranges.csv): each
     fits the other's position against the truth, and a note names both; the log as written

@@ -745,12 +745,15 @@ def replayable_log(log, keep_anchors: bool = False, clock_offset: float = 0.0) -
 
     span = inputs_span_note(with_input_offset(log, clock_offset))  # as the offset moves them
     notes += [span] if span else []
-    anchors = truth_anchor_note(log)
-    lag = None if anchors else truth_lag_note(log)  # ids mapped wrong shift the best lag too
+    mapping, lagged = anchor_mapping(log), truth_lag(log)  # each can look like the other
+    explained = _lag_explains(mapping, lagged)
+    anchors = None if explained else _anchor_text(log, mapping)
+    lag = _lag_text(*lagged) if explained and lagged is not None else None
     heights = None if anchors or lag else truth_heights_note(log)
     offset = None if anchors or lag or heights else truth_offset_note(log)  # they look offset too
     moved = with_input_offset(log, clock_offset)
-    found = [lag, anchors, heights, offset, truth_odometry_note(moved), truth_attitude_note(moved)]
+    found = [truth_span_note(log), lag, anchors, heights, offset]
+    found += [truth_odometry_note(moved), truth_attitude_note(moved)]
     from quadobs.testbed.logs.range_noise import OWN_NOISE_KINDS, stated_std_note
 
     if log.input_kind not in OWN_NOISE_KINDS:  # else checked per anchor with the noise
@@ -875,9 +878,9 @@ TRUTH_LAG_REACH = 120.0
 TRUTH_LAG_RANGES = 20000
 
 
-def truth_lag_note(log) -> str | None:
-    """A line where the truth agrees with the ranges much better at another time than its own,
-    else None.
+def truth_lag(log) -> tuple | None:
+    """``(lag, spread, spread_at_zero, at_edge)`` where the truth agrees with the ranges much
+    better at another time than its own, else None.
 
     For each lag ``s`` of :data:`TRUTH_LAGS` and of the wider search
     (:data:`TRUTH_LAG_COARSE`), each range's residual against the truth's point
@@ -928,16 +931,49 @@ def truth_lag_note(log) -> str | None:
     best = float(lags[k])
     if not (abs(best) >= 0.25 and math.isfinite(at_zero) and spreads[k] < 0.7 * at_zero):
         return None
-    edge = "or more " if abs(best) >= float(np.max(np.abs(lags))) else ""
+    return best, float(spreads[k]), float(at_zero), abs(best) >= float(np.max(np.abs(lags)))
+
+
+def truth_lag_note(log) -> str | None:
+    """:func:`truth_lag`'s finding as a line, else None."""
+    found = truth_lag(log)
+    return None if found is None else _lag_text(*found)
+
+
+def _lag_text(best: float, spread: float, at_zero: float, at_edge: bool) -> str:
+    """The truth-lag note (:func:`truth_lag`) for the best lag ``best`` (s), the spreads (m)
+    at it and at zero, and whether it lies at the search's edge."""
+    edge = "or more " if at_edge else ""
     return (
         f"truth.csv agrees with the ranges best as if stamped {abs(best):.2f} s {edge}"
-        f"{'late' if best > 0 else 'early'} (the ranges spread {spreads[k]:.3g} m about it "
+        f"{'late' if best > 0 else 'early'} (the ranges spread {spread:.3g} m about it "
         f"moved so, {at_zero:.3g} m at its own times): is the truth on the ranges' clock, or "
         "its point off the tag's along the path (a lever arm)? Or are the ranges stamped "
         f"{'early (on another clock)' if best > 0 else 'late (on receipt, on another clock)'}, "
         "then against the "
         "inputs as well (--clock-offset)? A truth on another clock scores every estimator "
         "from the wrong time"
+    )
+
+
+def truth_span_note(log) -> str | None:
+    """A line where the truth's span covers less than half of the measurements', else None:
+    every estimator is scored over that part alone, and a truth on another clock (seconds
+    off, short of no overlap at all: :func:`check_clock_overlap`) looks so. A truth 30 s late
+    on a 40 s flight was scored over its last 10 s, 2.9 m off, and said nothing of its clock
+    (the lag search reaches half the shorter span)."""
+    measured = _measured_span(log)
+    if log.truth is None or not log.truth.shape[0] or measured is None:
+        return None
+    a, b = measured
+    ta, tb = float(log.truth[0, 0]), float(log.truth[-1, 0])
+    covered = max(0.0, min(b, tb) - max(a, ta))
+    if b <= a or covered >= 0.5 * (b - a):
+        return None
+    return (
+        f"truth.csv covers {covered:.3g} s of the measurements' {b - a:.3g} s (it spans "
+        f"{ta - log.start:.3g} to {tb - log.start:.3g} s into the log): every estimator is "
+        "scored there alone; is the truth on the ranges' clock?"
     )
 
 
@@ -1215,9 +1251,16 @@ def truth_anchor_note(log) -> str | None:
     measured to ``k`` (ids mapped to the wrong anchors). A constellation whose symmetry maps
     the anchors onto each other (a box's corners) fits a wrong mapping from the ranges alone,
     a whole trajectory turned or mirrored; the truth tells it."""
+    return _anchor_text(log, anchor_mapping(log))
+
+
+def anchor_mapping(log) -> list[tuple]:
+    """:func:`truth_anchor_note`'s finding: ``(h, k, spread_k, spread_h)`` (anchor indices,
+    spreads in m) for each anchor ``h`` whose ranges fit anchor ``k``'s position far better
+    than its own, against the truth; empty where none (or no truth)."""
     found = _truth_at_ranges(log)
     if found is None:
-        return None
+        return []
     p, anchor, rho = found
     beacons = np.asarray(log.beacons, dtype=float)
     wrong = []
@@ -1229,17 +1272,38 @@ def truth_anchor_note(log) -> str | None:
         spread = np.median(np.abs(e - np.median(e, axis=0)), axis=0)
         k = int(np.argmin(spread))
         if k != h and spread[h] > 0.3 and spread[k] < 0.2 * spread[h]:
-            wrong.append(
-                f"{int(log.beacon_ids[h])} fit anchor {int(log.beacon_ids[k])}'s position ({spread[k]:.3g} m against {spread[h]:.3g} m at its own)"
-            )
-    if not wrong:
+            wrong.append((int(h), k, float(spread[k]), float(spread[h])))
+    return wrong
+
+
+def _anchor_text(log, mapping: list[tuple]) -> str | None:
+    """The line of :func:`truth_anchor_note` for ``mapping`` (:func:`anchor_mapping`)."""
+    if not mapping:
         return None
+    ids = log.beacon_ids
+    wrong = [
+        f"{int(ids[h])} fit anchor {int(ids[k])}'s position ({sk:.3g} m against {sh:.3g} m at "
+        "its own)"
+        for h, k, sk, sh in mapping
+    ]
     return (
         "against the truth, the ranges of anchor "
         + "; of anchor ".join(wrong)
         + ": do ranges.csv's ids name the anchors of beacons.csv, and are the truth's axes "
         "the anchors'?"
     )
+
+
+def _lag_explains(mapping: list[tuple], lag: tuple | None) -> bool:
+    """Whether a lag of the truth (:func:`truth_lag`) explains the ranges better than the
+    anchors mapped to others (:func:`anchor_mapping`): where the mapping sends two anchors
+    to one (no relabelling of ids does), or its median spread is no smaller than the lag's.
+    A truth seconds late fits some anchors' ranges to others' positions by chance."""
+    if lag is None or not mapping:
+        return lag is not None
+    targets = [k for _, k, _, _ in mapping]
+    injective = len(set(targets)) == len(targets)
+    return not injective or float(np.median([sk for _, _, sk, _ in mapping])) >= lag[1]
 
 
 def _spread_about(p, anchor, rho, beacons) -> float:
