@@ -249,8 +249,8 @@ def test_rows_of_an_imu_at_its_full_scale_are_left_out_and_said():
     assert notes[0] == (
         f"imu.csv: {burst.sum()} rows at a sensor's full scale (ax at 156.902 and -156.902, ay "
         "at 156.902 and -156.902, az at 156.902 and -156.902, gx at 35.08 and -35.08, gy at "
-        "35.08 and -35.08, gz at 35.08 and -35.08: a reading beyond its range), left out: the "
-        "row before each held across"
+        "35.08 and -35.08, gz at 35.08 and -35.08: readings beyond its range either way), left "
+        "out: the row before each held across"
     )
     np.testing.assert_array_equal(back.inputs, log.inputs[~burst])
     check_body_imu(back)
@@ -259,6 +259,14 @@ def test_rows_of_an_imu_at_its_full_scale_are_left_out_and_said():
     assert (one_g[:, 3] == G).sum() > 1000
     one_g_log = dataclasses.replace(log, inputs=one_g)
     assert without_clipped_inputs(one_g_log) == (one_g_log, None)
+    below = log.inputs.copy()  # a vibration about the specific force, cut at -2 g alone
+    below[burst, 3] = np.maximum(below[burst, 3] - 40.0 * (sign[:, 0] > 0), -2 * G)
+    one_side = dataclasses.replace(log, inputs=below)
+    same, note = without_clipped_inputs(one_side)
+    assert same is one_side and note == (
+        "imu.csv: rows at a sensor's full scale on one side (az at -19.6133), kept: left out, "
+        "the other side's rows would bias the mean further"
+    )
     peak = log.inputs.copy()
     peak[100, 1] = 16 * G
     peak_log = dataclasses.replace(log, inputs=peak)

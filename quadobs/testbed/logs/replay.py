@@ -513,8 +513,12 @@ def without_clipped_inputs(log):
     reads its full scale, and the burst's mean is lost: three bursts of 0.1 s clipped at 16 g
     and 2000 deg/s put a flight's IMU filters 9.9 m off and the best default went 0.176 ->
     0.909 m (docs/replaying-your-data.md). A row with any column at a full scale
-    (:func:`_at_full_scale`, :data:`FULL_SCALES`) is left out: the row before it is held across, as over any gap
-    of the inputs (the same flight: 0.176 m). Only a body IMU's rows are read so: a
+    (:func:`_at_full_scale`, :data:`FULL_SCALES`) that the column reaches at both its edges is
+    left out: the row before it is held across, as over any gap
+    of the inputs (the same flight: 0.176 m). A column clipped at one edge only (a vibration
+    about an offset, cut on one side) keeps its rows, with a note: left out, its other side's
+    rows alone would move the mean further (a flight's stand-in 0.182 m with them, 0.220 m
+    without). Only a body IMU's rows are read so: a
     navigation-frame acceleration is no sensor's reading, and wheel odometry has no full
     scale."""
     import dataclasses
@@ -527,19 +531,27 @@ def without_clipped_inputs(log):
     accel = float(log.gravity) * np.array(FULL_SCALES["accel"], dtype=float)
     gyro = np.radians(np.array(FULL_SCALES["gyro"], dtype=float))
     clipped = np.zeros(log.inputs.shape[0], dtype=bool)
-    said = []
+    said, one_side = [], []
     for c, name in enumerate(names[: log.inputs.shape[1] - 1]):
         rows, found = _at_full_scale(log.inputs[:, c + 1], gyro if name[0] == "g" else accel)
-        clipped |= rows
-        said += [f"{name} at {' and '.join(f'{v:.6g}' for v in found)}"] if found else []
-    if not clipped.any() or clipped.all():
+        if len(found) == 2:  # clipped both ways: the rows' mean says nothing of the motion
+            clipped |= rows
+            said.append(f"{name} at {found[0]:.6g} and {found[1]:.6g}")
+        elif found:
+            one_side.append(f"{name} at {found[0]:.6g}")
+    if clipped.all() or not (clipped.any() or one_side):
         return log, None
-    note = (
-        f"{INPUT_FILES[log.input_kind]}: {np.count_nonzero(clipped)} rows at a sensor's "
-        f"full scale ({', '.join(said)}: a reading beyond its range), left out: the row "
-        "before each held across"
-    )
-    return dataclasses.replace(log, inputs=log.inputs[~clipped]), note
+    where = INPUT_FILES[log.input_kind]
+    notes = [
+        f"{where}: {np.count_nonzero(clipped)} rows at a sensor's full scale ({', '.join(said)}: "
+        "readings beyond its range either way), left out: the row before each held across"
+    ] * bool(said)
+    notes += [
+        f"{where}: rows at a sensor's full scale on one side ({', '.join(one_side)}), kept: "
+        "left out, the other side's rows would bias the mean further"
+    ] * bool(one_side)
+    kept = dataclasses.replace(log, inputs=log.inputs[~clipped]) if clipped.any() else log
+    return kept, "; ".join(notes)
 
 
 #: :func:`without_held_truth`'s bounds: the fewest copies in a spell of the truth's rows that
