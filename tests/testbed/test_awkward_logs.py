@@ -311,6 +311,9 @@ def test_a_span_whose_anchors_heard_lie_in_one_plane_is_said():
         "range or blocked?)"
     )
     assert heard_plane_note(late) == note and note in replayable_log(late)[1]
+    quiet = (r[:, 0] < 3.0) | (r[:, 0] > 6.0)  # a radio's outage of 3 s: said as a gap alone
+    outage = dataclasses.replace(log, ranges=r[quiet], range_std=log.range_std[quiet])
+    assert heard_plane_note(outage) is None
 
 
 def test_anchor_heights_turned_over_are_said_against_the_truth():

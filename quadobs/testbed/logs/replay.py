@@ -785,8 +785,10 @@ def replayable_log(log, keep_anchors: bool = False, clock_offset: float = 0.0) -
 
 
 #: :func:`heard_plane_note`'s window: at least this many seconds, and this many times the
-#: median interval between two ranges of one anchor (a round of the tag's round robin).
-HEARD_WINDOW = (2.0, 3.0)
+#: median interval between two ranges of one anchor (a round of the tag's round robin); and
+#: the least share of the ranges the log's median interval gives such a window for it to be
+#: read (fewer: a radio's outage, which the gap note says, not anchors unheard).
+HEARD_WINDOW = (2.0, 3.0, 0.25)
 
 
 def _round_period(log) -> float:
@@ -810,10 +812,14 @@ def heard_plane_note(log) -> str | None:
     width = max(HEARD_WINDOW[0], HEARD_WINDOW[1] * _round_period(log))
     t, ids = log.ranges[:, 0], log.beacon_index(log.ranges[:, 1])
     starts = np.arange(t[0], max(t[-1] - width, t[0]) + 1e-9, width / 2)
+    steps = np.diff(t)
+    expected = width / max(float(np.median(steps[steps > 0])) if np.any(steps > 0) else 0, 1e-9)
     flat = []
     for a in starts:
-        heard = np.unique(ids[(t >= a) & (t < a + width)])
-        flat.append(heard.size < 4 or anchor_plane(log.beacons[heard]) is not None)
+        inside = (t >= a) & (t < a + width)
+        heard = np.unique(ids[inside])
+        quiet = np.count_nonzero(inside) < HEARD_WINDOW[2] * expected  # a radio's outage
+        flat.append(not quiet and (heard.size < 4 or anchor_plane(log.beacons[heard]) is not None))
     best, run, first = (0, 0), 0, 0
     for k, f in enumerate(flat):
         run = run + 1 if f else 0
