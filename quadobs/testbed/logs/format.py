@@ -29,7 +29,8 @@ attitude; it is still read. Each input row is held from its time to the next row
 
 Times are seconds on one clock common to the files, each file sorted by time (ties
 allowed; the reader sorts a file whose rows step back by at most
-:data:`~quadobs.testbed.logs.schema.SORT_REACH`, 0.1 s, and says so). Every value must be
+:data:`~quadobs.testbed.logs.schema.SORT_REACH`, 0.1 s, or holds single rows written late,
+:data:`~quadobs.testbed.logs.schema.LATE_ROWS`, and says so). Every value must be
 finite (a ``std`` cell may be empty: the estimator's default), ids integers, quaternions of
 unit norm; a row of a timed file with an empty or ``nan`` value (a failed exchange, a motion
 capture's lost frame) is left out by the reader with a note; every id in

@@ -34,6 +34,7 @@ __all__ = [
     "FILES",
     "IMU",
     "IMU_FIGURES",
+    "LATE_ROWS",
     "MAX_FILE_BYTES",
     "MAX_ID",
     "MAX_LINE_BYTES",
@@ -494,21 +495,41 @@ def check_values(
 COARSE_SHARE = 0.5
 
 
+#: The most consecutive rows, the largest share of a file's rows, and the furthest (s) that
+#: rows may lie more than :data:`SORT_REACH` behind an earlier row for the file still to be
+#: sorted: single rows written late (a message delayed in a buffer by up to seconds), not a
+#: clock set back, after which every row lies behind, nor a stamp never set (0).
+LATE_ROWS = (3, 0.05, 2.0)
+
+
 def _check_order(where: str, t: np.ndarray, row, reach: float) -> None:
-    """Refuse times that step back, or step back more than ``reach`` (s) behind an earlier
-    row's, naming the first such row (``row(i)``: its number in the file)."""
+    """Refuse times that step back, or (``reach > 0``, a reader that sorts) step back more
+    than ``reach`` (s) behind an earlier row's other than in single rows written late
+    (:data:`LATE_ROWS`), naming the first such row (``row(i)``: its number in the file)."""
     back = np.maximum.accumulate(t) - t
-    bad = np.flatnonzero(back > reach)
-    if not bad.size:
+    far = back > reach
+    bad = np.flatnonzero(far)
+    if not bad.size or (reach > 0.0 and back.max() <= LATE_ROWS[2] and _single_rows(far)):
         return
     i = int(bad[0])
     sorted_ = (
-        f"; a step back of up to {reach:g} s is sorted, more is a clock set back" if reach else ""
+        f"; a step back of up to {reach:g} s, or a few rows written late, is sorted, more is a "
+        "clock set back"
+        if reach
+        else ""
     )
     raise QuadobsError(
         f"{where}, row {row(i)}, column time: earlier than a row before it by "
         f"{float(back[i]):.6g} s (rows must be sorted by time{sorted_})"
     )
+
+
+def _single_rows(far: np.ndarray) -> bool:
+    """Whether the rows of ``far`` (a mask) come in runs of at most ``LATE_ROWS[0]`` and make
+    at most ``LATE_ROWS[1]`` of the rows."""
+    edges = np.diff(np.concatenate([[0], far.astype(np.int8), [0]]))
+    runs = np.flatnonzero(edges == -1) - np.flatnonzero(edges == 1)
+    return int(runs.max()) <= LATE_ROWS[0] and runs.sum() <= LATE_ROWS[1] * far.size
 
 
 def _check_stamps(where: str, values: np.ndarray, columns, spec: FileSpec, row) -> None:
