@@ -1100,10 +1100,17 @@ def _replay_noise(args, log) -> tuple:
     (:func:`~quadobs.testbed.logs.range_noise.with_anchor_noise`), but on the grid
     (``--set noise.*``), where every range takes the one figure ``range_sigma``."""
     from quadobs.testbed.logs.estimators import parse_tuning
-    from quadobs.testbed.logs.range_noise import with_anchor_noise
+    from quadobs.testbed.logs.range_noise import (
+        OWN_NOISE_KINDS,
+        stated_std_note,
+        with_anchor_noise,
+    )
 
     options = parse_tuning(args.tune)
-    return (log, options, None) if args.set else with_anchor_noise(log, options)
+    if not args.set:
+        return with_anchor_noise(log, options)
+    own = log.input_kind in OWN_NOISE_KINDS  # else replayable_log said it
+    return log, options, stated_std_note(log) if own else None
 
 
 def _print_replay_rows(summary: dict, log) -> None:
@@ -1398,6 +1405,7 @@ def _check_imported(log, source: str, rename=None) -> list[str]:
     (ranges of 0 m, the truth against the ranges and the odometry)."""
     from quadobs.errors import QuadobsError
     from quadobs.testbed.attitude import check_body_imu, navigation_accelerations
+    from quadobs.testbed.logs.range_noise import with_anchor_noise
     from quadobs.testbed.logs.replay import (
         check_odometry_units,
         check_range_units,
@@ -1407,6 +1415,8 @@ def _check_imported(log, source: str, rename=None) -> list[str]:
 
     try:
         prepared, notes = replayable_log(log)
+        noise = with_anchor_noise(prepared, {})[2]  # the stated std as the replay will judge it
+        notes += [noise] if noise and noise.startswith("ranges.csv") else []
         check_range_units(prepared)
         check_truth_units(prepared)
         if prepared.input_kind == "odometry":

@@ -426,7 +426,8 @@ def check_body_imu(log) -> None:
     if w.size and float(w.max()) > GYRO_FULL_SCALE:
         row, col = np.unravel_index(int(np.argmax(w)), w.shape)
         raise QuadobsError(
-            f"{log.file_label('imu.csv')}, row {int(row) + 2}, column g{'xyz'[int(col)]}: "
+            f"{log.file_label('imu.csv')}, row {log.file_row('imu.csv', row)}, column "
+            f"g{'xyz'[int(col)]}: "
             f"{float(log.inputs[row, 4 + col]):.4g} is beyond any MEMS gyroscope's range "
             f"({GYRO_FULL_SCALE:.1f} rad/s = 2000 deg/s): the rates must be in rad/s"
         )

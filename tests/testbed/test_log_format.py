@@ -337,12 +337,13 @@ def test_rows_a_little_out_of_time_order_are_sorted_and_a_clock_set_back_is_refu
     assert read_log(folder).read_notes == (
         "ranges.csv: 2 rows stamped before an earlier row (by up to 0.25 s) sorted by time",
     )
-    set_back = late + "".join(f"{0.3 + k / 100},1,4\n" for k in range(5))  # a clock set back
+    late += "".join(f"{0.6 + k / 100},1,4\n" for k in range(20))
+    set_back = late + "".join(f"{0.6 + k / 100},1,4\n" for k in range(5))  # a clock set back
     (folder / "ranges.csv").write_text(set_back)
     with pytest.raises(QuadobsError) as err:
         read_log(folder)
-    assert str(err.value).endswith(
-        "ranges.csv, row 6, column time: earlier than a row before it by 0.25 s (rows must be "
+    assert str(err.value).endswith(  # not the single late row 6: the first row set back
+        "ranges.csv, row 27, column time: earlier than a row before it by 0.19 s (rows must be "
         "sorted by time; a step back of up to 0.1 s, or a few rows written late, is sorted, "
         "more is a clock set back)"
     )
@@ -608,3 +609,24 @@ def test_a_tag_on_the_truths_body_needs_the_truths_attitude():
     point = dataclasses.replace(log, truth=log.truth[:, :4], truth_columns=("time", "x", "y", "z"))
     with pytest.raises(QuadobsError, match=r"truth.csv holds none \(qw,qx,qy,qz\)"):
         dataclasses.replace(point, tag_x=0.0, tag_y=0.0, tag_z=0.09)
+
+
+def test_rows_named_in_errors_are_the_files_after_rows_left_out_or_sorted(tmp_path):
+    """A row left out (an empty value, an empty line) or sorted before a faulty one: the
+    error names the faulty row's number in the file, whichever check finds it."""
+    folder = _write_v1(tmp_path / "log")
+    ranges = ["time,beacon,range", "0.5,0,", "", "0.7,1,7.5", "0.65,0,3", "0.8,9,3"]
+    (folder / "ranges.csv").write_text("\n".join(ranges) + "\n")
+    with pytest.raises(
+        QuadobsError, match=r"ranges.csv, row 6, column beacon: unknown beacon id 9"
+    ):
+        read_log(folder)
+    (folder / "ranges.csv").write_text("\n".join(ranges[:5] + ["0.8,abc,3"]) + "\n")
+    with pytest.raises(QuadobsError, match=r"ranges.csv, row 6, column beacon: 'abc' is not"):
+        read_log(folder)
+    (folder / "ranges.csv").write_text("time,beacon,range\n0.5,0,3.0\n0.7,1,7.5\n")
+    (folder / "meta.csv").write_text("key,value\nversion,2\nheading0,0.5\n")
+    truth = ["time,x,y,qw,qx,qy,qz", "0.1,,0,1,0,0,0", "0.2,1,0,1,0,0,0", "0.3,1,0,2,0,0,0"]
+    (folder / "truth.csv").write_text("\n".join(truth) + "\n")
+    with pytest.raises(QuadobsError, match=r"truth.csv, row 4, columns qw,qx,qy,qz: not a unit"):
+        read_log(folder)

@@ -248,3 +248,19 @@ def test_the_replay_says_each_anchor_s_figure_and_keeps_it_in_the_summary(tmp_pa
     assert summaries["pooled"]["range_std_by_anchor"] is None
     assert summaries["grid"]["range_std_by_anchor"] is None
     assert summaries["own"]["range_sigma"] == summaries["pooled"]["range_sigma"]
+
+
+def test_a_stated_std_far_off_is_said_by_the_import_and_on_the_grid():
+    """Where the replay's check per anchor does not run (``--set noise.*``), or before it runs
+    (an import's notes of what the replay will do), the stated std is still judged."""
+    import argparse
+
+    from quadobs.cli import _check_imported, _replay_noise
+
+    log = _log(rate=100.0, speed=1.0, sigma=0.1)
+    unit = dataclasses.replace(log, range_std=np.full(log.ranges.shape[0], 0.01))
+    grid = argparse.Namespace(tune=[], set=["noise.range_std=0.1"])
+    _, _, note = _replay_noise(grid, unit)
+    assert note.startswith("ranges.csv states a std of 0.01 m (median), where the ranges' own")
+    notes = _check_imported(unit, "map.toml")
+    assert any(n.startswith("(replay) ranges.csv's std of anchors 0, 1, 2, 3") for n in notes)

@@ -141,7 +141,12 @@ def text_rows(path: Path, raw: bytes) -> list[list[str]]:
 
 
 def read_table(
-    path: Path, raw: bytes, spec: FileSpec, version: int, notes: list | None = None
+    path: Path,
+    raw: bytes,
+    spec: FileSpec,
+    version: int,
+    notes: list | None = None,
+    row_map: dict | None = None,
 ) -> tuple[tuple[str, ...], np.ndarray]:
     """The columns (in memory order, :meth:`FileSpec.columns_of`) and values of one log file.
 
@@ -150,8 +155,11 @@ def read_table(
     are left out, and so are empty lines between rows and the rows of a timed file with an
     empty or NaN value
     (:func:`~quadobs.testbed.logs.schema.blank_rows`); rows out of time order by at most
-    :data:`~quadobs.testbed.logs.schema.SORT_REACH` are sorted (stably). Each of the two is
-    said in one line appended to ``notes`` (where given).
+    :data:`~quadobs.testbed.logs.schema.SORT_REACH`, and single rows written late
+    (:data:`~quadobs.testbed.logs.schema.LATE_ROWS`), are sorted (stably). Each of the two is
+    said in one line appended to ``notes`` (where given); where rows were left out or
+    sorted, ``row_map[path.name]`` (where given) holds the data row of the file (0-based) of
+    each row returned, for messages that name a row later.
     """
     raw = _trimmed(raw)
     starts = _line_starts(path, raw)
@@ -196,6 +204,11 @@ def read_table(
     timed = columns[0] == TIME
     check_values(str(path), spec, columns, values, cell, rows, SORT_REACH if timed else 0.0)
     counts = (int(empty.sum()), int(blank.sum() - empty.sum()))
+    unsorted = timed and bool(np.any(np.diff(values[:, 0]) < 0.0))
+    if row_map is not None and (rows is not None or unsorted):
+        read = np.arange(values.shape[0]) if rows is None else rows
+        by_time = np.argsort(values[:, 0], kind="stable")  # as _sorted orders them
+        row_map[path.name] = read[by_time] if unsorted else read
     return columns, _sorted(path, values, counts, notes, timed)
 
 
@@ -220,7 +233,7 @@ def _sorted(
     out of order (how many, and the furthest back)."""
     said = []
     if left_out[0]:
-        said.append(f"{left_out[0]} empty lines between rows left out")
+        said.append(f"{left_out[0]} empty line{'s' * (left_out[0] > 1)} between rows left out")
     if left_out[1]:
         said.append(f"{left_out[1]} rows with an empty or NaN value left out (no measurement)")
     if values.shape[0] and values.ndim == 2 and timed:
@@ -277,7 +290,9 @@ def _python_values(
     columns: tuple[str, ...],
     spec: FileSpec,
 ) -> np.ndarray:
-    """The values read row by row in Python: the slow path that names a faulty row and column."""
+    """The values read row by row in Python: the slow path that names a faulty row and column.
+    An empty cell, or an empty line, reads as NaN, as Arrow reads it: :func:`read_table`
+    leaves such rows out or refuses them by the same rules on either path."""
     order = [header.index(c) for c in columns]
     rows = starts.size - 2
     if rows > 0 and starts[-2] >= len(raw):  # a last line end, not an empty line
@@ -285,6 +300,9 @@ def _python_values(
     values = np.empty((rows, len(columns)))
     for i in range(rows):
         row = _line(raw, starts, i + 1)
+        if len(row) <= 1 and not "".join(row).strip():  # an empty line: left out later
+            values[i] = math.nan
+            continue
         if len(row) != len(header):
             raise QuadobsError(
                 f"{path}, row {i + 2}: {len(row)} columns, expected {len(header)} ({','.join(header)})"
@@ -292,7 +310,7 @@ def _python_values(
         for c, k in enumerate(order):
             text = row[k].strip()
             try:
-                values[i, c] = float(text) if text or columns[c] not in spec.std else math.nan
+                values[i, c] = float(text) if text else math.nan  # empty: judged later
             except ValueError:
                 what = (
                     "an integer anchor id (number the anchors; a name may not stand for one)"

@@ -186,8 +186,11 @@ class RangeLog:
         :attr:`truth_lever`).
     read_notes : tuple of str
         What the reader did to the files' rows (:func:`read_log`): one line per file whose
-        rows with an empty or NaN value it left out or whose rows out of time order it
-        sorted; empty for a log built in memory.
+        empty lines or rows with an empty or NaN value it left out, or whose rows out of
+        time order it sorted; empty for a log built in memory.
+    file_rows : dict
+        For each file whose rows the reader left out or sorted, the file's data row (0-based)
+        of each row in memory (:meth:`file_row`); empty for a log built in memory.
     """
 
     name: str
@@ -220,6 +223,7 @@ class RangeLog:
     tag_y: float = math.nan
     tag_z: float = math.nan
     read_notes: tuple = ()
+    file_rows: dict = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         fix = lambda key, value: object.__setattr__(self, key, value)  # noqa: E731
@@ -330,12 +334,14 @@ class RangeLog:
                 if bad.size:
                     name = (RANGE._fields if fname == "ranges.csv" else TDOA._fields)[c]
                     raise QuadobsError(
-                        f"{self.name}: {fname}, row {int(bad[0]) + 2}, column {name}: unknown beacon id {table[bad[0], c]:g}"
+                        f"{self.name}: {fname}, row {self.file_row(fname, bad[0])}, column "
+                        f"{name}: unknown beacon id {table[bad[0], c]:g}"
                     )
         same = np.flatnonzero(self.tdoa[:, TDOA.anchor_i] == self.tdoa[:, TDOA.anchor_j])
         if same.size:
             raise QuadobsError(
-                f"{self.name}: tdoa.csv, row {int(same[0]) + 2}, column anchor_j: the same anchor as anchor_i"
+                f"{self.name}: tdoa.csv, row {self.file_row('tdoa.csv', same[0])}, column "
+                "anchor_j: the same anchor as anchor_i"
             )
 
     def _check_inputs(self) -> None:
@@ -440,7 +446,8 @@ class RangeLog:
             if b - a > MAX_SPAN and 0 < 2 * zero.size < rows.shape[0] and a == 0.0:
                 raise QuadobsError(
                     f"{self.name}: {fname}: {zero.size} rows stamped 0 (the first at row "
-                    f"{int(zero[0]) + 2}) beside times from {float(rows[zero.size, 0]):.12g} s: "
+                    f"{self.file_row(fname, zero[0])}) beside times from "
+                    f"{float(rows[zero.size, 0]):.12g} s: "
                     "stamps not set (before the clock was synchronised?): leave those rows out"
                 )
             if b - a > MAX_SPAN:
@@ -546,6 +553,12 @@ class RangeLog:
             part = part + rotate_by_quaternions(q, lever)
         return part
 
+    def file_row(self, fname: str, i: int) -> int:
+        """The row number (1-based, the header being row 1) in the file ``fname`` of the
+        in-memory row ``i`` of its table, as messages name it."""
+        rows = self.file_rows.get(fname)
+        return (int(i) if rows is None else int(rows[int(i)])) + 2
+
     def file_label(self, fname: str) -> str:
         """How a message names the log's file ``fname``: its path where the log was read from a
         folder, else the log's name and the file's."""
@@ -636,7 +649,9 @@ def _read_meta(folder: Path) -> dict:
     return parse_meta(str(path), rows[1:])
 
 
-def _read_tables(folder: Path, version: int, notes: list | None = None) -> dict:
+def _read_tables(
+    folder: Path, version: int, notes: list | None = None, row_map: dict | None = None
+) -> dict:
     """Every file of the folder present (:data:`~quadobs.testbed.logs.schema.FILES`), as
     ``(columns, values)``; a line appended to ``notes`` for each file whose rows were left out
     or sorted (:func:`~quadobs.testbed.logs.files.read_table`)."""
@@ -654,7 +669,7 @@ def _read_tables(folder: Path, version: int, notes: list | None = None) -> dict:
             raise QuadobsError(
                 f"{folder / fname}: a version-2 file; add the row version,2 to meta.csv"
             )
-        tables[fname] = read_table(folder / fname, raw, spec, version, notes)
+        tables[fname] = read_table(folder / fname, raw, spec, version, notes, row_map)
     if "ranges.csv" not in tables and "tdoa.csv" not in tables:
         raise QuadobsError(
             f"{folder / 'ranges.csv'}: missing (a log holds ranges.csv, tdoa.csv or both)"
@@ -689,7 +704,8 @@ def read_log(folder: str | Path) -> RangeLog:
         )
     meta = _read_meta(folder)
     read_notes: list[str] = []
-    tables = _read_tables(folder, meta["version"], read_notes)
+    file_rows: dict = {}
+    tables = _read_tables(folder, meta["version"], read_notes, file_rows)
     ids = tables["beacons.csv"][1][:, 0]
     if "imu.csv" in tables:
         kind = "imu_body"
@@ -738,6 +754,7 @@ def read_log(folder: str | Path) -> RangeLog:
             tag_y=meta["tag_y"],
             tag_z=meta["tag_z"],
             read_notes=tuple(read_notes),
+            file_rows=file_rows,
         )
     except QuadobsError as exc:  # name the folder's file, not the log's name
         raise QuadobsError(_in_folder(str(exc), name, folder)) from None

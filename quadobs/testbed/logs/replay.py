@@ -550,7 +550,11 @@ def without_clipped_inputs(log):
         f"{where}: rows at a sensor's full scale on one side ({', '.join(one_side)}), kept: "
         "left out, the other side's rows would bias the mean further"
     ] * bool(one_side)
-    kept = dataclasses.replace(log, inputs=log.inputs[~clipped]) if clipped.any() else log
+    kept = log
+    if clipped.any():  # the file's rows of those kept, for the messages that name one
+        read = log.file_rows.get(where, np.arange(clipped.size))
+        rows = {**log.file_rows, where: np.asarray(read)[~clipped]}
+        kept = dataclasses.replace(log, inputs=log.inputs[~clipped], file_rows=rows)
     return kept, "; ".join(notes)
 
 
@@ -815,10 +819,10 @@ def heard_plane_note(log) -> str | None:
     steps = np.diff(t)
     expected = width / max(float(np.median(steps[steps > 0])) if np.any(steps > 0) else 0, 1e-9)
     flat = []
-    for a in starts:
-        inside = (t >= a) & (t < a + width)
-        heard = np.unique(ids[inside])
-        quiet = np.count_nonzero(inside) < HEARD_WINDOW[2] * expected  # a radio's outage
+    lo, hi = np.searchsorted(t, starts), np.searchsorted(t, starts + width)
+    for i, j in zip(lo, hi, strict=True):
+        heard = np.unique(ids[i:j])
+        quiet = j - i < HEARD_WINDOW[2] * expected  # a radio's outage
         flat.append(not quiet and (heard.size < 4 or anchor_plane(log.beacons[heard]) is not None))
     best, run, first = (0, 0), 0, 0
     for k, f in enumerate(flat):
@@ -892,8 +896,10 @@ TRUTH_LAGS = np.round(np.arange(-3.0, 3.0 + 1e-9, 0.05), 2)
 #: :func:`check_clock_overlap` refuses. A best lag found there is refined by 0.05 s.
 TRUTH_LAG_COARSE = 0.25
 TRUTH_LAG_REACH = 120.0
-#: The most ranges :func:`truth_lag_note` reads (a long log's sampled to these).
+#: The most ranges :func:`truth_lag_note` reads (a long log's sampled to these), and the most
+#: its wider search reads at each coarse lag (its best lag then refined on the former).
 TRUTH_LAG_RANGES = 20000
+TRUTH_LAG_COARSE_RANGES = 1000
 
 
 def truth_lag(log) -> tuple | None:
@@ -909,22 +915,54 @@ def truth_lag(log) -> tuple | None:
     that scores every estimator from the wrong time (the figures of a truth 2 s late are
     metres, not the estimators' error). Ranges outside the truth's span at a lag are not
     counted at it, and a lag at which fewer than a quarter of them lie inside is not tried;
-    a long log's ranges are sampled (a fixed seed) to :data:`TRUTH_LAG_RANGES`. A tag
+    a long log's ranges are sampled (a fixed seed) to :data:`TRUTH_LAG_RANGES`, and to
+    :data:`TRUTH_LAG_COARSE_RANGES` for the wider search's coarse lags. A tag
     mounted ``l`` ahead of the truth's point on a vehicle driving forwards at ``v`` looks the
     same, a lag of ``l / v``: the note names both."""
     truth = log.truth
     if truth is None or truth.shape[0] < 2 or log.ranges.shape[0] < 20:
         return None
-    dim = log.dimension
     t_truth, p_truth = truth[:, 0], log.truth_part("position")
     if p_truth is None:
         return None
-    rows = log.ranges
-    if rows.shape[0] > TRUTH_LAG_RANGES:  # a sample, not a stride (a round robin aliases)
-        keep = np.random.default_rng(0).choice(rows.shape[0], TRUTH_LAG_RANGES, replace=False)
-        rows = rows[np.sort(keep)]
+    full = _lag_spread(log, _sampled(log.ranges, TRUTH_LAG_RANGES), t_truth, p_truth)
+    lags, spreads = TRUTH_LAGS, np.array([full(float(s)) for s in TRUTH_LAGS])
+    t = log.ranges[:, 0]
+    wide = _truth_lags(min(t[-1] - t[0], t_truth[-1] - t_truth[0]))
+    wide = wide[np.abs(wide) > TRUTH_LAGS[-1]]
+    if wide.size:  # coarsely on fewer ranges, the best refined on all
+        few = _lag_spread(log, _sampled(log.ranges, TRUTH_LAG_COARSE_RANGES), t_truth, p_truth)
+        coarse = np.array([few(float(s)) for s in wide])
+        if np.isfinite(coarse).any():
+            near = np.round(wide[np.argmin(coarse)] + np.arange(-0.2, 0.2 + 1e-9, 0.05), 2)
+            lags = np.concatenate([lags, near])
+            spreads = np.concatenate([spreads, [full(float(s)) for s in near]])
+    at_zero = spreads[np.flatnonzero(lags == 0.0)[0]]
+    k = int(np.argmin(spreads))
+    best = float(lags[k])
+    if not (abs(best) >= 0.25 and math.isfinite(at_zero) and spreads[k] < 0.7 * at_zero):
+        return None
+    reach = float(np.max(np.abs(wide))) if wide.size else float(TRUTH_LAGS[-1])
+    return best, float(spreads[k]), float(at_zero), abs(best) >= reach - 0.2 * bool(wide.size)
+
+
+def _sampled(rows: np.ndarray, most: int) -> np.ndarray:
+    """``rows`` (sorted by time), or ``most`` of them drawn with a fixed seed: a sample, not a
+    stride (a round robin aliases a stride)."""
+    if rows.shape[0] <= most:
+        return rows
+    keep = np.random.default_rng(0).choice(rows.shape[0], most, replace=False)
+    return rows[np.sort(keep)]
+
+
+def _lag_spread(log, rows: np.ndarray, t_truth: np.ndarray, p_truth: np.ndarray):
+    """The spread (m) of ``rows``' ranges about the truth moved by a lag ``s`` (s), as a
+    function of ``s`` (:func:`truth_lag`): each range's residual less its anchor's median,
+    the median of their absolute values; infinite where fewer than a quarter of the ranges
+    (and than 20) lie inside the truth's span at that lag."""
     t, anchor, rho = rows[:, 0], log.beacon_index(rows[:, 1]), rows[:, 2]
     a = np.asarray(log.beacons, dtype=float)[anchor]
+    dim = log.dimension
 
     def spread(s: float) -> float:
         inside = (t + s >= t_truth[0]) & (t + s <= t_truth[-1])
@@ -938,18 +976,7 @@ def truth_lag(log) -> tuple | None:
             medians[k] = np.median(e[h == k])
         return float(np.median(np.abs(e - medians[h])))
 
-    lags = _truth_lags(min(t[-1] - t[0], t_truth[-1] - t_truth[0]))
-    spreads = np.array([spread(float(s)) for s in lags])
-    if abs(best := float(lags[np.argmin(spreads)])) > TRUTH_LAGS[-1]:  # refined where coarse
-        fine = np.round(best + np.arange(-0.2, 0.2 + 1e-9, 0.05), 2)
-        lags = np.concatenate([lags, fine])
-        spreads = np.concatenate([spreads, [spread(float(s)) for s in fine]])
-    at_zero = spreads[np.flatnonzero(lags == 0.0)[0]]
-    k = int(np.argmin(spreads))
-    best = float(lags[k])
-    if not (abs(best) >= 0.25 and math.isfinite(at_zero) and spreads[k] < 0.7 * at_zero):
-        return None
-    return best, float(spreads[k]), float(at_zero), abs(best) >= float(np.max(np.abs(lags)))
+    return spread
 
 
 def truth_lag_note(log) -> str | None:
@@ -1698,7 +1725,8 @@ def check_odometry_units(log) -> None:
     if rates.size and float(rates.max()) > GYRO_FULL_SCALE:
         row = int(np.argmax(rates))
         raise QuadobsError(
-            f"{log.file_label('inputs.csv')}, row {row + 2}, column yaw_rate: "
+            f"{log.file_label('inputs.csv')}, row {log.file_row('inputs.csv', row)}, column "
+            "yaw_rate: "
             f"{float(log.inputs[row, 2]):.4g} is beyond any gyroscope's range "
             f"({GYRO_FULL_SCALE:.1f} rad/s = 2000 deg/s): the yaw rate must be in rad/s"
         )

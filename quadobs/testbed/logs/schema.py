@@ -480,7 +480,7 @@ def check_values(
             bad = np.flatnonzero(~(np.abs(np.linalg.norm(q, axis=1) - 1.0) <= QUATERNION_TOLERANCE))
         if bad.size:
             raise QuadobsError(
-                f"{where}, row {int(bad[0]) + 2}, columns qw,qx,qy,qz: not a unit quaternion "
+                f"{where}, row {row(int(bad[0]))}, columns qw,qx,qy,qz: not a unit quaternion "
                 f"(norm {float(np.linalg.norm(q[bad[0]])):.6g})"
             )
 
@@ -511,7 +511,7 @@ def _check_order(where: str, t: np.ndarray, row, reach: float) -> None:
     bad = np.flatnonzero(far)
     if not bad.size or (reach > 0.0 and back.max() <= LATE_ROWS[2] and _single_rows(far)):
         return
-    i = int(bad[0])
+    i = int(bad[0]) if not reach else _first_set_back(far, back)
     sorted_ = (
         f"; a step back of up to {reach:g} s, or a few rows written late, is sorted, more is a "
         "clock set back"
@@ -522,6 +522,18 @@ def _check_order(where: str, t: np.ndarray, row, reach: float) -> None:
         f"{where}, row {row(i)}, column time: earlier than a row before it by "
         f"{float(back[i]):.6g} s (rows must be sorted by time{sorted_})"
     )
+
+
+def _first_set_back(far: np.ndarray, back: np.ndarray) -> int:
+    """The first row that single rows written late (:data:`LATE_ROWS`) do not account for:
+    the first further back than ``LATE_ROWS[2]`` or beginning a run longer than
+    ``LATE_ROWS[0]``, else (too many single rows) the first of ``far``."""
+    edges = np.diff(np.concatenate([[0], far.astype(np.int8), [0]]))
+    begins, ends = np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)
+    candidates = list(begins[ends - begins > LATE_ROWS[0]]) + list(
+        np.flatnonzero(back > LATE_ROWS[2])[:1]
+    )
+    return int(min(candidates)) if candidates else int(begins[0])
 
 
 def _single_rows(far: np.ndarray) -> bool:
