@@ -1099,7 +1099,7 @@ def log_read_figure(rows: int = 300_000, repeats: int = 3) -> dict:
             raw = files.read_limited(path)
             assert raw is not None, "the file was just written"
             starts = files._line_starts(path, raw)
-            values = files._python_values(path, raw, starts, header, tuple(header), spec)
+            values = files._python_values(path, raw, starts, header, tuple(header))
             check_values(str(path), spec, tuple(header), values)
             per_cell.append(time.perf_counter() - t0)
     a, b = _median(arrow), _median(per_cell)

@@ -501,7 +501,7 @@ def test_arrow_and_the_row_by_row_reader_give_the_same_values(tmp_path):
         columns = FILES[fname].columns_of(header, 2)
         fast = log_files._arrow_values(raw, header, columns)
         slow = log_files._python_values(
-            path, raw, log_files._line_starts(path, raw), header, columns, FILES[fname]
+            path, raw, log_files._line_starts(path, raw), header, columns
         )
         np.testing.assert_array_equal(fast, slow)
     figure = log_read_figure(rows=2000, repeats=1)

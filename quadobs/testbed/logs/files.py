@@ -187,7 +187,7 @@ def read_table(
     try:
         values = _arrow_values(raw, header, columns)
     except Exception:  # pyarrow refused a row: find it, or read what Arrow would not
-        values = _python_values(path, raw, starts, header, columns, spec)
+        values = _python_values(path, raw, starts, header, columns)
 
     empty = _empty_lines(raw, starts, values)
     blank = blank_rows(spec, columns, values) | empty
@@ -205,11 +205,11 @@ def read_table(
     check_values(str(path), spec, columns, values, cell, rows, SORT_REACH if timed else 0.0)
     counts = (int(empty.sum()), int(blank.sum() - empty.sum()))
     unsorted = timed and bool(np.any(np.diff(values[:, 0]) < 0.0))
-    if row_map is not None and (rows is not None or unsorted):
+    by_time = np.argsort(values[:, 0], kind="stable") if unsorted else None
+    if row_map is not None and (rows is not None or by_time is not None):
         read = np.arange(values.shape[0]) if rows is None else rows
-        by_time = np.argsort(values[:, 0], kind="stable")  # as _sorted orders them
-        row_map[path.name] = read[by_time] if unsorted else read
-    return columns, _sorted(path, values, counts, notes, timed)
+        row_map[path.name] = read if by_time is None else read[by_time]
+    return columns, _sorted(path, values, counts, notes, by_time)
 
 
 def _empty_lines(raw: bytes, starts: np.ndarray, values: np.ndarray) -> np.ndarray:
@@ -226,24 +226,24 @@ def _empty_lines(raw: bytes, starts: np.ndarray, values: np.ndarray) -> np.ndarr
 
 
 def _sorted(
-    path: Path, values: np.ndarray, left_out: tuple, notes: list | None, timed: bool
+    path: Path, values: np.ndarray, left_out: tuple, notes: list | None, by_time
 ) -> np.ndarray:
-    """A file's rows sorted by time (stably, where timed), with a note of the rows left out
-    (``left_out``: the empty lines, and the rows with an empty or NaN value) and of those
-    out of order (how many, and the furthest back)."""
+    """A file's rows in the order ``by_time`` (None: as they are), with a note of the rows
+    left out (``left_out``: the empty lines, and the rows with an empty or NaN value) and of
+    those out of order (how many, and the furthest back)."""
     said = []
     if left_out[0]:
         said.append(f"{left_out[0]} empty line{'s' * (left_out[0] > 1)} between rows left out")
     if left_out[1]:
         said.append(f"{left_out[1]} rows with an empty or NaN value left out (no measurement)")
-    if values.shape[0] and values.ndim == 2 and timed:
+    if by_time is not None:
         t = values[:, 0]
         back = np.maximum.accumulate(t) - t
-        if (late := int(np.count_nonzero(back > 0.0))) > 0:
-            values = values[np.argsort(t, kind="stable")]
-            said.append(
-                f"{late} rows stamped before an earlier row (by up to {back.max():.3g} s) sorted by time"
-            )
+        late = int(np.count_nonzero(back > 0.0))
+        said.append(
+            f"{late} rows stamped before an earlier row (by up to {back.max():.3g} s) sorted by time"
+        )
+        values = values[by_time]
     if said and notes is not None:
         notes.append(f"{path.name}: {'; '.join(said)}")
     return values
@@ -288,7 +288,6 @@ def _python_values(
     starts: np.ndarray,
     header: list[str],
     columns: tuple[str, ...],
-    spec: FileSpec,
 ) -> np.ndarray:
     """The values read row by row in Python: the slow path that names a faulty row and column.
     An empty cell, or an empty line, reads as NaN, as Arrow reads it: :func:`read_table`

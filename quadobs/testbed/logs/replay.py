@@ -566,13 +566,6 @@ def without_clipped_inputs(log):
 HELD_TRUTH = (2, 3.0)
 
 
-def _copy_spells(same: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The first and last row of each run of ``True`` in ``same`` (``same[i]``: row ``i + 1``
-    repeats row ``i``), as the rows of the copies: ``(first, last)``, inclusive."""
-    edges = np.diff(np.concatenate([[0], same.astype(np.int8), [0]]))
-    return np.flatnonzero(edges == 1) + 1, np.flatnonzero(edges == -1)
-
-
 def without_held_truth(log):
     """``log`` without the truth's rows that hold a lost body's last position, and a note, or None.
 
@@ -594,7 +587,10 @@ def without_held_truth(log):
     t = log.truth[:, 0]
     p = log.truth[:, [log.truth_columns.index(c) for c in ("x", "y", "z")[: log.dimension]]]
     step, dt = np.linalg.norm(np.diff(p, axis=0), axis=1), np.diff(t)
-    first, last = _copy_spells(step == 0.0)
+    from quadobs.testbed.logs.schema import true_runs
+
+    begins, ends = true_runs(step == 0.0)  # step i: row i + 1 repeats row i
+    first, last = begins + 1, ends  # the copies' rows, inclusive
     ended = (last - first + 1 >= HELD_TRUTH[0]) & (last + 1 < t.size)
     ended[ended] &= dt[last[ended]] > 0.0
     first, last = first[ended], last[ended]

@@ -55,6 +55,7 @@ __all__ = [
     "column_index",
     "parse_meta",
     "sampling_period",
+    "true_runs",
 ]
 
 #: Largest log file read (bytes): 512 MiB, about 5 million rows of a body IMU.
@@ -524,12 +525,17 @@ def _check_order(where: str, t: np.ndarray, row, reach: float) -> None:
     )
 
 
+def true_runs(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The first index and the end (one past the last) of each run of ``True`` in ``mask``."""
+    edges = np.diff(np.concatenate([[0], np.asarray(mask).astype(np.int8), [0]]))
+    return np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)
+
+
 def _first_set_back(far: np.ndarray, back: np.ndarray) -> int:
     """The first row that single rows written late (:data:`LATE_ROWS`) do not account for:
     the first further back than ``LATE_ROWS[2]`` or beginning a run longer than
     ``LATE_ROWS[0]``, else (too many single rows) the first of ``far``."""
-    edges = np.diff(np.concatenate([[0], far.astype(np.int8), [0]]))
-    begins, ends = np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)
+    begins, ends = true_runs(far)
     candidates = list(begins[ends - begins > LATE_ROWS[0]]) + list(
         np.flatnonzero(back > LATE_ROWS[2])[:1]
     )
@@ -539,8 +545,8 @@ def _first_set_back(far: np.ndarray, back: np.ndarray) -> int:
 def _single_rows(far: np.ndarray) -> bool:
     """Whether the rows of ``far`` (a mask) come in runs of at most ``LATE_ROWS[0]`` and make
     at most ``LATE_ROWS[1]`` of the rows."""
-    edges = np.diff(np.concatenate([[0], far.astype(np.int8), [0]]))
-    runs = np.flatnonzero(edges == -1) - np.flatnonzero(edges == 1)
+    begins, ends = true_runs(far)
+    runs = ends - begins
     return int(runs.max()) <= LATE_ROWS[0] and runs.sum() <= LATE_ROWS[1] * far.size
 
 
